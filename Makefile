@@ -1,0 +1,35 @@
+# The two commands of the quick start are `make demo` and `make test`; both create .venv
+# at the repo root when it is missing and install posecorr into it (editable), which
+# builds the C runtime.
+PYTHON ?= python3
+VENV   := .venv
+VPY    := $(VENV)/bin/python
+STAMP  := $(VENV)/.posecorr-installed
+NATIVE_SOURCES := $(wildcard runtime_c/*.c runtime_c/*.h runtime_c/CMakeLists.txt runtime_c/cmake/*) export/operators.txt
+
+.PHONY: install demo test bench models fuzz clean
+
+$(STAMP): pyproject.toml setup.py $(NATIVE_SOURCES)
+	@test -x $(VPY) || $(PYTHON) -m venv $(VENV)
+	$(VPY) -m pip install -q --disable-pip-version-check -e '.[train,test]'
+	@touch $(STAMP)
+
+install: $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/posecorr demo
+
+test: $(STAMP)
+	$(VPY) -m pytest -q
+
+bench: $(STAMP)
+	$(VPY) -m posecorr.benchmarks
+
+models: $(STAMP)
+	$(VPY) -m posecorr.export.models
+
+fuzz:
+	$(MAKE) -C runtime_c -f fuzz.mk
+
+clean:
+	rm -rf build runtime_c/build* python/posecorr/_native *.egg-info

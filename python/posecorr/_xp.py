@@ -1,0 +1,133 @@
+"""A minimal array namespace so that every formula is written once.
+
+Rotation and effect formulas in posecorr are written against the small interface below
+(`sqrt`, `where`, `stack`, ... plus arithmetic operators and last-axis indexing
+`x[..., i]`, `x[..., i:j]`). The same code then runs on numpy arrays, on torch tensors
+(differentiable) and on the symbolic tensors of `posecorr.export`, which turn each call
+into ONNX nodes. That is how the simulator, the fit, the diagnosis and the exported graph
+share one implementation of each formula.
+
+torch is imported only when a torch tensor is passed in, so the controller-side install
+(numpy only) never loads it.
+"""
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+
+class NumpyNamespace:
+    name = "numpy"
+
+    sqrt = staticmethod(np.sqrt)
+    sin = staticmethod(np.sin)
+    cos = staticmethod(np.cos)
+    exp = staticmethod(np.exp)
+    tanh = staticmethod(np.tanh)
+    abs = staticmethod(np.abs)
+    atan2 = staticmethod(np.arctan2)
+    maximum = staticmethod(np.maximum)
+    minimum = staticmethod(np.minimum)
+    matmul = staticmethod(np.matmul)
+
+    @staticmethod
+    def where(cond: Any, a: Any, b: Any) -> Any:
+        return np.where(cond, a, b)
+
+    @staticmethod
+    def stack(xs: Sequence[Any], axis: int = -1) -> Any:
+        return np.stack(np.broadcast_arrays(*xs), axis=axis)
+
+    @staticmethod
+    def concat(xs: Sequence[Any], axis: int = -1) -> Any:
+        return np.concatenate(xs, axis=axis)
+
+    @staticmethod
+    def sum(x: Any, axis: int = -1, keepdims: bool = False) -> Any:
+        return np.sum(x, axis=axis, keepdims=keepdims)
+
+    @staticmethod
+    def reshape(x: Any, shape: Sequence[int]) -> Any:
+        return np.reshape(x, shape)
+
+    @staticmethod
+    def swap_last(x: Any) -> Any:
+        return np.swapaxes(x, -1, -2)
+
+    @staticmethod
+    def const(value: Any, like: Any) -> Any:
+        dtype = like.dtype if isinstance(like, np.ndarray) and like.dtype.kind == "f" else np.float64
+        return np.asarray(value, dtype=dtype)
+
+
+class TorchNamespace:
+    name = "torch"
+
+    def __init__(self) -> None:
+        import torch
+
+        self.t = torch
+        self.sqrt = torch.sqrt
+        self.sin = torch.sin
+        self.cos = torch.cos
+        self.exp = torch.exp
+        self.tanh = torch.tanh
+        self.abs = torch.abs
+        self.atan2 = torch.atan2
+        self.matmul = torch.matmul
+
+    def _tensor(self, x: Any, like: Any) -> Any:
+        if isinstance(x, self.t.Tensor):
+            return x
+        return self.t.as_tensor(x, dtype=like.dtype, device=like.device)
+
+    def where(self, cond: Any, a: Any, b: Any) -> Any:
+        ref = a if isinstance(a, self.t.Tensor) else b
+        return self.t.where(cond, self._tensor(a, ref), self._tensor(b, ref))
+
+    def maximum(self, a: Any, b: Any) -> Any:
+        ref = a if isinstance(a, self.t.Tensor) else b
+        return self.t.maximum(self._tensor(a, ref), self._tensor(b, ref))
+
+    def minimum(self, a: Any, b: Any) -> Any:
+        ref = a if isinstance(a, self.t.Tensor) else b
+        return self.t.minimum(self._tensor(a, ref), self._tensor(b, ref))
+
+    def stack(self, xs: Sequence[Any], axis: int = -1) -> Any:
+        ref = next(x for x in xs if isinstance(x, self.t.Tensor))
+        xs = self.t.broadcast_tensors(*[self._tensor(x, ref) for x in xs])
+        return self.t.stack(xs, dim=axis)
+
+    def concat(self, xs: Sequence[Any], axis: int = -1) -> Any:
+        return self.t.cat(list(xs), dim=axis)
+
+    def sum(self, x: Any, axis: int = -1, keepdims: bool = False) -> Any:
+        return self.t.sum(x, dim=axis, keepdim=keepdims)
+
+    def reshape(self, x: Any, shape: Sequence[int]) -> Any:
+        return self.t.reshape(x, tuple(shape))
+
+    def swap_last(self, x: Any) -> Any:
+        return self.t.transpose(x, -1, -2)
+
+    def const(self, value: Any, like: Any) -> Any:
+        return self.t.as_tensor(value, dtype=like.dtype, device=like.device)
+
+
+_NUMPY = NumpyNamespace()
+_TORCH: TorchNamespace | None = None
+
+
+def namespace(*xs: Any) -> Any:
+    """The namespace of the first argument that is not a plain number or numpy array."""
+    global _TORCH
+    for x in xs:
+        ns = getattr(x, "pc_namespace", None)
+        if ns is not None:
+            return ns
+        if type(x).__module__.startswith("torch"):
+            if _TORCH is None:
+                _TORCH = TorchNamespace()
+            return _TORCH
+    return _NUMPY

@@ -2,7 +2,7 @@
 
 The shared library is not a CPython extension; it is loaded with ctypes by
 `posecorr.runtime`. It is declared as an extension only so that setuptools builds it
-in place for editable installs and into the wheel otherwise.
+in place for editable installs (python/posecorr/_native/) and into the wheel otherwise.
 """
 from __future__ import annotations
 
@@ -25,6 +25,17 @@ class CMakeLibrary(Extension):
 
 
 class BuildWithCMake(build_ext):
+    """Runs CMake for the C runtime; library and tools land in posecorr/_native/."""
+
+    TOOLS = ("posecorr-run", "posecorr-bench")
+
+    def get_ext_filename(self, fullname: str) -> str:
+        ext = self.ext_map.get(fullname)
+        if isinstance(ext, CMakeLibrary):
+            # A plain file name: ctypes loads it, CPython never imports it.
+            return os.path.join(*fullname.split(".")) + ".so"
+        return super().get_ext_filename(fullname)
+
     def build_extension(self, ext: Extension) -> None:
         if not isinstance(ext, CMakeLibrary):
             return super().build_extension(ext)
@@ -35,19 +46,25 @@ class BuildWithCMake(build_ext):
                                "-DCMAKE_BUILD_TYPE=Release", "-DPC_BUILD_TESTS=OFF",
                                f"-DPython3_EXECUTABLE={sys.executable}"])
         subprocess.check_call([cmake, "--build", str(build_dir), "--parallel", "2"])
-        # ctypes needs a plain file name it can find: copy the library and the tools
-        # into posecorr/_native beside the package, whatever the extension suffix.
-        target = Path(self.get_ext_fullpath(ext.name)).parent
-        target.mkdir(parents=True, exist_ok=True)
-        for name in ("libposecorr.so", "libposecorr.dylib", "posecorr-run", "posecorr-bench"):
-            built = build_dir / name
-            if built.exists():
-                shutil.copy2(built, target / name)
-        # setuptools expects the extension's own file; point it at the library.
-        shutil.copy2(build_dir / "libposecorr.so", self.get_ext_fullpath(ext.name))
+        target = Path(self.get_ext_fullpath(ext.name))
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(build_dir / "libposecorr.so", target)
+        for tool in self.TOOLS:
+            shutil.copy2(build_dir / tool, target.parent / tool)
+
+    def copy_extensions_to_source(self) -> None:
+        # Editable installs: the tools travel with the library into the source tree.
+        build_py = self.get_finalized_command("build_py")
+        for ext in self.extensions:
+            inplace_file, regular_file = self._get_inplace_equivalent(build_py, ext)
+            Path(inplace_file).parent.mkdir(parents=True, exist_ok=True)
+            if isinstance(ext, CMakeLibrary):
+                for tool in self.TOOLS:
+                    self.copy_file(str(Path(regular_file).parent / tool), str(Path(inplace_file).parent / tool))
+        super().copy_extensions_to_source()
 
 
 setup(
-    ext_modules=[CMakeLibrary("posecorr._native.libposecorr_ext", ROOT / "runtime_c")],
+    ext_modules=[CMakeLibrary("posecorr._native.libposecorr", ROOT / "runtime_c")],
     cmdclass={"build_ext": BuildWithCMake},
 )

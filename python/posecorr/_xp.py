@@ -1,8 +1,20 @@
 """A minimal array namespace so that every formula is written once.
 
 Rotation and effect formulas in posecorr are written against the small interface below
-(`sqrt`, `where`, `stack`, ... plus arithmetic operators and last-axis indexing
-`x[..., i]`, `x[..., i:j]`). The same code then runs on numpy arrays, on torch tensors
+plus arithmetic operators (+ - * / unary -, with arrays or Python floats), comparisons
+(< <= > >=) and last-axis indexing `x[..., i]`, `x[..., i:j]`, and a `.shape` whose
+batch entries may be -1).
+
+The interface (every namespace implements exactly these):
+  sqrt sin cos tan exp tanh abs atan2 sigmoid        elementwise
+  maximum(a, b) minimum(a, b) clip(x, lo, hi)         elementwise, b/lo/hi may be floats
+  where(cond, a, b)                                   a, b arrays or floats
+  stack(xs, axis=-1) concat(xs, axis=-1)              xs may mix arrays and floats (stack)
+  sum(x, axis=-1, keepdims=False)
+  reshape(x, shape) swap_last(x) matmul(a, b)
+  linear(x, weight(in, out), bias(out))               one Gemm when exported
+  softmax(x) step(x) compet(x)                        along the last axis (MLP activations)
+  const(value, like)                                  a constant of like's float type The same code then runs on numpy arrays, on torch tensors
 (differentiable) and on the symbolic tensors of `posecorr.export`, which turn each call
 into ONNX nodes. That is how the simulator, the fit, the diagnosis and the exported graph
 share one implementation of each formula.
@@ -60,6 +72,37 @@ class NumpyNamespace:
         dtype = like.dtype if isinstance(like, np.ndarray) and like.dtype.kind == "f" else np.float64
         return np.asarray(value, dtype=dtype)
 
+    tan = staticmethod(np.tan)
+
+    @staticmethod
+    def sigmoid(x: Any) -> Any:
+        return 0.5 * (1.0 + np.tanh(0.5 * x))
+
+    @staticmethod
+    def clip(x: Any, lo: float, hi: float) -> Any:
+        return np.clip(x, lo, hi)
+
+    @staticmethod
+    def softmax(x: Any) -> Any:
+        e = np.exp(x - np.max(x, axis=-1, keepdims=True))
+        return e / np.sum(e, axis=-1, keepdims=True)
+
+    @staticmethod
+    def step(x: Any) -> Any:
+        return np.where(x >= 0, 1.0, 0.0).astype(x.dtype)
+
+    @staticmethod
+    def compet(x: Any) -> Any:
+        # MATLAB's compet: 1 at the first maximum of each row, 0 elsewhere.
+        out = np.zeros_like(x)
+        np.put_along_axis(out, np.argmax(x, axis=-1)[..., None], 1.0, axis=-1)
+        return out
+
+    @staticmethod
+    def linear(x: Any, weight: Any, bias: Any) -> Any:
+        """x @ weight + bias with weight (in, out): one Gemm in the exported graph."""
+        return x @ weight + bias
+
 
 class TorchNamespace:
     name = "torch"
@@ -113,6 +156,28 @@ class TorchNamespace:
 
     def const(self, value: Any, like: Any) -> Any:
         return self.t.as_tensor(value, dtype=like.dtype, device=like.device)
+
+    def tan(self, x: Any) -> Any:
+        return self.t.tan(x)
+
+    def sigmoid(self, x: Any) -> Any:
+        return self.t.sigmoid(x)
+
+    def clip(self, x: Any, lo: float, hi: float) -> Any:
+        return self.t.clamp(x, lo, hi)
+
+    def softmax(self, x: Any) -> Any:
+        return self.t.softmax(x, dim=-1)
+
+    def step(self, x: Any) -> Any:
+        return (x >= 0).to(x.dtype)
+
+    def compet(self, x: Any) -> Any:
+        index = self.t.argmax(x, dim=-1, keepdim=True)
+        return self.t.zeros_like(x).scatter(-1, index, 1.0)
+
+    def linear(self, x: Any, weight: Any, bias: Any) -> Any:
+        return self.t.matmul(x, self._tensor(weight, x)) + self._tensor(bias, x)
 
 
 _NUMPY = NumpyNamespace()

@@ -1,0 +1,46 @@
+"""Plain-text tables and number formatting for the CLI (no dependency beyond the stdlib)."""
+from __future__ import annotations
+
+import math
+from typing import Any, Sequence
+
+
+def fmt(value: Any, digits: int = 4) -> str:
+    """A metric for a table cell: None as '-', floats with `digits` significant digits."""
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        if math.isinf(value) or math.isnan(value):
+            return str(value)
+        if value != 0 and (abs(value) < 1e-3 or abs(value) >= 1e5):
+            return f"{value:.{digits - 1}e}"
+        return f"{value:.{digits}g}" if abs(value) >= 1 else f"{value:.{digits}f}"
+    return str(value)
+
+
+def table(headers: Sequence[str], rows: Sequence[Sequence[Any]], title: str | None = None) -> str:
+    """A left-aligned first column, right-aligned others, a rule under the header."""
+    cells = [[fmt(c) for c in row] for row in rows]
+    widths = [max(len(str(h)), *(len(r[i]) for r in cells)) if cells else len(str(h))
+              for i, h in enumerate(headers)]
+
+    def line(values: Sequence[str]) -> str:
+        return "  ".join(v.ljust(w) if i == 0 else v.rjust(w) for i, (v, w) in enumerate(zip(values, widths)))
+
+    out = [title] if title else []
+    out += [line([str(h) for h in headers]), "  ".join("-" * w for w in widths)]
+    out += [line(r) for r in cells]
+    return "\n".join(out)
+
+
+def metrics_rows(blocks: dict[str, dict[str, Any]]) -> list[list[Any]]:
+    """Rows `name, rmse_pos [mm], rmse_rot [mrad], rmse_total` for named metric blocks."""
+    rows = []
+    for name, m in blocks.items():
+        pos, rot = m.get("rmse_pos"), m.get("rmse_rot")
+        rows.append([name, None if pos is None else pos * 1e3, None if rot is None else rot * 1e3,
+                     m.get("rmse_total")])
+    return rows
+
+
+METRIC_HEADERS = ["", "rmse_pos [mm]", "rmse_rot [mrad]", "rmse_total"]

@@ -1,0 +1,95 @@
+"""Pose tables: round trip, position-only tables, and every malformed case."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from posecorr.data import PoseTable, TableError, read_table, require_rows, write_table
+
+
+def _table(n: int = 5, with_orientation: bool = True) -> PoseTable:
+    rng = np.random.default_rng(0)
+    q = Rotation.random(n, random_state=1).as_quat(scalar_first=True)
+    return PoseTable(rng.normal(size=(n, 3)), q, rng.normal(size=(n, 3)),
+                     Rotation.random(n, random_state=2).as_quat(scalar_first=True) if with_orientation else None,
+                     {"t": np.arange(n, dtype=float) * 10, "session": np.array(["a"] * n, dtype=object)})
+
+
+def _write(tmp_path, text: str):
+    path = tmp_path / "poses.csv"
+    path.write_text(text)
+    return path
+
+
+HEADER = "meas_x,meas_y,meas_z,meas_qw,meas_qx,meas_qy,meas_qz,ref_x,ref_y,ref_z"
+ROW = "0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3"
+
+
+@pytest.mark.parametrize("with_orientation", [True, False])
+def test_round_trip_is_exact(tmp_path, with_orientation: bool) -> None:
+    table = _table(with_orientation=with_orientation)
+    write_table(table, tmp_path / "t.csv")
+    back = read_table(tmp_path / "t.csv")
+    np.testing.assert_array_equal(back.meas_p, table.meas_p)
+    np.testing.assert_array_equal(back.meas_q, table.meas_q)
+    np.testing.assert_array_equal(back.ref_p, table.ref_p)
+    assert back.has_orientation == with_orientation
+    if with_orientation:
+        np.testing.assert_array_equal(back.ref_q, table.ref_q)
+    np.testing.assert_array_equal(back.extras["t"], table.extras["t"])
+    assert list(back.extras["session"]) == ["a"] * 5
+
+
+def test_position_only_reference_keeps_measured_orientation(tmp_path) -> None:
+    table = read_table(_write(tmp_path, f"{HEADER}\n{ROW}\n"))
+    assert not table.has_orientation
+    np.testing.assert_array_equal(table.reference[:, 3:], table.measured[:, 3:])
+
+
+def test_unknown_columns_are_kept(tmp_path) -> None:
+    table = read_table(_write(tmp_path, f"{HEADER},operator\n{ROW},alice\n"))
+    assert list(table.extras["operator"]) == ["alice"]
+    write_table(table, tmp_path / "out.csv")
+    assert "operator" in (tmp_path / "out.csv").read_text().splitlines()[0]
+
+
+@pytest.mark.parametrize("text, row, column, what", [
+    (HEADER.replace(",ref_z", "") + "\n" + ROW.rsplit(",", 1)[0] + "\n", 1, "ref_z", "missing column"),
+    (f"{HEADER},ref_qw\n{ROW},1\n", 1, "ref_qx", "missing column"),
+    (f"{HEADER}\n{ROW}\n0.1,abc,0.3,1,0,0,0,0.1,0.2,0.3\n", 3, "meas_y", "expected a number, got 'abc'"),
+    (f"{HEADER}\n{ROW}\n0.1,0.2,nan,1,0,0,0,0.1,0.2,0.3\n", 3, "meas_z", "finite"),
+    (f"{HEADER}\n{ROW}\n0.1,0.2,0.3,1,0,0,0,inf,0.2,0.3\n", 3, "ref_x", "finite"),
+    (f"{HEADER}\n{ROW}\n0.1,0.2,0.3,1,0,0,0,,0.2,0.3\n", 3, "ref_x", "empty value"),
+    (f"{HEADER}\n{ROW}\n\n0.1,0.2,0.3,1.01,0,0,0,0.1,0.2,0.3\n", 4, "meas_qw..meas_qz", "quaternion norm"),
+    (f"{HEADER}\n{ROW}\n0.1,0.2\n", 3, None, "2 fields, expected 10"),
+])
+def test_malformed_tables_name_file_row_and_column(tmp_path, text, row, column, what) -> None:
+    path = _write(tmp_path, text)
+    with pytest.raises(TableError) as info:
+        read_table(path)
+    message = str(info.value)
+    assert message.startswith(str(path))
+    assert f"row {row}" in message
+    if column:
+        assert f"column {column}" in message
+    assert what in message
+    assert "\n" not in message
+
+
+def test_quaternion_sign_is_free_and_small_norm_error_accepted(tmp_path) -> None:
+    table = read_table(_write(tmp_path, f"{HEADER}\n0,0,0,-0.9995,0,0,0,0,0,0\n"))
+    assert table.meas_q[0, 0] == -0.9995
+
+
+def test_missing_file_and_empty_file(tmp_path) -> None:
+    with pytest.raises(TableError, match="cannot open"):
+        read_table(tmp_path / "nope.csv")
+    with pytest.raises(TableError, match="empty file"):
+        read_table(_write(tmp_path, ""))
+
+
+def test_too_few_rows_for_a_fit(tmp_path) -> None:
+    table = read_table(_write(tmp_path, f"{HEADER}\n{ROW}\n{ROW}\n"))
+    with pytest.raises(TableError, match=r"2 rows, but a quadratic fit needs at least 10"):
+        require_rows(table, 10, "a quadratic fit")

@@ -1,0 +1,89 @@
+"""Closed-form frame registration: the initial guesses for the `station` and `mount` effects.
+
+Model (DESIGN.md, effects `mount` then `station`): a measured pose is the reference pose
+seen through an unknown world transform W (base frame -> tracker's reporting frame) and an
+unknown mount error X (true tracker frame -> nominal one):
+
+    M_i = W  T_i  X          (4x4 homogeneous; T_i reference, M_i measured)
+
+which is the robot-world-hand-eye problem A_i X = Y B_i with A_i = T_i, B_i = M_i and
+Y = W^-1. Both solvers below work for ANY rotation between the frames (data recorded in
+the tracker's own frame), which is what makes them good starting points for the joint
+nonlinear least-squares refinement.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def project_to_rotation(M: np.ndarray) -> np.ndarray:
+    """Nearest proper rotation (Frobenius norm) to a 3x3 matrix, by SVD."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+    """R, t, s minimising sum |target - (s R source + t)|^2 over (N, 3) point sets.
+
+    Kabsch when `with_scale` is False (s = 1). Umeyama (1991), with the reflection fix.
+    """
+    source, target = np.asarray(source, float), np.asarray(target, float)
+    if source.shape != target.shape or source.ndim != 2 or source.shape[1] != 3:
+        raise ValueError(f"expected two (N, 3) point sets, got {source.shape} and {target.shape}")
+    if len(source) < 3:
+        raise ValueError(f"a rigid registration needs at least 3 points, got {len(source)}")
+    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
+    xs, xt = source - mu_s, target - mu_t
+    cov = xt.T @ xs / len(source)
+    U, sigma, Vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    D = np.diag([1.0, 1.0, d])
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(sigma) @ D) / np.mean(np.sum(xs * xs, axis=1))) if with_scale else 1.0
+    t = mu_t - s * R @ mu_s
+    return R, t, s
+
+
+def homogeneous(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(..., 4, 4) transforms from (..., 3, 3) rotations and (..., 3) translations."""
+    R, t = np.asarray(R, float), np.asarray(t, float)
+    T = np.zeros(R.shape[:-2] + (4, 4))
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def robot_world_hand_eye(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """X, Y (4x4) solving A_i X = Y B_i in the least-squares sense, A and B (N, 4, 4).
+
+    Rotations first, linearly: vec(R_Ai R_X) = vec(R_Y R_Bi) is a homogeneous linear
+    system in the 18 entries of R_X and R_Y (Kronecker form); its null vector is found by
+    SVD and each half is projected onto SO(3). Translations then solve the linear system
+    R_Ai t_X - t_Y = R_Y t_Bi - t_Ai. Needs at least 3 poses with rotations about
+    non-parallel axes for R_X to be determined.
+    """
+    A, B = np.asarray(A, float), np.asarray(B, float)
+    if A.shape != B.shape or A.shape[1:] != (4, 4):
+        raise ValueError(f"expected two (N, 4, 4) stacks, got {A.shape} and {B.shape}")
+    n = len(A)
+    if n < 3:
+        raise ValueError(f"robot-world-hand-eye calibration needs at least 3 poses, got {n}")
+    RA, tA, RB, tB = A[:, :3, :3], A[:, :3, 3], B[:, :3, :3], B[:, :3, 3]
+    eye = np.eye(3)
+    # Column-major vec: vec(P Q) = (I kron P) vec(Q) = (Q^T kron I) vec(P).
+    rows = np.concatenate([np.stack([np.kron(eye, RA[i]), -np.kron(RB[i].T, eye)], axis=1).reshape(9, 18)
+                           for i in range(n)])
+    _, _, Vt = np.linalg.svd(rows)
+    v = Vt[-1]
+    RX_raw = v[:9].reshape(3, 3, order="F")
+    RY_raw = v[9:].reshape(3, 3, order="F")
+    # The null vector's scale and sign are free: make R_X's determinant positive.
+    scale = np.cbrt(np.linalg.det(RX_raw))
+    RX = project_to_rotation(RX_raw / scale)
+    RY = project_to_rotation(RY_raw / scale)
+    lhs = np.concatenate([np.concatenate([RA[i], -eye], axis=1) for i in range(n)])
+    rhs = np.concatenate([RY @ tB[i] - tA[i] for i in range(n)])
+    sol, *_ = np.linalg.lstsq(lhs, rhs, rcond=None)
+    return homogeneous(RX, sol[:3]), homogeneous(RY, sol[3:])

@@ -72,11 +72,14 @@ def robot_world_hand_eye(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.n
         raise ValueError(f"robot-world-hand-eye calibration needs at least 3 poses, got {n}")
     RA, tA, RB, tB = A[:, :3, :3], A[:, :3, 3], B[:, :3, :3], B[:, :3, 3]
     eye = np.eye(3)
-    # Column-major vec: vec(P Q) = (I kron P) vec(Q) = (Q^T kron I) vec(P).
-    rows = np.concatenate([np.stack([np.kron(eye, RA[i]), -np.kron(RB[i].T, eye)], axis=1).reshape(9, 18)
-                           for i in range(n)])
-    _, _, Vt = np.linalg.svd(rows)
-    v = Vt[-1]
+    # Column-major vec: vec(P Q) = (I kron P) vec(Q) = (Q^T kron I) vec(P). The null vector
+    # of the stacked 9N x 18 system is the smallest eigenvector of its 18 x 18 normal matrix.
+    normal = np.zeros((18, 18))
+    for i in range(n):
+        K = np.concatenate([np.kron(eye, RA[i]), -np.kron(RB[i].T, eye)], axis=1)
+        normal += K.T @ K
+    _, vectors = np.linalg.eigh(normal)
+    v = vectors[:, 0]
     RX_raw = v[:9].reshape(3, 3, order="F")
     RY_raw = v[9:].reshape(3, 3, order="F")
     # The null vector's scale and sign are free: make R_X's determinant positive.

@@ -154,8 +154,9 @@ def quat_to_rotvec(q: Any) -> Any:
     s2 = xp.sum(v * v, axis=-1)
     small = s2 < _SMALL_ANGLE_SQ
     s = xp.sqrt(xp.where(small, 1.0, s2))
-    # angle / sin(angle / 2) = 2 atan2(s, w) / s; its series near s = 0 with w ~ 1.
-    factor = xp.where(small, 2.0 / w * (1.0 - s2 / (3.0 * w * w)), 2.0 * xp.atan2(s, w) / s)
+    # angle / sin(angle / 2) = 2 atan2(s, w) / s; its series near s = 0, where w ~ 1.
+    w_safe = xp.where(small, w, 1.0)
+    factor = xp.where(small, 2.0 / w_safe * (1.0 - s2 / (3.0 * w_safe * w_safe)), 2.0 * xp.atan2(s, w) / s)
     return v * xp.reshape(factor, tuple(factor.shape) + (1,))
 
 

@@ -1,0 +1,73 @@
+"""The `metadata_props` of an exported model (DESIGN.md, "The ONNX contract").
+
+Every value is stored as a string; anything that is not already a string (numbers, lists,
+dicts, None) is JSON-encoded, and `posecorr.onnx_meta.read_info` decodes it back.
+
+Keys written by the exporter (other keys may be added by callers):
+
+| key | value |
+|---|---|
+| `posecorr_version` | version of the package that exported the model |
+| `method` | `pmc`, `mlp`, `none`, ... |
+| `representation` | `eaa`, `quat`, `R`, `zhou` or `pos` (position only) |
+| `architecture` | hidden layer sizes, e.g. `[20, 20]` (MLP) or the PMC feature layout |
+| `activation`, `trainer` | MLP activation and training algorithm (null for PMC) |
+| `effects` | fitted physical-effect stages in front of the core, with their parameters |
+| `training_data_digest` | `sha256:<hex>` of the training arrays, see `data_digest` |
+| `test_metrics` | rmse_pos (m), rmse_rot (rad), rmse_total and improvements on the test split |
+| `units` | units of the input/output columns and the metrics |
+| `opset` | ONNX opset of the default domain |
+| `parity` | float32 graph vs float64 `predict`: max errors and the check's settings |
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from typing import Any, Mapping
+
+import numpy as np
+
+UNITS = {
+    "pose": "x, y, z in m (robot base frame); qw, qx, qy, qz unit quaternion, scalar first",
+    "rmse_pos": "m", "rmse_rot": "rad", "rmse_total": "m + rad (w_pos = 1/m, w_rot = 1)",
+}
+
+
+def data_digest(measured: np.ndarray, reference: np.ndarray | None = None) -> str:
+    """`sha256:<hex>` of the training arrays, as float64 little-endian C-order bytes,
+    each preceded by its shape, so that a model can be traced to the exact data it saw."""
+    h = hashlib.sha256()
+    for name, arr in (("measured", measured), ("reference", reference)):
+        if arr is None:
+            h.update(f"{name}:none;".encode())
+            continue
+        a = np.ascontiguousarray(np.asarray(arr, dtype="<f8"))
+        h.update(f"{name}:{a.shape};".encode())
+        h.update(a.tobytes())
+    return "sha256:" + h.hexdigest()
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None if np.isnan(value) else ("inf" if value > 0 else "-inf")
+    return value
+
+
+def encode_value(value: Any) -> str:
+    """A metadata value as the string stored in the model."""
+    if isinstance(value, str):
+        return value
+    return json.dumps(_jsonable(value), sort_keys=True, allow_nan=False)
+
+
+def encode_metadata(metadata: Mapping[str, Any]) -> dict[str, str]:
+    """All values as strings, keys sorted (deterministic files)."""
+    return {str(k): encode_value(v) for k, v in sorted(metadata.items())}

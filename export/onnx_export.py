@@ -1,0 +1,225 @@
+"""Estimator -> .onnx: trace `forward` on symbolic tensors, check, verify parity, save.
+
+The exporter knows nothing about what `forward` does (encodings, scaling, PMC, MLP,
+physical-effect stages): whatever `_xp` calls it makes become nodes. It only fixes the
+contract of DESIGN.md: input `pose` float32 [N, 7], output `corrected` float32 [N, 7],
+opset 17, operators from `export/operators.txt` only.
+"""
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+from .metadata import UNITS, data_digest, encode_metadata
+from .symbolic import BOOL, FLOAT, INT64, OPSET, ExportError, Graph, Sym
+
+INPUT_NAME = "pose"
+OUTPUT_NAME = "corrected"
+BATCH_DIM = "N"
+# IR version 8 is the one that introduced opset 17; older readers accept it.
+IR_VERSION = 8
+OPERATORS_FILE = Path(__file__).resolve().parent / "operators.txt"
+
+
+class OperatorNotSupported(ExportError):
+    """A node whose operator runtime_c does not implement."""
+
+    def __init__(self, op_type: str, node_name: str, domain: str = "") -> None:
+        where = f" (domain {domain!r})" if domain else ""
+        super().__init__(f"operator '{op_type}'{where} in node '{node_name}' is not in export/operators.txt")
+        self.op_type, self.node_name = op_type, node_name
+
+
+class ParityError(ExportError):
+    """The float32 graph disagrees with the float64 estimator beyond tolerance."""
+
+
+def load_operator_list(path: str | Path | None = None) -> frozenset[str]:
+    """The operators (default domain, opset 17) that the exporter may emit and runtime_c
+    implements: one name per line of export/operators.txt, '#' starts a comment."""
+    text = Path(path or OPERATORS_FILE).read_text(encoding="utf-8")
+    names = {line.split("#", 1)[0].strip() for line in text.splitlines()}
+    return frozenset(n for n in names if n)
+
+
+def check_operators(model: Any, allowed: frozenset[str] | None = None) -> None:
+    """Raise OperatorNotSupported for the first node (graph order) whose operator is not
+    allowed; nodes of any non-default domain are refused too."""
+    allowed = load_operator_list() if allowed is None else allowed
+    for node in model.graph.node:
+        if node.domain not in ("", "ai.onnx") or node.op_type not in allowed:
+            raise OperatorNotSupported(node.op_type, node.name, node.domain)
+
+
+def _tensor_proto(name: str, value: np.ndarray) -> Any:
+    from onnx import numpy_helper
+
+    return numpy_helper.from_array(value, name)
+
+
+def build_model(forward: Callable[[Sym], Any], *, graph_name: str = "posecorr",
+                doc: str = "", check: bool = True) -> Any:
+    """Trace `forward(pose) -> corrected` into an onnx.ModelProto (no metadata yet).
+
+    Unused nodes and initializers are dropped; the operator list, onnx.checker (full
+    check) and strict shape inference are applied when `check` is true.
+    """
+    import onnx
+    from onnx import TensorProto, helper
+
+    g = Graph()
+    pose = g.input(INPUT_NAME, (-1, 7))
+    out = g.lift(forward(pose))
+    if out.is_const:
+        raise ExportError("forward() returned a constant: the output does not depend on the pose")
+    if out.elem != FLOAT or out.ndim != 2 or out.shape[1] != 7 or out.shape[0] not in (-1, 1):
+        raise ExportError(f"forward() must return a float [N, 7] tensor, got shape {out.shape}")
+    if out.shape[0] == 1:
+        raise ExportError("forward() lost the batch dimension (output shape [1, 7])")
+    if out.name == INPUT_NAME:
+        out = g.emit("Identity", [out], out.shape)
+
+    # Rename the output tensor to the contract's name, in its producer and its consumers.
+    final = out.name
+    for node in g.nodes:
+        node.inputs = [OUTPUT_NAME if n == final else n for n in node.inputs]
+        node.outputs = [OUTPUT_NAME if n == final else n for n in node.outputs]
+
+    # Keep only what the output depends on (forward may compute things it does not use).
+    producer = {o: node for node in g.nodes for o in node.outputs}
+    needed: set[str] = set()
+    stack = [OUTPUT_NAME]
+    while stack:
+        name = stack.pop()
+        if name in needed:
+            continue
+        needed.add(name)
+        node = producer.get(name)
+        if node is not None:
+            stack.extend(i for i in node.inputs if i)
+    nodes = [n for n in g.nodes if n.outputs[0] in needed]
+    initializers = [_tensor_proto(k, v) for k, v in g.initializers.items() if k in needed]
+    if INPUT_NAME not in needed:
+        raise ExportError("the output does not depend on the input pose")
+
+    node_protos = [helper.make_node(n.op_type, n.inputs, n.outputs, name=n.name, **n.attrs) for n in nodes]
+    dims = [BATCH_DIM, 7]
+    graph = helper.make_graph(
+        node_protos, graph_name,
+        [helper.make_tensor_value_info(INPUT_NAME, TensorProto.FLOAT, dims)],
+        [helper.make_tensor_value_info(OUTPUT_NAME, TensorProto.FLOAT, dims)],
+        initializer=initializers)
+    graph.input[0].doc_string = "measured pose: x, y, z (m), qw, qx, qy, qz"
+    graph.output[0].doc_string = "corrected pose: x, y, z (m), qw, qx, qy, qz with qw >= 0"
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
+                              producer_name="posecorr", doc_string=doc)
+    model.ir_version = IR_VERSION
+    from posecorr import __version__
+
+    model.producer_version = __version__
+    if check:
+        check_model(model)
+    return model
+
+
+def check_model(model: Any) -> None:
+    """Operator list, onnx.checker (full) and strict shape inference; the inferred output
+    must be float [N, 7]."""
+    import onnx
+
+    check_operators(model)
+    onnx.checker.check_model(model, full_check=True)
+    inferred = onnx.shape_inference.infer_shapes(model, check_type=True, strict_mode=True, data_prop=True)
+    out_type = inferred.graph.output[0].type.tensor_type
+    if out_type.elem_type != onnx.TensorProto.FLOAT:
+        raise ExportError("the output is not float32")
+
+
+def op_counts(model: Any) -> dict[str, int]:
+    return dict(sorted(Counter(n.op_type for n in model.graph.node).items()))
+
+
+def _training_arrays(estimator: Any, measured: Any, reference: Any) -> tuple[Any, Any]:
+    """The training data for parity and the digest: explicit arguments first, then the
+    attributes a fitted estimator may keep."""
+    if measured is None:
+        for attr in ("training_measured_", "measured_", "X_train_"):
+            measured = getattr(estimator, attr, None)
+            if measured is not None:
+                break
+    if reference is None:
+        for attr in ("training_reference_", "reference_", "y_train_"):
+            reference = getattr(estimator, attr, None)
+            if reference is not None:
+                break
+    return measured, reference
+
+
+def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = None,
+            reference: np.ndarray | None = None, parity: str = "raise", n_random: int = 10_000,
+            seed: int = 0, tol_pos: float = 1e-5, tol_rot: float = 1e-5, **metadata: Any) -> dict[str, Any]:
+    """Export a fitted corrector to `path` and return what was written.
+
+    estimator: has `forward(pose)` (xp-generic, (N, 7) -> (N, 7)), `predict(measured)`,
+      `representation` and optionally `export_info()` (metadata dict).
+    measured, reference: the training arrays (N, 7) (m, unit quaternions); used for the
+      parity check and the training-data digest. Default: the estimator's own copies.
+    parity: "raise" (refuse to save a model beyond tol_pos m / tol_rot rad), "warn"
+      (record the failure in the metadata) or "skip" (no training data needed).
+    metadata: extra `metadata_props` (test_metrics=..., effects=..., ...); they override
+      the estimator's `export_info()`.
+
+    Returns {"path", "metadata", "op_counts", "n_nodes", "file_size", "parity"}.
+    """
+    from .parity import check_parity
+
+    if parity not in ("raise", "warn", "skip"):
+        raise ValueError("parity must be 'raise', 'warn' or 'skip'")
+    info: dict[str, Any] = dict(estimator.export_info()) if hasattr(estimator, "export_info") else {}
+    info.setdefault("representation", getattr(estimator, "representation", None))
+    info.update(metadata)
+    model = build_model(estimator.forward, doc=f"posecorr {info.get('method', 'corrector')} "
+                                               f"({info.get('representation')})")
+
+    measured, reference = _training_arrays(estimator, measured, reference)
+    parity_report: dict[str, Any] | None = None
+    if parity != "skip":
+        if measured is None:
+            raise ExportError("parity check needs the training data: pass measured=... "
+                              "(or parity='skip')")
+        parity_report = check_parity(estimator, model, np.asarray(measured, float), n_random=n_random,
+                                     seed=seed, tol_pos=tol_pos, tol_rot=tol_rot)
+        if not parity_report["passed"] and parity == "raise":
+            raise ParityError(
+                f"exported graph differs from predict(): max position error "
+                f"{parity_report['max_pos_m']:.3g} m (tol {tol_pos:g}), max rotation error "
+                f"{parity_report['max_rot_rad']:.3g} rad (tol {tol_rot:g})")
+        info["parity"] = parity_report
+    if measured is not None and "training_data_digest" not in info:
+        info["training_data_digest"] = data_digest(measured, reference)
+
+    from posecorr import __version__
+
+    info.setdefault("posecorr_version", __version__)
+    info.setdefault("units", UNITS)
+    info["opset"] = OPSET
+    info.setdefault("effects", [])
+    for key in ("method", "architecture", "activation", "trainer", "test_metrics"):
+        info.setdefault(key, None)
+    meta = encode_metadata(info)
+    del model.metadata_props[:]
+    for key, value in meta.items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+
+    path = Path(path)
+    if path.parent and not path.parent.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+    data = model.SerializeToString()
+    path.write_bytes(data)
+    counts = op_counts(model)
+    return {"path": str(path), "metadata": info, "op_counts": counts, "n_nodes": sum(counts.values()),
+            "file_size": len(data), "parity": parity_report}

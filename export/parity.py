@@ -1,0 +1,137 @@
+"""Parity: the exported float32 graph in onnxruntime against the estimator's float64 predict.
+
+Two pose sets are checked:
+
+- `train`: the training measurements themselves.
+- `random`: `n_random` poses with positions uniform in the axis-aligned box of the
+  training positions, and orientations = a random training orientation composed with a
+  random rotation of angle uniform in [0, RANDOM_ANGLE] rad (direction uniform on the
+  sphere), the quaternion sign chosen at random (the sign of the input is free).
+
+Why near the training orientations and not uniform on SO(3): a corrector is only used
+where it was trained, and far from it the float64 function itself has legitimate
+discontinuities that float32 cannot track (the rotation-vector and quaternion encodings
+jump at 180 deg / w = 0, Shepperd's method switches branches, a network's output may fall
+where Gram-Schmidt is ill-conditioned). There a 1-ulp input difference flips a branch and
+the "error" measures the function's discontinuity, not the export. Within RANDOM_ANGLE of
+the data (about half the 30 deg grid step of Exp III) the function is smooth, so the
+difference is the graph's rounding error.
+
+Reference: predict(x64) with x64 = the float32-rounded input, in float64, so that the
+figure is the error added by the graph, not the unavoidable rounding of the input to the
+float32 contract (~6e-8 relative). Errors: position = Euclidean distance (m), rotation =
+geodesic angle between the quaternions (rad). The output must also be a unit quaternion
+with qw >= 0.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+RANDOM_ANGLE = 0.25  # rad
+TOL_POS = 1e-5       # m
+TOL_ROT = 1e-5       # rad
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of (..., 4) quaternions (w, x, y, z)."""
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack([aw * bw - ax * bx - ay * by - az * bz,
+                     aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw], axis=-1)
+
+
+def quat_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Geodesic angle (rad) between the rotations of (..., 4) quaternions, sign-free and
+    accurate near 0 (atan2 of the vector and scalar parts of a^-1 b)."""
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    d = quat_multiply(a * np.array([1.0, -1.0, -1.0, -1.0]), b)
+    return 2.0 * np.arctan2(np.linalg.norm(d[..., 1:], axis=-1), np.abs(d[..., 0]))
+
+
+def random_poses(measured: np.ndarray, n: int, seed: int = 0, max_angle: float = RANDOM_ANGLE) -> np.ndarray:
+    """(n, 7) poses around the training data (see the module docstring)."""
+    rng = np.random.default_rng(seed)
+    measured = np.asarray(measured, float)
+    lo, hi = measured[:, :3].min(axis=0), measured[:, :3].max(axis=0)
+    pos = lo + (hi - lo) * rng.random((n, 3))
+    base = measured[rng.integers(0, len(measured), n), 3:7]
+    axis = rng.normal(size=(n, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    angle = max_angle * rng.random(n)
+    delta = np.concatenate([np.cos(angle / 2)[:, None], np.sin(angle / 2)[:, None] * axis], axis=1)
+    q = quat_multiply(base, delta)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q *= np.where(rng.random(n) < 0.5, -1.0, 1.0)[:, None]
+    return np.concatenate([pos, q], axis=1)
+
+
+def session(model: Any) -> Any:
+    """An onnxruntime CPU session for a ModelProto, serialized bytes or a path."""
+    import onnxruntime as ort
+
+    if isinstance(model, (str, Path)):
+        data: Any = str(model)
+    elif isinstance(model, (bytes, bytearray)):
+        data = bytes(model)
+    else:
+        data = model.SerializeToString()
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    opts.log_severity_level = 3
+    return ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
+
+
+def run_onnx(model: Any, poses: np.ndarray) -> np.ndarray:
+    """Apply a model (ModelProto, bytes, path or an existing session) to (N, 7) poses."""
+    sess = model if hasattr(model, "run") and hasattr(model, "get_inputs") else session(model)
+    x = np.ascontiguousarray(np.asarray(poses, dtype=np.float32))
+    return sess.run(None, {sess.get_inputs()[0].name: x})[0]
+
+
+def compare(out32: np.ndarray, ref64: np.ndarray) -> dict[str, float]:
+    """Max position (m) / rotation (rad) differences and the output quaternion's validity."""
+    out = np.asarray(out32, float)
+    dp = np.linalg.norm(out[:, :3] - ref64[:, :3], axis=1)
+    dr = quat_angle(out[:, 3:7], ref64[:, 3:7])
+    return {"n": int(len(out)), "max_pos_m": float(np.max(dp)), "max_rot_rad": float(np.max(dr)),
+            "max_unit_norm_error": float(np.max(np.abs(np.linalg.norm(out[:, 3:7], axis=1) - 1.0))),
+            "min_qw": float(np.min(out[:, 3])),
+            "finite": bool(np.all(np.isfinite(out)))}
+
+
+def check_parity(estimator: Any, model: Any, measured: np.ndarray, *, n_random: int = 10_000, seed: int = 0,
+                 tol_pos: float = TOL_POS, tol_rot: float = TOL_ROT) -> dict[str, Any]:
+    """Run the graph in onnxruntime on the training poses and `n_random` random poses
+    (see the module docstring) and compare with `estimator.predict` in float64.
+
+    Returns {"train": {...}, "random": {...}, "max_pos_m", "max_rot_rad", "passed",
+    "tol_pos_m", "tol_rot_rad", "random_poses", "reference"}.
+    """
+    sess = session(model)
+    measured = np.asarray(measured, float)
+    report: dict[str, Any] = {}
+    sets = {"train": measured}
+    if n_random > 0:
+        sets["random"] = random_poses(measured, n_random, seed)
+    for label, poses in sets.items():
+        x32 = poses.astype(np.float32)
+        ref = np.asarray(estimator.predict(x32.astype(np.float64)), float)
+        report[label] = compare(run_onnx(sess, x32), ref)
+    max_pos = max(r["max_pos_m"] for r in report.values())
+    max_rot = max(r["max_rot_rad"] for r in report.values())
+    valid = all(r["finite"] and r["min_qw"] >= 0.0 and r["max_unit_norm_error"] < 1e-5 for r in report.values())
+    report.update({
+        "max_pos_m": max_pos, "max_rot_rad": max_rot,
+        "tol_pos_m": tol_pos, "tol_rot_rad": tol_rot,
+        "passed": bool(max_pos <= tol_pos and max_rot <= tol_rot and valid),
+        "random_poses": f"{n_random} poses, positions uniform in the training box, orientations "
+                        f"within {RANDOM_ANGLE} rad of training orientations, seed {seed}",
+        "reference": "estimator.predict in float64 on the float32-rounded inputs",
+    })
+    return report

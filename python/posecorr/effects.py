@@ -1,0 +1,602 @@
+"""The catalogue of physical effects (DESIGN.md, "Physical effects"): the public contract.
+
+Each effect is a named, parametric, differentiable map of a tracker pose (p (N, 3) m, R (N, 3, 3))
+in the robot base frame. The simulator applies the effects to reference poses in catalogue
+order (`order`); a correction model applies the fitted ones inverse, in reverse order.
+Every formula is written once against `posecorr._xp`, so it runs on numpy arrays, on torch
+tensors (differentiable in p, R and theta) and on the ONNX exporter's symbolic tensors.
+
+Frames: nominal station rotation R_S and origin t_S (eq. 23), station coordinates of a base
+point s = R_S^T (p - t_S) (the station looks along -z), workspace centre c, Exp(w) the rotation
+with rotation vector w. They travel in an `EffectContext`, together with per-pose extras
+(the time t in s since the start of the session) and, for `noise`, its random draws.
+
+| order | name | theta (in this order) |
+|---|---|---|
+| 1 | mount | d (3, rad), e (3, m) |
+| 2 | sweep | phase_x, phase_y (rad), curve_x, curve_y (1/rad) |
+| 3 | range_scale | k (1) |
+| 4 | incidence | b1, b2 (m) |
+| 5 | drift | d (3, m), tau (s) |
+| 6 | station | w (3, rad), v (3, m) |
+| 7 | noise | sigma_p (m), sigma_r (rad), k2 (1/m) |
+
+theta is a flat vector (numpy or torch, shape (size,)) holding the parameters in that order.
+
+User effects: subclass `Effect` in a Python file, set `name`, `params` (a tuple of `Param`) and
+`order` (default 5.5: after drift, before the station registration), and write `forward`
+against the namespace (see `tests/data/example_effect.py`); `load_effect_file(path)` registers
+it. Without an `inverse` it is inverted by the generic fixed-point iteration of `Effect.inverse`.
+"""
+from __future__ import annotations
+
+import importlib.util
+import re
+import sys
+import warnings
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, ClassVar, Iterable, Mapping
+
+import numpy as np
+
+from ._xp import namespace
+from .rotations import normalize, rotvec_to_matrix
+
+__all__ = [
+    "Param", "Effect", "EffectContext", "EFFECTS", "BUILTIN_NAMES", "get_effect", "register_effect",
+    "unregister_effect", "to_namespace", "checked_theta",
+    "parse_effects_arg", "load_effect_file", "apply_effects", "invert_effects",
+    "sorted_effects", "Mount", "Sweep", "RangeScale", "Incidence", "Drift", "Station", "Noise",
+]
+
+
+@dataclass(frozen=True)
+class Param:
+    """One named parameter block of an effect.
+
+    default: the default magnitude (what a bare NAME on the command line means), `size` values.
+    scale: typical magnitude, for scaling the fit's unknowns to O(1).
+    identity: the value of each entry that makes the effect the identity (with the others 0).
+    """
+
+    name: str
+    size: int
+    default: tuple[float, ...]
+    scale: float
+    unit: str
+    identity: float = 0.0
+    doc: str = ""
+
+    def __post_init__(self) -> None:
+        if len(self.default) != self.size:
+            raise ValueError(f"parameter {self.name}: default has {len(self.default)} values, size is {self.size}")
+
+
+@dataclass
+class EffectContext:
+    """Frame constants and per-pose extras the effect maps need.
+
+    R_S (3, 3), t_S (3,) m: nominal base_T_station (eq. 23). c (3,) m: workspace centre.
+    t: (N,) seconds since the session start, or None (then `drift` is the identity).
+    noise_draws: standard normal draws of `noise` ({"p": (N, 3), "r": (N, 1), "w": (N, 3)}), or None
+    (then `noise` draws them from `rng`).
+    """
+
+    R_S: np.ndarray
+    t_S: np.ndarray
+    c: np.ndarray
+    t: Any = None
+    noise_draws: dict[str, np.ndarray] | None = None
+    rng: np.random.Generator | None = None
+
+    @classmethod
+    def default(cls, t: Any = None, **kwargs: Any) -> "EffectContext":
+        """The paper's frames (geometry.station_pose, geometry.WORKSPACE_CENTRE)."""
+        from .geometry import WORKSPACE_CENTRE, station_pose
+
+        R_S, t_S = station_pose()
+        return cls(R_S, t_S, WORKSPACE_CENTRE.copy(), t=t, **kwargs)
+
+    def subset(self, index: np.ndarray) -> "EffectContext":
+        """The context of a subset of the poses (per-pose extras indexed, constants kept)."""
+        draws = None if self.noise_draws is None else {k: v[index] for k, v in self.noise_draws.items()}
+        return replace(self, t=None if self.t is None else self.t[index], noise_draws=draws)
+
+
+def _to_namespace(p: Any, R: Any, theta: Any) -> tuple[Any, Any, Any, Any]:
+    """(xp, p, R, theta) with every argument converted to the namespace of the non-numpy ones."""
+    xp = namespace(p, R, theta)
+    if xp.name == "numpy":
+        return xp, np.asarray(p, float), np.asarray(R, float), np.asarray(theta, float)
+    like = next(x for x in (p, R, theta) if _belongs(x, xp))
+    p, R, theta = (x if _belongs(x, xp) else xp.const(np.asarray(x, float), like) for x in (p, R, theta))
+    return xp, p, R, theta
+
+
+def _belongs(x: Any, xp: Any) -> bool:
+    return namespace(x).name == xp.name
+
+
+to_namespace = _to_namespace
+
+
+def _rotate(R: Any, v: Any) -> Any:
+    """R v for (..., 3, 3) R and (..., 3) v, as a broadcast product summed over the last axis."""
+    xp = namespace(R, v)
+    shape = tuple(v.shape[:-1]) + (1, 3)
+    return xp.sum(R * xp.reshape(v, shape), axis=-1)
+
+
+def _rows_times(p: Any, M: Any) -> Any:
+    """p M for row vectors p (..., 3) and one matrix M (3, 3)."""
+    return namespace(p, M).matmul(p, M)
+
+
+class Effect:
+    """Base class of all effects (built-in and user-defined).
+
+    Subclasses set `name`, `params`, `order` and implement `forward`; `inverse` defaults to a
+    fixed number of fixed-point steps x <- x - (F(x) - y), which converges for near-identity
+    maps (all the catalogue's are: a map that moves poses by mm and mrad). Called through
+    `apply_effects` / `invert_effects`, `forward` receives p, R and theta already converted to
+    one namespace (`to_namespace`), so a user's map only needs `xp = namespace(p, R, theta)`.
+    """
+
+    name: ClassVar[str] = ""
+    params: ClassVar[tuple[Param, ...]] = ()
+    order: ClassVar[float] = 5.5
+    random: ClassVar[bool] = False          # noise-like: simulated, never fitted as a bias
+    needs_time: ClassVar[bool] = False      # uses ctx.t
+    closed_form_inverse: ClassVar[bool] = False
+    changes_rotation: ClassVar[bool] = True  # False: the generic inverse leaves R untouched
+    inverse_steps: ClassVar[int] = 6
+    doc: ClassVar[str] = ""
+
+    # -- parameters ------------------------------------------------------------------
+    @property
+    def size(self) -> int:
+        return sum(p.size for p in self.params)
+
+    @property
+    def param_names(self) -> list[str]:
+        return [p.name for p in self.params]
+
+    def slices(self) -> dict[str, slice]:
+        out, i = {}, 0
+        for p in self.params:
+            out[p.name] = slice(i, i + p.size)
+            i += p.size
+        return out
+
+    def split(self, theta: Any) -> dict[str, Any]:
+        """theta (size,) -> {param name: theta[..., i:j]} (last-axis slices, exporter-safe)."""
+        return {name: theta[..., s.start:s.stop] for name, s in self.slices().items()}
+
+    def default_theta(self) -> np.ndarray:
+        return np.concatenate([np.asarray(p.default, float) for p in self.params]) if self.params else np.zeros(0)
+
+    def identity_theta(self) -> np.ndarray:
+        return np.concatenate([np.full(p.size, p.identity, float) for p in self.params]) if self.params else np.zeros(0)
+
+    def scales(self) -> np.ndarray:
+        """(size,) typical magnitude of each entry of theta, for scaling a fit's unknowns."""
+        return np.concatenate([np.full(p.size, p.scale, float) for p in self.params]) if self.params else np.zeros(0)
+
+    def signature(self) -> str:
+        """'d[3] rad, e[3] m': the expected values, for messages."""
+        return ", ".join(f"{p.name}[{p.size}] {p.unit}" if p.size > 1 else f"{p.name} {p.unit}"
+                         for p in self.params)
+
+    def validate(self, theta: Any) -> np.ndarray:
+        """theta as a float vector of the right size; ValueError naming the effect otherwise."""
+        values = np.asarray(theta, dtype=float).reshape(-1)
+        if values.size != self.size:
+            raise ValueError(f"effect {self.name!r} takes {self.size} values ({self.signature()}), "
+                             f"got {values.size}")
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f"effect {self.name!r}: parameters must be finite, got {values.tolist()}")
+        return values
+
+    def describe(self, theta: Any) -> dict[str, list[float]]:
+        """{param name: values} of a numeric theta (for reports and JSON)."""
+        values = np.asarray(theta, dtype=float).reshape(-1)
+        return {name: values[s].tolist() for name, s in self.slices().items()}
+
+    def notes(self, ctx: EffectContext) -> list[str]:
+        """Why the effect cannot act on this data (empty when it can)."""
+        return []
+
+    # -- maps ------------------------------------------------------------------------
+    def forward(self, p: Any, R: Any, theta: Any, ctx: EffectContext) -> tuple[Any, Any]:
+        """Apply the effect: reference-side pose -> measured-side pose."""
+        raise NotImplementedError(f"effect {self.name!r} has no forward map")
+
+    def inverse(self, p: Any, R: Any, theta: Any, ctx: EffectContext) -> tuple[Any, Any]:
+        """Undo `forward` by `inverse_steps` fixed-point steps (positions additively, rotations by
+        left-multiplying the residual rotation R_target F_R(x)^T)."""
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        x_p, x_R = p, R
+        for _ in range(self.inverse_steps):  # a fixed count: unrolled in the exported graph
+            f_p, f_R = self.forward(x_p, x_R, theta, ctx)
+            x_p = x_p - (f_p - p)
+            if self.changes_rotation:
+                x_R = xp.matmul(xp.matmul(R, xp.swap_last(f_R)), x_R)
+        return x_p, x_R
+
+    def __repr__(self) -> str:
+        return f"<effect {self.name}: {self.signature()}>"
+
+
+# --- the built-in catalogue -----------------------------------------------------------
+
+class Mount(Effect):
+    """Error of the tracker adapter, i.e. of end_T_tracker (eq. 22), in the tracker frame.
+
+    p <- p + R e;  R <- R Exp(d).  d (3, rad) and e (3, m) are expressed in the tracker frame
+    (a rotated and shifted tracker on its adapter). Closed-form inverse: R <- R Exp(d)^T,
+    p <- p - R e (with the restored R).
+    """
+
+    name = "mount"
+    order = 1
+    closed_form_inverse = True
+    params = (Param("d", 3, (2e-3, -1e-3, 5e-3), 1e-2, "rad", doc="rotation vector, tracker frame"),
+              Param("e", 3, (2e-3, -1e-3, 1.5e-3), 1e-2, "m", doc="offset, tracker frame"))
+
+    def forward(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        d, e = theta[..., 0:3], theta[..., 3:6]
+        return p + _rotate(R, e), xp.matmul(R, rotvec_to_matrix(d))
+
+    def inverse(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        d, e = theta[..., 0:3], theta[..., 3:6]
+        R0 = xp.matmul(R, xp.swap_last(rotvec_to_matrix(d)))
+        return p - _rotate(R0, e), R0
+
+
+def _station_coords(p: Any, ctx: EffectContext) -> Any:
+    xp = namespace(p)
+    return _rows_times(p - xp.const(ctx.t_S, p), xp.const(ctx.R_S, p))   # (p - t_S)^T R_S = (R_S^T (p - t_S))^T
+
+
+def _from_station(s: Any, ctx: EffectContext) -> Any:
+    xp = namespace(s)
+    return xp.const(ctx.t_S, s) + _rows_times(s, xp.swap_last(xp.const(ctx.R_S, s)))
+
+
+def _sweep_direction(xp: Any, alpha: Any, beta: Any) -> Any:
+    """Unit direction s / |s| of a point at sweep angles (alpha, beta), station frame."""
+    return normalize(xp.stack([xp.tan(alpha), xp.tan(beta), -1.0], axis=-1))
+
+
+class Sweep(Effect):
+    """Lighthouse sweep-angle calibration error (phase and curvature), station frame.
+
+    alpha = atan2(s_x, -s_z), beta = atan2(s_y, -s_z) (rad), r = |s| (m);
+    alpha' = alpha + phase_x + curve_x beta^2;  beta' = beta + phase_y + curve_y alpha^2;
+    s' = r normalise(tan alpha', tan beta', -1);  p <- t_S + R_S s'.  R is unchanged.
+    Valid in front of the station (s_z < 0). Inverse: the angles are recovered by a fixed
+    number of fixed-point steps alpha <- alpha' - phase_x - curve_x beta^2 (and likewise beta),
+    a contraction with factor 2 |curve| |angle| << 1.
+    """
+
+    name = "sweep"
+    order = 2
+    params = (Param("phase_x", 1, (1e-3,), 1e-3, "rad"), Param("phase_y", 1, (-1e-3,), 1e-3, "rad"),
+              Param("curve_x", 1, (0.02,), 1e-2, "1/rad"), Param("curve_y", 1, (-0.02,), 1e-2, "1/rad"))
+    inverse_steps = 8
+
+    @staticmethod
+    def _angles(xp: Any, s: Any) -> tuple[Any, Any, Any]:
+        sx, sy, sz = s[..., 0], s[..., 1], s[..., 2]
+        r = xp.sqrt(xp.sum(s * s, axis=-1, keepdims=True))
+        return xp.atan2(sx, -sz), xp.atan2(sy, -sz), r
+
+    def forward(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        px, py, cx, cy = theta[..., 0], theta[..., 1], theta[..., 2], theta[..., 3]
+        alpha, beta, r = self._angles(xp, _station_coords(p, ctx))
+        a2 = alpha + px + cx * beta * beta
+        b2 = beta + py + cy * alpha * alpha
+        return _from_station(r * _sweep_direction(xp, a2, b2), ctx), R
+
+    def inverse(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        px, py, cx, cy = theta[..., 0], theta[..., 1], theta[..., 2], theta[..., 3]
+        a2, b2, r = self._angles(xp, _station_coords(p, ctx))
+        alpha, beta = a2 - px, b2 - py
+        for _ in range(self.inverse_steps):
+            alpha, beta = a2 - px - cx * beta * beta, b2 - py - cy * alpha * alpha
+        return _from_station(r * _sweep_direction(xp, alpha, beta), ctx), R
+
+
+class RangeScale(Effect):
+    """Range scale error of the station (e.g. a wrong sensor-constellation scale).
+
+    p <- t_S + (1 + k)(p - t_S); k dimensionless. R unchanged. Inverse: divide by (1 + k).
+    """
+
+    name = "range_scale"
+    order = 3
+    closed_form_inverse = True
+    params = (Param("k", 1, (5e-3,), 1e-2, "1"),)
+
+    def forward(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        t_S = xp.const(ctx.t_S, p)
+        return t_S + (1.0 + theta[..., 0:1]) * (p - t_S), R
+
+    def inverse(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        t_S = xp.const(ctx.t_S, p)
+        return t_S + (p - t_S) / (1.0 + theta[..., 0:1]), R
+
+
+class Incidence(Effect):
+    """Position bias growing with the incidence angle of the station's light on the tracker.
+
+    u = unit(p - t_S) (station -> tracker), a = R[:, 2] (tracker z axis, base frame),
+    cos th = -a . u, e = unit(a - (a . u) u);  p <- p + b1 (1 - cos th) u + b2 sin th e  (b1, b2 m).
+    Implemented as the identical smooth form b1 (1 + a . u) u + b2 (a - (a . u) u), since
+    sin th e = a - (a . u) u for a unit a; this is also 0 where e is degenerate (th = 0 or pi).
+    R unchanged. Inverse: fixed-point steps (the bias changes by ~b/|p - t_S| per metre).
+    """
+
+    name = "incidence"
+    order = 4
+    changes_rotation = False
+    params = (Param("b1", 1, (1e-3,), 1e-3, "m", doc="along the line of sight"),
+              Param("b2", 1, (1e-3,), 1e-3, "m", doc="across it, towards the tracker z axis"))
+    inverse_steps = 6
+
+    def forward(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        b1, b2 = theta[..., 0:1], theta[..., 1:2]
+        u = normalize(p - xp.const(ctx.t_S, p))
+        a = R[..., 2]                         # third column: the tracker z axis
+        au = xp.sum(a * u, axis=-1, keepdims=True)
+        return p + b1 * (1.0 + au) * u + b2 * (a - au * u), R
+
+
+class Drift(Effect):
+    """Slow drift of the tracking solution over a session (thermal, IMU bias), base frame.
+
+    p <- p + d (1 - exp(-t / tau)); d (3, m), tau (s), t (s since the session start) from
+    ctx.t. Without a time column the effect is the identity (and warns once). Closed-form inverse.
+    """
+
+    name = "drift"
+    order = 5
+    closed_form_inverse = True
+    needs_time = True
+    params = (Param("d", 3, (1e-3, -5e-4, 1e-3), 1e-3, "m"),
+              Param("tau", 1, (3600.0,), 3600.0, "s", identity=3600.0))
+
+    def notes(self, ctx):
+        return [] if ctx.t is not None else ["no time column t: drift is the identity"]
+
+    def _offset(self, xp: Any, p: Any, theta: Any, ctx: EffectContext) -> Any | None:
+        if ctx.t is None:
+            warnings.warn("drift: the data has no time column t, so drift is the identity", stacklevel=3)
+            return None
+        t = ctx.t if _belongs(ctx.t, xp) else xp.const(np.asarray(ctx.t, float), p)
+        t = xp.reshape(t, tuple(t.shape) + (1,))
+        return theta[..., 0:3] * (1.0 - xp.exp(-t / theta[..., 3:4]))
+
+    def forward(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        off = self._offset(xp, p, theta, ctx)
+        return (p if off is None else p + off), R
+
+    def inverse(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        off = self._offset(xp, p, theta, ctx)
+        return (p if off is None else p - off), R
+
+
+class Station(Effect):
+    """Error of the single-measurement station registration (eq. 23), a rigid motion about c.
+
+    p <- c + Exp(w)(p - c) + v;  R <- Exp(w) R;  w (3, rad), v (3, m), base frame. Rotating
+    about the workspace centre c (not the base origin) keeps w and v nearly uncorrelated.
+    Closed-form inverse: p <- c + Exp(w)^T (p - v - c), R <- Exp(w)^T R.
+    """
+
+    name = "station"
+    order = 6
+    closed_form_inverse = True
+    params = (Param("w", 3, (2e-3, -1e-3, 3e-3), 1e-2, "rad", doc="rotation vector, base frame"),
+              Param("v", 3, (1e-2, -5e-3, 5e-3), 1e-2, "m", doc="translation, base frame"))
+
+    def forward(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        W = rotvec_to_matrix(theta[..., 0:3])
+        c = xp.const(ctx.c, p)
+        return c + _rows_times(p - c, xp.swap_last(W)) + theta[..., 3:6], xp.matmul(W, R)
+
+    def inverse(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        W = rotvec_to_matrix(theta[..., 0:3])
+        c = xp.const(ctx.c, p)
+        return c + _rows_times(p - theta[..., 3:6] - c, W), xp.matmul(xp.swap_last(W), R)
+
+
+class Noise(Effect):
+    """Random measurement noise (simulated only; never fitted as a bias, has no inverse).
+
+    p <- p + sigma_p n_p + k2 r^2 n_r u;  R <- R Exp(sigma_r n_w), with n_p, n_w ~ N(0, I_3),
+    n_r ~ N(0, 1) per pose, r = |p - t_S| (m), u = unit(p - t_S). sigma_p (m), sigma_r (rad,
+    per axis, tracker frame), k2 (1/m: the range-noise standard deviation is k2 r^2 metres).
+    The draws come from ctx.noise_draws (so two tables can share them) or else ctx.rng.
+    """
+
+    name = "noise"
+    order = 7
+    random = True
+    params = (Param("sigma_p", 1, (3e-4,), 1e-4, "m"), Param("sigma_r", 1, (5e-4,), 1e-4, "rad"),
+              Param("k2", 1, (2e-4,), 1e-4, "1/m"))
+
+    @staticmethod
+    def draw(rng: np.random.Generator, n: int) -> dict[str, np.ndarray]:
+        """Standard normal draws for n poses: {"p": (n, 3), "r": (n, 1), "w": (n, 3)}."""
+        return {"p": rng.standard_normal((n, 3)), "r": rng.standard_normal((n, 1)), "w": rng.standard_normal((n, 3))}
+
+    def forward(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        draws = ctx.noise_draws
+        if draws is None:
+            rng = ctx.rng if ctx.rng is not None else np.random.default_rng()
+            draws = self.draw(rng, int(np.prod(p.shape[:-1])))
+        n_p, n_r, n_w = (xp.const(np.asarray(draws[k], float).reshape(tuple(p.shape)[:-1] + (-1,)), p)
+                         for k in ("p", "r", "w"))
+        sigma_p, sigma_r, k2 = theta[..., 0:1], theta[..., 1:2], theta[..., 2:3]
+        d = p - xp.const(ctx.t_S, p)
+        r2 = xp.sum(d * d, axis=-1, keepdims=True)
+        p_out = p + sigma_p * n_p + k2 * r2 * n_r * normalize(d)
+        return p_out, xp.matmul(R, rotvec_to_matrix(sigma_r * n_w))
+
+    def inverse(self, p, R, theta, ctx):
+        raise TypeError("noise is random: it has no inverse and is never fitted as a bias")
+
+
+# --- registry -------------------------------------------------------------------------
+
+EFFECTS: dict[str, Effect] = {}
+_SOURCES: dict[str, str] = {}   # name -> file of a user effect ("" for built-ins)
+
+
+def register_effect(effect: Effect | type[Effect], source: str = "") -> Effect:
+    """Add an effect (instance or class) to the catalogue; built-in names cannot be replaced."""
+    if isinstance(effect, type):
+        effect = effect()
+    name = effect.name
+    if not name or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+        raise ValueError(f"effect class {type(effect).__name__} needs a name that is an identifier, got {name!r}")
+    for p in effect.params:
+        if not isinstance(p, Param):
+            raise ValueError(f"effect {name!r}: params must be Param instances, got {p!r}")
+    if name in EFFECTS and _SOURCES.get(name, "") != source:
+        where = _SOURCES.get(name) or "the built-in catalogue"
+        raise ValueError(f"effect {name!r} is already defined by {where}")
+    EFFECTS[name] = effect
+    _SOURCES[name] = source
+    # Keep the registry in application order (stable for equal orders).
+    ordered = sorted(EFFECTS.values(), key=lambda e: e.order)
+    EFFECTS.clear()
+    EFFECTS.update({e.name: e for e in ordered})
+    return effect
+
+
+for _cls in (Mount, Sweep, RangeScale, Incidence, Drift, Station, Noise):
+    register_effect(_cls)
+
+BUILTIN_NAMES: tuple[str, ...] = tuple(EFFECTS)
+
+
+def unregister_effect(name: str) -> None:
+    """Remove a user effect from the catalogue (built-ins stay)."""
+    if name in BUILTIN_NAMES:
+        raise ValueError(f"effect {name!r} is built in and cannot be removed")
+    get_effect(name)
+    del EFFECTS[name], _SOURCES[name]
+
+
+def get_effect(name: str) -> Effect:
+    """The registered effect called `name`; ValueError listing the known ones otherwise."""
+    try:
+        return EFFECTS[name]
+    except KeyError:
+        raise ValueError(f"unknown effect {name!r}; known effects: {', '.join(EFFECTS)}") from None
+
+
+def sorted_effects(names: Iterable[str]) -> list[Effect]:
+    """The named effects in application order."""
+    return sorted((get_effect(n) for n in names), key=lambda e: e.order)
+
+
+def load_effect_file(path: str | Path) -> list[str]:
+    """Import a user's Python file and register every `Effect` subclass it defines.
+
+    Returns the registered names. Loading the same file again re-registers its effects.
+    """
+    path = Path(path).resolve()
+    if not path.is_file():
+        raise ValueError(f"effect file {path} does not exist")
+    module_name = "posecorr_user_effects_" + re.sub(r"\W", "_", str(path))
+    spec = importlib.util.spec_from_file_location(module_name, path)
+    if spec is None or spec.loader is None:
+        raise ValueError(f"effect file {path} cannot be imported as Python")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[module_name] = module
+    try:
+        spec.loader.exec_module(module)
+    except Exception as exc:
+        del sys.modules[module_name]
+        raise ValueError(f"effect file {path}: {type(exc).__name__}: {exc}") from exc
+    classes = [obj for obj in vars(module).values()
+               if isinstance(obj, type) and issubclass(obj, Effect) and obj.__module__ == module_name]
+    if not classes:
+        raise ValueError(f"effect file {path} defines no subclass of posecorr.effects.Effect")
+    return [register_effect(cls, source=str(path)).name for cls in classes]
+
+
+def parse_effects_arg(text: str) -> dict[str, np.ndarray]:
+    """Parse the CLI syntax 'NAME=V1,V2,...;NAME;NAME=off' into {name: theta}.
+
+    Values are in parameter order; a bare NAME means its default magnitude; NAME=off gives
+    None (remove the effect from a base mix). ValueError on unknown names, wrong value counts,
+    non-numbers or a name given twice.
+    """
+    out: dict[str, np.ndarray | None] = {}
+    for item in (s.strip() for s in text.split(";")):
+        if not item:
+            continue
+        name, sep, values = (s.strip() for s in item.partition("="))
+        effect = get_effect(name)
+        if name in out:
+            raise ValueError(f"effect {name!r} is given twice in {text!r}")
+        if not sep:
+            out[name] = effect.default_theta()
+            continue
+        if values.lower() == "off":
+            out[name] = None
+            continue
+        try:
+            numbers = [float(v) for v in values.split(",")]
+        except ValueError:
+            raise ValueError(f"effect {name!r}: expected {effect.size} numbers ({effect.signature()}), "
+                             f"got {values!r}") from None
+        out[name] = checked_theta(effect, numbers)
+    return out  # type: ignore[return-value]
+
+
+def checked_theta(effect: Effect, theta: Any) -> np.ndarray:
+    """Validate a numeric theta for `effect` (size, finiteness, tau > 0, noise >= 0)."""
+    values = effect.validate(theta)
+    if effect.name == "drift" and values[3] <= 0:
+        raise ValueError(f"effect 'drift': tau must be > 0 s, got {values[3]}")
+    if effect.random and np.any(values < 0):
+        raise ValueError(f"effect {effect.name!r}: standard deviations must be >= 0, got {values.tolist()}")
+    return values
+
+
+# --- chains ---------------------------------------------------------------------------
+
+def apply_effects(p: Any, R: Any, effects: Mapping[str, Any], ctx: EffectContext) -> tuple[Any, Any]:
+    """Apply {name: theta} in application order (reference -> measured)."""
+    for effect in sorted_effects(effects):
+        # Convert first so a user's forward always sees p, R and theta of one namespace.
+        _, p, R, theta = _to_namespace(p, R, effects[effect.name])
+        p, R = effect.forward(p, R, theta, ctx)
+    return p, R
+
+
+def invert_effects(p: Any, R: Any, effects: Mapping[str, Any], ctx: EffectContext) -> tuple[Any, Any]:
+    """Undo {name: theta} in reverse application order (measured -> reference); random effects are skipped."""
+    for effect in reversed(sorted_effects(effects)):
+        if not effect.random:
+            _, p, R, theta = _to_namespace(p, R, effects[effect.name])
+            p, R = effect.inverse(p, R, theta, ctx)
+    return p, R

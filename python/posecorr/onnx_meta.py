@@ -1,0 +1,232 @@
+"""Read an .onnx file's metadata without the onnx package (controller-side `posecorr info`).
+
+A minimal protobuf wire-format reader (stdlib only) for the few ModelProto fields that
+`info` shows: metadata_props, opset imports, producer, the graph's inputs / outputs with
+their element types and shapes, node operator counts and initializer sizes.
+
+Field numbers follow onnx.proto (ModelProto: ir_version 1, producer_name 2,
+producer_version 3, doc_string 6, graph 7, opset_import 8, metadata_props 14; GraphProto:
+node 1, name 2, initializer 5, input 11, output 12; NodeProto: op_type 4, domain 7;
+ValueInfoProto: name 1, type 2; TypeProto.tensor_type 1: elem_type 1, shape 2;
+TensorShapeProto.dim 1: dim_value 1, dim_param 2; TensorProto: dims 1, data_type 2).
+"""
+from __future__ import annotations
+
+import json
+import os
+from collections import Counter
+from typing import Any, Iterator
+
+ELEM_TYPES = {1: "float32", 2: "uint8", 3: "int8", 4: "uint16", 5: "int16", 6: "int32", 7: "int64",
+              8: "string", 9: "bool", 10: "float16", 11: "float64", 12: "uint32", 13: "uint64",
+              16: "bfloat16"}
+
+
+class _Malformed(Exception):
+    pass
+
+
+def _varint(buf: bytes, pos: int) -> tuple[int, int]:
+    result = shift = 0
+    while True:
+        if pos >= len(buf):
+            raise _Malformed("truncated varint")
+        b = buf[pos]
+        pos += 1
+        result |= (b & 0x7F) << shift
+        if not b & 0x80:
+            return result, pos
+        shift += 7
+        if shift > 63:
+            raise _Malformed("varint longer than 10 bytes")
+
+
+def _fields(buf: bytes) -> Iterator[tuple[int, int, Any]]:
+    """(field number, wire type, value) of one message: value is an int (varint, fixed) or
+    the bytes of a length-delimited field."""
+    pos, end = 0, len(buf)
+    while pos < end:
+        key, pos = _varint(buf, pos)
+        field, wire = key >> 3, key & 7
+        if field == 0:
+            raise _Malformed("field number 0")
+        if wire == 0:
+            value, pos = _varint(buf, pos)
+        elif wire == 1:
+            if pos + 8 > end:
+                raise _Malformed("truncated fixed64")
+            value, pos = int.from_bytes(buf[pos:pos + 8], "little"), pos + 8
+        elif wire == 2:
+            length, pos = _varint(buf, pos)
+            if pos + length > end:
+                raise _Malformed(f"length {length} of field {field} runs past the end")
+            value, pos = buf[pos:pos + length], pos + length
+        elif wire == 5:
+            if pos + 4 > end:
+                raise _Malformed("truncated fixed32")
+            value, pos = int.from_bytes(buf[pos:pos + 4], "little"), pos + 4
+        else:
+            raise _Malformed(f"unsupported wire type {wire} (field {field})")
+        yield field, wire, value
+
+
+def _str(value: Any) -> str:
+    if not isinstance(value, (bytes, bytearray)):
+        raise _Malformed("expected a string field")
+    try:
+        return bytes(value).decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise _Malformed("string field is not UTF-8") from exc
+
+
+def _msg(value: Any) -> bytes:
+    if not isinstance(value, (bytes, bytearray)):
+        raise _Malformed("expected an embedded message")
+    return bytes(value)
+
+
+def _signed(v: int) -> int:
+    return v - (1 << 64) if v >= 1 << 63 else v
+
+
+def _value_info(buf: bytes) -> dict[str, Any]:
+    out: dict[str, Any] = {"name": "", "dtype": None, "shape": None}
+    for f, _, v in _fields(buf):
+        if f == 1:
+            out["name"] = _str(v)
+        elif f == 2:
+            for tf, _, tv in _fields(_msg(v)):
+                if tf != 1:        # tensor_type only
+                    continue
+                for ttf, _, ttv in _fields(_msg(tv)):
+                    if ttf == 1:
+                        out["dtype"] = ELEM_TYPES.get(ttv, f"type{ttv}")
+                    elif ttf == 2:
+                        shape: list[Any] = []
+                        for sf, _, sv in _fields(_msg(ttv)):
+                            if sf != 1:
+                                continue
+                            dim: Any = None
+                            for df, _, dv in _fields(_msg(sv)):
+                                if df == 1:
+                                    dim = _signed(dv)
+                                elif df == 2:
+                                    dim = _str(dv)
+                            shape.append(dim)
+                        out["shape"] = shape
+    return out
+
+
+def decode_value(text: str) -> Any:
+    """A metadata value: JSON where it parses as JSON, else the string itself."""
+    try:
+        return json.loads(text)
+    except (ValueError, TypeError):
+        return text
+
+
+def read_info(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Metadata and structure of an ONNX model file.
+
+    Returns the `metadata_props` (JSON values decoded) at the top level, plus "file",
+    "file_size" (bytes), "ir_version", "producer", "opset_import" ({domain: version}),
+    "inputs" / "outputs" ([{"name", "dtype", "shape"}], dynamic dims by name),
+    "op_counts" ({op_type: n}), "node_count", "initializer_count", "parameter_count".
+    Raises ValueError naming the file when it is not a readable ONNX model.
+    """
+    path = os.fspath(path)
+    with open(path, "rb") as fh:
+        data = fh.read()
+    try:
+        return _parse(data, path)
+    except _Malformed as exc:
+        raise ValueError(f"{path}: not a valid ONNX model ({exc})") from None
+    except RecursionError:
+        raise ValueError(f"{path}: not a valid ONNX model (nesting too deep)") from None
+
+
+def _parse(data: bytes, path: str) -> dict[str, Any]:
+    if not data:
+        raise _Malformed("empty file")
+    meta: dict[str, Any] = {}
+    opsets: dict[str, int] = {}
+    ir_version = None
+    producer = {"name": "", "version": ""}
+    graph: bytes | None = None
+    for f, wire, v in _fields(data):
+        if f == 1 and wire == 0:
+            ir_version = v
+        elif f == 2 and wire == 2:
+            producer["name"] = _str(v)
+        elif f == 3 and wire == 2:
+            producer["version"] = _str(v)
+        elif f == 7 and wire == 2:
+            graph = _msg(v)
+        elif f == 8 and wire == 2:
+            domain, version = "", 0
+            for of, _, ov in _fields(_msg(v)):
+                if of == 1:
+                    domain = _str(ov)
+                elif of == 2:
+                    version = ov
+            opsets[domain or "ai.onnx"] = version
+        elif f == 14 and wire == 2:
+            key, value = "", ""
+            for mf, _, mv in _fields(_msg(v)):
+                if mf == 1:
+                    key = _str(mv)
+                elif mf == 2:
+                    value = _str(mv)
+            meta[key] = decode_value(value)
+    if ir_version is None or graph is None:
+        raise _Malformed("no ir_version or no graph (is this an ONNX ModelProto?)")
+
+    ops: Counter[str] = Counter()
+    inputs, outputs = [], []
+    initializer_names: set[str] = set()
+    n_params = 0
+    for f, wire, v in _fields(graph):
+        if f == 1 and wire == 2:
+            op, domain = "", ""
+            for nf, _, nv in _fields(_msg(v)):
+                if nf == 4:
+                    op = _str(nv)
+                elif nf == 7:
+                    domain = _str(nv)
+            ops[f"{domain}::{op}" if domain and domain != "ai.onnx" else op] += 1
+        elif f == 5 and wire == 2:
+            dims, name = [], ""
+            for tf, twire, tv in _fields(_msg(v)):
+                if tf == 1:
+                    if twire == 2:  # packed
+                        pos, b = 0, _msg(tv)
+                        while pos < len(b):
+                            d, pos = _varint(b, pos)
+                            dims.append(_signed(d))
+                    else:
+                        dims.append(_signed(tv))
+                elif tf == 8:
+                    name = _str(tv)
+            initializer_names.add(name)
+            size = 1
+            for d in dims:
+                size *= max(d, 0)
+            n_params += size
+        elif f == 11 and wire == 2:
+            inputs.append(_value_info(_msg(v)))
+        elif f == 12 and wire == 2:
+            outputs.append(_value_info(_msg(v)))
+    structure = {
+        "file": path, "file_size": len(data), "ir_version": ir_version,
+        "producer": producer, "opset_import": opsets,
+        # Graph inputs that are initializers (IR < 4 style) are not real inputs.
+        "inputs": [i for i in inputs if i["name"] not in initializer_names], "outputs": outputs,
+        "op_counts": dict(sorted(ops.items())), "node_count": int(sum(ops.values())),
+        "initializer_count": len(initializer_names), "parameter_count": n_params,
+    }
+    info = dict(meta)
+    for key, value in structure.items():
+        if key in info:
+            info[f"metadata_{key}"] = info.pop(key)  # never let metadata hide the file's facts
+        info[key] = value
+    return info

@@ -1,0 +1,89 @@
+"""The shipped models in models/: valid ONNX, readable metadata, and their cards' numbers
+reproduced from the seeds by applying the file (onnxruntime), not the Python estimator."""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+onnx = pytest.importorskip("onnx")
+pytest.importorskip("onnxruntime")
+
+from posecorr.export.models import evaluate, experiment_data
+from posecorr.export.parity import run_onnx
+from posecorr.onnx_meta import read_info
+
+MODELS = Path(__file__).resolve().parent.parent / "models"
+INDEX = MODELS / "index.json"
+FILES = sorted(MODELS.glob("*.onnx"))
+
+
+def _index() -> list[dict]:
+    return json.loads(INDEX.read_text())["models"]
+
+
+def test_index_lists_every_shipped_model():
+    assert INDEX.exists(), "models/index.json missing: run `make models`"
+    listed = {m["file"] for m in _index()}
+    assert listed == {f.name for f in FILES}
+    assert len(listed) == 10
+    for m in _index():
+        assert (MODELS / m["card"]).exists()
+
+
+@pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
+def test_model_is_valid_and_describes_itself(path):
+    model = onnx.load(path)
+    onnx.checker.check_model(model, full_check=True)
+    info = read_info(path)
+    assert info["method"] in ("pmc", "mlp")
+    assert info["representation"] in ("eaa", "quat", "R", "zhou", "pos")
+    assert path.name.startswith(f"{info['method']}-{info['representation']}")
+    for key in ("rmse_pos", "rmse_rot", "rmse_total", "improvement_total"):
+        assert key in info["test_metrics"]
+    assert info["parity"]["passed"] is True
+    assert info["parity"]["max_pos_m"] <= 1e-5 and info["parity"]["max_rot_rad"] <= 1e-5
+    assert info["training_data_digest"].startswith("sha256:")
+    assert info["inputs"][0]["name"] == "pose" and info["outputs"][0]["name"] == "corrected"
+
+
+_DATA: dict[tuple[int, int], dict] = {}
+
+
+def _data(experiment: int, seed: int) -> dict:
+    if (experiment, seed) not in _DATA:
+        _DATA[experiment, seed] = experiment_data(experiment, seed)
+    return _DATA[experiment, seed]
+
+
+@pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
+def test_card_metrics_reproduced_on_regenerated_test_split(path):
+    info = read_info(path)
+    data = _data(info["experiment"], info["data_seed"])
+    M, R, test = data["measured"], data["reference"], data["test"]
+    got = evaluate(run_onnx(path, M[test]), M[test], R[test], data["with_rotation"])
+    card = info["test_metrics"]
+    assert card["n"] == len(test)
+    for key in ("rmse_pos", "rmse_rot", "rmse_total"):
+        if card[key] is None:
+            assert got[key] is None
+            continue
+        assert got[key] == pytest.approx(card[key], rel=0.01), key
+    # The markdown card shows the same rmse_total (5 significant digits).
+    text = path.with_suffix(".md").read_text()
+    row = re.search(r"\| rmse_total \| [^|]+ \| ([0-9.e+-]+) \|", text)
+    assert row and float(row.group(1)) == pytest.approx(card["rmse_total"], rel=1e-4)
+
+
+@pytest.mark.parametrize("path", [p for p in FILES if read_info(p).get("experiment") == 3], ids=lambda p: p.name)
+def test_exp3_model_generalises_to_a_fresh_simulation(path):
+    """Same hardware and session effects, new noise draws and order (seed 1): the model's
+    rmse_total over the whole fresh table stays within 10 % of its card."""
+    info = read_info(path)
+    data = _data(3, 1)
+    M, R = data["measured"], data["reference"]
+    got = evaluate(run_onnx(path, M), M, R, True)["rmse_total"]
+    assert got == pytest.approx(info["test_metrics"]["rmse_total"], rel=0.10)

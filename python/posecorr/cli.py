@@ -57,13 +57,14 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     result = simulate(args.experiment, effects=effects, seed=args.seed,
                       base="none" if args.only else "default")
     write_table(result.table, args.output)
+    effects_used = result.effects_json()
     payload = {"n": result.table.n, "output": str(args.output), "raw": result.raw,
-               "noise_floor": result.noise_floor, "effects": result.effects}
+               "noise_floor": result.noise_floor, "effects": effects_used}
 
     def text() -> str:
         lines = [f"Experiment {args.experiment}, seed {args.seed}: {result.table.n} poses -> {args.output}",
                  table(METRIC_HEADERS, metrics_rows({"raw": result.raw, "noise floor": result.noise_floor}))]
-        lines.append("effects: " + "; ".join(f"{name}={_fmt_params(p)}" for name, p in result.effects.items()))
+        lines.append("effects: " + "; ".join(f"{name}={_fmt_params(p)}" for name, p in effects_used.items()))
         return "\n".join(lines)
 
     _emit(args, payload, text)
@@ -77,6 +78,181 @@ def _fmt_params(params: dict[str, Any]) -> str:
         else:
             parts.append(f"{key}={value:.4g}" if isinstance(value, float) else f"{key}={value}")
     return ", ".join(parts)
+
+
+# --- fit / diagnose / export (need the train extra) ------------------------------------
+
+def _load_effect_files(args: argparse.Namespace) -> None:
+    from .effects import load_effect_file
+
+    for path in getattr(args, "effect_file", None) or []:
+        load_effect_file(path)
+
+
+def _effect_names(text: str | None) -> list[str]:
+    """'station,mount' -> checked names (unknown ones fail naming the catalogue)."""
+    from .effects import get_effect
+
+    names = [n.strip() for n in (text or "").split(",") if n.strip()]
+    for name in names:
+        get_effect(name)
+    return names
+
+
+def _parse_cv(text: str | None) -> int | str | None:
+    if text is None or text == "none":
+        return None
+    if text == "loo":
+        return "loo"
+    try:
+        return int(text)
+    except ValueError:
+        raise CliError(f"--cv takes none, loo or a number of folds, got {text!r}") from None
+
+
+def _progress(args: argparse.Namespace) -> Callable[[str], None]:
+    quiet = args.json
+    return (lambda message: None) if quiet else (lambda message: print(f"  {message}", file=sys.stderr, flush=True))
+
+
+def cmd_fit(args: argparse.Namespace) -> None:
+    from .data import read_table
+    from .ledger import append_entry
+    from .train.pipeline import fit_table
+    from .textui import METRIC_HEADERS, metrics_rows, table as fmt_table
+
+    _load_effect_files(args)
+    table = read_table(args.data)
+    effects = _effect_names(args.effects)
+    hidden = tuple(int(h) for h in args.hidden.split(",") if h.strip())
+    report = fit_table(table, effects, args.method, args.representation, hidden, args.activation, args.trainer,
+                       args.epochs, _parse_cv(args.cv), args.seed, progress=_progress(args))
+    key = report.heldout_kind
+    exported = report.model.to_onnx(args.output, measured=table.measured[report.train_index],
+                                    reference=table.reference[report.train_index],
+                                    test_metrics={key: report.heldout, "raw": report.raw})
+    info = report.model.export_info()
+    effects_json = report.model.physics_.describe() if report.model.physics_ is not None else {}
+    payload: dict[str, Any] = {"model": str(args.output), "method": info.get("method"),
+                               "chosen": report.chosen, "representation": info.get("representation"),
+                               "raw": report.raw, key: report.heldout, "effects": effects_json,
+                               "parity": exported.get("parity"), "nodes": exported.get("n_nodes")}
+    if report.auto_scores:
+        payload["auto_cv_rmse_total"] = report.auto_scores
+    if args.save is not None:
+        import pickle
+
+        # Kept with the estimator so that `posecorr export` can re-run the parity check.
+        report.model.training_measured_ = table.measured[report.train_index]
+        report.model.training_reference_ = table.reference[report.train_index]
+        with open(args.save, "wb") as handle:
+            pickle.dump(report.model, handle)
+    append_entry(args.data, {"model": str(args.output), "effects": effects, "method": info.get("method"),
+                             "representation": info.get("representation"), "raw": report.raw, key: report.heldout})
+
+    def text() -> str:
+        label = "test split" if key == "test" else f"cross-validated ({args.cv})"
+        lines = [f"{args.data}: {table.n} poses; effects: {', '.join(effects) or 'none'}; "
+                 f"core: {report.chosen}" + (f" (auto: {_fmt_scores(report.auto_scores)})" if report.auto_scores else ""),
+                 fmt_table(METRIC_HEADERS + ["improvement"],
+                           [row + [imp] for row, imp in zip(
+                               metrics_rows({"raw": report.raw, label: report.heldout}),
+                               [None, report.heldout.get("improvement_total")])])]
+        for name, params in effects_json.items():
+            lines.append(f"  {name}: " + "; ".join(f"{p} = {_value_pm(v)}" for p, v in params.items()))
+        parity = exported.get("parity") or {}
+        lines.append(f"-> {args.output} ({exported['n_nodes']} nodes, {exported['file_size']} bytes"
+                     + (f", parity {parity.get('max_pos_m', 0):.1e} m / {parity.get('max_rot_rad', 0):.1e} rad)"
+                        if parity else ")"))
+        return "\n".join(lines)
+
+    _emit(args, payload, text)
+
+
+def _fmt_scores(scores: dict[str, float]) -> str:
+    return ", ".join(f"{name} {value:.3g}" for name, value in sorted(scores.items(), key=lambda kv: kv[1]))
+
+
+def _value_pm(pair: list) -> str:
+    value, error = pair
+    if isinstance(value, list):
+        return "[" + ", ".join(f"{v:.4g} ± {e:.1g}" for v, e in zip(value, error)) + "]"
+    return f"{value:.4g} ± {error:.1g}"
+
+
+def cmd_diagnose(args: argparse.Namespace) -> None:
+    from .data import read_table
+    from .diagnose import diagnose
+    from .textui import table as fmt_table
+
+    _load_effect_files(args)
+    table = read_table(args.data)
+    effects = _effect_names(args.effects)
+    model_predict = None
+    if args.model is not None:
+        from .onnx_meta import read_info
+        from .runtime import Corrector
+
+        if args.effects is None:
+            effects = list(read_info(args.model).get("effects") or [])
+        corrector = Corrector(args.model, backend=args.backend)
+        model_predict = corrector.correct
+    result = diagnose(table, effects, folds=args.folds, seed=args.seed, model_predict=model_predict,
+                      progress=_progress(args))
+
+    def text() -> str:
+        rows = [[c["rank"], c["effect"], c["score"], c["p_value"], c["cv_rmse_before"], c["cv_rmse_after"],
+                 "yes" if c["present"] else "no"] for c in result["candidates"]]
+        lines = [f"{args.data}: model effects {', '.join(effects) or 'none'}; "
+                 f"cross-validated rmse_total {result['cv_base']['rmse_total']:.4g}",
+                 fmt_table(["rank", "effect", "score", "p_value", "cv_rmse_before", "cv_rmse_after", "present"], rows,
+                           title="Missing effects (score = mean relative held-out gain)"),
+                 f"present = {result['test']}",
+                 fmt_table(["feature", "cv R^2"], [[f["feature"], f["r2"]] for f in result["features"]],
+                           title="Residual structure by feature (smooth fit, cross-validated)")]
+        if result["aliases"]:
+            lines.append("cannot be told apart by this data: " + "; ".join(" ~ ".join(p) for p in result["aliases"]))
+        present = [c["effect"] for c in result["candidates"] if c["present"]]
+        if present:
+            lines.append(f"add: --effects {','.join(effects + present[:1])}")
+        return "\n".join(lines)
+
+    _emit(args, result, text)
+
+
+def cmd_export(args: argparse.Namespace) -> None:
+    import pickle
+
+    with open(args.estimator, "rb") as handle:
+        estimator = pickle.load(handle)
+    if not hasattr(estimator, "forward"):
+        raise CliError(f"{args.estimator}: not a posecorr estimator (no forward method)")
+    exported = estimator.to_onnx(args.output, parity="skip" if args.no_parity else "raise")
+    _emit(args, {k: v for k, v in exported.items() if k != "metadata"},
+          lambda: f"{args.estimator} -> {args.output} ({exported['n_nodes']} nodes, {exported['file_size']} bytes)")
+
+
+def cmd_report(args: argparse.Namespace) -> None:
+    from .data import read_table
+    from .ledger import read_ledger
+    from .onnx_meta import read_info
+    from .report import write_report
+    from .runtime import Corrector
+
+    _load_effect_files(args)
+    table = read_table(args.data)
+    info = read_info(args.model)
+    corrected = Corrector(args.model, backend=args.backend).correct(table.measured)
+    diagnosis = None
+    if not args.no_diagnosis:
+        from .diagnose import diagnose
+
+        effects = _effect_names(args.effects) if args.effects is not None else list(info.get("effects") or [])
+        diagnosis = diagnose(table, effects, folds=args.folds, seed=args.seed,
+                             model_predict=lambda measured: corrected, progress=_progress(args))
+    path = write_report(args.output, table, corrected, info, diagnosis, read_ledger(args.data))
+    _emit(args, {"report": str(path), "bytes": path.stat().st_size, "diagnosis": diagnosis},
+          lambda: f"{args.data} against {args.model} -> {path} ({path.stat().st_size // 1024} KiB)")
 
 
 # --- info / apply / bench (controller side: numpy only) ---------------------------------
@@ -154,6 +330,48 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--effect-file", action="append", type=Path, help="a Python file with user effects")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-o", "--output", type=Path, required=True)
+
+    p = verb("fit", cmd_fit, "fit a correction (physics effects, then PMC/MLP) and export it as ONNX")
+    p.add_argument("data", type=Path)
+    p.add_argument("-o", "--output", type=Path, required=True)
+    p.add_argument("--effects", help="comma-separated effects of the physics stage, e.g. station,mount")
+    p.add_argument("--effect-file", action="append", type=Path, help="a Python file with user effects")
+    p.add_argument("--method", choices=("none", "pmc", "mlp", "auto"), default="pmc")
+    p.add_argument("--representation", choices=("eaa", "quat", "R", "zhou"), default="zhou",
+                   help="orientation representation of the core (position-only tables use position only)")
+    p.add_argument("--hidden", default="20,20,20,20", help="MLP hidden layer sizes")
+    p.add_argument("--activation", default="tansig",
+                   choices=("tansig", "logsig", "radbas", "purelin", "satlin", "softmax", "hardlim", "compet"))
+    p.add_argument("--trainer", default="br", help="lm, br, rp, adam, lbfgs, gd, gdm, gda, gdx")
+    p.add_argument("--epochs", type=int, default=1000)
+    p.add_argument("--cv", default="none", help="none (fixed 15%% test split), loo, or a number of folds")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--save", type=Path, help="also pickle the fitted estimator (for `posecorr export`)")
+
+    p = verb("diagnose", cmd_diagnose, "rank the physical effects the model lacks; show where the residual lives")
+    p.add_argument("data", type=Path)
+    p.add_argument("--effects", help="the model's effects (default: those of --model, else none)")
+    p.add_argument("--model", type=Path, help="an exported model whose residuals to analyse")
+    p.add_argument("--backend", choices=("c", "onnxruntime"), default="c")
+    p.add_argument("--effect-file", action="append", type=Path, help="a Python file with user effects")
+    p.add_argument("--folds", type=int, default=5)
+    p.add_argument("--seed", type=int, default=0)
+
+    p = verb("report", cmd_report, "an HTML page: measurements against a model, where it fails, what is missing")
+    p.add_argument("data", type=Path)
+    p.add_argument("--model", type=Path, required=True)
+    p.add_argument("-o", "--output", type=Path, required=True)
+    p.add_argument("--effects", help="the model's effects for the diagnosis (default: from the model file)")
+    p.add_argument("--effect-file", action="append", type=Path, help="a Python file with user effects")
+    p.add_argument("--no-diagnosis", action="store_true", help="skip the (slower) diagnosis section")
+    p.add_argument("--backend", choices=("c", "onnxruntime"), default="c")
+    p.add_argument("--folds", type=int, default=5)
+    p.add_argument("--seed", type=int, default=0)
+
+    p = verb("export", cmd_export, "export a pickled fitted estimator to ONNX")
+    p.add_argument("estimator", type=Path)
+    p.add_argument("-o", "--output", type=Path, required=True)
+    p.add_argument("--no-parity", action="store_true", help="skip the onnxruntime parity check")
 
     p = verb("info", cmd_info, "print a model file's metadata")
     p.add_argument("model", type=Path)

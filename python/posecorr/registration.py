@@ -15,6 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from .geometry import homogeneous
+
+__all__ = ["project_to_rotation", "umeyama", "homogeneous", "robot_world_hand_eye"]
+
 
 def project_to_rotation(M: np.ndarray) -> np.ndarray:
     """Nearest proper rotation (Frobenius norm) to a 3x3 matrix, by SVD."""
@@ -43,16 +47,6 @@ def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = False) ->
     s = float(np.trace(np.diag(sigma) @ D) / np.mean(np.sum(xs * xs, axis=1))) if with_scale else 1.0
     t = mu_t - s * R @ mu_s
     return R, t, s
-
-
-def homogeneous(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """(..., 4, 4) transforms from (..., 3, 3) rotations and (..., 3) translations."""
-    R, t = np.asarray(R, float), np.asarray(t, float)
-    T = np.zeros(R.shape[:-2] + (4, 4))
-    T[..., :3, :3] = R
-    T[..., :3, 3] = t
-    T[..., 3, 3] = 1.0
-    return T
 
 
 def robot_world_hand_eye(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

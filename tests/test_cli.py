@@ -1,0 +1,111 @@
+"""The command line as a user meets it: JSON outputs, one-line errors, exit codes."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from posecorr.data import PoseTable, write_table
+from posecorr.simulate import simulate
+
+PAPER_RAW = {1: {"rmse_pos": 0.0440}, 2: {"rmse_pos": 0.0058, "rmse_rot": 0.0115},
+             3: {"rmse_pos": 0.0222, "rmse_rot": 0.0508}}
+
+
+def posecorr(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    return subprocess.run([sys.executable, "-m", "posecorr.cli", *args], capture_output=True, text=True,
+                          cwd=cwd, env=env, timeout=600)
+
+
+@pytest.mark.parametrize("experiment", [1, 2, 3])
+def test_simulate_json_matches_the_paper_raw_rows(tmp_path, experiment: int) -> None:
+    out = posecorr("simulate", "--experiment", str(experiment), "--seed", "0", "-o", str(tmp_path / "x.csv"), "--json")
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout)
+    assert set(result) >= {"n", "raw", "noise_floor"}
+    for key, paper in PAPER_RAW[experiment].items():
+        assert abs(result["raw"][key] - paper) <= 0.10 * paper, (key, result["raw"][key], paper)
+    assert result["noise_floor"]["rmse_total"] < result["raw"]["rmse_total"] / 10
+    if experiment == 1:
+        assert result["raw"]["rmse_rot"] is None
+    assert (tmp_path / "x.csv").read_text().count("\n") == result["n"] + 1
+
+
+HEADER = "meas_x,meas_y,meas_z,meas_qw,meas_qx,meas_qy,meas_qz,ref_x,ref_y,ref_z"
+GOOD = "0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3"
+
+
+@pytest.mark.parametrize("body, where", [
+    (HEADER.replace("meas_qz,", "") + "\n" + GOOD.replace(",0,0,0,", ",0,0,", 1) + "\n", "row 1, column meas_qz"),
+    (f"{HEADER}\n{GOOD}\n0.1,x,0.3,1,0,0,0,0.1,0.2,0.3\n", "row 3, column meas_y"),
+    (f"{HEADER}\n{GOOD}\n0.1,0.2,0.3,1,0,0,0,0.1,nan,0.3\n", "row 3, column ref_y"),
+    (f"{HEADER}\n{GOOD}\n0.1,0.2,0.3,1,0,0,0,0.1,0.2,-inf\n", "row 3, column ref_z"),
+    (f"{HEADER}\n{GOOD}\n0.1,0.2,0.3,0.9,0,0,0,0.1,0.2,0.3\n", "row 3, column meas_qw..meas_qz"),
+    (f"{HEADER}\n" + f"{GOOD}\n" * 3, "3 rows, but"),
+])
+def test_malformed_tables_fail_in_one_line_with_exit_2(tmp_path, body: str, where: str) -> None:
+    path = tmp_path / "bad.csv"
+    path.write_text(body)
+    out = posecorr("fit", str(path), "-o", str(tmp_path / "m.onnx"), "--method", "pmc")
+    assert out.returncode == 2
+    assert "Traceback" not in out.stderr
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1, out.stderr
+    assert str(path) in lines[0] and where in lines[0]
+
+
+def test_unknown_effect_is_a_one_line_error(tmp_path) -> None:
+    path = tmp_path / "d.csv"
+    write_table(simulate(2, seed=0).table.subset(np.arange(40)), path)
+    out = posecorr("fit", str(path), "-o", str(tmp_path / "m.onnx"), "--effects", "station,wobble")
+    assert out.returncode == 2 and "wobble" in out.stderr and "Traceback" not in out.stderr
+
+
+def _frame_from_three_points(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """x along a->b, z normal to the plane (a, b, c), y completing a right-handed frame."""
+    x = (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True)
+    z = np.cross(x, c - a)
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    return np.stack([x, np.cross(z, x), z], axis=2)
+
+
+def test_fit_station_and_mount_in_the_trackers_own_frame_with_loo(tmp_path) -> None:
+    """Measured poses in an arbitrary frame (any rotation and offset), reference orientation
+    from three probed points per pose: the closed-form start must still converge."""
+    rng = np.random.default_rng(3)
+    n = 30
+    # Reference: 30 poses in the workspace; orientation from three points on a probe.
+    centre = np.array([0.0, -0.6, 0.5])
+    origin = centre + rng.uniform(-0.1, 0.1, (n, 3))
+    R_true = Rotation.from_euler("xyz", rng.uniform(-0.5, 0.5, (n, 3))).as_matrix()
+    arm = 0.05
+    a, b, c = origin, origin + arm * R_true[:, :, 0], origin + arm * R_true[:, :, 1]
+    R_ref = _frame_from_three_points(a, b, c)
+    np.testing.assert_allclose(R_ref, R_true, atol=1e-12)
+    # Tracker frame: rotated 2 rad about an oblique axis and 1.7 m away; mount offset 4 cm.
+    W_R, W_t = Rotation.from_rotvec([1.2, -0.9, 1.3]).as_matrix(), np.array([1.2, -0.4, 0.9])
+    X_R, X_t = Rotation.from_rotvec([0.02, -0.01, 0.03]).as_matrix(), np.array([0.01, -0.02, 0.04])
+    R_meas = W_R @ R_ref @ X_R
+    p_meas = (origin + R_ref @ X_t) @ W_R.T + W_t
+    p_meas += rng.normal(scale=2e-4, size=p_meas.shape)
+    to_q = lambda R: Rotation.from_matrix(R).as_quat(scalar_first=True)  # noqa: E731
+    table = PoseTable(p_meas, to_q(R_meas), origin, to_q(R_ref))
+    path = tmp_path / "frame.csv"
+    write_table(table, path)
+    out = posecorr("fit", str(path), "-o", str(tmp_path / "m.onnx"), "--effects", "station,mount",
+                   "--method", "none", "--cv", "loo", "--json")
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout)
+    assert result["raw"]["rmse_pos"] > 1.0                  # metres apart before
+    assert result["cv"]["rmse_pos"] < 1e-3                  # sub-millimetre after, held out
+    assert result["cv"]["rmse_rot"] < 1e-6                  # orientations carry no noise here
+    assert set(result["effects"]) == {"station", "mount"}
+    mount_e, _ = result["effects"]["mount"]["e"]
+    np.testing.assert_allclose(mount_e, X_t, atol=1e-3)

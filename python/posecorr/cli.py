@@ -51,10 +51,11 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     from .simulate import simulate
     from .textui import METRIC_HEADERS, metrics_rows, table
 
-    for path in args.effect_file or []:
-        load_effect_file(path)
+    files = [str(path) for path in args.effect_file or []]
+    for path in files:
+        load_effect_file(path)  # before parsing: --effects may name the file's effects
     effects = parse_effects_arg(args.effects) if args.effects else None
-    result = simulate(args.experiment, effects=effects, seed=args.seed,
+    result = simulate(args.experiment, effects=effects, seed=args.seed, effect_files=files,
                       base="none" if args.only else "default")
     write_table(result.table, args.output)
     effects_used = result.effects_json()

@@ -47,7 +47,7 @@ __all__ = [
     "Param", "Effect", "EffectContext", "EFFECTS", "BUILTIN_NAMES", "get_effect", "register_effect",
     "unregister_effect", "to_namespace", "checked_theta",
     "parse_effects_arg", "load_effect_file", "apply_effects", "invert_effects",
-    "sorted_effects", "Mount", "Sweep", "RangeScale", "Incidence", "Drift", "Station", "Noise",
+    "sorted_effects", "station_coords", "from_station", "sweep_direction", "Mount", "Sweep", "RangeScale", "Incidence", "Drift", "Station", "Noise",
 ]
 
 
@@ -256,17 +256,17 @@ class Mount(Effect):
         return p - _rotate(R0, e), R0
 
 
-def _station_coords(p: Any, ctx: EffectContext) -> Any:
+def station_coords(p: Any, ctx: EffectContext) -> Any:
     xp = namespace(p)
     return _rows_times(p - xp.const(ctx.t_S, p), xp.const(ctx.R_S, p))   # (p - t_S)^T R_S = (R_S^T (p - t_S))^T
 
 
-def _from_station(s: Any, ctx: EffectContext) -> Any:
+def from_station(s: Any, ctx: EffectContext) -> Any:
     xp = namespace(s)
     return xp.const(ctx.t_S, s) + _rows_times(s, xp.swap_last(xp.const(ctx.R_S, s)))
 
 
-def _sweep_direction(xp: Any, alpha: Any, beta: Any) -> Any:
+def sweep_direction(xp: Any, alpha: Any, beta: Any) -> Any:
     """Unit direction s / |s| of a point at sweep angles (alpha, beta), station frame."""
     return normalize(xp.stack([xp.tan(alpha), xp.tan(beta), -1.0], axis=-1))
 
@@ -297,19 +297,19 @@ class Sweep(Effect):
     def forward(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
         px, py, cx, cy = theta[..., 0], theta[..., 1], theta[..., 2], theta[..., 3]
-        alpha, beta, r = self._angles(xp, _station_coords(p, ctx))
+        alpha, beta, r = self._angles(xp, station_coords(p, ctx))
         a2 = alpha + px + cx * beta * beta
         b2 = beta + py + cy * alpha * alpha
-        return _from_station(r * _sweep_direction(xp, a2, b2), ctx), R
+        return from_station(r * sweep_direction(xp, a2, b2), ctx), R
 
     def inverse(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
         px, py, cx, cy = theta[..., 0], theta[..., 1], theta[..., 2], theta[..., 3]
-        a2, b2, r = self._angles(xp, _station_coords(p, ctx))
+        a2, b2, r = self._angles(xp, station_coords(p, ctx))
         alpha, beta = a2 - px, b2 - py
         for _ in range(self.inverse_steps):
             alpha, beta = a2 - px - cx * beta * beta, b2 - py - cy * alpha * alpha
-        return _from_station(r * _sweep_direction(xp, alpha, beta), ctx), R
+        return from_station(r * sweep_direction(xp, alpha, beta), ctx), R
 
 
 class RangeScale(Effect):

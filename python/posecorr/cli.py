@@ -221,6 +221,34 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
     _emit(args, result, text)
 
 
+def cmd_sweep(args: argparse.Namespace) -> None:
+    from .train.protocol import build_grid, run_sweep
+
+    if (args.experiment is None) == (args.data is None):
+        raise CliError("give either --experiment N or a DATA.csv")
+    if args.data is not None:
+        from .data import read_table
+
+        table = read_table(args.data)
+        default_store = args.data.with_name(args.data.name + ".sweep.jsonl")
+    else:
+        from .simulate import simulate
+
+        table = simulate(args.experiment, seed=args.seed).table
+        default_store = Path(f"sweep-exp{args.experiment}-seed{args.seed}.jsonl")
+    split = lambda text: None if text is None else [x.strip() for x in text.split(",") if x.strip()]  # noqa: E731
+    options = {"epochs": args.epochs} if args.epochs is not None else None
+    representations = split(args.representations)
+    if not table.has_orientation:
+        representations = ["pos"]
+    configs = build_grid(args.preset, representations=representations, activations=split(args.activations),
+                         trainers=split(args.trainers), architectures=split(args.architectures),
+                         include_pmc=not args.no_pmc, include_mlp=not args.no_mlp, options=options)
+    result = run_sweep(table, configs, repeats=args.repeats, store=args.store or default_store,
+                       workers=args.workers, ray_address=args.ray, seed=args.seed, progress=not args.json)
+    _emit(args, result.to_json(), lambda: result.format(comparisons=args.comparisons))
+
+
 def cmd_export(args: argparse.Namespace) -> None:
     import pickle
 
@@ -367,6 +395,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-diagnosis", action="store_true", help="skip the (slower) diagnosis section")
     p.add_argument("--backend", choices=("c", "onnxruntime"), default="c")
     p.add_argument("--folds", type=int, default=5)
+    p.add_argument("--seed", type=int, default=0)
+
+    p = verb("sweep", cmd_sweep, "the paper's protocol: repeats x configurations, tables 2-4, Friedman, tier list")
+    p.add_argument("data", type=Path, nargs="?", help="a paired-pose table (or use --experiment)")
+    p.add_argument("--experiment", type=int, choices=(1, 2, 3), help="sweep a simulated experiment")
+    p.add_argument("--preset", choices=("reduced", "paper-exp1", "paper-exp2", "paper-exp3"), default="reduced",
+                   help="the grid; explicit axes below override it (default: reduced, minutes on 2 cores)")
+    p.add_argument("--representations", help="e.g. R,zhou")
+    p.add_argument("--activations", help="e.g. tansig,logsig")
+    p.add_argument("--trainers", help="e.g. lm,br")
+    p.add_argument("--architectures", help="e.g. 10,5-5,20-20-20-20")
+    p.add_argument("--no-pmc", action="store_true")
+    p.add_argument("--no-mlp", action="store_true")
+    p.add_argument("--epochs", type=int, help="epoch cap of every MLP")
+    p.add_argument("--repeats", type=int, default=30)
+    p.add_argument("--store", type=Path, help="results store (JSON lines); an interrupted sweep resumes from it")
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--ray", help="address of a Ray cluster to run on")
+    p.add_argument("--comparisons", action="store_true", help="also print table A1 (pairwise comparisons)")
     p.add_argument("--seed", type=int, default=0)
 
     p = verb("export", cmd_export, "export a pickled fitted estimator to ONNX")

@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV   := .venv
 VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.posecorr-installed
-NATIVE_SOURCES := $(wildcard runtime_c/*.c runtime_c/*.h runtime_c/CMakeLists.txt runtime_c/cmake/*) export/operators.txt
+NATIVE_SOURCES := $(wildcard runtime_c/*.c runtime_c/*.h runtime_c/CMakeLists.txt runtime_c/cmake/* runtime_c/tools/*.c) export/operators.txt
 
 .PHONY: install demo test bench models fuzz clean
 

@@ -1,0 +1,248 @@
+"""Apply an exported posecorr corrector (.onnx) from Python.
+
+`Corrector(path, backend="c")` runs the model through libposecorr (the dependency-free C
+runtime) via ctypes; `backend="onnxruntime"` runs the same file through onnxruntime, with
+the same API. Only numpy and ctypes are imported here; onnxruntime is imported lazily.
+
+Outputs are float64 arrays of the caller's shape ((7,) or (N, 7)); the model computes in
+float32, so values carry float32 precision.
+
+The library is looked up in ``posecorr/_native/libposecorr.so`` (placed there by the
+package build), else in ``$POSECORR_LIBRARY``.
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["Corrector", "PoseCorrError", "load_library", "library_path"]
+
+POSE_WIDTH = 7
+_MESSAGE_SIZE = 256
+
+
+class PoseCorrError(ValueError):
+    """A model failed to load or a pose could not be corrected; `status` is the C code."""
+
+    def __init__(self, message: str, status: int | None = None) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+class _Error(ctypes.Structure):
+    _fields_ = [("status", ctypes.c_int), ("message", ctypes.c_char * _MESSAGE_SIZE)]
+
+
+class _Options(ctypes.Structure):
+    _fields_ = [("max_batch", ctypes.c_size_t)]
+
+
+_LIBS: dict[str, ctypes.CDLL] = {}
+
+
+def library_path() -> Path:
+    """Path of libposecorr that `Corrector` uses."""
+    here = Path(__file__).resolve().parent / "_native"
+    for name in ("libposecorr.so", "libposecorr.dylib"):
+        if (here / name).exists():
+            return here / name
+    env = os.environ.get("POSECORR_LIBRARY")
+    if env:
+        return Path(env)
+    raise PoseCorrError(
+        f"libposecorr not found in {here} and $POSECORR_LIBRARY is not set; "
+        "reinstall posecorr (pip install -e .) to build the C runtime")
+
+
+def load_library(path: str | os.PathLike | None = None) -> ctypes.CDLL:
+    """Loads libposecorr once per path and declares the C signatures."""
+    p = str(path if path is not None else library_path())
+    lib = _LIBS.get(p)
+    if lib is not None:
+        return lib
+    lib = ctypes.CDLL(p)
+    vp, sz, cp = ctypes.c_void_p, ctypes.c_size_t, ctypes.c_char_p
+    lib.pc_load_file.argtypes = [cp, ctypes.POINTER(_Options), ctypes.POINTER(vp),
+                                 ctypes.POINTER(_Error)]
+    lib.pc_load_file.restype = ctypes.c_int
+    lib.pc_load_memory.argtypes = [cp, sz, ctypes.POINTER(_Options), ctypes.POINTER(vp),
+                                   ctypes.POINTER(_Error)]
+    lib.pc_load_memory.restype = ctypes.c_int
+    lib.pc_free.argtypes = [vp]
+    lib.pc_free.restype = None
+    lib.pc_run.argtypes = [vp, vp, sz, vp]
+    lib.pc_run.restype = ctypes.c_int
+    lib.pc_model_message.argtypes = [vp]
+    lib.pc_model_message.restype = cp
+    lib.pc_status_name.argtypes = [ctypes.c_int]
+    lib.pc_status_name.restype = cp
+    lib.pc_metadata_count.argtypes = [vp]
+    lib.pc_metadata_count.restype = sz
+    for fn in (lib.pc_metadata_key, lib.pc_metadata_value):
+        fn.argtypes = [vp, sz]
+        fn.restype = cp
+    for fn in (lib.pc_max_batch, lib.pc_arena_bytes, lib.pc_step_count, lib.pc_node_count):
+        fn.argtypes = [vp]
+        fn.restype = sz
+    _LIBS[p] = lib
+    return lib
+
+
+class _CBackend:
+    def __init__(self, path: str | os.PathLike | bytes, library: str | os.PathLike | None,
+                 max_batch: int) -> None:
+        self.lib = lib = load_library(library)
+        handle = ctypes.c_void_p()
+        err = _Error()
+        opts = _Options(max_batch)
+        if isinstance(path, (bytes, bytearray)):
+            self._blob = bytes(path)
+            st = lib.pc_load_memory(self._blob, len(self._blob), ctypes.byref(opts),
+                                    ctypes.byref(handle), ctypes.byref(err))
+        else:
+            st = lib.pc_load_file(os.fsencode(path), ctypes.byref(opts), ctypes.byref(handle),
+                                  ctypes.byref(err))
+        if st != 0:
+            raise PoseCorrError(f"{path}: {err.message.decode(errors='replace')}", st)
+        self.handle = handle.value
+        # Single-pose path: fixed buffers and raw addresses, so a call is one copy in,
+        # one foreign call and one copy out.
+        self._in1 = np.zeros(POSE_WIDTH, dtype=np.float32)
+        self._out1 = np.zeros(POSE_WIDTH, dtype=np.float32)
+        self._in1_ptr = self._in1.ctypes.data
+        self._out1_ptr = self._out1.ctypes.data
+        self._run = lib.pc_run
+        n = lib.pc_metadata_count(self.handle)
+        self.metadata = {lib.pc_metadata_key(self.handle, i).decode(errors="replace"):
+                         lib.pc_metadata_value(self.handle, i).decode(errors="replace")
+                         for i in range(n)}
+        self.max_batch = int(lib.pc_max_batch(self.handle))
+        self.arena_bytes = int(lib.pc_arena_bytes(self.handle))
+        self.n_steps = int(lib.pc_step_count(self.handle))
+        self.n_nodes = int(lib.pc_node_count(self.handle))
+
+    def _fail(self, st: int) -> PoseCorrError:
+        msg = self.lib.pc_model_message(self.handle).decode(errors="replace")
+        name = self.lib.pc_status_name(st).decode()
+        return PoseCorrError(f"{name}: {msg}", st)
+
+    def run1(self, pose: np.ndarray) -> np.ndarray:
+        self._in1[:] = pose
+        st = self._run(self.handle, self._in1_ptr, 1, self._out1_ptr)
+        if st:
+            raise self._fail(st)
+        return self._out1.astype(np.float64)
+
+    def run1_f32(self, pose: np.ndarray, out: np.ndarray) -> None:
+        """Lowest-overhead form: float32 contiguous (7,) in and out, caller-owned."""
+        st = self._run(self.handle, pose.ctypes.data, 1, out.ctypes.data)
+        if st:
+            raise self._fail(st)
+
+    def run(self, poses: np.ndarray) -> np.ndarray:
+        x = np.ascontiguousarray(poses, dtype=np.float32)
+        out = np.empty_like(x)
+        st = self._run(self.handle, x.ctypes.data, x.shape[0], out.ctypes.data)
+        if st:
+            raise self._fail(st)
+        return out.astype(np.float64)
+
+    def close(self) -> None:
+        if getattr(self, "handle", None):
+            self.lib.pc_free(self.handle)
+            self.handle = None
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:
+            pass
+
+
+class _OrtBackend:
+    def __init__(self, path: str | os.PathLike | bytes) -> None:
+        import onnxruntime as ort  # only for this backend
+
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = 1
+        so.inter_op_num_threads = 1
+        src = bytes(path) if isinstance(path, (bytes, bytearray)) else str(path)
+        self.session = ort.InferenceSession(src, so, providers=["CPUExecutionProvider"])
+        self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)
+        self.max_batch = None
+
+    def run(self, poses: np.ndarray) -> np.ndarray:
+        x = np.ascontiguousarray(poses, dtype=np.float32)
+        if not np.all(np.isfinite(x)):
+            raise PoseCorrError("non-finite input: a pose contains NaN or infinity")
+        return self.session.run(["corrected"], {"pose": x})[0].astype(np.float64)
+
+    def run1(self, pose: np.ndarray) -> np.ndarray:
+        return self.run(np.asarray(pose, dtype=np.float32).reshape(1, POSE_WIDTH))[0]
+
+    def close(self) -> None:
+        self.session = None
+
+
+class Corrector:
+    """An exported corrector: ``Corrector("model.onnx").correct(poses)``.
+
+    Parameters
+    ----------
+    path: the .onnx file (or its bytes).
+    backend: ``"c"`` (libposecorr, default) or ``"onnxruntime"``.
+    library: explicit libposecorr path for the C backend (default: see module doc).
+    max_batch: poses evaluated per C call (chunking is internal; any N works).
+    """
+
+    def __init__(self, path: str | os.PathLike | bytes, backend: str = "c", *,
+                 library: str | os.PathLike | None = None, max_batch: int = 256) -> None:
+        if backend not in ("c", "onnxruntime"):
+            raise ValueError(f"backend must be 'c' or 'onnxruntime', not {backend!r}")
+        self.path = path if isinstance(path, (bytes, bytearray)) else Path(path)
+        self.backend = backend
+        if backend == "c":
+            self._impl: Any = _CBackend(path, library, max_batch)
+        else:
+            self._impl = _OrtBackend(path)
+        self.metadata: dict[str, str] = dict(self._impl.metadata)
+        self.n_inputs = POSE_WIDTH
+        self.n_outputs = POSE_WIDTH
+        self.input_name = "pose"
+        self.output_name = "corrected"
+
+    def correct(self, poses: Any) -> np.ndarray:
+        """Corrects one pose (7,) or a batch (N, 7): x, y, z, qw, qx, qy, qz.
+
+        Returns float64 of the same shape. Raises PoseCorrError for NaN/inf input.
+        """
+        a = np.asarray(poses)
+        if a.shape == (POSE_WIDTH,):
+            return self._impl.run1(a)
+        if a.ndim != 2 or a.shape[1] != POSE_WIDTH:
+            raise ValueError(f"poses must have shape (7,) or (N, 7), got {a.shape}")
+        if a.shape[0] == 0:
+            return np.zeros((0, POSE_WIDTH))
+        return self._impl.run(a)
+
+    def predict(self, measured: Any) -> np.ndarray:
+        """scikit-learn style alias of `correct`."""
+        return self.correct(measured)
+
+    __call__ = correct
+
+    def close(self) -> None:
+        self._impl.close()
+
+    def __enter__(self) -> "Corrector":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"Corrector({str(self.path)!r}, backend={self.backend!r})"

@@ -1,0 +1,181 @@
+/* Dense kernels (Gemm, MatMul, fused activations): the hot path of an MLP corrector.
+ * Built with the vectoriser on; everything else in ops.c is built for size. */
+#include "pc_internal.h"
+
+#include <math.h>
+#include <string.h>
+
+/* The dense layers dominate a single-pose run; on x86-64 Linux with GCC they are also
+ * compiled for AVX2 and picked at load by the dynamic linker (ifunc). Each output lane
+ * sums in the same order, so results are bit-identical to the SSE2 build. */
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__) && \
+    !defined(PC_NO_TARGET_CLONES) && !defined(__SANITIZE_ADDRESS__)
+#define PC_HOT __attribute__((target_clones("avx2", "default")))
+#else
+#define PC_HOT
+#endif
+/* Inlined into each clone so the AVX2 copy of a kernel really runs AVX2 loops. */
+#ifdef __GNUC__
+#define PC_INLINE static inline __attribute__((always_inline))
+#else
+#define PC_INLINE static inline
+#endif
+
+/* Separate flat loops so each one vectorises. */
+PC_INLINE void pc_apply_act(const pc_gemm *q, float *restrict o, size_t n)
+{
+    size_t i;
+    const float lo = q->lo, hi = q->hi;
+    switch (q->act) {
+    case PC_ACT_TANH:
+        for (i = 0; i < n; i++)
+            o[i] = pc_tanh_inline(o[i]);
+        break;
+    case PC_ACT_SIGMOID:
+        for (i = 0; i < n; i++)
+            o[i] = pc_sigmoid(o[i]);
+        break;
+    case PC_ACT_RELU:
+        for (i = 0; i < n; i++)
+            o[i] = o[i] > 0.0f ? o[i] : (o[i] != o[i] ? o[i] : 0.0f);
+        break;
+    case PC_ACT_CLIP:
+        for (i = 0; i < n; i++)
+            o[i] = o[i] < lo ? lo : o[i] > hi ? hi : o[i];
+        break;
+    default:
+        break;
+    }
+}
+
+/* o[0..N) += a . B for one row; B row-major with row stride b_rs. Accumulators live in
+ * registers in blocks of 8 and 4 outputs (a store-reload per k was the bottleneck); the
+ * summation order per output (o first, then k ascending) is that of the plain loop. */
+PC_INLINE void pc_row(const float *a, size_t a_cs, const float *B, size_t b_rs, size_t K,
+                   size_t N, float *o)
+{
+    size_t n0 = 0, k, j;
+    for (; n0 + 8 <= N; n0 += 8) {
+        float acc[8];
+        for (j = 0; j < 8; j++)
+            acc[j] = o[n0 + j];
+        for (k = 0; k < K; k++) {
+            const float av = a[k * a_cs];
+            const float *b = B + k * b_rs + n0;
+            for (j = 0; j < 8; j++)
+                acc[j] += av * b[j];
+        }
+        for (j = 0; j < 8; j++)
+            o[n0 + j] = acc[j];
+    }
+    for (; n0 + 4 <= N; n0 += 4) {
+        float acc[4];
+        for (j = 0; j < 4; j++)
+            acc[j] = o[n0 + j];
+        for (k = 0; k < K; k++) {
+            const float av = a[k * a_cs];
+            const float *b = B + k * b_rs + n0;
+            for (j = 0; j < 4; j++)
+                acc[j] += av * b[j];
+        }
+        for (j = 0; j < 4; j++)
+            o[n0 + j] = acc[j];
+    }
+    for (; n0 < N; n0++) {
+        float acc = o[n0];
+        for (k = 0; k < K; k++)
+            acc += a[k * a_cs] * B[k * b_rs + n0];
+        o[n0] = acc;
+    }
+}
+
+PC_INLINE void pc_gemm_one(const pc_gemm *q, const float *A, const float *B, const float *C,
+                        float *O)
+{
+    size_t m, k, n;
+    const size_t N = q->N;
+    for (m = 0; m < q->M; m++) {
+        float *restrict o = O + m * N;
+        const float *a = A + m * q->a_rs;
+        switch (q->c_mode) {
+        case 0: for (n = 0; n < N; n++) o[n] = 0.0f; break;
+        case 1: for (n = 0; n < N; n++) o[n] = q->beta * C[0]; break;
+        case 2: for (n = 0; n < N; n++) o[n] = q->beta * C[n]; break;
+        case 3: for (n = 0; n < N; n++) o[n] = q->beta * C[m]; break;
+        default: for (n = 0; n < N; n++) o[n] = q->beta * C[m * N + n]; break;
+        }
+        if (q->b_cs == 1 && q->alpha == 1.0f) {
+            pc_row(a, q->a_cs, B, q->b_rs, q->K, N, o);
+        } else if (q->b_cs == 1) {
+            for (k = 0; k < q->K; k++) {
+                const float av = q->alpha * a[k * q->a_cs];
+                const float *restrict b = B + k * q->b_rs;
+                for (n = 0; n < N; n++)
+                    o[n] += av * b[n];
+            }
+        } else {
+            for (k = 0; k < q->K; k++) {
+                const float av = q->alpha * a[k * q->a_cs];
+                const float *b = B + k * q->b_rs;
+                for (n = 0; n < N; n++)
+                    o[n] += av * b[n * q->b_cs];
+            }
+        }
+    }
+    pc_apply_act(q, O, q->M * N);
+}
+
+pc_status k_gemm(const pc_step *s)
+{
+    pc_gemm_one((const pc_gemm *)s->prm, (const float *)s->io[0], (const float *)s->io[1],
+                (const float *)s->io[2], (float *)s->io[3]);
+    return PC_OK;
+}
+
+/* Single row, no transposes, bias row, tanh: the MLP layer at N = 1. */
+/* Rows of tanh(A B + c): no transposes, bias row, alpha = beta = 1 (the MLP layer). */
+PC_HOT pc_status k_gemm_row_tanh(const pc_step *s)
+{
+    const pc_gemm *q = (const pc_gemm *)s->prm;
+    const float *A = (const float *)s->io[0];
+    const float *B = (const float *)s->io[1];
+    const float *C = (const float *)s->io[2];
+    float *O = (float *)s->io[3];
+    const size_t N = q->N, K = q->K;
+    size_t m, n;
+    for (m = 0; m < q->M; m++) {
+        float *restrict o = O + m * N;
+        for (n = 0; n < N; n++)
+            o[n] = C[n];
+        pc_row(A + m * K, 1, B, N, K, N, o);
+        for (n = 0; n < N; n++)
+            o[n] = pc_tanh_inline(o[n]);
+    }
+    return PC_OK;
+}
+
+pc_status k_matmul(const pc_step *s)
+{
+    const pc_gemm *q = (const pc_gemm *)s->prm;
+    const float *A = (const float *)s->io[0];
+    const float *B = (const float *)s->io[1];
+    float *O = (float *)s->io[2];
+    size_t idx[4] = {0, 0, 0, 0}, total = 1, t, j;
+    for (j = 0; j < q->nbd; j++)
+        total *= q->bd[j];
+    for (t = 0; t < total; t++) {
+        size_t ao = 0, bo = 0;
+        for (j = 0; j < q->nbd; j++) {
+            ao += idx[j] * q->a_bst[j];
+            bo += idx[j] * q->b_bst[j];
+        }
+        pc_gemm_one(q, A + ao, B + bo, NULL, O + t * q->M * q->N);
+        for (j = q->nbd; j-- > 0;) {
+            if (++idx[j] < q->bd[j])
+                break;
+            idx[j] = 0;
+        }
+    }
+    return PC_OK;
+}
+

@@ -1,0 +1,397 @@
+/* C unit tests: protobuf reader, status table, tanh accuracy against libm, loader error
+ * paths and pc_run contract on models built here with a minimal protobuf writer.
+ * Operator semantics are checked against onnxruntime by the pytest parity suite. */
+#include "pc_internal.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+static int n_pass = 0, n_fail = 0;
+
+#define CHECK(cond)                                                                        \
+    do {                                                                                   \
+        if (cond)                                                                          \
+            n_pass++;                                                                      \
+        else {                                                                             \
+            n_fail++;                                                                      \
+            fprintf(stderr, "FAIL %s:%d: %s\n", __FILE__, __LINE__, #cond);               \
+        }                                                                                  \
+    } while (0)
+
+/* ---- a minimal protobuf writer ---------------------------------------------------- */
+
+typedef struct buf {
+    uint8_t d[16384];
+    size_t n;
+} buf;
+
+static void put_varint(buf *b, uint64_t v)
+{
+    do {
+        uint8_t byte = v & 0x7f;
+        v >>= 7;
+        b->d[b->n++] = byte | (v ? 0x80 : 0);
+    } while (v);
+}
+static void put_tag(buf *b, unsigned field, unsigned wire) { put_varint(b, (uint64_t)field << 3 | wire); }
+static void put_int(buf *b, unsigned field, uint64_t v) { put_tag(b, field, 0); put_varint(b, v); }
+static void put_bytes(buf *b, unsigned field, const void *p, size_t n)
+{
+    put_tag(b, field, 2);
+    put_varint(b, n);
+    memcpy(b->d + b->n, p, n);
+    b->n += n;
+}
+static void put_str(buf *b, unsigned field, const char *s) { put_bytes(b, field, s, strlen(s)); }
+static void put_msg(buf *b, unsigned field, const buf *m) { put_bytes(b, field, m->d, m->n); }
+
+static void value_info(buf *out, unsigned field, const char *name, int width, int elem)
+{
+    buf vi = {{0}, 0}, type = {{0}, 0}, tt = {{0}, 0}, shape = {{0}, 0}, d0 = {{0}, 0}, d1 = {{0}, 0};
+    put_str(&d0, 2, "N");
+    put_int(&d1, 1, (uint64_t)width);
+    put_msg(&shape, 1, &d0);
+    put_msg(&shape, 1, &d1);
+    put_int(&tt, 1, (uint64_t)elem);
+    put_msg(&tt, 2, &shape);
+    put_msg(&type, 1, &tt);
+    put_str(&vi, 1, name);
+    put_msg(&vi, 2, &type);
+    put_msg(out, field, &vi);
+}
+
+typedef struct spec {
+    const char *in_name;
+    int in_width;
+    const char *op;         /* node: op(pose, c) -> corrected, or op(pose) if !with_const */
+    int with_const;
+    int raw;                /* initializer as raw_data (1) or float_data (0) */
+    const char *node_input; /* overrides the second input name */
+    int self_loop;          /* node consumes its own output */
+} spec;
+
+static size_t model_without_meta;
+
+static void build(buf *model, const spec *s, const float *c)
+{
+    buf graph = {{0}, 0}, node = {{0}, 0}, tensor = {{0}, 0}, opset = {{0}, 0}, meta = {{0}, 0};
+    int k;
+    put_str(&node, 1, s->self_loop ? "corrected" : "pose");
+    if (s->with_const)
+        put_str(&node, 1, s->node_input ? s->node_input : "c");
+    put_str(&node, 2, "corrected");
+    put_str(&node, 3, "node0");
+    put_str(&node, 4, s->op);
+    put_msg(&graph, 1, &node);
+    put_str(&graph, 2, "g");
+    if (s->with_const) {
+        put_int(&tensor, 1, 7);
+        put_int(&tensor, 2, 1);
+        put_str(&tensor, 8, "c");
+        if (s->raw) {
+            put_bytes(&tensor, 9, c, 7 * sizeof(float));
+        } else {
+            put_tag(&tensor, 4, 2);
+            put_varint(&tensor, 7 * 4);
+            for (k = 0; k < 7; k++) {
+                memcpy(tensor.d + tensor.n, &c[k], 4);
+                tensor.n += 4;
+            }
+        }
+        put_msg(&graph, 5, &tensor);
+    }
+    value_info(&graph, 11, s->in_name, s->in_width, 1);
+    value_info(&graph, 12, "corrected", 7, 1);
+    model->n = 0;
+    put_int(model, 1, 8);
+    put_str(&opset, 1, "");
+    put_int(&opset, 2, 17);
+    put_msg(model, 8, &opset);
+    put_msg(model, 7, &graph);
+    model_without_meta = model->n;
+    put_str(&meta, 1, "method");
+    put_str(&meta, 2, "pmc");
+    put_msg(model, 14, &meta);
+}
+
+static const spec ADD = {"pose", 7, "Add", 1, 1, NULL, 0};
+
+/* ---- tests ------------------------------------------------------------------------ */
+
+static void test_varint(void)
+{
+    const uint8_t one[] = {0x96, 0x01};
+    const uint8_t ten[] = {0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0x01};
+    const uint8_t over[] = {0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0x7f};
+    const uint8_t trunc[] = {0x80, 0x80};
+    pb_reader r;
+    pb_slice s;
+    uint64_t v = 0;
+    pc_error err;
+    s.data = one; s.size = sizeof one;
+    pb_init(&r, one, s);
+    CHECK(pb_read_varint(&r, &v, &err) == PC_OK && v == 150);
+    s.data = ten; s.size = sizeof ten;
+    pb_init(&r, ten, s);
+    CHECK(pb_read_varint(&r, &v, &err) == PC_OK && v == UINT64_MAX);
+    s.data = over; s.size = sizeof over;
+    pb_init(&r, over, s);
+    CHECK(pb_read_varint(&r, &v, &err) == PC_ERR_MALFORMED);
+    s.data = trunc; s.size = sizeof trunc;
+    pb_init(&r, trunc, s);
+    CHECK(pb_read_varint(&r, &v, &err) == PC_ERR_TRUNCATED);
+    CHECK(strstr(err.message, "byte 2") != NULL);
+}
+
+static void test_fields(void)
+{
+    buf b = {{0}, 0};
+    pb_reader r;
+    pb_field f;
+    pb_slice s;
+    pc_error err;
+    int more;
+    float x = 1.5f;
+    int64_t ints[8];
+    float floats[8];
+    size_t n = 0, count = 0;
+    put_int(&b, 3, 300);
+    put_tag(&b, 2, 5);
+    memcpy(b.d + b.n, &x, 4);
+    b.n += 4;
+    put_str(&b, 1, "abc");
+    put_tag(&b, 8, 2); /* packed ints 1, 2, 300 */
+    put_varint(&b, 4);
+    put_varint(&b, 1);
+    put_varint(&b, 2);
+    put_varint(&b, 300);
+    s.data = b.d; s.size = b.n;
+    pb_init(&r, b.d, s);
+    CHECK(pb_next(&r, &f, &more, &err) == PC_OK && more && f.number == 3 && f.wire == PB_VARINT && f.varint == 300);
+    CHECK(pb_next(&r, &f, &more, &err) == PC_OK && more && f.wire == PB_FIXED32 && pb_bits_to_float((uint32_t)f.varint) == 1.5f);
+    CHECK(pb_next(&r, &f, &more, &err) == PC_OK && more && pb_slice_eq(f.bytes, "abc"));
+    CHECK(pb_next(&r, &f, &more, &err) == PC_OK && more && f.number == 8);
+    CHECK(pb_count_packed(b.d, &f, PB_VARINT, &count, &err) == PC_OK && count == 3);
+    CHECK(pb_decode_repeated(b.d, &f, PB_VARINT, ints, NULL, 8, &n, &err) == PC_OK && n == 3 && ints[2] == 300);
+    n = 0;
+    CHECK(pb_decode_repeated(b.d, &f, PB_VARINT, ints, NULL, 2, &n, &err) == PC_ERR_MALFORMED);
+    CHECK(pb_next(&r, &f, &more, &err) == PC_OK && !more);
+    (void)floats;
+    /* length beyond the end of the message */
+    b.n = 0;
+    put_tag(&b, 1, 2);
+    put_varint(&b, 50);
+    b.d[b.n++] = 'x';
+    s.data = b.d; s.size = b.n;
+    pb_init(&r, b.d, s);
+    CHECK(pb_next(&r, &f, &more, &err) == PC_ERR_TRUNCATED);
+    /* wire types 3/4/6/7 and field number 0 */
+    b.n = 0;
+    put_tag(&b, 1, 3);
+    s.data = b.d; s.size = b.n;
+    pb_init(&r, b.d, s);
+    CHECK(pb_next(&r, &f, &more, &err) == PC_ERR_MALFORMED);
+    b.n = 0;
+    put_tag(&b, 0, 0);
+    put_varint(&b, 1);
+    s.data = b.d; s.size = b.n;
+    pb_init(&r, b.d, s);
+    CHECK(pb_next(&r, &f, &more, &err) == PC_ERR_MALFORMED);
+    /* truncated fixed32 */
+    b.n = 0;
+    put_tag(&b, 2, 5);
+    b.d[b.n++] = 0;
+    s.data = b.d; s.size = b.n;
+    pb_init(&r, b.d, s);
+    CHECK(pb_next(&r, &f, &more, &err) == PC_ERR_TRUNCATED);
+}
+
+static void test_status_names(void)
+{
+    int i, j;
+    for (i = 0; i < PC_STATUS_COUNT; i++) {
+        CHECK(strcmp(pc_status_name((pc_status)i), "unknown status") != 0);
+        for (j = 0; j < i; j++)
+            CHECK(strcmp(pc_status_name((pc_status)i), pc_status_name((pc_status)j)) != 0);
+    }
+    CHECK(strcmp(pc_status_name(PC_STATUS_COUNT), "unknown status") == 0);
+}
+
+static void test_tanh(void)
+{
+    double worst = 0.0, at = 0.0;
+    long i;
+    for (i = -1200000; i <= 1200000; i++) {
+        const float x = (float)i * 1e-5f;
+        const double e = fabs((double)pc_tanh(x) - tanh((double)x));
+        if (e > worst) {
+            worst = e;
+            at = x;
+        }
+    }
+    printf("tanh: max abs error %.3g at %.6f over [-12, 12] step 1e-5\n", worst, at);
+    CHECK(worst <= 4e-7);
+    CHECK(fabs(pc_tanh(1e30f) - 1.0) <= 4e-7 && fabs(pc_tanh(-1e30f) + 1.0) <= 4e-7);
+    CHECK(pc_tanh(8.5f) <= 1.0f && pc_tanh(100.0f) <= 1.0f);
+    CHECK(pc_tanh(0.0f) == 0.0f);
+    CHECK(isnan(pc_tanh(NAN)));
+    for (i = 0; i < 1000; i++) {
+        const float x = (float)i * 0.0123f;
+        CHECK(pc_tanh(-x) == -pc_tanh(x));
+    }
+}
+
+static void test_load_and_run(void)
+{
+    static buf model;
+    const float c[7] = {0.5f, -1.0f, 2.0f, 0.25f, 0.0f, -0.125f, 3.0f};
+    float in[1000 * 7], out[1000 * 7];
+    pc_model *m = NULL;
+    pc_error err;
+    size_t i;
+    int raw, ok;
+    for (raw = 0; raw < 2; raw++) {
+        spec s = ADD;
+        s.raw = raw;
+        build(&model, &s, c);
+        CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_OK);
+        if (!m)
+            return;
+        for (i = 0; i < 1000 * 7; i++)
+            in[i] = (float)((i * 37) % 101) * 0.01f - 0.5f;
+        CHECK(pc_run(m, in, 1000, out) == PC_OK);
+        ok = 1;
+        for (i = 0; i < 1000 * 7; i++)
+            if (out[i] != in[i] + c[i % 7])
+                ok = 0;
+        CHECK(ok);
+        /* every n up to 40 (chunk decomposition), exact */
+        for (i = 1; i <= 40; i++) {
+            size_t j;
+            memset(out, 0, sizeof out);
+            CHECK(pc_run(m, in + 7, i, out) == PC_OK);
+            ok = 1;
+            for (j = 0; j < i * 7; j++)
+                if (out[j] != in[7 + j] + c[j % 7])
+                    ok = 0;
+            CHECK(ok);
+        }
+        /* in-place */
+        memcpy(out, in, 10 * 7 * sizeof(float));
+        CHECK(pc_run(m, out, 10, out) == PC_OK && out[3] == in[3] + c[3]);
+        /* n = 0 is a no-op */
+        out[0] = 42.0f;
+        CHECK(pc_run(m, NULL, 0, NULL) == PC_OK);
+        CHECK(pc_run(m, in, 0, out) == PC_OK && out[0] == 42.0f);
+        /* NaN and inf: error, output untouched */
+        for (i = 0; i < 3 * 7; i++)
+            out[i] = -7.0f;
+        in[2 * 7 + 5] = NAN;
+        CHECK(pc_run(m, in, 3, out) == PC_ERR_NONFINITE);
+        CHECK(strstr(pc_model_message(m), "pose 2") != NULL);
+        in[2 * 7 + 5] = -INFINITY;
+        CHECK(pc_run(m, in, 3, out) == PC_ERR_NONFINITE);
+        ok = 1;
+        for (i = 0; i < 3 * 7; i++)
+            if (out[i] != -7.0f)
+                ok = 0;
+        CHECK(ok);
+        CHECK(pc_run(m, in, 1, NULL) == PC_ERR_ARGUMENT);
+        CHECK(pc_run(NULL, in, 1, out) == PC_ERR_ARGUMENT);
+        /* metadata */
+        CHECK(pc_metadata_count(m) == 1);
+        CHECK(strcmp(pc_metadata_key(m, 0), "method") == 0);
+        CHECK(strcmp(pc_metadata_lookup(m, "method"), "pmc") == 0);
+        CHECK(pc_metadata_lookup(m, "nope") == NULL && pc_metadata_key(m, 1) == NULL);
+        CHECK(pc_max_batch(m) == PC_DEFAULT_MAX_BATCH && pc_arena_bytes(m) > 0);
+        pc_free(m);
+        m = NULL;
+    }
+    {
+        pc_options o = {100}; /* rounds down to 64 */
+        build(&model, &ADD, c);
+        CHECK(pc_load_memory(model.d, model.n, &o, &m, &err) == PC_OK && pc_max_batch(m) == 64);
+        pc_free(m);
+    }
+}
+
+static void expect_error(const spec *s, pc_status want, const char *fragment)
+{
+    static buf model;
+    const float c[7] = {0};
+    pc_model *m = (pc_model *)1;
+    pc_error err;
+    pc_status st;
+    build(&model, s, c);
+    st = pc_load_memory(model.d, model.n, NULL, &m, &err);
+    CHECK(st == want);
+    CHECK(m == NULL);
+    CHECK(strstr(err.message, fragment) != NULL);
+    if (st != want || !strstr(err.message, fragment))
+        fprintf(stderr, "  got %s: %s\n", pc_status_name(st), err.message);
+}
+
+static void test_errors(void)
+{
+    static buf model;
+    const float c[7] = {0};
+    spec s;
+    pc_model *m;
+    pc_error err;
+    size_t i;
+    s = ADD; s.op = "Pow";
+    expect_error(&s, PC_ERR_UNSUPPORTED, "unsupported operator Pow in node 'node0'");
+    s = ADD; s.in_name = "measured";
+    expect_error(&s, PC_ERR_CONTRACT, "'measured'");
+    s = ADD; s.in_width = 6;
+    expect_error(&s, PC_ERR_CONTRACT, "[N,7]");
+    s = ADD; s.node_input = "ghost";
+    expect_error(&s, PC_ERR_GRAPH, "input 'ghost' of node 'node0' is not produced");
+    s = ADD; s.self_loop = 1;
+    expect_error(&s, PC_ERR_GRAPH, "cycle");
+    s = ADD; s.op = "Neg"; s.with_const = 1; s.node_input = "c";
+    expect_error(&s, PC_ERR_GRAPH, "needs 1 input");
+    /* truncated at every length: an error naming a byte, never success */
+    build(&model, &ADD, c);
+    for (i = 0; i < model.n; i++) {
+        pc_status st = pc_load_memory(model.d, i, NULL, &m, &err);
+        /* Only a cut exactly at the end of a whole field can parse. */
+        CHECK(st != PC_OK || i == model_without_meta);
+        if (st == PC_OK)
+            pc_free(m);
+        if (st == PC_ERR_TRUNCATED)
+            CHECK(strstr(err.message, "byte") != NULL);
+    }
+    CHECK(pc_load_memory(NULL, 10, NULL, &m, &err) == PC_ERR_ARGUMENT);
+    CHECK(pc_load_memory(model.d, model.n, NULL, NULL, &err) == PC_ERR_ARGUMENT);
+    CHECK(pc_load_file("/nonexistent/model.onnx", NULL, &m, &err) == PC_ERR_IO);
+    CHECK(strstr(err.message, "/nonexistent/model.onnx") != NULL);
+}
+
+int main(int argc, char **argv)
+{
+    test_varint();
+    test_fields();
+    test_status_names();
+    test_tanh();
+    test_load_and_run();
+    test_errors();
+    /* optional: model files given on the command line must load and run */
+    {
+        int a;
+        for (a = 1; a < argc; a++) {
+            pc_model *m;
+            pc_error err;
+            float in[7] = {0.1f, 0.2f, 0.3f, 1.0f, 0.0f, 0.0f, 0.0f}, out[7];
+            CHECK(pc_load_file(argv[a], NULL, &m, &err) == PC_OK);
+            if (m) {
+                CHECK(pc_run(m, in, 1, out) == PC_OK);
+                pc_free(m);
+            }
+        }
+    }
+    printf("%d passed, %d failed\n", n_pass, n_fail);
+    return n_fail ? 1 : 0;
+}

@@ -1,0 +1,131 @@
+"""The sweep protocol: splits, resumable store, tables, statistics, CLI-facing helpers."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from posecorr import rotations
+from posecorr.data import PoseTable
+from posecorr.train import protocol
+from posecorr.train.protocol import Config, build_grid, fit_one, run_sweep, split_indices
+
+
+def synthetic_table(n=240, seed=0):
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-0.1, 0.1, (n, 3)) + np.array([0.0, -0.6, 0.5])
+    R = rotations.rotvec_to_matrix(rng.normal(0, 0.3, (n, 3)))
+    ref_q = rotations.matrix_to_quat(R)
+    meas_p = p + 0.01 * (p - p.mean(0)) ** 2 * 30 + 0.002 + rng.normal(0, 2e-4, (n, 3))
+    meas_R = R @ rotations.rotvec_to_matrix(np.array([0.01, -0.02, 0.015]) + rng.normal(0, 3e-4, (n, 3)))
+    return PoseTable(meas_p, rotations.matrix_to_quat(meas_R), p, ref_q)
+
+
+def test_splits_are_disjoint_fixed_test_and_70_15_15():
+    n = 1000
+    tr0, va0, te0 = split_indices(n, seed=3, repeat=0)
+    tr1, va1, te1 = split_indices(n, seed=3, repeat=1)
+    np.testing.assert_array_equal(te0, te1)  # test set fixed across repeats
+    assert (len(tr0), len(va0), len(te0)) == (700, 150, 150)
+    assert len(np.intersect1d(tr0, va0)) == 0 and len(np.intersect1d(tr0, te0)) == 0
+    assert sorted(np.concatenate([tr0, va0, te0]).tolist()) == list(range(n))
+    assert not np.array_equal(va0, va1)  # a fresh train/validation split per repeat
+    _, _, te_other = split_indices(n, seed=4, repeat=0)
+    assert not np.array_equal(te0, te_other)
+
+
+def test_grid_builder_and_labels():
+    grid = build_grid("paper-exp3")
+    assert len(grid) == 4 * (1 + 3 * 16 * 2)
+    reduced = build_grid("reduced")
+    assert {c.representation for c in reduced} == {"eaa", "quat", "R", "zhou"}
+    assert sum(c.method == "pmc" for c in reduced) == 4
+    cfg = Config("mlp", "zhou", (20, 20, 20, 20), "tansig", "br")
+    assert cfg.label == "tansig 16/2" and cfg.name == "Zhou-tansig-16/2"
+    assert cfg.key == "zhou-tansig-20-20-20-20-br"
+    assert Config("pmc", "R").label == "PMC" and Config("pmc", "R").name == "R-PMC"
+    custom = build_grid(representations=["zhou"], activations=["tansig"], trainers=["adam"],
+                        architectures=["8-8"], include_pmc=False, options={"epochs": 5})
+    assert len(custom) == 1 and custom[0].label == "tansig 8-8/adam" and "epochs=5" in custom[0].key
+
+
+def test_fit_one_reports_raw_and_test_blocks():
+    table = synthetic_table()
+    res = fit_one(table, "pmc", "zhou", seed=1)
+    assert set(res.test) >= {"rmse_pos", "rmse_rot", "rmse_total", "improvement_pos", "improvement_rot",
+                             "improvement_total"}
+    assert res.test["improvement_total"] == pytest.approx(res.raw["rmse_total"] / res.test["rmse_total"])
+    assert res.test["improvement_total"] > 3
+    assert len(res.test_index) == 36
+    with pytest.raises(ValueError):
+        fit_one(PoseTable(table.meas_p, table.meas_q, table.ref_p, None), "pmc", "zhou")
+
+
+def test_sweep_resumes_from_store_and_prints_tables(tmp_path, monkeypatch):
+    table = synthetic_table()
+    configs = [Config("pmc", "R"), Config("pmc", "zhou"), Config("pmc", "quat"),
+               Config("mlp", "zhou", (4,), "tansig", "lm", (("epochs", 3),))]
+    store = tmp_path / "runs.jsonl"
+    first = run_sweep(table, configs[:2], repeats=4, store=store, workers=1, progress=False)
+    assert len(first.rows) == 8
+    assert len(store.read_text().splitlines()) == 8
+    calls = []
+    real = protocol.run_one
+
+    def counting(*args, **kwargs):
+        calls.append(args[1].key)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(protocol, "run_one", counting)
+    second = run_sweep(table, configs, repeats=4, store=store, workers=1, progress=False)
+    # only the new configurations ran; the stored runs were reused unchanged
+    assert sorted(set(calls)) == sorted(c.key for c in configs[2:]) and len(calls) == 8
+    assert len(store.read_text().splitlines()) == 16
+    old = {(r["key"], r["repeat"]): r["rmse_total"] for r in first.rows}
+    for r in second.rows:
+        if (r["key"], r["repeat"]) in old:
+            assert r["rmse_total"] == old[(r["key"], r["repeat"])]
+    summary = {s["key"]: s for s in second.summary()}
+    zhou = summary["zhou-pmc"]
+    vals = [r["rmse_total"] for r in second.rows if r["key"] == "zhou-pmc"]
+    assert zhou["rmse_total"]["min"] == min(vals) and zhou["rmse_total"]["avg"] == pytest.approx(np.mean(vals))
+    assert zhou["improvement_total"] == pytest.approx(second.raw["rmse_total"] / min(vals))
+    text = second.format()
+    assert "raw data" in text and "Zhou representation" in text and "Tier" in text and "Friedman" in text
+    out = second.to_json()
+    json.dumps(out)
+    assert sum(len(t) for t in out["tiers"]) == 4
+
+
+def test_sweep_in_worker_processes_matches_in_process(tmp_path):
+    table = synthetic_table()
+    configs = [Config("pmc", "zhou"), Config("pmc", "R")]
+    a = run_sweep(table, configs, repeats=3, workers=1, progress=False)
+    b = run_sweep(table, configs, repeats=3, workers=2, progress=False)
+    ka = {(r["key"], r["repeat"]): r["rmse_total"] for r in a.rows}
+    kb = {(r["key"], r["repeat"]): r["rmse_total"] for r in b.rows}
+    assert ka == kb
+
+
+def test_sweep_over_ray_when_installed():
+    ray = pytest.importorskip("ray")
+    table = synthetic_table()
+    res = run_sweep(table, [Config("pmc", "zhou")], repeats=2, ray_address="local", progress=False)
+    assert len(res.rows) == 2
+    ray.shutdown()
+
+
+def test_cross_validation_pools_out_of_fold_predictions():
+    table = synthetic_table(n=120)
+    out = protocol.cross_validate(table, "pmc", "zhou", folds=4, seed=0)
+    assert out["folds"] == 4
+    assert out["cv"]["improvement_total"] == pytest.approx(out["raw"]["rmse_total"] / out["cv"]["rmse_total"])
+    # out-of-fold error is never better than the in-sample fit of the same model
+    from posecorr.train import PMC
+    from posecorr.metrics import pose_metrics
+    full = PMC("zhou").fit(table.measured, table.reference)
+    in_sample = pose_metrics(table.reference, full.predict(table.measured))["rmse_total"]
+    assert out["cv"]["rmse_total"] > in_sample
+    loo = protocol.cross_validate(synthetic_table(n=40), "pmc", "pos", folds="loo")
+    assert loo["folds"] == 40 and loo["raw"]["rmse_rot"] is None

@@ -1,0 +1,354 @@
+"""libposecorr (runtime_c): C unit tests, parity with onnxruntime for every operator and a
+realistic pose->pose graph, the tools, sanitizers, valgrind and the installed package."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "runtime_c" / "tests"))
+try:
+    import posecorr.runtime  # noqa: F401
+except ImportError:  # running from a checkout without the package installed
+    sys.path.insert(0, str(ROOT / "python"))
+
+onnx = pytest.importorskip("onnx")
+ort = pytest.importorskip("onnxruntime")
+
+import graphs  # noqa: E402
+from posecorr.runtime import Corrector, PoseCorrError  # noqa: E402
+
+BUILD = ROOT / "build"
+OPERATORS = [ln.split("#")[0].strip() for ln in
+             (ROOT / "export" / "operators.txt").read_text().splitlines()]
+OPERATORS = [op for op in OPERATORS if op]
+CASES = graphs.op_cases()
+# These mix rows on purpose (runtime B / runtime gather indices over the batch), so
+# they are compared pose by pose.
+CROSS_ROW = {"gemm_runtime_b", "gather_runtime"}
+
+
+@pytest.fixture(scope="session")
+def c_build() -> Path:
+    return graphs.build_runtime(BUILD / "c-test", "-DPC_BUILD_TESTS=ON")
+
+
+@pytest.fixture(scope="session")
+def lib(c_build) -> str:
+    return str(c_build / "libposecorr.so")
+
+
+def ort_run(model_bytes: bytes, x: np.ndarray) -> np.ndarray:
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 1
+    s = ort.InferenceSession(model_bytes, so, providers=["CPUExecutionProvider"])
+    return s.run(["corrected"], {"pose": x})[0]
+
+
+def rel_err(got: np.ndarray, ref: np.ndarray) -> float:
+    assert got.shape == ref.shape
+    assert np.array_equal(np.isnan(got), np.isnan(ref)), "NaN pattern differs"
+    ok = ~np.isnan(ref)
+    if not ok.any():
+        return 0.0
+    return float(np.max(np.abs(got[ok] - ref[ok]) / np.maximum(1.0, np.abs(ref[ok]))))
+
+
+def test_c_unit_tests(c_build):
+    r = subprocess.run([str(c_build / "pc_unit_tests")], capture_output=True, text=True,
+                       timeout=120)
+    tail = r.stdout.strip().splitlines()[-1]
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert tail.endswith(" 0 failed"), tail
+    assert int(tail.split()[0]) > 100
+
+
+def test_every_operator_has_a_parity_case():
+    used = {n.op_type for f in CASES.values() for m in f() for n in m.graph.node}
+    missing = set(OPERATORS) - used
+    assert not missing, f"operators without a parity case: {sorted(missing)}"
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_operator_parity(case, lib):
+    x = graphs.op_inputs(300, seed=1)
+    worst = 0.0
+    for model in CASES[case]():
+        blob = model.SerializeToString()
+        c = Corrector(blob, library=lib)
+        if case in CROSS_ROW:
+            got = np.stack([c.correct(p) for p in x[:20]]).astype(np.float32)
+            ref = np.concatenate([ort_run(blob, p[None]) for p in x[:20]])
+        else:
+            got = c.correct(x).astype(np.float32)
+            ref = ort_run(blob, x)
+            # single pose and small batches go through other plans
+            np.testing.assert_array_equal(c.correct(x[5]).astype(np.float32), got[5])
+            got3 = c.correct(x[:3]).astype(np.float32)
+            assert rel_err(got3, ref[:3]) <= 1e-6
+        err = rel_err(got, ref)
+        worst = max(worst, err)
+        if "Tanh" in case:
+            assert float(np.nanmax(np.abs(got - ref))) <= 4e-7, case
+        assert err <= 1e-6, f"{case}: max relative diff {err:.3g}"
+    print(f"{case}: max rel diff {worst:.3g}")
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_pose_model_parity(seed, lib):
+    model = graphs.pose_model(seed)
+    blob = model.SerializeToString()
+    ops = {n.op_type for n in model.graph.node}
+    assert {"Gemm", "Tanh", "Where", "ArgMax", "Sqrt", "ReduceSum"} <= ops
+    c = Corrector(blob, library=lib)
+    for n in (1, 7, 300, 1000):
+        x = graphs.random_poses(n, seed=seed + n)
+        ref = ort_run(blob, x)
+        got = c.correct(x)
+        err = rel_err(got.astype(np.float32), ref)
+        print(f"pose model seed={seed} N={n}: max rel diff {err:.3g}")
+        assert err <= 2e-6
+        q = got[:, 3:]
+        np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-5)
+        assert np.all(q[:, 0] >= 0)
+
+
+MODELS = sorted((ROOT / "models").glob("*.onnx"))
+
+
+@pytest.mark.parametrize("path", MODELS or [pytest.param(None, marks=pytest.mark.skip(
+    reason="no shipped models in models/ yet"))], ids=lambda p: p.name if p else "none")
+def test_shipped_model_parity(path, lib):
+    blob = path.read_bytes()
+    c = Corrector(blob, library=lib)
+    x = graphs.random_poses(500, seed=3)
+    x[:, :3] = x[:, :3] * 0.3 + np.array([0.0, -0.6, 0.5], dtype=np.float32)
+    err = rel_err(c.correct(x).astype(np.float32), ort_run(blob, x))
+    print(f"{path.name}: max rel diff {err:.3g}")
+    assert err <= 1e-5
+
+
+def _bad_contract_models():
+    g = graphs.G()
+    yield "renamed input", g.model(g.op("Identity", ["measured"]), rename_input="measured"), "'measured'"
+    g = graphs.G()
+    yield "width 6", g.model(g.op("Concat", ["pose", g.f32(np.zeros((1, 1), np.float32))], axis=1),
+                             width=6), "[N,7]"
+    g = graphs.G()
+    y = g.op("Pow", ["pose", g.f32(2.0)])
+    yield "unsupported", g.model(y), "unsupported operator Pow in node"
+    g = graphs.G()
+    yield "wrong output width", g.model(g.op("Slice", ["pose", g.i64([0]), g.i64([6]), g.i64([1])])), "contract"
+    g = graphs.G()
+    yield "old opset", g.model(g.op("Identity", ["pose"]), opset=9), "opset 9"
+
+
+@pytest.mark.parametrize("label,model,fragment", list(_bad_contract_models()),
+                         ids=[m[0] for m in _bad_contract_models()])
+def test_load_errors_name_the_problem(label, model, fragment, lib):
+    with pytest.raises(PoseCorrError) as e:
+        Corrector(model.SerializeToString(), library=lib)
+    assert fragment in str(e.value)
+
+
+def test_truncated_file_names_byte(lib):
+    blob = graphs.pose_model().SerializeToString()
+    with pytest.raises(PoseCorrError, match=r"truncated file at byte \d+"):
+        Corrector(blob[: len(blob) // 2], library=lib)
+
+
+def test_nan_input_leaves_output_untouched(lib):
+    import ctypes
+
+    from posecorr.runtime import load_library
+
+    c = Corrector(graphs.pose_model().SerializeToString(), library=lib)
+    L = load_library(lib)
+    x = graphs.random_poses(4)
+    x[2, 5] = np.nan
+    out = np.full((4, 7), 7.0, dtype=np.float32)
+    st = L.pc_run(c._impl.handle, x.ctypes.data, 4, out.ctypes.data)
+    assert st != 0 and np.all(out == 7.0)
+    assert b"pose 2" in L.pc_model_message(c._impl.handle)
+    with pytest.raises(PoseCorrError):
+        c.correct(x)
+    assert L.pc_run(c._impl.handle, None, 0, None) == 0
+
+
+# -- tools --------------------------------------------------------------------------------
+
+@pytest.fixture(scope="session")
+def pose_file(tmp_path_factory) -> Path:
+    p = tmp_path_factory.mktemp("models") / "pose.onnx"
+    onnx.save(graphs.pose_model(), p)
+    return p
+
+
+def test_posecorr_run_csv(c_build, pose_file):
+    x = graphs.random_poses(40, seed=9)
+    text = "x,y,z,qw,qx,qy,qz\n" + "\n".join(",".join(f"{v:.9g}" for v in row) for row in x) + "\n"
+    r = subprocess.run([str(c_build / "posecorr-run"), str(pose_file)], input=text,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.strip().splitlines()
+    assert lines[0] == "x,y,z,qw,qx,qy,qz"
+    got = np.array([[float(v) for v in ln.split(",")] for ln in lines[1:]], dtype=np.float32)
+    ref = ort_run(pose_file.read_bytes(), x)
+    assert got.shape == (40, 7) and rel_err(got, ref) <= 2e-6
+
+
+def test_posecorr_run_reports_line_numbers(c_build, pose_file):
+    text = "0.1,0.2,0.3,1,0,0,0\n0.1,0.2,0.3,1,0,0,0\n0.1,oops,0.3,1,0,0,0\n"
+    r = subprocess.run([str(c_build / "posecorr-run"), str(pose_file)], input=text,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1 and "line 3" in r.stderr
+    assert len(r.stdout.strip().splitlines()) == 2
+    r = subprocess.run([str(c_build / "posecorr-run"), str(pose_file)],
+                       input="0.1,0.2,0.3,1,0,0,0\nnan,0,0,1,0,0,0\n", capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 1 and "line 2" in r.stderr and "non-finite" in r.stderr
+
+
+def test_posecorr_run_binary(c_build, pose_file):
+    x = graphs.random_poses(10, seed=4)
+    r = subprocess.run([str(c_build / "posecorr-run"), str(pose_file), "--binary"],
+                       input=x.tobytes(), capture_output=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    got = np.frombuffer(r.stdout, dtype=np.float32).reshape(-1, 7)
+    assert rel_err(got, ort_run(pose_file.read_bytes(), x)) <= 2e-6
+
+
+def test_posecorr_bench_json(c_build, pose_file):
+    r = subprocess.run([str(c_build / "posecorr-bench"), str(pose_file), "--n", "2000",
+                        "--batch", "300"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    d = json.loads(r.stdout)
+    for k in ("single_pose_median_us", "single_pose_p99_us", "batch_ns_per_pose", "load_us"):
+        assert isinstance(d[k], float) and d[k] > 0
+    assert d["single_pose_p99_us"] >= d["single_pose_median_us"]
+    assert d["steps"] < d["nodes"]  # folding, aliasing and fusion removed work
+
+
+# -- sanitizers, valgrind, install ---------------------------------------------------------
+
+@pytest.fixture(scope="session")
+def asan_build() -> Path:
+    return graphs.build_runtime(BUILD / "asan", "-DPC_BUILD_TESTS=ON", "-DPC_SANITIZE=ON",
+                                build_type="RelWithDebInfo")
+
+
+def _san_env():
+    env = dict(os.environ)
+    env["ASAN_OPTIONS"] = "detect_leaks=1:abort_on_error=1"
+    env["UBSAN_OPTIONS"] = "print_stacktrace=1:halt_on_error=1"
+    return env
+
+
+def test_asan_unit_tests(asan_build):
+    r = subprocess.run([str(asan_build / "pc_unit_tests")], capture_output=True, text=True,
+                       timeout=300, env=_san_env())
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-4000:]
+    assert r.stdout.strip().endswith(" 0 failed")
+
+
+def test_asan_valid_and_malformed_models(asan_build, tmp_path):
+    files = []
+    for name, f in sorted(CASES.items()):
+        for k, m in enumerate(f()):
+            p = tmp_path / f"{name}_{k}.onnx"
+            onnx.save(m, p)
+            files.append(str(p))
+    for label, m, _ in _bad_contract_models():
+        p = tmp_path / f"bad_{label.replace(' ', '_')}.onnx"
+        onnx.save(m, p)
+        files.append(str(p))
+    pose = tmp_path / "pose.onnx"
+    onnx.save(graphs.pose_model(), pose)
+    small = tmp_path / "small.onnx"
+    onnx.save(CASES["unary_Abs"]()[0], small)
+    exe = str(asan_build / "pc_load_check")
+    # inputs that crashed earlier versions (found by the fuzzer)
+    files += [str(p) for p in sorted((ROOT / "runtime_c" / "tests" / "regress").glob("*"))]
+    runs = [[exe, *files, str(pose)],
+            [exe, "--prefixes", str(small), str(pose)],
+            [exe, "--flips", "1500", str(pose), "--flips", "1500", str(small)],
+            [exe, "--random", "3000"]]
+    for cmd in runs:
+        r = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=_san_env())
+        assert r.returncode == 0, " ".join(cmd[:3]) + "\n" + r.stdout[-2000:] + r.stderr[-4000:]
+        assert "0 failures" in r.stdout
+    # The valid models must all have loaded.
+    r = subprocess.run([exe, *files[:10]], capture_output=True, text=True, env=_san_env())
+    assert "10 loaded" in r.stdout
+
+
+@pytest.mark.skipif(shutil.which("valgrind") is None, reason="valgrind not on PATH")
+def test_valgrind_posecorr_run(c_build, pose_file):
+    x = graphs.random_poses(20, seed=5)
+    text = "\n".join(",".join(f"{v:.9g}" for v in row) for row in x) + "\n"
+    r = subprocess.run(["valgrind", "--error-exitcode=3", "--leak-check=full",
+                        "--errors-for-leak-kinds=definite,indirect", "-q",
+                        str(c_build / "posecorr-run"), str(pose_file)],
+                       input=text, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-4000:]
+    assert len(r.stdout.strip().splitlines()) == 20
+
+
+CONSUMER_C = r"""
+#include <posecorr.h>
+#include <stdio.h>
+int main(int argc, char **argv) {
+    pc_model *m; pc_error e;
+    float in[7] = {0.1f, -0.5f, 0.4f, 1.0f, 0.0f, 0.0f, 0.0f}, out[7];
+    if (pc_load_file(argv[1], NULL, &m, &e) != PC_OK) { fprintf(stderr, "%s\n", e.message); return 1; }
+    if (pc_run(m, in, 1, out) != PC_OK) return 2;
+    printf("%.9g %.9g %.9g %.9g %.9g %.9g %.9g\n", out[0], out[1], out[2], out[3], out[4], out[5], out[6]);
+    pc_free(m);
+    return 0;
+}
+"""
+
+
+def test_install_find_package_and_pkg_config(c_build, pose_file, tmp_path):
+    prefix = tmp_path / "prefix"
+    subprocess.run(["cmake", "--install", str(c_build), "--prefix", str(prefix)], check=True,
+                   capture_output=True)
+    libdir = next(p.parent for p in prefix.rglob("libposecorr.so"))
+    assert (prefix / "include" / "posecorr.h").exists()
+    assert (prefix / "bin" / "posecorr-run").exists()
+    env = dict(os.environ, LD_LIBRARY_PATH=str(libdir))
+    x = np.array([[0.1, -0.5, 0.4, 1.0, 0.0, 0.0, 0.0]], dtype=np.float32)
+    ref = ort_run(pose_file.read_bytes(), x)[0]
+    # find_package
+    proj = tmp_path / "consumer"
+    proj.mkdir()
+    (proj / "main.c").write_text(CONSUMER_C)
+    (proj / "CMakeLists.txt").write_text(
+        "cmake_minimum_required(VERSION 3.16)\nproject(consumer C)\n"
+        "find_package(posecorr 0.1 REQUIRED)\nadd_executable(consumer main.c)\n"
+        "target_link_libraries(consumer PRIVATE posecorr::posecorr)\n")
+    subprocess.run(["cmake", "-S", str(proj), "-B", str(proj / "b"),
+                    f"-DCMAKE_PREFIX_PATH={prefix}"], check=True, capture_output=True)
+    subprocess.run(["cmake", "--build", str(proj / "b")], check=True, capture_output=True)
+    r = subprocess.run([str(proj / "b" / "consumer"), str(pose_file)], capture_output=True,
+                       text=True, env=env, check=True)
+    np.testing.assert_allclose([float(v) for v in r.stdout.split()], ref, rtol=0, atol=2e-6)
+    # pkg-config
+    if shutil.which("pkg-config") is None:
+        pytest.skip("pkg-config not on PATH")
+    penv = dict(env, PKG_CONFIG_PATH=str(libdir / "pkgconfig"))
+    flags = subprocess.run(["pkg-config", "--cflags", "--libs", "posecorr"], env=penv,
+                           capture_output=True, text=True, check=True).stdout.split()
+    exe = tmp_path / "consumer_pc"
+    subprocess.run([os.environ.get("CC", "cc"), str(proj / "main.c"), "-o", str(exe), *flags],
+                   check=True, capture_output=True)
+    r = subprocess.run([str(exe), str(pose_file)], capture_output=True, text=True, env=env,
+                       check=True)
+    np.testing.assert_allclose([float(v) for v in r.stdout.split()], ref, rtol=0, atol=2e-6)

@@ -1,0 +1,131 @@
+"""posecorr.runtime (ctypes shim over libposecorr) and posecorr.latency."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "runtime_c" / "tests"))
+try:
+    import posecorr.runtime  # noqa: F401
+except ImportError:
+    sys.path.insert(0, str(ROOT / "python"))
+
+onnx = pytest.importorskip("onnx")
+import graphs  # noqa: E402
+from posecorr.runtime import Corrector, PoseCorrError, library_path  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def lib() -> str:
+    # A build of the current sources (the installed copy may predate them).
+    return str(graphs.build_runtime(ROOT / "build" / "c-test", "-DPC_BUILD_TESTS=ON")
+               / "libposecorr.so")
+
+
+def test_installed_library_is_found():
+    try:
+        p = library_path()
+    except PoseCorrError:
+        pytest.skip("posecorr is not installed (no _native/libposecorr.so)")
+    assert p.exists()
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory) -> Path:
+    p = tmp_path_factory.mktemp("shim") / "pose.onnx"
+    onnx.save(graphs.pose_model(2, metadata={"units": "m", "method": "mlp"}), p)
+    return p
+
+
+def test_single_and_batch_shapes(lib, model_path):
+    c = Corrector(model_path, library=lib)
+    x = graphs.random_poses(50, seed=2)
+    batch = c.correct(x)
+    assert batch.shape == (50, 7) and batch.dtype == np.float64
+    one = c.correct(x[3])
+    assert one.shape == (7,) and one.dtype == np.float64
+    np.testing.assert_array_equal(one, batch[3])
+    np.testing.assert_array_equal(c.predict(x), batch)
+    assert c.correct(np.zeros((0, 7))).shape == (0, 7)
+    # float64 / list input is accepted and converted
+    np.testing.assert_array_equal(c.correct(x[3].astype(np.float64).tolist()), one)
+
+
+def test_matches_onnxruntime_backend(lib, model_path):
+    pytest.importorskip("onnxruntime")
+    c = Corrector(model_path, library=lib)
+    o = Corrector(model_path, backend="onnxruntime")
+    x = graphs.random_poses(300, seed=8)
+    a, b = c.correct(x), o.correct(x)
+    assert np.max(np.abs(a - b) / np.maximum(1, np.abs(b))) <= 2e-6
+    np.testing.assert_allclose(c.correct(x[0]), o.correct(x[0]), rtol=0, atol=2e-6)
+    assert c.metadata == o.metadata
+
+
+def test_metadata(lib, model_path):
+    c = Corrector(model_path, library=lib)
+    expected = {p.key: p.value for p in onnx.load(model_path).metadata_props}
+    assert c.metadata == expected and c.metadata["units"] == "m"
+    assert c.n_inputs == c.n_outputs == 7
+
+
+def test_errors(lib, model_path, tmp_path):
+    c = Corrector(model_path, library=lib)
+    bad = graphs.random_poses(3)
+    bad[1, 0] = np.inf
+    with pytest.raises(PoseCorrError, match="non-finite"):
+        c.correct(bad)
+    with pytest.raises(ValueError):
+        c.correct(np.zeros((3, 6)))
+    with pytest.raises(PoseCorrError, match="cannot open"):
+        Corrector(tmp_path / "missing.onnx", library=lib)
+    with pytest.raises(ValueError):
+        Corrector(model_path, backend="tensorflow")
+
+
+def test_import_is_light():
+    code = ("import sys, posecorr.runtime; "
+            "print(sorted(m for m in ('onnxruntime', 'onnx', 'torch', 'scipy') if m in sys.modules))")
+    env_path = str(ROOT / "python")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       env={"PYTHONPATH": env_path, "PATH": "/usr/bin:/bin"}, check=True)
+    assert r.stdout.strip() == "[]"
+
+
+def test_numpy_interpreter_matches_c(lib, model_path):
+    from posecorr.latency import NumpyGraph
+
+    g = NumpyGraph(model_path)
+    c = Corrector(model_path, library=lib)
+    x = graphs.random_poses(40, seed=6)
+    np.testing.assert_allclose(g(x), c.correct(x), rtol=0, atol=1e-5)
+    for name, build in graphs.op_cases().items():
+        for m in build():
+            blob = m.SerializeToString()
+            xi = graphs.op_inputs(4, seed=3)
+            ref = Corrector(blob, library=lib).correct(xi)
+            got = NumpyGraph(blob)(xi)
+            if name == "int_arith":  # numpy floors integer division, ONNX truncates
+                continue
+            np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5, err_msg=name)
+
+
+def test_bench_model_layout(lib, model_path, monkeypatch):
+    from posecorr import latency
+
+    monkeypatch.setattr(latency, "bench_binary", lambda: Path(lib).parent / "posecorr-bench")
+    import posecorr.runtime as rt
+    real = rt.Corrector
+    monkeypatch.setattr(rt, "Corrector", lambda path, **kw: real(path, library=lib, **kw))
+    d = latency.bench_model(model_path, n_single=300, batch=200)
+    keys = {"c", "shim", "onnxruntime", "onnxruntime_iobinding", "numpy"}
+    for block in ("single_pose_median_us", "single_pose_p99_us", "batch_ns_per_pose"):
+        assert set(d[block]) == keys
+        for k in ("c", "shim", "numpy"):
+            assert d[block][k] is not None and d[block][k] > 0
+    assert isinstance(d["machine"], str) and d["machine"]

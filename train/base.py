@@ -1,0 +1,181 @@
+"""The common estimator base of the correctors (PMC, MLP).
+
+The estimator contract (scikit-learn conventions):
+
+* parameters in ``__init__`` (stored as given, no work), fitted state with a trailing
+  underscore;
+* ``fit(measured (N, 7), reference (N, 7), **fit_params) -> self``: learns to predict the
+  REFERENCE pose parameters (position + orientation representation) from the MEASURED
+  ones, as in the paper;
+* ``predict(measured (N, 7)) -> (N, 7)`` float64, unit quaternion with qw >= 0;
+* ``score(measured, reference) -> -rmse_total`` (higher is better: scikit-learn's
+  neg-RMSE convention, so ``GridSearchCV`` and friends maximise it);
+* ``forward(pose)`` maps (N, 7) -> (N, 7) written only against the ``posecorr._xp``
+  namespace: ``predict`` is ``forward`` on numpy float64, the ONNX exporter traces it on
+  its symbolic tensors and torch gets gradients through it;
+* ``export_info() -> dict[str, str]`` and ``to_onnx(path, **metadata)``.
+
+``representation`` is "eaa" | "quat" | "R" | "zhou", or "pos" for a position-only
+corrector (Experiment I): then only x, y, z go in and out and the orientation passes
+through (sign-canonicalised so that qw >= 0, the same rotation).
+
+The pose -> input vector encoding (``encode_pose``) and the output vector -> pose decoding
+(``decode_pose``) live here so that PMC and MLP share them.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from posecorr import rotations
+from posecorr._xp import namespace
+from posecorr.metrics import pose_metrics
+
+REPRESENTATIONS = ("pos",) + tuple(rotations.REPRESENTATIONS)
+
+
+def check_representation(rep: str) -> int:
+    """The orientation parameter count of ``rep`` (0 for "pos"); ValueError otherwise."""
+    if rep == "pos":
+        return 0
+    if rep not in rotations.REPRESENTATIONS:
+        raise ValueError(f"unknown representation {rep!r}; expected one of {', '.join(REPRESENTATIONS)}")
+    return rotations.REPRESENTATIONS[rep]
+
+
+def vector_size(rep: str) -> int:
+    """Length of the input / output vector: 3 position entries + the representation's."""
+    return 3 + check_representation(rep)
+
+
+def encode_pose(pose: Any, rep: str) -> Any:
+    """(N, 7) pose -> (N, 3 + size) vector [x, y, z, params(rep)] in any namespace."""
+    xp = namespace(pose)
+    p = pose[..., 0:3]
+    if rep == "pos":
+        return p
+    R = rotations.quat_to_matrix(pose[..., 3:7])
+    return xp.concat([p, rotations.encode(R, rep)], axis=-1)
+
+
+def decode_pose(vector: Any, pose: Any, rep: str) -> Any:
+    """(N, 3 + size) vector -> (N, 7) pose with a proper rotation and qw >= 0.
+
+    ``pose`` is the input pose: its orientation passes through for rep == "pos".
+    """
+    xp = namespace(vector, pose)
+    p = vector[..., 0:3]
+    if rep == "pos":
+        q = rotations.canonical_quat(pose[..., 3:7])
+    else:
+        q = rotations.matrix_to_quat(rotations.decode(vector[..., 3:], rep))
+    return xp.concat([p, q], axis=-1)
+
+
+def check_poses(a: Any, name: str, n: int | None = None) -> np.ndarray:
+    """An (N, 7) finite float64 array or a ValueError naming the argument."""
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 7:
+        raise ValueError(f"{name} must have shape (N, 7) (x, y, z, qw, qx, qy, qz), got {arr.shape}")
+    if n is not None and arr.shape[0] != n:
+        raise ValueError(f"{name} has {arr.shape[0]} rows, expected {n} like measured")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or infinite values")
+    return arr
+
+
+class BaseCorrector:
+    """Shared plumbing; subclasses implement ``_fit_vectors`` and ``_core``."""
+
+    method = "base"
+    _required_rows = 1
+
+    # --- scikit-learn parameter protocol (no sklearn import needed) -------------------
+    @classmethod
+    def _param_names(cls) -> list[str]:
+        import inspect
+
+        sig = inspect.signature(cls.__init__)
+        return [name for name, p in sig.parameters.items()
+                if name != "self" and p.kind == p.POSITIONAL_OR_KEYWORD]
+
+    def get_params(self, deep: bool = True) -> dict[str, Any]:
+        return {name: getattr(self, name) for name in self._param_names()}
+
+    def set_params(self, **params: Any) -> "BaseCorrector":
+        valid = set(self._param_names())
+        for key, value in params.items():
+            if key not in valid:
+                raise ValueError(f"invalid parameter {key!r} for {type(self).__name__}")
+            setattr(self, key, value)
+        return self
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
+        return f"{type(self).__name__}({args})"
+
+    # --- fitting -----------------------------------------------------------------------
+    def fit(self, measured: Any, reference: Any, **fit_params: Any) -> "BaseCorrector":
+        """Learn measured -> reference. ``fit_params`` go to the method (e.g. validation data)."""
+        check_representation(self.representation)
+        measured = check_poses(measured, "measured")
+        reference = check_poses(reference, "reference", len(measured))
+        if len(measured) < self._min_rows():
+            raise ValueError(f"{type(self).__name__}({self.representation}) needs at least "
+                             f"{self._min_rows()} poses, got {len(measured)}")
+        X = encode_pose(measured, self.representation)
+        Y = encode_pose(reference, self.representation)
+        self.n_features_in_ = 7
+        self._fit_vectors(np.asarray(X, np.float64), np.asarray(Y, np.float64), measured, reference, **fit_params)
+        return self
+
+    def _min_rows(self) -> int:
+        return 1
+
+    def _fit_vectors(self, X: np.ndarray, Y: np.ndarray, measured: np.ndarray, reference: np.ndarray,
+                     **fit_params: Any) -> None:
+        raise NotImplementedError
+
+    def _core(self, x: Any) -> Any:
+        """Input vectors (N, d) -> output vectors (N, d), xp namespace only."""
+        raise NotImplementedError
+
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "n_features_in_"):
+            raise RuntimeError(f"this {type(self).__name__} is not fitted yet: call fit first")
+
+    # --- inference -----------------------------------------------------------------------
+    def forward(self, pose: Any) -> Any:
+        """(N, 7) measured pose -> (N, 7) corrected pose, in any ``posecorr._xp`` namespace."""
+        x = encode_pose(pose, self.representation)
+        y = self._core(x)
+        return decode_pose(y, pose, self.representation)
+
+    def predict(self, measured: Any) -> np.ndarray:
+        """Corrected poses (N, 7), float64, qw >= 0."""
+        self._check_fitted()
+        measured = check_poses(measured, "measured")
+        return np.asarray(self.forward(measured), dtype=np.float64)
+
+    def score(self, measured: Any, reference: Any, with_rotation: bool | None = None) -> float:
+        """-rmse_total (paper eq. 43) of the prediction: higher is better (sklearn convention).
+
+        With ``representation == "pos"`` only the position error counts (Exp I).
+        """
+        measured = check_poses(measured, "measured")
+        reference = check_poses(reference, "reference", len(measured))
+        if with_rotation is None:
+            with_rotation = self.representation != "pos"
+        return -float(pose_metrics(reference, self.predict(measured), with_rotation)["rmse_total"])
+
+    # --- export --------------------------------------------------------------------------
+    def export_info(self) -> dict[str, str]:
+        raise NotImplementedError
+
+    def to_onnx(self, path: Any, **metadata: Any) -> Any:
+        """Write the fitted corrector as an ONNX model (``posecorr.export.to_onnx``)."""
+        self._check_fitted()
+        from posecorr.export import to_onnx
+
+        return to_onnx(self, path, **metadata)

@@ -1,0 +1,302 @@
+"""The multilayer perceptron corrector (paper section 2.4) with MATLAB semantics.
+
+Network: input vector [x, y, z, params(rep)] -> ``mapminmax`` to [-1, 1] -> hidden layers
+(``hidden``, e.g. (20, 20, 20, 20)) with one of the eight MATLAB transfer functions ->
+linear (purelin) output layer -> reverse ``mapminmax`` -> decode to a pose. The 16
+architectures of the paper's table 1 are ``ARCHITECTURES``.
+
+Transfer functions (``ACTIVATIONS``): tansig = tanh, logsig = 1/(1+exp(-n)),
+radbas = exp(-n^2), purelin = n, satlin = clip(n, 0, 1), softmax (over the layer),
+hardlim = (n >= 0), compet = one-hot of the first maximum. hardlim and compet have a zero
+derivative everywhere, as in MATLAB: gradient and Jacobian based trainers cannot move the
+hidden weights, so they stay at their initial values and only the (linear) output layer is
+trained. That is what MATLAB does too, and why those rows of the paper's tables are poor.
+
+Scaling (MATLAB ``mapminmax``): inputs AND targets are mapped to [-1, 1] with the training
+set's min / max per row (a constant row maps to -1, gain 1, as in MATLAB). By default the
+training error is measured in the targets' original units after reverse mapping
+(MATLAB's ``performParam.normalization = 'none'``); ``normalization="standard"`` trains on
+the [-1, 1] targets instead.
+
+Initialisation (MATLAB ``initnw``-like, seeded by ``random_state``): Nguyen-Widrow for
+hidden layers whose transfer function has a finite active input range (tansig and radbas
+[-2, 2], logsig [-4, 4], satlin [0, 1]): weight rows of random direction and magnitude
+0.7 S^(1/R), biases spread over linspace(-1, 1, S), both mapped to the active range and to
+the previous layer's output range. Layers with an unbounded or degenerate active range
+(purelin, softmax, hardlim, compet) and the output layer get ``rands`` (uniform [-1, 1]),
+as ``initnw`` falls back to.
+
+Trainers (``TRAINERS``): "lm" (trainlm), "br" (trainbr) share the Levenberg-Marquardt core
+of ``lm.py``; "rp", "adam", "lbfgs", "gd", "gdm", "gda", "gdx" are in ``trainers.py``.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Sequence
+
+import numpy as np
+
+from posecorr._xp import namespace
+
+from .base import BaseCorrector, check_poses, encode_pose, vector_size
+
+ARCHITECTURES: tuple[tuple[int, ...], ...] = tuple(
+    tuple([n] * layers) for layers in (1, 2, 3, 4) for n in (5, 10, 15, 20))
+ACTIVATIONS = ("compet", "hardlim", "logsig", "purelin", "radbas", "satlin", "softmax", "tansig")
+# Table 1 numbering of the learning algorithms (for the "tansig 16/2" labels).
+TRAINER_NUMBERS = {"lm": 1, "br": 2, "rp": 3, "scg": 4, "bfg": 5, "gd": 6, "gda": 7, "gdm": 8,
+                   "gdx": 9, "cgb": 10, "cgf": 11, "cgp": 12}
+TRAINERS = ("lm", "br", "rp", "adam", "lbfgs", "gd", "gdm", "gda", "gdx")
+
+# Active input ranges as in MATLAB's transfer function definitions; None = unbounded or degenerate.
+_ACTIVE_RANGE = {"tansig": (-2.0, 2.0), "radbas": (-2.0, 2.0), "logsig": (-4.0, 4.0), "satlin": (0.0, 1.0)}
+_OUTPUT_RANGE = {"tansig": (-1.0, 1.0), "logsig": (0.0, 1.0), "radbas": (0.0, 1.0), "satlin": (0.0, 1.0),
+                 "hardlim": (0.0, 1.0), "compet": (0.0, 1.0), "softmax": (0.0, 1.0), "purelin": (-1.0, 1.0)}
+
+
+def architecture_number(hidden: Sequence[int]) -> int | None:
+    """1..16 of table 1, or None for an architecture outside it."""
+    try:
+        return ARCHITECTURES.index(tuple(int(h) for h in hidden)) + 1
+    except ValueError:
+        return None
+
+
+def parse_hidden(hidden: Any) -> tuple[int, ...]:
+    """(20, 20), "20,20", "20-20", 16 (table-1 number as str "#16") -> a tuple of ints."""
+    if isinstance(hidden, str):
+        text = hidden.strip()
+        if text.startswith("#"):
+            return ARCHITECTURES[int(text[1:]) - 1]
+        parts = [p for p in text.replace("-", ",").replace("x", ",").split(",") if p.strip()]
+        hidden = [int(p) for p in parts]
+    elif isinstance(hidden, (int, np.integer)):
+        hidden = [int(hidden)]
+    out = tuple(int(h) for h in hidden)
+    if any(h < 1 for h in out):
+        raise ValueError(f"hidden layer sizes must be >= 1, got {out}")
+    return out
+
+
+def activation_xp(name: str, n: Any) -> Any:
+    """MATLAB transfer function ``name`` in the xp namespace of n."""
+    xp = namespace(n)
+    if name == "tansig":
+        return xp.tanh(n)
+    if name == "logsig":
+        return xp.sigmoid(n)
+    if name == "radbas":
+        return xp.exp(-(n * n))
+    if name == "purelin":
+        return n
+    if name == "satlin":
+        return xp.clip(n, 0.0, 1.0)
+    if name == "softmax":
+        return xp.softmax(n)
+    if name == "hardlim":
+        return xp.step(n)
+    if name == "compet":
+        return xp.compet(n)
+    raise ValueError(f"unknown activation {name!r}; expected one of {', '.join(ACTIVATIONS)}")
+
+
+def mapminmax_settings(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """MATLAB mapminmax to [-1, 1]: gain, offset with Xn = X * gain + offset.
+
+    y = (ymax - ymin)(x - xmin)/(xmax - xmin) + ymin; a constant row gets gain 1, so it maps
+    to ymin = -1 (MATLAB's behaviour).
+    """
+    lo, hi = X.min(axis=0), X.max(axis=0)
+    span = hi - lo
+    const = ~(span > 0)
+    gain = np.where(const, 1.0, 2.0 / np.where(const, 1.0, span))
+    offset = -1.0 - lo * gain
+    return gain, offset
+
+
+def init_weights(sizes: Sequence[int], activation: str, rng: np.random.Generator
+                 ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """MATLAB initnw-like initial weights (in, out) and biases (out,) for all layers."""
+    coefs, intercepts = [], []
+    in_range = (-1.0, 1.0)  # inputs after mapminmax
+    n_layers = len(sizes) - 1
+    for layer in range(n_layers):
+        R, S = sizes[layer], sizes[layer + 1]
+        hidden_layer = layer < n_layers - 1
+        active = _ACTIVE_RANGE.get(activation) if hidden_layer else None
+        if active is None:
+            w = rng.uniform(-1.0, 1.0, size=(S, R))
+            b = rng.uniform(-1.0, 1.0, size=S)
+        else:
+            mag = 0.7 * S ** (1.0 / R)
+            direction = rng.standard_normal((S, R))
+            direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+            w = mag * direction
+            b = mag * np.linspace(-1.0, 1.0, S) * np.sign(w[:, 0]) if S > 1 else np.zeros(1)
+            x, y = 0.5 * (active[1] - active[0]), 0.5 * (active[1] + active[0])
+            w, b = x * w, x * b + y
+            # map from the previous layer's output range [pmin, pmax] to [-1, 1]
+            xs = 2.0 / (in_range[1] - in_range[0])
+            ys = 1.0 - in_range[1] * xs
+            b = w @ np.full(R, ys) + b
+            w = w * xs
+        coefs.append(np.ascontiguousarray(w.T))
+        intercepts.append(b.copy())
+        if hidden_layer:
+            in_range = _OUTPUT_RANGE.get(activation, (-1.0, 1.0))
+    return coefs, intercepts
+
+
+class MLP(BaseCorrector):
+    """Feed-forward network corrector, trained like MATLAB's ``train`` with ``trainFcn``.
+
+    Parameters
+    ----------
+    representation : "pos" | "eaa" | "quat" | "R" | "zhou"
+    hidden : hidden layer sizes, e.g. (20, 20, 20, 20) (table 1's architecture 16)
+    activation : one of ``ACTIVATIONS`` for every hidden layer; the output layer is purelin
+    trainer : one of ``TRAINERS``
+    epochs : maximum epochs (MATLAB default 1000)
+    goal : stop when the training mse (in the units training uses) <= goal (MATLAB 0;
+        the paper's "RMSE 1e-3" would be goal=1e-6)
+    max_fail : validation failures before stopping (MATLAB 6; ignored by "br")
+    min_grad : stop when |gradient| < min_grad (MATLAB 1e-7 for lm; 1e-7 for br)
+    mu, mu_dec, mu_inc, mu_max : Levenberg-Marquardt damping (None = trainer default:
+        trainlm 1e-3, trainbr 5e-3; 0.1, 10, 1e10)
+    lr : learning rate of the gradient trainers (paper: 0.01)
+    normalization : "none" (errors in target units, MATLAB default) or "standard"
+    validation_fraction : when ``fit`` gets no ``validation=`` data, the share of the
+        training rows held out for early stopping (MATLAB divides 70/15/15 itself; trainbr
+        does not use validation for stopping).
+    merge_validation : "br" only: train on train + validation (default False: the
+        validation rows are only monitored, MATLAB's default)
+    random_state : seed for the initial weights and the internal split
+    num_threads : torch threads during fit (None = leave as is)
+    verbose : print one line per ``verbose`` epochs (0 = silent)
+
+    ``fit(measured, reference, validation=(measured_val, reference_val))``.
+    """
+
+    method = "mlp"
+
+    def __init__(self, representation: str = "zhou", hidden: Any = (20, 20, 20, 20),
+                 activation: str = "tansig", trainer: str = "br", epochs: int = 1000,
+                 goal: float = 0.0, max_fail: int = 6, min_grad: float = 1e-7,
+                 mu: float | None = None, mu_dec: float = 0.1, mu_inc: float = 10.0,
+                 mu_max: float = 1e10, lr: float = 0.01, normalization: str = "none",
+                 validation_fraction: float = 0.15, merge_validation: bool = False,
+                 random_state: int = 0, num_threads: int | None = None, verbose: int = 0) -> None:
+        self.representation = representation
+        self.hidden = hidden
+        self.activation = activation
+        self.trainer = trainer
+        self.epochs = epochs
+        self.goal = goal
+        self.max_fail = max_fail
+        self.min_grad = min_grad
+        self.mu = mu
+        self.mu_dec = mu_dec
+        self.mu_inc = mu_inc
+        self.mu_max = mu_max
+        self.lr = lr
+        self.normalization = normalization
+        self.validation_fraction = validation_fraction
+        self.merge_validation = merge_validation
+        self.random_state = random_state
+        self.num_threads = num_threads
+        self.verbose = verbose
+
+    # --- fit ----------------------------------------------------------------------------
+    def _min_rows(self) -> int:
+        return 4
+
+    def _fit_vectors(self, X: np.ndarray, Y: np.ndarray, measured: np.ndarray, reference: np.ndarray,
+                     validation: tuple[Any, Any] | None = None, callback: Any = None) -> None:
+        import torch
+
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"unknown activation {self.activation!r}; expected one of {', '.join(ACTIVATIONS)}")
+        if self.trainer not in TRAINERS:
+            raise ValueError(f"unknown trainer {self.trainer!r}; expected one of {', '.join(TRAINERS)}")
+        if self.normalization not in ("none", "standard"):
+            raise ValueError("normalization must be 'none' or 'standard'")
+        hidden = parse_hidden(self.hidden)
+        rng = np.random.default_rng(self.random_state)
+        if validation is not None:
+            mv = check_poses(validation[0], "validation measured")
+            rv = check_poses(validation[1], "validation reference", len(mv))
+            Xv = np.asarray(encode_pose(mv, self.representation), np.float64)
+            Yv = np.asarray(encode_pose(rv, self.representation), np.float64)
+        elif self.trainer != "br" and self.validation_fraction > 0 and len(X) >= 10:
+            order = rng.permutation(len(X))
+            n_val = max(1, int(round(self.validation_fraction * len(X))))
+            Xv, Yv = X[order[:n_val]], Y[order[:n_val]]
+            X, Y = X[order[n_val:]], Y[order[n_val:]]
+        else:
+            Xv = Yv = None
+        if self.trainer == "br" and self.merge_validation and Xv is not None:
+            X, Y = np.concatenate([X, Xv]), np.concatenate([Y, Yv])
+
+        d_in, d_out = X.shape[1], Y.shape[1]
+        sizes = [d_in, *hidden, d_out]
+        self.x_gain_, self.x_offset_ = mapminmax_settings(X)
+        self.y_gain_, self.y_offset_ = mapminmax_settings(Y)
+        coefs, intercepts = init_weights(sizes, self.activation, rng)
+
+        Xn = X * self.x_gain_ + self.x_offset_
+        Tn = Y * self.y_gain_ + self.y_offset_
+        escale = 1.0 / self.y_gain_ if self.normalization == "none" else np.ones(d_out)
+        val = None if Xv is None else (Xv * self.x_gain_ + self.x_offset_, Yv * self.y_gain_ + self.y_offset_)
+
+        old_threads = torch.get_num_threads()
+        if self.num_threads:
+            torch.set_num_threads(int(self.num_threads))
+        try:
+            if self.trainer in ("lm", "br"):
+                from .lm import train_lm
+
+                result = train_lm(self, sizes, coefs, intercepts, Xn, Tn, escale, val, callback)
+            else:
+                from .trainers import train_first_order
+
+                result = train_first_order(self, sizes, coefs, intercepts, Xn, Tn, escale, val, callback)
+        finally:
+            if self.num_threads:
+                torch.set_num_threads(old_threads)
+        self.coefs_ = [np.asarray(w, np.float64) for w in result.coefs]
+        self.intercepts_ = [np.asarray(b, np.float64) for b in result.intercepts]
+        self.n_epochs_ = result.epochs
+        self.stop_reason_ = result.stop_reason
+        self.history_ = result.history
+        self.best_val_loss_ = result.best_val
+        self.train_loss_ = result.train_loss
+        self.extra_ = result.extra
+        self.sizes_ = sizes
+        self.n_parameters_ = int(sum(w.size + b.size for w, b in zip(self.coefs_, self.intercepts_)))
+
+    # --- inference ------------------------------------------------------------------------
+    def _core(self, x: Any) -> Any:
+        xp = namespace(x)
+        h = x * xp.const(self.x_gain_, x) + xp.const(self.x_offset_, x)
+        last = len(self.coefs_) - 1
+        for i, (w, b) in enumerate(zip(self.coefs_, self.intercepts_)):
+            h = xp.linear(h, w, b)
+            if i < last:
+                h = activation_xp(self.activation, h)
+        return h * xp.const(1.0 / self.y_gain_, h) + xp.const(-self.y_offset_ / self.y_gain_, h)
+
+    def export_info(self) -> dict[str, str]:
+        self._check_fitted()
+        info = {"method": "mlp", "representation": self.representation,
+                "architecture": "-".join(str(h) for h in parse_hidden(self.hidden)) or "linear",
+                "layers": "-".join(str(s) for s in self.sizes_),
+                "activation": self.activation, "output_activation": "purelin",
+                "trainer": self.trainer, "epochs": str(self.n_epochs_), "stop_reason": self.stop_reason_,
+                "n_parameters": str(self.n_parameters_), "normalization": self.normalization,
+                "scaling": "mapminmax[-1,1] inputs and targets",
+                "train_loss_mse": f"{self.train_loss_:.6g}", "random_state": str(self.random_state)}
+        if self.best_val_loss_ is not None:
+            info["best_validation_mse"] = f"{self.best_val_loss_:.6g}"
+        for key, value in self.extra_.items():
+            info[key] = f"{value:.6g}" if isinstance(value, float) else str(value)
+        return info

@@ -1,0 +1,157 @@
+"""Polynomial Model Correction (paper section 2.3, eqs. 24-37).
+
+Every output k of the vector [x, y, z, params(rep)] is a full quadratic polynomial of all
+d inputs: X'_k = sum_{i<=j} a_kij X_i X_j + sum_i b_ki X_i + c_k (eqs. 24-26), i.e. all
+squares, all cross terms, the linear terms and a constant: 1 + d + d(d+1)/2 coefficients
+per output (d = 3 position only, 6 eaa, 7 quat, 12 R, 9 zhou).
+
+Numerics (what differs from a textbook normal-equation fit, not the model):
+
+* the inputs are scaled to [-1, 1] per column (min/max of the training set) before the
+  features are formed, so the columns of the design matrix have comparable size;
+* the coefficients are found with an SVD-based least squares solve (``numpy.linalg.lstsq``),
+  never the normal equations (which square the condition number);
+* the fit is done on the correction Y - X and the identity is folded back into the
+  coefficients afterwards: without a ridge term this is exactly the paper's model; with one
+  (``alpha > 0``, or ``alpha="cv"`` = K-fold cross-validation over ``alpha_grid``) the
+  coefficients shrink towards "no correction" instead of towards zero output. The constant
+  term is never penalised.
+
+``forward`` is a fixed graph: scale (constants) -> quadratic feature vector built with xp
+ops -> ONE ``xp.linear`` (a Gemm) -> decode. Outputs are decoded to a proper rotation by
+``rotations.decode`` (Rodrigues / normalisation / projection / Gram-Schmidt).
+"""
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+from posecorr._xp import namespace
+
+from .base import BaseCorrector, vector_size
+
+DEFAULT_ALPHA_GRID = (0.0, 1e-10, 1e-8, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0)
+
+
+def n_features(d: int) -> int:
+    """Number of non-constant quadratic features of d inputs: d linear + d(d+1)/2 products."""
+    return d + d * (d + 1) // 2
+
+
+def quadratic_features(xs: Any) -> Any:
+    """(N, d) -> (N, d + d(d+1)/2): [x_1..x_d, x_i x_j for i <= j (row-major)], any namespace."""
+    xp = namespace(xs)
+    d = xs.shape[-1]
+    products = [xs[..., i] * xs[..., j] for i in range(d) for j in range(i, d)]
+    return xp.concat([xs, xp.stack(products, axis=-1)], axis=-1)
+
+
+def minmax_scaling(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """gain, offset with X * gain + offset in [-1, 1] per column (constant column -> 0)."""
+    lo, hi = X.min(axis=0), X.max(axis=0)
+    span = hi - lo
+    const = span <= 1e-12 * np.maximum(1.0, np.abs(hi))
+    gain = np.where(const, 1.0, 2.0 / np.where(const, 1.0, span))
+    offset = np.where(const, -0.5 * (lo + hi), -1.0 - lo * gain)
+    return gain, offset
+
+
+def _solve(F: np.ndarray, T: np.ndarray, alpha: float) -> tuple[np.ndarray, np.ndarray]:
+    """Least squares of T on [F, 1] with ridge alpha on F's columns: (W, b)."""
+    n, p = F.shape
+    A = np.concatenate([F, np.ones((n, 1))], axis=1)
+    if alpha > 0:
+        reg = np.zeros((p, p + 1))
+        reg[:, :p] = np.sqrt(alpha * n) * np.eye(p)  # alpha scales with n: per-sample ridge
+        A = np.concatenate([A, reg], axis=0)
+        T = np.concatenate([T, np.zeros((p, T.shape[1]))], axis=0)
+    coef, *_ = np.linalg.lstsq(A, T, rcond=None)
+    return coef[:p], coef[p]
+
+
+class PMC(BaseCorrector):
+    """Polynomial Model Correction: a full quadratic least-squares map per output.
+
+    Parameters
+    ----------
+    representation : "pos" | "eaa" | "quat" | "R" | "zhou"
+    alpha : float or "cv"
+        Ridge weight per sample (objective mean squared residual + alpha * |coef|^2, the
+        constant unpenalised); 0 = the paper's plain least squares. "cv" picks it from
+        ``alpha_grid`` by ``cv_folds``-fold cross-validation (useful for small data sets).
+    alpha_grid : sequence of float
+    cv_folds : int
+    random_state : int, seed of the CV fold assignment.
+    """
+
+    method = "pmc"
+
+    def __init__(self, representation: str = "zhou", alpha: float | str = 0.0,
+                 alpha_grid: Sequence[float] = DEFAULT_ALPHA_GRID, cv_folds: int = 5,
+                 random_state: int = 0) -> None:
+        self.representation = representation
+        self.alpha = alpha
+        self.alpha_grid = alpha_grid
+        self.cv_folds = cv_folds
+        self.random_state = random_state
+
+    def _min_rows(self) -> int:
+        d = vector_size(self.representation)
+        return n_features(d) + 1 if self.alpha in (0, 0.0) else 2
+
+    def _fit_vectors(self, X: np.ndarray, Y: np.ndarray, measured: np.ndarray, reference: np.ndarray,
+                     **fit_params: Any) -> None:
+        # fit_params (e.g. validation=...) are accepted and ignored: PMC is not iterative.
+        gain, offset = minmax_scaling(X)
+        F = np.asarray(quadratic_features(X * gain + offset))
+        T = Y - X
+        if isinstance(self.alpha, str):
+            if self.alpha != "cv":
+                raise ValueError(f"alpha must be a number >= 0 or 'cv', got {self.alpha!r}")
+            alpha, self.cv_scores_ = self._cross_validate(F, T)
+        else:
+            alpha = float(self.alpha)
+            if alpha < 0:
+                raise ValueError(f"alpha must be >= 0, got {alpha}")
+        W, b = _solve(F, T, alpha)
+        # Fold the identity back in: X = (xs - offset) / gain is linear in the features.
+        d = X.shape[1]
+        W = W.copy()
+        W[np.arange(d), np.arange(d)] += 1.0 / gain
+        b = b - offset / gain
+        self.alpha_ = alpha
+        self.input_gain_, self.input_offset_ = gain, offset
+        self.coef_, self.intercept_ = W, b
+        self.train_rmse_vector_ = float(np.sqrt(np.mean((self._core(X) - Y) ** 2)))
+
+    def _cross_validate(self, F: np.ndarray, T: np.ndarray) -> tuple[float, dict[float, float]]:
+        n = len(F)
+        folds = max(2, min(int(self.cv_folds), n))
+        order = np.random.default_rng(self.random_state).permutation(n)
+        parts = np.array_split(order, folds)
+        scores: dict[float, float] = {}
+        for alpha in self.alpha_grid:
+            sse = 0.0
+            for k in range(folds):
+                test = parts[k]
+                train = np.concatenate([parts[j] for j in range(folds) if j != k])
+                W, b = _solve(F[train], T[train], float(alpha))
+                sse += float(np.sum((F[test] @ W + b - T[test]) ** 2))
+            scores[float(alpha)] = float(np.sqrt(sse / T.size))
+        best = min(scores, key=lambda a: (scores[a], -a))
+        return best, scores
+
+    def _core(self, x: Any) -> Any:
+        xp = namespace(x)
+        xs = x * xp.const(self.input_gain_, x) + xp.const(self.input_offset_, x)
+        return xp.linear(quadratic_features(xs), self.coef_, self.intercept_)
+
+    def export_info(self) -> dict[str, str]:
+        self._check_fitted()
+        d = vector_size(self.representation)
+        return {"method": "pmc", "representation": self.representation,
+                "architecture": f"quadratic-{d}in-{n_features(d) + 1}terms",
+                "activation": "none", "trainer": "lstsq",
+                "ridge_alpha": repr(self.alpha_),
+                "train_rmse_vector": f"{self.train_rmse_vector_:.6g}"}

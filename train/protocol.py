@@ -1,0 +1,485 @@
+"""The paper's evaluation protocol (section 2.4) as a resumable sweep.
+
+* A fixed test set: 15 % of the rows, drawn once with ``seed`` (``split_indices``).
+* ``repeats`` (30) runs per configuration; run r draws a fresh random 70 / 15 split of
+  the remaining rows into training and validation (seeded by (seed, r), so every
+  configuration of a sweep sees the same splits in run r: the Friedman blocks).
+* MLPs train on the training rows with the validation rows for early stopping (trainlm
+  and the gradient trainers; trainbr only monitors them). PMC fits the training rows.
+* Per run the corrector is evaluated on the fixed test set: rmse_pos, rmse_rot,
+  rmse_total; a configuration's summary is min / avg / max over runs and the improvement
+  raw / min (tables 2-4).
+* Friedman test + Dunn-Sidak comparison of mean ranks of rmse_total + tier list
+  (``stats``), printed by ``tables``.
+
+Results go to a JSON-lines store, one object per finished run keyed by (config key,
+repeat) together with a fingerprint of the data and the seed; an interrupted sweep started
+again with the same store skips the runs it already has. Runs are spread over local
+processes (``concurrent.futures.ProcessPoolExecutor``, torch limited to
+cores // workers threads each) or over a Ray cluster with ``ray_address`` (when ray is
+installed). A tqdm bar shows runs done, ETA and the best test rmse_total so far.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from posecorr.metrics import METRIC_KEYS, improvement, metric_block, pose_metrics, summarize
+
+from .mlp import ARCHITECTURES, MLP, TRAINER_NUMBERS, architecture_number, parse_hidden
+from .pmc import PMC
+
+TEST_FRACTION = 0.15
+VAL_FRACTION = 0.15
+
+
+# --- configurations ---------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Config:
+    """One corrector configuration: method "pmc" or "mlp" plus its settings.
+
+    ``options`` holds extra estimator parameters as sorted (name, value) pairs, e.g.
+    (("epochs", 200),); they become part of the key.
+    """
+
+    method: str
+    representation: str
+    hidden: tuple[int, ...] = ()
+    activation: str = ""
+    trainer: str = ""
+    options: tuple[tuple[str, Any], ...] = ()
+
+    @property
+    def key(self) -> str:
+        """Stable identifier, e.g. "zhou-pmc", "zhou-tansig-20-20-20-20-br"."""
+        if self.method == "pmc":
+            base = f"{self.representation}-pmc"
+        else:
+            base = f"{self.representation}-{self.activation}-{'-'.join(map(str, self.hidden))}-{self.trainer}"
+        if self.options:
+            base += "[" + ",".join(f"{k}={v}" for k, v in self.options) + "]"
+        return base
+
+    @property
+    def label(self) -> str:
+        """Table label: "PMC" or "tansig 16/2" (table 1 numbering)."""
+        if self.method == "pmc":
+            return "PMC"
+        arch = architecture_number(self.hidden)
+        arch_s = str(arch) if arch is not None else "-".join(map(str, self.hidden))
+        tr = TRAINER_NUMBERS.get(self.trainer)
+        tr_s = str(tr) if tr is not None else self.trainer
+        return f"{self.activation} {arch_s}/{tr_s}"
+
+    @property
+    def name(self) -> str:
+        """Table 5 style name: "Zhou-PMC", "Zhou-tansig-16/2"."""
+        from .tables import SHORT_REP
+
+        rep = SHORT_REP.get(self.representation, self.representation)
+        return f"{rep}-PMC" if self.method == "pmc" else f"{rep}-{self.label.replace(' ', '-')}"
+
+    def make(self, seed: int = 0) -> Any:
+        """A fresh (unfitted) estimator."""
+        opts = dict(self.options)
+        if self.method == "pmc":
+            return PMC(self.representation, **opts)
+        if self.method == "mlp":
+            return MLP(self.representation, hidden=self.hidden, activation=self.activation,
+                       trainer=self.trainer, random_state=seed, **opts)
+        raise ValueError(f"unknown method {self.method!r}; expected pmc or mlp")
+
+
+GRID_PRESETS = {
+    # paper Exp III: 4 representations x (PMC + 2 trainers x 3 activations x 16 architectures)
+    "paper-exp3": dict(representations=("eaa", "quat", "R", "zhou"), activations=("logsig", "radbas", "tansig"),
+                       trainers=("lm", "br"), architectures=ARCHITECTURES),
+    # paper Exp II: 3 trainers x 8 activations x 16 architectures per representation
+    "paper-exp2": dict(representations=("eaa", "quat", "R", "zhou"),
+                       activations=("compet", "hardlim", "logsig", "purelin", "radbas", "satlin", "softmax",
+                                    "tansig"), trainers=("lm", "br", "rp"), architectures=ARCHITECTURES),
+    # paper Exp I: position only, 12 trainers (the 9 implemented here) x 8 activations x 16
+    "paper-exp1": dict(representations=("pos",),
+                       activations=("compet", "hardlim", "logsig", "purelin", "radbas", "satlin", "softmax",
+                                    "tansig"), trainers=("lm", "br", "rp", "gd", "gdm", "gda", "gdx"),
+                       architectures=ARCHITECTURES),
+    # a reduced Exp III grid that runs in minutes on two cores: the 4 PMCs and, per
+    # representation, tansig with two small architectures (10 and 5-5) trained by lm for at
+    # most 100 epochs (12 configurations)
+    "reduced": dict(representations=("eaa", "quat", "R", "zhou"), activations=("tansig",),
+                    trainers=("lm",), architectures=((10,), (5, 5)), options={"epochs": 100}),
+}
+
+
+def build_grid(preset: str | None = None, *, representations: Sequence[str] | None = None,
+               activations: Sequence[str] | None = None, trainers: Sequence[str] | None = None,
+               architectures: Sequence[Any] | None = None, include_pmc: bool = True,
+               include_mlp: bool = True, options: Mapping[str, Any] | None = None) -> list[Config]:
+    """The configuration grid: the cross product of the given axes, per representation
+    the PMC first (``include_pmc``) then the MLPs.
+
+    ``preset``: "paper-exp1", "paper-exp2", "paper-exp3" (the paper's grids, see
+    ``GRID_PRESETS``) or "reduced" (per representation: PMC + tansig 10 and 5-5 trained
+    by lm for at most 100 epochs, 12 configurations); explicit axes override the preset's. Architectures may be tuples,
+    "20-20" strings or table-1 numbers as "#16". ``options`` are extra MLP parameters
+    (e.g. {"epochs": 200}) added to every MLP configuration.
+    """
+    if preset and preset not in GRID_PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; expected one of {', '.join(GRID_PRESETS)}")
+    base = dict(GRID_PRESETS[preset]) if preset else dict(GRID_PRESETS["paper-exp3"])
+    if representations is not None:
+        base["representations"] = tuple(representations)
+    if activations is not None:
+        base["activations"] = tuple(activations)
+    if trainers is not None:
+        base["trainers"] = tuple(trainers)
+    if architectures is not None:
+        base["architectures"] = tuple(parse_hidden(a) for a in architectures)
+    if options is None:
+        options = base.get("options", {})
+    opts = tuple(sorted(options.items()))
+    grid: list[Config] = []
+    for rep in base["representations"]:
+        if include_pmc:
+            grid.append(Config("pmc", rep))
+        if include_mlp:
+            for act in base["activations"]:
+                for arch in base["architectures"]:
+                    for tr in base["trainers"]:
+                        grid.append(Config("mlp", rep, tuple(arch), act, tr, opts))
+    return grid
+
+
+# --- splits -------------------------------------------------------------------------------
+
+def split_indices(n: int, seed: int = 0, repeat: int = 0, test_fraction: float = TEST_FRACTION,
+                  val_fraction: float = VAL_FRACTION) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(train, validation, test) row indices: the test set depends on ``seed`` only,
+    the train/validation split of the rest on (seed, repeat). Fractions are of all rows."""
+    n_test = int(round(test_fraction * n))
+    order = np.random.default_rng([int(seed), 7919]).permutation(n)
+    test, rest = np.sort(order[:n_test]), order[n_test:]
+    n_val = int(round(val_fraction * n))
+    perm = np.random.default_rng([int(seed), int(repeat), 104729]).permutation(rest)
+    return np.sort(perm[n_val:]), np.sort(perm[:n_val]), test
+
+
+def table_fingerprint(table: Any) -> str:
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(table.measured).tobytes())
+    h.update(np.ascontiguousarray(table.reference).tobytes())
+    return h.hexdigest()[:16]
+
+
+# --- one fit --------------------------------------------------------------------------------
+
+@dataclass
+class FitResult:
+    estimator: Any
+    raw: dict[str, float | None]
+    test: dict[str, float | None]          # metric_block: corrected metrics + improvements
+    train_index: np.ndarray
+    val_index: np.ndarray
+    test_index: np.ndarray
+    seconds: float
+
+
+def fit_one(table: Any, method: str = "mlp", representation: str = "zhou", hidden: Any = (20, 20, 20, 20),
+            activation: str = "tansig", trainer: str = "br", seed: int = 0, repeat: int = 0,
+            test_fraction: float = TEST_FRACTION, val_fraction: float = VAL_FRACTION,
+            **options: Any) -> FitResult:
+    """Fit one corrector on the protocol's split of ``table`` and evaluate it on the test set.
+
+    ``method`` "pmc" or "mlp"; for a position-only table use representation="pos".
+    ``options`` are extra estimator parameters (e.g. epochs=200, alpha="cv").
+    ``test_fraction=0`` fits on all rows but the validation rows (``raw``/``test`` are then
+    measured on the training rows and say so only through ``test_index`` being empty).
+    """
+    if not table.has_orientation and representation != "pos":
+        raise ValueError("this table is position-only (no ref_q columns): use representation='pos'")
+    from posecorr.data import require_rows
+
+    require_rows(table, 10, "fit with a train/validation/test split")
+    cfg = Config(method, representation, parse_hidden(hidden) if method == "mlp" else (),
+                 activation if method == "mlp" else "", trainer if method == "mlp" else "",
+                 tuple(sorted(options.items())))
+    tr, va, te = split_indices(table.n, seed, repeat, test_fraction, val_fraction)
+    M, R = table.measured, table.reference
+    est = cfg.make(seed=seed * 1000 + repeat)
+    t0 = time.perf_counter()
+    if method == "mlp":
+        est.fit(M[tr], R[tr], validation=(M[va], R[va]) if len(va) else None)
+    else:
+        est.fit(M[tr], R[tr])
+    seconds = time.perf_counter() - t0
+    rows = te if len(te) else tr
+    with_rot = representation != "pos"
+    raw = pose_metrics(R[rows], M[rows], with_rot)
+    corrected = pose_metrics(R[rows], est.predict(M[rows]), with_rot)
+    return FitResult(est, raw, metric_block(raw, corrected), tr, va, te, seconds)
+
+
+def cross_validate(table: Any, method: str = "pmc", representation: str = "zhou",
+                   hidden: Any = (20, 20, 20, 20), activation: str = "tansig", trainer: str = "br",
+                   folds: int | str = 5, seed: int = 0, **options: Any) -> dict[str, Any]:
+    """K-fold (or "loo") cross-validated metrics of one configuration (``posecorr fit --cv``).
+
+    Every row is predicted by the model fitted without its fold (an MLP holds out its own
+    ``validation_fraction`` of the remaining rows for early stopping); the metrics are
+    those of the pooled out-of-fold predictions. Returns {"raw": {...}, "cv": metric_block,
+    "folds": k} (raw = the measured poses against the reference, all rows).
+    """
+    if not table.has_orientation and representation != "pos":
+        raise ValueError("this table is position-only (no ref_q columns): use representation='pos'")
+    n = table.n
+    k = n if folds == "loo" else int(folds)
+    if not 2 <= k <= n:
+        raise ValueError(f"folds must be between 2 and the number of rows ({n}), or 'loo'; got {folds!r}")
+    cfg = Config(method, representation, parse_hidden(hidden) if method == "mlp" else (),
+                 activation if method == "mlp" else "", trainer if method == "mlp" else "",
+                 tuple(sorted(options.items())))
+    M, R = table.measured, table.reference
+    order = np.random.default_rng([int(seed), 31337]).permutation(n)
+    pred = np.empty_like(M)
+    for i, part in enumerate(np.array_split(order, k)):
+        rest = np.setdiff1d(order, part)
+        est = cfg.make(seed=seed * 1000 + i).fit(M[rest], R[rest])
+        pred[part] = est.predict(M[part])
+    with_rot = representation != "pos"
+    raw = pose_metrics(R, M, with_rot)
+    return {"raw": raw, "cv": metric_block(raw, pose_metrics(R, pred, with_rot)), "folds": k}
+
+
+def run_one(table: Any, config: Config, repeat: int, seed: int = 0, threads: int | None = None) -> dict[str, Any]:
+    """One run of the protocol; the store's row."""
+    if threads:
+        try:
+            import torch
+
+            torch.set_num_threads(int(threads))
+        except ImportError:
+            pass
+    res = fit_one(table, config.method, config.representation, config.hidden, config.activation,
+                  config.trainer, seed=seed, repeat=repeat, **dict(config.options))
+    est = res.estimator
+    row: dict[str, Any] = {"key": config.key, "repeat": int(repeat), "seed": int(seed),
+                           "config": asdict(config), "seconds": res.seconds,
+                           **{k: res.test[k] for k in METRIC_KEYS}}
+    if config.method == "mlp":
+        row.update({"epochs": int(est.n_epochs_), "stop": est.stop_reason_, "best_val": est.best_val_loss_})
+    return row
+
+
+# --- the sweep -------------------------------------------------------------------------------
+
+@dataclass
+class SweepResult:
+    configs: list[Config]
+    rows: list[dict[str, Any]]
+    raw: dict[str, float | None]
+    repeats: int
+    seconds: float = 0.0
+    store: str | None = None
+    _stats: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    def runs(self, config: Config) -> list[dict[str, Any]]:
+        return sorted((r for r in self.rows if r["key"] == config.key), key=lambda r: r["repeat"])
+
+    def summary(self) -> list[dict[str, Any]]:
+        """Per configuration: min/avg/max of the three RMSEs and improvement = raw / min."""
+        out = []
+        for cfg in self.configs:
+            runs = self.runs(cfg)
+            if not runs:
+                continue
+            row: dict[str, Any] = {"key": cfg.key, "label": cfg.label, "name": cfg.name,
+                                   "representation": cfg.representation, "runs": len(runs),
+                                   "seconds_avg": float(np.mean([r["seconds"] for r in runs]))}
+            best: dict[str, float | None] = {}
+            for key in METRIC_KEYS:
+                vals = [r[key] for r in runs if r.get(key) is not None]
+                row[key] = summarize(vals) if vals else None
+                best[key] = row[key]["min"] if vals else None
+            row.update(improvement(self.raw, best))
+            out.append(row)
+        return out
+
+    def complete_matrix(self) -> tuple[list[Config], np.ndarray]:
+        """(configs, (n runs, k configs) rmse_total) over the repeats every config has."""
+        have = [c for c in self.configs if self.runs(c)]
+        common = None
+        for c in have:
+            reps = {r["repeat"] for r in self.runs(c)}
+            common = reps if common is None else common & reps
+        reps_sorted = sorted(common or [])
+        data = np.array([[next(r["rmse_total"] for r in self.runs(c) if r["repeat"] == i) for c in have]
+                         for i in reps_sorted], dtype=float)
+        return have, data.reshape(len(reps_sorted), len(have))
+
+    def statistics(self, alpha: float = 0.05) -> dict[str, Any]:
+        """Friedman + Dunn-Sidak + tiers on rmse_total (needs >= 2 configs and >= 2 runs)."""
+        from . import stats
+
+        cfgs, data = self.complete_matrix()
+        if data.shape[0] < 2 or data.shape[1] < 2:
+            return {}
+        fr = stats.friedman(data)
+        comps = stats.multcompare(fr, alpha)
+        tiers = stats.tier_list(fr.mean_ranks, comps)
+        return {"configs": cfgs, "friedman": fr, "comparisons": comps, "tiers": tiers}
+
+    def to_json(self) -> dict[str, Any]:
+        st = self.statistics()
+        out: dict[str, Any] = {"raw": self.raw, "repeats": self.repeats, "seconds": self.seconds,
+                               "store": self.store, "summary": self.summary()}
+        if st:
+            names = [c.name for c in st["configs"]]
+            fr = st["friedman"]
+            out["friedman"] = {"statistic": fr.statistic, "p_value": fr.p_value, "df": fr.df, "n": fr.n,
+                               "k": fr.k, "mean_ranks": dict(zip(names, map(float, fr.mean_ranks)))}
+            out["comparisons"] = [{"method1": names[c.i], "method2": names[c.j], "lower": c.lower,
+                                   "diff": c.diff, "upper": c.upper, "p_value": c.p_value}
+                                  for c in st["comparisons"]]
+            out["tiers"] = [[names[i] for i in t] for t in st["tiers"].tiers]
+        return out
+
+    def format(self, comparisons: bool = False) -> str:
+        """Tables 2-4 layout, then the Friedman line and the tier list (and table A1)."""
+        from . import tables
+
+        text = [tables.format_results(self.raw, self.summary(),
+                                      f"Test-set results over {self.repeats} runs (imp = raw / min)")]
+        st = self.statistics()
+        if st:
+            names = [c.name for c in st["configs"]]
+            fr = st["friedman"]
+            text.append(f"\nFriedman: chi2({fr.df}) = {fr.statistic:.3f}, p = {fr.p_value:.3g}, "
+                        f"n = {fr.n} runs, k = {fr.k} methods")
+            ov = [(names[a], names[b]) for a, b in st["tiers"].overlaps]
+            text.append("\n" + tables.format_tiers([[names[i] for i in t] for t in st["tiers"].tiers], ov))
+            if comparisons:
+                text.append("\n" + tables.format_comparisons(names, st["comparisons"]))
+        return "\n".join(text)
+
+
+def _load_store(path: Path, fingerprint: str, seed: int) -> dict[tuple[str, int], dict[str, Any]]:
+    done: dict[tuple[str, int], dict[str, Any]] = {}
+    if not path.exists():
+        return done
+    with open(path, encoding="utf-8") as fh:
+        for line in fh:
+            line = line.strip()
+            if not line:
+                continue
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError:
+                continue  # a line cut by an interruption
+            if row.get("data") == fingerprint and row.get("seed") == seed:
+                done[(row["key"], int(row["repeat"]))] = row
+    return done
+
+
+def _worker_init(threads: int) -> None:
+    try:
+        import torch
+
+        torch.set_num_threads(threads)
+    except ImportError:
+        pass
+
+
+def run_sweep(table: Any, configs: Sequence[Config], repeats: int = 30, store: str | os.PathLike | None = None,
+              workers: int = 2, ray_address: str | None = None, seed: int = 0, progress: bool = True,
+              ) -> SweepResult:
+    """Run every configuration ``repeats`` times (see the module docstring).
+
+    ``store``: JSON-lines file; rows already in it (same data fingerprint and seed) are
+    reused, new ones appended as they finish. ``workers``: local processes (1 = in this
+    process). ``ray_address``: run on a Ray cluster instead ("auto" or "ray://host:port").
+    """
+    configs = list(configs)
+    keys = [c.key for c in configs]
+    if len(set(keys)) != len(keys):
+        raise ValueError("duplicate configurations in the grid")
+    fingerprint = table_fingerprint(table)
+    store_path = Path(store) if store is not None else None
+    done = _load_store(store_path, fingerprint, seed) if store_path else {}
+    if store_path:
+        store_path.parent.mkdir(parents=True, exist_ok=True)
+    todo = [(c, r) for c in configs for r in range(repeats) if (c.key, r) not in done]
+    rows = [done[(c.key, r)] for c in configs for r in range(repeats) if (c.key, r) in done]
+    _, _, test = split_indices(table.n, seed, 0)
+    with_rot = all(c.representation != "pos" for c in configs) and table.has_orientation
+    raw = pose_metrics(table.reference[test], table.measured[test], with_rot)
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(configs) * repeats, initial=len(rows), unit="run", desc="sweep")
+    best = [min((r["rmse_total"] for r in rows), default=math.inf)]
+    t0 = time.perf_counter()
+
+    def record(row: dict[str, Any]) -> None:
+        row["data"] = fingerprint
+        rows.append(row)
+        if store_path:
+            with open(store_path, "a", encoding="utf-8") as fh:
+                fh.write(json.dumps(row) + "\n")
+        if row["rmse_total"] < best[0]:
+            best[0] = row["rmse_total"]
+            best.append(row["key"])
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix_str(f"best {best[0]:.4g} {best[-1] if len(best) > 1 else ''}")
+
+    # longest jobs first keeps the pool busy at the end
+    todo.sort(key=lambda cr: -_cost(cr[0]))
+    if ray_address is not None:
+        import ray  # optional dependency
+
+        ray.init(address=ray_address, ignore_reinit_error=True)
+        remote = ray.remote(run_one)
+        table_ref = ray.put(table)
+        pending = [remote.remote(table_ref, c, r, seed, 1) for c, r in todo]
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1)
+            record(ray.get(ready[0]))
+    elif workers <= 1 or len(todo) <= 1:
+        for c, r in todo:
+            record(run_one(table, c, r, seed))
+    else:
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+        import multiprocessing as mp
+
+        threads = max(1, (os.cpu_count() or 1) // workers)
+        ctx = mp.get_context("spawn" if os.name == "nt" else "fork")
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
+                                 initargs=(threads,)) as pool:
+            futures = [pool.submit(run_one, table, c, r, seed, threads) for c, r in todo]
+            for fut in as_completed(futures):
+                record(fut.result())
+    if bar is not None:
+        bar.close()
+    order = {k: i for i, k in enumerate(keys)}
+    rows.sort(key=lambda r: (order.get(r["key"], 1 << 30), r["repeat"]))
+    return SweepResult(configs, rows, raw, repeats, time.perf_counter() - t0,
+                       str(store_path) if store_path else None)
+
+
+def _cost(cfg: Config) -> float:
+    if cfg.method == "pmc":
+        return 0.0
+    sizes = [9, *cfg.hidden, 9]
+    params = sum((a + 1) * b for a, b in zip(sizes[:-1], sizes[1:]))
+    return float(params) ** 2 * (2.0 if cfg.trainer == "br" else 1.0)

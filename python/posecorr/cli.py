@@ -339,6 +339,14 @@ def cmd_bench(args: argparse.Namespace) -> None:
     _emit(args, result, text)
 
 
+def cmd_demo(args: argparse.Namespace) -> None:
+    from .demo import run
+
+    summary = run(args.output, seed=args.seed, log=(lambda message: None) if args.json else print)
+    if args.json:
+        _print_json(summary)
+
+
 # --- parser -----------------------------------------------------------------------------
 
 def build_parser() -> argparse.ArgumentParser:
@@ -420,6 +428,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("estimator", type=Path)
     p.add_argument("-o", "--output", type=Path, required=True)
     p.add_argument("--no-parity", action="store_true", help="skip the onnxruntime parity check")
+
+    p = verb("demo", cmd_demo, "the main job on the embedded default: simulate Exp III, fit, export, run in C")
+    p.add_argument("-o", "--output", type=Path, default=Path("out/demo"))
+    p.add_argument("--seed", type=int, default=0)
 
     p = verb("info", cmd_info, "print a model file's metadata")
     p.add_argument("model", type=Path)

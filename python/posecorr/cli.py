@@ -207,7 +207,7 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
         lines = [f"{args.data}: model effects {', '.join(effects) or 'none'}; "
                  f"cross-validated rmse_total {result['cv_base']['rmse_total']:.4g}",
                  fmt_table(["rank", "effect", "score", "p_value", "cv_rmse_before", "cv_rmse_after", "present"], rows,
-                           title="Missing effects (score = mean relative held-out gain)"),
+                           title="Missing effects (score = mean relative fall of the held-out whitened error)"),
                  f"present = {result['test']}",
                  fmt_table(["feature", "cv R^2"], [[f["feature"], f["r2"]] for f in result["features"]],
                            title="Residual structure by feature (smooth fit, cross-validated)")]
@@ -215,7 +215,7 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
             lines.append("cannot be told apart by this data: " + "; ".join(" ~ ".join(p) for p in result["aliases"]))
         present = [c["effect"] for c in result["candidates"] if c["present"]]
         if present:
-            lines.append(f"add: --effects {','.join(effects + present[:1])}")
+            lines.append(f"add: --effects {','.join(effects + present)}")
         return "\n".join(lines)
 
     _emit(args, result, text)

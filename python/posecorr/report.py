@@ -424,15 +424,27 @@ def _r2_figure(features: Sequence[Mapping[str, Any]]) -> Any:
     return fig
 
 
+def _effects_step(previous: list[str] | None, effects: list[str]) -> str:
+    """What a ledger entry changed: its effects for the first, '+added -removed' after."""
+    if previous is None:
+        return ",".join(effects) or "no effects"
+    added = [e for e in effects if e not in previous]
+    removed = [e for e in previous if e not in effects]
+    parts = (["+" + ",".join(added)] if added else []) + (["-" + ",".join(removed)] if removed else [])
+    return "\n".join(parts) or "same effects"
+
+
 def _ledger_figure(ledger: Sequence[Mapping[str, Any]]) -> Any | None:
     """Step plot of the held-out rmse_total per ledger entry (log y)."""
     values, labels = [], []
+    previous: list[str] | None = None
     for k, entry in enumerate(ledger, start=1):
         _, block = _held_out(entry)
         v = block.get("rmse_total")
         values.append(float(v) * 1e3 if isinstance(v, (int, float)) and v > 0 else np.nan)
-        effects = ",".join(_as_list(entry.get("effects"))) or "no effects"
-        labels.append(f"{k}: {effects}\n{entry.get('method', '')}")
+        effects = [str(e) for e in _as_list(entry.get("effects"))]
+        labels.append(f"{k}: {_effects_step(previous, effects)}\n{entry.get('method', '')}")
+        previous = effects
     y = np.array(values)
     if not np.isfinite(y).any():
         return None
@@ -503,6 +515,10 @@ def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] =
     if r2:
         best = max(r2, key=lambda f: f["r2"])
         if best["r2"] >= 0.1:
+            if best.get("feature") == "t" and "drift" in model_effects:
+                return (f"No catalogue effect is missing{test}; {best['r2']:.2f} of the residual is explained by "
+                        "t: the model's drift is fitted but the exported graph has no time input, so it is not "
+                        "applied (correct it upstream, or re-register the station after warm-up).")
             return (f"No catalogue effect is missing{test}, but {best['r2']:.2f} of the residual is explained "
                     f"by {best.get('feature')}: an effect outside the catalogue (add your own with --effect-file).")
     top = f" (best candidate: {candidates[0].get('effect')}, not present)" if candidates else ""

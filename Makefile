@@ -22,7 +22,10 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(VPY) -m pytest -q
 
+# The LM comparison package is installed for the benchmark only, without its dependencies:
+# its torch requirement would pull CUDA builds, and it runs on the torch already here.
 bench: $(STAMP)
+	$(VPY) -m pip install -q --disable-pip-version-check --no-deps torch-levenberg-marquardt
 	$(VPY) -m posecorr.benchmarks
 
 models: $(STAMP)

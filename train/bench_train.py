@@ -195,11 +195,14 @@ def repeats_benchmark(repeats: int = 30, workers: int = 2, epochs: int = 100, st
 
 
 def run(out_path: str | os.PathLike = "bench/results/train.json", epochs: int = 10, repeats: int = 30,
-        workers: int = 2, br_epochs: int = 100, skip_repeats: bool = False) -> dict[str, Any]:
+        workers: int = 2, br_epochs: int = 100, skip_repeats: bool = False, threads: int = 1) -> dict[str, Any]:
+    """Both benchmarks into ``out_path`` (JSON). ``threads``: torch threads for the per-epoch
+    comparison (1 by default: on a shared 2-core machine the many short parallel regions of
+    a 2-thread run are at the mercy of other processes; both libraries get the same)."""
     result: dict[str, Any] = {"machine": f"{platform.machine()} {platform.processor() or ''} "
                                          f"{os.cpu_count()} cpus, python {platform.python_version()}",
                               "load_average_before": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
-    result["lm_epoch"] = lm_epoch_benchmark(epochs)
+    result["lm_epoch"] = lm_epoch_benchmark(epochs, threads)
     if not skip_repeats:
         result["exp3_best_30_repeats"] = repeats_benchmark(repeats, workers, br_epochs)
     result["load_average_after"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
@@ -219,8 +222,9 @@ if __name__ == "__main__":
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--br-epochs", type=int, default=100)
     ap.add_argument("--skip-repeats", action="store_true")
+    ap.add_argument("--threads", type=int, default=1)
     a = ap.parse_args()
-    r = run(a.out, a.epochs, a.repeats, a.workers, a.br_epochs, a.skip_repeats)
+    r = run(a.out, a.epochs, a.repeats, a.workers, a.br_epochs, a.skip_repeats, a.threads)
     print(json.dumps({k: v for k, v in r["lm_epoch"].items() if k not in ("posecorr", "torch_levenberg_marquardt")},
                      indent=2))
     print("posecorr s/epoch", r["lm_epoch"]["posecorr"]["seconds_per_epoch"],

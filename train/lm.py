@@ -206,6 +206,23 @@ class Network:
         return jacrev(lambda th: self.residual(th, X, T).reshape(-1))(theta)
 
 
+def training_tensors(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts: list[np.ndarray],
+                     Xn: np.ndarray, Tn: np.ndarray, escale: np.ndarray,
+                     val: tuple[np.ndarray, np.ndarray] | None) -> tuple[Any, ...]:
+    """(net, packed weights, X, T, X_val or None, T_val or None) in float64: every trainer's start."""
+    import torch
+
+    net = Network(sizes, est.activation, escale)
+    theta = net.pack(coefs, intercepts)
+    X = torch.as_tensor(Xn, dtype=torch.float64)
+    T = torch.as_tensor(Tn, dtype=torch.float64)
+    Xv = Tv = None
+    if val is not None:
+        Xv = torch.as_tensor(val[0], dtype=torch.float64)
+        Tv = torch.as_tensor(val[1], dtype=torch.float64)
+    return net, theta, X, T, Xv, Tv
+
+
 def _cholesky_solve(A: Any, b: Any) -> Any | None:
     import torch
 
@@ -232,14 +249,7 @@ def train_lm(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts
     import torch
 
     bayes = est.trainer == "br"
-    net = Network(sizes, est.activation, escale)
-    theta = net.pack(coefs, intercepts)
-    X = torch.as_tensor(Xn, dtype=torch.float64)
-    T = torch.as_tensor(Tn, dtype=torch.float64)
-    Xv = Tv = None
-    if val is not None:
-        Xv = torch.as_tensor(val[0], dtype=torch.float64)
-        Tv = torch.as_tensor(val[1], dtype=torch.float64)
+    net, theta, X, T, Xv, Tv = training_tensors(est, sizes, coefs, intercepts, Xn, Tn, escale, val)
     P = net.n_params
     N = T.numel()
     eye = torch.eye(P, dtype=torch.float64)

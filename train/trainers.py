@@ -24,7 +24,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from .lm import Network, TrainResult
+from .lm import TrainResult, training_tensors
 
 
 def train_first_order(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts: list[np.ndarray],
@@ -32,14 +32,7 @@ def train_first_order(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], i
                       val: tuple[np.ndarray, np.ndarray] | None, callback: Callable | None = None) -> TrainResult:
     import torch
 
-    net = Network(sizes, est.activation, escale)
-    theta = net.pack(coefs, intercepts)
-    X = torch.as_tensor(Xn, dtype=torch.float64)
-    T = torch.as_tensor(Tn, dtype=torch.float64)
-    Xv = Tv = None
-    if val is not None:
-        Xv = torch.as_tensor(val[0], dtype=torch.float64)
-        Tv = torch.as_tensor(val[1], dtype=torch.float64)
+    net, theta, X, T, Xv, Tv = training_tensors(est, sizes, coefs, intercepts, Xn, Tn, escale, val)
     N = T.numel()
 
     def loss_grad(th: Any) -> tuple[float, Any]:

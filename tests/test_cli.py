@@ -109,3 +109,23 @@ def test_fit_station_and_mount_in_the_trackers_own_frame_with_loo(tmp_path) -> N
     assert set(result["effects"]) == {"station", "mount"}
     mount_e, _ = result["effects"]["mount"]["e"]
     np.testing.assert_allclose(mount_e, X_t, atol=1e-3)
+
+
+def test_controller_side_verbs_import_nothing_heavier_than_numpy(tmp_path) -> None:
+    """apply (C backend), info and bench's C part run on a numpy-only install."""
+    model = Path(__file__).resolve().parents[1] / "models" / "pmc-zhou.onnx"
+    table = simulate(3, seed=9).table.subset(np.arange(20))
+    write_table(table, tmp_path / "in.csv")
+    script = f"""
+import sys
+from posecorr.cli import main
+assert main(["apply", {str(model)!r}, {str(tmp_path / 'in.csv')!r}, "-o", {str(tmp_path / 'out.csv')!r}]) == 0
+assert main(["info", {str(model)!r}]) == 0
+from posecorr.latency import c_bench
+assert c_bench({str(model)!r}, n_single=100, batch=10)["single_pose_median_us"] > 0
+heavy = sorted(m for m in ("torch", "scipy", "sklearn", "onnx", "onnxruntime", "matplotlib") if m in sys.modules)
+print("HEAVY", heavy)
+"""
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "HEAVY []" in out.stdout, out.stdout

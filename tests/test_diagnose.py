@@ -75,3 +75,17 @@ def test_feature_r2_finds_the_feature_that_carries_the_error() -> None:
     # sin(6a) carries 0.5 of the variance against 0.01 of noise: R^2 near 0.98 of the total.
     assert rows[0]["r2"] > 0.9
     assert all(row["r2"] < 0.05 for row in rows[1:])
+
+
+def test_auto_never_returns_a_core_worse_than_the_physics_stage() -> None:
+    """A small real-sized data set (30 poses): a 55-term quadratic would overfit it."""
+    from posecorr.train.pipeline import fit_table
+
+    table = simulate(3, seed=11).table.subset(np.arange(30))
+    report = fit_table(table, ["station", "mount"], method="auto", cv=5, seed=0)
+    scores = report.auto_scores
+    assert set(scores) >= {"none", "pmc-zhou", "pmc-R", "mlp-zhou-tansig-5-br"}
+    assert scores[report.chosen] == min(scores.values())
+    assert scores[report.chosen] <= scores["none"]
+    # The returned model's held-out error is the chosen candidate's cross-validated one.
+    assert report.heldout["rmse_total"] == pytest.approx(scores[report.chosen], rel=1e-9)

@@ -21,6 +21,14 @@
 #define PC_INLINE static inline
 #endif
 
+/* The general Gemm/MatMul paths (transposes, alpha/beta, other activations) are rare in
+ * correctors: built for size so the library stays under 100 KB. */
+#if defined(__GNUC__) && !defined(__clang__)
+#define PC_COLD __attribute__((optimize("Os")))
+#else
+#define PC_COLD
+#endif
+
 /* Separate flat loops so each one vectorises. */
 PC_INLINE void pc_apply_act(const pc_gemm *q, float *restrict o, size_t n)
 {
@@ -125,36 +133,109 @@ PC_INLINE void pc_gemm_one(const pc_gemm *q, const float *A, const float *B, con
     pc_apply_act(q, O, q->M * N);
 }
 
-pc_status k_gemm(const pc_step *s)
+PC_COLD pc_status k_gemm(const pc_step *s)
 {
     pc_gemm_one((const pc_gemm *)s->prm, (const float *)s->io[0], (const float *)s->io[1],
                 (const float *)s->io[2], (float *)s->io[3]);
     return PC_OK;
 }
 
-/* Single row, no transposes, bias row, tanh: the MLP layer at N = 1. */
-/* Rows of tanh(A B + c): no transposes, bias row, alpha = beta = 1 (the MLP layer). */
-PC_HOT pc_status k_gemm_row_tanh(const pc_step *s)
+#if defined(__GNUC__)
+#define PC_HAVE_ROWS4 1
+/* GCC/Clang vector types (no intrinsics, no ISA assumption): lanes are independent, so
+ * per output the summation order is that of pc_row (C first, then k ascending) and the
+ * results are bit-identical. Each B load serves four rows. */
+typedef float pc_v8 __attribute__((vector_size(32)));
+typedef float pc_v4 __attribute__((vector_size(16)));
+
+PC_INLINE void pc_rows4(const float *A, size_t K, const float *B, size_t N, const float *C,
+                        float *O)
+{
+    size_t n0 = 0, k, j;
+    for (; n0 + 8 <= N; n0 += 8) {
+        pc_v8 a0, a1, a2, a3;
+        memcpy(&a0, C + n0, sizeof a0);
+        a1 = a2 = a3 = a0;
+        for (k = 0; k < K; k++) {
+            pc_v8 b;
+            memcpy(&b, B + k * N + n0, sizeof b);
+            a0 += A[k] * b;
+            a1 += A[K + k] * b;
+            a2 += A[2 * K + k] * b;
+            a3 += A[3 * K + k] * b;
+        }
+        memcpy(O + n0, &a0, sizeof a0);
+        memcpy(O + N + n0, &a1, sizeof a1);
+        memcpy(O + 2 * N + n0, &a2, sizeof a2);
+        memcpy(O + 3 * N + n0, &a3, sizeof a3);
+    }
+    for (; n0 + 4 <= N; n0 += 4) {
+        pc_v4 a0, a1, a2, a3;
+        memcpy(&a0, C + n0, sizeof a0);
+        a1 = a2 = a3 = a0;
+        for (k = 0; k < K; k++) {
+            pc_v4 b;
+            memcpy(&b, B + k * N + n0, sizeof b);
+            a0 += A[k] * b;
+            a1 += A[K + k] * b;
+            a2 += A[2 * K + k] * b;
+            a3 += A[3 * K + k] * b;
+        }
+        memcpy(O + n0, &a0, sizeof a0);
+        memcpy(O + N + n0, &a1, sizeof a1);
+        memcpy(O + 2 * N + n0, &a2, sizeof a2);
+        memcpy(O + 3 * N + n0, &a3, sizeof a3);
+    }
+    for (; n0 < N; n0++) {
+        for (j = 0; j < 4; j++) {
+            float acc = C[n0];
+            for (k = 0; k < K; k++)
+                acc += A[j * K + k] * B[k * N + n0];
+            O[j * N + n0] = acc;
+        }
+    }
+}
+#endif
+
+/* Rows of act(A B + c): no transposes, bias row, alpha = beta = 1 (the MLP layer). Four
+ * rows at a time for batches; the activation runs once over the whole contiguous output. */
+PC_INLINE void pc_gemm_rows(const pc_step *s, int tanh_act)
 {
     const pc_gemm *q = (const pc_gemm *)s->prm;
     const float *A = (const float *)s->io[0];
     const float *B = (const float *)s->io[1];
     const float *C = (const float *)s->io[2];
-    float *O = (float *)s->io[3];
-    const size_t N = q->N, K = q->K;
-    size_t m, n;
-    for (m = 0; m < q->M; m++) {
+    float *restrict O = (float *)s->io[3];
+    const size_t N = q->N, K = q->K, M = q->M;
+    size_t m = 0, n;
+#ifdef PC_HAVE_ROWS4
+    for (; m + 4 <= M; m += 4)
+        pc_rows4(A + m * K, K, B, N, C, O + m * N);
+#endif
+    for (; m < M; m++) {
         float *restrict o = O + m * N;
         for (n = 0; n < N; n++)
             o[n] = C[n];
         pc_row(A + m * K, 1, B, N, K, N, o);
-        for (n = 0; n < N; n++)
-            o[n] = pc_tanh_inline(o[n]);
     }
+    if (tanh_act)
+        for (n = 0; n < M * N; n++)
+            O[n] = pc_tanh_inline(O[n]);
+}
+
+PC_HOT pc_status k_gemm_row_tanh(const pc_step *s)
+{
+    pc_gemm_rows(s, 1);
     return PC_OK;
 }
 
-pc_status k_matmul(const pc_step *s)
+PC_HOT pc_status k_gemm_row_lin(const pc_step *s)
+{
+    pc_gemm_rows(s, 0);
+    return PC_OK;
+}
+
+PC_COLD pc_status k_matmul(const pc_step *s)
 {
     const pc_gemm *q = (const pc_gemm *)s->prm;
     const float *A = (const float *)s->io[0];

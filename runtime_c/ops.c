@@ -1032,6 +1032,16 @@ static pc_status k_concat(const pc_step *s)
     const pc_concat *q = (const pc_concat *)s->prm;
     uint8_t *O = (uint8_t *)s->io[q->n_in];
     size_t o, k;
+    if (q->esize == 4 && q->total == q->n_in) {
+        /* Columns into rows ([outer,1] x n_in -> [outer,n_in]): one strided pass each. */
+        for (k = 0; k < q->n_in; k++) {
+            const float *A = (const float *)s->io[k];
+            float *F = (float *)O + k;
+            for (o = 0; o < q->outer; o++)
+                F[o * q->n_in] = A[o];
+        }
+        return PC_OK;
+    }
     if (q->esize == 4) {
         float *F = (float *)O;
         for (o = 0; o < q->outer; o++)
@@ -1313,8 +1323,8 @@ static pc_status pc_op_Gemm(pc_prep *p)
     dims[1] = (int64_t)q->N;
     p->fn = k_gemm;
     if (!ta && !tb && q->c_mode == 2 && q->alpha == 1.0f && q->beta == 1.0f &&
-        q->act == PC_ACT_TANH)
-        p->fn = k_gemm_row_tanh;
+        (q->act == PC_ACT_TANH || q->act == PC_ACT_NONE))
+        p->fn = q->act == PC_ACT_TANH ? k_gemm_row_tanh : k_gemm_row_lin;
     return pc_set_out(p, 0, PC_F32, 2, dims);
 }
 

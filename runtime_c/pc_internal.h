@@ -236,6 +236,7 @@ typedef struct pc_gemm {
 } pc_gemm;
 pc_status k_gemm(const pc_step *s);
 pc_status k_gemm_row_tanh(const pc_step *s);
+pc_status k_gemm_row_lin(const pc_step *s);
 pc_status k_matmul(const pc_step *s);
 
 

@@ -87,3 +87,24 @@ def test_exp3_model_generalises_to_a_fresh_simulation(path):
     M, R = data["measured"], data["reference"]
     got = evaluate(run_onnx(path, M), M, R, True)["rmse_total"]
     assert got == pytest.approx(info["test_metrics"]["rmse_total"], rel=0.10)
+
+
+@pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
+def test_card_metrics_reproduced_by_posecorr_apply(path, tmp_path, capsys):
+    """The user's route: the test split as a CSV through `posecorr apply` (C runtime)."""
+    from posecorr.cli import main
+    from posecorr.data import PoseTable, write_table
+
+    info = read_info(path)
+    data = _data(info["experiment"], info["data_seed"])
+    M, R, test = data["measured"], data["reference"], data["test"]
+    table = PoseTable(M[test, :3], M[test, 3:], R[test, :3], R[test, 3:] if data["with_rotation"] else None)
+    write_table(table, tmp_path / "test.csv")
+    capsys.readouterr()
+    assert main(["apply", str(path), str(tmp_path / "test.csv"), "-o", str(tmp_path / "out.csv"), "--json"]) == 0
+    corrected = json.loads(capsys.readouterr().out)["corrected"]
+    for key in ("rmse_pos", "rmse_rot", "rmse_total"):
+        if info["test_metrics"][key] is None:
+            assert corrected[key] is None
+        else:
+            assert corrected[key] == pytest.approx(info["test_metrics"][key], rel=0.01), key

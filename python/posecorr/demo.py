@@ -21,7 +21,7 @@ PHYSICS = ("mount", "sweep", "range_scale", "incidence", "station")
 
 
 def run(out_dir: str | Path = "out/demo", seed: int = 0, mlp_hidden: tuple[int, ...] = (20, 20),
-        mlp_epochs: int = 40, log: Callable[[str], None] = print) -> dict[str, Any]:
+        mlp_epochs: int = 100, log: Callable[[str], None] = print) -> dict[str, Any]:
     from .data import write_table
     from .latency import c_bench
     from .metrics import metric_block, pose_metrics

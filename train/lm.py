@@ -60,6 +60,26 @@ class TrainResult:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
+class ValidationCheck:
+    """MATLAB's validation stop: keep the best-validation weights, count the epochs in a
+    row that made validation worse (trainlm and the gradient trainers stop at max_fail)."""
+
+    def __init__(self, theta: Any) -> None:
+        self.best = math.inf
+        self.best_theta = theta.clone()
+        self.fails = 0
+
+    def update(self, val_mse: float, theta: Any) -> None:
+        if val_mse < self.best:
+            self.best, self.best_theta, self.fails = val_mse, theta.clone(), 0
+        elif val_mse > self.best:
+            self.fails += 1
+
+    @property
+    def best_or_none(self) -> float | None:
+        return None if self.best == math.inf else self.best
+
+
 class Network:
     """A functional MLP over a flat float64 parameter vector (layer blocks [W; b], row-major)."""
 
@@ -269,9 +289,7 @@ def train_lm(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts
             beta = 1.0
         alpha = gamma / (2.0 * ew) if ew > 0 else 1.0
 
-    best_val = math.inf
-    best_theta = theta.clone()
-    val_fail = 0
+    check = ValidationCheck(theta)
     stop = "Maximum epoch reached"
     epoch = 0
     t0 = time.perf_counter()
@@ -282,10 +300,7 @@ def train_lm(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts
         vmse = float("nan")
         if Xv is not None:
             vmse = net.sse(theta, Xv, Tv) / Tv.numel()
-            if vmse < best_val:
-                best_val, best_theta, val_fail = vmse, theta.clone(), 0
-            elif vmse > best_val:
-                val_fail += 1
+            check.update(vmse, theta)
         history["mse"].append(mse)
         history["val_mse"].append(vmse)
         history["mu"].append(mu)
@@ -312,7 +327,7 @@ def train_lm(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts
         if mu > mu_max:
             stop = "Maximum MU reached"
             break
-        if not bayes and Xv is not None and val_fail >= int(est.max_fail):
+        if not bayes and Xv is not None and check.fails >= int(est.max_fail):
             stop = "Validation stop"
             break
 
@@ -354,8 +369,8 @@ def train_lm(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts
             break
 
     final = theta
-    if not bayes and Xv is not None and best_val < math.inf:
-        final = best_theta
+    if not bayes and Xv is not None and check.best < math.inf:
+        final = check.best_theta
     coefs_out, intercepts_out = net.to_numpy(final)
     extra: dict[str, Any] = {"seconds": time.perf_counter() - t0,
                              "seconds_per_epoch": (time.perf_counter() - t0) / max(epoch, 1)}
@@ -363,4 +378,4 @@ def train_lm(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts
         extra.update({"gamma": gamma, "alpha": alpha, "beta": beta, "n_errors": N})
     train_loss = net.sse(final, X, T) / N
     return TrainResult(coefs_out, intercepts_out, epoch, stop, history,
-                       None if best_val == math.inf else best_val, train_loss, extra)
+                       check.best_or_none, train_loss, extra)

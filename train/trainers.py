@@ -24,7 +24,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from .lm import TrainResult, training_tensors
+from .lm import TrainResult, ValidationCheck, training_tensors
 
 
 def train_first_order(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts: list[np.ndarray],
@@ -63,7 +63,7 @@ def train_first_order(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], i
                                     tolerance_grad=1e-15, tolerance_change=1e-20)
 
     history: dict[str, list[float]] = {"mse": [], "val_mse": [], "lr": []}
-    best_val, best_theta, val_fail = math.inf, theta.clone(), 0
+    check = ValidationCheck(theta)
     stop = "Maximum epoch reached"
     t0 = time.perf_counter()
     epoch = 0
@@ -74,10 +74,7 @@ def train_first_order(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], i
         if Xv is not None:
             with torch.no_grad():
                 vmse = net.sse(current, Xv, Tv) / Tv.numel()
-            if vmse < best_val:
-                best_val, best_theta, val_fail = vmse, current.clone(), 0
-            elif vmse > best_val:
-                val_fail += 1
+            check.update(vmse, current)
         history["mse"].append(mse)
         history["val_mse"].append(vmse)
         history["lr"].append(lr)
@@ -96,7 +93,7 @@ def train_first_order(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], i
         if float(torch.linalg.vector_norm(g)) < est.min_grad:
             stop = "Minimum gradient reached"
             break
-        if Xv is not None and val_fail >= int(est.max_fail):
+        if Xv is not None and check.fails >= int(est.max_fail):
             stop = "Validation stop"
             break
 
@@ -138,10 +135,10 @@ def train_first_order(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], i
             raise ValueError(f"unknown first-order trainer {kind!r}")
 
     final = param.detach() if param is not None else theta
-    if Xv is not None and best_val < math.inf:
-        final = best_theta
+    if Xv is not None and check.best < math.inf:
+        final = check.best_theta
     coefs_out, intercepts_out = net.to_numpy(final)
     seconds = time.perf_counter() - t0
     return TrainResult(coefs_out, intercepts_out, epoch, stop, history,
-                       None if best_val == math.inf else best_val, mse_of(final),
+                       check.best_or_none, mse_of(final),
                        {"seconds": seconds, "seconds_per_epoch": seconds / max(epoch, 1), "final_lr": lr})

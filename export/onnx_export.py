@@ -9,12 +9,12 @@ from __future__ import annotations
 
 from collections import Counter
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable
 
 import numpy as np
 
 from .metadata import UNITS, data_digest, encode_metadata
-from .symbolic import BOOL, FLOAT, INT64, OPSET, ExportError, Graph, Sym
+from .symbolic import FLOAT, OPSET, ExportError, Graph, Sym
 
 INPUT_NAME = "pose"
 OUTPUT_NAME = "corrected"

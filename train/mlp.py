@@ -31,14 +31,13 @@ of ``lm.py``; "rp", "adam", "lbfgs", "gd", "gdm", "gda", "gdx" are in ``trainers
 """
 from __future__ import annotations
 
-import math
 from typing import Any, Sequence
 
 import numpy as np
 
 from posecorr._xp import namespace
 
-from .base import BaseCorrector, check_poses, encode_pose, vector_size
+from .base import BaseCorrector, check_poses, encode_pose
 
 ARCHITECTURES: tuple[tuple[int, ...], ...] = tuple(
     tuple([n] * layers) for layers in (1, 2, 3, 4) for n in (5, 10, 15, 20))

@@ -152,40 +152,28 @@ PC_INLINE void pc_rows4(const float *A, size_t K, const float *B, size_t N, cons
                         float *O)
 {
     size_t n0 = 0, k, j;
-    for (; n0 + 8 <= N; n0 += 8) {
-        pc_v8 a0, a1, a2, a3;
-        memcpy(&a0, C + n0, sizeof a0);
-        a1 = a2 = a3 = a0;
-        for (k = 0; k < K; k++) {
-            pc_v8 b;
-            memcpy(&b, B + k * N + n0, sizeof b);
-            a0 += A[k] * b;
-            a1 += A[K + k] * b;
-            a2 += A[2 * K + k] * b;
-            a3 += A[3 * K + k] * b;
-        }
-        memcpy(O + n0, &a0, sizeof a0);
-        memcpy(O + N + n0, &a1, sizeof a1);
-        memcpy(O + 2 * N + n0, &a2, sizeof a2);
-        memcpy(O + 3 * N + n0, &a3, sizeof a3);
+    /* Columns in blocks of WIDTH lanes of type VEC, four rows at a time. */
+#define PC_ROWS4_BLOCKS(VEC, WIDTH)                                  \
+    for (; n0 + (WIDTH) <= N; n0 += (WIDTH)) {                       \
+        VEC a0, a1, a2, a3;                                          \
+        memcpy(&a0, C + n0, sizeof a0);                              \
+        a1 = a2 = a3 = a0;                                           \
+        for (k = 0; k < K; k++) {                                    \
+            VEC b;                                                   \
+            memcpy(&b, B + k * N + n0, sizeof b);                    \
+            a0 += A[k] * b;                                          \
+            a1 += A[K + k] * b;                                      \
+            a2 += A[2 * K + k] * b;                                  \
+            a3 += A[3 * K + k] * b;                                  \
+        }                                                            \
+        memcpy(O + n0, &a0, sizeof a0);                              \
+        memcpy(O + N + n0, &a1, sizeof a1);                          \
+        memcpy(O + 2 * N + n0, &a2, sizeof a2);                      \
+        memcpy(O + 3 * N + n0, &a3, sizeof a3);                      \
     }
-    for (; n0 + 4 <= N; n0 += 4) {
-        pc_v4 a0, a1, a2, a3;
-        memcpy(&a0, C + n0, sizeof a0);
-        a1 = a2 = a3 = a0;
-        for (k = 0; k < K; k++) {
-            pc_v4 b;
-            memcpy(&b, B + k * N + n0, sizeof b);
-            a0 += A[k] * b;
-            a1 += A[K + k] * b;
-            a2 += A[2 * K + k] * b;
-            a3 += A[3 * K + k] * b;
-        }
-        memcpy(O + n0, &a0, sizeof a0);
-        memcpy(O + N + n0, &a1, sizeof a1);
-        memcpy(O + 2 * N + n0, &a2, sizeof a2);
-        memcpy(O + 3 * N + n0, &a3, sizeof a3);
-    }
+    PC_ROWS4_BLOCKS(pc_v8, 8)
+    PC_ROWS4_BLOCKS(pc_v4, 4)
+#undef PC_ROWS4_BLOCKS
     for (; n0 < N; n0++) {
         for (j = 0; j < 4; j++) {
             float acc = C[n0];

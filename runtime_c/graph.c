@@ -352,12 +352,18 @@ static pc_status pc_prepare_node(pc_builder *b, pc_node *n, int folding, pc_prep
     p->n_out = n->n_out;
     p->folding = folding;
     p->alias_of = -1;
-    p->in_ids = pc_scratch_alloc(&b->scratch, (n->n_in + 1) * sizeof(int32_t));
-    p->out_ids = pc_scratch_alloc(&b->scratch, (n->n_out + 1) * sizeof(int32_t));
-    p->in = pc_scratch_alloc(&b->scratch, (n->n_in + 1) * sizeof(pc_value *));
-    p->out = pc_scratch_alloc(&b->scratch, (n->n_out + 1) * sizeof(pc_value *));
-    if (!p->in_ids || !p->out_ids || !p->in || !p->out)
-        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
+    {
+        /* One block per node and plan: pointers first, so every part stays aligned. */
+        const size_t n_io = (size_t)n->n_in + n->n_out + 2;
+        pc_value **ptrs = pc_scratch_alloc(&b->scratch,
+                                           n_io * (sizeof(pc_value *) + sizeof(int32_t)));
+        if (!ptrs)
+            return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
+        p->in = ptrs;
+        p->out = ptrs + n->n_in + 1;
+        p->in_ids = (int32_t *)(ptrs + n_io);
+        p->out_ids = p->in_ids + n->n_in + 1;
+    }
     for (j = 0; j < n->n_in; j++) {
         p->in_ids[j] = n->in[j];
         p->in[j] = n->in[j] >= 0 ? &b->values[n->in[j]] : NULL;
@@ -534,16 +540,8 @@ static pc_status pc_add_draft(pc_builder *b, const pc_prep *p)
 {
     pc_draft *d;
     size_t j;
-    if (b->n_drafts == b->cap_drafts) {
-        size_t cap = b->cap_drafts ? 2 * b->cap_drafts : 64;
-        pc_draft *nd = pc_scratch_alloc(&b->scratch, cap * sizeof *nd);
-        if (!nd)
-            return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-        if (b->n_drafts)
-            memcpy(nd, b->drafts, b->n_drafts * sizeof *nd);
-        b->drafts = nd;
-        b->cap_drafts = cap;
-    }
+    if (b->n_drafts == b->cap_drafts)
+        return pc_fail(b->err, PC_ERR_GRAPH, "more kernel launches than nodes");
     d = &b->drafts[b->n_drafts++];
     d->fn = p->fn;
     d->n_io = (uint32_t)(p->n_in + p->n_out);
@@ -578,9 +576,12 @@ static pc_status pc_plan_batch(pc_builder *b, size_t batch, pc_plan_draft *pd,
     pc_status st;
     int32_t *roots;
     pc_value *in;
+    /* At most one launch per node; every field is written by pc_add_draft. */
     b->n_drafts = 0;
-    b->cap_drafts = 0;
-    b->drafts = NULL;
+    b->cap_drafts = b->n_nodes;
+    b->drafts = pc_scratch_alloc_raw(&b->scratch, (b->n_nodes + 1) * sizeof *b->drafts);
+    if (!b->drafts)
+        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
     for (i = 0; i < b->n_values; i++) {
         pc_value *v = &b->values[i];
         v->alias = -1;
@@ -757,10 +758,14 @@ pc_status pc_build(pc_builder *b, const pc_options *opts, pc_model **model_out)
 
     if (max_batch > PC_MAX_MAX_BATCH)
         max_batch = PC_MAX_MAX_BATCH;
-    while (((size_t)1 << (n_plans + 1)) <= max_batch)
+    for (k = 1; 2 * k <= max_batch; k *= 2)
+        ;
+    max_batch = k;
+    /* Plans for N = 1, 16, 256, ... and max_batch: planning is most of the load time, and
+     * a remainder below 16 poses runs pose by pose at little cost per pose. */
+    for (k = 1; k < max_batch; k *= PC_PLAN_STRIDE)
         n_plans++;
     n_plans++;
-    max_batch = (size_t)1 << (n_plans - 1);
 
     if ((st = pc_check_ops(b)) != PC_OK || (st = pc_toposort(b)) != PC_OK ||
         (st = pc_mark_live(b)) != PC_OK || (st = pc_fold(b)) != PC_OK ||
@@ -770,7 +775,12 @@ pc_status pc_build(pc_builder *b, const pc_options *opts, pc_model **model_out)
     if (!pds)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
     for (k = 0; k < n_plans; k++) {
-        if ((st = pc_plan_batch(b, (size_t)1 << k, &pds[k], &const_bytes)) != PC_OK)
+        size_t batch = 1;
+        for (i = 0; i < k; i++)
+            batch *= PC_PLAN_STRIDE;
+        if (batch > max_batch)
+            batch = max_batch;
+        if ((st = pc_plan_batch(b, batch, &pds[k], &const_bytes)) != PC_OK)
             return st;
         if (pds[k].act_bytes > act_bytes)
             act_bytes = pds[k].act_bytes;

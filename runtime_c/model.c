@@ -16,7 +16,9 @@ struct pc_scratch_block {
 
 #define PC_BLOCK_HEADER (((sizeof(pc_scratch_block) + PC_ALIGN - 1) / PC_ALIGN) * PC_ALIGN)
 
-void *pc_scratch_alloc(pc_scratch *s, size_t size)
+/* Untouched scratch is never faulted in: big arrays whose entries are all written before
+ * use (values, drafts) take it raw, so their unused capacity costs no page faults. */
+void *pc_scratch_alloc_raw(pc_scratch *s, size_t size)
 {
     pc_scratch_block *b = s->head;
     size_t need = (size + PC_ALIGN - 1) / PC_ALIGN * PC_ALIGN;
@@ -38,7 +40,14 @@ void *pc_scratch_alloc(pc_scratch *s, size_t size)
     p = (uint8_t *)b + PC_BLOCK_HEADER + b->used;
     b->used += need;
     s->used_total += need;
-    memset(p, 0, need);
+    return p;
+}
+
+void *pc_scratch_alloc(pc_scratch *s, size_t size)
+{
+    void *p = pc_scratch_alloc_raw(s, size);
+    if (p)
+        memset(p, 0, size);
     return p;
 }
 
@@ -491,7 +500,7 @@ static pc_status pc_parse_graph(pc_builder *b, pb_slice graph)
     }
     /* Values: initializers, the input, node outputs, and derived constants. */
     b->cap_values = n_init + 4 + total_out + 3 * n_nodes + 16;
-    b->values = pc_scratch_alloc(&b->scratch, b->cap_values * sizeof(pc_value));
+    b->values = pc_scratch_alloc_raw(&b->scratch, b->cap_values * sizeof(pc_value));
     for (b->hash_cap = 16; b->hash_cap < 2 * b->cap_values; b->hash_cap *= 2)
         ;
     b->hash = pc_scratch_alloc(&b->scratch, b->hash_cap * sizeof(int32_t));

@@ -12,6 +12,7 @@
 
 #define PC_MAX_RANK 6
 #define PC_ALIGN 32
+#define PC_PLAN_STRIDE 16
 
 pc_status pc_fail(pc_error *err, pc_status status, const char *fmt, ...)
 #ifdef __GNUC__
@@ -66,7 +67,8 @@ typedef struct pc_scratch {
     size_t used_total;
 } pc_scratch;
 
-void *pc_scratch_alloc(pc_scratch *s, size_t size);
+void *pc_scratch_alloc(pc_scratch *s, size_t size);     /* zeroed */
+void *pc_scratch_alloc_raw(pc_scratch *s, size_t size); /* not zeroed */
 void pc_scratch_release(pc_scratch *s);
 
 /* ---- graph under construction (graph.c) ------------------------------------------- */
@@ -301,7 +303,7 @@ struct pc_model {
     const char **meta_value;
     size_t max_batch;
     size_t n_plans;
-    pc_plan *plans;     /* plans[k].batch == 1 << k */
+    pc_plan *plans;     /* batch 1, PC_PLAN_STRIDE, PC_PLAN_STRIDE^2, ..., max_batch */
     size_t n_nodes;
     char message[PC_MESSAGE_SIZE];
 };

@@ -67,7 +67,8 @@ typedef struct pc_error {
 
 typedef struct pc_options {
     /* Largest number of poses evaluated at once; rounded down to a power of two.
-     * 0 selects PC_DEFAULT_MAX_BATCH. pc_run handles any n by chunking. */
+     * 0 selects PC_DEFAULT_MAX_BATCH. pc_run handles any n by chunking (plans exist
+     * for 1, 16, 256, ... poses and max_batch). */
     size_t max_batch;
 } pc_options;
 

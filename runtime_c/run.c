@@ -1,5 +1,6 @@
-/* pc_run: validate, then walk the precomputed plans. n is split into powers of two so
- * every chunk runs a plan whose shapes, pointers and kernels were fixed at load. */
+/* pc_run: validate, then walk the precomputed plans. n is split greedily into chunks of
+ * the planned batch sizes (max_batch, ..., 256, 16, 1) so every chunk runs a plan whose
+ * shapes, pointers and kernels were fixed at load. */
 #include "pc_internal.h"
 
 #include <math.h>

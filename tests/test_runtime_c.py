@@ -30,9 +30,7 @@ OPERATORS = [ln.split("#")[0].strip() for ln in
              (ROOT / "export" / "operators.txt").read_text().splitlines()]
 OPERATORS = [op for op in OPERATORS if op]
 CASES = graphs.op_cases()
-# These mix rows on purpose (runtime B / runtime gather indices over the batch), so
-# they are compared pose by pose.
-CROSS_ROW = {"gemm_runtime_b", "gather_runtime"}
+CROSS_ROW = graphs.CROSS_ROW
 
 
 @pytest.fixture(scope="session")

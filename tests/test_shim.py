@@ -108,6 +108,8 @@ def test_numpy_interpreter_matches_c(lib, model_path):
         for m in build():
             blob = m.SerializeToString()
             xi = graphs.op_inputs(4, seed=3)
+            if name in graphs.CROSS_ROW:
+                xi = xi[:1]
             ref = Corrector(blob, library=lib).correct(xi)
             got = NumpyGraph(blob)(xi)
             if name == "int_arith":  # numpy floors integer division, ONNX truncates

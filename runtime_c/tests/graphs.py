@@ -227,6 +227,11 @@ def case_gemm(transA=0, transB=0, c_shape=(5,), act=None, alpha=1.0, beta=1.0):
     return build
 
 
+# These mix rows on purpose (runtime B / runtime gather indices over the batch): pc_run
+# chunks a batch into planned sizes, so they are compared pose by pose.
+CROSS_ROW = {"gemm_runtime_b", "gather_runtime"}
+
+
 def case_gemm_runtime_b():
     g = G()
     a = g.shaped("pose", [3])

@@ -5,29 +5,22 @@
 #include <math.h>
 #include <string.h>
 
-/* The dense layers dominate a single-pose run; on x86-64 Linux with GCC they are also
- * compiled for AVX2 and picked at load by the dynamic linker (ifunc). Each output lane
- * sums in the same order, so results are bit-identical to the SSE2 build. */
-#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__) && \
-    !defined(PC_NO_TARGET_CLONES) && !defined(__SANITIZE_ADDRESS__)
-#define PC_HOT __attribute__((target_clones("avx2", "default")))
-#else
-#define PC_HOT
+/* The dense layers dominate a run; on x86-64 with GCC or Clang they are also compiled
+ * for AVX2 and picked at load when the CPU and OS support it (cpuid + xgetbv, no libgcc
+ * CPU model). Each output lane sums in the same order and no multiply-add is fused, so
+ * both variants give bit-identical results. */
+#if defined(__GNUC__) && defined(__x86_64__) && !defined(PC_NO_AVX2) && \
+    !defined(__SANITIZE_ADDRESS__)
+#define PC_HAVE_AVX2 1
+#include <cpuid.h>
 #endif
-/* Inlined into each clone so the AVX2 copy of a kernel really runs AVX2 loops. */
+/* Inlined into each variant so the AVX2 copy of a kernel really runs AVX2 loops. */
 #ifdef __GNUC__
 #define PC_INLINE static inline __attribute__((always_inline))
 #else
 #define PC_INLINE static inline
 #endif
 
-/* The general Gemm/MatMul paths (transposes, alpha/beta, other activations) are rare in
- * correctors: built for size so the library stays under 100 KB. */
-#if defined(__GNUC__) && !defined(__clang__)
-#define PC_COLD __attribute__((optimize("Os")))
-#else
-#define PC_COLD
-#endif
 
 /* Separate flat loops so each one vectorises. */
 PC_INLINE void pc_apply_act(const pc_gemm *q, float *restrict o, size_t n)
@@ -187,7 +180,7 @@ PC_INLINE void pc_rows4(const float *A, size_t K, const float *B, size_t N, cons
 
 /* Rows of act(A B + c): no transposes, bias row, alpha = beta = 1 (the MLP layer). Four
  * rows at a time for batches; the activation runs once over the whole contiguous output. */
-PC_INLINE void pc_gemm_rows(const pc_step *s, int tanh_act)
+PC_INLINE void pc_gemm_rows(const pc_step *s)
 {
     const pc_gemm *q = (const pc_gemm *)s->prm;
     const float *A = (const float *)s->io[0];
@@ -206,21 +199,49 @@ PC_INLINE void pc_gemm_rows(const pc_step *s, int tanh_act)
             o[n] = C[n];
         pc_row(A + m * K, 1, B, N, K, N, o);
     }
-    if (tanh_act)
+    if (q->act == PC_ACT_TANH)
         for (n = 0; n < M * N; n++)
             O[n] = pc_tanh_inline(O[n]);
 }
 
-PC_HOT pc_status k_gemm_row_tanh(const pc_step *s)
+/* One kernel for both activations: the test per launch is free next to the layer. */
+static pc_status k_gemm_rows(const pc_step *s)
 {
-    pc_gemm_rows(s, 1);
+    pc_gemm_rows(s);
     return PC_OK;
 }
 
-PC_HOT pc_status k_gemm_row_lin(const pc_step *s)
+#ifdef PC_HAVE_AVX2
+__attribute__((target("avx2"))) static pc_status k_gemm_rows_avx2(const pc_step *s)
 {
-    pc_gemm_rows(s, 0);
+    pc_gemm_rows(s);
     return PC_OK;
+}
+
+/* AVX2 needs the CPU flag and the OS saving YMM state (XCR0 bits 1 and 2). */
+static int pc_cpu_avx2(void)
+{
+    unsigned a, b, c, d;
+    if (!__get_cpuid(1, &a, &b, &c, &d) || !(c & bit_OSXSAVE) || !(c & bit_AVX))
+        return 0;
+    __asm__("xgetbv" : "=a"(a), "=d"(d) : "c"(0));
+    if ((a & 6) != 6)
+        return 0;
+    return __get_cpuid_count(7, 0, &a, &b, &c, &d) && (b & bit_AVX2);
+}
+#endif
+
+pc_kernel_fn pc_gemm_rows_kernel(pc_builder *b)
+{
+#ifdef PC_HAVE_AVX2
+    if (b->cpu_avx2 < 0)
+        b->cpu_avx2 = pc_cpu_avx2(); /* cpuid traps to the hypervisor in a VM: ask once */
+    if (b->cpu_avx2)
+        return k_gemm_rows_avx2;
+#else
+    (void)b;
+#endif
+    return k_gemm_rows;
 }
 
 PC_COLD pc_status k_matmul(const pc_step *s)

@@ -729,6 +729,7 @@ pc_status pc_load_memory(const void *data, size_t size, const pc_options *opts,
     b.file_size = size;
     b.input_id = -1;
     b.output_id = -1;
+    b.cpu_avx2 = -1;
     st = pc_parse_model(&b);
     if (st == PC_OK)
         st = pc_build(&b, opts, model);

@@ -32,18 +32,11 @@ static int64_t pc_f2i(float x)
 
 #define PC_BMAX 8 /* operands of one broadcast kernel (Max/Min may take more: chained) */
 
-typedef struct pc_bcast {
-    size_t d[PC_MAX_RANK];
-    size_t st[3][PC_MAX_RANK];
-} pc_bcast;
-
 typedef struct pc_bcast_n {
     size_t n_in;
     size_t d[PC_MAX_RANK];
     size_t st[PC_BMAX][PC_MAX_RANK];
 } pc_bcast_n;
-
-enum { PC_SAME = 0, PC_SCALAR_A = 1, PC_SCALAR_B = 2, PC_GENERAL2 = 3, PC_GENERAL = 4 };
 
 static pc_status pc_bcast_shape(pc_prep *p, size_t n_ops, pc_value *const *ins, int *rank,
                                 int64_t *dims)
@@ -133,6 +126,13 @@ static int pc_bcast_layout(size_t n_ops, pc_value *const *ins, int rank, const i
         return PC_SCALAR_A;
     if (n_ops == 2 && same[0] && scalar[1])
         return PC_SCALAR_B;
+    /* Innermost-first here: A is [M,K] contiguous, B strides (1, 0) or (0, 1). */
+    if (n_ops == 2 && r == 2 && st[0][0] == 1 && st[0][1] == d[0]) {
+        if (st[1][0] == 1 && st[1][1] == 0)
+            return PC_ROW_B;
+        if (st[1][0] == 0 && st[1][1] == 1)
+            return PC_COL_B;
+    }
     return r <= 2 ? PC_GENERAL2 : PC_GENERAL;
 }
 
@@ -150,46 +150,20 @@ static pc_status pc_bcast_prepare(pc_prep *p, size_t n_ops, pc_value *const *ins
     if ((st_ = pc_set_out(p, 0, out_dtype, rank, dims)) != PC_OK)
         return st_;
     *mode = pc_bcast_layout(n_ops, ins, rank, dims, d, st);
-    if (*mode >= PC_GENERAL2) {
-        if (n_ops <= 3) {
-            pc_bcast *q = pc_prep_params(p, sizeof *q);
-            if (!q)
-                return pc_fail(p->b->err, PC_ERR_MEMORY, "out of memory");
-            memcpy(q->d, d, sizeof d);
-            for (k = 0; k < n_ops; k++)
-                memcpy(q->st[k], st[k], sizeof st[k]);
-        } else {
-            pc_bcast_n *q = pc_prep_params(p, sizeof *q);
-            if (!q)
-                return pc_fail(p->b->err, PC_ERR_MEMORY, "out of memory");
-            q->n_in = n_ops;
-            memcpy(q->d, d, sizeof d);
-            for (k = 0; k < n_ops; k++)
-                memcpy(q->st[k], st[k], sizeof st[k]);
-        }
+    /* Every layout but SAME reads the strides (the general kernels serve them all). */
+    if (*mode != PC_SAME && n_ops <= 3) {
+        pc_bcast *q = pc_prep_params(p, sizeof *q);
+        if (!q)
+            return pc_fail(p->b->err, PC_ERR_MEMORY, "out of memory");
+        memcpy(q->d, d, sizeof d);
+        for (k = 0; k < n_ops; k++)
+            memcpy(q->st[k], st[k], sizeof st[k]);
     }
     return PC_OK;
 }
 
-#define PC_FOR6(q, K, BODY)                                                                     \
-    do {                                                                                        \
-        size_t i0, i1, i2, i3, i4, i5, o = 0, kk;                                               \
-        for (i0 = 0; i0 < (q)->d[0]; i0++)                                                      \
-            for (i1 = 0; i1 < (q)->d[1]; i1++)                                                  \
-                for (i2 = 0; i2 < (q)->d[2]; i2++)                                              \
-                    for (i3 = 0; i3 < (q)->d[3]; i3++)                                          \
-                        for (i4 = 0; i4 < (q)->d[4]; i4++) {                                    \
-                            size_t base[K];                                                     \
-                            for (kk = 0; kk < (K); kk++)                                        \
-                                base[kk] = i0 * (q)->st[kk][0] + i1 * (q)->st[kk][1] +          \
-                                           i2 * (q)->st[kk][2] + i3 * (q)->st[kk][3] +          \
-                                           i4 * (q)->st[kk][4];                                 \
-                            for (i5 = 0; i5 < (q)->d[5]; i5++, o++) {                           \
-                                BODY                                                            \
-                            }                                                                   \
-                        }                                                                       \
-    } while (0)
-
+/* Integer, boolean and comparison kernels: rare on the run-time path (shape arithmetic
+ * is folded at load), so one contiguous kernel and one general kernel serve all layouts. */
 #define PC_BINARY(NAME, TI, TO, EXPR)                                                          \
     static pc_status NAME##_same(const pc_step *s)                                             \
     {                                                                                          \
@@ -200,47 +174,6 @@ static pc_status pc_bcast_prepare(pc_prep *p, size_t n_ops, pc_value *const *ins
         for (i = 0; i < s->n; i++) {                                                           \
             const TI a = A[i], b = B[i];                                                       \
             O[i] = (TO)(EXPR);                                                                 \
-        }                                                                                      \
-        return PC_OK;                                                                          \
-    }                                                                                          \
-    static pc_status NAME##_sa(const pc_step *s)                                               \
-    {                                                                                          \
-        const TI a = *(const TI *)s->io[0];                                                    \
-        const TI *restrict B = (const TI *)s->io[1];                                           \
-        TO *restrict O = (TO *)s->io[2];                                                       \
-        size_t i;                                                                              \
-        for (i = 0; i < s->n; i++) {                                                           \
-            const TI b = B[i];                                                                 \
-            O[i] = (TO)(EXPR);                                                                 \
-        }                                                                                      \
-        return PC_OK;                                                                          \
-    }                                                                                          \
-    static pc_status NAME##_sb(const pc_step *s)                                               \
-    {                                                                                          \
-        const TI *restrict A = (const TI *)s->io[0];                                           \
-        const TI b = *(const TI *)s->io[1];                                                    \
-        TO *restrict O = (TO *)s->io[2];                                                       \
-        size_t i;                                                                              \
-        for (i = 0; i < s->n; i++) {                                                           \
-            const TI a = A[i];                                                                 \
-            O[i] = (TO)(EXPR);                                                                 \
-        }                                                                                      \
-        return PC_OK;                                                                          \
-    }                                                                                          \
-    static pc_status NAME##_gen2(const pc_step *s)                                             \
-    {                                                                                          \
-        const pc_bcast *q = (const pc_bcast *)s->prm;                                          \
-        const TI *A = (const TI *)s->io[0];                                                    \
-        const TI *B = (const TI *)s->io[1];                                                    \
-        TO *O = (TO *)s->io[2];                                                                \
-        size_t i4, i5;                                                                         \
-        for (i4 = 0; i4 < q->d[4]; i4++) {                                                     \
-            const TI *a4 = A + i4 * q->st[0][4];                                               \
-            const TI *b4 = B + i4 * q->st[1][4];                                               \
-            for (i5 = 0; i5 < q->d[5]; i5++) {                                                 \
-                const TI a = a4[i5 * q->st[0][5]], b = b4[i5 * q->st[1][5]];                   \
-                *O++ = (TO)(EXPR);                                                             \
-            }                                                                                  \
         }                                                                                      \
         return PC_OK;                                                                          \
     }                                                                                          \
@@ -257,15 +190,11 @@ static pc_status pc_bcast_prepare(pc_prep *p, size_t n_ops, pc_value *const *ins
         });                                                                                    \
         return PC_OK;                                                                          \
     }                                                                                          \
-    static const pc_kernel_fn NAME[5] = {NAME##_same, NAME##_sa, NAME##_sb, NAME##_gen2,       \
-                                         NAME##_gen};
+    static const pc_kernel_fn NAME[PC_LAYOUTS] = {                                             \
+        [PC_SAME] = NAME##_same,   [PC_SCALAR_A] = NAME##_gen, [PC_SCALAR_B] = NAME##_gen,    \
+        [PC_ROW_B] = NAME##_gen,   [PC_COL_B] = NAME##_gen,    [PC_GENERAL2] = NAME##_gen,    \
+        [PC_GENERAL] = NAME##_gen};
 
-PC_BINARY(k_add_f, float, float, a + b)
-PC_BINARY(k_sub_f, float, float, a - b)
-PC_BINARY(k_mul_f, float, float, a * b)
-PC_BINARY(k_div_f, float, float, a / b)
-PC_BINARY(k_max_f, float, float, (a != a || b != b) ? a + b : a > b ? a : b)
-PC_BINARY(k_min_f, float, float, (a != a || b != b) ? a + b : a < b ? a : b)
 /* int64 arithmetic wraps in unsigned to stay defined; division by zero gives 0. */
 PC_BINARY(k_add_i, int64_t, int64_t, (int64_t)((uint64_t)a + (uint64_t)b))
 PC_BINARY(k_sub_i, int64_t, int64_t, (int64_t)((uint64_t)a - (uint64_t)b))
@@ -387,7 +316,7 @@ static pc_status pc_op_Min(pc_prep *p) { return pc_minmax(p, k_min_f, k_min_i, k
 
 /* ---- Where ------------------------------------------------------------------------ */
 
-#define PC_WHERE(NAME, T)                                                                      \
+#define PC_WHERE_SAME(NAME, T)                                                                 \
     static pc_status NAME##_same(const pc_step *s)                                             \
     {                                                                                          \
         const uint8_t *restrict C = (const uint8_t *)s->io[0];                                 \
@@ -398,7 +327,9 @@ static pc_status pc_op_Min(pc_prep *p) { return pc_minmax(p, k_min_f, k_min_i, k
         for (i = 0; i < s->n; i++)                                                             \
             O[i] = C[i] ? X[i] : Y[i];                                                         \
         return PC_OK;                                                                          \
-    }                                                                                          \
+    }
+
+#define PC_WHERE_BCAST(NAME, T)                                                                \
     static pc_status NAME##_gen2(const pc_step *s)                                             \
     {                                                                                          \
         const pc_bcast *q = (const pc_bcast *)s->prm;                                          \
@@ -429,9 +360,13 @@ static pc_status pc_op_Min(pc_prep *p) { return pc_minmax(p, k_min_f, k_min_i, k
         });                                                                                    \
         return PC_OK;                                                                          \
     }
-PC_WHERE(k_where_f, float)
-PC_WHERE(k_where_i, int64_t)
-PC_WHERE(k_where_b, uint8_t)
+
+/* The float SAME kernel is in kernels.c. */
+PC_WHERE_SAME(k_where_i, int64_t)
+PC_WHERE_SAME(k_where_b, uint8_t)
+PC_WHERE_BCAST(k_where_f, float)
+PC_WHERE_BCAST(k_where_i, int64_t)
+PC_WHERE_BCAST(k_where_b, uint8_t)
 
 static pc_status pc_op_Where(pc_prep *p)
 {
@@ -455,40 +390,16 @@ static pc_status pc_op_Where(pc_prep *p)
 
 /* ---- unary ------------------------------------------------------------------------ */
 
-#define PC_UNARY(NAME, TI, TO, EXPR)                                                           \
-    static pc_status NAME(const pc_step *s)                                                    \
-    {                                                                                          \
-        const TI *restrict A = (const TI *)s->io[0];                                           \
-        TO *restrict O = (TO *)s->io[1];                                                       \
-        size_t i;                                                                              \
-        for (i = 0; i < s->n; i++) {                                                           \
-            const TI a = A[i];                                                                 \
-            O[i] = (TO)(EXPR);                                                                 \
-        }                                                                                      \
-        return PC_OK;                                                                          \
-    }
-
-PC_UNARY(k_abs_f, float, float, fabsf(a))
-PC_UNARY(k_abs_i, int64_t, int64_t, a < 0 ? (int64_t)(0 - (uint64_t)a) : a)
-PC_UNARY(k_neg_f, float, float, -a)
-PC_UNARY(k_neg_i, int64_t, int64_t, (int64_t)(0 - (uint64_t)a))
-PC_UNARY(k_atan_f, float, float, atanf(a))
-PC_UNARY(k_cos_f, float, float, cosf(a))
-PC_UNARY(k_sin_f, float, float, sinf(a))
-PC_UNARY(k_tan_f, float, float, tanf(a))
-PC_UNARY(k_exp_f, float, float, expf(a))
-PC_UNARY(k_sqrt_f, float, float, sqrtf(a))
-PC_UNARY(k_relu_f, float, float, a > 0.0f ? a : (a != a ? a : 0.0f))
-PC_UNARY(k_relu_i, int64_t, int64_t, a > 0 ? a : 0)
-PC_UNARY(k_sigmoid_f, float, float, pc_sigmoid(a))
-PC_UNARY(k_tanh_f, float, float, pc_tanh_inline(a))
-PC_UNARY(k_not_b, uint8_t, uint8_t, !a)
-PC_UNARY(k_cast_fb, float, uint8_t, a != 0.0f)
-PC_UNARY(k_cast_fi, float, int64_t, pc_f2i(a))
-PC_UNARY(k_cast_bf, uint8_t, float, a ? 1.0f : 0.0f)
-PC_UNARY(k_cast_bi, uint8_t, int64_t, a ? 1 : 0)
-PC_UNARY(k_cast_if, int64_t, float, (float)a)
-PC_UNARY(k_cast_ib, int64_t, uint8_t, a != 0)
+static PC_UNARY(k_abs_i, int64_t, int64_t, a < 0 ? (int64_t)(0 - (uint64_t)a) : a)
+static PC_UNARY(k_neg_i, int64_t, int64_t, (int64_t)(0 - (uint64_t)a))
+static PC_UNARY(k_relu_i, int64_t, int64_t, a > 0 ? a : 0)
+static PC_UNARY(k_not_b, uint8_t, uint8_t, !a)
+static PC_UNARY(k_cast_fb, float, uint8_t, a != 0.0f)
+static PC_UNARY(k_cast_fi, float, int64_t, pc_f2i(a))
+static PC_UNARY(k_cast_bf, uint8_t, float, a ? 1.0f : 0.0f)
+static PC_UNARY(k_cast_bi, uint8_t, int64_t, a ? 1 : 0)
+static PC_UNARY(k_cast_if, int64_t, float, (float)a)
+static PC_UNARY(k_cast_ib, int64_t, uint8_t, a != 0)
 
 static pc_status pc_unary(pc_prep *p, pc_kernel_fn kf, pc_kernel_fn ki, pc_kernel_fn kb)
 {
@@ -1324,7 +1235,7 @@ static pc_status pc_op_Gemm(pc_prep *p)
     p->fn = k_gemm;
     if (!ta && !tb && q->c_mode == 2 && q->alpha == 1.0f && q->beta == 1.0f &&
         (q->act == PC_ACT_TANH || q->act == PC_ACT_NONE))
-        p->fn = q->act == PC_ACT_TANH ? k_gemm_row_tanh : k_gemm_row_lin;
+        p->fn = pc_gemm_rows_kernel(p->b);
     return pc_set_out(p, 0, PC_F32, 2, dims);
 }
 

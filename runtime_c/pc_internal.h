@@ -168,6 +168,7 @@ typedef struct pc_builder {
     int32_t input_id, output_id;
     pc_derived *derived;
     size_t n_derived, cap_derived;
+    int cpu_avx2;       /* -1 until asked */
     /* current plan */
     pc_draft *drafts;
     size_t n_drafts, cap_drafts;
@@ -216,6 +217,80 @@ pc_status pc_alloc_const(pc_builder *b, pb_slice name, int dtype, int rank,
                          const int64_t *dims, int32_t *id);
 pc_status pc_tensor_to_const(pc_builder *b, pb_slice tensor, int32_t *id);
 
+/* Kernels that only unusual graphs reach are built for size inside optimised files. */
+#if defined(__GNUC__) && !defined(__clang__)
+#define PC_COLD __attribute__((optimize("Os")))
+#else
+#define PC_COLD
+#endif
+
+/* ---- broadcasting kernels (layout chosen at load, ops.c; float kernels, kernels.c) --- */
+
+/* Operand layouts of a broadcast op, after coalescing dimensions. ROW_B: B is one row
+ * repeated over the rows of A ([M,K] op [K]); COL_B: B is one value per row of A
+ * ([M,K] op [M,1]). GENERAL2: at most two coalesced dimensions. */
+enum {
+    PC_SAME = 0,
+    PC_SCALAR_A,
+    PC_SCALAR_B,
+    PC_ROW_B,
+    PC_COL_B,
+    PC_GENERAL2,
+    PC_GENERAL,
+    PC_LAYOUTS
+};
+
+/* Output dims and per-operand strides, outermost first, padded to PC_MAX_RANK. */
+typedef struct pc_bcast {
+    size_t d[PC_MAX_RANK];
+    size_t st[3][PC_MAX_RANK];
+} pc_bcast;
+
+#define PC_FOR6(q, K, BODY)                                                                     \
+    do {                                                                                        \
+        size_t i0, i1, i2, i3, i4, i5, o = 0, kk;                                               \
+        for (i0 = 0; i0 < (q)->d[0]; i0++)                                                      \
+            for (i1 = 0; i1 < (q)->d[1]; i1++)                                                  \
+                for (i2 = 0; i2 < (q)->d[2]; i2++)                                              \
+                    for (i3 = 0; i3 < (q)->d[3]; i3++)                                          \
+                        for (i4 = 0; i4 < (q)->d[4]; i4++) {                                    \
+                            size_t base[K];                                                     \
+                            for (kk = 0; kk < (K); kk++)                                        \
+                                base[kk] = i0 * (q)->st[kk][0] + i1 * (q)->st[kk][1] +          \
+                                           i2 * (q)->st[kk][2] + i3 * (q)->st[kk][3] +          \
+                                           i4 * (q)->st[kk][4];                                 \
+                            for (i5 = 0; i5 < (q)->d[5]; i5++, o++) {                           \
+                                BODY                                                            \
+                            }                                                                   \
+                        }                                                                       \
+    } while (0)
+
+#define PC_UNARY(NAME, TI, TO, EXPR)                                                           \
+    pc_status NAME(const pc_step *s)                                                           \
+    {                                                                                          \
+        const TI *restrict A = (const TI *)s->io[0];                                           \
+        TO *restrict O = (TO *)s->io[1];                                                       \
+        size_t i;                                                                              \
+        for (i = 0; i < s->n; i++) {                                                           \
+            const TI a = A[i];                                                                 \
+            O[i] = (TO)(EXPR);                                                                 \
+        }                                                                                      \
+        return PC_OK;                                                                          \
+    }
+
+/* Float kernels of the hot elementwise operators, one per layout (kernels.c). */
+#define PC_FLOAT_BINARY(X) X(k_add_f) X(k_sub_f) X(k_mul_f) X(k_div_f) X(k_max_f) X(k_min_f)
+#define PC_DECLARE_TABLE(NAME) extern const pc_kernel_fn NAME[PC_LAYOUTS];
+PC_FLOAT_BINARY(PC_DECLARE_TABLE)
+#undef PC_DECLARE_TABLE
+#define PC_FLOAT_UNARY(X)                                                                      \
+    X(k_abs_f) X(k_neg_f) X(k_atan_f) X(k_cos_f) X(k_sin_f) X(k_tan_f) X(k_exp_f) X(k_sqrt_f) \
+    X(k_relu_f) X(k_sigmoid_f) X(k_tanh_f)
+#define PC_DECLARE_KERNEL(NAME) pc_status NAME(const pc_step *s);
+PC_FLOAT_UNARY(PC_DECLARE_KERNEL)
+PC_DECLARE_KERNEL(k_where_f_same)
+#undef PC_DECLARE_KERNEL
+
 /* ---- operators (ops.c) ------------------------------------------------------------ */
 
 typedef pc_status (*pc_prepare_fn)(pc_prep *p);
@@ -237,8 +312,8 @@ typedef struct pc_gemm {
     size_t nbd, bd[4], a_bst[4], b_bst[4];
 } pc_gemm;
 pc_status k_gemm(const pc_step *s);
-pc_status k_gemm_row_tanh(const pc_step *s);
-pc_status k_gemm_row_lin(const pc_step *s);
+/* The MLP layer act(A B + c), act tanh or none, in the widest variant this CPU runs. */
+pc_kernel_fn pc_gemm_rows_kernel(pc_builder *b);
 pc_status k_matmul(const pc_step *s);
 
 

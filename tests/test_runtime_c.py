@@ -234,6 +234,16 @@ def test_posecorr_bench_json(c_build, pose_file):
     assert d["steps"] < d["nodes"]  # folding, aliasing and fusion removed work
 
 
+def test_portable_kernels_match_avx2_bit_for_bit(lib):
+    """The AVX2 dense kernels picked at load sum in the portable kernels' order."""
+    portable = graphs.build_runtime(BUILD / "portable", "-DPC_NO_AVX2=ON")
+    x = graphs.random_poses(300, seed=11)
+    for path in sorted((ROOT / "models").glob("*.onnx")):
+        a = Corrector(path, library=lib).correct(x)
+        b = Corrector(path, library=str(portable / "libposecorr.so")).correct(x)
+        np.testing.assert_array_equal(a, b, err_msg=path.name)
+
+
 # -- sanitizers, valgrind, install ---------------------------------------------------------
 
 @pytest.fixture(scope="session")

@@ -1,0 +1,143 @@
+/* The float elementwise kernels that run on every pose: arithmetic in each broadcast
+ * layout, Where, and the unary maths. Built with the vectoriser on (see CMakeLists.txt);
+ * the general broadcast kernels, which only odd graphs reach, are built for size. */
+#include "pc_internal.h"
+
+#include <math.h>
+
+/* ROW_B and COL_B are [M,K] op [K] and [M,K] op [M,1]: d[4] = M, d[5] = K. */
+#define PC_BINARY_F(NAME, EXPR)                                                                \
+    static pc_status NAME##_same(const pc_step *s)                                             \
+    {                                                                                          \
+        const float *restrict A = (const float *)s->io[0];                                     \
+        const float *restrict B = (const float *)s->io[1];                                     \
+        float *restrict O = (float *)s->io[2];                                                 \
+        size_t i;                                                                              \
+        for (i = 0; i < s->n; i++) {                                                           \
+            const float a = A[i], b = B[i];                                                    \
+            O[i] = (EXPR);                                                                     \
+        }                                                                                      \
+        return PC_OK;                                                                          \
+    }                                                                                          \
+    static pc_status NAME##_sa(const pc_step *s)                                               \
+    {                                                                                          \
+        const float a = *(const float *)s->io[0];                                              \
+        const float *restrict B = (const float *)s->io[1];                                     \
+        float *restrict O = (float *)s->io[2];                                                 \
+        size_t i;                                                                              \
+        for (i = 0; i < s->n; i++) {                                                           \
+            const float b = B[i];                                                              \
+            O[i] = (EXPR);                                                                     \
+        }                                                                                      \
+        return PC_OK;                                                                          \
+    }                                                                                          \
+    static pc_status NAME##_sb(const pc_step *s)                                               \
+    {                                                                                          \
+        const float *restrict A = (const float *)s->io[0];                                     \
+        const float b = *(const float *)s->io[1];                                              \
+        float *restrict O = (float *)s->io[2];                                                 \
+        size_t i;                                                                              \
+        for (i = 0; i < s->n; i++) {                                                           \
+            const float a = A[i];                                                              \
+            O[i] = (EXPR);                                                                     \
+        }                                                                                      \
+        return PC_OK;                                                                          \
+    }                                                                                          \
+    static pc_status NAME##_row(const pc_step *s)                                              \
+    {                                                                                          \
+        const pc_bcast *q = (const pc_bcast *)s->prm;                                          \
+        const size_t M = q->d[4], K = q->d[5];                                                 \
+        const float *restrict A = (const float *)s->io[0];                                     \
+        const float *restrict B = (const float *)s->io[1];                                     \
+        float *restrict O = (float *)s->io[2];                                                 \
+        size_t m, k;                                                                           \
+        for (m = 0; m < M; m++, A += K, O += K)                                                \
+            for (k = 0; k < K; k++) {                                                          \
+                const float a = A[k], b = B[k];                                                \
+                O[k] = (EXPR);                                                                 \
+            }                                                                                  \
+        return PC_OK;                                                                          \
+    }                                                                                          \
+    static pc_status NAME##_col(const pc_step *s)                                              \
+    {                                                                                          \
+        const pc_bcast *q = (const pc_bcast *)s->prm;                                          \
+        const size_t M = q->d[4], K = q->d[5];                                                 \
+        const float *restrict A = (const float *)s->io[0];                                     \
+        const float *restrict B = (const float *)s->io[1];                                     \
+        float *restrict O = (float *)s->io[2];                                                 \
+        size_t m, k;                                                                           \
+        for (m = 0; m < M; m++, A += K, O += K) {                                              \
+            const float b = B[m];                                                              \
+            for (k = 0; k < K; k++) {                                                          \
+                const float a = A[k];                                                          \
+                O[k] = (EXPR);                                                                 \
+            }                                                                                  \
+        }                                                                                      \
+        return PC_OK;                                                                          \
+    }                                                                                          \
+    PC_COLD static pc_status NAME##_gen2(const pc_step *s)                                     \
+    {                                                                                          \
+        const pc_bcast *q = (const pc_bcast *)s->prm;                                          \
+        const float *A = (const float *)s->io[0];                                              \
+        const float *B = (const float *)s->io[1];                                              \
+        float *O = (float *)s->io[2];                                                          \
+        size_t i4, i5;                                                                         \
+        for (i4 = 0; i4 < q->d[4]; i4++) {                                                     \
+            const float *a4 = A + i4 * q->st[0][4];                                            \
+            const float *b4 = B + i4 * q->st[1][4];                                            \
+            for (i5 = 0; i5 < q->d[5]; i5++) {                                                 \
+                const float a = a4[i5 * q->st[0][5]], b = b4[i5 * q->st[1][5]];                \
+                *O++ = (EXPR);                                                                 \
+            }                                                                                  \
+        }                                                                                      \
+        return PC_OK;                                                                          \
+    }                                                                                          \
+    PC_COLD static pc_status NAME##_gen(const pc_step *s)                                      \
+    {                                                                                          \
+        const pc_bcast *q = (const pc_bcast *)s->prm;                                          \
+        const float *A = (const float *)s->io[0];                                              \
+        const float *B = (const float *)s->io[1];                                              \
+        float *O = (float *)s->io[2];                                                          \
+        PC_FOR6(q, 2, {                                                                        \
+            const float a = A[base[0] + i5 * q->st[0][5]];                                     \
+            const float b = B[base[1] + i5 * q->st[1][5]];                                     \
+            O[o] = (EXPR);                                                                     \
+        });                                                                                    \
+        return PC_OK;                                                                          \
+    }                                                                                          \
+    const pc_kernel_fn NAME[PC_LAYOUTS] = {                                                    \
+        [PC_SAME] = NAME##_same, [PC_SCALAR_A] = NAME##_sa,    [PC_SCALAR_B] = NAME##_sb,      \
+        [PC_ROW_B] = NAME##_row, [PC_COL_B] = NAME##_col,      [PC_GENERAL2] = NAME##_gen2,    \
+        [PC_GENERAL] = NAME##_gen};
+
+PC_BINARY_F(k_add_f, a + b)
+PC_BINARY_F(k_sub_f, a - b)
+PC_BINARY_F(k_mul_f, a * b)
+PC_BINARY_F(k_div_f, a / b)
+/* ONNX Max/Min propagate NaN from either side. */
+PC_BINARY_F(k_max_f, (a != a || b != b) ? a + b : a > b ? a : b)
+PC_BINARY_F(k_min_f, (a != a || b != b) ? a + b : a < b ? a : b)
+
+pc_status k_where_f_same(const pc_step *s)
+{
+    const uint8_t *restrict C = (const uint8_t *)s->io[0];
+    const float *restrict X = (const float *)s->io[1];
+    const float *restrict Y = (const float *)s->io[2];
+    float *restrict O = (float *)s->io[3];
+    size_t i;
+    for (i = 0; i < s->n; i++)
+        O[i] = C[i] ? X[i] : Y[i];
+    return PC_OK;
+}
+
+PC_UNARY(k_abs_f, float, float, fabsf(a))
+PC_UNARY(k_neg_f, float, float, -a)
+PC_UNARY(k_atan_f, float, float, atanf(a))
+PC_UNARY(k_cos_f, float, float, cosf(a))
+PC_UNARY(k_sin_f, float, float, sinf(a))
+PC_UNARY(k_tan_f, float, float, tanf(a))
+PC_UNARY(k_exp_f, float, float, expf(a))
+PC_UNARY(k_sqrt_f, float, float, sqrtf(a))
+PC_UNARY(k_relu_f, float, float, a > 0.0f ? a : (a != a ? a : 0.0f))
+PC_UNARY(k_sigmoid_f, float, float, pc_sigmoid(a))
+PC_UNARY(k_tanh_f, float, float, pc_tanh_inline(a))

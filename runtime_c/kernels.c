@@ -4,6 +4,7 @@
 #include "pc_internal.h"
 
 #include <math.h>
+#include <string.h>
 
 /* ROW_B and COL_B are [M,K] op [K] and [M,K] op [M,1]: d[4] = M, d[5] = K. */
 #define PC_BINARY_F(NAME, EXPR)                                                                \
@@ -141,3 +142,100 @@ PC_UNARY(k_sqrt_f, float, float, sqrtf(a))
 PC_UNARY(k_relu_f, float, float, a > 0.0f ? a : (a != a ? a : 0.0f))
 PC_UNARY(k_sigmoid_f, float, float, pc_sigmoid(a))
 PC_UNARY(k_tanh_f, float, float, pc_tanh_inline(a))
+
+/* ---- data movement ---------------------------------------------------------------- */
+
+/* A contiguous run: the common "take columns a..b of one row" slice at N = 1. */
+pc_status k_copy_4(const pc_step *s)
+{
+    const pc_strided *q = (const pc_strided *)s->prm;
+    const uint32_t *restrict A = (const uint32_t *)s->io[0] + q->base;
+    uint32_t *restrict O = (uint32_t *)s->io[1];
+    size_t i;
+    for (i = 0; i < s->n; i++)
+        O[i] = A[i];
+    return PC_OK;
+}
+
+/* Two-level strided copy (rows of a column block, a 2-D transpose). */
+pc_status k_strided2_4(const pc_step *s)
+{
+    const pc_strided *q = (const pc_strided *)s->prm;
+    const uint32_t *restrict A = (const uint32_t *)s->io[0] + q->base;
+    uint32_t *restrict O = (uint32_t *)s->io[1];
+    const size_t rows = q->d[4], cols = q->d[5];
+    const ptrdiff_t rs = q->st[4], cs = q->st[5];
+    size_t i4, i5;
+    for (i4 = 0; i4 < rows; i4++, O += cols) {
+        const uint32_t *restrict a = A + (ptrdiff_t)i4 * rs;
+        for (i5 = 0; i5 < cols; i5++)
+            O[i5] = a[(ptrdiff_t)i5 * cs];
+    }
+    return PC_OK;
+}
+
+pc_status k_concat(const pc_step *s)
+{
+    const pc_concat *q = (const pc_concat *)s->prm;
+    const size_t n_in = q->n_in, outer = q->outer;
+    uint8_t *O = (uint8_t *)s->io[n_in];
+    size_t o, k;
+    if (q->esize == 4 && q->total == n_in) {
+        /* Columns into rows ([outer,1] x n_in -> [outer,n_in]): one strided pass each. */
+        for (k = 0; k < n_in; k++) {
+            const float *restrict A = (const float *)s->io[k];
+            float *restrict F = (float *)O + k;
+            for (o = 0; o < outer; o++)
+                F[o * n_in] = A[o];
+        }
+        return PC_OK;
+    }
+    for (o = 0; o < outer; o++)
+        for (k = 0; k < n_in; k++) {
+            const size_t bytes = q->inner[k] * q->esize;
+            if (bytes)
+                memcpy(O, (const uint8_t *)s->io[k] + o * bytes, bytes);
+            O += bytes;
+        }
+    return PC_OK;
+}
+
+/* Gather of 4-byte elements along the innermost axis with constant indices, normalised
+ * and range-checked at load: [outer, len] -> [outer, n_idx]. */
+pc_status k_gather_cols_4(const pc_step *s)
+{
+    const pc_gather *q = (const pc_gather *)s->prm;
+    const uint32_t *restrict A = (const uint32_t *)s->io[0];
+    const int64_t *restrict I = (const int64_t *)s->io[1];
+    uint32_t *restrict O = (uint32_t *)s->io[2];
+    const size_t outer = q->outer, len = q->len, n_idx = q->n_idx;
+    size_t o, j;
+    if (n_idx == 1) {
+        const uint32_t *restrict a = A + I[0];
+        for (o = 0; o < outer; o++)
+            O[o] = a[o * len];
+        return PC_OK;
+    }
+    for (o = 0; o < outer; o++, A += len, O += n_idx)
+        for (j = 0; j < n_idx; j++)
+            O[j] = A[I[j]];
+    return PC_OK;
+}
+
+/* Reduction of the innermost block: [outer, len] -> [outer]. Same order of summation as
+ * the general kernel (memory order), so results are identical. */
+pc_status k_reduce_sum_last(const pc_step *s)
+{
+    const pc_reduce *q = (const pc_reduce *)s->prm;
+    const float *restrict A = (const float *)s->io[0];
+    float *restrict O = (float *)s->io[1];
+    const size_t len = q->d[5];
+    size_t o, k;
+    for (o = 0; o < s->n; o++, A += len) {
+        float acc = 0.0f;
+        for (k = 0; k < len; k++)
+            acc += A[k];
+        O[o] = acc;
+    }
+    return PC_OK;
+}

@@ -708,11 +708,6 @@ static pc_status pc_op_Constant(pc_prep *p)
 
 /* ---- strided copies: Transpose, Slice --------------------------------------------- */
 
-typedef struct pc_strided {
-    size_t d[PC_MAX_RANK];
-    ptrdiff_t st[PC_MAX_RANK];
-    ptrdiff_t base;
-} pc_strided;
 
 #define PC_STRIDED(NAME, T)                                                                    \
     static pc_status NAME(const pc_step *s)                                                    \
@@ -737,33 +732,6 @@ typedef struct pc_strided {
 PC_STRIDED(k_strided_1, uint8_t)
 PC_STRIDED(k_strided_4, uint32_t)
 PC_STRIDED(k_strided_8, uint64_t)
-
-/* A contiguous run: the common "take columns a..b of one row" slice at N = 1. */
-static pc_status k_copy_4(const pc_step *s)
-{
-    const pc_strided *q = (const pc_strided *)s->prm;
-    const uint32_t *restrict A = (const uint32_t *)s->io[0] + q->base;
-    uint32_t *restrict O = (uint32_t *)s->io[1];
-    size_t i;
-    for (i = 0; i < s->n; i++)
-        O[i] = A[i];
-    return PC_OK;
-}
-
-/* Two-level strided copy (rows of a column block, a 2-D transpose). */
-static pc_status k_strided2_4(const pc_step *s)
-{
-    const pc_strided *q = (const pc_strided *)s->prm;
-    const uint32_t *A = (const uint32_t *)s->io[0] + q->base;
-    uint32_t *O = (uint32_t *)s->io[1];
-    size_t i4, i5;
-    for (i4 = 0; i4 < q->d[4]; i4++) {
-        const uint32_t *a = A + (ptrdiff_t)i4 * q->st[4];
-        for (i5 = 0; i5 < q->d[5]; i5++)
-            *O++ = a[(ptrdiff_t)i5 * q->st[5]];
-    }
-    return PC_OK;
-}
 
 /* Output dims + input strides (in elements), outermost first. Dimensions of size 1 are
  * dropped and mergeable neighbours merged, so most slices become one contiguous run. */
@@ -933,46 +901,6 @@ static pc_status pc_op_Slice(pc_prep *p)
 
 /* ---- Concat, Gather --------------------------------------------------------------- */
 
-typedef struct pc_concat {
-    size_t outer, n_in, total, esize;
-    size_t inner[1]; /* n_in entries; allocated longer */
-} pc_concat;
-
-static pc_status k_concat(const pc_step *s)
-{
-    const pc_concat *q = (const pc_concat *)s->prm;
-    uint8_t *O = (uint8_t *)s->io[q->n_in];
-    size_t o, k;
-    if (q->esize == 4 && q->total == q->n_in) {
-        /* Columns into rows ([outer,1] x n_in -> [outer,n_in]): one strided pass each. */
-        for (k = 0; k < q->n_in; k++) {
-            const float *A = (const float *)s->io[k];
-            float *F = (float *)O + k;
-            for (o = 0; o < q->outer; o++)
-                F[o * q->n_in] = A[o];
-        }
-        return PC_OK;
-    }
-    if (q->esize == 4) {
-        float *F = (float *)O;
-        for (o = 0; o < q->outer; o++)
-            for (k = 0; k < q->n_in; k++) {
-                const float *A = (const float *)s->io[k] + o * q->inner[k];
-                size_t i;
-                for (i = 0; i < q->inner[k]; i++)
-                    *F++ = A[i];
-            }
-        return PC_OK;
-    }
-    for (o = 0; o < q->outer; o++)
-        for (k = 0; k < q->n_in; k++) {
-            const size_t bytes = q->inner[k] * q->esize;
-            if (bytes)
-                memcpy(O, (const uint8_t *)s->io[k] + o * bytes, bytes);
-            O += bytes;
-        }
-    return PC_OK;
-}
 
 static pc_status pc_op_Concat(pc_prep *p)
 {
@@ -1025,9 +953,6 @@ static pc_status pc_op_Concat(pc_prep *p)
     return pc_set_out(p, 0, a->dtype, a->rank, dims);
 }
 
-typedef struct pc_gather {
-    size_t outer, len, inner, n_idx, esize;
-} pc_gather;
 
 static pc_status k_gather(const pc_step *s)
 {
@@ -1047,20 +972,6 @@ static pc_status k_gather(const pc_step *s)
             memcpy(O, A + (o * q->len + (size_t)idx) * chunk, chunk);
             O += chunk;
         }
-    return PC_OK;
-}
-
-/* Single-element gathers of floats (the common "pick column k" case). */
-static pc_status k_gather_f1(const pc_step *s)
-{
-    const pc_gather *q = (const pc_gather *)s->prm;
-    const float *A = (const float *)s->io[0];
-    const int64_t *I = (const int64_t *)s->io[1];
-    float *O = (float *)s->io[2];
-    const size_t idx = (size_t)I[0];
-    size_t o;
-    for (o = 0; o < q->outer; o++)
-        O[o] = A[o * q->len + idx];
     return PC_OK;
 }
 
@@ -1128,8 +1039,8 @@ static pc_status pc_op_Gather(pc_prep *p)
         }
         p->in_ids[1] = id;
         p->in[1] = &p->b->values[id];
-        if (q->n_idx == 1 && q->inner == 1 && a->dtype == PC_F32)
-            p->fn = k_gather_f1;
+        if (q->inner == 1 && q->esize == 4)
+            p->fn = k_gather_cols_4;
     }
     return pc_set_out(p, 0, a->dtype, r, dims);
 }
@@ -1450,10 +1361,6 @@ static pc_status pc_op_ArgMax(pc_prep *p)
     return pc_set_out(p, 0, PC_I64, r, dims);
 }
 
-typedef struct pc_reduce {
-    size_t d[PC_MAX_RANK];
-    size_t ost[PC_MAX_RANK];
-} pc_reduce;
 
 #define PC_REDUCE(NAME, INIT, ACC)                                                             \
     static pc_status NAME(const pc_step *s)                                                    \
@@ -1481,24 +1388,6 @@ typedef struct pc_reduce {
     }
 PC_REDUCE(k_reduce_sum, 0.0f, *y += a)
 PC_REDUCE(k_reduce_max, -INFINITY, if (a > *y || a != a) *y = a)
-
-/* Reduction of the innermost block: [outer, len] -> [outer]. Same order of summation as
- * the general kernel (memory order), so results are identical. */
-static pc_status k_reduce_sum_last(const pc_step *s)
-{
-    const pc_reduce *q = (const pc_reduce *)s->prm;
-    const float *restrict A = (const float *)s->io[0];
-    float *restrict O = (float *)s->io[1];
-    const size_t len = q->d[5];
-    size_t o, k;
-    for (o = 0; o < s->n; o++) {
-        float acc = 0.0f;
-        for (k = 0; k < len; k++)
-            acc += A[o * len + k];
-        O[o] = acc;
-    }
-    return PC_OK;
-}
 
 static pc_status pc_reduce_prepare(pc_prep *p, pc_kernel_fn fn)
 {

@@ -278,6 +278,27 @@ typedef struct pc_bcast {
         return PC_OK;                                                                          \
     }
 
+/* Parameters of the data-movement operators (prepared in ops.c). */
+typedef struct pc_strided {
+    size_t d[PC_MAX_RANK];
+    ptrdiff_t st[PC_MAX_RANK];
+    ptrdiff_t base;
+} pc_strided;
+
+typedef struct pc_concat {
+    size_t outer, n_in, total, esize;
+    size_t inner[1]; /* n_in entries; allocated longer */
+} pc_concat;
+
+typedef struct pc_gather {
+    size_t outer, len, inner, n_idx, esize;
+} pc_gather;
+
+typedef struct pc_reduce {
+    size_t d[PC_MAX_RANK];
+    size_t ost[PC_MAX_RANK];
+} pc_reduce;
+
 /* Float kernels of the hot elementwise operators, one per layout (kernels.c). */
 #define PC_FLOAT_BINARY(X) X(k_add_f) X(k_sub_f) X(k_mul_f) X(k_div_f) X(k_max_f) X(k_min_f)
 #define PC_DECLARE_TABLE(NAME) extern const pc_kernel_fn NAME[PC_LAYOUTS];
@@ -289,6 +310,11 @@ PC_FLOAT_BINARY(PC_DECLARE_TABLE)
 #define PC_DECLARE_KERNEL(NAME) pc_status NAME(const pc_step *s);
 PC_FLOAT_UNARY(PC_DECLARE_KERNEL)
 PC_DECLARE_KERNEL(k_where_f_same)
+PC_DECLARE_KERNEL(k_copy_4)        /* pc_strided: contiguous run */
+PC_DECLARE_KERNEL(k_strided2_4)    /* pc_strided: two levels */
+PC_DECLARE_KERNEL(k_concat)        /* pc_concat */
+PC_DECLARE_KERNEL(k_gather_cols_4) /* pc_gather: 4-byte elements, inner 1, indices checked */
+PC_DECLARE_KERNEL(k_reduce_sum_last) /* pc_reduce: innermost block */
 #undef PC_DECLARE_KERNEL
 
 /* ---- operators (ops.c) ------------------------------------------------------------ */

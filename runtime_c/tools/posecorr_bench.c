@@ -61,6 +61,7 @@ int main(int argc, char **argv)
 {
     const char *path = NULL;
     size_t n = 100000, batch = 10000, i, reps;
+    int round;
     pc_options opts = {0};
     pc_model *model = NULL;
     pc_error err;
@@ -128,14 +129,22 @@ int main(int argc, char **argv)
     }
     timer_ns = quantile(t, n, 0.5);
 
-    reps = 0;
-    t0 = now_ns();
-    do {
-        pc_run(model, poses, batch, out);
-        reps++;
-    } while (now_ns() - t0 < 3e8 || reps < 3);
-    batch_ns = (now_ns() - t0) / (double)(reps * batch);
-    sink += out[0];
+    /* Best of seven rounds of >= 50 ms: on a shared machine the minimum is the number
+     * that repeats (the Python side times the other back-ends the same way). */
+    batch_ns = -1.0;
+    for (round = 0; round < 7; round++) {
+        double per_pose;
+        reps = 0;
+        t0 = now_ns();
+        do {
+            pc_run(model, poses, batch, out);
+            reps++;
+        } while (now_ns() - t0 < 5e7 || reps < 3);
+        per_pose = (now_ns() - t0) / (double)(reps * batch);
+        if (batch_ns < 0.0 || per_pose < batch_ns)
+            batch_ns = per_pose;
+        sink += out[0];
+    }
 
     printf("{\"model\": \"%s\", \"unit_single\": \"us\", \"n\": %zu, \"batch\": %zu, "
            "\"single_pose_median_us\": %.4f, \"single_pose_p99_us\": %.4f, "

@@ -2,7 +2,7 @@
  *
  * Steps: check every operator against the table, sort topologically, drop nodes that do
  * not reach 'corrected', fold initializer-only subgraphs, fuse Gemm + activation, then
- * build one static plan per power-of-two batch size up to max_batch (shapes, kernel
+ * build static plans for batches of 1, 16, 256, ... and max_batch (shapes, kernel
  * choice, buffer offsets by liveness) and pack everything into one arena. pc_run then
  * does no shape work: it walks a precomputed array of kernel launches. */
 #include "pc_internal.h"

@@ -137,6 +137,17 @@ def _const_rhs(op, sa, const_shape, out_bool=False, seed=3):
     return build
 
 
+def _const_lhs(op, sa, const_shape, seed=4):
+    def build():
+        g = G(seed)
+        a = g.shaped("pose", sa)
+        c = g.f32(np.round(g.rng.uniform(0.5, 1.5, const_shape), 1).astype(np.float32))
+        y = g.op(op, [c, a])
+        tail = np.broadcast_shapes((1, *sa), tuple(const_shape))[1:]
+        return finish(g, y, int(np.prod(tail)))
+    return build
+
+
 def _custom(fn):
     return fn
 
@@ -394,6 +405,10 @@ def op_cases() -> dict:
         cases[f"bin_{op}_const_row"] = _const_rhs(op, [2, 3], [3])
         cases[f"bin_{op}_const_scalar"] = _const_rhs(op, [5], [])
         cases[f"bin_{op}_outer"] = _const_rhs(op, [3, 1], [1, 4])
+        # the broadcast operand on the left: scalar, column and row layouts of A
+        cases[f"bin_{op}_const_scalar_lhs"] = _const_lhs(op, [5], [])
+        cases[f"bin_{op}_bcast_lhs"] = _binary(op, [2, 1], [2, 3])
+        cases[f"bin_{op}_const_row_lhs"] = _const_lhs(op, [2, 3], [3])
     for op in CMP:
         cases[f"cmp_{op}_same"] = _binary(op, [4], [4], out_bool=True)
         cases[f"cmp_{op}_const"] = _const_rhs(op, [2, 2], [2], out_bool=True)

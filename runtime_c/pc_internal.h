@@ -357,7 +357,7 @@ typedef struct pc_op_info {
 
 extern const pc_op_info pc_ops[PC_OP_COUNT];
 int pc_op_lookup(pb_slice name);
-/* Fuses an activation into a Gemm step's parameters; 0 when not a Gemm step. */
+/* The kernels' tanh as a function, for the unit tests. */
 float pc_tanh(float x);
 
 /* tanh(x) = x P(x^2) / Q(x^2) on |x| <= 9, +-1 beyond (tanh(9) = 1 - 3e-8). Coefficients

@@ -540,7 +540,7 @@ static pc_status pc_add_draft(pc_builder *b, const pc_prep *p)
 {
     pc_draft *d;
     size_t j;
-    if (b->n_drafts == b->cap_drafts)
+    if (b->n_drafts == b->n_nodes)
         return pc_fail(b->err, PC_ERR_GRAPH, "more kernel launches than nodes");
     d = &b->drafts[b->n_drafts++];
     d->fn = p->fn;
@@ -578,7 +578,6 @@ static pc_status pc_plan_batch(pc_builder *b, size_t batch, pc_plan_draft *pd,
     pc_value *in;
     /* At most one launch per node; every field is written by pc_add_draft. */
     b->n_drafts = 0;
-    b->cap_drafts = b->n_nodes;
     b->drafts = pc_scratch_alloc_raw(&b->scratch, (b->n_nodes + 1) * sizeof *b->drafts);
     if (!b->drafts)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
@@ -750,7 +749,7 @@ pc_status pc_build(pc_builder *b, const pc_options *opts, pc_model **model_out)
 {
     size_t max_batch = opts && opts->max_batch ? opts->max_batch : PC_DEFAULT_MAX_BATCH;
     size_t n_plans = 0, k, i, j, const_bytes = 0, size, act_bytes = 0, meta_bytes = 0;
-    size_t step_bytes = 0;
+    size_t step_bytes = 0, batch;
     pc_plan_draft *pds;
     pc_status st;
     uint8_t *arena, *cursor, *const_base, *act_base;
@@ -774,13 +773,9 @@ pc_status pc_build(pc_builder *b, const pc_options *opts, pc_model **model_out)
     pds = pc_scratch_alloc(&b->scratch, n_plans * sizeof *pds);
     if (!pds)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    for (k = 0; k < n_plans; k++) {
-        size_t batch = 1;
-        for (i = 0; i < k; i++)
-            batch *= PC_PLAN_STRIDE;
-        if (batch > max_batch)
-            batch = max_batch;
-        if ((st = pc_plan_batch(b, batch, &pds[k], &const_bytes)) != PC_OK)
+    for (k = 0, batch = 1; k < n_plans; k++, batch *= PC_PLAN_STRIDE) {
+        if ((st = pc_plan_batch(b, batch < max_batch ? batch : max_batch, &pds[k],
+                                &const_bytes)) != PC_OK)
             return st;
         if (pds[k].act_bytes > act_bytes)
             act_bytes = pds[k].act_bytes;

@@ -8,18 +8,7 @@
 
 /* ROW_B and COL_B are [M,K] op [K] and [M,K] op [M,1]: d[4] = M, d[5] = K. */
 #define PC_BINARY_F(NAME, EXPR)                                                                \
-    static pc_status NAME##_same(const pc_step *s)                                             \
-    {                                                                                          \
-        const float *restrict A = (const float *)s->io[0];                                     \
-        const float *restrict B = (const float *)s->io[1];                                     \
-        float *restrict O = (float *)s->io[2];                                                 \
-        size_t i;                                                                              \
-        for (i = 0; i < s->n; i++) {                                                           \
-            const float a = A[i], b = B[i];                                                    \
-            O[i] = (EXPR);                                                                     \
-        }                                                                                      \
-        return PC_OK;                                                                          \
-    }                                                                                          \
+    static PC_BINARY_SAME(NAME, float, float, EXPR)                                            \
     static pc_status NAME##_sa(const pc_step *s)                                               \
     {                                                                                          \
         const float a = *(const float *)s->io[0];                                              \
@@ -93,19 +82,7 @@
         }                                                                                      \
         return PC_OK;                                                                          \
     }                                                                                          \
-    PC_COLD static pc_status NAME##_gen(const pc_step *s)                                      \
-    {                                                                                          \
-        const pc_bcast *q = (const pc_bcast *)s->prm;                                          \
-        const float *A = (const float *)s->io[0];                                              \
-        const float *B = (const float *)s->io[1];                                              \
-        float *O = (float *)s->io[2];                                                          \
-        PC_FOR6(q, 2, {                                                                        \
-            const float a = A[base[0] + i5 * q->st[0][5]];                                     \
-            const float b = B[base[1] + i5 * q->st[1][5]];                                     \
-            O[o] = (EXPR);                                                                     \
-        });                                                                                    \
-        return PC_OK;                                                                          \
-    }                                                                                          \
+    PC_COLD static PC_BINARY_GEN(NAME, float, float, EXPR)                                     \
     const pc_kernel_fn NAME[PC_LAYOUTS] = {                                                    \
         [PC_SAME] = NAME##_same, [PC_SCALAR_A] = NAME##_sa,    [PC_SCALAR_B] = NAME##_sb,      \
         [PC_ROW_B] = NAME##_row, [PC_COL_B] = NAME##_col,      [PC_GENERAL2] = NAME##_gen2,    \
@@ -119,17 +96,7 @@ PC_BINARY_F(k_div_f, a / b)
 PC_BINARY_F(k_max_f, (a != a || b != b) ? a + b : a > b ? a : b)
 PC_BINARY_F(k_min_f, (a != a || b != b) ? a + b : a < b ? a : b)
 
-pc_status k_where_f_same(const pc_step *s)
-{
-    const uint8_t *restrict C = (const uint8_t *)s->io[0];
-    const float *restrict X = (const float *)s->io[1];
-    const float *restrict Y = (const float *)s->io[2];
-    float *restrict O = (float *)s->io[3];
-    size_t i;
-    for (i = 0; i < s->n; i++)
-        O[i] = C[i] ? X[i] : Y[i];
-    return PC_OK;
-}
+PC_WHERE_SAME(k_where_f, float)
 
 PC_UNARY(k_abs_f, float, float, fabsf(a))
 PC_UNARY(k_neg_f, float, float, -a)

@@ -165,31 +165,8 @@ static pc_status pc_bcast_prepare(pc_prep *p, size_t n_ops, pc_value *const *ins
 /* Integer, boolean and comparison kernels: rare on the run-time path (shape arithmetic
  * is folded at load), so one contiguous kernel and one general kernel serve all layouts. */
 #define PC_BINARY(NAME, TI, TO, EXPR)                                                          \
-    static pc_status NAME##_same(const pc_step *s)                                             \
-    {                                                                                          \
-        const TI *restrict A = (const TI *)s->io[0];                                           \
-        const TI *restrict B = (const TI *)s->io[1];                                           \
-        TO *restrict O = (TO *)s->io[2];                                                       \
-        size_t i;                                                                              \
-        for (i = 0; i < s->n; i++) {                                                           \
-            const TI a = A[i], b = B[i];                                                       \
-            O[i] = (TO)(EXPR);                                                                 \
-        }                                                                                      \
-        return PC_OK;                                                                          \
-    }                                                                                          \
-    static pc_status NAME##_gen(const pc_step *s)                                              \
-    {                                                                                          \
-        const pc_bcast *q = (const pc_bcast *)s->prm;                                          \
-        const TI *A = (const TI *)s->io[0];                                                    \
-        const TI *B = (const TI *)s->io[1];                                                    \
-        TO *O = (TO *)s->io[2];                                                                \
-        PC_FOR6(q, 2, {                                                                        \
-            const TI a = A[base[0] + i5 * q->st[0][5]];                                        \
-            const TI b = B[base[1] + i5 * q->st[1][5]];                                        \
-            O[o] = (TO)(EXPR);                                                                 \
-        });                                                                                    \
-        return PC_OK;                                                                          \
-    }                                                                                          \
+    static PC_BINARY_SAME(NAME, TI, TO, EXPR)                                                  \
+    static PC_BINARY_GEN(NAME, TI, TO, EXPR)                                                   \
     static const pc_kernel_fn NAME[PC_LAYOUTS] = {                                             \
         [PC_SAME] = NAME##_same,   [PC_SCALAR_A] = NAME##_gen, [PC_SCALAR_B] = NAME##_gen,    \
         [PC_ROW_B] = NAME##_gen,   [PC_COL_B] = NAME##_gen,    [PC_GENERAL2] = NAME##_gen,    \
@@ -316,19 +293,6 @@ static pc_status pc_op_Min(pc_prep *p) { return pc_minmax(p, k_min_f, k_min_i, k
 
 /* ---- Where ------------------------------------------------------------------------ */
 
-#define PC_WHERE_SAME(NAME, T)                                                                 \
-    static pc_status NAME##_same(const pc_step *s)                                             \
-    {                                                                                          \
-        const uint8_t *restrict C = (const uint8_t *)s->io[0];                                 \
-        const T *restrict X = (const T *)s->io[1];                                             \
-        const T *restrict Y = (const T *)s->io[2];                                             \
-        T *restrict O = (T *)s->io[3];                                                         \
-        size_t i;                                                                              \
-        for (i = 0; i < s->n; i++)                                                             \
-            O[i] = C[i] ? X[i] : Y[i];                                                         \
-        return PC_OK;                                                                          \
-    }
-
 #define PC_WHERE_BCAST(NAME, T)                                                                \
     static pc_status NAME##_gen2(const pc_step *s)                                             \
     {                                                                                          \
@@ -362,8 +326,8 @@ static pc_status pc_op_Min(pc_prep *p) { return pc_minmax(p, k_min_f, k_min_i, k
     }
 
 /* The float SAME kernel is in kernels.c. */
-PC_WHERE_SAME(k_where_i, int64_t)
-PC_WHERE_SAME(k_where_b, uint8_t)
+static PC_WHERE_SAME(k_where_i, int64_t)
+static PC_WHERE_SAME(k_where_b, uint8_t)
 PC_WHERE_BCAST(k_where_f, float)
 PC_WHERE_BCAST(k_where_i, int64_t)
 PC_WHERE_BCAST(k_where_b, uint8_t)
@@ -708,7 +672,6 @@ static pc_status pc_op_Constant(pc_prep *p)
 
 /* ---- strided copies: Transpose, Slice --------------------------------------------- */
 
-
 #define PC_STRIDED(NAME, T)                                                                    \
     static pc_status NAME(const pc_step *s)                                                    \
     {                                                                                          \
@@ -901,7 +864,6 @@ static pc_status pc_op_Slice(pc_prep *p)
 
 /* ---- Concat, Gather --------------------------------------------------------------- */
 
-
 static pc_status pc_op_Concat(pc_prep *p)
 {
     int64_t axis, dims[PC_MAX_RANK];
@@ -952,7 +914,6 @@ static pc_status pc_op_Concat(pc_prep *p)
     p->fn = k_concat;
     return pc_set_out(p, 0, a->dtype, a->rank, dims);
 }
-
 
 static pc_status k_gather(const pc_step *s)
 {

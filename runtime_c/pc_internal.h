@@ -171,7 +171,7 @@ typedef struct pc_builder {
     int cpu_avx2;       /* -1 until asked */
     /* current plan */
     pc_draft *drafts;
-    size_t n_drafts, cap_drafts;
+    size_t n_drafts;    /* at most one launch per node */
 } pc_builder;
 
 typedef struct pc_prep {
@@ -298,6 +298,50 @@ typedef struct pc_reduce {
     size_t d[PC_MAX_RANK];
     size_t ost[PC_MAX_RANK];
 } pc_reduce;
+
+/* Elementwise loops written once for ops.c (integer, boolean, comparison) and kernels.c
+ * (float); a use puts the storage class in front. */
+#define PC_BINARY_SAME(NAME, TI, TO, EXPR)                                                     \
+    pc_status NAME##_same(const pc_step *s)                                                    \
+    {                                                                                          \
+        const TI *restrict A = (const TI *)s->io[0];                                           \
+        const TI *restrict B = (const TI *)s->io[1];                                           \
+        TO *restrict O = (TO *)s->io[2];                                                       \
+        size_t i;                                                                              \
+        for (i = 0; i < s->n; i++) {                                                           \
+            const TI a = A[i], b = B[i];                                                       \
+            O[i] = (TO)(EXPR);                                                                 \
+        }                                                                                      \
+        return PC_OK;                                                                          \
+    }
+
+#define PC_BINARY_GEN(NAME, TI, TO, EXPR)                                                      \
+    pc_status NAME##_gen(const pc_step *s)                                                     \
+    {                                                                                          \
+        const pc_bcast *q = (const pc_bcast *)s->prm;                                          \
+        const TI *A = (const TI *)s->io[0];                                                    \
+        const TI *B = (const TI *)s->io[1];                                                    \
+        TO *O = (TO *)s->io[2];                                                                \
+        PC_FOR6(q, 2, {                                                                        \
+            const TI a = A[base[0] + i5 * q->st[0][5]];                                        \
+            const TI b = B[base[1] + i5 * q->st[1][5]];                                        \
+            O[o] = (TO)(EXPR);                                                                 \
+        });                                                                                    \
+        return PC_OK;                                                                          \
+    }
+
+#define PC_WHERE_SAME(NAME, T)                                                                 \
+    pc_status NAME##_same(const pc_step *s)                                                    \
+    {                                                                                          \
+        const uint8_t *restrict C = (const uint8_t *)s->io[0];                                 \
+        const T *restrict X = (const T *)s->io[1];                                             \
+        const T *restrict Y = (const T *)s->io[2];                                             \
+        T *restrict O = (T *)s->io[3];                                                         \
+        size_t i;                                                                              \
+        for (i = 0; i < s->n; i++)                                                             \
+            O[i] = C[i] ? X[i] : Y[i];                                                         \
+        return PC_OK;                                                                          \
+    }
 
 /* Float kernels of the hot elementwise operators, one per layout (kernels.c). */
 #define PC_FLOAT_BINARY(X) X(k_add_f) X(k_sub_f) X(k_mul_f) X(k_div_f) X(k_max_f) X(k_min_f)

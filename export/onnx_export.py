@@ -195,7 +195,7 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
         if not parity_report["passed"] and parity == "raise":
             raise ParityError(
                 f"exported graph differs from predict(): max position error "
-                f"{parity_report['max_pos_m']:.3g} m (tol {tol_pos:g}), max rotation error "
+                f"{parity_report['max_pos_m']:.3g} m (tol {parity_report['tol_pos_m']:.3g}), max rotation error "
                 f"{parity_report['max_rot_rad']:.3g} rad (tol {tol_rot:g})")
         info["parity"] = parity_report
     if measured is not None and "training_data_digest" not in info:

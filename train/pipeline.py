@@ -5,10 +5,11 @@ nonlinear least squares (`physics.PhysicsModel`), then the core (PMC or MLP, or 
 the physics-corrected poses. Its `forward` composes both, so one ONNX graph holds the
 physics stage in front of the core.
 
-Cross-validation leaves out whole poses (`kfold_indices`: K folds or leave-one-out), and
-`--method auto` (`select_auto`) picks by cross-validated rmse_total among no core,
-ridge-PMC on each representation and a small MLP, never returning a model whose
-cross-validated error is worse than the physics stage alone.
+Cross-validation leaves out whole poses (`kfold_indices`: K folds or leave-one-out).
+`fit_table` is what `posecorr fit` runs: it scores the requested model (or, for `--method
+auto`, a nested choice among `auto_candidates`) on held-out poses beside the plain rigid fit
+(`physics.RigidModel`) on the same poses, and returns the rigid fit when the richer model
+does not beat it.
 """
 from __future__ import annotations
 
@@ -20,18 +21,19 @@ import numpy as np
 from posecorr.data import PoseTable
 from posecorr.metrics import pose_errors, pose_metrics, rmse_total
 
-from .physics import PhysicsModel
+from .physics import PhysicsModel, RigidModel
 
 
 class CorrectionPipeline:
     """Physics stage (may be empty) followed by a core corrector (may be None)."""
 
     def __init__(self, effects: Sequence[str] = (), core: Any = None, sigma_p: float | None = None,
-                 sigma_r: float | None = None) -> None:
+                 sigma_r: float | None = None, rigid: bool = False) -> None:
         self.effects = effects
         self.core = core
         self.sigma_p = sigma_p
         self.sigma_r = sigma_r
+        self.rigid = rigid
 
     @property
     def representation(self) -> str:
@@ -40,18 +42,29 @@ class CorrectionPipeline:
         return "pos" if not getattr(self, "with_rotation_", True) else "R"
 
     def fit(self, measured: np.ndarray, reference: np.ndarray, t: np.ndarray | None = None,
-            with_rotation: bool = True, warm_start: dict[str, np.ndarray] | None = None,
-            validation: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None) -> "CorrectionPipeline":
-        """Fit the physics stage, then the core on what it leaves.
+            with_rotation: bool = True, warm_start: Any = None,
+            validation: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None,
+            physics: PhysicsModel | None = None) -> "CorrectionPipeline":
+        """Fit the physics stage (the rigid registration when `rigid`), then the core on what it leaves.
 
+        warm_start: {effect: theta} or a fitted PhysicsModel to start from (`PhysicsModel.fit`).
         validation: (measured, reference, t) poses for an MLP core's early stopping (trainlm).
+        physics: a physics stage already fitted on these very poses (shared by candidates that
+        differ only in their core), used as it is.
         """
         self.with_rotation_ = with_rotation
         self.physics_ = None
         stage = np.asarray(measured, float)
-        if self.effects:
+        if self.rigid and self.effects:
+            raise ValueError("a rigid pipeline has no further effects; give either rigid=True or effects")
+        if physics is not None:
+            self.physics_ = physics
+        elif self.rigid:
+            self.physics_ = RigidModel().fit(measured, reference, t=t, with_rotation=with_rotation)
+        elif self.effects:
             self.physics_ = PhysicsModel(self.effects, self.sigma_p, self.sigma_r).fit(
                 measured, reference, t=t, with_rotation=with_rotation, warm_start=warm_start)
+        if self.physics_ is not None:
             stage = self.physics_.predict(measured, t)
         if self.core is not None:
             extra = {}
@@ -90,7 +103,9 @@ class CorrectionPipeline:
             if "drift" in self.physics_.params_:
                 info["drift"] = "fitted; not applied in the exported graph (no time input)"
             if self.core is None:
-                info["method"] = "physics"
+                info["method"] = "rigid" if self.rigid else "physics"
+            if self.physics_.fixed_:
+                info["fixed"] = dict(self.physics_.fixed_)
         return info
 
     def to_onnx(self, path: Any, **metadata: Any) -> Any:
@@ -148,41 +163,6 @@ def cross_validate(make: Callable[[], Any], table: PoseTable, folds: int | str =
                            pose_metrics(reference, predicted, table.has_orientation), fitted)
 
 
-def select_auto(table: PoseTable, effects: Sequence[str], folds: int | str = 5, seed: int = 0,
-                candidates: dict[str, Callable[[], Any]] | None = None,
-                progress: Callable[[str], None] | None = None) -> tuple[str, CrossValidation, dict[str, float]]:
-    """The core with the lowest cross-validated rmse_total ("none" when nothing beats the physics stage).
-
-    Returns (chosen name, its cross-validation, {name: cv rmse_total} of every candidate).
-    """
-    if candidates is None:
-        candidates = default_auto_candidates(table)
-    scores: dict[str, float] = {}
-    results: dict[str, CrossValidation] = {}
-    for name, make_core in candidates.items():
-        if progress:
-            progress(name)
-        cv = cross_validate(lambda: CorrectionPipeline(effects, make_core()), table, folds, seed)
-        scores[name], results[name] = float(cv.metrics["rmse_total"]), cv
-    best = min(scores, key=lambda n: (scores[n], n != "none"))
-    return best, results[best], scores
-
-
-def default_auto_candidates(table: PoseTable) -> dict[str, Callable[[], Any]]:
-    """none, ridge-PMC on each representation (position only for position-only data), a small MLP."""
-    from .mlp import MLP
-    from .pmc import PMC
-
-    reps = ("eaa", "quat", "R", "zhou") if table.has_orientation else ("pos",)
-    out: dict[str, Callable[[], Any]] = {"none": lambda: None}
-    for rep in reps:
-        out[f"pmc-{rep}"] = lambda rep=rep: PMC(representation=rep, alpha="cv")
-    rep = "zhou" if table.has_orientation else "pos"
-    out[f"mlp-{rep}-tansig-5-br"] = lambda: MLP(representation=rep, hidden=(5,), activation="tansig",
-                                                trainer="br", epochs=200, random_state=0)
-    return out
-
-
 def make_core(method: str, representation: str, hidden: Sequence[int] = (20, 20, 20, 20),
               activation: str = "tansig", trainer: str = "br", epochs: int = 1000, seed: int = 0) -> Any:
     """The data-driven stage of `fit --method`: None, PMC or MLP."""
@@ -200,9 +180,131 @@ def make_core(method: str, representation: str, hidden: Sequence[int] = (20, 20,
     raise ValueError(f"unknown method {method!r}; expected none, pmc, mlp or auto")
 
 
+# --- candidates, the rigid baseline and the choice ---------------------------------------
+
+RIGID = "rigid"
+# Below SMALL_TABLE poses auto tries only cheap candidates (no MLP, one representation): a
+# network cannot be held out of 6 to 40 poses. Below MIN_TEST_SPLIT poses a 15 % test split
+# holds too few poses to mean anything, so fit cross-validates instead (and says so); a
+# held-out score resting on fewer than MIN_HELDOUT poses carries a warning.
+SMALL_TABLE = 200
+MIN_TEST_SPLIT = 100
+MIN_HELDOUT = 20
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A model fit may return: a physics stage (`effects`, or the rigid registration) and a core."""
+
+    name: str
+    effects: tuple[str, ...] = ()
+    make_core: Callable[[], Any] = lambda: None
+    rigid: bool = False
+
+    def make(self) -> CorrectionPipeline:
+        return CorrectionPipeline(self.effects, self.make_core(), rigid=self.rigid)
+
+
+RIGID_CANDIDATE = Candidate(RIGID, rigid=True)
+
+
+def auto_candidates(table: PoseTable, effects: Sequence[str], representation: str = "zhou") -> list[Candidate]:
+    """What `--method auto` chooses from: the rigid fit, the physics stage (the registration
+    when no effect is named) alone and with a ridge-regularised affine or quadratic core (the
+    penalty chosen by an inner cross-validation); on tables of SMALL_TABLE poses or more also
+    the quadratic core in every representation and a small MLP."""
+    from .mlp import MLP
+    from .pmc import PMC
+
+    physics = tuple(effects) or ("station", "mount")
+    rep = representation if table.has_orientation else "pos"
+    out = [RIGID_CANDIDATE, Candidate("physics", physics),
+           Candidate(f"physics+affine-{rep}", physics, lambda: PMC(representation=rep, alpha="cv", degree=1)),
+           Candidate(f"physics+pmc-{rep}", physics, lambda: PMC(representation=rep, alpha="cv"))]
+    if table.n >= SMALL_TABLE:
+        reps = ("eaa", "quat", "R", "zhou") if table.has_orientation else ()
+        out += [Candidate(f"physics+pmc-{r}", physics, lambda r=r: PMC(representation=r, alpha="cv"))
+                for r in reps if r != rep]
+        out.append(Candidate(f"physics+mlp-{rep}-tansig-5-br", physics,
+                             lambda: MLP(representation=rep, hidden=(5,), activation="tansig", trainer="br",
+                                         epochs=200, random_state=0)))
+    return out
+
+
+def requested_candidate(effects: Sequence[str], method: str, representation: str, hidden: Sequence[int] = (20, 20, 20, 20),
+                        activation: str = "tansig", trainer: str = "br", epochs: int = 1000, seed: int = 0) -> Candidate:
+    """The model the user asked for with `--method none/pmc/mlp`."""
+    make_core(method, representation, hidden, activation, trainer, epochs, seed)   # validates the options
+    core = "" if method == "none" else f"{method}-{representation}"
+    name = "+".join(part for part in ("physics" if effects else "", core) if part) or "identity"
+    return Candidate(name, tuple(effects),
+                     lambda: make_core(method, representation, hidden, activation, trainer, epochs, seed))
+
+
+def _is_mlp(candidate: Candidate) -> bool:
+    return getattr(candidate.make_core(), "method", "") == "mlp"
+
+
+def _fit(candidate: Candidate, rows: np.ndarray, arrays: tuple, with_rotation: bool, prior: dict,
+         shared: dict | None = None, validation: tuple | None = None) -> CorrectionPipeline:
+    """Fit a candidate on `rows`; physics stages of equal effects are fitted once per `shared`
+    dict (candidates that differ only in their core share them) and start from `prior`."""
+    M, R, t = arrays
+    t_rows = None if t is None else t[rows]
+    physics = None
+    if candidate.effects and not candidate.rigid:
+        shared = {} if shared is None else shared
+        if candidate.effects not in shared:
+            shared[candidate.effects] = PhysicsModel(candidate.effects).fit(
+                M[rows], R[rows], t=t_rows, with_rotation=with_rotation, warm_start=prior.get(candidate.effects))
+        physics = shared[candidate.effects]
+    return candidate.make().fit(M[rows], R[rows], t=t_rows, with_rotation=with_rotation, physics=physics,
+                                validation=validation)
+
+
+def out_of_fold(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, with_rotation: bool,
+                splits: list[tuple[np.ndarray, np.ndarray]], prior: dict) -> dict[str, np.ndarray]:
+    """{name: (len(rows), 7) predictions}, each pose predicted by a fit that never saw it;
+    `splits` index into `rows`."""
+    M, _, t = arrays
+    predicted = {c.name: np.empty((len(rows), 7)) for c in candidates}
+    for train, held in splits:
+        shared: dict = {}
+        for candidate in candidates:
+            model = _fit(candidate, rows[train], arrays, with_rotation, prior, shared)
+            predicted[candidate.name][held] = model.predict(M[rows[held]], None if t is None else t[rows[held]])
+    return predicted
+
+
+def _score(reference: np.ndarray, predicted: np.ndarray, with_rotation: bool) -> float:
+    return float(pose_metrics(reference, predicted, with_rotation)["rmse_total"])
+
+
+def choose(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, with_rotation: bool,
+           folds: int | str, seed: int, prior: dict) -> tuple[Candidate, dict[str, float]]:
+    """The candidate with the lowest cross-validated rmse_total on `rows` (the rigid fit on ties)."""
+    splits = kfold_indices(len(rows), folds, seed)
+    predicted = out_of_fold(candidates, rows, arrays, with_rotation, splits, prior)
+    reference = arrays[1][rows]
+    scores = {name: _score(reference, p, with_rotation) for name, p in predicted.items()}
+    best = min(candidates, key=lambda c: (scores[c.name], not c.rigid))
+    return best, scores
+
+
+def inner_folds(n: int) -> int | str:
+    """Folds of a cross-validation inside a training set of n poses."""
+    return 5 if n >= 25 else "loo"
+
+
 @dataclass
 class FitReport:
-    """What `posecorr fit` learned: the model to export and its held-out evaluation."""
+    """What `posecorr fit` learned: the model to export and its held-out evaluation.
+
+    heldout: metrics of the returned model on poses it never saw (test split, or out of fold;
+    for auto the choice itself is made inside each outer fold). baseline: the rigid fit's
+    metrics on the same poses. n_heldout: how many poses each score rests on. notes: what the
+    user must know (a fallback to the rigid fit, a switch to cross-validation, a thin score).
+    """
 
     model: CorrectionPipeline
     raw: dict[str, float | None]
@@ -211,61 +313,143 @@ class FitReport:
     train_index: np.ndarray
     chosen: str
     auto_scores: dict[str, float] = field(default_factory=dict)
+    baseline: dict[str, float | None] = field(default_factory=dict)
+    n_heldout: int = 0
+    cv: int | str | None = None
+    fell_back: bool = False
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def fixed(self) -> dict[str, str]:
+        physics = self.model.physics_
+        return dict(physics.fixed_) if physics is not None else {}
 
 
 def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc", representation: str = "zhou",
               hidden: Sequence[int] = (20, 20, 20, 20), activation: str = "tansig", trainer: str = "br",
               epochs: int = 1000, cv: int | str | None = None, seed: int = 0,
               progress: Callable[[str], None] | None = None) -> FitReport:
-    """Fit a pipeline on a table and evaluate it on held-out poses.
+    """Fit a pipeline on a table and evaluate it on held-out poses, never returning a model
+    that does worse there than the plain rigid fit.
 
-    cv None: the protocol's fixed 15 % test split (seeded); the model is fitted on the rest
-    (an MLP core early-stops on 15 % validation poses of it). cv K or "loo": K-fold or
-    leave-one-out cross-validation of the whole pipeline, then the model is refitted on
-    all poses. method "auto" chooses the core by cross-validation (K = cv, or 5).
+    cv None: the protocol's fixed 15 % test split (seeded); candidates are fitted on the
+    training rows and compared on the validation rows, the chosen one refitted on both (an
+    MLP keeps its early-stopped fit); tables under MIN_TEST_SPLIT poses are cross-validated
+    instead. cv K or "loo": out-of-fold predictions of the requested model and of the rigid
+    fit on the same folds; the rigid fit is returned when it does better. method "auto":
+    nested: inside each outer fold an inner cross-validation chooses among `auto_candidates`,
+    the outer folds score that choice; the final model is chosen the same way on all poses.
     """
     from posecorr.data import require_rows
     from posecorr.metrics import metric_block
 
     from .protocol import split_indices
 
-    require_rows(table, 10 if cv is None else 4,
-                 "a fit with a held-out test split" if cv is None else "a cross-validated fit")
+    require_rows(table, 4, "a fit")
     if not table.has_orientation:
         representation = "pos"
     say = progress or (lambda message: None)
-    chosen, scores = method, {}
+    notes: list[str] = []
+    if cv is None and table.n < MIN_TEST_SPLIT:
+        cv = "loo" if table.n <= 40 else 5
+        notes.append(f"{table.n} poses are too few for a 15 % test split (fewer than {MIN_TEST_SPLIT}); "
+                     f"cross-validated ({cv}) instead")
     if method == "auto":
-        folds = cv if cv is not None else (5 if table.n >= 25 else "loo")
-        candidates = default_auto_candidates(table)
-        chosen, _, scores = select_auto(table, effects, folds, seed, candidates,
-                                        progress=lambda name: say(f"auto: cross-validating {name}"))
-        make = lambda: CorrectionPipeline(effects, candidates[chosen]())  # noqa: E731
+        candidates = auto_candidates(table, effects, representation)
     else:
-        make = lambda: CorrectionPipeline(effects, make_core(method, representation, hidden, activation,  # noqa: E731
-                                                             trainer, epochs, seed))
+        candidates = [requested_candidate(effects, method, representation, hidden, activation, trainer, epochs, seed),
+                      RIGID_CANDIDATE]
     M, R, t = table.measured, table.reference, table.time()
-    with_rotation = table.has_orientation
+    arrays, with_rotation = (M, R, t), table.has_orientation
+    everything = np.arange(table.n)
+    raw_all = pose_metrics(R, M, with_rotation)
+
     if cv is None:
         train, val, test = split_indices(table.n, seed)
         fit_rows = np.sort(np.concatenate([train, val]))
-        say(f"fitting on {len(fit_rows)} poses, testing on {len(test)}")
-        model = make()
-        validation = (M[val], R[val], None if t is None else t[val])
-        if getattr(model.core, "method", "") == "mlp":
-            fit_rows = train
-        model.fit(M[fit_rows], R[fit_rows], t=None if t is None else t[fit_rows], with_rotation=with_rotation,
-                  validation=validation)
+        say(f"fitting {len(candidates)} candidate(s) on {len(train)} poses, choosing on {len(val)}, "
+            f"testing on {len(test)}")
+        prior = _priors(candidates, train, arrays, with_rotation)
+        shared: dict = {}
+        fitted = {c.name: _fit(c, train, arrays, with_rotation, prior, shared, validation=(M[val], R[val],
+                                                                                          None if t is None else t[val]))
+                  for c in candidates}
+        scores = {name: _score(R[val], m.predict(M[val], None if t is None else t[val]), with_rotation)
+                  for name, m in fitted.items()}
+        best = min(candidates, key=lambda c: (scores[c.name], not c.rigid))
+        model = fitted[best.name] if _is_mlp(best) else _fit(best, fit_rows, arrays, with_rotation, prior)
+        rigid = _fit(RIGID_CANDIDATE, fit_rows, arrays, with_rotation, prior)
+        t_test = None if t is None else t[test]
         raw = pose_metrics(R[test], M[test], with_rotation)
-        corrected = pose_metrics(R[test], model.predict(M[test], None if t is None else t[test]), with_rotation)
-        return FitReport(model, raw, metric_block(raw, corrected), "test", fit_rows, chosen, scores)
-    say(f"cross-validating ({cv} folds)" if cv != "loo" else "cross-validating (leave one out)")
-    result = cross_validate(make, table, cv, seed)
-    raw = pose_metrics(R, M, with_rotation)
-    say(f"fitting on all {table.n} poses")
-    model = make().fit(M, R, t=t, with_rotation=with_rotation)
-    return FitReport(model, raw, metric_block(raw, result.metrics), "cv", np.arange(table.n), chosen, scores)
+        heldout = metric_block(raw, pose_metrics(R[test], model.predict(M[test], t_test), with_rotation))
+        baseline = metric_block(raw, pose_metrics(R[test], rigid.predict(M[test], t_test), with_rotation))
+        if best.rigid and method != "auto":
+            notes.append(f"the requested model did worse than the rigid fit on the {len(val)} validation poses "
+                         f"({scores[candidates[0].name]:.4g} against {scores[RIGID]:.4g} rmse_total): "
+                         "returning the rigid fit")
+        report = FitReport(model, raw, heldout, "test", np.sort(fit_rows if not _is_mlp(best) else train),
+                           best.name, scores if method == "auto" else {}, baseline, len(test), None,
+                           best.rigid and method != "auto", notes)
+        return _warn_thin(report)
+
+    splits = kfold_indices(table.n, cv, seed)
+    prior = _priors(candidates, everything, arrays, with_rotation)
+    if method == "auto":
+        say(f"auto: choosing among {len(candidates)} candidates inside each of {len(splits)} outer folds")
+        predicted = np.empty_like(M)
+        for train, held in _progress_iter(splits, say, "outer fold"):
+            best, _ = choose(candidates, train, arrays, with_rotation, inner_folds(len(train)), seed, prior)
+            model = _fit(best, train, arrays, with_rotation, prior)
+            predicted[held] = model.predict(M[held], None if t is None else t[held])
+        say("auto: choosing on all poses")
+        best, scores = choose(candidates, everything, arrays, with_rotation, inner_folds(table.n), seed, prior)
+        rigid_predicted = out_of_fold([RIGID_CANDIDATE], everything, arrays, with_rotation, splits, prior)[RIGID]
+    else:
+        say(f"cross-validating {candidates[0].name} and the rigid fit ({cv} folds)" if cv != "loo"
+            else f"cross-validating {candidates[0].name} and the rigid fit (leave one out)")
+        both = out_of_fold(candidates, everything, arrays, with_rotation, splits, prior)
+        best, scores = candidates[0], {}
+        predicted, rigid_predicted = both[best.name], both[RIGID]
+    heldout = metric_block(raw_all, pose_metrics(R, predicted, with_rotation))
+    baseline = metric_block(raw_all, pose_metrics(R, rigid_predicted, with_rotation))
+    fell_back = not best.rigid and baseline["rmse_total"] < heldout["rmse_total"]
+    if fell_back:
+        notes.append(f"{best.name} did worse on held-out poses than the rigid fit ({heldout['rmse_total']:.4g} "
+                     f"against {baseline['rmse_total']:.4g} rmse_total): returning the rigid fit")
+        best, heldout = RIGID_CANDIDATE, baseline
+    say(f"fitting {best.name} on all {table.n} poses")
+    model = _fit(best, everything, arrays, with_rotation, prior)
+    report = FitReport(model, raw_all, heldout, "cv", everything, best.name, scores, baseline, table.n, cv,
+                       fell_back, notes)
+    return _warn_thin(report)
 
 
-__all__ = ["make_core", "FitReport", "fit_table", "CorrectionPipeline", "kfold_indices", "cross_validate", "CrossValidation", "select_auto",
-           "default_auto_candidates"]
+def _priors(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, with_rotation: bool) -> dict:
+    """The physics stage of each distinct effect list, fitted once on `rows`: the warm start
+    (and the determined directions) of every fold's fit."""
+    M, R, t = arrays
+    prior = {}
+    for candidate in candidates:
+        if candidate.effects and not candidate.rigid and candidate.effects not in prior:
+            prior[candidate.effects] = PhysicsModel(candidate.effects).fit(
+                M[rows], R[rows], t=None if t is None else t[rows], with_rotation=with_rotation)
+    return prior
+
+
+def _progress_iter(splits: list, say: Callable[[str], None], label: str):
+    for k, split in enumerate(splits):
+        if k % max(1, len(splits) // 10) == 0:
+            say(f"{label} {k + 1}/{len(splits)}")
+        yield split
+
+
+def _warn_thin(report: FitReport) -> FitReport:
+    if report.n_heldout < MIN_HELDOUT:
+        report.notes.append(f"the held-out score rests on {report.n_heldout} poses (fewer than {MIN_HELDOUT}): "
+                            "treat it as a rough figure")
+    return report
+
+
+__all__ = ["make_core", "FitReport", "fit_table", "CorrectionPipeline", "kfold_indices", "cross_validate",
+           "CrossValidation", "Candidate", "RIGID_CANDIDATE", "auto_candidates", "requested_candidate", "choose",
+           "out_of_fold"]

@@ -34,13 +34,16 @@ from .base import BaseCorrector, vector_size
 DEFAULT_ALPHA_GRID = (0.0, 1e-10, 1e-8, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0)
 
 
-def n_features(d: int) -> int:
-    """Number of non-constant quadratic features of d inputs: d linear + d(d+1)/2 products."""
-    return d + d * (d + 1) // 2
+def n_features(d: int, degree: int = 2) -> int:
+    """Number of non-constant features of d inputs: d linear (+ d(d+1)/2 products if quadratic)."""
+    return d + (d * (d + 1) // 2 if degree == 2 else 0)
 
 
-def quadratic_features(xs: Any) -> Any:
-    """(N, d) -> (N, d + d(d+1)/2): [x_1..x_d, x_i x_j for i <= j (row-major)], any namespace."""
+def quadratic_features(xs: Any, degree: int = 2) -> Any:
+    """(N, d) -> (N, d + d(d+1)/2): [x_1..x_d, x_i x_j for i <= j (row-major)], any namespace.
+    degree 1: the linear terms alone (an affine map)."""
+    if degree == 1:
+        return xs
     xp = namespace(xs)
     d = xs.shape[-1]
     products = [xs[..., i] * xs[..., j] for i in range(d) for j in range(i, d)]
@@ -83,28 +86,32 @@ class PMC(BaseCorrector):
     alpha_grid : sequence of float
     cv_folds : int
     random_state : int, seed of the CV fold assignment.
+    degree : 2 (the paper's quadratic) or 1 (affine: the small-table candidate of `auto`).
     """
 
     method = "pmc"
 
     def __init__(self, representation: str = "zhou", alpha: float | str = 0.0,
                  alpha_grid: Sequence[float] = DEFAULT_ALPHA_GRID, cv_folds: int = 5,
-                 random_state: int = 0) -> None:
+                 random_state: int = 0, degree: int = 2) -> None:
         self.representation = representation
         self.alpha = alpha
         self.alpha_grid = alpha_grid
         self.cv_folds = cv_folds
         self.random_state = random_state
+        self.degree = degree
 
     def _min_rows(self) -> int:
         d = vector_size(self.representation)
-        return n_features(d) + 1 if self.alpha in (0, 0.0) else 2
+        return n_features(d, self.degree) + 1 if self.alpha in (0, 0.0) else 2
 
     def _fit_vectors(self, X: np.ndarray, Y: np.ndarray, measured: np.ndarray, reference: np.ndarray,
                      **fit_params: Any) -> None:
         # fit_params (e.g. validation=...) are accepted and ignored: PMC is not iterative.
+        if self.degree not in (1, 2):
+            raise ValueError(f"degree must be 1 (affine) or 2 (quadratic), got {self.degree!r}")
         gain, offset = minmax_scaling(X)
-        F = np.asarray(quadratic_features(X * gain + offset))
+        F = np.asarray(quadratic_features(X * gain + offset, self.degree))
         T = Y - X
         if isinstance(self.alpha, str):
             if self.alpha != "cv":
@@ -145,13 +152,14 @@ class PMC(BaseCorrector):
     def _core(self, x: Any) -> Any:
         xp = namespace(x)
         xs = x * xp.const(self.input_gain_, x) + xp.const(self.input_offset_, x)
-        return xp.linear(quadratic_features(xs), self.coef_, self.intercept_)
+        return xp.linear(quadratic_features(xs, self.degree), self.coef_, self.intercept_)
 
     def export_info(self) -> dict[str, str]:
         self._check_fitted()
         d = vector_size(self.representation)
         return {"method": "pmc", "representation": self.representation,
-                "architecture": f"quadratic-{d}in-{n_features(d) + 1}terms",
+                "architecture": f"{'quadratic' if self.degree == 2 else 'affine'}-{d}in-"
+                                f"{n_features(d, self.degree) + 1}terms",
                 "activation": "none", "trainer": "lstsq",
                 "ridge_alpha": repr(self.alpha_),
                 "train_rmse_vector": f"{self.train_rmse_vector_:.6g}"}

@@ -129,15 +129,24 @@ def cmd_fit(args: argparse.Namespace) -> None:
     report = fit_table(table, effects, args.method, args.representation, hidden, args.activation, args.trainer,
                        args.epochs, _parse_cv(args.cv), args.seed, progress=_progress(args))
     key = report.heldout_kind
-    exported = report.model.to_onnx(args.output, measured=table.measured[report.train_index],
-                                    reference=table.reference[report.train_index],
-                                    test_metrics={key: report.heldout, "raw": report.raw})
+    from .export.symbolic import ExportError
+
+    try:
+        exported = report.model.to_onnx(args.output, measured=table.measured[report.train_index],
+                                        reference=table.reference[report.train_index],
+                                        test_metrics={key: report.heldout, "raw": report.raw})
+    except ExportError as exc:
+        raise CliError(f"{args.output}: the model could not be exported: {exc}") from None
     info = report.model.export_info()
     effects_json = report.model.physics_.describe() if report.model.physics_ is not None else {}
     payload: dict[str, Any] = {"model": str(args.output), "method": info.get("method"),
                                "chosen": report.chosen, "representation": info.get("representation"),
                                "raw": report.raw, key: report.heldout, "effects": effects_json,
                                "parity": exported.get("parity"), "nodes": exported.get("n_nodes")}
+    payload.update({"baseline": {"model": "rigid", **report.baseline}, "n_heldout": report.n_heldout,
+                    "fell_back_to_rigid": report.fell_back, "fixed": report.fixed, "notes": report.notes})
+    if report.model.physics_ is not None:
+        payload["spread"] = report.model.physics_.spread_.to_json()
     if report.auto_scores:
         payload["auto_cv_rmse_total"] = report.auto_scores
     if args.save is not None:
@@ -152,15 +161,20 @@ def cmd_fit(args: argparse.Namespace) -> None:
                              "representation": info.get("representation"), "raw": report.raw, key: report.heldout})
 
     def text() -> str:
-        label = "test split" if key == "test" else f"cross-validated ({args.cv})"
+        label = f"test split ({report.n_heldout})" if key == "test" else f"{report.chosen}, cv {report.cv}"
         lines = [f"{args.data}: {table.n} poses; effects: {', '.join(effects) or 'none'}; "
-                 f"core: {report.chosen}" + (f" (auto: {_fmt_scores(report.auto_scores)})" if report.auto_scores else ""),
+                 f"model: {report.chosen}" + (f" (auto: {_fmt_scores(report.auto_scores)})" if report.auto_scores else ""),
                  fmt_table(METRIC_HEADERS + ["improvement"],
                            [row + [imp] for row, imp in zip(
-                               metrics_rows({"raw": report.raw, label: report.heldout}),
-                               [None, report.heldout.get("improvement_total")])])]
+                               metrics_rows({"raw": report.raw, label: report.heldout,
+                                             "rigid fit, same poses": report.baseline}),
+                               [None, report.heldout.get("improvement_total"),
+                                report.baseline.get("improvement_total")])])]
         for name, params in effects_json.items():
             lines.append(f"  {name}: " + "; ".join(f"{p} = {_value_pm(v)}" for p, v in params.items()))
+        for name, reason in report.fixed.items():
+            lines.append(f"  fixed {name}: {reason}")
+        lines += [f"  note: {note}" for note in report.notes]
         parity = exported.get("parity") or {}
         lines.append(f"-> {args.output} ({exported['n_nodes']} nodes, {exported['file_size']} bytes"
                      + (f", parity {parity.get('max_pos_m', 0):.1e} m / {parity.get('max_rot_rad', 0):.1e} rad)"
@@ -175,10 +189,15 @@ def _fmt_scores(scores: dict[str, float]) -> str:
 
 
 def _value_pm(pair: list) -> str:
+    """'0.07 ± 0.007', or '0.0006 (not determined)' where the fit has no standard error."""
     value, error = pair
     if isinstance(value, list):
-        return "[" + ", ".join(f"{v:.4g} ± {e:.1g}" for v, e in zip(value, error)) + "]"
-    return f"{value:.4g} ± {error:.1g}"
+        return "[" + ", ".join(_one_pm(v, e) for v, e in zip(value, error)) + "]"
+    return _one_pm(value, error)
+
+
+def _one_pm(value: float, error: float | None) -> str:
+    return f"{value:.4g} ± {error:.1g}" if error is not None else f"{value:.4g} (not determined)"
 
 
 def cmd_diagnose(args: argparse.Namespace) -> None:

@@ -58,6 +58,7 @@ class Param:
     default: the default magnitude (what a bare NAME on the command line means), `size` values.
     scale: typical magnitude, for scaling the fit's unknowns to O(1).
     identity: the value of each entry that makes the effect the identity (with the others 0).
+    bounds: (lower, upper) a fit keeps every entry in (None: unbounded).
     """
 
     name: str
@@ -67,6 +68,7 @@ class Param:
     unit: str
     identity: float = 0.0
     doc: str = ""
+    bounds: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if len(self.default) != self.size:
@@ -372,7 +374,8 @@ class Drift(Effect):
     closed_form_inverse = True
     needs_time = True
     params = (Param("d", 3, (1e-3, -5e-4, 1e-3), 1e-3, "m"),
-              Param("tau", 1, (3600.0,), 3600.0, "s", identity=3600.0))
+              Param("tau", 1, (3600.0,), 3600.0, "s", identity=3600.0,
+                    bounds=(60.0, 1e7), doc="time constant; a minute to months"))
 
     def notes(self, ctx):
         return [] if ctx.t is not None else ["no time column t: drift is the identity"]

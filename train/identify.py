@@ -1,0 +1,219 @@
+"""What a table can determine, decided before anything is fitted.
+
+Real sessions (DESIGN.md, "Real sessions") have 6 to 40 poses, frames nobody registered,
+often one orientation or yaw only, sometimes no reference orientation. Fitting a parameter
+the data cannot see turns noise into metres (a "2 m mount lever" cancelling a 2 m station
+offset). Three pieces keep that from happening:
+
+- `describe_spread`: how far positions and orientations spread (principal extents, axes).
+- `rigid_registration`: the plain rigid fit, in closed form: Kabsch from tracker position to
+  reference position, plus the lever arm between the tracker and the reference point along
+  the directions the orientations determine, plus (with reference orientations) the mean
+  mount rotation. It is the baseline every model must beat and the start of every fit.
+- `determined_directions`: which directions of a parameter space the whitened Jacobian pins
+  down, block by block in a priority order (registration first), so that a direction one
+  block shares with an earlier one (mount offset along the yaw axis ~ station offset) stays
+  with the earlier block and the later one holds its nominal value.
+
+A direction counts as determined when its standard error, given the blocks before it, is
+below `LIMIT_SCALES` times the parameter's typical magnitude (`Param.scale`): beyond that
+the fit would only move it by noise. Whether a determined but weak parameter pays is then a
+question for cross-validation (`pipeline.fit_table` compares every model with the rigid fit).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from posecorr.registration import project_to_rotation, umeyama
+
+LIMIT_SCALES = 10.0            # determined: std error < LIMIT_SCALES * Param.scale
+LEVER_LIMIT = 0.1              # m: the same rule for the rigid fit's lever arm (mount e scale 1e-2 m)
+AXIS_MIN_RAD = np.deg2rad(1.0)  # an orientation axis "spreads" beyond 1 deg RMS
+AXIS_MIN_M = 0.01              # a position axis "spreads" beyond 1 cm RMS
+
+
+@dataclass(frozen=True)
+class Spread:
+    """How a table's poses spread: what its data can possibly determine.
+
+    position_extent (3,) m: RMS extent of the positions along their principal axes (largest
+    first); rotation_extent (3,) rad: RMS angle of the measured orientations about their
+    chordal mean along their principal axes; rotation_span: largest angle between any
+    orientation and that mean (rad); has_orientation: the reference has orientations.
+    """
+
+    n: int
+    position_extent: np.ndarray
+    rotation_extent: np.ndarray
+    rotation_span: float
+    has_orientation: bool
+
+    @property
+    def position_axes(self) -> int:
+        return int(np.sum(self.position_extent > AXIS_MIN_M))
+
+    @property
+    def rotation_axes(self) -> int:
+        return int(np.sum(self.rotation_extent > AXIS_MIN_RAD))
+
+    def orientation_words(self) -> str:
+        """'orientations span 13.2 deg about one axis' and the like."""
+        span = np.rad2deg(self.rotation_span)
+        axes = {0: "", 1: " about one axis", 2: " about two axes", 3: " about three axes"}[self.rotation_axes]
+        return f"orientations span {span:.1f} deg{axes}"
+
+    def position_words(self) -> str:
+        extent = ", ".join(f"{1000 * e:.0f}" for e in self.position_extent)
+        return f"positions spread ({extent}) mm RMS along their principal axes"
+
+    def to_json(self) -> dict:
+        return {"n": self.n, "position_extent_m": self.position_extent.tolist(),
+                "rotation_extent_deg": np.rad2deg(self.rotation_extent).tolist(),
+                "rotation_span_deg": float(np.rad2deg(self.rotation_span)),
+                "position_axes": self.position_axes, "rotation_axes": self.rotation_axes,
+                "has_orientation": self.has_orientation}
+
+
+def chordal_mean(R: np.ndarray) -> np.ndarray:
+    """The rotation nearest (Frobenius) to the mean of (N, 3, 3) rotations."""
+    return project_to_rotation(np.mean(R, axis=0))
+
+
+def describe_spread(measured_p: np.ndarray, measured_R: np.ndarray, has_orientation: bool) -> Spread:
+    from posecorr.rotations import matrix_to_rotvec
+
+    centred = measured_p - measured_p.mean(axis=0)
+    position_extent = np.linalg.svd(centred / np.sqrt(len(centred)), compute_uv=False)
+    mean = chordal_mean(measured_R)
+    w = matrix_to_rotvec(np.swapaxes(mean, -1, -2)[None] @ measured_R)     # in the mean's frame
+    rotation_extent = np.linalg.svd(w / np.sqrt(len(w)), compute_uv=False)
+    span = float(np.max(np.linalg.norm(w, axis=1))) if len(w) else 0.0
+    return Spread(len(measured_p), np.pad(position_extent, (0, 3 - len(position_extent))),
+                  np.pad(rotation_extent, (0, 3 - len(rotation_extent))), span, bool(has_orientation))
+
+
+@dataclass
+class RigidRegistration:
+    """p_ref = R (p_meas + R_meas lever) + t, R_ref = R R_meas mount^T (see the module docstring).
+
+    lever (3,) m in the tracker frame, zero along `lever_fixed` (unit vectors, tracker frame)
+    where the orientations cannot determine it; mount (3, 3): the tracker frame in the
+    reference orientation's frame (identity without reference orientations); sigma_p: RMS
+    per-coordinate position residual (m) with the degrees of freedom taken off.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    lever: np.ndarray
+    lever_fixed: np.ndarray
+    mount: np.ndarray
+    sigma_p: float
+
+    def predict_position(self, measured_p: np.ndarray, measured_R: np.ndarray) -> np.ndarray:
+        return (measured_p + measured_R @ self.lever) @ self.R.T + self.t
+
+
+def rigid_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference_p: np.ndarray,
+                       reference_R: np.ndarray | None = None, iterations: int = 30) -> RigidRegistration:
+    """The closed-form rigid fit of a table (see `RigidRegistration`).
+
+    The lever arm's directions come from the spread of the measured orientations: with
+    orientations that all agree it is invisible (it only shifts t), with yaw only its component
+    along the yaw axis is. A direction is fitted when its standard error, with the residual
+    of the fit without lever, is below LEVER_LIMIT; otherwise it stays zero and is reported.
+    """
+    n = len(measured_p)
+    R, t = _kabsch(measured_p, reference_p)
+    residual = reference_p - (measured_p @ R.T + t)
+    sigma0 = float(np.sqrt(np.sum(residual ** 2) / max(3 * n - 6, 1)))
+    # Information about the lever along tracker-frame direction u: sum_i |(R_i - mean R) u|^2.
+    centred = measured_R - measured_R.mean(axis=0)
+    info = np.einsum("nki,nkj->ij", centred, centred)
+    values, vectors = np.linalg.eigh(info)
+    std = max(sigma0, 1e-6) / np.sqrt(np.maximum(values, 1e-300))
+    free = vectors[:, std < LEVER_LIMIT]
+    lever = np.zeros(3)
+    if free.shape[1]:
+        for _ in range(iterations):
+            # Given R: p_ref - R p_meas = t + R R_meas_i (free z), linear in (t, z).
+            A = np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)), R @ measured_R @ free], axis=2)
+            sol, *_ = np.linalg.lstsq(A.reshape(3 * n, -1), (reference_p - measured_p @ R.T).reshape(-1), rcond=None)
+            new = free @ sol[3:]
+            R, t = _kabsch(measured_p + measured_R @ new, reference_p)
+            if np.max(np.abs(new - lever)) < 1e-12:
+                lever = new
+                break
+            lever = new
+    mount = np.eye(3)
+    if reference_R is not None:
+        # R_ref = R R_meas X^T  =>  X = mean of R_ref^T R R_meas.
+        mount = chordal_mean(np.swapaxes(reference_R, -1, -2) @ R @ measured_R)
+    fitted = measured_p + measured_R @ lever
+    residual = reference_p - (fitted @ R.T + t)
+    sigma_p = float(np.sqrt(np.sum(residual ** 2) / max(3 * n - 6 - free.shape[1], 1)))
+    return RigidRegistration(R, t, lever, vectors[:, std >= LEVER_LIMIT].T, mount, sigma_p)
+
+
+def _kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    R, t, _ = umeyama(source, target)
+    return R, t
+
+
+@dataclass
+class Block:
+    """A block of parameters judged together (one Param of one effect): its column indices in
+    theta, a label ('mount.e'), a physical typical magnitude, and the reason to give if fixed."""
+
+    label: str
+    index: np.ndarray
+    scale: float
+    unit: str
+    reason: str
+
+
+def determined_directions(J: np.ndarray, blocks: Sequence[Block],
+                          limit_scales: float = LIMIT_SCALES) -> tuple[np.ndarray, dict[str, str]]:
+    """Basis B (n_theta, k) of the determined directions of theta, and {label: reason} of the rest.
+
+    J: the whitened Jacobian (residuals / their noise), columns in theta's units. Blocks are
+    taken in the given order; each block's columns, scaled to its typical magnitude, are
+    projected off the span kept so far; the SVD of what remains gives its directions and
+    their standard errors (1 / singular value, in typical magnitudes). A direction is kept when
+    that error is below `limit_scales`. B has orthonormal columns in scaled units: theta =
+    theta0 + diag(scale) B z.
+    """
+    n_theta = J.shape[1]
+    kept_span = np.zeros((J.shape[0], 0))
+    basis: list[np.ndarray] = []
+    fixed: dict[str, str] = {}
+    for block in blocks:
+        cols = J[:, block.index] * block.scale
+        if kept_span.shape[1]:
+            cols = cols - kept_span @ (kept_span.T @ cols)
+        _, s, Vt = np.linalg.svd(cols, full_matrices=False)
+        std = 1.0 / np.maximum(s, 1e-300)
+        keep = std < limit_scales
+        for v in Vt[keep]:
+            column = np.zeros(n_theta)
+            column[block.index] = v if len(v) > 1 else np.abs(v)   # a 1-D block keeps its sign
+            basis.append(column)
+        if np.any(~keep):
+            if len(block.index) == 1 or not np.any(keep):
+                fixed[block.label] = block.reason
+            else:
+                for v, e in zip(Vt[~keep], std[~keep]):
+                    v = v * np.sign(v[np.argmax(np.abs(v))])
+                    key = f"{block.label} along [{', '.join(f'{x:.2f}' for x in v)}]"
+                    fixed[key] = block.reason
+        if np.any(keep):
+            # What this block adds is orthogonal to the span so far: append its orthonormal basis.
+            kept_span = np.concatenate([kept_span, np.linalg.qr(cols @ Vt[keep].T)[0]], axis=1)
+    B = np.stack(basis, axis=1) if basis else np.zeros((n_theta, 0))
+    return B, fixed
+
+
+__all__ = ["Spread", "describe_spread", "chordal_mean", "RigidRegistration", "rigid_registration", "Block",
+           "determined_directions", "LIMIT_SCALES", "LEVER_LIMIT"]

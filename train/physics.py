@@ -17,6 +17,7 @@ forms where they exist, a fixed number of Newton / fixed-point steps otherwise
 from __future__ import annotations
 
 from contextlib import contextmanager
+from dataclasses import replace
 from typing import Any, Iterator, Sequence
 
 import numpy as np
@@ -127,7 +128,8 @@ class PhysicsModel:
                     theta = self._solve(theta, measured, reference, sigma_p, sigma_r)
                 self.sigma_p_, self.sigma_r_ = sigma_p, (sigma_r if with_rotation else None)
             self.params_ = self._unflatten(theta)
-            self.std_errors_ = self._unflatten(self._std_errors(theta, measured, reference))
+            # Standard errors cost a Jacobian: computed when first asked for (folds never are).
+            self._std_source = (theta, measured, reference)
         self.n_features_in_ = 7
         return self
 
@@ -215,7 +217,7 @@ class PhysicsModel:
             i += effect.size
         return out
 
-    def _model_poses(self, theta: Any, reference: Any) -> tuple[Any, Any]:
+    def _model_poses(self, theta: Any, reference: Any, ctx: EffectContext | None = None) -> tuple[Any, Any]:
         """F_theta(reference): positions (N, 3) and rotations (N, 3, 3), any namespace.
 
         A position-only table carries the measured orientation in the reference's place
@@ -235,7 +237,7 @@ class PhysicsModel:
             xp = namespace(R)
             W = rotations.rotvec_to_matrix(thetas["station"][..., 0:3])
             R = xp.matmul(xp.swap_last(W), R)
-        return apply_effects(p, R, thetas, self.ctx_)
+        return apply_effects(p, R, thetas, ctx or self.ctx_)
 
     def _raw_residuals(self, theta: np.ndarray, measured: np.ndarray,
                        reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -281,8 +283,8 @@ class PhysicsModel:
             for j in column:
                 bound = sorted(((lower[k] - theta0[k]) / SB[k, j], (upper[k] - theta0[k]) / SB[k, j]))
                 z_lower[j], z_upper[j] = max(z_lower[j], bound[0]), min(z_upper[j], bound[1])
-        z_lower = np.minimum(z_lower, -1e-12)
-        z_upper = np.maximum(z_upper, 1e-12)
+        z_lower = np.where(np.isfinite(z_lower), np.minimum(z_lower, -1e-12), z_lower)
+        z_upper = np.where(np.isfinite(z_upper), np.maximum(z_upper, 1e-12), z_upper)
 
         def f(z: np.ndarray) -> np.ndarray:
             return residual(theta0 + SB @ z)
@@ -290,7 +292,11 @@ class PhysicsModel:
         def jac(z: np.ndarray) -> np.ndarray:
             return residual.jacobian(theta0 + SB @ z) @ SB
 
-        result = least_squares(f, np.zeros(B.shape[1]), jac=jac, bounds=(z_lower, z_upper), method="trf",
+        bounded = bool(np.any(np.isfinite(z_lower) | np.isfinite(z_upper)))
+        # MINPACK's Levenberg-Marquardt where nothing is bounded: a third of trf's overhead.
+        method = "trf" if bounded or len(f(np.zeros(B.shape[1]))) < B.shape[1] else "lm"
+        result = least_squares(f, np.zeros(B.shape[1]), jac=jac, method=method,
+                               bounds=(z_lower, z_upper) if bounded else (-np.inf, np.inf),
                                max_nfev=self.max_nfev, xtol=1e-9, ftol=1e-9, gtol=1e-9)
         self.cost_ = float(2.0 * result.cost)
         self._at_bound = np.asarray(result.active_mask != 0)
@@ -354,6 +360,21 @@ class PhysicsModel:
         with single_threaded():
             r, J = residual(theta), residual.jacobian(theta)
         return r, J, is_extra
+
+    @property
+    def std_errors_(self) -> dict[str, np.ndarray]:
+        """{effect: standard error of theta}, NaN where not determined (see `_std_errors`)."""
+        self._check_fitted()
+        if "_std_errors_cache" not in self.__dict__:
+            theta, measured, reference = self._std_source
+            with single_threaded():
+                self._std_errors_cache = self._unflatten(self._std_errors(theta, measured, reference))
+            del self._std_source
+        return self._std_errors_cache
+
+    def __getstate__(self) -> dict:
+        self.std_errors_  # noqa: B018  (resolve before pickling: the data is not kept)
+        return dict(self.__dict__)
 
     # --- inference ----------------------------------------------------------------------
     def _check_fitted(self) -> None:
@@ -445,7 +466,7 @@ class RigidModel(PhysicsModel):
         self.basis_ = np.zeros((theta.size, 0))
         self.cost_ = float("nan")
         self.params_ = self._unflatten(theta)
-        self.std_errors_ = {name: np.full(len(value), np.nan) for name, value in self.params_.items()}
+        self._std_errors_cache = {name: np.full(len(value), np.nan) for name, value in self.params_.items()}
         self.n_features_in_ = 7
         return self
 
@@ -489,13 +510,26 @@ class WhitenedResidual:
         if self.size > self.FD_MAX:
             return self._autodiff(theta)
         steps = self.FD_STEP * self.model._scales()
-        J = np.empty((self.size, theta.size))
-        r0 = self(theta)
-        for k, h in enumerate(steps):
-            e = np.zeros_like(theta)
-            e[k] = h
-            J[:, k] = (self(theta + e) - r0) / h
-        return J
+        points = np.concatenate([theta[None], theta + np.diag(steps)])        # (1 + n, n)
+        if all(effect.per_row_theta for effect in self.model._chosen):
+            values = self._batched(points)
+        else:
+            values = np.stack([self(point) for point in points])
+        return ((values[1:] - values[0]) / steps[:, None]).T
+
+    def _batched(self, points: np.ndarray) -> np.ndarray:
+        """r at each row of `points` (k, n) in one evaluation: the poses repeated k times, each
+        copy with its own parameters."""
+        k, n = len(points), len(self.measured)
+        ctx = self.model.ctx_
+        if ctx.t is not None:
+            ctx = replace(ctx, t=np.tile(np.asarray(ctx.t, float), k))
+        p, R = self.model._model_poses(np.repeat(points, n, axis=0), np.tile(self.reference, (k, 1)), ctx)
+        dp = ((p - np.tile(self.measured[:, :3], (k, 1))) / self.sigma_p).reshape(k, n * 3)
+        if not self.model.with_rotation_:
+            return dp
+        dr = rotations.matrix_to_rotvec(np.tile(self.meas_RT, (k, 1, 1)) @ R) / self.sigma_r
+        return np.concatenate([dp, dr.reshape(k, n * 3)], axis=1)
 
     def _autodiff(self, theta: np.ndarray) -> np.ndarray:
         import torch

@@ -131,8 +131,12 @@ def _rotate(R: Any, v: Any) -> Any:
 
 
 def _rows_times(p: Any, M: Any) -> Any:
-    """p M for row vectors p (..., 3) and one matrix M (3, 3)."""
-    return namespace(p, M).matmul(p, M)
+    """p M for row vectors p (..., 3) and one matrix M (3, 3), or one matrix per row
+    (..., 3, 3) (a parameter per row: a fit's batched finite differences)."""
+    xp = namespace(p, M)
+    if len(M.shape) == 2:
+        return xp.matmul(p, M)
+    return _rotate(xp.swap_last(M), p)
 
 
 class Effect:
@@ -151,6 +155,9 @@ class Effect:
     random: ClassVar[bool] = False          # noise-like: simulated, never fitted as a bias
     needs_time: ClassVar[bool] = False      # uses ctx.t
     closed_form_inverse: ClassVar[bool] = False
+    # forward accepts theta with one row per pose (N, size): a fit then evaluates all its
+    # finite-difference steps in one call. A user effect written for one theta leaves it False.
+    per_row_theta: ClassVar[bool] = False
     changes_rotation: ClassVar[bool] = True  # False: the generic inverse leaves R untouched
     inverse_steps: ClassVar[int] = 6
     doc: ClassVar[str] = ""
@@ -240,6 +247,7 @@ class Mount(Effect):
     p <- p - R e (with the restored R).
     """
 
+    per_row_theta = True
     name = "mount"
     order = 1
     closed_form_inverse = True
@@ -284,6 +292,7 @@ class Sweep(Effect):
     a contraction with factor 2 |curve| |angle| << 1.
     """
 
+    per_row_theta = True
     name = "sweep"
     order = 2
     params = (Param("phase_x", 1, (1e-3,), 1e-3, "rad"), Param("phase_y", 1, (-1e-3,), 1e-3, "rad"),
@@ -320,6 +329,7 @@ class RangeScale(Effect):
     p <- t_S + (1 + k)(p - t_S); k dimensionless. R unchanged. Inverse: divide by (1 + k).
     """
 
+    per_row_theta = True
     name = "range_scale"
     order = 3
     closed_form_inverse = True
@@ -346,6 +356,7 @@ class Incidence(Effect):
     R unchanged. Inverse: fixed-point steps (the bias changes by ~b/|p - t_S| per metre).
     """
 
+    per_row_theta = True
     name = "incidence"
     order = 4
     changes_rotation = False
@@ -369,6 +380,7 @@ class Drift(Effect):
     ctx.t. Without a time column the effect is the identity (and warns once). Closed-form inverse.
     """
 
+    per_row_theta = True
     name = "drift"
     order = 5
     closed_form_inverse = True
@@ -407,6 +419,7 @@ class Station(Effect):
     Closed-form inverse: p <- c + Exp(w)^T (p - v - c), R <- Exp(w)^T R.
     """
 
+    per_row_theta = True
     name = "station"
     order = 6
     closed_form_inverse = True

@@ -13,7 +13,7 @@ noise unless `noise` is named.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Iterable, Mapping
 
 import numpy as np
@@ -84,6 +84,7 @@ class SimulationResult:
     experiment: int
     seed: int
     context: EffectContext = field(repr=False)
+    spec: "SessionSpec | None" = None      # realistic sessions only (experiment 0)
 
     def effects_json(self) -> dict[str, dict[str, list[float]]]:
         """{effect: {param: values}}, JSON-ready."""
@@ -149,3 +150,111 @@ def simulate(experiment: int | str, effects: str | Mapping[str, Any] | None = No
     raw = pose_metrics(reference, table.measured, with_rotation)
     floor = pose_metrics(reference, np.concatenate([p_floor, matrix_to_quat(R_floor)], axis=1), with_rotation)
     return SimulationResult(table, raw, floor, mix, exp.number, seed, ctx)
+
+
+# --- realistic sessions (DESIGN.md, "Real sessions") --------------------------------------
+
+SPREADS = ("none", "yaw", "full")
+
+
+@dataclass(frozen=True)
+class SessionSpec:
+    """What a real robot-cell session looks like; `draw_session_spec` draws one.
+
+    n: poses (6-40). spread: orientations "none" (all alike), "yaw" (about the vertical) or
+    "full" (about every axis, up to `max_angle` rad). planar: the positions lie in a plane (a
+    tracker set down on a table). position_only: the reference has no orientation.
+    unremovable: RMS (m) of a per-pose error no model removes (0: none; real sessions show
+    60-100 mm). The tracker reports in its own frame (any rotation, `offset` m away), from a
+    lever arm of `lever` m on a mount turned by any rotation.
+    """
+
+    n: int
+    spread: str
+    planar: bool
+    position_only: bool
+    unremovable: float
+    offset: float
+    lever: float
+    box: float
+    max_angle: float
+
+
+def draw_session_spec(rng: np.random.Generator, n: int | None = None, spread: str | None = None,
+                      position_only: bool | None = None, unremovable: float | None = None) -> SessionSpec:
+    """A random session of the kinds real cells produce; the arguments pin what they name."""
+    spread = spread if spread is not None else str(rng.choice(SPREADS))
+    if spread not in SPREADS:
+        raise ValueError(f"spread must be one of {', '.join(SPREADS)}, got {spread!r}")
+    if n is not None and n < 6:
+        raise ValueError(f"a session needs at least 6 poses, got {n}")
+    drawn = SessionSpec(
+        n=int(rng.integers(6, 41)), spread=spread, planar=bool(rng.random() < 0.3),
+        position_only=bool(rng.random() < 0.25),
+        unremovable=float(rng.uniform(0.06, 0.10)) if rng.random() < 0.15 else 0.0,
+        offset=float(rng.uniform(1.0, 4.0)), lever=float(rng.uniform(0.02, 0.08)),
+        box=float(rng.uniform(0.3, 1.5)), max_angle=float(np.deg2rad(rng.uniform(10.0, 60.0))))
+    return replace(drawn, n=drawn.n if n is None else int(n),
+                   position_only=drawn.position_only if position_only is None else bool(position_only),
+                   unremovable=drawn.unremovable if unremovable is None else float(unremovable))
+
+
+def _random_rotvec(rng: np.random.Generator, size: int | None = None) -> np.ndarray:
+    """Rotation vectors of rotations uniform on SO(3) (from uniform unit quaternions)."""
+    from .rotations import quat_to_rotvec
+
+    q = rng.normal(size=(1 if size is None else size, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    w = quat_to_rotvec(q)
+    return w[0] if size is None else w
+
+
+def simulate_session(seed: int = 0, spec: SessionSpec | None = None, **pin: Any) -> SimulationResult:
+    """A realistic session (see `SessionSpec`): few poses, an unregistered tracker frame, a
+    lever arm, the given orientation spread, noise at the DESIGN defaults, and optionally an
+    error no model removes. `pin` fixes fields of the drawn spec (n, spread, position_only,
+    unremovable). The reference frame is the robot base; the workspace centre of the effects
+    is the mean reference position, as a fit takes it."""
+    from .rotations import rotvec_to_matrix
+
+    rng = np.random.default_rng([int(seed), 20261122])
+    spec = spec or draw_session_spec(rng, **pin)
+    centre = geometry.WORKSPACE_CENTRE + rng.uniform(-0.3, 0.3, 3)
+    p_ref = centre + rng.uniform(-0.5, 0.5, (spec.n, 3)) * spec.box
+    if spec.planar:
+        p_ref[:, 2] = centre[2]
+    base = rotvec_to_matrix(_random_rotvec(rng))
+    if spec.spread == "none":
+        turns = np.zeros((spec.n, 3))
+    elif spec.spread == "yaw":
+        turns = np.zeros((spec.n, 3))
+        turns[:, 2] = rng.uniform(-spec.max_angle, spec.max_angle, spec.n)
+    else:
+        axis = rng.normal(size=(spec.n, 3))
+        turns = axis / np.linalg.norm(axis, axis=1, keepdims=True) * rng.uniform(0, spec.max_angle, (spec.n, 1))
+    R_ref = rotvec_to_matrix(turns) @ base
+    direction = rng.normal(size=3)
+    lever = rng.normal(size=3)
+    mix = {"mount": np.concatenate([_random_rotvec(rng), spec.lever * lever / np.linalg.norm(lever)]),
+           "station": np.concatenate([_random_rotvec(rng), spec.offset * direction / np.linalg.norm(direction)]),
+           "noise": get_effect("noise").default_theta()}
+    ctx = replace(EffectContext.default(noise_draws=Noise.draw(rng, spec.n)), c=p_ref.mean(axis=0))
+    # The noise acts where the tracker is, in the cell, before the unknown frame turns it into
+    # the tracker's own coordinates (its range term would otherwise see the frame's offset).
+    p_meas, R_meas = apply_effects(p_ref, R_ref, {"mount": mix["mount"], "noise": mix["noise"]}, ctx)
+    p_meas, R_meas = apply_effects(p_meas, R_meas, {"station": mix["station"]}, ctx)
+    p_floor, R_floor = get_effect("noise").forward(p_ref, R_ref, mix["noise"], ctx)
+    if spec.unremovable:
+        # Per-pose errors the tracker makes and no smooth model follows (reflections, a
+        # station seen at grazing angles): in the measurement and in what a perfect fit leaves.
+        bad = rng.normal(scale=spec.unremovable / np.sqrt(3.0), size=(spec.n, 3))
+        p_meas, p_floor = p_meas + bad, p_floor + bad
+    q_ref = matrix_to_quat(R_ref)
+    table = PoseTable(meas_p=np.asarray(p_meas), meas_q=np.asarray(matrix_to_quat(R_meas)), ref_p=p_ref,
+                      ref_q=None if spec.position_only else q_ref,
+                      extras={"id": np.array([str(i) for i in range(spec.n)], dtype=object)})
+    with_rotation = not spec.position_only
+    reference = np.concatenate([p_ref, q_ref], axis=1)
+    raw = pose_metrics(reference, table.measured, with_rotation)
+    floor = pose_metrics(reference, np.concatenate([p_floor, matrix_to_quat(R_floor)], axis=1), with_rotation)
+    return SimulationResult(table, raw, floor, mix, 0, seed, ctx, spec)

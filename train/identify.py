@@ -16,8 +16,10 @@ offset). Three pieces keep that from happening:
   with the earlier block and the later one holds its nominal value.
 
 A direction counts as determined when its standard error, given the blocks before it, is
-below `LIMIT_SCALES` times the parameter's typical magnitude (`Param.scale`): beyond that
-the fit would only move it by noise. Whether a determined but weak parameter pays is then a
+below `LIMIT_SCALES` times the parameter's typical magnitude (`Param.scale`), and when at
+least `MIN_INDEPENDENT` of its effect on the data is not already the effect of an earlier
+block: otherwise the fit would only move it by noise (with thousands of poses the noise
+itself makes a tiny, meaningless difference look "determined"). Whether a determined but weak parameter pays is then a
 question for cross-validation (`pipeline.fit_table` compares every model with the rigid fit).
 """
 from __future__ import annotations
@@ -30,6 +32,7 @@ import numpy as np
 from posecorr.registration import project_to_rotation, umeyama
 
 LIMIT_SCALES = 10.0            # determined: std error < LIMIT_SCALES * Param.scale
+MIN_INDEPENDENT = 0.02         # ... and at least 2 % of its effect unexplained by earlier blocks
 LEVER_LIMIT = 0.1              # m: the same rule for the rigid fit's lever arm (mount e scale 1e-2 m)
 AXIS_MIN_RAD = np.deg2rad(1.0)  # an orientation axis "spreads" beyond 1 deg RMS
 AXIS_MIN_M = 0.01              # a position axis "spreads" beyond 1 cm RMS
@@ -134,7 +137,10 @@ def rigid_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference
     info = np.einsum("nki,nkj->ij", centred, centred)
     values, vectors = np.linalg.eigh(info)
     std = max(sigma0, 1e-6) / np.sqrt(np.maximum(values, 1e-300))
-    free = vectors[:, std < LEVER_LIMIT]
+    # The orientations must really turn about a direction (not by their noise) to show the lever.
+    turned = np.sqrt(np.maximum(values, 0.0) / n) > AXIS_MIN_RAD
+    determined = (std < LEVER_LIMIT) & turned
+    free = vectors[:, determined]
     lever = np.zeros(3)
     if free.shape[1]:
         for _ in range(iterations):
@@ -143,7 +149,7 @@ def rigid_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference
             sol, *_ = np.linalg.lstsq(A.reshape(3 * n, -1), (reference_p - measured_p @ R.T).reshape(-1), rcond=None)
             new = free @ sol[3:]
             R, t = _kabsch(measured_p + measured_R @ new, reference_p)
-            if np.max(np.abs(new - lever)) < 1e-12:
+            if np.max(np.abs(new - lever)) < 1e-10:   # m: alternation converges linearly
                 lever = new
                 break
             lever = new
@@ -154,7 +160,7 @@ def rigid_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference
     fitted = measured_p + measured_R @ lever
     residual = reference_p - (fitted @ R.T + t)
     sigma_p = float(np.sqrt(np.sum(residual ** 2) / max(3 * n - 6 - free.shape[1], 1)))
-    return RigidRegistration(R, t, lever, vectors[:, std >= LEVER_LIMIT].T, mount, sigma_p)
+    return RigidRegistration(R, t, lever, vectors[:, ~determined].T, mount, sigma_p)
 
 
 def _kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -190,12 +196,12 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block],
     basis: list[np.ndarray] = []
     fixed: dict[str, str] = {}
     for block in blocks:
-        cols = J[:, block.index] * block.scale
-        if kept_span.shape[1]:
-            cols = cols - kept_span @ (kept_span.T @ cols)
+        own = J[:, block.index] * block.scale
+        cols = own - kept_span @ (kept_span.T @ own) if kept_span.shape[1] else own
         _, s, Vt = np.linalg.svd(cols, full_matrices=False)
         std = 1.0 / np.maximum(s, 1e-300)
-        keep = std < limit_scales
+        independent = s / np.maximum(np.linalg.norm(own @ Vt.T, axis=0), 1e-300)
+        keep = (std < limit_scales) & (independent > MIN_INDEPENDENT)
         for v in Vt[keep]:
             column = np.zeros(n_theta)
             column[block.index] = v if len(v) > 1 else np.abs(v)   # a 1-D block keeps its sign
@@ -215,5 +221,5 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block],
     return B, fixed
 
 
-__all__ = ["Spread", "describe_spread", "chordal_mean", "RigidRegistration", "rigid_registration", "Block",
+__all__ = ["MIN_INDEPENDENT", "Spread", "describe_spread", "chordal_mean", "RigidRegistration", "rigid_registration", "Block",
            "determined_directions", "LIMIT_SCALES", "LEVER_LIMIT"]

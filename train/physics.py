@@ -116,6 +116,7 @@ class PhysicsModel:
                 sigma_p = self.sigma_p or sigma_p
                 sigma_r = self.sigma_r or sigma_r
                 self.basis_, self.fixed_ = self._identify(theta0, measured, reference, sigma_p, sigma_r)
+                theta0 = self._hold_nominal(theta0)
                 theta = self._solve(theta0, measured, reference, sigma_p, sigma_r)
                 if self.sigma_p is None or (self.sigma_r is None and with_rotation):
                     # Re-weight position against orientation by the noise the first fit leaves.
@@ -167,6 +168,16 @@ class PhysicsModel:
         thetas.update({name: np.asarray(theta, float) for name, theta in given.items() if name in thetas})
         theta = np.concatenate([thetas[e.name] for e in chosen]) if chosen else np.zeros(0)
         return theta, sigma_p, sigma_r
+
+    def _hold_nominal(self, theta: np.ndarray) -> np.ndarray:
+        """theta with every held direction at its nominal (identity) value: the closed-form
+        start may have put noise there, and what the data cannot see must not carry it."""
+        if theta.size == 0:
+            return theta
+        identity = np.concatenate([e.identity_theta() for e in self._chosen])
+        scales = self._scales()
+        u = (theta - identity) / scales
+        return identity + scales * (self.basis_ @ (self.basis_.T @ u))
 
     def _blocks(self) -> list[Block]:
         """Parameter blocks in the order the identification takes them: the registration

@@ -73,6 +73,26 @@ def _solve(F: np.ndarray, T: np.ndarray, alpha: float) -> tuple[np.ndarray, np.n
     return coef[:p], coef[p]
 
 
+def _ridge_path(F: np.ndarray, T: np.ndarray, alphas: Sequence[float]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """`_solve` for every alpha from one SVD: with the columns centred, the unpenalised
+    constant separates and the ridge solution is V diag(s / (s^2 + alpha n)) U^T T (alpha 0:
+    the minimum-norm least squares, singular values below lstsq's cut-off dropped)."""
+    n = len(F)
+    mean_F, mean_T = F.mean(axis=0), T.mean(axis=0)
+    U, s, Vt = np.linalg.svd(F - mean_F, full_matrices=False)
+    UtT = U.T @ (T - mean_T)
+    cutoff = np.finfo(float).eps * max(F.shape) * (s[0] if s.size else 0.0)
+    out = []
+    for alpha in alphas:
+        if alpha > 0:
+            d = s / (s * s + alpha * n)
+        else:
+            d = np.where(s > cutoff, 1.0 / np.where(s > cutoff, s, 1.0), 0.0)
+        W = Vt.T @ (d[:, None] * UtT)
+        out.append((W, mean_T - mean_F @ W))
+    return out
+
+
 class PMC(BaseCorrector):
     """Polynomial Model Correction: a full quadratic least-squares map per output.
 
@@ -137,15 +157,14 @@ class PMC(BaseCorrector):
         folds = max(2, min(int(self.cv_folds), n))
         order = np.random.default_rng(self.random_state).permutation(n)
         parts = np.array_split(order, folds)
-        scores: dict[float, float] = {}
-        for alpha in self.alpha_grid:
-            sse = 0.0
-            for k in range(folds):
-                test = parts[k]
-                train = np.concatenate([parts[j] for j in range(folds) if j != k])
-                W, b = _solve(F[train], T[train], float(alpha))
-                sse += float(np.sum((F[test] @ W + b - T[test]) ** 2))
-            scores[float(alpha)] = float(np.sqrt(sse / T.size))
+        grid = [float(a) for a in self.alpha_grid]
+        sse = np.zeros(len(grid))
+        for k in range(folds):
+            test = parts[k]
+            train = np.concatenate([parts[j] for j in range(folds) if j != k])
+            for i, (W, b) in enumerate(_ridge_path(F[train], T[train], grid)):
+                sse[i] += float(np.sum((F[test] @ W + b - T[test]) ** 2))
+        scores = {alpha: float(np.sqrt(e / T.size)) for alpha, e in zip(grid, sse)}
         best = min(scores, key=lambda a: (scores[a], -a))
         return best, scores
 

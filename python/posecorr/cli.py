@@ -55,20 +55,50 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     for path in files:
         load_effect_file(path)  # before parsing: --effects may name the file's effects
     effects = parse_effects_arg(args.effects) if args.effects else None
-    result = simulate(args.experiment, effects=effects, seed=args.seed, effect_files=files,
-                      base="none" if args.only else "default")
+    if (args.experiment is None) == (not args.session):
+        raise CliError("give either --experiment N or --session")
+    if args.session:
+        result = _simulate_session(args)
+    else:
+        result = simulate(args.experiment, effects=effects, seed=args.seed, effect_files=files,
+                          base="none" if args.only else "default")
     write_table(result.table, args.output)
     effects_used = result.effects_json()
     payload = {"n": result.table.n, "output": str(args.output), "raw": result.raw,
                "noise_floor": result.noise_floor, "effects": effects_used}
 
+    if result.spec is not None:
+        payload["session"] = dict(vars(result.spec))
+
     def text() -> str:
-        lines = [f"Experiment {args.experiment}, seed {args.seed}: {result.table.n} poses -> {args.output}",
+        what = f"Experiment {args.experiment}" if result.spec is None else _session_words(result.spec)
+        lines = [f"{what}, seed {args.seed}: {result.table.n} poses -> {args.output}",
                  table(METRIC_HEADERS, metrics_rows({"raw": result.raw, "noise floor": result.noise_floor}))]
         lines.append("effects: " + "; ".join(f"{name}={_fmt_params(p)}" for name, p in effects_used.items()))
         return "\n".join(lines)
 
     _emit(args, payload, text)
+
+
+def _simulate_session(args: argparse.Namespace) -> Any:
+    from .simulate import SPREADS, simulate_session
+
+    if args.effects or args.effect_file or args.only:
+        raise CliError("--session draws its own effects (frame, lever arm, noise); --effects, --effect-file "
+                       "and --only go with --experiment")
+    if args.spread is not None and args.spread not in SPREADS:
+        raise CliError(f"--spread takes {', '.join(SPREADS)}, got {args.spread!r}")
+    pin = {"n": args.poses, "spread": args.spread, "unremovable": None if args.unremovable is None
+           else args.unremovable / 1000.0, "position_only": True if args.position_only else None}
+    return simulate_session(args.seed, **{k: v for k, v in pin.items() if v is not None})
+
+
+def _session_words(spec: Any) -> str:
+    parts = [f"realistic session: orientation spread {spec.spread}", "planar" if spec.planar else "",
+             "position-only reference" if spec.position_only else "",
+             f"unremovable error {1000 * spec.unremovable:.0f} mm" if spec.unremovable else "",
+             f"tracker frame {spec.offset:.1f} m away, lever arm {1000 * spec.lever:.0f} mm"]
+    return "; ".join(p for p in parts if p)
 
 
 def _fmt_params(params: dict[str, Any]) -> str:
@@ -379,8 +409,15 @@ def build_parser() -> argparse.ArgumentParser:
         p.set_defaults(func=func)
         return p
 
-    p = verb("simulate", cmd_simulate, "simulate a paired-pose table of paper experiment I, II or III")
-    p.add_argument("--experiment", type=int, choices=(1, 2, 3), required=True)
+    p = verb("simulate", cmd_simulate, "simulate a paired-pose table of paper experiment I, II or III, "
+                                       "or a realistic robot-cell session")
+    p.add_argument("--experiment", type=int, choices=(1, 2, 3))
+    p.add_argument("--session", action="store_true",
+                   help="a realistic session: 6-40 poses, the tracker's own frame, a lever arm (drawn from --seed)")
+    p.add_argument("--poses", type=int, help="with --session: number of poses (6 or more)")
+    p.add_argument("--spread", help="with --session: orientation spread none, yaw or full")
+    p.add_argument("--position-only", action="store_true", help="with --session: no reference orientation")
+    p.add_argument("--unremovable", type=float, help="with --session: RMS (mm) of an error no model removes")
     p.add_argument("--effects", help="NAME=V1,V2,...;NAME... override or add effects (values in parameter order)")
     p.add_argument("--only", action="store_true", help="use only the --effects given (plus noise), not the default mix")
     p.add_argument("--effect-file", action="append", type=Path, help="a Python file with user effects")

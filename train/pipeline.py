@@ -292,8 +292,8 @@ def choose(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, wit
 
 
 def inner_folds(n: int) -> int | str:
-    """Folds of a cross-validation inside a training set of n poses."""
-    return 5 if n >= 25 else "loo"
+    """Folds of a cross-validation inside a training set of n poses (leave-one-out below 10)."""
+    return 5 if n >= 10 else "loo"
 
 
 @dataclass

@@ -168,6 +168,12 @@ def _kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndar
     return R, t
 
 
+def direction_label(v: np.ndarray) -> str:
+    """'[0.02, -0.01, 1.00]': a unit direction, its largest entry positive (no '-0.00')."""
+    v = np.asarray(v, float) * np.sign(v[np.argmax(np.abs(v))])
+    return "[" + ", ".join(f"{round(float(x), 2) + 0.0:.2f}" for x in v) + "]"
+
+
 @dataclass
 class Block:
     """A block of parameters judged together (one Param of one effect): its column indices in
@@ -210,10 +216,8 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block],
             if len(block.index) == 1 or not np.any(keep):
                 fixed[block.label] = block.reason
             else:
-                for v, e in zip(Vt[~keep], std[~keep]):
-                    v = v * np.sign(v[np.argmax(np.abs(v))])
-                    key = f"{block.label} along [{', '.join(f'{x:.2f}' for x in v)}]"
-                    fixed[key] = block.reason
+                for v in Vt[~keep]:
+                    fixed[f"{block.label} along {direction_label(v)}"] = block.reason
         if np.any(keep):
             # What this block adds is orthogonal to the span so far: append its orthonormal basis.
             kept_span = np.concatenate([kept_span, np.linalg.qr(cols @ Vt[keep].T)[0]], axis=1)
@@ -222,4 +226,4 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block],
 
 
 __all__ = ["MIN_INDEPENDENT", "Spread", "describe_spread", "chordal_mean", "RigidRegistration", "rigid_registration", "Block",
-           "determined_directions", "LIMIT_SCALES", "LEVER_LIMIT"]
+           "determined_directions", "direction_label", "LIMIT_SCALES", "LEVER_LIMIT"]

@@ -28,7 +28,8 @@ from posecorr.effects import EffectContext, get_effect, invert_effects, sorted_e
 from posecorr.metrics import pose_metrics
 
 from .base import check_poses
-from .identify import Block, chordal_mean, describe_spread, determined_directions, rigid_registration
+from .identify import (Block, chordal_mean, describe_spread, determined_directions, direction_label,
+                       rigid_registration)
 
 DEFAULT_SIGMA_P = 3e-4   # m, DESIGN.md default noise
 DEFAULT_SIGMA_R = 5e-4   # rad
@@ -88,22 +89,7 @@ class PhysicsModel:
         the same effects, on a superset of these poses: a cross-validation fold) also lends
         its determined directions and noise levels, so the fold solves once.
         """
-        measured = check_poses(measured, "measured")
-        reference = check_poses(reference, "reference", len(measured))
-        chosen = sorted_effects(self.effects)
-        for effect in chosen:
-            if effect.random:
-                raise ValueError(f"effect {effect.name!r} is random noise; it cannot be fitted as a bias")
-        if len(measured) < 3:
-            raise ValueError(f"fitting {', '.join(e.name for e in chosen) or 'a registration'} needs at least "
-                             f"3 poses, got {len(measured)}")
-        base = EffectContext.default()
-        self.ctx_ = EffectContext(base.R_S, base.t_S, reference[:, :3].mean(axis=0),
-                                  t=None if t is None else np.asarray(t, float))
-        self.with_rotation_ = bool(with_rotation)
-        self._chosen = chosen
-        measured_R = rotations.quat_to_matrix(measured[:, 3:7])
-        self.spread_ = describe_spread(measured[:, :3], measured_R, self.with_rotation_)
+        measured, reference, chosen = self._setup(measured, reference, t, with_rotation)
         prior = warm_start if isinstance(warm_start, PhysicsModel) else None
         thetas = dict(prior.params_) if prior is not None else dict(warm_start or {})
         theta0, sigma_p, sigma_r = self._initial_theta(measured, reference, chosen, thetas)
@@ -133,6 +119,36 @@ class PhysicsModel:
             self._std_source = (theta, measured, reference)
         self.n_features_in_ = 7
         return self
+
+    def _setup(self, measured: Any, reference: Any, t: np.ndarray | None, with_rotation: bool) -> tuple:
+        """Checked poses, the frames and the spread: what fitting and `identifiability` share."""
+        measured = check_poses(measured, "measured")
+        reference = check_poses(reference, "reference", len(measured))
+        chosen = sorted_effects(self.effects)
+        for effect in chosen:
+            if effect.random:
+                raise ValueError(f"effect {effect.name!r} is random noise; it cannot be fitted as a bias")
+        if len(measured) < 3:
+            raise ValueError(f"fitting {', '.join(e.name for e in chosen) or 'a registration'} needs at least "
+                             f"3 poses, got {len(measured)}")
+        base = EffectContext.default()
+        self.ctx_ = EffectContext(base.R_S, base.t_S, reference[:, :3].mean(axis=0),
+                                  t=None if t is None else np.asarray(t, float))
+        self.with_rotation_ = bool(with_rotation)
+        self._chosen = chosen
+        self.spread_ = describe_spread(measured[:, :3], rotations.quat_to_matrix(measured[:, 3:7]),
+                                       self.with_rotation_)
+        return measured, reference, chosen
+
+    def identifiability(self, measured: Any, reference: Any, t: np.ndarray | None = None,
+                        with_rotation: bool = True) -> dict[str, str]:
+        """{parameter or direction: why} of what these poses cannot determine, without fitting
+        (the first step of `fit`). Leaves the estimator unfitted."""
+        measured, reference, chosen = self._setup(measured, reference, t, with_rotation)
+        theta0, sigma_p, sigma_r = self._initial_theta(measured, reference, chosen, {})
+        with single_threaded():
+            _, fixed = self._identify(theta0, measured, reference, self.sigma_p or sigma_p, self.sigma_r or sigma_r)
+        return fixed
 
     def _initial_theta(self, measured: np.ndarray, reference: np.ndarray, chosen: list,
                        given: dict[str, np.ndarray]) -> tuple[np.ndarray, float, float]:
@@ -471,8 +487,7 @@ class RigidModel(PhysicsModel):
         self.fixed_ = {} if with_rotation else {"mount.d": "the reference has no orientation"}
         if len(rigid.lever_fixed):
             label = "mount.e" if len(rigid.lever_fixed) == 3 else "mount.e along " + "; ".join(
-                "[" + ", ".join(f"{x:.2f}" for x in v * np.sign(v[np.argmax(np.abs(v))])) + "]"
-                for v in rigid.lever_fixed)
+                direction_label(rigid.mount @ v) for v in rigid.lever_fixed)   # e = -X lever
             self.fixed_[label] = self.spread_.orientation_words()
         self.basis_ = np.zeros((theta.size, 0))
         self.cost_ = float("nan")

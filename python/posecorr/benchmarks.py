@@ -3,6 +3,8 @@
 * `train.json`: seconds per LM epoch of the 9-20-20-20-20-9 network on 2360 samples against
   the torch-levenberg-marquardt package, and the wall time of 30 repeats of the paper's best
   Experiment III configuration (`posecorr.train.bench_train`).
+* `fit.json`: wall time of `posecorr fit` on robot-cell tables (36-pose sessions, leave one
+  out; 3375 simulated poses), with the load average (`posecorr.train.bench_fit`).
 * `latency.json`: single-pose latency and batch throughput of the shipped zhou MLP in the C
   runtime, the Python shim, onnxruntime (plain and IOBinding) and numpy (`posecorr.latency`).
 """
@@ -27,7 +29,7 @@ def latency_model() -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--only", choices=("train", "latency"), help="run one benchmark")
+    parser.add_argument("--only", choices=("train", "latency", "fit"), help="run one benchmark")
     args = parser.parse_args(argv)
     RESULTS.mkdir(parents=True, exist_ok=True)
     if args.only in (None, "latency"):
@@ -37,6 +39,10 @@ def main(argv: list[str] | None = None) -> int:
         result = {"model": str(model.relative_to(ROOT)), **bench_model(model)}
         (RESULTS / "latency.json").write_text(json.dumps(result, indent=2))
         print(json.dumps(result, indent=2))
+    if args.only in (None, "fit"):
+        from .train import bench_fit
+
+        print(json.dumps(bench_fit.run(str(RESULTS / "fit.json")), indent=2))
     if args.only in (None, "train"):
         from .train import bench_train
 

@@ -262,6 +262,8 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
                            title="Residual structure by feature (smooth fit, cross-validated)")]
         if result["aliases"]:
             lines.append("cannot be told apart by this data: " + "; ".join(" ~ ".join(p) for p in result["aliases"]))
+        for row in result.get("undetermined", []):
+            lines.append(f"not ranked: {row['effect']} cannot be determined by this data ({row['reason']})")
         present = [c["effect"] for c in result["candidates"] if c["present"]]
         if present:
             lines.append(f"add: --effects {','.join(effects + present)}")

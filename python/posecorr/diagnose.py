@@ -56,6 +56,28 @@ def candidate_effects(table: PoseTable, effects: Sequence[str]) -> list[str]:
     return out
 
 
+def split_identifiable(table: PoseTable, effects: Sequence[str],
+                       names: Sequence[str]) -> tuple[list[str], list[dict[str, Any]]]:
+    """(candidates the data can determine, [{"effect", "reason"}] of those it cannot): a
+    candidate whose every parameter the identification of the model with it added holds
+    (`PhysicsModel.identifiability`) would only be ranked by noise, so it is not ranked."""
+    from posecorr.train.physics import PhysicsModel
+
+    keep, undetermined = [], []
+    for name in names:
+        fixed = PhysicsModel(tuple(effects) + (name,)).identifiability(
+            table.measured, table.reference, table.time(), table.has_orientation)
+        from .effects import get_effect
+
+        held = [key for key in fixed if key.split(" ")[0].split(".")[0] == name]
+        whole = {key.split(" ")[0] for key in held if " along " not in key}
+        if whole >= {f"{name}.{p.name}" for p in get_effect(name).params}:
+            undetermined.append({"effect": name, "reason": "; ".join(f"{k}: {fixed[k]}" for k in held)})
+        else:
+            keep.append(name)
+    return keep, undetermined
+
+
 def residual_components(reference: np.ndarray, predicted: np.ndarray, with_rotation: bool) -> np.ndarray:
     """(N, 3 or 6): position error (mm) and orientation error as a rotation vector (mrad)."""
     parts = [(predicted[:, :3] - reference[:, :3]) * 1e3]
@@ -197,8 +219,10 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
 
     effects = list(effects)
     names = list(candidates) if candidates is not None else candidate_effects(table, effects)
-    splits = kfold_indices(table.n, folds, seed)
     say = progress or (lambda message: None)
+    say("which candidate effects this data can determine")
+    names, undetermined = split_identifiable(table, effects, names)
+    splits = kfold_indices(table.n, folds, seed)
     say(f"base model ({', '.join(effects) or 'no effects'}), {folds}-fold cross-validation")
     state = _fold_state(table, effects, names, splits, folds, seed)
     rows = []
@@ -234,6 +258,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     return {
         "model_effects": effects,
         "candidates": rows,
+        "undetermined": undetermined,
         "features": features,
         "aliases": aliases,
         "test": PRESENT_TEST.format(alpha=alpha, folds=folds, gain=min_gain),

@@ -1,0 +1,120 @@
+"""Identifiability before fitting: spreads, the closed-form rigid fit, determined directions."""
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from posecorr.simulate import simulate, simulate_session
+from posecorr.train.identify import (LIMIT_SCALES, Block, describe_spread, determined_directions,
+                                     rigid_registration)
+from posecorr.train.physics import PhysicsModel, RigidModel
+
+
+def test_spread_counts_the_axes_the_orientations_turn_about() -> None:
+    rng = np.random.default_rng(0)
+    p = rng.uniform(-0.5, 0.5, (30, 3))
+    base = Rotation.random(random_state=1)
+    yaw = Rotation.from_euler("z", rng.uniform(-0.5, 0.5, (30, 1))) * base
+    full = Rotation.from_rotvec(rng.normal(scale=0.3, size=(30, 3))) * base
+    same = Rotation.from_quat(np.tile(base.as_quat(), (30, 1)))
+    assert describe_spread(p, same.as_matrix(), True).rotation_axes == 0
+    assert describe_spread(p, yaw.as_matrix(), True).rotation_axes == 1
+    assert describe_spread(p, full.as_matrix(), True).rotation_axes == 3
+    # Span: the largest angle from the chordal mean, against scipy's own mean.
+    span = describe_spread(p, yaw.as_matrix(), True).rotation_span
+    assert span == pytest.approx(np.max((yaw.mean().inv() * yaw).magnitude()), rel=1e-3)
+    planar = p.copy()
+    planar[:, 2] = 0.0
+    assert describe_spread(planar, full.as_matrix(), True).position_axes == 2
+
+
+def test_rigid_registration_recovers_frame_and_lever_exactly() -> None:
+    """Noise-free poses in a frame turned by any rotation, metres away, with a 6 cm lever:
+    the closed form returns them (scipy Rotation as the truth)."""
+    rng = np.random.default_rng(3)
+    R_true = Rotation.random(random_state=4).as_matrix()
+    t_true = np.array([2.0, -1.5, 0.7])
+    lever = np.array([0.04, -0.03, 0.05])
+    Rm = Rotation.from_rotvec(rng.normal(scale=0.4, size=(20, 3))).as_matrix()
+    pm = rng.uniform(-1, 1, (20, 3)) + np.array([3.0, 0.0, -2.0])
+    pr = (pm + Rm @ lever) @ R_true.T + t_true
+    fit = rigid_registration(pm, Rm, pr)
+    assert np.allclose(fit.R, R_true, atol=1e-9)
+    assert np.allclose(fit.t, t_true, atol=1e-8)
+    assert np.allclose(fit.lever, lever, atol=1e-8)
+    assert len(fit.lever_fixed) == 0
+
+
+def test_rigid_lever_along_the_yaw_axis_is_held() -> None:
+    """Yaw only: the lever's component along the yaw axis (in the tracker frame) only shifts
+    t; it is held at zero and named, the other two are found."""
+    rng = np.random.default_rng(5)
+    R0 = Rotation.random(random_state=6)
+    turns = Rotation.from_euler("z", rng.uniform(-0.6, 0.6, (25, 1)))
+    Rm = (turns * R0).as_matrix()
+    pm = rng.uniform(-1, 1, (25, 3))
+    lever = np.array([0.05, 0.02, -0.04])
+    pr = pm + Rm @ lever
+    fit = rigid_registration(pm, Rm, pr)
+    axis = R0.inv().apply([0.0, 0.0, 1.0])            # the yaw axis in the tracker frame
+    assert len(fit.lever_fixed) == 1
+    assert abs(fit.lever_fixed[0] @ axis) == pytest.approx(1.0, abs=1e-6)
+    in_plane = lever - (lever @ axis) * axis
+    assert np.allclose(fit.lever, in_plane, atol=1e-8)
+
+
+def test_determined_directions_keep_the_earlier_block() -> None:
+    """Two blocks with one column in common: the later block's copy is held and named; its
+    other column, independent, is kept. Standard errors beyond the limit are held too."""
+    rng = np.random.default_rng(7)
+    a, b, c = rng.normal(size=(3, 200))
+    J = np.stack([a, b, a, c, 1e-4 * rng.normal(size=200)], axis=1)
+    blocks = [Block("first.x", np.array([0, 1]), 1.0, "m", "r1"),
+              Block("second.y", np.array([2, 3]), 1.0, "m", "r2"),
+              Block("third.z", np.array([4]), 1.0, "m", "r3")]
+    B, fixed = determined_directions(J, blocks)
+    assert B.shape == (5, 3)
+    assert np.allclose(B.T @ B, np.eye(3), atol=1e-12)
+    # The held direction of second.y is its first column (the copy of a), within rounding.
+    assert list(fixed) == ["second.y along [1.00, 0.00]", "third.z"]
+    # What second.y keeps is its independent column c: the direction (0, +-1) in its block.
+    kept = B[2:4][:, np.abs(B[2:4]).sum(axis=0) > 0.5]
+    assert kept.shape == (2, 1) and np.allclose(np.abs(kept[:, 0]), [0.0, 1.0], atol=1e-2)
+    # third.z: std 1 / (1e-4 * sqrt(200)) ~ 700 > LIMIT_SCALES.
+    assert 1.0 / (1e-4 * np.sqrt(200)) > LIMIT_SCALES
+
+
+def test_physics_fit_on_yaw_only_experiment_stays_physical() -> None:
+    """Issue 10: Experiment II (yaw only) ended at mount e_z = -3213 m against station
+    v_z = +3213 m. Now e along the yaw axis is held and every parameter stays physical."""
+    table = simulate(2, seed=0).table.subset(np.arange(0, 1625, 5))
+    model = PhysicsModel(("station", "mount")).fit(table.measured, table.reference)
+    assert any(key.startswith("mount.e") for key in model.fixed_)
+    assert np.all(np.abs(model.params_["mount"][3:]) < 0.05)
+    assert np.all(np.abs(model.params_["station"][3:]) < 0.05)
+    errors = model.describe()["mount"]["e"][1]
+    assert errors[2] is None and errors[0] is not None
+
+
+def test_position_only_holds_the_mount_rotation() -> None:
+    session = simulate_session(11, position_only=True, spread="full", n=25, unremovable=0.0)
+    table = session.table
+    model = PhysicsModel(("station", "mount")).fit(table.measured, table.reference, with_rotation=False)
+    assert model.fixed_["mount.d"] == "the reference has no orientation"
+    # The lever arm is found from the measured orientations alone: the true one is in the
+    # simulation's mount (e = -X lever, so compare lengths).
+    true_e = session.effects["mount"][3:]
+    assert np.linalg.norm(model.params_["mount"][3:]) == pytest.approx(np.linalg.norm(true_e), abs=2e-3)
+
+
+@pytest.mark.parametrize("kind", ["rigid", "physics"])
+def test_fitted_models_pickle_round_trip(kind: str) -> None:
+    table = simulate_session(2).table
+    model = (RigidModel() if kind == "rigid" else PhysicsModel(("station", "mount"))).fit(
+        table.measured, table.reference, with_rotation=table.has_orientation)
+    clone = pickle.loads(pickle.dumps(model))
+    assert np.array_equal(clone.predict(table.measured), model.predict(table.measured))
+    assert clone.describe() == model.describe()

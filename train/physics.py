@@ -16,6 +16,7 @@ forms where they exist, a fixed number of Newton / fixed-point steps otherwise
 """
 from __future__ import annotations
 
+import sys
 from contextlib import contextmanager
 from dataclasses import replace
 from typing import Any, Iterator, Sequence
@@ -43,17 +44,20 @@ SIGMA_R_FLOOR = 5e-5     # rad
 def single_threaded() -> Iterator[None]:
     """The residuals are a few hundred small elementwise ops and the solver's SVDs are of
     thin matrices: one thread (torch and BLAS) is several times faster than two that
-    contend for them."""
-    import torch
+    contend for them. torch is limited only where it is loaded already: small tables never
+    need it (`WhitenedResidual`), and importing it costs seconds."""
     from threadpoolctl import threadpool_limits
 
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
+    torch = sys.modules.get("torch")
+    before = torch.get_num_threads() if torch is not None else None
+    if torch is not None:
+        torch.set_num_threads(1)
     try:
         with threadpool_limits(limits=1):
             yield
     finally:
-        torch.set_num_threads(before)
+        if torch is not None and before is not None:
+            torch.set_num_threads(before)
 
 
 class PhysicsModel:
@@ -492,9 +496,15 @@ class RigidModel(PhysicsModel):
         self.basis_ = np.zeros((theta.size, 0))
         self.cost_ = float("nan")
         self.params_ = self._unflatten(theta)
-        self._std_errors_cache = {name: np.full(len(value), np.nan) for name, value in self.params_.items()}
+        self._std_source = (theta, measured, reference)
         self.n_features_in_ = 7
         return self
+
+    def _std_errors(self, theta: np.ndarray, measured: np.ndarray, reference: np.ndarray) -> np.ndarray:
+        """As for the physics stage, over the directions the identification finds determined
+        at the closed-form solution (the rigid fit holds nothing the data could move)."""
+        self.basis_, _ = self._identify(theta, measured, reference, self.sigma_p_, self.sigma_r_ or DEFAULT_SIGMA_R)
+        return super()._std_errors(theta, measured, reference)
 
     def export_info(self) -> dict[str, str]:
         info = super().export_info()

@@ -129,3 +129,26 @@ print("HEAVY", heavy)
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert "HEAVY []" in out.stdout, out.stdout
+
+
+@pytest.mark.parametrize("method, extra", [("none", []), ("pmc", []), ("auto", []),
+                                           ("mlp", ["--hidden", "4", "--epochs", "5", "--trainer", "lm"])])
+def test_fit_save_round_trips_every_estimator_through_export(tmp_path, method: str, extra: list[str]) -> None:
+    """Issue 11: `fit --save` pickles every kind (effects included) and `export` of the saved
+    estimator writes a file that computes what fit's file computes (onnxruntime as the judge)."""
+    import onnxruntime as ort
+
+    from posecorr.simulate import simulate_session
+
+    data = tmp_path / "s.csv"
+    write_table(simulate_session(2, n=30).table, data)
+    fitted, saved, exported = tmp_path / "fit.onnx", tmp_path / "est.pkl", tmp_path / "export.onnx"
+    run = posecorr("fit", str(data), "-o", str(fitted), "--effects", "station,mount",
+                   "--method", method, "--cv", "3", "--save", str(saved), *extra, cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    run = posecorr("export", str(saved), "-o", str(exported), cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    poses = np.loadtxt(data, delimiter=",", skiprows=1, usecols=range(1, 8), dtype=np.float32)
+    outputs = [ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]).run(None, {"pose": poses})[0]
+               for p in (fitted, exported)]
+    assert np.array_equal(outputs[0], outputs[1])

@@ -185,8 +185,7 @@ def cmd_fit(args: argparse.Namespace) -> None:
         # Kept with the estimator so that `posecorr export` can re-run the parity check.
         report.model.training_measured_ = table.measured[report.train_index]
         report.model.training_reference_ = table.reference[report.train_index]
-        with open(args.save, "wb") as handle:
-            pickle.dump(report.model, handle)
+        _write_atomically(args.save, pickle.dumps(report.model))
     append_entry(args.data, {"model": str(args.output), "effects": effects, "method": info.get("method"),
                              "representation": info.get("representation"), "raw": report.raw, key: report.heldout})
 
@@ -212,6 +211,25 @@ def cmd_fit(args: argparse.Namespace) -> None:
         return "\n".join(lines)
 
     _emit(args, payload, text)
+
+
+def _write_atomically(path: Path, data: bytes) -> None:
+    """A temporary file beside `path`, fsync, rename: a crash leaves the old file or the new
+    one, never a torn one."""
+    import os
+    import tempfile
+
+    path = Path(path)
+    handle, temporary = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.")
+    try:
+        with os.fdopen(handle, "wb") as out:
+            out.write(data)
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        os.unlink(temporary)
+        raise
 
 
 def _fmt_scores(scores: dict[str, float]) -> str:

@@ -415,7 +415,8 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
     fell_back = not best.rigid and baseline["rmse_total"] < heldout["rmse_total"]
     if fell_back:
         worse = 100.0 * (heldout["rmse_total"] / baseline["rmse_total"] - 1.0)
-        notes.append(f"{best.name} did worse on held-out poses than the rigid fit ({heldout['rmse_total']:.4g} "
+        what = f"auto's choice (made inside each fold; {best.name} on all poses)" if method == "auto" else best.name
+        notes.append(f"{what} did worse on held-out poses than the rigid fit ({heldout['rmse_total']:.4g} "
                      f"against {baseline['rmse_total']:.4g} rmse_total, {worse:.2g} % worse): returning the rigid fit")
         best, heldout = RIGID_CANDIDATE, baseline
     say(f"fitting {best.name} on all {table.n} poses")

@@ -540,6 +540,9 @@ def _summary_section(table: PoseTable, model_info: Mapping[str, Any] | None, tit
         for key in ("architecture", "activation", "trainer", "posecorr_version"):
             if model_info.get(key) not in (None, ""):
                 items.append((key.replace("_", " "), model_info[key]))
+        if isinstance(model_info.get("fixed"), Mapping):
+            for name, reason in model_info["fixed"].items():
+                items.append((f"held (not determined): {name}", reason))
         if isinstance(model_info.get("file_size"), int):
             items.append(("file size", f"{model_info['file_size']:,} bytes"))
         if isinstance(model_info.get("op_counts"), Mapping):
@@ -648,6 +651,11 @@ def _diagnosis_section(diagnosis: Mapping[str, Any] | None, model_effects: Seque
     if aliases:
         body += ("<h3>Aliases</h3><p>Effects this data cannot tell apart (fitting one absorbs the other): "
                  + "; ".join(" ≈ ".join(_e(x) for x in a) for a in aliases) + "</p>")
+    undetermined = [u for u in diagnosis.get("undetermined") or [] if isinstance(u, Mapping)]
+    if undetermined:
+        body += ("<h3>Not ranked: this data cannot determine them</h3><ul>"
+                 + "".join(f"<li><b>{_e(u.get('effect', '?'))}</b>: {_e(u.get('reason', ''))}</li>"
+                           for u in undetermined) + "</ul>")
     feats = [f for f in diagnosis.get("features") or [] if isinstance(f, Mapping)]
     if feats:
         body += "<h3>Residual structure by feature</h3>"
@@ -659,7 +667,7 @@ def _diagnosis_section(diagnosis: Mapping[str, Any] | None, model_effects: Seque
                  + _img(_r2_figure(feats), "cross-validated R² of the residual per feature") + "</div></div>")
         body += ('<p class="note">R² near 0: the feature explains nothing of what is left; highlighted '
                  "(R² ≥ 0.1): structure that the model misses along that feature.</p>")
-    known = {"candidates", "features", "aliases", "model_effects", "test"}
+    known = {"candidates", "features", "aliases", "model_effects", "test", "undetermined"}
     other = {k: v for k, v in diagnosis.items() if k not in known and isinstance(v, (str, int, float))}
     if other:
         body += '<dl class="kv">' + "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in other.items()) + "</dl>"

@@ -163,3 +163,17 @@ def test_corpus_physics_reaches_the_noise_floor_with_full_spread(corpus: list[di
           f"median {np.median(ratios):.3f}, worst {ratios.max():.3f}")
     assert len(rows) >= 20
     assert np.all(ratios <= FLOOR_RATIO), [r for r in rows if r["physics_loo"] > FLOOR_RATIO * r["floor"]]
+
+
+def test_diagnose_names_what_a_session_cannot_determine_instead_of_ranking_it() -> None:
+    """Every pose of 20200717_Exp2 has the same orientation: incidence (a bias that depends on
+    the tracker's tilt against the line of sight) cannot be seen, so it is listed, not ranked."""
+    from posecorr.diagnose import diagnose
+
+    table = read_table(REALDATA / "20200717_Exp2.csv")
+    result = diagnose(table, ["station", "mount"], folds=3, seed=0)
+    undetermined = {row["effect"]: row["reason"] for row in result["undetermined"]}
+    ranked = {row["effect"] for row in result["candidates"]}
+    assert "incidence" in undetermined and "incidence" not in ranked
+    assert "orientations span 0.4 deg" in undetermined["incidence"]
+    assert ranked, "the effects the data can see are still ranked"

@@ -91,6 +91,21 @@ def test_batch_plan_equals_single_pose_plan_on_target(firmware_log):
     assert "batch: identical to single-pose runs" in firmware_log
 
 
+def test_memory_figures_on_target(firmware_log):
+    """With pc_load_into (runtimes from 0.2.0) the load calls no allocator at all and fits
+    the arena pc_required_bytes asks for; with pc_load_memory the heap holds the arena."""
+    figures = {k: int(v) for k, v in re.findall(r"(\w+)=(\d+)", firmware_log)}
+    if "api: pc_load_into" in firmware_log:
+        assert figures["load_allocations"] == 0
+        assert figures["model_in_use"] == 0
+        assert figures["arena_bytes"] < figures["required_bytes"] <= figures["arena_reserved"]
+    else:
+        assert "api: pc_load_memory" in firmware_log
+        assert figures["load_allocations"] > 0
+        assert figures["arena_bytes"] <= figures["model_in_use"] < figures["arena_bytes"] + 64
+    assert 0 < figures["stack_peak"] < figures["stack_reserved"]
+
+
 def test_embedded_model_array_is_the_file(firmware_log):
     source = (BUILD / "gen" / "model_data.c").read_text()
     body = source.split("= {", 1)[1]
@@ -99,8 +114,8 @@ def test_embedded_model_array_is_the_file(firmware_log):
     assert f"pc_fw_model_size = {len(data)}UL" in source
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="the runtime formats size_t with %zu, which newlib's "
-                   "printf (Debian's libnewlib-arm-none-eabi, nano and full) does not implement: "
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="the runtime's messages use %zu and %llu, which "
+                   "newlib-nano's printf does not implement (Debian's full newlib lacks %zu too): "
                    "the target prints 'byte zu' and shifts the arguments after it")
 def test_error_message_on_target_matches_x86(firmware_log):
     target = re.search(r"^truncated: [^:]+: (.*)$", firmware_log, re.M).group(1)

@@ -11,5 +11,7 @@ size_t board_heap_peak(void);
 /* Deepest stack use so far (bytes below the top of RAM that are no longer painted). */
 size_t board_stack_peak(void);
 size_t board_stack_size(void);
+/* Calls of malloc, calloc and realloc so far (newlib's own included). */
+size_t board_allocations(void);
 
 #endif

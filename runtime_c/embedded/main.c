@@ -16,7 +16,20 @@
 extern const unsigned char pc_fw_model[];
 extern const unsigned long pc_fw_model_size;
 
-/* Plans for 1 and 16 poses only: the firmware never runs more at once. */
+/* Runtimes from 0.2.0 on load into a caller-provided arena without malloc; the firmware
+ * uses that when the header offers it, pc_load_memory (newlib's malloc) otherwise. */
+#if defined(PC_VERSION_NUMBER) && PC_VERSION_NUMBER >= 200
+#define FW_LOAD_INTO 1
+#ifndef FW_ARENA_BYTES
+#define FW_ARENA_BYTES (384u * 1024u)
+#endif
+/* A product sizes it from pc_required_bytes; in its own section so the map shows it apart
+ * from .bss. */
+static unsigned char fw_arena[FW_ARENA_BYTES] __attribute__((aligned(8), section(".arena")));
+#endif
+
+/* Plans for 1 and FW_MAX_BATCH poses (the Makefile's, 16 by default): the firmware never
+ * runs more at once, and the arena grows with the largest plan. */
 #ifndef FW_MAX_BATCH
 #define FW_MAX_BATCH 16
 #endif
@@ -36,6 +49,16 @@ static void print_row(const char *label, const float *row)
         printf(" %08lx", bits(row[j]));
 }
 
+static pc_status load(unsigned long size, const pc_options *opts, pc_model **model,
+                      pc_error *err)
+{
+#ifdef FW_LOAD_INTO
+    return pc_load_into(pc_fw_model, size, opts, fw_arena, sizeof fw_arena, model, err);
+#else
+    return pc_load_memory(pc_fw_model, size, opts, model, err);
+#endif
+}
+
 int main(void)
 {
     static float single[PC_FW_N_POSES][PC_POSE_WIDTH], batch[PC_FW_N_POSES][PC_POSE_WIDTH];
@@ -44,26 +67,38 @@ int main(void)
     pc_error err;
     pc_status st;
     struct mallinfo before_load, after_load;
+    size_t allocations;
     size_t i, n_ok = 0;
     int same;
 
     opts.max_batch = FW_MAX_BATCH;
+#ifdef FW_LOAD_INTO
+    printf("api: pc_load_into arena_reserved=%lu version=%d header=%d\n",
+           (unsigned long)sizeof fw_arena, pc_version(), PC_VERSION_NUMBER);
+    if (pc_version() != PC_VERSION_NUMBER)
+        return 1;
+#else
+    printf("api: pc_load_memory\n");
+#endif
     /* The error path on the target: half the file must be refused with the message the
      * host gives (the host compares the two). */
-    st = pc_load_memory(pc_fw_model, pc_fw_model_size / 2, &opts, &model, &err);
+    st = load(pc_fw_model_size / 2, &opts, &model, &err);
     printf("truncated: %s: %s\n", pc_status_name(st), err.message);
     before_load = mallinfo(); /* after the first printf: stdout's buffer is not the model's */
-    st = pc_load_memory(pc_fw_model, pc_fw_model_size, &opts, &model, &err);
+    allocations = board_allocations();
+    st = load(pc_fw_model_size, &opts, &model, &err);
     if (st != PC_OK) {
         printf("load: %s: %s\n", pc_status_name(st), err.message);
         return 1;
     }
+    allocations = board_allocations() - allocations;
     after_load = mallinfo();
     printf("load: ok model_bytes=%lu nodes=%lu steps=%lu arena_bytes=%lu max_batch=%lu\n",
            pc_fw_model_size, (unsigned long)pc_node_count(model),
            (unsigned long)pc_step_count(model), (unsigned long)pc_arena_bytes(model),
            (unsigned long)pc_max_batch(model));
-    printf("heap: model_in_use=%lu peak_during_load=%lu\n",
+    printf("heap: load_allocations=%lu model_in_use=%lu peak_during_load=%lu\n",
+           (unsigned long)allocations,
            (unsigned long)(after_load.uordblks - before_load.uordblks),
            (unsigned long)board_heap_peak());
 
@@ -89,6 +124,14 @@ int main(void)
     }
     printf("batch: %s\n", same ? "identical to single-pose runs" : "DIFFERS from single-pose runs");
     pc_free(model);
+#ifdef FW_LOAD_INTO
+    {
+        /* Last, because it allocates: the figure a product would size fw_arena from. */
+        size_t need = 0;
+        st = pc_required_bytes(pc_fw_model, pc_fw_model_size, &opts, &need, &err);
+        printf("arena: required_bytes=%lu (%s)\n", (unsigned long)need, pc_status_name(st));
+    }
+#endif
     printf("memory: heap_peak=%lu stack_peak=%lu stack_reserved=%lu\n",
            (unsigned long)board_heap_peak(), (unsigned long)board_stack_peak(),
            (unsigned long)board_stack_size());

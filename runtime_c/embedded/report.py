@@ -27,7 +27,8 @@ FLASH_CODE = (".isr_vector", ".text", ".ARM.extab", ".ARM.exidx", ".preinit_arra
 FLASH_RODATA = (".rodata",)
 RAM_DATA = (".data",)
 RAM_BSS = (".bss",)
-SECTIONS = FLASH_CODE + FLASH_RODATA + RAM_DATA + RAM_BSS
+RAM_ARENA = (".arena",)  # the caller's buffer of pc_load_into
+SECTIONS = FLASH_CODE + FLASH_RODATA + RAM_DATA + RAM_BSS + RAM_ARENA
 
 # Origin of an input section, by the file the map names (first match wins).
 ORIGINS = (
@@ -53,6 +54,11 @@ class FirmwareRun:
     lines: list[str] = field(repr=False)
 
     @property
+    def api(self) -> str:
+        """The load entry point the firmware used."""
+        return next((ln.split()[1] for ln in self.lines if ln.startswith("api: ")), "")
+
+    @property
     def truncated_message(self) -> str:
         """The status name and message of the firmware's load of half the model."""
         return next((ln.split(": ", 1)[1] for ln in self.lines if ln.startswith("truncated: ")), "")
@@ -76,7 +82,7 @@ def parse_log(text: str) -> FirmwareRun:
         if m:
             ins.append(hex_floats(m.group(2)))
             outs.append(hex_floats(m.group(3)))
-        elif line.startswith(("load: ok", "heap:", "memory:")):
+        elif line.startswith(("api:", "load: ok", "heap:", "memory:", "arena:")):
             figures.update({k: int(v) for k, v in KEY_VALUE.findall(line)})
     shape = (len(ins), POSE_WIDTH)
     return FirmwareRun(np.array(ins, np.float32).reshape(shape),
@@ -197,6 +203,8 @@ def size_table(sizes: dict[str, dict[str, int]]) -> list[str]:
             ("flash: .data initial values", group(sizes, RAM_DATA)),
             ("RAM: .data", group(sizes, RAM_DATA)),
             ("RAM: .bss", group(sizes, RAM_BSS))]
+    if group(sizes, RAM_ARENA):
+        rows.append(("RAM: .arena (pc_load_into)", group(sizes, RAM_ARENA)))
     flash: dict[str, int] = {}
     for _, row in rows[:3]:
         for key, value in row.items():
@@ -248,13 +256,24 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join("  " + ln for ln in size_table(sizes)))
     f = run.figures
     data_bss = sum(group(sizes, RAM_DATA + RAM_BSS).values())
-    print(f"\nRAM: .data + .bss {data_bss} B; heap: the model's arena {f['arena_bytes']} B "
-          f"({f['model_in_use']} B of malloc), heap peak {f['heap_peak']} B (during load: "
-          f"arena + load-time scratch + stdio buffer); stack peak {f['stack_peak']} B")
-    print(f"  RAM in use: {data_bss + f['heap_peak'] + f['stack_peak']} B at the peak of load, "
-          f"{data_bss + f['model_in_use'] + f['stack_peak']} B for the loaded model "
-          f"(.data + .bss + arena + stack; {f['nodes']} nodes, {f['steps']} steps, "
-          f"max_batch {f['max_batch']})")
+    shape = f"{f['nodes']} nodes, {f['steps']} steps, max_batch {f['max_batch']}"
+    if run.api == "pc_load_into":
+        print(f"\nRAM (pc_load_into, no malloc for the model): .data + .bss {data_bss} B; caller "
+              f"arena {f['arena_reserved']} B reserved, pc_required_bytes {f['required_bytes']} B "
+              f"(model arena {f['arena_bytes']} B + load-time scratch); malloc calls during the load: "
+              f"{f['load_allocations']}; stack peak {f['stack_peak']} B")
+        print(f"  RAM in use: {data_bss + f['required_bytes'] + f['stack_peak']} B "
+              f"(.data + .bss + required arena + stack; {shape}); heap peak {f['heap_peak']} B "
+              f"is stdio and pc_required_bytes itself, after the run")
+    else:
+        print(f"\nRAM (pc_load_memory): .data + .bss {data_bss} B; heap: the model's arena "
+              f"{f['arena_bytes']} B ({f['model_in_use']} B of malloc, {f['load_allocations']} malloc "
+              f"calls during the load), heap peak "
+              f"{f['heap_peak']} B (during load: arena + load-time scratch + stdio buffer); "
+              f"stack peak {f['stack_peak']} B")
+        print(f"  RAM in use: {data_bss + f['heap_peak'] + f['stack_peak']} B at the peak of load, "
+              f"{data_bss + f['model_in_use'] + f['stack_peak']} B for the loaded model "
+              f"(.data + .bss + arena + stack; {shape})")
     within = diff <= TOLERANCE and not mismatch
     return 0 if within else 1
 

@@ -76,6 +76,34 @@ size_t board_stack_peak(void)
 
 size_t board_stack_size(void) { return (size_t)(__stack_top - __stack_limit); }
 
+/* The link wraps the allocator (-Wl,--wrap=malloc,...) so that "no malloc" is counted, not
+ * inferred from the heap's size. */
+static size_t allocations;
+
+size_t board_allocations(void) { return allocations; }
+
+void *__real_malloc(size_t size);
+void *__real_calloc(size_t n, size_t size);
+void *__real_realloc(void *p, size_t size);
+
+void *__wrap_malloc(size_t size)
+{
+    allocations++;
+    return __real_malloc(size);
+}
+
+void *__wrap_calloc(size_t n, size_t size)
+{
+    allocations++;
+    return __real_calloc(n, size);
+}
+
+void *__wrap_realloc(void *p, size_t size)
+{
+    allocations++;
+    return __real_realloc(p, size);
+}
+
 /* ---- newlib system calls ---------------------------------------------------------- */
 
 void *_sbrk(ptrdiff_t incr)

@@ -7,7 +7,7 @@ VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.posecorr-installed
 NATIVE_SOURCES := $(wildcard runtime_c/*.c runtime_c/*.h runtime_c/CMakeLists.txt runtime_c/cmake/* runtime_c/tools/*.c) export/operators.txt
 
-.PHONY: install demo test bench models fuzz clean
+.PHONY: install demo test bench models fuzz embedded clean
 
 $(STAMP): pyproject.toml setup.py $(NATIVE_SOURCES)
 	@test -x $(VPY) || $(PYTHON) -m venv $(VENV)
@@ -33,6 +33,11 @@ models: $(STAMP)
 
 fuzz:
 	$(MAKE) -C runtime_c -f fuzz.mk
+
+# Cross-builds the runtime for a Cortex-M4F, runs the firmware in QEMU and compares with x86
+# (needs gcc-arm-none-eabi, libnewlib-arm-none-eabi, qemu-system-arm; see runtime_c/embedded).
+embedded: $(STAMP)
+	@$(MAKE) --no-print-directory -C runtime_c/embedded PYTHON=$(abspath $(VPY))
 
 clean:
 	rm -rf build runtime_c/build* python/posecorr/_native *.egg-info

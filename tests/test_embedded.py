@@ -1,0 +1,145 @@
+"""libposecorr on a microcontroller: runtime_c/embedded cross-builds the runtime for a
+Cortex-M4F, runs a firmware with the zhou MLP in flash on QEMU's MPS2 AN386 board, and the
+poses it corrects must match the x86 runtime.
+
+Needs gcc-arm-none-eabi, libnewlib-arm-none-eabi and qemu-system-arm (.ci/run installs
+them). Without them the tests are skipped, unless POSECORR_REQUIRE_EMBEDDED=1 (set by
+.ci/run), where a missing tool is a failure.
+"""
+from __future__ import annotations
+
+import importlib.util
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+EMBEDDED = ROOT / "runtime_c" / "embedded"
+BUILD = ROOT / "build" / "embedded-test"
+MODEL = ROOT / "models" / "mlp-zhou-tansig-20x20x20x20-br.onnx"
+TOOLS = ("arm-none-eabi-gcc", "arm-none-eabi-size", "qemu-system-arm")
+TOLERANCE = 1e-5
+
+missing = [t for t in TOOLS if shutil.which(t) is None]
+if missing:
+    reason = (f"embedded toolchain not installed: {', '.join(missing)} "
+              "(apt-get install gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm)")
+    if os.environ.get("POSECORR_REQUIRE_EMBEDDED") == "1":
+        raise RuntimeError(reason)
+    pytest.skip(reason, allow_module_level=True)
+
+from posecorr.runtime import Corrector  # noqa: E402
+
+
+def load_script(name: str):
+    spec = importlib.util.spec_from_file_location(f"embedded_{name}", EMBEDDED / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def make(*targets: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["make", "--no-print-directory", "-C", str(EMBEDDED),
+                           f"BUILD={BUILD}", f"PYTHON={sys.executable}", *targets],
+                          capture_output=True, text=True, timeout=900)
+
+
+@pytest.fixture(scope="module")
+def firmware_log() -> str:
+    shutil.rmtree(BUILD, ignore_errors=True)
+    r = make("run")
+    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
+    return (BUILD / "qemu.log").read_text()
+
+
+def hex_rows(log: str, which: str) -> np.ndarray:
+    """float32 (N, 7) from the firmware's `pose i in <7 hex> out <7 hex>` lines."""
+    rows = re.findall(r"^pose \d+ in ((?:[0-9a-f]{8} ?){7}) out ((?:[0-9a-f]{8} ?){7})$", log,
+                      re.M)
+    col = 0 if which == "in" else 1
+    words = [[int(h, 16) for h in r[col].split()] for r in rows]
+    return np.array(words, dtype=np.uint32).view(np.float32)
+
+
+def test_qemu_corrections_match_x86(firmware_log):
+    inputs, outputs = hex_rows(firmware_log, "in"), hex_rows(firmware_log, "out")
+    assert inputs.shape == outputs.shape == (16, 7)
+    assert "done: 16/16 poses ok" in firmware_log
+    x86 = Corrector(MODEL, backend="c").correct(inputs.astype(np.float64))
+    diff = np.abs(outputs.astype(np.float64) - x86)
+    assert diff.max() <= TOLERANCE, f"max |QEMU - x86| = {diff.max():.3g}"
+    # the correction moved the poses (the comparison is not of inputs with inputs)
+    assert np.abs(outputs[:, :3] - inputs[:, :3]).max() > 1e-3
+    np.testing.assert_allclose(np.linalg.norm(outputs[:, 3:], axis=1), 1.0, atol=1e-6)
+
+
+def test_firmware_inputs_are_the_generated_poses(firmware_log):
+    embed = load_script("embed")
+    expected = embed.firmware_poses(16, 0)
+    np.testing.assert_array_equal(hex_rows(firmware_log, "in").view(np.uint32),
+                                  expected.view(np.uint32))
+
+
+def test_batch_plan_equals_single_pose_plan_on_target(firmware_log):
+    assert "batch: identical to single-pose runs" in firmware_log
+
+
+def test_memory_figures_on_target(firmware_log):
+    """With pc_load_into (runtimes from 0.2.0) the load calls no allocator at all and fits
+    the arena pc_required_bytes asks for; with pc_load_memory the heap holds the arena."""
+    figures = {k: int(v) for k, v in re.findall(r"(\w+)=(\d+)", firmware_log)}
+    if "api: pc_load_into" in firmware_log:
+        assert figures["load_allocations"] == 0
+        assert figures["model_in_use"] == 0
+        assert figures["arena_bytes"] < figures["required_bytes"] <= figures["arena_reserved"]
+    else:
+        assert "api: pc_load_memory" in firmware_log
+        assert figures["load_allocations"] > 0
+        assert figures["arena_bytes"] <= figures["model_in_use"] < figures["arena_bytes"] + 64
+    assert 0 < figures["stack_peak"] < figures["stack_reserved"]
+
+
+def test_embedded_model_array_is_the_file(firmware_log):
+    source = (BUILD / "gen" / "model_data.c").read_text()
+    body = source.split("= {", 1)[1]
+    data = bytes(int(h, 16) for h in re.findall(r"0x([0-9a-f]{2})\b", body))
+    assert data == MODEL.read_bytes()
+    assert f"pc_fw_model_size = {len(data)}UL" in source
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="the runtime's messages use %zu and %llu, which "
+                   "newlib-nano's printf does not implement (Debian's full newlib lacks %zu too): "
+                   "the target prints 'byte zu' and shifts the arguments after it")
+def test_error_message_on_target_matches_x86(firmware_log):
+    target = re.search(r"^truncated: [^:]+: (.*)$", firmware_log, re.M).group(1)
+    host = load_script("report").x86_truncated_message(MODEL)
+    assert target == host
+
+
+def test_size_report(firmware_log):
+    """`make report` (what `make embedded` prints): exit 0, and its map-file breakdown
+    agrees with arm-none-eabi-size and with the model file."""
+    r = make("report")
+    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
+    assert "bit-identical poses:" in r.stdout
+    report = load_script("report")
+    sizes = report.map_sizes((BUILD / "firmware.map").read_text())
+    elf = report.elf_sizes(BUILD / "firmware.elf", "arm-none-eabi-size")
+    for section in (".text", ".rodata", ".data", ".bss"):
+        assert sum(sizes[section].values()) == elf[section], section
+    # the model is its bytes plus the 4-byte size constant, all in flash, nothing in RAM
+    assert sizes[".rodata"]["model"] == MODEL.stat().st_size + 4
+    assert "model" not in sizes[".text"] and "model" not in sizes.get(".data", {})
+    # linking keeps at most what the runtime's objects hold
+    archive = subprocess.run(["arm-none-eabi-size", "-t", str(BUILD / "libposecorr.a")],
+                             capture_output=True, text=True, check=True).stdout
+    archive_text = int(archive.strip().splitlines()[-1].split()[0])
+    runtime_flash = sizes[".text"]["runtime"] + sizes[".rodata"]["runtime"]
+    assert 0 < runtime_flash <= archive_text

@@ -17,6 +17,7 @@ from .metadata import UNITS, data_digest, encode_metadata
 from .symbolic import FLOAT, OPSET, ExportError, Graph, Sym
 
 INPUT_NAME = "pose"
+TIME_NAME = "t"
 OUTPUT_NAME = "corrected"
 BATCH_DIM = "N"
 # IR version 8 is the one that introduced opset 17; older readers accept it.
@@ -60,9 +61,13 @@ def _tensor_proto(name: str, value: np.ndarray) -> Any:
     return numpy_helper.from_array(value, name)
 
 
-def build_model(forward: Callable[[Sym], Any], *, graph_name: str = "posecorr",
-                doc: str = "", check: bool = True) -> Any:
+def build_model(forward: Callable[..., Any], *, graph_name: str = "posecorr",
+                doc: str = "", check: bool = True, time_input: bool = False) -> Any:
     """Trace `forward(pose) -> corrected` into an onnx.ModelProto (no metadata yet).
+
+    time_input: the graph also takes `t` float32 [N] (seconds since the session's start),
+    traced as `forward(pose, t)`: the contract's optional second input, for models with a
+    time-dependent effect.
 
     Unused nodes and initializers are dropped; the operator list, onnx.checker (full
     check) and strict shape inference are applied when `check` is true.
@@ -72,7 +77,7 @@ def build_model(forward: Callable[[Sym], Any], *, graph_name: str = "posecorr",
 
     g = Graph()
     pose = g.input(INPUT_NAME, (-1, 7))
-    out = g.lift(forward(pose))
+    out = g.lift(forward(pose, g.input(TIME_NAME, (-1,))) if time_input else forward(pose))
     if out.is_const:
         raise ExportError("forward() returned a constant: the output does not depend on the pose")
     if out.elem != FLOAT or out.ndim != 2 or out.shape[1] != 7 or out.shape[0] not in (-1, 1):
@@ -104,15 +109,21 @@ def build_model(forward: Callable[[Sym], Any], *, graph_name: str = "posecorr",
     initializers = [_tensor_proto(k, v) for k, v in g.initializers.items() if k in needed]
     if INPUT_NAME not in needed:
         raise ExportError("the output does not depend on the input pose")
+    if time_input and TIME_NAME not in needed:
+        raise ExportError("the model takes a time input but its output does not depend on it")
 
     node_protos = [helper.make_node(n.op_type, n.inputs, n.outputs, name=n.name, **n.attrs) for n in nodes]
     dims = [BATCH_DIM, 7]
+    inputs = [helper.make_tensor_value_info(INPUT_NAME, TensorProto.FLOAT, dims)]
+    if time_input:
+        inputs.append(helper.make_tensor_value_info(TIME_NAME, TensorProto.FLOAT, [BATCH_DIM]))
     graph = helper.make_graph(
-        node_protos, graph_name,
-        [helper.make_tensor_value_info(INPUT_NAME, TensorProto.FLOAT, dims)],
+        node_protos, graph_name, inputs,
         [helper.make_tensor_value_info(OUTPUT_NAME, TensorProto.FLOAT, dims)],
         initializer=initializers)
     graph.input[0].doc_string = "measured pose: x, y, z (m), qw, qx, qy, qz"
+    if time_input:
+        graph.input[1].doc_string = "time of each pose, s since the session's start"
     graph.output[0].doc_string = "corrected pose: x, y, z (m), qw, qx, qy, qz with qw >= 0"
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
                               producer_name="posecorr", doc_string=doc)
@@ -159,7 +170,8 @@ def _training_arrays(estimator: Any, measured: Any, reference: Any) -> tuple[Any
 
 
 def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = None,
-            reference: np.ndarray | None = None, parity: str = "raise", n_random: int = 10_000,
+            reference: np.ndarray | None = None, t: np.ndarray | None = None, parity: str = "raise",
+            n_random: int = 10_000,
             seed: int = 0, tol_pos: float = 1e-5, tol_rot: float = 1e-5, **metadata: Any) -> dict[str, Any]:
     """Export a fitted corrector to `path` and return what was written.
 
@@ -167,6 +179,7 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
       `representation` and optionally `export_info()` (metadata dict).
     measured, reference: the training arrays (N, 7) (m, unit quaternions); used for the
       parity check and the training-data digest. Default: the estimator's own copies.
+    t: the training poses' times (s) for a model with a time input (`estimator.needs_time`).
     parity: "raise" (refuse to save a model beyond tol_pos m / tol_rot rad), "warn"
       (record the failure in the metadata) or "skip" (no training data needed).
     metadata: extra `metadata_props` (test_metrics=..., effects=..., ...); they override
@@ -181,8 +194,11 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
     info: dict[str, Any] = dict(estimator.export_info()) if hasattr(estimator, "export_info") else {}
     info.setdefault("representation", getattr(estimator, "representation", None))
     info.update(metadata)
+    time_input = bool(getattr(estimator, "needs_time", False))
     model = build_model(estimator.forward, doc=f"posecorr {info.get('method', 'corrector')} "
-                                               f"({info.get('representation')})")
+                                               f"({info.get('representation')})", time_input=time_input)
+    if time_input:
+        info["time_input"] = f"{TIME_NAME}: float32 [N], s since the session's start"
 
     measured, reference = _training_arrays(estimator, measured, reference)
     parity_report: dict[str, Any] | None = None
@@ -190,8 +206,13 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
         if measured is None:
             raise ExportError("parity check needs the training data: pass measured=... "
                               "(or parity='skip')")
+        if time_input and t is None:
+            t = getattr(estimator, "training_t_", None)
+        if time_input and t is None:
+            raise ExportError("parity check of a model with a time input needs the training times: pass t=...")
         parity_report = check_parity(estimator, model, np.asarray(measured, float), n_random=n_random,
-                                     seed=seed, tol_pos=tol_pos, tol_rot=tol_rot)
+                                     seed=seed, tol_pos=tol_pos, tol_rot=tol_rot,
+                                     t=None if not time_input else np.asarray(t, float))
         if not parity_report["passed"] and parity == "raise":
             raise ParityError(
                 f"exported graph differs from predict(): max position error "

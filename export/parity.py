@@ -97,11 +97,16 @@ def session(model: Any) -> Any:
     return ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
 
 
-def run_onnx(model: Any, poses: np.ndarray) -> np.ndarray:
-    """Apply a model (ModelProto, bytes, path or an existing session) to (N, 7) poses."""
+def run_onnx(model: Any, poses: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
+    """Apply a model (ModelProto, bytes, path or an existing session) to (N, 7) poses; `t`
+    (N,) s feeds a model with a time input (zeros when not given)."""
     sess = model if hasattr(model, "run") and hasattr(model, "get_inputs") else session(model)
     x = np.ascontiguousarray(np.asarray(poses, dtype=np.float32))
-    return sess.run(None, {sess.get_inputs()[0].name: x})[0]
+    feeds = {sess.get_inputs()[0].name: x}
+    if len(sess.get_inputs()) > 1:
+        feeds[sess.get_inputs()[1].name] = np.ascontiguousarray(
+            np.zeros(len(x), np.float32) if t is None else np.asarray(t, dtype=np.float32))
+    return sess.run(None, feeds)[0]
 
 
 def compare(out32: np.ndarray, ref64: np.ndarray) -> dict[str, float]:
@@ -116,7 +121,7 @@ def compare(out32: np.ndarray, ref64: np.ndarray) -> dict[str, float]:
 
 
 def check_parity(estimator: Any, model: Any, measured: np.ndarray, *, n_random: int = 10_000, seed: int = 0,
-                 tol_pos: float = TOL_POS, tol_rot: float = TOL_ROT) -> dict[str, Any]:
+                 tol_pos: float = TOL_POS, tol_rot: float = TOL_ROT, t: np.ndarray | None = None) -> dict[str, Any]:
     """Run the graph in onnxruntime on the training poses and `n_random` random poses
     (see the module docstring) and compare with `estimator.predict` in float64. The position
     tolerance grows with the data's magnitude (`position_tolerance`).
@@ -127,13 +132,17 @@ def check_parity(estimator: Any, model: Any, measured: np.ndarray, *, n_random: 
     sess = session(model)
     measured = np.asarray(measured, float)
     report: dict[str, Any] = {}
-    sets = {"train": measured}
+    sets = {"train": (measured, t)}
     if n_random > 0:
-        sets["random"] = random_poses(measured, n_random, seed)
-    for label, poses in sets.items():
+        # Times of a model with a time input: uniform over the training session's span.
+        times = None if t is None else np.random.default_rng(seed + 1).uniform(np.min(t), np.max(t), n_random)
+        sets["random"] = (random_poses(measured, n_random, seed), times)
+    for label, (poses, times) in sets.items():
         x32 = poses.astype(np.float32)
-        ref = np.asarray(estimator.predict(x32.astype(np.float64)), float)
-        report[label] = compare(run_onnx(sess, x32), ref)
+        t32 = None if times is None else np.asarray(times, np.float32)
+        args = () if t32 is None else (t32.astype(np.float64),)
+        ref = np.asarray(estimator.predict(x32.astype(np.float64), *args), float)
+        report[label] = compare(run_onnx(sess, x32, t32), ref)
         tol_pos = position_tolerance(tol_pos, poses, ref)
     max_pos = max(r["max_pos_m"] for r in report.values())
     max_rot = max(r["max_rot_rad"] for r in report.values())

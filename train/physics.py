@@ -415,8 +415,9 @@ class PhysicsModel:
     def forward(self, pose: Any, t: Any = None) -> Any:
         """(N, 7) measured -> (N, 7) corrected: the fitted effects inverted in reverse order.
 
-        `t` (N,) s feeds `drift`; the exported graph has no time input, so there drift is
-        left out (recorded in the model's metadata).
+        `t` (N,) s (seconds since the session's start) feeds the time-dependent effects
+        (`Effect.needs_time`, e.g. drift); the exported graph takes it as its optional second
+        input. Without `t` those effects are left out (their correction at t = 0 is none).
         """
         self._check_fitted()
         xp = namespace(pose)
@@ -425,7 +426,7 @@ class PhysicsModel:
         ctx = EffectContext(self.ctx_.R_S, self.ctx_.t_S, self.ctx_.c, t=t)
         thetas = {name: (theta if xp.name == "numpy" else xp.const(theta, pose)) for name, theta in self.params_.items()}
         if t is None:
-            thetas.pop("drift", None)
+            thetas = {name: theta for name, theta in thetas.items() if not get_effect(name).needs_time}
         p, R = invert_effects(p, R, thetas, ctx)
         q = rotations.matrix_to_quat(R) if self.with_rotation_ else rotations.canonical_quat(pose[..., 3:7])
         return xp.concat([p, q], axis=-1)
@@ -443,9 +444,13 @@ class PhysicsModel:
         self._check_fitted()
         info = {"method": "physics", "representation": "pos" if not self.with_rotation_ else "R",
                 "effects": ",".join(self.params_)}
-        if "drift" in self.params_:
-            info["drift"] = "fitted; not applied in the exported graph (no time input)"
         return info
+
+    @property
+    def needs_time(self) -> bool:
+        """The fitted effects include a time-dependent one: the graph takes the input `t`."""
+        self._check_fitted()
+        return any(get_effect(name).needs_time for name in self.params_)
 
     def describe(self) -> dict[str, dict[str, list]]:
         """{effect: {param: [value, std_error]}} (lists for vector parameters), SI units."""

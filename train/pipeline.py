@@ -100,13 +100,15 @@ class CorrectionPipeline:
         if self.physics_ is not None:
             info["effects"] = list(self.physics_.params_)
             info["effect_params"] = self.physics_.describe()
-            if "drift" in self.physics_.params_:
-                info["drift"] = "fitted; not applied in the exported graph (no time input)"
             if self.core is None:
                 info["method"] = "rigid" if self.rigid else "physics"
             if self.physics_.fixed_:
                 info["fixed"] = dict(self.physics_.fixed_)
         return info
+
+    @property
+    def needs_time(self) -> bool:
+        return self.physics_ is not None and self.physics_.needs_time
 
     def to_onnx(self, path: Any, **metadata: Any) -> Any:
         from posecorr.export import to_onnx

@@ -162,8 +162,10 @@ def cmd_fit(args: argparse.Namespace) -> None:
     from .export.symbolic import ExportError
 
     try:
+        times = table.time()
         exported = report.model.to_onnx(args.output, measured=table.measured[report.train_index],
                                         reference=table.reference[report.train_index],
+                                        t=None if times is None else times[report.train_index],
                                         test_metrics={key: report.heldout, "raw": report.raw})
     except ExportError as exc:
         raise CliError(f"{args.output}: the model could not be exported: {exc}") from None
@@ -185,6 +187,8 @@ def cmd_fit(args: argparse.Namespace) -> None:
         # Kept with the estimator so that `posecorr export` can re-run the parity check.
         report.model.training_measured_ = table.measured[report.train_index]
         report.model.training_reference_ = table.reference[report.train_index]
+        if table.time() is not None:
+            report.model.training_t_ = table.time()[report.train_index]
         _write_atomically(args.save, pickle.dumps(report.model))
     append_entry(args.data, {"model": str(args.output), "effects": effects, "method": info.get("method"),
                              "representation": info.get("representation"), "raw": report.raw, key: report.heldout})

@@ -414,7 +414,10 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
         predicted, rigid_predicted = both[best.name], both[RIGID]
     heldout = metric_block(raw_all, pose_metrics(R, predicted, with_rotation))
     baseline = metric_block(raw_all, pose_metrics(R, rigid_predicted, with_rotation))
+    # The rigid fit returned (chosen, or fallen back to) is scored as the rigid fit on these folds.
     fell_back = not best.rigid and baseline["rmse_total"] < heldout["rmse_total"]
+    if best.rigid:
+        heldout = baseline
     if fell_back:
         worse = 100.0 * (heldout["rmse_total"] / baseline["rmse_total"] - 1.0)
         what = f"auto's choice (made inside each fold; {best.name} on all poses)" if method == "auto" else best.name

@@ -315,6 +315,69 @@ static void test_load_and_run(void)
     }
 }
 
+/* Counts the library's heap calls: it is linked statically into this program, so its
+ * malloc and free resolve here (glibc; sanitizers bring their own allocator). */
+#if defined(__GLIBC__) && !defined(__SANITIZE_ADDRESS__)
+#define PC_COUNT_MALLOC 1
+extern void *__libc_malloc(size_t size);
+extern void *__libc_calloc(size_t n, size_t size);
+extern void *__libc_realloc(void *p, size_t size);
+static size_t n_heap_calls;
+void *malloc(size_t size)
+{
+    n_heap_calls++;
+    return __libc_malloc(size);
+}
+void *calloc(size_t n, size_t size)
+{
+    n_heap_calls++;
+    return __libc_calloc(n, size);
+}
+void *realloc(void *p, size_t size)
+{
+    n_heap_calls++;
+    return __libc_realloc(p, size);
+}
+#endif
+
+static void test_load_into(void)
+{
+    static buf model;
+    static unsigned char arena[1 << 20];
+    const float c[7] = {0.5f, -1.0f, 2.0f, 0.25f, 0.0f, -0.125f, 3.0f};
+    float in[40 * 7], out[40 * 7];
+    pc_model *m = NULL, *small = (pc_model *)1;
+    pc_error err;
+    size_t need = 0, i;
+    int ok = 1;
+    build(&model, &ADD, c);
+    CHECK(pc_version() == PC_VERSION_NUMBER);
+    CHECK(pc_required_bytes(model.d, model.n, NULL, &need, &err) == PC_OK);
+    CHECK(need > 0 && need <= sizeof arena);
+    CHECK(pc_load_into(model.d, model.n, NULL, arena, need / 2, &small, &err) == PC_ERR_MEMORY);
+    CHECK(small == NULL && strstr(err.message, "too small") != NULL);
+#ifdef PC_COUNT_MALLOC
+    n_heap_calls = 0; /* the counter sees the library's calls */
+    CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_OK && n_heap_calls > 0);
+    pc_free(m);
+    n_heap_calls = 0;
+#endif
+    CHECK(pc_load_into(model.d, model.n, NULL, arena + 1, need, &m, &err) == PC_OK);
+    for (i = 0; i < 40 * 7; i++)
+        in[i] = (float)((i * 37) % 101) * 0.01f - 0.5f;
+    CHECK(m && pc_run(m, in, 40, out) == PC_OK);
+#ifdef PC_COUNT_MALLOC
+    CHECK(n_heap_calls == 0);
+#endif
+    for (i = 0; m && i < 40 * 7; i++)
+        if (out[i] != in[i] + c[i % 7])
+            ok = 0;
+    CHECK(ok);
+    CHECK((unsigned char *)m >= arena && (unsigned char *)m + pc_arena_bytes(m) <= arena + 1 + need);
+    pc_free(m); /* a no-op: the caller owns the buffer */
+    CHECK(pc_load_into(model.d, model.n, NULL, NULL, need, &m, &err) == PC_ERR_ARGUMENT);
+}
+
 static void expect_error(const spec *s, pc_status want, const char *fragment)
 {
     static buf model;
@@ -375,6 +438,7 @@ int main(int argc, char **argv)
     test_status_names();
     test_tanh();
     test_load_and_run();
+    test_load_into();
     test_errors();
     /* optional: model files given on the command line must load and run */
     {

@@ -29,7 +29,7 @@ BUILD = ROOT / "build"
 OPERATORS = [ln.split("#")[0].strip() for ln in
              (ROOT / "export" / "operators.txt").read_text().splitlines()]
 OPERATORS = [op for op in OPERATORS if op]
-CASES = graphs.op_cases()
+CASES = {**graphs.op_cases(), **graphs.cross_row_cases()}
 CROSS_ROW = graphs.CROSS_ROW
 
 

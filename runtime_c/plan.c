@@ -71,13 +71,11 @@ static size_t pc_const_loc(pc_builder *b, int32_t r, size_t *const_bytes)
     return (v->const_offset << 1) | 1;
 }
 
-static pc_status pc_plan_batch(pc_builder *b, size_t batch, pc_plan_draft *pd,
-                               size_t *const_bytes)
+/* Prepares every remaining node for this batch: output shapes, kernels, drafts. */
+static pc_status pc_plan_steps(pc_builder *b, size_t batch, pc_plan_draft *pd)
 {
-    size_t i, j, k, n_roots = 0;
+    size_t i, j;
     pc_status st;
-    int32_t *roots;
-    const size_t n_io = b->n_inputs + b->n_outputs;
     /* At most one launch per node; every field is written by pc_add_draft. */
     pd->n_drafts = 0;
     pd->drafts = pc_scratch_alloc_raw(&b->scratch, (b->n_nodes + 1) * sizeof *pd->drafts);
@@ -135,7 +133,14 @@ static pc_status pc_plan_batch(pc_builder *b, size_t batch, pc_plan_draft *pd,
                            (long long)(o->rank > 0 ? o->dims[0] : -1),
                            (long long)(o->rank > 1 ? o->dims[1] : -1), batch);
     }
-    /* Liveness per storage root. */
+    return PC_OK;
+}
+
+/* First and last step using each storage root; graph inputs and outputs live from
+ * before the first step and past the last one. */
+static void pc_plan_lifetimes(pc_builder *b, const pc_plan_draft *pd)
+{
+    size_t i, j;
     for (i = 0; i < pd->n_drafts; i++) {
         const pc_draft *d = &pd->drafts[i];
         for (j = 0; j < d->n_io; j++) {
@@ -165,7 +170,13 @@ static pc_status pc_plan_batch(pc_builder *b, size_t batch, pc_plan_draft *pd,
                 b->values[r].def = -1;
         }
     }
-    /* Greedy first-fit over lifetimes, in order of definition. */
+}
+
+/* Greedy first-fit of the roots over their lifetimes, in order of definition. */
+static pc_status pc_plan_place(pc_builder *b, pc_plan_draft *pd)
+{
+    size_t i, k, n_roots = 0;
+    int32_t *roots;
     roots = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof(int32_t));
     if (!roots)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
@@ -219,7 +230,15 @@ static pc_status pc_plan_batch(pc_builder *b, size_t batch, pc_plan_draft *pd,
                 pd->act_bytes = off + sizes[i];
         }
     }
-    /* Resolve every operand to a location. */
+    return PC_OK;
+}
+
+/* Every operand as a location code: activation offset or constant slot. */
+static pc_status pc_plan_locate(pc_builder *b, pc_plan_draft *pd, size_t batch,
+                                size_t *const_bytes)
+{
+    size_t i, j;
+    const size_t n_io = b->n_inputs + b->n_outputs;
     pd->batch = batch;
     pd->loc = pc_scratch_alloc(&b->scratch, (pd->n_drafts + 1) * sizeof(size_t *));
     pd->io_loc = pc_scratch_alloc(&b->scratch, (n_io + 1) * sizeof(size_t));
@@ -250,106 +269,132 @@ static pc_status pc_plan_batch(pc_builder *b, size_t batch, pc_plan_draft *pd,
     return PC_OK;
 }
 
-pc_status pc_plan_build(pc_builder *b, const pc_options *opts, void *buf, size_t buf_size,
-                        pc_model **model_out)
-{
-    size_t max_batch = opts && opts->max_batch ? opts->max_batch : PC_DEFAULT_MAX_BATCH;
-    size_t n_plans = 0, k, i, j, const_bytes = 0, size, act_bytes = 0, meta_bytes = 0;
-    size_t step_bytes = 0, batch, slot_bytes;
-    const size_t n_io = b->n_inputs + b->n_outputs;
-    pc_plan_draft *pds;
-    pc_status st;
-    uint8_t *arena, *cursor, *const_base, *act_base;
-    pc_model *m;
 
-    if (max_batch > PC_MAX_MAX_BATCH)
-        max_batch = PC_MAX_MAX_BATCH;
-    for (k = 1; 2 * k <= max_batch; k *= 2)
+static pc_status pc_plan_batch(pc_builder *b, size_t batch, pc_plan_draft *pd,
+                               size_t *const_bytes)
+{
+    pc_status st;
+    if ((st = pc_plan_steps(b, batch, pd)) != PC_OK)
+        return st;
+    pc_plan_lifetimes(b, pd);
+    if ((st = pc_plan_place(b, pd)) != PC_OK)
+        return st;
+    return pc_plan_locate(b, pd, batch, const_bytes);
+}
+
+/* Sizes of the arena's parts, known once every plan is drafted. */
+typedef struct pc_layout {
+    size_t max_batch, n_plans;
+    pc_plan_draft *pds;
+    size_t meta_bytes, slot_bytes, step_bytes, const_bytes, act_bytes, size;
+} pc_layout;
+
+/* Plans for N = 1, 16, 256, ... and max_batch: planning is most of the load time, and a
+ * remainder below 16 poses runs pose by pose at little cost per pose. */
+static pc_status pc_plan_all(pc_builder *b, const pc_options *opts, pc_layout *L)
+{
+    size_t k, i, batch;
+    pc_status st;
+    memset(L, 0, sizeof *L);
+    L->max_batch = opts && opts->max_batch ? opts->max_batch : PC_DEFAULT_MAX_BATCH;
+    if (L->max_batch > PC_MAX_MAX_BATCH)
+        L->max_batch = PC_MAX_MAX_BATCH;
+    for (k = 1; 2 * k <= L->max_batch; k *= 2)
         ;
-    max_batch = k;
-    /* Plans for N = 1, 16, 256, ... and max_batch: planning is most of the load time, and
-     * a remainder below 16 poses runs pose by pose at little cost per pose. */
-    for (k = 1; k < max_batch; k *= PC_PLAN_STRIDE)
-        n_plans++;
-    n_plans++;
+    L->max_batch = k;
+    for (k = 1; k < L->max_batch; k *= PC_PLAN_STRIDE)
+        L->n_plans++;
+    L->n_plans++;
     if (b->any_io) /* static shapes: one plan */
-        n_plans = max_batch = 1;
-    pds = pc_scratch_alloc(&b->scratch, n_plans * sizeof *pds);
-    if (!pds)
+        L->n_plans = L->max_batch = 1;
+    L->pds = pc_scratch_alloc(&b->scratch, L->n_plans * sizeof *L->pds);
+    if (!L->pds)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    for (k = 0, batch = 1; k < n_plans; k++, batch *= PC_PLAN_STRIDE) {
-        if ((st = pc_plan_batch(b, batch < max_batch ? batch : max_batch, &pds[k],
-                                &const_bytes)) != PC_OK)
+    for (k = 0, batch = 1; k < L->n_plans; k++, batch *= PC_PLAN_STRIDE) {
+        const pc_plan_draft *pd = &L->pds[k];
+        if ((st = pc_plan_batch(b, batch < L->max_batch ? batch : L->max_batch, &L->pds[k],
+                                &L->const_bytes)) != PC_OK)
             return st;
-        if (pds[k].act_bytes > act_bytes)
-            act_bytes = pds[k].act_bytes;
-        step_bytes += pc_round(pds[k].n_drafts * sizeof(pc_step) + 1);
-        for (i = 0; i < pds[k].n_drafts; i++)
-            step_bytes += pc_round(pds[k].drafts[i].n_io * sizeof(void *) + 1) +
-                          pc_round(pds[k].drafts[i].prm_size + 1);
+        if (pd->act_bytes > L->act_bytes)
+            L->act_bytes = pd->act_bytes;
+        L->step_bytes += pc_round(pd->n_drafts * sizeof(pc_step) + 1);
+        for (i = 0; i < pd->n_drafts; i++)
+            L->step_bytes += pc_round(pd->drafts[i].n_io * sizeof(void *) + 1) +
+                             pc_round(pd->drafts[i].prm_size + 1);
     }
     for (i = 0; i < b->n_meta; i++)
-        meta_bytes += b->meta[i].key.size + b->meta[i].value.size + 2;
-    slot_bytes = b->any_io ? pc_round(n_io * sizeof(pc_slot) + 1) : 0;
-    size = pc_round(sizeof(pc_model)) + pc_round(n_plans * sizeof(pc_plan)) + slot_bytes +
-           pc_round(2 * (b->n_meta + 1) * sizeof(char *)) + pc_round(meta_bytes + 1) +
-           step_bytes + const_bytes + act_bytes + PC_ALIGN;
-    if (size > ((size_t)1 << 29))
+        L->meta_bytes += b->meta[i].key.size + b->meta[i].value.size + 2;
+    L->slot_bytes = b->any_io ? pc_round((b->n_inputs + b->n_outputs) * sizeof(pc_slot) + 1) : 0;
+    L->size = pc_round(sizeof(pc_model)) + pc_round(L->n_plans * sizeof(pc_plan)) +
+              L->slot_bytes + pc_round(2 * (b->n_meta + 1) * sizeof(char *)) +
+              pc_round(L->meta_bytes + 1) + L->step_bytes + L->const_bytes + L->act_bytes +
+              PC_ALIGN;
+    if (L->size > ((size_t)1 << 29))
         return pc_fail(b->err, PC_ERR_UNSUPPORTED, "model needs a %zu-byte arena (limit 512 MiB)",
-                       size);
+                       L->size);
+    return PC_OK;
+}
+
+/* The arena: malloc'd, or the end of the caller's buffer (its start holds the scratch
+ * still in use). */
+static pc_status pc_arena(pc_builder *b, size_t size, void *buf, size_t buf_size,
+                          uint8_t **arena)
+{
     if (buf) {
-        /* The end of the caller's buffer; its start holds the scratch still in use. */
-        arena = (uint8_t *)(((uintptr_t)buf + buf_size - size) / PC_ALIGN * PC_ALIGN);
-        if ((uintptr_t)buf + buf_size < size || (uintptr_t)arena < (uintptr_t)buf ||
-            arena < b->scratch.fixed)
+        *arena = (uint8_t *)(((uintptr_t)buf + buf_size - size) / PC_ALIGN * PC_ALIGN);
+        if ((uintptr_t)buf + buf_size < size || (uintptr_t)*arena < (uintptr_t)buf ||
+            *arena < b->scratch.fixed)
             return pc_fail(b->err, PC_ERR_MEMORY, "the %zu-byte buffer is too small for the "
                            "model (pc_required_bytes)", buf_size);
-    } else {
-        arena = (uint8_t *)malloc(size);
-        if (!arena)
-            return pc_fail(b->err, PC_ERR_MEMORY, "cannot allocate the %zu-byte model arena",
-                           size);
+    } else if (!(*arena = (uint8_t *)malloc(size))) {
+        return pc_fail(b->err, PC_ERR_MEMORY, "cannot allocate the %zu-byte model arena", size);
     }
-    memset(arena, 0, size);
-    /* Layout: model | plans | metadata | steps (per plan: steps, io, params) | constants |
-     * activations. Steps of one plan are contiguous so a single-pose run stays in a few
-     * cache lines. */
-    m = (pc_model *)arena;
-    cursor = arena + pc_round(sizeof(pc_model));
-    m->arena_bytes = size;
-    m->owns_arena = buf == NULL;
-    m->max_batch = max_batch;
-    m->n_plans = n_plans;
+    memset(*arena, 0, size);
+    return PC_OK;
+}
+
+static char *pc_copy_string(char *dst, pb_slice s, const char **out)
+{
+    if (s.size)
+        memcpy(dst, s.data, s.size);
+    dst[s.size] = '\0';
+    *out = dst;
+    return dst + s.size + 1;
+}
+
+/* Layout: model | plans | slots | metadata | steps (per plan: steps, io, params) |
+ * constants | activations. Steps of one plan are contiguous so a single-pose run stays
+ * in a few cache lines. */
+static pc_model *pc_pack(const pc_builder *b, const pc_layout *L, uint8_t *arena)
+{
+    pc_model *m = (pc_model *)arena;
+    uint8_t *cursor = arena + pc_round(sizeof(pc_model)), *const_base, *act_base;
+    const size_t n_io = b->n_inputs + b->n_outputs;
+    size_t i, j, k;
+    char *s;
+    m->arena_bytes = L->size;
+    m->max_batch = L->max_batch;
+    m->n_plans = L->n_plans;
     m->n_nodes = b->n_nodes;
     m->plans = (pc_plan *)cursor;
-    cursor += pc_round(n_plans * sizeof(pc_plan));
+    cursor += pc_round(L->n_plans * sizeof(pc_plan));
     if (b->any_io) {
         m->slots = (pc_slot *)cursor;
         m->n_in_slots = b->n_inputs;
         m->n_out_slots = b->n_outputs;
-        cursor += slot_bytes;
+        cursor += L->slot_bytes;
     }
     m->n_meta = b->n_meta;
     m->meta_key = (const char **)cursor;
     m->meta_value = m->meta_key + b->n_meta + 1;
     cursor += pc_round(2 * (b->n_meta + 1) * sizeof(char *));
-    {
-        char *s = (char *)cursor;
-        for (i = 0; i < b->n_meta; i++) {
-            memcpy(s, b->meta[i].key.data ? (const void *)b->meta[i].key.data : "", b->meta[i].key.size);
-            s[b->meta[i].key.size] = '\0';
-            m->meta_key[i] = s;
-            s += b->meta[i].key.size + 1;
-            memcpy(s, b->meta[i].value.data ? (const void *)b->meta[i].value.data : "",
-                   b->meta[i].value.size);
-            s[b->meta[i].value.size] = '\0';
-            m->meta_value[i] = s;
-            s += b->meta[i].value.size + 1;
-        }
-        cursor += pc_round(meta_bytes + 1);
+    for (s = (char *)cursor, i = 0; i < b->n_meta; i++) {
+        s = pc_copy_string(s, b->meta[i].key, &m->meta_key[i]);
+        s = pc_copy_string(s, b->meta[i].value, &m->meta_value[i]);
     }
-    const_base = cursor + step_bytes;
-    act_base = const_base + const_bytes;
+    cursor += pc_round(L->meta_bytes + 1);
+    const_base = cursor + L->step_bytes;
+    act_base = const_base + L->const_bytes;
     act_base = (uint8_t *)(((uintptr_t)act_base + PC_ALIGN - 1) / PC_ALIGN * PC_ALIGN);
     for (i = 0; i < b->n_values; i++) {
         const pc_value *v = &b->values[i];
@@ -359,9 +404,9 @@ pc_status pc_plan_build(pc_builder *b, const pc_options *opts, void *buf, size_t
 #define PC_RESOLVE(loc) \
     ((loc) == PC_LOC_NONE ? NULL : ((loc)&1) ? (void *)(const_base + ((loc) >> 1)) \
                                              : (void *)(act_base + ((loc) >> 1)))
-    for (k = 0; k < n_plans; k++) {
+    for (k = 0; k < L->n_plans; k++) {
         pc_plan *plan = &m->plans[k];
-        const pc_plan_draft *pd = &pds[k];
+        const pc_plan_draft *pd = &L->pds[k];
         pc_step *steps = (pc_step *)cursor;
         cursor += pc_round(pd->n_drafts * sizeof(pc_step) + 1);
         plan->batch = pd->batch;
@@ -392,6 +437,19 @@ pc_status pc_plan_build(pc_builder *b, const pc_options *opts, void *buf, size_t
         }
     }
 #undef PC_RESOLVE
-    *model_out = m;
+    return m;
+}
+
+pc_status pc_plan_build(pc_builder *b, const pc_options *opts, void *buf, size_t buf_size,
+                        pc_model **model_out)
+{
+    pc_layout L;
+    uint8_t *arena;
+    pc_status st;
+    if ((st = pc_plan_all(b, opts, &L)) != PC_OK ||
+        (st = pc_arena(b, L.size, buf, buf_size, &arena)) != PC_OK)
+        return st;
+    *model_out = pc_pack(b, &L, arena);
+    (*model_out)->owns_arena = buf == NULL;
     return PC_OK;
 }

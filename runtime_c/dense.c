@@ -41,8 +41,10 @@ PC_INLINE void pc_apply_act(const pc_gemm *q, float *restrict o, size_t n)
             o[i] = o[i] > 0.0f ? o[i] : (o[i] != o[i] ? o[i] : 0.0f);
         break;
     case PC_ACT_CLIP:
-        for (i = 0; i < n; i++)
-            o[i] = o[i] < lo ? lo : o[i] > hi ? hi : o[i];
+        for (i = 0; i < n; i++) {
+            const float t = o[i] < lo ? lo : o[i];
+            o[i] = t > hi ? hi : t; /* min(max(x, lo), hi), as Clip */
+        }
         break;
     default:
         break;

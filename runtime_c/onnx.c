@@ -662,9 +662,10 @@ pc_status onnx_parse_model(pc_builder *b)
         return r.status;
     if (!has_graph)
         return pc_fail(b->err, PC_ERR_MALFORMED, "model has no graph (not an ONNX file?)");
-    if (b->opset < 13 || b->opset > 21)
+    if (b->opset < PC_OPSET_MIN || b->opset > PC_OPSET_MAX)
         return pc_fail(b->err, PC_ERR_UNSUPPORTED,
-                       "default-domain opset %lld is not supported (13..21)", (long long)b->opset);
+                       "default-domain opset %lld is not supported (%d..%d)", (long long)b->opset,
+                       PC_OPSET_MIN, PC_OPSET_MAX);
     b->meta = pc_scratch_alloc(&b->scratch, (n_meta + 1) * sizeof(pc_meta));
     if (!b->meta)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");

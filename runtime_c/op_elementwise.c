@@ -396,8 +396,8 @@ static pc_status k_clip_f(const pc_step *s)
     const float lo = q->lo, hi = q->hi;
     size_t i;
     for (i = 0; i < s->n; i++) {
-        const float a = A[i];
-        O[i] = a < lo ? lo : a > hi ? hi : a;
+        const float t = A[i] < lo ? lo : A[i];
+        O[i] = t > hi ? hi : t; /* min(max(a, lo), hi): hi when lo > hi, as ONNX says */
     }
     return PC_OK;
 }

@@ -121,12 +121,12 @@ pc_status pc_op_ArgMax(pc_prep *p)
 }
 
 
-#define PC_REDUCE(NAME, INIT, ACC)                                                             \
+#define PC_REDUCE(NAME, T, INIT, ACC)                                                          \
     static pc_status NAME(const pc_step *s)                                                    \
     {                                                                                          \
         const pc_reduce *q = (const pc_reduce *)s->prm;                                        \
-        const float *A = (const float *)s->io[0];                                              \
-        float *O = (float *)s->io[1];                                                          \
+        const T *A = (const T *)s->io[0];                                                      \
+        T *O = (T *)s->io[1];                                                                  \
         size_t i0, i1, i2, i3, i4, i5, i = 0;                                                  \
         for (i0 = 0; i0 < s->n; i0++)                                                          \
             O[i0] = (INIT);                                                                    \
@@ -135,20 +135,24 @@ pc_status pc_op_ArgMax(pc_prep *p)
                 for (i2 = 0; i2 < q->d[2]; i2++)                                               \
                     for (i3 = 0; i3 < q->d[3]; i3++)                                           \
                         for (i4 = 0; i4 < q->d[4]; i4++) {                                     \
-                            float *o = O + i0 * q->ost[0] + i1 * q->ost[1] + i2 * q->ost[2] +  \
+                            T *o = O + i0 * q->ost[0] + i1 * q->ost[1] + i2 * q->ost[2] +  \
                                        i3 * q->ost[3] + i4 * q->ost[4];                        \
                             for (i5 = 0; i5 < q->d[5]; i5++, i++) {                            \
-                                float *y = o + i5 * q->ost[5];                                 \
-                                const float a = A[i];                                          \
+                                T *y = o + i5 * q->ost[5];                                     \
+                                const T a = A[i];                                              \
                                 ACC;                                                           \
                             }                                                                  \
                         }                                                                      \
         return PC_OK;                                                                          \
     }
-PC_REDUCE(k_reduce_sum, 0.0f, *y += a)
-PC_REDUCE(k_reduce_max, -INFINITY, if (a > *y || a != a) *y = a)
+PC_REDUCE(k_reduce_sum, float, 0.0f, *y += a)
+PC_REDUCE(k_reduce_max, float, -INFINITY, if (a > *y || a != a) *y = a)
+PC_REDUCE(k_reduce_sum_i, int64_t, 0, *y = (int64_t)((uint64_t)*y + (uint64_t)a))
+PC_REDUCE(k_reduce_max_i, int64_t, INT64_MIN, if (a > *y) *y = a)
+PC_REDUCE(k_reduce_max_b, uint8_t, 0, *y = (uint8_t)(*y | a))
 
-static pc_status pc_reduce_prepare(pc_prep *p, pc_kernel_fn fn)
+/* fn[0] float32, fn[1] int64, fn[2] bool (NULL: not defined for that type). */
+static pc_status pc_reduce_prepare(pc_prep *p, const pc_kernel_fn *fns)
 {
     int64_t axes[PC_MAX_RANK], keep, noop, dims[PC_MAX_RANK];
     int red[PC_MAX_RANK] = {0}, j, r = 0, given;
@@ -156,16 +160,21 @@ static pc_status pc_reduce_prepare(pc_prep *p, pc_kernel_fn fn)
     pc_reduce *q;
     const pc_value *a;
     pc_status s;
-    if (p->n_in < 1 || !p->in[0] || p->in[0]->dtype != PC_F32 || p->n_out != 1)
-        return pc_prep_fail(p, PC_ERR_UNSUPPORTED, "needs one float input");
+    pc_kernel_fn fn;
+    if (p->n_in < 1 || !p->in[0] || p->n_out != 1)
+        return pc_prep_fail(p, PC_ERR_GRAPH, "needs one input and one output");
     a = p->in[0];
+    fn = fns[a->dtype == PC_F32 ? 0 : a->dtype == PC_I64 ? 1 : 2];
+    if (!fn)
+        return pc_prep_fail(p, PC_ERR_UNSUPPORTED, "no kernel for %s input",
+                            pc_dtype_name(a->dtype));
     if ((s = pc_axes(p, axes, &n, &given)) != PC_OK ||
         (s = pc_attr_int(p, "keepdims", 1, &keep)) != PC_OK ||
         (s = pc_attr_int(p, "noop_with_empty_axes", 0, &noop)) != PC_OK)
         return s;
     if (n == 0 && noop) {
         p->alias_of = p->in_ids[0];
-        return pc_set_out(p, 0, PC_F32, a->rank, a->dims);
+        return pc_set_out(p, 0, a->dtype, a->rank, a->dims);
     }
     for (k = 0; k < n; k++) {
         if ((s = pc_norm_axis(p, &axes[k], a->rank)) != PC_OK)
@@ -218,8 +227,17 @@ static pc_status pc_reduce_prepare(pc_prep *p, pc_kernel_fn fn)
         }
     }
     p->n_in = 1; /* axes are consumed here, not by the kernel */
-    return pc_set_out(p, 0, PC_F32, r, dims);
+    return pc_set_out(p, 0, a->dtype, r, dims);
 }
 
-pc_status pc_op_ReduceSum(pc_prep *p) { return pc_reduce_prepare(p, k_reduce_sum); }
-pc_status pc_op_ReduceMax(pc_prep *p) { return pc_reduce_prepare(p, k_reduce_max); }
+pc_status pc_op_ReduceSum(pc_prep *p)
+{
+    static const pc_kernel_fn fns[3] = {k_reduce_sum, k_reduce_sum_i, NULL};
+    return pc_reduce_prepare(p, fns);
+}
+
+pc_status pc_op_ReduceMax(pc_prep *p)
+{
+    static const pc_kernel_fn fns[3] = {k_reduce_max, k_reduce_max_i, k_reduce_max_b};
+    return pc_reduce_prepare(p, fns);
+}

@@ -36,6 +36,10 @@ extern "C" {
 /* What pc_version() returns for the library this header belongs to. */
 #define PC_VERSION_NUMBER (PC_VERSION_MAJOR * 10000 + PC_VERSION_MINOR * 100 + PC_VERSION_PATCH)
 
+/* Default-domain opsets the loader accepts (export/operators.txt lists the operators). */
+#define PC_OPSET_MIN 13
+#define PC_OPSET_MAX 21
+
 /* Poses are 7 floats: x, y, z, qw, qx, qy, qz. */
 #define PC_POSE_WIDTH 7
 /* Default and upper bound of pc_options.max_batch. */

@@ -177,6 +177,35 @@ def run_case(lib: ctypes.CDLL, case) -> None:
         lib.pc_free(handle)
 
 
+# Attributes a newer operator version added that cannot matter for the data types the
+# runtime computes in, with the reason.
+ALLOWED_NEW_ATTRIBUTES = {("Cast", "round_mode"): "rounding of float8/float4 targets only"}
+# The opset whose operator signatures the runtime was written against.
+BASE_OPSET = 21
+
+
+def _signature(schema):
+    return ({a.name: (a.type, a.required) for a in schema.attributes.values()},
+            [(i.name, i.option) for i in schema.inputs], [(o.name, o.option) for o in schema.outputs],
+            schema.min_input, schema.max_input, schema.min_output, schema.max_output)
+
+
+def test_claimed_opsets_keep_every_operator_signature():
+    """Claiming opsets past BASE_OPSET is sound only while no operator of operators.txt
+    gained an input, output or attribute that matters (new versions that only widen
+    the type lists are fine: the loader refuses types it does not compute in)."""
+    from onnx import defs
+
+    for op in sorted(OPERATORS):
+        old = _signature(defs.get_schema(op, BASE_OPSET))
+        for opset in range(BASE_OPSET + 1, OPSETS.stop):
+            new = _signature(defs.get_schema(op, opset))
+            added = {a for a in new[0].keys() - old[0].keys()
+                     if (op, a) not in ALLOWED_NEW_ATTRIBUTES}
+            assert not added and {a: new[0][a] for a in old[0]} == old[0], (op, opset)
+            assert new[1:] == old[1:], (op, opset)
+
+
 def test_onnx_node_conformance(testing_lib):
     chosen, other = select(_load_cases())
     passed, skipped, failed = [], Counter(), []

@@ -20,6 +20,12 @@ static int pc_same_result(float a, float b)
     return (a != a && b != b) || d <= 1e-5f * (s > 1.0f ? s : 1.0f);
 }
 
+static pc_status pc_forget_probe(pc_model *m)
+{
+    m->message[0] = '\0';
+    return PC_OK;
+}
+
 /* pc_run splits a batch into chunks, so row i of the result must not depend on row j:
  * every pose of a batch plan must give what it gives alone. Checked on probe poses
  * (a reduction, reshape or gather across the batch axis fails it). */
@@ -46,12 +52,12 @@ static pc_status pc_check_rows(pc_model *m, pc_error *err)
     /* A probe the model cannot run says nothing about rows: pc_run will report it. */
     memcpy(batch->in, in, batch->batch * PC_POSE_WIDTH * sizeof(float));
     if (pc_run_steps(m, batch) != PC_OK)
-        return PC_OK;
+        return pc_forget_probe(m);
     memcpy(out, batch->out, batch->batch * PC_POSE_WIDTH * sizeof(float));
     for (r = 0; r < batch->batch; r++) {
         memcpy(one->in, in + r * PC_POSE_WIDTH, sizeof(float) * PC_POSE_WIDTH);
         if (pc_run_steps(m, one) != PC_OK)
-            return PC_OK;
+            return pc_forget_probe(m);
         for (i = 0; i < PC_POSE_WIDTH; i++)
             if (!pc_same_result(one->out[i], out[r * PC_POSE_WIDTH + i]))
                 return pc_fail(err, PC_ERR_GRAPH,
@@ -60,7 +66,6 @@ static pc_status pc_check_rows(pc_model *m, pc_error *err)
                                "independent (no reduction, reshape or gather across the batch "
                                "axis)", r, batch->batch, i);
     }
-    m->message[0] = '\0';
     return PC_OK;
 }
 

@@ -283,16 +283,20 @@ static pc_status onnx_parse_node(pc_builder *b, pb_slice msg, pc_node *node)
             if (ni > 4096 || no > 16 || na > 256)
                 return pc_fail(b->err, PC_ERR_UNSUPPORTED,
                                "node '%.*s' has too many inputs or outputs", PC_NAME(node->name));
+            /* One block per node (slices first, then ids, so every part is aligned):
+             * scratch rounds each allocation up, and small graphs run on small targets. */
+            pb_slice *slices = pc_scratch_alloc(&b->scratch, (ni + no + na + 3) * sizeof(pb_slice) +
+                                                             (ni + no + 2) * sizeof(int32_t));
+            if (!slices)
+                return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
             node->n_in = ni;
             node->n_out = no;
             node->n_attr = na;
-            node->in_names = pc_scratch_alloc(&b->scratch, (ni + 1) * sizeof(pb_slice));
-            node->out_names = pc_scratch_alloc(&b->scratch, (no + 1) * sizeof(pb_slice));
-            node->attr = pc_scratch_alloc(&b->scratch, (na + 1) * sizeof(pb_slice));
-            node->in = pc_scratch_alloc(&b->scratch, (ni + 1) * sizeof(int32_t));
-            node->out = pc_scratch_alloc(&b->scratch, (no + 1) * sizeof(int32_t));
-            if (!node->in_names || !node->out_names || !node->attr || !node->in || !node->out)
-                return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
+            node->in_names = slices;
+            node->out_names = node->in_names + ni + 1;
+            node->attr = node->out_names + no + 1;
+            node->in = (int32_t *)(node->attr + na + 1);
+            node->out = node->in + ni + 1;
         }
     }
     return PC_OK;
@@ -583,8 +587,9 @@ static pc_status onnx_parse_graph(pc_builder *b, pb_slice graph)
     }
     if (more == PB_ERROR)
         return r.status;
-    /* Values: initializers, the inputs, node outputs, and derived constants. */
-    if ((st = pc_ir_reserve(b, n_init + n_io + 4 + total_out + 3 * n_nodes + 16)) != PC_OK)
+    /* Values: initializers, the inputs, node outputs, and the constants the operators
+     * derive (a Constant's value, a transposed Gemm weight, ...: at most one per node). */
+    if ((st = pc_ir_reserve(b, n_init + n_io + total_out + n_nodes + 16)) != PC_OK)
         return st;
     pb_init(&r, b->file, graph);
     while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {

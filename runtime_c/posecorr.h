@@ -99,7 +99,9 @@ PC_API void pc_free(pc_model *model);
  * caller's buffer, which must stay alive and untouched while the model is used (pc_free
  * is then a no-op). pc_required_bytes gives the buffer size pc_load_into needs for this
  * file and these options (it allocates; run it on a host or once at start-up). The
- * buffer holds load-time scratch too, so it is larger than pc_arena_bytes. */
+ * buffer holds load-time scratch too, so it is larger than pc_arena_bytes: after the
+ * call the model occupies only [(char *)model, (char *)model + pc_arena_bytes(model)),
+ * at the end of the buffer, and the bytes before it are free for the caller again. */
 PC_API pc_status pc_required_bytes(const void *data, size_t size, const pc_options *opts,
                                    size_t *bytes, pc_error *err);
 PC_API pc_status pc_load_into(const void *data, size_t size, const pc_options *opts,

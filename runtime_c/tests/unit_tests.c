@@ -374,6 +374,9 @@ static void test_load_into(void)
             ok = 0;
     CHECK(ok);
     CHECK((unsigned char *)m >= arena && (unsigned char *)m + pc_arena_bytes(m) <= arena + 1 + need);
+    /* the scratch before the model is the caller's again */
+    memset(arena, 0xA5, (size_t)((unsigned char *)m - arena));
+    CHECK(m && pc_run(m, in, 40, out) == PC_OK && out[7] == in[7] + c[0]);
     pc_free(m); /* a no-op: the caller owns the buffer */
     CHECK(pc_load_into(model.d, model.n, NULL, NULL, need, &m, &err) == PC_ERR_ARGUMENT);
 }

@@ -613,8 +613,10 @@ static pc_status onnx_parse_graph(pc_builder *b, pb_slice graph)
 
 /* ---- ModelProto ------------------------------------------------------------------- */
 
-/* key and value of a StringStringEntryProto; domain and version of an OperatorSetIdProto. */
-static pc_status onnx_pair(const pc_builder *b, pb_slice msg, pb_slice *first, pb_slice *second,
+/* Field `first` (bytes) and field `second` (bytes or varint) of a small message:
+ * StringStringEntryProto key/value, OperatorSetIdProto domain/version. */
+static pc_status onnx_pair(const pc_builder *b, pb_slice msg, uint32_t first_number,
+                           uint32_t second_number, pb_slice *first, pb_slice *second,
                            int64_t *number)
 {
     pb_reader r;
@@ -622,11 +624,11 @@ static pc_status onnx_pair(const pc_builder *b, pb_slice msg, pb_slice *first, p
     int more;
     pb_init(&r, b->file, msg);
     while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
-        if (f.number == 1 && f.wire == PB_BYTES)
+        if (f.number == first_number && f.wire == PB_BYTES)
             *first = f.bytes;
-        if (f.number == 2 && f.wire == PB_BYTES && second)
+        if (f.number == second_number && f.wire == PB_BYTES && second)
             *second = f.bytes;
-        if (f.number == 2 && f.wire == PB_VARINT && number)
+        if (f.number == second_number && f.wire == PB_VARINT && number)
             *number = (int64_t)f.varint;
     }
     return more == PB_ERROR ? r.status : PC_OK;
@@ -655,7 +657,8 @@ pc_status onnx_parse_model(pc_builder *b)
         } else if (f.number == ONNX_MODEL_OPSET_IMPORT) {
             pb_slice domain = {NULL, 0};
             int64_t version = -1;
-            if ((st = onnx_pair(b, f.bytes, &domain, NULL, &version)) != PC_OK)
+            if ((st = onnx_pair(b, f.bytes, ONNX_OPSET_DOMAIN, ONNX_OPSET_VERSION, &domain, NULL,
+                                &version)) != PC_OK)
                 return st;
             if (domain.size == 0 || pb_slice_eq(domain, "ai.onnx"))
                 b->opset = version;
@@ -678,8 +681,8 @@ pc_status onnx_parse_model(pc_builder *b)
     while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
         if (f.number != ONNX_MODEL_METADATA_PROPS)
             continue;
-        if ((st = onnx_pair(b, f.bytes, &b->meta[b->n_meta].key, &b->meta[b->n_meta].value,
-                            NULL)) != PC_OK)
+        if ((st = onnx_pair(b, f.bytes, ONNX_STRING_KEY, ONNX_STRING_VALUE,
+                            &b->meta[b->n_meta].key, &b->meta[b->n_meta].value, NULL)) != PC_OK)
             return st;
         b->n_meta++;
     }

@@ -1,6 +1,6 @@
 /* Dense kernels (Gemm, MatMul, fused activations): the hot path of an MLP corrector.
  * Built with the vectoriser on; everything else in ops.c is built for size. */
-#include "pc_internal.h"
+#include "kernels.h"
 
 #include <math.h>
 #include <string.h>
@@ -41,8 +41,10 @@ PC_INLINE void pc_apply_act(const pc_gemm *q, float *restrict o, size_t n)
             o[i] = o[i] > 0.0f ? o[i] : (o[i] != o[i] ? o[i] : 0.0f);
         break;
     case PC_ACT_CLIP:
-        for (i = 0; i < n; i++)
-            o[i] = o[i] < lo ? lo : o[i] > hi ? hi : o[i];
+        for (i = 0; i < n; i++) {
+            const float t = o[i] < lo ? lo : o[i];
+            o[i] = t > hi ? hi : t; /* min(max(x, lo), hi), as Clip */
+        }
         break;
     default:
         break;
@@ -219,7 +221,7 @@ __attribute__((target("avx2"))) static pc_status k_gemm_rows_avx2(const pc_step 
 }
 
 /* AVX2 needs the CPU flag and the OS saving YMM state (XCR0 bits 1 and 2). */
-static int pc_cpu_avx2(void)
+int pc_cpu_avx2(void)
 {
     unsigned a, b, c, d;
     if (!__get_cpuid(1, &a, &b, &c, &d) || !(c & bit_OSXSAVE) || !(c & bit_AVX))
@@ -229,20 +231,16 @@ static int pc_cpu_avx2(void)
         return 0;
     return __get_cpuid_count(7, 0, &a, &b, &c, &d) && (b & bit_AVX2);
 }
-#endif
 
-pc_kernel_fn pc_gemm_rows_kernel(pc_builder *b)
-{
-#ifdef PC_HAVE_AVX2
-    if (b->cpu_avx2 < 0)
-        b->cpu_avx2 = pc_cpu_avx2(); /* cpuid traps to the hypervisor in a VM: ask once */
-    if (b->cpu_avx2)
-        return k_gemm_rows_avx2;
+const pc_kernel_fn pc_gemm_rows_kernels[2] = {k_gemm_rows, k_gemm_rows_avx2};
 #else
-    (void)b;
-#endif
-    return k_gemm_rows;
+int pc_cpu_avx2(void)
+{
+    return 0;
 }
+
+const pc_kernel_fn pc_gemm_rows_kernels[2] = {k_gemm_rows, k_gemm_rows};
+#endif
 
 PC_COLD pc_status k_matmul(const pc_step *s)
 {

@@ -1,7 +1,7 @@
 /* The float elementwise kernels that run on every pose: arithmetic in each broadcast
  * layout, Where, and the unary maths. Built with the vectoriser on (see CMakeLists.txt);
  * the general broadcast kernels, which only odd graphs reach, are built for size. */
-#include "pc_internal.h"
+#include "kernels.h"
 
 #include <math.h>
 #include <string.h>
@@ -205,4 +205,9 @@ pc_status k_reduce_sum_last(const pc_step *s)
         O[o] = acc;
     }
     return PC_OK;
+}
+
+float pc_tanh(float x)
+{
+    return pc_tanh_inline(x);
 }

@@ -1,8 +1,8 @@
 /*
  * posecorr.h - the one public header of libposecorr.
  *
- * libposecorr loads a posecorr corrector (.onnx, opset 13..21, the operator subset of
- * export/operators.txt) and applies it to tracker poses:
+ * libposecorr loads a posecorr corrector (.onnx, opset PC_OPSET_MIN..PC_OPSET_MAX, the
+ * operator subset of export/operators.txt) and applies it to tracker poses:
  *
  *     input  "pose"      float32 [N,7] = x, y, z, qw, qx, qy, qz
  *     output "corrected" float32 [N,7]
@@ -31,8 +31,16 @@ extern "C" {
 #endif
 
 #define PC_VERSION_MAJOR 0
-#define PC_VERSION_MINOR 1
+#define PC_VERSION_MINOR 2
 #define PC_VERSION_PATCH 0
+/* What pc_version() returns for the library this header belongs to. */
+#define PC_VERSION_NUMBER (PC_VERSION_MAJOR * 10000 + PC_VERSION_MINOR * 100 + PC_VERSION_PATCH)
+
+/* Default-domain opsets the loader accepts (export/operators.txt lists the operators).
+ * Past 21 the operators of the list only widened their type lists (ONNX's node tests at
+ * these opsets pass, tests/test_onnx_node.py checks the signatures). */
+#define PC_OPSET_MIN 13
+#define PC_OPSET_MAX 28
 
 /* Poses are 7 floats: x, y, z, qw, qx, qy, qz. */
 #define PC_POSE_WIDTH 7
@@ -53,9 +61,14 @@ typedef enum pc_status {
     PC_ERR_GRAPH,          /* dangling input, cycle, duplicate output, ... */
     PC_ERR_SHAPE,          /* shapes or types of a node do not fit together */
     PC_ERR_NONFINITE,      /* NaN or infinity in an input pose */
-    PC_ERR_RUNTIME,        /* data-dependent failure, e.g. Gather index out of range */
+    PC_ERR_RUNTIME,        /* data-dependent failure: an output not finite or not a unit
+                            * quaternion, a Gather index out of range, ... */
+    PC_ERR_RANGE,          /* input pose outside the range the model was fitted on */
     PC_STATUS_COUNT
 } pc_status;
+
+/* PC_VERSION_NUMBER of the library actually linked or loaded (e.g. by a ctypes shim). */
+PC_API int pc_version(void);
 
 /* Static description of a status code (never NULL). */
 PC_API const char *pc_status_name(pc_status status);
@@ -82,8 +95,30 @@ PC_API pc_status pc_load_file(const char *path, const pc_options *opts,
                               pc_model **model, pc_error *err);
 PC_API void pc_free(pc_model *model);
 
+/* Loading without malloc, for targets without a heap: the model is built inside the
+ * caller's buffer, which must stay alive and untouched while the model is used (pc_free
+ * is then a no-op). pc_required_bytes gives the buffer size pc_load_into needs for this
+ * file and these options (it allocates; run it on a host or once at start-up). The
+ * buffer holds load-time scratch too, so it is larger than pc_arena_bytes: after the
+ * call the model occupies only [(char *)model, (char *)model + pc_arena_bytes(model)),
+ * at the end of the buffer, and the bytes before it are free for the caller again. */
+PC_API pc_status pc_required_bytes(const void *data, size_t size, const pc_options *opts,
+                                   size_t *bytes, pc_error *err);
+PC_API pc_status pc_load_into(const void *data, size_t size, const pc_options *opts,
+                              void *buffer, size_t buffer_size, pc_model **model,
+                              pc_error *err);
+
 /* Corrects n poses: in and out hold n*7 floats and may alias. n == 0 is a no-op.
- * A non-finite input value gives PC_ERR_NONFINITE and leaves out untouched. */
+ * Checks, each with a message naming the pose and column (pc_model_message):
+ *  - a non-finite input value: PC_ERR_NONFINITE, out untouched;
+ *  - a position outside the model's metadata "input_bounds" ("[[x_lo, y_lo, z_lo],
+ *    [x_hi, y_hi, z_hi]]", metres, when the model has that key): PC_ERR_RANGE, out
+ *    untouched;
+ *  - a result that is not finite, or (models with the exporter's "posecorr_version"
+ *    key) whose quaternion is not unit within 1e-3 on |q|^2: PC_ERR_RUNTIME; poses of
+ *    earlier chunks (of max_batch, ..., 16, 1 poses) are written, the rest untouched.
+ * Loading refuses a graph whose rows are not independent (PC_ERR_GRAPH), so a result
+ * never depends on how n is split. */
 PC_API pc_status pc_run(pc_model *model, const float *in, size_t n, float *out);
 
 /* Context of the last failing pc_run on this model ("" after success). */

@@ -1,17 +1,20 @@
 /* pc_run: validate, then walk the precomputed plans. n is split greedily into chunks of
  * the planned batch sizes (max_batch, ..., 256, 16, 1) so every chunk runs a plan whose
- * shapes, pointers and kernels were fixed at load. */
-#include "pc_internal.h"
+ * shapes, pointers and kernels were fixed at load; each chunk's result is checked
+ * before it is copied out. */
+#include "model.h"
 
 #include <math.h>
 #include <string.h>
 
-static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, float *out)
+/* |q|^2 of a float32 unit quaternion after a few dozen operations is within 1e-5 of 1;
+ * anything beyond 1e-3 is not a rotation. */
+#define PC_UNIT_TOLERANCE 1e-3f
+
+pc_status pc_run_steps(pc_model *m, const pc_plan *plan)
 {
     const pc_step *s = plan->steps;
     const pc_step *const end = s + plan->n_steps;
-    const size_t count = plan->batch * PC_POSE_WIDTH;
-    memcpy(plan->in, in, count * sizeof(float));
     for (; s < end; s++) {
         const pc_status st = s->fn(s);
         if (st != PC_OK) {
@@ -20,13 +23,74 @@ static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, 
             return st;
         }
     }
+    return PC_OK;
+}
+
+/* The output contract: finite, and (posecorr's models) a unit quaternion. */
+static pc_status pc_check_output(pc_model *m, const float *out, size_t n, size_t first)
+{
+    size_t r, c;
+    for (r = 0; r < n; r++) {
+        const float *p = out + r * PC_POSE_WIDTH;
+        float n2 = 0.0f;
+        for (c = 0; c < PC_POSE_WIDTH; c++) {
+            if (!isfinite(p[c])) {
+                snprintf(m->message, sizeof m->message,
+                         "output 'corrected' of pose %zu is not finite in column %zu",
+                         first + r, c);
+                return PC_ERR_RUNTIME;
+            }
+            if (c >= 3)
+                n2 += p[c] * p[c];
+        }
+        if (m->check_quaternion && !(fabsf(n2 - 1.0f) <= PC_UNIT_TOLERANCE)) {
+            snprintf(m->message, sizeof m->message,
+                     "output 'corrected' of pose %zu has a quaternion that is not unit "
+                     "(columns 3-6)", first + r);
+            return PC_ERR_RUNTIME;
+        }
+    }
+    return PC_OK;
+}
+
+static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, float *out,
+                             size_t first)
+{
+    const size_t count = plan->batch * PC_POSE_WIDTH;
+    pc_status st;
+    memcpy(plan->in, in, count * sizeof(float));
+    if ((st = pc_run_steps(m, plan)) != PC_OK ||
+        (st = pc_check_output(m, plan->out, plan->batch, first)) != PC_OK)
+        return st;
     memmove(out, plan->out, count * sizeof(float));
+    return PC_OK;
+}
+
+/* Finite input inside the training box (when the model records one). */
+static pc_status pc_check_input(pc_model *m, const float *in, size_t n)
+{
+    size_t i;
+    for (i = 0; i < n * PC_POSE_WIDTH; i++) {
+        const size_t c = i % PC_POSE_WIDTH;
+        if (!isfinite(in[i])) {
+            snprintf(m->message, sizeof m->message,
+                     "pose %zu has a non-finite value in column %zu", i / PC_POSE_WIDTH, c);
+            return PC_ERR_NONFINITE;
+        }
+        if (m->has_bounds && c < 3 && !(in[i] >= m->lo[c] && in[i] <= m->hi[c])) {
+            snprintf(m->message, sizeof m->message,
+                     "pose %zu is outside the range the model was fitted on in column %zu "
+                     "(metadata input_bounds)", i / PC_POSE_WIDTH, c);
+            return PC_ERR_RANGE;
+        }
+    }
     return PC_OK;
 }
 
 pc_status pc_run(pc_model *model, const float *in, size_t n, float *out)
 {
-    size_t i, k, done = 0;
+    size_t k, done = 0;
+    pc_status st;
     if (!model)
         return PC_ERR_ARGUMENT;
     if (n == 0)
@@ -40,25 +104,18 @@ pc_status pc_run(pc_model *model, const float *in, size_t n, float *out)
         snprintf(model->message, sizeof model->message, "pc_run: n = %zu is too large", n);
         return PC_ERR_ARGUMENT;
     }
-    /* Reject before writing anything, so that out is untouched on error. */
-    for (i = 0; i < n * PC_POSE_WIDTH; i++) {
-        if (!isfinite(in[i])) {
-            snprintf(model->message, sizeof model->message,
-                     "pose %zu has a non-finite value in column %zu", i / PC_POSE_WIDTH,
-                     i % PC_POSE_WIDTH);
-            return PC_ERR_NONFINITE;
-        }
-    }
+    /* Reject before writing anything, so that out is untouched on these errors. */
+    if ((st = pc_check_input(model, in, n)) != PC_OK)
+        return st;
     model->message[0] = '\0';
     if (n == 1)
-        return pc_run_plan(model, &model->plans[0], in, out);
+        return pc_run_plan(model, &model->plans[0], in, out, 0);
     while (done < n) {
         const size_t left = n - done;
-        pc_status st;
         for (k = model->n_plans - 1; model->plans[k].batch > left; k--)
             ;
         st = pc_run_plan(model, &model->plans[k], in + done * PC_POSE_WIDTH,
-                         out + done * PC_POSE_WIDTH);
+                         out + done * PC_POSE_WIDTH, done);
         if (st != PC_OK)
             return st;
         done += model->plans[k].batch;

@@ -1,6 +1,8 @@
 /* Status names: one table, designated initialisers so a new code cannot be forgotten
  * silently (the size check below fails the build). */
-#include "pc_internal.h"
+#include "base.h"
+
+#include <stdarg.h>
 
 static const char *const pc_status_names[PC_STATUS_COUNT] = {
     [PC_OK] = "ok",
@@ -15,6 +17,7 @@ static const char *const pc_status_names[PC_STATUS_COUNT] = {
     [PC_ERR_SHAPE] = "shape or type mismatch",
     [PC_ERR_NONFINITE] = "non-finite input",
     [PC_ERR_RUNTIME] = "runtime error",
+    [PC_ERR_RANGE] = "pose outside the fitted range",
 };
 
 typedef char pc_status_table_is_complete[

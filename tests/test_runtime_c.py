@@ -29,7 +29,7 @@ BUILD = ROOT / "build"
 OPERATORS = [ln.split("#")[0].strip() for ln in
              (ROOT / "export" / "operators.txt").read_text().splitlines()]
 OPERATORS = [op for op in OPERATORS if op]
-CASES = graphs.op_cases()
+CASES = {**graphs.op_cases(), **graphs.cross_row_cases()}
 CROSS_ROW = graphs.CROSS_ROW
 
 
@@ -80,11 +80,16 @@ def test_operator_parity(case, lib):
     worst = 0.0
     for model in CASES[case]():
         blob = model.SerializeToString()
-        c = Corrector(blob, library=lib)
         if case in CROSS_ROW:
+            # Row i reads row j: refused at load (a batch would be split into chunks),
+            # and run pose by pose when the caller asks for batches of one.
+            with pytest.raises(PoseCorrError, match="mixes rows"):
+                Corrector(blob, library=lib)
+            c = Corrector(blob, library=lib, max_batch=1)
             got = np.stack([c.correct(p) for p in x[:20]]).astype(np.float32)
             ref = np.concatenate([ort_run(blob, p[None]) for p in x[:20]])
         else:
+            c = Corrector(blob, library=lib)
             got = c.correct(x).astype(np.float32)
             ref = ort_run(blob, x)
             # single pose and small batches go through other plans
@@ -178,6 +183,147 @@ def test_nan_input_leaves_output_untouched(lib):
     with pytest.raises(PoseCorrError):
         c.correct(x)
     assert L.pc_run(c._impl.handle, None, 0, None) == 0
+
+
+# -- the pose checks of pc_run and the load-time row check ---------------------------------
+
+PMC_ZHOU = ROOT / "models" / "pmc-zhou.onnx"
+MLP_ZHOU = ROOT / "models" / "mlp-zhou-tansig-20x20x20x20-br.onnx"
+
+
+def _status(name: str) -> int:
+    """The C enum value of a pc_status, from its name in posecorr.h."""
+    text = (ROOT / "runtime_c" / "posecorr.h").read_text()
+    body = text[text.index("typedef enum pc_status {"):text.index("} pc_status;")]
+    names = [ln.split(",")[0].split("=")[0].strip() for ln in body.splitlines()[1:]
+             if ln.strip().startswith("PC_")]
+    return names.index(name)
+
+
+def _run_raw(c: Corrector, lib: str, x: np.ndarray) -> tuple[int, np.ndarray, bytes]:
+    from posecorr.runtime import load_library
+
+    L = load_library(lib)
+    out = np.full(x.shape, 7.0, dtype=np.float32)
+    st = L.pc_run(c._impl.handle, x.ctypes.data, len(x), out.ctypes.data)
+    return st, out, L.pc_model_message(c._impl.handle)
+
+
+def test_nonfinite_output_is_an_error_naming_the_output(lib):
+    c = Corrector(PMC_ZHOU, library=lib)
+    x = np.array([[1e30, -0.6, 0.5, 1, 0, 0, 0]], dtype=np.float32)
+    st, _, msg = _run_raw(c, lib, x)
+    assert st == _status("PC_ERR_RUNTIME")
+    assert b"output 'corrected'" in msg and b"not finite" in msg
+    with pytest.raises(PoseCorrError, match="not finite"):
+        c.correct(x[0])
+    # the same model corrects a pose in range
+    assert np.all(np.isfinite(c.correct(np.array([0.1, -0.6, 0.5, 1, 0, 0, 0]))))
+
+
+def test_non_unit_quaternion_is_an_error_for_posecorr_models(lib):
+    x = graphs.random_poses(20, seed=3)
+    for meta, refused in (({}, False), ({"posecorr_version": "0.1.0"}, True)):
+        g = graphs.G()
+        y = g.op("Mul", ["pose", g.f32(np.full(7, 1.5, np.float32))])  # |q| = 1.5
+        c = Corrector(g.model(y, metadata=meta).SerializeToString(), library=lib)
+        st, out, msg = _run_raw(c, lib, x)
+        if refused:
+            assert st == _status("PC_ERR_RUNTIME") and b"not unit" in msg
+            assert b"pose 0" in msg
+        else:
+            assert st == 0 and np.allclose(out, 1.5 * x)
+
+
+def _with_metadata(path: Path, **meta: str) -> bytes:
+    m = onnx.load(path)
+    for k, v in meta.items():
+        e = m.metadata_props.add()
+        e.key, e.value = k, v
+    return m.SerializeToString()
+
+
+def test_input_bounds_flag_poses_outside_the_fitted_range(lib):
+    bounds = "[[-0.7, -0.8, 0.1], [0.7, 0.2, 0.9]]"
+    plain = Corrector(MLP_ZHOU, library=lib)
+    c = Corrector(_with_metadata(MLP_ZHOU, input_bounds=bounds), library=lib)
+    inside = graphs.random_poses(30, seed=4)
+    inside[:, :3] = inside[:, :3] * 0.5 + np.array([0.0, -0.3, 0.5], np.float32)
+    np.testing.assert_array_equal(c.correct(inside), plain.correct(inside))
+    for col, value in ((0, 1e30), (1, -0.81), (2, 0.95)):
+        x = inside[:5].copy()
+        x[3, col] = value
+        st, out, msg = _run_raw(c, lib, x)
+        assert st == _status("PC_ERR_RANGE"), msg
+        assert f"pose 3 is outside".encode() in msg and f"column {col}".encode() in msg
+        assert np.all(out == 7.0), "output must stay untouched"
+    with pytest.raises(PoseCorrError, match="input_bounds"):
+        Corrector(_with_metadata(MLP_ZHOU, input_bounds="[[0, 0], [1, 1]]"), library=lib)
+    with pytest.raises(PoseCorrError, match="input_bounds"):
+        Corrector(_with_metadata(MLP_ZHOU, input_bounds="[[1, 0, 0], [0, 1, 1]]"), library=lib)
+
+
+def _mixing_models():
+    g = graphs.G()
+    total = g.op("ReduceSum", ["pose", g.i64([0])], keepdims=1)  # over the batch axis
+    yield "reduce over batch", g.model(g.op("Sub", ["pose", total]))
+    g = graphs.G()
+    first = g.op("Gather", ["pose", g.i64([0])], axis=0)  # every row reads row 0
+    yield "gather row 0", g.model(g.op("Add", ["pose", first]))
+    g = graphs.G()
+    gram = g.op("MatMul", [g.op("Transpose", ["pose"], perm=[1, 0]), "pose"])  # [7,7] over rows
+    yield "Gram matrix of the batch", g.model(g.op("MatMul", ["pose", gram]))
+
+
+@pytest.mark.parametrize("label,model", list(_mixing_models()),
+                         ids=[m[0] for m in _mixing_models()])
+def test_graph_mixing_rows_is_refused_at_load(label, model, lib):
+    with pytest.raises(PoseCorrError, match="mixes rows") as e:
+        Corrector(model.SerializeToString(), library=lib)
+    assert e.value.status == _status("PC_ERR_GRAPH")
+
+
+def test_load_into_caller_buffer_matches_load_memory(lib):
+    import ctypes
+
+    from posecorr.runtime import _Error, load_library
+
+    L = load_library(lib)
+    blob = MLP_ZHOU.read_bytes()
+    vp, sz = ctypes.c_void_p, ctypes.c_size_t
+    L.pc_required_bytes.argtypes = [ctypes.c_char_p, sz, vp, ctypes.POINTER(sz),
+                                    ctypes.POINTER(_Error)]
+    L.pc_load_into.argtypes = [ctypes.c_char_p, sz, vp, vp, sz, ctypes.POINTER(vp),
+                               ctypes.POINTER(_Error)]
+    need, err, handle = sz(), _Error(), vp()
+    assert L.pc_required_bytes(blob, len(blob), None, ctypes.byref(need), ctypes.byref(err)) == 0
+    buf = np.zeros(need.value, dtype=np.uint8)
+    assert L.pc_load_into(blob, len(blob), None, buf.ctypes.data, need.value // 2,
+                          ctypes.byref(handle), ctypes.byref(err)) == _status("PC_ERR_MEMORY")
+    assert b"too small" in err.message
+    assert L.pc_load_into(blob, len(blob), None, buf.ctypes.data, need.value,
+                          ctypes.byref(handle), ctypes.byref(err)) == 0, err.message
+    assert L.pc_arena_bytes(handle.value) < need.value
+    print(f"{MLP_ZHOU.name}: pc_required_bytes {need.value}, arena {L.pc_arena_bytes(handle.value)}")
+    x = graphs.random_poses(300, seed=5)
+    out = np.zeros_like(x)
+    assert L.pc_run(handle.value, x.ctypes.data, len(x), out.ctypes.data) == 0
+    np.testing.assert_array_equal(out, Corrector(MLP_ZHOU, library=lib).correct(x).astype(np.float32))
+
+
+def test_shim_checks_the_library_version(lib):
+    from posecorr import runtime
+
+    text = (ROOT / "runtime_c" / "posecorr.h").read_text()
+    major, minor, patch = (int(text.split(f"#define PC_VERSION_{k} ")[1].split()[0])
+                           for k in ("MAJOR", "MINOR", "PATCH"))
+    assert runtime.load_library(lib).pc_version() == major * 10000 + minor * 100 + patch
+    assert runtime.EXPECTED_VERSION == (major, minor)
+    assert runtime.version_compatible(major * 10000 + minor * 100 + patch + 7)
+    assert runtime.version_compatible(major * 10000 + (minor + 1) * 100)
+    assert not runtime.version_compatible((major + 1) * 10000 + minor * 100)
+    assert not runtime.version_compatible(major * 10000 + (minor - 1) * 100)
+    assert not runtime.version_compatible(None)
 
 
 # -- tools --------------------------------------------------------------------------------

@@ -23,6 +23,9 @@ __all__ = ["Corrector", "PoseCorrError", "load_library", "library_path"]
 
 POSE_WIDTH = 7
 _MESSAGE_SIZE = 256
+# libposecorr's PC_VERSION_MAJOR, PC_VERSION_MINOR this shim is written against: the
+# library must have the same major and at least this minor (minors only add functions).
+EXPECTED_VERSION = (0, 2)
 
 
 class PoseCorrError(ValueError):
@@ -65,6 +68,7 @@ def load_library(path: str | os.PathLike | None = None) -> ctypes.CDLL:
     if lib is not None:
         return lib
     lib = ctypes.CDLL(p)
+    check_version(lib, p)
     vp, sz, cp = ctypes.c_void_p, ctypes.c_size_t, ctypes.c_char_p
     lib.pc_load_file.argtypes = [cp, ctypes.POINTER(_Options), ctypes.POINTER(vp),
                                  ctypes.POINTER(_Error)]
@@ -90,6 +94,30 @@ def load_library(path: str | os.PathLike | None = None) -> ctypes.CDLL:
         fn.restype = sz
     _LIBS[p] = lib
     return lib
+
+
+def check_version(lib: ctypes.CDLL, path: str) -> None:
+    """Refuses a libposecorr whose pc_version() does not fit EXPECTED_VERSION."""
+    try:
+        fn = lib.pc_version
+    except AttributeError:
+        number = None
+    else:
+        fn.argtypes, fn.restype = [], ctypes.c_int
+        number = fn()
+    if not version_compatible(number):
+        found = "no pc_version()" if number is None else \
+            f"{number // 10000}.{number // 100 % 100}.{number % 100}"
+        raise PoseCorrError(f"{path}: libposecorr {found}, this posecorr needs "
+                            f"{EXPECTED_VERSION[0]}.{EXPECTED_VERSION[1]} or a later "
+                            f"{EXPECTED_VERSION[0]}.x; reinstall posecorr (pip install -e .)")
+
+
+def version_compatible(number: int | None) -> bool:
+    """Whether a pc_version() number (major*10000 + minor*100 + patch) fits."""
+    if number is None:
+        return False
+    return number // 10000 == EXPECTED_VERSION[0] and number // 100 % 100 >= EXPECTED_VERSION[1]
 
 
 class _CBackend:

@@ -238,8 +238,8 @@ def case_gemm(transA=0, transB=0, c_shape=(5,), act=None, alpha=1.0, beta=1.0):
     return build
 
 
-# These mix rows on purpose (runtime B / runtime gather indices over the batch): pc_run
-# chunks a batch into planned sizes, so they are compared pose by pose.
+# These mix rows on purpose (runtime B / runtime gather indices over the batch): the
+# loader refuses them, and with max_batch=1 they run pose by pose (cross_row_cases).
 CROSS_ROW = {"gemm_runtime_b", "gather_runtime"}
 
 
@@ -429,7 +429,6 @@ def op_cases() -> dict:
     cases["gemm_no_c"] = case_gemm(c_shape=None, transB=1)
     for act in ("Tanh", "Sigmoid", "Relu", "Clip"):
         cases[f"gemm_fused_{act}"] = case_gemm(transB=1, act=act)
-    cases["gemm_runtime_b"] = case_gemm_runtime_b
     cases["matmul_2d"] = case_matmul([4], [4, 3])
     cases["matmul_batched_constB"] = case_matmul([2, 3], [3, 4])
     cases["matmul_batched_runtimeB"] = case_matmul([2, 3], [3, 2], b_const=False)
@@ -451,12 +450,16 @@ def op_cases() -> dict:
     cases["gather_axis1_vec"] = case_gather(1, [2, 0, -1])
     cases["gather_axis2_scalar"] = case_gather(2, 3)
     cases["gather_axis1_matrix"] = case_gather(1, [[0, 1], [2, -3]])
-    cases["gather_runtime"] = case_gather_runtime
     cases["views"] = case_views
     cases["constant_forms"] = case_constant_forms
     cases["concat"] = case_concat
     cases["folding"] = case_folding
     return cases
+
+
+def cross_row_cases() -> dict:
+    """Graphs whose row i reads row j (CROSS_ROW), kept apart from op_cases."""
+    return {"gemm_runtime_b": case_gemm_runtime_b, "gather_runtime": case_gather_runtime}
 
 
 # -- the realistic pose -> pose corrector ------------------------------------------------

@@ -1,7 +1,8 @@
 /* C unit tests: protobuf reader, status table, tanh accuracy against libm, loader error
  * paths and pc_run contract on models built here with a minimal protobuf writer.
  * Operator semantics are checked against onnxruntime by the pytest parity suite. */
-#include "pc_internal.h"
+#include "kernels.h"
+#include "pb.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -152,10 +153,8 @@ static void test_fields(void)
     pb_field f;
     pb_slice s;
     pc_error err;
-    int more;
     float x = 1.5f;
     int64_t ints[8];
-    float floats[8];
     size_t n = 0, count = 0;
     put_int(&b, 3, 300);
     put_tag(&b, 2, 5);
@@ -169,16 +168,15 @@ static void test_fields(void)
     put_varint(&b, 300);
     s.data = b.d; s.size = b.n;
     pb_init(&r, b.d, s);
-    CHECK(pb_next(&r, &f, &more, &err) == PC_OK && more && f.number == 3 && f.wire == PB_VARINT && f.varint == 300);
-    CHECK(pb_next(&r, &f, &more, &err) == PC_OK && more && f.wire == PB_FIXED32 && pb_bits_to_float((uint32_t)f.varint) == 1.5f);
-    CHECK(pb_next(&r, &f, &more, &err) == PC_OK && more && pb_slice_eq(f.bytes, "abc"));
-    CHECK(pb_next(&r, &f, &more, &err) == PC_OK && more && f.number == 8);
+    CHECK(pb_next(&r, &f, &err) == PB_FIELD && f.number == 3 && f.wire == PB_VARINT && f.varint == 300);
+    CHECK(pb_next(&r, &f, &err) == PB_FIELD && f.wire == PB_FIXED32 && pb_bits_to_float((uint32_t)f.varint) == 1.5f);
+    CHECK(pb_next(&r, &f, &err) == PB_FIELD && pb_slice_eq(f.bytes, "abc"));
+    CHECK(pb_next(&r, &f, &err) == PB_FIELD && f.number == 8);
     CHECK(pb_count_packed(b.d, &f, PB_VARINT, &count, &err) == PC_OK && count == 3);
     CHECK(pb_decode_repeated(b.d, &f, PB_VARINT, ints, NULL, 8, &n, &err) == PC_OK && n == 3 && ints[2] == 300);
     n = 0;
     CHECK(pb_decode_repeated(b.d, &f, PB_VARINT, ints, NULL, 2, &n, &err) == PC_ERR_MALFORMED);
-    CHECK(pb_next(&r, &f, &more, &err) == PC_OK && !more);
-    (void)floats;
+    CHECK(pb_next(&r, &f, &err) == PB_END);
     /* length beyond the end of the message */
     b.n = 0;
     put_tag(&b, 1, 2);
@@ -186,26 +184,26 @@ static void test_fields(void)
     b.d[b.n++] = 'x';
     s.data = b.d; s.size = b.n;
     pb_init(&r, b.d, s);
-    CHECK(pb_next(&r, &f, &more, &err) == PC_ERR_TRUNCATED);
+    CHECK((pb_next(&r, &f, &err) == PB_ERROR && r.status == PC_ERR_TRUNCATED));
     /* wire types 3/4/6/7 and field number 0 */
     b.n = 0;
     put_tag(&b, 1, 3);
     s.data = b.d; s.size = b.n;
     pb_init(&r, b.d, s);
-    CHECK(pb_next(&r, &f, &more, &err) == PC_ERR_MALFORMED);
+    CHECK((pb_next(&r, &f, &err) == PB_ERROR && r.status == PC_ERR_MALFORMED));
     b.n = 0;
     put_tag(&b, 0, 0);
     put_varint(&b, 1);
     s.data = b.d; s.size = b.n;
     pb_init(&r, b.d, s);
-    CHECK(pb_next(&r, &f, &more, &err) == PC_ERR_MALFORMED);
+    CHECK((pb_next(&r, &f, &err) == PB_ERROR && r.status == PC_ERR_MALFORMED));
     /* truncated fixed32 */
     b.n = 0;
     put_tag(&b, 2, 5);
     b.d[b.n++] = 0;
     s.data = b.d; s.size = b.n;
     pb_init(&r, b.d, s);
-    CHECK(pb_next(&r, &f, &more, &err) == PC_ERR_TRUNCATED);
+    CHECK((pb_next(&r, &f, &err) == PB_ERROR && r.status == PC_ERR_TRUNCATED));
 }
 
 static void test_status_names(void)
@@ -317,6 +315,72 @@ static void test_load_and_run(void)
     }
 }
 
+/* Counts the library's heap calls: it is linked statically into this program, so its
+ * malloc and free resolve here (glibc; sanitizers bring their own allocator). */
+#if defined(__GLIBC__) && !defined(__SANITIZE_ADDRESS__)
+#define PC_COUNT_MALLOC 1
+extern void *__libc_malloc(size_t size);
+extern void *__libc_calloc(size_t n, size_t size);
+extern void *__libc_realloc(void *p, size_t size);
+static size_t n_heap_calls;
+void *malloc(size_t size)
+{
+    n_heap_calls++;
+    return __libc_malloc(size);
+}
+void *calloc(size_t n, size_t size)
+{
+    n_heap_calls++;
+    return __libc_calloc(n, size);
+}
+void *realloc(void *p, size_t size)
+{
+    n_heap_calls++;
+    return __libc_realloc(p, size);
+}
+#endif
+
+static void test_load_into(void)
+{
+    static buf model;
+    static unsigned char arena[1 << 20];
+    const float c[7] = {0.5f, -1.0f, 2.0f, 0.25f, 0.0f, -0.125f, 3.0f};
+    float in[40 * 7], out[40 * 7];
+    pc_model *m = NULL, *small = (pc_model *)1;
+    pc_error err;
+    size_t need = 0, i;
+    int ok = 1;
+    build(&model, &ADD, c);
+    CHECK(pc_version() == PC_VERSION_NUMBER);
+    CHECK(pc_required_bytes(model.d, model.n, NULL, &need, &err) == PC_OK);
+    CHECK(need > 0 && need <= sizeof arena);
+    CHECK(pc_load_into(model.d, model.n, NULL, arena, need / 2, &small, &err) == PC_ERR_MEMORY);
+    CHECK(small == NULL && strstr(err.message, "too small") != NULL);
+#ifdef PC_COUNT_MALLOC
+    n_heap_calls = 0; /* the counter sees the library's calls */
+    CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_OK && n_heap_calls > 0);
+    pc_free(m);
+    n_heap_calls = 0;
+#endif
+    CHECK(pc_load_into(model.d, model.n, NULL, arena + 1, need, &m, &err) == PC_OK);
+    for (i = 0; i < 40 * 7; i++)
+        in[i] = (float)((i * 37) % 101) * 0.01f - 0.5f;
+    CHECK(m && pc_run(m, in, 40, out) == PC_OK);
+#ifdef PC_COUNT_MALLOC
+    CHECK(n_heap_calls == 0);
+#endif
+    for (i = 0; m && i < 40 * 7; i++)
+        if (out[i] != in[i] + c[i % 7])
+            ok = 0;
+    CHECK(ok);
+    CHECK((unsigned char *)m >= arena && (unsigned char *)m + pc_arena_bytes(m) <= arena + 1 + need);
+    /* the scratch before the model is the caller's again */
+    memset(arena, 0xA5, (size_t)((unsigned char *)m - arena));
+    CHECK(m && pc_run(m, in, 40, out) == PC_OK && out[7] == in[7] + c[0]);
+    pc_free(m); /* a no-op: the caller owns the buffer */
+    CHECK(pc_load_into(model.d, model.n, NULL, NULL, need, &m, &err) == PC_ERR_ARGUMENT);
+}
+
 static void expect_error(const spec *s, pc_status want, const char *fragment)
 {
     static buf model;
@@ -377,6 +441,7 @@ int main(int argc, char **argv)
     test_status_names();
     test_tanh();
     test_load_and_run();
+    test_load_into();
     test_errors();
     /* optional: model files given on the command line must load and run */
     {

@@ -3,7 +3,7 @@
  * The reader never copies: strings, bytes and sub-messages come back as slices of the
  * caller's buffer. Every length is checked against the end of the enclosing message
  * before it is used, so a hostile file can at worst produce an error status. */
-#include "pc_internal.h"
+#include "pb.h"
 
 #include <string.h>
 
@@ -12,6 +12,7 @@ void pb_init(pb_reader *r, const uint8_t *file, pb_slice msg)
     r->file = file;
     r->pos = msg.data;
     r->end = msg.data + msg.size;
+    r->status = PC_OK;
 }
 
 static size_t pb_offset(const pb_reader *r)
@@ -55,13 +56,10 @@ static pc_status pb_read_fixed(pb_reader *r, size_t width, uint64_t *v, pc_error
     return PC_OK;
 }
 
-pc_status pb_next(pb_reader *r, pb_field *f, int *more, pc_error *err)
+static pc_status pb_read_field(pb_reader *r, pb_field *f, pc_error *err)
 {
     uint64_t tag, len;
     pc_status st;
-    *more = 0;
-    if (r->pos >= r->end)
-        return PC_OK;
     f->offset = pb_offset(r);
     if ((st = pb_read_varint(r, &tag, err)) != PC_OK)
         return st;
@@ -74,14 +72,11 @@ pc_status pb_next(pb_reader *r, pb_field *f, int *more, pc_error *err)
     f->bytes.size = 0;
     switch (f->wire) {
     case PB_VARINT:
-        st = pb_read_varint(r, &f->varint, err);
-        break;
+        return pb_read_varint(r, &f->varint, err);
     case PB_FIXED64:
-        st = pb_read_fixed(r, 8, &f->varint, err);
-        break;
+        return pb_read_fixed(r, 8, &f->varint, err);
     case PB_FIXED32:
-        st = pb_read_fixed(r, 4, &f->varint, err);
-        break;
+        return pb_read_fixed(r, 4, &f->varint, err);
     case PB_BYTES:
         if ((st = pb_read_varint(r, &len, err)) != PC_OK)
             return st;
@@ -93,16 +88,25 @@ pc_status pb_next(pb_reader *r, pb_field *f, int *more, pc_error *err)
         f->bytes.data = r->pos;
         f->bytes.size = (size_t)len;
         r->pos += len;
-        break;
+        return PC_OK;
     default:
         /* Groups (3, 4) are not used by ONNX; anything else is not protobuf. */
         return pc_fail(err, PC_ERR_MALFORMED, "unsupported wire type %u at byte %zu", f->wire,
                        f->offset);
     }
-    if (st != PC_OK)
-        return st;
-    *more = 1;
-    return PC_OK;
+}
+
+int pb_next(pb_reader *r, pb_field *f, pc_error *err)
+{
+    if (r->pos >= r->end)
+        return PB_END;
+    r->status = pb_read_field(r, f, err);
+    return r->status == PC_OK ? PB_FIELD : PB_ERROR;
+}
+
+int pb_slice_same(pb_slice a, pb_slice b)
+{
+    return a.size == b.size && (a.size == 0 || memcmp(a.data, b.data, a.size) == 0);
 }
 
 int pb_slice_eq(pb_slice s, const char *z)

@@ -1,0 +1,47 @@
+/* Layer 7, the loaded model: static plans of kernel launches in one arena. Written by
+ * the planner, read by pc_run and the public accessors. */
+#ifndef PC_MODEL_H
+#define PC_MODEL_H
+
+#include "kernels.h"
+
+#define PC_PLAN_STRIDE 16
+
+typedef struct pc_plan {
+    size_t batch;
+    pc_step *steps;
+    size_t n_steps;
+    float *in;
+    const float *out;
+} pc_plan;
+
+/* A graph input or output of a model loaded with any names (conformance tests only). */
+typedef struct pc_slot {
+    void *data;
+    size_t bytes;
+} pc_slot;
+
+struct pc_model {
+    size_t arena_bytes;
+    int owns_arena;     /* pc_free releases it (pc_load_memory/file) or not (pc_load_into) */
+    size_t n_meta;
+    const char **meta_key;
+    const char **meta_value;
+    size_t max_batch;
+    size_t n_plans;
+    pc_plan *plans;     /* batch 1, PC_PLAN_STRIDE, PC_PLAN_STRIDE^2, ..., max_batch */
+    size_t n_nodes;
+    /* Checks of pc_run on the result (see posecorr.h). */
+    int check_quaternion;
+    int has_bounds;
+    float lo[3], hi[3];
+    pc_slot *slots;     /* any-name models: inputs then outputs; NULL otherwise */
+    size_t n_in_slots, n_out_slots;
+    char message[PC_MESSAGE_SIZE];
+};
+
+/* Runs one plan on its own buffers (no copy in or out); the failing step goes into
+ * the model's message. */
+pc_status pc_run_steps(pc_model *m, const pc_plan *plan);
+
+#endif

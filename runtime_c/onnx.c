@@ -1,0 +1,692 @@
+/* ONNX decoding: the protobuf messages of a model into the graph IR. Names are resolved,
+ * initializers decoded, and the pose contract (or, for the conformance tests, static
+ * input shapes) checked here; operators are looked at later, by the passes. */
+#include "onnx.h"
+
+#include <string.h>
+
+#define PC_NAME(s) (int)(s).size, (const char *)(s).data
+
+/* ---- TensorProto ------------------------------------------------------------------ */
+
+typedef struct onnx_tensor {
+    int64_t dims[PC_MAX_RANK];
+    size_t rank, n_float, n_int32, n_int64;
+    int64_t data_type;
+    pb_slice name, raw;
+    int has_raw;
+} onnx_tensor;
+
+static pc_status onnx_tensor_header(const pc_builder *b, pb_slice msg, onnx_tensor *t)
+{
+    pb_reader r;
+    pb_field f;
+    pc_status st;
+    size_t k, n;
+    int more;
+    memset(t, 0, sizeof *t);
+    pb_init(&r, b->file, msg);
+    while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
+        switch (f.number) {
+        case ONNX_TENSOR_DIMS:
+            if ((st = pb_count_packed(b->file, &f, PB_VARINT, &k, b->err)) != PC_OK)
+                return st;
+            if (t->rank + k > PC_MAX_RANK)
+                return pc_fail(b->err, PC_ERR_UNSUPPORTED, "tensor at byte %zu has rank > %d",
+                               f.offset, PC_MAX_RANK);
+            n = t->rank;
+            if ((st = pb_decode_repeated(b->file, &f, PB_VARINT, t->dims, NULL, PC_MAX_RANK, &n,
+                                         b->err)) != PC_OK)
+                return st;
+            t->rank = n;
+            break;
+        case ONNX_TENSOR_DATA_TYPE: t->data_type = (int64_t)f.varint; break;
+        case ONNX_TENSOR_FLOAT_DATA:
+        case ONNX_TENSOR_INT32_DATA:
+        case ONNX_TENSOR_INT64_DATA:
+            st = pb_count_packed(b->file, &f, f.number == ONNX_TENSOR_FLOAT_DATA ? PB_FIXED32
+                                                                                  : PB_VARINT,
+                                 &k, b->err);
+            if (st != PC_OK)
+                return st;
+            *(f.number == ONNX_TENSOR_FLOAT_DATA   ? &t->n_float
+              : f.number == ONNX_TENSOR_INT32_DATA ? &t->n_int32
+                                                   : &t->n_int64) += k;
+            break;
+        case ONNX_TENSOR_NAME: t->name = f.bytes; break;
+        case ONNX_TENSOR_RAW_DATA:
+            t->raw = f.bytes;
+            t->has_raw = 1;
+            break;
+        case ONNX_TENSOR_DATA_LOCATION:
+            if (f.varint == ONNX_EXTERNAL)
+                return pc_fail(b->err, PC_ERR_UNSUPPORTED, "tensor '%.*s' uses external data",
+                               PC_NAME(t->name));
+            break;
+        default: break;
+        }
+    }
+    return more == PB_ERROR ? r.status : PC_OK;
+}
+
+pc_status onnx_tensor_to_const(pc_builder *b, pb_slice msg, int32_t *id)
+{
+    onnx_tensor t;
+    pb_reader r;
+    pb_field f;
+    pc_status st;
+    size_t k, count = 1, n = 0, esize;
+    int dtype, more;
+    pc_value *v;
+    if ((st = onnx_tensor_header(b, msg, &t)) != PC_OK)
+        return st;
+    for (k = 0; k < t.rank; k++) {
+        if (t.dims[k] < 0 || (t.dims[k] > 0 && count > ((size_t)1 << 31) / (size_t)t.dims[k]))
+            return pc_fail(b->err, PC_ERR_MALFORMED, "tensor '%.*s' has an invalid shape",
+                           PC_NAME(t.name));
+        count *= (size_t)t.dims[k];
+    }
+    switch (t.data_type) {
+    case ONNX_FLOAT: dtype = PC_F32; break;
+    case ONNX_INT32: case ONNX_INT64: dtype = PC_I64; break;
+    case ONNX_BOOL: dtype = PC_BOOL; break;
+    default:
+        return pc_fail(b->err, PC_ERR_UNSUPPORTED, "tensor '%.*s' has unsupported data type %lld",
+                       PC_NAME(t.name), (long long)t.data_type);
+    }
+    /* Check the payload size against the shape before allocating anything. */
+    esize = t.data_type == ONNX_INT32 ? 4 : pc_dtype_size(dtype);
+    if (t.has_raw) {
+        if (t.raw.size != count * esize)
+            return pc_fail(b->err, PC_ERR_MALFORMED,
+                           "tensor '%.*s': raw_data has %zu bytes, shape needs %zu",
+                           PC_NAME(t.name), t.raw.size, count * esize);
+    } else {
+        const size_t have = dtype == PC_F32 ? t.n_float
+                            : t.data_type == ONNX_INT64 ? t.n_int64 : t.n_int32;
+        if (have != count)
+            return pc_fail(b->err, PC_ERR_MALFORMED, "tensor '%.*s' has %zu values, shape needs %zu",
+                           PC_NAME(t.name), have, count);
+    }
+    if ((st = pc_alloc_const(b, t.name, dtype, (int)t.rank, t.dims, id)) != PC_OK)
+        return st;
+    v = &b->values[*id];
+    if (t.has_raw) {
+        if (t.data_type == ONNX_INT32) {
+            int64_t *o = (int64_t *)v->cdata;
+            for (k = 0; k < count; k++) {
+                const uint8_t *q = t.raw.data + 4 * k;
+                const uint32_t u = (uint32_t)q[0] | (uint32_t)q[1] << 8 | (uint32_t)q[2] << 16 |
+                                   (uint32_t)q[3] << 24;
+                o[k] = (int64_t)(int32_t)u;
+            }
+        } else if (dtype == PC_BOOL) {
+            uint8_t *o = (uint8_t *)v->cdata;
+            for (k = 0; k < count; k++)
+                o[k] = t.raw.data[k] != 0;
+        } else {
+            /* raw_data is little-endian and may be unaligned in the file. */
+            memcpy(v->cdata, t.raw.data, t.raw.size);
+        }
+        return PC_OK;
+    }
+    pb_init(&r, b->file, msg);
+    while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
+        st = PC_OK;
+        if (dtype == PC_F32 && f.number == ONNX_TENSOR_FLOAT_DATA) {
+            st = pb_decode_repeated(b->file, &f, PB_FIXED32, NULL, (float *)v->cdata, count, &n,
+                                    b->err);
+        } else if (dtype == PC_I64 && t.data_type == ONNX_INT64 &&
+                   f.number == ONNX_TENSOR_INT64_DATA) {
+            st = pb_decode_repeated(b->file, &f, PB_VARINT, (int64_t *)v->cdata, NULL, count,
+                                    &n, b->err);
+        } else if (dtype == PC_I64 && f.number == ONNX_TENSOR_INT32_DATA) {
+            const size_t from = n;
+            st = pb_decode_repeated(b->file, &f, PB_VARINT, (int64_t *)v->cdata, NULL, count,
+                                    &n, b->err);
+            for (k = from; st == PC_OK && k < n; k++) /* int32 varints are sign-extended */
+                ((int64_t *)v->cdata)[k] = (int64_t)(int32_t)((int64_t *)v->cdata)[k];
+        } else if (dtype == PC_BOOL && f.number == ONNX_TENSOR_INT32_DATA) {
+            /* One element at a time, so that booleans land in a 1-byte buffer. */
+            if (f.wire == PB_VARINT) {
+                if (n < count)
+                    ((uint8_t *)v->cdata)[n++] = f.varint != 0;
+            } else {
+                pb_reader rr;
+                uint64_t x;
+                pb_init(&rr, b->file, f.bytes);
+                while (st == PC_OK && rr.pos < rr.end) {
+                    st = pb_read_varint(&rr, &x, b->err);
+                    if (st == PC_OK && n < count)
+                        ((uint8_t *)v->cdata)[n++] = x != 0;
+                }
+            }
+        }
+        if (st != PC_OK)
+            return st;
+    }
+    return more == PB_ERROR ? r.status : PC_OK;
+}
+
+/* ---- AttributeProto --------------------------------------------------------------- */
+
+static pc_status onnx_attr_decode(const pc_builder *b, pb_slice msg, const char *name,
+                                  onnx_attr *a)
+{
+    pb_reader r;
+    pb_field f;
+    int more;
+    memset(a, 0, sizeof *a);
+    a->msg = msg;
+    pb_init(&r, b->file, msg);
+    while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
+        const uint32_t want = f.number == ONNX_ATTR_F   ? PB_FIXED32
+                              : f.number == ONNX_ATTR_I ? PB_VARINT
+                              : f.number == ONNX_ATTR_T ? PB_BYTES
+                                                        : f.wire;
+        if (f.wire != want)
+            return pc_fail(b->err, PC_ERR_MALFORMED, "attribute '%s' has wire type %u in field %u",
+                           name, f.wire, f.number);
+        if (f.number == ONNX_ATTR_F) {
+            a->f = pb_bits_to_float((uint32_t)f.varint);
+            a->has_f = 1;
+        } else if (f.number == ONNX_ATTR_I) {
+            a->i = (int64_t)f.varint;
+            a->has_i = 1;
+        } else if (f.number == ONNX_ATTR_T) {
+            a->t = f.bytes;
+            a->has_t = 1;
+        }
+    }
+    return more == PB_ERROR ? r.status : PC_OK;
+}
+
+pc_status onnx_attr_find(const pc_builder *b, const pc_node *n, const char *name,
+                         onnx_attr *a, int *found)
+{
+    uint32_t k;
+    pb_reader r;
+    pb_field f;
+    int more;
+    *found = 0;
+    for (k = 0; k < n->n_attr; k++) {
+        pb_init(&r, b->file, n->attr[k]);
+        while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
+            if (f.number == ONNX_ATTR_NAME && f.wire == PB_BYTES && pb_slice_eq(f.bytes, name)) {
+                *found = 1;
+                return onnx_attr_decode(b, n->attr[k], name, a);
+            }
+        }
+        if (more == PB_ERROR)
+            return r.status;
+    }
+    return PC_OK;
+}
+
+pc_status onnx_attr_repeated(const pc_builder *b, const onnx_attr *a, uint32_t number,
+                             int64_t *ints, float *floats, size_t cap, size_t *n)
+{
+    pb_reader r;
+    pb_field f;
+    pc_status st;
+    int more;
+    const uint32_t wire = number == ONNX_ATTR_FLOATS ? PB_FIXED32 : PB_VARINT;
+    *n = 0;
+    pb_init(&r, b->file, a->msg);
+    while ((more = pb_next(&r, &f, b->err)) == PB_FIELD)
+        if (f.number == number &&
+            (st = pb_decode_repeated(b->file, &f, wire, ints, floats, cap, n, b->err)) != PC_OK)
+            return st;
+    return more == PB_ERROR ? r.status : PC_OK;
+}
+
+/* ---- NodeProto -------------------------------------------------------------------- */
+
+static pc_status onnx_parse_node(pc_builder *b, pb_slice msg, pc_node *node)
+{
+    pb_reader r;
+    pb_field f;
+    int more, pass;
+    for (pass = 0; pass < 2; pass++) {
+        uint32_t ni = 0, no = 0, na = 0;
+        pb_init(&r, b->file, msg);
+        while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
+            if (f.number <= ONNX_NODE_DOMAIN && f.number != ONNX_NODE_DOC_STRING &&
+                f.wire != PB_BYTES)
+                return pc_fail(b->err, PC_ERR_MALFORMED, "node field %u at byte %zu is not bytes",
+                               f.number, f.offset);
+            switch (f.number) {
+            case ONNX_NODE_INPUT:
+                if (pass)
+                    node->in_names[ni] = f.bytes;
+                ni++;
+                break;
+            case ONNX_NODE_OUTPUT:
+                if (pass)
+                    node->out_names[no] = f.bytes;
+                no++;
+                break;
+            case ONNX_NODE_NAME: node->name = f.bytes; break;
+            case ONNX_NODE_OP_TYPE: node->op_type = f.bytes; break;
+            case ONNX_NODE_ATTRIBUTE:
+                if (pass)
+                    node->attr[na] = f.bytes;
+                na++;
+                break;
+            case ONNX_NODE_DOMAIN: node->domain = f.bytes; break;
+            default: break;
+            }
+        }
+        if (more == PB_ERROR)
+            return r.status;
+        if (!pass) {
+            if (ni > 4096 || no > 16 || na > 256)
+                return pc_fail(b->err, PC_ERR_UNSUPPORTED,
+                               "node '%.*s' has too many inputs or outputs", PC_NAME(node->name));
+            /* One block per node (slices first, then ids, so every part is aligned):
+             * scratch rounds each allocation up, and small graphs run on small targets. */
+            pb_slice *slices = pc_scratch_alloc(&b->scratch, (ni + no + na + 3) * sizeof(pb_slice) +
+                                                             (ni + no + 2) * sizeof(int32_t));
+            if (!slices)
+                return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
+            node->n_in = ni;
+            node->n_out = no;
+            node->n_attr = na;
+            node->in_names = slices;
+            node->out_names = node->in_names + ni + 1;
+            node->attr = node->out_names + no + 1;
+            node->in = (int32_t *)(node->attr + na + 1);
+            node->out = node->in + ni + 1;
+        }
+    }
+    return PC_OK;
+}
+
+/* ---- ValueInfoProto --------------------------------------------------------------- */
+
+/* Fields `number` of every message in `msg`, one level down: the nesting of
+ * ValueInfoProto -> TypeProto -> Tensor -> TensorShapeProto -> Dimension. */
+static int onnx_sub(pb_reader *r, pb_field *f, uint32_t number, pc_error *err)
+{
+    int more;
+    while ((more = pb_next(r, f, err)) == PB_FIELD)
+        if (f->number == number && f->wire == PB_BYTES)
+            return PB_FIELD;
+    return more;
+}
+
+/* Name, elem_type and shape of a ValueInfoProto into io (dims -1 where symbolic or
+ * missing, rank -1 without a shape). */
+static pc_status onnx_parse_value_info(const pc_builder *b, pb_slice msg, pb_slice *name,
+                                       int64_t *elem_type, pc_io *io)
+{
+    pb_reader r, rt, rtt, rs, rd;
+    pb_field f, ft, ftt, fs, fd;
+    int more, k;
+    *elem_type = 0;
+    io->rank = -1;
+    name->data = NULL;
+    name->size = 0;
+    pb_init(&r, b->file, msg);
+    while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
+        if (f.number == ONNX_VALUE_INFO_NAME && f.wire == PB_BYTES)
+            *name = f.bytes;
+        if (f.number != ONNX_VALUE_INFO_TYPE || f.wire != PB_BYTES)
+            continue;
+        pb_init(&rt, b->file, f.bytes);
+        while ((k = onnx_sub(&rt, &ft, ONNX_TYPE_TENSOR, b->err)) == PB_FIELD) {
+            pb_init(&rtt, b->file, ft.bytes);
+            while ((k = pb_next(&rtt, &ftt, b->err)) == PB_FIELD) {
+                if (ftt.number == ONNX_TENSOR_TYPE_ELEM)
+                    *elem_type = (int64_t)ftt.varint;
+                if (ftt.number != ONNX_TENSOR_TYPE_SHAPE || ftt.wire != PB_BYTES)
+                    continue;
+                io->rank = 0;
+                pb_init(&rs, b->file, ftt.bytes);
+                while ((k = onnx_sub(&rs, &fs, ONNX_SHAPE_DIM, b->err)) == PB_FIELD) {
+                    if (io->rank >= PC_MAX_RANK)
+                        return pc_fail(b->err, PC_ERR_UNSUPPORTED, "value info of rank > %d",
+                                       PC_MAX_RANK);
+                    io->dims[io->rank] = -1;
+                    pb_init(&rd, b->file, fs.bytes);
+                    while ((k = pb_next(&rd, &fd, b->err)) == PB_FIELD)
+                        if (fd.number == ONNX_DIM_VALUE && fd.wire == PB_VARINT)
+                            io->dims[io->rank] = (int64_t)fd.varint;
+                    if (k == PB_ERROR)
+                        return rd.status;
+                    io->rank++;
+                }
+                if (k == PB_ERROR)
+                    return rs.status;
+            }
+            if (k == PB_ERROR)
+                return rtt.status;
+        }
+        if (k == PB_ERROR)
+            return rt.status;
+    }
+    return more == PB_ERROR ? r.status : PC_OK;
+}
+
+static int onnx_dtype(int64_t elem_type)
+{
+    return elem_type == ONNX_FLOAT ? PC_F32 : elem_type == ONNX_INT64 ? PC_I64
+                                          : elem_type == ONNX_BOOL    ? PC_BOOL : 0;
+}
+
+/* The pose contract: 'pose' float32 [N,7] with a dynamic N. */
+static pc_status onnx_check_input(pc_builder *b, pb_slice name, int64_t elem, const pc_io *io)
+{
+    if (b->any_io) {
+        int k;
+        if (!onnx_dtype(elem))
+            return pc_fail(b->err, PC_ERR_UNSUPPORTED, "input '%.*s' has data type %lld",
+                           PC_NAME(name), (long long)elem);
+        for (k = 0; k < io->rank; k++)
+            if (io->dims[k] < 0)
+                return pc_fail(b->err, PC_ERR_UNSUPPORTED, "input '%.*s' has a dynamic shape",
+                               PC_NAME(name));
+        if (io->rank < 0)
+            return pc_fail(b->err, PC_ERR_UNSUPPORTED, "input '%.*s' has no shape", PC_NAME(name));
+        return PC_OK;
+    }
+    if (!pb_slice_eq(name, "pose"))
+        return pc_fail(b->err, PC_ERR_CONTRACT,
+                       "model input is '%.*s', the contract needs 'pose' float32 [N,7]",
+                       PC_NAME(name));
+    if (elem != ONNX_FLOAT)
+        return pc_fail(b->err, PC_ERR_CONTRACT, "input 'pose' has element type %lld, "
+                       "the contract needs float32", (long long)elem);
+    if (io->rank != 2 || io->dims[1] != PC_POSE_WIDTH)
+        return pc_fail(b->err, PC_ERR_CONTRACT,
+                       "input 'pose' must have shape [N,7] (rank %d, width %lld)", io->rank,
+                       (long long)(io->rank >= 2 ? io->dims[1] : -1));
+    if (io->dims[0] >= 0)
+        return pc_fail(b->err, PC_ERR_CONTRACT,
+                       "input 'pose' has a fixed batch size %lld; N must be dynamic",
+                       (long long)io->dims[0]);
+    return PC_OK;
+}
+
+static pc_status onnx_check_output(pc_builder *b, pb_slice name, int64_t elem, const pc_io *io)
+{
+    if (b->any_io) {
+        if (!onnx_dtype(elem))
+            return pc_fail(b->err, PC_ERR_UNSUPPORTED, "output '%.*s' has data type %lld",
+                           PC_NAME(name), (long long)elem);
+        return PC_OK;
+    }
+    if (!pb_slice_eq(name, "corrected"))
+        return pc_fail(b->err, PC_ERR_CONTRACT,
+                       "model output is '%.*s', the contract needs 'corrected' float32 [N,7]",
+                       PC_NAME(name));
+    if (elem != ONNX_FLOAT)
+        return pc_fail(b->err, PC_ERR_CONTRACT, "output 'corrected' has element type "
+                       "%lld, the contract needs float32", (long long)elem);
+    if (io->rank >= 0 && (io->rank != 2 || io->dims[1] != PC_POSE_WIDTH))
+        return pc_fail(b->err, PC_ERR_CONTRACT, "output 'corrected' must have shape [N,7]");
+    return PC_OK;
+}
+
+/* ---- GraphProto ------------------------------------------------------------------- */
+
+/* Graph inputs (IR < 4 lists initializers among them, which are not model inputs) and
+ * outputs, checked against the contract. */
+static pc_status onnx_parse_io(pc_builder *b, pb_slice graph, size_t n_io)
+{
+    pb_reader r;
+    pb_field f;
+    pc_status st;
+    pb_slice name;
+    int64_t elem;
+    pc_io io;
+    int more;
+    b->inputs = pc_scratch_alloc(&b->scratch, (n_io + 1) * sizeof(pc_io));
+    b->outputs = pc_scratch_alloc(&b->scratch, (n_io + 1) * sizeof(pc_io));
+    if (!b->inputs || !b->outputs)
+        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
+    pb_init(&r, b->file, graph);
+    while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
+        if (f.number != ONNX_GRAPH_INPUT && f.number != ONNX_GRAPH_OUTPUT)
+            continue;
+        if ((st = onnx_parse_value_info(b, f.bytes, &name, &elem, &io)) != PC_OK)
+            return st;
+        io.dtype = onnx_dtype(elem);
+        if (f.number == ONNX_GRAPH_INPUT) {
+            if (pc_lookup(b, name) >= 0)
+                continue;
+            if ((st = onnx_check_input(b, name, elem, &io)) != PC_OK ||
+                (st = pc_new_value(b, name, &io.id)) != PC_OK)
+                return st;
+            b->values[io.id].dtype = io.dtype;
+            b->inputs[b->n_inputs++] = io;
+        } else {
+            if ((st = onnx_check_output(b, name, elem, &io)) != PC_OK)
+                return st;
+            io.id = -1;
+            b->outputs[b->n_outputs++] = io;
+        }
+    }
+    if (more == PB_ERROR)
+        return r.status;
+    if (b->any_io)
+        return b->n_outputs ? PC_OK : pc_fail(b->err, PC_ERR_GRAPH, "graph has no output");
+    if (b->n_inputs != 1)
+        return pc_fail(b->err, PC_ERR_CONTRACT,
+                       "model has %zu inputs, the contract needs exactly one ('pose')",
+                       b->n_inputs);
+    if (b->n_outputs != 1)
+        return pc_fail(b->err, PC_ERR_CONTRACT,
+                       "model has %zu outputs, the contract needs exactly one ('corrected')",
+                       b->n_outputs);
+    return PC_OK;
+}
+
+/* Output names of the graph, resolved once every node output exists. */
+static pc_status onnx_resolve_outputs(pc_builder *b, pb_slice graph)
+{
+    pb_reader r;
+    pb_field f;
+    pc_status st;
+    pb_slice name;
+    int64_t elem;
+    pc_io io;
+    size_t k = 0;
+    int more;
+    pb_init(&r, b->file, graph);
+    while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
+        if (f.number != ONNX_GRAPH_OUTPUT)
+            continue;
+        if ((st = onnx_parse_value_info(b, f.bytes, &name, &elem, &io)) != PC_OK)
+            return st;
+        b->outputs[k].id = pc_lookup(b, name);
+        if (b->outputs[k].id < 0)
+            return pc_fail(b->err, PC_ERR_GRAPH, "output '%.*s' is not produced by any node",
+                           PC_NAME(name));
+        k++;
+    }
+    return more == PB_ERROR ? r.status : PC_OK;
+}
+
+static pc_status onnx_link_nodes(pc_builder *b)
+{
+    size_t i, j;
+    pc_status st;
+    /* Node outputs, then node inputs (nodes need not be sorted in the file). */
+    for (i = 0; i < b->n_nodes; i++) {
+        pc_node *node = &b->nodes[i];
+        for (j = 0; j < node->n_out; j++) {
+            node->out[j] = -1;
+            if (node->out_names[j].size == 0)
+                continue;
+            if (pc_lookup(b, node->out_names[j]) >= 0)
+                return pc_fail(b->err, PC_ERR_GRAPH, "tensor '%.*s' is produced twice (node '%.*s')",
+                               PC_NAME(node->out_names[j]), PC_NAME(node->name));
+            if ((st = pc_new_value(b, node->out_names[j], &node->out[j])) != PC_OK)
+                return st;
+            b->values[node->out[j]].producer = (int)i;
+        }
+    }
+    for (i = 0; i < b->n_nodes; i++) {
+        pc_node *node = &b->nodes[i];
+        for (j = 0; j < node->n_in; j++) {
+            if (node->in_names[j].size == 0) {
+                node->in[j] = -1;
+                continue;
+            }
+            node->in[j] = pc_lookup(b, node->in_names[j]);
+            if (node->in[j] < 0)
+                return pc_fail(b->err, PC_ERR_GRAPH,
+                               "input '%.*s' of node '%.*s' is not produced by any node",
+                               PC_NAME(node->in_names[j]), PC_NAME(node->name));
+        }
+    }
+    return PC_OK;
+}
+
+static pc_status onnx_parse_graph(pc_builder *b, pb_slice graph)
+{
+    pb_reader r;
+    pb_field f;
+    pc_status st;
+    size_t n_nodes = 0, n_init = 0, n_io = 0, total_out = 0;
+    int32_t id;
+    int more;
+
+    pb_init(&r, b->file, graph);
+    while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
+        if ((f.number == ONNX_GRAPH_NODE || f.number == ONNX_GRAPH_INITIALIZER ||
+             f.number == ONNX_GRAPH_INPUT || f.number == ONNX_GRAPH_OUTPUT) &&
+            f.wire != PB_BYTES)
+            return pc_fail(b->err, PC_ERR_MALFORMED, "graph field %u at byte %zu is not bytes",
+                           f.number, f.offset);
+        if (f.number == ONNX_GRAPH_NODE)
+            n_nodes++;
+        else if (f.number == ONNX_GRAPH_INITIALIZER)
+            n_init++;
+        else if (f.number == ONNX_GRAPH_INPUT || f.number == ONNX_GRAPH_OUTPUT)
+            n_io++;
+        else if (f.number == ONNX_GRAPH_SPARSE_INITIALIZER)
+            return pc_fail(b->err, PC_ERR_UNSUPPORTED, "sparse initializers are not supported");
+    }
+    if (more == PB_ERROR)
+        return r.status;
+    if (n_nodes > 100000 || n_init > 100000)
+        return pc_fail(b->err, PC_ERR_UNSUPPORTED, "graph too large");
+    b->nodes = pc_scratch_alloc(&b->scratch, (n_nodes + 1) * sizeof(pc_node));
+    if (!b->nodes)
+        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
+    pb_init(&r, b->file, graph);
+    while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
+        if (f.number == ONNX_GRAPH_NODE) {
+            pc_node *node = &b->nodes[b->n_nodes++];
+            if ((st = onnx_parse_node(b, f.bytes, node)) != PC_OK)
+                return st;
+            total_out += node->n_out;
+        }
+    }
+    if (more == PB_ERROR)
+        return r.status;
+    /* Values: initializers, the inputs, node outputs, and the constants the operators
+     * derive (a Constant's value, a transposed Gemm weight, ...: at most one per node). */
+    if ((st = pc_ir_reserve(b, n_init + n_io + total_out + n_nodes + 16)) != PC_OK)
+        return st;
+    pb_init(&r, b->file, graph);
+    while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
+        if (f.number != ONNX_GRAPH_INITIALIZER)
+            continue;
+        if ((st = onnx_tensor_to_const(b, f.bytes, &id)) != PC_OK)
+            return st;
+        if (b->values[id].name.size == 0)
+            return pc_fail(b->err, PC_ERR_MALFORMED, "initializer at byte %zu has no name",
+                           f.offset);
+        if (pc_lookup(b, b->values[id].name) != id)
+            return pc_fail(b->err, PC_ERR_GRAPH, "duplicate initializer '%.*s'",
+                           PC_NAME(b->values[id].name));
+    }
+    if (more == PB_ERROR)
+        return r.status;
+    if ((st = onnx_parse_io(b, graph, n_io)) != PC_OK || (st = onnx_link_nodes(b)) != PC_OK)
+        return st;
+    return onnx_resolve_outputs(b, graph);
+}
+
+/* ---- ModelProto ------------------------------------------------------------------- */
+
+/* Field `first` (bytes) and field `second` (bytes or varint) of a small message:
+ * StringStringEntryProto key/value, OperatorSetIdProto domain/version. */
+static pc_status onnx_pair(const pc_builder *b, pb_slice msg, uint32_t first_number,
+                           uint32_t second_number, pb_slice *first, pb_slice *second,
+                           int64_t *number)
+{
+    pb_reader r;
+    pb_field f;
+    int more;
+    pb_init(&r, b->file, msg);
+    while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
+        if (f.number == first_number && f.wire == PB_BYTES)
+            *first = f.bytes;
+        if (f.number == second_number && f.wire == PB_BYTES && second)
+            *second = f.bytes;
+        if (f.number == second_number && f.wire == PB_VARINT && number)
+            *number = (int64_t)f.varint;
+    }
+    return more == PB_ERROR ? r.status : PC_OK;
+}
+
+pc_status onnx_parse_model(pc_builder *b)
+{
+    pb_reader r;
+    pb_field f;
+    int more, has_graph = 0;
+    pc_status st;
+    pb_slice graph = {NULL, 0}, whole;
+    size_t n_meta = 0;
+    whole.data = b->file;
+    whole.size = b->file_size;
+    b->opset = -1;
+    pb_init(&r, b->file, whole);
+    while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
+        if ((f.number == ONNX_MODEL_GRAPH || f.number == ONNX_MODEL_OPSET_IMPORT ||
+             f.number == ONNX_MODEL_METADATA_PROPS) && f.wire != PB_BYTES)
+            return pc_fail(b->err, PC_ERR_MALFORMED, "model field %u at byte %zu is not bytes",
+                           f.number, f.offset);
+        if (f.number == ONNX_MODEL_GRAPH) {
+            graph = f.bytes;
+            has_graph = 1;
+        } else if (f.number == ONNX_MODEL_OPSET_IMPORT) {
+            pb_slice domain = {NULL, 0};
+            int64_t version = -1;
+            if ((st = onnx_pair(b, f.bytes, ONNX_OPSET_DOMAIN, ONNX_OPSET_VERSION, &domain, NULL,
+                                &version)) != PC_OK)
+                return st;
+            if (domain.size == 0 || pb_slice_eq(domain, "ai.onnx"))
+                b->opset = version;
+        } else if (f.number == ONNX_MODEL_METADATA_PROPS) {
+            n_meta++;
+        }
+    }
+    if (more == PB_ERROR)
+        return r.status;
+    if (!has_graph)
+        return pc_fail(b->err, PC_ERR_MALFORMED, "model has no graph (not an ONNX file?)");
+    if (b->opset < PC_OPSET_MIN || b->opset > PC_OPSET_MAX)
+        return pc_fail(b->err, PC_ERR_UNSUPPORTED,
+                       "default-domain opset %lld is not supported (%d..%d)", (long long)b->opset,
+                       PC_OPSET_MIN, PC_OPSET_MAX);
+    b->meta = pc_scratch_alloc(&b->scratch, (n_meta + 1) * sizeof(pc_meta));
+    if (!b->meta)
+        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
+    pb_init(&r, b->file, whole);
+    while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
+        if (f.number != ONNX_MODEL_METADATA_PROPS)
+            continue;
+        if ((st = onnx_pair(b, f.bytes, ONNX_STRING_KEY, ONNX_STRING_VALUE,
+                            &b->meta[b->n_meta].key, &b->meta[b->n_meta].value, NULL)) != PC_OK)
+            return st;
+        b->n_meta++;
+    }
+    if (more == PB_ERROR)
+        return r.status;
+    return onnx_parse_graph(b, graph);
+}

@@ -1,0 +1,188 @@
+/* What every operator family shares: failing with the node's name, attributes,
+ * constant inputs, output shapes, parameter blocks, constants of their own. */
+#include "op.h"
+
+#include <string.h>
+
+pc_status pc_prep_fail(pc_prep *p, pc_status st, const char *fmt, ...)
+{
+    char detail[PC_MESSAGE_SIZE];
+    va_list ap;
+    va_start(ap, fmt);
+    vsnprintf(detail, sizeof detail, fmt, ap);
+    va_end(ap);
+    return pc_fail(p->b->err, st, "node '%.*s' (%.*s): %s", (int)p->node->name.size,
+                   (const char *)p->node->name.data, (int)p->node->op_type.size,
+                   (const char *)p->node->op_type.data, detail);
+}
+
+/* The attribute `name` of the node; a malformed one fails naming the node. */
+static pc_status pc_attr(pc_prep *p, const char *name, onnx_attr *a, int *found)
+{
+    const pc_status st = onnx_attr_find(p->b, p->node, name, a, found);
+    if (st != PC_OK)
+        return pc_prep_fail(p, st, "%s", p->b->err->message);
+    return PC_OK;
+}
+
+static pc_status pc_attr_missing(pc_prep *p, const char *name)
+{
+    return pc_prep_fail(p, PC_ERR_MALFORMED, "attribute '%s' has no value of the expected type",
+                        name);
+}
+
+pc_status pc_attr_int(pc_prep *p, const char *name, int64_t def, int64_t *out)
+{
+    onnx_attr a;
+    int found;
+    pc_status st = pc_attr(p, name, &a, &found);
+    *out = def;
+    if (st != PC_OK || !found)
+        return st;
+    if (!a.has_i)
+        return pc_attr_missing(p, name);
+    *out = a.i;
+    return PC_OK;
+}
+
+pc_status pc_attr_float(pc_prep *p, const char *name, float def, float *out)
+{
+    onnx_attr a;
+    int found;
+    pc_status st = pc_attr(p, name, &a, &found);
+    *out = def;
+    if (st != PC_OK || !found)
+        return st;
+    if (!a.has_f)
+        return pc_attr_missing(p, name);
+    *out = a.f;
+    return PC_OK;
+}
+
+pc_status pc_attr_ints(pc_prep *p, const char *name, int64_t *buf, size_t cap, size_t *n,
+                       int *found)
+{
+    onnx_attr a;
+    pc_status st = pc_attr(p, name, &a, found);
+    *n = 0;
+    if (st != PC_OK || !*found)
+        return st;
+    return onnx_attr_repeated(p->b, &a, ONNX_ATTR_INTS, buf, NULL, cap, n);
+}
+
+pc_status pc_attr_floats(pc_prep *p, const char *name, float *buf, size_t cap, size_t *n,
+                         int *found)
+{
+    onnx_attr a;
+    pc_status st = pc_attr(p, name, &a, found);
+    *n = 0;
+    if (st != PC_OK || !*found)
+        return st;
+    return onnx_attr_repeated(p->b, &a, ONNX_ATTR_FLOATS, NULL, buf, cap, n);
+}
+
+pc_status pc_attr_tensor(pc_prep *p, const char *name, pb_slice *tensor, int *found)
+{
+    onnx_attr a;
+    pc_status st = pc_attr(p, name, &a, found);
+    if (st != PC_OK || !*found)
+        return st;
+    if (!a.has_t)
+        return pc_attr_missing(p, name);
+    *tensor = a.t;
+    return PC_OK;
+}
+
+int pc_has_attr(pc_prep *p, const char *name)
+{
+    onnx_attr a;
+    int found = 0;
+    return onnx_attr_find(p->b, p->node, name, &a, &found) == PC_OK && found;
+}
+pc_status pc_input_ints(pc_prep *p, size_t k, int64_t *buf, size_t cap, size_t *n)
+{
+    const pc_value *v = k < p->n_in ? p->in[k] : NULL;
+    size_t i;
+    if (!v || !v->cdata || v->dtype != PC_I64 || v->rank > 1)
+        return pc_prep_fail(p, PC_ERR_UNSUPPORTED,
+                            "input %zu must be a constant 1-D int64 tensor", k);
+    if (v->count > cap)
+        return pc_prep_fail(p, PC_ERR_SHAPE, "input %zu has too many elements", k);
+    for (i = 0; i < v->count; i++)
+        buf[i] = ((const int64_t *)v->cdata)[i];
+    *n = v->count;
+    return PC_OK;
+}
+
+pc_status pc_input_float_scalar(pc_prep *p, size_t k, float *out)
+{
+    const pc_value *v = k < p->n_in ? p->in[k] : NULL;
+    if (!v || !v->cdata || v->dtype != PC_F32 || v->count != 1)
+        return pc_prep_fail(p, PC_ERR_UNSUPPORTED, "input %zu must be a constant float scalar", k);
+    *out = *(const float *)v->cdata;
+    return PC_OK;
+}
+
+pc_status pc_set_out(pc_prep *p, size_t k, int dtype, int rank, const int64_t *dims)
+{
+    pc_value *v = k < p->n_out ? p->out[k] : NULL;
+    size_t count = 1;
+    int i;
+    if (!v)
+        return PC_OK;
+    if (rank < 0 || rank > PC_MAX_RANK)
+        return pc_prep_fail(p, PC_ERR_UNSUPPORTED, "output rank %d exceeds %d", rank, PC_MAX_RANK);
+    for (i = 0; i < rank; i++) {
+        if (dims[i] < 0 || (dims[i] > 0 && count > ((size_t)1 << 24) / (size_t)dims[i]))
+            return pc_prep_fail(p, PC_ERR_SHAPE, "output dimension %d is invalid (%lld)", i,
+                                (long long)dims[i]);
+        count *= (size_t)dims[i];
+    }
+    v->dtype = dtype;
+    v->rank = rank;
+    for (i = 0; i < rank; i++)
+        v->dims[i] = dims[i];
+    v->count = count;
+    return PC_OK;
+}
+
+void *pc_prep_params(pc_prep *p, size_t size)
+{
+    p->prm = pc_scratch_alloc(&p->b->scratch, size);
+    p->prm_size = size;
+    return p->prm;
+}
+
+pc_status pc_new_const(pc_prep *p, int dtype, int rank, const int64_t *dims, void **data,
+                       int32_t *id)
+{
+    pb_slice none = {NULL, 0};
+    pc_status st = pc_alloc_const(p->b, none, dtype, rank, dims, id);
+    if (st != PC_OK)
+        return st;
+    *data = p->b->values[*id].cdata;
+    return PC_OK;
+}
+
+pc_status pc_axes(pc_prep *p, int64_t *axes, size_t *n, int *given)
+{
+    pc_status st;
+    *n = 0;
+    *given = 0;
+    if (p->n_in > 1 && p->in[1]) {
+        *given = 1;
+        return pc_input_ints(p, 1, axes, PC_MAX_RANK, n);
+    }
+    st = pc_attr_ints(p, "axes", axes, PC_MAX_RANK, n, given);
+    return st;
+}
+
+pc_status pc_norm_axis(pc_prep *p, int64_t *axis, int rank)
+{
+    if (*axis < -rank || *axis >= rank)
+        return pc_prep_fail(p, PC_ERR_SHAPE, "axis %lld out of range for rank %d",
+                            (long long)*axis, rank);
+    if (*axis < 0)
+        *axis += rank;
+    return PC_OK;
+}

@@ -1,0 +1,210 @@
+/* Dense operators: Gemm and MatMul (kernels in dense.c). */
+#include "op.h"
+
+#include <float.h>
+#include <math.h>
+#include <string.h>
+
+/* ---- Gemm, MatMul ----------------------------------------------------------------- */
+
+
+/* Replaces constant input k by its transpose (2-D), cached across plans. */
+static pc_status pc_transposed_const(pc_prep *p, size_t k)
+{
+    const int32_t src = p->in_ids[k];
+    int32_t id = pc_find_derived(p->b, src, PC_DERIVED_TRANSPOSE);
+    pc_status s;
+    if (id < 0) {
+        const pc_value *v = &p->b->values[src];
+        const size_t R = (size_t)v->dims[0], C = (size_t)v->dims[1];
+        int64_t dims[2];
+        void *data;
+        size_t i, j;
+        dims[0] = v->dims[1];
+        dims[1] = v->dims[0];
+        if ((s = pc_new_const(p, PC_F32, 2, dims, &data, &id)) != PC_OK ||
+            (s = pc_add_derived(p->b, src, PC_DERIVED_TRANSPOSE, id)) != PC_OK)
+            return s;
+        for (i = 0; i < R; i++)
+            for (j = 0; j < C; j++)
+                ((float *)data)[j * R + i] = ((const float *)p->b->values[src].cdata)[i * C + j];
+    }
+    p->in_ids[k] = id;
+    p->in[k] = &p->b->values[id];
+    return PC_OK;
+}
+
+pc_status pc_op_Gemm(pc_prep *p)
+{
+    int64_t ta, tb, dims[2];
+    pc_gemm *q;
+    const pc_value *a, *b, *c;
+    pc_status s;
+    if (p->n_in < 2 || !p->in[0] || !p->in[1] || p->n_out != 1)
+        return pc_prep_fail(p, PC_ERR_GRAPH, "needs A and B");
+    a = p->in[0];
+    b = p->in[1];
+    c = p->n_in > 2 ? p->in[2] : NULL;
+    if (a->dtype != PC_F32 || b->dtype != PC_F32 || (c && c->dtype != PC_F32))
+        return pc_prep_fail(p, PC_ERR_UNSUPPORTED, "only float32 is supported");
+    if (a->rank != 2 || b->rank != 2)
+        return pc_prep_fail(p, PC_ERR_SHAPE, "A and B must be 2-D");
+    q = pc_prep_params(p, sizeof *q);
+    if (!q)
+        return pc_fail(p->b->err, PC_ERR_MEMORY, "out of memory");
+    if ((s = pc_attr_int(p, "transA", 0, &ta)) != PC_OK ||
+        (s = pc_attr_int(p, "transB", 0, &tb)) != PC_OK ||
+        (s = pc_attr_float(p, "alpha", 1.0f, &q->alpha)) != PC_OK ||
+        (s = pc_attr_float(p, "beta", 1.0f, &q->beta)) != PC_OK)
+        return s;
+    q->M = (size_t)(ta ? a->dims[1] : a->dims[0]);
+    q->K = (size_t)(ta ? a->dims[0] : a->dims[1]);
+    q->N = (size_t)(tb ? b->dims[0] : b->dims[1]);
+    if ((size_t)(tb ? b->dims[1] : b->dims[0]) != q->K)
+        return pc_prep_fail(p, PC_ERR_SHAPE, "inner dimensions differ (%zu vs %lld)", q->K,
+                            (long long)(tb ? b->dims[1] : b->dims[0]));
+    q->a_rs = ta ? 1 : q->K;
+    q->a_cs = ta ? q->M : 1;
+    if (tb && b->cdata) {
+        /* Row-major B lets the inner loop run over contiguous outputs. */
+        if ((s = pc_transposed_const(p, 1)) != PC_OK)
+            return s;
+        tb = 0;
+    }
+    q->b_rs = tb ? 1 : q->N;
+    q->b_cs = tb ? q->K : 1;
+    q->c_mode = 0;
+    if (c) {
+        const size_t cn = c->rank >= 1 ? (size_t)c->dims[c->rank - 1] : 1;
+        const size_t cm = c->rank >= 2 ? (size_t)c->dims[c->rank - 2] : 1;
+        if (c->rank > 2 || (cn != 1 && cn != q->N) || (cm != 1 && cm != q->M))
+            return pc_prep_fail(p, PC_ERR_SHAPE, "C cannot be broadcast to [M,N]");
+        q->c_mode = c->count == 1 ? 1 : cm == 1 ? 2 : cn == 1 ? 3 : 4;
+        if (q->c_mode == 2 && q->N == 1)
+            q->c_mode = 1;
+    } else if (p->n_in < 3) {
+        /* Kernel expects C in slot 2: pad the operand list. */
+        int32_t *ids = pc_scratch_alloc(&p->b->scratch, 3 * sizeof(int32_t));
+        pc_value **vs = pc_scratch_alloc(&p->b->scratch, 3 * sizeof(pc_value *));
+        if (!ids || !vs)
+            return pc_fail(p->b->err, PC_ERR_MEMORY, "out of memory");
+        ids[0] = p->in_ids[0];
+        ids[1] = p->in_ids[1];
+        ids[2] = -1;
+        vs[0] = p->in[0];
+        vs[1] = p->in[1];
+        vs[2] = NULL;
+        p->in_ids = ids;
+        p->in = vs;
+        p->n_in = 3;
+    }
+    q->act = p->node->act;
+    q->lo = p->node->act_lo;
+    q->hi = p->node->act_hi;
+    dims[0] = (int64_t)q->M;
+    dims[1] = (int64_t)q->N;
+    p->fn = k_gemm;
+    if (!ta && !tb && q->c_mode == 2 && q->alpha == 1.0f && q->beta == 1.0f &&
+        (q->act == PC_ACT_TANH || q->act == PC_ACT_NONE)) {
+        if (p->b->cpu_avx2 < 0)
+            p->b->cpu_avx2 = pc_cpu_avx2(); /* cpuid traps to the hypervisor in a VM: ask once */
+        p->fn = pc_gemm_rows_kernels[p->b->cpu_avx2];
+    }
+    return pc_set_out(p, 0, PC_F32, 2, dims);
+}
+
+pc_status pc_op_MatMul(pc_prep *p)
+{
+    const pc_value *a, *b;
+    int64_t ad[PC_MAX_RANK], bd[PC_MAX_RANK], od[PC_MAX_RANK];
+    int ar, br, r, j, nb, oa = 0, ob = 0;
+    pc_gemm *q;
+    if (p->n_in != 2 || !p->in[0] || !p->in[1] || p->n_out != 1)
+        return pc_prep_fail(p, PC_ERR_GRAPH, "needs 2 inputs");
+    a = p->in[0];
+    b = p->in[1];
+    if (a->dtype != PC_F32 || b->dtype != PC_F32)
+        return pc_prep_fail(p, PC_ERR_UNSUPPORTED, "only float32 is supported");
+    if (a->rank < 1 || b->rank < 1)
+        return pc_prep_fail(p, PC_ERR_SHAPE, "inputs must have rank >= 1");
+    /* numpy semantics: promote 1-D operands, drop the added axes from the output. */
+    ar = a->rank;
+    br = b->rank;
+    for (j = 0; j < ar; j++)
+        ad[j] = a->dims[j];
+    for (j = 0; j < br; j++)
+        bd[j] = b->dims[j];
+    if (ar == 1) {
+        ad[1] = ad[0];
+        ad[0] = 1;
+        ar = 2;
+        oa = 1;
+    }
+    if (br == 1) {
+        bd[1] = 1;
+        br = 2;
+        ob = 1;
+    }
+    if (ad[ar - 1] != bd[br - 2])
+        return pc_prep_fail(p, PC_ERR_SHAPE, "inner dimensions differ (%lld vs %lld)",
+                            (long long)ad[ar - 1], (long long)bd[br - 2]);
+    q = pc_prep_params(p, sizeof *q);
+    if (!q)
+        return pc_fail(p->b->err, PC_ERR_MEMORY, "out of memory");
+    q->M = (size_t)ad[ar - 2];
+    q->K = (size_t)ad[ar - 1];
+    q->N = (size_t)bd[br - 1];
+    q->a_rs = q->K;
+    q->a_cs = 1;
+    q->b_rs = q->N;
+    q->b_cs = 1;
+    q->alpha = 1.0f;
+    q->beta = 0.0f;
+    nb = (ar > br ? ar : br) - 2;
+    if (nb > 4)
+        return pc_prep_fail(p, PC_ERR_UNSUPPORTED, "more than 4 batch dimensions");
+    r = 0;
+    {
+        size_t ast = q->M * q->K, bst = q->K * q->N;
+        size_t a_st[4], b_st[4];
+        for (j = nb - 1; j >= 0; j--) {
+            const int ja = ar - 2 - nb + j, jb = br - 2 - nb + j;
+            const int64_t da = ja >= 0 ? ad[ja] : 1, db = jb >= 0 ? bd[jb] : 1;
+            if (da != db && da != 1 && db != 1)
+                return pc_prep_fail(p, PC_ERR_SHAPE, "batch dimensions cannot be broadcast");
+            q->bd[j] = (size_t)(da > db ? da : db);
+            if (da == 0 || db == 0)
+                q->bd[j] = 0;
+            a_st[j] = da == 1 ? 0 : ast;
+            b_st[j] = db == 1 ? 0 : bst;
+            ast *= (size_t)da;
+            bst *= (size_t)db;
+        }
+        for (j = 0; j < nb; j++) {
+            q->a_bst[j] = a_st[j];
+            q->b_bst[j] = b_st[j];
+            od[r++] = (int64_t)q->bd[j];
+        }
+        q->nbd = (size_t)nb;
+        /* B shared by all batches and A contiguous: one big [M*batch, K] product. */
+        {
+            int b_shared = 1;
+            for (j = 0; j < nb; j++)
+                if (q->b_bst[j])
+                    b_shared = 0;
+            if (b_shared && nb > 0 && ar - 2 == nb) {
+                size_t tot = 1;
+                for (j = 0; j < nb; j++)
+                    tot *= q->bd[j];
+                q->M *= tot;
+                q->nbd = 0;
+            }
+        }
+    }
+    if (!oa)
+        od[r++] = ad[ar - 2];
+    if (!ob)
+        od[r++] = bd[br - 1];
+    p->fn = k_matmul;
+    return pc_set_out(p, 0, PC_F32, r, od);
+}

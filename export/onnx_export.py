@@ -149,6 +149,19 @@ def check_model(model: Any) -> None:
         raise ExportError("the output is not float32")
 
 
+# How far outside the training positions a model still corrects (runtime_c refuses a pose
+# beyond with PC_ERR_RANGE): half the training extent per axis, and at least 0.1 m.
+BOUNDS_MARGIN_FRACTION = 0.5
+BOUNDS_MARGIN_MIN = 0.1
+
+
+def input_bounds(measured: np.ndarray) -> list[list[float]]:
+    """[[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]] (m): the training positions' box, widened."""
+    lo, hi = measured[:, :3].min(axis=0), measured[:, :3].max(axis=0)
+    margin = np.maximum(BOUNDS_MARGIN_FRACTION * (hi - lo), BOUNDS_MARGIN_MIN)
+    return [(lo - margin).tolist(), (hi + margin).tolist()]
+
+
 def op_counts(model: Any) -> dict[str, int]:
     return dict(sorted(Counter(n.op_type for n in model.graph.node).items()))
 
@@ -221,6 +234,8 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
         info["parity"] = parity_report
     if measured is not None and "training_data_digest" not in info:
         info["training_data_digest"] = data_digest(measured, reference)
+    if measured is not None and "input_bounds" not in info:
+        info["input_bounds"] = input_bounds(np.asarray(measured, float))
 
     from posecorr import __version__
 

@@ -184,7 +184,7 @@ def _training_arrays(estimator: Any, measured: Any, reference: Any) -> tuple[Any
 
 def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = None,
             reference: np.ndarray | None = None, t: np.ndarray | None = None, parity: str = "raise",
-            n_random: int = 10_000,
+            n_random: int = 10_000, heldout: tuple | None = None,
             seed: int = 0, tol_pos: float = 1e-5, tol_rot: float = 1e-5, **metadata: Any) -> dict[str, Any]:
     """Export a fitted corrector to `path` and return what was written.
 
@@ -193,6 +193,10 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
     measured, reference: the training arrays (N, 7) (m, unit quaternions); used for the
       parity check and the training-data digest. Default: the estimator's own copies.
     t: the training poses' times (s) for a model with a time input (`estimator.needs_time`).
+    heldout: (measured, reference, t or None, with_rotation) of poses the model never saw: the
+      graph itself (onnxruntime, float32) is run on them and its metrics become the file's
+      `test_metrics` ({"test": ..., "raw": ...}) and the return value's "heldout_metrics", so
+      what fit prints about the file is what the file does.
     parity: "raise" (refuse to save a model beyond tol_pos m / tol_rot rad), "warn"
       (record the failure in the metadata) or "skip" (no training data needed).
     metadata: extra `metadata_props` (test_metrics=..., effects=..., ...); they override
@@ -232,6 +236,19 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
                 f"{parity_report['max_pos_m']:.3g} m (tol {parity_report['tol_pos_m']:.3g}), max rotation error "
                 f"{parity_report['max_rot_rad']:.3g} rad (tol {tol_rot:g})")
         info["parity"] = parity_report
+    heldout_metrics = None
+    if heldout is not None:
+        from posecorr.metrics import metric_block, pose_metrics
+
+        from .parity import run_onnx
+
+        h_measured, h_reference, h_t, with_rotation = heldout
+        corrected = np.asarray(run_onnx(model, h_measured, h_t if time_input else None), float)
+        raw = pose_metrics(h_reference, h_measured, with_rotation)
+        heldout_metrics = {"test": metric_block(raw, pose_metrics(h_reference, corrected, with_rotation)),
+                           "raw": raw, "n_test": int(len(h_measured)),
+                           "computed_by": "the exported graph (onnxruntime, float32) on held-out poses"}
+        info["test_metrics"] = heldout_metrics
     if measured is not None and "training_data_digest" not in info:
         info["training_data_digest"] = data_digest(measured, reference)
     if measured is not None and "input_bounds" not in info:
@@ -258,4 +275,4 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
     path.write_bytes(data)
     counts = op_counts(model)
     return {"path": str(path), "metadata": info, "op_counts": counts, "n_nodes": sum(counts.values()),
-            "file_size": len(data), "parity": parity_report}
+            "file_size": len(data), "parity": parity_report, "heldout_metrics": heldout_metrics}

@@ -152,3 +152,26 @@ def test_fit_save_round_trips_every_estimator_through_export(tmp_path, method: s
     outputs = [ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]).run(None, {"pose": poses})[0]
                for p in (fitted, exported)]
     assert np.array_equal(outputs[0], outputs[1])
+
+
+def test_fit_prints_the_metrics_of_the_file_it_writes(tmp_path) -> None:
+    """Issue 11: the test-split figures fit prints are those of the exported graph; apply of
+    that file to the same poses (onnxruntime back-end: the same float32 graph) gives them."""
+    from posecorr.train.protocol import split_indices
+
+    table = simulate(3, seed=5).table.subset(np.arange(300))
+    data, model = tmp_path / "d.csv", tmp_path / "m.onnx"
+    write_table(table, data)
+    run = posecorr("fit", str(data), "-o", str(model), "--effects", "station,mount,drift", "--method", "pmc",
+                   "--json", cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    printed = json.loads(run.stdout)["test"]
+    _, _, test = split_indices(table.n, 0)
+    held = tmp_path / "test_rows.csv"
+    write_table(table.subset(test), held)
+    run = posecorr("apply", str(model), str(held), "-o", str(tmp_path / "out.csv"), "--backend", "onnxruntime",
+                   "--json", cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    applied = json.loads(run.stdout)["corrected"]
+    for key in ("rmse_pos", "rmse_rot", "rmse_total"):
+        assert printed[key] == pytest.approx(applied[key], rel=1e-12), key

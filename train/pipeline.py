@@ -320,6 +320,7 @@ class FitReport:
     cv: int | str | None = None
     fell_back: bool = False
     notes: list[str] = field(default_factory=list)
+    test_index: np.ndarray | None = None    # the test split's rows (heldout_kind "test")
 
     @property
     def fixed(self) -> dict[str, str]:
@@ -391,7 +392,7 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
                          "returning the rigid fit")
         report = FitReport(model, raw, heldout, "test", np.sort(fit_rows if not _is_mlp(best) else train),
                            best.name, scores if method == "auto" else {}, baseline, len(test), None,
-                           best.rigid and method != "auto", notes)
+                           best.rigid and method != "auto", notes, test)
         return _warn_thin(report)
 
     splits = kfold_indices(table.n, cv, seed)

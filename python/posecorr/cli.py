@@ -163,12 +163,19 @@ def cmd_fit(args: argparse.Namespace) -> None:
 
     try:
         times = table.time()
+        rows = report.test_index
+        heldout = None if rows is None else (table.measured[rows], table.reference[rows],
+                                             None if times is None else times[rows], table.has_orientation)
         exported = report.model.to_onnx(args.output, measured=table.measured[report.train_index],
                                         reference=table.reference[report.train_index],
                                         t=None if times is None else times[report.train_index],
-                                        test_metrics={key: report.heldout, "raw": report.raw})
+                                        heldout=heldout, test_metrics={key: report.heldout, "raw": report.raw})
     except ExportError as exc:
         raise CliError(f"{args.output}: the model could not be exported: {exc}") from None
+    if exported.get("heldout_metrics"):
+        # The test split's figures are those of the file written (float32 graph), not of the
+        # Python estimator it came from.
+        report.heldout = exported["heldout_metrics"]["test"]
     info = report.model.export_info()
     effects_json = report.model.physics_.describe() if report.model.physics_ is not None else {}
     payload: dict[str, Any] = {"model": str(args.output), "method": info.get("method"),

@@ -436,7 +436,9 @@ class Station(Effect):
         xp, p, R, theta = _to_namespace(p, R, theta)
         W = rotvec_to_matrix(theta[..., 0:3])
         c = xp.const(ctx.c, p)
-        return c + _rows_times(p - theta[..., 3:6] - c, W), xp.matmul(xp.swap_last(W), R)
+        # p - (v + c): one subtraction from the measured position, the rest folded into one
+        # constant, so a graph working metres from the tracker's origin rounds once (float32).
+        return c + _rows_times(p - (theta[..., 3:6] + c), W), xp.matmul(xp.swap_last(W), R)
 
 
 class Noise(Effect):

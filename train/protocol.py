@@ -480,6 +480,11 @@ def run_sweep(table: Any, configs: Sequence[Config], repeats: int = 30, store: s
     from posecorr.data import require_rows
 
     require_rows(table, 10, "the sweep's train/validation/test split")
+    if ray_address is not None:
+        try:
+            import ray  # optional dependency
+        except ImportError:
+            raise ModuleNotFoundError("--ray needs the ray package (pip install ray)", name="ray") from None
     fingerprint = table_fingerprint(table)
     store_path = Path(store) if store is not None else None
     done = _load_store(store_path, fingerprint, seed) if store_path else {}
@@ -514,11 +519,6 @@ def run_sweep(table: Any, configs: Sequence[Config], repeats: int = 30, store: s
     # longest jobs first keeps the pool busy at the end
     todo.sort(key=lambda cr: -_cost(cr[0]))
     if ray_address is not None:
-        try:
-            import ray  # optional dependency
-        except ImportError:
-            raise ModuleNotFoundError("--ray needs the ray package (pip install ray)", name="ray") from None
-
         ray.init(address=ray_address, ignore_reinit_error=True)
         remote = ray.remote(run_one)
         table_ref = ray.put(table)

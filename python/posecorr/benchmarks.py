@@ -5,6 +5,8 @@
   Experiment III configuration (`posecorr.train.bench_train`).
 * `latency.json`: single-pose latency and batch throughput of the shipped zhou MLP in the C
   runtime, the Python shim, onnxruntime (plain and IOBinding) and numpy (`posecorr.latency`).
+* `apply.json`: `posecorr apply` on 10^6 rows (wall and CPU time, peak memory) against
+  the csv module's read-and-write-back floor on the same file (`posecorr.bench_apply`).
 """
 from __future__ import annotations
 
@@ -27,7 +29,7 @@ def latency_model() -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--only", choices=("train", "latency"), help="run one benchmark")
+    parser.add_argument("--only", choices=("train", "latency", "apply"), help="run one benchmark")
     args = parser.parse_args(argv)
     RESULTS.mkdir(parents=True, exist_ok=True)
     if args.only in (None, "latency"):
@@ -37,6 +39,10 @@ def main(argv: list[str] | None = None) -> int:
         result = {"model": str(model.relative_to(ROOT)), **bench_model(model)}
         (RESULTS / "latency.json").write_text(json.dumps(result, indent=2))
         print(json.dumps(result, indent=2))
+    if args.only in (None, "apply"):
+        from .bench_apply import run as run_apply
+
+        print(json.dumps(run_apply(str(RESULTS / "apply.json")), indent=2))
     if args.only in (None, "train"):
         from .train import bench_train
 

@@ -468,9 +468,10 @@ OUTPUT_ARGS = ("output", "save", "store")
 # Verbs whose -o is a folder they fill.
 FOLDER_OUTPUT_VERBS = frozenset({"demo"})
 # The optional dependencies, by module, and how to get them.
-EXTRAS = {**dict.fromkeys(("torch", "scipy", "sklearn", "onnx", "onnxruntime", "matplotlib", "tqdm",
-                           "threadpoolctl"), "pip install 'posecorr[train]'"),
-          "ray": "pip install ray"}
+TRAIN_MODULES = ("torch", "scipy", "sklearn", "onnx", "onnxruntime", "matplotlib", "tqdm", "threadpoolctl")
+EXTRAS = {**dict.fromkeys(TRAIN_MODULES, "pip install 'posecorr[train]'"), "ray": "pip install ray"}
+# Verbs that need the train extra whatever their options: checked before any work starts.
+TRAIN_VERBS = frozenset({"fit", "sweep", "diagnose", "report", "export", "demo"})
 EXIT_INTERNAL = 1
 EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143
@@ -486,6 +487,15 @@ def _paths(args: argparse.Namespace) -> tuple[list[Path], list[Path]]:
             if isinstance(item, Path):
                 (outputs if name in OUTPUT_ARGS else inputs).append(item)
     return inputs, outputs
+
+
+def _check_extras(verb: str) -> None:
+    import importlib.util
+
+    if verb in TRAIN_VERBS:
+        for module in TRAIN_MODULES:
+            if importlib.util.find_spec(module) is None:
+                raise ModuleNotFoundError(f"No module named {module!r}", name=module)
 
 
 def _check_paths(args: argparse.Namespace) -> None:
@@ -517,7 +527,10 @@ def _anticipated(exc: BaseException) -> bool:
     """Failures that bad input, a bad file or a bad path cause: reported in one line.
     posecorr's own exceptions (table, model, export, parity, options) count, as do the
     ValueErrors and OSErrors of the numeric and file layers below it."""
-    if isinstance(exc, (ValueError, OSError, CliError)):
+    import pickle
+
+    # pickle's errors: `export` of a file that is not a pickled estimator (or an empty one).
+    if isinstance(exc, (ValueError, OSError, CliError, pickle.UnpicklingError, EOFError)):
         return True
     return any(cls.__module__.split(".")[0] == "posecorr" for cls in type(exc).__mro__)
 
@@ -531,6 +544,7 @@ def main(argv: list[str] | None = None) -> int:
     prefix = f"posecorr {args.verb}: "
     try:
         with sigterm_as_interrupt():
+            _check_extras(args.verb)
             _check_paths(args)
             args.func(args)
             sys.stdout.flush()

@@ -131,8 +131,10 @@ def require_rows(table: PoseTable, needed: int, purpose: str) -> None:
 # "0x1p3", which no tracker or robot writes and which would turn a typo into a number.
 _NUMBER = r"[ \t]*[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?[ \t]*"
 _NUMBER_RE = re.compile(_NUMBER)
-_COLUMN_RE = re.compile(f"(?:{_NUMBER}\n)*{_NUMBER}")
-CHUNK_ROWS = 65536
+# A column whose cells use only these characters and that float() reads whole is plain
+# decimal notation: what float() takes beyond it needs a letter or an underscore.
+_DECIMAL_CHARS_RE = re.compile(r"[0-9eE+\-. \t\n]*")
+CHUNK_ROWS = 16384  # rows per chunk: ~25 MB of cells as Python strings
 
 
 def _parse_number(text: str, path: str, row: int, column: str) -> float:
@@ -152,12 +154,16 @@ def _parse_number(text: str, path: str, row: int, column: str) -> float:
 
 
 def _parse_column(cells: list[str], path: str, rows: list[int], column: str) -> np.ndarray:
-    """One column of a chunk as float64: one regex over the whole column, cell by cell only
-    to name the first bad one."""
-    if cells and _COLUMN_RE.fullmatch("\n".join(cells)):
-        values = np.array(cells, dtype=np.float64)
-        if np.all(np.isfinite(values)):
-            return values
+    """One column of a chunk as float64, checked as a whole; cell by cell only to name the
+    first bad one."""
+    if _DECIMAL_CHARS_RE.fullmatch("\n".join(cells)):
+        try:
+            values = np.array(list(map(float, cells)), dtype=np.float64)
+        except ValueError:
+            pass
+        else:
+            if np.all(np.isfinite(values)):
+                return values
     return np.array([_parse_number(c, path, r, column) for c, r in zip(cells, rows)], dtype=np.float64)
 
 
@@ -196,13 +202,12 @@ class TableReader:
 
     def __init__(self, path: str | Path, require_reference: bool = True) -> None:
         self.path = str(path)
+        if Path(self.path).is_dir():
+            raise TableError(self.path, "is a folder, expected a CSV file")
         try:
             self._handle = open(self.path, "rb")
         except OSError as exc:
             raise TableError(self.path, f"cannot open: {exc.strerror}") from None
-        if Path(self.path).is_dir():
-            self._handle.close()
-            raise TableError(self.path, "is a folder, expected a CSV file")
         self._line = [0]
         self._reader = csv.reader(_decoded_lines(self._handle, self.path, self._line))
         try:
@@ -257,10 +262,12 @@ class TableReader:
         record = 1
         try:
             for record, row in enumerate(self._reader, start=2):
-                if not row or all(not cell.strip() for cell in row):
-                    continue
-                if len(row) != width:
-                    raise TableError(self.path, f"{len(row)} fields, expected {width} as in the header", record)
+                if len(row) != width or not row[0].strip():
+                    if not "".join(row).strip():
+                        continue  # a blank line carries no pose
+                    if len(row) != width:
+                        raise TableError(self.path, f"{len(row)} fields, expected {width} as in the header",
+                                         record)
                 rows.append(row)
                 numbers.append(record)
                 if len(rows) == size:

@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import sys
 import tempfile
@@ -64,6 +65,11 @@ def check_output(path: str | os.PathLike[str], inputs: Iterable[str | os.PathLik
     return out
 
 
+# Failures of the device rather than of the caller: reported against the output path.
+_DEVICE_ERRORS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS, errno.EACCES,
+                            errno.EPERM})
+
+
 def _fsync_folder(folder: Path) -> None:
     try:
         fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
@@ -102,7 +108,10 @@ def atomic_output(path: str | os.PathLike[str], mode: str = "w", *, encoding: st
     fd = _unnamed_file(folder)
     named: str | None = None
     if fd is None:
-        fd, named = tempfile.mkstemp(dir=folder, prefix=f".{out.name}.", suffix=".tmp")
+        try:
+            fd, named = tempfile.mkstemp(dir=folder, prefix=f".{out.name}.", suffix=".tmp")
+        except OSError as exc:
+            raise OutputPathError(f"{out}: cannot create a file in {folder}: {exc.strerror}") from None
         umask = os.umask(0)
         os.umask(umask)
         os.fchmod(fd, 0o666 & ~umask)
@@ -110,12 +119,17 @@ def atomic_output(path: str | os.PathLike[str], mode: str = "w", *, encoding: st
     handle = os.fdopen(fd, "w" if text else "wb", encoding=encoding if text else None,
                       newline=newline if text else None)
     try:
-        yield handle
-        handle.flush()
-        os.fsync(handle.fileno())
-        if named is None:
-            named = _link_unnamed(handle.fileno(), folder, out.name)
-        os.replace(named, out)
+        try:
+            yield handle
+            handle.flush()
+            os.fsync(handle.fileno())
+            if named is None:
+                named = _link_unnamed(handle.fileno(), folder, out.name)
+            os.replace(named, out)
+        except OSError as exc:
+            if exc.errno not in _DEVICE_ERRORS:
+                raise
+            raise OutputPathError(f"{out}: cannot write: {exc.strerror}; the previous file is unchanged") from None
         named = None
         _fsync_folder(folder)
     finally:

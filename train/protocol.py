@@ -453,12 +453,14 @@ def _run_in_worker(table: Any, config: Config, repeat: int, seed: int, threads: 
 def _stop_pool(pool: Any) -> None:
     """Cancel what has not started and end the workers now (a run in progress is lost,
     the finished ones are already in the store)."""
+    # The executor has no public way to stop busy workers; its process table (emptied by
+    # shutdown, so read first) is the only handle.
+    processes = list((getattr(pool, "_processes", None) or {}).values())
     pool.shutdown(wait=False, cancel_futures=True)
-    # The executor has no public way to stop busy workers; its process table is the only handle.
-    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+    for proc in processes:
         if proc.is_alive():
             proc.terminate()
-    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+    for proc in processes:
         proc.join(timeout=5)
         if proc.is_alive():
             proc.kill()

@@ -8,6 +8,7 @@ stored and both workers busy. Then the process gets the signal.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -123,7 +124,8 @@ def _run_and_kill(mode: str, sig: int, folder: Path, argv: list[str], ready_coun
         _, err = proc.communicate(timeout=120)
     except subprocess.TimeoutExpired:
         for pid in family | {proc.pid}:  # leave nothing behind before failing
-            os.kill(pid, signal.SIGKILL)
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
         proc.communicate()
         raise AssertionError(f"{mode} did not end within 120 s of the signal") from None
     for path in folder.glob("ready.*"):

@@ -77,6 +77,8 @@ def _bad_tables(folder: Path) -> list[tuple[str, Path, list[str], bool]]:
          False),
         ("overflow", f"{HEADER_Q}\n1e999" + good[0][good[0].index(","):], ["row 2", "column meas_x", "finite"],
          False),
+        ("1e30 m", f"{HEADER_Q}\n1e30" + good[0][good[0].index(","):], ["row 2", "column meas_x", "from the origin"],
+         False),
         ("empty cell", f"{HEADER_Q}\n," + good[0].split(",", 1)[1], ["row 2", "column meas_x", "empty"], False),
         ("zero quaternion", f"{HEADER_Q}\n0.1,0.2,0.3,0,0,0,0,0.1,0.2,0.3,1,0,0,0\n",
          ["row 2", "column meas_qw..meas_qz", "zero quaternion"], False),

@@ -29,6 +29,9 @@ JOINTS = tuple(f"q{i}" for i in range(1, 7))
 NUMERIC_OPTIONAL = ("t", "jitter_mm") + JOINTS
 TEXT_OPTIONAL = ("id", "session")
 QUAT_NORM_TOLERANCE = 1e-3
+# A tracker sees a few metres and a robot cell is a few metres wide: a coordinate beyond
+# this (metres) is a unit mistake (millimetres) or a corrupt value, not a pose.
+MAX_POSITION = 1e3
 
 
 class TableError(ValueError):
@@ -282,6 +285,12 @@ class TableReader:
         values = {c: _parse_column([row[self.index[c]] for row in rows], self.path, numbers, c)
                   for c in self.numeric}
         chunk = Chunk(rows, numbers, values)
+        for c in MEAS_POS + (REF_POS if self.has_reference else ()):
+            far = np.flatnonzero(np.abs(values[c]) > MAX_POSITION)
+            if far.size:
+                i = int(far[0])
+                raise TableError(self.path, f"{values[c][i]:.6g} m is more than {MAX_POSITION:g} m from the origin "
+                                 "(positions are in metres)", numbers[i], c)
         _check_quaternions(self.path, chunk.block(MEAS_QUAT), MEAS_QUAT, numbers)
         if self.has_ref_orientation:
             _check_quaternions(self.path, chunk.block(REF_QUAT), REF_QUAT, numbers)

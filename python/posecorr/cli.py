@@ -504,8 +504,9 @@ def _check_paths(args: argparse.Namespace) -> None:
     if args.verb in FOLDER_OUTPUT_VERBS:
         return
     inputs, outputs = _paths(args)
-    for out in outputs:
-        check_output(out, inputs)
+    for i, out in enumerate(outputs):
+        # Each output must also differ from the others (`fit -o m.onnx --save m.onnx`).
+        check_output(out, inputs + outputs[:i])
 
 
 def _error_line(exc: BaseException, args: argparse.Namespace) -> str:

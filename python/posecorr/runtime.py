@@ -197,7 +197,8 @@ class _OrtBackend:
         except Exception as exc:
             raise PoseCorrError(f"{self.name}: onnxruntime failed to run it: {_first_line(exc)}") from None
         if out.shape != x.shape:
-            raise PoseCorrError(f"{self.name}: output 'corrected' has shape {list(out.shape)}, expected {list(x.shape)}")
+            raise PoseCorrError(f"{self.name}: output 'corrected' has shape {list(out.shape)}, "
+                                f"expected {list(x.shape)}")
         return out.astype(np.float64)
 
     def run1(self, pose: np.ndarray) -> np.ndarray:

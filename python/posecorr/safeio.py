@@ -54,8 +54,8 @@ def check_output(path: str | os.PathLike[str], inputs: Iterable[str | os.PathLik
             continue
         source = Path(given)
         if _same_file(out, source) or out.resolve() == source.resolve():
-            raise OutputPathError(f"{out}: is also an input of this command; refusing to overwrite it "
-                                  "(choose another output name)")
+            raise OutputPathError(f"{out}: is also an input or another output of this command; "
+                                  "refusing to overwrite it (choose another output name)")
     if not folder.is_dir():
         raise OutputPathError(f"{out}: folder {folder} does not exist")
     if not os.access(folder, os.W_OK | os.X_OK):

@@ -272,7 +272,9 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
     if path.parent and not path.parent.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
     data = model.SerializeToString()
-    path.write_bytes(data)
+    from posecorr.safeio import write_bytes
+
+    write_bytes(path, data)  # atomic: a controller polling the file never reads half a model
     counts = op_counts(model)
     return {"path": str(path), "metadata": info, "op_counts": counts, "n_nodes": sum(counts.values()),
             "file_size": len(data), "parity": parity_report, "heldout_metrics": heldout_metrics}

@@ -350,11 +350,11 @@ def test_posecorr_run_csv(c_build, pose_file):
 
 def test_posecorr_run_reports_line_numbers(c_build, pose_file):
     text = "0.1,0.2,0.3,1,0,0,0\n0.1,0.2,0.3,1,0,0,0\n0.1,oops,0.3,1,0,0,0\n"
-    r = subprocess.run([str(c_build / "posecorr-run"), str(pose_file)], input=text,
+    r = subprocess.run([str(c_build / "posecorr-run"), str(pose_file), "--strict"], input=text,
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 1 and "line 3" in r.stderr
     assert len(r.stdout.strip().splitlines()) == 2
-    r = subprocess.run([str(c_build / "posecorr-run"), str(pose_file)],
+    r = subprocess.run([str(c_build / "posecorr-run"), str(pose_file), "--strict"],
                        input="0.1,0.2,0.3,1,0,0,0\nnan,0,0,1,0,0,0\n", capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 1 and "line 2" in r.stderr and "non-finite" in r.stderr

@@ -33,6 +33,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from posecorr.metrics import METRIC_KEYS, improvement, metric_block, pose_metrics, summarize
+from posecorr.safeio import append_line, sigterm_as_interrupt
 
 from .mlp import ARCHITECTURES, MLP, TRAINER_NUMBERS, architecture_number, parse_hidden
 from .pmc import PMC
@@ -375,7 +376,7 @@ def _load_store(path: Path, fingerprint: str, seed: int) -> dict[tuple[str, int]
     done: dict[tuple[str, int], dict[str, Any]] = {}
     if not path.exists():
         return done
-    with open(path, encoding="utf-8") as fh:
+    with open(path, encoding="utf-8", errors="replace") as fh:
         for line in fh:
             line = line.strip()
             if not line:
@@ -383,19 +384,86 @@ def _load_store(path: Path, fingerprint: str, seed: int) -> dict[tuple[str, int]
             try:
                 row = json.loads(line)
             except json.JSONDecodeError:
-                continue  # a line cut by an interruption
-            if row.get("data") == fingerprint and row.get("seed") == seed:
+                continue  # a line torn by an interruption: moved aside at the next append
+            if (isinstance(row, dict) and row.get("data") == fingerprint and row.get("seed") == seed
+                    and "key" in row and "repeat" in row):
                 done[(row["key"], int(row["repeat"]))] = row
     return done
 
 
-def _worker_init(threads: int) -> None:
+def _worker_init(threads: int, parent: int) -> None:
+    """Pool worker set-up: its torch threads, and no life of its own.
+
+    Ctrl-C reaches the whole process group; the parent alone decides (it stops the pool),
+    so workers ignore SIGINT and take SIGTERM's default. A worker whose parent died, even
+    by kill -9, exits: Linux delivers SIGKILL on the parent's death (PR_SET_PDEATHSIG),
+    elsewhere a thread watches the parent id.
+    """
+    import signal
+    import threading
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    if not _die_with_parent():
+        def watch() -> None:
+            while os.getppid() == parent:
+                time.sleep(0.5)
+            os._exit(1)
+
+        threading.Thread(target=watch, daemon=True).start()
+    if os.getppid() != parent:  # the parent died before the request took effect
+        os._exit(1)
     try:
         import torch
 
         torch.set_num_threads(threads)
     except ImportError:
         pass
+
+
+def _die_with_parent() -> bool:
+    import ctypes
+    import signal
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc.prctl(1, int(signal.SIGKILL), 0, 0, 0) == 0  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return False
+
+
+def _run_in_worker(table: Any, config: Config, repeat: int, seed: int, threads: int) -> dict[str, Any]:
+    """`run_one` in a pool worker; an exception that cannot be pickled would break the whole
+    pool, so it crosses as a RuntimeError with the same message instead."""
+    import pickle
+
+    try:
+        return run_one(table, config, repeat, seed, threads)
+    except Exception as exc:
+        try:
+            pickle.loads(pickle.dumps(exc))
+        except Exception:
+            raise RuntimeError(f"{config.key}, repeat {repeat}: {type(exc).__name__}: {exc}") from None
+        raise
+
+
+def _stop_pool(pool: Any) -> None:
+    """Cancel what has not started and end the workers now (a run in progress is lost,
+    the finished ones are already in the store)."""
+    # The executor has no public way to stop busy workers; its process table (emptied by
+    # shutdown, so read first) is the only handle.
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in processes:
+        if proc.is_alive():
+            proc.terminate()
+    for proc in processes:
+        proc.join(timeout=5)
+        if proc.is_alive():
+            proc.kill()
 
 
 def run_sweep(table: Any, configs: Sequence[Config], repeats: int = 30, store: str | os.PathLike | None = None,
@@ -411,6 +479,14 @@ def run_sweep(table: Any, configs: Sequence[Config], repeats: int = 30, store: s
     keys = [c.key for c in configs]
     if len(set(keys)) != len(keys):
         raise ValueError("duplicate configurations in the grid")
+    from posecorr.data import require_rows
+
+    require_rows(table, 10, "the sweep's train/validation/test split")
+    if ray_address is not None:
+        try:
+            import ray  # optional dependency
+        except ImportError:
+            raise ModuleNotFoundError("--ray needs the ray package (pip install ray)", name="ray") from None
     fingerprint = table_fingerprint(table)
     store_path = Path(store) if store is not None else None
     done = _load_store(store_path, fingerprint, seed) if store_path else {}
@@ -434,8 +510,7 @@ def run_sweep(table: Any, configs: Sequence[Config], repeats: int = 30, store: s
         row["data"] = fingerprint
         rows.append(row)
         if store_path:
-            with open(store_path, "a", encoding="utf-8") as fh:
-                fh.write(json.dumps(row) + "\n")
+            append_line(store_path, json.dumps(row))
         if row["rmse_total"] < best[0]:
             best[0] = row["rmse_total"]
             best.append(row["key"])
@@ -446,8 +521,6 @@ def run_sweep(table: Any, configs: Sequence[Config], repeats: int = 30, store: s
     # longest jobs first keeps the pool busy at the end
     todo.sort(key=lambda cr: -_cost(cr[0]))
     if ray_address is not None:
-        import ray  # optional dependency
-
         ray.init(address=ray_address, ignore_reinit_error=True)
         remote = ray.remote(run_one)
         table_ref = ray.put(table)
@@ -464,11 +537,27 @@ def run_sweep(table: Any, configs: Sequence[Config], repeats: int = 30, store: s
 
         threads = max(1, (os.cpu_count() or 1) // workers)
         ctx = mp.get_context("spawn" if os.name == "nt" else "fork")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
-                                 initargs=(threads,)) as pool:
-            futures = [pool.submit(run_one, table, c, r, seed, threads) for c, r in todo]
-            for fut in as_completed(futures):
-                record(fut.result())
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
+                                   initargs=(threads, os.getpid()))
+        futures: list[Any] = []
+        recorded: set[Any] = set()
+        try:
+            with sigterm_as_interrupt():
+                futures = [pool.submit(_run_in_worker, table, c, r, seed, threads) for c, r in todo]
+                for fut in as_completed(futures):
+                    row = fut.result()
+                    recorded.add(fut)
+                    record(row)
+        except BaseException:
+            # Interrupted (Ctrl-C, SIGTERM) or a run failed: keep every run that finished.
+            for fut in futures:
+                if fut not in recorded and fut.done() and not fut.cancelled() and fut.exception() is None:
+                    record(fut.result())
+            _stop_pool(pool)
+            if bar is not None:
+                bar.close()
+            raise
+        pool.shutdown(wait=True)
     if bar is not None:
         bar.close()
     order = {k: i for i, k in enumerate(keys)}

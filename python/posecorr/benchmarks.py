@@ -7,6 +7,8 @@
   out; 3375 simulated poses), with the load average (`posecorr.train.bench_fit`).
 * `latency.json`: single-pose latency and batch throughput of the shipped zhou MLP in the C
   runtime, the Python shim, onnxruntime (plain and IOBinding) and numpy (`posecorr.latency`).
+* `apply.json`: `posecorr apply` on 10^6 rows (wall and CPU time, peak memory) against
+  the csv module's read-and-write-back floor on the same file (`posecorr.bench_apply`).
 """
 from __future__ import annotations
 
@@ -27,27 +29,45 @@ def latency_model() -> Path:
     return candidates[-1]
 
 
+def _latency() -> dict:
+    from .latency import bench_model
+
+    model = latency_model()
+    result = {"model": str(model.relative_to(ROOT)), **bench_model(model)}
+    (RESULTS / "latency.json").write_text(json.dumps(result, indent=2))
+    return result
+
+
+def _fit() -> dict:
+    from .train import bench_fit
+
+    return bench_fit.run(str(RESULTS / "fit.json"))
+
+
+def _apply() -> dict:
+    from .bench_apply import run as run_apply
+
+    return run_apply(str(RESULTS / "apply.json"))
+
+
+def _train() -> dict:
+    from .train import bench_train
+
+    return bench_train.run(str(RESULTS / "train.json"))
+
+
+# name -> runner writing bench/results/NAME.json; `make bench` runs them in this order.
+BENCHMARKS = {"latency": _latency, "fit": _fit, "apply": _apply, "train": _train}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--only", choices=("train", "latency", "fit"), help="run one benchmark")
+    parser.add_argument("--only", choices=tuple(BENCHMARKS), help="run one benchmark")
     args = parser.parse_args(argv)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    if args.only in (None, "latency"):
-        from .latency import bench_model
-
-        model = latency_model()
-        result = {"model": str(model.relative_to(ROOT)), **bench_model(model)}
-        (RESULTS / "latency.json").write_text(json.dumps(result, indent=2))
-        print(json.dumps(result, indent=2))
-    if args.only in (None, "fit"):
-        from .train import bench_fit
-
-        print(json.dumps(bench_fit.run(str(RESULTS / "fit.json")), indent=2))
-    if args.only in (None, "train"):
-        from .train import bench_train
-
-        result = bench_train.run(str(RESULTS / "train.json"))
-        print(json.dumps(result, indent=2, default=str))
+    for name, run in BENCHMARKS.items():
+        if args.only in (None, name):
+            print(json.dumps(run(), indent=2, default=str))
     return 0
 
 

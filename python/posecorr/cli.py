@@ -2,8 +2,9 @@
 
 Verbs import what they need when they run, so the controller-side verbs (`apply`,
 `info`, `bench`) work on an install with numpy only. Every anticipated failure (bad table,
-bad model file, bad option) ends with a one-line message and exit code 2, never a
-traceback.
+bad model file, bad option, bad output path, a missing optional package) ends with a
+one-line message naming the file and exit code 2, never a traceback; SIGTERM and Ctrl-C
+end a verb cleanly (exit 143 / 130), and every file is written atomically (`safeio`).
 """
 from __future__ import annotations
 
@@ -370,41 +371,52 @@ def cmd_info(args: argparse.Namespace) -> None:
     from .onnx_meta import read_info
 
     info = read_info(args.model)
-    _emit(args, info, lambda: "\n".join(f"{k:>22}: {_one_line(v)}" for k, v in info.items()))
+    # Metadata is whatever the file's author wrote: escape what a terminal would obey.
+    _emit(args, info, lambda: "\n".join(f"{_printable(str(k)):>22}: {_printable(_one_line(v))}"
+                                         for k, v in info.items()))
 
 
 def _one_line(value: Any) -> str:
     return json.dumps(value, default=_json_default) if isinstance(value, (dict, list)) else str(value)
 
 
+def _printable(text: str) -> str:
+    """Control and other non-printable characters as escapes (\\x1b, \\n, \\u202e)."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
+
+
 def cmd_apply(args: argparse.Namespace) -> None:
-    from .data import read_table, write_table
-    from .runtime import Corrector
+    from .apply import apply_file
 
-    table = read_table(args.input)
-    corrector = Corrector(args.model, backend=args.backend)
-    corrected = corrector.correct(table.measured)
-    write_table(table.with_measured(corrected), args.output)
-    payload: dict[str, Any] = {"n": table.n, "output": str(args.output), "backend": args.backend}
-    # The reference columns are passed through, so the table can be scored at once.
-    from .metrics import metric_block, pose_metrics
-
-    raw = pose_metrics(table.reference, table.measured, table.has_orientation)
-    corr = pose_metrics(table.reference, corrected, table.has_orientation)
-    payload.update({"raw": raw, "corrected": metric_block(raw, corr)})
+    payload = apply_file(args.model, args.input, args.output, backend=args.backend)
 
     def text() -> str:
         from .textui import METRIC_HEADERS, metrics_rows, table as fmt_table
 
-        return (f"{table.n} poses corrected with {args.model} ({args.backend}) -> {args.output}\n"
-                + fmt_table(METRIC_HEADERS, metrics_rows({"raw": raw, "corrected": corr})))
+        head = (f"{payload['n']} poses corrected with {args.model} ({args.backend}) -> {args.output} "
+                f"(columns corr_x..corr_qz beside the raw meas_*)")
+        if payload["raw"] is None:
+            return head + "\nno ref_* columns: no metrics"
+        return head + "\n" + fmt_table(METRIC_HEADERS, metrics_rows({"raw": payload["raw"],
+                                                                     "corrected": payload["corrected"]}))
 
     _emit(args, payload, text)
 
 
 def cmd_bench(args: argparse.Namespace) -> None:
     from .latency import bench_model
+    from .runtime import Corrector
 
+    # Load it in every back end first: a file the runtimes refuse fails here, in one line.
+    Corrector(args.model).close()
+    try:
+        import onnxruntime  # noqa: F401
+    except ImportError:
+        pass
+    else:
+        Corrector(args.model, backend="onnxruntime").close()
     result = bench_model(args.model, n_single=args.n, batch=args.batch)
 
     def text() -> str:
@@ -536,19 +548,120 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    from .data import TableError
+# Arguments that name files a verb writes; every other Path argument is an input. Outputs
+# are checked before the verb runs (not a folder, in a writable folder, not an input), so
+# `fit d.csv -o d.csv` fails before any work and without touching the data.
+OUTPUT_ARGS = ("output", "save", "store")
+# Verbs whose -o is a folder they fill.
+FOLDER_OUTPUT_VERBS = frozenset({"demo"})
+# The optional dependencies, by module, and how to get them.
+TRAIN_MODULES = ("torch", "scipy", "sklearn", "onnx", "onnxruntime", "matplotlib", "tqdm", "threadpoolctl")
+EXTRAS = {**dict.fromkeys(TRAIN_MODULES, "pip install 'posecorr[train]'"), "ray": "pip install ray"}
+# Verbs that need the train extra whatever their options: checked before any work starts.
+TRAIN_VERBS = frozenset({"fit", "sweep", "diagnose", "report", "export", "demo"})
+EXIT_INTERNAL = 1
+EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143
 
-    try:
-        args.func(args)
-    except (CliError, TableError, FileNotFoundError, ValueError) as exc:
+
+def _paths(args: argparse.Namespace) -> tuple[list[Path], list[Path]]:
+    """(inputs, outputs) named by the parsed arguments."""
+    inputs: list[Path] = []
+    outputs: list[Path] = []
+    for name, value in vars(args).items():
+        values = value if isinstance(value, list) else [value]
+        for item in values:
+            if isinstance(item, Path):
+                (outputs if name in OUTPUT_ARGS else inputs).append(item)
+    return inputs, outputs
+
+
+def _check_extras(verb: str) -> None:
+    import importlib.util
+
+    if verb in TRAIN_VERBS:
+        for module in TRAIN_MODULES:
+            if importlib.util.find_spec(module) is None:
+                raise ModuleNotFoundError(f"No module named {module!r}", name=module)
+
+
+def _check_paths(args: argparse.Namespace) -> None:
+    from .safeio import check_output
+
+    if args.verb in FOLDER_OUTPUT_VERBS:
+        return
+    inputs, outputs = _paths(args)
+    for i, out in enumerate(outputs):
+        # Each output must also differ from the others (`fit -o m.onnx --save m.onnx`).
+        check_output(out, inputs + outputs[:i])
+
+
+def _error_line(exc: BaseException, args: argparse.Namespace) -> str:
+    """One line: the message, its first line only, escaped, prefixed with the input it
+    concerns when it does not name a file itself."""
+    if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+        message = f"{exc.filename}: {exc.strerror}"
+    else:
         message = str(exc) or type(exc).__name__
-        print(f"posecorr {args.verb}: error: {message}", file=sys.stderr)
-        return EXIT_USAGE
+    lines = [line for line in message.splitlines() if line.strip()] or [type(exc).__name__]
+    message = _printable(lines[0].strip()) + (" ..." if len(lines) > 1 else "")
+    inputs, outputs = _paths(args)
+    if inputs and not any(str(p) in message for p in inputs + outputs):
+        message = f"{inputs[0]}: {message}"
+    return message
+
+
+def _anticipated(exc: BaseException) -> bool:
+    """Failures that bad input, a bad file or a bad path cause: reported in one line.
+    posecorr's own exceptions (table, model, export, parity, options) count, as do the
+    ValueErrors and OSErrors of the numeric and file layers below it."""
+    import pickle
+
+    # pickle's errors: `export` of a file that is not a pickled estimator (or an empty one).
+    if isinstance(exc, (ValueError, OSError, CliError, pickle.UnpicklingError, EOFError)):
+        return True
+    return any(cls.__module__.split(".")[0] == "posecorr" for cls in type(exc).__mro__)
+
+
+def main(argv: list[str] | None = None) -> int:
+    import os
+
+    from .safeio import Terminated, sigterm_as_interrupt
+
+    args = build_parser().parse_args(argv)
+    prefix = f"posecorr {args.verb}: "
+    try:
+        with sigterm_as_interrupt():
+            _check_extras(args.verb)
+            _check_paths(args)
+            args.func(args)
+            sys.stdout.flush()
+    except BrokenPipeError:
+        # The reader went away (`posecorr info m.onnx | head`): stop quietly.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_INTERNAL
+    except Terminated:
+        print(prefix + "terminated; nothing half-written was left behind", file=sys.stderr)
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
-        print(f"posecorr {args.verb}: interrupted", file=sys.stderr)
-        return 130
+        print(prefix + "interrupted; nothing half-written was left behind", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except ModuleNotFoundError as exc:
+        name = (exc.name or "").split(".")[0]
+        hint = EXTRAS.get(name)
+        what = f"this needs the {name} package, which is not installed" if name else str(exc)
+        print(prefix + "error: " + what + (f": {hint}" if hint else ""), file=sys.stderr)
+        return EXIT_USAGE
+    except Exception as exc:
+        if _anticipated(exc) and not os.environ.get("POSECORR_DEBUG"):
+            print(prefix + "error: " + _error_line(exc, args), file=sys.stderr)
+            return EXIT_USAGE
+        if os.environ.get("POSECORR_DEBUG"):
+            raise
+        print(prefix + f"internal error: {type(exc).__name__}: {_error_line(exc, args)} "
+              "(a bug: set POSECORR_DEBUG=1 for the traceback and please report it)", file=sys.stderr)
+        return EXIT_INTERNAL
     return 0
 
 

@@ -4,12 +4,16 @@ Positions in metres in the robot base frame, quaternions (w, x, y, z) scalar fir
 A table without `ref_q*` columns is position-only (like Experiment I) and first-class.
 Bad input raises `TableError`, whose message names the file, the row, the column and
 what was expected; nothing is silently dropped: columns posecorr does not know are kept
-and written back.
+and written back. Numbers are plain decimal notation (what Python's float() takes beyond
+that, "1_0", "inf", "0x1p3", is an error), text is UTF-8 (a byte order mark is skipped),
+quaternions are unit (a zero one is an error). `TableReader` streams a table in chunks
+with the same checks (`posecorr apply` on millions of rows).
 """
 from __future__ import annotations
 
 import csv
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,6 +29,9 @@ JOINTS = tuple(f"q{i}" for i in range(1, 7))
 NUMERIC_OPTIONAL = ("t", "jitter_mm") + JOINTS
 TEXT_OPTIONAL = ("id", "session")
 QUAT_NORM_TOLERANCE = 1e-3
+# A tracker sees a few metres and a robot cell is a few metres wide: a coordinate beyond
+# this (metres) is a unit mistake (millimetres) or a corrupt value, not a pose.
+MAX_POSITION = 1e3
 
 
 class TableError(ValueError):
@@ -38,7 +45,11 @@ class TableError(ValueError):
         if column is not None:
             where.append(f"column {column}")
         super().__init__(f"{', '.join(where)}: {message}")
-        self.path, self.row, self.column = path, row, column
+        self.path, self.message, self.row, self.column = path, message, row, column
+
+    def __reduce__(self):
+        # Rebuilt from its parts, so that it crosses a process pool intact.
+        return type(self), (self.path, self.message, self.row, self.column)
 
 
 @dataclass
@@ -98,10 +109,35 @@ class PoseTable:
                          dict(self.extras), self.path)
 
 
+# Below this extent (metres, under the tracker's jitter) the poses are one pose seen twice
+# over: a fit would model noise and report absurd improvements.
+MIN_SPREAD = 1e-4
+
+
 def require_rows(table: PoseTable, needed: int, purpose: str) -> None:
-    """Raise TableError when the table has fewer rows than `purpose` needs."""
+    """Raise TableError when the table cannot support `purpose`: fewer than `needed` rows,
+    fewer than `needed` distinct poses, or poses that do not spread over a workspace."""
     if table.n < needed:
         raise TableError(table.path, f"{table.n} rows, but {purpose} needs at least {needed}")
+    distinct = len(np.unique(table.measured, axis=0))
+    if distinct < needed:
+        raise TableError(table.path, f"{table.n} rows but only {distinct} distinct measured poses; "
+                         f"{purpose} needs at least {needed}")
+    for name, p in (("measured", table.meas_p), ("reference", table.ref_p)):
+        spread = float(np.max(np.ptp(p, axis=0)))
+        if spread < MIN_SPREAD:
+            raise TableError(table.path, f"the {name} positions span only {spread:.3g} m; {purpose} needs "
+                             f"poses spread over the workspace (at least {MIN_SPREAD:g} m)")
+
+
+# Plain decimal notation only: Python's float() also takes "1_0", "infinity", "nan" and
+# "0x1p3", which no tracker or robot writes and which would turn a typo into a number.
+_NUMBER = r"[ \t]*[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?[ \t]*"
+_NUMBER_RE = re.compile(_NUMBER)
+# A column whose cells use only these characters and that float() reads whole is plain
+# decimal notation: what float() takes beyond it needs a letter or an underscore.
+_DECIMAL_CHARS_RE = re.compile(r"[0-9eE+\-. \t\n]*")
+CHUNK_ROWS = 16384  # rows per chunk: ~25 MB of cells as Python strings
 
 
 def _parse_number(text: str, path: str, row: int, column: str) -> float:
@@ -111,23 +147,82 @@ def _parse_number(text: str, path: str, row: int, column: str) -> float:
     try:
         value = float(stripped)
     except ValueError:
-        raise TableError(path, f"expected a number, got {stripped!r}", row, column) from None
+        raise TableError(path, f"expected a number, got {stripped[:40]!r}", row, column) from None
+    if math.isfinite(value) and not _NUMBER_RE.fullmatch(stripped):
+        raise TableError(path, f"expected a number in plain decimal notation (like -0.125 or 1.5e-3), "
+                         f"got {stripped[:40]!r}", row, column)
     if not math.isfinite(value):
-        raise TableError(path, f"expected a finite number, got {stripped!r}", row, column)
+        raise TableError(path, f"expected a finite number, got {stripped[:40]!r}", row, column)
     return value
 
 
-def read_table(path: str | Path) -> PoseTable:
-    """Read a paired-pose CSV; TableError on anything malformed."""
-    path = str(path)
-    try:
-        handle = open(path, newline="", encoding="utf-8")
-    except OSError as exc:
-        raise TableError(path, f"cannot open: {exc.strerror}") from None
-    with handle:
-        reader = csv.reader(handle)
+def _parse_column(cells: list[str], path: str, rows: list[int], column: str) -> np.ndarray:
+    """One column of a chunk as float64, checked as a whole; cell by cell only to name the
+    first bad one."""
+    if _DECIMAL_CHARS_RE.fullmatch("\n".join(cells)):
         try:
-            header = [h.strip() for h in next(reader)]
+            values = np.array(list(map(float, cells)), dtype=np.float64)
+        except ValueError:
+            pass
+        else:
+            if np.all(np.isfinite(values)):
+                return values
+    return np.array([_parse_number(c, path, r, column) for c, r in zip(cells, rows)], dtype=np.float64)
+
+
+@dataclass
+class Chunk:
+    """Consecutive data rows of a table: the cells as read and the numeric columns parsed."""
+
+    rows: list[list[str]]
+    row_numbers: list[int]
+    values: dict[str, np.ndarray]
+
+    def block(self, names: tuple[str, ...]) -> np.ndarray:
+        return np.stack([self.values[c] for c in names], axis=1)
+
+
+def _decoded_lines(handle, path: str, counter: list[int]):
+    """The file's lines as text; a byte that is not UTF-8 fails naming its line."""
+    for raw in handle:
+        counter[0] += 1
+        try:
+            line = raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise TableError(path, f"not UTF-8 text (byte 0x{raw[exc.start]:02x} at character {exc.start + 1}); "
+                             "save the table as UTF-8 CSV", counter[0]) from None
+        if counter[0] == 1 and line.startswith("\ufeff"):
+            line = line[1:]  # a byte order mark is an encoding detail, not part of the first name
+        yield line
+
+
+class TableReader:
+    """A paired-pose CSV read in chunks, every cell checked (see the module doc).
+
+    ``require_reference=False`` also accepts a measurement-only table (no ``ref_*``
+    columns; `posecorr apply`). Use as a context manager; `chunks()` yields `Chunk`s.
+    """
+
+    def __init__(self, path: str | Path, require_reference: bool = True) -> None:
+        self.path = str(path)
+        if Path(self.path).is_dir():
+            raise TableError(self.path, "is a folder, expected a CSV file")
+        try:
+            self._handle = open(self.path, "rb")
+        except OSError as exc:
+            raise TableError(self.path, f"cannot open: {exc.strerror}") from None
+        self._line = [0]
+        self._reader = csv.reader(_decoded_lines(self._handle, self.path, self._line))
+        try:
+            self.header = self._read_header(require_reference)
+        except BaseException:
+            self._handle.close()
+            raise
+
+    def _read_header(self, require_reference: bool) -> list[str]:
+        path = self.path
+        try:
+            header = [h.strip() for h in next(self._reader)]
         except StopIteration:
             raise TableError(path, "empty file, expected a header row") from None
         except csv.Error as exc:
@@ -135,61 +230,103 @@ def read_table(path: str | Path) -> PoseTable:
         duplicates = sorted({h for h in header if header.count(h) > 1})
         if duplicates:
             raise TableError(path, "duplicate column in header", 1, duplicates[0])
-        for name in REQUIRED:
+        ref_present = [c for c in REF_POS if c in header]
+        required = REQUIRED if require_reference or ref_present else MEAS_POS + MEAS_QUAT
+        for name in required:
             if name not in header:
-                raise TableError(path, "missing column (required: " + ", ".join(REQUIRED) + ")", 1, name)
+                raise TableError(path, "missing column (required: " + ", ".join(required) + ")", 1, name)
         present_ref_q = [c for c in REF_QUAT if c in header]
         if present_ref_q and len(present_ref_q) != 4:
             missing = next(c for c in REF_QUAT if c not in header)
             raise TableError(path, "missing column (ref_qw..ref_qz come as a set, or not at all)", 1, missing)
-        numeric = list(REQUIRED) + present_ref_q + [c for c in NUMERIC_OPTIONAL if c in header]
-        text = [c for c in header if c not in numeric]
-        index = {name: header.index(name) for name in header}
-        values: dict[str, list[float]] = {c: [] for c in numeric}
-        strings: dict[str, list[str]] = {c: [] for c in text}
-        row_number = 1
-        row_numbers: list[int] = []
-        try:
-            for row_number, row in enumerate(reader, start=2):
-                if not row or all(not cell.strip() for cell in row):
-                    continue  # a blank line carries no pose
-                if len(row) != len(header):
-                    raise TableError(path, f"{len(row)} fields, expected {len(header)} as in the header",
-                                     row_number)
-                for c in numeric:
-                    values[c].append(_parse_number(row[index[c]], path, row_number, c))
-                for c in text:
-                    strings[c].append(row[index[c]].strip())
-                row_numbers.append(row_number)
-        except csv.Error as exc:
-            raise TableError(path, f"malformed CSV: {exc}", row_number + 1) from None
+        if present_ref_q and not ref_present:
+            raise TableError(path, "missing column (ref_qw..ref_qz need ref_x, ref_y, ref_z)", 1, "ref_x")
+        self.has_reference = bool(ref_present)
+        self.has_ref_orientation = bool(present_ref_q)
+        self.numeric = list(required) + present_ref_q + [c for c in NUMERIC_OPTIONAL if c in header]
+        self.text = [c for c in header if c not in self.numeric]
+        self.index = {name: header.index(name) for name in header}
+        return header
 
-    arrays = {c: np.asarray(v, dtype=float) for c, v in values.items()}
+    def __enter__(self) -> "TableReader":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._handle.close()
+
+    def chunks(self, size: int = CHUNK_ROWS):
+        """Chunks of up to `size` data rows; blank lines carry no pose and are skipped."""
+        width = len(self.header)
+        rows: list[list[str]] = []
+        numbers: list[int] = []
+        record = 1
+        try:
+            for record, row in enumerate(self._reader, start=2):
+                if len(row) != width or not row[0].strip():
+                    if not "".join(row).strip():
+                        continue  # a blank line carries no pose
+                    if len(row) != width:
+                        raise TableError(self.path, f"{len(row)} fields, expected {width} as in the header",
+                                         record)
+                rows.append(row)
+                numbers.append(record)
+                if len(rows) == size:
+                    yield self._parse(rows, numbers)
+                    rows, numbers = [], []
+        except csv.Error as exc:
+            raise TableError(self.path, f"malformed CSV: {exc}", record + 1) from None
+        if rows:
+            yield self._parse(rows, numbers)
+
+    def _parse(self, rows: list[list[str]], numbers: list[int]) -> Chunk:
+        values = {c: _parse_column([row[self.index[c]] for row in rows], self.path, numbers, c)
+                  for c in self.numeric}
+        chunk = Chunk(rows, numbers, values)
+        for c in MEAS_POS + (REF_POS if self.has_reference else ()):
+            far = np.flatnonzero(np.abs(values[c]) > MAX_POSITION)
+            if far.size:
+                i = int(far[0])
+                raise TableError(self.path, f"{values[c][i]:.6g} m is more than {MAX_POSITION:g} m from the origin "
+                                 "(positions are in metres)", numbers[i], c)
+        _check_quaternions(self.path, chunk.block(MEAS_QUAT), MEAS_QUAT, numbers)
+        if self.has_ref_orientation:
+            _check_quaternions(self.path, chunk.block(REF_QUAT), REF_QUAT, numbers)
+        return chunk
+
+
+def read_table(path: str | Path) -> PoseTable:
+    """Read a paired-pose CSV; TableError on anything malformed."""
+    with TableReader(path) as reader:
+        chunks = list(reader.chunks())
+        numeric, text = reader.numeric, reader.text
+        has_ref_q, index = reader.has_ref_orientation, reader.index
+    path = str(path)
+    if not chunks:
+        raise TableError(path, "no data rows after the header")
+    arrays = {c: np.concatenate([ch.values[c] for ch in chunks]) for c in numeric}
     extras: dict[str, np.ndarray] = {c: arrays[c] for c in NUMERIC_OPTIONAL if c in arrays}
-    extras.update({c: np.asarray(v, dtype=object) for c, v in strings.items()})
+    for c in text:
+        extras[c] = np.asarray([row[index[c]].strip() for ch in chunks for row in ch.rows], dtype=object)
 
     def block(names: tuple[str, ...]) -> np.ndarray:
         return np.stack([arrays[c] for c in names], axis=1)
 
-    table = PoseTable(meas_p=block(MEAS_POS), meas_q=block(MEAS_QUAT), ref_p=block(REF_POS),
-                      ref_q=block(REF_QUAT) if present_ref_q else None,
-                      extras=extras, path=path)
-    _check_quaternions(table, row_numbers)
-    return table
+    return PoseTable(meas_p=block(MEAS_POS), meas_q=block(MEAS_QUAT), ref_p=block(REF_POS),
+                     ref_q=block(REF_QUAT) if has_ref_q else None, extras=extras, path=path)
 
 
-def _check_quaternions(table: PoseTable, rows: list[int]) -> None:
-    blocks = [("meas_q", table.meas_q, MEAS_QUAT)]
-    if table.ref_q is not None:
-        blocks.append(("ref_q", table.ref_q, REF_QUAT))
-    for _, q, columns in blocks:
-        off = np.abs(np.linalg.norm(q, axis=1) - 1.0)
-        bad = np.flatnonzero(off > QUAT_NORM_TOLERANCE)
-        if bad.size:
-            i = int(bad[0])
-            raise TableError(table.path, f"quaternion norm {np.linalg.norm(q[i]):.6g} is off 1 by more than "
-                             f"{QUAT_NORM_TOLERANCE:g} (expected a unit quaternion w, x, y, z)",
-                             rows[i] if i < len(rows) else None, "..".join((columns[0], columns[-1])))
+def _check_quaternions(path: str | None, q: np.ndarray, columns: tuple[str, ...], rows: list[int]) -> None:
+    norm = np.linalg.norm(q, axis=1)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > QUAT_NORM_TOLERANCE)
+    if bad.size:
+        i = int(bad[0])
+        what = "a zero quaternion" if norm[i] == 0 else f"quaternion norm {norm[i]:.6g} is off 1 by more than " \
+            f"{QUAT_NORM_TOLERANCE:g}"
+        raise TableError(path, f"{what} (expected a unit quaternion w, x, y, z)", rows[i],
+                         "..".join((columns[0], columns[-1])))
 
 
 def write_table(table: PoseTable, path: str | Path) -> None:
@@ -203,7 +340,9 @@ def write_table(table: PoseTable, path: str | Path) -> None:
     if table.ref_q is not None:
         columns += [(c, table.ref_q[:, i]) for i, c in enumerate(REF_QUAT)]
     columns += [(c, v) for c, v in table.extras.items() if c != "id"]
-    with open(path, "w", newline="", encoding="utf-8") as handle:
+    from .safeio import atomic_output
+
+    with atomic_output(path) as handle:
         writer = csv.writer(handle)
         writer.writerow([c for c, _ in columns])
         for i in range(table.n):

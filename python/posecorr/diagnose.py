@@ -215,8 +215,10 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     model_predict: corrected poses of a given model (an ONNX file, say); when given, the
     feature R^2 uses its residuals instead of the base physics model's out-of-fold ones.
     """
+    from posecorr.data import require_rows
     from posecorr.train.pipeline import kfold_indices
 
+    require_rows(table, max(folds, 2), f"a {folds}-fold diagnosis")
     effects = list(effects)
     names = list(candidates) if candidates is not None else candidate_effects(table, effects)
     say = progress or (lambda message: None)

@@ -4,6 +4,10 @@ One JSON object per line, appended by `posecorr fit`, read by `posecorr report`,
 sees the error fall step by step as effects are added. Keys: time (UTC ISO 8601), model,
 effects (list), method, representation, raw, and the held-out block ("cv" or "test") with
 rmse_pos, rmse_rot, rmse_total and improvements.
+
+Appends are whole lines (`safeio.append_line`): a line torn by an interrupted append is
+moved to DATA.csv.ledger.jsonl.corrupt at the next append; reading skips (and names) any
+line that is not a record, so one torn write never blocks `report`.
 """
 from __future__ import annotations
 
@@ -20,22 +24,32 @@ def ledger_path(data_path: str | Path) -> Path:
 
 def append_entry(data_path: str | Path, entry: dict[str, Any]) -> dict[str, Any]:
     """Append one fitted model's record (a time stamp is added) and return it."""
+    from .safeio import append_line
+
     record = {"time": datetime.now(timezone.utc).isoformat(timespec="seconds"), **entry}
-    with open(ledger_path(data_path), "a", encoding="utf-8") as handle:
-        handle.write(json.dumps(record, default=float) + "\n")
+    append_line(ledger_path(data_path), json.dumps(record, default=float))
     return record
 
 
 def read_ledger(data_path: str | Path) -> list[dict[str, Any]]:
-    """All records, oldest first; a missing ledger is empty. A corrupt line raises ValueError naming it."""
+    """All records, oldest first; a missing ledger is empty. A line that is not a record
+    (torn by an interrupted write, edited by hand) is skipped with a warning naming it."""
+    from .safeio import warn
+
     path = ledger_path(data_path)
     if not path.exists():
         return []
     records = []
-    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+    text = path.read_bytes().decode("utf-8", errors="replace")
+    for number, line in enumerate(text.splitlines(), start=1):
         if line.strip():
             try:
-                records.append(json.loads(line))
+                record = json.loads(line)
             except json.JSONDecodeError as exc:
-                raise ValueError(f"{path}, line {number}: not a ledger record ({exc.msg})") from None
+                warn(f"{path}, line {number}: not a ledger record ({exc.msg}); skipped")
+                continue
+            if isinstance(record, dict):
+                records.append(record)
+            else:
+                warn(f"{path}, line {number}: not a ledger record (not an object); skipped")
     return records

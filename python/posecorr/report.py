@@ -783,8 +783,10 @@ def write_report(output_path: str | Path, table: PoseTable, corrected: np.ndarra
             f"<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\"><title>{_e(name)}</title>"
             f"<style>{_CSS}</style></head><body><header><h1>{_e(name)}</h1></header><nav>{nav}</nav><main>"
             + "".join(parts) + "</main></body></html>\n")
+    from .safeio import write_text
+
     out = Path(output_path)
-    out.write_text(page, encoding="utf-8")
+    write_text(out, page)  # atomic: an interrupted report leaves the previous page
     return out
 
 

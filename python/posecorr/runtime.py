@@ -35,6 +35,9 @@ class PoseCorrError(ValueError):
         super().__init__(message)
         self.status = status
 
+    def __reduce__(self):
+        return type(self), (str(self), self.status)  # crosses a process pool intact
+
 
 class _Error(ctypes.Structure):
     _fields_ = [("status", ctypes.c_int), ("message", ctypes.c_char * _MESSAGE_SIZE)]
@@ -199,7 +202,17 @@ class _OrtBackend:
         so.intra_op_num_threads = 1
         so.inter_op_num_threads = 1
         src = bytes(path) if isinstance(path, (bytes, bytearray)) else str(path)
-        self.session = ort.InferenceSession(src, so, providers=["CPUExecutionProvider"])
+        name = "<model bytes>" if isinstance(path, (bytes, bytearray)) else str(path)
+        try:
+            self.session = ort.InferenceSession(src, so, providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime's own exception types, one per failure kind
+            raise PoseCorrError(f"{name}: onnxruntime cannot load it: {_first_line(exc)}") from None
+        inputs = {i.name: i.shape for i in self.session.get_inputs()}
+        outputs = {o.name for o in self.session.get_outputs()}
+        if "pose" not in inputs or "corrected" not in outputs:
+            raise PoseCorrError(f"{name}: not a posecorr corrector (inputs {sorted(inputs)}, outputs "
+                                f"{sorted(outputs)}; expected input 'pose' [N, 7] and output 'corrected')")
+        self.name = name
         self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)
         self.max_batch = None
 
@@ -207,13 +220,25 @@ class _OrtBackend:
         x = np.ascontiguousarray(poses, dtype=np.float32)
         if not np.all(np.isfinite(x)):
             raise PoseCorrError("non-finite input: a pose contains NaN or infinity")
-        return self.session.run(["corrected"], {"pose": x})[0].astype(np.float64)
+        try:
+            out = self.session.run(["corrected"], {"pose": x})[0]
+        except Exception as exc:
+            raise PoseCorrError(f"{self.name}: onnxruntime failed to run it: {_first_line(exc)}") from None
+        if out.shape != x.shape:
+            raise PoseCorrError(f"{self.name}: output 'corrected' has shape {list(out.shape)}, "
+                                f"expected {list(x.shape)}")
+        return out.astype(np.float64)
 
     def run1(self, pose: np.ndarray) -> np.ndarray:
         return self.run(np.asarray(pose, dtype=np.float32).reshape(1, POSE_WIDTH))[0]
 
     def close(self) -> None:
         self.session = None
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    return lines[0] if lines else type(exc).__name__
 
 
 class Corrector:

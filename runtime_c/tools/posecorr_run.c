@@ -1,16 +1,57 @@
-/* posecorr-run MODEL.onnx [--binary]
+/* posecorr-run MODEL.onnx [--binary] [--strict]
  *
  * Streams poses through a corrector: one CSV line "x,y,z,qw,qx,qy,qz" in, one line out,
  * flushed per pose so it can sit in a pipe next to a tracker. --binary reads and writes
- * raw little-endian float32 records of 7 values instead. Errors go to stderr with the
- * line (or record) number and end the stream with exit status 1: a controller must not
- * silently lose the pairing between input and output lines. */
+ * raw little-endian float32 records of 7 values instead. Lines may be of any length.
+ *
+ * A bad line (or a record the model refuses) is answered on stderr with its line (record)
+ * number and the reason, and on stdout with a line (record) of seven NaN, so that output
+ * line k still belongs to input line k; the stream goes on, because one glitch on a
+ * controller's pipe must not end it. The exit status is then 1 at the end of input.
+ * --strict stops at the first bad line instead (exit 1). A trailing partial binary record
+ * is reported (exit 1), never dropped in silence. */
 #include "posecorr.h"
 
 #include <ctype.h>
+#include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+
+#define USAGE "usage: %s MODEL.onnx [--binary] [--strict] < poses > corrected\n"
+
+typedef struct {
+    char *data;
+    size_t cap;
+} line_buffer;
+
+/* Reads one line of any length (without its newline) into buf; returns 0 at end of input,
+ * -1 when out of memory, 1 otherwise. */
+static int read_line(FILE *in, line_buffer *buf)
+{
+    size_t len = 0;
+    int c;
+    if (!buf->data) {
+        buf->cap = 256;
+        buf->data = malloc(buf->cap);
+        if (!buf->data)
+            return -1;
+    }
+    while ((c = getc(in)) != EOF) {
+        if (len + 1 >= buf->cap) {
+            char *grown = realloc(buf->data, buf->cap * 2);
+            if (!grown)
+                return -1;
+            buf->data = grown;
+            buf->cap *= 2;
+        }
+        if (c == '\n')
+            break;
+        buf->data[len++] = (char)c;
+    }
+    buf->data[len] = '\0';
+    return (c == EOF && len == 0) ? 0 : 1;
+}
 
 static int parse_line(const char *line, float *v)
 {
@@ -32,7 +73,7 @@ static int parse_line(const char *line, float *v)
             p++;
         }
     }
-    while (*p == ' ' || *p == '\t' || *p == '\r' || *p == '\n')
+    while (*p == ' ' || *p == '\t' || *p == '\r')
         p++;
     return *p == '\0';
 }
@@ -45,22 +86,160 @@ static int has_letter(const char *s)
     return 0;
 }
 
+static int is_blank(const char *s)
+{
+    for (; *s; s++)
+        if (*s != ' ' && *s != '\t' && *s != '\r')
+            return 0;
+    return 1;
+}
+
+/* Tables are held to the same rule (python/posecorr/data.py): a zero or non-unit
+ * quaternion is a glitch, not an orientation to be normalised into the identity. */
+#define QUAT_NORM_TOLERANCE 1e-3
+
+static int unit_quaternion(const float *pose)
+{
+    double n = sqrt((double)pose[3] * pose[3] + (double)pose[4] * pose[4] +
+                    (double)pose[5] * pose[5] + (double)pose[6] * pose[6]);
+    return fabs(n - 1.0) <= QUAT_NORM_TOLERANCE || n != n; /* NaN: the runtime reports it */
+}
+
+static void fill_nan(float *out)
+{
+    int k;
+    for (k = 0; k < PC_POSE_WIDTH; k++)
+        out[k] = (float)NAN;
+}
+
+static int write_text_pose(const float *out)
+{
+    int n = printf("%.9g,%.9g,%.9g,%.9g,%.9g,%.9g,%.9g\n", out[0], out[1], out[2], out[3],
+                   out[4], out[5], out[6]);
+    return n > 0 && fflush(stdout) == 0;
+}
+
+static int write_binary_pose(const float *out)
+{
+    return fwrite(out, sizeof(float), PC_POSE_WIDTH, stdout) == PC_POSE_WIDTH &&
+           fflush(stdout) == 0;
+}
+
+static int run_binary(pc_model *model, int strict)
+{
+    float in[PC_POSE_WIDTH], out[PC_POSE_WIDTH];
+    unsigned long record = 0;
+    int failed = 0;
+    size_t got;
+    while ((got = fread(in, 1, sizeof in, stdin)) == sizeof in) {
+        pc_status st;
+        record++;
+        if (!unit_quaternion(in)) {
+            fprintf(stderr, "posecorr-run: record %lu: quaternion qw..qz is not a unit "
+                            "quaternion (norm off 1 by more than %g)\n", record, QUAT_NORM_TOLERANCE);
+            if (strict)
+                return 1;
+            failed = 1;
+            fill_nan(out);
+        } else if ((st = pc_run(model, in, 1, out)) != PC_OK) {
+            fprintf(stderr, "posecorr-run: record %lu: %s: %s\n", record, pc_status_name(st),
+                    pc_model_message(model));
+            if (strict)
+                return 1;
+            failed = 1;
+            fill_nan(out);
+        }
+        if (!write_binary_pose(out))
+            return 1;
+    }
+    if (got != 0) {
+        fprintf(stderr, "posecorr-run: record %lu: partial record of %lu bytes at the end of "
+                        "input (a record is %lu bytes: 7 float32)\n",
+                record + 1, (unsigned long)got, (unsigned long)sizeof in);
+        return 1;
+    }
+    if (ferror(stdin)) {
+        fprintf(stderr, "posecorr-run: read error on standard input\n");
+        return 1;
+    }
+    return failed;
+}
+
+static int run_text(pc_model *model, int strict)
+{
+    float in[PC_POSE_WIDTH], out[PC_POSE_WIDTH];
+    line_buffer buf = {NULL, 0};
+    unsigned long line_no = 0;
+    int failed = 0, status = 0, r;
+    while ((r = read_line(stdin, &buf)) == 1) {
+        const char *line = buf.data;
+        pc_status st;
+        line_no++;
+        if (line[0] == '#' || is_blank(line))
+            continue;
+        if (!parse_line(line, in)) {
+            if (line_no == 1 && has_letter(line)) { /* a CSV header: pass it through */
+                if (printf("%s\n", line) < 0 || fflush(stdout) != 0) {
+                    status = 1;
+                    break;
+                }
+                continue;
+            }
+            fprintf(stderr, "posecorr-run: line %lu: expected 7 comma-separated numbers "
+                            "x,y,z,qw,qx,qy,qz\n", line_no);
+            if (strict) {
+                status = 1;
+                break;
+            }
+            failed = 1;
+            fill_nan(out);
+        } else if (!unit_quaternion(in)) {
+            fprintf(stderr, "posecorr-run: line %lu: quaternion qw..qz is not a unit quaternion "
+                            "(norm off 1 by more than %g)\n", line_no, QUAT_NORM_TOLERANCE);
+            if (strict) {
+                status = 1;
+                break;
+            }
+            failed = 1;
+            fill_nan(out);
+        } else if ((st = pc_run(model, in, 1, out)) != PC_OK) {
+            fprintf(stderr, "posecorr-run: line %lu: %s: %s\n", line_no, pc_status_name(st),
+                    pc_model_message(model));
+            if (strict) {
+                status = 1;
+                break;
+            }
+            failed = 1;
+            fill_nan(out);
+        }
+        if (!write_text_pose(out)) {
+            status = 1;
+            break;
+        }
+    }
+    if (r < 0) {
+        fprintf(stderr, "posecorr-run: line %lu: out of memory\n", line_no + 1);
+        status = 1;
+    }
+    free(buf.data);
+    return status ? status : failed;
+}
+
 int main(int argc, char **argv)
 {
     const char *path = NULL;
-    int binary = 0, i;
+    int binary = 0, strict = 0, i, status;
     pc_model *model;
     pc_error err;
     pc_status st;
-    unsigned long line_no = 0;
-    char line[4096];
-    float in[PC_POSE_WIDTH], out[PC_POSE_WIDTH];
 
     for (i = 1; i < argc; i++) {
         if (strcmp(argv[i], "--binary") == 0)
             binary = 1;
+        else if (strcmp(argv[i], "--strict") == 0)
+            strict = 1;
         else if (strcmp(argv[i], "-h") == 0 || strcmp(argv[i], "--help") == 0) {
-            printf("usage: %s MODEL.onnx [--binary] < poses > corrected\n", argv[0]);
+            printf(USAGE, argv[0]);
             return 0;
         } else if (!path)
             path = argv[i];
@@ -70,7 +249,7 @@ int main(int argc, char **argv)
         }
     }
     if (!path) {
-        fprintf(stderr, "usage: %s MODEL.onnx [--binary] < poses > corrected\n", argv[0]);
+        fprintf(stderr, USAGE, argv[0]);
         return 2;
     }
     st = pc_load_file(path, NULL, &model, &err);
@@ -78,56 +257,7 @@ int main(int argc, char **argv)
         fprintf(stderr, "posecorr-run: %s: %s\n", path, err.message);
         return 1;
     }
-    if (binary) {
-        while (fread(in, sizeof in, 1, stdin) == 1) {
-            line_no++;
-            st = pc_run(model, in, 1, out);
-            if (st != PC_OK) {
-                fprintf(stderr, "posecorr-run: record %lu: %s: %s\n", line_no,
-                        pc_status_name(st), pc_model_message(model));
-                pc_free(model);
-                return 1;
-            }
-            if (fwrite(out, sizeof out, 1, stdout) != 1) {
-                pc_free(model);
-                return 1;
-            }
-            fflush(stdout);
-        }
-        pc_free(model);
-        return 0;
-    }
-    while (fgets(line, sizeof line, stdin)) {
-        line_no++;
-        if (line[0] == '\n' || line[0] == '\r' || line[0] == '#' || line[0] == '\0')
-            continue;
-        if (!strchr(line, '\n') && !feof(stdin)) {
-            fprintf(stderr, "posecorr-run: line %lu: line too long\n", line_no);
-            pc_free(model);
-            return 1;
-        }
-        if (!parse_line(line, in)) {
-            if (line_no == 1 && has_letter(line)) { /* a CSV header: pass it through */
-                fputs(line, stdout);
-                fflush(stdout);
-                continue;
-            }
-            fprintf(stderr, "posecorr-run: line %lu: expected 7 comma-separated numbers "
-                            "x,y,z,qw,qx,qy,qz\n", line_no);
-            pc_free(model);
-            return 1;
-        }
-        st = pc_run(model, in, 1, out);
-        if (st != PC_OK) {
-            fprintf(stderr, "posecorr-run: line %lu: %s: %s\n", line_no, pc_status_name(st),
-                    pc_model_message(model));
-            pc_free(model);
-            return 1;
-        }
-        printf("%.9g,%.9g,%.9g,%.9g,%.9g,%.9g,%.9g\n", out[0], out[1], out[2], out[3], out[4],
-               out[5], out[6]);
-        fflush(stdout);
-    }
+    status = binary ? run_binary(model, strict) : run_text(model, strict);
     pc_free(model);
-    return 0;
+    return status;
 }

@@ -1,0 +1,480 @@
+"""Hardening (issue 14): every failure one clear line, nothing lost, nothing absurd accepted.
+
+* a corpus of bad tables, bad models and bad output paths through every verb: exit 2,
+  one line naming the file (row and column where there is one), never a traceback;
+* strict numbers, BOM, degenerate data, exceptions crossing the sweep's process pool;
+* safe writes: atomic replacement, outputs equal to inputs refused, torn appends repaired;
+* `apply` on measurement-only tables, streamed in chunks, metrics equal to the in-memory ones.
+"""
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from posecorr.cli import main
+from posecorr.data import MEAS_POS, MEAS_QUAT, PoseTable, TableError, read_table, require_rows, write_table
+from posecorr.metrics import pose_metrics
+from posecorr.runtime import Corrector, PoseCorrError
+
+ROOT = Path(__file__).resolve().parents[1]
+MODEL = ROOT / "models" / "pmc-zhou.onnx"
+HEADER = "meas_x,meas_y,meas_z,meas_qw,meas_qx,meas_qy,meas_qz,ref_x,ref_y,ref_z"
+HEADER_Q = HEADER + ",ref_qw,ref_qx,ref_qy,ref_qz"
+
+
+def _table(n: int = 40, seed: int = 0) -> PoseTable:
+    """Experiment III-like poses with a small rigid offset between measured and reference."""
+    rng = np.random.default_rng(seed)
+    p = np.array([0.0, -0.6, 0.5]) + rng.uniform(-0.1, 0.1, (n, 3))
+    R = Rotation.from_euler("xyz", rng.uniform(-0.5, 0.5, (n, 3)))
+    q = R.as_quat(scalar_first=True)
+    meas_p = p + np.array([0.004, -0.002, 0.003]) + rng.normal(scale=3e-4, size=(n, 3))
+    return PoseTable(meas_p, q, p, q, {"id": np.arange(n).astype(str).astype(object)})
+
+
+def _lines(n: int = 12) -> list[str]:
+    t = _table(n)
+    return [",".join(repr(float(v)) for v in row) for row in np.concatenate([t.measured, t.reference], axis=1)]
+
+
+def _run(argv: list[str], capsys) -> tuple[int | None, str, str | None]:
+    """main(argv) in this process: (exit code, stderr, the exception that escaped or None)."""
+    capsys.readouterr()
+    try:
+        code = main(argv)
+        escaped = None
+    except SystemExit as exc:  # argparse usage errors
+        code, escaped = exc.code, None
+    except BaseException as exc:  # noqa: BLE001 - a traceback is what the corpus hunts for
+        code, escaped = None, f"{type(exc).__name__}: {exc}"
+    return code, capsys.readouterr().err, escaped
+
+
+# --- the bad-input corpus -----------------------------------------------------------------
+
+def _bad_tables(folder: Path) -> list[tuple[str, Path, list[str], bool]]:
+    """(name, path, substrings the one line must hold, degenerate-only): degenerate tables
+    are fine for `apply` (one pose can be corrected) but refused by every verb that fits."""
+    good = _lines(12)
+    rows = "\n".join(good)
+    cases: list[tuple[str, str | bytes, list[str], bool]] = [
+        ("missing column", HEADER_Q.replace("meas_qz,", "") + "\n", ["row 1", "column meas_qz"], False),
+        ("not a number", f"{HEADER_Q}\n{good[0]}\n" + good[1].replace(good[1].split(",")[1], "abc", 1),
+         ["row 3", "column meas_y", "expected a number"], False),
+        ("underscore", f"{HEADER_Q}\n{good[0]}\n1_0" + good[1][good[1].index(","):],
+         ["row 3", "column meas_x", "plain decimal"], False),
+        ("infinity", f"{HEADER_Q}\ninfinity" + good[0][good[0].index(","):], ["row 2", "column meas_x", "finite"],
+         False),
+        ("hex", f"{HEADER_Q}\n0x1p3" + good[0][good[0].index(","):], ["row 2", "column meas_x", "number"], False),
+        ("nan", f"{HEADER_Q}\n{good[0]}\nnan" + good[1][good[1].index(","):], ["row 3", "column meas_x", "finite"],
+         False),
+        ("overflow", f"{HEADER_Q}\n1e999" + good[0][good[0].index(","):], ["row 2", "column meas_x", "finite"],
+         False),
+        ("1e30 m", f"{HEADER_Q}\n1e30" + good[0][good[0].index(","):], ["row 2", "column meas_x", "from the origin"],
+         False),
+        ("empty cell", f"{HEADER_Q}\n," + good[0].split(",", 1)[1], ["row 2", "column meas_x", "empty"], False),
+        ("zero quaternion", f"{HEADER_Q}\n0.1,0.2,0.3,0,0,0,0,0.1,0.2,0.3,1,0,0,0\n",
+         ["row 2", "column meas_qw..meas_qz", "zero quaternion"], False),
+        ("non-unit quaternion", f"{HEADER_Q}\n0.1,0.2,0.3,0.9,0,0,0,0.1,0.2,0.3,1,0,0,0\n",
+         ["row 2", "column meas_qw..meas_qz", "norm"], False),
+        ("zero reference quaternion", f"{HEADER_Q}\n0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3,0,0,0,0\n",
+         ["row 2", "column ref_qw..ref_qz"], False),
+        ("field count", f"{HEADER_Q}\n{good[0]}\n0.1,0.2\n", ["row 3", "2 fields"], False),
+        ("not UTF-8", f"{HEADER_Q}\n{good[0]}\n".encode() + b"0.1,\xff\xfe" + good[1].encode()[5:] + b"\n",
+         ["row 3", "UTF-8"], False),
+        ("duplicate column", HEADER_Q.replace("ref_x", "meas_x") + "\n" + good[0] + "\n",
+         ["row 1", "column meas_x", "duplicate"], False),
+        ("partial ref_q", HEADER + ",ref_qw\n" + good[0].rsplit(",", 3)[0] + "\n", ["row 1", "column ref_qx"],
+         False),
+        ("empty file", "", ["empty file"], False),
+        ("header only", HEADER_Q + "\n", ["no data rows"], False),
+        ("control characters", f"{HEADER_Q}\n\x1b[31m" + good[0][good[0].index(","):],
+         ["row 2", "column meas_x", "\\x1b"], False),
+        ("one row", f"{HEADER_Q}\n{good[0]}\n", ["1 rows"], True),
+        ("three rows", f"{HEADER_Q}\n" + "\n".join(good[:3]) + "\n", ["3 rows"], True),
+        ("400 identical poses", f"{HEADER_Q}\n" + f"{good[0]}\n" * 400, ["only 1 distinct"], True),
+        ("1e-15 spread", None, ["span only"], True),
+    ]
+    out = []
+    for i, (name, body, where, degenerate) in enumerate(cases):
+        path = folder / f"bad{i:02d}.csv"
+        if body is None:  # identical poses up to 1e-15 m of noise
+            t = _table(40)
+            t = PoseTable(t.meas_p[:1] + np.random.default_rng(1).normal(scale=1e-15, size=(40, 3)),
+                          np.repeat(t.meas_q[:1], 40, 0), np.repeat(t.ref_p[:1], 40, 0), np.repeat(t.ref_q[:1], 40, 0))
+            write_table(t, path)
+        elif isinstance(body, bytes):
+            path.write_bytes(body)
+        else:
+            path.write_text(body)
+        out.append((name, path, where, degenerate))
+    out.append(("a folder", folder / "folder.csv", ["is a folder"], False))
+    (folder / "folder.csv").mkdir()
+    out.append(("missing file", folder / "missing.csv", ["cannot open"], False))
+    assert rows
+    return out
+
+
+def _bad_models(folder: Path) -> list[tuple[str, Path]]:
+    import onnx
+    from onnx import TensorProto, helper
+
+    data = MODEL.read_bytes()
+    cases = {"empty": b"", "random bytes": np.random.default_rng(0).bytes(4096),
+             "truncated": data[: len(data) // 2], "text": b"meas_x,meas_y\n1,2\n"}
+    out = []
+    for name, blob in cases.items():
+        path = folder / f"{name.replace(' ', '_')}.onnx"
+        path.write_bytes(blob)
+        out.append((name, path))
+    other = helper.make_model(helper.make_graph(
+        [helper.make_node("Identity", ["x"], ["y"])], "other",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["N", 3])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["N", 3])]),
+        opset_imports=[helper.make_opsetid("", 17)])
+    onnx.save(other, folder / "not_a_corrector.onnx")
+    out.append(("not a corrector", folder / "not_a_corrector.onnx"))
+    (folder / "dir.onnx").mkdir()
+    out.append(("a folder", folder / "dir.onnx"))
+    out.append(("missing", folder / "missing.onnx"))
+    return out
+
+
+def _unwritable_folder(folder: Path) -> Path:
+    """A folder this user cannot create files in (root ignores permission bits: /sys)."""
+    if os.geteuid() == 0:
+        return Path("/sys")
+    ro = folder / "read-only"
+    ro.mkdir()
+    ro.chmod(0o555)
+    return ro
+
+
+def test_bad_input_corpus_every_verb(tmp_path, capsys) -> None:
+    tables = tmp_path / "tables"
+    models = tmp_path / "models"
+    paths = tmp_path / "paths"
+    for d in (tables, models, paths):
+        d.mkdir()
+    good_csv = tmp_path / "good.csv"
+    write_table(_table(40), good_csv)
+    out = tmp_path / "out"
+    out.mkdir()
+
+    runs: list[tuple[str, str, list[str], list[str]]] = []   # (verb, case, argv, must contain)
+    for name, path, where, degenerate in _bad_tables(tables):
+        verbs = {
+            "fit": ["fit", str(path), "-o", str(out / "m.onnx"), "--method", "pmc"],
+            "diagnose": ["diagnose", str(path)],
+            "sweep": ["sweep", str(path), "--repeats", "1", "--no-mlp", "--store", str(out / "s.jsonl"),
+                      "--json"],
+            "report": ["report", str(path), "--model", str(MODEL), "-o", str(out / "r.html")],
+        }
+        if not degenerate:
+            verbs["apply"] = ["apply", str(MODEL), str(path), "-o", str(out / "a.csv")]
+        for verb, argv in verbs.items():
+            runs.append((verb, f"table: {name}", argv, [str(path), *where]))
+    for name, path in _bad_models(models):
+        # Any valid ONNX file has metadata to show: `info` is no failure for those.
+        for verb, argv in {
+            "apply": ["apply", str(path), str(good_csv), "-o", str(out / "a.csv")],
+            "apply --backend onnxruntime": ["apply", str(path), str(good_csv), "-o", str(out / "a.csv"),
+                                            "--backend", "onnxruntime"],
+            "info": ["info", str(path)],
+            "bench": ["bench", str(path), "--n", "50", "--batch", "10"],
+            "diagnose --model": ["diagnose", str(good_csv), "--model", str(path)],
+            "report --model": ["report", str(good_csv), "--model", str(path), "-o", str(out / "r.html")],
+        }.items():
+            if not (verb == "info" and name == "not a corrector"):
+                runs.append((verb, f"model: {name}", argv, [str(path)]))
+    ro = _unwritable_folder(paths)
+    folder_out = paths / "a-folder"
+    folder_out.mkdir()
+    from posecorr.train.pmc import PMC
+
+    t = _table(100)
+    estimator = paths / "est.pkl"
+    fitted = PMC("zhou").fit(t.measured, t.reference)
+    fitted.training_measured_, fitted.training_reference_ = t.measured, t.reference  # as `fit --save` keeps
+    estimator.write_bytes(pickle.dumps(fitted))
+    for name, blob in (("not a pickle", b"not a pickle"), ("empty", b"")):
+        bad = paths / f"{name.replace(' ', '-')}.pkl"
+        bad.write_bytes(blob)
+        runs.append(("export", f"estimator: {name}", ["export", str(bad), "-o", str(out / "e.onnx")], [str(bad)]))
+    for verb, make in {
+        "simulate": lambda o: ["simulate", "--experiment", "1", "-o", str(o)],
+        "fit": lambda o: ["fit", str(good_csv), "-o", str(o), "--method", "pmc"],
+        "apply": lambda o: ["apply", str(MODEL), str(good_csv), "-o", str(o)],
+        "report": lambda o: ["report", str(good_csv), "--model", str(MODEL), "-o", str(o), "--no-diagnosis"],
+        "export": lambda o: ["export", str(estimator), "-o", str(o)],
+        "sweep": lambda o: ["sweep", str(good_csv), "--repeats", "1", "--no-mlp", "--store", str(o)],
+    }.items():
+        for name, target, expect in [("output is a folder", folder_out, "is a folder"),
+                                     ("folder missing", paths / "no" / "x.out", "does not exist"),
+                                     ("unwritable folder", ro / "x.out", str(ro))]:
+            runs.append((verb, f"path: {name}", make(target), [str(target) if name != "unwritable folder"
+                                                               else str(ro), expect]))
+    same = {"fit": ["fit", str(good_csv), "-o", str(good_csv)],
+            "apply": ["apply", str(MODEL), str(good_csv), "-o", str(MODEL)],
+            "apply ": ["apply", str(MODEL), str(good_csv), "-o", str(good_csv)],
+            "report": ["report", str(good_csv), "--model", str(MODEL), "-o", str(good_csv)],
+            "sweep": ["sweep", str(good_csv), "--store", str(good_csv)]}
+    for verb, argv in same.items():
+        runs.append((verb.strip(), "path: output is an input", argv, ["is also an input"]))
+
+    before = {p: p.read_bytes() for p in (good_csv, MODEL)}
+    failures, tracebacks = [], 0
+    for verb, case, argv, expected in runs:
+        code, err, escaped = _run(argv, capsys)
+        lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith(("  ", "sweep:"))]
+        if escaped or "Traceback" in err:
+            tracebacks += 1
+        ok = (escaped is None and code == 2 and len(lines) == 1 and "Traceback" not in err
+              and all(e in lines[0] for e in expected))
+        if not ok:
+            failures.append(f"{verb} / {case}: exit {code}, escaped {escaped}, stderr {err.strip()[-300:]!r}, "
+                            f"expected {expected}")
+    verbs = sorted({v.split()[0] for v, *_ in runs})
+    with capsys.disabled():
+        print(f"\nbad-input corpus: {len(runs)} cases over {len(verbs)} verbs ({', '.join(verbs)}): "
+              f"{len(runs) - len(failures)} ended in one located line with exit 2, {tracebacks} tracebacks")
+    assert not failures, "\n".join(failures)
+    assert tracebacks == 0
+    assert {p: p.read_bytes() for p in (good_csv, MODEL)} == before  # inputs untouched
+
+
+# --- strict numbers and degenerate data ------------------------------------------------------
+
+def test_float_forms_beyond_plain_decimal_are_refused(tmp_path) -> None:
+    row = "0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3"
+    for text in ("1_0", "infinity", "-inf", "NaN", "0x10", "1e400", "١٢", " 1 2"):
+        path = tmp_path / "t.csv"
+        path.write_text(f"{HEADER}\n{row}\n{text}{row[3:]}\n")
+        with pytest.raises(TableError, match=r"row 3, column meas_x"):
+            read_table(path)
+    path.write_text(f"{HEADER}\n{row}\n+.5e-1,2.,-3E+0,1.0,0,0,0,1,2,3\n")
+    assert read_table(path).meas_p[1].tolist() == [0.05, 2.0, -3.0]
+
+
+def test_a_byte_order_mark_is_skipped(tmp_path) -> None:
+    path = tmp_path / "bom.csv"
+    t = _table(12)
+    write_table(t, path)
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    back = read_table(path)
+    assert list(back.extras["id"]) == list(t.extras["id"])  # "id", not "\ufeffid"
+    np.testing.assert_array_equal(back.measured, t.measured)
+
+
+def test_degenerate_tables_are_refused_with_the_reason() -> None:
+    t = _table(40)
+    same = t.subset(np.zeros(40, dtype=int))
+    with pytest.raises(TableError, match="40 rows but only 1 distinct measured poses"):
+        require_rows(same, 10, "a fit")
+    jitter = PoseTable(same.meas_p + 1e-15 * np.arange(40)[:, None], same.meas_q, same.ref_p, same.ref_q)
+    with pytest.raises(TableError, match=r"measured positions span only 3.9e-14 m"):
+        require_rows(jitter, 10, "a fit")
+    require_rows(t, 10, "a fit")  # a real spread passes
+
+
+def test_errors_cross_process_pools_intact(tmp_path) -> None:
+    from concurrent.futures import ProcessPoolExecutor
+
+    from posecorr.train.protocol import Config, run_sweep
+
+    err = TableError("d.csv", "expected a number, got 'x'", 7, "meas_y")
+    back = pickle.loads(pickle.dumps(err))
+    assert (type(back), str(back), back.row, back.column) == (TableError, str(err), 7, "meas_y")
+    perr = pickle.loads(pickle.dumps(PoseCorrError("m.onnx: bad", 3)))
+    assert (str(perr), perr.status) == ("m.onnx: bad", 3)
+    with ProcessPoolExecutor(1) as pool:
+        with pytest.raises(TableError) as info:
+            pool.submit(_raise_table_error).result()
+    assert str(info.value) == "w.csv, row 4, column ref_z: expected a finite number, got 'nan'"
+    # In a sweep, a run that fails in a worker ends the sweep with its own error, not a
+    # BrokenProcessPool, and the runs that finished are in the store.
+    table = _table(100)
+    store = tmp_path / "s.jsonl"
+    with pytest.raises(ValueError, match="unknown representation 'bogus'"):
+        run_sweep(table, [Config("pmc", "zhou"), Config("pmc", "bogus")], repeats=3, store=store, workers=2,
+                  progress=False)
+    stored = [json.loads(line) for line in store.read_text().splitlines()]
+    assert stored and all(row["key"] == "zhou-pmc" for row in stored)
+
+
+def _raise_table_error() -> None:
+    raise TableError("w.csv", "expected a finite number, got 'nan'", 4, "ref_z")
+
+
+# --- safe writes ------------------------------------------------------------------------------
+
+def test_atomic_output_replaces_whole_or_not_at_all(tmp_path) -> None:
+    from posecorr.safeio import atomic_output, write_bytes
+
+    target = tmp_path / "model.onnx"
+    write_bytes(target, b"old model")
+    with pytest.raises(RuntimeError):
+        with atomic_output(target, "wb") as handle:
+            handle.write(b"half of a new")
+            raise RuntimeError("disk full")
+    assert target.read_bytes() == b"old model"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.onnx"]  # no temporary left
+    inode = target.stat().st_ino
+    write_bytes(target, b"new model")
+    assert target.read_bytes() == b"new model" and target.stat().st_ino != inode  # renamed over, not rewritten
+
+
+def test_torn_last_line_is_moved_aside_and_the_next_record_kept(tmp_path, capsys) -> None:
+    from posecorr.ledger import append_entry, ledger_path, read_ledger
+
+    data = tmp_path / "d.csv"
+    append_entry(data, {"model": "a.onnx"})
+    path = ledger_path(data)
+    with open(path, "ab") as handle:
+        handle.write(b'{"model": "b.onn')  # killed mid-append
+    assert [r["model"] for r in read_ledger(data)] == ["a.onnx"]  # reading skips it, and says so
+    assert "line 2" in capsys.readouterr().err
+    append_entry(data, {"model": "c.onnx"})
+    assert "moved to" in capsys.readouterr().err
+    assert [r["model"] for r in read_ledger(data)] == ["a.onnx", "c.onnx"]
+    assert path.with_name(path.name + ".corrupt").read_text() == '{"model": "b.onn\n'
+
+
+def test_a_sweep_store_with_a_torn_line_resumes_with_every_run(tmp_path) -> None:
+    from posecorr.train.protocol import Config, run_sweep
+
+    table = _table(100)
+    store = tmp_path / "s.jsonl"
+    configs = [Config("pmc", "zhou"), Config("pmc", "quat")]
+    run_sweep(table, configs, repeats=2, store=store, workers=1, progress=False)
+    text = store.read_text()
+    store.write_text(text + text.splitlines()[0][:30])  # a torn third record
+    result = run_sweep(table, configs, repeats=3, store=store, workers=1, progress=False)
+    assert len(result.rows) == 6
+    lines = store.read_text().splitlines()
+    assert len(lines) == 6 and all(json.loads(line) for line in lines)
+    assert (tmp_path / "s.jsonl.corrupt").exists()
+
+
+# --- apply: streaming, measurement-only tables -------------------------------------------------
+
+def test_apply_on_a_measurement_only_table(tmp_path, capsys) -> None:
+    t = _table(50)
+    full = tmp_path / "full.csv"
+    write_table(t, full)
+    meas_only = tmp_path / "meas_only.csv"
+    with open(full) as src, open(meas_only, "w") as dst:  # drop the ref_* columns
+        for line in src:
+            cells = line.rstrip("\n").split(",")
+            dst.write(",".join(cells[:8]) + "\n")
+    code, err, escaped = _run(["apply", str(MODEL), str(meas_only), "-o", str(tmp_path / "out.csv"), "--json"],
+                              capsys)
+    assert code == 0 and escaped is None, err
+    out = read_csv_columns(tmp_path / "out.csv")
+    expected = Corrector(MODEL).correct(t.measured)
+    corr = np.stack([out[c] for c in ("corr_x", "corr_y", "corr_z", "corr_qw", "corr_qx", "corr_qy", "corr_qz")], 1)
+    np.testing.assert_allclose(corr, expected, rtol=0, atol=1e-8)  # nine digits of float32 values
+    for i, c in enumerate(MEAS_POS + MEAS_QUAT):
+        np.testing.assert_array_equal(out[c], t.measured[:, i])  # the raw poses beside, exact
+    assert not any(c.startswith("ref_") for c in out)
+    # The same table with references: the metrics are those of the corrected columns.
+    capsys.readouterr()
+    assert main(["apply", str(MODEL), str(full), "-o", str(tmp_path / "out2.csv"), "--json"]) == 0
+    payload = json.loads(capsys.readouterr().out)
+    want = pose_metrics(t.reference, expected)
+    for key, value in want.items():
+        assert payload["corrected"][key] == pytest.approx(value, rel=1e-9)
+    assert payload["raw"] == pytest.approx(pose_metrics(t.reference, t.measured), rel=1e-12)
+
+
+def test_apply_streams_in_chunks_with_the_same_result(tmp_path) -> None:
+    from posecorr.apply import apply_file
+
+    t = _table(1000, seed=4)
+    path = tmp_path / "t.csv"
+    write_table(t, path)
+    whole = apply_file(MODEL, path, tmp_path / "a.csv", chunk_rows=1_000_000)
+    chunked = apply_file(MODEL, path, tmp_path / "b.csv", chunk_rows=7)
+    assert (tmp_path / "a.csv").read_bytes() == (tmp_path / "b.csv").read_bytes()
+    for key in ("rmse_pos", "rmse_rot", "rmse_total"):
+        assert chunked["corrected"][key] == pytest.approx(whole["corrected"][key], rel=1e-12)
+    # An error in a late chunk names its row and leaves no output behind.
+    lines = path.read_text().splitlines()
+    lines[900] = lines[900].replace(",", ",x", 1)
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(TableError, match="row 901, column meas_x"):
+        apply_file(MODEL, path, tmp_path / "c.csv", chunk_rows=7)
+    assert not (tmp_path / "c.csv").exists()
+
+
+def read_csv_columns(path: Path) -> dict[str, np.ndarray]:
+    import csv
+
+    with open(path, newline="") as handle:
+        rows = list(csv.reader(handle))
+    out = {}
+    for i, name in enumerate(rows[0]):
+        try:
+            out[name] = np.array([float(r[i]) for r in rows[1:]])
+        except ValueError:
+            out[name] = np.array([r[i] for r in rows[1:]], dtype=object)
+    return out
+
+
+# --- the command line around the verbs -----------------------------------------------------------
+
+def test_info_escapes_control_characters_from_metadata(tmp_path, capsys) -> None:
+    import onnx
+
+    model = onnx.load(MODEL)
+    entry = model.metadata_props.add()
+    entry.key, entry.value = "note\x1b]0;pwned\x07", "\x1b[2J\x1b[31mred\u202e"
+    path = tmp_path / "m.onnx"
+    onnx.save(model, path)
+    capsys.readouterr()
+    assert main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "\x1b" not in out and "\u202e" not in out and "\x07" not in out
+    assert "\\x1b[2J\\x1b[31mred\\u202e" in out
+    assert main(["info", str(path), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["note\x1b]0;pwned\x07"] == "\x1b[2J\x1b[31mred\u202e"
+
+
+def test_a_closed_pipe_and_a_numpy_only_install_give_one_line(tmp_path) -> None:
+    import subprocess
+
+    p = subprocess.run(f"{sys.executable} -m posecorr.cli info {MODEL} | head -1", shell=True,
+                       capture_output=True, text=True, timeout=120)
+    assert p.stdout.count("\n") == 1 and "Traceback" not in p.stderr and p.stderr == ""
+    # Block the train extra's modules as a numpy-only install lacks them.
+    write_table(_table(20), tmp_path / "d.csv")
+    script = f"""
+import sys
+class Missing:
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in sys.argv[1].split(","):
+            raise ModuleNotFoundError(f"No module named {{name!r}}", name=name)
+sys.meta_path.insert(0, Missing())
+from posecorr.cli import main
+sys.exit(main(sys.argv[2:]))
+"""
+    train = "onnxruntime,torch,scipy,sklearn,onnx,matplotlib,tqdm,ray"
+    for blocked, argv, needs in [
+            (train, ["apply", str(MODEL), str(tmp_path / "d.csv"), "-o", str(tmp_path / "o.csv"),
+                     "--backend", "onnxruntime"], "onnxruntime"),
+            (train, ["fit", str(tmp_path / "d.csv"), "-o", str(tmp_path / "m.onnx")], "posecorr[train]"),
+            ("ray", ["sweep", str(tmp_path / "d.csv"), "--ray", "auto", "--no-mlp"], "ray")]:
+        p = subprocess.run([sys.executable, "-c", script, blocked, *argv], capture_output=True, text=True,
+                           timeout=120)
+        lines = p.stderr.strip().splitlines()
+        assert p.returncode == 2 and len(lines) == 1 and "Traceback" not in p.stderr, p.stderr
+        assert "is not installed" in lines[0] and "pip install" in lines[0]
+        assert needs in lines[0]
+    assert main(["apply", str(MODEL), str(tmp_path / "d.csv"), "-o", str(tmp_path / "o.csv")]) == 0

@@ -1,0 +1,207 @@
+"""Killed mid-write (issue 14): `fit`, `apply` and `sweep` under SIGKILL and SIGTERM leave the
+previous files intact, no temporary file and no orphan process.
+
+Each verb runs as its own process through `posecorr.cli.main`, with one test-side hook that
+pauses it at the worst moment and says so: `fit` inside the model file's write (content
+written, not yet renamed), `apply` after its first chunk went out, `sweep` with two runs
+stored and both workers busy. Then the process gets the signal.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from posecorr.cli import main
+from posecorr.data import PoseTable, write_table
+
+ROOT = Path(__file__).resolve().parents[1]
+MODEL = ROOT / "models" / "pmc-zhou.onnx"
+
+# The hook: argv = mode, ready-file prefix, then the posecorr arguments.
+HOOK = r"""
+import os, sys, time
+mode, ready = sys.argv[1], sys.argv[2]
+
+def pause():
+    with open(f"{ready}.{os.getpid()}", "w") as f:
+        f.write("paused")
+    time.sleep(300)
+
+if mode == "fit":
+    real_fsync, folder = os.fsync, os.path.dirname(ready)
+    def fsync(fd):
+        real_fsync(fd)
+        if os.readlink(f"/proc/self/fd/{fd}").startswith(folder):
+            pause()
+    os.fsync = fsync
+elif mode == "apply":
+    from posecorr.runtime import Corrector
+    real_correct, calls = Corrector.correct, []
+    def correct(self, poses):
+        calls.append(1)
+        if len(calls) == 2:
+            sys.stdout.flush()
+            pause()
+        return real_correct(self, poses)
+    Corrector.correct = correct
+elif mode == "sweep":
+    import posecorr.train.protocol as protocol
+    real_run = protocol.run_one
+    def run_one(table, config, repeat, seed=0, threads=None):
+        if repeat >= 4:
+            pause()
+        return real_run(table, config, repeat, seed, threads)
+    protocol.run_one = run_one
+
+from posecorr.cli import main
+sys.exit(main(sys.argv[3:]))
+"""
+
+
+def _table(n: int, seed: int = 0) -> PoseTable:
+    rng = np.random.default_rng(seed)
+    p = np.array([0.0, -0.6, 0.5]) + rng.uniform(-0.1, 0.1, (n, 3))
+    q = Rotation.from_euler("xyz", rng.uniform(-0.5, 0.5, (n, 3))).as_quat(scalar_first=True)
+    return PoseTable(p + 0.003 + rng.normal(scale=3e-4, size=(n, 3)), q, p, q)
+
+
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file() and not p.name.startswith("ready")}
+
+
+def _descendants(pid: int) -> set[int]:
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            ppid = int(stat.rsplit(")", 1)[1].split()[1])
+            children.setdefault(ppid, []).append(int(entry.name))
+    found, todo = set(), [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            found.add(child)
+            todo.append(child)
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def _run_and_kill(mode: str, sig: int, folder: Path, argv: list[str], ready_count: int = 1,
+                  until=lambda: True) -> tuple[subprocess.CompletedProcess | None, int, set[int], str]:
+    ready = folder / "ready"
+    proc = subprocess.Popen([sys.executable, "-c", HOOK, mode, str(ready), *argv], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 240
+    while not (len(list(folder.glob("ready.*"))) >= ready_count and until()):
+        if proc.poll() is not None:
+            raise AssertionError(f"{mode} ended before the pause: {proc.stderr.read()}")
+        if time.monotonic() > deadline:
+            proc.kill()
+            raise AssertionError(f"{mode} never reached the pause")
+        time.sleep(0.05)
+    family = _descendants(proc.pid)
+    proc.send_signal(sig)
+    try:
+        _, err = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        for pid in family | {proc.pid}:  # leave nothing behind before failing
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        proc.communicate()
+        raise AssertionError(f"{mode} did not end within 120 s of the signal") from None
+    for path in folder.glob("ready.*"):
+        path.unlink()
+    return proc, proc.returncode, family, err
+
+
+def _assert_no_orphans(family: set[int]) -> None:
+    deadline = time.monotonic() + 15
+    while any(_alive(pid) for pid in family) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not [pid for pid in family if _alive(pid)], "orphan processes left alive"
+
+
+def _assert_ended(code: int, sig: int, err: str, verb: str) -> None:
+    if sig == signal.SIGKILL:
+        assert code == -signal.SIGKILL
+    else:
+        assert code == 143, err
+        assert err.strip().splitlines()[-1].startswith(f"posecorr {verb}: terminated"), err
+        assert "Traceback" not in err
+
+
+SIGNALS = [pytest.param(signal.SIGKILL, id="SIGKILL"), pytest.param(signal.SIGTERM, id="SIGTERM")]
+
+
+@pytest.mark.parametrize("sig", SIGNALS)
+def test_fit_killed_while_writing_the_model(tmp_path, sig, capsys) -> None:
+    data = tmp_path / "d.csv"
+    write_table(_table(80), data)
+    assert main(["fit", str(data), "-o", str(tmp_path / "model.onnx"), "--json"]) == 0
+    before = _snapshot(tmp_path)
+    assert {"d.csv", "model.onnx", "d.csv.ledger.jsonl"} <= set(before)
+    _, code, family, err = _run_and_kill("fit", sig, tmp_path, ["fit", str(data), "-o", str(tmp_path / "model.onnx"),
+                                                                "--method", "pmc", "--json"])
+    _assert_ended(code, sig, err, "fit")
+    assert _snapshot(tmp_path) == before  # the old model, the data, the ledger: byte for byte, nothing else
+    _assert_no_orphans(family)
+
+
+@pytest.mark.parametrize("sig", SIGNALS)
+def test_apply_killed_mid_stream(tmp_path, sig, capsys) -> None:
+    data = tmp_path / "in.csv"
+    write_table(_table(40_000, seed=1), data)
+    out = tmp_path / "out.csv"
+    assert main(["apply", str(MODEL), str(data), "-o", str(out), "--json"]) == 0
+    before = _snapshot(tmp_path)
+    _, code, family, err = _run_and_kill("apply", sig, tmp_path, ["apply", str(MODEL), str(data), "-o", str(out)])
+    _assert_ended(code, sig, err, "apply")
+    assert _snapshot(tmp_path) == before  # no partial CSV under any name
+    _assert_no_orphans(family)
+
+
+@pytest.mark.parametrize("sig", SIGNALS)
+def test_sweep_killed_with_busy_workers(tmp_path, sig, capsys) -> None:
+    data = tmp_path / "d.csv"
+    write_table(_table(100, seed=2), data)
+    store = tmp_path / "s.jsonl"
+    args = ["sweep", str(data), "--no-mlp", "--representations", "zhou", "--store", str(store), "--json"]
+    assert main([*args, "--repeats", "2", "--workers", "1"]) == 0
+    previous = store.read_bytes()
+
+    def stored() -> int:
+        return store.read_bytes().count(b"\n")
+
+    _, code, family, err = _run_and_kill("sweep", sig, tmp_path, [*args, "--repeats", "6", "--workers", "2"],
+                                         ready_count=2, until=lambda: stored() == 4)
+    _assert_ended(code, sig, err, "sweep")
+    assert len(family) >= 2  # the two pool workers were there when the signal came
+    _assert_no_orphans(family)
+    text = store.read_bytes()
+    assert text.startswith(previous)
+    rows = [json.loads(line) for line in text.decode().splitlines()]
+    assert sorted(r["repeat"] for r in rows) == [0, 1, 2, 3]  # what finished was kept
+    capsys.readouterr()
+    assert main([*args, "--repeats", "6", "--workers", "1"]) == 0  # resumes: two runs to go
+    result = json.loads(capsys.readouterr().out)
+    assert result["summary"][0]["runs"] == 6
+    assert store.read_bytes().count(b"\n") == 6

@@ -1,0 +1,79 @@
+"""`posecorr-run` on a controller pipe (issue 14): a bad line is answered (an error line on
+stderr, a NaN line on stdout so that output line k still answers input line k) and the
+stream goes on; --strict stops at the first; lines of any length; a trailing partial
+binary record is reported."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "runtime_c" / "tests"))
+
+import graphs  # noqa: E402
+from posecorr.runtime import Corrector  # noqa: E402
+
+MODEL = ROOT / "models" / "pmc-zhou.onnx"
+GOOD = np.array([[0.02, -0.61, 0.48, 1.0, 0.0, 0.0, 0.0],
+                 [-0.05, -0.55, 0.52, 0.9238795325, 0.0, 0.3826834324, 0.0]])
+
+
+@pytest.fixture(scope="module")
+def run_tool() -> Path:
+    return graphs.build_runtime(ROOT / "build" / "c-test", "-DPC_BUILD_TESTS=ON") / "posecorr-run"
+
+
+def _run(tool: Path, data: str | bytes, *flags: str) -> subprocess.CompletedProcess:
+    return subprocess.run([str(tool), str(MODEL), *flags], input=data, capture_output=True, timeout=60,
+                          text=isinstance(data, str))
+
+
+def _csv(pose: np.ndarray) -> str:
+    return ",".join(f"{v:.10g}" for v in pose)
+
+
+def test_bad_lines_are_answered_and_the_stream_goes_on(run_tool) -> None:
+    lines = ["x,y,z,qw,qx,qy,qz", _csv(GOOD[0]), "0.1,oops,0.3,1,0,0,0", "0.1,-0.6,0.5,0,0,0,0",
+             "nan,0,0,1,0,0,0", "0.1,-0.6", _csv(GOOD[1])]
+    r = _run(run_tool, "\n".join(lines) + "\n")
+    assert r.returncode == 1
+    out = r.stdout.splitlines()
+    assert out[0] == lines[0] and len(out) == len(lines)  # one answer per line
+    got = np.array([[float(v) for v in line.split(",")] for line in out[1:]])
+    want = Corrector(MODEL).correct(GOOD)
+    np.testing.assert_allclose(got[[0, -1]], want, atol=1e-7)
+    assert np.isnan(got[1:-1]).all()
+    errors = r.stderr.splitlines()
+    assert [e.split(":")[1].strip() for e in errors] == ["line 3", "line 4", "line 5", "line 6"]
+    assert "unit quaternion" in errors[1] and "non-finite" in errors[2]
+
+
+def test_strict_stops_at_the_first_bad_line(run_tool) -> None:
+    r = _run(run_tool, f"{_csv(GOOD[0])}\n0.1,oops,0.3,1,0,0,0\n{_csv(GOOD[1])}\n", "--strict")
+    assert r.returncode == 1 and "line 2" in r.stderr
+    assert len(r.stdout.splitlines()) == 1
+
+
+def test_a_line_of_any_length(run_tool) -> None:
+    padded = " " * 1_000_000 + _csv(GOOD[0]).replace(",", " ," + " " * 10_000) + " " * 50_000
+    r = _run(run_tool, padded + "\n" + _csv(GOOD[1]))  # the last line has no newline
+    assert r.returncode == 0, r.stderr
+    got = np.array([[float(v) for v in line.split(",")] for line in r.stdout.splitlines()])
+    np.testing.assert_allclose(got, Corrector(MODEL).correct(GOOD), atol=1e-7)
+
+
+def test_binary_partial_record_and_bad_record_are_reported(run_tool) -> None:
+    records = np.concatenate([GOOD[:1], [[np.nan, 0, 0, 1, 0, 0, 0]], GOOD[1:]]).astype("<f4")
+    r = _run(run_tool, records.tobytes() + b"\x00" * 10, "--binary")
+    assert r.returncode == 1
+    got = np.frombuffer(r.stdout, dtype="<f4").reshape(-1, 7)
+    assert got.shape == (3, 7) and np.isnan(got[1]).all()
+    np.testing.assert_allclose(got[[0, 2]], Corrector(MODEL).correct(GOOD), atol=1e-7)
+    errors = r.stderr.decode().splitlines()
+    assert "record 2" in errors[0] and "record 4: partial record of 10 bytes" in errors[1]
+    r = _run(run_tool, records[:1].tobytes(), "--binary")
+    assert r.returncode == 0 and len(r.stdout) == 28 and r.stderr == b""

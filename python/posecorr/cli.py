@@ -197,7 +197,9 @@ def cmd_fit(args: argparse.Namespace) -> None:
         report.model.training_reference_ = table.reference[report.train_index]
         if table.time() is not None:
             report.model.training_t_ = table.time()[report.train_index]
-        _write_atomically(args.save, pickle.dumps(report.model))
+        from .safeio import write_bytes
+
+        write_bytes(args.save, pickle.dumps(report.model))
     append_entry(args.data, {"model": str(args.output), "effects": effects, "method": info.get("method"),
                              "representation": info.get("representation"), "raw": report.raw, key: report.heldout})
 
@@ -223,25 +225,6 @@ def cmd_fit(args: argparse.Namespace) -> None:
         return "\n".join(lines)
 
     _emit(args, payload, text)
-
-
-def _write_atomically(path: Path, data: bytes) -> None:
-    """A temporary file beside `path`, fsync, rename: a crash leaves the old file or the new
-    one, never a torn one."""
-    import os
-    import tempfile
-
-    path = Path(path)
-    handle, temporary = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.")
-    try:
-        with os.fdopen(handle, "wb") as out:
-            out.write(data)
-            out.flush()
-            os.fsync(out.fileno())
-        os.replace(temporary, path)
-    except BaseException:
-        os.unlink(temporary)
-        raise
 
 
 def _fmt_scores(scores: dict[str, float]) -> str:

@@ -34,10 +34,10 @@ from .identify import (Block, chordal_mean, describe_spread, determined_directio
 
 DEFAULT_SIGMA_P = 3e-4   # m, DESIGN.md default noise
 DEFAULT_SIGMA_R = 5e-4   # rad
-# Noise levels never assumed below a tenth of the defaults: a perfect fit of few poses must
+# Noise levels never assumed below a hundredth of the defaults: a perfect fit of few poses must
 # not make the whitened Jacobian claim a precision no tracker has.
-SIGMA_P_FLOOR = 3e-5     # m
-SIGMA_R_FLOOR = 5e-5     # rad
+SIGMA_P_FLOOR = 3e-6     # m
+SIGMA_R_FLOOR = 5e-6     # rad
 
 
 @contextmanager

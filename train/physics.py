@@ -5,12 +5,15 @@ catalogue order. The fit minimises the whitened residuals
 
     r_i = [(p_F,i - p_meas,i) / sigma_p,  log(R_meas,i^T R_F,i) / sigma_r]
 
-by nonlinear least squares (scipy's trust-region reflective solver with the exact Jacobian
-from torch forward-mode autodiff). `station` and `mount` start from closed forms that hold
-for ANY rotation between the tracker's reporting frame and the base frame (robot-world-
-hand-eye AX = YB with orientations, Umeyama without), so data recorded in the tracker's own
-frame converges too. sigma_p and sigma_r are re-estimated from the residuals of a first fit
-unless given. The correction applies the fitted effects inverse, in reverse order: closed
+by nonlinear least squares (MINPACK's Levenberg-Marquardt, scipy's trust-region reflective
+solver where a parameter is bounded; the Jacobian by vectorised forward differences,
+`WhitenedResidual`). `station` and `mount` start from the closed-form rigid registration
+(`identify.rigid_registration`), which holds for ANY rotation between the tracker's
+reporting frame and the base frame and for yaw-only, single-orientation and position-only
+tables, so data recorded in the tracker's own frame converges too. Only the directions the
+data determine are fitted (`identify.determined_directions`); the rest are held at their
+nominal value and named in `fixed_`. sigma_p and sigma_r are re-estimated from the residuals
+of a first fit unless given. The correction applies the fitted effects inverse, in reverse order: closed
 forms where they exist, a fixed number of Newton / fixed-point steps otherwise
 (`posecorr.effects.invert_effects`), so the same `forward` runs in numpy, torch and ONNX.
 """
@@ -374,8 +377,6 @@ class PhysicsModel:
         Uses this fit's frames and sigmas on any poses (held-out ones, say). Returns
         (r, J, is_extra) with is_extra (n,) marking the columns of the extra effects.
         """
-        import torch
-
         self._check_fitted()
         measured = check_poses(measured, "measured")
         reference = check_poses(reference, "reference", len(measured))
@@ -519,16 +520,15 @@ class RigidModel(PhysicsModel):
 
 class WhitenedResidual:
     """r(theta) = [(p_F - p_meas) / sigma_p, log(R_meas^T R_F) / sigma_r] of a physics model, and
-    its Jacobian.
-
-    The Jacobian is exact (torch forward-mode autodiff through the same effect formulas) on
-    large tables; on small ones (fewer than FD_MAX residuals) forward differences of the
-    numpy residual, which are accurate to ~1e-8 relative and about ten times faster there
-    than autodiff's per-call overhead: real sessions of 6-40 poses are fitted hundreds of
-    times in a nested cross-validation.
+    its Jacobian by forward differences of the numpy residual (steps of 1e-7 of each
+    parameter's typical magnitude: about 1e-8 relative accuracy, ample for Levenberg-Marquardt
+    and for standard errors). With effects that take one parameter row per pose
+    (`Effect.per_row_theta`, every built-in one) all the steps are one vectorised evaluation:
+    several times faster than autodiff through the same formulas, whose per-call overhead
+    dominates on the 6-40 poses of a real session (fitted hundreds of times in a nested
+    cross-validation) and whose import alone costs seconds.
     """
 
-    FD_MAX = 3000
     FD_STEP = 1e-7     # in units of each parameter's typical magnitude
 
     def __init__(self, model: PhysicsModel, measured: np.ndarray, reference: np.ndarray,
@@ -537,7 +537,6 @@ class WhitenedResidual:
         self.sigma_p, self.sigma_r = sigma_p, sigma_r
         self.meas_RT = np.swapaxes(rotations.quat_to_matrix(measured[:, 3:7]), -1, -2)
         self.size = len(measured) * (6 if model.with_rotation_ else 3)
-        self._torch: Any = None
 
     def __call__(self, theta: np.ndarray) -> np.ndarray:
         p, R = self.model._model_poses(np.asarray(theta, float), self.reference)
@@ -548,8 +547,6 @@ class WhitenedResidual:
 
     def jacobian(self, theta: np.ndarray) -> np.ndarray:
         theta = np.asarray(theta, float)
-        if self.size > self.FD_MAX:
-            return self._autodiff(theta)
         steps = self.FD_STEP * self.model._scales()
         points = np.concatenate([theta[None], theta + np.diag(steps)])        # (1 + n, n)
         if all(effect.per_row_theta for effect in self.model._chosen):
@@ -571,22 +568,3 @@ class WhitenedResidual:
             return dp
         dr = rotations.matrix_to_rotvec(np.tile(self.meas_RT, (k, 1, 1)) @ R) / self.sigma_r
         return np.concatenate([dp, dr.reshape(k, n * 3)], axis=1)
-
-    def _autodiff(self, theta: np.ndarray) -> np.ndarray:
-        import torch
-
-        if self._torch is None:
-            meas_p = torch.from_numpy(self.measured[:, :3])
-            meas_RT = torch.from_numpy(self.meas_RT.copy())
-            ref = torch.from_numpy(self.reference)
-            model, sigma_p, sigma_r = self.model, self.sigma_p, self.sigma_r
-
-            def residual(x: "torch.Tensor") -> "torch.Tensor":
-                p, R = model._model_poses(x, ref)
-                parts = [((p - meas_p) / sigma_p).reshape(-1)]
-                if model.with_rotation_:
-                    parts.append((rotations.matrix_to_rotvec(torch.matmul(meas_RT, R)) / sigma_r).reshape(-1))
-                return torch.cat(parts)
-
-            self._torch = torch.func.jacfwd(residual)
-        return self._torch(torch.from_numpy(theta)).numpy()

@@ -373,7 +373,7 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
         say(f"fitting {len(candidates)} candidate(s) on {len(train)} poses, choosing on {len(val)}, "
             f"testing on {len(test)}")
         prior = _priors(candidates, train, arrays, with_rotation)
-        shared: dict = {}
+        shared: dict = dict(prior)          # fitted on these very rows: the candidates use them as they are
         fitted = {c.name: _fit(c, train, arrays, with_rotation, prior, shared, validation=(M[val], R[val],
                                                                                           None if t is None else t[val]))
                   for c in candidates}

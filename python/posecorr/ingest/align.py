@@ -70,6 +70,19 @@ def _quadratic_features(p: np.ndarray) -> np.ndarray:
     return np.concatenate([np.ones((len(x), 1)), x, x[:, i] * x[:, j]], axis=1)
 
 
+def _velocity_coefficient(v: np.ndarray, y: np.ndarray, F: np.ndarray) -> float:
+    """d of the least-squares fit y_k = -d v_k + F c_k (every axis k its own c_k, one d).
+
+    The c_k are eliminated in closed form (Schur complement); sums by einsum keep the
+    hundreds of thousands of rows out of multi-threaded BLAS, which stalls on a busy machine.
+    """
+    G_inv = np.linalg.inv(np.einsum("ni,nj->ij", F, F))
+    Fv, Fy = np.einsum("ni,nk->ik", F, v), np.einsum("ni,nk->ik", F, y)
+    numerator = -np.einsum("nk,nk->", v, y) + np.einsum("ik,ij,jk->", Fv, G_inv, Fy)
+    denominator = np.einsum("nk,nk->", v, v) - np.einsum("ik,ij,jk->", Fv, G_inv, Fv)
+    return float(numerator / denominator)
+
+
 def _refine(t_robot: np.ndarray, p_robot: np.ndarray, t_tracker: np.ndarray, p_tracker: np.ndarray,
             coarse: float, iterations: int = 3) -> float:
     """The offset near `coarse`, by least squares on positions.
@@ -89,14 +102,7 @@ def _refine(t_robot: np.ndarray, p_robot: np.ndarray, t_tracker: np.ndarray, p_t
         v = np.stack([np.interp(t, t_robot, velocity[:, k]) for k in range(3)], axis=1)
         R, shift, _ = umeyama(p, target)
         mapped = p @ R.T + shift
-        F = _quadratic_features(target)
-        n, m = len(t), F.shape[1]
-        A = np.zeros((3 * n, 1 + 3 * m))
-        A[:, 0] = -v.reshape(-1)
-        for k in range(3):
-            A[k::3, 1 + k * m:1 + (k + 1) * m] = F
-        solution, *_ = np.linalg.lstsq(A, (mapped - target).reshape(-1), rcond=None)
-        lag += float(solution[0])
+        lag += _velocity_coefficient(v, mapped - target, _quadratic_features(target))
     return lag
 
 

@@ -43,7 +43,7 @@ def _read_block(path: Path, columns: CsvColumns) -> dict[str, np.ndarray | None]
             raise IngestError(f"{path}: not a CSV log: {exc}") from None
     if columns.time not in header:
         raise IngestError(f"{path}: row 1: no time column {columns.time!r} (header: {', '.join(header)})")
-    rows = [r for r in rows if any(cell.strip() for cell in r)]
+    rows = [r for r in rows if any(r)]
     for i, row in enumerate(rows):
         if len(row) != len(header):
             raise IngestError(f"{path}: row {i + 2}: {len(row)} fields, expected {len(header)} as in the header")
@@ -59,7 +59,7 @@ def _read_block(path: Path, columns: CsvColumns) -> dict[str, np.ndarray | None]
             raise IngestError(f"{path}: row 1, column {missing}: missing (expected {', '.join(names)})")
         index = [header.index(n) for n in (columns.time,) + tuple(names)]
         block = cells[:, index]
-        filled = np.array([[bool(c.strip()) for c in r] for r in block[:, 1:]]).reshape(len(block), len(names))
+        filled = block[:, 1:] != ""
         partial = np.flatnonzero(filled.any(axis=1) & ~filled.all(axis=1))
         if partial.size:
             r = int(partial[0])

@@ -16,6 +16,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
+from .fastdecode import decoder
 from .streams import IngestError, JointStream, PoseStream
 
 JOINT_TYPE = "sensor_msgs/msg/JointState"
@@ -72,10 +73,17 @@ class _BagSource:
     def topics(self) -> Topics:
         return Topics({c.topic: c.msgtype for c in self.reader.connections})
 
-    def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
+    def messages(self, topics: list[str]) -> Iterator[tuple[str, int, bytes]]:
         connections = [c for c in self.reader.connections if c.topic in topics]
         for connection, stamp, raw in self.reader.messages(connections=connections):
-            yield connection.topic, stamp, self.reader.deserialize(raw, connection.msgtype)
+            yield connection.topic, stamp, raw
+
+    @property
+    def encoding(self) -> str:
+        return "cdr" if self.reader.is2 else "ros1"
+
+    def deserialize(self, raw: bytes, msgtype: str, encoding: str) -> Any:
+        return self.reader.deserialize(raw, msgtype)
 
 
 class _McapSource:
@@ -120,14 +128,20 @@ class _McapSource:
         return Topics({c.topic: _ros2_name(self.schemas[c.schema_id].name) for c in self.channels.values()
                        if c.schema_id in self.schemas})
 
-    def messages(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
-        deserialize = {"cdr": self.typestore.deserialize_cdr, "ros1": self.typestore.deserialize_ros1}
-        for schema, channel, message in self.reader.iter_messages(topics=topics):
-            decode = deserialize.get(channel.message_encoding)
-            if decode is None:
-                raise IngestError(f"{self.path}: topic {channel.topic} has message encoding "
-                                  f"{channel.message_encoding!r}, expected cdr or ros1")
-            yield channel.topic, message.log_time, decode(message.data, _ros2_name(schema.name))
+    @property
+    def encoding(self) -> str:
+        encodings = {c.message_encoding for c in self.channels.values()}
+        if len(encodings) != 1 or not encodings <= {"cdr", "ros1"}:
+            raise IngestError(f"{self.path}: message encodings {', '.join(sorted(encodings))}, expected cdr or ros1")
+        return encodings.pop()
+
+    def messages(self, topics: list[str]) -> Iterator[tuple[str, int, bytes]]:
+        for _, channel, message in self.reader.iter_messages(topics=topics):
+            yield channel.topic, message.log_time, message.data
+
+    def deserialize(self, raw: bytes, msgtype: str, encoding: str) -> Any:
+        decode = self.typestore.deserialize_cdr if encoding == "cdr" else self.typestore.deserialize_ros1
+        return decode(raw, msgtype)
 
 
 def _ros2_name(name: str) -> str:
@@ -137,8 +151,15 @@ def _ros2_name(name: str) -> str:
 
 
 def _open_source(path: Path) -> _BagSource | _McapSource:
+    """rosbags for bags and ROS 2 MCAP (the faster reader), the mcap package for other MCAP profiles."""
     if path.suffix == ".mcap" and path.is_file():
-        return _McapSource(path)
+        source = _BagSource(path)
+        try:
+            source.reader.open()
+            source.reader.close()
+        except Exception:  # noqa: BLE001 - not a ROS 2 MCAP: the mcap reader says what it is
+            return _McapSource(path)
+        return source
     return _BagSource(path)
 
 
@@ -200,52 +221,67 @@ def _pick_tracker_topic(path: Path, topics: Topics, wanted: str | None) -> str:
     raise IngestError(f"{path}: several pose topics ({', '.join(sorted(found))}); choose one with --tracker")
 
 
-def _stamp(header: Any, log_ns: int, stamps: str) -> float:
-    if stamps == "header" and (header.stamp.sec or header.stamp.nanosec):
-        return header.stamp.sec + header.stamp.nanosec * 1e-9
-    return log_ns * 1e-9
+def _generic_pose(extract: Callable[[Any], tuple[Any, Any, Any]], deserialize: Callable[[bytes], Any],
+                  tracker_frame: str | None, child_frames: dict[str, int]) -> Callable[[bytes], list]:
+    """A decoder of one pose message (or TF message) into [(header, (x, y, z), quaternion)]."""
+    def decode(raw: bytes) -> list:
+        msg = deserialize(raw)
+        if extract is not None:
+            return [extract(msg)]
+        out = []
+        for tf in msg.transforms:
+            child_frames[tf.child_frame_id] = child_frames.get(tf.child_frame_id, 0) + 1
+            if tracker_frame is None or tf.child_frame_id == tracker_frame:
+                out.append((tf.header, *_transform_of(tf.transform)))
+        return out
+    return decode
 
 
 def _collect(path: Path, source: Any, topics: Topics, joint_topic: str, tracker_topic: str,
              tracker_frame: str | None, stamps: str) -> tuple[JointStream, PoseStream]:
+    encoding = source.encoding
     tracker_type = topics.types[tracker_topic]
-    extract = POSE_TYPES.get(tracker_type)
+    child_frames: dict[str, int] = {}
+    generic_pose = _generic_pose(POSE_TYPES.get(tracker_type), lambda raw: source.deserialize(raw, tracker_type, encoding),
+                                 tracker_frame, child_frames)
+    fast_joints = fast_pose = None
     jt: list[float] = []
-    jq: list[np.ndarray] = []
+    jlog: list[int] = []
+    jq: list[tuple[float, ...]] = []
     names: tuple[str, ...] | None = None
     pt: list[float] = []
+    plog: list[int] = []
     pose: list[tuple[float, ...]] = []
-    frames: set[str] = set()
-    child_frames: dict[str, int] = {}
-    for topic, log_ns, msg in source.messages([joint_topic, tracker_topic]):
+    for topic, log_ns, raw in source.messages([joint_topic, tracker_topic]):
         if topic == joint_topic:
-            msg_names = tuple(msg.name)
+            if fast_joints is None:
+                fast_joints = decoder(JOINT_TYPE, encoding, raw) or _generic_joints(source, encoding)
+            stamp, msg_names, position = fast_joints(raw)
             if names is None:
                 names = msg_names
-            elif msg_names and msg_names != names:
+            elif msg_names != names and msg_names:
                 raise IngestError(f"{path}: topic {joint_topic} changes its joint names at message {len(jt) + 1} "
                                   f"({', '.join(msg_names)} after {', '.join(names)})")
-            if len(msg.position) != len(names):
-                raise IngestError(f"{path}: topic {joint_topic} message {len(jt) + 1} has {len(msg.position)} "
+            if len(position) != len(names):
+                raise IngestError(f"{path}: topic {joint_topic} message {len(jt) + 1} has {len(position)} "
                                   f"positions for {len(names)} joint names")
-            jt.append(_stamp(msg.header, log_ns, stamps))
-            jq.append(np.asarray(msg.position, dtype=float))
+            jt.append(stamp)
+            jlog.append(log_ns)
+            jq.append(position)
             continue
-        if extract is not None:
-            entries = [extract(msg)]
-        else:
-            entries = []
-            for tf in msg.transforms:
-                child_frames[tf.child_frame_id] = child_frames.get(tf.child_frame_id, 0) + 1
-                if tracker_frame is None or tf.child_frame_id == tracker_frame:
-                    entries.append((tf.header, *_transform_of(tf.transform), tf.child_frame_id))
-        for entry in entries:
-            header, position, o = entry[:3]
-            if extract is None:
-                frames.add(entry[3])
-            pt.append(_stamp(header, log_ns, stamps))
+        if fast_pose is None:
+            fast_pose = decoder(tracker_type, encoding, raw) or False
+        if fast_pose:
+            stamp, _, values = fast_pose(raw)
+            pt.append(stamp)
+            plog.append(log_ns)
+            pose.append(values)
+            continue
+        for header, position, o in generic_pose(raw):
+            pt.append(header.stamp.sec + header.stamp.nanosec * 1e-9)
+            plog.append(log_ns)
             pose.append((*position, o.w, o.x, o.y, o.z))
-    if extract is None:
+    if tracker_type == TF_TYPE:
         if tracker_frame is None and len(child_frames) > 1:
             raise IngestError(f"{path}: TF topic {tracker_topic} carries several frames "
                               f"({', '.join(sorted(child_frames))}); choose the tracker's with --tracker-frame")
@@ -257,8 +293,23 @@ def _collect(path: Path, source: Any, topics: Topics, joint_topic: str, tracker_
     if not pt:
         raise IngestError(f"{path}: topic {tracker_topic} has no tracker poses")
     poses = np.asarray(pose, dtype=float)
-    return (JointStream(np.asarray(jt), np.vstack(jq), names or (), source=f"{path}:{joint_topic}"),
-            PoseStream(np.asarray(pt), poses[:, :3], poses[:, 3:7], source=f"{path}:{tracker_topic}"))
+    return (JointStream(_times(jt, jlog, stamps), np.asarray(jq, dtype=float), names or (),
+                        source=f"{path}:{joint_topic}"),
+            PoseStream(_times(pt, plog, stamps), poses[:, :3], poses[:, 3:7], source=f"{path}:{tracker_topic}"))
+
+
+def _times(header_s: list[float], log_ns: list[int], stamps: str) -> np.ndarray:
+    """Header stamps, or the recorder's receive times when asked or where a header stamp is unset."""
+    header = np.asarray(header_s, dtype=float)
+    received = np.asarray(log_ns, dtype=np.int64) * 1e-9
+    return received if stamps == "receive" else np.where(header > 0, header, received)
+
+
+def _generic_joints(source: Any, encoding: str) -> Callable[[bytes], tuple]:
+    def decode(raw: bytes) -> tuple:
+        msg = source.deserialize(raw, JOINT_TYPE, encoding)
+        return (msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, tuple(msg.name), tuple(msg.position))
+    return decode
 
 
 # --- writing (simulated recordings) ------------------------------------------------------

@@ -31,6 +31,7 @@ from .ingest.csvlog import write_csv_log
 from .ingest.rosformats import write_mcap, write_ros1_bag, write_ros2_bag
 from .ingest.streams import IngestError, JointStream, PoseStream
 from .kinematics import DEFAULT_ARM, UR_ARMS, UR_JOINT_NAMES, inverse, reference_poses
+from .metrics import pose_metrics
 from .rotations import matrix_to_quat, quat_to_matrix
 from .simulate import SimulationResult
 
@@ -189,6 +190,21 @@ def _tracker_poses(result: SimulationResult, table: PoseTable, traj: _Trajectory
     ctx = EffectContext.default(t=t, rng=rng)
     p, R = jitter.forward(p, R, np.array([options.jitter_p, options.jitter_r, 0.0]), ctx)
     return np.asarray(p, float), np.asarray(R, float)
+
+
+def table_metrics(result: SimulationResult, n: int) -> tuple[dict, dict]:
+    """(raw, noise floor) metrics of the first n rows of a simulated table (as `simulate` reports them)."""
+    table = result.table.subset(np.arange(n))
+    reference = table.reference
+    raw = pose_metrics(reference, table.measured, table.has_orientation)
+    floor = raw
+    if "noise" in result.effects:
+        R_ref = quat_to_matrix(reference[:, 3:7])
+        p, R = get_effect("noise").forward(reference[:, :3], R_ref, result.effects["noise"],
+                                           result.context.subset(np.arange(n)))
+        floor = pose_metrics(reference, np.concatenate([np.asarray(p), matrix_to_quat(np.asarray(R))], axis=1),
+                             table.has_orientation)
+    return raw, floor
 
 
 # Output formats of `posecorr simulate --recording`, by suffix ("" = a ROS 2 bag directory).

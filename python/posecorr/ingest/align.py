@@ -22,6 +22,7 @@ SMOOTH_S = 0.04            # s, position smoothing before differentiation (track
 GAP_FACTOR = 3.0           # tracker gaps longer than this many median periods carry no speed
 MIN_MOTION_M_S = 0.005     # the robot must move faster than this somewhere to align on its motion
 MIN_CORRELATION = 0.5
+OUTLIER_FACTOR = 4.0       # residuals beyond this many medians leave the offset fit
 
 
 @dataclass(frozen=True)
@@ -70,45 +71,58 @@ def _quadratic_features(p: np.ndarray) -> np.ndarray:
     return np.concatenate([np.ones((len(x), 1)), x, x[:, i] * x[:, j]], axis=1)
 
 
-def _velocity_coefficient(v: np.ndarray, y: np.ndarray, F: np.ndarray) -> float:
-    """d of the least-squares fit y_k = -d v_k + F c_k (every axis k its own c_k, one d).
+def _velocity_coefficient(v: np.ndarray, y: np.ndarray, F: np.ndarray) -> tuple[float, np.ndarray]:
+    """(d, residual norms (N,)) of the least-squares fit y_k = -d v_k + F c_k (every axis k its own c_k).
 
     The c_k are eliminated in closed form (Schur complement); sums by einsum keep the
     hundreds of thousands of rows out of multi-threaded BLAS, which stalls on a busy machine.
     """
-    G_inv = np.linalg.inv(np.einsum("ni,nj->ij", F, F))
+    G_inv = np.linalg.pinv(np.einsum("ni,nj->ij", F, F))   # pinv: constant orientations make R columns collinear
     Fv, Fy = np.einsum("ni,nk->ik", F, v), np.einsum("ni,nk->ik", F, y)
     numerator = -np.einsum("nk,nk->", v, y) + np.einsum("ik,ij,jk->", Fv, G_inv, Fy)
     denominator = np.einsum("nk,nk->", v, v) - np.einsum("ik,ij,jk->", Fv, G_inv, Fv)
-    return float(numerator / denominator)
+    d = float(numerator / denominator)
+    c = G_inv @ (Fy + Fv * d)
+    return d, np.linalg.norm(y + d * v - F @ c, axis=1)
 
 
-def _refine(t_robot: np.ndarray, p_robot: np.ndarray, t_tracker: np.ndarray, p_tracker: np.ndarray,
-            coarse: float, iterations: int = 3) -> float:
+def _refine(t_robot: np.ndarray, T_robot: np.ndarray, t_tracker: np.ndarray, p_tracker: np.ndarray,
+            coarse: float, iterations: int = 4) -> float:
     """The offset near `coarse`, by least squares on positions.
 
     With the tracker positions mapped rigidly onto the forward-kinematics point,
-    p_tracker(t) - p_robot(t - lag) = -(offset - lag) v_robot(t - lag) + f(p) + noise, where f is the
-    tracker's static distortion (a quadratic in position absorbs most of it). One linear solve
-    gives offset - lag; a few rounds converge. Unlike the speed correlation this uses the exact
+    p_tracker(t) - p_robot(t - lag) = -(offset - lag) v_robot(t - lag) + f(p, R) + noise, where f is
+    what the tracker gets wrong at rest: a distortion of space (a quadratic in position absorbs
+    most of it) and the error of the lever arm end_T_tracker, R e, linear in the entries of the
+    orientation R, which joint-space moves change along the way. One linear solve gives
+    offset - lag; a few rounds converge. Unlike the speed correlation this uses the exact
     positions at every sample, without smoothing.
     """
+    p_robot = T_robot[:, :3, 3]
+    R_robot = T_robot[:, :3, :3].reshape(-1, 9)
     velocity = np.gradient(p_robot, t_robot, axis=0)
     lag = coarse
+    inlier = np.ones(len(t_tracker), dtype=bool)
     for _ in range(iterations):
-        inside = (t_tracker - lag > t_robot[0]) & (t_tracker - lag < t_robot[-1])
+        inside = (t_tracker - lag > t_robot[0]) & (t_tracker - lag < t_robot[-1]) & inlier
         t, p = t_tracker[inside] - lag, p_tracker[inside]
         target = np.stack([np.interp(t, t_robot, p_robot[:, k]) for k in range(3)], axis=1)
         v = np.stack([np.interp(t, t_robot, velocity[:, k]) for k in range(3)], axis=1)
-        R, shift, _ = umeyama(p, target)
-        mapped = p @ R.T + shift
-        lag += _velocity_coefficient(v, mapped - target, _quadratic_features(target))
+        rotation, shift, _ = umeyama(p, target)
+        mapped = p @ rotation.T + shift
+        R = np.stack([np.interp(t, t_robot, R_robot[:, k]) for k in range(9)], axis=1)
+        d, residual = _velocity_coefficient(v, mapped - target, np.concatenate([_quadratic_features(target), R], axis=1))
+        lag += d
+        # Bursts of jitter would pull the fit: later rounds leave out samples far off the model.
+        inlier[np.flatnonzero(inside)[residual > OUTLIER_FACTOR * np.median(residual)]] = False
     return lag
 
 
-def estimate_offset(t_robot: np.ndarray, p_robot: np.ndarray, t_tracker: np.ndarray, p_tracker: np.ndarray,
+def estimate_offset(t_robot: np.ndarray, T_robot: np.ndarray, t_tracker: np.ndarray, p_tracker: np.ndarray,
                     max_offset: float, what: str) -> Alignment:
-    """The offset (module docstring) from the FK tracker point p_robot(t_robot) and the tracker's p_tracker."""
+    """The offset (module docstring) from the FK tracker poses T_robot (N, 4, 4) at t_robot and the
+    tracker's positions p_tracker at t_tracker."""
+    p_robot = T_robot[:, :3, 3]
     check_overlap(t_robot, t_tracker, max_offset, what)
     step = 1.0 / COARSE_HZ
     grid = np.arange(t_robot[0], t_robot[-1], step)
@@ -134,7 +148,7 @@ def estimate_offset(t_robot: np.ndarray, p_robot: np.ndarray, t_tracker: np.ndar
         raise IngestError(f"{what}: the robot's and the tracker's speeds correlate at most {correlation:.2f} "
                           f"(expected >= {MIN_CORRELATION}): wrong topics, or clocks more than --max-offset "
                           f"{max_offset:g} s apart; give --offset")
-    offset = _refine(t_robot, p_robot, t_tracker, p_tracker, coarse)
+    offset = _refine(t_robot, T_robot, t_tracker, p_tracker, coarse)
     if abs(offset) > max_offset - 2 * step:
         raise IngestError(f"{what}: the best clock offset {offset:+.3f} s lies at the edge of --max-offset "
                           f"{max_offset:g} s; raise --max-offset or give --offset")

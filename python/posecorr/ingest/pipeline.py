@@ -125,8 +125,8 @@ def ingest(paths: list[str | Path], options: IngestOptions | None = None) -> Ing
                           f"{norms[bad[0]]:.6g}, expected a unit quaternion")
 
     if options.offset is None:
-        tool_points = reference_poses(arm, q, options.tool)[:, :3, 3]
-        alignment = estimate_offset(joints.t, tool_points, tracker.t, tracker.p, options.max_offset, what)
+        alignment = estimate_offset(joints.t, reference_poses(arm, q, options.tool), tracker.t, tracker.p,
+                                    options.max_offset, what)
     else:
         check_overlap(joints.t, tracker.t - options.offset, 0.0, what)
         alignment = Alignment(float(options.offset), None, "given")
@@ -166,6 +166,30 @@ def _table(segments: list[Segment], arm: Arm, options: IngestOptions, t0: float,
     extras["n_samples"] = np.array([str(s.n_kept) for s in segments], dtype=object)
     return PoseTable(meas_p=meas[:, :3, 3].copy(), meas_q=matrix_to_quat(meas[:, :3, :3]),
                      ref_p=ref[:, :3, 3].copy(), ref_q=matrix_to_quat(ref[:, :3, :3]), extras=extras)
+
+
+# Named transforms of --tool (end_T_tracker) and --registration (base_T_<tracker frame>).
+NAMED_TRANSFORMS: dict[str, dict[str, Callable[[], np.ndarray]]] = {
+    "tool": {"paper": END_T_TRACKER.copy, "none": lambda: np.eye(4)},
+    "registration": {"paper": base_T_station, "none": lambda: np.eye(4)},
+}
+
+
+def parse_transform(text: str, kind: str) -> np.ndarray:
+    """A 4x4 transform from a name in NAMED_TRANSFORMS[kind] or 'x,y,z[,qw,qx,qy,qz]' (m, unit quaternion)."""
+    named = NAMED_TRANSFORMS[kind]
+    if text.strip().lower() in named:
+        return named[text.strip().lower()]()
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) not in (3, 7):
+        raise IngestError(f"--{kind} {text!r}: expected {', '.join(named)} or x,y,z[,qw,qx,qy,qz]")
+    quat = np.array(values[3:] or [1.0, 0.0, 0.0, 0.0])
+    if abs(np.linalg.norm(quat) - 1.0) > 1e-3:
+        raise IngestError(f"--{kind} {text!r}: quaternion norm {np.linalg.norm(quat):.6g}, expected 1")
+    return homogeneous(quat_to_matrix(quat), np.array(values[:3]))
 
 
 def segments_path(table_path: str | Path) -> Path:

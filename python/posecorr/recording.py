@@ -32,7 +32,7 @@ from .ingest.rosformats import write_mcap, write_ros1_bag, write_ros2_bag
 from .ingest.streams import IngestError, JointStream, PoseStream
 from .kinematics import DEFAULT_ARM, UR_ARMS, UR_JOINT_NAMES, inverse, reference_poses
 from .metrics import pose_metrics
-from .rotations import matrix_to_quat, quat_to_matrix
+from .rotations import matrix_to_quat, matrix_to_rotvec, quat_to_matrix, rotvec_to_matrix
 from .simulate import SimulationResult
 
 # Elbow up, wrist down, flange up: the posture the paper keeps over the whole cube (section 2.2).
@@ -113,11 +113,15 @@ class _Trajectory:
     def end(self) -> float:
         return float(self.times[-1])
 
-    def __call__(self, t: np.ndarray) -> np.ndarray:
+    def progress(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(segment j, fraction 0..1 of the way from waypoint j to j + 1) at times t."""
         j = np.clip(np.searchsorted(self.times, t, side="right") - 1, 0, len(self.times) - 2)
         tau = (t - self.times[j]) / (self.times[j + 1] - self.times[j])
-        s = trapezoid(tau, self.ramp)[:, None]
-        return self.waypoints[j] + s * (self.waypoints[j + 1] - self.waypoints[j])
+        return j, trapezoid(tau, self.ramp)
+
+    def __call__(self, t: np.ndarray) -> np.ndarray:
+        j, s = self.progress(t)
+        return self.waypoints[j] + s[:, None] * (self.waypoints[j + 1] - self.waypoints[j])
 
 
 def simulate_recording(result: SimulationResult, n_targets: int | None = None,
@@ -167,25 +171,41 @@ def _events(rng: np.random.Generator, rate: float, duration: float) -> np.ndarra
 
 def _tracker_poses(result: SimulationResult, table: PoseTable, traj: _Trajectory, stands: np.ndarray,
                    t: np.ndarray, options: RecordingOptions, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Measured tracker poses (base frame) at robot-clock times t, before bursts (module docstring)."""
-    ref = reference_poses(UR_ARMS[DEFAULT_ARM], traj(t))
+    """Measured tracker poses (base frame) at robot-clock times t, before bursts (module docstring).
+
+    The table's per-pose noise is a property of where the tracker stood; while it moves, that
+    error blends from the last stop's to the next one's, so the error field stays continuous
+    (a jump at every arrival would not be a real tracker's, and would bias the clock fit).
+    """
+    arm = UR_ARMS[DEFAULT_ARM]
+    ref = reference_poses(arm, traj(t))
     systematic = {name: theta for name, theta in result.effects.items() if name != "noise"}
-    p, R = apply_effects(ref[:, :3, 3], ref[:, :3, :3], systematic, EffectContext.default(t=t))
-    p, R = np.array(p, dtype=float), np.array(R, dtype=float)
+    p, R = (np.asarray(a, float) for a in apply_effects(ref[:, :3, 3], ref[:, :3, :3], systematic,
+                                                         EffectContext.default(t=t)))
+    # The per-stop error: the table's measured pose against the systematic effects alone.
+    stop_ref = reference_poses(arm, traj.waypoints[1:-1:2])
+    p_stop, R_stop = (np.asarray(a, float) for a in apply_effects(
+        stop_ref[:, :3, 3], stop_ref[:, :3, :3], systematic, EffectContext.default(t=table.extras["t"])))
+    zero = np.zeros((1, 3))
+    dp = np.vstack([zero, table.meas_p - p_stop, zero])
+    dr = np.vstack([zero, matrix_to_rotvec(quat_to_matrix(table.meas_q) @ np.swapaxes(R_stop, 1, 2)), zero])
+    j, s = traj.progress(t)
+    # Segment j runs from waypoint j to j + 1; waypoints are home, stop 0 twice, stop 1 twice, ..., home.
+    before, after = (j + 1) // 2, (j + 2) // 2
+    weight = s[:, None]
+    p = p + (1 - weight) * dp[before] + weight * dp[after]
+    R = rotvec_to_matrix((1 - weight) * dr[before] + weight * dr[after]) @ R
+
+    # The ring after each arrival, along the last move's direction.
     k = np.searchsorted(stands[:, 0], t, side="right") - 1
     standing = (k >= 0) & (t <= stands[np.clip(k, 0, None), 1])
-    p[standing] = table.meas_p[k[standing]]
-    R[standing] = quat_to_matrix(table.meas_q[k[standing]])
-    # The ring after each arrival, along the last move's direction.
     since = t - stands[np.clip(k, 0, None), 0]
-    direction = np.zeros_like(p)
-    for i in range(len(stands)):
-        before = traj(np.array([stands[i, 0] - 0.05, stands[i, 0]]))
-        T2 = reference_poses(UR_ARMS[DEFAULT_ARM], before)[:, :3, 3]
-        d = T2[1] - T2[0]
-        direction[k == i] = d / max(np.linalg.norm(d), 1e-12)
+    approach = reference_poses(arm, traj(np.stack([stands[:, 0] - 0.05, stands[:, 0]], axis=1).reshape(-1)))
+    moves = approach[1::2, :3, 3] - approach[0::2, :3, 3]
+    directions = moves / np.maximum(np.linalg.norm(moves, axis=1, keepdims=True), 1e-12)
     ring = options.ring * np.exp(-since / options.ring_tau) * np.sin(2 * np.pi * options.ring_hz * since)
-    p = p + np.where(standing, ring, 0.0)[:, None] * direction
+    p = p + np.where(standing, ring, 0.0)[:, None] * directions[np.clip(k, 0, None)]
+
     jitter = get_effect("noise")
     ctx = EffectContext.default(t=t, rng=rng)
     p, R = jitter.forward(p, R, np.array([options.jitter_p, options.jitter_r, 0.0]), ctx)

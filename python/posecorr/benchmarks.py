@@ -5,6 +5,8 @@
   Experiment III configuration (`posecorr.train.bench_train`).
 * `latency.json`: single-pose latency and batch throughput of the shipped zhou MLP in the C
   runtime, the Python shim, onnxruntime (plain and IOBinding) and numpy (`posecorr.latency`).
+* `ingest.json`: seconds to ingest a 10-minute recording (300k joint states, 150k tracker
+  poses) from a ROS 1 bag, an MCAP file and a CSV log (`posecorr.ingest.bench`).
 """
 from __future__ import annotations
 
@@ -27,7 +29,7 @@ def latency_model() -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--only", choices=("train", "latency"), help="run one benchmark")
+    parser.add_argument("--only", choices=("train", "latency", "ingest"), help="run one benchmark")
     args = parser.parse_args(argv)
     RESULTS.mkdir(parents=True, exist_ok=True)
     if args.only in (None, "latency"):
@@ -42,6 +44,11 @@ def main(argv: list[str] | None = None) -> int:
 
         result = bench_train.run(str(RESULTS / "train.json"))
         print(json.dumps(result, indent=2, default=str))
+    if args.only in (None, "ingest"):
+        from .ingest import bench as bench_ingest
+
+        result = bench_ingest.run(str(RESULTS / "ingest.json"))
+        print(json.dumps(result, indent=2))
     return 0
 
 

@@ -61,23 +61,22 @@ class IngestResult:
 
     def summary(self) -> dict:
         o = self.options
-        duration = float(self.joints.t[-1] - self.joints.t[0])
         return {
             "recording": [str(s) for s in dict.fromkeys((self.joints.source, self.tracker.source))],
             "rows": self.table.n, "segments_found": len(self.segments), "segments_rejected": len(self.rejected),
             "offset_s": self.alignment.offset, "offset_source": self.alignment.source,
             "offset_correlation": self.alignment.correlation,
             "joint_samples": len(self.joints.t), "tracker_samples": len(self.tracker.t),
-            "joint_rate_hz": (len(self.joints.t) - 1) / duration if duration > 0 else None,
-            "tracker_rate_hz": _rate(self.tracker.t),
+            "joint_rate_hz": _rate(self.joints.t), "tracker_rate_hz": _rate(self.tracker.t),
             "robot": o.robot, "joint_names": list(self.joints.names), "still": asdict(o.still),
             "segments": [s.describe(self.t0) for s in self.segments],
         }
 
 
 def _rate(t: np.ndarray) -> float | None:
-    span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
-    return (len(t) - 1) / span if span > 0 else None
+    """The publishing rate, from the median period (dropped samples do not lower it)."""
+    period = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    return 1.0 / period if period > 0 else None
 
 
 # Recording formats by how the path looks: (test, reader).

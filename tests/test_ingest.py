@@ -295,3 +295,29 @@ def test_joint_stream_without_the_robot_joints_is_refused(recording) -> None:
 
     with pytest.raises(IngestError, match="--joint-names"):
         order_joints(joints, load_arm("ur5e"), None)
+
+
+def test_mcap_with_the_ros1_profile(recording, tmp_path) -> None:
+    from mcap.writer import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from posecorr.ingest.rosformats import _McapSource, _open_source, ros_messages
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    path = tmp_path / "ros1.mcap"
+    with open(path, "wb") as handle:
+        writer = Writer(handle)
+        writer.start(profile="ros1", library="test")
+        channels: dict[str, int] = {}
+        for topic, msgtype, ns, msg in ros_messages(ts, recording.joints, recording.tracker, True, "lighthouse"):
+            if topic not in channels:
+                text, _ = ts.generate_msgdef(msgtype, ros_version=1)
+                schema = writer.register_schema(msgtype.replace("/msg/", "/"), "ros1msg", text.encode())
+                channels[topic] = writer.register_channel(topic, "ros1", schema)
+            writer.add_message(channels[topic], ns, ts.serialize_ros1(msg, msgtype), ns)
+        writer.finish()
+    assert isinstance(_open_source(path), _McapSource)     # rosbags reads the ROS 2 profile only
+    from_mcap = ingest([path])
+    from_bag = ingest([write_recording(recording, tmp_path / "rec.bag")])
+    np.testing.assert_allclose(from_mcap.table.meas_p, from_bag.table.meas_p, atol=1e-12)
+    np.testing.assert_allclose(from_mcap.table.ref_p, from_bag.table.ref_p, atol=1e-12)

@@ -314,7 +314,7 @@ def _generic_joints(source: Any, encoding: str) -> Callable[[bytes], tuple]:
 
 # --- writing (simulated recordings) ------------------------------------------------------
 
-def _messages(typestore: Any, joints: JointStream, tracker: PoseStream, ros1: bool,
+def ros_messages(typestore: Any, joints: JointStream, tracker: PoseStream, ros1: bool,
               frame: str) -> Iterator[tuple[str, str, int, Any]]:
     """(topic, type, stamp ns, message) of both streams, merged by time."""
     T = typestore.types
@@ -354,7 +354,7 @@ def write_ros1_bag(path: Path, joints: JointStream, tracker: PoseStream, frame: 
     typestore = get_typestore(Stores.ROS1_NOETIC)
     with Writer(path) as writer:
         connections: dict[str, Any] = {}
-        for topic, msgtype, ns, msg in _messages(typestore, joints, tracker, True, frame):
+        for topic, msgtype, ns, msg in ros_messages(typestore, joints, tracker, True, frame):
             if topic not in connections:
                 connections[topic] = writer.add_connection(topic, msgtype, typestore=typestore)
             writer.write(connections[topic], ns, typestore.serialize_ros1(msg, msgtype))
@@ -367,7 +367,7 @@ def write_ros2_bag(path: Path, joints: JointStream, tracker: PoseStream, frame: 
     typestore = get_typestore(Stores.ROS2_HUMBLE)
     with Writer(path, version=9) as writer:
         connections: dict[str, Any] = {}
-        for topic, msgtype, ns, msg in _messages(typestore, joints, tracker, False, frame):
+        for topic, msgtype, ns, msg in ros_messages(typestore, joints, tracker, False, frame):
             if topic not in connections:
                 connections[topic] = writer.add_connection(topic, msgtype, typestore=typestore)
             writer.write(connections[topic], ns, typestore.serialize_cdr(msg, msgtype))
@@ -382,7 +382,7 @@ def write_mcap(path: Path, joints: JointStream, tracker: PoseStream, frame: str)
         writer = Writer(handle)
         writer.start(profile="ros2", library="posecorr")
         channels: dict[str, int] = {}
-        for topic, msgtype, ns, msg in _messages(typestore, joints, tracker, False, frame):
+        for topic, msgtype, ns, msg in ros_messages(typestore, joints, tracker, False, frame):
             if topic not in channels:
                 text, _ = typestore.generate_msgdef(msgtype, ros_version=2)
                 schema = writer.register_schema(msgtype, "ros2msg", text.encode("utf-8"))

@@ -9,6 +9,8 @@
   runtime, the Python shim, onnxruntime (plain and IOBinding) and numpy (`posecorr.latency`).
 * `apply.json`: `posecorr apply` on 10^6 rows (wall and CPU time, peak memory) against
   the csv module's read-and-write-back floor on the same file (`posecorr.bench_apply`).
+* `ingest.json`: seconds to ingest a 10-minute recording (300k joint states, 150k tracker
+  poses) from a ROS 1 bag, an MCAP file and a CSV log (`posecorr.ingest.bench`).
 """
 from __future__ import annotations
 
@@ -56,8 +58,14 @@ def _train() -> dict:
     return bench_train.run(str(RESULTS / "train.json"))
 
 
+def _ingest() -> dict:
+    from .ingest import bench as bench_ingest
+
+    return bench_ingest.run(str(RESULTS / "ingest.json"))
+
+
 # name -> runner writing bench/results/NAME.json; `make bench` runs them in this order.
-BENCHMARKS = {"latency": _latency, "fit": _fit, "apply": _apply, "train": _train}
+BENCHMARKS = {"latency": _latency, "fit": _fit, "apply": _apply, "ingest": _ingest, "train": _train}
 
 
 def main(argv: list[str] | None = None) -> int:

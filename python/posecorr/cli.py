@@ -59,23 +59,89 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     if (args.experiment is None) == (not args.session):
         raise CliError("give either --experiment N or --session")
     if args.session:
+        if args.recording is not None:
+            raise CliError("--recording drives the robot through an experiment's targets: give --experiment N")
         result = _simulate_session(args)
     else:
         result = simulate(args.experiment, effects=effects, seed=args.seed, effect_files=files,
                           base="none" if args.only else "default")
-    write_table(result.table, args.output)
+    sim_table, raw, floor = result.table, result.raw, result.noise_floor
+    recording = None
+    if args.recording is not None:
+        from .recording import simulate_recording, table_metrics, write_recording
+
+        recording = simulate_recording(result, n_targets=args.targets, seed=args.seed)
+        write_recording(recording, args.recording)
+        sim_table = recording.table
+        raw, floor = table_metrics(result, sim_table.n)
+    write_table(sim_table, args.output)
     effects_used = result.effects_json()
-    payload = {"n": result.table.n, "output": str(args.output), "raw": result.raw,
-               "noise_floor": result.noise_floor, "effects": effects_used}
+    payload = {"n": sim_table.n, "output": str(args.output), "raw": raw,
+               "noise_floor": floor, "effects": effects_used}
+    if recording is not None:
+        payload["recording"] = {"path": str(args.recording), "joint_samples": len(recording.joints.t),
+                                "tracker_samples": len(recording.tracker.t), "clock_offset_s": recording.offset,
+                                "duration_s": float(recording.joints.t[-1] - recording.joints.t[0])}
 
     if result.spec is not None:
         payload["session"] = dict(vars(result.spec))
 
     def text() -> str:
         what = f"Experiment {args.experiment}" if result.spec is None else _session_words(result.spec)
-        lines = [f"{what}, seed {args.seed}: {result.table.n} poses -> {args.output}",
-                 table(METRIC_HEADERS, metrics_rows({"raw": result.raw, "noise floor": result.noise_floor}))]
+        lines = [f"{what}, seed {args.seed}: {sim_table.n} poses -> {args.output}",
+                 table(METRIC_HEADERS, metrics_rows({"raw": raw, "noise floor": floor}))]
         lines.append("effects: " + "; ".join(f"{name}={_fmt_params(p)}" for name, p in effects_used.items()))
+        if recording is not None:
+            r = payload["recording"]
+            lines.append(f"recording -> {args.recording}: {r['duration_s']:.0f} s, {r['joint_samples']} joint states, "
+                         f"{r['tracker_samples']} tracker poses, clock offset {recording.offset:+.3f} s")
+        return "\n".join(lines)
+
+    _emit(args, payload, text)
+
+
+# --- ingest ----------------------------------------------------------------------------
+
+def cmd_ingest(args: argparse.Namespace) -> None:
+    from .data import write_table
+    from .ingest import IngestOptions, ingest, write_segments
+    from .ingest.csvlog import CsvColumns
+    from .ingest.pipeline import parse_transform
+    from .ingest.segments import StillOptions
+
+    names = lambda text: tuple(n.strip() for n in text.split(",") if n.strip())  # noqa: E731
+    options = IngestOptions(
+        robot=args.robot, base_link=args.base_link, tip_link=args.tip_link,
+        tool=parse_transform(args.tool, "tool"), registration=parse_transform(args.registration, "registration"),
+        joints_topic=args.joints, tracker_topic=args.tracker, tracker_frame=args.tracker_frame, stamps=args.stamps,
+        joint_names=names(args.joint_names) if args.joint_names else None,
+        csv=CsvColumns(args.time_col, names(args.joint_cols), names(args.pose_cols)),
+        still=StillOptions(args.still_speed, args.min_still, args.settle, args.gate_mm, args.max_jitter_mm,
+                           args.min_samples),
+        offset=args.offset, max_offset=args.max_offset, session=args.session)
+    result = ingest(args.recording, options)
+    write_table(result.table, args.output)
+    sidecar = write_segments(result, args.output)
+    summary = result.summary()
+    payload = {"output": str(args.output), "segments_file": str(sidecar), **summary}
+
+    def text() -> str:
+        a = result.alignment
+        how = (f"estimated, speed correlation {a.correlation:.3f}" if a.source == "estimated" else "given")
+        rates = f"{summary['joint_samples']} joint states"
+        if summary["joint_rate_hz"]:
+            rates += f" ({summary['joint_rate_hz']:.0f} Hz)"
+        rates += f", {summary['tracker_samples']} tracker poses"
+        if summary["tracker_rate_hz"]:
+            rates += f" ({summary['tracker_rate_hz']:.0f} Hz)"
+        lines = [f"{', '.join(map(str, args.recording))}: {rates}",
+                 f"clock offset tracker - robot: {a.offset:+.4f} s ({how})",
+                 f"{len(result.segments)} still segments: {result.table.n} rows -> {args.output}, "
+                 f"{len(result.rejected)} rejected"]
+        lines += [f"  rejected segment {s.index} (t {s.start - result.t0:.1f}..{s.end - result.t0:.1f} s): {s.reason}"
+                  for s in result.rejected]
+        jitter = result.table.extras["jitter_mm"]
+        lines.append(f"jitter {jitter.min():.3f}..{jitter.max():.3f} mm; segments -> {sidecar}")
         return "\n".join(lines)
 
     _emit(args, payload, text)
@@ -449,6 +515,48 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--effect-file", action="append", type=Path, help="a Python file with user effects")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-o", "--output", type=Path, required=True)
+    p.add_argument("--recording", type=Path, metavar="OUT.(bag|mcap|csv)",
+                   help="also write the recording behind the table: ROS 1 .bag, .mcap, .csv, or a name without "
+                        "suffix for a ROS 2 bag directory; -o then holds the recorded poses only")
+    p.add_argument("--targets", type=int, default=40,
+                   help="poses visited by --recording, first of the measurement order (default 40: 7 minutes)")
+
+    p = verb("ingest", cmd_ingest, "a recording (ROS 1/2 bag, MCAP, CSV log) -> the paired-pose table")
+    p.add_argument("recording", type=Path, nargs="+",
+                   help="a ROS 1 .bag, a ROS 2 bag directory (or its .db3/.mcap), an .mcap file, or one or two CSV logs")
+    p.add_argument("-o", "--output", type=Path, required=True, help="the table; its segment list goes beside it "
+                   "(OUT.segments.json)")
+    p.add_argument("--robot", default="ur5e", help="ur3, ur5, ur10, ur3e, ur5e, ur10e, ur16e, or a .urdf file")
+    p.add_argument("--base-link", help="URDF: the base link (default: the root)")
+    p.add_argument("--tip-link", help="URDF: the flange link (default: tool0, else the only end link)")
+    p.add_argument("--tool", default="paper",
+                   help="end_T_tracker: paper (eq. 22: 42 mm along the flange z), none, or x,y,z[,qw,qx,qy,qz]")
+    p.add_argument("--registration", default="paper",
+                   help="base_T_(tracker frame): paper (eq. 23), none (poses already in the base frame), "
+                        "or x,y,z,qw,qx,qy,qz")
+    p.add_argument("--joints", help="joint-state topic (default: the only sensor_msgs/JointState one, "
+                   "else /joint_states or /ur/joint_states)")
+    p.add_argument("--tracker", help="tracker topic: PoseStamped, PoseWithCovarianceStamped, Odometry, "
+                   "TransformStamped or TF (default: the only one)")
+    p.add_argument("--tracker-frame", help="TF: the tracker's child frame (default: the only one)")
+    p.add_argument("--joint-names", help="the robot's joints in the message, comma-separated, in kinematic order "
+                   "(default: the model's names, else the message order)")
+    p.add_argument("--stamps", choices=("header", "receive"), default="header",
+                   help="header stamps (unset ones fall back to the receive time) or the recorder's receive times")
+    p.add_argument("--time-col", default="t", help="CSV: time column (s)")
+    p.add_argument("--joint-cols", default="q1,q2,q3,q4,q5,q6", help="CSV: joint-angle columns (rad)")
+    p.add_argument("--pose-cols", default="x,y,z,qw,qx,qy,qz", help="CSV: tracker pose columns (m, quaternion)")
+    p.add_argument("--still-speed", type=float, default=0.01, help="rad/s: still = every joint slower (default 0.01)")
+    p.add_argument("--min-still", type=float, default=2.0, help="s: shortest still segment (default 2)")
+    p.add_argument("--settle", type=float, default=0.5, help="s dropped at both ends of a segment (default 0.5)")
+    p.add_argument("--gate-mm", type=float, default=1.0,
+                   help="mm: RMS gate on tracker samples over 0.1 s about the segment median (default 1)")
+    p.add_argument("--max-jitter-mm", type=float, default=0.5,
+                   help="mm: reject a segment whose kept samples scatter more (RMS, default 0.5)")
+    p.add_argument("--min-samples", type=int, default=100, help="reject a segment with fewer kept samples (default 100)")
+    p.add_argument("--offset", type=float, help="s, tracker clock - robot clock (default: estimated)")
+    p.add_argument("--max-offset", type=float, default=5.0, help="s: the offset search range (default 5)")
+    p.add_argument("--session", help="the table's session column (default: the recording's name)")
 
     p = verb("fit", cmd_fit, "fit a correction (physics effects, then PMC/MLP) and export it as ONNX")
     p.add_argument("data", type=Path)

@@ -1,0 +1,211 @@
+"""A recording -> the paired-pose table (DESIGN.md, "Data"), one row per accepted still segment.
+
+Steps: read the joint and tracker streams (FORMATS), order the joints as the arm's model,
+find the still segments, estimate the clock offset (or take the user's), gate and average the
+tracker samples of every segment, map them into the base frame with the registration
+(base_T_station, eq. 20) and pair them with the forward kinematics of the mean joint angles
+times end_T_tracker (eqs. 19, 22). Rejected segments are kept in the result with their reason.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..data import JOINTS, PoseTable
+from ..geometry import END_T_TRACKER, base_T_station, homogeneous
+from ..kinematics import DEFAULT_ARM, Arm, load_arm, reference_poses
+from ..rotations import matrix_to_quat, quat_to_matrix
+from .align import Alignment, check_overlap, estimate_offset
+from .csvlog import CsvColumns, read_csv_log
+from .rosformats import read_ros
+from .segments import Segment, StillOptions, find_segments, measure
+from .streams import IngestError, JointStream, PoseStream
+
+
+@dataclass
+class IngestOptions:
+    robot: str = DEFAULT_ARM                # a UR model name or a URDF path
+    base_link: str | None = None
+    tip_link: str | None = None
+    tool: np.ndarray = field(default_factory=lambda: END_T_TRACKER.copy())          # end_T_tracker
+    registration: np.ndarray = field(default_factory=base_T_station)                # base_T_<tracker frame>
+    joints_topic: str | None = None
+    tracker_topic: str | None = None
+    tracker_frame: str | None = None
+    stamps: str = "header"                  # header stamps, or "receive" (the recorder's clock)
+    joint_names: tuple[str, ...] | None = None
+    csv: CsvColumns = field(default_factory=CsvColumns)
+    still: StillOptions = field(default_factory=StillOptions)
+    offset: float | None = None             # s, tracker clock - robot clock; None: estimate
+    max_offset: float = 5.0
+    session: str | None = None
+
+
+@dataclass
+class IngestResult:
+    table: PoseTable
+    segments: list[Segment]
+    alignment: Alignment
+    t0: float                                # robot clock of the first joint sample
+    joints: JointStream
+    tracker: PoseStream
+    options: IngestOptions
+
+    @property
+    def rejected(self) -> list[Segment]:
+        return [s for s in self.segments if s.status != "ok"]
+
+    def summary(self) -> dict:
+        o = self.options
+        return {
+            "recording": [str(s) for s in dict.fromkeys((self.joints.source, self.tracker.source))],
+            "rows": self.table.n, "segments_found": len(self.segments), "segments_rejected": len(self.rejected),
+            "offset_s": self.alignment.offset, "offset_source": self.alignment.source,
+            "offset_correlation": self.alignment.correlation,
+            "joint_samples": len(self.joints.t), "tracker_samples": len(self.tracker.t),
+            "joint_rate_hz": _rate(self.joints.t), "tracker_rate_hz": _rate(self.tracker.t),
+            "robot": o.robot, "joint_names": list(self.joints.names), "still": asdict(o.still),
+            "segments": [s.describe(self.t0) for s in self.segments],
+        }
+
+
+def _rate(t: np.ndarray) -> float | None:
+    """The publishing rate, from the median period (dropped samples do not lower it)."""
+    period = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    return 1.0 / period if period > 0 else None
+
+
+# Recording formats by how the path looks: (test, reader).
+def _is_csv(paths: list[Path]) -> bool:
+    return all(p.suffix.lower() == ".csv" for p in paths)
+
+
+FORMATS: dict[str, Callable[[list[Path], IngestOptions], tuple[JointStream, PoseStream]]] = {
+    "csv": lambda paths, o: read_csv_log(paths, o.csv),
+    "ros": lambda paths, o: read_ros(paths[0], o.joints_topic, o.tracker_topic, o.tracker_frame, o.stamps),
+}
+
+
+def read_recording(paths: list[str | Path], options: IngestOptions) -> tuple[JointStream, PoseStream]:
+    paths = [Path(p) for p in paths]
+    if _is_csv(paths):
+        return FORMATS["csv"](paths, options)
+    if len(paths) != 1:
+        raise IngestError(f"{', '.join(map(str, paths))}: give one bag or MCAP file (several files: CSV logs only)")
+    return FORMATS["ros"](paths, options)
+
+
+def order_joints(joints: JointStream, arm: Arm, wanted: tuple[str, ...] | None) -> np.ndarray:
+    """(N, n) joint angles in the arm's order: by name when the stream names them, else in stream order."""
+    names = wanted or arm.joint_names
+    if set(names) <= set(joints.names):
+        return joints.q[:, [joints.names.index(n) for n in names]]
+    if wanted is None and joints.q.shape[1] == arm.n_joints:
+        return joints.q
+    raise IngestError(f"{joints.source}: joints {', '.join(joints.names)} do not include the robot's "
+                      f"{', '.join(names)}; name them with --joint-names")
+
+
+def ingest(paths: list[str | Path], options: IngestOptions | None = None) -> IngestResult:
+    """The paired-pose table of a recording (module docstring); IngestError on what cannot be used."""
+    options = options or IngestOptions()
+    arm = load_arm(options.robot, options.base_link, options.tip_link)
+    joints, tracker = read_recording(paths, options)
+    what = ", ".join(str(p) for p in paths)
+    q = order_joints(joints, arm, options.joint_names)
+    norms = np.linalg.norm(tracker.q, axis=1)
+    bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-3)
+    if bad.size:
+        raise IngestError(f"{tracker.source}: tracker sample {int(bad[0]) + 1} has quaternion norm "
+                          f"{norms[bad[0]]:.6g}, expected a unit quaternion")
+
+    if options.offset is None:
+        alignment = estimate_offset(joints.t, reference_poses(arm, q, options.tool), tracker.t, tracker.p,
+                                    options.max_offset, what)
+    else:
+        check_overlap(joints.t, tracker.t - options.offset, 0.0, what)
+        alignment = Alignment(float(options.offset), None, "given")
+    t_tracker = tracker.t - alignment.offset
+
+    segments = find_segments(joints.t, q, options.still)
+    if not segments:
+        raise IngestError(f"{what}: no still segment (every joint slower than --still-speed {options.still.speed:g} "
+                          f"rad/s for at least --min-still {options.still.min_duration:g} s)")
+    for segment in segments:
+        measure(segment, t_tracker, tracker.p, tracker.q, options.still)
+    accepted = [s for s in segments if s.status == "ok"]
+    if not accepted:
+        reasons = "; ".join(f"segment {s.index}: {s.reason}" for s in segments[:3])
+        raise IngestError(f"{what}: none of {len(segments)} still segments is usable ({reasons}"
+                          f"{'; ...' if len(segments) > 3 else ''})")
+    for row, segment in enumerate(accepted):
+        segment.row = row
+    return IngestResult(_table(accepted, arm, options, float(joints.t[0]), what), segments, alignment,
+                        float(joints.t[0]), joints, tracker, options)
+
+
+def _table(segments: list[Segment], arm: Arm, options: IngestOptions, t0: float, what: str) -> PoseTable:
+    q = np.stack([s.q for s in segments])
+    ref = reference_poses(arm, q, options.tool)
+    meas = options.registration @ homogeneous(quat_to_matrix(np.stack([s.quat for s in segments])),
+                                              np.stack([s.p for s in segments]))
+    extras: dict[str, np.ndarray] = {
+        "id": np.array([f"seg{s.index:04d}" for s in segments], dtype=object),
+        "t": np.array([0.5 * (s.window[0] + s.window[1]) - t0 for s in segments]),
+    }
+    if q.shape[1] == len(JOINTS):
+        extras.update({name: q[:, i] for i, name in enumerate(JOINTS)})
+    session = options.session or Path(what.split(",")[0]).stem
+    extras["session"] = np.array([session] * len(segments), dtype=object)
+    extras["jitter_mm"] = np.array([s.jitter_mm for s in segments])
+    extras["n_samples"] = np.array([str(s.n_kept) for s in segments], dtype=object)
+    return PoseTable(meas_p=meas[:, :3, 3].copy(), meas_q=matrix_to_quat(meas[:, :3, :3]),
+                     ref_p=ref[:, :3, 3].copy(), ref_q=matrix_to_quat(ref[:, :3, :3]), extras=extras)
+
+
+# Named transforms of --tool (end_T_tracker) and --registration (base_T_<tracker frame>).
+NAMED_TRANSFORMS: dict[str, dict[str, Callable[[], np.ndarray]]] = {
+    "tool": {"paper": END_T_TRACKER.copy, "none": lambda: np.eye(4)},
+    "registration": {"paper": base_T_station, "none": lambda: np.eye(4)},
+}
+
+
+def parse_transform(text: str, kind: str) -> np.ndarray:
+    """A 4x4 transform from a name in NAMED_TRANSFORMS[kind] or 'x,y,z[,qw,qx,qy,qz]' (m, unit quaternion)."""
+    named = NAMED_TRANSFORMS[kind]
+    if text.strip().lower() in named:
+        return named[text.strip().lower()]()
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) not in (3, 7):
+        raise IngestError(f"--{kind} {text!r}: expected {', '.join(named)} or x,y,z[,qw,qx,qy,qz]")
+    quat = np.array(values[3:] or [1.0, 0.0, 0.0, 0.0])
+    if abs(np.linalg.norm(quat) - 1.0) > 1e-3:
+        raise IngestError(f"--{kind} {text!r}: quaternion norm {np.linalg.norm(quat):.6g}, expected 1")
+    return homogeneous(quat_to_matrix(quat), np.array(values[:3]))
+
+
+def segments_path(table_path: str | Path) -> Path:
+    """The sidecar beside a table: TABLE.csv -> TABLE.csv.segments.json."""
+    table_path = Path(table_path)
+    return table_path.with_name(table_path.name + ".segments.json")
+
+
+def write_segments(result: IngestResult, table_path: str | Path) -> Path:
+    path = segments_path(table_path)
+    path.write_text(json.dumps(result.summary(), indent=2, default=_json_default) + "\n", encoding="utf-8")
+    return path
+
+
+def _json_default(value: object) -> object:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

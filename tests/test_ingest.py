@@ -1,0 +1,323 @@
+"""From a recording to the paired table: round trips through every format, segments, errors."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from posecorr.data import read_table
+from posecorr.ingest import IngestError, IngestOptions, JointStream, PoseStream, ingest
+from posecorr.ingest.csvlog import write_csv_log
+from posecorr.ingest.segments import StillOptions, find_segments, gate, quaternion_mean
+from posecorr.recording import RecordingOptions, simulate_recording, write_recording
+from posecorr.simulate import simulate
+
+TARGETS = 5          # a 57 s recording: 28k joint states, 14k tracker poses per format
+OFFSET = RecordingOptions().clock_offset
+
+
+def posecorr(*args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    return subprocess.run([sys.executable, "-m", "posecorr.cli", *args], capture_output=True, text=True,
+                          env=env, timeout=600)
+
+
+def one_line_error(out: subprocess.CompletedProcess, *fragments: str) -> str:
+    assert out.returncode == 2, (out.returncode, out.stdout, out.stderr)
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("posecorr ingest: error: "), out.stderr
+    assert "Traceback" not in out.stderr
+    for fragment in fragments:
+        assert fragment in lines[0], (fragment, lines[0])
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def experiment3():
+    return simulate(3, seed=0)
+
+
+@pytest.fixture(scope="module")
+def recording(experiment3):
+    return simulate_recording(experiment3, n_targets=TARGETS, seed=0)
+
+
+# --- the round trip, as a user runs it ------------------------------------------------------
+
+@pytest.mark.parametrize("name", ["rec.bag", "rec.mcap", "rec.csv"])
+def test_simulated_recording_gives_back_the_simulated_table(tmp_path, name: str) -> None:
+    sim = posecorr("simulate", "--experiment", "3", "--seed", "0", "--targets", str(TARGETS),
+                   "--recording", str(tmp_path / name), "-o", str(tmp_path / "sim.csv"), "--json")
+    assert sim.returncode == 0, sim.stderr
+    assert json.loads(sim.stdout)["recording"]["clock_offset_s"] == OFFSET
+    out = posecorr("ingest", str(tmp_path / name), "-o", str(tmp_path / "table.csv"), "--json")
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout)
+    expected, got = read_table(tmp_path / "sim.csv"), read_table(tmp_path / "table.csv")
+
+    assert got.n == expected.n == TARGETS and result["segments_rejected"] == 0
+    assert abs(result["offset_s"] - OFFSET) < 2e-3, result["offset_s"]
+    # References: forward kinematics of the recorded joints against the commanded targets.
+    np.testing.assert_allclose(got.ref_p, expected.ref_p, atol=1e-6)
+    assert np.all(np.abs(np.sum(got.ref_q * expected.ref_q, axis=1)) > 1 - 1e-12)
+    # Measurements: the mean of the gated samples, within the jitter of the table's poses.
+    jitter_m = got.extras["jitter_mm"] * 1e-3
+    assert np.all(np.linalg.norm(got.meas_p - expected.meas_p, axis=1) < jitter_m)
+    assert np.all((0.15 < got.extras["jitter_mm"]) & (got.extras["jitter_mm"] < 0.4))
+    angle = (Rotation.from_quat(got.meas_q[:, [1, 2, 3, 0]]).inv()
+             * Rotation.from_quat(expected.meas_q[:, [1, 2, 3, 0]])).magnitude()
+    assert np.all(angle < RecordingOptions().jitter_r)
+    np.testing.assert_allclose(got.extras["t"], expected.extras["t"], atol=0.05)
+    assert all(int(n) > 1000 for n in got.extras["n_samples"])
+    assert set(got.extras["session"]) == {"rec"}
+
+    sidecar = json.loads((tmp_path / "table.csv.segments.json").read_text())
+    assert [s["status"] for s in sidecar["segments"]] == ["ok"] * TARGETS
+    assert sidecar["offset_s"] == result["offset_s"]
+
+
+def test_joint_angles_are_the_inverse_kinematics_of_the_targets(recording, tmp_path) -> None:
+    path = write_recording(recording, tmp_path / "rec.csv")
+    result = ingest([path])
+    q = np.stack([result.table.extras[f"q{i}"] for i in range(1, 7)], axis=1)
+    from posecorr.kinematics import load_arm, reference_poses
+
+    T = reference_poses(load_arm("ur5e"), q)
+    np.testing.assert_allclose(T[:, :3, 3], recording.table.ref_p, atol=1e-6)
+
+
+def test_ros2_bag_directory_reads_like_the_ros1_bag(recording, tmp_path) -> None:
+    ros1 = ingest([write_recording(recording, tmp_path / "rec.bag")])
+    ros2 = ingest([write_recording(recording, tmp_path / "rec2")])
+    np.testing.assert_allclose(ros2.table.meas_p, ros1.table.meas_p, atol=1e-12)
+    np.testing.assert_allclose(ros2.table.ref_p, ros1.table.ref_p, atol=1e-12)
+    assert ros2.alignment.offset == pytest.approx(ros1.alignment.offset, abs=1e-6)
+
+
+def _tf_bag(path: Path, recording, frames=("tracker", "controller")) -> None:
+    """A ROS 2 bag whose tracker pose comes on /tf among other frames, the joints on /joint_states."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+    Time, Header = T["builtin_interfaces/msg/Time"], T["std_msgs/msg/Header"]
+
+    def header(t: float, frame: str):
+        ns = int(round(t * 1e9))
+        return Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)
+
+    with Writer(path, version=9) as writer:
+        joints = writer.add_connection("/joint_states", "sensor_msgs/msg/JointState", typestore=ts)
+        tf = writer.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=ts)
+        items = [(t, "j", q) for t, q in zip(recording.joints.t, recording.joints.q)]
+        items += [(t, "p", (p, q)) for t, p, q in zip(recording.tracker.t, recording.tracker.p, recording.tracker.q)]
+        for t, kind, value in sorted(items, key=lambda item: item[0]):
+            ns = int(round(t * 1e9))
+            if kind == "j":
+                msg = T["sensor_msgs/msg/JointState"](header=header(t, ""), name=list(recording.joints.names),
+                                                      position=np.asarray(value), velocity=np.zeros(0),
+                                                      effort=np.zeros(0))
+                writer.write(joints, ns, ts.serialize_cdr(msg, "sensor_msgs/msg/JointState"))
+                continue
+            p, q = value
+            transforms = []
+            for frame in frames:
+                transform = T["geometry_msgs/msg/Transform"](
+                    translation=T["geometry_msgs/msg/Vector3"](x=p[0], y=p[1], z=p[2]),
+                    rotation=T["geometry_msgs/msg/Quaternion"](w=q[0], x=q[1], y=q[2], z=q[3]))
+                transforms.append(T["geometry_msgs/msg/TransformStamped"](header=header(t, "world"),
+                                                                          child_frame_id=frame, transform=transform))
+            writer.write(tf, ns, ts.serialize_cdr(T["tf2_msgs/msg/TFMessage"](transforms=transforms),
+                                                  "tf2_msgs/msg/TFMessage"))
+
+
+def test_tracker_on_tf_needs_its_frame_named(recording, tmp_path) -> None:
+    short = simulate_recording(simulate(3, seed=0), n_targets=3, seed=0)
+    _tf_bag(tmp_path / "tf", short)
+    with pytest.raises(IngestError, match="several frames .*controller, tracker.*--tracker-frame"):
+        ingest([tmp_path / "tf"])
+    result = ingest([tmp_path / "tf"], IngestOptions(tracker_frame="tracker"))
+    assert result.table.n == 3
+    np.testing.assert_allclose(result.table.meas_p, short.table.meas_p, atol=1e-4)
+
+
+def test_two_csv_files_with_own_column_names(recording, tmp_path) -> None:
+    with open(tmp_path / "joints.csv", "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["stamp", *recording.joints.names])
+        writer.writerows([[repr(float(t)), *(repr(float(v)) for v in q)]
+                          for t, q in zip(recording.joints.t, recording.joints.q)])
+    with open(tmp_path / "tracker.csv", "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["stamp", "px", "py", "pz", "ow", "ox", "oy", "oz"])
+        writer.writerows([[repr(float(t)), *(repr(float(v)) for v in np.concatenate([p, q]))]
+                          for t, p, q in zip(recording.tracker.t, recording.tracker.p, recording.tracker.q)])
+    out = posecorr("ingest", str(tmp_path / "joints.csv"), str(tmp_path / "tracker.csv"), "-o",
+                   str(tmp_path / "table.csv"), "--time-col", "stamp", "--joint-cols", ",".join(recording.joints.names),
+                   "--pose-cols", "px,py,pz,ow,ox,oy,oz", "--session", "cell-7")
+    assert out.returncode == 0, out.stderr
+    table = read_table(tmp_path / "table.csv")
+    assert table.n == TARGETS and set(table.extras["session"]) == {"cell-7"}
+    assert np.all(np.linalg.norm(table.meas_p - recording.table.meas_p, axis=1) < 1e-4)
+
+
+# --- still segments, gating, averaging ---------------------------------------------------------
+
+def test_quaternion_mean_is_the_eigenvector_mean_not_the_component_mean() -> None:
+    rng = np.random.default_rng(3)
+    centre = Rotation.from_rotvec([0.4, -1.1, 2.0])
+    rotations = centre * Rotation.from_rotvec(0.05 * rng.standard_normal((400, 3)))
+    q = rotations.as_quat()[:, [3, 0, 1, 2]]
+    q[::2] *= -1                                   # the same rotations, half with the other sign
+    mean = quaternion_mean(q)
+    expected = rotations.mean().as_quat()[[3, 0, 1, 2]]   # scipy: Markley's method, independently
+    assert abs(abs(mean @ expected) - 1) < 1e-12
+    component = q.mean(axis=0)
+    assert np.linalg.norm(component) < 0.2       # the naive mean collapses on mixed signs
+
+
+def test_still_segments_and_settle_window() -> None:
+    t = np.arange(0, 20, 0.002)
+    q = np.zeros((len(t), 6))
+    moving = (t > 5) & (t < 7)                     # still 0-5 s, moving 5-7 s, still 7-20 s
+    q[moving, 0] = 0.3 * (t[moving] - 5)
+    q[t >= 7, 0] = 0.6
+    segments = find_segments(t, q, StillOptions(settle=0.5, min_duration=2.0))
+    assert [(round(s.start, 1), round(s.end, 1)) for s in segments] == [(0.0, 5.0), (7.0, 20.0)]
+    assert segments[0].window == pytest.approx((0.5, segments[0].end - 0.5), abs=0.03)
+    np.testing.assert_allclose(segments[1].q, [0.6, 0, 0, 0, 0, 0], atol=1e-12)
+    # A stop shorter than --min-still is no segment.
+    assert len(find_segments(t, q, StillOptions(min_duration=6.0))) == 1
+
+
+def test_gate_drops_a_burst_and_keeps_the_quiet_samples() -> None:
+    rng = np.random.default_rng(4)
+    t = np.arange(0, 4, 0.004)
+    p = 1.5e-4 * rng.standard_normal((len(t), 3))
+    burst = (t > 2.0) & (t < 2.3)
+    p[burst] += 3e-3 * rng.standard_normal((int(burst.sum()), 3))
+    keep = gate(t, p, 1e-3)
+    assert not keep[burst].any()
+    assert keep[np.abs(t - 2.15) > 0.3].all()
+
+
+def test_bad_segments_are_listed_with_their_reason(recording, tmp_path) -> None:
+    tracker = recording.tracker
+    t_robot = tracker.t - OFFSET - recording.joints.t[0]
+    p = tracker.p.copy()
+    in_stop = lambda k: (t_robot > recording.stands[k, 0]) & (t_robot < recording.stands[k, 1])  # noqa: E731
+    keep = ~in_stop(1) | (t_robot > recording.stands[1, 1] - 0.8)         # only 0.3 s left after settling
+    noisy = in_stop(3)
+    p[noisy] += 4e-4 * np.random.default_rng(5).standard_normal((int(noisy.sum()), 3))
+    damaged = PoseStream(tracker.t[keep], p[keep], tracker.q[keep])
+    write_csv_log(tmp_path / "rec.csv", recording.joints, damaged)
+    out = posecorr("ingest", str(tmp_path / "rec.csv"), "-o", str(tmp_path / "table.csv"))
+    assert out.returncode == 0, out.stderr
+    assert "rejected segment 1" in out.stdout and "too few samples" in out.stdout
+    assert "rejected segment 3" in out.stdout and "too much jitter" in out.stdout
+    sidecar = json.loads((tmp_path / "table.csv.segments.json").read_text())
+    status = {s["segment"]: (s["status"], s["reason"] or "") for s in sidecar["segments"]}
+    assert status[1][0] == status[3][0] == "rejected"
+    assert status[1][1].startswith("too few samples") and status[3][1].startswith("too much jitter")
+    assert [s["row"] for s in sidecar["segments"]] == [0, None, 1, None, 2]
+    assert read_table(tmp_path / "table.csv").n == TARGETS - 2
+
+
+# --- what cannot be ingested: one line, exit 2 ---------------------------------------------
+
+@pytest.fixture(scope="module")
+def bag(recording, tmp_path_factory) -> Path:
+    return write_recording(recording, tmp_path_factory.mktemp("bag") / "rec.bag")
+
+
+def test_truncated_bag(bag, tmp_path) -> None:
+    cut = tmp_path / "cut.bag"
+    cut.write_bytes(bag.read_bytes()[: bag.stat().st_size // 2])
+    one_line_error(posecorr("ingest", str(cut), "-o", str(tmp_path / "t.csv")), "cut.bag")
+
+
+def test_malformed_bag_and_mcap(tmp_path) -> None:
+    for name in ("junk.bag", "junk.mcap"):
+        (tmp_path / name).write_bytes(b"#ROSBAG V2.0\n" + bytes(range(256)) * 8)
+        one_line_error(posecorr("ingest", str(tmp_path / name), "-o", str(tmp_path / "t.csv")), name)
+
+
+def test_truncated_mcap(recording, tmp_path) -> None:
+    path = write_recording(recording, tmp_path / "rec.mcap")
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size * 2 // 3])
+    one_line_error(posecorr("ingest", str(cut), "-o", str(tmp_path / "t.csv")), "cut.mcap")
+
+
+def test_missing_topic(bag, tmp_path) -> None:
+    line = one_line_error(posecorr("ingest", str(bag), "-o", str(tmp_path / "t.csv"), "--tracker", "/vive/nope"),
+                          "no topic /vive/nope", "/vive/tracker/pose")
+    assert "/ur/joint_states" in line
+
+
+def test_streams_that_do_not_overlap(recording, tmp_path) -> None:
+    late = PoseStream(recording.tracker.t + 1000.0, recording.tracker.p, recording.tracker.q)
+    write_csv_log(tmp_path / "late.csv", recording.joints, late)
+    one_line_error(posecorr("ingest", str(tmp_path / "late.csv"), "-o", str(tmp_path / "t.csv")),
+                   "late.csv", "do not overlap")
+
+
+def test_bad_csv_cell_names_row_and_column(recording, tmp_path) -> None:
+    path = write_recording(recording, tmp_path / "rec.csv")
+    lines = path.read_text().splitlines()
+    cells = lines[5].split(",")
+    cells[2] = "abc"
+    lines[5] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    one_line_error(posecorr("ingest", str(path), "-o", str(tmp_path / "t.csv")), "row 6", "column q2", "'abc'")
+
+
+def test_an_offset_that_is_given_is_used(recording, tmp_path) -> None:
+    path = write_recording(recording, tmp_path / "rec.csv")
+    given = ingest([path], IngestOptions(offset=OFFSET))
+    estimated = ingest([path])
+    assert given.alignment.source == "given" and given.alignment.offset == OFFSET
+    np.testing.assert_allclose(given.table.meas_p, estimated.table.meas_p, atol=2e-5)
+
+
+def test_joint_stream_without_the_robot_joints_is_refused(recording) -> None:
+    joints = JointStream(recording.joints.t, recording.joints.q[:, :5], ("a", "b", "c", "d", "e"))
+    from posecorr.ingest.pipeline import order_joints
+    from posecorr.kinematics import load_arm
+
+    with pytest.raises(IngestError, match="--joint-names"):
+        order_joints(joints, load_arm("ur5e"), None)
+
+
+def test_mcap_with_the_ros1_profile(recording, tmp_path) -> None:
+    from mcap.writer import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from posecorr.ingest.rosformats import _McapSource, _open_source, ros_messages
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    path = tmp_path / "ros1.mcap"
+    with open(path, "wb") as handle:
+        writer = Writer(handle)
+        writer.start(profile="ros1", library="test")
+        channels: dict[str, int] = {}
+        for topic, msgtype, ns, msg in ros_messages(ts, recording.joints, recording.tracker, True, "lighthouse"):
+            if topic not in channels:
+                text, _ = ts.generate_msgdef(msgtype, ros_version=1)
+                schema = writer.register_schema(msgtype.replace("/msg/", "/"), "ros1msg", text.encode())
+                channels[topic] = writer.register_channel(topic, "ros1", schema)
+            writer.add_message(channels[topic], ns, ts.serialize_ros1(msg, msgtype), ns)
+        writer.finish()
+    assert isinstance(_open_source(path), _McapSource)     # rosbags reads the ROS 2 profile only
+    from_mcap = ingest([path])
+    from_bag = ingest([write_recording(recording, tmp_path / "rec.bag")])
+    np.testing.assert_allclose(from_mcap.table.meas_p, from_bag.table.meas_p, atol=1e-12)
+    np.testing.assert_allclose(from_mcap.table.ref_p, from_bag.table.ref_p, atol=1e-12)

@@ -169,3 +169,26 @@ def test_takeaway_without_present_effect() -> None:
     line = takeaway(diag, ["station"])
     assert "No catalogue effect is missing" in line and "yaw" in line
     assert takeaway({"candidates": [], "features": []}).startswith("No catalogue effect is missing")
+
+
+def test_report_shows_the_still_segments_of_an_ingested_table(tmp_path) -> None:
+    """Issue 15: a table from `posecorr ingest` has its segments beside it; the report lists
+    them, rejected ones with their reason, and the clock offset."""
+    import json as _json
+
+    from posecorr.ingest.pipeline import segments_path
+    from posecorr.report import write_report
+
+    table = simulate(3, seed=0).table.subset(np.arange(4))
+    sidecar = {"segments_found": 5, "segments_rejected": 1, "offset_s": 0.137, "offset_source": "estimated",
+               "segments": [{"segment": i, "row": i, "status": "ok", "reason": None, "start_s": 10.0 * i,
+                             "duration_s": 6.0, "kept_samples": 1400, "jitter_mm": 0.25} for i in range(4)]
+               + [{"segment": 4, "row": None, "status": "rejected", "reason": "jitter 0.9 mm > 0.5 mm",
+                   "start_s": 40.0, "duration_s": 6.0, "kept_samples": 1300, "jitter_mm": 0.9}]}
+    data = tmp_path / "t.csv"
+    segments_path(data).write_text(_json.dumps(sidecar))
+    page = write_report(tmp_path / "r.html", table, table.reference,
+                        segments=_json.loads(segments_path(data).read_text())).read_text()
+    assert "5 still segments found, 1 rejected" in page
+    assert "jitter 0.9 mm &gt; 0.5 mm" in page
+    assert "+0.1370 s (estimated)" in page

@@ -409,7 +409,11 @@ def cmd_report(args: argparse.Namespace) -> None:
         effects = _effect_names(args.effects) if args.effects is not None else list(info.get("effects") or [])
         diagnosis = diagnose(table, effects, folds=args.folds, seed=args.seed,
                              model_predict=lambda measured: corrected, progress=_progress(args))
-    path = write_report(args.output, table, corrected, info, diagnosis, read_ledger(args.data))
+    from .ingest.pipeline import segments_path
+
+    sidecar = segments_path(args.data)
+    segments = json.loads(sidecar.read_text(encoding="utf-8")) if sidecar.exists() else None
+    path = write_report(args.output, table, corrected, info, diagnosis, read_ledger(args.data), segments=segments)
     _emit(args, {"report": str(path), "bytes": path.stat().st_size, "diagnosis": diagnosis},
           lambda: f"{args.data} against {args.model} -> {path} ({path.stat().st_size // 1024} KiB)")
 

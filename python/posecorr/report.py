@@ -33,7 +33,7 @@ from .metrics import W_POS, W_ROT, metric_block, pose_errors, pose_metrics
 SECTIONS = (("summary", "Summary"), ("metrics", "Metrics"), ("workspace", "Workspace"),
             ("features", "Error vs features"), ("orientation", "Orientation"),
             ("histograms", "Histograms"), ("worst", "Worst poses"), ("diagnosis", "Diagnosis"),
-            ("ledger", "Ledger"))
+            ("ledger", "Ledger"), ("segments", "Still segments"))
 N_WORST = 15
 DPI = 100
 ANGLE_FEATURES = ("azimuth", "elevation", "incidence", "roll", "pitch", "yaw")
@@ -674,6 +674,28 @@ def _diagnosis_section(diagnosis: Mapping[str, Any] | None, model_effects: Seque
     return _section("diagnosis", "Diagnosis", body)
 
 
+def _segments_section(segments: Mapping[str, Any] | None) -> str:
+    """Where the robot stood still in the recording the table came from (`posecorr ingest`):
+    every segment found, the rejected ones with their reason, and the clock offset."""
+    if not segments:
+        return _section("segments", "Still segments",
+                        _e("The table does not come from `posecorr ingest` (no TABLE.csv.segments.json beside it)."))
+    rows, classes = [], []
+    for seg in segments.get("segments") or []:
+        rows.append([_e(seg.get("segment", "")), _e(seg.get("row", "–")), _e(seg.get("status", "")),
+                     _e(seg.get("reason") or ""), f"{seg.get('start_s', float('nan')):.2f}",
+                     f"{seg.get('duration_s', float('nan')):.2f}", _e(seg.get("kept_samples", "")),
+                     f"{seg['jitter_mm']:.3f}" if isinstance(seg.get("jitter_mm"), (int, float)) else "–"])
+        classes.append("present" if seg.get("status") == "rejected" else "")
+    offset = segments.get("offset_s")
+    head = (f"{segments.get('segments_found', len(rows))} still segments found, "
+            f"{segments.get('segments_rejected', 0)} rejected (highlighted, with the reason); clock offset "
+            + (f"{offset:+.4f} s ({segments.get('offset_source', '?')})" if isinstance(offset, (int, float)) else "?"))
+    table = _table(["segment", "row", "status", "reason", "start [s]", "duration [s]", "samples kept", "jitter [mm]"],
+                   rows, left=4, row_classes=classes)
+    return _section("segments", "Still segments", f"<p>{_e(head)}</p>" + table)
+
+
 def _ledger_section(ledger: Sequence[Mapping[str, Any]]) -> str:
     if not ledger:
         return _section("ledger", "Ledger", "<p>No models fitted on this data yet (the ledger is empty).</p>")
@@ -714,11 +736,13 @@ def worst_order(pos_err: np.ndarray, rot_err: np.ndarray | None = None) -> np.nd
 
 def write_report(output_path: str | Path, table: PoseTable, corrected: np.ndarray,
                  model_info: Mapping[str, Any] | None = None, diagnosis: Mapping[str, Any] | None = None,
-                 ledger: Sequence[Mapping[str, Any]] = (), title: str | None = None) -> Path:
+                 ledger: Sequence[Mapping[str, Any]] = (), title: str | None = None,
+                 segments: Mapping[str, Any] | None = None) -> Path:
     """Write the self-contained HTML report of `table` against its (N, 7) `corrected` poses.
 
     model_info: `onnx_meta.read_info` of the model (optional); diagnosis: the `diagnose --json`
-    dict (optional, unknown keys are shown or ignored); ledger: `ledger.read_ledger` records.
+    dict (optional, unknown keys are shown or ignored); ledger: `ledger.read_ledger` records;
+    segments: the sidecar `posecorr ingest` writes beside the table (TABLE.csv.segments.json).
     Returns the written path. Raises ValueError when `corrected` does not fit the table.
     """
     corrected = np.asarray(corrected, dtype=float)
@@ -777,6 +801,7 @@ def write_report(output_path: str | Path, table: PoseTable, corrected: np.ndarra
     parts.append(_worst_section(table, feats, pos, rot))
     parts.append(_diagnosis_section(diagnosis, _model_effects(model_info, diagnosis)))
     parts.append(_ledger_section(list(ledger)))
+    parts.append(_segments_section(segments))
 
     nav = "".join(f'<a href="#{sid}">{_e(label)}</a>' for sid, label in SECTIONS)
     page = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"

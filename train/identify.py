@@ -174,6 +174,38 @@ def direction_label(v: np.ndarray) -> str:
     return "[" + ", ".join(f"{round(float(x), 2) + 0.0:.2f}" for x in v) + "]"
 
 
+# A pose is a gross outlier when the rigid fit of the others misses it by more than this
+# many times their median miss, and by at least OUTLIER_MIN_M: real sessions show per-pose
+# errors of 60-100 mm that are data, not blunders; a unit slip or a swapped row is metres.
+OUTLIER_FACTOR = 20.0
+OUTLIER_MIN_M = 0.5
+
+
+def gross_outliers(measured_p: np.ndarray, measured_R: np.ndarray, reference_p: np.ndarray,
+                   ) -> list[tuple[int, float, float]]:
+    """[(pose index, its miss (m), the others' median miss (m))] of poses that a rigid fit of
+    the other poses misses grossly (see OUTLIER_FACTOR), worst first. One least-squares fit
+    is pulled by a blunder, so the worst pose is taken out and the rest refitted, repeatedly."""
+    n = len(measured_p)
+    keep = np.ones(n, bool)
+    found: list[tuple[int, float, float]] = []
+    while keep.sum() > max(4, n // 2):
+        fit = rigid_registration(measured_p[keep], measured_R[keep], reference_p[keep])
+        miss = np.linalg.norm(fit.predict_position(measured_p, measured_R) - reference_p, axis=1)
+        candidates = np.flatnonzero(keep)
+        worst = int(candidates[np.argmax(miss[candidates])])
+        rest = keep.copy()
+        rest[worst] = False
+        refit = rigid_registration(measured_p[rest], measured_R[rest], reference_p[rest])
+        miss = np.linalg.norm(refit.predict_position(measured_p, measured_R) - reference_p, axis=1)
+        typical = float(np.median(miss[rest]))
+        if miss[worst] <= max(OUTLIER_MIN_M, OUTLIER_FACTOR * typical):
+            break
+        found.append((worst, float(miss[worst]), typical))
+        keep = rest
+    return found
+
+
 @dataclass
 class Block:
     """A block of parameters judged together (one Param of one effect): its column indices in
@@ -184,6 +216,10 @@ class Block:
     scale: float
     unit: str
     reason: str
+    # False for the registration (station w, v; mount rotation d): unregistered frames put them
+    # anywhere (metres, any rotation), so no typical size bounds their standard error; only
+    # whether the data can tell them from the blocks before them counts.
+    bounded: bool = True
 
 
 def determined_directions(J: np.ndarray, blocks: Sequence[Block],
@@ -194,7 +230,8 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block],
     taken in the given order; each block's columns, scaled to its typical magnitude, are
     projected off the span kept so far; the SVD of what remains gives its directions and
     their standard errors (1 / singular value, in typical magnitudes). A direction is kept when
-    that error is below `limit_scales`. B has orthonormal columns in scaled units: theta =
+    at least MIN_INDEPENDENT of its effect is its own and, for a `bounded` block, that error is
+    below `limit_scales`. B has orthonormal columns in scaled units: theta =
     theta0 + diag(scale) B z.
     """
     n_theta = J.shape[1]
@@ -207,7 +244,9 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block],
         _, s, Vt = np.linalg.svd(cols, full_matrices=False)
         std = 1.0 / np.maximum(s, 1e-300)
         independent = s / np.maximum(np.linalg.norm(own @ Vt.T, axis=0), 1e-300)
-        keep = (std < limit_scales) & (independent > MIN_INDEPENDENT)
+        keep = independent > MIN_INDEPENDENT
+        if block.bounded:
+            keep &= std < limit_scales
         for v in Vt[keep]:
             column = np.zeros(n_theta)
             column[block.index] = v if len(v) > 1 else np.abs(v)   # a 1-D block keeps its sign
@@ -225,5 +264,5 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block],
     return B, fixed
 
 
-__all__ = ["MIN_INDEPENDENT", "Spread", "describe_spread", "chordal_mean", "RigidRegistration", "rigid_registration", "Block",
+__all__ = ["gross_outliers", "MIN_INDEPENDENT", "Spread", "describe_spread", "chordal_mean", "RigidRegistration", "rigid_registration", "Block",
            "determined_directions", "direction_label", "LIMIT_SCALES", "LEVER_LIMIT"]

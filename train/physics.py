@@ -40,6 +40,9 @@ DEFAULT_SIGMA_R = 5e-4   # rad
 # Noise levels never assumed below a hundredth of the defaults: a perfect fit of few poses must
 # not make the whitened Jacobian claim a precision no tracker has.
 SIGMA_P_FLOOR = 3e-6     # m
+# Parameters of the registration between unregistered frames: metres and any rotation, so no
+# typical size bounds them (`identify.Block.bounded`).
+REGISTRATION = frozenset({"station.w", "station.v", "mount.d"})
 SIGMA_R_FLOOR = 5e-6     # rad
 
 
@@ -214,8 +217,9 @@ class PhysicsModel:
             for param in effect.params:
                 index = np.arange(i, i + param.size)
                 reason = reasons.get(effect.name, f"{spread.position_words()}; {spread.orientation_words()}")
+                label = f"{effect.name}.{param.name}"
                 owned.append((first.get(effect.name, 2), len(owned),
-                              Block(f"{effect.name}.{param.name}", index, param.scale, param.unit, reason)))
+                              Block(label, index, param.scale, param.unit, reason, label not in REGISTRATION)))
                 i += param.size
         return [block for _, _, block in sorted(owned, key=lambda item: item[:2])]
 

@@ -349,6 +349,7 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
     from .protocol import split_indices
 
     require_rows(table, 4, "a fit")
+    refuse_gross_outliers(table)
     if not table.has_orientation:
         representation = "pos"
     say = progress or (lambda message: None)
@@ -430,6 +431,24 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
     report = FitReport(model, raw_all, heldout, "cv", everything, best.name, scores, baseline, table.n, cv,
                        fell_back, notes)
     return _warn_thin(report)
+
+
+def refuse_gross_outliers(table: PoseTable) -> None:
+    """TableError naming the rows a rigid fit of the other poses misses by metres: a blunder in
+    the table (a unit slip, a swapped row) that no model should be fitted to."""
+    from posecorr.data import TableError
+    from posecorr.rotations import quat_to_matrix
+
+    from .identify import OUTLIER_FACTOR, gross_outliers
+
+    found = gross_outliers(table.meas_p, quat_to_matrix(table.meas_q), table.ref_p)
+    if found:
+        ids = table.extras.get("id")
+        rows = "; ".join(f"row {i + 2}" + (f" (id {ids[i]})" if ids is not None else "") + f": {miss:.3g} m"
+                         for i, miss, _ in found)
+        raise TableError(table.path, f"gross outlier(s): a rigid fit of the other poses misses {rows}, against a "
+                         f"median of {1000 * found[0][2]:.3g} mm (more than {OUTLIER_FACTOR:g} times, and 0.5 m); "
+                         "fix or remove the row(s)", row=found[0][0] + 2)
 
 
 def _priors(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, with_rotation: bool) -> dict:

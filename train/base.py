@@ -32,7 +32,13 @@ from posecorr import rotations
 from posecorr._xp import namespace
 from posecorr.metrics import pose_metrics
 
-REPRESENTATIONS = ("pos",) + tuple(rotations.REPRESENTATIONS)
+def representations() -> tuple[str, ...]:
+    """"pos" (position only) and every registered orientation representation."""
+    return ("pos",) + tuple(rotations.REPRESENTATIONS)
+
+
+# The four of the paper (section 2.1), for code that means exactly those.
+REPRESENTATIONS = representations()
 
 
 def check_representation(rep: str) -> int:
@@ -40,7 +46,7 @@ def check_representation(rep: str) -> int:
     if rep == "pos":
         return 0
     if rep not in rotations.REPRESENTATIONS:
-        raise ValueError(f"unknown representation {rep!r}; expected one of {', '.join(REPRESENTATIONS)}")
+        raise ValueError(f"unknown representation {rep!r}; expected one of {', '.join(representations())}")
     return rotations.REPRESENTATIONS[rep]
 
 

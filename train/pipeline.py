@@ -224,7 +224,9 @@ def auto_candidates(table: PoseTable, effects: Sequence[str], representation: st
            Candidate(f"physics+affine-{rep}", physics, lambda: PMC(representation=rep, alpha="cv", degree=1)),
            Candidate(f"physics+pmc-{rep}", physics, lambda: PMC(representation=rep, alpha="cv"))]
     if table.n >= SMALL_TABLE:
-        reps = ("eaa", "quat", "R", "zhou") if table.has_orientation else ()
+        from posecorr.rotations import REPRESENTATIONS
+
+        reps = tuple(REPRESENTATIONS) if table.has_orientation else ()
         out += [Candidate(f"physics+pmc-{r}", physics, lambda r=r: PMC(representation=r, alpha="cv"))
                 for r in reps if r != rep]
         out.append(Candidate(f"physics+mlp-{rep}-tansig-5-br", physics,

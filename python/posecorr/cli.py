@@ -568,7 +568,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--effects", help="comma-separated effects of the physics stage, e.g. station,mount")
     p.add_argument("--effect-file", action="append", type=Path, help="a Python file with user effects")
     p.add_argument("--method", choices=("none", "pmc", "mlp", "auto"), default="pmc")
-    p.add_argument("--representation", choices=("eaa", "quat", "R", "zhou"), default="zhou",
+    from .rotations import REPRESENTATIONS
+
+    p.add_argument("--representation", choices=tuple(REPRESENTATIONS), default="zhou",
                    help="orientation representation of the core (position-only tables use position only)")
     p.add_argument("--hidden", default="20,20,20,20", help="MLP hidden layer sizes")
     p.add_argument("--activation", default="tansig",

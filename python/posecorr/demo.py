@@ -16,7 +16,7 @@ import numpy as np
 
 # Paper table 4: best improvement of rmse_total per representation (PMC, best MLP).
 PAPER_TABLE4 = {"eaa": (0.20, 0.21), "quat": (0.66, 0.53), "R": (5.21, 3.45), "zhou": (4.17, 17.10)}
-REPRESENTATIONS = ("eaa", "quat", "R", "zhou")
+from .rotations import REPRESENTATIONS
 PHYSICS = ("mount", "sweep", "range_scale", "incidence", "station")
 
 

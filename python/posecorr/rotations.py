@@ -19,11 +19,13 @@ symbolic tensors of the ONNX exporter: see `posecorr._xp`.
 """
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Callable
 
 from ._xp import namespace
 
-REPRESENTATIONS: dict[str, int] = {"eaa": 3, "quat": 4, "R": 9, "zhou": 6}
+# name -> size; filled from REPRESENTATION_CODECS below (one table).
+REPRESENTATIONS: dict[str, int] = {}
 
 # Below this squared angle (rad^2) Rodrigues' coefficients use their Taylor series:
 # sin(t)/t and (1 - cos t)/t^2 are 0/0 at t = 0 and must stay differentiable there.
@@ -188,28 +190,48 @@ def zhou_to_matrix(z: Any) -> Any:
 
 # --- generic encode / decode -----------------------------------------------------------
 
+@dataclass(frozen=True)
+class Representation:
+    """One orientation representation: its size, R -> params, and raw params -> a proper R."""
+
+    size: int
+    encode: Callable[[Any], Any]
+    decode: Callable[[Any], Any]
+
+
+def _decode_R(params: Any) -> Any:
+    # A raw 3x3 is orthonormalised through the nearest unit quaternion (Shepperd's method).
+    return quat_to_matrix(matrix_to_quat(_unflat9(params)))
+
+
+# The registry: adding a representation is one entry here and its two functions.
+REPRESENTATION_CODECS: dict[str, Representation] = {
+    "eaa": Representation(3, matrix_to_rotvec, rotvec_to_matrix),
+    "quat": Representation(4, matrix_to_quat, quat_to_matrix),
+    "R": Representation(9, _flat9, _decode_R),
+    "zhou": Representation(6, matrix_to_zhou, zhou_to_matrix),
+}
+
+
+REPRESENTATIONS.update({name: r.size for name, r in REPRESENTATION_CODECS.items()})
+
+
+def register_representation(name: str, representation: Representation) -> None:
+    """Add a representation: encode, decode, the correctors and the CLI's choices see it."""
+    REPRESENTATION_CODECS[name] = representation
+    REPRESENTATIONS[name] = representation.size
+
+
 def encode(R: Any, rep: str) -> Any:
     """Rotation matrices (..., 3, 3) -> parameters (..., size) of representation `rep`."""
     check_representation(rep)
-    if rep == "eaa":
-        return matrix_to_rotvec(R)
-    if rep == "quat":
-        return matrix_to_quat(R)
-    if rep == "R":
-        return _flat9(R)
-    return matrix_to_zhou(R)
+    return REPRESENTATION_CODECS[rep].encode(R)
 
 
 def decode(params: Any, rep: str) -> Any:
     """Any raw parameters (..., size) -> proper rotation matrices (..., 3, 3)."""
     check_representation(rep)
-    if rep == "eaa":
-        return rotvec_to_matrix(params)
-    if rep == "quat":
-        return quat_to_matrix(params)
-    if rep == "R":
-        return quat_to_matrix(matrix_to_quat(_unflat9(params)))
-    return zhou_to_matrix(params)
+    return REPRESENTATION_CODECS[rep].decode(params)
 
 
 # --- distances -------------------------------------------------------------------------

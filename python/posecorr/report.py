@@ -515,10 +515,6 @@ def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] =
     if r2:
         best = max(r2, key=lambda f: f["r2"])
         if best["r2"] >= 0.1:
-            if best.get("feature") == "t" and "drift" in model_effects:
-                return (f"No catalogue effect is missing{test}; {best['r2']:.2f} of the residual is explained by "
-                        "t: the model's drift is fitted but the exported graph has no time input, so it is not "
-                        "applied (correct it upstream, or re-register the station after warm-up).")
             return (f"No catalogue effect is missing{test}, but {best['r2']:.2f} of the residual is explained "
                     f"by {best.get('feature')}: an effect outside the catalogue (add your own with --effect-file).")
     top = f" (best candidate: {candidates[0].get('effect')}, not present)" if candidates else ""

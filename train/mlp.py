@@ -61,12 +61,58 @@ def architecture_number(hidden: Sequence[int]) -> int | None:
         return None
 
 
+def architecture_label(hidden: Any) -> str:
+    """Table 1's number ("16" = 20-20-20-20) or, outside table 1, the layer sizes in
+    parentheses ("(16)" = one layer of 16, "(8-8)"): a bare number always means table 1,
+    so no two architectures share a label."""
+    sizes = parse_hidden(hidden)
+    number = architecture_number(sizes)
+    return str(number) if number is not None else "(" + "-".join(map(str, sizes)) + ")"
+
+
+def trainer_label(trainer: str) -> str:
+    """Table 1's algorithm number ("2" = br) or the trainer's name outside table 1 ("adam")."""
+    number = TRAINER_NUMBERS.get(trainer)
+    return str(number) if number is not None else trainer
+
+
+def network_label(hidden: Any, trainer: str) -> str:
+    """The paper's "architecture/algorithm" label: "16/2", "(16)/1", "(8-8)/adam"."""
+    return f"{architecture_label(hidden)}/{trainer_label(trainer)}"
+
+
+def parse_network(text: str) -> tuple[tuple[int, ...], str]:
+    """The inverse of ``network_label``: "16/2" -> ((20, 20, 20, 20), "br").
+
+    Left of "/" a table-1 architecture number or layer sizes in parentheses ("(16)",
+    "(8-8)"); right of it a table-1 algorithm number or a trainer name.
+    """
+    arch, sep, alg = str(text).strip().partition("/")
+    arch, alg = arch.strip(), alg.strip()
+    if not sep or not arch or not alg:
+        raise ValueError(f"network {text!r}: expected ARCHITECTURE/ALGORITHM as in the paper, e.g. 16/2 or (8-8)/adam")
+    if arch.startswith("(") and arch.endswith(")"):
+        hidden = parse_hidden(arch[1:-1])
+    elif arch.isdigit() and 1 <= int(arch) <= len(ARCHITECTURES):
+        hidden = ARCHITECTURES[int(arch) - 1]
+    else:
+        raise ValueError(f"network {text!r}: architecture {arch!r} is neither a table-1 number "
+                         f"(1-{len(ARCHITECTURES)}) nor layer sizes in parentheses such as (8-8)")
+    by_number = {str(n): name for name, n in TRAINER_NUMBERS.items()}
+    trainer = by_number.get(alg, alg)
+    if trainer not in TRAINERS:
+        raise ValueError(f"network {text!r}: algorithm {alg!r} is neither a table-1 number "
+                         f"(1-{len(by_number)}) nor one of {', '.join(TRAINERS)}")
+    return hidden, trainer
+
+
 def parse_hidden(hidden: Any) -> tuple[int, ...]:
-    """(20, 20), "20,20", "20-20", 16 (table-1 number as str "#16") -> a tuple of ints."""
+    """(20, 20), "20,20", "20-20", "(20-20)", 16 (table-1 number as str "#16") -> a tuple of ints."""
     if isinstance(hidden, str):
         text = hidden.strip()
         if text.startswith("#"):
             return ARCHITECTURES[int(text[1:]) - 1]
+        text = text.removeprefix("(").removesuffix(")")
         parts = [p for p in text.replace("-", ",").replace("x", ",").split(",") if p.strip()]
         hidden = [int(p) for p in parts]
     elif isinstance(hidden, (int, np.integer)):

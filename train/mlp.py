@@ -26,8 +26,9 @@ the previous layer's output range. Layers with an unbounded or degenerate active
 (purelin, softmax, hardlim, compet) and the output layer get ``rands`` (uniform [-1, 1]),
 as ``initnw`` falls back to.
 
-Trainers (``TRAINERS``): "lm" (trainlm), "br" (trainbr) share the Levenberg-Marquardt core
-of ``lm.py``; "rp", "adam", "lbfgs", "gd", "gdm", "gda", "gdx" are in ``trainers.py``.
+Trainers (``TRAINERS``): the registry of ``trainers.py`` (table 1's twelve MATLAB training
+functions plus adam and lbfgs); "lm" (trainlm) and "br" (trainbr) share the
+Levenberg-Marquardt core of ``lm.py``.
 """
 from __future__ import annotations
 
@@ -38,14 +39,14 @@ import numpy as np
 from posecorr._xp import namespace
 
 from .base import BaseCorrector, check_poses, encode_pose
+from .trainers import TRAINERS as TRAINER_REGISTRY
 
 ARCHITECTURES: tuple[tuple[int, ...], ...] = tuple(
     tuple([n] * layers) for layers in (1, 2, 3, 4) for n in (5, 10, 15, 20))
 ACTIVATIONS = ("compet", "hardlim", "logsig", "purelin", "radbas", "satlin", "softmax", "tansig")
+TRAINERS = tuple(TRAINER_REGISTRY)
 # Table 1 numbering of the learning algorithms (for the "tansig 16/2" labels).
-TRAINER_NUMBERS = {"lm": 1, "br": 2, "rp": 3, "scg": 4, "bfg": 5, "gd": 6, "gda": 7, "gdm": 8,
-                   "gdx": 9, "cgb": 10, "cgf": 11, "cgp": 12}
-TRAINERS = ("lm", "br", "rp", "adam", "lbfgs", "gd", "gdm", "gda", "gdx")
+TRAINER_NUMBERS = {t.name: t.number for t in TRAINER_REGISTRY.values() if t.number is not None}
 
 # Active input ranges as in MATLAB's transfer function definitions; None = unbounded or degenerate.
 _ACTIVE_RANGE = {"tansig": (-2.0, 2.0), "radbas": (-2.0, 2.0), "logsig": (-4.0, 4.0), "satlin": (0.0, 1.0)}
@@ -297,14 +298,8 @@ class MLP(BaseCorrector):
         if self.num_threads:
             torch.set_num_threads(int(self.num_threads))
         try:
-            if self.trainer in ("lm", "br"):
-                from .lm import train_lm
-
-                result = train_lm(self, sizes, coefs, intercepts, Xn, Tn, escale, val, callback)
-            else:
-                from .trainers import train_first_order
-
-                result = train_first_order(self, sizes, coefs, intercepts, Xn, Tn, escale, val, callback)
+            result = TRAINER_REGISTRY[self.trainer].train(self, sizes, coefs, intercepts, Xn, Tn, escale, val,
+                                                          callback)
         finally:
             if self.num_threads:
                 torch.set_num_threads(old_threads)

@@ -9,8 +9,15 @@
 * Per run the corrector is evaluated on the fixed test set: rmse_pos, rmse_rot,
   rmse_total; a configuration's summary is min / avg / max over runs and the improvement
   raw / min (tables 2-4).
-* Friedman test + Dunn-Sidak comparison of mean ranks of rmse_total + tier list
-  (``stats``), printed by ``tables``.
+* The paper's reduction (``SweepResult.methods``): per representation the PMC and, per
+  activation, the network (architecture and algorithm) with the lowest test rmse_total
+  over the repeats: 16 methods in Exp III (table 4), 36 in Exp II (table 3), 9 in Exp I
+  (table 2).
+* Friedman test + Dunn-Sidak comparison of mean ranks of rmse_total on those methods +
+  tier list (``stats``; tables 5 and A1), printed by ``tables``.
+* Grids (``GRID_PRESETS``) are table 1's: 1536 / 384 / 96 networks per representation for
+  Exp I / II / III, labelled as in the paper ("tansig 16/2" = architecture 16 trained by
+  algorithm 2; an architecture outside table 1 in parentheses, "(16)/1").
 
 Results go to a JSON-lines store, one object per finished run keyed by (config key,
 repeat) together with a fingerprint of the data and the seed; an interrupted sweep started

@@ -491,6 +491,12 @@ def srchbac(problem: Problem, theta: Any, d: Any, mse: float, g: Any, slope: flo
     return LineResult(lam, f, grad)
 
 
+def _ratio(num: float, den: float) -> float:
+    """num / den, 0 for den = 0: where MATLAB's division by zero would leave a NaN or
+    infinite direction, the term drops out (and the descent checks restart with -g)."""
+    return num / den if den else 0.0
+
+
 # --- quasi-Newton and conjugate gradients ----------------------------------------------------------
 
 @register("bfg", "trainbfg", 5, "BFGS quasi-Newton backpropagation (BFG)")
@@ -519,8 +525,8 @@ class BFG(Step):
             d = -g
         else:
             y = g - self.g_old
-            self.H = (self.H + torch.outer(self.g_old, self.g_old) / float(self.g_old @ self.d)
-                      + torch.outer(y, y) / float(y @ self.s))
+            self.H = (self.H + _ratio(1.0, float(self.g_old @ self.d)) * torch.outer(self.g_old, self.g_old)
+                      + _ratio(1.0, float(y @ self.s)) * torch.outer(y, y))
             d = -torch.linalg.solve(self.H, g) if bool(torch.isfinite(self.H).all()) else g * math.nan
             if float(g @ d) > 0:
                 self.H, d = self.eye.clone(), -g
@@ -533,12 +539,6 @@ class BFG(Step):
             return theta, mse, g
         self.d, self.g_old, self.s = d, g, found.a * d
         return theta + self.s, found.mse, found.g
-
-
-def _ratio(num: float, den: float) -> float:
-    """num / den, 0 for den = 0 (where MATLAB's NaN would leave a direction with no slope; the
-    descent check below then restarts with -g)."""
-    return num / den if den else 0.0
 
 
 class ConjugateGradient(Step):

@@ -300,10 +300,14 @@ class SweepResult:
     repeats: int
     seconds: float = 0.0
     store: str | None = None
-    _stats: dict[str, Any] = field(default_factory=dict, repr=False)
+    _by_key: dict[str, list[dict[str, Any]]] = field(default_factory=dict, repr=False)
 
     def runs(self, config: Config) -> list[dict[str, Any]]:
-        return sorted((r for r in self.rows if r["key"] == config.key), key=lambda r: r["repeat"])
+        if sum(map(len, self._by_key.values())) != len(self.rows):  # index the rows once (Exp I: 46,080 runs)
+            self._by_key.clear()
+            for r in sorted(self.rows, key=lambda r: r["repeat"]):
+                self._by_key.setdefault(r["key"], []).append(r)
+        return self._by_key.get(config.key, [])
 
     def summary(self, configs: Sequence[Config] | None = None) -> list[dict[str, Any]]:
         """Per configuration (default: all): min/avg/max of the three RMSEs and improvement = raw / min."""

@@ -47,7 +47,7 @@ def test_grid_builder_and_labels():
     assert Config("pmc", "R").label == "PMC" and Config("pmc", "R").name == "R-PMC"
     custom = build_grid(representations=["zhou"], activations=["tansig"], trainers=["adam"],
                         architectures=["8-8"], include_pmc=False, options={"epochs": 5})
-    assert len(custom) == 1 and custom[0].label == "tansig 8-8/adam" and "epochs=5" in custom[0].key
+    assert len(custom) == 1 and custom[0].label == "tansig (8-8)/adam" and "epochs=5" in custom[0].key
 
 
 def test_fit_one_reports_raw_and_test_blocks():
@@ -129,3 +129,101 @@ def test_cross_validation_pools_out_of_fold_predictions():
     assert out["cv"]["rmse_total"] > in_sample
     loo = protocol.cross_validate(synthetic_table(n=40), "pmc", "pos", folds="loo")
     assert loo["folds"] == 40 and loo["raw"]["rmse_rot"] is None
+
+
+# --- the paper's grid, labels and reduction -------------------------------------------------
+
+from posecorr.train.mlp import ARCHITECTURES, TRAINERS, network_label, parse_network  # noqa: E402
+from posecorr.train.protocol import GRID_PRESETS, SweepResult  # noqa: E402
+
+
+@pytest.mark.parametrize("preset,networks,reps", [("paper-exp1", 1536, 1), ("paper-exp2", 384, 4),
+                                                  ("paper-exp3", 96, 4)])
+def test_presets_match_table_1_counts(preset, networks, reps):
+    # paper section 2.4: 1536 networks in Exp I (12 algorithms x 8 activations x 16
+    # architectures), 384 in Exp II (3 x 8 x 16), 96 in Exp III (2 x 3 x 16), per representation
+    grid = build_grid(preset)
+    assert sorted({c.representation for c in grid}) == sorted(GRID_PRESETS[preset]["representations"])
+    assert len({c.representation for c in grid}) == reps
+    for rep in {c.representation for c in grid}:
+        mlps = [c for c in grid if c.representation == rep and c.method == "mlp"]
+        assert len(mlps) == networks
+        assert len({(c.activation, c.hidden, c.trainer) for c in mlps}) == networks
+        assert sum(c.method == "pmc" and c.representation == rep for c in grid) == 1
+        assert all(c.trainer in TRAINERS for c in mlps)
+    if preset == "paper-exp1":
+        assert {network_label(ARCHITECTURES[0], c.trainer).split("/")[1] for c in grid if c.method == "mlp"} \
+            == {str(n) for n in range(1, 13)}
+
+
+def test_labels_are_the_papers_and_one_per_network():
+    cfg = Config("mlp", "zhou", (20, 20, 20, 20), "tansig", "br")
+    assert cfg.label == "tansig 16/2" and cfg.name == "Zhou-tansig-16/2"
+    assert Config("mlp", "R", (5, 5, 5), "radbas", "lm").label == "radbas 9/1"  # table 1's own example
+    # one layer of 16 is not table 1's architecture 16: different networks, different labels
+    assert Config("mlp", "zhou", (16,), "tansig", "lm").label == "tansig (16)/1"
+    assert Config("mlp", "zhou", (8, 8), "tansig", "adam").label == "tansig (8-8)/adam"
+    grid = build_grid("paper-exp1", architectures=[*ARCHITECTURES, (16,), (8, 8), (3,)],
+                      trainers=list(TRAINERS))
+    mlps = [c for c in grid if c.method == "mlp"]
+    assert len({c.label for c in mlps}) == len(mlps)
+    for c in mlps:  # every label reads back as its network
+        assert parse_network(c.label.split(" ", 1)[1]) == (c.hidden, c.trainer)
+    assert parse_network("16/2") == ((20, 20, 20, 20), "br")
+    assert parse_network("(16)/lm") == ((16,), "lm")
+    for bad in ("16", "17/1", "16/13", "x/1", "(0)/1"):
+        with pytest.raises(ValueError):
+            parse_network(bad)
+
+
+def test_reduction_keeps_the_best_network_per_representation_and_activation():
+    from scipy.stats import friedmanchisquare
+
+    rng = np.random.default_rng(7)
+    configs = build_grid(representations=["R", "zhou"], activations=["logsig", "tansig"], networks=["1/1", "16/2"])
+    rows, totals = [], {}
+    for c in configs:
+        base = rng.uniform(0.005, 0.05)
+        for r in range(5):
+            value = float(base + rng.uniform(0, 0.01))
+            totals.setdefault(c, []).append(value)
+            rows.append({"key": c.key, "repeat": r, "seconds": 0.1, "rmse_pos": value / 2, "rmse_rot": value / 2,
+                         "rmse_total": value})
+    result = SweepResult(configs, rows, {"rmse_pos": 0.02, "rmse_rot": 0.03, "rmse_total": 0.05}, 5)
+    # independently: per (representation, method, activation) the lowest minimum over the runs
+    want = set()
+    for rep in ("R", "zhou"):
+        want.add(Config("pmc", rep))
+        for act in ("logsig", "tansig"):
+            group = [c for c in configs if c.representation == rep and c.activation == act]
+            want.add(min(group, key=lambda c: min(totals[c])))
+    methods = result.methods()
+    assert set(methods) == want and len(methods) == 6
+    st = result.statistics()
+    assert [c.name for c in st["configs"]] == [c.name for c in methods]
+    chi2, p = friedmanchisquare(*[totals[c] for c in methods])
+    assert st["friedman"].statistic == pytest.approx(chi2) and st["friedman"].p_value == pytest.approx(p)
+    assert len(st["comparisons"]) == 15
+    text = result.format(comparisons=True, table=4)
+    assert "Table 4" in text and "Table 5" in text and "Table A1" in text and "6 methods" in text
+    for c in methods:
+        assert c.name in text
+    out = result.to_json()
+    assert len(out["methods"]) == 6 and len(out["summary"]) == len(configs)
+
+
+def test_sweep_cli_takes_the_papers_network_labels(tmp_path, capsys):
+    from posecorr.cli import main
+    from posecorr.data import write_table
+
+    data = tmp_path / "poses.csv"
+    write_table(synthetic_table(n=120), data)
+    argv = ["sweep", str(data), "--representations", "zhou", "--activations", "purelin", "--networks", "1/1,(3)/1",
+            "--epochs", "2", "--repeats", "2", "--workers", "1", "--threads", "1", "--store",
+            str(tmp_path / "s.jsonl"), "--comparisons"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "purelin 1/1" in out or "purelin (3)/1" in out  # the better of the two is the purelin method
+    assert "Zhou-PMC" in out and "Friedman" in out and "2 methods" in out
+    assert main(argv[:7] + ["17/1"] + argv[8:]) == 2
+    assert "architecture '17'" in capsys.readouterr().err

@@ -26,8 +26,9 @@ the previous layer's output range. Layers with an unbounded or degenerate active
 (purelin, softmax, hardlim, compet) and the output layer get ``rands`` (uniform [-1, 1]),
 as ``initnw`` falls back to.
 
-Trainers (``TRAINERS``): "lm" (trainlm), "br" (trainbr) share the Levenberg-Marquardt core
-of ``lm.py``; "rp", "adam", "lbfgs", "gd", "gdm", "gda", "gdx" are in ``trainers.py``.
+Trainers (``TRAINERS``): the registry of ``trainers.py`` (table 1's twelve MATLAB training
+functions plus adam and lbfgs); "lm" (trainlm) and "br" (trainbr) share the
+Levenberg-Marquardt core of ``lm.py``.
 """
 from __future__ import annotations
 
@@ -38,14 +39,14 @@ import numpy as np
 from posecorr._xp import namespace
 
 from .base import BaseCorrector, check_poses, encode_pose
+from .trainers import TRAINERS as TRAINER_REGISTRY
 
 ARCHITECTURES: tuple[tuple[int, ...], ...] = tuple(
     tuple([n] * layers) for layers in (1, 2, 3, 4) for n in (5, 10, 15, 20))
 ACTIVATIONS = ("compet", "hardlim", "logsig", "purelin", "radbas", "satlin", "softmax", "tansig")
+TRAINERS = tuple(TRAINER_REGISTRY)
 # Table 1 numbering of the learning algorithms (for the "tansig 16/2" labels).
-TRAINER_NUMBERS = {"lm": 1, "br": 2, "rp": 3, "scg": 4, "bfg": 5, "gd": 6, "gda": 7, "gdm": 8,
-                   "gdx": 9, "cgb": 10, "cgf": 11, "cgp": 12}
-TRAINERS = ("lm", "br", "rp", "adam", "lbfgs", "gd", "gdm", "gda", "gdx")
+TRAINER_NUMBERS = {t.name: t.number for t in TRAINER_REGISTRY.values() if t.number is not None}
 
 # Active input ranges as in MATLAB's transfer function definitions; None = unbounded or degenerate.
 _ACTIVE_RANGE = {"tansig": (-2.0, 2.0), "radbas": (-2.0, 2.0), "logsig": (-4.0, 4.0), "satlin": (0.0, 1.0)}
@@ -61,12 +62,58 @@ def architecture_number(hidden: Sequence[int]) -> int | None:
         return None
 
 
+def architecture_label(hidden: Any) -> str:
+    """Table 1's number ("16" = 20-20-20-20) or, outside table 1, the layer sizes in
+    parentheses ("(16)" = one layer of 16, "(8-8)"): a bare number always means table 1,
+    so no two architectures share a label."""
+    sizes = parse_hidden(hidden)
+    number = architecture_number(sizes)
+    return str(number) if number is not None else "(" + "-".join(map(str, sizes)) + ")"
+
+
+def trainer_label(trainer: str) -> str:
+    """Table 1's algorithm number ("2" = br) or the trainer's name outside table 1 ("adam")."""
+    number = TRAINER_NUMBERS.get(trainer)
+    return str(number) if number is not None else trainer
+
+
+def network_label(hidden: Any, trainer: str) -> str:
+    """The paper's "architecture/algorithm" label: "16/2", "(16)/1", "(8-8)/adam"."""
+    return f"{architecture_label(hidden)}/{trainer_label(trainer)}"
+
+
+def parse_network(text: str) -> tuple[tuple[int, ...], str]:
+    """The inverse of ``network_label``: "16/2" -> ((20, 20, 20, 20), "br").
+
+    Left of "/" a table-1 architecture number or layer sizes in parentheses ("(16)",
+    "(8-8)"); right of it a table-1 algorithm number or a trainer name.
+    """
+    arch, sep, alg = str(text).strip().partition("/")
+    arch, alg = arch.strip(), alg.strip()
+    if not sep or not arch or not alg:
+        raise ValueError(f"network {text!r}: expected ARCHITECTURE/ALGORITHM as in the paper, e.g. 16/2 or (8-8)/adam")
+    if arch.startswith("(") and arch.endswith(")"):
+        hidden = parse_hidden(arch[1:-1])
+    elif arch.isdigit() and 1 <= int(arch) <= len(ARCHITECTURES):
+        hidden = ARCHITECTURES[int(arch) - 1]
+    else:
+        raise ValueError(f"network {text!r}: architecture {arch!r} is neither a table-1 number "
+                         f"(1-{len(ARCHITECTURES)}) nor layer sizes in parentheses such as (8-8)")
+    by_number = {str(n): name for name, n in TRAINER_NUMBERS.items()}
+    trainer = by_number.get(alg, alg)
+    if trainer not in TRAINERS:
+        raise ValueError(f"network {text!r}: algorithm {alg!r} is neither a table-1 number "
+                         f"(1-{len(by_number)}) nor one of {', '.join(TRAINERS)}")
+    return hidden, trainer
+
+
 def parse_hidden(hidden: Any) -> tuple[int, ...]:
-    """(20, 20), "20,20", "20-20", 16 (table-1 number as str "#16") -> a tuple of ints."""
+    """(20, 20), "20,20", "20-20", "(20-20)", 16 (table-1 number as str "#16") -> a tuple of ints."""
     if isinstance(hidden, str):
         text = hidden.strip()
         if text.startswith("#"):
             return ARCHITECTURES[int(text[1:]) - 1]
+        text = text.removeprefix("(").removesuffix(")")
         parts = [p for p in text.replace("-", ",").replace("x", ",").split(",") if p.strip()]
         hidden = [int(p) for p in parts]
     elif isinstance(hidden, (int, np.integer)):
@@ -251,14 +298,8 @@ class MLP(BaseCorrector):
         if self.num_threads:
             torch.set_num_threads(int(self.num_threads))
         try:
-            if self.trainer in ("lm", "br"):
-                from .lm import train_lm
-
-                result = train_lm(self, sizes, coefs, intercepts, Xn, Tn, escale, val, callback)
-            else:
-                from .trainers import train_first_order
-
-                result = train_first_order(self, sizes, coefs, intercepts, Xn, Tn, escale, val, callback)
+            result = TRAINER_REGISTRY[self.trainer].train(self, sizes, coefs, intercepts, Xn, Tn, escale, val,
+                                                          callback)
         finally:
             if self.num_threads:
                 torch.set_num_threads(old_threads)

@@ -9,8 +9,15 @@
 * Per run the corrector is evaluated on the fixed test set: rmse_pos, rmse_rot,
   rmse_total; a configuration's summary is min / avg / max over runs and the improvement
   raw / min (tables 2-4).
-* Friedman test + Dunn-Sidak comparison of mean ranks of rmse_total + tier list
-  (``stats``), printed by ``tables``.
+* The paper's reduction (``SweepResult.methods``): per representation the PMC and, per
+  activation, the network (architecture and algorithm) with the lowest test rmse_total
+  over the repeats: 16 methods in Exp III (table 4), 36 in Exp II (table 3), 9 in Exp I
+  (table 2).
+* Friedman test + Dunn-Sidak comparison of mean ranks of rmse_total on those methods +
+  tier list (``stats``; tables 5 and A1), printed by ``tables``.
+* Grids (``GRID_PRESETS``) are table 1's: 1536 / 384 / 96 networks per representation for
+  Exp I / II / III, labelled as in the paper ("tansig 16/2" = architecture 16 trained by
+  algorithm 2; an architecture outside table 1 in parentheses, "(16)/1").
 
 Results go to a JSON-lines store, one object per finished run keyed by (config key,
 repeat) together with a fingerprint of the data and the seed; an interrupted sweep started
@@ -35,7 +42,7 @@ import numpy as np
 from posecorr.metrics import METRIC_KEYS, improvement, metric_block, pose_metrics, summarize
 from posecorr.safeio import append_line, sigterm_as_interrupt
 
-from .mlp import ARCHITECTURES, MLP, TRAINER_NUMBERS, architecture_number, parse_hidden
+from .mlp import ACTIVATIONS, ARCHITECTURES, MLP, TRAINER_NUMBERS, network_label, parse_hidden, parse_network
 from .pmc import PMC
 
 TEST_FRACTION = 0.15
@@ -72,14 +79,10 @@ class Config:
 
     @property
     def label(self) -> str:
-        """Table label: "PMC" or "tansig 16/2" (table 1 numbering)."""
+        """Table label: "PMC" or "tansig 16/2" (table 1 numbering, ``network_label``)."""
         if self.method == "pmc":
             return "PMC"
-        arch = architecture_number(self.hidden)
-        arch_s = str(arch) if arch is not None else "-".join(map(str, self.hidden))
-        tr = TRAINER_NUMBERS.get(self.trainer)
-        tr_s = str(tr) if tr is not None else self.trainer
-        return f"{self.activation} {arch_s}/{tr_s}"
+        return f"{self.activation} {network_label(self.hidden, self.trainer)}"
 
     @property
     def name(self) -> str:
@@ -100,39 +103,44 @@ class Config:
         raise ValueError(f"unknown method {self.method!r}; expected pmc or mlp")
 
 
+# Table 1's twelve learning algorithms in its numbering (1 = lm ... 12 = cgp).
+PAPER_TRAINERS = tuple(sorted(TRAINER_NUMBERS, key=TRAINER_NUMBERS.get))
+
 GRID_PRESETS = {
-    # paper Exp III: 4 representations x (PMC + 2 trainers x 3 activations x 16 architectures)
+    # paper Exp I: position only, 12 trainers x 8 activations x 16 architectures = 1536 networks
+    "paper-exp1": dict(representations=("pos",), activations=ACTIVATIONS, trainers=PAPER_TRAINERS,
+                       architectures=ARCHITECTURES),
+    # paper Exp II: per representation 3 trainers x 8 activations x 16 architectures = 384 networks
+    "paper-exp2": dict(representations=("eaa", "quat", "R", "zhou"), activations=ACTIVATIONS,
+                       trainers=("lm", "br", "rp"), architectures=ARCHITECTURES),
+    # paper Exp III: per representation 2 trainers x 3 activations x 16 architectures = 96 networks
     "paper-exp3": dict(representations=("eaa", "quat", "R", "zhou"), activations=("logsig", "radbas", "tansig"),
                        trainers=("lm", "br"), architectures=ARCHITECTURES),
-    # paper Exp II: 3 trainers x 8 activations x 16 architectures per representation
-    "paper-exp2": dict(representations=("eaa", "quat", "R", "zhou"),
-                       activations=("compet", "hardlim", "logsig", "purelin", "radbas", "satlin", "softmax",
-                                    "tansig"), trainers=("lm", "br", "rp"), architectures=ARCHITECTURES),
-    # paper Exp I: position only, 12 trainers (the 9 implemented here) x 8 activations x 16
-    "paper-exp1": dict(representations=("pos",),
-                       activations=("compet", "hardlim", "logsig", "purelin", "radbas", "satlin", "softmax",
-                                    "tansig"), trainers=("lm", "br", "rp", "gd", "gdm", "gda", "gdx"),
-                       architectures=ARCHITECTURES),
     # a reduced Exp III grid that runs in minutes on two cores: the 4 PMCs and, per
     # representation, tansig with two small architectures (10 and 5-5) trained by lm for at
     # most 100 epochs (12 configurations)
     "reduced": dict(representations=("eaa", "quat", "R", "zhou"), activations=("tansig",),
                     trainers=("lm",), architectures=((10,), (5, 5)), options={"epochs": 100}),
 }
+# The paper's table that a preset's reduced results correspond to (tables 2-4).
+PRESET_TABLES = {"paper-exp1": 2, "paper-exp2": 3, "paper-exp3": 4}
 
 
 def build_grid(preset: str | None = None, *, representations: Sequence[str] | None = None,
                activations: Sequence[str] | None = None, trainers: Sequence[str] | None = None,
-               architectures: Sequence[Any] | None = None, include_pmc: bool = True,
-               include_mlp: bool = True, options: Mapping[str, Any] | None = None) -> list[Config]:
+               architectures: Sequence[Any] | None = None, networks: Sequence[Any] | None = None,
+               include_pmc: bool = True, include_mlp: bool = True,
+               options: Mapping[str, Any] | None = None) -> list[Config]:
     """The configuration grid: the cross product of the given axes, per representation
     the PMC first (``include_pmc``) then the MLPs.
 
     ``preset``: "paper-exp1", "paper-exp2", "paper-exp3" (the paper's grids, see
     ``GRID_PRESETS``) or "reduced" (per representation: PMC + tansig 10 and 5-5 trained
-    by lm for at most 100 epochs, 12 configurations); explicit axes override the preset's. Architectures may be tuples,
-    "20-20" strings or table-1 numbers as "#16". ``options`` are extra MLP parameters
-    (e.g. {"epochs": 200}) added to every MLP configuration.
+    by lm for at most 100 epochs, 12 configurations); explicit axes override the preset's.
+    Architectures may be tuples, "20-20" strings or table-1 numbers as "#16".
+    ``networks``: the paper's "architecture/algorithm" labels ("16/2", "(8-8)/adam") or
+    (hidden, trainer) pairs; they replace the architectures x trainers product.
+    ``options`` are extra MLP parameters (e.g. {"epochs": 200}) added to every MLP configuration.
     """
     if preset and preset not in GRID_PRESETS:
         raise ValueError(f"unknown preset {preset!r}; expected one of {', '.join(GRID_PRESETS)}")
@@ -145,6 +153,10 @@ def build_grid(preset: str | None = None, *, representations: Sequence[str] | No
         base["trainers"] = tuple(trainers)
     if architectures is not None:
         base["architectures"] = tuple(parse_hidden(a) for a in architectures)
+    if networks is not None:
+        pairs = [parse_network(n) if isinstance(n, str) else (parse_hidden(n[0]), n[1]) for n in networks]
+    else:
+        pairs = [(tuple(arch), tr) for arch in base["architectures"] for tr in base["trainers"]]
     if options is None:
         options = base.get("options", {})
     opts = tuple(sorted(options.items()))
@@ -154,9 +166,8 @@ def build_grid(preset: str | None = None, *, representations: Sequence[str] | No
             grid.append(Config("pmc", rep))
         if include_mlp:
             for act in base["activations"]:
-                for arch in base["architectures"]:
-                    for tr in base["trainers"]:
-                        grid.append(Config("mlp", rep, tuple(arch), act, tr, opts))
+                for arch, tr in pairs:
+                    grid.append(Config("mlp", rep, arch, act, tr, opts))
     return grid
 
 
@@ -290,15 +301,19 @@ class SweepResult:
     repeats: int
     seconds: float = 0.0
     store: str | None = None
-    _stats: dict[str, Any] = field(default_factory=dict, repr=False)
+    _by_key: dict[str, list[dict[str, Any]]] = field(default_factory=dict, repr=False)
 
     def runs(self, config: Config) -> list[dict[str, Any]]:
-        return sorted((r for r in self.rows if r["key"] == config.key), key=lambda r: r["repeat"])
+        if sum(map(len, self._by_key.values())) != len(self.rows):  # index the rows once (Exp I: 46,080 runs)
+            self._by_key.clear()
+            for r in sorted(self.rows, key=lambda r: r["repeat"]):
+                self._by_key.setdefault(r["key"], []).append(r)
+        return self._by_key.get(config.key, [])
 
-    def summary(self) -> list[dict[str, Any]]:
-        """Per configuration: min/avg/max of the three RMSEs and improvement = raw / min."""
+    def summary(self, configs: Sequence[Config] | None = None) -> list[dict[str, Any]]:
+        """Per configuration (default: all): min/avg/max of the three RMSEs and improvement = raw / min."""
         out = []
-        for cfg in self.configs:
+        for cfg in self.configs if configs is None else configs:
             runs = self.runs(cfg)
             if not runs:
                 continue
@@ -314,9 +329,28 @@ class SweepResult:
             out.append(row)
         return out
 
-    def complete_matrix(self) -> tuple[list[Config], np.ndarray]:
+    def methods(self) -> list[Config]:
+        """The paper's methods (section 3, tables 2-5): per representation the PMC and, per
+        activation, the one network (architecture and algorithm) with the lowest test
+        rmse_total over the repeats ("best ... based on the minimum value of the total RMSE
+        found for all runs"); ties go to the lower average, then to the earlier in the grid.
+        Exp III's preset gives 4 x (1 + 3) = 16 methods."""
+        best: dict[tuple[str, str, str], tuple[tuple[float, float], Config]] = {}
+        for cfg in self.configs:
+            vals = [r["rmse_total"] for r in self.runs(cfg)
+                    if r.get("rmse_total") is not None and math.isfinite(r["rmse_total"])]
+            if not vals:
+                continue
+            score = (min(vals), float(np.mean(vals)))
+            group = (cfg.representation, cfg.method, cfg.activation)
+            if group not in best or score < best[group][0]:
+                best[group] = (score, cfg)
+        chosen = {cfg for _, cfg in best.values()}
+        return [c for c in self.configs if c in chosen]
+
+    def complete_matrix(self, configs: Sequence[Config] | None = None) -> tuple[list[Config], np.ndarray]:
         """(configs, (n runs, k configs) rmse_total) over the repeats every config has."""
-        have = [c for c in self.configs if self.runs(c)]
+        have = [c for c in (self.configs if configs is None else configs) if self.runs(c)]
         common = None
         for c in have:
             reps = {r["repeat"] for r in self.runs(c)}
@@ -326,11 +360,12 @@ class SweepResult:
                          for i in reps_sorted], dtype=float)
         return have, data.reshape(len(reps_sorted), len(have))
 
-    def statistics(self, alpha: float = 0.05) -> dict[str, Any]:
-        """Friedman + Dunn-Sidak + tiers on rmse_total (needs >= 2 configs and >= 2 runs)."""
+    def statistics(self, alpha: float = 0.05, configs: Sequence[Config] | None = None) -> dict[str, Any]:
+        """Friedman + Dunn-Sidak + tiers on rmse_total of ``configs`` (default: the paper's
+        ``methods()``); needs >= 2 methods and >= 2 runs."""
         from . import stats
 
-        cfgs, data = self.complete_matrix()
+        cfgs, data = self.complete_matrix(self.methods() if configs is None else configs)
         if data.shape[0] < 2 or data.shape[1] < 2:
             return {}
         fr = stats.friedman(data)
@@ -341,7 +376,8 @@ class SweepResult:
     def to_json(self) -> dict[str, Any]:
         st = self.statistics()
         out: dict[str, Any] = {"raw": self.raw, "repeats": self.repeats, "seconds": self.seconds,
-                               "store": self.store, "summary": self.summary()}
+                               "store": self.store, "summary": self.summary(),
+                               "methods": self.summary(self.methods())}
         if st:
             names = [c.name for c in st["configs"]]
             fr = st["friedman"]
@@ -353,12 +389,22 @@ class SweepResult:
             out["tiers"] = [[names[i] for i in t] for t in st["tiers"].tiers]
         return out
 
-    def format(self, comparisons: bool = False) -> str:
-        """Tables 2-4 layout, then the Friedman line and the tier list (and table A1)."""
+    def format(self, comparisons: bool = False, table: int | None = None, all_configs: bool = False) -> str:
+        """The paper's reduction: the methods table (tables 2-4 layout; ``table`` is the
+        paper's number for the title), the Friedman line, the tier list (table 5) and with
+        ``comparisons`` table A1. ``all_configs`` first lists every configuration."""
         from . import tables
 
-        text = [tables.format_results(self.raw, self.summary(),
-                                      f"Test-set results over {self.repeats} runs (imp = raw / min)")]
+        text = []
+        if all_configs:
+            text.append(tables.format_results(self.raw, self.summary(),
+                                              f"Every configuration over {self.repeats} runs (imp = raw / min)") + "\n")
+        methods = self.methods()
+        number = f"Table {table}" if table else "Methods"
+        text.append(tables.format_results(
+            self.raw, self.summary(methods),
+            f"{number}: per representation the PMC and the best network per activation, {len(methods)} methods, "
+            f"over {self.repeats} runs (imp = raw / min)"))
         st = self.statistics()
         if st:
             names = [c.name for c in st["configs"]]
@@ -366,9 +412,12 @@ class SweepResult:
             text.append(f"\nFriedman: chi2({fr.df}) = {fr.statistic:.3f}, p = {fr.p_value:.3g}, "
                         f"n = {fr.n} runs, k = {fr.k} methods")
             ov = [(names[a], names[b]) for a, b in st["tiers"].overlaps]
-            text.append("\n" + tables.format_tiers([[names[i] for i in t] for t in st["tiers"].tiers], ov))
+            text.append("\n" + ("Table 5: " if table == 4 else "") + "Dunn-Sidak tier list\n"
+                        + tables.format_tiers([[names[i] for i in t] for t in st["tiers"].tiers], ov))
             if comparisons:
-                text.append("\n" + tables.format_comparisons(names, st["comparisons"]))
+                text.append("\n" + ("Table A1: " if table == 4 else "") + "Dunn-Sidak multiple comparison "
+                            f"(alpha 0.05, {len(st['comparisons'])} pairs)\n"
+                            + tables.format_comparisons(names, st["comparisons"]))
         return "\n".join(text)
 
 
@@ -468,12 +517,13 @@ def _stop_pool(pool: Any) -> None:
 
 def run_sweep(table: Any, configs: Sequence[Config], repeats: int = 30, store: str | os.PathLike | None = None,
               workers: int = 2, ray_address: str | None = None, seed: int = 0, progress: bool = True,
-              ) -> SweepResult:
+              threads: int | None = None) -> SweepResult:
     """Run every configuration ``repeats`` times (see the module docstring).
 
     ``store``: JSON-lines file; rows already in it (same data fingerprint and seed) are
     reused, new ones appended as they finish. ``workers``: local processes (1 = in this
     process). ``ray_address``: run on a Ray cluster instead ("auto" or "ray://host:port").
+    ``threads``: torch / BLAS threads per worker process (default ``default_threads(workers)``).
     """
     configs = list(configs)
     keys = [c.key for c in configs]
@@ -535,7 +585,9 @@ def run_sweep(table: Any, configs: Sequence[Config], repeats: int = 30, store: s
         from concurrent.futures import ProcessPoolExecutor, as_completed
         import multiprocessing as mp
 
-        threads = max(1, (os.cpu_count() or 1) // workers)
+        from posecorr.threads import default_threads
+
+        threads = threads or default_threads(workers)
         ctx = mp.get_context("spawn" if os.name == "nt" else "fork")
         pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
                                    initargs=(threads, os.getpid()))

@@ -208,6 +208,19 @@ def _parse_cv(text: str | None) -> int | str | None:
         raise CliError(f"--cv takes none, loo or a number of folds, got {text!r}") from None
 
 
+def _threads_option(parser: argparse.ArgumentParser, scope: str = "") -> None:
+    parser.add_argument("--threads", type=int, metavar="N",
+                        help=f"threads for torch and BLAS{' ' + scope if scope else ''} (default: the cores other "
+                             "processes leave idle, at least 1)")
+
+
+def _threads(args: argparse.Namespace, workers: int = 1) -> int:
+    """Apply --threads (or the default) before anything trains; one call at the top of a verb."""
+    from .threads import set_threads
+
+    return set_threads(args.threads, workers)
+
+
 def _progress(args: argparse.Namespace) -> Callable[[str], None]:
     quiet = args.json
     return (lambda message: None) if quiet else (lambda message: print(f"  {message}", file=sys.stderr, flush=True))
@@ -219,6 +232,7 @@ def cmd_fit(args: argparse.Namespace) -> None:
     from .train.pipeline import fit_table
     from .textui import METRIC_HEADERS, metrics_rows, table as fmt_table
 
+    _threads(args)
     _load_effect_files(args)
     table = read_table(args.data)
     effects = _effect_names(args.effects)
@@ -314,6 +328,7 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
     from .diagnose import diagnose
     from .textui import table as fmt_table
 
+    _threads(args)
     _load_effect_files(args)
     table = read_table(args.data)
     effects = _effect_names(args.effects)
@@ -352,8 +367,9 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
 
 
 def cmd_sweep(args: argparse.Namespace) -> None:
-    from .train.protocol import build_grid, run_sweep
+    from .train.protocol import PRESET_TABLES, build_grid, run_sweep
 
+    threads = _threads(args, workers=args.workers)
     if (args.experiment is None) == (args.data is None):
         raise CliError("give either --experiment N or a DATA.csv")
     if args.data is not None:
@@ -373,10 +389,13 @@ def cmd_sweep(args: argparse.Namespace) -> None:
         representations = ["pos"]
     configs = build_grid(args.preset, representations=representations, activations=split(args.activations),
                          trainers=split(args.trainers), architectures=split(args.architectures),
-                         include_pmc=not args.no_pmc, include_mlp=not args.no_mlp, options=options)
+                         networks=split(args.networks), include_pmc=not args.no_pmc, include_mlp=not args.no_mlp,
+                         options=options)
     result = run_sweep(table, configs, repeats=args.repeats, store=args.store or default_store,
-                       workers=args.workers, ray_address=args.ray, seed=args.seed, progress=not args.json)
-    _emit(args, result.to_json(), lambda: result.format(comparisons=args.comparisons))
+                       workers=args.workers, ray_address=args.ray, seed=args.seed, progress=not args.json,
+                       threads=threads)
+    _emit(args, result.to_json(), lambda: result.format(comparisons=args.comparisons, all_configs=args.all_configs,
+                                                        table=PRESET_TABLES.get(args.preset)))
 
 
 def cmd_export(args: argparse.Namespace) -> None:
@@ -398,6 +417,7 @@ def cmd_report(args: argparse.Namespace) -> None:
     from .report import write_report
     from .runtime import Corrector
 
+    _threads(args)
     _load_effect_files(args)
     table = read_table(args.data)
     info = read_info(args.model)
@@ -487,6 +507,7 @@ def cmd_bench(args: argparse.Namespace) -> None:
 def cmd_demo(args: argparse.Namespace) -> None:
     from .demo import run
 
+    _threads(args)
     summary = run(args.output, seed=args.seed, log=(lambda message: None) if args.json else print)
     if args.json:
         _print_json(summary)
@@ -580,6 +601,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cv", default="none", help="none (fixed 15%% test split), loo, or a number of folds")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--save", type=Path, help="also pickle the fitted estimator (for `posecorr export`)")
+    _threads_option(p)
 
     p = verb("diagnose", cmd_diagnose, "rank the physical effects the model lacks; show where the residual lives")
     p.add_argument("data", type=Path)
@@ -589,6 +611,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--effect-file", action="append", type=Path, help="a Python file with user effects")
     p.add_argument("--folds", type=int, default=5)
     p.add_argument("--seed", type=int, default=0)
+    _threads_option(p)
 
     p = verb("report", cmd_report, "an HTML page: measurements against a model, where it fails, what is missing")
     p.add_argument("data", type=Path)
@@ -600,6 +623,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--backend", choices=("c", "onnxruntime"), default="c")
     p.add_argument("--folds", type=int, default=5)
     p.add_argument("--seed", type=int, default=0)
+    _threads_option(p)
 
     p = verb("sweep", cmd_sweep, "the paper's protocol: repeats x configurations, tables 2-4, Friedman, tier list")
     p.add_argument("data", type=Path, nargs="?", help="a paired-pose table (or use --experiment)")
@@ -609,15 +633,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--representations", help="e.g. R,zhou")
     p.add_argument("--activations", help="e.g. tansig,logsig")
     p.add_argument("--trainers", help="e.g. lm,br")
-    p.add_argument("--architectures", help="e.g. 10,5-5,20-20-20-20")
+    p.add_argument("--architectures", help="layer sizes, e.g. 10,5-5,20-20-20-20 (#16 = table 1's number 16)")
+    p.add_argument("--networks", help="the paper's ARCHITECTURE/ALGORITHM labels, e.g. 16/2,14/2,(8-8)/adam; "
+                                      "replace --architectures x --trainers")
     p.add_argument("--no-pmc", action="store_true")
     p.add_argument("--no-mlp", action="store_true")
     p.add_argument("--epochs", type=int, help="epoch cap of every MLP")
     p.add_argument("--repeats", type=int, default=30)
     p.add_argument("--store", type=Path, help="results store (JSON lines); an interrupted sweep resumes from it")
     p.add_argument("--workers", type=int, default=2)
+    _threads_option(p, "per worker process")
     p.add_argument("--ray", help="address of a Ray cluster to run on")
     p.add_argument("--comparisons", action="store_true", help="also print table A1 (pairwise comparisons)")
+    p.add_argument("--all-configs", action="store_true",
+                   help="also list every configuration, not only the best network per representation and activation")
     p.add_argument("--seed", type=int, default=0)
 
     p = verb("export", cmd_export, "export a pickled fitted estimator to ONNX")
@@ -628,6 +657,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = verb("demo", cmd_demo, "the main job on the embedded default: simulate Exp III, fit, export, run in C")
     p.add_argument("-o", "--output", type=Path, default=Path("out/demo"))
     p.add_argument("--seed", type=int, default=0)
+    _threads_option(p)
 
     p = verb("info", cmd_info, "print a model file's metadata")
     p.add_argument("model", type=Path)

@@ -236,8 +236,14 @@ def cmd_fit(args: argparse.Namespace) -> None:
     _load_effect_files(args)
     table = read_table(args.data)
     effects = _effect_names(args.effects)
-    hidden = tuple(int(h) for h in args.hidden.split(",") if h.strip())
-    report = fit_table(table, effects, args.method, args.representation, hidden, args.activation, args.trainer,
+    trainer = args.trainer
+    if args.network is not None:
+        from .train.mlp import parse_network
+
+        hidden, trainer = parse_network(args.network)
+    else:
+        hidden = tuple(int(h) for h in args.hidden.split(",") if h.strip())
+    report = fit_table(table, effects, args.method, args.representation, hidden, args.activation, trainer,
                        args.epochs, _parse_cv(args.cv), args.seed, progress=_progress(args))
     key = report.heldout_kind
     from .export.symbolic import ExportError
@@ -594,9 +600,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--representation", choices=tuple(REPRESENTATIONS), default="zhou",
                    help="orientation representation of the core (position-only tables use position only)")
     p.add_argument("--hidden", default="20,20,20,20", help="MLP hidden layer sizes")
+    p.add_argument("--network", help="an MLP named as in the paper, ARCHITECTURE/ALGORITHM: 16/2 = table 1's "
+                                     "architecture 16 trained by algorithm 2 (overrides --hidden and --trainer)")
     p.add_argument("--activation", default="tansig",
                    choices=("tansig", "logsig", "radbas", "purelin", "satlin", "softmax", "hardlim", "compet"))
-    p.add_argument("--trainer", default="br", help="lm, br, rp, adam, lbfgs, gd, gdm, gda, gdx")
+    from .train.trainers import TRAINERS
+
+    p.add_argument("--trainer", default="br", choices=tuple(TRAINERS), help="the MLP's training algorithm")
     p.add_argument("--epochs", type=int, default=1000)
     p.add_argument("--cv", default="none", help="none (fixed 15%% test split), loo, or a number of folds")
     p.add_argument("--seed", type=int, default=0)

@@ -542,6 +542,9 @@ def run_sweep(table: Any, configs: Sequence[Config], repeats: int = 30, store: s
     done = _load_store(store_path, fingerprint, seed) if store_path else {}
     if store_path:
         store_path.parent.mkdir(parents=True, exist_ok=True)
+        # Open it for appending now: an unwritable store fails before hours of training, not after.
+        with open(store_path, "a", encoding="utf-8"):
+            pass
     todo = [(c, r) for c in configs for r in range(repeats) if (c.key, r) not in done]
     rows = [done[(c.key, r)] for c in configs for r in range(repeats) if (c.key, r) in done]
     _, _, test = split_indices(table.n, seed, 0)

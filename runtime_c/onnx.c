@@ -81,10 +81,9 @@ pc_status onnx_tensor_to_const(pc_builder *b, pb_slice msg, int32_t *id)
     if ((st = onnx_tensor_header(b, msg, &t)) != PC_OK)
         return st;
     for (k = 0; k < t.rank; k++) {
-        if (t.dims[k] < 0 || (t.dims[k] > 0 && count > ((size_t)1 << 31) / (size_t)t.dims[k]))
+        if (!pc_mul_count(&count, t.dims[k], PC_MAX_ELEMENTS))
             return pc_fail(b->err, PC_ERR_MALFORMED, "tensor '%.*s' has an invalid shape",
                            PC_NAME(t.name));
-        count *= (size_t)t.dims[k];
     }
     switch (t.data_type) {
     case ONNX_FLOAT: dtype = PC_F32; break;
@@ -185,8 +184,8 @@ static pc_status onnx_attr_decode(const pc_builder *b, pb_slice msg, const char 
                               : f.number == ONNX_ATTR_T ? PB_BYTES
                                                         : f.wire;
         if (f.wire != want)
-            return pc_fail(b->err, PC_ERR_MALFORMED, "attribute '%s' has wire type %u in field %u",
-                           name, f.wire, f.number);
+            return pc_fail(b->err, PC_ERR_MALFORMED, "attribute '%s' has wire type %lu in field %lu",
+                           name, (unsigned long)f.wire, (unsigned long)f.number);
         if (f.number == ONNX_ATTR_F) {
             a->f = pb_bits_to_float((uint32_t)f.varint);
             a->has_f = 1;
@@ -253,8 +252,8 @@ static pc_status onnx_parse_node(pc_builder *b, pb_slice msg, pc_node *node)
         while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
             if (f.number <= ONNX_NODE_DOMAIN && f.number != ONNX_NODE_DOC_STRING &&
                 f.wire != PB_BYTES)
-                return pc_fail(b->err, PC_ERR_MALFORMED, "node field %u at byte %zu is not bytes",
-                               f.number, f.offset);
+                return pc_fail(b->err, PC_ERR_MALFORMED, "node field %lu at byte %zu is not bytes",
+                               (unsigned long)f.number, f.offset);
             switch (f.number) {
             case ONNX_NODE_INPUT:
                 if (pass)
@@ -558,8 +557,8 @@ static pc_status onnx_parse_graph(pc_builder *b, pb_slice graph)
         if ((f.number == ONNX_GRAPH_NODE || f.number == ONNX_GRAPH_INITIALIZER ||
              f.number == ONNX_GRAPH_INPUT || f.number == ONNX_GRAPH_OUTPUT) &&
             f.wire != PB_BYTES)
-            return pc_fail(b->err, PC_ERR_MALFORMED, "graph field %u at byte %zu is not bytes",
-                           f.number, f.offset);
+            return pc_fail(b->err, PC_ERR_MALFORMED, "graph field %lu at byte %zu is not bytes",
+                           (unsigned long)f.number, f.offset);
         if (f.number == ONNX_GRAPH_NODE)
             n_nodes++;
         else if (f.number == ONNX_GRAPH_INITIALIZER)
@@ -649,8 +648,8 @@ pc_status onnx_parse_model(pc_builder *b)
     while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
         if ((f.number == ONNX_MODEL_GRAPH || f.number == ONNX_MODEL_OPSET_IMPORT ||
              f.number == ONNX_MODEL_METADATA_PROPS) && f.wire != PB_BYTES)
-            return pc_fail(b->err, PC_ERR_MALFORMED, "model field %u at byte %zu is not bytes",
-                           f.number, f.offset);
+            return pc_fail(b->err, PC_ERR_MALFORMED, "model field %lu at byte %zu is not bytes",
+                           (unsigned long)f.number, f.offset);
         if (f.number == ONNX_MODEL_GRAPH) {
             graph = f.bytes;
             has_graph = 1;

@@ -18,8 +18,8 @@ pc_status pc_run_steps(pc_model *m, const pc_plan *plan)
     for (; s < end; s++) {
         const pc_status st = s->fn(s);
         if (st != PC_OK) {
-            snprintf(m->message, sizeof m->message, "step %zu of the N=%zu plan failed: %s",
-                     (size_t)(s - plan->steps), plan->batch, pc_status_name(st));
+            pc_format(m->message, sizeof m->message, "step %zu of the N=%zu plan failed: %s",
+                      (size_t)(s - plan->steps), plan->batch, pc_status_name(st));
             return st;
         }
     }
@@ -35,18 +35,18 @@ static pc_status pc_check_output(pc_model *m, const float *out, size_t n, size_t
         float n2 = 0.0f;
         for (c = 0; c < PC_POSE_WIDTH; c++) {
             if (!isfinite(p[c])) {
-                snprintf(m->message, sizeof m->message,
-                         "output 'corrected' of pose %zu is not finite in column %zu",
-                         first + r, c);
+                pc_format(m->message, sizeof m->message,
+                          "output 'corrected' of pose %zu is not finite in column %zu",
+                          first + r, c);
                 return PC_ERR_RUNTIME;
             }
             if (c >= 3)
                 n2 += p[c] * p[c];
         }
         if (m->check_quaternion && !(fabsf(n2 - 1.0f) <= PC_UNIT_TOLERANCE)) {
-            snprintf(m->message, sizeof m->message,
-                     "output 'corrected' of pose %zu has a quaternion that is not unit "
-                     "(columns 3-6)", first + r);
+            pc_format(m->message, sizeof m->message,
+                      "output 'corrected' of pose %zu has a quaternion that is not unit "
+                      "(columns 3-6)", first + r);
             return PC_ERR_RUNTIME;
         }
     }
@@ -73,14 +73,14 @@ static pc_status pc_check_input(pc_model *m, const float *in, size_t n)
     for (i = 0; i < n * PC_POSE_WIDTH; i++) {
         const size_t c = i % PC_POSE_WIDTH;
         if (!isfinite(in[i])) {
-            snprintf(m->message, sizeof m->message,
-                     "pose %zu has a non-finite value in column %zu", i / PC_POSE_WIDTH, c);
+            pc_format(m->message, sizeof m->message,
+                      "pose %zu has a non-finite value in column %zu", i / PC_POSE_WIDTH, c);
             return PC_ERR_NONFINITE;
         }
         if (m->has_bounds && c < 3 && !(in[i] >= m->lo[c] && in[i] <= m->hi[c])) {
-            snprintf(m->message, sizeof m->message,
-                     "pose %zu is outside the range the model was fitted on in column %zu "
-                     "(metadata input_bounds)", i / PC_POSE_WIDTH, c);
+            pc_format(m->message, sizeof m->message,
+                      "pose %zu is outside the range the model was fitted on in column %zu "
+                      "(metadata input_bounds)", i / PC_POSE_WIDTH, c);
             return PC_ERR_RANGE;
         }
     }
@@ -96,12 +96,12 @@ pc_status pc_run(pc_model *model, const float *in, size_t n, float *out)
     if (n == 0)
         return PC_OK;
     if (!in || !out) {
-        snprintf(model->message, sizeof model->message, "pc_run: NULL %s buffer",
-                 in ? "output" : "input");
+        pc_format(model->message, sizeof model->message, "pc_run: NULL %s buffer",
+                  in ? "output" : "input");
         return PC_ERR_ARGUMENT;
     }
     if (n > ((size_t)-1) / (PC_POSE_WIDTH * sizeof(float))) {
-        snprintf(model->message, sizeof model->message, "pc_run: n = %zu is too large", n);
+        pc_format(model->message, sizeof model->message, "pc_run: n = %zu is too large", n);
         return PC_ERR_ARGUMENT;
     }
     /* Reject before writing anything, so that out is untouched on these errors. */

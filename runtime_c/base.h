@@ -10,6 +10,8 @@
 #include <stdio.h>
 
 #define PC_MAX_RANK 6
+/* The optional second input of the pose contract: float32 [N], s since the session's start. */
+#define PC_TIME_INPUT "t"
 #define PC_ALIGN 32
 
 /* Fills err (may be NULL) with status and a printf-style message; returns status. */

@@ -373,7 +373,8 @@ static int onnx_dtype(int64_t elem_type)
                                           : elem_type == ONNX_BOOL    ? PC_BOOL : 0;
 }
 
-/* The pose contract: 'pose' float32 [N,7] with a dynamic N. */
+/* The pose contract: 'pose' float32 [N,7] with a dynamic N, and in models with a
+ * time-dependent effect 't' float32 [N] (seconds since the session's start). */
 static pc_status onnx_check_input(pc_builder *b, pb_slice name, int64_t elem, const pc_io *io)
 {
     if (b->any_io) {
@@ -389,10 +390,23 @@ static pc_status onnx_check_input(pc_builder *b, pb_slice name, int64_t elem, co
             return pc_fail(b->err, PC_ERR_UNSUPPORTED, "input '%.*s' has no shape", PC_NAME(name));
         return PC_OK;
     }
+    if (pb_slice_eq(name, PC_TIME_INPUT)) {
+        if (elem != ONNX_FLOAT)
+            return pc_fail(b->err, PC_ERR_CONTRACT, "input 't' has element type %lld, "
+                           "the contract needs float32", (long long)elem);
+        if (io->rank != 1)
+            return pc_fail(b->err, PC_ERR_CONTRACT, "input 't' must have shape [N] (rank %d)",
+                           io->rank);
+        if (io->dims[0] >= 0)
+            return pc_fail(b->err, PC_ERR_CONTRACT,
+                           "input 't' has a fixed batch size %lld; N must be dynamic",
+                           (long long)io->dims[0]);
+        return PC_OK;
+    }
     if (!pb_slice_eq(name, "pose"))
         return pc_fail(b->err, PC_ERR_CONTRACT,
-                       "model input is '%.*s', the contract needs 'pose' float32 [N,7]",
-                       PC_NAME(name));
+                       "model input is '%.*s', the contract needs 'pose' float32 [N,7] and "
+                       "optionally 't' float32 [N]", PC_NAME(name));
     if (elem != ONNX_FLOAT)
         return pc_fail(b->err, PC_ERR_CONTRACT, "input 'pose' has element type %lld, "
                        "the contract needs float32", (long long)elem);
@@ -459,6 +473,11 @@ static pc_status onnx_parse_io(pc_builder *b, pb_slice graph, size_t n_io)
                 return st;
             b->values[io.id].dtype = io.dtype;
             b->inputs[b->n_inputs++] = io;
+            /* the pose contract keeps 'pose' first, 't' (if any) second */
+            if (!b->any_io && b->n_inputs == 2 && pb_slice_eq(name, "pose")) {
+                b->inputs[1] = b->inputs[0];
+                b->inputs[0] = io;
+            }
         } else {
             if ((st = onnx_check_output(b, name, elem, &io)) != PC_OK)
                 return st;
@@ -470,10 +489,11 @@ static pc_status onnx_parse_io(pc_builder *b, pb_slice graph, size_t n_io)
         return r.status;
     if (b->any_io)
         return b->n_outputs ? PC_OK : pc_fail(b->err, PC_ERR_GRAPH, "graph has no output");
-    if (b->n_inputs != 1)
+    /* names are checked above and repeated ones skipped: at most 'pose' and 't' */
+    if (b->n_inputs == 0 || !pb_slice_eq(b->values[b->inputs[0].id].name, "pose"))
         return pc_fail(b->err, PC_ERR_CONTRACT,
-                       "model has %zu inputs, the contract needs exactly one ('pose')",
-                       b->n_inputs);
+                       "model has no input 'pose', the contract needs 'pose' float32 [N,7] "
+                       "and optionally 't' float32 [N]");
     if (b->n_outputs != 1)
         return pc_fail(b->err, PC_ERR_CONTRACT,
                        "model has %zu outputs, the contract needs exactly one ('corrected')",

@@ -376,6 +376,7 @@ static pc_model *pc_pack(const pc_builder *b, const pc_layout *L, uint8_t *arena
     m->max_batch = L->max_batch;
     m->n_plans = L->n_plans;
     m->n_nodes = b->n_nodes;
+    m->takes_time = !b->any_io && b->n_inputs == 2;
     m->plans = (pc_plan *)cursor;
     cursor += pc_round(L->n_plans * sizeof(pc_plan));
     if (b->any_io) {
@@ -413,6 +414,7 @@ static pc_model *pc_pack(const pc_builder *b, const pc_layout *L, uint8_t *arena
         plan->steps = steps;
         plan->n_steps = pd->n_drafts;
         plan->in = (float *)PC_RESOLVE(pd->io_loc[0]);
+        plan->t = m->takes_time ? (float *)PC_RESOLVE(pd->io_loc[1]) : NULL;
         plan->out = (const float *)PC_RESOLVE(pd->io_loc[b->n_inputs]);
         for (i = 0; m->slots && i < n_io; i++) {
             const pc_value *v = &b->values[i < b->n_inputs ? b->inputs[i].id

@@ -53,12 +53,19 @@ static pc_status pc_check_output(pc_model *m, const float *out, size_t n, size_t
     return PC_OK;
 }
 
-static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, float *out,
-                             size_t first)
+/* t NULL: every pose at t = 0. */
+static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, const float *t,
+                             float *out, size_t first)
 {
     const size_t count = plan->batch * PC_POSE_WIDTH;
     pc_status st;
     memcpy(plan->in, in, count * sizeof(float));
+    if (plan->t) {
+        if (t)
+            memcpy(plan->t, t, plan->batch * sizeof(float));
+        else
+            memset(plan->t, 0, plan->batch * sizeof(float));
+    }
     if ((st = pc_run_steps(m, plan)) != PC_OK ||
         (st = pc_check_output(m, plan->out, plan->batch, first)) != PC_OK)
         return st;
@@ -66,10 +73,15 @@ static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, 
     return PC_OK;
 }
 
-/* Finite input inside the training box (when the model records one). */
-static pc_status pc_check_input(pc_model *m, const float *in, size_t n)
+/* Finite input inside the training box (when the model records one), finite times. */
+static pc_status pc_check_input(pc_model *m, const float *in, const float *t, size_t n)
 {
     size_t i;
+    for (i = 0; t && i < n; i++)
+        if (!isfinite(t[i])) {
+            pc_format(m->message, sizeof m->message, "time of pose %zu is not finite", i);
+            return PC_ERR_NONFINITE;
+        }
     for (i = 0; i < n * PC_POSE_WIDTH; i++) {
         const size_t c = i % PC_POSE_WIDTH;
         if (!isfinite(in[i])) {
@@ -89,6 +101,11 @@ static pc_status pc_check_input(pc_model *m, const float *in, size_t n)
 
 pc_status pc_run(pc_model *model, const float *in, size_t n, float *out)
 {
+    return pc_run_timed(model, in, NULL, n, out);
+}
+
+pc_status pc_run_timed(pc_model *model, const float *in, const float *t, size_t n, float *out)
+{
     size_t k, done = 0;
     pc_status st;
     if (!model)
@@ -105,17 +122,17 @@ pc_status pc_run(pc_model *model, const float *in, size_t n, float *out)
         return PC_ERR_ARGUMENT;
     }
     /* Reject before writing anything, so that out is untouched on these errors. */
-    if ((st = pc_check_input(model, in, n)) != PC_OK)
+    if ((st = pc_check_input(model, in, t, n)) != PC_OK)
         return st;
     model->message[0] = '\0';
     if (n == 1)
-        return pc_run_plan(model, &model->plans[0], in, out, 0);
+        return pc_run_plan(model, &model->plans[0], in, t, out, 0);
     while (done < n) {
         const size_t left = n - done;
         for (k = model->n_plans - 1; model->plans[k].batch > left; k--)
             ;
         st = pc_run_plan(model, &model->plans[k], in + done * PC_POSE_WIDTH,
-                         out + done * PC_POSE_WIDTH, done);
+                         t ? t + done : NULL, out + done * PC_POSE_WIDTH, done);
         if (st != PC_OK)
             return st;
         done += model->plans[k].batch;

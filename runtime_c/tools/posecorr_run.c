@@ -1,7 +1,10 @@
 /* posecorr-run MODEL.onnx [--binary]
  *
  * Streams poses through a corrector: one CSV line "x,y,z,qw,qx,qy,qz" in, one line out,
- * flushed per pose so it can sit in a pipe next to a tracker. --binary reads and writes
+ * flushed per pose so it can sit in a pipe next to a tracker. An optional 8th value
+ * "x,y,z,qw,qx,qy,qz,t" is the pose's time t (s since the session's start), passed to
+ * models that take time (pc_model_takes_time; others ignore it); without it such a
+ * model corrects the pose as at t = 0. --binary reads and writes
  * raw little-endian float32 records of 7 values instead. Errors go to stderr with the
  * line (or record) number and end the stream with exit status 1: a controller must not
  * silently lose the pairing between input and output lines. */
@@ -37,6 +40,28 @@ static int parse_line(const char *line, float *v)
     return *p == '\0';
 }
 
+/* When the line has an 8th comma-separated value that is a number, stores it in *t, cuts
+ * the line before it (leaving the 7 pose values) and returns 1; otherwise leaves the line
+ * as it is and returns 0. */
+static int split_time(char *line, float *t)
+{
+    char *p = line, *end;
+    int commas = 0;
+    while (*p && !(*p == ',' && ++commas == PC_POSE_WIDTH))
+        p++;
+    if (!*p)
+        return 0;
+    *t = strtof(p + 1, &end);
+    if (end == p + 1)
+        return 0;
+    while (*end == ' ' || *end == '\t' || *end == '\r' || *end == '\n')
+        end++;
+    if (*end)
+        return 0;
+    *p = '\0';
+    return 1;
+}
+
 static int has_letter(const char *s)
 {
     for (; *s; s++)
@@ -54,7 +79,8 @@ int main(int argc, char **argv)
     pc_status st;
     unsigned long line_no = 0;
     char line[4096];
-    float in[PC_POSE_WIDTH], out[PC_POSE_WIDTH];
+    float in[PC_POSE_WIDTH], out[PC_POSE_WIDTH], t = 0.0f;
+    int has_t;
 
     for (i = 1; i < argc; i++) {
         if (strcmp(argv[i], "--binary") == 0)
@@ -106,6 +132,7 @@ int main(int argc, char **argv)
             pc_free(model);
             return 1;
         }
+        has_t = split_time(line, &t);
         if (!parse_line(line, in)) {
             if (line_no == 1 && has_letter(line)) { /* a CSV header: pass it through */
                 fputs(line, stdout);
@@ -117,7 +144,7 @@ int main(int argc, char **argv)
             pc_free(model);
             return 1;
         }
-        st = pc_run(model, in, 1, out);
+        st = pc_run_timed(model, in, has_t ? &t : NULL, 1, out);
         if (st != PC_OK) {
             fprintf(stderr, "posecorr-run: line %lu: %s: %s\n", line_no, pc_status_name(st),
                     pc_model_message(model));

@@ -22,7 +22,7 @@ def weights(path: str) -> np.ndarray:
     init = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
     nodes = list(model.graph.node)
     gemms = [k for k, n in enumerate(nodes) if n.op_type == "Gemm"]
-    if len(gemms) != LAYERS:
+    if len(gemms) != LAYERS or gemms[0] < 2 or gemms[-1] + 2 >= len(nodes):
         raise ValueError(f"{path}: {len(gemms)} Gemm nodes, a zhou MLP 9-20-20-20-20-9 has {LAYERS}")
     for k in gemms:
         if any(a.name in ("transA", "transB", "alpha", "beta") for a in nodes[k].attribute):

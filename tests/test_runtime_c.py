@@ -138,6 +138,18 @@ def test_shipped_model_parity(path, lib):
     assert err <= 1e-5
 
 
+@pytest.mark.parametrize("path", MODELS, ids=lambda p: p.name)
+def test_one_pose_plan_equals_batch_plan_bit_for_bit(path, lib):
+    """The 1-pose plan runs fused scalar programs (k_scalar_program), the 16-pose plan the
+    kernels one by one: the same operations in the same order, so the same bits."""
+    c = Corrector(path, library=lib)
+    x = graphs.random_poses(32, seed=12)
+    x[:, :3] = x[:, :3] * 0.3 + np.array([0.0, -0.6, 0.5], dtype=np.float32)
+    batch = c.correct(x)
+    single = np.array([c.correct(row) for row in x])
+    np.testing.assert_array_equal(single, batch)
+
+
 def _bad_contract_models():
     g = graphs.G()
     yield "renamed input", g.model(g.op("Identity", ["measured"]), rename_input="measured"), "'measured'"

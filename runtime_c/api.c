@@ -32,6 +32,7 @@ static pc_status pc_forget_probe(pc_model *m)
 static pc_status pc_check_rows(pc_model *m, pc_error *err)
 {
     float in[PC_PLAN_STRIDE * PC_POSE_WIDTH], out[PC_PLAN_STRIDE * PC_POSE_WIDTH];
+    float t[PC_PLAN_STRIDE];
     const pc_plan *one = &m->plans[0], *batch;
     uint32_t seed = 12345u;
     size_t i, r, c;
@@ -49,13 +50,21 @@ static pc_status pc_check_rows(pc_model *m, pc_error *err)
         for (c = 3; c < PC_POSE_WIDTH; c++)
             p[c] /= sqrtf(n2);
     }
+    for (r = 0; r < batch->batch; r++) { /* times: [0, 2 h) s */
+        seed = seed * 1664525u + 1013904223u;
+        t[r] = (float)(seed >> 8) / 8388608.0f * 3600.0f;
+    }
     /* A probe the model cannot run says nothing about rows: pc_run will report it. */
     memcpy(batch->in, in, batch->batch * PC_POSE_WIDTH * sizeof(float));
+    if (batch->t)
+        memcpy(batch->t, t, batch->batch * sizeof(float));
     if (pc_run_steps(m, batch) != PC_OK)
         return pc_forget_probe(m);
     memcpy(out, batch->out, batch->batch * PC_POSE_WIDTH * sizeof(float));
     for (r = 0; r < batch->batch; r++) {
         memcpy(one->in, in + r * PC_POSE_WIDTH, sizeof(float) * PC_POSE_WIDTH);
+        if (one->t)
+            one->t[0] = t[r];
         if (pc_run_steps(m, one) != PC_OK)
             return pc_forget_probe(m);
         for (i = 0; i < PC_POSE_WIDTH; i++)
@@ -299,3 +308,5 @@ size_t pc_step_count(const pc_model *model)
 }
 size_t pc_node_count(const pc_model *model) { return model ? model->n_nodes : 0; }
 const char *pc_model_message(const pc_model *model) { return model ? model->message : ""; }
+
+int pc_model_takes_time(const pc_model *model) { return model ? model->takes_time : 0; }

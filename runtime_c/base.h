@@ -10,6 +10,8 @@
 #include <stdio.h>
 
 #define PC_MAX_RANK 6
+/* The optional second input of the pose contract: float32 [N], s since the session's start. */
+#define PC_TIME_INPUT "t"
 #define PC_ALIGN 32
 
 /* Fills err (may be NULL) with status and a printf-style message; returns status. */
@@ -18,6 +20,29 @@ pc_status pc_fail(pc_error *err, pc_status status, const char *fmt, ...)
     __attribute__((format(printf, 3, 4)))
 #endif
     ;
+
+/* snprintf for the library's messages (status.c: the same text on every C library). */
+void pc_format(char *buf, size_t size, const char *fmt, ...)
+#ifdef __GNUC__
+    __attribute__((format(printf, 3, 4)))
+#endif
+    ;
+void pc_vformat(char *buf, size_t size, const char *fmt, va_list ap);
+
+/* Largest element count of a tensor: its bytes (at most 8 per element), rounded up, fit
+ * a size_t of either width (2^31 - 1 where size_t has 64 bits, 2^28 - 1 with 32). */
+#define PC_MAX_ELEMENTS ((size_t)(SIZE_MAX / 16 < 0x7fffffffu ? SIZE_MAX / 16 : 0x7fffffffu))
+
+/* *count *= d when d >= 0 and the product stays <= limit; returns 0 (count unchanged)
+ * otherwise. d is compared in 64 bits, so a dimension beyond a 32-bit size_t fails
+ * rather than wrapping. */
+static inline int pc_mul_count(size_t *count, int64_t d, size_t limit)
+{
+    if (d < 0 || (d > 0 && (uint64_t)*count > (uint64_t)limit / (uint64_t)d))
+        return 0;
+    *count *= (size_t)d;
+    return 1;
+}
 
 static inline size_t pc_round(size_t x)
 {

@@ -82,10 +82,9 @@ pc_status pc_alloc_const(pc_builder *b, pb_slice name, int dtype, int rank,
     int i;
     pc_status st;
     for (i = 0; i < rank; i++) {
-        if (dims[i] < 0 || (dims[i] > 0 && count > ((size_t)1 << 32) / (size_t)dims[i]))
+        if (!pc_mul_count(&count, dims[i], PC_MAX_ELEMENTS))
             return pc_fail(b->err, PC_ERR_SHAPE, "constant '%.*s' has an invalid shape",
                            (int)name.size, (const char *)name.data);
-        count *= (size_t)dims[i];
     }
     if ((st = pc_new_value(b, name, id)) != PC_OK)
         return st;

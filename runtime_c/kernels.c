@@ -92,9 +92,8 @@ PC_BINARY_F(k_add_f, a + b)
 PC_BINARY_F(k_sub_f, a - b)
 PC_BINARY_F(k_mul_f, a * b)
 PC_BINARY_F(k_div_f, a / b)
-/* ONNX Max/Min propagate NaN from either side. */
-PC_BINARY_F(k_max_f, (a != a || b != b) ? a + b : a > b ? a : b)
-PC_BINARY_F(k_min_f, (a != a || b != b) ? a + b : a < b ? a : b)
+PC_BINARY_F(k_max_f, PC_MAX_EXPR(a, b))
+PC_BINARY_F(k_min_f, PC_MIN_EXPR(a, b))
 
 PC_WHERE_SAME(k_where_f, float)
 
@@ -109,6 +108,46 @@ PC_UNARY(k_sqrt_f, float, float, sqrtf(a))
 PC_UNARY(k_relu_f, float, float, a > 0.0f ? a : (a != a ? a : 0.0f))
 PC_UNARY(k_sigmoid_f, float, float, pc_sigmoid(a))
 PC_UNARY(k_tanh_f, float, float, pc_tanh_inline(a))
+
+/* One-pose plans spend more time launching single-element steps than computing them: a
+ * run of them is interpreted here, each op the same IEEE operation as its kernel. */
+pc_status k_scalar_program(const pc_step *s)
+{
+    const pc_scalar_program *q = (const pc_scalar_program *)s->prm;
+    void *const *io = s->io;
+    const pc_scalar_op *op = q->ops, *const end = q->ops + q->n_ops;
+    for (; op < end; op++) {
+        const float a = *(const float *)io[op->a];
+        float *o = (float *)io[op->o];
+        switch (op->code) {
+        case PC_SOP_ADD: *o = a + *(const float *)io[op->b]; break;
+        case PC_SOP_SUB: *o = a - *(const float *)io[op->b]; break;
+        case PC_SOP_MUL: *o = a * *(const float *)io[op->b]; break;
+        case PC_SOP_DIV: *o = a / *(const float *)io[op->b]; break;
+        case PC_SOP_MAX: {
+            const float b = *(const float *)io[op->b];
+            *o = PC_MAX_EXPR(a, b);
+            break;
+        }
+        case PC_SOP_MIN: {
+            const float b = *(const float *)io[op->b];
+            *o = PC_MIN_EXPR(a, b);
+            break;
+        }
+        case PC_SOP_EQ: *(uint8_t *)o = a == *(const float *)io[op->b]; break;
+        case PC_SOP_GT: *(uint8_t *)o = a > *(const float *)io[op->b]; break;
+        case PC_SOP_GE: *(uint8_t *)o = a >= *(const float *)io[op->b]; break;
+        case PC_SOP_LT: *(uint8_t *)o = a < *(const float *)io[op->b]; break;
+        case PC_SOP_LE: *(uint8_t *)o = a <= *(const float *)io[op->b]; break;
+        case PC_SOP_NEG: *o = -a; break;
+        case PC_SOP_SQRT: *o = sqrtf(a); break;
+        case PC_SOP_WHERE: *o = *(const uint8_t *)io[op->c] ? a : *(const float *)io[op->b]; break;
+        default: /* PC_SOP_COPY: the bits, as the copy kernels move them */
+            *(uint32_t *)o = ((const uint32_t *)io[op->a])[op->off];
+        }
+    }
+    return PC_OK;
+}
 
 /* ---- data movement ---------------------------------------------------------------- */
 

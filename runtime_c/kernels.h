@@ -35,6 +35,7 @@ typedef enum pc_act {
 #define PC_COLD
 #endif
 
+
 /* ---- broadcasting kernels (layout chosen at load, ops.c; float kernels, kernels.c) --- */
 
 /* Operand layouts of a broadcast op, after coalescing dimensions. ROW_B: B is one row
@@ -153,6 +154,33 @@ typedef struct pc_reduce {
             O[i] = C[i] ? X[i] : Y[i];                                                         \
         return PC_OK;                                                                          \
     }
+
+/* Max/Min as ONNX has them: NaN from either side propagates. */
+#define PC_MAX_EXPR(a, b) (((a) != (a) || (b) != (b)) ? (a) + (b) : (a) > (b) ? (a) : (b))
+#define PC_MIN_EXPR(a, b) (((a) != (a) || (b) != (b)) ? (a) + (b) : (a) < (b) ? (a) : (b))
+
+/* A run of single-element steps as one launch (the planner builds it for one-pose
+ * plans): each op reads element 0 of io[a], io[b], io[c] (element off of io[a] for COPY)
+ * and writes element 0 of io[o], in order; the arithmetic is the kernels' own. */
+enum {
+    PC_SOP_ADD, PC_SOP_SUB, PC_SOP_MUL, PC_SOP_DIV, PC_SOP_MAX, PC_SOP_MIN,
+    PC_SOP_EQ, PC_SOP_GT, PC_SOP_GE, PC_SOP_LT, PC_SOP_LE, /* bool output */
+    PC_SOP_NEG, PC_SOP_SQRT,
+    PC_SOP_WHERE, /* io[c] (bool) ? io[a] : io[b] */
+    PC_SOP_COPY   /* 4-byte element off of io[a] */
+};
+
+typedef struct pc_scalar_op {
+    uint16_t code, a, b, c, o;
+    uint32_t off;
+} pc_scalar_op;
+
+typedef struct pc_scalar_program {
+    size_t n_ops;
+    pc_scalar_op ops[1]; /* n_ops entries; allocated longer */
+} pc_scalar_program;
+
+pc_status k_scalar_program(const pc_step *s);
 
 /* Float kernels of the hot elementwise operators, one per layout (kernels.c). */
 #define PC_FLOAT_BINARY(X) X(k_add_f) X(k_sub_f) X(k_mul_f) X(k_div_f) X(k_max_f) X(k_min_f)

@@ -12,6 +12,7 @@ typedef struct pc_plan {
     pc_step *steps;
     size_t n_steps;
     float *in;
+    float *t;           /* the time input's buffer; NULL when the model has none */
     const float *out;
 } pc_plan;
 
@@ -31,6 +32,7 @@ struct pc_model {
     size_t n_plans;
     pc_plan *plans;     /* batch 1, PC_PLAN_STRIDE, PC_PLAN_STRIDE^2, ..., max_batch */
     size_t n_nodes;
+    int takes_time;     /* the graph has the input 't' (pc_run_timed) */
     /* Checks of pc_run on the result (see posecorr.h). */
     int check_quaternion;
     int has_bounds;

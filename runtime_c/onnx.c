@@ -81,10 +81,9 @@ pc_status onnx_tensor_to_const(pc_builder *b, pb_slice msg, int32_t *id)
     if ((st = onnx_tensor_header(b, msg, &t)) != PC_OK)
         return st;
     for (k = 0; k < t.rank; k++) {
-        if (t.dims[k] < 0 || (t.dims[k] > 0 && count > ((size_t)1 << 31) / (size_t)t.dims[k]))
+        if (!pc_mul_count(&count, t.dims[k], PC_MAX_ELEMENTS))
             return pc_fail(b->err, PC_ERR_MALFORMED, "tensor '%.*s' has an invalid shape",
                            PC_NAME(t.name));
-        count *= (size_t)t.dims[k];
     }
     switch (t.data_type) {
     case ONNX_FLOAT: dtype = PC_F32; break;
@@ -185,8 +184,8 @@ static pc_status onnx_attr_decode(const pc_builder *b, pb_slice msg, const char 
                               : f.number == ONNX_ATTR_T ? PB_BYTES
                                                         : f.wire;
         if (f.wire != want)
-            return pc_fail(b->err, PC_ERR_MALFORMED, "attribute '%s' has wire type %u in field %u",
-                           name, f.wire, f.number);
+            return pc_fail(b->err, PC_ERR_MALFORMED, "attribute '%s' has wire type %lu in field %lu",
+                           name, (unsigned long)f.wire, (unsigned long)f.number);
         if (f.number == ONNX_ATTR_F) {
             a->f = pb_bits_to_float((uint32_t)f.varint);
             a->has_f = 1;
@@ -253,8 +252,8 @@ static pc_status onnx_parse_node(pc_builder *b, pb_slice msg, pc_node *node)
         while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
             if (f.number <= ONNX_NODE_DOMAIN && f.number != ONNX_NODE_DOC_STRING &&
                 f.wire != PB_BYTES)
-                return pc_fail(b->err, PC_ERR_MALFORMED, "node field %u at byte %zu is not bytes",
-                               f.number, f.offset);
+                return pc_fail(b->err, PC_ERR_MALFORMED, "node field %lu at byte %zu is not bytes",
+                               (unsigned long)f.number, f.offset);
             switch (f.number) {
             case ONNX_NODE_INPUT:
                 if (pass)
@@ -374,7 +373,8 @@ static int onnx_dtype(int64_t elem_type)
                                           : elem_type == ONNX_BOOL    ? PC_BOOL : 0;
 }
 
-/* The pose contract: 'pose' float32 [N,7] with a dynamic N. */
+/* The pose contract: 'pose' float32 [N,7] with a dynamic N, and in models with a
+ * time-dependent effect 't' float32 [N] (seconds since the session's start). */
 static pc_status onnx_check_input(pc_builder *b, pb_slice name, int64_t elem, const pc_io *io)
 {
     if (b->any_io) {
@@ -390,10 +390,23 @@ static pc_status onnx_check_input(pc_builder *b, pb_slice name, int64_t elem, co
             return pc_fail(b->err, PC_ERR_UNSUPPORTED, "input '%.*s' has no shape", PC_NAME(name));
         return PC_OK;
     }
+    if (pb_slice_eq(name, PC_TIME_INPUT)) {
+        if (elem != ONNX_FLOAT)
+            return pc_fail(b->err, PC_ERR_CONTRACT, "input 't' has element type %lld, "
+                           "the contract needs float32", (long long)elem);
+        if (io->rank != 1)
+            return pc_fail(b->err, PC_ERR_CONTRACT, "input 't' must have shape [N] (rank %d)",
+                           io->rank);
+        if (io->dims[0] >= 0)
+            return pc_fail(b->err, PC_ERR_CONTRACT,
+                           "input 't' has a fixed batch size %lld; N must be dynamic",
+                           (long long)io->dims[0]);
+        return PC_OK;
+    }
     if (!pb_slice_eq(name, "pose"))
         return pc_fail(b->err, PC_ERR_CONTRACT,
-                       "model input is '%.*s', the contract needs 'pose' float32 [N,7]",
-                       PC_NAME(name));
+                       "model input is '%.*s', the contract needs 'pose' float32 [N,7] and "
+                       "optionally 't' float32 [N]", PC_NAME(name));
     if (elem != ONNX_FLOAT)
         return pc_fail(b->err, PC_ERR_CONTRACT, "input 'pose' has element type %lld, "
                        "the contract needs float32", (long long)elem);
@@ -460,6 +473,11 @@ static pc_status onnx_parse_io(pc_builder *b, pb_slice graph, size_t n_io)
                 return st;
             b->values[io.id].dtype = io.dtype;
             b->inputs[b->n_inputs++] = io;
+            /* the pose contract keeps 'pose' first, 't' (if any) second */
+            if (!b->any_io && b->n_inputs == 2 && pb_slice_eq(name, "pose")) {
+                b->inputs[1] = b->inputs[0];
+                b->inputs[0] = io;
+            }
         } else {
             if ((st = onnx_check_output(b, name, elem, &io)) != PC_OK)
                 return st;
@@ -471,10 +489,11 @@ static pc_status onnx_parse_io(pc_builder *b, pb_slice graph, size_t n_io)
         return r.status;
     if (b->any_io)
         return b->n_outputs ? PC_OK : pc_fail(b->err, PC_ERR_GRAPH, "graph has no output");
-    if (b->n_inputs != 1)
+    /* names are checked above and repeated ones skipped: at most 'pose' and 't' */
+    if (b->n_inputs == 0 || !pb_slice_eq(b->values[b->inputs[0].id].name, "pose"))
         return pc_fail(b->err, PC_ERR_CONTRACT,
-                       "model has %zu inputs, the contract needs exactly one ('pose')",
-                       b->n_inputs);
+                       "model has no input 'pose', the contract needs 'pose' float32 [N,7] "
+                       "and optionally 't' float32 [N]");
     if (b->n_outputs != 1)
         return pc_fail(b->err, PC_ERR_CONTRACT,
                        "model has %zu outputs, the contract needs exactly one ('corrected')",
@@ -558,8 +577,8 @@ static pc_status onnx_parse_graph(pc_builder *b, pb_slice graph)
         if ((f.number == ONNX_GRAPH_NODE || f.number == ONNX_GRAPH_INITIALIZER ||
              f.number == ONNX_GRAPH_INPUT || f.number == ONNX_GRAPH_OUTPUT) &&
             f.wire != PB_BYTES)
-            return pc_fail(b->err, PC_ERR_MALFORMED, "graph field %u at byte %zu is not bytes",
-                           f.number, f.offset);
+            return pc_fail(b->err, PC_ERR_MALFORMED, "graph field %lu at byte %zu is not bytes",
+                           (unsigned long)f.number, f.offset);
         if (f.number == ONNX_GRAPH_NODE)
             n_nodes++;
         else if (f.number == ONNX_GRAPH_INITIALIZER)
@@ -649,8 +668,8 @@ pc_status onnx_parse_model(pc_builder *b)
     while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
         if ((f.number == ONNX_MODEL_GRAPH || f.number == ONNX_MODEL_OPSET_IMPORT ||
              f.number == ONNX_MODEL_METADATA_PROPS) && f.wire != PB_BYTES)
-            return pc_fail(b->err, PC_ERR_MALFORMED, "model field %u at byte %zu is not bytes",
-                           f.number, f.offset);
+            return pc_fail(b->err, PC_ERR_MALFORMED, "model field %lu at byte %zu is not bytes",
+                           (unsigned long)f.number, f.offset);
         if (f.number == ONNX_MODEL_GRAPH) {
             graph = f.bytes;
             has_graph = 1;

@@ -9,7 +9,7 @@ pc_status pc_prep_fail(pc_prep *p, pc_status st, const char *fmt, ...)
     char detail[PC_MESSAGE_SIZE];
     va_list ap;
     va_start(ap, fmt);
-    vsnprintf(detail, sizeof detail, fmt, ap);
+    pc_vformat(detail, sizeof detail, fmt, ap);
     va_end(ap);
     return pc_fail(p->b->err, st, "node '%.*s' (%.*s): %s", (int)p->node->name.size,
                    (const char *)p->node->name.data, (int)p->node->op_type.size,
@@ -133,10 +133,9 @@ pc_status pc_set_out(pc_prep *p, size_t k, int dtype, int rank, const int64_t *d
     if (rank < 0 || rank > PC_MAX_RANK)
         return pc_prep_fail(p, PC_ERR_UNSUPPORTED, "output rank %d exceeds %d", rank, PC_MAX_RANK);
     for (i = 0; i < rank; i++) {
-        if (dims[i] < 0 || (dims[i] > 0 && count > ((size_t)1 << 24) / (size_t)dims[i]))
+        if (!pc_mul_count(&count, dims[i], (size_t)1 << 24))
             return pc_prep_fail(p, PC_ERR_SHAPE, "output dimension %d is invalid (%lld)", i,
                                 (long long)dims[i]);
-        count *= (size_t)dims[i];
     }
     v->dtype = dtype;
     v->rank = rank;

@@ -77,4 +77,8 @@ pc_status pc_axes(pc_prep *p, int64_t *axes, size_t *n, int *given);
 /* axis in [-rank, rank) to [0, rank). */
 pc_status pc_norm_axis(pc_prep *p, int64_t *axis, int rank);
 
+/* Float comparison kernels per layout (op_elementwise.c), bool output. */
+extern const pc_kernel_fn k_eq_f[PC_LAYOUTS], k_gt_f[PC_LAYOUTS], k_ge_f[PC_LAYOUTS],
+    k_lt_f[PC_LAYOUTS], k_le_f[PC_LAYOUTS];
+
 #endif

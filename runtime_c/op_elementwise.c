@@ -170,11 +170,19 @@ PC_BINARY(k_mul_i, int64_t, int64_t, (int64_t)((uint64_t)a * (uint64_t)b))
 PC_BINARY(k_div_i, int64_t, int64_t, b == 0 || (b == -1 && a == INT64_MIN) ? 0 : a / b)
 PC_BINARY(k_max_i, int64_t, int64_t, a > b ? a : b)
 PC_BINARY(k_min_i, int64_t, int64_t, a < b ? a : b)
-PC_BINARY(k_eq_f, float, uint8_t, a == b)
-PC_BINARY(k_gt_f, float, uint8_t, a > b)
-PC_BINARY(k_ge_f, float, uint8_t, a >= b)
-PC_BINARY(k_lt_f, float, uint8_t, a < b)
-PC_BINARY(k_le_f, float, uint8_t, a <= b)
+/* Float comparisons: their tables are public (op.h) for the planner's one-pose fusion. */
+#define PC_BINARY_PUBLIC(NAME, TI, TO, EXPR)                                                   \
+    static PC_BINARY_SAME(NAME, TI, TO, EXPR)                                                  \
+    static PC_BINARY_GEN(NAME, TI, TO, EXPR)                                                   \
+    const pc_kernel_fn NAME[PC_LAYOUTS] = {                                                    \
+        [PC_SAME] = NAME##_same,   [PC_SCALAR_A] = NAME##_gen, [PC_SCALAR_B] = NAME##_gen,    \
+        [PC_ROW_B] = NAME##_gen,   [PC_COL_B] = NAME##_gen,    [PC_GENERAL2] = NAME##_gen,    \
+        [PC_GENERAL] = NAME##_gen};
+PC_BINARY_PUBLIC(k_eq_f, float, uint8_t, a == b)
+PC_BINARY_PUBLIC(k_gt_f, float, uint8_t, a > b)
+PC_BINARY_PUBLIC(k_ge_f, float, uint8_t, a >= b)
+PC_BINARY_PUBLIC(k_lt_f, float, uint8_t, a < b)
+PC_BINARY_PUBLIC(k_le_f, float, uint8_t, a <= b)
 PC_BINARY(k_eq_i, int64_t, uint8_t, a == b)
 PC_BINARY(k_gt_i, int64_t, uint8_t, a > b)
 PC_BINARY(k_ge_i, int64_t, uint8_t, a >= b)

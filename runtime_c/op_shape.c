@@ -45,9 +45,8 @@ pc_status pc_op_Reshape(pc_prep *p)
         if (shape[k] < 0)
             return pc_prep_fail(p, PC_ERR_SHAPE, "negative dimension %lld in shape",
                                 (long long)shape[k]);
-        if (shape[k] > 0 && known > ((size_t)1 << 40) / (size_t)shape[k])
+        if (!pc_mul_count(&known, shape[k], PC_MAX_ELEMENTS))
             return pc_prep_fail(p, PC_ERR_SHAPE, "shape too large");
-        known *= (size_t)shape[k];
     }
     if (infer >= 0) {
         if (known == 0 || a->count % known)

@@ -82,8 +82,8 @@ static pc_status pb_read_field(pb_reader *r, pb_field *f, pc_error *err)
             return st;
         if (len > (uint64_t)(r->end - r->pos))
             return pc_fail(err, PC_ERR_TRUNCATED,
-                           "truncated file at byte %zu (field %u declares %llu bytes, %zu left)",
-                           pb_offset(r), f->number, (unsigned long long)len,
+                           "truncated file at byte %zu (field %lu declares %llu bytes, %zu left)",
+                           pb_offset(r), (unsigned long)f->number, (unsigned long long)len,
                            (size_t)(r->end - r->pos));
         f->bytes.data = r->pos;
         f->bytes.size = (size_t)len;
@@ -91,8 +91,8 @@ static pc_status pb_read_field(pb_reader *r, pb_field *f, pc_error *err)
         return PC_OK;
     default:
         /* Groups (3, 4) are not used by ONNX; anything else is not protobuf. */
-        return pc_fail(err, PC_ERR_MALFORMED, "unsupported wire type %u at byte %zu", f->wire,
-                       f->offset);
+        return pc_fail(err, PC_ERR_MALFORMED, "unsupported wire type %lu at byte %zu",
+                       (unsigned long)f->wire, f->offset);
     }
 }
 
@@ -139,14 +139,14 @@ pc_status pb_count_packed(const uint8_t *file, const pb_field *f, uint32_t elem_
         return PC_OK;
     }
     if (f->wire != PB_BYTES)
-        return pc_fail(err, PC_ERR_MALFORMED, "field %u at byte %zu has wire type %u",
-                       f->number, f->offset, f->wire);
+        return pc_fail(err, PC_ERR_MALFORMED, "field %lu at byte %zu has wire type %lu",
+                       (unsigned long)f->number, f->offset, (unsigned long)f->wire);
     if (elem_wire != PB_VARINT) {
         const size_t w = pb_wire_width(elem_wire);
         if (f->bytes.size % w)
             return pc_fail(err, PC_ERR_MALFORMED,
-                           "packed field %u at byte %zu is not a multiple of %zu bytes",
-                           f->number, f->offset, w);
+                           "packed field %lu at byte %zu is not a multiple of %zu bytes",
+                           (unsigned long)f->number, f->offset, w);
         *count = f->bytes.size / w;
         return PC_OK;
     }
@@ -169,8 +169,8 @@ pc_status pb_decode_repeated(const uint8_t *file, const pb_field *f, uint32_t el
     pc_status st;
     if (f->wire == elem_wire) {
         if (*n >= cap)
-            return pc_fail(err, PC_ERR_MALFORMED, "too many elements in field %u at byte %zu",
-                           f->number, f->offset);
+            return pc_fail(err, PC_ERR_MALFORMED, "too many elements in field %lu at byte %zu",
+                           (unsigned long)f->number, f->offset);
         if (ints)
             ints[*n] = (int64_t)f->varint;
         if (floats)
@@ -179,8 +179,8 @@ pc_status pb_decode_repeated(const uint8_t *file, const pb_field *f, uint32_t el
         return PC_OK;
     }
     if (f->wire != PB_BYTES)
-        return pc_fail(err, PC_ERR_MALFORMED, "field %u at byte %zu has wire type %u",
-                       f->number, f->offset, f->wire);
+        return pc_fail(err, PC_ERR_MALFORMED, "field %lu at byte %zu has wire type %lu",
+                       (unsigned long)f->number, f->offset, (unsigned long)f->wire);
     pb_init(&r, file, f->bytes);
     while (r.pos < r.end) {
         if (elem_wire == PB_VARINT)
@@ -190,8 +190,8 @@ pc_status pb_decode_repeated(const uint8_t *file, const pb_field *f, uint32_t el
         if (st != PC_OK)
             return st;
         if (*n >= cap)
-            return pc_fail(err, PC_ERR_MALFORMED, "too many elements in field %u at byte %zu",
-                           f->number, f->offset);
+            return pc_fail(err, PC_ERR_MALFORMED, "too many elements in field %lu at byte %zu",
+                           (unsigned long)f->number, f->offset);
         if (ints)
             ints[*n] = (int64_t)v;
         if (floats)

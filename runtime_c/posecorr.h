@@ -5,6 +5,8 @@
  * operator subset of export/operators.txt) and applies it to tracker poses:
  *
  *     input  "pose"      float32 [N,7] = x, y, z, qw, qx, qy, qz
+ *     input  "t"         float32 [N], optional: seconds since the session's start, only in
+ *                        models with a time-dependent effect (drift); see pc_run_timed
  *     output "corrected" float32 [N,7]
  *
  * Everything the model needs at run time lives in one arena allocated by pc_load_*;
@@ -31,7 +33,7 @@ extern "C" {
 #endif
 
 #define PC_VERSION_MAJOR 0
-#define PC_VERSION_MINOR 2
+#define PC_VERSION_MINOR 3
 #define PC_VERSION_PATCH 0
 /* What pc_version() returns for the library this header belongs to. */
 #define PC_VERSION_NUMBER (PC_VERSION_MAJOR * 10000 + PC_VERSION_MINOR * 100 + PC_VERSION_PATCH)
@@ -57,10 +59,11 @@ typedef enum pc_status {
     PC_ERR_TRUNCATED,      /* protobuf message ends inside a field */
     PC_ERR_MALFORMED,      /* protobuf is not valid wire format / ONNX structure */
     PC_ERR_UNSUPPORTED,    /* operator, attribute, data type or opset not supported */
-    PC_ERR_CONTRACT,       /* not "pose" float32 [N,7] -> "corrected" float32 [N,7] */
+    PC_ERR_CONTRACT,       /* not "pose" float32 [N,7] (+ optional "t" float32 [N]) ->
+                            * "corrected" float32 [N,7] */
     PC_ERR_GRAPH,          /* dangling input, cycle, duplicate output, ... */
     PC_ERR_SHAPE,          /* shapes or types of a node do not fit together */
-    PC_ERR_NONFINITE,      /* NaN or infinity in an input pose */
+    PC_ERR_NONFINITE,      /* NaN or infinity in an input pose or time */
     PC_ERR_RUNTIME,        /* data-dependent failure: an output not finite or not a unit
                             * quaternion, a Gather index out of range, ... */
     PC_ERR_RANGE,          /* input pose outside the range the model was fitted on */
@@ -120,6 +123,17 @@ PC_API pc_status pc_load_into(const void *data, size_t size, const pc_options *o
  * Loading refuses a graph whose rows are not independent (PC_ERR_GRAPH), so a result
  * never depends on how n is split. */
 PC_API pc_status pc_run(pc_model *model, const float *in, size_t n, float *out);
+
+/* pc_run with the time of each pose: t holds n floats, seconds since the session's start
+ * (a non-finite one: PC_ERR_NONFINITE naming the pose). A model without the input "t"
+ * ignores t. t may be NULL: a model that takes time then sees t = 0 for every pose, i.e.
+ * a time-dependent correction (drift) is evaluated at the session's start; pc_run is
+ * pc_run_timed with t = NULL. */
+PC_API pc_status pc_run_timed(pc_model *model, const float *in, const float *t, size_t n,
+                              float *out);
+
+/* 1 when the model has the input "t" (its correction depends on time), else 0. */
+PC_API int pc_model_takes_time(const pc_model *model);
 
 /* Context of the last failing pc_run on this model ("" after success). */
 PC_API const char *pc_model_message(const pc_model *model);

@@ -18,8 +18,8 @@ pc_status pc_run_steps(pc_model *m, const pc_plan *plan)
     for (; s < end; s++) {
         const pc_status st = s->fn(s);
         if (st != PC_OK) {
-            snprintf(m->message, sizeof m->message, "step %zu of the N=%zu plan failed: %s",
-                     (size_t)(s - plan->steps), plan->batch, pc_status_name(st));
+            pc_format(m->message, sizeof m->message, "step %zu of the N=%zu plan failed: %s",
+                      (size_t)(s - plan->steps), plan->batch, pc_status_name(st));
             return st;
         }
     }
@@ -35,30 +35,37 @@ static pc_status pc_check_output(pc_model *m, const float *out, size_t n, size_t
         float n2 = 0.0f;
         for (c = 0; c < PC_POSE_WIDTH; c++) {
             if (!isfinite(p[c])) {
-                snprintf(m->message, sizeof m->message,
-                         "output 'corrected' of pose %zu is not finite in column %zu",
-                         first + r, c);
+                pc_format(m->message, sizeof m->message,
+                          "output 'corrected' of pose %zu is not finite in column %zu",
+                          first + r, c);
                 return PC_ERR_RUNTIME;
             }
             if (c >= 3)
                 n2 += p[c] * p[c];
         }
         if (m->check_quaternion && !(fabsf(n2 - 1.0f) <= PC_UNIT_TOLERANCE)) {
-            snprintf(m->message, sizeof m->message,
-                     "output 'corrected' of pose %zu has a quaternion that is not unit "
-                     "(columns 3-6)", first + r);
+            pc_format(m->message, sizeof m->message,
+                      "output 'corrected' of pose %zu has a quaternion that is not unit "
+                      "(columns 3-6)", first + r);
             return PC_ERR_RUNTIME;
         }
     }
     return PC_OK;
 }
 
-static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, float *out,
-                             size_t first)
+/* t NULL: every pose at t = 0. */
+static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, const float *t,
+                             float *out, size_t first)
 {
     const size_t count = plan->batch * PC_POSE_WIDTH;
     pc_status st;
     memcpy(plan->in, in, count * sizeof(float));
+    if (plan->t) {
+        if (t)
+            memcpy(plan->t, t, plan->batch * sizeof(float));
+        else
+            memset(plan->t, 0, plan->batch * sizeof(float));
+    }
     if ((st = pc_run_steps(m, plan)) != PC_OK ||
         (st = pc_check_output(m, plan->out, plan->batch, first)) != PC_OK)
         return st;
@@ -66,21 +73,26 @@ static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, 
     return PC_OK;
 }
 
-/* Finite input inside the training box (when the model records one). */
-static pc_status pc_check_input(pc_model *m, const float *in, size_t n)
+/* Finite input inside the training box (when the model records one), finite times. */
+static pc_status pc_check_input(pc_model *m, const float *in, const float *t, size_t n)
 {
     size_t i;
+    for (i = 0; t && i < n; i++)
+        if (!isfinite(t[i])) {
+            pc_format(m->message, sizeof m->message, "time of pose %zu is not finite", i);
+            return PC_ERR_NONFINITE;
+        }
     for (i = 0; i < n * PC_POSE_WIDTH; i++) {
         const size_t c = i % PC_POSE_WIDTH;
         if (!isfinite(in[i])) {
-            snprintf(m->message, sizeof m->message,
-                     "pose %zu has a non-finite value in column %zu", i / PC_POSE_WIDTH, c);
+            pc_format(m->message, sizeof m->message,
+                      "pose %zu has a non-finite value in column %zu", i / PC_POSE_WIDTH, c);
             return PC_ERR_NONFINITE;
         }
         if (m->has_bounds && c < 3 && !(in[i] >= m->lo[c] && in[i] <= m->hi[c])) {
-            snprintf(m->message, sizeof m->message,
-                     "pose %zu is outside the range the model was fitted on in column %zu "
-                     "(metadata input_bounds)", i / PC_POSE_WIDTH, c);
+            pc_format(m->message, sizeof m->message,
+                      "pose %zu is outside the range the model was fitted on in column %zu "
+                      "(metadata input_bounds)", i / PC_POSE_WIDTH, c);
             return PC_ERR_RANGE;
         }
     }
@@ -89,6 +101,11 @@ static pc_status pc_check_input(pc_model *m, const float *in, size_t n)
 
 pc_status pc_run(pc_model *model, const float *in, size_t n, float *out)
 {
+    return pc_run_timed(model, in, NULL, n, out);
+}
+
+pc_status pc_run_timed(pc_model *model, const float *in, const float *t, size_t n, float *out)
+{
     size_t k, done = 0;
     pc_status st;
     if (!model)
@@ -96,26 +113,26 @@ pc_status pc_run(pc_model *model, const float *in, size_t n, float *out)
     if (n == 0)
         return PC_OK;
     if (!in || !out) {
-        snprintf(model->message, sizeof model->message, "pc_run: NULL %s buffer",
-                 in ? "output" : "input");
+        pc_format(model->message, sizeof model->message, "pc_run: NULL %s buffer",
+                  in ? "output" : "input");
         return PC_ERR_ARGUMENT;
     }
     if (n > ((size_t)-1) / (PC_POSE_WIDTH * sizeof(float))) {
-        snprintf(model->message, sizeof model->message, "pc_run: n = %zu is too large", n);
+        pc_format(model->message, sizeof model->message, "pc_run: n = %zu is too large", n);
         return PC_ERR_ARGUMENT;
     }
     /* Reject before writing anything, so that out is untouched on these errors. */
-    if ((st = pc_check_input(model, in, n)) != PC_OK)
+    if ((st = pc_check_input(model, in, t, n)) != PC_OK)
         return st;
     model->message[0] = '\0';
     if (n == 1)
-        return pc_run_plan(model, &model->plans[0], in, out, 0);
+        return pc_run_plan(model, &model->plans[0], in, t, out, 0);
     while (done < n) {
         const size_t left = n - done;
         for (k = model->n_plans - 1; model->plans[k].batch > left; k--)
             ;
         st = pc_run_plan(model, &model->plans[k], in + done * PC_POSE_WIDTH,
-                         out + done * PC_POSE_WIDTH, done);
+                         t ? t + done : NULL, out + done * PC_POSE_WIDTH, done);
         if (st != PC_OK)
             return st;
         done += model->plans[k].batch;

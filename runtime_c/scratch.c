@@ -27,7 +27,8 @@ void *pc_scratch_alloc_raw(pc_scratch *s, size_t size)
     pc_scratch_block *b = s->head;
     size_t need = pc_round(size);
     uint8_t *p;
-    if (size > ((size_t)1 << 40))
+    /* room for the rounding and a block header on either width of size_t */
+    if (size > SIZE_MAX / 2)
         return NULL;
     if (need == 0)
         need = PC_ALIGN;

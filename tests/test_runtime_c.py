@@ -138,6 +138,18 @@ def test_shipped_model_parity(path, lib):
     assert err <= 1e-5
 
 
+@pytest.mark.parametrize("path", MODELS, ids=lambda p: p.name)
+def test_one_pose_plan_equals_batch_plan_bit_for_bit(path, lib):
+    """The 1-pose plan runs fused scalar programs (k_scalar_program), the 16-pose plan the
+    kernels one by one: the same operations in the same order, so the same bits."""
+    c = Corrector(path, library=lib)
+    x = graphs.random_poses(32, seed=12)
+    x[:, :3] = x[:, :3] * 0.3 + np.array([0.0, -0.6, 0.5], dtype=np.float32)
+    batch = c.correct(x)
+    single = np.array([c.correct(row) for row in x])
+    np.testing.assert_array_equal(single, batch)
+
+
 def _bad_contract_models():
     g = graphs.G()
     yield "renamed input", g.model(g.op("Identity", ["measured"]), rename_input="measured"), "'measured'"
@@ -326,6 +338,131 @@ def test_shim_checks_the_library_version(lib):
     assert not runtime.version_compatible(None)
 
 
+# -- the time input (optional second input `t` float32 [N], seconds) ---------------------
+
+def ort_run_timed(model_bytes: bytes, x: np.ndarray, t: np.ndarray) -> np.ndarray:
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 1
+    s = ort.InferenceSession(model_bytes, so, providers=["CPUExecutionProvider"])
+    return s.run(["corrected"], {"pose": x, "t": t.astype(np.float32)})[0]
+
+
+@pytest.fixture(scope="session")
+def drift_model(tmp_path_factory) -> tuple[Path, np.ndarray, np.ndarray]:
+    """A PhysicsModel with drift fitted on 60 poses of a simulated Experiment III and
+    exported (it has the input `t`); returns the file, the poses and their times."""
+    from posecorr.export import to_onnx
+    from posecorr.simulate import simulate
+    from posecorr.train.physics import PhysicsModel
+
+    table = simulate(3, seed=0).table
+    idx = np.linspace(0, len(table.measured) - 1, 60).astype(int)
+    m, r, t = table.measured[idx], table.reference[idx], table.extras["t"][idx]
+    est = PhysicsModel(effects=("station", "mount", "drift")).fit(m, r, t=t)
+    path = tmp_path_factory.mktemp("drift") / "drift.onnx"
+    to_onnx(est, path, measured=m, reference=r, t=t)
+    return path, m.astype(np.float32), t
+
+
+def test_drift_model_with_time_matches_onnxruntime(drift_model, lib):
+    path, m, t = drift_model
+    blob = path.read_bytes()
+    assert [i.name for i in onnx.load(path).graph.input] == ["pose", "t"]
+    c = Corrector(path, library=lib)
+    assert c.takes_time and not Corrector(MLP_ZHOU, library=lib).takes_time
+    # 300 poses: the 256-, 16- and 1-pose plans all run; times spread over 10 h
+    rng = np.random.default_rng(0)
+    x = m[rng.integers(0, len(m), 300)]
+    tt = rng.uniform(0.0, 36000.0, 300).astype(np.float32)
+    got = c.correct(x, tt).astype(np.float32)
+    ref = ort_run_timed(blob, x, tt)
+    err = rel_err(got, ref)
+    print(f"drift model, 300 poses with t: max rel diff C vs onnxruntime {err:.3g}")
+    assert err <= 2e-6
+    # time matters in this model: the same poses at t = 0 are corrected differently
+    at_zero = ort_run_timed(blob, x, np.zeros(300, np.float32))
+    assert np.abs(ref[:, :3] - at_zero[:, :3]).max() > 1e-4
+    # t = None is t = 0 (the session's start), in C and in onnxruntime
+    np.testing.assert_array_equal(c.correct(x).astype(np.float32),
+                                  c.correct(x, np.zeros(300)).astype(np.float32))
+    assert rel_err(c.correct(x).astype(np.float32), at_zero) <= 2e-6
+    ort_c = Corrector(path, backend="onnxruntime")
+    assert ort_c.takes_time
+    np.testing.assert_array_equal(ort_c.correct(x, tt).astype(np.float32), ref)
+    np.testing.assert_array_equal(ort_c.correct(x).astype(np.float32), at_zero)
+    # one pose with its time is the batch's row
+    np.testing.assert_array_equal(c.correct(x[7], tt[7]), c.correct(x, tt)[7])
+
+
+def test_pc_run_timed_with_null_time_is_pc_run(drift_model, lib):
+    from posecorr.runtime import load_library
+
+    L = load_library(lib)
+    c = Corrector(drift_model[0], library=lib)
+    x = drift_model[1][:20].copy()
+    a, b, z = (np.full_like(x, 7.0) for _ in range(3))
+    h = c._impl.handle
+    assert L.pc_model_takes_time(h) == 1
+    assert L.pc_run(h, x.ctypes.data, 20, a.ctypes.data) == 0
+    assert L.pc_run_timed(h, x.ctypes.data, None, 20, b.ctypes.data) == 0
+    zeros = np.zeros(20, np.float32)
+    assert L.pc_run_timed(h, x.ctypes.data, zeros.ctypes.data, 20, z.ctypes.data) == 0
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(a, z)
+    # a non-finite time is refused, naming the pose, output untouched
+    bad = np.zeros(20, np.float32)
+    bad[4] = np.inf
+    out = np.full_like(x, 7.0)
+    st = L.pc_run_timed(h, x.ctypes.data, bad.ctypes.data, 20, out.ctypes.data)
+    assert st == _status("PC_ERR_NONFINITE") and np.all(out == 7.0)
+    assert b"time of pose 4" in L.pc_model_message(h)
+    with pytest.raises(PoseCorrError, match="time of pose 4"):
+        c.correct(x, bad)
+
+
+def test_time_input_in_either_order_and_ignored_by_models_without_it(lib):
+    x = graphs.random_poses(40, seed=11)
+    t = np.linspace(0.0, 5000.0, 40).astype(np.float32)
+    for t_first in (False, True):
+        blob = graphs.time_model(t_first).SerializeToString()
+        c = Corrector(blob, library=lib)
+        assert c.takes_time
+        assert rel_err(c.correct(x, t).astype(np.float32), ort_run_timed(blob, x, t)) <= 1e-6
+    plain = Corrector(graphs.pose_model().SerializeToString(), library=lib)
+    assert not plain.takes_time
+    np.testing.assert_array_equal(plain.correct(x, t), plain.correct(x))
+    with pytest.raises(ValueError, match="t must have shape"):
+        plain.correct(x, t[:5])
+
+
+def _bad_time_models():
+    from onnx import TensorProto
+
+    def model(**kw):
+        g = graphs.G()
+        return g.model(g.op("Identity", ["pose"]), **kw)
+
+    yield "t int64", model(inputs_after=[graphs.time_input(TensorProto.INT64)]), "'t' has element type"
+    yield "t rank 2", model(inputs_after=[graphs.time_input(shape=("N", 1))]), "'t' must have shape [N]"
+    yield "t fixed N", model(inputs_after=[graphs.time_input(shape=(4,))]), "fixed batch size"
+    yield "third input", model(inputs_after=[graphs.time_input(), graphs.time_input(name="u")]), "'u'"
+    g = graphs.G()
+    yield "t of width 7", g.model(g.op("Identity", ["t"]), rename_input="t"), "'t' must have shape [N]"
+    g = graphs.G()
+    only_t = g.model(g.op("Identity", ["t"]))
+    del only_t.graph.input[:]
+    only_t.graph.input.append(graphs.time_input())
+    yield "no pose", only_t, "no input 'pose'"
+
+
+@pytest.mark.parametrize("label,model,fragment", list(_bad_time_models()),
+                         ids=[m[0] for m in _bad_time_models()])
+def test_time_input_contract_errors(label, model, fragment, lib):
+    with pytest.raises(PoseCorrError) as e:
+        Corrector(model.SerializeToString(), library=lib)
+    assert fragment in str(e.value) and e.value.status == _status("PC_ERR_CONTRACT")
+
+
 # -- tools --------------------------------------------------------------------------------
 
 @pytest.fixture(scope="session")
@@ -346,6 +483,32 @@ def test_posecorr_run_csv(c_build, pose_file):
     got = np.array([[float(v) for v in ln.split(",")] for ln in lines[1:]], dtype=np.float32)
     ref = ort_run(pose_file.read_bytes(), x)
     assert got.shape == (40, 7) and rel_err(got, ref) <= 2e-6
+
+
+def test_posecorr_run_time_column(c_build, drift_model, pose_file):
+    """An 8th value per line is t: a model that takes time gets it (as onnxruntime with
+    the same t), a line without it is t = 0, and a model without time ignores it."""
+    path, m, t = drift_model
+    x, tt = m[:12], t[:12].astype(np.float32)
+
+    def run(model, rows):
+        text = "x,y,z,qw,qx,qy,qz,t\n" + "\n".join(",".join(f"{v:.9g}" for v in row)
+                                                  for row in rows) + "\n"
+        r = subprocess.run([str(c_build / "posecorr-run"), str(model)], input=text,
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0, r.stderr
+        lines = r.stdout.strip().splitlines()
+        assert lines[0] == "x,y,z,qw,qx,qy,qz,t"
+        return np.array([[float(v) for v in ln.split(",")] for ln in lines[1:]], np.float32)
+
+    blob = path.read_bytes()
+    with_t = run(path, np.column_stack([x, tt]))
+    assert with_t.shape == (12, 7) and rel_err(with_t, ort_run_timed(blob, x, tt)) <= 2e-6
+    without = run(path, x)
+    assert rel_err(without, ort_run_timed(blob, x, np.zeros(12, np.float32))) <= 2e-6
+    assert np.abs(with_t - without).max() > 1e-4
+    plain = run(pose_file, np.column_stack([x, tt]))
+    np.testing.assert_array_equal(plain, run(pose_file, x))
 
 
 def test_posecorr_run_reports_line_numbers(c_build, pose_file):

@@ -128,3 +128,33 @@ def test_no_void_casts_silencing_dead_code():
     hits = [f"{p.name}:{i}" for p in library_files()
             for i, line in enumerate(p.read_text().splitlines(), 1) if cast.search(line)]
     assert not hits, f"(void) casts in the library: {hits}"
+
+
+# pc_vformat's subset (status.c): the library formats its messages itself, because the C
+# library of a microcontroller (newlib-nano) lacks %zu and %ll.
+CONVERSION = re.compile(r"%(\.(?:\*|\d+))?(z|ll|l)?([diuxsc%])")
+ANY_CONVERSION = re.compile(r"%[-+ #0-9.*]*(?:hh|h|ll|l|z|j|t|L)?[a-zA-Z%]")
+STRING = re.compile(r'"((?:[^"\\\n]|\\.)*)"')
+
+
+def test_messages_use_the_library_formatter():
+    """No printf-family call in the library, and every conversion in its string literals
+    is one pc_vformat implements (tests/unit_tests.c compares it with snprintf)."""
+    calls = re.compile(r"\b(?:v?s?n?printf|fprintf|puts)\s*\(")
+    printf_calls, unknown = [], []
+    for p in library_files():
+        for i, line in enumerate(p.read_text().splitlines(), 1):
+            if calls.search(line) and not line.lstrip().startswith(("*", "/*")):
+                printf_calls.append(f"{p.name}:{i}")
+            for literal in STRING.findall(line):
+                for conv in ANY_CONVERSION.findall(literal):
+                    if not CONVERSION.fullmatch(conv):
+                        unknown.append(f"{p.name}:{i}: {conv}")
+    assert not printf_calls, f"printf-family calls in the library (use pc_format): {printf_calls}"
+    assert not unknown, f"conversions pc_vformat does not implement: {unknown}"
+
+
+def test_message_checker_sees_unsupported_conversions():
+    assert not CONVERSION.fullmatch(ANY_CONVERSION.findall('"%5.2f"')[0])
+    assert [bool(CONVERSION.fullmatch(c)) for c in ANY_CONVERSION.findall('"%zu %.*s %lld %08x"')] \
+        == [True, True, True, False]

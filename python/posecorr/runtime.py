@@ -5,7 +5,9 @@ runtime) via ctypes; `backend="onnxruntime"` runs the same file through onnxrunt
 the same API. Only numpy and ctypes are imported here; onnxruntime is imported lazily.
 
 Outputs are float64 arrays of the caller's shape ((7,) or (N, 7)); the model computes in
-float32, so values carry float32 precision.
+float32, so values carry float32 precision. A model with a time-dependent effect (drift)
+has a second input `t` (s since the session's start, `Corrector.takes_time`); `correct`
+passes `t=` to it on both backends, and t = 0 for every pose when `t` is not given.
 
 The library is looked up in ``posecorr/_native/libposecorr.so`` (placed there by the
 package build), else in ``$POSECORR_LIBRARY``.
@@ -22,10 +24,12 @@ import numpy as np
 __all__ = ["Corrector", "PoseCorrError", "load_library", "library_path"]
 
 POSE_WIDTH = 7
+# The contract's optional second input: float32 [N], s since the session's start.
+TIME_INPUT = "t"
 _MESSAGE_SIZE = 256
 # libposecorr's PC_VERSION_MAJOR, PC_VERSION_MINOR this shim is written against: the
 # library must have the same major and at least this minor (minors only add functions).
-EXPECTED_VERSION = (0, 2)
+EXPECTED_VERSION = (0, 3)
 
 
 class PoseCorrError(ValueError):
@@ -83,6 +87,10 @@ def load_library(path: str | os.PathLike | None = None) -> ctypes.CDLL:
     lib.pc_free.restype = None
     lib.pc_run.argtypes = [vp, vp, sz, vp]
     lib.pc_run.restype = ctypes.c_int
+    lib.pc_run_timed.argtypes = [vp, vp, vp, sz, vp]
+    lib.pc_run_timed.restype = ctypes.c_int
+    lib.pc_model_takes_time.argtypes = [vp]
+    lib.pc_model_takes_time.restype = ctypes.c_int
     lib.pc_model_message.argtypes = [vp]
     lib.pc_model_message.restype = cp
     lib.pc_status_name.argtypes = [ctypes.c_int]
@@ -155,13 +163,16 @@ class _CBackend:
         self.arena_bytes = int(lib.pc_arena_bytes(self.handle))
         self.n_steps = int(lib.pc_step_count(self.handle))
         self.n_nodes = int(lib.pc_node_count(self.handle))
+        self.takes_time = bool(lib.pc_model_takes_time(self.handle))
 
     def _fail(self, st: int) -> PoseCorrError:
         msg = self.lib.pc_model_message(self.handle).decode(errors="replace")
         name = self.lib.pc_status_name(st).decode()
         return PoseCorrError(f"{name}: {msg}", st)
 
-    def run1(self, pose: np.ndarray) -> np.ndarray:
+    def run1(self, pose: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
+        if t is not None:
+            return self.run(np.reshape(pose, (1, POSE_WIDTH)), t)[0]
         self._in1[:] = pose
         st = self._run(self.handle, self._in1_ptr, 1, self._out1_ptr)
         if st:
@@ -174,10 +185,15 @@ class _CBackend:
         if st:
             raise self._fail(st)
 
-    def run(self, poses: np.ndarray) -> np.ndarray:
+    def run(self, poses: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
         x = np.ascontiguousarray(poses, dtype=np.float32)
         out = np.empty_like(x)
-        st = self._run(self.handle, x.ctypes.data, x.shape[0], out.ctypes.data)
+        if t is None:
+            st = self._run(self.handle, x.ctypes.data, x.shape[0], out.ctypes.data)
+        else:
+            tt = np.ascontiguousarray(t, dtype=np.float32)
+            st = self.lib.pc_run_timed(self.handle, x.ctypes.data, tt.ctypes.data, x.shape[0],
+                                       out.ctypes.data)
         if st:
             raise self._fail(st)
         return out.astype(np.float64)
@@ -215,13 +231,20 @@ class _OrtBackend:
         self.name = name
         self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)
         self.max_batch = None
+        self.takes_time = TIME_INPUT in {i.name for i in self.session.get_inputs()}
 
-    def run(self, poses: np.ndarray) -> np.ndarray:
+    def run(self, poses: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
         x = np.ascontiguousarray(poses, dtype=np.float32)
         if not np.all(np.isfinite(x)):
             raise PoseCorrError("non-finite input: a pose contains NaN or infinity")
+        feeds = {"pose": x}
+        if self.takes_time:
+            tt = np.zeros(len(x), np.float32) if t is None else np.asarray(t, np.float32)
+            if not np.all(np.isfinite(tt)):
+                raise PoseCorrError("non-finite input: a time is NaN or infinity")
+            feeds[TIME_INPUT] = tt
         try:
-            out = self.session.run(["corrected"], {"pose": x})[0]
+            out = self.session.run(["corrected"], feeds)[0]
         except Exception as exc:
             raise PoseCorrError(f"{self.name}: onnxruntime failed to run it: {_first_line(exc)}") from None
         if out.shape != x.shape:
@@ -229,8 +252,8 @@ class _OrtBackend:
                                 f"expected {list(x.shape)}")
         return out.astype(np.float64)
 
-    def run1(self, pose: np.ndarray) -> np.ndarray:
-        return self.run(np.asarray(pose, dtype=np.float32).reshape(1, POSE_WIDTH))[0]
+    def run1(self, pose: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
+        return self.run(np.asarray(pose, dtype=np.float32).reshape(1, POSE_WIDTH), t)[0]
 
     def close(self) -> None:
         self.session = None
@@ -267,20 +290,33 @@ class Corrector:
         self.n_outputs = POSE_WIDTH
         self.input_name = "pose"
         self.output_name = "corrected"
+        # The model has the input `t` (a time-dependent effect such as drift).
+        self.takes_time: bool = self._impl.takes_time
 
-    def correct(self, poses: Any) -> np.ndarray:
+    def correct(self, poses: Any, t: Any = None) -> np.ndarray:
         """Corrects one pose (7,) or a batch (N, 7): x, y, z, qw, qx, qy, qz.
 
+        t: time of each pose, s since the session's start (a scalar for one pose, (N,) for
+        a batch); used by models that take time (`takes_time`), ignored by the others.
+        Without it such a model corrects every pose as at t = 0, the session's start.
         Returns float64 of the same shape. Raises PoseCorrError for NaN/inf input.
         """
         a = np.asarray(poses)
-        if a.shape == (POSE_WIDTH,):
-            return self._impl.run1(a)
-        if a.ndim != 2 or a.shape[1] != POSE_WIDTH:
+        single = a.shape == (POSE_WIDTH,)
+        if not single and (a.ndim != 2 or a.shape[1] != POSE_WIDTH):
             raise ValueError(f"poses must have shape (7,) or (N, 7), got {a.shape}")
+        if t is not None:
+            t = np.asarray(t, dtype=np.float64)
+            if t.shape != (() if single else (a.shape[0],)):
+                raise ValueError(f"t must have shape {'()' if single else (a.shape[0],)} "
+                                 f"for poses of shape {a.shape}, got {t.shape}")
+            if not self.takes_time:
+                t = None
+        if single:
+            return self._impl.run1(a, None if t is None else t.reshape(1))
         if a.shape[0] == 0:
             return np.zeros((0, POSE_WIDTH))
-        return self._impl.run(a)
+        return self._impl.run(a, t)
 
     def predict(self, measured: Any) -> np.ndarray:
         """scikit-learn style alias of `correct`."""

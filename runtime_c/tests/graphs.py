@@ -1,7 +1,7 @@
 """ONNX test graphs for libposecorr, built with onnx.helper.
 
-Every graph honours the contract: input `pose` float32 [N,7] -> output `corrected` float32
-[N,7]. Single-operator graphs feed the operator with exact data movement from the pose
+Every graph honours the contract: input `pose` float32 [N,7] (and, in `time_model`, `t`
+float32 [N]) -> output `corrected` float32 [N,7]. Single-operator graphs feed the operator with exact data movement from the pose
 columns (Gather/Reshape, no arithmetic), flatten its result per row and emit a 7-column
 window of it, so any wrong element shows up in the output. Used by the pytest suite, the
 sanitizer runs and the fuzz seed corpus.
@@ -56,12 +56,15 @@ class G:
         return self.op("Reshape", [self.cols(x, idx), self.i64([0] + list(shape_tail))])
 
     def model(self, out: str, metadata: dict | None = None, rename_input: str | None = None,
-              width: int = 7, opset: int = OPSET) -> onnx.ModelProto:
+              width: int = 7, opset: int = OPSET, inputs_before=(), inputs_after=()
+              ) -> onnx.ModelProto:
+        """inputs_before/after: more graph inputs (ValueInfoProto) around `pose`."""
         inp = helper.make_tensor_value_info(rename_input or "pose", TensorProto.FLOAT, ["N", width])
         outp = helper.make_tensor_value_info("corrected", TensorProto.FLOAT, ["N", 7])
         nodes = list(self.nodes)
         nodes.append(helper.make_node("Identity", [out], ["corrected"], name="final"))
-        g = helper.make_graph(nodes, "g", [inp], [outp], self.inits)
+        g = helper.make_graph(nodes, "g", [*inputs_before, inp, *inputs_after], [outp],
+                              self.inits)
         m = helper.make_model(g, opset_imports=[helper.make_opsetid("", opset)],
                               producer_name="posecorr-tests")
         m.ir_version = 8
@@ -539,6 +542,21 @@ def pose_model(seed: int = 0, hidden=(20, 20, 20, 20), metadata: dict | None = N
     meta = {"posecorr_version": "0.1.0", "method": "mlp", "representation": "zhou"}
     meta.update(metadata or {})
     return g.model(out, metadata=meta)
+
+
+def time_input(elem=TensorProto.FLOAT, shape=("N",), name: str = "t"):
+    return helper.make_tensor_value_info(name, elem, list(shape))
+
+
+def time_model(t_first: bool = False) -> onnx.ModelProto:
+    """corrected = pose + t * rate (a drift linear in time; t float32 [N] as a second
+    input, declared before `pose` when t_first)."""
+    g = G()
+    rate = g.f32(np.array([[1e-4, -2e-4, 3e-5, 0, 0, 0, 0]], np.float32))
+    col = g.op("Unsqueeze", ["t", g.i64([1])])
+    y = g.op("Add", ["pose", g.op("Mul", [col, rate])])
+    vi = [time_input()]
+    return g.model(y, **({"inputs_before": vi} if t_first else {"inputs_after": vi}))
 
 
 def random_poses(n: int, seed: int = 0) -> np.ndarray:

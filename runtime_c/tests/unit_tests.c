@@ -4,7 +4,9 @@
 #include "kernels.h"
 #include "pb.h"
 
+#include <limits.h>
 #include <math.h>
+#include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -215,6 +217,35 @@ static void test_status_names(void)
             CHECK(strcmp(pc_status_name((pc_status)i), pc_status_name((pc_status)j)) != 0);
     }
     CHECK(strcmp(pc_status_name(PC_STATUS_COUNT), "unknown status") == 0);
+}
+
+/* pc_format (the library's own formatter) against the host's snprintf on every
+ * conversion of its subset, at the extremes of each width, and on truncation. */
+static void test_format(void)
+{
+    char mine[64], libc[64];
+    const char *name = "initializer";
+#define SAME(...)                                                                          \
+    do {                                                                                   \
+        pc_format(mine, sizeof mine, __VA_ARGS__);                                         \
+        snprintf(libc, sizeof libc, __VA_ARGS__);                                          \
+        CHECK(strcmp(mine, libc) == 0);                                                    \
+        if (strcmp(mine, libc))                                                            \
+            fprintf(stderr, "  pc_format '%s', snprintf '%s'\n", mine, libc);              \
+    } while (0)
+    SAME("byte %zu of %zu, field %lu", (size_t)0, SIZE_MAX, 4294967295UL);
+    SAME("%d %d %d %i", 0, -1, INT_MIN, INT_MAX);
+    SAME("%u %x %lu %ld", UINT_MAX, 0xbeefu, ULONG_MAX, LONG_MIN);
+    SAME("%lld %lld %llu", LLONG_MIN, LLONG_MAX, ULLONG_MAX);
+    SAME("'%.*s' '%.3s' '%s' %c 100%%", 4, name, name, name, 'x');
+    SAME("%.*s|%.0s|", 0, name, name);
+    /* truncation: as snprintf, at most size - 1 characters and a terminator */
+    pc_format(mine, 8, "pose %zu of %s", (size_t)123456, name);
+    CHECK(strcmp(mine, "pose 12") == 0);
+    mine[0] = 'z';
+    pc_format(mine, 1, "%s", name);
+    CHECK(mine[0] == '\0');
+#undef SAME
 }
 
 static void test_tanh(void)
@@ -439,6 +470,7 @@ int main(int argc, char **argv)
     test_varint();
     test_fields();
     test_status_names();
+    test_format();
     test_tanh();
     test_load_and_run();
     test_load_into();

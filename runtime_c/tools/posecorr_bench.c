@@ -1,9 +1,14 @@
 /* posecorr-bench MODEL.onnx [--n 100000] [--batch 10000] [--max-batch 256]
+ *                [--reference-zhou WEIGHTS]
  *
  * Prints one JSON object on stdout. Times are in microseconds (keys ending in _us) or
  * nanoseconds per pose (batch_ns_per_pose). Single-pose latency is timed call by call
- * with CLOCK_MONOTONIC, so it includes the clock read (timer_overhead_ns reports that). */
+ * with CLOCK_MONOTONIC, so it includes the clock read (timer_overhead_ns reports that).
+ * --reference-zhou (the shipped zhou MLP only; WEIGHTS from tools/zhou_weights.py) adds
+ * "reference": pc_run against the hand-written function of zhou_reference.c, both timed
+ * in loops in alternating rounds of this process, and how far their outputs differ. */
 #include "posecorr.h"
+#include "zhou_reference.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -57,9 +62,93 @@ static void make_poses(float *p, size_t n)
     }
 }
 
+/* Best-of-seven rounds, the two contenders alternating inside each round. */
+#define REF_ROUNDS 7
+#define REF_POSES 1000
+
+static double per_call_ns(pc_model *model, const pc_zhou_weights *w, const float *poses,
+                          size_t n_poses, size_t batch, float *out)
+{
+    size_t reps = 0, i;
+    const double t0 = now_ns();
+    do {
+        if (batch > 1) {
+            if (model)
+                pc_run(model, poses, batch, out);
+            else
+                for (i = 0; i < batch; i++)
+                    pc_zhou_reference(w, poses + i * 7, out + i * 7);
+            reps += batch;
+        } else {
+            for (i = 0; i < n_poses; i++) {
+                if (model)
+                    pc_run(model, poses + i * 7, 1, out);
+                else
+                    pc_zhou_reference(w, poses + i * 7, out);
+            }
+            reps += n_poses;
+        }
+    } while (now_ns() - t0 < 2e7);
+    return (now_ns() - t0) / (double)reps;
+}
+
+static int bench_reference(const char *wpath, pc_model *model, const float *poses,
+                           size_t n_poses, size_t batch, float *out, char *json, size_t size)
+{
+    static pc_zhou_weights w;
+    float a[7], b[7];
+    double best[4] = {-1.0, -1.0, -1.0, -1.0}, diff = 0.0;
+    size_t i, same = 0, k;
+    int round, j;
+    FILE *f = fopen(wpath, "rb");
+    if (!f || fread(&w, sizeof w, 1, f) != 1 || fgetc(f) != EOF) {
+        fprintf(stderr, "posecorr-bench: %s: expected %zu float32 weights "
+                        "(runtime_c/tools/zhou_weights.py)\n", wpath, (size_t)PC_ZHOU_FLOATS);
+        if (f)
+            fclose(f);
+        return 0;
+    }
+    fclose(f);
+    if (n_poses > REF_POSES)
+        n_poses = REF_POSES;
+    for (i = 0; i < n_poses; i++) {
+        if (pc_run(model, poses + i * 7, 1, a) != PC_OK) {
+            fprintf(stderr, "posecorr-bench: pose %zu: %s\n", i, pc_model_message(model));
+            return 0;
+        }
+        pc_zhou_reference(&w, poses + i * 7, b);
+        for (j = 0, k = 1; j < 7; j++) {
+            const double d = fabs((double)a[j] - (double)b[j]);
+            diff = d > diff ? d : diff;
+            k &= a[j] == b[j];
+        }
+        same += k;
+    }
+    for (round = 0; round < REF_ROUNDS; round++)
+        for (j = 0; j < 4; j++) {
+            /* order alternates per round: pc_run first on even rounds */
+            const int which = (j + round) % 2, batched = j >= 2;
+            const double t = per_call_ns(which ? NULL : model, &w, poses, n_poses,
+                                         batched ? batch : 1, out);
+            const int slot = which + 2 * batched;
+            if (best[slot] < 0.0 || t < best[slot])
+                best[slot] = t;
+        }
+    snprintf(json, size,
+             ", \"reference\": {\"function\": \"pc_zhou_reference (tools/zhou_reference.c)\", "
+             "\"pc_run_single_ns\": %.2f, \"reference_single_ns\": %.2f, "
+             "\"single_ratio\": %.3f, \"pc_run_batch_ns_per_pose\": %.2f, "
+             "\"reference_batch_ns_per_pose\": %.2f, \"batch_ratio\": %.3f, "
+             "\"max_abs_diff\": %.3g, \"identical_poses\": %zu, \"compared_poses\": %zu}",
+             best[0], best[1], best[0] / best[1], best[2], best[3], best[2] / best[3], diff,
+             same, n_poses);
+    return 1;
+}
+
 int main(int argc, char **argv)
 {
-    const char *path = NULL;
+    const char *path = NULL, *reference = NULL;
+    char reference_json[1024] = "";
     size_t n = 100000, batch = 10000, i, reps;
     int round;
     pc_options opts = {0};
@@ -77,15 +166,17 @@ int main(int argc, char **argv)
             batch = (size_t)strtoul(argv[++a], NULL, 10);
         else if (strcmp(argv[a], "--max-batch") == 0 && a + 1 < argc)
             opts.max_batch = (size_t)strtoul(argv[++a], NULL, 10);
+        else if (strcmp(argv[a], "--reference-zhou") == 0 && a + 1 < argc)
+            reference = argv[++a];
         else if (!path)
             path = argv[a];
         else {
-            fprintf(stderr, "usage: %s MODEL.onnx [--n N] [--batch B] [--max-batch M]\n", argv[0]);
+            fprintf(stderr, "usage: %s MODEL.onnx [--n N] [--batch B] [--max-batch M] [--reference-zhou W]\n", argv[0]);
             return 2;
         }
     }
     if (!path || n == 0 || batch == 0) {
-        fprintf(stderr, "usage: %s MODEL.onnx [--n N] [--batch B] [--max-batch M]\n", argv[0]);
+        fprintf(stderr, "usage: %s MODEL.onnx [--n N] [--batch B] [--max-batch M] [--reference-zhou W]\n", argv[0]);
         return 2;
     }
     /* Load time: median of repeated loads (file read included). */
@@ -146,13 +237,18 @@ int main(int argc, char **argv)
         sink += out[0];
     }
 
+    if (reference && !bench_reference(reference, model, poses, n, batch, out, reference_json,
+                                      sizeof reference_json)) {
+        pc_free(model);
+        return 1;
+    }
     printf("{\"model\": \"%s\", \"unit_single\": \"us\", \"n\": %zu, \"batch\": %zu, "
            "\"single_pose_median_us\": %.4f, \"single_pose_p99_us\": %.4f, "
            "\"batch_ns_per_pose\": %.2f, \"load_us\": %.2f, \"timer_overhead_ns\": %.1f, "
-           "\"steps\": %zu, \"nodes\": %zu, \"arena_bytes\": %zu, \"max_batch\": %zu}\n",
+           "\"steps\": %zu, \"nodes\": %zu, \"arena_bytes\": %zu, \"max_batch\": %zu%s}\n",
            path, n, batch, single_med, single_p99, batch_ns, load_us, timer_ns,
            pc_step_count(model), pc_node_count(model), pc_arena_bytes(model),
-           pc_max_batch(model));
+           pc_max_batch(model), reference_json);
     (void)sink;
     pc_free(model);
     free(poses);

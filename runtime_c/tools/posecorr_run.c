@@ -1,8 +1,11 @@
 /* posecorr-run MODEL.onnx [--binary] [--strict]
  *
  * Streams poses through a corrector: one CSV line "x,y,z,qw,qx,qy,qz" in, one line out,
- * flushed per pose so it can sit in a pipe next to a tracker. --binary reads and writes
- * raw little-endian float32 records of 7 values instead. Lines may be of any length.
+ * flushed per pose so it can sit in a pipe next to a tracker. An optional 8th value
+ * "x,y,z,qw,qx,qy,qz,t" is the pose's time t (s since the session's start), passed to
+ * models that take time (pc_model_takes_time; others ignore it); without it such a model
+ * corrects the pose as at t = 0. --binary reads and writes raw little-endian float32
+ * records of 7 values instead. Lines may be of any length.
  *
  * A bad line (or a record the model refuses) is answered on stderr with its line (record)
  * number and the reason, and on stdout with a line (record) of seven NaN, so that output
@@ -76,6 +79,27 @@ static int parse_line(const char *line, float *v)
     while (*p == ' ' || *p == '\t' || *p == '\r')
         p++;
     return *p == '\0';
+}
+
+/* Splits an optional 8th value (the time t) off a text line: returns 1 and cuts the line
+ * before it when there is one, 0 (line untouched) otherwise. */
+static int split_time(char *line, float *t)
+{
+    char *p = line, *end;
+    int commas = 0;
+    while (*p && !(*p == ',' && ++commas == PC_POSE_WIDTH))
+        p++;
+    if (!*p)
+        return 0;
+    *t = strtof(p + 1, &end);
+    if (end == p + 1)
+        return 0;
+    while (*end == ' ' || *end == '\t' || *end == '\r' || *end == '\n')
+        end++;
+    if (*end)
+        return 0;
+    *p = '\0';
+    return 1;
 }
 
 static int has_letter(const char *s)
@@ -172,11 +196,14 @@ static int run_text(pc_model *model, int strict)
     unsigned long line_no = 0;
     int failed = 0, status = 0, r;
     while ((r = read_line(stdin, &buf)) == 1) {
-        const char *line = buf.data;
+        char *line = buf.data;
         pc_status st;
+        float t = 0.0f;
+        int has_t;
         line_no++;
         if (line[0] == '#' || is_blank(line))
             continue;
+        has_t = split_time(line, &t);
         if (!parse_line(line, in)) {
             if (line_no == 1 && has_letter(line)) { /* a CSV header: pass it through */
                 if (printf("%s\n", line) < 0 || fflush(stdout) != 0) {
@@ -202,7 +229,7 @@ static int run_text(pc_model *model, int strict)
             }
             failed = 1;
             fill_nan(out);
-        } else if ((st = pc_run(model, in, 1, out)) != PC_OK) {
+        } else if ((st = pc_run_timed(model, in, has_t ? &t : NULL, 1, out)) != PC_OK) {
             fprintf(stderr, "posecorr-run: line %lu: %s: %s\n", line_no, pc_status_name(st),
                     pc_model_message(model));
             if (strict) {

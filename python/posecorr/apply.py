@@ -92,7 +92,9 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
             handle.write(line(reader.header) + "," + ",".join(CORR_COLUMNS) + "\n")
             for chunk in reader.chunks(chunk_rows):
                 measured = np.concatenate([chunk.block(MEAS_POS), chunk.block(MEAS_QUAT)], axis=1)
-                corrected = corrector.correct(measured)
+                # A model with a time input gets the table's t (s since the session's start).
+                times = chunk.block(("t",))[:, 0] if corrector.takes_time and "t" in reader.header else None
+                corrected = corrector.correct(measured, t=times)
                 handle.write("".join(line(row) + (_CORR_FORMAT % tuple(values))
                                      for row, values in zip(chunk.rows, corrected.tolist())))
                 if raw_sums is not None and corr_sums is not None:

@@ -346,7 +346,8 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
         if args.effects is None:
             effects = list(read_info(args.model).get("effects") or [])
         corrector = Corrector(args.model, backend=args.backend)
-        model_predict = corrector.correct
+        times = table.time()
+        model_predict = lambda measured: corrector.correct(measured, t=times)  # noqa: E731
     result = diagnose(table, effects, folds=args.folds, seed=args.seed, model_predict=model_predict,
                       progress=_progress(args))
 
@@ -427,7 +428,7 @@ def cmd_report(args: argparse.Namespace) -> None:
     _load_effect_files(args)
     table = read_table(args.data)
     info = read_info(args.model)
-    corrected = Corrector(args.model, backend=args.backend).correct(table.measured)
+    corrected = Corrector(args.model, backend=args.backend).correct(table.measured, t=table.time())
     diagnosis = None
     if not args.no_diagnosis:
         from .diagnose import diagnose

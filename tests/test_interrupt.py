@@ -47,12 +47,12 @@ if mode == "fit":
 elif mode == "apply":
     from posecorr.runtime import Corrector
     real_correct, calls = Corrector.correct, []
-    def correct(self, poses):
+    def correct(self, poses, t=None):
         calls.append(1)
         if len(calls) == 2:
             sys.stdout.flush()
             pause()
-        return real_correct(self, poses)
+        return real_correct(self, poses, t=t)
     Corrector.correct = correct
 elif mode == "sweep":
     import posecorr.train.protocol as protocol

@@ -83,13 +83,14 @@ def test_independent_rigid_reproduces_the_published_baselines() -> None:
 # --- the two real sessions ---------------------------------------------------------------
 
 @pytest.mark.parametrize("name, published", [("20201002_Exp1", 0.0101), ("20200717_Exp2", 0.0145)])
-def test_real_session_auto_no_worse_than_rigid(name: str, published: float) -> None:
+def test_real_session_auto_no_worse_than_rigid(name: str, published: float, capsys) -> None:
     table = read_table(REALDATA / f"{name}.csv")
     report = fit_table(table, ["station", "mount"], method="auto", cv="loo", seed=0)
     rigid_pos, rigid_total = rigid_heldout(table, kfold_indices(table.n, "loo"))
-    print(f"\n{name}: auto ({report.chosen}) LOO rmse_pos {1000 * report.heldout['rmse_pos']:.2f} mm, "
-          f"independent rigid {1000 * rigid_pos:.2f} mm, published rigid {1000 * published:.1f} mm; "
-          f"fixed {report.fixed}")
+    with capsys.disabled():
+        print(f"\n{name}: auto ({report.chosen}) LOO rmse_pos {1000 * report.heldout['rmse_pos']:.2f} mm, "
+              f"independent rigid {1000 * rigid_pos:.2f} mm, published rigid {1000 * published:.1f} mm; "
+              f"fixed {report.fixed}")
     assert report.heldout["rmse_pos"] <= published
     assert report.heldout["rmse_total"] <= TOLERANCE * rigid_total
     # What the data cannot see is named: the lever arm along the yaw axis, or all of it.
@@ -146,22 +147,24 @@ def test_corpus_covers_what_real_cells_produce(corpus: list[dict]) -> None:
     assert sum(r["unremovable"] > 0 for r in corpus) >= 15
 
 
-def test_corpus_auto_never_worse_than_rigid(corpus: list[dict]) -> None:
+def test_corpus_auto_never_worse_than_rigid(corpus: list[dict], capsys) -> None:
     ratios = np.array([r["auto"] / r["rigid"] for r in corpus])
     worst = corpus[int(np.argmax(ratios))]
     chosen = {name: sum(r["chosen"] == name for r in corpus) for name in sorted({r["chosen"] for r in corpus})}
-    print(f"\n{len(corpus)} sessions: auto / rigid held-out rmse_total median {np.median(ratios):.3f}, "
-          f"worst {ratios.max():.3f} (seed {worst['seed']}), better than rigid in {int(np.sum(ratios < 1))}; "
-          f"chosen {chosen}; worse than rigid by more than 5 %: {int(np.sum(ratios > TOLERANCE))}")
+    with capsys.disabled():
+        print(f"\n{len(corpus)} sessions: auto / rigid held-out rmse_total median {np.median(ratios):.3f}, "
+              f"worst {ratios.max():.3f} (seed {worst['seed']}), better than rigid in {int(np.sum(ratios < 1))}; "
+              f"chosen {chosen}; worse than rigid by more than 5 %: {int(np.sum(ratios > TOLERANCE))}")
     assert len(corpus) >= 200
     assert np.all(ratios <= TOLERANCE), [r for r in corpus if r["auto"] > TOLERANCE * r["rigid"]]
 
 
-def test_corpus_physics_reaches_the_noise_floor_with_full_spread(corpus: list[dict]) -> None:
+def test_corpus_physics_reaches_the_noise_floor_with_full_spread(corpus: list[dict], capsys) -> None:
     rows = [r for r in corpus if r["physics_loo"] is not None]
     ratios = np.array([r["physics_loo"] / r["floor"] for r in rows])
-    print(f"\n{len(rows)} sessions with full spread and >= 20 poses: physics LOO / noise floor "
-          f"median {np.median(ratios):.3f}, worst {ratios.max():.3f}")
+    with capsys.disabled():
+        print(f"\n{len(rows)} sessions with full spread and >= 20 poses: physics LOO / noise floor "
+              f"median {np.median(ratios):.3f}, worst {ratios.max():.3f}")
     assert len(rows) >= 20
     assert np.all(ratios <= FLOOR_RATIO), [r for r in rows if r["physics_loo"] > FLOOR_RATIO * r["floor"]]
 

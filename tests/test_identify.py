@@ -131,3 +131,29 @@ def test_a_gross_outlier_is_refused_with_its_row() -> None:
     table.meas_p[5, 0] += 100.0
     with pytest.raises(TableError, match=r"row 7: gross outlier.*100 m"):
         fit_table(table, ["station", "mount"], method="none", cv=4)
+
+
+def test_pipeline_and_physics_are_scikit_learn_estimators() -> None:
+    """clone, nested parameters, NotFittedError, and a fitted clone of the core (the
+    caller's core is never fitted in place)."""
+    from sklearn.base import clone
+    from sklearn.exceptions import NotFittedError
+
+    from posecorr.train import PMC
+    from posecorr.train.pipeline import CorrectionPipeline
+
+    core = PMC(representation="zhou", alpha="cv")
+    pipeline = CorrectionPipeline(("station", "mount"), core)
+    assert pipeline.get_params()["core__alpha"] == "cv"
+    twin = clone(pipeline).set_params(core__alpha=0.1)
+    assert twin.core.alpha == 0.1 and core.alpha == "cv"
+    with pytest.raises(NotFittedError):
+        pipeline.predict(np.zeros((1, 7)))
+    with pytest.raises(NotFittedError):
+        PhysicsModel().predict(np.array([[0, 0, 0, 1.0, 0, 0, 0]]))
+    table = simulate_session(2, n=30).table
+    pipeline.fit(table.measured, table.reference)
+    assert not hasattr(core, "coef_") and hasattr(pipeline.core_, "coef_")
+    assert clone(PhysicsModel(("station", "mount"), sigma_p=1e-3)).get_params() == \
+        {"effects": ("station", "mount"), "sigma_p": 1e-3, "sigma_r": None, "max_nfev": 200}
+    assert isinstance(clone(RigidModel()), RigidModel)

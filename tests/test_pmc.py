@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from sklearn.exceptions import NotFittedError
 
 from posecorr import rotations
 from posecorr.metrics import pose_metrics
@@ -126,7 +127,7 @@ def test_contract_score_params_and_errors():
         PMC("euler").fit(meas, ref)
     with pytest.raises(ValueError):
         model.predict(meas[:, :6])
-    with pytest.raises(RuntimeError):
+    with pytest.raises(NotFittedError):  # scikit-learn's, as its estimators raise
         PMC("R").predict(meas)
     with pytest.raises(ValueError):
         PMC("R").fit(meas[:20], ref[:20])  # 91 coefficients need more than 20 poses

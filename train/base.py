@@ -104,7 +104,7 @@ class BaseCorrector:
 
         sig = inspect.signature(cls.__init__)
         return [name for name, p in sig.parameters.items()
-                if name != "self" and p.kind == p.POSITIONAL_OR_KEYWORD]
+                if name != "self" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
 
     def get_params(self, deep: bool = True) -> dict[str, Any]:
         return {name: getattr(self, name) for name in self._param_names()}
@@ -149,7 +149,9 @@ class BaseCorrector:
 
     def _check_fitted(self) -> None:
         if not hasattr(self, "n_features_in_"):
-            raise RuntimeError(f"this {type(self).__name__} is not fitted yet: call fit first")
+            from sklearn.exceptions import NotFittedError  # here: the controller side never imports sklearn
+
+            raise NotFittedError(f"this {type(self).__name__} is not fitted yet: call fit first")
 
     # --- inference -----------------------------------------------------------------------
     def forward(self, pose: Any) -> Any:

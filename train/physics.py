@@ -25,6 +25,8 @@ from dataclasses import replace
 from typing import Any, Iterator, Sequence
 
 import numpy as np
+from sklearn.base import BaseEstimator
+from sklearn.exceptions import NotFittedError
 
 from posecorr import rotations
 from posecorr._xp import namespace
@@ -66,7 +68,7 @@ def single_threaded() -> Iterator[None]:
             torch.set_num_threads(before)
 
 
-class PhysicsModel:
+class PhysicsModel(BaseEstimator):
     """Fit the named effects (station, mount, sweep, ...) and correct by their inverse.
 
     Parameters: `effects` names from the catalogue (or user effects once loaded);
@@ -409,13 +411,14 @@ class PhysicsModel:
         return self._std_errors_cache
 
     def __getstate__(self) -> dict:
-        self.std_errors_  # noqa: B018  (resolve before pickling: the data is not kept)
-        return dict(self.__dict__)
+        if hasattr(self, "params_"):
+            self.std_errors_  # noqa: B018  (resolve before pickling: the data is not kept)
+        return super().__getstate__()
 
     # --- inference ----------------------------------------------------------------------
     def _check_fitted(self) -> None:
         if not hasattr(self, "params_"):
-            raise RuntimeError("this PhysicsModel is not fitted yet: call fit first")
+            raise NotFittedError(f"this {type(self).__name__} is not fitted yet: call fit first")
 
     def forward(self, pose: Any, t: Any = None) -> Any:
         """(N, 7) measured -> (N, 7) corrected: the fitted effects inverted in reverse order.

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 import numpy as np
+from sklearn.base import BaseEstimator, clone
+from sklearn.exceptions import NotFittedError
 
 from posecorr.data import PoseTable
 from posecorr.metrics import pose_errors, pose_metrics, rmse_total
@@ -24,8 +26,13 @@ from posecorr.metrics import pose_errors, pose_metrics, rmse_total
 from .physics import PhysicsModel, RigidModel
 
 
-class CorrectionPipeline:
-    """Physics stage (may be empty) followed by a core corrector (may be None)."""
+class CorrectionPipeline(BaseEstimator):
+    """Physics stage (may be empty) followed by a core corrector (may be None).
+
+    scikit-learn conventions: the parameters (`effects`, `core`, `sigma_p`, `sigma_r`,
+    `rigid`) are never changed by fit; the fitted parts are `physics_` and `core_`, a clone
+    of `core` (so `clone(pipeline)` and nested parameters such as `core__alpha` work).
+    """
 
     def __init__(self, effects: Sequence[str] = (), core: Any = None, sigma_p: float | None = None,
                  sigma_r: float | None = None, rigid: bool = False) -> None:
@@ -66,12 +73,13 @@ class CorrectionPipeline:
                 measured, reference, t=t, with_rotation=with_rotation, warm_start=warm_start)
         if self.physics_ is not None:
             stage = self.physics_.predict(measured, t)
-        if self.core is not None:
+        self.core_ = None if self.core is None else clone(self.core)
+        if self.core_ is not None:
             extra = {}
-            if validation is not None and getattr(self.core, "method", "") == "mlp":
+            if validation is not None and getattr(self.core_, "method", "") == "mlp":
                 val_measured, val_reference, val_t = validation
                 extra["validation"] = (self.predict_physics(val_measured, val_t), val_reference)
-            self.core.fit(stage, reference, **extra)
+            self.core_.fit(stage, reference, **extra)
         self.n_features_in_ = 7
         return self
 
@@ -81,13 +89,13 @@ class CorrectionPipeline:
 
     def forward(self, pose: Any, t: Any = None) -> Any:
         out = pose if self.physics_ is None else self.physics_.forward(pose, t)
-        return out if self.core is None else self.core.forward(out)
+        return out if self.core_ is None else self.core_.forward(out)
 
     def predict(self, measured: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
         if not hasattr(self, "n_features_in_"):
-            raise RuntimeError("this CorrectionPipeline is not fitted yet: call fit first")
+            raise NotFittedError("this CorrectionPipeline is not fitted yet: call fit first")
         stage = self.predict_physics(measured, t)
-        return stage if self.core is None else self.core.predict(stage)
+        return stage if self.core_ is None else self.core_.predict(stage)
 
     def score(self, measured: np.ndarray, reference: np.ndarray, t: np.ndarray | None = None) -> float:
         """-rmse_total of the corrected poses (higher is better)."""
@@ -95,12 +103,12 @@ class CorrectionPipeline:
 
     def export_info(self) -> dict[str, Any]:
         info: dict[str, Any] = {"method": "none", "representation": self.representation}
-        if self.core is not None:
-            info.update(self.core.export_info())
+        if self.core_ is not None:
+            info.update(self.core_.export_info())
         if self.physics_ is not None:
             info["effects"] = list(self.physics_.params_)
             info["effect_params"] = self.physics_.describe()
-            if self.core is None:
+            if self.core_ is None:
                 info["method"] = "rigid" if self.rigid else "physics"
             if self.physics_.fixed_:
                 info["fixed"] = dict(self.physics_.fixed_)

@@ -34,7 +34,7 @@ from posecorr.effects import EffectContext, get_effect, invert_effects, sorted_e
 from posecorr.metrics import pose_metrics
 
 from .base import check_poses
-from .identify import (Block, chordal_mean, describe_spread, determined_directions, direction_label,
+from .identify import (Block, RigidRegistration, chordal_mean, describe_spread, determined_directions, direction_label,
                        rigid_registration)
 
 DEFAULT_SIGMA_P = 3e-4   # m, DESIGN.md default noise
@@ -104,7 +104,7 @@ class PhysicsModel(BaseEstimator):
         measured, reference, chosen = self._setup(measured, reference, t, with_rotation)
         prior = warm_start if isinstance(warm_start, PhysicsModel) else None
         thetas = dict(prior.params_) if prior is not None else dict(warm_start or {})
-        theta0, sigma_p, sigma_r = self._initial_theta(measured, reference, chosen, thetas)
+        theta0, sigma_p, sigma_r, _ = self._initial_theta(measured, reference, chosen, thetas)
         with single_threaded():
             if prior is not None:
                 self.sigma_p_, self.sigma_r_ = prior.sigma_p_, prior.sigma_r_
@@ -157,14 +157,15 @@ class PhysicsModel(BaseEstimator):
         """{parameter or direction: why} of what these poses cannot determine, without fitting
         (the first step of `fit`). Leaves the estimator unfitted."""
         measured, reference, chosen = self._setup(measured, reference, t, with_rotation)
-        theta0, sigma_p, sigma_r = self._initial_theta(measured, reference, chosen, {})
+        theta0, sigma_p, sigma_r, _ = self._initial_theta(measured, reference, chosen, {})
         with single_threaded():
             _, fixed = self._identify(theta0, measured, reference, self.sigma_p or sigma_p, self.sigma_r or sigma_r)
         return fixed
 
     def _initial_theta(self, measured: np.ndarray, reference: np.ndarray, chosen: list,
-                       given: dict[str, np.ndarray]) -> tuple[np.ndarray, float, float]:
-        """theta at the closed-form start, and the noise levels (m, rad) the rigid fit leaves.
+                       given: dict[str, np.ndarray]) -> tuple[np.ndarray, float, float, RigidRegistration]:
+        """theta at the closed-form start, the noise levels (m, rad) the rigid fit leaves, and
+        that rigid fit.
 
         `station` and `mount` start from the rigid registration (Kabsch on positions, the lever
         arm along the directions the orientations determine, the mean mount rotation), which
@@ -195,7 +196,7 @@ class PhysicsModel(BaseEstimator):
                 chordal_mean(np.swapaxes(reference_R, -1, -2) @ measured_R))
         thetas.update({name: np.asarray(theta, float) for name, theta in given.items() if name in thetas})
         theta = np.concatenate([thetas[e.name] for e in chosen]) if chosen else np.zeros(0)
-        return theta, sigma_p, sigma_r
+        return theta, sigma_p, sigma_r, rigid
 
     def _hold_nominal(self, theta: np.ndarray) -> np.ndarray:
         """theta with every held direction at its nominal (identity) value: the closed-form
@@ -487,20 +488,11 @@ class RigidModel(PhysicsModel):
 
     def fit(self, measured: Any, reference: Any, t: np.ndarray | None = None,
             with_rotation: bool = True, warm_start: Any = None, validation: Any = None) -> "RigidModel":
-        measured = check_poses(measured, "measured")
-        reference = check_poses(reference, "reference", len(measured))
         if len(measured) < 3:
             raise ValueError(f"a rigid registration needs at least 3 poses, got {len(measured)}")
-        base = EffectContext.default()
-        self.ctx_ = EffectContext(base.R_S, base.t_S, reference[:, :3].mean(axis=0))
-        self.with_rotation_ = bool(with_rotation)
-        self._chosen = sorted_effects(self.effects)
-        measured_R = rotations.quat_to_matrix(measured[:, 3:7])
-        self.spread_ = describe_spread(measured[:, :3], measured_R, self.with_rotation_)
-        theta, self.sigma_p_, sigma_r = self._initial_theta(measured, reference, self._chosen, {})
+        measured, reference, chosen = self._setup(measured, reference, None, with_rotation)
+        theta, self.sigma_p_, sigma_r, rigid = self._initial_theta(measured, reference, chosen, {})
         self.sigma_r_ = sigma_r if with_rotation else None
-        rigid = rigid_registration(measured[:, :3], measured_R, reference[:, :3],
-                                   rotations.quat_to_matrix(reference[:, 3:7]) if with_rotation else None)
         self.fixed_ = {} if with_rotation else {"mount.d": "the reference has no orientation"}
         if len(rigid.lever_fixed):
             label = "mount.e" if len(rigid.lever_fixed) == 3 else "mount.e along " + "; ".join(

@@ -392,7 +392,7 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
                   for name, m in fitted.items()}
         best = min(candidates, key=lambda c: (scores[c.name], not c.rigid))
         model = fitted[best.name] if _is_mlp(best) else _fit(best, fit_rows, arrays, with_rotation, prior)
-        rigid = _fit(RIGID_CANDIDATE, fit_rows, arrays, with_rotation, prior)
+        rigid = model if best.rigid else _fit(RIGID_CANDIDATE, fit_rows, arrays, with_rotation, prior)
         t_test = None if t is None else t[test]
         raw = pose_metrics(R[test], M[test], with_rotation)
         heldout = metric_block(raw, pose_metrics(R[test], model.predict(M[test], t_test), with_rotation))

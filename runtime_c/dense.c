@@ -178,6 +178,90 @@ PC_INLINE void pc_rows4(const float *A, size_t K, const float *B, size_t N, cons
         }
     }
 }
+
+/* One row of A B + c, the columns in blocks of NV four-lane accumulators that run in one
+ * pass over k: a pose's layer is latency-bound, and NV independent chains of additions
+ * overlap where one pass per block waited on each chain in turn. NV is a constant after
+ * inlining, so the accumulators stay in registers. Same summation order as pc_row. */
+typedef int32_t pc_i4 __attribute__((vector_size(16)));
+
+/* x where m is set, else y (m from a vector comparison: all bits or none). */
+PC_INLINE pc_v4 pc_select4(pc_i4 m, pc_v4 x, pc_v4 y)
+{
+    return (pc_v4)((m & (pc_i4)x) | (~m & (pc_i4)y));
+}
+
+/* pc_tanh_inline on four lanes: the same operations in the same order, so each lane is
+ * bit-identical to the scalar function (NaN included: a comparison with NaN is false). */
+PC_INLINE pc_v4 pc_tanh4(pc_v4 x)
+{
+    const pc_v4 nine = {9.0f, 9.0f, 9.0f, 9.0f}, one = {1.0f, 1.0f, 1.0f, 1.0f};
+    pc_v4 c = pc_select4(x > nine, nine, x), t, p, q;
+    c = pc_select4(c < -nine, -nine, c);
+    t = c * c;
+    p = t * -8.291313e-14f + 5.1926935e-11f;
+    p = p * t + -2.0029567e-08f;
+    p = p * t + 1.1101826e-05f;
+    p = p * t + 0.0030986548f;
+    p = p * t + 0.13079165f;
+    p = p * t + 0.99999994f;
+    q = t * 0.00025386017f + 0.024473764f;
+    q = q * t + 0.46412486f;
+    q = q * t + 1.0f;
+    p = c * p / q;
+    p = pc_select4(p > one, one, p);
+    return pc_select4(p < -one, -one, p);
+}
+
+PC_INLINE void pc_row1_block(const float *a, const float *B, size_t K, size_t N,
+                             const float *C, float *O, int tanh_act, const size_t NV)
+{
+    pc_v4 acc[8];
+    size_t k, j;
+    for (j = 0; j < NV; j++)
+        memcpy(&acc[j], C + 4 * j, sizeof acc[j]);
+    for (k = 0; k < K; k++) {
+        const float av = a[k];
+        const float *b = B + k * N;
+        for (j = 0; j < NV; j++) {
+            pc_v4 bv;
+            memcpy(&bv, b + 4 * j, sizeof bv);
+            acc[j] += av * bv;
+        }
+    }
+    for (j = 0; j < NV; j++) {
+        if (tanh_act)
+            acc[j] = pc_tanh4(acc[j]);
+        memcpy(O + 4 * j, &acc[j], sizeof acc[j]);
+    }
+}
+
+/* act(a B + c) for one row, tanh_act: act is tanh, else none. */
+PC_INLINE void pc_row1(const float *a, const float *B, size_t K, size_t N, const float *C,
+                       int tanh_act, float *restrict O)
+{
+    size_t n0 = 0, k;
+    while (N - n0 >= 4) {
+        const size_t nv = (N - n0) / 4 < 8 ? (N - n0) / 4 : 8;
+        switch (nv) {
+        case 1: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, tanh_act, 1); break;
+        case 2: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, tanh_act, 2); break;
+        case 3: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, tanh_act, 3); break;
+        case 4: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, tanh_act, 4); break;
+        case 5: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, tanh_act, 5); break;
+        case 6: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, tanh_act, 6); break;
+        case 7: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, tanh_act, 7); break;
+        default: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, tanh_act, 8); break;
+        }
+        n0 += 4 * nv;
+    }
+    for (; n0 < N; n0++) {
+        float acc = C[n0];
+        for (k = 0; k < K; k++)
+            acc += a[k] * B[k * N + n0];
+        O[n0] = tanh_act ? pc_tanh_inline(acc) : acc;
+    }
+}
 #endif
 
 /* Rows of act(A B + c): no transposes, bias row, alpha = beta = 1 (the MLP layer). Four
@@ -195,6 +279,13 @@ PC_INLINE void pc_gemm_rows(const pc_step *s)
     for (; m + 4 <= M; m += 4)
         pc_rows4(A + m * K, K, B, N, C, O + m * N);
 #endif
+#ifdef PC_HAVE_ROWS4
+    for (; m < M; m++)
+        pc_row1(A + m * K, B, K, N, C, 0, O + m * N);
+    if (q->act == PC_ACT_TANH)
+        for (n = 0; n < M * N; n++)
+            O[n] = pc_tanh_inline(O[n]);
+#else
     for (; m < M; m++) {
         float *restrict o = O + m * N;
         for (n = 0; n < N; n++)
@@ -204,6 +295,7 @@ PC_INLINE void pc_gemm_rows(const pc_step *s)
     if (q->act == PC_ACT_TANH)
         for (n = 0; n < M * N; n++)
             O[n] = pc_tanh_inline(O[n]);
+#endif
 }
 
 /* One kernel for both activations: the test per launch is free next to the layer. */

@@ -159,26 +159,44 @@ typedef struct pc_reduce {
 #define PC_MAX_EXPR(a, b) (((a) != (a) || (b) != (b)) ? (a) + (b) : (a) > (b) ? (a) : (b))
 #define PC_MIN_EXPR(a, b) (((a) != (a) || (b) != (b)) ? (a) + (b) : (a) < (b) ? (a) : (b))
 
-/* A run of single-element steps as one launch (the planner builds it for one-pose
- * plans): each op reads element 0 of io[a], io[b], io[c] (element off of io[a] for COPY)
- * and writes element 0 of io[o], in order; the arithmetic is the kernels' own. */
+/* One-pose programs (built by the planner, program.c): the small steps of a one-pose
+ * plan flattened into element operations, interpreted in one launch. Each op reads the
+ * elements at byte offsets a, b, c from the step's io[0] and writes the one at o; the
+ * arithmetic is the kernels' own, so results are the steps' bit for bit. Codes start at
+ * 1: 0 in pc_prep.sop means "no element form". */
 enum {
+    PC_SOP_NONE = 0,
     PC_SOP_ADD, PC_SOP_SUB, PC_SOP_MUL, PC_SOP_DIV, PC_SOP_MAX, PC_SOP_MIN,
     PC_SOP_EQ, PC_SOP_GT, PC_SOP_GE, PC_SOP_LT, PC_SOP_LE, /* bool output */
-    PC_SOP_NEG, PC_SOP_SQRT,
-    PC_SOP_WHERE, /* io[c] (bool) ? io[a] : io[b] */
-    PC_SOP_COPY   /* 4-byte element off of io[a] */
+    PC_SOP_NEG, PC_SOP_SQRT, PC_SOP_ABS, PC_SOP_EXP, PC_SOP_SIN, PC_SOP_COS, PC_SOP_TAN,
+    PC_SOP_ATAN, PC_SOP_TANH, PC_SOP_SIGMOID, PC_SOP_RELU,
+    PC_SOP_WHERE,    /* c (bool) ? a : b */
+    PC_SOP_COPY,     /* the 4 bytes at a */
+    PC_SOP_DOT,      /* o = c + a b + (the following DOT_TERMs' a b) ..., in order */
+    PC_SOP_DOT_TERM,
+    PC_SOP_COUNT
 };
 
+/* Unary codes lie in [PC_SOP_NEG, PC_SOP_RELU]; binary ones before, bool-valued in
+ * [PC_SOP_EQ, PC_SOP_LE]. */
+#define PC_SOP_IS_BINARY(c) ((c) >= PC_SOP_ADD && (c) <= PC_SOP_LE)
+
+/* Operations of one code come in groups; n is the group's length on its first op. */
 typedef struct pc_scalar_op {
-    uint16_t code, a, b, c, o;
-    uint32_t off;
+    int32_t code, n, a, b, c, o;
 } pc_scalar_op;
 
 typedef struct pc_scalar_program {
     size_t n_ops;
+    float k[2];          /* 0 and 1: a sum's start, a term that is not a product */
     pc_scalar_op ops[1]; /* n_ops entries; allocated longer */
 } pc_scalar_program;
+
+/* While planning, an operand is PC_SOP_REF(slot, byte offset in that io slot's value),
+ * or in slot PC_SOP_CONSTANTS of k[]; bound, it is the byte offset from io[0]. */
+#define PC_SOP_REF(slot, off) ((int32_t)((slot) << 16 | (off)))
+#define PC_SOP_CONSTANTS 0x7fff
+void pc_scalar_program_bind(pc_scalar_program *q, void *const *io);
 
 pc_status k_scalar_program(const pc_step *s);
 

@@ -21,6 +21,8 @@ typedef struct pc_prep {
     void *prm;
     size_t prm_size;
     int32_t alias_of;   /* output 0 is a view of this value (no kernel) */
+    int sop;            /* float elementwise meaning (PC_SOP_*, kernels.h), 0 for others:
+                         * what a one-pose program runs in place of the kernel */
     int folding;
 } pc_prep;
 

@@ -193,7 +193,7 @@ PC_BINARY(k_and_b, uint8_t, uint8_t, a && b)
 PC_BINARY(k_or_b, uint8_t, uint8_t, a || b)
 
 static pc_status pc_binary(pc_prep *p, const pc_kernel_fn *kf, const pc_kernel_fn *ki,
-                           const pc_kernel_fn *kb, int out_bool)
+                           const pc_kernel_fn *kb, int out_bool, int sop)
 {
     const pc_kernel_fn *set;
     int mode, dt;
@@ -211,20 +211,21 @@ static pc_status pc_binary(pc_prep *p, const pc_kernel_fn *kf, const pc_kernel_f
     if ((st = pc_bcast_prepare(p, 2, p->in, out_bool ? PC_BOOL : dt, &mode)) != PC_OK)
         return st;
     p->fn = set[mode];
+    p->sop = dt == PC_F32 ? sop : 0;
     return PC_OK;
 }
 
-pc_status pc_op_Add(pc_prep *p) { return pc_binary(p, k_add_f, k_add_i, NULL, 0); }
-pc_status pc_op_Sub(pc_prep *p) { return pc_binary(p, k_sub_f, k_sub_i, NULL, 0); }
-pc_status pc_op_Mul(pc_prep *p) { return pc_binary(p, k_mul_f, k_mul_i, NULL, 0); }
-pc_status pc_op_Div(pc_prep *p) { return pc_binary(p, k_div_f, k_div_i, NULL, 0); }
-pc_status pc_op_Equal(pc_prep *p) { return pc_binary(p, k_eq_f, k_eq_i, k_eq_b, 1); }
-pc_status pc_op_Greater(pc_prep *p) { return pc_binary(p, k_gt_f, k_gt_i, NULL, 1); }
-pc_status pc_op_GreaterOrEqual(pc_prep *p) { return pc_binary(p, k_ge_f, k_ge_i, NULL, 1); }
-pc_status pc_op_Less(pc_prep *p) { return pc_binary(p, k_lt_f, k_lt_i, NULL, 1); }
-pc_status pc_op_LessOrEqual(pc_prep *p) { return pc_binary(p, k_le_f, k_le_i, NULL, 1); }
-pc_status pc_op_And(pc_prep *p) { return pc_binary(p, NULL, NULL, k_and_b, 1); }
-pc_status pc_op_Or(pc_prep *p) { return pc_binary(p, NULL, NULL, k_or_b, 1); }
+pc_status pc_op_Add(pc_prep *p) { return pc_binary(p, k_add_f, k_add_i, NULL, 0, PC_SOP_ADD); }
+pc_status pc_op_Sub(pc_prep *p) { return pc_binary(p, k_sub_f, k_sub_i, NULL, 0, PC_SOP_SUB); }
+pc_status pc_op_Mul(pc_prep *p) { return pc_binary(p, k_mul_f, k_mul_i, NULL, 0, PC_SOP_MUL); }
+pc_status pc_op_Div(pc_prep *p) { return pc_binary(p, k_div_f, k_div_i, NULL, 0, PC_SOP_DIV); }
+pc_status pc_op_Equal(pc_prep *p) { return pc_binary(p, k_eq_f, k_eq_i, k_eq_b, 1, PC_SOP_EQ); }
+pc_status pc_op_Greater(pc_prep *p) { return pc_binary(p, k_gt_f, k_gt_i, NULL, 1, PC_SOP_GT); }
+pc_status pc_op_GreaterOrEqual(pc_prep *p) { return pc_binary(p, k_ge_f, k_ge_i, NULL, 1, PC_SOP_GE); }
+pc_status pc_op_Less(pc_prep *p) { return pc_binary(p, k_lt_f, k_lt_i, NULL, 1, PC_SOP_LT); }
+pc_status pc_op_LessOrEqual(pc_prep *p) { return pc_binary(p, k_le_f, k_le_i, NULL, 1, PC_SOP_LE); }
+pc_status pc_op_And(pc_prep *p) { return pc_binary(p, NULL, NULL, k_and_b, 1, 0); }
+pc_status pc_op_Or(pc_prep *p) { return pc_binary(p, NULL, NULL, k_or_b, 1, 0); }
 
 /* Max/Min with more than two operands: out = op(in0, in1, ...) in one pass per operand. */
 #define PC_MINMAX_N(NAME, T, CMP)                                                              \
@@ -252,7 +253,7 @@ PC_MINMAX_N(k_max_ni, int64_t, >)
 PC_MINMAX_N(k_min_ni, int64_t, <)
 
 static pc_status pc_minmax(pc_prep *p, const pc_kernel_fn *kf, const pc_kernel_fn *ki,
-                           pc_kernel_fn nf, pc_kernel_fn ni)
+                           pc_kernel_fn nf, pc_kernel_fn ni, int sop)
 {
     size_t k;
     int mode;
@@ -270,7 +271,7 @@ static pc_status pc_minmax(pc_prep *p, const pc_kernel_fn *kf, const pc_kernel_f
         return pc_set_out(p, 0, p->in[0]->dtype, p->in[0]->rank, p->in[0]->dims);
     }
     if (p->n_in == 2)
-        return pc_binary(p, kf, ki, NULL, 0);
+        return pc_binary(p, kf, ki, NULL, 0, sop);
     if (p->n_in > PC_BMAX)
         return pc_prep_fail(p, PC_ERR_UNSUPPORTED, "more than %d inputs", PC_BMAX);
     if ((st = pc_bcast_prepare(p, p->n_in, p->in, p->in[0]->dtype, &mode)) != PC_OK)
@@ -287,8 +288,8 @@ static pc_status pc_minmax(pc_prep *p, const pc_kernel_fn *kf, const pc_kernel_f
     return PC_OK;
 }
 
-pc_status pc_op_Max(pc_prep *p) { return pc_minmax(p, k_max_f, k_max_i, k_max_nf, k_max_ni); }
-pc_status pc_op_Min(pc_prep *p) { return pc_minmax(p, k_min_f, k_min_i, k_min_nf, k_min_ni); }
+pc_status pc_op_Max(pc_prep *p) { return pc_minmax(p, k_max_f, k_max_i, k_max_nf, k_max_ni, PC_SOP_MAX); }
+pc_status pc_op_Min(pc_prep *p) { return pc_minmax(p, k_min_f, k_min_i, k_min_nf, k_min_ni, PC_SOP_MIN); }
 
 /* ---- Where ------------------------------------------------------------------------ */
 
@@ -348,6 +349,7 @@ pc_status pc_op_Where(pc_prep *p)
         p->fn = dt == PC_F32 ? k_where_f_gen2 : dt == PC_I64 ? k_where_i_gen2 : k_where_b_gen2;
     else
         p->fn = dt == PC_F32 ? k_where_f_gen : dt == PC_I64 ? k_where_i_gen : k_where_b_gen;
+    p->sop = dt == PC_F32 ? PC_SOP_WHERE : 0;
     return PC_OK;
 }
 
@@ -364,7 +366,8 @@ static PC_UNARY(k_cast_bi, uint8_t, int64_t, a ? 1 : 0)
 static PC_UNARY(k_cast_if, int64_t, float, (float)a)
 static PC_UNARY(k_cast_ib, int64_t, uint8_t, a != 0)
 
-static pc_status pc_unary(pc_prep *p, pc_kernel_fn kf, pc_kernel_fn ki, pc_kernel_fn kb)
+static pc_status pc_unary(pc_prep *p, pc_kernel_fn kf, pc_kernel_fn ki, pc_kernel_fn kb,
+                          int sop)
 {
     const pc_value *a;
     int dt;
@@ -373,24 +376,25 @@ static pc_status pc_unary(pc_prep *p, pc_kernel_fn kf, pc_kernel_fn ki, pc_kerne
     a = p->in[0];
     dt = a->dtype;
     p->fn = dt == PC_F32 ? kf : dt == PC_I64 ? ki : kb;
+    p->sop = dt == PC_F32 ? sop : 0;
     if (!p->fn)
         return pc_prep_fail(p, PC_ERR_UNSUPPORTED, "input type %s is not supported",
                             pc_dtype_name(dt));
     return pc_set_out(p, 0, dt, a->rank, a->dims);
 }
 
-pc_status pc_op_Abs(pc_prep *p) { return pc_unary(p, k_abs_f, k_abs_i, NULL); }
-pc_status pc_op_Neg(pc_prep *p) { return pc_unary(p, k_neg_f, k_neg_i, NULL); }
-pc_status pc_op_Atan(pc_prep *p) { return pc_unary(p, k_atan_f, NULL, NULL); }
-pc_status pc_op_Cos(pc_prep *p) { return pc_unary(p, k_cos_f, NULL, NULL); }
-pc_status pc_op_Sin(pc_prep *p) { return pc_unary(p, k_sin_f, NULL, NULL); }
-pc_status pc_op_Tan(pc_prep *p) { return pc_unary(p, k_tan_f, NULL, NULL); }
-pc_status pc_op_Exp(pc_prep *p) { return pc_unary(p, k_exp_f, NULL, NULL); }
-pc_status pc_op_Sqrt(pc_prep *p) { return pc_unary(p, k_sqrt_f, NULL, NULL); }
-pc_status pc_op_Relu(pc_prep *p) { return pc_unary(p, k_relu_f, k_relu_i, NULL); }
-pc_status pc_op_Sigmoid(pc_prep *p) { return pc_unary(p, k_sigmoid_f, NULL, NULL); }
-pc_status pc_op_Tanh(pc_prep *p) { return pc_unary(p, k_tanh_f, NULL, NULL); }
-pc_status pc_op_Not(pc_prep *p) { return pc_unary(p, NULL, NULL, k_not_b); }
+pc_status pc_op_Abs(pc_prep *p) { return pc_unary(p, k_abs_f, k_abs_i, NULL, PC_SOP_ABS); }
+pc_status pc_op_Neg(pc_prep *p) { return pc_unary(p, k_neg_f, k_neg_i, NULL, PC_SOP_NEG); }
+pc_status pc_op_Atan(pc_prep *p) { return pc_unary(p, k_atan_f, NULL, NULL, PC_SOP_ATAN); }
+pc_status pc_op_Cos(pc_prep *p) { return pc_unary(p, k_cos_f, NULL, NULL, PC_SOP_COS); }
+pc_status pc_op_Sin(pc_prep *p) { return pc_unary(p, k_sin_f, NULL, NULL, PC_SOP_SIN); }
+pc_status pc_op_Tan(pc_prep *p) { return pc_unary(p, k_tan_f, NULL, NULL, PC_SOP_TAN); }
+pc_status pc_op_Exp(pc_prep *p) { return pc_unary(p, k_exp_f, NULL, NULL, PC_SOP_EXP); }
+pc_status pc_op_Sqrt(pc_prep *p) { return pc_unary(p, k_sqrt_f, NULL, NULL, PC_SOP_SQRT); }
+pc_status pc_op_Relu(pc_prep *p) { return pc_unary(p, k_relu_f, k_relu_i, NULL, PC_SOP_RELU); }
+pc_status pc_op_Sigmoid(pc_prep *p) { return pc_unary(p, k_sigmoid_f, NULL, NULL, PC_SOP_SIGMOID); }
+pc_status pc_op_Tanh(pc_prep *p) { return pc_unary(p, k_tanh_f, NULL, NULL, PC_SOP_TANH); }
+pc_status pc_op_Not(pc_prep *p) { return pc_unary(p, NULL, NULL, k_not_b, 0); }
 
 typedef struct pc_clip {
     float lo, hi;

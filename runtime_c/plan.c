@@ -3,40 +3,12 @@
  * metadata, constants and activations into one arena. pc_run then does no shape work:
  * it walks a precomputed array of kernel launches. */
 #include "plan.h"
+#include "program.h"
 
 #include <stdlib.h>
 #include <string.h>
 
 #define PC_INF_STEP 0x7fffffff
-
-/* One kernel launch of a plan under construction: value ids instead of pointers. */
-typedef struct pc_draft {
-    pc_kernel_fn fn;
-    int32_t *io;        /* value ids: inputs then outputs */
-    uint32_t n_io;
-    void *prm;
-    size_t prm_size;
-    size_t n;
-} pc_draft;
-
-typedef struct pc_plan_draft {
-    size_t batch;
-    pc_draft *drafts;
-    size_t n_drafts;
-    size_t **loc;       /* per draft, per io: location code (see PC_LOC_NONE) */
-    size_t *io_loc;     /* graph inputs then outputs */
-    size_t act_bytes;
-} pc_plan_draft;
-
-/* Location code: bit 0 set = constant region; SIZE_MAX = absent. */
-#define PC_LOC_NONE ((size_t)-1)
-
-static int32_t pc_root(const pc_builder *b, int32_t v)
-{
-    while (b->values[v].alias >= 0)
-        v = b->values[v].alias;
-    return v;
-}
 
 static pc_status pc_add_draft(pc_builder *b, pc_plan_draft *pd, const pc_prep *p)
 {
@@ -57,6 +29,7 @@ static pc_status pc_add_draft(pc_builder *b, pc_plan_draft *pd, const pc_prep *p
     d->prm = p->prm;
     d->prm_size = p->prm_size;
     d->n = p->out[0] ? p->out[0]->count : 0;
+    d->sop = p->sop;
     return PC_OK;
 }
 
@@ -270,146 +243,13 @@ static pc_status pc_plan_locate(pc_builder *b, pc_plan_draft *pd, size_t batch,
 }
 
 
-/* ---- one-pose plans: runs of single-element steps as one launch -------------------- */
-
-/* Longest run fused into one launch (its io list stays small). */
-#define PC_PROGRAM_MAX_OPS 256
-
-/* The op a single-element draft becomes in a k_scalar_program (off: see PC_SOP_COPY),
- * or -1. With one output element every operand is read at one element, whatever the
- * broadcast layout. */
-static int pc_scalar_code(const pc_builder *b, const pc_draft *d, uint32_t *off)
-{
-    /* in the order of the PC_SOP_ codes from PC_SOP_ADD */
-    static const pc_kernel_fn *const binary[] = {k_add_f, k_sub_f, k_mul_f, k_div_f, k_max_f,
-                                                 k_min_f, k_eq_f,  k_gt_f,  k_ge_f,  k_lt_f,
-                                                 k_le_f};
-    size_t k, l;
-    *off = 0;
-    if (d->n != 1)
-        return -1;
-    if (d->n_io == 3)
-        for (k = 0; k < sizeof binary / sizeof binary[0]; k++)
-            for (l = 0; l < PC_LAYOUTS; l++)
-                if (d->fn == binary[k][l])
-                    return PC_SOP_ADD + (int)k;
-    if (d->n_io == 2 && d->fn == k_neg_f)
-        return PC_SOP_NEG;
-    if (d->n_io == 2 && d->fn == k_sqrt_f)
-        return PC_SOP_SQRT;
-    if (d->n_io == 4 && d->fn == k_where_f_same)
-        return PC_SOP_WHERE;
-    if (d->n_io == 2 && d->fn == k_copy_4) {
-        const ptrdiff_t base = ((const pc_strided *)d->prm)->base;
-        if (base < 0 || base > 0xffff)
-            return -1;
-        *off = (uint32_t)base;
-        return PC_SOP_COPY;
-    }
-    if (d->n_io == 3 && d->fn == k_gather_cols_4) {
-        /* a constant index (normalised and checked when the node was prepared) */
-        const pc_value *idx = &b->values[pc_root(b, d->io[1])];
-        const pc_gather *q = (const pc_gather *)d->prm;
-        int64_t i;
-        if (!idx->cdata || idx->count != 1 || q->outer != 1)
-            return -1;
-        i = *(const int64_t *)idx->cdata;
-        if (i < 0 || (uint64_t)i >= q->len || i > 0xffff)
-            return -1;
-        *off = (uint32_t)i;
-        return PC_SOP_COPY;
-    }
-    return -1;
-}
-
-/* Index of value id v in io[0, *n), appended when absent. */
-static uint16_t pc_io_slot(int32_t *io, uint32_t *n, int32_t v)
-{
-    uint32_t k;
-    for (k = 0; k < *n; k++)
-        if (io[k] == v)
-            return (uint16_t)k;
-    io[*n] = v;
-    return (uint16_t)(*n)++;
-}
-
-/* Drafts run[0, count) -> one k_scalar_program draft in *out. */
-static pc_status pc_fuse_run(pc_builder *b, const pc_draft *run, size_t count, pc_draft *out)
-{
-    pc_scalar_program *q;
-    int32_t *io;
-    uint32_t n_io = 0;
-    size_t k;
-    const size_t prm_size = sizeof(pc_scalar_program) + (count - 1) * sizeof(pc_scalar_op);
-    io = pc_scratch_alloc(&b->scratch, (4 * count + 1) * sizeof(int32_t));
-    q = pc_scratch_alloc(&b->scratch, prm_size);
-    if (!io || !q)
-        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    q->n_ops = count;
-    for (k = 0; k < count; k++) {
-        const pc_draft *d = &run[k];
-        pc_scalar_op *op = &q->ops[k];
-        uint32_t off;
-        const int code = pc_scalar_code(b, d, &off);
-        op->code = (uint16_t)code;
-        op->off = off;
-        op->o = pc_io_slot(io, &n_io, d->io[d->n_io - 1]);
-        if (code == PC_SOP_WHERE) {
-            op->c = pc_io_slot(io, &n_io, d->io[0]);
-            op->a = pc_io_slot(io, &n_io, d->io[1]);
-            op->b = pc_io_slot(io, &n_io, d->io[2]);
-        } else {
-            op->a = pc_io_slot(io, &n_io, d->io[0]);
-            op->b = op->c = op->a;
-            if (code <= PC_SOP_LE)
-                op->b = pc_io_slot(io, &n_io, d->io[1]);
-        }
-    }
-    out->fn = k_scalar_program;
-    out->io = io;
-    out->n_io = n_io;
-    out->prm = q;
-    out->prm_size = prm_size;
-    out->n = 1;
-    return PC_OK;
-}
-
-/* One-pose plans: each run of consecutive single-element steps (arithmetic, comparisons,
- * Max/Min, Neg, Sqrt, Where, one-element copies and constant-index gathers) becomes one
- * k_scalar_program launch. The operations and their order are unchanged, so results are
- * the steps' bit for bit; the launches saved are most of a one-pose run of the exporter's
- * rotation subgraphs. */
-static pc_status pc_fuse_scalars(pc_builder *b, pc_plan_draft *pd)
-{
-    size_t i = 0, w = 0, j;
-    uint32_t off;
-    pc_status st;
-    while (i < pd->n_drafts) {
-        for (j = i; j < pd->n_drafts && j - i < PC_PROGRAM_MAX_OPS &&
-                    pc_scalar_code(b, &pd->drafts[j], &off) >= 0;
-             j++)
-            ;
-        if (j - i >= 2) {
-            pc_draft fused;
-            if ((st = pc_fuse_run(b, &pd->drafts[i], j - i, &fused)) != PC_OK)
-                return st;
-            pd->drafts[w++] = fused;
-            i = j;
-        } else {
-            pd->drafts[w++] = pd->drafts[i++];
-        }
-    }
-    pd->n_drafts = w;
-    return PC_OK;
-}
-
 static pc_status pc_plan_batch(pc_builder *b, size_t batch, pc_plan_draft *pd,
                                size_t *const_bytes)
 {
     pc_status st;
     if ((st = pc_plan_steps(b, batch, pd)) != PC_OK)
         return st;
-    if (batch == 1 && (st = pc_fuse_scalars(b, pd)) != PC_OK)
+    if (batch == 1 && (st = pc_fuse_small_steps(b, pd)) != PC_OK)
         return st;
     pc_plan_lifetimes(b, pd);
     if ((st = pc_plan_place(b, pd)) != PC_OK)
@@ -570,6 +410,8 @@ static pc_model *pc_pack(const pc_builder *b, const pc_layout *L, uint8_t *arena
                 memcpy(cursor, d->prm, d->prm_size);
                 steps[i].prm = cursor;
             }
+            if (d->fn == k_scalar_program)
+                pc_scalar_program_bind((pc_scalar_program *)cursor, io);
             cursor += pc_round(d->prm_size + 1);
         }
     }

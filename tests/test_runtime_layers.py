@@ -29,7 +29,7 @@ LAYERS = [
                    "op_reduce.c", "op_table.c"]),
     ("graph passes", ["passes.h", "passes.c"]),
     ("model and pc_run", ["model.h", "run.c"]),
-    ("planner", ["plan.h", "plan.c"]),
+    ("planner", ["draft.h", "program.h", "program.c", "plan.h", "plan.c"]),
     ("loading and public accessors", ["load.h", "api.c"]),
 ]
 RANK = {f: i for i, (_, files) in enumerate(LAYERS) for f in files}

@@ -3,6 +3,7 @@
 The shared library is not a CPython extension; it is loaded with ctypes by
 `posecorr.runtime`. It is declared as an extension only so that setuptools builds it
 in place for editable installs (python/posecorr/_native/) and into the wheel otherwise.
+`posecorr._call1` is a real (optional) extension: the shim's single-pose fast path.
 """
 from __future__ import annotations
 
@@ -65,6 +66,10 @@ class BuildWithCMake(build_ext):
 
 
 setup(
-    ext_modules=[CMakeLibrary("posecorr._native.libposecorr", ROOT / "runtime_c")],
+    ext_modules=[CMakeLibrary("posecorr._native.libposecorr", ROOT / "runtime_c"),
+                 # The shim's single-pose fast path; optional: without the interpreter's
+                 # headers the shim calls through ctypes alone.
+                 Extension("posecorr._call1", sources=["python/posecorr/_ext/call1.c"],
+                           optional=True)],
     cmdclass={"build_ext": BuildWithCMake},
 )

@@ -183,38 +183,8 @@ PC_INLINE void pc_rows4(const float *A, size_t K, const float *B, size_t N, cons
  * pass over k: a pose's layer is latency-bound, and NV independent chains of additions
  * overlap where one pass per block waited on each chain in turn. NV is a constant after
  * inlining, so the accumulators stay in registers. Same summation order as pc_row. */
-typedef int32_t pc_i4 __attribute__((vector_size(16)));
-
-/* x where m is set, else y (m from a vector comparison: all bits or none). */
-PC_INLINE pc_v4 pc_select4(pc_i4 m, pc_v4 x, pc_v4 y)
-{
-    return (pc_v4)((m & (pc_i4)x) | (~m & (pc_i4)y));
-}
-
-/* pc_tanh_inline on four lanes: the same operations in the same order, so each lane is
- * bit-identical to the scalar function (NaN included: a comparison with NaN is false). */
-PC_INLINE pc_v4 pc_tanh4(pc_v4 x)
-{
-    const pc_v4 nine = {9.0f, 9.0f, 9.0f, 9.0f}, one = {1.0f, 1.0f, 1.0f, 1.0f};
-    pc_v4 c = pc_select4(x > nine, nine, x), t, p, q;
-    c = pc_select4(c < -nine, -nine, c);
-    t = c * c;
-    p = t * -8.291313e-14f + 5.1926935e-11f;
-    p = p * t + -2.0029567e-08f;
-    p = p * t + 1.1101826e-05f;
-    p = p * t + 0.0030986548f;
-    p = p * t + 0.13079165f;
-    p = p * t + 0.99999994f;
-    q = t * 0.00025386017f + 0.024473764f;
-    q = q * t + 0.46412486f;
-    q = q * t + 1.0f;
-    p = c * p / q;
-    p = pc_select4(p > one, one, p);
-    return pc_select4(p < -one, -one, p);
-}
-
 PC_INLINE void pc_row1_block(const float *a, const float *B, size_t K, size_t N,
-                             const float *C, float *O, int tanh_act, const size_t NV)
+                             const float *C, float *O, const size_t NV)
 {
     pc_v4 acc[8];
     size_t k, j;
@@ -229,29 +199,27 @@ PC_INLINE void pc_row1_block(const float *a, const float *B, size_t K, size_t N,
             acc[j] += av * bv;
         }
     }
-    for (j = 0; j < NV; j++) {
-        if (tanh_act)
-            acc[j] = pc_tanh4(acc[j]);
+    for (j = 0; j < NV; j++)
         memcpy(O + 4 * j, &acc[j], sizeof acc[j]);
-    }
 }
 
-/* act(a B + c) for one row, tanh_act: act is tanh, else none. */
+/* a B + c for one row (a fused tanh runs over the whole output after: a separate
+ * vectorised pass measured faster than four-lane tanh on the accumulators). */
 PC_INLINE void pc_row1(const float *a, const float *B, size_t K, size_t N, const float *C,
-                       int tanh_act, float *restrict O)
+                       float *restrict O)
 {
     size_t n0 = 0, k;
     while (N - n0 >= 4) {
         const size_t nv = (N - n0) / 4 < 8 ? (N - n0) / 4 : 8;
         switch (nv) {
-        case 1: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, tanh_act, 1); break;
-        case 2: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, tanh_act, 2); break;
-        case 3: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, tanh_act, 3); break;
-        case 4: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, tanh_act, 4); break;
-        case 5: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, tanh_act, 5); break;
-        case 6: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, tanh_act, 6); break;
-        case 7: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, tanh_act, 7); break;
-        default: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, tanh_act, 8); break;
+        case 1: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, 1); break;
+        case 2: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, 2); break;
+        case 3: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, 3); break;
+        case 4: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, 4); break;
+        case 5: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, 5); break;
+        case 6: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, 6); break;
+        case 7: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, 7); break;
+        default: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, 8); break;
         }
         n0 += 4 * nv;
     }
@@ -259,7 +227,7 @@ PC_INLINE void pc_row1(const float *a, const float *B, size_t K, size_t N, const
         float acc = C[n0];
         for (k = 0; k < K; k++)
             acc += a[k] * B[k * N + n0];
-        O[n0] = tanh_act ? pc_tanh_inline(acc) : acc;
+        O[n0] = acc;
     }
 }
 #endif
@@ -281,7 +249,7 @@ PC_INLINE void pc_gemm_rows(const pc_step *s)
 #endif
 #ifdef PC_HAVE_ROWS4
     for (; m < M; m++)
-        pc_row1(A + m * K, B, K, N, C, 0, O + m * N);
+        pc_row1(A + m * K, B, K, N, C, O + m * N);
     if (q->act == PC_ACT_TANH)
         for (n = 0; n < M * N; n++)
             O[n] = pc_tanh_inline(O[n]);

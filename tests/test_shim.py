@@ -1,6 +1,7 @@
 """posecorr.runtime (ctypes shim over libposecorr) and posecorr.latency."""
 from __future__ import annotations
 
+import importlib
 import subprocess
 import sys
 from pathlib import Path
@@ -86,6 +87,32 @@ def test_errors(lib, model_path, tmp_path):
         Corrector(tmp_path / "missing.onnx", library=lib)
     with pytest.raises(ValueError):
         Corrector(model_path, backend="tensorflow")
+
+
+def test_single_pose_fast_path_equals_ctypes(lib, model_path):
+    """The single-pose extension (posecorr._call1) gives the ctypes path's result bit for
+    bit, refuses what it refuses, and leaves other inputs to the general path."""
+    c = Corrector(model_path, library=lib)
+    impl = c._impl
+    if impl._call1 is None:
+        pytest.skip("posecorr._call1 was not built (no Python headers)")
+    x = graphs.random_poses(200, seed=5).astype(np.float64)
+    assert all(impl._call1.run1(impl._run_address, impl.handle, p, np.empty(7)) == 0 for p in x)
+    fast = np.array([c.correct(p) for p in x])
+    impl._call1 = None
+    slow = np.array([c.correct(p) for p in x])
+    np.testing.assert_array_equal(fast, slow)
+    np.testing.assert_array_equal(fast, c.correct(x))
+    impl._call1 = importlib.import_module("posecorr._call1")
+    bad = x[0].copy()
+    bad[4] = np.nan
+    with pytest.raises(PoseCorrError, match="non-finite value in column 4"):
+        c.correct(bad)
+    # float32, strided and list inputs take the general path: same result
+    for p in (x[7].astype(np.float32), np.repeat(x[7], 2)[::2], list(x[7])):
+        np.testing.assert_array_equal(c.correct(p), c.correct(np.asarray(x[7], np.float32)))
+    assert impl._call1.run1(impl._run_address, impl.handle, x[0].astype(np.float32),
+                            np.empty(7)) == -1
 
 
 def test_import_is_light():

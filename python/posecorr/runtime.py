@@ -43,6 +43,15 @@ class PoseCorrError(ValueError):
         return type(self), (str(self), self.status)  # crosses a process pool intact
 
 
+def _call1_module() -> Any:
+    """posecorr._call1 (the optional single-pose extension), or None when not built."""
+    try:
+        from . import _call1
+    except ImportError:
+        return None
+    return _call1
+
+
 class _Error(ctypes.Structure):
     _fields_ = [("status", ctypes.c_int), ("message", ctypes.c_char * _MESSAGE_SIZE)]
 
@@ -155,6 +164,10 @@ class _CBackend:
         self._in1_ptr = self._in1.ctypes.data
         self._out1_ptr = self._out1.ctypes.data
         self._run = lib.pc_run
+        # The single-pose fast path (posecorr._call1) when it was built: pc_run's address
+        # and the model's, passed as ints, no ctypes conversion per call.
+        self._call1 = _call1_module()
+        self._run_address = ctypes.cast(lib.pc_run, ctypes.c_void_p).value
         n = lib.pc_metadata_count(self.handle)
         self.metadata = {lib.pc_metadata_key(self.handle, i).decode(errors="replace"):
                          lib.pc_metadata_value(self.handle, i).decode(errors="replace")
@@ -173,6 +186,14 @@ class _CBackend:
     def run1(self, pose: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
         if t is not None:
             return self.run(np.reshape(pose, (1, POSE_WIDTH)), t)[0]
+        if self._call1 is not None:
+            out = np.empty(POSE_WIDTH)
+            st = self._call1.run1(self._run_address, self.handle, pose, out)
+            if st == 0:
+                return out
+            if st > 0:
+                raise self._fail(st)
+            # st < 0: not a float64 contiguous (7,) array; the general path converts it
         self._in1[:] = pose
         st = self._run(self.handle, self._in1_ptr, 1, self._out1_ptr)
         if st:

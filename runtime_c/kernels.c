@@ -6,34 +6,24 @@
 #include <math.h>
 #include <string.h>
 
-/* ROW_B and COL_B are [M,K] op [K] and [M,K] op [M,1]: d[4] = M, d[5] = K. */
-#define PC_BINARY_F(NAME, EXPR)                                                                \
-    static PC_BINARY_SAME(NAME, float, float, EXPR)                                            \
-    static pc_status NAME##_sa(const pc_step *s)                                               \
+/* One operand a single value: io[SCALAR] is it, io[ARRAY] the other. */
+#define PC_SCALAR_SIDE(NAME, SUFFIX, SCALAR, ARRAY, READ, EXPR)                                \
+    static pc_status NAME##SUFFIX(const pc_step *s)                                            \
     {                                                                                          \
-        const float a = *(const float *)s->io[0];                                              \
-        const float *restrict B = (const float *)s->io[1];                                     \
+        const float x = *(const float *)s->io[SCALAR];                                         \
+        const float *restrict X = (const float *)s->io[ARRAY];                                 \
         float *restrict O = (float *)s->io[2];                                                 \
         size_t i;                                                                              \
         for (i = 0; i < s->n; i++) {                                                           \
-            const float b = B[i];                                                              \
+            READ;                                                                              \
             O[i] = (EXPR);                                                                     \
         }                                                                                      \
         return PC_OK;                                                                          \
-    }                                                                                          \
-    static pc_status NAME##_sb(const pc_step *s)                                               \
-    {                                                                                          \
-        const float *restrict A = (const float *)s->io[0];                                     \
-        const float b = *(const float *)s->io[1];                                              \
-        float *restrict O = (float *)s->io[2];                                                 \
-        size_t i;                                                                              \
-        for (i = 0; i < s->n; i++) {                                                           \
-            const float a = A[i];                                                              \
-            O[i] = (EXPR);                                                                     \
-        }                                                                                      \
-        return PC_OK;                                                                          \
-    }                                                                                          \
-    static pc_status NAME##_row(const pc_step *s)                                              \
+    }
+/* ROW_B and COL_B are [M,K] op [K] and [M,K] op [M,1]: d[4] = M, d[5] = K; B_AT is the
+ * index of b (k for a row, m for a column). */
+#define PC_BLOCK_B(NAME, SUFFIX, B_AT, EXPR)                                                   \
+    static pc_status NAME##SUFFIX(const pc_step *s)                                            \
     {                                                                                          \
         const pc_bcast *q = (const pc_bcast *)s->prm;                                          \
         const size_t M = q->d[4], K = q->d[5];                                                 \
@@ -43,28 +33,18 @@
         size_t m, k;                                                                           \
         for (m = 0; m < M; m++, A += K, O += K)                                                \
             for (k = 0; k < K; k++) {                                                          \
-                const float a = A[k], b = B[k];                                                \
+                const float a = A[k], b = B[B_AT];                                             \
                 O[k] = (EXPR);                                                                 \
             }                                                                                  \
         return PC_OK;                                                                          \
-    }                                                                                          \
-    static pc_status NAME##_col(const pc_step *s)                                              \
-    {                                                                                          \
-        const pc_bcast *q = (const pc_bcast *)s->prm;                                          \
-        const size_t M = q->d[4], K = q->d[5];                                                 \
-        const float *restrict A = (const float *)s->io[0];                                     \
-        const float *restrict B = (const float *)s->io[1];                                     \
-        float *restrict O = (float *)s->io[2];                                                 \
-        size_t m, k;                                                                           \
-        for (m = 0; m < M; m++, A += K, O += K) {                                              \
-            const float b = B[m];                                                              \
-            for (k = 0; k < K; k++) {                                                          \
-                const float a = A[k];                                                          \
-                O[k] = (EXPR);                                                                 \
-            }                                                                                  \
-        }                                                                                      \
-        return PC_OK;                                                                          \
-    }                                                                                          \
+    }
+
+#define PC_BINARY_F(NAME, EXPR)                                                                \
+    static PC_BINARY_SAME(NAME, float, float, EXPR)                                            \
+    PC_SCALAR_SIDE(NAME, _sa, 0, 1, const float a = x; const float b = X[i], EXPR)             \
+    PC_SCALAR_SIDE(NAME, _sb, 1, 0, const float a = X[i]; const float b = x, EXPR)             \
+    PC_BLOCK_B(NAME, _row, k, EXPR)                                                            \
+    PC_BLOCK_B(NAME, _col, m, EXPR)                                                            \
     PC_COLD static pc_status NAME##_gen2(const pc_step *s)                                     \
     {                                                                                          \
         const pc_bcast *q = (const pc_bcast *)s->prm;                                          \

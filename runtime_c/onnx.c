@@ -241,44 +241,47 @@ pc_status onnx_attr_repeated(const pc_builder *b, const onnx_attr *a, uint32_t n
 
 /* ---- NodeProto -------------------------------------------------------------------- */
 
+/* Which repeated field of a NodeProto (input, output, attribute) number is, or -1. */
+static int onnx_node_list(uint32_t number)
+{
+    return number == ONNX_NODE_INPUT       ? 0
+           : number == ONNX_NODE_OUTPUT    ? 1
+           : number == ONNX_NODE_ATTRIBUTE ? 2
+                                           : -1;
+}
+
+/* Two passes: the repeated fields are counted, then stored in one block. */
 static pc_status onnx_parse_node(pc_builder *b, pb_slice msg, pc_node *node)
 {
     pb_reader r;
     pb_field f;
     int more, pass;
     for (pass = 0; pass < 2; pass++) {
-        uint32_t ni = 0, no = 0, na = 0;
+        uint32_t counts[3] = {0, 0, 0};
+        pb_slice *const lists[3] = {node->in_names, node->out_names, node->attr};
         pb_init(&r, b->file, msg);
         while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
+            const int k = onnx_node_list(f.number);
             if (f.number <= ONNX_NODE_DOMAIN && f.number != ONNX_NODE_DOC_STRING &&
                 f.wire != PB_BYTES)
                 return pc_fail(b->err, PC_ERR_MALFORMED, "node field %lu at byte %zu is not bytes",
                                (unsigned long)f.number, f.offset);
-            switch (f.number) {
-            case ONNX_NODE_INPUT:
+            if (k >= 0) {
                 if (pass)
-                    node->in_names[ni] = f.bytes;
-                ni++;
-                break;
-            case ONNX_NODE_OUTPUT:
-                if (pass)
-                    node->out_names[no] = f.bytes;
-                no++;
-                break;
-            case ONNX_NODE_NAME: node->name = f.bytes; break;
-            case ONNX_NODE_OP_TYPE: node->op_type = f.bytes; break;
-            case ONNX_NODE_ATTRIBUTE:
-                if (pass)
-                    node->attr[na] = f.bytes;
-                na++;
-                break;
-            case ONNX_NODE_DOMAIN: node->domain = f.bytes; break;
-            default: break;
+                    lists[k][counts[k]] = f.bytes;
+                counts[k]++;
+            } else if (f.number == ONNX_NODE_NAME) {
+                node->name = f.bytes;
+            } else if (f.number == ONNX_NODE_OP_TYPE) {
+                node->op_type = f.bytes;
+            } else if (f.number == ONNX_NODE_DOMAIN) {
+                node->domain = f.bytes;
             }
         }
         if (more == PB_ERROR)
             return r.status;
         if (!pass) {
+            const uint32_t ni = counts[0], no = counts[1], na = counts[2];
             if (ni > 4096 || no > 16 || na > 256)
                 return pc_fail(b->err, PC_ERR_UNSUPPORTED,
                                "node '%.*s' has too many inputs or outputs", PC_NAME(node->name));

@@ -294,23 +294,6 @@ pc_status pc_op_Min(pc_prep *p) { return pc_minmax(p, k_min_f, k_min_i, k_min_nf
 /* ---- Where ------------------------------------------------------------------------ */
 
 #define PC_WHERE_BCAST(NAME, T)                                                                \
-    static pc_status NAME##_gen2(const pc_step *s)                                             \
-    {                                                                                          \
-        const pc_bcast *q = (const pc_bcast *)s->prm;                                          \
-        const uint8_t *C = (const uint8_t *)s->io[0];                                          \
-        const T *X = (const T *)s->io[1];                                                      \
-        const T *Y = (const T *)s->io[2];                                                      \
-        T *O = (T *)s->io[3];                                                                  \
-        size_t i4, i5;                                                                         \
-        for (i4 = 0; i4 < q->d[4]; i4++) {                                                     \
-            const uint8_t *c4 = C + i4 * q->st[0][4];                                          \
-            const T *x4 = X + i4 * q->st[1][4];                                                \
-            const T *y4 = Y + i4 * q->st[2][4];                                                \
-            for (i5 = 0; i5 < q->d[5]; i5++)                                                   \
-                *O++ = c4[i5 * q->st[0][5]] ? x4[i5 * q->st[1][5]] : y4[i5 * q->st[2][5]];     \
-        }                                                                                      \
-        return PC_OK;                                                                          \
-    }                                                                                          \
     static pc_status NAME##_gen(const pc_step *s)                                              \
     {                                                                                          \
         const pc_bcast *q = (const pc_bcast *)s->prm;                                          \
@@ -345,8 +328,6 @@ pc_status pc_op_Where(pc_prep *p)
         return st;
     if (mode == PC_SAME)
         p->fn = dt == PC_F32 ? k_where_f_same : dt == PC_I64 ? k_where_i_same : k_where_b_same;
-    else if (mode == PC_GENERAL2)
-        p->fn = dt == PC_F32 ? k_where_f_gen2 : dt == PC_I64 ? k_where_i_gen2 : k_where_b_gen2;
     else
         p->fn = dt == PC_F32 ? k_where_f_gen : dt == PC_I64 ? k_where_i_gen : k_where_b_gen;
     p->sop = dt == PC_F32 ? PC_SOP_WHERE : 0;

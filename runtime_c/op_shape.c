@@ -60,6 +60,16 @@ pc_status pc_op_Reshape(pc_prep *p)
     return pc_set_out(p, 0, a->dtype, (int)n, shape);
 }
 
+/* Squeeze and Unsqueeze: the data input and the axes. */
+static pc_status pc_input_and_axes(pc_prep *p, const pc_value **a, int64_t *axes, size_t *n,
+                                   int *given)
+{
+    if (p->n_in < 1 || !p->in[0] || p->n_out != 1)
+        return pc_prep_fail(p, PC_ERR_GRAPH, "needs an input");
+    *a = p->in[0];
+    return pc_axes(p, axes, n, given);
+}
+
 pc_status pc_op_Squeeze(pc_prep *p)
 {
     int64_t axes[PC_MAX_RANK], dims[PC_MAX_RANK];
@@ -67,10 +77,7 @@ pc_status pc_op_Squeeze(pc_prep *p)
     size_t n, k;
     const pc_value *a;
     pc_status st;
-    if (p->n_in < 1 || !p->in[0] || p->n_out != 1)
-        return pc_prep_fail(p, PC_ERR_GRAPH, "needs an input");
-    a = p->in[0];
-    if ((st = pc_axes(p, axes, &n, &given)) != PC_OK)
+    if ((st = pc_input_and_axes(p, &a, axes, &n, &given)) != PC_OK)
         return st;
     if (!given || n == 0) {
         for (j = 0; j < a->rank; j++)
@@ -98,10 +105,7 @@ pc_status pc_op_Unsqueeze(pc_prep *p)
     size_t n, k;
     const pc_value *a;
     pc_status st;
-    if (p->n_in < 1 || !p->in[0] || p->n_out != 1)
-        return pc_prep_fail(p, PC_ERR_GRAPH, "needs an input");
-    a = p->in[0];
-    if ((st = pc_axes(p, axes, &n, &given)) != PC_OK)
+    if ((st = pc_input_and_axes(p, &a, axes, &n, &given)) != PC_OK)
         return st;
     r = a->rank + (int)n;
     if (!given || r > PC_MAX_RANK)

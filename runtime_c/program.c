@@ -394,18 +394,20 @@ static pc_status pc_schedule(pc_prog *g, const pc_eref **in, int32_t *order,
                              size_t *n_order)
 {
     pc_builder *b = g->b;
-    const size_t n = g->n_ops;
-    int32_t *pending, *succ_start, *succ, *fill, *ready;
+    const size_t n = g->n_ops, max_edges = 3 * n + 2 * g->n_terms;
+    int32_t *pending, *succ_start, *succ, *fill, *ready, *edges;
     size_t k, m, n_in, n_ready = 0, n_done = 0, n_kept = 0, n_edges = 0;
     int code = PC_SOP_NONE;
     pending = pc_scratch_alloc(&b->scratch, (n + 1) * sizeof(int32_t));
     succ_start = pc_scratch_alloc(&b->scratch, (n + 2) * sizeof(int32_t));
     fill = pc_scratch_alloc(&b->scratch, (n + 1) * sizeof(int32_t));
     ready = pc_scratch_alloc(&b->scratch, (n + 1) * sizeof(int32_t));
-    if (!pending || !succ_start || !fill || !ready)
+    edges = pc_scratch_alloc_raw(&b->scratch, (2 * max_edges + 1) * sizeof(int32_t));
+    succ = pc_scratch_alloc_raw(&b->scratch, (max_edges + 1) * sizeof(int32_t));
+    if (!pending || !succ_start || !fill || !ready || !edges || !succ)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    /* Writers as of each kept operation, in the original order: edges counted, then
-     * listed (successors of w in succ[succ_start[w], succ_start[w + 1])). */
+    /* Edges from the last earlier writer of each operand, in the original order; then
+     * the successors of w in succ[succ_start[w], succ_start[w + 1]). */
     for (k = 0; k < g->n_touched; k++)
         memset(g->writer[g->touched[k]], 0xff, b->values[g->touched[k]].count * sizeof(int32_t));
     for (k = 0; k < n; k++) {
@@ -415,9 +417,10 @@ static pc_status pc_schedule(pc_prog *g, const pc_eref **in, int32_t *order,
         for (m = 0, n_in = pc_inputs(g, op, in); m < n_in; m++) {
             const int32_t w = pc_writer(g, *in[m]);
             if (w >= 0) {
+                edges[2 * n_edges] = w;
+                edges[2 * n_edges++ + 1] = (int32_t)k;
                 succ_start[w + 1]++;
                 pending[k]++;
-                n_edges++;
             }
         }
         g->writer[op->o.v][op->o.e] = (int32_t)k;
@@ -425,22 +428,8 @@ static pc_status pc_schedule(pc_prog *g, const pc_eref **in, int32_t *order,
     }
     for (k = 0; k < n; k++)
         succ_start[k + 1] += succ_start[k];
-    succ = pc_scratch_alloc(&b->scratch, (n_edges + 1) * sizeof(int32_t));
-    if (!succ)
-        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    for (k = 0; k < g->n_touched; k++)
-        memset(g->writer[g->touched[k]], 0xff, b->values[g->touched[k]].count * sizeof(int32_t));
-    for (k = 0; k < n; k++) {
-        const pc_eop *op = &g->ops[k];
-        if (op->code == PC_SOP_NONE)
-            continue;
-        for (m = 0, n_in = pc_inputs(g, op, in); m < n_in; m++) {
-            const int32_t w = pc_writer(g, *in[m]);
-            if (w >= 0)
-                succ[succ_start[w] + fill[w]++] = (int32_t)k;
-        }
-        g->writer[op->o.v][op->o.e] = (int32_t)k;
-    }
+    for (k = 0; k < n_edges; k++)
+        succ[succ_start[edges[2 * k]] + fill[edges[2 * k]]++] = edges[2 * k + 1];
     for (k = 0; k < n; k++)
         if (g->ops[k].code != PC_SOP_NONE && pending[k] == 0)
             ready[n_ready++] = (int32_t)k;

@@ -7,6 +7,9 @@
   out; 3375 simulated poses), with the load average (`posecorr.train.bench_fit`).
 * `latency.json`: single-pose latency and batch throughput of the shipped zhou MLP in the C
   runtime, the Python shim, onnxruntime (plain and IOBinding) and numpy (`posecorr.latency`).
+* `targets.json`: the runtime's speed goals as ratios taken in one run: `pc_run` against the
+  hand-written zhou MLP (single pose, batch), the demo's physics + PMC model against the
+  zhou MLP, the Python shim's single pose (`posecorr.bench_targets`).
 * `apply.json`: `posecorr apply` on 10^6 rows (wall and CPU time, peak memory) against
   the csv module's read-and-write-back floor on the same file (`posecorr.bench_apply`).
 * `ingest.json`: seconds to ingest a 10-minute recording (300k joint states, 150k tracker
@@ -40,6 +43,12 @@ def _latency() -> dict:
     return result
 
 
+def _targets() -> dict:
+    from .bench_targets import run as run_targets
+
+    return run_targets(latency_model(), str(RESULTS / "targets.json"))
+
+
 def _fit() -> dict:
     from .train import bench_fit
 
@@ -65,7 +74,7 @@ def _ingest() -> dict:
 
 
 # name -> runner writing bench/results/NAME.json; `make bench` runs them in this order.
-BENCHMARKS = {"latency": _latency, "fit": _fit, "apply": _apply, "ingest": _ingest, "train": _train}
+BENCHMARKS = {"latency": _latency, "targets": _targets, "fit": _fit, "apply": _apply, "ingest": _ingest, "train": _train}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -179,28 +179,40 @@ PC_INLINE void pc_rows4(const float *A, size_t K, const float *B, size_t N, cons
     }
 }
 
-/* One row of A B + c, the columns in blocks of NV four-lane accumulators that run in one
- * pass over k: a pose's layer is latency-bound, and NV independent chains of additions
- * overlap where one pass per block waited on each chain in turn. NV is a constant after
- * inlining, so the accumulators stay in registers. Same summation order as pc_row. */
+/* One row of A B + c, the columns in NV8 eight-lane and NV4 four-lane accumulators that
+ * all run in one pass over k: a pose's layer is latency-bound, and independent chains of
+ * additions overlap where one pass per block waited on each chain in turn. NV8 and NV4
+ * are constants after inlining, so the accumulators stay in registers. Same summation
+ * order as pc_row (c first, then k ascending). */
 PC_INLINE void pc_row1_block(const float *a, const float *B, size_t K, size_t N,
-                             const float *C, float *O, const size_t NV)
+                             const float *C, float *O, const size_t NV8, const size_t NV4)
 {
-    pc_v4 acc[8];
+    pc_v8 acc8[3];
+    pc_v4 acc4[1];
+    const float *C4 = C + 8 * NV8;
     size_t k, j;
-    for (j = 0; j < NV; j++)
-        memcpy(&acc[j], C + 4 * j, sizeof acc[j]);
+    for (j = 0; j < NV8; j++)
+        memcpy(&acc8[j], C + 8 * j, sizeof acc8[j]);
+    for (j = 0; j < NV4; j++)
+        memcpy(&acc4[j], C4 + 4 * j, sizeof acc4[j]);
     for (k = 0; k < K; k++) {
         const float av = a[k];
         const float *b = B + k * N;
-        for (j = 0; j < NV; j++) {
+        for (j = 0; j < NV8; j++) {
+            pc_v8 bv;
+            memcpy(&bv, b + 8 * j, sizeof bv);
+            acc8[j] += av * bv;
+        }
+        for (j = 0; j < NV4; j++) {
             pc_v4 bv;
-            memcpy(&bv, b + 4 * j, sizeof bv);
-            acc[j] += av * bv;
+            memcpy(&bv, b + 8 * NV8 + 4 * j, sizeof bv);
+            acc4[j] += av * bv;
         }
     }
-    for (j = 0; j < NV; j++)
-        memcpy(O + 4 * j, &acc[j], sizeof acc[j]);
+    for (j = 0; j < NV8; j++)
+        memcpy(O + 8 * j, &acc8[j], sizeof acc8[j]);
+    for (j = 0; j < NV4; j++)
+        memcpy(O + 8 * NV8 + 4 * j, &acc4[j], sizeof acc4[j]);
 }
 
 /* a B + c for one row (a fused tanh runs over the whole output after: a separate
@@ -210,18 +222,22 @@ PC_INLINE void pc_row1(const float *a, const float *B, size_t K, size_t N, const
 {
     size_t n0 = 0, k;
     while (N - n0 >= 4) {
-        const size_t nv = (N - n0) / 4 < 8 ? (N - n0) / 4 : 8;
-        switch (nv) {
-        case 1: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, 1); break;
-        case 2: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, 2); break;
-        case 3: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, 3); break;
-        case 4: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, 4); break;
-        case 5: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, 5); break;
-        case 6: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, 6); break;
-        case 7: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, 7); break;
-        default: pc_row1_block(a, B + n0, K, N, C + n0, O + n0, 8); break;
+        const size_t nv8 = (N - n0) / 8 < 3 ? (N - n0) / 8 : 3;
+        const size_t nv4 = (N - n0 - 8 * nv8) >= 4 && nv8 < 3;
+#define PC_ROW1_CASE(A8, A4)                                                                   \
+    case 2 * (A8) + (A4): pc_row1_block(a, B + n0, K, N, C + n0, O + n0, A8, A4); break;
+        switch (2 * nv8 + nv4) {
+            PC_ROW1_CASE(0, 1)
+            PC_ROW1_CASE(1, 0)
+            PC_ROW1_CASE(1, 1)
+            PC_ROW1_CASE(2, 0)
+            PC_ROW1_CASE(2, 1)
+        default:
+            pc_row1_block(a, B + n0, K, N, C + n0, O + n0, 3, 0);
+            break;
         }
-        n0 += 4 * nv;
+#undef PC_ROW1_CASE
+        n0 += 8 * nv8 + 4 * nv4;
     }
     for (; n0 < N; n0++) {
         float acc = C[n0];

@@ -76,25 +76,26 @@ static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, 
 /* Finite input inside the training box (when the model records one), finite times. */
 static pc_status pc_check_input(pc_model *m, const float *in, const float *t, size_t n)
 {
-    size_t i;
+    size_t i, c;
     for (i = 0; t && i < n; i++)
         if (!isfinite(t[i])) {
             pc_format(m->message, sizeof m->message, "time of pose %zu is not finite", i);
             return PC_ERR_NONFINITE;
         }
-    for (i = 0; i < n * PC_POSE_WIDTH; i++) {
-        const size_t c = i % PC_POSE_WIDTH;
-        if (!isfinite(in[i])) {
-            pc_format(m->message, sizeof m->message,
-                      "pose %zu has a non-finite value in column %zu", i / PC_POSE_WIDTH, c);
-            return PC_ERR_NONFINITE;
-        }
-        if (m->has_bounds && c < 3 && !(in[i] >= m->lo[c] && in[i] <= m->hi[c])) {
-            pc_format(m->message, sizeof m->message,
-                      "pose %zu is outside the range the model was fitted on in column %zu "
-                      "(metadata input_bounds)", i / PC_POSE_WIDTH, c);
-            return PC_ERR_RANGE;
-        }
+    for (i = 0; i < n; i++, in += PC_POSE_WIDTH) {
+        for (c = 0; c < PC_POSE_WIDTH; c++)
+            if (!isfinite(in[c])) {
+                pc_format(m->message, sizeof m->message,
+                          "pose %zu has a non-finite value in column %zu", i, c);
+                return PC_ERR_NONFINITE;
+            }
+        for (c = 0; m->has_bounds && c < 3; c++)
+            if (!(in[c] >= m->lo[c] && in[c] <= m->hi[c])) {
+                pc_format(m->message, sizeof m->message,
+                          "pose %zu is outside the range the model was fitted on in column %zu "
+                          "(metadata input_bounds)", i, c);
+                return PC_ERR_RANGE;
+            }
     }
     return PC_OK;
 }

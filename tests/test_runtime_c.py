@@ -138,6 +138,25 @@ def test_shipped_model_parity(path, lib):
     assert err <= 1e-5
 
 
+def test_physics_pipeline_one_pose_plan_equals_batch_plan_bit_for_bit(lib, tmp_path):
+    """The demo's physics + PMC model is where one-pose programs do the most (557 nodes,
+    3 launches per pose: sines, arctangents, Where, 3x3 products as dot products): each
+    pose alone gives the 16-pose plan's bits, and onnxruntime's result."""
+    from posecorr.bench_targets import demo_physics_pmc
+
+    path = tmp_path / "physics+pmc-zhou.onnx"
+    demo_physics_pmc(path)
+    c = Corrector(path, library=lib)
+    assert c._impl.n_steps <= 4, f"{c._impl.n_steps} launches per pose"
+    lo, hi = (np.array(v, dtype=np.float32) for v in json.loads(c.metadata["input_bounds"]))
+    x = graphs.random_poses(64, seed=21)
+    x[:, :3] = lo + (hi - lo) * np.random.default_rng(4).uniform(0.05, 0.95, (64, 3))
+    batch = c.correct(x)
+    single = np.array([c.correct(row) for row in x])
+    np.testing.assert_array_equal(single, batch)
+    assert rel_err(batch.astype(np.float32), ort_run(path.read_bytes(), x)) <= 1e-5
+
+
 @pytest.mark.parametrize("path", MODELS, ids=lambda p: p.name)
 def test_one_pose_plan_equals_batch_plan_bit_for_bit(path, lib):
     """The 1-pose plan runs fused scalar programs (k_scalar_program), the 16-pose plan the

@@ -40,6 +40,7 @@ typedef struct pc_eref {
 } pc_eref;
 
 #define PC_CONSTANT_V (-2)
+#define PC_COPIED_TWICE (-3)
 static const pc_eref pc_zero = {PC_CONSTANT_V, 0}, pc_one = {PC_CONSTANT_V, 1};
 
 /* An element operation. DOT: o = c + sum of terms[t0, t0 + nt) (a, b pairs). */
@@ -57,6 +58,8 @@ typedef struct pc_prog {
     pc_eref *terms;
     size_t n_terms;
     pc_eref **renamed;  /* per root: source of each copied element (v < 0: none) */
+    pc_eref **into;     /* per root: the copy an element is written into instead (v < 0:
+                         * none, PC_COPIED_TWICE: two copies, written in place) */
     uint8_t **live;     /* per root: element read by a kept operation */
     int32_t **writer;   /* per root: last operation writing each element, or -1 */
     uint8_t *outside;   /* root read after the run or a graph output */
@@ -149,9 +152,11 @@ static pc_status pc_touch(pc_prog *g, int32_t root)
     g->renamed[root] = pc_scratch_alloc_raw(&g->b->scratch, count * sizeof(pc_eref));
     g->live[root] = pc_scratch_alloc(&g->b->scratch, count);
     g->writer[root] = pc_scratch_alloc_raw(&g->b->scratch, count * sizeof(int32_t));
-    if (!g->renamed[root] || !g->live[root] || !g->writer[root])
+    g->into[root] = pc_scratch_alloc_raw(&g->b->scratch, count * sizeof(pc_eref));
+    if (!g->renamed[root] || !g->live[root] || !g->writer[root] || !g->into[root])
         return pc_fail(g->b->err, PC_ERR_MEMORY, "out of memory");
     memset(g->renamed[root], 0xff, count * sizeof(pc_eref));
+    memset(g->into[root], 0xff, count * sizeof(pc_eref));
     memset(g->writer[root], 0xff, count * sizeof(int32_t));
     g->touched[g->n_touched++] = root;
     return PC_OK;
@@ -475,8 +480,11 @@ static uint32_t pc_slot(int32_t *io, uint32_t *n, int32_t v)
 }
 
 /* The planning form of operand r (PC_SOP_REF). */
-static int32_t pc_ref(const pc_builder *b, int32_t *io, uint32_t *n_io, pc_eref r)
+static int32_t pc_ref(const pc_prog *g, int32_t *io, uint32_t *n_io, pc_eref r)
 {
+    const pc_builder *b = g->b;
+    if (r.v >= 0 && g->into[r.v] && g->into[r.v][r.e].v >= 0)
+        r = g->into[r.v][r.e];
     if (r.v < 0)
         return PC_SOP_REF((uint32_t)PC_SOP_CONSTANTS, r.e * sizeof(float));
     return PC_SOP_REF(pc_slot(io, n_io, r.v), r.e * pc_dtype_size(b->values[r.v].dtype));
@@ -523,6 +531,29 @@ static pc_status pc_compile_run(pc_prog *g, pc_plan_draft *pd, size_t first, siz
         for (m = 0, n_in = pc_inputs(g, op, in); m < n_in; m++)
             pc_mark(g, *in[m]);
     }
+    /* A copy out of an element this run computes, read nowhere else after the run and
+     * copied once, becomes the computation writing into the copy's place (the 'corrected'
+     * concatenation of every model, the PMC features of a pipeline). */
+    for (k = 0; k < g->n_ops; k++) {
+        const pc_eop *op = &g->ops[k];
+        pc_eref *into;
+        if (op->code != PC_SOP_COPY || pc_writer(g, op->a) < 0 || g->outside[op->a.v])
+            continue;
+        into = &g->into[op->a.v][op->a.e];
+        if (into->v == -1)
+            *into = op->o;
+        else
+            into->v = PC_COPIED_TWICE;
+    }
+    for (k = 0; k < g->n_ops; k++) {
+        pc_eop *op = &g->ops[k];
+        if (op->code == PC_SOP_COPY && pc_writer(g, op->a) >= 0 &&
+            g->into[op->a.v][op->a.e].v == op->o.v && g->into[op->a.v][op->a.e].e == op->o.e) {
+            op->code = PC_SOP_NONE;
+            n_kept--;
+            n_scalar--;
+        }
+    }
     order = pc_scratch_alloc(&b->scratch, (n_kept + 1) * sizeof(int32_t));
     io = pc_scratch_alloc(&b->scratch, (4 * n_scalar + 2) * sizeof(int32_t));
     q = pc_scratch_alloc(&b->scratch, sizeof *q + n_scalar * sizeof(pc_scalar_op));
@@ -534,7 +565,7 @@ static pc_status pc_compile_run(pc_prog *g, pc_plan_draft *pd, size_t first, siz
         pc_scalar_op *group = NULL;
         for (k = 0; k < n_kept; k++) {
             const pc_eop *op = &g->ops[order[k]];
-            const int32_t o = pc_ref(b, io, &n_io, op->o);
+            const int32_t o = pc_ref(g, io, &n_io, op->o);
             if (op->code == PC_SOP_DOT) {
                 /* a DOT entry with the start c, then one DOT_TERM per further term */
                 const pc_eref *t = &g->terms[2 * op->t0];
@@ -544,9 +575,9 @@ static pc_status pc_compile_run(pc_prog *g, pc_plan_draft *pd, size_t first, siz
                 for (m = 0; m < op->nt; m++) {
                     pc_scalar_op *so = &q->ops[q->n_ops++];
                     so->code = m ? PC_SOP_DOT_TERM : PC_SOP_DOT;
-                    so->a = pc_ref(b, io, &n_io, t[2 * m]);
-                    so->b = pc_ref(b, io, &n_io, t[2 * m + 1]);
-                    so->c = pc_ref(b, io, &n_io, op->c);
+                    so->a = pc_ref(g, io, &n_io, t[2 * m]);
+                    so->b = pc_ref(g, io, &n_io, t[2 * m + 1]);
+                    so->c = pc_ref(g, io, &n_io, op->c);
                     so->o = o;
                 }
                 continue;
@@ -559,9 +590,9 @@ static pc_status pc_compile_run(pc_prog *g, pc_plan_draft *pd, size_t first, siz
                 group->n++;
                 so->code = op->code;
                 so->o = o;
-                so->a = pc_ref(b, io, &n_io, op->a);
-                so->b = pc_ref(b, io, &n_io, op->b);
-                so->c = pc_ref(b, io, &n_io, op->c);
+                so->a = pc_ref(g, io, &n_io, op->a);
+                so->b = pc_ref(g, io, &n_io, op->b);
+                so->c = pc_ref(g, io, &n_io, op->c);
             }
         }
     }
@@ -572,6 +603,7 @@ static pc_status pc_compile_run(pc_prog *g, pc_plan_draft *pd, size_t first, siz
         g->renamed[g->touched[i]] = NULL;
         g->live[g->touched[i]] = NULL;
         g->writer[g->touched[i]] = NULL;
+        g->into[g->touched[i]] = NULL;
     }
     g->n_touched = 0;
     memset(g->outside, 0, b->n_values);
@@ -595,9 +627,10 @@ pc_status pc_fuse_small_steps(pc_builder *b, pc_plan_draft *pd)
     g.renamed = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof *g.renamed);
     g.live = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof *g.live);
     g.writer = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof *g.writer);
+    g.into = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof *g.into);
     g.outside = pc_scratch_alloc(&b->scratch, b->n_values + 1);
     g.touched = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof *g.touched);
-    if (!g.renamed || !g.live || !g.writer || !g.outside || !g.touched)
+    if (!g.renamed || !g.live || !g.writer || !g.into || !g.outside || !g.touched)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
     while (i < pd->n_drafts) {
         for (j = i, io_total = 0; j < pd->n_drafts && pc_expandable(b, &pd->drafts[j]) &&

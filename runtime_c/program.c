@@ -400,16 +400,17 @@ static pc_status pc_schedule(pc_prog *g, const pc_eref **in, int32_t *order,
 {
     pc_builder *b = g->b;
     const size_t n = g->n_ops, max_edges = 3 * n + 2 * g->n_terms;
-    int32_t *pending, *succ_start, *succ, *fill, *ready, *edges;
+    int32_t *pending, *succ_start, *succ, *fill, *ready, *edges, *height;
     size_t k, m, n_in, n_ready = 0, n_done = 0, n_kept = 0, n_edges = 0;
     int code = PC_SOP_NONE;
     pending = pc_scratch_alloc(&b->scratch, (n + 1) * sizeof(int32_t));
     succ_start = pc_scratch_alloc(&b->scratch, (n + 2) * sizeof(int32_t));
     fill = pc_scratch_alloc(&b->scratch, (n + 1) * sizeof(int32_t));
     ready = pc_scratch_alloc(&b->scratch, (n + 1) * sizeof(int32_t));
+    height = pc_scratch_alloc(&b->scratch, (n + 1) * sizeof(int32_t));
     edges = pc_scratch_alloc_raw(&b->scratch, (2 * max_edges + 1) * sizeof(int32_t));
     succ = pc_scratch_alloc_raw(&b->scratch, (max_edges + 1) * sizeof(int32_t));
-    if (!pending || !succ_start || !fill || !ready || !edges || !succ)
+    if (!pending || !succ_start || !fill || !ready || !height || !edges || !succ)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
     /* Edges from the last earlier writer of each operand, in the original order; then
      * the successors of w in succ[succ_start[w], succ_start[w + 1]). */
@@ -438,16 +439,29 @@ static pc_status pc_schedule(pc_prog *g, const pc_eref **in, int32_t *order,
     for (k = 0; k < n; k++)
         if (g->ops[k].code != PC_SOP_NONE && pending[k] == 0)
             ready[n_ready++] = (int32_t)k;
+    /* height: operations on the longest chain to the end, so the switch goes where the
+     * run would otherwise wait (edges go forward in the original order) */
+    for (k = n; k-- > 0;) {
+        size_t j;
+        height[k] = 1;
+        for (j = (size_t)succ_start[k]; j < (size_t)succ_start[k + 1]; j++)
+            if (height[succ[j]] + 1 > height[k])
+                height[k] = height[succ[j]] + 1;
+    }
     /* ready[] stays in original order; take the first of the current code, else the
-     * first of any. */
+     * highest. */
     while (n_ready) {
-        size_t pick = 0, j;
+        size_t pick = n_ready, j;
         int32_t op_k;
         for (j = 0; j < n_ready; j++)
             if (g->ops[ready[j]].code == code) {
                 pick = j;
                 break;
             }
+        if (pick == n_ready)
+            for (pick = 0, j = 1; j < n_ready; j++)
+                if (height[ready[j]] > height[ready[pick]])
+                    pick = j;
         op_k = ready[pick];
         code = g->ops[op_k].code;
         memmove(ready + pick, ready + pick + 1, (n_ready - pick - 1) * sizeof(int32_t));

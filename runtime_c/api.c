@@ -177,7 +177,7 @@ pc_status pc_load_impl(const void *data, size_t size, const pc_options *opts, in
         pc_fail(err, st, "the %zu-byte buffer is too small for this model (pc_required_bytes)",
                 buf_size);
     if (scratch_used)
-        *scratch_used = b.scratch.used_total;
+        *scratch_used = b.scratch.peak;
     pc_scratch_release(&b.scratch);
     if (st == PC_OK && !any_io && ((st = pc_read_checks(*model, err)) != PC_OK ||
                                    (st = pc_check_rows(*model, err)) != PC_OK)) {

@@ -47,7 +47,7 @@ static const pc_eref pc_zero = {PC_CONSTANT_V, 0}, pc_one = {PC_CONSTANT_V, 1};
 typedef struct pc_eop {
     int code;
     pc_eref a, b, c, o;
-    size_t t0, nt;
+    uint32_t t0, nt;
 } pc_eop;
 
 /* State of the pass: per root value id, reset between runs. */
@@ -63,6 +63,7 @@ typedef struct pc_prog {
     uint8_t **live;     /* per root: element read by a kept operation */
     int32_t **writer;   /* per root: last operation writing each element, or -1 */
     uint8_t *outside;   /* root read after the run or a graph output */
+    int32_t *slot_of;   /* root's io slot in the program being emitted, or -1 */
     int32_t *touched;   /* roots with state to reset */
     size_t n_touched;
 } pc_prog;
@@ -135,7 +136,9 @@ static int pc_expandable(const pc_builder *b, const pc_draft *d)
 /* Upper bounds of the operations and dot-product terms draft d expands to. */
 static void pc_expansion_size(const pc_draft *d, size_t *ops, size_t *terms)
 {
-    *ops += 2 * d->n; /* a product's element may add its activation */
+    *ops += d->n;
+    if (!d->sop && pc_small_product(d))
+        *ops += d->n; /* its activation */
     if (d->sop == PC_SOP_ADD)
         *terms += d->n * PC_EXTEND_MAX_TERMS;
     if (d->fn == k_reduce_sum_last && !d->sop)
@@ -223,8 +226,8 @@ static void pc_add_sum_term(pc_prog *g, pc_eref x)
 static pc_status pc_emit_dot(pc_prog *g, pc_eref init, size_t t0, int32_t out, size_t e)
 {
     pc_status st = pc_emit(g, PC_SOP_DOT, init, init, init, out, e);
-    g->ops[g->n_ops - 1].t0 = t0;
-    g->ops[g->n_ops - 1].nt = g->n_terms - t0;
+    g->ops[g->n_ops - 1].t0 = (uint32_t)t0;
+    g->ops[g->n_ops - 1].nt = (uint32_t)(g->n_terms - t0);
     return st;
 }
 
@@ -483,14 +486,14 @@ static pc_status pc_schedule(pc_prog *g, const pc_eref **in, int32_t *order,
     return PC_OK;
 }
 
-static uint32_t pc_slot(int32_t *io, uint32_t *n, int32_t v)
+/* The io slot of root v in this run's program, appended when new. */
+static uint32_t pc_slot(const pc_prog *g, int32_t *io, uint32_t *n, int32_t v)
 {
-    uint32_t k;
-    for (k = 0; k < *n; k++)
-        if (io[k] == v)
-            return k;
-    io[*n] = v;
-    return (*n)++;
+    if (g->slot_of[v] < 0) {
+        g->slot_of[v] = (int32_t)*n;
+        io[(*n)++] = v;
+    }
+    return (uint32_t)g->slot_of[v];
 }
 
 /* The planning form of operand r (PC_SOP_REF). */
@@ -501,12 +504,15 @@ static int32_t pc_ref(const pc_prog *g, int32_t *io, uint32_t *n_io, pc_eref r)
         r = g->into[r.v][r.e];
     if (r.v < 0)
         return PC_SOP_REF((uint32_t)PC_SOP_CONSTANTS, r.e * sizeof(float));
-    return PC_SOP_REF(pc_slot(io, n_io, r.v), r.e * pc_dtype_size(b->values[r.v].dtype));
+    return PC_SOP_REF(pc_slot(g, io, n_io, r.v), r.e * pc_dtype_size(b->values[r.v].dtype));
 }
 
-/* drafts[first, end) -> one program draft in *out. */
-static pc_status pc_compile_run(pc_prog *g, pc_plan_draft *pd, size_t first, size_t end,
-                                pc_draft *out)
+/* Compiles drafts[first, end) in scratch it takes and leaves for the caller to release;
+ * the program's sizes go to *n_scalar and *n_io, and when q_out is given, the program and
+ * its io list (value ids) are copied into q_out and io_out. */
+static pc_status pc_compile_pass(pc_prog *g, const pc_plan_draft *pd, size_t first,
+                                 size_t end, pc_scalar_program *q_out, int32_t *io_out,
+                                 size_t *n_scalar_out, uint32_t *n_io_out)
 {
     pc_builder *b = g->b;
     size_t i, k, m, n_in, cap_ops = 0, cap_terms = 0, n_kept = 0, n_scalar = 0;
@@ -621,11 +627,46 @@ static pc_status pc_compile_run(pc_prog *g, pc_plan_draft *pd, size_t first, siz
     }
     g->n_touched = 0;
     memset(g->outside, 0, b->n_values);
+    for (j = 0; j < n_io; j++)
+        g->slot_of[io[j]] = -1;
+    *n_scalar_out = q->n_ops;
+    *n_io_out = n_io;
+    if (q_out) {
+        memcpy(q_out, q, sizeof *q + (q->n_ops ? q->n_ops - 1 : 0) * sizeof(pc_scalar_op));
+        memcpy(io_out, io, n_io * sizeof(int32_t));
+    }
+    return PC_OK;
+}
+
+/* drafts[first, end) -> one program draft in *out. Compiled twice: once for its sizes,
+ * once into memory of those sizes, each time releasing the working memory, so the load's
+ * scratch peak (what pc_required_bytes asks of a target without a heap) stays low. */
+static pc_status pc_compile_run(pc_prog *g, const pc_plan_draft *pd, size_t first,
+                                size_t end, pc_draft *out)
+{
+    pc_scratch *scratch = &g->b->scratch;
+    pc_scratch_mark mark = pc_scratch_save(scratch);
+    pc_scalar_program *q;
+    int32_t *io;
+    size_t n_scalar;
+    uint32_t n_io;
+    pc_status st;
+    if ((st = pc_compile_pass(g, pd, first, end, NULL, NULL, &n_scalar, &n_io)) != PC_OK)
+        return st;
+    pc_scratch_restore(scratch, mark);
+    q = pc_scratch_alloc(scratch, sizeof *q + n_scalar * sizeof(pc_scalar_op));
+    io = pc_scratch_alloc(scratch, (n_io + 1) * sizeof(int32_t));
+    if (!q || !io)
+        return pc_fail(g->b->err, PC_ERR_MEMORY, "out of memory");
+    mark = pc_scratch_save(scratch);
+    if ((st = pc_compile_pass(g, pd, first, end, q, io, &n_scalar, &n_io)) != PC_OK)
+        return st;
+    pc_scratch_restore(scratch, mark);
     out->fn = k_scalar_program;
     out->io = io;
     out->n_io = n_io;
     out->prm = q;
-    out->prm_size = sizeof *q + (q->n_ops ? q->n_ops - 1 : 0) * sizeof(pc_scalar_op);
+    out->prm_size = sizeof *q + (n_scalar ? n_scalar - 1 : 0) * sizeof(pc_scalar_op);
     out->n = 1;
     out->sop = 0;
     return PC_OK;
@@ -643,9 +684,11 @@ pc_status pc_fuse_small_steps(pc_builder *b, pc_plan_draft *pd)
     g.writer = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof *g.writer);
     g.into = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof *g.into);
     g.outside = pc_scratch_alloc(&b->scratch, b->n_values + 1);
+    g.slot_of = pc_scratch_alloc_raw(&b->scratch, (b->n_values + 1) * sizeof *g.slot_of);
     g.touched = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof *g.touched);
-    if (!g.renamed || !g.live || !g.writer || !g.into || !g.outside || !g.touched)
+    if (!g.renamed || !g.live || !g.writer || !g.into || !g.outside || !g.slot_of || !g.touched)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
+    memset(g.slot_of, 0xff, (b->n_values + 1) * sizeof *g.slot_of);
     while (i < pd->n_drafts) {
         for (j = i, io_total = 0; j < pd->n_drafts && pc_expandable(b, &pd->drafts[j]) &&
                                   io_total + pd->drafts[j].n_io <= PC_PROGRAM_MAX_SLOTS;

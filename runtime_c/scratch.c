@@ -39,6 +39,7 @@ void *pc_scratch_alloc_raw(pc_scratch *s, size_t size)
         s->fixed += need;
         s->fixed_left -= need;
         s->used_total += need;
+        s->peak = s->used_total > s->peak ? s->used_total : s->peak;
         return p;
     }
     if (!b || b->size - b->used < need) {
@@ -54,6 +55,7 @@ void *pc_scratch_alloc_raw(pc_scratch *s, size_t size)
     p = (uint8_t *)b + PC_BLOCK_HEADER + b->used;
     b->used += need;
     s->used_total += need;
+    s->peak = s->used_total > s->peak ? s->used_total : s->peak;
     return p;
 }
 
@@ -73,4 +75,29 @@ void pc_scratch_release(pc_scratch *s)
         s->head = next;
     }
     s->used_total = 0;
+}
+
+pc_scratch_mark pc_scratch_save(const pc_scratch *s)
+{
+    pc_scratch_mark m;
+    m.head = s->head;
+    m.head_used = s->head ? s->head->used : 0;
+    m.fixed = s->fixed;
+    m.fixed_left = s->fixed_left;
+    m.used_total = s->used_total;
+    return m;
+}
+
+void pc_scratch_restore(pc_scratch *s, pc_scratch_mark m)
+{
+    while (s->head != m.head) {
+        pc_scratch_block *next = s->head->next;
+        free(s->head);
+        s->head = next;
+    }
+    if (s->head)
+        s->head->used = m.head_used;
+    s->fixed = m.fixed;
+    s->fixed_left = m.fixed_left;
+    s->used_total = m.used_total;
 }

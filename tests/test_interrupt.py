@@ -45,7 +45,7 @@ if mode == "fit":
             pause()
     os.fsync = fsync
 elif mode == "apply":
-    from posecorr.runtime import Corrector
+    from posecorr.controller.runtime import Corrector
     real_correct, calls = Corrector.correct, []
     def correct(self, poses, t=None):
         calls.append(1)

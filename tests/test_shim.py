@@ -11,13 +11,13 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "runtime_c" / "tests"))
 try:
-    import posecorr.runtime  # noqa: F401
+    import posecorr.controller.runtime  # noqa: F401
 except ImportError:
     sys.path.insert(0, str(ROOT / "python"))
 
 onnx = pytest.importorskip("onnx")
 import graphs  # noqa: E402
-from posecorr.runtime import Corrector, PoseCorrError, library_path  # noqa: E402
+from posecorr.controller.runtime import Corrector, PoseCorrError, library_path  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +89,7 @@ def test_errors(lib, model_path, tmp_path):
 
 
 def test_import_is_light():
-    code = ("import sys, posecorr.runtime; "
+    code = ("import sys, posecorr.controller; "
             "print(sorted(m for m in ('onnxruntime', 'onnx', 'torch', 'scipy') if m in sys.modules))")
     env_path = str(ROOT / "python")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
@@ -121,7 +121,7 @@ def test_bench_model_layout(lib, model_path, monkeypatch):
     from posecorr import latency
 
     monkeypatch.setattr(latency, "bench_binary", lambda: Path(lib).parent / "posecorr-bench")
-    import posecorr.runtime as rt
+    import posecorr.controller.runtime as rt
     real = rt.Corrector
     monkeypatch.setattr(rt, "Corrector", lambda path, **kw: real(path, library=lib, **kw))
     d = latency.bench_model(model_path, n_single=300, batch=200)

@@ -340,8 +340,8 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
     effects = _effect_names(args.effects)
     model_predict = None
     if args.model is not None:
-        from .onnx_meta import read_info
-        from .runtime import Corrector
+        from .controller.onnx_meta import read_info
+        from .controller.runtime import Corrector
 
         if args.effects is None:
             effects = list(read_info(args.model).get("effects") or [])
@@ -420,9 +420,9 @@ def cmd_export(args: argparse.Namespace) -> None:
 def cmd_report(args: argparse.Namespace) -> None:
     from .data import read_table
     from .ledger import read_ledger
-    from .onnx_meta import read_info
+    from .controller.onnx_meta import read_info
     from .report import write_report
-    from .runtime import Corrector
+    from .controller.runtime import Corrector
 
     _threads(args)
     _load_effect_files(args)
@@ -448,7 +448,7 @@ def cmd_report(args: argparse.Namespace) -> None:
 # --- info / apply / bench (controller side: numpy only) ---------------------------------
 
 def cmd_info(args: argparse.Namespace) -> None:
-    from .onnx_meta import read_info
+    from .controller.onnx_meta import read_info
 
     info = read_info(args.model)
     # Metadata is whatever the file's author wrote: escape what a terminal would obey.
@@ -468,7 +468,7 @@ def _printable(text: str) -> str:
 
 
 def cmd_apply(args: argparse.Namespace) -> None:
-    from .apply import apply_file
+    from .controller.apply import apply_file
 
     payload = apply_file(args.model, args.input, args.output, backend=args.backend)
 
@@ -487,7 +487,7 @@ def cmd_apply(args: argparse.Namespace) -> None:
 
 def cmd_bench(args: argparse.Namespace) -> None:
     from .latency import bench_model
-    from .runtime import Corrector
+    from .controller.runtime import Corrector
 
     # Load it in every back end first: a file the runtimes refuse fails here, in one line.
     Corrector(args.model).close()

@@ -25,7 +25,7 @@ def run(out_dir: str | Path = "out/demo", seed: int = 0, mlp_hidden: tuple[int, 
     from .data import write_table
     from .latency import c_bench
     from .metrics import metric_block, pose_metrics
-    from .runtime import Corrector
+    from .controller.runtime import Corrector
     from .simulate import simulate
     from .textui import table
     from .train.mlp import MLP

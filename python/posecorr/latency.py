@@ -93,7 +93,7 @@ def _time_batches(fns: dict[str, tuple[Callable[[np.ndarray], Any], np.ndarray]]
 
 def bench_binary() -> Path | None:
     """posecorr-bench next to the library the shim uses, if present."""
-    from .runtime import library_path
+    from .controller.runtime import library_path
 
     try:
         cand = library_path().parent / "posecorr-bench"
@@ -306,7 +306,7 @@ def bench_model(path: str | os.PathLike, n_single: int = 100000, batch: int = 10
         bat["c"] = d["batch_ns_per_pose"]
         counts["c"] = n_single
 
-    from .runtime import Corrector
+    from .controller.runtime import Corrector
 
     corr = Corrector(path)
     med["shim"], p99["shim"] = _time_single(corr.correct, single_poses, n_single)

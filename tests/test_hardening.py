@@ -332,7 +332,7 @@ def test_atomic_output_replaces_whole_or_not_at_all(tmp_path) -> None:
 
 
 def test_torn_last_line_is_moved_aside_and_the_next_record_kept(tmp_path, capsys) -> None:
-    from posecorr.ledger import append_entry, ledger_path, read_ledger
+    from posecorr.analysis.ledger import append_entry, ledger_path, read_ledger
 
     data = tmp_path / "d.csv"
     append_entry(data, {"model": "a.onnx"})

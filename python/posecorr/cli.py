@@ -228,7 +228,7 @@ def _progress(args: argparse.Namespace) -> Callable[[str], None]:
 
 def cmd_fit(args: argparse.Namespace) -> None:
     from .data import read_table
-    from .ledger import append_entry
+    from .analysis.ledger import append_entry
     from .train.pipeline import fit_table
     from .textui import METRIC_HEADERS, metrics_rows, table as fmt_table
 
@@ -331,7 +331,7 @@ def _one_pm(value: float, error: float | None) -> str:
 
 def cmd_diagnose(args: argparse.Namespace) -> None:
     from .data import read_table
-    from .diagnose import diagnose
+    from .analysis.diagnose import diagnose
     from .textui import table as fmt_table
 
     _threads(args)
@@ -419,9 +419,9 @@ def cmd_export(args: argparse.Namespace) -> None:
 
 def cmd_report(args: argparse.Namespace) -> None:
     from .data import read_table
-    from .ledger import read_ledger
+    from .analysis.ledger import read_ledger
     from .controller.onnx_meta import read_info
-    from .report import write_report
+    from .analysis.page import write_report
     from .controller.runtime import Corrector
 
     _threads(args)
@@ -431,7 +431,7 @@ def cmd_report(args: argparse.Namespace) -> None:
     corrected = Corrector(args.model, backend=args.backend).correct(table.measured, t=table.time())
     diagnosis = None
     if not args.no_diagnosis:
-        from .diagnose import diagnose
+        from .analysis.diagnose import diagnose
 
         effects = _effect_names(args.effects) if args.effects is not None else list(info.get("effects") or [])
         diagnosis = diagnose(table, effects, folds=args.folds, seed=args.seed,

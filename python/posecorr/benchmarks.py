@@ -6,7 +6,7 @@
 * `fit.json`: wall time of `posecorr fit` on robot-cell tables (36-pose sessions, leave one
   out; 3375 simulated poses), with the load average (`posecorr.train.bench_fit`).
 * `latency.json`: single-pose latency and batch throughput of the shipped zhou MLP in the C
-  runtime, the Python shim, onnxruntime (plain and IOBinding) and numpy (`posecorr.latency`).
+  runtime, the Python shim and onnxruntime (plain and IOBinding) (`posecorr.latency`).
 * `apply.json`: `posecorr apply` on 10^6 rows (wall and CPU time, peak memory) against
   the csv module's read-and-write-back floor on the same file (`posecorr.bench_apply`).
 * `ingest.json`: seconds to ingest a 10-minute recording (300k joint states, 150k tracker

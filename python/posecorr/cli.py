@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from . import __version__
+from .jsonable import json_default
 
 EXIT_USAGE = 2
 
@@ -24,17 +25,7 @@ class CliError(Exception):
 
 
 def _print_json(obj: Any) -> None:
-    print(json.dumps(obj, indent=2, default=_json_default))
-
-
-def _json_default(value: Any) -> Any:
-    import numpy as np
-
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+    print(json.dumps(obj, indent=2, default=json_default))
 
 
 def _emit(args: argparse.Namespace, payload: dict[str, Any], text: Callable[[], str]) -> None:
@@ -457,7 +448,7 @@ def cmd_info(args: argparse.Namespace) -> None:
 
 
 def _one_line(value: Any) -> str:
-    return json.dumps(value, default=_json_default) if isinstance(value, (dict, list)) else str(value)
+    return json.dumps(value, default=json_default) if isinstance(value, (dict, list)) else str(value)
 
 
 def _printable(text: str) -> str:

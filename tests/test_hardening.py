@@ -19,9 +19,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from posecorr.cli import main
+from posecorr.controller.runtime import Corrector, PoseCorrError
 from posecorr.data import MEAS_POS, MEAS_QUAT, PoseTable, TableError, read_table, require_rows, write_table
 from posecorr.metrics import pose_metrics
-from posecorr.controller.runtime import Corrector, PoseCorrError
 
 ROOT = Path(__file__).resolve().parents[1]
 MODEL = ROOT / "models" / "pmc-zhou.onnx"

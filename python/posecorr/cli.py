@@ -218,8 +218,8 @@ def _progress(args: argparse.Namespace) -> Callable[[str], None]:
 
 
 def cmd_fit(args: argparse.Namespace) -> None:
-    from .data import read_table
     from .analysis.ledger import append_entry
+    from .data import read_table
     from .train.pipeline import fit_table
     from .textui import METRIC_HEADERS, metrics_rows, table as fmt_table
 
@@ -321,8 +321,8 @@ def _one_pm(value: float, error: float | None) -> str:
 
 
 def cmd_diagnose(args: argparse.Namespace) -> None:
-    from .data import read_table
     from .analysis.diagnose import diagnose
+    from .data import read_table
     from .textui import table as fmt_table
 
     _threads(args)
@@ -409,11 +409,11 @@ def cmd_export(args: argparse.Namespace) -> None:
 
 
 def cmd_report(args: argparse.Namespace) -> None:
-    from .data import read_table
     from .analysis.ledger import read_ledger
-    from .controller.onnx_meta import read_info
     from .analysis.page import write_report
+    from .controller.onnx_meta import read_info
     from .controller.runtime import Corrector
+    from .data import read_table
 
     _threads(args)
     _load_effect_files(args)
@@ -477,8 +477,8 @@ def cmd_apply(args: argparse.Namespace) -> None:
 
 
 def cmd_bench(args: argparse.Namespace) -> None:
-    from .latency import bench_model
     from .controller.runtime import Corrector
+    from .latency import bench_model
 
     # Load it in every back end first: a file the runtimes refuse fails here, in one line.
     Corrector(args.model).close()

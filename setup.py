@@ -1,7 +1,7 @@
 """Builds the C runtime with CMake and places libposecorr next to the Python package.
 
 The shared library is not a CPython extension; it is loaded with ctypes by
-`posecorr.runtime`. It is declared as an extension only so that setuptools builds it
+`posecorr.controller.runtime`. It is declared as an extension only so that setuptools builds it
 in place for editable installs (python/posecorr/_native/) and into the wheel otherwise.
 `posecorr._call1` is a real (optional) extension: the shim's single-pose fast path.
 """

@@ -1,7 +1,7 @@
 """The `metadata_props` of an exported model (DESIGN.md, "The ONNX contract").
 
 Every value is stored as a string; anything that is not already a string (numbers, lists,
-dicts, None) is JSON-encoded, and `posecorr.onnx_meta.read_info` decodes it back.
+dicts, None) is JSON-encoded, and `posecorr.controller.onnx_meta.read_info` decodes it back.
 
 Keys written by the exporter (other keys may be added by callers):
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from posecorr.diagnose import diagnose, feature_r2
+from posecorr.analysis.diagnose import diagnose, feature_r2
 from posecorr.simulate import DEFAULT_MIX, simulate
 
 CATALOGUE = ["mount", "sweep", "range_scale", "incidence", "drift", "station"]

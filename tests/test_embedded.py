@@ -34,7 +34,7 @@ if missing:
         raise RuntimeError(reason)
     pytest.skip(reason, allow_module_level=True)
 
-from posecorr.runtime import Corrector  # noqa: E402
+from posecorr.controller.runtime import Corrector  # noqa: E402
 
 
 def load_script(name: str):

@@ -13,11 +13,11 @@ ort = pytest.importorskip("onnxruntime")
 
 from posecorr import rotations
 from posecorr._xp import namespace
+from posecorr.controller.onnx_meta import read_info
 from posecorr.export import (OperatorNotSupported, build_model, check_operators, custom_op, data_digest,
                              load_operator_list, op_counts, run_onnx, to_onnx)
 from posecorr.export.parity import quat_angle
 from posecorr.export.symbolic import Graph
-from posecorr.onnx_meta import read_info
 
 ACTIVATIONS = ("compet", "hardlim", "logsig", "purelin", "radbas", "satlin", "softmax", "tansig")
 REPS = ("eaa", "quat", "R", "zhou")

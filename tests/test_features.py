@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from posecorr.features import pose_features
+from posecorr.analysis.features import pose_features
 from posecorr.geometry import station_pose, upright_rotation, rot_x, rot_y, rot_z
 from posecorr.rotations import matrix_to_quat
 

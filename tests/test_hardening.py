@@ -19,9 +19,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from posecorr.cli import main
+from posecorr.controller.runtime import Corrector, PoseCorrError
 from posecorr.data import MEAS_POS, MEAS_QUAT, PoseTable, TableError, read_table, require_rows, write_table
 from posecorr.metrics import pose_metrics
-from posecorr.runtime import Corrector, PoseCorrError
 
 ROOT = Path(__file__).resolve().parents[1]
 MODEL = ROOT / "models" / "pmc-zhou.onnx"
@@ -332,7 +332,7 @@ def test_atomic_output_replaces_whole_or_not_at_all(tmp_path) -> None:
 
 
 def test_torn_last_line_is_moved_aside_and_the_next_record_kept(tmp_path, capsys) -> None:
-    from posecorr.ledger import append_entry, ledger_path, read_ledger
+    from posecorr.analysis.ledger import append_entry, ledger_path, read_ledger
 
     data = tmp_path / "d.csv"
     append_entry(data, {"model": "a.onnx"})
@@ -395,7 +395,7 @@ def test_apply_on_a_measurement_only_table(tmp_path, capsys) -> None:
 
 
 def test_apply_streams_in_chunks_with_the_same_result(tmp_path) -> None:
-    from posecorr.apply import apply_file
+    from posecorr.controller.apply import apply_file
 
     t = _table(1000, seed=4)
     path = tmp_path / "t.csv"

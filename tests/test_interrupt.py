@@ -45,7 +45,7 @@ if mode == "fit":
             pause()
     os.fsync = fsync
 elif mode == "apply":
-    from posecorr.runtime import Corrector
+    from posecorr.controller.runtime import Corrector
     real_correct, calls = Corrector.correct, []
     def correct(self, poses, t=None):
         calls.append(1)
@@ -152,30 +152,34 @@ def _assert_ended(code: int, sig: int, err: str, verb: str) -> None:
 SIGNALS = [pytest.param(signal.SIGKILL, id="SIGKILL"), pytest.param(signal.SIGTERM, id="SIGTERM")]
 
 
+# verb: (rows and seed of the table, the complete run, the run that is killed, files the first leaves)
+KILLED_WRITERS = {
+    "fit": (80, 0, ["fit", "{data}", "-o", "{folder}/model.onnx", "--json"],
+            ["fit", "{data}", "-o", "{folder}/model.onnx", "--method", "pmc", "--json"],
+            {"d.csv", "model.onnx", "d.csv.ledger.jsonl"}),
+    "apply": (40_000, 1, ["apply", str(MODEL), "{data}", "-o", "{folder}/out.csv", "--json"],
+              ["apply", str(MODEL), "{data}", "-o", "{folder}/out.csv"], {"d.csv", "out.csv"}),
+}
+
+
 @pytest.mark.parametrize("sig", SIGNALS)
-def test_fit_killed_while_writing_the_model(tmp_path, sig, capsys) -> None:
+@pytest.mark.parametrize("verb", list(KILLED_WRITERS))
+def test_killed_while_writing_leaves_the_previous_files(tmp_path, verb, sig, capsys) -> None:
+    """fit killed while writing the model, apply killed mid-stream: the old model or output,
+    the data and the ledger stay byte for byte, no partial file appears under any name."""
+    rows, seed, complete, killed, files = KILLED_WRITERS[verb]
     data = tmp_path / "d.csv"
-    write_table(_table(80), data)
-    assert main(["fit", str(data), "-o", str(tmp_path / "model.onnx"), "--json"]) == 0
-    before = _snapshot(tmp_path)
-    assert {"d.csv", "model.onnx", "d.csv.ledger.jsonl"} <= set(before)
-    _, code, family, err = _run_and_kill("fit", sig, tmp_path, ["fit", str(data), "-o", str(tmp_path / "model.onnx"),
-                                                                "--method", "pmc", "--json"])
-    _assert_ended(code, sig, err, "fit")
-    assert _snapshot(tmp_path) == before  # the old model, the data, the ledger: byte for byte, nothing else
-    _assert_no_orphans(family)
+    write_table(_table(rows, seed=seed), data)
 
+    def filled(args: list[str]) -> list[str]:
+        return [a.format(data=data, folder=tmp_path) for a in args]
 
-@pytest.mark.parametrize("sig", SIGNALS)
-def test_apply_killed_mid_stream(tmp_path, sig, capsys) -> None:
-    data = tmp_path / "in.csv"
-    write_table(_table(40_000, seed=1), data)
-    out = tmp_path / "out.csv"
-    assert main(["apply", str(MODEL), str(data), "-o", str(out), "--json"]) == 0
+    assert main(filled(complete)) == 0
     before = _snapshot(tmp_path)
-    _, code, family, err = _run_and_kill("apply", sig, tmp_path, ["apply", str(MODEL), str(data), "-o", str(out)])
-    _assert_ended(code, sig, err, "apply")
-    assert _snapshot(tmp_path) == before  # no partial CSV under any name
+    assert files <= set(before)
+    _, code, family, err = _run_and_kill(verb, sig, tmp_path, filled(killed))
+    _assert_ended(code, sig, err, verb)
+    assert _snapshot(tmp_path) == before
     _assert_no_orphans(family)
 
 

@@ -12,9 +12,9 @@ import pytest
 onnx = pytest.importorskip("onnx")
 pytest.importorskip("onnxruntime")
 
+from posecorr.controller.onnx_meta import read_info
 from posecorr.export.models import evaluate, experiment_data
 from posecorr.export.parity import run_onnx
-from posecorr.onnx_meta import read_info
 
 MODELS = Path(__file__).resolve().parent.parent / "models"
 INDEX = MODELS / "index.json"

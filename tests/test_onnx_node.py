@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "runtime_c" / "tests"))
 
 import graphs  # noqa: E402
-from posecorr.runtime import _Error  # noqa: E402
+from posecorr.controller.runtime import _Error  # noqa: E402
 
 HEADER = (ROOT / "runtime_c" / "posecorr.h").read_text()
 OPSETS = range(int(re.search(r"#define PC_OPSET_MIN (\d+)", HEADER)[1]),

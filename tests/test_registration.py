@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from posecorr.registration import homogeneous, project_to_rotation, robot_world_hand_eye, umeyama
+from posecorr.geometry import homogeneous, nearest_rotation
+from posecorr.registration import robot_world_hand_eye, umeyama
 
 
 def test_umeyama_recovers_any_rigid_transform() -> None:
@@ -39,10 +40,10 @@ def test_umeyama_rejects_bad_shapes() -> None:
         umeyama(np.zeros((5, 2)), np.zeros((5, 2)))
 
 
-def test_project_to_rotation_is_nearest() -> None:
+def test_nearest_rotation_is_nearest() -> None:
     R = Rotation.from_rotvec([0.4, 0.2, -0.1]).as_matrix()
     noisy = R + 1e-3 * np.random.default_rng(2).normal(size=(3, 3))
-    P = project_to_rotation(noisy)
+    P = nearest_rotation(noisy)
     np.testing.assert_allclose(P @ P.T, np.eye(3), atol=1e-12)
     assert np.linalg.norm(P - R) < 2e-3
 

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from posecorr.data import PoseTable
-from posecorr.report import SECTIONS, N_WORST, takeaway, write_report
+from posecorr.analysis.interpretation import takeaway
+from posecorr.analysis.page import N_WORST, SECTIONS, write_report
 from posecorr.rotations import geodesic_angle, quat_to_matrix
 from posecorr.simulate import simulate
 
@@ -176,8 +177,8 @@ def test_report_shows_the_still_segments_of_an_ingested_table(tmp_path) -> None:
     them, rejected ones with their reason, and the clock offset."""
     import json as _json
 
+    from posecorr.analysis.page import write_report
     from posecorr.ingest.pipeline import segments_path
-    from posecorr.report import write_report
 
     table = simulate(3, seed=0).table.subset(np.arange(4))
     sidecar = {"segments_found": 5, "segments_rejected": 1, "offset_s": 0.137, "offset_source": "estimated",
@@ -192,3 +193,27 @@ def test_report_shows_the_still_segments_of_an_ingested_table(tmp_path) -> None:
     assert "5 still segments found, 1 rejected" in page
     assert "jitter 0.9 mm &gt; 0.5 mm" in page
     assert "+0.1370 s (estimated)" in page
+
+
+def test_screenshot_drives_a_headless_chromium(tmp_path, monkeypatch) -> None:
+    """The docs' pictures: a Chromium on PATH is called headless on the page's file URI and
+    its PNG is reported written; without one (or when it fails) screenshot says False."""
+    import stat
+
+    from posecorr.analysis.screenshot import main, screenshot
+
+    page = tmp_path / "r.html"
+    page.write_text("<html></html>")
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    monkeypatch.setenv("PATH", str(bin_dir))
+    assert screenshot(page, tmp_path / "none.png") is False
+    assert main([str(page), str(tmp_path / "none.png")]) == 1
+    fake = bin_dir / "chromium"
+    fake.write_text("#!/bin/sh\necho \"$@\" > \"$0.args\"\nfor a; do case $a in --screenshot=*) "
+                    "printf PNG > \"${a#--screenshot=}\";; esac; done\n")
+    fake.chmod(fake.stat().st_mode | stat.S_IXUSR)
+    assert screenshot(page, tmp_path / "shot.png", width=800, height=600) is True
+    assert (tmp_path / "shot.png").read_bytes() == b"PNG"
+    args = (bin_dir / "chromium.args").read_text().split()
+    assert "--headless" in args and "--window-size=800,600" in args and page.resolve().as_uri() in args

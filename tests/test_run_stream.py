@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "runtime_c" / "tests"))
 
 import graphs  # noqa: E402
-from posecorr.runtime import Corrector  # noqa: E402
+from posecorr.controller.runtime import Corrector  # noqa: E402
 
 MODEL = ROOT / "models" / "pmc-zhou.onnx"
 GOOD = np.array([[0.02, -0.61, 0.48, 1.0, 0.0, 0.0, 0.0],

@@ -15,7 +15,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "runtime_c" / "tests"))
 try:
-    import posecorr.runtime  # noqa: F401
+    import posecorr.controller.runtime  # noqa: F401
 except ImportError:  # running from a checkout without the package installed
     sys.path.insert(0, str(ROOT / "python"))
 
@@ -23,7 +23,7 @@ onnx = pytest.importorskip("onnx")
 ort = pytest.importorskip("onnxruntime")
 
 import graphs  # noqa: E402
-from posecorr.runtime import Corrector, PoseCorrError  # noqa: E402
+from posecorr.controller.runtime import Corrector, PoseCorrError  # noqa: E402
 
 BUILD = ROOT / "build"
 OPERATORS = [ln.split("#")[0].strip() for ln in
@@ -201,7 +201,7 @@ def test_truncated_file_names_byte(lib):
 def test_nan_input_leaves_output_untouched(lib):
     import ctypes
 
-    from posecorr.runtime import load_library
+    from posecorr.controller.runtime import load_library
 
     c = Corrector(graphs.pose_model().SerializeToString(), library=lib)
     L = load_library(lib)
@@ -232,7 +232,7 @@ def _status(name: str) -> int:
 
 
 def _run_raw(c: Corrector, lib: str, x: np.ndarray) -> tuple[int, np.ndarray, bytes]:
-    from posecorr.runtime import load_library
+    from posecorr.controller.runtime import load_library
 
     L = load_library(lib)
     out = np.full(x.shape, 7.0, dtype=np.float32)
@@ -317,7 +317,7 @@ def test_graph_mixing_rows_is_refused_at_load(label, model, lib):
 def test_load_into_caller_buffer_matches_load_memory(lib):
     import ctypes
 
-    from posecorr.runtime import _Error, load_library
+    from posecorr.controller.runtime import _Error, load_library
 
     L = load_library(lib)
     blob = MLP_ZHOU.read_bytes()
@@ -343,7 +343,7 @@ def test_load_into_caller_buffer_matches_load_memory(lib):
 
 
 def test_shim_checks_the_library_version(lib):
-    from posecorr import runtime
+    from posecorr.controller import runtime
 
     text = (ROOT / "runtime_c" / "posecorr.h").read_text()
     major, minor, patch = (int(text.split(f"#define PC_VERSION_{k} ")[1].split()[0])
@@ -414,7 +414,7 @@ def test_drift_model_with_time_matches_onnxruntime(drift_model, lib):
 
 
 def test_pc_run_timed_with_null_time_is_pc_run(drift_model, lib):
-    from posecorr.runtime import load_library
+    from posecorr.controller.runtime import load_library
 
     L = load_library(lib)
     c = Corrector(drift_model[0], library=lib)

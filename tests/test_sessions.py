@@ -172,7 +172,7 @@ def test_corpus_physics_reaches_the_noise_floor_with_full_spread(corpus: list[di
 def test_diagnose_names_what_a_session_cannot_determine_instead_of_ranking_it() -> None:
     """Every pose of 20200717_Exp2 has the same orientation: incidence (a bias that depends on
     the tracker's tilt against the line of sight) cannot be seen, so it is listed, not ranked."""
-    from posecorr.diagnose import diagnose
+    from posecorr.analysis.diagnose import diagnose
 
     table = read_table(REALDATA / "20200717_Exp2.csv")
     result = diagnose(table, ["station", "mount"], folds=3, seed=0)

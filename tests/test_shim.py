@@ -1,4 +1,4 @@
-"""posecorr.runtime (ctypes shim over libposecorr) and posecorr.latency."""
+"""posecorr.controller.runtime (ctypes shim over libposecorr) and posecorr.latency."""
 from __future__ import annotations
 
 import importlib
@@ -12,13 +12,13 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "runtime_c" / "tests"))
 try:
-    import posecorr.runtime  # noqa: F401
+    import posecorr.controller.runtime  # noqa: F401
 except ImportError:
     sys.path.insert(0, str(ROOT / "python"))
 
 onnx = pytest.importorskip("onnx")
 import graphs  # noqa: E402
-from posecorr.runtime import Corrector, PoseCorrError, library_path  # noqa: E402
+from posecorr.controller.runtime import Corrector, PoseCorrError, library_path  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -116,7 +116,7 @@ def test_single_pose_fast_path_equals_ctypes(lib, model_path):
 
 
 def test_import_is_light():
-    code = ("import sys, posecorr.runtime; "
+    code = ("import sys, posecorr.controller; "
             "print(sorted(m for m in ('onnxruntime', 'onnx', 'torch', 'scipy') if m in sys.modules))")
     env_path = str(ROOT / "python")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
@@ -124,38 +124,18 @@ def test_import_is_light():
     assert r.stdout.strip() == "[]"
 
 
-def test_numpy_interpreter_matches_c(lib, model_path):
-    from posecorr.latency import NumpyGraph
-
-    g = NumpyGraph(model_path)
-    c = Corrector(model_path, library=lib)
-    x = graphs.random_poses(40, seed=6)
-    np.testing.assert_allclose(g(x), c.correct(x), rtol=0, atol=1e-5)
-    for name, build in graphs.op_cases().items():
-        for m in build():
-            blob = m.SerializeToString()
-            xi = graphs.op_inputs(4, seed=3)
-            if name in graphs.CROSS_ROW:
-                xi = xi[:1]
-            ref = Corrector(blob, library=lib).correct(xi)
-            got = NumpyGraph(blob)(xi)
-            if name == "int_arith":  # numpy floors integer division, ONNX truncates
-                continue
-            np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5, err_msg=name)
-
-
 def test_bench_model_layout(lib, model_path, monkeypatch):
     from posecorr import latency
 
     monkeypatch.setattr(latency, "bench_binary", lambda: Path(lib).parent / "posecorr-bench")
-    import posecorr.runtime as rt
+    import posecorr.controller.runtime as rt
     real = rt.Corrector
     monkeypatch.setattr(rt, "Corrector", lambda path, **kw: real(path, library=lib, **kw))
     d = latency.bench_model(model_path, n_single=300, batch=200)
-    keys = {"c", "shim", "onnxruntime", "onnxruntime_iobinding", "numpy"}
+    keys = {"c", "shim", "onnxruntime", "onnxruntime_iobinding"}
     for block in ("single_pose_median_us", "single_pose_p99_us", "batch_ns_per_pose"):
         assert set(d[block]) == keys
-        for k in ("c", "shim", "numpy"):
+        for k in keys:
             assert d[block][k] is not None and d[block][k] > 0
     assert isinstance(d["machine"], str) and d["machine"]
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from posecorr.diagnose import diagnose
+from posecorr.analysis.diagnose import diagnose
 from posecorr.effects import EFFECTS, load_effect_file, unregister_effect
 from posecorr.simulate import simulate
 from posecorr.train.pipeline import CorrectionPipeline, cross_validate

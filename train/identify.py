@@ -29,7 +29,8 @@ from typing import Sequence
 
 import numpy as np
 
-from posecorr.registration import project_to_rotation, umeyama
+from posecorr.geometry import nearest_rotation
+from posecorr.registration import umeyama
 
 LIMIT_SCALES = 10.0            # determined: std error < LIMIT_SCALES * Param.scale
 MIN_INDEPENDENT = 0.02         # ... and at least 2 % of its effect unexplained by earlier blocks
@@ -82,7 +83,7 @@ class Spread:
 
 def chordal_mean(R: np.ndarray) -> np.ndarray:
     """The rotation nearest (Frobenius) to the mean of (N, 3, 3) rotations."""
-    return project_to_rotation(np.mean(R, axis=0))
+    return nearest_rotation(np.mean(R, axis=0))
 
 
 def describe_spread(measured_p: np.ndarray, measured_R: np.ndarray, has_orientation: bool) -> Spread:

@@ -1,21 +1,23 @@
 """posecorr: learn and apply pose corrections for consumer VR trackers.
 
-The controller-side import is light: this module pulls in numpy only. Fitting lives in
-`posecorr.train` (torch), export in `posecorr.export` (onnx).
+`import posecorr` loads nothing else; `posecorr.Corrector` loads the controller side
+(`posecorr.controller`: the shim, `info`, `apply`; numpy only). Fitting lives in
+`posecorr.train` (torch), export in `posecorr.export` (onnx), diagnosis, features, the
+ledger and the report in `posecorr.analysis`.
 """
 from __future__ import annotations
 
 __version__ = "0.1.0"
 
-__all__ = ["__version__", "Corrector"]
+__all__ = ["__version__", "Corrector", "PoseCorrError"]
 
 
 def __getattr__(name: str):
     # Lazy so that `import posecorr` does not load ctypes or onnxruntime.
-    if name == "Corrector":
-        from .runtime import Corrector
+    if name in ("Corrector", "PoseCorrError"):
+        from .controller import runtime
 
-        return Corrector
+        return getattr(runtime, name)
     if name in ("PMC", "MLP"):
         from . import train
 

@@ -6,7 +6,7 @@
 * `fit.json`: wall time of `posecorr fit` on robot-cell tables (36-pose sessions, leave one
   out; 3375 simulated poses), with the load average (`posecorr.train.bench_fit`).
 * `latency.json`: single-pose latency and batch throughput of the shipped zhou MLP in the C
-  runtime, the Python shim, onnxruntime (plain and IOBinding) and numpy (`posecorr.latency`).
+  runtime, the Python shim and onnxruntime (plain and IOBinding) (`posecorr.latency`).
 * `targets.json`: the runtime's speed goals as ratios taken in one run: `pc_run` against the
   hand-written zhou MLP (single pose, batch), the demo's physics + PMC model against the
   zhou MLP, the Python shim's single pose (`posecorr.bench_targets`).

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from . import __version__
+from .jsonable import json_default
 
 EXIT_USAGE = 2
 
@@ -24,17 +25,7 @@ class CliError(Exception):
 
 
 def _print_json(obj: Any) -> None:
-    print(json.dumps(obj, indent=2, default=_json_default))
-
-
-def _json_default(value: Any) -> Any:
-    import numpy as np
-
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+    print(json.dumps(obj, indent=2, default=json_default))
 
 
 def _emit(args: argparse.Namespace, payload: dict[str, Any], text: Callable[[], str]) -> None:
@@ -227,8 +218,8 @@ def _progress(args: argparse.Namespace) -> Callable[[str], None]:
 
 
 def cmd_fit(args: argparse.Namespace) -> None:
+    from .analysis.ledger import append_entry
     from .data import read_table
-    from .ledger import append_entry
     from .train.pipeline import fit_table
     from .textui import METRIC_HEADERS, metrics_rows, table as fmt_table
 
@@ -330,8 +321,8 @@ def _one_pm(value: float, error: float | None) -> str:
 
 
 def cmd_diagnose(args: argparse.Namespace) -> None:
+    from .analysis.diagnose import diagnose
     from .data import read_table
-    from .diagnose import diagnose
     from .textui import table as fmt_table
 
     _threads(args)
@@ -340,8 +331,8 @@ def cmd_diagnose(args: argparse.Namespace) -> None:
     effects = _effect_names(args.effects)
     model_predict = None
     if args.model is not None:
-        from .onnx_meta import read_info
-        from .runtime import Corrector
+        from .controller.onnx_meta import read_info
+        from .controller.runtime import Corrector
 
         if args.effects is None:
             effects = list(read_info(args.model).get("effects") or [])
@@ -418,11 +409,11 @@ def cmd_export(args: argparse.Namespace) -> None:
 
 
 def cmd_report(args: argparse.Namespace) -> None:
+    from .analysis.ledger import read_ledger
+    from .analysis.page import write_report
+    from .controller.onnx_meta import read_info
+    from .controller.runtime import Corrector
     from .data import read_table
-    from .ledger import read_ledger
-    from .onnx_meta import read_info
-    from .report import write_report
-    from .runtime import Corrector
 
     _threads(args)
     _load_effect_files(args)
@@ -431,7 +422,7 @@ def cmd_report(args: argparse.Namespace) -> None:
     corrected = Corrector(args.model, backend=args.backend).correct(table.measured, t=table.time())
     diagnosis = None
     if not args.no_diagnosis:
-        from .diagnose import diagnose
+        from .analysis.diagnose import diagnose
 
         effects = _effect_names(args.effects) if args.effects is not None else list(info.get("effects") or [])
         diagnosis = diagnose(table, effects, folds=args.folds, seed=args.seed,
@@ -448,7 +439,7 @@ def cmd_report(args: argparse.Namespace) -> None:
 # --- info / apply / bench (controller side: numpy only) ---------------------------------
 
 def cmd_info(args: argparse.Namespace) -> None:
-    from .onnx_meta import read_info
+    from .controller.onnx_meta import read_info
 
     info = read_info(args.model)
     # Metadata is whatever the file's author wrote: escape what a terminal would obey.
@@ -457,7 +448,7 @@ def cmd_info(args: argparse.Namespace) -> None:
 
 
 def _one_line(value: Any) -> str:
-    return json.dumps(value, default=_json_default) if isinstance(value, (dict, list)) else str(value)
+    return json.dumps(value, default=json_default) if isinstance(value, (dict, list)) else str(value)
 
 
 def _printable(text: str) -> str:
@@ -468,7 +459,7 @@ def _printable(text: str) -> str:
 
 
 def cmd_apply(args: argparse.Namespace) -> None:
-    from .apply import apply_file
+    from .controller.apply import apply_file
 
     payload = apply_file(args.model, args.input, args.output, backend=args.backend)
 
@@ -486,8 +477,8 @@ def cmd_apply(args: argparse.Namespace) -> None:
 
 
 def cmd_bench(args: argparse.Namespace) -> None:
+    from .controller.runtime import Corrector
     from .latency import bench_model
-    from .runtime import Corrector
 
     # Load it in every back end first: a file the runtimes refuse fails here, in one line.
     Corrector(args.model).close()

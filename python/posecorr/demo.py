@@ -22,10 +22,10 @@ PHYSICS = ("mount", "sweep", "range_scale", "incidence", "station")
 
 def run(out_dir: str | Path = "out/demo", seed: int = 0, mlp_hidden: tuple[int, ...] = (20, 20),
         mlp_epochs: int = 100, log: Callable[[str], None] = print) -> dict[str, Any]:
+    from .controller.runtime import Corrector
     from .data import write_table
     from .latency import c_bench
     from .metrics import metric_block, pose_metrics
-    from .runtime import Corrector
     from .simulate import simulate
     from .textui import table
     from .train.mlp import MLP

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -29,9 +30,35 @@ class KinematicsError(ValueError):
     """A robot model that cannot be built or a pose it cannot reach."""
 
 
+class _SerialArm:
+    """A serial chain: its pose is the product of one transform per link, base to tip."""
+
+    joint_names: tuple[str, ...]
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_names)
+
+    def forward(self, q: np.ndarray) -> np.ndarray:
+        """(N, 4, 4) base_T_tip for joint values (N, n_joints) in `joint_names` order (or one vector)."""
+        q = _joint_array(q, self.n_joints)
+        T = _identities(len(q))
+        for link in self._links(q):
+            T = T @ link
+        return T
+
+    def _links(self, q: np.ndarray) -> Iterator[np.ndarray]:
+        """Each link's (N, 4, 4) or (4, 4) transform for joint values q (N, n_joints)."""
+        raise NotImplementedError
+
+
+def _identities(n: int) -> np.ndarray:
+    return np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
+
+
 @dataclass(frozen=True)
-class DHArm:
-    """A serial arm in standard DH parameters (metres, radians)."""
+class DHArm(_SerialArm):
+    """A serial arm in standard DH parameters (metres, radians), one joint per (a, d, alpha)."""
 
     name: str
     a: tuple[float, ...]
@@ -39,14 +66,11 @@ class DHArm:
     alpha: tuple[float, ...]
     joint_names: tuple[str, ...] = UR_JOINT_NAMES
 
-    @property
-    def n_joints(self) -> int:
-        return len(self.a)
+    def __post_init__(self) -> None:
+        if not len(self.a) == len(self.d) == len(self.alpha) == len(self.joint_names):
+            raise KinematicsError(f"{self.name}: a, d, alpha and joint_names differ in length")
 
-    def forward(self, q: np.ndarray) -> np.ndarray:
-        """(N, 4, 4) base_T_flange for joint angles (N, n_joints) (or one (n_joints,) vector)."""
-        q = _joint_array(q, self.n_joints)
-        T = np.broadcast_to(np.eye(4), (len(q), 4, 4)).copy()
+    def _links(self, q: np.ndarray) -> Iterator[np.ndarray]:
         for i in range(self.n_joints):
             ct, st = np.cos(q[:, i]), np.sin(q[:, i])
             ca, sa = np.cos(self.alpha[i]), np.sin(self.alpha[i])
@@ -55,8 +79,7 @@ class DHArm:
             A[:, 1, 0], A[:, 1, 1], A[:, 1, 2], A[:, 1, 3] = st, ct * ca, -ct * sa, self.a[i] * st
             A[:, 2, 1], A[:, 2, 2], A[:, 2, 3] = sa, ca, self.d[i]
             A[:, 3, 3] = 1.0
-            T = T @ A
-        return T
+            yield A
 
 
 def _ur(name: str, d1: float, a2: float, a3: float, d4: float, d5: float, d6: float) -> DHArm:
@@ -85,7 +108,7 @@ class _UrdfJoint:
     axis: np.ndarray          # (3,) unit, joint frame
 
 
-class UrdfArm:
+class UrdfArm(_SerialArm):
     """The serial chain from `base_link` to `tip_link` of a URDF; its moving joints in chain order."""
 
     def __init__(self, path: str | Path, base_link: str | None = None, tip_link: str | None = None) -> None:
@@ -129,27 +152,19 @@ class UrdfArm:
         self.base_link, self.tip_link = base, tip_link
         self.joint_names = tuple(j.name for j in self.chain if j.kind != "fixed")
 
-    @property
-    def n_joints(self) -> int:
-        return len(self.joint_names)
-
-    def forward(self, q: np.ndarray) -> np.ndarray:
-        """(N, 4, 4) base_link_T_tip_link for joint values (N, n_joints) in `joint_names` order."""
-        q = _joint_array(q, self.n_joints)
-        T = np.broadcast_to(np.eye(4), (len(q), 4, 4)).copy()
+    def _links(self, q: np.ndarray) -> Iterator[np.ndarray]:
         k = 0
         for joint in self.chain:
-            T = T @ joint.origin
+            yield joint.origin
             if joint.kind == "fixed":
                 continue
-            motion = np.broadcast_to(np.eye(4), (len(q), 4, 4)).copy()
+            motion = _identities(len(q))
             if joint.kind == "prismatic":
                 motion[:, :3, 3] = q[:, k, None] * joint.axis
             else:
                 motion[:, :3, :3] = rotvec_to_matrix(q[:, k, None] * joint.axis)
-            T = T @ motion
+            yield motion
             k += 1
-        return T
 
 
 Arm = DHArm | UrdfArm

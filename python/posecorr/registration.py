@@ -15,16 +15,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import homogeneous
+from .geometry import homogeneous, nearest_rotation
 
-__all__ = ["project_to_rotation", "umeyama", "homogeneous", "robot_world_hand_eye"]
-
-
-def project_to_rotation(M: np.ndarray) -> np.ndarray:
-    """Nearest proper rotation (Frobenius norm) to a 3x3 matrix, by SVD."""
-    U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
+__all__ = ["umeyama", "robot_world_hand_eye"]
 
 
 def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
@@ -78,8 +71,8 @@ def robot_world_hand_eye(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.n
     RY_raw = v[9:].reshape(3, 3, order="F")
     # The null vector's scale and sign are free: make R_X's determinant positive.
     scale = np.cbrt(np.linalg.det(RX_raw))
-    RX = project_to_rotation(RX_raw / scale)
-    RY = project_to_rotation(RY_raw / scale)
+    RX = nearest_rotation(RX_raw / scale)
+    RY = nearest_rotation(RY_raw / scale)
     lhs = np.concatenate([np.concatenate([RA[i], -eye], axis=1) for i in range(n)])
     rhs = np.concatenate([RY @ tB[i] - tA[i] for i in range(n)])
     sol, *_ = np.linalg.lstsq(lhs, rhs, rcond=None)

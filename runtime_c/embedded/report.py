@@ -174,7 +174,7 @@ def x86_truncated_message(model: Path) -> str:
     as its error case), without the shim's "path: " prefix."""
     import tempfile
 
-    from posecorr.runtime import Corrector, PoseCorrError
+    from posecorr import Corrector, PoseCorrError
 
     data = model.read_bytes()
     with tempfile.TemporaryDirectory() as tmp:
@@ -188,7 +188,7 @@ def x86_truncated_message(model: Path) -> str:
 
 
 def compare(run: FirmwareRun, model: Path) -> tuple[float, int]:
-    from posecorr.runtime import Corrector
+    from posecorr import Corrector
 
     x86 = Corrector(model, backend="c").correct(run.inputs.astype(np.float64))
     x86 = x86.astype(np.float32)

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..data import JOINTS, PoseTable
 from ..geometry import END_T_TRACKER, base_T_station, homogeneous
+from ..jsonable import json_default
 from ..kinematics import DEFAULT_ARM, Arm, load_arm, reference_poses
 from ..rotations import matrix_to_quat, quat_to_matrix
 from .align import Alignment, check_overlap, estimate_offset
@@ -199,13 +200,5 @@ def segments_path(table_path: str | Path) -> Path:
 
 def write_segments(result: IngestResult, table_path: str | Path) -> Path:
     path = segments_path(table_path)
-    path.write_text(json.dumps(result.summary(), indent=2, default=_json_default) + "\n", encoding="utf-8")
+    path.write_text(json.dumps(result.summary(), indent=2, default=json_default) + "\n", encoding="utf-8")
     return path
-
-
-def _json_default(value: object) -> object:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

@@ -349,28 +349,29 @@ TRACKER_TOPIC = "/vive/tracker/pose"
 
 def write_ros1_bag(path: Path, joints: JointStream, tracker: PoseStream, frame: str) -> None:
     from rosbags.rosbag1 import Writer
-    from rosbags.typesys import Stores, get_typestore
 
-    typestore = get_typestore(Stores.ROS1_NOETIC)
     with Writer(path) as writer:
-        connections: dict[str, Any] = {}
-        for topic, msgtype, ns, msg in ros_messages(typestore, joints, tracker, True, frame):
-            if topic not in connections:
-                connections[topic] = writer.add_connection(topic, msgtype, typestore=typestore)
-            writer.write(connections[topic], ns, typestore.serialize_ros1(msg, msgtype))
+        _write_bag(writer, 1, joints, tracker, frame)
 
 
 def write_ros2_bag(path: Path, joints: JointStream, tracker: PoseStream, frame: str) -> None:
     from rosbags.rosbag2 import Writer
+
+    with Writer(path, version=9) as writer:
+        _write_bag(writer, 2, joints, tracker, frame)
+
+
+def _write_bag(writer: Any, ros_version: int, joints: JointStream, tracker: PoseStream, frame: str) -> None:
+    """The messages into an open rosbags writer, one connection per topic."""
     from rosbags.typesys import Stores, get_typestore
 
-    typestore = get_typestore(Stores.ROS2_HUMBLE)
-    with Writer(path, version=9) as writer:
-        connections: dict[str, Any] = {}
-        for topic, msgtype, ns, msg in ros_messages(typestore, joints, tracker, False, frame):
-            if topic not in connections:
-                connections[topic] = writer.add_connection(topic, msgtype, typestore=typestore)
-            writer.write(connections[topic], ns, typestore.serialize_cdr(msg, msgtype))
+    typestore = get_typestore(Stores.ROS1_NOETIC if ros_version == 1 else Stores.ROS2_HUMBLE)
+    serialize = typestore.serialize_ros1 if ros_version == 1 else typestore.serialize_cdr
+    connections: dict[str, Any] = {}
+    for topic, msgtype, ns, msg in ros_messages(typestore, joints, tracker, ros_version == 1, frame):
+        if topic not in connections:
+            connections[topic] = writer.add_connection(topic, msgtype, typestore=typestore)
+        writer.write(connections[topic], ns, serialize(msg, msgtype))
 
 
 def write_mcap(path: Path, joints: JointStream, tracker: PoseStream, frame: str) -> None:

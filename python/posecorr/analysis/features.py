@@ -1,19 +1,21 @@
 """Per-pose features where residual structure can live (diagnosis and report).
 
 All angles in rad, positions in m. Station quantities use the nominal station pose of
-eq. 23 (the one the simulator and the effects use): s = R_S^T (p - t_S), the station looks
-along its -z axis; azimuth and elevation are the sweep angles of the `sweep` effect;
-incidence is the angle between the tracker's z axis and the line of sight back to the
-station. roll, pitch, yaw are the intrinsic Z-Y-X angles of the orientation relative to
+eq. 23 and the effects' own formulas (`effects.station_coords`, the `sweep` effect's
+angles): s = R_S^T (p - t_S), the station looks along its -z axis; azimuth and elevation
+are the sweep angles of the `sweep` effect; incidence is the angle between the tracker's
+z axis and the line of sight back to the station. roll, pitch, yaw are the intrinsic Z-Y-X angles of the orientation relative to
 `geometry.upright_rotation()` (Experiment III's convention R = R_up Rz(yaw) Ry(pitch) Rx(roll)).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from .data import PoseTable
-from .geometry import station_pose, upright_rotation
-from .rotations import quat_to_matrix
+from .._xp import namespace
+from ..data import PoseTable
+from ..effects import EffectContext, Sweep, station_coords
+from ..geometry import upright_rotation
+from ..rotations import normalize, quat_to_matrix
 
 FEATURES = ("x", "y", "z", "range", "azimuth", "elevation", "incidence", "roll", "pitch", "yaw", "t")
 
@@ -23,17 +25,16 @@ def pose_features(poses: np.ndarray, t: np.ndarray | None = None) -> dict[str, n
     poses = np.atleast_2d(np.asarray(poses, float))
     p = poses[:, :3]
     R = quat_to_matrix(poses[:, 3:7])
-    R_S, t_S = station_pose()
-    s = (p - t_S) @ R_S
-    line = p - t_S
-    u = line / np.linalg.norm(line, axis=1, keepdims=True)
+    ctx = EffectContext.default()
+    s = station_coords(p, ctx)
+    # The sweep effect's own angles: a residual along azimuth is one that effect could bend.
+    azimuth, elevation, distance = Sweep._angles(namespace(s), s)
+    u = normalize(p - ctx.t_S)
     cos_incidence = np.clip(-np.einsum("ni,ni->n", R[:, :, 2], u), -1.0, 1.0)
     rel = np.swapaxes(upright_rotation(), -1, -2) @ R
     out = {
         "x": p[:, 0], "y": p[:, 1], "z": p[:, 2],
-        "range": np.linalg.norm(s, axis=1),
-        "azimuth": np.arctan2(s[:, 0], -s[:, 2]),
-        "elevation": np.arctan2(s[:, 1], -s[:, 2]),
+        "range": distance[:, 0], "azimuth": azimuth, "elevation": elevation,
         "incidence": np.arccos(cos_incidence),
         "roll": np.arctan2(rel[:, 2, 1], rel[:, 2, 2]),
         "pitch": np.arcsin(np.clip(-rel[:, 2, 0], -1.0, 1.0)),

@@ -17,9 +17,10 @@ from typing import Any
 
 import numpy as np
 
-from .data import CHUNK_ROWS, MEAS_POS, MEAS_QUAT, REF_POS, REF_QUAT, TableError, TableReader
-from .metrics import METRIC_KEYS, metric_block, pose_errors
-from .safeio import atomic_output, check_output
+from ..data import CHUNK_ROWS, MEAS_POS, MEAS_QUAT, REF_POS, REF_QUAT, TableError, TableReader
+from ..metrics import METRIC_KEYS, metric_block, pose_errors
+from ..safeio import atomic_output, check_output
+from .runtime import Corrector
 
 CORR_COLUMNS = tuple("corr_" + name.split("_", 1)[1] for name in MEAS_POS + MEAS_QUAT)
 
@@ -74,8 +75,6 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                backend: str = "c", chunk_rows: int = CHUNK_ROWS) -> dict[str, Any]:
     """Correct `table` with `model` into `output`; returns {"n", "output", "backend",
     "reference", "raw", "corrected"} (raw / corrected None without reference columns)."""
-    from .runtime import Corrector
-
     check_output(output, [model, table])
     corrector = Corrector(model, backend=backend)
     n = 0

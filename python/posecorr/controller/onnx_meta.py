@@ -70,6 +70,16 @@ def _fields(buf: bytes) -> Iterator[tuple[int, int, Any]]:
         yield field, wire, value
 
 
+def _pick(buf: bytes, defaults: dict[int, Any]) -> dict[int, Any]:
+    """{field number: value} of one message for the fields `defaults` names (the last
+    occurrence wins, as in protobuf), the default where a field is absent."""
+    out = dict(defaults)
+    for field, _, value in _fields(buf):
+        if field in out:
+            out[field] = value
+    return out
+
+
 def _str(value: Any) -> str:
     if not isinstance(value, (bytes, bytearray)):
         raise _Malformed("expected a string field")
@@ -163,21 +173,11 @@ def _parse(data: bytes, path: str) -> dict[str, Any]:
         elif f == 7 and wire == 2:
             graph = _msg(v)
         elif f == 8 and wire == 2:
-            domain, version = "", 0
-            for of, _, ov in _fields(_msg(v)):
-                if of == 1:
-                    domain = _str(ov)
-                elif of == 2:
-                    version = ov
-            opsets[domain or "ai.onnx"] = version
+            opset = _pick(_msg(v), {1: b"", 2: 0})       # OperatorSetIdProto: domain, version
+            opsets[_str(opset[1]) or "ai.onnx"] = opset[2]
         elif f == 14 and wire == 2:
-            key, value = "", ""
-            for mf, _, mv in _fields(_msg(v)):
-                if mf == 1:
-                    key = _str(mv)
-                elif mf == 2:
-                    value = _str(mv)
-            meta[key] = decode_value(value)
+            entry = _pick(_msg(v), {1: b"", 2: b""})     # StringStringEntryProto: key, value
+            meta[_str(entry[1])] = decode_value(_str(entry[2]))
     if ir_version is None or graph is None:
         raise _Malformed("no ir_version or no graph (is this an ONNX ModelProto?)")
 
@@ -187,12 +187,8 @@ def _parse(data: bytes, path: str) -> dict[str, Any]:
     n_params = 0
     for f, wire, v in _fields(graph):
         if f == 1 and wire == 2:
-            op, domain = "", ""
-            for nf, _, nv in _fields(_msg(v)):
-                if nf == 4:
-                    op = _str(nv)
-                elif nf == 7:
-                    domain = _str(nv)
+            node = _pick(_msg(v), {4: b"", 7: b""})      # NodeProto: op_type, domain
+            op, domain = _str(node[4]), _str(node[7])
             ops[f"{domain}::{op}" if domain and domain != "ai.onnx" else op] += 1
         elif f == 5 and wire == 2:
             dims, name = [], ""

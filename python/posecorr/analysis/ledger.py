@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 
 def ledger_path(data_path: str | Path) -> Path:
@@ -24,7 +24,7 @@ def ledger_path(data_path: str | Path) -> Path:
 
 def append_entry(data_path: str | Path, entry: dict[str, Any]) -> dict[str, Any]:
     """Append one fitted model's record (a time stamp is added) and return it."""
-    from .safeio import append_line
+    from ..safeio import append_line
 
     record = {"time": datetime.now(timezone.utc).isoformat(timespec="seconds"), **entry}
     append_line(ledger_path(data_path), json.dumps(record, default=float))
@@ -34,7 +34,7 @@ def append_entry(data_path: str | Path, entry: dict[str, Any]) -> dict[str, Any]
 def read_ledger(data_path: str | Path) -> list[dict[str, Any]]:
     """All records, oldest first; a missing ledger is empty. A line that is not a record
     (torn by an interrupted write, edited by hand) is skipped with a warning naming it."""
-    from .safeio import warn
+    from ..safeio import warn
 
     path = ledger_path(data_path)
     if not path.exists():
@@ -53,3 +53,12 @@ def read_ledger(data_path: str | Path) -> list[dict[str, Any]]:
             else:
                 warn(f"{path}, line {number}: not a ledger record (not an object); skipped")
     return records
+
+
+def held_out(record: Mapping[str, Any]) -> tuple[str, Mapping[str, Any]]:
+    """("cv" | "test" | "", block) of a record: the held-out figures its model was scored on."""
+    for key in ("cv", "test"):
+        block = record.get(key)
+        if isinstance(block, Mapping):
+            return key, block
+    return "", {}

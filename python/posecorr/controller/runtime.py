@@ -65,7 +65,7 @@ _LIBS: dict[str, ctypes.CDLL] = {}
 
 def library_path() -> Path:
     """Path of libposecorr that `Corrector` uses."""
-    here = Path(__file__).resolve().parent / "_native"
+    here = Path(__file__).resolve().parents[1] / "_native"  # posecorr/_native, beside this package
     for name in ("libposecorr.so", "libposecorr.dylib"):
         if (here / name).exists():
             return here / name

@@ -22,7 +22,7 @@ data cannot tell apart are flagged as `aliases`: the largest canonical correlati
 their (base-projected) Jacobian column spaces exceeds 0.99.
 
 It also reports residual structure that no catalogue effect may explain: for each feature
-(`posecorr.features`) the cross-validated R^2 of a smooth fit (cubic spline + ridge) of
+(`posecorr.analysis.features`) the cross-validated R^2 of a smooth fit (cubic spline + ridge) of
 the out-of-fold residuals (position mm, orientation mrad) on that feature alone.
 """
 from __future__ import annotations
@@ -32,10 +32,10 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from .data import PoseTable
+from ..data import PoseTable
+from ..metrics import pose_errors, rmse_total
+from ..rotations import matrix_to_rotvec, quat_to_matrix
 from .features import FEATURES, pose_features
-from .metrics import pose_errors, rmse_total
-from .rotations import matrix_to_rotvec, quat_to_matrix
 
 ALIAS_CORRELATION = 0.99
 PRESENT_TEST = ("score (Lagrange multiplier) test on held-out residuals, Bonferroni-corrected p < {alpha:g}; "
@@ -44,7 +44,7 @@ PRESENT_TEST = ("score (Lagrange multiplier) test on held-out residuals, Bonferr
 
 def candidate_effects(table: PoseTable, effects: Sequence[str]) -> list[str]:
     """Registered, fittable effects not in `effects` (drift only when the table has time)."""
-    from .effects import EFFECTS
+    from ..effects import EFFECTS
 
     out = []
     for name, effect in EFFECTS.items():
@@ -67,7 +67,7 @@ def split_identifiable(table: PoseTable, effects: Sequence[str],
     for name in names:
         fixed = PhysicsModel(tuple(effects) + (name,)).identifiability(
             table.measured, table.reference, table.time(), table.has_orientation)
-        from .effects import get_effect
+        from ..effects import get_effect
 
         held = [key for key in fixed if key.split(" ")[0].split(".")[0] == name]
         whole = {key.split(" ")[0] for key in held if " along " not in key}
@@ -296,7 +296,7 @@ def _base_physics(base_cv: Any, k: int, table: PoseTable, train: np.ndarray, eff
 
 
 def _column_owners(physics: Any, names: Sequence[str]) -> np.ndarray:
-    from .effects import sorted_effects
+    from ..effects import sorted_effects
 
     chosen = sorted_effects(tuple(physics.params_) + tuple(names))
     return np.concatenate([np.full(e.size, e.name, dtype=object) for e in chosen])

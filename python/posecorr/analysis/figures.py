@@ -1,0 +1,341 @@
+"""The report's figures (matplotlib, Agg backend): each function returns a figure, `to_png` renders it.
+
+Errors come in mm / mrad, feature angles in rad (shown in degrees). matplotlib is imported
+inside the functions, so that importing this module (and the CLI) stays cheap. The page
+(`page`) embeds the PNGs; what counts as structure or as the best ledger entry comes from
+`interpretation`, so a figure and the text beside it never disagree.
+"""
+from __future__ import annotations
+
+import io
+import math
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from .features import FEATURES
+from .interpretation import effect_list, effects_step, is_structure
+from .ledger import held_out
+
+DPI = 100
+ANGLE_FEATURES = ("azimuth", "elevation", "incidence", "roll", "pitch", "yaw")
+FEATURE_UNITS = {"x": "m", "y": "m", "z": "m", "range": "m", "t": "s", **{a: "deg" for a in ANGLE_FEATURES}}
+BEFORE_COLOUR = "0.6"        # grey: raw measurements
+AFTER_COLOUR = "#1f77b4"     # blue: corrected by the model
+# A floor for log axes: an error of exactly zero (a pass-through orientation) has no log.
+LOG_FLOOR_MM = 1e-4
+
+
+def to_png(fig: Any) -> bytes:
+    """A matplotlib figure rendered as PNG bytes; the figure is closed."""
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def _pyplot() -> Any:
+    import matplotlib
+    matplotlib.use("Agg")  # no display on a controller PC or CI box
+    import matplotlib.pyplot as plt
+    plt.rcParams.update({"font.size": 9, "axes.titlesize": 10, "axes.labelsize": 9,
+                         "legend.fontsize": 8, "figure.dpi": DPI})
+    return plt
+
+
+def _plain_log(ax: Any, axis: str = "y", subs: Sequence[float] = (1.0, 2.0, 5.0), minor: bool = True) -> None:
+    """Log axis with plain tick labels at subs x 10^k (no mathtext: readable and fast).
+
+    minor=False drops the minor ticks, which dominate drawing time in many-panel figures.
+    """
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter, NullLocator
+
+    target = ax.yaxis if axis == "y" else ax.xaxis
+    target.set_major_locator(LogLocator(base=10, subs=subs))
+    target.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    target.set_minor_formatter(NullFormatter())
+    if not minor:
+        target.set_minor_locator(NullLocator())
+
+
+def _margins(width: float, height: float, left: float, right: float, top: float, bottom: float,
+             wspace: float, hspace: float) -> dict[str, float]:
+    """gridspec keywords from margins in inches (figure size in inches)."""
+    return {"left": left / width, "right": 1 - right / width, "top": 1 - top / height,
+            "bottom": bottom / height, "wspace": wspace, "hspace": hspace}
+
+
+def feature_display(name: str, values: np.ndarray) -> np.ndarray:
+    """Feature values in display units (angles in degrees)."""
+    return np.degrees(values) if name in ANGLE_FEATURES else values
+
+
+def _nice_length(x: float) -> float:
+    """The round number (1, 2, 5 x 10^k) nearest to x > 0 on a log scale (a key arrow's length)."""
+    if not x > 0 or not math.isfinite(x):
+        return 1.0
+    k = math.floor(math.log10(x))
+    options = [m * 10.0 ** (k + d) for d in (0, 1) for m in (1, 2, 5)]
+    return min(options, key=lambda v: abs(math.log(v / x)))
+
+
+def _groups(values: np.ndarray, max_distinct: int = 13, n_bins: int = 8) -> tuple[list[str], list[np.ndarray]]:
+    """Group indices by distinct value (rounded to 0.1) when few, else by equal-width bins.
+
+    A spread below 1 (deg) is one group: a fixed orientation seen through tracker noise (as in a
+    position-only table, whose orientation is the measured one) is no variable to group by.
+    """
+    if np.ptp(values) < 1.0:
+        return [f"≈{np.mean(values) + 0.0:.1f} (fixed)"], [np.arange(len(values))]
+    rounded = np.round(values, 1)
+    distinct = np.unique(rounded)
+    if len(distinct) <= max_distinct:
+        # + 0.0 turns -0.0 into 0.0, so no "-0" label
+        return [f"{v + 0.0:g}" for v in distinct], [np.flatnonzero(rounded == v) for v in distinct]
+    edges = np.linspace(values.min(), values.max(), n_bins + 1)
+    which = np.clip(np.searchsorted(edges, values, side="right") - 1, 0, n_bins - 1)
+    labels, index = [], []
+    for b in range(n_bins):
+        idx = np.flatnonzero(which == b)
+        if idx.size:
+            labels.append(f"{edges[b]:.0f}…{edges[b + 1]:.0f}")
+            index.append(idx)
+    return labels, index
+
+
+def _binned_median(x: np.ndarray, y: np.ndarray, n_bins: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """Median of y per distinct x (if few) or per equal-count bin of x."""
+    distinct = np.unique(x)
+    if len(distinct) <= 15:
+        return distinct, np.array([np.median(y[x == v]) for v in distinct])
+    order = np.argsort(x, kind="stable")
+    chunks = [c for c in np.array_split(order, min(n_bins, len(x))) if c.size]
+    return np.array([np.median(x[c]) for c in chunks]), np.array([np.median(y[c]) for c in chunks])
+
+
+def _jitter(x: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Horizontal jitter for a feature with few distinct values, so stacked points show."""
+    distinct = np.unique(x)
+    if len(distinct) > 15 or len(x) < 2:
+        return x
+    gap = np.min(np.diff(distinct)) if len(distinct) > 1 else 1.0
+    return x + rng.uniform(-0.15, 0.15, size=x.shape) * gap
+
+
+def _arrow_length(ref_p: np.ndarray) -> float:
+    """Drawn length (m) of a typical (95th-percentile) error arrow: 0.6 of the lattice spacing.
+
+    The spacing is estimated from the number of distinct positions as if they filled a cube,
+    so arrows of neighbouring lattice points rarely overlap; capped at a quarter of the span.
+    """
+    span = float(np.max(np.ptp(ref_p, axis=0))) or 0.1
+    distinct = len(np.unique(np.round(ref_p, 4), axis=0))
+    per_axis = max(distinct ** (1 / 3) - 1, 1.0)
+    return min(0.6 * span / per_axis, 0.25 * span)
+
+
+def workspace_figure(ref_p: np.ndarray, before: np.ndarray, after: np.ndarray) -> Any:
+    """Quiver of position error vectors (m) at the reference positions, 3 projections x 2 rows."""
+    plt = _pyplot()
+    span = float(np.max(np.ptp(ref_p, axis=0))) or 0.1
+    length = _arrow_length(ref_p)
+    projections = ((0, 1), (0, 2), (1, 2))
+    names = "xyz"
+    fig, axes = plt.subplots(2, 3, figsize=(12, 8.4), layout="constrained")
+    for row, (label, d) in enumerate((("before correction", before), ("after correction", after))):
+        mag_mm = np.linalg.norm(d, axis=1) * 1e3
+        ref_mm = float(np.percentile(mag_mm, 95))
+        ref_mm = ref_mm if ref_mm > 0 else 1.0
+        # Each row has its own magnification (corrected errors are ~20x smaller); the key says it.
+        scale = (ref_mm / 1e3) / length
+        key_mm = _nice_length(ref_mm)
+        order = np.argsort(mag_mm)  # largest arrows on top
+        lo, hi = (float(v) for v in np.percentile(mag_mm, [1, 99]))
+        clim = (lo, hi) if hi > lo else (0.0, max(hi, 1e-9))  # a 1-99 % range keeps colour contrast
+        for col, (i, j) in enumerate(projections):
+            ax = axes[row, col]
+            q = ax.quiver(ref_p[order, i], ref_p[order, j], d[order, i], d[order, j], mag_mm[order],
+                          angles="xy", scale_units="xy", scale=scale, cmap="viridis", clim=clim,
+                          width=0.0045, headwidth=3.5, headlength=4, headaxislength=3.5, alpha=0.9)
+            pad = 0.12 * span + length
+            ax.set_xlim(ref_p[:, i].min() - pad, ref_p[:, i].max() + pad)
+            ax.set_ylim(ref_p[:, j].min() - pad, ref_p[:, j].max() + pad)
+            ax.set_aspect("equal", adjustable="box")
+            ax.set_xlabel(f"{names[i]} [m]")
+            ax.set_ylabel(f"{names[j]} [m]")
+            ax.set_title(f"{names[i]}-{names[j]}, {label}")
+            ax.quiverkey(q, 0.90, 1.015, key_mm / 1e3, f"{key_mm:g} mm", labelpos="W", coordinates="axes",
+                         color="#d62728", fontproperties={"size": 8})
+            ax.title.set_position((0.36, 1.0))  # leave the right of the title line to the key
+        cb = fig.colorbar(q, ax=axes[row, :], shrink=0.85, pad=0.01)
+        cb.set_label(f"|error| [mm], {label.split()[0]}")
+    fig.suptitle("Position error vectors at the reference positions, magnified "
+                 "(red key arrow per panel; the two rows have different magnifications)", fontsize=10)
+    return fig
+
+
+def features_figure(features: Mapping[str, np.ndarray], before_mm: np.ndarray, after_mm: np.ndarray,
+                     quantity: str, unit: str) -> Any:
+    """Scatter of per-pose error (log y) against each feature, before grey, after blue."""
+    plt = _pyplot()
+    names = [f for f in FEATURES if f in features]
+    ncols = 4
+    nrows = math.ceil(len(names) / ncols)
+    height = 2.55 * nrows + 0.4
+    # Fixed margins instead of constrained layout: that layout engine costs seconds per figure
+    # here (it measures every tick label), and this grid has the same layout every time.
+    fig, axes = plt.subplots(nrows, ncols, figsize=(12, height), sharey=True, squeeze=False,
+                             gridspec_kw=_margins(12, height, left=0.75, right=0.15, top=0.4, bottom=0.5,
+                                                  wspace=0.06, hspace=0.42))
+    rng = np.random.default_rng(0)  # fixed jitter: the same page for the same data
+    b = np.maximum(before_mm, LOG_FLOOR_MM)
+    a = np.maximum(after_mm, LOG_FLOOR_MM)
+    size = 6 if len(b) > 1000 else 10
+    for k, name in enumerate(names):
+        ax = axes.flat[k]
+        x = feature_display(name, np.asarray(features[name], float))
+        xj = _jitter(x, rng)
+        ax.scatter(xj, b, s=size, c=BEFORE_COLOUR, alpha=0.35, linewidths=0, rasterized=True, label="before")
+        ax.scatter(xj, a, s=size, c=AFTER_COLOUR, alpha=0.45, linewidths=0, rasterized=True, label="after")
+        for y, colour in ((b, "0.25"), (a, "#0b3d66")):
+            mx, my = _binned_median(x, y)
+            ax.plot(mx, my, "-o", color=colour, lw=1.6, ms=3)
+        ax.set_yscale("log")
+        _plain_log(ax, "y", (1.0, 2.0, 5.0), minor=False)
+        ax.set_xlabel(f"{name} [{FEATURE_UNITS.get(name, '')}]")
+        if k % ncols == 0:
+            ax.set_ylabel(f"{quantity} [{unit}]")
+        ax.grid(True, which="major", alpha=0.3)
+    for k in range(len(names), nrows * ncols):
+        ax = axes.flat[k]
+        ax.axis("off")
+    # The legend goes into the spare panel when there is one.
+    from matplotlib.lines import Line2D
+    handles = [Line2D([], [], ls="", marker="o", color=BEFORE_COLOUR, label="before (raw)"),
+               Line2D([], [], ls="", marker="o", color=AFTER_COLOUR, label="after (corrected)"),
+               Line2D([], [], color="0.25", lw=1.6, label="binned median, before"),
+               Line2D([], [], color="#0b3d66", lw=1.6, label="binned median, after")]
+    target = axes.flat[len(names)] if len(names) < nrows * ncols else axes.flat[0]
+    target.legend(handles=handles, loc="center" if len(names) < nrows * ncols else "upper right")
+    fig.suptitle(f"Per-pose {quantity} against features (log scale)", fontsize=10)
+    return fig
+
+
+def orientation_figure(features: Mapping[str, np.ndarray], pos_mm: np.ndarray, rot_mrad: np.ndarray | None,
+                        pos_before: np.ndarray, rot_before: np.ndarray | None) -> Any:
+    """Box plots of corrected error grouped by roll / pitch / yaw (grey dots: raw median)."""
+    plt = _pyplot()
+    rows = [("position error", "mm", pos_mm, pos_before)]
+    if rot_mrad is not None and rot_before is not None:
+        rows.append(("rotation error", "mrad", rot_mrad, rot_before))
+    height = 3.3 * len(rows) + 0.5
+    fig, axes = plt.subplots(len(rows), 3, figsize=(12, height), squeeze=False,
+                             gridspec_kw=_margins(12, height, left=0.65, right=0.15, top=0.55, bottom=0.8,
+                                                  wspace=0.25, hspace=0.62))  # room for slanted labels
+    for r, (quantity, unit, err, err_before) in enumerate(rows):
+        for c, angle in enumerate(("roll", "pitch", "yaw")):
+            ax = axes[r, c]
+            labels, index = _groups(np.degrees(features[angle]))
+            data = [err[i] for i in index]
+            ax.boxplot(data, tick_labels=labels, showfliers=True, widths=0.6,
+                       flierprops={"markersize": 2, "alpha": 0.5},
+                       medianprops={"color": "#0b3d66", "lw": 1.6},
+                       boxprops={"color": AFTER_COLOUR}, whiskerprops={"color": AFTER_COLOUR},
+                       capprops={"color": AFTER_COLOUR})
+            ax.set_xlabel(f"{angle} [deg]")
+            ax.set_ylabel(f"{quantity} after [{unit}]")
+            ax.set_ylim(bottom=0)
+            if len(labels) > 8:
+                ax.tick_params(axis="x", labelrotation=45)
+            ax.grid(True, axis="y", alpha=0.3)
+            ax.set_title(f"{quantity} by {angle} (n per box: {min(map(len, index))}–{max(map(len, index))})")
+    fig.suptitle("Corrected error grouped by orientation (boxes: quartiles, whiskers 1.5 IQR)", fontsize=10)
+    return fig
+
+
+def histogram_figure(pos: tuple[np.ndarray, np.ndarray], rot: tuple[np.ndarray, np.ndarray] | None) -> Any:
+    """Histograms on log-spaced bins so raw and corrected (20x apart) are both readable."""
+    plt = _pyplot()
+    panels = [("position error", "mm", pos)]
+    if rot is not None:
+        panels.append(("rotation error", "mrad", rot))
+    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 3.4), layout="constrained", squeeze=False)
+    for ax, (quantity, unit, (before, after)) in zip(axes.flat, panels):
+        b = np.maximum(before, LOG_FLOOR_MM)
+        a = np.maximum(after, LOG_FLOOR_MM)
+        lo = max(min(b.min(), a.min()), LOG_FLOOR_MM)
+        hi = max(b.max(), a.max(), lo * 10)
+        bins = np.logspace(np.log10(lo), np.log10(hi), 50)
+        ax.hist(b, bins=bins, color=BEFORE_COLOUR, alpha=0.7, label="before (raw)")
+        ax.hist(a, bins=bins, color=AFTER_COLOUR, alpha=0.7, label="after (corrected)")
+        for v, colour, name in ((before, "0.3", "before"), (after, "#0b3d66", "after")):
+            r = float(np.sqrt(np.mean(np.square(v))))
+            if r > 0:
+                ax.axvline(r, color=colour, ls="--", lw=1.2, label=f"RMSE {name}: {r:.3g} {unit}")
+        ax.set_xscale("log")
+        _plain_log(ax, "x", (1.0,), minor=False)
+        ax.set_xlabel(f"{quantity} [{unit}] (log scale)")
+        ax.set_ylabel("poses")
+        ax.legend(loc="upper left")
+        ax.grid(True, alpha=0.3)
+    return fig
+
+
+def r2_figure(features: Sequence[Mapping[str, Any]]) -> Any:
+    """Horizontal bars of the cross-validated R^2 of the residual per feature."""
+    plt = _pyplot()
+    names = [str(f.get("feature", "?")) for f in features]
+    r2 = np.array([float(f["r2"]) if f.get("r2") is not None else np.nan for f in features])
+    fig, ax = plt.subplots(figsize=(6.5, 0.28 * len(names) + 1.0), layout="constrained")
+    y = np.arange(len(names))
+    colours = [("#d95f02" if is_structure(v) else AFTER_COLOUR) for v in np.nan_to_num(r2)]
+    ax.barh(y, np.nan_to_num(r2), color=colours)
+    ax.set_yticks(y, names)
+    ax.invert_yaxis()
+    finite = r2[np.isfinite(r2)]
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    ax.set_xlim(min(-0.05, lo), max(1.0, hi))
+    ax.axvline(0, color="k", lw=0.8)
+    ax.set_xlabel("cross-validated R² of the residual explained by the feature")
+    ax.grid(True, axis="x", alpha=0.3)
+    return fig
+
+
+def ledger_figure(ledger: Sequence[Mapping[str, Any]]) -> Any | None:
+    """Step plot of the held-out rmse_total per ledger entry (log y)."""
+    values, labels = [], []
+    previous: list[str] | None = None
+    for k, entry in enumerate(ledger, start=1):
+        _, block = held_out(entry)
+        v = block.get("rmse_total")
+        values.append(float(v) * 1e3 if isinstance(v, (int, float)) and v > 0 else np.nan)
+        effects = [str(e) for e in effect_list(entry.get("effects"))]
+        labels.append(f"{k}: {effects_step(previous, effects)}\n{entry.get('method', '')}")
+        previous = effects
+    y = np.array(values)
+    if not np.isfinite(y).any():
+        return None
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(max(6.0, min(12.0, 1.3 * len(y) + 3)), 3.4), layout="constrained")
+    x = np.arange(1, len(y) + 1)
+    ax.step(x, y, where="mid", color=AFTER_COLOUR, lw=1.8)
+    ax.plot(x, y, "o", color="#0b3d66")
+    best = np.nanargmin(y)
+    ax.plot(x[best], y[best], "*", color="#d95f02", ms=13, label=f"best: {y[best]:.3g} mm+mrad")
+    for xi, yi in zip(x, y):
+        if np.isfinite(yi):
+            ax.annotate(f"{yi:.3g}", (xi, yi), textcoords="offset points", xytext=(6, 4), fontsize=8)
+    ax.set_yscale("log")
+    _plain_log(ax, "y")
+    if np.isfinite(y).any():
+        lo, hi = np.nanmin(y), np.nanmax(y)
+        ax.set_ylim(lo / 1.6, hi * 1.8)  # room for the value labels
+    ax.set_xticks(x, labels, fontsize=7)
+    ax.set_xlim(0.5, len(y) + 0.5)
+    ax.set_ylabel("held-out rmse_total [mm + mrad]")
+    ax.set_xlabel("ledger entry (effects, method)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(loc="upper right")
+    return fig

@@ -1,0 +1,124 @@
+"""What the report says in words: the diagnosis, the ledger and the worst poses read for a user.
+
+Plain text and numbers only (no HTML, no plotting), so that the page (`page`) and the figures
+(`figures`) draw the same conclusions from the same rules: which candidate is the missing
+effect, when a feature's R^2 counts as structure, what a ledger entry changed, which poses
+are the worst.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from ..metrics import W_POS, W_ROT
+
+# A feature explaining this share of the residual (cross-validated R^2) is structure the
+# model misses, not noise: the takeaway says so, the page highlights it, the bar is coloured.
+STRUCTURE_R2 = 0.1
+
+
+def p_value_text(p: Any) -> str:
+    """p-value as text: '< 1e-6' when tiny, '–' when missing."""
+    if p is None:
+        return "–"
+    try:
+        v = float(p)
+    except (TypeError, ValueError):
+        return str(p)
+    if math.isnan(v):
+        return "–"
+    return "< 1e-6" if v < 1e-6 else f"{v:.2g}"
+
+
+def effect_list(value: Any) -> list[str]:
+    """Effect names from what a model's metadata, a diagnosis or a ledger record holds:
+    a comma-separated string, a list, or a mapping keyed by name."""
+    if value is None:
+        return []
+    if isinstance(value, str):
+        return [v.strip() for v in value.split(",") if v.strip()]
+    if isinstance(value, Mapping):
+        return [str(k) for k in value]
+    try:
+        return [str(v) for v in value]
+    except TypeError:
+        return [str(value)]
+
+
+def effects_step(previous: list[str] | None, effects: list[str]) -> str:
+    """What a ledger entry changed: its effects for the first, '+added -removed' after."""
+    if previous is None:
+        return ",".join(effects) or "no effects"
+    added = [e for e in effects if e not in previous]
+    removed = [e for e in previous if e not in effects]
+    parts = (["+" + ",".join(added)] if added else []) + (["-" + ",".join(removed)] if removed else [])
+    return "\n".join(parts) or "same effects"
+
+
+def model_effects(model_info: Mapping[str, Any] | None, diagnosis: Mapping[str, Any] | None) -> list[str]:
+    """The effects of the model under report: the diagnosis' base model, else the file's metadata."""
+    if diagnosis and diagnosis.get("model_effects") is not None:
+        return effect_list(diagnosis.get("model_effects"))
+    if model_info:
+        return effect_list(model_info.get("effects"))
+    return []
+
+
+def ranked_candidates(diagnosis: Mapping[str, Any]) -> list[Mapping[str, Any]]:
+    """The diagnosis' candidate effects by rank (unranked ones last)."""
+    return sorted([c for c in diagnosis.get("candidates") or [] if isinstance(c, Mapping)],
+                  key=lambda c: (c.get("rank") if isinstance(c.get("rank"), (int, float)) else 1e9))
+
+
+def cv_gain(candidate: Mapping[str, Any]) -> float | None:
+    """Cross-validated RMSE before / after adding the candidate; None when not both known."""
+    b, a = candidate.get("cv_rmse_before"), candidate.get("cv_rmse_after")
+    if isinstance(b, (int, float)) and isinstance(a, (int, float)) and a > 0:
+        return b / a
+    return None
+
+
+def is_structure(r2: Any) -> bool:
+    """Whether a feature's cross-validated R^2 is structure the model misses."""
+    return isinstance(r2, (int, float)) and r2 >= STRUCTURE_R2
+
+
+def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] = ()) -> str:
+    """The diagnosis in one plain-language line (plain text, not escaped)."""
+    if not diagnosis:
+        return "No diagnosis given (run `posecorr diagnose` to rank missing effects)."
+    candidates = ranked_candidates(diagnosis)
+    present = [c for c in candidates if c.get("present")]
+    test = f" ({diagnosis['test']})" if diagnosis.get("test") else ""
+    if present:
+        top = present[0]
+        effect = str(top.get("effect", "?"))
+        p = top.get("p_value")
+        p_text = f", p {p_value_text(p)}" if p is not None and p_value_text(p).startswith("<") else (
+            f", p = {p_value_text(p)}" if p is not None else "")
+        effects = list(model_effects)
+        if effect not in effects:
+            effects.append(effect)
+        gain = cv_gain(top)
+        gain_text = f"; it cuts the cross-validated RMSE {gain:.2g}×" if gain is not None else ""
+        return (f"Most likely missing: {effect} (present: yes{p_text}{gain_text}). "
+                f"Add it with --effects {','.join(effects)}")
+    r2 = [f for f in diagnosis.get("features") or []
+          if isinstance(f, Mapping) and isinstance(f.get("r2"), (int, float))]
+    if r2:
+        best = max(r2, key=lambda f: f["r2"])
+        if is_structure(best["r2"]):
+            return (f"No catalogue effect is missing{test}, but {best['r2']:.2f} of the residual is explained "
+                    f"by {best.get('feature')}: an effect outside the catalogue (add your own with --effect-file).")
+    top = f" (best candidate: {candidates[0].get('effect')}, not present)" if candidates else ""
+    return f"No catalogue effect is missing{test}{top}; the residual looks like noise."
+
+
+def worst_order(pos_err: np.ndarray, rot_err: np.ndarray | None = None) -> np.ndarray:
+    """Row indices sorted worst first by w_pos * pos_err (m) + w_rot * rot_err (rad) (eq. 43 per pose)."""
+    score = W_POS * np.asarray(pos_err, float)
+    if rot_err is not None:
+        score = score + W_ROT * np.asarray(rot_err, float)
+    return np.argsort(-score, kind="stable")

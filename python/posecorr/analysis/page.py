@@ -1,0 +1,395 @@
+"""The self-contained HTML report: measurements against a model (`posecorr report`).
+
+One file, no external resources: figures are PNGs embedded as base64 data URIs, the CSS is
+inline and there is no JavaScript. The page lets a user compare a model with the
+measurements, see where it fails, read which physical effect the diagnosis says is missing,
+and watch the held-out error fall across the ledger of models fitted on the same data.
+
+Sections (HTML ids): summary, metrics, workspace, features, orientation, histograms, worst,
+diagnosis, ledger, segments. Units on the page: mm and mrad; angles of features in degrees.
+All numbers handed in are SI (m, rad, s), as everywhere in posecorr.
+
+This module assembles the HTML; the plots are drawn by `figures` (matplotlib, imported only
+when a figure is drawn, so `import posecorr.analysis.page` stays cheap for the CLI) and
+the words that read the diagnosis, the ledger and the worst poses come from `interpretation`.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import math
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from ..data import PoseTable
+from ..metrics import W_POS, W_ROT, metric_block, pose_errors, pose_metrics
+from ..safeio import write_text
+from . import figures
+from .features import table_features
+from .interpretation import (STRUCTURE_R2, cv_gain, effect_list, is_structure, model_effects, p_value_text,
+                             ranked_candidates, takeaway, worst_order)
+from .ledger import held_out
+
+SECTIONS = (("summary", "Summary"), ("metrics", "Metrics"), ("workspace", "Workspace"),
+            ("features", "Error vs features"), ("orientation", "Orientation"),
+            ("histograms", "Histograms"), ("worst", "Worst poses"), ("diagnosis", "Diagnosis"),
+            ("ledger", "Ledger"), ("segments", "Still segments"))
+N_WORST = 15
+
+_CSS = """
+body{font-family:system-ui,-apple-system,'Segoe UI',Roboto,Helvetica,Arial,sans-serif;margin:0;
+ color:#222;background:#fafafa;line-height:1.4}
+main{max-width:1240px;margin:0 auto;padding:0 16px 40px}
+header{background:#1f3b57;color:#fff;padding:14px 16px}
+header h1{margin:0;font-size:1.45em;max-width:1240px;margin:0 auto}
+nav{background:#e8edf2;padding:6px 16px;position:sticky;top:0;z-index:1;border-bottom:1px solid #ccd}
+nav a{margin-right:14px;color:#1f3b57;text-decoration:none;font-size:.92em}
+section{background:#fff;border:1px solid #dde;border-radius:6px;padding:10px 18px;margin:16px 0}
+h2{font-size:1.2em;margin:6px 0 8px;color:#1f3b57}
+p.note{color:#555;font-size:.9em;margin:4px 0 8px}
+table{border-collapse:collapse;font-size:.88em;margin:6px 0}
+th,td{border:1px solid #ccd;padding:3px 7px;text-align:right;white-space:nowrap}
+th{background:#eef1f5;white-space:normal;vertical-align:bottom}
+table.compact{font-size:.8em}
+table.compact th,table.compact td{padding:2px 5px}
+td.l,th.l{text-align:left}
+tr.present td{background:#fde8d7;font-weight:600}
+tr.best td{background:#e3f3e3}
+img{max-width:100%;height:auto;display:block;margin:6px 0}
+dl.kv{display:grid;grid-template-columns:max-content auto;gap:2px 14px;margin:4px 0;font-size:.92em}
+dl.kv dt{color:#555}dl.kv dd{margin:0}
+.takeaway{font-size:1.08em;background:#fff6d9;border-left:5px solid #e0a800;padding:8px 12px;margin:8px 0}
+.scroll{overflow-x:auto}
+code{background:#f0f0f0;padding:0 3px;border-radius:3px}
+"""
+
+
+# --------------------------------------------------------------------------- helpers
+
+def _e(value: Any) -> str:
+    """HTML-escaped text of any value."""
+    return html.escape(str(value), quote=True)
+
+
+def _num(value: Any, scale: float = 1.0, digits: int = 3) -> str:
+    """A number (times scale) with `digits` significant digits; '–' for None/NaN."""
+    if value is None:
+        return "–"
+    try:
+        v = float(value) * scale
+    except (TypeError, ValueError):
+        return _e(value)
+    if math.isnan(v):
+        return "–"
+    if math.isinf(v):
+        return "∞"
+    if v != 0 and (abs(v) >= 1e5 or abs(v) < 1e-3):
+        return f"{v:.{max(digits - 1, 0)}e}"
+    return f"{v:.{digits}g}" if abs(v) >= 10 ** digits else f"{v:#.{digits}g}".rstrip(".")
+
+
+def _table(header: Sequence[str], rows: Iterable[Sequence[str]], left: int = 1,
+           row_classes: Sequence[str] | None = None, compact: bool = False) -> str:
+    """An HTML table; cells must already be escaped. The first `left` columns align left."""
+    head = "".join(f'<th class="l">{h}</th>' if i < left else f"<th>{h}</th>" for i, h in enumerate(header))
+    body = []
+    for k, row in enumerate(rows):
+        cls = f' class="{row_classes[k]}"' if row_classes and row_classes[k] else ""
+        cells = "".join(f'<td class="l">{c}</td>' if i < left else f"<td>{c}</td>" for i, c in enumerate(row))
+        body.append(f"<tr{cls}>{cells}</tr>")
+    cls_table = ' class="compact"' if compact else ""
+    return (f'<div class="scroll"><table{cls_table}><thead><tr>{head}</tr></thead>'
+            f'<tbody>{"".join(body)}</tbody></table></div>')
+
+
+def _img(fig: Any, alt: str) -> str:
+    """A figure as an <img> with a PNG data URI."""
+    data = base64.b64encode(figures.to_png(fig)).decode("ascii")
+    return f'<img alt="{_e(alt)}" src="data:image/png;base64,{data}">'
+
+
+# --------------------------------------------------------------------------- sections
+
+def _section(sid: str, title: str, body: str, note: str = "") -> str:
+    note_html = f'<p class="note">{note}</p>' if note else ""
+    return f'<section id="{sid}"><h2>{_e(title)}</h2>{note_html}{body}</section>'
+
+
+def _summary_section(table: PoseTable, model_info: Mapping[str, Any] | None, title: str) -> str:
+    extras = [c for c in ("id", "t", "session", "jitter_mm") if c in table.extras]
+    items = [("data file", table.path or "(in memory)"), ("poses", str(table.n)),
+             ("kind", "full pose (position and orientation)" if table.has_orientation
+              else "position only (rotation panels skipped)"),
+             ("optional columns", ", ".join(extras) or "none")]
+    if model_info:
+        effects = ",".join(effect_list(model_info.get("effects"))) or "none"
+        items += [("model file", model_info.get("file", "?")),
+                  ("method", model_info.get("method", "?")),
+                  ("representation", model_info.get("representation", "?")),
+                  ("effects in the model", effects)]
+        for key in ("architecture", "activation", "trainer", "posecorr_version"):
+            if model_info.get(key) not in (None, ""):
+                items.append((key.replace("_", " "), model_info[key]))
+        if isinstance(model_info.get("fixed"), Mapping):
+            for name, reason in model_info["fixed"].items():
+                items.append((f"held (not determined): {name}", reason))
+        if isinstance(model_info.get("file_size"), int):
+            items.append(("file size", f"{model_info['file_size']:,} bytes"))
+        if isinstance(model_info.get("op_counts"), Mapping):
+            ops = ", ".join(f"{k} {v}" for k, v in model_info["op_counts"].items())
+            items.append(("operators", ops))
+    else:
+        items.append(("model", "(none given: 'after' is the corrected poses handed in)"))
+    items.append(("generated", datetime.now(timezone.utc).isoformat(timespec="seconds")))
+    body = '<dl class="kv">' + "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in items) + "</dl>"
+    return _section("summary", "Summary", body)
+
+
+def _metrics_section(raw: Mapping[str, Any], corr: Mapping[str, Any], block: Mapping[str, Any],
+                     pos: tuple[np.ndarray, np.ndarray], rot: tuple[np.ndarray, np.ndarray] | None,
+                     model_info: Mapping[str, Any] | None) -> str:
+    # Position-only data has no rotation columns at all (rather than columns of dashes).
+    if rot is not None:
+        header = ["", "rmse_pos [mm]", "rmse_rot [mrad]", "rmse_total [mm + mrad]",
+                  "median pos [mm]", "p95 pos [mm]", "max pos [mm]", "median rot [mrad]", "max rot [mrad]"]
+    else:
+        header = ["", "rmse_pos [mm]", "rmse_total [mm]", "median pos [mm]", "p95 pos [mm]", "max pos [mm]"]
+    rows = []
+    for k, (name, m) in enumerate((("raw (measured)", raw), ("corrected (model)", corr))):
+        p = pos[k] * 1e3
+        row = [_e(name), _num(m["rmse_pos"], 1e3)]
+        if rot is not None:
+            row.append(_num(m["rmse_rot"], 1e3))
+        row += [_num(m["rmse_total"], 1e3), _num(np.median(p)), _num(np.percentile(p, 95)), _num(p.max())]
+        if rot is not None:
+            row += [_num(np.median(rot[k]) * 1e3), _num(rot[k].max() * 1e3)]
+        rows.append(row)
+    improvement = ["improvement (raw / corrected)", _num(block.get("improvement_pos")) + "×"]
+    if rot is not None:
+        improvement.append(_num(block.get("improvement_rot")) + "×")
+    improvement.append(_num(block.get("improvement_total")) + "×")
+    rows.append(improvement + [""] * (len(header) - len(improvement)))
+    body = _table(header, rows, row_classes=["", "best", ""])
+    note = (f"Over all {len(pos[0])} poses of this file (paper eqs. 39-43, w_pos = {W_POS:g}/m, w_rot = {W_ROT:g}). "
+            "These may include the model's training poses; held-out figures are in the ledger below.")
+    tm = (model_info or {}).get("test_metrics")
+    if isinstance(tm, Mapping) and tm.get("rmse_pos") is not None:
+        n = f" on {tm['n']} held-out poses" if tm.get("n") else ""
+        rot_text = f", rmse_rot {_num(tm.get('rmse_rot'), 1e3)} mrad" if tm.get("rmse_rot") is not None else ""
+        body += (f'<p class="note">The model\'s own test metrics{_e(n)} (from its metadata): rmse_pos '
+                 f"{_num(tm.get('rmse_pos'), 1e3)} mm{rot_text}, rmse_total {_num(tm.get('rmse_total'), 1e3)}"
+                 f"{' mm + mrad' if rot_text else ' mm'}.</p>")
+    return _section("metrics", "Metrics", body, _e(note))
+
+
+def _worst_section(table: PoseTable, feats: Mapping[str, np.ndarray], pos: tuple[np.ndarray, np.ndarray],
+                   rot: tuple[np.ndarray, np.ndarray] | None) -> str:
+    total = worst_order(pos[1], None if rot is None else rot[1])[:N_WORST]
+    ids = table.extras.get("id")
+    shown = [f for f in ("range", "azimuth", "elevation", "incidence", "roll", "pitch", "yaw", "t") if f in feats]
+    header = ["#", "id", "row", "x [m]", "y [m]", "z [m]", "pos err [mm]"]
+    if rot is not None:
+        header.append("rot err [mrad]")
+    header.append("raw pos [mm]")
+    if rot is not None:
+        header.append("raw rot [mrad]")
+    header += [f"{f} [{figures.FEATURE_UNITS[f]}]" for f in shown]
+    rows = []
+    for rank, i in enumerate(total, start=1):
+        row = [str(rank), _e(ids[i]) if ids is not None else "–", str(int(i)),
+               *(f"{v:.3f}" for v in table.ref_p[i]), f"{pos[1][i] * 1e3:.3f}"]
+        if rot is not None:
+            row.append(f"{rot[1][i] * 1e3:.3f}")
+        row.append(f"{pos[0][i] * 1e3:.3f}")
+        if rot is not None:
+            row.append(f"{rot[0][i] * 1e3:.3f}")
+        for f in shown:
+            v = figures.feature_display(f, np.asarray(feats[f][i:i + 1], float))[0]
+            row.append(f"{round(v, 1) + 0.0:.1f}" if f != "range" else f"{v:.3f}")  # + 0.0: no "-0.0"
+        rows.append(row)
+    crit = "position error + rotation error (1 mm ≙ 1 mrad, paper eq. 43)" if rot is not None else "position error"
+    note = (f"The {len(total)} poses with the largest corrected error, ranked by {crit}. "
+            "row: 0-based data row of the table; x, y, z: reference position.")
+    return _section("worst", "Worst poses after correction", _table(header, rows, left=2, compact=True), _e(note))
+
+
+def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[str]) -> str:
+    line = takeaway(diagnosis, effects)
+    body = f'<p class="takeaway" id="takeaway">{_e(line)}</p>'
+    if not diagnosis:
+        return _section("diagnosis", "Diagnosis", body)
+    candidates = ranked_candidates(diagnosis)
+    if candidates:
+        header = ["rank", "effect", "present", "score", "p-value", "cv RMSE before", "cv RMSE after", "gain"]
+        rows, classes = [], []
+        for c in candidates:
+            gain = cv_gain(c)
+            rows.append([_e(c.get("rank", "")), _e(c.get("effect", "?")), "yes" if c.get("present") else "no",
+                         _num(c.get("score")), _e(p_value_text(c.get("p_value"))),
+                         _num(c.get("cv_rmse_before"), 1e3), _num(c.get("cv_rmse_after"), 1e3),
+                         f"{gain:.2f}×" if gain is not None else "–"])
+            classes.append("present" if c.get("present") else "")
+        body += "<h3>Candidate effects the model lacks</h3>" + _table(header, rows, left=3, row_classes=classes)
+        body += ('<p class="note">Highlighted: present (the test says adding the effect helps). '
+                 "cv RMSE: cross-validated, shown ×1000 (mm, or mm + mrad for full poses).")
+        if diagnosis.get("test"):
+            body += " Test: " + _e(diagnosis["test"]) + "."
+        body += "</p>"
+    aliases = [a for a in diagnosis.get("aliases") or [] if a]
+    if aliases:
+        body += ("<h3>Aliases</h3><p>Effects this data cannot tell apart (fitting one absorbs the other): "
+                 + "; ".join(" ≈ ".join(_e(x) for x in a) for a in aliases) + "</p>")
+    undetermined = [u for u in diagnosis.get("undetermined") or [] if isinstance(u, Mapping)]
+    if undetermined:
+        body += ("<h3>Not ranked: this data cannot determine them</h3><ul>"
+                 + "".join(f"<li><b>{_e(u.get('effect', '?'))}</b>: {_e(u.get('reason', ''))}</li>"
+                           for u in undetermined) + "</ul>")
+    feats = [f for f in diagnosis.get("features") or [] if isinstance(f, Mapping)]
+    if feats:
+        body += "<h3>Residual structure by feature</h3>"
+        rows = [[_e(f.get("feature", "?")),
+                 f"{f['r2']:.3f}" if isinstance(f.get("r2"), (int, float)) else "–"] for f in feats]
+        classes = ["present" if is_structure(f.get("r2")) else "" for f in feats]
+        body += ('<div style="display:flex;gap:24px;align-items:flex-start;flex-wrap:wrap"><div>'
+                 + _table(["feature", "cv R²"], rows, row_classes=classes) + "</div><div>"
+                 + _img(figures.r2_figure(feats), "cross-validated R² of the residual per feature") + "</div></div>")
+        body += ('<p class="note">R² near 0: the feature explains nothing of what is left; highlighted '
+                 f"(R² ≥ {STRUCTURE_R2:g}): structure that the model misses along that feature.</p>")
+    known = {"candidates", "features", "aliases", "model_effects", "test", "undetermined"}
+    other = {k: v for k, v in diagnosis.items() if k not in known and isinstance(v, (str, int, float))}
+    if other:
+        body += '<dl class="kv">' + "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in other.items()) + "</dl>"
+    return _section("diagnosis", "Diagnosis", body)
+
+
+def _segments_section(segments: Mapping[str, Any] | None) -> str:
+    """Where the robot stood still in the recording the table came from (`posecorr ingest`):
+    every segment found, the rejected ones with their reason, and the clock offset."""
+    if not segments:
+        return _section("segments", "Still segments",
+                        _e("The table does not come from `posecorr ingest` (no TABLE.csv.segments.json beside it)."))
+    rows, classes = [], []
+    for seg in segments.get("segments") or []:
+        rows.append([_e(seg.get("segment", "")), _e(seg.get("row", "–")), _e(seg.get("status", "")),
+                     _e(seg.get("reason") or ""), f"{seg.get('start_s', float('nan')):.2f}",
+                     f"{seg.get('duration_s', float('nan')):.2f}", _e(seg.get("kept_samples", "")),
+                     f"{seg['jitter_mm']:.3f}" if isinstance(seg.get("jitter_mm"), (int, float)) else "–"])
+        classes.append("present" if seg.get("status") == "rejected" else "")
+    offset = segments.get("offset_s")
+    head = (f"{segments.get('segments_found', len(rows))} still segments found, "
+            f"{segments.get('segments_rejected', 0)} rejected (highlighted, with the reason); clock offset "
+            + (f"{offset:+.4f} s ({segments.get('offset_source', '?')})" if isinstance(offset, (int, float)) else "?"))
+    table = _table(["segment", "row", "status", "reason", "start [s]", "duration [s]", "samples kept", "jitter [mm]"],
+                   rows, left=4, row_classes=classes)
+    return _section("segments", "Still segments", f"<p>{_e(head)}</p>" + table)
+
+
+def _ledger_section(ledger: Sequence[Mapping[str, Any]]) -> str:
+    if not ledger:
+        return _section("ledger", "Ledger", "<p>No models fitted on this data yet (the ledger is empty).</p>")
+    header = ["#", "time", "model", "effects", "method", "representation", "held-out",
+              "rmse_pos [mm]", "rmse_rot [mrad]", "rmse_total [mm + mrad]", "improvement (total)"]
+    rows = []
+    totals = []
+    for k, entry in enumerate(ledger, start=1):
+        kind, block = held_out(entry)
+        totals.append(block.get("rmse_total") if isinstance(block.get("rmse_total"), (int, float)) else math.inf)
+        imp = block.get("improvement_total")
+        when = str(entry.get("time", "")).replace("T", " ").removesuffix("+00:00")
+        model = str(entry.get("model", ""))
+        rows.append([str(k), _e(when), f'<span title="{_e(model)}">{_e(Path(model).name if model else "")}</span>',
+                     _e(",".join(effect_list(entry.get("effects"))) or "none"), _e(entry.get("method", "")),
+                     _e(entry.get("representation", "")), _e(kind or "–"),
+                     _num(block.get("rmse_pos"), 1e3), _num(block.get("rmse_rot"), 1e3),
+                     _num(block.get("rmse_total"), 1e3), (_num(imp) + "×") if imp is not None else "–"])
+    best = int(np.argmin(totals)) if any(math.isfinite(t) for t in totals) else -1
+    classes = ["best" if k == best else "" for k in range(len(rows))]
+    body = _table(header, rows, left=7, row_classes=classes, compact=True)
+    fig = figures.ledger_figure(ledger)
+    if fig is not None:
+        body += _img(fig, "held-out rmse_total per ledger entry")
+    note = "Every model fitted on this data, oldest first; highlighted: the lowest held-out rmse_total."
+    return _section("ledger", "Ledger: models fitted on this data", body, _e(note))
+
+
+def write_report(output_path: str | Path, table: PoseTable, corrected: np.ndarray,
+                 model_info: Mapping[str, Any] | None = None, diagnosis: Mapping[str, Any] | None = None,
+                 ledger: Sequence[Mapping[str, Any]] = (), title: str | None = None,
+                 segments: Mapping[str, Any] | None = None) -> Path:
+    """Write the self-contained HTML report of `table` against its (N, 7) `corrected` poses.
+
+    model_info: `onnx_meta.read_info` of the model (optional); diagnosis: the `diagnose --json`
+    dict (optional, unknown keys are shown or ignored); ledger: `ledger.read_ledger` records;
+    segments: the sidecar `posecorr ingest` writes beside the table (TABLE.csv.segments.json).
+    Returns the written path. Raises ValueError when `corrected` does not fit the table.
+    """
+    corrected = np.asarray(corrected, dtype=float)
+    if corrected.shape != (table.n, 7):
+        raise ValueError(f"corrected has shape {corrected.shape}, expected ({table.n}, 7) "
+                         f"for {table.path or 'the table'}")
+    if not np.all(np.isfinite(corrected)):
+        raise ValueError("corrected poses contain NaN or inf")
+    if table.n == 0:
+        raise ValueError(f"{table.path or 'the table'}: no poses to report on")
+    with_rot = table.has_orientation
+    reference, measured = table.reference, table.measured
+    pos_b, rot_b = pose_errors(reference, measured, with_rot)
+    pos_a, rot_a = pose_errors(reference, corrected, with_rot)
+    pos = (pos_b, pos_a)
+    rot = (rot_b, rot_a) if with_rot and rot_b is not None and rot_a is not None else None
+    raw = pose_metrics(reference, measured, with_rot)
+    corr = pose_metrics(reference, corrected, with_rot)
+    block = metric_block(raw, corr)
+    feats = table_features(table)
+    name = title or f"posecorr report: {Path(table.path).name if table.path else 'table'}"
+    if model_info and model_info.get("file"):
+        name = title or f"{name} vs {Path(str(model_info['file'])).name}"
+
+    parts = [_summary_section(table, model_info, name),
+             _metrics_section(raw, corr, block, pos, rot, model_info)]
+
+    fig = figures.workspace_figure(table.ref_p, measured[:, :3] - table.ref_p, corrected[:, :3] - table.ref_p)
+    parts.append(_section("workspace", "Residual arrows over the workspace",
+                          _img(fig, "position error vectors in x-y, x-z, y-z, before and after"),
+                          _e("Arrow = measured (top) or corrected (bottom) minus reference position, drawn at the "
+                             "reference position, in three projections; colour = 3D error magnitude. "
+                             "Arrows are magnified; the key in each panel gives the scale.")))
+
+    body = _img(figures.features_figure(feats, pos_b * 1e3, pos_a * 1e3, "position error", "mm"),
+                "position error against features")
+    if rot is not None:
+        body += _img(figures.features_figure(feats, rot[0] * 1e3, rot[1] * 1e3, "rotation error", "mrad"),
+                     "rotation error against features")
+    note = ("Features of the reference pose (angles in degrees; azimuth/elevation as seen from the station, "
+            "incidence: tracker z axis vs line of sight). A trend in the blue median line is structure "
+            "the model misses." + ("" if "t" in feats else " No time column: t is not shown."))
+    parts.append(_section("features", "Error against features", body, _e(note)))
+
+    fig = figures.orientation_figure(feats, pos_a * 1e3, None if rot is None else rot[1] * 1e3,
+                              pos_b * 1e3, None if rot is None else rot[0] * 1e3)
+    parts.append(_section("orientation", "Error by orientation",
+                          _img(fig, "corrected error grouped by roll, pitch, yaw"),
+                          _e("Roll, pitch, yaw of the reference orientation relative to upright (Z-Y-X); "
+                             "distinct values when there are few, else equal-width bins.")))
+
+    fig = figures.histogram_figure((pos_b * 1e3, pos_a * 1e3), None if rot is None else (rot[0] * 1e3, rot[1] * 1e3))
+    parts.append(_section("histograms", "Error histograms", _img(fig, "error histograms before and after"),
+                          _e("Log-spaced bins so both the raw and the corrected errors are readable.")))
+
+    parts.append(_worst_section(table, feats, pos, rot))
+    parts.append(_diagnosis_section(diagnosis, model_effects(model_info, diagnosis)))
+    parts.append(_ledger_section(list(ledger)))
+    parts.append(_segments_section(segments))
+
+    nav = "".join(f'<a href="#{sid}">{_e(label)}</a>' for sid, label in SECTIONS)
+    page = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+            f"<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\"><title>{_e(name)}</title>"
+            f"<style>{_CSS}</style></head><body><header><h1>{_e(name)}</h1></header><nav>{nav}</nav><main>"
+            + "".join(parts) + "</main></body></html>\n")
+    out = Path(output_path)
+    write_text(out, page)  # atomic: an interrupted report leaves the previous page
+    return out
+

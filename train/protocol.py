@@ -42,8 +42,10 @@ import numpy as np
 from posecorr.metrics import METRIC_KEYS, improvement, metric_block, pose_metrics, summarize
 from posecorr.safeio import append_line, sigterm_as_interrupt
 
-from .mlp import ACTIVATIONS, ARCHITECTURES, MLP, TRAINER_NUMBERS, network_label, parse_hidden, parse_network
-from .pmc import PMC
+from .activations import PAPER_ACTIVATIONS
+from .base import Validation
+from .methods import get_method
+from .mlp import ARCHITECTURES, TRAINER_NUMBERS, network_label, parse_hidden, parse_network
 
 TEST_FRACTION = 0.15
 VAL_FRACTION = 0.15
@@ -94,13 +96,10 @@ class Config:
 
     def make(self, seed: int = 0) -> Any:
         """A fresh (unfitted) estimator."""
-        opts = dict(self.options)
-        if self.method == "pmc":
-            return PMC(self.representation, **opts)
-        if self.method == "mlp":
-            return MLP(self.representation, hidden=self.hidden, activation=self.activation,
-                       trainer=self.trainer, random_state=seed, **opts)
-        raise ValueError(f"unknown method {self.method!r}; expected pmc or mlp")
+        method = get_method(self.method)
+        fields = {"hidden": self.hidden, "activation": self.activation, "trainer": self.trainer, "random_state": seed}
+        return method.make(self.representation, **{name: fields[name] for name in method.settings if name in fields},
+                           **dict(self.options))
 
 
 # Table 1's twelve learning algorithms in its numbering (1 = lm ... 12 = cgp).
@@ -108,10 +107,10 @@ PAPER_TRAINERS = tuple(sorted(TRAINER_NUMBERS, key=TRAINER_NUMBERS.get))
 
 GRID_PRESETS = {
     # paper Exp I: position only, 12 trainers x 8 activations x 16 architectures = 1536 networks
-    "paper-exp1": dict(representations=("pos",), activations=ACTIVATIONS, trainers=PAPER_TRAINERS,
+    "paper-exp1": dict(representations=("pos",), activations=PAPER_ACTIVATIONS, trainers=PAPER_TRAINERS,
                        architectures=ARCHITECTURES),
     # paper Exp II: per representation 3 trainers x 8 activations x 16 architectures = 384 networks
-    "paper-exp2": dict(representations=("eaa", "quat", "R", "zhou"), activations=ACTIVATIONS,
+    "paper-exp2": dict(representations=("eaa", "quat", "R", "zhou"), activations=PAPER_ACTIVATIONS,
                        trainers=("lm", "br", "rp"), architectures=ARCHITECTURES),
     # paper Exp III: per representation 2 trainers x 3 activations x 16 architectures = 96 networks
     "paper-exp3": dict(representations=("eaa", "quat", "R", "zhou"), activations=("logsig", "radbas", "tansig"),
@@ -228,10 +227,7 @@ def fit_one(table: Any, method: str = "mlp", representation: str = "zhou", hidde
     M, R = table.measured, table.reference
     est = cfg.make(seed=seed * 1000 + repeat)
     t0 = time.perf_counter()
-    if method == "mlp":
-        est.fit(M[tr], R[tr], validation=(M[va], R[va]) if len(va) else None)
-    else:
-        est.fit(M[tr], R[tr])
+    est.fit(M[tr], R[tr], validation=Validation(M[va], R[va]) if len(va) else None)
     seconds = time.perf_counter() - t0
     rows = te if len(te) else tr
     with_rot = representation != "pos"

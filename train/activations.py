@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
 from posecorr._xp import namespace
+from posecorr.registry import Registry
 
 
 @dataclass(frozen=True)
@@ -43,21 +44,15 @@ class Activation:
     paper: bool = False
 
 
-ACTIVATIONS: dict[str, Activation] = {}
+ACTIVATIONS: Registry = Registry("activation")
 
 
 def register_activation(activation: Activation) -> Activation:
-    if activation.name in ACTIVATIONS:
-        raise ValueError(f"activation {activation.name!r} is already registered")
-    ACTIVATIONS[activation.name] = activation
-    return activation
+    return ACTIVATIONS.add(activation.name, activation)
 
 
 def get_activation(name: str) -> Activation:
-    try:
-        return ACTIVATIONS[name]
-    except KeyError:
-        raise ValueError(f"unknown activation {name!r}; expected one of {', '.join(ACTIVATIONS)}") from None
+    return ACTIVATIONS.lookup(name)
 
 
 def _xp(method: str) -> Callable[[Any], Any]:

@@ -12,6 +12,8 @@ import importlib
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
+from posecorr.registry import Registry
+
 
 @dataclass(frozen=True)
 class Method:
@@ -32,21 +34,15 @@ class Method:
         return getattr(importlib.import_module(f".{module}", __package__), cls)(representation=representation, **params)
 
 
-METHODS: dict[str, Method] = {}
+METHODS: Registry = Registry("method")
 
 
 def register_method(method: Method) -> Method:
-    if method.name in METHODS:
-        raise ValueError(f"method {method.name!r} is already registered")
-    METHODS[method.name] = method
-    return method
+    return METHODS.add(method.name, method)
 
 
 def get_method(name: str) -> Method:
-    try:
-        return METHODS[name]
-    except KeyError:
-        raise ValueError(f"unknown method {name!r}; expected {', '.join(METHODS)} or auto") from None
+    return METHODS.lookup(name)
 
 
 def make_estimator(method: str, representation: str, **params: Any) -> Any:

@@ -28,13 +28,14 @@ from __future__ import annotations
 from typing import Any, NamedTuple
 
 import numpy as np
-from sklearn.base import BaseEstimator, RegressorMixin
 from scipy.sparse import issparse
+from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.exceptions import NotFittedError
 
 from posecorr import rotations
 from posecorr._xp import namespace
 from posecorr.metrics import pose_metrics
+
 
 def representations() -> tuple[str, ...]:
     """"pos" (position only) and every registered orientation representation."""
@@ -145,6 +146,7 @@ class BaseCorrector(PoseRegressorMixin, BaseEstimator):
     """
 
     method = "base"
+    uses_validation = False       # fit uses `validation` poses (an MLP: early stopping, trainbr's monitor)
 
     # --- fitting -----------------------------------------------------------------------
     def fit(self, measured: Any, reference: Any, t: Any = None, validation: Any = None) -> "BaseCorrector":

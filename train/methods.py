@@ -26,12 +26,15 @@ class Method:
     settings: tuple[str, ...] = ()
     fit_params: Mapping[str, Any] = field(default_factory=dict)
 
-    def make(self, representation: str, **params: Any) -> Any:
-        """A fresh (unfitted) core, or None for the method without one."""
+    def make(self, representation: str, settings: Mapping[str, Any] | None = None, **params: Any) -> Any:
+        """A fresh (unfitted) core, or None for the method without one: ``params``, and of the
+        ``settings`` (a command's options: hidden, activation, ...) the ones this method takes."""
         if not self.estimator:
             return None
         module, cls = self.estimator.split(":")
-        return getattr(importlib.import_module(f".{module}", __package__), cls)(representation=representation, **params)
+        taken = {name: settings[name] for name in self.settings if name in settings} if settings else {}
+        return getattr(importlib.import_module(f".{module}", __package__), cls)(representation=representation,
+                                                                               **taken, **params)
 
 
 METHODS: Registry = Registry("method")

@@ -225,6 +225,7 @@ class MLP(BaseCorrector):
     verbose: int = 0
 
     method = "mlp"
+    uses_validation = True
 
     # --- fit ----------------------------------------------------------------------------
     def _min_rows(self) -> int:

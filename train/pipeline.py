@@ -189,7 +189,7 @@ def make_core(method: str, representation: str, hidden: Sequence[int] = (20, 20,
     chosen = get_method(method)
     settings = {"hidden": tuple(hidden), "activation": activation, "trainer": trainer, "epochs": epochs,
                 "random_state": seed}
-    return chosen.make(representation, **chosen.fit_params, **{name: settings[name] for name in chosen.settings})
+    return chosen.make(representation, settings, **chosen.fit_params)
 
 
 # --- candidates, the rigid baseline and the choice ---------------------------------------
@@ -255,8 +255,10 @@ def requested_candidate(effects: Sequence[str], method: str, representation: str
                      lambda: make_core(method, representation, hidden, activation, trainer, epochs, seed))
 
 
-def _is_mlp(candidate: Candidate) -> bool:
-    return getattr(candidate.make_core(), "method", "") == "mlp"
+def _stops_early(candidate: Candidate) -> bool:
+    """The candidate's core uses the validation poses (`uses_validation`): its fit on the
+    training rows is the one to keep, a refit on more rows would have nothing to stop on."""
+    return getattr(candidate.make_core(), "uses_validation", False)
 
 
 def _fit(candidate: Candidate, rows: np.ndarray, arrays: tuple, with_rotation: bool, prior: dict,
@@ -392,7 +394,7 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
         scores = {name: _score(R[val], m.predict(M[val], None if t is None else t[val]), with_rotation)
                   for name, m in fitted.items()}
         best = min(candidates, key=lambda c: (scores[c.name], not c.rigid))
-        model = fitted[best.name] if _is_mlp(best) else _fit(best, fit_rows, arrays, with_rotation, prior)
+        model = fitted[best.name] if _stops_early(best) else _fit(best, fit_rows, arrays, with_rotation, prior)
         rigid = model if best.rigid else _fit(RIGID_CANDIDATE, fit_rows, arrays, with_rotation, prior)
         t_test = None if t is None else t[test]
         raw = pose_metrics(R[test], M[test], with_rotation)
@@ -402,7 +404,7 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
             notes.append(f"the requested model did worse than the rigid fit on the {len(val)} validation poses "
                          f"({scores[candidates[0].name]:.4g} against {scores[RIGID]:.4g} rmse_total): "
                          "returning the rigid fit")
-        report = FitReport(model, raw, heldout, "test", np.sort(fit_rows if not _is_mlp(best) else train),
+        report = FitReport(model, raw, heldout, "test", np.sort(fit_rows if not _stops_early(best) else train),
                            best.name, scores if method == "auto" else {}, baseline, len(test), None,
                            best.rigid and method != "auto", notes, test)
         return _warn_thin(report)

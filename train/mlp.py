@@ -39,7 +39,7 @@ import numpy as np
 
 from posecorr._xp import namespace
 
-from .activations import ACTIVATIONS, get_activation, mlp_forward
+from .activations import get_activation, mlp_forward
 from .base import BaseCorrector, Validation, check_poses, encode_pose
 from .trainers import TRAINERS as TRAINER_REGISTRY
 
@@ -234,8 +234,7 @@ class MLP(BaseCorrector):
     def _fit_vectors(self, X: np.ndarray, Y: np.ndarray, validation: Validation | None) -> None:
         import torch
 
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(f"unknown activation {self.activation!r}; expected one of {', '.join(ACTIVATIONS)}")
+        get_activation(self.activation)   # refuses an unknown name before any work
         if self.trainer not in TRAINERS:
             raise ValueError(f"unknown trainer {self.trainer!r}; expected one of {', '.join(TRAINERS)}")
         if self.normalization not in ("none", "standard"):

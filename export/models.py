@@ -106,12 +106,11 @@ def evaluate(corrected: np.ndarray, measured: np.ndarray, reference: np.ndarray,
 
 
 def make_estimator(spec: Spec, epochs: int = MLP_EPOCHS) -> Any:
-    from posecorr.train import MLP, PMC
+    from posecorr.train.methods import get_method
 
-    if spec.method == "pmc":
-        return PMC(representation=spec.representation)
-    return MLP(representation=spec.representation, hidden=spec.hidden, activation=spec.activation,
-               trainer=spec.trainer, epochs=epochs, random_state=0, num_threads=None)
+    settings = {"hidden": spec.hidden, "activation": spec.activation, "trainer": spec.trainer, "epochs": epochs,
+                "random_state": 0}
+    return get_method(spec.method).make(spec.representation, settings)
 
 
 def _fmt(v: Any, digits: int = 5) -> str:

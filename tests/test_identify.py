@@ -102,7 +102,7 @@ def test_physics_fit_on_yaw_only_experiment_stays_physical() -> None:
 def test_position_only_holds_the_mount_rotation() -> None:
     session = simulate_session(11, position_only=True, spread="full", n=25, unremovable=0.0)
     table = session.table
-    model = PhysicsModel(("station", "mount")).fit(table.measured, table.reference, with_rotation=False)
+    model = PhysicsModel(("station", "mount"), with_rotation=False).fit(table.measured, table.reference)
     assert model.fixed_["mount.d"] == "the reference has no orientation"
     # The lever arm is found from the measured orientations alone: the true one is in the
     # simulation's mount (e = -X lever, so compare lengths).
@@ -113,8 +113,9 @@ def test_position_only_holds_the_mount_rotation() -> None:
 @pytest.mark.parametrize("kind", ["rigid", "physics"])
 def test_fitted_models_pickle_round_trip(kind: str) -> None:
     table = simulate_session(2).table
-    model = (RigidModel() if kind == "rigid" else PhysicsModel(("station", "mount"))).fit(
-        table.measured, table.reference, with_rotation=table.has_orientation)
+    rotation = table.has_orientation
+    model = (RigidModel(rotation) if kind == "rigid" else PhysicsModel(("station", "mount"), with_rotation=rotation)
+             ).fit(table.measured, table.reference)
     clone = pickle.loads(pickle.dumps(model))
     assert np.array_equal(clone.predict(table.measured), model.predict(table.measured))
     assert clone.describe() == model.describe()
@@ -155,5 +156,5 @@ def test_pipeline_and_physics_are_scikit_learn_estimators() -> None:
     pipeline.fit(table.measured, table.reference)
     assert not hasattr(core, "coef_") and hasattr(pipeline.core_, "coef_")
     assert clone(PhysicsModel(("station", "mount"), sigma_p=1e-3)).get_params() == \
-        {"effects": ("station", "mount"), "sigma_p": 1e-3, "sigma_r": None, "max_nfev": 200}
+        {"effects": ("station", "mount"), "sigma_p": 1e-3, "sigma_r": None, "max_nfev": 200, "with_rotation": True}
     assert isinstance(clone(RigidModel()), RigidModel)

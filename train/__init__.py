@@ -1,23 +1,31 @@
 """posecorr.train: fitting of the correctors and the paper's protocol.
 
 ``PMC`` (polynomial model correction, paper 2.3) and ``MLP`` (MATLAB-style networks,
-paper 2.4) are scikit-learn-style estimators (see ``base.py`` for the contract);
-``protocol`` runs the 30-repeat sweep, ``stats`` the Friedman / Dunn-Sidak analysis and
-``tables`` prints tables 2-5. torch is imported lazily (only when an MLP is fitted).
+paper 2.4) are scikit-learn estimators (see ``base.py`` for the contract); ``protocol``
+runs the 30-repeat sweep, ``stats`` the Friedman / Dunn-Sidak analysis and ``tables``
+prints tables 2-5.
+
+Every name here is imported when first used: the command line reads the registries
+(``trainers``, ``activations``, ``methods``) to build its choices, and its controller-side
+verbs must not load scikit-learn or torch by doing so.
 """
 from __future__ import annotations
 
-from .base import REPRESENTATIONS, BaseCorrector, decode_pose, encode_pose
-from .mlp import ACTIVATIONS, ARCHITECTURES, MLP, TRAINERS
-from .pmc import PMC
+import importlib
+from typing import Any
 
-__all__ = ["PMC", "MLP", "BaseCorrector", "REPRESENTATIONS", "ACTIVATIONS", "ARCHITECTURES", "TRAINERS",
-           "encode_pose", "decode_pose", "fit_one", "run_sweep", "build_grid"]
+# name -> the module (relative to this package) that defines it.
+_EXPORTS = {
+    "PMC": "pmc", "MLP": "mlp", "BaseCorrector": "base", "Validation": "base", "REPRESENTATIONS": "base",
+    "encode_pose": "base", "decode_pose": "base", "ACTIVATIONS": "activations", "ARCHITECTURES": "mlp",
+    "TRAINERS": "mlp", "fit_one": "protocol", "run_sweep": "protocol", "build_grid": "protocol",
+    "SweepResult": "protocol", "Config": "protocol",
+}
+
+__all__ = list(_EXPORTS)
 
 
-def __getattr__(name: str):
-    if name in ("fit_one", "run_sweep", "build_grid", "SweepResult", "Config"):
-        from . import protocol
-
-        return getattr(protocol, name)
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
     raise AttributeError(f"module 'posecorr.train' has no attribute {name!r}")

@@ -2,9 +2,10 @@
 
 The estimator contract (scikit-learn conventions):
 
-* parameters in ``__init__`` (stored as given, no work), fitted state with a trailing
-  underscore;
-* ``fit(measured (N, 7), reference (N, 7), **fit_params) -> self``: learns to predict the
+* parameters in ``__init__`` (stored as given, no work: the subclasses are dataclasses),
+  fitted state with a trailing underscore, ``NotFittedError`` before ``fit``;
+* ``fit(measured (N, 7), reference (N, 7), t=None, validation=None) -> self`` (the signature
+  of every fit in posecorr; ``validation`` a ``Validation``): learns to predict the
   REFERENCE pose parameters (position + orientation representation) from the MEASURED
   ones, as in the paper;
 * ``predict(measured (N, 7)) -> (N, 7)`` float64, unit quaternion with qw >= 0;
@@ -24,13 +25,17 @@ The pose -> input vector encoding (``encode_pose``) and the output vector -> pos
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
+from scipy.sparse import issparse
+from sklearn.base import BaseEstimator, RegressorMixin
+from sklearn.exceptions import NotFittedError
 
 from posecorr import rotations
 from posecorr._xp import namespace
 from posecorr.metrics import pose_metrics
+
 
 def representations() -> tuple[str, ...]:
     """"pos" (position only) and every registered orientation representation."""
@@ -80,10 +85,20 @@ def decode_pose(vector: Any, pose: Any, rep: str) -> Any:
 
 
 def check_poses(a: Any, name: str, n: int | None = None) -> np.ndarray:
-    """An (N, 7) finite float64 array or a ValueError naming the argument."""
-    arr = np.asarray(a, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 7:
-        raise ValueError(f"{name} must have shape (N, 7) (x, y, z, qw, qx, qy, qz), got {arr.shape}")
+    """An (N, 7) finite float64 array, or an error naming the argument (in scikit-learn's words
+    where it has some: sparse, complex, feature(s))."""
+    if issparse(a):
+        raise TypeError(f"{name}: sparse input is not supported; poses are a dense (N, 7) table")
+    arr = np.asarray(a)
+    if arr.dtype.kind == "c":
+        raise ValueError(f"{name}: Complex data not supported; poses are real (x, y, z, qw, qx, qy, qz)")
+    arr = arr.astype(np.float64, copy=False)
+    if arr.ndim != 2:
+        raise ValueError(f"{name} must be a 2-d array of shape (N, 7) (x, y, z, qw, qx, qy, qz), got shape {arr.shape}")
+    if arr.shape[1] != 7:
+        need = "while a minimum of 7 is required" if arr.shape[1] < 7 else "while 7 are expected"
+        raise ValueError(f"{name} has {arr.shape[1]} feature(s) (shape={arr.shape}) {need}: "
+                         "x, y, z, qw, qx, qy, qz")
     if n is not None and arr.shape[0] != n:
         raise ValueError(f"{name} has {arr.shape[0]} rows, expected {n} like measured")
     if not np.all(np.isfinite(arr)):
@@ -91,56 +106,67 @@ def check_poses(a: Any, name: str, n: int | None = None) -> np.ndarray:
     return arr
 
 
-class BaseCorrector:
-    """Shared plumbing; subclasses implement ``_fit_vectors`` and ``_core``."""
+def check_pair(measured: Any, reference: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(measured, reference) as checked poses of equal length: what every fit starts with."""
+    if reference is None:
+        raise ValueError("fit requires y to be passed, but the target y is None: give the reference poses")
+    measured = check_poses(measured, "measured")
+    return measured, check_poses(reference, "reference", len(measured))
+
+
+class Validation(NamedTuple):
+    """Held-out poses for early stopping: the one shape ``fit(..., validation=)`` takes everywhere."""
+
+    measured: Any
+    reference: Any
+    t: Any = None
+
+
+def as_validation(validation: Any) -> Validation | None:
+    return None if validation is None else Validation(*validation)
+
+
+class PoseRegressorMixin(RegressorMixin):
+    """scikit-learn's tags of a corrector: a regressor from (N, 7) poses to (N, 7) poses."""
+
+    def __sklearn_tags__(self) -> Any:
+        tags = super().__sklearn_tags__()
+        tags.target_tags.required = True
+        tags.target_tags.multi_output = True
+        tags.target_tags.single_output = False       # the target is the (N, 7) reference pose
+        return tags
+
+
+class BaseCorrector(PoseRegressorMixin, BaseEstimator):
+    """Shared plumbing; subclasses implement ``_fit_vectors`` and ``_core``.
+
+    A scikit-learn regressor from (N, 7) poses to (N, 7) poses: the parameters are the
+    subclass's fields, the fitted state ends in an underscore, and every ``predict`` /
+    export before ``fit`` raises ``NotFittedError``.
+    """
 
     method = "base"
-    _required_rows = 1
-
-    # --- scikit-learn parameter protocol (no sklearn import needed) -------------------
-    @classmethod
-    def _param_names(cls) -> list[str]:
-        import inspect
-
-        sig = inspect.signature(cls.__init__)
-        return [name for name, p in sig.parameters.items()
-                if name != "self" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
-
-    def get_params(self, deep: bool = True) -> dict[str, Any]:
-        return {name: getattr(self, name) for name in self._param_names()}
-
-    def set_params(self, **params: Any) -> "BaseCorrector":
-        valid = set(self._param_names())
-        for key, value in params.items():
-            if key not in valid:
-                raise ValueError(f"invalid parameter {key!r} for {type(self).__name__}")
-            setattr(self, key, value)
-        return self
-
-    def __repr__(self) -> str:
-        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
-        return f"{type(self).__name__}({args})"
+    uses_validation = False       # fit uses `validation` poses (an MLP: early stopping, trainbr's monitor)
 
     # --- fitting -----------------------------------------------------------------------
-    def fit(self, measured: Any, reference: Any, **fit_params: Any) -> "BaseCorrector":
-        """Learn measured -> reference. ``fit_params`` go to the method (e.g. validation data)."""
+    def fit(self, measured: Any, reference: Any, t: Any = None, validation: Any = None) -> "BaseCorrector":
+        """Learn measured -> reference. ``t`` is accepted for the common signature (these
+        correctors take no time input); ``validation`` (``Validation``) is for early stopping."""
         check_representation(self.representation)
-        measured = check_poses(measured, "measured")
-        reference = check_poses(reference, "reference", len(measured))
+        measured, reference = check_pair(measured, reference)
         if len(measured) < self._min_rows():
             raise ValueError(f"{type(self).__name__}({self.representation}) needs at least "
                              f"{self._min_rows()} poses, got {len(measured)}")
         X = encode_pose(measured, self.representation)
         Y = encode_pose(reference, self.representation)
+        self._fit_vectors(np.asarray(X, np.float64), np.asarray(Y, np.float64), as_validation(validation))
         self.n_features_in_ = 7
-        self._fit_vectors(np.asarray(X, np.float64), np.asarray(Y, np.float64), measured, reference, **fit_params)
         return self
 
     def _min_rows(self) -> int:
         return 1
 
-    def _fit_vectors(self, X: np.ndarray, Y: np.ndarray, measured: np.ndarray, reference: np.ndarray,
-                     **fit_params: Any) -> None:
+    def _fit_vectors(self, X: np.ndarray, Y: np.ndarray, validation: Validation | None) -> None:
         raise NotImplementedError
 
     def _core(self, x: Any) -> Any:
@@ -149,13 +175,12 @@ class BaseCorrector:
 
     def _check_fitted(self) -> None:
         if not hasattr(self, "n_features_in_"):
-            from sklearn.exceptions import NotFittedError  # here: the controller side never imports sklearn
-
             raise NotFittedError(f"this {type(self).__name__} is not fitted yet: call fit first")
 
     # --- inference -----------------------------------------------------------------------
     def forward(self, pose: Any) -> Any:
         """(N, 7) measured pose -> (N, 7) corrected pose, in any ``posecorr._xp`` namespace."""
+        self._check_fitted()
         x = encode_pose(pose, self.representation)
         y = self._core(x)
         return decode_pose(y, pose, self.representation)
@@ -171,14 +196,15 @@ class BaseCorrector:
 
         With ``representation == "pos"`` only the position error counts (Exp I).
         """
-        measured = check_poses(measured, "measured")
-        reference = check_poses(reference, "reference", len(measured))
+        self._check_fitted()
+        measured, reference = check_pair(measured, reference)
         if with_rotation is None:
             with_rotation = self.representation != "pos"
         return -float(pose_metrics(reference, self.predict(measured), with_rotation)["rmse_total"])
 
     # --- export --------------------------------------------------------------------------
     def export_info(self) -> dict[str, str]:
+        """What the exported file's metadata says about the corrector (after fit)."""
         raise NotImplementedError
 
     def to_onnx(self, path: Any, **metadata: Any) -> Any:

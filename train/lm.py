@@ -43,10 +43,11 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
+from .activations import get_activation, mlp_forward
 
 @dataclass
 class TrainResult:
@@ -88,7 +89,7 @@ class Network:
 
         self.torch = torch
         self.sizes = list(sizes)
-        self.activation = activation
+        self.activation = get_activation(activation)
         self.n_layers = len(sizes) - 1
         self.blocks = [(sizes[i] + 1, sizes[i + 1]) for i in range(self.n_layers)]
         self.offsets = np.cumsum([0] + [a * n for a, n in self.blocks]).tolist()
@@ -111,52 +112,10 @@ class Network:
         return ([w.numpy().copy() for w, _ in layers], [b.numpy().copy() for _, b in layers])
 
     # --- forward -----------------------------------------------------------------------
-    def _act(self, z: Any) -> Any:
-        t, name = self.torch, self.activation
-        if name == "tansig":
-            return t.tanh(z)
-        if name == "logsig":
-            return t.sigmoid(z)
-        if name == "radbas":
-            return t.exp(-z * z)
-        if name == "purelin":
-            return z
-        if name == "satlin":
-            return t.clamp(z, 0.0, 1.0)
-        if name == "softmax":
-            return t.softmax(z, dim=-1)
-        if name == "hardlim":
-            return (z >= 0).to(z.dtype)
-        if name == "compet":
-            return t.zeros_like(z).scatter(-1, t.argmax(z, dim=-1, keepdim=True), 1.0)
-        raise ValueError(f"unknown activation {name!r}")
-
-    def _dact(self, z: Any, a: Any) -> Any | None:
-        """Elementwise derivative f'(z) (None for softmax, whose Jacobian is not diagonal)."""
-        t, name = self.torch, self.activation
-        if name == "tansig":
-            return 1.0 - a * a
-        if name == "logsig":
-            return a * (1.0 - a)
-        if name == "radbas":
-            return -2.0 * z * a
-        if name == "purelin":
-            return t.ones_like(z)
-        if name == "satlin":
-            return ((z > 0) & (z < 1)).to(z.dtype)
-        if name in ("hardlim", "compet"):
-            return t.zeros_like(z)
-        return None
-
-    def outputs(self, theta: Any, X: Any) -> Any:
-        """Network output in the scaled target space (S, m); differentiable in theta."""
-        h = X
-        layers = self.unpack(theta)
-        for i, (w, b) in enumerate(layers):
-            h = self.torch.addmm(b, h, w)
-            if i < self.n_layers - 1:
-                h = self._act(h)
-        return h
+    def outputs(self, theta: Any, X: Any, inputs: list | None = None, pre: list | None = None) -> Any:
+        """Network output in the scaled target space (S, m); differentiable in theta.
+        ``inputs`` / ``pre`` receive each layer's input and pre-activation (``mlp_forward``)."""
+        return mlp_forward(X, self.unpack(theta), self.activation.name, inputs, pre)
 
     def residual(self, theta: Any, X: Any, T: Any) -> Any:
         return (self.outputs(theta, X) - T) * self.escale
@@ -171,19 +130,12 @@ class Network:
         t = self.torch
         S = X.shape[0]
         layers = self.unpack(theta)
-        augmented, zs, acts = [], [], []
-        h = X
+        inputs: list = []
+        zs: list = []
+        h = self.outputs(theta, X, inputs, zs)
         ones = t.ones((S, 1), dtype=X.dtype)
-        for i, (w, b) in enumerate(layers):
-            augmented.append(t.cat([h, ones], dim=1))
-            z = t.addmm(b, h, w)
-            if i < self.n_layers - 1:
-                a = self._act(z)
-                zs.append(z)
-                acts.append(a)
-                h = a
-            else:
-                h = z
+        augmented = [t.cat([a, ones], dim=1) for a in inputs]
+        acts = inputs[1:]                                 # a hidden layer's output is the next one's input
         r = (h - T) * self.escale
         m = T.shape[1]
         # sensitivities delta_l (S, m, n_l) of the scaled outputs (x escale), top down
@@ -192,8 +144,8 @@ class Network:
         for i in range(self.n_layers - 2, -1, -1):
             w_up = layers[i + 1][0]                       # (n_i, n_{i+1})
             u = t.matmul(delta, w_up.T)                   # (S, m, n_i)
-            d = self._dact(zs[i], acts[i])
-            if d is None:                                 # softmax
+            d = None if self.activation.derivative is None else self.activation.derivative(zs[i], acts[i])
+            if d is None:                                 # a Jacobian that is not diagonal: softmax
                 s = acts[i][:, None, :]
                 us = u * s
                 delta = us - us.sum(-1, keepdim=True) * s
@@ -264,7 +216,7 @@ def _trace_inverse(A: Any) -> float | None:
 
 def train_lm(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts: list[np.ndarray],
              Xn: np.ndarray, Tn: np.ndarray, escale: np.ndarray,
-             val: tuple[np.ndarray, np.ndarray] | None, callback: Callable | None = None) -> TrainResult:
+             val: tuple[np.ndarray, np.ndarray] | None) -> TrainResult:
     """trainlm / trainbr on scaled inputs Xn and targets Tn (see the module docstring)."""
     import torch
 
@@ -309,8 +261,6 @@ def train_lm(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts
             history["gamma"].append(gamma)
             history["alpha"].append(alpha)
             history["beta"].append(beta)
-        if callback is not None:
-            callback(epoch, history)
         if est.verbose and epoch % int(est.verbose) == 0:
             print(f"epoch {epoch:4d} mse {mse:.4g} val {vmse:.4g} mu {mu:.2g}"
                   + (f" gamma {gamma:.1f}" if bayes else ""), flush=True)

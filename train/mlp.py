@@ -5,12 +5,12 @@ Network: input vector [x, y, z, params(rep)] -> ``mapminmax`` to [-1, 1] -> hidd
 linear (purelin) output layer -> reverse ``mapminmax`` -> decode to a pose. The 16
 architectures of the paper's table 1 are ``ARCHITECTURES``.
 
-Transfer functions (``ACTIVATIONS``): tansig = tanh, logsig = 1/(1+exp(-n)),
-radbas = exp(-n^2), purelin = n, satlin = clip(n, 0, 1), softmax (over the layer),
-hardlim = (n >= 0), compet = one-hot of the first maximum. hardlim and compet have a zero
-derivative everywhere, as in MATLAB: gradient and Jacobian based trainers cannot move the
-hidden weights, so they stay at their initial values and only the (linear) output layer is
-trained. That is what MATLAB does too, and why those rows of the paper's tables are poor.
+Transfer functions: the table ``activations.ACTIVATIONS`` (the eight of MATLAB and any
+registered one), which also holds the forward pass (``mlp_forward``) that ``predict``, the
+trainers and the ONNX export share. hardlim and compet have a zero derivative everywhere, as
+in MATLAB: gradient and Jacobian based trainers cannot move the hidden weights, so they stay
+at their initial values and only the (linear) output layer is trained. That is what MATLAB
+does too, and why those rows of the paper's tables are poor.
 
 Scaling (MATLAB ``mapminmax``): inputs AND targets are mapped to [-1, 1] with the training
 set's min / max per row (a constant row maps to -1, gain 1, as in MATLAB). By default the
@@ -32,26 +32,23 @@ Levenberg-Marquardt core of ``lm.py``.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
 
 from posecorr._xp import namespace
 
-from .base import BaseCorrector, check_poses, encode_pose
+from .activations import get_activation, mlp_forward
+from .base import BaseCorrector, Validation, check_poses, encode_pose
 from .trainers import TRAINERS as TRAINER_REGISTRY
 
 ARCHITECTURES: tuple[tuple[int, ...], ...] = tuple(
     tuple([n] * layers) for layers in (1, 2, 3, 4) for n in (5, 10, 15, 20))
-ACTIVATIONS = ("compet", "hardlim", "logsig", "purelin", "radbas", "satlin", "softmax", "tansig")
 TRAINERS = tuple(TRAINER_REGISTRY)
 # Table 1 numbering of the learning algorithms (for the "tansig 16/2" labels).
 TRAINER_NUMBERS = {t.name: t.number for t in TRAINER_REGISTRY.values() if t.number is not None}
 
-# Active input ranges as in MATLAB's transfer function definitions; None = unbounded or degenerate.
-_ACTIVE_RANGE = {"tansig": (-2.0, 2.0), "radbas": (-2.0, 2.0), "logsig": (-4.0, 4.0), "satlin": (0.0, 1.0)}
-_OUTPUT_RANGE = {"tansig": (-1.0, 1.0), "logsig": (0.0, 1.0), "radbas": (0.0, 1.0), "satlin": (0.0, 1.0),
-                 "hardlim": (0.0, 1.0), "compet": (0.0, 1.0), "softmax": (0.0, 1.0), "purelin": (-1.0, 1.0)}
 
 
 def architecture_number(hidden: Sequence[int]) -> int | None:
@@ -125,25 +122,8 @@ def parse_hidden(hidden: Any) -> tuple[int, ...]:
 
 
 def activation_xp(name: str, n: Any) -> Any:
-    """MATLAB transfer function ``name`` in the xp namespace of n."""
-    xp = namespace(n)
-    if name == "tansig":
-        return xp.tanh(n)
-    if name == "logsig":
-        return xp.sigmoid(n)
-    if name == "radbas":
-        return xp.exp(-(n * n))
-    if name == "purelin":
-        return n
-    if name == "satlin":
-        return xp.clip(n, 0.0, 1.0)
-    if name == "softmax":
-        return xp.softmax(n)
-    if name == "hardlim":
-        return xp.step(n)
-    if name == "compet":
-        return xp.compet(n)
-    raise ValueError(f"unknown activation {name!r}; expected one of {', '.join(ACTIVATIONS)}")
+    """Transfer function ``name`` (``activations.ACTIVATIONS``) in the xp namespace of n."""
+    return get_activation(name).forward(n)
 
 
 def mapminmax_settings(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -169,7 +149,7 @@ def init_weights(sizes: Sequence[int], activation: str, rng: np.random.Generator
     for layer in range(n_layers):
         R, S = sizes[layer], sizes[layer + 1]
         hidden_layer = layer < n_layers - 1
-        active = _ACTIVE_RANGE.get(activation) if hidden_layer else None
+        active = get_activation(activation).active_range if hidden_layer else None
         if active is None:
             w = rng.uniform(-1.0, 1.0, size=(S, R))
             b = rng.uniform(-1.0, 1.0, size=S)
@@ -189,10 +169,11 @@ def init_weights(sizes: Sequence[int], activation: str, rng: np.random.Generator
         coefs.append(np.ascontiguousarray(w.T))
         intercepts.append(b.copy())
         if hidden_layer:
-            in_range = _OUTPUT_RANGE.get(activation, (-1.0, 1.0))
+            in_range = get_activation(activation).output_range
     return coefs, intercepts
 
 
+@dataclass(repr=False, eq=False)
 class MLP(BaseCorrector):
     """Feed-forward network corrector, trained like MATLAB's ``train`` with ``trainFcn``.
 
@@ -220,48 +201,40 @@ class MLP(BaseCorrector):
     num_threads : torch threads during fit (None = leave as is)
     verbose : print one line per ``verbose`` epochs (0 = silent)
 
-    ``fit(measured, reference, validation=(measured_val, reference_val))``.
+    ``fit(measured, reference, validation=Validation(measured_val, reference_val))``.
     """
 
-    method = "mlp"
+    representation: str = "zhou"
+    hidden: Any = (20, 20, 20, 20)
+    activation: str = "tansig"
+    trainer: str = "br"
+    epochs: int = 1000
+    goal: float = 0.0
+    max_fail: int = 6
+    min_grad: float = 1e-7
+    mu: float | None = None
+    mu_dec: float = 0.1
+    mu_inc: float = 10.0
+    mu_max: float = 1e10
+    lr: float = 0.01
+    normalization: str = "none"
+    validation_fraction: float = 0.15
+    merge_validation: bool = False
+    random_state: int = 0
+    num_threads: int | None = None
+    verbose: int = 0
 
-    def __init__(self, representation: str = "zhou", hidden: Any = (20, 20, 20, 20),
-                 activation: str = "tansig", trainer: str = "br", epochs: int = 1000,
-                 goal: float = 0.0, max_fail: int = 6, min_grad: float = 1e-7,
-                 mu: float | None = None, mu_dec: float = 0.1, mu_inc: float = 10.0,
-                 mu_max: float = 1e10, lr: float = 0.01, normalization: str = "none",
-                 validation_fraction: float = 0.15, merge_validation: bool = False,
-                 random_state: int = 0, num_threads: int | None = None, verbose: int = 0) -> None:
-        self.representation = representation
-        self.hidden = hidden
-        self.activation = activation
-        self.trainer = trainer
-        self.epochs = epochs
-        self.goal = goal
-        self.max_fail = max_fail
-        self.min_grad = min_grad
-        self.mu = mu
-        self.mu_dec = mu_dec
-        self.mu_inc = mu_inc
-        self.mu_max = mu_max
-        self.lr = lr
-        self.normalization = normalization
-        self.validation_fraction = validation_fraction
-        self.merge_validation = merge_validation
-        self.random_state = random_state
-        self.num_threads = num_threads
-        self.verbose = verbose
+    method = "mlp"
+    uses_validation = True
 
     # --- fit ----------------------------------------------------------------------------
     def _min_rows(self) -> int:
         return 4
 
-    def _fit_vectors(self, X: np.ndarray, Y: np.ndarray, measured: np.ndarray, reference: np.ndarray,
-                     validation: tuple[Any, Any] | None = None, callback: Any = None) -> None:
+    def _fit_vectors(self, X: np.ndarray, Y: np.ndarray, validation: Validation | None) -> None:
         import torch
 
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(f"unknown activation {self.activation!r}; expected one of {', '.join(ACTIVATIONS)}")
+        get_activation(self.activation)   # refuses an unknown name before any work
         if self.trainer not in TRAINERS:
             raise ValueError(f"unknown trainer {self.trainer!r}; expected one of {', '.join(TRAINERS)}")
         if self.normalization not in ("none", "standard"):
@@ -269,8 +242,8 @@ class MLP(BaseCorrector):
         hidden = parse_hidden(self.hidden)
         rng = np.random.default_rng(self.random_state)
         if validation is not None:
-            mv = check_poses(validation[0], "validation measured")
-            rv = check_poses(validation[1], "validation reference", len(mv))
+            mv = check_poses(validation.measured, "validation measured")
+            rv = check_poses(validation.reference, "validation reference", len(mv))
             Xv = np.asarray(encode_pose(mv, self.representation), np.float64)
             Yv = np.asarray(encode_pose(rv, self.representation), np.float64)
         elif self.trainer != "br" and self.validation_fraction > 0 and len(X) >= 10:
@@ -298,19 +271,16 @@ class MLP(BaseCorrector):
         if self.num_threads:
             torch.set_num_threads(int(self.num_threads))
         try:
-            result = TRAINER_REGISTRY[self.trainer].train(self, sizes, coefs, intercepts, Xn, Tn, escale, val,
-                                                          callback)
+            result = TRAINER_REGISTRY[self.trainer].train(self, sizes, coefs, intercepts, Xn, Tn, escale, val)
         finally:
             if self.num_threads:
                 torch.set_num_threads(old_threads)
         self.coefs_ = [np.asarray(w, np.float64) for w in result.coefs]
         self.intercepts_ = [np.asarray(b, np.float64) for b in result.intercepts]
-        self.n_epochs_ = result.epochs
-        self.stop_reason_ = result.stop_reason
-        self.history_ = result.history
-        self.best_val_loss_ = result.best_val
-        self.train_loss_ = result.train_loss
-        self.extra_ = result.extra
+        # The trainer's result as fitted attributes.
+        for attribute, field in (("n_epochs_", "epochs"), ("stop_reason_", "stop_reason"), ("history_", "history"),
+                                 ("best_val_loss_", "best_val"), ("train_loss_", "train_loss"), ("extra_", "extra")):
+            setattr(self, attribute, getattr(result, field))
         self.sizes_ = sizes
         self.n_parameters_ = int(sum(w.size + b.size for w, b in zip(self.coefs_, self.intercepts_)))
 
@@ -318,11 +288,7 @@ class MLP(BaseCorrector):
     def _core(self, x: Any) -> Any:
         xp = namespace(x)
         h = x * xp.const(self.x_gain_, x) + xp.const(self.x_offset_, x)
-        last = len(self.coefs_) - 1
-        for i, (w, b) in enumerate(zip(self.coefs_, self.intercepts_)):
-            h = xp.linear(h, w, b)
-            if i < last:
-                h = activation_xp(self.activation, h)
+        h = mlp_forward(h, list(zip(self.coefs_, self.intercepts_)), self.activation)
         return h * xp.const(1.0 / self.y_gain_, h) + xp.const(-self.y_offset_ / self.y_gain_, h)
 
     def export_info(self) -> dict[str, str]:

@@ -33,7 +33,7 @@ from posecorr._xp import namespace
 from posecorr.effects import EffectContext, get_effect, invert_effects, sorted_effects
 from posecorr.metrics import pose_metrics
 
-from .base import check_poses
+from .base import PoseRegressorMixin, check_pair, check_poses
 from .identify import (Block, RigidRegistration, chordal_mean, describe_spread, determined_directions, direction_label,
                        rigid_registration)
 
@@ -68,12 +68,14 @@ def single_threaded() -> Iterator[None]:
             torch.set_num_threads(before)
 
 
-class PhysicsModel(BaseEstimator):
+class PhysicsModel(PoseRegressorMixin, BaseEstimator):
     """Fit the named effects (station, mount, sweep, ...) and correct by their inverse.
 
     Parameters: `effects` names from the catalogue (or user effects once loaded);
     `sigma_p` (m) and `sigma_r` (rad) weight the position and orientation residuals
-    (None: estimated); `max_nfev` bounds the solver's evaluations.
+    (None: estimated); `max_nfev` bounds the solver's evaluations; `with_rotation` False for a
+    position-only table (`PoseTable.has_orientation`), whose reference orientation is the
+    measured one (`PoseTable.reference`) and carries no information.
     Fitted: `params_` {effect: theta}, `std_errors_` {effect: std of theta, NaN where not
     determined}, `sigma_p_`, `sigma_r_`, `ctx_` (frames used), `with_rotation_`, `cost_`,
     `spread_` (`identify.Spread`), `basis_` (the determined directions, scaled units) and
@@ -85,23 +87,26 @@ class PhysicsModel(BaseEstimator):
     representation = "pos"
 
     def __init__(self, effects: Sequence[str] = ("station", "mount"), sigma_p: float | None = None,
-                 sigma_r: float | None = None, max_nfev: int = 200) -> None:
+                 sigma_r: float | None = None, max_nfev: int = 200, with_rotation: bool = True) -> None:
         self.effects = effects
         self.sigma_p = sigma_p
         self.sigma_r = sigma_r
         self.max_nfev = max_nfev
+        self.with_rotation = with_rotation
 
     # --- fitting ----------------------------------------------------------------------
-    def fit(self, measured: Any, reference: Any, t: np.ndarray | None = None,
-            with_rotation: bool = True, warm_start: "dict[str, np.ndarray] | PhysicsModel | None" = None,
-            validation: Any = None) -> "PhysicsModel":
+    def fit(self, measured: Any, reference: Any, t: np.ndarray | None = None, validation: Any = None, *,
+            warm_start: "dict[str, np.ndarray] | PhysicsModel | None" = None) -> "PhysicsModel":
         """Fit the effects the data determine; hold the others at their start value.
+
+        validation is accepted for the common signature: a least-squares fit does not stop early.
 
         warm_start: {effect: theta} replaces the closed-form start; a fitted PhysicsModel (of
         the same effects, on a superset of these poses: a cross-validation fold) also lends
         its determined directions and noise levels, so the fold solves once.
         """
-        measured, reference, chosen = self._setup(measured, reference, t, with_rotation)
+        measured, reference, chosen = self._setup(measured, reference, t)
+        with_rotation = self.with_rotation_
         prior = warm_start if isinstance(warm_start, PhysicsModel) else None
         thetas = dict(prior.params_) if prior is not None else dict(warm_start or {})
         theta0, sigma_p, sigma_r, _ = self._initial_theta(measured, reference, chosen, thetas)
@@ -132,10 +137,9 @@ class PhysicsModel(BaseEstimator):
         self.n_features_in_ = 7
         return self
 
-    def _setup(self, measured: Any, reference: Any, t: np.ndarray | None, with_rotation: bool) -> tuple:
+    def _setup(self, measured: Any, reference: Any, t: np.ndarray | None) -> tuple:
         """Checked poses, the frames and the spread: what fitting and `identifiability` share."""
-        measured = check_poses(measured, "measured")
-        reference = check_poses(reference, "reference", len(measured))
+        measured, reference = check_pair(measured, reference)
         chosen = sorted_effects(self.effects)
         for effect in chosen:
             if effect.random:
@@ -146,17 +150,16 @@ class PhysicsModel(BaseEstimator):
         base = EffectContext.default()
         self.ctx_ = EffectContext(base.R_S, base.t_S, reference[:, :3].mean(axis=0),
                                   t=None if t is None else np.asarray(t, float))
-        self.with_rotation_ = bool(with_rotation)
+        self.with_rotation_ = bool(self.with_rotation)
         self._chosen = chosen
         self.spread_ = describe_spread(measured[:, :3], rotations.quat_to_matrix(measured[:, 3:7]),
                                        self.with_rotation_)
         return measured, reference, chosen
 
-    def identifiability(self, measured: Any, reference: Any, t: np.ndarray | None = None,
-                        with_rotation: bool = True) -> dict[str, str]:
+    def identifiability(self, measured: Any, reference: Any, t: np.ndarray | None = None) -> dict[str, str]:
         """{parameter or direction: why} of what these poses cannot determine, without fitting
         (the first step of `fit`). Leaves the estimator unfitted."""
-        measured, reference, chosen = self._setup(measured, reference, t, with_rotation)
+        measured, reference, chosen = self._setup(measured, reference, t)
         theta0, sigma_p, sigma_r, _ = self._initial_theta(measured, reference, chosen, {})
         with single_threaded():
             _, fixed = self._identify(theta0, measured, reference, self.sigma_p or sigma_p, self.sigma_r or sigma_r)
@@ -385,8 +388,7 @@ class PhysicsModel(BaseEstimator):
         (r, J, is_extra) with is_extra (n,) marking the columns of the extra effects.
         """
         self._check_fitted()
-        measured = check_poses(measured, "measured")
-        reference = check_poses(reference, "reference", len(measured))
+        measured, reference = check_pair(measured, reference)
         probe = PhysicsModel(tuple(self.params_) + tuple(extra), self.sigma_p_, self.sigma_r_)
         probe._chosen = sorted_effects(probe.effects)
         probe.ctx_ = EffectContext(self.ctx_.R_S, self.ctx_.t_S, self.ctx_.c,
@@ -441,6 +443,7 @@ class PhysicsModel(BaseEstimator):
         return xp.concat([p, q], axis=-1)
 
     def predict(self, measured: Any, t: np.ndarray | None = None) -> np.ndarray:
+        self._check_fitted()
         measured = check_poses(measured, "measured")
         return np.asarray(self.forward(measured, t), dtype=np.float64)
 
@@ -483,14 +486,16 @@ class RigidModel(PhysicsModel):
 
     method = "rigid"
 
-    def __init__(self) -> None:
-        super().__init__(effects=("station", "mount"))
+    def __init__(self, with_rotation: bool = True) -> None:
+        super().__init__(effects=("station", "mount"), with_rotation=with_rotation)
 
-    def fit(self, measured: Any, reference: Any, t: np.ndarray | None = None,
-            with_rotation: bool = True, warm_start: Any = None, validation: Any = None) -> "RigidModel":
+    def fit(self, measured: Any, reference: Any, t: np.ndarray | None = None, validation: Any = None, *,
+            warm_start: Any = None) -> "RigidModel":
+        measured, reference = check_pair(measured, reference)
         if len(measured) < 3:
             raise ValueError(f"a rigid registration needs at least 3 poses, got {len(measured)}")
-        measured, reference, chosen = self._setup(measured, reference, None, with_rotation)
+        measured, reference, chosen = self._setup(measured, reference, None)
+        with_rotation = self.with_rotation_
         theta, self.sigma_p_, sigma_r, rigid = self._initial_theta(measured, reference, chosen, {})
         self.sigma_r_ = sigma_r if with_rotation else None
         self.fixed_ = {} if with_rotation else {"mount.d": "the reference has no orientation"}

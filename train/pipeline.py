@@ -23,24 +23,28 @@ from sklearn.exceptions import NotFittedError
 from posecorr.data import PoseTable
 from posecorr.metrics import pose_errors, pose_metrics, rmse_total
 
+from .base import PoseRegressorMixin, Validation, as_validation, check_pair, check_poses
+from .methods import get_method, make_estimator
 from .physics import PhysicsModel, RigidModel
 
 
-class CorrectionPipeline(BaseEstimator):
+class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
     """Physics stage (may be empty) followed by a core corrector (may be None).
 
     scikit-learn conventions: the parameters (`effects`, `core`, `sigma_p`, `sigma_r`,
-    `rigid`) are never changed by fit; the fitted parts are `physics_` and `core_`, a clone
-    of `core` (so `clone(pipeline)` and nested parameters such as `core__alpha` work).
+    `rigid`, `with_rotation`) are never changed by fit; the fitted parts are `physics_` and
+    `core_`, a clone of `core` (so `clone(pipeline)` and nested parameters such as
+    `core__alpha` work). `with_rotation` False for a position-only table (`PhysicsModel`).
     """
 
     def __init__(self, effects: Sequence[str] = (), core: Any = None, sigma_p: float | None = None,
-                 sigma_r: float | None = None, rigid: bool = False) -> None:
+                 sigma_r: float | None = None, rigid: bool = False, with_rotation: bool = True) -> None:
         self.effects = effects
         self.core = core
         self.sigma_p = sigma_p
         self.sigma_r = sigma_r
         self.rigid = rigid
+        self.with_rotation = with_rotation
 
     @property
     def representation(self) -> str:
@@ -49,51 +53,54 @@ class CorrectionPipeline(BaseEstimator):
         return "pos" if not getattr(self, "with_rotation_", True) else "R"
 
     def fit(self, measured: np.ndarray, reference: np.ndarray, t: np.ndarray | None = None,
-            with_rotation: bool = True, warm_start: Any = None,
-            validation: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None,
+            validation: Validation | None = None, *, warm_start: Any = None,
             physics: PhysicsModel | None = None) -> "CorrectionPipeline":
         """Fit the physics stage (the rigid registration when `rigid`), then the core on what it leaves.
 
+        validation: held-out poses (`Validation`) for the core's early stopping (an MLP's trainlm).
         warm_start: {effect: theta} or a fitted PhysicsModel to start from (`PhysicsModel.fit`).
-        validation: (measured, reference, t) poses for an MLP core's early stopping (trainlm).
         physics: a physics stage already fitted on these very poses (shared by candidates that
         differ only in their core), used as it is.
         """
-        self.with_rotation_ = with_rotation
+        measured, reference = check_pair(measured, reference)
+        with_rotation = self.with_rotation_ = bool(self.with_rotation)
         self.physics_ = None
-        stage = np.asarray(measured, float)
+        stage = measured
         if self.rigid and self.effects:
             raise ValueError("a rigid pipeline has no further effects; give either rigid=True or effects")
         if physics is not None:
             self.physics_ = physics
         elif self.rigid:
-            self.physics_ = RigidModel().fit(measured, reference, t=t, with_rotation=with_rotation)
+            self.physics_ = RigidModel(with_rotation).fit(measured, reference, t=t)
         elif self.effects:
-            self.physics_ = PhysicsModel(self.effects, self.sigma_p, self.sigma_r).fit(
-                measured, reference, t=t, with_rotation=with_rotation, warm_start=warm_start)
+            self.physics_ = PhysicsModel(self.effects, self.sigma_p, self.sigma_r, with_rotation=with_rotation).fit(
+                measured, reference, t=t, warm_start=warm_start)
         if self.physics_ is not None:
             stage = self.physics_.predict(measured, t)
         self.core_ = None if self.core is None else clone(self.core)
         if self.core_ is not None:
-            extra = {}
-            if validation is not None and getattr(self.core_, "method", "") == "mlp":
-                val_measured, val_reference, val_t = validation
-                extra["validation"] = (self.predict_physics(val_measured, val_t), val_reference)
-            self.core_.fit(stage, reference, **extra)
+            validation = as_validation(validation)
+            if validation is not None:   # the core sees the held-out poses as the physics stage leaves them
+                validation = Validation(self.predict_physics(validation.measured, validation.t), validation.reference)
+            self.core_.fit(stage, reference, validation=validation)
         self.n_features_in_ = 7
         return self
 
     def predict_physics(self, measured: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
         """The poses after the physics stage only."""
-        return np.asarray(measured, float) if self.physics_ is None else self.physics_.predict(measured, t)
+        return check_poses(measured, "measured") if self.physics_ is None else self.physics_.predict(measured, t)
+
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "n_features_in_"):
+            raise NotFittedError("this CorrectionPipeline is not fitted yet: call fit first")
 
     def forward(self, pose: Any, t: Any = None) -> Any:
+        self._check_fitted()
         out = pose if self.physics_ is None else self.physics_.forward(pose, t)
         return out if self.core_ is None else self.core_.forward(out)
 
     def predict(self, measured: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
-        if not hasattr(self, "n_features_in_"):
-            raise NotFittedError("this CorrectionPipeline is not fitted yet: call fit first")
+        self._check_fitted()
         stage = self.predict_physics(measured, t)
         return stage if self.core_ is None else self.core_.predict(stage)
 
@@ -102,6 +109,7 @@ class CorrectionPipeline(BaseEstimator):
         return -pose_metrics(reference, self.predict(measured, t), self.with_rotation_)["rmse_total"]
 
     def export_info(self) -> dict[str, Any]:
+        self._check_fitted()
         info: dict[str, Any] = {"method": "none", "representation": self.representation}
         if self.core_ is not None:
             info.update(self.core_.export_info())
@@ -116,9 +124,11 @@ class CorrectionPipeline(BaseEstimator):
 
     @property
     def needs_time(self) -> bool:
+        self._check_fitted()
         return self.physics_ is not None and self.physics_.needs_time
 
     def to_onnx(self, path: Any, **metadata: Any) -> Any:
+        self._check_fitted()
         from posecorr.export import to_onnx
 
         return to_onnx(self, path, **metadata)
@@ -154,16 +164,16 @@ class CrossValidation:
 
 def cross_validate(make: Callable[[], Any], table: PoseTable, folds: int | str = 5, seed: int = 0,
                    fit_kwargs: Callable[[int], dict] | None = None) -> CrossValidation:
-    """Fit `make()` on each training part and predict the held-out poses."""
+    """Fit `make()` on each training part and predict the held-out poses. `make()` builds an
+    estimator with a `with_rotation` parameter (a pipeline or physics stage): the table sets it."""
     measured, reference, t = table.measured, table.reference, table.time()
     predicted = np.empty_like(measured)
     fold_of = np.empty(table.n, dtype=int)
     fold_rmse, fitted = [], []
     for k, (train, held) in enumerate(kfold_indices(table.n, folds, seed)):
-        model = make()
+        model = make().set_params(with_rotation=table.has_orientation)
         extra = fit_kwargs(k) if fit_kwargs else {}
-        model.fit(measured[train], reference[train], t=None if t is None else t[train],
-                  with_rotation=table.has_orientation, **extra)
+        model.fit(measured[train], reference[train], t=None if t is None else t[train], **extra)
         predicted[held] = model.predict(measured[held], None if t is None else t[held])
         fold_of[held] = k
         dp, dr = pose_errors(reference[held], predicted[held], table.has_orientation)
@@ -175,19 +185,11 @@ def cross_validate(make: Callable[[], Any], table: PoseTable, folds: int | str =
 
 def make_core(method: str, representation: str, hidden: Sequence[int] = (20, 20, 20, 20),
               activation: str = "tansig", trainer: str = "br", epochs: int = 1000, seed: int = 0) -> Any:
-    """The data-driven stage of `fit --method`: None, PMC or MLP."""
-    if method == "none":
-        return None
-    if method == "pmc":
-        from .pmc import PMC
-
-        return PMC(representation=representation, alpha="cv")
-    if method == "mlp":
-        from .mlp import MLP
-
-        return MLP(representation=representation, hidden=tuple(hidden), activation=activation, trainer=trainer,
-                   epochs=epochs, random_state=seed)
-    raise ValueError(f"unknown method {method!r}; expected none, pmc, mlp or auto")
+    """The data-driven stage of `fit --method` (`methods.METHODS`): None, PMC or MLP."""
+    chosen = get_method(method)
+    settings = {"hidden": tuple(hidden), "activation": activation, "trainer": trainer, "epochs": epochs,
+                "random_state": seed}
+    return chosen.make(representation, settings, **chosen.fit_params)
 
 
 # --- candidates, the rigid baseline and the choice ---------------------------------------
@@ -211,8 +213,8 @@ class Candidate:
     make_core: Callable[[], Any] = lambda: None
     rigid: bool = False
 
-    def make(self) -> CorrectionPipeline:
-        return CorrectionPipeline(self.effects, self.make_core(), rigid=self.rigid)
+    def make(self, with_rotation: bool = True) -> CorrectionPipeline:
+        return CorrectionPipeline(self.effects, self.make_core(), rigid=self.rigid, with_rotation=with_rotation)
 
 
 RIGID_CANDIDATE = Candidate(RIGID, rigid=True)
@@ -223,23 +225,23 @@ def auto_candidates(table: PoseTable, effects: Sequence[str], representation: st
     when no effect is named) alone and with a ridge-regularised affine or quadratic core (the
     penalty chosen by an inner cross-validation); on tables of SMALL_TABLE poses or more also
     the quadratic core in every representation and a small MLP."""
-    from .mlp import MLP
-    from .pmc import PMC
-
     physics = tuple(effects) or ("station", "mount")
     rep = representation if table.has_orientation else "pos"
+
+    def pmc(representation: str, **params: Any) -> Callable[[], Any]:
+        return lambda: make_estimator("pmc", representation, alpha="cv", **params)
+
     out = [RIGID_CANDIDATE, Candidate("physics", physics),
-           Candidate(f"physics+affine-{rep}", physics, lambda: PMC(representation=rep, alpha="cv", degree=1)),
-           Candidate(f"physics+pmc-{rep}", physics, lambda: PMC(representation=rep, alpha="cv"))]
+           Candidate(f"physics+affine-{rep}", physics, pmc(rep, degree=1)),
+           Candidate(f"physics+pmc-{rep}", physics, pmc(rep))]
     if table.n >= SMALL_TABLE:
         from posecorr.rotations import REPRESENTATIONS
 
         reps = tuple(REPRESENTATIONS) if table.has_orientation else ()
-        out += [Candidate(f"physics+pmc-{r}", physics, lambda r=r: PMC(representation=r, alpha="cv"))
-                for r in reps if r != rep]
+        out += [Candidate(f"physics+pmc-{r}", physics, pmc(r)) for r in reps if r != rep]
         out.append(Candidate(f"physics+mlp-{rep}-tansig-5-br", physics,
-                             lambda: MLP(representation=rep, hidden=(5,), activation="tansig", trainer="br",
-                                         epochs=200, random_state=0)))
+                             lambda: make_estimator("mlp", rep, hidden=(5,), activation="tansig", trainer="br",
+                                                    epochs=200, random_state=0)))
     return out
 
 
@@ -253,12 +255,14 @@ def requested_candidate(effects: Sequence[str], method: str, representation: str
                      lambda: make_core(method, representation, hidden, activation, trainer, epochs, seed))
 
 
-def _is_mlp(candidate: Candidate) -> bool:
-    return getattr(candidate.make_core(), "method", "") == "mlp"
+def _stops_early(candidate: Candidate) -> bool:
+    """The candidate's core uses the validation poses (`uses_validation`): its fit on the
+    training rows is the one to keep, a refit on more rows would have nothing to stop on."""
+    return getattr(candidate.make_core(), "uses_validation", False)
 
 
 def _fit(candidate: Candidate, rows: np.ndarray, arrays: tuple, with_rotation: bool, prior: dict,
-         shared: dict | None = None, validation: tuple | None = None) -> CorrectionPipeline:
+         shared: dict | None = None, validation: Validation | None = None) -> CorrectionPipeline:
     """Fit a candidate on `rows`; physics stages of equal effects are fitted once per `shared`
     dict (candidates that differ only in their core share them) and start from `prior`."""
     M, R, t = arrays
@@ -267,11 +271,10 @@ def _fit(candidate: Candidate, rows: np.ndarray, arrays: tuple, with_rotation: b
     if candidate.effects and not candidate.rigid:
         shared = {} if shared is None else shared
         if candidate.effects not in shared:
-            shared[candidate.effects] = PhysicsModel(candidate.effects).fit(
-                M[rows], R[rows], t=t_rows, with_rotation=with_rotation, warm_start=prior.get(candidate.effects))
+            shared[candidate.effects] = PhysicsModel(candidate.effects, with_rotation=with_rotation).fit(
+                M[rows], R[rows], t=t_rows, warm_start=prior.get(candidate.effects))
         physics = shared[candidate.effects]
-    return candidate.make().fit(M[rows], R[rows], t=t_rows, with_rotation=with_rotation, physics=physics,
-                                validation=validation)
+    return candidate.make(with_rotation).fit(M[rows], R[rows], t=t_rows, validation=validation, physics=physics)
 
 
 def out_of_fold(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, with_rotation: bool,
@@ -385,13 +388,13 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
             f"testing on {len(test)}")
         prior = _priors(candidates, train, arrays, with_rotation)
         shared: dict = dict(prior)          # fitted on these very rows: the candidates use them as they are
-        fitted = {c.name: _fit(c, train, arrays, with_rotation, prior, shared, validation=(M[val], R[val],
-                                                                                          None if t is None else t[val]))
+        held = Validation(M[val], R[val], None if t is None else t[val])
+        fitted = {c.name: _fit(c, train, arrays, with_rotation, prior, shared, validation=held)
                   for c in candidates}
         scores = {name: _score(R[val], m.predict(M[val], None if t is None else t[val]), with_rotation)
                   for name, m in fitted.items()}
         best = min(candidates, key=lambda c: (scores[c.name], not c.rigid))
-        model = fitted[best.name] if _is_mlp(best) else _fit(best, fit_rows, arrays, with_rotation, prior)
+        model = fitted[best.name] if _stops_early(best) else _fit(best, fit_rows, arrays, with_rotation, prior)
         rigid = model if best.rigid else _fit(RIGID_CANDIDATE, fit_rows, arrays, with_rotation, prior)
         t_test = None if t is None else t[test]
         raw = pose_metrics(R[test], M[test], with_rotation)
@@ -401,7 +404,7 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
             notes.append(f"the requested model did worse than the rigid fit on the {len(val)} validation poses "
                          f"({scores[candidates[0].name]:.4g} against {scores[RIGID]:.4g} rmse_total): "
                          "returning the rigid fit")
-        report = FitReport(model, raw, heldout, "test", np.sort(fit_rows if not _is_mlp(best) else train),
+        report = FitReport(model, raw, heldout, "test", np.sort(fit_rows if not _stops_early(best) else train),
                            best.name, scores if method == "auto" else {}, baseline, len(test), None,
                            best.rigid and method != "auto", notes, test)
         return _warn_thin(report)
@@ -468,8 +471,8 @@ def _priors(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, wi
     prior = {}
     for candidate in candidates:
         if candidate.effects and not candidate.rigid and candidate.effects not in prior:
-            prior[candidate.effects] = PhysicsModel(candidate.effects).fit(
-                M[rows], R[rows], t=None if t is None else t[rows], with_rotation=with_rotation)
+            prior[candidate.effects] = PhysicsModel(candidate.effects, with_rotation=with_rotation).fit(
+                M[rows], R[rows], t=None if t is None else t[rows])
     return prior
 
 

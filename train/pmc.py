@@ -23,13 +23,14 @@ ops -> ONE ``xp.linear`` (a Gemm) -> decode. Outputs are decoded to a proper rot
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
 
 from posecorr._xp import namespace
 
-from .base import BaseCorrector, vector_size
+from .base import BaseCorrector, Validation, vector_size
 
 DEFAULT_ALPHA_GRID = (0.0, 1e-10, 1e-8, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0)
 
@@ -93,6 +94,7 @@ def _ridge_path(F: np.ndarray, T: np.ndarray, alphas: Sequence[float]) -> list[t
     return out
 
 
+@dataclass(repr=False, eq=False)
 class PMC(BaseCorrector):
     """Polynomial Model Correction: a full quadratic least-squares map per output.
 
@@ -109,25 +111,21 @@ class PMC(BaseCorrector):
     degree : 2 (the paper's quadratic) or 1 (affine: the small-table candidate of `auto`).
     """
 
-    method = "pmc"
+    representation: str = "zhou"
+    alpha: float | str = 0.0
+    alpha_grid: Sequence[float] = DEFAULT_ALPHA_GRID
+    cv_folds: int = 5
+    random_state: int = 0
+    degree: int = 2
 
-    def __init__(self, representation: str = "zhou", alpha: float | str = 0.0,
-                 alpha_grid: Sequence[float] = DEFAULT_ALPHA_GRID, cv_folds: int = 5,
-                 random_state: int = 0, degree: int = 2) -> None:
-        self.representation = representation
-        self.alpha = alpha
-        self.alpha_grid = alpha_grid
-        self.cv_folds = cv_folds
-        self.random_state = random_state
-        self.degree = degree
+    method = "pmc"
 
     def _min_rows(self) -> int:
         d = vector_size(self.representation)
         return n_features(d, self.degree) + 1 if self.alpha in (0, 0.0) else 2
 
-    def _fit_vectors(self, X: np.ndarray, Y: np.ndarray, measured: np.ndarray, reference: np.ndarray,
-                     **fit_params: Any) -> None:
-        # fit_params (e.g. validation=...) are accepted and ignored: PMC is not iterative.
+    def _fit_vectors(self, X: np.ndarray, Y: np.ndarray, validation: Validation | None) -> None:
+        # validation is ignored: PMC is not iterative.
         if self.degree not in (1, 2):
             raise ValueError(f"degree must be 1 (affine) or 2 (quadratic), got {self.degree!r}")
         gain, offset = minmax_scaling(X)

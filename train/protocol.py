@@ -42,8 +42,10 @@ import numpy as np
 from posecorr.metrics import METRIC_KEYS, improvement, metric_block, pose_metrics, summarize
 from posecorr.safeio import append_line, sigterm_as_interrupt
 
-from .mlp import ACTIVATIONS, ARCHITECTURES, MLP, TRAINER_NUMBERS, network_label, parse_hidden, parse_network
-from .pmc import PMC
+from .activations import PAPER_ACTIVATIONS
+from .base import REPRESENTATIONS, Validation
+from .methods import get_method
+from .mlp import ARCHITECTURES, TRAINER_NUMBERS, network_label, parse_hidden, parse_network
 
 TEST_FRACTION = 0.15
 VAL_FRACTION = 0.15
@@ -92,34 +94,42 @@ class Config:
         rep = SHORT_REP.get(self.representation, self.representation)
         return f"{rep}-PMC" if self.method == "pmc" else f"{rep}-{self.label.replace(' ', '-')}"
 
+    @classmethod
+    def of(cls, method: str, representation: str, hidden: Any, activation: str, trainer: str,
+           options: Mapping[str, Any]) -> "Config":
+        """The configuration of `method` (`methods.METHODS`): of the network settings only the
+        ones the method takes (a PMC has no hidden layers), ``options`` sorted into the key."""
+        takes = get_method(method).settings
+        return cls(method, representation, parse_hidden(hidden) if "hidden" in takes else (),
+                   activation if "activation" in takes else "", trainer if "trainer" in takes else "",
+                   tuple(sorted(options.items())))
+
     def make(self, seed: int = 0) -> Any:
         """A fresh (unfitted) estimator."""
-        opts = dict(self.options)
-        if self.method == "pmc":
-            return PMC(self.representation, **opts)
-        if self.method == "mlp":
-            return MLP(self.representation, hidden=self.hidden, activation=self.activation,
-                       trainer=self.trainer, random_state=seed, **opts)
-        raise ValueError(f"unknown method {self.method!r}; expected pmc or mlp")
+        fields = {"hidden": self.hidden, "activation": self.activation, "trainer": self.trainer, "random_state": seed}
+        return get_method(self.method).make(self.representation, fields, **dict(self.options))
 
 
+# The paper's four orientation representations: the built-in ones, fixed at import (a
+# representation a test registers stays out of the paper's grids).
+PAPER_REPRESENTATIONS = tuple(rep for rep in REPRESENTATIONS if rep != "pos")
 # Table 1's twelve learning algorithms in its numbering (1 = lm ... 12 = cgp).
 PAPER_TRAINERS = tuple(sorted(TRAINER_NUMBERS, key=TRAINER_NUMBERS.get))
 
 GRID_PRESETS = {
     # paper Exp I: position only, 12 trainers x 8 activations x 16 architectures = 1536 networks
-    "paper-exp1": dict(representations=("pos",), activations=ACTIVATIONS, trainers=PAPER_TRAINERS,
+    "paper-exp1": dict(representations=("pos",), activations=PAPER_ACTIVATIONS, trainers=PAPER_TRAINERS,
                        architectures=ARCHITECTURES),
     # paper Exp II: per representation 3 trainers x 8 activations x 16 architectures = 384 networks
-    "paper-exp2": dict(representations=("eaa", "quat", "R", "zhou"), activations=ACTIVATIONS,
+    "paper-exp2": dict(representations=PAPER_REPRESENTATIONS, activations=PAPER_ACTIVATIONS,
                        trainers=("lm", "br", "rp"), architectures=ARCHITECTURES),
     # paper Exp III: per representation 2 trainers x 3 activations x 16 architectures = 96 networks
-    "paper-exp3": dict(representations=("eaa", "quat", "R", "zhou"), activations=("logsig", "radbas", "tansig"),
+    "paper-exp3": dict(representations=PAPER_REPRESENTATIONS, activations=("logsig", "radbas", "tansig"),
                        trainers=("lm", "br"), architectures=ARCHITECTURES),
     # a reduced Exp III grid that runs in minutes on two cores: the 4 PMCs and, per
     # representation, tansig with two small architectures (10 and 5-5) trained by lm for at
     # most 100 epochs (12 configurations)
-    "reduced": dict(representations=("eaa", "quat", "R", "zhou"), activations=("tansig",),
+    "reduced": dict(representations=PAPER_REPRESENTATIONS, activations=("tansig",),
                     trainers=("lm",), architectures=((10,), (5, 5)), options={"epochs": 100}),
 }
 # The paper's table that a preset's reduced results correspond to (tables 2-4).
@@ -221,17 +231,12 @@ def fit_one(table: Any, method: str = "mlp", representation: str = "zhou", hidde
     from posecorr.data import require_rows
 
     require_rows(table, 10, "fit with a train/validation/test split")
-    cfg = Config(method, representation, parse_hidden(hidden) if method == "mlp" else (),
-                 activation if method == "mlp" else "", trainer if method == "mlp" else "",
-                 tuple(sorted(options.items())))
+    cfg = Config.of(method, representation, hidden, activation, trainer, options)
     tr, va, te = split_indices(table.n, seed, repeat, test_fraction, val_fraction)
     M, R = table.measured, table.reference
     est = cfg.make(seed=seed * 1000 + repeat)
     t0 = time.perf_counter()
-    if method == "mlp":
-        est.fit(M[tr], R[tr], validation=(M[va], R[va]) if len(va) else None)
-    else:
-        est.fit(M[tr], R[tr])
+    est.fit(M[tr], R[tr], validation=Validation(M[va], R[va]) if len(va) else None)
     seconds = time.perf_counter() - t0
     rows = te if len(te) else tr
     with_rot = representation != "pos"
@@ -256,9 +261,7 @@ def cross_validate(table: Any, method: str = "pmc", representation: str = "zhou"
     k = n if folds == "loo" else int(folds)
     if not 2 <= k <= n:
         raise ValueError(f"folds must be between 2 and the number of rows ({n}), or 'loo'; got {folds!r}")
-    cfg = Config(method, representation, parse_hidden(hidden) if method == "mlp" else (),
-                 activation if method == "mlp" else "", trainer if method == "mlp" else "",
-                 tuple(sorted(options.items())))
+    cfg = Config.of(method, representation, hidden, activation, trainer, options)
     M, R = table.measured, table.reference
     order = np.random.default_rng([int(seed), 31337]).permutation(n)
     pred = np.empty_like(M)

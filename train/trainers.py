@@ -50,7 +50,7 @@ class Trainer:
     matlab: str
     number: int | None                   # table 1's algorithm number (None: not in the paper)
     title: str
-    train: Callable[..., TrainResult]    # (est, sizes, coefs, intercepts, Xn, Tn, escale, val, callback)
+    train: Callable[..., TrainResult]    # (est, sizes, coefs, intercepts, Xn, Tn, escale, val)
     step: type | None = None             # the Step class run by ``iterate`` (None: a whole training function)
 
 
@@ -122,8 +122,8 @@ def iterate(step_class: type) -> Callable[..., TrainResult]:
     """The shared training loop of the Step trainers (see the module docstring)."""
 
     def train(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts: list[np.ndarray],
-              Xn: np.ndarray, Tn: np.ndarray, escale: np.ndarray, val: tuple[np.ndarray, np.ndarray] | None,
-              callback: Callable | None = None) -> TrainResult:
+              Xn: np.ndarray, Tn: np.ndarray, escale: np.ndarray, val: tuple[np.ndarray, np.ndarray] | None
+              ) -> TrainResult:
         import torch
 
         net, theta, X, T, Xv, Tv = training_tensors(est, sizes, coefs, intercepts, Xn, Tn, escale, val)
@@ -143,8 +143,6 @@ def iterate(step_class: type) -> Callable[..., TrainResult]:
                 check.update(vmse, theta)
             history["mse"].append(mse)
             history["val_mse"].append(vmse)
-            if callback is not None:
-                callback(epoch, history)
             if est.verbose and epoch % int(est.verbose) == 0:
                 print(f"epoch {epoch:4d} mse {mse:.4g} val {vmse:.4g}", flush=True)
             if epoch >= int(est.epochs):

@@ -177,7 +177,10 @@ class TorchNamespace:
         return self.t.zeros_like(x).scatter(-1, index, 1.0)
 
     def linear(self, x: Any, weight: Any, bias: Any) -> Any:
-        return self.t.matmul(x, self._tensor(weight, x)) + self._tensor(bias, x)
+        weight, bias = self._tensor(weight, x), self._tensor(bias, x)
+        if x.dim() == 2:
+            return self.t.addmm(bias, x, weight)    # one fused product-and-add, as the trainers always used
+        return self.t.matmul(x, weight) + bias
 
 
 _NUMPY = NumpyNamespace()

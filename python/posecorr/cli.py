@@ -586,7 +586,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True)
     p.add_argument("--effects", help="comma-separated effects of the physics stage, e.g. station,mount")
     p.add_argument("--effect-file", action="append", type=Path, help="a Python file with user effects")
-    p.add_argument("--method", choices=("none", "pmc", "mlp", "auto"), default="pmc")
+    from .train.methods import METHODS
+
+    p.add_argument("--method", choices=(*METHODS, "auto"), default="pmc")
     from .rotations import REPRESENTATIONS
 
     p.add_argument("--representation", choices=tuple(REPRESENTATIONS), default="zhou",
@@ -594,8 +596,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hidden", default="20,20,20,20", help="MLP hidden layer sizes")
     p.add_argument("--network", help="an MLP named as in the paper, ARCHITECTURE/ALGORITHM: 16/2 = table 1's "
                                      "architecture 16 trained by algorithm 2 (overrides --hidden and --trainer)")
-    p.add_argument("--activation", default="tansig",
-                   choices=("tansig", "logsig", "radbas", "purelin", "satlin", "softmax", "hardlim", "compet"))
+    from .train.activations import ACTIVATIONS
+
+    p.add_argument("--activation", default="tansig", choices=tuple(ACTIVATIONS))
     from .train.trainers import TRAINERS
 
     p.add_argument("--trainer", default="br", choices=tuple(TRAINERS), help="the MLP's training algorithm")

@@ -36,7 +36,7 @@ import sys
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, ClassVar, Iterable, Mapping
+from typing import Any, Callable, ClassVar, Iterable, Mapping
 
 import numpy as np
 
@@ -59,6 +59,8 @@ class Param:
     scale: typical magnitude, for scaling the fit's unknowns to O(1).
     identity: the value of each entry that makes the effect the identity (with the others 0).
     bounds: (lower, upper) a fit keeps every entry in (None: unbounded).
+    domain: where the map is defined at all, whatever a fit's bounds: a key of `DOMAINS`
+        ("positive" for a divisor, "nonnegative" for a standard deviation).
     """
 
     name: str
@@ -69,10 +71,21 @@ class Param:
     identity: float = 0.0
     doc: str = ""
     bounds: tuple[float, float] | None = None
+    domain: str = "real"
 
     def __post_init__(self) -> None:
         if len(self.default) != self.size:
             raise ValueError(f"parameter {self.name}: default has {len(self.default)} values, size is {self.size}")
+        if self.domain not in DOMAINS:
+            raise ValueError(f"parameter {self.name}: domain {self.domain!r} is not one of {', '.join(DOMAINS)}")
+
+
+# A parameter's domain: name -> (the test of its values, the words of the refusal).
+DOMAINS: dict[str, tuple[Callable[[np.ndarray], np.ndarray], str]] = {
+    "real": (np.isfinite, "finite"),
+    "positive": (lambda v: v > 0, "> 0"),
+    "nonnegative": (lambda v: v >= 0, ">= 0"),
+}
 
 
 @dataclass
@@ -139,6 +152,11 @@ def _rows_times(p: Any, M: Any) -> Any:
     return _rotate(xp.swap_last(M), p)
 
 
+# What an effect declares about itself besides its map (see `Effect`).
+CAPABILITIES = ("name", "params", "order", "random", "needs_time", "closed_form_inverse", "per_row_theta",
+                "changes_rotation", "inverse_steps", "doc")
+
+
 class Effect:
     """Base class of all effects (built-in and user-defined).
 
@@ -161,6 +179,17 @@ class Effect:
     changes_rotation: ClassVar[bool] = True  # False: the generic inverse leaves R untouched
     inverse_steps: ClassVar[int] = 6
     doc: ClassVar[str] = ""
+
+    def __init_subclass__(cls, **capabilities: Any) -> None:
+        """The capabilities above may be given as class keywords, all in one line:
+        `class Drift(Effect, name="drift", order=5, needs_time=True)`; a user effect may set
+        them as class attributes instead."""
+        super().__init_subclass__()
+        for key, value in capabilities.items():
+            if key not in CAPABILITIES:
+                raise TypeError(f"effect class {cls.__name__}: unknown capability {key!r}; "
+                                f"expected one of {', '.join(CAPABILITIES)}")
+            setattr(cls, key, value)
 
     # -- parameters ------------------------------------------------------------------
     @property
@@ -239,7 +268,7 @@ class Effect:
 
 # --- the built-in catalogue -----------------------------------------------------------
 
-class Mount(Effect):
+class Mount(Effect, name="mount", order=1, per_row_theta=True, closed_form_inverse=True):
     """Error of the tracker adapter, i.e. of end_T_tracker (eq. 22), in the tracker frame.
 
     p <- p + R e;  R <- R Exp(d).  d (3, rad) and e (3, m) are expressed in the tracker frame
@@ -247,10 +276,6 @@ class Mount(Effect):
     p <- p - R e (with the restored R).
     """
 
-    per_row_theta = True
-    name = "mount"
-    order = 1
-    closed_form_inverse = True
     params = (Param("d", 3, (2e-3, -1e-3, 5e-3), 1e-2, "rad", doc="rotation vector, tracker frame"),
               Param("e", 3, (2e-3, -1e-3, 1.5e-3), 1e-2, "m", doc="offset, tracker frame"))
 
@@ -281,7 +306,7 @@ def sweep_direction(xp: Any, alpha: Any, beta: Any) -> Any:
     return normalize(xp.stack([xp.tan(alpha), xp.tan(beta), -1.0], axis=-1))
 
 
-class Sweep(Effect):
+class Sweep(Effect, name="sweep", order=2, per_row_theta=True, inverse_steps=8):
     """Lighthouse sweep-angle calibration error (phase and curvature), station frame.
 
     alpha = atan2(s_x, -s_z), beta = atan2(s_y, -s_z) (rad), r = |s| (m);
@@ -292,12 +317,8 @@ class Sweep(Effect):
     a contraction with factor 2 |curve| |angle| << 1.
     """
 
-    per_row_theta = True
-    name = "sweep"
-    order = 2
     params = (Param("phase_x", 1, (1e-3,), 1e-3, "rad"), Param("phase_y", 1, (-1e-3,), 1e-3, "rad"),
               Param("curve_x", 1, (0.02,), 1e-2, "1/rad"), Param("curve_y", 1, (-0.02,), 1e-2, "1/rad"))
-    inverse_steps = 8
 
     @staticmethod
     def _angles(xp: Any, s: Any) -> tuple[Any, Any, Any]:
@@ -323,16 +344,12 @@ class Sweep(Effect):
         return from_station(r * sweep_direction(xp, alpha, beta), ctx), R
 
 
-class RangeScale(Effect):
+class RangeScale(Effect, name="range_scale", order=3, per_row_theta=True, closed_form_inverse=True):
     """Range scale error of the station (e.g. a wrong sensor-constellation scale).
 
     p <- t_S + (1 + k)(p - t_S); k dimensionless. R unchanged. Inverse: divide by (1 + k).
     """
 
-    per_row_theta = True
-    name = "range_scale"
-    order = 3
-    closed_form_inverse = True
     params = (Param("k", 1, (5e-3,), 1e-2, "1"),)
 
     def forward(self, p, R, theta, ctx):
@@ -346,7 +363,7 @@ class RangeScale(Effect):
         return t_S + (p - t_S) / (1.0 + theta[..., 0:1]), R
 
 
-class Incidence(Effect):
+class Incidence(Effect, name="incidence", order=4, per_row_theta=True, changes_rotation=False, inverse_steps=6):
     """Position bias growing with the incidence angle of the station's light on the tracker.
 
     u = unit(p - t_S) (station -> tracker), a = R[:, 2] (tracker z axis, base frame),
@@ -356,13 +373,8 @@ class Incidence(Effect):
     R unchanged. Inverse: fixed-point steps (the bias changes by ~b/|p - t_S| per metre).
     """
 
-    per_row_theta = True
-    name = "incidence"
-    order = 4
-    changes_rotation = False
     params = (Param("b1", 1, (1e-3,), 1e-3, "m", doc="along the line of sight"),
               Param("b2", 1, (1e-3,), 1e-3, "m", doc="across it, towards the tracker z axis"))
-    inverse_steps = 6
 
     def forward(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
@@ -373,21 +385,16 @@ class Incidence(Effect):
         return p + b1 * (1.0 + au) * u + b2 * (a - au * u), R
 
 
-class Drift(Effect):
+class Drift(Effect, name="drift", order=5, per_row_theta=True, closed_form_inverse=True, needs_time=True):
     """Slow drift of the tracking solution over a session (thermal, IMU bias), base frame.
 
     p <- p + d (1 - exp(-t / tau)); d (3, m), tau (s), t (s since the session start) from
     ctx.t. Without a time column the effect is the identity (and warns once). Closed-form inverse.
     """
 
-    per_row_theta = True
-    name = "drift"
-    order = 5
-    closed_form_inverse = True
-    needs_time = True
     params = (Param("d", 3, (1e-3, -5e-4, 1e-3), 1e-3, "m"),
               Param("tau", 1, (3600.0,), 3600.0, "s", identity=3600.0,
-                    bounds=(60.0, 1e7), doc="time constant; a minute to months"))
+                    bounds=(60.0, 1e7), doc="time constant; a minute to months", domain="positive"))
 
     def notes(self, ctx):
         return [] if ctx.t is not None else ["no time column t: drift is the identity"]
@@ -411,7 +418,7 @@ class Drift(Effect):
         return (p if off is None else p - off), R
 
 
-class Station(Effect):
+class Station(Effect, name="station", order=6, per_row_theta=True, closed_form_inverse=True):
     """Error of the single-measurement station registration (eq. 23), a rigid motion about c.
 
     p <- c + Exp(w)(p - c) + v;  R <- Exp(w) R;  w (3, rad), v (3, m), base frame. Rotating
@@ -419,10 +426,6 @@ class Station(Effect):
     Closed-form inverse: p <- c + Exp(w)^T (p - v - c), R <- Exp(w)^T R.
     """
 
-    per_row_theta = True
-    name = "station"
-    order = 6
-    closed_form_inverse = True
     params = (Param("w", 3, (2e-3, -1e-3, 3e-3), 1e-2, "rad", doc="rotation vector, base frame"),
               Param("v", 3, (1e-2, -5e-3, 5e-3), 1e-2, "m", doc="translation, base frame"))
 
@@ -441,7 +444,7 @@ class Station(Effect):
         return c + _rows_times(p - (theta[..., 3:6] + c), W), xp.matmul(xp.swap_last(W), R)
 
 
-class Noise(Effect):
+class Noise(Effect, name="noise", order=7, random=True):
     """Random measurement noise (simulated only; never fitted as a bias, has no inverse).
 
     p <- p + sigma_p n_p + k2 r^2 n_r u;  R <- R Exp(sigma_r n_w), with n_p, n_w ~ N(0, I_3),
@@ -450,11 +453,9 @@ class Noise(Effect):
     The draws come from ctx.noise_draws (so two tables can share them) or else ctx.rng.
     """
 
-    name = "noise"
-    order = 7
-    random = True
-    params = (Param("sigma_p", 1, (3e-4,), 1e-4, "m"), Param("sigma_r", 1, (5e-4,), 1e-4, "rad"),
-              Param("k2", 1, (2e-4,), 1e-4, "1/m"))
+    params = (Param("sigma_p", 1, (3e-4,), 1e-4, "m", domain="nonnegative"),
+              Param("sigma_r", 1, (5e-4,), 1e-4, "rad", domain="nonnegative"),
+              Param("k2", 1, (2e-4,), 1e-4, "1/m", domain="nonnegative"))
 
     @staticmethod
     def draw(rng: np.random.Generator, n: int) -> dict[str, np.ndarray]:
@@ -591,12 +592,14 @@ def parse_effects_arg(text: str) -> dict[str, np.ndarray]:
 
 
 def checked_theta(effect: Effect, theta: Any) -> np.ndarray:
-    """Validate a numeric theta for `effect` (size, finiteness, tau > 0, noise >= 0)."""
+    """Validate a numeric theta for `effect`: size, finiteness and each parameter's `domain`."""
     values = effect.validate(theta)
-    if effect.name == "drift" and values[3] <= 0:
-        raise ValueError(f"effect 'drift': tau must be > 0 s, got {values[3]}")
-    if effect.random and np.any(values < 0):
-        raise ValueError(f"effect {effect.name!r}: standard deviations must be >= 0, got {values.tolist()}")
+    for param, part in zip(effect.params, effect.slices().values()):
+        test, words = DOMAINS[param.domain]
+        if not np.all(test(values[part])):
+            got = values[part].tolist()
+            raise ValueError(f"effect {effect.name!r}: {param.name} must be {words} {param.unit}, "
+                             f"got {got[0] if len(got) == 1 else got}")
     return values
 
 

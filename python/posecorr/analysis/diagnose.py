@@ -65,8 +65,8 @@ def split_identifiable(table: PoseTable, effects: Sequence[str],
 
     keep, undetermined = [], []
     for name in names:
-        fixed = PhysicsModel(tuple(effects) + (name,)).identifiability(
-            table.measured, table.reference, table.time(), table.has_orientation)
+        fixed = PhysicsModel(tuple(effects) + (name,), with_rotation=table.has_orientation).identifiability(
+            table.measured, table.reference, table.time())
         from ..effects import get_effect
 
         held = [key for key in fixed if key.split(" ")[0].split(".")[0] == name]
@@ -291,8 +291,8 @@ def _base_physics(base_cv: Any, k: int, table: PoseTable, train: np.ndarray, eff
     if base_cv is not None:
         return base_cv.fitted[k].physics_
     t = table.time()
-    return PhysicsModel(()).fit(table.measured[train], table.reference[train],
-                                t=None if t is None else t[train], with_rotation=table.has_orientation)
+    return PhysicsModel((), with_rotation=table.has_orientation).fit(table.measured[train], table.reference[train],
+                                                                     t=None if t is None else t[train])
 
 
 def _column_owners(physics: Any, names: Sequence[str]) -> np.ndarray:

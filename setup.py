@@ -3,7 +3,7 @@
 The shared library is not a CPython extension; it is loaded with ctypes by
 `posecorr.controller.runtime`. It is declared as an extension only so that setuptools builds it
 in place for editable installs (python/posecorr/_native/) and into the wheel otherwise.
-`posecorr._call1` is a real (optional) extension: the shim's single-pose fast path.
+`posecorr.controller._call1` is a real (optional) extension: the shim's single-pose fast path.
 """
 from __future__ import annotations
 
@@ -69,7 +69,7 @@ setup(
     ext_modules=[CMakeLibrary("posecorr._native.libposecorr", ROOT / "runtime_c"),
                  # The shim's single-pose fast path; optional: without the interpreter's
                  # headers the shim calls through ctypes alone.
-                 Extension("posecorr._call1", sources=["python/posecorr/_ext/call1.c"],
-                           optional=True)],
+                 Extension("posecorr.controller._call1",
+                           sources=["python/posecorr/controller/call1.c"], optional=True)],
     cmdclass={"build_ext": BuildWithCMake},
 )

@@ -90,12 +90,12 @@ def test_errors(lib, model_path, tmp_path):
 
 
 def test_single_pose_fast_path_equals_ctypes(lib, model_path):
-    """The single-pose extension (posecorr._call1) gives the ctypes path's result bit for
+    """The single-pose extension (posecorr.controller._call1) gives the ctypes path's result bit for
     bit, refuses what it refuses, and leaves other inputs to the general path."""
     c = Corrector(model_path, library=lib)
     impl = c._impl
     if impl._call1 is None:
-        pytest.skip("posecorr._call1 was not built (no Python headers)")
+        pytest.skip("posecorr.controller._call1 was not built (no Python headers)")
     x = graphs.random_poses(200, seed=5).astype(np.float64)
     assert all(impl._call1.run1(impl._run_address, impl.handle, p, np.empty(7)) == 0 for p in x)
     fast = np.array([c.correct(p) for p in x])
@@ -103,7 +103,7 @@ def test_single_pose_fast_path_equals_ctypes(lib, model_path):
     slow = np.array([c.correct(p) for p in x])
     np.testing.assert_array_equal(fast, slow)
     np.testing.assert_array_equal(fast, c.correct(x))
-    impl._call1 = importlib.import_module("posecorr._call1")
+    impl._call1 = importlib.import_module("posecorr.controller._call1")
     bad = x[0].copy()
     bad[4] = np.nan
     with pytest.raises(PoseCorrError, match="non-finite value in column 4"):

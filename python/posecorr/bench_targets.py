@@ -49,8 +49,8 @@ def demo_physics_pmc(path: Path) -> int:
 
 def shim_single_pose_us(path: Path, rounds: int = ROUNDS, n: int = 2000) -> float:
     """Best round's mean time of `Corrector.correct` on one float64 pose, in us."""
+    from .controller.runtime import Corrector
     from .latency import _poses
-    from .runtime import Corrector
 
     corrector = Corrector(path, backend="c")
     poses = [p.astype(np.float64) for p in _poses(n)]

@@ -44,7 +44,7 @@ class PoseCorrError(ValueError):
 
 
 def _call1_module() -> Any:
-    """posecorr._call1 (the optional single-pose extension), or None when not built."""
+    """posecorr.controller._call1 (the optional single-pose extension), or None when not built."""
     try:
         from . import _call1
     except ImportError:
@@ -164,7 +164,7 @@ class _CBackend:
         self._in1_ptr = self._in1.ctypes.data
         self._out1_ptr = self._out1.ctypes.data
         self._run = lib.pc_run
-        # The single-pose fast path (posecorr._call1) when it was built: pc_run's address
+        # The single-pose fast path (posecorr.controller._call1) when it was built: pc_run's address
         # and the model's, passed as ints, no ctypes conversion per call.
         self._call1 = _call1_module()
         self._run_address = ctypes.cast(lib.pc_run, ctypes.c_void_p).value

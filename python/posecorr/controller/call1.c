@@ -1,8 +1,8 @@
-/* posecorr._call1: the Python shim's single-pose call without ctypes' per-call argument
+/* posecorr.controller._call1: the Python shim's single-pose call without ctypes' per-call argument
  * conversion (about 1 us of the shim's 3). Not part of libposecorr: it calls the
  * library's pc_run through the address the shim passes, converts float64 <-> float32
  * itself, and needs only Python.h. Built when the interpreter's headers are present; the
- * shim falls back to ctypes otherwise (posecorr.runtime). */
+ * shim falls back to ctypes otherwise (runtime.py). */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 

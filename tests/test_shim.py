@@ -108,11 +108,15 @@ def test_single_pose_fast_path_equals_ctypes(lib, model_path):
     bad[4] = np.nan
     with pytest.raises(PoseCorrError, match="non-finite value in column 4"):
         c.correct(bad)
-    # float32, strided and list inputs take the general path: same result
-    for p in (x[7].astype(np.float32), np.repeat(x[7], 2)[::2], list(x[7])):
-        np.testing.assert_array_equal(c.correct(p), c.correct(np.asarray(x[7], np.float32)))
+    # float32 takes the fast path too; strided and list inputs the general one: same result
     assert impl._call1.run1(impl._run_address, impl.handle, x[0].astype(np.float32),
+                            np.empty(7)) == 0
+    for p in (x[7].astype(np.float32), np.repeat(x[7], 2)[::2], list(x[7])):
+        np.testing.assert_array_equal(c.correct(p), slow[7])
+    assert impl._call1.run1(impl._run_address, impl.handle, x[0].astype(np.int64),
                             np.empty(7)) == -1
+    assert impl._call1.run1(impl._run_address, impl.handle, x[0],
+                            np.empty(7, np.float32)) == -1
 
 
 def test_import_is_light():

@@ -12,33 +12,35 @@
 
 typedef int (*pc_run_fn)(void *model, const float *in, size_t n, float *out);
 
-/* float64 C-contiguous buffer of exactly 7 values, or 0 (no exception set). */
-static int pose_buffer(PyObject *obj, Py_buffer *view, int writable)
+/* A C-contiguous buffer of exactly 7 float64 values (or float32 where allow_f32), or 0
+ * (no exception set); *f32 says which. */
+static int pose_buffer(PyObject *obj, Py_buffer *view, int writable, int allow_f32, int *f32)
 {
     if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT |
                                           (writable ? PyBUF_WRITABLE : 0)) < 0) {
         PyErr_Clear();
         return 0;
     }
-    if (view->len != POSE_WIDTH * (Py_ssize_t)sizeof(double) || !view->format ||
-        strcmp(view->format, "d") != 0) {
+    *f32 = view->format && strcmp(view->format, "f") == 0;
+    if (!view->format || !(strcmp(view->format, "d") == 0 || (allow_f32 && *f32)) ||
+        view->len != POSE_WIDTH * (Py_ssize_t)(*f32 ? sizeof(float) : sizeof(double))) {
         PyBuffer_Release(view);
         return 0;
     }
     return 1;
 }
 
-/* run1(run_address, model_address, pose, out) -> status of pc_run, or -1 when pose or
- * out is not a float64 contiguous (7,) buffer (the caller then takes the general path). */
+/* run1(run_address, model_address, pose, out) -> status of pc_run, or -1 when pose is
+ * not a float64 or float32 contiguous (7,) buffer or out not a float64 one (the caller
+ * then takes the general path). */
 static PyObject *run1(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     Py_buffer in, out;
     pc_run_fn run;
     void *model, *address;
     float a[POSE_WIDTH], b[POSE_WIDTH];
-    const double *x;
     double *y;
-    int k, status;
+    int k, status, in_f32, out_f32;
     if (nargs != 4) {
         PyErr_SetString(PyExc_TypeError, "run1(run_address, model_address, pose, out)");
         return NULL;
@@ -52,16 +54,18 @@ static PyObject *run1(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         return NULL;
     }
     memcpy(&run, &address, sizeof run); /* object pointer -> function pointer */
-    if (!pose_buffer(args[2], &in, 0))
+    if (!pose_buffer(args[2], &in, 0, 1, &in_f32))
         return PyLong_FromLong(-1);
-    if (!pose_buffer(args[3], &out, 1)) {
+    if (!pose_buffer(args[3], &out, 1, 0, &out_f32)) {
         PyBuffer_Release(&in);
         return PyLong_FromLong(-1);
     }
-    x = (const double *)in.buf;
     y = (double *)out.buf;
-    for (k = 0; k < POSE_WIDTH; k++)
-        a[k] = (float)x[k];
+    if (in_f32)
+        memcpy(a, in.buf, sizeof a);
+    else
+        for (k = 0; k < POSE_WIDTH; k++)
+            a[k] = (float)((const double *)in.buf)[k];
     /* the GIL stays held: releasing it would cost a fifth of the call */
     status = run(model, a, 1, b);
     if (status == 0)
@@ -74,7 +78,7 @@ static PyObject *run1(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 
 static PyMethodDef methods[] = {
     {"run1", (PyCFunction)(void (*)(void))run1, METH_FASTCALL,
-     "run1(run_address, model_address, pose, out) -> pc_run status, -1 for another buffer"},
+     "run1(run_address, model_address, pose, out) -> pc_run status, -1 for other buffers"},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module_def = {PyModuleDef_HEAD_INIT, "_call1",

@@ -50,6 +50,15 @@ typedef struct pc_eop {
     uint32_t t0, nt;
 } pc_eop;
 
+/* What the pass knows of one element of a root the run writes. */
+typedef struct pc_elem {
+    pc_eref renamed;    /* the source it copies (v < 0: not a copy) */
+    pc_eref into;       /* the copy written in its place (v < 0: none; PC_COPIED_TWICE:
+                         * copied twice, so written in place) */
+    int32_t writer;     /* the last operation writing it, or -1 */
+    uint8_t live;       /* read by a kept operation */
+} pc_elem;
+
 /* State of the pass: per root value id, reset between runs. */
 typedef struct pc_prog {
     pc_builder *b;
@@ -57,11 +66,7 @@ typedef struct pc_prog {
     size_t n_ops;
     pc_eref *terms;
     size_t n_terms;
-    pc_eref **renamed;  /* per root: source of each copied element (v < 0: none) */
-    pc_eref **into;     /* per root: the copy an element is written into instead (v < 0:
-                         * none, PC_COPIED_TWICE: two copies, written in place) */
-    uint8_t **live;     /* per root: element read by a kept operation */
-    int32_t **writer;   /* per root: last operation writing each element, or -1 */
+    pc_elem **elem;     /* per root touched by the run: its elements' state, or NULL */
     uint8_t *outside;   /* root read after the run or a graph output */
     int32_t *slot_of;   /* root's io slot in the program being emitted, or -1 */
     int32_t *touched;   /* roots with state to reset */
@@ -150,17 +155,20 @@ static void pc_expansion_size(const pc_draft *d, size_t *ops, size_t *terms)
 static pc_status pc_touch(pc_prog *g, int32_t root)
 {
     const size_t count = g->b->values[root].count;
-    if (g->live[root])
+    size_t e;
+    if (g->elem[root])
         return PC_OK;
-    g->renamed[root] = pc_scratch_alloc_raw(&g->b->scratch, count * sizeof(pc_eref));
-    g->live[root] = pc_scratch_alloc(&g->b->scratch, count);
-    g->writer[root] = pc_scratch_alloc_raw(&g->b->scratch, count * sizeof(int32_t));
-    g->into[root] = pc_scratch_alloc_raw(&g->b->scratch, count * sizeof(pc_eref));
-    if (!g->renamed[root] || !g->live[root] || !g->writer[root] || !g->into[root])
+    /* one block per root: scratch rounds every allocation up to PC_ALIGN */
+    g->elem[root] = pc_scratch_alloc_raw(&g->b->scratch, count * sizeof(pc_elem));
+    if (!g->elem[root])
         return pc_fail(g->b->err, PC_ERR_MEMORY, "out of memory");
-    memset(g->renamed[root], 0xff, count * sizeof(pc_eref));
-    memset(g->into[root], 0xff, count * sizeof(pc_eref));
-    memset(g->writer[root], 0xff, count * sizeof(int32_t));
+    for (e = 0; e < count; e++) {
+        pc_elem *x = &g->elem[root][e];
+        x->renamed.v = x->into.v = -1;
+        x->renamed.e = x->into.e = 0;
+        x->writer = -1;
+        x->live = 0;
+    }
     g->touched[g->n_touched++] = root;
     return PC_OK;
 }
@@ -168,7 +176,7 @@ static pc_status pc_touch(pc_prog *g, int32_t root)
 /* The operation that last wrote r in this run, or -1. */
 static int32_t pc_writer(const pc_prog *g, pc_eref r)
 {
-    return r.v >= 0 && g->writer[r.v] ? g->writer[r.v][r.e] : -1;
+    return r.v >= 0 && g->elem[r.v] ? g->elem[r.v][r.e].writer : -1;
 }
 
 /* Element e of value id, through the renames of earlier copies. */
@@ -177,8 +185,8 @@ static pc_eref pc_read(const pc_prog *g, int32_t id, size_t e)
     pc_eref r;
     r.v = pc_root(g->b, id);
     r.e = (uint32_t)e;
-    if (g->renamed[r.v] && g->renamed[r.v][e].v >= 0)
-        r = g->renamed[r.v][e];
+    if (g->elem[r.v] && g->elem[r.v][e].renamed.v >= 0)
+        r = g->elem[r.v][e].renamed;
     return r;
 }
 
@@ -197,8 +205,8 @@ static pc_status pc_emit(pc_prog *g, int code, pc_eref a, pc_eref b, pc_eref c, 
     if ((st = pc_touch(g, op->o.v)) != PC_OK)
         return st;
     if (code == PC_SOP_COPY)
-        g->renamed[op->o.v][e] = a;
-    g->writer[op->o.v][e] = (int32_t)g->n_ops++;
+        g->elem[op->o.v][e].renamed = a;
+    g->elem[op->o.v][e].writer = (int32_t)g->n_ops++;
     return PC_OK;
 }
 
@@ -383,13 +391,13 @@ static size_t pc_inputs(const pc_prog *g, const pc_eop *op, const pc_eref **in)
 
 static int pc_is_live(const pc_prog *g, pc_eref r)
 {
-    return g->outside[r.v] || g->live[r.v][r.e];
+    return g->outside[r.v] || g->elem[r.v][r.e].live;
 }
 
 static void pc_mark(pc_prog *g, pc_eref r)
 {
-    if (r.v >= 0 && g->live[r.v])
-        g->live[r.v][r.e] = 1;
+    if (r.v >= 0 && g->elem[r.v])
+        g->elem[r.v][r.e].live = 1;
 }
 
 /* The order the kept operations run in: dependencies first, and as long as one is
@@ -418,7 +426,8 @@ static pc_status pc_schedule(pc_prog *g, const pc_eref **in, int32_t *order,
     /* Edges from the last earlier writer of each operand, in the original order; then
      * the successors of w in succ[succ_start[w], succ_start[w + 1]). */
     for (k = 0; k < g->n_touched; k++)
-        memset(g->writer[g->touched[k]], 0xff, b->values[g->touched[k]].count * sizeof(int32_t));
+        for (m = 0; m < b->values[g->touched[k]].count; m++)
+            g->elem[g->touched[k]][m].writer = -1;
     for (k = 0; k < n; k++) {
         const pc_eop *op = &g->ops[k];
         if (op->code == PC_SOP_NONE)
@@ -432,7 +441,7 @@ static pc_status pc_schedule(pc_prog *g, const pc_eref **in, int32_t *order,
                 pending[k]++;
             }
         }
-        g->writer[op->o.v][op->o.e] = (int32_t)k;
+        g->elem[op->o.v][op->o.e].writer = (int32_t)k;
         n_kept++;
     }
     for (k = 0; k < n; k++)
@@ -500,8 +509,8 @@ static uint32_t pc_slot(const pc_prog *g, int32_t *io, uint32_t *n, int32_t v)
 static int32_t pc_ref(const pc_prog *g, int32_t *io, uint32_t *n_io, pc_eref r)
 {
     const pc_builder *b = g->b;
-    if (r.v >= 0 && g->into[r.v] && g->into[r.v][r.e].v >= 0)
-        r = g->into[r.v][r.e];
+    if (r.v >= 0 && g->elem[r.v] && g->elem[r.v][r.e].into.v >= 0)
+        r = g->elem[r.v][r.e].into;
     if (r.v < 0)
         return PC_SOP_REF((uint32_t)PC_SOP_CONSTANTS, r.e * sizeof(float));
     return PC_SOP_REF(pc_slot(g, io, n_io, r.v), r.e * pc_dtype_size(b->values[r.v].dtype));
@@ -559,7 +568,7 @@ static pc_status pc_compile_pass(pc_prog *g, const pc_plan_draft *pd, size_t fir
         pc_eref *into;
         if (op->code != PC_SOP_COPY || pc_writer(g, op->a) < 0 || g->outside[op->a.v])
             continue;
-        into = &g->into[op->a.v][op->a.e];
+        into = &g->elem[op->a.v][op->a.e].into;
         if (into->v == -1)
             *into = op->o;
         else
@@ -568,7 +577,8 @@ static pc_status pc_compile_pass(pc_prog *g, const pc_plan_draft *pd, size_t fir
     for (k = 0; k < g->n_ops; k++) {
         pc_eop *op = &g->ops[k];
         if (op->code == PC_SOP_COPY && pc_writer(g, op->a) >= 0 &&
-            g->into[op->a.v][op->a.e].v == op->o.v && g->into[op->a.v][op->a.e].e == op->o.e) {
+            g->elem[op->a.v][op->a.e].into.v == op->o.v &&
+            g->elem[op->a.v][op->a.e].into.e == op->o.e) {
             op->code = PC_SOP_NONE;
             n_kept--;
             n_scalar--;
@@ -620,10 +630,7 @@ static pc_status pc_compile_pass(pc_prog *g, const pc_plan_draft *pd, size_t fir
         io[n_io++] = pc_root(b, pd->drafts[first].io[0]);
     /* reset the per-root state this run used */
     for (i = 0; i < g->n_touched; i++) {
-        g->renamed[g->touched[i]] = NULL;
-        g->live[g->touched[i]] = NULL;
-        g->writer[g->touched[i]] = NULL;
-        g->into[g->touched[i]] = NULL;
+        g->elem[g->touched[i]] = NULL;
     }
     g->n_touched = 0;
     memset(g->outside, 0, b->n_values);
@@ -679,14 +686,11 @@ pc_status pc_fuse_small_steps(pc_builder *b, pc_plan_draft *pd)
     pc_status st;
     memset(&g, 0, sizeof g);
     g.b = b;
-    g.renamed = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof *g.renamed);
-    g.live = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof *g.live);
-    g.writer = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof *g.writer);
-    g.into = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof *g.into);
+    g.elem = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof *g.elem);
     g.outside = pc_scratch_alloc(&b->scratch, b->n_values + 1);
     g.slot_of = pc_scratch_alloc_raw(&b->scratch, (b->n_values + 1) * sizeof *g.slot_of);
     g.touched = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof *g.touched);
-    if (!g.renamed || !g.live || !g.writer || !g.into || !g.outside || !g.slot_of || !g.touched)
+    if (!g.elem || !g.outside || !g.slot_of || !g.touched)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
     memset(g.slot_of, 0xff, (b->n_values + 1) * sizeof *g.slot_of);
     while (i < pd->n_drafts) {

@@ -38,7 +38,7 @@ def _latency() -> dict:
     from .latency import bench_model
 
     model = latency_model()
-    result = {"model": str(model.relative_to(ROOT)), **bench_model(model)}
+    result = {**bench_model(model), "model": str(model.relative_to(ROOT))}
     (RESULTS / "latency.json").write_text(json.dumps(result, indent=2))
     return result
 

@@ -51,6 +51,7 @@ typedef struct pc_meta {
 
 /* A graph input or output: value id and declared type (inputs: the shape they get). */
 typedef struct pc_io {
+    pb_slice name;
     int32_t id;
     int dtype;
     int rank;

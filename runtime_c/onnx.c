@@ -468,6 +468,7 @@ static pc_status onnx_parse_io(pc_builder *b, pb_slice graph, size_t n_io)
         if ((st = onnx_parse_value_info(b, f.bytes, &name, &elem, &io)) != PC_OK)
             return st;
         io.dtype = onnx_dtype(elem);
+        io.name = name;
         if (f.number == ONNX_GRAPH_INPUT) {
             if (pc_lookup(b, name) >= 0)
                 continue;
@@ -505,29 +506,16 @@ static pc_status onnx_parse_io(pc_builder *b, pb_slice graph, size_t n_io)
 }
 
 /* Output names of the graph, resolved once every node output exists. */
-static pc_status onnx_resolve_outputs(pc_builder *b, pb_slice graph)
+static pc_status onnx_resolve_outputs(pc_builder *b)
 {
-    pb_reader r;
-    pb_field f;
-    pc_status st;
-    pb_slice name;
-    int64_t elem;
-    pc_io io;
-    size_t k = 0;
-    int more;
-    pb_init(&r, b->file, graph);
-    while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
-        if (f.number != ONNX_GRAPH_OUTPUT)
-            continue;
-        if ((st = onnx_parse_value_info(b, f.bytes, &name, &elem, &io)) != PC_OK)
-            return st;
-        b->outputs[k].id = pc_lookup(b, name);
+    size_t k;
+    for (k = 0; k < b->n_outputs; k++) {
+        b->outputs[k].id = pc_lookup(b, b->outputs[k].name);
         if (b->outputs[k].id < 0)
             return pc_fail(b->err, PC_ERR_GRAPH, "output '%.*s' is not produced by any node",
-                           PC_NAME(name));
-        k++;
+                           PC_NAME(b->outputs[k].name));
     }
-    return more == PB_ERROR ? r.status : PC_OK;
+    return PC_OK;
 }
 
 static pc_status onnx_link_nodes(pc_builder *b)
@@ -630,7 +618,7 @@ static pc_status onnx_parse_graph(pc_builder *b, pb_slice graph)
         return r.status;
     if ((st = onnx_parse_io(b, graph, n_io)) != PC_OK || (st = onnx_link_nodes(b)) != PC_OK)
         return st;
-    return onnx_resolve_outputs(b, graph);
+    return onnx_resolve_outputs(b);
 }
 
 /* ---- ModelProto ------------------------------------------------------------------- */

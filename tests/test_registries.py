@@ -132,3 +132,16 @@ def test_registered_activation_trains_and_exports(elliotsig: str, trainer: str, 
     exported = model.to_onnx(tmp_path / "elliot.onnx", measured=M, reference=R)
     assert exported["parity"]["passed"]
     assert np.allclose(run_onnx(str(tmp_path / "elliot.onnx"), M)[:, :3], predicted[:, :3], atol=1e-5)
+
+
+def test_cli_preset_choices_are_the_grid_presets():
+    """The sweep's --preset choices are written out in cli.py (reading GRID_PRESETS there
+    would load scikit-learn for every verb); this keeps the two from drifting apart."""
+    import argparse
+
+    from posecorr.cli import build_parser
+    from posecorr.train.protocol import GRID_PRESETS
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    preset = next(a for a in sub.choices["sweep"]._actions if a.dest == "preset")
+    assert set(preset.choices) == set(GRID_PRESETS)

@@ -301,6 +301,14 @@ def from_station(s: Any, ctx: EffectContext) -> Any:
     return xp.const(ctx.t_S, s) + _rows_times(s, xp.swap_last(xp.const(ctx.R_S, s)))
 
 
+def sweep_angles(xp: Any, s: Any) -> tuple[Any, Any, Any]:
+    """Sweep angles (alpha, beta) and range of station-frame points s: the inverse of
+    r * sweep_direction(alpha, beta)."""
+    sx, sy, sz = s[..., 0], s[..., 1], s[..., 2]
+    r = xp.sqrt(xp.sum(s * s, axis=-1, keepdims=True))
+    return xp.atan2(sx, -sz), xp.atan2(sy, -sz), r
+
+
 def sweep_direction(xp: Any, alpha: Any, beta: Any) -> Any:
     """Unit direction s / |s| of a point at sweep angles (alpha, beta), station frame."""
     return normalize(xp.stack([xp.tan(alpha), xp.tan(beta), -1.0], axis=-1))
@@ -320,16 +328,10 @@ class Sweep(Effect, name="sweep", order=2, per_row_theta=True, inverse_steps=8):
     params = (Param("phase_x", 1, (1e-3,), 1e-3, "rad"), Param("phase_y", 1, (-1e-3,), 1e-3, "rad"),
               Param("curve_x", 1, (0.02,), 1e-2, "1/rad"), Param("curve_y", 1, (-0.02,), 1e-2, "1/rad"))
 
-    @staticmethod
-    def _angles(xp: Any, s: Any) -> tuple[Any, Any, Any]:
-        sx, sy, sz = s[..., 0], s[..., 1], s[..., 2]
-        r = xp.sqrt(xp.sum(s * s, axis=-1, keepdims=True))
-        return xp.atan2(sx, -sz), xp.atan2(sy, -sz), r
-
     def forward(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
         px, py, cx, cy = theta[..., 0], theta[..., 1], theta[..., 2], theta[..., 3]
-        alpha, beta, r = self._angles(xp, station_coords(p, ctx))
+        alpha, beta, r = sweep_angles(xp, station_coords(p, ctx))
         a2 = alpha + px + cx * beta * beta
         b2 = beta + py + cy * alpha * alpha
         return from_station(r * sweep_direction(xp, a2, b2), ctx), R
@@ -337,7 +339,7 @@ class Sweep(Effect, name="sweep", order=2, per_row_theta=True, inverse_steps=8):
     def inverse(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
         px, py, cx, cy = theta[..., 0], theta[..., 1], theta[..., 2], theta[..., 3]
-        a2, b2, r = self._angles(xp, station_coords(p, ctx))
+        a2, b2, r = sweep_angles(xp, station_coords(p, ctx))
         alpha, beta = a2 - px, b2 - py
         for _ in range(self.inverse_steps):
             alpha, beta = a2 - px - cx * beta * beta, b2 - py - cy * alpha * alpha

@@ -13,7 +13,7 @@ import numpy as np
 
 from .._xp import namespace
 from ..data import PoseTable
-from ..effects import EffectContext, Sweep, station_coords
+from ..effects import EffectContext, station_coords, sweep_angles
 from ..geometry import upright_rotation
 from ..rotations import normalize, quat_to_matrix
 
@@ -28,7 +28,7 @@ def pose_features(poses: np.ndarray, t: np.ndarray | None = None) -> dict[str, n
     ctx = EffectContext.default()
     s = station_coords(p, ctx)
     # The sweep effect's own angles: a residual along azimuth is one that effect could bend.
-    azimuth, elevation, distance = Sweep._angles(namespace(s), s)
+    azimuth, elevation, distance = sweep_angles(namespace(s), s)
     u = normalize(p - ctx.t_S)
     cos_incidence = np.clip(-np.einsum("ni,ni->n", R[:, :, 2], u), -1.0, 1.0)
     rel = np.swapaxes(upright_rotation(), -1, -2) @ R

@@ -289,10 +289,36 @@ static pc_status k_gemm_rows(const pc_step *s)
     return PC_OK;
 }
 
+PC_INLINE void pc_run_chain(const pc_step *s)
+{
+    const pc_gemm_chain *q = (const pc_gemm_chain *)s->prm;
+    size_t i;
+    for (i = 0; i < q->n_layers; i++) {
+        pc_step layer;
+        layer.fn = NULL;
+        layer.io = s->io + 4 * i;
+        layer.prm = &q->layer[i];
+        layer.n = q->layer[i].M * q->layer[i].N;
+        pc_gemm_rows(&layer);
+    }
+}
+
+static pc_status k_gemm_chain(const pc_step *s)
+{
+    pc_run_chain(s);
+    return PC_OK;
+}
+
 #ifdef PC_HAVE_AVX2
 __attribute__((target("avx2"))) static pc_status k_gemm_rows_avx2(const pc_step *s)
 {
     pc_gemm_rows(s);
+    return PC_OK;
+}
+
+__attribute__((target("avx2"))) static pc_status k_gemm_chain_avx2(const pc_step *s)
+{
+    pc_run_chain(s);
     return PC_OK;
 }
 
@@ -309,6 +335,7 @@ int pc_cpu_avx2(void)
 }
 
 const pc_kernel_fn pc_gemm_rows_kernels[2] = {k_gemm_rows, k_gemm_rows_avx2};
+const pc_kernel_fn pc_gemm_chain_kernels[2] = {k_gemm_chain, k_gemm_chain_avx2};
 #else
 int pc_cpu_avx2(void)
 {
@@ -316,6 +343,7 @@ int pc_cpu_avx2(void)
 }
 
 const pc_kernel_fn pc_gemm_rows_kernels[2] = {k_gemm_rows, k_gemm_rows};
+const pc_kernel_fn pc_gemm_chain_kernels[2] = {k_gemm_chain, k_gemm_chain};
 #endif
 
 PC_COLD pc_status k_matmul(const pc_step *s)

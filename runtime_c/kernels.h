@@ -268,6 +268,13 @@ pc_status k_gemm(const pc_step *s);
 /* The MLP layer act(A B + c), act tanh or none: [0] portable, [1] AVX2 (the portable one
  * again where AVX2 is not built). pc_cpu_avx2() says which this CPU runs. */
 extern const pc_kernel_fn pc_gemm_rows_kernels[2];
+/* Consecutive MLP layers, each reading the one before's output, as one launch (one-pose
+ * plans: the planner chains them): io holds A, B, C, O of each layer in turn. */
+typedef struct pc_gemm_chain {
+    size_t n_layers;
+    pc_gemm layer[1]; /* n_layers entries; allocated longer */
+} pc_gemm_chain;
+extern const pc_kernel_fn pc_gemm_chain_kernels[2];
 int pc_cpu_avx2(void);
 pc_status k_matmul(const pc_step *s);
 

@@ -243,13 +243,58 @@ static pc_status pc_plan_locate(pc_builder *b, pc_plan_draft *pd, size_t batch,
 }
 
 
+/* One-pose plans: consecutive MLP layers, each reading the one before's output, become
+ * one launch (pc_gemm_chain_kernels) that runs them in turn as before. */
+static pc_status pc_chain_dense(pc_builder *b, pc_plan_draft *pd)
+{
+    size_t i = 0, w = 0, j, k;
+    while (i < pd->n_drafts) {
+        const pc_kernel_fn fn = pd->drafts[i].fn;
+        const int rows = fn == pc_gemm_rows_kernels[0] || fn == pc_gemm_rows_kernels[1];
+        for (j = i + 1; rows && j < pd->n_drafts && pd->drafts[j].fn == fn &&
+                        pc_root(b, pd->drafts[j].io[0]) == pc_root(b, pd->drafts[j - 1].io[3]);
+             j++)
+            ;
+        if (rows && j - i >= 2) {
+            pc_draft *d = &pd->drafts[w];
+            const size_t n = j - i;
+            const size_t prm_size = sizeof(pc_gemm_chain) + (n - 1) * sizeof(pc_gemm);
+            pc_gemm_chain *q = pc_scratch_alloc(&b->scratch, prm_size);
+            int32_t *io = pc_scratch_alloc(&b->scratch, (4 * n + 1) * sizeof(int32_t));
+            const size_t n_out = pd->drafts[j - 1].n;
+            const int avx2 = fn == pc_gemm_rows_kernels[1];
+            if (!q || !io)
+                return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
+            q->n_layers = n;
+            for (k = 0; k < n; k++) {
+                memcpy(&q->layer[k], pd->drafts[i + k].prm, sizeof(pc_gemm));
+                memcpy(io + 4 * k, pd->drafts[i + k].io, 4 * sizeof(int32_t));
+            }
+            d->fn = pc_gemm_chain_kernels[avx2];
+            d->io = io;
+            d->n_io = (uint32_t)(4 * n);
+            d->prm = q;
+            d->prm_size = prm_size;
+            d->n = n_out;
+            d->sop = 0;
+            w++;
+            i = j;
+        } else {
+            pd->drafts[w++] = pd->drafts[i++];
+        }
+    }
+    pd->n_drafts = w;
+    return PC_OK;
+}
+
 static pc_status pc_plan_batch(pc_builder *b, size_t batch, pc_plan_draft *pd,
                                size_t *const_bytes)
 {
     pc_status st;
     if ((st = pc_plan_steps(b, batch, pd)) != PC_OK)
         return st;
-    if (batch == 1 && (st = pc_fuse_small_steps(b, pd)) != PC_OK)
+    if (batch == 1 && ((st = pc_fuse_small_steps(b, pd)) != PC_OK ||
+                       (st = pc_chain_dense(b, pd)) != PC_OK))
         return st;
     pc_plan_lifetimes(b, pd);
     if ((st = pc_plan_place(b, pd)) != PC_OK)

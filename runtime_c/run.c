@@ -58,8 +58,13 @@ static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, 
                              float *out, size_t first)
 {
     const size_t count = plan->batch * PC_POSE_WIDTH;
+    size_t i;
     pc_status st;
-    memcpy(plan->in, in, count * sizeof(float));
+    if (plan->batch == 1) /* one pose: seven values, not a library call */
+        for (i = 0; i < PC_POSE_WIDTH; i++)
+            plan->in[i] = in[i];
+    else
+        memcpy(plan->in, in, count * sizeof(float));
     if (plan->t) {
         if (t)
             memcpy(plan->t, t, plan->batch * sizeof(float));
@@ -69,7 +74,11 @@ static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, 
     if ((st = pc_run_steps(m, plan)) != PC_OK ||
         (st = pc_check_output(m, plan->out, plan->batch, first)) != PC_OK)
         return st;
-    memmove(out, plan->out, count * sizeof(float));
+    if (plan->batch == 1)
+        for (i = 0; i < PC_POSE_WIDTH; i++)
+            out[i] = plan->out[i];
+    else /* the caller's out never overlaps the arena */
+        memcpy(out, plan->out, count * sizeof(float));
     return PC_OK;
 }
 

@@ -38,7 +38,7 @@ PC_INLINE void pc_apply_act(const pc_gemm *q, float *restrict o, size_t n)
         break;
     case PC_ACT_RELU:
         for (i = 0; i < n; i++)
-            o[i] = o[i] > 0.0f ? o[i] : (o[i] != o[i] ? o[i] : 0.0f);
+            o[i] = PC_RELU_EXPR(o[i]);
         break;
     case PC_ACT_CLIP:
         for (i = 0; i < n; i++) {
@@ -262,13 +262,8 @@ PC_INLINE void pc_gemm_rows(const pc_step *s)
 #ifdef PC_HAVE_ROWS4
     for (; m + 4 <= M; m += 4)
         pc_rows4(A + m * K, K, B, N, C, O + m * N);
-#endif
-#ifdef PC_HAVE_ROWS4
     for (; m < M; m++)
         pc_row1(A + m * K, B, K, N, C, O + m * N);
-    if (q->act == PC_ACT_TANH)
-        for (n = 0; n < M * N; n++)
-            O[n] = pc_tanh_inline(O[n]);
 #else
     for (; m < M; m++) {
         float *restrict o = O + m * N;
@@ -276,10 +271,10 @@ PC_INLINE void pc_gemm_rows(const pc_step *s)
             o[n] = C[n];
         pc_row(A + m * K, 1, B, N, K, N, o);
     }
+#endif
     if (q->act == PC_ACT_TANH)
         for (n = 0; n < M * N; n++)
             O[n] = pc_tanh_inline(O[n]);
-#endif
 }
 
 /* One kernel for both activations: the test per launch is free next to the layer. */

@@ -68,26 +68,15 @@
         [PC_ROW_B] = NAME##_row, [PC_COL_B] = NAME##_col,      [PC_GENERAL2] = NAME##_gen2,    \
         [PC_GENERAL] = NAME##_gen};
 
-PC_BINARY_F(k_add_f, a + b)
-PC_BINARY_F(k_sub_f, a - b)
-PC_BINARY_F(k_mul_f, a * b)
-PC_BINARY_F(k_div_f, a / b)
-PC_BINARY_F(k_max_f, PC_MAX_EXPR(a, b))
-PC_BINARY_F(k_min_f, PC_MIN_EXPR(a, b))
+#define PC_DEFINE_BINARY(NAME, CODE, EXPR) PC_BINARY_F(NAME, EXPR)
+PC_FLOAT_BINARY_OPS(PC_DEFINE_BINARY)
+#undef PC_DEFINE_BINARY
 
 PC_WHERE_SAME(k_where_f, float)
 
-PC_UNARY(k_abs_f, float, float, fabsf(a))
-PC_UNARY(k_neg_f, float, float, -a)
-PC_UNARY(k_atan_f, float, float, atanf(a))
-PC_UNARY(k_cos_f, float, float, cosf(a))
-PC_UNARY(k_sin_f, float, float, sinf(a))
-PC_UNARY(k_tan_f, float, float, tanf(a))
-PC_UNARY(k_exp_f, float, float, expf(a))
-PC_UNARY(k_sqrt_f, float, float, sqrtf(a))
-PC_UNARY(k_relu_f, float, float, a > 0.0f ? a : (a != a ? a : 0.0f))
-PC_UNARY(k_sigmoid_f, float, float, pc_sigmoid(a))
-PC_UNARY(k_tanh_f, float, float, pc_tanh_inline(a))
+#define PC_DEFINE_UNARY(NAME, CODE, EXPR) PC_UNARY(NAME, float, float, EXPR)
+PC_FLOAT_UNARY_OPS(PC_DEFINE_UNARY)
+#undef PC_DEFINE_UNARY
 
 /* One-pose plans spend more time launching small steps than computing them: their
  * element operations run here, each the same IEEE operation as its kernel. Operands are
@@ -115,42 +104,31 @@ void pc_scalar_program_bind(pc_scalar_program *q, void *const *io)
     }
 }
 
-/* Each group handler: the loop over the group's operations, op left past the group. */
+/* A group's loop over its operations, op left past the group. */
 #define PC_EACH(STMT)                                                                          \
     for (last = op + op->n; op < last; op++) {                                                 \
         STMT;                                                                                  \
     }
-#define PC_SOP_HANDLERS(X)                                                                     \
-    X(PC_SOP_ADD, PC_EACH(F(o) = F(a) + F(b)))                                                 \
-    X(PC_SOP_SUB, PC_EACH(F(o) = F(a) - F(b)))                                                 \
-    X(PC_SOP_MUL, PC_EACH(F(o) = F(a) * F(b)))                                                 \
-    X(PC_SOP_DIV, PC_EACH(F(o) = F(a) / F(b)))                                                 \
-    X(PC_SOP_MAX, PC_EACH(const float a = F(a); const float b = F(b);                          \
-                          F(o) = PC_MAX_EXPR(a, b)))                                           \
-    X(PC_SOP_MIN, PC_EACH(const float a = F(a); const float b = F(b);                          \
-                          F(o) = PC_MIN_EXPR(a, b)))                                           \
-    X(PC_SOP_EQ, PC_EACH(B(o) = F(a) == F(b)))                                                 \
-    X(PC_SOP_GT, PC_EACH(B(o) = F(a) > F(b)))                                                  \
-    X(PC_SOP_GE, PC_EACH(B(o) = F(a) >= F(b)))                                                 \
-    X(PC_SOP_LT, PC_EACH(B(o) = F(a) < F(b)))                                                  \
-    X(PC_SOP_LE, PC_EACH(B(o) = F(a) <= F(b)))                                                 \
-    X(PC_SOP_NEG, PC_EACH(F(o) = -F(a)))                                                       \
-    X(PC_SOP_SQRT, PC_EACH(F(o) = sqrtf(F(a))))                                                \
-    X(PC_SOP_ABS, PC_EACH(F(o) = fabsf(F(a))))                                                 \
-    X(PC_SOP_EXP, PC_EACH(F(o) = expf(F(a))))                                                  \
-    X(PC_SOP_SIN, PC_EACH(F(o) = sinf(F(a))))                                                  \
-    X(PC_SOP_COS, PC_EACH(F(o) = cosf(F(a))))                                                  \
-    X(PC_SOP_TAN, PC_EACH(F(o) = tanf(F(a))))                                                  \
-    X(PC_SOP_ATAN, PC_EACH(F(o) = atanf(F(a))))                                                \
-    X(PC_SOP_TANH, PC_EACH(F(o) = pc_tanh_inline(F(a))))                                       \
-    X(PC_SOP_SIGMOID, PC_EACH(F(o) = pc_sigmoid(F(a))))                                        \
-    X(PC_SOP_RELU, PC_EACH(const float a = F(a);                                               \
-                           F(o) = a > 0.0f ? a : (a != a ? a : 0.0f)))                         \
-    X(PC_SOP_WHERE, PC_EACH(F(o) = B(c) ? F(a) : F(b)))                                        \
+/* One case per element operation; the float arithmetic comes from the kernels' own list. */
+#define PC_CASE(CODE, BODY)                                                                    \
+    case CODE:                                                                                 \
+        BODY break;
+#define PC_BINARY_CASE(KERNEL, CODE, EXPR)                                                     \
+    PC_CASE(CODE, PC_EACH(const float a = F(a); const float b = F(b); F(o) = (EXPR)))
+#define PC_UNARY_CASE(KERNEL, CODE, EXPR) PC_CASE(CODE, PC_EACH(const float a = F(a); F(o) = (EXPR)))
+#define PC_SOP_CASES                                                                           \
+    PC_FLOAT_BINARY_OPS(PC_BINARY_CASE)                                                        \
+    PC_FLOAT_UNARY_OPS(PC_UNARY_CASE)                                                          \
+    PC_CASE(PC_SOP_EQ, PC_EACH(B(o) = F(a) == F(b)))                                           \
+    PC_CASE(PC_SOP_GT, PC_EACH(B(o) = F(a) > F(b)))                                            \
+    PC_CASE(PC_SOP_GE, PC_EACH(B(o) = F(a) >= F(b)))                                           \
+    PC_CASE(PC_SOP_LT, PC_EACH(B(o) = F(a) < F(b)))                                            \
+    PC_CASE(PC_SOP_LE, PC_EACH(B(o) = F(a) <= F(b)))                                           \
+    PC_CASE(PC_SOP_WHERE, PC_EACH(F(o) = B(c) ? F(a) : F(b)))                                  \
     /* the bits, as the copy kernels move them */                                              \
-    X(PC_SOP_COPY, PC_EACH(memcpy(base + op->o, base + op->a, 4)))                             \
+    PC_CASE(PC_SOP_COPY, PC_EACH(memcpy(base + op->o, base + op->a, 4)))                       \
     /* dot products, each a DOT and its DOT_TERMs */                                           \
-    X(PC_SOP_DOT, for (last = op + op->n; op < last;) {                                        \
+    PC_CASE(PC_SOP_DOT, for (last = op + op->n; op < last;) {                                  \
         float acc = F(c);                                                                      \
         const int32_t o = op->o;                                                               \
         do {                                                                                   \
@@ -169,22 +147,22 @@ pc_status k_scalar_program(const pc_step *s)
     const pc_scalar_program *q = (const pc_scalar_program *)s->prm;
     char *const base = (char *)s->io[0];
     const pc_scalar_op *op = q->ops, *const end = q->ops + q->n_ops, *last;
-#define PC_CASE(CODE, BODY)                                                                    \
-    case CODE:                                                                                 \
-        BODY break;
     while (op < end) {
         switch (op->code) {
-            PC_SOP_HANDLERS(PC_CASE)
+            PC_SOP_CASES
         default:
             return PC_ERR_RUNTIME;
         }
     }
-#undef PC_CASE
     return PC_OK;
 }
 #undef F
 #undef B
 #undef PC_EACH
+#undef PC_CASE
+#undef PC_BINARY_CASE
+#undef PC_UNARY_CASE
+#undef PC_SOP_CASES
 
 /* ---- data movement ---------------------------------------------------------------- */
 

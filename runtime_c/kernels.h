@@ -200,16 +200,36 @@ void pc_scalar_program_bind(pc_scalar_program *q, void *const *io);
 
 pc_status k_scalar_program(const pc_step *s);
 
-/* Float kernels of the hot elementwise operators, one per layout (kernels.c). */
-#define PC_FLOAT_BINARY(X) X(k_add_f) X(k_sub_f) X(k_mul_f) X(k_div_f) X(k_max_f) X(k_min_f)
-#define PC_DECLARE_TABLE(NAME) extern const pc_kernel_fn NAME[PC_LAYOUTS];
-PC_FLOAT_BINARY(PC_DECLARE_TABLE)
+/* The hot float elementwise operators, X(kernel, element operation, expression of a and
+ * b): one list makes the kernels (a table per layout for the binary ones, kernels.c) and
+ * the one-pose programs' cases (k_scalar_program), so both compute the same formula. */
+#define PC_RELU_EXPR(a) ((a) > 0.0f ? (a) : ((a) != (a) ? (a) : 0.0f))
+#define PC_FLOAT_BINARY_OPS(X)                                                                 \
+    X(k_add_f, PC_SOP_ADD, a + b)                                                              \
+    X(k_sub_f, PC_SOP_SUB, a - b)                                                              \
+    X(k_mul_f, PC_SOP_MUL, a * b)                                                              \
+    X(k_div_f, PC_SOP_DIV, a / b)                                                              \
+    X(k_max_f, PC_SOP_MAX, PC_MAX_EXPR(a, b))                                                  \
+    X(k_min_f, PC_SOP_MIN, PC_MIN_EXPR(a, b))
+#define PC_FLOAT_UNARY_OPS(X)                                                                  \
+    X(k_abs_f, PC_SOP_ABS, fabsf(a))                                                           \
+    X(k_neg_f, PC_SOP_NEG, -a)                                                                 \
+    X(k_atan_f, PC_SOP_ATAN, atanf(a))                                                         \
+    X(k_cos_f, PC_SOP_COS, cosf(a))                                                            \
+    X(k_sin_f, PC_SOP_SIN, sinf(a))                                                            \
+    X(k_tan_f, PC_SOP_TAN, tanf(a))                                                            \
+    X(k_exp_f, PC_SOP_EXP, expf(a))                                                            \
+    X(k_sqrt_f, PC_SOP_SQRT, sqrtf(a))                                                         \
+    X(k_relu_f, PC_SOP_RELU, PC_RELU_EXPR(a))                                                  \
+    X(k_sigmoid_f, PC_SOP_SIGMOID, pc_sigmoid(a))                                              \
+    X(k_tanh_f, PC_SOP_TANH, pc_tanh_inline(a))
+#define PC_DECLARE_TABLE(NAME, CODE, EXPR) extern const pc_kernel_fn NAME[PC_LAYOUTS];
+PC_FLOAT_BINARY_OPS(PC_DECLARE_TABLE)
 #undef PC_DECLARE_TABLE
-#define PC_FLOAT_UNARY(X)                                                                      \
-    X(k_abs_f) X(k_neg_f) X(k_atan_f) X(k_cos_f) X(k_sin_f) X(k_tan_f) X(k_exp_f) X(k_sqrt_f) \
-    X(k_relu_f) X(k_sigmoid_f) X(k_tanh_f)
+#define PC_DECLARE_UNARY(NAME, CODE, EXPR) pc_status NAME(const pc_step *s);
+PC_FLOAT_UNARY_OPS(PC_DECLARE_UNARY)
+#undef PC_DECLARE_UNARY
 #define PC_DECLARE_KERNEL(NAME) pc_status NAME(const pc_step *s);
-PC_FLOAT_UNARY(PC_DECLARE_KERNEL)
 PC_DECLARE_KERNEL(k_where_f_same)
 PC_DECLARE_KERNEL(k_copy_4)        /* pc_strided: contiguous run */
 PC_DECLARE_KERNEL(k_strided2_4)    /* pc_strided: two levels */

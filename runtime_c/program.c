@@ -142,14 +142,16 @@ static int pc_expandable(const pc_builder *b, const pc_draft *d)
 static void pc_expansion_size(const pc_draft *d, size_t *ops, size_t *terms)
 {
     *ops += d->n;
-    if (!d->sop && pc_small_product(d))
-        *ops += d->n; /* its activation */
-    if (d->sop == PC_SOP_ADD)
+    if (d->sop == PC_SOP_ADD) {
         *terms += d->n * PC_EXTEND_MAX_TERMS;
-    if (d->fn == k_reduce_sum_last && !d->sop)
+    } else if (d->sop) {
+        return;
+    } else if (d->fn == k_reduce_sum_last) {
         *terms += d->n * ((const pc_reduce *)d->prm)->d[5];
-    else if (!d->sop && pc_small_product(d))
+    } else if (pc_small_product(d)) {
+        *ops += d->n; /* the activation of each element */
         *terms += d->n * ((const pc_gemm *)d->prm)->K;
+    }
 }
 
 static pc_status pc_touch(pc_prog *g, int32_t root)
@@ -233,10 +235,12 @@ static void pc_add_sum_term(pc_prog *g, pc_eref x)
 /* o[e] = init + the terms appended since term t0. */
 static pc_status pc_emit_dot(pc_prog *g, pc_eref init, size_t t0, int32_t out, size_t e)
 {
-    pc_status st = pc_emit(g, PC_SOP_DOT, init, init, init, out, e);
+    const pc_status st = pc_emit(g, PC_SOP_DOT, init, init, init, out, e);
+    if (st != PC_OK)
+        return st;
     g->ops[g->n_ops - 1].t0 = (uint32_t)t0;
     g->ops[g->n_ops - 1].nt = (uint32_t)(g->n_terms - t0);
-    return st;
+    return PC_OK;
 }
 
 /* Appends the terms of dot product w to the terms under construction. */

@@ -1,4 +1,5 @@
-"""Registries: a representation added by registering it alone works end to end."""
+"""Registries: a representation, an activation and a trainer added by registering them alone
+work end to end."""
 from __future__ import annotations
 
 import numpy as np
@@ -132,6 +133,50 @@ def test_registered_activation_trains_and_exports(elliotsig: str, trainer: str, 
     exported = model.to_onnx(tmp_path / "elliot.onnx", measured=M, reference=R)
     assert exported["parity"]["passed"]
     assert np.allclose(run_onnx(str(tmp_path / "elliot.onnx"), M)[:, :3], predicted[:, :3], atol=1e-5)
+
+
+@pytest.fixture
+def signed_gd():
+    """A trainer registered here alone: x -= lr sign(g) ("signed gradient descent", not one
+    of table 1's twelve)."""
+    from posecorr.train.trainers import TRAINERS, Step, register
+
+    @register("signgd", "(none)", None, "Signed gradient descent (this test)")
+    class SignGD(Step):
+        def __call__(self, epoch, theta, mse, g):
+            return self.moved(theta - self.lr * g.sign())
+
+    yield "signgd"
+    del TRAINERS["signgd"]
+
+
+def test_registered_trainer_trains_and_is_a_cli_choice(signed_gd: str) -> None:
+    """The registered step runs in the shared loop: every epoch moves each weight by exactly
+    lr (an independent check of the step it ran), the error falls, and the CLI offers it;
+    registering the name twice is refused."""
+    import argparse
+
+    from posecorr.cli import build_parser
+    from posecorr.simulate import simulate
+    from posecorr.train import MLP
+    from posecorr.train.trainers import register
+
+    table = simulate(1, seed=0).table.subset(np.arange(300))
+    M, R = table.measured, table.reference
+    kwargs = dict(hidden=(5,), activation="tansig", epochs=1, lr=1e-3, validation_fraction=0.0,
+                  random_state=3)
+    start = MLP("pos", trainer=signed_gd, **{**kwargs, "epochs": 0}).fit(M, R)
+    one = MLP("pos", trainer=signed_gd, **kwargs).fit(M, R)
+    moved = np.concatenate([(a - b).ravel() for a, b in zip(one.coefs_ + one.intercepts_,
+                                                            start.coefs_ + start.intercepts_)])
+    assert np.allclose(np.abs(moved), 1e-3, rtol=1e-9)
+    longer = MLP("pos", trainer=signed_gd, **{**kwargs, "epochs": 40}).fit(M, R)
+    assert longer.history_["mse"][-1] < longer.history_["mse"][0]
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    trainer_options = [a for p in sub.choices.values() for a in p._actions if a.dest == "trainer"]
+    assert trainer_options and all(signed_gd in a.choices for a in trainer_options)
+    with pytest.raises(ValueError, match="trainer 'signgd' is already registered"):
+        register("signgd", "(none)", None, "again")(lambda *a: None)
 
 
 def test_cli_preset_choices_are_the_grid_presets():

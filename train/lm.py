@@ -216,26 +216,26 @@ def _trace_inverse(A: Any) -> float | None:
 
 def train_lm(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts: list[np.ndarray],
              Xn: np.ndarray, Tn: np.ndarray, escale: np.ndarray,
-             val: tuple[np.ndarray, np.ndarray] | None) -> TrainResult:
-    """trainlm / trainbr on scaled inputs Xn and targets Tn (see the module docstring)."""
+             val: tuple[np.ndarray, np.ndarray] | None, bayesian: bool = False) -> TrainResult:
+    """trainlm, or trainbr (bayesian), on scaled inputs Xn and targets Tn (see the module
+    docstring)."""
     import torch
 
-    bayes = est.trainer == "br"
     net, theta, X, T, Xv, Tv = training_tensors(est, sizes, coefs, intercepts, Xn, Tn, escale, val)
     P = net.n_params
     N = T.numel()
     eye = torch.eye(P, dtype=torch.float64)
-    mu = float(est.mu if est.mu is not None else (5e-3 if bayes else 1e-3))
+    mu = float(est.mu if est.mu is not None else (5e-3 if bayesian else 1e-3))
     mu_dec, mu_inc, mu_max = float(est.mu_dec), float(est.mu_inc), float(est.mu_max)
     history: dict[str, list[float]] = {"mse": [], "val_mse": [], "mu": [], "seconds": []}
-    if bayes:
+    if bayesian:
         history.update({"gamma": [], "alpha": [], "beta": []})
 
     ed = net.sse(theta, X, T)
     ew = float(theta @ theta)
     gamma = float(P)
     alpha = beta = 0.0
-    if bayes:
+    if bayesian:
         beta = 1.0 if ed == 0 else (N - gamma) / (2.0 * ed)
         if beta <= 0:
             beta = 1.0
@@ -257,14 +257,14 @@ def train_lm(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts
         history["val_mse"].append(vmse)
         history["mu"].append(mu)
         history["seconds"].append(time.perf_counter() - t0)
-        if bayes:
+        if bayesian:
             history["gamma"].append(gamma)
             history["alpha"].append(alpha)
             history["beta"].append(beta)
         if est.verbose and epoch % int(est.verbose) == 0:
             print(f"epoch {epoch:4d} mse {mse:.4g} val {vmse:.4g} mu {mu:.2g}"
-                  + (f" gamma {gamma:.1f}" if bayes else ""), flush=True)
-        grad = 2.0 * float(torch.linalg.vector_norm(g if not bayes else beta * g + alpha * theta))
+                  + (f" gamma {gamma:.1f}" if bayesian else ""), flush=True)
+        grad = 2.0 * float(torch.linalg.vector_norm(g if not bayesian else beta * g + alpha * theta))
         if epoch >= int(est.epochs):
             stop = "Maximum epoch reached"
             break
@@ -277,12 +277,12 @@ def train_lm(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts
         if mu > mu_max:
             stop = "Maximum MU reached"
             break
-        if not bayes and Xv is not None and check.fails >= int(est.max_fail):
+        if not bayesian and Xv is not None and check.fails >= int(est.max_fail):
             stop = "Validation stop"
             break
 
         # --- one Levenberg-Marquardt step: raise mu until the objective falls ---------------
-        if bayes:
+        if bayesian:
             ew = float(theta @ theta)
             perf = beta * ed + alpha * ew
             H = beta * JJ
@@ -298,14 +298,14 @@ def train_lm(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts
                 trial = theta + step
                 ed2 = net.sse(trial, X, T)
                 ew2 = float(trial @ trial)
-                perf2 = beta * ed2 + alpha * ew2 if bayes else ed2
+                perf2 = beta * ed2 + alpha * ew2 if bayesian else ed2
                 if math.isfinite(perf2) and perf2 < perf:
                     theta, ed, ew = trial, ed2, ew2
                     mu = max(mu * mu_dec, 1e-20)
                     accepted = True
                     break
             mu *= mu_inc
-        if bayes and accepted:
+        if bayesian and accepted:
             tr = _trace_inverse(H + alpha * eye)
             if tr is not None:
                 gamma = P - alpha * tr
@@ -319,12 +319,12 @@ def train_lm(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts
             break
 
     final = theta
-    if not bayes and Xv is not None and check.best < math.inf:
+    if not bayesian and Xv is not None and check.best < math.inf:
         final = check.best_theta
     coefs_out, intercepts_out = net.to_numpy(final)
     extra: dict[str, Any] = {"seconds": time.perf_counter() - t0,
                              "seconds_per_epoch": (time.perf_counter() - t0) / max(epoch, 1)}
-    if bayes:
+    if bayesian:
         extra.update({"gamma": gamma, "alpha": alpha, "beta": beta, "n_errors": N})
     train_loss = net.sse(final, X, T) / N
     return TrainResult(coefs_out, intercepts_out, epoch, stop, history,

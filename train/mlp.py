@@ -41,13 +41,12 @@ from posecorr._xp import namespace
 
 from .activations import get_activation, mlp_forward
 from .base import BaseCorrector, Validation, check_poses, encode_pose
-from .trainers import TRAINERS as TRAINER_REGISTRY
+from .trainers import TRAINERS
 
 ARCHITECTURES: tuple[tuple[int, ...], ...] = tuple(
     tuple([n] * layers) for layers in (1, 2, 3, 4) for n in (5, 10, 15, 20))
-TRAINERS = tuple(TRAINER_REGISTRY)
 # Table 1 numbering of the learning algorithms (for the "tansig 16/2" labels).
-TRAINER_NUMBERS = {t.name: t.number for t in TRAINER_REGISTRY.values() if t.number is not None}
+TRAINER_NUMBERS = {t.name: t.number for t in TRAINERS.values() if t.number is not None}
 
 
 
@@ -235,8 +234,7 @@ class MLP(BaseCorrector):
         import torch
 
         get_activation(self.activation)   # refuses an unknown name before any work
-        if self.trainer not in TRAINERS:
-            raise ValueError(f"unknown trainer {self.trainer!r}; expected one of {', '.join(TRAINERS)}")
+        trainer = TRAINERS.lookup(self.trainer)   # refuses an unknown name before any work
         if self.normalization not in ("none", "standard"):
             raise ValueError("normalization must be 'none' or 'standard'")
         hidden = parse_hidden(self.hidden)
@@ -246,14 +244,14 @@ class MLP(BaseCorrector):
             rv = check_poses(validation.reference, "validation reference", len(mv))
             Xv = np.asarray(encode_pose(mv, self.representation), np.float64)
             Yv = np.asarray(encode_pose(rv, self.representation), np.float64)
-        elif self.trainer != "br" and self.validation_fraction > 0 and len(X) >= 10:
+        elif not trainer.bayesian and self.validation_fraction > 0 and len(X) >= 10:
             order = rng.permutation(len(X))
             n_val = max(1, int(round(self.validation_fraction * len(X))))
             Xv, Yv = X[order[:n_val]], Y[order[:n_val]]
             X, Y = X[order[n_val:]], Y[order[n_val:]]
         else:
             Xv = Yv = None
-        if self.trainer == "br" and self.merge_validation and Xv is not None:
+        if trainer.bayesian and self.merge_validation and Xv is not None:
             X, Y = np.concatenate([X, Xv]), np.concatenate([Y, Yv])
 
         d_in, d_out = X.shape[1], Y.shape[1]
@@ -271,7 +269,7 @@ class MLP(BaseCorrector):
         if self.num_threads:
             torch.set_num_threads(int(self.num_threads))
         try:
-            result = TRAINER_REGISTRY[self.trainer].train(self, sizes, coefs, intercepts, Xn, Tn, escale, val)
+            result = trainer.train(self, sizes, coefs, intercepts, Xn, Tn, escale, val)
         finally:
             if self.num_threads:
                 torch.set_num_threads(old_threads)

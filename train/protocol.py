@@ -46,6 +46,7 @@ from .activations import PAPER_ACTIVATIONS
 from .base import REPRESENTATIONS, Validation
 from .methods import get_method
 from .mlp import ARCHITECTURES, TRAINER_NUMBERS, network_label, parse_hidden, parse_network
+from .trainers import TRAINERS
 
 TEST_FRACTION = 0.15
 VAL_FRACTION = 0.15
@@ -629,4 +630,4 @@ def _cost(cfg: Config) -> float:
         return 0.0
     sizes = [9, *cfg.hidden, 9]
     params = sum((a + 1) * b for a, b in zip(sizes[:-1], sizes[1:]))
-    return float(params) ** 2 * (2.0 if cfg.trainer == "br" else 1.0)
+    return float(params) ** 2 * (2.0 if TRAINERS.lookup(cfg.trainer).bayesian else 1.0)

@@ -23,8 +23,9 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 from ._xp import namespace
+from .registry import Registry
 
-# name -> size; filled from REPRESENTATION_CODECS below (one table).
+# name -> size; filled by register_representation beside REPRESENTATION_CODECS (below).
 REPRESENTATIONS: dict[str, int] = {}
 
 # Below this squared angle (rad^2) Rodrigues' coefficients use their Taylor series:
@@ -37,9 +38,7 @@ _TINY = 1e-12
 
 def check_representation(rep: str) -> int:
     """The parameter count of `rep`; ValueError naming the valid ones otherwise."""
-    if rep not in REPRESENTATIONS:
-        raise ValueError(f"unknown representation {rep!r}; expected one of {', '.join(REPRESENTATIONS)}")
-    return REPRESENTATIONS[rep]
+    return REPRESENTATION_CODECS.lookup(rep).size
 
 
 def _flat9(R: Any) -> Any:
@@ -205,21 +204,19 @@ def _decode_R(params: Any) -> Any:
 
 
 # The registry: adding a representation is one entry here and its two functions.
-REPRESENTATION_CODECS: dict[str, Representation] = {
-    "eaa": Representation(3, matrix_to_rotvec, rotvec_to_matrix),
-    "quat": Representation(4, matrix_to_quat, quat_to_matrix),
-    "R": Representation(9, _flat9, _decode_R),
-    "zhou": Representation(6, matrix_to_zhou, zhou_to_matrix),
-}
-
-
-REPRESENTATIONS.update({name: r.size for name, r in REPRESENTATION_CODECS.items()})
+REPRESENTATION_CODECS: Registry = Registry("representation")
 
 
 def register_representation(name: str, representation: Representation) -> None:
     """Add a representation: encode, decode, the correctors and the CLI's choices see it."""
-    REPRESENTATION_CODECS[name] = representation
+    REPRESENTATION_CODECS.add(name, representation)
     REPRESENTATIONS[name] = representation.size
+
+
+register_representation("eaa", Representation(3, matrix_to_rotvec, rotvec_to_matrix))
+register_representation("quat", Representation(4, matrix_to_quat, quat_to_matrix))
+register_representation("R", Representation(9, _flat9, _decode_R))
+register_representation("zhou", Representation(6, matrix_to_zhou, zhou_to_matrix))
 
 
 def encode(R: Any, rep: str) -> Any:

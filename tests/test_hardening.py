@@ -414,6 +414,33 @@ def test_apply_streams_in_chunks_with_the_same_result(tmp_path) -> None:
     assert not (tmp_path / "c.csv").exists()
 
 
+def test_apply_names_the_row_a_model_refuses_in_a_late_chunk(tmp_path, capsys) -> None:
+    """A pose outside the box a model was fitted on (input_bounds) is refused by the runtime,
+    which counts poses within its call: apply names the file's row and column (not the
+    chunk's pose number), ends in one line with exit 2 and writes nothing."""
+    from posecorr.controller.apply import apply_file
+    from posecorr.train.pmc import PMC
+
+    t = _table(200, seed=5)
+    model = tmp_path / "bounded.onnx"
+    PMC(representation="zhou").fit(t.measured, t.reference).to_onnx(model, measured=t.measured,
+                                                                       reference=t.reference)
+    path = tmp_path / "t.csv"
+    write_table(_table(60, seed=6), path)
+    lines = path.read_text().splitlines()
+    cells = lines[45].split(",")
+    cells[2] = "5.0"  # meas_y of row 46, 5 m away: inside the table's 1000 m, outside the box
+    lines[45] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    assert lines[0].split(",")[2] == "meas_y"
+    with pytest.raises(TableError, match=r"row 46, column meas_y: .*outside the range the model was fitted on"):
+        apply_file(model, path, tmp_path / "out.csv", chunk_rows=7)
+    assert not (tmp_path / "out.csv").exists()
+    code, err, escaped = _run(["apply", str(model), str(path), "-o", str(tmp_path / "out.csv")], capsys)
+    assert code == 2 and escaped is None and len(err.strip().splitlines()) == 1
+    assert "row 46, column meas_y" in err and not (tmp_path / "out.csv").exists()
+
+
 def read_csv_columns(path: Path) -> dict[str, np.ndarray]:
     import csv
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+import re
 from typing import Any
 
 import numpy as np
@@ -20,13 +21,29 @@ import numpy as np
 from ..data import CHUNK_ROWS, MEAS_POS, MEAS_QUAT, REF_POS, REF_QUAT, TableError, TableReader
 from ..metrics import METRIC_KEYS, metric_block, pose_errors
 from ..safeio import atomic_output, check_output
-from .runtime import Corrector
+from .runtime import Corrector, PoseCorrError
 
 CORR_COLUMNS = tuple("corr_" + name.split("_", 1)[1] for name in MEAS_POS + MEAS_QUAT)
 
 
 # The model computes in float32: nine significant digits carry all of it.
 _CORR_FORMAT = ",%.9g,%.9g,%.9g,%.9g,%.9g,%.9g,%.9g\n"
+
+
+def _refused_row(path: str, model: Any, chunk: Any, measured: np.ndarray, times: np.ndarray | None,
+                 corrector: Corrector, error: PoseCorrError) -> TableError:
+    """The table row a model refused. The runtime names the pose within its call (a chunk), so
+    the chunk's poses go through one by one to find the file's row; an input column it names
+    becomes the table's column."""
+    for i in range(len(measured)):
+        try:
+            corrector.correct(measured[i], t=None if times is None else times[i])
+        except PoseCorrError as one:
+            text = re.sub(r"\bpose 0\b", "the pose", str(one))   # it ran alone: its pose 0
+            found = re.search(r"in column (\d)", text)
+            column = (MEAS_POS + MEAS_QUAT)[int(found.group(1))] if found and "output" not in text else None
+            return TableError(path, f"{os.fspath(model)}: {text}", chunk.row_numbers[i], column)
+    return TableError(path, f"{os.fspath(model)}: {error}")
 
 
 def _line_writer(width: int):
@@ -93,7 +110,10 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                 measured = np.concatenate([chunk.block(MEAS_POS), chunk.block(MEAS_QUAT)], axis=1)
                 # A model with a time input gets the table's t (s since the session's start).
                 times = chunk.block(("t",))[:, 0] if corrector.takes_time and "t" in reader.header else None
-                corrected = corrector.correct(measured, t=times)
+                try:
+                    corrected = corrector.correct(measured, t=times)
+                except PoseCorrError as error:
+                    raise _refused_row(reader.path, model, chunk, measured, times, corrector, error) from None
                 handle.write("".join(line(row) + (_CORR_FORMAT % tuple(values))
                                      for row, values in zip(chunk.rows, corrected.tolist())))
                 if raw_sums is not None and corr_sums is not None:

@@ -33,27 +33,24 @@ ROUNDS = 5
 
 def demo_physics_pmc(path: Path) -> int:
     """Fits and exports the demo's physics + PMC (zhou) pipeline; returns its node count."""
-    from .demo import PHYSICS
+    from .demo import physics_pmc
     from .simulate import simulate
-    from .train.pipeline import CorrectionPipeline
-    from .train.pmc import PMC
     from .train.protocol import split_indices
 
     data = simulate(3, seed=0).table
     train, val, _ = split_indices(data.n, 0)
     rows = np.sort(np.concatenate([train, val]))
-    model = CorrectionPipeline(PHYSICS, PMC(representation="zhou")).fit(
-        data.measured[rows], data.reference[rows])
+    model = physics_pmc().fit(data.measured[rows], data.reference[rows])
     return model.to_onnx(path, measured=data.measured[rows], reference=data.reference[rows])["n_nodes"]
 
 
 def shim_single_pose_us(path: Path, rounds: int = ROUNDS, n: int = 2000) -> float:
     """Best round's mean time of `Corrector.correct` on one float64 pose, in us."""
     from .controller.runtime import Corrector
-    from .latency import _poses
+    from .latency import sample_poses
 
     corrector = Corrector(path, backend="c")
-    poses = [p.astype(np.float64) for p in _poses(n)]
+    poses = [p.astype(np.float64) for p in sample_poses(n)]
     best = float("inf")
     for _ in range(rounds):
         start = time.perf_counter()

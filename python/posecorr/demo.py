@@ -20,6 +20,14 @@ from .rotations import REPRESENTATIONS
 PHYSICS = ("mount", "sweep", "range_scale", "incidence", "station")
 
 
+def physics_pmc() -> Any:
+    """The demo's physics pipeline: the PHYSICS effects, then a zhou PMC (unfitted)."""
+    from .train.pipeline import CorrectionPipeline
+    from .train.pmc import PMC
+
+    return CorrectionPipeline(PHYSICS, PMC(representation="zhou"))
+
+
 def run(out_dir: str | Path = "out/demo", seed: int = 0, mlp_hidden: tuple[int, ...] = (20, 20),
         mlp_epochs: int = 100, log: Callable[[str], None] = print) -> dict[str, Any]:
     from .controller.runtime import Corrector
@@ -29,7 +37,6 @@ def run(out_dir: str | Path = "out/demo", seed: int = 0, mlp_hidden: tuple[int, 
     from .simulate import simulate
     from .textui import table
     from .train.mlp import MLP
-    from .train.pipeline import CorrectionPipeline
     from .train.pmc import PMC
     from .train.protocol import split_indices
 
@@ -53,8 +60,7 @@ def run(out_dir: str | Path = "out/demo", seed: int = 0, mlp_hidden: tuple[int, 
         jobs.append((f"mlp-{rep}-tansig-{arch}-br", rep, lambda rep=rep: MLP(
             representation=rep, hidden=mlp_hidden, activation="tansig", trainer="br", epochs=mlp_epochs,
             random_state=seed).fit(M[train], R[train])))
-    jobs.append(("physics+pmc-zhou", "zhou", lambda: CorrectionPipeline(PHYSICS, PMC(representation="zhou"))
-                 .fit(M[fit_rows], R[fit_rows])))
+    jobs.append(("physics+pmc-zhou", "zhou", lambda: physics_pmc().fit(M[fit_rows], R[fit_rows])))
 
     rows, results = [], {}
     for name, rep, fit in jobs:

@@ -29,7 +29,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["bench_model", "machine_description", "bench_binary", "c_bench", "reference_bench"]
+__all__ = ["bench_model", "machine_description", "bench_binary", "c_bench", "reference_bench", "sample_poses"]
 
 _KEYS = ("c", "shim", "onnxruntime", "onnxruntime_iobinding")
 
@@ -47,7 +47,8 @@ def machine_description() -> str:
            f"python {platform.python_version()}; numpy {np.__version__}"
 
 
-def _poses(n: int, seed: int = 0) -> np.ndarray:
+def sample_poses(n: int, seed: int = 0) -> np.ndarray:
+    """n float32 poses around Experiment III's workspace (-0.6, 0.5) m, uniform rotations."""
     rng = np.random.default_rng(seed)
     p = rng.uniform(-0.3, 0.3, (n, 3)) + np.array([0.0, -0.6, 0.5])
     q = rng.standard_normal((n, 4))
@@ -141,7 +142,7 @@ def reference_bench(path: str | os.PathLike, n_single: int = 20000, batch: int =
 def bench_model(path: str | os.PathLike, n_single: int = 100000, batch: int = 10000) -> dict:
     """Benchmarks one model on every available back-end (layout: see module doc)."""
     path = Path(path)
-    poses = _poses(max(batch, 1000))
+    poses = sample_poses(max(batch, 1000))
     single_poses = poses[:1000]
     med: dict[str, float | None] = {k: None for k in _KEYS}
     p99: dict[str, float | None] = {k: None for k in _KEYS}

@@ -1,8 +1,8 @@
 """Apply an exported posecorr corrector (.onnx) from Python.
 
 `Corrector(path, backend="c")` runs the model through libposecorr (the dependency-free C
-runtime) via ctypes; `backend="onnxruntime"` runs the same file through onnxruntime, with
-the same API. Only numpy and ctypes are imported here; onnxruntime is imported lazily.
+runtime) via ctypes, a single pose through the optional extension `_call1` when it was
+built; `backend="onnxruntime"` runs the same file through onnxruntime, with the same API. Only numpy and ctypes are imported here; onnxruntime is imported lazily.
 
 Outputs are float64 arrays of the caller's shape ((7,) or (N, 7)); the model computes in
 float32, so values carry float32 precision. A model with a time-dependent effect (drift)

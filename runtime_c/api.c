@@ -1,9 +1,8 @@
-/* The public load entry points and accessors. Every load runs pc_load_impl: decode the
- * file (onnx.c), run the graph passes (passes.c), plan (plan.c), then the checks that
- * need a built model: rows must be independent, and the metadata the pose checks of
- * pc_run use. */
+/* The public load entry points and accessors. Every load runs pc_load_impl: scan the
+ * graph (graph.c), plan (plan.c), then the checks that need a built model: rows must be
+ * independent, and the metadata the pose checks of pc_run use. */
+#include "graph.h"
 #include "load.h"
-#include "passes.h"
 #include "plan.h"
 
 #include <math.h>
@@ -166,18 +165,20 @@ pc_status pc_load_impl(const void *data, size_t size, const pc_options *opts, in
     b.file_size = size;
     b.any_io = any_io;
     b.cpu_avx2 = -1;
+    b.in_place = opts && (opts->flags & PC_LOAD_IN_PLACE);
     if (buf)
         pc_scratch_use_buffer(&b.scratch, buf, buf_size);
-    st = onnx_parse_model(&b);
-    if (st == PC_OK)
-        st = pc_run_passes(&b);
+    st = pc_scan_graph(&b);
     if (st == PC_OK)
         st = pc_plan_build(&b, opts, buf, buf_size, model);
     if (st == PC_ERR_MEMORY && buf && err->status == PC_ERR_MEMORY)
         pc_fail(err, st, "the %zu-byte buffer is too small for this model (pc_required_bytes)",
                 buf_size);
-    if (scratch_used)
-        *scratch_used = b.scratch.peak;
+    /* Scratch alone before the arena is placed, scratch beside the arena after. */
+    if (scratch_used && st == PC_OK)
+        *scratch_used = b.peak_unplaced > b.scratch.peak + (*model)->arena_bytes
+                            ? b.peak_unplaced - (*model)->arena_bytes
+                            : b.scratch.peak;
     pc_scratch_release(&b.scratch);
     if (st == PC_OK && !any_io && ((st = pc_read_checks(*model, err)) != PC_OK ||
                                    (st = pc_check_rows(*model, err)) != PC_OK)) {

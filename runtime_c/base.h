@@ -12,7 +12,13 @@
 #define PC_MAX_RANK 6
 /* The optional second input of the pose contract: float32 [N], s since the session's start. */
 #define PC_TIME_INPUT "t"
+/* Alignment of every load-time allocation and arena region: an AVX register where the
+ * dense kernels have AVX copies, a double elsewhere (small targets count their bytes). */
+#if defined(__x86_64__) || defined(_M_X64)
 #define PC_ALIGN 32
+#else
+#define PC_ALIGN 8
+#endif
 
 /* Fills err (may be NULL) with status and a printf-style message; returns status. */
 pc_status pc_fail(pc_error *err, pc_status status, const char *fmt, ...)

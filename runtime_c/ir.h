@@ -1,5 +1,8 @@
-/* Layer 2, graph IR: the model under construction (values, nodes, names), filled by the
- * ONNX decoder and transformed by the passes, the operators and the planner. */
+/* Layer 2, the model under load: one decoded node at a time, the records of the values a
+ * plan pass holds (only those alive at the node being planned: a graph of hundreds of
+ * nodes holds a few dozen at once), and the compact arrays the graph scan leaves for the
+ * passes (who reads what, until when). Filled by the ONNX decoder and the scan, read by
+ * the operators and the planner. */
 #ifndef PC_IR_H
 #define PC_IR_H
 
@@ -15,91 +18,120 @@ typedef enum pc_dtype {
 size_t pc_dtype_size(int dtype);
 const char *pc_dtype_name(int dtype);
 
+/* A node input as the scan resolved it: kind in the top two bits, index below. The
+ * outputs of all nodes are numbered in file order ("ordinals"). */
+enum { PC_REF_NONE = 0, PC_REF_OUTPUT = 1, PC_REF_INIT = 2, PC_REF_INPUT = 3 };
+#define PC_REF(kind, index) ((uint16_t)((unsigned)(kind) << 14 | (unsigned)(index)))
+#define PC_REF_KIND(r) ((unsigned)(r) >> 14)
+#define PC_REF_INDEX(r) ((unsigned)(r) & 0x3fffu)
+#define PC_MAX_INDEX 0x3fffu
+/* last_use of an output nothing reads, and of one the graph returns. */
+#define PC_USE_NONE 0xffffu
+#define PC_USE_FOREVER 0xfffeu
+#define PC_MAX_NODES 0xfff0u
+
+/* A value of a plan pass (or of the scan's folding): its type and shape, where it is. */
 typedef struct pc_value {
-    pb_slice name;
     int dtype;          /* 0 until known */
     int rank;
     int64_t dims[PC_MAX_RANK];
     size_t count;
-    void *cdata;        /* constant contents (scratch), NULL for run-time values */
-    int producer;       /* node index, -1 for graph input / initializer */
-    int consumers;      /* live, unfolded consumers (+1 for a graph output) */
-    /* planner bookkeeping, per plan */
-    int32_t alias;      /* value whose storage this one shares, or -1 */
-    int32_t def, last;  /* step index of definition and last use */
-    size_t offset;      /* offset in the activation region */
-    int32_t const_slot; /* -1 until placed in the constant region */
-    size_t const_offset;
+    void *cdata;        /* constant contents, NULL for run-time values */
+    int32_t ckey;       /* constants: placement key (pc_const_key), -1 for none */
+    int32_t ordinal;    /* the node output it is, -1 otherwise */
+    uint16_t last;      /* index of the last node reading it, or PC_USE_* */
+    uint8_t used;       /* the record is taken */
+    uint8_t input;      /* a graph input: lives for the whole plan */
+    int32_t block;      /* activation block holding it, -1 for none */
+    int32_t *elems;     /* one-pose program being built: where each element is */
 } pc_value;
 
+/* One NodeProto, decoded for the moment it is looked at. */
 typedef struct pc_node {
     pb_slice name, op_type, domain;
+    uint32_t index;     /* position in the file */
     int op;
     uint32_t n_in, n_out, n_attr;
-    int32_t *in;        /* value ids, -1 for an omitted optional input */
-    int32_t *out;
     pb_slice *attr;     /* AttributeProto messages, decoded on demand */
     pb_slice *in_names, *out_names;
-    int live, folded, fused_away;
-    int act;            /* pc_act (kernels.h) fused into this node */
+    int act;            /* pc_act (kernels.h) fused into this node by the scan */
     float act_lo, act_hi;
 } pc_node;
 
-typedef struct pc_meta {
-    pb_slice key, value;
-} pc_meta;
-
-/* A graph input or output: value id and declared type (inputs: the shape they get). */
+/* A graph input or output: declared type and shape, what it is in the graph. */
 typedef struct pc_io {
     pb_slice name;
-    int32_t id;
     int dtype;
     int rank;
     int64_t dims[PC_MAX_RANK];
+    uint16_t ref;       /* PC_REF_INPUT k, or (outputs) what the graph returns */
 } pc_io;
 
-/* A constant the operators derived from another (a transposed weight, ...), kept once
- * for all plans. */
-typedef struct pc_derived {
-    int32_t src;
-    int kind;
-    int32_t id;
-} pc_derived;
+/* A node output the scan folded into a constant. */
+typedef struct pc_const pc_const;
+struct pc_const {
+    pc_const *next;
+    uint32_t ordinal;
+    int dtype, rank;
+    int64_t dims[PC_MAX_RANK];
+    size_t count;
+    void *data;
+};
 
+/* The load: the file, what the scan found, and the records of the current pass. */
 typedef struct pc_builder {
     pc_scratch scratch;
     pc_error *err;
     const uint8_t *file;
     size_t file_size;
+    int any_io;         /* 0: the pose contract; 1: any names, static shapes (tests) */
+    int in_place;       /* the file outlives the model: constants may be used where they lie */
     int64_t opset;
-    /* 0: the pose contract (one input 'pose' [N,7], one output 'corrected'); 1: any
-     * named inputs and outputs of static shape (the ONNX conformance tests only). */
-    int any_io;
-    pc_node *nodes;
-    size_t n_nodes;
-    pc_value *values;
-    size_t n_values, cap_values;
-    int32_t *order;     /* topological order of nodes */
-    pc_meta *meta;
-    size_t n_meta;
-    int32_t *hash;      /* name -> value id, open addressing */
-    size_t hash_cap;
+    pb_slice graph;
+    /* graph scan (graph.c) */
+    uint32_t n_nodes, n_ordinals, n_inits, n_refs;
+    uint16_t *node_in0, *node_out0;  /* n_nodes + 1: first ref and first ordinal of a node */
+    uint16_t *in_ref;                /* every node input, resolved */
+    uint16_t *last_use;              /* per ordinal */
+    uint8_t *node_op;                /* per node: operator, or PC_NODE_SKIP */
+    uint8_t *node_act;               /* per node: pc_act fused in */
+    struct pc_clip_bounds *clips;    /* bounds of the fused Clips */
+    pb_slice *inits;                 /* TensorProto of each initializer */
     pc_io *inputs, *outputs;
     size_t n_inputs, n_outputs;
-    pc_derived *derived;
-    size_t n_derived, cap_derived;
-    int cpu_avx2;       /* -1 until asked */
+    pc_const *consts;                /* folded outputs, newest first */
+    size_t max_live;                 /* most run-time values alive at once */
+    /* plan pass (plan.c): records */
+    pc_value *values;
+    size_t cap_values;
+    int cpu_avx2;                    /* -1 until asked */
+    size_t peak_unplaced;            /* scratch peak before the arena was placed */
 } pc_builder;
 
-/* Room for cap values and their names. */
-pc_status pc_ir_reserve(pc_builder *b, size_t cap);
-int32_t pc_lookup(const pc_builder *b, pb_slice name);
-pc_status pc_new_value(pc_builder *b, pb_slice name, int32_t *id);
-/* A constant value with zeroed contents of the given type and shape. */
-pc_status pc_alloc_const(pc_builder *b, pb_slice name, int dtype, int rank,
-                         const int64_t *dims, int32_t *id);
-int32_t pc_find_derived(const pc_builder *b, int32_t src, int kind);
-pc_status pc_add_derived(pc_builder *b, int32_t src, int kind, int32_t id);
-int pc_is_output(const pc_builder *b, int32_t id);
+/* The bounds of a Clip the scan fused into Gemm node `node`. */
+typedef struct pc_clip_bounds {
+    struct pc_clip_bounds *next;
+    uint32_t node;
+    float lo, hi;
+} pc_clip_bounds;
+
+/* Scan flags in node_op: the node is skipped by every plan (dead, folded, fused away). */
+#define PC_NODE_SKIP 0xffu
+
+/* Placement keys of constants: initializer k is k, the folded output of ordinal o is
+ * n_inits + o. */
+int32_t pc_key_ordinal(const pc_builder *b, uint32_t ordinal);
+
+/* Records: a free one (zeroed, ids stay valid until released), and its release. */
+pc_status pc_value_new(pc_builder *b, int32_t *id);
+void pc_value_release(pc_builder *b, int32_t id);
+/* A record holding constant data (shape and type given, data owned by the caller). */
+pc_status pc_value_const(pc_builder *b, int dtype, int rank, const int64_t *dims, void *data,
+                         int32_t key, int32_t *id);
+/* The folded output of ordinal o, or NULL. */
+const pc_const *pc_const_find(const pc_builder *b, uint32_t ordinal);
+/* Adds the folded output of ordinal o with zeroed data on the keep end. */
+pc_status pc_const_add(pc_builder *b, uint32_t ordinal, int dtype, int rank, const int64_t *dims,
+                       pc_const **c);
 
 #endif

@@ -81,32 +81,10 @@ PC_FLOAT_UNARY_OPS(PC_DEFINE_UNARY)
 /* One-pose plans spend more time launching small steps than computing them: their
  * element operations run here, each the same IEEE operation as its kernel. Operands are
  * byte offsets from one base, so an op costs its loads, its arithmetic and its store. */
-static int32_t pc_bind_ref(int32_t ref, void *const *io, const char *constants,
-                           const char *base)
-{
-    const uint32_t slot = (uint32_t)ref >> 16;
-    const char *at = slot == PC_SOP_CONSTANTS ? constants : (const char *)io[slot];
-    return (int32_t)(at + (ref & 0xffff) - base);
-}
 
-void pc_scalar_program_bind(pc_scalar_program *q, void *const *io)
-{
-    const char *const base = (const char *)io[0], *const constants = (const char *)q->k;
-    size_t k;
-    q->k[0] = 0.0f;
-    q->k[1] = 1.0f;
-    for (k = 0; k < q->n_ops; k++) {
-        pc_scalar_op *op = &q->ops[k];
-        op->a = pc_bind_ref(op->a, io, constants, base);
-        op->b = pc_bind_ref(op->b, io, constants, base);
-        op->c = pc_bind_ref(op->c, io, constants, base);
-        op->o = pc_bind_ref(op->o, io, constants, base);
-    }
-}
-
-/* A group's loop over its operations, op left past the group. */
+/* A group's loop over its entries, op left past the group. */
 #define PC_EACH(STMT)                                                                          \
-    for (last = op + op->n; op < last; op++) {                                                 \
+    for (; op < last; op++) {                                                                  \
         STMT;                                                                                  \
     }
 /* One case per element operation; the float arithmetic comes from the kernels' own list. */
@@ -127,14 +105,15 @@ void pc_scalar_program_bind(pc_scalar_program *q, void *const *io)
     PC_CASE(PC_SOP_WHERE, PC_EACH(F(o) = B(c) ? F(a) : F(b)))                                  \
     /* the bits, as the copy kernels move them */                                              \
     PC_CASE(PC_SOP_COPY, PC_EACH(memcpy(base + op->o, base + op->a, 4)))                       \
-    /* dot products, each a DOT and its DOT_TERMs */                                           \
-    PC_CASE(PC_SOP_DOT, for (last = op + op->n; op < last;) {                                  \
+    PC_CASE(PC_SOP_COPY1, PC_EACH(B(o) = B(a)))                                                \
+    /* dot products: a DOT entry and its terms */                                              \
+    PC_CASE(PC_SOP_DOT, while (op < last) {                                                    \
         float acc = F(c);                                                                      \
         const int32_t o = op->o;                                                               \
         do {                                                                                   \
             acc += F(a) * F(b);                                                                \
             op++;                                                                              \
-        } while (op < last && op->code == PC_SOP_DOT_TERM);                                    \
+        } while (op < last && op->o == PC_DOT_TERM);                                           \
         *(float *)(base + o) = acc;                                                            \
     })
 
@@ -148,7 +127,10 @@ pc_status k_scalar_program(const pc_step *s)
     char *const base = (char *)s->io[0];
     const pc_scalar_op *op = q->ops, *const end = q->ops + q->n_ops, *last;
     while (op < end) {
-        switch (op->code) {
+        const int32_t code = op->a;
+        last = op + 1 + op->b;
+        op++;
+        switch (code) {
             PC_SOP_CASES
         default:
             return PC_ERR_RUNTIME;
@@ -158,6 +140,34 @@ pc_status k_scalar_program(const pc_step *s)
 }
 #undef F
 #undef B
+
+/* The same cases on four-byte values: slot[0..2] are a, b and c, slot[3] the result. */
+uint32_t pc_sop_eval(int code, uint32_t a, uint32_t b, uint32_t c)
+{
+    float slot[4] = {0.0f, 0.0f, 0.0f, 0.0f};
+    char *const base = (char *)slot;
+    pc_scalar_op one, *op = &one;
+    const pc_scalar_op *last = op + 1;
+    uint32_t out = 0;
+    memcpy(&slot[0], &a, 4);
+    memcpy(&slot[1], &b, 4);
+    memcpy(&slot[2], &c, 4);
+    one.a = 0;
+    one.b = 4;
+    one.c = 8;
+    one.o = 12;
+#define F(r) (*(float *)(base + op->r))
+#define B(r) (*(uint8_t *)(base + op->r))
+    switch (code) {
+        PC_SOP_CASES
+    default:
+        break;
+    }
+#undef F
+#undef B
+    memcpy(&out, &slot[3], 4);
+    return out;
+}
 #undef PC_EACH
 #undef PC_CASE
 #undef PC_BINARY_CASE
@@ -221,8 +231,8 @@ pc_status k_concat(const pc_step *s)
     return PC_OK;
 }
 
-/* Gather of 4-byte elements along the innermost axis with constant indices, normalised
- * and range-checked at load: [outer, len] -> [outer, n_idx]. */
+/* Gather of 4-byte elements along the innermost axis with constant indices, range-checked
+ * at load (a negative one counts from the end): [outer, len] -> [outer, n_idx]. */
 pc_status k_gather_cols_4(const pc_step *s)
 {
     const pc_gather *q = (const pc_gather *)s->prm;
@@ -232,14 +242,14 @@ pc_status k_gather_cols_4(const pc_step *s)
     const size_t outer = q->outer, len = q->len, n_idx = q->n_idx;
     size_t o, j;
     if (n_idx == 1) {
-        const uint32_t *restrict a = A + I[0];
+        const uint32_t *restrict a = A + (I[0] < 0 ? I[0] + (int64_t)len : I[0]);
         for (o = 0; o < outer; o++)
             O[o] = a[o * len];
         return PC_OK;
     }
     for (o = 0; o < outer; o++, A += len, O += n_idx)
         for (j = 0; j < n_idx; j++)
-            O[j] = A[I[j]];
+            O[j] = A[I[j] < 0 ? I[j] + (int64_t)len : I[j]];
     return PC_OK;
 }
 

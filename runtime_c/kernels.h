@@ -19,7 +19,7 @@ struct pc_step {
     size_t n;           /* element count of output 0 */
 };
 
-/* Activations a dense kernel applies to its result (fused by the graph passes). */
+/* Activations a dense kernel applies to its result (fused by the graph scan). */
 typedef enum pc_act {
     PC_ACT_NONE = 0,
     PC_ACT_TANH,
@@ -160,10 +160,12 @@ typedef struct pc_reduce {
 #define PC_MIN_EXPR(a, b) (((a) != (a) || (b) != (b)) ? (a) + (b) : (a) < (b) ? (a) : (b))
 
 /* One-pose programs (built by the planner, program.c): the small steps of a one-pose
- * plan flattened into element operations, interpreted in one launch. Each op reads the
+ * plan flattened into element operations, interpreted in one launch. An entry reads the
  * elements at byte offsets a, b, c from the step's io[0] and writes the one at o; the
- * arithmetic is the kernels' own, so results are the steps' bit for bit. Codes start at
- * 1: 0 in pc_prep.sop means "no element form". */
+ * arithmetic is the kernels' own, so results are the steps' bit for bit. Entries come in
+ * groups of one code, each after a header entry {a = code, b = entries of the group}. A
+ * DOT entry starts o = c + a b; the entries after it whose o is PC_DOT_TERM add their
+ * a b, in order. Codes start at 1: 0 means "no element form". */
 enum {
     PC_SOP_NONE = 0,
     PC_SOP_ADD, PC_SOP_SUB, PC_SOP_MUL, PC_SOP_DIV, PC_SOP_MAX, PC_SOP_MIN,
@@ -172,33 +174,30 @@ enum {
     PC_SOP_ATAN, PC_SOP_TANH, PC_SOP_SIGMOID, PC_SOP_RELU,
     PC_SOP_WHERE,    /* c (bool) ? a : b */
     PC_SOP_COPY,     /* the 4 bytes at a */
-    PC_SOP_DOT,      /* o = c + a b + (the following DOT_TERMs' a b) ..., in order */
-    PC_SOP_DOT_TERM,
+    PC_SOP_COPY1,    /* the byte at a (a bool) */
+    PC_SOP_DOT,      /* o = c + a b + (the terms after it) */
     PC_SOP_COUNT
 };
 
 /* Unary codes lie in [PC_SOP_NEG, PC_SOP_RELU]; binary ones before, bool-valued in
  * [PC_SOP_EQ, PC_SOP_LE]. */
 #define PC_SOP_IS_BINARY(c) ((c) >= PC_SOP_ADD && (c) <= PC_SOP_LE)
+#define PC_SOP_IS_BOOL(c) ((c) >= PC_SOP_EQ && (c) <= PC_SOP_LE)
+#define PC_DOT_TERM INT32_MIN
 
-/* Operations of one code come in groups; n is the group's length on its first op. */
 typedef struct pc_scalar_op {
-    int32_t code, n, a, b, c, o;
+    int32_t a, b, c, o;
 } pc_scalar_op;
 
 typedef struct pc_scalar_program {
     size_t n_ops;
-    float k[2];          /* 0 and 1: a sum's start, a term that is not a product */
     pc_scalar_op ops[1]; /* n_ops entries; allocated longer */
 } pc_scalar_program;
 
-/* While planning, an operand is PC_SOP_REF(slot, byte offset in that io slot's value),
- * or in slot PC_SOP_CONSTANTS of k[]; bound, it is the byte offset from io[0]. */
-#define PC_SOP_REF(slot, off) ((int32_t)((slot) << 16 | (off)))
-#define PC_SOP_CONSTANTS 0x7fff
-void pc_scalar_program_bind(pc_scalar_program *q, void *const *io);
-
 pc_status k_scalar_program(const pc_step *s);
+/* Element operation `code` (not DOT) on the four bytes of each operand: what the program
+ * computes, computed while it is built (an operation whose operands are all constants). */
+uint32_t pc_sop_eval(int code, uint32_t a, uint32_t b, uint32_t c);
 
 /* The hot float elementwise operators, X(kernel, element operation, expression of a and
  * b): one list makes the kernels (a table per layout for the binary ones, kernels.c) and

@@ -1,28 +1,20 @@
-/* ONNX decoding: the protobuf messages of a model into the graph IR. Names are resolved,
- * initializers decoded, and the pose contract (or, for the conformance tests, static
- * input shapes) checked here; operators are looked at later, by the passes. */
+/* ONNX decoding, one message at a time: the model's top level, the graph's inputs and
+ * outputs against the pose contract (or, for the conformance tests, static shapes), a
+ * node, a tensor, an attribute. Names are matched by the scan (graph.c), operators are
+ * looked at by the scan and the planner. */
 #include "onnx.h"
 
 #include <string.h>
 
-#define PC_NAME(s) (int)(s).size, (const char *)(s).data
 
 /* ---- TensorProto ------------------------------------------------------------------ */
 
-typedef struct onnx_tensor {
-    int64_t dims[PC_MAX_RANK];
-    size_t rank, n_float, n_int32, n_int64;
-    int64_t data_type;
-    pb_slice name, raw;
-    int has_raw;
-} onnx_tensor;
-
-static pc_status onnx_tensor_header(const pc_builder *b, pb_slice msg, onnx_tensor *t)
+pc_status onnx_tensor_header(const pc_builder *b, pb_slice msg, onnx_tensor *t)
 {
     pb_reader r;
     pb_field f;
     pc_status st;
-    size_t k, n;
+    size_t k, n, esize, have;
     int more;
     memset(t, 0, sizeof *t);
     pb_init(&r, b->file, msg);
@@ -66,98 +58,113 @@ static pc_status onnx_tensor_header(const pc_builder *b, pb_slice msg, onnx_tens
         default: break;
         }
     }
-    return more == PB_ERROR ? r.status : PC_OK;
+    if (more == PB_ERROR)
+        return r.status;
+    t->count = 1;
+    for (k = 0; k < t->rank; k++) {
+        if (!pc_mul_count(&t->count, t->dims[k], PC_MAX_ELEMENTS))
+            return pc_fail(b->err, PC_ERR_MALFORMED, "tensor '%.*s' has an invalid shape",
+                           PC_NAME(t->name));
+    }
+    switch (t->data_type) {
+    case ONNX_FLOAT: t->dtype = PC_F32; break;
+    case ONNX_INT32: case ONNX_INT64: t->dtype = PC_I64; break;
+    case ONNX_BOOL: t->dtype = PC_BOOL; break;
+    default:
+        return pc_fail(b->err, PC_ERR_UNSUPPORTED, "tensor '%.*s' has unsupported data type %lld",
+                       PC_NAME(t->name), (long long)t->data_type);
+    }
+    /* The payload against the shape, before anything is allocated for it. */
+    esize = t->data_type == ONNX_INT32 ? 4 : pc_dtype_size(t->dtype);
+    if (t->has_raw) {
+        if (t->raw.size != t->count * esize)
+            return pc_fail(b->err, PC_ERR_MALFORMED,
+                           "tensor '%.*s': raw_data has %zu bytes, shape needs %zu",
+                           PC_NAME(t->name), t->raw.size, t->count * esize);
+        return PC_OK;
+    }
+    have = t->dtype == PC_F32 ? t->n_float : t->data_type == ONNX_INT64 ? t->n_int64 : t->n_int32;
+    if (have != t->count)
+        return pc_fail(b->err, PC_ERR_MALFORMED, "tensor '%.*s' has %zu values, shape needs %zu",
+                       PC_NAME(t->name), have, t->count);
+    return PC_OK;
 }
 
-pc_status onnx_tensor_to_const(pc_builder *b, pb_slice msg, int32_t *id)
+/* Raw little-endian data the host reads as it lies: float32 or int64 at its alignment. */
+static int onnx_in_place(const onnx_tensor *t)
 {
-    onnx_tensor t;
+    const uint16_t one = 1;
+    const size_t esize = pc_dtype_size(t->dtype);
+    uint8_t little;
+    memcpy(&little, &one, 1);
+    return little && t->has_raw && (t->data_type == ONNX_FLOAT || t->data_type == ONNX_INT64) &&
+           ((uintptr_t)t->raw.data % esize) == 0;
+}
+
+pc_status onnx_tensor_data(pc_builder *b, pb_slice msg, const onnx_tensor *t, int end,
+                           void **data)
+{
     pb_reader r;
     pb_field f;
     pc_status st;
-    size_t k, count = 1, n = 0, esize;
-    int dtype, more;
-    pc_value *v;
-    if ((st = onnx_tensor_header(b, msg, &t)) != PC_OK)
-        return st;
-    for (k = 0; k < t.rank; k++) {
-        if (!pc_mul_count(&count, t.dims[k], PC_MAX_ELEMENTS))
-            return pc_fail(b->err, PC_ERR_MALFORMED, "tensor '%.*s' has an invalid shape",
-                           PC_NAME(t.name));
+    size_t k, n = 0;
+    int more;
+    void *v;
+    if (onnx_in_place(t)) {
+        *data = (void *)t->raw.data;
+        return PC_OK;
     }
-    switch (t.data_type) {
-    case ONNX_FLOAT: dtype = PC_F32; break;
-    case ONNX_INT32: case ONNX_INT64: dtype = PC_I64; break;
-    case ONNX_BOOL: dtype = PC_BOOL; break;
-    default:
-        return pc_fail(b->err, PC_ERR_UNSUPPORTED, "tensor '%.*s' has unsupported data type %lld",
-                       PC_NAME(t.name), (long long)t.data_type);
-    }
-    /* Check the payload size against the shape before allocating anything. */
-    esize = t.data_type == ONNX_INT32 ? 4 : pc_dtype_size(dtype);
-    if (t.has_raw) {
-        if (t.raw.size != count * esize)
-            return pc_fail(b->err, PC_ERR_MALFORMED,
-                           "tensor '%.*s': raw_data has %zu bytes, shape needs %zu",
-                           PC_NAME(t.name), t.raw.size, count * esize);
-    } else {
-        const size_t have = dtype == PC_F32 ? t.n_float
-                            : t.data_type == ONNX_INT64 ? t.n_int64 : t.n_int32;
-        if (have != count)
-            return pc_fail(b->err, PC_ERR_MALFORMED, "tensor '%.*s' has %zu values, shape needs %zu",
-                           PC_NAME(t.name), have, count);
-    }
-    if ((st = pc_alloc_const(b, t.name, dtype, (int)t.rank, t.dims, id)) != PC_OK)
-        return st;
-    v = &b->values[*id];
-    if (t.has_raw) {
-        if (t.data_type == ONNX_INT32) {
-            int64_t *o = (int64_t *)v->cdata;
-            for (k = 0; k < count; k++) {
-                const uint8_t *q = t.raw.data + 4 * k;
+    *data = v = pc_scratch_alloc(&b->scratch, end, t->count * pc_dtype_size(t->dtype) + 1);
+    if (!v)
+        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory for tensor '%.*s'", PC_NAME(t->name));
+    if (t->has_raw) {
+        if (t->data_type == ONNX_INT32) {
+            int64_t *o = (int64_t *)v;
+            for (k = 0; k < t->count; k++) {
+                const uint8_t *q = t->raw.data + 4 * k;
                 const uint32_t u = (uint32_t)q[0] | (uint32_t)q[1] << 8 | (uint32_t)q[2] << 16 |
                                    (uint32_t)q[3] << 24;
                 o[k] = (int64_t)(int32_t)u;
             }
-        } else if (dtype == PC_BOOL) {
-            uint8_t *o = (uint8_t *)v->cdata;
-            for (k = 0; k < count; k++)
-                o[k] = t.raw.data[k] != 0;
+        } else if (t->dtype == PC_BOOL) {
+            uint8_t *o = (uint8_t *)v;
+            for (k = 0; k < t->count; k++)
+                o[k] = t->raw.data[k] != 0;
         } else {
             /* raw_data is little-endian and may be unaligned in the file. */
-            memcpy(v->cdata, t.raw.data, t.raw.size);
+            memcpy(v, t->raw.data, t->raw.size);
         }
         return PC_OK;
     }
     pb_init(&r, b->file, msg);
     while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
         st = PC_OK;
-        if (dtype == PC_F32 && f.number == ONNX_TENSOR_FLOAT_DATA) {
-            st = pb_decode_repeated(b->file, &f, PB_FIXED32, NULL, (float *)v->cdata, count, &n,
+        if (t->dtype == PC_F32 && f.number == ONNX_TENSOR_FLOAT_DATA) {
+            st = pb_decode_repeated(b->file, &f, PB_FIXED32, NULL, (float *)v, t->count, &n,
                                     b->err);
-        } else if (dtype == PC_I64 && t.data_type == ONNX_INT64 &&
+        } else if (t->dtype == PC_I64 && t->data_type == ONNX_INT64 &&
                    f.number == ONNX_TENSOR_INT64_DATA) {
-            st = pb_decode_repeated(b->file, &f, PB_VARINT, (int64_t *)v->cdata, NULL, count,
-                                    &n, b->err);
-        } else if (dtype == PC_I64 && f.number == ONNX_TENSOR_INT32_DATA) {
+            st = pb_decode_repeated(b->file, &f, PB_VARINT, (int64_t *)v, NULL, t->count, &n,
+                                    b->err);
+        } else if (t->dtype == PC_I64 && f.number == ONNX_TENSOR_INT32_DATA) {
             const size_t from = n;
-            st = pb_decode_repeated(b->file, &f, PB_VARINT, (int64_t *)v->cdata, NULL, count,
-                                    &n, b->err);
+            st = pb_decode_repeated(b->file, &f, PB_VARINT, (int64_t *)v, NULL, t->count, &n,
+                                    b->err);
             for (k = from; st == PC_OK && k < n; k++) /* int32 varints are sign-extended */
-                ((int64_t *)v->cdata)[k] = (int64_t)(int32_t)((int64_t *)v->cdata)[k];
-        } else if (dtype == PC_BOOL && f.number == ONNX_TENSOR_INT32_DATA) {
+                ((int64_t *)v)[k] = (int64_t)(int32_t)((int64_t *)v)[k];
+        } else if (t->dtype == PC_BOOL && f.number == ONNX_TENSOR_INT32_DATA) {
             /* One element at a time, so that booleans land in a 1-byte buffer. */
             if (f.wire == PB_VARINT) {
-                if (n < count)
-                    ((uint8_t *)v->cdata)[n++] = f.varint != 0;
+                if (n < t->count)
+                    ((uint8_t *)v)[n++] = f.varint != 0;
             } else {
                 pb_reader rr;
                 uint64_t x;
                 pb_init(&rr, b->file, f.bytes);
                 while (st == PC_OK && rr.pos < rr.end) {
                     st = pb_read_varint(&rr, &x, b->err);
-                    if (st == PC_OK && n < count)
-                        ((uint8_t *)v->cdata)[n++] = x != 0;
+                    if (st == PC_OK && n < t->count)
+                        ((uint8_t *)v)[n++] = x != 0;
                 }
             }
         }
@@ -251,11 +258,14 @@ static int onnx_node_list(uint32_t number)
 }
 
 /* Two passes: the repeated fields are counted, then stored in one block. */
-static pc_status onnx_parse_node(pc_builder *b, pb_slice msg, pc_node *node)
+pc_status onnx_parse_node(pc_builder *b, pb_slice msg, uint32_t index, pc_node *node)
 {
     pb_reader r;
     pb_field f;
     int more, pass;
+    memset(node, 0, sizeof *node);
+    node->index = index;
+    node->op = -1;
     for (pass = 0; pass < 2; pass++) {
         uint32_t counts[3] = {0, 0, 0};
         pb_slice *const lists[3] = {node->in_names, node->out_names, node->attr};
@@ -282,13 +292,11 @@ static pc_status onnx_parse_node(pc_builder *b, pb_slice msg, pc_node *node)
             return r.status;
         if (!pass) {
             const uint32_t ni = counts[0], no = counts[1], na = counts[2];
+            pb_slice *slices;
             if (ni > 4096 || no > 16 || na > 256)
                 return pc_fail(b->err, PC_ERR_UNSUPPORTED,
                                "node '%.*s' has too many inputs or outputs", PC_NAME(node->name));
-            /* One block per node (slices first, then ids, so every part is aligned):
-             * scratch rounds each allocation up, and small graphs run on small targets. */
-            pb_slice *slices = pc_scratch_alloc(&b->scratch, (ni + no + na + 3) * sizeof(pb_slice) +
-                                                             (ni + no + 2) * sizeof(int32_t));
+            slices = pc_scratch_alloc(&b->scratch, PC_WORK, (ni + no + na + 3) * sizeof(pb_slice));
             if (!slices)
                 return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
             node->n_in = ni;
@@ -297,8 +305,6 @@ static pc_status onnx_parse_node(pc_builder *b, pb_slice msg, pc_node *node)
             node->in_names = slices;
             node->out_names = node->in_names + ni + 1;
             node->attr = node->out_names + no + 1;
-            node->in = (int32_t *)(node->attr + na + 1);
-            node->out = node->in + ni + 1;
         }
     }
     return PC_OK;
@@ -446,9 +452,26 @@ static pc_status onnx_check_output(pc_builder *b, pb_slice name, int64_t elem, c
 
 /* ---- GraphProto ------------------------------------------------------------------- */
 
-/* Graph inputs (IR < 4 lists initializers among them, which are not model inputs) and
- * outputs, checked against the contract. */
-static pc_status onnx_parse_io(pc_builder *b, pb_slice graph, size_t n_io)
+/* Whether name is one of the graph's initializers (IR < 4 lists them among the inputs). */
+static pc_status onnx_is_initializer(const pc_builder *b, pb_slice name, int *is)
+{
+    uint32_t k;
+    *is = 0;
+    for (k = 0; k < b->n_inits && !*is; k++) {
+        pb_reader r;
+        pb_field f;
+        int more;
+        pb_init(&r, b->file, b->inits[k]);
+        while ((more = pb_next(&r, &f, b->err)) == PB_FIELD)
+            if (f.number == ONNX_TENSOR_NAME && f.wire == PB_BYTES && pb_slice_same(f.bytes, name))
+                *is = 1;
+        if (more == PB_ERROR)
+            return r.status;
+    }
+    return PC_OK;
+}
+
+pc_status onnx_parse_io(pc_builder *b, size_t n_io)
 {
     pb_reader r;
     pb_field f;
@@ -456,26 +479,32 @@ static pc_status onnx_parse_io(pc_builder *b, pb_slice graph, size_t n_io)
     pb_slice name;
     int64_t elem;
     pc_io io;
-    int more;
-    b->inputs = pc_scratch_alloc(&b->scratch, (n_io + 1) * sizeof(pc_io));
-    b->outputs = pc_scratch_alloc(&b->scratch, (n_io + 1) * sizeof(pc_io));
+    int more, is_init;
+    size_t k;
+    b->inputs = pc_scratch_alloc(&b->scratch, PC_KEEP, (n_io + 1) * sizeof(pc_io));
+    b->outputs = pc_scratch_alloc(&b->scratch, PC_KEEP, (n_io + 1) * sizeof(pc_io));
     if (!b->inputs || !b->outputs)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    pb_init(&r, b->file, graph);
+    pb_init(&r, b->file, b->graph);
     while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
         if (f.number != ONNX_GRAPH_INPUT && f.number != ONNX_GRAPH_OUTPUT)
             continue;
+        memset(&io, 0, sizeof io);
         if ((st = onnx_parse_value_info(b, f.bytes, &name, &elem, &io)) != PC_OK)
             return st;
         io.dtype = onnx_dtype(elem);
         io.name = name;
         if (f.number == ONNX_GRAPH_INPUT) {
-            if (pc_lookup(b, name) >= 0)
-                continue;
-            if ((st = onnx_check_input(b, name, elem, &io)) != PC_OK ||
-                (st = pc_new_value(b, name, &io.id)) != PC_OK)
+            if ((st = onnx_is_initializer(b, name, &is_init)) != PC_OK)
                 return st;
-            b->values[io.id].dtype = io.dtype;
+            for (k = 0; k < b->n_inputs && !is_init; k++)
+                is_init = pb_slice_same(b->inputs[k].name, name);
+            if (is_init)
+                continue;
+            if ((st = onnx_check_input(b, name, elem, &io)) != PC_OK)
+                return st;
+            if (b->n_inputs > PC_MAX_INDEX)
+                return pc_fail(b->err, PC_ERR_UNSUPPORTED, "graph has too many inputs");
             b->inputs[b->n_inputs++] = io;
             /* the pose contract keeps 'pose' first, 't' (if any) second */
             if (!b->any_io && b->n_inputs == 2 && pb_slice_eq(name, "pose")) {
@@ -485,16 +514,17 @@ static pc_status onnx_parse_io(pc_builder *b, pb_slice graph, size_t n_io)
         } else {
             if ((st = onnx_check_output(b, name, elem, &io)) != PC_OK)
                 return st;
-            io.id = -1;
             b->outputs[b->n_outputs++] = io;
         }
     }
     if (more == PB_ERROR)
         return r.status;
+    for (k = 0; k < b->n_inputs; k++)
+        b->inputs[k].ref = PC_REF(PC_REF_INPUT, k);
     if (b->any_io)
         return b->n_outputs ? PC_OK : pc_fail(b->err, PC_ERR_GRAPH, "graph has no output");
     /* names are checked above and repeated ones skipped: at most 'pose' and 't' */
-    if (b->n_inputs == 0 || !pb_slice_eq(b->values[b->inputs[0].id].name, "pose"))
+    if (b->n_inputs == 0 || !pb_slice_eq(b->inputs[0].name, "pose"))
         return pc_fail(b->err, PC_ERR_CONTRACT,
                        "model has no input 'pose', the contract needs 'pose' float32 [N,7] "
                        "and optionally 't' float32 [N]");
@@ -505,65 +535,14 @@ static pc_status onnx_parse_io(pc_builder *b, pb_slice graph, size_t n_io)
     return PC_OK;
 }
 
-/* Output names of the graph, resolved once every node output exists. */
-static pc_status onnx_resolve_outputs(pc_builder *b)
-{
-    size_t k;
-    for (k = 0; k < b->n_outputs; k++) {
-        b->outputs[k].id = pc_lookup(b, b->outputs[k].name);
-        if (b->outputs[k].id < 0)
-            return pc_fail(b->err, PC_ERR_GRAPH, "output '%.*s' is not produced by any node",
-                           PC_NAME(b->outputs[k].name));
-    }
-    return PC_OK;
-}
-
-static pc_status onnx_link_nodes(pc_builder *b)
-{
-    size_t i, j;
-    pc_status st;
-    /* Node outputs, then node inputs (nodes need not be sorted in the file). */
-    for (i = 0; i < b->n_nodes; i++) {
-        pc_node *node = &b->nodes[i];
-        for (j = 0; j < node->n_out; j++) {
-            node->out[j] = -1;
-            if (node->out_names[j].size == 0)
-                continue;
-            if (pc_lookup(b, node->out_names[j]) >= 0)
-                return pc_fail(b->err, PC_ERR_GRAPH, "tensor '%.*s' is produced twice (node '%.*s')",
-                               PC_NAME(node->out_names[j]), PC_NAME(node->name));
-            if ((st = pc_new_value(b, node->out_names[j], &node->out[j])) != PC_OK)
-                return st;
-            b->values[node->out[j]].producer = (int)i;
-        }
-    }
-    for (i = 0; i < b->n_nodes; i++) {
-        pc_node *node = &b->nodes[i];
-        for (j = 0; j < node->n_in; j++) {
-            if (node->in_names[j].size == 0) {
-                node->in[j] = -1;
-                continue;
-            }
-            node->in[j] = pc_lookup(b, node->in_names[j]);
-            if (node->in[j] < 0)
-                return pc_fail(b->err, PC_ERR_GRAPH,
-                               "input '%.*s' of node '%.*s' is not produced by any node",
-                               PC_NAME(node->in_names[j]), PC_NAME(node->name));
-        }
-    }
-    return PC_OK;
-}
-
-static pc_status onnx_parse_graph(pc_builder *b, pb_slice graph)
+pc_status onnx_graph_counts(pc_builder *b, uint32_t *nodes, uint32_t *inits, size_t *io)
 {
     pb_reader r;
     pb_field f;
-    pc_status st;
-    size_t n_nodes = 0, n_init = 0, n_io = 0, total_out = 0;
-    int32_t id;
     int more;
-
-    pb_init(&r, b->file, graph);
+    *nodes = *inits = 0;
+    *io = 0;
+    pb_init(&r, b->file, b->graph);
     while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
         if ((f.number == ONNX_GRAPH_NODE || f.number == ONNX_GRAPH_INITIALIZER ||
              f.number == ONNX_GRAPH_INPUT || f.number == ONNX_GRAPH_OUTPUT) &&
@@ -571,54 +550,35 @@ static pc_status onnx_parse_graph(pc_builder *b, pb_slice graph)
             return pc_fail(b->err, PC_ERR_MALFORMED, "graph field %lu at byte %zu is not bytes",
                            (unsigned long)f.number, f.offset);
         if (f.number == ONNX_GRAPH_NODE)
-            n_nodes++;
+            ++*nodes;
         else if (f.number == ONNX_GRAPH_INITIALIZER)
-            n_init++;
+            ++*inits;
         else if (f.number == ONNX_GRAPH_INPUT || f.number == ONNX_GRAPH_OUTPUT)
-            n_io++;
+            ++*io;
         else if (f.number == ONNX_GRAPH_SPARSE_INITIALIZER)
             return pc_fail(b->err, PC_ERR_UNSUPPORTED, "sparse initializers are not supported");
+        if (*nodes > PC_MAX_NODES || *inits > PC_MAX_INDEX)
+            return pc_fail(b->err, PC_ERR_UNSUPPORTED, "graph too large");
     }
-    if (more == PB_ERROR)
-        return r.status;
-    if (n_nodes > 100000 || n_init > 100000)
-        return pc_fail(b->err, PC_ERR_UNSUPPORTED, "graph too large");
-    b->nodes = pc_scratch_alloc(&b->scratch, (n_nodes + 1) * sizeof(pc_node));
-    if (!b->nodes)
-        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    pb_init(&r, b->file, graph);
-    while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
-        if (f.number == ONNX_GRAPH_NODE) {
-            pc_node *node = &b->nodes[b->n_nodes++];
-            if ((st = onnx_parse_node(b, f.bytes, node)) != PC_OK)
-                return st;
-            total_out += node->n_out;
-        }
-    }
-    if (more == PB_ERROR)
-        return r.status;
-    /* Values: initializers, the inputs, node outputs, and the constants the operators
-     * derive (a Constant's value, a transposed Gemm weight, ...: at most one per node). */
-    if ((st = pc_ir_reserve(b, n_init + n_io + total_out + n_nodes + 16)) != PC_OK)
-        return st;
-    pb_init(&r, b->file, graph);
-    while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
-        if (f.number != ONNX_GRAPH_INITIALIZER)
-            continue;
-        if ((st = onnx_tensor_to_const(b, f.bytes, &id)) != PC_OK)
-            return st;
-        if (b->values[id].name.size == 0)
-            return pc_fail(b->err, PC_ERR_MALFORMED, "initializer at byte %zu has no name",
-                           f.offset);
-        if (pc_lookup(b, b->values[id].name) != id)
-            return pc_fail(b->err, PC_ERR_GRAPH, "duplicate initializer '%.*s'",
-                           PC_NAME(b->values[id].name));
-    }
-    if (more == PB_ERROR)
-        return r.status;
-    if ((st = onnx_parse_io(b, graph, n_io)) != PC_OK || (st = onnx_link_nodes(b)) != PC_OK)
-        return st;
-    return onnx_resolve_outputs(b);
+    return more == PB_ERROR ? r.status : PC_OK;
+}
+
+static int onnx_next_field(const pc_builder *b, pb_reader *r, uint32_t number, pb_field *f)
+{
+    int more;
+    while ((more = pb_next(r, f, b->err)) == PB_FIELD)
+        if (f->number == number && f->wire == PB_BYTES)
+            return PB_FIELD;
+    return more;
+}
+
+int onnx_next_node(const pc_builder *b, pb_reader *r, pb_slice *msg)
+{
+    pb_field f;
+    const int more = onnx_next_field(b, r, ONNX_GRAPH_NODE, &f);
+    if (more == PB_FIELD)
+        *msg = f.bytes;
+    return more;
 }
 
 /* ---- ModelProto ------------------------------------------------------------------- */
@@ -644,14 +604,25 @@ static pc_status onnx_pair(const pc_builder *b, pb_slice msg, uint32_t first_num
     return more == PB_ERROR ? r.status : PC_OK;
 }
 
-pc_status onnx_parse_model(pc_builder *b)
+int onnx_next_meta(const pc_builder *b, pb_reader *r, pb_slice *key, pb_slice *value)
+{
+    pb_field f;
+    int more = onnx_next_field(b, r, ONNX_MODEL_METADATA_PROPS, &f);
+    key->data = value->data = NULL;
+    key->size = value->size = 0;
+    if (more == PB_FIELD && (r->status = onnx_pair(b, f.bytes, ONNX_STRING_KEY, ONNX_STRING_VALUE,
+                                                   key, value, NULL)) != PC_OK)
+        more = PB_ERROR;
+    return more;
+}
+
+pc_status onnx_scan_model(pc_builder *b)
 {
     pb_reader r;
     pb_field f;
     int more, has_graph = 0;
     pc_status st;
-    pb_slice graph = {NULL, 0}, whole;
-    size_t n_meta = 0;
+    pb_slice whole;
     whole.data = b->file;
     whole.size = b->file_size;
     b->opset = -1;
@@ -662,7 +633,7 @@ pc_status onnx_parse_model(pc_builder *b)
             return pc_fail(b->err, PC_ERR_MALFORMED, "model field %lu at byte %zu is not bytes",
                            (unsigned long)f.number, f.offset);
         if (f.number == ONNX_MODEL_GRAPH) {
-            graph = f.bytes;
+            b->graph = f.bytes;
             has_graph = 1;
         } else if (f.number == ONNX_MODEL_OPSET_IMPORT) {
             pb_slice domain = {NULL, 0};
@@ -673,7 +644,10 @@ pc_status onnx_parse_model(pc_builder *b)
             if (domain.size == 0 || pb_slice_eq(domain, "ai.onnx"))
                 b->opset = version;
         } else if (f.number == ONNX_MODEL_METADATA_PROPS) {
-            n_meta++;
+            pb_slice key = {NULL, 0}, value = {NULL, 0};
+            if ((st = onnx_pair(b, f.bytes, ONNX_STRING_KEY, ONNX_STRING_VALUE, &key, &value,
+                                NULL)) != PC_OK)
+                return st;
         }
     }
     if (more == PB_ERROR)
@@ -684,19 +658,5 @@ pc_status onnx_parse_model(pc_builder *b)
         return pc_fail(b->err, PC_ERR_UNSUPPORTED,
                        "default-domain opset %lld is not supported (%d..%d)", (long long)b->opset,
                        PC_OPSET_MIN, PC_OPSET_MAX);
-    b->meta = pc_scratch_alloc(&b->scratch, (n_meta + 1) * sizeof(pc_meta));
-    if (!b->meta)
-        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    pb_init(&r, b->file, whole);
-    while ((more = pb_next(&r, &f, b->err)) == PB_FIELD) {
-        if (f.number != ONNX_MODEL_METADATA_PROPS)
-            continue;
-        if ((st = onnx_pair(b, f.bytes, ONNX_STRING_KEY, ONNX_STRING_VALUE,
-                            &b->meta[b->n_meta].key, &b->meta[b->n_meta].value, NULL)) != PC_OK)
-            return st;
-        b->n_meta++;
-    }
-    if (more == PB_ERROR)
-        return r.status;
-    return onnx_parse_graph(b, graph);
+    return PC_OK;
 }

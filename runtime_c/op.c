@@ -147,7 +147,7 @@ pc_status pc_set_out(pc_prep *p, size_t k, int dtype, int rank, const int64_t *d
 
 void *pc_prep_params(pc_prep *p, size_t size)
 {
-    p->prm = pc_scratch_alloc(&p->b->scratch, size);
+    p->prm = pc_scratch_alloc(&p->b->scratch, PC_WORK, size);
     p->prm_size = size;
     return p->prm;
 }
@@ -155,11 +155,35 @@ void *pc_prep_params(pc_prep *p, size_t size)
 pc_status pc_new_const(pc_prep *p, int dtype, int rank, const int64_t *dims, void **data,
                        int32_t *id)
 {
-    pb_slice none = {NULL, 0};
-    pc_status st = pc_alloc_const(p->b, none, dtype, rank, dims, id);
-    if (st != PC_OK)
-        return st;
-    *data = p->b->values[*id].cdata;
+    size_t count = 1;
+    int i;
+    for (i = 0; i < rank; i++)
+        if (!pc_mul_count(&count, dims[i], PC_MAX_ELEMENTS))
+            return pc_prep_fail(p, PC_ERR_SHAPE, "constant has an invalid shape");
+    *data = pc_scratch_alloc(&p->b->scratch, PC_WORK, count * pc_dtype_size(dtype) + 1);
+    if (!*data)
+        return pc_fail(p->b->err, PC_ERR_MEMORY, "out of memory for a constant");
+    return pc_value_const(p->b, dtype, rank, dims, *data, -1, id);
+}
+
+pc_status pc_pad_inputs(pc_prep *p, size_t n)
+{
+    int32_t *ids;
+    pc_value **vs;
+    size_t k;
+    if (p->n_in >= n)
+        return PC_OK;
+    ids = pc_scratch_alloc(&p->b->scratch, PC_WORK, n * sizeof(int32_t));
+    vs = pc_scratch_alloc(&p->b->scratch, PC_WORK, n * sizeof(pc_value *));
+    if (!ids || !vs)
+        return pc_fail(p->b->err, PC_ERR_MEMORY, "out of memory");
+    for (k = 0; k < n; k++) {
+        ids[k] = k < p->n_in ? p->in_ids[k] : -1;
+        vs[k] = k < p->n_in ? p->in[k] : NULL;
+    }
+    p->in_ids = ids;
+    p->in = vs;
+    p->n_in = n;
     return PC_OK;
 }
 

@@ -7,32 +7,17 @@
 
 /* ---- Gemm, MatMul ----------------------------------------------------------------- */
 
-
-/* Replaces constant input k by its transpose (2-D), cached across plans. */
-static pc_status pc_transposed_const(pc_prep *p, size_t k)
+/* A product whose elements a one-pose program computes exactly as the kernels do
+ * (pc_gemm_one, pc_gemm_rows: C first, then the products for k ascending): alpha 1, C
+ * absent or taken with beta 1, an activation the programs know. */
+static void pc_product(pc_prep *p, const pc_gemm *q)
 {
-    const int32_t src = p->in_ids[k];
-    int32_t id = pc_find_derived(p->b, src, PC_DERIVED_TRANSPOSE);
-    pc_status s;
-    if (id < 0) {
-        const pc_value *v = &p->b->values[src];
-        const size_t R = (size_t)v->dims[0], C = (size_t)v->dims[1];
-        int64_t dims[2];
-        void *data;
-        size_t i, j;
-        dims[0] = v->dims[1];
-        dims[1] = v->dims[0];
-        if ((s = pc_new_const(p, PC_F32, 2, dims, &data, &id)) != PC_OK ||
-            (s = pc_add_derived(p->b, src, PC_DERIVED_TRANSPOSE, id)) != PC_OK)
-            return s;
-        for (i = 0; i < R; i++)
-            for (j = 0; j < C; j++)
-                ((float *)data)[j * R + i] = ((const float *)p->b->values[src].cdata)[i * C + j];
-    }
-    p->in_ids[k] = id;
-    p->in[k] = &p->b->values[id];
-    return PC_OK;
+    if (q->alpha == 1.0f && (q->c_mode == 0 || q->beta == 1.0f) &&
+        (q->act == PC_ACT_NONE || q->act == PC_ACT_TANH || q->act == PC_ACT_SIGMOID ||
+         q->act == PC_ACT_RELU))
+        p->emap = PC_EMAP_PRODUCT;
 }
+
 
 pc_status pc_op_Gemm(pc_prep *p)
 {
@@ -65,12 +50,8 @@ pc_status pc_op_Gemm(pc_prep *p)
                             (long long)(tb ? b->dims[1] : b->dims[0]));
     q->a_rs = ta ? 1 : q->K;
     q->a_cs = ta ? q->M : 1;
-    if (tb && b->cdata) {
-        /* Row-major B lets the inner loop run over contiguous outputs. */
-        if ((s = pc_transposed_const(p, 1)) != PC_OK)
-            return s;
-        tb = 0;
-    }
+    /* A transposed B is read where it lies (strided), never copied: posecorr's exporter
+     * writes B as [K, N], and a model in flash keeps its weights there. */
     q->b_rs = tb ? 1 : q->N;
     q->b_cs = tb ? q->K : 1;
     q->c_mode = 0;
@@ -82,21 +63,8 @@ pc_status pc_op_Gemm(pc_prep *p)
         q->c_mode = c->count == 1 ? 1 : cm == 1 ? 2 : cn == 1 ? 3 : 4;
         if (q->c_mode == 2 && q->N == 1)
             q->c_mode = 1;
-    } else if (p->n_in < 3) {
-        /* Kernel expects C in slot 2: pad the operand list. */
-        int32_t *ids = pc_scratch_alloc(&p->b->scratch, 3 * sizeof(int32_t));
-        pc_value **vs = pc_scratch_alloc(&p->b->scratch, 3 * sizeof(pc_value *));
-        if (!ids || !vs)
-            return pc_fail(p->b->err, PC_ERR_MEMORY, "out of memory");
-        ids[0] = p->in_ids[0];
-        ids[1] = p->in_ids[1];
-        ids[2] = -1;
-        vs[0] = p->in[0];
-        vs[1] = p->in[1];
-        vs[2] = NULL;
-        p->in_ids = ids;
-        p->in = vs;
-        p->n_in = 3;
+    } else if ((s = pc_pad_inputs(p, 3)) != PC_OK) {
+        return s;
     }
     q->act = p->node->act;
     q->lo = p->node->act_lo;
@@ -104,11 +72,13 @@ pc_status pc_op_Gemm(pc_prep *p)
     dims[0] = (int64_t)q->M;
     dims[1] = (int64_t)q->N;
     p->fn = k_gemm;
+    pc_product(p, q);
     if (!ta && !tb && q->c_mode == 2 && q->alpha == 1.0f && q->beta == 1.0f &&
         (q->act == PC_ACT_TANH || q->act == PC_ACT_NONE)) {
         if (p->b->cpu_avx2 < 0)
             p->b->cpu_avx2 = pc_cpu_avx2(); /* cpuid traps to the hypervisor in a VM: ask once */
         p->fn = pc_gemm_rows_kernels[p->b->cpu_avx2];
+        p->layer = 1;
     }
     return pc_set_out(p, 0, PC_F32, 2, dims);
 }
@@ -206,5 +176,6 @@ pc_status pc_op_MatMul(pc_prep *p)
     if (!ob)
         od[r++] = bd[br - 1];
     p->fn = k_matmul;
+    pc_product(p, q);
     return pc_set_out(p, 0, PC_F32, r, od);
 }

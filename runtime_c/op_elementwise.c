@@ -21,6 +21,13 @@ static int64_t pc_f2i(float x)
 
 /* ---- broadcasting ----------------------------------------------------------------- */
 
+/* A float operator with an element operation: one-pose programs compute it per element. */
+static void pc_elementwise(pc_prep *p, int sop)
+{
+    p->sop = sop;
+    p->emap = sop ? PC_EMAP_SOP : PC_EMAP_NONE;
+}
+
 #define PC_BMAX 8 /* operands of one broadcast kernel (Max/Min may take more: chained) */
 
 typedef struct pc_bcast_n {
@@ -170,19 +177,11 @@ PC_BINARY(k_mul_i, int64_t, int64_t, (int64_t)((uint64_t)a * (uint64_t)b))
 PC_BINARY(k_div_i, int64_t, int64_t, b == 0 || (b == -1 && a == INT64_MIN) ? 0 : a / b)
 PC_BINARY(k_max_i, int64_t, int64_t, a > b ? a : b)
 PC_BINARY(k_min_i, int64_t, int64_t, a < b ? a : b)
-/* Float comparisons: their tables are public (op.h) for the planner's one-pose fusion. */
-#define PC_BINARY_PUBLIC(NAME, TI, TO, EXPR)                                                   \
-    static PC_BINARY_SAME(NAME, TI, TO, EXPR)                                                  \
-    static PC_BINARY_GEN(NAME, TI, TO, EXPR)                                                   \
-    const pc_kernel_fn NAME[PC_LAYOUTS] = {                                                    \
-        [PC_SAME] = NAME##_same,   [PC_SCALAR_A] = NAME##_gen, [PC_SCALAR_B] = NAME##_gen,    \
-        [PC_ROW_B] = NAME##_gen,   [PC_COL_B] = NAME##_gen,    [PC_GENERAL2] = NAME##_gen,    \
-        [PC_GENERAL] = NAME##_gen};
-PC_BINARY_PUBLIC(k_eq_f, float, uint8_t, a == b)
-PC_BINARY_PUBLIC(k_gt_f, float, uint8_t, a > b)
-PC_BINARY_PUBLIC(k_ge_f, float, uint8_t, a >= b)
-PC_BINARY_PUBLIC(k_lt_f, float, uint8_t, a < b)
-PC_BINARY_PUBLIC(k_le_f, float, uint8_t, a <= b)
+PC_BINARY(k_eq_f, float, uint8_t, a == b)
+PC_BINARY(k_gt_f, float, uint8_t, a > b)
+PC_BINARY(k_ge_f, float, uint8_t, a >= b)
+PC_BINARY(k_lt_f, float, uint8_t, a < b)
+PC_BINARY(k_le_f, float, uint8_t, a <= b)
 PC_BINARY(k_eq_i, int64_t, uint8_t, a == b)
 PC_BINARY(k_gt_i, int64_t, uint8_t, a > b)
 PC_BINARY(k_ge_i, int64_t, uint8_t, a >= b)
@@ -211,7 +210,7 @@ static pc_status pc_binary(pc_prep *p, const pc_kernel_fn *kf, const pc_kernel_f
     if ((st = pc_bcast_prepare(p, 2, p->in, out_bool ? PC_BOOL : dt, &mode)) != PC_OK)
         return st;
     p->fn = set[mode];
-    p->sop = dt == PC_F32 ? sop : 0;
+    pc_elementwise(p, dt == PC_F32 ? sop : 0);
     return PC_OK;
 }
 
@@ -330,7 +329,7 @@ pc_status pc_op_Where(pc_prep *p)
         p->fn = dt == PC_F32 ? k_where_f_same : dt == PC_I64 ? k_where_i_same : k_where_b_same;
     else
         p->fn = dt == PC_F32 ? k_where_f_gen : dt == PC_I64 ? k_where_i_gen : k_where_b_gen;
-    p->sop = dt == PC_F32 ? PC_SOP_WHERE : 0;
+    pc_elementwise(p, dt == PC_F32 ? PC_SOP_WHERE : 0);
     return PC_OK;
 }
 
@@ -357,7 +356,7 @@ static pc_status pc_unary(pc_prep *p, pc_kernel_fn kf, pc_kernel_fn ki, pc_kerne
     a = p->in[0];
     dt = a->dtype;
     p->fn = dt == PC_F32 ? kf : dt == PC_I64 ? ki : kb;
-    p->sop = dt == PC_F32 ? sop : 0;
+    pc_elementwise(p, dt == PC_F32 ? sop : 0);
     if (!p->fn)
         return pc_prep_fail(p, PC_ERR_UNSUPPORTED, "input type %s is not supported",
                             pc_dtype_name(dt));
@@ -411,20 +410,8 @@ pc_status pc_op_Clip(pc_prep *p)
     if (p->n_in > 2 && p->in[2] && (st = pc_input_float_scalar(p, 2, &q->hi)) != PC_OK)
         return st;
     /* The kernel finds its output after the three (possibly absent) input slots. */
-    if (p->n_in != 3) {
-        int32_t *ids = pc_scratch_alloc(&p->b->scratch, 3 * sizeof(int32_t));
-        pc_value **vs = pc_scratch_alloc(&p->b->scratch, 3 * sizeof(pc_value *));
-        size_t k;
-        if (!ids || !vs)
-            return pc_fail(p->b->err, PC_ERR_MEMORY, "out of memory");
-        for (k = 0; k < 3; k++) {
-            ids[k] = k < p->n_in ? p->in_ids[k] : -1;
-            vs[k] = k < p->n_in ? p->in[k] : NULL;
-        }
-        p->in_ids = ids;
-        p->in = vs;
-        p->n_in = 3;
-    }
+    if ((st = pc_pad_inputs(p, 3)) != PC_OK)
+        return st;
     p->fn = k_clip_f;
     return pc_set_out(p, 0, PC_F32, p->in[0]->rank, p->in[0]->dims);
 }

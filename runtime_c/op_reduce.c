@@ -224,6 +224,7 @@ static pc_status pc_reduce_prepare(pc_prep *p, const pc_kernel_fn *fns)
         if (ok && fn == k_reduce_sum && first_red < a->rank) {
             q->d[5] = inner;
             p->fn = k_reduce_sum_last;
+            p->emap = PC_EMAP_SUM;
         }
     }
     p->n_in = 1; /* axes are consumed here, not by the kernel */

@@ -136,7 +136,10 @@ pc_status pc_op_Constant(pc_prep *p)
     if ((st = pc_attr_tensor(p, "value", &tensor, &found)) != PC_OK)
         return st;
     if (found) {
-        if ((st = onnx_tensor_to_const(p->b, tensor, &id)) != PC_OK)
+        onnx_tensor t;
+        if ((st = onnx_tensor_header(p->b, tensor, &t)) != PC_OK ||
+            (st = onnx_tensor_data(p->b, tensor, &t, PC_WORK, &data)) != PC_OK ||
+            (st = pc_value_const(p->b, t.dtype, (int)t.rank, t.dims, data, -1, &id)) != PC_OK)
             return st;
     } else if (pc_has_attr(p, "value_float")) {
         if ((st = pc_new_const(p, PC_F32, 0, dims, &data, &id)) != PC_OK ||
@@ -201,6 +204,20 @@ PC_STRIDED(k_strided_1, uint8_t)
 PC_STRIDED(k_strided_4, uint32_t)
 PC_STRIDED(k_strided_8, uint64_t)
 
+/* Element e of a strided copy: its coordinates over d, through the strides. */
+static void pc_select_strided(const pc_prep *p, size_t e, size_t *input, size_t *elem)
+{
+    const pc_strided *q = (const pc_strided *)p->prm;
+    ptrdiff_t at = q->base;
+    int j;
+    for (j = PC_MAX_RANK - 1; j >= 0; j--) {
+        at += (ptrdiff_t)(e % q->d[j]) * q->st[j];
+        e /= q->d[j];
+    }
+    *input = 0;
+    *elem = (size_t)at;
+}
+
 /* Output dims + input strides (in elements), outermost first. Dimensions of size 1 are
  * dropped and mergeable neighbours merged, so most slices become one contiguous run. */
 static pc_status pc_strided_prepare(pc_prep *p, int rank, const int64_t *dims,
@@ -235,6 +252,10 @@ static pc_status pc_strided_prepare(pc_prep *p, int rank, const int64_t *dims,
         q->st[j] = src >= 0 ? t[src] : 0;
     }
     q->base = base;
+    if (dt == PC_F32) {
+        p->emap = PC_EMAP_SELECT;
+        p->select = pc_select_strided;
+    }
     p->fn = pc_dtype_size(dt) == 4 ? k_strided_4 : pc_dtype_size(dt) == 8 ? k_strided_8
                                                                            : k_strided_1;
     if (pc_dtype_size(dt) == 4 && (r == 0 || (r == 1 && t[0] == 1)))
@@ -369,6 +390,19 @@ pc_status pc_op_Slice(pc_prep *p)
 
 /* ---- Concat, Gather --------------------------------------------------------------- */
 
+static void pc_select_concat(const pc_prep *p, size_t e, size_t *input, size_t *elem)
+{
+    const pc_concat *q = (const pc_concat *)p->prm;
+    const size_t outer = e / q->total;
+    size_t at = e % q->total, k = 0;
+    while (at >= q->inner[k]) {
+        at -= q->inner[k];
+        k++;
+    }
+    *input = k;
+    *elem = outer * q->inner[k] + at;
+}
+
 pc_status pc_op_Concat(pc_prep *p)
 {
     int64_t axis, dims[PC_MAX_RANK];
@@ -417,6 +451,10 @@ pc_status pc_op_Concat(pc_prep *p)
         q->inner[k] = (size_t)p->in[k]->dims[axis] * after;
     q->total = (size_t)dims[axis] * after;
     p->fn = k_concat;
+    if (a->dtype == PC_F32) {
+        p->emap = PC_EMAP_SELECT;
+        p->select = pc_select_concat;
+    }
     return pc_set_out(p, 0, a->dtype, a->rank, dims);
 }
 
@@ -441,6 +479,18 @@ static pc_status k_gather(const pc_step *s)
     return PC_OK;
 }
 
+
+/* Constant indices, checked at load: [outer, len, inner] -> [outer, n_idx, inner]. */
+static void pc_select_gather(const pc_prep *p, size_t e, size_t *input, size_t *elem)
+{
+    const pc_gather *q = (const pc_gather *)p->prm;
+    const size_t r = e % q->inner, j = (e / q->inner) % q->n_idx, o = e / q->inner / q->n_idx;
+    int64_t idx = ((const int64_t *)p->in[1]->cdata)[j];
+    if (idx < 0)
+        idx += (int64_t)q->len;
+    *input = 0;
+    *elem = (o * q->len + (size_t)idx) * q->inner + r;
+}
 
 pc_status pc_op_Gather(pc_prep *p)
 {
@@ -480,9 +530,7 @@ pc_status pc_op_Gather(pc_prep *p)
     q->esize = pc_dtype_size(a->dtype);
     p->fn = k_gather;
     if (idx->cdata) {
-        /* Constant indices: normalise and range-check once, at load. */
-        const int kind = PC_DERIVED_GATHER + 4 * (int)(q->len & 0xfffffff);
-        int32_t id = pc_find_derived(p->b, p->in_ids[1], kind);
+        /* Constant indices: range-checked once, at load. */
         size_t k;
         for (k = 0; k < idx->count; k++) {
             const int64_t v = ((const int64_t *)idx->cdata)[k];
@@ -490,22 +538,12 @@ pc_status pc_op_Gather(pc_prep *p)
                 return pc_prep_fail(p, PC_ERR_SHAPE, "index %lld out of range for axis of %zu",
                                     (long long)v, q->len);
         }
-        if (id < 0) {
-            void *data;
-            int64_t *nd;
-            if ((s = pc_new_const(p, PC_I64, idx->rank, idx->dims, &data, &id)) != PC_OK ||
-                (s = pc_add_derived(p->b, p->in_ids[1], kind, id)) != PC_OK)
-                return s;
-            nd = (int64_t *)data;
-            for (k = 0; k < idx->count; k++) {
-                const int64_t v = ((const int64_t *)p->b->values[p->in_ids[1]].cdata)[k];
-                nd[k] = v < 0 ? v + (int64_t)q->len : v;
-            }
-        }
-        p->in_ids[1] = id;
-        p->in[1] = &p->b->values[id];
         if (q->inner == 1 && q->esize == 4)
             p->fn = k_gather_cols_4;
+        if (a->dtype == PC_F32) {
+            p->emap = PC_EMAP_SELECT;
+            p->select = pc_select_gather;
+        }
     }
     return pc_set_out(p, 0, a->dtype, r, dims);
 }

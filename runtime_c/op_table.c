@@ -1,10 +1,11 @@
 /* The table of operators (generated from export/operators.txt) and the one call the
- * passes and the planner make into the operator layer: prepare a node. */
+ * graph scan and the planner make into the operator layer: prepare a node. */
 #include "op.h"
 
 #include <string.h>
 
-pc_status pc_prepare_node(pc_builder *b, pc_node *n, int folding, pc_prep *p)
+pc_status pc_prepare_node(pc_builder *b, pc_node *n, const int32_t *in_ids,
+                          const int32_t *out_ids, int folding, pc_prep *p)
 {
     size_t j;
     pc_status st;
@@ -18,7 +19,7 @@ pc_status pc_prepare_node(pc_builder *b, pc_node *n, int folding, pc_prep *p)
     {
         /* One block per node and plan: pointers first, so every part stays aligned. */
         const size_t n_io = (size_t)n->n_in + n->n_out + 2;
-        pc_value **ptrs = pc_scratch_alloc(&b->scratch,
+        pc_value **ptrs = pc_scratch_alloc(&b->scratch, PC_WORK,
                                            n_io * (sizeof(pc_value *) + sizeof(int32_t)));
         if (!ptrs)
             return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
@@ -28,16 +29,16 @@ pc_status pc_prepare_node(pc_builder *b, pc_node *n, int folding, pc_prep *p)
         p->out_ids = p->in_ids + n->n_in + 1;
     }
     for (j = 0; j < n->n_in; j++) {
-        p->in_ids[j] = n->in[j];
-        p->in[j] = n->in[j] >= 0 ? &b->values[n->in[j]] : NULL;
+        p->in_ids[j] = in_ids[j];
+        p->in[j] = in_ids[j] >= 0 ? &b->values[in_ids[j]] : NULL;
         if (p->in[j] && p->in[j]->dtype == 0)
             return pc_prep_fail(p, PC_ERR_GRAPH, "input %zu has no known type", j);
     }
     for (j = 0; j < n->n_out; j++) {
-        p->out_ids[j] = n->out[j];
-        p->out[j] = n->out[j] >= 0 ? &b->values[n->out[j]] : NULL;
+        p->out_ids[j] = out_ids[j];
+        p->out[j] = out_ids[j] >= 0 ? &b->values[out_ids[j]] : NULL;
     }
-    if (n->n_out < 1 || n->out[0] < 0)
+    if (n->n_out < 1 || out_ids[0] < 0)
         return pc_prep_fail(p, PC_ERR_GRAPH, "output 0 is missing");
     st = pc_ops[n->op].prepare(p);
     if (st != PC_OK)

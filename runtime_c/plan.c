@@ -1,376 +1,398 @@
-/* Planning: for each batch size, prepare every remaining node (shapes, kernel,
- * parameters), place run-time values by liveness (greedy first fit), then pack plans,
- * metadata, constants and activations into one arena. pc_run then does no shape work:
- * it walks a precomputed array of kernel launches. */
+/* Planning: for each batch size the graph streams past once, node by node: prepare it
+ * (shapes, kernel, parameters), give its outputs activation blocks (first fit, freed
+ * after their last reader), and write its step, or add it to the open one-pose
+ * program. Only the values alive at the current node have records. The whole walk is
+ * made twice with the same code: sizing, then filling an arena of exactly the size found.
+ * pc_run then does no shape work: it walks a precomputed array of kernel launches. */
 #include "plan.h"
+#include "graph.h"
 #include "program.h"
 
 #include <stdlib.h>
 #include <string.h>
 
-#define PC_INF_STEP 0x7fffffff
-
-static pc_status pc_add_draft(pc_builder *b, pc_plan_draft *pd, const pc_prep *p)
+/* The record of node output `ordinal`, alive in this pass. */
+static int32_t pc_record_of(const pc_builder *b, uint32_t ordinal)
 {
-    pc_draft *d;
-    size_t j;
-    if (pd->n_drafts == b->n_nodes)
-        return pc_fail(b->err, PC_ERR_GRAPH, "more kernel launches than nodes");
-    d = &pd->drafts[pd->n_drafts++];
-    d->fn = p->fn;
-    d->n_io = (uint32_t)(p->n_in + p->n_out);
-    d->io = pc_scratch_alloc(&b->scratch, (d->n_io + 1) * sizeof(int32_t));
-    if (!d->io)
-        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    for (j = 0; j < p->n_in; j++)
-        d->io[j] = p->in_ids[j];
-    for (j = 0; j < p->n_out; j++)
-        d->io[p->n_in + j] = p->out_ids[j];
-    d->prm = p->prm;
-    d->prm_size = p->prm_size;
-    d->n = p->out[0] ? p->out[0]->count : 0;
-    d->sop = p->sop;
-    return PC_OK;
+    size_t k;
+    for (k = 0; k < b->cap_values; k++)
+        if (b->values[k].used && b->values[k].ordinal == (int32_t)ordinal)
+            return (int32_t)k;
+    return -1;
 }
 
-static size_t pc_const_loc(pc_builder *b, int32_t r, size_t *const_bytes)
+/* The record of a reference: a graph input, a live output, or a constant's record made
+ * for the moment (*temp set: the caller releases it). */
+static pc_status pc_resolve(pc_pass *pp, uint16_t ref, int32_t *id, int *temp)
 {
-    pc_value *v = &b->values[r];
-    if (v->const_slot < 0) {
-        v->const_slot = 1;
-        v->const_offset = *const_bytes;
-        *const_bytes += pc_round(v->count * pc_dtype_size(v->dtype) + 1);
-    }
-    return (v->const_offset << 1) | 1;
-}
-
-/* Prepares every remaining node for this batch: output shapes, kernels, drafts. */
-static pc_status pc_plan_steps(pc_builder *b, size_t batch, pc_plan_draft *pd)
-{
-    size_t i, j;
+    pc_builder *b = pp->b;
     pc_status st;
-    /* At most one launch per node; every field is written by pc_add_draft. */
-    pd->n_drafts = 0;
-    pd->drafts = pc_scratch_alloc_raw(&b->scratch, (b->n_nodes + 1) * sizeof *pd->drafts);
-    if (!pd->drafts)
+    *id = -1;
+    *temp = 0;
+    switch (PC_REF_KIND(ref)) {
+    case PC_REF_NONE: return PC_OK;
+    case PC_REF_INPUT: *id = pp->input_ids[PC_REF_INDEX(ref)]; return PC_OK;
+    case PC_REF_OUTPUT:
+        if (!pc_const_find(b, PC_REF_INDEX(ref))) {
+            *id = pc_record_of(b, PC_REF_INDEX(ref));
+            return *id >= 0 ? PC_OK : pc_fail(b->err, PC_ERR_GRAPH, "value %u read after its "
+                                              "last reader", PC_REF_INDEX(ref));
+        }
+        break;
+    default: break;
+    }
+    if ((st = pc_const_input(b, ref, PC_WORK, id)) != PC_OK)
+        return st;
+    *temp = 1;
+    return PC_OK;
+}
+
+/* ---- steps of MLP layers ------------------------------------------------------------- */
+
+/* One-pose plans: consecutive MLP layers, each reading the one before's output, are one
+ * launch (pc_gemm_chain_kernels). The chain is the last step written, so it grows in
+ * place: its operands and parameters are the last entries of their regions. */
+static pc_status pc_emit_layer(pc_pass *pp, const pc_prep *p)
+{
+    const int avx2 = p->fn == pc_gemm_rows_kernels[1];
+    const pc_kernel_fn fn = pc_gemm_chain_kernels[avx2];
+    const int32_t in_block = pp->b->values[p->in_ids[0]].block;
+    pc_region *io_r = &pp->region[PC_REGION_IO], *prm_r = &pp->region[PC_REGION_PARAMS];
+    const int32_t ids[4] = {p->in_ids[0], p->in_ids[1], p->in_ids[2], p->out_ids[0]};
+    size_t k, n;
+    void **io;
+    pc_gemm_chain *q;
+    pc_status st;
+    if (!(pp->last_layer == 1 + avx2 && in_block >= 0 && in_block == pp->last_out)) {
+        pp->chain_io = io_r->used;
+        pp->chain_prm = prm_r->used;
+        pp->chain_layers = 0;
+        pp->last_step = pc_region_take(pp, PC_REGION_STEPS, sizeof(pc_step));
+        pp->n_steps++;
+        if (pp->last_step) {
+            pp->last_step->fn = fn;
+            pp->last_step->io = (void *const *)(io_r->base + pp->chain_io);
+            pp->last_step->prm = prm_r->base + pp->chain_prm;
+        }
+    }
+    n = ++pp->chain_layers;
+    io_r->used = pp->chain_io + pc_region_round(4 * n * sizeof(void *));
+    prm_r->used = pp->chain_prm + pc_region_round(sizeof(pc_gemm_chain) + (n - 1) * sizeof(pc_gemm));
+    if (pp->fill) {
+        io = (void **)(io_r->base + pp->chain_io) + 4 * (n - 1);
+        q = (pc_gemm_chain *)(prm_r->base + pp->chain_prm);
+        for (k = 0; k < 4; k++)
+            if ((st = pc_locate(pp, &pp->b->values[ids[k]], &io[k])) != PC_OK)
+                return st;
+        q->n_layers = n;
+        memcpy(&q->layer[n - 1], p->prm, sizeof(pc_gemm));
+        pp->last_step->n = p->out[0]->count;
+    } else {
+        void *at;
+        for (k = 0; k < 4; k++) /* constants are placed in both passes alike */
+            if ((st = pc_locate(pp, &pp->b->values[ids[k]], &at)) != PC_OK)
+                return st;
+    }
+    pp->last_layer = 1 + avx2;
+    pp->last_out = pp->b->values[p->out_ids[0]].block;
+    return PC_OK;
+}
+
+/* ---- one node ----------------------------------------------------------------------------- */
+
+static void pc_node_act(const pc_builder *b, uint32_t i, pc_node *n)
+{
+    const pc_clip_bounds *c;
+    n->act = b->node_act[i];
+    n->act_lo = n->act_hi = 0.0f;
+    for (c = b->clips; c; c = c->next)
+        if (c->node == i) {
+            n->act_lo = c->lo;
+            n->act_hi = c->hi;
+        }
+}
+
+/* Output record o is now a view of record src (Reshape, Squeeze, Identity, ...). */
+static void pc_alias(pc_pass *pp, int32_t o, int32_t src)
+{
+    pc_value *v = &pp->b->values[o];
+    const pc_value *s = &pp->b->values[src];
+    if (s->cdata) {
+        v->cdata = s->cdata;
+        v->ckey = s->ckey;
+    } else if (s->elems) {
+        v->elems = s->elems;
+    } else {
+        v->block = s->block;
+        pc_block_ref(pp, v->block);
+    }
+}
+
+static pc_status pc_plan_node(pc_pass *pp, uint32_t i, pb_slice msg)
+{
+    pc_builder *b = pp->b;
+    pc_node n;
+    pc_prep p;
+    int32_t *ids;
+    uint8_t *temp;
+    uint32_t j;
+    size_t k;
+    pc_status st;
+    if ((st = onnx_parse_node(b, msg, i, &n)) != PC_OK)
+        return st;
+    n.op = b->node_op[i];
+    pc_node_act(b, i, &n);
+    ids = pc_scratch_alloc(&b->scratch, PC_WORK, (n.n_in + n.n_out + 1) * sizeof(int32_t));
+    temp = pc_scratch_alloc(&b->scratch, PC_WORK, n.n_in + 1);
+    if (!ids || !temp)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    for (i = 0; i < b->n_values; i++) {
-        pc_value *v = &b->values[i];
-        v->alias = -1;
-        v->def = PC_INF_STEP;
-        v->last = -1;
-        if (!v->cdata) {
-            v->dtype = 0;
-            v->rank = 0;
-            v->count = 0;
-        }
-    }
-    for (i = 0; i < b->n_inputs; i++) {
-        const pc_io *io = &b->inputs[i];
-        pc_value *in = &b->values[io->id];
-        in->dtype = io->dtype;
-        in->rank = io->rank;
-        in->count = 1;
-        for (j = 0; j < (size_t)io->rank; j++) {
-            in->dims[j] = j == 0 && !b->any_io ? (int64_t)batch : io->dims[j];
-            in->count *= (size_t)in->dims[j];
-        }
-        in->def = -1;
-    }
-    for (i = 0; i < b->n_nodes; i++) {
-        pc_node *n = &b->nodes[b->order[i]];
-        pc_prep p;
-        if (!n->live || n->folded || n->fused_away)
-            continue;
-        if ((st = pc_prepare_node(b, n, 0, &p)) != PC_OK)
+    for (j = 0; j < n.n_in; j++) {
+        int t;
+        if ((st = pc_resolve(pp, b->in_ref[b->node_in0[i] + j], &ids[j], &t)) != PC_OK)
             return st;
-        if (p.alias_of >= 0) {
-            pc_value *o = p.out[0];
-            int32_t r = pc_root(b, p.alias_of);
-            if (b->values[r].cdata)
-                o->cdata = b->values[r].cdata;
-            else
-                o->alias = r;
+        temp[j] = (uint8_t)t;
+    }
+    for (j = 0; j < n.n_out; j++) {
+        int32_t *o = &ids[n.n_in + j];
+        const uint32_t ord = b->node_out0[i] + j;
+        *o = -1;
+        if (!n.out_names[j].size)
             continue;
-        }
-        if ((st = pc_add_draft(b, pd, &p)) != PC_OK)
+        if ((st = pc_value_new(b, o)) != PC_OK)
             return st;
+        b->values[*o].ordinal = (int32_t)ord;
+        b->values[*o].last = b->last_use[ord];
     }
-    if (!b->any_io) {
-        const pc_value *o = &b->values[b->outputs[0].id];
-        if (o->dtype != PC_F32 || o->rank != 2 || o->dims[0] != (int64_t)batch ||
-            o->dims[1] != PC_POSE_WIDTH)
-            return pc_fail(b->err, PC_ERR_CONTRACT,
-                           "output 'corrected' is %s of rank %d (%lld x %lld) for N=%zu, the "
-                           "contract needs float32 [N,7]", pc_dtype_name(o->dtype), o->rank,
-                           (long long)(o->rank > 0 ? o->dims[0] : -1),
-                           (long long)(o->rank > 1 ? o->dims[1] : -1), batch);
-    }
-    return PC_OK;
-}
-
-/* First and last step using each storage root; graph inputs and outputs live from
- * before the first step and past the last one. */
-static void pc_plan_lifetimes(pc_builder *b, const pc_plan_draft *pd)
-{
-    size_t i, j;
-    for (i = 0; i < pd->n_drafts; i++) {
-        const pc_draft *d = &pd->drafts[i];
-        for (j = 0; j < d->n_io; j++) {
-            int32_t r;
-            if (d->io[j] < 0)
-                continue;
-            r = pc_root(b, d->io[j]);
-            if (b->values[r].cdata)
-                continue;
-            if (b->values[r].def > (int32_t)i)
-                b->values[r].def = (int32_t)i;
-            if (b->values[r].last < (int32_t)i)
-                b->values[r].last = (int32_t)i;
-        }
-    }
-    for (i = 0; i < b->n_inputs; i++) {
-        const int32_t r = pc_root(b, b->inputs[i].id);
-        b->values[r].def = -1;
-        if (b->values[r].last < 0)
-            b->values[r].last = 0;
-    }
-    for (i = 0; i < b->n_outputs; i++) {
-        const int32_t r = pc_root(b, b->outputs[i].id);
-        if (!b->values[r].cdata) {
-            b->values[r].last = PC_INF_STEP;
-            if (b->values[r].def == PC_INF_STEP)
-                b->values[r].def = -1;
-        }
-    }
-}
-
-/* Greedy first-fit of the roots over their lifetimes, in order of definition. */
-static pc_status pc_plan_place(pc_builder *b, pc_plan_draft *pd)
-{
-    size_t i, k, n_roots = 0;
-    int32_t *roots;
-    roots = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof(int32_t));
-    if (!roots)
-        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    for (i = 0; i < b->n_values; i++) {
-        pc_value *v = &b->values[i];
-        if (v->alias < 0 && !v->cdata && v->def != PC_INF_STEP)
-            roots[n_roots++] = (int32_t)i;
-    }
-    for (i = 1; i < n_roots; i++) { /* insertion sort by def; n is small */
-        int32_t x = roots[i];
-        for (k = i; k > 0 && b->values[roots[k - 1]].def > b->values[x].def; k--)
-            roots[k] = roots[k - 1];
-        roots[k] = x;
-    }
-    pd->act_bytes = 0;
-    {
-        size_t *sizes = pc_scratch_alloc(&b->scratch, (n_roots + 1) * sizeof(size_t));
-        if (!sizes)
-            return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-        for (i = 0; i < n_roots; i++) {
-            const pc_value *v = &b->values[roots[i]];
-            sizes[i] = pc_round(v->count * pc_dtype_size(v->dtype) + 1);
-        }
-        size_t n_active = 0;
-        int32_t *active = pc_scratch_alloc(&b->scratch, (n_roots + 1) * sizeof(int32_t));
-        if (!active)
-            return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-        for (i = 0; i < n_roots; i++) {
-            pc_value *v = &b->values[roots[i]];
-            size_t off = 0, m, kept = 0;
-            /* Roots come in order of definition, so a placed buffer that died before
-             * this one is defined can never overlap a later one: drop it for good. The
-             * active list stays sorted by offset, so the first gap is one sweep away. */
-            for (k = 0; k < n_active; k++)
-                if (b->values[roots[active[k]]].last >= v->def)
-                    active[kept++] = active[k];
-            n_active = kept;
-            for (m = 0; m < n_active; m++) {
-                const pc_value *q = &b->values[roots[active[m]]];
-                if (off + sizes[i] <= q->offset)
-                    break;
-                if (q->offset + sizes[active[m]] > off)
-                    off = q->offset + sizes[active[m]];
-            }
-            v->offset = off;
-            for (m = n_active; m > 0 && b->values[roots[active[m - 1]]].offset > off; m--)
-                active[m] = active[m - 1];
-            active[m] = (int32_t)i;
-            n_active++;
-            if (off + sizes[i] > pd->act_bytes)
-                pd->act_bytes = off + sizes[i];
-        }
-    }
-    return PC_OK;
-}
-
-/* Every operand as a location code: activation offset or constant slot. */
-static pc_status pc_plan_locate(pc_builder *b, pc_plan_draft *pd, size_t batch,
-                                size_t *const_bytes)
-{
-    size_t i, j;
-    const size_t n_io = b->n_inputs + b->n_outputs;
-    pd->batch = batch;
-    pd->loc = pc_scratch_alloc(&b->scratch, (pd->n_drafts + 1) * sizeof(size_t *));
-    pd->io_loc = pc_scratch_alloc(&b->scratch, (n_io + 1) * sizeof(size_t));
-    if (!pd->loc || !pd->io_loc)
-        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    for (i = 0; i < pd->n_drafts; i++) {
-        const pc_draft *d = &pd->drafts[i];
-        pd->loc[i] = pc_scratch_alloc(&b->scratch, (d->n_io + 1) * sizeof(size_t));
-        if (!pd->loc[i])
-            return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-        for (j = 0; j < d->n_io; j++) {
-            int32_t r;
-            if (d->io[j] < 0) {
-                pd->loc[i][j] = PC_LOC_NONE;
-                continue;
-            }
-            r = pc_root(b, d->io[j]);
-            pd->loc[i][j] = b->values[r].cdata ? pc_const_loc(b, r, const_bytes)
-                                               : b->values[r].offset << 1;
-        }
-    }
-    for (i = 0; i < n_io; i++) {
-        const int32_t r = pc_root(b, i < b->n_inputs ? b->inputs[i].id
-                                                     : b->outputs[i - b->n_inputs].id);
-        pd->io_loc[i] = b->values[r].cdata ? pc_const_loc(b, r, const_bytes)
-                                           : b->values[r].offset << 1;
-    }
-    return PC_OK;
-}
-
-
-/* One-pose plans: consecutive MLP layers, each reading the one before's output, become
- * one launch (pc_gemm_chain_kernels) that runs them in turn as before. */
-static pc_status pc_chain_dense(pc_builder *b, pc_plan_draft *pd)
-{
-    size_t i = 0, w = 0, j, k;
-    while (i < pd->n_drafts) {
-        const pc_kernel_fn fn = pd->drafts[i].fn;
-        const int rows = fn == pc_gemm_rows_kernels[0] || fn == pc_gemm_rows_kernels[1];
-        for (j = i + 1; rows && j < pd->n_drafts && pd->drafts[j].fn == fn &&
-                        pc_root(b, pd->drafts[j].io[0]) == pc_root(b, pd->drafts[j - 1].io[3]);
-             j++)
-            ;
-        if (rows && j - i >= 2) {
-            pc_draft *d = &pd->drafts[w];
-            const size_t n = j - i;
-            const size_t prm_size = sizeof(pc_gemm_chain) + (n - 1) * sizeof(pc_gemm);
-            pc_gemm_chain *q = pc_scratch_alloc(&b->scratch, prm_size);
-            int32_t *io = pc_scratch_alloc(&b->scratch, (4 * n + 1) * sizeof(int32_t));
-            const size_t n_out = pd->drafts[j - 1].n;
-            const int avx2 = fn == pc_gemm_rows_kernels[1];
-            if (!q || !io)
-                return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-            q->n_layers = n;
-            for (k = 0; k < n; k++) {
-                memcpy(&q->layer[k], pd->drafts[i + k].prm, sizeof(pc_gemm));
-                memcpy(io + 4 * k, pd->drafts[i + k].io, 4 * sizeof(int32_t));
-            }
-            d->fn = pc_gemm_chain_kernels[avx2];
-            d->io = io;
-            d->n_io = (uint32_t)(4 * n);
-            d->prm = q;
-            d->prm_size = prm_size;
-            d->n = n_out;
-            d->sop = 0;
-            w++;
-            i = j;
+    if ((st = pc_prepare_node(b, &n, ids, ids + n.n_in, 0, &p)) != PC_OK)
+        return st;
+    if (p.alias_of >= 0) {
+        pc_alias(pp, p.out_ids[0], p.alias_of);
+    } else if (pc_program_takes(pp, &p)) {
+        if ((st = pc_program_expand(pp, &p)) != PC_OK)
+            return st;
+    } else {
+        if ((st = pc_program_close(pp)) != PC_OK)
+            return st;
+        for (k = 0; k < p.n_out; k++)
+            if (p.out_ids[k] >= 0 && (st = pc_give_block(pp, p.out_ids[k])) != PC_OK)
+                return st;
+        if (pp->batch == 1 && p.layer) {
+            st = pc_emit_layer(pp, &p);
         } else {
-            pd->drafts[w++] = pd->drafts[i++];
+            const size_t n_ids = p.n_in + p.n_out;
+            int32_t *io = pc_scratch_alloc(&b->scratch, PC_WORK, (n_ids + 1) * sizeof(int32_t));
+            if (!io)
+                return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
+            for (k = 0; k < p.n_in; k++)
+                io[k] = p.in_ids[k];
+            for (k = 0; k < p.n_out; k++)
+                io[p.n_in + k] = p.out_ids[k];
+            st = pc_emit_step(pp, p.fn, io, n_ids, p.prm, p.prm_size,
+                              p.out[0] ? p.out[0]->count : 0);
         }
+        if (st != PC_OK)
+            return st;
     }
-    pd->n_drafts = w;
+    /* Records whose last reader this node was, constants made for it, outputs nothing
+     * reads. */
+    for (j = 0; j < n.n_in; j++)
+        if (temp[j])
+            pc_value_release(b, ids[j]);
+    for (k = 0; k < b->cap_values; k++) {
+        const pc_value *v = &b->values[k];
+        if (v->used && !v->input && v->ordinal >= 0 &&
+            (v->last == i || (v->last == PC_USE_NONE && b->node_out0[i] <= (uint32_t)v->ordinal &&
+                              (uint32_t)v->ordinal < b->node_out0[i + 1])))
+            pc_drop(pp, (int32_t)k);
+    }
     return PC_OK;
 }
 
-static pc_status pc_plan_batch(pc_builder *b, size_t batch, pc_plan_draft *pd,
-                               size_t *const_bytes)
+/* ---- one plan ------------------------------------------------------------------------------ */
+
+static pc_status pc_plan_inputs(pc_pass *pp)
 {
+    pc_builder *b = pp->b;
+    size_t k;
+    int j;
     pc_status st;
-    if ((st = pc_plan_steps(b, batch, pd)) != PC_OK)
-        return st;
-    if (batch == 1 && ((st = pc_fuse_small_steps(b, pd)) != PC_OK ||
-                       (st = pc_chain_dense(b, pd)) != PC_OK))
-        return st;
-    pc_plan_lifetimes(b, pd);
-    if ((st = pc_plan_place(b, pd)) != PC_OK)
-        return st;
-    return pc_plan_locate(b, pd, batch, const_bytes);
+    for (k = 0; k < b->n_inputs; k++) {
+        const pc_io *io = &b->inputs[k];
+        pc_value *v;
+        if ((st = pc_value_new(b, &pp->input_ids[k])) != PC_OK)
+            return st;
+        v = &b->values[pp->input_ids[k]];
+        v->input = 1;
+        v->last = PC_USE_FOREVER;
+        v->dtype = io->dtype;
+        v->rank = io->rank;
+        v->count = 1;
+        for (j = 0; j < io->rank; j++) {
+            v->dims[j] = j == 0 && !b->any_io ? (int64_t)pp->batch : io->dims[j];
+            v->count *= (size_t)v->dims[j];
+        }
+        if ((st = pc_give_block(pp, pp->input_ids[k])) != PC_OK)
+            return st;
+    }
+    return PC_OK;
 }
 
-/* Sizes of the arena's parts, known once every plan is drafted. */
+static pc_status pc_check_output(const pc_builder *b, const pc_value *o, size_t batch)
+{
+    if (b->any_io || (o->dtype == PC_F32 && o->rank == 2 && o->dims[0] == (int64_t)batch &&
+                      o->dims[1] == PC_POSE_WIDTH))
+        return PC_OK;
+    return pc_fail(b->err, PC_ERR_CONTRACT,
+                   "output 'corrected' is %s of rank %d (%lld x %lld) for N=%zu, the contract "
+                   "needs float32 [N,7]", pc_dtype_name(o->dtype), o->rank,
+                   (long long)(o->rank > 0 ? o->dims[0] : -1),
+                   (long long)(o->rank > 1 ? o->dims[1] : -1), batch);
+}
+
+/* The plan for `batch` poses; plan and slots are written in the filling pass. */
+static pc_status pc_plan_one(pc_pass *pp, size_t batch, pc_plan *plan, pc_slot *slots)
+{
+    pc_builder *b = pp->b;
+    pb_reader r;
+    pb_slice msg;
+    int more;
+    uint32_t i = 0;
+    size_t k;
+    pc_status st;
+    memset(b->values, 0, b->cap_values * sizeof *b->values);
+    memset(pp->blocks, 0, pp->cap_blocks * sizeof *pp->blocks);
+    pp->n_live = 0;
+    pp->batch = batch;
+    pp->n_steps = 0;
+    pp->last_step = NULL;
+    pp->last_layer = 0;
+    pp->defer_frees = 0;
+    if (plan)
+        plan->steps = (pc_step *)(pp->region[PC_REGION_STEPS].base +
+                                  pp->region[PC_REGION_STEPS].used);
+    if ((st = pc_plan_inputs(pp)) != PC_OK)
+        return st;
+    pb_init(&r, b->file, b->graph);
+    while ((more = onnx_next_node(b, &r, &msg)) == PB_FIELD) {
+        if (b->node_op[i] != PC_NODE_SKIP) {
+            const pc_scratch_mark mark = pc_scratch_save(&b->scratch, PC_WORK);
+            st = pc_plan_node(pp, i, msg);
+            pc_scratch_restore(&b->scratch, mark);
+            if (st != PC_OK)
+                return st;
+        }
+        i++;
+    }
+    if (more == PB_ERROR)
+        return r.status;
+    if ((st = pc_program_close(pp)) != PC_OK)
+        return st;
+    for (k = 0; k < b->n_outputs; k++) {
+        const pc_scratch_mark mark = pc_scratch_save(&b->scratch, PC_WORK);
+        int32_t id;
+        int temp;
+        void *at;
+        if ((st = pc_resolve(pp, b->outputs[k].ref, &id, &temp)) != PC_OK ||
+            (st = pc_check_output(b, &b->values[id], batch)) != PC_OK ||
+            (st = pc_locate(pp, &b->values[id], &at)) != PC_OK)
+            return st;
+        if (plan && k == 0)
+            plan->out = (const float *)at;
+        if (slots) {
+            slots[b->n_inputs + k].data = at;
+            slots[b->n_inputs + k].bytes = b->values[id].count * pc_dtype_size(b->values[id].dtype);
+        }
+        if (temp)
+            pc_value_release(b, id);
+        pc_scratch_restore(&b->scratch, mark);
+    }
+    for (k = 0; k < b->n_inputs; k++) {
+        const pc_value *v = &b->values[pp->input_ids[k]];
+        void *at = pc_block_at(pp, v->block);
+        if (plan && k == 0)
+            plan->in = (float *)at;
+        if (plan && k == 1 && !b->any_io)
+            plan->t = (float *)at;
+        if (slots) {
+            slots[k].data = at;
+            slots[k].bytes = v->count * pc_dtype_size(v->dtype);
+        }
+    }
+    if (plan) {
+        plan->batch = batch;
+        plan->n_steps = pp->n_steps;
+    }
+    return PC_OK;
+}
+
+/* ---- the arena -------------------------------------------------------------------------------- */
+
+/* Sizes of the arena's parts. */
 typedef struct pc_layout {
     size_t max_batch, n_plans;
-    pc_plan_draft *pds;
-    size_t meta_bytes, slot_bytes, step_bytes, const_bytes, act_bytes, size;
+    size_t n_meta, meta_bytes, slot_bytes, act_bytes, size;
+    size_t region[PC_REGIONS];
 } pc_layout;
 
-/* Plans for N = 1, 16, 256, ... and max_batch: planning is most of the load time, and a
- * remainder below 16 poses runs pose by pose at little cost per pose. */
-static pc_status pc_plan_all(pc_builder *b, const pc_options *opts, pc_layout *L)
+static void pc_batches(const pc_builder *b, const pc_options *opts, pc_layout *L)
 {
-    size_t k, i, batch;
-    pc_status st;
-    memset(L, 0, sizeof *L);
+    size_t k;
     L->max_batch = opts && opts->max_batch ? opts->max_batch : PC_DEFAULT_MAX_BATCH;
     if (L->max_batch > PC_MAX_MAX_BATCH)
         L->max_batch = PC_MAX_MAX_BATCH;
     for (k = 1; 2 * k <= L->max_batch; k *= 2)
         ;
     L->max_batch = k;
+    L->n_plans = 1;
     for (k = 1; k < L->max_batch; k *= PC_PLAN_STRIDE)
         L->n_plans++;
-    L->n_plans++;
     if (b->any_io) /* static shapes: one plan */
         L->n_plans = L->max_batch = 1;
-    L->pds = pc_scratch_alloc(&b->scratch, L->n_plans * sizeof *L->pds);
-    if (!L->pds)
-        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    for (k = 0, batch = 1; k < L->n_plans; k++, batch *= PC_PLAN_STRIDE) {
-        const pc_plan_draft *pd = &L->pds[k];
-        if ((st = pc_plan_batch(b, batch < L->max_batch ? batch : L->max_batch, &L->pds[k],
-                                &L->const_bytes)) != PC_OK)
+}
+
+static size_t pc_plan_batch(const pc_layout *L, size_t k)
+{
+    size_t batch = 1;
+    while (k--)
+        batch *= PC_PLAN_STRIDE;
+    return batch < L->max_batch ? batch : L->max_batch;
+}
+
+/* Every plan, once; fill: into the arena (model set), else only sizes into L. */
+static pc_status pc_plan_pass(pc_pass *pp, pc_layout *L, pc_model *m)
+{
+    size_t k;
+    pc_status st;
+    for (k = 0; k < PC_REGIONS; k++)
+        pp->region[k].used = 0;
+    pp->n_placed = 0;
+    pp->act_peak = 0;
+    for (k = 0; k < L->n_plans; k++) {
+        if ((st = pc_plan_one(pp, pc_plan_batch(L, k), m ? &m->plans[k] : NULL,
+                              m && k == 0 ? m->slots : NULL)) != PC_OK)
             return st;
-        if (pd->act_bytes > L->act_bytes)
-            L->act_bytes = pd->act_bytes;
-        L->step_bytes += pc_round(pd->n_drafts * sizeof(pc_step) + 1);
-        for (i = 0; i < pd->n_drafts; i++)
-            L->step_bytes += pc_round(pd->drafts[i].n_io * sizeof(void *) + 1) +
-                             pc_round(pd->drafts[i].prm_size + 1);
     }
-    for (i = 0; i < b->n_meta; i++)
-        L->meta_bytes += b->meta[i].key.size + b->meta[i].value.size + 2;
-    L->slot_bytes = b->any_io ? pc_round((b->n_inputs + b->n_outputs) * sizeof(pc_slot) + 1) : 0;
-    L->size = pc_round(sizeof(pc_model)) + pc_round(L->n_plans * sizeof(pc_plan)) +
-              L->slot_bytes + pc_round(2 * (b->n_meta + 1) * sizeof(char *)) +
-              pc_round(L->meta_bytes + 1) + L->step_bytes + L->const_bytes + L->act_bytes +
-              PC_ALIGN;
-    if (L->size > ((size_t)1 << 29))
-        return pc_fail(b->err, PC_ERR_UNSUPPORTED, "model needs a %zu-byte arena (limit 512 MiB)",
-                       L->size);
+    if (!m) {
+        for (k = 0; k < PC_REGIONS; k++)
+            L->region[k] = pp->region[k].used;
+        L->act_bytes = pp->act_peak;
+    }
     return PC_OK;
 }
 
-/* The arena: malloc'd, or the end of the caller's buffer (its start holds the scratch
- * still in use). */
-static pc_status pc_arena(pc_builder *b, size_t size, void *buf, size_t buf_size,
-                          uint8_t **arena)
+static pc_status pc_count_meta(pc_builder *b, pc_layout *L)
 {
-    if (buf) {
-        *arena = (uint8_t *)(((uintptr_t)buf + buf_size - size) / PC_ALIGN * PC_ALIGN);
-        if ((uintptr_t)buf + buf_size < size || (uintptr_t)*arena < (uintptr_t)buf ||
-            *arena < b->scratch.fixed)
-            return pc_fail(b->err, PC_ERR_MEMORY, "the %zu-byte buffer is too small for the "
-                           "model (pc_required_bytes)", buf_size);
-    } else if (!(*arena = (uint8_t *)malloc(size))) {
-        return pc_fail(b->err, PC_ERR_MEMORY, "cannot allocate the %zu-byte model arena", size);
+    pb_reader r;
+    pb_slice whole, key, value;
+    int more;
+    whole.data = b->file;
+    whole.size = b->file_size;
+    pb_init(&r, b->file, whole);
+    while ((more = onnx_next_meta(b, &r, &key, &value)) == PB_FIELD) {
+        L->n_meta++;
+        L->meta_bytes += key.size + value.size + 2;
     }
-    memset(*arena, 0, size);
-    return PC_OK;
+    return more == PB_ERROR ? r.status : PC_OK;
 }
 
 static char *pc_copy_string(char *dst, pb_slice s, const char **out)
@@ -382,15 +404,15 @@ static char *pc_copy_string(char *dst, pb_slice s, const char **out)
     return dst + s.size + 1;
 }
 
-/* Layout: model | plans | slots | metadata | steps (per plan: steps, io, params) |
- * constants | activations. Steps of one plan are contiguous so a single-pose run stays
- * in a few cache lines. */
-static pc_model *pc_pack(const pc_builder *b, const pc_layout *L, uint8_t *arena)
+/* model | plans | slots | metadata | steps | operands | parameters | constants |
+ * program constants | activations. */
+static pc_model *pc_layout_model(pc_builder *b, const pc_layout *L, uint8_t *arena, pc_pass *pp)
 {
     pc_model *m = (pc_model *)arena;
-    uint8_t *cursor = arena + pc_round(sizeof(pc_model)), *const_base, *act_base;
-    const size_t n_io = b->n_inputs + b->n_outputs;
-    size_t i, j, k;
+    uint8_t *cursor = arena + pc_round(sizeof(pc_model));
+    pb_reader r;
+    pb_slice whole, key, value;
+    size_t i;
     char *s;
     m->arena_bytes = L->size;
     m->max_batch = L->max_batch;
@@ -405,75 +427,107 @@ static pc_model *pc_pack(const pc_builder *b, const pc_layout *L, uint8_t *arena
         m->n_out_slots = b->n_outputs;
         cursor += L->slot_bytes;
     }
-    m->n_meta = b->n_meta;
+    m->n_meta = L->n_meta;
     m->meta_key = (const char **)cursor;
-    m->meta_value = m->meta_key + b->n_meta + 1;
-    cursor += pc_round(2 * (b->n_meta + 1) * sizeof(char *));
-    for (s = (char *)cursor, i = 0; i < b->n_meta; i++) {
-        s = pc_copy_string(s, b->meta[i].key, &m->meta_key[i]);
-        s = pc_copy_string(s, b->meta[i].value, &m->meta_value[i]);
+    m->meta_value = m->meta_key + L->n_meta + 1;
+    cursor += pc_round(2 * (L->n_meta + 1) * sizeof(char *));
+    whole.data = b->file;
+    whole.size = b->file_size;
+    pb_init(&r, b->file, whole);
+    for (s = (char *)cursor, i = 0; i < L->n_meta &&
+                                    onnx_next_meta(b, &r, &key, &value) == PB_FIELD; i++) {
+        s = pc_copy_string(s, key, &m->meta_key[i]);
+        s = pc_copy_string(s, value, &m->meta_value[i]);
     }
     cursor += pc_round(L->meta_bytes + 1);
-    const_base = cursor + L->step_bytes;
-    act_base = const_base + L->const_bytes;
-    act_base = (uint8_t *)(((uintptr_t)act_base + PC_ALIGN - 1) / PC_ALIGN * PC_ALIGN);
-    for (i = 0; i < b->n_values; i++) {
-        const pc_value *v = &b->values[i];
-        if (v->cdata && v->const_slot >= 0)
-            memcpy(const_base + v->const_offset, v->cdata, v->count * pc_dtype_size(v->dtype));
-    }
-#define PC_RESOLVE(loc) \
-    ((loc) == PC_LOC_NONE ? NULL : ((loc)&1) ? (void *)(const_base + ((loc) >> 1)) \
-                                             : (void *)(act_base + ((loc) >> 1)))
-    for (k = 0; k < L->n_plans; k++) {
-        pc_plan *plan = &m->plans[k];
-        const pc_plan_draft *pd = &L->pds[k];
-        pc_step *steps = (pc_step *)cursor;
-        cursor += pc_round(pd->n_drafts * sizeof(pc_step) + 1);
-        plan->batch = pd->batch;
-        plan->steps = steps;
-        plan->n_steps = pd->n_drafts;
-        plan->in = (float *)PC_RESOLVE(pd->io_loc[0]);
-        plan->t = m->takes_time ? (float *)PC_RESOLVE(pd->io_loc[1]) : NULL;
-        plan->out = (const float *)PC_RESOLVE(pd->io_loc[b->n_inputs]);
-        for (i = 0; m->slots && i < n_io; i++) {
-            const pc_value *v = &b->values[i < b->n_inputs ? b->inputs[i].id
-                                                           : b->outputs[i - b->n_inputs].id];
-            m->slots[i].data = PC_RESOLVE(pd->io_loc[i]);
-            m->slots[i].bytes = v->count * pc_dtype_size(v->dtype);
+    for (i = 0; i < PC_REGIONS; i++) {
+        if (i == PC_REGION_KPOOL) {
+            /* the pool ends where the activations start */
+            pp->act_base = (uint8_t *)(((uintptr_t)cursor + L->region[i] + PC_ALIGN - 1) /
+                                       PC_ALIGN * PC_ALIGN);
+            cursor = pp->act_base - L->region[i];
         }
-        for (i = 0; i < pd->n_drafts; i++) {
-            const pc_draft *d = &pd->drafts[i];
-            void **io = (void **)cursor;
-            cursor += pc_round(d->n_io * sizeof(void *) + 1);
-            for (j = 0; j < d->n_io; j++)
-                io[j] = PC_RESOLVE(pd->loc[i][j]);
-            steps[i].fn = d->fn;
-            steps[i].io = io;
-            steps[i].n = d->n;
-            if (d->prm_size) {
-                memcpy(cursor, d->prm, d->prm_size);
-                steps[i].prm = cursor;
-            }
-            if (d->fn == k_scalar_program)
-                pc_scalar_program_bind((pc_scalar_program *)cursor, io);
-            cursor += pc_round(d->prm_size + 1);
-        }
+        pp->region[i].base = cursor;
+        cursor += L->region[i];
     }
-#undef PC_RESOLVE
+    pp->kpool_total = L->region[PC_REGION_KPOOL];
     return m;
+}
+
+/* The arena: malloc'd, or the end of the caller's buffer (its start holds the scratch
+ * still in use). */
+static pc_status pc_arena(pc_builder *b, size_t size, void *buf, size_t buf_size,
+                          uint8_t **arena)
+{
+    if (buf) {
+        uint8_t *end = (uint8_t *)buf + buf_size;
+        *arena = (uint8_t *)(((uintptr_t)end - size) / PC_ALIGN * PC_ALIGN);
+        if (buf_size < size + PC_ALIGN || !pc_scratch_set_top(&b->scratch, *arena))
+            return pc_fail(b->err, PC_ERR_MEMORY, "the %zu-byte buffer is too small for the "
+                           "model (pc_required_bytes)", buf_size);
+    } else if (!(*arena = (uint8_t *)malloc(size))) {
+        return pc_fail(b->err, PC_ERR_MEMORY, "cannot allocate the %zu-byte model arena", size);
+    }
+    memset(*arena, 0, size);
+    return PC_OK;
 }
 
 pc_status pc_plan_build(pc_builder *b, const pc_options *opts, void *buf, size_t buf_size,
                         pc_model **model_out)
 {
     pc_layout L;
+    pc_pass pp;
+    pc_program_limits limits;
     uint8_t *arena;
+    pc_model *m;
+    pc_const *c;
+    size_t k, n_consts = 0;
     pc_status st;
-    if ((st = pc_plan_all(b, opts, &L)) != PC_OK ||
-        (st = pc_arena(b, L.size, buf, buf_size, &arena)) != PC_OK)
+    memset(&L, 0, sizeof L);
+    memset(&pp, 0, sizeof pp);
+    memset(&limits, 0, sizeof limits);
+    pp.b = b;
+    pc_batches(b, opts, &L);
+    for (c = b->consts; c; c = c->next)
+        n_consts++;
+    b->values = pc_scratch_alloc(&b->scratch, PC_KEEP, b->cap_values * sizeof(pc_value));
+    pp.cap_blocks = b->cap_values + 2;
+    pp.blocks = pc_scratch_alloc(&b->scratch, PC_KEEP, pp.cap_blocks * sizeof(pc_block));
+    pp.live = pc_scratch_alloc(&b->scratch, PC_KEEP, pp.cap_blocks * sizeof(int32_t));
+    pp.cap_placed = b->n_inits + n_consts + 1;
+    pp.placed = pc_scratch_alloc(&b->scratch, PC_KEEP, pp.cap_placed * sizeof(pc_placed));
+    pp.input_ids = pc_scratch_alloc(&b->scratch, PC_KEEP, (b->n_inputs + 1) * sizeof(int32_t));
+    if (!b->values || !pp.blocks || !pp.live || !pp.placed || !pp.input_ids)
+        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
+    if (!(opts && (opts->flags & PC_LOAD_NO_PROGRAMS))) {
+        limits.ops = opts ? opts->program_ops : 0;
+        if ((st = pc_program_start(&pp, &limits)) != PC_OK)
+            return st;
+    }
+    if ((st = pc_plan_pass(&pp, &L, NULL)) != PC_OK || (st = pc_count_meta(b, &L)) != PC_OK)
         return st;
-    *model_out = pc_pack(b, &L, arena);
-    (*model_out)->owns_arena = buf == NULL;
+    L.slot_bytes = b->any_io ? pc_round((b->n_inputs + b->n_outputs) * sizeof(pc_slot) + 1) : 0;
+    L.size = pc_round(sizeof(pc_model)) + pc_round(L.n_plans * sizeof(pc_plan)) + L.slot_bytes +
+             pc_round(2 * (L.n_meta + 1) * sizeof(char *)) + pc_round(L.meta_bytes + 1) +
+             L.act_bytes + 2 * PC_ALIGN;
+    for (k = 0; k < PC_REGIONS; k++)
+        L.size += L.region[k];
+    if (L.size > ((size_t)1 << 29))
+        return pc_fail(b->err, PC_ERR_UNSUPPORTED, "model needs a %zu-byte arena (limit 512 MiB)",
+                       L.size);
+    /* From here on the arena is in use too: the load's peak is the larger of the two. */
+    b->peak_unplaced = b->scratch.peak;
+    b->scratch.peak = b->scratch.used[PC_KEEP] + b->scratch.used[PC_WORK];
+    if ((st = pc_arena(b, L.size, buf, buf_size, &arena)) != PC_OK)
+        return st;
+    m = pc_layout_model(b, &L, arena, &pp);
+    m->owns_arena = buf == NULL;
+    pp.fill = 1;
+    if ((st = pc_plan_pass(&pp, &L, m)) != PC_OK) {
+        if (!buf)
+            free(arena);
+        return st;
+    }
+    *model_out = m;
     return PC_OK;
 }

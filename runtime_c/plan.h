@@ -6,7 +6,7 @@
 #include "model.h"
 #include "op.h"
 
-/* Plans b (after the passes) into an arena: malloc'd when buf is NULL, else placed at the
+/* Plans b (after the graph scan) into an arena: malloc'd when buf is NULL, else placed at the
  * end of buf[0, buf_size), whose start holds b's scratch. */
 pc_status pc_plan_build(pc_builder *b, const pc_options *opts, void *buf, size_t buf_size,
                         pc_model **model);

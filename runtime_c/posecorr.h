@@ -33,7 +33,7 @@ extern "C" {
 #endif
 
 #define PC_VERSION_MAJOR 0
-#define PC_VERSION_MINOR 3
+#define PC_VERSION_MINOR 4
 #define PC_VERSION_PATCH 0
 /* What pc_version() returns for the library this header belongs to. */
 #define PC_VERSION_NUMBER (PC_VERSION_MAJOR * 10000 + PC_VERSION_MINOR * 100 + PC_VERSION_PATCH)
@@ -81,11 +81,30 @@ typedef struct pc_error {
     char message[PC_MESSAGE_SIZE];
 } pc_error;
 
+/* pc_options.flags */
+enum {
+    /* The caller promises that the model file's bytes (the data passed to pc_load_memory,
+     * pc_load_into or pc_required_bytes) stay readable and unchanged for as long as the
+     * model is used: in flash, a memory-mapped file, a static array. float32 and int64
+     * initializers stored as little-endian raw_data at an aligned offset (posecorr's
+     * exporter aligns them to 16 bytes) are then read where they lie instead of being
+     * copied into the arena. */
+    PC_LOAD_IN_PLACE = 1u << 0,
+    /* One-pose plans run every node as its own kernel instead of compiling the small
+     * elementwise subgraphs into one-pose programs: less load-time memory, slower. */
+    PC_LOAD_NO_PROGRAMS = 1u << 1
+};
+
 typedef struct pc_options {
     /* Largest number of poses evaluated at once; rounded down to a power of two.
      * 0 selects PC_DEFAULT_MAX_BATCH. pc_run handles any n by chunking (plans exist
      * for 1, 16, 256, ... poses and max_batch). */
     size_t max_batch;
+    /* PC_LOAD_* flags; 0 for the defaults. */
+    unsigned flags;
+    /* Element operations a one-pose program may hold while it is compiled (each takes
+     * 28 bytes of load-time scratch); 0 selects 512. */
+    size_t program_ops;
 } pc_options;
 
 typedef struct pc_model pc_model;

@@ -1,80 +1,201 @@
-/* One-pose programs. At N = 1 the exporter's quaternion, matrix and Gram-Schmidt
- * subgraphs are hundreds of steps over 1 to 9 elements, each costing more to launch
- * than to compute. Here each run of such steps becomes one k_scalar_program launch:
+/* One-pose programs, compiled while the graph streams past:
  *
- * 1. every step is expanded into element operations, in order: its sop (pc_prep.sop),
- *    the element map of its copy, gather or concatenation, or dot products for its
- *    last-axis sum or small matrix product (a sum of products absorbs the products);
- * 2. a copied element is renamed: later reads go to its source, so slices, gathers and
- *    concatenations cost nothing unless their result is read outside the run;
- * 3. operations whose result nothing reads are dropped (the zhou encoding uses 6 of the
- *    9 matrix entries it computes);
- * 4. the rest are ordered so that operations of one code run as a group (one dispatch),
- *    and their operands become byte offsets, bound to the arena when the plan is packed.
+ * 1. a node whose prepare function gave an element map (op.h) is expanded into element
+ *    operations: each output element becomes a reference to an operation, to a constant
+ *    of the program's pool or to an element already in the arena; copies (slices,
+ *    gathers, concatenations) cost nothing, operations on constants are computed now;
+ * 2. when a node without an element form comes (or the program is full), the program
+ *    closes: elements still needed get arena storage (the operation computing one writes
+ *    it there), operations nothing needs are dropped, the rest are ordered by dependency
+ *    level and code (one dispatch per group), their results kept in temporaries reused
+ *    by liveness, and the program is one k_scalar_program step.
  *
  * Each element is computed by the same IEEE operations, in the same order, as the
- * kernels compute it, so results are bit-identical (tests/test_runtime_c.py compares
- * the 1-pose and 16-pose plans of every model, and pc_run with the hand-written zhou
- * function). */
+ * kernels compute it, so results are bit-identical (tests/test_runtime_c.py compares the
+ * 1-pose and 16-pose plans of every model). */
 #include "program.h"
 
 #include <string.h>
 
-/* A step with more output elements keeps its kernel: the loops win there. */
+/* A node with more output elements keeps its kernel: the loops win there. */
 #define PC_PROGRAM_MAX_ELEMS 64
 /* A matrix product with more multiply-adds keeps its (vectorised) kernel. */
 #define PC_PROGRAM_MAX_MACS 128
 /* Terms of one dot product (sums and matrix products). */
 #define PC_PROGRAM_MAX_TERMS 64
-/* Longest dot product an addition extends (the extended one is recomputed if it is also
- * read elsewhere). */
-#define PC_EXTEND_MAX_TERMS 8
-/* Operand references hold a 15-bit io slot and a 16-bit byte offset (PC_SOP_REF). */
-#define PC_PROGRAM_MAX_SLOTS 4096
-#define PC_PROGRAM_MAX_BYTES 0xffff
+#define PC_PROGRAM_DEFAULT_OPS 512
 
-/* One element of a storage root, or of the program's constants k[] (v < 0). */
-typedef struct pc_eref {
-    int32_t v;
-    uint32_t e;
-} pc_eref;
+/* References to an element: >= 0 the result of an operation; below, an element of the
+ * arena (kind 0: byte offset from the activations) or of the constant pool (kind 1). */
+#define PC_EXT(x, kind) (-1 - (int32_t)((uint32_t)(x) << 1 | (uint32_t)(kind)))
+#define PC_EXT_KIND(r) ((uint32_t)(-1 - (r)) & 1u)
+#define PC_EXT_INDEX(r) ((uint32_t)(-1 - (r)) >> 1)
+#define PC_ACT_REF(off) PC_EXT(off, 0)
+#define PC_K_REF(k) PC_EXT(k, 1)
+#define PC_IS_K(r) ((r) < 0 && PC_EXT_KIND(r) == 1)
 
-#define PC_CONSTANT_V (-2)
-#define PC_COPIED_TWICE (-3)
-static const pc_eref pc_zero = {PC_CONSTANT_V, 0}, pc_one = {PC_CONSTANT_V, 1};
+#define PC_NO_DEST INT32_MIN
+/* An entry that adds a b to the DOT before it. */
+#define PC_TERM 0xff
 
-/* An element operation. DOT: o = c + sum of terms[t0, t0 + nt) (a, b pairs). */
 typedef struct pc_eop {
-    int code;
-    pc_eref a, b, c, o;
-    uint32_t t0, nt;
+    uint8_t code;       /* PC_SOP_*, or PC_TERM */
+    uint8_t n_terms;    /* DOT: PC_TERM entries after it */
+    uint16_t level;     /* dependency depth (close) */
+    int32_t a, b, c;
+    int32_t dest;       /* arena offset of a needed element, or PC_NO_DEST */
+    int32_t out;        /* close: first 1 when kept, then where the result goes */
+    int32_t last;       /* position of its last reader in the order (close) */
 } pc_eop;
 
-/* What the pass knows of one element of a root the run writes. */
-typedef struct pc_elem {
-    pc_eref renamed;    /* the source it copies (v < 0: not a copy) */
-    pc_eref into;       /* the copy written in its place (v < 0: none; PC_COPIED_TWICE:
-                         * copied twice, so written in place) */
-    int32_t writer;     /* the last operation writing it, or -1 */
-    uint8_t live;       /* read by a kept operation */
-} pc_elem;
+/* Operations live in chunks on the keep end, taken as the program grows and given back
+ * when it closes. */
+#define PC_CHUNK_OPS 32
 
-/* State of the pass: per root value id, reset between runs. */
-typedef struct pc_prog {
-    pc_builder *b;
-    pc_eop *ops;
-    size_t n_ops;
-    pc_eref *terms;
-    size_t n_terms;
-    pc_elem **elem;     /* per root touched by the run: its elements' state, or NULL */
-    uint8_t *outside;   /* root read after the run or a graph output */
-    int32_t *slot_of;   /* root's io slot in the program being emitted, or -1 */
-    int32_t *touched;   /* roots with state to reset */
-    size_t n_touched;
-} pc_prog;
+typedef struct pc_program pc_program;
+struct pc_program {
+    pc_eop **chunk;
+    size_t n_chunks, n_ops, cap_ops;
+    uint32_t *k;        /* the constant pool, as bits */
+    size_t n_k, cap_k;
+    int open;
+    pc_scratch_mark mark; /* keep end at opening: element maps above it */
+    size_t pending;     /* elements of records with maps: copies a close may add */
+};
+
+#define PC_OP(g, i) ((g)->chunk[(size_t)(i) / PC_CHUNK_OPS][(size_t)(i) % PC_CHUNK_OPS])
+
+static pc_status pc_program_full(pc_pass *pp)
+{
+    return pc_fail(pp->b->err, PC_ERR_MEMORY, "one-pose program over its limits");
+}
+
+pc_status pc_program_start(pc_pass *pp, const pc_program_limits *limits)
+{
+    pc_builder *b = pp->b;
+    pc_program *g = pc_scratch_alloc(&b->scratch, PC_KEEP, sizeof *g);
+    const size_t ops = limits && limits->ops ? limits->ops : PC_PROGRAM_DEFAULT_OPS;
+    if (!g)
+        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
+    g->cap_ops = (ops + PC_CHUNK_OPS - 1) / PC_CHUNK_OPS * PC_CHUNK_OPS;
+    g->cap_k = g->cap_ops / 2 + 16;
+    g->chunk = pc_scratch_alloc_raw(&b->scratch, PC_KEEP,
+                                    g->cap_ops / PC_CHUNK_OPS * sizeof *g->chunk);
+    g->k = pc_scratch_alloc_raw(&b->scratch, PC_KEEP, g->cap_k * sizeof *g->k);
+    if (!g->chunk || !g->k)
+        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory for one-pose programs "
+                       "(pc_options.program_ops)");
+    pp->prog = g;
+    return PC_OK;
+}
+
+/* ---- what a program takes ------------------------------------------------------------ */
+
+static int pc_element_type(int dtype)
+{
+    return dtype == PC_F32 || dtype == PC_BOOL;
+}
+
+/* Operations node p adds, at most. */
+static size_t pc_expansion_ops(const pc_prep *p)
+{
+    const size_t n = p->out[0]->count;
+    switch (p->emap) {
+    case PC_EMAP_SOP: return n;
+    case PC_EMAP_SUM: return n * (((const pc_reduce *)p->prm)->d[5] + 1);
+    case PC_EMAP_PRODUCT: return n * (((const pc_gemm *)p->prm)->K + 2);
+    default: return 0;
+    }
+}
+
+/* Pool constants node p may add, at most. */
+static size_t pc_k_bound(const pc_prep *p)
+{
+    return pc_expansion_ops(p) + 3 * p->out[0]->count + 2;
+}
+
+int pc_program_takes(const pc_pass *pp, const pc_prep *p)
+{
+    size_t j;
+    const pc_value *o;
+    if (!pp->prog || pp->batch != 1 || p->emap == PC_EMAP_NONE || p->alias_of >= 0 ||
+        p->n_out != 1 || !p->out[0])
+        return 0;
+    o = p->out[0];
+    if (o->count == 0 || o->count > PC_PROGRAM_MAX_ELEMS || !pc_element_type(o->dtype))
+        return 0;
+    for (j = 0; j < p->n_in; j++) {
+        const pc_value *v = p->in[j];
+        if (!v)
+            continue;
+        if (!pc_element_type(v->dtype) && !(p->emap == PC_EMAP_SELECT && v->cdata))
+            return 0;
+        if (v->count * pc_dtype_size(v->dtype) > 0x3fffffff)
+            return 0;
+    }
+    if (p->emap == PC_EMAP_SUM) {
+        const size_t len = ((const pc_reduce *)p->prm)->d[5];
+        if (len == 0 || len > PC_PROGRAM_MAX_TERMS)
+            return 0;
+    }
+    if (p->emap == PC_EMAP_PRODUCT) {
+        const pc_gemm *q = (const pc_gemm *)p->prm;
+        for (j = 0; j < q->nbd; j++) /* batch dimensions of one pose are 1 */
+            if (q->bd[j] != 1)
+                return 0;
+        if (q->K == 0 || q->K > PC_PROGRAM_MAX_TERMS || o->count * q->K > PC_PROGRAM_MAX_MACS)
+            return 0;
+    }
+    /* what one node may add: operations, copies at the close, pool constants */
+    return pc_expansion_ops(p) + o->count <= pp->prog->cap_ops / 2 &&
+           pc_k_bound(p) <= pp->prog->cap_k;
+}
+
+/* ---- element references --------------------------------------------------------------- */
+
+static pc_status pc_k(pc_pass *pp, uint32_t bits, int32_t *r)
+{
+    pc_program *g = pp->prog;
+    size_t i;
+    for (i = 0; i < g->n_k; i++)
+        if (g->k[i] == bits) {
+            *r = PC_K_REF(i);
+            return PC_OK;
+        }
+    if (g->n_k == g->cap_k)
+        return pc_program_full(pp);
+    g->k[g->n_k] = bits;
+    *r = PC_K_REF(g->n_k++);
+    return PC_OK;
+}
+
+static pc_status pc_kf(pc_pass *pp, float x, int32_t *r)
+{
+    uint32_t bits;
+    memcpy(&bits, &x, 4);
+    return pc_k(pp, bits, r);
+}
+
+static pc_status pc_elem(pc_pass *pp, const pc_value *v, size_t e, int32_t *r)
+{
+    if (v->elems) {
+        *r = v->elems[e];
+        return PC_OK;
+    }
+    if (v->cdata) {
+        uint32_t bits = 0;
+        if (v->dtype == PC_BOOL)
+            bits = ((const uint8_t *)v->cdata)[e];
+        else
+            memcpy(&bits, (const uint8_t *)v->cdata + 4 * e, 4);
+        return pc_k(pp, bits, r);
+    }
+    *r = PC_ACT_REF(pp->blocks[v->block].off + e * pc_dtype_size(v->dtype));
+    return PC_OK;
+}
 
 /* Element of `in` that broadcasting reads for element e of `out` (numpy rules). */
-static uint32_t pc_bcast_element(const pc_value *in, const pc_value *out, size_t e)
+static size_t pc_bcast_element(const pc_value *in, const pc_value *out, size_t e)
 {
     size_t idx = 0, stride = 1;
     int k;
@@ -88,630 +209,441 @@ static uint32_t pc_bcast_element(const pc_value *in, const pc_value *out, size_t
             stride *= id;
         }
     }
-    return (uint32_t)idx;
+    return idx;
 }
 
-/* A matrix product whose elements a program computes exactly as its kernel does
- * (pc_gemm_one, pc_gemm_rows): alpha 1, C absent or taken with beta 1. */
-static int pc_small_product(const pc_draft *d)
+/* Room for n more operations: chunks taken now, so that adding one cannot fail. */
+static pc_status pc_reserve(pc_pass *pp, size_t n)
 {
-    const pc_gemm *q = (const pc_gemm *)d->prm;
-    if (d->fn != k_gemm && d->fn != k_matmul && d->fn != pc_gemm_rows_kernels[0] &&
-        d->fn != pc_gemm_rows_kernels[1])
-        return 0;
-    if (q->K == 0 || q->K > PC_PROGRAM_MAX_TERMS || d->n * q->K > PC_PROGRAM_MAX_MACS)
-        return 0;
-    if (q->alpha != 1.0f || (q->c_mode != 0 && q->beta != 1.0f))
-        return 0;
-    return q->act == PC_ACT_NONE || q->act == PC_ACT_TANH || q->act == PC_ACT_SIGMOID ||
-           q->act == PC_ACT_RELU;
-}
-
-/* Can draft d run as element operations? */
-static int pc_expandable(const pc_builder *b, const pc_draft *d)
-{
-    uint32_t j;
-    if (d->n == 0 || d->n > PC_PROGRAM_MAX_ELEMS)
-        return 0;
-    for (j = 0; j < d->n_io; j++) {
-        const pc_value *v;
-        if (d->io[j] < 0)
-            return 0;
-        v = &b->values[pc_root(b, d->io[j])];
-        if (v->dtype != PC_F32 && v->dtype != PC_BOOL && !(v->dtype == PC_I64 && v->cdata))
-            return 0;
-        if (v->count * pc_dtype_size(v->dtype) > PC_PROGRAM_MAX_BYTES)
-            return 0;
+    pc_program *g = pp->prog;
+    if (g->n_ops + n > g->cap_ops)
+        return pc_program_full(pp);
+    while (g->n_chunks * PC_CHUNK_OPS < g->n_ops + n) {
+        pc_eop *c = pc_scratch_alloc_raw(&pp->b->scratch, PC_KEEP, PC_CHUNK_OPS * sizeof *c);
+        if (!c)
+            return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory for a one-pose program "
+                           "(pc_options.program_ops, PC_LOAD_NO_PROGRAMS)");
+        g->chunk[g->n_chunks++] = c;
     }
-    if (d->sop)
-        return 1;
-    if (d->fn == k_copy_4 || d->fn == k_strided2_4)
-        return 1;
-    if (d->fn == k_gather_cols_4)
-        return b->values[pc_root(b, d->io[1])].cdata != NULL;
-    if (d->fn == k_concat)
-        return ((const pc_concat *)d->prm)->esize == 4;
-    if (d->fn == k_reduce_sum_last) {
-        const size_t len = ((const pc_reduce *)d->prm)->d[5];
-        return len > 0 && len <= PC_PROGRAM_MAX_TERMS;
-    }
-    return pc_small_product(d);
-}
-
-/* Upper bounds of the operations and dot-product terms draft d expands to. */
-static void pc_expansion_size(const pc_draft *d, size_t *ops, size_t *terms)
-{
-    *ops += d->n;
-    if (d->sop == PC_SOP_ADD) {
-        *terms += d->n * PC_EXTEND_MAX_TERMS;
-    } else if (d->sop) {
-        return;
-    } else if (d->fn == k_reduce_sum_last) {
-        *terms += d->n * ((const pc_reduce *)d->prm)->d[5];
-    } else if (pc_small_product(d)) {
-        *ops += d->n; /* the activation of each element */
-        *terms += d->n * ((const pc_gemm *)d->prm)->K;
-    }
-}
-
-static pc_status pc_touch(pc_prog *g, int32_t root)
-{
-    const size_t count = g->b->values[root].count;
-    size_t e;
-    if (g->elem[root])
-        return PC_OK;
-    /* one block per root: scratch rounds every allocation up to PC_ALIGN */
-    g->elem[root] = pc_scratch_alloc_raw(&g->b->scratch, count * sizeof(pc_elem));
-    if (!g->elem[root])
-        return pc_fail(g->b->err, PC_ERR_MEMORY, "out of memory");
-    for (e = 0; e < count; e++) {
-        pc_elem *x = &g->elem[root][e];
-        x->renamed.v = x->into.v = -1;
-        x->renamed.e = x->into.e = 0;
-        x->writer = -1;
-        x->live = 0;
-    }
-    g->touched[g->n_touched++] = root;
     return PC_OK;
 }
 
-/* The operation that last wrote r in this run, or -1. */
-static int32_t pc_writer(const pc_prog *g, pc_eref r)
+/* Callers have reserved the room (pc_reserve). */
+static int32_t pc_new_op(pc_program *g, int code, int32_t a, int32_t b, int32_t c)
 {
-    return r.v >= 0 && g->elem[r.v] ? g->elem[r.v][r.e].writer : -1;
-}
-
-/* Element e of value id, through the renames of earlier copies. */
-static pc_eref pc_read(const pc_prog *g, int32_t id, size_t e)
-{
-    pc_eref r;
-    r.v = pc_root(g->b, id);
-    r.e = (uint32_t)e;
-    if (g->elem[r.v] && g->elem[r.v][e].renamed.v >= 0)
-        r = g->elem[r.v][e].renamed;
-    return r;
-}
-
-static pc_status pc_emit(pc_prog *g, int code, pc_eref a, pc_eref b, pc_eref c, int32_t out,
-                         size_t e)
-{
-    pc_eop *op = &g->ops[g->n_ops];
-    pc_status st;
-    op->code = code;
+    pc_eop *op = &PC_OP(g, g->n_ops);
+    memset(op, 0, sizeof *op);
+    op->code = (uint8_t)code;
     op->a = a;
     op->b = b;
     op->c = c;
-    op->o.v = pc_root(g->b, out);
-    op->o.e = (uint32_t)e;
-    op->t0 = op->nt = 0;
-    if ((st = pc_touch(g, op->o.v)) != PC_OK)
-        return st;
-    if (code == PC_SOP_COPY)
-        g->elem[op->o.v][e].renamed = a;
-    g->elem[op->o.v][e].writer = (int32_t)g->n_ops++;
+    op->dest = PC_NO_DEST;
+    return (int32_t)g->n_ops++;
+}
+
+static float pc_kval(const pc_program *g, int32_t r)
+{
+    float x;
+    memcpy(&x, &g->k[PC_EXT_INDEX(r)], 4);
+    return x;
+}
+
+/* An element operation, computed now when its operands are constants. */
+static pc_status pc_sop(pc_pass *pp, int code, int32_t a, int32_t b, int32_t c, int32_t *r)
+{
+    pc_program *g = pp->prog;
+    const int binary = PC_SOP_IS_BINARY(code), where = code == PC_SOP_WHERE;
+    if (where && PC_IS_K(c)) {
+        *r = g->k[PC_EXT_INDEX(c)] ? a : b;
+        return PC_OK;
+    }
+    if (PC_IS_K(a) && (!(binary || where) || PC_IS_K(b)) && (!where || PC_IS_K(c)))
+        return pc_k(pp, pc_sop_eval(code, g->k[PC_EXT_INDEX(a)],
+                                    binary || where ? g->k[PC_EXT_INDEX(b)] : 0,
+                                    where ? g->k[PC_EXT_INDEX(c)] : 0), r);
+    *r = pc_new_op(g, code, a, binary || where ? b : 0, where ? c : 0);
     return PC_OK;
 }
 
-static pc_status pc_emit_copy(pc_prog *g, int32_t in, size_t from, int32_t out, size_t to)
+/* c + sum of a[t] b[t], in order (the kernels' order); computed now over constants. */
+static pc_status pc_dot(pc_pass *pp, int32_t c, const int32_t *a, const int32_t *b, size_t n,
+                        int32_t *r)
 {
-    const pc_eref a = pc_read(g, in, from);
-    return pc_emit(g, PC_SOP_COPY, a, a, a, out, to);
-}
-
-/* Appends the term x (a product when a multiplication in this run made it, x 1 else). */
-static void pc_add_sum_term(pc_prog *g, pc_eref x)
-{
-    const int32_t w = pc_writer(g, x);
-    pc_eref *t = &g->terms[2 * g->n_terms++];
-    if (w >= 0 && g->ops[w].code == PC_SOP_MUL) {
-        t[0] = g->ops[w].a;
-        t[1] = g->ops[w].b;
-    } else {
-        t[0] = x;
-        t[1] = pc_one;
+    pc_program *g = pp->prog;
+    size_t t;
+    int all_k = PC_IS_K(c);
+    for (t = 0; t < n && all_k; t++)
+        all_k = PC_IS_K(a[t]) && PC_IS_K(b[t]);
+    if (all_k) {
+        float acc = pc_kval(g, c);
+        for (t = 0; t < n; t++)
+            acc += pc_kval(g, a[t]) * pc_kval(g, b[t]);
+        return pc_kf(pp, acc, r);
     }
-}
-
-/* o[e] = init + the terms appended since term t0. */
-static pc_status pc_emit_dot(pc_prog *g, pc_eref init, size_t t0, int32_t out, size_t e)
-{
-    const pc_status st = pc_emit(g, PC_SOP_DOT, init, init, init, out, e);
-    if (st != PC_OK)
-        return st;
-    g->ops[g->n_ops - 1].t0 = (uint32_t)t0;
-    g->ops[g->n_ops - 1].nt = (uint32_t)(g->n_terms - t0);
+    *r = pc_new_op(g, PC_SOP_DOT, a[0], b[0], c);
+    PC_OP(g, *r).n_terms = (uint8_t)(n - 1);
+    for (t = 1; t < n; t++)
+        pc_new_op(g, PC_TERM, a[t], b[t], 0);
     return PC_OK;
 }
 
-/* Appends the terms of dot product w to the terms under construction. */
-static void pc_copy_terms(pc_prog *g, int32_t w)
-{
-    const pc_eop *dot = &g->ops[w];
-    memmove(&g->terms[2 * g->n_terms], &g->terms[2 * dot->t0], 2 * dot->nt * sizeof(pc_eref));
-    g->n_terms += dot->nt;
-}
+/* ---- expansion -------------------------------------------------------------------------- */
 
-/* x + y kept in one dot product when a side is a product or a dot product of this run:
- * x + p q is the dot product (x; p q), and (c; t...) + y is (c; t..., y 1). Addition is
- * commutative bit for bit and y 1 = y exactly, so the result is the addition's. */
-static pc_status pc_expand_add(pc_prog *g, pc_eref x, pc_eref y, int32_t out, size_t e)
+static pc_status pc_expand_element(pc_pass *pp, const pc_prep *p, size_t e, int32_t *r)
 {
-    const int32_t wx = pc_writer(g, x), wy = pc_writer(g, y);
-    const int dot_x = wx >= 0 && g->ops[wx].code == PC_SOP_DOT &&
-                      g->ops[wx].nt < PC_EXTEND_MAX_TERMS;
-    const int dot_y = wy >= 0 && g->ops[wy].code == PC_SOP_DOT &&
-                      g->ops[wy].nt < PC_EXTEND_MAX_TERMS;
-    const size_t t0 = g->n_terms;
-    pc_eref init;
-    if (dot_x || dot_y) {
-        const int32_t w = dot_x ? wx : wy;
-        init = g->ops[w].c;
-        pc_copy_terms(g, w);
-        pc_add_sum_term(g, dot_x ? y : x);
-    } else if ((wy >= 0 && g->ops[wy].code == PC_SOP_MUL) ||
-               (wx >= 0 && g->ops[wx].code == PC_SOP_MUL)) {
-        const int mul_y = wy >= 0 && g->ops[wy].code == PC_SOP_MUL;
-        init = mul_y ? x : y;
-        pc_add_sum_term(g, mul_y ? y : x);
-    } else {
-        return pc_emit(g, PC_SOP_ADD, x, y, x, out, e);
-    }
-    return pc_emit_dot(g, init, t0, out, e);
-}
-
-/* Element e of act(A B + C) as pc_gemm_one and pc_gemm_rows compute it. */
-static pc_status pc_expand_product(pc_prog *g, const pc_draft *d, size_t e)
-{
-    static const int act_code[] = {[PC_ACT_NONE] = 0, [PC_ACT_TANH] = PC_SOP_TANH,
-                                   [PC_ACT_SIGMOID] = PC_SOP_SIGMOID,
-                                   [PC_ACT_RELU] = PC_SOP_RELU};
-    const pc_gemm *q = (const pc_gemm *)d->prm;
-    const int rows = d->fn == pc_gemm_rows_kernels[0] || d->fn == pc_gemm_rows_kernels[1];
-    const size_t MN = q->M * q->N, m = (e % MN) / q->N, n = e % q->N;
-    const int c_mode = rows ? 2 : q->c_mode;
-    const int32_t out = d->io[d->n_io - 1];
-    size_t ao = 0, bo = 0, t = e / MN, k, j;
-    const size_t t0 = g->n_terms;
-    pc_eref init = pc_zero;
+    const pc_value *o = p->out[0];
+    int32_t x[3] = {0, 0, 0};
+    int32_t ta[PC_PROGRAM_MAX_TERMS], tb[PC_PROGRAM_MAX_TERMS];
+    size_t j, k;
     pc_status st;
-    for (j = q->nbd; d->fn == k_matmul && j-- > 0; t /= q->bd[j]) {
-        ao += (t % q->bd[j]) * q->a_bst[j];
-        bo += (t % q->bd[j]) * q->b_bst[j];
+    switch (p->emap) {
+    case PC_EMAP_SOP: {
+        /* Where's operands are (cond, then, else); the entry reads c ? a : b. */
+        const int where = p->sop == PC_SOP_WHERE;
+        for (j = 0; j < p->n_in && j < 3; j++)
+            if ((st = pc_elem(pp, p->in[j], pc_bcast_element(p->in[j], o, e), &x[j])) != PC_OK)
+                return st;
+        return where ? pc_sop(pp, p->sop, x[1], x[2], x[0], r) : pc_sop(pp, p->sop, x[0], x[1], 0, r);
     }
-    for (k = 0; k < q->K; k++) {
-        pc_eref *tm = &g->terms[2 * g->n_terms++];
-        tm[0] = pc_read(g, d->io[0], ao + (rows ? m * q->K + k : m * q->a_rs + k * q->a_cs));
-        tm[1] = pc_read(g, d->io[1], bo + (rows ? k * q->N + n : k * q->b_rs + n * q->b_cs));
+    case PC_EMAP_SELECT: {
+        size_t input, elem;
+        p->select(p, e, &input, &elem);
+        return pc_elem(pp, p->in[input], elem, r);
     }
-    if (c_mode)
-        init = pc_read(g, d->io[2], c_mode == 1 ? 0 : c_mode == 2 ? n : c_mode == 3 ? m : m * q->N + n);
-    if ((st = pc_emit_dot(g, init, t0, out, e)) != PC_OK || !act_code[q->act])
-        return st;
-    {
-        const pc_eref r = {pc_root(g->b, out), (uint32_t)e};
-        return pc_emit(g, act_code[q->act], r, r, r, out, e);
+    case PC_EMAP_SUM: {
+        const size_t len = ((const pc_reduce *)p->prm)->d[5];
+        int32_t zero, one;
+        if ((st = pc_kf(pp, 0.0f, &zero)) != PC_OK || (st = pc_kf(pp, 1.0f, &one)) != PC_OK)
+            return st;
+        for (k = 0; k < len; k++) {
+            if ((st = pc_elem(pp, p->in[0], e * len + k, &ta[k])) != PC_OK)
+                return st;
+            tb[k] = one; /* x 1 is exact: the kernel's plain sum */
+        }
+        return pc_dot(pp, zero, ta, tb, len, r);
+    }
+    case PC_EMAP_PRODUCT: {
+        const pc_gemm *q = (const pc_gemm *)p->prm;
+        const size_t i = e / q->N, n = e % q->N;
+        int32_t c, dot;
+        if (q->c_mode == 0) {
+            st = pc_kf(pp, 0.0f, &c);
+        } else {
+            const size_t ci = q->c_mode == 1 ? 0 : q->c_mode == 2 ? n : q->c_mode == 3 ? i
+                                                                                   : i * q->N + n;
+            st = pc_elem(pp, p->in[2], ci, &c);
+        }
+        if (st != PC_OK)
+            return st;
+        for (k = 0; k < q->K; k++)
+            if ((st = pc_elem(pp, p->in[0], i * q->a_rs + k * q->a_cs, &ta[k])) != PC_OK ||
+                (st = pc_elem(pp, p->in[1], k * q->b_rs + n * q->b_cs, &tb[k])) != PC_OK)
+                return st;
+        if ((st = pc_dot(pp, c, ta, tb, q->K, &dot)) != PC_OK)
+            return st;
+        switch (q->act) {
+        case PC_ACT_TANH: return pc_sop(pp, PC_SOP_TANH, dot, 0, 0, r);
+        case PC_ACT_SIGMOID: return pc_sop(pp, PC_SOP_SIGMOID, dot, 0, 0, r);
+        case PC_ACT_RELU: return pc_sop(pp, PC_SOP_RELU, dot, 0, 0, r);
+        default: *r = dot; return PC_OK;
+        }
+    }
+    default:
+        return pc_fail(pp->b->err, PC_ERR_GRAPH, "no element form");
     }
 }
 
-/* The element operations of one step, appended to g->ops. */
-static pc_status pc_expand(pc_prog *g, const pc_draft *d)
-{
-    pc_builder *b = g->b;
-    const int32_t out = d->io[d->n_io - 1];
-    size_t e, k, i;
-    pc_status st = PC_OK;
-    if (d->sop) {
-        const pc_value *ov = &b->values[out];
-        const uint32_t n_in = d->n_io - 1;
-        for (e = 0; e < d->n && st == PC_OK; e++) {
-            pc_eref r[3];
-            for (k = 0; k < n_in; k++)
-                r[k] = pc_read(g, d->io[k], pc_bcast_element(&b->values[d->io[k]], ov, e));
-            if (d->sop == PC_SOP_WHERE) /* io: condition, then, else */
-                st = pc_emit(g, d->sop, r[1], r[2], r[0], out, e);
-            else if (d->sop == PC_SOP_ADD)
-                st = pc_expand_add(g, r[0], r[1], out, e);
-            else
-                st = pc_emit(g, d->sop, r[0], n_in > 1 ? r[1] : r[0], r[0], out, e);
-        }
-    } else if (d->fn == k_copy_4) {
-        const pc_strided *q = (const pc_strided *)d->prm;
-        for (e = 0; e < d->n && st == PC_OK; e++)
-            st = pc_emit_copy(g, d->io[0], (size_t)q->base + e, out, e);
-    } else if (d->fn == k_strided2_4) {
-        const pc_strided *q = (const pc_strided *)d->prm;
-        for (e = 0, i = 0; i < q->d[4]; i++)
-            for (k = 0; k < q->d[5] && st == PC_OK; k++, e++)
-                st = pc_emit_copy(g, d->io[0],
-                                  (size_t)(q->base + (ptrdiff_t)i * q->st[4] +
-                                           (ptrdiff_t)k * q->st[5]), out, e);
-    } else if (d->fn == k_gather_cols_4) {
-        const pc_gather *q = (const pc_gather *)d->prm;
-        const int64_t *idx = (const int64_t *)b->values[pc_root(b, d->io[1])].cdata;
-        for (e = 0, i = 0; i < q->outer; i++)
-            for (k = 0; k < q->n_idx && st == PC_OK; k++, e++)
-                st = pc_emit_copy(g, d->io[0], i * q->len + (size_t)idx[k], out, e);
-    } else if (d->fn == k_concat) {
-        const pc_concat *q = (const pc_concat *)d->prm;
-        for (e = 0, i = 0; i < q->outer; i++)
-            for (k = 0; k < q->n_in; k++) {
-                size_t j;
-                for (j = 0; j < q->inner[k] && st == PC_OK; j++, e++)
-                    st = pc_emit_copy(g, d->io[k], i * q->inner[k] + j, out, e);
-            }
-    } else if (d->fn == k_reduce_sum_last) {
-        /* the kernel sums from 0 in memory order: 0 + x0 + x1 ... (x 1 is exact) */
-        const size_t len = ((const pc_reduce *)d->prm)->d[5];
-        for (e = 0; e < d->n && st == PC_OK; e++) {
-            const size_t t0 = g->n_terms;
-            for (k = 0; k < len; k++)
-                pc_add_sum_term(g, pc_read(g, d->io[0], e * len + k));
-            st = pc_emit_dot(g, pc_zero, t0, out, e);
-        }
-    } else {
-        for (e = 0; e < d->n && st == PC_OK; e++)
-            st = pc_expand_product(g, d, e);
-    }
-    return st;
-}
-
-/* Pointers to the operands op reads, in in[0, returned count). */
-static size_t pc_inputs(const pc_prog *g, const pc_eop *op, const pc_eref **in)
+/* Elements of the records with maps: the copies a close may have to add. */
+static size_t pc_pending(const pc_pass *pp)
 {
     size_t k, n = 0;
-    if (op->code == PC_SOP_DOT) {
-        in[n++] = &op->c;
-        for (k = 0; k < 2 * op->nt; k++)
-            in[n++] = &g->terms[2 * op->t0 + k];
-        return n;
-    }
-    in[n++] = &op->a;
-    if (op->code == PC_SOP_WHERE || PC_SOP_IS_BINARY(op->code))
-        in[n++] = &op->b;
-    if (op->code == PC_SOP_WHERE)
-        in[n++] = &op->c;
+    for (k = 0; k < pp->b->cap_values; k++)
+        if (pp->b->values[k].used && pp->b->values[k].elems)
+            n += pp->b->values[k].count;
     return n;
 }
 
-static int pc_is_live(const pc_prog *g, pc_eref r)
+pc_status pc_program_expand(pc_pass *pp, const pc_prep *p)
 {
-    return g->outside[r.v] || g->elem[r.v][r.e].live;
-}
-
-static void pc_mark(pc_prog *g, pc_eref r)
-{
-    if (r.v >= 0 && g->elem[r.v])
-        g->elem[r.v][r.e].live = 1;
-}
-
-/* The order the kept operations run in: dependencies first, and as long as one is
- * ready, another of the same code, so that the interpreter dispatches once per group
- * instead of once per operation. Only independent operations trade places, each still
- * computes what it did, so results are unchanged. An operation depends on the last
- * earlier writer of each element it reads; an element written twice (a product, then
- * its activation in place) is read only after its last write. */
-static pc_status pc_schedule(pc_prog *g, const pc_eref **in, int32_t *order,
-                             size_t *n_order)
-{
-    pc_builder *b = g->b;
-    const size_t n = g->n_ops, max_edges = 3 * n + 2 * g->n_terms;
-    int32_t *pending, *succ_start, *succ, *fill, *ready, *edges, *height;
-    size_t k, m, n_in, n_ready = 0, n_done = 0, n_kept = 0, n_edges = 0;
-    int code = PC_SOP_NONE;
-    pending = pc_scratch_alloc(&b->scratch, (n + 1) * sizeof(int32_t));
-    succ_start = pc_scratch_alloc(&b->scratch, (n + 2) * sizeof(int32_t));
-    fill = pc_scratch_alloc(&b->scratch, (n + 1) * sizeof(int32_t));
-    ready = pc_scratch_alloc(&b->scratch, (n + 1) * sizeof(int32_t));
-    height = pc_scratch_alloc(&b->scratch, (n + 1) * sizeof(int32_t));
-    edges = pc_scratch_alloc_raw(&b->scratch, (2 * max_edges + 1) * sizeof(int32_t));
-    succ = pc_scratch_alloc_raw(&b->scratch, (max_edges + 1) * sizeof(int32_t));
-    if (!pending || !succ_start || !fill || !ready || !height || !edges || !succ)
-        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    /* Edges from the last earlier writer of each operand, in the original order; then
-     * the successors of w in succ[succ_start[w], succ_start[w + 1]). */
-    for (k = 0; k < g->n_touched; k++)
-        for (m = 0; m < b->values[g->touched[k]].count; m++)
-            g->elem[g->touched[k]][m].writer = -1;
-    for (k = 0; k < n; k++) {
-        const pc_eop *op = &g->ops[k];
-        if (op->code == PC_SOP_NONE)
-            continue;
-        for (m = 0, n_in = pc_inputs(g, op, in); m < n_in; m++) {
-            const int32_t w = pc_writer(g, *in[m]);
-            if (w >= 0) {
-                edges[2 * n_edges] = w;
-                edges[2 * n_edges++ + 1] = (int32_t)k;
-                succ_start[w + 1]++;
-                pending[k]++;
-            }
-        }
-        g->elem[op->o.v][op->o.e].writer = (int32_t)k;
-        n_kept++;
-    }
-    for (k = 0; k < n; k++)
-        succ_start[k + 1] += succ_start[k];
-    for (k = 0; k < n_edges; k++)
-        succ[succ_start[edges[2 * k]] + fill[edges[2 * k]]++] = edges[2 * k + 1];
-    for (k = 0; k < n; k++)
-        if (g->ops[k].code != PC_SOP_NONE && pending[k] == 0)
-            ready[n_ready++] = (int32_t)k;
-    /* height: operations on the longest chain to the end, so the switch goes where the
-     * run would otherwise wait (edges go forward in the original order) */
-    for (k = n; k-- > 0;) {
-        size_t j;
-        height[k] = 1;
-        for (j = (size_t)succ_start[k]; j < (size_t)succ_start[k + 1]; j++)
-            if (height[succ[j]] + 1 > height[k])
-                height[k] = height[succ[j]] + 1;
-    }
-    /* ready[] stays in original order; take the first of the current code, else the
-     * highest. */
-    while (n_ready) {
-        size_t pick = n_ready, j;
-        int32_t op_k;
-        for (j = 0; j < n_ready; j++)
-            if (g->ops[ready[j]].code == code) {
-                pick = j;
-                break;
-            }
-        if (pick == n_ready)
-            for (pick = 0, j = 1; j < n_ready; j++)
-                if (height[ready[j]] > height[ready[pick]])
-                    pick = j;
-        op_k = ready[pick];
-        code = g->ops[op_k].code;
-        memmove(ready + pick, ready + pick + 1, (n_ready - pick - 1) * sizeof(int32_t));
-        n_ready--;
-        order[n_done++] = op_k;
-        for (j = (size_t)succ_start[op_k]; j < (size_t)succ_start[op_k + 1]; j++) {
-            const int32_t next = succ[j];
-            if (--pending[next] == 0) {
-                size_t at = n_ready++;
-                for (; at > 0 && ready[at - 1] > next; at--)
-                    ready[at] = ready[at - 1];
-                ready[at] = next;
-            }
-        }
-    }
-    if (n_done != n_kept)
-        return pc_fail(b->err, PC_ERR_GRAPH, "one-pose program has a cycle");
-    *n_order = n_done;
-    return PC_OK;
-}
-
-/* The io slot of root v in this run's program, appended when new. */
-static uint32_t pc_slot(const pc_prog *g, int32_t *io, uint32_t *n, int32_t v)
-{
-    if (g->slot_of[v] < 0) {
-        g->slot_of[v] = (int32_t)*n;
-        io[(*n)++] = v;
-    }
-    return (uint32_t)g->slot_of[v];
-}
-
-/* The planning form of operand r (PC_SOP_REF). */
-static int32_t pc_ref(const pc_prog *g, int32_t *io, uint32_t *n_io, pc_eref r)
-{
-    const pc_builder *b = g->b;
-    if (r.v >= 0 && g->elem[r.v] && g->elem[r.v][r.e].into.v >= 0)
-        r = g->elem[r.v][r.e].into;
-    if (r.v < 0)
-        return PC_SOP_REF((uint32_t)PC_SOP_CONSTANTS, r.e * sizeof(float));
-    return PC_SOP_REF(pc_slot(g, io, n_io, r.v), r.e * pc_dtype_size(b->values[r.v].dtype));
-}
-
-/* Compiles drafts[first, end) in scratch it takes and leaves for the caller to release;
- * the program's sizes go to *n_scalar and *n_io, and when q_out is given, the program and
- * its io list (value ids) are copied into q_out and io_out. */
-static pc_status pc_compile_pass(pc_prog *g, const pc_plan_draft *pd, size_t first,
-                                 size_t end, pc_scalar_program *q_out, int32_t *io_out,
-                                 size_t *n_scalar_out, uint32_t *n_io_out)
-{
-    pc_builder *b = g->b;
-    size_t i, k, m, n_in, cap_ops = 0, cap_terms = 0, n_kept = 0, n_scalar = 0;
-    uint32_t j, n_io = 0;
-    pc_scalar_program *q;
-    int32_t *io, *order;
-    const pc_eref **in;
+    pc_program *g = pp->prog;
+    pc_value *o = p->out[0];
+    size_t e;
     pc_status st;
-    for (i = first; i < end; i++)
-        pc_expansion_size(&pd->drafts[i], &cap_ops, &cap_terms);
-    g->ops = pc_scratch_alloc_raw(&b->scratch, (cap_ops + 1) * sizeof(pc_eop));
-    g->terms = pc_scratch_alloc_raw(&b->scratch, (2 * cap_terms + 1) * sizeof(pc_eref));
-    in = pc_scratch_alloc_raw(&b->scratch, (2 * PC_PROGRAM_MAX_TERMS + 3) * sizeof *in);
-    if (!g->ops || !g->terms || !in)
-        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    g->n_ops = g->n_terms = 0;
-    for (i = first; i < end; i++)
-        if ((st = pc_expand(g, &pd->drafts[i])) != PC_OK)
+    if (g->open)
+        g->pending = pc_pending(pp);
+    if (g->open && g->n_ops + pc_expansion_ops(p) + g->pending + o->count > g->cap_ops &&
+        (st = pc_program_close(pp)) != PC_OK)
+        return st;
+    if (!g->open) {
+        g->open = 1;
+        g->n_ops = g->n_k = g->pending = g->n_chunks = 0;
+        g->mark = pc_scratch_save(&pp->b->scratch, PC_KEEP);
+        pp->defer_frees = 1;
+    }
+    if (g->n_k + pc_k_bound(p) > g->cap_k) {
+        if ((st = pc_program_close(pp)) != PC_OK)
             return st;
-    /* Results read after the run (or returned) are kept whole. */
-    for (i = end; i < pd->n_drafts; i++)
-        for (j = 0; j < pd->drafts[i].n_io; j++)
-            if (pd->drafts[i].io[j] >= 0)
-                g->outside[pc_root(b, pd->drafts[i].io[j])] = 1;
-    for (i = 0; i < b->n_outputs; i++)
-        g->outside[pc_root(b, b->outputs[i].id)] = 1;
-    /* Backwards: keep what a kept operation or the outside reads. */
-    for (k = g->n_ops; k-- > 0;) {
-        pc_eop *op = &g->ops[k];
-        if (!pc_is_live(g, op->o)) {
-            op->code = PC_SOP_NONE;
-            continue;
-        }
-        n_kept++;
-        n_scalar += op->code == PC_SOP_DOT ? op->nt : 1;
-        for (m = 0, n_in = pc_inputs(g, op, in); m < n_in; m++)
-            pc_mark(g, *in[m]);
+        return pc_program_expand(pp, p);
     }
-    /* A copy out of an element this run computes, read nowhere else after the run and
-     * copied once, becomes the computation writing into the copy's place (the 'corrected'
-     * concatenation of every model, the PMC features of a pipeline). */
-    for (k = 0; k < g->n_ops; k++) {
-        const pc_eop *op = &g->ops[k];
-        pc_eref *into;
-        if (op->code != PC_SOP_COPY || pc_writer(g, op->a) < 0 || g->outside[op->a.v])
-            continue;
-        into = &g->elem[op->a.v][op->a.e].into;
-        if (into->v == -1)
-            *into = op->o;
-        else
-            into->v = PC_COPIED_TWICE;
-    }
-    for (k = 0; k < g->n_ops; k++) {
-        pc_eop *op = &g->ops[k];
-        if (op->code == PC_SOP_COPY && pc_writer(g, op->a) >= 0 &&
-            g->elem[op->a.v][op->a.e].into.v == op->o.v &&
-            g->elem[op->a.v][op->a.e].into.e == op->o.e) {
-            op->code = PC_SOP_NONE;
-            n_kept--;
-            n_scalar--;
-        }
-    }
-    order = pc_scratch_alloc(&b->scratch, (n_kept + 1) * sizeof(int32_t));
-    io = pc_scratch_alloc(&b->scratch, (4 * n_scalar + 2) * sizeof(int32_t));
-    q = pc_scratch_alloc(&b->scratch, sizeof *q + n_scalar * sizeof(pc_scalar_op));
-    if (!order || !io || !q)
-        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    if ((st = pc_schedule(g, in, order, &n_kept)) != PC_OK)
+    if ((st = pc_reserve(pp, pc_expansion_ops(p))) != PC_OK)
         return st;
-    {
-        pc_scalar_op *group = NULL;
-        for (k = 0; k < n_kept; k++) {
-            const pc_eop *op = &g->ops[order[k]];
-            const int32_t o = pc_ref(g, io, &n_io, op->o);
-            if (op->code == PC_SOP_DOT) {
-                /* a DOT entry with the start c, then one DOT_TERM per further term */
-                const pc_eref *t = &g->terms[2 * op->t0];
-                if (!group || group->code != PC_SOP_DOT)
-                    group = &q->ops[q->n_ops];
-                group->n += (int32_t)op->nt;
-                for (m = 0; m < op->nt; m++) {
-                    pc_scalar_op *so = &q->ops[q->n_ops++];
-                    so->code = m ? PC_SOP_DOT_TERM : PC_SOP_DOT;
-                    so->a = pc_ref(g, io, &n_io, t[2 * m]);
-                    so->b = pc_ref(g, io, &n_io, t[2 * m + 1]);
-                    so->c = pc_ref(g, io, &n_io, op->c);
-                    so->o = o;
-                }
-                continue;
-            }
-            {
-                pc_scalar_op *so = &q->ops[q->n_ops++];
-                /* group length on the first op of each run of one code */
-                if (!group || group->code != op->code)
-                    group = so;
-                group->n++;
-                so->code = op->code;
-                so->o = o;
-                so->a = pc_ref(g, io, &n_io, op->a);
-                so->b = pc_ref(g, io, &n_io, op->b);
-                so->c = pc_ref(g, io, &n_io, op->c);
+    o->elems = pc_scratch_alloc_raw(&pp->b->scratch, PC_KEEP, o->count * sizeof(int32_t));
+    if (!o->elems)
+        return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory");
+    for (e = 0; e < o->count; e++)
+        if ((st = pc_expand_element(pp, p, e, &o->elems[e])) != PC_OK)
+            return st;
+    return PC_OK;
+}
+
+/* ---- closing ------------------------------------------------------------------------------ */
+
+/* Needed elements get a block; the operation computing one writes it there, anything
+ * else (a constant, an input element, a result already written elsewhere) is copied. */
+static pc_status pc_materialize(pc_pass *pp)
+{
+    pc_builder *b = pp->b;
+    pc_program *g = pp->prog;
+    size_t i, e;
+    pc_status st;
+    if ((st = pc_reserve(pp, pc_pending(pp))) != PC_OK)
+        return st;
+    for (i = 0; i < b->cap_values; i++) {
+        pc_value *v = &b->values[i];
+        size_t esize;
+        if (!v->used || !v->elems)
+            continue;
+        if ((st = pc_give_block(pp, (int32_t)i)) != PC_OK)
+            return st;
+        esize = pc_dtype_size(v->dtype);
+        for (e = 0; e < v->count; e++) {
+            const int32_t dest = (int32_t)(pp->blocks[v->block].off + e * esize);
+            const int32_t r = v->elems[e];
+            if (r >= 0 && PC_OP(g, r).dest == PC_NO_DEST) {
+                PC_OP(g, r).dest = dest;
+            } else {
+                const int32_t copy = pc_new_op(g, esize == 1 ? PC_SOP_COPY1 : PC_SOP_COPY, r, 0, 0);
+                PC_OP(g, copy).dest = dest;
             }
         }
-    }
-    if (n_io == 0) /* nothing but constants: io[0] still anchors the offsets */
-        io[n_io++] = pc_root(b, pd->drafts[first].io[0]);
-    /* reset the per-root state this run used */
-    for (i = 0; i < g->n_touched; i++) {
-        g->elem[g->touched[i]] = NULL;
-    }
-    g->n_touched = 0;
-    memset(g->outside, 0, b->n_values);
-    for (j = 0; j < n_io; j++)
-        g->slot_of[io[j]] = -1;
-    *n_scalar_out = q->n_ops;
-    *n_io_out = n_io;
-    if (q_out) {
-        memcpy(q_out, q, sizeof *q + (q->n_ops ? q->n_ops - 1 : 0) * sizeof(pc_scalar_op));
-        memcpy(io_out, io, n_io * sizeof(int32_t));
+        v->elems = NULL;
     }
     return PC_OK;
 }
 
-/* drafts[first, end) -> one program draft in *out. Compiled twice: once for its sizes,
- * once into memory of those sizes, each time releasing the working memory, so the load's
- * scratch peak (what pc_required_bytes asks of a target without a heap) stays low. */
-static pc_status pc_compile_run(pc_prog *g, const pc_plan_draft *pd, size_t first,
-                                size_t end, pc_draft *out)
+/* Calls f(g, r) for every operand of the operation at i (its terms' included). */
+#define PC_FOR_OPERANDS(g, i, STMT)                                                               \
+    do {                                                                                         \
+        const pc_eop *op_ = &PC_OP(g, i);                                                        \
+        const int code_ = op_->code;                                                             \
+        size_t t_;                                                                               \
+        int32_t r;                                                                               \
+        r = op_->a;                                                                              \
+        STMT;                                                                                    \
+        if (PC_SOP_IS_BINARY(code_) || code_ == PC_SOP_WHERE || code_ == PC_SOP_DOT) {           \
+            r = op_->b;                                                                          \
+            STMT;                                                                                \
+        }                                                                                        \
+        if (code_ == PC_SOP_WHERE || code_ == PC_SOP_DOT) {                                      \
+            r = op_->c;                                                                          \
+            STMT;                                                                                \
+        }                                                                                        \
+        for (t_ = 1; code_ == PC_SOP_DOT && t_ <= op_->n_terms; t_++) {                          \
+            r = PC_OP(g, (i) + t_).a;                                                            \
+            STMT;                                                                                \
+            r = PC_OP(g, (i) + t_).b;                                                            \
+            STMT;                                                                                \
+        }                                                                                        \
+    } while (0)
+
+/* Operations whose result is needed, walking back from the stored ones; their levels. */
+static void pc_keep_needed(pc_program *g)
 {
-    pc_scratch *scratch = &g->b->scratch;
-    pc_scratch_mark mark = pc_scratch_save(scratch);
+    size_t i;
+    for (i = 0; i < g->n_ops; i++)
+        PC_OP(g, i).out = PC_OP(g, i).dest != PC_NO_DEST;
+    for (i = g->n_ops; i-- > 0;) {
+        if (!PC_OP(g, i).out || PC_OP(g, i).code == PC_TERM)
+            continue;
+        PC_FOR_OPERANDS(g, i, if (r >= 0) PC_OP(g, r).out = 1);
+    }
+    for (i = 0; i < g->n_ops; i++) {
+        uint16_t level = 0;
+        if (!PC_OP(g, i).out || PC_OP(g, i).code == PC_TERM)
+            continue;
+        PC_FOR_OPERANDS(g, i, if (r >= 0 && PC_OP(g, r).level + 1 > level) level =
+                                  (uint16_t)(PC_OP(g, r).level + 1));
+        PC_OP(g, i).level = level;
+    }
+}
+
+/* Kept operations (not terms) in order of level, then code, then creation. */
+static pc_status pc_order(pc_pass *pp, int32_t **order_out, size_t *n_out)
+{
+    pc_program *g = pp->prog;
+    int32_t *order = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK, (g->n_ops + 1) * sizeof(int32_t));
+    size_t n = 0, i, k;
+    if (!order)
+        return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory");
+    for (i = 0; i < g->n_ops; i++) {
+        const pc_eop *x = &PC_OP(g, i);
+        if (!x->out || x->code == PC_TERM)
+            continue;
+        for (k = n; k > 0; k--) {
+            const pc_eop *y = &PC_OP(g, order[k - 1]);
+            if (y->level < x->level || (y->level == x->level && y->code <= x->code))
+                break;
+            order[k] = order[k - 1];
+        }
+        order[k] = (int32_t)i;
+        n++;
+    }
+    *order_out = order;
+    *n_out = n;
+    return PC_OK;
+}
+
+/* Temporaries of the results not stored: 4-byte slots reused once their last reader
+ * has run. Returns the slot count. */
+static pc_status pc_temps(pc_pass *pp, const int32_t *order, size_t n, size_t *n_slots)
+{
+    pc_program *g = pp->prog;
+    int32_t *slot_free_at = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK, (n + 1) * sizeof(int32_t));
+    size_t pos, slots = 0, s;
+    if (!slot_free_at)
+        return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory");
+    for (pos = 0; pos < n; pos++)
+        PC_OP(g, order[pos]).last = -1;
+    for (pos = 0; pos < n; pos++)
+        PC_FOR_OPERANDS(g, (size_t)order[pos], if (r >= 0) PC_OP(g, r).last = (int32_t)pos);
+    for (pos = 0; pos < n; pos++) {
+        pc_eop *x = &PC_OP(g, order[pos]);
+        if (x->dest != PC_NO_DEST) {
+            x->out = x->dest;
+            continue;
+        }
+        /* A slot whose last reader ran before this operation is free again. */
+        for (s = 0; s < slots && slot_free_at[s] >= (int32_t)pos; s++)
+            ;
+        if (s == slots)
+            slots++;
+        slot_free_at[s] = x->last;
+        x->out = (int32_t)s; /* slot for now; an offset once the block is placed */
+    }
+    *n_slots = slots;
+    return PC_OK;
+}
+
+/* The operand as the kernel reads it: a byte offset from the activations. */
+static int32_t pc_operand(const pc_pass *pp, int32_t r, int32_t kpool_off)
+{
+    if (r >= 0)
+        return PC_OP(pp->prog, r).out;
+    if (PC_EXT_KIND(r) == 1)
+        return kpool_off + 4 * (int32_t)PC_EXT_INDEX(r);
+    return (int32_t)PC_EXT_INDEX(r);
+}
+
+static pc_status pc_emit_program(pc_pass *pp, const int32_t *order, size_t n, int32_t temp)
+{
+    pc_program *g = pp->prog;
+    size_t entries = 0, pos, t;
+    int32_t kpool_off;
+    uint32_t *kpool;
     pc_scalar_program *q;
-    int32_t *io;
-    size_t n_scalar;
-    uint32_t n_io;
-    pc_status st;
-    if ((st = pc_compile_pass(g, pd, first, end, NULL, NULL, &n_scalar, &n_io)) != PC_OK)
-        return st;
-    pc_scratch_restore(scratch, mark);
-    q = pc_scratch_alloc(scratch, sizeof *q + n_scalar * sizeof(pc_scalar_op));
-    io = pc_scratch_alloc(scratch, (n_io + 1) * sizeof(int32_t));
-    if (!q || !io)
-        return pc_fail(g->b->err, PC_ERR_MEMORY, "out of memory");
-    mark = pc_scratch_save(scratch);
-    if ((st = pc_compile_pass(g, pd, first, end, q, io, &n_scalar, &n_io)) != PC_OK)
-        return st;
-    pc_scratch_restore(scratch, mark);
-    out->fn = k_scalar_program;
-    out->io = io;
-    out->n_io = n_io;
-    out->prm = q;
-    out->prm_size = sizeof *q + (n_scalar ? n_scalar - 1 : 0) * sizeof(pc_scalar_op);
-    out->n = 1;
-    out->sop = 0;
+    pc_scalar_op *w, *header = NULL;
+    int last_code = -1;
+    pc_step *s;
+    void **io;
+    for (pos = 0; pos < n; pos++) {
+        const pc_eop *x = &PC_OP(g, order[pos]);
+        entries += 1 + (x->code == PC_SOP_DOT ? x->n_terms : 0);
+        if (x->code != last_code)
+            entries++;
+        last_code = x->code;
+    }
+    /* The pool sits just below the activations: its entries are negative offsets. */
+    kpool_off = (int32_t)pp->region[PC_REGION_KPOOL].used - (int32_t)pp->kpool_total;
+    kpool = pc_region_take(pp, PC_REGION_KPOOL, g->n_k * 4);
+    if (kpool)
+        memcpy(kpool, g->k, g->n_k * 4);
+    s = pc_region_take(pp, PC_REGION_STEPS, sizeof *s);
+    io = pc_region_take(pp, PC_REGION_IO, 2 * sizeof(void *));
+    q = pc_region_take(pp, PC_REGION_PARAMS, sizeof *q + entries * sizeof(pc_scalar_op));
+    pp->n_steps++;
+    pp->last_step = s;
+    pp->last_layer = 0;
+    if (!q)
+        return PC_OK; /* sizing pass */
+    for (pos = 0; pos < n; pos++) {
+        pc_eop *x = &PC_OP(g, order[pos]);
+        if (x->dest == PC_NO_DEST)
+            x->out = temp + 4 * x->out;
+    }
+    q->n_ops = entries;
+    w = q->ops;
+    last_code = -1;
+    for (pos = 0; pos < n; pos++) {
+        const int32_t i = order[pos];
+        const pc_eop *x = &PC_OP(g, i);
+        if (x->code != last_code) {
+            header = w++;
+            header->a = x->code;
+            header->b = 0;
+            header->c = header->o = 0;
+            last_code = x->code;
+        }
+        w->a = pc_operand(pp, x->a, kpool_off);
+        w->b = PC_SOP_IS_BINARY(x->code) || x->code == PC_SOP_WHERE || x->code == PC_SOP_DOT
+                   ? pc_operand(pp, x->b, kpool_off) : 0;
+        w->c = x->code == PC_SOP_WHERE || x->code == PC_SOP_DOT ? pc_operand(pp, x->c, kpool_off)
+                                                                 : 0;
+        w->o = x->out;
+        w++;
+        header->b++;
+        for (t = 1; x->code == PC_SOP_DOT && t <= x->n_terms; t++, w++) {
+            w->a = pc_operand(pp, PC_OP(g, i + t).a, kpool_off);
+            w->b = pc_operand(pp, PC_OP(g, i + t).b, kpool_off);
+            w->c = 0;
+            w->o = PC_DOT_TERM;
+            header->b++;
+        }
+    }
+    io[0] = pp->act_base;
+    io[1] = NULL;
+    s->fn = k_scalar_program;
+    s->io = io;
+    s->prm = q;
+    s->n = entries;
     return PC_OK;
 }
 
-pc_status pc_fuse_small_steps(pc_builder *b, pc_plan_draft *pd)
+pc_status pc_program_close(pc_pass *pp)
 {
-    size_t i = 0, w = 0, j, io_total;
-    pc_prog g;
+    pc_program *g = pp->prog;
+    pc_scratch_mark work;
+    int32_t *order = NULL, temp_block = -1;
+    size_t n = 0, n_slots = 0;
     pc_status st;
-    memset(&g, 0, sizeof g);
-    g.b = b;
-    g.elem = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof *g.elem);
-    g.outside = pc_scratch_alloc(&b->scratch, b->n_values + 1);
-    g.slot_of = pc_scratch_alloc_raw(&b->scratch, (b->n_values + 1) * sizeof *g.slot_of);
-    g.touched = pc_scratch_alloc(&b->scratch, (b->n_values + 1) * sizeof *g.touched);
-    if (!g.elem || !g.outside || !g.slot_of || !g.touched)
-        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    memset(g.slot_of, 0xff, (b->n_values + 1) * sizeof *g.slot_of);
-    while (i < pd->n_drafts) {
-        for (j = i, io_total = 0; j < pd->n_drafts && pc_expandable(b, &pd->drafts[j]) &&
-                                  io_total + pd->drafts[j].n_io <= PC_PROGRAM_MAX_SLOTS;
-             j++)
-            io_total += pd->drafts[j].n_io;
-        if (j - i >= 2) {
-            pc_draft fused;
-            if ((st = pc_compile_run(&g, pd, i, j, &fused)) != PC_OK)
-                return st;
-            pd->drafts[w++] = fused;
-            i = j;
-        } else {
-            pd->drafts[w++] = pd->drafts[i++];
-        }
-    }
-    pd->n_drafts = w;
+    if (!g || !g->open)
+        return PC_OK;
+    work = pc_scratch_save(&pp->b->scratch, PC_WORK);
+    if ((st = pc_materialize(pp)) != PC_OK)
+        return st;
+    pc_keep_needed(g);
+    if ((st = pc_order(pp, &order, &n)) != PC_OK || (st = pc_temps(pp, order, n, &n_slots)) != PC_OK)
+        return st;
+    if (n_slots && (st = pc_block_new(pp, n_slots * 4, &temp_block)) != PC_OK)
+        return st;
+    if (n && (st = pc_emit_program(pp, order, n,
+                                   temp_block >= 0 ? (int32_t)pp->blocks[temp_block].off : 0)) != PC_OK)
+        return st;
+    /* The program has run once its step has: what it read may be reused. */
+    pp->defer_frees = 0;
+    pc_block_unref(pp, temp_block);
+    pc_block_flush(pp);
+    g->open = 0;
+    pc_scratch_restore(&pp->b->scratch, work);
+    pc_scratch_restore(&pp->b->scratch, g->mark);
     return PC_OK;
 }

@@ -12,56 +12,80 @@ struct pc_scratch_block {
 };
 
 #define PC_BLOCK_HEADER (((sizeof(pc_scratch_block) + PC_ALIGN - 1) / PC_ALIGN) * PC_ALIGN)
+#define PC_BLOCK_BYTES 16384
 
 void pc_scratch_use_buffer(pc_scratch *s, void *buf, size_t size)
 {
     const uintptr_t start = (uintptr_t)buf, aligned = (start + PC_ALIGN - 1) / PC_ALIGN * PC_ALIGN;
-    s->fixed = (uint8_t *)aligned;
-    s->fixed_left = size > aligned - start ? size - (aligned - start) : 0;
+    const uintptr_t end = start + size;
+    s->fixed = 1;
+    s->lo = (uint8_t *)aligned;
+    s->hi = (uint8_t *)(end > aligned ? end / PC_ALIGN * PC_ALIGN : aligned);
+    if (s->hi < s->lo)
+        s->hi = s->lo;
 }
 
-/* Untouched scratch is never faulted in: big arrays whose entries are all written before
- * use (values, drafts) take it raw, so their unused capacity costs no page faults. */
-void *pc_scratch_alloc_raw(pc_scratch *s, size_t size)
+int pc_scratch_set_top(pc_scratch *s, void *top)
 {
-    pc_scratch_block *b = s->head;
+    uint8_t *t = (uint8_t *)((uintptr_t)top / PC_ALIGN * PC_ALIGN);
+    if (!s->fixed)
+        return 1;
+    if (t < s->lo)
+        return 0;
+    s->hi = t;
+    return 1;
+}
+
+static void pc_account(pc_scratch *s, int end, size_t need)
+{
+    s->used[end] += need;
+    if (s->used[0] + s->used[1] > s->peak)
+        s->peak = s->used[0] + s->used[1];
+}
+
+/* Untouched scratch is never faulted in: arrays whose entries are all written before use
+ * take it raw, so their unused capacity costs no page faults. */
+void *pc_scratch_alloc_raw(pc_scratch *s, int end, size_t size)
+{
+    pc_scratch_block *b = s->head[end];
     size_t need = pc_round(size);
     uint8_t *p;
-    /* room for the rounding and a block header on either width of size_t */
     if (size > SIZE_MAX / 2)
         return NULL;
     if (need == 0)
         need = PC_ALIGN;
     if (s->fixed) {
-        if (need > s->fixed_left)
+        if (need > (size_t)(s->hi - s->lo))
             return NULL;
-        p = s->fixed;
-        s->fixed += need;
-        s->fixed_left -= need;
-        s->used_total += need;
-        s->peak = s->used_total > s->peak ? s->used_total : s->peak;
+        if (end == PC_KEEP) {
+            p = s->lo;
+            s->lo += need;
+        } else {
+            s->hi -= need;
+            p = s->hi;
+        }
+        pc_account(s, end, need);
         return p;
     }
     if (!b || b->size - b->used < need) {
-        const size_t block = need > 65536 ? need : 65536;
+        const size_t block = need > PC_BLOCK_BYTES ? need : PC_BLOCK_BYTES;
         b = (pc_scratch_block *)malloc(PC_BLOCK_HEADER + block);
         if (!b)
             return NULL;
-        b->next = s->head;
+        b->next = s->head[end];
         b->size = block;
         b->used = 0;
-        s->head = b;
+        s->head[end] = b;
     }
     p = (uint8_t *)b + PC_BLOCK_HEADER + b->used;
     b->used += need;
-    s->used_total += need;
-    s->peak = s->used_total > s->peak ? s->used_total : s->peak;
+    pc_account(s, end, need);
     return p;
 }
 
-void *pc_scratch_alloc(pc_scratch *s, size_t size)
+void *pc_scratch_alloc(pc_scratch *s, int end, size_t size)
 {
-    void *p = pc_scratch_alloc_raw(s, size);
+    void *p = pc_scratch_alloc_raw(s, end, size);
     if (p)
         memset(p, 0, size);
     return p;
@@ -69,35 +93,43 @@ void *pc_scratch_alloc(pc_scratch *s, size_t size)
 
 void pc_scratch_release(pc_scratch *s)
 {
-    while (s->head) {
-        pc_scratch_block *next = s->head->next;
-        free(s->head);
-        s->head = next;
+    int end;
+    for (end = 0; end < 2; end++) {
+        while (s->head[end]) {
+            pc_scratch_block *next = s->head[end]->next;
+            free(s->head[end]);
+            s->head[end] = next;
+        }
+        s->used[end] = 0;
     }
-    s->used_total = 0;
 }
 
-pc_scratch_mark pc_scratch_save(const pc_scratch *s)
+pc_scratch_mark pc_scratch_save(const pc_scratch *s, int end)
 {
     pc_scratch_mark m;
-    m.head = s->head;
-    m.head_used = s->head ? s->head->used : 0;
-    m.fixed = s->fixed;
-    m.fixed_left = s->fixed_left;
-    m.used_total = s->used_total;
+    m.end = end;
+    m.head = s->head[end];
+    m.head_used = s->head[end] ? s->head[end]->used : 0;
+    m.at = end == PC_KEEP ? s->lo : s->hi;
+    m.used = s->used[end];
     return m;
 }
 
 void pc_scratch_restore(pc_scratch *s, pc_scratch_mark m)
 {
-    while (s->head != m.head) {
-        pc_scratch_block *next = s->head->next;
-        free(s->head);
-        s->head = next;
+    const int end = m.end;
+    while (s->head[end] != m.head) {
+        pc_scratch_block *next = s->head[end]->next;
+        free(s->head[end]);
+        s->head[end] = next;
     }
-    if (s->head)
-        s->head->used = m.head_used;
-    s->fixed = m.fixed;
-    s->fixed_left = m.fixed_left;
-    s->used_total = m.used_total;
+    if (s->head[end])
+        s->head[end]->used = m.head_used;
+    if (s->fixed) {
+        if (end == PC_KEEP)
+            s->lo = m.at;
+        else
+            s->hi = m.at;
+    }
+    s->used[end] = m.used;
 }

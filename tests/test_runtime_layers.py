@@ -22,14 +22,14 @@ import graphs  # noqa: E402
 LAYERS = [
     ("base", ["posecorr.h", "base.h", "status.c", "scratch.h", "scratch.c"]),
     ("protobuf wire format", ["pb.h", "pb.c"]),
-    ("graph IR", ["ir.h", "ir.c"]),
+    ("records of the load", ["ir.h", "ir.c"]),
     ("ONNX decoding", ["onnx.h", "onnx.c"]),
     ("kernels", ["kernels.h", "kernels.c", "dense.c"]),
     ("operators", ["op.h", "op.c", "op_elementwise.c", "op_shape.c", "op_dense.c",
                    "op_reduce.c", "op_table.c"]),
-    ("graph passes", ["passes.h", "passes.c"]),
+    ("graph scan", ["graph.h", "graph.c"]),
     ("model and pc_run", ["model.h", "run.c"]),
-    ("planner", ["draft.h", "program.h", "program.c", "plan.h", "plan.c"]),
+    ("planner", ["place.h", "place.c", "program.h", "program.c", "plan.h", "plan.c"]),
     ("loading and public accessors", ["load.h", "api.c"]),
 ]
 RANK = {f: i for i, (_, files) in enumerate(LAYERS) for f in files}

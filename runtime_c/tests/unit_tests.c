@@ -339,7 +339,7 @@ static void test_load_and_run(void)
         m = NULL;
     }
     {
-        pc_options o = {100}; /* rounds down to 64 */
+        pc_options o = {.max_batch = 100}; /* rounds down to 64 */
         build(&model, &ADD, c);
         CHECK(pc_load_memory(model.d, model.n, &o, &m, &err) == PC_OK && pc_max_batch(m) == 64);
         pc_free(m);

@@ -182,7 +182,7 @@ int main(int argc, char **argv)
     char reference_json[1024] = "";
     size_t n = 100000, batch = 10000, i, reps;
     int round;
-    pc_options opts = {0};
+    pc_options opts = {.max_batch = 0};
     pc_model *model = NULL;
     pc_error err;
     double *t, t0, load_us, single_med, single_p99, batch_ns, timer_ns, *loads, lo[3], hi[3];

@@ -28,8 +28,9 @@ POSE_WIDTH = 7
 TIME_INPUT = "t"
 _MESSAGE_SIZE = 256
 # libposecorr's PC_VERSION_MAJOR, PC_VERSION_MINOR this shim is written against: the
-# library must have the same major and at least this minor (minors only add functions).
-EXPECTED_VERSION = (0, 3)
+# library must have the same major and at least this minor (minors add functions and, at
+# 0.4, fields at the end of pc_options).
+EXPECTED_VERSION = (0, 4)
 
 
 class PoseCorrError(ValueError):
@@ -57,7 +58,8 @@ class _Error(ctypes.Structure):
 
 
 class _Options(ctypes.Structure):
-    _fields_ = [("max_batch", ctypes.c_size_t)]
+    _fields_ = [("max_batch", ctypes.c_size_t), ("flags", ctypes.c_uint),
+                ("program_ops", ctypes.c_size_t)]
 
 
 _LIBS: dict[str, ctypes.CDLL] = {}

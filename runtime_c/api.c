@@ -117,20 +117,37 @@ static int pc_parse_numbers(const char *s, double *v, int cap)
 /* Metadata read at load: posecorr's exporter marks its models (posecorr_version), whose
  * output quaternion must be unit, and may record the position box of the training data
  * (input_bounds, see posecorr.h). */
-static pc_status pc_read_checks(pc_model *m, pc_error *err)
+static pc_status pc_read_checks(const pc_builder *b, pc_model *m)
 {
-    const char *bounds = pc_metadata_lookup(m, "input_bounds");
+    pb_reader r;
+    pb_slice whole, key, value;
+    char bounds[PC_MESSAGE_SIZE];
     double v[6];
-    int k;
-    m->check_quaternion = pc_metadata_lookup(m, "posecorr_version") != NULL;
-    if (!bounds)
+    int k, more, has_bounds = 0;
+    whole.data = b->file;
+    whole.size = b->file_size;
+    pb_init(&r, b->file, whole);
+    while ((more = onnx_next_meta(b, &r, &key, &value)) == PB_FIELD) {
+        if (pb_slice_eq(key, "posecorr_version"))
+            m->check_quaternion = 1;
+        if (pb_slice_eq(key, "input_bounds")) {
+            const size_t n = value.size < sizeof bounds - 1 ? value.size : sizeof bounds - 1;
+            if (n)
+                memcpy(bounds, value.data, n);
+            bounds[n] = '\0';
+            has_bounds = 1;
+        }
+    }
+    if (more == PB_ERROR)
+        return r.status;
+    if (!has_bounds)
         return PC_OK;
     if (pc_parse_numbers(bounds, v, 6) != 6)
-        return pc_fail(err, PC_ERR_MALFORMED, "metadata input_bounds is '%.60s', expected "
+        return pc_fail(b->err, PC_ERR_MALFORMED, "metadata input_bounds is '%.60s', expected "
                        "[[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]]", bounds);
     for (k = 0; k < 3; k++) {
         if (!(v[k] <= v[k + 3]))
-            return pc_fail(err, PC_ERR_MALFORMED, "metadata input_bounds: lower bound above "
+            return pc_fail(b->err, PC_ERR_MALFORMED, "metadata input_bounds: lower bound above "
                            "upper bound in column %d", k);
         m->lo[k] = (float)v[k];
         m->hi[k] = (float)v[k + 3];
@@ -171,6 +188,10 @@ pc_status pc_load_impl(const void *data, size_t size, const pc_options *opts, in
     st = pc_scan_graph(&b);
     if (st == PC_OK)
         st = pc_plan_build(&b, opts, buf, buf_size, model);
+    if (st == PC_OK && !any_io && (st = pc_read_checks(&b, *model)) != PC_OK) {
+        pc_free(*model);
+        *model = NULL;
+    }
     if (st == PC_ERR_MEMORY && buf && err->status == PC_ERR_MEMORY)
         pc_fail(err, st, "the %zu-byte buffer is too small for this model (pc_required_bytes)",
                 buf_size);
@@ -180,8 +201,7 @@ pc_status pc_load_impl(const void *data, size_t size, const pc_options *opts, in
                             ? b.peak_unplaced - (*model)->arena_bytes
                             : b.scratch.peak;
     pc_scratch_release(&b.scratch);
-    if (st == PC_OK && !any_io && ((st = pc_read_checks(*model, err)) != PC_OK ||
-                                   (st = pc_check_rows(*model, err)) != PC_OK)) {
+    if (st == PC_OK && !any_io && (st = pc_check_rows(*model, err)) != PC_OK) {
         pc_free(*model);
         *model = NULL;
     }

@@ -292,7 +292,7 @@ static pc_status pc_scan_node(pc_builder *b, uint32_t i, pc_node *n, int32_t *in
     while ((more = onnx_next_node(b, &r, &msg)) == PB_FIELD && k < i)
         k++;
     if (more != PB_FIELD)
-        return more == PB_ERROR ? r.status : pc_fail(b->err, PC_ERR_GRAPH, "node %u vanished", i);
+        return more == PB_ERROR ? r.status : pc_fail(b->err, PC_ERR_GRAPH, "node %lu vanished", (unsigned long)i);
     if ((st = onnx_parse_node(b, msg, i, n)) != PC_OK)
         return st;
     n->op = b->node_op[i];
@@ -510,8 +510,10 @@ static pc_status pc_scan_fuse(pc_builder *b, const uint8_t *readers)
     return PC_OK;
 }
 
-/* Most run-time values alive at once, with the records of one node's operands. */
-static pc_status pc_scan_width(pc_builder *b, size_t max_in, size_t max_out)
+/* Records a plan pass holds at once: the run-time values alive at a node, with the
+ * node's operands (constants get a record for the moment), the graph inputs, and the
+ * records of the graph outputs at the end. */
+static pc_status pc_scan_width(pc_builder *b)
 {
     uint16_t *dies = pc_scratch_alloc(&b->scratch, PC_WORK, (b->n_nodes + 1) * sizeof(uint16_t));
     size_t alive = 0, peak = 0;
@@ -526,15 +528,19 @@ static pc_status pc_scan_width(pc_builder *b, size_t max_in, size_t max_out)
             dies[last == PC_USE_NONE ? i : last]++;
         }
     for (i = 0; i < b->n_nodes; i++) {
+        const size_t n_out = b->node_out0[i + 1] - b->node_out0[i];
+        const size_t n_in = b->node_in0[i + 1] - b->node_in0[i];
         if (!pc_node_live(b, i))
             continue;
-        alive += b->node_out0[i + 1] - b->node_out0[i];
-        if (alive > peak)
-            peak = alive;
+        if (alive + n_in + n_out > peak)
+            peak = alive + n_in + n_out;
+        alive += n_out;
         alive -= dies[i];
     }
+    if (alive > peak)
+        peak = alive;
     b->max_live = peak;
-    b->cap_values = peak + max_in + max_out + b->n_inputs + b->n_outputs + 4;
+    b->cap_values = peak + b->n_inputs + b->n_outputs + 1;
     return PC_OK;
 }
 
@@ -579,7 +585,7 @@ pc_status pc_scan_graph(pc_builder *b)
     if (!readers)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
     pc_scan_last_use(b, readers);
-    if ((st = pc_scan_fuse(b, readers)) != PC_OK || (st = pc_scan_width(b, max_in, max_out)) != PC_OK)
+    if ((st = pc_scan_fuse(b, readers)) != PC_OK || (st = pc_scan_width(b)) != PC_OK)
         return st;
     pc_scratch_restore(&b->scratch, mark);
     b->values = NULL;

@@ -100,7 +100,7 @@ typedef struct pc_builder {
     pc_io *inputs, *outputs;
     size_t n_inputs, n_outputs;
     pc_const *consts;                /* folded outputs, newest first */
-    size_t max_live;                 /* most run-time values alive at once */
+    size_t max_live;                 /* most records a plan pass holds at once */
     /* plan pass (plan.c): records */
     pc_value *values;
     size_t cap_values;

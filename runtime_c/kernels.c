@@ -113,7 +113,7 @@ PC_FLOAT_UNARY_OPS(PC_DEFINE_UNARY)
         do {                                                                                   \
             acc += F(a) * F(b);                                                                \
             op++;                                                                              \
-        } while (op < last && op->o == PC_DOT_TERM);                                           \
+        } while (op < last && op->o == PC_TERM_MARK);                                          \
         *(float *)(base + o) = acc;                                                            \
     })
 
@@ -121,23 +121,33 @@ PC_FLOAT_UNARY_OPS(PC_DEFINE_UNARY)
 #define B(r) (*(uint8_t *)(base + op->r))
 /* One dispatch per group (threaded code measured no faster: the groups' dependency
  * chains through memory, not the jumps, set the pace). */
-pc_status k_scalar_program(const pc_step *s)
-{
-    const pc_scalar_program *q = (const pc_scalar_program *)s->prm;
-    char *const base = (char *)s->io[0];
-    const pc_scalar_op *op = q->ops, *const end = q->ops + q->n_ops, *last;
-    while (op < end) {
-        const int32_t code = op->a;
-        last = op + 1 + op->b;
-        op++;
-        switch (code) {
-            PC_SOP_CASES
-        default:
-            return PC_ERR_RUNTIME;
-        }
+/* One interpreter per entry width: 16-bit offsets halve a program's bytes (the usual
+ * case: a one-pose plan's activations and pool span a few hundred bytes). */
+#define PC_SCALAR_PROGRAM(NAME, PROGRAM, OP)                                                   \
+    pc_status NAME(const pc_step *s)                                                           \
+    {                                                                                          \
+        const PROGRAM *q = (const PROGRAM *)s->prm;                                            \
+        char *const base = (char *)s->io[0];                                                   \
+        const OP *op = q->ops, *const end = q->ops + q->n_ops, *last;                          \
+        while (op < end) {                                                                     \
+            const int32_t code = op->a;                                                        \
+            last = op + 1 + op->b;                                                             \
+            op++;                                                                              \
+            switch (code) {                                                                    \
+                PC_SOP_CASES                                                                   \
+            default:                                                                           \
+                return PC_ERR_RUNTIME;                                                         \
+            }                                                                                  \
+        }                                                                                      \
+        return PC_OK;                                                                          \
     }
-    return PC_OK;
-}
+#define PC_TERM_MARK PC_DOT_TERM
+PC_SCALAR_PROGRAM(k_scalar_program, pc_scalar_program, pc_scalar_op)
+#undef PC_TERM_MARK
+#define PC_TERM_MARK PC_DOT_TERM16
+PC_SCALAR_PROGRAM(k_scalar_program16, pc_scalar_program16, pc_scalar_op16)
+#undef PC_TERM_MARK
+#undef PC_SCALAR_PROGRAM
 #undef F
 #undef B
 
@@ -156,6 +166,7 @@ uint32_t pc_sop_eval(int code, uint32_t a, uint32_t b, uint32_t c)
     one.b = 4;
     one.c = 8;
     one.o = 12;
+#define PC_TERM_MARK PC_DOT_TERM
 #define F(r) (*(float *)(base + op->r))
 #define B(r) (*(uint8_t *)(base + op->r))
     switch (code) {
@@ -165,6 +176,7 @@ uint32_t pc_sop_eval(int code, uint32_t a, uint32_t b, uint32_t c)
     }
 #undef F
 #undef B
+#undef PC_TERM_MARK
     memcpy(&out, &slot[3], 4);
     return out;
 }

@@ -194,7 +194,19 @@ typedef struct pc_scalar_program {
     pc_scalar_op ops[1]; /* n_ops entries; allocated longer */
 } pc_scalar_program;
 
+/* The same with 16-bit offsets, when every offset of a program fits. */
+#define PC_DOT_TERM16 INT16_MIN
+typedef struct pc_scalar_op16 {
+    int16_t a, b, c, o;
+} pc_scalar_op16;
+
+typedef struct pc_scalar_program16 {
+    size_t n_ops;
+    pc_scalar_op16 ops[1];
+} pc_scalar_program16;
+
 pc_status k_scalar_program(const pc_step *s);
+pc_status k_scalar_program16(const pc_step *s);
 /* Element operation `code` (not DOT) on the four bytes of each operand: what the program
  * computes, computed while it is built (an operation whose operands are all constants). */
 uint32_t pc_sop_eval(int code, uint32_t a, uint32_t b, uint32_t c);

@@ -35,8 +35,8 @@ static pc_status pc_resolve(pc_pass *pp, uint16_t ref, int32_t *id, int *temp)
     case PC_REF_OUTPUT:
         if (!pc_const_find(b, PC_REF_INDEX(ref))) {
             *id = pc_record_of(b, PC_REF_INDEX(ref));
-            return *id >= 0 ? PC_OK : pc_fail(b->err, PC_ERR_GRAPH, "value %u read after its "
-                                              "last reader", PC_REF_INDEX(ref));
+            return *id >= 0 ? PC_OK : pc_fail(b->err, PC_ERR_GRAPH, "value %lu read after its "
+                                              "last reader", (unsigned long)PC_REF_INDEX(ref));
         }
         break;
     default: break;
@@ -504,7 +504,9 @@ pc_status pc_plan_build(pc_builder *b, const pc_options *opts, void *buf, size_t
         if ((st = pc_program_start(&pp, &limits)) != PC_OK)
             return st;
     }
-    if ((st = pc_plan_pass(&pp, &L, NULL)) != PC_OK || (st = pc_count_meta(b, &L)) != PC_OK)
+    if ((st = pc_plan_pass(&pp, &L, NULL)) != PC_OK)
+        return st;
+    if (!(opts && (opts->flags & PC_LOAD_NO_METADATA)) && (st = pc_count_meta(b, &L)) != PC_OK)
         return st;
     L.slot_bytes = b->any_io ? pc_round((b->n_inputs + b->n_outputs) * sizeof(pc_slot) + 1) : 0;
     L.size = pc_round(sizeof(pc_model)) + pc_round(L.n_plans * sizeof(pc_plan)) + L.slot_bytes +

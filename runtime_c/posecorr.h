@@ -92,7 +92,11 @@ enum {
     PC_LOAD_IN_PLACE = 1u << 0,
     /* One-pose plans run every node as its own kernel instead of compiling the small
      * elementwise subgraphs into one-pose programs: less load-time memory, slower. */
-    PC_LOAD_NO_PROGRAMS = 1u << 1
+    PC_LOAD_NO_PROGRAMS = 1u << 1,
+    /* The metadata strings are not kept (pc_metadata_count is 0): a small target saves
+     * their bytes. The checks pc_run takes from them (input_bounds, posecorr_version)
+     * stay. */
+    PC_LOAD_NO_METADATA = 1u << 2
 };
 
 typedef struct pc_options {

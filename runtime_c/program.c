@@ -15,6 +15,7 @@
  * 1-pose and 16-pose plans of every model). */
 #include "program.h"
 
+#include <stddef.h>
 #include <string.h>
 
 /* A node with more output elements keeps its kernel: the loops win there. */
@@ -24,6 +25,9 @@
 /* Terms of one dot product (sums and matrix products). */
 #define PC_PROGRAM_MAX_TERMS 64
 #define PC_PROGRAM_DEFAULT_OPS 512
+/* The programs' constant pools of all plans together, so that their offsets (negative,
+ * from the activations) fit the 16-bit entries. */
+#define PC_KPOOL_MAX 8192
 
 /* References to an element: >= 0 the result of an operation; below, an element of the
  * arena (kind 0: byte offset from the activations) or of the constant pool (kind 1). */
@@ -108,10 +112,17 @@ static size_t pc_expansion_ops(const pc_prep *p)
     }
 }
 
-/* Pool constants node p may add, at most. */
+/* Pool constants node p may add, at most: its constant operands' elements and what
+ * operations on constants give. */
 static size_t pc_k_bound(const pc_prep *p)
 {
-    return pc_expansion_ops(p) + 3 * p->out[0]->count + 2;
+    const size_t n = p->out[0]->count;
+    switch (p->emap) {
+    case PC_EMAP_SOP: return 4 * n;
+    case PC_EMAP_SUM: return n * (((const pc_reduce *)p->prm)->d[5] + 1) + 2;
+    case PC_EMAP_PRODUCT: return n * (2 * ((const pc_gemm *)p->prm)->K + 2) + 1;
+    default: return n;
+    }
 }
 
 int pc_program_takes(const pc_pass *pp, const pc_prep *p)
@@ -119,7 +130,8 @@ int pc_program_takes(const pc_pass *pp, const pc_prep *p)
     size_t j;
     const pc_value *o;
     if (!pp->prog || pp->batch != 1 || p->emap == PC_EMAP_NONE || p->alias_of >= 0 ||
-        p->n_out != 1 || !p->out[0])
+        p->n_out != 1 || !p->out[0] ||
+        pp->region[PC_REGION_KPOOL].used + 4 * pp->prog->cap_k > PC_KPOOL_MAX)
         return 0;
     o = p->out[0];
     if (o->count == 0 || o->count > PC_PROGRAM_MAX_ELEMS || !pc_element_type(o->dtype))
@@ -544,74 +556,100 @@ static int32_t pc_operand(const pc_pass *pp, int32_t r, int32_t kpool_off)
     return (int32_t)PC_EXT_INDEX(r);
 }
 
+/* Entry k of a program of either width. */
+static void pc_put(void *ops, int wide, size_t k, int32_t a, int32_t b, int32_t c, int32_t o)
+{
+    if (wide) {
+        pc_scalar_op *e = (pc_scalar_op *)ops + k;
+        e->a = a;
+        e->b = b;
+        e->c = c;
+        e->o = o;
+    } else {
+        pc_scalar_op16 *e = (pc_scalar_op16 *)ops + k;
+        e->a = (int16_t)a;
+        e->b = (int16_t)b;
+        e->c = (int16_t)c;
+        e->o = (int16_t)(o == PC_DOT_TERM ? PC_DOT_TERM16 : o);
+    }
+}
+
+/* Writes the program (or, sizing pass, only takes its bytes). Both passes make the same
+ * choices: offsets are the same in both, and the pool's are bounded (PC_KPOOL_MAX). */
 static pc_status pc_emit_program(pc_pass *pp, const int32_t *order, size_t n, int32_t temp)
 {
     pc_program *g = pp->prog;
-    size_t entries = 0, pos, t;
-    int32_t kpool_off;
+    size_t entries = 0, pos, t, k = 0, header = 0, group = 0;
+    int32_t kpool_off, hi = 0;
     uint32_t *kpool;
-    pc_scalar_program *q;
-    pc_scalar_op *w, *header = NULL;
-    int last_code = -1;
+    void *q, *ops;
+    int last_code = -1, wide;
     pc_step *s;
     void **io;
+    /* The pool sits just below the activations: its entries are negative offsets. */
+    kpool_off = (int32_t)pp->region[PC_REGION_KPOOL].used - (int32_t)pp->kpool_total;
     for (pos = 0; pos < n; pos++) {
-        const pc_eop *x = &PC_OP(g, order[pos]);
+        pc_eop *x = &PC_OP(g, order[pos]);
+        if (x->dest == PC_NO_DEST)
+            x->out = temp + 4 * x->out;
         entries += 1 + (x->code == PC_SOP_DOT ? x->n_terms : 0);
         if (x->code != last_code)
             entries++;
         last_code = x->code;
+        if (x->out > hi)
+            hi = x->out;
+        PC_FOR_OPERANDS(g, (size_t)order[pos], if (r < 0 && PC_EXT_KIND(r) == 0 &&
+                                                   (int32_t)PC_EXT_INDEX(r) > hi) hi =
+                                                   (int32_t)PC_EXT_INDEX(r));
     }
-    /* The pool sits just below the activations: its entries are negative offsets. */
-    kpool_off = (int32_t)pp->region[PC_REGION_KPOOL].used - (int32_t)pp->kpool_total;
+    wide = hi > INT16_MAX;
     kpool = pc_region_take(pp, PC_REGION_KPOOL, g->n_k * 4);
     if (kpool)
         memcpy(kpool, g->k, g->n_k * 4);
     s = pc_region_take(pp, PC_REGION_STEPS, sizeof *s);
     io = pc_region_take(pp, PC_REGION_IO, 2 * sizeof(void *));
-    q = pc_region_take(pp, PC_REGION_PARAMS, sizeof *q + entries * sizeof(pc_scalar_op));
+    q = pc_region_take(pp, PC_REGION_PARAMS,
+                       wide ? offsetof(pc_scalar_program, ops) + entries * sizeof(pc_scalar_op)
+                            : offsetof(pc_scalar_program16, ops) + entries * sizeof(pc_scalar_op16));
     pp->n_steps++;
     pp->last_step = s;
     pp->last_layer = 0;
     if (!q)
         return PC_OK; /* sizing pass */
-    for (pos = 0; pos < n; pos++) {
-        pc_eop *x = &PC_OP(g, order[pos]);
-        if (x->dest == PC_NO_DEST)
-            x->out = temp + 4 * x->out;
+    if (wide) {
+        ((pc_scalar_program *)q)->n_ops = entries;
+        ops = ((pc_scalar_program *)q)->ops;
+    } else {
+        ((pc_scalar_program16 *)q)->n_ops = entries;
+        ops = ((pc_scalar_program16 *)q)->ops;
     }
-    q->n_ops = entries;
-    w = q->ops;
     last_code = -1;
     for (pos = 0; pos < n; pos++) {
         const int32_t i = order[pos];
         const pc_eop *x = &PC_OP(g, i);
+        const int binary = PC_SOP_IS_BINARY(x->code) || x->code == PC_SOP_WHERE ||
+                           x->code == PC_SOP_DOT;
+        const int ternary = x->code == PC_SOP_WHERE || x->code == PC_SOP_DOT;
         if (x->code != last_code) {
-            header = w++;
-            header->a = x->code;
-            header->b = 0;
-            header->c = header->o = 0;
+            if (last_code >= 0)
+                pc_put(ops, wide, header, last_code, (int32_t)group, 0, 0);
+            header = k++;
+            group = 0;
             last_code = x->code;
         }
-        w->a = pc_operand(pp, x->a, kpool_off);
-        w->b = PC_SOP_IS_BINARY(x->code) || x->code == PC_SOP_WHERE || x->code == PC_SOP_DOT
-                   ? pc_operand(pp, x->b, kpool_off) : 0;
-        w->c = x->code == PC_SOP_WHERE || x->code == PC_SOP_DOT ? pc_operand(pp, x->c, kpool_off)
-                                                                 : 0;
-        w->o = x->out;
-        w++;
-        header->b++;
-        for (t = 1; x->code == PC_SOP_DOT && t <= x->n_terms; t++, w++) {
-            w->a = pc_operand(pp, PC_OP(g, i + t).a, kpool_off);
-            w->b = pc_operand(pp, PC_OP(g, i + t).b, kpool_off);
-            w->c = 0;
-            w->o = PC_DOT_TERM;
-            header->b++;
-        }
+        pc_put(ops, wide, k++, pc_operand(pp, x->a, kpool_off),
+               binary ? pc_operand(pp, x->b, kpool_off) : 0,
+               ternary ? pc_operand(pp, x->c, kpool_off) : 0, x->out);
+        group++;
+        for (t = 1; x->code == PC_SOP_DOT && t <= x->n_terms; t++, group++)
+            pc_put(ops, wide, k++, pc_operand(pp, PC_OP(g, i + t).a, kpool_off),
+                   pc_operand(pp, PC_OP(g, i + t).b, kpool_off), 0, PC_DOT_TERM);
     }
+    if (last_code >= 0)
+        pc_put(ops, wide, header, last_code, (int32_t)group, 0, 0);
     io[0] = pp->act_base;
     io[1] = NULL;
-    s->fn = k_scalar_program;
+    s->fn = wide ? k_scalar_program : k_scalar_program16;
     s->io = io;
     s->prm = q;
     s->n = entries;

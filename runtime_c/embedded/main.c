@@ -33,6 +33,14 @@ static unsigned char fw_arena[FW_ARENA_BYTES] __attribute__((aligned(8), section
 #ifndef FW_MAX_BATCH
 #define FW_MAX_BATCH 16
 #endif
+/* pc_options.flags and program_ops (posecorr.h); the model lies in flash for good, so its
+ * weights can be read there. */
+#ifndef FW_LOAD_FLAGS
+#define FW_LOAD_FLAGS PC_LOAD_IN_PLACE
+#endif
+#ifndef FW_PROGRAM_OPS
+#define FW_PROGRAM_OPS 0
+#endif
 
 static unsigned long bits(float f)
 {
@@ -71,7 +79,10 @@ int main(void)
     size_t i, n_ok = 0;
     int same;
 
+    memset(&opts, 0, sizeof opts); /* fields added by later versions keep their defaults */
     opts.max_batch = FW_MAX_BATCH;
+    opts.flags = FW_LOAD_FLAGS;
+    opts.program_ops = FW_PROGRAM_OPS;
 #ifdef FW_LOAD_INTO
     printf("api: pc_load_into arena_reserved=%lu version=%d header=%d\n",
            (unsigned long)sizeof fw_arena, pc_version(), PC_VERSION_NUMBER);

@@ -25,6 +25,8 @@
 /* Terms of one dot product (sums and matrix products). */
 #define PC_PROGRAM_MAX_TERMS 64
 #define PC_PROGRAM_DEFAULT_OPS 512
+/* Longest dot product an addition extends. */
+#define PC_EXTEND_MAX_TERMS 8
 /* The programs' constant pools of all plans together, so that their offsets (negative,
  * from the activations) fit the 16-bit entries. */
 #define PC_KPOOL_MAX 8192
@@ -105,7 +107,7 @@ static size_t pc_expansion_ops(const pc_prep *p)
 {
     const size_t n = p->out[0]->count;
     switch (p->emap) {
-    case PC_EMAP_SOP: return n;
+    case PC_EMAP_SOP: return p->sop == PC_SOP_ADD ? n * (PC_EXTEND_MAX_TERMS + 1) : n;
     case PC_EMAP_SUM: return n * (((const pc_reduce *)p->prm)->d[5] + 1);
     case PC_EMAP_PRODUCT: return n * (((const pc_gemm *)p->prm)->K + 2);
     default: return 0;
@@ -118,7 +120,7 @@ static size_t pc_k_bound(const pc_prep *p)
 {
     const size_t n = p->out[0]->count;
     switch (p->emap) {
-    case PC_EMAP_SOP: return 4 * n;
+    case PC_EMAP_SOP: return 4 * n + 1;
     case PC_EMAP_SUM: return n * (((const pc_reduce *)p->prm)->d[5] + 1) + 2;
     case PC_EMAP_PRODUCT: return n * (2 * ((const pc_gemm *)p->prm)->K + 2) + 1;
     default: return n;
@@ -261,6 +263,58 @@ static float pc_kval(const pc_program *g, int32_t r)
 }
 
 /* An element operation, computed now when its operands are constants. */
+/* A dot product that an addition may extend (the extended one is a new operation: the
+ * old one stays for its other readers, or goes as dead). */
+static int pc_extendable(const pc_program *g, int32_t r)
+{
+    return r >= 0 && PC_OP(g, r).code == PC_SOP_DOT &&
+           PC_OP(g, r).n_terms + 2 <= PC_EXTEND_MAX_TERMS;
+}
+
+static int pc_is_mul(const pc_program *g, int32_t r)
+{
+    return r >= 0 && PC_OP(g, r).code == PC_SOP_MUL;
+}
+
+/* x + y as a dot product, when one side is one: (c + sum) + y is the dot product with one
+ * more term (y's product when y is a multiplication, else y x 1, exact), and x + a b is
+ * the one-term product with c = x. IEEE addition commutes, so either side may be the dot
+ * product; the sums stay in the kernels' order. Returns -1 when neither applies. */
+static int32_t pc_add_as_dot(pc_pass *pp, int32_t x, int32_t y)
+{
+    pc_program *g = pp->prog;
+    int32_t d, one, r;
+    uint32_t t, n;
+    if (!pc_extendable(g, x) && pc_extendable(g, y)) {
+        d = x;
+        x = y;
+        y = d;
+    }
+    if (pc_extendable(g, x)) {
+        if (!pc_is_mul(g, y) && pc_kf(pp, 1.0f, &one) != PC_OK)
+            return -1;
+        n = PC_OP(g, x).n_terms;
+        r = pc_new_op(g, PC_SOP_DOT, PC_OP(g, x).a, PC_OP(g, x).b, PC_OP(g, x).c);
+        for (t = 1; t <= n; t++)
+            pc_new_op(g, PC_TERM, PC_OP(g, x + (int32_t)t).a, PC_OP(g, x + (int32_t)t).b, 0);
+        if (pc_is_mul(g, y))
+            pc_new_op(g, PC_TERM, PC_OP(g, y).a, PC_OP(g, y).b, 0);
+        else
+            pc_new_op(g, PC_TERM, y, one, 0);
+        PC_OP(g, r).n_terms = (uint8_t)(n + 1);
+        return r;
+    }
+    if (!pc_is_mul(g, y) && pc_is_mul(g, x)) {
+        d = x;
+        x = y;
+        y = d;
+    }
+    if (pc_is_mul(g, y))
+        return pc_new_op(g, PC_SOP_DOT, PC_OP(g, y).a, PC_OP(g, y).b, x);
+    return -1;
+}
+
+/* An element operation, computed now when its operands are constants. */
 static pc_status pc_sop(pc_pass *pp, int code, int32_t a, int32_t b, int32_t c, int32_t *r)
 {
     pc_program *g = pp->prog;
@@ -273,6 +327,8 @@ static pc_status pc_sop(pc_pass *pp, int code, int32_t a, int32_t b, int32_t c, 
         return pc_k(pp, pc_sop_eval(code, g->k[PC_EXT_INDEX(a)],
                                     binary || where ? g->k[PC_EXT_INDEX(b)] : 0,
                                     where ? g->k[PC_EXT_INDEX(c)] : 0), r);
+    if (code == PC_SOP_ADD && (*r = pc_add_as_dot(pp, a, b)) >= 0)
+        return PC_OK;
     *r = pc_new_op(g, code, a, binary || where ? b : 0, where ? c : 0);
     return PC_OK;
 }
@@ -468,7 +524,7 @@ static pc_status pc_materialize(pc_pass *pp)
         }                                                                                        \
     } while (0)
 
-/* Operations whose result is needed, walking back from the stored ones; their levels. */
+/* Operations whose result is needed, walking back from the stored ones (out = 1). */
 static void pc_keep_needed(pc_program *g)
 {
     size_t i;
@@ -479,39 +535,94 @@ static void pc_keep_needed(pc_program *g)
             continue;
         PC_FOR_OPERANDS(g, i, if (r >= 0) PC_OP(g, r).out = 1);
     }
-    for (i = 0; i < g->n_ops; i++) {
-        uint16_t level = 0;
-        if (!PC_OP(g, i).out || PC_OP(g, i).code == PC_TERM)
-            continue;
-        PC_FOR_OPERANDS(g, i, if (r >= 0 && PC_OP(g, r).level + 1 > level) level =
-                                  (uint16_t)(PC_OP(g, r).level + 1));
-        PC_OP(g, i).level = level;
-    }
 }
 
-/* Kept operations (not terms) in order of level, then code, then creation. */
+static int pc_unit(const pc_program *g, size_t i)
+{
+    return PC_OP(g, i).out && PC_OP(g, i).code != PC_TERM;
+}
+
+/* The kept operations (not terms) in an order that runs as few groups of one code as it
+ * can: all ready operations of the current code run, and those they make ready, before
+ * the code changes; the next code is that of the ready operation heading the longest
+ * chain. level counts an operation's unscheduled operands, last its chain's length. */
 static pc_status pc_order(pc_pass *pp, int32_t **order_out, size_t *n_out)
 {
     pc_program *g = pp->prog;
-    int32_t *order = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK, (g->n_ops + 1) * sizeof(int32_t));
-    size_t n = 0, i, k;
-    if (!order)
+    const size_t n_ops = g->n_ops;
+    int32_t *order = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK, (n_ops + 1) * sizeof(int32_t));
+    int32_t *start = pc_scratch_alloc(&pp->b->scratch, PC_WORK, (n_ops + 2) * sizeof(int32_t));
+    int32_t *edge;
+    size_t n_units = 0, done = 0, i, edges = 0;
+    int cur = -1;
+    if (!order || !start)
         return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory");
-    for (i = 0; i < g->n_ops; i++) {
-        const pc_eop *x = &PC_OP(g, i);
-        if (!x->out || x->code == PC_TERM)
+    for (i = 0; i < n_ops; i++) {
+        PC_OP(g, i).level = 0;
+        PC_OP(g, i).last = 1;
+        if (!pc_unit(g, i))
             continue;
-        for (k = n; k > 0; k--) {
-            const pc_eop *y = &PC_OP(g, order[k - 1]);
-            if (y->level < x->level || (y->level == x->level && y->code <= x->code))
+        n_units++;
+        PC_FOR_OPERANDS(g, i, if (r >= 0) {
+            start[r + 1]++;
+            PC_OP(g, i).level++;
+            edges++;
+        });
+    }
+    for (i = 0; i < n_ops; i++)
+        start[i + 1] += start[i];
+    edge = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK, (edges + 1) * sizeof(int32_t));
+    if (!edge)
+        return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory");
+    /* r's readers fill [start[r], start[r + 1]) from the top; fill[r] is the next free */
+    {
+        int32_t *fill = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK,
+                                             (n_ops + 1) * sizeof(int32_t));
+        if (!fill)
+            return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory");
+        memcpy(fill, start + 1, n_ops * sizeof(int32_t));
+        for (i = 0; i < n_ops; i++)
+            if (pc_unit(g, i))
+                PC_FOR_OPERANDS(g, i, if (r >= 0) edge[--fill[r]] = (int32_t)i);
+    }
+    for (i = n_ops; i-- > 0;) {
+        int32_t k, h = 1;
+        for (k = start[i]; k < start[i + 1]; k++)
+            if (PC_OP(g, edge[k]).last + 1 > h)
+                h = PC_OP(g, edge[k]).last + 1;
+        PC_OP(g, i).last = h;
+    }
+    while (done < n_units) {
+        int progress = 1, best = -1;
+        for (i = 0; i < n_ops; i++)
+            if (pc_unit(g, i) && PC_OP(g, i).out == 1 && PC_OP(g, i).level == 0 &&
+                (PC_OP(g, i).code == cur ? (best = (int)i, 1) : 0))
                 break;
-            order[k] = order[k - 1];
+        if (best < 0)
+            for (i = 0; i < n_ops; i++)
+                if (pc_unit(g, i) && PC_OP(g, i).out == 1 && PC_OP(g, i).level == 0 &&
+                    (best < 0 || PC_OP(g, i).last > PC_OP(g, (size_t)best).last))
+                    best = (int)i;
+        if (best < 0)
+            return pc_fail(pp->b->err, PC_ERR_GRAPH, "one-pose program has a cycle");
+        cur = PC_OP(g, (size_t)best).code;
+        while (progress) {
+            progress = 0;
+            for (i = 0; i < n_ops; i++) {
+                int32_t k;
+                if (!pc_unit(g, i) || PC_OP(g, i).out != 1 || PC_OP(g, i).level ||
+                    PC_OP(g, i).code != cur)
+                    continue;
+                PC_OP(g, i).out = 2;
+                order[done++] = (int32_t)i;
+                for (k = start[i]; k < start[i + 1]; k++)
+                    PC_OP(g, edge[k]).level--;
+                progress = 1;
+            }
         }
-        order[k] = (int32_t)i;
-        n++;
     }
     *order_out = order;
-    *n_out = n;
+    *n_out = n_units;
     return PC_OK;
 }
 

@@ -13,6 +13,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .aligned import serialize_aligned
 from .metadata import UNITS, data_digest, encode_metadata
 from .symbolic import FLOAT, OPSET, ExportError, Graph, Sym
 
@@ -271,7 +272,7 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
     path = Path(path)
     if path.parent and not path.parent.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
-    data = model.SerializeToString()
+    data = serialize_aligned(model)  # weights readable in place (PC_LOAD_IN_PLACE)
     from posecorr.safeio import write_bytes
 
     write_bytes(path, data)  # atomic: a controller polling the file never reads half a model

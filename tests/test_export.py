@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -499,3 +500,47 @@ def test_read_info_rejects_malformed_files(tmp_path):
         p.write_bytes(blob)
         with pytest.raises(ValueError, match="not a valid ONNX model"):
             read_info(p)
+
+
+# --- weights readable in place: aligned raw_data --------------------------------------------
+
+SHIPPED = sorted((Path(__file__).resolve().parents[1] / "models").glob("*.onnx"))
+
+
+def _assert_aligned(data: bytes) -> None:
+    """Every initializer's raw_data, found by walking the wire format, is the bytes onnx's
+    parser gives for it and starts on a 16-byte boundary."""
+    from posecorr.export.aligned import raw_data_offsets
+
+    tensors = [t for t in onnx.load_from_string(data).graph.initializer if t.raw_data]
+    offsets = raw_data_offsets(data)
+    assert len(offsets) == len(tensors) > 0
+    for t, at in zip(tensors, offsets):
+        assert data[at:at + len(t.raw_data)] == t.raw_data, t.name
+        assert at % 16 == 0, (t.name, at)
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.name)
+def test_shipped_models_have_aligned_weights(path):
+    data = path.read_bytes()
+    _assert_aligned(data)
+    onnx.checker.check_model(onnx.load_from_string(data))
+
+
+def test_export_aligns_weights_and_changes_nothing_else(tmp_path):
+    from posecorr.export.aligned import serialize_aligned
+
+    est = ToyCorrector("zhou", core="mlp", activation="tansig", seed=3)
+    to_onnx(est, tmp_path / "m.onnx", measured=training_like_poses(300), n_random=500)
+    data = (tmp_path / "m.onnx").read_bytes()
+    _assert_aligned(data)
+    plain = onnx.load_from_string(data)
+    for t in plain.graph.initializer:  # the padding is all that alignment adds
+        assert set(t.doc_string) <= {" "}, t.name
+        t.ClearField("doc_string")
+    plain_bytes = plain.SerializeToString()  # protobuf's own layout, unaligned
+    assert serialize_aligned(plain) == data  # same model, same layout: nothing else moved
+    x = training_like_poses(64).astype(np.float32)
+    runs = [ort.InferenceSession(b, providers=["CPUExecutionProvider"]).run(None, {"pose": x})[0]
+            for b in (data, plain_bytes)]
+    np.testing.assert_array_equal(runs[0], runs[1])

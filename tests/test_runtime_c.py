@@ -342,6 +342,52 @@ def test_load_into_caller_buffer_matches_load_memory(lib):
     np.testing.assert_array_equal(out, Corrector(MLP_ZHOU, library=lib).correct(x).astype(np.float32))
 
 
+def _load_with(L, blob, **fields):
+    """pc_load_memory with pc_options fields set; the model handle (blob must outlive it)."""
+    import ctypes
+
+    from posecorr.controller.runtime import _Error, _Options
+
+    handle, err = ctypes.c_void_p(), _Error()
+    opts = _Options(**fields)
+    assert L.pc_load_memory(blob, len(blob), ctypes.byref(opts), ctypes.byref(handle),
+                            ctypes.byref(err)) == 0, err.message
+    return handle.value
+
+
+@pytest.mark.parametrize("max_batch", [1, 16])
+def test_load_in_place_reads_the_weights_where_they_lie(lib, max_batch):
+    """PC_LOAD_IN_PLACE on an aligned file: the float32 weights are not copied (the arena
+    shrinks by at least their bytes, counted with onnx), the results do not change, and
+    PC_LOAD_NO_METADATA keeps the checks that come from the metadata."""
+    from posecorr.controller.runtime import load_library
+
+    from posecorr.export.aligned import serialize_aligned
+
+    L = load_library(lib)
+    model = onnx.load(str(MLP_ZHOU))
+    entry = model.metadata_props.add()
+    entry.key, entry.value = "input_bounds", "[[-1, -1, -1], [1, 1, 1]]"
+    blob = serialize_aligned(model)
+    weights = sum(len(t.raw_data) for t in model.graph.initializer
+                  if t.data_type == onnx.TensorProto.FLOAT)
+    copy = _load_with(L, blob, max_batch=max_batch)
+    lean = _load_with(L, blob, max_batch=max_batch, flags=1 | 4)  # IN_PLACE | NO_METADATA
+    assert L.pc_arena_bytes(copy) - L.pc_arena_bytes(lean) >= weights > 6000
+    assert L.pc_metadata_count(lean) == 0 and L.pc_metadata_count(copy) > 0
+    x = graphs.random_poses(40, seed=9)
+    outs = []
+    for h in (copy, lean):
+        out = np.zeros_like(x)
+        assert L.pc_run(h, x.ctypes.data, len(x), out.ctypes.data) == 0
+        outs.append(out)
+        far = x[:1].copy()
+        far[0, 0] = 999.0  # outside input_bounds: refused whether or not the strings are kept
+        assert L.pc_run(h, far.ctypes.data, 1, out.ctypes.data) == _status("PC_ERR_RANGE")
+        L.pc_free(h)
+    np.testing.assert_array_equal(outs[0], outs[1])
+
+
 def test_shim_checks_the_library_version(lib):
     from posecorr.controller import runtime
 

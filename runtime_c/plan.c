@@ -491,7 +491,9 @@ pc_status pc_plan_build(pc_builder *b, const pc_options *opts, void *buf, size_t
     for (c = b->consts; c; c = c->next)
         n_consts++;
     b->values = pc_scratch_alloc(&b->scratch, PC_KEEP, b->cap_values * sizeof(pc_value));
-    pp.cap_blocks = b->cap_values + 2;
+    /* Blocks held at once: those of the records alive when a program opened (kept while
+     * it is open), those it gives the records it leaves, and its temporaries. */
+    pp.cap_blocks = 2 * b->cap_values + 2;
     pp.blocks = pc_scratch_alloc(&b->scratch, PC_KEEP, pp.cap_blocks * sizeof(pc_block));
     pp.live = pc_scratch_alloc(&b->scratch, PC_KEEP, pp.cap_blocks * sizeof(int32_t));
     pp.cap_placed = b->n_inits + n_consts + 1;

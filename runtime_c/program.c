@@ -387,6 +387,10 @@ static pc_status pc_expand_element(pc_pass *pp, const pc_prep *p, size_t e, int3
             if ((st = pc_elem(pp, p->in[0], e * len + k, &ta[k])) != PC_OK)
                 return st;
             tb[k] = one; /* x 1 is exact: the kernel's plain sum */
+            if (pc_is_mul(pp->prog, ta[k])) { /* a product summed: its own term */
+                tb[k] = PC_OP(pp->prog, ta[k]).b;
+                ta[k] = PC_OP(pp->prog, ta[k]).a;
+            }
         }
         return pc_dot(pp, zero, ta, tb, len, r);
     }

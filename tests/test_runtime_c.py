@@ -388,6 +388,56 @@ def test_load_in_place_reads_the_weights_where_they_lie(lib, max_batch):
     np.testing.assert_array_equal(outs[0], outs[1])
 
 
+def test_lean_load_peak_is_a_small_multiple_of_the_arena(lib):
+    """At max_batch 1 with the small-target options, pc_required_bytes (the load's peak) is
+    within 4x the arena the model keeps, and pc_load_into needs no more than it reports."""
+    import ctypes
+
+    from posecorr.controller.runtime import _Error, _Options, load_library
+
+    L = load_library(lib)
+    blob = MLP_ZHOU.read_bytes()
+    vp, sz = ctypes.c_void_p, ctypes.c_size_t
+    L.pc_required_bytes.argtypes = [ctypes.c_char_p, sz, vp, ctypes.POINTER(sz),
+                                    ctypes.POINTER(_Error)]
+    L.pc_load_into.argtypes = [ctypes.c_char_p, sz, vp, vp, sz, ctypes.POINTER(vp),
+                               ctypes.POINTER(_Error)]
+    opts = _Options(max_batch=1, flags=1 | 4, program_ops=32)
+    need, err, handle = sz(), _Error(), vp()
+    assert L.pc_required_bytes(blob, len(blob), ctypes.byref(opts), ctypes.byref(need),
+                               ctypes.byref(err)) == 0, err.message
+    buf = np.zeros(need.value, dtype=np.uint8)
+    assert L.pc_load_into(blob, len(blob), ctypes.byref(opts), buf.ctypes.data,
+                          need.value * 3 // 4, ctypes.byref(handle), ctypes.byref(err)) != 0
+    assert L.pc_load_into(blob, len(blob), ctypes.byref(opts), buf.ctypes.data, need.value,
+                          ctypes.byref(handle), ctypes.byref(err)) == 0, err.message
+    arena = L.pc_arena_bytes(handle.value)
+    print(f"lean load: pc_required_bytes {need.value}, arena {arena}")
+    assert need.value <= 4 * arena
+
+
+@pytest.mark.parametrize("path", MODELS, ids=lambda p: p.name)
+def test_lean_load_options_give_the_same_bits(lib, path):
+    """Small program budgets (more, shorter programs), no programs at all, weights in place:
+    one pose at a time, every shipped model gives the default load's bits."""
+    from posecorr.controller.runtime import load_library
+
+    L = load_library(lib)
+    blob = path.read_bytes()
+    x = graphs.random_poses(12, seed=4)
+    results = []
+    for fields in ({}, {"program_ops": 16}, {"program_ops": 48, "flags": 1 | 4},
+                   {"flags": 2}):
+        h = _load_with(L, blob, max_batch=1, **fields)
+        out = np.zeros_like(x)
+        for i in range(len(x)):
+            assert L.pc_run(h, x[i:i + 1].ctypes.data, 1, out[i:i + 1].ctypes.data) == 0
+        results.append(out)
+        L.pc_free(h)
+    for r in results[1:]:
+        np.testing.assert_array_equal(r, results[0])
+
+
 def test_shim_checks_the_library_version(lib):
     from posecorr.controller import runtime
 

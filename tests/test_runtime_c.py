@@ -600,6 +600,26 @@ def test_posecorr_run_csv(c_build, pose_file):
     assert got.shape == (40, 7) and rel_err(got, ref) <= 2e-6
 
 
+def test_tools_are_on_path_after_pip_install(pose_file):
+    """The package's console scripts start the C tools it built: posecorr-run answers the
+    same pose as the shim, posecorr-bench prints its JSON, both from the venv's bin."""
+    bindir = Path(sys.executable).parent
+    run, bench = shutil.which("posecorr-run", path=bindir), shutil.which("posecorr-bench", path=bindir)
+    assert run and bench, f"console scripts missing in {bindir}"
+    x = graphs.random_poses(3, seed=2)
+    text = "\n".join(",".join(f"{v:.9g}" for v in row) for row in x) + "\n"
+    r = subprocess.run([run, str(MLP_ZHOU)], input=text, capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0, r.stderr
+    got = np.array([[float(v) for v in ln.split(",")] for ln in r.stdout.split()], np.float32)
+    want = Corrector(MLP_ZHOU).correct(x.astype(np.float64)).astype(np.float32)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
+    r = subprocess.run([bench, str(MLP_ZHOU), "--n", "200", "--batch", "50"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["batch_ns_per_pose"] > 0
+
+
 def test_posecorr_run_time_column(c_build, drift_model, pose_file):
     """An 8th value per line is t: a model that takes time gets it (as onnxruntime with
     the same t), a line without it is t = 0, and a model without time ignores it."""

@@ -10,8 +10,16 @@
  *     output "corrected" float32 [N,7]
  *
  * Everything the model needs at run time lives in one arena allocated by pc_load_*;
- * pc_run never allocates, never blocks and touches no global state, so one model may be
- * run from one thread at a time and different models from different threads.
+ * pc_run never allocates, never blocks and touches no global state.
+ *
+ * Threads. The library has no global state: pc_load_* and pc_required_bytes may run on any
+ * thread at any time, also while other models run. A pc_model is written by pc_run (its
+ * buffers and its message), so each model is used by one thread at a time: pc_run,
+ * pc_run_timed, pc_model_message and pc_free of one model must not overlap; the read-only
+ * accessors (metadata, counts) may run beside each other. To swap a model while a
+ * controller runs, load and check the new one on another thread (it is not shared yet),
+ * hand it over through one atomic pointer, take it between two poses, and give the old one
+ * back to be freed once the controller no longer uses it: runtime_c/examples/hot_swap.c.
  *
  * Every function that can fail returns a pc_status; the human-readable context (which
  * operator, which node, which byte) is in the pc_error filled by the loader or, after

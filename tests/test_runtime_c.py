@@ -620,6 +620,64 @@ def test_tools_are_on_path_after_pip_install(pose_file):
     assert json.loads(r.stdout)["batch_ns_per_pose"] > 0
 
 
+def test_hot_swap_example_serves_every_pose_from_exactly_one_model(c_build, tmp_path):
+    """runtime_c/examples/hot_swap.c: a new file replacing the model (atomically) is taken
+    between two poses; every pose is answered, each by the model of its generation (bit for
+    bit as the shim gives it); a corrupt file is refused while the running model serves."""
+    import time
+
+    first, second = ROOT / "models" / "pmc-zhou.onnx", MLP_ZHOU
+    path = tmp_path / "model.onnx"
+    shutil.copy(first, path)
+    proc = subprocess.Popen([str(c_build / "pc_hot_swap"), str(path)], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1)
+    x = graphs.random_poses(2000, seed=12)
+    answers: list[tuple[int, np.ndarray]] = []
+
+    def send() -> int:
+        row = x[len(answers)]
+        proc.stdin.write(",".join(f"{v:.9g}" for v in row) + "\n")
+        proc.stdin.flush()
+        gen, *vals = proc.stdout.readline().split(",")
+        answers.append((int(gen), np.array(vals, dtype=np.float32)))
+        return int(gen)
+
+    def replace_with(data: bytes) -> None:
+        tmp = tmp_path / "incoming.onnx"
+        tmp.write_bytes(data)
+        os.replace(tmp, path)
+
+    def run_until(gen: int, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while send() != gen and time.monotonic() < deadline:
+            time.sleep(0.002)
+
+    try:
+        for _ in range(100):
+            assert send() == 1
+        replace_with(second.read_bytes())
+        run_until(2, 10.0)
+        assert answers[-1][0] == 2, "the new model was not taken"
+        replace_with(b"\x08\x07not an onnx file")
+        run_until(3, 0.5)  # the loader polls every 10 ms: plenty of time to refuse it
+        for _ in range(50):
+            send()
+    finally:
+        proc.stdin.close()
+        err = proc.stderr.read()
+        proc.wait(timeout=30)
+    assert proc.returncode == 0, err
+    gens = [g for g, _ in answers]
+    assert gens == sorted(gens) and set(gens) == {1, 2}, "a pose went back to the old model"
+    assert "loaded generation 2" in err and f"refused {path}" in err, err
+    for gen, model in ((1, first), (2, second)):
+        idx = [i for i, (g, _) in enumerate(answers) if g == gen]
+        want = Corrector(model).correct(x[idx].astype(np.float64)).astype(np.float32)
+        got = np.stack([answers[i][1] for i in idx])
+        np.testing.assert_array_equal(got, want)
+    print(f"hot swap: {gens.count(1)} poses by the first model, {gens.count(2)} by the second")
+
+
 def test_posecorr_run_time_column(c_build, drift_model, pose_file):
     """An 8th value per line is t: a model that takes time gets it (as onnxruntime with
     the same t), a line without it is t = 0, and a model without time ignores it."""

@@ -11,7 +11,7 @@ NATIVE_SOURCES := $(wildcard runtime_c/*.c runtime_c/*.h runtime_c/CMakeLists.tx
 
 $(STAMP): pyproject.toml setup.py $(NATIVE_SOURCES)
 	@test -x $(VPY) || $(PYTHON) -m venv $(VENV)
-	$(VPY) -m pip install -q --disable-pip-version-check -e '.[train,test]'
+	$(VPY) -m pip install -q --disable-pip-version-check -e '.[train,test,ros2]'
 	@touch $(STAMP)
 
 install: $(STAMP)
@@ -27,6 +27,7 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(VPY) -m pip install -q --disable-pip-version-check --no-deps torch-levenberg-marquardt
 	$(VPY) -m posecorr.benchmarks
+	$(VPY) bench/ros2_latency.py
 
 models: $(STAMP)
 	$(VPY) -m posecorr.export.models

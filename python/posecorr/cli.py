@@ -502,6 +502,21 @@ def cmd_bench(args: argparse.Namespace) -> None:
     _emit(args, result, text)
 
 
+def cmd_ros2(args: argparse.Namespace) -> None:
+    from .ros2.node import run_node
+
+    final = run_node(args.model, input_topic=args.input, output_topic=args.output,
+                     frame=args.frame, reliable=args.reliable, t0=args.t0,
+                     diag_period=args.diagnostics_period,
+                     log=(lambda m: print(m, file=sys.stderr, flush=True)))
+    if args.json:
+        _print_json(final)
+    else:
+        print(f"stopped: {final['poses_in']} poses in, {final['poses_out']} out, "
+              f"{final['refused']} refused; per model generation {final['poses_per_generation']}; "
+              f"added latency p50 {final['latency_p50_us']} us, p99 {final['latency_p99_us']} us")
+
+
 def cmd_demo(args: argparse.Namespace) -> None:
     from .demo import run
 
@@ -673,6 +688,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True)
     p.add_argument("--backend", choices=("c", "onnxruntime"), default="c")
 
+    p = verb("ros2", cmd_ros2, "a ROS 2 node: correct a PoseStamped topic live, swap models while it runs")
+    p.add_argument("model", type=Path)
+    p.add_argument("--input", default="/tracker/pose", help="PoseStamped topic of the raw tracker pose")
+    p.add_argument("--output", default="/tracker/pose_corrected", help="topic of the corrected pose")
+    p.add_argument("--frame", default="base_link", help="frame id of the corrected pose (the robot's)")
+    p.add_argument("--reliable", action="store_true", help="reliable QoS (default: sensor data, best effort)")
+    p.add_argument("--t0", type=float, help="models with time: t = stamp - T0 (default: the first pose's stamp)")
+    p.add_argument("--diagnostics-period", type=float, default=1.0, help="seconds between /diagnostics messages")
+
     p = verb("bench", cmd_bench, "single-pose latency and batch throughput, C runtime against the alternatives")
     p.add_argument("model", type=Path)
     p.add_argument("--n", type=int, default=100_000, help="single-pose calls per backend")
@@ -688,7 +712,11 @@ OUTPUT_ARGS = ("output", "save", "store")
 FOLDER_OUTPUT_VERBS = frozenset({"demo"})
 # The optional dependencies, by module, and how to get them.
 TRAIN_MODULES = ("torch", "scipy", "sklearn", "onnx", "onnxruntime", "matplotlib", "tqdm", "threadpoolctl")
-EXTRAS = {**dict.fromkeys(TRAIN_MODULES, "pip install 'posecorr[train]'"), "ray": "pip install ray"}
+EXTRAS = {**dict.fromkeys(TRAIN_MODULES, "pip install 'posecorr[train]'"), "ray": "pip install ray",
+          **dict.fromkeys(("rclpy", "geometry_msgs", "diagnostic_msgs", "rcl_interfaces"),
+                          "pip install 'posecorr[ros2]'")}
+# Verbs that need the ros2 extra.
+ROS2_VERBS = {"ros2": ("rclpy", "geometry_msgs", "diagnostic_msgs")}
 # Verbs that need the train extra whatever their options: checked before any work starts.
 TRAIN_VERBS = frozenset({"fit", "sweep", "diagnose", "report", "export", "demo"})
 EXIT_INTERNAL = 1
@@ -711,10 +739,10 @@ def _paths(args: argparse.Namespace) -> tuple[list[Path], list[Path]]:
 def _check_extras(verb: str) -> None:
     import importlib.util
 
-    if verb in TRAIN_VERBS:
-        for module in TRAIN_MODULES:
-            if importlib.util.find_spec(module) is None:
-                raise ModuleNotFoundError(f"No module named {module!r}", name=module)
+    needed = TRAIN_MODULES if verb in TRAIN_VERBS else ROS2_VERBS.get(verb, ())
+    for module in needed:
+        if importlib.util.find_spec(module) is None:
+            raise ModuleNotFoundError(f"No module named {module!r}", name=module)
 
 
 def _check_paths(args: argparse.Namespace) -> None:

@@ -157,7 +157,8 @@ class _CBackend:
             st = lib.pc_load_file(os.fsencode(path), ctypes.byref(opts), ctypes.byref(handle),
                                   ctypes.byref(err))
         if st != 0:
-            raise PoseCorrError(f"{path}: {err.message.decode(errors='replace')}", st)
+            where = f"model of {len(path)} bytes" if isinstance(path, (bytes, bytearray)) else path
+            raise PoseCorrError(f"{where}: {err.message.decode(errors='replace')}", st)
         self.handle = handle.value
         # Single-pose path: fixed buffers and raw addresses, so a call is one copy in,
         # one foreign call and one copy out.

@@ -1,0 +1,333 @@
+"""The correcting node: PoseStamped in, corrected PoseStamped out, models swapped live.
+
+- Each incoming pose is corrected on the subscription's thread by the C runtime (the
+  shim's single-pose path) and published with the input's stamp and the robot's frame id.
+  A pose the model refuses (non-finite, a zero quaternion, outside the model's
+  `input_bounds`, a result that is not a pose) is not published; it is counted, and the
+  last reason is in the diagnostics.
+- Models with time take `t` from the stamps: seconds since the first pose, or since `t0`.
+- Hot swap: a watcher thread polls the model file (size, modification time, inode; read
+  once it stayed the same for two polls, so a file being written is never read half-way;
+  posecorr's exporter replaces files atomically anyway) and the `model` parameter
+  (`ros2 param set /posecorr model new.onnx`). A new model is loaded and checked off the
+  hot path (the runtime's own contract checks, then probe poses: each alone must give the
+  batch plan's result), then handed over; the subscription takes it between two messages,
+  so every output comes from exactly one model and no pose is lost or duplicated. A file
+  that fails leaves the old model serving; the reason is logged and in the diagnostics.
+- Diagnostics: a `diagnostic_msgs/DiagnosticArray` on /diagnostics every `diag_period`
+  seconds: model id and generation, poses in / out / refused, poses per generation, the
+  node's added latency (arrival of the message to its publication, p50 / p99 / max, µs),
+  the last refusal and the last load error.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from posecorr.controller.runtime import Corrector, PoseCorrError
+
+POLL_SECONDS = 0.05
+LATENCY_WINDOW = 10_000
+PROBE_POSES = 16
+
+
+@dataclass
+class Loaded:
+    """A checked model and what the diagnostics say of it."""
+    corrector: Corrector
+    path: Path
+    model_id: str
+    generation: int = 0
+
+
+@dataclass
+class Counters:
+    poses_in: int = 0
+    poses_out: int = 0
+    refused: int = 0
+    per_generation: dict[int, int] = field(default_factory=dict)
+    last_refusal: str = ""
+    last_load_error: str = ""
+    swaps: int = 0
+
+
+def model_id(path: Path, data: bytes) -> str:
+    """The file's name and the first 12 hex digits of its SHA-256: which bytes serve."""
+    return f"{path.name}@{hashlib.sha256(data).hexdigest()[:12]}"
+
+
+def _probe_poses(metadata: dict[str, str], n: int = PROBE_POSES) -> np.ndarray:
+    """Poses inside the model's input_bounds (a 1 m box about the origin without them)."""
+    import json
+
+    rng = np.random.default_rng(20261125)
+    lo, hi = np.full(3, -0.5), np.full(3, 0.5)
+    try:
+        box = np.asarray(json.loads(metadata["input_bounds"]), float)
+        if box.shape == (2, 3) and np.all(box[0] <= box[1]):
+            lo, hi = box
+    except (KeyError, ValueError, TypeError):
+        pass
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return np.hstack([rng.uniform(lo, hi, (n, 3)), q])
+
+
+def load_checked(path: Path) -> Loaded:
+    """Loads `path` with the C runtime and checks it: each probe pose alone must give the
+    batch plan's result (bit for bit), and the results must be poses. Raises
+    PoseCorrError (or OSError) with the reason."""
+    data = path.read_bytes()  # once: the bytes loaded are the bytes the id names
+    try:
+        corrector = Corrector(data)
+    except PoseCorrError as exc:
+        raise PoseCorrError(f"{path}: {str(exc).split(': ', 1)[-1]}", exc.status) from None
+    probe = _probe_poses(corrector.metadata)
+    t = np.linspace(0.0, 60.0, len(probe)) if corrector.takes_time else None
+    batch = corrector.correct(probe, t)
+    for i, pose in enumerate(probe):
+        one = corrector.correct(pose, None if t is None else t[i])
+        if not np.array_equal(one, batch[i]):
+            raise PoseCorrError(f"{path}: probe pose {i} alone differs from the batch plan")
+    return Loaded(corrector, path, model_id(path, data))
+
+
+def _file_key(path: Path) -> tuple[int, int, int] | None:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_size, st.st_mtime_ns, st.st_ino
+
+
+class ModelWatcher(threading.Thread):
+    """Polls the model file and the requested path; hands checked models to `deliver`."""
+
+    def __init__(self, path: Path, deliver, report_error, poll: float = POLL_SECONDS) -> None:
+        super().__init__(name="posecorr-model-watcher", daemon=True)
+        self._path = path
+        self._deliver, self._report_error = deliver, report_error
+        self._poll = poll
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._seen = _file_key(path)
+        self._pending_key: tuple[int, int, int] | None = None
+        self._stable = 0
+
+    def request(self, path: Path) -> None:
+        """Serve `path` from now on (the `model` parameter changed)."""
+        with self._lock:
+            self._path = path
+            self._seen = None
+            self._pending_key, self._stable = None, 0
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def run(self) -> None:
+        while not self._stop.wait(self._poll):
+            with self._lock:
+                path = self._path
+            key = _file_key(path)
+            if key is None or key == self._seen:
+                continue
+            if key != self._pending_key:  # changed since the last poll: wait for it to settle
+                self._pending_key, self._stable = key, 0
+                continue
+            self._stable += 1
+            if self._stable < 2:
+                continue
+            self._seen = key
+            try:
+                loaded = load_checked(path)
+            except (PoseCorrError, OSError, ValueError) as exc:
+                message = str(exc).splitlines()[0]
+                self._report_error(message if str(path) in message else f"{path}: {message}")
+                continue
+            self._deliver(loaded)
+
+
+def _import_ros() -> dict[str, Any]:
+    """rclpy and the messages, imported on demand (the `ros2` extra)."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    from geometry_msgs.msg import PoseStamped
+    from rcl_interfaces.msg import SetParametersResult
+    from rclpy.node import Node
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+
+    return dict(rclpy=rclpy, Node=Node, PoseStamped=PoseStamped, DiagnosticArray=DiagnosticArray,
+                DiagnosticStatus=DiagnosticStatus, KeyValue=KeyValue,
+                SetParametersResult=SetParametersResult, QoSProfile=QoSProfile,
+                ReliabilityPolicy=ReliabilityPolicy, HistoryPolicy=HistoryPolicy,
+                qos_profile_sensor_data=qos_profile_sensor_data)
+
+
+def _percentile(values: deque, q: float) -> float:
+    return float(np.percentile(np.fromiter(values, float), q)) if values else float("nan")
+
+
+def make_node(model: Path, *, input_topic: str = "/tracker/pose",
+              output_topic: str = "/tracker/pose_corrected", frame: str = "base_link",
+              reliable: bool = False, t0: float | None = None, diag_period: float = 1.0,
+              node_name: str = "posecorr", log=print):
+    """The node (rclpy must be initialised). Returns (node, watcher); the caller spins it
+    and stops the watcher."""
+    ros = _import_ros()
+    Node = ros["Node"]
+    first = load_checked(model)
+    first.generation = 1
+
+    class CorrectorNode(Node):
+        def __init__(self) -> None:
+            super().__init__(node_name)
+            self.current = first
+            self.incoming: Loaded | None = None
+            self.counts = Counters(per_generation={1: 0})
+            self.latency_us: deque = deque(maxlen=LATENCY_WINDOW)
+            self.t0 = t0
+            self.frame = frame
+            self._generation = 1
+            self._handover = threading.Lock()
+            if reliable:
+                # Keep all: a burst waits in the queues (the writer is held back) instead of
+                # overwriting poses the node has not corrected yet.
+                qos = ros["QoSProfile"](depth=1000, reliability=ros["ReliabilityPolicy"].RELIABLE,
+                                        history=ros["HistoryPolicy"].KEEP_ALL)
+            else:
+                qos = ros["qos_profile_sensor_data"]
+            self.publisher = self.create_publisher(ros["PoseStamped"], output_topic, qos)
+            self.diagnostics = self.create_publisher(ros["DiagnosticArray"], "/diagnostics", 10)
+            self.subscription = self.create_subscription(ros["PoseStamped"], input_topic,
+                                                         self.on_pose, qos)
+            self.declare_parameter("model", str(model))
+            self.add_on_set_parameters_callback(self.on_parameters)
+            self.timer = self.create_timer(diag_period, self.publish_diagnostics)
+            self._out = ros["PoseStamped"]()
+            self._out.header.frame_id = frame
+
+        # -- hot path ------------------------------------------------------------------
+        def on_pose(self, msg) -> None:
+            arrival = time.perf_counter()
+            with self._handover:
+                if self.incoming is not None:
+                    self.current, self.incoming = self.incoming, None
+                    self.counts.per_generation.setdefault(self.current.generation, 0)
+                    self.counts.swaps += 1
+            loaded = self.current
+            self.counts.poses_in += 1
+            p, o = msg.pose.position, msg.pose.orientation
+            pose = np.array([p.x, p.y, p.z, o.w, o.x, o.y, o.z])
+            stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+            if self.t0 is None:
+                self.t0 = stamp
+            try:
+                if not np.all(np.isfinite(pose)):
+                    raise PoseCorrError("a value is not finite")
+                if float(pose[3:] @ pose[3:]) < 1e-12:
+                    raise PoseCorrError("zero quaternion")
+                c = loaded.corrector.correct(pose, stamp - self.t0)
+            except PoseCorrError as exc:
+                self.counts.refused += 1
+                self.counts.last_refusal = f"stamp {stamp:.9f}: {str(exc).splitlines()[0]}"
+                return
+            out = self._out
+            out.header.stamp = msg.header.stamp
+            out.pose.position.x, out.pose.position.y, out.pose.position.z = (
+                float(c[0]), float(c[1]), float(c[2]))
+            (out.pose.orientation.w, out.pose.orientation.x, out.pose.orientation.y,
+             out.pose.orientation.z) = float(c[3]), float(c[4]), float(c[5]), float(c[6])
+            self.publisher.publish(out)
+            self.counts.poses_out += 1
+            self.counts.per_generation[loaded.generation] += 1
+            self.latency_us.append((time.perf_counter() - arrival) * 1e6)
+
+        # -- off the hot path ----------------------------------------------------------
+        def deliver(self, loaded: Loaded) -> None:
+            with self._handover:
+                self._generation += 1
+                loaded.generation = self._generation
+                self.incoming = loaded
+            self.counts.last_load_error = ""
+            log(f"posecorr ros2: loaded {loaded.model_id} as generation {loaded.generation}")
+
+        def report_error(self, message: str) -> None:
+            self.counts.last_load_error = message
+            log(f"posecorr ros2: kept {self.current.model_id}: {message}")
+
+        def on_parameters(self, params):
+            for p in params:
+                if p.name == "model":
+                    watcher.request(Path(str(p.value)))
+            return ros["SetParametersResult"](successful=True)
+
+        def diagnostic_values(self) -> dict[str, str]:
+            c = self.counts
+            lat = self.latency_us
+            return {
+                "model": self.current.model_id, "generation": str(self.current.generation),
+                "poses_in": str(c.poses_in), "poses_out": str(c.poses_out),
+                "refused": str(c.refused), "swaps": str(c.swaps),
+                "poses_per_generation": ",".join(f"{g}:{n}" for g, n in sorted(c.per_generation.items())),
+                "latency_p50_us": f"{_percentile(lat, 50):.1f}",
+                "latency_p99_us": f"{_percentile(lat, 99):.1f}",
+                "latency_max_us": f"{max(lat) if lat else float('nan'):.1f}",
+                "last_refusal": c.last_refusal, "last_load_error": c.last_load_error,
+            }
+
+        def publish_diagnostics(self) -> None:
+            status = ros["DiagnosticStatus"]()
+            status.name = f"{self.get_name()}: pose correction"
+            status.hardware_id = self.current.model_id
+            c = self.counts
+            status.level = ros["DiagnosticStatus"].WARN if (c.refused or c.last_load_error) \
+                else ros["DiagnosticStatus"].OK
+            status.message = c.last_load_error or (f"{c.refused} poses refused" if c.refused else "ok")
+            status.values = [ros["KeyValue"](key=k, value=v) for k, v in self.diagnostic_values().items()]
+            array = ros["DiagnosticArray"]()
+            array.header.stamp = self.get_clock().now().to_msg()
+            array.status = [status]
+            self.diagnostics.publish(array)
+
+    node = CorrectorNode()
+    watcher = ModelWatcher(model, node.deliver, node.report_error)
+    watcher.start()
+    return node, watcher
+
+
+def run_node(model: Path, log=print, **options) -> dict[str, str]:
+    """`posecorr ros2`: spins until SIGINT or SIGTERM (KeyboardInterrupt here), then shuts
+    down cleanly and returns the last diagnostics."""
+    ros = _import_ros()
+    rclpy = ros["rclpy"]
+    from rclpy.signals import SignalHandlerOptions
+
+    # posecorr's CLI turns SIGINT and SIGTERM into KeyboardInterrupt; rclpy's own handlers
+    # would end the context under the executor instead.
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    node = watcher = None
+    try:
+        node, watcher = make_node(model, log=log, **options)
+        log(f"posecorr ros2: {node.current.model_id} on {node.subscription.topic_name} -> "
+            f"{node.publisher.topic_name} (frame {node.frame})")
+        try:
+            while rclpy.ok():
+                rclpy.spin_once(node, timeout_sec=0.1)
+        except KeyboardInterrupt:
+            pass
+        return node.diagnostic_values()
+    finally:
+        if watcher is not None:
+            watcher.stop()
+        if node is not None:
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()

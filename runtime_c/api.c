@@ -28,7 +28,7 @@ static pc_status pc_forget_probe(pc_model *m)
 /* pc_run splits a batch into chunks, so row i of the result must not depend on row j:
  * every pose of a batch plan must give what it gives alone. Checked on probe poses
  * (a reduction, reshape or gather across the batch axis fails it). */
-static pc_status pc_check_rows(pc_model *m, pc_error *err)
+PC_NOINLINE static pc_status pc_check_rows(pc_model *m, pc_error *err)
 {
     float in[PC_PLAN_STRIDE * PC_POSE_WIDTH], out[PC_PLAN_STRIDE * PC_POSE_WIDTH];
     float t[PC_PLAN_STRIDE];

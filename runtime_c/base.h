@@ -20,6 +20,14 @@
 #define PC_ALIGN 8
 #endif
 
+/* A function whose large frame must not add to its caller's (the deepest call chain is
+ * what a small target's stack must hold). */
+#if defined(__GNUC__)
+#define PC_NOINLINE __attribute__((noinline))
+#else
+#define PC_NOINLINE
+#endif
+
 /* Fills err (may be NULL) with status and a printf-style message; returns status. */
 pc_status pc_fail(pc_error *err, pc_status status, const char *fmt, ...)
 #ifdef __GNUC__

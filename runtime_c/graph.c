@@ -271,9 +271,13 @@ pc_status pc_const_input(pc_builder *b, uint16_t ref, int end, int32_t *id)
     }
     if (PC_REF_KIND(ref) == PC_REF_OUTPUT) {
         const pc_const *c = pc_const_find(b, k);
-        if (c)
-            return pc_value_const(b, c->dtype, c->rank, c->dims, c->data, pc_key_ordinal(b, k),
-                                  id);
+        if (c) {
+            int64_t dims[PC_MAX_RANK];
+            int j;
+            for (j = 0; j < c->rank; j++)
+                dims[j] = c->dims[j];
+            return pc_value_const(b, c->dtype, c->rank, dims, c->data, pc_key_ordinal(b, k), id);
+        }
     }
     return PC_OK;
 }
@@ -335,7 +339,7 @@ static pc_status pc_fold_node(pc_builder *b, uint32_t i)
     if (p.alias_of >= 0) {
         const pc_value *src = &b->values[p.alias_of], *o = p.out[0];
         pc_const *c;
-        if ((st = pc_const_add(b, (uint32_t)o->ordinal, o->dtype, o->rank, o->dims, &c)) != PC_OK)
+        if ((st = pc_const_add(b, (uint32_t)o->ordinal, o, &c)) != PC_OK)
             return st;
         memcpy(c->data, src->cdata, o->count * pc_dtype_size(o->dtype));
         return PC_OK;
@@ -350,7 +354,7 @@ static pc_status pc_fold_node(pc_builder *b, uint32_t i)
         pc_const *c;
         if (!o)
             continue;
-        if ((st = pc_const_add(b, (uint32_t)o->ordinal, o->dtype, o->rank, o->dims, &c)) != PC_OK)
+        if ((st = pc_const_add(b, (uint32_t)o->ordinal, o, &c)) != PC_OK)
             return st;
         io[p.n_in + j] = c->data;
     }

@@ -53,7 +53,7 @@ pc_status pc_value_const(pc_builder *b, int dtype, int rank, const int64_t *dims
     int i;
     pc_status st;
     for (i = 0; i < rank; i++)
-        if (!pc_mul_count(&count, dims[i], PC_MAX_ELEMENTS))
+        if (!pc_mul_count(&count, dims[i], PC_MAX_ELEMENTS) || dims[i] > INT32_MAX)
             return pc_fail(b->err, PC_ERR_SHAPE, "constant has an invalid shape");
     if ((st = pc_value_new(b, id)) != PC_OK)
         return st;
@@ -61,7 +61,7 @@ pc_status pc_value_const(pc_builder *b, int dtype, int rank, const int64_t *dims
     v->dtype = dtype;
     v->rank = rank;
     for (i = 0; i < rank; i++)
-        v->dims[i] = dims[i];
+        v->dims[i] = (int32_t)dims[i];
     v->count = count;
     v->cdata = data;
     v->ckey = key;
@@ -77,24 +77,19 @@ const pc_const *pc_const_find(const pc_builder *b, uint32_t ordinal)
     return NULL;
 }
 
-pc_status pc_const_add(pc_builder *b, uint32_t ordinal, int dtype, int rank, const int64_t *dims,
-                       pc_const **out)
+pc_status pc_const_add(pc_builder *b, uint32_t ordinal, const pc_value *like, pc_const **out)
 {
-    pc_const *c;
-    size_t count = 1;
+    pc_const *c = pc_scratch_alloc(&b->scratch, PC_KEEP, sizeof *c);
     int i;
-    for (i = 0; i < rank; i++)
-        if (!pc_mul_count(&count, dims[i], PC_MAX_ELEMENTS))
-            return pc_fail(b->err, PC_ERR_SHAPE, "constant has an invalid shape");
-    c = pc_scratch_alloc(&b->scratch, PC_KEEP, sizeof *c);
-    if (!c || !(c->data = pc_scratch_alloc(&b->scratch, PC_KEEP, count * pc_dtype_size(dtype) + 1)))
+    if (!c || !(c->data = pc_scratch_alloc(&b->scratch, PC_KEEP,
+                                           like->count * pc_dtype_size(like->dtype) + 1)))
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory for a folded constant");
     c->ordinal = ordinal;
-    c->dtype = dtype;
-    c->rank = rank;
-    for (i = 0; i < rank; i++)
-        c->dims[i] = dims[i];
-    c->count = count;
+    c->dtype = like->dtype;
+    c->rank = like->rank;
+    for (i = 0; i < like->rank; i++)
+        c->dims[i] = like->dims[i];
+    c->count = like->count;
     c->next = b->consts;
     b->consts = c;
     *out = c;

@@ -34,7 +34,7 @@ enum { PC_REF_NONE = 0, PC_REF_OUTPUT = 1, PC_REF_INIT = 2, PC_REF_INPUT = 3 };
 typedef struct pc_value {
     int dtype;          /* 0 until known */
     int rank;
-    int64_t dims[PC_MAX_RANK];
+    int32_t dims[PC_MAX_RANK]; /* a dimension is at most PC_MAX_ELEMENTS < 2^31 */
     size_t count;
     void *cdata;        /* constant contents, NULL for run-time values */
     int32_t ckey;       /* constants: placement key (pc_const_key), -1 for none */
@@ -73,7 +73,7 @@ struct pc_const {
     pc_const *next;
     uint32_t ordinal;
     int dtype, rank;
-    int64_t dims[PC_MAX_RANK];
+    int32_t dims[PC_MAX_RANK];
     size_t count;
     void *data;
 };
@@ -130,8 +130,8 @@ pc_status pc_value_const(pc_builder *b, int dtype, int rank, const int64_t *dims
                          int32_t key, int32_t *id);
 /* The folded output of ordinal o, or NULL. */
 const pc_const *pc_const_find(const pc_builder *b, uint32_t ordinal);
-/* Adds the folded output of ordinal o with zeroed data on the keep end. */
-pc_status pc_const_add(pc_builder *b, uint32_t ordinal, int dtype, int rank, const int64_t *dims,
-                       pc_const **c);
+/* Adds the folded output of ordinal o, of the type and shape of `like`, with zeroed data
+ * on the keep end. */
+pc_status pc_const_add(pc_builder *b, uint32_t ordinal, const pc_value *like, pc_const **c);
 
 #endif

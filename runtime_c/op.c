@@ -81,6 +81,13 @@ pc_status pc_attr_floats(pc_prep *p, const char *name, float *buf, size_t cap, s
     return onnx_attr_repeated(p->b, &a, ONNX_ATTR_FLOATS, NULL, buf, cap, n);
 }
 
+size_t pc_attr_bytes(pc_prep *p, const char *name)
+{
+    onnx_attr a;
+    int found = 0;
+    return pc_attr(p, name, &a, &found) == PC_OK && found ? a.msg.size : 0;
+}
+
 pc_status pc_attr_tensor(pc_prep *p, const char *name, pb_slice *tensor, int *found)
 {
     onnx_attr a;
@@ -133,16 +140,25 @@ pc_status pc_set_out(pc_prep *p, size_t k, int dtype, int rank, const int64_t *d
     if (rank < 0 || rank > PC_MAX_RANK)
         return pc_prep_fail(p, PC_ERR_UNSUPPORTED, "output rank %d exceeds %d", rank, PC_MAX_RANK);
     for (i = 0; i < rank; i++) {
-        if (!pc_mul_count(&count, dims[i], (size_t)1 << 24))
+        if (!pc_mul_count(&count, dims[i], (size_t)1 << 24) || dims[i] > (1 << 24))
             return pc_prep_fail(p, PC_ERR_SHAPE, "output dimension %d is invalid (%lld)", i,
                                 (long long)dims[i]);
     }
     v->dtype = dtype;
     v->rank = rank;
     for (i = 0; i < rank; i++)
-        v->dims[i] = dims[i];
+        v->dims[i] = (int32_t)dims[i];
     v->count = count;
     return PC_OK;
+}
+
+pc_status pc_set_out_as(pc_prep *p, size_t k, int dtype, const pc_value *like)
+{
+    int64_t dims[PC_MAX_RANK];
+    int j;
+    for (j = 0; j < like->rank; j++)
+        dims[j] = like->dims[j];
+    return pc_set_out(p, k, dtype, like->rank, dims);
 }
 
 void *pc_prep_params(pc_prep *p, size_t size)

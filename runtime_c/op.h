@@ -84,10 +84,15 @@ pc_status pc_attr_ints(pc_prep *p, const char *name, int64_t *buf, size_t cap, s
 pc_status pc_attr_floats(pc_prep *p, const char *name, float *buf, size_t cap, size_t *n,
                          int *found);
 pc_status pc_attr_tensor(pc_prep *p, const char *name, pb_slice *tensor, int *found);
+/* Bytes of attribute `name`'s message (0 when absent): no repeated field in it holds more
+ * elements, so a buffer of that many elements takes them all. */
+size_t pc_attr_bytes(pc_prep *p, const char *name);
 int pc_has_attr(pc_prep *p, const char *name);
 pc_status pc_input_ints(pc_prep *p, size_t k, int64_t *buf, size_t cap, size_t *n);
 pc_status pc_input_float_scalar(pc_prep *p, size_t k, float *out);
 pc_status pc_set_out(pc_prep *p, size_t k, int dtype, int rank, const int64_t *dims);
+/* Output k with the shape of `like`. */
+pc_status pc_set_out_as(pc_prep *p, size_t k, int dtype, const pc_value *like);
 void *pc_prep_params(pc_prep *p, size_t size);
 /* A constant record of the node's own (Constant's value), its data on the work end. */
 pc_status pc_new_const(pc_prep *p, int dtype, int rank, const int64_t *dims, void **data,

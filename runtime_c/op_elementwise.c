@@ -267,7 +267,7 @@ static pc_status pc_minmax(pc_prep *p, const pc_kernel_fn *kf, const pc_kernel_f
                             pc_dtype_name(p->in[0]->dtype));
     if (p->n_in == 1) {
         p->alias_of = p->in_ids[0];
-        return pc_set_out(p, 0, p->in[0]->dtype, p->in[0]->rank, p->in[0]->dims);
+        return pc_set_out_as(p, 0, p->in[0]->dtype, p->in[0]);
     }
     if (p->n_in == 2)
         return pc_binary(p, kf, ki, NULL, 0, sop);
@@ -280,8 +280,12 @@ static pc_status pc_minmax(pc_prep *p, const pc_kernel_fn *kf, const pc_kernel_f
         pc_bcast_n *q = pc_prep_params(p, sizeof *q);
         if (!q)
             return pc_fail(p->b->err, PC_ERR_MEMORY, "out of memory");
+        int64_t dims[PC_MAX_RANK];
+        int j;
         q->n_in = p->n_in;
-        pc_bcast_layout(p->n_in, p->in, p->out[0]->rank, p->out[0]->dims, q->d, q->st);
+        for (j = 0; j < p->out[0]->rank; j++)
+            dims[j] = p->out[0]->dims[j];
+        pc_bcast_layout(p->n_in, p->in, p->out[0]->rank, dims, q->d, q->st);
     }
     p->fn = p->in[0]->dtype == PC_F32 ? nf : ni;
     return PC_OK;
@@ -360,7 +364,7 @@ static pc_status pc_unary(pc_prep *p, pc_kernel_fn kf, pc_kernel_fn ki, pc_kerne
     if (!p->fn)
         return pc_prep_fail(p, PC_ERR_UNSUPPORTED, "input type %s is not supported",
                             pc_dtype_name(dt));
-    return pc_set_out(p, 0, dt, a->rank, a->dims);
+    return pc_set_out_as(p, 0, dt, a);
 }
 
 pc_status pc_op_Abs(pc_prep *p) { return pc_unary(p, k_abs_f, k_abs_i, NULL, PC_SOP_ABS); }
@@ -413,7 +417,7 @@ pc_status pc_op_Clip(pc_prep *p)
     if ((st = pc_pad_inputs(p, 3)) != PC_OK)
         return st;
     p->fn = k_clip_f;
-    return pc_set_out(p, 0, PC_F32, p->in[0]->rank, p->in[0]->dims);
+    return pc_set_out_as(p, 0, PC_F32, p->in[0]);
 }
 
 pc_status pc_op_Cast(pc_prep *p)
@@ -438,5 +442,5 @@ pc_status pc_op_Cast(pc_prep *p)
         p->fn = dt == PC_F32 ? k_cast_bf : k_cast_bi;
     else
         p->fn = dt == PC_F32 ? k_cast_if : k_cast_ib;
-    return pc_set_out(p, 0, dt, p->in[0]->rank, p->in[0]->dims);
+    return pc_set_out_as(p, 0, dt, p->in[0]);
 }

@@ -63,7 +63,7 @@ pc_status pc_op_Softmax(pc_prep *p)
         return pc_fail(p->b->err, PC_ERR_MEMORY, "out of memory");
     pc_split_axis(p->in[0], (int)axis, q);
     p->fn = k_softmax;
-    return pc_set_out(p, 0, PC_F32, p->in[0]->rank, p->in[0]->dims);
+    return pc_set_out_as(p, 0, PC_F32, p->in[0]);
 }
 
 static pc_status k_argmax(const pc_step *s)
@@ -174,7 +174,7 @@ static pc_status pc_reduce_prepare(pc_prep *p, const pc_kernel_fn *fns)
         return s;
     if (n == 0 && noop) {
         p->alias_of = p->in_ids[0];
-        return pc_set_out(p, 0, a->dtype, a->rank, a->dims);
+        return pc_set_out_as(p, 0, a->dtype, a);
     }
     for (k = 0; k < n; k++) {
         if ((s = pc_norm_axis(p, &axes[k], a->rank)) != PC_OK)

@@ -13,7 +13,7 @@ pc_status pc_op_Identity(pc_prep *p)
     if (p->n_in != 1 || !p->in[0] || p->n_out != 1)
         return pc_prep_fail(p, PC_ERR_GRAPH, "needs 1 input and 1 output");
     p->alias_of = p->in_ids[0];
-    return pc_set_out(p, 0, p->in[0]->dtype, p->in[0]->rank, p->in[0]->dims);
+    return pc_set_out_as(p, 0, p->in[0]->dtype, p->in[0]);
 }
 
 pc_status pc_op_Reshape(pc_prep *p)
@@ -150,21 +150,22 @@ pc_status pc_op_Constant(pc_prep *p)
             (st = pc_attr_int(p, "value_int", 0, (int64_t *)data)) != PC_OK)
             return st;
     } else if ((is_f = pc_has_attr(p, "value_floats")) || pc_has_attr(p, "value_ints")) {
-        float big_f[1024];
-        int64_t big_i[1024];
+        /* decoded into a buffer of the attribute's size (on the work end: a small target's
+         * stack would not hold a fixed one), then shrunk to its count */
+        const char *name = is_f ? "value_floats" : "value_ints";
+        const size_t cap = pc_attr_bytes(p, name) + 1;
         size_t n = 0;
+        if ((st = pc_new_const(p, is_f ? PC_F32 : PC_I64, 1, (dims[0] = (int64_t)cap, dims),
+                               &data, &id)) != PC_OK)
+            return st;
         if (is_f)
-            st = pc_attr_floats(p, "value_floats", big_f, 1024, &n, &found);
+            st = pc_attr_floats(p, name, (float *)data, cap, &n, &found);
         else
-            st = pc_attr_ints(p, "value_ints", big_i, 1024, &n, &found);
+            st = pc_attr_ints(p, name, (int64_t *)data, cap, &n, &found);
         if (st != PC_OK)
             return st;
-        dims[0] = (int64_t)n;
-        if ((st = pc_new_const(p, is_f ? PC_F32 : PC_I64, 1, dims, &data, &id)) != PC_OK)
-            return st;
-        if (n)
-            memcpy(data, is_f ? (const void *)big_f : (const void *)big_i,
-                   n * (is_f ? sizeof(float) : sizeof(int64_t)));
+        p->b->values[id].dims[0] = (int64_t)n;
+        p->b->values[id].count = n;
     } else {
         return pc_prep_fail(p, PC_ERR_UNSUPPORTED, "needs a value, value_float(s) or value_int(s)");
     }

@@ -12,7 +12,7 @@
 /* An activation buffer shared by a value and the views of it. */
 typedef struct pc_block {
     size_t off, size;
-    int32_t refs;       /* records holding it; 0: free */
+    int16_t refs;       /* records holding it; 0: free */
     uint8_t deferred;   /* released while a one-pose program still reads it */
 } pc_block;
 

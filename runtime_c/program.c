@@ -22,8 +22,9 @@
 #define PC_PROGRAM_MAX_ELEMS 64
 /* A matrix product with more multiply-adds keeps its (vectorised) kernel. */
 #define PC_PROGRAM_MAX_MACS 128
-/* Terms of one dot product (sums and matrix products). */
-#define PC_PROGRAM_MAX_TERMS 64
+/* Terms of one dot product (sums and matrix products); their operands are arrays on the
+ * stack of the expansion, which a small target counts. */
+#define PC_PROGRAM_MAX_TERMS 32
 #define PC_PROGRAM_DEFAULT_OPS 512
 /* Longest dot product an addition extends. */
 #define PC_EXTEND_MAX_TERMS 8

@@ -142,3 +142,55 @@ def test_size_report(firmware_log):
     archive_text = int(archive.strip().splitlines()[-1].split()[0])
     runtime_flash = sizes[".text"]["runtime"] + sizes[".rodata"]["runtime"]
     assert 0 < runtime_flash <= archive_text
+
+
+# -- small boards ----------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def small_boards() -> list[dict]:
+    """`make small`: the 16 KB (zhou MLP) and 32 KB (physics + PMC) firmwares link, run under
+    QEMU with -icount shift=0, and their report's checks pass."""
+    r = make("small")
+    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
+    import json
+
+    return json.loads((BUILD / "small.json").read_text())
+
+
+def test_small_boards_fit_their_ram_and_never_call_malloc(small_boards):
+    assert [b["board_ram_kb"] for b in small_boards] == [16, 32]
+    for b in small_boards:
+        ram = b["ram"]
+        assert ram["total"] <= b["board_ram_kb"] * 1024  # the linker enforced it; the map agrees
+        assert ram["stack_peak"] < ram["stack_reserved"], "the stack reached its limit"
+        assert ram["arena_used"] <= ram["arena_reserved"]
+        assert b["mallocs"] == 0
+
+
+def test_small_boards_match_x86_bit_for_bit(small_boards):
+    for b in small_boards:
+        m = b["match"]
+        assert m["pc_run_identical_poses"] == m["poses"] == 16, m
+
+
+def test_instruction_counts_of_the_three_implementations(small_boards):
+    """pc_run, the hand-written function and emlearn's eml_net on the same zhou MLP: all
+    counted, the hand-written one equal to pc_run, emlearn within 1e-5 (libm's tanhf)."""
+    zhou = small_boards[0]
+    counts = zhou["instructions_per_pose"]
+    assert set(counts) == {"pc_run", "reference", "emlearn"}
+    assert all(1000 < v < 200_000 for v in counts.values()), counts
+    assert zhou["match"]["reference_max_abs_diff_to_pc_run"] == 0.0
+    assert zhou["match"]["emlearn_max_abs_diff_to_pc_run"] <= 1e-5
+    assert zhou["instructions_per_systick_tick"] > 0
+
+
+def test_a_board_too_small_does_not_link(small_boards):
+    """The proof is the linker's: the same 16 KB firmware with a larger static arena fails
+    to link rather than run out of memory later."""
+    (BUILD / "small16.elf").unlink()
+    r = make("SMALL16_ARENA=15000", str(BUILD / "small16.elf"))
+    (BUILD / "small16.log").unlink(missing_ok=True)
+    assert r.returncode != 0
+    assert re.search(r"overflow|will not fit|region .RAM. overflowed", r.stdout + r.stderr), \
+        (r.stdout + r.stderr)[-2000:]

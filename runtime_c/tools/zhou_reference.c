@@ -42,14 +42,10 @@ static void quarter(float t, float a, float b, float c, int slot, float *q)
     q[3] = slot == 3 ? t * k : v[2];
 }
 
-void pc_zhou_reference(const pc_zhou_weights *w, const float *in, float *out)
+void pc_zhou_encode(const pc_zhou_weights *w, const float *in, float *x)
 {
-    float x[PC_ZHOU_IN], h[PC_ZHOU_HIDDEN], g[PC_ZHOU_HIDDEN], y[PC_ZHOU_IN];
-    float qw, qx, qy, qz, s, e1[3], e2[3], u[3], d, n2;
-    float r00, r01, r02, r10, r11, r12, r20, r21, r22;
-    float t0, t1, t2, t3, qa[4], qb[4], qc[4], qd[4], q[4];
-    const float *pick;
-    int i, l;
+    float qw, qx, qy, qz, s, n2;
+    int i;
 
     /* encode: unit quaternion -> first two columns of its matrix */
     n2 = 0.0f + in[3] * in[3] + in[4] * in[4] + in[5] * in[5] + in[6] * in[6];
@@ -69,8 +65,13 @@ void pc_zhou_reference(const pc_zhou_weights *w, const float *in, float *out)
     x[8] = (qy * qz + qw * qx) * 2.0f;         /* m21 */
     for (i = 0; i < PC_ZHOU_IN; i++)
         x[i] = x[i] * w->in_scale[i] + w->in_offset[i];
+}
 
-    /* the network */
+void pc_zhou_network(const pc_zhou_weights *w, const float *x, float *y)
+{
+    float h[PC_ZHOU_HIDDEN], g[PC_ZHOU_HIDDEN];
+    int i, l;
+
     dense(x, PC_ZHOU_IN, w->w_in, w->b_in, PC_ZHOU_HIDDEN, 1, h);
     for (l = 0; l < PC_ZHOU_LAYERS - 2; l++) {
         dense(h, PC_ZHOU_HIDDEN, w->w_hidden[l], w->b_hidden[l], PC_ZHOU_HIDDEN, 1, g);
@@ -78,8 +79,18 @@ void pc_zhou_reference(const pc_zhou_weights *w, const float *in, float *out)
             h[i] = g[i];
     }
     dense(h, PC_ZHOU_HIDDEN, w->w_out, w->b_out, PC_ZHOU_IN, 0, y);
+}
+
+void pc_zhou_decode(const pc_zhou_weights *w, const float *y_net, float *out)
+{
+    float y[PC_ZHOU_IN], s, e1[3], e2[3], u[3], d, n2;
+    float r00, r01, r02, r10, r11, r12, r20, r21, r22;
+    float t0, t1, t2, t3, qa[4], qb[4], qc[4], qd[4], q[4];
+    const float *pick;
+    int i;
+
     for (i = 0; i < PC_ZHOU_IN; i++)
-        y[i] = y[i] * w->out_scale[i] + w->out_offset[i];
+        y[i] = y_net[i] * w->out_scale[i] + w->out_offset[i];
 
     /* decode: Gram-Schmidt on the two columns, their cross product the third */
     n2 = 0.0f + y[3] * y[3] + y[4] * y[4] + y[5] * y[5];
@@ -126,4 +137,12 @@ void pc_zhou_reference(const pc_zhou_weights *w, const float *in, float *out)
     out[2] = y[2];
     for (i = 0; i < 4; i++)
         out[3 + i] = q[i];
+}
+
+void pc_zhou_reference(const pc_zhou_weights *w, const float *in, float *out)
+{
+    float x[PC_ZHOU_IN], y[PC_ZHOU_IN];
+    pc_zhou_encode(w, in, x);
+    pc_zhou_network(w, x, y);
+    pc_zhou_decode(w, y, out);
 }

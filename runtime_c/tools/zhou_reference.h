@@ -29,4 +29,11 @@ typedef struct pc_zhou_weights {
 /* One pose in (x, y, z, qw, qx, qy, qz), one corrected pose out. */
 void pc_zhou_reference(const pc_zhou_weights *w, const float *in, float *out);
 
+/* Its three parts, so that another network implementation (the firmware's emlearn
+ * comparison) runs between the same encode and decode: the pose -> the network's scaled
+ * input x[9]; the network's output y[9] -> scaled back and decoded into a pose. */
+void pc_zhou_encode(const pc_zhou_weights *w, const float *in, float *x);
+void pc_zhou_network(const pc_zhou_weights *w, const float *x, float *y);
+void pc_zhou_decode(const pc_zhou_weights *w, const float *y, float *out);
+
 #endif

@@ -18,6 +18,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -46,6 +47,7 @@ def _ros_runs(runs: list[tuple[str, float | None, int]]) -> list[dict]:
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     os.environ["ROS_DOMAIN_ID"] = str(150 + os.getpid() % 50)
@@ -55,22 +57,29 @@ def _ros_runs(runs: list[tuple[str, float | None, int]]) -> list[dict]:
                                  "--diagnostics-period", "0.2"], stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True)
         rclpy.init()
-        node = rclpy.create_node("posecorr_bench")
+        # Poses go out from this thread; the corrections and diagnostics come back on a node
+        # spun by its own executor thread, so that receiving never waits for publishing.
+        node = rclpy.create_node("posecorr_bench_source")
+        sink = rclpy.create_node("posecorr_bench_sink")
         qos = QoSProfile(depth=10_000, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_ALL)
         pub = node.create_publisher(PoseStamped, "/tracker/pose", qos)
         sent_at: dict[int, float] = {}
         back: dict[int, float] = {}
         diags: list[dict[str, str]] = []
-        node.create_subscription(
+        sink.create_subscription(
             PoseStamped, "/tracker/pose_corrected",
             lambda m: back.setdefault(m.header.stamp.nanosec // 1000 + m.header.stamp.sec * 1_000_000,
                                       time.perf_counter()), qos)
-        node.create_subscription(DiagnosticArray, "/diagnostics",
+        sink.create_subscription(DiagnosticArray, "/diagnostics",
                                  lambda m: diags.append({kv.key: kv.value for kv in m.status[0].values}), 10)
+        executor = SingleThreadedExecutor()
+        executor.add_node(sink)
+        spinner = threading.Thread(target=executor.spin, daemon=True)
+        spinner.start()
         end = time.monotonic() + 30
         while (pub.get_subscription_count() == 0 or not diags) and time.monotonic() < end:
-            rclpy.spin_once(node, timeout_sec=0.05)
+            time.sleep(0.05)
         x = _poses(n)
         period = 1.0 / rate if rate else 0.0
         start = time.perf_counter()
@@ -82,16 +91,17 @@ def _ros_runs(runs: list[tuple[str, float | None, int]]) -> list[dict]:
              m.pose.orientation.z) = map(float, p[3:])
             sent_at[k] = time.perf_counter()
             pub.publish(m)
-            rclpy.spin_once(node, timeout_sec=0.0)
-            while period and time.perf_counter() < start + (k + 1) * period:
-                pass
+            wait = start + (k + 1) * period - time.perf_counter() if period else 0.0
+            if wait > 0:  # sleep, not spin: a spinning publisher starves the node of a core
+                time.sleep(wait)
         end = time.monotonic() + 30
         while len(back) < n and time.monotonic() < end:
-            rclpy.spin_once(node, timeout_sec=0.01)
-        finished = max(back.values()) if back else float("nan")
+            time.sleep(0.01)
         end = time.monotonic() + 5
         while (not diags or diags[-1]["poses_out"] != str(len(back))) and time.monotonic() < end:
-            rclpy.spin_once(node, timeout_sec=0.05)
+            time.sleep(0.05)
+        executor.shutdown()
+        sink.destroy_node()
         node.destroy_node()
         rclpy.shutdown()
         proc.terminate()
@@ -102,8 +112,10 @@ def _ros_runs(runs: list[tuple[str, float | None, int]]) -> list[dict]:
                   "node_added_latency": {k.replace("latency_", ""): float(v) for k, v in d.items()
                                          if k.startswith("latency_")},
                   "round_trip_through_dds": _stats(rtt)}
-        if rate is None:
-            result["poses_per_second"] = round(len(back) / (finished - start), 1)
+        if rate is None and len(back) > 1:
+            # steady state: corrections received per second between the first and the last
+            times = sorted(back.values())
+            result["poses_per_second"] = round((len(times) - 1) / (times[-1] - times[0]), 1)
         out.append(result)
         print(json.dumps(result), flush=True)
     return out

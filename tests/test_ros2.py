@@ -98,8 +98,9 @@ class Cell:
              msg.pose.orientation.z) = map(float, p[3:])
             self.pub.publish(msg)
             rclpy.spin_once(self.node, timeout_sec=0.0)
-            while time.perf_counter() < start + (k + 1) * period:
-                pass
+            wait = start + (k + 1) * period - time.perf_counter()
+            if wait > 0:  # sleep, not spin: a spinning publisher starves the node of a core
+                time.sleep(wait)
 
     def outputs(self, first: int, n: int) -> np.ndarray:
         rows = []

@@ -310,8 +310,14 @@ def run_node(model: Path, log=print, **options) -> dict[str, str]:
     rclpy = ros["rclpy"]
     from rclpy.signals import SignalHandlerOptions
 
-    # posecorr's CLI turns SIGINT and SIGTERM into KeyboardInterrupt; rclpy's own handlers
-    # would end the context under the executor instead.
+    # posecorr's CLI turns SIGTERM into KeyboardInterrupt, and SIGINT is one even where the
+    # node was started in the background of a script (which starts it ignored); rclpy's own
+    # handlers would end the context under the executor instead.
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = watcher = None
     try:

@@ -212,3 +212,28 @@ def test_without_the_extra_one_line_names_it(tmp_path):
                        timeout=60)
     assert r.returncode == 2
     assert r.stderr.strip().count("\n") == 0 and "posecorr[ros2]" in r.stderr, r.stderr
+
+
+def test_model_parameter_switches_the_served_file(domain, tmp_path):
+    """`ros2 param set /posecorr model OTHER.onnx`, done through rclpy's parameter client
+    (the service `ros2 param` calls): the node serves the other file from then on."""
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
+    cell = Cell(FIRST, domain)
+    try:
+        client = AsyncParameterClient(cell.node, "posecorr")
+        assert client.wait_for_services(timeout_sec=10.0)
+        future = client.set_parameters([Parameter("model", value=str(SECOND))])
+        cell.wait(future.done, 10, "the parameter service did not answer")
+        assert all(r.successful for r in future.result().results)
+        cell.wait(lambda: cell.diagnostics[-1]["pending_model"].startswith(SECOND.name), 10,
+                  "the node did not load the file the parameter names")
+        x = _poses(50, seed=5)
+        cell.publish(x, first=0, rate_hz=500.0)
+        cell.wait(lambda: len(cell.got) == len(x), 10, "not every pose came back")
+        np.testing.assert_array_equal(cell.outputs(0, len(x)), _shim(SECOND, x))
+        cell.wait(lambda: cell.diagnostics[-1]["model"].startswith(SECOND.name), 5, "diagnostics lag")
+    finally:
+        code, out, err = cell.stop()
+    assert code == 0, err

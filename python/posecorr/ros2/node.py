@@ -272,8 +272,11 @@ def make_node(model: Path, *, input_topic: str = "/tracker/pose",
         def diagnostic_values(self) -> dict[str, str]:
             c = self.counts
             lat = self.latency_us
+            incoming = self.incoming
             return {
                 "model": self.current.model_id, "generation": str(self.current.generation),
+                # loaded and checked, taken with the next pose
+                "pending_model": incoming.model_id if incoming is not None else "",
                 "poses_in": str(c.poses_in), "poses_out": str(c.poses_out),
                 "refused": str(c.refused), "swaps": str(c.swaps),
                 "poses_per_generation": ",".join(f"{g}:{n}" for g, n in sorted(c.per_generation.items())),

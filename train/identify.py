@@ -120,36 +120,68 @@ class RigidRegistration:
         return (measured_p + measured_R @ self.lever) @ self.R.T + self.t
 
 
-def rigid_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference_p: np.ndarray,
-                       reference_R: np.ndarray | None = None, iterations: int = 30) -> RigidRegistration:
-    """The closed-form rigid fit of a table (see `RigidRegistration`).
+# The plain rigid fits, the floor every model must beat (issue 23: a user's 20-line Kabsch must
+# never beat the tool): which lever arm each fits. "lever-ref" needs reference orientations.
+RIGID_VARIANTS = {
+    "kabsch": "Kabsch of tracker to reference positions, no lever arm",
+    "lever": "Kabsch with the lever arm in the tracker frame (along the directions its orientations turn about)",
+    "lever-ref": "Kabsch with the lever arm in the reference frame (along the directions its orientations turn about)",
+}
 
-    The lever arm's directions come from the spread of the measured orientations: with
-    orientations that all agree it is invisible (it only shifts t), with yaw only its component
-    along the yaw axis is. A direction is fitted when its standard error, with the residual
-    of the fit without lever, is below LEVER_LIMIT; otherwise it stays zero and is reported.
+
+def rigid_variants(has_orientation: bool) -> tuple[str, ...]:
+    """The rigid variants a table allows (the reference-frame lever needs reference orientations)."""
+    return tuple(name for name in RIGID_VARIANTS if has_orientation or name != "lever-ref")
+
+
+def rigid_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference_p: np.ndarray,
+                       reference_R: np.ndarray | None = None, iterations: int = 30,
+                       variant: str = "lever") -> RigidRegistration:
+    """The closed-form rigid fit of a table (see `RigidRegistration`), one of `RIGID_VARIANTS`.
+
+    The lever arm's directions come from the spread of the orientations that carry it (the
+    tracker's for "lever", the reference's for "lever-ref"): with orientations that all agree
+    it is invisible (it only shifts t), with yaw only its component along the yaw axis is. A
+    direction is fitted when its standard error, with the residual of the fit without lever,
+    is below LEVER_LIMIT; otherwise it stays zero and is reported. "kabsch" fits no lever and
+    reports every direction held.
+
+    The reference-frame lever l_ref (p_ref + R_ref l_ref = R p_meas + t) is returned as the
+    tracker-frame lever it equals under the fitted mount, -X^T l_ref: one correction formula
+    for every variant, only the estimate differs (which orientations, with their own noise,
+    carry the lever).
     """
+    if variant not in RIGID_VARIANTS:
+        raise ValueError(f"unknown rigid variant {variant!r}; expected one of {', '.join(RIGID_VARIANTS)}")
+    if variant == "lever-ref" and reference_R is None:
+        raise ValueError("the reference-frame lever arm needs reference orientations")
     n = len(measured_p)
     R, t = _kabsch(measured_p, reference_p)
     residual = reference_p - (measured_p @ R.T + t)
     sigma0 = float(np.sqrt(np.sum(residual ** 2) / max(3 * n - 6, 1)))
-    # Information about the lever along tracker-frame direction u: sum_i |(R_i - mean R) u|^2.
-    centred = measured_R - measured_R.mean(axis=0)
+    # The lever's carrier: p_ref = R p_meas + t + C_i z, C_i = R R_meas,i ("lever") or -R_ref,i.
+    carrier_R = reference_R if variant == "lever-ref" else measured_R
+    # Information about the lever along direction u: sum_i |(R_i - mean R) u|^2.
+    centred = carrier_R - carrier_R.mean(axis=0)
     info = np.einsum("nki,nkj->ij", centred, centred)
     values, vectors = np.linalg.eigh(info)
     std = max(sigma0, 1e-6) / np.sqrt(np.maximum(values, 1e-300))
     # The orientations must really turn about a direction (not by their noise) to show the lever.
     turned = np.sqrt(np.maximum(values, 0.0) / n) > AXIS_MIN_RAD
-    determined = (std < LEVER_LIMIT) & turned
+    determined = (std < LEVER_LIMIT) & turned & (variant != "kabsch")
     free = vectors[:, determined]
     lever = np.zeros(3)
     if free.shape[1]:
         for _ in range(iterations):
-            # Given R: p_ref - R p_meas = t + R R_meas_i (free z), linear in (t, z).
-            A = np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)), R @ measured_R @ free], axis=2)
+            carrier = R @ measured_R @ free if variant == "lever" else -reference_R @ free
+            # Given R: p_ref - R p_meas = t + C_i (free z), linear in (t, z).
+            A = np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)), carrier], axis=2)
             sol, *_ = np.linalg.lstsq(A.reshape(3 * n, -1), (reference_p - measured_p @ R.T).reshape(-1), rcond=None)
             new = free @ sol[3:]
-            R, t = _kabsch(measured_p + measured_R @ new, reference_p)
+            if variant == "lever":
+                R, t = _kabsch(measured_p + measured_R @ new, reference_p)
+            else:
+                R, t = _kabsch(measured_p, reference_p + reference_R @ new)
             if np.max(np.abs(new - lever)) < 1e-10:   # m: alternation converges linearly
                 lever = new
                 break
@@ -158,10 +190,13 @@ def rigid_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference
     if reference_R is not None:
         # R_ref = R R_meas X^T  =>  X = mean of R_ref^T R R_meas.
         mount = chordal_mean(np.swapaxes(reference_R, -1, -2) @ R @ measured_R)
+    held = vectors[:, ~determined].T
+    if variant == "lever-ref":
+        lever, held = -mount.T @ lever, held @ mount       # reference frame -> tracker frame (X^T v)
     fitted = measured_p + measured_R @ lever
     residual = reference_p - (fitted @ R.T + t)
     sigma_p = float(np.sqrt(np.sum(residual ** 2) / max(3 * n - 6 - free.shape[1], 1)))
-    return RigidRegistration(R, t, lever, vectors[:, ~determined].T, mount, sigma_p)
+    return RigidRegistration(R, t, lever, held, mount, sigma_p)
 
 
 def _kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -265,5 +300,5 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block],
     return B, fixed
 
 
-__all__ = ["gross_outliers", "MIN_INDEPENDENT", "Spread", "describe_spread", "chordal_mean", "RigidRegistration", "rigid_registration", "Block",
+__all__ = ["RIGID_VARIANTS", "rigid_variants", "gross_outliers", "MIN_INDEPENDENT", "Spread", "describe_spread", "chordal_mean", "RigidRegistration", "rigid_registration", "Block",
            "determined_directions", "direction_label", "LIMIT_SCALES", "LEVER_LIMIT"]

@@ -87,12 +87,14 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
     representation = "pos"
 
     def __init__(self, effects: Sequence[str] = ("station", "mount"), sigma_p: float | None = None,
-                 sigma_r: float | None = None, max_nfev: int = 200, with_rotation: bool = True) -> None:
+                 sigma_r: float | None = None, max_nfev: int = 200, with_rotation: bool = True,
+                 prior_strength: float = 0.0) -> None:
         self.effects = effects
         self.sigma_p = sigma_p
         self.sigma_r = sigma_r
         self.max_nfev = max_nfev
         self.with_rotation = with_rotation
+        self.prior_strength = prior_strength
 
     # --- fitting ----------------------------------------------------------------------
     def fit(self, measured: Any, reference: Any, t: np.ndarray | None = None, validation: Any = None, *,
@@ -166,7 +168,8 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         return fixed
 
     def _initial_theta(self, measured: np.ndarray, reference: np.ndarray, chosen: list,
-                       given: dict[str, np.ndarray]) -> tuple[np.ndarray, float, float, RigidRegistration]:
+                       given: dict[str, np.ndarray], variant: str = "lever",
+                       ) -> tuple[np.ndarray, float, float, RigidRegistration]:
         """theta at the closed-form start, the noise levels (m, rad) the rigid fit leaves, and
         that rigid fit.
 
@@ -179,7 +182,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         names = {e.name for e in chosen}
         measured_R = rotations.quat_to_matrix(measured[:, 3:7])
         reference_R = rotations.quat_to_matrix(reference[:, 3:7]) if self.with_rotation_ else None
-        rigid = rigid_registration(measured[:, :3], measured_R, reference[:, :3], reference_R)
+        rigid = rigid_registration(measured[:, :3], measured_R, reference[:, :3], reference_R, variant=variant)
         sigma_r = DEFAULT_SIGMA_R
         if reference_R is not None:
             # Orientation residual of the rigid fit: R_ref vs R R_meas X^T.
@@ -206,7 +209,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         start may have put noise there, and what the data cannot see must not carry it."""
         if theta.size == 0:
             return theta
-        identity = np.concatenate([e.identity_theta() for e in self._chosen])
+        identity = self._identity_theta()
         scales = self._scales()
         u = (theta - identity) / scales
         return identity + scales * (self.basis_ @ (self.basis_.T @ u))
@@ -316,6 +319,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         residual = self._residual_fn(measured, reference, sigma_p, sigma_r)
         if theta0.size == 0 or B.shape[1] == 0:
             self.cost_ = float(np.sum(residual(theta0) ** 2)) if theta0.size else 0.0
+            self.effective_params_ = 0.0
             return theta0
         SB = self._scales()[:, None] * B
         lower, upper = self._bounds()
@@ -330,11 +334,20 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         z_lower = np.where(np.isfinite(z_lower), np.minimum(z_lower, -1e-12), z_lower)
         z_upper = np.where(np.isfinite(z_upper), np.maximum(z_upper, 1e-12), z_upper)
 
+        # The prior (`prior_strength` > 0): every physical parameter outside the registration
+        # is drawn towards its identity with a standard deviation of its typical magnitude
+        # over sqrt(strength), as extra whitened residuals: a MAP estimate by the same solver.
+        weights = self._prior_weights()
+        identity = self._identity_theta()
+        prior_rows = np.flatnonzero(weights)
+        prior_jac = weights[prior_rows, None] * SB[prior_rows]
+
         def f(z: np.ndarray) -> np.ndarray:
-            return residual(theta0 + SB @ z)
+            theta = theta0 + SB @ z
+            return np.concatenate([residual(theta), weights[prior_rows] * (theta - identity)[prior_rows]])
 
         def jac(z: np.ndarray) -> np.ndarray:
-            return residual.jacobian(theta0 + SB @ z) @ SB
+            return np.concatenate([residual.jacobian(theta0 + SB @ z) @ SB, prior_jac])
 
         bounded = bool(np.any(np.isfinite(z_lower) | np.isfinite(z_upper)))
         # MINPACK's Levenberg-Marquardt where nothing is bounded: a third of trf's overhead.
@@ -344,7 +357,26 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
                                max_nfev=self.max_nfev, xtol=1e-9, ftol=1e-9, gtol=1e-9)
         self.cost_ = float(2.0 * result.cost)
         self._at_bound = np.asarray(result.active_mask != 0)
+        # Effective number of parameters: the trace of the hat matrix, J (J^T J + P)^-1 J^T,
+        # each determined direction counting 1 without prior and less as the prior holds it.
+        Jd = result.jac[:residual.size]
+        normal = result.jac.T @ result.jac
+        self.effective_params_ = float(np.trace(np.linalg.pinv(normal) @ (Jd.T @ Jd)))
         return theta0 + SB @ result.x
+
+    def _identity_theta(self) -> np.ndarray:
+        return np.concatenate([e.identity_theta() for e in self._chosen]) if self._chosen else np.zeros(0)
+
+    def _prior_weights(self) -> np.ndarray:
+        """sqrt(prior_strength) / typical magnitude for each entry of theta outside the
+        registration (whose frames are anywhere: no physical size bounds them), 0 elsewhere."""
+        weights = []
+        for effect in self._chosen:
+            for param in effect.params:
+                physical = f"{effect.name}.{param.name}" not in REGISTRATION
+                weight = np.sqrt(self.prior_strength) / param.scale if physical else 0.0
+                weights += [weight] * param.size
+        return np.asarray(weights, float)
 
     def _param_label(self, k: int) -> str:
         i = 0
@@ -479,15 +511,17 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
 
 
 class RigidModel(PhysicsModel):
-    """The plain rigid fit as a correction: `identify.rigid_registration` in closed form,
-    held in the `station` and `mount` effects so that it exports and runs like any physics
-    stage. It is the baseline of every fit (`pipeline.fit_table`): a model that does not beat
-    it on held-out poses is not returned."""
+    """The plain rigid fit as a correction: `identify.rigid_registration` in closed form (one of
+    `identify.RIGID_VARIANTS`: no lever arm, the lever in the tracker frame or in the
+    reference frame), held in the `station` and `mount` effects so that it exports and runs
+    like any physics stage. The variants are the floor of every fit (`pipeline.fit_table`): a
+    model that does not beat the best of them on held-out poses is not returned."""
 
     method = "rigid"
 
-    def __init__(self, with_rotation: bool = True) -> None:
+    def __init__(self, with_rotation: bool = True, variant: str = "lever") -> None:
         super().__init__(effects=("station", "mount"), with_rotation=with_rotation)
+        self.variant = variant
 
     def fit(self, measured: Any, reference: Any, t: np.ndarray | None = None, validation: Any = None, *,
             warm_start: Any = None) -> "RigidModel":
@@ -496,13 +530,16 @@ class RigidModel(PhysicsModel):
             raise ValueError(f"a rigid registration needs at least 3 poses, got {len(measured)}")
         measured, reference, chosen = self._setup(measured, reference, None)
         with_rotation = self.with_rotation_
-        theta, self.sigma_p_, sigma_r, rigid = self._initial_theta(measured, reference, chosen, {})
+        if self.variant == "lever-ref" and not with_rotation:
+            raise ValueError("the rigid variant 'lever-ref' needs reference orientations; this table has none")
+        theta, self.sigma_p_, sigma_r, rigid = self._initial_theta(measured, reference, chosen, {}, self.variant)
         self.sigma_r_ = sigma_r if with_rotation else None
         self.fixed_ = {} if with_rotation else {"mount.d": "the reference has no orientation"}
         if len(rigid.lever_fixed):
             label = "mount.e" if len(rigid.lever_fixed) == 3 else "mount.e along " + "; ".join(
                 direction_label(rigid.mount @ v) for v in rigid.lever_fixed)   # e = -X lever
-            self.fixed_[label] = self.spread_.orientation_words()
+            self.fixed_[label] = ("the plain Kabsch fit has no lever arm" if self.variant == "kabsch"
+                                  else self.spread_.orientation_words())
         self.basis_ = np.zeros((theta.size, 0))
         self.cost_ = float("nan")
         self.params_ = self._unflatten(theta)
@@ -519,6 +556,7 @@ class RigidModel(PhysicsModel):
     def export_info(self) -> dict[str, str]:
         info = super().export_info()
         info["method"] = "rigid"
+        info["rigid_variant"] = self.variant
         return info
 
 

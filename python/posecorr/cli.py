@@ -260,8 +260,11 @@ def cmd_fit(args: argparse.Namespace) -> None:
                                "chosen": report.chosen, "representation": info.get("representation"),
                                "raw": report.raw, key: report.heldout, "effects": effects_json,
                                "parity": exported.get("parity"), "nodes": exported.get("n_nodes")}
-    payload.update({"baseline": {"model": "rigid", **report.baseline}, "n_heldout": report.n_heldout,
+    payload.update({"baseline": {"model": report.baseline_name, **report.baseline}, "n_heldout": report.n_heldout,
+                    "rigid_rmse_total": report.rigid_scores,
                     "fell_back_to_rigid": report.fell_back, "fixed": report.fixed, "notes": report.notes})
+    if report.shrinkage is not None:
+        payload["shrinkage"] = report.shrinkage
     if report.model.physics_ is not None:
         payload["spread"] = report.model.physics_.spread_.to_json()
     if report.auto_scores:
@@ -287,9 +290,15 @@ def cmd_fit(args: argparse.Namespace) -> None:
                  fmt_table(METRIC_HEADERS + ["improvement"],
                            [row + [imp] for row, imp in zip(
                                metrics_rows({"raw": report.raw, label: report.heldout,
-                                             "rigid fit, same poses": report.baseline}),
+                                             f"{report.baseline_name} (floor), same poses": report.baseline}),
                                [None, report.heldout.get("improvement_total"),
                                 report.baseline.get("improvement_total")])])]
+        lines.append(f"  floor: {report.baseline_name}, the best of the rigid fits on the same poses ("
+                     + ", ".join(f"{name} {value:.4g}" for name, value in report.rigid_scores.items())
+                     + " rmse_total)")
+        if report.shrinkage is not None:
+            lines.append(f"  prior strength {report.shrinkage['prior_strength']:g}: "
+                         f"{report.shrinkage['effective_params']:.1f} effective parameters")
         for name, params in effects_json.items():
             lines.append(f"  {name}: " + "; ".join(f"{p} = {_value_pm(v)}" for p, v in params.items()))
         for name, reason in report.fixed.items():

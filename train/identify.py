@@ -126,12 +126,17 @@ RIGID_VARIANTS = {
     "kabsch": "Kabsch of tracker to reference positions, no lever arm",
     "lever": "Kabsch with the lever arm in the tracker frame (along the directions its orientations turn about)",
     "lever-ref": "Kabsch with the lever arm in the reference frame (along the directions its orientations turn about)",
+    "hand-eye": "the robot-world-hand-eye solution AX = YB in closed form (reference orientations about 2+ axes)",
 }
+# What each variant needs beyond positions: reference orientations, turning about at least
+# this many axes (AX = YB leaves the mount's rotation undetermined with fewer than two).
+_NEEDS_ORIENTATION = {"lever-ref": 0, "hand-eye": 2}
 
 
-def rigid_variants(has_orientation: bool) -> tuple[str, ...]:
-    """The rigid variants a table allows (the reference-frame lever needs reference orientations)."""
-    return tuple(name for name in RIGID_VARIANTS if has_orientation or name != "lever-ref")
+def rigid_variants(has_orientation: bool, rotation_axes: int = 0) -> tuple[str, ...]:
+    """The rigid variants a table allows (see `_NEEDS_ORIENTATION`)."""
+    return tuple(name for name in RIGID_VARIANTS if name not in _NEEDS_ORIENTATION
+                 or (has_orientation and rotation_axes >= _NEEDS_ORIENTATION[name]))
 
 
 def rigid_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference_p: np.ndarray,
@@ -153,8 +158,10 @@ def rigid_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference
     """
     if variant not in RIGID_VARIANTS:
         raise ValueError(f"unknown rigid variant {variant!r}; expected one of {', '.join(RIGID_VARIANTS)}")
-    if variant == "lever-ref" and reference_R is None:
-        raise ValueError("the reference-frame lever arm needs reference orientations")
+    if variant in _NEEDS_ORIENTATION and reference_R is None:
+        raise ValueError(f"the rigid variant {variant!r} needs reference orientations")
+    if variant == "hand-eye":
+        return hand_eye_registration(measured_p, measured_R, reference_p, reference_R)
     n = len(measured_p)
     R, t = _kabsch(measured_p, reference_p)
     residual = reference_p - (measured_p @ R.T + t)
@@ -197,6 +204,24 @@ def rigid_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference
     residual = reference_p - (fitted @ R.T + t)
     sigma_p = float(np.sqrt(np.sum(residual ** 2) / max(3 * n - 6 - free.shape[1], 1)))
     return RigidRegistration(R, t, lever, held, mount, sigma_p)
+
+
+def hand_eye_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference_p: np.ndarray,
+                          reference_R: np.ndarray) -> RigidRegistration:
+    """The rigid fit of a table with reference orientations as the robot-world-hand-eye problem
+    (`registration.robot_world_hand_eye`, closed form, no iteration): T_i X = Y M_i, T the
+    reference pose, M the measured one, X the mount (reference point to tracker), Y the
+    registration (tracker frame to reference frame). In `RigidRegistration`'s terms R, t = Y,
+    mount = R_X and the lever -R_X^T t_X; every lever direction is fitted."""
+    from posecorr.geometry import homogeneous
+    from posecorr.registration import robot_world_hand_eye
+
+    X, Y = robot_world_hand_eye(homogeneous(reference_R, reference_p), homogeneous(measured_R, measured_p))
+    R, t, mount = Y[:3, :3], Y[:3, 3], X[:3, :3]
+    lever = -mount.T @ X[:3, 3]
+    residual = reference_p - ((measured_p + measured_R @ lever) @ R.T + t)
+    sigma_p = float(np.sqrt(np.sum(residual ** 2) / max(3 * len(measured_p) - 9, 1)))
+    return RigidRegistration(R, t, lever, np.zeros((0, 3)), mount, sigma_p)
 
 
 def _kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

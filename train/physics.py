@@ -168,7 +168,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         return fixed
 
     def _initial_theta(self, measured: np.ndarray, reference: np.ndarray, chosen: list,
-                       given: dict[str, np.ndarray], variant: str = "lever",
+                       given: dict[str, np.ndarray], variant: str | None = None,
                        ) -> tuple[np.ndarray, float, float, RigidRegistration]:
         """theta at the closed-form start, the noise levels (m, rad) the rigid fit leaves, and
         that rigid fit.
@@ -176,12 +176,17 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         `station` and `mount` start from the rigid registration (Kabsch on positions, the lever
         arm along the directions the orientations determine, the mean mount rotation), which
         holds for any rotation between the frames and for yaw-only, single-orientation and
-        position-only tables alike; the other effects start at their identity.
+        position-only tables alike; with reference orientations about two axes or more (a
+        robot carrying the tracker) from the closed-form hand-eye solution, whose lever arm and
+        mount rotation come from the orientations as well. The other effects start at their
+        identity. `variant` names the rigid fit instead (`identify.RIGID_VARIANTS`).
         """
         thetas = {e.name: e.identity_theta() for e in chosen}
         names = {e.name for e in chosen}
         measured_R = rotations.quat_to_matrix(measured[:, 3:7])
         reference_R = rotations.quat_to_matrix(reference[:, 3:7]) if self.with_rotation_ else None
+        if variant is None:
+            variant = "hand-eye" if reference_R is not None and self.spread_.rotation_axes >= 2 else "lever"
         rigid = rigid_registration(measured[:, :3], measured_R, reference[:, :3], reference_R, variant=variant)
         sigma_r = DEFAULT_SIGMA_R
         if reference_R is not None:
@@ -530,8 +535,6 @@ class RigidModel(PhysicsModel):
             raise ValueError(f"a rigid registration needs at least 3 poses, got {len(measured)}")
         measured, reference, chosen = self._setup(measured, reference, None)
         with_rotation = self.with_rotation_
-        if self.variant == "lever-ref" and not with_rotation:
-            raise ValueError("the rigid variant 'lever-ref' needs reference orientations; this table has none")
         theta, self.sigma_p_, sigma_r, rigid = self._initial_theta(measured, reference, chosen, {}, self.variant)
         self.sigma_r_ = sigma_r if with_rotation else None
         self.fixed_ = {} if with_rotation else {"mount.d": "the reference has no orientation"}

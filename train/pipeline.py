@@ -25,7 +25,7 @@ from posecorr.metrics import pose_errors, pose_metrics, rmse_total
 
 from .base import PoseRegressorMixin, Validation, as_validation, check_pair, check_poses
 from .methods import get_method, make_estimator
-from .identify import rigid_variants
+from .identify import describe_spread, rigid_variants
 from .physics import PhysicsModel, RigidModel
 
 
@@ -230,9 +230,12 @@ class Candidate:
                                   prior_strength=self.prior_strength)
 
 
-def rigid_candidates(has_orientation: bool) -> list[Candidate]:
+def rigid_candidates(table: PoseTable) -> list[Candidate]:
     """The floor: every plain rigid fit the table allows (`identify.rigid_variants`)."""
-    return [Candidate(f"rigid-{variant}", rigid=variant) for variant in rigid_variants(has_orientation)]
+    from posecorr.rotations import quat_to_matrix
+
+    axes = describe_spread(table.meas_p, quat_to_matrix(table.meas_q), table.has_orientation).rotation_axes
+    return [Candidate(f"rigid-{variant}", rigid=variant) for variant in rigid_variants(table.has_orientation, axes)]
 
 
 def auto_candidates(table: PoseTable, effects: Sequence[str], representation: str = "zhou") -> list[Candidate]:
@@ -247,7 +250,7 @@ def auto_candidates(table: PoseTable, effects: Sequence[str], representation: st
     def pmc(representation: str, **params: Any) -> Callable[[], Any]:
         return lambda: make_estimator("pmc", representation, alpha="cv", **params)
 
-    out = rigid_candidates(table.has_orientation)
+    out = rigid_candidates(table)
     out += [Candidate(physics_name(strength), physics, prior_strength=strength) for strength in PRIOR_STRENGTHS]
     out += [Candidate(f"physics+affine-{rep}", physics, pmc(rep, degree=1)),
             Candidate(f"physics+pmc-{rep}", physics, pmc(rep))]
@@ -415,7 +418,7 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
         cv = "loo" if table.n <= 40 else 5
         notes.append(f"{table.n} poses are too few for a 15 % test split (fewer than {MIN_TEST_SPLIT}); "
                      f"cross-validated ({cv}) instead")
-    floor = rigid_candidates(table.has_orientation)
+    floor = rigid_candidates(table)
     if method == "auto":
         candidates = auto_candidates(table, effects, representation)
     else:
@@ -441,7 +444,7 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
         best = _best(candidates, scores)
         floor_best = _best(floor, scores)
         model = fitted[best.name] if _stops_early(best) else _fit(best, fit_rows, arrays, with_rotation, prior)
-        rigid = model if best is floor_best else _fit(floor_best, fit_rows, arrays, with_rotation, prior)
+        rigid = model if best == floor_best else _fit(floor_best, fit_rows, arrays, with_rotation, prior)
         t_test = None if t is None else t[test]
         raw = pose_metrics(R[test], M[test], with_rotation)
         heldout = metric_block(raw, pose_metrics(R[test], model.predict(M[test], t_test), with_rotation))
@@ -482,7 +485,7 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
     # A rigid variant returned is scored as itself on these folds.
     heldout = (floor_metrics[best.name] if best.rigid
                else metric_block(raw_all, pose_metrics(R, predicted, with_rotation)))
-    fell_back = best is not floor_best and baseline["rmse_total"] < heldout["rmse_total"]
+    fell_back = best != floor_best and baseline["rmse_total"] < heldout["rmse_total"]
     if fell_back:
         worse = 100.0 * (heldout["rmse_total"] / baseline["rmse_total"] - 1.0)
         what = f"auto's choice (made inside each fold; {best.name} on all poses)" if method == "auto" else best.name

@@ -111,7 +111,12 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         with_rotation = self.with_rotation_
         prior = warm_start if isinstance(warm_start, PhysicsModel) else None
         thetas = dict(prior.params_) if prior is not None else dict(warm_start or {})
-        theta0, sigma_p, sigma_r, _ = self._initial_theta(measured, reference, chosen, thetas)
+        if prior is not None and all(effect.name in thetas for effect in chosen):
+            # A fold of a fitted model: it lends the start and the noise levels, so the
+            # closed-form start (and its noise estimate) would be discarded.
+            theta0 = np.concatenate([np.asarray(thetas[e.name], float) for e in chosen]) if chosen else np.zeros(0)
+        else:
+            theta0, sigma_p, sigma_r, _ = self._initial_theta(measured, reference, chosen, thetas)
         with single_threaded():
             if prior is not None:
                 self.sigma_p_, self.sigma_r_ = prior.sigma_p_, prior.sigma_r_
@@ -136,6 +141,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
             self.params_ = self._unflatten(theta)
             # Standard errors cost a Jacobian: computed when first asked for (folds never are).
             self._std_source = (theta, measured, reference)
+            self._data = (measured, reference)
         self.n_features_in_ = 7
         return self
 
@@ -325,6 +331,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         if theta0.size == 0 or B.shape[1] == 0:
             self.cost_ = float(np.sum(residual(theta0) ** 2)) if theta0.size else 0.0
             self.effective_params_ = 0.0
+            self._free = None
             return theta0
         SB = self._scales()[:, None] * B
         lower, upper = self._bounds()
@@ -339,20 +346,11 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         z_lower = np.where(np.isfinite(z_lower), np.minimum(z_lower, -1e-12), z_lower)
         z_upper = np.where(np.isfinite(z_upper), np.maximum(z_upper, 1e-12), z_upper)
 
-        # The prior (`prior_strength` > 0): every physical parameter outside the registration
-        # is drawn towards its identity with a standard deviation of its typical magnitude
-        # over sqrt(strength), as extra whitened residuals: a MAP estimate by the same solver.
-        weights = self._prior_weights()
-        identity = self._identity_theta()
-        prior_rows = np.flatnonzero(weights)
-        prior_jac = weights[prior_rows, None] * SB[prior_rows]
-
         def f(z: np.ndarray) -> np.ndarray:
-            theta = theta0 + SB @ z
-            return np.concatenate([residual(theta), weights[prior_rows] * (theta - identity)[prior_rows]])
+            return residual(theta0 + SB @ z)
 
         def jac(z: np.ndarray) -> np.ndarray:
-            return np.concatenate([residual.jacobian(theta0 + SB @ z) @ SB, prior_jac])
+            return residual.jacobian(theta0 + SB @ z) @ SB
 
         bounded = bool(np.any(np.isfinite(z_lower) | np.isfinite(z_upper)))
         # MINPACK's Levenberg-Marquardt where nothing is bounded: a third of trf's overhead.
@@ -362,12 +360,49 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
                                max_nfev=self.max_nfev, xtol=1e-9, ftol=1e-9, gtol=1e-9)
         self.cost_ = float(2.0 * result.cost)
         self._at_bound = np.asarray(result.active_mask != 0)
-        # Effective number of parameters: the trace of the hat matrix, J (J^T J + P)^-1 J^T,
-        # each determined direction counting 1 without prior and less as the prior holds it.
-        Jd = result.jac[:residual.size]
-        normal = result.jac.T @ result.jac
-        self.effective_params_ = float(np.trace(np.linalg.pinv(normal) @ (Jd.T @ Jd)))
-        return theta0 + SB @ result.x
+        theta = theta0 + SB @ result.x
+        self._free = (theta, SB, result.fun, result.jac)
+        return self._shrink(theta, SB, result.fun, result.jac)
+
+    def _shrink(self, theta: np.ndarray, SB: np.ndarray, r: np.ndarray, Jz: np.ndarray) -> np.ndarray:
+        """The MAP estimate under the prior (`prior_strength` s > 0), from the free fit theta
+        (whitened residuals r, their Jacobian Jz over the determined directions): every
+        physical parameter outside the registration is drawn towards its identity with a
+        standard deviation of its typical magnitude (`Param.scale`) over sqrt(s). One
+        Gauss-Newton step of the penalised problem from the free optimum: exact where the
+        model is linear in its parameters, and the free fit's Jacobian serves every strength,
+        so choosing the strength by cross-validation costs no further solves.
+
+        Sets `effective_params_`, the trace of the hat matrix Jz (Jz^T Jz + P)^-1 Jz^T: each
+        determined direction counts 1 without prior and less as the prior holds it."""
+        weights = self._prior_weights()[:, None] * SB
+        rows = np.flatnonzero(np.any(weights != 0, axis=1))
+        Jp, rp = weights[rows], (self._prior_weights() * (theta - self._identity_theta()))[rows]
+        data = Jz.T @ Jz
+        normal = data + Jp.T @ Jp
+        step = -np.linalg.pinv(normal) @ (Jz.T @ r + Jp.T @ rp)
+        self.effective_params_ = float(np.trace(np.linalg.pinv(normal) @ data))
+        if not len(rows):
+            return theta
+        lower, upper = self._bounds()
+        return np.clip(theta + SB @ step, lower, upper)
+
+    def shrunk(self, prior_strength: float) -> "PhysicsModel":
+        """This free fit (prior_strength 0) under a prior of the given strength (`_shrink`),
+        without solving again: how a cross-validation tries several strengths."""
+        self._check_fitted()
+        if self.prior_strength != 0:
+            raise ValueError("shrunk starts from a free fit (prior_strength 0)")
+        model = object.__new__(type(self))     # not copy.copy: __getstate__ resolves std errors and drops the data
+        model.__dict__.update(self.__dict__)
+        model.prior_strength = prior_strength
+        model.__dict__.pop("_std_errors_cache", None)
+        if self._free is None:      # nothing determined: nothing to shrink
+            return model
+        theta = model._shrink(*self._free)
+        model.params_ = model._unflatten(theta)
+        model._std_source = (theta,) + self._data
+        return model
 
     def _identity_theta(self) -> np.ndarray:
         return np.concatenate([e.identity_theta() for e in self._chosen]) if self._chosen else np.zeros(0)
@@ -453,7 +488,10 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
     def __getstate__(self) -> dict:
         if hasattr(self, "params_"):
             self.std_errors_  # noqa: B018  (resolve before pickling: the data is not kept)
-        return super().__getstate__()
+        state = super().__getstate__()
+        for kept in ("_free", "_data"):
+            state.pop(kept, None)
+        return state
 
     # --- inference ----------------------------------------------------------------------
     def _check_fitted(self) -> None:

@@ -106,7 +106,11 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
 
     def predict(self, measured: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
         self._check_fitted()
-        stage = self.predict_physics(measured, t)
+        return self.predict_core(self.predict_physics(measured, t))
+
+    def predict_core(self, stage: np.ndarray) -> np.ndarray:
+        """The poses the physics stage left (`predict_physics`) through the core."""
+        self._check_fitted()
         return stage if self.core_ is None else self.core_.predict(stage)
 
     def score(self, measured: np.ndarray, reference: np.ndarray, t: np.ndarray | None = None) -> float:
@@ -296,11 +300,13 @@ def _fit(candidate: Candidate, rows: np.ndarray, arrays: tuple, with_rotation: b
     physics = None
     if candidate.effects and not candidate.rigid:
         shared = {} if shared is None else shared
-        key = (candidate.effects, candidate.prior_strength)
-        if key not in shared:
-            shared[key] = PhysicsModel(candidate.effects, with_rotation=with_rotation,
-                                       prior_strength=candidate.prior_strength).fit(
+        free = (candidate.effects, 0.0)
+        if free not in shared:
+            shared[free] = PhysicsModel(candidate.effects, with_rotation=with_rotation).fit(
                 M[rows], R[rows], t=t_rows, warm_start=prior.get(candidate.effects))
+        key = (candidate.effects, candidate.prior_strength)
+        if key not in shared:       # a prior strength: the free fit shrunk, no further solve
+            shared[key] = shared[free].shrunk(candidate.prior_strength)
         physics = shared[key]
     return candidate.make(with_rotation).fit(M[rows], R[rows], t=t_rows, validation=validation, physics=physics)
 
@@ -313,9 +319,13 @@ def out_of_fold(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple
     predicted = {c.name: np.empty((len(rows), 7)) for c in candidates}
     for train, held in splits:
         shared: dict = {}
+        stages: dict = {}          # candidates sharing a physics stage correct the held-out poses once
         for candidate in candidates:
             model = _fit(candidate, rows[train], arrays, with_rotation, prior, shared)
-            predicted[candidate.name][held] = model.predict(M[rows[held]], None if t is None else t[rows[held]])
+            key = id(model.physics_)           # the stage is held in `stages`: its id stays its own
+            if key not in stages:
+                stages[key] = (model.physics_, model.predict_physics(M[rows[held]], None if t is None else t[rows[held]]))
+            predicted[candidate.name][held] = model.predict_core(stages[key][1])
     return predicted
 
 

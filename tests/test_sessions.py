@@ -1,8 +1,11 @@
-"""Real sessions and the simulator's realistic ones: never worse than a rigid fit.
+"""Real sessions and the simulator's realistic ones: never worse than the best plain rigid fit.
 
-The rigid fit here is written independently of posecorr (scipy's Rotation.align_vectors for
-the rotation, an SVD-truncated least squares for the lever arm): the baseline of
-issue 10, "Kabsch from tracker position to reference position plus a constant lever arm".
+The rigid fits here are written independently of posecorr (scipy's Rotation.align_vectors
+for the rotation, an SVD-truncated least squares for the lever arm, OpenCV for the hand-eye
+solution): the plain Kabsch fit, Kabsch with the lever arm in the tracker frame (issue 10's
+baseline, "Kabsch from tracker position to reference position plus a constant lever arm"),
+Kabsch with the lever arm in the reference frame, and for robot-carried sessions OpenCV's
+robot-world-hand-eye solution. Issue 23: auto may be at most 2 % worse than the best of them.
 """
 from __future__ import annotations
 
@@ -23,24 +26,32 @@ from posecorr.train.pipeline import fit_table, kfold_indices
 
 REALDATA = Path(__file__).parent / "data" / "realdata"
 SESSIONS = 200
-TOLERANCE = 1.05                   # auto may be at most 5 % worse than the rigid fit
+TOLERANCE = 1.02                   # auto may be at most 2 % worse than the best plain rigid fit
 FLOOR_RATIO = 1.3                  # physics LOO within 1.3x the noise floor (full spread, >= 20 poses)
 LEVER_MIN_TURN = np.deg2rad(2.0)   # the lever is fitted along directions the orientations turn 2 deg RMS or more
 
 
 # --- the independent rigid fit -----------------------------------------------------------
 
-def _rigid(pm: np.ndarray, Rm: np.ndarray, pr: np.ndarray, iterations: int = 100):
-    """p_ref = R (p_meas + R_meas l) + t, alternating Kabsch and the lever arm. The lever comes
-    from the centred equations (t eliminated) by a truncated SVD: only along directions about
-    which the orientations turn LEVER_MIN_TURN RMS or more."""
+def _rigid(pm: np.ndarray, Rm: np.ndarray, pr: np.ndarray, iterations: int = 100, Rr: np.ndarray | None = None,
+           lever_arm: bool = True):
+    """p_ref = R (p_meas + R_meas l) + t, alternating Kabsch and the lever arm; with `Rr` the
+    lever in the reference frame instead, p_ref + R_ref l = R p_meas + t. The lever comes from
+    the centred equations (t eliminated) by a truncated SVD: only along directions about which
+    the orientations carrying it turn LEVER_MIN_TURN RMS or more. Returns R, t and a function
+    of (p_meas, R_meas, R_ref) giving the lever's contribution to the predicted position."""
     n = len(pm)
     lever = np.zeros(3)
-    for _ in range(iterations):
-        shifted = pm + Rm @ lever
-        rot, _ = Rotation.align_vectors(pr - pr.mean(0), shifted - shifted.mean(0))
+    carrier = Rm if Rr is None else Rr
+    for _ in range(iterations if lever_arm else 1):
+        source = pm + Rm @ lever if Rr is None else pm
+        target = pr if Rr is None else pr + Rr @ lever
+        rot, _ = Rotation.align_vectors(target - target.mean(0), source - source.mean(0))
         R = rot.as_matrix()
-        C = np.concatenate([R @ (Rm[i] - Rm.mean(0)) for i in range(n)])
+        if not lever_arm:
+            break
+        sign = R if Rr is None else -np.eye(3)
+        C = np.concatenate([sign @ (carrier[i] - carrier.mean(0)) for i in range(n)])
         b = ((pr - pr.mean(0)) - (pm - pm.mean(0)) @ R.T).reshape(-1)
         U, s, Vt = np.linalg.svd(C, full_matrices=False)
         keep = s / np.sqrt(n) > np.sin(LEVER_MIN_TURN)
@@ -48,26 +59,67 @@ def _rigid(pm: np.ndarray, Rm: np.ndarray, pr: np.ndarray, iterations: int = 100
         if np.max(np.abs(new - lever)) < 1e-12:
             break
         lever = new
-    shifted = pm + Rm @ lever
-    t = pr.mean(0) - R @ shifted.mean(0)
-    return R, t, lever
+    if Rr is None:
+        t = pr.mean(0) - R @ (pm + Rm @ lever).mean(0)
+        return R, t, lambda Rm_, Rr_: Rm_ @ lever @ R.T
+    t = (pr + Rr @ lever).mean(0) - R @ pm.mean(0)
+    return R, t, lambda Rm_, Rr_: -Rr_ @ lever
 
 
-def rigid_heldout(table, splits) -> tuple[float, float]:
-    """(rmse_pos, rmse_total) of the independent rigid fit, out of fold. Orientation: the
-    chordal mean of the mount rotation, R_ref = R R_meas X^T."""
+def _hand_eye(pm: np.ndarray, Rm: np.ndarray, pr: np.ndarray, Rr: np.ndarray):
+    """OpenCV's robot-world-hand-eye solution (Shah): T_ref X = Y T_meas, p_ref = R_Y p_meas + t_Y
+    - R_ref t_X."""
+    import cv2
+
+    _, t_X, R_Y, t_Y = cv2.calibrateRobotWorldHandEye(list(Rr), list(pr[:, :, None]), list(Rm), list(pm[:, :, None]),
+                                                       method=cv2.CALIB_ROBOT_WORLD_HAND_EYE_SHAH)
+    return R_Y, t_Y.ravel(), lambda Rm_, Rr_: -Rr_ @ t_X.ravel()
+
+
+RIGID_FITS = {
+    "kabsch": lambda pm, Rm, pr, Rr: _rigid(pm, Rm, pr, lever_arm=False),
+    "lever": lambda pm, Rm, pr, Rr: _rigid(pm, Rm, pr),
+    "lever-ref": lambda pm, Rm, pr, Rr: _rigid(pm, Rm, pr, Rr=Rr),
+    "hand-eye": _hand_eye,
+}
+
+
+def rigid_heldout(table, splits, variant: str = "lever") -> tuple[float, float]:
+    """(rmse_pos, rmse_total) of an independent rigid fit (`RIGID_FITS`), out of fold.
+    Orientation: the chordal mean of the mount rotation, R_ref = R R_meas X^T. The
+    reference-frame variants predict the held-out position with the rotation R R_meas X^T in
+    place of the reference orientation a user would not have."""
     pm, pr = table.meas_p, table.ref_p
     Rm = Rotation.from_quat(table.meas_q[:, [1, 2, 3, 0]]).as_matrix()
     Rr = None if table.ref_q is None else Rotation.from_quat(table.ref_q[:, [1, 2, 3, 0]]).as_matrix()
     dp, dr = np.empty(table.n), np.zeros(table.n)
     for train, held in splits:
-        R, t, lever = _rigid(pm[train], Rm[train], pr[train])
-        dp[held] = np.linalg.norm((pm[held] + Rm[held] @ lever) @ R.T + t - pr[held], axis=1)
+        R, t, lever = RIGID_FITS[variant](pm[train], Rm[train], pr[train], None if Rr is None else Rr[train])
+        X = (np.eye(3) if Rr is None
+             else Rotation.from_matrix(np.swapaxes(Rr[train], 1, 2) @ R @ Rm[train]).mean().as_matrix())
+        predicted_R = R @ Rm[held] @ X.T
+        dp[held] = np.linalg.norm(pm[held] @ R.T + t + lever(Rm[held], predicted_R) - pr[held], axis=1)
         if Rr is not None:
-            X = Rotation.from_matrix(np.swapaxes(Rr[train], 1, 2) @ R @ Rm[train]).mean().as_matrix()
-            predicted = Rotation.from_matrix(R @ Rm[held] @ X.T)
-            dr[held] = (Rotation.from_matrix(Rr[held]).inv() * predicted).magnitude()
+            dr[held] = (Rotation.from_matrix(Rr[held]).inv() * Rotation.from_matrix(predicted_R)).magnitude()
     return float(np.sqrt(np.mean(dp ** 2))), float(np.sqrt(np.mean((dp + dr) ** 2)))
+
+
+def best_rigid_heldout(table, splits) -> tuple[str, float, float]:
+    """(variant, rmse_pos, rmse_total) of the best independent rigid fit the table allows."""
+    variants = ["kabsch", "lever"]
+    if table.ref_q is not None:
+        variants.append("lever-ref")
+        if table.n >= 6 and _turns_about_two_axes(table):
+            variants.append("hand-eye")
+    results = {v: rigid_heldout(table, splits, v) for v in variants}
+    best = min(results, key=lambda v: results[v][1])
+    return (best, *results[best])
+
+
+def _turns_about_two_axes(table) -> bool:
+    R = Rotation.from_quat(table.ref_q[:, [1, 2, 3, 0]])
+    w = (R.mean().inv() * R).as_rotvec()
+    return bool(np.sum(np.linalg.svd(w / np.sqrt(len(w)), compute_uv=False) > np.deg2rad(1.0)) >= 2)
 
 
 def test_independent_rigid_reproduces_the_published_baselines() -> None:
@@ -86,11 +138,12 @@ def test_independent_rigid_reproduces_the_published_baselines() -> None:
 def test_real_session_auto_no_worse_than_rigid(name: str, published: float, capsys) -> None:
     table = read_table(REALDATA / f"{name}.csv")
     report = fit_table(table, ["station", "mount"], method="auto", cv="loo", seed=0)
-    rigid_pos, rigid_total = rigid_heldout(table, kfold_indices(table.n, "loo"))
+    variant, rigid_pos, rigid_total = best_rigid_heldout(table, kfold_indices(table.n, "loo"))
     with capsys.disabled():
-        print(f"\n{name}: auto ({report.chosen}) LOO rmse_pos {1000 * report.heldout['rmse_pos']:.2f} mm, "
-              f"independent rigid {1000 * rigid_pos:.2f} mm, published rigid {1000 * published:.1f} mm; "
-              f"fixed {report.fixed}")
+        print(f"\n{name}: auto ({report.chosen}; floor {report.baseline_name}) LOO rmse_pos "
+              f"{1000 * report.heldout['rmse_pos']:.2f} mm, rmse_total {1000 * report.heldout['rmse_total']:.2f}; "
+              f"best independent rigid ({variant}) {1000 * rigid_pos:.2f} mm, {1000 * rigid_total:.2f}; "
+              f"published rigid {1000 * published:.1f} mm; fixed {report.fixed}")
     assert report.heldout["rmse_pos"] <= published
     assert report.heldout["rmse_total"] <= TOLERANCE * rigid_total
     # What the data cannot see is named: the lever arm along the yaw axis, or all of it.
@@ -114,9 +167,17 @@ def test_real_session_cli_names_fixed_parameters(tmp_path: Path) -> None:
 
 # --- the simulated corpus ------------------------------------------------------------------
 
+def session_class(spec) -> str:
+    """The corpus' classes: robot-carried, bad (an unremovable error), set down by hand."""
+    if spec.robot:
+        return "robot"
+    return ("bad " if spec.unremovable else "") + ("position-only" if spec.position_only else "full pose")
+
+
 def _session_result(seed: int) -> dict:
-    """auto (nested, 3 outer folds) against the independent rigid fit on the same folds; and, for
-    full spread with 20 poses or more, the physics stage's leave-one-out error against the floor."""
+    """auto (nested, 3 outer folds) against the best independent rigid fit on the same folds;
+    and, for full spread with 20 poses or more, the physics stage's leave-one-out error against
+    the floor."""
     from posecorr.train.physics import single_threaded
 
     session = simulate_session(seed)
@@ -124,13 +185,14 @@ def _session_result(seed: int) -> dict:
     folds = 3 if table.n >= 9 else "loo"
     with single_threaded():
         auto = fit_table(table, [], method="auto", cv=folds, seed=seed)
-        _, rigid_total = rigid_heldout(table, kfold_indices(table.n, folds, seed))
+        variant, _, rigid_total = best_rigid_heldout(table, kfold_indices(table.n, folds, seed))
         physics = None
-        if spec.spread == "full" and table.n >= 20:
+        if spec.spread == "full" and table.n >= 20 and not spec.robot:
             physics = fit_table(table, ["station", "mount"], method="none", cv="loo").heldout["rmse_total"]
     return {"seed": seed, "n": table.n, "spread": spec.spread, "position_only": spec.position_only,
-            "unremovable": spec.unremovable, "auto": auto.heldout["rmse_total"], "chosen": auto.chosen,
-            "rigid": rigid_total, "physics_loo": physics, "floor": session.noise_floor["rmse_total"]}
+            "unremovable": spec.unremovable, "class": session_class(spec), "auto": auto.heldout["rmse_total"],
+            "chosen": auto.chosen, "rigid": rigid_total, "rigid_variant": variant, "physics_loo": physics,
+            "floor": session.noise_floor["rmse_total"]}
 
 
 @pytest.fixture(scope="module")
@@ -145,6 +207,9 @@ def test_corpus_covers_what_real_cells_produce(corpus: list[dict]) -> None:
     assert kinds == {(s, p) for s in ("none", "yaw", "full") for p in (False, True)}
     assert min(r["n"] for r in corpus) <= 8 and max(r["n"] for r in corpus) >= 38
     assert sum(r["unremovable"] > 0 for r in corpus) >= 15
+    classes = {r["class"] for r in corpus}
+    assert {"robot", "bad position-only", "bad full pose", "position-only", "full pose"} <= classes
+    assert sum(r["class"] == "robot" for r in corpus) >= 15
 
 
 def test_corpus_auto_never_worse_than_rigid(corpus: list[dict], capsys) -> None:
@@ -152,9 +217,14 @@ def test_corpus_auto_never_worse_than_rigid(corpus: list[dict], capsys) -> None:
     worst = corpus[int(np.argmax(ratios))]
     chosen = {name: sum(r["chosen"] == name for r in corpus) for name in sorted({r["chosen"] for r in corpus})}
     with capsys.disabled():
-        print(f"\n{len(corpus)} sessions: auto / rigid held-out rmse_total median {np.median(ratios):.3f}, "
-              f"worst {ratios.max():.3f} (seed {worst['seed']}), better than rigid in {int(np.sum(ratios < 1))}; "
-              f"chosen {chosen}; worse than rigid by more than 5 %: {int(np.sum(ratios > TOLERANCE))}")
+        print(f"\n{len(corpus)} sessions: auto / best independent rigid held-out rmse_total")
+        print(f"{'class':<20} {'n':>4} {'median':>7} {'worst':>7} {'better':>6}")
+        for name in sorted({r["class"] for r in corpus}):
+            mine = np.array([r["auto"] / r["rigid"] for r in corpus if r["class"] == name])
+            print(f"{name:<20} {len(mine):>4} {np.median(mine):>7.3f} {mine.max():>7.3f} {int(np.sum(mine < 1)):>6}")
+        print(f"worst {ratios.max():.3f} (seed {worst['seed']}, {worst['class']}, auto {worst['chosen']}, "
+              f"rigid {worst['rigid_variant']}); chosen {chosen}; worse than the best rigid by more than "
+              f"{100 * (TOLERANCE - 1):.0f} %: {int(np.sum(ratios > TOLERANCE))}")
     assert len(corpus) >= 200
     assert np.all(ratios <= TOLERANCE), [r for r in corpus if r["auto"] > TOLERANCE * r["rigid"]]
 

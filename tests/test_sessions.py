@@ -150,6 +150,31 @@ def test_real_session_auto_no_worse_than_rigid(name: str, published: float, caps
     assert any(key.startswith("mount.e") for key in report.fixed)
 
 
+def test_bad_position_only_session_keeps_the_plain_kabsch_floor(capsys) -> None:
+    """Issue 23's first case: 22 poses, position-only reference, the tracker's orientations
+    spanning about 62 degrees about one axis, 100 mm of error no model removes. A plain Kabsch
+    fit (no lever) was 16 % better than posecorr's rigid fit; now it is one of the floor's
+    variants, and auto is within 2 % of the best independent rigid fit, leave-one-out."""
+    from dataclasses import replace
+
+    from posecorr.simulate import draw_session_spec
+
+    spec = replace(draw_session_spec(np.random.default_rng(0), n=22, spread="yaw", position_only=True,
+                                     unremovable=0.1), max_angle=np.deg2rad(31.0), robot="")
+    table = simulate_session(1, spec=spec).table
+    splits = kfold_indices(table.n, "loo")
+    report = fit_table(table, [], method="auto", cv="loo", seed=0)
+    kabsch = rigid_heldout(table, splits, "kabsch")[1]
+    variant, _, best = best_rigid_heldout(table, splits)
+    with capsys.disabled():
+        print(f"\nbad position-only session: auto ({report.chosen}) {1000 * report.heldout['rmse_total']:.1f}, "
+              f"floor {report.baseline_name} {1000 * report.baseline['rmse_total']:.1f} (rigid-lever "
+              f"{1000 * report.rigid_scores['rigid-lever']:.1f}), independent kabsch "
+              f"{1000 * kabsch:.1f}, best independent ({variant}) {1000 * best:.1f} rmse_total x 1000, LOO")
+    assert report.rigid_scores["rigid-kabsch"] == pytest.approx(kabsch, rel=1e-6)
+    assert report.heldout["rmse_total"] <= TOLERANCE * best
+
+
 def test_real_session_cli_names_fixed_parameters(tmp_path: Path) -> None:
     out, data = tmp_path / "exp2.onnx", tmp_path / "exp2.csv"
     data.write_bytes((REALDATA / "20200717_Exp2.csv").read_bytes())     # fit appends a ledger beside its data

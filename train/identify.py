@@ -127,7 +127,11 @@ RIGID_VARIANTS = {
     "lever": "Kabsch with the lever arm in the tracker frame (along the directions its orientations turn about)",
     "lever-ref": "Kabsch with the lever arm in the reference frame (along the directions its orientations turn about)",
     "hand-eye": "the robot-world-hand-eye solution AX = YB in closed form (reference orientations about 2+ axes)",
+    "joint": "registration, mount rotation and lever fitted to positions and orientations jointly, each weighted "
+             "by its noise (the physics stage of station and mount)",
 }
+# The variants `rigid_registration` solves in closed form; "joint" is iterative (`physics.RigidModel`).
+CLOSED_FORM = ("kabsch", "lever", "lever-ref", "hand-eye")
 # What each variant needs beyond positions: reference orientations, turning about at least
 # this many axes (AX = YB leaves the mount's rotation undetermined with fewer than two).
 _NEEDS_ORIENTATION = {"lever-ref": 0, "hand-eye": 2}
@@ -156,8 +160,8 @@ def rigid_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference
     for every variant, only the estimate differs (which orientations, with their own noise,
     carry the lever).
     """
-    if variant not in RIGID_VARIANTS:
-        raise ValueError(f"unknown rigid variant {variant!r}; expected one of {', '.join(RIGID_VARIANTS)}")
+    if variant not in CLOSED_FORM:
+        raise ValueError(f"no closed form for the rigid variant {variant!r}; expected one of {', '.join(CLOSED_FORM)}")
     if variant in _NEEDS_ORIENTATION and reference_R is None:
         raise ValueError(f"the rigid variant {variant!r} needs reference orientations")
     if variant == "hand-eye":
@@ -325,5 +329,5 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block],
     return B, fixed
 
 
-__all__ = ["RIGID_VARIANTS", "rigid_variants", "gross_outliers", "MIN_INDEPENDENT", "Spread", "describe_spread", "chordal_mean", "RigidRegistration", "rigid_registration", "Block",
+__all__ = ["CLOSED_FORM", "RIGID_VARIANTS", "rigid_variants", "gross_outliers", "MIN_INDEPENDENT", "Spread", "describe_spread", "chordal_mean", "RigidRegistration", "rigid_registration", "Block",
            "determined_directions", "direction_label", "LIMIT_SCALES", "LEVER_LIMIT"]

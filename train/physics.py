@@ -579,6 +579,10 @@ class RigidModel(PhysicsModel):
 
     def fit(self, measured: Any, reference: Any, t: np.ndarray | None = None, validation: Any = None, *,
             warm_start: Any = None) -> "RigidModel":
+        """The closed form of the variant; "joint" is the physics stage of station and mount
+        (free, from `warm_start` when given)."""
+        if self.variant == "joint":
+            return super().fit(measured, reference, t, validation, warm_start=warm_start)
         measured, reference = check_pair(measured, reference)
         if len(measured) < 3:
             raise ValueError(f"a rigid registration needs at least 3 poses, got {len(measured)}")
@@ -602,6 +606,8 @@ class RigidModel(PhysicsModel):
     def _std_errors(self, theta: np.ndarray, measured: np.ndarray, reference: np.ndarray) -> np.ndarray:
         """As for the physics stage, over the directions the identification finds determined
         at the closed-form solution (the rigid fit holds nothing the data could move)."""
+        if self.variant == "joint":
+            return super()._std_errors(theta, measured, reference)
         self.basis_, _ = self._identify(theta, measured, reference, self.sigma_p_, self.sigma_r_ or DEFAULT_SIGMA_R)
         return super()._std_errors(theta, measured, reference)
 

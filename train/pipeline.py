@@ -75,7 +75,7 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
         if physics is not None:
             self.physics_ = physics
         elif self.rigid:
-            self.physics_ = RigidModel(with_rotation, self.rigid).fit(measured, reference, t=t)
+            self.physics_ = RigidModel(with_rotation, self.rigid).fit(measured, reference, t=t, warm_start=warm_start)
         elif self.effects:
             self.physics_ = PhysicsModel(self.effects, self.sigma_p, self.sigma_r, with_rotation=with_rotation,
                                          prior_strength=self.prior_strength).fit(
@@ -298,17 +298,26 @@ def _fit(candidate: Candidate, rows: np.ndarray, arrays: tuple, with_rotation: b
     M, R, t = arrays
     t_rows = None if t is None else t[rows]
     physics = None
-    if candidate.effects and not candidate.rigid:
+    effects = _fitted_effects(candidate)
+    if effects:
         shared = {} if shared is None else shared
-        free = (candidate.effects, 0.0)
+        free = (effects, 0.0)
         if free not in shared:
-            shared[free] = PhysicsModel(candidate.effects, with_rotation=with_rotation).fit(
-                M[rows], R[rows], t=t_rows, warm_start=prior.get(candidate.effects))
-        key = (candidate.effects, candidate.prior_strength)
+            shared[free] = PhysicsModel(effects, with_rotation=with_rotation).fit(
+                M[rows], R[rows], t=t_rows, warm_start=prior.get(effects))
+        key = (effects, candidate.prior_strength)
         if key not in shared:       # a prior strength: the free fit shrunk, no further solve
             shared[key] = shared[free].shrunk(candidate.prior_strength)
         physics = shared[key]
     return candidate.make(with_rotation).fit(M[rows], R[rows], t=t_rows, validation=validation, physics=physics)
+
+
+def _fitted_effects(candidate: Candidate) -> tuple[str, ...]:
+    """The effects a candidate's physics stage fits by least squares (shared between
+    candidates): its own, those of the "joint" rigid variant, none for a closed form."""
+    if candidate.rigid:
+        return tuple(RigidModel().effects) if candidate.rigid == "joint" else ()
+    return candidate.effects
 
 
 def out_of_fold(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, with_rotation: bool,
@@ -534,8 +543,9 @@ def _priors(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, wi
     M, R, t = arrays
     prior = {}
     for candidate in candidates:
-        if candidate.effects and not candidate.rigid and candidate.effects not in prior:
-            prior[candidate.effects] = PhysicsModel(candidate.effects, with_rotation=with_rotation).fit(
+        effects = _fitted_effects(candidate)
+        if effects and effects not in prior:
+            prior[effects] = PhysicsModel(effects, with_rotation=with_rotation).fit(
                 M[rows], R[rows], t=None if t is None else t[rows])
     return prior
 

@@ -228,8 +228,9 @@ def test_prior_strength_is_the_map_estimate_and_counts_effective_parameters() ->
         solved = least_squares(penalised, np.zeros(SB.shape[1]), xtol=1e-12, ftol=1e-12, gtol=1e-12)
         theta_map = theta_free + SB @ solved.x
         theta_shrunk = np.concatenate([shrunk.params_[e] for e in order])
-        # Within a hundredth of each parameter's typical magnitude (the model is near-linear).
-        assert np.all(np.abs(theta_shrunk - theta_map) < 0.01 * free._scales())
+        # One Gauss-Newton step: within a thousandth of each parameter's typical magnitude
+        # (measured: 3e-6 up to strength 10, 7e-4 at 1e8, where the step is longest).
+        assert np.all(np.abs(theta_shrunk - theta_map) < 1e-3 * free._scales())
     # The strongest prior holds every physical parameter: what remains is the registration (6 + 3).
     assert previous == pytest.approx(9.0, abs=0.05)
     assert shrunk.params_["range_scale"] == pytest.approx(0.0, abs=1e-5)

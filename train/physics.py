@@ -46,8 +46,6 @@ SIGMA_P_FLOOR = 3e-6     # m
 # typical size bounds them (`identify.Block.bounded`).
 REGISTRATION = frozenset({"station.w", "station.v", "mount.d"})
 SIGMA_R_FLOOR = 5e-6     # rad
-# Gauss-Newton steps from the free fit to the MAP estimate under a prior (`PhysicsModel._shrink`).
-SHRINK_STEPS = 3
 
 
 @contextmanager
@@ -366,37 +364,32 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         self.cost_ = float(2.0 * result.cost)
         self._at_bound = np.asarray(result.active_mask != 0)
         theta = theta0 + SB @ result.x
-        self._free = (theta, SB, result.fun, result.jac, residual)
+        self._free = (theta, SB, result.fun, result.jac)
         return self._shrink(*self._free)
 
-    def _shrink(self, theta: np.ndarray, SB: np.ndarray, r: np.ndarray, Jz: np.ndarray,
-                residual: "WhitenedResidual") -> np.ndarray:
+    def _shrink(self, theta: np.ndarray, SB: np.ndarray, r: np.ndarray, Jz: np.ndarray) -> np.ndarray:
         """The MAP estimate under the prior (`prior_strength` s > 0), from the free fit theta
-        (whitened residuals r, their Jacobian Jz over the determined directions, `residual`
-        the function): every physical parameter outside the registration is drawn towards its
-        identity with a standard deviation of its typical magnitude (`Param.scale`) over
-        sqrt(s). SHRINK_STEPS Gauss-Newton steps of the penalised problem from the free
-        optimum, the first on the free fit's own Jacobian (exact where the model is linear in
-        its parameters; the rest take up the curvature): a few residual evaluations per
-        strength instead of a solve, so that cross-validating the strength stays cheap.
+        (whitened residuals r, their Jacobian Jz over the determined directions): every
+        physical parameter outside the registration is drawn towards its identity with a
+        standard deviation of its typical magnitude (`Param.scale`) over sqrt(s). One
+        Gauss-Newton step of the penalised problem from the free optimum, on the free fit's
+        own Jacobian: exact where the model is linear in its parameters, and within 1e-6
+        typical magnitudes of the penalised solve for strengths up to 10 (7e-4 at 1e8,
+        `tests/test_identify.py`), so every strength a cross-validation tries costs no solve.
 
         Sets `effective_params_`, the trace of the hat matrix Jz (Jz^T Jz + P)^-1 Jz^T: each
         determined direction counts 1 without prior and less as the prior holds it."""
         weights = self._prior_weights()[:, None] * SB
         rows = np.flatnonzero(np.any(weights != 0, axis=1))
         Jp = weights[rows]
+        rp = (self._prior_weights() * (theta - self._identity_theta()))[rows]
+        data = Jz.T @ Jz
+        inverse = np.linalg.pinv(data + Jp.T @ Jp)
+        self.effective_params_ = float(np.trace(inverse @ data))
+        if not len(rows):
+            return theta
         lower, upper = self._bounds()
-        for k in range(SHRINK_STEPS if len(rows) else 1):
-            if k:
-                r, Jz = residual(theta), residual.jacobian(theta) @ SB
-            rp = (self._prior_weights() * (theta - self._identity_theta()))[rows]
-            data = Jz.T @ Jz
-            inverse = np.linalg.pinv(data + Jp.T @ Jp)
-            self.effective_params_ = float(np.trace(inverse @ data))
-            if not len(rows):
-                break
-            theta = np.clip(theta - SB @ (inverse @ (Jz.T @ r + Jp.T @ rp)), lower, upper)
-        return theta
+        return np.clip(theta - SB @ (inverse @ (Jz.T @ r + Jp.T @ rp)), lower, upper)
 
     def shrunk(self, prior_strength: float) -> "PhysicsModel":
         """This free fit (prior_strength 0) under a prior of the given strength (`_shrink`),

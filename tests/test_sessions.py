@@ -186,6 +186,11 @@ def test_real_session_cli_names_fixed_parameters(tmp_path: Path) -> None:
     assert payload["fixed"] == {"mount.e": "orientations span 0.4 deg"}
     assert payload["effects"]["mount"]["e"][1] == [None, None, None]        # no standard error: not determined
     assert payload["cv"]["rmse_pos"] <= payload["baseline"]["rmse_pos"] * TOLERANCE
+    # The floor: every rigid variant this table allows (one orientation: no hand-eye), the best named.
+    floor = payload["rigid_rmse_total"]
+    assert set(floor) == {"rigid-kabsch", "rigid-lever", "rigid-lever-ref", "rigid-joint"}
+    assert payload["baseline"]["model"] == min(floor, key=floor.get)
+    assert payload["baseline"]["rmse_total"] == pytest.approx(min(floor.values()), rel=1e-12)
     assert out.stat().st_size > 0
     assert "Traceback" not in run.stderr
 

@@ -403,7 +403,7 @@ class FitReport:
         rigid fit): how far the prior held the physical parameters, and how many parameters
         the fit used (the trace of its hat matrix)."""
         physics = self.model.physics_
-        if physics is None or self.model.rigid or not hasattr(physics, "effective_params_"):
+        if physics is None or not hasattr(physics, "effective_params_"):     # a closed form: no fit, no prior
             return None
         return {"prior_strength": float(physics.prior_strength), "effective_params": physics.effective_params_}
 

@@ -219,10 +219,45 @@ def _session_result(seed: int) -> dict:
         physics = None
         if spec.spread == "full" and table.n >= 20 and not spec.robot:
             physics = fit_table(table, ["station", "mount"], method="none", cv="loo").heldout["rmse_total"]
-    return {"seed": seed, "n": table.n, "spread": spec.spread, "position_only": spec.position_only,
+        recovery = _hand_eye_recovery(session) if spec.robot else None
+    return {"recovery": recovery, "seed": seed, "n": table.n, "spread": spec.spread, "position_only": spec.position_only,
             "unremovable": spec.unremovable, "class": session_class(spec), "auto": auto.heldout["rmse_total"],
             "chosen": auto.chosen, "rigid": rigid_total, "rigid_variant": variant, "physics_loo": physics,
             "floor": session.noise_floor["rmse_total"]}
+
+
+def _hand_eye_recovery(session) -> dict[str, float]:
+    """Worst error (m, rad) of the registration and the mount of the hand-eye variant and of the
+    joint fit (`rigid_registration`'s closed form and the physics stage), against the simulated
+    truth and against OpenCV's solution of T_ref X = Y T_meas."""
+    import cv2
+
+    from posecorr.train.physics import RigidModel
+
+    table, truth = session.table, session.effects
+    R_ref = Rotation.from_quat(table.ref_q[:, [1, 2, 3, 0]]).as_matrix()
+    R_meas = Rotation.from_quat(table.meas_q[:, [1, 2, 3, 0]]).as_matrix()
+    R_X, t_X, R_Y, _ = cv2.calibrateRobotWorldHandEye(list(R_ref), list(table.ref_p[:, :, None]), list(R_meas),
+                                                      list(table.meas_p[:, :, None]),
+                                                      method=cv2.CALIB_ROBOT_WORLD_HAND_EYE_SHAH)
+    opencv = {"mount": np.concatenate([Rotation.from_matrix(R_X).as_rotvec(), t_X.ravel()]),
+              "station_w": Rotation.from_matrix(R_Y).inv().as_rotvec()}
+
+    def angle(a, b):
+        return float((Rotation.from_rotvec(a).inv() * Rotation.from_rotvec(b)).magnitude())
+
+    out = {"truth_m": 0.0, "truth_rad": 0.0, "opencv_m": 0.0, "opencv_rad": 0.0}
+    for variant in ("hand-eye", "joint"):
+        fitted = RigidModel(variant=variant).fit(table.measured, table.reference).params_
+        station, mount = fitted["station"], fitted["mount"]
+        out["truth_m"] = max(out["truth_m"], np.linalg.norm(mount[3:] - truth["mount"][3:]),
+                             np.linalg.norm(station[3:] - truth["station"][3:]))
+        out["truth_rad"] = max(out["truth_rad"], angle(mount[:3], truth["mount"][:3]),
+                               angle(station[:3], truth["station"][:3]))
+        out["opencv_m"] = max(out["opencv_m"], np.linalg.norm(mount[3:] - opencv["mount"][3:]))
+        out["opencv_rad"] = max(out["opencv_rad"], angle(mount[:3], opencv["mount"][:3]),
+                                angle(station[:3], opencv["station_w"]))
+    return out
 
 
 @pytest.fixture(scope="module")
@@ -257,6 +292,21 @@ def test_corpus_auto_never_worse_than_rigid(corpus: list[dict], capsys) -> None:
               f"{100 * (TOLERANCE - 1):.0f} %: {int(np.sum(ratios > TOLERANCE))}")
     assert len(corpus) >= 200
     assert np.all(ratios <= TOLERANCE), [r for r in corpus if r["auto"] > TOLERANCE * r["rigid"]]
+
+
+def test_corpus_robot_sessions_recover_registration_and_mount(corpus: list[dict], capsys) -> None:
+    """The robot-carried class: the hand-eye closed form and the joint fit recover the station
+    registration and the flange-to-tracker mount within 1 mm / 1 mrad of the simulated truth
+    (at the tracker's noise), and agree with OpenCV's hand-eye solution."""
+    rows = [r["recovery"] for r in corpus if r["recovery"] is not None]
+    worst = {key: max(row[key] for row in rows) for key in rows[0]}
+    with capsys.disabled():
+        print(f"\n{len(rows)} robot sessions: worst error against the truth {1000 * worst['truth_m']:.3f} mm, "
+              f"{1000 * worst['truth_rad']:.3f} mrad; against OpenCV {1000 * worst['opencv_m']:.3f} mm, "
+              f"{1000 * worst['opencv_rad']:.3f} mrad")
+    assert len(rows) >= 15
+    assert worst["truth_m"] < 1e-3 and worst["truth_rad"] < 1e-3
+    assert worst["opencv_m"] < 1e-3 and worst["opencv_rad"] < 1e-3
 
 
 def test_corpus_physics_reaches_the_noise_floor_with_full_spread(corpus: list[dict], capsys) -> None:

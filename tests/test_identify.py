@@ -234,3 +234,9 @@ def test_prior_strength_is_the_map_estimate_and_counts_effective_parameters() ->
     # The strongest prior holds every physical parameter: what remains is the registration (6 + 3).
     assert previous == pytest.approx(9.0, abs=0.05)
     assert shrunk.params_["range_scale"] == pytest.approx(0.0, abs=1e-5)
+
+
+def test_a_negative_prior_strength_is_refused() -> None:
+    table = simulate(2, seed=4).table.subset(np.arange(20))
+    with pytest.raises(ValueError, match="prior_strength must be a number >= 0, got -1"):
+        PhysicsModel(("station", "mount"), prior_strength=-1).fit(table.measured, table.reference)

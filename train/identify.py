@@ -6,10 +6,13 @@ the data cannot see turns noise into metres (a "2 m mount lever" cancelling a 2 
 offset). Three pieces keep that from happening:
 
 - `describe_spread`: how far positions and orientations spread (principal extents, axes).
-- `rigid_registration`: the plain rigid fit, in closed form: Kabsch from tracker position to
-  reference position, plus the lever arm between the tracker and the reference point along
-  the directions the orientations determine, plus (with reference orientations) the mean
-  mount rotation. It is the baseline every model must beat and the start of every fit.
+- `rigid_registration`: the plain rigid fits in closed form (`RIGID_VARIANTS`): Kabsch from
+  tracker position to reference position, without lever arm, with the lever arm between the
+  tracker and the reference point along the directions the tracker's orientations determine,
+  or with it in the reference frame; with reference orientations about two axes or more the
+  robot-world-hand-eye solution AX = YB. Each adds (with reference orientations) the mean
+  mount rotation. Together with the joint fit (`physics.RigidModel`) they are the floor every
+  model must beat, and one of them is the start of every fit.
 - `determined_directions`: which directions of a parameter space the whitened Jacobian pins
   down, block by block in a priority order (registration first), so that a direction one
   block shares with an earlier one (mount offset along the yaw axis ~ station offset) stays

@@ -13,7 +13,9 @@ reporting frame and the base frame and for yaw-only, single-orientation and posi
 tables, so data recorded in the tracker's own frame converges too. Only the directions the
 data determine are fitted (`identify.determined_directions`); the rest are held at their
 nominal value and named in `fixed_`. sigma_p and sigma_r are re-estimated from the residuals
-of a first fit unless given. The correction applies the fitted effects inverse, in reverse order: closed
+of a first fit unless given. With `prior_strength` s > 0 the physical parameters outside the
+registration are drawn towards their identity (standard deviation `Param.scale` / sqrt(s)):
+the MAP estimate, a step from the free fit (`PhysicsModel._shrink`). The correction applies the fitted effects inverse, in reverse order: closed
 forms where they exist, a fixed number of Newton / fixed-point steps otherwise
 (`posecorr.effects.invert_effects`), so the same `forward` runs in numpy, torch and ONNX.
 """
@@ -80,7 +82,8 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
     determined}, `sigma_p_`, `sigma_r_`, `ctx_` (frames used), `with_rotation_`, `cost_`,
     `spread_` (`identify.Spread`), `basis_` (the determined directions, scaled units) and
     `fixed_` {parameter or direction: why the data cannot determine it}; those are held at
-    their start value (the rigid registration's, or the identity).
+    their start value (the rigid registration's, or the identity). `prior_strength` s >= 0:
+    the prior's weight (`_shrink`); `effective_params_` the number of parameters the fit used.
     """
 
     method = "physics"
@@ -414,6 +417,8 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
     def _prior_weights(self) -> np.ndarray:
         """sqrt(prior_strength) / typical magnitude for each entry of theta outside the
         registration (whose frames are anywhere: no physical size bounds them), 0 elsewhere."""
+        if not self.prior_strength >= 0:
+            raise ValueError(f"prior_strength must be a number >= 0, got {self.prior_strength!r}")
         weights = []
         for effect in self._chosen:
             for param in effect.params:

@@ -360,7 +360,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
 
         bounded = bool(np.any(np.isfinite(z_lower) | np.isfinite(z_upper)))
         # MINPACK's Levenberg-Marquardt where nothing is bounded: a third of trf's overhead.
-        method = "trf" if bounded or len(f(np.zeros(B.shape[1]))) < B.shape[1] else "lm"
+        method = "trf" if bounded or residual.size < B.shape[1] else "lm"
         result = least_squares(f, np.zeros(B.shape[1]), jac=jac, method=method,
                                bounds=(z_lower, z_upper) if bounded else (-np.inf, np.inf),
                                max_nfev=self.max_nfev, xtol=1e-9, ftol=1e-9, gtol=1e-9)

@@ -6,10 +6,13 @@ the data cannot see turns noise into metres (a "2 m mount lever" cancelling a 2 
 offset). Three pieces keep that from happening:
 
 - `describe_spread`: how far positions and orientations spread (principal extents, axes).
-- `rigid_registration`: the plain rigid fit, in closed form: Kabsch from tracker position to
-  reference position, plus the lever arm between the tracker and the reference point along
-  the directions the orientations determine, plus (with reference orientations) the mean
-  mount rotation. It is the baseline every model must beat and the start of every fit.
+- `rigid_registration`: the plain rigid fits in closed form (`RIGID_VARIANTS`): Kabsch from
+  tracker position to reference position, without lever arm, with the lever arm between the
+  tracker and the reference point along the directions the tracker's orientations determine,
+  or with it in the reference frame; with reference orientations about two axes or more the
+  robot-world-hand-eye solution AX = YB. Each adds (with reference orientations) the mean
+  mount rotation. Together with the joint fit (`physics.RigidModel`) they are the floor every
+  model must beat, and one of them is the start of every fit.
 - `determined_directions`: which directions of a parameter space the whitened Jacobian pins
   down, block by block in a priority order (registration first), so that a direction one
   block shares with an earlier one (mount offset along the yaw axis ~ station offset) stays
@@ -120,36 +123,79 @@ class RigidRegistration:
         return (measured_p + measured_R @ self.lever) @ self.R.T + self.t
 
 
-def rigid_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference_p: np.ndarray,
-                       reference_R: np.ndarray | None = None, iterations: int = 30) -> RigidRegistration:
-    """The closed-form rigid fit of a table (see `RigidRegistration`).
+# The plain rigid fits, the floor every model must beat (issue 23: a user's 20-line Kabsch must
+# never beat the tool): which lever arm each fits. "lever-ref" needs reference orientations.
+RIGID_VARIANTS = {
+    "kabsch": "Kabsch of tracker to reference positions, no lever arm",
+    "lever": "Kabsch with the lever arm in the tracker frame (along the directions its orientations turn about)",
+    "lever-ref": "Kabsch with the lever arm in the reference frame (along the directions its orientations turn about)",
+    "hand-eye": "the robot-world-hand-eye solution AX = YB in closed form (reference orientations about 2+ axes)",
+    "joint": "registration, mount rotation and lever fitted to positions and orientations jointly, each weighted "
+             "by its noise (the physics stage of station and mount)",
+}
+# The variants `rigid_registration` solves in closed form; "joint" is iterative (`physics.RigidModel`).
+CLOSED_FORM = ("kabsch", "lever", "lever-ref", "hand-eye")
+# What each variant needs beyond positions: reference orientations, turning about at least
+# this many axes (AX = YB leaves the mount's rotation undetermined with fewer than two).
+_NEEDS_ORIENTATION = {"lever-ref": 0, "hand-eye": 2}
 
-    The lever arm's directions come from the spread of the measured orientations: with
-    orientations that all agree it is invisible (it only shifts t), with yaw only its component
-    along the yaw axis is. A direction is fitted when its standard error, with the residual
-    of the fit without lever, is below LEVER_LIMIT; otherwise it stays zero and is reported.
+
+def rigid_variants(has_orientation: bool, rotation_axes: int = 0) -> tuple[str, ...]:
+    """The rigid variants a table allows (see `_NEEDS_ORIENTATION`)."""
+    return tuple(name for name in RIGID_VARIANTS if name not in _NEEDS_ORIENTATION
+                 or (has_orientation and rotation_axes >= _NEEDS_ORIENTATION[name]))
+
+
+def rigid_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference_p: np.ndarray,
+                       reference_R: np.ndarray | None = None, iterations: int = 30,
+                       variant: str = "lever") -> RigidRegistration:
+    """The closed-form rigid fit of a table (see `RigidRegistration`), one of `RIGID_VARIANTS`.
+
+    The lever arm's directions come from the spread of the orientations that carry it (the
+    tracker's for "lever", the reference's for "lever-ref"): with orientations that all agree
+    it is invisible (it only shifts t), with yaw only its component along the yaw axis is. A
+    direction is fitted when its standard error, with the residual of the fit without lever,
+    is below LEVER_LIMIT; otherwise it stays zero and is reported. "kabsch" fits no lever and
+    reports every direction held.
+
+    The reference-frame lever l_ref (p_ref + R_ref l_ref = R p_meas + t) is returned as the
+    tracker-frame lever it equals under the fitted mount, -X^T l_ref: one correction formula
+    for every variant, only the estimate differs (which orientations, with their own noise,
+    carry the lever).
     """
+    if variant not in CLOSED_FORM:
+        raise ValueError(f"no closed form for the rigid variant {variant!r}; expected one of {', '.join(CLOSED_FORM)}")
+    if variant in _NEEDS_ORIENTATION and reference_R is None:
+        raise ValueError(f"the rigid variant {variant!r} needs reference orientations")
+    if variant == "hand-eye":
+        return hand_eye_registration(measured_p, measured_R, reference_p, reference_R)
     n = len(measured_p)
     R, t = _kabsch(measured_p, reference_p)
     residual = reference_p - (measured_p @ R.T + t)
     sigma0 = float(np.sqrt(np.sum(residual ** 2) / max(3 * n - 6, 1)))
-    # Information about the lever along tracker-frame direction u: sum_i |(R_i - mean R) u|^2.
-    centred = measured_R - measured_R.mean(axis=0)
+    # The lever's carrier: p_ref = R p_meas + t + C_i z, C_i = R R_meas,i ("lever") or -R_ref,i.
+    carrier_R = reference_R if variant == "lever-ref" else measured_R
+    # Information about the lever along direction u: sum_i |(R_i - mean R) u|^2.
+    centred = carrier_R - carrier_R.mean(axis=0)
     info = np.einsum("nki,nkj->ij", centred, centred)
     values, vectors = np.linalg.eigh(info)
     std = max(sigma0, 1e-6) / np.sqrt(np.maximum(values, 1e-300))
     # The orientations must really turn about a direction (not by their noise) to show the lever.
     turned = np.sqrt(np.maximum(values, 0.0) / n) > AXIS_MIN_RAD
-    determined = (std < LEVER_LIMIT) & turned
+    determined = (std < LEVER_LIMIT) & turned & (variant != "kabsch")
     free = vectors[:, determined]
     lever = np.zeros(3)
     if free.shape[1]:
         for _ in range(iterations):
-            # Given R: p_ref - R p_meas = t + R R_meas_i (free z), linear in (t, z).
-            A = np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)), R @ measured_R @ free], axis=2)
+            carrier = R @ measured_R @ free if variant == "lever" else -reference_R @ free
+            # Given R: p_ref - R p_meas = t + C_i (free z), linear in (t, z).
+            A = np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)), carrier], axis=2)
             sol, *_ = np.linalg.lstsq(A.reshape(3 * n, -1), (reference_p - measured_p @ R.T).reshape(-1), rcond=None)
             new = free @ sol[3:]
-            R, t = _kabsch(measured_p + measured_R @ new, reference_p)
+            if variant == "lever":
+                R, t = _kabsch(measured_p + measured_R @ new, reference_p)
+            else:
+                R, t = _kabsch(measured_p, reference_p + reference_R @ new)
             if np.max(np.abs(new - lever)) < 1e-10:   # m: alternation converges linearly
                 lever = new
                 break
@@ -158,10 +204,31 @@ def rigid_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference
     if reference_R is not None:
         # R_ref = R R_meas X^T  =>  X = mean of R_ref^T R R_meas.
         mount = chordal_mean(np.swapaxes(reference_R, -1, -2) @ R @ measured_R)
+    held = vectors[:, ~determined].T
+    if variant == "lever-ref":
+        lever, held = -mount.T @ lever, held @ mount       # reference frame -> tracker frame (X^T v)
     fitted = measured_p + measured_R @ lever
     residual = reference_p - (fitted @ R.T + t)
     sigma_p = float(np.sqrt(np.sum(residual ** 2) / max(3 * n - 6 - free.shape[1], 1)))
-    return RigidRegistration(R, t, lever, vectors[:, ~determined].T, mount, sigma_p)
+    return RigidRegistration(R, t, lever, held, mount, sigma_p)
+
+
+def hand_eye_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference_p: np.ndarray,
+                          reference_R: np.ndarray) -> RigidRegistration:
+    """The rigid fit of a table with reference orientations as the robot-world-hand-eye problem
+    (`registration.robot_world_hand_eye`, closed form, no iteration): T_i X = Y M_i, T the
+    reference pose, M the measured one, X the mount (reference point to tracker), Y the
+    registration (tracker frame to reference frame). In `RigidRegistration`'s terms R, t = Y,
+    mount = R_X and the lever -R_X^T t_X; every lever direction is fitted."""
+    from posecorr.geometry import homogeneous
+    from posecorr.registration import robot_world_hand_eye
+
+    X, Y = robot_world_hand_eye(homogeneous(reference_R, reference_p), homogeneous(measured_R, measured_p))
+    R, t, mount = Y[:3, :3], Y[:3, 3], X[:3, :3]
+    lever = -mount.T @ X[:3, 3]
+    residual = reference_p - ((measured_p + measured_R @ lever) @ R.T + t)
+    sigma_p = float(np.sqrt(np.sum(residual ** 2) / max(3 * len(measured_p) - 9, 1)))
+    return RigidRegistration(R, t, lever, np.zeros((0, 3)), mount, sigma_p)
 
 
 def _kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -265,5 +332,5 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block],
     return B, fixed
 
 
-__all__ = ["gross_outliers", "MIN_INDEPENDENT", "Spread", "describe_spread", "chordal_mean", "RigidRegistration", "rigid_registration", "Block",
+__all__ = ["CLOSED_FORM", "RIGID_VARIANTS", "rigid_variants", "gross_outliers", "MIN_INDEPENDENT", "Spread", "describe_spread", "chordal_mean", "RigidRegistration", "rigid_registration", "Block",
            "determined_directions", "direction_label", "LIMIT_SCALES", "LEVER_LIMIT"]

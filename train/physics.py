@@ -13,7 +13,9 @@ reporting frame and the base frame and for yaw-only, single-orientation and posi
 tables, so data recorded in the tracker's own frame converges too. Only the directions the
 data determine are fitted (`identify.determined_directions`); the rest are held at their
 nominal value and named in `fixed_`. sigma_p and sigma_r are re-estimated from the residuals
-of a first fit unless given. The correction applies the fitted effects inverse, in reverse order: closed
+of a first fit unless given. With `prior_strength` s > 0 the physical parameters outside the
+registration are drawn towards their identity (standard deviation `Param.scale` / sqrt(s)):
+the MAP estimate, a step from the free fit (`PhysicsModel._shrink`). The correction applies the fitted effects inverse, in reverse order: closed
 forms where they exist, a fixed number of Newton / fixed-point steps otherwise
 (`posecorr.effects.invert_effects`), so the same `forward` runs in numpy, torch and ONNX.
 """
@@ -80,19 +82,22 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
     determined}, `sigma_p_`, `sigma_r_`, `ctx_` (frames used), `with_rotation_`, `cost_`,
     `spread_` (`identify.Spread`), `basis_` (the determined directions, scaled units) and
     `fixed_` {parameter or direction: why the data cannot determine it}; those are held at
-    their start value (the rigid registration's, or the identity).
+    their start value (the rigid registration's, or the identity). `prior_strength` s >= 0:
+    the prior's weight (`_shrink`); `effective_params_` the number of parameters the fit used.
     """
 
     method = "physics"
     representation = "pos"
 
     def __init__(self, effects: Sequence[str] = ("station", "mount"), sigma_p: float | None = None,
-                 sigma_r: float | None = None, max_nfev: int = 200, with_rotation: bool = True) -> None:
+                 sigma_r: float | None = None, max_nfev: int = 200, with_rotation: bool = True,
+                 prior_strength: float = 0.0) -> None:
         self.effects = effects
         self.sigma_p = sigma_p
         self.sigma_r = sigma_r
         self.max_nfev = max_nfev
         self.with_rotation = with_rotation
+        self.prior_strength = prior_strength
 
     # --- fitting ----------------------------------------------------------------------
     def fit(self, measured: Any, reference: Any, t: np.ndarray | None = None, validation: Any = None, *,
@@ -109,7 +114,12 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         with_rotation = self.with_rotation_
         prior = warm_start if isinstance(warm_start, PhysicsModel) else None
         thetas = dict(prior.params_) if prior is not None else dict(warm_start or {})
-        theta0, sigma_p, sigma_r, _ = self._initial_theta(measured, reference, chosen, thetas)
+        if prior is not None and all(effect.name in thetas for effect in chosen):
+            # A fold of a fitted model: it lends the start and the noise levels, so the
+            # closed-form start (and its noise estimate) would be discarded.
+            theta0 = np.concatenate([np.asarray(thetas[e.name], float) for e in chosen]) if chosen else np.zeros(0)
+        else:
+            theta0, sigma_p, sigma_r, _ = self._initial_theta(measured, reference, chosen, thetas)
         with single_threaded():
             if prior is not None:
                 self.sigma_p_, self.sigma_r_ = prior.sigma_p_, prior.sigma_r_
@@ -122,7 +132,10 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
                 theta0 = self._hold_nominal(theta0)
                 theta = self._solve(theta0, measured, reference, sigma_p, sigma_r)
                 if self.sigma_p is None or (self.sigma_r is None and with_rotation):
-                    # Re-weight position against orientation by the noise the first fit leaves.
+                    # Re-weight position against orientation by the noise the first free fit
+                    # leaves (the noise, not what a prior adds to it).
+                    if self._free is not None:
+                        theta = self._free[0]
                     dp, dr = self._raw_residuals(theta, measured, reference)
                     dof = max(dp.size + (dr.size if with_rotation else 0) - self.basis_.shape[1], 1)
                     share = dof / (dp.size + (dr.size if with_rotation else 0))
@@ -134,6 +147,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
             self.params_ = self._unflatten(theta)
             # Standard errors cost a Jacobian: computed when first asked for (folds never are).
             self._std_source = (theta, measured, reference)
+            self._data = (measured, reference)
         self.n_features_in_ = 7
         return self
 
@@ -166,20 +180,26 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         return fixed
 
     def _initial_theta(self, measured: np.ndarray, reference: np.ndarray, chosen: list,
-                       given: dict[str, np.ndarray]) -> tuple[np.ndarray, float, float, RigidRegistration]:
+                       given: dict[str, np.ndarray], variant: str | None = None,
+                       ) -> tuple[np.ndarray, float, float, RigidRegistration]:
         """theta at the closed-form start, the noise levels (m, rad) the rigid fit leaves, and
         that rigid fit.
 
         `station` and `mount` start from the rigid registration (Kabsch on positions, the lever
         arm along the directions the orientations determine, the mean mount rotation), which
         holds for any rotation between the frames and for yaw-only, single-orientation and
-        position-only tables alike; the other effects start at their identity.
+        position-only tables alike; with reference orientations about two axes or more (a
+        robot carrying the tracker) from the closed-form hand-eye solution, whose lever arm and
+        mount rotation come from the orientations as well. The other effects start at their
+        identity. `variant` names the rigid fit instead (`identify.RIGID_VARIANTS`).
         """
         thetas = {e.name: e.identity_theta() for e in chosen}
         names = {e.name for e in chosen}
         measured_R = rotations.quat_to_matrix(measured[:, 3:7])
         reference_R = rotations.quat_to_matrix(reference[:, 3:7]) if self.with_rotation_ else None
-        rigid = rigid_registration(measured[:, :3], measured_R, reference[:, :3], reference_R)
+        if variant is None:
+            variant = "hand-eye" if reference_R is not None and self.spread_.rotation_axes >= 2 else "lever"
+        rigid = rigid_registration(measured[:, :3], measured_R, reference[:, :3], reference_R, variant=variant)
         sigma_r = DEFAULT_SIGMA_R
         if reference_R is not None:
             # Orientation residual of the rigid fit: R_ref vs R R_meas X^T.
@@ -206,7 +226,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         start may have put noise there, and what the data cannot see must not carry it."""
         if theta.size == 0:
             return theta
-        identity = np.concatenate([e.identity_theta() for e in self._chosen])
+        identity = self._identity_theta()
         scales = self._scales()
         u = (theta - identity) / scales
         return identity + scales * (self.basis_ @ (self.basis_.T @ u))
@@ -316,6 +336,8 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         residual = self._residual_fn(measured, reference, sigma_p, sigma_r)
         if theta0.size == 0 or B.shape[1] == 0:
             self.cost_ = float(np.sum(residual(theta0) ** 2)) if theta0.size else 0.0
+            self.effective_params_ = 0.0
+            self._free = None
             return theta0
         SB = self._scales()[:, None] * B
         lower, upper = self._bounds()
@@ -338,13 +360,72 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
 
         bounded = bool(np.any(np.isfinite(z_lower) | np.isfinite(z_upper)))
         # MINPACK's Levenberg-Marquardt where nothing is bounded: a third of trf's overhead.
-        method = "trf" if bounded or len(f(np.zeros(B.shape[1]))) < B.shape[1] else "lm"
+        method = "trf" if bounded or residual.size < B.shape[1] else "lm"
         result = least_squares(f, np.zeros(B.shape[1]), jac=jac, method=method,
                                bounds=(z_lower, z_upper) if bounded else (-np.inf, np.inf),
                                max_nfev=self.max_nfev, xtol=1e-9, ftol=1e-9, gtol=1e-9)
         self.cost_ = float(2.0 * result.cost)
         self._at_bound = np.asarray(result.active_mask != 0)
-        return theta0 + SB @ result.x
+        theta = theta0 + SB @ result.x
+        self._free = (theta, SB, result.fun, result.jac)
+        return self._shrink(*self._free)
+
+    def _shrink(self, theta: np.ndarray, SB: np.ndarray, r: np.ndarray, Jz: np.ndarray) -> np.ndarray:
+        """The MAP estimate under the prior (`prior_strength` s > 0), from the free fit theta
+        (whitened residuals r, their Jacobian Jz over the determined directions): every
+        physical parameter outside the registration is drawn towards its identity with a
+        standard deviation of its typical magnitude (`Param.scale`) over sqrt(s). One
+        Gauss-Newton step of the penalised problem from the free optimum, on the free fit's
+        own Jacobian: exact where the model is linear in its parameters, and within 1e-6
+        typical magnitudes of the penalised solve for strengths up to 10 (7e-4 at 1e8,
+        `tests/test_identify.py`), so every strength a cross-validation tries costs no solve.
+
+        Sets `effective_params_`, the trace of the hat matrix Jz (Jz^T Jz + P)^-1 Jz^T: each
+        determined direction counts 1 without prior and less as the prior holds it."""
+        weights = self._prior_weights()[:, None] * SB
+        rows = np.flatnonzero(np.any(weights != 0, axis=1))
+        Jp = weights[rows]
+        rp = (self._prior_weights() * (theta - self._identity_theta()))[rows]
+        data = Jz.T @ Jz
+        inverse = np.linalg.pinv(data + Jp.T @ Jp)
+        self.effective_params_ = float(np.trace(inverse @ data))
+        if not len(rows):
+            return theta
+        lower, upper = self._bounds()
+        return np.clip(theta - SB @ (inverse @ (Jz.T @ r + Jp.T @ rp)), lower, upper)
+
+    def shrunk(self, prior_strength: float) -> "PhysicsModel":
+        """This free fit (prior_strength 0) under a prior of the given strength (`_shrink`),
+        without solving again: how a cross-validation tries several strengths."""
+        self._check_fitted()
+        if self.prior_strength != 0:
+            raise ValueError("shrunk starts from a free fit (prior_strength 0)")
+        model = object.__new__(type(self))     # not copy.copy: __getstate__ resolves std errors and drops the data
+        model.__dict__.update(self.__dict__)
+        model.prior_strength = prior_strength
+        model.__dict__.pop("_std_errors_cache", None)
+        if self._free is None:      # nothing determined: nothing to shrink
+            return model
+        theta = model._shrink(*self._free)
+        model.params_ = model._unflatten(theta)
+        model._std_source = (theta,) + self._data
+        return model
+
+    def _identity_theta(self) -> np.ndarray:
+        return np.concatenate([e.identity_theta() for e in self._chosen]) if self._chosen else np.zeros(0)
+
+    def _prior_weights(self) -> np.ndarray:
+        """sqrt(prior_strength) / typical magnitude for each entry of theta outside the
+        registration (whose frames are anywhere: no physical size bounds them), 0 elsewhere."""
+        if not self.prior_strength >= 0:
+            raise ValueError(f"prior_strength must be a number >= 0, got {self.prior_strength!r}")
+        weights = []
+        for effect in self._chosen:
+            for param in effect.params:
+                physical = f"{effect.name}.{param.name}" not in REGISTRATION
+                weight = np.sqrt(self.prior_strength) / param.scale if physical else 0.0
+                weights += [weight] * param.size
+        return np.asarray(weights, float)
 
     def _param_label(self, k: int) -> str:
         i = 0
@@ -416,7 +497,10 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
     def __getstate__(self) -> dict:
         if hasattr(self, "params_"):
             self.std_errors_  # noqa: B018  (resolve before pickling: the data is not kept)
-        return super().__getstate__()
+        state = super().__getstate__()
+        for kept in ("_free", "_data"):
+            state.pop(kept, None)
+        return state
 
     # --- inference ----------------------------------------------------------------------
     def _check_fitted(self) -> None:
@@ -479,30 +563,37 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
 
 
 class RigidModel(PhysicsModel):
-    """The plain rigid fit as a correction: `identify.rigid_registration` in closed form,
-    held in the `station` and `mount` effects so that it exports and runs like any physics
-    stage. It is the baseline of every fit (`pipeline.fit_table`): a model that does not beat
-    it on held-out poses is not returned."""
+    """The plain rigid fit as a correction: `identify.rigid_registration` in closed form (one of
+    `identify.RIGID_VARIANTS`: no lever arm, the lever in the tracker frame or in the
+    reference frame), held in the `station` and `mount` effects so that it exports and runs
+    like any physics stage. The variants are the floor of every fit (`pipeline.fit_table`): a
+    model that does not beat the best of them on held-out poses is not returned."""
 
     method = "rigid"
 
-    def __init__(self, with_rotation: bool = True) -> None:
+    def __init__(self, with_rotation: bool = True, variant: str = "lever") -> None:
         super().__init__(effects=("station", "mount"), with_rotation=with_rotation)
+        self.variant = variant
 
     def fit(self, measured: Any, reference: Any, t: np.ndarray | None = None, validation: Any = None, *,
             warm_start: Any = None) -> "RigidModel":
+        """The closed form of the variant; "joint" is the physics stage of station and mount
+        (free, from `warm_start` when given)."""
+        if self.variant == "joint":
+            return super().fit(measured, reference, t, validation, warm_start=warm_start)
         measured, reference = check_pair(measured, reference)
         if len(measured) < 3:
             raise ValueError(f"a rigid registration needs at least 3 poses, got {len(measured)}")
         measured, reference, chosen = self._setup(measured, reference, None)
         with_rotation = self.with_rotation_
-        theta, self.sigma_p_, sigma_r, rigid = self._initial_theta(measured, reference, chosen, {})
+        theta, self.sigma_p_, sigma_r, rigid = self._initial_theta(measured, reference, chosen, {}, self.variant)
         self.sigma_r_ = sigma_r if with_rotation else None
         self.fixed_ = {} if with_rotation else {"mount.d": "the reference has no orientation"}
         if len(rigid.lever_fixed):
             label = "mount.e" if len(rigid.lever_fixed) == 3 else "mount.e along " + "; ".join(
                 direction_label(rigid.mount @ v) for v in rigid.lever_fixed)   # e = -X lever
-            self.fixed_[label] = self.spread_.orientation_words()
+            self.fixed_[label] = ("the plain Kabsch fit has no lever arm" if self.variant == "kabsch"
+                                  else self.spread_.orientation_words())
         self.basis_ = np.zeros((theta.size, 0))
         self.cost_ = float("nan")
         self.params_ = self._unflatten(theta)
@@ -513,12 +604,15 @@ class RigidModel(PhysicsModel):
     def _std_errors(self, theta: np.ndarray, measured: np.ndarray, reference: np.ndarray) -> np.ndarray:
         """As for the physics stage, over the directions the identification finds determined
         at the closed-form solution (the rigid fit holds nothing the data could move)."""
+        if self.variant == "joint":
+            return super()._std_errors(theta, measured, reference)
         self.basis_, _ = self._identify(theta, measured, reference, self.sigma_p_, self.sigma_r_ or DEFAULT_SIGMA_R)
         return super()._std_errors(theta, measured, reference)
 
     def export_info(self) -> dict[str, str]:
         info = super().export_info()
         info["method"] = "rigid"
+        info["rigid_variant"] = self.variant
         return info
 
 

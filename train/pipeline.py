@@ -7,9 +7,9 @@ physics stage in front of the core.
 
 Cross-validation leaves out whole poses (`kfold_indices`: K folds or leave-one-out).
 `fit_table` is what `posecorr fit` runs: it scores the requested model (or, for `--method
-auto`, a nested choice among `auto_candidates`) on held-out poses beside the plain rigid fit
-(`physics.RigidModel`) on the same poses, and returns the rigid fit when the richer model
-does not beat it.
+auto`, a nested choice among `auto_candidates`) on held-out poses beside the plain rigid fits
+(`physics.RigidModel`, every variant of `identify.RIGID_VARIANTS`) on the same poses, and
+returns the best rigid fit when the richer model does not beat it.
 """
 from __future__ import annotations
 
@@ -25,6 +25,7 @@ from posecorr.metrics import pose_errors, pose_metrics, rmse_total
 
 from .base import PoseRegressorMixin, Validation, as_validation, check_pair, check_poses
 from .methods import get_method, make_estimator
+from .identify import describe_spread, rigid_variants
 from .physics import PhysicsModel, RigidModel
 
 
@@ -32,19 +33,22 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
     """Physics stage (may be empty) followed by a core corrector (may be None).
 
     scikit-learn conventions: the parameters (`effects`, `core`, `sigma_p`, `sigma_r`,
-    `rigid`, `with_rotation`) are never changed by fit; the fitted parts are `physics_` and
+    `rigid` (a variant of `identify.RIGID_VARIANTS`, or "" for none), `with_rotation`,
+    `prior_strength` (the physics stage's, `PhysicsModel`)) are never changed by fit; the fitted parts are `physics_` and
     `core_`, a clone of `core` (so `clone(pipeline)` and nested parameters such as
     `core__alpha` work). `with_rotation` False for a position-only table (`PhysicsModel`).
     """
 
     def __init__(self, effects: Sequence[str] = (), core: Any = None, sigma_p: float | None = None,
-                 sigma_r: float | None = None, rigid: bool = False, with_rotation: bool = True) -> None:
+                 sigma_r: float | None = None, rigid: str = "", with_rotation: bool = True,
+                 prior_strength: float = 0.0) -> None:
         self.effects = effects
         self.core = core
         self.sigma_p = sigma_p
         self.sigma_r = sigma_r
         self.rigid = rigid
         self.with_rotation = with_rotation
+        self.prior_strength = prior_strength
 
     @property
     def representation(self) -> str:
@@ -67,13 +71,14 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
         self.physics_ = None
         stage = measured
         if self.rigid and self.effects:
-            raise ValueError("a rigid pipeline has no further effects; give either rigid=True or effects")
+            raise ValueError("a rigid pipeline has no further effects; give either a rigid variant or effects")
         if physics is not None:
             self.physics_ = physics
         elif self.rigid:
-            self.physics_ = RigidModel(with_rotation).fit(measured, reference, t=t)
+            self.physics_ = RigidModel(with_rotation, self.rigid).fit(measured, reference, t=t, warm_start=warm_start)
         elif self.effects:
-            self.physics_ = PhysicsModel(self.effects, self.sigma_p, self.sigma_r, with_rotation=with_rotation).fit(
+            self.physics_ = PhysicsModel(self.effects, self.sigma_p, self.sigma_r, with_rotation=with_rotation,
+                                         prior_strength=self.prior_strength).fit(
                 measured, reference, t=t, warm_start=warm_start)
         if self.physics_ is not None:
             stage = self.physics_.predict(measured, t)
@@ -101,7 +106,11 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
 
     def predict(self, measured: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
         self._check_fitted()
-        stage = self.predict_physics(measured, t)
+        return self.predict_core(self.predict_physics(measured, t))
+
+    def predict_core(self, stage: np.ndarray) -> np.ndarray:
+        """The poses the physics stage left (`predict_physics`) through the core."""
+        self._check_fitted()
         return stage if self.core_ is None else self.core_.predict(stage)
 
     def score(self, measured: np.ndarray, reference: np.ndarray, t: np.ndarray | None = None) -> float:
@@ -118,6 +127,8 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
             info["effect_params"] = self.physics_.describe()
             if self.core_ is None:
                 info["method"] = "rigid" if self.rigid else "physics"
+            if self.rigid:
+                info["rigid_variant"] = self.rigid
             if self.physics_.fixed_:
                 info["fixed"] = dict(self.physics_.fixed_)
         return info
@@ -194,7 +205,6 @@ def make_core(method: str, representation: str, hidden: Sequence[int] = (20, 20,
 
 # --- candidates, the rigid baseline and the choice ---------------------------------------
 
-RIGID = "rigid"
 # Below SMALL_TABLE poses auto tries only cheap candidates (no MLP, one representation): a
 # network cannot be held out of 6 to 40 poses. Below MIN_TEST_SPLIT poses a 15 % test split
 # holds too few poses to mean anything, so fit cross-validates instead (and says so); a
@@ -202,38 +212,54 @@ RIGID = "rigid"
 SMALL_TABLE = 200
 MIN_TEST_SPLIT = 100
 MIN_HELDOUT = 20
+# The physics stage's prior strengths auto chooses among (by the same held-out poses as
+# everything else): 0 is the free fit, each step ten times stronger holds the physical
+# parameters nearer their identity (`PhysicsModel.prior_strength`).
+PRIOR_STRENGTHS = (0.0, 0.1, 1.0, 10.0)
 
 
 @dataclass(frozen=True)
 class Candidate:
-    """A model fit may return: a physics stage (`effects`, or the rigid registration) and a core."""
+    """A model fit may return: a physics stage (`effects` with a `prior_strength`, or a rigid
+    variant of `identify.RIGID_VARIANTS`) and a core."""
 
     name: str
     effects: tuple[str, ...] = ()
     make_core: Callable[[], Any] = lambda: None
-    rigid: bool = False
+    rigid: str = ""
+    prior_strength: float = 0.0
 
     def make(self, with_rotation: bool = True) -> CorrectionPipeline:
-        return CorrectionPipeline(self.effects, self.make_core(), rigid=self.rigid, with_rotation=with_rotation)
+        return CorrectionPipeline(self.effects, self.make_core(), rigid=self.rigid, with_rotation=with_rotation,
+                                  prior_strength=self.prior_strength)
 
 
-RIGID_CANDIDATE = Candidate(RIGID, rigid=True)
+def rigid_candidates(table: PoseTable) -> list[Candidate]:
+    """The floor: every plain rigid fit the table allows (`identify.rigid_variants`)."""
+    from posecorr.rotations import quat_to_matrix
+
+    axes = describe_spread(table.meas_p, quat_to_matrix(table.meas_q), table.has_orientation).rotation_axes
+    return [Candidate(f"rigid-{variant}", rigid=variant) for variant in rigid_variants(table.has_orientation, axes)]
 
 
 def auto_candidates(table: PoseTable, effects: Sequence[str], representation: str = "zhou") -> list[Candidate]:
-    """What `--method auto` chooses from: the rigid fit, the physics stage (the registration
-    when no effect is named) alone and with a ridge-regularised affine or quadratic core (the
-    penalty chosen by an inner cross-validation); on tables of SMALL_TABLE poses or more also
-    the quadratic core in every representation and a small MLP."""
+    """What `--method auto` chooses from: the plain Kabsch fit; the physics stage (the
+    registration when no effect is named) at every strength of PRIOR_STRENGTHS; the free
+    physics stage with a ridge-regularised affine or quadratic core (the penalty chosen by
+    an inner cross-validation); on tables of SMALL_TABLE poses or more also the quadratic
+    core in every representation and a small MLP. The other rigid variants are the floor
+    `fit_table` compares auto's choice with on the outer folds: inside the choice they would
+    only add selection noise and time."""
     physics = tuple(effects) or ("station", "mount")
     rep = representation if table.has_orientation else "pos"
 
     def pmc(representation: str, **params: Any) -> Callable[[], Any]:
         return lambda: make_estimator("pmc", representation, alpha="cv", **params)
 
-    out = [RIGID_CANDIDATE, Candidate("physics", physics),
-           Candidate(f"physics+affine-{rep}", physics, pmc(rep, degree=1)),
-           Candidate(f"physics+pmc-{rep}", physics, pmc(rep))]
+    out = [candidate for candidate in rigid_candidates(table) if candidate.rigid == "kabsch"]
+    out += [Candidate(physics_name(strength), physics, prior_strength=strength) for strength in PRIOR_STRENGTHS]
+    out += [Candidate(f"physics+affine-{rep}", physics, pmc(rep, degree=1)),
+            Candidate(f"physics+pmc-{rep}", physics, pmc(rep))]
     if table.n >= SMALL_TABLE:
         from posecorr.rotations import REPRESENTATIONS
 
@@ -243,6 +269,11 @@ def auto_candidates(table: PoseTable, effects: Sequence[str], representation: st
                              lambda: make_estimator("mlp", rep, hidden=(5,), activation="tansig", trainer="br",
                                                     epochs=200, random_state=0)))
     return out
+
+
+def physics_name(strength: float) -> str:
+    """'physics' for the free fit, 'physics(prior 1)' with a prior."""
+    return "physics" if strength == 0 else f"physics(prior {strength:g})"
 
 
 def requested_candidate(effects: Sequence[str], method: str, representation: str, hidden: Sequence[int] = (20, 20, 20, 20),
@@ -263,18 +294,32 @@ def _stops_early(candidate: Candidate) -> bool:
 
 def _fit(candidate: Candidate, rows: np.ndarray, arrays: tuple, with_rotation: bool, prior: dict,
          shared: dict | None = None, validation: Validation | None = None) -> CorrectionPipeline:
-    """Fit a candidate on `rows`; physics stages of equal effects are fitted once per `shared`
-    dict (candidates that differ only in their core share them) and start from `prior`."""
+    """Fit a candidate on `rows`; physics stages of equal effects and prior strength are
+    fitted once per `shared` dict (candidates that differ only in their core share them) and
+    start from `prior` (the free fit of those effects)."""
     M, R, t = arrays
     t_rows = None if t is None else t[rows]
     physics = None
-    if candidate.effects and not candidate.rigid:
+    effects = _fitted_effects(candidate)
+    if effects:
         shared = {} if shared is None else shared
-        if candidate.effects not in shared:
-            shared[candidate.effects] = PhysicsModel(candidate.effects, with_rotation=with_rotation).fit(
-                M[rows], R[rows], t=t_rows, warm_start=prior.get(candidate.effects))
-        physics = shared[candidate.effects]
+        free = (effects, 0.0)
+        if free not in shared:
+            shared[free] = PhysicsModel(effects, with_rotation=with_rotation).fit(
+                M[rows], R[rows], t=t_rows, warm_start=prior.get(effects))
+        key = (effects, candidate.prior_strength)
+        if key not in shared:       # a prior strength: the free fit shrunk, no further solve
+            shared[key] = shared[free].shrunk(candidate.prior_strength)
+        physics = shared[key]
     return candidate.make(with_rotation).fit(M[rows], R[rows], t=t_rows, validation=validation, physics=physics)
+
+
+def _fitted_effects(candidate: Candidate) -> tuple[str, ...]:
+    """The effects a candidate's physics stage fits by least squares (shared between
+    candidates): its own, those of the "joint" rigid variant, none for a closed form."""
+    if candidate.rigid:
+        return tuple(RigidModel().effects) if candidate.rigid == "joint" else ()
+    return candidate.effects
 
 
 def out_of_fold(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, with_rotation: bool,
@@ -285,9 +330,13 @@ def out_of_fold(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple
     predicted = {c.name: np.empty((len(rows), 7)) for c in candidates}
     for train, held in splits:
         shared: dict = {}
+        stages: dict = {}          # candidates sharing a physics stage correct the held-out poses once
         for candidate in candidates:
             model = _fit(candidate, rows[train], arrays, with_rotation, prior, shared)
-            predicted[candidate.name][held] = model.predict(M[rows[held]], None if t is None else t[rows[held]])
+            key = id(model.physics_)           # the stage is held in `stages`: its id stays its own
+            if key not in stages:
+                stages[key] = (model.physics_, model.predict_physics(M[rows[held]], None if t is None else t[rows[held]]))
+            predicted[candidate.name][held] = model.predict_core(stages[key][1])
     return predicted
 
 
@@ -295,15 +344,19 @@ def _score(reference: np.ndarray, predicted: np.ndarray, with_rotation: bool) ->
     return float(pose_metrics(reference, predicted, with_rotation)["rmse_total"])
 
 
+def _best(candidates: Sequence[Candidate], scores: dict[str, float]) -> Candidate:
+    """The lowest score; on ties a rigid variant, then the earlier candidate (the simpler)."""
+    return min(candidates, key=lambda c: (scores[c.name], not c.rigid))
+
+
 def choose(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, with_rotation: bool,
            folds: int | str, seed: int, prior: dict) -> tuple[Candidate, dict[str, float]]:
-    """The candidate with the lowest cross-validated rmse_total on `rows` (the rigid fit on ties)."""
+    """The candidate with the lowest cross-validated rmse_total on `rows` (a rigid variant on ties)."""
     splits = kfold_indices(len(rows), folds, seed)
     predicted = out_of_fold(candidates, rows, arrays, with_rotation, splits, prior)
     reference = arrays[1][rows]
     scores = {name: _score(reference, p, with_rotation) for name, p in predicted.items()}
-    best = min(candidates, key=lambda c: (scores[c.name], not c.rigid))
-    return best, scores
+    return _best(candidates, scores), scores
 
 
 def inner_folds(n: int) -> int | str:
@@ -316,9 +369,11 @@ class FitReport:
     """What `posecorr fit` learned: the model to export and its held-out evaluation.
 
     heldout: metrics of the returned model on poses it never saw (test split, or out of fold;
-    for auto the choice itself is made inside each outer fold). baseline: the rigid fit's
-    metrics on the same poses. n_heldout: how many poses each score rests on. notes: what the
-    user must know (a fallback to the rigid fit, a switch to cross-validation, a thin score).
+    for auto the choice itself is made inside each outer fold). baseline: the best rigid
+    variant's metrics on the same poses (`baseline_name`, one of `rigid_candidates`; the
+    rigid variants' scores in `rigid_scores`). n_heldout: how many poses each score rests on.
+    notes: what the user must know (a fallback to the rigid fit, a switch to
+    cross-validation, a thin score).
     """
 
     model: CorrectionPipeline
@@ -334,11 +389,23 @@ class FitReport:
     fell_back: bool = False
     notes: list[str] = field(default_factory=list)
     test_index: np.ndarray | None = None    # the test split's rows (heldout_kind "test")
+    baseline_name: str = ""
+    rigid_scores: dict[str, float] = field(default_factory=dict)
 
     @property
     def fixed(self) -> dict[str, str]:
         physics = self.model.physics_
         return dict(physics.fixed_) if physics is not None else {}
+
+    @property
+    def shrinkage(self) -> dict[str, float] | None:
+        """{"prior_strength", "effective_params"} of the returned physics stage (None for a
+        rigid fit): how far the prior held the physical parameters, and how many parameters
+        the fit used (the trace of its hat matrix)."""
+        physics = self.model.physics_
+        if physics is None or not hasattr(physics, "effective_params_"):     # a closed form: no fit, no prior
+            return None
+        return {"prior_strength": float(physics.prior_strength), "effective_params": physics.effective_params_}
 
 
 def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc", representation: str = "zhou",
@@ -346,15 +413,16 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
               epochs: int = 1000, cv: int | str | None = None, seed: int = 0,
               progress: Callable[[str], None] | None = None) -> FitReport:
     """Fit a pipeline on a table and evaluate it on held-out poses, never returning a model
-    that does worse there than the plain rigid fit.
+    that does worse there than the best plain rigid fit.
 
     cv None: the protocol's fixed 15 % test split (seeded); candidates are fitted on the
     training rows and compared on the validation rows, the chosen one refitted on both (an
     MLP keeps its early-stopped fit); tables under MIN_TEST_SPLIT poses are cross-validated
-    instead. cv K or "loo": out-of-fold predictions of the requested model and of the rigid
-    fit on the same folds; the rigid fit is returned when it does better. method "auto":
-    nested: inside each outer fold an inner cross-validation chooses among `auto_candidates`,
-    the outer folds score that choice; the final model is chosen the same way on all poses.
+    instead. cv K or "loo": out-of-fold predictions of the requested model and of every rigid
+    variant on the same folds; the best rigid variant is returned when it does better. method
+    "auto": nested: inside each outer fold an inner cross-validation chooses among
+    `auto_candidates`, the outer folds score that choice; the final model is chosen the same
+    way on all poses.
     """
     from posecorr.data import require_rows
     from posecorr.metrics import metric_block
@@ -371,11 +439,12 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
         cv = "loo" if table.n <= 40 else 5
         notes.append(f"{table.n} poses are too few for a 15 % test split (fewer than {MIN_TEST_SPLIT}); "
                      f"cross-validated ({cv}) instead")
+    floor = rigid_candidates(table)
     if method == "auto":
         candidates = auto_candidates(table, effects, representation)
     else:
         candidates = [requested_candidate(effects, method, representation, hidden, activation, trainer, epochs, seed),
-                      RIGID_CANDIDATE]
+                      *floor]
     M, R, t = table.measured, table.reference, table.time()
     arrays, with_rotation = (M, R, t), table.has_orientation
     everything = np.arange(table.n)
@@ -387,26 +456,28 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
         say(f"fitting {len(candidates)} candidate(s) on {len(train)} poses, choosing on {len(val)}, "
             f"testing on {len(test)}")
         prior = _priors(candidates, train, arrays, with_rotation)
-        shared: dict = dict(prior)          # fitted on these very rows: the candidates use them as they are
+        shared: dict = {(names, 0.0): model for names, model in prior.items()}   # fitted on these very rows
         held = Validation(M[val], R[val], None if t is None else t[val])
         fitted = {c.name: _fit(c, train, arrays, with_rotation, prior, shared, validation=held)
                   for c in candidates}
         scores = {name: _score(R[val], m.predict(M[val], None if t is None else t[val]), with_rotation)
                   for name, m in fitted.items()}
-        best = min(candidates, key=lambda c: (scores[c.name], not c.rigid))
+        best = _best(candidates, scores)
+        floor_best = _best(floor, scores)
         model = fitted[best.name] if _stops_early(best) else _fit(best, fit_rows, arrays, with_rotation, prior)
-        rigid = model if best.rigid else _fit(RIGID_CANDIDATE, fit_rows, arrays, with_rotation, prior)
+        rigid = model if best == floor_best else _fit(floor_best, fit_rows, arrays, with_rotation, prior)
         t_test = None if t is None else t[test]
         raw = pose_metrics(R[test], M[test], with_rotation)
         heldout = metric_block(raw, pose_metrics(R[test], model.predict(M[test], t_test), with_rotation))
         baseline = metric_block(raw, pose_metrics(R[test], rigid.predict(M[test], t_test), with_rotation))
         if best.rigid and method != "auto":
             notes.append(f"the requested model did worse than the rigid fit on the {len(val)} validation poses "
-                         f"({scores[candidates[0].name]:.4g} against {scores[RIGID]:.4g} rmse_total): "
-                         "returning the rigid fit")
+                         f"({scores[candidates[0].name]:.4g} against {scores[best.name]:.4g} rmse_total): "
+                         f"returning the rigid fit ({best.name})")
         report = FitReport(model, raw, heldout, "test", np.sort(fit_rows if not _stops_early(best) else train),
                            best.name, scores if method == "auto" else {}, baseline, len(test), None,
-                           best.rigid and method != "auto", notes, test)
+                           bool(best.rigid) and method != "auto", notes, test, floor_best.name,
+                           {c.name: scores[c.name] for c in floor})
         return _warn_thin(report)
 
     splits = kfold_indices(table.n, cv, seed)
@@ -420,29 +491,33 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
             predicted[held] = model.predict(M[held], None if t is None else t[held])
         say("auto: choosing on all poses")
         best, scores = choose(candidates, everything, arrays, with_rotation, inner_folds(table.n), seed, prior)
-        rigid_predicted = out_of_fold([RIGID_CANDIDATE], everything, arrays, with_rotation, splits, prior)[RIGID]
+        floor_predicted = out_of_fold(floor, everything, arrays, with_rotation, splits, prior)
     else:
-        say(f"cross-validating {candidates[0].name} and the rigid fit ({cv} folds)" if cv != "loo"
-            else f"cross-validating {candidates[0].name} and the rigid fit (leave one out)")
-        both = out_of_fold(candidates, everything, arrays, with_rotation, splits, prior)
+        say(f"cross-validating {candidates[0].name} and the rigid fits ({cv} folds)" if cv != "loo"
+            else f"cross-validating {candidates[0].name} and the rigid fits (leave one out)")
+        every = out_of_fold(candidates, everything, arrays, with_rotation, splits, prior)
         best, scores = candidates[0], {}
-        predicted, rigid_predicted = both[best.name], both[RIGID]
-    heldout = metric_block(raw_all, pose_metrics(R, predicted, with_rotation))
-    baseline = metric_block(raw_all, pose_metrics(R, rigid_predicted, with_rotation))
-    # The rigid fit returned (chosen, or fallen back to) is scored as the rigid fit on these folds.
-    fell_back = not best.rigid and baseline["rmse_total"] < heldout["rmse_total"]
-    if best.rigid:
-        heldout = baseline
+        predicted, floor_predicted = every[best.name], {c.name: every[c.name] for c in floor}
+    floor_metrics = {c.name: metric_block(raw_all, pose_metrics(R, floor_predicted[c.name], with_rotation))
+                     for c in floor}
+    rigid_scores = {name: m["rmse_total"] for name, m in floor_metrics.items()}
+    floor_best = _best(floor, rigid_scores)
+    baseline = floor_metrics[floor_best.name]
+    # A rigid variant returned is scored as itself on these folds.
+    heldout = (floor_metrics[best.name] if best.rigid
+               else metric_block(raw_all, pose_metrics(R, predicted, with_rotation)))
+    fell_back = best != floor_best and baseline["rmse_total"] < heldout["rmse_total"]
     if fell_back:
         worse = 100.0 * (heldout["rmse_total"] / baseline["rmse_total"] - 1.0)
         what = f"auto's choice (made inside each fold; {best.name} on all poses)" if method == "auto" else best.name
-        notes.append(f"{what} did worse on held-out poses than the rigid fit ({heldout['rmse_total']:.4g} "
-                     f"against {baseline['rmse_total']:.4g} rmse_total, {worse:.2g} % worse): returning the rigid fit")
-        best, heldout = RIGID_CANDIDATE, baseline
+        notes.append(f"{what} did worse on held-out poses than the best rigid fit, {floor_best.name} "
+                     f"({heldout['rmse_total']:.4g} against {baseline['rmse_total']:.4g} rmse_total, "
+                     f"{worse:.2g} % worse): returning {floor_best.name}")
+        best, heldout = floor_best, baseline
     say(f"fitting {best.name} on all {table.n} poses")
     model = _fit(best, everything, arrays, with_rotation, prior)
     report = FitReport(model, raw_all, heldout, "cv", everything, best.name, scores, baseline, table.n, cv,
-                       fell_back, notes)
+                       fell_back, notes, None, floor_best.name, rigid_scores)
     return _warn_thin(report)
 
 
@@ -470,8 +545,9 @@ def _priors(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, wi
     M, R, t = arrays
     prior = {}
     for candidate in candidates:
-        if candidate.effects and not candidate.rigid and candidate.effects not in prior:
-            prior[candidate.effects] = PhysicsModel(candidate.effects, with_rotation=with_rotation).fit(
+        effects = _fitted_effects(candidate)
+        if effects and effects not in prior:
+            prior[effects] = PhysicsModel(effects, with_rotation=with_rotation).fit(
                 M[rows], R[rows], t=None if t is None else t[rows])
     return prior
 
@@ -491,5 +567,5 @@ def _warn_thin(report: FitReport) -> FitReport:
 
 
 __all__ = ["make_core", "FitReport", "fit_table", "CorrectionPipeline", "kfold_indices", "cross_validate",
-           "CrossValidation", "Candidate", "RIGID_CANDIDATE", "auto_candidates", "requested_candidate", "choose",
+           "CrossValidation", "Candidate", "rigid_candidates", "auto_candidates", "requested_candidate", "choose",
            "out_of_fold"]

@@ -139,20 +139,24 @@ def cmd_ingest(args: argparse.Namespace) -> None:
 
 
 def _simulate_session(args: argparse.Namespace) -> Any:
-    from .simulate import SPREADS, simulate_session
+    from .simulate import ROBOTS, SPREADS, simulate_session
 
     if args.effects or args.effect_file or args.only:
         raise CliError("--session draws its own effects (frame, lever arm, noise); --effects, --effect-file "
                        "and --only go with --experiment")
     if args.spread is not None and args.spread not in SPREADS:
         raise CliError(f"--spread takes {', '.join(SPREADS)}, got {args.spread!r}")
+    if args.robot is not None and args.robot not in ROBOTS:
+        raise CliError(f"--robot takes {', '.join(ROBOTS)}, got {args.robot!r}")
     pin = {"n": args.poses, "spread": args.spread, "unremovable": None if args.unremovable is None
-           else args.unremovable / 1000.0, "position_only": True if args.position_only else None}
+           else args.unremovable / 1000.0, "position_only": True if args.position_only else None,
+           "robot": args.robot}
     return simulate_session(args.seed, **{k: v for k, v in pin.items() if v is not None})
 
 
 def _session_words(spec: Any) -> str:
-    parts = [f"realistic session: orientation spread {spec.spread}", "planar" if spec.planar else "",
+    parts = [f"realistic session: orientation spread {spec.spread}", f"carried by a {spec.robot}" if spec.robot else "",
+             "planar" if spec.planar and not spec.robot else "",
              "position-only reference" if spec.position_only else "",
              f"unremovable error {1000 * spec.unremovable:.0f} mm" if spec.unremovable else "",
              f"tracker frame {spec.offset:.1f} m away, lever arm {1000 * spec.lever:.0f} mm"]
@@ -260,8 +264,11 @@ def cmd_fit(args: argparse.Namespace) -> None:
                                "chosen": report.chosen, "representation": info.get("representation"),
                                "raw": report.raw, key: report.heldout, "effects": effects_json,
                                "parity": exported.get("parity"), "nodes": exported.get("n_nodes")}
-    payload.update({"baseline": {"model": "rigid", **report.baseline}, "n_heldout": report.n_heldout,
+    payload.update({"baseline": {"model": report.baseline_name, **report.baseline}, "n_heldout": report.n_heldout,
+                    "rigid_rmse_total": report.rigid_scores,
                     "fell_back_to_rigid": report.fell_back, "fixed": report.fixed, "notes": report.notes})
+    if report.shrinkage is not None:
+        payload["shrinkage"] = report.shrinkage
     if report.model.physics_ is not None:
         payload["spread"] = report.model.physics_.spread_.to_json()
     if report.auto_scores:
@@ -287,9 +294,15 @@ def cmd_fit(args: argparse.Namespace) -> None:
                  fmt_table(METRIC_HEADERS + ["improvement"],
                            [row + [imp] for row, imp in zip(
                                metrics_rows({"raw": report.raw, label: report.heldout,
-                                             "rigid fit, same poses": report.baseline}),
+                                             f"{report.baseline_name} (floor), same poses": report.baseline}),
                                [None, report.heldout.get("improvement_total"),
                                 report.baseline.get("improvement_total")])])]
+        lines.append(f"  floor: {report.baseline_name}, the best of the rigid fits on the same poses ("
+                     + ", ".join(f"{name} {value:.4g}" for name, value in report.rigid_scores.items())
+                     + " rmse_total)")
+        if report.shrinkage is not None:
+            lines.append(f"  prior strength {report.shrinkage['prior_strength']:g}: "
+                         f"{report.shrinkage['effective_params']:.1f} effective parameters")
         for name, params in effects_json.items():
             lines.append(f"  {name}: " + "; ".join(f"{p} = {_value_pm(v)}" for p, v in params.items()))
         for name, reason in report.fixed.items():
@@ -548,6 +561,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spread", help="with --session: orientation spread none, yaw or full")
     p.add_argument("--position-only", action="store_true", help="with --session: no reference orientation")
     p.add_argument("--unremovable", type=float, help="with --session: RMS (mm) of an error no model removes")
+    p.add_argument("--robot", help="with --session: a robot (ur5e, or the KUKA-sized ur10e) carries the tracker on "
+                                   "its flange through 30-60 poses of every orientation")
     p.add_argument("--effects", help="NAME=V1,V2,...;NAME... override or add effects (values in parameter order)")
     p.add_argument("--only", action="store_true", help="use only the --effects given (plus noise), not the default mix")
     p.add_argument("--effect-file", action="append", type=Path, help="a Python file with user effects")

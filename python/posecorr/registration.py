@@ -61,10 +61,10 @@ def robot_world_hand_eye(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.n
     eye = np.eye(3)
     # Column-major vec: vec(P Q) = (I kron P) vec(Q) = (Q^T kron I) vec(P). The null vector
     # of the stacked 9N x 18 system is the smallest eigenvector of its 18 x 18 normal matrix.
-    normal = np.zeros((18, 18))
-    for i in range(n):
-        K = np.concatenate([np.kron(eye, RA[i]), -np.kron(RB[i].T, eye)], axis=1)
-        normal += K.T @ K
+    left = np.einsum("ij,nkl->nikjl", eye, RA).reshape(n, 9, 9)                       # I kron R_Ai
+    right = np.einsum("nji,kl->nikjl", RB, eye).reshape(n, 9, 9)                      # R_Bi^T kron I
+    K = np.concatenate([left, -right], axis=2)
+    normal = np.einsum("nki,nkj->ij", K, K)
     _, vectors = np.linalg.eigh(normal)
     v = vectors[:, 0]
     RX_raw = v[:9].reshape(3, 3, order="F")
@@ -73,7 +73,7 @@ def robot_world_hand_eye(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.n
     scale = np.cbrt(np.linalg.det(RX_raw))
     RX = nearest_rotation(RX_raw / scale)
     RY = nearest_rotation(RY_raw / scale)
-    lhs = np.concatenate([np.concatenate([RA[i], -eye], axis=1) for i in range(n)])
-    rhs = np.concatenate([RY @ tB[i] - tA[i] for i in range(n)])
+    lhs = np.concatenate([RA, -np.broadcast_to(eye, (n, 3, 3))], axis=2).reshape(3 * n, 6)
+    rhs = (tB @ RY.T - tA).reshape(-1)
     sol, *_ = np.linalg.lstsq(lhs, rhs, rcond=None)
     return homogeneous(RX, sol[:3]), homogeneous(RY, sol[3:])

@@ -164,9 +164,13 @@ class SessionSpec:
     n: poses (6-40). spread: orientations "none" (all alike), "yaw" (about the vertical) or
     "full" (about every axis, up to `max_angle` rad). planar: the positions lie in a plane (a
     tracker set down on a table). position_only: the reference has no orientation.
-    unremovable: RMS (m) of a per-pose error no model removes (0: none; real sessions show
-    60-100 mm). The tracker reports in its own frame (any rotation, `offset` m away), from a
-    lever arm of `lever` m on a mount turned by any rotation.
+    unremovable: RMS (m) of a per-pose error no model removes (0: none; bad real sessions
+    show 60-110 mm). The tracker reports in its own frame (any rotation, `offset` m away), from a
+    lever arm of `lever` m on a mount turned by any rotation. robot: a robot arm of
+    `kinematics.UR_ARMS` ("ur5e", or the KUKA-sized "ur10e") carries the tracker on its flange
+    through random joint angles (30-60 poses, full orientation): the reference is the flange
+    pose, the mount the unknown flange-to-tracker offset of a hand-eye calibration; "" for a
+    tracker set down by hand.
     """
 
     n: int
@@ -178,10 +182,15 @@ class SessionSpec:
     lever: float
     box: float
     max_angle: float
+    robot: str = ""
+
+
+ROBOTS = ("ur5e", "ur10e")
 
 
 def draw_session_spec(rng: np.random.Generator, n: int | None = None, spread: str | None = None,
-                      position_only: bool | None = None, unremovable: float | None = None) -> SessionSpec:
+                      position_only: bool | None = None, unremovable: float | None = None,
+                      robot: str | None = None) -> SessionSpec:
     """A random session of the kinds real cells produce; the arguments pin what they name."""
     spread = spread if spread is not None else str(rng.choice(SPREADS))
     if spread not in SPREADS:
@@ -191,9 +200,18 @@ def draw_session_spec(rng: np.random.Generator, n: int | None = None, spread: st
     drawn = SessionSpec(
         n=int(rng.integers(6, 41)), spread=spread, planar=bool(rng.random() < 0.3),
         position_only=bool(rng.random() < 0.25),
-        unremovable=float(rng.uniform(0.06, 0.10)) if rng.random() < 0.15 else 0.0,
+        unremovable=float(rng.uniform(0.06, 0.11)) if rng.random() < 0.15 else 0.0,
         offset=float(rng.uniform(1.0, 4.0)), lever=float(rng.uniform(0.02, 0.08)),
         box=float(rng.uniform(0.3, 1.5)), max_angle=float(np.deg2rad(rng.uniform(10.0, 60.0))))
+    carried = str(rng.choice(ROBOTS)) if rng.random() < 0.15 else ""
+    robot = carried if robot is None else robot
+    if robot:
+        if robot not in ROBOTS:
+            raise ValueError(f"robot must be one of {', '.join(ROBOTS)}, got {robot!r}")
+        # A robot carries the tracker through 30-60 poses of every orientation, on a flange
+        # adapter 5-15 cm long; the reference is exact, no per-pose error beyond the tracker's.
+        drawn = replace(drawn, n=int(rng.integers(30, 61)), spread="full", position_only=False,
+                        unremovable=0.0, lever=float(rng.uniform(0.05, 0.15)), robot=robot)
     return replace(drawn, n=drawn.n if n is None else int(n),
                    position_only=drawn.position_only if position_only is None else bool(position_only),
                    unremovable=drawn.unremovable if unremovable is None else float(unremovable))
@@ -207,6 +225,22 @@ def _random_rotvec(rng: np.random.Generator, size: int | None = None) -> np.ndar
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     w = quat_to_rotvec(q)
     return w[0] if size is None else w
+
+
+def robot_flange_poses(robot: str, n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n, 4, 4) flange poses of a UR arm at random joint angles: shoulder and elbow in a
+    working posture, the wrist anywhere; poses whose flange is below 10 cm above the base
+    or nearer than 20 cm to its axis (the arm folded on itself) are drawn again."""
+    from .kinematics import UR_ARMS
+
+    arm, poses = UR_ARMS[robot], []
+    while sum(len(p) for p in poses) < n:
+        q = np.column_stack([rng.uniform(-np.pi, np.pi, n), rng.uniform(-2.2, -0.6, n), rng.uniform(0.5, 2.3, n),
+                             rng.uniform(-np.pi, np.pi, (n, 3))])
+        T = arm.forward(q)
+        ok = (T[:, 2, 3] > 0.1) & (np.linalg.norm(T[:, :2, 3], axis=1) > 0.2)
+        poses.append(T[ok])
+    return np.concatenate(poses)[:n]
 
 
 def simulate_session(seed: int = 0, spec: SessionSpec | None = None, **pin: Any) -> SimulationResult:
@@ -224,15 +258,19 @@ def simulate_session(seed: int = 0, spec: SessionSpec | None = None, **pin: Any)
     if spec.planar:
         p_ref[:, 2] = centre[2]
     base = rotvec_to_matrix(_random_rotvec(rng))
-    if spec.spread == "none":
-        turns = np.zeros((spec.n, 3))
-    elif spec.spread == "yaw":
-        turns = np.zeros((spec.n, 3))
-        turns[:, 2] = rng.uniform(-spec.max_angle, spec.max_angle, spec.n)
+    if spec.robot:
+        flange = robot_flange_poses(spec.robot, spec.n, rng)
+        p_ref, R_ref = flange[:, :3, 3], flange[:, :3, :3]
     else:
-        axis = rng.normal(size=(spec.n, 3))
-        turns = axis / np.linalg.norm(axis, axis=1, keepdims=True) * rng.uniform(0, spec.max_angle, (spec.n, 1))
-    R_ref = rotvec_to_matrix(turns) @ base
+        if spec.spread == "none":
+            turns = np.zeros((spec.n, 3))
+        elif spec.spread == "yaw":
+            turns = np.zeros((spec.n, 3))
+            turns[:, 2] = rng.uniform(-spec.max_angle, spec.max_angle, spec.n)
+        else:
+            axis = rng.normal(size=(spec.n, 3))
+            turns = axis / np.linalg.norm(axis, axis=1, keepdims=True) * rng.uniform(0, spec.max_angle, (spec.n, 1))
+        R_ref = rotvec_to_matrix(turns) @ base
     direction = rng.normal(size=3)
     lever = rng.normal(size=3)
     mix = {"mount": np.concatenate([_random_rotvec(rng), spec.lever * lever / np.linalg.norm(lever)]),

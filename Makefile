@@ -7,7 +7,7 @@ VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.posecorr-installed
 NATIVE_SOURCES := $(wildcard runtime_c/*.c runtime_c/*.h runtime_c/CMakeLists.txt runtime_c/cmake/* runtime_c/tools/*.c) export/operators.txt
 
-.PHONY: install demo test bench models fuzz embedded clean
+.PHONY: install demo test bench models programs fuzz embedded clean
 
 $(STAMP): pyproject.toml setup.py $(NATIVE_SOURCES)
 	@test -x $(VPY) || $(PYTHON) -m venv $(VENV)
@@ -31,6 +31,14 @@ bench: $(STAMP)
 
 models: $(STAMP)
 	$(VPY) -m posecorr.export.models
+	@$(MAKE) --no-print-directory programs
+
+# The shipped models' one-pose programs compiled to C (runtime_c/programs_compiled.c): the
+# loader runs these in place of its interpreter where a program's shape matches.
+programs:
+	@cmake -S runtime_c -B build/shapes -DCMAKE_BUILD_TYPE=Release >/dev/null
+	@cmake --build build/shapes --target posecorr-print-shapes --parallel 2 >/dev/null
+	$(PYTHON) runtime_c/tools/compile_programs.py --shapes build/shapes/posecorr-print-shapes models/*.onnx
 
 fuzz:
 	$(MAKE) -C runtime_c -f fuzz.mk

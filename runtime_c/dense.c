@@ -1,5 +1,5 @@
 /* Dense kernels (Gemm, MatMul, fused activations): the hot path of an MLP corrector.
- * Built with the vectoriser on; everything else in ops.c is built for size. */
+ * Built with the vectoriser on; the operators' preparation (op_*.c) is built for size. */
 #include "kernels.h"
 
 #include <math.h>
@@ -313,15 +313,146 @@ static pc_status k_gemm_chain(const pc_step *s)
 }
 
 #ifdef PC_HAVE_AVX2
+#include <immintrin.h>
+#define PC_AVX2_INLINE static inline __attribute__((always_inline, target("avx2")))
+
+/* pc_tanh_inline on eight lanes: the same operations in the same order (the clamps as
+ * min/max with the constant first, which keeps a NaN as the scalar comparisons do). */
+PC_AVX2_INLINE __m256 pc_tanh8(__m256 x)
+{
+    const __m256 c = _mm256_max_ps(_mm256_set1_ps(-9.0f), _mm256_min_ps(_mm256_set1_ps(9.0f), x));
+    const __m256 t = _mm256_mul_ps(c, c);
+    __m256 p = _mm256_set1_ps(-8.291313e-14f), q = _mm256_set1_ps(0.00025386017f);
+#define PC_HORNER(acc, coef) acc = _mm256_add_ps(_mm256_mul_ps(acc, t), _mm256_set1_ps(coef))
+    PC_HORNER(p, 5.1926935e-11f);
+    PC_HORNER(p, -2.0029567e-08f);
+    PC_HORNER(p, 1.1101826e-05f);
+    PC_HORNER(p, 0.0030986548f);
+    PC_HORNER(p, 0.13079165f);
+    PC_HORNER(p, 0.99999994f);
+    PC_HORNER(q, 0.024473764f);
+    PC_HORNER(q, 0.46412486f);
+    PC_HORNER(q, 1.0f);
+#undef PC_HORNER
+    p = _mm256_div_ps(_mm256_mul_ps(c, p), q);
+    return _mm256_max_ps(_mm256_set1_ps(-1.0f), _mm256_min_ps(_mm256_set1_ps(1.0f), p));
+}
+
+/* The first n (1 to 8) lanes of v at o. */
+PC_AVX2_INLINE void pc_store_lanes(float *o, __m256 v, int n)
+{
+    __m128 part = _mm256_castps256_ps128(v);
+    if (n == 8) {
+        _mm256_storeu_ps(o, v);
+        return;
+    }
+    if (n >= 4) {
+        _mm_storeu_ps(o, part);
+        part = _mm256_extractf128_ps(v, 1);
+        o += 4;
+        n -= 4;
+    }
+    if (n >= 2) {
+        _mm_storel_pi((__m64 *)(void *)o, part);
+        part = _mm_movehl_ps(part, part);
+        o += 2;
+        n -= 2;
+    }
+    if (n)
+        _mm_store_ss(o, part);
+}
+
+/* One pose through one layer of at most 8 NB outputs: NB accumulators that stay in
+ * registers over the whole pass on k, the activation applied to them before the one
+ * store. The last block's lanes past N are masked: nothing is read or written beyond a
+ * row, so weights used in place need no padding. Per lane the order is that of pc_row1
+ * (c, then k ascending, no fused multiply-add): results are bit-identical. */
+PC_AVX2_INLINE void pc_layer1_blocks(const float *a, const float *B, size_t K, size_t N,
+                                     const float *C, int tanh_act, float *O, const int NB)
+{
+    const int tail = (int)(N - 8 * (size_t)(NB - 1));
+    const __m256i mask = _mm256_cmpgt_epi32(_mm256_set1_epi32(tail),
+                                            _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
+    __m256 a0, a1 = _mm256_setzero_ps(), a2 = a1, a3 = a1;
+    size_t k;
+    /* acc j: its block's lanes; the last block masked */
+#define PC_LOAD_BLOCK(p, j) ((j) == NB - 1 ? _mm256_maskload_ps((p) + 8 * (j), mask) \
+                                           : _mm256_loadu_ps((p) + 8 * (j)))
+    a0 = PC_LOAD_BLOCK(C, 0);
+    if (NB > 1) a1 = PC_LOAD_BLOCK(C, 1);
+    if (NB > 2) a2 = PC_LOAD_BLOCK(C, 2);
+    if (NB > 3) a3 = PC_LOAD_BLOCK(C, 3);
+    for (k = 0; k < K; k++) {
+        const __m256 av = _mm256_broadcast_ss(a + k);
+        const float *b = B + k * N;
+        a0 = _mm256_add_ps(a0, _mm256_mul_ps(av, PC_LOAD_BLOCK(b, 0)));
+        if (NB > 1) a1 = _mm256_add_ps(a1, _mm256_mul_ps(av, PC_LOAD_BLOCK(b, 1)));
+        if (NB > 2) a2 = _mm256_add_ps(a2, _mm256_mul_ps(av, PC_LOAD_BLOCK(b, 2)));
+        if (NB > 3) a3 = _mm256_add_ps(a3, _mm256_mul_ps(av, PC_LOAD_BLOCK(b, 3)));
+    }
+#undef PC_LOAD_BLOCK
+    if (tanh_act) {
+        a0 = pc_tanh8(a0);
+        if (NB > 1) a1 = pc_tanh8(a1);
+        if (NB > 2) a2 = pc_tanh8(a2);
+        if (NB > 3) a3 = pc_tanh8(a3);
+    }
+    /* The last block's lanes are stored in pieces: a masked store costs more than the
+     * whole layer's tail, and the next layer's loads would wait behind it. */
+    if (NB > 1) _mm256_storeu_ps(O, a0);
+    if (NB > 2) _mm256_storeu_ps(O + 8, a1);
+    if (NB > 3) _mm256_storeu_ps(O + 16, a2);
+    pc_store_lanes(O + 8 * (NB - 1), NB == 1 ? a0 : NB == 2 ? a1 : NB == 3 ? a2 : a3, tail);
+}
+
+/* One function per block count: each small enough that its accumulators stay in
+ * registers (inlined into one kernel with the general layer, they were spilled, and a
+ * chain of additions through the stack is slower and depends on where the stack lies). */
+#define PC_LAYER1(NB)                                                                          \
+    __attribute__((target("avx2"), noinline)) static void pc_layer1_##NB(                    \
+        const pc_gemm *q, void *const *io)                                                     \
+    {                                                                                          \
+        pc_layer1_blocks((const float *)io[0], (const float *)io[1], q->K, q->N,               \
+                         (const float *)io[2], q->act == PC_ACT_TANH, (float *)io[3], NB);     \
+    }
+PC_LAYER1(1)
+PC_LAYER1(2)
+PC_LAYER1(3)
+PC_LAYER1(4)
+#undef PC_LAYER1
+
 __attribute__((target("avx2"))) static pc_status k_gemm_rows_avx2(const pc_step *s)
 {
     pc_gemm_rows(s);
     return PC_OK;
 }
 
+/* A one-pose layer with a bias row and tanh or no activation, up to 32 outputs, runs in
+ * registers; anything else is the general layer. */
 __attribute__((target("avx2"))) static pc_status k_gemm_chain_avx2(const pc_step *s)
 {
-    pc_run_chain(s);
+    const pc_gemm_chain *q = (const pc_gemm_chain *)s->prm;
+    size_t i;
+    for (i = 0; i < q->n_layers; i++) {
+        const pc_gemm *l = &q->layer[i];
+        void *const *io = s->io + 4 * i;
+        if (l->M != 1 || l->N == 0 || l->N > 32 ||
+            !(l->act == PC_ACT_TANH || l->act == PC_ACT_NONE)) {
+            pc_step layer;
+            layer.fn = NULL;
+            layer.io = io;
+            layer.prm = l;
+            layer.n = l->M * l->N;
+            k_gemm_rows_avx2(&layer);
+            continue;
+        }
+        switch ((l->N + 7) / 8) {
+        case 1: pc_layer1_1(l, io); break;
+        case 2: pc_layer1_2(l, io); break;
+        case 3: pc_layer1_3(l, io); break;
+        default: pc_layer1_4(l, io); break;
+        }
+    }
     return PC_OK;
 }
 

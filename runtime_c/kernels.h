@@ -284,6 +284,36 @@ static inline float pc_tanh_inline(float x)
 /* The kernels' tanh as a function, for the unit tests. */
 float pc_tanh(float x);
 
+/* Element operation `code` on floats, for a code known at compile time: the compiled
+ * programs' arithmetic, from the same list as the kernels'. */
+#ifdef __GNUC__
+__attribute__((always_inline))
+#endif
+static inline float pc_sop_float(const int code, const float a, const float b)
+{
+    switch (code) {
+#define PC_SOP_FLOAT_CASE(KERNEL, CODE, EXPR) case CODE: return (EXPR);
+        PC_FLOAT_BINARY_OPS(PC_SOP_FLOAT_CASE)
+        PC_FLOAT_UNARY_OPS(PC_SOP_FLOAT_CASE)
+#undef PC_SOP_FLOAT_CASE
+    default:
+        return b;
+    }
+}
+
+/* One-pose programs compiled ahead of time (programs_compiled.c, written by
+ * tools/compile_programs.py from the shipped models' programs). A program whose shape
+ * (program.c) equals `shape` runs `fn` instead of the interpreter: the same operations on
+ * the same entries, its own results kept in registers. */
+typedef struct pc_compiled_program {
+    uint32_t n_bytes;
+    uint64_t hash;       /* FNV-1a of shape */
+    const uint8_t *shape;
+    pc_kernel_fn fn;
+} pc_compiled_program;
+extern const pc_compiled_program pc_compiled_programs[];
+extern const size_t pc_n_compiled_programs;
+
 /* Gemm / MatMul parameters and kernels (dense.c). */
 typedef struct pc_gemm {
     size_t M, K, N;

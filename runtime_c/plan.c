@@ -503,6 +503,7 @@ pc_status pc_plan_build(pc_builder *b, const pc_options *opts, void *buf, size_t
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
     if (!(opts && (opts->flags & PC_LOAD_NO_PROGRAMS))) {
         limits.ops = opts ? opts->program_ops : 0;
+        limits.interpret = opts && (opts->flags & PC_LOAD_INTERPRET);
         if ((st = pc_program_start(&pp, &limits)) != PC_OK)
             return st;
     }

@@ -104,7 +104,11 @@ enum {
     /* The metadata strings are not kept (pc_metadata_count is 0): a small target saves
      * their bytes. The checks pc_run takes from them (input_bounds, posecorr_version)
      * stay. */
-    PC_LOAD_NO_METADATA = 1u << 2
+    PC_LOAD_NO_METADATA = 1u << 2,
+    /* One-pose programs always run in the library's interpreter, even those whose shape
+     * the library carries compiled (the exporter's encoders and decoders): the same
+     * results, bit for bit, slower. */
+    PC_LOAD_INTERPRET = 1u << 3
 };
 
 typedef struct pc_options {

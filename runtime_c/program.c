@@ -17,6 +17,12 @@
 
 #include <stddef.h>
 #include <string.h>
+#ifdef PC_PRINT_SHAPES
+/* Given by tools/print_shapes.c, the shape printer that tools/compile_programs.py runs:
+ * one byte of a shape, then the end of it. */
+void pc_print_shape_byte(unsigned byte);
+void pc_print_shape_end(void);
+#endif
 
 /* A node with more output elements keeps its kernel: the loops win there. */
 #define PC_PROGRAM_MAX_ELEMS 64
@@ -66,6 +72,7 @@ struct pc_program {
     uint32_t *k;        /* the constant pool, as bits */
     size_t n_k, cap_k;
     int open;
+    int interpret;      /* PC_LOAD_INTERPRET */
     pc_scratch_mark mark; /* keep end at opening: element maps above it */
     size_t pending;     /* elements of records with maps: copies a close may add */
 };
@@ -92,6 +99,7 @@ pc_status pc_program_start(pc_pass *pp, const pc_program_limits *limits)
     if (!g->chunk || !g->k)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory for one-pose programs "
                        "(pc_options.program_ops)");
+    g->interpret = limits && limits->interpret;
     pp->prog = g;
     return PC_OK;
 }
@@ -690,6 +698,100 @@ static void pc_put(void *ops, int wide, size_t k, int32_t a, int32_t b, int32_t 
     }
 }
 
+#ifndef PC_NO_COMPILED_PROGRAMS
+/* ---- compiled programs ----------------------------------------------------------------- */
+
+/* A program's shape: for each operation in order its code, its term count, whether its
+ * result is stored, and for each operand how many operations back it was computed (0:
+ * read from the arena or the pool; 255, then two bytes, when farther). Offsets are not
+ * part of it: a compiled program reads them from the entries, as the interpreter does,
+ * and keeps in registers what the shape says it computed itself. Equal shapes are the
+ * same computation. */
+typedef struct pc_shape_walk {
+    uint64_t hash;               /* FNV-1a of the bytes */
+    size_t len;
+    const uint8_t *expect;       /* compare against these (len bytes known to match in size) */
+    int differs;
+    int print;
+} pc_shape_walk;
+
+static void pc_shape_byte(pc_shape_walk *w, unsigned byte)
+{
+    if (w->expect && w->expect[w->len] != byte)
+        w->differs = 1;
+#ifdef PC_PRINT_SHAPES
+    if (w->print)
+        pc_print_shape_byte(byte & 0xffu);
+#endif
+    w->hash = (w->hash ^ (byte & 0xffu)) * 0x100000001b3ull;
+    w->len++;
+}
+
+static void pc_shape_ref(pc_shape_walk *w, const pc_program *g, int32_t r, size_t pos)
+{
+    size_t back;
+    if (r < 0) {
+        pc_shape_byte(w, 0);
+        return;
+    }
+    back = pos - PC_OP(g, r).level; /* level holds an ordered operation's position here */
+    if (back < 255) {
+        pc_shape_byte(w, (unsigned)back);
+    } else {
+        pc_shape_byte(w, 255);
+        pc_shape_byte(w, (unsigned)(back & 0xff));
+        pc_shape_byte(w, (unsigned)(back >> 8));
+    }
+}
+
+static void pc_shape(const pc_program *g, const int32_t *order, size_t n, pc_shape_walk *w)
+{
+    size_t pos;
+    w->hash = 0xcbf29ce484222325ull;
+    w->len = 0;
+    w->differs = 0;
+    for (pos = 0; pos < n; pos++) {
+        const size_t i = (size_t)order[pos];
+        const pc_eop *x = &PC_OP(g, i);
+        pc_shape_byte(w, x->code);
+        pc_shape_byte(w, x->code == PC_SOP_DOT ? x->n_terms : 0);
+        pc_shape_byte(w, x->dest != PC_NO_DEST);
+        PC_FOR_OPERANDS(g, i, pc_shape_ref(w, g, r, pos));
+    }
+}
+
+/* The compiled kernel of this program's shape (16-bit entries), or NULL. */
+static pc_kernel_fn pc_compiled_kernel(pc_program *g, const int32_t *order, size_t n)
+{
+    pc_shape_walk w;
+    size_t pos, k;
+    if (g->interpret || n > UINT16_MAX)
+        return NULL;
+    for (pos = 0; pos < n; pos++)
+        PC_OP(g, order[pos]).level = (uint16_t)pos;
+    w.expect = NULL;
+#ifdef PC_PRINT_SHAPES
+    w.print = 1;
+    pc_shape(g, order, n, &w);
+    pc_print_shape_end();
+#endif
+    w.print = 0;
+    pc_shape(g, order, n, &w);
+    for (k = 0; k < pc_n_compiled_programs; k++) {
+        const pc_compiled_program *c = &pc_compiled_programs[k];
+        if (c->n_bytes != w.len || c->hash != w.hash)
+            continue;
+        w.expect = c->shape;
+        pc_shape(g, order, n, &w);
+        if (!w.differs)
+            return c->fn;
+        w.expect = NULL;
+    }
+    return NULL;
+}
+
+#endif
+
 /* Writes the program (or, sizing pass, only takes its bytes). Both passes make the same
  * choices: offsets are the same in both, and the pool's are bounded (PC_KPOOL_MAX). */
 static pc_status pc_emit_program(pc_pass *pp, const int32_t *order, size_t n, int32_t temp)
@@ -766,6 +868,13 @@ static pc_status pc_emit_program(pc_pass *pp, const int32_t *order, size_t n, in
     io[0] = pp->act_base;
     io[1] = NULL;
     s->fn = wide ? k_scalar_program : k_scalar_program16;
+#ifndef PC_NO_COMPILED_PROGRAMS
+    if (!wide) {
+        const pc_kernel_fn compiled = pc_compiled_kernel(g, order, n);
+        if (compiled)
+            s->fn = compiled;
+    }
+#endif
     s->io = io;
     s->prm = q;
     s->n = entries;

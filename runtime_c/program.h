@@ -11,6 +11,7 @@
  * compiler's working memory grows with them. */
 typedef struct pc_program_limits {
     size_t ops;         /* element operations of one program (before dead ones go) */
+    int interpret;      /* never a compiled program (PC_LOAD_INTERPRET) */
 } pc_program_limits;
 
 /* State for a one-pose plan's programs (keep end of the scratch, for the pass). */

@@ -418,8 +418,9 @@ def test_lean_load_peak_is_a_small_multiple_of_the_arena(lib):
 
 @pytest.mark.parametrize("path", MODELS, ids=lambda p: p.name)
 def test_lean_load_options_give_the_same_bits(lib, path):
-    """Small program budgets (more, shorter programs), no programs at all, weights in place:
-    one pose at a time, every shipped model gives the default load's bits."""
+    """Small program budgets (more, shorter programs), no programs at all, weights in place,
+    the interpreter instead of the compiled programs: one pose at a time, every shipped
+    model gives the default load's bits."""
     from posecorr.controller.runtime import load_library
 
     L = load_library(lib)
@@ -427,7 +428,7 @@ def test_lean_load_options_give_the_same_bits(lib, path):
     x = graphs.random_poses(12, seed=4)
     results = []
     for fields in ({}, {"program_ops": 16}, {"program_ops": 48, "flags": 1 | 4},
-                   {"flags": 2}):
+                   {"flags": 2}, {"flags": PC_LOAD_INTERPRET}):
         h = _load_with(L, blob, max_batch=1, **fields)
         out = np.zeros_like(x)
         for i in range(len(x)):
@@ -436,6 +437,54 @@ def test_lean_load_options_give_the_same_bits(lib, path):
         L.pc_free(h)
     for r in results[1:]:
         np.testing.assert_array_equal(r, results[0])
+
+
+PC_LOAD_INTERPRET = 8
+
+
+@pytest.fixture(scope="session")
+def testing_lib(c_build):
+    import ctypes
+
+    T = ctypes.CDLL(str(c_build / "libposecorr_testing.so"))
+    sz = ctypes.POINTER(ctypes.c_size_t)
+    T.pc_test_program_steps.argtypes = [ctypes.c_void_p, sz, sz]
+    T.pc_test_load.argtypes = [ctypes.c_char_p, ctypes.c_size_t, ctypes.c_void_p, ctypes.c_void_p]
+    return T
+
+
+def test_shipped_models_run_compiled_programs(c_build, testing_lib):
+    """Every one-pose program of every shipped model has its compiled form
+    (runtime_c/programs_compiled.c is what `make programs` writes for models/), and
+    PC_LOAD_INTERPRET runs none of them."""
+    import ctypes
+
+    from posecorr.controller.runtime import _Error, _Options
+
+    T = testing_lib
+    subprocess.run(["cmake", "--build", str(c_build), "--target", "posecorr-print-shapes"],
+                   check=True, capture_output=True)
+    check = subprocess.run(
+        [sys.executable, str(ROOT / "runtime_c" / "tools" / "compile_programs.py"), "--check",
+         "--shapes", str(c_build / "posecorr-print-shapes"), *map(str, MODELS)],
+        capture_output=True, text=True)
+    assert check.returncode == 0, check.stderr
+    T.pc_load_memory.argtypes = [ctypes.c_char_p, ctypes.c_size_t, ctypes.POINTER(_Options),
+                                 ctypes.POINTER(ctypes.c_void_p), ctypes.POINTER(_Error)]
+    for path in MODELS:
+        blob = path.read_bytes()
+        for flags, want_compiled in ((0, True), (PC_LOAD_INTERPRET, False)):
+            handle, err = ctypes.c_void_p(), _Error()
+            opts = _Options(max_batch=16, flags=flags)
+            assert T.pc_load_memory(blob, len(blob), ctypes.byref(opts), ctypes.byref(handle),
+                                    ctypes.byref(err)) == 0, err.message
+            compiled, interpreted = ctypes.c_size_t(), ctypes.c_size_t()
+            T.pc_test_program_steps(handle, ctypes.byref(compiled), ctypes.byref(interpreted))
+            T.pc_free(handle)
+            if want_compiled:
+                assert compiled.value >= 1 and interpreted.value == 0, path.name
+            else:
+                assert compiled.value == 0 and interpreted.value >= 1, path.name
 
 
 def test_shim_checks_the_library_version(lib):

@@ -50,3 +50,20 @@ PC_TEST_API pc_status pc_test_run(pc_model *m, const void *const *in, void *cons
     }
     return PC_OK;
 }
+
+/* Steps of the one-pose plan that run a compiled program (*compiled) or the interpreter
+ * (*interpreted): the tests check which the shipped models get. */
+PC_TEST_API void pc_test_program_steps(const pc_model *m, size_t *compiled, size_t *interpreted)
+{
+    const pc_plan *plan = &m->plans[0];
+    size_t i, k;
+    *compiled = *interpreted = 0;
+    for (i = 0; i < plan->n_steps; i++) {
+        const pc_kernel_fn fn = plan->steps[i].fn;
+        if (fn == k_scalar_program || fn == k_scalar_program16)
+            ++*interpreted;
+        for (k = 0; k < pc_n_compiled_programs; k++)
+            if (fn == pc_compiled_programs[k].fn)
+                ++*compiled;
+    }
+}

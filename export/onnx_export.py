@@ -186,7 +186,8 @@ def _training_arrays(estimator: Any, measured: Any, reference: Any) -> tuple[Any
 def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = None,
             reference: np.ndarray | None = None, t: np.ndarray | None = None, parity: str = "raise",
             n_random: int = 10_000, heldout: tuple | None = None,
-            seed: int = 0, tol_pos: float = 1e-5, tol_rot: float = 1e-5, **metadata: Any) -> dict[str, Any]:
+            seed: int = 0, tol_pos: float = 1e-5, tol_rot: float = 1e-5,
+            write: Callable[[Path, bytes], None] | None = None, **metadata: Any) -> dict[str, Any]:
     """Export a fitted corrector to `path` and return what was written.
 
     estimator: has `forward(pose)` (xp-generic, (N, 7) -> (N, 7)), `predict(measured)`,
@@ -200,6 +201,8 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
       what fit prints about the file is what the file does.
     parity: "raise" (refuse to save a model beyond tol_pos m / tol_rot rad), "warn"
       (record the failure in the metadata) or "skip" (no training data needed).
+    write: writes the file's bytes (default: `safeio.write_bytes`, atomic; a command writing
+      several files together passes `safeio.Staged.write_bytes`).
     metadata: extra `metadata_props` (test_metrics=..., effects=..., ...); they override
       the estimator's `export_info()`.
 
@@ -273,9 +276,9 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
     if path.parent and not path.parent.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
     data = serialize_aligned(model)  # weights readable in place (PC_LOAD_IN_PLACE)
-    from posecorr.safeio import write_bytes
-
-    write_bytes(path, data)  # atomic: a controller polling the file never reads half a model
+    if write is None:
+        from posecorr.safeio import write_bytes as write
+    write(path, data)  # atomic: a controller polling the file never reads half a model
     counts = op_counts(model)
     return {"path": str(path), "metadata": info, "op_counts": counts, "n_nodes": sum(counts.values()),
             "file_size": len(data), "parity": parity_report, "heldout_metrics": heldout_metrics}

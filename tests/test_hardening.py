@@ -200,10 +200,10 @@ def test_bad_input_corpus_every_verb(tmp_path, capsys) -> None:
     from posecorr.train.pmc import PMC
 
     t = _table(100)
+    from posecorr.saved import SavedFit, save
+
     estimator = paths / "est.pkl"
-    fitted = PMC("zhou").fit(t.measured, t.reference)
-    fitted.training_measured_, fitted.training_reference_ = t.measured, t.reference  # as `fit --save` keeps
-    estimator.write_bytes(pickle.dumps(fitted))
+    save(estimator, SavedFit(PMC("zhou").fit(t.measured, t.reference), t.measured, t.reference))
     for name, blob in (("not a pickle", b"not a pickle"), ("empty", b"")):
         bad = paths / f"{name.replace(' ', '-')}.pkl"
         bad.write_bytes(blob)

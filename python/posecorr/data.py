@@ -227,25 +227,28 @@ class TableReader:
             raise TableError(path, "empty file, expected a header row") from None
         except csv.Error as exc:
             raise TableError(path, f"not a CSV file: {exc}", 1) from None
-        duplicates = sorted({h for h in header if header.count(h) > 1})
-        if duplicates:
-            raise TableError(path, "duplicate column in header", 1, duplicates[0])
-        ref_present = [c for c in REF_POS if c in header]
+        # Linear in the number of columns: a header of a million names is refused or read
+        # in a second, not in hours.
+        self.index = {}
+        for i, name in enumerate(header):
+            if self.index.setdefault(name, i) != i:
+                raise TableError(path, "duplicate column in header", 1, name)
+        ref_present = [c for c in REF_POS if c in self.index]
         required = REQUIRED if require_reference or ref_present else MEAS_POS + MEAS_QUAT
         for name in required:
-            if name not in header:
+            if name not in self.index:
                 raise TableError(path, "missing column (required: " + ", ".join(required) + ")", 1, name)
-        present_ref_q = [c for c in REF_QUAT if c in header]
+        present_ref_q = [c for c in REF_QUAT if c in self.index]
         if present_ref_q and len(present_ref_q) != 4:
-            missing = next(c for c in REF_QUAT if c not in header)
+            missing = next(c for c in REF_QUAT if c not in self.index)
             raise TableError(path, "missing column (ref_qw..ref_qz come as a set, or not at all)", 1, missing)
         if present_ref_q and not ref_present:
             raise TableError(path, "missing column (ref_qw..ref_qz need ref_x, ref_y, ref_z)", 1, "ref_x")
         self.has_reference = bool(ref_present)
         self.has_ref_orientation = bool(present_ref_q)
-        self.numeric = list(required) + present_ref_q + [c for c in NUMERIC_OPTIONAL if c in header]
-        self.text = [c for c in header if c not in self.numeric]
-        self.index = {name: header.index(name) for name in header}
+        self.numeric = list(required) + present_ref_q + [c for c in NUMERIC_OPTIONAL if c in self.index]
+        numeric = set(self.numeric)
+        self.text = [c for c in header if c not in numeric]
         return header
 
     def __enter__(self) -> "TableReader":

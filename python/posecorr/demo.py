@@ -30,6 +30,20 @@ def physics_pmc() -> Any:
 
 def run(out_dir: str | Path = "out/demo", seed: int = 0, mlp_hidden: tuple[int, ...] = (20, 20),
         mlp_epochs: int = 100, log: Callable[[str], None] = print) -> dict[str, Any]:
+    from .safeio import check_folder_output, replaced
+
+    final = check_folder_output(out_dir, "demo.json", "a posecorr demo's results")
+    final.parent.mkdir(parents=True, exist_ok=True)
+    # Built in a hidden folder beside and swapped in whole: a killed demo leaves the previous
+    # results as they were, never a folder mixing two runs.
+    with replaced(final) as out:
+        out.mkdir()
+        summary = _run_in(out, final, seed, mlp_hidden, mlp_epochs, log)
+    return summary
+
+
+def _run_in(out: Path, final: Path, seed: int, mlp_hidden: tuple[int, ...], mlp_epochs: int,
+            log: Callable[[str], None]) -> dict[str, Any]:
     from .controller.runtime import Corrector
     from .data import write_table
     from .latency import c_bench
@@ -40,8 +54,6 @@ def run(out_dir: str | Path = "out/demo", seed: int = 0, mlp_hidden: tuple[int, 
     from .train.pmc import PMC
     from .train.protocol import split_indices
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     sim = simulate(3, seed=seed)
     data = sim.table
     write_table(data, out / "exp3.csv")
@@ -49,7 +61,7 @@ def run(out_dir: str | Path = "out/demo", seed: int = 0, mlp_hidden: tuple[int, 
     fit_rows = np.sort(np.concatenate([train, val]))
     M, R = data.measured, data.reference
     raw = pose_metrics(R[test], M[test])
-    log(f"Experiment III simulated (seed {seed}): {data.n} poses -> {out / 'exp3.csv'}; "
+    log(f"Experiment III simulated (seed {seed}): {data.n} poses -> {final / 'exp3.csv'}; "
         f"raw rmse_total {raw['rmse_total']:.4f} (paper 0.0718), noise floor {sim.noise_floor['rmse_total']:.4f}")
     log(f"fixed split: {len(train)} train, {len(val)} validation, {len(test)} test poses")
 
@@ -87,7 +99,7 @@ def run(out_dir: str | Path = "out/demo", seed: int = 0, mlp_hidden: tuple[int, 
                                            f"noise floor {sim.noise_floor['rmse_total']:.4f})"))
     summary = {"raw": raw, "noise_floor": sim.noise_floor, "models": results}
     (out / "demo.json").write_text(json.dumps(summary, indent=2, default=float))
-    log(f"\nmodels and demo.json in {out}/")
+    log(f"\nmodels and demo.json in {final}/")
     return summary
 
 

@@ -553,9 +553,9 @@ def load_effect_file(path: str | Path) -> list[str]:
     sys.modules[module_name] = module
     try:
         spec.loader.exec_module(module)
-    except Exception as exc:
+    except (Exception, SystemExit) as exc:  # a file calling sys.exit() must not end posecorr
         del sys.modules[module_name]
-        raise ValueError(f"effect file {path}: {type(exc).__name__}: {exc}") from exc
+        raise ValueError(f"effect file {path}: {type(exc).__name__}: {exc}") from None
     classes = [obj for obj in vars(module).values()
                if isinstance(obj, type) and issubclass(obj, Effect) and obj.__module__ == module_name]
     if not classes:

@@ -237,18 +237,27 @@ WRITERS: dict[str, Callable[[Path, JointStream, PoseStream, str], None]] = {
 
 
 def write_recording(recording: Recording, path: str | Path) -> Path:
-    """Write in the format named by the suffix (WRITERS); an existing file is replaced."""
+    """Write in the format named by the suffix (WRITERS); an existing recording is replaced
+    whole once the new one is complete (`safeio.replaced`)."""
     path = Path(path)
     writer = WRITERS.get(path.suffix.lower())
     if writer is None:
         raise IngestError(f"{path}: unknown recording format {path.suffix!r}; expected .bag (ROS 1), .mcap, .csv "
                           "or a directory name without suffix (ROS 2 bag)")
-    if path.exists():
-        if path.is_dir():
-            import shutil
+    from .safeio import replaced
 
-            shutil.rmtree(path)
-        else:
-            path.unlink()
-    writer(path, recording.joints, recording.tracker, recording.tracker.frame)
+    check_recording_output(path)
+    with replaced(path) as fresh:
+        writer(fresh, recording.joints, recording.tracker, recording.tracker.frame)
     return path
+
+
+def check_recording_output(path: str | Path) -> Path:
+    """A recording path `write_recording` may replace: a new name, a file, or a ROS 2 bag
+    folder (holding metadata.yaml); any other folder is refused."""
+    from .safeio import check_folder_output, check_output
+
+    path = Path(path)
+    if path.suffix:
+        return check_output(path)
+    return check_folder_output(path, "metadata.yaml", "a ROS 2 bag")

@@ -7,6 +7,8 @@
   one, never an empty or truncated one; a full disk fails the write, not the old file.
 * `check_output(path, inputs)`: refuses an output that is a folder, sits in a missing or
   read-only folder, or is one of the command's inputs (``fit d.csv -o d.csv``).
+* `staged_outputs()`: the outputs of one command held until it succeeds, then written
+  together; a command failing late leaves none of them.
 * `append_line(path, line)`: appends one whole line under an exclusive lock; a last line
   left torn by an earlier kill is moved to ``PATH.corrupt`` first (and said so on
   stderr), so one interruption costs one record, never the next one glued onto it.
@@ -16,22 +18,28 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import stat
 import sys
 import tempfile
 from pathlib import Path
-from typing import IO, Any, Iterable, Iterator
+from typing import IO, Any, Callable, Iterable, Iterator
 
 try:
     import fcntl
 except ImportError:  # Windows: appends are not locked against a second writer
     fcntl = None  # type: ignore[assignment]
 
-__all__ = ["OutputPathError", "Terminated", "append_line", "atomic_output", "check_output",
-           "sigterm_as_interrupt", "write_bytes", "write_text"]
+__all__ = ["InUseError", "InputPathError", "OutputPathError", "Staged", "check_folder_output", "check_input",
+           "exclusive", "replaced", "Terminated", "append_line", "atomic_output", "check_output",
+           "sigterm_as_interrupt", "staged_outputs", "write_bytes", "write_text"]
 
 
 class OutputPathError(ValueError):
     """An output path that posecorr refuses to write; the message names the path."""
+
+
+class InputPathError(ValueError):
+    """An input path that posecorr refuses to read; the message names the path."""
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -41,13 +49,51 @@ def _same_file(a: Path, b: Path) -> bool:
         return False
 
 
+# Files posecorr keeps beside a table (the ledger of its fits, the segments of its
+# ingest, the default sweep store): an input's sidecar is never an output.
+SIDECARS = (".ledger.jsonl", ".segments.json", ".sweep.jsonl")
+
+
+def _kind(mode: int) -> str | None:
+    """What a non-regular file is, for the messages; None for a regular file."""
+    for test, name in ((stat.S_ISDIR, "a folder"), (stat.S_ISLNK, "a symbolic link"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return name
+    return None
+
+
+def _lstat(path: Path) -> os.stat_result | None:
+    try:
+        return os.lstat(path)
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        raise OutputPathError(f"{path}: {exc.strerror}") from None
+
+
+def _check_name(path: Path) -> None:
+    if "\0" in str(path):
+        raise OutputPathError(f"{str(path)!r}: a file name cannot hold a NUL byte")
+
+
 def check_output(path: str | os.PathLike[str], inputs: Iterable[str | os.PathLike[str] | None] = ()) -> Path:
-    """The output path, or OutputPathError when writing it would fail or destroy an input."""
+    """The output path, or OutputPathError when writing it would fail or destroy an input:
+    only a new path or an existing regular file is written (never a folder, a device, a
+    FIFO or a symbolic link, which the atomic rename would replace by a file), and never
+    an input, an input's sidecar or another output of the command."""
     out = Path(path)
-    if out.is_dir():
-        raise OutputPathError(f"{out}: is a folder, expected a file name to write")
+    _check_name(out)
     if not str(out.name) or str(out).endswith(os.sep):
         raise OutputPathError(f"{out}: expected a file name to write")
+    found = _lstat(out)
+    kind = None if found is None else _kind(found.st_mode)
+    if kind == "a folder":
+        raise OutputPathError(f"{out}: is a folder, expected a file name to write")
+    if kind is not None:
+        raise OutputPathError(f"{out}: is {kind}; posecorr writes only new or regular files (its atomic "
+                              "rename would replace it)")
     folder = out.parent if str(out.parent) else Path(".")
     for given in inputs:
         if given is None:
@@ -56,6 +102,10 @@ def check_output(path: str | os.PathLike[str], inputs: Iterable[str | os.PathLik
         if _same_file(out, source) or out.resolve() == source.resolve():
             raise OutputPathError(f"{out}: is also an input or another output of this command; "
                                   "refusing to overwrite it (choose another output name)")
+        for suffix in SIDECARS:
+            if out.resolve() == source.resolve().with_name(source.name + suffix):
+                raise OutputPathError(f"{out}: is where posecorr keeps the {suffix[1:].split('.')[0]} of input "
+                                      f"{source}; refusing to overwrite it (choose another output name)")
     if not folder.is_dir():
         raise OutputPathError(f"{out}: folder {folder} does not exist")
     if not os.access(folder, os.W_OK | os.X_OK):
@@ -63,6 +113,34 @@ def check_output(path: str | os.PathLike[str], inputs: Iterable[str | os.PathLik
     if out.exists() and not os.access(out, os.W_OK):
         raise OutputPathError(f"{out}: file exists and is read-only")
     return out
+
+
+# A table, a model or a recording larger than this is refused before it is read whole.
+MAX_INPUT_BYTES = 8 << 30
+
+
+def check_input(path: str | os.PathLike[str], *, folder_ok: bool = False) -> Path:
+    """An input path, or InputPathError: a regular file (or, `folder_ok`, a folder such as a
+    ROS 2 bag) that exists and is at most MAX_INPUT_BYTES; a device, a FIFO or a socket
+    would be read without end or block forever, and is refused unopened."""
+    src = Path(path)
+    if "\0" in str(src):
+        raise InputPathError(f"{str(src)!r}: a file name cannot hold a NUL byte")
+    try:
+        found = os.stat(src)
+    except FileNotFoundError:
+        raise InputPathError(f"{src}: cannot open: No such file or directory") from None
+    except OSError as exc:
+        raise InputPathError(f"{src}: cannot open: {exc.strerror}") from None
+    kind = _kind(found.st_mode)
+    if kind == "a folder" and folder_ok:
+        return src
+    if kind is not None:
+        raise InputPathError(f"{src}: is {kind}, expected a file")
+    if found.st_size > MAX_INPUT_BYTES:
+        raise InputPathError(f"{src}: {found.st_size / 2**30:.1f} GiB, larger than the "
+                             f"{MAX_INPUT_BYTES >> 30} GiB posecorr reads")
+    return src
 
 
 # Failures of the device rather than of the caller: reported against the output path.
@@ -94,6 +172,55 @@ def _unnamed_file(folder: Path) -> int | None:
         return None
 
 
+class _Pending:
+    """The new content of `path` in a temporary file of its folder (unnamed where the file
+    system allows), made visible under `path` by `replace` in one rename."""
+
+    def __init__(self, path: str | os.PathLike[str]):
+        self.path = Path(path)
+        self.folder = self.path.parent if str(self.path.parent) else Path(".")
+        self.fd = _unnamed_file(self.folder)
+        self.named: str | None = None
+        if self.fd is None:
+            try:
+                self.fd, self.named = tempfile.mkstemp(dir=self.folder, prefix=f".{self.path.name}.", suffix=".tmp")
+            except OSError as exc:
+                raise OutputPathError(f"{self.path}: cannot create a file in {self.folder}: {exc.strerror}") from None
+            umask = os.umask(0)
+            os.umask(umask)
+            os.fchmod(self.fd, 0o666 & ~umask)
+
+    def _device(self, exc: OSError) -> OutputPathError:
+        return OutputPathError(f"{self.path}: cannot write: {exc.strerror}; the previous file is unchanged")
+
+    def sync(self, handle: IO[Any]) -> None:
+        try:
+            handle.flush()
+            os.fsync(handle.fileno())
+        except OSError as exc:
+            if exc.errno not in _DEVICE_ERRORS:
+                raise
+            raise self._device(exc) from None
+
+    def replace(self) -> None:
+        try:
+            if self.named is None:
+                self.named = _link_unnamed(self.fd, self.folder, self.path.name)
+            os.replace(self.named, self.path)
+        except OSError as exc:
+            if exc.errno not in _DEVICE_ERRORS:
+                raise
+            raise self._device(exc) from None
+        self.named = None
+        _fsync_folder(self.folder)
+
+    def discard(self) -> None:
+        if self.named is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(self.named)
+            self.named = None
+
+
 @contextlib.contextmanager
 def atomic_output(path: str | os.PathLike[str], mode: str = "w", *, encoding: str | None = "utf-8",
                   newline: str | None = "") -> Iterator[IO[Any]]:
@@ -103,40 +230,22 @@ def atomic_output(path: str | os.PathLike[str], mode: str = "w", *, encoding: st
     """
     if mode not in ("w", "wb"):
         raise ValueError(f"mode must be 'w' or 'wb', not {mode!r}")
-    out = Path(path)
-    folder = out.parent if str(out.parent) else Path(".")
-    fd = _unnamed_file(folder)
-    named: str | None = None
-    if fd is None:
-        try:
-            fd, named = tempfile.mkstemp(dir=folder, prefix=f".{out.name}.", suffix=".tmp")
-        except OSError as exc:
-            raise OutputPathError(f"{out}: cannot create a file in {folder}: {exc.strerror}") from None
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)
+    pending = _Pending(path)
     text = mode == "w"
-    handle = os.fdopen(fd, "w" if text else "wb", encoding=encoding if text else None,
+    handle = os.fdopen(pending.fd, "w" if text else "wb", encoding=encoding if text else None,
                       newline=newline if text else None)
     try:
         try:
             yield handle
-            handle.flush()
-            os.fsync(handle.fileno())
-            if named is None:
-                named = _link_unnamed(handle.fileno(), folder, out.name)
-            os.replace(named, out)
         except OSError as exc:
             if exc.errno not in _DEVICE_ERRORS:
                 raise
-            raise OutputPathError(f"{out}: cannot write: {exc.strerror}; the previous file is unchanged") from None
-        named = None
-        _fsync_folder(folder)
+            raise pending._device(exc) from None
+        pending.sync(handle)
+        pending.replace()
     finally:
         handle.close()
-        if named is not None:
-            with contextlib.suppress(OSError):
-                os.unlink(named)
+        pending.discard()
 
 
 def _link_unnamed(fd: int, folder: Path, name: str) -> str:
@@ -170,6 +279,54 @@ def _link_unnamed(fd: int, folder: Path, name: str) -> str:
     finally:
         os.close(copy_fd)
     return copy
+
+
+class Staged:
+    """The outputs of one command, held until it succeeds (`staged_outputs`)."""
+
+    def __init__(self) -> None:
+        self._files: list[tuple[Path, bytes]] = []
+        self._then: list[Callable[[], Any]] = []
+
+    def write_bytes(self, path: str | os.PathLike[str], data: bytes) -> None:
+        self._files.append((Path(path), bytes(data)))
+
+    def before_replacing(self, step: Callable[[], Any]) -> None:
+        """Runs `step` once every content is on disk under a temporary name, before the
+        first rename (a ledger line: written only if the files are, and before them)."""
+        self._then.append(step)
+
+    def _commit(self) -> None:
+        pending: list[_Pending] = []
+        try:
+            for path, data in self._files:
+                pending.append(_Pending(path))
+                with os.fdopen(os.dup(pending[-1].fd), "wb") as handle:
+                    try:
+                        handle.write(data)
+                    except OSError as exc:
+                        if exc.errno not in _DEVICE_ERRORS:
+                            raise
+                        raise pending[-1]._device(exc) from None
+                    pending[-1].sync(handle)
+            for step in self._then:
+                step()
+            for p in pending:
+                p.replace()
+        finally:
+            for p in pending:
+                p.discard()
+                os.close(p.fd)
+
+
+@contextlib.contextmanager
+def staged_outputs() -> Iterator[Staged]:
+    """All or nothing: the block's outputs (`Staged.write_bytes`) are written when it ends
+    without error; a command that fails late (an error, SIGTERM, Ctrl-C, SIGKILL) leaves
+    none of them and the files they would have replaced unchanged."""
+    stage = Staged()
+    yield stage
+    stage._commit()
 
 
 def write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
@@ -233,6 +390,81 @@ def append_line(path: str | os.PathLike[str], line: str) -> None:
         finally:
             if fcntl is not None:
                 fcntl.flock(handle.fileno(), fcntl.LOCK_UN)
+
+
+def check_folder_output(path: str | os.PathLike[str], marker: str, what: str) -> Path:
+    """A folder a command replaces whole: new, empty, or one it wrote before (holding
+    `marker`); any other folder, or a file, is refused before any work."""
+    out = Path(path)
+    _check_name(out)
+    found = _lstat(out)
+    if found is None:
+        return out
+    if not stat.S_ISDIR(found.st_mode):
+        raise OutputPathError(f"{out}: exists and is not a folder; {what} is a folder")
+    if any(out.iterdir()) and not (out / marker).exists():
+        raise OutputPathError(f"{out}: is a folder that does not hold {what} (no {marker}); refusing to "
+                              "replace its files (choose a new name)")
+    return out
+
+
+@contextlib.contextmanager
+def replaced(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """A fresh hidden path beside `path`, with its suffix, for a writer that creates a file
+    or a folder by name; what it wrote takes `path`'s place in one rename when the block
+    ends without error (a folder: the old one is renamed away first, then removed), and is
+    removed otherwise. A killed command leaves the previous `path` whole."""
+    import shutil
+
+    out = Path(path)
+    folder = out.parent if str(out.parent) else Path(".")
+    fresh = folder / f".{out.stem}.{os.getpid()}.{os.urandom(4).hex()}.partial{out.suffix}"
+    old = None
+    try:
+        yield fresh
+        if fresh.is_dir() and out.is_dir():
+            old = folder / f".{out.name}.{os.getpid()}.{os.urandom(4).hex()}.old"
+            os.rename(out, old)
+        os.replace(fresh, out)
+        _fsync_folder(folder)
+    finally:
+        for leftover in (fresh, old):
+            if leftover is not None and os.path.lexists(leftover):
+                if leftover.is_dir() and not leftover.is_symlink():
+                    shutil.rmtree(leftover, ignore_errors=True)
+                else:
+                    with contextlib.suppress(OSError):
+                        os.unlink(leftover)
+
+
+class InUseError(OSError):
+    """Another posecorr process holds the file (`exclusive`)."""
+
+
+@contextlib.contextmanager
+def exclusive(path: str | os.PathLike[str]) -> Iterator[None]:
+    """Holds a lock beside `path` (a hidden ``.NAME.lock``, removed after) for the block:
+    a second process asking for it fails at once with InUseError, instead of both writing
+    the same file (two sweeps on one store would run every configuration twice)."""
+    out = Path(path)
+    if fcntl is None:
+        yield
+        return
+    lock = out.with_name(f".{out.name}.lock")
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise InUseError(f"{out}: in use by another posecorr process (lock {lock}); "
+                             "wait for it to finish") from None
+        try:
+            yield
+        finally:
+            with contextlib.suppress(OSError):
+                os.unlink(lock)
+    finally:
+        os.close(fd)
 
 
 class Terminated(KeyboardInterrupt):

@@ -1,0 +1,35 @@
+"""`posecorr apply`."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from .common import emit, output_option
+
+HELP = "correct the measured poses of a table with a model"
+OUTPUTS = ('output',)  # arguments naming files the verb writes
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("model", type=Path)
+    p.add_argument("input", type=Path)
+    output_option(p)
+    p.add_argument("--backend", choices=("c", "onnxruntime"), default="c")
+
+
+def run(args: argparse.Namespace) -> None:
+    from ..controller.apply import apply_file
+
+    payload = apply_file(args.model, args.input, args.output, backend=args.backend)
+
+    def text() -> str:
+        from ..textui import METRIC_HEADERS, metrics_rows, table as fmt_table
+
+        head = (f"{payload['n']} poses corrected with {args.model} ({args.backend}) -> {args.output} "
+                f"(columns corr_x..corr_qz beside the raw meas_*)")
+        if payload["raw"] is None:
+            return head + "\nno ref_* columns: no metrics"
+        return head + "\n" + fmt_table(METRIC_HEADERS, metrics_rows({"raw": payload["raw"],
+                                                                     "corrected": payload["corrected"]}))
+
+    emit(args, payload, text)

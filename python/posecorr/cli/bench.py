@@ -1,0 +1,43 @@
+"""`posecorr bench`."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from . import options
+from .common import emit
+
+HELP = "single-pose latency and batch throughput, C runtime against the alternatives"
+OUTPUTS = ()  # arguments naming files the verb writes
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("model", type=Path)
+    p.add_argument("--n", type=options.integer(1, 10_000_000), default=100_000, help="single-pose calls per backend")
+    p.add_argument("--batch", type=options.integer(1, 1_000_000), default=10_000, help="poses per batch call")
+
+
+def run(args: argparse.Namespace) -> None:
+    from ..controller.runtime import Corrector
+    from ..latency import bench_model
+
+    # Load it in every back end first: a file the runtimes refuse fails here, in one line.
+    Corrector(args.model).close()
+    try:
+        import onnxruntime  # noqa: F401
+    except ImportError:
+        pass
+    else:
+        Corrector(args.model, backend="onnxruntime").close()
+    result = bench_model(args.model, n_single=args.n, batch=args.batch)
+
+    def text() -> str:
+        from ..textui import table
+
+        keys = list(result["single_pose_median_us"])
+        rows = [[k, result["single_pose_median_us"][k], result["single_pose_p99_us"][k],
+                 result["batch_ns_per_pose"][k]] for k in keys]
+        return table(["backend", "single median [us]", "single p99 [us]", "batch [ns/pose]"], rows,
+                     title=f"{args.model} on {result.get('machine', '?')}")
+
+    emit(args, result, text)

@@ -1,0 +1,115 @@
+"""What the verbs share: the user-facing error, output in text or JSON, and the option
+groups several verbs declare (`-o`, `--seed`, `--effect-file`, `--backend`, `--threads`)."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+from ..jsonable import json_default
+
+BACKENDS = ("c", "onnxruntime")
+
+
+class CliError(Exception):
+    """A user-facing error: printed as one line, exit code 2."""
+
+
+def print_json(obj: Any) -> None:
+    print(json.dumps(obj, indent=2, default=json_default))
+
+
+def emit(args: argparse.Namespace, payload: dict[str, Any], text: Callable[[], str]) -> None:
+    if args.json:
+        print_json(payload)
+    else:
+        print(text())
+
+
+def progress(args: argparse.Namespace) -> Callable[[str], None]:
+    if args.json:
+        return lambda message: None
+    return lambda message: print(f"  {message}", file=sys.stderr, flush=True)
+
+
+def printable(text: str) -> str:
+    """Control and other non-printable characters as escapes (\\x1b, \\n, \\u202e)."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
+
+
+# --- option groups ---------------------------------------------------------------------
+
+def output_option(p: argparse.ArgumentParser, help: str | None = None, **kw: Any) -> None:
+    p.add_argument("-o", "--output", type=Path, required=kw.pop("required", True), help=help, **kw)
+
+
+def seed_option(p: argparse.ArgumentParser) -> None:
+    from .options import SEED
+
+    p.add_argument("--seed", type=SEED, default=0)
+
+
+def effect_file_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--effect-file", action="append", type=Path, help="a Python file with user effects")
+
+
+def backend_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--backend", choices=BACKENDS, default="c")
+
+
+def threads_option(p: argparse.ArgumentParser, scope: str = "") -> None:
+    from .options import THREADS
+
+    p.add_argument("--threads", type=THREADS, metavar="N",
+                   help=f"threads for torch and BLAS{' ' + scope if scope else ''} (default: the cores other "
+                        "processes leave idle, at least 1)")
+
+
+def diagnosis_options(p: argparse.ArgumentParser) -> None:
+    """The diagnosis' cross-validation (diagnose, report), its seed and its threads."""
+    from .options import integer
+
+    p.add_argument("--folds", type=integer(2, 1000), default=5)
+    seed_option(p)
+    threads_option(p)
+
+
+# --- what the option groups give --------------------------------------------------------
+
+def apply_threads(args: argparse.Namespace, workers: int = 1) -> int:
+    """--threads (or the default), before anything trains: one call at the top of a verb."""
+    from ..threads import set_threads
+
+    return set_threads(args.threads, workers)
+
+
+def load_effect_files(args: argparse.Namespace) -> list[str]:
+    from ..effects import load_effect_file
+
+    files = [str(path) for path in getattr(args, "effect_file", None) or []]
+    for path in files:
+        load_effect_file(path)
+    return files
+
+
+def effect_names(text: str | None) -> list[str]:
+    """'station,mount' -> checked names (unknown ones fail naming the catalogue)."""
+    from ..effects import get_effect
+
+    names = [n.strip() for n in (text or "").split(",") if n.strip()]
+    for name in names:
+        get_effect(name)
+    return names
+
+
+def read_data(args: argparse.Namespace) -> Any:
+    """The verb's table, after --threads and --effect-file took effect."""
+    from ..data import read_table
+
+    apply_threads(args)
+    load_effect_files(args)
+    return read_table(args.data)

@@ -1,0 +1,27 @@
+"""`posecorr demo`."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from .common import print_json, apply_threads, seed_option, threads_option
+
+HELP = "the main job on the embedded default: simulate Exp III, fit, export, run in C"
+NEEDS = "train"
+OUTPUTS = ("output",)  # arguments naming files the verb writes
+FOLDER_OUTPUT = True  # -o is a folder it fills
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("-o", "--output", type=Path, default=Path("out/demo"))
+    seed_option(p)
+    threads_option(p)
+
+
+def run(args: argparse.Namespace) -> None:
+    from ..demo import run
+
+    apply_threads(args)
+    summary = run(args.output, seed=args.seed, log=(lambda message: None) if args.json else print)
+    if args.json:
+        print_json(summary)

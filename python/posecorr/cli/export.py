@@ -1,0 +1,27 @@
+"""`posecorr export`."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from .common import emit, output_option
+
+HELP = "export an estimator saved by `fit --save` (signed by this account) to ONNX"
+NEEDS = "train"
+OUTPUTS = ('output',)  # arguments naming files the verb writes
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("estimator", type=Path)
+    output_option(p)
+    p.add_argument("--no-parity", action="store_true", help="skip the onnxruntime parity check")
+
+
+def run(args: argparse.Namespace) -> None:
+    from ..saved import load
+
+    fit = load(args.estimator)
+    exported = fit.estimator.to_onnx(args.output, measured=fit.measured, reference=fit.reference, t=fit.t,
+                                     parity="skip" if args.no_parity else "raise")
+    emit(args, {k: v for k, v in exported.items() if k != "metadata"},
+         lambda: f"{args.estimator} -> {args.output} ({exported['n_nodes']} nodes, {exported['file_size']} bytes)")

@@ -1,0 +1,96 @@
+"""Before a verb runs and after it fails: the optional packages it needs, its output paths,
+and the one line (exit 2) that an anticipated failure becomes."""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+from pathlib import Path
+from types import ModuleType
+
+from .common import CliError, printable
+
+EXIT_USAGE = 2
+EXIT_INTERNAL = 1
+EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143
+
+# The optional dependencies, by extra, and how to get them.
+EXTRA_MODULES = {
+    "train": ("torch", "scipy", "sklearn", "onnx", "onnxruntime", "matplotlib", "tqdm", "threadpoolctl"),
+    "ros2": ("rclpy", "geometry_msgs", "diagnostic_msgs"),
+}
+INSTALL_HINT = {**dict.fromkeys(EXTRA_MODULES["train"], "pip install 'posecorr[train]'"),
+                "ray": "pip install ray",
+                **dict.fromkeys((*EXTRA_MODULES["ros2"], "rcl_interfaces"), "pip install 'posecorr[ros2]'")}
+
+
+def check_extras(verb: ModuleType) -> None:
+    """A verb that needs an extra fails before any work when one of its modules is missing."""
+    for module in EXTRA_MODULES.get(getattr(verb, "NEEDS", ""), ()):
+        if importlib.util.find_spec(module) is None:
+            raise ModuleNotFoundError(f"No module named {module!r}", name=module)
+
+
+def paths(args: argparse.Namespace, outputs: tuple[str, ...]) -> tuple[list[Path], list[Path]]:
+    """(inputs, outputs) named by the parsed arguments; `outputs` are the verb's output
+    argument names, every other Path argument is an input."""
+    ins: list[Path] = []
+    outs: list[Path] = []
+    for name, value in vars(args).items():
+        for item in value if isinstance(value, list) else [value]:
+            if isinstance(item, Path):
+                (outs if name in outputs else ins).append(item)
+    return ins, outs
+
+
+def check_paths(args: argparse.Namespace, verb: ModuleType) -> None:
+    """Paths are checked before the verb runs: inputs exist and are files (a device or a
+    FIFO is refused unopened), outputs are new or regular files in a writable folder and
+    neither an input, an input's sidecar nor another output; so `fit d.csv -o d.csv` or
+    `apply m.onnx /dev/zero` fail before any work."""
+    from ..safeio import check_input, check_output
+
+    folder_inputs = getattr(verb, "FOLDER_INPUTS", ())
+    for name, value in vars(args).items():
+        if name not in verb.OUTPUTS and name not in getattr(verb, "CHECKS_ITSELF", ()):
+            for item in value if isinstance(value, list) else [value]:
+                if isinstance(item, Path):
+                    check_input(item, folder_ok=name in folder_inputs)
+    if getattr(verb, "FOLDER_OUTPUT", False):
+        return
+    ins, outs = paths(args, verb.OUTPUTS)
+    for i, out in enumerate(outs):
+        check_output(out, ins + outs[:i])
+
+
+def missing_module_line(exc: ModuleNotFoundError) -> str:
+    name = (exc.name or "").split(".")[0]
+    hint = INSTALL_HINT.get(name)
+    what = f"this needs the {name} package, which is not installed" if name else str(exc)
+    return what + (f": {hint}" if hint else "")
+
+
+def error_line(exc: BaseException, args: argparse.Namespace, outputs: tuple[str, ...]) -> str:
+    """One line: the message, its first line only, escaped, prefixed with the input it
+    concerns when it does not name a file itself."""
+    if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+        message = f"{exc.filename}: {exc.strerror}"
+    else:
+        message = str(exc) or type(exc).__name__
+    ins, outs = paths(args, outputs)
+    for path in ins + outs:  # a newline in a file name must not cut the line short
+        message = message.replace(str(path), printable(str(path)))
+    lines = [line for line in message.splitlines() if line.strip()] or [type(exc).__name__]
+    message = printable(lines[0].strip()) + (" ..." if len(lines) > 1 else "")
+    if ins and not any(printable(str(p)) in message for p in ins + outs):
+        message = f"{printable(str(ins[0]))}: {message}"
+    return message
+
+
+def anticipated(exc: BaseException) -> bool:
+    """Failures that bad input, a bad file or a bad path cause: reported in one line.
+    posecorr's own exceptions (table, model, export, parity, options) count, as do the
+    ValueErrors and OSErrors of the numeric and file layers below it."""
+    if isinstance(exc, (ValueError, OSError, CliError, EOFError)):
+        return True
+    return any(cls.__module__.split(".")[0] == "posecorr" for cls in type(exc).__mro__)

@@ -1,0 +1,144 @@
+"""`posecorr fit`."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from . import options
+from .common import (CliError, emit, progress, apply_threads, load_effect_files, effect_names,
+                     output_option, seed_option, effect_file_option, threads_option)
+
+HELP = "fit a correction (physics effects, then PMC/MLP) and export it as ONNX"
+NEEDS = "train"
+OUTPUTS = ('output', 'save')  # arguments naming files the verb writes
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("data", type=Path)
+    output_option(p)
+    p.add_argument("--effects", help="comma-separated effects of the physics stage, e.g. station,mount")
+    effect_file_option(p)
+    from ..train.methods import METHODS
+
+    p.add_argument("--method", choices=(*METHODS, "auto"), default="pmc")
+    from ..rotations import REPRESENTATIONS
+
+    p.add_argument("--representation", choices=tuple(REPRESENTATIONS), default="zhou",
+                   help="orientation representation of the core (position-only tables use position only)")
+    p.add_argument("--hidden", default="20,20,20,20", help="MLP hidden layer sizes")
+    p.add_argument("--network", help="an MLP named as in the paper, ARCHITECTURE/ALGORITHM: 16/2 = table 1's "
+                                     "architecture 16 trained by algorithm 2 (overrides --hidden and --trainer)")
+    from ..train.activations import ACTIVATIONS
+
+    p.add_argument("--activation", default="tansig", choices=tuple(ACTIVATIONS))
+    from ..train.trainers import TRAINERS
+
+    p.add_argument("--trainer", default="br", choices=tuple(TRAINERS), help="the MLP's training algorithm")
+    p.add_argument("--epochs", type=options.integer(1, 1_000_000), default=1000)
+    p.add_argument("--cv", default="none", help="none (fixed 15%% test split), loo, or a number of folds")
+    seed_option(p)
+    p.add_argument("--save", type=Path,
+                   help="also save the fitted estimator, signed for this account (for `posecorr export`)")
+    threads_option(p)
+
+
+def _parse_cv(text: str | None) -> int | str | None:
+    if text is None or text == "none":
+        return None
+    if text == "loo":
+        return "loo"
+    try:
+        folds = int(text)
+    except ValueError:
+        folds = 0
+    if not 2 <= folds <= 1000:
+        raise CliError(f"--cv takes none, loo or a number of folds in 2..1000, got {text!r}")
+    return folds
+
+
+def run(args: argparse.Namespace) -> None:
+    from ..data import read_table
+    from ..export.symbolic import ExportError
+    from ..fitting import write_fit
+    from ..textui import METRIC_HEADERS, metrics_rows, table as fmt_table
+    from ..train.pipeline import fit_table
+
+    apply_threads(args)
+    load_effect_files(args)
+    table = read_table(args.data)
+    effects = effect_names(args.effects)
+    trainer = args.trainer
+    if args.network is not None:
+        from ..train.mlp import parse_network
+
+        hidden, trainer = parse_network(args.network)
+    else:
+        hidden = options.layer_sizes(args.hidden, "--hidden", ",")
+    report = fit_table(table, effects, args.method, args.representation, hidden, args.activation, trainer,
+                       args.epochs, _parse_cv(args.cv), args.seed, progress=progress(args))
+    key = report.heldout_kind
+    try:
+        exported = write_fit(report, table, args.data, args.output, effects, save=args.save).exported
+    except ExportError as exc:
+        raise CliError(f"{args.output}: the model could not be exported: {exc}") from None
+    info = report.model.export_info()
+    effects_json = report.model.physics_.describe() if report.model.physics_ is not None else {}
+    payload: dict[str, Any] = {"model": str(args.output), "method": info.get("method"),
+                               "chosen": report.chosen, "representation": info.get("representation"),
+                               "raw": report.raw, key: report.heldout, "effects": effects_json,
+                               "parity": exported.get("parity"), "nodes": exported.get("n_nodes")}
+    payload.update({"baseline": {"model": report.baseline_name, **report.baseline}, "n_heldout": report.n_heldout,
+                    "rigid_rmse_total": report.rigid_scores,
+                    "fell_back_to_rigid": report.fell_back, "fixed": report.fixed, "notes": report.notes})
+    if report.shrinkage is not None:
+        payload["shrinkage"] = report.shrinkage
+    if report.model.physics_ is not None:
+        payload["spread"] = report.model.physics_.spread_.to_json()
+    if report.auto_scores:
+        payload["auto_cv_rmse_total"] = report.auto_scores
+
+    def text() -> str:
+        label = f"test split ({report.n_heldout})" if key == "test" else f"{report.chosen}, cv {report.cv}"
+        lines = [f"{args.data}: {table.n} poses; effects: {', '.join(effects) or 'none'}; "
+                 f"model: {report.chosen}" + (f" (auto: {_fmt_scores(report.auto_scores)})" if report.auto_scores else ""),
+                 fmt_table(METRIC_HEADERS + ["improvement"],
+                           [row + [imp] for row, imp in zip(
+                               metrics_rows({"raw": report.raw, label: report.heldout,
+                                             f"{report.baseline_name} (floor), same poses": report.baseline}),
+                               [None, report.heldout.get("improvement_total"),
+                                report.baseline.get("improvement_total")])])]
+        lines.append(f"  floor: {report.baseline_name}, the best of the rigid fits on the same poses ("
+                     + ", ".join(f"{name} {value:.4g}" for name, value in report.rigid_scores.items())
+                     + " rmse_total)")
+        if report.shrinkage is not None:
+            lines.append(f"  prior strength {report.shrinkage['prior_strength']:g}: "
+                         f"{report.shrinkage['effective_params']:.1f} effective parameters")
+        for name, params in effects_json.items():
+            lines.append(f"  {name}: " + "; ".join(f"{p} = {_value_pm(v)}" for p, v in params.items()))
+        for name, reason in report.fixed.items():
+            lines.append(f"  fixed {name}: {reason}")
+        lines += [f"  note: {note}" for note in report.notes]
+        parity = exported.get("parity") or {}
+        lines.append(f"-> {args.output} ({exported['n_nodes']} nodes, {exported['file_size']} bytes"
+                     + (f", parity {parity.get('max_pos_m', 0):.1e} m / {parity.get('max_rot_rad', 0):.1e} rad)"
+                        if parity else ")"))
+        return "\n".join(lines)
+
+    emit(args, payload, text)
+
+
+def _fmt_scores(scores: dict[str, float]) -> str:
+    return ", ".join(f"{name} {value:.3g}" for name, value in sorted(scores.items(), key=lambda kv: kv[1]))
+
+
+def _value_pm(pair: list) -> str:
+    """'0.07 ± 0.007', or '0.0006 (not determined)' where the fit has no standard error."""
+    value, error = pair
+    if isinstance(value, list):
+        return "[" + ", ".join(_one_pm(v, e) for v, e in zip(value, error)) + "]"
+    return _one_pm(value, error)
+
+
+def _one_pm(value: float, error: float | None) -> str:
+    return f"{value:.4g} ± {error:.1g}" if error is not None else f"{value:.4g} (not determined)"

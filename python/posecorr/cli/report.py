@@ -1,0 +1,49 @@
+"""`posecorr report`."""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from .common import (backend_option, diagnosis_options, effect_file_option, effect_names, emit, output_option,
+                     progress, read_data)
+
+HELP = "an HTML page: measurements against a model, where it fails, what is missing"
+NEEDS = "train"
+OUTPUTS = ('output',)  # arguments naming files the verb writes
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("data", type=Path)
+    p.add_argument("--model", type=Path, required=True)
+    output_option(p)
+    p.add_argument("--effects", help="the model's effects for the diagnosis (default: from the model file)")
+    effect_file_option(p)
+    p.add_argument("--no-diagnosis", action="store_true", help="skip the (slower) diagnosis section")
+    backend_option(p)
+    diagnosis_options(p)
+
+
+def run(args: argparse.Namespace) -> None:
+    from ..analysis.ledger import read_ledger
+    from ..analysis.page import write_report
+    from ..controller.onnx_meta import read_info
+    from ..controller.runtime import Corrector
+
+    table = read_data(args)
+    info = read_info(args.model)
+    corrected = Corrector(args.model, backend=args.backend).correct(table.measured, t=table.time())
+    diagnosis = None
+    if not args.no_diagnosis:
+        from ..analysis.diagnose import diagnose
+
+        effects = effect_names(args.effects) if args.effects is not None else list(info.get("effects") or [])
+        diagnosis = diagnose(table, effects, folds=args.folds, seed=args.seed,
+                             model_predict=lambda measured: corrected, progress=progress(args))
+    from ..ingest.pipeline import segments_path
+
+    sidecar = segments_path(args.data)
+    segments = json.loads(sidecar.read_text(encoding="utf-8")) if sidecar.exists() else None
+    path = write_report(args.output, table, corrected, info, diagnosis, read_ledger(args.data), segments=segments)
+    emit(args, {"report": str(path), "bytes": path.stat().st_size, "diagnosis": diagnosis},
+          lambda: f"{args.data} against {args.model} -> {path} ({path.stat().st_size // 1024} KiB)")

@@ -1,0 +1,40 @@
+"""`posecorr ros2`."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from . import options
+from .common import print_json
+
+HELP = "a ROS 2 node: correct a PoseStamped topic live, swap models while it runs"
+NEEDS = "ros2"
+OUTPUTS = ()  # arguments naming files the verb writes
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("model", type=Path)
+    p.add_argument("--input", default="/tracker/pose", help="PoseStamped topic of the raw tracker pose")
+    p.add_argument("--output", default="/tracker/pose_corrected", help="topic of the corrected pose")
+    p.add_argument("--frame", default="base_link", help="frame id of the corrected pose (the robot's)")
+    p.add_argument("--reliable", action="store_true", help="reliable QoS (default: sensor data, best effort)")
+    p.add_argument("--t0", type=options.real(),
+                   help="models with time: t = stamp - T0 (default: the first pose's stamp)")
+    p.add_argument("--diagnostics-period", type=options.real(0, 3600, open_lo=True), default=1.0,
+                   help="seconds between /diagnostics messages")
+
+
+def run(args: argparse.Namespace) -> None:
+    from ..ros2.node import run_node
+
+    final = run_node(args.model, input_topic=args.input, output_topic=args.output,
+                     frame=args.frame, reliable=args.reliable, t0=args.t0,
+                     diag_period=args.diagnostics_period,
+                     log=(lambda m: print(m, file=sys.stderr, flush=True)))
+    if args.json:
+        print_json(final)
+    else:
+        print(f"stopped: {final['poses_in']} poses in, {final['poses_out']} out, "
+              f"{final['refused']} refused; per model generation {final['poses_per_generation']}; "
+              f"added latency p50 {final['latency_p50_us']} us, p99 {final['latency_p99_us']} us")

@@ -1,0 +1,131 @@
+"""`posecorr simulate`."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from . import options
+from .common import CliError, emit, load_effect_files, output_option, seed_option, effect_file_option
+
+HELP = ("simulate a paired-pose table of paper experiment I, II or III, "
+        "or a realistic robot-cell session")
+OUTPUTS = ('output',)  # arguments naming files the verb writes
+CHECKS_ITSELF = ("recording",)  # a file or a ROS 2 bag folder (recording.check_recording_output)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--experiment", type=int, choices=(1, 2, 3))
+    p.add_argument("--session", action="store_true",
+                   help="a realistic session: 6-40 poses, the tracker's own frame, a lever arm (drawn from --seed)")
+    p.add_argument("--poses", type=options.integer(6, 100_000), help="with --session: number of poses (6 or more)")
+    p.add_argument("--spread", help="with --session: orientation spread none, yaw or full")
+    p.add_argument("--position-only", action="store_true", help="with --session: no reference orientation")
+    p.add_argument("--unremovable", type=options.real(0, 1000),
+                   help="with --session: RMS (mm) of an error no model removes")
+    p.add_argument("--robot", help="with --session: a robot (ur5e, or the KUKA-sized ur10e) carries the tracker on "
+                                   "its flange through 30-60 poses of every orientation")
+    p.add_argument("--effects", help="NAME=V1,V2,...;NAME... override or add effects (values in parameter order)")
+    p.add_argument("--only", action="store_true", help="use only the --effects given (plus noise), not the default mix")
+    effect_file_option(p)
+    seed_option(p)
+    output_option(p)
+    p.add_argument("--recording", type=Path, metavar="OUT.(bag|mcap|csv)",
+                   help="also write the recording behind the table: ROS 1 .bag, .mcap, .csv, or a name without "
+                        "suffix for a ROS 2 bag directory; -o then holds the recorded poses only")
+    p.add_argument("--targets", type=options.integer(1, 10_000), default=40,
+                   help="poses visited by --recording, first of the measurement order (default 40: 7 minutes)")
+
+
+def run(args: argparse.Namespace) -> None:
+    from ..data import write_table
+    from ..effects import parse_effects_arg
+    from ..simulate import simulate
+    from ..textui import METRIC_HEADERS, metrics_rows, table
+
+    files = load_effect_files(args)  # before parsing: --effects may name the file's effects
+    effects = parse_effects_arg(args.effects) if args.effects else None
+    if args.recording is not None:
+        from ..recording import check_recording_output
+        from ..safeio import OutputPathError
+
+        check_recording_output(args.recording)
+        if args.recording.resolve() == args.output.resolve():
+            raise OutputPathError(f"{args.recording}: is also -o; the recording and its table are two files")
+    if (args.experiment is None) == (not args.session):
+        raise CliError("give either --experiment N or --session")
+    if args.session:
+        if args.recording is not None:
+            raise CliError("--recording drives the robot through an experiment's targets: give --experiment N")
+        result = _simulate_session(args)
+    else:
+        result = simulate(args.experiment, effects=effects, seed=args.seed, effect_files=files,
+                          base="none" if args.only else "default")
+    sim_table, raw, floor = result.table, result.raw, result.noise_floor
+    recording = None
+    if args.recording is not None:
+        from ..recording import simulate_recording, table_metrics, write_recording
+
+        recording = simulate_recording(result, n_targets=args.targets, seed=args.seed)
+        write_recording(recording, args.recording)
+        sim_table = recording.table
+        raw, floor = table_metrics(result, sim_table.n)
+    write_table(sim_table, args.output)
+    effects_used = result.effects_json()
+    payload = {"n": sim_table.n, "output": str(args.output), "raw": raw,
+               "noise_floor": floor, "effects": effects_used}
+    if recording is not None:
+        payload["recording"] = {"path": str(args.recording), "joint_samples": len(recording.joints.t),
+                                "tracker_samples": len(recording.tracker.t), "clock_offset_s": recording.offset,
+                                "duration_s": float(recording.joints.t[-1] - recording.joints.t[0])}
+
+    if result.spec is not None:
+        payload["session"] = dict(vars(result.spec))
+
+    def text() -> str:
+        what = f"Experiment {args.experiment}" if result.spec is None else _session_words(result.spec)
+        lines = [f"{what}, seed {args.seed}: {sim_table.n} poses -> {args.output}",
+                 table(METRIC_HEADERS, metrics_rows({"raw": raw, "noise floor": floor}))]
+        lines.append("effects: " + "; ".join(f"{name}={_fmt_params(p)}" for name, p in effects_used.items()))
+        if recording is not None:
+            r = payload["recording"]
+            lines.append(f"recording -> {args.recording}: {r['duration_s']:.0f} s, {r['joint_samples']} joint states, "
+                         f"{r['tracker_samples']} tracker poses, clock offset {recording.offset:+.3f} s")
+        return "\n".join(lines)
+
+    emit(args, payload, text)
+
+
+def _simulate_session(args: argparse.Namespace) -> Any:
+    from ..simulate import ROBOTS, SPREADS, simulate_session
+
+    if args.effects or args.effect_file or args.only:
+        raise CliError("--session draws its own effects (frame, lever arm, noise); --effects, --effect-file "
+                       "and --only go with --experiment")
+    if args.spread is not None and args.spread not in SPREADS:
+        raise CliError(f"--spread takes {', '.join(SPREADS)}, got {args.spread!r}")
+    if args.robot is not None and args.robot not in ROBOTS:
+        raise CliError(f"--robot takes {', '.join(ROBOTS)}, got {args.robot!r}")
+    pin = {"n": args.poses, "spread": args.spread, "unremovable": None if args.unremovable is None
+           else args.unremovable / 1000.0, "position_only": True if args.position_only else None,
+           "robot": args.robot}
+    return simulate_session(args.seed, **{k: v for k, v in pin.items() if v is not None})
+
+
+def _session_words(spec: Any) -> str:
+    parts = [f"realistic session: orientation spread {spec.spread}", f"carried by a {spec.robot}" if spec.robot else "",
+             "planar" if spec.planar and not spec.robot else "",
+             "position-only reference" if spec.position_only else "",
+             f"unremovable error {1000 * spec.unremovable:.0f} mm" if spec.unremovable else "",
+             f"tracker frame {spec.offset:.1f} m away, lever arm {1000 * spec.lever:.0f} mm"]
+    return "; ".join(p for p in parts if p)
+
+
+def _fmt_params(params: dict[str, Any]) -> str:
+    parts = []
+    for key, value in params.items():
+        if isinstance(value, (list, tuple)):
+            parts.append(f"{key}=[{', '.join(f'{v:.4g}' for v in value)}]")
+        else:
+            parts.append(f"{key}={value:.4g}" if isinstance(value, float) else f"{key}={value}")
+    return ", ".join(parts)

@@ -1,0 +1,185 @@
+"""The hostile corpus of issue 21, by class: outputs that would destroy a file, inputs that
+never end, options that ask for unbounded work, code that tries to end posecorr. Every case
+ends in one line naming the file, row and column or the option, exit 2, and leaves every
+file of its folder byte for byte (checksums); the counts per class are printed."""
+from __future__ import annotations
+
+import hashlib
+import os
+import stat
+import subprocess
+import sys
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from posecorr.cli import main
+from posecorr.data import PoseTable, write_table
+
+ROOT = Path(__file__).resolve().parents[1]
+MODEL = ROOT / "models" / "pmc-zhou.onnx"
+
+
+def _table(n: int = 40) -> PoseTable:
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    p = np.array([0.0, -0.6, 0.5]) + rng.uniform(-0.1, 0.1, (n, 3))
+    q = Rotation.from_euler("xyz", rng.uniform(-0.5, 0.5, (n, 3))).as_quat(scalar_first=True)
+    return PoseTable(p + 0.003, q, p, q)
+
+
+def _checksums(folder: Path) -> dict[str, str]:
+    """Every entry below folder: a file's SHA-256, or what else it is."""
+    out = {}
+    for path in sorted(folder.rglob("*")):
+        mode = os.lstat(path).st_mode
+        if stat.S_ISREG(mode):
+            out[str(path)] = hashlib.sha256(path.read_bytes()).hexdigest()
+        else:
+            out[str(path)] = "link" if stat.S_ISLNK(mode) else "folder" if stat.S_ISDIR(mode) else "special"
+    return out
+
+
+@pytest.fixture()
+def folder(tmp_path) -> Path:
+    write_table(_table(), tmp_path / "d.csv")
+    (tmp_path / "m.onnx").write_bytes(MODEL.read_bytes())
+    (tmp_path / "not-a-bag").mkdir()
+    (tmp_path / "not-a-bag" / "notes.txt").write_text("mine\n")
+    (tmp_path / "not-a-demo").mkdir()
+    (tmp_path / "not-a-demo" / "thesis.tex").write_text("mine\n")
+    os.mkfifo(tmp_path / "fifo")
+    os.symlink(tmp_path / "d.csv", tmp_path / "link.csv")
+    os.symlink(tmp_path / "loop-a", tmp_path / "loop-b")
+    os.symlink(tmp_path / "loop-b", tmp_path / "loop-a")
+    (tmp_path / "exits.py").write_text("import sys\nsys.exit(0)\n")
+    return tmp_path
+
+
+def _cases(f: Path) -> list[tuple[str, str, list[str], list[str]]]:
+    """(class, case, argv, what the one line must name)."""
+    d, m = str(f / "d.csv"), str(f / "m.onnx")
+    cases = [
+        # outputs that are inputs' sidecars, special files, other people's folders, not a store
+        ("output", "fit -o the data's ledger", ["fit", d, "-o", d + ".ledger.jsonl"], ["ledger", "d.csv"]),
+        ("output", "fit --save at the data's ledger", ["fit", d, "-o", str(f / "x.onnx"), "--save",
+                                                      d + ".ledger.jsonl"], ["ledger"]),
+        ("output", "apply -o a FIFO", ["apply", m, d, "-o", str(f / "fifo")], ["fifo", "FIFO"]),
+        ("output", "apply -o a symbolic link", ["apply", m, d, "-o", str(f / "link.csv")], ["link.csv", "symbolic"]),
+        ("output", "sweep --store a model", ["sweep", d, "--repeats", "1", "--no-mlp", "--store", m],
+         ["m.onnx", "not a sweep store"]),
+        ("output", "simulate --recording a folder that is not a bag",
+         ["simulate", "--experiment", "1", "-o", str(f / "s.csv"), "--recording", str(f / "not-a-bag")],
+         ["not-a-bag", "ROS 2 bag"]),
+        ("output", "demo -o a folder that is not a demo's", ["demo", "-o", str(f / "not-a-demo")],
+         ["not-a-demo", "demo.json"]),
+        ("output", "a NUL byte in -o", ["apply", m, d, "-o", str(f / "a\0b.csv")], ["NUL"]),
+        # inputs that never end or never open
+        ("input", "a FIFO as the table", ["apply", m, str(f / "fifo"), "-o", str(f / "o.csv")], ["fifo", "FIFO"]),
+        ("input", "/dev/zero as the table", ["fit", "/dev/zero", "-o", str(f / "o.onnx")], ["/dev/zero", "device"]),
+        ("input", "/dev/urandom as the model", ["apply", "/dev/urandom", d, "-o", str(f / "o.csv")],
+         ["/dev/urandom", "device"]),
+        ("input", "a symbolic-link loop", ["info", str(f / "loop-a")], ["loop-a"]),
+        ("input", "a folder as the model", ["info", str(f)], ["is a folder"]),
+        ("input", "a NUL byte in the model's name", ["info", m + "\0.csv"], ["NUL"]),
+        # options that ask for unbounded or no work
+        ("option", "--targets 0", ["simulate", "--experiment", "1", "-o", str(f / "s.csv"), "--recording",
+                                   str(f / "r.mcap"), "--targets", "0"], ["--targets"]),
+        ("option", "--targets 1000000", ["simulate", "--experiment", "1", "-o", str(f / "s.csv"), "--targets",
+                                         "1000000"], ["--targets"]),
+        ("option", "--poses 1e9", ["simulate", "--session", "-o", str(f / "s.csv"), "--poses", "1e9"], ["--poses"]),
+        ("option", "--max-offset 1e9", ["ingest", d, "-o", str(f / "i.csv"), "--max-offset", "1e9"],
+         ["--max-offset"]),
+        ("option", "--max-jitter-mm nan", ["ingest", d, "-o", str(f / "i.csv"), "--max-jitter-mm", "nan"],
+         ["--max-jitter-mm", "finite"]),
+        ("option", "--joint-cols twice", ["ingest", d, "-o", str(f / "i.csv"), "--joint-cols", "q1,q1,q2"],
+         ["--joint-cols", "q1"]),
+        ("option", "bench --n 0", ["bench", m, "--n", "0"], ["--n"]),
+        ("option", "bench --batch 1e9", ["bench", m, "--batch", "1000000000"], ["--batch"]),
+        ("option", "--hidden 100000", ["fit", d, "-o", str(f / "o.onnx"), "--method", "mlp", "--hidden", "100000"],
+         ["--hidden"]),
+        ("option", "--epochs -1", ["fit", d, "-o", str(f / "o.onnx"), "--epochs", "-1"], ["--epochs"]),
+        ("option", "--cv 1", ["fit", d, "-o", str(f / "o.onnx"), "--cv", "1"], ["--cv"]),
+        ("option", "--repeats 0", ["sweep", d, "--repeats", "0"], ["--repeats"]),
+        ("option", "--no-pmc --no-mlp", ["sweep", d, "--no-pmc", "--no-mlp"], ["--no-pmc"]),
+        ("option", "--seed -1", ["fit", d, "-o", str(f / "o.onnx"), "--seed", "-1"], ["--seed"]),
+        ("option", "--folds 1", ["diagnose", d, "--folds", "1"], ["--folds"]),
+        ("option", "--threads 0", ["fit", d, "-o", str(f / "o.onnx"), "--threads", "0"], ["--threads"]),
+        # code that tries to end posecorr
+        ("code", "an effect file calling sys.exit(0)", ["fit", d, "-o", str(f / "o.onnx"), "--effect-file",
+                                                        str(f / "exits.py")], ["exits.py", "SystemExit"]),
+        # a file name that would cut the message
+        ("message", "a newline in the table's name", ["apply", m, str(f / "no\nsuch.csv"), "-o", str(f / "o.csv")],
+         ["no\\nsuch.csv"]),
+    ]
+    return cases
+
+
+def test_hostile_corpus(folder, capsys) -> None:
+    before = _checksums(folder)
+    counts: Counter = Counter()
+    failures = []
+    for kind, case, argv, expected in _cases(folder):
+        capsys.readouterr()
+        code = main(argv)
+        err = capsys.readouterr().err
+        lines = [line for line in err.splitlines() if line.strip()]
+        after = _checksums(folder)
+        ok = code == 2 and len(lines) == 1 and all(e in lines[0] for e in expected) and after == before
+        counts[kind, ok] += 1
+        if not ok:
+            changed = sorted(set(after.items()) ^ set(before.items()))
+            failures.append(f"{kind} / {case}: exit {code}, stderr {err.strip()!r}, expected {expected}, "
+                            f"changed {changed[:4]}")
+    with capsys.disabled():
+        kinds = sorted({k for k, _ in counts})
+        print("\nhostile corpus (issue 21): " + ", ".join(
+            f"{k} {counts[k, True]}/{counts[k, True] + counts[k, False]}" for k in kinds)
+            + " cases ended in one located line, exit 2, no file changed")
+    assert not failures, "\n".join(failures)
+
+
+def test_a_fifo_without_writer_does_not_block(folder) -> None:
+    """Checked by stat, never opened: the command ends at once (a subprocess, so that a
+    regression hangs this test's timeout and not the suite)."""
+    run = subprocess.run([sys.executable, "-m", "posecorr.cli", "info", str(folder / "fifo")],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and "FIFO" in run.stderr
+
+
+def test_a_character_device_output_is_not_replaced(folder) -> None:
+    """`-o` onto a device node (a copy of /dev/null: needs root to make) is refused; the
+    node stays a device."""
+    node = folder / "null-copy"
+    try:
+        os.mknod(node, 0o666 | stat.S_IFCHR, os.stat("/dev/null").st_rdev)
+    except PermissionError:
+        pytest.skip("mknod needs root")
+    code = main(["apply", str(folder / "m.onnx"), str(folder / "d.csv"), "-o", str(node)])
+    assert code == 2
+    assert stat.S_ISCHR(os.lstat(node).st_mode)
+
+
+def test_workers_are_capped_at_the_cores(folder, capsys) -> None:
+    from posecorr.cli import options
+
+    write_table(_table(160), folder / "d80.csv")
+    code = main(["sweep", str(folder / "d80.csv"), "--repeats", "1", "--no-mlp", "--workers", "1000",
+                 "--store", str(folder / "s.jsonl"), "--json"])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert f"capped at the {options.cores()} cores" in err
+
+
+def test_two_sweeps_on_one_store_do_not_both_run(folder) -> None:
+    from posecorr.safeio import InUseError, exclusive
+
+    store = folder / "s.jsonl"
+    with exclusive(store):
+        with pytest.raises(InUseError, match="in use by another posecorr process"):
+            with exclusive(store):
+                pass
+    assert not (folder / ".s.jsonl.lock").exists()

@@ -183,3 +183,15 @@ def test_two_sweeps_on_one_store_do_not_both_run(folder) -> None:
             with exclusive(store):
                 pass
     assert not (folder / ".s.jsonl.lock").exists()
+
+
+def test_apply_keeps_a_line_break_inside_a_cell(tmp_path) -> None:
+    """A quoted line break in a text column stays one record: as many records out as in."""
+    import csv
+
+    src, out = tmp_path / "q.csv", tmp_path / "o.csv"
+    src.write_text('meas_x,meas_y,meas_z,meas_qw,meas_qx,meas_qy,meas_qz,note\n'
+                   '0.01,-0.6,0.5,1,0,0,0,"a\nb"\n0.02,-0.6,0.5,1,0,0,0,c\n')
+    assert main(["apply", str(MODEL), str(src), "-o", str(out)]) == 0
+    records = list(csv.reader(out.open(newline="")))
+    assert len(records) == 3 and records[1][7] == "a\nb"

@@ -77,3 +77,14 @@ def test_binary_partial_record_and_bad_record_are_reported(run_tool) -> None:
     assert "record 2" in errors[0] and "record 4: partial record of 10 bytes" in errors[1]
     r = _run(run_tool, records[:1].tobytes(), "--binary")
     assert r.returncode == 0 and len(r.stdout) == 28 and r.stderr == b""
+
+
+def test_an_endless_line_costs_no_memory_and_a_nul_is_not_ignored(run_tool) -> None:
+    """10 MB of NUL bytes (what /dev/zero gives) is one bad line answered with NaN; a NUL
+    inside a pose line makes it a bad line, not a pose cut at the NUL; `pose,abc` on line 1
+    is a bad line, not a header echoed back."""
+    r = _run(run_tool, b"\x00" * 10_000_000 + b"\n" + _csv(GOOD[0]).encode() + b"\x00junk\npose,abc\n")
+    out = r.stdout.decode().splitlines()
+    assert r.returncode == 1 and len(out) == 3
+    assert all(np.isnan([float(v) for v in line.split(",")]).all() for line in out)
+    assert "line 1:" in r.stderr.decode() and "NUL" in r.stderr.decode()

@@ -332,8 +332,26 @@ def _check_quaternions(path: str | None, q: np.ndarray, columns: tuple[str, ...]
                          "..".join((columns[0], columns[-1])))
 
 
+def _check_writable(table: PoseTable, path: str) -> None:
+    """What `read_table` would refuse is not written: finite positions within MAX_POSITION
+    of the origin, unit quaternions (rows as in the file: the header is row 1)."""
+    rows = list(range(2, table.n + 2))
+    blocks = [(MEAS_POS, table.meas_p), (REF_POS, table.ref_p)]
+    for columns, values in blocks:
+        bad = np.argwhere(~(np.abs(values) <= MAX_POSITION))
+        if bad.size:
+            i, k = (int(x) for x in bad[0])
+            raise TableError(path, f"refusing to write {values[i, k]:.6g} m (positions are finite metres within "
+                             f"{MAX_POSITION:g} m of the origin)", rows[i], columns[k])
+    _check_quaternions(path, np.nan_to_num(table.meas_q, nan=0.0), MEAS_QUAT, rows)
+    if table.ref_q is not None:
+        _check_quaternions(path, np.nan_to_num(table.ref_q, nan=0.0), REF_QUAT, rows)
+
+
 def write_table(table: PoseTable, path: str | Path) -> None:
-    """Write the table as CSV, every float with round-trip precision."""
+    """Write the table as CSV, every float with round-trip precision; a table `read_table`
+    would refuse (a NaN, a pose 1e6 m away, a zero quaternion) is refused instead."""
+    _check_writable(table, str(path))
     columns: list[tuple[str, np.ndarray]] = []
     if "id" in table.extras:
         columns.append(("id", table.extras["id"]))

@@ -5,7 +5,7 @@
  * "x,y,z,qw,qx,qy,qz,t" is the pose's time t (s since the session's start), passed to
  * models that take time (pc_model_takes_time; others ignore it); without it such a model
  * corrects the pose as at t = 0. --binary reads and writes raw little-endian float32
- * records of 7 values instead. Lines may be of any length.
+ * records of 7 values instead. A first line of 7 (or 8) names is a header, passed through.
  *
  * A bad line (or a record the model refuses) is answered on stderr with its line (record)
  * number and the reason, and on stdout with a line (record) of seven NaN, so that output
@@ -15,7 +15,6 @@
  * is reported (exit 1), never dropped in silence. */
 #include "posecorr.h"
 
-#include <ctype.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -23,37 +22,36 @@
 
 #define USAGE "usage: %s MODEL.onnx [--binary] [--strict] < poses > corrected\n"
 
+/* A pose line is a few dozen bytes: runs of blanks are kept as one (they only separate
+ * numbers), and a line with more than this many other bytes is read to its end but not
+ * kept, so an endless line (/dev/zero on stdin) costs no memory while padding of any
+ * length still reads. */
+#define LINE_MAX_BYTES 4096
+
 typedef struct {
-    char *data;
-    size_t cap;
+    char data[LINE_MAX_BYTES + 1];
+    int too_long; /* the line had more bytes than LINE_MAX_BYTES */
+    int has_nul;  /* the line held a NUL byte: C strings would end there */
 } line_buffer;
 
-/* Reads one line of any length (without its newline) into buf; returns 0 at end of input,
- * -1 when out of memory, 1 otherwise. */
+/* Reads one line (without its newline) into buf; returns 0 at end of input, 1 otherwise. */
 static int read_line(FILE *in, line_buffer *buf)
 {
     size_t len = 0;
     int c;
-    if (!buf->data) {
-        buf->cap = 256;
-        buf->data = malloc(buf->cap);
-        if (!buf->data)
-            return -1;
-    }
-    while ((c = getc(in)) != EOF) {
-        if (len + 1 >= buf->cap) {
-            char *grown = realloc(buf->data, buf->cap * 2);
-            if (!grown)
-                return -1;
-            buf->data = grown;
-            buf->cap *= 2;
-        }
-        if (c == '\n')
-            break;
-        buf->data[len++] = (char)c;
+    buf->too_long = buf->has_nul = 0;
+    while ((c = getc(in)) != EOF && c != '\n') {
+        if (c == '\0')
+            buf->has_nul = 1;
+        if ((c == ' ' || c == '\t') && len > 0 && (buf->data[len - 1] == ' ' || buf->data[len - 1] == '\t'))
+            continue;
+        if (len < LINE_MAX_BYTES)
+            buf->data[len++] = (char)c;
+        else
+            buf->too_long = 1;
     }
     buf->data[len] = '\0';
-    return (c == EOF && len == 0) ? 0 : 1;
+    return (c == EOF && len == 0 && !buf->too_long) ? 0 : 1;
 }
 
 static int parse_line(const char *line, float *v)
@@ -102,12 +100,30 @@ static int split_time(char *line, float *t)
     return 1;
 }
 
-static int has_letter(const char *s)
+/* A header names the 7 (or 8, with t) columns: that many fields, none a number. Any other
+ * line that is not a pose is a bad line, answered with NaN like the rest. */
+static int is_header(const char *line)
 {
-    for (; *s; s++)
-        if (isalpha((unsigned char)*s) && *s != 'e' && *s != 'E')
-            return 1;
-    return 0;
+    int fields = 0;
+    const char *p = line;
+    for (;;) {
+        const char *start = p;
+        char *end;
+        while (*p && *p != ',')
+            p++;
+        while (start < p && (*start == ' ' || *start == '\t'))
+            start++;
+        if (start == p)
+            return 0; /* an empty field */
+        strtof(start, &end);
+        if (end != start)
+            return 0; /* a field that reads as a number */
+        fields++;
+        if (!*p)
+            break;
+        p++;
+    }
+    return fields == PC_POSE_WIDTH || fields == PC_POSE_WIDTH + 1;
 }
 
 static int is_blank(const char *s)
@@ -192,28 +208,32 @@ static int run_binary(pc_model *model, int strict)
 static int run_text(pc_model *model, int strict)
 {
     float in[PC_POSE_WIDTH], out[PC_POSE_WIDTH];
-    line_buffer buf = {NULL, 0};
+    static line_buffer buf;
     unsigned long line_no = 0;
-    int failed = 0, status = 0, r;
-    while ((r = read_line(stdin, &buf)) == 1) {
+    int failed = 0, status = 0;
+    while (read_line(stdin, &buf) == 1) {
         char *line = buf.data;
         pc_status st;
         float t = 0.0f;
-        int has_t;
+        int has_t = 0;
         line_no++;
-        if (line[0] == '#' || is_blank(line))
+        if (!buf.has_nul && !buf.too_long && (line[0] == '#' || is_blank(line)))
             continue;
-        has_t = split_time(line, &t);
-        if (!parse_line(line, in)) {
-            if (line_no == 1 && has_letter(line)) { /* a CSV header: pass it through */
-                if (printf("%s\n", line) < 0 || fflush(stdout) != 0) {
-                    status = 1;
-                    break;
-                }
-                continue;
+        if (!buf.has_nul && !buf.too_long && line_no == 1 && is_header(line)) {
+            /* a CSV header: pass it through */
+            if (printf("%s\n", line) < 0 || fflush(stdout) != 0) {
+                status = 1;
+                break;
             }
+            continue;
+        }
+        if (!buf.has_nul && !buf.too_long)
+            has_t = split_time(line, &t);
+        if (buf.has_nul || buf.too_long || !parse_line(line, in)) {
             fprintf(stderr, "posecorr-run: line %lu: expected 7 comma-separated numbers "
-                            "x,y,z,qw,qx,qy,qz\n", line_no);
+                            "x,y,z,qw,qx,qy,qz%s\n", line_no,
+                    buf.has_nul ? " (the line holds a NUL byte)"
+                    : buf.too_long ? " (the line holds more than 4096 bytes besides blanks)" : "");
             if (strict) {
                 status = 1;
                 break;
@@ -244,11 +264,6 @@ static int run_text(pc_model *model, int strict)
             break;
         }
     }
-    if (r < 0) {
-        fprintf(stderr, "posecorr-run: line %lu: out of memory\n", line_no + 1);
-        status = 1;
-    }
-    free(buf.data);
     return status ? status : failed;
 }
 

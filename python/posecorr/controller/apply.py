@@ -50,7 +50,9 @@ def _line_writer(width: int):
     """Cells as read -> one CSV line (no newline): joined directly when no cell needs
     quoting (the common case, many times faster), through the csv module otherwise."""
     buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="")
+    # "\n" as the terminator: the csv module quotes a cell holding its terminator's
+    # characters, and with "" it would leave a line break inside a cell unquoted.
+    writer = csv.writer(buffer, lineterminator="\n")
 
     def line(cells: list[str]) -> str:
         text = ",".join(cells)
@@ -59,7 +61,7 @@ def _line_writer(width: int):
         buffer.seek(0)
         buffer.truncate()
         writer.writerow(cells)
-        return buffer.getvalue()
+        return buffer.getvalue()[:-1]
 
     return line
 

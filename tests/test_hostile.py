@@ -56,6 +56,11 @@ def folder(tmp_path) -> Path:
     os.symlink(tmp_path / "loop-a", tmp_path / "loop-b")
     os.symlink(tmp_path / "loop-b", tmp_path / "loop-a")
     (tmp_path / "exits.py").write_text("import sys\nsys.exit(0)\n")
+    log = ["t,q1,q2,q3,q4,q5,q6,x,y,z,qw,qx,qy,qz"]
+    log += [f"{0.01 * (i // 2)},0,-1,1,0,1,0,0.1,-0.5,0.5,1,0,0,0" for i in range(200)]
+    (tmp_path / "equal-times.csv").write_text("\n".join(log) + "\n")
+    (tmp_path / "lol.urdf").write_text('<?xml version="1.0"?>\n<!DOCTYPE r [<!ENTITY a "aaaa">'
+                                       '<!ENTITY b "&a;&a;&a;&a;">]>\n<robot name="&b;"><link name="l"/></robot>\n')
     return tmp_path
 
 
@@ -108,6 +113,11 @@ def _cases(f: Path) -> list[tuple[str, str, list[str], list[str]]]:
         ("option", "--seed -1", ["fit", d, "-o", str(f / "o.onnx"), "--seed", "-1"], ["--seed"]),
         ("option", "--folds 1", ["diagnose", d, "--folds", "1"], ["--folds"]),
         ("option", "--threads 0", ["fit", d, "-o", str(f / "o.onnx"), "--threads", "0"], ["--threads"]),
+        # recordings that crashed the ingest
+        ("recording", "equal times in a CSV log", ["ingest", str(f / "equal-times.csv"), "-o", str(f / "i.csv"),
+                                                   "--offset", "0"], ["equal-times.csv", "row 3", "column t"]),
+        ("recording", "a URDF with entity expansion", ["ingest", str(f / "equal-times.csv"), "-o", str(f / "i.csv"),
+                                                       "--robot", str(f / "lol.urdf")], ["lol.urdf", "ENTITY"]),
         # code that tries to end posecorr
         ("code", "an effect file calling sys.exit(0)", ["fit", d, "-o", str(f / "o.onnx"), "--effect-file",
                                                         str(f / "exits.py")], ["exits.py", "SystemExit"]),
@@ -195,3 +205,21 @@ def test_apply_keeps_a_line_break_inside_a_cell(tmp_path) -> None:
     assert main(["apply", str(MODEL), str(src), "-o", str(out)]) == 0
     records = list(csv.reader(out.open(newline="")))
     assert len(records) == 3 and records[1][7] == "a\nb"
+
+
+def test_a_long_table_is_diagnosed_on_a_bounded_draw(monkeypatch) -> None:
+    """The diagnosis' work is bounded: past MAX_ROWS it runs on an even draw of rows, and a
+    given model's corrections are taken for exactly those rows."""
+    import posecorr.analysis.diagnose as diagnosis
+    from posecorr.simulate import simulate
+
+    table = simulate(1, seed=0).table.subset(np.arange(300))
+    monkeypatch.setattr(diagnosis, "MAX_ROWS", 120)
+    seen = []
+
+    def predict(measured):
+        seen.append(len(measured))
+        return measured
+    result = diagnosis.diagnose(table, ["station"], folds=3, model_predict=predict, candidates=["mount"])
+    assert result["rows"] == {"given": 300, "used": 120}
+    assert seen == [300]  # the model ran on the whole table once, its rows were then drawn

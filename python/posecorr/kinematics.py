@@ -12,6 +12,8 @@ appends end_T_tracker (eq. 22 by default) to give base_T_tracker (eq. 19).
 """
 from __future__ import annotations
 
+import re
+
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -119,9 +121,13 @@ class UrdfArm(_SerialArm):
             text = Path(path).read_text(encoding="utf-8")
         except OSError as exc:
             raise KinematicsError(f"{path}: cannot read URDF: {exc.strerror}") from None
+        # A URDF needs no document type: one that declares entities could expand them
+        # without bound ("billion laughs"), so it is refused before any parsing.
+        if re.search(r"<!\s*(DOCTYPE|ENTITY)", text, re.IGNORECASE):
+            raise KinematicsError(f"{path}: declares a DOCTYPE or ENTITY, which a URDF never needs; refused unparsed")
         try:
             self.name, links, joints = parse_urdf(text)
-        except (UrdfException, ValueError, KeyError) as exc:
+        except (UrdfException, ValueError, KeyError, SyntaxError, TypeError, AttributeError) as exc:
             raise KinematicsError(f"{path}: not a valid URDF: {exc}") from None
         by_child = {j.child: j for j in joints}
         parents = {j.parent for j in joints}

@@ -203,6 +203,10 @@ def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int,
             "fold_params": [model.physics_.params_ for model in cv.fitted]}
 
 
+# Rows a diagnosis runs on at most (drawn evenly from a longer table).
+MAX_ROWS = 5000
+
+
 def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed: int = 0,
              alpha: float = 1e-3, min_gain: float = 0.005, candidates: Sequence[str] | None = None,
              model_predict: Callable[[np.ndarray], np.ndarray] | None = None,
@@ -219,6 +223,15 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     from posecorr.train.pipeline import kfold_indices
 
     require_rows(table, max(folds, 2), f"a {folds}-fold diagnosis")
+    rows_given = table.n
+    if table.n > MAX_ROWS:
+        # Its cost grows with the rows (a fit per candidate and fold): a long recording is
+        # diagnosed on an even draw of MAX_ROWS of them, which ranks the same effects.
+        keep = np.sort(np.random.default_rng(seed).choice(table.n, MAX_ROWS, replace=False))
+        if model_predict is not None:
+            corrected = np.asarray(model_predict(table.measured))
+            model_predict = lambda measured: corrected[keep]  # noqa: E731
+        table = table.subset(keep)
     effects = list(effects)
     names = list(candidates) if candidates is not None else candidate_effects(table, effects)
     say = progress or (lambda message: None)
@@ -266,6 +279,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         "test": PRESENT_TEST.format(alpha=alpha, folds=folds, gain=min_gain),
         "folds": folds,
         "cv_base": {"rmse_total": state.before, "rmse_pos": float(np.sqrt(np.mean(dp ** 2)))},
+        "rows": {"given": rows_given, "used": table.n},
     }
 
 

@@ -13,6 +13,7 @@ import argparse
 import importlib
 import os
 import sys
+import warnings
 
 from .. import __version__
 from . import failures
@@ -58,11 +59,15 @@ def main(argv: list[str] | None = None) -> int:
     prefix = f"posecorr {args.verb}: "
     debug = bool(os.environ.get("POSECORR_DEBUG"))
     try:
-        with sigterm_as_interrupt():
+        # Library warnings wait for the verb's end: a failure is then its one line alone.
+        with sigterm_as_interrupt(), warnings.catch_warnings(record=True) as held:
+            warnings.simplefilter("default")
             failures.check_extras(verb)
             failures.check_paths(args, verb)
             verb.run(args)
             sys.stdout.flush()
+        for w in held:
+            print(prefix + f"warning: {w.category.__name__}: {w.message}", file=sys.stderr)
     except BrokenPipeError:
         # The reader went away (`posecorr info m.onnx | head`): stop quietly.
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

@@ -44,7 +44,9 @@ def run(args: argparse.Namespace) -> None:
         rows = [[c["rank"], c["effect"], c["score"], c["p_value"], c["cv_rmse_before"], c["cv_rmse_after"],
                  "yes" if c["present"] else "no"] for c in result["candidates"]]
         lines = [f"{args.data}: model effects {', '.join(effects) or 'none'}; "
-                 f"cross-validated rmse_total {result['cv_base']['rmse_total']:.4g}",
+                 f"cross-validated rmse_total {result['cv_base']['rmse_total']:.4g}"
+                 + (f" (on {result['rows']['used']} of {result['rows']['given']} rows, drawn evenly)"
+                    if result["rows"]["used"] < result["rows"]["given"] else ""),
                  fmt_table(["rank", "effect", "score", "p_value", "cv_rmse_before", "cv_rmse_after", "present"], rows,
                            title="Missing effects (score = mean relative fall of the held-out whitened error)"),
                  f"present = {result['test']}",

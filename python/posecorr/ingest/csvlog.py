@@ -68,6 +68,13 @@ def _read_block(path: Path, columns: CsvColumns) -> dict[str, np.ndarray | None]
                               f"{key} columns")
         rows_with = np.flatnonzero(filled.all(axis=1))
         out[key] = _numbers(path, block[rows_with], rows_with, (columns.time,) + tuple(names))
+        # Rates, speeds and the clock alignment divide by time steps: each must be > 0.
+        stalled = np.flatnonzero(np.diff(out[key][:, 0]) <= 0)
+        if stalled.size:
+            r = int(stalled[0]) + 1
+            raise IngestError(f"{path}: row {int(rows_with[r]) + 2}, column {columns.time}: time "
+                              f"{float(out[key][r, 0])!r} is not after the previous {key} row's "
+                              f"{float(out[key][r - 1, 0])!r} (times must increase)")
     return out
 
 

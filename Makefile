@@ -22,15 +22,16 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(VPY) -m pytest -q
 
+# bench/ and tools/ are harnesses of the checkout (run from the repo root), not in the wheel.
 # The LM comparison package is installed for the benchmark only, without its dependencies:
 # its torch requirement would pull CUDA builds, and it runs on the torch already here.
 bench: $(STAMP)
 	$(VPY) -m pip install -q --disable-pip-version-check --no-deps torch-levenberg-marquardt
-	$(VPY) -m posecorr.benchmarks
+	$(VPY) -m bench
 	$(VPY) bench/ros2_latency.py
 
 models: $(STAMP)
-	$(VPY) -m posecorr.export.models
+	$(VPY) -m tools.models
 	@$(MAKE) --no-print-directory programs
 
 # The shipped models' one-pose programs compiled to C (runtime_c/programs_compiled.c): the

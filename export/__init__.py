@@ -6,7 +6,9 @@
 - `symbolic`: the `_xp` namespace that emits ONNX nodes (`Sym`, `Graph`).
 - `parity`: onnxruntime vs float64 predict; `run_onnx` applies any model.
 - `metadata`: `data_digest` and the encoding of `metadata_props`.
-- `models`: `python -m posecorr.export.models` regenerates the shipped models/.
+
+The shipped models/ are written by the build harness `tools/models.py` (`make models`),
+which is not part of the installed package.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The `metadata_props` of an exported model (DESIGN.md, "The ONNX contract").
+"""The `metadata_props` of an exported model (docs/design.md, "The ONNX contract").
 
 Every value is stored as a string; anything that is not already a string (numbers, lists,
 dicts, None) is JSON-encoded, and `posecorr.controller.onnx_meta.read_info` decodes it back.

@@ -2,7 +2,7 @@
 
 The exporter knows nothing about what `forward` does (encodings, scaling, PMC, MLP,
 physical-effect stages): whatever `_xp` calls it makes become nodes. It only fixes the
-contract of DESIGN.md: input `pose` float32 [N, 7], output `corrected` float32 [N, 7],
+contract of docs/design.md: input `pose` float32 [N, 7], output `corrected` float32 [N, 7],
 opset 17, operators from `export/operators.txt` only.
 """
 from __future__ import annotations

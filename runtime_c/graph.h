@@ -1,4 +1,4 @@
-/* Layer 5, the graph scan: everything about the graph that does not depend on the batch,
+/* Layer 6, the graph scan: everything about the graph that does not depend on the batch,
  * found once and kept in a few bytes per node and value for the plan passes: operators
  * known, names resolved into references, nodes in topological order, nodes that reach
  * no output dropped, initializer-only subgraphs folded into constants, constants the

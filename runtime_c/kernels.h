@@ -1,4 +1,4 @@
-/* Layer 5, kernels: the run-time form of one kernel launch (pc_step), the parameter
+/* Layer 4, kernels: the run-time form of one kernel launch (pc_step), the parameter
  * blocks the operators fill at load, and the kernels shared by several operator families.
  * Knows nothing of ONNX or of the graph: a kernel only loops over its operands. */
 #ifndef PC_KERNELS_H
@@ -36,7 +36,7 @@ typedef enum pc_act {
 #endif
 
 
-/* ---- broadcasting kernels (layout chosen at load, ops.c; float kernels, kernels.c) --- */
+/* ---- broadcasting kernels (layout chosen at load, op_elementwise.c; float kernels, kernels.c) */
 
 /* Operand layouts of a broadcast op, after coalescing dimensions. ROW_B: B is one row
  * repeated over the rows of A ([M,K] op [K]); COL_B: B is one value per row of A
@@ -90,7 +90,7 @@ typedef struct pc_bcast {
         return PC_OK;                                                                          \
     }
 
-/* Parameters of the data-movement operators (prepared in ops.c). */
+/* Parameters of the data-movement operators (prepared in op_shape.c; pc_reduce in op_reduce.c). */
 typedef struct pc_strided {
     size_t d[PC_MAX_RANK];
     ptrdiff_t st[PC_MAX_RANK];
@@ -111,7 +111,7 @@ typedef struct pc_reduce {
     size_t ost[PC_MAX_RANK];
 } pc_reduce;
 
-/* Elementwise loops written once for ops.c (integer, boolean, comparison) and kernels.c
+/* Elementwise loops written once for op_elementwise.c (integer, boolean, comparison) and kernels.c
  * (float); a use puts the storage class in front. */
 #define PC_BINARY_SAME(NAME, TI, TO, EXPR)                                                     \
     pc_status NAME##_same(const pc_step *s)                                                    \

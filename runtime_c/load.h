@@ -1,4 +1,4 @@
-/* Layer 8, loading: scan -> plan -> load-time checks, the one path behind
+/* Layer 9, loading: scan -> plan -> load-time checks, the one path behind
  * every pc_load_* entry point (and the conformance-test entry, testing.c). */
 #ifndef PC_LOAD_H
 #define PC_LOAD_H

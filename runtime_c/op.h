@@ -1,4 +1,4 @@
-/* Layer 4, operators: one prepare function per ONNX operator (pc_op_<Name>, in the file
+/* Layer 5, operators: one prepare function per ONNX operator (pc_op_<Name>, in the file
  * of its family), which checks input types, infers output shapes, picks a kernel with its
  * parameter block and says how a one-pose program computes each output element; plus the
  * helpers those functions share (op.c). The table of operators is generated from

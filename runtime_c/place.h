@@ -1,4 +1,4 @@
-/* Layer 7, planner: what one pass over the graph writes, and where. A plan is built twice
+/* Layer 8, planner: what one pass over the graph writes, and where. A plan is built twice
  * by the same code: a sizing pass counts the bytes of every part of the arena, then a
  * filling pass writes them into an arena of exactly that size. Here: the activation
  * blocks (first fit, freed after their last reader), the arena's regions, constants

@@ -1,4 +1,4 @@
-/* Layer 6, planner: static plans for batches of 1, 16, 256, ... and max_batch (shapes,
+/* Layer 8, planner: static plans for batches of 1, 16, 256, ... and max_batch (shapes,
  * kernel choice, buffer offsets by liveness) packed with the constants into one arena. */
 #ifndef PC_PLAN_H
 #define PC_PLAN_H

@@ -1,4 +1,4 @@
-/* Layer 7, planner: one-pose programs. At N = 1 the exporter's quaternion, matrix and
+/* Layer 8, planner: one-pose programs. At N = 1 the exporter's quaternion, matrix and
  * Gram-Schmidt subgraphs are hundreds of nodes over 1 to 9 elements, each costing more to
  * launch than to compute: each run of such nodes becomes one k_scalar_program launch,
  * built while the graph is streamed. */

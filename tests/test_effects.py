@@ -1,6 +1,6 @@
-"""The effect catalogue against direct numpy evaluations of DESIGN.md's formulas.
+"""The effect catalogue against direct numpy evaluations of docs/design.md's formulas.
 
-The reference implementations below are written from the DESIGN.md table alone (per-pose
+The reference implementations below are written from the docs/design.md table alone (per-pose
 loops, scipy's Rotation for Exp), not from posecorr's helpers.
 """
 from __future__ import annotations
@@ -51,7 +51,7 @@ THETA = {
 }
 
 
-# --- direct evaluations of the DESIGN.md table -----------------------------------------
+# --- direct evaluations of the docs/design.md table ------------------------------------
 
 def ref_mount(p, R, th, ctx):
     d, e = th[:3], th[3:]

@@ -13,7 +13,7 @@ onnx = pytest.importorskip("onnx")
 pytest.importorskip("onnxruntime")
 
 from posecorr.controller.onnx_meta import read_info
-from posecorr.export.models import evaluate, experiment_data
+from tools.models import evaluate, experiment_data
 from posecorr.export.parity import run_onnx
 
 MODELS = Path(__file__).resolve().parent.parent / "models"

@@ -180,7 +180,7 @@ def test_registered_trainer_trains_and_is_a_cli_choice(signed_gd: str) -> None:
 
 
 def test_cli_preset_choices_are_the_grid_presets():
-    """The sweep's --preset choices are written out in cli.py (reading GRID_PRESETS there
+    """The sweep's --preset choices are written out in cli/sweep.py (reading GRID_PRESETS there
     would load scikit-learn for every verb); this keeps the two from drifting apart."""
     import argparse
 

@@ -142,7 +142,7 @@ def test_physics_pipeline_one_pose_plan_equals_batch_plan_bit_for_bit(lib, tmp_p
     """The demo's physics + PMC model is where one-pose programs do the most (557 nodes,
     3 launches per pose: sines, arctangents, Where, 3x3 products as dot products): each
     pose alone gives the 16-pose plan's bits, and onnxruntime's result."""
-    from posecorr.bench_targets import demo_physics_pmc
+    from bench.targets import demo_physics_pmc
 
     path = tmp_path / "physics+pmc-zhou.onnx"
     demo_physics_pmc(path)

@@ -88,6 +88,19 @@ def test_includes_point_down():
     assert not up, f"files including a higher layer: {up}"
 
 
+def test_header_comments_number_their_layer_as_the_table_does():
+    """Each internal header opens with "Layer N, ...": N is its rank in LAYERS (lowest 0),
+    the order runtime_c/README.md draws."""
+    numbered = {}
+    for p in sorted(SRC.glob("*.h")):
+        first = re.match(r"/\* Layer (\d+),", p.read_text())
+        if first:
+            numbered[p.name] = int(first.group(1))
+    assert set(numbered) == set(RANK) & {p.name for p in SRC.glob("*.h")} - {"posecorr.h"}
+    wrong = {name: (n, RANK[name]) for name, n in numbered.items() if n != RANK[name]}
+    assert not wrong, f"header comment's layer number vs LAYERS: {wrong}"
+
+
 @pytest.fixture(scope="module")
 def objects() -> dict[str, Path]:
     if shutil.which("nm") is None:

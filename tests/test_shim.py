@@ -1,4 +1,5 @@
-"""posecorr.controller.runtime (ctypes shim over libposecorr) and posecorr.latency."""
+"""posecorr.controller.runtime (ctypes shim over libposecorr), posecorr.latency and the latency
+benchmark's hand-written reference (bench/latency.py)."""
 from __future__ import annotations
 
 import importlib
@@ -146,15 +147,17 @@ def test_bench_model_layout(lib, model_path, monkeypatch):
 
 def test_hand_written_reference_equals_pc_run(lib, model_path, monkeypatch):
     """posecorr-bench --reference-zhou (the latency benchmark's hand-written C function of
-    the shipped zhou MLP) gives pc_run's outputs exactly; other models have no reference."""
+    the shipped zhou MLP, bench/latency.py) gives pc_run's outputs exactly; other models have
+    no reference."""
+    from bench.latency import reference_bench
     from posecorr import latency
 
     monkeypatch.setattr(latency, "bench_binary", lambda: Path(lib).parent / "posecorr-bench")
     zhou = ROOT / "models" / "mlp-zhou-tansig-20x20x20x20-br.onnx"
-    ref = latency.reference_bench(zhou, n_single=1000, batch=100)
+    ref = reference_bench(zhou, n_single=1000, batch=100)
     assert ref["compared_poses"] == 1000 and ref["identical_poses"] == 1000
     assert ref["max_abs_diff"] == 0
     for key in ("pc_run_single_ns", "reference_single_ns", "pc_run_batch_ns_per_pose",
                 "reference_batch_ns_per_pose"):
         assert ref[key] > 0
-    assert latency.reference_bench(model_path) is None
+    assert reference_bench(model_path) is None

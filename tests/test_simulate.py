@@ -170,7 +170,7 @@ def test_default_mix_magnitudes_are_physical():
         assert np.linalg.norm(mix["station"][:3]) < 0.03 and np.linalg.norm(mix["station"][3:]) < 0.05
         assert np.linalg.norm(mix["mount"][:3]) < 0.05 and np.linalg.norm(mix["mount"][3:]) < 0.01
         assert 0.001 <= mix["range_scale"][0] <= 0.01
-        assert mix["noise"] == [3e-4, 5e-4, 2e-4]          # DESIGN.md default noise
+        assert mix["noise"] == [3e-4, 5e-4, 2e-4]          # docs/design.md default noise
         assert 1800 <= mix["drift"][3] <= 4 * 3600
 
 

@@ -1,6 +1,6 @@
 """What a table can determine, decided before anything is fitted.
 
-Real sessions (DESIGN.md, "Real sessions") have 6 to 40 poses, frames nobody registered,
+Real sessions (docs/design.md, "Real sessions") have 6 to 40 poses, frames nobody registered,
 often one orientation or yaw only, sometimes no reference orientation. Fitting a parameter
 the data cannot see turns noise into metres (a "2 m mount lever" cancelling a 2 m station
 offset). Three pieces keep that from happening:

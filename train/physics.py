@@ -1,7 +1,7 @@
 """The physics stage: the catalogue's effects fitted jointly to paired poses.
 
-Generative model (DESIGN.md): measured = F_theta(reference), F the fitted effects applied in
-catalogue order. The fit minimises the whitened residuals
+Generative model (docs/design.md, "Physical effects"): measured = F_theta(reference), F the
+fitted effects applied in catalogue order. The fit minimises the whitened residuals
 
     r_i = [(p_F,i - p_meas,i) / sigma_p,  log(R_meas,i^T R_F,i) / sigma_r]
 
@@ -39,7 +39,7 @@ from .base import PoseRegressorMixin, check_pair, check_poses
 from .identify import (Block, RigidRegistration, chordal_mean, describe_spread, determined_directions, direction_label,
                        rigid_registration)
 
-DEFAULT_SIGMA_P = 3e-4   # m, DESIGN.md default noise
+DEFAULT_SIGMA_P = 3e-4   # m, docs/design.md default noise
 DEFAULT_SIGMA_R = 5e-4   # rad
 # Noise levels never assumed below a hundredth of the defaults: a perfect fit of few poses must
 # not make the whitened Jacobian claim a precision no tracker has.

@@ -1,4 +1,4 @@
-"""The paired-pose table (DESIGN.md, "Data"): one row per static pose.
+"""The paired-pose table (docs/design.md, "Data"): one row per static pose.
 
 Positions in metres in the robot base frame, quaternions (w, x, y, z) scalar first.
 A table without `ref_q*` columns is position-only (like Experiment I) and first-class.

@@ -1,4 +1,4 @@
-"""The catalogue of physical effects (DESIGN.md, "Physical effects"): the public contract.
+"""The catalogue of physical effects (docs/design.md, "Physical effects"): the public contract.
 
 Each effect is a named, parametric, differentiable map of a tracker pose (p (N, 3) m, R (N, 3, 3))
 in the robot base frame. The simulator applies the effects to reference poses in catalogue

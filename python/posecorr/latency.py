@@ -1,6 +1,6 @@
 """Latency benchmark of one exported corrector across back-ends.
 
-`bench_model(path)` returns the DESIGN.md `bench` layout:
+`bench_model(path)` returns the layout of `posecorr bench --json` (docs/design.md, "Command line"):
 
     {"single_pose_median_us": {"c", "shim", "onnxruntime", "onnxruntime_iobinding"},
      "single_pose_p99_us": {same}, "batch_ns_per_pose": {same}, "machine": "..."}
@@ -29,7 +29,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["bench_model", "machine_description", "bench_binary", "c_bench", "reference_bench", "sample_poses"]
+__all__ = ["bench_model", "machine_description", "bench_binary", "c_bench", "sample_poses"]
 
 _KEYS = ("c", "shim", "onnxruntime", "onnxruntime_iobinding")
 
@@ -112,33 +112,6 @@ def c_bench(path: str | os.PathLike, n_single: int = 100000, batch: int = 10000)
     return json.loads(r.stdout)
 
 
-def reference_bench(path: str | os.PathLike, n_single: int = 20000, batch: int = 10000) -> dict | None:
-    """pc_run against a hand-written C function of the same zhou MLP, timed in one process
-    (`posecorr-bench --reference-zhou`, runtime_c/tools/zhou_reference.c): per-call ns and
-    their ratios, single pose and batch, and how far the outputs differ. None without the
-    tool or a source checkout, or for a model that is not the 9-20-20-20-20-9 zhou MLP."""
-    import importlib.util
-    import tempfile
-
-    exe = bench_binary()
-    script = Path(__file__).resolve().parents[2] / "runtime_c" / "tools" / "zhou_weights.py"
-    if exe is None or not script.exists():
-        return None
-    spec = importlib.util.spec_from_file_location("zhou_weights", script)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    try:
-        w = module.weights(str(path))
-    except (ValueError, KeyError):
-        return None
-    with tempfile.TemporaryDirectory() as tmp:
-        wfile = Path(tmp) / "zhou.bin"
-        w.astype("<f4").tofile(wfile)
-        r = subprocess.run([str(exe), str(path), "--n", str(n_single), "--batch", str(batch),
-                            "--reference-zhou", str(wfile)], capture_output=True, text=True, check=True)
-    return json.loads(r.stdout)["reference"]
-
-
 def bench_model(path: str | os.PathLike, n_single: int = 100000, batch: int = 10000) -> dict:
     """Benchmarks one model on every available back-end (layout: see module doc)."""
     path = Path(path)
@@ -208,5 +181,4 @@ def bench_model(path: str | os.PathLike, n_single: int = 100000, batch: int = 10
     return {"single_pose_median_us": med, "single_pose_p99_us": p99,
             "batch_ns_per_pose": bat, "machine": machine_description(),
             "model": str(path), "counts": counts, "batch": batch,
-            "hand_written_reference": reference_bench(path, batch=batch),
             "load_average": list(os.getloadavg())}

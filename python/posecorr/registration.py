@@ -1,6 +1,6 @@
 """Closed-form frame registration: the initial guesses for the `station` and `mount` effects.
 
-Model (DESIGN.md, effects `mount` then `station`): a measured pose is the reference pose
+Model (docs/design.md, effects `mount` then `station`): a measured pose is the reference pose
 seen through an unknown world transform W (base frame -> tracker's reporting frame) and an
 unknown mount error X (true tracker frame -> nominal one):
 

@@ -128,7 +128,7 @@ def canonical_quat(q: Any) -> Any:
 # --- rotation vector <-> matrix --------------------------------------------------------
 
 def rotvec_to_matrix(v: Any) -> Any:
-    """(..., 3) rotation vector (rad) -> (..., 3, 3), Rodrigues' formula; Exp(v) in DESIGN.md."""
+    """(..., 3) rotation vector (rad) -> (..., 3, 3), Rodrigues' formula; Exp(v) in docs/design.md."""
     xp = namespace(v)
     t2 = xp.sum(v * v, axis=-1)
     small = t2 < _SMALL_ANGLE_SQ

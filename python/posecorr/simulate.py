@@ -43,7 +43,7 @@ _HARDWARE = {
     "sweep": [1.5e-3, -1.0e-3, 0.03, -0.02],   # phase_x, phase_y (rad), curve_x, curve_y (1/rad)
     "range_scale": [0.005],                    # 0.5 %
     "incidence": [1.5e-3, 1.0e-3],             # b1, b2 (m)
-    "noise": [3e-4, 5e-4, 2e-4],               # DESIGN.md default: sigma_p, sigma_r, k2
+    "noise": [3e-4, 5e-4, 2e-4],               # docs/design.md default: sigma_p, sigma_r, k2
 }
 DEFAULT_MIX: dict[int, dict[str, list[float]]] = {
     1: {
@@ -152,7 +152,7 @@ def simulate(experiment: int | str, effects: str | Mapping[str, Any] | None = No
     return SimulationResult(table, raw, floor, mix, exp.number, seed, ctx)
 
 
-# --- realistic sessions (DESIGN.md, "Real sessions") --------------------------------------
+# --- realistic sessions (docs/design.md, "Real sessions") ---------------------------------
 
 SPREADS = ("none", "yaw", "full")
 

@@ -211,7 +211,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
              alpha: float = 1e-3, min_gain: float = 0.005, candidates: Sequence[str] | None = None,
              model_predict: Callable[[np.ndarray], np.ndarray] | None = None,
              progress: Callable[[str], None] | None = None) -> dict[str, Any]:
-    """Rank the effects `effects` lacks; JSON-ready dict in DESIGN.md's `diagnose` layout.
+    """Rank the effects `effects` lacks; JSON-ready dict in the `diagnose` layout of docs/design.md.
 
     Forward selection keeps partial look-alikes out: walking down the ranking, a candidate
     that passes is re-tested with the effects already found present added to the model

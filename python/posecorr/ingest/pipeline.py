@@ -1,4 +1,4 @@
-"""A recording -> the paired-pose table (DESIGN.md, "Data"), one row per accepted still segment.
+"""A recording -> the paired-pose table (docs/design.md, "Data"), one row per accepted still segment.
 
 Steps: read the joint and tracker streams (FORMATS), order the joints as the arm's model,
 find the still segments, estimate the clock offset (or take the user's), gate and average the

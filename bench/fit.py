@@ -21,7 +21,8 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from . import ROOT
+
 GOALS_S = {"physics_loo_36": 5.0, "auto_loo_36": 10.0, "physics_exp3": 10.0}
 
 

@@ -1,4 +1,4 @@
-"""Ingest benchmark: ``python -m posecorr.ingest.bench [out.json]`` (or ``make bench``).
+"""Ingest benchmark: ``python -m bench.ingest [out.json]`` (or ``make bench``).
 
 A 10-minute simulated recording of the paper's cell (Experiment III, 60 targets at the paper's
 10 s dwell: ~300k joint states at 500 Hz, ~150k tracker poses at 250 Hz) is written once per
@@ -44,9 +44,9 @@ def _best(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
 
 
 def run(out_path: str | os.PathLike = "bench/results/ingest.json", repeats: int = 3) -> dict[str, Any]:
-    from ..recording import simulate_recording, write_recording
-    from ..simulate import simulate
-    from .pipeline import ingest
+    from posecorr.ingest.pipeline import ingest
+    from posecorr.recording import simulate_recording, write_recording
+    from posecorr.simulate import simulate
 
     result: dict[str, Any] = {
         "machine": f"{platform.machine()} {os.cpu_count()} cpus, python {platform.python_version()}",

@@ -67,7 +67,7 @@ def csv_floor(source: Path, target: Path) -> float:
 
 
 def run(out_path: str | None = None, rows: int = ROWS, model: str | None = None) -> dict:
-    from .benchmarks import ROOT, latency_model
+    from . import ROOT, latency_model
 
     model_path = Path(model) if model else latency_model()
     with tempfile.TemporaryDirectory(prefix="posecorr-bench-apply-") as tmp:

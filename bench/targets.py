@@ -9,7 +9,8 @@
 * the Python shim (`Corrector.correct` on one (7,) float64 pose): <= 1.5 us quiet.
 
 Every figure is the best of several rounds (the machine is shared); the load average is
-recorded next to them. Written to bench/results/targets.json by `make bench`.
+recorded next to them. Written to bench/results/targets.json by `make bench`
+(`python -m bench --only targets`).
 """
 from __future__ import annotations
 
@@ -33,9 +34,9 @@ ROUNDS = 5
 
 def demo_physics_pmc(path: Path) -> int:
     """Fits and exports the demo's physics + PMC (zhou) pipeline; returns its node count."""
-    from .demo import physics_pmc
-    from .simulate import simulate
-    from .train.protocol import split_indices
+    from posecorr.demo import physics_pmc
+    from posecorr.simulate import simulate
+    from posecorr.train.protocol import split_indices
 
     data = simulate(3, seed=0).table
     train, val, _ = split_indices(data.n, 0)
@@ -46,8 +47,8 @@ def demo_physics_pmc(path: Path) -> int:
 
 def shim_single_pose_us(path: Path, rounds: int = ROUNDS, n: int = 2000) -> float:
     """Best round's mean time of `Corrector.correct` on one float64 pose, in us."""
-    from .controller.runtime import Corrector
-    from .latency import sample_poses
+    from posecorr.controller.runtime import Corrector
+    from posecorr.latency import sample_poses
 
     corrector = Corrector(path, backend="c")
     poses = [p.astype(np.float64) for p in sample_poses(n)]
@@ -63,7 +64,9 @@ def shim_single_pose_us(path: Path, rounds: int = ROUNDS, n: int = 2000) -> floa
 def run(zhou_model: Path, out_json: str | None = None) -> dict[str, Any]:
     import json
 
-    from .latency import c_bench, machine_description, reference_bench
+    from posecorr.latency import c_bench, machine_description
+
+    from .latency import reference_bench
 
     load_before = os.getloadavg()
     reference = reference_bench(zhou_model, batch=10000)

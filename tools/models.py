@@ -1,4 +1,4 @@
-"""Regenerate the shipped models in models/: `python -m posecorr.export.models` (`make models`).
+"""Regenerate the shipped models in models/: `python -m tools.models` (`make models`).
 
 Data: the simulator's default Experiment III (seed 0, 3375 poses, position + orientation)
 and Experiment I (seed 0, 1331 poses, position only), `posecorr.simulate.simulate`.
@@ -175,7 +175,7 @@ def model_card(spec: Spec, report: dict[str, Any], data: dict[str, Any], fit_sec
         "- input `pose` float32 [N, 7] (x, y, z in m, qw, qx, qy, qz); output `corrected` float32 [N, 7]"
         + (" (orientation passed through)." if spec.representation == "pos" else " (qw >= 0)."),
         "", "## Regenerate", "",
-        "```", "make models        # or: python -m posecorr.export.models" + (
+        "```", "make models        # or: python -m tools.models" + (
             "" if epochs == MLP_EPOCHS else f" --epochs {epochs}"), "```", "",
         "`posecorr info models/" + spec.name + ".onnx` prints the metadata stored in the file.", "",
     ]
@@ -211,7 +211,7 @@ def build(spec: Spec, data: dict[str, Any], out_dir: Path, epochs: int = MLP_EPO
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m posecorr.export.models", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m tools.models", description=__doc__.split("\n")[0])
     parser.add_argument("-o", "--out", type=Path, default=MODELS_DIR, help="output directory (default: models/)")
     parser.add_argument("--epochs", type=int, default=MLP_EPOCHS, help="max MLP epochs")
     parser.add_argument("--only", default="", help="comma-separated model names to build (default: all)")

@@ -1,4 +1,4 @@
-"""Training benchmark: ``python -m posecorr.train.bench_train [out.json]``.
+"""Training benchmark: ``python -m bench.train [out.json]`` (or ``make bench``).
 
 1. Seconds per Levenberg-Marquardt epoch of the paper's best Exp III network
    (zhou: 9-20-20-20-20-9 tansig, 1649 parameters) on 2360 samples (70 % of Exp III),
@@ -34,9 +34,9 @@ import numpy as np
 def _data(n: int = 2360, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     from posecorr.simulate import simulate
 
-    from .base import encode_pose
-    from .mlp import mapminmax_settings
-    from .protocol import split_indices
+    from posecorr.train.base import encode_pose
+    from posecorr.train.mlp import mapminmax_settings
+    from posecorr.train.protocol import split_indices
 
     table = simulate(3, seed=seed).table
     train, _, _ = split_indices(table.n, seed, 0)
@@ -51,7 +51,7 @@ def _data(n: int = 2360, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 def _ours(Xn: np.ndarray, Tn: np.ndarray, theta0: Any, sizes: list[int], epochs: int) -> dict[str, Any]:
     import torch
 
-    from .lm import Network, _cholesky_solve
+    from posecorr.train.lm import Network, _cholesky_solve
 
     net = Network(sizes, "tansig", np.ones(sizes[-1]))
     X, T = torch.as_tensor(Xn), torch.as_tensor(Tn)
@@ -107,7 +107,7 @@ def _theirs(Xn: np.ndarray, Tn: np.ndarray, theta0: Any, sizes: list[int], epoch
     training, note = _import_tlm()
     if training is None:
         return {"seconds_per_epoch": None, "reason": note}
-    from .lm import Network
+    from posecorr.train.lm import Network
 
     layers: list[Any] = []
     for i in range(len(sizes) - 1):
@@ -155,8 +155,8 @@ def lm_epoch_benchmark(epochs: int = 10, threads: int | None = None) -> dict[str
         torch.set_num_threads(threads)
     Xn, Tn = _data()
     sizes = [9, 20, 20, 20, 20, 9]
-    from .lm import Network
-    from .mlp import init_weights
+    from posecorr.train.lm import Network
+    from posecorr.train.mlp import init_weights
 
     coefs, biases = init_weights(sizes, "tansig", np.random.default_rng(0))
     theta0 = Network(sizes, "tansig", np.ones(9)).pack(coefs, biases)
@@ -179,7 +179,7 @@ def repeats_benchmark(repeats: int = 30, workers: int = 2, epochs: int = 100, st
                       ) -> dict[str, Any]:
     from posecorr.simulate import simulate
 
-    from .protocol import Config, run_sweep
+    from posecorr.train.protocol import Config, run_sweep
 
     sim = simulate(3, seed=0)
     cfg = Config("mlp", "zhou", (20, 20, 20, 20), "tansig", "br", (("epochs", epochs),))

@@ -1,0 +1,82 @@
+"""`make bench`: every benchmark, JSON results in bench/results/ (timings live here, never in tests).
+
+Run from the repository root: `python -m bench [--only NAME]`.
+
+* `train.json`: seconds per LM epoch of the 9-20-20-20-20-9 network on 2360 samples against
+  the torch-levenberg-marquardt package, and the wall time of 30 repeats of the paper's best
+  Experiment III configuration (`bench/train.py`).
+* `fit.json`: wall time of `posecorr fit` on robot-cell tables (36-pose sessions, leave one
+  out; 3375 simulated poses), with the load average (`bench/fit.py`).
+* `latency.json`: single-pose latency and batch throughput of the shipped zhou MLP in the C
+  runtime, the Python shim and onnxruntime (plain and IOBinding), and `pc_run` against a
+  hand-written C function of the same network (`bench/latency.py`).
+* `targets.json`: the runtime's speed goals as ratios taken in one run: `pc_run` against the
+  hand-written zhou MLP (single pose, batch), the demo's physics + PMC model against the
+  zhou MLP, the Python shim's single pose (`bench/targets.py`).
+* `apply.json`: `posecorr apply` on 10^6 rows (wall and CPU time, peak memory) against
+  the csv module's read-and-write-back floor on the same file (`bench/apply.py`).
+* `ingest.json`: seconds to ingest a 10-minute recording (300k joint states, 150k tracker
+  poses) from a ROS 1 bag, an MCAP file and a CSV log (`bench/ingest.py`).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from . import RESULTS, latency_model
+
+
+def _latency() -> dict:
+    from . import latency
+
+    return latency.run(RESULTS / "latency.json")
+
+
+def _targets() -> dict:
+    from . import targets
+
+    return targets.run(latency_model(), str(RESULTS / "targets.json"))
+
+
+def _fit() -> dict:
+    from . import fit
+
+    return fit.run(str(RESULTS / "fit.json"))
+
+
+def _apply() -> dict:
+    from . import apply
+
+    return apply.run(str(RESULTS / "apply.json"))
+
+
+def _train() -> dict:
+    from . import train
+
+    return train.run(str(RESULTS / "train.json"))
+
+
+def _ingest() -> dict:
+    from . import ingest
+
+    return ingest.run(str(RESULTS / "ingest.json"))
+
+
+# name -> runner writing bench/results/NAME.json; `make bench` runs them in this order.
+BENCHMARKS = {"latency": _latency, "targets": _targets, "fit": _fit, "apply": _apply, "ingest": _ingest, "train": _train}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.splitlines()[0])
+    parser.add_argument("--only", choices=tuple(BENCHMARKS), help="run one benchmark")
+    args = parser.parse_args(argv)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    for name, run in BENCHMARKS.items():
+        if args.only in (None, name):
+            print(json.dumps(run(), indent=2, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Build harnesses run from a checkout (`make models`); not part of the installed package."""

@@ -36,10 +36,14 @@ models: $(STAMP)
 
 # The shipped models' one-pose programs compiled to C (runtime_c/programs_compiled.c): the
 # loader runs these in place of its interpreter where a program's shape matches.
-programs:
+# Besides the shipped models: the demo's physics + PMC model, refitted (its shapes do not
+# depend on the fitted values).
+programs: $(STAMP)
 	@cmake -S runtime_c -B build/shapes -DCMAKE_BUILD_TYPE=Release >/dev/null
 	@cmake --build build/shapes --target posecorr-print-shapes --parallel 2 >/dev/null
-	$(PYTHON) runtime_c/tools/compile_programs.py --shapes build/shapes/posecorr-print-shapes models/*.onnx
+	$(VPY) -c "import bench.targets as t, pathlib; t.demo_physics_pmc(pathlib.Path('build/shapes/physics-pmc.onnx'))"
+	$(VPY) runtime_c/tools/compile_programs.py --shapes build/shapes/posecorr-print-shapes models/*.onnx \
+	    build/shapes/physics-pmc.onnx
 
 fuzz:
 	$(MAKE) -C runtime_c -f fuzz.mk

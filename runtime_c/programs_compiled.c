@@ -3654,7 +3654,977 @@ static pc_status pc_program_8f8acb0b2c3aa015(const pc_step *s)
     return PC_OK;
 }
 
-const pc_compiled_program pc_compiled_programs[19] = {
+static const uint8_t pc_program_0042e12f957ab815_shape[1285] = {
+    26, 2, 0, 0, 0, 0, 0, 0, 0, 0, 26, 2, 0, 0, 0, 0, 0, 0, 0, 0, 26, 2, 0, 0,
+    0, 0, 0, 0, 0, 0, 26, 2, 0, 0, 0, 0, 0, 0, 0, 0, 26, 2, 0, 0, 0, 0, 0, 0,
+    0, 0, 26, 2, 0, 0, 0, 0, 0, 0, 0, 0, 26, 2, 0, 0, 0, 0, 0, 0, 0, 0, 26, 2,
+    0, 0, 0, 0, 0, 0, 0, 0, 26, 2, 0, 0, 0, 0, 0, 0, 0, 0, 26, 2, 0, 9, 0, 0,
+    8, 0, 7, 0, 26, 2, 0, 7, 0, 0, 6, 0, 5, 0, 26, 2, 0, 5, 0, 0, 4, 0, 3, 0,
+    26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 26, 5, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0,
+    9, 0, 5, 0, 26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 11, 0, 26, 3, 0, 0, 0, 0, 0, 0,
+    0, 0, 9, 0, 26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 9, 0, 3, 0, 0, 0, 0, 3, 0, 0,
+    0, 0, 3, 0, 0, 1, 0, 2, 0, 0, 0, 3, 2, 0, 0, 0, 2, 2, 0, 0, 10, 18, 2, 0,
+    0, 1, 15, 2, 0, 0, 0, 24, 2, 0, 0, 1, 21, 2, 0, 0, 19, 21, 2, 0, 0, 25, 21, 2,
+    0, 0, 25, 27, 26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 5, 0, 26, 3, 0, 0, 0, 0, 0, 0,
+    0, 0, 5, 0, 2, 0, 0, 2, 23, 3, 0, 0, 11, 0, 3, 0, 0, 1, 12, 3, 0, 0, 14, 0,
+    3, 0, 0, 1, 15, 5, 0, 0, 23, 0, 5, 0, 0, 14, 0, 5, 0, 0, 7, 0, 5, 0, 0, 9,
+    0, 5, 0, 0, 27, 17, 5, 0, 0, 10, 11, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13,
+    0, 0, 6, 2, 0, 0, 0, 13, 2, 0, 0, 0, 12, 3, 0, 0, 1, 0, 3, 0, 0, 1, 2, 3,
+    0, 0, 4, 0, 3, 0, 0, 1, 5, 3, 0, 0, 10, 0, 3, 0, 0, 10, 0, 3, 0, 0, 10, 0,
+    3, 0, 0, 10, 0, 4, 0, 0, 0, 4, 4, 0, 0, 0, 4, 4, 0, 0, 0, 4, 4, 0, 0, 0,
+    4, 3, 0, 0, 47, 4, 3, 0, 0, 35, 5, 3, 0, 0, 35, 6, 3, 0, 0, 35, 7, 3, 0, 0,
+    38, 7, 3, 0, 0, 42, 8, 3, 0, 0, 52, 9, 3, 0, 0, 52, 10, 3, 0, 0, 41, 10, 3, 0,
+    0, 55, 11, 3, 0, 0, 39, 12, 3, 0, 0, 55, 13, 3, 0, 0, 44, 13, 3, 0, 0, 58, 14, 3,
+    0, 0, 58, 15, 3, 0, 0, 45, 16, 9, 0, 0, 63, 53, 9, 0, 0, 46, 47, 9, 0, 0, 38, 37,
+    2, 0, 0, 0, 30, 2, 0, 0, 0, 29, 23, 0, 0, 21, 17, 5, 23, 0, 0, 21, 17, 6, 23, 0,
+    0, 21, 17, 7, 23, 0, 0, 21, 17, 8, 23, 0, 0, 17, 13, 8, 23, 0, 0, 17, 13, 9, 23, 0,
+    0, 17, 13, 10, 23, 0, 0, 17, 13, 11, 23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 23, 0,
+    0, 8, 4, 13, 23, 0, 0, 8, 4, 14, 3, 0, 0, 13, 0, 3, 0, 0, 1, 14, 3, 0, 0, 16,
+    0, 3, 0, 0, 1, 17, 26, 3, 0, 8, 8, 0, 7, 7, 6, 6, 5, 5, 2, 0, 0, 0, 4, 2,
+    0, 0, 0, 3, 5, 0, 0, 3, 0, 3, 0, 0, 2, 0, 3, 0, 0, 1, 3, 3, 0, 0, 5, 0,
+    3, 0, 0, 1, 6, 13, 0, 0, 5, 4, 0, 0, 17, 1, 4, 0, 0, 17, 2, 4, 0, 0, 17, 3,
+    4, 0, 0, 17, 4, 2, 0, 0, 0, 8, 2, 0, 0, 0, 7, 10, 0, 0, 6, 0, 12, 0, 0, 7,
+    12, 0, 0, 7, 12, 0, 0, 7, 12, 0, 0, 7, 18, 0, 0, 7, 18, 0, 0, 7, 23, 0, 0, 6,
+    13, 7, 23, 0, 0, 6, 13, 8, 23, 0, 0, 6, 13, 9, 23, 0, 0, 6, 13, 10, 1, 0, 0, 6,
+    0, 1, 0, 0, 6, 0, 26, 0, 0, 8, 0, 0, 26, 2, 0, 3, 3, 0, 2, 2, 1, 1, 26, 3,
+    0, 8, 8, 0, 7, 7, 6, 6, 5, 5, 5, 0, 0, 2, 0, 5, 0, 0, 2, 0, 13, 0, 0, 2,
+    13, 0, 0, 2, 4, 0, 0, 9, 2, 4, 0, 0, 9, 3, 4, 0, 0, 9, 4, 4, 0, 0, 16, 4,
+    4, 0, 0, 16, 5, 4, 0, 0, 16, 6, 4, 0, 0, 16, 7, 3, 0, 0, 0, 7, 3, 0, 0, 0,
+    7, 3, 0, 0, 0, 7, 3, 0, 0, 5, 5, 3, 0, 0, 7, 6, 3, 0, 0, 9, 6, 3, 0, 0,
+    9, 7, 3, 0, 0, 11, 9, 3, 0, 0, 11, 11, 3, 0, 0, 11, 10, 26, 3, 0, 10, 0, 0, 9,
+    0, 8, 0, 0, 0, 26, 3, 0, 11, 0, 0, 10, 0, 9, 0, 0, 0, 26, 3, 0, 12, 0, 0, 11,
+    0, 10, 0, 0, 0, 26, 0, 0, 14, 14, 10, 26, 0, 0, 18, 15, 10, 26, 0, 0, 16, 16, 7, 26,
+    0, 0, 20, 19, 7, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0, 3, 0, 0, 4,
+    0, 2, 0, 0, 11, 151, 2, 0, 0, 11, 151, 2, 0, 0, 11, 151, 2, 0, 0, 0, 7, 2, 0, 0,
+    21, 20, 2, 0, 0, 0, 7, 2, 0, 0, 21, 20, 3, 0, 0, 3, 0, 3, 0, 0, 2, 0, 26, 0,
+    1, 9, 0, 0, 26, 0, 1, 9, 0, 0, 26, 0, 1, 9, 0, 0, 26, 0, 1, 9, 0, 0, 26, 0,
+    1, 16, 0, 0, 26, 0, 1, 6, 0, 0, 26, 0, 1, 8, 0, 0, 26, 0, 1, 11, 0, 0, 26, 0,
+    1, 18, 0, 0, 3, 0, 1, 9, 9, 3, 0, 1, 10, 9, 3, 0, 1, 11, 9, 3, 0, 1, 12, 9,
+    3, 0, 1, 13, 9, 3, 0, 1, 14, 9, 3, 0, 1, 15, 9, 3, 0, 1, 16, 9, 3, 0, 1, 17,
+    9, 3, 0, 1, 17, 17, 3, 0, 1, 18, 17, 3, 0, 1, 19, 17, 3, 0, 1, 20, 17, 3, 0, 1,
+    21, 17, 3, 0, 1, 22, 17, 3, 0, 1, 23, 17, 3, 0, 1, 24, 17, 3, 0, 1, 24, 24, 3, 0,
+    1, 25, 24, 3, 0, 1, 26, 24, 3, 0, 1, 27, 24, 3, 0, 1, 28, 24, 3, 0, 1, 29, 24, 3,
+    0, 1, 30, 24, 3, 0, 1, 30, 30, 3, 0, 1, 31, 30, 3, 0, 1, 32, 30, 3, 0, 1, 33, 30,
+    3, 0, 1, 34, 30, 3, 0, 1, 35, 30, 3, 0, 1, 35, 35, 3, 0, 1, 36, 35, 3, 0, 1, 37,
+    35, 3, 0, 1, 38, 35, 3, 0, 1, 39, 35, 3, 0, 1, 39, 39, 3, 0, 1, 40, 39, 3, 0, 1,
+    41, 39, 3, 0, 1, 42, 39, 3, 0, 1, 42, 42, 3, 0, 1, 43, 42, 3, 0, 1, 44, 42, 3, 0,
+    1, 44, 44, 3, 0, 1, 45, 44, 3, 0, 1, 45, 45,
+};
+static pc_status pc_program_0042e12f957ab815(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    float f0 = PC_XF(1, c);
+    f0 += PC_XF(1, a) * PC_XF(1, b);
+    f0 += PC_XF(2, a) * PC_XF(2, b);
+    f0 += PC_XF(3, a) * PC_XF(3, b);
+    float f1 = PC_XF(4, c);
+    f1 += PC_XF(4, a) * PC_XF(4, b);
+    f1 += PC_XF(5, a) * PC_XF(5, b);
+    f1 += PC_XF(6, a) * PC_XF(6, b);
+    float f2 = PC_XF(7, c);
+    f2 += PC_XF(7, a) * PC_XF(7, b);
+    f2 += PC_XF(8, a) * PC_XF(8, b);
+    f2 += PC_XF(9, a) * PC_XF(9, b);
+    float f3 = PC_XF(10, c);
+    f3 += PC_XF(10, a) * PC_XF(10, b);
+    f3 += PC_XF(11, a) * PC_XF(11, b);
+    f3 += PC_XF(12, a) * PC_XF(12, b);
+    float f4 = PC_XF(13, c);
+    f4 += PC_XF(13, a) * PC_XF(13, b);
+    f4 += PC_XF(14, a) * PC_XF(14, b);
+    f4 += PC_XF(15, a) * PC_XF(15, b);
+    float f5 = PC_XF(16, c);
+    f5 += PC_XF(16, a) * PC_XF(16, b);
+    f5 += PC_XF(17, a) * PC_XF(17, b);
+    f5 += PC_XF(18, a) * PC_XF(18, b);
+    float f6 = PC_XF(19, c);
+    f6 += PC_XF(19, a) * PC_XF(19, b);
+    f6 += PC_XF(20, a) * PC_XF(20, b);
+    f6 += PC_XF(21, a) * PC_XF(21, b);
+    float f7 = PC_XF(22, c);
+    f7 += PC_XF(22, a) * PC_XF(22, b);
+    f7 += PC_XF(23, a) * PC_XF(23, b);
+    f7 += PC_XF(24, a) * PC_XF(24, b);
+    float f8 = PC_XF(25, c);
+    f8 += PC_XF(25, a) * PC_XF(25, b);
+    f8 += PC_XF(26, a) * PC_XF(26, b);
+    f8 += PC_XF(27, a) * PC_XF(27, b);
+    float f9 = PC_XF(28, c);
+    f9 += f0 * PC_XF(28, b);
+    f9 += f1 * PC_XF(29, b);
+    f9 += f2 * PC_XF(30, b);
+    float f10 = PC_XF(31, c);
+    f10 += f3 * PC_XF(31, b);
+    f10 += f4 * PC_XF(32, b);
+    f10 += f5 * PC_XF(33, b);
+    float f11 = PC_XF(34, c);
+    f11 += f6 * PC_XF(34, b);
+    f11 += f7 * PC_XF(35, b);
+    f11 += f8 * PC_XF(36, b);
+    float f12 = PC_XF(37, c);
+    f12 += PC_XF(37, a) * PC_XF(37, b);
+    f12 += PC_XF(38, a) * PC_XF(38, b);
+    f12 += PC_XF(39, a) * PC_XF(39, b);
+    f12 += PC_XF(40, a) * PC_XF(40, b);
+    float f13 = PC_XF(41, c);
+    f13 += PC_XF(41, a) * PC_XF(41, b);
+    f13 += PC_XF(42, a) * PC_XF(42, b);
+    f13 += PC_XF(43, a) * PC_XF(43, b);
+    f13 += PC_XF(44, a) * PC_XF(44, b);
+    f13 += f4 * PC_XF(45, b);
+    f13 += f8 * PC_XF(46, b);
+    float f14 = PC_XF(47, c);
+    f14 += PC_XF(47, a) * PC_XF(47, b);
+    f14 += PC_XF(48, a) * PC_XF(48, b);
+    f14 += PC_XF(49, a) * PC_XF(49, b);
+    f14 += f3 * PC_XF(50, b);
+    float f15 = PC_XF(51, c);
+    f15 += PC_XF(51, a) * PC_XF(51, b);
+    f15 += PC_XF(52, a) * PC_XF(52, b);
+    f15 += PC_XF(53, a) * PC_XF(53, b);
+    f15 += f6 * PC_XF(54, b);
+    float f16 = PC_XF(55, c);
+    f16 += PC_XF(55, a) * PC_XF(55, b);
+    f16 += PC_XF(56, a) * PC_XF(56, b);
+    f16 += PC_XF(57, a) * PC_XF(57, b);
+    f16 += f7 * PC_XF(58, b);
+    const float f17 = pc_sop_float(PC_SOP_MUL, PC_XF(60, a), PC_XF(60, b));
+    const float f18 = pc_sop_float(PC_SOP_MUL, PC_XF(61, a), PC_XF(61, b));
+    const float f19 = pc_sop_float(PC_SOP_MUL, f18, PC_XF(62, b));
+    const float f20 = pc_sop_float(PC_SOP_SUB, PC_XF(64, a), f17);
+    const float f21 = pc_sop_float(PC_SOP_SUB, PC_XF(65, a), f19);
+    const float f22 = pc_sop_float(PC_SOP_SUB, f12, f4);
+    const float f23 = pc_sop_float(PC_SOP_SUB, f22, f8);
+    const float f24 = pc_sop_float(PC_SOP_SUB, PC_XF(68, a), f0);
+    const float f25 = pc_sop_float(PC_SOP_SUB, f24, f4);
+    const float f26 = pc_sop_float(PC_SOP_SUB, f7, f5);
+    const float f27 = pc_sop_float(PC_SOP_SUB, f2, f6);
+    const float f28 = pc_sop_float(PC_SOP_SUB, f3, f1);
+    float f29 = PC_XF(74, c);
+    f29 += PC_XF(74, a) * PC_XF(74, b);
+    f29 += PC_XF(75, a) * PC_XF(75, b);
+    f29 += PC_XF(76, a) * PC_XF(76, b);
+    f29 += f24 * PC_XF(77, b);
+    float f30 = PC_XF(78, c);
+    f30 += PC_XF(78, a) * PC_XF(78, b);
+    f30 += PC_XF(79, a) * PC_XF(79, b);
+    f30 += PC_XF(80, a) * PC_XF(80, b);
+    f30 += f25 * PC_XF(81, b);
+    const float f31 = pc_sop_float(PC_SOP_SUB, f29, f8);
+    const float f32 = pc_sop_float(PC_SOP_MUL, f21, PC_XF(85, b));
+    const float f33 = pc_sop_float(PC_SOP_MUL, f32, f21);
+    const float f34 = pc_sop_float(PC_SOP_MUL, f20, PC_XF(87, b));
+    const float f35 = pc_sop_float(PC_SOP_MUL, f34, f20);
+    const float f36 = pc_sop_float(PC_SOP_MAX, f13, PC_XF(90, b));
+    const float f37 = pc_sop_float(PC_SOP_MAX, f23, PC_XF(91, b));
+    const float f38 = pc_sop_float(PC_SOP_MAX, f31, PC_XF(92, b));
+    const float f39 = pc_sop_float(PC_SOP_MAX, f30, PC_XF(93, b));
+    const float f40 = pc_sop_float(PC_SOP_MAX, f13, f23);
+    const float f41 = pc_sop_float(PC_SOP_MAX, f31, f30);
+    const float f42 = pc_sop_float(PC_SOP_SQRT, f36, 0.0f);
+    const float f43 = pc_sop_float(PC_SOP_SQRT, f37, 0.0f);
+    const float f44 = pc_sop_float(PC_SOP_SQRT, f38, 0.0f);
+    const float f45 = pc_sop_float(PC_SOP_SQRT, f39, 0.0f);
+    const float f46 = pc_sop_float(PC_SOP_SUB, PC_XF(102, a), f33);
+    const float f47 = pc_sop_float(PC_SOP_SUB, PC_XF(103, a), f35);
+    const float f48 = pc_sop_float(PC_SOP_MUL, f47, PC_XF(105, b));
+    const float f49 = pc_sop_float(PC_SOP_MUL, f48, f47);
+    const float f50 = pc_sop_float(PC_SOP_MUL, f46, PC_XF(107, b));
+    const float f51 = pc_sop_float(PC_SOP_MUL, f50, f46);
+    const float f52 = pc_sop_float(PC_SOP_MUL, f42, PC_XF(109, b));
+    const float f53 = pc_sop_float(PC_SOP_MUL, f43, PC_XF(110, b));
+    const float f54 = pc_sop_float(PC_SOP_MUL, f44, PC_XF(111, b));
+    const float f55 = pc_sop_float(PC_SOP_MUL, f45, PC_XF(112, b));
+    const float f56 = pc_sop_float(PC_SOP_DIV, PC_XF(114, a), f52);
+    const float f57 = pc_sop_float(PC_SOP_DIV, PC_XF(115, a), f53);
+    const float f58 = pc_sop_float(PC_SOP_DIV, PC_XF(116, a), f54);
+    const float f59 = pc_sop_float(PC_SOP_DIV, PC_XF(117, a), f55);
+    const float f60 = pc_sop_float(PC_SOP_MUL, f13, f56);
+    const float f61 = pc_sop_float(PC_SOP_MUL, f26, f56);
+    const float f62 = pc_sop_float(PC_SOP_MUL, f27, f56);
+    const float f63 = pc_sop_float(PC_SOP_MUL, f28, f56);
+    const float f64 = pc_sop_float(PC_SOP_MUL, f26, f57);
+    const float f65 = pc_sop_float(PC_SOP_MUL, f23, f57);
+    const float f66 = pc_sop_float(PC_SOP_MUL, f14, f57);
+    const float f67 = pc_sop_float(PC_SOP_MUL, f15, f57);
+    const float f68 = pc_sop_float(PC_SOP_MUL, f27, f58);
+    const float f69 = pc_sop_float(PC_SOP_MUL, f14, f58);
+    const float f70 = pc_sop_float(PC_SOP_MUL, f31, f58);
+    const float f71 = pc_sop_float(PC_SOP_MUL, f16, f58);
+    const float f72 = pc_sop_float(PC_SOP_MUL, f28, f59);
+    const float f73 = pc_sop_float(PC_SOP_MUL, f15, f59);
+    const float f74 = pc_sop_float(PC_SOP_MUL, f16, f59);
+    const float f75 = pc_sop_float(PC_SOP_MUL, f30, f59);
+    const uint8_t b76 = f13 >= f23;
+    const uint8_t b77 = f31 >= f30;
+    const uint8_t b78 = f40 >= f41;
+    const float f79 = pc_sop_float(PC_SOP_SUB, PC_XF(140, a), f49);
+    const float f80 = pc_sop_float(PC_SOP_SUB, PC_XF(141, a), f51);
+    const float f81 = b76 ? f60 : f64;
+    const float f82 = b76 ? f61 : f65;
+    const float f83 = b76 ? f62 : f66;
+    const float f84 = b76 ? f63 : f67;
+    const float f85 = b77 ? f68 : f72;
+    const float f86 = b77 ? f69 : f73;
+    const float f87 = b77 ? f70 : f74;
+    const float f88 = b77 ? f71 : f75;
+    const float f89 = b78 ? f81 : f85;
+    const float f90 = b78 ? f82 : f86;
+    const float f91 = b78 ? f83 : f87;
+    const float f92 = b78 ? f84 : f88;
+    const float f93 = pc_sop_float(PC_SOP_MUL, f80, PC_XF(156, b));
+    const float f94 = pc_sop_float(PC_SOP_MUL, f93, f80);
+    const float f95 = pc_sop_float(PC_SOP_MUL, f79, PC_XF(158, b));
+    const float f96 = pc_sop_float(PC_SOP_MUL, f95, f79);
+    float f97 = PC_XF(161, c);
+    f97 += f89 * f89;
+    f97 += f90 * f90;
+    f97 += f91 * f91;
+    f97 += f92 * f92;
+    const float f98 = pc_sop_float(PC_SOP_SUB, PC_XF(166, a), f94);
+    const float f99 = pc_sop_float(PC_SOP_SUB, PC_XF(167, a), f96);
+    const float f100 = pc_sop_float(PC_SOP_MAX, f97, PC_XF(169, b));
+    const float f101 = pc_sop_float(PC_SOP_MUL, f99, PC_XF(171, b));
+    const float f102 = pc_sop_float(PC_SOP_MUL, f101, f99);
+    const float f103 = pc_sop_float(PC_SOP_MUL, f98, PC_XF(173, b));
+    const float f104 = pc_sop_float(PC_SOP_MUL, f103, f98);
+    const float f105 = pc_sop_float(PC_SOP_SQRT, f100, 0.0f);
+    const float f106 = pc_sop_float(PC_SOP_DIV, f89, f105);
+    const float f107 = pc_sop_float(PC_SOP_DIV, f90, f105);
+    const float f108 = pc_sop_float(PC_SOP_DIV, f91, f105);
+    const float f109 = pc_sop_float(PC_SOP_DIV, f92, f105);
+    const float f110 = pc_sop_float(PC_SOP_SUB, PC_XF(183, a), f102);
+    const float f111 = pc_sop_float(PC_SOP_SUB, PC_XF(184, a), f104);
+    const uint8_t b112 = f106 < PC_XF(186, b);
+    const float f113 = pc_sop_float(PC_SOP_NEG, f106, 0.0f);
+    const float f114 = pc_sop_float(PC_SOP_NEG, f107, 0.0f);
+    const float f115 = pc_sop_float(PC_SOP_NEG, f108, 0.0f);
+    const float f116 = pc_sop_float(PC_SOP_NEG, f109, 0.0f);
+    const float f117 = pc_sop_float(PC_SOP_TAN, f110, 0.0f);
+    const float f118 = pc_sop_float(PC_SOP_TAN, f111, 0.0f);
+    const float f119 = b112 ? f113 : f106;
+    const float f120 = b112 ? f114 : f107;
+    const float f121 = b112 ? f115 : f108;
+    const float f122 = b112 ? f116 : f109;
+    const float f123 = pc_sop_float(PC_SOP_ADD, f117, PC_XF(201, b));
+    const float f124 = pc_sop_float(PC_SOP_ADD, f118, PC_XF(202, b));
+    float f125 = PC_XF(204, c);
+    f125 += f117 * PC_XF(204, b);
+    float f126 = PC_XF(205, c);
+    f126 += f123 * f123;
+    f126 += f124 * f124;
+    f126 += f125 * f125;
+    float f127 = PC_XF(208, c);
+    f127 += f119 * f119;
+    f127 += f120 * f120;
+    f127 += f121 * f121;
+    f127 += f122 * f122;
+    const float f128 = pc_sop_float(PC_SOP_MAX, f126, PC_XF(213, b));
+    const float f129 = pc_sop_float(PC_SOP_MAX, f127, PC_XF(214, b));
+    const float f130 = pc_sop_float(PC_SOP_SQRT, f128, 0.0f);
+    const float f131 = pc_sop_float(PC_SOP_SQRT, f129, 0.0f);
+    const float f132 = pc_sop_float(PC_SOP_DIV, f123, f130);
+    const float f133 = pc_sop_float(PC_SOP_DIV, f124, f130);
+    const float f134 = pc_sop_float(PC_SOP_DIV, f125, f130);
+    const float f135 = pc_sop_float(PC_SOP_DIV, f119, f131);
+    const float f136 = pc_sop_float(PC_SOP_DIV, f120, f131);
+    const float f137 = pc_sop_float(PC_SOP_DIV, f121, f131);
+    const float f138 = pc_sop_float(PC_SOP_DIV, f122, f131);
+    const float f139 = pc_sop_float(PC_SOP_MUL, PC_XF(227, a), f132);
+    const float f140 = pc_sop_float(PC_SOP_MUL, PC_XF(228, a), f133);
+    const float f141 = pc_sop_float(PC_SOP_MUL, PC_XF(229, a), f134);
+    const float f142 = pc_sop_float(PC_SOP_MUL, f137, f137);
+    const float f143 = pc_sop_float(PC_SOP_MUL, f136, f137);
+    const float f144 = pc_sop_float(PC_SOP_MUL, f135, f138);
+    const float f145 = pc_sop_float(PC_SOP_MUL, f136, f138);
+    const float f146 = pc_sop_float(PC_SOP_MUL, f135, f137);
+    const float f147 = pc_sop_float(PC_SOP_MUL, f136, f136);
+    const float f148 = pc_sop_float(PC_SOP_MUL, f137, f138);
+    float f149 = PC_XF(238, c);
+    f149 += f139 * PC_XF(238, b);
+    f149 += f140 * PC_XF(239, b);
+    f149 += f141 * PC_XF(240, b);
+    f149 += PC_XF(241, a) * PC_XF(241, b);
+    float f150 = PC_XF(242, c);
+    f150 += f139 * PC_XF(242, b);
+    f150 += f140 * PC_XF(243, b);
+    f150 += f141 * PC_XF(244, b);
+    f150 += PC_XF(245, a) * PC_XF(245, b);
+    float f151 = PC_XF(246, c);
+    f151 += f139 * PC_XF(246, b);
+    f151 += f140 * PC_XF(247, b);
+    f151 += f141 * PC_XF(248, b);
+    f151 += PC_XF(249, a) * PC_XF(249, b);
+    float f152 = f142;
+    f152 += f138 * f138;
+    float f153 = f143;
+    f153 += f135 * f138;
+    float f154 = f147;
+    f154 += f138 * f138;
+    float f155 = f148;
+    f155 += f135 * f136;
+    const float f156 = pc_sop_float(PC_SOP_MUL, f152, PC_XF(255, b));
+    const float f157 = pc_sop_float(PC_SOP_MUL, f153, PC_XF(256, b));
+    const float f158 = pc_sop_float(PC_SOP_MUL, f154, PC_XF(257, b));
+    const float f159 = pc_sop_float(PC_SOP_MUL, f155, PC_XF(258, b));
+    const float f160 = pc_sop_float(PC_SOP_SUB, f149, f9);
+    const float f161 = pc_sop_float(PC_SOP_SUB, f150, f10);
+    const float f162 = pc_sop_float(PC_SOP_SUB, f151, f11);
+    const float f163 = pc_sop_float(PC_SOP_SUB, PC_XF(263, a), f156);
+    const float f164 = pc_sop_float(PC_SOP_SUB, f143, f144);
+    const float f165 = pc_sop_float(PC_SOP_SUB, PC_XF(265, a), f158);
+    const float f166 = pc_sop_float(PC_SOP_SUB, f145, f146);
+    const float f167 = pc_sop_float(PC_SOP_MUL, f164, PC_XF(268, b));
+    const float f168 = pc_sop_float(PC_SOP_MUL, f166, PC_XF(269, b));
+    float f169 = PC_XF(271, c);
+    f169 += f160 * PC_XF(271, b);
+    PC_STOREF(271, f169);
+    float f170 = PC_XF(272, c);
+    f170 += f161 * PC_XF(272, b);
+    PC_STOREF(272, f170);
+    float f171 = PC_XF(273, c);
+    f171 += f162 * PC_XF(273, b);
+    PC_STOREF(273, f171);
+    float f172 = PC_XF(274, c);
+    f172 += f163 * PC_XF(274, b);
+    PC_STOREF(274, f172);
+    float f173 = PC_XF(275, c);
+    f173 += f157 * PC_XF(275, b);
+    PC_STOREF(275, f173);
+    float f174 = PC_XF(276, c);
+    f174 += f168 * PC_XF(276, b);
+    PC_STOREF(276, f174);
+    float f175 = PC_XF(277, c);
+    f175 += f167 * PC_XF(277, b);
+    PC_STOREF(277, f175);
+    float f176 = PC_XF(278, c);
+    f176 += f165 * PC_XF(278, b);
+    PC_STOREF(278, f176);
+    float f177 = PC_XF(279, c);
+    f177 += f159 * PC_XF(279, b);
+    PC_STOREF(279, f177);
+    const float f178 = pc_sop_float(PC_SOP_MUL, f169, f169);
+    PC_STOREF(281, f178);
+    const float f179 = pc_sop_float(PC_SOP_MUL, f169, f170);
+    PC_STOREF(282, f179);
+    const float f180 = pc_sop_float(PC_SOP_MUL, f169, f171);
+    PC_STOREF(283, f180);
+    const float f181 = pc_sop_float(PC_SOP_MUL, f169, f172);
+    PC_STOREF(284, f181);
+    const float f182 = pc_sop_float(PC_SOP_MUL, f169, f173);
+    PC_STOREF(285, f182);
+    const float f183 = pc_sop_float(PC_SOP_MUL, f169, f174);
+    PC_STOREF(286, f183);
+    const float f184 = pc_sop_float(PC_SOP_MUL, f169, f175);
+    PC_STOREF(287, f184);
+    const float f185 = pc_sop_float(PC_SOP_MUL, f169, f176);
+    PC_STOREF(288, f185);
+    const float f186 = pc_sop_float(PC_SOP_MUL, f169, f177);
+    PC_STOREF(289, f186);
+    const float f187 = pc_sop_float(PC_SOP_MUL, f170, f170);
+    PC_STOREF(290, f187);
+    const float f188 = pc_sop_float(PC_SOP_MUL, f170, f171);
+    PC_STOREF(291, f188);
+    const float f189 = pc_sop_float(PC_SOP_MUL, f170, f172);
+    PC_STOREF(292, f189);
+    const float f190 = pc_sop_float(PC_SOP_MUL, f170, f173);
+    PC_STOREF(293, f190);
+    const float f191 = pc_sop_float(PC_SOP_MUL, f170, f174);
+    PC_STOREF(294, f191);
+    const float f192 = pc_sop_float(PC_SOP_MUL, f170, f175);
+    PC_STOREF(295, f192);
+    const float f193 = pc_sop_float(PC_SOP_MUL, f170, f176);
+    PC_STOREF(296, f193);
+    const float f194 = pc_sop_float(PC_SOP_MUL, f170, f177);
+    PC_STOREF(297, f194);
+    const float f195 = pc_sop_float(PC_SOP_MUL, f171, f171);
+    PC_STOREF(298, f195);
+    const float f196 = pc_sop_float(PC_SOP_MUL, f171, f172);
+    PC_STOREF(299, f196);
+    const float f197 = pc_sop_float(PC_SOP_MUL, f171, f173);
+    PC_STOREF(300, f197);
+    const float f198 = pc_sop_float(PC_SOP_MUL, f171, f174);
+    PC_STOREF(301, f198);
+    const float f199 = pc_sop_float(PC_SOP_MUL, f171, f175);
+    PC_STOREF(302, f199);
+    const float f200 = pc_sop_float(PC_SOP_MUL, f171, f176);
+    PC_STOREF(303, f200);
+    const float f201 = pc_sop_float(PC_SOP_MUL, f171, f177);
+    PC_STOREF(304, f201);
+    const float f202 = pc_sop_float(PC_SOP_MUL, f172, f172);
+    PC_STOREF(305, f202);
+    const float f203 = pc_sop_float(PC_SOP_MUL, f172, f173);
+    PC_STOREF(306, f203);
+    const float f204 = pc_sop_float(PC_SOP_MUL, f172, f174);
+    PC_STOREF(307, f204);
+    const float f205 = pc_sop_float(PC_SOP_MUL, f172, f175);
+    PC_STOREF(308, f205);
+    const float f206 = pc_sop_float(PC_SOP_MUL, f172, f176);
+    PC_STOREF(309, f206);
+    const float f207 = pc_sop_float(PC_SOP_MUL, f172, f177);
+    PC_STOREF(310, f207);
+    const float f208 = pc_sop_float(PC_SOP_MUL, f173, f173);
+    PC_STOREF(311, f208);
+    const float f209 = pc_sop_float(PC_SOP_MUL, f173, f174);
+    PC_STOREF(312, f209);
+    const float f210 = pc_sop_float(PC_SOP_MUL, f173, f175);
+    PC_STOREF(313, f210);
+    const float f211 = pc_sop_float(PC_SOP_MUL, f173, f176);
+    PC_STOREF(314, f211);
+    const float f212 = pc_sop_float(PC_SOP_MUL, f173, f177);
+    PC_STOREF(315, f212);
+    const float f213 = pc_sop_float(PC_SOP_MUL, f174, f174);
+    PC_STOREF(316, f213);
+    const float f214 = pc_sop_float(PC_SOP_MUL, f174, f175);
+    PC_STOREF(317, f214);
+    const float f215 = pc_sop_float(PC_SOP_MUL, f174, f176);
+    PC_STOREF(318, f215);
+    const float f216 = pc_sop_float(PC_SOP_MUL, f174, f177);
+    PC_STOREF(319, f216);
+    const float f217 = pc_sop_float(PC_SOP_MUL, f175, f175);
+    PC_STOREF(320, f217);
+    const float f218 = pc_sop_float(PC_SOP_MUL, f175, f176);
+    PC_STOREF(321, f218);
+    const float f219 = pc_sop_float(PC_SOP_MUL, f175, f177);
+    PC_STOREF(322, f219);
+    const float f220 = pc_sop_float(PC_SOP_MUL, f176, f176);
+    PC_STOREF(323, f220);
+    const float f221 = pc_sop_float(PC_SOP_MUL, f176, f177);
+    PC_STOREF(324, f221);
+    const float f222 = pc_sop_float(PC_SOP_MUL, f177, f177);
+    PC_STOREF(325, f222);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_ac6ceacb51d4b83b_shape[1608] = {
+    26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 5, 0, 0, 1, 0, 13, 0, 0, 1, 2, 0, 0,
+    0, 0, 2, 0, 0, 0, 0, 2, 0, 0, 0, 0, 4, 0, 0, 0, 4, 4, 0, 0, 0, 5, 4, 0,
+    0, 0, 6, 4, 0, 0, 0, 7, 26, 3, 0, 7, 0, 0, 6, 0, 5, 0, 0, 0, 26, 3, 0, 8,
+    0, 0, 7, 0, 6, 0, 0, 0, 26, 3, 0, 9, 0, 0, 8, 0, 7, 0, 0, 0, 3, 0, 0, 5,
+    5, 3, 0, 0, 7, 6, 3, 0, 0, 9, 6, 3, 0, 0, 9, 7, 3, 0, 0, 11, 9, 3, 0, 0,
+    11, 11, 3, 0, 0, 11, 10, 3, 0, 0, 14, 13, 2, 0, 0, 7, 6, 2, 0, 0, 3, 2, 2, 0,
+    0, 7, 6, 2, 0, 0, 14, 0, 2, 0, 0, 14, 0, 2, 0, 0, 14, 0, 26, 0, 0, 18, 18, 14,
+    26, 0, 0, 22, 20, 12, 26, 0, 0, 23, 20, 15, 26, 0, 0, 21, 21, 12, 26, 0, 0, 25, 24, 12,
+    26, 0, 0, 24, 24, 14, 26, 2, 0, 9, 9, 0, 8, 8, 7, 7, 3, 0, 0, 7, 0, 3, 0, 0,
+    14, 0, 3, 0, 0, 8, 0, 3, 0, 0, 8, 0, 3, 0, 0, 8, 0, 3, 0, 0, 17, 0, 3, 0,
+    0, 17, 0, 3, 0, 0, 10, 0, 3, 0, 0, 10, 0, 5, 0, 0, 10, 0, 2, 0, 0, 0, 10, 2,
+    0, 0, 0, 7, 2, 0, 0, 0, 4, 13, 0, 0, 4, 26, 2, 1, 0, 4, 0, 0, 11, 0, 8, 26,
+    2, 1, 0, 14, 0, 0, 4, 0, 8, 26, 2, 1, 0, 14, 0, 0, 11, 0, 4, 26, 2, 1, 0, 7,
+    0, 0, 14, 0, 11, 26, 2, 1, 0, 17, 0, 0, 7, 0, 11, 26, 2, 1, 0, 17, 0, 0, 14, 0,
+    7, 26, 2, 1, 0, 10, 0, 0, 17, 0, 14, 26, 2, 1, 0, 20, 0, 0, 10, 0, 14, 26, 2, 1,
+    0, 20, 0, 0, 17, 0, 10, 4, 0, 0, 33, 10, 4, 0, 0, 33, 11, 4, 0, 0, 33, 12, 26, 2,
+    0, 10, 3, 0, 7, 2, 4, 1, 26, 3, 0, 11, 4, 0, 8, 3, 5, 2, 0, 0, 3, 0, 0, 1,
+    0, 3, 0, 0, 3, 6, 3, 0, 0, 4, 6, 3, 0, 0, 5, 6, 2, 0, 0, 16, 3, 2, 0, 0,
+    14, 3, 2, 0, 0, 12, 3, 26, 5, 0, 66, 0, 0, 65, 0, 64, 0, 0, 0, 7, 12, 3, 0, 26,
+    5, 0, 67, 0, 0, 66, 0, 65, 0, 0, 0, 8, 12, 3, 0, 26, 5, 0, 68, 0, 0, 67, 0, 66,
+    0, 0, 0, 9, 12, 3, 0, 2, 0, 0, 3, 62, 2, 0, 0, 3, 62, 2, 0, 0, 3, 62, 2, 0,
+    0, 65, 3, 2, 0, 0, 65, 3, 2, 0, 0, 65, 3, 2, 0, 0, 3, 0, 2, 0, 0, 3, 0, 2,
+    0, 0, 3, 0, 26, 2, 0, 3, 3, 0, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4,
+    0, 0, 6, 1, 4, 0, 0, 6, 2, 4, 0, 0, 6, 3, 26, 2, 0, 37, 3, 0, 34, 2, 31, 1,
+    26, 3, 0, 38, 4, 0, 35, 3, 32, 2, 0, 0, 3, 0, 0, 1, 0, 3, 0, 0, 3, 6, 3, 0,
+    0, 4, 6, 3, 0, 0, 5, 6, 2, 0, 0, 43, 3, 2, 0, 0, 41, 3, 2, 0, 0, 39, 3, 26,
+    1, 0, 7, 12, 21, 3, 0, 26, 1, 0, 8, 12, 21, 3, 0, 26, 1, 0, 9, 12, 21, 3, 0, 2,
+    0, 0, 3, 89, 2, 0, 0, 3, 89, 2, 0, 0, 3, 89, 2, 0, 0, 27, 3, 2, 0, 0, 27, 3,
+    2, 0, 0, 27, 3, 2, 0, 0, 3, 0, 2, 0, 0, 3, 0, 2, 0, 0, 3, 0, 26, 2, 0, 3,
+    3, 0, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 6, 1, 4, 0, 0, 6,
+    2, 4, 0, 0, 6, 3, 26, 2, 0, 64, 3, 0, 61, 2, 58, 1, 26, 3, 0, 65, 4, 0, 62, 3,
+    59, 2, 0, 0, 3, 0, 0, 1, 0, 3, 0, 0, 3, 6, 3, 0, 0, 4, 6, 3, 0, 0, 5, 6,
+    2, 0, 0, 70, 3, 2, 0, 0, 68, 3, 2, 0, 0, 66, 3, 26, 1, 0, 7, 12, 21, 3, 0, 26,
+    1, 0, 8, 12, 21, 3, 0, 26, 1, 0, 9, 12, 21, 3, 0, 2, 0, 0, 3, 116, 2, 0, 0, 3,
+    116, 2, 0, 0, 3, 116, 2, 0, 0, 27, 3, 2, 0, 0, 27, 3, 2, 0, 0, 27, 3, 2, 0, 0,
+    3, 0, 2, 0, 0, 3, 0, 2, 0, 0, 3, 0, 26, 2, 0, 3, 3, 0, 2, 2, 1, 1, 5, 0,
+    0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 6, 1, 4, 0, 0, 6, 2, 4, 0, 0, 6, 3, 26, 2,
+    0, 91, 3, 0, 88, 2, 85, 1, 26, 3, 0, 92, 4, 0, 89, 3, 86, 2, 0, 0, 3, 0, 0, 1,
+    0, 3, 0, 0, 3, 6, 3, 0, 0, 4, 6, 3, 0, 0, 5, 6, 2, 0, 0, 97, 3, 2, 0, 0,
+    95, 3, 2, 0, 0, 93, 3, 26, 1, 0, 7, 12, 21, 3, 0, 26, 1, 0, 8, 12, 21, 3, 0, 26,
+    1, 0, 9, 12, 21, 3, 0, 2, 0, 0, 3, 143, 2, 0, 0, 3, 143, 2, 0, 0, 3, 143, 2, 0,
+    0, 27, 3, 2, 0, 0, 27, 3, 2, 0, 0, 27, 3, 2, 0, 0, 3, 0, 2, 0, 0, 3, 0, 2,
+    0, 0, 3, 0, 26, 2, 0, 3, 3, 0, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4,
+    0, 0, 6, 1, 4, 0, 0, 6, 2, 4, 0, 0, 6, 3, 26, 2, 0, 118, 3, 0, 115, 2, 112, 1,
+    26, 3, 0, 119, 4, 0, 116, 3, 113, 2, 0, 0, 3, 0, 0, 1, 0, 3, 0, 0, 3, 6, 3, 0,
+    0, 4, 6, 3, 0, 0, 5, 6, 2, 0, 0, 124, 3, 2, 0, 0, 122, 3, 2, 0, 0, 120, 3, 26,
+    1, 0, 7, 12, 21, 3, 0, 26, 1, 0, 8, 12, 21, 3, 0, 26, 1, 0, 9, 12, 21, 3, 0, 2,
+    0, 0, 3, 170, 2, 0, 0, 3, 170, 2, 0, 0, 3, 170, 2, 0, 0, 27, 3, 2, 0, 0, 27, 3,
+    2, 0, 0, 27, 3, 2, 0, 0, 3, 0, 2, 0, 0, 3, 0, 2, 0, 0, 3, 0, 26, 2, 0, 3,
+    3, 0, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 6, 1, 4, 0, 0, 6,
+    2, 4, 0, 0, 6, 3, 26, 2, 0, 145, 3, 0, 142, 2, 139, 1, 26, 3, 0, 146, 4, 0, 143, 3,
+    140, 2, 0, 0, 3, 0, 0, 1, 0, 3, 0, 0, 3, 6, 3, 0, 0, 4, 6, 3, 0, 0, 5, 6,
+    2, 0, 0, 151, 3, 2, 0, 0, 149, 3, 2, 0, 0, 147, 3, 26, 1, 0, 7, 12, 21, 3, 0, 26,
+    1, 0, 8, 12, 21, 3, 0, 26, 1, 0, 9, 12, 21, 3, 0, 2, 0, 0, 3, 197, 2, 0, 0, 3,
+    197, 2, 0, 0, 3, 197, 2, 0, 0, 27, 3, 2, 0, 0, 27, 3, 2, 0, 0, 27, 3, 2, 0, 0,
+    3, 0, 2, 0, 0, 3, 0, 2, 0, 0, 3, 0, 4, 0, 0, 3, 0, 4, 0, 0, 3, 0, 4, 0,
+    0, 3, 0, 1, 0, 0, 3, 0, 1, 0, 0, 3, 0, 1, 0, 0, 3, 0, 2, 0, 0, 3, 0, 2,
+    0, 0, 3, 0, 2, 0, 0, 3, 0, 26, 2, 0, 3, 0, 0, 2, 0, 1, 0, 26, 2, 0, 4, 0,
+    0, 3, 0, 2, 0, 26, 2, 0, 5, 0, 0, 4, 0, 3, 0, 26, 2, 0, 3, 3, 0, 2, 2, 1,
+    1, 12, 0, 0, 2, 7, 0, 0, 1, 0, 23, 0, 0, 0, 2, 1, 4, 0, 0, 7, 1, 4, 0, 0,
+    7, 2, 10, 0, 0, 9, 0, 10, 0, 0, 6, 0, 10, 0, 0, 10, 0, 19, 0, 0, 5, 19, 0, 0,
+    5, 23, 0, 0, 0, 0, 5, 23, 0, 0, 0, 0, 4, 1, 0, 0, 4, 2, 1, 0, 0, 4, 2, 23,
+    0, 0, 2, 6, 8, 23, 0, 0, 2, 6, 9, 2, 0, 1, 2, 0, 2, 0, 1, 2, 0, 3, 0, 0,
+    1, 0, 3, 0, 0, 1, 2, 3, 0, 0, 4, 0, 3, 0, 0, 1, 5, 2, 0, 0, 6, 3, 2, 0,
+    0, 6, 2, 3, 0, 0, 1, 0, 3, 0, 0, 1, 2, 3, 0, 0, 4, 0, 3, 0, 0, 1, 5, 2,
+    0, 0, 12, 3, 2, 0, 0, 12, 2, 3, 0, 0, 1, 0, 3, 0, 0, 1, 2, 3, 0, 0, 4, 0,
+    3, 0, 0, 1, 5, 2, 0, 1, 18, 3, 2, 0, 1, 18, 2, 13, 0, 1, 37, 3, 0, 1, 2, 0,
+};
+static pc_status pc_program_ac6ceacb51d4b83b(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    float f0 = PC_XF(1, c);
+    f0 += PC_XF(1, a) * PC_XF(1, b);
+    f0 += PC_XF(2, a) * PC_XF(2, b);
+    f0 += PC_XF(3, a) * PC_XF(3, b);
+    f0 += PC_XF(4, a) * PC_XF(4, b);
+    const float f1 = pc_sop_float(PC_SOP_MAX, f0, PC_XF(6, b));
+    const float f2 = pc_sop_float(PC_SOP_SQRT, f1, 0.0f);
+    const float f3 = pc_sop_float(PC_SOP_SUB, PC_XF(10, a), PC_XF(10, b));
+    const float f4 = pc_sop_float(PC_SOP_SUB, PC_XF(11, a), PC_XF(11, b));
+    const float f5 = pc_sop_float(PC_SOP_SUB, PC_XF(12, a), PC_XF(12, b));
+    const float f6 = pc_sop_float(PC_SOP_DIV, PC_XF(14, a), f2);
+    const float f7 = pc_sop_float(PC_SOP_DIV, PC_XF(15, a), f2);
+    const float f8 = pc_sop_float(PC_SOP_DIV, PC_XF(16, a), f2);
+    const float f9 = pc_sop_float(PC_SOP_DIV, PC_XF(17, a), f2);
+    float f10 = PC_XF(19, c);
+    f10 += f3 * PC_XF(19, b);
+    f10 += f4 * PC_XF(20, b);
+    f10 += f5 * PC_XF(21, b);
+    f10 += PC_XF(22, a) * PC_XF(22, b);
+    float f11 = PC_XF(23, c);
+    f11 += f3 * PC_XF(23, b);
+    f11 += f4 * PC_XF(24, b);
+    f11 += f5 * PC_XF(25, b);
+    f11 += PC_XF(26, a) * PC_XF(26, b);
+    float f12 = PC_XF(27, c);
+    f12 += f3 * PC_XF(27, b);
+    f12 += f4 * PC_XF(28, b);
+    f12 += f5 * PC_XF(29, b);
+    f12 += PC_XF(30, a) * PC_XF(30, b);
+    const float f13 = pc_sop_float(PC_SOP_MUL, f8, f8);
+    const float f14 = pc_sop_float(PC_SOP_MUL, f7, f8);
+    const float f15 = pc_sop_float(PC_SOP_MUL, f6, f9);
+    const float f16 = pc_sop_float(PC_SOP_MUL, f7, f9);
+    const float f17 = pc_sop_float(PC_SOP_MUL, f6, f8);
+    const float f18 = pc_sop_float(PC_SOP_MUL, f7, f7);
+    const float f19 = pc_sop_float(PC_SOP_MUL, f8, f9);
+    const float f20 = pc_sop_float(PC_SOP_MUL, f6, f7);
+    const float f21 = pc_sop_float(PC_SOP_SUB, f14, f15);
+    const float f22 = pc_sop_float(PC_SOP_SUB, f19, f20);
+    const float f23 = pc_sop_float(PC_SOP_SUB, f16, f17);
+    const float f24 = pc_sop_float(PC_SOP_SUB, f10, PC_XF(44, b));
+    const float f25 = pc_sop_float(PC_SOP_SUB, f11, PC_XF(45, b));
+    const float f26 = pc_sop_float(PC_SOP_SUB, f12, PC_XF(46, b));
+    float f27 = f13;
+    f27 += f9 * f9;
+    float f28 = f16;
+    f28 += f6 * f8;
+    float f29 = f14;
+    f29 += f6 * f9;
+    float f30 = f18;
+    f30 += f9 * f9;
+    float f31 = f19;
+    f31 += f6 * f7;
+    float f32 = f18;
+    f32 += f8 * f8;
+    float f33 = PC_XF(54, c);
+    f33 += f24 * f24;
+    f33 += f25 * f25;
+    f33 += f26 * f26;
+    const float f34 = pc_sop_float(PC_SOP_MUL, f27, PC_XF(58, b));
+    const float f35 = pc_sop_float(PC_SOP_MUL, f21, PC_XF(59, b));
+    const float f36 = pc_sop_float(PC_SOP_MUL, f28, PC_XF(60, b));
+    const float f37 = pc_sop_float(PC_SOP_MUL, f29, PC_XF(61, b));
+    const float f38 = pc_sop_float(PC_SOP_MUL, f30, PC_XF(62, b));
+    const float f39 = pc_sop_float(PC_SOP_MUL, f22, PC_XF(63, b));
+    const float f40 = pc_sop_float(PC_SOP_MUL, f23, PC_XF(64, b));
+    const float f41 = pc_sop_float(PC_SOP_MUL, f31, PC_XF(65, b));
+    const float f42 = pc_sop_float(PC_SOP_MUL, f32, PC_XF(66, b));
+    const float f43 = pc_sop_float(PC_SOP_MAX, f33, PC_XF(68, b));
+    const float f44 = pc_sop_float(PC_SOP_SUB, PC_XF(70, a), f34);
+    const float f45 = pc_sop_float(PC_SOP_SUB, PC_XF(71, a), f38);
+    const float f46 = pc_sop_float(PC_SOP_SUB, PC_XF(72, a), f42);
+    const float f47 = pc_sop_float(PC_SOP_SQRT, f43, 0.0f);
+    float f48 = PC_XF(76, c);
+    f48 += PC_XF(76, a) * f44;
+    f48 += PC_XF(77, a) * f37;
+    f48 += PC_XF(78, a) * f40;
+    PC_STOREF(76, f48);
+    float f49 = PC_XF(79, c);
+    f49 += PC_XF(79, a) * f35;
+    f49 += PC_XF(80, a) * f45;
+    f49 += PC_XF(81, a) * f41;
+    PC_STOREF(79, f49);
+    float f50 = PC_XF(82, c);
+    f50 += PC_XF(82, a) * f36;
+    f50 += PC_XF(83, a) * f39;
+    f50 += PC_XF(84, a) * f46;
+    PC_STOREF(82, f50);
+    float f51 = PC_XF(85, c);
+    f51 += PC_XF(85, a) * f44;
+    f51 += PC_XF(86, a) * f37;
+    f51 += PC_XF(87, a) * f40;
+    PC_STOREF(85, f51);
+    float f52 = PC_XF(88, c);
+    f52 += PC_XF(88, a) * f35;
+    f52 += PC_XF(89, a) * f45;
+    f52 += PC_XF(90, a) * f41;
+    PC_STOREF(88, f52);
+    float f53 = PC_XF(91, c);
+    f53 += PC_XF(91, a) * f36;
+    f53 += PC_XF(92, a) * f39;
+    f53 += PC_XF(93, a) * f46;
+    PC_STOREF(91, f53);
+    float f54 = PC_XF(94, c);
+    f54 += PC_XF(94, a) * f44;
+    f54 += PC_XF(95, a) * f37;
+    f54 += PC_XF(96, a) * f40;
+    PC_STOREF(94, f54);
+    float f55 = PC_XF(97, c);
+    f55 += PC_XF(97, a) * f35;
+    f55 += PC_XF(98, a) * f45;
+    f55 += PC_XF(99, a) * f41;
+    PC_STOREF(97, f55);
+    float f56 = PC_XF(100, c);
+    f56 += PC_XF(100, a) * f36;
+    f56 += PC_XF(101, a) * f39;
+    f56 += PC_XF(102, a) * f46;
+    PC_STOREF(100, f56);
+    const float f57 = pc_sop_float(PC_SOP_DIV, f24, f47);
+    const float f58 = pc_sop_float(PC_SOP_DIV, f25, f47);
+    const float f59 = pc_sop_float(PC_SOP_DIV, f26, f47);
+    float f60 = PC_XF(108, c);
+    f60 += f50 * f57;
+    f60 += f53 * f58;
+    f60 += f56 * f59;
+    float f61 = PC_XF(111, c);
+    f61 += f50 * f57;
+    f61 += f53 * f58;
+    f61 += f56 * f59;
+    f61 += PC_XF(114, a) * PC_XF(114, b);
+    const float f62 = pc_sop_float(PC_SOP_MUL, f61, PC_XF(116, b));
+    const float f63 = pc_sop_float(PC_SOP_MUL, f60, f57);
+    const float f64 = pc_sop_float(PC_SOP_MUL, f60, f58);
+    const float f65 = pc_sop_float(PC_SOP_MUL, f60, f59);
+    const float f66 = pc_sop_float(PC_SOP_SUB, f50, f63);
+    const float f67 = pc_sop_float(PC_SOP_SUB, f53, f64);
+    const float f68 = pc_sop_float(PC_SOP_SUB, f56, f65);
+    float f69 = PC_XF(125, c);
+    f69 += f3 * PC_XF(125, b);
+    f69 += f4 * PC_XF(126, b);
+    f69 += f5 * PC_XF(127, b);
+    f69 += PC_XF(128, a) * PC_XF(128, b);
+    f69 += f62 * f57;
+    f69 += f66 * PC_XF(130, b);
+    float f70 = PC_XF(131, c);
+    f70 += f3 * PC_XF(131, b);
+    f70 += f4 * PC_XF(132, b);
+    f70 += f5 * PC_XF(133, b);
+    f70 += PC_XF(134, a) * PC_XF(134, b);
+    f70 += f62 * f58;
+    f70 += f67 * PC_XF(136, b);
+    float f71 = PC_XF(137, c);
+    f71 += f3 * PC_XF(137, b);
+    f71 += f4 * PC_XF(138, b);
+    f71 += f5 * PC_XF(139, b);
+    f71 += PC_XF(140, a) * PC_XF(140, b);
+    f71 += f62 * f59;
+    f71 += f68 * PC_XF(142, b);
+    const float f72 = pc_sop_float(PC_SOP_SUB, f69, f10);
+    const float f73 = pc_sop_float(PC_SOP_SUB, f70, f11);
+    const float f74 = pc_sop_float(PC_SOP_SUB, f71, f12);
+    const float f75 = pc_sop_float(PC_SOP_SUB, f10, f72);
+    const float f76 = pc_sop_float(PC_SOP_SUB, f11, f73);
+    const float f77 = pc_sop_float(PC_SOP_SUB, f12, f74);
+    const float f78 = pc_sop_float(PC_SOP_SUB, f75, PC_XF(150, b));
+    const float f79 = pc_sop_float(PC_SOP_SUB, f76, PC_XF(151, b));
+    const float f80 = pc_sop_float(PC_SOP_SUB, f77, PC_XF(152, b));
+    float f81 = PC_XF(154, c);
+    f81 += f78 * f78;
+    f81 += f79 * f79;
+    f81 += f80 * f80;
+    const float f82 = pc_sop_float(PC_SOP_MAX, f81, PC_XF(158, b));
+    const float f83 = pc_sop_float(PC_SOP_SQRT, f82, 0.0f);
+    const float f84 = pc_sop_float(PC_SOP_DIV, f78, f83);
+    const float f85 = pc_sop_float(PC_SOP_DIV, f79, f83);
+    const float f86 = pc_sop_float(PC_SOP_DIV, f80, f83);
+    float f87 = PC_XF(166, c);
+    f87 += f50 * f84;
+    f87 += f53 * f85;
+    f87 += f56 * f86;
+    float f88 = PC_XF(169, c);
+    f88 += f50 * f84;
+    f88 += f53 * f85;
+    f88 += f56 * f86;
+    f88 += PC_XF(172, a) * PC_XF(172, b);
+    const float f89 = pc_sop_float(PC_SOP_MUL, f88, PC_XF(174, b));
+    const float f90 = pc_sop_float(PC_SOP_MUL, f87, f84);
+    const float f91 = pc_sop_float(PC_SOP_MUL, f87, f85);
+    const float f92 = pc_sop_float(PC_SOP_MUL, f87, f86);
+    const float f93 = pc_sop_float(PC_SOP_SUB, f50, f90);
+    const float f94 = pc_sop_float(PC_SOP_SUB, f53, f91);
+    const float f95 = pc_sop_float(PC_SOP_SUB, f56, f92);
+    float f96 = f75;
+    f96 += f89 * f84;
+    f96 += f93 * PC_XF(184, b);
+    float f97 = f76;
+    f97 += f89 * f85;
+    f97 += f94 * PC_XF(186, b);
+    float f98 = f77;
+    f98 += f89 * f86;
+    f98 += f95 * PC_XF(188, b);
+    const float f99 = pc_sop_float(PC_SOP_SUB, f96, f10);
+    const float f100 = pc_sop_float(PC_SOP_SUB, f97, f11);
+    const float f101 = pc_sop_float(PC_SOP_SUB, f98, f12);
+    const float f102 = pc_sop_float(PC_SOP_SUB, f75, f99);
+    const float f103 = pc_sop_float(PC_SOP_SUB, f76, f100);
+    const float f104 = pc_sop_float(PC_SOP_SUB, f77, f101);
+    const float f105 = pc_sop_float(PC_SOP_SUB, f102, PC_XF(196, b));
+    const float f106 = pc_sop_float(PC_SOP_SUB, f103, PC_XF(197, b));
+    const float f107 = pc_sop_float(PC_SOP_SUB, f104, PC_XF(198, b));
+    float f108 = PC_XF(200, c);
+    f108 += f105 * f105;
+    f108 += f106 * f106;
+    f108 += f107 * f107;
+    const float f109 = pc_sop_float(PC_SOP_MAX, f108, PC_XF(204, b));
+    const float f110 = pc_sop_float(PC_SOP_SQRT, f109, 0.0f);
+    const float f111 = pc_sop_float(PC_SOP_DIV, f105, f110);
+    const float f112 = pc_sop_float(PC_SOP_DIV, f106, f110);
+    const float f113 = pc_sop_float(PC_SOP_DIV, f107, f110);
+    float f114 = PC_XF(212, c);
+    f114 += f50 * f111;
+    f114 += f53 * f112;
+    f114 += f56 * f113;
+    float f115 = PC_XF(215, c);
+    f115 += f50 * f111;
+    f115 += f53 * f112;
+    f115 += f56 * f113;
+    f115 += PC_XF(218, a) * PC_XF(218, b);
+    const float f116 = pc_sop_float(PC_SOP_MUL, f115, PC_XF(220, b));
+    const float f117 = pc_sop_float(PC_SOP_MUL, f114, f111);
+    const float f118 = pc_sop_float(PC_SOP_MUL, f114, f112);
+    const float f119 = pc_sop_float(PC_SOP_MUL, f114, f113);
+    const float f120 = pc_sop_float(PC_SOP_SUB, f50, f117);
+    const float f121 = pc_sop_float(PC_SOP_SUB, f53, f118);
+    const float f122 = pc_sop_float(PC_SOP_SUB, f56, f119);
+    float f123 = f102;
+    f123 += f116 * f111;
+    f123 += f120 * PC_XF(230, b);
+    float f124 = f103;
+    f124 += f116 * f112;
+    f124 += f121 * PC_XF(232, b);
+    float f125 = f104;
+    f125 += f116 * f113;
+    f125 += f122 * PC_XF(234, b);
+    const float f126 = pc_sop_float(PC_SOP_SUB, f123, f10);
+    const float f127 = pc_sop_float(PC_SOP_SUB, f124, f11);
+    const float f128 = pc_sop_float(PC_SOP_SUB, f125, f12);
+    const float f129 = pc_sop_float(PC_SOP_SUB, f102, f126);
+    const float f130 = pc_sop_float(PC_SOP_SUB, f103, f127);
+    const float f131 = pc_sop_float(PC_SOP_SUB, f104, f128);
+    const float f132 = pc_sop_float(PC_SOP_SUB, f129, PC_XF(242, b));
+    const float f133 = pc_sop_float(PC_SOP_SUB, f130, PC_XF(243, b));
+    const float f134 = pc_sop_float(PC_SOP_SUB, f131, PC_XF(244, b));
+    float f135 = PC_XF(246, c);
+    f135 += f132 * f132;
+    f135 += f133 * f133;
+    f135 += f134 * f134;
+    const float f136 = pc_sop_float(PC_SOP_MAX, f135, PC_XF(250, b));
+    const float f137 = pc_sop_float(PC_SOP_SQRT, f136, 0.0f);
+    const float f138 = pc_sop_float(PC_SOP_DIV, f132, f137);
+    const float f139 = pc_sop_float(PC_SOP_DIV, f133, f137);
+    const float f140 = pc_sop_float(PC_SOP_DIV, f134, f137);
+    float f141 = PC_XF(258, c);
+    f141 += f50 * f138;
+    f141 += f53 * f139;
+    f141 += f56 * f140;
+    float f142 = PC_XF(261, c);
+    f142 += f50 * f138;
+    f142 += f53 * f139;
+    f142 += f56 * f140;
+    f142 += PC_XF(264, a) * PC_XF(264, b);
+    const float f143 = pc_sop_float(PC_SOP_MUL, f142, PC_XF(266, b));
+    const float f144 = pc_sop_float(PC_SOP_MUL, f141, f138);
+    const float f145 = pc_sop_float(PC_SOP_MUL, f141, f139);
+    const float f146 = pc_sop_float(PC_SOP_MUL, f141, f140);
+    const float f147 = pc_sop_float(PC_SOP_SUB, f50, f144);
+    const float f148 = pc_sop_float(PC_SOP_SUB, f53, f145);
+    const float f149 = pc_sop_float(PC_SOP_SUB, f56, f146);
+    float f150 = f129;
+    f150 += f143 * f138;
+    f150 += f147 * PC_XF(276, b);
+    float f151 = f130;
+    f151 += f143 * f139;
+    f151 += f148 * PC_XF(278, b);
+    float f152 = f131;
+    f152 += f143 * f140;
+    f152 += f149 * PC_XF(280, b);
+    const float f153 = pc_sop_float(PC_SOP_SUB, f150, f10);
+    const float f154 = pc_sop_float(PC_SOP_SUB, f151, f11);
+    const float f155 = pc_sop_float(PC_SOP_SUB, f152, f12);
+    const float f156 = pc_sop_float(PC_SOP_SUB, f129, f153);
+    const float f157 = pc_sop_float(PC_SOP_SUB, f130, f154);
+    const float f158 = pc_sop_float(PC_SOP_SUB, f131, f155);
+    const float f159 = pc_sop_float(PC_SOP_SUB, f156, PC_XF(288, b));
+    const float f160 = pc_sop_float(PC_SOP_SUB, f157, PC_XF(289, b));
+    const float f161 = pc_sop_float(PC_SOP_SUB, f158, PC_XF(290, b));
+    float f162 = PC_XF(292, c);
+    f162 += f159 * f159;
+    f162 += f160 * f160;
+    f162 += f161 * f161;
+    const float f163 = pc_sop_float(PC_SOP_MAX, f162, PC_XF(296, b));
+    const float f164 = pc_sop_float(PC_SOP_SQRT, f163, 0.0f);
+    const float f165 = pc_sop_float(PC_SOP_DIV, f159, f164);
+    const float f166 = pc_sop_float(PC_SOP_DIV, f160, f164);
+    const float f167 = pc_sop_float(PC_SOP_DIV, f161, f164);
+    float f168 = PC_XF(304, c);
+    f168 += f50 * f165;
+    f168 += f53 * f166;
+    f168 += f56 * f167;
+    float f169 = PC_XF(307, c);
+    f169 += f50 * f165;
+    f169 += f53 * f166;
+    f169 += f56 * f167;
+    f169 += PC_XF(310, a) * PC_XF(310, b);
+    const float f170 = pc_sop_float(PC_SOP_MUL, f169, PC_XF(312, b));
+    const float f171 = pc_sop_float(PC_SOP_MUL, f168, f165);
+    const float f172 = pc_sop_float(PC_SOP_MUL, f168, f166);
+    const float f173 = pc_sop_float(PC_SOP_MUL, f168, f167);
+    const float f174 = pc_sop_float(PC_SOP_SUB, f50, f171);
+    const float f175 = pc_sop_float(PC_SOP_SUB, f53, f172);
+    const float f176 = pc_sop_float(PC_SOP_SUB, f56, f173);
+    float f177 = f156;
+    f177 += f170 * f165;
+    f177 += f174 * PC_XF(322, b);
+    float f178 = f157;
+    f178 += f170 * f166;
+    f178 += f175 * PC_XF(324, b);
+    float f179 = f158;
+    f179 += f170 * f167;
+    f179 += f176 * PC_XF(326, b);
+    const float f180 = pc_sop_float(PC_SOP_SUB, f177, f10);
+    const float f181 = pc_sop_float(PC_SOP_SUB, f178, f11);
+    const float f182 = pc_sop_float(PC_SOP_SUB, f179, f12);
+    const float f183 = pc_sop_float(PC_SOP_SUB, f156, f180);
+    const float f184 = pc_sop_float(PC_SOP_SUB, f157, f181);
+    const float f185 = pc_sop_float(PC_SOP_SUB, f158, f182);
+    const float f186 = pc_sop_float(PC_SOP_SUB, f183, PC_XF(334, b));
+    const float f187 = pc_sop_float(PC_SOP_SUB, f184, PC_XF(335, b));
+    const float f188 = pc_sop_float(PC_SOP_SUB, f185, PC_XF(336, b));
+    float f189 = PC_XF(338, c);
+    f189 += f186 * f186;
+    f189 += f187 * f187;
+    f189 += f188 * f188;
+    const float f190 = pc_sop_float(PC_SOP_MAX, f189, PC_XF(342, b));
+    const float f191 = pc_sop_float(PC_SOP_SQRT, f190, 0.0f);
+    const float f192 = pc_sop_float(PC_SOP_DIV, f186, f191);
+    const float f193 = pc_sop_float(PC_SOP_DIV, f187, f191);
+    const float f194 = pc_sop_float(PC_SOP_DIV, f188, f191);
+    float f195 = PC_XF(350, c);
+    f195 += f50 * f192;
+    f195 += f53 * f193;
+    f195 += f56 * f194;
+    float f196 = PC_XF(353, c);
+    f196 += f50 * f192;
+    f196 += f53 * f193;
+    f196 += f56 * f194;
+    f196 += PC_XF(356, a) * PC_XF(356, b);
+    const float f197 = pc_sop_float(PC_SOP_MUL, f196, PC_XF(358, b));
+    const float f198 = pc_sop_float(PC_SOP_MUL, f195, f192);
+    const float f199 = pc_sop_float(PC_SOP_MUL, f195, f193);
+    const float f200 = pc_sop_float(PC_SOP_MUL, f195, f194);
+    const float f201 = pc_sop_float(PC_SOP_SUB, f50, f198);
+    const float f202 = pc_sop_float(PC_SOP_SUB, f53, f199);
+    const float f203 = pc_sop_float(PC_SOP_SUB, f56, f200);
+    float f204 = f183;
+    f204 += f197 * f192;
+    f204 += f201 * PC_XF(368, b);
+    float f205 = f184;
+    f205 += f197 * f193;
+    f205 += f202 * PC_XF(370, b);
+    float f206 = f185;
+    f206 += f197 * f194;
+    f206 += f203 * PC_XF(372, b);
+    const float f207 = pc_sop_float(PC_SOP_SUB, f204, f10);
+    const float f208 = pc_sop_float(PC_SOP_SUB, f205, f11);
+    const float f209 = pc_sop_float(PC_SOP_SUB, f206, f12);
+    const float f210 = pc_sop_float(PC_SOP_SUB, f183, f207);
+    const float f211 = pc_sop_float(PC_SOP_SUB, f184, f208);
+    const float f212 = pc_sop_float(PC_SOP_SUB, f185, f209);
+    const float f213 = pc_sop_float(PC_SOP_SUB, f210, PC_XF(380, b));
+    const float f214 = pc_sop_float(PC_SOP_SUB, f211, PC_XF(381, b));
+    const float f215 = pc_sop_float(PC_SOP_SUB, f212, PC_XF(382, b));
+    const float f216 = pc_sop_float(PC_SOP_DIV, f213, PC_XF(384, b));
+    const float f217 = pc_sop_float(PC_SOP_DIV, f214, PC_XF(385, b));
+    const float f218 = pc_sop_float(PC_SOP_DIV, f215, PC_XF(386, b));
+    const float f219 = pc_sop_float(PC_SOP_ADD, f216, PC_XF(388, b));
+    const float f220 = pc_sop_float(PC_SOP_ADD, f217, PC_XF(389, b));
+    const float f221 = pc_sop_float(PC_SOP_ADD, f218, PC_XF(390, b));
+    const float f222 = pc_sop_float(PC_SOP_SUB, f219, PC_XF(392, b));
+    const float f223 = pc_sop_float(PC_SOP_SUB, f220, PC_XF(393, b));
+    const float f224 = pc_sop_float(PC_SOP_SUB, f221, PC_XF(394, b));
+    float f225 = PC_XF(396, c);
+    f225 += f222 * PC_XF(396, b);
+    f225 += f223 * PC_XF(397, b);
+    f225 += f224 * PC_XF(398, b);
+    float f226 = PC_XF(399, c);
+    f226 += f222 * PC_XF(399, b);
+    f226 += f223 * PC_XF(400, b);
+    f226 += f224 * PC_XF(401, b);
+    float f227 = PC_XF(402, c);
+    f227 += f222 * PC_XF(402, b);
+    f227 += f223 * PC_XF(403, b);
+    f227 += f224 * PC_XF(404, b);
+    float f228 = PC_XF(405, c);
+    f228 += f225 * f225;
+    f228 += f226 * f226;
+    f228 += f227 * f227;
+    const float f229 = pc_sop_float(PC_SOP_NEG, f227, 0.0f);
+    const uint8_t b230 = f229 == PC_XF(411, b);
+    const float f231 = b230 ? PC_XF(413, a) : f229;
+    const float f232 = pc_sop_float(PC_SOP_DIV, f225, f231);
+    const float f233 = pc_sop_float(PC_SOP_DIV, f226, f231);
+    const uint8_t b234 = f225 < PC_XF(418, b);
+    const uint8_t b235 = f229 < PC_XF(419, b);
+    const uint8_t b236 = f226 < PC_XF(420, b);
+    const float f237 = pc_sop_float(PC_SOP_ATAN, f232, 0.0f);
+    const float f238 = pc_sop_float(PC_SOP_ATAN, f233, 0.0f);
+    const float f239 = b234 ? PC_XF(425, a) : PC_XF(425, b);
+    const float f240 = b236 ? PC_XF(426, a) : PC_XF(426, b);
+    const float f241 = pc_sop_float(PC_SOP_ADD, f237, f239);
+    const float f242 = pc_sop_float(PC_SOP_ADD, f238, f240);
+    const float f243 = b235 ? f241 : f237;
+    const float f244 = b235 ? f242 : f238;
+    const float f245 = pc_sop_float(PC_SOP_SUB, f243, PC_XF(434, b));
+    PC_STOREF(434, f245);
+    const float f246 = pc_sop_float(PC_SOP_SUB, f244, PC_XF(435, b));
+    PC_STOREF(435, f246);
+    const float f247 = pc_sop_float(PC_SOP_MUL, f246, PC_XF(437, b));
+    const float f248 = pc_sop_float(PC_SOP_MUL, f247, f246);
+    const float f249 = pc_sop_float(PC_SOP_MUL, f245, PC_XF(439, b));
+    const float f250 = pc_sop_float(PC_SOP_MUL, f249, f245);
+    const float f251 = pc_sop_float(PC_SOP_SUB, f245, f248);
+    const float f252 = pc_sop_float(PC_SOP_SUB, f246, f250);
+    const float f253 = pc_sop_float(PC_SOP_MUL, f252, PC_XF(445, b));
+    const float f254 = pc_sop_float(PC_SOP_MUL, f253, f252);
+    const float f255 = pc_sop_float(PC_SOP_MUL, f251, PC_XF(447, b));
+    const float f256 = pc_sop_float(PC_SOP_MUL, f255, f251);
+    const float f257 = pc_sop_float(PC_SOP_SUB, f245, f254);
+    const float f258 = pc_sop_float(PC_SOP_SUB, f246, f256);
+    const float f259 = pc_sop_float(PC_SOP_MUL, f258, PC_XF(453, b));
+    const float f260 = pc_sop_float(PC_SOP_MUL, f259, f258);
+    const float f261 = pc_sop_float(PC_SOP_MUL, f257, PC_XF(455, b));
+    const float f262 = pc_sop_float(PC_SOP_MUL, f261, f257);
+    const float f263 = pc_sop_float(PC_SOP_SUB, f245, f260);
+    PC_STOREF(458, f263);
+    const float f264 = pc_sop_float(PC_SOP_SUB, f246, f262);
+    PC_STOREF(459, f264);
+    const float f265 = pc_sop_float(PC_SOP_SQRT, f228, 0.0f);
+    PC_STOREF(461, f265);
+    const float f266 = pc_sop_float(PC_SOP_MUL, f264, PC_XF(463, b));
+    PC_STOREF(463, f266);
+    return PC_OK;
+}
+
+const pc_compiled_program pc_compiled_programs[21] = {
     {159u, 0x0bb08452fbb3a9afull, pc_program_0bb08452fbb3a9af_shape, pc_program_0bb08452fbb3a9af},
     {165u, 0xbac44ddbdd61a1dfull, pc_program_bac44ddbdd61a1df_shape, pc_program_bac44ddbdd61a1df},
     {204u, 0xca406bcfedbc5acdull, pc_program_ca406bcfedbc5acd_shape, pc_program_ca406bcfedbc5acd},
@@ -3674,5 +4644,7 @@ const pc_compiled_program pc_compiled_programs[19] = {
     {1045u, 0x510a7b9f81e8bb81ull, pc_program_510a7b9f81e8bb81_shape, pc_program_510a7b9f81e8bb81},
     {1125u, 0xc1b1401b8efb6e50ull, pc_program_c1b1401b8efb6e50_shape, pc_program_c1b1401b8efb6e50},
     {1209u, 0x8f8acb0b2c3aa015ull, pc_program_8f8acb0b2c3aa015_shape, pc_program_8f8acb0b2c3aa015},
+    {1285u, 0x0042e12f957ab815ull, pc_program_0042e12f957ab815_shape, pc_program_0042e12f957ab815},
+    {1608u, 0xac6ceacb51d4b83bull, pc_program_ac6ceacb51d4b83b_shape, pc_program_ac6ceacb51d4b83b},
 };
-const size_t pc_n_compiled_programs = 19;
+const size_t pc_n_compiled_programs = 21;

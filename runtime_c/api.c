@@ -13,11 +13,13 @@
 
 /* ---- load-time checks ------------------------------------------------------------- */
 
-/* Close enough for results of the same arithmetic in a different plan. */
+/* Close enough for results of the same arithmetic in a different plan. Equal infinities
+ * are the same result (their difference is NaN): a model answering a probe with infinity
+ * is pc_run's output check to refuse, not a graph that mixes rows. */
 static int pc_same_result(float a, float b)
 {
     const float d = a > b ? a - b : b - a, s = a < 0 ? -a : a;
-    return (a != a && b != b) || d <= 1e-5f * (s > 1.0f ? s : 1.0f);
+    return a == b || (a != a && b != b) || d <= 1e-5f * (s > 1.0f ? s : 1.0f);
 }
 
 static pc_status pc_forget_probe(pc_model *m)

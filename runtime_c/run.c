@@ -91,21 +91,28 @@ static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, 
     return PC_OK;
 }
 
-/* v with three decimals (mm, ms) for a message: pc_format has no %f. The rule is
+/* v with `places` decimals (at most 6) for a message: pc_format has no %f. The rule is
  * python/posecorr/controller/checks.py's decimal(), so that both back ends write the
  * same text. */
-static void pc_decimal(char *buf, size_t size, double v)
+static void pc_decimal(char *buf, size_t size, double v, int places)
 {
+    char frac[8];
     const double a = fabs(v);
-    long long units, frac;
+    double scale = 1.0;
+    long long units, f;
+    int k;
     if (!(a < 1e9)) {
         pc_format(buf, size, "beyond %s1e9", v < 0 ? "-" : "");
         return;
     }
-    units = (long long)(a * 1000.0 + 0.5);
-    frac = units % 1000;
-    pc_format(buf, size, "%s%lld.%s%lld", v < 0 && units ? "-" : "", units / 1000,
-              frac < 10 ? "00" : frac < 100 ? "0" : "", frac);
+    for (k = 0; k < places; k++)
+        scale *= 10.0;
+    units = (long long)(a * scale + 0.5);
+    for (k = places, f = units; k > 0; k--, f /= 10)
+        frac[k - 1] = (char)('0' + f % 10);
+    frac[places] = '\0';
+    pc_format(buf, size, "%s%lld.%s", v < 0 && units ? "-" : "", units / (long long)scale,
+              frac);
 }
 
 /* "...: VALUE UNIT, expected LO to HI UNIT (metadata KEY)" of a value outside bounds. */
@@ -113,9 +120,9 @@ static void pc_outside(pc_model *m, const char *what, float v, float lo, float h
                        const char *unit, const char *key)
 {
     char value[24], low[24], high[24];
-    pc_decimal(value, sizeof value, v);
-    pc_decimal(low, sizeof low, lo);
-    pc_decimal(high, sizeof high, hi);
+    pc_decimal(value, sizeof value, v, 3);
+    pc_decimal(low, sizeof low, lo, 3);
+    pc_decimal(high, sizeof high, hi, 3);
     pc_format(m->message, sizeof m->message, "%s: %s %s, expected %s to %s %s (metadata %s)",
               what, value, unit, low, high, unit, key);
 }
@@ -165,7 +172,7 @@ static pc_status pc_check_input(pc_model *m, const float *in, const float *t, si
              (double)in[6] * in[6];
         if (!(n2 >= PC_QUAT_NORM2_LO && n2 <= PC_QUAT_NORM2_HI)) {
             char norm[24];
-            pc_decimal(norm, sizeof norm, sqrt(n2));
+            pc_decimal(norm, sizeof norm, sqrt(n2), 6);
             pc_format(m->message, sizeof m->message,
                       "pose %zu has a quaternion of norm %s in columns 3-6 (expected a unit "
                       "quaternion w, x, y, z: norm within 0.001 of 1)", i, norm);

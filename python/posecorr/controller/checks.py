@@ -96,13 +96,14 @@ def failure(status: Status, message: str) -> PoseCorrError:
     return PoseCorrError(f"{STATUS_NAMES[status]}: {message}", int(status))
 
 
-def decimal(value: float) -> str:
-    """A value with three decimals (mm, ms) as run.c's pc_decimal writes it."""
+def decimal(value: float, places: int = 3) -> str:
+    """`value` with `places` decimals (mm, ms) as run.c's pc_decimal writes it."""
     a = abs(float(value))
     if not a < 1e9:
         return f"beyond {'-' if value < 0 else ''}1e9"
-    units = int(a * 1000.0 + 0.5)
-    return f"{'-' if value < 0 and units else ''}{units // 1000}.{units % 1000:03d}"
+    scale = 10.0 ** places
+    units = int(a * scale + 0.5)
+    return f"{'-' if value < 0 and units else ''}{units // int(scale)}.{units % int(scale):0{places}d}"
 
 
 def _outside(what: str, value: float, lo: float, hi: float, unit: str, key: str) -> str:
@@ -269,7 +270,7 @@ def check_input(limits: Limits, poses: np.ndarray, t: np.ndarray | None) -> None
         raise failure(Status.RANGE, _outside(f"pose {i} is outside the range the model was fitted on in column {c}",
                                              poses[i, c], limits.box[0][c], limits.box[1][c], "m", "input_bounds"))
     assert norm2 is not None
-    raise failure(Status.QUATERNION, f"pose {i} has a quaternion of norm {decimal(math.sqrt(norm2[i]))} in "
+    raise failure(Status.QUATERNION, f"pose {i} has a quaternion of norm {decimal(math.sqrt(norm2[i]), 6)} in "
                                      "columns 3-6 (expected a unit quaternion w, x, y, z: norm within 0.001 of 1)")
 
 

@@ -30,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "runtime_c" / "tests"))
 import graphs  # noqa: E402
 from test_hardening import _run  # noqa: E402
+from test_hostile import _checksums  # noqa: E402
 
 PMC_ZHOU = ROOT / "models" / "pmc-zhou.onnx"
 MLP_ZHOU = ROOT / "models" / "mlp-zhou-tansig-20x20x20x20-br.onnx"
@@ -107,7 +108,7 @@ def test_statuses_and_names_are_the_librarys():
 def test_shipped_models_carry_their_training_box(path):
     """Each shipped model's input_bounds is the box to_onnx computes from its training
     positions (the seeded data regenerated), and poses inside are corrected alike."""
-    from posecorr.export.models import SPECS, experiment_data
+    from tools.models import SPECS, experiment_data
     from posecorr.export.onnx_export import input_bounds
 
     spec = next(s for s in SPECS if f"{s.name}.onnx" == path.name)
@@ -402,11 +403,12 @@ def _table(tmp_path: Path, edit=None, t=None, n: int = 30) -> Path:
 def test_apply_refuses_a_pose_outside_the_box(tmp_path, capsys, backend, column, value):
     table = _table(tmp_path, (17, column, value))
     out = tmp_path / "out.csv"
+    before = _checksums(tmp_path)
     code, err, escaped = _run(["apply", str(PMC_ZHOU), str(table), "-o", str(out), "--backend", backend], capsys)
     assert escaped is None and code == 2, err
     assert len(err.strip().splitlines()) == 1
     assert f"row 17, column {column}: " in err and "the pose is outside the range the model was fitted on" in err
-    assert not out.exists()
+    assert _checksums(tmp_path) == before
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -415,11 +417,12 @@ def test_apply_refuses_a_time_outside_the_span(tmp_path, capsys, drift, backend)
     t = np.linspace(100.0, 3000.0, 30)
     csv = _table(tmp_path, (9, "t", "-100000"), t=t)
     out = tmp_path / "out.csv"
+    before = _checksums(tmp_path)
     code, err, escaped = _run(["apply", str(path), str(csv), "-o", str(out), "--backend", backend], capsys)
     assert escaped is None and code == 2, err
     assert len(err.strip().splitlines()) == 1
     assert "row 9, column t: " in err and "time of the pose is outside the span" in err
-    assert not out.exists()
+    assert _checksums(tmp_path) == before
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -432,12 +435,13 @@ def test_apply_refuses_a_model_with_nan_weights(tmp_path, capsys, backend):
     bad = tmp_path / "bad.onnx"
     bad.write_bytes(model.SerializeToString())
     out = tmp_path / "out.csv"
-    code, err, escaped = _run(["apply", str(bad), str(_table(tmp_path)), "-o", str(out), "--backend", backend],
-                              capsys)
+    table = _table(tmp_path)
+    before = _checksums(tmp_path)
+    code, err, escaped = _run(["apply", str(bad), str(table), "-o", str(out), "--backend", backend], capsys)
     assert escaped is None and code == 2, err
     assert len(err.strip().splitlines()) == 1
     assert str(bad) in err and f"tensor '{tensor.name}' holds a non-finite value" in err
-    assert not out.exists()
+    assert _checksums(tmp_path) == before
 
 
 def test_apply_refuses_a_result_that_is_not_a_pose(tmp_path, capsys):
@@ -445,10 +449,12 @@ def test_apply_refuses_a_result_that_is_not_a_pose(tmp_path, capsys):
     model = tmp_path / "inf.onnx"
     model.write_bytes(_posecorr_graph([1, 1, 1, 1, 1, 1, 0], op="Div"))
     out = tmp_path / "out.csv"
-    code, err, _ = _run(["apply", str(model), str(_table(tmp_path)), "-o", str(out), "--backend", "onnxruntime"],
-                        capsys)
-    assert code == 2 and "row 2: " in err and "output 'corrected' of the pose is not finite in column 6" in err
-    assert not out.exists()
+    table = _table(tmp_path)
+    before = _checksums(tmp_path)
+    code, err, _ = _run(["apply", str(model), str(table), "-o", str(out), "--backend", "onnxruntime"], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "row 2: " in err and "output 'corrected' of the pose is not finite in column 6" in err
+    assert _checksums(tmp_path) == before
 
 
 def test_posecorr_run_refuses_a_pose_outside_the_box():

@@ -23,7 +23,7 @@ Each model gets a markdown card (`<name>.md`) with data, method, test metrics, p
 operator counts, file size, the box of poses it corrects (`input_bounds`) and the
 regeneration command; `models/index.json` lists them.
 
-`python -m posecorr.export.models --bounds-only` writes `input_bounds` into the models
+`python -m tools.models --bounds-only` writes `input_bounds` into the models
 already in models/ without refitting: the training box is recomputed from the seeded data
 (the same as `to_onnx` records), the file is rewritten with `serialize_aligned` (weights and
 every other metadata value byte for byte the same), and the cards and index take the new
@@ -237,9 +237,9 @@ def add_bounds(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
     from posecorr.metrics import pose_metrics
     from posecorr.safeio import write_bytes
 
-    from .aligned import serialize_aligned
-    from .metadata import encode_value
-    from .onnx_export import input_bounds
+    from posecorr.export.aligned import serialize_aligned
+    from posecorr.export.metadata import encode_value
+    from posecorr.export.onnx_export import input_bounds
 
     done = []
     data_cache: dict[int, dict[str, Any]] = {}

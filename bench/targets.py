@@ -51,7 +51,7 @@ def shim_single_pose_us(path: Path, rounds: int = ROUNDS, n: int = 2000) -> floa
     from posecorr.latency import sample_poses
 
     corrector = Corrector(path, backend="c")
-    poses = [p.astype(np.float64) for p in sample_poses(n)]
+    poses = [p.astype(np.float64) for p in sample_poses(n, model=corrector)]
     best = float("inf")
     for _ in range(rounds):
         start = time.perf_counter()

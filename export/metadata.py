@@ -18,6 +18,8 @@ Keys written by the exporter (other keys may be added by callers):
 | `units` | units of the input/output columns and the metrics |
 | `opset` | ONNX opset of the default domain |
 | `parity` | float32 graph vs float64 `predict`: max errors and the check's settings |
+| `input_bounds` | `[[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]]` (m): the training positions' box, widened; every runtime refuses a pose outside it |
+| `time_bounds` | `[t_lo, t_hi]` (s), models with the time input `t`: the training times' span, widened; a time outside is refused |
 """
 from __future__ import annotations
 

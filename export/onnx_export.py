@@ -150,17 +150,58 @@ def check_model(model: Any) -> None:
         raise ExportError("the output is not float32")
 
 
-# How far outside the training positions a model still corrects (runtime_c refuses a pose
-# beyond with PC_ERR_RANGE): half the training extent per axis, and at least 0.1 m.
+# How far outside the training data a model still corrects (the runtimes refuse a pose or
+# time beyond with PC_ERR_RANGE): half the training extent per axis, and at least 0.1 m for
+# a position, 60 s for a time (a session's clock and the tracker's stamps may disagree by
+# seconds).
 BOUNDS_MARGIN_FRACTION = 0.5
 BOUNDS_MARGIN_MIN = 0.1
+TIME_MARGIN_MIN = 60.0
+
+
+def widened_box(values: np.ndarray, margin_min: float) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) per column of `values` (N, k): their box widened by BOUNDS_MARGIN_FRACTION of
+    its extent, at least `margin_min`."""
+    lo, hi = values.min(axis=0), values.max(axis=0)
+    margin = np.maximum(BOUNDS_MARGIN_FRACTION * (hi - lo), margin_min)
+    return lo - margin, hi + margin
 
 
 def input_bounds(measured: np.ndarray) -> list[list[float]]:
     """[[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]] (m): the training positions' box, widened."""
-    lo, hi = measured[:, :3].min(axis=0), measured[:, :3].max(axis=0)
-    margin = np.maximum(BOUNDS_MARGIN_FRACTION * (hi - lo), BOUNDS_MARGIN_MIN)
-    return [(lo - margin).tolist(), (hi + margin).tolist()]
+    lo, hi = widened_box(np.asarray(measured, float)[:, :3], BOUNDS_MARGIN_MIN)
+    return [lo.tolist(), hi.tolist()]
+
+
+def time_bounds(t: np.ndarray) -> list[float]:
+    """[t_lo, t_hi] (s): the span of the training times, widened."""
+    lo, hi = widened_box(np.asarray(t, float).reshape(-1, 1), TIME_MARGIN_MIN)
+    return [float(lo[0]), float(hi[0])]
+
+
+def _bounds_metadata(info: dict[str, Any], measured: Any, t: Any, time_input: bool) -> None:
+    """Every export carries the box its poses are checked against (input_bounds) and, with
+    a time input, the span of its times (time_bounds): from the training data, or given."""
+    if "input_bounds" not in info:
+        if measured is None:
+            raise ExportError("the model's input_bounds need the training positions: pass "
+                              "measured=... (or input_bounds=[[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]])")
+        info["input_bounds"] = input_bounds(measured)
+    if time_input and "time_bounds" not in info:
+        if t is None:
+            raise ExportError("the model's time_bounds need the training times: pass t=... "
+                              "(or time_bounds=[t_lo, t_hi])")
+        info["time_bounds"] = time_bounds(t)
+
+
+def _check_bounds(meta: dict[str, str], time_input: bool) -> None:
+    """The bounds as the runtimes will read them: finite float32 numbers, not inverted."""
+    from posecorr.controller.checks import Limits, PoseCorrError
+
+    try:
+        Limits.from_metadata(meta, time_input)
+    except PoseCorrError as exc:
+        raise ExportError(f"{exc} (from the training data or given)") from None
 
 
 def op_counts(model: Any) -> dict[str, int]:
@@ -204,7 +245,9 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
     write: writes the file's bytes (default: `safeio.write_bytes`, atomic; a command writing
       several files together passes `safeio.Staged.write_bytes`).
     metadata: extra `metadata_props` (test_metrics=..., effects=..., ...); they override
-      the estimator's `export_info()`.
+      the estimator's `export_info()`. `input_bounds` (and `time_bounds` for a model with a
+      time input) come from the training data unless given here; without either the
+      export is refused (ExportError): no model leaves without the box it was fitted in.
 
     Returns {"path", "metadata", "op_counts", "n_nodes", "file_size", "parity"}.
     """
@@ -222,13 +265,13 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
         info["time_input"] = f"{TIME_NAME}: float32 [N], s since the session's start"
 
     measured, reference = _training_arrays(estimator, measured, reference)
+    if time_input and t is None:
+        t = getattr(estimator, "training_t_", None)
     parity_report: dict[str, Any] | None = None
     if parity != "skip":
         if measured is None:
             raise ExportError("parity check needs the training data: pass measured=... "
                               "(or parity='skip')")
-        if time_input and t is None:
-            t = getattr(estimator, "training_t_", None)
         if time_input and t is None:
             raise ExportError("parity check of a model with a time input needs the training times: pass t=...")
         parity_report = check_parity(estimator, model, np.asarray(measured, float), n_random=n_random,
@@ -255,8 +298,7 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
         info["test_metrics"] = heldout_metrics
     if measured is not None and "training_data_digest" not in info:
         info["training_data_digest"] = data_digest(measured, reference)
-    if measured is not None and "input_bounds" not in info:
-        info["input_bounds"] = input_bounds(np.asarray(measured, float))
+    _bounds_metadata(info, measured, t, time_input)
 
     from posecorr import __version__
 
@@ -267,6 +309,7 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
     for key in ("method", "architecture", "activation", "trainer", "test_metrics"):
         info.setdefault(key, None)
     meta = encode_metadata(info)
+    _check_bounds(meta, time_input)
     del model.metadata_props[:]
     for key, value in meta.items():
         entry = model.metadata_props.add()

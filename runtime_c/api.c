@@ -5,6 +5,7 @@
 #include "load.h"
 #include "plan.h"
 
+#include <float.h>
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
@@ -12,11 +13,13 @@
 
 /* ---- load-time checks ------------------------------------------------------------- */
 
-/* Close enough for results of the same arithmetic in a different plan. */
+/* Close enough for results of the same arithmetic in a different plan. Equal infinities
+ * are the same result (their difference is NaN): a model answering a probe with infinity
+ * is pc_run's output check to refuse, not a graph that mixes rows. */
 static int pc_same_result(float a, float b)
 {
     const float d = a > b ? a - b : b - a, s = a < 0 ? -a : a;
-    return (a != a && b != b) || d <= 1e-5f * (s > 1.0f ? s : 1.0f);
+    return a == b || (a != a && b != b) || d <= 1e-5f * (s > 1.0f ? s : 1.0f);
 }
 
 static pc_status pc_forget_probe(pc_model *m)
@@ -114,16 +117,47 @@ static int pc_parse_numbers(const char *s, double *v, int cap)
     return n;
 }
 
+/* A metadata value of bounds: `count` lower then `count` upper numbers, each a finite
+ * float32, none above its upper partner. A file whose bounds were edited into NaN,
+ * infinity or an inverted box is refused here: pc_run would otherwise let every pose
+ * through (or none). */
+static pc_status pc_read_bounds(const pc_builder *b, const char *key, pb_slice value, int count,
+                                const char *expected, float *lo, float *hi)
+{
+    char text[PC_MESSAGE_SIZE];
+    double v[6];
+    int k;
+    const size_t n = value.size < sizeof text - 1 ? value.size : sizeof text - 1;
+    if (n)
+        memcpy(text, value.data, n);
+    text[n] = '\0';
+    if (pc_parse_numbers(text, v, 2 * count) != 2 * count)
+        return pc_fail(b->err, PC_ERR_MALFORMED, "metadata %s is '%.60s', expected %s", key,
+                       text, expected);
+    for (k = 0; k < count; k++) {
+        /* beyond FLT_MAX the conversion to float would be undefined */
+        if (!(fabs(v[k]) <= FLT_MAX && fabs(v[k + count]) <= FLT_MAX))
+            return pc_fail(b->err, PC_ERR_MALFORMED, "metadata %s: a bound is not a finite "
+                           "float32 in column %d (expected %s)", key, k, expected);
+        lo[k] = (float)v[k];
+        hi[k] = (float)v[k + count];
+        if (!(lo[k] <= hi[k]))
+            return pc_fail(b->err, PC_ERR_MALFORMED, "metadata %s: lower bound above upper "
+                           "bound in column %d", key, k);
+    }
+    return PC_OK;
+}
+
 /* Metadata read at load: posecorr's exporter marks its models (posecorr_version), whose
- * output quaternion must be unit, and may record the position box of the training data
- * (input_bounds, see posecorr.h). */
+ * quaternions in and out must be unit, and records the position box of the training data
+ * (input_bounds) and, for a model that takes time, the span of the training times
+ * (time_bounds); see posecorr.h. */
 static pc_status pc_read_checks(const pc_builder *b, pc_model *m)
 {
     pb_reader r;
-    pb_slice whole, key, value;
-    char bounds[PC_MESSAGE_SIZE];
-    double v[6];
-    int k, more, has_bounds = 0;
+    pb_slice whole, key, value, box = {NULL, 0}, span = {NULL, 0};
+    int more, has_box = 0, has_span = 0;
+    pc_status st;
     whole.data = b->file;
     whole.size = b->file_size;
     pb_init(&r, b->file, whole);
@@ -131,28 +165,28 @@ static pc_status pc_read_checks(const pc_builder *b, pc_model *m)
         if (pb_slice_eq(key, "posecorr_version"))
             m->check_quaternion = 1;
         if (pb_slice_eq(key, "input_bounds")) {
-            const size_t n = value.size < sizeof bounds - 1 ? value.size : sizeof bounds - 1;
-            if (n)
-                memcpy(bounds, value.data, n);
-            bounds[n] = '\0';
-            has_bounds = 1;
+            box = value;
+            has_box = 1;
+        }
+        if (pb_slice_eq(key, "time_bounds")) {
+            span = value;
+            has_span = 1;
         }
     }
     if (more == PB_ERROR)
         return r.status;
-    if (!has_bounds)
-        return PC_OK;
-    if (pc_parse_numbers(bounds, v, 6) != 6)
-        return pc_fail(b->err, PC_ERR_MALFORMED, "metadata input_bounds is '%.60s', expected "
-                       "[[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]]", bounds);
-    for (k = 0; k < 3; k++) {
-        if (!(v[k] <= v[k + 3]))
-            return pc_fail(b->err, PC_ERR_MALFORMED, "metadata input_bounds: lower bound above "
-                           "upper bound in column %d", k);
-        m->lo[k] = (float)v[k];
-        m->hi[k] = (float)v[k + 3];
+    if (has_box) {
+        if ((st = pc_read_bounds(b, "input_bounds", box, 3, "[[x_lo, y_lo, z_lo], [x_hi, y_hi, "
+                                 "z_hi]] in metres", m->lo, m->hi)) != PC_OK)
+            return st;
+        m->has_bounds = 1;
     }
-    m->has_bounds = 1;
+    if (has_span) {
+        if ((st = pc_read_bounds(b, "time_bounds", span, 1, "[t_lo, t_hi] in seconds",
+                                 &m->t_lo, &m->t_hi)) != PC_OK)
+            return st;
+        m->has_span = m->takes_time; /* a model without the input t ignores time */
+    }
     return PC_OK;
 }
 

@@ -33,10 +33,14 @@ struct pc_model {
     pc_plan *plans;     /* batch 1, PC_PLAN_STRIDE, PC_PLAN_STRIDE^2, ..., max_batch */
     size_t n_nodes;
     int takes_time;     /* the graph has the input 't' (pc_run_timed) */
-    /* Checks of pc_run on the result (see posecorr.h). */
+    /* Checks of pc_run (see posecorr.h): unit quaternions in and out (posecorr's models),
+     * positions inside [lo, hi] (input_bounds), times inside [t_lo, t_hi] (time_bounds,
+     * models that take time). */
     int check_quaternion;
     int has_bounds;
     float lo[3], hi[3];
+    int has_span;
+    float t_lo, t_hi;
     pc_slot *slots;     /* any-name models: inputs then outputs; NULL otherwise */
     size_t n_in_slots, n_out_slots;
     char message[PC_MESSAGE_SIZE];

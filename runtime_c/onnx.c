@@ -4,6 +4,7 @@
  * looked at by the scan and the planner. */
 #include "onnx.h"
 
+#include <math.h>
 #include <string.h>
 
 
@@ -101,8 +102,8 @@ static int onnx_in_place(const onnx_tensor *t)
            ((uintptr_t)t->raw.data % esize) == 0;
 }
 
-pc_status onnx_tensor_data(pc_builder *b, pb_slice msg, const onnx_tensor *t, int end,
-                           void **data)
+static pc_status onnx_tensor_decode(pc_builder *b, pb_slice msg, const onnx_tensor *t, int end,
+                                    void **data)
 {
     pb_reader r;
     pb_field f;
@@ -172,6 +173,23 @@ pc_status onnx_tensor_data(pc_builder *b, pb_slice msg, const onnx_tensor *t, in
             return st;
     }
     return more == PB_ERROR ? r.status : PC_OK;
+}
+
+/* A pose model's float weights are finite: NaN or infinity there (an edited file, a fit
+ * that diverged) would answer every pose with NaN or kilometres away. The conformance
+ * graphs (any_io) may carry them as test data. */
+pc_status onnx_tensor_data(pc_builder *b, pb_slice msg, const onnx_tensor *t, int end,
+                           void **data)
+{
+    size_t k;
+    const pc_status st = onnx_tensor_decode(b, msg, t, end, data);
+    if (st != PC_OK || t->dtype != PC_F32 || b->any_io)
+        return st;
+    for (k = 0; k < t->count; k++)
+        if (!isfinite(((const float *)*data)[k]))
+            return pc_fail(b->err, PC_ERR_MALFORMED, "tensor '%.*s' holds a non-finite value "
+                           "at element %zu (expected finite weights)", PC_NAME(t->name), k);
+    return PC_OK;
 }
 
 /* ---- AttributeProto --------------------------------------------------------------- */

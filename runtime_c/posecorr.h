@@ -41,7 +41,7 @@ extern "C" {
 #endif
 
 #define PC_VERSION_MAJOR 0
-#define PC_VERSION_MINOR 4
+#define PC_VERSION_MINOR 5
 #define PC_VERSION_PATCH 0
 /* What pc_version() returns for the library this header belongs to. */
 #define PC_VERSION_NUMBER (PC_VERSION_MAJOR * 10000 + PC_VERSION_MINOR * 100 + PC_VERSION_PATCH)
@@ -74,7 +74,9 @@ typedef enum pc_status {
     PC_ERR_NONFINITE,      /* NaN or infinity in an input pose or time */
     PC_ERR_RUNTIME,        /* data-dependent failure: an output not finite or not a unit
                             * quaternion, a Gather index out of range, ... */
-    PC_ERR_RANGE,          /* input pose outside the range the model was fitted on */
+    PC_ERR_RANGE,          /* input pose (or time) outside the range the model was fitted
+                            * on */
+    PC_ERR_QUATERNION,     /* input quaternion not unit (a zero one, a norm of 3, ...) */
     PC_STATUS_COUNT
 } pc_status;
 
@@ -147,23 +149,32 @@ PC_API pc_status pc_load_into(const void *data, size_t size, const pc_options *o
                               pc_error *err);
 
 /* Corrects n poses: in and out hold n*7 floats and may alias. n == 0 is a no-op.
- * Checks, each with a message naming the pose and column (pc_model_message):
+ * Checks, each with a message naming the pose and column and what was expected
+ * (pc_model_message); the input is checked whole before anything is written:
  *  - a non-finite input value: PC_ERR_NONFINITE, out untouched;
  *  - a position outside the model's metadata "input_bounds" ("[[x_lo, y_lo, z_lo],
- *    [x_hi, y_hi, z_hi]]", metres, when the model has that key): PC_ERR_RANGE, out
- *    untouched;
- *  - a result that is not finite, or (models with the exporter's "posecorr_version"
- *    key) whose quaternion is not unit within 1e-3 on |q|^2: PC_ERR_RUNTIME; poses of
- *    earlier chunks (of max_batch, ..., 16, 1 poses) are written, the rest untouched.
+ *    [x_hi, y_hi, z_hi]]", metres; posecorr's exporter writes the training positions'
+ *    box, widened): PC_ERR_RANGE, out untouched;
+ *  - (models with the exporter's "posecorr_version" key) an input quaternion whose norm
+ *    is off 1 by more than 1e-3, the pose tables' tolerance (the model normalises what
+ *    it gets, so a zero or a norm-3 vector would come out as a made-up rotation):
+ *    PC_ERR_QUATERNION, out untouched;
+ *  - a result that is not finite, or (models with "posecorr_version") whose quaternion is
+ *    not unit within 1e-3 on |q|^2: PC_ERR_RUNTIME; poses of earlier chunks (of
+ *    max_batch, ..., 16, 1 poses) are written, the rest untouched.
  * Loading refuses a graph whose rows are not independent (PC_ERR_GRAPH), so a result
- * never depends on how n is split. */
+ * never depends on how n is split, and (PC_ERR_MALFORMED) a float tensor of the graph
+ * holding NaN or infinity, and "input_bounds" or "time_bounds" that are not finite
+ * float32 numbers or whose lower bound is above the upper one. */
 PC_API pc_status pc_run(pc_model *model, const float *in, size_t n, float *out);
 
 /* pc_run with the time of each pose: t holds n floats, seconds since the session's start
- * (a non-finite one: PC_ERR_NONFINITE naming the pose). A model without the input "t"
- * ignores t. t may be NULL: a model that takes time then sees t = 0 for every pose, i.e.
- * a time-dependent correction (drift) is evaluated at the session's start; pc_run is
- * pc_run_timed with t = NULL. */
+ * (a non-finite one: PC_ERR_NONFINITE naming the pose; one outside the model's metadata
+ * "time_bounds", "[t_lo, t_hi]" in seconds, the span of the training times widened:
+ * PC_ERR_RANGE, out untouched). A model without the input "t" ignores t. t may be NULL:
+ * a model that takes time then sees t = 0 for every pose, i.e. a time-dependent
+ * correction (drift) is evaluated at the session's start (and t = 0 is checked against
+ * "time_bounds"); pc_run is pc_run_timed with t = NULL. */
 PC_API pc_status pc_run_timed(pc_model *model, const float *in, const float *t, size_t n,
                               float *out);
 

@@ -10,6 +10,15 @@
 /* |q|^2 of a float32 unit quaternion after a few dozen operations is within 1e-5 of 1;
  * anything beyond 1e-3 is not a rotation. */
 #define PC_UNIT_TOLERANCE 1e-3f
+/* An input quaternion's norm may be off 1 by this much (posecorr.h). The model normalises
+ * what it is given, so a few lost bits change nothing; the tolerance is the one of the
+ * pose tables (python/posecorr/data.py) and posecorr-run, so that a pose they accept is
+ * accepted here. A float32 unit quaternion is within 1e-7 of norm 1, one printed with
+ * four decimals within 2e-4: both pass. A zero, a norm-3 or a garbled vector is a
+ * glitch, not an orientation, and normalising it would answer with a made-up rotation.
+ * Compared on |q|^2 in double: (1 -+ 1e-3)^2. */
+#define PC_QUAT_NORM2_LO 0.998001
+#define PC_QUAT_NORM2_HI 1.002001
 
 pc_status pc_run_steps(pc_model *m, const pc_plan *plan)
 {
@@ -36,8 +45,8 @@ static pc_status pc_check_output(pc_model *m, const float *out, size_t n, size_t
         for (c = 0; c < PC_POSE_WIDTH; c++) {
             if (!isfinite(p[c])) {
                 pc_format(m->message, sizeof m->message,
-                          "output 'corrected' of pose %zu is not finite in column %zu",
-                          first + r, c);
+                          "output 'corrected' of pose %zu is not finite in column %zu "
+                          "(expected a finite number)", first + r, c);
                 return PC_ERR_RUNTIME;
             }
             if (c >= 3)
@@ -46,7 +55,7 @@ static pc_status pc_check_output(pc_model *m, const float *out, size_t n, size_t
         if (m->check_quaternion && !(fabsf(n2 - 1.0f) <= PC_UNIT_TOLERANCE)) {
             pc_format(m->message, sizeof m->message,
                       "output 'corrected' of pose %zu has a quaternion that is not unit "
-                      "(columns 3-6)", first + r);
+                      "(columns 3-6, expected |q|^2 within 0.001 of 1)", first + r);
             return PC_ERR_RUNTIME;
         }
     }
@@ -82,29 +91,93 @@ static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, 
     return PC_OK;
 }
 
-/* Finite input inside the training box (when the model records one), finite times. */
+/* v with `places` decimals (at most 6) for a message: pc_format has no %f. The rule is
+ * python/posecorr/controller/checks.py's decimal(), so that both back ends write the
+ * same text. */
+static void pc_decimal(char *buf, size_t size, double v, int places)
+{
+    char frac[8];
+    const double a = fabs(v);
+    double scale = 1.0;
+    long long units, f;
+    int k;
+    if (!(a < 1e9)) {
+        pc_format(buf, size, "beyond %s1e9", v < 0 ? "-" : "");
+        return;
+    }
+    for (k = 0; k < places; k++)
+        scale *= 10.0;
+    units = (long long)(a * scale + 0.5);
+    for (k = places, f = units; k > 0; k--, f /= 10)
+        frac[k - 1] = (char)('0' + f % 10);
+    frac[places] = '\0';
+    pc_format(buf, size, "%s%lld.%s", v < 0 && units ? "-" : "", units / (long long)scale,
+              frac);
+}
+
+/* "...: VALUE UNIT, expected LO to HI UNIT (metadata KEY)" of a value outside bounds. */
+static void pc_outside(pc_model *m, const char *what, float v, float lo, float hi,
+                       const char *unit, const char *key)
+{
+    char value[24], low[24], high[24];
+    pc_decimal(value, sizeof value, v, 3);
+    pc_decimal(low, sizeof low, lo, 3);
+    pc_decimal(high, sizeof high, hi, 3);
+    pc_format(m->message, sizeof m->message, "%s: %s %s, expected %s to %s %s (metadata %s)",
+              what, value, unit, low, high, unit, key);
+}
+
+/* The input contract, pose by pose (python/posecorr/controller/checks.py checks the same
+ * in the same order): finite times inside the fitted span (when the model records one;
+ * no t is t = 0), then finite poses, positions inside the training box (input_bounds)
+ * and, in posecorr's models, unit quaternions. */
 static pc_status pc_check_input(pc_model *m, const float *in, const float *t, size_t n)
 {
+    char what[96];
     size_t i, c;
-    for (i = 0; t && i < n; i++)
-        if (!isfinite(t[i])) {
-            pc_format(m->message, sizeof m->message, "time of pose %zu is not finite", i);
+    const size_t n_times = t ? n : m->has_span ? 1 : 0;
+    for (i = 0; i < n_times; i++) {
+        const float ti = t ? t[i] : 0.0f;
+        if (!isfinite(ti)) {
+            pc_format(m->message, sizeof m->message, "time of pose %zu is not finite "
+                      "(expected seconds since the session's start)", i);
             return PC_ERR_NONFINITE;
         }
+        if (m->has_span && !(ti >= m->t_lo && ti <= m->t_hi)) {
+            pc_format(what, sizeof what, "time of pose %zu is outside the span the model was "
+                      "fitted on", i);
+            pc_outside(m, what, ti, m->t_lo, m->t_hi, "s", "time_bounds");
+            return PC_ERR_RANGE;
+        }
+    }
     for (i = 0; i < n; i++, in += PC_POSE_WIDTH) {
+        double n2;
         for (c = 0; c < PC_POSE_WIDTH; c++)
             if (!isfinite(in[c])) {
                 pc_format(m->message, sizeof m->message,
-                          "pose %zu has a non-finite value in column %zu", i, c);
+                          "pose %zu has a non-finite value in column %zu (expected a finite "
+                          "number)", i, c);
                 return PC_ERR_NONFINITE;
             }
         for (c = 0; m->has_bounds && c < 3; c++)
             if (!(in[c] >= m->lo[c] && in[c] <= m->hi[c])) {
-                pc_format(m->message, sizeof m->message,
-                          "pose %zu is outside the range the model was fitted on in column %zu "
-                          "(metadata input_bounds)", i, c);
+                pc_format(what, sizeof what, "pose %zu is outside the range the model was "
+                          "fitted on in column %zu", i, c);
+                pc_outside(m, what, in[c], m->lo[c], m->hi[c], "m", "input_bounds");
                 return PC_ERR_RANGE;
             }
+        if (!m->check_quaternion)
+            continue;
+        n2 = (double)in[3] * in[3] + (double)in[4] * in[4] + (double)in[5] * in[5] +
+             (double)in[6] * in[6];
+        if (!(n2 >= PC_QUAT_NORM2_LO && n2 <= PC_QUAT_NORM2_HI)) {
+            char norm[24];
+            pc_decimal(norm, sizeof norm, sqrt(n2), 6);
+            pc_format(m->message, sizeof m->message,
+                      "pose %zu has a quaternion of norm %s in columns 3-6 (expected a unit "
+                      "quaternion w, x, y, z: norm within 0.001 of 1)", i, norm);
+            return PC_ERR_QUATERNION;
+        }
     }
     return PC_OK;
 }

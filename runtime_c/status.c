@@ -18,6 +18,7 @@ static const char *const pc_status_names[PC_STATUS_COUNT] = {
     [PC_ERR_NONFINITE] = "non-finite input",
     [PC_ERR_RUNTIME] = "runtime error",
     [PC_ERR_RANGE] = "pose outside the fitted range",
+    [PC_ERR_QUATERNION] = "quaternion not unit",
 };
 
 typedef char pc_status_table_is_complete[

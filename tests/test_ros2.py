@@ -32,10 +32,15 @@ POSECORR = str(Path(sys.executable).parent / "posecorr")
 
 
 def _poses(n: int, seed: int) -> np.ndarray:
+    """Poses inside the box both models were fitted in (their metadata input_bounds)."""
+    from posecorr.controller.onnx_meta import read_info
+
+    lo, hi = read_info(FIRST)["input_bounds"]
+    assert read_info(SECOND)["input_bounds"] == [lo, hi]
     rng = np.random.default_rng(seed)
     q = rng.normal(size=(n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    return np.hstack([rng.uniform(-0.4, 0.4, (n, 3)), q])
+    return np.hstack([rng.uniform(lo, hi, (n, 3)), q])
 
 
 class Cell:

@@ -240,8 +240,19 @@ def _run_raw(c: Corrector, lib: str, x: np.ndarray) -> tuple[int, np.ndarray, by
     return st, out, L.pc_model_message(c._impl.handle)
 
 
+def _without_metadata(path: Path, *keys: str) -> bytes:
+    m = onnx.load(path)
+    kept = [(e.key, e.value) for e in m.metadata_props if e.key not in keys]
+    del m.metadata_props[:]
+    for k, v in kept:
+        e = m.metadata_props.add()
+        e.key, e.value = k, v
+    return m.SerializeToString()
+
+
 def test_nonfinite_output_is_an_error_naming_the_output(lib):
-    c = Corrector(PMC_ZHOU, library=lib)
+    # without its box, the model takes a pose 1e30 m away and overflows
+    c = Corrector(_without_metadata(PMC_ZHOU, "input_bounds"), library=lib)
     x = np.array([[1e30, -0.6, 0.5, 1, 0, 0, 0]], dtype=np.float32)
     st, _, msg = _run_raw(c, lib, x)
     assert st == _status("PC_ERR_RUNTIME")
@@ -276,7 +287,7 @@ def _with_metadata(path: Path, **meta: str) -> bytes:
 
 def test_input_bounds_flag_poses_outside_the_fitted_range(lib):
     bounds = "[[-0.7, -0.8, 0.1], [0.7, 0.2, 0.9]]"
-    plain = Corrector(MLP_ZHOU, library=lib)
+    plain = Corrector(_without_metadata(MLP_ZHOU, "input_bounds"), library=lib)
     c = Corrector(_with_metadata(MLP_ZHOU, input_bounds=bounds), library=lib)
     inside = graphs.random_poses(30, seed=4)
     inside[:, :3] = inside[:, :3] * 0.5 + np.array([0.0, -0.3, 0.5], np.float32)
@@ -336,7 +347,7 @@ def test_load_into_caller_buffer_matches_load_memory(lib):
                           ctypes.byref(handle), ctypes.byref(err)) == 0, err.message
     assert L.pc_arena_bytes(handle.value) < need.value
     print(f"{MLP_ZHOU.name}: pc_required_bytes {need.value}, arena {L.pc_arena_bytes(handle.value)}")
-    x = graphs.random_poses(300, seed=5)
+    x = graphs.poses_in_box(MLP_ZHOU, 300, seed=5)
     out = np.zeros_like(x)
     assert L.pc_run(handle.value, x.ctypes.data, len(x), out.ctypes.data) == 0
     np.testing.assert_array_equal(out, Corrector(MLP_ZHOU, library=lib).correct(x).astype(np.float32))
@@ -425,7 +436,7 @@ def test_lean_load_options_give_the_same_bits(lib, path):
 
     L = load_library(lib)
     blob = path.read_bytes()
-    x = graphs.random_poses(12, seed=4)
+    x = graphs.poses_in_box(blob, 12, seed=4)
     results = []
     for fields in ({}, {"program_ops": 16}, {"program_ops": 48, "flags": 1 | 4},
                    {"flags": 2}, {"flags": PC_LOAD_INTERPRET}):
@@ -655,7 +666,7 @@ def test_tools_are_on_path_after_pip_install(pose_file):
     bindir = Path(sys.executable).parent
     run, bench = shutil.which("posecorr-run", path=bindir), shutil.which("posecorr-bench", path=bindir)
     assert run and bench, f"console scripts missing in {bindir}"
-    x = graphs.random_poses(3, seed=2)
+    x = graphs.poses_in_box(MLP_ZHOU, 3, seed=2)
     text = "\n".join(",".join(f"{v:.9g}" for v in row) for row in x) + "\n"
     r = subprocess.run([run, str(MLP_ZHOU)], input=text, capture_output=True, text=True,
                        timeout=60)
@@ -680,7 +691,8 @@ def test_hot_swap_example_serves_every_pose_from_exactly_one_model(c_build, tmp_
     shutil.copy(first, path)
     proc = subprocess.Popen([str(c_build / "pc_hot_swap"), str(path)], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1)
-    x = graphs.random_poses(2000, seed=12)
+    x = graphs.poses_in_box(first, 2000, seed=12)  # the box of both models
+    assert all(np.array_equal(a, b) for a, b in zip(graphs.model_box(first), graphs.model_box(second)))
     answers: list[tuple[int, np.ndarray]] = []
 
     def send() -> int:
@@ -788,8 +800,8 @@ def test_posecorr_bench_json(c_build, pose_file):
 def test_portable_kernels_match_avx2_bit_for_bit(lib):
     """The AVX2 dense kernels picked at load sum in the portable kernels' order."""
     portable = graphs.build_runtime(BUILD / "portable", "-DPC_NO_AVX2=ON")
-    x = graphs.random_poses(300, seed=11)
     for path in sorted((ROOT / "models").glob("*.onnx")):
+        x = graphs.poses_in_box(path, 300, seed=11)
         a = Corrector(path, library=lib).correct(x)
         b = Corrector(path, library=str(portable / "libposecorr.so")).correct(x)
         np.testing.assert_array_equal(a, b, err_msg=path.name)

@@ -20,12 +20,20 @@ The networks are trained with at most `MLP_EPOCHS` epochs (the paper: 1000), so 
 regeneration takes minutes; the cards say so. Everything is deterministic from the seeds.
 
 Each model gets a markdown card (`<name>.md`) with data, method, test metrics, parity,
-operator counts, file size and the regeneration command; `models/index.json` lists them.
+operator counts, file size, the box of poses it corrects (`input_bounds`) and the
+regeneration command; `models/index.json` lists them.
+
+`python -m tools.models --bounds-only` writes `input_bounds` into the models
+already in models/ without refitting: the training box is recomputed from the seeded data
+(the same as `to_onnx` records), the file is rewritten with `serialize_aligned` (weights and
+every other metadata value byte for byte the same), and the cards and index take the new
+file sizes. Models exported before the exporter recorded the box got it this way.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -174,12 +182,20 @@ def model_card(spec: Spec, report: dict[str, Any], data: dict[str, Any], fit_sec
         f"{'passed' if parity['passed'] else 'FAILED'}.",
         "- input `pose` float32 [N, 7] (x, y, z in m, qw, qx, qy, qz); output `corrected` float32 [N, 7]"
         + (" (orientation passed through)." if spec.representation == "pos" else " (qw >= 0)."),
+        bounds_line(meta["input_bounds"]),
         "", "## Regenerate", "",
         "```", "make models        # or: python -m tools.models" + (
             "" if epochs == MLP_EPOCHS else f" --epochs {epochs}"), "```", "",
         "`posecorr info models/" + spec.name + ".onnx` prints the metadata stored in the file.", "",
     ]
     return "\n".join(lines)
+
+
+def bounds_line(box: list[list[float]]) -> str:
+    """The card's line on the box of positions the model corrects."""
+    axes = ", ".join(f"{axis} {a:.3f}..{b:.3f}" for axis, a, b in zip("xyz", *box))
+    return (f"- input_bounds: {axes} m (the training positions' box widened by half its extent, "
+            "at least 0.1 m); a pose outside is refused (PC_ERR_RANGE), on every back end.")
 
 
 def build(spec: Spec, data: dict[str, Any], out_dir: Path, epochs: int = MLP_EPOCHS) -> dict[str, Any]:
@@ -210,12 +226,71 @@ def build(spec: Spec, data: dict[str, Any], out_dir: Path, epochs: int = MLP_EPO
     return report
 
 
+def add_bounds(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
+    """Writes `input_bounds` into the shipped models in `out_dir` without refitting (module
+    doc); returns {"file", "input_bounds", "file_size"} per model. The data is regenerated
+    from its seeds; the stored raw test metrics must come out again (to 1e-9) as the proof
+    that it is the data the model was fitted on (the digest is of the exact bits, which
+    the simulator's last digits may change from one machine's libm to another's)."""
+    import onnx
+
+    from posecorr.metrics import pose_metrics
+    from posecorr.safeio import write_bytes
+
+    from posecorr.export.aligned import serialize_aligned
+    from posecorr.export.metadata import encode_value
+    from posecorr.export.onnx_export import input_bounds
+
+    done = []
+    data_cache: dict[int, dict[str, Any]] = {}
+    index_path = out_dir / "index.json"
+    index = json.loads(index_path.read_text(encoding="utf-8"))
+    for spec in SPECS:
+        path = out_dir / f"{spec.name}.onnx"
+        data = data_cache.setdefault(spec.experiment, experiment_data(spec.experiment))
+        M, R, tr, te = data["measured"], data["reference"], data["train"], data["test"]
+        model = onnx.load(str(path))
+        meta = {p.key: p.value for p in model.metadata_props}
+        stored = json.loads(meta["test_metrics"])["raw"]["rmse_total"]
+        again = pose_metrics(R[te], M[te], data["with_rotation"])["rmse_total"]
+        if abs(stored - again) > 1e-9 * abs(stored):
+            raise SystemExit(f"{path}: the regenerated data is not the data of this model "
+                             f"(raw test rmse_total {again!r}, stored {stored!r}); refit with `make models`")
+        box = input_bounds(M[tr])
+        meta["input_bounds"] = encode_value(box)
+        del model.metadata_props[:]
+        for key in sorted(meta):
+            entry = model.metadata_props.add()
+            entry.key, entry.value = key, meta[key]
+        blob = serialize_aligned(model)
+        write_bytes(path, blob)
+        card = out_dir / f"{spec.name}.md"
+        lines = [line for line in card.read_text(encoding="utf-8").split("\n")
+                 if not line.startswith("- input_bounds:")]
+        lines = [re.sub(r"^- file size \d+ bytes", f"- file size {len(blob)} bytes", line) for line in lines]
+        at = next(i for i, line in enumerate(lines) if line.startswith("- input `pose`")) + 1
+        lines.insert(at, bounds_line(box))
+        write_bytes(card, "\n".join(lines).encode("utf-8"))
+        for entry in index["models"]:
+            if entry["file"] == path.name:
+                entry["file_size"] = len(blob)
+        done.append({"file": path.name, "input_bounds": box, "file_size": len(blob)})
+        print(f"{path}: input_bounds {encode_value(box)}, {len(blob)} bytes", flush=True)
+    write_bytes(index_path, (json.dumps(index, indent=1) + "\n").encode("utf-8"))
+    return done
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m tools.models", description=__doc__.split("\n")[0])
     parser.add_argument("-o", "--out", type=Path, default=MODELS_DIR, help="output directory (default: models/)")
     parser.add_argument("--epochs", type=int, default=MLP_EPOCHS, help="max MLP epochs")
     parser.add_argument("--only", default="", help="comma-separated model names to build (default: all)")
+    parser.add_argument("--bounds-only", action="store_true",
+                        help="write input_bounds into the existing models without refitting")
     args = parser.parse_args(argv)
+    if args.bounds_only:
+        add_bounds(args.out)
+        return 0
     args.out.mkdir(parents=True, exist_ok=True)
     wanted = {w.strip() for w in args.only.split(",") if w.strip()}
     data_cache: dict[int, dict[str, Any]] = {}

@@ -47,10 +47,18 @@ def machine_description() -> str:
            f"python {platform.python_version()}; numpy {np.__version__}"
 
 
-def sample_poses(n: int, seed: int = 0) -> np.ndarray:
-    """n float32 poses around Experiment III's workspace (-0.6, 0.5) m, uniform rotations."""
+def sample_poses(n: int, seed: int = 0, model: Any = None) -> np.ndarray:
+    """n float32 poses, uniform rotations: positions uniform in the box `model` (a
+    Corrector) was fitted in (its input_bounds: every runtime refuses a pose outside), else
+    around Experiment III's workspace (-0.6, 0.5) m."""
+    from .controller.checks import Limits
+
     rng = np.random.default_rng(seed)
-    p = rng.uniform(-0.3, 0.3, (n, 3)) + np.array([0.0, -0.6, 0.5])
+    box = None if model is None else Limits.from_metadata(model.metadata, model.takes_time).box
+    if box is None:
+        p = rng.uniform(-0.3, 0.3, (n, 3)) + np.array([0.0, -0.6, 0.5])
+    else:
+        p = rng.uniform(box[0], box[1], (n, 3))
     q = rng.standard_normal((n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     return np.concatenate([p, q], axis=1).astype(np.float32)
@@ -114,8 +122,11 @@ def c_bench(path: str | os.PathLike, n_single: int = 100000, batch: int = 10000)
 
 def bench_model(path: str | os.PathLike, n_single: int = 100000, batch: int = 10000) -> dict:
     """Benchmarks one model on every available back-end (layout: see module doc)."""
+    from .controller.runtime import Corrector
+
     path = Path(path)
-    poses = sample_poses(max(batch, 1000))
+    corr = Corrector(path)
+    poses = sample_poses(max(batch, 1000), model=corr)
     single_poses = poses[:1000]
     med: dict[str, float | None] = {k: None for k in _KEYS}
     p99: dict[str, float | None] = {k: None for k in _KEYS}
@@ -128,9 +139,6 @@ def bench_model(path: str | os.PathLike, n_single: int = 100000, batch: int = 10
         bat["c"] = d["batch_ns_per_pose"]
         counts["c"] = n_single
 
-    from .controller.runtime import Corrector
-
-    corr = Corrector(path)
     med["shim"], p99["shim"] = _time_single(corr.correct, single_poses, n_single)
     batch_fns = {"shim": (corr.correct, poses[:batch])}
     counts["shim"] = n_single

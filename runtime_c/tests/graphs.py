@@ -567,6 +567,28 @@ def random_poses(n: int, seed: int = 0) -> np.ndarray:
     return np.concatenate([p, q], axis=1).astype(np.float32)
 
 
+def model_box(model) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) float32 of a model's metadata input_bounds (model: a path, bytes or a
+    ModelProto); KeyError without it."""
+    import json
+
+    if not isinstance(model, onnx.ModelProto):
+        model = onnx.load_from_string(model) if isinstance(model, bytes) else onnx.load(str(model))
+    meta = {p.key: p.value for p in model.metadata_props}
+    lo, hi = np.asarray(json.loads(meta["input_bounds"]), np.float32)
+    return lo, hi
+
+
+def poses_in_box(model, n: int, seed: int = 0) -> np.ndarray:
+    """random_poses with positions uniform in the inner 90 % of the model's input_bounds:
+    poses the runtimes correct rather than refuse."""
+    lo, hi = model_box(model)
+    x = random_poses(n, seed)
+    u = np.random.default_rng(seed + 1).uniform(0.05, 0.95, (n, 3))
+    x[:, :3] = (lo + (hi - lo) * u).astype(np.float32)
+    return x
+
+
 def op_inputs(n: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     return rng.uniform(-2, 2, (n, 7)).astype(np.float32)

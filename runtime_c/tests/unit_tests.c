@@ -121,6 +121,19 @@ static void build(buf *model, const spec *s, const float *c)
 
 static const spec ADD = {"pose", 7, "Add", 1, 1, NULL, 0};
 
+/* build, then one more metadata entry (key NULL: none). */
+static void build_meta(buf *model, const spec *s, const float *c, const char *key,
+                       const char *value)
+{
+    buf meta = {{0}, 0};
+    build(model, s, c);
+    if (!key)
+        return;
+    put_str(&meta, 1, key);
+    put_str(&meta, 2, value);
+    put_msg(model, 14, &meta);
+}
+
 /* ---- tests ------------------------------------------------------------------------ */
 
 static void test_varint(void)
@@ -412,6 +425,110 @@ static void test_load_into(void)
     CHECK(pc_load_into(model.d, model.n, NULL, NULL, need, &m, &err) == PC_ERR_ARGUMENT);
 }
 
+/* pc_run of one pose on a model: status, and the message holds fragment. */
+static void expect_run(pc_model *m, const float *pose, pc_status want, const char *fragment)
+{
+    float out[7] = {-7.0f, -7.0f, -7.0f, -7.0f, -7.0f, -7.0f, -7.0f};
+    const pc_status st = pc_run(m, pose, 1, out);
+    CHECK(st == want);
+    CHECK(strstr(pc_model_message(m), fragment) != NULL);
+    if (want != PC_OK)
+        CHECK(out[0] == -7.0f && out[6] == -7.0f); /* refused before anything is written */
+    if (st != want || !strstr(pc_model_message(m), fragment))
+        fprintf(stderr, "  got %s: %s\n", pc_status_name(st), pc_model_message(m));
+}
+
+/* The load-time and pose checks that come from the weights and the metadata. */
+static void test_checks(void)
+{
+    static buf model;
+    float c[7] = {0};
+    const float unit[7] = {0.5f, -0.25f, 0.0f, 1.0f, 0.0f, 0.0f, 0.0f};
+    float pose[7];
+    pc_model *m = NULL;
+    pc_error err;
+    int raw;
+    /* non-finite weights, raw_data or float_data: refused at load, naming the element */
+    for (raw = 0; raw < 2; raw++) {
+        spec s = ADD;
+        s.raw = raw;
+        c[4] = raw ? NAN : -INFINITY;
+        build(&model, &s, c);
+        CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_ERR_MALFORMED && !m);
+        CHECK(strstr(err.message, "tensor 'c' holds a non-finite value at element 4") != NULL);
+    }
+    c[4] = 0.0f;
+    /* posecorr's models: input quaternions must be unit (norm within 1e-3) */
+    build_meta(&model, &ADD, c, "posecorr_version", "0.1.0");
+    CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_OK);
+    if (m) {
+        expect_run(m, unit, PC_OK, "");
+        memcpy(pose, unit, sizeof pose);
+        pose[3] = 3.0f;
+        expect_run(m, pose, PC_ERR_QUATERNION, "pose 0 has a quaternion of norm 3.000000 in "
+                                               "columns 3-6");
+        pose[3] = 0.0f;
+        expect_run(m, pose, PC_ERR_QUATERNION, "norm 0.000000");
+        pose[3] = 0.9995f; /* within the tables' tolerance */
+        expect_run(m, pose, PC_OK, "");
+        pc_free(m);
+    }
+    /* without the exporter's mark the input quaternion is the graph's business */
+    build(&model, &ADD, c);
+    CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_OK);
+    if (m) {
+        memcpy(pose, unit, sizeof pose);
+        pose[3] = 3.0f;
+        expect_run(m, pose, PC_OK, "");
+        pc_free(m);
+    }
+    /* input_bounds: a position outside is refused with the value and the bounds */
+    build_meta(&model, &ADD, c, "input_bounds", "[[-1, -1, -1], [1, 1, 1.5]]");
+    CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_OK);
+    if (m) {
+        memcpy(pose, unit, sizeof pose);
+        pose[2] = 2.0f;
+        expect_run(m, pose, PC_ERR_RANGE, "pose 0 is outside the range the model was fitted on in "
+                                          "column 2: 2.000 m, expected -1.000 to 1.500 m "
+                                          "(metadata input_bounds)");
+        pose[2] = -1.0625f;
+        expect_run(m, pose, PC_ERR_RANGE, "-1.063 m");
+        pose[2] = -3e30f;
+        expect_run(m, pose, PC_ERR_RANGE, "beyond -1e9 m");
+        pose[2] = 1.5f;
+        expect_run(m, pose, PC_OK, "");
+        pc_free(m);
+    }
+    /* bounds edited into NaN, infinity, an inverted box or the wrong count: refused */
+    {
+        static const char *const bad[][2] = {
+            {"input_bounds", "[[-1, -1, -1], [1, 1, 1e39]]"},
+            {"input_bounds", "[[-1e400, -1, -1], [1, 1, 1]]"},
+            {"input_bounds", "[[nan, -1, -1], [1, 1, 1]]"},
+            {"input_bounds", "[[-1, 1, -1], [1, -1, 1]]"},
+            {"input_bounds", "[[-1, -1], [1, 1]]"},
+            {"time_bounds", "[5, 1]"},
+            {"time_bounds", "[0, 1e300]"},
+            {"time_bounds", "[0, 1, 2]"},
+        };
+        size_t k;
+        for (k = 0; k < sizeof bad / sizeof bad[0]; k++) {
+            m = NULL;
+            build_meta(&model, &ADD, c, bad[k][0], bad[k][1]);
+            CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_ERR_MALFORMED && !m);
+            CHECK(strstr(err.message, bad[k][0]) != NULL);
+        }
+    }
+    /* time_bounds of a model without the input t: read, checked, not applied */
+    build_meta(&model, &ADD, c, "time_bounds", "[10, 20]");
+    CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_OK);
+    if (m) {
+        const float t = 1e6f;
+        CHECK(pc_run_timed(m, unit, &t, 1, pose) == PC_OK);
+        pc_free(m);
+    }
+}
+
 static void expect_error(const spec *s, pc_status want, const char *fragment)
 {
     static buf model;
@@ -474,6 +591,7 @@ int main(int argc, char **argv)
     test_tanh();
     test_load_and_run();
     test_load_into();
+    test_checks();
     test_errors();
     /* optional: model files given on the command line must load and run */
     {

@@ -30,6 +30,21 @@ CORR_COLUMNS = tuple("corr_" + name.split("_", 1)[1] for name in MEAS_POS + MEAS
 _CORR_FORMAT = ",%.9g,%.9g,%.9g,%.9g,%.9g,%.9g,%.9g\n"
 
 
+def _input_column(text: str, has_times: bool) -> str | None:
+    """The table column an input check's message names (`checks`, run.c): "in column 2",
+    "in columns 3-6" (the quaternion) or the time; None for an output check."""
+    names = MEAS_POS + MEAS_QUAT
+    if "output 'corrected'" in text:
+        return None
+    if "time of the pose" in text:
+        return "t" if has_times else None
+    found = re.search(r"in columns (\d)-(\d)", text)
+    if found:
+        return f"{names[int(found.group(1))]}..{names[int(found.group(2))]}"
+    found = re.search(r"in column (\d)", text)
+    return names[int(found.group(1))] if found else None
+
+
 def _refused_row(path: str, model: Any, chunk: Any, measured: np.ndarray, times: np.ndarray | None,
                  corrector: Corrector, error: PoseCorrError) -> TableError:
     """The table row a model refused. The runtime names the pose within its call (a chunk), so
@@ -40,9 +55,8 @@ def _refused_row(path: str, model: Any, chunk: Any, measured: np.ndarray, times:
             corrector.correct(measured[i], t=None if times is None else times[i])
         except PoseCorrError as one:
             text = re.sub(r"\bpose 0\b", "the pose", str(one))   # it ran alone: its pose 0
-            found = re.search(r"in column (\d)", text)
-            column = (MEAS_POS + MEAS_QUAT)[int(found.group(1))] if found and "output" not in text else None
-            return TableError(path, f"{os.fspath(model)}: {text}", chunk.row_numbers[i], column)
+            return TableError(path, f"{os.fspath(model)}: {text}", chunk.row_numbers[i],
+                              _input_column(text, times is not None))
     return TableError(path, f"{os.fspath(model)}: {error}")
 
 

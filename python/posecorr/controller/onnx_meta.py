@@ -2,13 +2,17 @@
 
 A minimal protobuf wire-format reader (stdlib only) for the few ModelProto fields that
 `info` shows: metadata_props, opset imports, producer, the graph's inputs / outputs with
-their element types and shapes, node operator counts and initializer sizes.
+their element types and shapes, node operator counts and initializer sizes; and, for the
+load-time checks of the Python back ends (`checks.check_model`, `read_graph`), the nodes
+and the bytes of the graph's float tensors.
 
 Field numbers follow onnx.proto (ModelProto: ir_version 1, producer_name 2,
 producer_version 3, doc_string 6, graph 7, opset_import 8, metadata_props 14; GraphProto:
 node 1, name 2, initializer 5, input 11, output 12; NodeProto: op_type 4, domain 7;
 ValueInfoProto: name 1, type 2; TypeProto.tensor_type 1: elem_type 1, shape 2;
-TensorShapeProto.dim 1: dim_value 1, dim_param 2; TensorProto: dims 1, data_type 2).
+TensorShapeProto.dim 1: dim_value 1, dim_param 2; TensorProto: dims 1, data_type 2,
+float_data 4, name 8, raw_data 9; NodeProto: name 3, attribute 5; AttributeProto: name 1,
+t 5).
 """
 from __future__ import annotations
 
@@ -226,3 +230,80 @@ def _parse(data: bytes, path: str) -> dict[str, Any]:
             info[f"metadata_{key}"] = info.pop(key)  # never let metadata hide the file's facts
         info[key] = value
     return info
+
+
+FLOAT = 1  # TensorProto.FLOAT
+
+
+def _float_tensor(buf: bytes) -> dict[str, Any] | None:
+    """{"name", "raw", "float_data"} of a float TensorProto (the values as little-endian
+    float32 bytes), None for other element types."""
+    name, data_type, raw, packed = "", 0, None, bytearray()
+    for f, wire, v in _fields(buf):
+        if f == 8 and wire == 2:
+            name = _str(v)
+        elif f == 2 and wire == 0:
+            data_type = v
+        elif f == 9 and wire == 2:
+            raw = bytes(v)
+        elif f == 4:
+            packed += _msg(v) if wire == 2 else int(v).to_bytes(4, "little")
+    if data_type != FLOAT:
+        return None
+    if raw is not None and len(raw) % 4:
+        raise _Malformed(f"tensor '{name}': raw_data of {len(raw)} bytes is not float32")
+    return {"name": name, "raw": raw, "float_data": bytes(packed)}
+
+
+def read_graph(data: bytes) -> dict[str, Any]:
+    """What the load-time checks look at: {"metadata": {key: value as stored},
+    "opset_import": {domain: version}, "nodes": [(op_type, domain, name)],
+    "float_tensors": [float initialisers and Constant values, see _float_tensor],
+    "inputs": [names of the graph's inputs]}.
+    Raises ValueError when the bytes are not an ONNX ModelProto."""
+    try:
+        return _read_graph(data)
+    except _Malformed as exc:
+        raise ValueError(str(exc)) from None
+    except RecursionError:
+        raise ValueError("nesting too deep") from None
+
+
+def _read_graph(data: bytes) -> dict[str, Any]:
+    meta: dict[str, str] = {}
+    opsets: dict[str, int] = {}
+    graph: bytes | None = None
+    for f, wire, v in _fields(data):
+        if f == 7 and wire == 2:
+            graph = _msg(v)
+        elif f == 8 and wire == 2:
+            opset = _pick(_msg(v), {1: b"", 2: 0})
+            opsets[_str(opset[1]) or "ai.onnx"] = opset[2]
+        elif f == 14 and wire == 2:
+            entry = _pick(_msg(v), {1: b"", 2: b""})
+            meta[_str(entry[1])] = _str(entry[2])
+    if graph is None:
+        raise _Malformed("no graph (is this an ONNX ModelProto?)")
+    nodes, tensors, inputs = [], [], []
+    for f, wire, v in _fields(graph):
+        if f == 1 and wire == 2:
+            node = _pick(_msg(v), {3: b"", 4: b"", 7: b""})      # NodeProto: name, op_type, domain
+            op = _str(node[4])
+            nodes.append((op, _str(node[7]), _str(node[3])))
+            if op != "Constant":
+                continue
+            for nf, nwire, nv in _fields(_msg(v)):              # the Constant's "value" tensor
+                if nf == 5 and nwire == 2:
+                    attr = _pick(_msg(nv), {1: b"", 5: None})
+                    if _str(attr[1]) == "value" and attr[5] is not None:
+                        tensor = _float_tensor(_msg(attr[5]))
+                        if tensor is not None:
+                            tensors.append(tensor)
+        elif f == 5 and wire == 2:
+            tensor = _float_tensor(_msg(v))
+            if tensor is not None:
+                tensors.append(tensor)
+        elif f == 11 and wire == 2:
+            inputs.append(_str(_pick(_msg(v), {1: b""})[1]))
+    return {"metadata": meta, "opset_import": opsets, "nodes": nodes, "float_tensors": tensors,
+            "inputs": inputs}

@@ -2,7 +2,10 @@
 
 `Corrector(path, backend="c")` runs the model through libposecorr (the dependency-free C
 runtime) via ctypes, a single pose through the optional extension `_call1` when it was
-built; `backend="onnxruntime"` runs the same file through onnxruntime, with the same API. Only numpy and ctypes are imported here; onnxruntime is imported lazily.
+built; `backend="onnxruntime"` runs the same file through onnxruntime, with the same API
+and the same checks (`checks`: what libposecorr refuses at load and per call, this back end
+refuses with the same status and message). Only numpy and ctypes are imported here;
+onnxruntime is imported lazily.
 
 Outputs are float64 arrays of the caller's shape ((7,) or (N, 7)); the model computes in
 float32, so values carry float32 precision. A model with a time-dependent effect (drift)
@@ -21,27 +24,19 @@ from typing import Any
 
 import numpy as np
 
+from . import checks
+from .checks import PoseCorrError
+
 __all__ = ["Corrector", "PoseCorrError", "load_library", "library_path"]
 
 POSE_WIDTH = 7
-# The contract's optional second input: float32 [N], s since the session's start.
-TIME_INPUT = "t"
+TIME_INPUT = checks.TIME_INPUT
 _MESSAGE_SIZE = 256
 # libposecorr's PC_VERSION_MAJOR, PC_VERSION_MINOR this shim is written against: the
 # library must have the same major and at least this minor (minors add functions and, at
-# 0.4, fields at the end of pc_options).
-EXPECTED_VERSION = (0, 4)
-
-
-class PoseCorrError(ValueError):
-    """A model failed to load or a pose could not be corrected; `status` is the C code."""
-
-    def __init__(self, message: str, status: int | None = None) -> None:
-        super().__init__(message)
-        self.status = status
-
-    def __reduce__(self):
-        return type(self), (str(self), self.status)  # crosses a process pool intact
+# 0.4, fields at the end of pc_options; 0.5 checks times and input quaternions, the
+# checks of `checks`).
+EXPECTED_VERSION = (0, 5)
 
 
 def _call1_module() -> Any:
@@ -157,8 +152,7 @@ class _CBackend:
             st = lib.pc_load_file(os.fsencode(path), ctypes.byref(opts), ctypes.byref(handle),
                                   ctypes.byref(err))
         if st != 0:
-            where = f"model of {len(path)} bytes" if isinstance(path, (bytes, bytearray)) else path
-            raise PoseCorrError(f"{where}: {err.message.decode(errors='replace')}", st)
+            raise PoseCorrError(f"{_where(path)}: {err.message.decode(errors='replace')}", st)
         self.handle = handle.value
         # Single-pose path: fixed buffers and raw addresses, so a call is one copy in,
         # one foreign call and one copy out.
@@ -234,17 +228,33 @@ class _CBackend:
             pass
 
 
+def _where(path: str | os.PathLike | bytes) -> str:
+    """How a load error names the model."""
+    return f"model of {len(path)} bytes" if isinstance(path, (bytes, bytearray)) else os.fspath(path)
+
+
 class _OrtBackend:
+    """onnxruntime behind libposecorr's checks (`checks`): the model is checked at load as
+    the C loader checks it, and every call's input and output as pc_run checks them."""
+
     def __init__(self, path: str | os.PathLike | bytes) -> None:
         import onnxruntime as ort  # only for this backend
 
+        name = _where(path)
+        if isinstance(path, (bytes, bytearray)):
+            data = bytes(path)
+        else:
+            try:
+                data = Path(path).read_bytes()
+            except OSError as exc:
+                raise PoseCorrError(f"{name}: cannot read it ({exc.strerror})", int(checks.Status.IO)) from None
+        # What libposecorr refuses at load is refused before onnxruntime sees the bytes.
+        self.metadata, self.limits = checks.check_model(data, name)
         so = ort.SessionOptions()
         so.intra_op_num_threads = 1
         so.inter_op_num_threads = 1
-        src = bytes(path) if isinstance(path, (bytes, bytearray)) else str(path)
-        name = "<model bytes>" if isinstance(path, (bytes, bytearray)) else str(path)
         try:
-            self.session = ort.InferenceSession(src, so, providers=["CPUExecutionProvider"])
+            self.session = ort.InferenceSession(data, so, providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime's own exception types, one per failure kind
             raise PoseCorrError(f"{name}: onnxruntime cannot load it: {_first_line(exc)}") from None
         inputs = {i.name: i.shape for i in self.session.get_inputs()}
@@ -253,20 +263,16 @@ class _OrtBackend:
             raise PoseCorrError(f"{name}: not a posecorr corrector (inputs {sorted(inputs)}, outputs "
                                 f"{sorted(outputs)}; expected input 'pose' [N, 7] and output 'corrected')")
         self.name = name
-        self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)
         self.max_batch = None
-        self.takes_time = TIME_INPUT in {i.name for i in self.session.get_inputs()}
+        self.takes_time = TIME_INPUT in inputs
 
     def run(self, poses: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
         x = np.ascontiguousarray(poses, dtype=np.float32)
-        if not np.all(np.isfinite(x)):
-            raise PoseCorrError("non-finite input: a pose contains NaN or infinity")
+        tt = None if t is None else np.ascontiguousarray(t, dtype=np.float32)
+        checks.check_input(self.limits, x, tt)
         feeds = {"pose": x}
         if self.takes_time:
-            tt = np.zeros(len(x), np.float32) if t is None else np.asarray(t, np.float32)
-            if not np.all(np.isfinite(tt)):
-                raise PoseCorrError("non-finite input: a time is NaN or infinity")
-            feeds[TIME_INPUT] = tt
+            feeds[TIME_INPUT] = np.zeros(len(x), np.float32) if tt is None else tt
         try:
             out = self.session.run(["corrected"], feeds)[0]
         except Exception as exc:
@@ -274,6 +280,7 @@ class _OrtBackend:
         if out.shape != x.shape:
             raise PoseCorrError(f"{self.name}: output 'corrected' has shape {list(out.shape)}, "
                                 f"expected {list(x.shape)}")
+        checks.check_output(self.limits, out)
         return out.astype(np.float64)
 
     def run1(self, pose: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
@@ -323,7 +330,10 @@ class Corrector:
         t: time of each pose, s since the session's start (a scalar for one pose, (N,) for
         a batch); used by models that take time (`takes_time`), ignored by the others.
         Without it such a model corrects every pose as at t = 0, the session's start.
-        Returns float64 of the same shape. Raises PoseCorrError for NaN/inf input.
+        Returns float64 of the same shape. Raises PoseCorrError (its `status` is
+        libposecorr's) for what either back end refuses: NaN/inf, a position outside the
+        model's input_bounds, a time outside its time_bounds, a quaternion that is not
+        unit, a result that is not a pose.
         """
         a = np.asarray(poses)
         single = a.shape == (POSE_WIDTH,)

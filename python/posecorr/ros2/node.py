@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from posecorr.controller.checks import Limits
 from posecorr.controller.runtime import Corrector, PoseCorrError
 
 POLL_SECONDS = 0.05
@@ -91,7 +92,9 @@ def load_checked(path: Path) -> Loaded:
     except PoseCorrError as exc:
         raise PoseCorrError(f"{path}: {str(exc).split(': ', 1)[-1]}", exc.status) from None
     probe = _probe_poses(corrector.metadata)
-    t = np.linspace(0.0, 60.0, len(probe)) if corrector.takes_time else None
+    # times inside the span the model was fitted on (time_bounds), where it answers
+    span = Limits.from_metadata(corrector.metadata, corrector.takes_time).span or (0.0, 60.0)
+    t = np.linspace(span[0], span[1], len(probe)) if corrector.takes_time else None
     batch = corrector.correct(probe, t)
     for i, pose in enumerate(probe):
         one = corrector.correct(pose, None if t is None else t[i])

@@ -1,0 +1,294 @@
+"""The checks every back end makes on a model and on the poses it corrects, in one place.
+
+libposecorr (runtime_c) makes them in C: at load in api.c and onnx.c, at run time in
+run.c's pc_check_input and pc_check_output. This module makes the same checks, in the same
+order and with the same messages and status codes, for the Python back ends that do not go
+through the C runtime (`Corrector(backend="onnxruntime")`, hence `posecorr apply --backend
+onnxruntime`). tests/test_checks.py runs every hostile case on both back ends and compares
+their messages word for word.
+
+At load (`check_model`): the graph's operators are those of export/operators.txt in the
+default domain at a supported opset; no float tensor of the graph (an initialiser, a
+Constant's value) holds NaN or infinity; the metadata's bounds (`input_bounds`, metres, and
+`time_bounds`, seconds) are finite float32 numbers, lower ones not above upper ones.
+
+Per call (`check_input`, `check_output`): finite times inside `time_bounds` (models that
+take time; no t is t = 0), finite poses, positions inside `input_bounds`, and, in
+posecorr's models (metadata `posecorr_version`), unit quaternions in and out.
+"""
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+from dataclasses import dataclass
+from enum import IntEnum
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from . import onnx_meta
+
+__all__ = ["PoseCorrError", "Status", "Limits", "check_model", "check_input", "check_output",
+           "failure", "decimal"]
+
+
+class PoseCorrError(ValueError):
+    """A model failed to load or a pose could not be corrected; `status` is the C code."""
+
+    def __init__(self, message: str, status: int | None = None) -> None:
+        super().__init__(message)
+        self.status = status
+
+    def __reduce__(self):
+        return type(self), (str(self), self.status)  # crosses a process pool intact
+
+
+class Status(IntEnum):
+    """libposecorr's pc_status (runtime_c/posecorr.h), value for value."""
+
+    OK = 0
+    ARGUMENT = 1
+    IO = 2
+    MEMORY = 3
+    TRUNCATED = 4
+    MALFORMED = 5
+    UNSUPPORTED = 6
+    CONTRACT = 7
+    GRAPH = 8
+    SHAPE = 9
+    NONFINITE = 10
+    RUNTIME = 11
+    RANGE = 12
+    QUATERNION = 13
+
+
+# pc_status_name (runtime_c/status.c) of the codes raised here.
+STATUS_NAMES = {
+    Status.MALFORMED: "malformed model",
+    Status.UNSUPPORTED: "unsupported feature",
+    Status.NONFINITE: "non-finite input",
+    Status.RUNTIME: "runtime error",
+    Status.RANGE: "pose outside the fitted range",
+    Status.QUATERNION: "quaternion not unit",
+}
+
+# Default-domain opsets libposecorr loads (PC_OPSET_MIN, PC_OPSET_MAX in posecorr.h).
+OPSETS = (13, 28)
+# run.c's tolerances: an output |q|^2 within 1e-3 of 1 (float32, after a few dozen
+# operations it is within 1e-5); an input norm within 1e-3 of 1, the pose tables' rule
+# (posecorr.data.QUAT_NORM_TOLERANCE), compared on |q|^2 in float64 as (1 -+ 1e-3)^2. The
+# model normalises its input, so a few lost bits change nothing, while a zero or norm-3
+# vector is a glitch that normalising would turn into a made-up rotation.
+OUTPUT_UNIT_TOLERANCE = np.float32(1e-3)
+INPUT_NORM2_RANGE = (0.998001, 1.002001)
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+BOX_EXPECTED = "[[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]] in metres"
+SPAN_EXPECTED = "[t_lo, t_hi] in seconds"
+# The contract's optional second input: float32 [N], s since the session's start.
+TIME_INPUT = "t"
+
+
+def failure(status: Status, message: str) -> PoseCorrError:
+    """The error a run-time check raises: its status name first, as the C back end's."""
+    return PoseCorrError(f"{STATUS_NAMES[status]}: {message}", int(status))
+
+
+def decimal(value: float, places: int = 3) -> str:
+    """`value` with `places` decimals (mm, ms) as run.c's pc_decimal writes it."""
+    a = abs(float(value))
+    if not a < 1e9:
+        return f"beyond {'-' if value < 0 else ''}1e9"
+    scale = 10.0 ** places
+    units = int(a * scale + 0.5)
+    return f"{'-' if value < 0 and units else ''}{units // int(scale)}.{units % int(scale):0{places}d}"
+
+
+def _outside(what: str, value: float, lo: float, hi: float, unit: str, key: str) -> str:
+    return f"{what}: {decimal(value)} {unit}, expected {decimal(lo)} to {decimal(hi)} {unit} (metadata {key})"
+
+
+def _refuse_constant(name: str) -> Any:
+    raise ValueError(name)
+
+
+def _numbers(value: Any) -> list[float] | None:
+    """The numbers of a JSON array at any depth (api.c's pc_parse_numbers), None when it
+    holds anything else."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, (int, float)):
+        try:
+            return [float(value)]
+        except OverflowError:  # an integer of 400 digits: infinite, as in C
+            return [math.copysign(math.inf, value)]
+    if isinstance(value, list):
+        out: list[float] = []
+        for v in value:
+            got = _numbers(v)
+            if got is None:
+                return None
+            out += got
+        return out
+    return None
+
+
+def _read_bounds(key: str, value: str, count: int, expected: str) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) float32 of a bounds value, refused as api.c's pc_read_bounds refuses it."""
+    text = value.encode("utf-8")[:255].decode("utf-8", errors="ignore")  # C reads 255 bytes
+    try:  # NaN and Infinity are not numbers, as in the C parser
+        v = _numbers(json.loads(text, parse_constant=_refuse_constant))
+    except (ValueError, RecursionError):
+        v = None
+    if v is None or len(v) != 2 * count:
+        raise PoseCorrError(f"metadata {key} is '{text[:60]}', expected {expected}", int(Status.MALFORMED))
+    for k in range(count):
+        if not (abs(v[k]) <= FLOAT32_MAX and abs(v[k + count]) <= FLOAT32_MAX):
+            raise PoseCorrError(f"metadata {key}: a bound is not a finite float32 in column {k} "
+                                f"(expected {expected})", int(Status.MALFORMED))
+    lo, hi = np.float32(v[:count]), np.float32(v[count:])
+    for k in range(count):
+        if not lo[k] <= hi[k]:
+            raise PoseCorrError(f"metadata {key}: lower bound above upper bound in column {k}",
+                                int(Status.MALFORMED))
+    return lo, hi
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What a model's metadata asks of the poses it corrects (api.c's pc_read_checks)."""
+
+    box: tuple[np.ndarray, np.ndarray] | None = None    # float32 (3,) lo, hi: input_bounds
+    span: tuple[np.float32, np.float32] | None = None   # time_bounds, models that take time
+    unit_quaternion: bool = False                        # posecorr's models
+
+    @classmethod
+    def from_metadata(cls, metadata: Mapping[str, str], takes_time: bool) -> "Limits":
+        """Raises PoseCorrError (status MALFORMED) for bounds that are not finite float32
+        numbers or are inverted."""
+        box = span = None
+        if "input_bounds" in metadata:
+            box = _read_bounds("input_bounds", metadata["input_bounds"], 3, BOX_EXPECTED)
+        if "time_bounds" in metadata:
+            lo, hi = _read_bounds("time_bounds", metadata["time_bounds"], 1, SPAN_EXPECTED)
+            span = (lo[0], hi[0]) if takes_time else None  # a model without t ignores time
+        return cls(box, span, "posecorr_version" in metadata)
+
+
+@lru_cache(maxsize=1)
+def operator_list() -> frozenset[str]:
+    """export/operators.txt (package data of posecorr.export), read without importing
+    posecorr.export (which needs onnx)."""
+    spec = importlib.util.find_spec("posecorr.export")
+    if spec is None or not spec.submodule_search_locations:
+        raise PoseCorrError("posecorr.export/operators.txt not found: reinstall posecorr")
+    text = (Path(list(spec.submodule_search_locations)[0]) / "operators.txt").read_text(encoding="utf-8")
+    return frozenset(n for n in (line.split("#", 1)[0].strip() for line in text.splitlines()) if n)
+
+
+def _float_values(tensor: dict[str, Any]) -> np.ndarray:
+    if tensor["raw"] is not None:
+        return np.frombuffer(tensor["raw"], dtype="<f4", count=len(tensor["raw"]) // 4)
+    return np.frombuffer(tensor["float_data"], dtype="<f4")
+
+
+def check_model(data: bytes, where: str) -> tuple[dict[str, str], Limits]:
+    """The load-time checks of libposecorr on a model's bytes: (metadata as strings, the
+    run-time limits). Raises PoseCorrError naming `where` and what was expected."""
+    try:
+        graph = onnx_meta.read_graph(data)
+    except ValueError as exc:
+        raise PoseCorrError(f"{where}: not a valid ONNX model ({exc})", int(Status.MALFORMED)) from None
+    opset = graph["opset_import"].get("ai.onnx")
+    if opset is not None and not OPSETS[0] <= opset <= OPSETS[1]:
+        raise PoseCorrError(f"{where}: default-domain opset {opset} is not supported "
+                            f"({OPSETS[0]}..{OPSETS[1]})", int(Status.UNSUPPORTED))
+    allowed = operator_list()
+    for op, domain, name in graph["nodes"]:
+        if domain not in ("", "ai.onnx"):
+            raise PoseCorrError(f"{where}: unsupported operator {op} (domain '{domain}') in node "
+                                f"'{name}'", int(Status.UNSUPPORTED))
+        if op not in allowed:
+            raise PoseCorrError(f"{where}: unsupported operator {op} in node '{name}'",
+                                int(Status.UNSUPPORTED))
+    for tensor in graph["float_tensors"]:
+        bad = np.flatnonzero(~np.isfinite(_float_values(tensor)))
+        if bad.size:
+            raise PoseCorrError(f"{where}: tensor '{tensor['name']}' holds a non-finite value at "
+                                f"element {int(bad[0])} (expected finite weights)", int(Status.MALFORMED))
+    try:
+        limits = Limits.from_metadata(graph["metadata"], TIME_INPUT in graph["inputs"])
+    except PoseCorrError as exc:
+        raise PoseCorrError(f"{where}: {exc}", exc.status) from None
+    return graph["metadata"], limits
+
+
+def _first(mask: np.ndarray) -> int | None:
+    hit = np.flatnonzero(mask)
+    return int(hit[0]) if hit.size else None
+
+
+def check_input(limits: Limits, poses: np.ndarray, t: np.ndarray | None) -> None:
+    """run.c's pc_check_input on float32 poses (N, 7) and times (N,) or None (t = 0)."""
+    if t is not None or limits.span is not None:
+        times = np.asarray(t if t is not None else np.zeros(1, np.float32), np.float32)
+        nonfinite = ~np.isfinite(times)
+        outside = np.zeros_like(nonfinite)
+        if limits.span is not None:
+            lo, hi = limits.span
+            outside = ~((times >= lo) & (times <= hi))
+        i = _first(nonfinite | outside)
+        if i is not None:
+            if nonfinite[i]:
+                raise failure(Status.NONFINITE, f"time of pose {i} is not finite "
+                                                "(expected seconds since the session's start)")
+            raise failure(Status.RANGE, _outside(f"time of pose {i} is outside the span the model was fitted on",
+                                                 times[i], lo, hi, "s", "time_bounds"))
+    finite = np.isfinite(poses)
+    bad = ~finite.all(axis=1)
+    inside = None
+    if limits.box is not None:
+        lo3, hi3 = limits.box
+        with np.errstate(invalid="ignore"):
+            inside = (poses[:, :3] >= lo3) & (poses[:, :3] <= hi3)
+        bad |= ~inside.all(axis=1)
+    norm2 = None
+    if limits.unit_quaternion:
+        q = poses[:, 3:7].astype(np.float64)
+        with np.errstate(invalid="ignore", over="ignore"):
+            norm2 = q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3]
+            bad |= ~((norm2 >= INPUT_NORM2_RANGE[0]) & (norm2 <= INPUT_NORM2_RANGE[1]))
+    i = _first(bad)
+    if i is None:
+        return
+    c = _first(~finite[i])
+    if c is not None:
+        raise failure(Status.NONFINITE, f"pose {i} has a non-finite value in column {c} (expected a finite number)")
+    if inside is not None and (c := _first(~inside[i])) is not None:
+        raise failure(Status.RANGE, _outside(f"pose {i} is outside the range the model was fitted on in column {c}",
+                                             poses[i, c], limits.box[0][c], limits.box[1][c], "m", "input_bounds"))
+    assert norm2 is not None
+    raise failure(Status.QUATERNION, f"pose {i} has a quaternion of norm {decimal(math.sqrt(norm2[i]), 6)} in "
+                                     "columns 3-6 (expected a unit quaternion w, x, y, z: norm within 0.001 of 1)")
+
+
+def check_output(limits: Limits, out: np.ndarray) -> None:
+    """run.c's pc_check_output on the float32 result (N, 7) of a call."""
+    finite = np.isfinite(out)
+    bad = ~finite.all(axis=1)
+    if limits.unit_quaternion:
+        q = out[:, 3:7]
+        with np.errstate(invalid="ignore", over="ignore"):
+            n2 = q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3]
+            bad |= ~(np.abs(n2 - np.float32(1.0)) <= OUTPUT_UNIT_TOLERANCE)
+    i = _first(bad)
+    if i is None:
+        return
+    c = _first(~finite[i])
+    if c is not None:
+        raise failure(Status.RUNTIME, f"output 'corrected' of pose {i} is not finite in column {c} "
+                                      "(expected a finite number)")
+    raise failure(Status.RUNTIME, f"output 'corrected' of pose {i} has a quaternion that is not unit "
+                                  "(columns 3-6, expected |q|^2 within 0.001 of 1)")

@@ -1,0 +1,469 @@
+"""One check layer for every back end (issue 21, item 2).
+
+Hostile models and poses go through libposecorr (the C back end, the judge: its checks
+are run.c's and api.c's) and through onnxruntime behind `posecorr.controller.checks`; each
+case must be refused by both, with the same status and, word for word, the same message
+naming the pose and column and what was expected. Through `posecorr apply` each case ends in
+one line naming file, row and column, exit 2, and no output file. The shipped models carry
+the box they were fitted in, and every export writes it.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+onnx = pytest.importorskip("onnx")
+pytest.importorskip("onnxruntime")
+
+from onnx import helper, numpy_helper  # noqa: E402
+
+from posecorr.controller import checks  # noqa: E402
+from posecorr.controller.runtime import Corrector, PoseCorrError  # noqa: E402
+from posecorr.data import PoseTable, write_table  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "runtime_c" / "tests"))
+import graphs  # noqa: E402
+from test_hardening import _run  # noqa: E402
+from test_hostile import _checksums  # noqa: E402
+
+PMC_ZHOU = ROOT / "models" / "pmc-zhou.onnx"
+MLP_ZHOU = ROOT / "models" / "mlp-zhou-tansig-20x20x20x20-br.onnx"
+SHIPPED = sorted((ROOT / "models").glob("*.onnx"))
+BACKENDS = ("c", "onnxruntime")
+S = checks.Status
+
+
+def _both(model, poses, t=None) -> list[PoseCorrError]:
+    """The error each back end raises for `correct(poses, t)` (fails when one accepts)."""
+    errors = []
+    for backend in BACKENDS:
+        c = Corrector(model, backend=backend)
+        with pytest.raises(PoseCorrError) as info:
+            c.correct(poses, t)
+        errors.append(info.value)
+    return errors
+
+
+def _same(errors: list[PoseCorrError], status: S, *fragments: str) -> str:
+    c, ort = errors
+    assert str(ort) == str(c), "the back ends disagree"
+    assert c.status == ort.status == int(status), (c.status, ort.status, str(c))
+    for fragment in fragments:
+        assert fragment in str(c), str(c)
+    return str(c)
+
+
+def _load_errors(blob: bytes) -> list[PoseCorrError]:
+    errors = []
+    for backend in BACKENDS:
+        with pytest.raises(PoseCorrError) as info:
+            Corrector(blob, backend=backend)
+        errors.append(info.value)
+    return errors
+
+
+def _edited(path: Path, **meta: str) -> onnx.ModelProto:
+    model = onnx.load(path)
+    kept = {e.key: e.value for e in model.metadata_props}
+    kept.update(meta)
+    del model.metadata_props[:]
+    for key, value in sorted(kept.items()):
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    return model
+
+
+def _inside(n: int = 12, seed: int = 0) -> np.ndarray:
+    return graphs.poses_in_box(PMC_ZHOU, n, seed).astype(np.float64)
+
+
+# --- the status table is libposecorr's -------------------------------------------------------
+
+def test_statuses_and_names_are_the_librarys():
+    from posecorr.controller.runtime import load_library
+
+    lib = load_library()
+    header = (ROOT / "runtime_c" / "posecorr.h").read_text()
+    body = header[header.index("typedef enum pc_status {"):header.index("} pc_status;")]
+    names = [ln.split(",")[0].split("=")[0].strip() for ln in body.splitlines()[1:]
+             if ln.strip().startswith("PC_")]
+    assert names[-1] == "PC_STATUS_COUNT"
+    assert [f"PC_{'OK' if s == S.OK else 'ERR_' + s.name}" for s in S] == names[:-1]
+    for status, name in checks.STATUS_NAMES.items():
+        assert lib.pc_status_name(int(status)).decode() == name
+    lo = int(header.split("#define PC_OPSET_MIN ")[1].split()[0])
+    hi = int(header.split("#define PC_OPSET_MAX ")[1].split()[0])
+    assert checks.OPSETS == (lo, hi)
+
+
+# --- poses the shipped models refuse, on both back ends ---------------------------------------
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.name)
+def test_shipped_models_carry_their_training_box(path):
+    """Each shipped model's input_bounds is the box to_onnx computes from its training
+    positions (the seeded data regenerated), and poses inside are corrected alike."""
+    from tools.models import SPECS, experiment_data
+    from posecorr.export.onnx_export import input_bounds
+
+    spec = next(s for s in SPECS if f"{s.name}.onnx" == path.name)
+    data = _experiment(spec.experiment, experiment_data)
+    box = json.loads({e.key: e.value for e in onnx.load(path).metadata_props}["input_bounds"])
+    assert box == input_bounds(data["measured"][data["train"]])
+    x = graphs.poses_in_box(path, 50, seed=3).astype(np.float64)
+    c, o = (Corrector(path, backend=b).correct(x) for b in BACKENDS)
+    assert np.abs(c - o).max() < 1e-5
+
+
+_DATA: dict[int, dict] = {}
+
+
+def _experiment(experiment: int, make) -> dict:
+    if experiment not in _DATA:
+        _DATA[experiment] = make(experiment)
+    return _DATA[experiment]
+
+
+@pytest.mark.parametrize("column,value", [(0, 999.0), (1, 5.0), (2, -0.5), (0, -3e30), (1, -0.7975)])
+def test_a_pose_outside_the_box_is_refused_alike(column, value):
+    x = _inside()
+    x[7, column] = value
+    lo, hi = graphs.model_box(PMC_ZHOU)
+    text = _same(_both(PMC_ZHOU, x), S.RANGE, f"pose 7 is outside the range the model was fitted on in "
+                 f"column {column}: {checks.decimal(np.float32(value))} m, expected "
+                 f"{checks.decimal(lo[column])} to {checks.decimal(hi[column])} m (metadata input_bounds)")
+    assert text.startswith("pose outside the fitted range: ")
+
+
+def test_range_messages_agree_on_many_values():
+    """run.c's pc_decimal and checks.decimal write every value alike (C is the judge)."""
+    rng = np.random.default_rng(7)
+    values = np.concatenate([rng.uniform(-5, 5, 40), 10.0 ** rng.uniform(-3, 12, 30),
+                             -(10.0 ** rng.uniform(-3, 12, 30)), [0.2055, -0.2277, 999.9995, 1e9, -1e9,
+                                                                  0.2049999, 3.4e38]])
+    c, o = (Corrector(PMC_ZHOU, backend=b) for b in BACKENDS)
+    lo, hi = graphs.model_box(PMC_ZHOU)
+    compared = 0
+    for v in values.astype(np.float32):
+        x = _inside(1)
+        x[0, 0] = v
+        if lo[0] <= v <= hi[0]:
+            continue
+        with pytest.raises(PoseCorrError) as ec:
+            c.correct(x)
+        with pytest.raises(PoseCorrError) as eo:
+            o.correct(x)
+        assert str(eo.value) == str(ec.value)
+        compared += 1
+    assert compared > 90
+
+
+@pytest.mark.parametrize("value", [np.inf, -np.inf, np.nan])
+def test_a_non_finite_pose_is_refused_alike(value):
+    x = _inside()
+    x[3, 5] = value
+    _same(_both(PMC_ZHOU, x), S.NONFINITE, "pose 3 has a non-finite value in column 5 (expected a finite number)")
+
+
+@pytest.mark.parametrize("scale,norm", [(3.0, "3.000000"), (0.0, "0.000000"), (1.01, "1.010000")])
+def test_a_quaternion_that_is_not_unit_is_refused_not_normalised(scale, norm):
+    """The model normalises its input: a norm-3 or zero quaternion used to come out as a unit
+    one. Now both back ends (and the shim's single-pose path) refuse it."""
+    x = _inside()
+    x[4, 3:] *= scale
+    _same(_both(PMC_ZHOU, x), S.QUATERNION, f"pose 4 has a quaternion of norm {norm} in columns 3-6",
+          "expected a unit quaternion")
+    one = _both(PMC_ZHOU, x[4])
+    _same(one, S.QUATERNION, "pose 0 has a quaternion")
+
+
+def test_the_quaternion_tolerance_is_the_tables():
+    """A quaternion the pose tables accept (norm within 1e-3) is corrected; one beyond is
+    refused, on both back ends."""
+    from posecorr.data import QUAT_NORM_TOLERANCE
+
+    x = _inside(2)
+    x[0, 3:] *= 1 + 0.9 * QUAT_NORM_TOLERANCE
+    x[1, 3:] *= 1 - 0.9 * QUAT_NORM_TOLERANCE
+    for backend in BACKENDS:
+        assert np.all(np.isfinite(Corrector(PMC_ZHOU, backend=backend).correct(x)))
+    x[1, 3:] *= 1 - 0.3 * QUAT_NORM_TOLERANCE
+    _same(_both(PMC_ZHOU, x), S.QUATERNION, "pose 1 has a quaternion of norm 0.9988")
+
+
+# --- results that are not poses ---------------------------------------------------------------
+
+def _posecorr_graph(factor: list[float], op: str = "Mul") -> bytes:
+    g = graphs.G()
+    y = g.op(op, ["pose", g.f32(np.array(factor, np.float32))])
+    return g.model(y, metadata={"posecorr_version": "0.1.0"}).SerializeToString()
+
+
+def test_an_infinite_output_is_refused_alike():
+    blob = _posecorr_graph([1, 1, 1, 1, 1, 1, 0], op="Div")  # qz / 0
+    x = _inside()
+    x[:, 6] = np.abs(x[:, 6]) + 0.1
+    x[:, 3:] /= np.linalg.norm(x[:, 3:], axis=1, keepdims=True)
+    _same(_both(blob, x), S.RUNTIME, "output 'corrected' of pose 0 is not finite in column 6 (expected a finite number)")
+
+
+def test_a_zero_output_quaternion_is_refused_alike():
+    blob = _posecorr_graph([1, 1, 1, 0, 0, 0, 0])
+    _same(_both(blob, _inside()), S.RUNTIME, "output 'corrected' of pose 0 has a quaternion that is not unit",
+          "expected |q|^2 within 0.001 of 1")
+
+
+# --- models refused at load -------------------------------------------------------------------
+
+def _used_weight(model: onnx.ModelProto) -> onnx.TensorProto:
+    """The largest float initialiser a node reads."""
+    used = {i for n in model.graph.node for i in n.input}
+    return max((t for t in model.graph.initializer if t.data_type == onnx.TensorProto.FLOAT and t.name in used),
+               key=lambda t: int(np.prod(t.dims)))
+
+
+@pytest.mark.parametrize("value,raw", [(np.nan, True), (np.inf, True), (-np.inf, False)])
+def test_a_model_with_non_finite_weights_is_refused_at_load(value, raw):
+    model = onnx.load(MLP_ZHOU)
+    tensor = _used_weight(model)
+    w = numpy_helper.to_array(tensor).copy()
+    w.flat[5] = value
+    tensor.CopyFrom(numpy_helper.from_array(w, tensor.name) if raw else
+                    helper.make_tensor(tensor.name, onnx.TensorProto.FLOAT, w.shape, w.ravel().tolist()))
+    blob = model.SerializeToString()
+    text = _same(_load_errors(blob), S.MALFORMED,
+                 f"tensor '{tensor.name}' holds a non-finite value at element 5 (expected finite weights)")
+    assert text.startswith(f"model of {len(blob)} bytes: ")
+
+
+def test_weights_read_in_place_are_checked_too(tmp_path):
+    """PC_LOAD_IN_PLACE reads an aligned file's weights where they lie: still checked."""
+    import ctypes
+
+    from posecorr.controller.runtime import _Error, _Options, load_library
+    from posecorr.export.aligned import serialize_aligned
+
+    model = onnx.load(MLP_ZHOU)
+    tensor = _used_weight(model)
+    w = numpy_helper.to_array(tensor).copy()
+    w.flat[0] = np.nan
+    tensor.CopyFrom(numpy_helper.from_array(w, tensor.name))
+    blob = serialize_aligned(model)
+    lib = load_library()
+    handle, err = ctypes.c_void_p(), _Error()
+    st = lib.pc_load_memory(blob, len(blob), ctypes.byref(_Options(flags=1)), ctypes.byref(handle),
+                            ctypes.byref(err))
+    assert st == S.MALFORMED and b"non-finite value at element 0" in err.message and not handle.value
+
+
+@pytest.mark.parametrize("op,domain", [("Pow", ""), ("Gelu", "com.microsoft")])
+def test_an_operator_outside_the_list_is_refused_alike(op, domain):
+    g = graphs.G()
+    if op == "Pow":
+        y = g.op("Pow", ["pose", g.f32(np.float32(1.0))])
+    else:
+        y = g.op("Gelu", ["pose"])
+    model = g.model(y, metadata={"posecorr_version": "0.1.0"})
+    if domain:
+        model.opset_import.append(helper.make_opsetid(domain, 1))
+    assert op not in checks.operator_list()
+    node = next(n for n in model.graph.node if n.op_type == op)
+    node.domain = domain
+    node = node.name
+    where = f" (domain '{domain}')" if domain else ""
+    _same(_load_errors(model.SerializeToString()), S.UNSUPPORTED, f"unsupported operator {op}{where} in node '{node}'")
+
+
+@pytest.mark.parametrize("bounds,fragment", [
+    ("[[NaN, -1, -1], [1, 1, 1]]", "metadata input_bounds is '[[NaN, -1, -1], [1, 1, 1]]', expected [[x_lo"),
+    ("[[-1, -1, -1], [1, Infinity, 1]]", "metadata input_bounds is '[[-1, -1, -1], [1, Infinity, 1]]'"),
+    ("[[-1e400, -1, -1], [1, 1, 1]]", "metadata input_bounds: a bound is not a finite float32 in column 0"),
+    ("[[-1, -1, -1], [1, 1, 1e39]]", "metadata input_bounds: a bound is not a finite float32 in column 2"),
+    ("[[-1, 1, -1], [1, -1, 1]]", "metadata input_bounds: lower bound above upper bound in column 1"),
+    ("[[-1, -1], [1, 1]]", "expected [[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]] in metres"),
+    ("[[-1, -1, true], [1, 1, 1]]", "metadata input_bounds is"),
+])
+def test_edited_input_bounds_are_refused_at_load(bounds, fragment):
+    blob = _edited(PMC_ZHOU, input_bounds=bounds).SerializeToString()
+    _same(_load_errors(blob), S.MALFORMED, fragment)
+
+
+# --- time outside the fitted span -------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def drift(tmp_path_factory) -> tuple[Path, PoseTable, list[float]]:
+    """A PhysicsModel with drift fitted on 60 poses of a simulated Experiment III, exported:
+    (file, its training table, its time_bounds)."""
+    from posecorr.export import to_onnx
+    from posecorr.export.onnx_export import time_bounds
+    from posecorr.simulate import simulate
+    from posecorr.train.physics import PhysicsModel
+
+    table = simulate(3, seed=0).table
+    idx = np.linspace(0, len(table.measured) - 1, 60).astype(int)
+    m, r, t = table.measured[idx], table.reference[idx], table.extras["t"][idx]
+    est = PhysicsModel(effects=("station", "mount", "drift")).fit(m, r, t=t)
+    path = tmp_path_factory.mktemp("drift") / "drift.onnx"
+    report = to_onnx(est, path, measured=m, reference=r, t=t)
+    assert report["metadata"]["time_bounds"] == time_bounds(t)
+    sub = PoseTable(m[:, :3], m[:, 3:], r[:, :3], r[:, 3:], {"t": t})
+    return path, sub, time_bounds(t)
+
+
+def test_time_bounds_are_the_training_span_widened(drift):
+    _, table, span = drift
+    t = table.extras["t"]
+    margin = max(0.5 * (t.max() - t.min()), 60.0)
+    assert span == pytest.approx([t.min() - margin, t.max() + margin], abs=1e-9)
+
+
+@pytest.mark.parametrize("when", [-100000.0, 1e7, np.nan])
+def test_a_time_outside_the_span_is_refused_alike(drift, when):
+    path, table, span = drift
+    x, t = table.measured[:10].copy(), table.extras["t"][:10].copy()
+    t[6] = when
+    if np.isnan(when):
+        _same(_both(path, x, t), S.NONFINITE, "time of pose 6 is not finite")
+        return
+    lo, hi = np.float32(span)
+    _same(_both(path, x, t), S.RANGE, f"time of pose 6 is outside the span the model was fitted on: "
+          f"{checks.decimal(np.float32(when))} s, expected {checks.decimal(lo)} to {checks.decimal(hi)} s "
+          "(metadata time_bounds)")
+    if when == -100000.0:  # without the check (a span opened wide), kilometres away
+        far = Corrector(_edited(path, time_bounds="[-1e30, 1e30]").SerializeToString()).correct(x[6], t[6])
+        assert np.linalg.norm(far[:3] - x[6, :3]) > 1000.0
+
+
+def test_no_time_is_time_zero_and_is_checked_too(drift):
+    """pc_run without times runs a time model at t = 0: outside a span that excludes 0 it is
+    refused (C: pc_run_timed with t NULL), the same on onnxruntime."""
+    path, table, _ = drift
+    blob = _edited(path, time_bounds="[10, 20]").SerializeToString()
+    _same(_both(blob, table.measured[:3]), S.RANGE, "time of pose 0 is outside the span the model was fitted on: "
+          "0.000 s, expected 10.000 to 20.000 s")
+    for backend in BACKENDS:  # inside the span: corrected
+        assert np.all(np.isfinite(Corrector(blob, backend=backend).correct(table.measured[:3], np.full(3, 15.0))))
+
+
+@pytest.mark.parametrize("span,fragment", [("[5, 1]", "lower bound above upper bound in column 0"),
+                                           ("[-1e400, 1]", "a bound is not a finite float32 in column 0"),
+                                           ("[0, 1, 2]", "expected [t_lo, t_hi] in seconds")])
+def test_edited_time_bounds_are_refused_at_load(drift, span, fragment):
+    path, _, _ = drift
+    _same(_load_errors(_edited(path, time_bounds=span).SerializeToString()), S.MALFORMED,
+          f"metadata time_bounds", fragment)
+
+
+# --- every export carries its bounds ----------------------------------------------------------
+
+def test_an_export_without_training_data_is_refused(tmp_path):
+    from posecorr.export import ExportError, to_onnx
+    from posecorr.train.pmc import PMC
+
+    t = _inside(80).copy()
+    model = PMC(representation="zhou").fit(t, t)
+    with pytest.raises(ExportError, match="input_bounds need the training positions"):
+        to_onnx(model, tmp_path / "m.onnx", parity="skip")
+    with pytest.raises(ExportError, match="input_bounds: lower bound above upper bound in column 0"):
+        to_onnx(model, tmp_path / "m.onnx", parity="skip", input_bounds=[[1, -1, -1], [0, 1, 1]])
+    assert not (tmp_path / "m.onnx").exists()
+    report = to_onnx(model, tmp_path / "m.onnx", measured=t)
+    lo, hi = report["metadata"]["input_bounds"]
+    extent = t[:, :3].max(0) - t[:, :3].min(0)
+    np.testing.assert_allclose(lo, t[:, :3].min(0) - np.maximum(extent / 2, 0.1))
+    np.testing.assert_allclose(hi, t[:, :3].max(0) + np.maximum(extent / 2, 0.1))
+
+
+# --- through the command line: one line, exit 2, no output ------------------------------------
+
+def _table(tmp_path: Path, edit=None, t=None, n: int = 30) -> Path:
+    x = _inside(n, seed=5)
+    extras = {} if t is None else {"t": t}
+    table = PoseTable(x[:, :3], x[:, 3:], x[:, :3], x[:, 3:], extras)
+    path = tmp_path / "in.csv"
+    write_table(table, path)
+    if edit:
+        lines = path.read_text().splitlines()
+        header = lines[0].split(",")
+        row, column, value = edit
+        cells = lines[row - 1].split(",")
+        cells[header.index(column)] = value
+        lines[row - 1] = ",".join(cells)
+        path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("column,value", [("meas_x", "999"), ("meas_y", "5")])
+def test_apply_refuses_a_pose_outside_the_box(tmp_path, capsys, backend, column, value):
+    table = _table(tmp_path, (17, column, value))
+    out = tmp_path / "out.csv"
+    before = _checksums(tmp_path)
+    code, err, escaped = _run(["apply", str(PMC_ZHOU), str(table), "-o", str(out), "--backend", backend], capsys)
+    assert escaped is None and code == 2, err
+    assert len(err.strip().splitlines()) == 1
+    assert f"row 17, column {column}: " in err and "the pose is outside the range the model was fitted on" in err
+    assert _checksums(tmp_path) == before
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_apply_refuses_a_time_outside_the_span(tmp_path, capsys, drift, backend):
+    path, table, _ = drift
+    t = np.linspace(100.0, 3000.0, 30)
+    csv = _table(tmp_path, (9, "t", "-100000"), t=t)
+    out = tmp_path / "out.csv"
+    before = _checksums(tmp_path)
+    code, err, escaped = _run(["apply", str(path), str(csv), "-o", str(out), "--backend", backend], capsys)
+    assert escaped is None and code == 2, err
+    assert len(err.strip().splitlines()) == 1
+    assert "row 9, column t: " in err and "time of the pose is outside the span" in err
+    assert _checksums(tmp_path) == before
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_apply_refuses_a_model_with_nan_weights(tmp_path, capsys, backend):
+    model = onnx.load(PMC_ZHOU)
+    tensor = _used_weight(model)
+    w = numpy_helper.to_array(tensor).copy()
+    w.flat[0] = np.nan
+    tensor.CopyFrom(numpy_helper.from_array(w, tensor.name))
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(model.SerializeToString())
+    out = tmp_path / "out.csv"
+    table = _table(tmp_path)
+    before = _checksums(tmp_path)
+    code, err, escaped = _run(["apply", str(bad), str(table), "-o", str(out), "--backend", backend], capsys)
+    assert escaped is None and code == 2, err
+    assert len(err.strip().splitlines()) == 1
+    assert str(bad) in err and f"tensor '{tensor.name}' holds a non-finite value" in err
+    assert _checksums(tmp_path) == before
+
+
+def test_apply_refuses_a_result_that_is_not_a_pose(tmp_path, capsys):
+    """onnxruntime used to write the infinity; now it refuses, naming the row."""
+    model = tmp_path / "inf.onnx"
+    model.write_bytes(_posecorr_graph([1, 1, 1, 1, 1, 1, 0], op="Div"))
+    out = tmp_path / "out.csv"
+    table = _table(tmp_path)
+    before = _checksums(tmp_path)
+    code, err, _ = _run(["apply", str(model), str(table), "-o", str(out), "--backend", "onnxruntime"], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "row 2: " in err and "output 'corrected' of the pose is not finite in column 6" in err
+    assert _checksums(tmp_path) == before
+
+
+def test_posecorr_run_refuses_a_pose_outside_the_box():
+    run = Path(sys.executable).parent / "posecorr-run"
+    x = _inside(2)
+    x[1, 0] = 999.0
+    text = "\n".join(",".join(f"{v:.9g}" for v in row) for row in x) + "\n"
+    r = subprocess.run([str(run), str(PMC_ZHOU)], input=text, capture_output=True, text=True, timeout=60)
+    lines = r.stdout.splitlines()
+    assert r.returncode == 1 and len(lines) == 2 and "nan" in lines[1].lower()
+    assert "line 2: pose outside the fitted range: pose 0 is outside the range the model was fitted on " \
+           "in column 0: 999.000 m" in r.stderr

@@ -134,16 +134,6 @@ static int is_blank(const char *s)
     return 1;
 }
 
-/* Tables are held to the same rule (python/posecorr/data.py): a zero or non-unit
- * quaternion is a glitch, not an orientation to be normalised into the identity. */
-#define QUAT_NORM_TOLERANCE 1e-3
-
-static int unit_quaternion(const float *pose)
-{
-    double n = sqrt((double)pose[3] * pose[3] + (double)pose[4] * pose[4] +
-                    (double)pose[5] * pose[5] + (double)pose[6] * pose[6]);
-    return fabs(n - 1.0) <= QUAT_NORM_TOLERANCE || n != n; /* NaN: the runtime reports it */
-}
 
 static void fill_nan(float *out)
 {
@@ -174,14 +164,7 @@ static int run_binary(pc_model *model, int strict)
     while ((got = fread(in, 1, sizeof in, stdin)) == sizeof in) {
         pc_status st;
         record++;
-        if (!unit_quaternion(in)) {
-            fprintf(stderr, "posecorr-run: record %lu: quaternion qw..qz is not a unit "
-                            "quaternion (norm off 1 by more than %g)\n", record, QUAT_NORM_TOLERANCE);
-            if (strict)
-                return 1;
-            failed = 1;
-            fill_nan(out);
-        } else if ((st = pc_run(model, in, 1, out)) != PC_OK) {
+        if ((st = pc_run(model, in, 1, out)) != PC_OK) {
             fprintf(stderr, "posecorr-run: record %lu: %s: %s\n", record, pc_status_name(st),
                     pc_model_message(model));
             if (strict)
@@ -234,15 +217,6 @@ static int run_text(pc_model *model, int strict)
                             "x,y,z,qw,qx,qy,qz%s\n", line_no,
                     buf.has_nul ? " (the line holds a NUL byte)"
                     : buf.too_long ? " (the line holds more than 4096 bytes besides blanks)" : "");
-            if (strict) {
-                status = 1;
-                break;
-            }
-            failed = 1;
-            fill_nan(out);
-        } else if (!unit_quaternion(in)) {
-            fprintf(stderr, "posecorr-run: line %lu: quaternion qw..qz is not a unit quaternion "
-                            "(norm off 1 by more than %g)\n", line_no, QUAT_NORM_TOLERANCE);
             if (strict) {
                 status = 1;
                 break;

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from posecorr.rotations import check_representation
+from posecorr.rotations import REPRESENTATIONS
 
 from .methods import Method, get_method
 from .trainers import TRAINERS
@@ -112,7 +112,8 @@ def parse_hidden(hidden: Any) -> tuple[int, ...]:
 @dataclass(frozen=True)
 class ModelSpec:
     """One data-driven core: its method (`methods.METHODS`), the representation it corrects
-    in (`rotations.REPRESENTATIONS`), a network's settings and further estimator parameters.
+    in (`rotations.REPRESENTATIONS`, checked when the core is fitted, as every estimator
+    parameter), a network's settings and further estimator parameters.
 
     hidden / activation / trainer: None takes the defaults above; a method that is not a
     network has none (they become (), None, None). epochs: the network's epoch cap, None for
@@ -131,7 +132,6 @@ class ModelSpec:
 
     def __post_init__(self) -> None:
         entry = get_method(self.method)
-        check_representation(self.representation)
         options = dict(self.options)
         settings = {f.name for f in fields(self)} & set(options)
         if settings:
@@ -162,8 +162,10 @@ class ModelSpec:
 
     @property
     def with_rotation(self) -> bool:
-        """The orientation is corrected and scored (False for the position-only representation)."""
-        return check_representation(self.representation).orientation
+        """The orientation is corrected and scored: False for a position-only representation
+        (an unknown one is refused when the core is fitted)."""
+        representation = REPRESENTATIONS.get(self.representation)
+        return representation is None or representation.orientation
 
     # --- building ----------------------------------------------------------------------------
     def make(self, seed: int = 0) -> Any:

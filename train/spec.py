@@ -1,7 +1,7 @@
 """A model described once: `ModelSpec`, the value every data-driven core is built from.
 
 `posecorr fit` (`spec_from_options`), the sweep's grid (`protocol.build_grid`), auto's
-candidates (`pipeline.auto_candidates`), the shipped models (`export/models.py`) and `posecorr
+candidates (`pipeline.auto_candidates`), the shipped models (`tools/models.py`) and `posecorr
 demo` describe their cores as ModelSpecs and build them with `make(seed)`. A spec names itself
 three ways: `key` (the sweep store's), `label` / `name` (the paper's tables) and `file_name`
 (the shipped models'). The defaults of a network live here (`DEFAULT_*`) and nowhere else;

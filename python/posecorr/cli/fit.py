@@ -63,6 +63,7 @@ def run(args: argparse.Namespace) -> None:
     from ..textui import METRIC_HEADERS, metrics_rows, table as fmt_table
     from ..train.pipeline import fit_table
     from ..train.spec import spec_from_options
+    from ..train.splits import HeldOut
 
     apply_threads(args)
     load_effect_files(args)
@@ -94,7 +95,7 @@ def run(args: argparse.Namespace) -> None:
         payload["auto_cv_rmse_total"] = report.auto_scores
 
     def text() -> str:
-        label = f"test split ({report.n_heldout})" if key == "test" else f"{report.chosen}, cv {report.plan}"
+        label = f"test split ({report.n_heldout})" if key is HeldOut.TEST else f"{report.chosen}, cv {report.plan}"
         lines = [f"{args.data}: {table.n} poses; effects: {', '.join(effects) or 'none'}; "
                  f"model: {report.chosen}" + (f" (auto: {_fmt_scores(report.auto_scores)})" if report.auto_scores else ""),
                  fmt_table(METRIC_HEADERS + ["improvement"],

@@ -42,6 +42,7 @@ from posecorr._xp import namespace
 from .activations import get_activation, mlp_forward
 from .base import BaseCorrector, Validation, check_poses, encode_pose
 from .spec import DEFAULT_ACTIVATION, DEFAULT_EPOCHS, DEFAULT_HIDDEN, DEFAULT_TRAINER, parse_hidden
+from .splits import validation_split
 from .trainers import TRAINERS
 
 
@@ -171,10 +172,9 @@ class MLP(BaseCorrector):
             Xv = np.asarray(encode_pose(mv, self.representation), np.float64)
             Yv = np.asarray(encode_pose(rv, self.representation), np.float64)
         elif not trainer.bayesian and self.validation_fraction > 0 and len(X) >= 10:
-            order = rng.permutation(len(X))
-            n_val = max(1, int(round(self.validation_fraction * len(X))))
-            Xv, Yv = X[order[:n_val]], Y[order[:n_val]]
-            X, Y = X[order[n_val:]], Y[order[n_val:]]
+            train, held = validation_split(len(X), self.validation_fraction, rng)
+            Xv, Yv = X[held], Y[held]
+            X, Y = X[train], Y[train]
         else:
             Xv = Yv = None
         if trainer.bayesian and self.merge_validation and Xv is not None:

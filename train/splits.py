@@ -9,8 +9,9 @@ number of folds) and handed on as it is:
 * `KFold`: K random folds of whole poses; every pose is predicted by a fit that never saw it.
 * `LeaveOneOut`: as many folds as poses.
 
-Every fold and split of posecorr comes from here: `fit`, `fit --cv`, auto's inner choice,
-the diagnosis, the sweep and PMC's choice of its ridge penalty.
+Every fold and split of posecorr's poses comes from here: `fit`, `fit --cv`, auto's inner
+choice, the diagnosis, the sweep, PMC's choice of its ridge penalty and a network's own
+early-stopping split (`validation_split`).
 """
 from __future__ import annotations
 
@@ -43,6 +44,15 @@ def split_indices(n: int, seed: int = 0, repeat: int = 0, test_fraction: float =
     n_val = int(round(val_fraction * n))
     perm = np.random.default_rng([int(seed), int(repeat), 104729]).permutation(rest)
     return np.sort(perm[n_val:]), np.sort(perm[:n_val]), test
+
+
+def validation_split(n: int, fraction: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(train, held) rows of a network's own early-stopping split: a random `fraction` of the
+    n rows (at least one) drawn from `rng`, in the order drawn (the generator then goes on to
+    the initial weights)."""
+    order = rng.permutation(n)
+    n_val = max(1, int(round(fraction * n)))
+    return order[n_val:], order[:n_val]
 
 
 def _folds(order: np.ndarray, k: int) -> Folds:

@@ -179,10 +179,11 @@ def repeats_benchmark(repeats: int = 30, workers: int = 2, epochs: int = 100, st
                       ) -> dict[str, Any]:
     from posecorr.simulate import simulate
 
-    from posecorr.train.protocol import Config, run_sweep
+    from posecorr.train.protocol import run_sweep
+    from posecorr.train.spec import ModelSpec
 
     sim = simulate(3, seed=0)
-    cfg = Config("mlp", "zhou", (20, 20, 20, 20), "tansig", "br", (("epochs", epochs),))
+    cfg = ModelSpec("mlp", "zhou", epochs=epochs)          # the spec's default network: the paper's 16/2
     t0 = time.perf_counter()
     res = run_sweep(sim.table, [cfg], repeats=repeats, store=store, workers=workers, progress=True)
     wall = time.perf_counter() - t0

@@ -15,9 +15,9 @@ from __future__ import annotations
 from .metadata import data_digest, encode_metadata
 from .onnx_export import (OperatorNotSupported, ParityError, build_model, check_model, check_operators,
                           load_operator_list, op_counts, to_onnx)
-from .parity import check_parity, run_onnx
+from .parity import Parity, check_parity, run_onnx
 from .symbolic import ExportError, Graph, Sym, custom_op
 
 __all__ = ["to_onnx", "build_model", "check_model", "check_operators", "load_operator_list", "op_counts",
            "OperatorNotSupported", "ParityError", "ExportError", "data_digest", "encode_metadata",
-           "check_parity", "run_onnx", "Graph", "Sym", "custom_op"]
+           "Parity", "check_parity", "run_onnx", "Graph", "Sym", "custom_op"]

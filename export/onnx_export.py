@@ -15,6 +15,7 @@ import numpy as np
 
 from .aligned import serialize_aligned
 from .metadata import UNITS, data_digest, encode_metadata
+from .parity import Parity, check_parity
 from .symbolic import FLOAT, OPSET, ExportError, Graph, Sym
 
 INPUT_NAME = "pose"
@@ -225,7 +226,7 @@ def _training_arrays(estimator: Any, measured: Any, reference: Any) -> tuple[Any
 
 
 def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = None,
-            reference: np.ndarray | None = None, t: np.ndarray | None = None, parity: str = "raise",
+            reference: np.ndarray | None = None, t: np.ndarray | None = None, parity: Parity | str = Parity.RAISE,
             n_random: int = 10_000, heldout: tuple | None = None,
             seed: int = 0, tol_pos: float = 1e-5, tol_rot: float = 1e-5,
             write: Callable[[Path, bytes], None] | None = None, **metadata: Any) -> dict[str, Any]:
@@ -240,8 +241,8 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
       graph itself (onnxruntime, float32) is run on them and its metrics become the file's
       `test_metrics` ({"test": ..., "raw": ...}) and the return value's "heldout_metrics", so
       what fit prints about the file is what the file does.
-    parity: "raise" (refuse to save a model beyond tol_pos m / tol_rot rad), "warn"
-      (record the failure in the metadata) or "skip" (no training data needed).
+    parity: `Parity` (or its value): "raise" (refuse to save a model beyond tol_pos m / tol_rot
+      rad), "warn" (record the failure in the metadata) or "skip" (no training data needed).
     write: writes the file's bytes (default: `safeio.write_bytes`, atomic; a command writing
       several files together passes `safeio.Staged.write_bytes`).
     metadata: extra `metadata_props` (test_metrics=..., effects=..., ...); they override
@@ -251,10 +252,10 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
 
     Returns {"path", "metadata", "op_counts", "n_nodes", "file_size", "parity"}.
     """
-    from .parity import check_parity
-
-    if parity not in ("raise", "warn", "skip"):
-        raise ValueError("parity must be 'raise', 'warn' or 'skip'")
+    try:
+        parity = Parity(parity)
+    except ValueError:
+        raise ValueError(f"parity must be {', '.join(repr(p.value) for p in Parity)}, got {parity!r}") from None
     info: dict[str, Any] = dict(estimator.export_info()) if hasattr(estimator, "export_info") else {}
     info.setdefault("representation", getattr(estimator, "representation", None))
     info.update(metadata)
@@ -268,7 +269,7 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
     if time_input and t is None:
         t = getattr(estimator, "training_t_", None)
     parity_report: dict[str, Any] | None = None
-    if parity != "skip":
+    if parity is not Parity.SKIP:
         if measured is None:
             raise ExportError("parity check needs the training data: pass measured=... "
                               "(or parity='skip')")
@@ -277,7 +278,7 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
         parity_report = check_parity(estimator, model, np.asarray(measured, float), n_random=n_random,
                                      seed=seed, tol_pos=tol_pos, tol_rot=tol_rot,
                                      t=None if not time_input else np.asarray(t, float))
-        if not parity_report["passed"] and parity == "raise":
+        if not parity_report["passed"] and parity is Parity.RAISE:
             raise ParityError(
                 f"exported graph differs from predict(): max position error "
                 f"{parity_report['max_pos_m']:.3g} m (tol {parity_report['tol_pos_m']:.3g}), max rotation error "

@@ -25,10 +25,22 @@ with qw >= 0.
 """
 from __future__ import annotations
 
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+
+class Parity(StrEnum):
+    """What an export does with the parity check (`onnx_export.to_onnx`): refuse to save a
+    model beyond tolerance, record the failure in the metadata, or not check (no training
+    data needed)."""
+
+    RAISE = "raise"
+    WARN = "warn"
+    SKIP = "skip"
+
 
 RANDOM_ANGLE = 0.25  # rad
 TOL_POS = 1e-5       # m

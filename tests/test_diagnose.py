@@ -80,10 +80,12 @@ def test_feature_r2_finds_the_feature_that_carries_the_error() -> None:
 def test_auto_never_returns_a_model_worse_than_the_rigid_fit() -> None:
     """A small real-sized data set (30 poses): a 55-term quadratic would overfit it."""
     from posecorr.metrics import pose_metrics
-    from posecorr.train.pipeline import fit_table, kfold_indices
+    from posecorr.train.pipeline import fit_table
+    from posecorr.train.spec import ModelSpec
+    from posecorr.train.splits import KFold
 
     table = simulate(3, seed=11).table.subset(np.arange(30))
-    report = fit_table(table, ["station", "mount"], method="auto", cv=5, seed=0)
+    report = fit_table(table, ["station", "mount"], ModelSpec("auto"), KFold(5), seed=0)
     scores = report.auto_scores
     # Small tables: the cheap candidates only, no network: the plain Kabsch fit and the
     # physics stage at every prior strength, alone or with a core.
@@ -97,7 +99,7 @@ def test_auto_never_returns_a_model_worse_than_the_rigid_fit() -> None:
     floor = {}
     for variant in ("kabsch", "lever", "lever-ref", "hand-eye", "joint"):
         predicted = np.empty_like(table.measured)
-        for train, held in kfold_indices(table.n, 5, 0):
+        for train, held in KFold(5).folds(table.n, 0):
             rigid = RigidModel(variant=variant).fit(table.measured[train], table.reference[train])
             predicted[held] = rigid.predict(table.measured[held])
         floor[variant] = pose_metrics(table.reference, predicted)["rmse_total"]

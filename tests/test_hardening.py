@@ -287,7 +287,8 @@ def test_degenerate_tables_are_refused_with_the_reason() -> None:
 def test_errors_cross_process_pools_intact(tmp_path) -> None:
     from concurrent.futures import ProcessPoolExecutor
 
-    from posecorr.train.protocol import Config, run_sweep
+    from posecorr.train.protocol import run_sweep
+    from posecorr.train.spec import ModelSpec
 
     err = TableError("d.csv", "expected a number, got 'x'", 7, "meas_y")
     back = pickle.loads(pickle.dumps(err))
@@ -303,7 +304,7 @@ def test_errors_cross_process_pools_intact(tmp_path) -> None:
     table = _table(100)
     store = tmp_path / "s.jsonl"
     with pytest.raises(ValueError, match="unknown representation 'bogus'"):
-        run_sweep(table, [Config("pmc", "zhou"), Config("pmc", "bogus")], repeats=3, store=store, workers=2,
+        run_sweep(table, [ModelSpec("pmc", "zhou"), ModelSpec("pmc", "bogus")], repeats=3, store=store, workers=2,
                   progress=False)
     stored = [json.loads(line) for line in store.read_text().splitlines()]
     assert stored and all(row["key"] == "zhou-pmc" for row in stored)
@@ -348,11 +349,12 @@ def test_torn_last_line_is_moved_aside_and_the_next_record_kept(tmp_path, capsys
 
 
 def test_a_sweep_store_with_a_torn_line_resumes_with_every_run(tmp_path) -> None:
-    from posecorr.train.protocol import Config, run_sweep
+    from posecorr.train.protocol import run_sweep
+    from posecorr.train.spec import ModelSpec
 
     table = _table(100)
     store = tmp_path / "s.jsonl"
-    configs = [Config("pmc", "zhou"), Config("pmc", "quat")]
+    configs = [ModelSpec("pmc", "zhou"), ModelSpec("pmc", "quat")]
     run_sweep(table, configs, repeats=2, store=store, workers=1, progress=False)
     text = store.read_text()
     store.write_text(text + text.splitlines()[0][:30])  # a torn third record

@@ -126,12 +126,14 @@ def test_a_gross_outlier_is_refused_with_its_row() -> None:
     60-100 mm (the corpus' unremovable sessions) are data and pass."""
     from posecorr.data import TableError
     from posecorr.train.pipeline import fit_table
+    from posecorr.train.spec import ModelSpec
+    from posecorr.train.splits import KFold
 
     table = simulate_session(4, n=20, unremovable=0.09).table
-    fit_table(table, ["station", "mount"], method="none", cv=4)          # no error: 90 mm is data
+    fit_table(table, ["station", "mount"], ModelSpec("none"), KFold(4))          # no error: 90 mm is data
     table.meas_p[5, 0] += 100.0
     with pytest.raises(TableError, match=r"row 7: gross outlier.*(99\.9|100) m"):
-        fit_table(table, ["station", "mount"], method="none", cv=4)
+        fit_table(table, ["station", "mount"], ModelSpec("none"), KFold(4))
 
 
 def test_pipeline_and_physics_are_scikit_learn_estimators() -> None:

@@ -9,7 +9,8 @@ torch = pytest.importorskip("torch")
 from posecorr import rotations  # noqa: E402
 from posecorr.train import ACTIVATIONS, ARCHITECTURES, MLP  # noqa: E402
 from posecorr.train.lm import Network  # noqa: E402
-from posecorr.train.mlp import activation_xp, init_weights, mapminmax_settings, parse_hidden  # noqa: E402
+from posecorr.train.mlp import activation_xp, init_weights, mapminmax_settings  # noqa: E402
+from posecorr.train.spec import parse_hidden  # noqa: E402
 
 
 def random_poses(n, rng, spread=0.4):
@@ -137,8 +138,10 @@ def test_export_info_and_params():
 def test_exp3_zhou_tansig_20x4_br_reaches_paper_improvement():
     simulate = pytest.importorskip("posecorr.simulate")
     from posecorr.train.protocol import fit_one
+    from posecorr.train.spec import ModelSpec, parse_network
 
     sim = simulate.simulate(3, seed=0)
-    res = fit_one(sim.table, "mlp", "zhou", (20, 20, 20, 20), "tansig", "br", seed=0, epochs=100)
+    hidden, trainer = parse_network("16/2")
+    res = fit_one(sim.table, ModelSpec("mlp", "zhou", hidden, "tansig", trainer, epochs=100), seed=0)
     assert res.test["improvement_total"] >= 17.1
     assert res.test["rmse_total"] <= 1.5 * sim.noise_floor["rmse_total"]

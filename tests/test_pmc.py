@@ -85,7 +85,7 @@ def test_ridge_shrinks_towards_identity_and_cv_picks_from_grid():
 @pytest.mark.parametrize("rep", ["eaa", "quat", "R", "zhou"])
 def test_decode_always_gives_proper_rotations(rep):
     rng = np.random.default_rng(4)
-    size = rotations.REPRESENTATIONS[rep]
+    size = rotations.REPRESENTATIONS[rep].size
     raw = np.concatenate([rng.normal(0, 1, (500, 3)), rng.normal(0, 2, (500, size))], axis=1)
     raw[:5, 3:] = 0.0  # degenerate outputs too
     pose = decode_pose(raw, np.tile([0, 0, 0, 1.0, 0, 0, 0], (500, 1)), rep)
@@ -142,7 +142,8 @@ def exp3():
 @pytest.mark.parametrize("rep", ["R", "zhou"])
 def test_exp3_pmc_improves_at_least_5x(exp3, rep):
     from posecorr.train.protocol import fit_one
+    from posecorr.train.spec import ModelSpec
 
-    res = fit_one(exp3.table, "pmc", rep, seed=0)
+    res = fit_one(exp3.table, ModelSpec("pmc", rep), seed=0)
     assert res.test["improvement_total"] >= 5.0
     assert res.test["rmse_total"] >= 0.9 * exp3.noise_floor["rmse_total"]  # cannot beat the noise

@@ -9,7 +9,8 @@ import pytest
 from posecorr import rotations
 from posecorr.data import PoseTable
 from posecorr.train import protocol
-from posecorr.train.protocol import Config, build_grid, fit_one, run_sweep, split_indices
+from posecorr.train.protocol import build_grid, fit_one, run_sweep, split_indices
+from posecorr.train.spec import ModelSpec
 
 
 def synthetic_table(n=240, seed=0):
@@ -41,10 +42,10 @@ def test_grid_builder_and_labels():
     reduced = build_grid("reduced")
     assert {c.representation for c in reduced} == {"eaa", "quat", "R", "zhou"}
     assert sum(c.method == "pmc" for c in reduced) == 4
-    cfg = Config("mlp", "zhou", (20, 20, 20, 20), "tansig", "br")
+    cfg = ModelSpec("mlp", "zhou", (20, 20, 20, 20), "tansig", "br")
     assert cfg.label == "tansig 16/2" and cfg.name == "Zhou-tansig-16/2"
     assert cfg.key == "zhou-tansig-20-20-20-20-br"
-    assert Config("pmc", "R").label == "PMC" and Config("pmc", "R").name == "R-PMC"
+    assert ModelSpec("pmc", "R").label == "PMC" and ModelSpec("pmc", "R").name == "R-PMC"
     custom = build_grid(representations=["zhou"], activations=["tansig"], trainers=["adam"],
                         architectures=["8-8"], include_pmc=False, options={"epochs": 5})
     assert len(custom) == 1 and custom[0].label == "tansig (8-8)/adam" and "epochs=5" in custom[0].key
@@ -52,20 +53,20 @@ def test_grid_builder_and_labels():
 
 def test_fit_one_reports_raw_and_test_blocks():
     table = synthetic_table()
-    res = fit_one(table, "pmc", "zhou", seed=1)
+    res = fit_one(table, ModelSpec("pmc", "zhou"), seed=1)
     assert set(res.test) >= {"rmse_pos", "rmse_rot", "rmse_total", "improvement_pos", "improvement_rot",
                              "improvement_total"}
     assert res.test["improvement_total"] == pytest.approx(res.raw["rmse_total"] / res.test["rmse_total"])
     assert res.test["improvement_total"] > 3
     assert len(res.test_index) == 36
     with pytest.raises(ValueError):
-        fit_one(PoseTable(table.meas_p, table.meas_q, table.ref_p, None), "pmc", "zhou")
+        fit_one(PoseTable(table.meas_p, table.meas_q, table.ref_p, None), ModelSpec("pmc", "zhou"))
 
 
 def test_sweep_resumes_from_store_and_prints_tables(tmp_path, monkeypatch):
     table = synthetic_table()
-    configs = [Config("pmc", "R"), Config("pmc", "zhou"), Config("pmc", "quat"),
-               Config("mlp", "zhou", (4,), "tansig", "lm", (("epochs", 3),))]
+    configs = [ModelSpec("pmc", "R"), ModelSpec("pmc", "zhou"), ModelSpec("pmc", "quat"),
+               ModelSpec("mlp", "zhou", (4,), "tansig", "lm", epochs=3)]
     store = tmp_path / "runs.jsonl"
     first = run_sweep(table, configs[:2], repeats=4, store=store, workers=1, progress=False)
     assert len(first.rows) == 8
@@ -100,7 +101,7 @@ def test_sweep_resumes_from_store_and_prints_tables(tmp_path, monkeypatch):
 
 def test_sweep_in_worker_processes_matches_in_process(tmp_path):
     table = synthetic_table()
-    configs = [Config("pmc", "zhou"), Config("pmc", "R")]
+    configs = [ModelSpec("pmc", "zhou"), ModelSpec("pmc", "R")]
     a = run_sweep(table, configs, repeats=3, workers=1, progress=False)
     b = run_sweep(table, configs, repeats=3, workers=2, progress=False)
     ka = {(r["key"], r["repeat"]): r["rmse_total"] for r in a.rows}
@@ -111,29 +112,37 @@ def test_sweep_in_worker_processes_matches_in_process(tmp_path):
 def test_sweep_over_ray_when_installed():
     ray = pytest.importorskip("ray")
     table = synthetic_table()
-    res = run_sweep(table, [Config("pmc", "zhou")], repeats=2, ray_address="local", progress=False)
+    res = run_sweep(table, [ModelSpec("pmc", "zhou")], repeats=2, ray_address="local", progress=False)
     assert len(res.rows) == 2
     ray.shutdown()
 
 
 def test_cross_validation_pools_out_of_fold_predictions():
+    """`fit --cv`'s cross-validation (`pipeline.cross_validate`) of a bare core."""
+    from posecorr.train.pipeline import CorrectionPipeline, cross_validate
+    from posecorr.train.splits import KFold, LeaveOneOut
+
     table = synthetic_table(n=120)
-    out = protocol.cross_validate(table, "pmc", "zhou", folds=4, seed=0)
-    assert out["folds"] == 4
-    assert out["cv"]["improvement_total"] == pytest.approx(out["raw"]["rmse_total"] / out["cv"]["rmse_total"])
+    out = cross_validate(lambda: CorrectionPipeline(core=ModelSpec("pmc", "zhou").make()), table, KFold(4), seed=0)
+    assert len(out.fold_rmse) == 4
+    assert out.metrics["improvement_total"] == pytest.approx(out.raw["rmse_total"] / out.metrics["rmse_total"])
     # out-of-fold error is never better than the in-sample fit of the same model
     from posecorr.train import PMC
     from posecorr.metrics import pose_metrics
     full = PMC("zhou").fit(table.measured, table.reference)
     in_sample = pose_metrics(table.reference, full.predict(table.measured))["rmse_total"]
-    assert out["cv"]["rmse_total"] > in_sample
-    loo = protocol.cross_validate(synthetic_table(n=40), "pmc", "pos", folds="loo")
-    assert loo["folds"] == 40 and loo["raw"]["rmse_rot"] is None
+    assert out.metrics["rmse_total"] > in_sample
+    small = synthetic_table(n=40)
+    position_only = PoseTable(small.meas_p, small.meas_q, small.ref_p, None)
+    loo = cross_validate(lambda: CorrectionPipeline(core=ModelSpec("pmc", "pos").make()), position_only,
+                         LeaveOneOut())
+    assert len(loo.fold_rmse) == 40 and loo.raw["rmse_rot"] is None
 
 
 # --- the paper's grid, labels and reduction -------------------------------------------------
 
-from posecorr.train.mlp import ARCHITECTURES, TRAINERS, network_label, parse_network  # noqa: E402
+from posecorr.train.spec import ARCHITECTURES, network_label, parse_network  # noqa: E402
+from posecorr.train.trainers import TRAINERS  # noqa: E402
 from posecorr.train.protocol import GRID_PRESETS, SweepResult  # noqa: E402
 
 
@@ -157,12 +166,12 @@ def test_presets_match_table_1_counts(preset, networks, reps):
 
 
 def test_labels_are_the_papers_and_one_per_network():
-    cfg = Config("mlp", "zhou", (20, 20, 20, 20), "tansig", "br")
+    cfg = ModelSpec("mlp", "zhou", (20, 20, 20, 20), "tansig", "br")
     assert cfg.label == "tansig 16/2" and cfg.name == "Zhou-tansig-16/2"
-    assert Config("mlp", "R", (5, 5, 5), "radbas", "lm").label == "radbas 9/1"  # table 1's own example
+    assert ModelSpec("mlp", "R", (5, 5, 5), "radbas", "lm").label == "radbas 9/1"  # table 1's own example
     # one layer of 16 is not table 1's architecture 16: different networks, different labels
-    assert Config("mlp", "zhou", (16,), "tansig", "lm").label == "tansig (16)/1"
-    assert Config("mlp", "zhou", (8, 8), "tansig", "adam").label == "tansig (8-8)/adam"
+    assert ModelSpec("mlp", "zhou", (16,), "tansig", "lm").label == "tansig (16)/1"
+    assert ModelSpec("mlp", "zhou", (8, 8), "tansig", "adam").label == "tansig (8-8)/adam"
     grid = build_grid("paper-exp1", architectures=[*ARCHITECTURES, (16,), (8, 8), (3,)],
                       trainers=list(TRAINERS))
     mlps = [c for c in grid if c.method == "mlp"]
@@ -193,7 +202,7 @@ def test_reduction_keeps_the_best_network_per_representation_and_activation():
     # independently: per (representation, method, activation) the lowest minimum over the runs
     want = set()
     for rep in ("R", "zhou"):
-        want.add(Config("pmc", rep))
+        want.add(ModelSpec("pmc", rep))
         for act in ("logsig", "tansig"):
             group = [c for c in configs if c.representation == rep and c.activation == act]
             want.add(min(group, key=lambda c: min(totals[c])))

@@ -27,7 +27,7 @@ def _mrp_to_matrix(p):
 def mrp():
     rotations.register_representation("mrp", rotations.Representation(3, _matrix_to_mrp, _mrp_to_matrix))
     yield "mrp"
-    del rotations.REPRESENTATION_CODECS["mrp"], rotations.REPRESENTATIONS["mrp"]
+    del rotations.REPRESENTATIONS["mrp"]
 
 
 def test_registered_representation_round_trips_against_scipy(mrp: str) -> None:

@@ -42,11 +42,11 @@ def test_rotvec_against_scipy(rotations: Rotation) -> None:
     np.testing.assert_allclose(rot.matrix_to_rotvec(rotations.as_matrix()), v, atol=1e-9)
 
 
-@pytest.mark.parametrize("rep", list(rot.REPRESENTATIONS))
+@pytest.mark.parametrize("rep", rot.orientations())
 def test_round_trip(rotations: Rotation, rep: str) -> None:
     R = rotations.as_matrix()
     params = rot.encode(R, rep)
-    assert params.shape == (N, rot.REPRESENTATIONS[rep])
+    assert params.shape == (N, rot.REPRESENTATIONS[rep].size)
     np.testing.assert_allclose(rot.decode(params, rep), R, atol=1e-12)
 
 
@@ -57,7 +57,7 @@ def test_zhou_is_first_two_columns(rotations: Rotation) -> None:
     np.testing.assert_array_equal(z[:, 3:], R[:, :, 1])
 
 
-@pytest.mark.parametrize("rep", list(rot.REPRESENTATIONS))
+@pytest.mark.parametrize("rep", rot.orientations())
 def test_numpy_and_torch_agree(rotations: Rotation, rep: str) -> None:
     R = rotations.as_matrix()
     params_np = rot.encode(R, rep)
@@ -68,10 +68,10 @@ def test_numpy_and_torch_agree(rotations: Rotation, rep: str) -> None:
                                atol=1e-12, rtol=0)
 
 
-@pytest.mark.parametrize("rep", list(rot.REPRESENTATIONS))
+@pytest.mark.parametrize("rep", rot.orientations())
 def test_decode_of_any_raw_vector_is_proper(rep: str) -> None:
     rng = np.random.default_rng(2)
-    raw = rng.normal(scale=3.0, size=(5000, rot.REPRESENTATIONS[rep]))
+    raw = rng.normal(scale=3.0, size=(5000, rot.REPRESENTATIONS[rep].size))
     R = rot.decode(raw, rep)
     np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), R.shape), atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-12)
@@ -79,7 +79,7 @@ def test_decode_of_any_raw_vector_is_proper(rep: str) -> None:
 
 def test_decode_is_differentiable_everywhere_used() -> None:
     """Gradients are finite at the identity, where Rodrigues and the quaternion log are 0/0."""
-    for rep in rot.REPRESENTATIONS:
+    for rep in rot.orientations():
         params = torch.tensor(rot.encode(np.eye(3)[None], rep), requires_grad=True)
         R = rot.decode(params, rep)
         back = rot.encode(R, rep)

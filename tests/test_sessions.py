@@ -22,7 +22,9 @@ from scipy.spatial.transform import Rotation
 
 from posecorr.data import read_table
 from posecorr.simulate import simulate_session
-from posecorr.train.pipeline import fit_table, kfold_indices
+from posecorr.train.pipeline import fit_table
+from posecorr.train.spec import ModelSpec
+from posecorr.train.splits import KFold, LeaveOneOut
 
 REALDATA = Path(__file__).parent / "data" / "realdata"
 SESSIONS = 200
@@ -126,8 +128,8 @@ def test_independent_rigid_reproduces_the_published_baselines() -> None:
     """The README of the real sessions: 10.1 and 14.5 mm leave-one-out (ours: lever arm along
     the yaw plane where the orientations turn; none where they do not)."""
     exp1, exp2 = read_table(REALDATA / "20201002_Exp1.csv"), read_table(REALDATA / "20200717_Exp2.csv")
-    pos1, _ = rigid_heldout(exp1, kfold_indices(exp1.n, "loo"))
-    pos2, _ = rigid_heldout(exp2, kfold_indices(exp2.n, "loo"))
+    pos1, _ = rigid_heldout(exp1, LeaveOneOut().folds(exp1.n))
+    pos2, _ = rigid_heldout(exp2, LeaveOneOut().folds(exp2.n))
     assert pos1 <= 0.0101
     assert pos2 == pytest.approx(0.0145, abs=0.0002)
 
@@ -137,8 +139,8 @@ def test_independent_rigid_reproduces_the_published_baselines() -> None:
 @pytest.mark.parametrize("name, published", [("20201002_Exp1", 0.0101), ("20200717_Exp2", 0.0145)])
 def test_real_session_auto_no_worse_than_rigid(name: str, published: float, capsys) -> None:
     table = read_table(REALDATA / f"{name}.csv")
-    report = fit_table(table, ["station", "mount"], method="auto", cv="loo", seed=0)
-    variant, rigid_pos, rigid_total = best_rigid_heldout(table, kfold_indices(table.n, "loo"))
+    report = fit_table(table, ["station", "mount"], ModelSpec("auto"), LeaveOneOut(), seed=0)
+    variant, rigid_pos, rigid_total = best_rigid_heldout(table, LeaveOneOut().folds(table.n))
     with capsys.disabled():
         print(f"\n{name}: auto ({report.chosen}; floor {report.baseline_name}) LOO rmse_pos "
               f"{1000 * report.heldout['rmse_pos']:.2f} mm, rmse_total {1000 * report.heldout['rmse_total']:.2f}; "
@@ -162,8 +164,8 @@ def test_bad_position_only_session_keeps_the_plain_kabsch_floor(capsys) -> None:
     spec = replace(draw_session_spec(np.random.default_rng(0), n=22, spread="yaw", position_only=True,
                                      unremovable=0.1), max_angle=np.deg2rad(31.0), robot="")
     table = simulate_session(1, spec=spec).table
-    splits = kfold_indices(table.n, "loo")
-    report = fit_table(table, [], method="auto", cv="loo", seed=0)
+    splits = LeaveOneOut().folds(table.n)
+    report = fit_table(table, [], ModelSpec("auto"), LeaveOneOut(), seed=0)
     kabsch = rigid_heldout(table, splits, "kabsch")[1]
     variant, _, best = best_rigid_heldout(table, splits)
     with capsys.disabled():
@@ -212,13 +214,13 @@ def _session_result(seed: int) -> dict:
 
     session = simulate_session(seed)
     table, spec = session.table, session.spec
-    folds = 3 if table.n >= 9 else "loo"
+    plan = KFold(3) if table.n >= 9 else LeaveOneOut()
     with single_threaded():
-        auto = fit_table(table, [], method="auto", cv=folds, seed=seed)
-        variant, _, rigid_total = best_rigid_heldout(table, kfold_indices(table.n, folds, seed))
+        auto = fit_table(table, [], ModelSpec("auto"), plan, seed=seed)
+        variant, _, rigid_total = best_rigid_heldout(table, plan.folds(table.n, seed))
         physics = None
         if spec.spread == "full" and table.n >= 20 and not spec.robot:
-            physics = fit_table(table, ["station", "mount"], method="none", cv="loo").heldout["rmse_total"]
+            physics = fit_table(table, ["station", "mount"], ModelSpec("none"), LeaveOneOut()).heldout["rmse_total"]
         recovery = _hand_eye_recovery(session) if spec.robot else None
     return {"recovery": recovery, "seed": seed, "n": table.n, "spread": spec.spread, "position_only": spec.position_only,
             "unremovable": spec.unremovable, "class": session_class(spec), "auto": auto.heldout["rmse_total"],

@@ -11,6 +11,7 @@ from posecorr.analysis.diagnose import diagnose
 from posecorr.effects import EFFECTS, load_effect_file, unregister_effect
 from posecorr.simulate import simulate
 from posecorr.train.pipeline import CorrectionPipeline, cross_validate
+from posecorr.train.splits import KFold
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "periodic_sweep.py"
 CATALOGUE = ["mount", "sweep", "range_scale", "incidence", "drift", "station"]
@@ -38,6 +39,6 @@ def test_periodic_sweep_is_seen_under_azimuth_then_added(periodic_sweep) -> None
     informed = diagnose(table, CATALOGUE, folds=5, seed=3)
     assert informed["candidates"][0]["effect"] == "periodic_sweep"
     assert informed["candidates"][0]["present"]
-    cv = cross_validate(lambda: CorrectionPipeline(CATALOGUE + ["periodic_sweep"]), table, 5, seed=3)
+    cv = cross_validate(lambda: CorrectionPipeline(CATALOGUE + ["periodic_sweep"]), table, KFold(5), seed=3)
     assert cv.metrics["rmse_pos"] <= 1.3 * result.noise_floor["rmse_pos"]
     assert cv.metrics["rmse_pos"] < blind["cv_base"]["rmse_pos"]

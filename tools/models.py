@@ -4,11 +4,12 @@ Data: the simulator's default Experiment III (seed 0, 3375 poses, position + ori
 and Experiment I (seed 0, 1331 poses, position only), `posecorr.simulate.simulate`.
 
 Split (`test_split`): the paper keeps a fixed 15 % test set and never trains on it; it is
-the protocol's (`posecorr.train.protocol.split_indices`, seed SPLIT_SEED), the same one
+the protocol's (`posecorr.train.splits.FixedSplit`, seed SPLIT_SEED), the same one
 `posecorr fit` and `posecorr demo` test on; everything else is training data (the MLP
 trainers make their own validation split inside it when they use one).
 
-Models (file names `pmc-<rep>.onnx`, `mlp-<rep>-<act>-<arch>-<trainer>.onnx`):
+Models (each a `posecorr.train.spec.ModelSpec`, named by its `file_name`: `pmc-<rep>.onnx`,
+`mlp-<rep>-<act>-<arch>-<trainer>.onnx`):
 - Exp III: PMC for eaa, quat, R, zhou, and per representation an MLP with the activation
   and trainer of the lowest min RMSE_total in the paper's table 4 (eaa radbas 16/2, quat
   tansig 8/2, R logsig 16/2, zhou tansig 16/2; trainer 2 = BR). zhou keeps the paper's
@@ -35,14 +36,16 @@ import argparse
 import json
 import re
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from posecorr.train.spec import ModelSpec
+from posecorr.train.splits import TEST_FRACTION, FixedSplit
+
 SPLIT_SEED = 0
-TEST_FRACTION = 0.15
 DATA_SEED = 0
 MLP_EPOCHS = 100
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
@@ -50,42 +53,36 @@ MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 
 @dataclass(frozen=True)
 class Spec:
-    """One shipped model."""
+    """One shipped model: the experiment it is fitted on, its core and its label in the paper
+    (the table's "tansig 16/2")."""
 
     experiment: int
-    method: str                      # "pmc" | "mlp"
-    representation: str              # "eaa" | "quat" | "R" | "zhou" | "pos"
-    activation: str | None = None
-    hidden: tuple[int, ...] = ()
-    trainer: str | None = None
-    paper_label: str = ""            # the table's "tansig 16/2"
-    params: dict[str, Any] = field(default_factory=dict, hash=False, compare=False)
+    model: ModelSpec
+    paper_label: str = ""
 
     @property
     def name(self) -> str:
-        if self.method == "pmc":
-            return f"pmc-{self.representation}" + ("-exp1" if self.experiment == 1 and self.representation != "pos" else "")
-        arch = "x".join(str(h) for h in self.hidden)
-        return f"mlp-{self.representation}-{self.activation}-{arch}-{self.trainer}"
+        """The model's file name without ".onnx": the spec's, with "-exp1" for an orientation
+        model fitted on Experiment I."""
+        return self.model.stem + ("-exp1" if self.experiment == 1 and self.model.with_rotation else "")
 
 
 SPECS: tuple[Spec, ...] = (
-    Spec(3, "pmc", "eaa"), Spec(3, "pmc", "quat"), Spec(3, "pmc", "R"), Spec(3, "pmc", "zhou"),
-    Spec(3, "mlp", "eaa", "radbas", (20, 20), "br", "radbas 16/2"),
-    Spec(3, "mlp", "quat", "tansig", (20, 20), "br", "tansig 8/2"),
-    Spec(3, "mlp", "R", "logsig", (20, 20), "br", "logsig 16/2"),
-    Spec(3, "mlp", "zhou", "tansig", (20, 20, 20, 20), "br", "tansig 16/2"),
-    Spec(1, "pmc", "pos"),
-    Spec(1, "mlp", "pos", "tansig", (15, 15, 15, 15), "lm", "tansig 15/1"),
+    Spec(3, ModelSpec("pmc", "eaa")), Spec(3, ModelSpec("pmc", "quat")), Spec(3, ModelSpec("pmc", "R")),
+    Spec(3, ModelSpec("pmc", "zhou")),
+    Spec(3, ModelSpec("mlp", "eaa", (20, 20), "radbas", "br"), "radbas 16/2"),
+    Spec(3, ModelSpec("mlp", "quat", (20, 20), "tansig", "br"), "tansig 8/2"),
+    Spec(3, ModelSpec("mlp", "R", (20, 20), "logsig", "br"), "logsig 16/2"),
+    Spec(3, ModelSpec("mlp", "zhou"), "tansig 16/2"),            # the spec's defaults: the paper's 16/2
+    Spec(1, ModelSpec("pmc", "pos")),
+    Spec(1, ModelSpec("mlp", "pos", (15, 15, 15, 15), "tansig", "lm"), "tansig 15/1"),
 )
 
 
 def test_split(n: int, seed: int = SPLIT_SEED, fraction: float = TEST_FRACTION) -> tuple[np.ndarray, np.ndarray]:
-    """(train_index, test_index): the protocol's fixed, seeded test set (`split_indices`);
+    """(train_index, test_index): the protocol's fixed, seeded test set (`FixedSplit`);
     the rest (its training and validation rows) is training data here."""
-    from posecorr.train.protocol import split_indices
-
-    train, val, test = split_indices(n, seed, test_fraction=fraction)
+    train, val, test = FixedSplit(test_fraction=fraction).indices(n, seed)
     return np.sort(np.concatenate([train, val])), test
 
 
@@ -114,11 +111,9 @@ def evaluate(corrected: np.ndarray, measured: np.ndarray, reference: np.ndarray,
 
 
 def make_estimator(spec: Spec, epochs: int = MLP_EPOCHS) -> Any:
-    from posecorr.train.methods import get_method
+    from dataclasses import replace
 
-    settings = {"hidden": spec.hidden, "activation": spec.activation, "trainer": spec.trainer, "epochs": epochs,
-                "random_state": 0}
-    return get_method(spec.method).make(spec.representation, settings)
+    return replace(spec.model, epochs=epochs).make(seed=0)
 
 
 def _fmt(v: Any, digits: int = 5) -> str:
@@ -136,6 +131,7 @@ def model_card(spec: Spec, report: dict[str, Any], data: dict[str, Any], fit_sec
     test = meta["test_metrics"]
     parity = report["parity"]
     exp_name = {1: "I", 2: "II", 3: "III"}[spec.experiment]
+    model = spec.model
     n, n_test = len(data["measured"]), len(data["test"])
     lines = [
         f"# {spec.name}", "",
@@ -151,12 +147,12 @@ def model_card(spec: Spec, report: dict[str, Any], data: dict[str, Any], fit_sec
         f"simulator noise floor rmse_total {_fmt(data['noise_floor']['rmse_total'])}.", "",
         "## Method", "",
     ]
-    if spec.method == "pmc":
-        lines.append(f"- PMC (paper 2.3): full quadratic least-squares map of the {spec.representation} "
+    if not model.is_network:
+        lines.append(f"- PMC (paper 2.3): full quadratic least-squares map of the {model.representation} "
                      f"input vector, {meta.get('architecture')}.")
     else:
-        lines.append(f"- MLP (paper 2.4): {spec.representation} representation, hidden layers "
-                     f"{'-'.join(map(str, spec.hidden))}, activation {spec.activation}, trainer {spec.trainer} "
+        lines.append(f"- MLP (paper 2.4): {model.representation} representation, hidden layers "
+                     f"{'-'.join(map(str, model.hidden))}, activation {model.activation}, trainer {model.trainer} "
                      f"(paper label `{spec.paper_label}`: the best of its representation in the paper's "
                      f"table {2 if spec.experiment == 1 else 4}); at most {epochs} epochs "
                      f"(paper: 1000), stopped after {meta.get('epochs')} ({meta.get('stop_reason')}).")
@@ -181,7 +177,7 @@ def model_card(spec: Spec, report: dict[str, Any], data: dict[str, Any], fit_sec
         f"{parity['random']['max_rot_rad']:.2e} rad); tolerance 1e-5 m / 1e-5 rad: "
         f"{'passed' if parity['passed'] else 'FAILED'}.",
         "- input `pose` float32 [N, 7] (x, y, z in m, qw, qx, qy, qz); output `corrected` float32 [N, 7]"
-        + (" (orientation passed through)." if spec.representation == "pos" else " (qw >= 0)."),
+        + (" (qw >= 0)." if model.with_rotation else " (orientation passed through)."),
         bounds_line(meta["input_bounds"]),
         "", "## Regenerate", "",
         "```", "make models        # or: python -m tools.models" + (
@@ -200,7 +196,7 @@ def bounds_line(box: list[list[float]]) -> str:
 
 def build(spec: Spec, data: dict[str, Any], out_dir: Path, epochs: int = MLP_EPOCHS) -> dict[str, Any]:
     """Fit, evaluate on the test split, export with parity check, write the card."""
-    from posecorr.export import to_onnx
+    from posecorr.export import Parity, to_onnx
     from posecorr.export.parity import run_onnx
 
     M, R, tr, te = data["measured"], data["reference"], data["train"], data["test"]
@@ -215,10 +211,10 @@ def build(spec: Spec, data: dict[str, Any], out_dir: Path, epochs: int = MLP_EPO
     test_metrics["raw"] = pose_metrics(R[te], M[te], with_rot)
     test_metrics["n"] = int(len(te))
     path = out_dir / f"{spec.name}.onnx"
-    report = to_onnx(est, path, measured=M[tr], reference=R[tr], parity="raise",
+    report = to_onnx(est, path, measured=M[tr], reference=R[tr], parity=Parity.RAISE,
                      test_metrics=test_metrics, experiment=spec.experiment, data_seed=data["seed"],
                      split=f"fixed test {TEST_FRACTION:.0%}, rng seed {SPLIT_SEED}",
-                     paper_label=spec.paper_label or None, max_epochs=epochs if spec.method == "mlp" else None)
+                     paper_label=spec.paper_label or None, max_epochs=epochs if spec.model.is_network else None)
     # The card's numbers must be what the exported graph does, not only the float64 model.
     onnx_metrics = evaluate(run_onnx(path, M[te]), M[te], R[te], with_rot)
     report["onnx_test_metrics"] = onnx_metrics
@@ -306,9 +302,10 @@ def main(argv: list[str] | None = None) -> int:
               f"rmse_total {test['rmse_total']:.5f}  parity {report['parity']['max_pos_m']:.1e} m "
               f"{report['parity']['max_rot_rad']:.1e} rad  {report['n_nodes']} nodes  "
               f"{time.perf_counter() - t0:.1f} s", flush=True)
+        model = spec.model
         index.append({"file": f"{spec.name}.onnx", "card": f"{spec.name}.md", "experiment": spec.experiment,
-                      "method": spec.method, "representation": spec.representation,
-                      "activation": spec.activation, "hidden": list(spec.hidden), "trainer": spec.trainer,
+                      "method": model.method, "representation": model.representation,
+                      "activation": model.activation, "hidden": list(model.hidden), "trainer": model.trainer,
                       "test_metrics": {k: test[k] for k in ("rmse_pos", "rmse_rot", "rmse_total")},
                       "parity": {k: report["parity"][k] for k in ("max_pos_m", "max_rot_rad", "passed")},
                       "n_nodes": report["n_nodes"], "file_size": report["file_size"]})

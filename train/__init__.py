@@ -1,9 +1,10 @@
 """posecorr.train: fitting of the correctors and the paper's protocol.
 
 ``PMC`` (polynomial model correction, paper 2.3) and ``MLP`` (MATLAB-style networks,
-paper 2.4) are scikit-learn estimators (see ``base.py`` for the contract); ``protocol``
-runs the 30-repeat sweep, ``stats`` the Friedman / Dunn-Sidak analysis and ``tables``
-prints tables 2-5.
+paper 2.4) are scikit-learn estimators (see ``base.py`` for the contract), each described
+and built by a ``ModelSpec`` (``spec.py``); ``splits`` holds the fixed split and the
+cross-validation plans, ``protocol`` runs the 30-repeat sweep, ``stats`` the Friedman /
+Dunn-Sidak analysis and ``tables`` prints tables 2-5.
 
 Every name here is imported when first used: the command line reads the registries
 (``trainers``, ``activations``, ``methods``) to build its choices, and its controller-side
@@ -16,10 +17,10 @@ from typing import Any
 
 # name -> the module (relative to this package) that defines it.
 _EXPORTS = {
-    "PMC": "pmc", "MLP": "mlp", "BaseCorrector": "base", "Validation": "base", "REPRESENTATIONS": "base",
-    "encode_pose": "base", "decode_pose": "base", "ACTIVATIONS": "activations", "ARCHITECTURES": "mlp",
-    "TRAINERS": "mlp", "fit_one": "protocol", "run_sweep": "protocol", "build_grid": "protocol",
-    "SweepResult": "protocol", "Config": "protocol",
+    "PMC": "pmc", "MLP": "mlp", "BaseCorrector": "base", "Validation": "base",
+    "encode_pose": "base", "decode_pose": "base", "ACTIVATIONS": "activations", "ARCHITECTURES": "spec",
+    "TRAINERS": "trainers", "ModelSpec": "spec", "fit_one": "protocol", "run_sweep": "protocol",
+    "build_grid": "protocol", "SweepResult": "protocol",
 }
 
 __all__ = list(_EXPORTS)

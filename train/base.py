@@ -16,9 +16,9 @@ The estimator contract (scikit-learn conventions):
   its symbolic tensors and torch gets gradients through it;
 * ``export_info() -> dict[str, str]`` and ``to_onnx(path, **metadata)``.
 
-``representation`` is "eaa" | "quat" | "R" | "zhou", or "pos" for a position-only
-corrector (Experiment I): then only x, y, z go in and out and the orientation passes
-through (sign-canonicalised so that qw >= 0, the same rotation).
+``representation`` is one of ``rotations.REPRESENTATIONS``: "eaa" | "quat" | "R" | "zhou",
+or "pos" for a position-only corrector (Experiment I): then only x, y, z go in and out and
+the orientation passes through (sign-canonicalised so that qw >= 0, the same rotation).
 
 The pose -> input vector encoding (``encode_pose``) and the output vector -> pose decoding
 (``decode_pose``) live here so that PMC and MLP share them.
@@ -37,34 +37,16 @@ from posecorr._xp import namespace
 from posecorr.metrics import pose_metrics
 
 
-def representations() -> tuple[str, ...]:
-    """"pos" (position only) and every registered orientation representation."""
-    return ("pos",) + tuple(rotations.REPRESENTATIONS)
-
-
-# The four of the paper (section 2.1), for code that means exactly those.
-REPRESENTATIONS = representations()
-
-
-def check_representation(rep: str) -> int:
-    """The orientation parameter count of ``rep`` (0 for "pos"); ValueError otherwise."""
-    if rep == "pos":
-        return 0
-    if rep not in rotations.REPRESENTATIONS:
-        raise ValueError(f"unknown representation {rep!r}; expected one of {', '.join(representations())}")
-    return rotations.REPRESENTATIONS[rep]
-
-
 def vector_size(rep: str) -> int:
     """Length of the input / output vector: 3 position entries + the representation's."""
-    return 3 + check_representation(rep)
+    return 3 + rotations.check_representation(rep).size
 
 
 def encode_pose(pose: Any, rep: str) -> Any:
     """(N, 7) pose -> (N, 3 + size) vector [x, y, z, params(rep)] in any namespace."""
     xp = namespace(pose)
     p = pose[..., 0:3]
-    if rep == "pos":
+    if not rotations.check_representation(rep).orientation:
         return p
     R = rotations.quat_to_matrix(pose[..., 3:7])
     return xp.concat([p, rotations.encode(R, rep)], axis=-1)
@@ -73,14 +55,14 @@ def encode_pose(pose: Any, rep: str) -> Any:
 def decode_pose(vector: Any, pose: Any, rep: str) -> Any:
     """(N, 3 + size) vector -> (N, 7) pose with a proper rotation and qw >= 0.
 
-    ``pose`` is the input pose: its orientation passes through for rep == "pos".
+    ``pose`` is the input pose: its orientation passes through for a position-only ``rep``.
     """
     xp = namespace(vector, pose)
     p = vector[..., 0:3]
-    if rep == "pos":
-        q = rotations.canonical_quat(pose[..., 3:7])
-    else:
+    if rotations.check_representation(rep).orientation:
         q = rotations.matrix_to_quat(rotations.decode(vector[..., 3:], rep))
+    else:
+        q = rotations.canonical_quat(pose[..., 3:7])
     return xp.concat([p, q], axis=-1)
 
 
@@ -152,7 +134,7 @@ class BaseCorrector(PoseRegressorMixin, BaseEstimator):
     def fit(self, measured: Any, reference: Any, t: Any = None, validation: Any = None) -> "BaseCorrector":
         """Learn measured -> reference. ``t`` is accepted for the common signature (these
         correctors take no time input); ``validation`` (``Validation``) is for early stopping."""
-        check_representation(self.representation)
+        rotations.check_representation(self.representation)
         measured, reference = check_pair(measured, reference)
         if len(measured) < self._min_rows():
             raise ValueError(f"{type(self).__name__}({self.representation}) needs at least "
@@ -194,12 +176,12 @@ class BaseCorrector(PoseRegressorMixin, BaseEstimator):
     def score(self, measured: Any, reference: Any, with_rotation: bool | None = None) -> float:
         """-rmse_total (paper eq. 43) of the prediction: higher is better (sklearn convention).
 
-        With ``representation == "pos"`` only the position error counts (Exp I).
+        With a position-only representation only the position error counts (Exp I).
         """
         self._check_fitted()
         measured, reference = check_pair(measured, reference)
         if with_rotation is None:
-            with_rotation = self.representation != "pos"
+            with_rotation = rotations.check_representation(self.representation).orientation
         return -float(pose_metrics(reference, self.predict(measured), with_rotation)["rmse_total"])
 
     # --- export --------------------------------------------------------------------------

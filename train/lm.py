@@ -1,6 +1,8 @@
-"""The Levenberg-Marquardt core shared by trainlm ("lm") and trainbr ("br").
+"""The Levenberg-Marquardt linear algebra of trainlm ("lm") and trainbr ("br").
 
-Everything is float64 torch on the CPU.
+The two trainers are steps of the shared training loop (``trainers.LM``, ``trainers.BR``);
+this module holds what they need beyond it: the network over a flat parameter vector, its
+Gauss-Newton matrix and the damped Cholesky solves. Everything is float64 torch on the CPU.
 
 The Gauss-Newton matrix without forming J
 -----------------------------------------
@@ -19,66 +21,18 @@ one GEMM of (S x A_l A_l') by (S x n_l n_l') matrices. The sensitivities for all
 come from one batched back-propagation seeded with diag(escale) (the reverse mapminmax,
 so the errors are in target units, MATLAB's default). J^T r is a_l^T (sum_k delta_k r_k).
 
-The damped systems (J^T J + mu I) and (beta J^T J + (alpha + mu) I) are solved by Cholesky;
-a failed step (higher objective or a non-positive-definite matrix) multiplies mu by mu_inc
-and re-factorises: only the diagonal changes, J^T J is formed once per epoch.
-
-MATLAB semantics
-----------------
-trainlm: mu = 1e-3, mu_dec 0.1 on success, mu_inc 10 and retry on failure, stop when
-mu > mu_max (1e10), |grad| < min_grad (1e-7), mse <= goal, epochs (1000) done, or
-max_fail (6) consecutive epochs without a new best validation error; returns the network
-with the best validation error (the last one when there is no validation set).
-
-trainbr: MacKay's evidence framework as in MATLAB's trainbr: F = beta Ed + alpha Ew
-(Ed = sum of squared errors, Ew = sum of squared weights and biases); initially
-gamma = P, beta = (N - gamma) / (2 Ed), alpha = gamma / (2 Ew); each epoch one LM step on F
-with (beta J^T J + (alpha + mu) I), mu starting at 5e-3; after an accepted step
-gamma = P - alpha trace((beta J^T J + alpha I)^-1) (J^T J of the epoch's start point, as
-MATLAB), alpha = gamma / (2 Ew), beta = (N - gamma) / (2 Ed). No validation stop; returns the
-LAST network (the validation error is only recorded). N = number of error terms (S m).
+The damped systems (J^T J + mu I) and (beta J^T J + (alpha + mu) I) are solved by Cholesky
+(``_cholesky_solve``); trainbr's effective parameter count needs the trace of an inverse
+(``_trace_inverse``). A matrix that is not positive definite gives None: the step counts as
+failed and mu grows.
 """
 from __future__ import annotations
 
-import math
-import time
-from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
 
 from .activations import get_activation, mlp_forward
-
-@dataclass
-class TrainResult:
-    coefs: list[np.ndarray]
-    intercepts: list[np.ndarray]
-    epochs: int
-    stop_reason: str
-    history: dict[str, list[float]]
-    best_val: float | None
-    train_loss: float
-    extra: dict[str, Any] = field(default_factory=dict)
-
-
-class ValidationCheck:
-    """MATLAB's validation stop: keep the best-validation weights, count the epochs in a
-    row that made validation worse (trainlm and the gradient trainers stop at max_fail)."""
-
-    def __init__(self, theta: Any) -> None:
-        self.best = math.inf
-        self.best_theta = theta.clone()
-        self.fails = 0
-
-    def update(self, val_mse: float, theta: Any) -> None:
-        if val_mse < self.best:
-            self.best, self.best_theta, self.fails = val_mse, theta.clone(), 0
-        elif val_mse > self.best:
-            self.fails += 1
-
-    @property
-    def best_or_none(self) -> float | None:
-        return None if self.best == math.inf else self.best
 
 
 class Network:
@@ -178,23 +132,6 @@ class Network:
         return jacrev(lambda th: self.residual(th, X, T).reshape(-1))(theta)
 
 
-def training_tensors(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts: list[np.ndarray],
-                     Xn: np.ndarray, Tn: np.ndarray, escale: np.ndarray,
-                     val: tuple[np.ndarray, np.ndarray] | None) -> tuple[Any, ...]:
-    """(net, packed weights, X, T, X_val or None, T_val or None) in float64: every trainer's start."""
-    import torch
-
-    net = Network(sizes, est.activation, escale)
-    theta = net.pack(coefs, intercepts)
-    X = torch.as_tensor(Xn, dtype=torch.float64)
-    T = torch.as_tensor(Tn, dtype=torch.float64)
-    Xv = Tv = None
-    if val is not None:
-        Xv = torch.as_tensor(val[0], dtype=torch.float64)
-        Tv = torch.as_tensor(val[1], dtype=torch.float64)
-    return net, theta, X, T, Xv, Tv
-
-
 def _cholesky_solve(A: Any, b: Any) -> Any | None:
     import torch
 
@@ -212,120 +149,3 @@ def _trace_inverse(A: Any) -> float | None:
         return None
     # LAPACK potri: A^-1 from its Cholesky factor (cheaper than a triangular solve with I)
     return float(torch.diagonal(torch.cholesky_inverse(L)).sum())
-
-
-def train_lm(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts: list[np.ndarray],
-             Xn: np.ndarray, Tn: np.ndarray, escale: np.ndarray,
-             val: tuple[np.ndarray, np.ndarray] | None, bayesian: bool = False) -> TrainResult:
-    """trainlm, or trainbr (bayesian), on scaled inputs Xn and targets Tn (see the module
-    docstring)."""
-    import torch
-
-    net, theta, X, T, Xv, Tv = training_tensors(est, sizes, coefs, intercepts, Xn, Tn, escale, val)
-    P = net.n_params
-    N = T.numel()
-    eye = torch.eye(P, dtype=torch.float64)
-    mu = float(est.mu if est.mu is not None else (5e-3 if bayesian else 1e-3))
-    mu_dec, mu_inc, mu_max = float(est.mu_dec), float(est.mu_inc), float(est.mu_max)
-    history: dict[str, list[float]] = {"mse": [], "val_mse": [], "mu": [], "seconds": []}
-    if bayesian:
-        history.update({"gamma": [], "alpha": [], "beta": []})
-
-    ed = net.sse(theta, X, T)
-    ew = float(theta @ theta)
-    gamma = float(P)
-    alpha = beta = 0.0
-    if bayesian:
-        beta = 1.0 if ed == 0 else (N - gamma) / (2.0 * ed)
-        if beta <= 0:
-            beta = 1.0
-        alpha = gamma / (2.0 * ew) if ew > 0 else 1.0
-
-    check = ValidationCheck(theta)
-    stop = "Maximum epoch reached"
-    epoch = 0
-    t0 = time.perf_counter()
-    for epoch in range(int(est.epochs) + 1):
-        JJ, g, r = net.gauss_newton(theta, X, T)
-        ed = float(torch.sum(r * r))
-        mse = ed / N
-        vmse = float("nan")
-        if Xv is not None:
-            vmse = net.sse(theta, Xv, Tv) / Tv.numel()
-            check.update(vmse, theta)
-        history["mse"].append(mse)
-        history["val_mse"].append(vmse)
-        history["mu"].append(mu)
-        history["seconds"].append(time.perf_counter() - t0)
-        if bayesian:
-            history["gamma"].append(gamma)
-            history["alpha"].append(alpha)
-            history["beta"].append(beta)
-        if est.verbose and epoch % int(est.verbose) == 0:
-            print(f"epoch {epoch:4d} mse {mse:.4g} val {vmse:.4g} mu {mu:.2g}"
-                  + (f" gamma {gamma:.1f}" if bayesian else ""), flush=True)
-        grad = 2.0 * float(torch.linalg.vector_norm(g if not bayesian else beta * g + alpha * theta))
-        if epoch >= int(est.epochs):
-            stop = "Maximum epoch reached"
-            break
-        if mse <= est.goal:
-            stop = "Performance goal met"
-            break
-        if grad < est.min_grad:
-            stop = "Minimum gradient reached"
-            break
-        if mu > mu_max:
-            stop = "Maximum MU reached"
-            break
-        if not bayesian and Xv is not None and check.fails >= int(est.max_fail):
-            stop = "Validation stop"
-            break
-
-        # --- one Levenberg-Marquardt step: raise mu until the objective falls ---------------
-        if bayesian:
-            ew = float(theta @ theta)
-            perf = beta * ed + alpha * ew
-            H = beta * JJ
-            rhs = -(beta * g + alpha * theta)
-        else:
-            perf = ed
-            H = JJ
-            rhs = -g
-        accepted = False
-        while mu <= mu_max:
-            step = _cholesky_solve(H + (mu + alpha) * eye, rhs)
-            if step is not None:
-                trial = theta + step
-                ed2 = net.sse(trial, X, T)
-                ew2 = float(trial @ trial)
-                perf2 = beta * ed2 + alpha * ew2 if bayesian else ed2
-                if math.isfinite(perf2) and perf2 < perf:
-                    theta, ed, ew = trial, ed2, ew2
-                    mu = max(mu * mu_dec, 1e-20)
-                    accepted = True
-                    break
-            mu *= mu_inc
-        if bayesian and accepted:
-            tr = _trace_inverse(H + alpha * eye)
-            if tr is not None:
-                gamma = P - alpha * tr
-                alpha = 1.0 if ew == 0 else gamma / (2.0 * ew)
-                beta = 1.0 if ed == 0 else (N - gamma) / (2.0 * ed)
-        if not accepted:
-            stop = "Maximum MU reached"
-            epoch += 1
-            history["mse"].append(ed / N)
-            history["val_mse"].append(float("nan") if Xv is None else net.sse(theta, Xv, Tv) / Tv.numel())
-            break
-
-    final = theta
-    if not bayesian and Xv is not None and check.best < math.inf:
-        final = check.best_theta
-    coefs_out, intercepts_out = net.to_numpy(final)
-    extra: dict[str, Any] = {"seconds": time.perf_counter() - t0,
-                             "seconds_per_epoch": (time.perf_counter() - t0) / max(epoch, 1)}
-    if bayesian:
-        extra.update({"gamma": gamma, "alpha": alpha, "beta": beta, "n_errors": N})
-    train_loss = net.sse(final, X, T) / N
-    return TrainResult(coefs_out, intercepts_out, epoch, stop, history,
-                       check.best_or_none, train_loss, extra)

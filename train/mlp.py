@@ -1,9 +1,9 @@
 """The multilayer perceptron corrector (paper section 2.4) with MATLAB semantics.
 
 Network: input vector [x, y, z, params(rep)] -> ``mapminmax`` to [-1, 1] -> hidden layers
-(``hidden``, e.g. (20, 20, 20, 20)) with one of the eight MATLAB transfer functions ->
+(``hidden``, e.g. 20-20-20-20) with one of the eight MATLAB transfer functions ->
 linear (purelin) output layer -> reverse ``mapminmax`` -> decode to a pose. The 16
-architectures of the paper's table 1 are ``ARCHITECTURES``.
+architectures of the paper's table 1 are ``spec.ARCHITECTURES``.
 
 Transfer functions: the table ``activations.ACTIVATIONS`` (the eight of MATLAB and any
 registered one), which also holds the forward pass (``mlp_forward``) that ``predict``, the
@@ -27,8 +27,8 @@ the previous layer's output range. Layers with an unbounded or degenerate active
 as ``initnw`` falls back to.
 
 Trainers (``TRAINERS``): the registry of ``trainers.py`` (table 1's twelve MATLAB training
-functions plus adam and lbfgs); "lm" (trainlm) and "br" (trainbr) share the
-Levenberg-Marquardt core of ``lm.py``.
+functions plus adam and lbfgs), every one a step of the shared training loop; "lm" (trainlm)
+and "br" (trainbr) solve with the Gauss-Newton matrix of ``lm.py``.
 """
 from __future__ import annotations
 
@@ -41,83 +41,9 @@ from posecorr._xp import namespace
 
 from .activations import get_activation, mlp_forward
 from .base import BaseCorrector, Validation, check_poses, encode_pose
+from .spec import DEFAULT_ACTIVATION, DEFAULT_EPOCHS, DEFAULT_HIDDEN, DEFAULT_TRAINER, parse_hidden
+from .splits import validation_split
 from .trainers import TRAINERS
-
-ARCHITECTURES: tuple[tuple[int, ...], ...] = tuple(
-    tuple([n] * layers) for layers in (1, 2, 3, 4) for n in (5, 10, 15, 20))
-# Table 1 numbering of the learning algorithms (for the "tansig 16/2" labels).
-TRAINER_NUMBERS = {t.name: t.number for t in TRAINERS.values() if t.number is not None}
-
-
-
-def architecture_number(hidden: Sequence[int]) -> int | None:
-    """1..16 of table 1, or None for an architecture outside it."""
-    try:
-        return ARCHITECTURES.index(tuple(int(h) for h in hidden)) + 1
-    except ValueError:
-        return None
-
-
-def architecture_label(hidden: Any) -> str:
-    """Table 1's number ("16" = 20-20-20-20) or, outside table 1, the layer sizes in
-    parentheses ("(16)" = one layer of 16, "(8-8)"): a bare number always means table 1,
-    so no two architectures share a label."""
-    sizes = parse_hidden(hidden)
-    number = architecture_number(sizes)
-    return str(number) if number is not None else "(" + "-".join(map(str, sizes)) + ")"
-
-
-def trainer_label(trainer: str) -> str:
-    """Table 1's algorithm number ("2" = br) or the trainer's name outside table 1 ("adam")."""
-    number = TRAINER_NUMBERS.get(trainer)
-    return str(number) if number is not None else trainer
-
-
-def network_label(hidden: Any, trainer: str) -> str:
-    """The paper's "architecture/algorithm" label: "16/2", "(16)/1", "(8-8)/adam"."""
-    return f"{architecture_label(hidden)}/{trainer_label(trainer)}"
-
-
-def parse_network(text: str) -> tuple[tuple[int, ...], str]:
-    """The inverse of ``network_label``: "16/2" -> ((20, 20, 20, 20), "br").
-
-    Left of "/" a table-1 architecture number or layer sizes in parentheses ("(16)",
-    "(8-8)"); right of it a table-1 algorithm number or a trainer name.
-    """
-    arch, sep, alg = str(text).strip().partition("/")
-    arch, alg = arch.strip(), alg.strip()
-    if not sep or not arch or not alg:
-        raise ValueError(f"network {text!r}: expected ARCHITECTURE/ALGORITHM as in the paper, e.g. 16/2 or (8-8)/adam")
-    if arch.startswith("(") and arch.endswith(")"):
-        hidden = parse_hidden(arch[1:-1])
-    elif arch.isdigit() and 1 <= int(arch) <= len(ARCHITECTURES):
-        hidden = ARCHITECTURES[int(arch) - 1]
-    else:
-        raise ValueError(f"network {text!r}: architecture {arch!r} is neither a table-1 number "
-                         f"(1-{len(ARCHITECTURES)}) nor layer sizes in parentheses such as (8-8)")
-    by_number = {str(n): name for name, n in TRAINER_NUMBERS.items()}
-    trainer = by_number.get(alg, alg)
-    if trainer not in TRAINERS:
-        raise ValueError(f"network {text!r}: algorithm {alg!r} is neither a table-1 number "
-                         f"(1-{len(by_number)}) nor one of {', '.join(TRAINERS)}")
-    return hidden, trainer
-
-
-def parse_hidden(hidden: Any) -> tuple[int, ...]:
-    """(20, 20), "20,20", "20-20", "(20-20)", 16 (table-1 number as str "#16") -> a tuple of ints."""
-    if isinstance(hidden, str):
-        text = hidden.strip()
-        if text.startswith("#"):
-            return ARCHITECTURES[int(text[1:]) - 1]
-        text = text.removeprefix("(").removesuffix(")")
-        parts = [p for p in text.replace("-", ",").replace("x", ",").split(",") if p.strip()]
-        hidden = [int(p) for p in parts]
-    elif isinstance(hidden, (int, np.integer)):
-        hidden = [int(hidden)]
-    out = tuple(int(h) for h in hidden)
-    if any(h < 1 for h in out):
-        raise ValueError(f"hidden layer sizes must be >= 1, got {out}")
-    return out
 
 
 def activation_xp(name: str, n: Any) -> Any:
@@ -179,7 +105,8 @@ class MLP(BaseCorrector):
     Parameters
     ----------
     representation : "pos" | "eaa" | "quat" | "R" | "zhou"
-    hidden : hidden layer sizes, e.g. (20, 20, 20, 20) (table 1's architecture 16)
+    hidden : hidden layer sizes, e.g. (10, 10) (default ``spec.DEFAULT_HIDDEN``, table 1's
+        architecture 16)
     activation : one of ``ACTIVATIONS`` for every hidden layer; the output layer is purelin
     trainer : one of ``TRAINERS``
     epochs : maximum epochs (MATLAB default 1000)
@@ -204,10 +131,10 @@ class MLP(BaseCorrector):
     """
 
     representation: str = "zhou"
-    hidden: Any = (20, 20, 20, 20)
-    activation: str = "tansig"
-    trainer: str = "br"
-    epochs: int = 1000
+    hidden: Any = DEFAULT_HIDDEN
+    activation: str = DEFAULT_ACTIVATION
+    trainer: str = DEFAULT_TRAINER
+    epochs: int = DEFAULT_EPOCHS
     goal: float = 0.0
     max_fail: int = 6
     min_grad: float = 1e-7
@@ -245,10 +172,9 @@ class MLP(BaseCorrector):
             Xv = np.asarray(encode_pose(mv, self.representation), np.float64)
             Yv = np.asarray(encode_pose(rv, self.representation), np.float64)
         elif not trainer.bayesian and self.validation_fraction > 0 and len(X) >= 10:
-            order = rng.permutation(len(X))
-            n_val = max(1, int(round(self.validation_fraction * len(X))))
-            Xv, Yv = X[order[:n_val]], Y[order[:n_val]]
-            X, Y = X[order[n_val:]], Y[order[n_val:]]
+            train, held = validation_split(len(X), self.validation_fraction, rng)
+            Xv, Yv = X[held], Y[held]
+            X, Y = X[train], Y[train]
         else:
             Xv = Yv = None
         if trainer.bayesian and self.merge_validation and Xv is not None:

@@ -87,7 +87,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
     """
 
     method = "physics"
-    representation = "pos"
+    representation = rotations.POSITION_ONLY
 
     def __init__(self, effects: Sequence[str] = ("station", "mount"), sigma_p: float | None = None,
                  sigma_r: float | None = None, max_nfev: int = 200, with_rotation: bool = True,
@@ -538,7 +538,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
 
     def export_info(self) -> dict[str, str]:
         self._check_fitted()
-        info = {"method": "physics", "representation": "pos" if not self.with_rotation_ else "R",
+        info = {"method": "physics", "representation": "R" if self.with_rotation_ else rotations.POSITION_ONLY,
                 "effects": ",".join(self.params_)}
         return info
 

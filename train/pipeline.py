@@ -5,11 +5,11 @@ nonlinear least squares (`physics.PhysicsModel`), then the core (PMC or MLP, or 
 the physics-corrected poses. Its `forward` composes both, so one ONNX graph holds the
 physics stage in front of the core.
 
-Cross-validation leaves out whole poses (`kfold_indices`: K folds or leave-one-out).
-`fit_table` is what `posecorr fit` runs: it scores the requested model (or, for `--method
-auto`, a nested choice among `auto_candidates`) on held-out poses beside the plain rigid fits
-(`physics.RigidModel`, every variant of `identify.RIGID_VARIANTS`) on the same poses, and
-returns the best rigid fit when the richer model does not beat it.
+Cross-validation leaves out whole poses (the plans of `splits`: K folds or leave-one-out).
+`fit_table` is what `posecorr fit` runs: it scores the requested model (a `spec.ModelSpec`,
+or for the method "auto" a nested choice among `auto_candidates`) on held-out poses beside
+the plain rigid fits (`physics.RigidModel`, every variant of `identify.RIGID_VARIANTS`) on
+the same poses, and returns the best rigid fit when the richer model does not beat it.
 """
 from __future__ import annotations
 
@@ -21,12 +21,14 @@ from sklearn.base import BaseEstimator, clone
 from sklearn.exceptions import NotFittedError
 
 from posecorr.data import PoseTable
-from posecorr.metrics import pose_errors, pose_metrics, rmse_total
+from posecorr.metrics import metric_block, pose_errors, pose_metrics, rmse_total
+from posecorr.rotations import POSITION_ONLY
 
 from .base import PoseRegressorMixin, Validation, as_validation, check_pair, check_poses
-from .methods import get_method, make_estimator
 from .identify import describe_spread, rigid_variants
 from .physics import PhysicsModel, RigidModel
+from .spec import ModelSpec, spec_from_options
+from .splits import CrossValidationPlan, FixedSplit, HeldOut, KFold, LeaveOneOut, Plan
 
 
 class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
@@ -54,7 +56,7 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
     def representation(self) -> str:
         if self.core is not None:
             return self.core.representation
-        return "pos" if not getattr(self, "with_rotation_", True) else "R"
+        return "R" if getattr(self, "with_rotation_", True) else POSITION_ONLY
 
     def fit(self, measured: np.ndarray, reference: np.ndarray, t: np.ndarray | None = None,
             validation: Validation | None = None, *, warm_start: Any = None,
@@ -147,41 +149,31 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
 
 # --- cross-validation ------------------------------------------------------------------
 
-def kfold_indices(n: int, folds: int | str, seed: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(train, held-out) index pairs leaving out whole poses: K random folds, or "loo"."""
-    if folds == "loo":
-        k = n
-    else:
-        k = int(folds)
-        if k < 2:
-            raise ValueError(f"cross-validation needs at least 2 folds, got {k}")
-        if k > n:
-            raise ValueError(f"{k} folds need at least {k} poses, got {n}")
-    order = np.random.default_rng(seed).permutation(n) if folds != "loo" else np.arange(n)
-    parts = np.array_split(order, k)
-    return [(np.sort(np.concatenate(parts[:i] + parts[i + 1:])), np.sort(parts[i])) for i in range(k)]
-
-
 @dataclass
 class CrossValidation:
-    """Out-of-fold predictions (every pose predicted by a model that never saw it)."""
+    """Out-of-fold predictions (every pose predicted by a model that never saw it).
+
+    raw: the metrics of the measured poses; metrics: those of the pooled out-of-fold
+    predictions with their improvements over raw (`metrics.metric_block`)."""
 
     predicted: np.ndarray                      # (N, 7)
     fold_of: np.ndarray                        # (N,) fold index of each pose
     fold_rmse: np.ndarray                      # (K,) held-out rmse_total per fold
+    raw: dict[str, float | None] = field(default_factory=dict)
     metrics: dict[str, float | None] = field(default_factory=dict)
     fitted: list[Any] = field(default_factory=list)
 
 
-def cross_validate(make: Callable[[], Any], table: PoseTable, folds: int | str = 5, seed: int = 0,
+def cross_validate(make: Callable[[], Any], table: PoseTable, plan: CrossValidationPlan = KFold(5), seed: int = 0,
                    fit_kwargs: Callable[[int], dict] | None = None) -> CrossValidation:
-    """Fit `make()` on each training part and predict the held-out poses. `make()` builds an
-    estimator with a `with_rotation` parameter (a pipeline or physics stage): the table sets it."""
+    """Fit `make()` on each training part of `plan`'s folds and predict the held-out poses.
+    `make()` builds an estimator with a `with_rotation` parameter (a pipeline or physics
+    stage; a bare core goes in `CorrectionPipeline(core=...)`): the table sets it."""
     measured, reference, t = table.measured, table.reference, table.time()
     predicted = np.empty_like(measured)
     fold_of = np.empty(table.n, dtype=int)
     fold_rmse, fitted = [], []
-    for k, (train, held) in enumerate(kfold_indices(table.n, folds, seed)):
+    for k, (train, held) in enumerate(plan.folds(table.n, seed)):
         model = make().set_params(with_rotation=table.has_orientation)
         extra = fit_kwargs(k) if fit_kwargs else {}
         model.fit(measured[train], reference[train], t=None if t is None else t[train], **extra)
@@ -190,17 +182,9 @@ def cross_validate(make: Callable[[], Any], table: PoseTable, folds: int | str =
         dp, dr = pose_errors(reference[held], predicted[held], table.has_orientation)
         fold_rmse.append(rmse_total(dp, dr))
         fitted.append(model)
-    return CrossValidation(predicted, fold_of, np.asarray(fold_rmse),
-                           pose_metrics(reference, predicted, table.has_orientation), fitted)
-
-
-def make_core(method: str, representation: str, hidden: Sequence[int] = (20, 20, 20, 20),
-              activation: str = "tansig", trainer: str = "br", epochs: int = 1000, seed: int = 0) -> Any:
-    """The data-driven stage of `fit --method` (`methods.METHODS`): None, PMC or MLP."""
-    chosen = get_method(method)
-    settings = {"hidden": tuple(hidden), "activation": activation, "trainer": trainer, "epochs": epochs,
-                "random_state": seed}
-    return chosen.make(representation, settings, **chosen.fit_params)
+    raw = pose_metrics(reference, measured, table.has_orientation)
+    return CrossValidation(predicted, fold_of, np.asarray(fold_rmse), raw,
+                           metric_block(raw, pose_metrics(reference, predicted, table.has_orientation)), fitted)
 
 
 # --- candidates, the rigid baseline and the choice ---------------------------------------
@@ -221,13 +205,17 @@ PRIOR_STRENGTHS = (0.0, 0.1, 1.0, 10.0)
 @dataclass(frozen=True)
 class Candidate:
     """A model fit may return: a physics stage (`effects` with a `prior_strength`, or a rigid
-    variant of `identify.RIGID_VARIANTS`) and a core."""
+    variant of `identify.RIGID_VARIANTS`) and a core (`core`, built with `seed`)."""
 
     name: str
     effects: tuple[str, ...] = ()
-    make_core: Callable[[], Any] = lambda: None
+    core: ModelSpec | None = None
     rigid: str = ""
     prior_strength: float = 0.0
+    seed: int = 0
+
+    def make_core(self) -> Any:
+        return None if self.core is None else self.core.make(self.seed)
 
     def make(self, with_rotation: bool = True) -> CorrectionPipeline:
         return CorrectionPipeline(self.effects, self.make_core(), rigid=self.rigid, with_rotation=with_rotation,
@@ -250,24 +238,23 @@ def auto_candidates(table: PoseTable, effects: Sequence[str], representation: st
     core in every representation and a small MLP. The other rigid variants are the floor
     `fit_table` compares auto's choice with on the outer folds: inside the choice they would
     only add selection noise and time."""
-    physics = tuple(effects) or ("station", "mount")
-    rep = representation if table.has_orientation else "pos"
+    from posecorr.rotations import orientations
 
-    def pmc(representation: str, **params: Any) -> Callable[[], Any]:
-        return lambda: make_estimator("pmc", representation, alpha="cv", **params)
+    physics = tuple(effects) or ("station", "mount")
+    rep = representation if table.has_orientation else POSITION_ONLY
+
+    def pmc(representation: str, **params: Any) -> ModelSpec:
+        return spec_from_options("pmc", representation, **params)
 
     out = [candidate for candidate in rigid_candidates(table) if candidate.rigid == "kabsch"]
     out += [Candidate(physics_name(strength), physics, prior_strength=strength) for strength in PRIOR_STRENGTHS]
     out += [Candidate(f"physics+affine-{rep}", physics, pmc(rep, degree=1)),
             Candidate(f"physics+pmc-{rep}", physics, pmc(rep))]
     if table.n >= SMALL_TABLE:
-        from posecorr.rotations import REPRESENTATIONS
-
-        reps = tuple(REPRESENTATIONS) if table.has_orientation else ()
+        reps = orientations() if table.has_orientation else ()
         out += [Candidate(f"physics+pmc-{r}", physics, pmc(r)) for r in reps if r != rep]
-        out.append(Candidate(f"physics+mlp-{rep}-tansig-5-br", physics,
-                             lambda: make_estimator("mlp", rep, hidden=(5,), activation="tansig", trainer="br",
-                                                    epochs=200, random_state=0)))
+        small_network = spec_from_options("mlp", rep, hidden=(5,), epochs=200)
+        out.append(Candidate(f"physics+{small_network.stem}", physics, small_network))
     return out
 
 
@@ -276,14 +263,12 @@ def physics_name(strength: float) -> str:
     return "physics" if strength == 0 else f"physics(prior {strength:g})"
 
 
-def requested_candidate(effects: Sequence[str], method: str, representation: str, hidden: Sequence[int] = (20, 20, 20, 20),
-                        activation: str = "tansig", trainer: str = "br", epochs: int = 1000, seed: int = 0) -> Candidate:
-    """The model the user asked for with `--method none/pmc/mlp`."""
-    make_core(method, representation, hidden, activation, trainer, epochs, seed)   # validates the options
-    core = "" if method == "none" else f"{method}-{representation}"
+def requested_candidate(effects: Sequence[str], spec: ModelSpec, seed: int = 0) -> Candidate:
+    """The model the user asked for (`--method none/pmc/mlp`): the physics stage of `effects`
+    and `spec`'s core."""
+    core = f"{spec.method}-{spec.representation}" if spec.has_core else ""
     name = "+".join(part for part in ("physics" if effects else "", core) if part) or "identity"
-    return Candidate(name, tuple(effects),
-                     lambda: make_core(method, representation, hidden, activation, trainer, epochs, seed))
+    return Candidate(name, tuple(effects), spec if spec.has_core else None, seed=seed)
 
 
 def _stops_early(candidate: Candidate) -> bool:
@@ -350,18 +335,18 @@ def _best(candidates: Sequence[Candidate], scores: dict[str, float]) -> Candidat
 
 
 def choose(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, with_rotation: bool,
-           folds: int | str, seed: int, prior: dict) -> tuple[Candidate, dict[str, float]]:
+           plan: CrossValidationPlan, seed: int, prior: dict) -> tuple[Candidate, dict[str, float]]:
     """The candidate with the lowest cross-validated rmse_total on `rows` (a rigid variant on ties)."""
-    splits = kfold_indices(len(rows), folds, seed)
+    splits = plan.folds(len(rows), seed)
     predicted = out_of_fold(candidates, rows, arrays, with_rotation, splits, prior)
     reference = arrays[1][rows]
     scores = {name: _score(reference, p, with_rotation) for name, p in predicted.items()}
     return _best(candidates, scores), scores
 
 
-def inner_folds(n: int) -> int | str:
-    """Folds of a cross-validation inside a training set of n poses (leave-one-out below 10)."""
-    return 5 if n >= 10 else "loo"
+def inner_plan(n: int) -> CrossValidationPlan:
+    """The cross-validation inside a training set of n poses (leave-one-out below 10)."""
+    return KFold(5) if n >= 10 else LeaveOneOut()
 
 
 @dataclass
@@ -379,18 +364,22 @@ class FitReport:
     model: CorrectionPipeline
     raw: dict[str, float | None]
     heldout: dict[str, float | None]
-    heldout_kind: str                      # "test" (fixed split) or "cv"
+    plan: Plan                             # what `heldout` rests on: the fixed split or the folds
     train_index: np.ndarray
     chosen: str
     auto_scores: dict[str, float] = field(default_factory=dict)
     baseline: dict[str, float | None] = field(default_factory=dict)
     n_heldout: int = 0
-    cv: int | str | None = None
     fell_back: bool = False
     notes: list[str] = field(default_factory=list)
-    test_index: np.ndarray | None = None    # the test split's rows (heldout_kind "test")
+    test_index: np.ndarray | None = None    # the test split's rows (plan `FixedSplit`)
     baseline_name: str = ""
     rigid_scores: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def heldout_kind(self) -> HeldOut:
+        """HeldOut.TEST (fixed split) or HeldOut.CV: the held-out block's key in `fit --json`."""
+        return self.plan.heldout
 
     @property
     def fixed(self) -> dict[str, str]:
@@ -408,50 +397,48 @@ class FitReport:
         return {"prior_strength": float(physics.prior_strength), "effective_params": physics.effective_params_}
 
 
-def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc", representation: str = "zhou",
-              hidden: Sequence[int] = (20, 20, 20, 20), activation: str = "tansig", trainer: str = "br",
-              epochs: int = 1000, cv: int | str | None = None, seed: int = 0,
+def fit_table(table: PoseTable, effects: Sequence[str], spec: ModelSpec, plan: Plan = FixedSplit(), seed: int = 0,
               progress: Callable[[str], None] | None = None) -> FitReport:
-    """Fit a pipeline on a table and evaluate it on held-out poses, never returning a model
-    that does worse there than the best plain rigid fit.
+    """Fit a pipeline (the physics stage of `effects`, then `spec`'s core) on a table and
+    evaluate it on held-out poses, never returning a model that does worse there than the best
+    plain rigid fit.
 
-    cv None: the protocol's fixed 15 % test split (seeded); candidates are fitted on the
-    training rows and compared on the validation rows, the chosen one refitted on both (an
+    plan `FixedSplit`: the protocol's fixed 15 % test split (seeded); candidates are fitted on
+    the training rows and compared on the validation rows, the chosen one refitted on both (an
     MLP keeps its early-stopped fit); tables under MIN_TEST_SPLIT poses are cross-validated
-    instead. cv K or "loo": out-of-fold predictions of the requested model and of every rigid
-    variant on the same folds; the best rigid variant is returned when it does better. method
-    "auto": nested: inside each outer fold an inner cross-validation chooses among
-    `auto_candidates`, the outer folds score that choice; the final model is chosen the same
-    way on all poses.
+    instead. `KFold` or `LeaveOneOut`: out-of-fold predictions of the requested model and of
+    every rigid variant on the same folds; the best rigid variant is returned when it does
+    better. A spec whose method chooses ("auto"): nested: inside each outer fold an inner
+    cross-validation chooses among `auto_candidates` (around `spec.representation`), the outer
+    folds score that choice; the final model is chosen the same way on all poses.
     """
-    from posecorr.data import require_rows
-    from posecorr.metrics import metric_block
+    from dataclasses import replace
 
-    from .protocol import split_indices
+    from posecorr.data import require_rows
 
     require_rows(table, 4, "a fit")
     refuse_gross_outliers(table)
     if not table.has_orientation:
-        representation = "pos"
+        spec = replace(spec, representation=POSITION_ONLY)
     say = progress or (lambda message: None)
     notes: list[str] = []
-    if cv is None and table.n < MIN_TEST_SPLIT:
-        cv = "loo" if table.n <= 40 else 5
+    if isinstance(plan, FixedSplit) and table.n < MIN_TEST_SPLIT:
+        plan = LeaveOneOut() if table.n <= 40 else KFold(5)
         notes.append(f"{table.n} poses are too few for a 15 % test split (fewer than {MIN_TEST_SPLIT}); "
-                     f"cross-validated ({cv}) instead")
+                     f"cross-validated ({plan}) instead")
     floor = rigid_candidates(table)
-    if method == "auto":
-        candidates = auto_candidates(table, effects, representation)
+    auto = spec.method_entry.chooses
+    if auto:
+        candidates = auto_candidates(table, effects, spec.representation)
     else:
-        candidates = [requested_candidate(effects, method, representation, hidden, activation, trainer, epochs, seed),
-                      *floor]
+        candidates = [requested_candidate(effects, spec, seed), *floor]
     M, R, t = table.measured, table.reference, table.time()
     arrays, with_rotation = (M, R, t), table.has_orientation
     everything = np.arange(table.n)
     raw_all = pose_metrics(R, M, with_rotation)
 
-    if cv is None:
-        train, val, test = split_indices(table.n, seed)
+    if isinstance(plan, FixedSplit):
+        train, val, test = plan.indices(table.n, seed)
         fit_rows = np.sort(np.concatenate([train, val]))
         say(f"fitting {len(candidates)} candidate(s) on {len(train)} poses, choosing on {len(val)}, "
             f"testing on {len(test)}")
@@ -470,31 +457,30 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
         raw = pose_metrics(R[test], M[test], with_rotation)
         heldout = metric_block(raw, pose_metrics(R[test], model.predict(M[test], t_test), with_rotation))
         baseline = metric_block(raw, pose_metrics(R[test], rigid.predict(M[test], t_test), with_rotation))
-        if best.rigid and method != "auto":
+        if best.rigid and not auto:
             notes.append(f"the requested model did worse than the rigid fit on the {len(val)} validation poses "
                          f"({scores[candidates[0].name]:.4g} against {scores[best.name]:.4g} rmse_total): "
                          f"returning the rigid fit ({best.name})")
-        report = FitReport(model, raw, heldout, "test", np.sort(fit_rows if not _stops_early(best) else train),
-                           best.name, scores if method == "auto" else {}, baseline, len(test), None,
-                           bool(best.rigid) and method != "auto", notes, test, floor_best.name,
-                           {c.name: scores[c.name] for c in floor})
+        report = FitReport(model, raw, heldout, plan, np.sort(fit_rows if not _stops_early(best) else train),
+                           best.name, auto_scores=scores if auto else {}, baseline=baseline, n_heldout=len(test),
+                           fell_back=bool(best.rigid) and not auto, notes=notes, test_index=test,
+                           baseline_name=floor_best.name, rigid_scores={c.name: scores[c.name] for c in floor})
         return _warn_thin(report)
 
-    splits = kfold_indices(table.n, cv, seed)
+    splits = plan.folds(table.n, seed)
     prior = _priors(candidates, everything, arrays, with_rotation)
-    if method == "auto":
+    if auto:
         say(f"auto: choosing among {len(candidates)} candidates inside each of {len(splits)} outer folds")
         predicted = np.empty_like(M)
         for train, held in _progress_iter(splits, say, "outer fold"):
-            best, _ = choose(candidates, train, arrays, with_rotation, inner_folds(len(train)), seed, prior)
+            best, _ = choose(candidates, train, arrays, with_rotation, inner_plan(len(train)), seed, prior)
             model = _fit(best, train, arrays, with_rotation, prior)
             predicted[held] = model.predict(M[held], None if t is None else t[held])
         say("auto: choosing on all poses")
-        best, scores = choose(candidates, everything, arrays, with_rotation, inner_folds(table.n), seed, prior)
+        best, scores = choose(candidates, everything, arrays, with_rotation, inner_plan(table.n), seed, prior)
         floor_predicted = out_of_fold(floor, everything, arrays, with_rotation, splits, prior)
     else:
-        say(f"cross-validating {candidates[0].name} and the rigid fits ({cv} folds)" if cv != "loo"
-            else f"cross-validating {candidates[0].name} and the rigid fits (leave one out)")
+        say(f"cross-validating {candidates[0].name} and the rigid fits ({plan.description})")
         every = out_of_fold(candidates, everything, arrays, with_rotation, splits, prior)
         best, scores = candidates[0], {}
         predicted, floor_predicted = every[best.name], {c.name: every[c.name] for c in floor}
@@ -509,15 +495,16 @@ def fit_table(table: PoseTable, effects: Sequence[str] = (), method: str = "pmc"
     fell_back = best != floor_best and baseline["rmse_total"] < heldout["rmse_total"]
     if fell_back:
         worse = 100.0 * (heldout["rmse_total"] / baseline["rmse_total"] - 1.0)
-        what = f"auto's choice (made inside each fold; {best.name} on all poses)" if method == "auto" else best.name
+        what = f"auto's choice (made inside each fold; {best.name} on all poses)" if auto else best.name
         notes.append(f"{what} did worse on held-out poses than the best rigid fit, {floor_best.name} "
                      f"({heldout['rmse_total']:.4g} against {baseline['rmse_total']:.4g} rmse_total, "
                      f"{worse:.2g} % worse): returning {floor_best.name}")
         best, heldout = floor_best, baseline
     say(f"fitting {best.name} on all {table.n} poses")
     model = _fit(best, everything, arrays, with_rotation, prior)
-    report = FitReport(model, raw_all, heldout, "cv", everything, best.name, scores, baseline, table.n, cv,
-                       fell_back, notes, None, floor_best.name, rigid_scores)
+    report = FitReport(model, raw_all, heldout, plan, everything, best.name, auto_scores=scores, baseline=baseline,
+                       n_heldout=table.n, fell_back=fell_back, notes=notes, baseline_name=floor_best.name,
+                       rigid_scores=rigid_scores)
     return _warn_thin(report)
 
 
@@ -566,6 +553,5 @@ def _warn_thin(report: FitReport) -> FitReport:
     return report
 
 
-__all__ = ["make_core", "FitReport", "fit_table", "CorrectionPipeline", "kfold_indices", "cross_validate",
-           "CrossValidation", "Candidate", "rigid_candidates", "auto_candidates", "requested_candidate", "choose",
-           "out_of_fold"]
+__all__ = ["FitReport", "fit_table", "CorrectionPipeline", "cross_validate", "CrossValidation", "Candidate",
+           "rigid_candidates", "auto_candidates", "requested_candidate", "choose", "out_of_fold"]

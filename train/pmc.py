@@ -151,15 +151,12 @@ class PMC(BaseCorrector):
         self.train_rmse_vector_ = float(np.sqrt(np.mean((self._core(X) - Y) ** 2)))
 
     def _cross_validate(self, F: np.ndarray, T: np.ndarray) -> tuple[float, dict[float, float]]:
+        from .splits import KFold
+
         n = len(F)
-        folds = max(2, min(int(self.cv_folds), n))
-        order = np.random.default_rng(self.random_state).permutation(n)
-        parts = np.array_split(order, folds)
         grid = [float(a) for a in self.alpha_grid]
         sse = np.zeros(len(grid))
-        for k in range(folds):
-            test = parts[k]
-            train = np.concatenate([parts[j] for j in range(folds) if j != k])
+        for train, test in KFold(max(2, min(int(self.cv_folds), n))).folds(n, self.random_state):
             for i, (W, b) in enumerate(_ridge_path(F[train], T[train], grid)):
                 sse[i] += float(np.sum((F[test] @ W + b - T[test]) ** 2))
         scores = {alpha: float(np.sqrt(e / T.size)) for alpha, e in zip(grid, sse)}

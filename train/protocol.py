@@ -1,6 +1,6 @@
 """The paper's evaluation protocol (section 2.4) as a resumable sweep.
 
-* A fixed test set: 15 % of the rows, drawn once with ``seed`` (``split_indices``).
+* A fixed test set: 15 % of the rows, drawn once with ``seed`` (``splits.split_indices``).
 * ``repeats`` (30) runs per configuration; run r draws a fresh random 70 / 15 split of
   the remaining rows into training and validation (seeded by (seed, r), so every
   configuration of a sweep sees the same splits in run r: the Friedman blocks).
@@ -16,8 +16,9 @@
 * Friedman test + Dunn-Sidak comparison of mean ranks of rmse_total on those methods +
   tier list (``stats``; tables 5 and A1), printed by ``tables``.
 * Grids (``GRID_PRESETS``) are table 1's: 1536 / 384 / 96 networks per representation for
-  Exp I / II / III, labelled as in the paper ("tansig 16/2" = architecture 16 trained by
-  algorithm 2; an architecture outside table 1 in parentheses, "(16)/1").
+  Exp I / II / III, each configuration a ``spec.ModelSpec`` labelled as in the paper ("tansig
+  16/2" = architecture 16 trained by algorithm 2; an architecture outside table 1 in
+  parentheses, "(16)/1").
 
 Results go to a JSON-lines store, one object per finished run keyed by (config key,
 repeat) together with a fingerprint of the data and the seed; an interrupted sweep started
@@ -40,86 +41,27 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from posecorr.metrics import METRIC_KEYS, improvement, metric_block, pose_metrics, summarize
+from posecorr.rotations import POSITION_ONLY, REPRESENTATIONS
 from posecorr.safeio import append_line, sigterm_as_interrupt
 
 from .activations import PAPER_ACTIVATIONS
-from .base import REPRESENTATIONS, Validation
-from .methods import get_method
-from .mlp import ARCHITECTURES, TRAINER_NUMBERS, network_label, parse_hidden, parse_network
+from .base import Validation
+from .spec import ARCHITECTURES, TRAINER_NUMBERS, ModelSpec, parse_hidden, parse_network
+from .splits import FixedSplit, split_indices
 from .trainers import TRAINERS
-
-TEST_FRACTION = 0.15
-VAL_FRACTION = 0.15
 
 
 # --- configurations ---------------------------------------------------------------------
 
-@dataclass(frozen=True)
-class Config:
-    """One corrector configuration: method "pmc" or "mlp" plus its settings.
-
-    ``options`` holds extra estimator parameters as sorted (name, value) pairs, e.g.
-    (("epochs", 200),); they become part of the key.
-    """
-
-    method: str
-    representation: str
-    hidden: tuple[int, ...] = ()
-    activation: str = ""
-    trainer: str = ""
-    options: tuple[tuple[str, Any], ...] = ()
-
-    @property
-    def key(self) -> str:
-        """Stable identifier, e.g. "zhou-pmc", "zhou-tansig-20-20-20-20-br"."""
-        if self.method == "pmc":
-            base = f"{self.representation}-pmc"
-        else:
-            base = f"{self.representation}-{self.activation}-{'-'.join(map(str, self.hidden))}-{self.trainer}"
-        if self.options:
-            base += "[" + ",".join(f"{k}={v}" for k, v in self.options) + "]"
-        return base
-
-    @property
-    def label(self) -> str:
-        """Table label: "PMC" or "tansig 16/2" (table 1 numbering, ``network_label``)."""
-        if self.method == "pmc":
-            return "PMC"
-        return f"{self.activation} {network_label(self.hidden, self.trainer)}"
-
-    @property
-    def name(self) -> str:
-        """Table 5 style name: "Zhou-PMC", "Zhou-tansig-16/2"."""
-        from .tables import SHORT_REP
-
-        rep = SHORT_REP.get(self.representation, self.representation)
-        return f"{rep}-PMC" if self.method == "pmc" else f"{rep}-{self.label.replace(' ', '-')}"
-
-    @classmethod
-    def of(cls, method: str, representation: str, hidden: Any, activation: str, trainer: str,
-           options: Mapping[str, Any]) -> "Config":
-        """The configuration of `method` (`methods.METHODS`): of the network settings only the
-        ones the method takes (a PMC has no hidden layers), ``options`` sorted into the key."""
-        takes = get_method(method).settings
-        return cls(method, representation, parse_hidden(hidden) if "hidden" in takes else (),
-                   activation if "activation" in takes else "", trainer if "trainer" in takes else "",
-                   tuple(sorted(options.items())))
-
-    def make(self, seed: int = 0) -> Any:
-        """A fresh (unfitted) estimator."""
-        fields = {"hidden": self.hidden, "activation": self.activation, "trainer": self.trainer, "random_state": seed}
-        return get_method(self.method).make(self.representation, fields, **dict(self.options))
-
-
-# The paper's four orientation representations: the built-in ones, fixed at import (a
-# representation a test registers stays out of the paper's grids).
-PAPER_REPRESENTATIONS = tuple(rep for rep in REPRESENTATIONS if rep != "pos")
+# The paper's four orientation representations (a representation a test registers stays out
+# of the paper's grids).
+PAPER_REPRESENTATIONS = tuple(name for name, rep in REPRESENTATIONS.items() if rep.paper and rep.orientation)
 # Table 1's twelve learning algorithms in its numbering (1 = lm ... 12 = cgp).
 PAPER_TRAINERS = tuple(sorted(TRAINER_NUMBERS, key=TRAINER_NUMBERS.get))
 
 GRID_PRESETS = {
     # paper Exp I: position only, 12 trainers x 8 activations x 16 architectures = 1536 networks
-    "paper-exp1": dict(representations=("pos",), activations=PAPER_ACTIVATIONS, trainers=PAPER_TRAINERS,
+    "paper-exp1": dict(representations=(POSITION_ONLY,), activations=PAPER_ACTIVATIONS, trainers=PAPER_TRAINERS,
                        architectures=ARCHITECTURES),
     # paper Exp II: per representation 3 trainers x 8 activations x 16 architectures = 384 networks
     "paper-exp2": dict(representations=PAPER_REPRESENTATIONS, activations=PAPER_ACTIVATIONS,
@@ -131,7 +73,7 @@ GRID_PRESETS = {
     # representation, tansig with two small architectures (10 and 5-5) trained by lm for at
     # most 100 epochs (12 configurations)
     "reduced": dict(representations=PAPER_REPRESENTATIONS, activations=("tansig",),
-                    trainers=("lm",), architectures=((10,), (5, 5)), options={"epochs": 100}),
+                    trainers=("lm",), architectures=((10,), (5, 5)), epochs=100),
 }
 # The paper's table that a preset's reduced results correspond to (tables 2-4).
 PRESET_TABLES = {"paper-exp1": 2, "paper-exp2": 3, "paper-exp3": 4}
@@ -141,7 +83,7 @@ def build_grid(preset: str | None = None, *, representations: Sequence[str] | No
                activations: Sequence[str] | None = None, trainers: Sequence[str] | None = None,
                architectures: Sequence[Any] | None = None, networks: Sequence[Any] | None = None,
                include_pmc: bool = True, include_mlp: bool = True,
-               options: Mapping[str, Any] | None = None) -> list[Config]:
+               options: Mapping[str, Any] | None = None) -> list[ModelSpec]:
     """The configuration grid: the cross product of the given axes, per representation
     the PMC first (``include_pmc``) then the MLPs.
 
@@ -151,7 +93,8 @@ def build_grid(preset: str | None = None, *, representations: Sequence[str] | No
     Architectures may be tuples, "20-20" strings or table-1 numbers as "#16".
     ``networks``: the paper's "architecture/algorithm" labels ("16/2", "(8-8)/adam") or
     (hidden, trainer) pairs; they replace the architectures x trainers product.
-    ``options`` are extra MLP parameters (e.g. {"epochs": 200}) added to every MLP configuration.
+    ``options`` are extra MLP parameters (e.g. {"epochs": 200}: the epoch cap, or any other
+    estimator parameter) added to every MLP configuration.
     """
     if preset and preset not in GRID_PRESETS:
         raise ValueError(f"unknown preset {preset!r}; expected one of {', '.join(GRID_PRESETS)}")
@@ -169,31 +112,18 @@ def build_grid(preset: str | None = None, *, representations: Sequence[str] | No
     else:
         pairs = [(tuple(arch), tr) for arch in base["architectures"] for tr in base["trainers"]]
     if options is None:
-        options = base.get("options", {})
-    opts = tuple(sorted(options.items()))
-    grid: list[Config] = []
+        options = {"epochs": base["epochs"]} if "epochs" in base else {}
+    options = dict(options)
+    epochs = options.pop("epochs", None)
+    grid: list[ModelSpec] = []
     for rep in base["representations"]:
         if include_pmc:
-            grid.append(Config("pmc", rep))
+            grid.append(ModelSpec("pmc", rep))
         if include_mlp:
             for act in base["activations"]:
                 for arch, tr in pairs:
-                    grid.append(Config("mlp", rep, arch, act, tr, opts))
+                    grid.append(ModelSpec("mlp", rep, arch, act, tr, epochs, options))
     return grid
-
-
-# --- splits -------------------------------------------------------------------------------
-
-def split_indices(n: int, seed: int = 0, repeat: int = 0, test_fraction: float = TEST_FRACTION,
-                  val_fraction: float = VAL_FRACTION) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(train, validation, test) row indices: the test set depends on ``seed`` only,
-    the train/validation split of the rest on (seed, repeat). Fractions are of all rows."""
-    n_test = int(round(test_fraction * n))
-    order = np.random.default_rng([int(seed), 7919]).permutation(n)
-    test, rest = np.sort(order[:n_test]), order[n_test:]
-    n_val = int(round(val_fraction * n))
-    perm = np.random.default_rng([int(seed), int(repeat), 104729]).permutation(rest)
-    return np.sort(perm[n_val:]), np.sort(perm[:n_val]), test
 
 
 def table_fingerprint(table: Any) -> str:
@@ -216,66 +146,33 @@ class FitResult:
     seconds: float
 
 
-def fit_one(table: Any, method: str = "mlp", representation: str = "zhou", hidden: Any = (20, 20, 20, 20),
-            activation: str = "tansig", trainer: str = "br", seed: int = 0, repeat: int = 0,
-            test_fraction: float = TEST_FRACTION, val_fraction: float = VAL_FRACTION,
-            **options: Any) -> FitResult:
-    """Fit one corrector on the protocol's split of ``table`` and evaluate it on the test set.
+def fit_one(table: Any, spec: ModelSpec, seed: int = 0, repeat: int = 0, split: FixedSplit = FixedSplit()
+            ) -> FitResult:
+    """Fit `spec`'s corrector on the protocol's split of ``table`` and evaluate it on the test set.
 
-    ``method`` "pmc" or "mlp"; for a position-only table use representation="pos".
-    ``options`` are extra estimator parameters (e.g. epochs=200, alpha="cv").
-    ``test_fraction=0`` fits on all rows but the validation rows (``raw``/``test`` are then
-    measured on the training rows and say so only through ``test_index`` being empty).
+    For a position-only table the spec's representation must be position only ("pos").
+    A split with ``test_fraction=0`` fits on all rows but the validation rows (``raw``/``test``
+    are then measured on the training rows and say so only through ``test_index`` being empty).
     """
-    if not table.has_orientation and representation != "pos":
-        raise ValueError("this table is position-only (no ref_q columns): use representation='pos'")
+    if not table.has_orientation and spec.with_rotation:
+        raise ValueError(f"this table is position-only (no ref_q columns): use representation={POSITION_ONLY!r}")
     from posecorr.data import require_rows
 
     require_rows(table, 10, "fit with a train/validation/test split")
-    cfg = Config.of(method, representation, hidden, activation, trainer, options)
-    tr, va, te = split_indices(table.n, seed, repeat, test_fraction, val_fraction)
+    tr, va, te = split.indices(table.n, seed, repeat)
     M, R = table.measured, table.reference
-    est = cfg.make(seed=seed * 1000 + repeat)
+    est = spec.make(seed=seed * 1000 + repeat)
     t0 = time.perf_counter()
     est.fit(M[tr], R[tr], validation=Validation(M[va], R[va]) if len(va) else None)
     seconds = time.perf_counter() - t0
     rows = te if len(te) else tr
-    with_rot = representation != "pos"
+    with_rot = spec.with_rotation
     raw = pose_metrics(R[rows], M[rows], with_rot)
     corrected = pose_metrics(R[rows], est.predict(M[rows]), with_rot)
     return FitResult(est, raw, metric_block(raw, corrected), tr, va, te, seconds)
 
 
-def cross_validate(table: Any, method: str = "pmc", representation: str = "zhou",
-                   hidden: Any = (20, 20, 20, 20), activation: str = "tansig", trainer: str = "br",
-                   folds: int | str = 5, seed: int = 0, **options: Any) -> dict[str, Any]:
-    """K-fold (or "loo") cross-validated metrics of one configuration (``posecorr fit --cv``).
-
-    Every row is predicted by the model fitted without its fold (an MLP holds out its own
-    ``validation_fraction`` of the remaining rows for early stopping); the metrics are
-    those of the pooled out-of-fold predictions. Returns {"raw": {...}, "cv": metric_block,
-    "folds": k} (raw = the measured poses against the reference, all rows).
-    """
-    if not table.has_orientation and representation != "pos":
-        raise ValueError("this table is position-only (no ref_q columns): use representation='pos'")
-    n = table.n
-    k = n if folds == "loo" else int(folds)
-    if not 2 <= k <= n:
-        raise ValueError(f"folds must be between 2 and the number of rows ({n}), or 'loo'; got {folds!r}")
-    cfg = Config.of(method, representation, hidden, activation, trainer, options)
-    M, R = table.measured, table.reference
-    order = np.random.default_rng([int(seed), 31337]).permutation(n)
-    pred = np.empty_like(M)
-    for i, part in enumerate(np.array_split(order, k)):
-        rest = np.setdiff1d(order, part)
-        est = cfg.make(seed=seed * 1000 + i).fit(M[rest], R[rest])
-        pred[part] = est.predict(M[part])
-    with_rot = representation != "pos"
-    raw = pose_metrics(R, M, with_rot)
-    return {"raw": raw, "cv": metric_block(raw, pose_metrics(R, pred, with_rot)), "folds": k}
-
-
-def run_one(table: Any, config: Config, repeat: int, seed: int = 0, threads: int | None = None) -> dict[str, Any]:
+def run_one(table: Any, config: ModelSpec, repeat: int, seed: int = 0, threads: int | None = None) -> dict[str, Any]:
     """One run of the protocol; the store's row."""
     if threads:
         try:
@@ -284,13 +181,12 @@ def run_one(table: Any, config: Config, repeat: int, seed: int = 0, threads: int
             torch.set_num_threads(int(threads))
         except ImportError:
             pass
-    res = fit_one(table, config.method, config.representation, config.hidden, config.activation,
-                  config.trainer, seed=seed, repeat=repeat, **dict(config.options))
+    res = fit_one(table, config, seed=seed, repeat=repeat)
     est = res.estimator
     row: dict[str, Any] = {"key": config.key, "repeat": int(repeat), "seed": int(seed),
                            "config": asdict(config), "seconds": res.seconds,
                            **{k: res.test[k] for k in METRIC_KEYS}}
-    if config.method == "mlp":
+    if config.is_network:
         row.update({"epochs": int(est.n_epochs_), "stop": est.stop_reason_, "best_val": est.best_val_loss_})
     return row
 
@@ -299,7 +195,7 @@ def run_one(table: Any, config: Config, repeat: int, seed: int = 0, threads: int
 
 @dataclass
 class SweepResult:
-    configs: list[Config]
+    configs: list[ModelSpec]
     rows: list[dict[str, Any]]
     raw: dict[str, float | None]
     repeats: int
@@ -307,14 +203,14 @@ class SweepResult:
     store: str | None = None
     _by_key: dict[str, list[dict[str, Any]]] = field(default_factory=dict, repr=False)
 
-    def runs(self, config: Config) -> list[dict[str, Any]]:
+    def runs(self, config: ModelSpec) -> list[dict[str, Any]]:
         if sum(map(len, self._by_key.values())) != len(self.rows):  # index the rows once (Exp I: 46,080 runs)
             self._by_key.clear()
             for r in sorted(self.rows, key=lambda r: r["repeat"]):
                 self._by_key.setdefault(r["key"], []).append(r)
         return self._by_key.get(config.key, [])
 
-    def summary(self, configs: Sequence[Config] | None = None) -> list[dict[str, Any]]:
+    def summary(self, configs: Sequence[ModelSpec] | None = None) -> list[dict[str, Any]]:
         """Per configuration (default: all): min/avg/max of the three RMSEs and improvement = raw / min."""
         out = []
         for cfg in self.configs if configs is None else configs:
@@ -333,13 +229,13 @@ class SweepResult:
             out.append(row)
         return out
 
-    def methods(self) -> list[Config]:
+    def methods(self) -> list[ModelSpec]:
         """The paper's methods (section 3, tables 2-5): per representation the PMC and, per
         activation, the one network (architecture and algorithm) with the lowest test
         rmse_total over the repeats ("best ... based on the minimum value of the total RMSE
         found for all runs"); ties go to the lower average, then to the earlier in the grid.
         Exp III's preset gives 4 x (1 + 3) = 16 methods."""
-        best: dict[tuple[str, str, str], tuple[tuple[float, float], Config]] = {}
+        best: dict[tuple[str, str, str], tuple[tuple[float, float], ModelSpec]] = {}
         for cfg in self.configs:
             vals = [r["rmse_total"] for r in self.runs(cfg)
                     if r.get("rmse_total") is not None and math.isfinite(r["rmse_total"])]
@@ -352,7 +248,7 @@ class SweepResult:
         chosen = {cfg for _, cfg in best.values()}
         return [c for c in self.configs if c in chosen]
 
-    def complete_matrix(self, configs: Sequence[Config] | None = None) -> tuple[list[Config], np.ndarray]:
+    def complete_matrix(self, configs: Sequence[ModelSpec] | None = None) -> tuple[list[ModelSpec], np.ndarray]:
         """(configs, (n runs, k configs) rmse_total) over the repeats every config has."""
         have = [c for c in (self.configs if configs is None else configs) if self.runs(c)]
         common = None
@@ -364,7 +260,7 @@ class SweepResult:
                          for i in reps_sorted], dtype=float)
         return have, data.reshape(len(reps_sorted), len(have))
 
-    def statistics(self, alpha: float = 0.05, configs: Sequence[Config] | None = None) -> dict[str, Any]:
+    def statistics(self, alpha: float = 0.05, configs: Sequence[ModelSpec] | None = None) -> dict[str, Any]:
         """Friedman + Dunn-Sidak + tiers on rmse_total of ``configs`` (default: the paper's
         ``methods()``); needs >= 2 methods and >= 2 runs."""
         from . import stats
@@ -488,7 +384,7 @@ def _die_with_parent() -> bool:
         return False
 
 
-def _run_in_worker(table: Any, config: Config, repeat: int, seed: int, threads: int) -> dict[str, Any]:
+def _run_in_worker(table: Any, config: ModelSpec, repeat: int, seed: int, threads: int) -> dict[str, Any]:
     """`run_one` in a pool worker; an exception that cannot be pickled would break the whole
     pool, so it crosses as a RuntimeError with the same message instead."""
     import pickle
@@ -519,7 +415,7 @@ def _stop_pool(pool: Any) -> None:
             proc.kill()
 
 
-def run_sweep(table: Any, configs: Sequence[Config], repeats: int = 30, store: str | os.PathLike | None = None,
+def run_sweep(table: Any, configs: Sequence[ModelSpec], repeats: int = 30, store: str | os.PathLike | None = None,
               workers: int = 2, ray_address: str | None = None, seed: int = 0, progress: bool = True,
               threads: int | None = None) -> SweepResult:
     """Run every configuration ``repeats`` times (see the module docstring).
@@ -552,7 +448,7 @@ def run_sweep(table: Any, configs: Sequence[Config], repeats: int = 30, store: s
     todo = [(c, r) for c in configs for r in range(repeats) if (c.key, r) not in done]
     rows = [done[(c.key, r)] for c in configs for r in range(repeats) if (c.key, r) in done]
     _, _, test = split_indices(table.n, seed, 0)
-    with_rot = all(c.representation != "pos" for c in configs) and table.has_orientation
+    with_rot = all(c.with_rotation for c in configs) and table.has_orientation
     raw = pose_metrics(table.reference[test], table.measured[test], with_rot)
 
     bar = None
@@ -625,8 +521,8 @@ def run_sweep(table: Any, configs: Sequence[Config], repeats: int = 30, store: s
                        str(store_path) if store_path else None)
 
 
-def _cost(cfg: Config) -> float:
-    if cfg.method == "pmc":
+def _cost(cfg: ModelSpec) -> float:
+    if not cfg.is_network:
         return 0.0
     sizes = [9, *cfg.hidden, 9]
     params = sum((a + 1) * b for a, b in zip(sizes[:-1], sizes[1:]))

@@ -6,7 +6,7 @@ Total RMSE min avg max imp, a "raw data" row first, then one section per represe
 Method labels: "PMC" or "<activation> <architecture no.>/<algorithm no.>" with table 1's
 numbering (e.g. "tansig 16/2" = 20-20-20-20, Bayesian regularisation); an architecture
 outside table 1 is spelled out in parentheses and a trainer outside it by name
-("tansig (8-8)/adam"), so a bare number is always table 1's (``mlp.network_label``).
+("tansig (8-8)/adam"), so a bare number is always table 1's (``spec.network_label``).
 """
 from __future__ import annotations
 

@@ -1,20 +1,24 @@
 """The trainers: a registry of MATLAB training functions (paper table 1) and their steps.
 
 ``TRAINERS`` maps a name ("lm", "scg", ...) to a ``Trainer``: MATLAB's function name,
-table 1's number and the function that trains. "lm" and "br" are the Levenberg-Marquardt
-core of ``lm.py``; every other trainer is a ``Step`` class (one epoch of its rule) run by
-the shared loop ``iterate``. Adding a trainer = its Step class and one ``register`` line.
+table 1's number and its ``Step`` class (one epoch of its rule), run by the shared loop
+``iterate``. Adding a trainer = its Step class and one ``register`` line.
 
-The shared loop minimises the mean squared error of r = (y - T) * escale (the LM core's
-error: target units, MATLAB's default) with gradients from torch autograd, full batch,
-one step per epoch, and stops like MATLAB's ``train``: ``epochs``, ``goal`` on the mse,
-``min_grad`` on |gradient|, ``max_fail`` consecutive validation failures, or a step that
-says it cannot go on (a line search that found no lower point: "Minimum step size
-reached"). It returns the network with the best validation error (the last one without
-validation data). ``lr`` is MATLAB's learning rate (paper: 0.01).
+The shared loop minimises the mean squared error of r = (y - T) * escale (target units,
+MATLAB's default), full batch, one step per epoch, and stops like MATLAB's ``train``: a step
+that says it cannot go on (a line search that found no lower point: "Minimum step size
+reached"; Levenberg-Marquardt's damping beyond mu_max: "Maximum MU reached"), ``epochs``,
+``goal`` on the mse, ``min_grad`` on |gradient|, or ``max_fail`` consecutive validation
+failures. It returns the network with the best validation error (the last one without
+validation data). A Bayesian step (trainbr) only monitors the validation poses: no
+validation stop, the last network. The first-order steps take their gradients from torch
+autograd; ``lr`` is MATLAB's learning rate (paper: 0.01). The Levenberg-Marquardt steps
+(``LM``, ``BR``) use the Gauss-Newton matrix of ``lm.py``.
 
 | trainer | MATLAB | table 1 | rule (g = gradient of the mse) |
 |---|---|---|---|
+| lm    | trainlm  | 1  | (J'J + mu I) dx = -J'r, mu x0.1 on success, x10 and retry on failure, see ``LM`` |
+| br    | trainbr  | 2  | LM on beta Ed + alpha Ew with MacKay's evidence updates of alpha and beta, see ``BR`` |
 | gd    | traingd  | 6  | x -= lr g |
 | gdm   | traingdm | 8  | dx = mc dx_prev - (1 - mc) lr g, mc = 0.9 |
 | gda   | traingda | 7  | x -= lr g; a step raising the mse by > 4 % (max_perf_inc 1.04) is undone and lr *= 0.7; a step lowering it gives lr *= 1.05 |
@@ -34,17 +38,28 @@ Line search parameters are MATLAB's defaults: alpha 0.001 (sufficient decrease),
 """
 from __future__ import annotations
 
-import functools
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from posecorr.registry import Registry
 
-from .lm import TrainResult, ValidationCheck, train_lm, training_tensors
+from .lm import Network, _cholesky_solve, _trace_inverse
+
+
+@dataclass
+class TrainResult:
+    coefs: list[np.ndarray]
+    intercepts: list[np.ndarray]
+    epochs: int
+    stop_reason: str
+    history: dict[str, list[float]]
+    best_val: float | None
+    train_loss: float
+    extra: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -54,24 +69,61 @@ class Trainer:
     number: int | None                   # table 1's algorithm number (None: not in the paper)
     title: str
     train: Callable[..., TrainResult]    # (est, sizes, coefs, intercepts, Xn, Tn, escale, val)
-    step: type | None = None             # the Step class run by ``iterate`` (None: a whole training function)
-    # Bayesian regularisation (trainbr): no validation split and no early stop; validation
-    # poses join the training rows; about twice plain LM's work per configuration.
-    bayesian: bool = False
+    step: type                           # the Step class run by ``iterate``
+
+    @property
+    def bayesian(self) -> bool:
+        """Bayesian regularisation (trainbr): no validation split and no early stop; validation
+        poses may join the training rows; about twice plain LM's work per configuration."""
+        return self.step.bayesian
 
 
 TRAINERS: Registry = Registry("trainer")
 
 
-def register(name: str, matlab: str, number: int | None, title: str, bayesian: bool = False) -> Callable:
-    """Class decorator for a ``Step`` (or, for whole training functions, a function decorator)."""
-    def add(obj: Any) -> Any:
-        if isinstance(obj, type):
-            TRAINERS.add(name, Trainer(name, matlab, number, title, iterate(obj), obj, bayesian))
-        else:
-            TRAINERS.add(name, Trainer(name, matlab, number, title, obj, None, bayesian))
-        return obj
+def register(name: str, matlab: str, number: int | None, title: str) -> Callable:
+    """Class decorator: a ``Step`` class becomes the trainer ``name``."""
+    def add(step_class: type) -> type:
+        TRAINERS.add(name, Trainer(name, matlab, number, title, iterate(step_class), step_class))
+        return step_class
     return add
+
+
+class ValidationCheck:
+    """MATLAB's validation stop: keep the best-validation weights, count the epochs in a
+    row that made validation worse (trainlm and the gradient trainers stop at max_fail)."""
+
+    def __init__(self, theta: Any) -> None:
+        self.best = math.inf
+        self.best_theta = theta.clone()
+        self.fails = 0
+
+    def update(self, val_mse: float, theta: Any) -> None:
+        if val_mse < self.best:
+            self.best, self.best_theta, self.fails = val_mse, theta.clone(), 0
+        elif val_mse > self.best:
+            self.fails += 1
+
+    @property
+    def best_or_none(self) -> float | None:
+        return None if self.best == math.inf else self.best
+
+
+def training_tensors(est: Any, sizes: Sequence[int], coefs: list[np.ndarray], intercepts: list[np.ndarray],
+                     Xn: np.ndarray, Tn: np.ndarray, escale: np.ndarray,
+                     val: tuple[np.ndarray, np.ndarray] | None) -> tuple[Any, ...]:
+    """(net, packed weights, X, T, X_val or None, T_val or None) in float64: every trainer's start."""
+    import torch
+
+    net = Network(sizes, est.activation, escale)
+    theta = net.pack(coefs, intercepts)
+    X = torch.as_tensor(Xn, dtype=torch.float64)
+    T = torch.as_tensor(Tn, dtype=torch.float64)
+    Xv = Tv = None
+    if val is not None:
+        Xv = torch.as_tensor(val[0], dtype=torch.float64)
+        Tv = torch.as_tensor(val[1], dtype=torch.float64)
+    return net, theta, X, T, Xv, Tv
 
 
 # --- the problem every step sees --------------------------------------------------------------
@@ -105,20 +157,31 @@ class Problem:
 class Step:
     """One epoch of a trainer: ``step(epoch, theta, mse, g) -> (theta, mse, g)`` at the new point.
 
-    A step that cannot go on sets ``stop_reason``; ``extra()`` adds to the result's ``extra``.
+    ``g`` is the gradient the loop's ``min_grad`` rule measures (``start`` gives the first).
+    A step that cannot go on sets ``stop_reason``; ``state()`` adds per-epoch values to the
+    history, ``extra()`` to the result's ``extra``. ``bayesian``: the validation poses are only
+    monitored (no validation stop, the last network is returned).
     """
 
     stop_reason: str | None = None
+    bayesian = False
 
     def __init__(self, problem: Problem, theta: Any, est: Any) -> None:
         self.problem = problem
         self.lr = float(est.lr)
+
+    def start(self, theta: Any) -> tuple[float, Any]:
+        """(mse, g) at the initial weights."""
+        return self.problem.mse_grad(theta)
 
     def __call__(self, epoch: int, theta: Any, mse: float, g: Any) -> tuple[Any, float, Any]:
         raise NotImplementedError
 
     def moved(self, theta: Any) -> tuple[Any, float, Any]:
         return (theta, *self.problem.mse_grad(theta))
+
+    def state(self) -> dict[str, float]:
+        return {}
 
     def extra(self) -> dict[str, Any]:
         return {}
@@ -134,8 +197,9 @@ def iterate(step_class: type) -> Callable[..., TrainResult]:
 
         net, theta, X, T, Xv, Tv = training_tensors(est, sizes, coefs, intercepts, Xn, Tn, escale, val)
         problem = Problem(net, X, T)
-        mse, g = problem.mse_grad(theta)
         step = step_class(problem, theta, est)
+        mse, g = step.start(theta)
+        early_stop = Xv is not None and not step.bayesian
         history: dict[str, list[float]] = {"mse": [], "val_mse": []}
         check = ValidationCheck(theta)
         stop = "Maximum epoch reached"
@@ -149,8 +213,16 @@ def iterate(step_class: type) -> Callable[..., TrainResult]:
                 check.update(vmse, theta)
             history["mse"].append(mse)
             history["val_mse"].append(vmse)
+            state = step.state()
+            for key, value in state.items():
+                history.setdefault(key, []).append(value)
             if est.verbose and epoch % int(est.verbose) == 0:
-                print(f"epoch {epoch:4d} mse {mse:.4g} val {vmse:.4g}", flush=True)
+                print(f"epoch {epoch:4d} mse {mse:.4g} val {vmse:.4g}"
+                      + "".join(f" {key} {value:.4g}" for key, value in state.items()), flush=True)
+            # The step's own stop first: the point it could not leave is recorded, then the run ends.
+            if step.stop_reason:
+                stop = step.stop_reason
+                break
             if epoch >= int(est.epochs):
                 break
             if not math.isfinite(mse):
@@ -162,15 +234,12 @@ def iterate(step_class: type) -> Callable[..., TrainResult]:
             if float(torch.linalg.vector_norm(g)) < est.min_grad:
                 stop = "Minimum gradient reached"
                 break
-            if Xv is not None and check.fails >= int(est.max_fail):
+            if early_stop and check.fails >= int(est.max_fail):
                 stop = "Validation stop"
-                break
-            if step.stop_reason:
-                stop = step.stop_reason
                 break
             theta, mse, g = step(epoch, theta, mse, g)
 
-        final = check.best_theta if Xv is not None and check.best < math.inf else theta
+        final = check.best_theta if early_stop and check.best < math.inf else theta
         coefs_out, intercepts_out = net.to_numpy(final)
         seconds = time.perf_counter() - t0
         return TrainResult(coefs_out, intercepts_out, epoch, stop, history, check.best_or_none,
@@ -182,11 +251,125 @@ def iterate(step_class: type) -> Callable[..., TrainResult]:
     return train
 
 
-# --- Levenberg-Marquardt core ------------------------------------------------------------------
+# --- Levenberg-Marquardt -------------------------------------------------------------------------
 
-register("lm", "trainlm", 1, "Levenberg-Marquardt backpropagation (LM)")(train_lm)
-register("br", "trainbr", 2, "Bayesian regularization (BR)", bayesian=True)(
-    functools.partial(train_lm, bayesian=True))
+@register("lm", "trainlm", 1, "Levenberg-Marquardt backpropagation (LM)")
+class LM(Step):
+    """trainlm: each epoch solves (J'J + mu I) dx = -J'r (J'J and J'r of the sum of squared
+    errors Ed, ``Network.gauss_newton``, formed once per epoch) and takes the step when it
+    lowers the objective: then mu *= mu_dec (0.1); else mu *= mu_inc (10) and the system is
+    solved again with the new diagonal. mu starts at ``mu`` (trainlm 1e-3); beyond mu_max
+    (1e10) the step gives up: "Maximum MU reached". The loop's gradient rule measures the
+    gradient of Ed, 2 J'r, as MATLAB's does."""
+
+    mu_start = 1e-3
+
+    def __init__(self, problem: Problem, theta: Any, est: Any) -> None:
+        import torch
+
+        super().__init__(problem, theta, est)
+        self.net, self.N = problem.net, problem.N
+        self.P = self.net.n_params
+        self.eye = torch.eye(self.P, dtype=torch.float64)
+        self.mu = float(est.mu if est.mu is not None else self.mu_start)
+        self.mu_dec, self.mu_inc, self.mu_max = float(est.mu_dec), float(est.mu_inc), float(est.mu_max)
+        self.alpha = 0.0                 # the weight penalty: none for plain LM
+        self.t0 = time.perf_counter()
+        if self.mu > self.mu_max:
+            self.stop_reason = "Maximum MU reached"
+
+    def start(self, theta: Any) -> tuple[float, Any]:
+        self._linearise(theta)
+        return self.ed / self.N, self.gradient(theta)
+
+    def _linearise(self, theta: Any) -> None:
+        """J'J, J'r and Ed at theta: what the next step solves with."""
+        import torch
+
+        self.JJ, self.g, r = self.net.gauss_newton(theta, self.problem.X, self.problem.T)
+        self.ed = float(torch.sum(r * r))
+
+    def gradient(self, theta: Any) -> Any:
+        """The gradient of the objective, for the loop's min_grad rule."""
+        return 2.0 * self.g
+
+    def objective(self, ed: float, theta: Any) -> float:
+        return ed
+
+    def system(self, theta: Any) -> tuple[Any, Any]:
+        """(H, rhs) of the damped system (H + (mu + alpha) I) dx = rhs."""
+        return self.JJ, -self.g
+
+    def accepted(self, H: Any, ed: float, theta: Any) -> None:
+        """Hook after an accepted step (trainbr's evidence update)."""
+
+    def __call__(self, epoch: int, theta: Any, mse: float, g: Any) -> tuple[Any, float, Any]:
+        perf = self.objective(self.ed, theta)
+        H, rhs = self.system(theta)
+        while self.mu <= self.mu_max:
+            dx = _cholesky_solve(H + (self.mu + self.alpha) * self.eye, rhs)
+            if dx is not None:
+                trial = theta + dx
+                ed = self.net.sse(trial, self.problem.X, self.problem.T)
+                new = self.objective(ed, trial)
+                if math.isfinite(new) and new < perf:
+                    self.mu = max(self.mu * self.mu_dec, 1e-20)
+                    self.accepted(H, ed, trial)
+                    self._linearise(trial)
+                    return trial, self.ed / self.N, self.gradient(trial)
+            self.mu *= self.mu_inc
+        self.stop_reason = "Maximum MU reached"
+        return theta, mse, g
+
+    def state(self) -> dict[str, float]:
+        return {"mu": self.mu, "seconds": time.perf_counter() - self.t0}
+
+
+@register("br", "trainbr", 2, "Bayesian regularization (BR)")
+class BR(LM):
+    """trainbr, MacKay's evidence framework as in MATLAB: the LM step on F = beta Ed + alpha Ew
+    (Ew = sum of squared weights and biases), (beta J'J + (alpha + mu) I) dx = -(beta J'r +
+    alpha w), mu starting at 5e-3. Initially gamma = P (the parameter count), beta = (N -
+    gamma) / (2 Ed), alpha = gamma / (2 Ew) (N = number of error terms, S m); after an accepted
+    step gamma = P - alpha trace((beta J'J + alpha I)^-1) (J'J of the epoch's start point, as
+    MATLAB), alpha = gamma / (2 Ew), beta = (N - gamma) / (2 Ed). The validation poses are only
+    monitored; the last network is returned."""
+
+    bayesian = True
+    mu_start = 5e-3
+
+    def __init__(self, problem: Problem, theta: Any, est: Any) -> None:
+        super().__init__(problem, theta, est)
+        ed = self.net.sse(theta, problem.X, problem.T)
+        ew = float(theta @ theta)
+        self.gamma = float(self.P)
+        self.beta = 1.0 if ed == 0 else (self.N - self.gamma) / (2.0 * ed)
+        if self.beta <= 0:
+            self.beta = 1.0
+        self.alpha = self.gamma / (2.0 * ew) if ew > 0 else 1.0
+
+    def gradient(self, theta: Any) -> Any:
+        return 2.0 * (self.beta * self.g + self.alpha * theta)
+
+    def objective(self, ed: float, theta: Any) -> float:
+        return self.beta * ed + self.alpha * float(theta @ theta)
+
+    def system(self, theta: Any) -> tuple[Any, Any]:
+        return self.beta * self.JJ, -(self.beta * self.g + self.alpha * theta)
+
+    def accepted(self, H: Any, ed: float, theta: Any) -> None:
+        trace = _trace_inverse(H + self.alpha * self.eye)
+        if trace is not None:
+            ew = float(theta @ theta)
+            self.gamma = self.P - self.alpha * trace
+            self.alpha = 1.0 if ew == 0 else self.gamma / (2.0 * ew)
+            self.beta = 1.0 if ed == 0 else (self.N - self.gamma) / (2.0 * ed)
+
+    def state(self) -> dict[str, float]:
+        return {**super().state(), "gamma": self.gamma, "alpha": self.alpha, "beta": self.beta}
+
+    def extra(self) -> dict[str, Any]:
+        return {"gamma": self.gamma, "alpha": self.alpha, "beta": self.beta, "n_errors": self.N}
 
 
 # --- gradient descent family ---------------------------------------------------------------------

@@ -16,16 +16,15 @@ import numpy as np
 
 # Paper table 4: best improvement of rmse_total per representation (PMC, best MLP).
 PAPER_TABLE4 = {"eaa": (0.20, 0.21), "quat": (0.66, 0.53), "R": (5.21, 3.45), "zhou": (4.17, 17.10)}
-from .rotations import REPRESENTATIONS
 PHYSICS = ("mount", "sweep", "range_scale", "incidence", "station")
 
 
 def physics_pmc() -> Any:
     """The demo's physics pipeline: the PHYSICS effects, then a zhou PMC (unfitted)."""
     from .train.pipeline import CorrectionPipeline
-    from .train.pmc import PMC
+    from .train.spec import ModelSpec
 
-    return CorrectionPipeline(PHYSICS, PMC(representation="zhou"))
+    return CorrectionPipeline(PHYSICS, ModelSpec("pmc", "zhou").make())
 
 
 def run(out_dir: str | Path = "out/demo", seed: int = 0, mlp_hidden: tuple[int, ...] = (20, 20),
@@ -48,11 +47,11 @@ def _run_in(out: Path, final: Path, seed: int, mlp_hidden: tuple[int, ...], mlp_
     from .data import write_table
     from .latency import c_bench
     from .metrics import metric_block, pose_metrics
+    from .rotations import orientations
     from .simulate import simulate
     from .textui import table
-    from .train.mlp import MLP
-    from .train.pmc import PMC
-    from .train.protocol import split_indices
+    from .train.spec import ModelSpec
+    from .train.splits import split_indices
 
     sim = simulate(3, seed=seed)
     data = sim.table
@@ -65,17 +64,18 @@ def _run_in(out: Path, final: Path, seed: int, mlp_hidden: tuple[int, ...], mlp_
         f"raw rmse_total {raw['rmse_total']:.4f} (paper 0.0718), noise floor {sim.noise_floor['rmse_total']:.4f}")
     log(f"fixed split: {len(train)} train, {len(val)} validation, {len(test)} test poses")
 
-    jobs: list[tuple[str, str, Callable[[], Any]]] = []
-    for rep in REPRESENTATIONS:
-        jobs.append((f"pmc-{rep}", rep, lambda rep=rep: PMC(representation=rep).fit(M[fit_rows], R[fit_rows])))
-        arch = "-".join(map(str, mlp_hidden))
-        jobs.append((f"mlp-{rep}-tansig-{arch}-br", rep, lambda rep=rep: MLP(
-            representation=rep, hidden=mlp_hidden, activation="tansig", trainer="br", epochs=mlp_epochs,
-            random_state=seed).fit(M[train], R[train])))
-    jobs.append(("physics+pmc-zhou", "zhou", lambda: physics_pmc().fit(M[fit_rows], R[fit_rows])))
+    # (name, the paper's best improvement in its representation, fit)
+    jobs: list[tuple[str, float | None, Callable[[], Any]]] = []
+    for rep in orientations():
+        pmc = ModelSpec("pmc", rep)
+        jobs.append((pmc.stem, PAPER_TABLE4[rep][0], lambda pmc=pmc: pmc.make().fit(M[fit_rows], R[fit_rows])))
+        mlp = ModelSpec("mlp", rep, mlp_hidden, epochs=mlp_epochs)
+        name = f"{mlp.method}-{rep}-{mlp.activation}-{'-'.join(map(str, mlp.hidden))}-{mlp.trainer}"
+        jobs.append((name, PAPER_TABLE4[rep][1], lambda mlp=mlp: mlp.make(seed).fit(M[train], R[train])))
+    jobs.append(("physics+pmc-zhou", None, lambda: physics_pmc().fit(M[fit_rows], R[fit_rows])))
 
     rows, results = [], {}
-    for name, rep, fit in jobs:
+    for name, paper, fit in jobs:
         started = time.perf_counter()
         model = fit()
         seconds = time.perf_counter() - started
@@ -87,7 +87,6 @@ def _run_in(out: Path, final: Path, seed: int, mlp_hidden: tuple[int, ...], mlp_
         ort_out = Corrector(path, backend="onnxruntime").correct(M[test])
         c_vs_ort = float(np.max(np.abs(c_out - ort_out)))
         latency = c_bench(path, n_single=20_000, batch=1_000)
-        paper = PAPER_TABLE4[rep][0 if name.startswith("pmc") else 1] if name[:3] in ("pmc", "mlp") else None
         results[name] = {**block, "fit_seconds": seconds, "nodes": exported["n_nodes"], "c_vs_onnxruntime": c_vs_ort,
                          "c_single_pose_median_us": latency["single_pose_median_us"], "paper_improvement": paper}
         rows.append([name, block["rmse_pos"] * 1e3, block["rmse_rot"] * 1e3, block["rmse_total"],

@@ -1,9 +1,10 @@
 """Orientation representations and conversions (paper section 2.1).
 
-Representations, with their parameter counts:
+Representations (the registry `REPRESENTATIONS`), with their parameter counts:
 
 | name   | size | meaning |
 |--------|------|---------|
+| `pos`  | 0    | position only (Experiment I): no orientation parameters, the orientation passes through |
 | `eaa`  | 3    | rotation vector: axis times angle (rad), paper eq. 3 |
 | `quat` | 4    | unit quaternion (w, x, y, z), scalar first, w >= 0 on encode |
 | `R`    | 9    | rotation matrix, row-major |
@@ -25,20 +26,12 @@ from typing import Any, Callable
 from ._xp import namespace
 from .registry import Registry
 
-# name -> size; filled by register_representation beside REPRESENTATION_CODECS (below).
-REPRESENTATIONS: dict[str, int] = {}
-
 # Below this squared angle (rad^2) Rodrigues' coefficients use their Taylor series:
 # sin(t)/t and (1 - cos t)/t^2 are 0/0 at t = 0 and must stay differentiable there.
 _SMALL_ANGLE_SQ = 1e-12
 # Floor under square roots of quantities that are >= 0 for valid input but may be
 # slightly negative (rounding) or arbitrary (raw network output) elsewhere.
 _TINY = 1e-12
-
-
-def check_representation(rep: str) -> int:
-    """The parameter count of `rep`; ValueError naming the valid ones otherwise."""
-    return REPRESENTATION_CODECS.lookup(rep).size
 
 
 def _flat9(R: Any) -> Any:
@@ -191,11 +184,19 @@ def zhou_to_matrix(z: Any) -> Any:
 
 @dataclass(frozen=True)
 class Representation:
-    """One orientation representation: its size, R -> params, and raw params -> a proper R."""
+    """How a corrector sees a pose's orientation: its parameter count, R -> params, and raw
+    params -> a proper R. Size 0 is position only: no parameters, the orientation passes
+    through. ``paper``: one of the paper's (section 2.1), the representations of its grids."""
 
     size: int
-    encode: Callable[[Any], Any]
-    decode: Callable[[Any], Any]
+    encode: Callable[[Any], Any] | None = None
+    decode: Callable[[Any], Any] | None = None
+    paper: bool = False
+
+    @property
+    def orientation(self) -> bool:
+        """Whether the orientation is corrected (and counts in the error): False for position only."""
+        return self.size > 0
 
 
 def _decode_R(params: Any) -> Any:
@@ -204,31 +205,50 @@ def _decode_R(params: Any) -> Any:
 
 
 # The registry: adding a representation is one entry here and its two functions.
-REPRESENTATION_CODECS: Registry = Registry("representation")
+REPRESENTATIONS: Registry = Registry("representation")
+# The position-only representation's name: what a table without orientation is fitted in.
+POSITION_ONLY = "pos"
 
 
 def register_representation(name: str, representation: Representation) -> None:
     """Add a representation: encode, decode, the correctors and the CLI's choices see it."""
-    REPRESENTATION_CODECS.add(name, representation)
-    REPRESENTATIONS[name] = representation.size
+    REPRESENTATIONS.add(name, representation)
 
 
-register_representation("eaa", Representation(3, matrix_to_rotvec, rotvec_to_matrix))
-register_representation("quat", Representation(4, matrix_to_quat, quat_to_matrix))
-register_representation("R", Representation(9, _flat9, _decode_R))
-register_representation("zhou", Representation(6, matrix_to_zhou, zhou_to_matrix))
+def check_representation(rep: str) -> Representation:
+    """The registered representation `rep`; ValueError naming the valid ones otherwise."""
+    return REPRESENTATIONS.lookup(rep)
+
+
+def orientations() -> tuple[str, ...]:
+    """The registered representations of an orientation (every one but position only)."""
+    return tuple(name for name, rep in REPRESENTATIONS.items() if rep.orientation)
+
+
+register_representation(POSITION_ONLY, Representation(0, paper=True))
+register_representation("eaa", Representation(3, matrix_to_rotvec, rotvec_to_matrix, paper=True))
+register_representation("quat", Representation(4, matrix_to_quat, quat_to_matrix, paper=True))
+register_representation("R", Representation(9, _flat9, _decode_R, paper=True))
+register_representation("zhou", Representation(6, matrix_to_zhou, zhou_to_matrix, paper=True))
+
+
+def _codec(rep: str) -> Representation:
+    """The representation `rep` of an orientation; ValueError naming those otherwise."""
+    codec = REPRESENTATIONS.get(rep)
+    if codec is None or not codec.orientation:
+        what = f"unknown representation {rep!r}" if codec is None else f"representation {rep!r} is position only"
+        raise ValueError(f"{what}; expected one of {', '.join(orientations())}")
+    return codec
 
 
 def encode(R: Any, rep: str) -> Any:
     """Rotation matrices (..., 3, 3) -> parameters (..., size) of representation `rep`."""
-    check_representation(rep)
-    return REPRESENTATION_CODECS[rep].encode(R)
+    return _codec(rep).encode(R)
 
 
 def decode(params: Any, rep: str) -> Any:
     """Any raw parameters (..., size) -> proper rotation matrices (..., 3, 3)."""
-    check_representation(rep)
-    return REPRESENTATION_CODECS[rep].decode(params)
+    return _codec(rep).decode(params)
 
 
 # --- distances -------------------------------------------------------------------------

@@ -150,13 +150,14 @@ class _FoldState:
 def _fold_state(table: PoseTable, effects: list[str], names: Sequence[str], splits: list, folds: int,
                 seed: int, warm: list[dict] | None = None) -> _FoldState:
     from posecorr.train.pipeline import CorrectionPipeline, cross_validate
+    from posecorr.train.splits import KFold
 
     measured, reference, t = table.measured, table.reference, table.time()
     with_rotation = table.has_orientation
     names = [n for n in names if n not in effects]
     if effects:
         fit_kwargs = (lambda k: {"warm_start": warm[k]}) if warm else None
-        cv = cross_validate(lambda: CorrectionPipeline(effects), table, folds, seed, fit_kwargs=fit_kwargs)
+        cv = cross_validate(lambda: CorrectionPipeline(effects), table, KFold(folds), seed, fit_kwargs=fit_kwargs)
         predicted, fold_rmse = cv.predicted, cv.fold_rmse
     else:
         cv, predicted = None, measured
@@ -176,7 +177,8 @@ def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int,
     """Score test and held-out gain of adding `name` to the state's model."""
     from scipy.stats import chi2
 
-    from posecorr.train.pipeline import CorrectionPipeline, cross_validate, kfold_indices
+    from posecorr.train.pipeline import CorrectionPipeline, cross_validate
+    from posecorr.train.splits import KFold
 
     g, info, ss, m = 0.0, 0.0, 0.0, 0
     for r, J, is_extra, _ in state.per_fold:
@@ -192,9 +194,10 @@ def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int,
     p_value = float(chi2.sf(lm, rank)) if rank else 1.0
 
     warm = (lambda k: {"warm_start": state.per_fold[k][3].params_}) if state.effects else None
-    cv = cross_validate(lambda: CorrectionPipeline(state.effects + [name]), table, folds, seed, fit_kwargs=warm)
+    plan = KFold(folds)
+    cv = cross_validate(lambda: CorrectionPipeline(state.effects + [name]), table, plan, seed, fit_kwargs=warm)
     gains = np.array([_whitened_gain(table, held, state.predicted, cv.predicted, state.per_fold[k][3])
-                      for k, (_, held) in enumerate(kfold_indices(table.n, folds, seed))])
+                      for k, (_, held) in enumerate(plan.folds(table.n, seed))])
     significant = p_value < alpha / max(n_candidates, 1)
     return {"effect": name, "score": float(np.mean(gains)), "p_value": p_value, "lm_statistic": lm, "df": rank,
             "cv_rmse_before": state.before, "cv_rmse_after": float(cv.metrics["rmse_total"]),
@@ -220,7 +223,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     feature R^2 uses its residuals instead of the base physics model's out-of-fold ones.
     """
     from posecorr.data import require_rows
-    from posecorr.train.pipeline import kfold_indices
+    from posecorr.train.splits import KFold
 
     require_rows(table, max(folds, 2), f"a {folds}-fold diagnosis")
     rows_given = table.n
@@ -237,7 +240,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     say = progress or (lambda message: None)
     say("which candidate effects this data can determine")
     names, undetermined = split_identifiable(table, effects, names)
-    splits = kfold_indices(table.n, folds, seed)
+    splits = KFold(folds).folds(table.n, seed)
     say(f"base model ({', '.join(effects) or 'no effects'}), {folds}-fold cross-validation")
     state = _fold_state(table, effects, names, splits, folds, seed)
     rows = []

@@ -21,21 +21,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     effect_file_option(p)
     from ..train.methods import METHODS
 
-    p.add_argument("--method", choices=(*METHODS, "auto"), default="pmc")
-    from ..rotations import REPRESENTATIONS
+    p.add_argument("--method", choices=tuple(METHODS), default="pmc")
+    from ..rotations import orientations
 
-    p.add_argument("--representation", choices=tuple(REPRESENTATIONS), default="zhou",
+    p.add_argument("--representation", choices=orientations(), default="zhou",
                    help="orientation representation of the core (position-only tables use position only)")
-    p.add_argument("--hidden", default="20,20,20,20", help="MLP hidden layer sizes")
+    p.add_argument("--hidden", help="MLP hidden layer sizes")
     p.add_argument("--network", help="an MLP named as in the paper, ARCHITECTURE/ALGORITHM: 16/2 = table 1's "
                                      "architecture 16 trained by algorithm 2 (overrides --hidden and --trainer)")
     from ..train.activations import ACTIVATIONS
 
-    p.add_argument("--activation", default="tansig", choices=tuple(ACTIVATIONS))
+    p.add_argument("--activation", choices=tuple(ACTIVATIONS))
     from ..train.trainers import TRAINERS
 
-    p.add_argument("--trainer", default="br", choices=tuple(TRAINERS), help="the MLP's training algorithm")
-    p.add_argument("--epochs", type=options.integer(1, 1_000_000), default=1000)
+    p.add_argument("--trainer", choices=tuple(TRAINERS), help="the MLP's training algorithm")
+    p.add_argument("--epochs", type=options.integer(1, 1_000_000))
     p.add_argument("--cv", default="none", help="none (fixed 15%% test split), loo, or a number of folds")
     seed_option(p)
     p.add_argument("--save", type=Path,
@@ -43,18 +43,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     threads_option(p)
 
 
-def _parse_cv(text: str | None) -> int | str | None:
-    if text is None or text == "none":
-        return None
-    if text == "loo":
-        return "loo"
+def _parse_cv(text: str | None) -> Any:
+    """The held-out plan (`train.splits`): the fixed test split, leave one out, or 2..1000 folds."""
+    from ..train.splits import KFold, parse_plan
+
     try:
-        folds = int(text)
+        plan = parse_plan(text)
     except ValueError:
-        folds = 0
-    if not 2 <= folds <= 1000:
+        plan = None
+    if plan is None or isinstance(plan, KFold) and plan.k > 1000:
         raise CliError(f"--cv takes none, loo or a number of folds in 2..1000, got {text!r}")
-    return folds
+    return plan
 
 
 def run(args: argparse.Namespace) -> None:
@@ -63,20 +62,17 @@ def run(args: argparse.Namespace) -> None:
     from ..fitting import write_fit
     from ..textui import METRIC_HEADERS, metrics_rows, table as fmt_table
     from ..train.pipeline import fit_table
+    from ..train.spec import spec_from_options
+    from ..train.splits import HeldOut
 
     apply_threads(args)
     load_effect_files(args)
     table = read_table(args.data)
     effects = effect_names(args.effects)
-    trainer = args.trainer
-    if args.network is not None:
-        from ..train.mlp import parse_network
-
-        hidden, trainer = parse_network(args.network)
-    else:
-        hidden = options.layer_sizes(args.hidden, "--hidden", ",")
-    report = fit_table(table, effects, args.method, args.representation, hidden, args.activation, trainer,
-                       args.epochs, _parse_cv(args.cv), args.seed, progress=progress(args))
+    hidden = None if args.hidden is None else options.layer_sizes(args.hidden, "--hidden", ",")
+    spec = spec_from_options(args.method, args.representation, hidden=hidden, network=args.network,
+                             activation=args.activation, trainer=args.trainer, epochs=args.epochs)
+    report = fit_table(table, effects, spec, _parse_cv(args.cv), args.seed, progress=progress(args))
     key = report.heldout_kind
     try:
         exported = write_fit(report, table, args.data, args.output, effects, save=args.save).exported
@@ -99,7 +95,7 @@ def run(args: argparse.Namespace) -> None:
         payload["auto_cv_rmse_total"] = report.auto_scores
 
     def text() -> str:
-        label = f"test split ({report.n_heldout})" if key == "test" else f"{report.chosen}, cv {report.cv}"
+        label = f"test split ({report.n_heldout})" if key is HeldOut.TEST else f"{report.chosen}, cv {report.plan}"
         lines = [f"{args.data}: {table.n} poses; effects: {', '.join(effects) or 'none'}; "
                  f"model: {report.chosen}" + (f" (auto: {_fmt_scores(report.auto_scores)})" if report.auto_scores else ""),
                  fmt_table(METRIC_HEADERS + ["improvement"],

@@ -1,0 +1,135 @@
+"""Which poses a model is scored on: the protocol's fixed split and the cross-validation plans.
+
+A plan is a value, parsed once from what a user typed (`parse_plan`: "none", "loo" or a
+number of folds) and handed on as it is:
+
+* `FixedSplit`: the paper's protocol (section 2.4): a fixed test set, 15 % of the rows drawn
+  once with the seed, and per repeat a fresh train / validation split of the rest
+  (`split_indices`).
+* `KFold`: K random folds of whole poses; every pose is predicted by a fit that never saw it.
+* `LeaveOneOut`: as many folds as poses.
+
+Every fold and split of posecorr's poses comes from here: `fit`, `fit --cv`, auto's inner
+choice, the diagnosis, the sweep, PMC's choice of its ridge penalty and a network's own
+early-stopping split (`validation_split`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import ClassVar
+
+import numpy as np
+
+TEST_FRACTION = 0.15
+VAL_FRACTION = 0.15
+
+Folds = list[tuple[np.ndarray, np.ndarray]]
+
+
+class HeldOut(StrEnum):
+    """What a held-out score rests on (and its key in `fit --json`)."""
+
+    TEST = "test"          # a fixed test split
+    CV = "cv"              # out-of-fold predictions
+
+
+def split_indices(n: int, seed: int = 0, repeat: int = 0, test_fraction: float = TEST_FRACTION,
+                  val_fraction: float = VAL_FRACTION) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(train, validation, test) row indices: the test set depends on ``seed`` only,
+    the train/validation split of the rest on (seed, repeat). Fractions are of all rows."""
+    n_test = int(round(test_fraction * n))
+    order = np.random.default_rng([int(seed), 7919]).permutation(n)
+    test, rest = np.sort(order[:n_test]), order[n_test:]
+    n_val = int(round(val_fraction * n))
+    perm = np.random.default_rng([int(seed), int(repeat), 104729]).permutation(rest)
+    return np.sort(perm[n_val:]), np.sort(perm[:n_val]), test
+
+
+def validation_split(n: int, fraction: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(train, held) rows of a network's own early-stopping split: a random `fraction` of the
+    n rows (at least one) drawn from `rng`, in the order drawn (the generator then goes on to
+    the initial weights)."""
+    order = rng.permutation(n)
+    n_val = max(1, int(round(fraction * n)))
+    return order[n_val:], order[:n_val]
+
+
+def _folds(order: np.ndarray, k: int) -> Folds:
+    parts = np.array_split(order, k)
+    return [(np.sort(np.concatenate(parts[:i] + parts[i + 1:])), np.sort(parts[i])) for i in range(k)]
+
+
+@dataclass(frozen=True)
+class FixedSplit:
+    """The protocol's fixed, seeded test set (and per repeat a train / validation split of the rest)."""
+
+    test_fraction: float = TEST_FRACTION
+    val_fraction: float = VAL_FRACTION
+    heldout: ClassVar[HeldOut] = HeldOut.TEST
+
+    def indices(self, n: int, seed: int = 0, repeat: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(train, validation, test), `split_indices`."""
+        return split_indices(n, seed, repeat, self.test_fraction, self.val_fraction)
+
+    def __str__(self) -> str:
+        return "none"
+
+
+@dataclass(frozen=True)
+class KFold:
+    """K folds of whole poses in a seeded random order."""
+
+    k: int
+    heldout: ClassVar[HeldOut] = HeldOut.CV
+
+    def __post_init__(self) -> None:
+        if int(self.k) < 2:
+            raise ValueError(f"cross-validation needs at least 2 folds, got {self.k}")
+
+    def folds(self, n: int, seed: int = 0) -> Folds:
+        """(train, held-out) index pairs, each sorted."""
+        if self.k > n:
+            raise ValueError(f"{self.k} folds need at least {self.k} poses, got {n}")
+        return _folds(np.random.default_rng(seed).permutation(n), int(self.k))
+
+    @property
+    def description(self) -> str:
+        return f"{self.k} folds"
+
+    def __str__(self) -> str:
+        return str(self.k)
+
+
+@dataclass(frozen=True)
+class LeaveOneOut:
+    """One fold per pose (the seed plays no part)."""
+
+    heldout: ClassVar[HeldOut] = HeldOut.CV
+
+    def folds(self, n: int, seed: int = 0) -> Folds:
+        return _folds(np.arange(n), n)
+
+    @property
+    def description(self) -> str:
+        return "leave one out"
+
+    def __str__(self) -> str:
+        return "loo"
+
+
+CrossValidationPlan = KFold | LeaveOneOut
+Plan = FixedSplit | KFold | LeaveOneOut
+
+
+def parse_plan(text: str | int | None) -> Plan:
+    """"none" (or None): the fixed test split; "loo": leave one out; a number: that many folds."""
+    if text is None or text == "none":
+        return FixedSplit()
+    if text == "loo":
+        return LeaveOneOut()
+    try:
+        k = int(text)
+    except ValueError:
+        raise ValueError(f"cross-validation takes none, loo or a number of folds, got {text!r}") from None
+    return KFold(k)

@@ -56,6 +56,7 @@ def folder(tmp_path) -> Path:
     os.symlink(tmp_path / "loop-a", tmp_path / "loop-b")
     os.symlink(tmp_path / "loop-b", tmp_path / "loop-a")
     (tmp_path / "exits.py").write_text("import sys\nsys.exit(0)\n")
+    (tmp_path / "seg.csv.segments.json").mkdir()
     log = ["t,q1,q2,q3,q4,q5,q6,x,y,z,qw,qx,qy,qz"]
     log += [f"{0.01 * (i // 2)},0,-1,1,0,1,0,0.1,-0.5,0.5,1,0,0,0" for i in range(200)]
     (tmp_path / "equal-times.csv").write_text("\n".join(log) + "\n")
@@ -81,6 +82,8 @@ def _cases(f: Path) -> list[tuple[str, str, list[str], list[str]]]:
          ["not-a-bag", "ROS 2 bag"]),
         ("output", "demo -o a folder that is not a demo's", ["demo", "-o", str(f / "not-a-demo")],
          ["not-a-demo", "demo.json"]),
+        ("output", "ingest -o whose segment list would be a folder",
+         ["ingest", str(f / "equal-times.csv"), "-o", str(f / "seg.csv")], ["seg.csv.segments.json", "folder"]),
         ("output", "a NUL byte in -o", ["apply", m, d, "-o", str(f / "a\0b.csv")], ["NUL"]),
         # inputs that never end or never open
         ("input", "a FIFO as the table", ["apply", m, str(f / "fifo"), "-o", str(f / "o.csv")], ["fifo", "FIFO"]),

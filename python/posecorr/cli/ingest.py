@@ -79,6 +79,12 @@ def run(args: argparse.Namespace) -> None:
         still=StillOptions(args.still_speed, args.min_still, args.settle, args.gate_mm, args.max_jitter_mm,
                            args.min_samples),
         offset=args.offset, max_offset=args.max_offset, session=args.session)
+    from ..ingest.pipeline import segments_path
+    from ..safeio import check_output
+
+    # The segment list goes beside the table: a path there that cannot take it fails now,
+    # before the table is written.
+    check_output(segments_path(args.output), args.recording)
     result = ingest(args.recording, options)
     write_table(result.table, args.output)
     sidecar = write_segments(result, args.output)

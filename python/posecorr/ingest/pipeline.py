@@ -199,6 +199,8 @@ def segments_path(table_path: str | Path) -> Path:
 
 
 def write_segments(result: IngestResult, table_path: str | Path) -> Path:
+    from ..safeio import write_text
+
     path = segments_path(table_path)
-    path.write_text(json.dumps(result.summary(), indent=2, default=json_default) + "\n", encoding="utf-8")
+    write_text(path, json.dumps(result.summary(), indent=2, default=json_default) + "\n")
     return path

@@ -226,3 +226,56 @@ def test_a_long_table_is_diagnosed_on_a_bounded_draw(monkeypatch) -> None:
     result = diagnosis.diagnose(table, ["station"], folds=3, model_predict=predict, candidates=["mount"])
     assert result["rows"] == {"given": 300, "used": 120}
     assert seen == [300]  # the model ran on the whole table once, its rows were then drawn
+
+
+@pytest.mark.parametrize("verb", ["apply", "fit"])
+def test_a_full_disk_names_the_output_and_leaves_nothing(folder, capsys, monkeypatch, verb) -> None:
+    """ENOSPC when the output reaches the disk (os.fsync made to fail as a full disk does):
+    one line naming the output, not an input; exit 2; no file of the folder changed."""
+    import errno
+
+    real_fsync = os.fsync
+
+    def full(fd):
+        if os.readlink(f"/proc/self/fd/{fd}").startswith(str(folder)):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_fsync(fd)
+
+    out = folder / ("o.csv" if verb == "apply" else "o.onnx")
+    argv = {"apply": ["apply", str(folder / "m.onnx"), str(folder / "d.csv"), "-o", str(out)],
+            "fit": ["fit", str(folder / "d.csv"), "-o", str(out), "--method", "pmc", "--save",
+                    str(folder / "e.pkl"), "--json"]}[verb]
+    before = _checksums(folder)
+    monkeypatch.setattr(os, "fsync", full)
+    code = main(argv)
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip() and not line.startswith("  ")]
+    assert code == 2 and len(lines) == 1, lines
+    assert str(out) in lines[0] and "No space left" in lines[0], lines[0]
+    assert _checksums(folder) == before
+
+
+@pytest.fixture()
+def full_disk(tmp_path):
+    """A 64 KiB tmpfs with 60 KiB taken (root only; skipped elsewhere)."""
+    mount = tmp_path / "full"
+    mount.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mount)],
+                      capture_output=True).returncode != 0:
+        pytest.skip("mounting a tmpfs needs root")
+    try:
+        (mount / "fill").write_bytes(b"\0" * (60 << 10))
+        yield mount
+    finally:
+        subprocess.run(["umount", str(mount)], capture_output=True)
+
+
+def test_a_really_full_disk_names_the_output(folder, full_disk, capsys) -> None:
+    """On a full file system (writes fail, not only fsync), apply and fit name their output."""
+    for argv, out in ((["apply", str(folder / "m.onnx"), str(folder / "d.csv"), "-o", str(full_disk / "o.csv")],
+                       full_disk / "o.csv"),
+                      (["fit", str(folder / "d.csv"), "-o", str(full_disk / "m.onnx"), "--method", "pmc",
+                        "--save", str(full_disk / "e.pkl"), "--json"], full_disk / "m.onnx")):
+        code = main(argv)
+        lines = [line for line in capsys.readouterr().err.splitlines() if line.strip() and not line.startswith("  ")]
+        assert code == 2 and len(lines) == 1 and str(out) in lines[0], lines
+        assert sorted(p.name for p in full_disk.iterdir()) == ["fill"]

@@ -244,7 +244,10 @@ def atomic_output(path: str | os.PathLike[str], mode: str = "w", *, encoding: st
         pending.sync(handle)
         pending.replace()
     finally:
-        handle.close()
+        # After a failed write the buffer still holds bytes that cannot reach the disk:
+        # closing would raise again and hide the error that names the file.
+        with contextlib.suppress(OSError):
+            handle.close()
         pending.discard()
 
 
@@ -301,9 +304,11 @@ class Staged:
         try:
             for path, data in self._files:
                 pending.append(_Pending(path))
-                with os.fdopen(os.dup(pending[-1].fd), "wb") as handle:
+                with os.fdopen(os.dup(pending[-1].fd), "wb", buffering=0) as handle:
                     try:
-                        handle.write(data)
+                        view = memoryview(data)
+                        while view:
+                            view = view[handle.write(view):]
                     except OSError as exc:
                         if exc.errno not in _DEVICE_ERRORS:
                             raise

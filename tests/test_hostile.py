@@ -62,6 +62,14 @@ def folder(tmp_path) -> Path:
     (tmp_path / "equal-times.csv").write_text("\n".join(log) + "\n")
     (tmp_path / "lol.urdf").write_text('<?xml version="1.0"?>\n<!DOCTYPE r [<!ENTITY a "aaaa">'
                                        '<!ENTITY b "&a;&a;&a;&a;">]>\n<robot name="&b;"><link name="l"/></robot>\n')
+    (tmp_path / "fixed.urdf").write_text(
+        '<?xml version="1.0"?>\n<robot name="r"><link name="base"/><link name="l1"/><link name="tool0"/>'
+        '<joint name="j1" type="fixed"><parent link="base"/><child link="l1"/></joint>'
+        '<joint name="j2" type="fixed"><parent link="l1"/><child link="tool0"/></joint></robot>\n')
+    t = np.arange(3000) * 0.01
+    q = np.stack([np.sin(0.5 * t + i) for i in range(6)], axis=1)
+    (tmp_path / "moving.csv").write_text("t,q1,q2,q3,q4,q5,q6,x,y,z,qw,qx,qy,qz\n" + "".join(
+        f"{ti!r}," + ",".join(map(repr, qi)) + ",0.1,-0.5,0.5,1,0,0,0\n" for ti, qi in zip(t, q)))
     return tmp_path
 
 
@@ -121,6 +129,9 @@ def _cases(f: Path) -> list[tuple[str, str, list[str], list[str]]]:
                                                    "--offset", "0"], ["equal-times.csv", "row 3", "column t"]),
         ("recording", "a URDF with entity expansion", ["ingest", str(f / "equal-times.csv"), "-o", str(f / "i.csv"),
                                                        "--robot", str(f / "lol.urdf")], ["lol.urdf", "ENTITY"]),
+        ("recording", "a URDF whose chain has no moving joint", ["ingest", str(f / "moving.csv"), "-o",
+                                                                 str(f / "i.csv"), "--robot", str(f / "fixed.urdf")],
+         ["fixed.urdf", "no moving joint"]),
         # code that tries to end posecorr
         ("code", "an effect file calling sys.exit(0)", ["fit", d, "-o", str(f / "o.onnx"), "--effect-file",
                                                         str(f / "exits.py")], ["exits.py", "SystemExit"]),

@@ -151,12 +151,21 @@ class UrdfArm(_SerialArm):
                 raise KinematicsError(f"{path}: tip link {tip_link!r} does not descend from base link {base!r}")
             j = by_child[link]
             axis = np.asarray(j.joint_axis, float)
+            if j.joint_type != "fixed" and not np.linalg.norm(axis) > 1e-9:
+                raise KinematicsError(f"{path}: joint {j.joint_name!r}: its axis {axis.tolist()} has no direction")
             chain.append(_UrdfJoint(j.joint_name, j.joint_type, np.asarray(j.child2parent, float),
                                     axis / max(np.linalg.norm(axis), 1e-300)))
             link = j.parent
         self.chain = tuple(reversed(chain))
         self.base_link, self.tip_link = base, tip_link
         self.joint_names = tuple(j.name for j in self.chain if j.kind != "fixed")
+        if not self.joint_names:
+            raise KinematicsError(f"{path}: the chain from {base!r} to {tip_link!r} has no moving joint (every "
+                                  "joint is fixed): its tip cannot follow the recorded joint angles")
+        bad = next((j.name for j in self.chain if not (np.isfinite(j.axis).all() and np.isfinite(j.origin).all())),
+                   None)
+        if bad is not None:
+            raise KinematicsError(f"{path}: joint {bad!r}: its origin or axis is not a finite number")
 
     def _links(self, q: np.ndarray) -> Iterator[np.ndarray]:
         k = 0

@@ -61,7 +61,6 @@ def main(argv: list[str] | None = None) -> int:
     try:
         # Library warnings wait for the verb's end: a failure is then its one line alone.
         with sigterm_as_interrupt(), warnings.catch_warnings(record=True) as held:
-            warnings.simplefilter("default")
             failures.check_extras(verb)
             failures.check_paths(args, verb)
             verb.run(args)

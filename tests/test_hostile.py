@@ -57,6 +57,9 @@ def folder(tmp_path) -> Path:
     os.symlink(tmp_path / "loop-b", tmp_path / "loop-a")
     (tmp_path / "exits.py").write_text("import sys\nsys.exit(0)\n")
     (tmp_path / "seg.csv.segments.json").mkdir()
+    far = _table()
+    far.meas_p[4, 0] = 999.0  # 20 km from where the shipped model was fitted
+    write_table(far, tmp_path / "far.csv")
     log = ["t,q1,q2,q3,q4,q5,q6,x,y,z,qw,qx,qy,qz"]
     log += [f"{0.01 * (i // 2)},0,-1,1,0,1,0,0.1,-0.5,0.5,1,0,0,0" for i in range(200)]
     (tmp_path / "equal-times.csv").write_text("\n".join(log) + "\n")
@@ -124,6 +127,12 @@ def _cases(f: Path) -> list[tuple[str, str, list[str], list[str]]]:
         ("option", "--seed -1", ["fit", d, "-o", str(f / "o.onnx"), "--seed", "-1"], ["--seed"]),
         ("option", "--folds 1", ["diagnose", d, "--folds", "1"], ["--folds"]),
         ("option", "--threads 0", ["fit", d, "-o", str(f / "o.onnx"), "--threads", "0"], ["--threads"]),
+        # absurd poses, on every back end (tests/test_checks.py has the rest of the class)
+        ("pose", "a pose 999 m away, C", ["apply", m, str(f / "far.csv"), "-o", str(f / "o.csv")],
+         ["far.csv", "row 6", "column meas_x", "input_bounds"]),
+        ("pose", "a pose 999 m away, onnxruntime", ["apply", m, str(f / "far.csv"), "-o", str(f / "o.csv"),
+                                                    "--backend", "onnxruntime"],
+         ["far.csv", "row 6", "column meas_x", "input_bounds"]),
         # recordings that crashed the ingest
         ("recording", "equal times in a CSV log", ["ingest", str(f / "equal-times.csv"), "-o", str(f / "i.csv"),
                                                    "--offset", "0"], ["equal-times.csv", "row 3", "column t"]),

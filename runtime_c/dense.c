@@ -284,15 +284,8 @@ static pc_status k_gemm_rows(const pc_step *s)
     return PC_OK;
 }
 
-/* The layers of a chain in turn. Where the AVX2 copies exist (x86-64, built for speed) each
- * chain kernel inlines its layer kernel (1.5 % of a zhou MLP pose); elsewhere (a
- * microcontroller, built for size) it calls the one copy of it. */
-#ifdef PC_HAVE_AVX2
-#define PC_CHAIN_LAYER(layer) pc_gemm_rows(layer)
-#else
-#define PC_CHAIN_LAYER(layer) k_gemm_rows(layer)
-#endif
-PC_INLINE void pc_run_chain(const pc_step *s)
+/* The layers of a chain in turn, each run by `layer_kernel` as a step of its own. */
+PC_INLINE void pc_run_chain(const pc_step *s, pc_status (*layer_kernel)(const pc_step *))
 {
     const pc_gemm_chain *q = (const pc_gemm_chain *)s->prm;
     size_t i;
@@ -302,13 +295,13 @@ PC_INLINE void pc_run_chain(const pc_step *s)
         layer.io = s->io + 4 * i;
         layer.prm = &q->layer[i];
         layer.n = q->layer[i].M * q->layer[i].N;
-        PC_CHAIN_LAYER(&layer);
+        layer_kernel(&layer);
     }
 }
 
 static pc_status k_gemm_chain(const pc_step *s)
 {
-    pc_run_chain(s);
+    pc_run_chain(s, k_gemm_rows);
     return PC_OK;
 }
 
@@ -429,30 +422,23 @@ __attribute__((target("avx2"))) static pc_status k_gemm_rows_avx2(const pc_step 
 
 /* A one-pose layer with a bias row and tanh or no activation, up to 32 outputs, runs in
  * registers; anything else is the general layer. */
+__attribute__((target("avx2"))) static pc_status pc_chain_layer_avx2(const pc_step *layer)
+{
+    const pc_gemm *l = (const pc_gemm *)layer->prm;
+    if (l->M != 1 || l->N == 0 || l->N > 32 || !(l->act == PC_ACT_TANH || l->act == PC_ACT_NONE))
+        return k_gemm_rows_avx2(layer);
+    switch ((l->N + 7) / 8) {
+    case 1: pc_layer1_1(l, layer->io); break;
+    case 2: pc_layer1_2(l, layer->io); break;
+    case 3: pc_layer1_3(l, layer->io); break;
+    default: pc_layer1_4(l, layer->io); break;
+    }
+    return PC_OK;
+}
+
 __attribute__((target("avx2"))) static pc_status k_gemm_chain_avx2(const pc_step *s)
 {
-    const pc_gemm_chain *q = (const pc_gemm_chain *)s->prm;
-    size_t i;
-    for (i = 0; i < q->n_layers; i++) {
-        const pc_gemm *l = &q->layer[i];
-        void *const *io = s->io + 4 * i;
-        if (l->M != 1 || l->N == 0 || l->N > 32 ||
-            !(l->act == PC_ACT_TANH || l->act == PC_ACT_NONE)) {
-            pc_step layer;
-            layer.fn = NULL;
-            layer.io = io;
-            layer.prm = l;
-            layer.n = l->M * l->N;
-            k_gemm_rows_avx2(&layer);
-            continue;
-        }
-        switch ((l->N + 7) / 8) {
-        case 1: pc_layer1_1(l, io); break;
-        case 2: pc_layer1_2(l, io); break;
-        case 3: pc_layer1_3(l, io); break;
-        default: pc_layer1_4(l, io); break;
-        }
-    }
+    pc_run_chain(s, pc_chain_layer_avx2);
     return PC_OK;
 }
 

@@ -73,9 +73,10 @@ def _lstat(path: Path) -> os.stat_result | None:
         raise OutputPathError(f"{path}: {exc.strerror}") from None
 
 
-def _check_name(path: Path) -> None:
+def _check_name(path: Path, error: type[ValueError] | None = None) -> None:
+    """The C library and the OS would cut the name at a NUL byte and open another file."""
     if "\0" in str(path):
-        raise OutputPathError(f"{str(path)!r}: a file name cannot hold a NUL byte")
+        raise (error or OutputPathError)(f"{str(path)!r}: a file name cannot hold a NUL byte")
 
 
 def check_output(path: str | os.PathLike[str], inputs: Iterable[str | os.PathLike[str] | None] = ()) -> Path:
@@ -124,8 +125,7 @@ def check_input(path: str | os.PathLike[str], *, folder_ok: bool = False) -> Pat
     ROS 2 bag) that exists and is at most MAX_INPUT_BYTES; a device, a FIFO or a socket
     would be read without end or block forever, and is refused unopened."""
     src = Path(path)
-    if "\0" in str(src):
-        raise InputPathError(f"{str(src)!r}: a file name cannot hold a NUL byte")
+    _check_name(src, InputPathError)
     try:
         found = os.stat(src)
     except FileNotFoundError:

@@ -250,13 +250,12 @@ PC_INLINE void pc_row1(const float *a, const float *B, size_t K, size_t N, const
 
 /* Rows of act(A B + c): no transposes, bias row, alpha = beta = 1 (the MLP layer). Four
  * rows at a time for batches; the activation runs once over the whole contiguous output. */
-PC_INLINE void pc_gemm_rows(const pc_step *s)
+PC_INLINE void pc_gemm_rows(const pc_gemm *q, void *const *io)
 {
-    const pc_gemm *q = (const pc_gemm *)s->prm;
-    const float *A = (const float *)s->io[0];
-    const float *B = (const float *)s->io[1];
-    const float *C = (const float *)s->io[2];
-    float *restrict O = (float *)s->io[3];
+    const float *A = (const float *)io[0];
+    const float *B = (const float *)io[1];
+    const float *C = (const float *)io[2];
+    float *restrict O = (float *)io[3];
     const size_t N = q->N, K = q->K, M = q->M;
     size_t m = 0, n;
 #ifdef PC_HAVE_ROWS4
@@ -277,31 +276,31 @@ PC_INLINE void pc_gemm_rows(const pc_step *s)
             O[n] = pc_tanh_inline(O[n]);
 }
 
+static void pc_layer_rows(const pc_gemm *q, void *const *io)
+{
+    pc_gemm_rows(q, io);
+}
+
 /* One kernel for both activations: the test per launch is free next to the layer. */
 static pc_status k_gemm_rows(const pc_step *s)
 {
-    pc_gemm_rows(s);
+    pc_gemm_rows((const pc_gemm *)s->prm, s->io);
     return PC_OK;
 }
 
-/* The layers of a chain in turn, each run by `layer_kernel` as a step of its own. */
-PC_INLINE void pc_run_chain(const pc_step *s, pc_status (*layer_kernel)(const pc_step *))
+/* The layers of a chain in turn, each run by `layer` on its four operands. */
+PC_INLINE void pc_run_chain(const pc_step *s, void (*layer)(const pc_gemm *, void *const *))
 {
     const pc_gemm_chain *q = (const pc_gemm_chain *)s->prm;
-    size_t i;
-    for (i = 0; i < q->n_layers; i++) {
-        pc_step layer;
-        layer.fn = NULL;
-        layer.io = s->io + 4 * i;
-        layer.prm = &q->layer[i];
-        layer.n = q->layer[i].M * q->layer[i].N;
-        layer_kernel(&layer);
-    }
+    const pc_gemm *l = q->layer, *const end = l + q->n_layers;
+    void *const *io = s->io;
+    for (; l < end; l++, io += 4)
+        layer(l, io);
 }
 
-static pc_status k_gemm_chain(const pc_step *s)
+PC_HOT static pc_status k_gemm_chain(const pc_step *s)
 {
-    pc_run_chain(s, k_gemm_rows);
+    pc_run_chain(s, pc_layer_rows);
     return PC_OK;
 }
 
@@ -357,32 +356,52 @@ PC_AVX2_INLINE void pc_store_lanes(float *o, __m256 v, int n)
 
 /* One pose through one layer of at most 8 NB outputs: NB accumulators that stay in
  * registers over the whole pass on k, the activation applied to them before the one
- * store. The last block's lanes past N are masked: nothing is read or written beyond a
- * row, so weights used in place need no padding. Per lane the order is that of pc_row1
- * (c, then k ascending, no fused multiply-add): results are bit-identical. */
+ * store. The last block reads whole vectors while they lie inside B (its lanes past N
+ * then hold the next row's weights: summed, never stored) and masked loads for the last
+ * rows, so nothing is read beyond B and weights used in place need no padding. Per lane
+ * the order is that of pc_row1 (c, then k ascending, no fused multiply-add): results are
+ * bit-identical. */
 PC_AVX2_INLINE void pc_layer1_blocks(const float *a, const float *B, size_t K, size_t N,
                                      const float *C, int tanh_act, float *O, const int NB)
 {
     const int tail = (int)(N - 8 * (size_t)(NB - 1));
     const __m256i mask = _mm256_cmpgt_epi32(_mm256_set1_epi32(tail),
                                             _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
+    /* The last block reads `over` floats past a row: the rows from `whole` on would
+     * read past B (no division for N >= over, which every layer of NB > 1 has). */
+    const size_t over = (size_t)(8 - tail);
+    const size_t masked_rows = over == 0 ? 0 : over <= N ? 1 : (over + N - 1) / N;
+    const size_t whole = K > masked_rows ? K - masked_rows : 0;
     __m256 a0, a1 = _mm256_setzero_ps(), a2 = a1, a3 = a1;
     size_t k;
-    /* acc j: its block's lanes; the last block masked */
-#define PC_LOAD_BLOCK(p, j) ((j) == NB - 1 ? _mm256_maskload_ps((p) + 8 * (j), mask) \
-                                           : _mm256_loadu_ps((p) + 8 * (j)))
-    a0 = PC_LOAD_BLOCK(C, 0);
-    if (NB > 1) a1 = PC_LOAD_BLOCK(C, 1);
-    if (NB > 2) a2 = PC_LOAD_BLOCK(C, 2);
-    if (NB > 3) a3 = PC_LOAD_BLOCK(C, 3);
-    for (k = 0; k < K; k++) {
-        const __m256 av = _mm256_broadcast_ss(a + k);
-        const float *b = B + k * N;
-        a0 = _mm256_add_ps(a0, _mm256_mul_ps(av, PC_LOAD_BLOCK(b, 0)));
-        if (NB > 1) a1 = _mm256_add_ps(a1, _mm256_mul_ps(av, PC_LOAD_BLOCK(b, 1)));
-        if (NB > 2) a2 = _mm256_add_ps(a2, _mm256_mul_ps(av, PC_LOAD_BLOCK(b, 2)));
-        if (NB > 3) a3 = _mm256_add_ps(a3, _mm256_mul_ps(av, PC_LOAD_BLOCK(b, 3)));
+#define PC_LOAD_BLOCK(p, j, last_masked)                                                  \
+    ((last_masked) && (j) == NB - 1 ? _mm256_maskload_ps((p) + 8 * (j), mask)             \
+                                    : _mm256_loadu_ps((p) + 8 * (j)))
+#define PC_ROW(k, last_masked)                                                            \
+    do {                                                                                  \
+        const __m256 av = _mm256_broadcast_ss(a + (k));                                   \
+        const float *b = B + (k) * N;                                                     \
+        a0 = _mm256_add_ps(a0, _mm256_mul_ps(av, PC_LOAD_BLOCK(b, 0, last_masked)));      \
+        if (NB > 1) a1 = _mm256_add_ps(a1, _mm256_mul_ps(av, PC_LOAD_BLOCK(b, 1, last_masked))); \
+        if (NB > 2) a2 = _mm256_add_ps(a2, _mm256_mul_ps(av, PC_LOAD_BLOCK(b, 2, last_masked))); \
+        if (NB > 3) a3 = _mm256_add_ps(a3, _mm256_mul_ps(av, PC_LOAD_BLOCK(b, 3, last_masked))); \
+    } while (0)
+    a0 = PC_LOAD_BLOCK(C, 0, 1);
+    if (NB > 1) a1 = PC_LOAD_BLOCK(C, 1, 1);
+    if (NB > 2) a2 = PC_LOAD_BLOCK(C, 2, 1);
+    if (NB > 3) a3 = PC_LOAD_BLOCK(C, 3, 1);
+    /* four rows a turn: a quarter of the loop's bookkeeping, the same order per lane */
+    for (k = 0; k + 4 <= whole; k += 4) {
+        PC_ROW(k, 0);
+        PC_ROW(k + 1, 0);
+        PC_ROW(k + 2, 0);
+        PC_ROW(k + 3, 0);
     }
+    for (; k < whole; k++)
+        PC_ROW(k, 0);
+    for (; k < K; k++)
+        PC_ROW(k, 1);
+#undef PC_ROW
 #undef PC_LOAD_BLOCK
     if (tanh_act) {
         a0 = pc_tanh8(a0);
@@ -402,7 +421,7 @@ PC_AVX2_INLINE void pc_layer1_blocks(const float *a, const float *B, size_t K, s
  * registers (inlined into one kernel with the general layer, they were spilled, and a
  * chain of additions through the stack is slower and depends on where the stack lies). */
 #define PC_LAYER1(NB)                                                                          \
-    __attribute__((target("avx2"), noinline)) static void pc_layer1_##NB(                    \
+    __attribute__((target("avx2"), noinline, hot)) static void pc_layer1_##NB(                    \
         const pc_gemm *q, void *const *io)                                                     \
     {                                                                                          \
         pc_layer1_blocks((const float *)io[0], (const float *)io[1], q->K, q->N,               \
@@ -414,29 +433,32 @@ PC_LAYER1(3)
 PC_LAYER1(4)
 #undef PC_LAYER1
 
+__attribute__((target("avx2"), noinline)) static void pc_layer_rows_avx2(const pc_gemm *q,
+                                                                         void *const *io)
+{
+    pc_gemm_rows(q, io);
+}
+
 __attribute__((target("avx2"))) static pc_status k_gemm_rows_avx2(const pc_step *s)
 {
-    pc_gemm_rows(s);
+    pc_gemm_rows((const pc_gemm *)s->prm, s->io);
     return PC_OK;
 }
 
 /* A one-pose layer with a bias row and tanh or no activation, up to 32 outputs, runs in
  * registers; anything else is the general layer. */
-__attribute__((target("avx2"))) static pc_status pc_chain_layer_avx2(const pc_step *layer)
+__attribute__((target("avx2"), hot)) static void pc_chain_layer_avx2(const pc_gemm *l,
+                                                                void *const *io)
 {
-    const pc_gemm *l = (const pc_gemm *)layer->prm;
     if (l->M != 1 || l->N == 0 || l->N > 32 || !(l->act == PC_ACT_TANH || l->act == PC_ACT_NONE))
-        return k_gemm_rows_avx2(layer);
-    switch ((l->N + 7) / 8) {
-    case 1: pc_layer1_1(l, layer->io); break;
-    case 2: pc_layer1_2(l, layer->io); break;
-    case 3: pc_layer1_3(l, layer->io); break;
-    default: pc_layer1_4(l, layer->io); break;
-    }
-    return PC_OK;
+        pc_layer_rows_avx2(l, io);
+    else if (l->N > 16)
+        l->N > 24 ? pc_layer1_4(l, io) : pc_layer1_3(l, io);
+    else
+        l->N > 8 ? pc_layer1_2(l, io) : pc_layer1_1(l, io);
 }
 
-__attribute__((target("avx2"))) static pc_status k_gemm_chain_avx2(const pc_step *s)
+__attribute__((target("avx2"), hot)) static pc_status k_gemm_chain_avx2(const pc_step *s)
 {
     pc_run_chain(s, pc_chain_layer_avx2);
     return PC_OK;

@@ -124,7 +124,7 @@ PC_FLOAT_UNARY_OPS(PC_DEFINE_UNARY)
 /* One interpreter per entry width: 16-bit offsets halve a program's bytes (the usual
  * case: a one-pose plan's activations and pool span a few hundred bytes). */
 #define PC_SCALAR_PROGRAM(NAME, PROGRAM, OP)                                                   \
-    pc_status NAME(const pc_step *s)                                                           \
+    PC_HOT pc_status NAME(const pc_step *s)                                                    \
     {                                                                                          \
         const PROGRAM *q = (const PROGRAM *)s->prm;                                            \
         char *const base = (char *)s->io[0];                                                   \

@@ -19,7 +19,7 @@ static const uint8_t pc_program_0bb08452fbb3a9af_shape[159] = {
     0, 14, 0, 13, 0, 12, 0, 11, 0, 10, 0, 9, 0, 8, 0, 23, 0, 1, 7, 0, 8, 23, 0, 1,
     7, 0, 9, 23, 0, 1, 7, 0, 10, 23, 0, 1, 7, 0, 11,
 };
-static pc_status pc_program_0bb08452fbb3a9af(const pc_step *s)
+PC_HOT static pc_status pc_program_0bb08452fbb3a9af(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -93,7 +93,7 @@ static const uint8_t pc_program_bac44ddbdd61a1df_shape[165] = {
     10, 0, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 23, 0, 1,
     4, 0, 5, 23, 0, 1, 4, 0, 6, 23, 0, 1, 4, 0, 7, 23, 0, 1, 4, 0, 8,
 };
-static pc_status pc_program_bac44ddbdd61a1df(const pc_step *s)
+PC_HOT static pc_status pc_program_bac44ddbdd61a1df(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -181,7 +181,7 @@ static const uint8_t pc_program_ca406bcfedbc5acd_shape[204] = {
     26, 0, 1, 6, 0, 0, 26, 0, 1, 10, 0, 0, 26, 0, 1, 3, 0, 0, 26, 0, 1, 5, 0, 0,
     26, 0, 1, 8, 0, 0, 26, 0, 1, 12, 0, 0,
 };
-static pc_status pc_program_ca406bcfedbc5acd(const pc_step *s)
+PC_HOT static pc_status pc_program_ca406bcfedbc5acd(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -263,7 +263,7 @@ static const uint8_t pc_program_834316b1c6c869bc_shape[228] = {
     20, 0, 1, 15, 20, 0, 1, 15, 20, 0, 1, 15, 20, 0, 1, 15, 20, 0, 1, 15, 20, 0, 1, 15,
     20, 0, 1, 15, 20, 0, 1, 15, 20, 0, 1, 15,
 };
-static pc_status pc_program_834316b1c6c869bc(const pc_step *s)
+PC_HOT static pc_status pc_program_834316b1c6c869bc(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -379,7 +379,7 @@ static const uint8_t pc_program_edf9b746591a5529_shape[260] = {
     15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20,
     15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20,
 };
-static pc_status pc_program_edf9b746591a5529(const pc_step *s)
+PC_HOT static pc_status pc_program_edf9b746591a5529(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -479,7 +479,7 @@ static const uint8_t pc_program_7d8a951771d6e99c_shape[264] = {
     26, 0, 1, 4, 0, 0, 26, 0, 1, 16, 0, 0, 26, 0, 1, 16, 0, 0, 26, 0, 1, 11, 0, 0,
     26, 0, 1, 7, 0, 0, 26, 0, 1, 7, 0, 0, 26, 0, 1, 18, 0, 0, 26, 0, 1, 12, 0, 0,
 };
-static pc_status pc_program_7d8a951771d6e99c(const pc_step *s)
+PC_HOT static pc_status pc_program_7d8a951771d6e99c(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -588,7 +588,7 @@ static const uint8_t pc_program_9f5d834c4237d873_shape[429] = {
     3, 0, 1, 34, 33, 3, 0, 1, 35, 33, 3, 0, 1, 36, 33, 3, 0, 1, 36, 36, 3, 0, 1, 37,
     36, 3, 0, 1, 38, 36, 3, 0, 1, 38, 38, 3, 0, 1, 39, 38, 3, 0, 1, 39, 39,
 };
-static pc_status pc_program_9f5d834c4237d873(const pc_step *s)
+PC_HOT static pc_status pc_program_9f5d834c4237d873(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -775,7 +775,7 @@ static const uint8_t pc_program_721639ef9faec53c_shape[584] = {
     9, 5, 23, 0, 1, 4, 9, 6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4, 9, 8, 24, 0, 1, 0,
     24, 0, 1, 0, 24, 0, 1, 0,
 };
-static pc_status pc_program_721639ef9faec53c(const pc_step *s)
+PC_HOT static pc_status pc_program_721639ef9faec53c(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -943,7 +943,7 @@ static const uint8_t pc_program_68f1683d7cbb1198_shape[626] = {
     0, 5, 23, 0, 1, 4, 9, 5, 23, 0, 1, 4, 9, 6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4,
     9, 8,
 };
-static pc_status pc_program_68f1683d7cbb1198(const pc_step *s)
+PC_HOT static pc_status pc_program_68f1683d7cbb1198(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -1126,7 +1126,7 @@ static const uint8_t pc_program_5702f51db0f08e54_shape[626] = {
     9, 6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4, 9, 8, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0,
     1, 0,
 };
-static pc_status pc_program_5702f51db0f08e54(const pc_step *s)
+PC_HOT static pc_status pc_program_5702f51db0f08e54(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -1307,7 +1307,7 @@ static const uint8_t pc_program_eec959fc49e33d72_shape[656] = {
     12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1, 4, 9, 5, 23, 0, 1, 4, 9, 6, 23, 0, 1, 4,
     9, 7, 23, 0, 1, 4, 9, 8,
 };
-static pc_status pc_program_eec959fc49e33d72(const pc_step *s)
+PC_HOT static pc_status pc_program_eec959fc49e33d72(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -1499,7 +1499,7 @@ static const uint8_t pc_program_e4627751465255bd_shape[656] = {
     9, 7, 23, 0, 0, 4, 9, 8, 26, 0, 1, 4, 0, 0, 26, 0, 1, 4, 0, 0, 26, 0, 1, 4,
     0, 0, 26, 0, 1, 4, 0, 0,
 };
-static pc_status pc_program_e4627751465255bd(const pc_step *s)
+PC_HOT static pc_status pc_program_e4627751465255bd(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -1691,7 +1691,7 @@ static const uint8_t pc_program_bc73bc9880d69e6e_shape[661] = {
     5, 23, 0, 1, 4, 9, 5, 23, 0, 1, 4, 9, 6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4, 9,
     8, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
 };
-static pc_status pc_program_bc73bc9880d69e6e(const pc_step *s)
+PC_HOT static pc_status pc_program_bc73bc9880d69e6e(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -1886,7 +1886,7 @@ static const uint8_t pc_program_6ca4a22b64ec2bb9_shape[796] = {
     1, 19, 19, 3, 0, 1, 20, 19, 3, 0, 1, 21, 19, 3, 0, 1, 21, 21, 3, 0, 1, 22, 21, 3,
     0, 1, 22, 22,
 };
-static pc_status pc_program_6ca4a22b64ec2bb9(const pc_step *s)
+PC_HOT static pc_status pc_program_6ca4a22b64ec2bb9(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -2143,7 +2143,7 @@ static const uint8_t pc_program_68ae4def9da9e6f8_shape[875] = {
     1, 21, 3, 0, 0, 26, 1, 3, 0, 0, 26, 2, 3, 0, 0, 26, 3, 26, 0, 1, 3, 0, 0, 26,
     0, 1, 3, 0, 0, 26, 0, 1, 3, 0, 0,
 };
-static pc_status pc_program_68ae4def9da9e6f8(const pc_step *s)
+PC_HOT static pc_status pc_program_68ae4def9da9e6f8(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -2394,7 +2394,7 @@ static const uint8_t pc_program_a734d6c3be2c7b05_shape[980] = {
     0, 1, 174, 9, 3, 0, 1, 175, 9, 3, 0, 1, 176, 9, 3, 0, 1, 12, 12, 3, 0, 1, 13, 12,
     3, 0, 1, 14, 12, 3, 0, 1, 14, 14, 3, 0, 1, 15, 14, 3, 0, 1, 15, 15,
 };
-static pc_status pc_program_a734d6c3be2c7b05(const pc_step *s)
+PC_HOT static pc_status pc_program_a734d6c3be2c7b05(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -2690,7 +2690,7 @@ static const uint8_t pc_program_510a7b9f81e8bb81_shape[1045] = {
     5, 23, 0, 1, 4, 9, 5, 23, 0, 1, 4, 9, 6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4, 9,
     8, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
 };
-static pc_status pc_program_510a7b9f81e8bb81(const pc_step *s)
+PC_HOT static pc_status pc_program_510a7b9f81e8bb81(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -2975,7 +2975,7 @@ static const uint8_t pc_program_c1b1401b8efb6e50_shape[1125] = {
     10, 0, 0, 4, 0, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1,
     4, 9, 5, 23, 0, 1, 4, 9, 6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4, 9, 8,
 };
-static pc_status pc_program_c1b1401b8efb6e50(const pc_step *s)
+PC_HOT static pc_status pc_program_c1b1401b8efb6e50(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -3300,7 +3300,7 @@ static const uint8_t pc_program_8f8acb0b2c3aa015_shape[1209] = {
     5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1, 4, 9, 5, 23, 0, 1, 4, 9, 6, 23, 0, 1,
     4, 9, 7, 23, 0, 1, 4, 9, 8,
 };
-static pc_status pc_program_8f8acb0b2c3aa015(const pc_step *s)
+PC_HOT static pc_status pc_program_8f8acb0b2c3aa015(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -3710,7 +3710,7 @@ static const uint8_t pc_program_0042e12f957ab815_shape[1285] = {
     41, 39, 3, 0, 1, 42, 39, 3, 0, 1, 42, 42, 3, 0, 1, 43, 42, 3, 0, 1, 44, 42, 3, 0,
     1, 44, 44, 3, 0, 1, 45, 44, 3, 0, 1, 45, 45,
 };
-static pc_status pc_program_0042e12f957ab815(const pc_step *s)
+PC_HOT static pc_status pc_program_0042e12f957ab815(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
@@ -4166,7 +4166,7 @@ static const uint8_t pc_program_ac6ceacb51d4b83b_shape[1608] = {
     0, 0, 12, 3, 2, 0, 0, 12, 2, 3, 0, 0, 1, 0, 3, 0, 0, 1, 2, 3, 0, 0, 4, 0,
     3, 0, 0, 1, 5, 2, 0, 1, 18, 3, 2, 0, 1, 18, 2, 13, 0, 1, 37, 3, 0, 1, 2, 0,
 };
-static pc_status pc_program_ac6ceacb51d4b83b(const pc_step *s)
+PC_HOT static pc_status pc_program_ac6ceacb51d4b83b(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;

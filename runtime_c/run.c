@@ -20,7 +20,7 @@
 #define PC_QUAT_NORM2_LO 0.998001
 #define PC_QUAT_NORM2_HI 1.002001
 
-pc_status pc_run_steps(pc_model *m, const pc_plan *plan)
+PC_HOT pc_status pc_run_steps(pc_model *m, const pc_plan *plan)
 {
     const pc_step *s = plan->steps;
     const pc_step *const end = s + plan->n_steps;
@@ -36,7 +36,7 @@ pc_status pc_run_steps(pc_model *m, const pc_plan *plan)
 }
 
 /* The output contract: finite, and (posecorr's models) a unit quaternion. */
-static pc_status pc_check_output(pc_model *m, const float *out, size_t n, size_t first)
+PC_HOT static pc_status pc_check_output(pc_model *m, const float *out, size_t n, size_t first)
 {
     size_t r, c;
     for (r = 0; r < n; r++) {
@@ -63,7 +63,7 @@ static pc_status pc_check_output(pc_model *m, const float *out, size_t n, size_t
 }
 
 /* t NULL: every pose at t = 0. */
-static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, const float *t,
+PC_HOT static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, const float *t,
                              float *out, size_t first)
 {
     const size_t count = plan->batch * PC_POSE_WIDTH;
@@ -94,7 +94,7 @@ static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, 
 /* v with `places` decimals (at most 6) for a message: pc_format has no %f. The rule is
  * python/posecorr/controller/checks.py's decimal(), so that both back ends write the
  * same text. */
-static void pc_decimal(char *buf, size_t size, double v, int places)
+PC_RARE static void pc_decimal(char *buf, size_t size, double v, int places)
 {
     char frac[8];
     const double a = fabs(v);
@@ -116,7 +116,7 @@ static void pc_decimal(char *buf, size_t size, double v, int places)
 }
 
 /* "...: VALUE UNIT, expected LO to HI UNIT (metadata KEY)" of a value outside bounds. */
-static void pc_outside(pc_model *m, const char *what, float v, float lo, float hi,
+PC_RARE static void pc_outside(pc_model *m, const char *what, float v, float lo, float hi,
                        const char *unit, const char *key)
 {
     char value[24], low[24], high[24];
@@ -131,7 +131,7 @@ static void pc_outside(pc_model *m, const char *what, float v, float lo, float h
  * in the same order): finite times inside the fitted span (when the model records one;
  * no t is t = 0), then finite poses, positions inside the training box (input_bounds)
  * and, in posecorr's models, unit quaternions. */
-static pc_status pc_check_input(pc_model *m, const float *in, const float *t, size_t n)
+PC_HOT static pc_status pc_check_input(pc_model *m, const float *in, const float *t, size_t n)
 {
     char what[96];
     size_t i, c;
@@ -182,12 +182,9 @@ static pc_status pc_check_input(pc_model *m, const float *in, const float *t, si
     return PC_OK;
 }
 
-pc_status pc_run(pc_model *model, const float *in, size_t n, float *out)
-{
-    return pc_run_timed(model, in, NULL, n, out);
-}
-
-pc_status pc_run_timed(pc_model *model, const float *in, const float *t, size_t n, float *out)
+/* pc_run and pc_run_timed; called directly, not through the library's own PLT entry. */
+PC_HOT static pc_status pc_run_poses(pc_model *model, const float *in, const float *t, size_t n,
+                                     float *out)
 {
     size_t k, done = 0;
     pc_status st;
@@ -221,4 +218,15 @@ pc_status pc_run_timed(pc_model *model, const float *in, const float *t, size_t 
         done += model->plans[k].batch;
     }
     return PC_OK;
+}
+
+PC_HOT pc_status pc_run(pc_model *model, const float *in, size_t n, float *out)
+{
+    return pc_run_poses(model, in, NULL, n, out);
+}
+
+PC_HOT pc_status pc_run_timed(pc_model *model, const float *in, const float *t, size_t n,
+                              float *out)
+{
+    return pc_run_poses(model, in, t, n, out);
 }

@@ -79,7 +79,7 @@ def operand_count(name: str, n_terms: int) -> int:
 def function(shape: Shape, fn_name: str) -> str:
     """C for one shape. Entry numbering as program.c emits it: a header entry where the
     code changes, one entry per operation, one per DOT term."""
-    lines = [f"static pc_status {fn_name}(const pc_step *s)", "{",
+    lines = [f"PC_HOT static pc_status {fn_name}(const pc_step *s)", "{",
              "    char *const base = (char *)s->io[0];",
              "    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;"]
     entry, last = 0, None

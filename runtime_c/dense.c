@@ -417,21 +417,6 @@ PC_AVX2_INLINE void pc_layer1_blocks(const float *a, const float *B, size_t K, s
     pc_store_lanes(O + 8 * (NB - 1), NB == 1 ? a0 : NB == 2 ? a1 : NB == 3 ? a2 : a3, tail);
 }
 
-/* One function per block count: each small enough that its accumulators stay in
- * registers (inlined into one kernel with the general layer, they were spilled, and a
- * chain of additions through the stack is slower and depends on where the stack lies). */
-#define PC_LAYER1(NB)                                                                          \
-    __attribute__((target("avx2"), noinline, hot)) static void pc_layer1_##NB(                    \
-        const pc_gemm *q, void *const *io)                                                     \
-    {                                                                                          \
-        pc_layer1_blocks((const float *)io[0], (const float *)io[1], q->K, q->N,               \
-                         (const float *)io[2], q->act == PC_ACT_TANH, (float *)io[3], NB);     \
-    }
-PC_LAYER1(1)
-PC_LAYER1(2)
-PC_LAYER1(3)
-PC_LAYER1(4)
-#undef PC_LAYER1
 
 __attribute__((target("avx2"), noinline)) static void pc_layer_rows_avx2(const pc_gemm *q,
                                                                          void *const *io)
@@ -446,16 +431,26 @@ __attribute__((target("avx2"))) static pc_status k_gemm_rows_avx2(const pc_step 
 }
 
 /* A one-pose layer with a bias row and tanh or no activation, up to 32 outputs, runs in
- * registers; anything else is the general layer. */
-__attribute__((target("avx2"), hot)) static void pc_chain_layer_avx2(const pc_gemm *l,
-                                                                void *const *io)
+ * registers; anything else is the general layer (a call: inlined, its loops would take
+ * the registers the block accumulators need, and spilled accumulators make a chain of
+ * additions through the stack). Every case is inlined into the chain kernel, which then
+ * runs a pose's layers without a call per layer. */
+__attribute__((target("avx2"), always_inline)) static inline void pc_chain_layer_avx2(
+    const pc_gemm *l, void *const *io)
 {
-    if (l->M != 1 || l->N == 0 || l->N > 32 || !(l->act == PC_ACT_TANH || l->act == PC_ACT_NONE))
+    const float *a = (const float *)io[0], *B = (const float *)io[1], *C = (const float *)io[2];
+    float *O = (float *)io[3];
+    const int tanh_act = l->act == PC_ACT_TANH;
+    if (l->M != 1 || l->N == 0 || l->N > 32 || !(tanh_act || l->act == PC_ACT_NONE))
         pc_layer_rows_avx2(l, io);
+    else if (l->N > 24)
+        pc_layer1_blocks(a, B, l->K, l->N, C, tanh_act, O, 4);
     else if (l->N > 16)
-        l->N > 24 ? pc_layer1_4(l, io) : pc_layer1_3(l, io);
+        pc_layer1_blocks(a, B, l->K, l->N, C, tanh_act, O, 3);
+    else if (l->N > 8)
+        pc_layer1_blocks(a, B, l->K, l->N, C, tanh_act, O, 2);
     else
-        l->N > 8 ? pc_layer1_2(l, io) : pc_layer1_1(l, io);
+        pc_layer1_blocks(a, B, l->K, l->N, C, tanh_act, O, 1);
 }
 
 __attribute__((target("avx2"), hot)) static pc_status k_gemm_chain_avx2(const pc_step *s)
@@ -463,6 +458,37 @@ __attribute__((target("avx2"), hot)) static pc_status k_gemm_chain_avx2(const pc
     pc_run_chain(s, pc_chain_layer_avx2);
     return PC_OK;
 }
+
+/* The one-pose chains of the shipped tanh MLPs (models/), with every layer's K and N known
+ * when compiled: the same operations as k_gemm_chain_avx2 in the same order (so the same
+ * bits), with the row loops unrolled and the addresses constant offsets, which leaves a
+ * pose about a third fewer instructions. A chain of any other shape runs the general one. */
+#define PC_UNROLLED_LAYER(i, K, N, TANH)                                                       \
+    pc_layer1_blocks((const float *)io[4 * (i)], (const float *)io[4 * (i) + 1], K, N,         \
+                     (const float *)io[4 * (i) + 2], TANH, (float *)io[4 * (i) + 3],           \
+                     ((N) + 7) / 8)
+#define PC_UNROLLED_CHAIN(NAME, LAYERS)                                                        \
+    __attribute__((target("avx2"), hot)) static pc_status NAME(const pc_step *s)               \
+    {                                                                                          \
+        void *const *io = s->io;                                                               \
+        LAYERS                                                                                 \
+        return PC_OK;                                                                          \
+    }
+/* mlp-zhou-tansig-20x20x20x20-br */
+PC_UNROLLED_CHAIN(k_chain_9_20_20_20_20_9,
+                  PC_UNROLLED_LAYER(0, 9, 20, 1); PC_UNROLLED_LAYER(1, 20, 20, 1);
+                  PC_UNROLLED_LAYER(2, 20, 20, 1); PC_UNROLLED_LAYER(3, 20, 20, 1);
+                  PC_UNROLLED_LAYER(4, 20, 9, 0);)
+/* mlp-quat-tansig-20x20-br */
+PC_UNROLLED_CHAIN(k_chain_7_20_20_7,
+                  PC_UNROLLED_LAYER(0, 7, 20, 1); PC_UNROLLED_LAYER(1, 20, 20, 1);
+                  PC_UNROLLED_LAYER(2, 20, 7, 0);)
+/* mlp-pos-tansig-15x15x15x15-lm (its first and last layers are in one-pose programs) */
+PC_UNROLLED_CHAIN(k_chain_15_15_15_15,
+                  PC_UNROLLED_LAYER(0, 15, 15, 1); PC_UNROLLED_LAYER(1, 15, 15, 1);
+                  PC_UNROLLED_LAYER(2, 15, 15, 1);)
+#undef PC_UNROLLED_CHAIN
+#undef PC_UNROLLED_LAYER
 
 /* AVX2 needs the CPU flag and the OS saving YMM state (XCR0 bits 1 and 2). */
 int pc_cpu_avx2(void)
@@ -487,6 +513,49 @@ int pc_cpu_avx2(void)
 const pc_kernel_fn pc_gemm_rows_kernels[2] = {k_gemm_rows, k_gemm_rows};
 const pc_kernel_fn pc_gemm_chain_kernels[2] = {k_gemm_chain, k_gemm_chain};
 #endif
+
+/* The layers of an unrolled chain: K, N and whether tanh follows (else no activation). */
+typedef struct pc_unrolled_chain {
+    size_t n_layers;
+    uint8_t kn_tanh[5][3];
+    pc_kernel_fn fn;
+} pc_unrolled_chain;
+
+/* Ends with an entry of no layers (the only one without AVX2). */
+static const pc_unrolled_chain pc_unrolled_chains[] = {
+#ifdef PC_HAVE_AVX2
+    {5, {{9, 20, 1}, {20, 20, 1}, {20, 20, 1}, {20, 20, 1}, {20, 9, 0}}, k_chain_9_20_20_20_20_9},
+    {3, {{7, 20, 1}, {20, 20, 1}, {20, 7, 0}}, k_chain_7_20_20_7},
+    {3, {{15, 15, 1}, {15, 15, 1}, {15, 15, 1}}, k_chain_15_15_15_15},
+#endif
+    {0, {{0, 0, 0}}, NULL},
+};
+
+pc_kernel_fn pc_gemm_chain_kernel(const pc_gemm_chain *q, int avx2)
+{
+    const pc_unrolled_chain *u;
+    size_t i;
+    for (u = pc_unrolled_chains; avx2 && u->fn; u++) {
+        for (i = 0; u->n_layers == q->n_layers && i < q->n_layers; i++) {
+            const pc_gemm *l = &q->layer[i];
+            if (l->M != 1 || l->K != u->kn_tanh[i][0] || l->N != u->kn_tanh[i][1] ||
+                l->act != (u->kn_tanh[i][2] ? PC_ACT_TANH : PC_ACT_NONE))
+                break;
+        }
+        if (u->n_layers == q->n_layers && i == q->n_layers)
+            return u->fn;
+    }
+    return pc_gemm_chain_kernels[avx2];
+}
+
+int pc_gemm_chain_unrolled(pc_kernel_fn fn)
+{
+    const pc_unrolled_chain *u;
+    for (u = pc_unrolled_chains; u->fn; u++)
+        if (fn == u->fn)
+            return 1;
+    return 0;
+}
 
 PC_COLD pc_status k_matmul(const pc_step *s)
 {

@@ -336,6 +336,11 @@ typedef struct pc_gemm_chain {
     pc_gemm layer[1]; /* n_layers entries; allocated longer */
 } pc_gemm_chain;
 extern const pc_kernel_fn pc_gemm_chain_kernels[2];
+/* The kernel of a built chain: an unrolled one where its layers have the shapes of a
+ * shipped MLP's (AVX2 only, dense.c), else pc_gemm_chain_kernels[avx2]. */
+pc_kernel_fn pc_gemm_chain_kernel(const pc_gemm_chain *q, int avx2);
+/* Whether fn is one of the unrolled chain kernels (the tests count them). */
+int pc_gemm_chain_unrolled(pc_kernel_fn fn);
 int pc_cpu_avx2(void);
 pc_status k_matmul(const pc_step *s);
 

@@ -86,6 +86,7 @@ static pc_status pc_emit_layer(pc_pass *pp, const pc_prep *p)
                 return st;
         q->n_layers = n;
         memcpy(&q->layer[n - 1], p->prm, sizeof(pc_gemm));
+        pp->last_step->fn = pc_gemm_chain_kernel(q, avx2);
         pp->last_step->n = p->out[0]->count;
     } else {
         void *at;

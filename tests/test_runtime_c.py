@@ -460,6 +460,7 @@ def testing_lib(c_build):
     T = ctypes.CDLL(str(c_build / "libposecorr_testing.so"))
     sz = ctypes.POINTER(ctypes.c_size_t)
     T.pc_test_program_steps.argtypes = [ctypes.c_void_p, sz, sz]
+    T.pc_test_chain_steps.argtypes = [ctypes.c_void_p, sz, sz]
     T.pc_test_load.argtypes = [ctypes.c_char_p, ctypes.c_size_t, ctypes.c_void_p, ctypes.c_void_p]
     return T
 
@@ -496,6 +497,33 @@ def test_shipped_models_run_compiled_programs(c_build, testing_lib):
                 assert compiled.value >= 1 and interpreted.value == 0, path.name
             else:
                 assert compiled.value == 0 and interpreted.value >= 1, path.name
+
+
+def test_shipped_mlps_run_unrolled_chains(testing_lib):
+    """The one-pose chain of every shipped tanh MLP has its unrolled kernel (dense.c); the
+    other shipped models have no chain or one the general kernel runs."""
+    import ctypes
+
+    from posecorr.controller.runtime import _Error, _Options
+
+    T = testing_lib
+    T.pc_load_memory.argtypes = [ctypes.c_char_p, ctypes.c_size_t, ctypes.POINTER(_Options),
+                                 ctypes.POINTER(ctypes.c_void_p), ctypes.POINTER(_Error)]
+    if not T.pc_test_cpu_avx2():
+        pytest.skip("unrolled chains are AVX2 kernels")
+    for path in MODELS:
+        blob = path.read_bytes()
+        handle, err = ctypes.c_void_p(), _Error()
+        opts = _Options(max_batch=16, flags=0)
+        assert T.pc_load_memory(blob, len(blob), ctypes.byref(opts), ctypes.byref(handle),
+                                ctypes.byref(err)) == 0, err.message
+        unrolled, general = ctypes.c_size_t(), ctypes.c_size_t()
+        T.pc_test_chain_steps(handle, ctypes.byref(unrolled), ctypes.byref(general))
+        T.pc_free(handle)
+        if path.name.startswith("mlp-") and "-tansig-" in path.name:
+            assert (unrolled.value, general.value) == (1, 0), path.name
+        else:
+            assert unrolled.value == 0, path.name
 
 
 def test_shim_checks_the_library_version(lib):
@@ -805,6 +833,11 @@ def test_portable_kernels_match_avx2_bit_for_bit(lib):
         a = Corrector(path, library=lib).correct(x)
         b = Corrector(path, library=str(portable / "libposecorr.so")).correct(x)
         np.testing.assert_array_equal(a, b, err_msg=path.name)
+        # one pose at a time: the one-pose plans (unrolled chains, compiled programs)
+        ones = [Corrector(path, library=lib), Corrector(path, library=str(portable / "libposecorr.so"))]
+        a1, b1 = (np.vstack([c.correct(x[i:i + 1]) for i in range(40)]) for c in ones)
+        np.testing.assert_array_equal(a1, b1, err_msg=path.name)
+        np.testing.assert_array_equal(a1, a[:40], err_msg=path.name)
 
 
 # -- sanitizers, valgrind, install ---------------------------------------------------------

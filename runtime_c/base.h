@@ -29,10 +29,10 @@
 #endif
 
 /* A function of the one-pose path. GCC and Clang put these in .text.hot, which the linker
- * keeps together: the code a pose runs then spans a few pages instead of the library's
- * width, and a pose costs fewer TLB entries (on a shared host core, a TLB or instruction
- * cache that another thread thrashes is what slows a run most). */
-#if defined(__GNUC__)
+ * keeps together: the code a pose runs spans a few pages instead of the library's width.
+ * Not in a build for size (the firmware): there `hot` would also optimise for speed, at
+ * 3.8 KB of flash, and a microcontroller has no pages. */
+#if defined(__GNUC__) && !defined(__OPTIMIZE_SIZE__)
 #define PC_HOT __attribute__((hot))
 #else
 #define PC_HOT

@@ -276,7 +276,8 @@ PC_INLINE void pc_gemm_rows(const pc_gemm *q, void *const *io)
             O[n] = pc_tanh_inline(O[n]);
 }
 
-static void pc_layer_rows(const pc_gemm *q, void *const *io)
+/* One copy of the layer serves the step and the chain. */
+PC_NOINLINE static void pc_layer_rows(const pc_gemm *q, void *const *io)
 {
     pc_gemm_rows(q, io);
 }
@@ -284,7 +285,7 @@ static void pc_layer_rows(const pc_gemm *q, void *const *io)
 /* One kernel for both activations: the test per launch is free next to the layer. */
 static pc_status k_gemm_rows(const pc_step *s)
 {
-    pc_gemm_rows((const pc_gemm *)s->prm, s->io);
+    pc_layer_rows((const pc_gemm *)s->prm, s->io);
     return PC_OK;
 }
 
@@ -426,7 +427,7 @@ __attribute__((target("avx2"), noinline)) static void pc_layer_rows_avx2(const p
 
 __attribute__((target("avx2"))) static pc_status k_gemm_rows_avx2(const pc_step *s)
 {
-    pc_gemm_rows((const pc_gemm *)s->prm, s->io);
+    pc_layer_rows_avx2((const pc_gemm *)s->prm, s->io);
     return PC_OK;
 }
 

@@ -13,6 +13,9 @@ Run from the repository root: `python -m bench [--only NAME]`.
 * `targets.json`: the runtime's speed goals as ratios taken in one run: `pc_run` against the
   hand-written zhou MLP (single pose, batch), the demo's physics + PMC model against the
   zhou MLP, the Python shim's single pose (`bench/targets.py`).
+* `previous.json`: `pc_run` on one pose against an earlier revision's (c654a8e, before the
+  host-floor work), both linked into one process, alternating rounds, quiet and with a
+  memcpy on the other core (`bench/previous.py`).
 * `apply.json`: `posecorr apply` on 10^6 rows (wall and CPU time, peak memory) against
   the csv module's read-and-write-back floor on the same file (`bench/apply.py`).
 * `ingest.json`: seconds to ingest a 10-minute recording (300k joint states, 150k tracker
@@ -57,6 +60,12 @@ def _train() -> dict:
     return train.run(str(RESULTS / "train.json"))
 
 
+def _previous() -> dict:
+    from . import previous
+
+    return previous.both(str(RESULTS / "previous.json"))
+
+
 def _ingest() -> dict:
     from . import ingest
 
@@ -64,7 +73,8 @@ def _ingest() -> dict:
 
 
 # name -> runner writing bench/results/NAME.json; `make bench` runs them in this order.
-BENCHMARKS = {"latency": _latency, "targets": _targets, "fit": _fit, "apply": _apply, "ingest": _ingest, "train": _train}
+BENCHMARKS = {"latency": _latency, "targets": _targets, "previous": _previous, "fit": _fit,
+              "apply": _apply, "ingest": _ingest, "train": _train}
 
 
 def main(argv: list[str] | None = None) -> int:

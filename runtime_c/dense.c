@@ -418,7 +418,6 @@ PC_AVX2_INLINE void pc_layer1_blocks(const float *a, const float *B, size_t K, s
     pc_store_lanes(O + 8 * (NB - 1), NB == 1 ? a0 : NB == 2 ? a1 : NB == 3 ? a2 : a3, tail);
 }
 
-
 __attribute__((target("avx2"), noinline)) static void pc_layer_rows_avx2(const pc_gemm *q,
                                                                          void *const *io)
 {

@@ -462,34 +462,32 @@ __attribute__((target("avx2"), hot)) static pc_status k_gemm_chain_avx2(const pc
 /* The one-pose chains of the shipped tanh MLPs (models/), with every layer's K and N known
  * when compiled: the same operations as k_gemm_chain_avx2 in the same order (so the same
  * bits), with the row loops unrolled and the addresses constant offsets, which leaves a
- * pose about a third fewer instructions. A chain of any other shape runs the general one. */
+ * pose about a third fewer instructions. A chain of any other shape runs the general one.
+ * Each chain is one list of its layers, L(index, K, N, tanh after it), that makes both its
+ * kernel and its row of the table pc_gemm_chain_kernel matches against. */
+#define PC_CHAIN_ZHOU_20X4(L) /* mlp-zhou-tansig-20x20x20x20-br */                          \
+    L(0, 9, 20, 1) L(1, 20, 20, 1) L(2, 20, 20, 1) L(3, 20, 20, 1) L(4, 20, 9, 0)
+#define PC_CHAIN_QUAT_20X2(L) /* mlp-quat-tansig-20x20-br */                                \
+    L(0, 7, 20, 1) L(1, 20, 20, 1) L(2, 20, 7, 0)
+#define PC_CHAIN_POS_15X4(L) /* mlp-pos-tansig-15x15x15x15-lm: its first and last layers   \
+                                are in one-pose programs */                                 \
+    L(0, 15, 15, 1) L(1, 15, 15, 1) L(2, 15, 15, 1)
+#define PC_UNROLLED_CHAINS(X) X(PC_CHAIN_ZHOU_20X4) X(PC_CHAIN_QUAT_20X2) X(PC_CHAIN_POS_15X4)
+
 #define PC_UNROLLED_LAYER(i, K, N, TANH)                                                       \
     pc_layer1_blocks((const float *)io[4 * (i)], (const float *)io[4 * (i) + 1], K, N,         \
                      (const float *)io[4 * (i) + 2], TANH, (float *)io[4 * (i) + 3],           \
-                     ((N) + 7) / 8)
-#define PC_UNROLLED_CHAIN(NAME, LAYERS)                                                        \
-    __attribute__((target("avx2"), hot)) static pc_status NAME(const pc_step *s)               \
+                     ((N) + 7) / 8);
+#define PC_UNROLLED_KERNEL(CHAIN)                                                              \
+    __attribute__((target("avx2"), hot)) static pc_status k_##CHAIN(const pc_step *s)         \
     {                                                                                          \
         void *const *io = s->io;                                                               \
-        LAYERS                                                                                 \
+        CHAIN(PC_UNROLLED_LAYER)                                                               \
         return PC_OK;                                                                          \
     }
-/* mlp-zhou-tansig-20x20x20x20-br */
-PC_UNROLLED_CHAIN(k_chain_9_20_20_20_20_9,
-                  PC_UNROLLED_LAYER(0, 9, 20, 1); PC_UNROLLED_LAYER(1, 20, 20, 1);
-                  PC_UNROLLED_LAYER(2, 20, 20, 1); PC_UNROLLED_LAYER(3, 20, 20, 1);
-                  PC_UNROLLED_LAYER(4, 20, 9, 0);)
-/* mlp-quat-tansig-20x20-br */
-PC_UNROLLED_CHAIN(k_chain_7_20_20_7,
-                  PC_UNROLLED_LAYER(0, 7, 20, 1); PC_UNROLLED_LAYER(1, 20, 20, 1);
-                  PC_UNROLLED_LAYER(2, 20, 7, 0);)
-/* mlp-pos-tansig-15x15x15x15-lm (its first and last layers are in one-pose programs) */
-PC_UNROLLED_CHAIN(k_chain_15_15_15_15,
-                  PC_UNROLLED_LAYER(0, 15, 15, 1); PC_UNROLLED_LAYER(1, 15, 15, 1);
-                  PC_UNROLLED_LAYER(2, 15, 15, 1);)
-#undef PC_UNROLLED_CHAIN
+PC_UNROLLED_CHAINS(PC_UNROLLED_KERNEL)
+#undef PC_UNROLLED_KERNEL
 #undef PC_UNROLLED_LAYER
-
 /* AVX2 needs the CPU flag and the OS saving YMM state (XCR0 bits 1 and 2). */
 int pc_cpu_avx2(void)
 {
@@ -524,9 +522,13 @@ typedef struct pc_unrolled_chain {
 /* Ends with an entry of no layers (the only one without AVX2). */
 static const pc_unrolled_chain pc_unrolled_chains[] = {
 #ifdef PC_HAVE_AVX2
-    {5, {{9, 20, 1}, {20, 20, 1}, {20, 20, 1}, {20, 20, 1}, {20, 9, 0}}, k_chain_9_20_20_20_20_9},
-    {3, {{7, 20, 1}, {20, 20, 1}, {20, 7, 0}}, k_chain_7_20_20_7},
-    {3, {{15, 15, 1}, {15, 15, 1}, {15, 15, 1}}, k_chain_15_15_15_15},
+#define PC_COUNT_LAYER(i, K, N, TANH) +1
+#define PC_LAYER_SHAPE(i, K, N, TANH) {K, N, TANH},
+#define PC_UNROLLED_ROW(CHAIN) {0 CHAIN(PC_COUNT_LAYER), {CHAIN(PC_LAYER_SHAPE)}, k_##CHAIN},
+    PC_UNROLLED_CHAINS(PC_UNROLLED_ROW)
+#undef PC_UNROLLED_ROW
+#undef PC_LAYER_SHAPE
+#undef PC_COUNT_LAYER
 #endif
     {0, {{0, 0, 0}}, NULL},
 };

@@ -63,8 +63,8 @@ PC_HOT static pc_status pc_check_output(pc_model *m, const float *out, size_t n,
 }
 
 /* t NULL: every pose at t = 0. */
-PC_HOT static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, const float *t,
-                             float *out, size_t first)
+PC_HOT static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in,
+                                    const float *t, float *out, size_t first)
 {
     const size_t count = plan->batch * PC_POSE_WIDTH;
     size_t i;
@@ -117,7 +117,7 @@ PC_RARE static void pc_decimal(char *buf, size_t size, double v, int places)
 
 /* "...: VALUE UNIT, expected LO to HI UNIT (metadata KEY)" of a value outside bounds. */
 PC_RARE static void pc_outside(pc_model *m, const char *what, float v, float lo, float hi,
-                       const char *unit, const char *key)
+                               const char *unit, const char *key)
 {
     char value[24], low[24], high[24];
     pc_decimal(value, sizeof value, v, 3);

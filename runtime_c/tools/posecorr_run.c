@@ -134,7 +134,6 @@ static int is_blank(const char *s)
     return 1;
 }
 
-
 static void fill_nan(float *out)
 {
     int k;

@@ -105,6 +105,7 @@ def test_statuses_and_names_are_the_librarys():
 # --- poses the shipped models refuse, on both back ends ---------------------------------------
 
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.name)
+@pytest.mark.cpu_floats
 def test_shipped_models_carry_their_training_box(path):
     """Each shipped model's input_bounds is the box to_onnx computes from its training
     positions (the seeded data regenerated), and poses inside are corrected alike."""
@@ -114,7 +115,9 @@ def test_shipped_models_carry_their_training_box(path):
     spec = next(s for s in SPECS if f"{s.name}.onnx" == path.name)
     data = _experiment(spec.experiment, experiment_data)
     box = json.loads({e.key: e.value for e in onnx.load(path).metadata_props}["input_bounds"])
-    assert box == input_bounds(data["measured"][data["train"]])
+    # The simulation's matrix products round by the CPU's BLAS kernels (OpenBLAS picks them at
+    # run time), so the regenerated box agrees with the stored one to rounding, not to the bit.
+    np.testing.assert_allclose(box, input_bounds(data["measured"][data["train"]]), rtol=1e-12, atol=0)
     x = graphs.poses_in_box(path, 50, seed=3).astype(np.float64)
     c, o = (Corrector(path, backend=b).correct(x) for b in BACKENDS)
     assert np.abs(c - o).max() < 1e-5

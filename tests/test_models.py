@@ -60,6 +60,7 @@ def _data(experiment: int, seed: int) -> dict:
 
 
 @pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
+@pytest.mark.cpu_floats
 def test_card_metrics_reproduced_on_regenerated_test_split(path):
     info = read_info(path)
     data = _data(info["experiment"], info["data_seed"])
@@ -79,6 +80,7 @@ def test_card_metrics_reproduced_on_regenerated_test_split(path):
 
 
 @pytest.mark.parametrize("path", [p for p in FILES if read_info(p).get("experiment") == 3], ids=lambda p: p.name)
+@pytest.mark.cpu_floats
 def test_exp3_model_generalises_to_a_fresh_simulation(path):
     """Same hardware and session effects, new noise draws and order (seed 1): the model's
     rmse_total over the whole fresh table stays within 10 % of its card."""
@@ -90,6 +92,7 @@ def test_exp3_model_generalises_to_a_fresh_simulation(path):
 
 
 @pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
+@pytest.mark.cpu_floats
 def test_card_metrics_reproduced_by_posecorr_apply(path, tmp_path, capsys):
     """The user's route: the test split as a CSV through `posecorr apply` (C runtime)."""
     from posecorr.cli import main

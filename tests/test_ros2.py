@@ -185,8 +185,11 @@ def test_swap_mid_stream_and_a_corrupt_file(domain, tmp_path):
         # stream still works on earlier poses when the file changes, so the switch may come
         # before pose 1000 in publication order, but once, and for good.
         assert 0 < switch < len(x) and np.all(from_second[switch:]) and np.all(from_first[:switch])
-        cell.wait(lambda: "model.onnx" in cell.diagnostics[-1]["last_load_error"], 10,
-                  "the corrupt file was not reported")
+        # Diagnostics are published on a timer: one sent before the last poses were counted
+        # is not the state to judge, so wait for a message that has counted every pose.
+        cell.wait(lambda: cell.diagnostics and cell.diagnostics[-1]["poses_out"] == str(len(x))
+                  and "model.onnx" in cell.diagnostics[-1]["last_load_error"], 20,
+                  "no diagnostics with every pose counted and the corrupt file reported")
         d = cell.diagnostics[-1]
         assert d["generation"] == "2" and d["swaps"] == "1"
         assert d["poses_per_generation"] == f"1:{switch},2:{len(x) - switch}"

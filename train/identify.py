@@ -320,16 +320,26 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block],
             column[block.index] = v if len(v) > 1 else np.abs(v)   # a 1-D block keeps its sign
             basis.append(column)
         if np.any(~keep):
+            # The figure that decided: too little of its own effect (an alias of what came
+            # before), or a standard error above the limit (too small an effect on these poses).
+            figures = [_why_held(block, independent[j], std[j]) for j in np.flatnonzero(~keep)]
             if len(block.index) == 1 or not np.any(keep):
-                fixed[block.label] = block.reason
+                fixed[block.label] = f"{block.reason}: {figures[int(np.argmax(std[~keep]))]}"
             else:
-                for v in Vt[~keep]:
-                    fixed[f"{block.label} along {direction_label(v)}"] = block.reason
+                for v, figure in zip(Vt[~keep], figures):
+                    fixed[f"{block.label} along {direction_label(v)}"] = f"{block.reason}: {figure}"
         if np.any(keep):
             # What this block adds is orthogonal to the span so far: append its orthonormal basis.
             kept_span = np.concatenate([kept_span, np.linalg.qr(cols @ Vt[keep].T)[0]], axis=1)
     B = np.stack(basis, axis=1) if basis else np.zeros((n_theta, 0))
     return B, fixed
+
+
+def _why_held(block: Block, independent: float, std: float) -> str:
+    if independent <= MIN_INDEPENDENT:
+        return (f"only {independent:.0%} of its effect on these poses is its own "
+                f"(the rest is what the parameters before it do)")
+    return f"its standard error would be {std:.3g} x its typical size ({block.scale:g} {block.unit})"
 
 
 __all__ = ["CLOSED_FORM", "RIGID_VARIANTS", "rigid_variants", "gross_outliers", "MIN_INDEPENDENT", "Spread", "describe_spread", "chordal_mean", "RigidRegistration", "rigid_registration", "Block",

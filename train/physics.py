@@ -235,19 +235,35 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         """Parameter blocks in the order the identification takes them: the registration
         (station, then mount) first, then the other effects in catalogue order."""
         first = {"station": 0, "mount": 1}
-        spread = self.spread_
-        reasons = {"station": spread.position_words(), "mount": spread.orientation_words()}
         blocks, i = [], 0
         owned = []
         for effect in self._chosen:
+            reason = self._undetermined_words(effect)
             for param in effect.params:
                 index = np.arange(i, i + param.size)
-                reason = reasons.get(effect.name, f"{spread.position_words()}; {spread.orientation_words()}")
                 label = f"{effect.name}.{param.name}"
                 owned.append((first.get(effect.name, 2), len(owned),
                               Block(label, index, param.scale, param.unit, reason, label not in REGISTRATION)))
                 i += param.size
         return [block for _, _, block in sorted(owned, key=lambda item: item[:2])]
+
+    def _undetermined_words(self, effect: Any) -> str:
+        """What these poses lack for `effect` to show, by what it varies with
+        (`Effect.sensitivity`): the session's length, the positions' span or the orientations'."""
+        if effect.sensitivity == "time":
+            t = self.ctx_.t
+            if t is None:
+                return "the table has no time column t"
+            ranges = [f"{effect.name}.{p.name} {p.bounds[0]:g} to {p.bounds[1]:g} {p.unit}"
+                      for p in effect.params if p.bounds is not None]
+            words = f"the session lasts {float(np.ptp(t)):.0f} s"
+            if ranges:
+                words += (f", short against {', '.join(ranges)} (over a session much shorter than the time "
+                          f"constant only a straight line shows)")
+            return words
+        if effect.sensitivity == "orientation":
+            return self.spread_.orientation_words()
+        return self.spread_.position_words()
 
     def _identify(self, theta0: np.ndarray, measured: np.ndarray, reference: np.ndarray,
                   sigma_p: float, sigma_r: float) -> tuple[np.ndarray, dict[str, str]]:

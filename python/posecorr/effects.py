@@ -44,7 +44,7 @@ from ._xp import namespace
 from .rotations import normalize, rotvec_to_matrix
 
 __all__ = [
-    "Param", "Effect", "EffectContext", "EFFECTS", "BUILTIN_NAMES", "get_effect", "register_effect",
+    "Param", "Effect", "EffectContext", "EFFECTS", "BUILTIN_NAMES", "FORM_NAMES", "SENSITIVITIES", "get_effect", "register_effect",
     "unregister_effect", "to_namespace", "checked_theta",
     "parse_effects_arg", "load_effect_file", "apply_effects", "invert_effects",
     "sorted_effects", "station_coords", "from_station", "sweep_direction", "Mount", "Sweep", "RangeScale", "Incidence", "Drift", "Station", "Noise",
@@ -61,6 +61,8 @@ class Param:
     bounds: (lower, upper) a fit keeps every entry in (None: unbounded).
     domain: where the map is defined at all, whatever a fit's bounds: a key of `DOMAINS`
         ("positive" for a divisor, "nonnegative" for a standard deviation).
+    plausible: (lower, upper) the values a real tracker shows (None: any); a fitted value
+        outside is no physical explanation, and the diagnosis does not mark the effect present.
     """
 
     name: str
@@ -72,6 +74,7 @@ class Param:
     doc: str = ""
     bounds: tuple[float, float] | None = None
     domain: str = "real"
+    plausible: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         if len(self.default) != self.size:
@@ -154,7 +157,11 @@ def _rows_times(p: Any, M: Any) -> Any:
 
 # What an effect declares about itself besides its map (see `Effect`).
 CAPABILITIES = ("name", "params", "order", "random", "needs_time", "closed_form_inverse", "per_row_theta",
-                "changes_rotation", "inverse_steps", "doc")
+                "changes_rotation", "inverse_steps", "doc", "generic", "causes", "sensitivity")
+
+# What the poses must vary in for an effect to show (`Effect.sensitivity`): the words of
+# "cannot be determined" name the one that is missing.
+SENSITIVITIES = ("position", "orientation", "time")
 
 
 class Effect:
@@ -179,6 +186,11 @@ class Effect:
     changes_rotation: ClassVar[bool] = True  # False: the generic inverse leaves R untouched
     inverse_steps: ClassVar[int] = 6
     doc: ClassVar[str] = ""
+    # A generic discrepancy form (`posecorr.forms`), not a physical effect: the diagnosis
+    # proposes it only where no catalogue effect explains the error.
+    generic: ClassVar[bool] = False
+    causes: ClassVar[str] = ""                # physical causes of this shape, in words
+    sensitivity: ClassVar[str] = "position"   # one of SENSITIVITIES
 
     def __init_subclass__(cls, **capabilities: Any) -> None:
         """The capabilities above may be given as class keywords, all in one line:
@@ -241,6 +253,20 @@ class Effect:
         values = np.asarray(theta, dtype=float).reshape(-1)
         return {name: values[s].tolist() for name, s in self.slices().items()}
 
+    def implausible(self, theta: Any) -> list[str]:
+        """Words for each parameter whose fitted value lies outside its `Param.plausible`."""
+        values = np.asarray(theta, float).reshape(-1)
+        out = []
+        for param, part in zip(self.params, self.slices().values()):
+            if param.plausible is None:
+                continue
+            lo, hi = param.plausible
+            worst = values[part][np.argmax(np.abs(values[part]))] if param.size > 1 else values[part][0]
+            if np.any(values[part] < lo) or np.any(values[part] > hi):
+                out.append(f"{self.name}.{param.name} = {worst:.3g} {param.unit} lies outside the plausible "
+                           f"{lo:g} to {hi:g} {param.unit}")
+        return out
+
     def notes(self, ctx: EffectContext) -> list[str]:
         """Why the effect cannot act on this data (empty when it can)."""
         return []
@@ -268,7 +294,7 @@ class Effect:
 
 # --- the built-in catalogue -----------------------------------------------------------
 
-class Mount(Effect, name="mount", order=1, per_row_theta=True, closed_form_inverse=True):
+class Mount(Effect, name="mount", order=1, per_row_theta=True, closed_form_inverse=True, sensitivity="orientation"):
     """Error of the tracker adapter, i.e. of end_T_tracker (eq. 22), in the tracker frame.
 
     p <- p + R e;  R <- R Exp(d).  d (3, rad) and e (3, m) are expressed in the tracker frame
@@ -325,8 +351,10 @@ class Sweep(Effect, name="sweep", order=2, per_row_theta=True, inverse_steps=8):
     a contraction with factor 2 |curve| |angle| << 1.
     """
 
-    params = (Param("phase_x", 1, (1e-3,), 1e-3, "rad"), Param("phase_y", 1, (-1e-3,), 1e-3, "rad"),
-              Param("curve_x", 1, (0.02,), 1e-2, "1/rad"), Param("curve_y", 1, (-0.02,), 1e-2, "1/rad"))
+    params = (Param("phase_x", 1, (1e-3,), 1e-3, "rad", plausible=(-0.01, 0.01)),
+              Param("phase_y", 1, (-1e-3,), 1e-3, "rad", plausible=(-0.01, 0.01)),
+              Param("curve_x", 1, (0.02,), 1e-2, "1/rad", plausible=(-0.2, 0.2)),
+              Param("curve_y", 1, (-0.02,), 1e-2, "1/rad", plausible=(-0.2, 0.2)))
 
     def forward(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
@@ -352,7 +380,7 @@ class RangeScale(Effect, name="range_scale", order=3, per_row_theta=True, closed
     p <- t_S + (1 + k)(p - t_S); k dimensionless. R unchanged. Inverse: divide by (1 + k).
     """
 
-    params = (Param("k", 1, (5e-3,), 1e-2, "1"),)
+    params = (Param("k", 1, (5e-3,), 1e-2, "1", plausible=(-0.02, 0.02)),)
 
     def forward(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
@@ -365,7 +393,8 @@ class RangeScale(Effect, name="range_scale", order=3, per_row_theta=True, closed
         return t_S + (p - t_S) / (1.0 + theta[..., 0:1]), R
 
 
-class Incidence(Effect, name="incidence", order=4, per_row_theta=True, changes_rotation=False, inverse_steps=6):
+class Incidence(Effect, name="incidence", order=4, per_row_theta=True, changes_rotation=False, inverse_steps=6,
+                sensitivity="orientation"):
     """Position bias growing with the incidence angle of the station's light on the tracker.
 
     u = unit(p - t_S) (station -> tracker), a = R[:, 2] (tracker z axis, base frame),
@@ -375,8 +404,9 @@ class Incidence(Effect, name="incidence", order=4, per_row_theta=True, changes_r
     R unchanged. Inverse: fixed-point steps (the bias changes by ~b/|p - t_S| per metre).
     """
 
-    params = (Param("b1", 1, (1e-3,), 1e-3, "m", doc="along the line of sight"),
-              Param("b2", 1, (1e-3,), 1e-3, "m", doc="across it, towards the tracker z axis"))
+    params = (Param("b1", 1, (1e-3,), 1e-3, "m", doc="along the line of sight", plausible=(-5e-3, 5e-3)),
+              Param("b2", 1, (1e-3,), 1e-3, "m", doc="across it, towards the tracker z axis",
+                    plausible=(-5e-3, 5e-3)))
 
     def forward(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
@@ -387,14 +417,15 @@ class Incidence(Effect, name="incidence", order=4, per_row_theta=True, changes_r
         return p + b1 * (1.0 + au) * u + b2 * (a - au * u), R
 
 
-class Drift(Effect, name="drift", order=5, per_row_theta=True, closed_form_inverse=True, needs_time=True):
+class Drift(Effect, name="drift", order=5, per_row_theta=True, closed_form_inverse=True, needs_time=True,
+            sensitivity="time"):
     """Slow drift of the tracking solution over a session (thermal, IMU bias), base frame.
 
     p <- p + d (1 - exp(-t / tau)); d (3, m), tau (s), t (s since the session start) from
     ctx.t. Without a time column the effect is the identity (and warns once). Closed-form inverse.
     """
 
-    params = (Param("d", 3, (1e-3, -5e-4, 1e-3), 1e-3, "m"),
+    params = (Param("d", 3, (1e-3, -5e-4, 1e-3), 1e-3, "m", plausible=(-0.02, 0.02)),
               Param("tau", 1, (3600.0,), 3600.0, "s", identity=3600.0,
                     bounds=(60.0, 1e7), doc="time constant; a minute to months", domain="positive"))
 
@@ -515,10 +546,17 @@ for _cls in (Mount, Sweep, RangeScale, Incidence, Drift, Station, Noise):
 
 BUILTIN_NAMES: tuple[str, ...] = tuple(EFFECTS)
 
+from . import forms as _forms  # noqa: E402  (the forms subclass Effect, defined above)
+
+for _cls in _forms.FORMS:
+    register_effect(_cls)
+
+FORM_NAMES: tuple[str, ...] = tuple(name for name, effect in EFFECTS.items() if effect.generic)
+
 
 def unregister_effect(name: str) -> None:
     """Remove a user effect from the catalogue (built-ins stay)."""
-    if name in BUILTIN_NAMES:
+    if name in BUILTIN_NAMES or name in FORM_NAMES:
         raise ValueError(f"effect {name!r} is built in and cannot be removed")
     get_effect(name)
     del EFFECTS[name], _SOURCES[name]

@@ -243,11 +243,13 @@ def robot_flange_poses(robot: str, n: int, rng: np.random.Generator) -> np.ndarr
     return np.concatenate(poses)[:n]
 
 
-def simulate_session(seed: int = 0, spec: SessionSpec | None = None, **pin: Any) -> SimulationResult:
+def simulate_session(seed: int = 0, spec: SessionSpec | None = None, extra: Mapping[str, Any] | None = None,
+                     **pin: Any) -> SimulationResult:
     """A realistic session (see `SessionSpec`): few poses, an unregistered tracker frame, a
     lever arm, the given orientation spread, noise at the DESIGN defaults, and optionally an
     error no model removes. `pin` fixes fields of the drawn spec (n, spread, position_only,
-    unremovable). The reference frame is the robot base; the workspace centre of the effects
+    unremovable). `extra` {effect: theta} adds effects where the tracker is, in the cell (a
+    user's effect or a form, say), applied with the mount in catalogue order. The reference frame is the robot base; the workspace centre of the effects
     is the mean reference position, as a fit takes it."""
     from .rotations import rotvec_to_matrix
 
@@ -279,7 +281,9 @@ def simulate_session(seed: int = 0, spec: SessionSpec | None = None, **pin: Any)
     ctx = replace(EffectContext.default(noise_draws=Noise.draw(rng, spec.n)), c=p_ref.mean(axis=0))
     # The noise acts where the tracker is, in the cell, before the unknown frame turns it into
     # the tracker's own coordinates (its range term would otherwise see the frame's offset).
-    p_meas, R_meas = apply_effects(p_ref, R_ref, {"mount": mix["mount"], "noise": mix["noise"]}, ctx)
+    mix.update({name: np.asarray(theta, float) for name, theta in (extra or {}).items()})
+    cell = {name: theta for name, theta in mix.items() if name != "station"}
+    p_meas, R_meas = apply_effects(p_ref, R_ref, cell, ctx)
     p_meas, R_meas = apply_effects(p_meas, R_meas, {"station": mix["station"]}, ctx)
     p_floor, R_floor = get_effect("noise").forward(p_ref, R_ref, mix["noise"], ctx)
     if spec.unremovable:

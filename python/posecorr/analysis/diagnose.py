@@ -33,22 +33,26 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ..data import PoseTable
+from ..effects import get_effect
 from ..metrics import pose_errors, rmse_total
 from ..rotations import matrix_to_rotvec, quat_to_matrix
 from .features import FEATURES, pose_features
 
 ALIAS_CORRELATION = 0.99
 PRESENT_TEST = ("score (Lagrange multiplier) test on held-out residuals, Bonferroni-corrected p < {alpha:g}; "
-                "held-out whitened error lower in every one of {folds} folds; mean gain >= {gain:.1%}")
+                "held-out whitened error lower in every one of {folds} folds; mean gain >= {gain:.1%}; "
+                "still so given the others present (forward selection, backward elimination); "
+                "catalogue effects within their plausible ranges")
 
 
-def candidate_effects(table: PoseTable, effects: Sequence[str]) -> list[str]:
-    """Registered, fittable effects not in `effects` (drift only when the table has time)."""
+def candidate_effects(table: PoseTable, effects: Sequence[str], forms: bool = True) -> list[str]:
+    """Registered, fittable effects not in `effects` (drift only when the table has time); the
+    generic forms (`posecorr.forms`) too unless `forms` is False."""
     from ..effects import EFFECTS
 
     out = []
     for name, effect in EFFECTS.items():
-        if name in effects or effect.random:
+        if name in effects or effect.random or (effect.generic and not forms):
             continue
         if effect.needs_time and table.time() is None:
             continue
@@ -199,26 +203,116 @@ def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int,
     gains = np.array([_whitened_gain(table, held, state.predicted, cv.predicted, state.per_fold[k][3])
                       for k, (_, held) in enumerate(plan.folds(table.n, seed))])
     significant = p_value < alpha / max(n_candidates, 1)
-    return {"effect": name, "score": float(np.mean(gains)), "p_value": p_value, "lm_statistic": lm, "df": rank,
+    effect = get_effect(name)
+    # A physical explanation must take physical values in every fold (`Param.plausible`).
+    worst: dict[str, str] = {}   # one line per parameter: its farthest value over the folds
+    for model in sorted(cv.fitted, key=lambda m: -np.abs(m.physics_.params_[name]).max()):
+        for words in effect.implausible(model.physics_.params_[name]):
+            worst.setdefault(words.split(" = ")[0], words)
+    implausible = list(worst.values())
+    return {"effect": name, "kind": "form" if effect.generic else "effect", "parameters": effect.size,
+            "score": float(np.mean(gains)), "p_value": p_value, "lm_statistic": lm, "df": rank,
             "cv_rmse_before": state.before, "cv_rmse_after": float(cv.metrics["rmse_total"]),
             "cv_rmse_pos_after": float(cv.metrics["rmse_pos"]), "fold_gain_min": float(gains.min()),
-            "present": bool(significant and np.all(gains > 0) and np.mean(gains) >= min_gain),
+            "passes": bool(significant and np.all(gains > 0) and np.mean(gains) >= min_gain),
+            "implausible": implausible,
             "fold_params": [model.physics_.params_ for model in cv.fitted]}
 
 
 # Rows a diagnosis runs on at most (drawn evenly from a longer table).
 MAX_ROWS = 5000
+# Two forms whose held-out gains lie within this fraction of each other, each adding nothing
+# given the other, cannot be told apart by the data: nothing is proposed.
+INDISTINCT_GAIN = 0.1
+
+
+@dataclass
+class _Search:
+    """What the selection needs at every step: the data, the base model's folds and the test."""
+
+    table: PoseTable
+    effects: list[str]
+    names: list[str]
+    splits: list
+    folds: int
+    seed: int
+    alpha: float
+    min_gain: float
+    say: Callable[[str], None]
+    base: "_FoldState"
+
+    def given(self, name: str, others: Sequence[str], warm: list[dict] | None = None) -> dict[str, Any]:
+        """The test of `name` added to the model of the effects and `others`."""
+        state = _fold_state(self.table, self.effects + list(others), self.names, self.splits, self.folds,
+                            self.seed, warm)
+        return _evaluate(self.table, state, name, len(self.names), self.alpha, self.min_gain, self.folds, self.seed)
+
+
+def _earns(row: dict[str, Any]) -> bool:
+    return row["passes"] and not row["implausible"]
+
+
+def _forward(search: _Search, rows: list[dict[str, Any]]) -> list[str]:
+    """Walk down the ranking; a candidate that passes alone is kept if it still passes given
+    those kept before it (a missing station rotation makes a sweep phase look useful until
+    the station is in)."""
+    accepted: list[str] = []
+    warm: list[dict] | None = None
+    for row in rows:
+        if _earns(row) and accepted:
+            search.say(f"candidate {row['effect']} given {', '.join(accepted)}")
+            state = _fold_state(search.table, search.effects + accepted, search.names, search.splits,
+                                search.folds, search.seed, warm)
+            conditional = _evaluate(search.table, state, row["effect"], len(search.names), search.alpha,
+                                    search.min_gain, search.folds, search.seed)
+            row.update(given=list(accepted), p_value_given=conditional["p_value"], score_given=conditional["score"],
+                       passes_given=_earns(conditional), implausible_given=conditional["implausible"])
+            if not _earns(conditional):
+                continue
+        if _earns(row):
+            accepted.append(row["effect"])
+            warm = row["fold_params"]
+    return accepted
+
+
+def _backward(search: _Search, accepted: list[str], by_name: dict[str, dict]) -> tuple[list[str], list[dict]]:
+    """Each kept candidate tested given all the others kept (backward elimination): while some
+    fail, drop one (a form before a catalogue effect, so a physical explanation that does the
+    form's work stays; then the smallest gain) and test again. Returns what stays and the
+    record of each drop."""
+    accepted, dropped = list(accepted), []
+    while len(accepted) > 1:
+        tests = {}
+        for name in accepted:
+            search.say(f"candidate {name} given the others kept")
+            tests[name] = search.given(name, [a for a in accepted if a != name])
+        failing = [name for name in accepted if not _earns(tests[name])]
+        if not failing:
+            break
+        drop = min(failing, key=lambda name: (not get_effect(name).generic, tests[name]["score"]))
+        others = [a for a in accepted if a != drop]
+        twins = [name for name in failing if name != drop and get_effect(name).generic and get_effect(drop).generic
+                 and abs(by_name[name]["score"] - by_name[drop]["score"])
+                 <= INDISTINCT_GAIN * max(by_name[name]["score"], by_name[drop]["score"])]
+        dropped.append({"effect": drop, "given": others, "p_value_given": tests[drop]["p_value"],
+                        "score_given": tests[drop]["score"], "implausible_given": tests[drop]["implausible"],
+                        "indistinct_from": twins})
+        accepted.remove(drop)
+    return accepted, dropped
 
 
 def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed: int = 0,
              alpha: float = 1e-3, min_gain: float = 0.005, candidates: Sequence[str] | None = None,
-             model_predict: Callable[[np.ndarray], np.ndarray] | None = None,
+             forms: bool = True, model_predict: Callable[[np.ndarray], np.ndarray] | None = None,
              progress: Callable[[str], None] | None = None) -> dict[str, Any]:
-    """Rank the effects `effects` lacks; JSON-ready dict in the `diagnose` layout of docs/design.md.
+    """Rank the effects `effects` lacks, catalogue effects and generic forms on the same
+    held-out poses; JSON-ready dict in the `diagnose` layout of docs/design.md.
 
-    Forward selection keeps partial look-alikes out: walking down the ranking, a candidate
-    that passes is re-tested with the effects already found present added to the model
-    (a missing station rotation makes a sweep phase look useful until the station is in).
+    A candidate is `present` when it passes the test alone, still passes given those kept
+    before it (forward selection), and given all the others kept (backward elimination); a
+    catalogue effect also needs physically plausible values in every fold (`Param.plausible`).
+    Present forms make the `proposal` (`posecorr.analysis.proposal`); present catalogue
+    effects the advice to add them.
     model_predict: corrected poses of a given model (an ONNX file, say); when given, the
     feature R^2 uses its residuals instead of the base physics model's out-of-fold ones.
     """
@@ -236,7 +330,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
             model_predict = lambda measured: corrected[keep]  # noqa: E731
         table = table.subset(keep)
     effects = list(effects)
-    names = list(candidates) if candidates is not None else candidate_effects(table, effects)
+    names = list(candidates) if candidates is not None else candidate_effects(table, effects, forms)
     say = progress or (lambda message: None)
     say("which candidate effects this data can determine")
     names, undetermined = split_identifiable(table, effects, names)
@@ -248,24 +342,16 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         say(f"candidate {name}")
         rows.append(_evaluate(table, state, name, len(names), alpha, min_gain, folds, seed))
     rows.sort(key=lambda row: (-row["score"], row["p_value"]))
+    by_name = {row["effect"]: row for row in rows}
 
-    accepted: list[str] = []
-    warm_accepted: list[dict] | None = None
-    for row in rows:
-        if row["present"] and accepted:
-            say(f"candidate {row['effect']} given {', '.join(accepted)}")
-            given = _fold_state(table, effects + accepted, names, splits, folds, seed, warm_accepted)
-            conditional = _evaluate(table, given, row["effect"], len(names), alpha, min_gain, folds, seed)
-            row["present"] = conditional["present"]
-            row["given"] = list(accepted)
-            row["p_value_given"] = conditional["p_value"]
-            row["score_given"] = conditional["score"]
-        if row["present"]:
-            accepted.append(row["effect"])
-            warm_accepted = row["fold_params"]
+    search = _Search(table, effects, names, splits, folds, seed, alpha, min_gain, say, state)
+    kept, dropped = _backward(search, _forward(search, rows), by_name)
     for rank_index, row in enumerate(rows, start=1):
         row["rank"] = rank_index
+        row["present"] = row["effect"] in kept
         row.pop("fold_params")
+    for record in dropped:
+        by_name[record["effect"]]["dropped"] = record
 
     aliases = _aliases(names, state, effects)
     residual_pred = model_predict(table.measured) if model_predict is not None else state.predicted
@@ -273,7 +359,9 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     features = feature_r2(residual_components(table.reference, residual_pred, table.has_orientation),
                           feats, folds, seed)
     dp, _ = pose_errors(table.reference, state.predicted, table.has_orientation)
-    return {
+    from .proposal import explain_absorbed, propose
+
+    result = {
         "model_effects": effects,
         "candidates": rows,
         "undetermined": undetermined,
@@ -284,6 +372,9 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         "cv_base": {"rmse_total": state.before, "rmse_pos": float(np.sqrt(np.mean(dp ** 2)))},
         "rows": {"given": rows_given, "used": table.n},
     }
+    result["proposal"], result["no_proposal"] = propose(search, result, kept, dropped)
+    result["absorbed"] = explain_absorbed(result, kept)
+    return result
 
 
 def _whitened_gain(table: PoseTable, held: np.ndarray, before: np.ndarray, after: np.ndarray, physics: Any) -> float:
@@ -327,8 +418,9 @@ def _pinv_rank(A: np.ndarray, tol: float = 1e-9) -> tuple[np.ndarray, int]:
 
 
 def _aliases(names: list[str], state: _FoldState, effects: list[str]) -> list[list[str]]:
-    """Pairs whose column spaces (held-out rows of all folds) are nearly the same: among the
-    candidates (projected off the model's columns) and between a candidate and a model effect."""
+    """Pairs whose column spaces (held-out rows of all folds) are nearly the same, with their
+    largest canonical correlation: among the catalogue's candidates (projected off the model's
+    columns) and between such a candidate and a model effect."""
     pairs = []
     projected = {}
     for name in names:
@@ -336,14 +428,19 @@ def _aliases(names: list[str], state: _FoldState, effects: list[str]) -> list[li
         for _, J, is_extra, _ in state.per_fold:
             blocks.append(_project_off(J[:, state.column_owner == name], _orthonormal_basis(J[:, ~is_extra])))
         projected[name] = np.concatenate(blocks)
-    for i, a in enumerate(names):
-        for b in names[i + 1:]:
-            if _max_canonical_correlation(projected[a], projected[b]) > ALIAS_CORRELATION:
-                pairs.append([a, b])
+    # A form holds catalogue effects as special cases (range_scale in strain): that nesting is
+    # what the selection weighs, not an alias; aliases are between catalogue effects.
+    physical = [name for name in names if not get_effect(name).generic]
+    for i, a in enumerate(physical):
+        for b in physical[i + 1:]:
+            correlation = _max_canonical_correlation(projected[a], projected[b])
+            if correlation > ALIAS_CORRELATION:
+                pairs.append({"effects": [a, b], "correlation": correlation})
     full = np.concatenate([J for _, J, _, _ in state.per_fold])
-    for a in names:
+    for a in physical:
         for b in effects:
             owner = state.column_owner
-            if _max_canonical_correlation(full[:, owner == a], full[:, owner == b]) > ALIAS_CORRELATION:
-                pairs.append([b, a])
+            correlation = _max_canonical_correlation(full[:, owner == a], full[:, owner == b])
+            if correlation > ALIAS_CORRELATION:
+                pairs.append({"effects": [b, a], "correlation": correlation})
     return pairs

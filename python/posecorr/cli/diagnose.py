@@ -7,15 +7,19 @@ from pathlib import Path
 from .common import (backend_option, diagnosis_options, effect_file_option, effect_names, emit, progress,
                      read_data)
 
-HELP = "rank the physical effects the model lacks; show where the residual lives"
+HELP = "rank the physical effects and generic forms the model lacks; propose an effect file"
 NEEDS = "train"
-OUTPUTS = ()  # arguments naming files the verb writes
+OUTPUTS = ("propose",)  # arguments naming files the verb writes
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", type=Path)
     p.add_argument("--effects", help="the model's effects (default: those of --model, else none)")
     p.add_argument("--model", type=Path, help="an exported model whose residuals to analyse")
+    p.add_argument("--propose", type=Path, metavar="FILE",
+                   help="write the proposed form as an effect file that fit --effect-file accepts")
+    p.add_argument("--no-forms", dest="forms", action="store_false",
+                   help="test the catalogue's effects only, not the generic forms")
     backend_option(p)
     effect_file_option(p)
     diagnosis_options(p)
@@ -23,7 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> None:
     from ..analysis.diagnose import diagnose
-    from ..textui import table as fmt_table
+    from ..analysis.proposal import effect_file_text
+    from ..safeio import write_text
 
     table = read_data(args)
     effects = effect_names(args.effects)
@@ -37,28 +42,73 @@ def run(args: argparse.Namespace) -> None:
         corrector = Corrector(args.model, backend=args.backend)
         times = table.time()
         model_predict = lambda measured: corrector.correct(measured, t=times)  # noqa: E731
-    result = diagnose(table, effects, folds=args.folds, seed=args.seed, model_predict=model_predict,
-                      progress=progress(args))
+    result = diagnose(table, effects, folds=args.folds, seed=args.seed, forms=args.forms,
+                      model_predict=model_predict, progress=progress(args))
+    proposal = result["proposal"]
+    if proposal is not None and args.propose is not None:
+        words = ["posecorr", "diagnose", str(args.data), "--effects", ",".join(effects) or "''"]
+        for path in getattr(args, "effect_file", None) or []:
+            words += ["--effect-file", str(path)]
+        write_text(args.propose, effect_file_text(proposal, " ".join(words + ["--propose", str(args.propose)]),
+                                                  str(args.data)))
+        proposal["file"] = str(args.propose)
+    emit(args, result, lambda: _text(args, effects, result))
 
-    def text() -> str:
-        rows = [[c["rank"], c["effect"], c["score"], c["p_value"], c["cv_rmse_before"], c["cv_rmse_after"],
-                 "yes" if c["present"] else "no"] for c in result["candidates"]]
-        lines = [f"{args.data}: model effects {', '.join(effects) or 'none'}; "
-                 f"cross-validated rmse_total {result['cv_base']['rmse_total']:.4g}"
-                 + (f" (on {result['rows']['used']} of {result['rows']['given']} rows, drawn evenly)"
-                    if result["rows"]["used"] < result["rows"]["given"] else ""),
-                 fmt_table(["rank", "effect", "score", "p_value", "cv_rmse_before", "cv_rmse_after", "present"], rows,
-                           title="Missing effects (score = mean relative fall of the held-out whitened error)"),
-                 f"present = {result['test']}",
-                 fmt_table(["feature", "cv R^2"], [[f["feature"], f["r2"]] for f in result["features"]],
-                           title="Residual structure by feature (smooth fit, cross-validated)")]
-        if result["aliases"]:
-            lines.append("cannot be told apart by this data: " + "; ".join(" ~ ".join(p) for p in result["aliases"]))
-        for row in result.get("undetermined", []):
-            lines.append(f"not ranked: {row['effect']} cannot be determined by this data ({row['reason']})")
-        present = [c["effect"] for c in result["candidates"] if c["present"]]
-        if present:
-            lines.append(f"add: --effects {','.join(effects + present)}")
-        return "\n".join(lines)
 
-    emit(args, result, text)
+def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
+    from ..textui import table as fmt_table
+
+    rows = [[c["rank"], c["effect"], c["kind"], c["parameters"], c["score"], c["p_value"], c["cv_rmse_before"],
+             c["cv_rmse_after"], "yes" if c["present"] else "no"] for c in result["candidates"]]
+    lines = [f"{args.data}: model effects {', '.join(effects) or 'none'}; "
+             f"cross-validated rmse_total {result['cv_base']['rmse_total']:.4g}, "
+             f"rmse_pos {1e3 * result['cv_base']['rmse_pos']:.3g} mm"
+             + (f" (on {result['rows']['used']} of {result['rows']['given']} rows, drawn evenly)"
+                if result["rows"]["used"] < result["rows"]["given"] else ""),
+             fmt_table(["rank", "candidate", "kind", "params", "score", "p_value", "cv_rmse_before", "cv_rmse_after",
+                        "present"], rows,
+                       title="Missing effects and forms (score = mean relative fall of the held-out whitened error)"),
+             f"present = {result['test']}",
+             fmt_table(["feature", "cv R^2"], [[f["feature"], f["r2"]] for f in result["features"]],
+                       title="Residual structure by feature (smooth fit, cross-validated)")]
+    for pair in result["aliases"]:
+        lines.append(f"cannot be told apart by this data: {pair['effects'][0]} ~ {pair['effects'][1]} "
+                     f"(canonical correlation {pair['correlation']:.4f} of their effects on these poses)")
+    for row in result.get("undetermined", []):
+        lines.append(f"not ranked: {row['effect']} cannot be determined by this data ({row['reason']})")
+    for row in result["absorbed"]:
+        lines.append(f"{row['effect']} takes {row['share']:.0%} of {row['form']}'s gain alone, but {row['why']}")
+    present = [c["effect"] for c in result["candidates"] if c["present"] and c["kind"] == "effect"]
+    if present:
+        lines.append(f"add: --effects {','.join(effects + present)}")
+    lines += _proposal_lines(args, result)
+    return "\n".join(lines)
+
+
+def _proposal_lines(args: argparse.Namespace, result: dict) -> list[str]:
+    from ..effects import get_effect
+
+    proposal = result["proposal"]
+    if proposal is None:
+        return [f"no proposal: {result['no_proposal']}"]
+    lines = [f"proposal: {', '.join(proposal['forms'])} ({proposal['parameters']} parameters): the held-out "
+             f"whitened error falls by {proposal['gain']:.1%}, rmse_pos {1e3 * proposal['cv_rmse_pos_before']:.3g} -> "
+             f"{1e3 * proposal['cv_rmse_pos_after']:.3g} mm ({result['folds']}-fold)"]
+    for form in proposal["forms"]:
+        values = "; ".join(f"{name} = {_short(v)}" for name, v in proposal["values"][form].items())
+        lines.append(f"  {form}: {(get_effect(form).__doc__ or '').strip().splitlines()[0]} Fitted: {values}.")
+        lines.append(f"  causes of this shape: {proposal['causes'][form]}")
+    if proposal["file"]:
+        from ..analysis.proposal import effects_arg
+
+        lines.append(f"  written to {proposal['file']}; fit it with: posecorr fit {args.data} "
+                     f"--effect-file {proposal['file']} --effects {effects_arg(proposal)}")
+    else:
+        lines.append("  (--propose FILE writes it as an effect file)")
+    return lines
+
+
+def _short(values) -> str:
+    values = values if isinstance(values, list) else [values]
+    text = ", ".join(f"{v:.3g}" for v in values)
+    return f"[{text}]" if len(values) > 1 else text

@@ -1,0 +1,230 @@
+"""Generic discrepancy forms: low-order shapes of error beside the physical catalogue.
+
+A real tracker is not bound by the catalogue (`posecorr.effects`). When the catalogue leaves a
+held-out error that a low-order field of the workspace explains, the diagnosis tests these
+forms exactly like catalogue effects (held-out score test, a gain in every fold, a minimum
+gain) and proposes the smallest that captures the gain (`posecorr diagnose --propose`). Each
+form is an `Effect`: written once against the array namespace, so it fits (numpy), trains
+(torch), exports to ONNX and runs in the C runtime like the catalogue's.
+
+d = p - c is the position relative to the workspace centre c (m); a = R[:, 2] the tracker's z
+axis in the base frame; Exp(w) the rotation with rotation vector w.
+
+| name | size | form |
+|---|---|---|
+| strain | 6 | p <- p + S d, S symmetric (its skew part is a rotation: the station's) |
+| quadratic | 18 | p_i <- p_i + sum_m q_im m(d), m the six second-order monomials of d |
+| orientation_field | 9 | R <- Exp(G d) R (a small rotation varying linearly over the workspace) |
+| orientation_bias | 9 | p <- p + K a (a bias that turns with the tracker; K = e I is a rigid lever: the mount's) |
+| time_trend | 6 | p <- p + u1 (t / T) + u2 (t / T)^2, T = 1000 s |
+| sweep_harmonics | 8 | alpha' = alpha + sum_k (a_k cos k alpha + b_k sin k alpha), k = 1, 2 (likewise beta) |
+
+Each form declares `causes`: in words, the physical causes that produce its shape, for the
+proposal's text.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from ._xp import namespace
+from .effects import (Effect, Param, _to_namespace, from_station, station_coords, sweep_angles,
+                      sweep_direction)
+from .rotations import rotvec_to_matrix
+
+TIME_SCALE_S = 1000.0
+
+
+def _centred(p: Any, ctx: Any) -> Any:
+    xp = namespace(p)
+    return p - xp.const(ctx.c, p)
+
+
+def _rows(theta: Any, first: int, d: Any) -> Any:
+    """(..., 1): sum_j theta[..., first + j] d[..., j], one row of a 3 x n matrix times d."""
+    xp = namespace(theta, d)
+    n = d.shape[-1]
+    return xp.sum(theta[..., first:first + n] * d, axis=-1, keepdims=True)
+
+
+def _matrix_times(theta: Any, first: int, d: Any) -> Any:
+    """(..., 3): M d for M the 3 x n matrix stored row by row in theta[..., first:first + 3n]."""
+    xp = namespace(theta, d)
+    n = d.shape[-1]
+    return xp.concat([_rows(theta, first + i * n, d) for i in range(3)], axis=-1)
+
+
+class Strain(Effect, name="strain", order=5.7, per_row_theta=True, changes_rotation=False, generic=True,
+             causes="a strain of the tracking space: a wrong base-station geometry (the stations' distance "
+                    "or angle between them) or a scale of one sweep axis"):
+    """An affine strain of the tracking space about the workspace centre.
+
+    p <- p + S d, S symmetric (s_xx, s_yy, s_zz, s_xy, s_xz, s_yz, dimensionless); R unchanged.
+    A uniform S = k I is `range_scale` seen about c; the skew part of a general affine map is
+    a rotation, which the station registration holds. Inverted by fixed-point steps.
+    """
+
+    params = (Param("s", 6, (2e-3, -1e-3, 1e-3, 5e-4, -5e-4, 5e-4), 1e-3, "1",
+                    doc="S entries xx, yy, zz, xy, xz, yz"),)
+
+    def forward(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        d = _centred(p, ctx)
+        s = [theta[..., k:k + 1] for k in range(6)]
+        dx, dy, dz = d[..., 0:1], d[..., 1:2], d[..., 2:3]
+        shift = xp.concat([s[0] * dx + s[3] * dy + s[4] * dz,
+                           s[3] * dx + s[1] * dy + s[5] * dz,
+                           s[4] * dx + s[5] * dy + s[2] * dz], axis=-1)
+        return p + shift, R
+
+
+def _monomials(d: Any) -> Any:
+    xp = namespace(d)
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    return xp.stack([x * x, y * y, z * z, x * y, x * z, y * z], axis=-1)
+
+
+class Quadratic(Effect, name="quadratic", order=5.8, per_row_theta=True, changes_rotation=False, generic=True,
+                causes="a curved tracking space: a lens or sweep-curvature error of a base station, or "
+                       "a reference (the robot's) whose own calibration bends its workspace"):
+    """A second-order field of position over the workspace.
+
+    p_i <- p_i + sum_m q_im m(d), m = (dx^2, dy^2, dz^2, dx dy, dx dz, dy dz) (1/m), q stored
+    row by row (x's six, then y's, then z's); R unchanged. Inverted by fixed-point steps.
+    """
+
+    params = (Param("q", 18, (2e-3,) + (0.0,) * 8 + (-2e-3,) + (0.0,) * 7 + (1e-3,), 1e-3, "1/m",
+                    doc="coefficients of x, y, z on dx^2, dy^2, dz^2, dx dy, dx dz, dy dz"),)
+
+    def forward(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        return p + _matrix_times(theta, 0, _monomials(_centred(p, ctx))), R
+
+
+class OrientationField(Effect, name="orientation_field", order=5.75, per_row_theta=True, generic=True,
+                       closed_form_inverse=True,
+                       causes="an orientation error that varies over the workspace: the IMU fusion's "
+                              "heading pulled by a magnetic or optical field, or a wrong station tilt "
+                              "seen differently across the space"):
+    """A small rotation of the orientation that varies linearly over the workspace.
+
+    R <- Exp(G d) R, G (3 x 3, rad/m, row by row); p unchanged. Closed-form inverse
+    R <- Exp(G d)^T R (d does not change).
+    """
+
+    params = (Param("g", 9, (2e-3, 0.0, 0.0, 0.0, -2e-3, 0.0, 1e-3, 0.0, 0.0), 1e-3, "rad/m",
+                    doc="G entries, row by row"),)
+
+    def _turn(self, p, theta, ctx):
+        return rotvec_to_matrix(_matrix_times(theta, 0, _centred(p, ctx)))
+
+    def forward(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        return p, xp.matmul(self._turn(p, theta, ctx), R)
+
+    def inverse(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        return p, xp.matmul(xp.swap_last(self._turn(p, theta, ctx)), R)
+
+
+class OrientationBias(Effect, name="orientation_bias", order=1.5, per_row_theta=True, changes_rotation=False,
+                      generic=True, closed_form_inverse=True,
+                      causes="a position bias that turns with the tracker but is no rigid lever: the "
+                             "sensor constellation's optical centre moving with the photodiodes the "
+                             "stations see, or a compliant mount that sags with the tracker's attitude"):
+    """A position bias linear in the tracker's z axis a = R[:, 2] (base frame).
+
+    p <- p + K a, K (3 x 3, m, row by row); R unchanged. A rigid lever along z (K = e_z I) is
+    the mount's and is held by it; every other K is not a lever. Closed-form inverse: R is
+    unchanged, so p <- p - K a.
+    """
+
+    params = (Param("k", 9, (1e-3, 0.0, 0.0, 0.0, -1e-3, 0.0, 0.0, 0.0, 5e-4), 1e-3, "m",
+                    doc="K entries, row by row"),)
+
+    def _bias(self, R, theta):
+        return _matrix_times(theta, 0, R[..., 2])
+
+    def forward(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        return p + self._bias(R, theta), R
+
+    def inverse(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        return p - self._bias(R, theta), R
+
+
+class TimeTrend(Effect, name="time_trend", order=5.1, per_row_theta=True, changes_rotation=False, generic=True,
+                closed_form_inverse=True, needs_time=True,
+                causes="a slow change over the session that does not settle: a station warming up or "
+                       "moving on its stand, the robot's base creeping"):
+    """A polynomial drift of position over the session.
+
+    p <- p + u1 (t / T) + u2 (t / T)^2, u1, u2 (3, m), T = 1000 s, t (s) since the session
+    start from ctx.t (the identity without it). Closed-form inverse.
+    """
+
+    params = (Param("u1", 3, (1e-3, -5e-4, 0.0), 1e-3, "m", doc="linear term, per T"),
+              Param("u2", 3, (0.0, 0.0, 5e-4), 1e-3, "m", doc="quadratic term, per T^2"))
+
+    def notes(self, ctx):
+        return [] if ctx.t is not None else ["no time column t: time_trend is the identity"]
+
+    def _offset(self, p, theta, ctx):
+        xp = namespace(p, theta)
+        if ctx.t is None:
+            return None
+        t = ctx.t if namespace(ctx.t).name == xp.name else xp.const(ctx.t, p)
+        s = xp.reshape(t, tuple(t.shape) + (1,)) / TIME_SCALE_S
+        return theta[..., 0:3] * s + theta[..., 3:6] * (s * s)
+
+    def forward(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        off = self._offset(p, theta, ctx)
+        return (p if off is None else p + off), R
+
+    def inverse(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        off = self._offset(p, theta, ctx)
+        return (p if off is None else p - off), R
+
+
+def _harmonics(xp: Any, angle: Any, theta: Any, first: int) -> Any:
+    """sum_k a_k cos(k angle) + b_k sin(k angle), k = 1, 2; theta[first:first + 4] = a1, b1, a2, b2."""
+    c = [theta[..., first + i] for i in range(4)]
+    return c[0] * xp.cos(angle) + c[1] * xp.sin(angle) + c[2] * xp.cos(2.0 * angle) + c[3] * xp.sin(2.0 * angle)
+
+
+class SweepHarmonics(Effect, name="sweep_harmonics", order=2.5, per_row_theta=True, changes_rotation=False,
+                     generic=True, inverse_steps=8,
+                     causes="a periodic error of a station's sweep angles: the rotor's speed ripple or "
+                            "a wobble of its optics (SteamVR's gibbous terms)"):
+    """First- and second-order harmonics of the station's sweep angles (station frame).
+
+    alpha' = alpha + a1 cos alpha + b1 sin alpha + a2 cos 2 alpha + b2 sin 2 alpha, and
+    beta' likewise with its own four (rad); r kept, R unchanged (the angles as in `sweep`).
+    Inverse: fixed-point steps on the angles, a contraction for coefficients << 1 rad.
+    """
+
+    params = (Param("alpha", 4, (1e-3, 0.0, 5e-4, 0.0), 1e-3, "rad", doc="a1, b1, a2, b2 of alpha"),
+              Param("beta", 4, (0.0, -1e-3, 0.0, 5e-4), 1e-3, "rad", doc="a1, b1, a2, b2 of beta"))
+
+    def forward(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        alpha, beta, r = sweep_angles(xp, station_coords(p, ctx))
+        a2 = alpha + _harmonics(xp, alpha, theta, 0)
+        b2 = beta + _harmonics(xp, beta, theta, 4)
+        return from_station(r * sweep_direction(xp, a2, b2), ctx), R
+
+    def inverse(self, p, R, theta, ctx):
+        xp, p, R, theta = _to_namespace(p, R, theta)
+        a2, b2, r = sweep_angles(xp, station_coords(p, ctx))
+        alpha, beta = a2, b2
+        for _ in range(self.inverse_steps):
+            alpha, beta = a2 - _harmonics(xp, alpha, theta, 0), b2 - _harmonics(xp, beta, theta, 4)
+        return from_station(r * sweep_direction(xp, alpha, beta), ctx), R
+
+
+FORMS: tuple[type[Effect], ...] = (Strain, Quadratic, OrientationField, OrientationBias, TimeTrend, SweepHarmonics)
+
+__all__ = ["FORMS", "Strain", "Quadratic", "OrientationField", "OrientationBias", "TimeTrend", "SweepHarmonics",
+           "TIME_SCALE_S"]

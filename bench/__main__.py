@@ -18,6 +18,11 @@ Run from the repository root: `python -m bench [--only NAME]`.
   memcpy on the other core (`bench/previous.py`).
 * `apply.json`: `posecorr apply` on 10^6 rows (wall and CPU time, peak memory) against
   the csv module's read-and-write-back floor on the same file (`bench/apply.py`).
+* `forms.json`: the loop when the missing effect is outside the catalogue: on simulated
+  50-pose sessions with a strain, a bend, an attitude bias or a heading field, what
+  `diagnose` proposes, how much of the true form's leave-one-out gain the proposal's file
+  recovers, how often null sessions get a proposal, and how long `diagnose` takes
+  (`bench/forms.py`).
 * `ingest.json`: seconds to ingest a 10-minute recording (300k joint states, 150k tracker
   poses) from a ROS 1 bag, an MCAP file and a CSV log (`bench/ingest.py`).
 """
@@ -66,6 +71,12 @@ def _previous() -> dict:
     return previous.both(str(RESULTS / "previous.json"))
 
 
+def _forms() -> dict:
+    from . import forms
+
+    return forms.run(str(RESULTS / "forms.json"))
+
+
 def _ingest() -> dict:
     from . import ingest
 
@@ -74,7 +85,7 @@ def _ingest() -> dict:
 
 # name -> runner writing bench/results/NAME.json; `make bench` runs them in this order.
 BENCHMARKS = {"latency": _latency, "targets": _targets, "previous": _previous, "fit": _fit,
-              "apply": _apply, "ingest": _ingest, "train": _train}
+              "apply": _apply, "ingest": _ingest, "train": _train, "forms": _forms}
 
 
 def main(argv: list[str] | None = None) -> int:

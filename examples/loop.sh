@@ -1,22 +1,21 @@
 #!/usr/bin/env bash
-# The README's loop: fit, report, diagnose, add what is missing, watch the error fall.
-# Run from an empty directory with posecorr on PATH (e.g. .venv/bin).
+# The loop on an error outside the catalogue: fit, diagnose, take the proposal, watch the
+# error fall. Run from an empty directory with posecorr on PATH (e.g. .venv/bin).
 set -euxo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 
-# Experiment III with the default effect mix plus an effect outside the catalogue.
-posecorr simulate --experiment 3 --seed 3 --effect-file "$here/periodic_sweep.py" -o data.csv
+# A robot carries the tracker through 50 poses; the frames are unknown, and the tracking
+# space is strained (examples/space_strain.py: not an effect of the catalogue).
+posecorr simulate --session --robot ur5e --poses 50 --seed 1 \
+    --effect-file "$here/space_strain.py" --effects space_strain -o session.csv
 
-# 1. The usual first model: registration and mount only.
-posecorr fit data.csv --effects station,mount --method none -o step1.onnx
-posecorr report data.csv --model step1.onnx -o step1.html
-posecorr diagnose data.csv --effects station,mount
+# 1. The usual first model: registration and mount only, leave-one-out.
+posecorr fit session.csv --effects station,mount --method none --cv loo -o step1.onnx
 
-# 2. Add what the diagnosis marked present.
-posecorr fit data.csv --effects station,mount,range_scale,incidence,sweep,drift --method none -o step2.onnx
-posecorr diagnose data.csv --effects station,mount,range_scale,incidence,sweep,drift
+# 2. What is missing? The diagnosis does not know space_strain; it proposes a form.
+posecorr diagnose session.csv --effects station,mount --propose proposed.py
 
-# 3. Nothing in the catalogue is missing, but the residual lives along azimuth: a user effect.
-posecorr fit data.csv --effect-file "$here/periodic_sweep.py" \
-    --effects station,mount,range_scale,incidence,sweep,drift,periodic_sweep --method none -o step3.onnx
-posecorr report data.csv --model step3.onnx --effect-file "$here/periodic_sweep.py" -o step3.html
+# 3. Fit the proposal, as written, and look at the page.
+posecorr fit session.csv --effect-file proposed.py --effects station,mount,session_strain \
+    --method none --cv loo -o step2.onnx
+posecorr report session.csv --model step2.onnx --effect-file proposed.py -o step2.html

@@ -47,7 +47,7 @@ def _scenario_table(hidden: str, absent: str | None, seed: int, factor: float):
 def test_hidden_effect_is_found_and_fixes_the_error(hidden, absent, seed, factor) -> None:
     result, table = _scenario_table(hidden, absent, seed, factor)
     model = [e for e in CATALOGUE if e not in (hidden, absent)]
-    report = diagnose(table, model, folds=5, seed=seed)
+    report = diagnose(table, model, folds=5, seed=seed, forms=False)
     by_name = {row["effect"]: row for row in report["candidates"]}
     assert set(by_name) == {hidden, absent}
     assert report["candidates"][0]["effect"] == hidden, report["candidates"]
@@ -59,7 +59,7 @@ def test_hidden_effect_is_found_and_fixes_the_error(hidden, absent, seed, factor
 @pytest.mark.slow
 def test_nothing_missing_nothing_present() -> None:
     result, table = _scenario_table("mount", "sweep", 7, 1.0)
-    report = diagnose(table, [e for e in CATALOGUE if e != "sweep"], folds=5, seed=7)
+    report = diagnose(table, [e for e in CATALOGUE if e != "sweep"], folds=5, seed=7, forms=False)
     assert [row["effect"] for row in report["candidates"]] == ["sweep"]
     assert not report["candidates"][0]["present"]
     assert report["cv_base"]["rmse_pos"] <= 1.3 * result.noise_floor["rmse_pos"]

@@ -529,6 +529,9 @@ def register_effect(effect: Effect | type[Effect], source: str = "") -> Effect:
     for p in effect.params:
         if not isinstance(p, Param):
             raise ValueError(f"effect {name!r}: params must be Param instances, got {p!r}")
+    if effect.sensitivity not in SENSITIVITIES:
+        raise ValueError(f"effect {name!r}: sensitivity must be one of {', '.join(SENSITIVITIES)}, "
+                         f"got {effect.sensitivity!r}")
     if name in EFFECTS and _SOURCES.get(name, "") != source:
         where = _SOURCES.get(name) or "the built-in catalogue"
         raise ValueError(f"effect {name!r} is already defined by {where}")

@@ -127,6 +127,7 @@ class OrientationField(Effect, name="orientation_field", order=5.75, per_row_the
 
 
 class OrientationBias(Effect, name="orientation_bias", order=1.5, per_row_theta=True, changes_rotation=False,
+                      sensitivity="orientation",
                       generic=True, closed_form_inverse=True,
                       causes="a position bias that turns with the tracker but is no rigid lever: the "
                              "sensor constellation's optical centre moving with the photodiodes the "
@@ -154,7 +155,7 @@ class OrientationBias(Effect, name="orientation_bias", order=1.5, per_row_theta=
 
 
 class TimeTrend(Effect, name="time_trend", order=5.1, per_row_theta=True, changes_rotation=False, generic=True,
-                closed_form_inverse=True, needs_time=True,
+                closed_form_inverse=True, needs_time=True, sensitivity="time",
                 causes="a slow change over the session that does not settle: a station warming up or "
                        "moving on its stand, the robot's base creeping"):
     """A polynomial drift of position over the session.

@@ -53,8 +53,7 @@ def _why_none(result: dict[str, Any], kept: Sequence[str], rows: dict[str, dict]
         return "no form could be tested on this data (see the effects that cannot be determined)"
     best = max(forms, key=lambda row: row["score"])
     return (f"no form earns its place: the best, {best['effect']}, lowers the held-out whitened error by "
-            f"{best['score']:.1%} (p = {best['p_value']:.2g}, worst fold {best['fold_gain_min']:.1%}); "
-            f"the test asks {result['test']}")
+            f"{best['score']:.1%} (p = {best['p_value']:.2g}, worst fold {best['fold_gain_min']:.1%})")
 
 
 def _fitted_proposal(search: Any, result: dict[str, Any], kept: list[str], forms: list[str]) -> dict[str, Any]:

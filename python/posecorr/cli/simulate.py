@@ -17,7 +17,8 @@ CHECKS_ITSELF = ("recording",)  # a file or a ROS 2 bag folder (recording.check_
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--experiment", type=int, choices=(1, 2, 3))
     p.add_argument("--session", action="store_true",
-                   help="a realistic session: 6-40 poses, the tracker's own frame, a lever arm (drawn from --seed)")
+                   help="a realistic session: 6-40 poses, the tracker's own frame, a lever arm (drawn from --seed); "
+                        "--effects adds effects in the cell")
     p.add_argument("--poses", type=options.integer(6, 100_000), help="with --session: number of poses (6 or more)")
     p.add_argument("--spread", help="with --session: orientation spread none, yaw or full")
     p.add_argument("--position-only", action="store_true", help="with --session: no reference orientation")
@@ -57,7 +58,7 @@ def run(args: argparse.Namespace) -> None:
     if args.session:
         if args.recording is not None:
             raise CliError("--recording drives the robot through an experiment's targets: give --experiment N")
-        result = _simulate_session(args)
+        result = _simulate_session(args, effects or {})
     else:
         result = simulate(args.experiment, effects=effects, seed=args.seed, effect_files=files,
                           base="none" if args.only else "default")
@@ -96,12 +97,21 @@ def run(args: argparse.Namespace) -> None:
     emit(args, payload, text)
 
 
-def _simulate_session(args: argparse.Namespace) -> Any:
+# A session draws these itself (the unknown frame, the lever arm, the noise).
+SESSION_DRAWS = ("station", "mount", "noise")
+
+
+def _simulate_session(args: argparse.Namespace, effects: dict) -> Any:
     from ..simulate import ROBOTS, SPREADS, simulate_session
 
-    if args.effects or args.effect_file or args.only:
-        raise CliError("--session draws its own effects (frame, lever arm, noise); --effects, --effect-file "
-                       "and --only go with --experiment")
+    if args.only:
+        raise CliError("--only goes with --experiment: a session draws its own frame, lever arm and noise")
+    drawn = [name for name in effects if name in SESSION_DRAWS]
+    if drawn:
+        raise CliError(f"--session draws its own {', '.join(SESSION_DRAWS)}; --effects may add others, "
+                       f"got {', '.join(drawn)}")
+    if any(theta is None for theta in effects.values()):
+        raise CliError("--session has no default mix to switch an effect off in: NAME=off goes with --experiment")
     if args.spread is not None and args.spread not in SPREADS:
         raise CliError(f"--spread takes {', '.join(SPREADS)}, got {args.spread!r}")
     if args.robot is not None and args.robot not in ROBOTS:
@@ -109,7 +119,7 @@ def _simulate_session(args: argparse.Namespace) -> Any:
     pin = {"n": args.poses, "spread": args.spread, "unremovable": None if args.unremovable is None
            else args.unremovable / 1000.0, "position_only": True if args.position_only else None,
            "robot": args.robot}
-    return simulate_session(args.seed, **{k: v for k, v in pin.items() if v is not None})
+    return simulate_session(args.seed, extra=effects, **{k: v for k, v in pin.items() if v is not None})
 
 
 def _session_words(spec: Any) -> str:

@@ -1,0 +1,158 @@
+"""The loop when the missing effect is not in the catalogue (issue 30), for `make bench`.
+
+Simulated sessions of 50 poses (robot-carried on a UR5e, or set down by hand with every
+orientation), station and mount unknown, the DESIGN noise, and one error outside the
+catalogue applied by a test-only effect file (tests/data/forms_outside.py): a strain of the
+space, a bend (a quadratic position field), an attitude-dependent bias and a heading field.
+For each: `diagnose --effects station,mount` with the generic forms, the proposal written as
+an effect file, and the leave-one-out (LOO) error of station + mount alone, with the true
+form, and with the proposal's file. Recovery = (base - proposal) / (base - true) on the error
+the form acts on (rmse_pos; rmse_rot for the heading field). Null sessions (nothing outside
+what station and mount model): how often something is proposed. And the time `diagnose`
+takes on one 50-pose session (goal: 30 s).
+
+`study` and `null_study` are what tests/test_propose.py runs on fewer seeds.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import ROOT
+
+OUTSIDE = ROOT / "tests" / "data" / "forms_outside.py"
+# scenario: (the test-only effect that makes the data, the form that should be proposed, the
+# metric it acts on)
+SCENARIOS = {
+    "strain": ("true_strain", "strain", "rmse_pos"),
+    "bend": ("true_bend", "quadratic", "rmse_pos"),
+    "attitude_bias": ("true_attitude_bias", "orientation_bias", "rmse_pos"),
+    "heading_field": ("true_heading_field", "orientation_field", "rmse_rot"),
+}
+KINDS = ("robot", "hand")
+BASE = ["station", "mount"]
+
+
+def session(scenario: str | None, seed: int, kind: str, n: int = 50):
+    """A simulated session with the scenario's error (None: nothing outside station and mount)."""
+    from posecorr.effects import EFFECTS, get_effect, load_effect_file
+    from posecorr.simulate import simulate_session
+
+    if "true_strain" not in EFFECTS:
+        load_effect_file(OUTSIDE)
+    extra = {} if scenario is None else {SCENARIOS[scenario][0]: get_effect(SCENARIOS[scenario][0]).default_theta()}
+    pin = {"robot": "ur5e"} if kind == "robot" else {"spread": "full", "position_only": False, "unremovable": 0.0}
+    return simulate_session(seed, n=n, extra=extra, **pin).table
+
+
+def hide_outside() -> None:
+    """The test-only effects out of the registry: the diagnosis must not see them."""
+    from posecorr.effects import EFFECTS, unregister_effect
+
+    for name, _, _ in SCENARIOS.values():
+        if name in EFFECTS:
+            unregister_effect(name)
+
+
+def loo(table: Any, effects: list[str]) -> dict[str, float]:
+    from posecorr.train.pipeline import CorrectionPipeline, cross_validate
+    from posecorr.train.splits import LeaveOneOut
+
+    cv = cross_validate(lambda: CorrectionPipeline(effects), table, LeaveOneOut(), 0)
+    return {key: float(cv.metrics[key]) for key in ("rmse_pos", "rmse_rot")}
+
+
+def one(scenario: str, seed: int, kind: str, folder: Path) -> dict[str, Any]:
+    """Diagnose one session, write the proposal, and measure base / true / proposal by LOO."""
+    from posecorr.analysis.diagnose import diagnose
+    from posecorr.analysis.proposal import effect_file_text
+    from posecorr.effects import load_effect_file
+
+    table = session(scenario, seed, kind)
+    true_name, form, metric = SCENARIOS[scenario]
+    truth = loo(table, BASE + [true_name])
+    hide_outside()
+    started = time.perf_counter()
+    result = diagnose(table, BASE, folds=5, seed=0)
+    seconds = time.perf_counter() - started
+    base = loo(table, BASE)
+    row = {"scenario": scenario, "kind": kind, "seed": seed, "expected": form, "diagnose_s": round(seconds, 2),
+           "present_effects": [c["effect"] for c in result["candidates"] if c["present"] and c["kind"] == "effect"],
+           "proposed": None if result["proposal"] is None else result["proposal"]["forms"],
+           "no_proposal": result["no_proposal"], "metric": metric,
+           "loo_base": base[metric], "loo_true": truth[metric], "loo_proposal": None, "recovery": None}
+    if result["proposal"] is not None:
+        path = folder / f"{scenario}-{kind}-{seed}.py"
+        path.write_text(effect_file_text(result["proposal"], "bench/forms.py", "session.csv"))
+        names = load_effect_file(path)
+        got = loo(table, BASE + names)
+        from posecorr.effects import unregister_effect
+
+        for name in names:
+            unregister_effect(name)
+        row["loo_proposal"] = got[metric]
+        row["recovery"] = (base[metric] - got[metric]) / (base[metric] - truth[metric])
+    return row
+
+
+def study(seeds: list[int], kinds: tuple[str, ...] = KINDS, scenarios: tuple[str, ...] = tuple(SCENARIOS),
+          folder: Path | None = None) -> list[dict[str, Any]]:
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        where = folder or Path(tmp)
+        return [one(scenario, seed, kind, where) for scenario in scenarios for kind in kinds for seed in seeds]
+
+
+def null_study(seeds: list[int], kinds: tuple[str, ...] = KINDS) -> list[dict[str, Any]]:
+    from posecorr.analysis.diagnose import diagnose
+
+    hide_outside()
+    rows = []
+    for kind in kinds:
+        for seed in seeds:
+            result = diagnose(session(None, seed, kind), BASE, folds=5, seed=0)
+            rows.append({"kind": kind, "seed": seed, "proposed": result["proposal"] is not None,
+                         "present": [c["effect"] for c in result["candidates"] if c["present"]]})
+    return rows
+
+
+def summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per scenario and kind: seeds, how many proposed the expected form, the worst recovery,
+    and any catalogue effect marked present."""
+    out = []
+    for scenario in SCENARIOS:
+        for kind in KINDS:
+            mine = [r for r in rows if r["scenario"] == scenario and r["kind"] == kind]
+            if not mine:
+                continue
+            recoveries = [r["recovery"] for r in mine if r["recovery"] is not None]
+            out.append({"scenario": scenario, "kind": kind, "seeds": len(mine),
+                        "expected_form_proposed": sum(r["proposed"] == [r["expected"]] for r in mine),
+                        "recovery_min": min(recoveries) if recoveries else None,
+                        "recovery_median": float(np.median(recoveries)) if recoveries else None,
+                        "catalogue_marked_present": sorted({e for r in mine for e in r["present_effects"]}),
+                        "loo_base_mm_or_mrad": float(np.median([r["loo_base"] for r in mine])) * 1e3,
+                        "loo_true": float(np.median([r["loo_true"] for r in mine])) * 1e3,
+                        "loo_proposal": float(np.median([r["loo_proposal"] for r in mine
+                                                         if r["loo_proposal"] is not None] or [np.nan])) * 1e3})
+    return out
+
+
+def run(path: str, seeds: int = 10, null_seeds: int = 20) -> dict:
+    load = os.getloadavg()[0]
+    rows = study(list(range(seeds)))
+    nulls = null_study(list(range(null_seeds)))
+    times = [r["diagnose_s"] for r in rows]
+    result = {"load_average_1min": round(load, 2), "summary": summary(rows),
+              "null": {"sessions": len(nulls), "proposed": sum(r["proposed"] for r in nulls),
+                       "any_present": sum(bool(r["present"]) for r in nulls)},
+              "diagnose_s": {"median": float(np.median(times)), "max": float(np.max(times)), "goal": 30.0},
+              "rows": rows}
+    Path(path).write_text(json.dumps(result, indent=1) + "\n")
+    return result

@@ -1,6 +1,6 @@
 """Test-only effects outside the catalogue: the shapes a real tracker's error may take that
-posecorr's catalogue does not hold. Written in plain numpy, per pose, from their formulas
-alone (not from posecorr.forms), to simulate sessions the diagnosis must see through.
+posecorr's catalogue does not hold. Written in plain numpy from their formulas alone (not from
+posecorr.forms), to simulate sessions the diagnosis must see through.
 
 c is the workspace centre (ctx.c), d = p - c.
 """
@@ -24,7 +24,7 @@ class TrueStrain(Effect):
     def forward(self, p, R, theta, ctx):
         xx, yy, zz, xy, xz, yz = np.asarray(theta, float)
         S = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
-        return np.array([ctx.c + (np.eye(3) + S) @ (pi - ctx.c) for pi in p]), R
+        return ctx.c + (p - ctx.c) @ (np.eye(3) + S).T, R
 
 
 class TrueBend(Effect):
@@ -36,11 +36,8 @@ class TrueBend(Effect):
 
     def forward(self, p, R, theta, ctx):
         kz, kx = np.asarray(theta, float)
-        out = []
-        for pi in p:
-            dx, dy, _ = pi - ctx.c
-            out.append(pi + np.array([kx * dx * dy, 0.0, kz * (dx * dx + dy * dy)]))
-        return np.array(out), R
+        dx, dy = (p - ctx.c)[:, 0], (p - ctx.c)[:, 1]
+        return p + np.stack([kx * dx * dy, 0.0 * dx, kz * (dx * dx + dy * dy)], axis=1), R
 
 
 class TrueAttitudeBias(Effect):
@@ -55,7 +52,7 @@ class TrueAttitudeBias(Effect):
         b = float(np.asarray(theta, float).reshape(-1)[0])
         n = np.array([0.6, 0.0, 0.8])
         m = np.array([0.0, 0.6, -0.8])
-        return np.array([pi + b * (Ri[:, 2] @ n) * m for pi, Ri in zip(p, R)]), R
+        return p + b * np.outer(R[:, :, 2] @ n, m), R
 
 
 class TrueHeadingField(Effect):

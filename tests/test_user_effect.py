@@ -44,3 +44,68 @@ def test_periodic_sweep_is_seen_under_azimuth_then_added(periodic_sweep) -> None
     cv = cross_validate(lambda: CorrectionPipeline(CATALOGUE + ["periodic_sweep"]), table, KFold(5), seed=3)
     assert cv.metrics["rmse_pos"] <= 1.3 * result.noise_floor["rmse_pos"]
     assert cv.metrics["rmse_pos"] < blind["cv_base"]["rmse_pos"]
+
+
+USER_FRAME = '''
+import numpy as np
+from posecorr._xp import namespace
+from posecorr.effects import Effect, Param
+from posecorr.rotations import matrix_to_rotvec, rotvec_to_matrix
+
+
+class MyFrame(Effect):
+    """The station registration written again by a user: p <- c + Exp(w)(p - c) + v, R <- Exp(w) R."""
+
+    name = "my_frame"
+    order = 6
+    registration = "frame"
+    per_row_theta = True
+    params = (Param("w", 3, (0.0, 0.0, 0.0), 1e-2, "rad", unbounded=True),
+              Param("v", 3, (0.0, 0.0, 0.0), 1e-2, "m", unbounded=True))
+
+    def forward(self, p, R, theta, ctx):
+        xp = namespace(p, R, theta)
+        W = rotvec_to_matrix(theta[..., 0:3])
+        c = xp.const(ctx.c, p)
+        d = p - c
+        moved = xp.sum(W * xp.reshape(d, tuple(d.shape[:-1]) + (1, 3)), axis=-1)
+        return c + moved + theta[..., 3:6], xp.matmul(W, R)
+
+    def inverse(self, p, R, theta, ctx):
+        xp = namespace(p, R, theta)
+        Wt = xp.swap_last(rotvec_to_matrix(theta[..., 0:3]))
+        c = xp.const(ctx.c, p)
+        d = p - theta[..., 3:6] - c
+        return c + xp.sum(Wt * xp.reshape(d, tuple(d.shape[:-1]) + (1, 3)), axis=-1), xp.matmul(Wt, R)
+
+    def start(self, rigid, ctx, roles, mean_turn):
+        W = rigid.R.T
+        return np.concatenate([matrix_to_rotvec(W), -W @ rigid.t - ctx.c + W @ ctx.c])
+
+    def frame_rotation(self, theta):
+        return theta[..., 0:3]
+'''
+
+
+@pytest.mark.parametrize("position_only", [False, True])
+def test_a_user_effect_declares_the_registration_role(tmp_path, position_only) -> None:
+    """What the fitter gives the built-in station (the closed-form start, the frame role, no
+    typical size for its parameters) a user's effect declares for itself: fitted on a simulated
+    session, it gives the station's result."""
+    from posecorr.simulate import simulate_session
+    from posecorr.train.physics import PhysicsModel
+
+    path = tmp_path / "my_frame.py"
+    path.write_text(USER_FRAME)
+    load_effect_file(path)
+    try:
+        table = simulate_session(4, n=30, spread="full", position_only=position_only, unremovable=0.0).table
+        m, r = table.measured, table.reference
+        ours = PhysicsModel(("my_frame", "mount"), with_rotation=table.has_orientation).fit(m, r)
+        builtin = PhysicsModel(("station", "mount"), with_rotation=table.has_orientation).fit(m, r)
+        np.testing.assert_allclose(ours.params_["my_frame"], builtin.params_["station"], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(ours.params_["mount"], builtin.params_["mount"], rtol=0, atol=1e-9)
+        assert ours.fixed_ == builtin.fixed_
+        assert np.abs(ours.predict(m) - builtin.predict(m)).max() < 1e-9
+    finally:
+        unregister_effect("my_frame")

@@ -32,7 +32,8 @@ from sklearn.exceptions import NotFittedError
 
 from posecorr import rotations
 from posecorr._xp import namespace
-from posecorr.effects import EffectContext, get_effect, invert_effects, sorted_effects
+from posecorr.effects import (REGISTRATION_ROLES, EffectContext, get_effect, invert_effects, registration_effects,
+                              sorted_effects)
 from posecorr.metrics import pose_metrics
 
 from .base import PoseRegressorMixin, check_pair, check_poses
@@ -44,9 +45,6 @@ DEFAULT_SIGMA_R = 5e-4   # rad
 # Noise levels never assumed below a hundredth of the defaults: a perfect fit of few poses must
 # not make the whitened Jacobian claim a precision no tracker has.
 SIGMA_P_FLOOR = 3e-6     # m
-# Parameters of the registration between unregistered frames: metres and any rotation, so no
-# typical size bounds them (`identify.Block.bounded`).
-REGISTRATION = frozenset({"station.w", "station.v", "mount.d"})
 SIGMA_R_FLOOR = 5e-6     # rad
 
 
@@ -194,7 +192,6 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         identity. `variant` names the rigid fit instead (`identify.RIGID_VARIANTS`).
         """
         thetas = {e.name: e.identity_theta() for e in chosen}
-        names = {e.name for e in chosen}
         measured_R = rotations.quat_to_matrix(measured[:, 3:7])
         reference_R = rotations.quat_to_matrix(reference[:, 3:7]) if self.with_rotation_ else None
         if variant is None:
@@ -207,16 +204,13 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
             dr = rotations.matrix_to_rotvec(np.swapaxes(reference_R, -1, -2) @ predicted)
             sigma_r = max(float(np.sqrt(np.mean(dr ** 2) * len(dr) / max(len(dr) - 1, 1))), SIGMA_R_FLOOR)
         sigma_p = max(rigid.sigma_p, SIGMA_P_FLOOR)
-        if "station" in names:
-            # measured = W(reference + R_ref e), W = (R^T, -R^T t) the inverse of the rigid fit.
-            R_W, t_W = rigid.R.T, -rigid.R.T @ rigid.t
-            c = self.ctx_.c
-            thetas["station"] = np.concatenate([rotations.matrix_to_rotvec(R_W), t_W - c + R_W @ c])
-            if "mount" in names:
-                thetas["mount"] = np.concatenate([rotations.matrix_to_rotvec(rigid.mount), -rigid.mount @ rigid.lever])
-        elif "mount" in names and reference_R is not None:
-            thetas["mount"][:3] = rotations.matrix_to_rotvec(
-                chordal_mean(np.swapaxes(reference_R, -1, -2) @ measured_R))
+        # The effects that register the frames start from the rigid fit (`Effect.start`).
+        roles = frozenset(e.registration for e in chosen if e.registration)
+        mean_turn = None if reference_R is None else chordal_mean(np.swapaxes(reference_R, -1, -2) @ measured_R)
+        for effect in chosen:
+            start = effect.start(rigid, self.ctx_, roles, mean_turn)
+            if start is not None:
+                thetas[effect.name] = np.asarray(start, float)
         thetas.update({name: np.asarray(theta, float) for name, theta in given.items() if name in thetas})
         theta = np.concatenate([thetas[e.name] for e in chosen]) if chosen else np.zeros(0)
         return theta, sigma_p, sigma_r, rigid
@@ -233,8 +227,8 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
 
     def _blocks(self) -> list[Block]:
         """Parameter blocks in the order the identification takes them: the registration
-        (station, then mount) first, then the other effects in catalogue order."""
-        first = {"station": 0, "mount": 1}
+        (its roles in `REGISTRATION_ROLES` order) first, then the other effects in catalogue order."""
+        first = {role: rank for rank, role in enumerate(REGISTRATION_ROLES)}
         blocks, i = [], 0
         owned = []
         for effect in self._chosen:
@@ -242,8 +236,8 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
             for param in effect.params:
                 index = np.arange(i, i + param.size)
                 label = f"{effect.name}.{param.name}"
-                owned.append((first.get(effect.name, 2), len(owned),
-                              Block(label, index, param.scale, param.unit, reason, label not in REGISTRATION)))
+                owned.append((first.get(effect.registration, len(first)), len(owned),
+                              Block(label, index, param.scale, param.unit, reason, not param.unbounded)))
                 i += param.size
         return [block for _, _, block in sorted(owned, key=lambda item: item[:2])]
 
@@ -274,18 +268,18 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
             return np.zeros((0, 0)), {}
         probe, i = theta0.copy(), 0
         for effect in self._chosen:
-            if effect.name not in ("station", "mount"):
+            if not effect.registration:
                 probe[i:i + effect.size] = effect.default_theta()
             i += effect.size
         J = self._residual_fn(measured, reference, sigma_p, sigma_r).jacobian(probe)
         blocks = self._blocks()
         fixed: dict[str, str] = {}
         if not self.with_rotation_:
-            # Without reference orientations the mount rotation only turns the lever: hold it.
+            held = {f"{e.name}.{name}" for e in self._chosen for name in e.held_without_orientation()}
             for block in blocks:
-                if block.label == "mount.d":
+                if block.label in held:
                     J[:, block.index] = 0.0
-                    fixed["mount.d"] = "the reference has no orientation"
+                    fixed[block.label] = "the reference has no orientation"
         B, more = determined_directions(J, blocks)
         fixed.update({k: v for k, v in more.items() if not k.startswith(tuple(fixed))})
         return B, fixed
@@ -313,9 +307,10 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         for effect in self._chosen:
             thetas[effect.name] = theta[..., i:i + effect.size]
             i += effect.size
-        if not self.with_rotation_ and "station" in thetas:
+        frame = next((e for e in self._chosen if e.registration == "frame"), None)
+        if not self.with_rotation_ and frame is not None:
             xp = namespace(R)
-            W = rotations.rotvec_to_matrix(thetas["station"][..., 0:3])
+            W = rotations.rotvec_to_matrix(frame.frame_rotation(thetas[frame.name]))
             R = xp.matmul(xp.swap_last(W), R)
         return apply_effects(p, R, thetas, ctx or self.ctx_)
 
@@ -438,8 +433,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         weights = []
         for effect in self._chosen:
             for param in effect.params:
-                physical = f"{effect.name}.{param.name}" not in REGISTRATION
-                weight = np.sqrt(self.prior_strength) / param.scale if physical else 0.0
+                weight = 0.0 if param.unbounded else np.sqrt(self.prior_strength) / param.scale
                 weights += [weight] * param.size
         return np.asarray(weights, float)
 
@@ -588,7 +582,8 @@ class RigidModel(PhysicsModel):
     method = "rigid"
 
     def __init__(self, with_rotation: bool = True, variant: str = "lever") -> None:
-        super().__init__(effects=("station", "mount"), with_rotation=with_rotation)
+        roles = registration_effects()
+        super().__init__(effects=tuple(roles[role] for role in REGISTRATION_ROLES), with_rotation=with_rotation)
         self.variant = variant
 
     def fit(self, measured: Any, reference: Any, t: np.ndarray | None = None, validation: Any = None, *,
@@ -604,9 +599,13 @@ class RigidModel(PhysicsModel):
         with_rotation = self.with_rotation_
         theta, self.sigma_p_, sigma_r, rigid = self._initial_theta(measured, reference, chosen, {}, self.variant)
         self.sigma_r_ = sigma_r if with_rotation else None
-        self.fixed_ = {} if with_rotation else {"mount.d": "the reference has no orientation"}
+        lever = get_effect(registration_effects()["lever"])
+        held = lever.held_without_orientation()
+        self.fixed_ = {} if with_rotation else {f"{lever.name}.{name}": "the reference has no orientation"
+                                                for name in held}
         if len(rigid.lever_fixed):
-            label = "mount.e" if len(rigid.lever_fixed) == 3 else "mount.e along " + "; ".join(
+            arm = f"{lever.name}.{next(p.name for p in lever.params if p.name not in held)}"
+            label = arm if len(rigid.lever_fixed) == 3 else f"{arm} along " + "; ".join(
                 direction_label(rigid.mount @ v) for v in rigid.lever_fixed)   # e = -X lever
             self.fixed_[label] = ("the plain Kabsch fit has no lever arm" if self.variant == "kabsch"
                                   else self.spread_.orientation_words())

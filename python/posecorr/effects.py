@@ -41,10 +41,12 @@ from typing import Any, Callable, ClassVar, Iterable, Mapping
 import numpy as np
 
 from ._xp import namespace
-from .rotations import normalize, rotvec_to_matrix
+from .registry import Registry
+from .rotations import matrix_to_rotvec, normalize, rotvec_to_matrix
 
 __all__ = [
-    "Param", "Effect", "EffectContext", "EFFECTS", "BUILTIN_NAMES", "FORM_NAMES", "SENSITIVITIES", "get_effect", "register_effect",
+    "Param", "Effect", "EffectContext", "EffectRegistry", "EFFECTS", "BUILTIN_NAMES", "FORM_NAMES", "SENSITIVITIES",
+    "REGISTRATION_ROLES", "registration_effects", "get_effect", "register_effect",
     "unregister_effect", "to_namespace", "checked_theta",
     "parse_effects_arg", "load_effect_file", "apply_effects", "invert_effects",
     "sorted_effects", "station_coords", "from_station", "sweep_direction", "Mount", "Sweep", "RangeScale", "Incidence", "Drift", "Station", "Noise",
@@ -63,6 +65,8 @@ class Param:
         ("positive" for a divisor, "nonnegative" for a standard deviation).
     plausible: (lower, upper) the values a real tracker shows (None: any); a fitted value
         outside is no physical explanation, and the diagnosis does not mark the effect present.
+    unbounded: a registration's parameter: unregistered frames put it anywhere (metres, any
+        rotation), so no typical size bounds it, and no prior draws it towards its identity.
     """
 
     name: str
@@ -75,6 +79,7 @@ class Param:
     bounds: tuple[float, float] | None = None
     domain: str = "real"
     plausible: tuple[float, float] | None = None
+    unbounded: bool = False
 
     def __post_init__(self) -> None:
         if len(self.default) != self.size:
@@ -157,7 +162,13 @@ def _rows_times(p: Any, M: Any) -> Any:
 
 # What an effect declares about itself besides its map (see `Effect`).
 CAPABILITIES = ("name", "params", "order", "random", "needs_time", "closed_form_inverse", "per_row_theta",
-                "changes_rotation", "inverse_steps", "doc", "generic", "causes", "sensitivity")
+                "changes_rotation", "inverse_steps", "doc", "generic", "causes", "sensitivity", "registration")
+
+# The parts an effect may play in registering the tracker's frames (`Effect.registration`),
+# in the order a fit identifies them: the unknown rigid motion between the tracker's reporting
+# frame and the base ("frame", the catalogue's station), then the tracker's unknown pose on
+# its mount ("lever", the catalogue's mount).
+REGISTRATION_ROLES = ("frame", "lever")
 
 # What the poses must vary in for an effect to show (`Effect.sensitivity`): the words of
 # "cannot be determined" name the one that is missing.
@@ -191,6 +202,7 @@ class Effect:
     generic: ClassVar[bool] = False
     causes: ClassVar[str] = ""                # physical causes of this shape, in words
     sensitivity: ClassVar[str] = "position"   # one of SENSITIVITIES
+    registration: ClassVar[str] = ""          # one of REGISTRATION_ROLES, or "" for none
 
     def __init_subclass__(cls, **capabilities: Any) -> None:
         """The capabilities above may be given as class keywords, all in one line:
@@ -271,6 +283,25 @@ class Effect:
         """Why the effect cannot act on this data (empty when it can)."""
         return []
 
+    # -- its part in the registration (effects with a `registration` role) ---------------
+    def start(self, rigid: Any, ctx: EffectContext, roles: frozenset[str],
+              mean_turn: np.ndarray | None) -> np.ndarray | None:
+        """theta where a fit starts, from the closed-form rigid registration `rigid`
+        (`identify.RigidRegistration`: p_ref = R (p_meas + R_meas lever) + t, R_ref = R R_meas
+        mount^T), the roles present in the model, and the chordal mean of R_ref^T R_meas (None
+        without reference orientations). None: start at the identity."""
+        return None
+
+    def held_without_orientation(self) -> tuple[str, ...]:
+        """Parameters a table without reference orientations cannot show (held at identity)."""
+        return ()
+
+    def frame_rotation(self, theta: Any) -> Any:
+        """For the "frame" role: the rotation vector by which the effect turns orientations,
+        so that a position-only table's reference orientation can be recovered from the
+        measured one."""
+        raise NotImplementedError(f"effect {self.name!r} plays no frame role")
+
     # -- maps ------------------------------------------------------------------------
     def forward(self, p: Any, R: Any, theta: Any, ctx: EffectContext) -> tuple[Any, Any]:
         """Apply the effect: reference-side pose -> measured-side pose."""
@@ -294,7 +325,8 @@ class Effect:
 
 # --- the built-in catalogue -----------------------------------------------------------
 
-class Mount(Effect, name="mount", order=1, per_row_theta=True, closed_form_inverse=True, sensitivity="orientation"):
+class Mount(Effect, name="mount", order=1, per_row_theta=True, closed_form_inverse=True, sensitivity="orientation",
+            registration="lever"):
     """Error of the tracker adapter, i.e. of end_T_tracker (eq. 22), in the tracker frame.
 
     p <- p + R e;  R <- R Exp(d).  d (3, rad) and e (3, m) are expressed in the tracker frame
@@ -302,8 +334,21 @@ class Mount(Effect, name="mount", order=1, per_row_theta=True, closed_form_inver
     p <- p - R e (with the restored R).
     """
 
-    params = (Param("d", 3, (2e-3, -1e-3, 5e-3), 1e-2, "rad", doc="rotation vector, tracker frame"),
+    params = (Param("d", 3, (2e-3, -1e-3, 5e-3), 1e-2, "rad", doc="rotation vector, tracker frame", unbounded=True),
               Param("e", 3, (2e-3, -1e-3, 1.5e-3), 1e-2, "m", doc="offset, tracker frame"))
+
+    def start(self, rigid, ctx, roles, mean_turn):
+        """With the frame registered: the rigid fit's mount and lever (e = -X lever); without
+        it, the mean turn between reference and measured orientations, no lever."""
+        if "frame" in roles:
+            return np.concatenate([matrix_to_rotvec(rigid.mount), -rigid.mount @ rigid.lever])
+        if mean_turn is None:
+            return None
+        return np.concatenate([matrix_to_rotvec(mean_turn), np.zeros(3)])
+
+    def held_without_orientation(self):
+        # Without reference orientations the mount rotation only turns the lever.
+        return ("d",)
 
     def forward(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
@@ -451,7 +496,7 @@ class Drift(Effect, name="drift", order=5, per_row_theta=True, closed_form_inver
         return (p if off is None else p - off), R
 
 
-class Station(Effect, name="station", order=6, per_row_theta=True, closed_form_inverse=True):
+class Station(Effect, name="station", order=6, per_row_theta=True, closed_form_inverse=True, registration="frame"):
     """Error of the single-measurement station registration (eq. 23), a rigid motion about c.
 
     p <- c + Exp(w)(p - c) + v;  R <- Exp(w) R;  w (3, rad), v (3, m), base frame. Rotating
@@ -459,8 +504,17 @@ class Station(Effect, name="station", order=6, per_row_theta=True, closed_form_i
     Closed-form inverse: p <- c + Exp(w)^T (p - v - c), R <- Exp(w)^T R.
     """
 
-    params = (Param("w", 3, (2e-3, -1e-3, 3e-3), 1e-2, "rad", doc="rotation vector, base frame"),
-              Param("v", 3, (1e-2, -5e-3, 5e-3), 1e-2, "m", doc="translation, base frame"))
+    params = (Param("w", 3, (2e-3, -1e-3, 3e-3), 1e-2, "rad", doc="rotation vector, base frame", unbounded=True),
+              Param("v", 3, (1e-2, -5e-3, 5e-3), 1e-2, "m", doc="translation, base frame", unbounded=True))
+
+    def start(self, rigid, ctx, roles, mean_turn):
+        """measured = W(reference + R_ref e), W = (R^T, -R^T t) the inverse of the rigid fit,
+        written as a rotation about c and a translation."""
+        R_W, t_W = rigid.R.T, -rigid.R.T @ rigid.t
+        return np.concatenate([matrix_to_rotvec(R_W), t_W - ctx.c + R_W @ ctx.c])
+
+    def frame_rotation(self, theta):
+        return theta[..., 0:3]
 
     def forward(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
@@ -515,8 +569,34 @@ class Noise(Effect, name="noise", order=7, random=True):
 
 # --- registry -------------------------------------------------------------------------
 
-EFFECTS: dict[str, Effect] = {}
-_SOURCES: dict[str, str] = {}   # name -> file of a user effect ("" for built-ins)
+class EffectRegistry(Registry):
+    """The catalogue, the forms and the user's effects, in application order; each entry
+    remembers its source file ("" for built-ins), so loading the same file again replaces its
+    effects while another file (or the catalogue) keeps its names."""
+
+    def __init__(self) -> None:
+        super().__init__("effect")
+        self.sources: dict[str, str] = {}
+
+    def add(self, name: str, entry: Any, source: str = "") -> Any:
+        if name in self and self.sources.get(name, "") != source:
+            where = self.sources.get(name) or "the built-in catalogue"
+            raise ValueError(f"effect {name!r} is already defined by {where}")
+        self[name] = entry
+        self.sources[name] = source
+        ordered = sorted(self.values(), key=lambda e: e.order)   # stable for equal orders
+        self.clear()
+        self.update({e.name: e for e in ordered})
+        return entry
+
+    def remove(self, name: str) -> None:
+        self.lookup(name)
+        if not self.sources[name]:
+            raise ValueError(f"effect {name!r} is built in and cannot be removed")
+        del self[name], self.sources[name]
+
+
+EFFECTS = EffectRegistry()
 
 
 def register_effect(effect: Effect | type[Effect], source: str = "") -> Effect:
@@ -529,19 +609,11 @@ def register_effect(effect: Effect | type[Effect], source: str = "") -> Effect:
     for p in effect.params:
         if not isinstance(p, Param):
             raise ValueError(f"effect {name!r}: params must be Param instances, got {p!r}")
-    if effect.sensitivity not in SENSITIVITIES:
-        raise ValueError(f"effect {name!r}: sensitivity must be one of {', '.join(SENSITIVITIES)}, "
-                         f"got {effect.sensitivity!r}")
-    if name in EFFECTS and _SOURCES.get(name, "") != source:
-        where = _SOURCES.get(name) or "the built-in catalogue"
-        raise ValueError(f"effect {name!r} is already defined by {where}")
-    EFFECTS[name] = effect
-    _SOURCES[name] = source
-    # Keep the registry in application order (stable for equal orders).
-    ordered = sorted(EFFECTS.values(), key=lambda e: e.order)
-    EFFECTS.clear()
-    EFFECTS.update({e.name: e for e in ordered})
-    return effect
+    for capability, allowed in (("sensitivity", SENSITIVITIES), ("registration", ("",) + REGISTRATION_ROLES)):
+        if getattr(effect, capability) not in allowed:
+            raise ValueError(f"effect {name!r}: {capability} must be one of "
+                             f"{', '.join(repr(a) for a in allowed)}, got {getattr(effect, capability)!r}")
+    return EFFECTS.add(name, effect, source)
 
 
 for _cls in (Mount, Sweep, RangeScale, Incidence, Drift, Station, Noise):
@@ -559,18 +631,21 @@ FORM_NAMES: tuple[str, ...] = tuple(name for name, effect in EFFECTS.items() if 
 
 def unregister_effect(name: str) -> None:
     """Remove a user effect from the catalogue (built-ins stay)."""
-    if name in BUILTIN_NAMES or name in FORM_NAMES:
-        raise ValueError(f"effect {name!r} is built in and cannot be removed")
-    get_effect(name)
-    del EFFECTS[name], _SOURCES[name]
+    EFFECTS.remove(name)
 
 
 def get_effect(name: str) -> Effect:
     """The registered effect called `name`; ValueError listing the known ones otherwise."""
-    try:
-        return EFFECTS[name]
-    except KeyError:
-        raise ValueError(f"unknown effect {name!r}; known effects: {', '.join(EFFECTS)}") from None
+    return EFFECTS.lookup(name)
+
+
+def registration_effects() -> dict[str, str]:
+    """{role: name} of the registered effects that play a registration role (the first of each)."""
+    out: dict[str, str] = {}
+    for name, effect in EFFECTS.items():
+        if effect.registration:
+            out.setdefault(effect.registration, name)
+    return out
 
 
 def sorted_effects(names: Iterable[str]) -> list[Effect]:

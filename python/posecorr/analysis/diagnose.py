@@ -95,7 +95,9 @@ def feature_r2(residuals: np.ndarray, features: dict[str, np.ndarray], folds: in
                seed: int = 0) -> list[dict[str, Any]]:
     """Cross-validated R^2 of a smooth fit of the residuals on each feature alone, best first."""
     from sklearn.linear_model import Ridge
-    from sklearn.model_selection import KFold, cross_val_predict
+    from sklearn.model_selection import cross_val_predict
+
+    from posecorr.train.splits import KFold
     from sklearn.pipeline import make_pipeline
     from sklearn.preprocessing import OneHotEncoder, SplineTransformer
 
@@ -114,8 +116,7 @@ def feature_r2(residuals: np.ndarray, features: dict[str, np.ndarray], folds: in
         encoder = (OneHotEncoder(handle_unknown="ignore") if distinct <= 8
                    else SplineTransformer(n_knots=8, degree=3, extrapolation="linear"))
         model = make_pipeline(encoder, Ridge(alpha=1e-3))
-        cv = KFold(n_splits=folds, shuffle=True, random_state=seed)
-        predicted = cross_val_predict(model, x, residuals, cv=cv)
+        predicted = cross_val_predict(model, x, residuals, cv=KFold(folds).folds(len(x), seed))
         r2 = 1.0 - float(np.sum((residuals - predicted) ** 2)) / total
         out.append({"feature": name, "r2": max(r2, 0.0)})
     return sorted(out, key=lambda row: -row["r2"])

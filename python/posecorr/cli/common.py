@@ -73,9 +73,23 @@ def diagnosis_options(p: argparse.ArgumentParser) -> None:
     """The diagnosis' cross-validation (diagnose, report), its seed and its threads."""
     from .options import integer
 
-    p.add_argument("--folds", type=integer(2, 1000), default=5)
+    p.add_argument("--cv", dest="folds", type=integer(2, 1000), default=5, metavar="K",
+                   help="folds of the held-out test (whole poses), as fit's --cv K")
+    p.add_argument("--folds", dest="folds", type=integer(2, 1000), action=Renamed, new="--cv", help=argparse.SUPPRESS)
     seed_option(p)
     threads_option(p)
+
+
+class Renamed(argparse.Action):
+    """An option's old spelling: still taken, with a note naming the new one."""
+
+    def __init__(self, option_strings: list[str], dest: str, new: str, **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, **kwargs)
+        self.new = new
+
+    def __call__(self, parser: Any, namespace: argparse.Namespace, values: Any, option_string: str | None = None) -> None:
+        print(f"posecorr: note: {option_string} is now {self.new} (same meaning)", file=sys.stderr)
+        setattr(namespace, self.dest, values)
 
 
 # --- what the option groups give --------------------------------------------------------

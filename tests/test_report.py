@@ -30,7 +30,8 @@ DIAGNOSIS = {
 }
 LEDGER = [
     {"time": "2024-01-01T00:00:00+00:00", "model": "a.onnx", "effects": [], "method": "pmc",
-     "representation": "zhou", "cv": {"rmse_pos": 0.02, "rmse_rot": 0.05, "rmse_total": 0.07}},
+     "representation": "zhou", "cv": {"rmse_pos": 0.02, "rmse_rot": 0.05, "rmse_total": 0.07},
+     "baseline": {"model": "rigid-joint", "rmse_pos": 0.004, "rmse_rot": 0.002, "rmse_total": 0.006}},
     {"time": "2024-01-01T00:05:00+00:00", "model": "b_station.onnx", "effects": ["station", "mount"],
      "method": "pmc", "representation": "zhou", "test": {"rmse_pos": 0.001, "rmse_rot": 0.001,
                                                          "rmse_total": 0.002}},
@@ -374,3 +375,70 @@ def test_held_out_where_the_ledger_knows_the_folds_in_sample_otherwise(tmp_path:
     assert report["after"]["n"] == n
     rows = _metrics_rows((tmp_path / "r.html").read_text())
     assert rows[0][1] == "in-sample" and rows[1][1] == "in-sample"
+
+
+def test_the_history_plot_draws_each_fit_against_the_rigid_fit() -> None:
+    """The loop's history: each ledger line's held-out rmse_pos, and the rigid fit on the
+    same poses as a line where the ledger line has it (older lines: none)."""
+    from posecorr.analysis.figures import ledger_figure
+
+    fig = ledger_figure(LEDGER)
+    lines = {line.get_label(): line for line in fig.axes[0].get_lines()}
+    model = lines["model, held-out"]
+    assert np.allclose(model.get_ydata(), [20.0, 1.0])
+    rigid = np.asarray(lines["best rigid fit, same poses"].get_ydata(), float)
+    assert rigid[0] == pytest.approx(4.0) and np.isnan(rigid[1])
+    assert fig.axes[0].get_ylabel() == "held-out rmse_pos [mm]"
+
+
+# --- the page in a real browser ------------------------------------------------------------
+
+def _chromium() -> None:
+    """Skip without a Chromium, unless on CI (CI=true), where `.ci/run` installs Debian's."""
+    import os
+
+    from posecorr.analysis.screenshot import BROWSERS, find_browser
+
+    if find_browser() is None:
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(f"CI=true and no Chromium on PATH ({', '.join(BROWSERS)}): "
+                        "install Debian's chromium (.ci/run's apt-get line)")
+        pytest.skip("no Chromium on PATH (install Debian's chromium to run the browser test)")
+
+
+def test_the_page_in_headless_chromium(tmp_path: Path, unregistered: PoseTable) -> None:
+    """Every figure decodes (naturalWidth > 0), every anchor of the menu resolves to a section
+    and neither a script error nor a console message shows, in a real Chromium."""
+    from posecorr.analysis.screenshot import check_page
+
+    _chromium()
+    corrected = unregistered.reference.copy()
+    corrected[:, :3] += np.random.default_rng(2).normal(0, 0.3e-3, (unregistered.n, 3))
+    info = {"file": "m.onnx", "method": "pmc", "representation": "zhou", "effects": ["station", "mount"]}
+    out = write_report(tmp_path / "r.html", unregistered, corrected, info, DIAGNOSIS, LEDGER)
+    _, parsed = _parse(out)
+    seen = check_page(out, tmp_path, timeout=120)
+    assert len(seen["images"]) == len(parsed.imgs) == 7
+    undecoded = [i["alt"] for i in seen["images"] if not (i["complete"] and i["width"] > 0 and i["height"] > 0)]
+    assert not undecoded, f"figures that do not decode in Chromium: {undecoded}"
+    assert [a["href"] for a in seen["anchors"]] == [f"#{sid}" for sid, _ in SECTIONS]
+    assert all(a["resolves"] for a in seen["anchors"]), [a for a in seen["anchors"] if not a["resolves"]]
+    assert seen["errors"] == [] and seen["console"] == []
+
+
+def test_the_browser_check_sees_a_broken_page(tmp_path: Path) -> None:
+    """The check can fail: a figure that does not decode, a menu anchor to nothing, a script
+    error and a console message are each seen."""
+    from posecorr.analysis.screenshot import check_page
+
+    _chromium()
+    page = tmp_path / "bad.html"
+    page.write_text('<!DOCTYPE html><html><head><meta charset="utf-8"></head><body><nav><a href="#gone">x</a>'
+                    '<a href="#s">s</a></nav><section id="s"><img alt="broken" src="data:image/png;base64,AAAA">'
+                    '<script>console.log("a message"); missing();</script></section></body></html>')
+    seen = check_page(page, tmp_path, timeout=120)
+    assert seen["images"][0]["width"] == 0
+    assert [a["resolves"] for a in seen["anchors"]] == [False, True]
+    assert any("missing is not defined" in e for e in seen["errors"])
+    assert any("failed to load <img>" in e for e in seen["errors"])
+    assert any("a message" in c for c in seen["console"])

@@ -137,6 +137,8 @@ def test_full_report(tmp_path: Path, small: tuple[PoseTable, np.ndarray]) -> Non
     ledger = text[text.index('id="ledger"'):]
     assert "b_station.onnx" in ledger and "station,mount" in ledger
     assert ">70.0<" in ledger and ">2.00<" in ledger  # rmse_total in mm + mrad
+    # Against the rigid fit on the same poses where the line has it (6 / 70), else nothing.
+    assert ">4.00 (joint)<" in ledger and ">0.0857×<" in ledger
 
 
 def test_position_only_small_no_time(tmp_path: Path) -> None:

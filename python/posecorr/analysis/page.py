@@ -307,22 +307,22 @@ def _ledger_section(ledger: Sequence[Mapping[str, Any]]) -> str:
     if not ledger:
         return _section("ledger", "Ledger", "<p>No models fitted on this data yet (the ledger is empty).</p>")
     header = ["#", "time", "model", "effects", "method", "representation", "held-out",
-              "rmse_pos [mm]", "rmse_rot [mrad]", "rmse_total [mm + mrad]", "improvement (total)",
-              "best rigid fit, same poses: rmse_pos [mm]"]
+              "rmse_pos [mm]", "rmse_rot [mrad]", "rmse_total [mm + mrad]",
+              "best rigid fit, same poses: rmse_pos [mm]", "gain over the rigid fit (total)"]
     rows = []
     totals = []
     for k, entry in enumerate(ledger, start=1):
         kind, block = held_out(entry)
         totals.append(block.get("rmse_total") if isinstance(block.get("rmse_total"), (int, float)) else math.inf)
-        imp = block.get("improvement_total")
+        gain = _gain(entry.get("baseline"), block)
         when = str(entry.get("time", "")).replace("T", " ").removesuffix("+00:00")
         model = str(entry.get("model", ""))
         rows.append([str(k), _e(when), f'<span title="{_e(model)}">{_e(Path(model).name if model else "")}</span>',
                      _e(",".join(effect_list(entry.get("effects"))) or "none"), _e(entry.get("method", "")),
                      _e(entry.get("representation", "")), _e(kind or "–"),
                      _num(block.get("rmse_pos"), 1e3), _num(block.get("rmse_rot"), 1e3),
-                     _num(block.get("rmse_total"), 1e3), (_num(imp) + "×") if imp is not None else "–",
-                     _rigid_cell(entry.get("baseline"))])
+                     _num(block.get("rmse_total"), 1e3), _rigid_cell(entry.get("baseline")),
+                     (_num(gain) + "×") if gain is not None else "–"])
     best = int(np.argmin(totals)) if any(math.isfinite(t) for t in totals) else -1
     classes = ["best" if k == best else "" for k in range(len(rows))]
     body = _table(header, rows, left=7, row_classes=classes, compact=True)
@@ -333,6 +333,15 @@ def _ledger_section(ledger: Sequence[Mapping[str, Any]]) -> str:
             "highlighted: the lowest held-out rmse_total. The plot: each fit's held-out rmse_pos against the "
             "best rigid fit on the same poses (dashed).")
     return _section("ledger", "History: models fitted on this data", body, _e(note))
+
+
+def _gain(baseline: Any, block: Mapping[str, Any]) -> float | None:
+    """The rigid fit's held-out rmse_total over the model's, None where either is missing."""
+    rigid = baseline.get("rmse_total") if isinstance(baseline, Mapping) else None
+    model = block.get("rmse_total")
+    if isinstance(rigid, (int, float)) and isinstance(model, (int, float)) and model > 0:
+        return float(rigid) / float(model)
+    return None
 
 
 def _rigid_cell(baseline: Any) -> str:
@@ -346,15 +355,16 @@ def _figure_sections(comparison: Comparison, feats: Mapping[str, np.ndarray], po
                      rot: tuple[np.ndarray, np.ndarray] | None) -> list[str]:
     """Workspace arrows, error against features, by orientation, histograms: before against after."""
     before = comparison.baseline if comparison.unregistered else "raw"
-    after = f"corrected, {comparison.scored}"
+    after = "corrected, " + ("held-out" if comparison.held_out else "in-sample")
     ref_p = comparison.reference[:, :3]
     keys = (figures.arrow_key_mm(comparison.before[:, :3] - ref_p), figures.arrow_key_mm(comparison.after[:, :3] - ref_p))
     fig = figures.workspace_figure(ref_p, comparison.before[:, :3] - ref_p, comparison.after[:, :3] - ref_p,
-                                   f"before: {before}", f"after: {after}")
+                                   f"before: {before}", "after: " + after.removeprefix("corrected, "))
     sections = [_section("workspace", "Residual arrows over the workspace",
                          _img(fig, "position error vectors in x-y, x-z, y-z, before and after",
                               {"data-before-key-mm": f"{keys[0]:g}", "data-after-key-mm": f"{keys[1]:g}"}),
-                         _e(f"Arrow = {before} (top) or {after} (bottom) minus reference position, drawn at the "
+                         _e(f"Arrow = {before} (top) or {comparison.scored} correction (bottom) minus reference "
+                            "position, drawn at the "
                             "reference position, in three projections; colour = 3D error magnitude. "
                             "Arrows are magnified; the key in each panel gives the scale."))]
     body = _img(figures.features_figure(feats, pos[0] * 1e3, pos[1] * 1e3, "position error", "mm", before, after),

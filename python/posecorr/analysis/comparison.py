@@ -115,10 +115,9 @@ def compare(table: PoseTable, corrected: np.ndarray, entry: Mapping[str, Any] | 
     from .ledger import held_out as ledger_block
 
     return Comparison(rows, reference, rigid_pred if unregistered else measured, after,
-                            rigid_label(rigid_name) if unregistered else "raw", scored, held is not None,
-                            bool(unregistered), raw, rigid, rigid_label(rigid_name),
-                            pose_metrics(reference, after, with_rot), reason,
-                            ledger_block(entry)[1] if entry else None)
+                      rigid_label(rigid_name) if unregistered else "raw", scored, held is not None,
+                      bool(unregistered), raw, rigid, rigid_label(rigid_name), pose_metrics(reference, after, with_rot),
+                      reason, ledger_block(entry)[1] if entry else None)
 
 
 def _rigid_in_sample(table: PoseTable, wanted: str | None) -> tuple[str, np.ndarray]:
@@ -140,13 +139,13 @@ def _rigid_in_sample(table: PoseTable, wanted: str | None) -> tuple[str, np.ndar
     return best[1], best[2]
 
 
-HeldOut = tuple[np.ndarray, "np.ndarray | None", str, np.ndarray, str]
+# (rows, the model's poses on them or None for the model file's own, rigid name, its poses, label)
+Rebuilt = tuple[np.ndarray, "np.ndarray | None", str, np.ndarray, str]
 
 
 def _held_out(table: PoseTable, entry: Mapping[str, Any] | None,
-              say: Callable[[str], None]) -> tuple[HeldOut | None, str]:
-    """((rows, after or None for the model file's own, rigid name, rigid poses, label), "")
-    or (None, why the after is in-sample)."""
+              say: Callable[[str], None]) -> tuple[Rebuilt | None, str]:
+    """(`Rebuilt`, "") or (None, why the after is in-sample)."""
     from ..train.splits import FixedSplit, parse_plan
 
     if entry is None:
@@ -171,7 +170,7 @@ def _held_out(table: PoseTable, entry: Mapping[str, Any] | None,
 
 
 def _cross_validated(table: PoseTable, entry: Mapping[str, Any], plan: Any, seed: int, rigid: Any,
-                     say: Callable[[str], None]) -> tuple[HeldOut | None, str]:
+                     say: Callable[[str], None]) -> tuple[Rebuilt | None, str]:
     from ..train.pipeline import requested_candidate
     from ..train.spec import ModelSpec
 

@@ -444,3 +444,21 @@ def test_the_browser_check_sees_a_broken_page(tmp_path: Path) -> None:
     assert any("missing is not defined" in e for e in seen["errors"])
     assert any("failed to load <img>" in e for e in seen["errors"])
     assert any("a message" in c for c in seen["console"])
+
+
+def test_a_ledger_line_that_cannot_rebuild_the_held_out_says_why(unregistered: PoseTable) -> None:
+    """In-sample, with the reason, for a line of an older posecorr, of another table, or of
+    auto (whose nested choice is not rebuilt); the rigid variant the line names is kept."""
+    from posecorr.analysis.comparison import compare
+
+    table = unregistered
+    baseline = {"model": "rigid-kabsch", "rmse_pos": 0.02}
+    cases = [({"cv": {}, "baseline": baseline}, "lacks plan, seed, n"),
+             ({"plan": "5", "seed": 0, "n": table.n + 1, "baseline": baseline}, f"{table.n + 1} poses"),
+             ({"plan": "5", "seed": 0, "n": table.n, "baseline": baseline, "effects": ["station"],
+               "spec": {"method": "auto", "representation": "zhou"}}, "auto's nested choice")]
+    for entry, why in cases:
+        comparison = compare(table, table.reference, entry)
+        assert not comparison.held_out and comparison.scored == "in-sample"
+        assert why in comparison.reason
+        assert comparison.baseline == "rigid fit (kabsch)"

@@ -1,13 +1,18 @@
 """The self-contained HTML report: measurements against a model (`posecorr report`).
 
 One file, no external resources: figures are PNGs embedded as base64 data URIs, the CSS is
-inline and there is no JavaScript. The page lets a user compare a model with the
-measurements, see where it fails, read which physical effect the diagnosis says is missing,
-and watch the held-out error fall across the ledger of models fitted on the same data.
+inline and there is no JavaScript (the tests load it in headless Chromium:
+`screenshot.check_page`). The page lets a user compare a model with the measurements, see
+where it fails, read which physical effect the diagnosis says is missing, and watch the
+held-out error fall across the ledger of models fitted on the same data.
 
 Sections (HTML ids): summary, metrics, workspace, features, orientation, histograms, worst,
 diagnosis, ledger, segments. Units on the page: mm and mrad; angles of features in degrees.
 All numbers handed in are SI (m, rad, s), as everywhere in posecorr.
+
+What the page compares comes from `comparison`: the before is raw where the frames are
+registered, the best rigid fit's residual where they are not; the after is held-out where the
+ledger holds the fit that wrote the model, in-sample otherwise (said in the metrics table).
 
 This module assembles the HTML; the plots are drawn by `figures` (matplotlib, imported only
 when a figure is drawn, so `import posecorr.analysis.page` stays cheap for the CLI) and

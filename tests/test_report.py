@@ -30,7 +30,8 @@ DIAGNOSIS = {
 }
 LEDGER = [
     {"time": "2024-01-01T00:00:00+00:00", "model": "a.onnx", "effects": [], "method": "pmc",
-     "representation": "zhou", "cv": {"rmse_pos": 0.02, "rmse_rot": 0.05, "rmse_total": 0.07}},
+     "representation": "zhou", "cv": {"rmse_pos": 0.02, "rmse_rot": 0.05, "rmse_total": 0.07},
+     "baseline": {"model": "rigid-joint", "rmse_pos": 0.004, "rmse_rot": 0.002, "rmse_total": 0.006}},
     {"time": "2024-01-01T00:05:00+00:00", "model": "b_station.onnx", "effects": ["station", "mount"],
      "method": "pmc", "representation": "zhou", "test": {"rmse_pos": 0.001, "rmse_rot": 0.001,
                                                          "rmse_total": 0.002}},
@@ -136,6 +137,8 @@ def test_full_report(tmp_path: Path, small: tuple[PoseTable, np.ndarray]) -> Non
     ledger = text[text.index('id="ledger"'):]
     assert "b_station.onnx" in ledger and "station,mount" in ledger
     assert ">70.0<" in ledger and ">2.00<" in ledger  # rmse_total in mm + mrad
+    # Against the rigid fit on the same poses where the line has it (6 / 70), else nothing.
+    assert ">4.00 (joint)<" in ledger and ">0.0857×<" in ledger
 
 
 def test_position_only_small_no_time(tmp_path: Path) -> None:
@@ -217,3 +220,245 @@ def test_screenshot_drives_a_headless_chromium(tmp_path, monkeypatch) -> None:
     assert (tmp_path / "shot.png").read_bytes() == b"PNG"
     args = (bin_dir / "chromium.args").read_text().split()
     assert "--headless" in args and "--window-size=800,600" in args and page.resolve().as_uri() in args
+
+
+# --- the before: raw where the frames are registered, else the best rigid fit (issue 30, item 5) ---
+
+def _metrics_rows(page: str) -> list[list[str]]:
+    """The metrics table's body rows as lists of cell texts."""
+    section = page[page.index('id="metrics"'):page.index('id="workspace"')]
+    body = section[section.index("<tbody>"):section.index("</tbody>")]
+    return [re.findall(r"<td[^>]*>(.*?)</td>", row) for row in re.findall(r"<tr[^>]*>(.*?)</tr>", body)]
+
+
+def _rmse_pos(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((a[:, :3] - b[:, :3]) ** 2, axis=1))))
+
+
+def _kabsch_residuals(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """target - (R source + t) of the plain least-squares rigid fit (SVD, written out here)."""
+    cs, ct = source.mean(axis=0), target.mean(axis=0)
+    u, _, vt = np.linalg.svd((source - cs).T @ (target - ct))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    R = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return target - ((source - cs) @ R.T + ct)
+
+
+@pytest.fixture(scope="module")
+def unregistered() -> PoseTable:
+    """40 poses in the tracker's own frame, metres from the reference frame (a session as real
+    cells produce: any rotation, 1-4 m away, a lever arm, full orientations)."""
+    from posecorr.simulate import simulate_session
+
+    return simulate_session(0, n=40, spread="full", position_only=False, unremovable=0.0).table
+
+
+def test_unregistered_frames_are_measured_against_the_rigid_fit(tmp_path: Path, unregistered: PoseTable) -> None:
+    from posecorr.analysis.comparison import UNREGISTERED_FACTOR, UNREGISTERED_MIN_M, compare
+
+    table = unregistered
+    rng = np.random.default_rng(5)
+    corrected = table.reference.copy()
+    corrected[:, :3] += rng.normal(0, 0.1e-3, (table.n, 3))
+    kabsch = _kabsch_residuals(table.meas_p, table.ref_p)
+    kabsch_rmse = float(np.sqrt(np.mean(np.sum(kabsch ** 2, axis=1))))
+    raw = _rmse_pos(table.measured, table.reference)
+    assert raw > 0.5 and kabsch_rmse < 0.05           # the premise: metres apart, centimetres after a rigid fit
+
+    comparison = compare(table, corrected)
+    summary = comparison.to_json()
+    baseline = summary["baseline"]
+    assert comparison.unregistered and raw > max(UNREGISTERED_FACTOR * baseline["rmse_pos"], UNREGISTERED_MIN_M)
+    assert baseline["name"].startswith("rigid fit (")
+    # The best rigid fit is no worse than the plain Kabsch fit (one of its variants; the others
+    # add the 2-8 cm lever arm), and the before poses are its residuals.
+    assert baseline["rmse_pos"] <= kabsch_rmse * (1 + 1e-9)
+    assert _rmse_pos(comparison.before, table.reference) == pytest.approx(baseline["rmse_pos"], rel=1e-9)
+    # Another rigid change of the tracker's frame (2 rad, metres) does not move the rigid fit's residual.
+    from posecorr.rotations import matrix_to_quat, rotvec_to_matrix
+
+    W = rotvec_to_matrix(np.array([0.3, -1.2, 1.5]))
+    moved = np.concatenate([table.meas_p @ W.T + [3.0, -2.0, 1.0],
+                            matrix_to_quat(W @ quat_to_matrix(table.meas_q))], axis=1)
+    assert compare(table.with_measured(moved), corrected).rigid["rmse_pos"] == pytest.approx(baseline["rmse_pos"],
+                                                                                             rel=1e-4)
+    after = _rmse_pos(corrected, table.reference)
+    assert summary["after"]["rmse_pos"] == pytest.approx(after, rel=1e-9)
+    assert summary["improvement"]["pos"] == pytest.approx(baseline["rmse_pos"] / after, rel=1e-9)
+    assert summary["after"]["scored"] == "in-sample"
+
+    # The arrows: scaled to the rigid fit's residuals, not to the metres of raw.
+    before_p95_mm = 1e3 * np.percentile(np.linalg.norm(comparison.before[:, :3] - table.ref_p, axis=1), 95)
+    raw_p95_mm = 1e3 * np.percentile(np.linalg.norm(table.meas_p - table.ref_p, axis=1), 95)
+    key = summary["arrows"]["before_key_mm"]
+    assert 1 / 1.6 < key / before_p95_mm < 1.6                 # the 1-2-5 step nearest the typical arrow
+    assert key < raw_p95_mm / 100
+
+    page = write_report(tmp_path / "u.html", table, corrected, comparison=comparison).read_text()
+    rows = _metrics_rows(page)
+    assert rows[0][0] == f"before: {baseline['name']}" and rows[0][1] == "in-sample"
+    assert rows[1][0] == "corrected (model)" and rows[1][1] == "in-sample"
+    assert rows[0][2] == f"{1e3 * baseline['rmse_pos']:#.3g}".rstrip(".")
+    assert rows[2][0].startswith(f"improvement ({baseline['name']} / corrected)")
+    assert not any("raw" in row[0] for row in rows)                # raw is no before here...
+    assert f"{1e3 * raw:.3g}" in page and "10× the best rigid fit" in page   # ...only the rule and its figure
+    assert f'data-before-key-mm="{key:g}"' in page
+    assert "rigid pos [mm]" in page[page.index('id="worst"'):]
+
+
+def test_registered_frames_keep_raw_as_the_before(tmp_path: Path, small: tuple[PoseTable, np.ndarray]) -> None:
+    from posecorr.analysis.comparison import compare
+
+    table, corrected = small
+    summary = compare(table, corrected).to_json()
+    raw = _rmse_pos(table.measured, table.reference)
+    # The paper's Exp III: raw holds a station registration error of cm, 20x the rigid fit's
+    # residual; the frames are registered all the same.
+    assert raw > 10 * summary["rigid_fit"]["rmse_pos"]
+    assert summary["unregistered"] is False
+    assert summary["baseline"]["name"] == "raw"
+    assert summary["baseline"]["rmse_pos"] == pytest.approx(raw, rel=1e-9)
+    assert summary["improvement"]["pos"] == pytest.approx(raw / _rmse_pos(corrected, table.reference), rel=1e-9)
+    page = write_report(tmp_path / "r.html", table, corrected).read_text()
+    rows = _metrics_rows(page)
+    assert rows[0][0] == "raw (measured)" and rows[1][1] == "in-sample"
+    assert rows[2][0].startswith("improvement (raw / corrected)")
+
+
+def _cli(*args: str, cwd: Path) -> dict:
+    import json
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-m", "posecorr.cli", *args, "--json"], capture_output=True, text=True,
+                         timeout=600, cwd=cwd)
+    assert run.returncode == 0, run.stderr
+    return json.loads(run.stdout)
+
+
+@pytest.mark.parametrize("cv", ["5", "none"])
+def test_held_out_where_the_ledger_knows_the_folds_in_sample_otherwise(tmp_path: Path, cv: str) -> None:
+    """A fit writes the ledger line; the report rebuilds the model's and the rigid fit's
+    held-out predictions from it (5 folds; a test split on 120 poses) and says so in the
+    table; without the ledger, or for another table, the same model is in-sample."""
+    from posecorr.data import write_table
+    from posecorr.simulate import simulate_session
+    from posecorr.train.splits import split_indices
+
+    n = 40 if cv == "5" else 120
+    table = simulate_session(1, n=n, spread="full", position_only=False, unremovable=0.0).table
+    data = tmp_path / "s.csv"
+    write_table(table, data)
+    fitted = _cli("fit", str(data), "-o", "m.onnx", "--effects", "station,mount", "--method", "none",
+                  "--cv", cv, cwd=tmp_path)
+    kind = "cv" if cv == "5" else "test"
+    report = _cli("report", str(data), "--model", "m.onnx", "-o", "r.html", "--no-diagnosis", cwd=tmp_path)
+    after = report["after"]
+    assert after["held_out"] is True
+    # The report's held-out figures are the fit's: rebuilt on the same folds (float64), or the
+    # model file on the same test poses (float32 graph, the same C runtime as fit's scoring).
+    tolerance = 1e-6 if cv == "5" else 1e-4
+    assert after["rmse_pos"] == pytest.approx(fitted[kind]["rmse_pos"], rel=tolerance)
+    assert report["baseline"]["name"] == "rigid fit ({})".format(fitted["baseline"]["model"].removeprefix("rigid-"))
+    assert report["baseline"]["rmse_pos"] == pytest.approx(fitted["baseline"]["rmse_pos"], rel=1e-6)
+    if cv == "5":
+        assert after["n"] == n and after["scored"] == f"held-out (5 folds, {n} poses)"
+    else:
+        test_rows = split_indices(n, 0)[2]
+        assert after["n"] == len(test_rows) and after["scored"] == f"held-out (test split, {len(test_rows)} poses)"
+    rows = _metrics_rows((tmp_path / "r.html").read_text())
+    assert rows[1][1] == after["scored"] and rows[0][1] == after["scored"]
+
+    # The same model without its ledger line: in-sample, said in the table.
+    (tmp_path / "s.csv.ledger.jsonl").unlink()
+    report = _cli("report", str(data), "--model", "m.onnx", "-o", "r.html", "--no-diagnosis", cwd=tmp_path)
+    assert report["after"]["held_out"] is False and report["after"]["scored"] == "in-sample"
+    assert "no ledger line" in report["after"]["reason"]
+    assert report["after"]["n"] == n
+    rows = _metrics_rows((tmp_path / "r.html").read_text())
+    assert rows[0][1] == "in-sample" and rows[1][1] == "in-sample"
+
+
+def test_the_history_plot_draws_each_fit_against_the_rigid_fit() -> None:
+    """The loop's history: each ledger line's held-out rmse_pos, and the rigid fit on the
+    same poses as a line where the ledger line has it (older lines: none)."""
+    from posecorr.analysis.figures import ledger_figure
+
+    fig = ledger_figure(LEDGER)
+    lines = {line.get_label(): line for line in fig.axes[0].get_lines()}
+    model = lines["model, held-out"]
+    assert np.allclose(model.get_ydata(), [20.0, 1.0])
+    rigid = np.asarray(lines["best rigid fit, same poses"].get_ydata(), float)
+    assert rigid[0] == pytest.approx(4.0) and np.isnan(rigid[1])
+    assert fig.axes[0].get_ylabel() == "held-out rmse_pos [mm]"
+
+
+# --- the page in a real browser ------------------------------------------------------------
+
+def _chromium() -> None:
+    """Skip without a Chromium, unless on CI (CI=true), where `.ci/run` installs Debian's."""
+    import os
+
+    from posecorr.analysis.screenshot import BROWSERS, find_browser
+
+    if find_browser() is None:
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(f"CI=true and no Chromium on PATH ({', '.join(BROWSERS)}): "
+                        "install Debian's chromium (.ci/run's apt-get line)")
+        pytest.skip("no Chromium on PATH (install Debian's chromium to run the browser test)")
+
+
+def test_the_page_in_headless_chromium(tmp_path: Path, unregistered: PoseTable) -> None:
+    """Every figure decodes (naturalWidth > 0), every anchor of the menu resolves to a section
+    and neither a script error nor a console message shows, in a real Chromium."""
+    from posecorr.analysis.screenshot import check_page
+
+    _chromium()
+    corrected = unregistered.reference.copy()
+    corrected[:, :3] += np.random.default_rng(2).normal(0, 0.3e-3, (unregistered.n, 3))
+    info = {"file": "m.onnx", "method": "pmc", "representation": "zhou", "effects": ["station", "mount"]}
+    out = write_report(tmp_path / "r.html", unregistered, corrected, info, DIAGNOSIS, LEDGER)
+    _, parsed = _parse(out)
+    seen = check_page(out, tmp_path, timeout=120)
+    assert len(seen["images"]) == len(parsed.imgs) == 7
+    undecoded = [i["alt"] for i in seen["images"] if not (i["complete"] and i["width"] > 0 and i["height"] > 0)]
+    assert not undecoded, f"figures that do not decode in Chromium: {undecoded}"
+    assert [a["href"] for a in seen["anchors"]] == [f"#{sid}" for sid, _ in SECTIONS]
+    assert all(a["resolves"] for a in seen["anchors"]), [a for a in seen["anchors"] if not a["resolves"]]
+    assert seen["errors"] == [] and seen["console"] == []
+
+
+def test_the_browser_check_sees_a_broken_page(tmp_path: Path) -> None:
+    """The check can fail: a figure that does not decode, a menu anchor to nothing, a script
+    error and a console message are each seen."""
+    from posecorr.analysis.screenshot import check_page
+
+    _chromium()
+    page = tmp_path / "bad.html"
+    page.write_text('<!DOCTYPE html><html><head><meta charset="utf-8"></head><body><nav><a href="#gone">x</a>'
+                    '<a href="#s">s</a></nav><section id="s"><img alt="broken" src="data:image/png;base64,AAAA">'
+                    '<script>console.log("a message"); missing();</script></section></body></html>')
+    seen = check_page(page, tmp_path, timeout=120)
+    assert seen["images"][0]["width"] == 0
+    assert [a["resolves"] for a in seen["anchors"]] == [False, True]
+    assert any("missing is not defined" in e for e in seen["errors"])
+    assert any("failed to load <img>" in e for e in seen["errors"])
+    assert any("a message" in c for c in seen["console"])
+
+
+def test_a_ledger_line_that_cannot_rebuild_the_held_out_says_why(unregistered: PoseTable) -> None:
+    """In-sample, with the reason, for a line of an older posecorr, of another table, or of
+    auto (whose nested choice is not rebuilt); the rigid variant the line names is kept."""
+    from posecorr.analysis.comparison import compare
+
+    table = unregistered
+    baseline = {"model": "rigid-kabsch", "rmse_pos": 0.02}
+    cases = [({"cv": {}, "baseline": baseline}, "lacks plan, seed, n"),
+             ({"plan": "5", "seed": 0, "n": table.n + 1, "baseline": baseline}, f"{table.n + 1} poses"),
+             ({"plan": "5", "seed": 0, "n": table.n, "baseline": baseline, "effects": ["station"],
+               "spec": {"method": "auto", "representation": "zhou"}}, "auto's nested choice")]
+    for entry, why in cases:
+        comparison = compare(table, table.reference, entry)
+        assert not comparison.held_out and comparison.scored == "in-sample"
+        assert why in comparison.reason
+        assert comparison.baseline == "rigid fit (kabsch)"

@@ -54,23 +54,51 @@ def export_fit(report: Any, table: Any, output: str | Path, write: Any = None) -
 
 
 def write_fit(report: Any, table: Any, data_path: str | Path, output: str | Path, effects: list[str],
-              save: str | Path | None = None) -> FitFiles:
+              save: str | Path | None = None, spec: Any = None, seed: int | None = None) -> FitFiles:
     """The model file, the saved estimator (when `save`) and the ledger line, all or none: the files reach the disk, then the ledger line,
-    then the files take their names."""
+    then the files take their names. `spec` (the requested `ModelSpec`) and `seed` let
+    `posecorr report` recompute the held-out predictions (`ledger_fit_entry`)."""
     from .analysis.ledger import append_entry
     from .safeio import staged_outputs
     from .saved import save as save_fit
 
     with staged_outputs() as stage:
-        exported = export_fit(report, table, output, write=stage.write_bytes)
+        written: dict[str, bytes] = {}
+
+        def write(path: str | Path, data: bytes) -> None:
+            written[str(path)] = bytes(data)
+            stage.write_bytes(path, data)
+
+        exported = export_fit(report, table, output, write=write)
         if save is not None:
             save_fit(save, training_fit(report, table), write=stage.write_bytes)
-        info = report.model.export_info()
-        entry = {"model": str(output), "effects": effects, "method": info.get("method"),
-                 "representation": info.get("representation"), "raw": report.raw,
-                 report.heldout_kind: report.heldout}
+        entry = ledger_fit_entry(report, table, output, effects, written.get(str(output), b""), spec, seed)
         stage.before_replacing(lambda: entry.update(append_entry(data_path, entry)))
     return FitFiles(exported, entry)
 
 
-__all__ = ["FitFiles", "export_fit", "heldout_poses", "training_fit", "write_fit"]
+def ledger_fit_entry(report: Any, table: Any, output: str | Path, effects: list[str], model_bytes: bytes,
+                     spec: Any = None, seed: int | None = None) -> dict[str, Any]:
+    """The ledger line of a fit: what it scored (raw, the held-out block, the best rigid fit on
+    the same poses) and what a report needs to tell the model file apart and to rebuild the
+    held-out predictions: the file's SHA-256, the plan, the seed, the table's size, the spec
+    and the candidate chosen (a rigid variant when the fit fell back)."""
+    import dataclasses
+    import hashlib
+
+    info = report.model.export_info()
+    entry: dict[str, Any] = {"model": str(output), "effects": effects, "method": info.get("method"),
+                             "representation": info.get("representation"), "raw": report.raw,
+                             report.heldout_kind: report.heldout,
+                             "baseline": {"model": report.baseline_name, **report.baseline},
+                             "model_sha256": hashlib.sha256(model_bytes).hexdigest() if model_bytes else None,
+                             "n": int(table.n), "plan": str(report.plan), "chosen": report.chosen,
+                             "fell_back": bool(report.fell_back), "rigid": report.model.rigid or None}
+    if seed is not None:
+        entry["seed"] = int(seed)
+    if spec is not None:
+        entry["spec"] = {f.name: getattr(spec, f.name) for f in dataclasses.fields(spec)}
+    return entry
+
+
+__all__ = ["FitFiles", "export_fit", "heldout_poses", "ledger_fit_entry", "training_fit", "write_fit"]

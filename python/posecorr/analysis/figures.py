@@ -136,7 +136,19 @@ def _arrow_length(ref_p: np.ndarray) -> float:
     return min(0.6 * span / per_axis, 0.25 * span)
 
 
-def workspace_figure(ref_p: np.ndarray, before: np.ndarray, after: np.ndarray) -> Any:
+def arrow_key_mm(errors: np.ndarray) -> float:
+    """The key arrow's length (mm) for (N, 3) error vectors (m): the round number nearest their
+    95th-percentile magnitude, which `workspace_figure` draws at a fixed length."""
+    return _nice_length(_typical_mm(errors))
+
+
+def _typical_mm(errors: np.ndarray) -> float:
+    ref_mm = float(np.percentile(np.linalg.norm(errors, axis=1) * 1e3, 95))
+    return ref_mm if ref_mm > 0 else 1.0
+
+
+def workspace_figure(ref_p: np.ndarray, before: np.ndarray, after: np.ndarray,
+                     before_label: str = "before correction", after_label: str = "after correction") -> Any:
     """Quiver of position error vectors (m) at the reference positions, 3 projections x 2 rows."""
     plt = _pyplot()
     span = float(np.max(np.ptp(ref_p, axis=0))) or 0.1
@@ -144,13 +156,11 @@ def workspace_figure(ref_p: np.ndarray, before: np.ndarray, after: np.ndarray) -
     projections = ((0, 1), (0, 2), (1, 2))
     names = "xyz"
     fig, axes = plt.subplots(2, 3, figsize=(12, 8.4), layout="constrained")
-    for row, (label, d) in enumerate((("before correction", before), ("after correction", after))):
+    for row, (label, d) in enumerate(((before_label, before), (after_label, after))):
         mag_mm = np.linalg.norm(d, axis=1) * 1e3
-        ref_mm = float(np.percentile(mag_mm, 95))
-        ref_mm = ref_mm if ref_mm > 0 else 1.0
         # Each row has its own magnification (corrected errors are ~20x smaller); the key says it.
-        scale = (ref_mm / 1e3) / length
-        key_mm = _nice_length(ref_mm)
+        scale = (_typical_mm(d) / 1e3) / length
+        key_mm = arrow_key_mm(d)
         order = np.argsort(mag_mm)  # largest arrows on top
         lo, hi = (float(v) for v in np.percentile(mag_mm, [1, 99]))
         clim = (lo, hi) if hi > lo else (0.0, max(hi, 1e-9))  # a 1-99 % range keeps colour contrast
@@ -170,14 +180,14 @@ def workspace_figure(ref_p: np.ndarray, before: np.ndarray, after: np.ndarray) -
                          color="#d62728", fontproperties={"size": 8})
             ax.title.set_position((0.36, 1.0))  # leave the right of the title line to the key
         cb = fig.colorbar(q, ax=axes[row, :], shrink=0.85, pad=0.01)
-        cb.set_label(f"|error| [mm], {label.split()[0]}")
+        cb.set_label(f"|error| [mm], {label}")
     fig.suptitle("Position error vectors at the reference positions, magnified "
                  "(red key arrow per panel; the two rows have different magnifications)", fontsize=10)
     return fig
 
 
 def features_figure(features: Mapping[str, np.ndarray], before_mm: np.ndarray, after_mm: np.ndarray,
-                     quantity: str, unit: str) -> Any:
+                     quantity: str, unit: str, before_label: str = "raw", after_label: str = "corrected") -> Any:
     """Scatter of per-pose error (log y) against each feature, before grey, after blue."""
     plt = _pyplot()
     names = [f for f in FEATURES if f in features]
@@ -213,8 +223,8 @@ def features_figure(features: Mapping[str, np.ndarray], before_mm: np.ndarray, a
         ax.axis("off")
     # The legend goes into the spare panel when there is one.
     from matplotlib.lines import Line2D
-    handles = [Line2D([], [], ls="", marker="o", color=BEFORE_COLOUR, label="before (raw)"),
-               Line2D([], [], ls="", marker="o", color=AFTER_COLOUR, label="after (corrected)"),
+    handles = [Line2D([], [], ls="", marker="o", color=BEFORE_COLOUR, label=f"before ({before_label})"),
+               Line2D([], [], ls="", marker="o", color=AFTER_COLOUR, label=f"after ({after_label})"),
                Line2D([], [], color="0.25", lw=1.6, label="binned median, before"),
                Line2D([], [], color="#0b3d66", lw=1.6, label="binned median, after")]
     target = axes.flat[len(names)] if len(names) < nrows * ncols else axes.flat[0]
@@ -255,7 +265,8 @@ def orientation_figure(features: Mapping[str, np.ndarray], pos_mm: np.ndarray, r
     return fig
 
 
-def histogram_figure(pos: tuple[np.ndarray, np.ndarray], rot: tuple[np.ndarray, np.ndarray] | None) -> Any:
+def histogram_figure(pos: tuple[np.ndarray, np.ndarray], rot: tuple[np.ndarray, np.ndarray] | None,
+                     before_label: str = "raw", after_label: str = "corrected") -> Any:
     """Histograms on log-spaced bins so raw and corrected (20x apart) are both readable."""
     plt = _pyplot()
     panels = [("position error", "mm", pos)]
@@ -268,8 +279,8 @@ def histogram_figure(pos: tuple[np.ndarray, np.ndarray], rot: tuple[np.ndarray, 
         lo = max(min(b.min(), a.min()), LOG_FLOOR_MM)
         hi = max(b.max(), a.max(), lo * 10)
         bins = np.logspace(np.log10(lo), np.log10(hi), 50)
-        ax.hist(b, bins=bins, color=BEFORE_COLOUR, alpha=0.7, label="before (raw)")
-        ax.hist(a, bins=bins, color=AFTER_COLOUR, alpha=0.7, label="after (corrected)")
+        ax.hist(b, bins=bins, color=BEFORE_COLOUR, alpha=0.7, label=f"before ({before_label})")
+        ax.hist(a, bins=bins, color=AFTER_COLOUR, alpha=0.7, label=f"after ({after_label})")
         for v, colour, name in ((before, "0.3", "before"), (after, "#0b3d66", "after")):
             r = float(np.sqrt(np.mean(np.square(v))))
             if r > 0:
@@ -303,39 +314,46 @@ def r2_figure(features: Sequence[Mapping[str, Any]]) -> Any:
     return fig
 
 
+def _mm(block: Any, key: str = "rmse_pos") -> float:
+    v = block.get(key) if isinstance(block, Mapping) else None
+    return float(v) * 1e3 if isinstance(v, (int, float)) and v > 0 else np.nan
+
+
 def ledger_figure(ledger: Sequence[Mapping[str, Any]]) -> Any | None:
-    """Step plot of the held-out rmse_total per ledger entry (log y)."""
-    values, labels = [], []
+    """The loop's history: the held-out rmse_pos of each fit in the ledger, oldest first (log y),
+    with the best rigid fit on the same poses (the ledger line's `baseline`) as a dashed line."""
+    values, floor, labels = [], [], []
     previous: list[str] | None = None
     for k, entry in enumerate(ledger, start=1):
-        _, block = held_out(entry)
-        v = block.get("rmse_total")
-        values.append(float(v) * 1e3 if isinstance(v, (int, float)) and v > 0 else np.nan)
+        kind, block = held_out(entry)
+        values.append(_mm(block))
+        floor.append(_mm(entry.get("baseline")))
         effects = [str(e) for e in effect_list(entry.get("effects"))]
-        labels.append(f"{k}: {effects_step(previous, effects)}\n{entry.get('method', '')}")
+        labels.append(f"{k}: {effects_step(previous, effects)}\n{entry.get('method', '')}, {kind or '?'}")
         previous = effects
-    y = np.array(values)
+    y, rigid = np.array(values), np.array(floor)
     if not np.isfinite(y).any():
         return None
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(max(6.0, min(12.0, 1.3 * len(y) + 3)), 3.4), layout="constrained")
+    fig, ax = plt.subplots(figsize=(max(6.0, min(12.0, 1.3 * len(y) + 3)), 3.6), layout="constrained")
     x = np.arange(1, len(y) + 1)
-    ax.step(x, y, where="mid", color=AFTER_COLOUR, lw=1.8)
+    if np.isfinite(rigid).any():
+        ax.step(x, rigid, where="mid", color="0.45", ls="--", lw=1.4, label="best rigid fit, same poses")
+    ax.step(x, y, where="mid", color=AFTER_COLOUR, lw=1.8, label="model, held-out")
     ax.plot(x, y, "o", color="#0b3d66")
     best = np.nanargmin(y)
-    ax.plot(x[best], y[best], "*", color="#d95f02", ms=13, label=f"best: {y[best]:.3g} mm+mrad")
+    ax.plot(x[best], y[best], "*", color="#d95f02", ms=13, ls="", label=f"best: {y[best]:.3g} mm")
     for xi, yi in zip(x, y):
         if np.isfinite(yi):
             ax.annotate(f"{yi:.3g}", (xi, yi), textcoords="offset points", xytext=(6, 4), fontsize=8)
     ax.set_yscale("log")
     _plain_log(ax, "y")
-    if np.isfinite(y).any():
-        lo, hi = np.nanmin(y), np.nanmax(y)
-        ax.set_ylim(lo / 1.6, hi * 1.8)  # room for the value labels
+    both = np.concatenate([y[np.isfinite(y)], rigid[np.isfinite(rigid)]])
+    ax.set_ylim(both.min() / 1.6, both.max() * 1.8)  # room for the value labels
     ax.set_xticks(x, labels, fontsize=7)
     ax.set_xlim(0.5, len(y) + 0.5)
-    ax.set_ylabel("held-out rmse_total [mm + mrad]")
-    ax.set_xlabel("ledger entry (effects, method)")
+    ax.set_ylabel("held-out rmse_pos [mm]")
+    ax.set_xlabel("fit in the ledger (effects added or removed, method, held-out kind)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(loc="upper right")
     return fig

@@ -2,8 +2,12 @@
 
 One JSON object per line, appended by `posecorr fit`, read by `posecorr report`, so a user
 sees the error fall step by step as effects are added. Keys: time (UTC ISO 8601), model,
-effects (list), method, representation, raw, and the held-out block ("cv" or "test") with
-rmse_pos, rmse_rot, rmse_total and improvements.
+effects (list), method, representation, raw, the held-out block ("cv" or "test") with
+rmse_pos, rmse_rot, rmse_total and improvements, and `baseline`: the best rigid fit on the
+same poses ({"model": its candidate name, the same figures}). What lets a report rebuild the
+held-out predictions (`fitting.ledger_fit_entry`): model_sha256 (the model file's), n (the
+table's poses), plan ("none", "loo" or a number of folds), seed, spec (the requested
+`ModelSpec`'s fields), chosen (the candidate returned), fell_back, rigid (its variant, or null).
 
 Appends are whole lines (`safeio.append_line`): a line torn by an interrupted append is
 moved to DATA.csv.ledger.jsonl.corrupt at the next append; reading skips (and names) any
@@ -14,7 +18,7 @@ from __future__ import annotations
 import json
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 
 def ledger_path(data_path: str | Path) -> Path:
@@ -62,3 +66,12 @@ def held_out(record: Mapping[str, Any]) -> tuple[str, Mapping[str, Any]]:
         if isinstance(block, Mapping):
             return key, block
     return "", {}
+
+
+def entry_for_model(ledger: Sequence[Mapping[str, Any]], model_path: str | Path) -> Mapping[str, Any] | None:
+    """The newest record whose model_sha256 is that of the file at `model_path` (the same
+    bytes, wherever the file was moved since), or None."""
+    import hashlib
+
+    digest = hashlib.sha256(Path(model_path).read_bytes()).hexdigest()
+    return next((r for r in reversed(ledger) if r.get("model_sha256") == digest), None)

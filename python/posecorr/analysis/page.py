@@ -1,13 +1,18 @@
 """The self-contained HTML report: measurements against a model (`posecorr report`).
 
 One file, no external resources: figures are PNGs embedded as base64 data URIs, the CSS is
-inline and there is no JavaScript. The page lets a user compare a model with the
-measurements, see where it fails, read which physical effect the diagnosis says is missing,
-and watch the held-out error fall across the ledger of models fitted on the same data.
+inline and there is no JavaScript (the tests load it in headless Chromium:
+`screenshot.check_page`). The page lets a user compare a model with the measurements, see
+where it fails, read which physical effect the diagnosis says is missing, and watch the
+held-out error fall across the ledger of models fitted on the same data.
 
 Sections (HTML ids): summary, metrics, workspace, features, orientation, histograms, worst,
 diagnosis, ledger, segments. Units on the page: mm and mrad; angles of features in degrees.
 All numbers handed in are SI (m, rad, s), as everywhere in posecorr.
+
+What the page compares comes from `comparison`: the before is raw where the frames are
+registered, the best rigid fit's residual where they are not; the after is held-out where the
+ledger holds the fit that wrote the model, in-sample otherwise (said in the metrics table).
 
 This module assembles the HTML; the plots are drawn by `figures` (matplotlib, imported only
 when a figure is drawn, so `import posecorr.analysis.page` stays cheap for the CLI) and
@@ -25,9 +30,10 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from ..data import PoseTable
-from ..metrics import W_POS, W_ROT, metric_block, pose_errors, pose_metrics
+from ..metrics import W_POS, W_ROT, pose_errors
 from ..safeio import write_text
 from . import figures
+from .comparison import RULE, Comparison, compare
 from .features import table_features
 from .interpretation import (STRUCTURE_R2, cv_gain, effect_list, is_structure, model_effects, p_value_text,
                              ranked_candidates, takeaway, worst_order)
@@ -36,7 +42,7 @@ from .ledger import held_out
 SECTIONS = (("summary", "Summary"), ("metrics", "Metrics"), ("workspace", "Workspace"),
             ("features", "Error vs features"), ("orientation", "Orientation"),
             ("histograms", "Histograms"), ("worst", "Worst poses"), ("diagnosis", "Diagnosis"),
-            ("ledger", "Ledger"), ("segments", "Still segments"))
+            ("ledger", "History"), ("segments", "Still segments"))
 N_WORST = 15
 
 _CSS = """
@@ -105,10 +111,11 @@ def _table(header: Sequence[str], rows: Iterable[Sequence[str]], left: int = 1,
             f'<tbody>{"".join(body)}</tbody></table></div>')
 
 
-def _img(fig: Any, alt: str) -> str:
-    """A figure as an <img> with a PNG data URI."""
+def _img(fig: Any, alt: str, attributes: Mapping[str, str] | None = None) -> str:
+    """A figure as an <img> with a PNG data URI (and any further `attributes`, e.g. data-*)."""
     data = base64.b64encode(figures.to_png(fig)).decode("ascii")
-    return f'<img alt="{_e(alt)}" src="data:image/png;base64,{data}">'
+    extra = "".join(f' {k}="{_e(v)}"' for k, v in (attributes or {}).items())
+    return f'<img alt="{_e(alt)}"{extra} src="data:image/png;base64,{data}">'
 
 
 # --------------------------------------------------------------------------- sections
@@ -148,59 +155,73 @@ def _summary_section(table: PoseTable, model_info: Mapping[str, Any] | None, tit
     return _section("summary", "Summary", body)
 
 
-def _metrics_section(raw: Mapping[str, Any], corr: Mapping[str, Any], block: Mapping[str, Any],
-                     pos: tuple[np.ndarray, np.ndarray], rot: tuple[np.ndarray, np.ndarray] | None,
-                     model_info: Mapping[str, Any] | None) -> str:
+def _metrics_section(comparison: Comparison, pos: tuple[np.ndarray, np.ndarray],
+                     rot: tuple[np.ndarray, np.ndarray] | None, model_info: Mapping[str, Any] | None) -> str:
     # Position-only data has no rotation columns at all (rather than columns of dashes).
     if rot is not None:
-        header = ["", "rmse_pos [mm]", "rmse_rot [mrad]", "rmse_total [mm + mrad]",
+        header = ["", "scored on", "rmse_pos [mm]", "rmse_rot [mrad]", "rmse_total [mm + mrad]",
                   "median pos [mm]", "p95 pos [mm]", "max pos [mm]", "median rot [mrad]", "max rot [mrad]"]
     else:
-        header = ["", "rmse_pos [mm]", "rmse_total [mm]", "median pos [mm]", "p95 pos [mm]", "max pos [mm]"]
+        header = ["", "scored on", "rmse_pos [mm]", "rmse_total [mm]", "median pos [mm]", "p95 pos [mm]",
+                  "max pos [mm]"]
+    n = len(comparison.rows)
+    before_name = (f"before: {comparison.baseline}" if comparison.unregistered else "raw (measured)")
+    before_scored = (comparison.scored if comparison.unregistered else f"all {n} shown, no fit") \
+        if comparison.held_out else ("in-sample" if comparison.unregistered else "no fit")
     rows = []
-    for k, (name, m) in enumerate((("raw (measured)", raw), ("corrected (model)", corr))):
+    for k, (name, scored, m) in enumerate(((before_name, before_scored, comparison.before_metrics),
+                                           ("corrected (model)", comparison.scored, comparison.after_metrics))):
         p = pos[k] * 1e3
-        row = [_e(name), _num(m["rmse_pos"], 1e3)]
+        row = [_e(name), _e(scored), _num(m["rmse_pos"], 1e3)]
         if rot is not None:
             row.append(_num(m["rmse_rot"], 1e3))
         row += [_num(m["rmse_total"], 1e3), _num(np.median(p)), _num(np.percentile(p, 95)), _num(p.max())]
         if rot is not None:
             row += [_num(np.median(rot[k]) * 1e3), _num(rot[k].max() * 1e3)]
         rows.append(row)
-    improvement = ["improvement (raw / corrected)", _num(block.get("improvement_pos")) + "×"]
+    block = comparison.block
+    versus = comparison.baseline if comparison.unregistered else "raw"
+    improvement = [_e(f"improvement ({versus} / corrected)"), ""] + [_num(block.get("improvement_pos")) + "×"]
     if rot is not None:
         improvement.append(_num(block.get("improvement_rot")) + "×")
     improvement.append(_num(block.get("improvement_total")) + "×")
     rows.append(improvement + [""] * (len(header) - len(improvement)))
-    body = _table(header, rows, row_classes=["", "best", ""])
-    note = (f"Over all {len(pos[0])} poses of this file (paper eqs. 39-43, w_pos = {W_POS:g}/m, w_rot = {W_ROT:g}). "
-            "These may include the model's training poses; held-out figures are in the ledger below.")
+    body = _table(header, rows, left=2, row_classes=["", "best", ""])
+    note = (f"Over {n} poses of this file (paper eqs. 39-43, w_pos = {W_POS:g}/m, w_rot = {W_ROT:g}). "
+            f"The before is the raw measurement unless the {RULE}; here raw rmse_pos is "
+            f"{_num(comparison.raw['rmse_pos'], 1e3)} mm against {_num(comparison.rigid['rmse_pos'], 1e3)} mm for "
+            f"the {comparison.rigid_name}. Unregistered frames differ by an unknown rigid motion that raw "
+            "measures, so there the before is the best rigid fit's residual. "
+            + ("Held-out: every pose predicted by a fit that never saw it, as `posecorr fit` scored it."
+               if comparison.held_out else f"In-sample: {comparison.reason}."))
     tm = (model_info or {}).get("test_metrics")
     if isinstance(tm, Mapping) and tm.get("rmse_pos") is not None:
-        n = f" on {tm['n']} held-out poses" if tm.get("n") else ""
+        n_text = f" on {tm['n']} held-out poses" if tm.get("n") else ""
         rot_text = f", rmse_rot {_num(tm.get('rmse_rot'), 1e3)} mrad" if tm.get("rmse_rot") is not None else ""
-        body += (f'<p class="note">The model\'s own test metrics{_e(n)} (from its metadata): rmse_pos '
+        body += (f'<p class="note">The model\'s own test metrics{_e(n_text)} (from its metadata): rmse_pos '
                  f"{_num(tm.get('rmse_pos'), 1e3)} mm{rot_text}, rmse_total {_num(tm.get('rmse_total'), 1e3)}"
                  f"{' mm + mrad' if rot_text else ' mm'}.</p>")
     return _section("metrics", "Metrics", body, _e(note))
 
 
-def _worst_section(table: PoseTable, feats: Mapping[str, np.ndarray], pos: tuple[np.ndarray, np.ndarray],
-                   rot: tuple[np.ndarray, np.ndarray] | None) -> str:
+def _worst_section(table: PoseTable, rows_shown: np.ndarray, feats: Mapping[str, np.ndarray],
+                   pos: tuple[np.ndarray, np.ndarray], rot: tuple[np.ndarray, np.ndarray] | None,
+                   before: str) -> str:
     total = worst_order(pos[1], None if rot is None else rot[1])[:N_WORST]
     ids = table.extras.get("id")
     shown = [f for f in ("range", "azimuth", "elevation", "incidence", "roll", "pitch", "yaw", "t") if f in feats]
     header = ["#", "id", "row", "x [m]", "y [m]", "z [m]", "pos err [mm]"]
     if rot is not None:
         header.append("rot err [mrad]")
-    header.append("raw pos [mm]")
+    header.append(f"{before} pos [mm]")
     if rot is not None:
-        header.append("raw rot [mrad]")
+        header.append(f"{before} rot [mrad]")
     header += [f"{f} [{figures.FEATURE_UNITS[f]}]" for f in shown]
     rows = []
     for rank, i in enumerate(total, start=1):
-        row = [str(rank), _e(ids[i]) if ids is not None else "–", str(int(i)),
-               *(f"{v:.3f}" for v in table.ref_p[i]), f"{pos[1][i] * 1e3:.3f}"]
+        r = int(rows_shown[i])
+        row = [str(rank), _e(ids[r]) if ids is not None else "–", str(r),
+               *(f"{v:.3f}" for v in table.ref_p[r]), f"{pos[1][i] * 1e3:.3f}"]
         if rot is not None:
             row.append(f"{rot[1][i] * 1e3:.3f}")
         row.append(f"{pos[0][i] * 1e3:.3f}")
@@ -291,39 +312,99 @@ def _ledger_section(ledger: Sequence[Mapping[str, Any]]) -> str:
     if not ledger:
         return _section("ledger", "Ledger", "<p>No models fitted on this data yet (the ledger is empty).</p>")
     header = ["#", "time", "model", "effects", "method", "representation", "held-out",
-              "rmse_pos [mm]", "rmse_rot [mrad]", "rmse_total [mm + mrad]", "improvement (total)"]
+              "rmse_pos [mm]", "rmse_rot [mrad]", "rmse_total [mm + mrad]",
+              "best rigid fit, same poses: rmse_pos [mm]", "gain over the rigid fit (total)"]
     rows = []
     totals = []
     for k, entry in enumerate(ledger, start=1):
         kind, block = held_out(entry)
         totals.append(block.get("rmse_total") if isinstance(block.get("rmse_total"), (int, float)) else math.inf)
-        imp = block.get("improvement_total")
+        gain = _gain(entry.get("baseline"), block)
         when = str(entry.get("time", "")).replace("T", " ").removesuffix("+00:00")
         model = str(entry.get("model", ""))
         rows.append([str(k), _e(when), f'<span title="{_e(model)}">{_e(Path(model).name if model else "")}</span>',
                      _e(",".join(effect_list(entry.get("effects"))) or "none"), _e(entry.get("method", "")),
                      _e(entry.get("representation", "")), _e(kind or "–"),
                      _num(block.get("rmse_pos"), 1e3), _num(block.get("rmse_rot"), 1e3),
-                     _num(block.get("rmse_total"), 1e3), (_num(imp) + "×") if imp is not None else "–"])
+                     _num(block.get("rmse_total"), 1e3), _rigid_cell(entry.get("baseline")),
+                     (_num(gain) + "×") if gain is not None else "–"])
     best = int(np.argmin(totals)) if any(math.isfinite(t) for t in totals) else -1
     classes = ["best" if k == best else "" for k in range(len(rows))]
     body = _table(header, rows, left=7, row_classes=classes, compact=True)
     fig = figures.ledger_figure(ledger)
     if fig is not None:
-        body += _img(fig, "held-out rmse_total per ledger entry")
-    note = "Every model fitted on this data, oldest first; highlighted: the lowest held-out rmse_total."
-    return _section("ledger", "Ledger: models fitted on this data", body, _e(note))
+        body += _img(fig, "held-out rmse_pos of each fit in the ledger, with the rigid fit")
+    note = ("The loop's history: every model fitted on this data (the ledger beside it), oldest first; "
+            "highlighted: the lowest held-out rmse_total. The plot: each fit's held-out rmse_pos against the "
+            "best rigid fit on the same poses (dashed).")
+    return _section("ledger", "History: models fitted on this data", body, _e(note))
+
+
+def _gain(baseline: Any, block: Mapping[str, Any]) -> float | None:
+    """The rigid fit's held-out rmse_total over the model's, None where either is missing."""
+    rigid = baseline.get("rmse_total") if isinstance(baseline, Mapping) else None
+    model = block.get("rmse_total")
+    if isinstance(rigid, (int, float)) and isinstance(model, (int, float)) and model > 0:
+        return float(rigid) / float(model)
+    return None
+
+
+def _rigid_cell(baseline: Any) -> str:
+    """The ledger line's best rigid fit: 'rmse_pos (variant)', '–' for a line without it."""
+    if not isinstance(baseline, Mapping) or baseline.get("rmse_pos") is None:
+        return "–"
+    return f"{_num(baseline.get('rmse_pos'), 1e3)} ({_e(str(baseline.get('model', '')).removeprefix('rigid-'))})"
+
+
+def _figure_sections(comparison: Comparison, feats: Mapping[str, np.ndarray], pos: tuple[np.ndarray, np.ndarray],
+                     rot: tuple[np.ndarray, np.ndarray] | None) -> list[str]:
+    """Workspace arrows, error against features, by orientation, histograms: before against after."""
+    before = comparison.baseline if comparison.unregistered else "raw"
+    after = "corrected, " + ("held-out" if comparison.held_out else "in-sample")
+    ref_p = comparison.reference[:, :3]
+    keys = (figures.arrow_key_mm(comparison.before[:, :3] - ref_p), figures.arrow_key_mm(comparison.after[:, :3] - ref_p))
+    fig = figures.workspace_figure(ref_p, comparison.before[:, :3] - ref_p, comparison.after[:, :3] - ref_p,
+                                   f"before: {before}", "after: " + after.removeprefix("corrected, "))
+    sections = [_section("workspace", "Residual arrows over the workspace",
+                         _img(fig, "position error vectors in x-y, x-z, y-z, before and after",
+                              {"data-before-key-mm": f"{keys[0]:g}", "data-after-key-mm": f"{keys[1]:g}"}),
+                         _e(f"Arrow = {before} (top) or {comparison.scored} correction (bottom) minus reference "
+                            "position, drawn at the "
+                            "reference position, in three projections; colour = 3D error magnitude. "
+                            "Arrows are magnified; the key in each panel gives the scale."))]
+    body = _img(figures.features_figure(feats, pos[0] * 1e3, pos[1] * 1e3, "position error", "mm", before, after),
+                "position error against features")
+    if rot is not None:
+        body += _img(figures.features_figure(feats, rot[0] * 1e3, rot[1] * 1e3, "rotation error", "mrad",
+                                             before, after), "rotation error against features")
+    note = ("Features of the reference pose (angles in degrees; azimuth/elevation as seen from the station, "
+            "incidence: tracker z axis vs line of sight). A trend in the blue median line is structure "
+            "the model misses." + ("" if "t" in feats else " No time column: t is not shown."))
+    sections.append(_section("features", "Error against features", body, _e(note)))
+    fig = figures.orientation_figure(feats, pos[1] * 1e3, None if rot is None else rot[1] * 1e3,
+                                     pos[0] * 1e3, None if rot is None else rot[0] * 1e3)
+    sections.append(_section("orientation", "Error by orientation",
+                             _img(fig, "corrected error grouped by roll, pitch, yaw"),
+                             _e("Roll, pitch, yaw of the reference orientation relative to upright (Z-Y-X); "
+                                "distinct values when there are few, else equal-width bins.")))
+    fig = figures.histogram_figure((pos[0] * 1e3, pos[1] * 1e3), None if rot is None else (rot[0] * 1e3, rot[1] * 1e3),
+                                   before, after)
+    sections.append(_section("histograms", "Error histograms", _img(fig, "error histograms before and after"),
+                             _e(f"Log-spaced bins so both the {before} and the corrected errors are readable.")))
+    return sections
 
 
 def write_report(output_path: str | Path, table: PoseTable, corrected: np.ndarray,
                  model_info: Mapping[str, Any] | None = None, diagnosis: Mapping[str, Any] | None = None,
                  ledger: Sequence[Mapping[str, Any]] = (), title: str | None = None,
-                 segments: Mapping[str, Any] | None = None) -> Path:
+                 segments: Mapping[str, Any] | None = None, comparison: Comparison | None = None) -> Path:
     """Write the self-contained HTML report of `table` against its (N, 7) `corrected` poses.
 
     model_info: `onnx_meta.read_info` of the model (optional); diagnosis: the `diagnose --json`
     dict (optional, unknown keys are shown or ignored); ledger: `ledger.read_ledger` records;
-    segments: the sidecar `posecorr ingest` writes beside the table (TABLE.csv.segments.json).
+    segments: the sidecar `posecorr ingest` writes beside the table (TABLE.csv.segments.json);
+    comparison: the before and after the page shows (`comparison.compare`; by default of
+    `corrected` on every pose, in-sample).
     Returns the written path. Raises ValueError when `corrected` does not fit the table.
     """
     corrected = np.asarray(corrected, dtype=float)
@@ -334,52 +415,21 @@ def write_report(output_path: str | Path, table: PoseTable, corrected: np.ndarra
         raise ValueError("corrected poses contain NaN or inf")
     if table.n == 0:
         raise ValueError(f"{table.path or 'the table'}: no poses to report on")
+    comparison = comparison if comparison is not None else compare(table, corrected)
     with_rot = table.has_orientation
-    reference, measured = table.reference, table.measured
-    pos_b, rot_b = pose_errors(reference, measured, with_rot)
-    pos_a, rot_a = pose_errors(reference, corrected, with_rot)
+    pos_b, rot_b = pose_errors(comparison.reference, comparison.before, with_rot)
+    pos_a, rot_a = pose_errors(comparison.reference, comparison.after, with_rot)
     pos = (pos_b, pos_a)
     rot = (rot_b, rot_a) if with_rot and rot_b is not None and rot_a is not None else None
-    raw = pose_metrics(reference, measured, with_rot)
-    corr = pose_metrics(reference, corrected, with_rot)
-    block = metric_block(raw, corr)
-    feats = table_features(table)
+    feats = {k: np.asarray(v)[comparison.rows] for k, v in table_features(table).items()}
     name = title or f"posecorr report: {Path(table.path).name if table.path else 'table'}"
     if model_info and model_info.get("file"):
         name = title or f"{name} vs {Path(str(model_info['file'])).name}"
 
-    parts = [_summary_section(table, model_info, name),
-             _metrics_section(raw, corr, block, pos, rot, model_info)]
-
-    fig = figures.workspace_figure(table.ref_p, measured[:, :3] - table.ref_p, corrected[:, :3] - table.ref_p)
-    parts.append(_section("workspace", "Residual arrows over the workspace",
-                          _img(fig, "position error vectors in x-y, x-z, y-z, before and after"),
-                          _e("Arrow = measured (top) or corrected (bottom) minus reference position, drawn at the "
-                             "reference position, in three projections; colour = 3D error magnitude. "
-                             "Arrows are magnified; the key in each panel gives the scale.")))
-
-    body = _img(figures.features_figure(feats, pos_b * 1e3, pos_a * 1e3, "position error", "mm"),
-                "position error against features")
-    if rot is not None:
-        body += _img(figures.features_figure(feats, rot[0] * 1e3, rot[1] * 1e3, "rotation error", "mrad"),
-                     "rotation error against features")
-    note = ("Features of the reference pose (angles in degrees; azimuth/elevation as seen from the station, "
-            "incidence: tracker z axis vs line of sight). A trend in the blue median line is structure "
-            "the model misses." + ("" if "t" in feats else " No time column: t is not shown."))
-    parts.append(_section("features", "Error against features", body, _e(note)))
-
-    fig = figures.orientation_figure(feats, pos_a * 1e3, None if rot is None else rot[1] * 1e3,
-                              pos_b * 1e3, None if rot is None else rot[0] * 1e3)
-    parts.append(_section("orientation", "Error by orientation",
-                          _img(fig, "corrected error grouped by roll, pitch, yaw"),
-                          _e("Roll, pitch, yaw of the reference orientation relative to upright (Z-Y-X); "
-                             "distinct values when there are few, else equal-width bins.")))
-
-    fig = figures.histogram_figure((pos_b * 1e3, pos_a * 1e3), None if rot is None else (rot[0] * 1e3, rot[1] * 1e3))
-    parts.append(_section("histograms", "Error histograms", _img(fig, "error histograms before and after"),
-                          _e("Log-spaced bins so both the raw and the corrected errors are readable.")))
-
-    parts.append(_worst_section(table, feats, pos, rot))
+    parts = [_summary_section(table, model_info, name), _metrics_section(comparison, pos, rot, model_info),
+             *_figure_sections(comparison, feats, pos, rot)]
+    short = "rigid" if comparison.unregistered else "raw"
+    parts.append(_worst_section(table, comparison.rows, feats, pos, rot, short))
     parts.append(_diagnosis_section(diagnosis, model_effects(model_info, diagnosis)))
     parts.append(_ledger_section(list(ledger)))
     parts.append(_segments_section(segments))

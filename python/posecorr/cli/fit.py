@@ -75,7 +75,8 @@ def run(args: argparse.Namespace) -> None:
     report = fit_table(table, effects, spec, _parse_cv(args.cv), args.seed, progress=progress(args))
     key = report.heldout_kind
     try:
-        exported = write_fit(report, table, args.data, args.output, effects, save=args.save).exported
+        exported = write_fit(report, table, args.data, args.output, effects, save=args.save,
+                             spec=spec, seed=args.seed).exported
     except ExportError as exc:
         raise CliError(f"{args.output}: the model could not be exported: {exc}") from None
     info = report.model.export_info()

@@ -25,7 +25,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> None:
-    from ..analysis.ledger import read_ledger
+    from ..analysis.comparison import compare
+    from ..analysis.ledger import entry_for_model, read_ledger
     from ..analysis.page import write_report
     from ..controller.onnx_meta import read_info
     from ..controller.runtime import Corrector
@@ -33,6 +34,8 @@ def run(args: argparse.Namespace) -> None:
     table = read_data(args)
     info = read_info(args.model)
     corrected = Corrector(args.model, backend=args.backend).correct(table.measured, t=table.time())
+    ledger = read_ledger(args.data)
+    comparison = compare(table, corrected, entry_for_model(ledger, args.model), say=progress(args))
     diagnosis = None
     if not args.no_diagnosis:
         from ..analysis.diagnose import diagnose
@@ -44,6 +47,10 @@ def run(args: argparse.Namespace) -> None:
 
     sidecar = segments_path(args.data)
     segments = json.loads(sidecar.read_text(encoding="utf-8")) if sidecar.exists() else None
-    path = write_report(args.output, table, corrected, info, diagnosis, read_ledger(args.data), segments=segments)
-    emit(args, {"report": str(path), "bytes": path.stat().st_size, "diagnosis": diagnosis},
-          lambda: f"{args.data} against {args.model} -> {path} ({path.stat().st_size // 1024} KiB)")
+    path = write_report(args.output, table, corrected, info, diagnosis, ledger, segments=segments,
+                        comparison=comparison)
+    summary = comparison.to_json()
+    emit(args, {"report": str(path), "bytes": path.stat().st_size, **summary, "diagnosis": diagnosis},
+         lambda: (f"{args.data} against {args.model} -> {path} ({path.stat().st_size // 1024} KiB)\n"
+                  f"  before: {summary['baseline']['name']}, rmse_pos {1e3 * summary['baseline']['rmse_pos']:.4g} mm; "
+                  f"after: {summary['after']['scored']}, rmse_pos {1e3 * summary['after']['rmse_pos']:.4g} mm"))

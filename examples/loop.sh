@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The README's loop: fit, report, diagnose, add what is missing, watch the error fall.
+# The loop of docs/guides/loop.md: fit, report, diagnose, add what is missing, watch the error fall.
 # Run from an empty directory with posecorr on PATH (e.g. .venv/bin).
 set -euxo pipefail
 here=$(cd "$(dirname "$0")" && pwd)

@@ -123,6 +123,7 @@ def _recipe_rows(recipe: str, n: int) -> np.ndarray:
 
 
 @pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
+@pytest.mark.cpu_floats
 def test_card_test_rows_are_the_rows_the_code_tests_on(path):
     """What the card says about its split, evaluated as written, names the rows the code
     tests on (`FixedSplit`, `tools.models`); the stored raw test error is the raw error of

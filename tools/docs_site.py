@@ -8,12 +8,12 @@
   train/, `posecorr.export` in export/), in symbolic links to the sources.
 - Figures of speed and accuracy come from `bench/results/*.json`: a page writes
   `{{ latency: single_pose_median_us/c }}` (a file's stem, then a path of keys into it, list
-  items by number) or `{{ latency: batch_ns_per_pose/c %.0f }}` (a format spec after `%`) and the
-  build puts the stored value there. A name the JSON does not hold stops the build with the
-  page, the placeholder and what is missing.
+  items by number) or `{{ latency: batch_ns_per_pose/c %.0f }}` (a format spec after `%`)
+  and the build puts the stored value there. A name the JSON does not hold stops the build
+  with the page, the placeholder and what is missing.
 
-mkdocs calls `on_config`, `on_files` and `on_page_markdown`; the functions below them are plain Python
-and tests/test_site.py calls them directly.
+mkdocs calls `on_config`, `on_files` and `on_page_markdown`; the functions they call are
+plain Python, and tests/test_site.py calls them directly.
 """
 from __future__ import annotations
 
@@ -91,7 +91,8 @@ def verb_section(name: str, sub: argparse.ArgumentParser) -> list[str]:
         flags = ", ".join(f"`{s}`" for s in action.option_strings) or f"`{action.dest}` (positional)"
         if action.required and action.option_strings:
             flags += " (required)"
-        lines.append(f"| {flags} | {_argument(action)} | {_default(action)} | {_cell(_help(action, sub.prog))} |")
+        what = _cell(_help(action, sub.prog))
+        lines.append(f"| {flags} | {_argument(action)} | {_default(action)} | {what} |")
     return lines + [""]
 
 
@@ -169,18 +170,18 @@ def fill_figures(markdown: str, results: dict[str, Any], where: str = "") -> str
 
 def stage_package(out: Path = API_SOURCES) -> Path:
     """`out`/posecorr laid out as the installed package, in links to the checkout's sources."""
-    mapping = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["setuptools"]["package-dir"]
+    pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
+    mapping = pyproject["tool"]["setuptools"]["package-dir"]
     shutil.rmtree(out, ignore_errors=True)
-    for package, source in sorted(mapping.items()):
+    for package, source in sorted(mapping.items()):       # the root package before its subpackages
         target = out.joinpath(*package.split("."))
-        if package == "posecorr":
-            target.mkdir(parents=True)
-            for entry in (ROOT / source).iterdir():
-                if entry.name != "__pycache__":
-                    (target / entry.name).symlink_to(entry)
-        else:
-            target.unlink(missing_ok=True)
+        if "." in package:
             target.symlink_to(ROOT / source, target_is_directory=True)
+            continue
+        target.mkdir(parents=True)
+        for entry in (ROOT / source).iterdir():
+            if entry.name != "__pycache__":
+                (target / entry.name).symlink_to(entry)
     return out
 
 

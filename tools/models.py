@@ -26,8 +26,9 @@ regeneration command; `models/index.json` lists them.
 
 `python -m tools.models --cards-only` rewrites, without refitting, what the code states
 about the models already in models/: the split's recipe (`split`) in each file's metadata,
-and each card from the file and the regenerated data. The data is regenerated from its seeds and checked to be the model's; the file is
-rewritten with `serialize_aligned`, its graph and weights byte for byte the same.
+and each card from the file and the regenerated data. The data is regenerated from its seeds
+and checked to be the model's; the file is rewritten with `serialize_aligned`, its graph and
+weights byte for byte the same.
 """
 from __future__ import annotations
 

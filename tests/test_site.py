@@ -175,6 +175,7 @@ def test_site_builds_strict_without_network(tmp_path):
     run = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-q", "-d", str(out)],
                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    assert "fonts.googleapis" not in (out / "index.html").read_text(encoding="utf-8")   # system fonts
     cli = (out / "reference" / "cli.html").read_text(encoding="utf-8")
     for verb, options in _options(build_parser()).items():
         assert f'id="posecorr-{verb}"' in cli, verb

@@ -7,11 +7,11 @@ VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.posecorr-installed
 NATIVE_SOURCES := $(wildcard runtime_c/*.c runtime_c/*.h runtime_c/CMakeLists.txt runtime_c/cmake/* runtime_c/tools/*.c) export/operators.txt
 
-.PHONY: install demo test bench models programs fuzz embedded clean
+.PHONY: install demo test docs bench models programs fuzz embedded clean
 
 $(STAMP): pyproject.toml setup.py $(NATIVE_SOURCES)
 	@test -x $(VPY) || $(PYTHON) -m venv $(VENV)
-	$(VPY) -m pip install -q --disable-pip-version-check -e '.[train,test,ros2,embedded]'
+	$(VPY) -m pip install -q --disable-pip-version-check -e '.[train,test,ros2,embedded,docs]'
 	@touch $(STAMP)
 
 install: $(STAMP)
@@ -21,6 +21,11 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(VPY) -m pytest -q
+
+# The documentation site (mkdocs.yml, docs/) into site/; its command-line reference, API
+# reference and figures are generated at build time (tools/docs_site.py).
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(VPY) -m mkdocs build --strict
 
 # bench/ and tools/ are harnesses of the checkout (run from the repo root), not in the wheel.
 # The LM comparison package is installed for the benchmark only, without its dependencies:
@@ -54,4 +59,4 @@ embedded: $(STAMP)
 	@$(MAKE) --no-print-directory -C runtime_c/embedded PYTHON=$(abspath $(VPY))
 
 clean:
-	rm -rf build runtime_c/build* python/posecorr/_native *.egg-info
+	rm -rf build site runtime_c/build* python/posecorr/_native *.egg-info

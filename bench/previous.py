@@ -9,7 +9,7 @@ new / old per round (median and tail), with the load average.
 
 `--co-runner BYTES` runs a `memcpy` loop of that many bytes on the other core meanwhile: on a
 virtual machine whose cores share a physical core with another thread, this brings on the
-episodes in which a pose that needs more instructions slows most (README, "the host floor").
+episodes in which a pose that needs more instructions slows most (CHANGELOG.md, 2026-11-25).
 
     python -m bench.previous [--rev c654a8e] [--rounds 800] [--co-runner 8000]
 """

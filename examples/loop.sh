@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The loop on an error outside the catalogue: fit, diagnose, take the proposal, watch the
-# error fall. Run from an empty directory with posecorr on PATH (e.g. .venv/bin).
+# The loop of docs/guides/loop.md on an error outside the catalogue: fit, diagnose, take the
+# proposal, watch the error fall. Run from an empty directory with posecorr on PATH (.venv/bin).
 set -euxo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 

@@ -13,10 +13,14 @@ onnx = pytest.importorskip("onnx")
 pytest.importorskip("onnxruntime")
 
 from posecorr.controller.onnx_meta import read_info
-from tools.models import evaluate, experiment_data
 from posecorr.export.parity import run_onnx
+from posecorr.metrics import pose_metrics
+from posecorr.train.splits import FixedSplit, split_indices
+from tools.models import evaluate, experiment_data
 
 MODELS = Path(__file__).resolve().parent.parent / "models"
+# The card's Data line: "N = 3375 poses (...); fixed test rows: 506, `<numpy expression in N>`".
+CARD_SPLIT = re.compile(r"^- N = (\d+) poses .*; fixed test rows: (\d+), `([^`]+)`", re.M)
 INDEX = MODELS / "index.json"
 FILES = sorted(MODELS.glob("*.onnx"))
 
@@ -111,3 +115,38 @@ def test_card_metrics_reproduced_by_posecorr_apply(path, tmp_path, capsys):
             assert corrected[key] is None
         else:
             assert corrected[key] == pytest.approx(info["test_metrics"][key], rel=0.01), key
+
+
+def _recipe_rows(recipe: str, n: int) -> np.ndarray:
+    """The rows a card's recipe names, evaluated as written with numpy and N alone."""
+    return np.asarray(eval(recipe, {"__builtins__": {"round": round}, "numpy": np, "N": n}))
+
+
+@pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
+@pytest.mark.cpu_floats
+def test_card_test_rows_are_the_rows_the_code_tests_on(path):
+    """What the card says about its split, evaluated as written, names the rows the code
+    tests on (`FixedSplit`, `tools.models`); the stored raw test error is the raw error of
+    those rows of the regenerated data (another draw of 15 % gives another error)."""
+    card = CARD_SPLIT.search(path.with_suffix(".md").read_text())
+    assert card, f"{path.with_suffix('.md')}: no line '- N = ... poses ...; fixed test rows: ..., `recipe`'"
+    n, n_test, recipe = int(card.group(1)), int(card.group(2)), card.group(3)
+    info = read_info(path)
+    assert recipe in info["split"], (recipe, info["split"])
+    rows = _recipe_rows(recipe, n)
+    data = _data(info["experiment"], info["data_seed"])
+    assert len(data["measured"]) == n and len(rows) == n_test == info["test_metrics"]["n"]
+    np.testing.assert_array_equal(rows, data["test"])
+    np.testing.assert_array_equal(rows, FixedSplit().indices(n, data["split_seed"])[2])
+    raw = pose_metrics(data["reference"][rows], data["measured"][rows], data["with_rotation"])
+    assert raw["rmse_total"] == pytest.approx(info["test_metrics"]["raw"]["rmse_total"], rel=1e-9)
+
+
+@pytest.mark.parametrize("n, seed", [(7, 0), (100, 3), (1331, 0), (3375, 0), (3375, 12)])
+def test_split_recipe_is_the_draw(n, seed):
+    """`FixedSplit.test_recipe`, evaluated, is `split_indices`' test set for any N and seed
+    (a different seed draws other rows)."""
+    rows = _recipe_rows(FixedSplit().test_recipe(seed), n)
+    np.testing.assert_array_equal(rows, split_indices(n, seed)[2])
+    if n >= 100:
+        assert not np.array_equal(rows, _recipe_rows(FixedSplit().test_recipe(seed + 1), n))

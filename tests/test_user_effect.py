@@ -1,5 +1,5 @@
-"""The README's worked example: an effect outside the catalogue, found by its feature, added
-as a user effect, and the error falls to the noise floor."""
+"""The loop's worked example (docs/guides/loop.md): an effect outside the catalogue, found
+by its feature, added as a user effect, and the error falls to the noise floor."""
 from __future__ import annotations
 
 from pathlib import Path

@@ -24,17 +24,16 @@ Each model gets a markdown card (`<name>.md`) with data, method, test metrics, p
 operator counts, file size, the box of poses it corrects (`input_bounds`) and the
 regeneration command; `models/index.json` lists them.
 
-`python -m tools.models --bounds-only` writes `input_bounds` into the models
-already in models/ without refitting: the training box is recomputed from the seeded data
-(the same as `to_onnx` records), the file is rewritten with `serialize_aligned` (weights and
-every other metadata value byte for byte the same), and the cards and index take the new
-file sizes. Models exported before the exporter recorded the box got it this way.
+`python -m tools.models --cards-only` rewrites, without refitting, what the code states
+about the models already in models/: the split's recipe (`split`) in each file's metadata,
+and each card from the file and the regenerated data. The data is regenerated from its seeds
+and checked to be the model's; the file is rewritten with `serialize_aligned`, its graph and
+weights byte for byte the same.
 """
 from __future__ import annotations
 
 import argparse
 import json
-import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -86,18 +85,23 @@ def test_split(n: int, seed: int = SPLIT_SEED, fraction: float = TEST_FRACTION) 
     return np.sort(np.concatenate([train, val])), test
 
 
-def experiment_data(experiment: int, seed: int = DATA_SEED) -> dict[str, Any]:
+def split_text(seed: int = SPLIT_SEED) -> str:
+    """The `split` metadata of a shipped model: the test rows' recipe, from `FixedSplit`."""
+    return f"test rows {FixedSplit().test_recipe(seed)}, the others train"
+
+
+def experiment_data(experiment: int, seed: int = DATA_SEED, split_seed: int = SPLIT_SEED) -> dict[str, Any]:
     """Simulated table split into train / test: {"measured", "reference", "train", "test",
-    "with_rotation", "raw", "noise_floor"}."""
+    "with_rotation", "raw", "noise_floor", "seed", "split_seed"}."""
     from posecorr.simulate import simulate
 
     result = simulate(experiment, seed=seed)
     table = result.table
     measured, reference = np.asarray(table.measured, float), np.asarray(table.reference, float)
-    train, test = test_split(len(measured))
+    train, test = test_split(len(measured), split_seed)
     return {"measured": measured, "reference": reference, "train": train, "test": test,
             "with_rotation": bool(table.has_orientation), "raw": result.raw,
-            "noise_floor": result.noise_floor, "seed": seed}
+            "noise_floor": result.noise_floor, "seed": seed, "split_seed": split_seed}
 
 
 def evaluate(corrected: np.ndarray, measured: np.ndarray, reference: np.ndarray,
@@ -124,8 +128,7 @@ def _fmt(v: Any, digits: int = 5) -> str:
     return str(v)
 
 
-def model_card(spec: Spec, report: dict[str, Any], data: dict[str, Any], fit_seconds: float,
-               epochs: int) -> str:
+def model_card(spec: Spec, report: dict[str, Any], data: dict[str, Any], epochs: int) -> str:
     """The markdown card of one exported model."""
     meta = report["metadata"]
     test = meta["test_metrics"]
@@ -138,10 +141,11 @@ def model_card(spec: Spec, report: dict[str, Any], data: dict[str, Any], fit_sec
         f"Correction model for the HTC VIVE tracker, fitted on the simulated Experiment {exp_name} "
         f"(posecorr `simulate(experiment={spec.experiment}, seed={data['seed']})`, default effect mix).", "",
         "## Data", "",
-        f"- {n} poses ({'position and orientation' if data['with_rotation'] else 'position only'}); "
-        f"training rows: {n - n_test}, fixed test rows: {n_test} (15 %, "
-        f"`numpy.random.default_rng({SPLIT_SEED}).permutation(N)[:round(0.15 N)]`).",
-        f"- training-data digest: `{meta.get('training_data_digest')}`",
+        f"- N = {n} poses ({'position and orientation' if data['with_rotation'] else 'position only'}); "
+        f"fixed test rows: {n_test}, `{FixedSplit().test_recipe(data['split_seed'])}` "
+        f"(`posecorr.train.splits.FixedSplit`, seed {data['split_seed']}); training rows: the other {n - n_test}.",
+        f"- training-data digest: `{meta.get('training_data_digest')}` (`posecorr.export.metadata.data_digest` "
+        "of the training rows' measured and reference poses, float64).",
         f"- raw data (whole table): rmse_pos {_fmt(data['raw']['rmse_pos'])} m, rmse_rot "
         f"{_fmt(data['raw']['rmse_rot'])} rad, rmse_total {_fmt(data['raw']['rmse_total'])}; "
         f"simulator noise floor rmse_total {_fmt(data['noise_floor']['rmse_total'])}.", "",
@@ -201,9 +205,7 @@ def build(spec: Spec, data: dict[str, Any], out_dir: Path, epochs: int = MLP_EPO
 
     M, R, tr, te = data["measured"], data["reference"], data["train"], data["test"]
     est = make_estimator(spec, epochs)
-    t0 = time.perf_counter()
     est.fit(M[tr], R[tr])
-    fit_seconds = time.perf_counter() - t0
     with_rot = data["with_rotation"]
     test_metrics = evaluate(est.predict(M[te]), M[te], R[te], with_rot)
     from posecorr.metrics import pose_metrics
@@ -213,29 +215,38 @@ def build(spec: Spec, data: dict[str, Any], out_dir: Path, epochs: int = MLP_EPO
     path = out_dir / f"{spec.name}.onnx"
     report = to_onnx(est, path, measured=M[tr], reference=R[tr], parity=Parity.RAISE,
                      test_metrics=test_metrics, experiment=spec.experiment, data_seed=data["seed"],
-                     split=f"fixed test {TEST_FRACTION:.0%}, rng seed {SPLIT_SEED}",
+                     split=split_text(data["split_seed"]),
                      paper_label=spec.paper_label or None, max_epochs=epochs if spec.model.is_network else None)
     # The card's numbers must be what the exported graph does, not only the float64 model.
     onnx_metrics = evaluate(run_onnx(path, M[te]), M[te], R[te], with_rot)
     report["onnx_test_metrics"] = onnx_metrics
-    (out_dir / f"{spec.name}.md").write_text(model_card(spec, report, data, fit_seconds, epochs), encoding="utf-8")
+    (out_dir / f"{spec.name}.md").write_text(model_card(spec, report, data, epochs), encoding="utf-8")
     return report
 
 
-def add_bounds(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
-    """Writes `input_bounds` into the shipped models in `out_dir` without refitting (module
-    doc); returns {"file", "input_bounds", "file_size"} per model. The data is regenerated
-    from its seeds; the stored raw test metrics must come out again (to 1e-9) as the proof
-    that it is the data the model was fitted on (the digest is of the exact bits, which
-    the simulator's last digits may change from one machine's libm to another's)."""
+def _graph_bytes(model: Any) -> bytes:
+    """The graph and its weights, without the initializers' alignment padding (`doc_string`,
+    which `serialize_aligned` sizes to the metadata in front of it)."""
+    graph = type(model.graph)()
+    graph.CopyFrom(model.graph)
+    for tensor in graph.initializer:
+        tensor.ClearField("doc_string")
+    return graph.SerializeToString()
+
+
+def rewrite_cards(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
+    """Rewrites, without refitting, the metadata the code states (`split`) in the shipped
+    models in `out_dir` and their cards (module doc); returns {"file", "split", "file_size"}
+    per model. The data is regenerated from its seeds; the stored raw test
+    metrics must come out again (to 1e-9) as the proof that it is the data the model was
+    fitted on (the digest is of the exact bits, which the simulator's last digits may change
+    from one machine's BLAS to another's)."""
     import onnx
 
+    from posecorr.controller.onnx_meta import read_info
+    from posecorr.export.aligned import serialize_aligned
     from posecorr.metrics import pose_metrics
     from posecorr.safeio import write_bytes
-
-    from posecorr.export.aligned import serialize_aligned
-    from posecorr.export.metadata import encode_value
-    from posecorr.export.onnx_export import input_bounds
 
     done = []
     data_cache: dict[int, dict[str, Any]] = {}
@@ -244,7 +255,7 @@ def add_bounds(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
     for spec in SPECS:
         path = out_dir / f"{spec.name}.onnx"
         data = data_cache.setdefault(spec.experiment, experiment_data(spec.experiment))
-        M, R, tr, te = data["measured"], data["reference"], data["train"], data["test"]
+        M, R, te = data["measured"], data["reference"], data["test"]
         model = onnx.load(str(path))
         meta = {p.key: p.value for p in model.metadata_props}
         stored = json.loads(meta["test_metrics"])["raw"]["rmse_total"]
@@ -252,26 +263,26 @@ def add_bounds(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
         if abs(stored - again) > 1e-9 * abs(stored):
             raise SystemExit(f"{path}: the regenerated data is not the data of this model "
                              f"(raw test rmse_total {again!r}, stored {stored!r}); refit with `make models`")
-        box = input_bounds(M[tr])
-        meta["input_bounds"] = encode_value(box)
+        graph = _graph_bytes(model)
+        meta["split"] = split_text(data["split_seed"])
         del model.metadata_props[:]
         for key in sorted(meta):
             entry = model.metadata_props.add()
             entry.key, entry.value = key, meta[key]
         blob = serialize_aligned(model)
+        if _graph_bytes(onnx.load_from_string(blob)) != graph:
+            raise SystemExit(f"{path}: rewriting the metadata changed the graph; nothing written")
         write_bytes(path, blob)
-        card = out_dir / f"{spec.name}.md"
-        lines = [line for line in card.read_text(encoding="utf-8").split("\n")
-                 if not line.startswith("- input_bounds:")]
-        lines = [re.sub(r"^- file size \d+ bytes", f"- file size {len(blob)} bytes", line) for line in lines]
-        at = next(i for i, line in enumerate(lines) if line.startswith("- input `pose`")) + 1
-        lines.insert(at, bounds_line(box))
-        write_bytes(card, "\n".join(lines).encode("utf-8"))
+        info = read_info(path)
+        report = {"metadata": info, "parity": info["parity"], "file_size": info["file_size"],
+                  "n_nodes": info["node_count"], "op_counts": info["op_counts"]}
+        epochs = info.get("max_epochs") or MLP_EPOCHS
+        write_bytes(out_dir / f"{spec.name}.md", model_card(spec, report, data, epochs).encode("utf-8"))
         for entry in index["models"]:
             if entry["file"] == path.name:
                 entry["file_size"] = len(blob)
-        done.append({"file": path.name, "input_bounds": box, "file_size": len(blob)})
-        print(f"{path}: input_bounds {encode_value(box)}, {len(blob)} bytes", flush=True)
+        done.append({"file": path.name, "split": meta["split"], "file_size": len(blob)})
+        print(f"{path}: split {meta['split']}, {len(blob)} bytes", flush=True)
     write_bytes(index_path, (json.dumps(index, indent=1) + "\n").encode("utf-8"))
     return done
 
@@ -281,11 +292,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("-o", "--out", type=Path, default=MODELS_DIR, help="output directory (default: models/)")
     parser.add_argument("--epochs", type=int, default=MLP_EPOCHS, help="max MLP epochs")
     parser.add_argument("--only", default="", help="comma-separated model names to build (default: all)")
-    parser.add_argument("--bounds-only", action="store_true",
-                        help="write input_bounds into the existing models without refitting")
+    parser.add_argument("--cards-only", action="store_true",
+                        help="rewrite the existing models' split metadata and their cards without refitting")
     args = parser.parse_args(argv)
-    if args.bounds_only:
-        add_bounds(args.out)
+    if args.cards_only:
+        rewrite_cards(args.out)
         return 0
     args.out.mkdir(parents=True, exist_ok=True)
     wanted = {w.strip() for w in args.only.split(",") if w.strip()}

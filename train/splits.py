@@ -23,6 +23,10 @@ import numpy as np
 
 TEST_FRACTION = 0.15
 VAL_FRACTION = 0.15
+# The second word of each draw's seed: the test set's stream depends on the seed alone, the
+# train / validation stream on (seed, repeat) as well, so no repeat moves the test set.
+TEST_STREAM = 7919
+REPEAT_STREAM = 104729
 
 Folds = list[tuple[np.ndarray, np.ndarray]]
 
@@ -39,10 +43,10 @@ def split_indices(n: int, seed: int = 0, repeat: int = 0, test_fraction: float =
     """(train, validation, test) row indices: the test set depends on ``seed`` only,
     the train/validation split of the rest on (seed, repeat). Fractions are of all rows."""
     n_test = int(round(test_fraction * n))
-    order = np.random.default_rng([int(seed), 7919]).permutation(n)
+    order = np.random.default_rng([int(seed), TEST_STREAM]).permutation(n)
     test, rest = np.sort(order[:n_test]), order[n_test:]
     n_val = int(round(val_fraction * n))
-    perm = np.random.default_rng([int(seed), int(repeat), 104729]).permutation(rest)
+    perm = np.random.default_rng([int(seed), int(repeat), REPEAT_STREAM]).permutation(rest)
     return np.sort(perm[n_val:]), np.sort(perm[:n_val]), test
 
 
@@ -71,6 +75,12 @@ class FixedSplit:
     def indices(self, n: int, seed: int = 0, repeat: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(train, validation, test), `split_indices`."""
         return split_indices(n, seed, repeat, self.test_fraction, self.val_fraction)
+
+    def test_recipe(self, seed: int = 0) -> str:
+        """The test rows of `indices(N, seed)` as a numpy expression in N, written from the
+        draw itself (the model cards state it and tests/test_models.py evaluates it)."""
+        return (f"numpy.sort(numpy.random.default_rng([{int(seed)}, {TEST_STREAM}]).permutation(N)"
+                f"[:round({self.test_fraction!r} * N)])")
 
     def __str__(self) -> str:
         return "none"

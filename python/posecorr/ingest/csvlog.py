@@ -1,6 +1,6 @@
 """Plain CSV logs: a time column, joint-angle columns and tracker-pose columns.
 
-Layout (README, "From a recording"): a header row, then one row per sample of either stream.
+Layout (docs/guides/ingest.md): a header row, then one row per sample of either stream.
 `t` is seconds (any origin; the two streams' clocks may differ by an offset, which ingest
 estimates), `q1..q6` are joint angles in rad, `x, y, z` the tracker position in metres and
 `qw, qx, qy, qz` its unit quaternion. A row carries a joint sample, a tracker sample or both;

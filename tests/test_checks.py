@@ -204,7 +204,7 @@ def test_the_quaternion_tolerance_is_the_tables():
 def _posecorr_graph(factor: list[float], op: str = "Mul") -> bytes:
     g = graphs.G()
     y = g.op(op, ["pose", g.f32(np.array(factor, np.float32))])
-    return g.model(y, metadata={"posecorr_version": "0.1.0"}).SerializeToString()
+    return graphs.signed(g.model(y, metadata=graphs.BOUNDED))
 
 
 def test_an_infinite_output_is_refused_alike():
@@ -238,7 +238,7 @@ def test_a_model_with_non_finite_weights_is_refused_at_load(value, raw):
     w.flat[5] = value
     tensor.CopyFrom(numpy_helper.from_array(w, tensor.name) if raw else
                     helper.make_tensor(tensor.name, onnx.TensorProto.FLOAT, w.shape, w.ravel().tolist()))
-    blob = model.SerializeToString()
+    blob = graphs.signed(model)
     text = _same(_load_errors(blob), S.MALFORMED,
                  f"tensor '{tensor.name}' holds a non-finite value at element 5 (expected finite weights)")
     assert text.startswith(f"model of {len(blob)} bytes: ")
@@ -249,14 +249,12 @@ def test_weights_read_in_place_are_checked_too(tmp_path):
     import ctypes
 
     from posecorr.controller.runtime import _Error, _Options, load_library
-    from posecorr.export.aligned import serialize_aligned
-
     model = onnx.load(MLP_ZHOU)
     tensor = _used_weight(model)
     w = numpy_helper.to_array(tensor).copy()
     w.flat[0] = np.nan
     tensor.CopyFrom(numpy_helper.from_array(w, tensor.name))
-    blob = serialize_aligned(model)
+    blob = graphs.signed(model, aligned=True)
     lib = load_library()
     handle, err = ctypes.c_void_p(), _Error()
     st = lib.pc_load_memory(blob, len(blob), ctypes.byref(_Options(flags=1)), ctypes.byref(handle),
@@ -271,7 +269,7 @@ def test_an_operator_outside_the_list_is_refused_alike(op, domain):
         y = g.op("Pow", ["pose", g.f32(np.float32(1.0))])
     else:
         y = g.op("Gelu", ["pose"])
-    model = g.model(y, metadata={"posecorr_version": "0.1.0"})
+    model = g.model(y, metadata=graphs.BOUNDED)
     if domain:
         model.opset_import.append(helper.make_opsetid(domain, 1))
     assert op not in checks.operator_list()
@@ -279,7 +277,7 @@ def test_an_operator_outside_the_list_is_refused_alike(op, domain):
     node.domain = domain
     node = node.name
     where = f" (domain '{domain}')" if domain else ""
-    _same(_load_errors(model.SerializeToString()), S.UNSUPPORTED, f"unsupported operator {op}{where} in node '{node}'")
+    _same(_load_errors(graphs.signed(model)), S.UNSUPPORTED, f"unsupported operator {op}{where} in node '{node}'")
 
 
 @pytest.mark.parametrize("bounds,fragment", [
@@ -292,7 +290,7 @@ def test_an_operator_outside_the_list_is_refused_alike(op, domain):
     ("[[-1, -1, true], [1, 1, 1]]", "metadata input_bounds is"),
 ])
 def test_edited_input_bounds_are_refused_at_load(bounds, fragment):
-    blob = _edited(PMC_ZHOU, input_bounds=bounds).SerializeToString()
+    blob = graphs.signed(_edited(PMC_ZHOU, input_bounds=bounds))
     _same(_load_errors(blob), S.MALFORMED, fragment)
 
 
@@ -337,16 +335,19 @@ def test_a_time_outside_the_span_is_refused_alike(drift, when):
     _same(_both(path, x, t), S.RANGE, f"time of pose 6 is outside the span the model was fitted on: "
           f"{checks.decimal(np.float32(when))} s, expected {checks.decimal(lo)} to {checks.decimal(hi)} s "
           "(metadata time_bounds)")
-    if when == -100000.0:  # without the check (a span opened wide), kilometres away
-        far = Corrector(_edited(path, time_bounds="[-1e30, 1e30]").SerializeToString()).correct(x[6], t[6])
-        assert np.linalg.norm(far[:3] - x[6, :3]) > 1000.0
+    if when == -100000.0:  # without the check (a span opened wide) kilometres away: the reach
+        wide = graphs.signed(_edited(path, time_bounds="[-1e30, 1e30]"))  # catches it still
+        errors = _both(wide, x[6:7], t[6:7])
+        text = _same(errors, S.RUNTIME, "output 'corrected' of pose 0 moves the pose by ",
+                     "(metadata correction_reach)")
+        assert float(text.split("moves the pose by ")[1].split(" m")[0]) > 1000.0
 
 
 def test_no_time_is_time_zero_and_is_checked_too(drift):
     """pc_run without times runs a time model at t = 0: outside a span that excludes 0 it is
     refused (C: pc_run_timed with t NULL), the same on onnxruntime."""
     path, table, _ = drift
-    blob = _edited(path, time_bounds="[10, 20]").SerializeToString()
+    blob = graphs.signed(_edited(path, time_bounds="[10, 20]"))
     _same(_both(blob, table.measured[:3]), S.RANGE, "time of pose 0 is outside the span the model was fitted on: "
           "0.000 s, expected 10.000 to 20.000 s")
     for backend in BACKENDS:  # inside the span: corrected
@@ -358,7 +359,7 @@ def test_no_time_is_time_zero_and_is_checked_too(drift):
                                            ("[0, 1, 2]", "expected [t_lo, t_hi] in seconds")])
 def test_edited_time_bounds_are_refused_at_load(drift, span, fragment):
     path, _, _ = drift
-    _same(_load_errors(_edited(path, time_bounds=span).SerializeToString()), S.MALFORMED,
+    _same(_load_errors(graphs.signed(_edited(path, time_bounds=span))), S.MALFORMED,
           f"metadata time_bounds", fragment)
 
 
@@ -373,7 +374,8 @@ def test_an_export_without_training_data_is_refused(tmp_path):
     with pytest.raises(ExportError, match="input_bounds need the training positions"):
         to_onnx(model, tmp_path / "m.onnx", parity="skip")
     with pytest.raises(ExportError, match="input_bounds: lower bound above upper bound in column 0"):
-        to_onnx(model, tmp_path / "m.onnx", parity="skip", input_bounds=[[1, -1, -1], [0, 1, 1]])
+        to_onnx(model, tmp_path / "m.onnx", parity="skip", input_bounds=[[1, -1, -1], [0, 1, 1]],
+                correction_reach=[0.1, 0.1])
     assert not (tmp_path / "m.onnx").exists()
     report = to_onnx(model, tmp_path / "m.onnx", measured=t)
     lo, hi = report["metadata"]["input_bounds"]
@@ -436,7 +438,7 @@ def test_apply_refuses_a_model_with_nan_weights(tmp_path, capsys, backend):
     w.flat[0] = np.nan
     tensor.CopyFrom(numpy_helper.from_array(w, tensor.name))
     bad = tmp_path / "bad.onnx"
-    bad.write_bytes(model.SerializeToString())
+    bad.write_bytes(graphs.signed(model))
     out = tmp_path / "out.csv"
     table = _table(tmp_path)
     before = _checksums(tmp_path)

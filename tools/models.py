@@ -24,11 +24,12 @@ Each model gets a markdown card (`<name>.md`) with data, method, test metrics, p
 operator counts, file size, the box of poses it corrects (`input_bounds`) and the
 regeneration command; `models/index.json` lists them.
 
-`python -m tools.models --bounds-only` writes `input_bounds` into the models
-already in models/ without refitting: the training box is recomputed from the seeded data
+`python -m tools.models --bounds-only` writes `input_bounds`, `correction_reach` and
+`model_digest` into the models already in models/ without refitting: the training box and
+the reach (the model's graph on the training poses) are recomputed from the seeded data
 (the same as `to_onnx` records), the file is rewritten with `serialize_aligned` (weights and
-every other metadata value byte for byte the same), and the cards and index take the new
-file sizes. Models exported before the exporter recorded the box got it this way.
+every other metadata value byte for byte the same) and signed, and the cards and index take
+the new file sizes. Models exported before the exporter recorded these got them this way.
 """
 from __future__ import annotations
 
@@ -179,6 +180,7 @@ def model_card(spec: Spec, report: dict[str, Any], data: dict[str, Any], fit_sec
         "- input `pose` float32 [N, 7] (x, y, z in m, qw, qx, qy, qz); output `corrected` float32 [N, 7]"
         + (" (qw >= 0)." if model.with_rotation else " (orientation passed through)."),
         bounds_line(meta["input_bounds"]),
+        reach_line(meta["correction_reach"]),
         "", "## Regenerate", "",
         "```", "make models        # or: python -m tools.models" + (
             "" if epochs == MLP_EPOCHS else f" --epochs {epochs}"), "```", "",
@@ -192,6 +194,14 @@ def bounds_line(box: list[list[float]]) -> str:
     axes = ", ".join(f"{axis} {a:.3f}..{b:.3f}" for axis, a, b in zip("xyz", *box))
     return (f"- input_bounds: {axes} m (the training positions' box widened by half its extent, "
             "at least 0.1 m); a pose outside is refused (PC_ERR_RANGE), on every back end.")
+
+
+def reach_line(reach: list[float]) -> str:
+    """The card's line on how far the model's corrections reach."""
+    return (f"- correction_reach: {reach[0]:.4f} m, {reach[1]:.4f} rad (twice the largest correction on "
+            "the training poses and 10,000 poses drawn over the input box and all orientations, plus "
+            "0.01 m and 0.01 rad); a pose corrected farther is refused "
+            "(PC_ERR_RUNTIME), on every back end. The file carries its CRC-32C (`model_digest`).")
 
 
 def build(spec: Spec, data: dict[str, Any], out_dir: Path, epochs: int = MLP_EPOCHS) -> dict[str, Any]:
@@ -223,19 +233,23 @@ def build(spec: Spec, data: dict[str, Any], out_dir: Path, epochs: int = MLP_EPO
 
 
 def add_bounds(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
-    """Writes `input_bounds` into the shipped models in `out_dir` without refitting (module
-    doc); returns {"file", "input_bounds", "file_size"} per model. The data is regenerated
-    from its seeds; the stored raw test metrics must come out again (to 1e-9) as the proof
-    that it is the data the model was fitted on (the digest is of the exact bits, which
-    the simulator's last digits may change from one machine's libm to another's)."""
+    """Writes `input_bounds`, `correction_reach` and `model_digest` into the shipped models in
+    `out_dir` without refitting (module doc): the graph and its weights stay byte for byte;
+    returns {"file", "input_bounds", "correction_reach", "file_size"} per model. The data is
+    regenerated from its seeds; the stored raw test metrics must come out again (to 1e-9) as
+    the proof that it is the data the model was fitted on (the digest of the training data
+    is of the exact bits, which the simulator's last digits may change from one machine's
+    libm to another's). The reach is the model's own graph (onnxruntime) on the training
+    poses and the drawn ones, as to_onnx computes it (onnx_export.model_reach)."""
     import onnx
 
+    from posecorr.controller import digest
     from posecorr.metrics import pose_metrics
     from posecorr.safeio import write_bytes
 
     from posecorr.export.aligned import serialize_aligned
     from posecorr.export.metadata import encode_value
-    from posecorr.export.onnx_export import input_bounds
+    from posecorr.export.onnx_export import input_bounds, model_reach
 
     done = []
     data_cache: dict[int, dict[str, Any]] = {}
@@ -252,26 +266,32 @@ def add_bounds(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
         if abs(stored - again) > 1e-9 * abs(stored):
             raise SystemExit(f"{path}: the regenerated data is not the data of this model "
                              f"(raw test rmse_total {again!r}, stored {stored!r}); refit with `make models`")
-        box = input_bounds(M[tr])
-        meta["input_bounds"] = encode_value(box)
+        # a box already recorded stays as it is (its last digits may differ on this libm)
+        box = json.loads(meta["input_bounds"]) if "input_bounds" in meta else input_bounds(M[tr])
+        reach = model_reach(path, M[tr], box)
+        meta["input_bounds"] = meta.get("input_bounds") or encode_value(box)
+        meta["correction_reach"] = encode_value(reach)
+        meta[digest.KEY] = digest.PLACEHOLDER
         del model.metadata_props[:]
         for key in sorted(meta):
             entry = model.metadata_props.add()
             entry.key, entry.value = key, meta[key]
-        blob = serialize_aligned(model)
+        blob = digest.sign(serialize_aligned(model))
         write_bytes(path, blob)
         card = out_dir / f"{spec.name}.md"
         lines = [line for line in card.read_text(encoding="utf-8").split("\n")
-                 if not line.startswith("- input_bounds:")]
+                 if not line.startswith(("- input_bounds:", "- correction_reach:"))]
         lines = [re.sub(r"^- file size \d+ bytes", f"- file size {len(blob)} bytes", line) for line in lines]
         at = next(i for i, line in enumerate(lines) if line.startswith("- input `pose`")) + 1
-        lines.insert(at, bounds_line(box))
+        lines[at:at] = [bounds_line(box), reach_line(reach)]
         write_bytes(card, "\n".join(lines).encode("utf-8"))
         for entry in index["models"]:
             if entry["file"] == path.name:
                 entry["file_size"] = len(blob)
-        done.append({"file": path.name, "input_bounds": box, "file_size": len(blob)})
-        print(f"{path}: input_bounds {encode_value(box)}, {len(blob)} bytes", flush=True)
+        done.append({"file": path.name, "input_bounds": box, "correction_reach": reach,
+                     "file_size": len(blob)})
+        print(f"{path}: input_bounds {encode_value(box)}, correction_reach {encode_value(reach)}, "
+              f"{len(blob)} bytes", flush=True)
     write_bytes(index_path, (json.dumps(index, indent=1) + "\n").encode("utf-8"))
     return done
 
@@ -282,7 +302,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--epochs", type=int, default=MLP_EPOCHS, help="max MLP epochs")
     parser.add_argument("--only", default="", help="comma-separated model names to build (default: all)")
     parser.add_argument("--bounds-only", action="store_true",
-                        help="write input_bounds into the existing models without refitting")
+                        help="write input_bounds, correction_reach and model_digest into the existing models "
+                             "without refitting")
     args = parser.parse_args(argv)
     if args.bounds_only:
         add_bounds(args.out)

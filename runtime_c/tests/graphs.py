@@ -589,6 +589,31 @@ def poses_in_box(model, n: int, seed: int = 0) -> np.ndarray:
     return x
 
 
+# Metadata a test graph needs to load without PC_LOAD_ALLOW_UNBOUNDED: a wide box and a
+# reach no test graph exceeds.
+BOUNDED = {"input_bounds": "[[-10, -10, -10], [10, 10, 10]]", "correction_reach": "[100, 4]"}
+
+
+def signed(model, aligned: bool = False) -> bytes:
+    """`model` (a ModelProto) serialised with a fresh model_digest, as a producer that signs
+    its files writes it (the one it carried, if any, is replaced); `aligned`: through the
+    exporter's serialize_aligned."""
+    from posecorr.controller import digest
+
+    m = onnx.ModelProto()
+    m.CopyFrom(model)
+    kept = [(e.key, e.value) for e in m.metadata_props if e.key != digest.KEY]
+    del m.metadata_props[:]
+    for key, value in kept + [(digest.KEY, digest.PLACEHOLDER)]:
+        entry = m.metadata_props.add()
+        entry.key, entry.value = key, value
+    if aligned:
+        from posecorr.export.aligned import serialize_aligned
+
+        return digest.sign(serialize_aligned(m))
+    return digest.sign(m.SerializeToString())
+
+
 def op_inputs(n: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     return rng.uniform(-2, 2, (n, 7)).astype(np.float32)

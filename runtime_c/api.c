@@ -148,6 +148,15 @@ static pc_status pc_read_bounds(const pc_builder *b, const char *key, pb_slice v
     return PC_OK;
 }
 
+/* A reader of the whole file, for onnx_next_meta. */
+static void pc_meta_start(const pc_builder *b, pb_reader *r)
+{
+    pb_slice whole;
+    whole.data = b->file;
+    whole.size = b->file_size;
+    pb_init(r, b->file, whole);
+}
+
 /* correction_reach, "[metres, radians]": two finite float32 numbers, not negative; kept
  * as pc_run compares them (squared distance, cos^2 of half the angle; a reach of pi or
  * more allows any rotation). */
@@ -178,12 +187,10 @@ static pc_status pc_read_checks(const pc_builder *b, pc_model *m, unsigned flags
 {
     static const char *const keys[3] = {"input_bounds", "time_bounds", "correction_reach"};
     pb_reader r;
-    pb_slice whole, key, value, found[3] = {{NULL, 0}, {NULL, 0}, {NULL, 0}};
+    pb_slice key, value, found[3] = {{NULL, 0}, {NULL, 0}, {NULL, 0}};
     int more, k;
     pc_status st;
-    whole.data = b->file;
-    whole.size = b->file_size;
-    pb_init(&r, b->file, whole);
+    pc_meta_start(b, &r);
     while ((more = onnx_next_meta(b, &r, &key, &value)) == PB_FIELD)
         for (k = 0; k < 3; k++)
             if (pb_slice_eq(key, keys[k]))
@@ -225,13 +232,11 @@ static pc_status pc_check_digest(const pc_builder *b, unsigned flags)
 {
     static const char zeros[8] = {'0', '0', '0', '0', '0', '0', '0', '0'};
     pb_reader r;
-    pb_slice whole, key, value, digest = {NULL, 0};
+    pb_slice key, value, digest = {NULL, 0};
     uint32_t stored = 0, crc;
     size_t at, i;
     int more;
-    whole.data = b->file;
-    whole.size = b->file_size;
-    pb_init(&r, b->file, whole);
+    pc_meta_start(b, &r);
     while ((more = onnx_next_meta(b, &r, &key, &value)) == PB_FIELD)
         if (pb_slice_eq(key, "model_digest")) {
             if (digest.data)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from .onnx_meta import _Malformed, _varint
 
-__all__ = ["KEY", "PLACEHOLDER", "crc32c", "digest_span", "file_digest", "sign"]
+__all__ = ["KEY", "PLACEHOLDER", "crc32c", "digest_span", "file_digest", "length_delimited", "sign"]
 
 KEY = "model_digest"
 PREFIX = b"crc32c:"
@@ -40,7 +40,7 @@ def crc32c(data: bytes, crc: int = 0) -> int:
     return crc ^ 0xFFFFFFFF
 
 
-def _length_delimited(data: bytes, start: int, end: int):
+def length_delimited(data: bytes, start: int, end: int):
     """(field number, payload start, payload end) of the bytes fields in [start, end)."""
     at = start
     while at < end:
@@ -63,10 +63,10 @@ def _length_delimited(data: bytes, start: int, end: int):
 def digest_spans(data: bytes) -> list[tuple[int, int]]:
     """(start, end) of every `model_digest` value in a serialised model."""
     spans = []
-    for number, m0, m1 in _length_delimited(data, 0, len(data)):
+    for number, m0, m1 in length_delimited(data, 0, len(data)):
         if number != _METADATA_PROPS:
             continue
-        fields = {n: (a, b) for n, a, b in _length_delimited(data, m0, m1)}
+        fields = {n: (a, b) for n, a, b in length_delimited(data, m0, m1)}
         key = fields.get(_KEY)
         if key and data[key[0]:key[1]] == KEY.encode():
             spans.append(fields.get(_VALUE, (m1, m1)))  # no value: an empty one, as in C

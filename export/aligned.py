@@ -12,7 +12,7 @@ iterated until every offset holds. onnx.load, onnx.checker and onnxruntime read 
 result as the same model (tests/test_export.py checks all three).
 
 `python -m posecorr.export.aligned models/*.onnx` rewrites files in place (same weights and
-metadata, byte for byte in every field but the padding)."""
+metadata, byte for byte in every field but the padding and a `model_digest`, written anew)."""
 from __future__ import annotations
 
 import argparse
@@ -127,9 +127,16 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from posecorr.safeio import write_bytes
 
+    from posecorr.controller import digest
+
     for path in args.files:
         model = onnx.load(str(path))
+        signed = False
+        for entry in model.metadata_props:
+            if entry.key == digest.KEY:  # the bytes change: the digest is written anew
+                entry.value, signed = digest.PLACEHOLDER, True
         data = serialize_aligned(model)
+        data = digest.sign(data) if signed else data
         write_bytes(path, data)
         print(f"{path}: {len(data)} bytes, {len(model.graph.initializer)} initializers aligned "
               f"to {ALIGN}")

@@ -472,3 +472,71 @@ def test_posecorr_run_refuses_a_pose_outside_the_box():
     assert r.returncode == 1 and len(lines) == 2 and "nan" in lines[1].lower()
     assert "line 2: pose outside the fitted range: pose 0 is outside the range the model was fitted on " \
            "in column 0: 999.000 m" in r.stderr
+
+
+# --- the digest, the reach and the allow flags: the same words on both back ends --------------
+
+def _strip_where(errors: list[PoseCorrError]) -> list[PoseCorrError]:
+    """Load errors without the file's name in front (both back ends put it there)."""
+    return [PoseCorrError(str(e).split(": ", 1)[1], e.status) for e in errors]
+
+
+def test_a_changed_file_is_refused_alike():
+    blob = bytearray(PMC_ZHOU.read_bytes())
+    tensor = _used_weight(onnx.load(PMC_ZHOU))
+    blob[bytes(blob).index(tensor.raw_data) + 3] ^= 0x40  # one exponent bit
+    errors = _load_errors(bytes(blob))
+    text = _same(_strip_where(errors), S.INTEGRITY, "the file's bytes give crc32c:",
+                 "where its metadata model_digest says crc32c:", "changed or damaged after export")
+    stored = {e.key: e.value for e in onnx.load(PMC_ZHOU).metadata_props}["model_digest"]
+    assert stored in text and str(errors[0]).startswith(f"model of {len(blob)} bytes: ")
+
+
+@pytest.mark.parametrize("drop,status,fragment", [
+    ("model_digest", S.INTEGRITY, "no metadata model_digest: the file carries no digest of its bytes (to run "
+                                  "it anyway, load with PC_LOAD_ALLOW_UNSIGNED, on the command line --allow-unsigned)"),
+    ("input_bounds", S.CONTRACT, "no metadata input_bounds: the model does not say which positions it was fitted "
+                                 "on (to run it anyway, load with PC_LOAD_ALLOW_UNBOUNDED, on the command line "
+                                 "--allow-unbounded)"),
+    ("correction_reach", S.CONTRACT, "no metadata correction_reach: the model does not say how far its "
+                                     "corrections reach"),
+])
+def test_a_missing_key_is_refused_alike_unless_allowed(drop, status, fragment):
+    model = _edited(PMC_ZHOU)
+    kept = [(e.key, e.value) for e in model.metadata_props if e.key != drop]
+    del model.metadata_props[:]
+    for k, v in kept:
+        e = model.metadata_props.add()
+        e.key, e.value = k, v
+    blob = model.SerializeToString() if drop == "model_digest" else graphs.signed(model)
+    _same(_strip_where(_load_errors(blob)), status, fragment)
+    allow = {"allow_unsigned": True} if drop == "model_digest" else {"allow_unbounded": True}
+    x = _inside()
+    c, o = (Corrector(blob, backend=b, **allow).correct(x) for b in BACKENDS)
+    np.testing.assert_allclose(c, o, atol=2e-6)
+    np.testing.assert_array_equal(c, Corrector(PMC_ZHOU).correct(x))
+
+
+@pytest.mark.parametrize("dx", [0.05, 5000.0])
+def test_a_correction_beyond_the_reach_is_refused_alike(dx):
+    """A graph that adds dx to x after the model: beyond its reach, refused with the figures
+    on both back ends; the reach is what the metadata says (float32 on squares)."""
+    model = onnx.load(PMC_ZHOU)
+    for node in model.graph.node:
+        node.output[:] = ["before" if o == "corrected" else o for o in node.output]
+    shift = np.zeros((1, 7), np.float32)
+    shift[0, 0] = dx
+    model.graph.initializer.append(numpy_helper.from_array(shift, "shift"))
+    model.graph.node.append(helper.make_node("Add", ["before", "shift"], ["corrected"], name="shift"))
+    blob = graphs.signed(model)
+    x = _inside(12)
+    reach = json.loads({e.key: e.value for e in model.metadata_props}["correction_reach"])
+    moved = np.linalg.norm(Corrector(PMC_ZHOU).correct(x)[:, :3] + [dx, 0, 0] - x[:, :3], axis=1)
+    if moved.max() < 0.99 * reach[0]:  # inside the reach: answered, the same on both
+        c, o = (Corrector(blob, backend=b).correct(x) for b in BACKENDS)
+        np.testing.assert_allclose(c, o, atol=2e-6)
+        return
+    first = int(np.argmax(moved > 1.01 * reach[0]))
+    _same(_both(blob, x), S.RUNTIME, f"output 'corrected' of pose {first} moves the pose by "
+          f"{checks.decimal(moved[first])[:-1]}", f"beyond the model's reach of {checks.decimal(reach[0])} m "
+          f"and {checks.decimal(reach[1])} rad (metadata correction_reach)")

@@ -502,12 +502,7 @@ def test_a_changed_file_is_refused_alike():
                                      "corrections reach"),
 ])
 def test_a_missing_key_is_refused_alike_unless_allowed(drop, status, fragment):
-    model = _edited(PMC_ZHOU)
-    kept = [(e.key, e.value) for e in model.metadata_props if e.key != drop]
-    del model.metadata_props[:]
-    for k, v in kept:
-        e = model.metadata_props.add()
-        e.key, e.value = k, v
+    model = graphs.without_metadata(onnx.load(PMC_ZHOU), drop)
     blob = model.SerializeToString() if drop == "model_digest" else graphs.signed(model)
     _same(_strip_where(_load_errors(blob)), status, fragment)
     allow = {"allow_unsigned": True} if drop == "model_digest" else {"allow_unbounded": True}
@@ -521,13 +516,7 @@ def test_a_missing_key_is_refused_alike_unless_allowed(drop, status, fragment):
 def test_a_correction_beyond_the_reach_is_refused_alike(dx):
     """A graph that adds dx to x after the model: beyond its reach, refused with the figures
     on both back ends; the reach is what the metadata says (float32 on squares)."""
-    model = onnx.load(PMC_ZHOU)
-    for node in model.graph.node:
-        node.output[:] = ["before" if o == "corrected" else o for o in node.output]
-    shift = np.zeros((1, 7), np.float32)
-    shift[0, 0] = dx
-    model.graph.initializer.append(numpy_helper.from_array(shift, "shift"))
-    model.graph.node.append(helper.make_node("Add", ["before", "shift"], ["corrected"], name="shift"))
+    model = graphs.offset_graph(onnx.load(PMC_ZHOU), dx)
     blob = graphs.signed(model)
     x = _inside(12)
     reach = json.loads({e.key: e.value for e in model.metadata_props}["correction_reach"])

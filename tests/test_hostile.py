@@ -362,19 +362,6 @@ def _weight(model):
                key=lambda t: len(t.raw_data))
 
 
-def _offset_graph(model, dx: float = 5000.0):
-    """`model` with a node adding dx to x after everything else."""
-    from onnx import helper, numpy_helper
-
-    for node in model.graph.node:
-        node.output[:] = ["before_offset" if o == "corrected" else o for o in node.output]
-    shift = np.zeros((1, 7), np.float32)
-    shift[0, 0] = dx
-    model.graph.initializer.append(numpy_helper.from_array(shift, "offset"))
-    model.graph.node.append(helper.make_node("Add", ["before_offset", "offset"], ["corrected"], name="offset"))
-    return model
-
-
 def _hostile_models(folder: Path) -> dict[str, tuple[Path, str, list[str]]]:
     """name -> (file, the status, what the one line must say). Edited files keep their old
     digest (refused at load); the same edits signed anew meet the checks behind it."""
@@ -400,15 +387,10 @@ def _hostile_models(folder: Path) -> dict[str, tuple[Path, str, list[str]]]:
         t.CopyFrom(numpy_helper.from_array(numpy_helper.to_array(t) * np.float32(scale), t.name))
         save(f"scaled-{scale:g}.onnx", model.SerializeToString(), "INTEGRITY", "model_digest says")
         save(f"scaled-{scale:g}-signed.onnx", graphs.signed(model), "RUNTIME", "output 'corrected'")
-    model = _offset_graph(onnx.load_from_string(shipped))
+    model = graphs.offset_graph(onnx.load_from_string(shipped))
     save("offset.onnx", model.SerializeToString(), "INTEGRITY", "model_digest says")
     save("offset-signed.onnx", graphs.signed(model), "RUNTIME", "moves the pose by 500", "correction_reach")
-    model = onnx.load_from_string(shipped)
-    kept = [(e.key, e.value) for e in model.metadata_props if e.key != "input_bounds"]
-    del model.metadata_props[:]
-    for k, v in kept:
-        e = model.metadata_props.add()
-        e.key, e.value = k, v
+    model = graphs.without_metadata(onnx.load_from_string(shipped), "input_bounds")
     save("no-bounds.onnx", model.SerializeToString(), "INTEGRITY", "model_digest says")
     save("no-bounds-signed.onnx", graphs.signed(model), "CONTRACT", "no metadata input_bounds",
          "--allow-unbounded")

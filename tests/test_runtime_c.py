@@ -255,13 +255,7 @@ def _run_raw(c: _Corrector, lib: str, x: np.ndarray) -> tuple[int, np.ndarray, b
 
 
 def _without_metadata(path: Path, *keys: str) -> bytes:
-    m = onnx.load(path)
-    kept = [(e.key, e.value) for e in m.metadata_props if e.key not in keys]
-    del m.metadata_props[:]
-    for k, v in kept:
-        e = m.metadata_props.add()
-        e.key, e.value = k, v
-    return graphs.signed(m)
+    return graphs.signed(graphs.without_metadata(onnx.load(path), *keys))
 
 
 def test_nonfinite_output_is_an_error_naming_the_output(lib):

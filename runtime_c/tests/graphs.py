@@ -621,6 +621,28 @@ def signed(model, aligned: bool = False) -> bytes:
     return digest.sign(m.SerializeToString())
 
 
+def offset_graph(model, dx: float = 5000.0):
+    """`model` (a ModelProto, changed in place and returned) with a node adding dx to x
+    after everything else: a graph gone wrong that still answers poses."""
+    for node in model.graph.node:
+        node.output[:] = ["before_offset" if o == "corrected" else o for o in node.output]
+    shift = np.zeros((1, 7), np.float32)
+    shift[0, 0] = dx
+    model.graph.initializer.append(numpy_helper.from_array(shift, "offset"))
+    model.graph.node.append(helper.make_node("Add", ["before_offset", "offset"], ["corrected"], name="offset"))
+    return model
+
+
+def without_metadata(model, *keys: str):
+    """`model` (a ModelProto, changed in place and returned) without the metadata `keys`."""
+    kept = [(e.key, e.value) for e in model.metadata_props if e.key not in keys]
+    del model.metadata_props[:]
+    for key, value in kept:
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    return model
+
+
 def op_inputs(n: int, seed: int = 0) -> np.ndarray:
     """Poses for the operator cases: positions uniform in [-2, 2], unit quaternions (every
     runtime refuses another)."""

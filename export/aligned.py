@@ -12,7 +12,7 @@ iterated until every offset holds. onnx.load, onnx.checker and onnxruntime read 
 result as the same model (tests/test_export.py checks all three).
 
 `python -m posecorr.export.aligned models/*.onnx` rewrites files in place (same weights and
-metadata, byte for byte in every field but the padding)."""
+metadata, byte for byte in every field but the padding and a `model_digest`, written anew)."""
 from __future__ import annotations
 
 import argparse
@@ -20,6 +20,8 @@ import sys
 from pathlib import Path
 
 import onnx
+
+from posecorr.controller.digest import length_delimited
 
 ALIGN = 16
 # Field numbers of onnx.proto: ModelProto.graph, GraphProto.initializer,
@@ -104,48 +106,17 @@ def serialize_aligned(model: onnx.ModelProto, align: int = ALIGN) -> bytes:
     raise RuntimeError("initializer offsets did not settle")
 
 
-def _read_varint(data: bytes, at: int) -> tuple[int, int]:
-    value = shift = 0
-    while True:
-        byte = data[at]
-        at += 1
-        value |= (byte & 0x7F) << shift
-        shift += 7
-        if byte < 0x80:
-            return value, at
-
-
-def _fields(data: bytes, start: int, end: int):
-    """(number, payload start, payload end) of the length-delimited fields in [start, end)."""
-    at = start
-    while at < end:
-        key, at = _read_varint(data, at)
-        wire = key & 7
-        if wire == 0:
-            _, at = _read_varint(data, at)
-        elif wire == 1:
-            at += 8
-        elif wire == 5:
-            at += 4
-        elif wire == _BYTES:
-            size, at = _read_varint(data, at)
-            yield key >> 3, at, at + size
-            at += size
-        else:
-            raise ValueError(f"wire type {wire} at byte {at}")
-
-
 def raw_data_offsets(data: bytes) -> list[int]:
     """Offsets of the initializers' raw_data in a serialized model, in file order, found by
     walking the wire format (ModelProto.graph -> GraphProto.initializer ->
     TensorProto.raw_data)."""
     out = []
-    for number, g0, g1 in _fields(data, 0, len(data)):
+    for number, g0, g1 in length_delimited(data, 0, len(data)):
         if number != _MODEL_GRAPH:
             continue
-        for number2, t0, t1 in _fields(data, g0, g1):
+        for number2, t0, t1 in length_delimited(data, g0, g1):
             if number2 == _GRAPH_INITIALIZER:
-                out.extend(r0 for n3, r0, _ in _fields(data, t0, t1) if n3 == _TENSOR_RAW_DATA)
+                out.extend(r0 for n3, r0, _ in length_delimited(data, t0, t1) if n3 == _TENSOR_RAW_DATA)
     return out
 
 
@@ -156,9 +127,16 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from posecorr.safeio import write_bytes
 
+    from posecorr.controller import digest
+
     for path in args.files:
         model = onnx.load(str(path))
+        signed = False
+        for entry in model.metadata_props:
+            if entry.key == digest.KEY:  # the bytes change: the digest is written anew
+                entry.value, signed = digest.PLACEHOLDER, True
         data = serialize_aligned(model)
+        data = digest.sign(data) if signed else data
         write_bytes(path, data)
         print(f"{path}: {len(data)} bytes, {len(model.graph.initializer)} initializers aligned "
               f"to {ALIGN}")

@@ -13,6 +13,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from posecorr.controller import digest
+
 from .aligned import serialize_aligned
 from .metadata import UNITS, data_digest, encode_metadata
 from .parity import Parity, check_parity
@@ -180,6 +182,72 @@ def time_bounds(t: np.ndarray) -> list[float]:
     return [float(lo[0]), float(hi[0])]
 
 
+# How far a model's corrections may reach (the runtimes refuse a pose corrected farther, with
+# PC_ERR_RUNTIME; docs/design.md, "The ONNX contract"): twice the largest correction the
+# graph makes on the training poses and on REACH_POSES poses drawn over everything the
+# runtimes accept (positions uniform in input_bounds, times in time_bounds, orientations
+# uniform over all rotations), plus 0.01 m and 0.01 rad. The drawn poses are there because
+# the input checks accept any orientation inside the box, and a model answers one it never
+# saw with a larger correction than any in its training data. Twice, as a margin for what
+# the draw missed; the floors keep a model that corrects almost nothing usable, and keep
+# cos^2 of half the angle (compared in float32) clear of rounding.
+REACH_FACTOR = 2.0
+REACH_MIN_POS = 0.01
+REACH_MIN_ROT = 0.01
+REACH_POSES = 10_000
+REACH_SEED = 0
+
+
+def correction_reach(measured: np.ndarray, corrected: np.ndarray) -> list[float]:
+    """[metres, radians]: the largest correction of position and of rotation from `measured`
+    to `corrected` ((N, 7) poses, the graph's own float32 answers), with the margin above
+    (the rotation at most pi, where every rotation is allowed)."""
+    from .parity import quat_angle
+
+    m, c = np.asarray(measured, float), np.asarray(corrected, float)
+    pos = float(np.max(np.linalg.norm(c[:, :3] - m[:, :3], axis=1)))
+    rot = float(np.max(quat_angle(m[:, 3:7], c[:, 3:7])))
+    return [REACH_FACTOR * pos + REACH_MIN_POS, min(np.pi, REACH_FACTOR * rot + REACH_MIN_ROT)]
+
+
+def accepted_poses(box: Any, n: int = REACH_POSES, seed: int = REACH_SEED) -> np.ndarray:
+    """(n, 7) poses the runtimes accept: positions uniform in `box` ([[lo], [hi]]),
+    orientations uniform over all rotations."""
+    rng = np.random.default_rng(seed)
+    lo, hi = np.asarray(box, float)
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return np.concatenate([lo + (hi - lo) * rng.random((n, 3)), q], axis=1)
+
+
+def model_reach(model: Any, measured: np.ndarray, box: Any, t: Any = None, span: Any = None) -> list[float]:
+    """correction_reach of `model` (ModelProto, bytes or path) on the training poses
+    `measured` (times `t`) and on accepted_poses in `box` (times uniform in `span`)."""
+    from .parity import run_onnx
+
+    drawn = accepted_poses(box)
+    poses = np.concatenate([np.asarray(measured, float), drawn])
+    times = None
+    if t is not None:
+        rng = np.random.default_rng(REACH_SEED + 1)
+        times = np.concatenate([np.asarray(t, float), rng.uniform(span[0], span[1], len(drawn))])
+    return correction_reach(poses, run_onnx(model, poses, times))
+
+
+def _reach_metadata(info: dict[str, Any], model: Any, measured: Any, t: Any, time_input: bool) -> None:
+    """Every export carries how far its corrections reach (model_reach), or the reach it was
+    given."""
+    if "correction_reach" in info:
+        return
+    if measured is None:
+        raise ExportError("the model's correction_reach needs the training poses: pass measured=... "
+                          "(or correction_reach=[metres, radians])")
+    if time_input and t is None:
+        raise ExportError("the model's correction_reach needs the training times: pass t=...")
+    info["correction_reach"] = model_reach(model, measured, info["input_bounds"], t if time_input else None,
+                                           info.get("time_bounds"))
+
+
 def _bounds_metadata(info: dict[str, Any], measured: Any, t: Any, time_input: bool) -> None:
     """Every export carries the box its poses are checked against (input_bounds) and, with
     a time input, the span of its times (time_bounds): from the training data, or given."""
@@ -196,7 +264,8 @@ def _bounds_metadata(info: dict[str, Any], measured: Any, t: Any, time_input: bo
 
 
 def _check_bounds(meta: dict[str, str], time_input: bool) -> None:
-    """The bounds as the runtimes will read them: finite float32 numbers, not inverted."""
+    """The bounds and the reach as the runtimes will read them: finite float32 numbers, not
+    inverted, not negative."""
     from posecorr.controller.checks import Limits, PoseCorrError
 
     try:
@@ -300,6 +369,7 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
     if measured is not None and "training_data_digest" not in info:
         info["training_data_digest"] = data_digest(measured, reference)
     _bounds_metadata(info, measured, t, time_input)
+    _reach_metadata(info, model, measured, t, time_input)
 
     from posecorr import __version__
 
@@ -309,6 +379,7 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
     info.setdefault("effects", [])
     for key in ("method", "architecture", "activation", "trainer", "test_metrics"):
         info.setdefault(key, None)
+    info[digest.KEY] = digest.PLACEHOLDER  # filled in once the bytes are known
     meta = encode_metadata(info)
     _check_bounds(meta, time_input)
     del model.metadata_props[:]
@@ -319,7 +390,7 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
     path = Path(path)
     if path.parent and not path.parent.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
-    data = serialize_aligned(model)  # weights readable in place (PC_LOAD_IN_PLACE)
+    data = digest.sign(serialize_aligned(model))  # weights readable in place (PC_LOAD_IN_PLACE)
     if write is None:
         from posecorr.safeio import write_bytes as write
     write(path, data)  # atomic: a controller polling the file never reads half a model

@@ -148,44 +148,133 @@ static pc_status pc_read_bounds(const pc_builder *b, const char *key, pb_slice v
     return PC_OK;
 }
 
-/* Metadata read at load: posecorr's exporter marks its models (posecorr_version), whose
- * quaternions in and out must be unit, and records the position box of the training data
- * (input_bounds) and, for a model that takes time, the span of the training times
- * (time_bounds); see posecorr.h. */
-static pc_status pc_read_checks(const pc_builder *b, pc_model *m)
+/* A reader of the whole file, for onnx_next_meta. */
+static void pc_meta_start(const pc_builder *b, pb_reader *r)
 {
-    pb_reader r;
-    pb_slice whole, key, value, box = {NULL, 0}, span = {NULL, 0};
-    int more, has_box = 0, has_span = 0;
-    pc_status st;
+    pb_slice whole;
     whole.data = b->file;
     whole.size = b->file_size;
-    pb_init(&r, b->file, whole);
-    while ((more = onnx_next_meta(b, &r, &key, &value)) == PB_FIELD) {
-        if (pb_slice_eq(key, "posecorr_version"))
-            m->check_quaternion = 1;
-        if (pb_slice_eq(key, "input_bounds")) {
-            box = value;
-            has_box = 1;
-        }
-        if (pb_slice_eq(key, "time_bounds")) {
-            span = value;
-            has_span = 1;
-        }
-    }
+    pb_init(r, b->file, whole);
+}
+
+/* correction_reach, "[metres, radians]": two finite float32 numbers, not negative; kept
+ * as pc_run compares them (squared distance, cos^2 of half the angle; a reach of pi or
+ * more allows any rotation). */
+static pc_status pc_read_reach(const pc_builder *b, pb_slice value, pc_model *m)
+{
+    char text[PC_MESSAGE_SIZE];
+    double v[2];
+    const size_t n = value.size < sizeof text - 1 ? value.size : sizeof text - 1;
+    if (n)
+        memcpy(text, value.data, n);
+    text[n] = '\0';
+    if (pc_parse_numbers(text, v, 2) != 2 || !(v[0] >= 0.0 && v[0] <= FLT_MAX) ||
+        !(v[1] >= 0.0 && v[1] <= FLT_MAX))
+        return pc_fail(b->err, PC_ERR_MALFORMED, "metadata correction_reach is '%.60s', "
+                       "expected [metres, radians]: two finite numbers, not negative", text);
+    m->reach_pos2 = (float)v[0] * (float)v[0];
+    m->reach_cos2 = v[1] >= 3.141592653589793 ? 0.0f
+                                              : (float)(cos(0.5 * (float)v[1]) * cos(0.5 * (float)v[1]));
+    return PC_OK;
+}
+
+/* The metadata a model's checks need (posecorr.h): the position box of the training data
+ * (input_bounds), how far its corrections reach (correction_reach), and for a model that
+ * takes time the span of the training times (time_bounds). A model without the box or
+ * the reach loads only when the caller allows it (PC_LOAD_ALLOW_UNBOUNDED); its poses are
+ * then compared with infinite bounds, the same code path. */
+static pc_status pc_read_checks(const pc_builder *b, pc_model *m, unsigned flags)
+{
+    static const char *const keys[3] = {"input_bounds", "time_bounds", "correction_reach"};
+    pb_reader r;
+    pb_slice key, value, found[3] = {{NULL, 0}, {NULL, 0}, {NULL, 0}};
+    int more, k;
+    pc_status st;
+    pc_meta_start(b, &r);
+    while ((more = onnx_next_meta(b, &r, &key, &value)) == PB_FIELD)
+        for (k = 0; k < 3; k++)
+            if (pb_slice_eq(key, keys[k]))
+                found[k] = value;
     if (more == PB_ERROR)
         return r.status;
-    if (has_box) {
-        if ((st = pc_read_bounds(b, "input_bounds", box, 3, "[[x_lo, y_lo, z_lo], [x_hi, y_hi, "
-                                 "z_hi]] in metres", m->lo, m->hi)) != PC_OK)
-            return st;
-        m->has_bounds = 1;
+    for (k = 0; k < 3; k += 2) /* input_bounds, correction_reach */
+        if (!found[k].data && !(flags & PC_LOAD_ALLOW_UNBOUNDED))
+            return pc_fail(b->err, PC_ERR_CONTRACT, "no metadata %s: the model does not say %s "
+                           "(to run it anyway, load with PC_LOAD_ALLOW_UNBOUNDED, on the "
+                           "command line --allow-unbounded)", keys[k], k == 0 ?
+                           "which positions it was fitted on" : "how far its corrections reach");
+    for (k = 0; k < 3; k++) {
+        m->lo[k] = -INFINITY;
+        m->hi[k] = INFINITY;
     }
-    if (has_span) {
-        if ((st = pc_read_bounds(b, "time_bounds", span, 1, "[t_lo, t_hi] in seconds",
-                                 &m->t_lo, &m->t_hi)) != PC_OK)
+    m->reach_pos2 = INFINITY;
+    m->reach_cos2 = 0.0f;
+    if (found[0].data && (st = pc_read_bounds(b, keys[0], found[0], 3, "[[x_lo, y_lo, z_lo], "
+                                              "[x_hi, y_hi, z_hi]] in metres", m->lo,
+                                              m->hi)) != PC_OK)
+        return st;
+    if (found[1].data) {
+        if ((st = pc_read_bounds(b, keys[1], found[1], 1, "[t_lo, t_hi] in seconds", &m->t_lo,
+                                 &m->t_hi)) != PC_OK)
             return st;
         m->has_span = m->takes_time; /* a model without the input t ignores time */
+    }
+    if (found[2].data && (st = pc_read_reach(b, found[2], m)) != PC_OK)
+        return st;
+    return PC_OK;
+}
+
+/* The digest (docs/design.md, "Integrity"): metadata "model_digest" = "crc32c:" and eight
+ * lowercase hexadecimal digits, the CRC-32C of the file's bytes with those eight digits
+ * read as "00000000". Checked before anything else of the file is believed; a file
+ * without it loads only with PC_LOAD_ALLOW_UNSIGNED. */
+static pc_status pc_check_digest(const pc_builder *b, unsigned flags)
+{
+    static const char zeros[8] = {'0', '0', '0', '0', '0', '0', '0', '0'};
+    pb_reader r;
+    pb_slice key, value, digest = {NULL, 0};
+    uint32_t stored = 0, crc;
+    size_t at, i;
+    int more;
+    pc_meta_start(b, &r);
+    while ((more = onnx_next_meta(b, &r, &key, &value)) == PB_FIELD)
+        if (pb_slice_eq(key, "model_digest")) {
+            if (digest.data)
+                return pc_fail(b->err, PC_ERR_INTEGRITY, "metadata model_digest appears twice");
+            digest = value;
+        }
+    if (more == PB_ERROR) /* the scan reports where the file is broken */
+        return PC_OK;
+    if (!digest.data)
+        return flags & PC_LOAD_ALLOW_UNSIGNED
+                   ? PC_OK
+                   : pc_fail(b->err, PC_ERR_INTEGRITY, "no metadata model_digest: the file "
+                             "carries no digest of its bytes (to run it anyway, load with "
+                             "PC_LOAD_ALLOW_UNSIGNED, on the command line --allow-unsigned)");
+    for (i = 0; i < digest.size && i < 15; i++) {
+        const char ch = (char)digest.data[i];
+        const int v = ch >= '0' && ch <= '9' ? ch - '0' : ch >= 'a' && ch <= 'f' ? ch - 'a' + 10 : -1;
+        if (i < 7 ? ch != "crc32c:"[i] : v < 0)
+            break;
+        if (i >= 7)
+            stored = stored << 4 | (uint32_t)v;
+    }
+    if (i != 15 || digest.size != 15)
+        return pc_fail(b->err, PC_ERR_INTEGRITY, "metadata model_digest is '%.*s', expected "
+                       "crc32c: and 8 lowercase hexadecimal digits",
+                       (int)(digest.size < 40 ? digest.size : 40), (const char *)digest.data);
+    at = (size_t)(digest.data - b->file) + 7;
+    crc = pc_crc32c(0, b->file, at);
+    crc = pc_crc32c(crc, zeros, sizeof zeros);
+    crc = pc_crc32c(crc, b->file + at + 8, b->file_size - at - 8);
+    if (crc != stored) {
+        char got[9];
+        for (i = 0; i < 8; i++)
+            got[i] = "0123456789abcdef"[crc >> (28 - 4 * i) & 15u];
+        got[8] = '\0';
+        return pc_fail(b->err, PC_ERR_INTEGRITY, "the file's bytes give crc32c:%s where its "
+                       "metadata model_digest says %.15s: the model was changed or damaged "
+                       "after export", got, (const char *)digest.data);
     }
     return PC_OK;
 }
@@ -199,6 +288,7 @@ pc_status pc_load_impl(const void *data, size_t size, const pc_options *opts, in
     pc_builder b;
     pc_error local;
     pc_status st;
+    const unsigned flags = opts ? opts->flags : 0u;
     if (!err)
         err = &local;
     err->status = PC_OK;
@@ -219,10 +309,12 @@ pc_status pc_load_impl(const void *data, size_t size, const pc_options *opts, in
     b.in_place = opts && (opts->flags & PC_LOAD_IN_PLACE);
     if (buf)
         pc_scratch_use_buffer(&b.scratch, buf, buf_size);
-    st = pc_scan_graph(&b);
+    st = any_io ? PC_OK : pc_check_digest(&b, flags);
+    if (st == PC_OK)
+        st = pc_scan_graph(&b);
     if (st == PC_OK)
         st = pc_plan_build(&b, opts, buf, buf_size, model);
-    if (st == PC_OK && !any_io && (st = pc_read_checks(&b, *model)) != PC_OK) {
+    if (st == PC_OK && !any_io && (st = pc_read_checks(&b, *model, flags)) != PC_OK) {
         pc_free(*model);
         *model = NULL;
     }

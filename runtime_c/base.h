@@ -62,6 +62,9 @@ void pc_format(char *buf, size_t size, const char *fmt, ...)
     ;
 void pc_vformat(char *buf, size_t size, const char *fmt, va_list ap);
 
+/* CRC-32C of size bytes continuing crc (0 to start): crc32c.c. */
+uint32_t pc_crc32c(uint32_t crc, const void *data, size_t size);
+
 /* Largest element count of a tensor: its bytes (at most 8 per element), rounded up, fit
  * a size_t of either width (2^31 - 1 where size_t has 64 bits, 2^28 - 1 with 32). */
 #define PC_MAX_ELEMENTS ((size_t)(SIZE_MAX / 16 < 0x7fffffffu ? SIZE_MAX / 16 : 0x7fffffffu))

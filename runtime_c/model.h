@@ -33,12 +33,13 @@ struct pc_model {
     pc_plan *plans;     /* batch 1, PC_PLAN_STRIDE, PC_PLAN_STRIDE^2, ..., max_batch */
     size_t n_nodes;
     int takes_time;     /* the graph has the input 't' (pc_run_timed) */
-    /* Checks of pc_run (see posecorr.h): unit quaternions in and out (posecorr's models),
-     * positions inside [lo, hi] (input_bounds), times inside [t_lo, t_hi] (time_bounds,
-     * models that take time). */
-    int check_quaternion;
-    int has_bounds;
+    /* Checks of pc_run (see posecorr.h), the same for every model: unit quaternions in
+     * and out; positions inside [lo, hi] (input_bounds; +-infinity when the caller
+     * allowed a model without); a correction within the reach (correction_reach) kept as
+     * the squared distance and cos^2 of half the angle (infinity and 0 without); times
+     * inside [t_lo, t_hi] (time_bounds, models that take time). */
     float lo[3], hi[3];
+    float reach_pos2, reach_cos2;
     int has_span;
     float t_lo, t_hi;
     pc_slot *slots;     /* any-name models: inputs then outputs; NULL otherwise */

@@ -41,7 +41,7 @@ extern "C" {
 #endif
 
 #define PC_VERSION_MAJOR 0
-#define PC_VERSION_MINOR 5
+#define PC_VERSION_MINOR 6
 #define PC_VERSION_PATCH 0
 /* What pc_version() returns for the library this header belongs to. */
 #define PC_VERSION_NUMBER (PC_VERSION_MAJOR * 10000 + PC_VERSION_MINOR * 100 + PC_VERSION_PATCH)
@@ -77,6 +77,9 @@ typedef enum pc_status {
     PC_ERR_RANGE,          /* input pose (or time) outside the range the model was fitted
                             * on */
     PC_ERR_QUATERNION,     /* input quaternion not unit (a zero one, a norm of 3, ...) */
+    PC_ERR_INTEGRITY,      /* the file's bytes do not give its metadata "model_digest"
+                            * (changed after export), or it carries none and the caller
+                            * did not pass PC_LOAD_ALLOW_UNSIGNED */
     PC_STATUS_COUNT
 } pc_status;
 
@@ -104,13 +107,22 @@ enum {
      * elementwise subgraphs into one-pose programs: less load-time memory, slower. */
     PC_LOAD_NO_PROGRAMS = 1u << 1,
     /* The metadata strings are not kept (pc_metadata_count is 0): a small target saves
-     * their bytes. The checks pc_run takes from them (input_bounds, posecorr_version)
-     * stay. */
+     * their bytes. The checks pc_run takes from them (input_bounds, time_bounds,
+     * correction_reach) stay. */
     PC_LOAD_NO_METADATA = 1u << 2,
     /* One-pose programs always run in the library's interpreter, even those whose shape
      * the library carries compiled (the exporter's encoders and decoders): the same
      * results, bit for bit, slower. */
-    PC_LOAD_INTERPRET = 1u << 3
+    PC_LOAD_INTERPRET = 1u << 3,
+    /* Load a model whose metadata lacks "input_bounds" (the positions it was fitted on)
+     * or "correction_reach" (how far its corrections go): its poses are then not checked
+     * against them. Without this flag such a model is refused (PC_ERR_CONTRACT). For
+     * models of other producers; posecorr's exporter writes both. */
+    PC_LOAD_ALLOW_UNBOUNDED = 1u << 4,
+    /* Load a model without the metadata "model_digest" (a CRC-32C of the file, see
+     * docs/design.md, "Integrity"); without this flag it is refused (PC_ERR_INTEGRITY).
+     * A digest that is present is always verified. */
+    PC_LOAD_ALLOW_UNSIGNED = 1u << 5
 };
 
 typedef struct pc_options {
@@ -149,23 +161,28 @@ PC_API pc_status pc_load_into(const void *data, size_t size, const pc_options *o
                               pc_error *err);
 
 /* Corrects n poses: in and out hold n*7 floats and may alias. n == 0 is a no-op.
- * Checks, each with a message naming the pose and column and what was expected
- * (pc_model_message); the input is checked whole before anything is written:
+ * Checks, the same for every model whoever wrote it, each with a message naming the pose
+ * and column and what was expected (pc_model_message); the input is checked whole before
+ * anything is written:
  *  - a non-finite input value: PC_ERR_NONFINITE, out untouched;
  *  - a position outside the model's metadata "input_bounds" ("[[x_lo, y_lo, z_lo],
  *    [x_hi, y_hi, z_hi]]", metres; posecorr's exporter writes the training positions'
  *    box, widened): PC_ERR_RANGE, out untouched;
- *  - (models with the exporter's "posecorr_version" key) an input quaternion whose norm
- *    is off 1 by more than 1e-3, the pose tables' tolerance (the model normalises what
- *    it gets, so a zero or a norm-3 vector would come out as a made-up rotation):
- *    PC_ERR_QUATERNION, out untouched;
- *  - a result that is not finite, or (models with "posecorr_version") whose quaternion is
- *    not unit within 1e-3 on |q|^2: PC_ERR_RUNTIME; poses of earlier chunks (of
+ *  - an input quaternion whose norm is off 1 by more than 1e-3, the pose tables'
+ *    tolerance (the model normalises what it gets, so a zero or a norm-3 vector would come
+ *    out as a made-up rotation): PC_ERR_QUATERNION, out untouched;
+ *  - a result that is not finite, whose quaternion is not unit within 1e-3 on |q|^2, or
+ *    that moves the pose farther than the metadata "correction_reach" ("[metres,
+ *    radians]": the largest correction of position and of rotation the exporter saw on
+ *    the training data, with a margin): PC_ERR_RUNTIME; poses of earlier chunks (of
  *    max_batch, ..., 16, 1 poses) are written, the rest untouched.
- * Loading refuses a graph whose rows are not independent (PC_ERR_GRAPH), so a result
+ * Loading refuses a file whose metadata "model_digest" does not match its bytes
+ * (PC_ERR_INTEGRITY), a graph whose rows are not independent (PC_ERR_GRAPH), so a result
  * never depends on how n is split, and (PC_ERR_MALFORMED) a float tensor of the graph
- * holding NaN or infinity, and "input_bounds" or "time_bounds" that are not finite
- * float32 numbers or whose lower bound is above the upper one. */
+ * holding NaN or infinity, and "input_bounds", "time_bounds" or "correction_reach" that
+ * are not finite float32 numbers or whose lower bound is above the upper one. A model
+ * without "input_bounds" or "correction_reach" loads only with PC_LOAD_ALLOW_UNBOUNDED,
+ * one without "model_digest" only with PC_LOAD_ALLOW_UNSIGNED. */
 PC_API pc_status pc_run(pc_model *model, const float *in, size_t n, float *out);
 
 /* pc_run with the time of each pose: t holds n floats, seconds since the session's start

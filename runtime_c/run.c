@@ -35,13 +35,36 @@ PC_HOT pc_status pc_run_steps(pc_model *m, const pc_plan *plan)
     return PC_OK;
 }
 
-/* The output contract: finite, and (posecorr's models) a unit quaternion. */
-PC_HOT static pc_status pc_check_output(pc_model *m, const float *out, size_t n, size_t first)
+PC_RARE static void pc_decimal(char *buf, size_t size, double v, int places);
+
+/* "...a correction of D m and A rad, beyond ..." of a pose moved farther than the
+ * model's correction_reach (python/posecorr/controller/checks.py writes the same). */
+PC_RARE static void pc_beyond_reach(pc_model *m, size_t pose, float d2, float dot, float n_in2,
+                                    float n_out2)
+{
+    char dist[24], angle[24], reach_pos[24], reach_rot[24];
+    double c = fabs((double)dot) / sqrt((double)n_in2 * (double)n_out2);
+    pc_decimal(dist, sizeof dist, sqrt((double)d2), 3);
+    pc_decimal(angle, sizeof angle, 2.0 * acos(c < 1.0 ? c : 1.0), 3);
+    pc_decimal(reach_pos, sizeof reach_pos, sqrt((double)m->reach_pos2), 3);
+    pc_decimal(reach_rot, sizeof reach_rot, 2.0 * acos(sqrt((double)m->reach_cos2)), 3);
+    pc_format(m->message, sizeof m->message,
+              "output 'corrected' of pose %zu moves the pose by %s m and %s rad, beyond the "
+              "model's reach of %s m and %s rad (metadata correction_reach)", pose, dist,
+              angle, reach_pos, reach_rot);
+}
+
+/* The output contract: finite, a unit quaternion, and a correction (from the input in)
+ * within the model's reach. The reach is compared on squares: |p_out - p_in|^2 against
+ * reach_pos2, and for the rotation (q_in . q_out)^2 against cos^2(reach / 2) |q_in|^2
+ * |q_out|^2, a few multiplications a pose. */
+PC_HOT static pc_status pc_check_output(pc_model *m, const float *in, const float *out, size_t n,
+                                        size_t first)
 {
     size_t r, c;
-    for (r = 0; r < n; r++) {
+    for (r = 0; r < n; r++, in += PC_POSE_WIDTH) {
         const float *p = out + r * PC_POSE_WIDTH;
-        float n2 = 0.0f;
+        float n2 = 0.0f, d2 = 0.0f, dot = 0.0f, n_in2 = 0.0f;
         for (c = 0; c < PC_POSE_WIDTH; c++) {
             if (!isfinite(p[c])) {
                 pc_format(m->message, sizeof m->message,
@@ -49,13 +72,23 @@ PC_HOT static pc_status pc_check_output(pc_model *m, const float *out, size_t n,
                           "(expected a finite number)", first + r, c);
                 return PC_ERR_RUNTIME;
             }
-            if (c >= 3)
+            if (c >= 3) {
                 n2 += p[c] * p[c];
+                dot += p[c] * in[c];
+                n_in2 += in[c] * in[c];
+            } else {
+                const float d = p[c] - in[c];
+                d2 += d * d;
+            }
         }
-        if (m->check_quaternion && !(fabsf(n2 - 1.0f) <= PC_UNIT_TOLERANCE)) {
+        if (!(fabsf(n2 - 1.0f) <= PC_UNIT_TOLERANCE)) {
             pc_format(m->message, sizeof m->message,
                       "output 'corrected' of pose %zu has a quaternion that is not unit "
                       "(columns 3-6, expected |q|^2 within 0.001 of 1)", first + r);
+            return PC_ERR_RUNTIME;
+        }
+        if (!(d2 <= m->reach_pos2 && dot * dot >= m->reach_cos2 * n_in2 * n2)) {
+            pc_beyond_reach(m, first + r, d2, dot, n_in2, n2);
             return PC_ERR_RUNTIME;
         }
     }
@@ -81,7 +114,7 @@ PC_HOT static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const floa
             memset(plan->t, 0, plan->batch * sizeof(float));
     }
     if ((st = pc_run_steps(m, plan)) != PC_OK ||
-        (st = pc_check_output(m, plan->out, plan->batch, first)) != PC_OK)
+        (st = pc_check_output(m, in, plan->out, plan->batch, first)) != PC_OK)
         return st;
     if (plan->batch == 1)
         for (i = 0; i < PC_POSE_WIDTH; i++)
@@ -130,7 +163,7 @@ PC_RARE static void pc_outside(pc_model *m, const char *what, float v, float lo,
 /* The input contract, pose by pose (python/posecorr/controller/checks.py checks the same
  * in the same order): finite times inside the fitted span (when the model records one;
  * no t is t = 0), then finite poses, positions inside the training box (input_bounds)
- * and, in posecorr's models, unit quaternions. */
+ * and unit quaternions. */
 PC_HOT static pc_status pc_check_input(pc_model *m, const float *in, const float *t, size_t n)
 {
     char what[96];
@@ -159,15 +192,13 @@ PC_HOT static pc_status pc_check_input(pc_model *m, const float *in, const float
                           "number)", i, c);
                 return PC_ERR_NONFINITE;
             }
-        for (c = 0; m->has_bounds && c < 3; c++)
+        for (c = 0; c < 3; c++)
             if (!(in[c] >= m->lo[c] && in[c] <= m->hi[c])) {
                 pc_format(what, sizeof what, "pose %zu is outside the range the model was "
                           "fitted on in column %zu", i, c);
                 pc_outside(m, what, in[c], m->lo[c], m->hi[c], "m", "input_bounds");
                 return PC_ERR_RANGE;
             }
-        if (!m->check_quaternion)
-            continue;
         n2 = (double)in[3] * in[3] + (double)in[4] * in[4] + (double)in[5] * in[5] +
              (double)in[6] * in[6];
         if (!(n2 >= PC_QUAT_NORM2_LO && n2 <= PC_QUAT_NORM2_HI)) {

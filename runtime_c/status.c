@@ -19,6 +19,7 @@ static const char *const pc_status_names[PC_STATUS_COUNT] = {
     [PC_ERR_RUNTIME] = "runtime error",
     [PC_ERR_RANGE] = "pose outside the fitted range",
     [PC_ERR_QUATERNION] = "quaternion not unit",
+    [PC_ERR_INTEGRITY] = "model file changed or unsigned",
 };
 
 typedef char pc_status_table_is_complete[

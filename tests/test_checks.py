@@ -204,7 +204,7 @@ def test_the_quaternion_tolerance_is_the_tables():
 def _posecorr_graph(factor: list[float], op: str = "Mul") -> bytes:
     g = graphs.G()
     y = g.op(op, ["pose", g.f32(np.array(factor, np.float32))])
-    return g.model(y, metadata={"posecorr_version": "0.1.0"}).SerializeToString()
+    return graphs.signed(g.model(y, metadata=graphs.BOUNDED))
 
 
 def test_an_infinite_output_is_refused_alike():
@@ -238,7 +238,7 @@ def test_a_model_with_non_finite_weights_is_refused_at_load(value, raw):
     w.flat[5] = value
     tensor.CopyFrom(numpy_helper.from_array(w, tensor.name) if raw else
                     helper.make_tensor(tensor.name, onnx.TensorProto.FLOAT, w.shape, w.ravel().tolist()))
-    blob = model.SerializeToString()
+    blob = graphs.signed(model)
     text = _same(_load_errors(blob), S.MALFORMED,
                  f"tensor '{tensor.name}' holds a non-finite value at element 5 (expected finite weights)")
     assert text.startswith(f"model of {len(blob)} bytes: ")
@@ -249,14 +249,12 @@ def test_weights_read_in_place_are_checked_too(tmp_path):
     import ctypes
 
     from posecorr.controller.runtime import _Error, _Options, load_library
-    from posecorr.export.aligned import serialize_aligned
-
     model = onnx.load(MLP_ZHOU)
     tensor = _used_weight(model)
     w = numpy_helper.to_array(tensor).copy()
     w.flat[0] = np.nan
     tensor.CopyFrom(numpy_helper.from_array(w, tensor.name))
-    blob = serialize_aligned(model)
+    blob = graphs.signed(model, aligned=True)
     lib = load_library()
     handle, err = ctypes.c_void_p(), _Error()
     st = lib.pc_load_memory(blob, len(blob), ctypes.byref(_Options(flags=1)), ctypes.byref(handle),
@@ -271,7 +269,7 @@ def test_an_operator_outside_the_list_is_refused_alike(op, domain):
         y = g.op("Pow", ["pose", g.f32(np.float32(1.0))])
     else:
         y = g.op("Gelu", ["pose"])
-    model = g.model(y, metadata={"posecorr_version": "0.1.0"})
+    model = g.model(y, metadata=graphs.BOUNDED)
     if domain:
         model.opset_import.append(helper.make_opsetid(domain, 1))
     assert op not in checks.operator_list()
@@ -279,7 +277,7 @@ def test_an_operator_outside_the_list_is_refused_alike(op, domain):
     node.domain = domain
     node = node.name
     where = f" (domain '{domain}')" if domain else ""
-    _same(_load_errors(model.SerializeToString()), S.UNSUPPORTED, f"unsupported operator {op}{where} in node '{node}'")
+    _same(_load_errors(graphs.signed(model)), S.UNSUPPORTED, f"unsupported operator {op}{where} in node '{node}'")
 
 
 @pytest.mark.parametrize("bounds,fragment", [
@@ -292,7 +290,7 @@ def test_an_operator_outside_the_list_is_refused_alike(op, domain):
     ("[[-1, -1, true], [1, 1, 1]]", "metadata input_bounds is"),
 ])
 def test_edited_input_bounds_are_refused_at_load(bounds, fragment):
-    blob = _edited(PMC_ZHOU, input_bounds=bounds).SerializeToString()
+    blob = graphs.signed(_edited(PMC_ZHOU, input_bounds=bounds))
     _same(_load_errors(blob), S.MALFORMED, fragment)
 
 
@@ -337,16 +335,19 @@ def test_a_time_outside_the_span_is_refused_alike(drift, when):
     _same(_both(path, x, t), S.RANGE, f"time of pose 6 is outside the span the model was fitted on: "
           f"{checks.decimal(np.float32(when))} s, expected {checks.decimal(lo)} to {checks.decimal(hi)} s "
           "(metadata time_bounds)")
-    if when == -100000.0:  # without the check (a span opened wide), kilometres away
-        far = Corrector(_edited(path, time_bounds="[-1e30, 1e30]").SerializeToString()).correct(x[6], t[6])
-        assert np.linalg.norm(far[:3] - x[6, :3]) > 1000.0
+    if when == -100000.0:  # without the check (a span opened wide) kilometres away: the reach
+        wide = graphs.signed(_edited(path, time_bounds="[-1e30, 1e30]"))  # catches it still
+        errors = _both(wide, x[6:7], t[6:7])
+        text = _same(errors, S.RUNTIME, "output 'corrected' of pose 0 moves the pose by ",
+                     "(metadata correction_reach)")
+        assert float(text.split("moves the pose by ")[1].split(" m")[0]) > 1000.0
 
 
 def test_no_time_is_time_zero_and_is_checked_too(drift):
     """pc_run without times runs a time model at t = 0: outside a span that excludes 0 it is
     refused (C: pc_run_timed with t NULL), the same on onnxruntime."""
     path, table, _ = drift
-    blob = _edited(path, time_bounds="[10, 20]").SerializeToString()
+    blob = graphs.signed(_edited(path, time_bounds="[10, 20]"))
     _same(_both(blob, table.measured[:3]), S.RANGE, "time of pose 0 is outside the span the model was fitted on: "
           "0.000 s, expected 10.000 to 20.000 s")
     for backend in BACKENDS:  # inside the span: corrected
@@ -358,7 +359,7 @@ def test_no_time_is_time_zero_and_is_checked_too(drift):
                                            ("[0, 1, 2]", "expected [t_lo, t_hi] in seconds")])
 def test_edited_time_bounds_are_refused_at_load(drift, span, fragment):
     path, _, _ = drift
-    _same(_load_errors(_edited(path, time_bounds=span).SerializeToString()), S.MALFORMED,
+    _same(_load_errors(graphs.signed(_edited(path, time_bounds=span))), S.MALFORMED,
           f"metadata time_bounds", fragment)
 
 
@@ -373,7 +374,8 @@ def test_an_export_without_training_data_is_refused(tmp_path):
     with pytest.raises(ExportError, match="input_bounds need the training positions"):
         to_onnx(model, tmp_path / "m.onnx", parity="skip")
     with pytest.raises(ExportError, match="input_bounds: lower bound above upper bound in column 0"):
-        to_onnx(model, tmp_path / "m.onnx", parity="skip", input_bounds=[[1, -1, -1], [0, 1, 1]])
+        to_onnx(model, tmp_path / "m.onnx", parity="skip", input_bounds=[[1, -1, -1], [0, 1, 1]],
+                correction_reach=[0.1, 0.1])
     assert not (tmp_path / "m.onnx").exists()
     report = to_onnx(model, tmp_path / "m.onnx", measured=t)
     lo, hi = report["metadata"]["input_bounds"]
@@ -436,7 +438,7 @@ def test_apply_refuses_a_model_with_nan_weights(tmp_path, capsys, backend):
     w.flat[0] = np.nan
     tensor.CopyFrom(numpy_helper.from_array(w, tensor.name))
     bad = tmp_path / "bad.onnx"
-    bad.write_bytes(model.SerializeToString())
+    bad.write_bytes(graphs.signed(model))
     out = tmp_path / "out.csv"
     table = _table(tmp_path)
     before = _checksums(tmp_path)
@@ -470,3 +472,60 @@ def test_posecorr_run_refuses_a_pose_outside_the_box():
     assert r.returncode == 1 and len(lines) == 2 and "nan" in lines[1].lower()
     assert "line 2: pose outside the fitted range: pose 0 is outside the range the model was fitted on " \
            "in column 0: 999.000 m" in r.stderr
+
+
+# --- the digest, the reach and the allow flags: the same words on both back ends --------------
+
+def _strip_where(errors: list[PoseCorrError]) -> list[PoseCorrError]:
+    """Load errors without the file's name in front (both back ends put it there)."""
+    return [PoseCorrError(str(e).split(": ", 1)[1], e.status) for e in errors]
+
+
+def test_a_changed_file_is_refused_alike():
+    blob = bytearray(PMC_ZHOU.read_bytes())
+    tensor = _used_weight(onnx.load(PMC_ZHOU))
+    blob[bytes(blob).index(tensor.raw_data) + 3] ^= 0x40  # one exponent bit
+    errors = _load_errors(bytes(blob))
+    text = _same(_strip_where(errors), S.INTEGRITY, "the file's bytes give crc32c:",
+                 "where its metadata model_digest says crc32c:", "changed or damaged after export")
+    stored = {e.key: e.value for e in onnx.load(PMC_ZHOU).metadata_props}["model_digest"]
+    assert stored in text and str(errors[0]).startswith(f"model of {len(blob)} bytes: ")
+
+
+@pytest.mark.parametrize("drop,status,fragment", [
+    ("model_digest", S.INTEGRITY, "no metadata model_digest: the file carries no digest of its bytes (to run "
+                                  "it anyway, load with PC_LOAD_ALLOW_UNSIGNED, on the command line --allow-unsigned)"),
+    ("input_bounds", S.CONTRACT, "no metadata input_bounds: the model does not say which positions it was fitted "
+                                 "on (to run it anyway, load with PC_LOAD_ALLOW_UNBOUNDED, on the command line "
+                                 "--allow-unbounded)"),
+    ("correction_reach", S.CONTRACT, "no metadata correction_reach: the model does not say how far its "
+                                     "corrections reach"),
+])
+def test_a_missing_key_is_refused_alike_unless_allowed(drop, status, fragment):
+    model = graphs.without_metadata(onnx.load(PMC_ZHOU), drop)
+    blob = model.SerializeToString() if drop == "model_digest" else graphs.signed(model)
+    _same(_strip_where(_load_errors(blob)), status, fragment)
+    allow = {"allow_unsigned": True} if drop == "model_digest" else {"allow_unbounded": True}
+    x = _inside()
+    c, o = (Corrector(blob, backend=b, **allow).correct(x) for b in BACKENDS)
+    np.testing.assert_allclose(c, o, atol=2e-6)
+    np.testing.assert_array_equal(c, Corrector(PMC_ZHOU).correct(x))
+
+
+@pytest.mark.parametrize("dx", [0.05, 5000.0])
+def test_a_correction_beyond_the_reach_is_refused_alike(dx):
+    """A graph that adds dx to x after the model: beyond its reach, refused with the figures
+    on both back ends; the reach is what the metadata says (float32 on squares)."""
+    model = graphs.offset_graph(onnx.load(PMC_ZHOU), dx)
+    blob = graphs.signed(model)
+    x = _inside(12)
+    reach = json.loads({e.key: e.value for e in model.metadata_props}["correction_reach"])
+    moved = np.linalg.norm(Corrector(PMC_ZHOU).correct(x)[:, :3] + [dx, 0, 0] - x[:, :3], axis=1)
+    if moved.max() < 0.99 * reach[0]:  # inside the reach: answered, the same on both
+        c, o = (Corrector(blob, backend=b).correct(x) for b in BACKENDS)
+        np.testing.assert_allclose(c, o, atol=2e-6)
+        return
+    first = int(np.argmax(moved > 1.01 * reach[0]))
+    _same(_both(blob, x), S.RUNTIME, f"output 'corrected' of pose {first} moves the pose by "
+          f"{checks.decimal(moved[first])[:-1]}", f"beyond the model's reach of {checks.decimal(reach[0])} m "
+          f"and {checks.decimal(reach[1])} rad (metadata correction_reach)")

@@ -299,3 +299,226 @@ def test_a_really_full_disk_names_the_output(folder, full_disk, capsys) -> None:
         lines = [line for line in capsys.readouterr().err.splitlines() if line.strip() and not line.startswith("  ")]
         assert code == 2 and len(lines) == 1 and str(out) in lines[0], lines
         assert sorted(p.name for p in full_disk.iterdir()) == ["fill"]
+
+
+# --- models gone wrong (issue 31): every back end refuses them, each in one located line ---------
+
+sys.path.insert(0, str(ROOT / "runtime_c" / "tests"))
+import graphs  # noqa: E402
+
+BACKENDS = ("c", "onnxruntime")
+
+
+def _crc32c(data: bytes) -> int:
+    """CRC-32C bit by bit, written here from the definition (reflected polynomial
+    0x82F63B78): the independent truth the digests are compared with."""
+    crc = 0xFFFFFFFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ (0x82F63B78 if crc & 1 else 0)
+    return crc ^ 0xFFFFFFFF
+
+
+def test_the_reference_crc_is_crc32c():
+    assert _crc32c(b"123456789") == 0xE3069283
+    from posecorr.controller.digest import crc32c
+
+    rng = np.random.default_rng(1)
+    for n in (0, 1, 7, 1000):
+        data = rng.integers(0, 256, n, dtype=np.uint8).tobytes()
+        assert crc32c(data) == _crc32c(data)
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "models").glob("*.onnx")), ids=lambda p: p.name)
+def test_shipped_models_carry_their_digest_and_reach(path):
+    """The digest each shipped model carries is the CRC-32C of its bytes with the digits
+    read as zeros (recomputed here bit by bit); both back ends load it."""
+    import json
+
+    import onnx
+
+    data = path.read_bytes()
+    meta = {e.key: e.value for e in onnx.load_from_string(data).metadata_props}
+    stored = meta["model_digest"]
+    at = data.index(stored.encode())
+    assert data.count(stored.encode()) == 1 and stored.startswith("crc32c:")
+    zeroed = data[:at] + b"crc32c:00000000" + data[at + 15:]
+    assert stored == f"crc32c:{_crc32c(zeroed):08x}"
+    pos, rot = json.loads(meta["correction_reach"])
+    assert 0.01 < pos < 5.0 and 0.01 <= rot <= np.pi
+    for backend in BACKENDS:
+        from posecorr.controller.runtime import Corrector
+
+        Corrector(path, backend=backend)
+
+
+def _weight(model):
+    """The largest float initialiser a node reads."""
+    import onnx
+
+    used = {i for n in model.graph.node for i in n.input}
+    return max((t for t in model.graph.initializer if t.data_type == onnx.TensorProto.FLOAT and t.name in used),
+               key=lambda t: len(t.raw_data))
+
+
+def _hostile_models(folder: Path) -> dict[str, tuple[Path, str, list[str]]]:
+    """name -> (file, the status, what the one line must say). Edited files keep their old
+    digest (refused at load); the same edits signed anew meet the checks behind it."""
+    import onnx
+    from onnx import numpy_helper
+
+    shipped = MODEL.read_bytes()
+    out: dict[str, tuple[Path, str, list[str]]] = {}
+
+    def save(name: str, data: bytes, status: str, *said: str) -> None:
+        (folder / name).write_bytes(data)
+        out[name] = (folder / name, status, list(said))
+
+    # one exponent bit of one weight flipped in the file's bytes
+    tensor = _weight(onnx.load_from_string(shipped))
+    at = shipped.index(tensor.raw_data)
+    flipped = bytearray(shipped)
+    flipped[at + 3] ^= 0x40  # bit 30: the exponent's highest
+    save("flip.onnx", bytes(flipped), "INTEGRITY", "model_digest says crc32c:", "changed or damaged")
+    for scale in (1e6, 1e30):
+        model = onnx.load_from_string(shipped)
+        t = _weight(model)
+        t.CopyFrom(numpy_helper.from_array(numpy_helper.to_array(t) * np.float32(scale), t.name))
+        save(f"scaled-{scale:g}.onnx", model.SerializeToString(), "INTEGRITY", "model_digest says")
+        save(f"scaled-{scale:g}-signed.onnx", graphs.signed(model), "RUNTIME", "output 'corrected'")
+    model = graphs.offset_graph(onnx.load_from_string(shipped))
+    save("offset.onnx", model.SerializeToString(), "INTEGRITY", "model_digest says")
+    save("offset-signed.onnx", graphs.signed(model), "RUNTIME", "moves the pose by 500", "correction_reach")
+    model = graphs.without_metadata(onnx.load_from_string(shipped), "input_bounds")
+    save("no-bounds.onnx", model.SerializeToString(), "INTEGRITY", "model_digest says")
+    save("no-bounds-signed.onnx", graphs.signed(model), "CONTRACT", "no metadata input_bounds",
+         "--allow-unbounded")
+    # another producer's graph, no posecorr_version, answering a quaternion of norm 2
+    g = graphs.G()
+    y = g.op("Mul", ["pose", g.f32(np.array([1, 1, 1, 2, 2, 2, 2], np.float32))])
+    save("norm2.onnx", graphs.signed(g.model(y, metadata=graphs.BOUNDED)), "RUNTIME",
+         "has a quaternion that is not unit")
+    save("unsigned.onnx", g.model(y, metadata=graphs.BOUNDED).SerializeToString(), "INTEGRITY",
+         "no metadata model_digest", "--allow-unsigned")
+    return out
+
+
+def _status(name: str) -> int:
+    from posecorr.controller.checks import Status
+
+    return int(Status[name])
+
+
+def test_absurd_models_are_refused_by_every_back_end(folder, capsys):
+    """Each model gone wrong, on apply (C, onnxruntime), the shim (both back ends),
+    posecorr-run and the ROS 2 node's loader: one line naming the file (or the row) and the
+    check, exit 2 / the status / an exception; no file of the folder changes. onnxruntime
+    on the raw graph is the truth that each case is absurd (or not a pose)."""
+    import onnxruntime as ort
+
+    from posecorr.controller.runtime import Corrector, PoseCorrError
+    from posecorr.ros2.node import load_checked
+
+    cases = _hostile_models(folder)
+    poses = _table(3)
+    x = np.concatenate([poses.meas_p, poses.meas_q], axis=1).astype(np.float32)
+    run = Path(sys.executable).parent / "posecorr-run"
+    text = "\n".join(",".join(f"{v:.9g}" for v in row) for row in x[:1]) + "\n"
+    before = _checksums(folder)
+    failures = []
+    for name, (path, status, said) in cases.items():
+        if "signed" in name or name == "flip.onnx":  # the truth: onnxruntime without any check
+            raw = ort.InferenceSession(path.read_bytes(), providers=["CPUExecutionProvider"])
+            got = raw.run(None, {"pose": x})[0].astype(float)
+            moved = np.linalg.norm(got[:, :3] - x[:, :3], axis=1)
+            absurd = ~np.isfinite(got).all(axis=1) | (moved > 1e3) | \
+                (np.abs(np.linalg.norm(got[:, 3:], axis=1) - 1) > 0.1)
+            assert absurd.all() or status == "CONTRACT", (name, got[0])
+        for backend in BACKENDS:
+            capsys.readouterr()
+            code = main(["apply", str(path), str(folder / "d.csv"), "-o", str(folder / "o.csv"),
+                         "--backend", backend])
+            lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+            if not (code == 2 and len(lines) == 1 and all(s in lines[0] for s in said)
+                    and path.name in lines[0]):
+                failures.append(f"apply {backend} {name}: exit {code} {lines}")
+            try:
+                Corrector(path, backend=backend).correct(x)
+                failures.append(f"shim {backend} {name}: corrected")
+            except PoseCorrError as exc:
+                if exc.status != _status(status) or not all(s in str(exc) for s in said):
+                    failures.append(f"shim {backend} {name}: {exc.status} {exc}")
+        r = subprocess.run([str(run), str(path)], input=text, capture_output=True, text=True, timeout=60)
+        err = [ln for ln in r.stderr.splitlines() if ln.strip()]
+        if not (r.returncode != 0 and len(err) == 1 and all(s in err[0] for s in said)):
+            failures.append(f"posecorr-run {name}: exit {r.returncode} {err} {r.stdout!r}")
+        if status == "RUNTIME":
+            continue  # loads: refused per pose, as above
+        try:
+            load_checked(path)
+            failures.append(f"ros2 {name}: loaded")
+        except PoseCorrError as exc:
+            if path.name not in str(exc) or not all(s in str(exc) for s in said):
+                failures.append(f"ros2 {name}: {exc}")
+    assert not failures, "\n".join(failures)
+    assert _checksums(folder) == before
+
+
+def test_a_zero_input_quaternion_is_refused_everywhere(folder, capsys):
+    from posecorr.controller.runtime import Corrector, PoseCorrError
+
+    table = _table()
+    write_table(table, folder / "zero.csv")
+    lines = (folder / "zero.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    cells = lines[8].split(",")  # row 9 of the file
+    for column in ("meas_qw", "meas_qx", "meas_qy", "meas_qz"):
+        cells[header.index(column)] = "0"
+    lines[8] = ",".join(cells)
+    (folder / "zero.csv").write_text("\n".join(lines) + "\n")
+    table.meas_q[7] = 0.0
+    before = _checksums(folder)
+    for backend in BACKENDS:
+        capsys.readouterr()
+        code = main(["apply", str(MODEL), str(folder / "zero.csv"), "-o", str(folder / "o.csv"),
+                     "--backend", backend])
+        lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        assert code == 2 and len(lines) == 1 and "zero.csv" in lines[0] and "row 9" in lines[0], lines
+        pose = np.concatenate([table.meas_p[7], table.meas_q[7]])
+        with pytest.raises(PoseCorrError, match="quaternion of norm 0.000000") as info:
+            Corrector(MODEL, backend=backend).correct(pose)
+        assert info.value.status == _status("QUATERNION")
+    run = Path(sys.executable).parent / "posecorr-run"
+    r = subprocess.run([str(run), str(MODEL)], input="0.01,-0.6,0.5,0,0,0,0\n", capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 1 and "nan" in r.stdout.lower() and "line 1" in r.stderr, r.stderr
+    assert _checksums(folder) == before
+
+
+def test_the_allow_flags_let_another_producers_file_run(folder, capsys):
+    """A user-built model without digest or bounds runs when the caller says so; a present
+    digest is checked whatever the flags."""
+    from posecorr.controller.runtime import Corrector, PoseCorrError
+
+    g = graphs.G()
+    plain = folder / "plain.onnx"
+    plain.write_bytes(g.model(g.op("Identity", ["pose"])).SerializeToString())
+    x = np.concatenate([_table(4).meas_p, _table(4).meas_q], axis=1)
+    for backend in BACKENDS:
+        with pytest.raises(PoseCorrError, match="--allow-unsigned"):
+            Corrector(plain, backend=backend)
+        with pytest.raises(PoseCorrError, match="--allow-unbounded"):
+            Corrector(plain, backend=backend, allow_unsigned=True)
+        c = Corrector(plain, backend=backend, allow_unsigned=True, allow_unbounded=True)
+        np.testing.assert_allclose(c.correct(x), x, atol=1e-6)
+        with pytest.raises(PoseCorrError, match="changed or damaged"):
+            Corrector(_hostile_models(folder)["flip.onnx"][0], backend=backend, allow_unsigned=True,
+                      allow_unbounded=True)
+        assert main(["apply", str(plain), str(folder / "d.csv"), "-o", str(folder / f"o-{backend}.csv"),
+                     "--backend", backend, "--allow-unsigned", "--allow-unbounded"]) == 0
+    run = Path(sys.executable).parent / "posecorr-run"
+    r = subprocess.run([str(run), str(plain), "--allow-unbounded", "--allow-unsigned"],
+                       input="0.01,-0.6,0.5,1,0,0,0\n", capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    np.testing.assert_allclose([float(v) for v in r.stdout.split(",")], [0.01, -0.6, 0.5, 1, 0, 0, 0], atol=1e-7)

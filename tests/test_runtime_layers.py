@@ -20,7 +20,7 @@ import graphs  # noqa: E402
 
 # The layers, lowest first: a file may include or call files of its own layer or below.
 LAYERS = [
-    ("base", ["posecorr.h", "base.h", "status.c", "scratch.h", "scratch.c"]),
+    ("base", ["posecorr.h", "base.h", "status.c", "scratch.h", "scratch.c", "crc32c.c"]),
     ("protobuf wire format", ["pb.h", "pb.c"]),
     ("records of the load", ["ir.h", "ir.c"]),
     ("ONNX decoding", ["onnx.h", "onnx.c"]),

@@ -40,7 +40,7 @@ def test_installed_library_is_found():
 @pytest.fixture(scope="module")
 def model_path(tmp_path_factory) -> Path:
     p = tmp_path_factory.mktemp("shim") / "pose.onnx"
-    onnx.save(graphs.pose_model(2, metadata={"units": "m", "method": "mlp"}), p)
+    p.write_bytes(graphs.signed(graphs.pose_model(2, metadata={"units": "m", "method": "mlp", **graphs.BOUNDED})))
     return p
 
 

@@ -24,11 +24,13 @@ Each model gets a markdown card (`<name>.md`) with data, method, test metrics, p
 operator counts, file size, the box of poses it corrects (`input_bounds`) and the
 regeneration command; `models/index.json` lists them.
 
-`python -m tools.models --cards-only` rewrites, without refitting, what the code states
-about the models already in models/: the split's recipe (`split`) in each file's metadata,
-and each card from the file and the regenerated data. The data is regenerated from its seeds
-and checked to be the model's; the file is rewritten with `serialize_aligned`, its graph and
-weights byte for byte the same.
+`python -m tools.models --metadata-only` rewrites, without refitting, what the code states
+about the models already in models/: the split's recipe (`split`), the box of poses
+(`input_bounds`, kept where recorded), the correction reach (`correction_reach`, the model's
+graph on the training poses and drawn ones, as `to_onnx` records it) and the digest
+(`model_digest`), and each card from the file and the regenerated data. The data is
+regenerated from its seeds and checked to be the model's; the file is rewritten with
+`serialize_aligned` and signed, its graph and weights byte for byte the same (checked).
 """
 from __future__ import annotations
 
@@ -183,6 +185,7 @@ def model_card(spec: Spec, report: dict[str, Any], data: dict[str, Any], epochs:
         "- input `pose` float32 [N, 7] (x, y, z in m, qw, qx, qy, qz); output `corrected` float32 [N, 7]"
         + (" (qw >= 0)." if model.with_rotation else " (orientation passed through)."),
         bounds_line(meta["input_bounds"]),
+        reach_line(meta["correction_reach"]),
         "", "## Regenerate", "",
         "```", "make models        # or: python -m tools.models" + (
             "" if epochs == MLP_EPOCHS else f" --epochs {epochs}"), "```", "",
@@ -196,6 +199,14 @@ def bounds_line(box: list[list[float]]) -> str:
     axes = ", ".join(f"{axis} {a:.3f}..{b:.3f}" for axis, a, b in zip("xyz", *box))
     return (f"- input_bounds: {axes} m (the training positions' box widened by half its extent, "
             "at least 0.1 m); a pose outside is refused (PC_ERR_RANGE), on every back end.")
+
+
+def reach_line(reach: list[float]) -> str:
+    """The card's line on how far the model's corrections reach."""
+    return (f"- correction_reach: {reach[0]:.4f} m, {reach[1]:.4f} rad (twice the largest correction on "
+            "the training poses and 10,000 poses drawn over the input box and all orientations, plus "
+            "0.01 m and 0.01 rad); a pose corrected farther is refused "
+            "(PC_ERR_RUNTIME), on every back end. The file carries its CRC-32C (`model_digest`).")
 
 
 def build(spec: Spec, data: dict[str, Any], out_dir: Path, epochs: int = MLP_EPOCHS) -> dict[str, Any]:
@@ -234,17 +245,20 @@ def _graph_bytes(model: Any) -> bytes:
     return graph.SerializeToString()
 
 
-def rewrite_cards(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
-    """Rewrites, without refitting, the metadata the code states (`split`) in the shipped
-    models in `out_dir` and their cards (module doc); returns {"file", "split", "file_size"}
-    per model. The data is regenerated from its seeds; the stored raw test
+def rewrite_metadata(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
+    """Rewrites, without refitting, the metadata the code states (module doc) in the shipped
+    models in `out_dir` and their cards; returns {"file", "split", "correction_reach",
+    "file_size"} per model. The data is regenerated from its seeds; the stored raw test
     metrics must come out again (to 1e-9) as the proof that it is the data the model was
-    fitted on (the digest is of the exact bits, which the simulator's last digits may change
-    from one machine's BLAS to another's)."""
+    fitted on (the digest of the training data is of the exact bits, which the simulator's
+    last digits may change from one machine's BLAS to another's)."""
     import onnx
 
+    from posecorr.controller import digest
     from posecorr.controller.onnx_meta import read_info
     from posecorr.export.aligned import serialize_aligned
+    from posecorr.export.metadata import encode_value
+    from posecorr.export.onnx_export import input_bounds, model_reach
     from posecorr.metrics import pose_metrics
     from posecorr.safeio import write_bytes
 
@@ -255,7 +269,7 @@ def rewrite_cards(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
     for spec in SPECS:
         path = out_dir / f"{spec.name}.onnx"
         data = data_cache.setdefault(spec.experiment, experiment_data(spec.experiment))
-        M, R, te = data["measured"], data["reference"], data["test"]
+        M, R, tr, te = data["measured"], data["reference"], data["train"], data["test"]
         model = onnx.load(str(path))
         meta = {p.key: p.value for p in model.metadata_props}
         stored = json.loads(meta["test_metrics"])["raw"]["rmse_total"]
@@ -265,11 +279,17 @@ def rewrite_cards(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
                              f"(raw test rmse_total {again!r}, stored {stored!r}); refit with `make models`")
         graph = _graph_bytes(model)
         meta["split"] = split_text(data["split_seed"])
+        # a box already recorded stays as it is (its last digits may differ on this BLAS)
+        box = json.loads(meta["input_bounds"]) if "input_bounds" in meta else input_bounds(M[tr])
+        reach = model_reach(path, M[tr], box)
+        meta["input_bounds"] = meta.get("input_bounds") or encode_value(box)
+        meta["correction_reach"] = encode_value(reach)
+        meta[digest.KEY] = digest.PLACEHOLDER
         del model.metadata_props[:]
         for key in sorted(meta):
             entry = model.metadata_props.add()
             entry.key, entry.value = key, meta[key]
-        blob = serialize_aligned(model)
+        blob = digest.sign(serialize_aligned(model))
         if _graph_bytes(onnx.load_from_string(blob)) != graph:
             raise SystemExit(f"{path}: rewriting the metadata changed the graph; nothing written")
         write_bytes(path, blob)
@@ -281,8 +301,8 @@ def rewrite_cards(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
         for entry in index["models"]:
             if entry["file"] == path.name:
                 entry["file_size"] = len(blob)
-        done.append({"file": path.name, "split": meta["split"], "file_size": len(blob)})
-        print(f"{path}: split {meta['split']}, {len(blob)} bytes", flush=True)
+        done.append({"file": path.name, "split": meta["split"], "correction_reach": reach, "file_size": len(blob)})
+        print(f"{path}: split {meta['split']}, correction_reach {encode_value(reach)}, {len(blob)} bytes", flush=True)
     write_bytes(index_path, (json.dumps(index, indent=1) + "\n").encode("utf-8"))
     return done
 
@@ -292,11 +312,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("-o", "--out", type=Path, default=MODELS_DIR, help="output directory (default: models/)")
     parser.add_argument("--epochs", type=int, default=MLP_EPOCHS, help="max MLP epochs")
     parser.add_argument("--only", default="", help="comma-separated model names to build (default: all)")
-    parser.add_argument("--cards-only", action="store_true",
-                        help="rewrite the existing models' split metadata and their cards without refitting")
+    parser.add_argument("--metadata-only", action="store_true",
+                        help="rewrite the existing models' stated metadata (split, bounds, reach, digest) and "
+                             "their cards without refitting")
     args = parser.parse_args(argv)
-    if args.cards_only:
-        rewrite_cards(args.out)
+    if args.metadata_only:
+        rewrite_metadata(args.out)
         return 0
     args.out.mkdir(parents=True, exist_ok=True)
     wanted = {w.strip() for w in args.only.split(",") if w.strip()}

@@ -54,8 +54,8 @@ def sample_poses(n: int, seed: int = 0, model: Any = None) -> np.ndarray:
     from .controller.checks import Limits
 
     rng = np.random.default_rng(seed)
-    box = None if model is None else Limits.from_metadata(model.metadata, model.takes_time).box
-    if box is None:
+    box = None if model is None else Limits.from_metadata(model.metadata, model.takes_time, True).box
+    if box is None or not np.all(np.isfinite(box)):  # no model, or one loaded without bounds
         p = rng.uniform(-0.3, 0.3, (n, 3)) + np.array([0.0, -0.6, 0.5])
     else:
         p = rng.uniform(box[0], box[1], (n, 3))

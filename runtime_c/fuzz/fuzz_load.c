@@ -13,7 +13,9 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
     pc_error err;
     float in[5 * 7], out[5 * 7];
     size_t i;
-    pc_options opts = {.max_batch = 8};
+    /* unsigned and unbounded allowed: a mutated input must reach the parser, not stop at
+     * its digest */
+    pc_options opts = {.max_batch = 8, .flags = PC_LOAD_ALLOW_UNBOUNDED | PC_LOAD_ALLOW_UNSIGNED};
     if (pc_load_memory(data, size, &opts, &m, &err) != PC_OK)
         return 0;
     for (i = 0; i < 5 * 7; i++)

@@ -74,13 +74,20 @@ class G:
         return m
 
 
+# Values of y a model emits at once: the position columns. The quaternion columns carry the
+# pose's own (unit) quaternion, because every runtime refuses a result whose quaternion is
+# not unit (the pose contract holds for every graph).
+WINDOW = 3
+
+
 def window(g: G, y: str, width: int, start: int, x: str = "pose") -> str:
-    """7 columns of the per-row flattened y ([N, width]) from `start`, padded with pose."""
-    take = min(7, width - start)
-    parts = [g.op("Slice", [y, g.i64([start]), g.i64([start + take]), g.i64([1])])]
-    if take < 7:
-        parts.append(g.op("Slice", [x, g.i64([0]), g.i64([7 - take]), g.i64([1])]))
-    return g.op("Concat", parts, axis=1) if len(parts) > 1 else parts[0]
+    """The per-row flattened y ([N, width]) from `start` in the position columns (up to
+    WINDOW of them), the rest of the pose after them: the output is a pose whose quaternion
+    is the input's."""
+    take = min(WINDOW, width - start)
+    parts = [g.op("Slice", [y, g.i64([start]), g.i64([start + take]), g.i64([1])]),
+             g.op("Slice", [x, g.i64([take]), g.i64([7]), g.i64([1])])]
+    return g.op("Concat", parts, axis=1)
 
 
 def finish(g: G, y: str, per_row: int, to_float: bool = False) -> list[onnx.ModelProto]:
@@ -89,7 +96,7 @@ def finish(g: G, y: str, per_row: int, to_float: bool = False) -> list[onnx.Mode
     if to_float:
         flat = g.op("Cast", [flat], to=TensorProto.FLOAT)
     models = []
-    for start in range(0, per_row, 7):
+    for start in range(0, per_row, WINDOW):
         gg = G()
         gg.nodes, gg.inits, gg.n = list(g.nodes), list(g.inits), g.n
         models.append(gg.model(window(gg, flat, per_row, start)))
@@ -589,9 +596,60 @@ def poses_in_box(model, n: int, seed: int = 0) -> np.ndarray:
     return x
 
 
+# Metadata a test graph needs to load without PC_LOAD_ALLOW_UNBOUNDED: a wide box and a
+# reach no test graph exceeds.
+BOUNDED = {"input_bounds": "[[-10, -10, -10], [10, 10, 10]]", "correction_reach": "[100, 4]"}
+
+
+def signed(model, aligned: bool = False) -> bytes:
+    """`model` (a ModelProto) serialised with a fresh model_digest, as a producer that signs
+    its files writes it (the one it carried, if any, is replaced); `aligned`: through the
+    exporter's serialize_aligned."""
+    from posecorr.controller import digest
+
+    m = onnx.ModelProto()
+    m.CopyFrom(model)
+    kept = [(e.key, e.value) for e in m.metadata_props if e.key != digest.KEY]
+    del m.metadata_props[:]
+    for key, value in kept + [(digest.KEY, digest.PLACEHOLDER)]:
+        entry = m.metadata_props.add()
+        entry.key, entry.value = key, value
+    if aligned:
+        from posecorr.export.aligned import serialize_aligned
+
+        return digest.sign(serialize_aligned(m))
+    return digest.sign(m.SerializeToString())
+
+
+def offset_graph(model, dx: float = 5000.0):
+    """`model` (a ModelProto, changed in place and returned) with a node adding dx to x
+    after everything else: a graph gone wrong that still answers poses."""
+    for node in model.graph.node:
+        node.output[:] = ["before_offset" if o == "corrected" else o for o in node.output]
+    shift = np.zeros((1, 7), np.float32)
+    shift[0, 0] = dx
+    model.graph.initializer.append(numpy_helper.from_array(shift, "offset"))
+    model.graph.node.append(helper.make_node("Add", ["before_offset", "offset"], ["corrected"], name="offset"))
+    return model
+
+
+def without_metadata(model, *keys: str):
+    """`model` (a ModelProto, changed in place and returned) without the metadata `keys`."""
+    kept = [(e.key, e.value) for e in model.metadata_props if e.key not in keys]
+    del model.metadata_props[:]
+    for key, value in kept:
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    return model
+
+
 def op_inputs(n: int, seed: int = 0) -> np.ndarray:
+    """Poses for the operator cases: positions uniform in [-2, 2], unit quaternions (every
+    runtime refuses another)."""
     rng = np.random.default_rng(seed)
-    return rng.uniform(-2, 2, (n, 7)).astype(np.float32)
+    x = rng.uniform(-2, 2, (n, 7))
+    x[:, 3:] /= np.linalg.norm(x[:, 3:], axis=1, keepdims=True)
+    return x.astype(np.float32)
 
 
 # -- building the runtime for tests -------------------------------------------------------

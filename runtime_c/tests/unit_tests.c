@@ -1,6 +1,7 @@
 /* C unit tests: protobuf reader, status table, tanh accuracy against libm, loader error
  * paths and pc_run contract on models built here with a minimal protobuf writer.
  * Operator semantics are checked against onnxruntime by the pytest parity suite. */
+#include "base.h"
 #include "kernels.h"
 #include "pb.h"
 
@@ -120,6 +121,28 @@ static void build(buf *model, const spec *s, const float *c)
 }
 
 static const spec ADD = {"pose", 7, "Add", 1, 1, NULL, 0};
+/* The models built here carry neither bounds nor a digest: loaded as another producer's. */
+static const pc_options ALLOW = {0, PC_LOAD_ALLOW_UNBOUNDED | PC_LOAD_ALLOW_UNSIGNED, 0};
+
+/* n poses: positions from a fixed pattern in [-0.5, 0.5], unit quaternions */
+static void fill_poses(float *in, size_t n)
+{
+    size_t i, c;
+    for (i = 0; i < n; i++) {
+        float *p = in + i * 7, n2 = 0.0f;
+        for (c = 0; c < 7; c++) {
+            p[c] = (float)(((i * 7 + c) * 37) % 101) * 0.01f - 0.5f;
+            if (c >= 3)
+                n2 += p[c] * p[c];
+        }
+        if (n2 == 0.0f) {
+            p[3] = 1.0f;
+            n2 = 1.0f;
+        }
+        for (c = 3; c < 7; c++)
+            p[c] /= sqrtf(n2);
+    }
+}
 
 /* build, then one more metadata entry (key NULL: none). */
 static void build_meta(buf *model, const spec *s, const float *c, const char *key,
@@ -288,7 +311,7 @@ static void test_tanh(void)
 static void test_load_and_run(void)
 {
     static buf model;
-    const float c[7] = {0.5f, -1.0f, 2.0f, 0.25f, 0.0f, -0.125f, 3.0f};
+    const float c[7] = {0.5f, -1.0f, 2.0f, 0.0f, 0.0f, 0.0f, 0.0f}; /* quaternion kept */
     float in[1000 * 7], out[1000 * 7];
     pc_model *m = NULL;
     pc_error err;
@@ -298,11 +321,10 @@ static void test_load_and_run(void)
         spec s = ADD;
         s.raw = raw;
         build(&model, &s, c);
-        CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_OK);
+        CHECK(pc_load_memory(model.d, model.n, &ALLOW, &m, &err) == PC_OK);
         if (!m)
             return;
-        for (i = 0; i < 1000 * 7; i++)
-            in[i] = (float)((i * 37) % 101) * 0.01f - 0.5f;
+        fill_poses(in, 1000);
         CHECK(pc_run(m, in, 1000, out) == PC_OK);
         ok = 1;
         for (i = 0; i < 1000 * 7; i++)
@@ -322,7 +344,7 @@ static void test_load_and_run(void)
         }
         /* in-place */
         memcpy(out, in, 10 * 7 * sizeof(float));
-        CHECK(pc_run(m, out, 10, out) == PC_OK && out[3] == in[3] + c[3]);
+        CHECK(pc_run(m, out, 10, out) == PC_OK && out[0] == in[0] + c[0] && out[3] == in[3]);
         /* n = 0 is a no-op */
         out[0] = 42.0f;
         CHECK(pc_run(m, NULL, 0, NULL) == PC_OK);
@@ -352,7 +374,8 @@ static void test_load_and_run(void)
         m = NULL;
     }
     {
-        pc_options o = {.max_batch = 100}; /* rounds down to 64 */
+        pc_options o = ALLOW;
+        o.max_batch = 100; /* rounds down to 64 */
         build(&model, &ADD, c);
         CHECK(pc_load_memory(model.d, model.n, &o, &m, &err) == PC_OK && pc_max_batch(m) == 64);
         pc_free(m);
@@ -388,7 +411,7 @@ static void test_load_into(void)
 {
     static buf model;
     static unsigned char arena[1 << 20];
-    const float c[7] = {0.5f, -1.0f, 2.0f, 0.25f, 0.0f, -0.125f, 3.0f};
+    const float c[7] = {0.5f, -1.0f, 2.0f, 0.0f, 0.0f, 0.0f, 0.0f};
     float in[40 * 7], out[40 * 7];
     pc_model *m = NULL, *small = (pc_model *)1;
     pc_error err;
@@ -396,19 +419,18 @@ static void test_load_into(void)
     int ok = 1;
     build(&model, &ADD, c);
     CHECK(pc_version() == PC_VERSION_NUMBER);
-    CHECK(pc_required_bytes(model.d, model.n, NULL, &need, &err) == PC_OK);
+    CHECK(pc_required_bytes(model.d, model.n, &ALLOW, &need, &err) == PC_OK);
     CHECK(need > 0 && need <= sizeof arena);
-    CHECK(pc_load_into(model.d, model.n, NULL, arena, need / 2, &small, &err) == PC_ERR_MEMORY);
+    CHECK(pc_load_into(model.d, model.n, &ALLOW, arena, need / 2, &small, &err) == PC_ERR_MEMORY);
     CHECK(small == NULL && strstr(err.message, "too small") != NULL);
 #ifdef PC_COUNT_MALLOC
     n_heap_calls = 0; /* the counter sees the library's calls */
-    CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_OK && n_heap_calls > 0);
+    CHECK(pc_load_memory(model.d, model.n, &ALLOW, &m, &err) == PC_OK && n_heap_calls > 0);
     pc_free(m);
     n_heap_calls = 0;
 #endif
-    CHECK(pc_load_into(model.d, model.n, NULL, arena + 1, need, &m, &err) == PC_OK);
-    for (i = 0; i < 40 * 7; i++)
-        in[i] = (float)((i * 37) % 101) * 0.01f - 0.5f;
+    CHECK(pc_load_into(model.d, model.n, &ALLOW, arena + 1, need, &m, &err) == PC_OK);
+    fill_poses(in, 40);
     CHECK(m && pc_run(m, in, 40, out) == PC_OK);
 #ifdef PC_COUNT_MALLOC
     CHECK(n_heap_calls == 0);
@@ -422,7 +444,7 @@ static void test_load_into(void)
     memset(arena, 0xA5, (size_t)((unsigned char *)m - arena));
     CHECK(m && pc_run(m, in, 40, out) == PC_OK && out[7] == in[7] + c[0]);
     pc_free(m); /* a no-op: the caller owns the buffer */
-    CHECK(pc_load_into(model.d, model.n, NULL, NULL, need, &m, &err) == PC_ERR_ARGUMENT);
+    CHECK(pc_load_into(model.d, model.n, &ALLOW, NULL, need, &m, &err) == PC_ERR_ARGUMENT);
 }
 
 /* pc_run of one pose on a model: status, and the message holds fragment. */
@@ -454,13 +476,13 @@ static void test_checks(void)
         s.raw = raw;
         c[4] = raw ? NAN : -INFINITY;
         build(&model, &s, c);
-        CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_ERR_MALFORMED && !m);
+        CHECK(pc_load_memory(model.d, model.n, &ALLOW, &m, &err) == PC_ERR_MALFORMED && !m);
         CHECK(strstr(err.message, "tensor 'c' holds a non-finite value at element 4") != NULL);
     }
     c[4] = 0.0f;
-    /* posecorr's models: input quaternions must be unit (norm within 1e-3) */
-    build_meta(&model, &ADD, c, "posecorr_version", "0.1.0");
-    CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_OK);
+    /* every model, whoever wrote it: input quaternions must be unit (norm within 1e-3) */
+    build(&model, &ADD, c);
+    CHECK(pc_load_memory(model.d, model.n, &ALLOW, &m, &err) == PC_OK);
     if (m) {
         expect_run(m, unit, PC_OK, "");
         memcpy(pose, unit, sizeof pose);
@@ -473,18 +495,19 @@ static void test_checks(void)
         expect_run(m, pose, PC_OK, "");
         pc_free(m);
     }
-    /* without the exporter's mark the input quaternion is the graph's business */
+    /* and output quaternions unit: a graph adding 0.25 to qw answers |q|^2 = 1.5625 */
+    c[3] = 0.25f;
     build(&model, &ADD, c);
-    CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_OK);
+    CHECK(pc_load_memory(model.d, model.n, &ALLOW, &m, &err) == PC_OK);
     if (m) {
-        memcpy(pose, unit, sizeof pose);
-        pose[3] = 3.0f;
-        expect_run(m, pose, PC_OK, "");
+        expect_run(m, unit, PC_ERR_RUNTIME, "output 'corrected' of pose 0 has a quaternion that "
+                                            "is not unit");
         pc_free(m);
     }
+    c[3] = 0.0f;
     /* input_bounds: a position outside is refused with the value and the bounds */
     build_meta(&model, &ADD, c, "input_bounds", "[[-1, -1, -1], [1, 1, 1.5]]");
-    CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_OK);
+    CHECK(pc_load_memory(model.d, model.n, &ALLOW, &m, &err) == PC_OK);
     if (m) {
         memcpy(pose, unit, sizeof pose);
         pose[2] = 2.0f;
@@ -510,21 +533,104 @@ static void test_checks(void)
             {"time_bounds", "[5, 1]"},
             {"time_bounds", "[0, 1e300]"},
             {"time_bounds", "[0, 1, 2]"},
+            {"correction_reach", "[-1, 1]"},
+            {"correction_reach", "[1, 1e39]"},
+            {"correction_reach", "[1]"},
         };
         size_t k;
         for (k = 0; k < sizeof bad / sizeof bad[0]; k++) {
             m = NULL;
             build_meta(&model, &ADD, c, bad[k][0], bad[k][1]);
-            CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_ERR_MALFORMED && !m);
+            CHECK(pc_load_memory(model.d, model.n, &ALLOW, &m, &err) == PC_ERR_MALFORMED && !m);
             CHECK(strstr(err.message, bad[k][0]) != NULL);
         }
     }
     /* time_bounds of a model without the input t: read, checked, not applied */
     build_meta(&model, &ADD, c, "time_bounds", "[10, 20]");
-    CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_OK);
+    CHECK(pc_load_memory(model.d, model.n, &ALLOW, &m, &err) == PC_OK);
     if (m) {
         const float t = 1e6f;
         CHECK(pc_run_timed(m, unit, &t, 1, pose) == PC_OK);
+        pc_free(m);
+    }
+}
+
+/* appends one metadata entry to a built model */
+static void add_meta(buf *model, const char *key, const char *value)
+{
+    buf meta = {{0}, 0};
+    put_str(&meta, 1, key);
+    put_str(&meta, 2, value);
+    put_msg(model, 14, &meta);
+}
+
+/* writes the digest over the "crc32c:00000000" placeholder (docs/design.md, "Integrity");
+ * returns the offset of its eight digits */
+static size_t sign(buf *model)
+{
+    static const char hex[] = "0123456789abcdef";
+    size_t at, k;
+    uint32_t crc;
+    for (at = 0; at + 15 <= model->n; at++)
+        if (memcmp(model->d + at, "crc32c:00000000", 15) == 0)
+            break;
+    at += 7;
+    crc = pc_crc32c(0, model->d, model->n);
+    for (k = 0; k < 8; k++)
+        model->d[at + k] = (unsigned char)hex[crc >> (28 - 4 * k) & 15u];
+    return at;
+}
+
+/* What every model must carry or be allowed without, the digest and the reach. */
+static void test_contract(void)
+{
+    static buf model;
+    const float c[7] = {0.5f, -1.0f, 2.0f, 0.0f, 0.0f, 0.0f, 0.0f};
+    const float unit[7] = {0.5f, -0.25f, 0.0f, 1.0f, 0.0f, 0.0f, 0.0f};
+    const pc_options unbounded = {0, PC_LOAD_ALLOW_UNBOUNDED, 0};
+    const pc_options unsigned_ = {0, PC_LOAD_ALLOW_UNSIGNED, 0};
+    pc_model *m = NULL;
+    pc_error err;
+    size_t at;
+    CHECK(pc_crc32c(0, "123456789", 9) == 0xE3069283u);
+    CHECK(pc_crc32c(pc_crc32c(0, "1234", 4), "56789", 5) == 0xE3069283u);
+    /* no digest: refused unless allowed, the flag named */
+    build(&model, &ADD, c);
+    CHECK(pc_load_memory(model.d, model.n, &unbounded, &m, &err) == PC_ERR_INTEGRITY && !m);
+    CHECK(strstr(err.message, "no metadata model_digest") && strstr(err.message, "PC_LOAD_ALLOW_UNSIGNED"));
+    /* no bounds, no reach: refused unless allowed, the flag named */
+    CHECK(pc_load_memory(model.d, model.n, &unsigned_, &m, &err) == PC_ERR_CONTRACT && !m);
+    CHECK(strstr(err.message, "no metadata input_bounds") && strstr(err.message, "PC_LOAD_ALLOW_UNBOUNDED"));
+    build_meta(&model, &ADD, c, "input_bounds", "[[-1, -1, -1], [1, 1, 1]]");
+    CHECK(pc_load_memory(model.d, model.n, &unsigned_, &m, &err) == PC_ERR_CONTRACT && !m);
+    CHECK(strstr(err.message, "no metadata correction_reach") != NULL);
+    /* signed and bounded: loads with no flag; the correction of |(0.5, -1, 2)| = 2.291 m
+     * is beyond a reach of 0.1 m */
+    add_meta(&model, "correction_reach", "[0.1, 0.5]");
+    add_meta(&model, "model_digest", "crc32c:00000000");
+    at = sign(&model);
+    CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_OK);
+    if (m) {
+        expect_run(m, unit, PC_ERR_RUNTIME, "output 'corrected' of pose 0 moves the pose by 2.291 m "
+                                            "and 0.000 rad, beyond the model's reach of 0.100 m "
+                                            "and 0.500 rad (metadata correction_reach)");
+        pc_free(m);
+    }
+    /* one byte changed anywhere (here a weight's): the digest no longer matches */
+    model.d[model_without_meta / 2] ^= 0x01;
+    CHECK(pc_load_memory(model.d, model.n, &ALLOW, &m, &err) == PC_ERR_INTEGRITY && !m);
+    CHECK(strstr(err.message, "model_digest says crc32c:") && strstr(err.message, "changed"));
+    model.d[model_without_meta / 2] ^= 0x01;
+    model.d[at] = model.d[at] == 'f' ? 'e' : 'f'; /* the digest itself edited */
+    CHECK(pc_load_memory(model.d, model.n, &ALLOW, &m, &err) == PC_ERR_INTEGRITY && !m);
+    model.d[at] = 'G'; /* not hexadecimal */
+    CHECK(pc_load_memory(model.d, model.n, &ALLOW, &m, &err) == PC_ERR_INTEGRITY && !m);
+    CHECK(strstr(err.message, "expected crc32c: and 8 lowercase hexadecimal digits") != NULL);
+    /* a reach that allows the correction: answered */
+    build_meta(&model, &ADD, c, "correction_reach", "[2.5, 0.01]");
+    CHECK(pc_load_memory(model.d, model.n, &ALLOW, &m, &err) == PC_OK);
+    if (m) {
+        expect_run(m, unit, PC_OK, "");
         pc_free(m);
     }
 }
@@ -537,7 +643,7 @@ static void expect_error(const spec *s, pc_status want, const char *fragment)
     pc_error err;
     pc_status st;
     build(&model, s, c);
-    st = pc_load_memory(model.d, model.n, NULL, &m, &err);
+    st = pc_load_memory(model.d, model.n, &ALLOW, &m, &err);
     CHECK(st == want);
     CHECK(m == NULL);
     CHECK(strstr(err.message, fragment) != NULL);
@@ -568,7 +674,7 @@ static void test_errors(void)
     /* truncated at every length: an error naming a byte, never success */
     build(&model, &ADD, c);
     for (i = 0; i < model.n; i++) {
-        pc_status st = pc_load_memory(model.d, i, NULL, &m, &err);
+        pc_status st = pc_load_memory(model.d, i, &ALLOW, &m, &err);
         /* Only a cut exactly at the end of a whole field can parse. */
         CHECK(st != PC_OK || i == model_without_meta);
         if (st == PC_OK)
@@ -592,6 +698,7 @@ int main(int argc, char **argv)
     test_load_and_run();
     test_load_into();
     test_checks();
+    test_contract();
     test_errors();
     /* optional: model files given on the command line must load and run */
     {

@@ -1,4 +1,4 @@
-/* posecorr-run MODEL.onnx [--binary] [--strict]
+/* posecorr-run MODEL.onnx [--binary] [--strict] [--allow-unbounded] [--allow-unsigned]
  *
  * Streams poses through a corrector: one CSV line "x,y,z,qw,qx,qy,qz" in, one line out,
  * flushed per pose so it can sit in a pipe next to a tracker. An optional 8th value
@@ -12,7 +12,9 @@
  * line k still belongs to input line k; the stream goes on, because one glitch on a
  * controller's pipe must not end it. The exit status is then 1 at the end of input.
  * --strict stops at the first bad line instead (exit 1). A trailing partial binary record
- * is reported (exit 1), never dropped in silence. */
+ * is reported (exit 1), never dropped in silence. --allow-unbounded and --allow-unsigned
+ * load a model without input_bounds/correction_reach or without model_digest
+ * (PC_LOAD_ALLOW_UNBOUNDED, PC_LOAD_ALLOW_UNSIGNED: models of other producers). */
 #include "posecorr.h"
 
 #include <math.h>
@@ -20,7 +22,8 @@
 #include <stdlib.h>
 #include <string.h>
 
-#define USAGE "usage: %s MODEL.onnx [--binary] [--strict] < poses > corrected\n"
+#define USAGE "usage: %s MODEL.onnx [--binary] [--strict] [--allow-unbounded] " \
+              "[--allow-unsigned] < poses > corrected\n"
 
 /* A pose line is a few dozen bytes: runs of blanks are kept as one (they only separate
  * numbers), and a line with more than this many other bytes is read to its end but not
@@ -245,12 +248,17 @@ int main(int argc, char **argv)
     const char *path = NULL;
     int binary = 0, strict = 0, i, status;
     pc_model *model;
+    pc_options opts = {0, 0, 0};
     pc_error err;
     pc_status st;
 
     for (i = 1; i < argc; i++) {
         if (strcmp(argv[i], "--binary") == 0)
             binary = 1;
+        else if (strcmp(argv[i], "--allow-unbounded") == 0)
+            opts.flags |= PC_LOAD_ALLOW_UNBOUNDED;
+        else if (strcmp(argv[i], "--allow-unsigned") == 0)
+            opts.flags |= PC_LOAD_ALLOW_UNSIGNED;
         else if (strcmp(argv[i], "--strict") == 0)
             strict = 1;
         else if (strcmp(argv[i], "-h") == 0 || strcmp(argv[i], "--help") == 0) {
@@ -267,7 +275,7 @@ int main(int argc, char **argv)
         fprintf(stderr, USAGE, argv[0]);
         return 2;
     }
-    st = pc_load_file(path, NULL, &model, &err);
+    st = pc_load_file(path, &opts, &model, &err);
     if (st != PC_OK) {
         fprintf(stderr, "posecorr-run: %s: %s\n", path, err.message);
         return 1;

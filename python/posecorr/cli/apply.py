@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import emit, output_option
+from .common import allow_arguments, allow_options, emit, output_option
 
 HELP = "correct the measured poses of a table with a model"
 OUTPUTS = ('output',)  # arguments naming files the verb writes
@@ -15,12 +15,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", type=Path)
     output_option(p)
     p.add_argument("--backend", choices=("c", "onnxruntime"), default="c")
+    allow_options(p)
 
 
 def run(args: argparse.Namespace) -> None:
     from ..controller.apply import apply_file
 
-    payload = apply_file(args.model, args.input, args.output, backend=args.backend)
+    payload = apply_file(args.model, args.input, args.output, backend=args.backend, **allow_arguments(args))
 
     def text() -> str:
         from ..textui import METRIC_HEADERS, metrics_rows, table as fmt_table

@@ -61,6 +61,21 @@ def backend_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", choices=BACKENDS, default="c")
 
 
+def allow_options(p: argparse.ArgumentParser) -> None:
+    """--allow-unbounded, --allow-unsigned: load another producer's model that lacks the
+    metadata a posecorr export carries (posecorr.h's PC_LOAD_ALLOW_* flags)."""
+    p.add_argument("--allow-unbounded", action="store_true",
+                   help="load a model without metadata input_bounds or correction_reach (its poses are "
+                        "then not checked against them)")
+    p.add_argument("--allow-unsigned", action="store_true",
+                   help="load a model without metadata model_digest (a digest present is always checked)")
+
+
+def allow_arguments(args: argparse.Namespace) -> dict[str, bool]:
+    """The keyword arguments of Corrector that allow_options set."""
+    return {"allow_unbounded": args.allow_unbounded, "allow_unsigned": args.allow_unsigned}
+
+
 def threads_option(p: argparse.ArgumentParser, scope: str = "") -> None:
     from .options import THREADS
 

@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 from . import options
-from .common import print_json
+from .common import allow_arguments, allow_options, print_json
 
 HELP = "a ROS 2 node: correct a PoseStamped topic live, swap models while it runs"
 NEEDS = "ros2"
@@ -23,6 +23,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="models with time: t = stamp - T0 (default: the first pose's stamp)")
     p.add_argument("--diagnostics-period", type=options.real(0, 3600, open_lo=True), default=1.0,
                    help="seconds between /diagnostics messages")
+    allow_options(p)
 
 
 def run(args: argparse.Namespace) -> None:
@@ -30,7 +31,7 @@ def run(args: argparse.Namespace) -> None:
 
     final = run_node(args.model, input_topic=args.input, output_topic=args.output,
                      frame=args.frame, reliable=args.reliable, t0=args.t0,
-                     diag_period=args.diagnostics_period,
+                     diag_period=args.diagnostics_period, allow=allow_arguments(args),
                      log=(lambda m: print(m, file=sys.stderr, flush=True)))
     if args.json:
         print_json(final)

@@ -105,11 +105,14 @@ class _RmseSums:
 
 
 def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], output: str | os.PathLike[str],
-               backend: str = "c", chunk_rows: int = CHUNK_ROWS) -> dict[str, Any]:
+               backend: str = "c", chunk_rows: int = CHUNK_ROWS, allow_unbounded: bool = False,
+               allow_unsigned: bool = False) -> dict[str, Any]:
     """Correct `table` with `model` into `output`; returns {"n", "output", "backend",
-    "reference", "raw", "corrected"} (raw / corrected None without reference columns)."""
+    "reference", "raw", "corrected"} (raw / corrected None without reference columns).
+    allow_unbounded, allow_unsigned: as `Corrector`'s."""
     check_output(output, [model, table])
-    corrector = Corrector(model, backend=backend)
+    corrector = Corrector(model, backend=backend, allow_unbounded=allow_unbounded,
+                          allow_unsigned=allow_unsigned)
     n = 0
     with TableReader(table, require_reference=False) as reader:
         clash = [c for c in CORR_COLUMNS if c in reader.header]

@@ -12,15 +12,22 @@ default domain at a supported opset; no float tensor of the graph (an initialise
 Constant's value) holds NaN or infinity; the metadata's bounds (`input_bounds`, metres, and
 `time_bounds`, seconds) are finite float32 numbers, lower ones not above upper ones.
 
-Per call (`check_input`, `check_output`): finite times inside `time_bounds` (models that
-take time; no t is t = 0), finite poses, positions inside `input_bounds`, and, in
-posecorr's models (metadata `posecorr_version`), unit quaternions in and out.
+Before those, the file's digest (metadata `model_digest`, `digest`): a file whose bytes do
+not give it is refused (INTEGRITY), one without it unless the caller allows unsigned files;
+a model without `input_bounds` or `correction_reach` is refused unless the caller allows
+unbounded ones (CONTRACT).
+
+Per call (`check_input`, `check_output`), the same for every model whoever wrote it:
+finite times inside `time_bounds` (models that take time; no t is t = 0), finite poses,
+positions inside `input_bounds`, unit quaternions in and out, and a correction within
+`correction_reach`.
 """
 from __future__ import annotations
 
 import importlib.util
 import json
 import math
+import re
 from dataclasses import dataclass
 from enum import IntEnum
 from functools import lru_cache
@@ -29,7 +36,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from . import onnx_meta
+from . import digest, onnx_meta
 
 __all__ = ["PoseCorrError", "Status", "Limits", "check_model", "check_input", "check_output",
            "failure", "decimal"]
@@ -63,6 +70,7 @@ class Status(IntEnum):
     RUNTIME = 11
     RANGE = 12
     QUATERNION = 13
+    INTEGRITY = 14
 
 
 # pc_status_name (runtime_c/status.c) of the codes raised here.
@@ -73,6 +81,7 @@ STATUS_NAMES = {
     Status.RUNTIME: "runtime error",
     Status.RANGE: "pose outside the fitted range",
     Status.QUATERNION: "quaternion not unit",
+    Status.INTEGRITY: "model file changed or unsigned",
 }
 
 # Default-domain opsets libposecorr loads (PC_OPSET_MIN, PC_OPSET_MAX in posecorr.h).
@@ -87,6 +96,10 @@ INPUT_NORM2_RANGE = (0.998001, 1.002001)
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 BOX_EXPECTED = "[[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]] in metres"
 SPAN_EXPECTED = "[t_lo, t_hi] in seconds"
+REACH_KEY = "correction_reach"
+# How a load refusal names the caller's way out (posecorr.h's PC_LOAD_ALLOW_* flags).
+ALLOW_UNBOUNDED = "load with PC_LOAD_ALLOW_UNBOUNDED, on the command line --allow-unbounded"
+ALLOW_UNSIGNED = "load with PC_LOAD_ALLOW_UNSIGNED, on the command line --allow-unsigned"
 # The contract's optional second input: float32 [N], s since the session's start.
 TIME_INPUT = "t"
 
@@ -156,25 +169,80 @@ def _read_bounds(key: str, value: str, count: int, expected: str) -> tuple[np.nd
     return lo, hi
 
 
+def _read_reach(value: str) -> tuple[np.float32, np.float32]:
+    """(reach_pos2, reach_cos2) of correction_reach "[metres, radians]" as api.c's
+    pc_read_reach keeps them: the squared distance and cos^2 of half the angle (float32)."""
+    text = value.encode("utf-8")[:255].decode("utf-8", errors="ignore")
+    try:
+        v = _numbers(json.loads(text, parse_constant=_refuse_constant))
+    except (ValueError, RecursionError):
+        v = None
+    if v is None or len(v) != 2 or not all(0.0 <= x <= FLOAT32_MAX for x in v):
+        raise PoseCorrError(f"metadata {REACH_KEY} is '{text[:60]}', expected [metres, radians]: "
+                            "two finite numbers, not negative", int(Status.MALFORMED))
+    pos, rot = np.float32(v[0]), np.float32(v[1])
+    cos2 = 0.0 if v[1] >= math.pi else math.cos(0.5 * float(rot)) * math.cos(0.5 * float(rot))
+    return pos * pos, np.float32(cos2)
+
+
+_UNBOUNDED_BOX = (np.full(3, -np.inf, np.float32), np.full(3, np.inf, np.float32))
+
+
 @dataclass(frozen=True)
 class Limits:
     """What a model's metadata asks of the poses it corrects (api.c's pc_read_checks)."""
 
-    box: tuple[np.ndarray, np.ndarray] | None = None    # float32 (3,) lo, hi: input_bounds
-    span: tuple[np.float32, np.float32] | None = None   # time_bounds, models that take time
-    unit_quaternion: bool = False                        # posecorr's models
+    box: tuple[np.ndarray, np.ndarray] = _UNBOUNDED_BOX   # float32 (3,) lo, hi: input_bounds
+    span: tuple[np.float32, np.float32] | None = None    # time_bounds, models that take time
+    reach_pos2: np.float32 = np.float32(np.inf)          # correction_reach, as run.c compares it
+    reach_cos2: np.float32 = np.float32(0.0)
 
     @classmethod
-    def from_metadata(cls, metadata: Mapping[str, str], takes_time: bool) -> "Limits":
-        """Raises PoseCorrError (status MALFORMED) for bounds that are not finite float32
-        numbers or are inverted."""
-        box = span = None
+    def from_metadata(cls, metadata: Mapping[str, str], takes_time: bool,
+                      allow_unbounded: bool = False) -> "Limits":
+        """Raises PoseCorrError: status MALFORMED for bounds that are not finite float32
+        numbers or are inverted, CONTRACT for a model without input_bounds or
+        correction_reach unless `allow_unbounded`."""
+        for key, what in (("input_bounds", "which positions it was fitted on"),
+                          (REACH_KEY, "how far its corrections reach")):
+            if key not in metadata and not allow_unbounded:
+                raise PoseCorrError(f"no metadata {key}: the model does not say {what} (to run it "
+                                    f"anyway, {ALLOW_UNBOUNDED})", int(Status.CONTRACT))
+        box, span = _UNBOUNDED_BOX, None
         if "input_bounds" in metadata:
             box = _read_bounds("input_bounds", metadata["input_bounds"], 3, BOX_EXPECTED)
         if "time_bounds" in metadata:
             lo, hi = _read_bounds("time_bounds", metadata["time_bounds"], 1, SPAN_EXPECTED)
             span = (lo[0], hi[0]) if takes_time else None  # a model without t ignores time
-        return cls(box, span, "posecorr_version" in metadata)
+        if REACH_KEY in metadata:
+            return cls(box, span, *_read_reach(metadata[REACH_KEY]))
+        return cls(box, span)
+
+
+def check_digest(data: bytes, where: str, allow_unsigned: bool = False) -> None:
+    """api.c's pc_check_digest: the file's bytes give its model_digest (docs/design.md,
+    "Integrity"); a file without one only when `allow_unsigned`."""
+    try:
+        span = digest.digest_span(data)
+    except onnx_meta._Malformed:
+        return  # not a model: read_graph says where
+    except ValueError as exc:
+        raise PoseCorrError(f"{where}: {exc}", int(Status.INTEGRITY)) from None
+    if span is None:
+        if allow_unsigned:
+            return
+        raise PoseCorrError(f"{where}: no metadata {digest.KEY}: the file carries no digest of its "
+                            f"bytes (to run it anyway, {ALLOW_UNSIGNED})", int(Status.INTEGRITY))
+    stored = data[span[0]:span[1]]
+    if not re.fullmatch(rb"crc32c:[0-9a-f]{8}", stored):
+        text = stored[:40].decode("utf-8", errors="replace")
+        raise PoseCorrError(f"{where}: metadata {digest.KEY} is '{text}', expected crc32c: and 8 "
+                            "lowercase hexadecimal digits", int(Status.INTEGRITY))
+    got = digest.file_digest(data, span)
+    if got.encode() != stored:
+        raise PoseCorrError(f"{where}: the file's bytes give {got} where its metadata {digest.KEY} says "
+                            f"{stored.decode()}: the model was changed or damaged after export",
+                            int(Status.INTEGRITY))
 
 
 @lru_cache(maxsize=1)
@@ -194,9 +262,11 @@ def _float_values(tensor: dict[str, Any]) -> np.ndarray:
     return np.frombuffer(tensor["float_data"], dtype="<f4")
 
 
-def check_model(data: bytes, where: str) -> tuple[dict[str, str], Limits]:
+def check_model(data: bytes, where: str, allow_unbounded: bool = False,
+                allow_unsigned: bool = False) -> tuple[dict[str, str], Limits]:
     """The load-time checks of libposecorr on a model's bytes: (metadata as strings, the
     run-time limits). Raises PoseCorrError naming `where` and what was expected."""
+    check_digest(data, where, allow_unsigned)
     try:
         graph = onnx_meta.read_graph(data)
     except ValueError as exc:
@@ -219,7 +289,7 @@ def check_model(data: bytes, where: str) -> tuple[dict[str, str], Limits]:
             raise PoseCorrError(f"{where}: tensor '{tensor['name']}' holds a non-finite value at "
                                 f"element {int(bad[0])} (expected finite weights)", int(Status.MALFORMED))
     try:
-        limits = Limits.from_metadata(graph["metadata"], TIME_INPUT in graph["inputs"])
+        limits = Limits.from_metadata(graph["metadata"], TIME_INPUT in graph["inputs"], allow_unbounded)
     except PoseCorrError as exc:
         raise PoseCorrError(f"{where}: {exc}", exc.status) from None
     return graph["metadata"], limits
@@ -248,47 +318,59 @@ def check_input(limits: Limits, poses: np.ndarray, t: np.ndarray | None) -> None
                                                  times[i], lo, hi, "s", "time_bounds"))
     finite = np.isfinite(poses)
     bad = ~finite.all(axis=1)
-    inside = None
-    if limits.box is not None:
-        lo3, hi3 = limits.box
-        with np.errstate(invalid="ignore"):
-            inside = (poses[:, :3] >= lo3) & (poses[:, :3] <= hi3)
-        bad |= ~inside.all(axis=1)
-    norm2 = None
-    if limits.unit_quaternion:
-        q = poses[:, 3:7].astype(np.float64)
-        with np.errstate(invalid="ignore", over="ignore"):
-            norm2 = q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3]
-            bad |= ~((norm2 >= INPUT_NORM2_RANGE[0]) & (norm2 <= INPUT_NORM2_RANGE[1]))
+    lo3, hi3 = limits.box
+    with np.errstate(invalid="ignore"):
+        inside = (poses[:, :3] >= lo3) & (poses[:, :3] <= hi3)
+    bad |= ~inside.all(axis=1)
+    q = poses[:, 3:7].astype(np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        norm2 = q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3]
+        bad |= ~((norm2 >= INPUT_NORM2_RANGE[0]) & (norm2 <= INPUT_NORM2_RANGE[1]))
     i = _first(bad)
     if i is None:
         return
     c = _first(~finite[i])
     if c is not None:
         raise failure(Status.NONFINITE, f"pose {i} has a non-finite value in column {c} (expected a finite number)")
-    if inside is not None and (c := _first(~inside[i])) is not None:
+    if (c := _first(~inside[i])) is not None:
         raise failure(Status.RANGE, _outside(f"pose {i} is outside the range the model was fitted on in column {c}",
                                              poses[i, c], limits.box[0][c], limits.box[1][c], "m", "input_bounds"))
-    assert norm2 is not None
     raise failure(Status.QUATERNION, f"pose {i} has a quaternion of norm {decimal(math.sqrt(norm2[i]), 6)} in "
                                      "columns 3-6 (expected a unit quaternion w, x, y, z: norm within 0.001 of 1)")
 
 
-def check_output(limits: Limits, out: np.ndarray) -> None:
-    """run.c's pc_check_output on the float32 result (N, 7) of a call."""
+def _sum4(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """sum of a[:, k] * b[:, k] over k in order, float32 as run.c adds them."""
+    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2] + a[:, 3] * b[:, 3]
+
+
+def check_output(limits: Limits, poses: np.ndarray, out: np.ndarray) -> None:
+    """run.c's pc_check_output on the float32 result (N, 7) of a call for `poses`: finite,
+    unit quaternion, a correction within correction_reach (compared as run.c compares it,
+    in float32 on squares)."""
     finite = np.isfinite(out)
     bad = ~finite.all(axis=1)
-    if limits.unit_quaternion:
-        q = out[:, 3:7]
-        with np.errstate(invalid="ignore", over="ignore"):
-            n2 = q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3]
-            bad |= ~(np.abs(n2 - np.float32(1.0)) <= OUTPUT_UNIT_TOLERANCE)
-    i = _first(bad)
+    with np.errstate(invalid="ignore", over="ignore"):
+        q, q_in = out[:, 3:7], poses[:, 3:7]
+        n2 = _sum4(q, q)
+        not_unit = ~(np.abs(n2 - np.float32(1.0)) <= OUTPUT_UNIT_TOLERANCE)
+        d = out[:, :3] - poses[:, :3]
+        d2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]
+        dot, n_in2 = _sum4(q, q_in), _sum4(q_in, q_in)
+        beyond = ~((d2 <= limits.reach_pos2) & (dot * dot >= limits.reach_cos2 * n_in2 * n2))
+    i = _first(bad | not_unit | beyond)
     if i is None:
         return
     c = _first(~finite[i])
     if c is not None:
         raise failure(Status.RUNTIME, f"output 'corrected' of pose {i} is not finite in column {c} "
                                       "(expected a finite number)")
-    raise failure(Status.RUNTIME, f"output 'corrected' of pose {i} has a quaternion that is not unit "
-                                  "(columns 3-6, expected |q|^2 within 0.001 of 1)")
+    if not_unit[i]:
+        raise failure(Status.RUNTIME, f"output 'corrected' of pose {i} has a quaternion that is not unit "
+                                      "(columns 3-6, expected |q|^2 within 0.001 of 1)")
+    cos = min(1.0, abs(float(dot[i])) / math.sqrt(float(n_in2[i]) * float(n2[i])))
+    raise failure(Status.RUNTIME, f"output 'corrected' of pose {i} moves the pose by "
+                                  f"{decimal(math.sqrt(float(d2[i])))} m and {decimal(2 * math.acos(cos))} rad, "
+                                  f"beyond the model's reach of {decimal(math.sqrt(float(limits.reach_pos2)))} m "
+                                  f"and {decimal(2 * math.acos(math.sqrt(float(limits.reach_cos2))))} rad "
+                                  f"(metadata {REACH_KEY})")

@@ -35,8 +35,10 @@ _MESSAGE_SIZE = 256
 # libposecorr's PC_VERSION_MAJOR, PC_VERSION_MINOR this shim is written against: the
 # library must have the same major and at least this minor (minors add functions and, at
 # 0.4, fields at the end of pc_options; 0.5 checks times and input quaternions, the
-# checks of `checks`).
-EXPECTED_VERSION = (0, 5)
+# checks of `checks`; 0.6 the digest, the reach and the PC_LOAD_ALLOW_* flags).
+EXPECTED_VERSION = (0, 6)
+# posecorr.h's pc_options.flags the shim passes (Corrector's allow_* arguments).
+_ALLOW_UNBOUNDED, _ALLOW_UNSIGNED = 1 << 4, 1 << 5
 
 
 def _call1_module() -> Any:
@@ -139,11 +141,11 @@ def version_compatible(number: int | None) -> bool:
 
 class _CBackend:
     def __init__(self, path: str | os.PathLike | bytes, library: str | os.PathLike | None,
-                 max_batch: int) -> None:
+                 max_batch: int, flags: int = 0) -> None:
         self.lib = lib = load_library(library)
         handle = ctypes.c_void_p()
         err = _Error()
-        opts = _Options(max_batch)
+        opts = _Options(max_batch, flags)
         if isinstance(path, (bytes, bytearray)):
             self._blob = bytes(path)
             st = lib.pc_load_memory(self._blob, len(self._blob), ctypes.byref(opts),
@@ -237,7 +239,8 @@ class _OrtBackend:
     """onnxruntime behind libposecorr's checks (`checks`): the model is checked at load as
     the C loader checks it, and every call's input and output as pc_run checks them."""
 
-    def __init__(self, path: str | os.PathLike | bytes) -> None:
+    def __init__(self, path: str | os.PathLike | bytes, allow_unbounded: bool = False,
+                 allow_unsigned: bool = False) -> None:
         import onnxruntime as ort  # only for this backend
 
         name = _where(path)
@@ -249,7 +252,7 @@ class _OrtBackend:
             except OSError as exc:
                 raise PoseCorrError(f"{name}: cannot read it ({exc.strerror})", int(checks.Status.IO)) from None
         # What libposecorr refuses at load is refused before onnxruntime sees the bytes.
-        self.metadata, self.limits = checks.check_model(data, name)
+        self.metadata, self.limits = checks.check_model(data, name, allow_unbounded, allow_unsigned)
         so = ort.SessionOptions()
         so.intra_op_num_threads = 1
         so.inter_op_num_threads = 1
@@ -280,7 +283,7 @@ class _OrtBackend:
         if out.shape != x.shape:
             raise PoseCorrError(f"{self.name}: output 'corrected' has shape {list(out.shape)}, "
                                 f"expected {list(x.shape)}")
-        checks.check_output(self.limits, out)
+        checks.check_output(self.limits, x, out)
         return out.astype(np.float64)
 
     def run1(self, pose: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
@@ -304,18 +307,24 @@ class Corrector:
     backend: ``"c"`` (libposecorr, default) or ``"onnxruntime"``.
     library: explicit libposecorr path for the C backend (default: see module doc).
     max_batch: poses evaluated per C call (chunking is internal; any N works).
+    allow_unbounded: load a model without metadata input_bounds or correction_reach (another
+      producer's): its poses are then not checked against them. Refused otherwise.
+    allow_unsigned: load a model without metadata model_digest. Refused otherwise; a
+      digest that is present is always verified (docs/design.md, "The ONNX contract").
     """
 
     def __init__(self, path: str | os.PathLike | bytes, backend: str = "c", *,
-                 library: str | os.PathLike | None = None, max_batch: int = 256) -> None:
+                 library: str | os.PathLike | None = None, max_batch: int = 256,
+                 allow_unbounded: bool = False, allow_unsigned: bool = False) -> None:
         if backend not in ("c", "onnxruntime"):
             raise ValueError(f"backend must be 'c' or 'onnxruntime', not {backend!r}")
         self.path = path if isinstance(path, (bytes, bytearray)) else Path(path)
         self.backend = backend
         if backend == "c":
-            self._impl: Any = _CBackend(path, library, max_batch)
+            flags = (_ALLOW_UNBOUNDED if allow_unbounded else 0) | (_ALLOW_UNSIGNED if allow_unsigned else 0)
+            self._impl: Any = _CBackend(path, library, max_batch, flags)
         else:
-            self._impl = _OrtBackend(path)
+            self._impl = _OrtBackend(path, allow_unbounded, allow_unsigned)
         self.metadata: dict[str, str] = dict(self._impl.metadata)
         self.n_inputs = POSE_WIDTH
         self.n_outputs = POSE_WIDTH

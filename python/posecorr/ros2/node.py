@@ -82,18 +82,18 @@ def _probe_poses(metadata: dict[str, str], n: int = PROBE_POSES) -> np.ndarray:
     return np.hstack([rng.uniform(lo, hi, (n, 3)), q])
 
 
-def load_checked(path: Path) -> Loaded:
+def load_checked(path: Path, allow: dict[str, bool] | None = None) -> Loaded:
     """Loads `path` with the C runtime and checks it: each probe pose alone must give the
-    batch plan's result (bit for bit), and the results must be poses. Raises
-    PoseCorrError (or OSError) with the reason."""
+    batch plan's result (bit for bit), and the results must be poses. allow: Corrector's
+    allow_unbounded / allow_unsigned. Raises PoseCorrError (or OSError) with the reason."""
     data = path.read_bytes()  # once: the bytes loaded are the bytes the id names
     try:
-        corrector = Corrector(data)
+        corrector = Corrector(data, **(allow or {}))
     except PoseCorrError as exc:
         raise PoseCorrError(f"{path}: {str(exc).split(': ', 1)[-1]}", exc.status) from None
     probe = _probe_poses(corrector.metadata)
     # times inside the span the model was fitted on (time_bounds), where it answers
-    span = Limits.from_metadata(corrector.metadata, corrector.takes_time).span or (0.0, 60.0)
+    span = Limits.from_metadata(corrector.metadata, corrector.takes_time, True).span or (0.0, 60.0)
     t = np.linspace(span[0], span[1], len(probe)) if corrector.takes_time else None
     batch = corrector.correct(probe, t)
     for i, pose in enumerate(probe):
@@ -114,9 +114,11 @@ def _file_key(path: Path) -> tuple[int, int, int] | None:
 class ModelWatcher(threading.Thread):
     """Polls the model file and the requested path; hands checked models to `deliver`."""
 
-    def __init__(self, path: Path, deliver, report_error, poll: float = POLL_SECONDS) -> None:
+    def __init__(self, path: Path, deliver, report_error, poll: float = POLL_SECONDS,
+                 allow: dict[str, bool] | None = None) -> None:
         super().__init__(name="posecorr-model-watcher", daemon=True)
         self._path = path
+        self._allow = allow
         self._deliver, self._report_error = deliver, report_error
         self._poll = poll
         self._stop = threading.Event()
@@ -150,7 +152,7 @@ class ModelWatcher(threading.Thread):
                 continue
             self._seen = key
             try:
-                loaded = load_checked(path)
+                loaded = load_checked(path, self._allow)
             except (PoseCorrError, OSError, ValueError) as exc:
                 message = str(exc).splitlines()[0]
                 self._report_error(message if str(path) in message else f"{path}: {message}")
@@ -181,12 +183,12 @@ def _percentile(values: deque, q: float) -> float:
 def make_node(model: Path, *, input_topic: str = "/tracker/pose",
               output_topic: str = "/tracker/pose_corrected", frame: str = "base_link",
               reliable: bool = False, t0: float | None = None, diag_period: float = 1.0,
-              node_name: str = "posecorr", log=print):
+              node_name: str = "posecorr", log=print, allow: dict[str, bool] | None = None):
     """The node (rclpy must be initialised). Returns (node, watcher); the caller spins it
     and stops the watcher."""
     ros = _import_ros()
     Node = ros["Node"]
-    first = load_checked(model)
+    first = load_checked(model, allow)
     first.generation = 1
 
     class CorrectorNode(Node):
@@ -304,7 +306,7 @@ def make_node(model: Path, *, input_topic: str = "/tracker/pose",
             self.diagnostics.publish(array)
 
     node = CorrectorNode()
-    watcher = ModelWatcher(model, node.deliver, node.report_error)
+    watcher = ModelWatcher(model, node.deliver, node.report_error, allow=allow)
     watcher.start()
     return node, watcher
 

@@ -23,7 +23,9 @@ DIAGNOSIS = {
          "cv_rmse_after": 2e-3, "present": False},
     ],
     "features": [{"feature": "azimuth", "r2": 0.3}, {"feature": "t", "r2": 0.01}],
-    "aliases": [["station", "mount"]],
+    "aliases": [{"effects": ["station", "mount"], "correlation": 0.995}],
+    "proposal": None,
+    "no_proposal": "no form earns its place <b>",  # must come out escaped
     "model_effects": ["station", "mount"],
     "test": "likelihood ratio <script>",  # must come out escaped
     "some_future_key": {"nested": 1},

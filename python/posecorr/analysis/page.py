@@ -244,25 +244,30 @@ def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[st
         return _section("diagnosis", "Diagnosis", body)
     candidates = ranked_candidates(diagnosis)
     if candidates:
-        header = ["rank", "effect", "present", "score", "p-value", "cv RMSE before", "cv RMSE after", "gain"]
+        header = ["rank", "candidate", "kind", "present", "score", "p-value", "cv RMSE before", "cv RMSE after", "gain"]
         rows, classes = [], []
         for c in candidates:
             gain = cv_gain(c)
-            rows.append([_e(c.get("rank", "")), _e(c.get("effect", "?")), "yes" if c.get("present") else "no",
+            rows.append([_e(c.get("rank", "")), _e(c.get("effect", "?")), _e(c.get("kind", "effect")),
+                         "yes" if c.get("present") else "no",
                          _num(c.get("score")), _e(p_value_text(c.get("p_value"))),
                          _num(c.get("cv_rmse_before"), 1e3), _num(c.get("cv_rmse_after"), 1e3),
                          f"{gain:.2f}×" if gain is not None else "–"])
             classes.append("present" if c.get("present") else "")
-        body += "<h3>Candidate effects the model lacks</h3>" + _table(header, rows, left=3, row_classes=classes)
+        body += ("<h3>Candidate effects and forms the model lacks</h3>"
+                 + _table(header, rows, left=4, row_classes=classes))
         body += ('<p class="note">Highlighted: present (the test says adding the effect helps). '
                  "cv RMSE: cross-validated, shown ×1000 (mm, or mm + mrad for full poses).")
         if diagnosis.get("test"):
             body += " Test: " + _e(diagnosis["test"]) + "."
         body += "</p>"
-    aliases = [a for a in diagnosis.get("aliases") or [] if a]
+    body += _proposal_html(diagnosis)
+    aliases = [a for a in diagnosis.get("aliases") or [] if isinstance(a, Mapping) and a.get("effects")]
     if aliases:
         body += ("<h3>Aliases</h3><p>Effects this data cannot tell apart (fitting one absorbs the other): "
-                 + "; ".join(" ≈ ".join(_e(x) for x in a) for a in aliases) + "</p>")
+                 + "; ".join(" ≈ ".join(_e(x) for x in a["effects"])
+                             + (f" (canonical correlation {a['correlation']:.4f})"
+                                if isinstance(a.get("correlation"), (int, float)) else "") for a in aliases) + "</p>")
     undetermined = [u for u in diagnosis.get("undetermined") or [] if isinstance(u, Mapping)]
     if undetermined:
         body += ("<h3>Not ranked: this data cannot determine them</h3><ul>"
@@ -279,11 +284,37 @@ def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[st
                  + _img(figures.r2_figure(feats), "cross-validated R² of the residual per feature") + "</div></div>")
         body += ('<p class="note">R² near 0: the feature explains nothing of what is left; highlighted '
                  f"(R² ≥ {STRUCTURE_R2:g}): structure that the model misses along that feature.</p>")
-    known = {"candidates", "features", "aliases", "model_effects", "test", "undetermined"}
+    known = {"candidates", "features", "aliases", "model_effects", "test", "undetermined", "proposal", "no_proposal",
+             "absorbed"}
     other = {k: v for k, v in diagnosis.items() if k not in known and isinstance(v, (str, int, float))}
     if other:
         body += '<dl class="kv">' + "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in other.items()) + "</dl>"
     return _section("diagnosis", "Diagnosis", body)
+
+
+def _proposal_html(diagnosis: Mapping[str, Any]) -> str:
+    """The diagnosis's proposal (a generic form that explains what the catalogue does not), or
+    why there is none, and the catalogue effects that take part of a proposed form's gain."""
+    proposal = diagnosis.get("proposal")
+    if isinstance(proposal, Mapping):
+        html = (f"<h3>Proposal</h3><p><b>{_e(', '.join(proposal.get('forms') or []))}</b> "
+                f"({_e(proposal.get('parameters', '?'))} parameters): the held-out whitened error falls by "
+                f"{_num(proposal.get('gain'), 100)} %.")
+        causes = proposal.get("causes") or {}
+        html += "".join(f" Causes of the {_e(form)} shape: {_e(text)}." for form, text in causes.items())
+        if proposal.get("file"):
+            html += f" Written to <code>{_e(proposal['file'])}</code>."
+        html += "</p>"
+    elif diagnosis.get("no_proposal"):
+        html = f"<h3>Proposal</h3><p>None: {_e(diagnosis['no_proposal'])}.</p>"
+    else:
+        return ""
+    absorbed = [a for a in diagnosis.get("absorbed") or [] if isinstance(a, Mapping)]
+    if absorbed:
+        html += "<ul>" + "".join(f"<li><b>{_e(a.get('effect', '?'))}</b> takes {_num(a.get('share'), 100)} % of "
+                                 f"{_e(a.get('form', '?'))}'s gain alone, but {_e(a.get('why', ''))}</li>"
+                                 for a in absorbed) + "</ul>"
+    return html
 
 
 def _segments_section(segments: Mapping[str, Any] | None) -> str:

@@ -2,10 +2,11 @@
 `ray start --address`), each node one CPU and a resource of its own: the tables equal the
 local run's, both nodes ran runs, and a worker node killed mid-sweep costs no finished run.
 
-Each node is started in a session of its own, so its raylet, agents and workers share one
-process group; stopping a node is killing that group (never `ray stop`, which ends every Ray
-process of the machine, another user's cluster included). Nothing here leaves the machine:
-usage statistics are off and the dashboard is not started.
+Each node is started in a session of its own: its raylet and agents are that session's, its
+workers the raylet's children. Stopping a node is killing those processes by id, never
+`ray stop`, which ends every Ray process of the machine, another user's cluster included.
+Nothing here leaves the machine: usage statistics are off and the dashboard's web UI is not
+started (its ports, like every other, are free ones picked here).
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ from pathlib import Path
 
 import pytest
 
+from posecorr.cli import main
 from posecorr.data import write_table
 from posecorr.train.protocol import build_grid, run_sweep
 
@@ -232,7 +234,7 @@ def test_sweep_on_two_nodes_equals_the_local_run(cluster, data, local, tmp_path)
     assert {r["node"] for r in rows} == {cluster.head.node_id(), worker.node_id()}  # both nodes ran runs
 
 
-def test_a_worker_node_killed_mid_sweep_costs_no_finished_run(cluster, data, local, tmp_path):
+def test_a_worker_node_killed_mid_sweep_costs_no_finished_run(cluster, data, local, tmp_path, capsys):
     worker = cluster.live_worker()
     store = tmp_path / "s.jsonl"
     proc = _start_sweep(data, store, cluster.address)
@@ -251,6 +253,7 @@ def test_a_worker_node_killed_mid_sweep_costs_no_finished_run(cluster, data, loc
     rows = _rows(store)
     assert len(rows) == RUNS and len({(r["key"], r["repeat"]) for r in rows}) == RUNS  # none ran twice
     # Started again, the sweep finds every run in the store and runs none.
-    again = _finish(_start_sweep(data, store, cluster.address))
-    _assert_same_tables(again, local)
+    capsys.readouterr()
+    assert main(["sweep", str(data), *GRID, "--store", str(store), "--ray", cluster.address, "--json"]) == 0
+    _assert_same_tables(json.loads(capsys.readouterr().out), local)
     assert store.read_bytes() == after

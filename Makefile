@@ -11,7 +11,7 @@ NATIVE_SOURCES := $(wildcard runtime_c/*.c runtime_c/*.h runtime_c/CMakeLists.tx
 
 $(STAMP): pyproject.toml setup.py $(NATIVE_SOURCES)
 	@test -x $(VPY) || $(PYTHON) -m venv $(VENV)
-	$(VPY) -m pip install -q --disable-pip-version-check -e '.[train,test,ros2,embedded,docs]'
+	$(VPY) -m pip install -q --disable-pip-version-check -e '.[train,test,ros2,embedded,docs,ray]'
 	@touch $(STAMP)
 
 install: $(STAMP)

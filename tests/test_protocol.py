@@ -109,14 +109,6 @@ def test_sweep_in_worker_processes_matches_in_process(tmp_path):
     assert ka == kb
 
 
-def test_sweep_over_ray_when_installed():
-    ray = pytest.importorskip("ray")
-    table = synthetic_table()
-    res = run_sweep(table, [ModelSpec("pmc", "zhou")], repeats=2, ray_address="local", progress=False)
-    assert len(res.rows) == 2
-    ray.shutdown()
-
-
 def test_cross_validation_pools_out_of_fold_predictions():
     """`fit --cv`'s cross-validation (`pipeline.cross_validate`) of a bare core."""
     from posecorr.train.pipeline import CorrectionPipeline, cross_validate

@@ -422,7 +422,8 @@ def run_sweep(table: Any, configs: Sequence[ModelSpec], repeats: int = 30, store
 
     ``store``: JSON-lines file; rows already in it (same data fingerprint and seed) are
     reused, new ones appended as they finish. ``workers``: local processes (1 = in this
-    process). ``ray_address``: run on a Ray cluster instead ("auto" or "ray://host:port").
+    process). ``ray_address``: run on a Ray cluster instead (its head's "host:port", "auto" for
+    the cluster this machine belongs to, "ray://host:port" through Ray Client, or "local").
     ``threads``: torch / BLAS threads per worker process (default ``default_threads(workers)``).
     """
     configs = list(configs)
@@ -436,7 +437,8 @@ def run_sweep(table: Any, configs: Sequence[ModelSpec], repeats: int = 30, store
         try:
             import ray  # optional dependency
         except ImportError:
-            raise ModuleNotFoundError("--ray needs the ray package (pip install ray)", name="ray") from None
+            raise ModuleNotFoundError("--ray needs the ray package (pip install 'posecorr[ray]')",
+                                      name="ray") from None
     fingerprint = table_fingerprint(table)
     store_path = Path(store) if store is not None else None
     done = _load_store(store_path, fingerprint, seed) if store_path else {}
@@ -473,14 +475,8 @@ def run_sweep(table: Any, configs: Sequence[ModelSpec], repeats: int = 30, store
 
     # longest jobs first keeps the pool busy at the end
     todo.sort(key=lambda cr: -_cost(cr[0]))
-    if ray_address is not None:
-        ray.init(address=ray_address, ignore_reinit_error=True)
-        remote = ray.remote(run_one)
-        table_ref = ray.put(table)
-        pending = [remote.remote(table_ref, c, r, seed, 1) for c, r in todo]
-        while pending:
-            ready, pending = ray.wait(pending, num_returns=1)
-            record(ray.get(ready[0]))
+    if ray_address is not None and todo:
+        _sweep_on_ray(ray, ray_address, table, todo, seed, record)
     elif workers <= 1 or len(todo) <= 1:
         for c, r in todo:
             record(run_one(table, c, r, seed))
@@ -519,6 +515,50 @@ def run_sweep(table: Any, configs: Sequence[ModelSpec], repeats: int = 30, store
     rows.sort(key=lambda r: (order.get(r["key"], 1 << 30), r["repeat"]))
     return SweepResult(configs, rows, raw, repeats, time.perf_counter() - t0,
                        str(store_path) if store_path else None)
+
+
+# A run lost with its node (the node died, its worker was killed) is retried on the nodes left;
+# a run that raises is not (its error would only repeat) and fails the sweep.
+RAY_RETRIES = 3
+
+
+def _sweep_on_ray(ray: Any, address: str, table: Any, todo: list[tuple[ModelSpec, int]], seed: int,
+                  record: Any) -> None:
+    """Run ``todo`` as Ray tasks of one CPU each and ``record`` every row as it returns.
+
+    On a failed run or an interrupt the runs already finished are recorded before the error
+    goes on; a connection opened here is closed on the way out, which ends the sweep's tasks
+    still on the cluster."""
+    opened = not ray.is_initialized()
+    ray.init(address=address, ignore_reinit_error=True)
+    try:
+        remote = ray.remote(num_cpus=1, max_retries=RAY_RETRIES)(_run_on_node)
+        table_ref = ray.put(table)
+        pending = [remote.remote(table_ref, c, r, seed) for c, r in todo]
+        try:
+            while pending:
+                ready, pending = ray.wait(pending, num_returns=1)
+                record(ray.get(ready[0]))
+        except BaseException:
+            for ref in ray.wait(pending, num_returns=len(pending), timeout=0)[0] if pending else []:
+                try:
+                    record(ray.get(ref))
+                except Exception:
+                    pass  # the error being raised already names a failed run
+            raise
+    finally:
+        if opened:
+            ray.shutdown()
+
+
+def _run_on_node(table: Any, config: ModelSpec, repeat: int, seed: int) -> dict[str, Any]:
+    """`run_one` as a Ray task: one torch thread (the task holds one CPU), and the id of the
+    node that ran it in the row."""
+    import ray
+
+    row = run_one(table, config, repeat, seed, threads=1)
+    row["node"] = ray.get_runtime_context().get_node_id()
+    return row
 
 
 def _cost(cfg: ModelSpec) -> float:

@@ -20,7 +20,7 @@ EXTRA_MODULES = {
     "ros2": ("rclpy", "geometry_msgs", "diagnostic_msgs"),
 }
 INSTALL_HINT = {**dict.fromkeys(EXTRA_MODULES["train"], "pip install 'posecorr[train]'"),
-                "ray": "pip install ray",
+                "ray": "pip install 'posecorr[ray]'",
                 **dict.fromkeys((*EXTRA_MODULES["ros2"], "rcl_interfaces"), "pip install 'posecorr[ros2]'")}
 
 

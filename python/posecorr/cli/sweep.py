@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from pathlib import Path
 
@@ -32,7 +33,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--store", type=Path, help="results store (JSON lines); an interrupted sweep resumes from it")
     p.add_argument("--workers", type=options.integer(1, 1024), default=2)
     threads_option(p, "per worker process")
-    p.add_argument("--ray", help="address of a Ray cluster to run on")
+    p.add_argument("--ray", metavar="ADDRESS",
+                   help="run on a Ray cluster instead: its head's HOST:PORT, 'auto' (the cluster this machine "
+                        "belongs to) or ray://HOST:PORT (Ray Client)")
     p.add_argument("--comparisons", action="store_true", help="also print table A1 (pairwise comparisons)")
     p.add_argument("--all-configs", action="store_true",
                    help="also list every configuration, not only the best network per representation and activation")
@@ -75,7 +78,9 @@ def run(args: argparse.Namespace) -> None:
                          options=grid_options)
     store = args.store or default_store
     _check_store(store)
-    with exclusive(store):
+    # stdout carries the verb's result alone: what a Ray cluster prints while it works (a node
+    # lost, a run retried) goes to stderr with the progress bar.
+    with exclusive(store), contextlib.redirect_stdout(sys.stderr):
         result = run_sweep(table, configs, repeats=args.repeats, store=store,
                            workers=args.workers, ray_address=args.ray, seed=args.seed, progress=not args.json,
                            threads=threads)

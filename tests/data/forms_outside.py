@@ -2,7 +2,7 @@
 posecorr's catalogue does not hold. Written in plain numpy from their formulas alone (not from
 posecorr.forms), to simulate sessions the diagnosis must see through.
 
-c is the workspace centre (ctx.c), d = p - c.
+c is the workspace centre (the context's c), d = p - c.
 """
 import numpy as np
 from scipy.spatial.transform import Rotation

@@ -137,6 +137,7 @@ def summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
                         "recovery_min": min(recoveries) if recoveries else None,
                         "recovery_median": float(np.median(recoveries)) if recoveries else None,
                         "catalogue_marked_present": sorted({e for r in mine for e in r["present_effects"]}),
+                        "sessions_naming_catalogue": sum(bool(r["present_effects"]) for r in mine),
                         "loo_base_mm_or_mrad": float(np.median([r["loo_base"] for r in mine])) * 1e3,
                         "loo_true": float(np.median([r["loo_true"] for r in mine])) * 1e3,
                         "loo_proposal": float(np.median([r["loo_proposal"] for r in mine

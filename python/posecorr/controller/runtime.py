@@ -36,7 +36,7 @@ _MESSAGE_SIZE = 256
 # library must have the same major and at least this minor (minors add functions and, at
 # 0.4, fields at the end of pc_options; 0.5 checks times and input quaternions, the
 # checks of `checks`).
-EXPECTED_VERSION = (0, 5)
+EXPECTED_VERSION = (0, 6)
 
 
 def _call1_module() -> Any:
@@ -109,6 +109,10 @@ def load_library(path: str | os.PathLike | None = None) -> ctypes.CDLL:
     for fn in (lib.pc_max_batch, lib.pc_arena_bytes, lib.pc_step_count, lib.pc_node_count):
         fn.argtypes = [vp]
         fn.restype = sz
+    lib.pc_model_step_path.argtypes = [vp, sz, ctypes.POINTER(ctypes.c_int), cp, sz]
+    lib.pc_model_step_path.restype = ctypes.c_int
+    lib.pc_path_name.argtypes = [ctypes.c_int]
+    lib.pc_path_name.restype = cp
     _LIBS[p] = lib
     return lib
 
@@ -174,6 +178,18 @@ class _CBackend:
         self.n_steps = int(lib.pc_step_count(self.handle))
         self.n_nodes = int(lib.pc_node_count(self.handle))
         self.takes_time = bool(lib.pc_model_takes_time(self.handle))
+
+    def step_paths(self) -> list[tuple[str, str]]:
+        """(path, why) of each step of the one-pose plan: "specialised", "general" or
+        "interpreted", and what the step is and why it runs that path."""
+        out = []
+        path, why = ctypes.c_int(), ctypes.create_string_buffer(256)
+        for i in range(self.n_steps):
+            st = self.lib.pc_model_step_path(self.handle, i, ctypes.byref(path), why, len(why))
+            if st:
+                raise self._fail(st)
+            out.append((self.lib.pc_path_name(path.value).decode(), why.value.decode(errors="replace")))
+        return out
 
     def _fail(self, st: int) -> PoseCorrError:
         msg = self.lib.pc_model_message(self.handle).decode(errors="replace")
@@ -351,6 +367,13 @@ class Corrector:
         if a.shape[0] == 0:
             return np.zeros((0, POSE_WIDTH))
         return self._impl.run(a, t)
+
+    def step_paths(self) -> list[tuple[str, str]]:
+        """What each step of a pose runs in libposecorr: [(path, why)], path "specialised"
+        (code for its shape), "general" or "interpreted" (C back end only)."""
+        if self.backend != "c":
+            raise ValueError("step paths describe libposecorr's plan: use backend='c'")
+        return self._impl.step_paths()
 
     def predict(self, measured: Any) -> np.ndarray:
         """scikit-learn style alias of `correct`."""

@@ -5,7 +5,7 @@ the project's exporter after two epochs from a simulated Experiment III: the wei
 change the work of a pose), `floor/gen_hand.py` writes a hand-written AVX2 function of the
 same network (same weights, tanh approximation and summation order, no FMA). Then:
 
-* instructions a pose (valgrind's callgrind over 1,000 poses, `floor/once.c`) of `pc_run`
+* instructions a pose (valgrind's callgrind over 1,024 poses, `floor/floor.c MODEL pc|hand`) of `pc_run`
   built from the checkout and from an earlier revision (`--rev`, default a4423e5: before
   the layers were specialised by shape class), and of the hand function. A host shared
   with other work does not change these counts;
@@ -79,14 +79,14 @@ def export_models(work: Path) -> dict[str, Path]:
 
 
 def instructions(exe: Path, model: Path, which: str) -> float:
-    """Instructions a pose of run_pc or run_hand in once.c (callgrind)."""
+    """Instructions a pose of run_pc or run_hand in floor.c (callgrind)."""
     out = exe.parent / f"callgrind.{exe.name}.{which}"
     subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}",
                     f"--toggle-collect=run_{which}", str(exe), str(model), which],
                    check=True, capture_output=True)
     for line in out.read_text().splitlines():
         if line.startswith("summary:") or line.startswith("totals:"):
-            return int(line.split()[1]) / 1000.0
+            return round(int(line.split()[1]) / 1024.0, 1)
     raise SystemExit(f"no totals in {out}")
 
 
@@ -101,8 +101,8 @@ def one_model(model: Path, libs: dict[str, Path], work: Path, runs: int) -> dict
     valgrind = shutil.which("valgrind")
     for name, lib in libs.items():
         # -mavx2, not -march=native: valgrind decodes no AVX-512
-        exe = d / f"once-{name}"
-        _run([cc, "-O2", "-mavx2", f"-I{ROOT / 'runtime_c'}", f"-I{HERE}", str(HERE / "once.c"),
+        exe = d / f"count-{name}"
+        _run([cc, "-O2", "-mavx2", f"-I{ROOT / 'runtime_c'}", f"-I{HERE}", str(HERE / "floor.c"),
               str(d / "hand_any.c"), f"-L{lib}", f"-Wl,-rpath,{lib}", "-lposecorr", "-lm", "-o", str(exe)])
         if valgrind:
             row[f"pc_run_instructions_{name}"] = instructions(exe, model, "pc")
@@ -133,7 +133,7 @@ def run(out: str | None = None, rev: str = "a4423e5", runs: int = 3) -> dict:
                 "previous": build_library(revision_tree(rev, work), work / "build-previous")}
         models = export_models(work)
         rows = {label: one_model(path, libs, work, runs) for label, path in models.items()}
-    result = {"previous_revision": rev, "unit_instructions": "per pose (callgrind, 1,000 poses)",
+    result = {"previous_revision": rev, "unit_instructions": "per pose (callgrind, 1,024 poses)",
               "unit_time": "ns per pose, median of 41 rounds (floor.c)", "networks": rows}
     if out:
         from posecorr.safeio import atomic_output

@@ -74,7 +74,10 @@ def export_models(work: Path) -> dict[str, Path]:
             continue
         est = MLP(representation="zhou", hidden=hidden, trainer="lm", epochs=2, random_state=1).fit(m, r)
         models[label] = work / f"zhou-{label}.onnx"
-        to_onnx(est, models[label], measured=m, reference=r)
+        # two epochs leave a near-random network whose float32 graph may miss the float64
+        # estimator by more than the parity tolerance: recorded, not refused (the weights do
+        # not change the work of a pose)
+        to_onnx(est, models[label], measured=m, reference=r, parity="warn")
     return models
 
 

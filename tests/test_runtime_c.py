@@ -568,7 +568,9 @@ def test_unshipped_table1_mlp_runs_specialised_and_matches_portable(lib, testing
     m, r = table.measured[idx], table.reference[idx]
     est = MLP(representation=rep, hidden=hidden, trainer="lm", epochs=2, random_state=1).fit(m, r)
     path = tmp_path / "unshipped.onnx"
-    to_onnx(est, path, measured=m, reference=r)
+    # a near-random network may miss the float64 estimator by more than the exporter's parity
+    # tolerance; the truth here is the portable build's bits
+    to_onnx(est, path, measured=m, reference=r, parity="warn")
 
     c = Corrector(path, library=lib)
     layers = [int(k) for k in c.metadata["layers"].split("-")]

@@ -5,10 +5,10 @@ the project's exporter after two epochs from a simulated Experiment III: the wei
 change the work of a pose), `floor/gen_hand.py` writes a hand-written AVX2 function of the
 same network (same weights, tanh approximation and summation order, no FMA). Then:
 
-* instructions a pose (valgrind's callgrind over 1,024 poses, `floor/floor.c MODEL pc|hand`) of `pc_run`
-  built from the checkout and from an earlier revision (`--rev`, default a4423e5: before
-  the layers were specialised by shape class), and of the hand function. A host shared
-  with other work does not change these counts;
+* instructions a pose (valgrind's callgrind over 1,024 poses, `floor/floor.c MODEL pc|hand`)
+  of `pc_run` built from the checkout and from an earlier revision (`--rev`, default
+  a4423e5: before the layers were specialised by shape class), and of the hand function.
+  A host shared with other work does not change these counts;
 * time a pose, `pc_run` against the hand function in alternating rounds in one process
   (`floor/floor.c`, median of 41 rounds), `--runs` times, with the load average: the ratio
   is what the issue's figure quotes; on a busy host it is noise-bound;
@@ -113,7 +113,8 @@ def one_model(model: Path, libs: dict[str, Path], work: Path, runs: int) -> dict
                 row["hand_instructions"] = instructions(exe, model, "hand")
     if valgrind:
         for name in libs:
-            row[f"instruction_ratio_{name}"] = round(row[f"pc_run_instructions_{name}"] / row["hand_instructions"], 3)
+            ratio = row[f"pc_run_instructions_{name}"] / row["hand_instructions"]
+            row[f"instruction_ratio_{name}"] = round(ratio, 3)
     exe = d / "floor"
     lib = libs["current"]
     _run([cc, "-O2", "-march=native", f"-I{ROOT / 'runtime_c'}", f"-I{HERE}", str(HERE / "floor.c"),
@@ -125,7 +126,8 @@ def one_model(model: Path, libs: dict[str, Path], work: Path, runs: int) -> dict
         # "pc_run X ns, hand Y ns, max|diff| D, ratio R"
         row["time_runs"].append({"pc_run_ns": float(text[1]), "hand_ns": float(text[4]),
                                  "ratio": float(text[-1]), "load_average": round(load, 2)})
-    row["step_paths"] = [f"{p}: {why}" for p, why in Corrector(model, library=str(lib / "libposecorr.so")).step_paths()]
+    paths = Corrector(model, library=str(lib / "libposecorr.so")).step_paths()
+    row["step_paths"] = [f"{p}: {why}" for p, why in paths]
     return row
 
 

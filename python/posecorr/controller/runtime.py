@@ -188,7 +188,8 @@ class _CBackend:
             st = self.lib.pc_model_step_path(self.handle, i, ctypes.byref(path), why, len(why))
             if st:
                 raise self._fail(st)
-            out.append((self.lib.pc_path_name(path.value).decode(), why.value.decode(errors="replace")))
+            name = self.lib.pc_path_name(path.value).decode()
+            out.append((name, why.value.decode(errors="replace")))
         return out
 
     def _fail(self, st: int) -> PoseCorrError:

@@ -16,6 +16,10 @@ Run from the repository root: `python -m bench [--only NAME]`.
 * `previous.json`: `pc_run` on one pose against an earlier revision's (c654a8e, before the
   host-floor work), both linked into one process, alternating rounds, quiet and with a
   memcpy on the other core (`bench/previous.py`).
+* `floor_all.json`: every table-1 zhou tansig MLP (16 architectures) against a hand-written
+  AVX2 function of the same network: instructions a pose of `pc_run` (this checkout and an
+  earlier revision) and of the hand function under callgrind, time ratios with the load
+  average, and what each step of a pose runs (`bench/floor_all.py`).
 * `apply.json`: `posecorr apply` on 10^6 rows (wall and CPU time, peak memory) against
   the csv module's read-and-write-back floor on the same file (`bench/apply.py`).
 * `forms.json`: the loop when the missing effect is outside the catalogue: on simulated
@@ -71,6 +75,12 @@ def _previous() -> dict:
     return previous.both(str(RESULTS / "previous.json"))
 
 
+def _floor_all() -> dict:
+    from . import floor_all
+
+    return floor_all.run(str(RESULTS / "floor_all.json"))
+
+
 def _forms() -> dict:
     from . import forms
 
@@ -84,7 +94,8 @@ def _ingest() -> dict:
 
 
 # name -> runner writing bench/results/NAME.json; `make bench` runs them in this order.
-BENCHMARKS = {"latency": _latency, "targets": _targets, "previous": _previous, "fit": _fit,
+BENCHMARKS = {"latency": _latency, "targets": _targets, "previous": _previous,
+              "floor_all": _floor_all, "fit": _fit,
               "apply": _apply, "ingest": _ingest, "train": _train, "forms": _forms}
 
 

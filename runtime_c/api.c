@@ -457,3 +457,90 @@ size_t pc_node_count(const pc_model *model) { return model ? model->n_nodes : 0;
 const char *pc_model_message(const pc_model *model) { return model ? model->message : ""; }
 
 int pc_model_takes_time(const pc_model *model) { return model ? model->takes_time : 0; }
+
+/* ---- the path each step of the one-pose plan runs ---------------------------------------- */
+
+static const char *const pc_path_names[PC_PATH_COUNT] = {"specialised", "general", "interpreted"};
+
+const char *pc_path_name(pc_path path)
+{
+    return (unsigned)path < PC_PATH_COUNT ? pc_path_names[path] : "unknown";
+}
+
+/* A chain is specialised when every layer runs the kernel of its K and N. */
+static pc_path pc_chain_path(const pc_gemm_chain *q, char *why, size_t size)
+{
+    char sizes[96];
+    const char *first = "";
+    size_t i, at = 0, len;
+    pc_format(sizes, sizeof sizes, "%zu", q->layer[0].g.K);
+    for (i = 0; i < q->n_layers; i++) {
+        const char *w = pc_chain_layer_why(&q->layer[i]);
+        len = strlen(sizes);
+        pc_format(sizes + len, sizeof sizes - len, "-%zu", q->layer[i].g.N);
+        if (*w && !*first) {
+            first = w;
+            at = i;
+        }
+    }
+    if (!*first) {
+        pc_format(why, size, "dense chain %s: every layer runs the kernel of its K and N", sizes);
+        return PC_PATH_SPECIALISED;
+    }
+    pc_format(why, size, "dense chain %s: layer %zu (%zu -> %zu) runs the general layer: %s",
+              sizes, at, q->layer[at].g.K, q->layer[at].g.N, first);
+    return PC_PATH_GENERAL;
+}
+
+static pc_path pc_program_path(const pc_step *s, char *why, size_t size)
+{
+#ifdef PC_NO_COMPILED_PROGRAMS
+    const size_t n_compiled = 0;
+#else
+    const size_t n_compiled = pc_n_compiled_programs;
+    size_t k;
+#endif
+    if (s->fn == k_scalar_program) {
+        pc_format(why, size, "one-pose program of %zu operations with offsets wider than 16 bits",
+                  ((const pc_scalar_program *)s->prm)->n_ops);
+        return PC_PATH_INTERPRETED;
+    }
+    if (s->fn == k_scalar_program16) {
+        pc_format(why, size, "one-pose program of %zu operations: %s",
+                  ((const pc_scalar_program16 *)s->prm)->n_ops,
+                  n_compiled ? "no compiled program has its shape, or PC_LOAD_INTERPRET"
+                                         : "the library is built without compiled programs");
+        return PC_PATH_INTERPRETED;
+    }
+#ifndef PC_NO_COMPILED_PROGRAMS
+    for (k = 0; k < n_compiled; k++)
+        if (s->fn == pc_compiled_programs[k].fn) {
+            pc_format(why, size, "one-pose program compiled ahead of time (entry %zu of %zu)", k,
+                      n_compiled);
+            return PC_PATH_SPECIALISED;
+        }
+#endif
+    if (s->fn == k_gemm || s->fn == k_matmul)
+        pc_format(why, size, "Gemm or MatMul outside a chain (a chain takes a bias row, no "
+                             "transposes, and tanh or no activation)");
+    else
+        pc_format(why, size, "a node's own kernel (no one-pose program or chain form)");
+    return PC_PATH_GENERAL;
+}
+
+pc_status pc_model_step_path(const pc_model *model, size_t step, pc_path *path, char *why,
+                             size_t why_size)
+{
+    char none[1];
+    const pc_step *s;
+    if (!model || !path || (!why && why_size) || step >= pc_step_count(model))
+        return PC_ERR_ARGUMENT;
+    if (!why_size) {
+        why = none;
+        why_size = sizeof none;
+    }
+    s = &model->plans[0].steps[step];
+    *path = s->fn == k_gemm_chain ? pc_chain_path((const pc_gemm_chain *)s->prm, why, why_size)
+                                  : pc_program_path(s, why, why_size);
+    return PC_OK;
+}

@@ -289,19 +289,15 @@ static pc_status k_gemm_rows(const pc_step *s)
     return PC_OK;
 }
 
-/* The layers of a chain in turn, each run by `layer` on its four operands. */
-PC_INLINE void pc_run_chain(const pc_step *s, void (*layer)(const pc_gemm *, void *const *))
+/* The layers of a chain in turn, each by the function the planner picked for its shape
+ * (pc_chain_layer_fn). */
+PC_HOT pc_status k_gemm_chain(const pc_step *s)
 {
     const pc_gemm_chain *q = (const pc_gemm_chain *)s->prm;
-    const pc_gemm *l = q->layer, *const end = l + q->n_layers;
+    const pc_chain_layer *l = q->layer, *const end = l + q->n_layers;
     void *const *io = s->io;
     for (; l < end; l++, io += 4)
-        layer(l, io);
-}
-
-PC_HOT static pc_status k_gemm_chain(const pc_step *s)
-{
-    pc_run_chain(s, pc_layer_rows);
+        l->fn(&l->g, io);
     return PC_OK;
 }
 
@@ -431,12 +427,10 @@ __attribute__((target("avx2"))) static pc_status k_gemm_rows_avx2(const pc_step 
 }
 
 /* A one-pose layer with a bias row and tanh or no activation, up to 32 outputs, runs in
- * registers; anything else is the general layer (a call: inlined, its loops would take
- * the registers the block accumulators need, and spilled accumulators make a chain of
- * additions through the stack). Every case is inlined into the chain kernel, which then
- * runs a pose's layers without a call per layer. */
-__attribute__((target("avx2"), always_inline)) static inline void pc_chain_layer_avx2(
-    const pc_gemm *l, void *const *io)
+ * registers with K and N read at run time; anything else is the rows kernel (a call:
+ * inlined, its loops would take the registers the block accumulators need). */
+__attribute__((target("avx2"), noinline)) static void pc_chain_layer_avx2(const pc_gemm *l,
+                                                                          void *const *io)
 {
     const float *a = (const float *)io[0], *B = (const float *)io[1], *C = (const float *)io[2];
     float *O = (float *)io[3];
@@ -453,41 +447,22 @@ __attribute__((target("avx2"), always_inline)) static inline void pc_chain_layer
         pc_layer1_blocks(a, B, l->K, l->N, C, tanh_act, O, 1);
 }
 
-__attribute__((target("avx2"), hot)) static pc_status k_gemm_chain_avx2(const pc_step *s)
-{
-    pc_run_chain(s, pc_chain_layer_avx2);
-    return PC_OK;
-}
-
-/* The one-pose chains of the shipped tanh MLPs (models/), with every layer's K and N known
- * when compiled: the same operations as k_gemm_chain_avx2 in the same order (so the same
- * bits), with the row loops unrolled and the addresses constant offsets, which leaves a
- * pose about a third fewer instructions. A chain of any other shape runs the general one.
- * Each chain is one list of its layers, L(index, K, N, tanh after it), that makes both its
- * kernel and its row of the table pc_gemm_chain_kernel matches against. */
-#define PC_CHAIN_ZHOU_20X4(L) /* mlp-zhou-tansig-20x20x20x20-br */                          \
-    L(0, 9, 20, 1) L(1, 20, 20, 1) L(2, 20, 20, 1) L(3, 20, 20, 1) L(4, 20, 9, 0)
-#define PC_CHAIN_QUAT_20X2(L) /* mlp-quat-tansig-20x20-br */                                \
-    L(0, 7, 20, 1) L(1, 20, 20, 1) L(2, 20, 7, 0)
-#define PC_CHAIN_POS_15X4(L) /* mlp-pos-tansig-15x15x15x15-lm: its first and last layers   \
-                                are in one-pose programs */                                 \
-    L(0, 15, 15, 1) L(1, 15, 15, 1) L(2, 15, 15, 1)
-#define PC_UNROLLED_CHAINS(X) X(PC_CHAIN_ZHOU_20X4) X(PC_CHAIN_QUAT_20X2) X(PC_CHAIN_POS_15X4)
-
-#define PC_UNROLLED_LAYER(i, K, N, TANH)                                                       \
-    pc_layer1_blocks((const float *)io[4 * (i)], (const float *)io[4 * (i) + 1], K, N,         \
-                     (const float *)io[4 * (i) + 2], TANH, (float *)io[4 * (i) + 3],           \
-                     ((N) + 7) / 8);
-#define PC_UNROLLED_KERNEL(CHAIN)                                                              \
-    __attribute__((target("avx2"), hot)) static pc_status k_##CHAIN(const pc_step *s)         \
+/* Specialised one-pose layers: one function per (K, N) of the layers the project trains
+ * (PC_LAYER_SIZES: the pose vectors of the representations and table 1's hidden widths),
+ * the same code for every model with such a layer. With K and N constants the row loop
+ * unrolls and every address is a constant offset: about a third fewer instructions than
+ * pc_chain_layer_avx2, the same operations in the same order (the same bits). */
+#define PC_LAYER_SPECIALISED(K, N)                                                             \
+    __attribute__((target("avx2"), hot)) static void pc_layer_##K##_##N(const pc_gemm *l,      \
+                                                                        void *const *io)       \
     {                                                                                          \
-        void *const *io = s->io;                                                               \
-        CHAIN(PC_UNROLLED_LAYER)                                                               \
-        return PC_OK;                                                                          \
+        pc_layer1_blocks((const float *)io[0], (const float *)io[1], K, N,                     \
+                         (const float *)io[2], l->act == PC_ACT_TANH, (float *)io[3],          \
+                         ((N) + 7) / 8);                                                       \
     }
-PC_UNROLLED_CHAINS(PC_UNROLLED_KERNEL)
-#undef PC_UNROLLED_KERNEL
-#undef PC_UNROLLED_LAYER
+PC_LAYER_SHAPES(PC_LAYER_SPECIALISED)
+#undef PC_LAYER_SPECIALISED
+
 /* AVX2 needs the CPU flag and the OS saving YMM state (XCR0 bits 1 and 2). */
 int pc_cpu_avx2(void)
 {
@@ -501,7 +476,9 @@ int pc_cpu_avx2(void)
 }
 
 const pc_kernel_fn pc_gemm_rows_kernels[2] = {k_gemm_rows, k_gemm_rows_avx2};
-const pc_kernel_fn pc_gemm_chain_kernels[2] = {k_gemm_chain, k_gemm_chain_avx2};
+
+#define PC_LAYER_ROW(K, N) {K, N, pc_layer_##K##_##N},
+#define PC_LAYERS_GENERAL {pc_layer_rows, pc_chain_layer_avx2}
 #else
 int pc_cpu_avx2(void)
 {
@@ -509,54 +486,56 @@ int pc_cpu_avx2(void)
 }
 
 const pc_kernel_fn pc_gemm_rows_kernels[2] = {k_gemm_rows, k_gemm_rows};
-const pc_kernel_fn pc_gemm_chain_kernels[2] = {k_gemm_chain, k_gemm_chain};
+#define PC_LAYER_ROW(K, N)
+#define PC_LAYERS_GENERAL {pc_layer_rows, pc_layer_rows}
 #endif
 
-/* The layers of an unrolled chain: K, N and whether tanh follows (else no activation). */
-typedef struct pc_unrolled_chain {
-    size_t n_layers;
-    uint8_t kn_tanh[5][3];
-    pc_kernel_fn fn;
-} pc_unrolled_chain;
+typedef struct pc_layer_kernel {
+    uint8_t K, N;
+    pc_layer_fn fn;
+} pc_layer_kernel;
 
-/* Ends with an entry of no layers (the only one without AVX2). */
-static const pc_unrolled_chain pc_unrolled_chains[] = {
-#ifdef PC_HAVE_AVX2
-#define PC_COUNT_LAYER(i, K, N, TANH) +1
-#define PC_LAYER_SHAPE(i, K, N, TANH) {K, N, TANH},
-#define PC_UNROLLED_ROW(CHAIN) {0 CHAIN(PC_COUNT_LAYER), {CHAIN(PC_LAYER_SHAPE)}, k_##CHAIN},
-    PC_UNROLLED_CHAINS(PC_UNROLLED_ROW)
-#undef PC_UNROLLED_ROW
-#undef PC_LAYER_SHAPE
-#undef PC_COUNT_LAYER
-#endif
-    {0, {{0, 0, 0}}, NULL},
-};
+/* The specialised layers, then an entry without a function (the only one without AVX2). */
+static const pc_layer_kernel pc_layer_kernels[] = {PC_LAYER_SHAPES(PC_LAYER_ROW){0, 0, NULL}};
+#undef PC_LAYER_ROW
+/* The layer of any shape: [0] portable, [1] AVX2. */
+static const pc_layer_fn pc_layers_general[2] = PC_LAYERS_GENERAL;
+#undef PC_LAYERS_GENERAL
 
-pc_kernel_fn pc_gemm_chain_kernel(const pc_gemm_chain *q, int avx2)
+/* Whether n is one of PC_LAYER_SIZES. */
+static int pc_layer_size(size_t n)
 {
-    const pc_unrolled_chain *u;
-    size_t i;
-    for (u = pc_unrolled_chains; avx2 && u->fn; u++) {
-        for (i = 0; u->n_layers == q->n_layers && i < q->n_layers; i++) {
-            const pc_gemm *l = &q->layer[i];
-            if (l->M != 1 || l->K != u->kn_tanh[i][0] || l->N != u->kn_tanh[i][1] ||
-                l->act != (u->kn_tanh[i][2] ? PC_ACT_TANH : PC_ACT_NONE))
-                break;
-        }
-        if (u->n_layers == q->n_layers && i == q->n_layers)
-            return u->fn;
-    }
-    return pc_gemm_chain_kernels[avx2];
+#define PC_IS_SIZE(S) n == (S) ||
+    return PC_LAYER_SIZES(PC_IS_SIZE) 0;
+#undef PC_IS_SIZE
 }
 
-int pc_gemm_chain_unrolled(pc_kernel_fn fn)
+pc_layer_fn pc_chain_layer_fn(const pc_gemm *l, int avx2, const char **why)
 {
-    const pc_unrolled_chain *u;
-    for (u = pc_unrolled_chains; u->fn; u++)
-        if (fn == u->fn)
-            return 1;
-    return 0;
+    const pc_layer_kernel *k;
+    for (k = pc_layer_kernels; avx2 && l->M == 1 && k->fn; k++)
+        if (k->K == l->K && k->N == l->N) {
+            *why = "";
+            return k->fn;
+        }
+    if (!pc_layer_kernels[0].fn)
+        *why = "the library is built without AVX2 kernels";
+    else if (!avx2)
+        *why = "the CPU has no AVX2";
+    else if (l->M != 1)
+        *why = "more than one row";
+    else if (!pc_layer_size(l->K) || !pc_layer_size(l->N))
+        *why = "K or N is not a layer size the project trains (" PC_LAYER_SIZES_TEXT ")";
+    else
+        *why = "a layer from one pose vector to another (no hidden layer)";
+    return pc_layers_general[avx2 != 0];
+}
+
+const char *pc_chain_layer_why(const pc_chain_layer *l)
+{
+    const char *why;
+    pc_chain_layer_fn(&l->g, l->fn != pc_layers_general[0], &why);
+    return why;
 }
 
 PC_COLD pc_status k_matmul(const pc_step *s)

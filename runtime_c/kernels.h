@@ -314,6 +314,27 @@ typedef struct pc_compiled_program {
 extern const pc_compiled_program pc_compiled_programs[];
 extern const size_t pc_n_compiled_programs;
 
+/* The layer sizes the project trains: the pose vectors of the representations (pos 3,
+ * eaa 6, quat 7, zhou 9, R 12) and table 1's hidden widths (5, 10, 15, 20). */
+#define PC_LAYER_SIZES(X) X(3) X(5) X(6) X(7) X(9) X(10) X(12) X(15) X(20)
+#define PC_LAYER_SIZES_TEXT "3, 5, 6, 7, 9, 10, 12, 15, 20"
+/* The one-pose layers with a specialised kernel (dense.c): into a hidden width from any
+ * size, and from a hidden width out to a pose vector. */
+#define PC_LAYER_SHAPES(X) \
+    X(3, 5) X(3, 10) X(3, 15) X(3, 20) \
+    X(5, 5) X(5, 10) X(5, 15) X(5, 20) \
+    X(6, 5) X(6, 10) X(6, 15) X(6, 20) \
+    X(7, 5) X(7, 10) X(7, 15) X(7, 20) \
+    X(9, 5) X(9, 10) X(9, 15) X(9, 20) \
+    X(10, 5) X(10, 10) X(10, 15) X(10, 20) \
+    X(12, 5) X(12, 10) X(12, 15) X(12, 20) \
+    X(15, 5) X(15, 10) X(15, 15) X(15, 20) \
+    X(20, 5) X(20, 10) X(20, 15) X(20, 20) \
+    X(5, 3) X(5, 6) X(5, 7) X(5, 9) X(5, 12) \
+    X(10, 3) X(10, 6) X(10, 7) X(10, 9) X(10, 12) \
+    X(15, 3) X(15, 6) X(15, 7) X(15, 9) X(15, 12) \
+    X(20, 3) X(20, 6) X(20, 7) X(20, 9) X(20, 12)
+
 /* Gemm / MatMul parameters and kernels (dense.c). */
 typedef struct pc_gemm {
     size_t M, K, N;
@@ -329,18 +350,24 @@ pc_status k_gemm(const pc_step *s);
 /* The MLP layer act(A B + c), act tanh or none: [0] portable, [1] AVX2 (the portable one
  * again where AVX2 is not built). pc_cpu_avx2() says which this CPU runs. */
 extern const pc_kernel_fn pc_gemm_rows_kernels[2];
+/* One layer of a one-pose chain on its operands io = A, B, C, O. */
+typedef void (*pc_layer_fn)(const pc_gemm *l, void *const *io);
+typedef struct pc_chain_layer {
+    pc_gemm g;
+    pc_layer_fn fn;
+} pc_chain_layer;
 /* Consecutive MLP layers, each reading the one before's output, as one launch (one-pose
  * plans: the planner chains them): io holds A, B, C, O of each layer in turn. */
 typedef struct pc_gemm_chain {
     size_t n_layers;
-    pc_gemm layer[1]; /* n_layers entries; allocated longer */
+    pc_chain_layer layer[1]; /* n_layers entries; allocated longer */
 } pc_gemm_chain;
-extern const pc_kernel_fn pc_gemm_chain_kernels[2];
-/* The kernel of a built chain: an unrolled one where its layers have the shapes of a
- * shipped MLP's (AVX2 only, dense.c), else pc_gemm_chain_kernels[avx2]. */
-pc_kernel_fn pc_gemm_chain_kernel(const pc_gemm_chain *q, int avx2);
-/* Whether fn is one of the unrolled chain kernels (the tests count them). */
-int pc_gemm_chain_unrolled(pc_kernel_fn fn);
+pc_status k_gemm_chain(const pc_step *s);
+/* The function that runs layer l of a one-pose chain: the specialised kernel of its K and N
+ * (AVX2, PC_LAYER_SHAPES), else the general layer; *why says why not ("" when it is). */
+pc_layer_fn pc_chain_layer_fn(const pc_gemm *l, int avx2, const char **why);
+/* Why a built layer runs the general layer ("" when it runs a specialised kernel). */
+const char *pc_chain_layer_why(const pc_chain_layer *l);
 int pc_cpu_avx2(void);
 pc_status k_matmul(const pc_step *s);
 

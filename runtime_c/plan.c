@@ -50,18 +50,19 @@ static pc_status pc_resolve(pc_pass *pp, uint16_t ref, int32_t *id, int *temp)
 /* ---- steps of MLP layers ------------------------------------------------------------- */
 
 /* One-pose plans: consecutive MLP layers, each reading the one before's output, are one
- * launch (pc_gemm_chain_kernels). The chain is the last step written, so it grows in
- * place: its operands and parameters are the last entries of their regions. */
+ * launch (k_gemm_chain), each layer run by the function of its shape. The chain is the last
+ * step written, so it grows in place: its operands and parameters are the last entries of
+ * their regions. */
 static pc_status pc_emit_layer(pc_pass *pp, const pc_prep *p)
 {
     const int avx2 = p->fn == pc_gemm_rows_kernels[1];
-    const pc_kernel_fn fn = pc_gemm_chain_kernels[avx2];
     const int32_t in_block = pp->b->values[p->in_ids[0]].block;
     pc_region *io_r = &pp->region[PC_REGION_IO], *prm_r = &pp->region[PC_REGION_PARAMS];
     const int32_t ids[4] = {p->in_ids[0], p->in_ids[1], p->in_ids[2], p->out_ids[0]};
     size_t k, n;
     void **io;
     pc_gemm_chain *q;
+    const char *why;
     pc_status st;
     if (!(pp->last_layer == 1 + avx2 && in_block >= 0 && in_block == pp->last_out)) {
         pp->chain_io = io_r->used;
@@ -70,14 +71,15 @@ static pc_status pc_emit_layer(pc_pass *pp, const pc_prep *p)
         pp->last_step = pc_region_take(pp, PC_REGION_STEPS, sizeof(pc_step));
         pp->n_steps++;
         if (pp->last_step) {
-            pp->last_step->fn = fn;
+            pp->last_step->fn = k_gemm_chain;
             pp->last_step->io = (void *const *)(io_r->base + pp->chain_io);
             pp->last_step->prm = prm_r->base + pp->chain_prm;
         }
     }
     n = ++pp->chain_layers;
     io_r->used = pp->chain_io + pc_region_round(4 * n * sizeof(void *));
-    prm_r->used = pp->chain_prm + pc_region_round(sizeof(pc_gemm_chain) + (n - 1) * sizeof(pc_gemm));
+    prm_r->used = pp->chain_prm +
+                  pc_region_round(sizeof(pc_gemm_chain) + (n - 1) * sizeof(pc_chain_layer));
     if (pp->fill) {
         io = (void **)(io_r->base + pp->chain_io) + 4 * (n - 1);
         q = (pc_gemm_chain *)(prm_r->base + pp->chain_prm);
@@ -85,8 +87,8 @@ static pc_status pc_emit_layer(pc_pass *pp, const pc_prep *p)
             if ((st = pc_locate(pp, &pp->b->values[ids[k]], &io[k])) != PC_OK)
                 return st;
         q->n_layers = n;
-        memcpy(&q->layer[n - 1], p->prm, sizeof(pc_gemm));
-        pp->last_step->fn = pc_gemm_chain_kernel(q, avx2);
+        memcpy(&q->layer[n - 1].g, p->prm, sizeof(pc_gemm));
+        q->layer[n - 1].fn = pc_chain_layer_fn(&q->layer[n - 1].g, avx2, &why);
         pp->last_step->n = p->out[0]->count;
     } else {
         void *at;

@@ -215,6 +215,24 @@ PC_API size_t pc_arena_bytes(const pc_model *model);
 PC_API size_t pc_step_count(const pc_model *model);
 PC_API size_t pc_node_count(const pc_model *model);
 
+/* What a step of the one-pose plan (pc_step_count of them) runs: code written for its shape
+ * (a dense chain whose every layer has the kernel of its K and N, a program compiled ahead
+ * of time), general code, or the program interpreter. */
+typedef enum pc_path {
+    PC_PATH_SPECIALISED = 0,
+    PC_PATH_GENERAL,
+    PC_PATH_INTERPRETED,
+    PC_PATH_COUNT
+} pc_path;
+/* "specialised", "general", "interpreted" (never NULL). */
+PC_API const char *pc_path_name(pc_path path);
+/* The path of step `step` in *path and, in the caller's buffer why[why_size] (truncated to
+ * fit; why may be NULL with why_size 0), what the step is and why it runs that path, e.g.
+ * "dense chain 9-10-10-9: every layer runs the kernel of its K and N". PC_ERR_ARGUMENT for
+ * a NULL model or path, or step >= pc_step_count(model). */
+PC_API pc_status pc_model_step_path(const pc_model *model, size_t step, pc_path *path,
+                                    char *why, size_t why_size);
+
 #ifdef __cplusplus
 }
 #endif

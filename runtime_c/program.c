@@ -169,6 +169,14 @@ int pc_program_takes(const pc_pass *pp, const pc_prep *p)
         if (q->K == 0 || q->K > PC_PROGRAM_MAX_TERMS || o->count * q->K > PC_PROGRAM_MAX_MACS)
             return 0;
     }
+    /* A layer with a kernel of its K and N runs in the dense chain: 8 lanes a row there,
+     * one multiply-add an operation here. */
+    if (p->layer) {
+        const char *why;
+        pc_chain_layer_fn((const pc_gemm *)p->prm, p->fn == pc_gemm_rows_kernels[1], &why);
+        if (!*why)
+            return 0;
+    }
     /* what one node may add: operations, copies at the close, pool constants */
     return pc_expansion_ops(p) + o->count <= pp->prog->cap_ops / 2 &&
            pc_k_bound(p) <= pp->prog->cap_k;

@@ -10,6 +10,59 @@
 #define PC_STOREF(k, v) (*(float *)(base + e[k].o) = (v))
 #define PC_STOREB(k, v) (*(uint8_t *)(base + e[k].o) = (v))
 
+static const uint8_t pc_program_37e9ab999b1c3d7e_shape[18] = {
+    26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0,
+};
+PC_HOT static pc_status pc_program_37e9ab999b1c3d7e(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    float f0 = PC_XF(1, c);
+    f0 += PC_XF(1, a) * PC_XF(1, b);
+    PC_STOREF(1, f0);
+    float f1 = PC_XF(2, c);
+    f1 += PC_XF(2, a) * PC_XF(2, b);
+    PC_STOREF(2, f1);
+    float f2 = PC_XF(3, c);
+    f2 += PC_XF(3, a) * PC_XF(3, b);
+    PC_STOREF(3, f2);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_c971e2e5ff11b7ae_shape[63] = {
+    10, 0, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 26, 0, 1,
+    0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0, 23, 0, 1, 7, 0, 8, 23, 0, 1,
+    7, 0, 9, 23, 0, 1, 7, 0, 10, 23, 0, 1, 7, 0, 11,
+};
+PC_HOT static pc_status pc_program_c971e2e5ff11b7ae(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const uint8_t b0 = PC_XF(1, a) < PC_XF(1, b);
+    const float f1 = pc_sop_float(PC_SOP_NEG, PC_XF(3, a), 0.0f);
+    const float f2 = pc_sop_float(PC_SOP_NEG, PC_XF(4, a), 0.0f);
+    const float f3 = pc_sop_float(PC_SOP_NEG, PC_XF(5, a), 0.0f);
+    const float f4 = pc_sop_float(PC_SOP_NEG, PC_XF(6, a), 0.0f);
+    float f5 = PC_XF(8, c);
+    f5 += PC_XF(8, a) * PC_XF(8, b);
+    PC_STOREF(8, f5);
+    float f6 = PC_XF(9, c);
+    f6 += PC_XF(9, a) * PC_XF(9, b);
+    PC_STOREF(9, f6);
+    float f7 = PC_XF(10, c);
+    f7 += PC_XF(10, a) * PC_XF(10, b);
+    PC_STOREF(10, f7);
+    const float f8 = b0 ? f1 : PC_XF(12, b);
+    PC_STOREF(12, f8);
+    const float f9 = b0 ? f2 : PC_XF(13, b);
+    PC_STOREF(13, f9);
+    const float f10 = b0 ? f3 : PC_XF(14, b);
+    PC_STOREF(14, f10);
+    const float f11 = b0 ? f4 : PC_XF(15, b);
+    PC_STOREF(15, f11);
+    return PC_OK;
+}
+
 static const uint8_t pc_program_0bb08452fbb3a9af_shape[159] = {
     26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0, 3, 0, 0, 3, 3, 3,
     0, 0, 4, 3, 3, 0, 0, 5, 3, 3, 0, 0, 5, 5, 3, 0, 0, 6, 5, 3, 0, 0, 6, 6,
@@ -81,92 +134,6 @@ PC_HOT static pc_status pc_program_0bb08452fbb3a9af(const pc_step *s)
     PC_STOREF(49, f19);
     const float f20 = b9 ? f13 : PC_XF(50, b);
     PC_STOREF(50, f20);
-    return PC_OK;
-}
-
-static const uint8_t pc_program_bac44ddbdd61a1df_shape[165] = {
-    26, 14, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0,
-    0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 26, 14, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0,
-    0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 26, 14, 0, 0,
-    0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0,
-    0, 0, 0, 0, 0, 0, 26, 0, 1, 3, 0, 0, 26, 0, 1, 3, 0, 0, 26, 0, 1, 3, 0, 0,
-    10, 0, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 23, 0, 1,
-    4, 0, 5, 23, 0, 1, 4, 0, 6, 23, 0, 1, 4, 0, 7, 23, 0, 1, 4, 0, 8,
-};
-PC_HOT static pc_status pc_program_bac44ddbdd61a1df(const pc_step *s)
-{
-    char *const base = (char *)s->io[0];
-    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
-    f0 += PC_XF(1, a) * PC_XF(1, b);
-    f0 += PC_XF(2, a) * PC_XF(2, b);
-    f0 += PC_XF(3, a) * PC_XF(3, b);
-    f0 += PC_XF(4, a) * PC_XF(4, b);
-    f0 += PC_XF(5, a) * PC_XF(5, b);
-    f0 += PC_XF(6, a) * PC_XF(6, b);
-    f0 += PC_XF(7, a) * PC_XF(7, b);
-    f0 += PC_XF(8, a) * PC_XF(8, b);
-    f0 += PC_XF(9, a) * PC_XF(9, b);
-    f0 += PC_XF(10, a) * PC_XF(10, b);
-    f0 += PC_XF(11, a) * PC_XF(11, b);
-    f0 += PC_XF(12, a) * PC_XF(12, b);
-    f0 += PC_XF(13, a) * PC_XF(13, b);
-    f0 += PC_XF(14, a) * PC_XF(14, b);
-    f0 += PC_XF(15, a) * PC_XF(15, b);
-    float f1 = PC_XF(16, c);
-    f1 += PC_XF(16, a) * PC_XF(16, b);
-    f1 += PC_XF(17, a) * PC_XF(17, b);
-    f1 += PC_XF(18, a) * PC_XF(18, b);
-    f1 += PC_XF(19, a) * PC_XF(19, b);
-    f1 += PC_XF(20, a) * PC_XF(20, b);
-    f1 += PC_XF(21, a) * PC_XF(21, b);
-    f1 += PC_XF(22, a) * PC_XF(22, b);
-    f1 += PC_XF(23, a) * PC_XF(23, b);
-    f1 += PC_XF(24, a) * PC_XF(24, b);
-    f1 += PC_XF(25, a) * PC_XF(25, b);
-    f1 += PC_XF(26, a) * PC_XF(26, b);
-    f1 += PC_XF(27, a) * PC_XF(27, b);
-    f1 += PC_XF(28, a) * PC_XF(28, b);
-    f1 += PC_XF(29, a) * PC_XF(29, b);
-    f1 += PC_XF(30, a) * PC_XF(30, b);
-    float f2 = PC_XF(31, c);
-    f2 += PC_XF(31, a) * PC_XF(31, b);
-    f2 += PC_XF(32, a) * PC_XF(32, b);
-    f2 += PC_XF(33, a) * PC_XF(33, b);
-    f2 += PC_XF(34, a) * PC_XF(34, b);
-    f2 += PC_XF(35, a) * PC_XF(35, b);
-    f2 += PC_XF(36, a) * PC_XF(36, b);
-    f2 += PC_XF(37, a) * PC_XF(37, b);
-    f2 += PC_XF(38, a) * PC_XF(38, b);
-    f2 += PC_XF(39, a) * PC_XF(39, b);
-    f2 += PC_XF(40, a) * PC_XF(40, b);
-    f2 += PC_XF(41, a) * PC_XF(41, b);
-    f2 += PC_XF(42, a) * PC_XF(42, b);
-    f2 += PC_XF(43, a) * PC_XF(43, b);
-    f2 += PC_XF(44, a) * PC_XF(44, b);
-    f2 += PC_XF(45, a) * PC_XF(45, b);
-    float f3 = PC_XF(46, c);
-    f3 += f0 * PC_XF(46, b);
-    PC_STOREF(46, f3);
-    float f4 = PC_XF(47, c);
-    f4 += f1 * PC_XF(47, b);
-    PC_STOREF(47, f4);
-    float f5 = PC_XF(48, c);
-    f5 += f2 * PC_XF(48, b);
-    PC_STOREF(48, f5);
-    const uint8_t b6 = PC_XF(50, a) < PC_XF(50, b);
-    const float f7 = pc_sop_float(PC_SOP_NEG, PC_XF(52, a), 0.0f);
-    const float f8 = pc_sop_float(PC_SOP_NEG, PC_XF(53, a), 0.0f);
-    const float f9 = pc_sop_float(PC_SOP_NEG, PC_XF(54, a), 0.0f);
-    const float f10 = pc_sop_float(PC_SOP_NEG, PC_XF(55, a), 0.0f);
-    const float f11 = b6 ? f7 : PC_XF(57, b);
-    PC_STOREF(57, f11);
-    const float f12 = b6 ? f8 : PC_XF(58, b);
-    PC_STOREF(58, f12);
-    const float f13 = b6 ? f9 : PC_XF(59, b);
-    PC_STOREF(59, f13);
-    const float f14 = b6 ? f10 : PC_XF(60, b);
-    PC_STOREF(60, f14);
     return PC_OK;
 }
 
@@ -248,121 +215,6 @@ PC_HOT static pc_status pc_program_ca406bcfedbc5acd(const pc_step *s)
     float f36 = PC_XF(49, c);
     f36 += f24 * PC_XF(49, b);
     PC_STOREF(49, f36);
-    return PC_OK;
-}
-
-static const uint8_t pc_program_834316b1c6c869bc_shape[228] = {
-    26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0, 26, 2, 0, 3, 0, 0,
-    2, 0, 1, 0, 26, 2, 0, 4, 0, 0, 3, 0, 2, 0, 26, 2, 0, 5, 0, 0, 4, 0, 3, 0,
-    26, 2, 0, 6, 0, 0, 5, 0, 4, 0, 26, 2, 0, 7, 0, 0, 6, 0, 5, 0, 26, 2, 0, 8,
-    0, 0, 7, 0, 6, 0, 26, 2, 0, 9, 0, 0, 8, 0, 7, 0, 26, 2, 0, 10, 0, 0, 9, 0,
-    8, 0, 26, 2, 0, 11, 0, 0, 10, 0, 9, 0, 26, 2, 0, 12, 0, 0, 11, 0, 10, 0, 26, 2,
-    0, 13, 0, 0, 12, 0, 11, 0, 26, 2, 0, 14, 0, 0, 13, 0, 12, 0, 26, 2, 0, 15, 0, 0,
-    14, 0, 13, 0, 26, 2, 0, 16, 0, 0, 15, 0, 14, 0, 26, 2, 0, 17, 0, 0, 16, 0, 15, 0,
-    20, 0, 1, 15, 20, 0, 1, 15, 20, 0, 1, 15, 20, 0, 1, 15, 20, 0, 1, 15, 20, 0, 1, 15,
-    20, 0, 1, 15, 20, 0, 1, 15, 20, 0, 1, 15, 20, 0, 1, 15, 20, 0, 1, 15, 20, 0, 1, 15,
-    20, 0, 1, 15, 20, 0, 1, 15, 20, 0, 1, 15,
-};
-PC_HOT static pc_status pc_program_834316b1c6c869bc(const pc_step *s)
-{
-    char *const base = (char *)s->io[0];
-    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
-    f0 += PC_XF(1, a) * PC_XF(1, b);
-    float f1 = PC_XF(2, c);
-    f1 += PC_XF(2, a) * PC_XF(2, b);
-    float f2 = PC_XF(3, c);
-    f2 += PC_XF(3, a) * PC_XF(3, b);
-    float f3 = PC_XF(4, c);
-    f3 += f0 * PC_XF(4, b);
-    f3 += f1 * PC_XF(5, b);
-    f3 += f2 * PC_XF(6, b);
-    float f4 = PC_XF(7, c);
-    f4 += f0 * PC_XF(7, b);
-    f4 += f1 * PC_XF(8, b);
-    f4 += f2 * PC_XF(9, b);
-    float f5 = PC_XF(10, c);
-    f5 += f0 * PC_XF(10, b);
-    f5 += f1 * PC_XF(11, b);
-    f5 += f2 * PC_XF(12, b);
-    float f6 = PC_XF(13, c);
-    f6 += f0 * PC_XF(13, b);
-    f6 += f1 * PC_XF(14, b);
-    f6 += f2 * PC_XF(15, b);
-    float f7 = PC_XF(16, c);
-    f7 += f0 * PC_XF(16, b);
-    f7 += f1 * PC_XF(17, b);
-    f7 += f2 * PC_XF(18, b);
-    float f8 = PC_XF(19, c);
-    f8 += f0 * PC_XF(19, b);
-    f8 += f1 * PC_XF(20, b);
-    f8 += f2 * PC_XF(21, b);
-    float f9 = PC_XF(22, c);
-    f9 += f0 * PC_XF(22, b);
-    f9 += f1 * PC_XF(23, b);
-    f9 += f2 * PC_XF(24, b);
-    float f10 = PC_XF(25, c);
-    f10 += f0 * PC_XF(25, b);
-    f10 += f1 * PC_XF(26, b);
-    f10 += f2 * PC_XF(27, b);
-    float f11 = PC_XF(28, c);
-    f11 += f0 * PC_XF(28, b);
-    f11 += f1 * PC_XF(29, b);
-    f11 += f2 * PC_XF(30, b);
-    float f12 = PC_XF(31, c);
-    f12 += f0 * PC_XF(31, b);
-    f12 += f1 * PC_XF(32, b);
-    f12 += f2 * PC_XF(33, b);
-    float f13 = PC_XF(34, c);
-    f13 += f0 * PC_XF(34, b);
-    f13 += f1 * PC_XF(35, b);
-    f13 += f2 * PC_XF(36, b);
-    float f14 = PC_XF(37, c);
-    f14 += f0 * PC_XF(37, b);
-    f14 += f1 * PC_XF(38, b);
-    f14 += f2 * PC_XF(39, b);
-    float f15 = PC_XF(40, c);
-    f15 += f0 * PC_XF(40, b);
-    f15 += f1 * PC_XF(41, b);
-    f15 += f2 * PC_XF(42, b);
-    float f16 = PC_XF(43, c);
-    f16 += f0 * PC_XF(43, b);
-    f16 += f1 * PC_XF(44, b);
-    f16 += f2 * PC_XF(45, b);
-    float f17 = PC_XF(46, c);
-    f17 += f0 * PC_XF(46, b);
-    f17 += f1 * PC_XF(47, b);
-    f17 += f2 * PC_XF(48, b);
-    const float f18 = pc_sop_float(PC_SOP_TANH, f3, 0.0f);
-    PC_STOREF(50, f18);
-    const float f19 = pc_sop_float(PC_SOP_TANH, f4, 0.0f);
-    PC_STOREF(51, f19);
-    const float f20 = pc_sop_float(PC_SOP_TANH, f5, 0.0f);
-    PC_STOREF(52, f20);
-    const float f21 = pc_sop_float(PC_SOP_TANH, f6, 0.0f);
-    PC_STOREF(53, f21);
-    const float f22 = pc_sop_float(PC_SOP_TANH, f7, 0.0f);
-    PC_STOREF(54, f22);
-    const float f23 = pc_sop_float(PC_SOP_TANH, f8, 0.0f);
-    PC_STOREF(55, f23);
-    const float f24 = pc_sop_float(PC_SOP_TANH, f9, 0.0f);
-    PC_STOREF(56, f24);
-    const float f25 = pc_sop_float(PC_SOP_TANH, f10, 0.0f);
-    PC_STOREF(57, f25);
-    const float f26 = pc_sop_float(PC_SOP_TANH, f11, 0.0f);
-    PC_STOREF(58, f26);
-    const float f27 = pc_sop_float(PC_SOP_TANH, f12, 0.0f);
-    PC_STOREF(59, f27);
-    const float f28 = pc_sop_float(PC_SOP_TANH, f13, 0.0f);
-    PC_STOREF(60, f28);
-    const float f29 = pc_sop_float(PC_SOP_TANH, f14, 0.0f);
-    PC_STOREF(61, f29);
-    const float f30 = pc_sop_float(PC_SOP_TANH, f15, 0.0f);
-    PC_STOREF(62, f30);
-    const float f31 = pc_sop_float(PC_SOP_TANH, f16, 0.0f);
-    PC_STOREF(63, f31);
-    const float f32 = pc_sop_float(PC_SOP_TANH, f17, 0.0f);
-    PC_STOREF(64, f32);
     return PC_OK;
 }
 
@@ -1850,6 +1702,205 @@ PC_HOT static pc_status pc_program_bc73bc9880d69e6e(const pc_step *s)
     return PC_OK;
 }
 
+static const uint8_t pc_program_0e4e088d61b779b3_shape[685] = {
+    26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 0, 0, 0, 0,
+    26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0, 26, 2, 0, 3, 3, 0, 2, 2, 1, 1, 10, 0,
+    0, 1, 0, 23, 0, 0, 0, 2, 1, 13, 0, 0, 1, 3, 0, 0, 1, 0, 3, 0, 0, 7, 7, 3,
+    0, 0, 9, 9, 16, 0, 0, 4, 16, 0, 0, 4, 4, 0, 0, 9, 0, 4, 0, 0, 3, 7, 4, 0,
+    0, 3, 7, 4, 0, 0, 12, 0, 3, 0, 0, 2, 0, 3, 0, 0, 1, 3, 2, 0, 0, 0, 6, 2,
+    0, 0, 0, 4, 23, 0, 0, 2, 7, 16, 23, 0, 0, 2, 4, 17, 26, 0, 0, 20, 20, 14, 26, 0,
+    0, 21, 21, 14, 26, 0, 0, 23, 23, 15, 3, 0, 0, 4, 3, 3, 0, 0, 5, 26, 3, 0, 0, 1,
+    26, 3, 0, 0, 8, 26, 3, 0, 0, 3, 27, 3, 0, 0, 10, 29, 3, 0, 0, 10, 8, 3, 0, 0,
+    11, 31, 3, 0, 0, 1, 31, 3, 0, 0, 14, 34, 3, 0, 0, 14, 11, 2, 0, 0, 0, 11, 2, 0,
+    0, 10, 9, 2, 0, 0, 0, 7, 2, 0, 0, 6, 5, 2, 0, 0, 11, 10, 2, 0, 0, 0, 6, 2,
+    0, 0, 0, 6, 2, 0, 0, 1, 5, 1, 0, 0, 8, 0, 1, 0, 0, 1, 7, 1, 0, 0, 1, 5,
+    1, 0, 0, 5, 9, 1, 0, 0, 5, 7, 2, 0, 0, 5, 11, 2, 0, 0, 1, 9, 2, 0, 0, 4,
+    10, 5, 0, 0, 6, 0, 5, 0, 0, 3, 0, 5, 0, 0, 3, 0, 5, 0, 0, 7, 0, 5, 0, 0,
+    10, 6, 5, 0, 0, 6, 9, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 26,
+    0, 0, 42, 61, 33, 26, 0, 0, 43, 61, 36, 26, 0, 0, 44, 64, 31, 26, 1, 0, 45, 63, 38, 28,
+    0, 26, 1, 0, 46, 65, 37, 26, 0, 26, 1, 0, 47, 67, 34, 28, 0, 3, 0, 0, 10, 0, 3, 0,
+    0, 10, 0, 3, 0, 0, 10, 0, 3, 0, 0, 10, 0, 2, 0, 0, 8, 33, 2, 0, 0, 11, 33, 2,
+    0, 0, 11, 37, 4, 0, 0, 0, 7, 4, 0, 0, 0, 7, 4, 0, 0, 0, 7, 4, 0, 0, 0, 7,
+    3, 0, 0, 33, 4, 3, 0, 0, 8, 5, 3, 0, 0, 8, 6, 3, 0, 0, 8, 7, 3, 0, 0, 11,
+    7, 3, 0, 0, 34, 8, 3, 0, 0, 20, 9, 3, 0, 0, 20, 10, 3, 0, 0, 14, 10, 3, 0, 0,
+    23, 11, 3, 0, 0, 38, 12, 3, 0, 0, 23, 13, 3, 0, 0, 17, 13, 3, 0, 0, 26, 14, 3, 0,
+    0, 26, 15, 3, 0, 0, 46, 16, 9, 0, 0, 49, 45, 9, 0, 0, 45, 48, 9, 0, 0, 41, 40, 23,
+    0, 0, 19, 15, 3, 23, 0, 0, 19, 15, 4, 23, 0, 0, 19, 15, 5, 23, 0, 0, 19, 15, 6, 23,
+    0, 0, 15, 11, 6, 23, 0, 0, 15, 11, 7, 23, 0, 0, 15, 11, 8, 23, 0, 0, 15, 11, 9, 23,
+    0, 0, 8, 4, 9, 23, 0, 0, 8, 4, 10, 23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26,
+    3, 0, 4, 4, 0, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 7,
+    1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 0, 12, 0, 0,
+    5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1, 4, 9, 5, 23, 0, 1, 4, 9,
+    6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4, 9, 8,
+};
+PC_HOT static pc_status pc_program_0e4e088d61b779b3(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    float f0 = PC_XF(1, c);
+    f0 += PC_XF(1, a) * PC_XF(1, b);
+    PC_STOREF(1, f0);
+    float f1 = PC_XF(2, c);
+    f1 += PC_XF(2, a) * PC_XF(2, b);
+    PC_STOREF(2, f1);
+    float f2 = PC_XF(3, c);
+    f2 += PC_XF(3, a) * PC_XF(3, b);
+    PC_STOREF(3, f2);
+    float f3 = PC_XF(4, c);
+    f3 += PC_XF(4, a) * PC_XF(4, b);
+    float f4 = PC_XF(5, c);
+    f4 += PC_XF(5, a) * PC_XF(5, b);
+    float f5 = PC_XF(6, c);
+    f5 += PC_XF(6, a) * PC_XF(6, b);
+    float f6 = PC_XF(7, c);
+    f6 += f3 * f3;
+    f6 += f4 * f4;
+    f6 += f5 * f5;
+    const uint8_t b7 = f6 < PC_XF(11, b);
+    const float f8 = b7 ? PC_XF(13, a) : f6;
+    const float f9 = pc_sop_float(PC_SOP_SQRT, f8, 0.0f);
+    const float f10 = pc_sop_float(PC_SOP_MUL, f9, PC_XF(17, b));
+    const float f11 = pc_sop_float(PC_SOP_MUL, f4, f4);
+    const float f12 = pc_sop_float(PC_SOP_MUL, f3, f3);
+    const float f13 = pc_sop_float(PC_SOP_SIN, f9, 0.0f);
+    const float f14 = pc_sop_float(PC_SOP_SIN, f10, 0.0f);
+    const float f15 = pc_sop_float(PC_SOP_DIV, f6, PC_XF(24, b));
+    const float f16 = pc_sop_float(PC_SOP_DIV, f13, f9);
+    const float f17 = pc_sop_float(PC_SOP_DIV, f14, f10);
+    const float f18 = pc_sop_float(PC_SOP_DIV, f6, PC_XF(27, b));
+    const float f19 = pc_sop_float(PC_SOP_MUL, f17, PC_XF(29, b));
+    const float f20 = pc_sop_float(PC_SOP_MUL, f19, f17);
+    const float f21 = pc_sop_float(PC_SOP_SUB, PC_XF(32, a), f15);
+    const float f22 = pc_sop_float(PC_SOP_SUB, PC_XF(33, a), f18);
+    const float f23 = b7 ? f21 : f16;
+    const float f24 = b7 ? f22 : f20;
+    float f25 = f11;
+    f25 += f5 * f5;
+    float f26 = f12;
+    f26 += f5 * f5;
+    float f27 = f12;
+    f27 += f4 * f4;
+    const float f28 = pc_sop_float(PC_SOP_MUL, f24, f25);
+    const float f29 = pc_sop_float(PC_SOP_MUL, f24, f3);
+    const float f30 = pc_sop_float(PC_SOP_MUL, f29, f4);
+    const float f31 = pc_sop_float(PC_SOP_MUL, f23, f5);
+    const float f32 = pc_sop_float(PC_SOP_MUL, f29, f5);
+    const float f33 = pc_sop_float(PC_SOP_MUL, f23, f4);
+    const float f34 = pc_sop_float(PC_SOP_MUL, f24, f26);
+    const float f35 = pc_sop_float(PC_SOP_MUL, f24, f4);
+    const float f36 = pc_sop_float(PC_SOP_MUL, f35, f5);
+    const float f37 = pc_sop_float(PC_SOP_MUL, f23, f3);
+    const float f38 = pc_sop_float(PC_SOP_MUL, f24, f27);
+    const float f39 = pc_sop_float(PC_SOP_SUB, PC_XF(54, a), f28);
+    const float f40 = pc_sop_float(PC_SOP_SUB, f30, f31);
+    const float f41 = pc_sop_float(PC_SOP_SUB, PC_XF(56, a), f34);
+    const float f42 = pc_sop_float(PC_SOP_SUB, f36, f37);
+    const float f43 = pc_sop_float(PC_SOP_SUB, f32, f33);
+    const float f44 = pc_sop_float(PC_SOP_SUB, PC_XF(59, a), f38);
+    const float f45 = pc_sop_float(PC_SOP_SUB, PC_XF(60, a), f39);
+    const float f46 = pc_sop_float(PC_SOP_SUB, f45, f41);
+    const float f47 = pc_sop_float(PC_SOP_ADD, f39, PC_XF(63, b));
+    const float f48 = pc_sop_float(PC_SOP_ADD, f47, f41);
+    const float f49 = pc_sop_float(PC_SOP_ADD, f48, f44);
+    const float f50 = pc_sop_float(PC_SOP_ADD, f45, f41);
+    const float f51 = pc_sop_float(PC_SOP_ADD, f46, f44);
+    const float f52 = pc_sop_float(PC_SOP_SUB, f47, f41);
+    const float f53 = pc_sop_float(PC_SOP_SUB, f52, f44);
+    const float f54 = pc_sop_float(PC_SOP_SUB, f50, f44);
+    const float f55 = pc_sop_float(PC_SOP_MAX, f49, PC_XF(73, b));
+    const float f56 = pc_sop_float(PC_SOP_MAX, f53, PC_XF(74, b));
+    const float f57 = pc_sop_float(PC_SOP_MAX, f54, PC_XF(75, b));
+    const float f58 = pc_sop_float(PC_SOP_MAX, f51, PC_XF(76, b));
+    const float f59 = pc_sop_float(PC_SOP_MAX, f49, f53);
+    const float f60 = pc_sop_float(PC_SOP_MAX, f54, f51);
+    const float f61 = pc_sop_float(PC_SOP_SQRT, f55, 0.0f);
+    const float f62 = pc_sop_float(PC_SOP_SQRT, f56, 0.0f);
+    const float f63 = pc_sop_float(PC_SOP_SQRT, f57, 0.0f);
+    const float f64 = pc_sop_float(PC_SOP_SQRT, f58, 0.0f);
+    float f65 = f32;
+    f65 += f23 * f4;
+    float f66 = f30;
+    f66 += f23 * f5;
+    float f67 = f36;
+    f67 += f23 * f3;
+    float f68 = f30;
+    f68 += f23 * f5;
+    f68 += f40 * PC_XF(89, b);
+    float f69 = f32;
+    f69 += f23 * f4;
+    f69 += f43 * PC_XF(91, b);
+    float f70 = f36;
+    f70 += f23 * f3;
+    f70 += f42 * PC_XF(93, b);
+    const float f71 = pc_sop_float(PC_SOP_MUL, f61, PC_XF(95, b));
+    const float f72 = pc_sop_float(PC_SOP_MUL, f62, PC_XF(96, b));
+    const float f73 = pc_sop_float(PC_SOP_MUL, f63, PC_XF(97, b));
+    const float f74 = pc_sop_float(PC_SOP_MUL, f64, PC_XF(98, b));
+    const float f75 = pc_sop_float(PC_SOP_SUB, f67, f42);
+    const float f76 = pc_sop_float(PC_SOP_SUB, f65, f43);
+    const float f77 = pc_sop_float(PC_SOP_SUB, f66, f40);
+    const float f78 = pc_sop_float(PC_SOP_DIV, PC_XF(104, a), f71);
+    const float f79 = pc_sop_float(PC_SOP_DIV, PC_XF(105, a), f72);
+    const float f80 = pc_sop_float(PC_SOP_DIV, PC_XF(106, a), f73);
+    const float f81 = pc_sop_float(PC_SOP_DIV, PC_XF(107, a), f74);
+    const float f82 = pc_sop_float(PC_SOP_MUL, f49, f78);
+    const float f83 = pc_sop_float(PC_SOP_MUL, f75, f78);
+    const float f84 = pc_sop_float(PC_SOP_MUL, f76, f78);
+    const float f85 = pc_sop_float(PC_SOP_MUL, f77, f78);
+    const float f86 = pc_sop_float(PC_SOP_MUL, f75, f79);
+    const float f87 = pc_sop_float(PC_SOP_MUL, f53, f79);
+    const float f88 = pc_sop_float(PC_SOP_MUL, f68, f79);
+    const float f89 = pc_sop_float(PC_SOP_MUL, f69, f79);
+    const float f90 = pc_sop_float(PC_SOP_MUL, f76, f80);
+    const float f91 = pc_sop_float(PC_SOP_MUL, f68, f80);
+    const float f92 = pc_sop_float(PC_SOP_MUL, f54, f80);
+    const float f93 = pc_sop_float(PC_SOP_MUL, f70, f80);
+    const float f94 = pc_sop_float(PC_SOP_MUL, f77, f81);
+    const float f95 = pc_sop_float(PC_SOP_MUL, f69, f81);
+    const float f96 = pc_sop_float(PC_SOP_MUL, f70, f81);
+    const float f97 = pc_sop_float(PC_SOP_MUL, f51, f81);
+    const uint8_t b98 = f49 >= f53;
+    const uint8_t b99 = f54 >= f51;
+    const uint8_t b100 = f59 >= f60;
+    const float f101 = b98 ? f82 : f86;
+    const float f102 = b98 ? f83 : f87;
+    const float f103 = b98 ? f84 : f88;
+    const float f104 = b98 ? f85 : f89;
+    const float f105 = b99 ? f90 : f94;
+    const float f106 = b99 ? f91 : f95;
+    const float f107 = b99 ? f92 : f96;
+    const float f108 = b99 ? f93 : f97;
+    const float f109 = b100 ? f101 : f105;
+    const float f110 = b100 ? f102 : f106;
+    const float f111 = b100 ? f103 : f107;
+    const float f112 = b100 ? f104 : f108;
+    float f113 = PC_XF(143, c);
+    f113 += f109 * f109;
+    f113 += f110 * f110;
+    f113 += f111 * f111;
+    f113 += f112 * f112;
+    const float f114 = pc_sop_float(PC_SOP_MAX, f113, PC_XF(148, b));
+    const float f115 = pc_sop_float(PC_SOP_SQRT, f114, 0.0f);
+    const float f116 = pc_sop_float(PC_SOP_DIV, f109, f115);
+    const float f117 = pc_sop_float(PC_SOP_DIV, f110, f115);
+    const float f118 = pc_sop_float(PC_SOP_DIV, f111, f115);
+    const float f119 = pc_sop_float(PC_SOP_DIV, f112, f115);
+    const uint8_t b120 = f116 < PC_XF(157, b);
+    const float f121 = pc_sop_float(PC_SOP_NEG, f116, 0.0f);
+    const float f122 = pc_sop_float(PC_SOP_NEG, f117, 0.0f);
+    const float f123 = pc_sop_float(PC_SOP_NEG, f118, 0.0f);
+    const float f124 = pc_sop_float(PC_SOP_NEG, f119, 0.0f);
+    const float f125 = b120 ? f121 : f116;
+    PC_STOREF(164, f125);
+    const float f126 = b120 ? f122 : f117;
+    PC_STOREF(165, f126);
+    const float f127 = b120 ? f123 : f118;
+    PC_STOREF(166, f127);
+    const float f128 = b120 ? f124 : f119;
+    PC_STOREF(167, f128);
+    return PC_OK;
+}
+
 static const uint8_t pc_program_6ca4a22b64ec2bb9_shape[796] = {
     26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0,
     26, 0, 1, 0, 0, 0, 5, 0, 0, 4, 0, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
@@ -3247,413 +3298,6 @@ PC_HOT static pc_status pc_program_c1b1401b8efb6e50(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_8f8acb0b2c3aa015_shape[1209] = {
-    3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0,
-    0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0,
-    0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0,
-    0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3,
-    0, 0, 0, 0, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20,
-    12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20,
-    12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20,
-    12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 15, 0, 0, 20, 15, 0, 0, 20, 15, 0, 0, 20,
-    15, 0, 0, 20, 15, 0, 0, 20, 15, 0, 0, 20, 15, 0, 0, 20, 15, 0, 0, 20, 15, 0, 0, 20,
-    15, 0, 0, 20, 15, 0, 0, 20, 15, 0, 0, 20, 15, 0, 0, 20, 15, 0, 0, 20, 15, 0, 0, 20,
-    15, 0, 0, 20, 15, 0, 0, 20, 15, 0, 0, 20, 15, 0, 0, 20, 15, 0, 0, 20, 26, 19, 0, 20,
-    0, 0, 19, 0, 18, 0, 17, 0, 16, 0, 15, 0, 14, 0, 13, 0, 12, 0, 11, 0, 10, 0, 9, 0,
-    8, 0, 7, 0, 6, 0, 5, 0, 4, 0, 3, 0, 2, 0, 1, 0, 26, 19, 0, 21, 0, 0, 20, 0,
-    19, 0, 18, 0, 17, 0, 16, 0, 15, 0, 14, 0, 13, 0, 12, 0, 11, 0, 10, 0, 9, 0, 8, 0,
-    7, 0, 6, 0, 5, 0, 4, 0, 3, 0, 2, 0, 26, 19, 0, 22, 0, 0, 21, 0, 20, 0, 19, 0,
-    18, 0, 17, 0, 16, 0, 15, 0, 14, 0, 13, 0, 12, 0, 11, 0, 10, 0, 9, 0, 8, 0, 7, 0,
-    6, 0, 5, 0, 4, 0, 3, 0, 26, 19, 0, 23, 0, 0, 22, 0, 21, 0, 20, 0, 19, 0, 18, 0,
-    17, 0, 16, 0, 15, 0, 14, 0, 13, 0, 12, 0, 11, 0, 10, 0, 9, 0, 8, 0, 7, 0, 6, 0,
-    5, 0, 4, 0, 26, 19, 0, 24, 0, 0, 23, 0, 22, 0, 21, 0, 20, 0, 19, 0, 18, 0, 17, 0,
-    16, 0, 15, 0, 14, 0, 13, 0, 12, 0, 11, 0, 10, 0, 9, 0, 8, 0, 7, 0, 6, 0, 5, 0,
-    26, 19, 0, 25, 0, 0, 24, 0, 23, 0, 22, 0, 21, 0, 20, 0, 19, 0, 18, 0, 17, 0, 16, 0,
-    15, 0, 14, 0, 13, 0, 12, 0, 11, 0, 10, 0, 9, 0, 8, 0, 7, 0, 6, 0, 26, 0, 1, 6,
-    0, 0, 26, 0, 1, 6, 0, 0, 26, 0, 1, 6, 0, 0, 26, 0, 0, 6, 0, 0, 26, 0, 0, 6,
-    0, 0, 26, 0, 0, 6, 0, 0, 26, 2, 0, 3, 3, 0, 2, 2, 1, 1, 10, 0, 0, 1, 0, 23,
-    0, 0, 0, 2, 1, 13, 0, 0, 1, 3, 0, 0, 1, 0, 3, 0, 0, 7, 7, 3, 0, 0, 9, 9,
-    16, 0, 0, 4, 16, 0, 0, 4, 4, 0, 0, 9, 0, 4, 0, 0, 3, 7, 4, 0, 0, 3, 7, 4,
-    0, 0, 12, 0, 3, 0, 0, 2, 0, 3, 0, 0, 1, 3, 2, 0, 0, 0, 6, 2, 0, 0, 0, 4,
-    23, 0, 0, 2, 7, 16, 23, 0, 0, 2, 4, 17, 26, 0, 0, 20, 20, 14, 26, 0, 0, 21, 21, 14,
-    26, 0, 0, 23, 23, 15, 3, 0, 0, 4, 3, 3, 0, 0, 5, 26, 3, 0, 0, 1, 26, 3, 0, 0,
-    8, 26, 3, 0, 0, 3, 27, 3, 0, 0, 10, 29, 3, 0, 0, 10, 8, 3, 0, 0, 11, 31, 3, 0,
-    0, 1, 31, 3, 0, 0, 14, 34, 3, 0, 0, 14, 11, 2, 0, 0, 0, 11, 2, 0, 0, 10, 9, 2,
-    0, 0, 0, 7, 2, 0, 0, 6, 5, 2, 0, 0, 11, 10, 2, 0, 0, 0, 6, 2, 0, 0, 0, 6,
-    2, 0, 0, 1, 5, 1, 0, 0, 8, 0, 1, 0, 0, 1, 7, 1, 0, 0, 1, 5, 1, 0, 0, 5,
-    9, 1, 0, 0, 5, 7, 2, 0, 0, 5, 11, 2, 0, 0, 1, 9, 2, 0, 0, 4, 10, 5, 0, 0,
-    6, 0, 5, 0, 0, 3, 0, 5, 0, 0, 3, 0, 5, 0, 0, 7, 0, 5, 0, 0, 10, 6, 5, 0,
-    0, 6, 9, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 26, 0, 0, 42, 61,
-    33, 26, 0, 0, 43, 61, 36, 26, 0, 0, 44, 64, 31, 26, 1, 0, 45, 63, 38, 28, 0, 26, 1, 0,
-    46, 65, 37, 26, 0, 26, 1, 0, 47, 67, 34, 28, 0, 3, 0, 0, 10, 0, 3, 0, 0, 10, 0, 3,
-    0, 0, 10, 0, 3, 0, 0, 10, 0, 2, 0, 0, 8, 33, 2, 0, 0, 11, 33, 2, 0, 0, 11, 37,
-    4, 0, 0, 0, 7, 4, 0, 0, 0, 7, 4, 0, 0, 0, 7, 4, 0, 0, 0, 7, 3, 0, 0, 33,
-    4, 3, 0, 0, 8, 5, 3, 0, 0, 8, 6, 3, 0, 0, 8, 7, 3, 0, 0, 11, 7, 3, 0, 0,
-    34, 8, 3, 0, 0, 20, 9, 3, 0, 0, 20, 10, 3, 0, 0, 14, 10, 3, 0, 0, 23, 11, 3, 0,
-    0, 38, 12, 3, 0, 0, 23, 13, 3, 0, 0, 17, 13, 3, 0, 0, 26, 14, 3, 0, 0, 26, 15, 3,
-    0, 0, 46, 16, 9, 0, 0, 49, 45, 9, 0, 0, 45, 48, 9, 0, 0, 41, 40, 23, 0, 0, 19, 15,
-    3, 23, 0, 0, 19, 15, 4, 23, 0, 0, 19, 15, 5, 23, 0, 0, 19, 15, 6, 23, 0, 0, 15, 11,
-    6, 23, 0, 0, 15, 11, 7, 23, 0, 0, 15, 11, 8, 23, 0, 0, 15, 11, 9, 23, 0, 0, 8, 4,
-    9, 23, 0, 0, 8, 4, 10, 23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4,
-    0, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0,
-    7, 2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 0, 12, 0, 0, 5, 12, 0, 0,
-    5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1, 4, 9, 5, 23, 0, 1, 4, 9, 6, 23, 0, 1,
-    4, 9, 7, 23, 0, 1, 4, 9, 8,
-};
-PC_HOT static pc_status pc_program_8f8acb0b2c3aa015(const pc_step *s)
-{
-    char *const base = (char *)s->io[0];
-    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    const float f0 = pc_sop_float(PC_SOP_MUL, PC_XF(1, a), PC_XF(1, b));
-    const float f1 = pc_sop_float(PC_SOP_MUL, PC_XF(2, a), PC_XF(2, b));
-    const float f2 = pc_sop_float(PC_SOP_MUL, PC_XF(3, a), PC_XF(3, b));
-    const float f3 = pc_sop_float(PC_SOP_MUL, PC_XF(4, a), PC_XF(4, b));
-    const float f4 = pc_sop_float(PC_SOP_MUL, PC_XF(5, a), PC_XF(5, b));
-    const float f5 = pc_sop_float(PC_SOP_MUL, PC_XF(6, a), PC_XF(6, b));
-    const float f6 = pc_sop_float(PC_SOP_MUL, PC_XF(7, a), PC_XF(7, b));
-    const float f7 = pc_sop_float(PC_SOP_MUL, PC_XF(8, a), PC_XF(8, b));
-    const float f8 = pc_sop_float(PC_SOP_MUL, PC_XF(9, a), PC_XF(9, b));
-    const float f9 = pc_sop_float(PC_SOP_MUL, PC_XF(10, a), PC_XF(10, b));
-    const float f10 = pc_sop_float(PC_SOP_MUL, PC_XF(11, a), PC_XF(11, b));
-    const float f11 = pc_sop_float(PC_SOP_MUL, PC_XF(12, a), PC_XF(12, b));
-    const float f12 = pc_sop_float(PC_SOP_MUL, PC_XF(13, a), PC_XF(13, b));
-    const float f13 = pc_sop_float(PC_SOP_MUL, PC_XF(14, a), PC_XF(14, b));
-    const float f14 = pc_sop_float(PC_SOP_MUL, PC_XF(15, a), PC_XF(15, b));
-    const float f15 = pc_sop_float(PC_SOP_MUL, PC_XF(16, a), PC_XF(16, b));
-    const float f16 = pc_sop_float(PC_SOP_MUL, PC_XF(17, a), PC_XF(17, b));
-    const float f17 = pc_sop_float(PC_SOP_MUL, PC_XF(18, a), PC_XF(18, b));
-    const float f18 = pc_sop_float(PC_SOP_MUL, PC_XF(19, a), PC_XF(19, b));
-    const float f19 = pc_sop_float(PC_SOP_MUL, PC_XF(20, a), PC_XF(20, b));
-    const float f20 = pc_sop_float(PC_SOP_NEG, f0, 0.0f);
-    const float f21 = pc_sop_float(PC_SOP_NEG, f1, 0.0f);
-    const float f22 = pc_sop_float(PC_SOP_NEG, f2, 0.0f);
-    const float f23 = pc_sop_float(PC_SOP_NEG, f3, 0.0f);
-    const float f24 = pc_sop_float(PC_SOP_NEG, f4, 0.0f);
-    const float f25 = pc_sop_float(PC_SOP_NEG, f5, 0.0f);
-    const float f26 = pc_sop_float(PC_SOP_NEG, f6, 0.0f);
-    const float f27 = pc_sop_float(PC_SOP_NEG, f7, 0.0f);
-    const float f28 = pc_sop_float(PC_SOP_NEG, f8, 0.0f);
-    const float f29 = pc_sop_float(PC_SOP_NEG, f9, 0.0f);
-    const float f30 = pc_sop_float(PC_SOP_NEG, f10, 0.0f);
-    const float f31 = pc_sop_float(PC_SOP_NEG, f11, 0.0f);
-    const float f32 = pc_sop_float(PC_SOP_NEG, f12, 0.0f);
-    const float f33 = pc_sop_float(PC_SOP_NEG, f13, 0.0f);
-    const float f34 = pc_sop_float(PC_SOP_NEG, f14, 0.0f);
-    const float f35 = pc_sop_float(PC_SOP_NEG, f15, 0.0f);
-    const float f36 = pc_sop_float(PC_SOP_NEG, f16, 0.0f);
-    const float f37 = pc_sop_float(PC_SOP_NEG, f17, 0.0f);
-    const float f38 = pc_sop_float(PC_SOP_NEG, f18, 0.0f);
-    const float f39 = pc_sop_float(PC_SOP_NEG, f19, 0.0f);
-    const float f40 = pc_sop_float(PC_SOP_EXP, f20, 0.0f);
-    const float f41 = pc_sop_float(PC_SOP_EXP, f21, 0.0f);
-    const float f42 = pc_sop_float(PC_SOP_EXP, f22, 0.0f);
-    const float f43 = pc_sop_float(PC_SOP_EXP, f23, 0.0f);
-    const float f44 = pc_sop_float(PC_SOP_EXP, f24, 0.0f);
-    const float f45 = pc_sop_float(PC_SOP_EXP, f25, 0.0f);
-    const float f46 = pc_sop_float(PC_SOP_EXP, f26, 0.0f);
-    const float f47 = pc_sop_float(PC_SOP_EXP, f27, 0.0f);
-    const float f48 = pc_sop_float(PC_SOP_EXP, f28, 0.0f);
-    const float f49 = pc_sop_float(PC_SOP_EXP, f29, 0.0f);
-    const float f50 = pc_sop_float(PC_SOP_EXP, f30, 0.0f);
-    const float f51 = pc_sop_float(PC_SOP_EXP, f31, 0.0f);
-    const float f52 = pc_sop_float(PC_SOP_EXP, f32, 0.0f);
-    const float f53 = pc_sop_float(PC_SOP_EXP, f33, 0.0f);
-    const float f54 = pc_sop_float(PC_SOP_EXP, f34, 0.0f);
-    const float f55 = pc_sop_float(PC_SOP_EXP, f35, 0.0f);
-    const float f56 = pc_sop_float(PC_SOP_EXP, f36, 0.0f);
-    const float f57 = pc_sop_float(PC_SOP_EXP, f37, 0.0f);
-    const float f58 = pc_sop_float(PC_SOP_EXP, f38, 0.0f);
-    const float f59 = pc_sop_float(PC_SOP_EXP, f39, 0.0f);
-    float f60 = PC_XF(64, c);
-    f60 += f40 * PC_XF(64, b);
-    f60 += f41 * PC_XF(65, b);
-    f60 += f42 * PC_XF(66, b);
-    f60 += f43 * PC_XF(67, b);
-    f60 += f44 * PC_XF(68, b);
-    f60 += f45 * PC_XF(69, b);
-    f60 += f46 * PC_XF(70, b);
-    f60 += f47 * PC_XF(71, b);
-    f60 += f48 * PC_XF(72, b);
-    f60 += f49 * PC_XF(73, b);
-    f60 += f50 * PC_XF(74, b);
-    f60 += f51 * PC_XF(75, b);
-    f60 += f52 * PC_XF(76, b);
-    f60 += f53 * PC_XF(77, b);
-    f60 += f54 * PC_XF(78, b);
-    f60 += f55 * PC_XF(79, b);
-    f60 += f56 * PC_XF(80, b);
-    f60 += f57 * PC_XF(81, b);
-    f60 += f58 * PC_XF(82, b);
-    f60 += f59 * PC_XF(83, b);
-    float f61 = PC_XF(84, c);
-    f61 += f40 * PC_XF(84, b);
-    f61 += f41 * PC_XF(85, b);
-    f61 += f42 * PC_XF(86, b);
-    f61 += f43 * PC_XF(87, b);
-    f61 += f44 * PC_XF(88, b);
-    f61 += f45 * PC_XF(89, b);
-    f61 += f46 * PC_XF(90, b);
-    f61 += f47 * PC_XF(91, b);
-    f61 += f48 * PC_XF(92, b);
-    f61 += f49 * PC_XF(93, b);
-    f61 += f50 * PC_XF(94, b);
-    f61 += f51 * PC_XF(95, b);
-    f61 += f52 * PC_XF(96, b);
-    f61 += f53 * PC_XF(97, b);
-    f61 += f54 * PC_XF(98, b);
-    f61 += f55 * PC_XF(99, b);
-    f61 += f56 * PC_XF(100, b);
-    f61 += f57 * PC_XF(101, b);
-    f61 += f58 * PC_XF(102, b);
-    f61 += f59 * PC_XF(103, b);
-    float f62 = PC_XF(104, c);
-    f62 += f40 * PC_XF(104, b);
-    f62 += f41 * PC_XF(105, b);
-    f62 += f42 * PC_XF(106, b);
-    f62 += f43 * PC_XF(107, b);
-    f62 += f44 * PC_XF(108, b);
-    f62 += f45 * PC_XF(109, b);
-    f62 += f46 * PC_XF(110, b);
-    f62 += f47 * PC_XF(111, b);
-    f62 += f48 * PC_XF(112, b);
-    f62 += f49 * PC_XF(113, b);
-    f62 += f50 * PC_XF(114, b);
-    f62 += f51 * PC_XF(115, b);
-    f62 += f52 * PC_XF(116, b);
-    f62 += f53 * PC_XF(117, b);
-    f62 += f54 * PC_XF(118, b);
-    f62 += f55 * PC_XF(119, b);
-    f62 += f56 * PC_XF(120, b);
-    f62 += f57 * PC_XF(121, b);
-    f62 += f58 * PC_XF(122, b);
-    f62 += f59 * PC_XF(123, b);
-    float f63 = PC_XF(124, c);
-    f63 += f40 * PC_XF(124, b);
-    f63 += f41 * PC_XF(125, b);
-    f63 += f42 * PC_XF(126, b);
-    f63 += f43 * PC_XF(127, b);
-    f63 += f44 * PC_XF(128, b);
-    f63 += f45 * PC_XF(129, b);
-    f63 += f46 * PC_XF(130, b);
-    f63 += f47 * PC_XF(131, b);
-    f63 += f48 * PC_XF(132, b);
-    f63 += f49 * PC_XF(133, b);
-    f63 += f50 * PC_XF(134, b);
-    f63 += f51 * PC_XF(135, b);
-    f63 += f52 * PC_XF(136, b);
-    f63 += f53 * PC_XF(137, b);
-    f63 += f54 * PC_XF(138, b);
-    f63 += f55 * PC_XF(139, b);
-    f63 += f56 * PC_XF(140, b);
-    f63 += f57 * PC_XF(141, b);
-    f63 += f58 * PC_XF(142, b);
-    f63 += f59 * PC_XF(143, b);
-    float f64 = PC_XF(144, c);
-    f64 += f40 * PC_XF(144, b);
-    f64 += f41 * PC_XF(145, b);
-    f64 += f42 * PC_XF(146, b);
-    f64 += f43 * PC_XF(147, b);
-    f64 += f44 * PC_XF(148, b);
-    f64 += f45 * PC_XF(149, b);
-    f64 += f46 * PC_XF(150, b);
-    f64 += f47 * PC_XF(151, b);
-    f64 += f48 * PC_XF(152, b);
-    f64 += f49 * PC_XF(153, b);
-    f64 += f50 * PC_XF(154, b);
-    f64 += f51 * PC_XF(155, b);
-    f64 += f52 * PC_XF(156, b);
-    f64 += f53 * PC_XF(157, b);
-    f64 += f54 * PC_XF(158, b);
-    f64 += f55 * PC_XF(159, b);
-    f64 += f56 * PC_XF(160, b);
-    f64 += f57 * PC_XF(161, b);
-    f64 += f58 * PC_XF(162, b);
-    f64 += f59 * PC_XF(163, b);
-    float f65 = PC_XF(164, c);
-    f65 += f40 * PC_XF(164, b);
-    f65 += f41 * PC_XF(165, b);
-    f65 += f42 * PC_XF(166, b);
-    f65 += f43 * PC_XF(167, b);
-    f65 += f44 * PC_XF(168, b);
-    f65 += f45 * PC_XF(169, b);
-    f65 += f46 * PC_XF(170, b);
-    f65 += f47 * PC_XF(171, b);
-    f65 += f48 * PC_XF(172, b);
-    f65 += f49 * PC_XF(173, b);
-    f65 += f50 * PC_XF(174, b);
-    f65 += f51 * PC_XF(175, b);
-    f65 += f52 * PC_XF(176, b);
-    f65 += f53 * PC_XF(177, b);
-    f65 += f54 * PC_XF(178, b);
-    f65 += f55 * PC_XF(179, b);
-    f65 += f56 * PC_XF(180, b);
-    f65 += f57 * PC_XF(181, b);
-    f65 += f58 * PC_XF(182, b);
-    f65 += f59 * PC_XF(183, b);
-    float f66 = PC_XF(184, c);
-    f66 += f60 * PC_XF(184, b);
-    PC_STOREF(184, f66);
-    float f67 = PC_XF(185, c);
-    f67 += f61 * PC_XF(185, b);
-    PC_STOREF(185, f67);
-    float f68 = PC_XF(186, c);
-    f68 += f62 * PC_XF(186, b);
-    PC_STOREF(186, f68);
-    float f69 = PC_XF(187, c);
-    f69 += f63 * PC_XF(187, b);
-    float f70 = PC_XF(188, c);
-    f70 += f64 * PC_XF(188, b);
-    float f71 = PC_XF(189, c);
-    f71 += f65 * PC_XF(189, b);
-    float f72 = PC_XF(190, c);
-    f72 += f69 * f69;
-    f72 += f70 * f70;
-    f72 += f71 * f71;
-    const uint8_t b73 = f72 < PC_XF(194, b);
-    const float f74 = b73 ? PC_XF(196, a) : f72;
-    const float f75 = pc_sop_float(PC_SOP_SQRT, f74, 0.0f);
-    const float f76 = pc_sop_float(PC_SOP_MUL, f75, PC_XF(200, b));
-    const float f77 = pc_sop_float(PC_SOP_MUL, f70, f70);
-    const float f78 = pc_sop_float(PC_SOP_MUL, f69, f69);
-    const float f79 = pc_sop_float(PC_SOP_SIN, f75, 0.0f);
-    const float f80 = pc_sop_float(PC_SOP_SIN, f76, 0.0f);
-    const float f81 = pc_sop_float(PC_SOP_DIV, f72, PC_XF(207, b));
-    const float f82 = pc_sop_float(PC_SOP_DIV, f79, f75);
-    const float f83 = pc_sop_float(PC_SOP_DIV, f80, f76);
-    const float f84 = pc_sop_float(PC_SOP_DIV, f72, PC_XF(210, b));
-    const float f85 = pc_sop_float(PC_SOP_MUL, f83, PC_XF(212, b));
-    const float f86 = pc_sop_float(PC_SOP_MUL, f85, f83);
-    const float f87 = pc_sop_float(PC_SOP_SUB, PC_XF(215, a), f81);
-    const float f88 = pc_sop_float(PC_SOP_SUB, PC_XF(216, a), f84);
-    const float f89 = b73 ? f87 : f82;
-    const float f90 = b73 ? f88 : f86;
-    float f91 = f77;
-    f91 += f71 * f71;
-    float f92 = f78;
-    f92 += f71 * f71;
-    float f93 = f78;
-    f93 += f70 * f70;
-    const float f94 = pc_sop_float(PC_SOP_MUL, f90, f91);
-    const float f95 = pc_sop_float(PC_SOP_MUL, f90, f69);
-    const float f96 = pc_sop_float(PC_SOP_MUL, f95, f70);
-    const float f97 = pc_sop_float(PC_SOP_MUL, f89, f71);
-    const float f98 = pc_sop_float(PC_SOP_MUL, f95, f71);
-    const float f99 = pc_sop_float(PC_SOP_MUL, f89, f70);
-    const float f100 = pc_sop_float(PC_SOP_MUL, f90, f92);
-    const float f101 = pc_sop_float(PC_SOP_MUL, f90, f70);
-    const float f102 = pc_sop_float(PC_SOP_MUL, f101, f71);
-    const float f103 = pc_sop_float(PC_SOP_MUL, f89, f69);
-    const float f104 = pc_sop_float(PC_SOP_MUL, f90, f93);
-    const float f105 = pc_sop_float(PC_SOP_SUB, PC_XF(237, a), f94);
-    const float f106 = pc_sop_float(PC_SOP_SUB, f96, f97);
-    const float f107 = pc_sop_float(PC_SOP_SUB, PC_XF(239, a), f100);
-    const float f108 = pc_sop_float(PC_SOP_SUB, f102, f103);
-    const float f109 = pc_sop_float(PC_SOP_SUB, f98, f99);
-    const float f110 = pc_sop_float(PC_SOP_SUB, PC_XF(242, a), f104);
-    const float f111 = pc_sop_float(PC_SOP_SUB, PC_XF(243, a), f105);
-    const float f112 = pc_sop_float(PC_SOP_SUB, f111, f107);
-    const float f113 = pc_sop_float(PC_SOP_ADD, f105, PC_XF(246, b));
-    const float f114 = pc_sop_float(PC_SOP_ADD, f113, f107);
-    const float f115 = pc_sop_float(PC_SOP_ADD, f114, f110);
-    const float f116 = pc_sop_float(PC_SOP_ADD, f111, f107);
-    const float f117 = pc_sop_float(PC_SOP_ADD, f112, f110);
-    const float f118 = pc_sop_float(PC_SOP_SUB, f113, f107);
-    const float f119 = pc_sop_float(PC_SOP_SUB, f118, f110);
-    const float f120 = pc_sop_float(PC_SOP_SUB, f116, f110);
-    const float f121 = pc_sop_float(PC_SOP_MAX, f115, PC_XF(256, b));
-    const float f122 = pc_sop_float(PC_SOP_MAX, f119, PC_XF(257, b));
-    const float f123 = pc_sop_float(PC_SOP_MAX, f120, PC_XF(258, b));
-    const float f124 = pc_sop_float(PC_SOP_MAX, f117, PC_XF(259, b));
-    const float f125 = pc_sop_float(PC_SOP_MAX, f115, f119);
-    const float f126 = pc_sop_float(PC_SOP_MAX, f120, f117);
-    const float f127 = pc_sop_float(PC_SOP_SQRT, f121, 0.0f);
-    const float f128 = pc_sop_float(PC_SOP_SQRT, f122, 0.0f);
-    const float f129 = pc_sop_float(PC_SOP_SQRT, f123, 0.0f);
-    const float f130 = pc_sop_float(PC_SOP_SQRT, f124, 0.0f);
-    float f131 = f98;
-    f131 += f89 * f70;
-    float f132 = f96;
-    f132 += f89 * f71;
-    float f133 = f102;
-    f133 += f89 * f69;
-    float f134 = f96;
-    f134 += f89 * f71;
-    f134 += f106 * PC_XF(272, b);
-    float f135 = f98;
-    f135 += f89 * f70;
-    f135 += f109 * PC_XF(274, b);
-    float f136 = f102;
-    f136 += f89 * f69;
-    f136 += f108 * PC_XF(276, b);
-    const float f137 = pc_sop_float(PC_SOP_MUL, f127, PC_XF(278, b));
-    const float f138 = pc_sop_float(PC_SOP_MUL, f128, PC_XF(279, b));
-    const float f139 = pc_sop_float(PC_SOP_MUL, f129, PC_XF(280, b));
-    const float f140 = pc_sop_float(PC_SOP_MUL, f130, PC_XF(281, b));
-    const float f141 = pc_sop_float(PC_SOP_SUB, f133, f108);
-    const float f142 = pc_sop_float(PC_SOP_SUB, f131, f109);
-    const float f143 = pc_sop_float(PC_SOP_SUB, f132, f106);
-    const float f144 = pc_sop_float(PC_SOP_DIV, PC_XF(287, a), f137);
-    const float f145 = pc_sop_float(PC_SOP_DIV, PC_XF(288, a), f138);
-    const float f146 = pc_sop_float(PC_SOP_DIV, PC_XF(289, a), f139);
-    const float f147 = pc_sop_float(PC_SOP_DIV, PC_XF(290, a), f140);
-    const float f148 = pc_sop_float(PC_SOP_MUL, f115, f144);
-    const float f149 = pc_sop_float(PC_SOP_MUL, f141, f144);
-    const float f150 = pc_sop_float(PC_SOP_MUL, f142, f144);
-    const float f151 = pc_sop_float(PC_SOP_MUL, f143, f144);
-    const float f152 = pc_sop_float(PC_SOP_MUL, f141, f145);
-    const float f153 = pc_sop_float(PC_SOP_MUL, f119, f145);
-    const float f154 = pc_sop_float(PC_SOP_MUL, f134, f145);
-    const float f155 = pc_sop_float(PC_SOP_MUL, f135, f145);
-    const float f156 = pc_sop_float(PC_SOP_MUL, f142, f146);
-    const float f157 = pc_sop_float(PC_SOP_MUL, f134, f146);
-    const float f158 = pc_sop_float(PC_SOP_MUL, f120, f146);
-    const float f159 = pc_sop_float(PC_SOP_MUL, f136, f146);
-    const float f160 = pc_sop_float(PC_SOP_MUL, f143, f147);
-    const float f161 = pc_sop_float(PC_SOP_MUL, f135, f147);
-    const float f162 = pc_sop_float(PC_SOP_MUL, f136, f147);
-    const float f163 = pc_sop_float(PC_SOP_MUL, f117, f147);
-    const uint8_t b164 = f115 >= f119;
-    const uint8_t b165 = f120 >= f117;
-    const uint8_t b166 = f125 >= f126;
-    const float f167 = b164 ? f148 : f152;
-    const float f168 = b164 ? f149 : f153;
-    const float f169 = b164 ? f150 : f154;
-    const float f170 = b164 ? f151 : f155;
-    const float f171 = b165 ? f156 : f160;
-    const float f172 = b165 ? f157 : f161;
-    const float f173 = b165 ? f158 : f162;
-    const float f174 = b165 ? f159 : f163;
-    const float f175 = b166 ? f167 : f171;
-    const float f176 = b166 ? f168 : f172;
-    const float f177 = b166 ? f169 : f173;
-    const float f178 = b166 ? f170 : f174;
-    float f179 = PC_XF(326, c);
-    f179 += f175 * f175;
-    f179 += f176 * f176;
-    f179 += f177 * f177;
-    f179 += f178 * f178;
-    const float f180 = pc_sop_float(PC_SOP_MAX, f179, PC_XF(331, b));
-    const float f181 = pc_sop_float(PC_SOP_SQRT, f180, 0.0f);
-    const float f182 = pc_sop_float(PC_SOP_DIV, f175, f181);
-    const float f183 = pc_sop_float(PC_SOP_DIV, f176, f181);
-    const float f184 = pc_sop_float(PC_SOP_DIV, f177, f181);
-    const float f185 = pc_sop_float(PC_SOP_DIV, f178, f181);
-    const uint8_t b186 = f182 < PC_XF(340, b);
-    const float f187 = pc_sop_float(PC_SOP_NEG, f182, 0.0f);
-    const float f188 = pc_sop_float(PC_SOP_NEG, f183, 0.0f);
-    const float f189 = pc_sop_float(PC_SOP_NEG, f184, 0.0f);
-    const float f190 = pc_sop_float(PC_SOP_NEG, f185, 0.0f);
-    const float f191 = b186 ? f187 : f182;
-    PC_STOREF(347, f191);
-    const float f192 = b186 ? f188 : f183;
-    PC_STOREF(348, f192);
-    const float f193 = b186 ? f189 : f184;
-    PC_STOREF(349, f193);
-    const float f194 = b186 ? f190 : f185;
-    PC_STOREF(350, f194);
-    return PC_OK;
-}
-
 static const uint8_t pc_program_0042e12f957ab815_shape[1285] = {
     26, 2, 0, 0, 0, 0, 0, 0, 0, 0, 26, 2, 0, 0, 0, 0, 0, 0, 0, 0, 26, 2, 0, 0,
     0, 0, 0, 0, 0, 0, 26, 2, 0, 0, 0, 0, 0, 0, 0, 0, 26, 2, 0, 0, 0, 0, 0, 0,
@@ -4625,10 +4269,10 @@ PC_HOT static pc_status pc_program_ac6ceacb51d4b83b(const pc_step *s)
 }
 
 const pc_compiled_program pc_compiled_programs[21] = {
+    {18u, 0x37e9ab999b1c3d7eull, pc_program_37e9ab999b1c3d7e_shape, pc_program_37e9ab999b1c3d7e},
+    {63u, 0xc971e2e5ff11b7aeull, pc_program_c971e2e5ff11b7ae_shape, pc_program_c971e2e5ff11b7ae},
     {159u, 0x0bb08452fbb3a9afull, pc_program_0bb08452fbb3a9af_shape, pc_program_0bb08452fbb3a9af},
-    {165u, 0xbac44ddbdd61a1dfull, pc_program_bac44ddbdd61a1df_shape, pc_program_bac44ddbdd61a1df},
     {204u, 0xca406bcfedbc5acdull, pc_program_ca406bcfedbc5acd_shape, pc_program_ca406bcfedbc5acd},
-    {228u, 0x834316b1c6c869bcull, pc_program_834316b1c6c869bc_shape, pc_program_834316b1c6c869bc},
     {260u, 0xedf9b746591a5529ull, pc_program_edf9b746591a5529_shape, pc_program_edf9b746591a5529},
     {264u, 0x7d8a951771d6e99cull, pc_program_7d8a951771d6e99c_shape, pc_program_7d8a951771d6e99c},
     {429u, 0x9f5d834c4237d873ull, pc_program_9f5d834c4237d873_shape, pc_program_9f5d834c4237d873},
@@ -4638,12 +4282,12 @@ const pc_compiled_program pc_compiled_programs[21] = {
     {656u, 0xeec959fc49e33d72ull, pc_program_eec959fc49e33d72_shape, pc_program_eec959fc49e33d72},
     {656u, 0xe4627751465255bdull, pc_program_e4627751465255bd_shape, pc_program_e4627751465255bd},
     {661u, 0xbc73bc9880d69e6eull, pc_program_bc73bc9880d69e6e_shape, pc_program_bc73bc9880d69e6e},
+    {685u, 0x0e4e088d61b779b3ull, pc_program_0e4e088d61b779b3_shape, pc_program_0e4e088d61b779b3},
     {796u, 0x6ca4a22b64ec2bb9ull, pc_program_6ca4a22b64ec2bb9_shape, pc_program_6ca4a22b64ec2bb9},
     {875u, 0x68ae4def9da9e6f8ull, pc_program_68ae4def9da9e6f8_shape, pc_program_68ae4def9da9e6f8},
     {980u, 0xa734d6c3be2c7b05ull, pc_program_a734d6c3be2c7b05_shape, pc_program_a734d6c3be2c7b05},
     {1045u, 0x510a7b9f81e8bb81ull, pc_program_510a7b9f81e8bb81_shape, pc_program_510a7b9f81e8bb81},
     {1125u, 0xc1b1401b8efb6e50ull, pc_program_c1b1401b8efb6e50_shape, pc_program_c1b1401b8efb6e50},
-    {1209u, 0x8f8acb0b2c3aa015ull, pc_program_8f8acb0b2c3aa015_shape, pc_program_8f8acb0b2c3aa015},
     {1285u, 0x0042e12f957ab815ull, pc_program_0042e12f957ab815_shape, pc_program_0042e12f957ab815},
     {1608u, 0xac6ceacb51d4b83bull, pc_program_ac6ceacb51d4b83b_shape, pc_program_ac6ceacb51d4b83b},
 };

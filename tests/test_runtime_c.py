@@ -464,7 +464,6 @@ def testing_lib(c_build):
     T = ctypes.CDLL(str(c_build / "libposecorr_testing.so"))
     sz = ctypes.POINTER(ctypes.c_size_t)
     T.pc_test_program_steps.argtypes = [ctypes.c_void_p, sz, sz]
-    T.pc_test_chain_steps.argtypes = [ctypes.c_void_p, sz, sz]
     T.pc_test_load.argtypes = [ctypes.c_char_p, ctypes.c_size_t, ctypes.c_void_p, ctypes.c_void_p]
     return T
 
@@ -503,31 +502,94 @@ def test_shipped_models_run_compiled_programs(c_build, testing_lib):
                 assert compiled.value == 0 and interpreted.value >= 1, path.name
 
 
-def test_shipped_mlps_run_unrolled_chains(testing_lib):
-    """The one-pose chain of every shipped tanh MLP has its unrolled kernel (dense.c); the
-    other shipped models have no chain or one the general kernel runs."""
-    import ctypes
+def _layer_classes() -> tuple[set[int], set[int]]:
+    """(pose vector sizes of the representations, table 1's hidden widths): the layers the
+    project trains, from the trainer's own definitions."""
+    from posecorr.train.base import encode_pose
+    from posecorr.train.spec import ARCHITECTURES
 
-    from posecorr.controller.runtime import _Error, _Options
+    pose = np.array([[0.1, 0.2, 0.3, 1.0, 0.0, 0.0, 0.0]])
+    vectors = {encode_pose(pose, rep).shape[1] for rep in ("pos", "eaa", "quat", "R", "zhou")}
+    return vectors, {w for arch in ARCHITECTURES for w in arch}
 
-    T = testing_lib
-    T.pc_load_memory.argtypes = [ctypes.c_char_p, ctypes.c_size_t, ctypes.POINTER(_Options),
-                                 ctypes.POINTER(ctypes.c_void_p), ctypes.POINTER(_Error)]
-    if not T.pc_test_cpu_avx2():
-        pytest.skip("unrolled chains are AVX2 kernels")
+
+def _chains(paths) -> list[tuple[str, list[int]]]:
+    """(path, layer sizes) of each dense chain step in a step-path report."""
+    return [(p, [int(k) for k in why.split()[2].rstrip(":").split("-")])
+            for p, why in paths if why.startswith("dense chain ")]
+
+
+def _specialised_by_rule(sizes: list[int], avx2: bool) -> bool:
+    """A chain runs specialised when every layer goes into a hidden width from any trained
+    size, or from a hidden width out to a pose vector."""
+    vectors, hidden = _layer_classes()
+    return avx2 and all((n in hidden and k in vectors | hidden) or (k in hidden and n in vectors)
+                        for k, n in zip(sizes, sizes[1:]))
+
+
+def test_chains_run_specialised_by_shape_class(lib, testing_lib):
+    """Every dense chain of a shipped model runs the specialised kernels exactly when its
+    layers are of a size the project trains (no table of shipped shapes); each shipped tanh
+    MLP's whole network is one specialised chain."""
+    avx2 = bool(testing_lib.pc_test_cpu_avx2())
     for path in MODELS:
-        blob = path.read_bytes()
-        handle, err = ctypes.c_void_p(), _Error()
-        opts = _Options(max_batch=16, flags=0)
-        assert T.pc_load_memory(blob, len(blob), ctypes.byref(opts), ctypes.byref(handle),
-                                ctypes.byref(err)) == 0, err.message
-        unrolled, general = ctypes.c_size_t(), ctypes.c_size_t()
-        T.pc_test_chain_steps(handle, ctypes.byref(unrolled), ctypes.byref(general))
-        T.pc_free(handle)
-        if path.name.startswith("mlp-") and "-tansig-" in path.name:
-            assert (unrolled.value, general.value) == (1, 0), path.name
-        else:
-            assert unrolled.value == 0, path.name
+        c = Corrector(path, library=lib)
+        chains = _chains(c.step_paths())
+        for p, sizes in chains:
+            assert p == ("specialised" if _specialised_by_rule(sizes, avx2) else "general"), \
+                (path.name, sizes)
+        meta = c.metadata
+        if meta.get("method") == "mlp" and meta.get("activation") == "tansig":
+            layers = [int(k) for k in meta["layers"].split("-")]
+            assert chains == [("specialised" if avx2 else "general", layers)], path.name
+
+
+def test_unshipped_table1_mlp_runs_specialised_and_matches_portable(lib, testing_lib, tmp_path):
+    """A tansig MLP of a representation and table-1 architecture nobody shipped, drawn anew
+    each run (the messages name it), exported by the project's exporter after two epochs:
+    the path report says its one dense chain, the whole network, runs the specialised
+    kernels, and its outputs equal the portable build's bit for bit, one pose at a time
+    and in batches."""
+    import random
+
+    from posecorr.export import to_onnx
+    from posecorr.simulate import simulate
+    from posecorr.train.mlp import MLP
+    from posecorr.train.spec import ARCHITECTURES
+
+    if not testing_lib.pc_test_cpu_avx2():
+        pytest.skip("the specialised layers are AVX2 kernels")
+    shipped = set()
+    for path in MODELS:
+        meta = Corrector(path, library=lib).metadata
+        if meta.get("method") == "mlp":
+            shipped.add((meta["representation"], tuple(int(k) for k in meta["architecture"].split("-"))))
+    rep, hidden = random.choice([(rep, arch) for rep in ("pos", "eaa", "quat", "R", "zhou")
+                                 for arch in ARCHITECTURES if (rep, arch) not in shipped])
+    label = f"{rep} {'-'.join(map(str, hidden))}"
+    table = simulate(3, seed=0).table
+    idx = np.linspace(0, len(table.measured) - 1, 120).astype(int)
+    m, r = table.measured[idx], table.reference[idx]
+    est = MLP(representation=rep, hidden=hidden, trainer="lm", epochs=2, random_state=1).fit(m, r)
+    path = tmp_path / "unshipped.onnx"
+    # a near-random network may miss the float64 estimator by more than the exporter's parity
+    # tolerance; the truth here is the portable build's bits
+    to_onnx(est, path, measured=m, reference=r, parity="warn")
+
+    c = Corrector(path, library=lib)
+    layers = [int(k) for k in c.metadata["layers"].split("-")]
+    assert layers[1:-1] == list(hidden), label
+    paths = c.step_paths()
+    assert _chains(paths) == [("specialised", layers)], (label, paths)
+
+    portable = graphs.build_runtime(BUILD / "portable", "-DPC_NO_AVX2=ON")
+    p = Corrector(path, library=str(portable / "libposecorr.so"))
+    assert {path for path, _ in _chains(p.step_paths())} <= {"general"}, label
+    x = graphs.poses_in_box(path, 64, seed=5)
+    one, one_portable = (np.vstack([k.correct(x[i]) for i in range(len(x))]) for k in (c, p))
+    np.testing.assert_array_equal(one, one_portable, err_msg=label)
+    np.testing.assert_array_equal(c.correct(x), p.correct(x), err_msg=label)
+    np.testing.assert_array_equal(one, c.correct(x), err_msg=label)
 
 
 def test_shim_checks_the_library_version(lib):
@@ -829,6 +891,21 @@ def test_posecorr_bench_json(c_build, pose_file):
         assert isinstance(d[k], float) and d[k] > 0
     assert d["single_pose_p99_us"] >= d["single_pose_median_us"]
     assert d["steps"] < d["nodes"]  # folding, aliasing and fusion removed work
+    # the path report: one entry per one-pose step, the shim's words
+    assert [(e["path"], e["why"]) for e in d["paths"]] == \
+        Corrector(pose_file, library=str(c_build / "libposecorr.so")).step_paths()
+
+
+def test_info_reports_the_path_of_each_step(lib):
+    """`posecorr info` says what each one-pose step of the shipped zhou MLP runs."""
+    model = ROOT / "models" / "mlp-zhou-tansig-20x20x20x20-br.onnx"
+    r = subprocess.run([sys.executable, "-c", "import sys; from posecorr.cli import main; "
+                        f"sys.exit(main(['info', '--json', {str(model)!r}]))"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    steps = json.loads(r.stdout)["one_pose_steps"]
+    assert [(e["path"], e["why"]) for e in steps] == Corrector(model).step_paths()
+    assert any(e["why"].startswith("dense chain 9-20-20-20-20-9: ") for e in steps)
 
 
 def test_portable_kernels_match_avx2_bit_for_bit(lib):

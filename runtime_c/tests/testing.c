@@ -68,22 +68,6 @@ PC_TEST_API void pc_test_program_steps(const pc_model *m, size_t *compiled, size
     }
 }
 
-/* Chains of the one-pose plan: *unrolled run a kernel of their own shape (dense.c), *general
- * the general chain kernel. */
-PC_TEST_API void pc_test_chain_steps(const pc_model *m, size_t *unrolled, size_t *general)
-{
-    const pc_plan *plan = &m->plans[0];
-    size_t i;
-    *unrolled = *general = 0;
-    for (i = 0; i < plan->n_steps; i++) {
-        const pc_kernel_fn fn = plan->steps[i].fn;
-        if (fn == pc_gemm_chain_kernels[0] || fn == pc_gemm_chain_kernels[1])
-            ++*general;
-        else if (pc_gemm_chain_unrolled(fn))
-            ++*unrolled;
-    }
-}
-
 PC_TEST_API int pc_test_cpu_avx2(void)
 {
     return pc_cpu_avx2();

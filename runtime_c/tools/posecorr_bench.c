@@ -176,6 +176,26 @@ static int bench_reference(const char *wpath, pc_model *model, const float *pose
     return 1;
 }
 
+/* ", \"paths\": [...]": what each step of the one-pose plan runs and why (a model of a
+ * shape the specialised kernels miss says so here instead of only being slower). */
+static void print_paths(const pc_model *model)
+{
+    size_t i;
+    printf(", \"paths\": [");
+    for (i = 0; i < pc_step_count(model); i++) {
+        char why[256];
+        const char *c;
+        pc_path path;
+        if (pc_model_step_path(model, i, &path, why, sizeof why) != PC_OK)
+            break;
+        printf("%s{\"path\": \"%s\", \"why\": \"", i ? ", " : "", pc_path_name(path));
+        for (c = why; *c; c++)
+            printf(*c == '"' || *c == '\\' ? "\\%c" : "%c", *c);
+        printf("\"}");
+    }
+    printf("]");
+}
+
 int main(int argc, char **argv)
 {
     const char *path = NULL, *reference = NULL;
@@ -287,10 +307,12 @@ int main(int argc, char **argv)
     printf("{\"model\": \"%s\", \"unit_single\": \"us\", \"n\": %zu, \"batch\": %zu, "
            "\"single_pose_median_us\": %.4f, \"single_pose_p99_us\": %.4f, "
            "\"batch_ns_per_pose\": %.2f, \"load_us\": %.2f, \"timer_overhead_ns\": %.1f, "
-           "\"steps\": %zu, \"nodes\": %zu, \"arena_bytes\": %zu, \"max_batch\": %zu%s}\n",
+           "\"steps\": %zu, \"nodes\": %zu, \"arena_bytes\": %zu, \"max_batch\": %zu%s",
            path, n, batch, single_med, single_p99, batch_ns, load_us, timer_ns,
            pc_step_count(model), pc_node_count(model), pc_arena_bytes(model),
            pc_max_batch(model), reference_json);
+    print_paths(model);
+    printf("}\n");
     (void)sink;
     pc_free(model);
     free(poses);

@@ -35,7 +35,8 @@ _MESSAGE_SIZE = 256
 # libposecorr's PC_VERSION_MAJOR, PC_VERSION_MINOR this shim is written against: the
 # library must have the same major and at least this minor (minors add functions and, at
 # 0.4, fields at the end of pc_options; 0.5 checks times and input quaternions, the
-# checks of `checks`; 0.6 the digest, the reach and the PC_LOAD_ALLOW_* flags).
+# checks of `checks`; 0.6 the digest, the reach, the PC_LOAD_ALLOW_* flags and
+# the step path report).
 EXPECTED_VERSION = (0, 6)
 # posecorr.h's pc_options.flags the shim passes (Corrector's allow_* arguments).
 _ALLOW_UNBOUNDED, _ALLOW_UNSIGNED = 1 << 4, 1 << 5
@@ -111,6 +112,10 @@ def load_library(path: str | os.PathLike | None = None) -> ctypes.CDLL:
     for fn in (lib.pc_max_batch, lib.pc_arena_bytes, lib.pc_step_count, lib.pc_node_count):
         fn.argtypes = [vp]
         fn.restype = sz
+    lib.pc_model_step_path.argtypes = [vp, sz, ctypes.POINTER(ctypes.c_int), cp, sz]
+    lib.pc_model_step_path.restype = ctypes.c_int
+    lib.pc_path_name.argtypes = [ctypes.c_int]
+    lib.pc_path_name.restype = cp
     _LIBS[p] = lib
     return lib
 
@@ -176,6 +181,19 @@ class _CBackend:
         self.n_steps = int(lib.pc_step_count(self.handle))
         self.n_nodes = int(lib.pc_node_count(self.handle))
         self.takes_time = bool(lib.pc_model_takes_time(self.handle))
+
+    def step_paths(self) -> list[tuple[str, str]]:
+        """(path, why) of each step of the one-pose plan: "specialised", "general" or
+        "interpreted", and what the step is and why it runs that path."""
+        out = []
+        path, why = ctypes.c_int(), ctypes.create_string_buffer(256)
+        for i in range(self.n_steps):
+            st = self.lib.pc_model_step_path(self.handle, i, ctypes.byref(path), why, len(why))
+            if st:
+                raise self._fail(st)
+            name = self.lib.pc_path_name(path.value).decode()
+            out.append((name, why.value.decode(errors="replace")))
+        return out
 
     def _fail(self, st: int) -> PoseCorrError:
         msg = self.lib.pc_model_message(self.handle).decode(errors="replace")
@@ -360,6 +378,13 @@ class Corrector:
         if a.shape[0] == 0:
             return np.zeros((0, POSE_WIDTH))
         return self._impl.run(a, t)
+
+    def step_paths(self) -> list[tuple[str, str]]:
+        """What each step of a pose runs in libposecorr: [(path, why)], path "specialised"
+        (code for its shape), "general" or "interpreted" (C back end only)."""
+        if self.backend != "c":
+            raise ValueError("step paths describe libposecorr's plan: use backend='c'")
+        return self._impl.step_paths()
 
     def predict(self, measured: Any) -> np.ndarray:
         """scikit-learn style alias of `correct`."""

@@ -1,0 +1,162 @@
+"""Every table-1 zhou tansig MLP against its hand-written floor, by instructions and by time.
+
+For each of table 1's 16 architectures (the shipped 20-20-20-20 file, the others exported by
+the project's exporter after two epochs from a simulated Experiment III: the weights do not
+change the work of a pose), `floor/gen_hand.py` writes a hand-written AVX2 function of the
+same network (same weights, tanh approximation and summation order, no FMA). Then:
+
+* instructions a pose (valgrind's callgrind over 1,024 poses, `floor/floor.c MODEL pc|hand`)
+  of `pc_run` built from the checkout and from an earlier revision (`--rev`, default
+  a4423e5: before the layers were specialised by shape class), and of the hand function.
+  A host shared with other work does not change these counts;
+* time a pose, `pc_run` against the hand function in alternating rounds in one process
+  (`floor/floor.c`, median of 41 rounds), `--runs` times, with the load average: the ratio
+  is what the issue's figure quotes; on a busy host it is noise-bound;
+* what each step of a pose runs (`Corrector.step_paths`).
+
+    python -m bench.floor_all [--rev a4423e5] [--runs 3] [-o bench/results/floor_all.json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from . import RESULTS, ROOT, latency_model
+
+HERE = Path(__file__).resolve().parent / "floor"
+
+
+def _run(cmd: list[str], **kw) -> str:
+    return subprocess.run(cmd, check=True, capture_output=True, text=True, **kw).stdout
+
+
+def build_library(tree: Path, build: Path) -> Path:
+    """libposecorr.so built from tree/runtime_c with the release flags; its folder."""
+    _run(["cmake", "-S", str(tree / "runtime_c"), "-B", str(build), "-DCMAKE_BUILD_TYPE=Release",
+          "-DPC_BUILD_TESTS=OFF", f"-DPython3_EXECUTABLE={sys.executable}"])
+    _run(["cmake", "--build", str(build), "--target", "posecorr", "--parallel", "2"])
+    return build
+
+
+def revision_tree(rev: str, work: Path) -> Path:
+    tree = work / f"rev-{rev}"
+    tree.mkdir()
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "runtime_c", "export/operators.txt"],
+                             check=True, capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(tree)], input=archive, check=True)
+    return tree
+
+
+def export_models(work: Path) -> dict[str, Path]:
+    """label ("10-10") -> a zhou tansig MLP of each table-1 architecture."""
+    import numpy as np
+
+    from posecorr.export import to_onnx
+    from posecorr.simulate import simulate
+    from posecorr.train.mlp import MLP
+    from posecorr.train.spec import ARCHITECTURES
+
+    shipped = latency_model()
+    table = simulate(3, seed=0).table
+    idx = np.linspace(0, len(table.measured) - 1, 200).astype(int)
+    m, r = table.measured[idx], table.reference[idx]
+    models = {}
+    for hidden in ARCHITECTURES:
+        label = "-".join(map(str, hidden))
+        if shipped.stem.startswith(f"mlp-zhou-tansig-{label.replace('-', 'x')}-"):
+            models[label] = shipped
+            continue
+        est = MLP(representation="zhou", hidden=hidden, trainer="lm", epochs=2, random_state=1).fit(m, r)
+        models[label] = work / f"zhou-{label}.onnx"
+        # two epochs leave a near-random network whose float32 graph may miss the float64
+        # estimator by more than the parity tolerance: recorded, not refused (the weights do
+        # not change the work of a pose)
+        to_onnx(est, models[label], measured=m, reference=r, parity="warn")
+    return models
+
+
+def instructions(exe: Path, model: Path, which: str) -> float:
+    """Instructions a pose of run_pc or run_hand in floor.c (callgrind)."""
+    out = exe.parent / f"callgrind.{exe.name}.{which}"
+    subprocess.run(["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}",
+                    f"--toggle-collect=run_{which}", str(exe), str(model), which],
+                   check=True, capture_output=True)
+    for line in out.read_text().splitlines():
+        if line.startswith("summary:") or line.startswith("totals:"):
+            return round(int(line.split()[1]) / 1024.0, 1)
+    raise SystemExit(f"no totals in {out}")
+
+
+def one_model(model: Path, libs: dict[str, Path], work: Path, runs: int) -> dict:
+    from posecorr.controller.runtime import Corrector
+
+    cc = shutil.which("cc") or "gcc"
+    d = work / model.stem
+    d.mkdir()
+    _run([sys.executable, str(HERE / "gen_hand.py"), str(model), str(d)])
+    row: dict = {"model": model.name}
+    valgrind = shutil.which("valgrind")
+    for name, lib in libs.items():
+        # -mavx2, not -march=native: valgrind decodes no AVX-512
+        exe = d / f"count-{name}"
+        _run([cc, "-O2", "-mavx2", f"-I{ROOT / 'runtime_c'}", f"-I{HERE}", str(HERE / "floor.c"),
+              str(d / "hand_any.c"), f"-L{lib}", f"-Wl,-rpath,{lib}", "-lposecorr", "-lm", "-o", str(exe)])
+        if valgrind:
+            row[f"pc_run_instructions_{name}"] = instructions(exe, model, "pc")
+            if name == "current":
+                row["hand_instructions"] = instructions(exe, model, "hand")
+    if valgrind:
+        for name in libs:
+            ratio = row[f"pc_run_instructions_{name}"] / row["hand_instructions"]
+            row[f"instruction_ratio_{name}"] = round(ratio, 3)
+    exe = d / "floor"
+    lib = libs["current"]
+    _run([cc, "-O2", "-march=native", f"-I{ROOT / 'runtime_c'}", f"-I{HERE}", str(HERE / "floor.c"),
+          str(d / "hand_any.c"), f"-L{lib}", f"-Wl,-rpath,{lib}", "-lposecorr", "-lm", "-o", str(exe)])
+    row["time_runs"] = []
+    for _ in range(runs):
+        load = os.getloadavg()[0]
+        text = _run([str(exe), str(model)]).split()
+        # "pc_run X ns, hand Y ns, max|diff| D, ratio R"
+        row["time_runs"].append({"pc_run_ns": float(text[1]), "hand_ns": float(text[4]),
+                                 "ratio": float(text[-1]), "load_average": round(load, 2)})
+    paths = Corrector(model, library=str(lib / "libposecorr.so")).step_paths()
+    row["step_paths"] = [f"{p}: {why}" for p, why in paths]
+    return row
+
+
+def run(out: str | None = None, rev: str = "a4423e5", runs: int = 3) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        libs = {"current": build_library(ROOT, work / "build-current"),
+                "previous": build_library(revision_tree(rev, work), work / "build-previous")}
+        models = export_models(work)
+        rows = {label: one_model(path, libs, work, runs) for label, path in models.items()}
+    result = {"previous_revision": rev, "unit_instructions": "per pose (callgrind, 1,024 poses)",
+              "unit_time": "ns per pose, median of 41 rounds (floor.c)", "networks": rows}
+    if out:
+        from posecorr.safeio import atomic_output
+
+        with atomic_output(out) as f:
+            f.write(json.dumps(result, indent=2) + "\n")
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench.floor_all", description=__doc__.splitlines()[0])
+    parser.add_argument("--rev", default="a4423e5", help="earlier revision for the 'previous' counts")
+    parser.add_argument("--runs", type=int, default=3, help="timed runs per network")
+    parser.add_argument("-o", "--out", default=str(RESULTS / "floor_all.json"))
+    args = parser.parse_args(argv)
+    print(json.dumps(run(args.out, args.rev, args.runs), indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

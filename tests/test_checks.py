@@ -470,3 +470,23 @@ def test_posecorr_run_refuses_a_pose_outside_the_box():
     assert r.returncode == 1 and len(lines) == 2 and "nan" in lines[1].lower()
     assert "line 2: pose outside the fitted range: pose 0 is outside the range the model was fitted on " \
            "in column 0: 999.000 m" in r.stderr
+
+
+def test_input_bounds_of_any_length_are_read_whole():
+    """A valid input_bounds longer than the 255 bytes the C reader kept (numbers written
+    with 45 decimals, then 10,000 blanks before them): loaded by both back ends, the same
+    poses corrected, the same box enforced."""
+    box = json.loads({e.key: e.value for e in onnx.load(PMC_ZHOU).metadata_props}["input_bounds"])
+    long = "[" + ", ".join("[" + ", ".join(f"{v:.45f}" for v in row) + "]" for row in box) + "]"
+    assert len(long) > 300
+    poses = _inside()
+    far = poses[:1].copy()
+    far[0, 0] = box[1][0] + 0.01
+    for text in (long, " " * 10_000 + long):
+        blob = _edited(PMC_ZHOU, input_bounds=text).SerializeToString()
+        for backend in BACKENDS:
+            np.testing.assert_array_equal(Corrector(blob, backend=backend).correct(poses),
+                                          Corrector(PMC_ZHOU, backend=backend).correct(poses))
+            with pytest.raises(PoseCorrError, match="metadata input_bounds") as info:
+                Corrector(blob, backend=backend).correct(far)
+            assert info.value.status == S.RANGE

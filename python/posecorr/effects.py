@@ -60,7 +60,8 @@ class Param:
     identity: the value of each entry that makes the effect the identity (with the others 0).
     bounds: (lower, upper) a fit keeps every entry in (None: unbounded).
     domain: where the map is defined at all, whatever a fit's bounds: a key of `DOMAINS`
-        ("positive" for a divisor, "nonnegative" for a standard deviation).
+        ("positive" for a divisor, "nonnegative" for a standard deviation, "scale" for the k
+        of a factor 1 + k).
     """
 
     name: str
@@ -85,6 +86,8 @@ DOMAINS: dict[str, tuple[Callable[[np.ndarray], np.ndarray], str]] = {
     "real": (np.isfinite, "finite"),
     "positive": (lambda v: v > 0, "> 0"),
     "nonnegative": (lambda v: v >= 0, ">= 0"),
+    # a scale written 1 + k: at k = -1 every point collapses onto one, below it the map mirrors
+    "scale": (lambda v: v > -1, "> -1"),
 }
 
 
@@ -352,7 +355,7 @@ class RangeScale(Effect, name="range_scale", order=3, per_row_theta=True, closed
     p <- t_S + (1 + k)(p - t_S); k dimensionless. R unchanged. Inverse: divide by (1 + k).
     """
 
-    params = (Param("k", 1, (5e-3,), 1e-2, "1"),)
+    params = (Param("k", 1, (5e-3,), 1e-2, "1", domain="scale"),)
 
     def forward(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
@@ -600,7 +603,8 @@ def checked_theta(effect: Effect, theta: Any) -> np.ndarray:
         test, words = DOMAINS[param.domain]
         if not np.all(test(values[part])):
             got = values[part].tolist()
-            raise ValueError(f"effect {effect.name!r}: {param.name} must be {words} {param.unit}, "
+            unit = "" if param.unit == "1" else f" {param.unit}"
+            raise ValueError(f"effect {effect.name!r}: {param.name} must be {words}{unit}, "
                              f"got {got[0] if len(got) == 1 else got}")
     return values
 

@@ -65,13 +65,21 @@ def run(args: argparse.Namespace) -> None:
     from ..train.spec import spec_from_options
     from ..train.splits import HeldOut
 
+    from ..analysis.ledger import ledger_path
+    from ..safeio import check_sidecar
+
     apply_threads(args)
+    check_sidecar(ledger_path(args.data))  # refused before the work, not after it
     load_effect_files(args)
     table = read_table(args.data)
     effects = effect_names(args.effects)
     hidden = None if args.hidden is None else options.layer_sizes(args.hidden, "--hidden", ",")
     spec = spec_from_options(args.method, args.representation, hidden=hidden, network=args.network,
                              activation=args.activation, trainer=args.trainer, epochs=args.epochs)
+    if spec.hidden is not None:
+        from ..train.spec import DEFAULT_TRAINER
+
+        options.check_network_size(tuple(spec.hidden), spec.trainer or DEFAULT_TRAINER, "--hidden")
     report = fit_table(table, effects, spec, _parse_cv(args.cv), args.seed, progress=progress(args))
     key = report.heldout_kind
     try:

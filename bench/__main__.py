@@ -18,6 +18,8 @@ Run from the repository root: `python -m bench [--only NAME]`.
   memcpy on the other core (`bench/previous.py`).
 * `apply.json`: `posecorr apply` on 10^6 rows (wall and CPU time, peak memory) against
   the csv module's read-and-write-back floor on the same file (`bench/apply.py`).
+* `fit_long.json`: `posecorr fit` on 10^6 rows (wall time, peak memory): refused past
+  the rows a fit takes, and fitted on an even draw with `--subsample` (`bench/fit_long.py`).
 * `ingest.json`: seconds to ingest a 10-minute recording (300k joint states, 150k tracker
   poses) from a ROS 1 bag, an MCAP file and a CSV log (`bench/ingest.py`).
 """
@@ -66,6 +68,12 @@ def _previous() -> dict:
     return previous.both(str(RESULTS / "previous.json"))
 
 
+def _fit_long() -> dict:
+    from . import fit_long
+
+    return fit_long.run(str(RESULTS / "fit_long.json"))
+
+
 def _ingest() -> dict:
     from . import ingest
 
@@ -74,7 +82,7 @@ def _ingest() -> dict:
 
 # name -> runner writing bench/results/NAME.json; `make bench` runs them in this order.
 BENCHMARKS = {"latency": _latency, "targets": _targets, "previous": _previous, "fit": _fit,
-              "apply": _apply, "ingest": _ingest, "train": _train}
+              "fit_long": _fit_long, "apply": _apply, "ingest": _ingest, "train": _train}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -578,3 +578,27 @@ def test_a_partial_left_by_a_killed_run_is_removed_by_the_next(tmp_path, capsys)
         fresh.mkdir()
     assert target.is_dir() and not stale.exists() and live.exists()
     assert f"{stale}: removed, left by an interrupted run (process {proc.pid}, now gone)" in capsys.readouterr().err
+
+
+def test_a_table_longer_than_a_fit_takes_is_refused_early_or_drawn(tmp_path, capsys, monkeypatch) -> None:
+    """Past FIT_ROWS_MAX rows `fit` stops reading and refuses, naming how to reduce the
+    table (no model, no ledger line); --subsample N fits an even draw of N rows (the limit
+    made small here: the figures on 10^6 rows are bench/fit_long.py's)."""
+    from posecorr.cli import fit as fit_verb
+    from posecorr.data import TooManyRows
+
+    monkeypatch.setattr(fit_verb, "FIT_ROWS_MAX", 60)
+    data, out = tmp_path / "d.csv", tmp_path / "m.onnx"
+    write_table(_table(200), data)
+    with pytest.raises(TooManyRows, match=r"d.csv: more than 60 data rows$"):
+        read_table(data, max_rows=60)
+    code, err, escaped = _run(["fit", str(data), "-o", str(out)], capsys)
+    assert code == 2 and escaped is None and err.count("\n") == 1, err
+    assert "more than 60 rows" in err and "posecorr ingest" in err and "--subsample 60" in err
+    assert not out.exists() and not (tmp_path / "d.csv.ledger.jsonl").exists()
+    code, err, escaped = _run(["fit", str(data), "-o", str(out), "--subsample", "50", "--json"], capsys)
+    assert code == 0 and escaped is None, err
+    drawn, keep = read_table(data).draw(50, 0)
+    assert drawn.n == 50 and len(set(keep)) == 50 and np.all(np.diff(keep) > 0)
+    ledger = json.loads((tmp_path / "d.csv.ledger.jsonl").read_text().splitlines()[0])
+    assert ledger["model"] == str(out)

@@ -156,7 +156,7 @@ class _CBackend:
         self.name = _where(path)
         handle = ctypes.c_void_p()
         err = _Error()
-        opts = _Options(max_batch)
+        opts = _Options(int(max_batch))
         if isinstance(path, (bytes, bytearray)):
             self._blob = bytes(path)
             st = lib.pc_load_memory(self._blob, len(self._blob), ctypes.byref(opts),

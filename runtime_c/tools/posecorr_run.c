@@ -6,6 +6,9 @@
  * models that take time (pc_model_takes_time; others ignore it); without it such a model
  * corrects the pose as at t = 0. --binary reads and writes raw little-endian float32
  * records of 7 values instead. A first line of 7 (or 8) names is a header, passed through.
+ * Numbers are read as the table reader reads them: plain decimal notation (nan and inf read,
+ * then refused as non-finite; a hexadecimal float such as 0x1p-5 is a bad line), on lines of
+ * any length. The model must be a regular file: a FIFO, a device or a folder is refused.
  *
  * A bad line (or a record the model refuses) is answered on stderr with its line (record)
  * number and the reason, and on stdout with a line (record) of seven NaN, so that output

@@ -300,6 +300,12 @@ pc_status pc_load_file(const char *path, const pc_options *opts, pc_model **mode
         fclose(fp);
         return pc_fail(err, PC_ERR_IO, "cannot determine the size of '%s'", path);
     }
+    /* A folder opens and seeks on some C libraries, its size reading as LONG_MAX: one byte
+     * read first makes it "cannot read", not "out of memory". */
+    if ((getc(fp) == EOF && ferror(fp)) || fseek(fp, 0, SEEK_SET) != 0) {
+        fclose(fp);
+        return pc_fail(err, PC_ERR_IO, "cannot read '%s': not a regular file (a folder?)", path);
+    }
     buf = (uint8_t *)malloc(len > 0 ? (size_t)len : 1);
     if (!buf) {
         fclose(fp);

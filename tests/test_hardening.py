@@ -602,3 +602,17 @@ def test_a_table_longer_than_a_fit_takes_is_refused_early_or_drawn(tmp_path, cap
     assert drawn.n == 50 and len(set(keep)) == 50 and np.all(np.diff(keep) > 0)
     ledger = json.loads((tmp_path / "d.csv.ledger.jsonl").read_text().splitlines()[0])
     assert ledger["model"] == str(out)
+
+
+def test_the_c_loader_says_a_folder_cannot_be_read(tmp_path) -> None:
+    """pc_load_file itself (C callers, without the shim's check): a folder opens and seeks
+    on glibc, its size reading as LONG_MAX; it was 'out of memory reading', now IO."""
+    import ctypes
+
+    from posecorr.controller import runtime
+
+    lib = runtime.load_library()
+    handle, err = ctypes.c_void_p(), runtime._Error()
+    status = lib.pc_load_file(os.fsencode(tmp_path), None, ctypes.byref(handle), ctypes.byref(err))
+    assert status == 2 and handle.value is None  # PC_ERR_IO
+    assert err.message.decode() == f"cannot read '{tmp_path}': not a regular file (a folder?)"

@@ -27,6 +27,8 @@ Run from the repository root: `python -m bench [--only NAME]`.
   `diagnose` proposes, how much of the true form's leave-one-out gain the proposal's file
   recovers, how often null sessions get a proposal, and how long `diagnose` takes
   (`bench/forms.py`).
+* `fit_long.json`: `posecorr fit` on 10^6 rows (wall time, peak memory): refused past
+  the rows a fit takes, and fitted on an even draw with `--subsample` (`bench/fit_long.py`).
 * `ingest.json`: seconds to ingest a 10-minute recording (300k joint states, 150k tracker
   poses) from a ROS 1 bag, an MCAP file and a CSV log (`bench/ingest.py`).
 """
@@ -87,6 +89,12 @@ def _forms() -> dict:
     return forms.run(str(RESULTS / "forms.json"))
 
 
+def _fit_long() -> dict:
+    from . import fit_long
+
+    return fit_long.run(str(RESULTS / "fit_long.json"))
+
+
 def _ingest() -> dict:
     from . import ingest
 
@@ -95,7 +103,7 @@ def _ingest() -> dict:
 
 # name -> runner writing bench/results/NAME.json; `make bench` runs them in this order.
 BENCHMARKS = {"latency": _latency, "targets": _targets, "previous": _previous,
-              "floor_all": _floor_all, "fit": _fit,
+              "floor_all": _floor_all, "fit": _fit, "fit_long": _fit_long,
               "apply": _apply, "ingest": _ingest, "train": _train, "forms": _forms}
 
 

@@ -80,35 +80,38 @@ PC_NOINLINE static pc_status pc_check_rows(pc_model *m, pc_error *err)
     return PC_OK;
 }
 
-/* Numbers of a JSON array such as [[-1, -0.5, 0], [1, 0.5, 1.2]], without strtod (which
- * may allocate on small C libraries). Returns the count, or -1 on anything else. */
-static int pc_parse_numbers(const char *s, double *v, int cap)
+/* Numbers of a JSON array such as [[-1, -0.5, 0], [1, 0.5, 1.2]] in the bytes [s, end),
+ * read where they lie (a value of any length; a NUL byte is no part of a number), without
+ * strtod (which may allocate on small C libraries). Returns the count, or -1 on anything
+ * else. */
+#define PC_AT (s < end ? *s : '\0')
+static int pc_parse_numbers(const char *s, const char *end, double *v, int cap)
 {
     int n = 0;
-    while (*s) {
+    while (s < end) {
         double x = 0.0, scale = 1.0;
         int sign = 1, e = 0, esign = 1, digits = 0;
-        if (*s == '[' || *s == ']' || *s == ',' || *s == ' ') {
+        if (PC_AT == '[' || PC_AT == ']' || PC_AT == ',' || PC_AT == ' ') {
             s++;
             continue;
         }
-        if (*s == '-' || *s == '+')
+        if (PC_AT == '-' || PC_AT == '+')
             sign = *s++ == '-' ? -1 : 1;
-        for (; *s >= '0' && *s <= '9'; s++, digits++)
-            x = 10.0 * x + (*s - '0');
-        if (*s == '.')
-            for (s++; *s >= '0' && *s <= '9'; s++, digits++)
-                x += (*s - '0') * (scale *= 0.1);
+        for (; PC_AT >= '0' && PC_AT <= '9'; s++, digits++)
+            x = 10.0 * x + (PC_AT - '0');
+        if (PC_AT == '.')
+            for (s++; PC_AT >= '0' && PC_AT <= '9'; s++, digits++)
+                x += (PC_AT - '0') * (scale *= 0.1);
         if (!digits || n == cap)
             return -1;
-        if (*s == 'e' || *s == 'E') {
+        if (PC_AT == 'e' || PC_AT == 'E') {
             s++;
-            if (*s == '-' || *s == '+')
+            if (PC_AT == '-' || PC_AT == '+')
                 esign = *s++ == '-' ? -1 : 1;
-            if (*s < '0' || *s > '9')
+            if (PC_AT < '0' || PC_AT > '9')
                 return -1;
-            for (; *s >= '0' && *s <= '9' && e < 400; s++)
-                e = 10 * e + (*s - '0');
+            for (; PC_AT >= '0' && PC_AT <= '9' && e < 400; s++)
+                e = 10 * e + (PC_AT - '0');
         }
         for (; e > 0; e--)
             x = esign > 0 ? x * 10.0 : x / 10.0;
@@ -116,6 +119,7 @@ static int pc_parse_numbers(const char *s, double *v, int cap)
     }
     return n;
 }
+#undef PC_AT
 
 /* A metadata value of bounds: `count` lower then `count` upper numbers, each a finite
  * float32, none above its upper partner. A file whose bounds were edited into NaN,
@@ -124,16 +128,12 @@ static int pc_parse_numbers(const char *s, double *v, int cap)
 static pc_status pc_read_bounds(const pc_builder *b, const char *key, pb_slice value, int count,
                                 const char *expected, float *lo, float *hi)
 {
-    char text[PC_MESSAGE_SIZE];
+    const char *text = (const char *)value.data;
     double v[6];
     int k;
-    const size_t n = value.size < sizeof text - 1 ? value.size : sizeof text - 1;
-    if (n)
-        memcpy(text, value.data, n);
-    text[n] = '\0';
-    if (pc_parse_numbers(text, v, 2 * count) != 2 * count)
-        return pc_fail(b->err, PC_ERR_MALFORMED, "metadata %s is '%.60s', expected %s", key,
-                       text, expected);
+    if (pc_parse_numbers(text, text + value.size, v, 2 * count) != 2 * count)
+        return pc_fail(b->err, PC_ERR_MALFORMED, "metadata %s is '%.*s', expected %s", key,
+                       value.size < 60 ? (int)value.size : 60, text, expected);
     for (k = 0; k < count; k++) {
         /* beyond FLT_MAX the conversion to float would be undefined */
         if (!(fabs(v[k]) <= FLT_MAX && fabs(v[k + count]) <= FLT_MAX))
@@ -391,6 +391,12 @@ pc_status pc_load_file(const char *path, const pc_options *opts, pc_model **mode
     if (fseek(fp, 0, SEEK_END) != 0 || (len = ftell(fp)) < 0 || fseek(fp, 0, SEEK_SET) != 0) {
         fclose(fp);
         return pc_fail(err, PC_ERR_IO, "cannot determine the size of '%s'", path);
+    }
+    /* A folder opens and seeks on some C libraries, its size reading as LONG_MAX: one byte
+     * read first makes it "cannot read", not "out of memory". */
+    if ((getc(fp) == EOF && ferror(fp)) || fseek(fp, 0, SEEK_SET) != 0) {
+        fclose(fp);
+        return pc_fail(err, PC_ERR_IO, "cannot read '%s': not a regular file (a folder?)", path);
     }
     buf = (uint8_t *)malloc(len > 0 ? (size_t)len : 1);
     if (!buf) {

@@ -13,10 +13,15 @@
  * pc_run never allocates, never blocks and touches no global state.
  *
  * Threads. The library has no global state: pc_load_* and pc_required_bytes may run on any
- * thread at any time, also while other models run. A pc_model is written by pc_run (its
- * buffers and its message), so each model is used by one thread at a time: pc_run,
- * pc_run_timed, pc_model_message and pc_free of one model must not overlap; the read-only
- * accessors (metadata, counts) may run beside each other. To swap a model while a
+ * thread at any time, also while other models run. Safe to share: the library, the bytes
+ * a model was loaded from, and one model's read-only accessors (metadata, counts, which
+ * may run beside each other and beside pc_run). Not safe to share: a pc_model for pc_run.
+ * It holds one arena, written by every pc_run (its buffers and its message), so two
+ * overlapping pc_run calls on one model corrupt each other's poses: pc_run, pc_run_timed,
+ * pc_model_message and pc_free of one model must not overlap. Threads that share a model
+ * take a lock around each pc_run and the pc_model_message that follows it (the Python
+ * shim's Corrector does); threads that should run in parallel load one model each from
+ * the same bytes (with PC_LOAD_IN_PLACE they share the weights, not the arena). To swap a model while a
  * controller runs, load and check the new one on another thread (it is not shared yet),
  * hand it over through one atomic pointer, take it between two poses, and give the old one
  * back to be freed once the controller no longer uses it: runtime_c/examples/hot_swap.c.

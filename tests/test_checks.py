@@ -360,7 +360,7 @@ def test_no_time_is_time_zero_and_is_checked_too(drift):
 def test_edited_time_bounds_are_refused_at_load(drift, span, fragment):
     path, _, _ = drift
     _same(_load_errors(graphs.signed(_edited(path, time_bounds=span))), S.MALFORMED,
-          f"metadata time_bounds", fragment)
+          "metadata time_bounds", fragment)
 
 
 # --- every export carries its bounds ----------------------------------------------------------
@@ -529,3 +529,23 @@ def test_a_correction_beyond_the_reach_is_refused_alike(dx):
     _same(_both(blob, x), S.RUNTIME, f"output 'corrected' of pose {first} moves the pose by "
           f"{checks.decimal(moved[first])[:-1]}", f"beyond the model's reach of {checks.decimal(reach[0])} m "
           f"and {checks.decimal(reach[1])} rad (metadata correction_reach)")
+
+
+def test_input_bounds_of_any_length_are_read_whole():
+    """A valid input_bounds longer than the 255 bytes the C reader kept (numbers written
+    with 45 decimals, then 10,000 blanks before them): loaded by both back ends, the same
+    poses corrected, the same box enforced."""
+    box = json.loads({e.key: e.value for e in onnx.load(PMC_ZHOU).metadata_props}["input_bounds"])
+    long = "[" + ", ".join("[" + ", ".join(f"{v:.45f}" for v in row) + "]" for row in box) + "]"
+    assert len(long) > 300
+    poses = _inside()
+    far = poses[:1].copy()
+    far[0, 0] = box[1][0] + 0.01
+    for text in (long, " " * 10_000 + long):
+        blob = _edited(PMC_ZHOU, input_bounds=text).SerializeToString()
+        for backend in BACKENDS:
+            np.testing.assert_array_equal(Corrector(blob, backend=backend).correct(poses),
+                                          Corrector(PMC_ZHOU, backend=backend).correct(poses))
+            with pytest.raises(PoseCorrError, match="metadata input_bounds") as info:
+                Corrector(blob, backend=backend).correct(far)
+            assert info.value.status == S.RANGE

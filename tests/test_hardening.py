@@ -507,3 +507,112 @@ sys.exit(main(sys.argv[2:]))
         assert "is not installed" in lines[0] and "pip install" in lines[0]
         assert needs in lines[0]
     assert main(["apply", str(MODEL), str(tmp_path / "d.csv"), "-o", str(tmp_path / "o.csv")]) == 0
+
+
+# --- the shim's misuse and its models (issue 31) ------------------------------------------
+
+@pytest.mark.parametrize("backend", ["c", "onnxruntime"])
+def test_the_shim_refuses_a_fifo_and_a_folder_as_the_model(tmp_path, backend) -> None:
+    """In the command line's words, at once (a FIFO without writer blocked the load forever:
+    a subprocess, so that a regression fails on its timeout and does not hang the suite)."""
+    import subprocess
+
+    os.mkfifo(tmp_path / "m.onnx")
+    code = ("import sys\nfrom posecorr.controller.runtime import Corrector, PoseCorrError\n"
+            "try:\n    Corrector(sys.argv[1], backend=sys.argv[2])\n"
+            "except PoseCorrError as exc:\n    print(exc)\n")
+    run = subprocess.run([sys.executable, "-c", code, str(tmp_path / "m.onnx"), backend],
+                         capture_output=True, text=True, timeout=120)
+    assert run.stdout.strip() == f"{tmp_path / 'm.onnx'}: is a FIFO, expected a file", run
+    with pytest.raises(PoseCorrError, match=r": is a folder, expected a file$"):
+        Corrector(tmp_path, backend=backend)
+
+
+@pytest.mark.parametrize("backend", ["c", "onnxruntime"])
+def test_the_shim_refuses_complex_poses_and_calls_after_close(backend) -> None:
+    pose = _table(1).measured[0]
+    corrector = Corrector(MODEL, backend=backend)
+    for bad in (pose.astype(complex), pose[None].astype(complex), pose.astype(str)):
+        with pytest.raises(ValueError, match="poses must be real numbers"):
+            corrector.correct(bad)
+    corrector.close()
+    for args in ((pose,), (pose[None],)):
+        with pytest.raises(PoseCorrError, match=r"pmc-zhou.onnx: the Corrector is closed"):
+            corrector.correct(*args)
+    corrector.close()  # twice is harmless
+
+
+@pytest.mark.parametrize("max_batch", [-1, 0, 4097, 2.5, True, "16"])
+def test_the_shim_refuses_a_max_batch_out_of_range(max_batch) -> None:
+    with pytest.raises(ValueError, match=r"max_batch must be an integer from 1 to 4096"):
+        Corrector(MODEL, max_batch=max_batch)
+
+
+def test_the_shim_keeps_every_max_batch_in_range() -> None:
+    poses = _table(40).measured
+    want = Corrector(MODEL).correct(poses)
+    for max_batch in (1, 16, 4096):
+        np.testing.assert_array_equal(Corrector(MODEL, max_batch=max_batch).correct(poses), want)
+
+
+def test_a_partial_left_by_a_killed_run_is_removed_by_the_next(tmp_path, capsys) -> None:
+    """SIGKILL leaves `replaced`'s hidden .partial (no clean-up runs); the next run on the
+    same target removes it and says so; a live process' partial is left alone."""
+    import signal
+    import subprocess
+
+    from posecorr.safeio import replaced
+
+    target = tmp_path / "demo"
+    code = ("import sys, time\nfrom posecorr.safeio import replaced\n"
+            "with replaced(sys.argv[1]) as fresh:\n    fresh.mkdir()\n    (fresh / 'a.txt').write_text('x')\n"
+            "    print(fresh, flush=True)\n    time.sleep(60)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(target)], stdout=subprocess.PIPE, text=True)
+    stale = Path(proc.stdout.readline().strip())
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    assert stale.is_dir() and stale.name.startswith(".demo.") and ".partial" in stale.name
+    live = tmp_path / f".demo.{os.getpid()}.0123abcd.partial"
+    live.mkdir()
+    with replaced(target) as fresh:
+        fresh.mkdir()
+    assert target.is_dir() and not stale.exists() and live.exists()
+    assert f"{stale}: removed, left by an interrupted run (process {proc.pid}, now gone)" in capsys.readouterr().err
+
+
+def test_a_table_longer_than_a_fit_takes_is_refused_early_or_drawn(tmp_path, capsys, monkeypatch) -> None:
+    """Past FIT_ROWS_MAX rows `fit` stops reading and refuses, naming how to reduce the
+    table (no model, no ledger line); --subsample N fits an even draw of N rows (the limit
+    made small here: the figures on 10^6 rows are bench/fit_long.py's)."""
+    from posecorr.cli import fit as fit_verb
+    from posecorr.data import TooManyRows
+
+    monkeypatch.setattr(fit_verb, "FIT_ROWS_MAX", 60)
+    data, out = tmp_path / "d.csv", tmp_path / "m.onnx"
+    write_table(_table(200), data)
+    with pytest.raises(TooManyRows, match=r"d.csv: more than 60 data rows$"):
+        read_table(data, max_rows=60)
+    code, err, escaped = _run(["fit", str(data), "-o", str(out)], capsys)
+    assert code == 2 and escaped is None and err.count("\n") == 1, err
+    assert "more than 60 rows" in err and "posecorr ingest" in err and "--subsample 60" in err
+    assert not out.exists() and not (tmp_path / "d.csv.ledger.jsonl").exists()
+    code, err, escaped = _run(["fit", str(data), "-o", str(out), "--subsample", "50", "--json"], capsys)
+    assert code == 0 and escaped is None, err
+    drawn, keep = read_table(data).draw(50, 0)
+    assert drawn.n == 50 and len(set(keep)) == 50 and np.all(np.diff(keep) > 0)
+    ledger = json.loads((tmp_path / "d.csv.ledger.jsonl").read_text().splitlines()[0])
+    assert ledger["model"] == str(out)
+
+
+def test_the_c_loader_says_a_folder_cannot_be_read(tmp_path) -> None:
+    """pc_load_file itself (C callers, without the shim's check): a folder opens and seeks
+    on glibc, its size reading as LONG_MAX; it was 'out of memory reading', now IO."""
+    import ctypes
+
+    from posecorr.controller import runtime
+
+    lib = runtime.load_library()
+    handle, err = ctypes.c_void_p(), runtime._Error()
+    status = lib.pc_load_file(os.fsencode(tmp_path), None, ctypes.byref(handle), ctypes.byref(err))
+    assert status == 2 and handle.value is None  # PC_ERR_IO
+    assert err.message.decode() == f"cannot read '{tmp_path}': not a regular file (a folder?)"

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from posecorr.cli import main
+from posecorr.controller.runtime import Corrector, PoseCorrError
 from posecorr.data import PoseTable, write_table
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,6 +58,15 @@ def folder(tmp_path) -> Path:
     os.symlink(tmp_path / "loop-b", tmp_path / "loop-a")
     (tmp_path / "exits.py").write_text("import sys\nsys.exit(0)\n")
     (tmp_path / "seg.csv.segments.json").mkdir()
+    # sidecars that are not regular files: a ledger that is a link to someone's file, a
+    # ledger and a segment list that are FIFOs, a default sweep store that is a link
+    (tmp_path / "victim.txt").write_text("mine\n")
+    for name in ("linked", "fifo-ledger", "fifo-segments"):
+        write_table(_table(), tmp_path / f"{name}.csv")
+    os.symlink(tmp_path / "victim.txt", tmp_path / "linked.csv.ledger.jsonl")
+    os.symlink(tmp_path / "victim.txt", tmp_path / "linked.csv.sweep.jsonl")
+    os.mkfifo(tmp_path / "fifo-ledger.csv.ledger.jsonl")
+    os.mkfifo(tmp_path / "fifo-segments.csv.segments.json")
     far = _table()
     far.meas_p[4, 0] = 999.0  # 20 km from where the shipped model was fitted
     write_table(far, tmp_path / "far.csv")
@@ -96,6 +106,23 @@ def _cases(f: Path) -> list[tuple[str, str, list[str], list[str]]]:
         ("output", "ingest -o whose segment list would be a folder",
          ["ingest", str(f / "equal-times.csv"), "-o", str(f / "seg.csv")], ["seg.csv.segments.json", "folder"]),
         ("output", "a NUL byte in -o", ["apply", m, d, "-o", str(f / "a\0b.csv")], ["NUL"]),
+        ("output", "apply -o a new folder's name (newdir/)", ["apply", m, d, "-o", str(f / "newdir") + os.sep],
+         ["newdir/", "separator", "file name"]),
+        ("output", "apply -o an existing folder", ["apply", m, d, "-o", str(f / "not-a-bag")],
+         ["not-a-bag", "is a folder"]),
+        # sidecars: never written or read through a link, never waited on as a FIFO
+        ("sidecar", "fit whose ledger is a link to another file",
+         ["fit", str(f / "linked.csv"), "-o", str(f / "o.onnx")], ["linked.csv.ledger.jsonl", "symbolic link"]),
+        ("sidecar", "fit whose ledger is a FIFO", ["fit", str(f / "fifo-ledger.csv"), "-o", str(f / "o.onnx")],
+         ["fifo-ledger.csv.ledger.jsonl", "FIFO"]),
+        ("sidecar", "report whose ledger is a FIFO", ["report", str(f / "fifo-ledger.csv"), "--model", m,
+                                                      "-o", str(f / "r.html"), "--no-diagnosis"],
+         ["fifo-ledger.csv.ledger.jsonl", "FIFO"]),
+        ("sidecar", "report whose segment list is a FIFO", ["report", str(f / "fifo-segments.csv"), "--model", m,
+                                                            "-o", str(f / "r.html"), "--no-diagnosis"],
+         ["fifo-segments.csv.segments.json", "FIFO"]),
+        ("sidecar", "sweep whose default store is a link", ["sweep", str(f / "linked.csv"), "--repeats", "1",
+                                                            "--no-mlp"], ["linked.csv.sweep.jsonl", "symbolic link"]),
         # inputs that never end or never open
         ("input", "a FIFO as the table", ["apply", m, str(f / "fifo"), "-o", str(f / "o.csv")], ["fifo", "FIFO"]),
         ("input", "/dev/zero as the table", ["fit", "/dev/zero", "-o", str(f / "o.onnx")], ["/dev/zero", "device"]),
@@ -127,6 +154,13 @@ def _cases(f: Path) -> list[tuple[str, str, list[str], list[str]]]:
         ("option", "--seed -1", ["fit", d, "-o", str(f / "o.onnx"), "--seed", "-1"], ["--seed"]),
         ("option", "--folds 1", ["diagnose", d, "--folds", "1"], ["--folds"]),
         ("option", "--threads 0", ["fit", d, "-o", str(f / "o.onnx"), "--threads", "0"], ["--threads"]),
+        ("option", "--hidden of 48 layers of 1024", ["fit", d, "-o", str(f / "o.onnx"), "--method", "mlp",
+                                                     "--hidden", ",".join(["1024"] * 48)], ["--hidden", "16"]),
+        ("option", "--hidden 1024,1024 with a second-order trainer",
+         ["fit", d, "-o", str(f / "o.onnx"), "--method", "mlp", "--hidden", "1024,1024"], ["--hidden", "br"]),
+        ("option", "--effects range_scale=-1 (every pose at one point)",
+         ["simulate", "--experiment", "1", "--only", "--effects", "range_scale=-1", "-o", str(f / "s.csv")],
+         ["range_scale", "k must be > -1"]),
         # absurd poses, on every back end (tests/test_checks.py has the rest of the class)
         ("pose", "a pose 999 m away, C", ["apply", m, str(f / "far.csv"), "-o", str(f / "o.csv")],
          ["far.csv", "row 6", "column meas_x", "input_bounds"]),
@@ -348,8 +382,6 @@ def test_shipped_models_carry_their_digest_and_reach(path):
     pos, rot = json.loads(meta["correction_reach"])
     assert 0.01 < pos < 5.0 and 0.01 <= rot <= np.pi
     for backend in BACKENDS:
-        from posecorr.controller.runtime import Corrector
-
         Corrector(path, backend=backend)
 
 
@@ -417,7 +449,6 @@ def test_absurd_models_are_refused_by_every_back_end(folder, capsys):
     on the raw graph is the truth that each case is absurd (or not a pose)."""
     import onnxruntime as ort
 
-    from posecorr.controller.runtime import Corrector, PoseCorrError
     from posecorr.ros2.node import load_checked
 
     cases = _hostile_models(folder)
@@ -466,8 +497,6 @@ def test_absurd_models_are_refused_by_every_back_end(folder, capsys):
 
 
 def test_a_zero_input_quaternion_is_refused_everywhere(folder, capsys):
-    from posecorr.controller.runtime import Corrector, PoseCorrError
-
     table = _table()
     write_table(table, folder / "zero.csv")
     lines = (folder / "zero.csv").read_text().splitlines()
@@ -499,8 +528,6 @@ def test_a_zero_input_quaternion_is_refused_everywhere(folder, capsys):
 def test_the_allow_flags_let_another_producers_file_run(folder, capsys):
     """A user-built model without digest or bounds runs when the caller says so; a present
     digest is checked whatever the flags."""
-    from posecorr.controller.runtime import Corrector, PoseCorrError
-
     g = graphs.G()
     plain = folder / "plain.onnx"
     plain.write_bytes(g.model(g.op("Identity", ["pose"])).SerializeToString())
@@ -522,3 +549,46 @@ def test_the_allow_flags_let_another_producers_file_run(folder, capsys):
                        input="0.01,-0.6,0.5,1,0,0,0\n", capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     np.testing.assert_allclose([float(v) for v in r.stdout.split(",")], [0.01, -0.6, 0.5, 1, 0, 0, 0], atol=1e-7)
+
+
+def _poses(n: int, seed: int) -> np.ndarray:
+    t = _table(n)
+    rng = np.random.default_rng(seed)
+    return t.measured[rng.permutation(n)]
+
+
+@pytest.mark.parametrize("backend", ["c", "onnxruntime"])
+def test_one_corrector_shared_by_8_threads_gives_the_bits_of_one(backend) -> None:
+    """8 threads call one Corrector at once, on batches of several sizes (across the C
+    runtime's 1/16/256 chunks) and on single poses: every result is the single-threaded
+    one bit for bit, and no call raises (before the lock: poses 2e12 m off, false
+    'quaternion that is not unit' errors)."""
+    import threading
+
+    corrector = Corrector(MODEL, backend=backend)
+    batches = [_poses(n, seed) for seed, n in enumerate((1, 7, 16, 100, 256, 300, 700))]
+    singles = _poses(24, 99)
+    want_batches = [corrector.correct(b) for b in batches]
+    want_singles = [corrector.correct(p) for p in singles]
+    start, wrong, errors = threading.Barrier(8), [], []
+
+    def work(k: int) -> None:
+        start.wait()
+        for i in range(40):
+            j = (k + i) % len(batches)
+            try:
+                got = corrector.correct(batches[j])
+                if not np.array_equal(got, want_batches[j]):
+                    wrong.append(("batch", j))
+                s = (k * 3 + i) % len(singles)
+                if not np.array_equal(corrector.correct(singles[s]), want_singles[s]):
+                    wrong.append(("single", s))
+            except Exception as exc:  # a false refusal is a failure as much as a wrong pose
+                errors.append(str(exc))
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=120)
+    corrector.close()
+    assert not errors and not wrong, (errors[:3], wrong[:5])

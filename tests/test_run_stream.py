@@ -88,3 +88,37 @@ def test_an_endless_line_costs_no_memory_and_a_nul_is_not_ignored(run_tool) -> N
     assert r.returncode == 1 and len(out) == 3
     assert all(np.isnan([float(v) for v in line.split(",")]).all() for line in out)
     assert "line 1:" in r.stderr.decode() and "NUL" in r.stderr.decode()
+
+
+def test_a_hexadecimal_number_is_a_bad_line_as_in_a_table(run_tool) -> None:
+    """The table reader refuses 0x1p-5; so does posecorr-run, in a pose and in its time."""
+    good = _csv(GOOD[0])
+    r = _run(run_tool, f"0x1p-5{good[good.index(','):]}\n{good}, -0X1p-5\n{good}\n")
+    assert r.returncode == 1
+    out = r.stdout.splitlines()
+    assert len(out) == 3 and all(v == "nan" for v in out[0].split(",") + out[1].split(","))
+    errors = r.stderr.splitlines()
+    assert [e.split(":")[1].strip() for e in errors] == ["line 1", "line 2"]
+    assert all("plain decimal notation" in e and "hexadecimal" in e for e in errors)
+
+
+def test_a_number_longer_than_4096_bytes_reads(run_tool) -> None:
+    """Any length, not only blanks: 0.0...01 with 10,000 zeros is x = 1e-10001 = 0 in float32."""
+    pose = GOOD[0].copy()
+    pose[0] = 0.0
+    r = _run(run_tool, "0." + "0" * 10_000 + "1" + _csv(pose)[1:] + "\n")
+    assert r.returncode == 0, r.stderr
+    got = np.array([float(v) for v in r.stdout.split(",")])
+    np.testing.assert_allclose(got, Corrector(MODEL).correct(pose), atol=1e-7)
+
+
+@pytest.mark.parametrize("kind", ["FIFO", "folder"])
+def test_a_fifo_or_a_folder_as_the_model_is_refused_at_once(run_tool, tmp_path, kind) -> None:
+    """A FIFO blocked forever, a folder read as 'out of memory': the command line's words."""
+    import os
+
+    model = tmp_path / "m.onnx"
+    os.mkfifo(model) if kind == "FIFO" else model.mkdir()
+    r = subprocess.run([str(run_tool), str(model)], input="", capture_output=True, text=True, timeout=60)
+    word = {"FIFO": "a FIFO", "folder": "a folder"}[kind]
+    assert r.returncode == 1 and r.stderr == f"posecorr-run: {model}: is {word}, expected a file\n"

@@ -42,7 +42,7 @@ import numpy as np
 
 from posecorr.metrics import METRIC_KEYS, improvement, metric_block, pose_metrics, summarize
 from posecorr.rotations import POSITION_ONLY, REPRESENTATIONS
-from posecorr.safeio import append_line, sigterm_as_interrupt
+from posecorr.safeio import append_line, open_sidecar, sigterm_as_interrupt
 
 from .activations import PAPER_ACTIVATIONS
 from .base import Validation
@@ -323,11 +323,12 @@ class SweepResult:
 
 def _load_store(path: Path, fingerprint: str, seed: int) -> dict[tuple[str, int], dict[str, Any]]:
     done: dict[tuple[str, int], dict[str, Any]] = {}
-    if not path.exists():
+    handle = open_sidecar(path)
+    if handle is None:
         return done
-    with open(path, encoding="utf-8", errors="replace") as fh:
-        for line in fh:
-            line = line.strip()
+    with handle:
+        for raw in handle:
+            line = raw.decode("utf-8", errors="replace").strip()
             if not line:
                 continue
             try:
@@ -445,7 +446,7 @@ def run_sweep(table: Any, configs: Sequence[ModelSpec], repeats: int = 30, store
     if store_path:
         store_path.parent.mkdir(parents=True, exist_ok=True)
         # Open it for appending now: an unwritable store fails before hours of training, not after.
-        with open(store_path, "a", encoding="utf-8"):
+        with open_sidecar(store_path, append=True):
             pass
     todo = [(c, r) for c in configs for r in range(repeats) if (c.key, r) not in done]
     rows = [done[(c.key, r)] for c in configs for r in range(repeats) if (c.key, r) in done]

@@ -102,6 +102,14 @@ class PoseTable:
                          None if self.ref_q is None else self.ref_q[index],
                          {k: v[index] for k, v in self.extras.items()}, self.path)
 
+    def draw(self, n: int, seed: int = 0) -> tuple["PoseTable", np.ndarray]:
+        """An even random draw of n rows in table order (the whole table when it has at most
+        n), and their indices."""
+        if self.n <= n:
+            return self, np.arange(self.n)
+        keep = np.sort(np.random.default_rng(seed).choice(self.n, n, replace=False))
+        return self.subset(keep), keep
+
     def with_measured(self, measured: np.ndarray) -> "PoseTable":
         """A copy whose measured poses are replaced by an (N, 7) array (a correction's output)."""
         return PoseTable(np.array(measured[:, :3], dtype=float), np.array(measured[:, 3:7], dtype=float),
@@ -300,19 +308,33 @@ class TableReader:
         return chunk
 
 
-def read_table(path: str | Path) -> PoseTable:
-    """Read a paired-pose CSV; TableError on anything malformed."""
+class TooManyRows(TableError):
+    """A table longer than the caller's `max_rows`, refused after reading that many."""
+
+
+def read_table(path: str | Path, max_rows: int | None = None) -> PoseTable:
+    """Read a paired-pose CSV; TableError on anything malformed, TooManyRows past
+    `max_rows` data rows (read no further). Only the parsed columns are kept of each chunk,
+    not its cells as text."""
+    values: list[dict[str, np.ndarray]] = []
+    cells: list[dict[str, list[str]]] = []
+    rows = 0
     with TableReader(path) as reader:
-        chunks = list(reader.chunks())
         numeric, text = reader.numeric, reader.text
         has_ref_q, index = reader.has_ref_orientation, reader.index
+        for chunk in reader.chunks():
+            rows += len(chunk.rows)
+            if max_rows is not None and rows > max_rows:
+                raise TooManyRows(str(path), f"more than {max_rows:,} data rows")
+            values.append(chunk.values)
+            cells.append({c: [row[index[c]].strip() for row in chunk.rows] for c in text})
     path = str(path)
-    if not chunks:
+    if not values:
         raise TableError(path, "no data rows after the header")
-    arrays = {c: np.concatenate([ch.values[c] for ch in chunks]) for c in numeric}
+    arrays = {c: np.concatenate([v[c] for v in values]) for c in numeric}
     extras: dict[str, np.ndarray] = {c: arrays[c] for c in NUMERIC_OPTIONAL if c in arrays}
     for c in text:
-        extras[c] = np.asarray([row[index[c]].strip() for ch in chunks for row in ch.rows], dtype=object)
+        extras[c] = np.asarray([cell for part in cells for cell in part[c]], dtype=object)
 
     def block(names: tuple[str, ...]) -> np.ndarray:
         return np.stack([arrays[c] for c in names], axis=1)

@@ -62,7 +62,8 @@ class Param:
     identity: the value of each entry that makes the effect the identity (with the others 0).
     bounds: (lower, upper) a fit keeps every entry in (None: unbounded).
     domain: where the map is defined at all, whatever a fit's bounds: a key of `DOMAINS`
-        ("positive" for a divisor, "nonnegative" for a standard deviation).
+        ("positive" for a divisor, "nonnegative" for a standard deviation, "scale" for the k
+        of a factor 1 + k).
     plausible: (lower, upper) the values a real tracker shows (None: any); a fitted value
         outside is no physical explanation, and the diagnosis does not mark the effect present.
     unbounded: a registration's parameter: unregistered frames put it anywhere (metres, any
@@ -93,6 +94,8 @@ DOMAINS: dict[str, tuple[Callable[[np.ndarray], np.ndarray], str]] = {
     "real": (np.isfinite, "finite"),
     "positive": (lambda v: v > 0, "> 0"),
     "nonnegative": (lambda v: v >= 0, ">= 0"),
+    # a scale written 1 + k: at k = -1 every point collapses onto one, below it the map mirrors
+    "scale": (lambda v: v > -1, "> -1"),
 }
 
 
@@ -425,7 +428,7 @@ class RangeScale(Effect, name="range_scale", order=3, per_row_theta=True, closed
     p <- t_S + (1 + k)(p - t_S); k dimensionless. R unchanged. Inverse: divide by (1 + k).
     """
 
-    params = (Param("k", 1, (5e-3,), 1e-2, "1", plausible=(-0.02, 0.02)),)
+    params = (Param("k", 1, (5e-3,), 1e-2, "1", domain="scale", plausible=(-0.02, 0.02)),)
 
     def forward(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
@@ -716,7 +719,8 @@ def checked_theta(effect: Effect, theta: Any) -> np.ndarray:
         test, words = DOMAINS[param.domain]
         if not np.all(test(values[part])):
             got = values[part].tolist()
-            raise ValueError(f"effect {effect.name!r}: {param.name} must be {words} {param.unit}, "
+            unit = "" if param.unit == "1" else f" {param.unit}"
+            raise ValueError(f"effect {effect.name!r}: {param.name} must be {words}{unit}, "
                              f"got {got[0] if len(got) == 1 else got}")
     return values
 

@@ -12,6 +12,9 @@
 * `append_line(path, line)`: appends one whole line under an exclusive lock; a last line
   left torn by an earlier kill is moved to ``PATH.corrupt`` first (and said so on
   stderr), so one interruption costs one record, never the next one glued onto it.
+* `open_sidecar(path)`: the files posecorr keeps beside a table (ledger, segment list,
+  sweep store) are opened without following a symbolic link and only when they are
+  regular files: a link would carry the append into another file, a FIFO would block.
 """
 from __future__ import annotations
 
@@ -29,9 +32,9 @@ try:
 except ImportError:  # Windows: appends are not locked against a second writer
     fcntl = None  # type: ignore[assignment]
 
-__all__ = ["InUseError", "InputPathError", "OutputPathError", "Staged", "check_folder_output", "check_input",
-           "exclusive", "replaced", "Terminated", "append_line", "atomic_output", "check_output",
-           "sigterm_as_interrupt", "staged_outputs", "write_bytes", "write_text"]
+__all__ = ["InUseError", "InputPathError", "OutputPathError", "SidecarError", "Staged", "check_folder_output",
+           "check_input", "check_sidecar", "exclusive", "replaced", "Terminated", "append_line", "atomic_output",
+           "check_output", "open_sidecar", "sigterm_as_interrupt", "staged_outputs", "write_bytes", "write_text"]
 
 
 class OutputPathError(ValueError):
@@ -40,6 +43,10 @@ class OutputPathError(ValueError):
 
 class InputPathError(ValueError):
     """An input path that posecorr refuses to read; the message names the path."""
+
+
+class SidecarError(ValueError):
+    """A sidecar (ledger, segment list, sweep store) that is not a regular file."""
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -369,7 +376,7 @@ def _repair_torn_tail(handle: IO[bytes], path: Path) -> None:
     handle.seek(start)
     torn = handle.read()
     corrupt = path.with_name(path.name + ".corrupt")
-    with open(corrupt, "ab") as aside:
+    with open_sidecar(corrupt, append=True) as aside:
         aside.write(torn + b"\n")
         aside.flush()
         os.fsync(aside.fileno())
@@ -378,12 +385,58 @@ def _repair_torn_tail(handle: IO[bytes], path: Path) -> None:
          f"moved to {corrupt}")
 
 
+def _sidecar_refused(path: Path, kind: str) -> SidecarError:
+    return SidecarError(f"{path}: is {kind}; posecorr reads and writes this file only as a regular file, "
+                        "never through a link or a special file (remove or rename it)")
+
+
+def check_sidecar(path: str | os.PathLike[str]) -> Path:
+    """The sidecar's path when it is missing or a regular file, else SidecarError: a
+    command checks it before any work (`open_sidecar` checks again when it opens)."""
+    target = Path(path)
+    try:
+        found = os.lstat(target)
+    except FileNotFoundError:
+        return target
+    except OSError as exc:
+        raise SidecarError(f"{target}: cannot open: {exc.strerror}") from None
+    kind = _kind(found.st_mode)
+    if kind is not None:
+        raise _sidecar_refused(target, kind)
+    return target
+
+
+def open_sidecar(path: str | os.PathLike[str], *, append: bool = False) -> IO[bytes] | None:
+    """A sidecar opened without following a link (O_NOFOLLOW) and without blocking on a
+    FIFO (O_NONBLOCK), refused with SidecarError unless it is a regular file: "rb", or
+    with `append` "a+b" (created when missing). Reading a missing sidecar gives None."""
+    target = Path(path)
+    flags = getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    flags |= os.O_RDWR | os.O_CREAT | os.O_APPEND if append else os.O_RDONLY
+    try:
+        fd = os.open(target, flags, 0o666)
+    except FileNotFoundError:
+        if append:
+            raise SidecarError(f"{target}: cannot create: folder {target.parent} does not exist") from None
+        return None
+    except OSError as exc:
+        check_sidecar(target)  # a link (ELOOP), a FIFO without reader (ENXIO): named as such
+        raise SidecarError(f"{target}: cannot open: {exc.strerror}") from None
+    kind = _kind(os.fstat(fd).st_mode)
+    if kind is not None:
+        os.close(fd)
+        raise _sidecar_refused(target, kind)
+    os.set_blocking(fd, True)
+    return os.fdopen(fd, "a+b" if append else "rb")
+
+
 def append_line(path: str | os.PathLike[str], line: str) -> None:
-    """Append `line` plus a newline, durably, repairing a torn last line first."""
+    """Append `line` plus a newline, durably, repairing a torn last line first; the file
+    is a sidecar (`open_sidecar`): a link or a special file is refused."""
     if "\n" in line:
         raise ValueError("append_line takes one line without a newline")
     target = Path(path)
-    with open(target, "a+b") as handle:
+    with open_sidecar(target, append=True) as handle:
         if fcntl is not None:
             fcntl.flock(handle.fileno(), fcntl.LOCK_EX)
         try:
@@ -413,16 +466,51 @@ def check_folder_output(path: str | os.PathLike[str], marker: str, what: str) ->
     return out
 
 
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True  # another user's process: alive
+    return True
+
+
+def _remove_stale_partials(folder: Path, out: Path) -> None:
+    """What `replaced` left beside `out` in a run killed with SIGKILL (no clean-up can run
+    then): removed, and said so, once the process that wrote it is gone."""
+    import re
+    import shutil
+
+    pattern = re.compile(rf"\.{re.escape(out.stem)}\.(\d+)\.[0-9a-f]{{8}}\.partial{re.escape(out.suffix)}")
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return
+    for entry in entries:
+        found = pattern.fullmatch(entry.name)
+        if found is None or _alive(int(found.group(1))):
+            continue
+        if entry.is_dir(follow_symlinks=False):
+            shutil.rmtree(entry.path, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                os.unlink(entry.path)
+        warn(f"{entry.path}: removed, left by an interrupted run (process {found.group(1)}, now gone)")
+
+
 @contextlib.contextmanager
 def replaced(path: str | os.PathLike[str]) -> Iterator[Path]:
     """A fresh hidden path beside `path`, with its suffix, for a writer that creates a file
     or a folder by name; what it wrote takes `path`'s place in one rename when the block
     ends without error (a folder: the old one is renamed away first, then removed), and is
-    removed otherwise. A killed command leaves the previous `path` whole."""
+    removed otherwise. A killed command leaves the previous `path` whole; after SIGKILL its
+    hidden ``.STEM.PID.*.partial`` stays until the next run on `path` removes it."""
     import shutil
 
     out = Path(path)
     folder = out.parent if str(out.parent) else Path(".")
+    _remove_stale_partials(folder, out)
     fresh = folder / f".{out.stem}.{os.getpid()}.{os.urandom(4).hex()}.partial{out.suffix}"
     old = None
     try:
@@ -456,7 +544,7 @@ def exclusive(path: str | os.PathLike[str]) -> Iterator[None]:
         yield
         return
     lock = out.with_name(f".{out.name}.lock")
-    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0), 0o666)
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)

@@ -6,6 +6,9 @@
  * models that take time (pc_model_takes_time; others ignore it); without it such a model
  * corrects the pose as at t = 0. --binary reads and writes raw little-endian float32
  * records of 7 values instead. A first line of 7 (or 8) names is a header, passed through.
+ * Numbers are read as the table reader reads them: plain decimal notation (nan and inf read,
+ * then refused as non-finite; a hexadecimal float such as 0x1p-5 is a bad line), on lines of
+ * any length. The model must be a regular file: a FIFO, a device or a folder is refused.
  *
  * A bad line (or a record the model refuses) is answered on stderr with its line (record)
  * number and the reason, and on stdout with a line (record) of seven NaN, so that output
@@ -21,21 +24,38 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#if defined(__unix__) || defined(__APPLE__)
+#include <sys/stat.h>
+#endif
 
 #define USAGE "usage: %s MODEL.onnx [--binary] [--strict] [--allow-unbounded] " \
               "[--allow-unsigned] < poses > corrected\n"
 
-/* A pose line is a few dozen bytes: runs of blanks are kept as one (they only separate
- * numbers), and a line with more than this many other bytes is read to its end but not
- * kept, so an endless line (/dev/zero on stdin) costs no memory while padding of any
- * length still reads. */
-#define LINE_MAX_BYTES 4096
-
+/* A line of any length reads: runs of blanks are kept as one (they only separate
+ * numbers), the buffer grows for the other bytes, and a line already bad (a NUL byte,
+ * what /dev/zero on stdin gives) is read to its end without keeping more, so an endless
+ * one costs no memory. */
 typedef struct {
-    char data[LINE_MAX_BYTES + 1];
-    int too_long; /* the line had more bytes than LINE_MAX_BYTES */
+    char *data;
+    size_t cap;
+    int too_long; /* the line outgrew the memory that could be allocated */
     int has_nul;  /* the line held a NUL byte: C strings would end there */
 } line_buffer;
+
+/* Room for one more byte and the terminating NUL; 0 when memory runs out. */
+static int line_reserve(line_buffer *buf, size_t len)
+{
+    char *grown;
+    size_t cap;
+    if (len + 2 <= buf->cap)
+        return 1;
+    cap = buf->cap ? 2 * buf->cap : 256;
+    if (cap < buf->cap || !(grown = (char *)realloc(buf->data, cap)))
+        return 0;
+    buf->data = grown;
+    buf->cap = cap;
+    return 1;
+}
 
 /* Reads one line (without its newline) into buf; returns 0 at end of input, 1 otherwise. */
 static int read_line(FILE *in, line_buffer *buf)
@@ -43,21 +63,46 @@ static int read_line(FILE *in, line_buffer *buf)
     size_t len = 0;
     int c;
     buf->too_long = buf->has_nul = 0;
+    if (!line_reserve(buf, 0))
+        buf->too_long = 1;
     while ((c = getc(in)) != EOF && c != '\n') {
         if (c == '\0')
             buf->has_nul = 1;
         if ((c == ' ' || c == '\t') && len > 0 && (buf->data[len - 1] == ' ' || buf->data[len - 1] == '\t'))
             continue;
-        if (len < LINE_MAX_BYTES)
+        if (buf->has_nul || buf->too_long)
+            continue;
+        if (line_reserve(buf, len))
             buf->data[len++] = (char)c;
         else
             buf->too_long = 1;
     }
-    buf->data[len] = '\0';
-    return (c == EOF && len == 0 && !buf->too_long) ? 0 : 1;
+    if (buf->data)
+        buf->data[len] = '\0';
+    return (c == EOF && len == 0 && !buf->too_long && !buf->has_nul) ? 0 : 1;
 }
 
-static int parse_line(const char *line, float *v)
+/* strtof, restricted to what the table reader takes: plain decimal notation, and nan or
+ * inf (which pc_run then refuses as non-finite, naming the column). A hexadecimal float
+ * such as 0x1p-5 is no tracker's output: *hex is set and nothing is read. */
+static float read_number(const char *p, char **end, int *hex)
+{
+    const char *q = p;
+    float v = strtof(p, end);
+    if (*end == p)
+        return v;
+    while (*q == ' ' || *q == '\t')
+        q++;
+    if (*q == '+' || *q == '-')
+        q++;
+    if (q[0] == '0' && (q[1] == 'x' || q[1] == 'X')) {
+        *hex = 1;
+        *end = (char *)p;
+    }
+    return v;
+}
+
+static int parse_line(const char *line, float *v, int *hex)
 {
     const char *p = line;
     int k;
@@ -65,7 +110,7 @@ static int parse_line(const char *line, float *v)
         char *end;
         while (*p == ' ' || *p == '\t')
             p++;
-        v[k] = strtof(p, &end);
+        v[k] = read_number(p, &end, hex);
         if (end == p)
             return 0;
         p = end;
@@ -84,7 +129,7 @@ static int parse_line(const char *line, float *v)
 
 /* Splits an optional 8th value (the time t) off a text line: returns 1 and cuts the line
  * before it when there is one, 0 (line untouched) otherwise. */
-static int split_time(char *line, float *t)
+static int split_time(char *line, float *t, int *hex)
 {
     char *p = line, *end;
     int commas = 0;
@@ -92,7 +137,7 @@ static int split_time(char *line, float *t)
         p++;
     if (!*p)
         return 0;
-    *t = strtof(p + 1, &end);
+    *t = read_number(p + 1, &end, hex);
     if (end == p + 1)
         return 0;
     while (*end == ' ' || *end == '\t' || *end == '\r' || *end == '\n')
@@ -193,14 +238,14 @@ static int run_binary(pc_model *model, int strict)
 static int run_text(pc_model *model, int strict)
 {
     float in[PC_POSE_WIDTH], out[PC_POSE_WIDTH];
-    static line_buffer buf;
+    line_buffer buf = {NULL, 0, 0, 0};
     unsigned long line_no = 0;
     int failed = 0, status = 0;
     while (read_line(stdin, &buf) == 1) {
         char *line = buf.data;
         pc_status st;
         float t = 0.0f;
-        int has_t = 0;
+        int has_t = 0, hex = 0;
         line_no++;
         if (!buf.has_nul && !buf.too_long && (line[0] == '#' || is_blank(line)))
             continue;
@@ -213,12 +258,13 @@ static int run_text(pc_model *model, int strict)
             continue;
         }
         if (!buf.has_nul && !buf.too_long)
-            has_t = split_time(line, &t);
-        if (buf.has_nul || buf.too_long || !parse_line(line, in)) {
+            has_t = split_time(line, &t, &hex);
+        if (buf.has_nul || buf.too_long || !parse_line(line, in, &hex) || hex) {
             fprintf(stderr, "posecorr-run: line %lu: expected 7 comma-separated numbers "
                             "x,y,z,qw,qx,qy,qz%s\n", line_no,
                     buf.has_nul ? " (the line holds a NUL byte)"
-                    : buf.too_long ? " (the line holds more than 4096 bytes besides blanks)" : "");
+                    : buf.too_long ? " (out of memory reading the line)"
+                    : hex ? " in plain decimal notation (like -0.125 or 1.5e-3), not hexadecimal" : "");
             if (strict) {
                 status = 1;
                 break;
@@ -240,7 +286,25 @@ static int run_text(pc_model *model, int strict)
             break;
         }
     }
+    free(buf.data);
     return status ? status : failed;
+}
+
+/* What a model path is when it is not a regular file (the words of `posecorr info`), or
+ * NULL: a FIFO would block the load forever, a folder or a device would read as nonsense. */
+static const char *not_a_file(const char *path)
+{
+#if defined(__unix__) || defined(__APPLE__)
+    struct stat st;
+    if (stat(path, &st) != 0 || S_ISREG(st.st_mode))
+        return NULL; /* a missing file: pc_load_file says it cannot open it */
+    return S_ISDIR(st.st_mode) ? "a folder" : S_ISFIFO(st.st_mode) ? "a FIFO"
+         : S_ISCHR(st.st_mode) ? "a character device" : S_ISBLK(st.st_mode) ? "a block device"
+         : "not a regular file";
+#else
+    (void)path;
+    return NULL;
+#endif
 }
 
 int main(int argc, char **argv)
@@ -274,6 +338,10 @@ int main(int argc, char **argv)
     if (!path) {
         fprintf(stderr, USAGE, argv[0]);
         return 2;
+    }
+    if (not_a_file(path)) {
+        fprintf(stderr, "posecorr-run: %s: is %s, expected a file\n", path, not_a_file(path));
+        return 1;
     }
     st = pc_load_file(path, &opts, &model, &err);
     if (st != PC_OK) {

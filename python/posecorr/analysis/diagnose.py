@@ -325,11 +325,11 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     if table.n > MAX_ROWS:
         # Its cost grows with the rows (a fit per candidate and fold): a long recording is
         # diagnosed on an even draw of MAX_ROWS of them, which ranks the same effects.
-        keep = np.sort(np.random.default_rng(seed).choice(table.n, MAX_ROWS, replace=False))
+        drawn, keep = table.draw(MAX_ROWS, seed)
         if model_predict is not None:
             corrected = np.asarray(model_predict(table.measured))
             model_predict = lambda measured: corrected[keep]  # noqa: E731
-        table = table.subset(keep)
+        table = drawn
     effects = list(effects)
     names = list(candidates) if candidates is not None else candidate_effects(table, effects, forms)
     say = progress or (lambda message: None)

@@ -11,7 +11,9 @@ table's poses), plan ("none", "loo" or a number of folds), seed, spec (the reque
 
 Appends are whole lines (`safeio.append_line`): a line torn by an interrupted append is
 moved to DATA.csv.ledger.jsonl.corrupt at the next append; reading skips (and names) any
-line that is not a record, so one torn write never blocks `report`.
+line that is not a record, so one torn write never blocks `report`. The ledger is read and
+appended only as a regular file (`safeio.open_sidecar`): a link or a FIFO in its place is
+refused, naming it.
 """
 from __future__ import annotations
 
@@ -38,13 +40,15 @@ def append_entry(data_path: str | Path, entry: dict[str, Any]) -> dict[str, Any]
 def read_ledger(data_path: str | Path) -> list[dict[str, Any]]:
     """All records, oldest first; a missing ledger is empty. A line that is not a record
     (torn by an interrupted write, edited by hand) is skipped with a warning naming it."""
-    from ..safeio import warn
+    from ..safeio import open_sidecar, warn
 
     path = ledger_path(data_path)
-    if not path.exists():
+    handle = open_sidecar(path)
+    if handle is None:
         return []
+    with handle:
+        text = handle.read().decode("utf-8", errors="replace")
     records = []
-    text = path.read_bytes().decode("utf-8", errors="replace")
     for number, line in enumerate(text.splitlines(), start=1):
         if line.strip():
             try:

@@ -44,7 +44,9 @@ def printable(text: str) -> str:
 # --- option groups ---------------------------------------------------------------------
 
 def output_option(p: argparse.ArgumentParser, help: str | None = None, **kw: Any) -> None:
-    p.add_argument("-o", "--output", type=Path, required=kw.pop("required", True), help=help, **kw)
+    from .options import file_name
+
+    p.add_argument("-o", "--output", type=file_name, required=kw.pop("required", True), help=help, **kw)
 
 
 def seed_option(p: argparse.ArgumentParser) -> None:
@@ -54,7 +56,9 @@ def seed_option(p: argparse.ArgumentParser) -> None:
 
 
 def effect_file_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--effect-file", action="append", type=Path, help="a Python file with user effects")
+    p.add_argument("--effect-file", action="append", type=Path,
+                   help="a Python file with user effects; it is run as Python code with your rights "
+                        "(like `python FILE`): give only files you trust")
 
 
 def backend_option(p: argparse.ArgumentParser) -> None:

@@ -15,8 +15,8 @@ FOLDER_INPUTS = ("recording",)  # a ROS 2 bag is a folder
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("recording", type=Path, nargs="+",
                    help="a ROS 1 .bag, a ROS 2 bag directory (or its .db3/.mcap), an .mcap file, or one or two CSV logs")
-    p.add_argument("-o", "--output", type=Path, required=True, help="the table; its segment list goes beside it "
-                   "(OUT.segments.json)")
+    p.add_argument("-o", "--output", type=options.file_name, required=True,
+                   help="the table; its segment list goes beside it (OUT.segments.json)")
     p.add_argument("--robot", default="ur5e", help="ur3, ur5, ur10, ur3e, ur5e, ur10e, ur16e, or a .urdf file")
     p.add_argument("--base-link", help="URDF: the base link (default: the root)")
     p.add_argument("--tip-link", help="URDF: the flange link (default: tool0, else the only end link)")

@@ -47,6 +47,19 @@ def real(lo: float | None = None, hi: float | None = None, *, open_lo: bool = Fa
     return parse
 
 
+def file_name(text: str) -> "Path":
+    """A file to write. A trailing separator names a folder, and Path would drop it
+    (`-o newdir/` would write a file named newdir)."""
+    from pathlib import Path
+
+    if text.endswith(("/", os.sep)):
+        raise argparse.ArgumentTypeError(f"{text!r} ends with a separator (a folder); expected a file name to write")
+    return Path(text)
+
+
+file_name.__name__ = "file name"
+
+
 def cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
@@ -57,8 +70,16 @@ THREADS = integer(1, 1024)
 LAYER_WIDTH_MAX = 1024
 
 
+# The paper's deepest network has 4 hidden layers; 16 leaves room and bounds the work.
+LAYER_COUNT_MAX = 16
+# Trainers that keep P x P matrices of the P weights (the Gauss-Newton matrix of LM and BR,
+# BFGS' inverse Hessian): 5,000 weights is 200 MB per matrix, 1024,1024 would be 8 TB.
+SECOND_ORDER_TRAINERS = ("lm", "br", "bfg")
+SECOND_ORDER_WEIGHTS_MAX = 5000
+
+
 def layer_sizes(text: str, option: str, separator: str) -> tuple[int, ...]:
-    """'20,20' -> (20, 20): hidden layer widths in 1..LAYER_WIDTH_MAX."""
+    """'20,20' -> (20, 20): 1..LAYER_COUNT_MAX hidden layer widths in 1..LAYER_WIDTH_MAX."""
     from .common import CliError
 
     sizes = []
@@ -74,4 +95,18 @@ def layer_sizes(text: str, option: str, separator: str) -> tuple[int, ...]:
         sizes.append(size)
     if not sizes:
         raise CliError(f"{option}: give at least one layer size, got {text!r}")
+    if len(sizes) > LAYER_COUNT_MAX:
+        raise CliError(f"{option}: at most {LAYER_COUNT_MAX} hidden layers, got {len(sizes)}")
     return tuple(sizes)
+
+
+def check_network_size(hidden: tuple[int, ...], trainer: str, option: str) -> None:
+    """A network whose trainer would need P x P matrices larger than memory is refused
+    before any work; the hidden-to-hidden weights alone are a lower bound of P."""
+    from .common import CliError
+
+    weights = sum(a * b for a, b in zip(hidden, hidden[1:])) + sum(hidden)
+    if trainer in SECOND_ORDER_TRAINERS and weights > SECOND_ORDER_WEIGHTS_MAX:
+        raise CliError(f"{option}: a network of more than {weights:,} weights; trainer {trainer} keeps "
+                       f"matrices of weights x weights, so it takes at most {SECOND_ORDER_WEIGHTS_MAX:,} "
+                       "(choose smaller layers or a first-order --trainer such as adam or rp)")

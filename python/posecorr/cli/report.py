@@ -26,11 +26,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> None:
     from ..analysis.comparison import compare
-    from ..analysis.ledger import entry_for_model, read_ledger
+    from ..analysis.ledger import entry_for_model, ledger_path, read_ledger
     from ..analysis.page import write_report
     from ..controller.onnx_meta import read_info
     from ..controller.runtime import Corrector
+    from ..ingest.pipeline import segments_path
+    from ..safeio import check_sidecar, open_sidecar
 
+    for sidecar in (ledger_path(args.data), segments_path(args.data)):
+        check_sidecar(sidecar)  # a link or a FIFO refused before the work, not after it
     table = read_data(args)
     info = read_info(args.model)
     corrected = Corrector(args.model, backend=args.backend).correct(table.measured, t=table.time())
@@ -43,10 +47,11 @@ def run(args: argparse.Namespace) -> None:
         effects = effect_names(args.effects) if args.effects is not None else list(info.get("effects") or [])
         diagnosis = diagnose(table, effects, folds=args.folds, seed=args.seed,
                              model_predict=lambda measured: corrected, progress=progress(args))
-    from ..ingest.pipeline import segments_path
-
-    sidecar = segments_path(args.data)
-    segments = json.loads(sidecar.read_text(encoding="utf-8")) if sidecar.exists() else None
+    segments = None
+    handle = open_sidecar(segments_path(args.data))
+    if handle is not None:
+        with handle:
+            segments = json.loads(handle.read())
     path = write_report(args.output, table, corrected, info, diagnosis, ledger, segments=segments,
                         comparison=comparison)
     summary = comparison.to_json()

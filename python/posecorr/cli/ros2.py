@@ -27,7 +27,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> None:
+    """Serves until a signal; the summary is printed, then the exit status is the
+    signal's convention (SIGTERM 143, SIGINT 130), as for every verb."""
     from ..ros2.node import run_node
+    from ..safeio import Terminated
 
     final = run_node(args.model, input_topic=args.input, output_topic=args.output,
                      frame=args.frame, reliable=args.reliable, t0=args.t0,
@@ -39,3 +42,8 @@ def run(args: argparse.Namespace) -> None:
         print(f"stopped: {final['poses_in']} poses in, {final['poses_out']} out, "
               f"{final['refused']} refused; per model generation {final['poses_per_generation']}; "
               f"added latency p50 {final['latency_p50_us']} us, p99 {final['latency_p99_us']} us")
+    sys.stdout.flush()
+    if final["stopped_by"] == "SIGTERM":
+        raise Terminated()
+    if final["stopped_by"] == "SIGINT":
+        raise KeyboardInterrupt()

@@ -93,10 +93,15 @@ def _check_store(path: Path) -> None:
     (a model, a table given by mistake) is refused before a byte is appended to it."""
     import json
 
-    if not path.exists() or path.stat().st_size == 0:
+    from ..safeio import open_sidecar
+
+    handle = open_sidecar(path)  # a link or a FIFO is refused, never followed or waited on
+    if handle is None:
         return
-    with open(path, "rb") as handle:
+    with handle:
         first = handle.readline(1 << 16)
+    if not first:
+        return
     try:
         row = json.loads(first)
     except ValueError:

@@ -150,7 +150,7 @@ def _numbers(value: Any) -> list[float] | None:
 
 def _read_bounds(key: str, value: str, count: int, expected: str) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) float32 of a bounds value, refused as api.c's pc_read_bounds refuses it."""
-    text = value.encode("utf-8")[:255].decode("utf-8", errors="ignore")  # C reads 255 bytes
+    text = value  # read whole, of any length, as the C parser reads it
     try:  # NaN and Infinity are not numbers, as in the C parser
         v = _numbers(json.loads(text, parse_constant=_refuse_constant))
     except (ValueError, RecursionError):

@@ -14,11 +14,19 @@ passes `t=` to it on both backends, and t = 0 for every pose when `t` is not giv
 
 The library is looked up in ``posecorr/_native/libposecorr.so`` (placed there by the
 package build), else in ``$POSECORR_LIBRARY``.
+
+Threads: one `Corrector` may be shared by any number of threads; concurrent calls return
+the bits one thread would get. A C-backed model has one arena (pc_run writes its buffers,
+runtime_c/posecorr.h), so its calls take a lock and run one at a time; onnxruntime's
+session runs concurrent calls itself. For calls that should run in parallel, give each
+thread its own `Corrector` of the same file. `close` waits for a running call; a call after
+it raises PoseCorrError ("... is closed").
 """
 from __future__ import annotations
 
 import ctypes
 import os
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +40,7 @@ __all__ = ["Corrector", "PoseCorrError", "load_library", "library_path"]
 POSE_WIDTH = 7
 TIME_INPUT = checks.TIME_INPUT
 _MESSAGE_SIZE = 256
+MAX_MAX_BATCH = 4096  # PC_MAX_MAX_BATCH
 # libposecorr's PC_VERSION_MAJOR, PC_VERSION_MINOR this shim is written against: the
 # library must have the same major and at least this minor (minors add functions and, at
 # 0.4, fields at the end of pc_options; 0.5 checks times and input quaternions, the
@@ -148,14 +157,19 @@ class _CBackend:
     def __init__(self, path: str | os.PathLike | bytes, library: str | os.PathLike | None,
                  max_batch: int, flags: int = 0) -> None:
         self.lib = lib = load_library(library)
+        # pc_run writes the model's one arena (and _in1/_out1 are shared): one call at a
+        # time, whichever thread; ctypes releases the GIL, so the GIL alone does not do it.
+        self._lock = threading.Lock()
+        self.name = _where(path)
         handle = ctypes.c_void_p()
         err = _Error()
-        opts = _Options(max_batch, flags)
+        opts = _Options(int(max_batch), flags)
         if isinstance(path, (bytes, bytearray)):
             self._blob = bytes(path)
             st = lib.pc_load_memory(self._blob, len(self._blob), ctypes.byref(opts),
                                     ctypes.byref(handle), ctypes.byref(err))
         else:
+            _check_file(path)
             st = lib.pc_load_file(os.fsencode(path), ctypes.byref(opts), ctypes.byref(handle),
                                   ctypes.byref(err))
         if st != 0:
@@ -200,45 +214,59 @@ class _CBackend:
         name = self.lib.pc_status_name(st).decode()
         return PoseCorrError(f"{name}: {msg}", st)
 
+    def _open(self) -> int:
+        """The model's handle; called under the lock."""
+        if self.handle is None:
+            raise _closed(self.name)
+        return self.handle
+
     def run1(self, pose: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
         if t is not None:
             return self.run(np.reshape(pose, (1, POSE_WIDTH)), t)[0]
-        if self._call1 is not None:
-            out = np.empty(POSE_WIDTH)
-            st = self._call1.run1(self._run_address, self.handle, pose, out)
-            if st == 0:
-                return out
-            if st > 0:
+        with self._lock:
+            handle = self._open()
+            if self._call1 is not None:
+                out = np.empty(POSE_WIDTH)
+                st = self._call1.run1(self._run_address, handle, pose, out)
+                if st == 0:
+                    return out
+                if st > 0:
+                    raise self._fail(st)
+                # st < 0: not a float64 contiguous (7,) array; the general path converts it
+            self._in1[:] = pose
+            st = self._run(handle, self._in1_ptr, 1, self._out1_ptr)
+            if st:
                 raise self._fail(st)
-            # st < 0: not a float64 contiguous (7,) array; the general path converts it
-        self._in1[:] = pose
-        st = self._run(self.handle, self._in1_ptr, 1, self._out1_ptr)
-        if st:
-            raise self._fail(st)
-        return self._out1.astype(np.float64)
+            return self._out1.astype(np.float64)
 
     def run1_f32(self, pose: np.ndarray, out: np.ndarray) -> None:
         """Lowest-overhead form: float32 contiguous (7,) in and out, caller-owned."""
-        st = self._run(self.handle, pose.ctypes.data, 1, out.ctypes.data)
-        if st:
-            raise self._fail(st)
+        with self._lock:
+            st = self._run(self._open(), pose.ctypes.data, 1, out.ctypes.data)
+            if st:
+                raise self._fail(st)
 
     def run(self, poses: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
         x = np.ascontiguousarray(poses, dtype=np.float32)
         out = np.empty_like(x)
-        if t is None:
-            st = self._run(self.handle, x.ctypes.data, x.shape[0], out.ctypes.data)
-        else:
-            tt = np.ascontiguousarray(t, dtype=np.float32)
-            st = self.lib.pc_run_timed(self.handle, x.ctypes.data, tt.ctypes.data, x.shape[0],
-                                       out.ctypes.data)
-        if st:
-            raise self._fail(st)
+        tt = None if t is None else np.ascontiguousarray(t, dtype=np.float32)
+        with self._lock:
+            handle = self._open()
+            if tt is None:
+                st = self._run(handle, x.ctypes.data, x.shape[0], out.ctypes.data)
+            else:
+                st = self.lib.pc_run_timed(handle, x.ctypes.data, tt.ctypes.data, x.shape[0],
+                                           out.ctypes.data)
+            if st:
+                raise self._fail(st)
         return out.astype(np.float64)
 
     def close(self) -> None:
-        if getattr(self, "handle", None):
-            self.lib.pc_free(self.handle)
+        if not hasattr(self, "_lock"):
+            return  # the library failed to load: nothing was allocated
+        with self._lock:  # waits for a call that is running
+            if getattr(self, "handle", None):
+                self.lib.pc_free(self.handle)
             self.handle = None
 
     def __del__(self) -> None:
@@ -246,6 +274,21 @@ class _CBackend:
             self.close()
         except Exception:
             pass
+
+
+def _closed(name: str) -> PoseCorrError:
+    return PoseCorrError(f"{name}: the Corrector is closed (close() was called); load the model again")
+
+
+def _check_file(path: str | os.PathLike) -> None:
+    """A model path must be a regular file, refused in the command line's words otherwise:
+    a FIFO would block the load forever, a folder or a device would read as nonsense."""
+    from ..safeio import InputPathError, check_input
+
+    try:
+        check_input(path)
+    except InputPathError as exc:
+        raise PoseCorrError(str(exc), int(checks.Status.IO)) from None
 
 
 def _where(path: str | os.PathLike | bytes) -> str:
@@ -265,6 +308,7 @@ class _OrtBackend:
         if isinstance(path, (bytes, bytearray)):
             data = bytes(path)
         else:
+            _check_file(path)
             try:
                 data = Path(path).read_bytes()
             except OSError as exc:
@@ -288,6 +332,10 @@ class _OrtBackend:
         self.takes_time = TIME_INPUT in inputs
 
     def run(self, poses: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
+        # InferenceSession.run is safe from several threads: no lock here.
+        session = self.session
+        if session is None:
+            raise _closed(self.name)
         x = np.ascontiguousarray(poses, dtype=np.float32)
         tt = None if t is None else np.ascontiguousarray(t, dtype=np.float32)
         checks.check_input(self.limits, x, tt)
@@ -295,7 +343,7 @@ class _OrtBackend:
         if self.takes_time:
             feeds[TIME_INPUT] = np.zeros(len(x), np.float32) if tt is None else tt
         try:
-            out = self.session.run(["corrected"], feeds)[0]
+            out = session.run(["corrected"], feeds)[0]
         except Exception as exc:
             raise PoseCorrError(f"{self.name}: onnxruntime failed to run it: {_first_line(exc)}") from None
         if out.shape != x.shape:
@@ -316,6 +364,15 @@ def _first_line(exc: BaseException) -> str:
     return lines[0] if lines else type(exc).__name__
 
 
+def _real(values: Any, what: str) -> np.ndarray:
+    """`values` as an array of real numbers; complex ones would lose their imaginary part
+    and strings or objects would fail deep in a conversion."""
+    a = np.asarray(values)
+    if a.dtype.kind not in "iuf":
+        raise ValueError(f"{what} must be real numbers (float or int), got an array of {a.dtype}")
+    return a
+
+
 class Corrector:
     """An exported corrector: ``Corrector("model.onnx").correct(poses)``.
 
@@ -324,11 +381,14 @@ class Corrector:
     path: the .onnx file (or its bytes).
     backend: ``"c"`` (libposecorr, default) or ``"onnxruntime"``.
     library: explicit libposecorr path for the C backend (default: see module doc).
-    max_batch: poses evaluated per C call (chunking is internal; any N works).
+    max_batch: poses evaluated per C call, 1 to 4096 (chunking is internal; any N works).
     allow_unbounded: load a model without metadata input_bounds or correction_reach (another
       producer's): its poses are then not checked against them. Refused otherwise.
     allow_unsigned: load a model without metadata model_digest. Refused otherwise; a
       digest that is present is always verified (docs/design.md, "The ONNX contract").
+
+    One Corrector may be shared by threads (see the module doc): concurrent calls give the
+    bits of one thread; on the C back end they run one at a time under a lock.
     """
 
     def __init__(self, path: str | os.PathLike | bytes, backend: str = "c", *,
@@ -336,6 +396,9 @@ class Corrector:
                  allow_unbounded: bool = False, allow_unsigned: bool = False) -> None:
         if backend not in ("c", "onnxruntime"):
             raise ValueError(f"backend must be 'c' or 'onnxruntime', not {backend!r}")
+        if isinstance(max_batch, bool) or not isinstance(max_batch, (int, np.integer)) \
+                or not 1 <= max_batch <= MAX_MAX_BATCH:
+            raise ValueError(f"max_batch must be an integer from 1 to {MAX_MAX_BATCH}, not {max_batch!r}")
         self.path = path if isinstance(path, (bytes, bytearray)) else Path(path)
         self.backend = backend
         if backend == "c":
@@ -362,12 +425,12 @@ class Corrector:
         model's input_bounds, a time outside its time_bounds, a quaternion that is not
         unit, a result that is not a pose.
         """
-        a = np.asarray(poses)
+        a = _real(poses, "poses")
         single = a.shape == (POSE_WIDTH,)
         if not single and (a.ndim != 2 or a.shape[1] != POSE_WIDTH):
             raise ValueError(f"poses must have shape (7,) or (N, 7), got {a.shape}")
         if t is not None:
-            t = np.asarray(t, dtype=np.float64)
+            t = _real(t, "t").astype(np.float64)
             if t.shape != (() if single else (a.shape[0],)):
                 raise ValueError(f"t must have shape {'()' if single else (a.shape[0],)} "
                                  f"for poses of shape {a.shape}, got {t.shape}")

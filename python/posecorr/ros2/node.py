@@ -313,7 +313,8 @@ def make_node(model: Path, *, input_topic: str = "/tracker/pose",
 
 def run_node(model: Path, log=print, **options) -> dict[str, str]:
     """`posecorr ros2`: spins until SIGINT or SIGTERM (KeyboardInterrupt here), then shuts
-    down cleanly and returns the last diagnostics."""
+    down cleanly and returns the last diagnostics, with "stopped_by": the signal's name
+    ("SIGINT", "SIGTERM") or "" when ROS shut down on its own."""
     ros = _import_ros()
     rclpy = ros["rclpy"]
     from rclpy.signals import SignalHandlerOptions
@@ -336,16 +337,19 @@ def run_node(model: Path, log=print, **options) -> dict[str, str]:
         # poses/s unpaced, bench/ros2_latency.py, load 1.9)
         from rclpy.executors import SingleThreadedExecutor
 
+        from ..safeio import Terminated
+
         executor = SingleThreadedExecutor()
         executor.add_node(node)
+        stopped_by = ""
         try:
             while rclpy.ok():
                 executor.spin_once(timeout_sec=0.1)
-        except KeyboardInterrupt:
-            pass
+        except KeyboardInterrupt as exc:
+            stopped_by = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
         finally:
             executor.shutdown()
-        return node.diagnostic_values()
+        return {**node.diagnostic_values(), "stopped_by": stopped_by}
     finally:
         if watcher is not None:
             watcher.stop()

@@ -162,16 +162,13 @@ static void pc_meta_start(const pc_builder *b, pb_reader *r)
  * more allows any rotation). */
 static pc_status pc_read_reach(const pc_builder *b, pb_slice value, pc_model *m)
 {
-    char text[PC_MESSAGE_SIZE];
+    const char *text = (const char *)value.data;
     double v[2];
-    const size_t n = value.size < sizeof text - 1 ? value.size : sizeof text - 1;
-    if (n)
-        memcpy(text, value.data, n);
-    text[n] = '\0';
-    if (pc_parse_numbers(text, v, 2) != 2 || !(v[0] >= 0.0 && v[0] <= FLT_MAX) ||
+    if (pc_parse_numbers(text, text + value.size, v, 2) != 2 || !(v[0] >= 0.0 && v[0] <= FLT_MAX) ||
         !(v[1] >= 0.0 && v[1] <= FLT_MAX))
-        return pc_fail(b->err, PC_ERR_MALFORMED, "metadata correction_reach is '%.60s', "
-                       "expected [metres, radians]: two finite numbers, not negative", text);
+        return pc_fail(b->err, PC_ERR_MALFORMED, "metadata correction_reach is '%.*s', "
+                       "expected [metres, radians]: two finite numbers, not negative",
+                       value.size < 60 ? (int)value.size : 60, text);
     m->reach_pos2 = (float)v[0] * (float)v[0];
     m->reach_cos2 = v[1] >= 3.141592653589793 ? 0.0f
                                               : (float)(cos(0.5 * (float)v[1]) * cos(0.5 * (float)v[1]));

@@ -46,7 +46,7 @@ models: $(STAMP)
 programs: $(STAMP)
 	@cmake -S runtime_c -B build/shapes -DCMAKE_BUILD_TYPE=Release >/dev/null
 	@cmake --build build/shapes --target posecorr-print-shapes --parallel 2 >/dev/null
-	$(VPY) -c "import bench.targets as t, pathlib; t.demo_physics_pmc(pathlib.Path('build/shapes/physics-pmc.onnx'))"
+	$(VPY) -m tools.models --demo-physics-pmc build/shapes/physics-pmc.onnx
 	$(VPY) runtime_c/tools/compile_programs.py --shapes build/shapes/posecorr-print-shapes models/*.onnx \
 	    build/shapes/physics-pmc.onnx
 

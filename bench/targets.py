@@ -32,19 +32,6 @@ GOALS = {
 ROUNDS = 5
 
 
-def demo_physics_pmc(path: Path) -> int:
-    """Fits and exports the demo's physics + PMC (zhou) pipeline; returns its node count."""
-    from posecorr.demo import physics_pmc
-    from posecorr.simulate import simulate
-    from posecorr.train.protocol import split_indices
-
-    data = simulate(3, seed=0).table
-    train, val, _ = split_indices(data.n, 0)
-    rows = np.sort(np.concatenate([train, val]))
-    model = physics_pmc().fit(data.measured[rows], data.reference[rows])
-    return model.to_onnx(path, measured=data.measured[rows], reference=data.reference[rows])["n_nodes"]
-
-
 def shim_single_pose_us(path: Path, rounds: int = ROUNDS, n: int = 2000) -> float:
     """Best round's mean time of `Corrector.correct` on one float64 pose, in us."""
     from posecorr.controller.runtime import Corrector
@@ -62,6 +49,8 @@ def shim_single_pose_us(path: Path, rounds: int = ROUNDS, n: int = 2000) -> floa
 
 
 def run(zhou_model: Path, out_json: str | None = None) -> dict[str, Any]:
+    from tools.models import demo_physics_pmc
+
     import json
 
     from posecorr.latency import c_bench, machine_description

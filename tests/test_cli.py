@@ -175,3 +175,28 @@ def test_fit_prints_the_metrics_of_the_file_it_writes(tmp_path) -> None:
     applied = json.loads(run.stdout)["corrected"]
     for key in ("rmse_pos", "rmse_rot", "rmse_total"):
         assert printed[key] == pytest.approx(applied[key], rel=1e-12), key
+
+
+def test_one_grammar_of_layer_sizes(tmp_path) -> None:
+    """`fit --hidden 20-20`, `20x20` and `20,20` are one network: the same file, byte for
+    byte after its time stamp; a size out of bounds is refused in one line by each verb."""
+    from posecorr.simulate import simulate_session
+
+    data = tmp_path / "s.csv"
+    write_table(simulate_session(5, n=30).table, data)
+    weights = []
+    for spelling in ("3-2", "3x2", "3,2"):
+        out = tmp_path / f"m{spelling.replace(',', 'c')}.onnx"
+        run = posecorr("fit", str(data), "-o", str(out), "--method", "mlp", "--hidden", spelling, "--epochs", "3",
+                       "--trainer", "lm", "--cv", "3", "--json", cwd=tmp_path)
+        assert run.returncode == 0, run.stderr
+        import onnx
+
+        model = onnx.load(out)
+        weights.append([onnx.numpy_helper.to_array(t).tobytes() for t in model.graph.initializer])
+    assert weights[0] == weights[1] == weights[2]
+    for verb, option in (("fit", "--hidden"), ("sweep", "--architectures")):
+        args = [verb, str(data), "-o", str(tmp_path / "x")] if verb == "fit" else [verb, str(data)]
+        run = posecorr(*args, option, "3-0", cwd=tmp_path)
+        assert run.returncode == 2 and run.stderr.strip() == \
+            f"posecorr {verb}: {option}: layer sizes are integers in 1..1024, got 0", run.stderr

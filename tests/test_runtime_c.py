@@ -23,6 +23,7 @@ onnx = pytest.importorskip("onnx")
 ort = pytest.importorskip("onnxruntime")
 
 import graphs  # noqa: E402
+from header import LOAD, STATUS  # noqa: E402
 from posecorr.controller.runtime import Corrector as _Corrector, PoseCorrError  # noqa: E402
 
 
@@ -36,8 +37,8 @@ def Corrector(*args, **kw) -> _Corrector:
     return _Corrector(*args, **kw)
 
 
-# pc_options.flags of the same two (posecorr.h)
-ALLOW = (1 << 4) | (1 << 5)
+ALLOW = LOAD["PC_LOAD_ALLOW_UNBOUNDED"] | LOAD["PC_LOAD_ALLOW_UNSIGNED"]
+LEAN = LOAD["PC_LOAD_IN_PLACE"] | LOAD["PC_LOAD_NO_METADATA"]
 
 BUILD = ROOT / "build"
 OPERATORS = [ln.split("#")[0].strip() for ln in
@@ -156,7 +157,7 @@ def test_physics_pipeline_one_pose_plan_equals_batch_plan_bit_for_bit(lib, tmp_p
     """The demo's physics + PMC model is where one-pose programs do the most (557 nodes,
     3 launches per pose: sines, arctangents, Where, 3x3 products as dot products): each
     pose alone gives the 16-pose plan's bits, and onnxruntime's result."""
-    from bench.targets import demo_physics_pmc
+    from tools.models import demo_physics_pmc
 
     path = tmp_path / "physics+pmc-zhou.onnx"
     demo_physics_pmc(path)
@@ -238,11 +239,7 @@ MLP_ZHOU = ROOT / "models" / "mlp-zhou-tansig-20x20x20x20-br.onnx"
 
 def _status(name: str) -> int:
     """The C enum value of a pc_status, from its name in posecorr.h."""
-    text = (ROOT / "runtime_c" / "posecorr.h").read_text()
-    body = text[text.index("typedef enum pc_status {"):text.index("} pc_status;")]
-    names = [ln.split(",")[0].split("=")[0].strip() for ln in body.splitlines()[1:]
-             if ln.strip().startswith("PC_")]
-    return names.index(name)
+    return STATUS[name]
 
 
 def _run_raw(c: _Corrector, lib: str, x: np.ndarray) -> tuple[int, np.ndarray, bytes]:
@@ -387,7 +384,7 @@ def test_load_in_place_reads_the_weights_where_they_lie(lib, max_batch):
     weights = sum(len(t.raw_data) for t in model.graph.initializer
                   if t.data_type == onnx.TensorProto.FLOAT)
     copy = _load_with(L, blob, max_batch=max_batch)
-    lean = _load_with(L, blob, max_batch=max_batch, flags=1 | 4)  # IN_PLACE | NO_METADATA
+    lean = _load_with(L, blob, max_batch=max_batch, flags=LEAN)
     assert L.pc_arena_bytes(copy) - L.pc_arena_bytes(lean) >= weights > 6000
     assert L.pc_metadata_count(lean) == 0 and L.pc_metadata_count(copy) > 0
     x = graphs.random_poses(40, seed=9)
@@ -417,7 +414,7 @@ def test_lean_load_peak_is_a_small_multiple_of_the_arena(lib):
                                     ctypes.POINTER(_Error)]
     L.pc_load_into.argtypes = [ctypes.c_char_p, sz, vp, vp, sz, ctypes.POINTER(vp),
                                ctypes.POINTER(_Error)]
-    opts = _Options(max_batch=1, flags=1 | 4, program_ops=32)
+    opts = _Options(max_batch=1, flags=LEAN, program_ops=32)
     need, err, handle = sz(), _Error(), vp()
     assert L.pc_required_bytes(blob, len(blob), ctypes.byref(opts), ctypes.byref(need),
                                ctypes.byref(err)) == 0, err.message
@@ -442,8 +439,8 @@ def test_lean_load_options_give_the_same_bits(lib, path):
     blob = path.read_bytes()
     x = graphs.poses_in_box(blob, 12, seed=4)
     results = []
-    for fields in ({}, {"program_ops": 16}, {"program_ops": 48, "flags": 1 | 4},
-                   {"flags": 2}, {"flags": PC_LOAD_INTERPRET}):
+    for fields in ({}, {"program_ops": 16}, {"program_ops": 48, "flags": LEAN},
+                   {"flags": LOAD["PC_LOAD_NO_PROGRAMS"]}, {"flags": PC_LOAD_INTERPRET}):
         h = _load_with(L, blob, max_batch=1, **fields)
         out = np.zeros_like(x)
         for i in range(len(x)):
@@ -454,7 +451,7 @@ def test_lean_load_options_give_the_same_bits(lib, path):
         np.testing.assert_array_equal(r, results[0])
 
 
-PC_LOAD_INTERPRET = 8
+PC_LOAD_INTERPRET = LOAD["PC_LOAD_INTERPRET"]
 
 
 @pytest.fixture(scope="session")
@@ -1039,3 +1036,27 @@ def test_install_find_package_and_pkg_config(c_build, pose_file, tmp_path):
     r = subprocess.run([str(exe), str(pose_file)], capture_output=True, text=True, env=env,
                        check=True)
     np.testing.assert_allclose([float(v) for v in r.stdout.split()], ref, rtol=0, atol=2e-6)
+
+
+def test_shim_load_flags_are_the_headers():
+    from posecorr.controller import runtime
+
+    assert (runtime._ALLOW_UNBOUNDED, runtime._ALLOW_UNSIGNED) == (LOAD["PC_LOAD_ALLOW_UNBOUNDED"],
+                                                                   LOAD["PC_LOAD_ALLOW_UNSIGNED"])
+
+
+def test_the_runtime_readme_counts_what_the_code_holds():
+    """runtime_c/README.md's counts are the code's: the compiled programs' functions, and
+    the files (numbered steps, each naming its file) that adding an operator touches."""
+    import re
+
+    readme = (ROOT / "runtime_c" / "README.md").read_text()
+    compiled = (ROOT / "runtime_c" / "programs_compiled.c").read_text()
+    count = int(re.search(r"pc_n_compiled_programs = (\d+);", compiled)[1])
+    assert f"its {count} functions are" in readme
+    words = {3: "three", 4: "four", 5: "five", 6: "six"}
+    section = readme[readme.index("## Adding an operator"):readme.index("## Tests")]
+    steps = re.findall(r"^\d+\. .*?`([^`]+)`", section, flags=re.M)   # each step's first file
+    assert section.startswith(f"## Adding an operator ({words[len(steps)]} files)"), (section[:60], steps)
+    for step in steps:
+        assert (ROOT / step).exists() or (ROOT / "runtime_c" / step).exists(), step

@@ -307,15 +307,35 @@ def rewrite_metadata(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
     return done
 
 
+def demo_physics_pmc(path: Path) -> int:
+    """Fits and exports the demo's physics + PMC (zhou) pipeline (`posecorr demo`'s, on its fixed
+    split's training and validation rows); returns its node count. `make programs` compiles its
+    programs, the benchmarks time it, the 32 KB firmware carries it."""
+    from posecorr.demo import physics_pmc
+    from posecorr.simulate import simulate
+    from posecorr.train.protocol import split_indices
+
+    data = simulate(3, seed=0).table
+    train, val, _ = split_indices(data.n, 0)
+    rows = np.sort(np.concatenate([train, val]))
+    model = physics_pmc().fit(data.measured[rows], data.reference[rows])
+    return model.to_onnx(path, measured=data.measured[rows], reference=data.reference[rows])["n_nodes"]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m tools.models", description=__doc__.split("\n")[0])
     parser.add_argument("-o", "--out", type=Path, default=MODELS_DIR, help="output directory (default: models/)")
     parser.add_argument("--epochs", type=int, default=MLP_EPOCHS, help="max MLP epochs")
     parser.add_argument("--only", default="", help="comma-separated model names to build (default: all)")
+    parser.add_argument("--demo-physics-pmc", type=Path, metavar="OUT.onnx",
+                        help="fit and export only the demo's physics + PMC model, to OUT.onnx")
     parser.add_argument("--metadata-only", action="store_true",
                         help="rewrite the existing models' stated metadata (split, bounds, reach, digest) and "
                              "their cards without refitting")
     args = parser.parse_args(argv)
+    if args.demo_physics_pmc is not None:
+        demo_physics_pmc(args.demo_physics_pmc)
+        return 0
     if args.metadata_only:
         rewrite_metadata(args.out)
         return 0

@@ -91,21 +91,38 @@ def parse_network(text: str) -> tuple[tuple[int, ...], str]:
     return hidden, trainer
 
 
+# The paper's largest network is 4 x 20; layers of a few hundred already train for hours.
+LAYER_WIDTH_MAX = 1024
+# The paper's deepest network has 4 hidden layers; 16 leaves room and bounds the work.
+LAYER_COUNT_MAX = 16
+
+
 def parse_hidden(hidden: Any) -> tuple[int, ...]:
     """(20, 20), "20,20", "20-20", "20x20", "(20-20)", 16, or a table-1 number as "#16" -> a
-    tuple of ints ("" is no hidden layer: a linear network)."""
+    tuple of ints ("" is no hidden layer: a linear network). The one grammar of layer sizes
+    (the command line's included) and the one place their bounds are checked: widths in
+    1..LAYER_WIDTH_MAX, at most LAYER_COUNT_MAX layers; ValueError saying which otherwise."""
     if isinstance(hidden, str):
         text = hidden.strip()
         if text.startswith("#"):
-            return ARCHITECTURES[int(text[1:]) - 1]
+            number = text[1:]
+            if not number.isdigit() or not 1 <= int(number) <= len(ARCHITECTURES):
+                raise ValueError(f"a table-1 architecture is #1..#{len(ARCHITECTURES)}, got {text!r}")
+            return ARCHITECTURES[int(number) - 1]
         text = text.removeprefix("(").removesuffix(")")
-        parts = [p for p in text.replace("-", ",").replace("x", ",").split(",") if p.strip()]
+        parts = [p.strip() for p in text.replace("-", ",").replace("x", ",").split(",") if p.strip()]
+        bad = next((p for p in parts if not p.isdigit()), None)
+        if bad is not None:
+            raise ValueError(f"layer sizes are integers in 1..{LAYER_WIDTH_MAX}, got {bad!r}")
         hidden = [int(p) for p in parts]
     elif isinstance(hidden, (int, np.integer)):
         hidden = [int(hidden)]
     out = tuple(int(h) for h in hidden)
-    if any(h < 1 for h in out):
-        raise ValueError(f"hidden layer sizes must be >= 1, got {out}")
+    wrong = next((h for h in out if not 1 <= h <= LAYER_WIDTH_MAX), None)
+    if wrong is not None:
+        raise ValueError(f"layer sizes are integers in 1..{LAYER_WIDTH_MAX}, got {wrong}")
+    if len(out) > LAYER_COUNT_MAX:
+        raise ValueError(f"at most {LAYER_COUNT_MAX} hidden layers, got {len(out)}")
     return out
 
 

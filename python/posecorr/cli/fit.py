@@ -26,7 +26,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--representation", choices=orientations(), default="zhou",
                    help="orientation representation of the core (position-only tables use position only)")
-    p.add_argument("--hidden", help="MLP hidden layer sizes")
+    p.add_argument("--hidden", help="MLP hidden layer sizes: 20-20, 20x20 or 20,20; #N is table 1's N-th")
     p.add_argument("--network", help="an MLP named as in the paper, ARCHITECTURE/ALGORITHM: 16/2 = table 1's "
                                      "architecture 16 trained by algorithm 2 (overrides --hidden and --trainer)")
     from ..train.activations import ACTIVATIONS
@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> None:
     load_effect_files(args)
     table = _read(args)
     effects = effect_names(args.effects)
-    hidden = None if args.hidden is None else options.layer_sizes(args.hidden, "--hidden", ",")
+    hidden = None if args.hidden is None else options.layer_sizes(args.hidden, "--hidden")
     spec = spec_from_options(args.method, args.representation, hidden=hidden, network=args.network,
                              activation=args.activation, trainer=args.trainer, epochs=args.epochs)
     if spec.hidden is not None:

@@ -66,38 +66,25 @@ def cores() -> int:
 
 SEED = integer(0, 2**32 - 1)
 THREADS = integer(1, 1024)
-# The paper's largest network is 4 x 20; layers of a few hundred already train for hours.
-LAYER_WIDTH_MAX = 1024
-
-
-# The paper's deepest network has 4 hidden layers; 16 leaves room and bounds the work.
-LAYER_COUNT_MAX = 16
 # Trainers that keep P x P matrices of the P weights (the Gauss-Newton matrix of LM and BR,
 # BFGS' inverse Hessian): 5,000 weights is 200 MB per matrix, 1024,1024 would be 8 TB.
 SECOND_ORDER_TRAINERS = ("lm", "br", "bfg")
 SECOND_ORDER_WEIGHTS_MAX = 5000
 
 
-def layer_sizes(text: str, option: str, separator: str) -> tuple[int, ...]:
-    """'20,20' -> (20, 20): 1..LAYER_COUNT_MAX hidden layer widths in 1..LAYER_WIDTH_MAX."""
+def layer_sizes(text: str, option: str) -> tuple[int, ...]:
+    """'20-20', '20x20' or '20,20' -> (20, 20): `train.spec.parse_hidden`'s grammar and
+    bounds, refused in one line naming the option; at least one layer."""
+    from ..train.spec import parse_hidden
     from .common import CliError
 
-    sizes = []
-    for part in text.split(separator):
-        if not part.strip():
-            continue
-        try:
-            size = int(part)
-        except ValueError:
-            size = 0
-        if not 1 <= size <= LAYER_WIDTH_MAX:
-            raise CliError(f"{option}: layer sizes are integers in 1..{LAYER_WIDTH_MAX}, got {part.strip()!r}")
-        sizes.append(size)
+    try:
+        sizes = parse_hidden(text)
+    except ValueError as exc:
+        raise CliError(f"{option}: {exc}") from None
     if not sizes:
         raise CliError(f"{option}: give at least one layer size, got {text!r}")
-    if len(sizes) > LAYER_COUNT_MAX:
-        raise CliError(f"{option}: at most {LAYER_COUNT_MAX} hidden layers, got {len(sizes)}")
-    return tuple(sizes)
+    return sizes
 
 
 def check_network_size(hidden: tuple[int, ...], trainer: str, option: str) -> None:

@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> None:
         raise CliError("--no-pmc with --no-mlp leaves nothing to sweep")
     for arch in (args.architectures or "").split(","):
         if arch.strip() and not arch.strip().startswith("#"):
-            options.layer_sizes(arch, "--architectures", "-")
+            options.layer_sizes(arch, "--architectures")
     if args.workers > options.cores():
         print(f"sweep: --workers {args.workers} capped at the {options.cores()} cores of this machine",
               file=sys.stderr)

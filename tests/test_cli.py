@@ -200,3 +200,31 @@ def test_one_grammar_of_layer_sizes(tmp_path) -> None:
         run = posecorr(*args, option, "3-0", cwd=tmp_path)
         assert run.returncode == 2 and run.stderr.strip() == \
             f"posecorr {verb}: {option}: layer sizes are integers in 1..1024, got 0", run.stderr
+
+
+def test_a_new_verb_is_one_file(tmp_path, capsys) -> None:
+    """A module defining `VERB = Verb(...)` beside its add_arguments and run, dropped into
+    the package's folder, is a verb of `posecorr` (its help, its options, its run); a
+    module there that is no verb is refused by name."""
+    import posecorr.cli as cli
+
+    (tmp_path / "hello.py").write_text(
+        "from posecorr.cli.common import Verb, emit\n"
+        "def add_arguments(p):\n    p.add_argument('--name', default='world')\n"
+        "def run(args):\n    emit(args, {'hello': args.name}, lambda: f'hello, {args.name}')\n"
+        "VERB = Verb(help='say hello', rank=99, add_arguments=add_arguments, run=run)\n")
+    cli.__path__.append(str(tmp_path))
+    try:
+        assert "say hello" in cli.build_parser().format_help()
+        capsys.readouterr()
+        assert cli.main(["hello", "--name", "posecorr"]) == 0
+        assert capsys.readouterr().out.strip() == "hello, posecorr"
+        assert cli.main(["hello", "--json"]) == 0
+        assert json.loads(capsys.readouterr().out) == {"hello": "world"}
+        (tmp_path / "stray.py").write_text("X = 1\n")
+        with pytest.raises(TypeError, match=r"posecorr\.cli\.stray is no verb"):
+            cli.verbs()
+    finally:
+        cli.__path__.remove(str(tmp_path))
+        for name in ("posecorr.cli.hello", "posecorr.cli.stray"):
+            sys.modules.pop(name, None)

@@ -320,16 +320,11 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     from posecorr.data import require_rows
     from posecorr.train.splits import KFold
 
+    from .proposal import explain_absorbed, propose
+
     require_rows(table, max(folds, 2), f"a {folds}-fold diagnosis")
     rows_given = table.n
-    if table.n > MAX_ROWS:
-        # Its cost grows with the rows (a fit per candidate and fold): a long recording is
-        # diagnosed on an even draw of MAX_ROWS of them, which ranks the same effects.
-        drawn, keep = table.draw(MAX_ROWS, seed)
-        if model_predict is not None:
-            corrected = np.asarray(model_predict(table.measured))
-            model_predict = lambda measured: corrected[keep]  # noqa: E731
-        table = drawn
+    table, model_predict = _thinned(table, model_predict, seed)
     effects = list(effects)
     names = list(candidates) if candidates is not None else candidate_effects(table, effects, forms)
     say = progress or (lambda message: None)
@@ -338,36 +333,19 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     splits = KFold(folds).folds(table.n, seed)
     say(f"base model ({', '.join(effects) or 'no effects'}), {folds}-fold cross-validation")
     state = _fold_state(table, effects, names, splits, folds, seed)
-    rows = []
-    for name in names:
-        say(f"candidate {name}")
-        rows.append(_evaluate(table, state, name, len(names), alpha, min_gain, folds, seed))
-    rows.sort(key=lambda row: (-row["score"], row["p_value"]))
-    by_name = {row["effect"]: row for row in rows}
-
     search = _Search(table, effects, names, splits, folds, seed, alpha, min_gain, say, state)
-    kept, dropped = _backward(search, _forward(search, rows), by_name)
-    for rank_index, row in enumerate(rows, start=1):
-        row["rank"] = rank_index
-        row["present"] = row["effect"] in kept
-        row.pop("fold_params")
-    for record in dropped:
-        by_name[record["effect"]]["dropped"] = record
+    rows, kept, dropped = _select(search)
 
-    aliases = _aliases(names, state, effects)
     residual_pred = model_predict(table.measured) if model_predict is not None else state.predicted
-    feats = pose_features(table.reference, table.time())
     features = feature_r2(residual_components(table.reference, residual_pred, table.has_orientation),
-                          feats, folds, seed)
+                          pose_features(table.reference, table.time()), folds, seed)
     dp, _ = pose_errors(table.reference, state.predicted, table.has_orientation)
-    from .proposal import explain_absorbed, propose
-
     result = {
         "model_effects": effects,
         "candidates": rows,
         "undetermined": undetermined,
         "features": features,
-        "aliases": aliases,
+        "aliases": _aliases(names, state, effects),
         "test": PRESENT_TEST.format(alpha=alpha, folds=folds, gain=min_gain),
         "folds": folds,
         "cv_base": {"rmse_total": state.before, "rmse_pos": float(np.sqrt(np.mean(dp ** 2)))},
@@ -376,6 +354,39 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     result["proposal"], result["no_proposal"] = propose(search, result, kept, dropped)
     result["absorbed"] = explain_absorbed(result, kept)
     return result
+
+
+def _thinned(table: PoseTable, model_predict: Callable | None, seed: int) -> tuple[PoseTable, Callable | None]:
+    """The table (and the model's corrections) on an even draw of MAX_ROWS rows when longer:
+    the diagnosis costs a fit per candidate and fold, and a draw ranks the same effects."""
+    if table.n <= MAX_ROWS:
+        return table, model_predict
+    drawn, keep = table.draw(MAX_ROWS, seed)
+    if model_predict is None:
+        return drawn, None
+    corrected = np.asarray(model_predict(table.measured))
+    return drawn, lambda measured: corrected[keep]
+
+
+def _select(search: _Search) -> tuple[list[dict[str, Any]], list[str], list[dict[str, Any]]]:
+    """Every candidate alone, ranked; then forward selection and backward elimination.
+    Returns the ranked rows (with `rank`, `present` and any drop's record), what stays, and
+    the drops."""
+    rows = []
+    for name in search.names:
+        search.say(f"candidate {name}")
+        rows.append(_evaluate(search.table, search.base, name, len(search.names), search.alpha, search.min_gain,
+                              search.folds, search.seed))
+    rows.sort(key=lambda row: (-row["score"], row["p_value"]))
+    by_name = {row["effect"]: row for row in rows}
+    kept, dropped = _backward(search, _forward(search, rows), by_name)
+    for rank_index, row in enumerate(rows, start=1):
+        row["rank"] = rank_index
+        row["present"] = row["effect"] in kept
+        row.pop("fold_params")
+    for record in dropped:
+        by_name[record["effect"]]["dropped"] = record
+    return rows, kept, dropped
 
 
 def _whitened_gain(table: PoseTable, held: np.ndarray, before: np.ndarray, after: np.ndarray, physics: Any) -> float:

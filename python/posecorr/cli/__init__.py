@@ -1,7 +1,8 @@
 """The `posecorr` command line: one entry point, one verb per job, `--json` everywhere.
 
-Each verb is a module of this package (`VERBS`) that declares its arguments beside the code
-that reads them. Verbs import what they need when they run, so the controller-side verbs
+Each verb is a module of this package that declares itself as a `Verb` (its arguments beside
+the code that reads them, what it writes, what it needs); the dispatcher finds every module
+but the helpers (`HELPERS`) and refuses one that is no verb. A new verb is one new file. Verbs import what they need when they run, so the controller-side verbs
 (`apply`, `info`, `bench`) work on an install with numpy only. Every anticipated failure
 (bad table, bad model file, bad option, bad output path, a missing optional package) ends
 with a one-line message naming the file and exit code 2, never a traceback; SIGTERM and
@@ -12,17 +13,34 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import pkgutil
 import sys
 import warnings
 
 from .. import __version__
 from . import failures
-from .common import CliError
+from .common import CliError, Verb
 
-__all__ = ["CliError", "VERBS", "build_parser", "main"]
+__all__ = ["CliError", "Verb", "verbs", "build_parser", "main"]
 
-VERBS = ("simulate", "ingest", "fit", "diagnose", "report", "sweep", "export", "demo", "info", "apply",
-         "ros2", "bench")
+# The modules of this package that are not verbs.
+HELPERS = frozenset({"__main__", "common", "failures", "options"})
+
+
+def verbs() -> dict[str, Verb]:
+    """{name: Verb} of every verb module of this package, in `posecorr --help` order; a
+    module that is no helper and defines no `VERB = Verb(...)` is refused by name."""
+    found = []
+    for info in pkgutil.iter_modules(__path__):
+        if info.name in HELPERS:
+            continue
+        module = importlib.import_module(f".{info.name}", __name__)
+        verb = getattr(module, "VERB", None)
+        if not isinstance(verb, Verb):
+            raise TypeError(f"{module.__name__} is no verb: it defines no VERB = Verb(...) "
+                            f"(a helper module belongs in posecorr.cli.HELPERS)")
+        found.append((verb.rank, info.name, verb))
+    return {name: verb for _, name, verb in sorted(found)}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -37,12 +55,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="posecorr", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"posecorr {__version__}")
     subparsers = parser.add_subparsers(dest="verb", required=True, metavar="VERB")
-    for name in VERBS:
-        verb = importlib.import_module(f".{name}", __name__)
-        p = subparsers.add_parser(name, help=verb.HELP, description=verb.HELP)
+    for name, verb in verbs().items():
+        p = subparsers.add_parser(name, help=verb.help, description=verb.help)
         p.add_argument("--json", action="store_true", help="machine-readable output on stdout")
         verb.add_arguments(p)
-        p.set_defaults(verb_module=verb)
+        p.set_defaults(verb_entry=verb)
     return parser
 
 
@@ -55,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
     except SystemExit as exc:  # --help, --version, a bad option: already said
         return int(exc.code or 0)
-    verb = args.verb_module
+    verb = args.verb_entry
     prefix = f"posecorr {args.verb}: "
     debug = bool(os.environ.get("POSECORR_DEBUG"))
     try:
@@ -81,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:
         if debug:
             raise
-        line = failures.error_line(exc, args, verb.OUTPUTS)
+        line = failures.error_line(exc, args, verb.outputs)
         if failures.anticipated(exc):
             print(prefix + "error: " + line, file=sys.stderr)
             return failures.EXIT_USAGE

@@ -4,17 +4,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import allow_arguments, allow_options, emit, output_option
-
-HELP = "correct the measured poses of a table with a model"
-OUTPUTS = ('output',)  # arguments naming files the verb writes
+from .common import Verb, allow_arguments, allow_options, backend_option, emit, output_option
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("model", type=Path)
     p.add_argument("input", type=Path)
     output_option(p)
-    p.add_argument("--backend", choices=("c", "onnxruntime"), default="c")
+    backend_option(p)
     allow_options(p)
 
 
@@ -34,3 +31,12 @@ def run(args: argparse.Namespace) -> None:
                                                                      "corrected": payload["corrected"]}))
 
     emit(args, payload, text)
+
+
+VERB = Verb(
+    help="correct the measured poses of a table with a model",
+    rank=10,
+    outputs=("output",),
+    add_arguments=add_arguments,
+    run=run,
+)

@@ -5,10 +5,7 @@ import argparse
 from pathlib import Path
 
 from . import options
-from .common import emit
-
-HELP = "single-pose latency and batch throughput, C runtime against the alternatives"
-OUTPUTS = ()  # arguments naming files the verb writes
+from .common import Verb, emit
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -41,3 +38,11 @@ def run(args: argparse.Namespace) -> None:
                      title=f"{args.model} on {result.get('machine', '?')}")
 
     emit(args, result, text)
+
+
+VERB = Verb(
+    help="single-pose latency and batch throughput, C runtime against the alternatives",
+    rank=12,
+    add_arguments=add_arguments,
+    run=run,
+)

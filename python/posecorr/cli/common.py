@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -15,6 +16,29 @@ BACKENDS = ("c", "onnxruntime")
 
 class CliError(Exception):
     """A user-facing error: printed as one line, exit code 2."""
+
+
+@dataclass(frozen=True)
+class Verb:
+    """What a verb is: each module of this package but the helpers defines `VERB = Verb(...)`
+    beside the `add_arguments` and `run` it names, and the dispatcher finds it there.
+
+    help: one line for `posecorr --help`. rank: its place there (the work's order).
+    outputs: the argument names of the files it writes (checked before it runs; every other
+    path argument is an input). needs: the extra it needs (`failures.EXTRA_MODULES`), "" for
+    none. folder_inputs: inputs that may be folders. checks_itself: path arguments it checks
+    itself. folder_output: its output is a folder it fills.
+    """
+
+    help: str
+    rank: int
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], None]
+    outputs: tuple[str, ...] = ()
+    needs: str = ""
+    folder_inputs: tuple[str, ...] = ()
+    checks_itself: tuple[str, ...] = ()
+    folder_output: bool = False
 
 
 def print_json(obj: Any) -> None:

@@ -4,12 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import print_json, apply_threads, seed_option, threads_option
-
-HELP = "the main job on the embedded default: simulate Exp III, fit, export, run in C"
-NEEDS = "train"
-OUTPUTS = ("output",)  # arguments naming files the verb writes
-FOLDER_OUTPUT = True  # -o is a folder it fills
+from .common import Verb, print_json, apply_threads, seed_option, threads_option
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -25,3 +20,14 @@ def run(args: argparse.Namespace) -> None:
     summary = run(args.output, seed=args.seed, log=(lambda message: None) if args.json else print)
     if args.json:
         print_json(summary)
+
+
+VERB = Verb(
+    help="the main job on the embedded default: simulate Exp III, fit, export, run in C",
+    rank=8,
+    needs="train",
+    outputs=("output",),
+    folder_output=True,  # -o is a folder it fills
+    add_arguments=add_arguments,
+    run=run,
+)

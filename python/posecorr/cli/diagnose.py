@@ -4,12 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import (backend_option, diagnosis_options, effect_file_option, effect_names, emit, progress,
+from .common import (Verb, backend_option, diagnosis_options, effect_file_option, effect_names, emit, progress,
                      read_data)
-
-HELP = "rank the physical effects and generic forms the model lacks; propose an effect file"
-NEEDS = "train"
-OUTPUTS = ("propose",)  # arguments naming files the verb writes
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -112,3 +108,13 @@ def _short(values) -> str:
     values = values if isinstance(values, list) else [values]
     text = ", ".join(f"{v:.3g}" for v in values)
     return f"[{text}]" if len(values) > 1 else text
+
+
+VERB = Verb(
+    help="rank the physical effects and generic forms the model lacks; propose an effect file",
+    rank=4,
+    needs="train",
+    outputs=("propose",),
+    add_arguments=add_arguments,
+    run=run,
+)

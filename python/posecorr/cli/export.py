@@ -4,11 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import emit, output_option
-
-HELP = "export an estimator saved by `fit --save` (signed by this account) to ONNX"
-NEEDS = "train"
-OUTPUTS = ('output',)  # arguments naming files the verb writes
+from .common import Verb, emit, output_option
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -25,3 +21,13 @@ def run(args: argparse.Namespace) -> None:
                                      parity="skip" if args.no_parity else "raise")
     emit(args, {k: v for k, v in exported.items() if k != "metadata"},
          lambda: f"{args.estimator} -> {args.output} ({exported['n_nodes']} nodes, {exported['file_size']} bytes)")
+
+
+VERB = Verb(
+    help="export an estimator saved by `fit --save` (signed by this account) to ONNX",
+    rank=7,
+    needs="train",
+    outputs=("output",),
+    add_arguments=add_arguments,
+    run=run,
+)

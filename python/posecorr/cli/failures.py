@@ -5,9 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 from pathlib import Path
-from types import ModuleType
-
-from .common import CliError, printable
+from .common import CliError, Verb, printable
 
 EXIT_USAGE = 2
 EXIT_INTERNAL = 1
@@ -24,9 +22,9 @@ INSTALL_HINT = {**dict.fromkeys(EXTRA_MODULES["train"], "pip install 'posecorr[t
                 **dict.fromkeys((*EXTRA_MODULES["ros2"], "rcl_interfaces"), "pip install 'posecorr[ros2]'")}
 
 
-def check_extras(verb: ModuleType) -> None:
+def check_extras(verb: Verb) -> None:
     """A verb that needs an extra fails before any work when one of its modules is missing."""
-    for module in EXTRA_MODULES.get(getattr(verb, "NEEDS", ""), ()):
+    for module in EXTRA_MODULES.get(verb.needs, ()):
         if importlib.util.find_spec(module) is None:
             raise ModuleNotFoundError(f"No module named {module!r}", name=module)
 
@@ -43,22 +41,21 @@ def paths(args: argparse.Namespace, outputs: tuple[str, ...]) -> tuple[list[Path
     return ins, outs
 
 
-def check_paths(args: argparse.Namespace, verb: ModuleType) -> None:
+def check_paths(args: argparse.Namespace, verb: Verb) -> None:
     """Paths are checked before the verb runs: inputs exist and are files (a device or a
     FIFO is refused unopened), outputs are new or regular files in a writable folder and
     neither an input, an input's sidecar nor another output; so `fit d.csv -o d.csv` or
     `apply m.onnx /dev/zero` fail before any work."""
     from ..safeio import check_input, check_output
 
-    folder_inputs = getattr(verb, "FOLDER_INPUTS", ())
     for name, value in vars(args).items():
-        if name not in verb.OUTPUTS and name not in getattr(verb, "CHECKS_ITSELF", ()):
+        if name not in verb.outputs and name not in verb.checks_itself:
             for item in value if isinstance(value, list) else [value]:
                 if isinstance(item, Path):
-                    check_input(item, folder_ok=name in folder_inputs)
-    if getattr(verb, "FOLDER_OUTPUT", False):
+                    check_input(item, folder_ok=name in verb.folder_inputs)
+    if verb.folder_output:
         return
-    ins, outs = paths(args, verb.OUTPUTS)
+    ins, outs = paths(args, verb.outputs)
     for i, out in enumerate(outs):
         check_output(out, ins + outs[:i])
 

@@ -6,12 +6,8 @@ from pathlib import Path
 from typing import Any
 
 from . import options
-from .common import (CliError, emit, progress, apply_threads, load_effect_files, effect_names,
+from .common import (Verb, CliError, emit, progress, apply_threads, load_effect_files, effect_names,
                      output_option, seed_option, effect_file_option, threads_option)
-
-HELP = "fit a correction (physics effects, then PMC/MLP) and export it as ONNX"
-NEEDS = "train"
-OUTPUTS = ('output', 'save')  # arguments naming files the verb writes
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -171,3 +167,13 @@ def _value_pm(pair: list) -> str:
 
 def _one_pm(value: float, error: float | None) -> str:
     return f"{value:.4g} ± {error:.1g}" if error is not None else f"{value:.4g} (not determined)"
+
+
+VERB = Verb(
+    help="fit a correction (physics effects, then PMC/MLP) and export it as ONNX",
+    rank=3,
+    needs="train",
+    outputs=("output", "save"),
+    add_arguments=add_arguments,
+    run=run,
+)

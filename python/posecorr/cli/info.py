@@ -7,10 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from ..jsonable import json_default
-from .common import emit, printable
-
-HELP = "print a model file's metadata"
-OUTPUTS = ()  # arguments naming files the verb writes
+from .common import Verb, emit, printable
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -47,3 +44,10 @@ def _step_paths(model: Path) -> list[tuple[str, str]] | None:
 def _one_line(value: Any) -> str:
     return json.dumps(value, default=json_default) if isinstance(value, (dict, list)) else str(value)
 
+
+VERB = Verb(
+    help="print a model file's metadata",
+    rank=9,
+    add_arguments=add_arguments,
+    run=run,
+)

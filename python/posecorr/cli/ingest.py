@@ -5,11 +5,7 @@ import argparse
 from pathlib import Path
 
 from . import options
-from .common import CliError, emit
-
-HELP = "a recording (ROS 1/2 bag, MCAP, CSV log) -> the paired-pose table"
-OUTPUTS = ('output',)  # arguments naming files the verb writes
-FOLDER_INPUTS = ("recording",)  # a ROS 2 bag is a folder
+from .common import Verb, CliError, emit
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -111,3 +107,13 @@ def run(args: argparse.Namespace) -> None:
         return "\n".join(lines)
 
     emit(args, payload, text)
+
+
+VERB = Verb(
+    help="a recording (ROS 1/2 bag, MCAP, CSV log) -> the paired-pose table",
+    rank=2,
+    outputs=("output",),
+    folder_inputs=("recording",),  # a ROS 2 bag is a folder
+    add_arguments=add_arguments,
+    run=run,
+)

@@ -5,12 +5,8 @@ import argparse
 import json
 from pathlib import Path
 
-from .common import (backend_option, diagnosis_options, effect_file_option, effect_names, emit, output_option,
+from .common import (Verb, backend_option, diagnosis_options, effect_file_option, effect_names, emit, output_option,
                      progress, read_data)
-
-HELP = "an HTML page: measurements against a model, where it fails, what is missing"
-NEEDS = "train"
-OUTPUTS = ('output',)  # arguments naming files the verb writes
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -59,3 +55,13 @@ def run(args: argparse.Namespace) -> None:
          lambda: (f"{args.data} against {args.model} -> {path} ({path.stat().st_size // 1024} KiB)\n"
                   f"  before: {summary['baseline']['name']}, rmse_pos {1e3 * summary['baseline']['rmse_pos']:.4g} mm; "
                   f"after: {summary['after']['scored']}, rmse_pos {1e3 * summary['after']['rmse_pos']:.4g} mm"))
+
+
+VERB = Verb(
+    help="an HTML page: measurements against a model, where it fails, what is missing",
+    rank=5,
+    needs="train",
+    outputs=("output",),
+    add_arguments=add_arguments,
+    run=run,
+)

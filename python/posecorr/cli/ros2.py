@@ -6,11 +6,7 @@ import sys
 from pathlib import Path
 
 from . import options
-from .common import allow_arguments, allow_options, print_json
-
-HELP = "a ROS 2 node: correct a PoseStamped topic live, swap models while it runs"
-NEEDS = "ros2"
-OUTPUTS = ()  # arguments naming files the verb writes
+from .common import Verb, allow_arguments, allow_options, print_json
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -47,3 +43,12 @@ def run(args: argparse.Namespace) -> None:
         raise Terminated()
     if final["stopped_by"] == "SIGINT":
         raise KeyboardInterrupt()
+
+
+VERB = Verb(
+    help="a ROS 2 node: correct a PoseStamped topic live, swap models while it runs",
+    rank=11,
+    needs="ros2",
+    add_arguments=add_arguments,
+    run=run,
+)

@@ -6,12 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from . import options
-from .common import CliError, emit, load_effect_files, output_option, seed_option, effect_file_option
-
-HELP = ("simulate a paired-pose table of paper experiment I, II or III, "
-        "or a realistic robot-cell session")
-OUTPUTS = ('output',)  # arguments naming files the verb writes
-CHECKS_ITSELF = ("recording",)  # a file or a ROS 2 bag folder (recording.check_recording_output)
+from .common import Verb, CliError, emit, load_effect_files, output_option, seed_option, effect_file_option
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -139,3 +134,13 @@ def _fmt_params(params: dict[str, Any]) -> str:
         else:
             parts.append(f"{key}={value:.4g}" if isinstance(value, float) else f"{key}={value}")
     return ", ".join(parts)
+
+
+VERB = Verb(
+    help="simulate a paired-pose table of paper experiment I, II or III, or a realistic robot-cell session",
+    rank=1,
+    outputs=("output",),
+    checks_itself=("recording",),  # a file or a ROS 2 bag folder (recording.check_recording_output)
+    add_arguments=add_arguments,
+    run=run,
+)

@@ -8,11 +8,7 @@ from pathlib import Path
 
 from . import options
 from ..safeio import exclusive
-from .common import CliError, emit, apply_threads, seed_option, threads_option
-
-HELP = "the paper's protocol: repeats x configurations, tables 2-4, Friedman, tier list"
-NEEDS = "train"
-OUTPUTS = ('store',)  # arguments naming files the verb writes
+from .common import Verb, CliError, emit, apply_threads, seed_option, threads_option
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -109,3 +105,13 @@ def _check_store(path: Path) -> None:
     if not (isinstance(row, dict) and "key" in row and "repeat" in row):
         raise CliError(f"{path}: exists and is not a sweep store (its first line is not a run's record); "
                        "refusing to append to it (choose another --store)")
+
+
+VERB = Verb(
+    help="the paper's protocol: repeats x configurations, tables 2-4, Friedman, tier list",
+    rank=6,
+    needs="train",
+    outputs=("store",),
+    add_arguments=add_arguments,
+    run=run,
+)

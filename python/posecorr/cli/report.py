@@ -26,12 +26,14 @@ def run(args: argparse.Namespace) -> None:
     from ..analysis.page import write_report
     from ..controller.onnx_meta import read_info
     from ..controller.runtime import Corrector
+    from ..data import require_rows
     from ..ingest.pipeline import segments_path
     from ..safeio import check_sidecar, open_sidecar
 
     for sidecar in (ledger_path(args.data), segments_path(args.data)):
         check_sidecar(sidecar)  # a link or a FIFO refused before the work, not after it
     table = read_data(args)
+    require_rows(table, 3, "a report (its baseline is the best rigid fit)")
     info = read_info(args.model)
     corrected = Corrector(args.model, backend=args.backend).correct(table.measured, t=table.time())
     ledger = read_ledger(args.data)

@@ -542,7 +542,7 @@ def test_input_bounds_of_any_length_are_read_whole():
     far = poses[:1].copy()
     far[0, 0] = box[1][0] + 0.01
     for text in (long, " " * 10_000 + long):
-        blob = _edited(PMC_ZHOU, input_bounds=text).SerializeToString()
+        blob = graphs.signed(_edited(PMC_ZHOU, input_bounds=text))
         for backend in BACKENDS:
             np.testing.assert_array_equal(Corrector(blob, backend=backend).correct(poses),
                                           Corrector(PMC_ZHOU, backend=backend).correct(poses))

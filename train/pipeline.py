@@ -422,63 +422,75 @@ def fit_table(table: PoseTable, effects: Sequence[str], spec: ModelSpec, plan: P
         spec = replace(spec, representation=POSITION_ONLY)
     say = progress or (lambda message: None)
     notes: list[str] = []
-    if isinstance(plan, FixedSplit) and table.n < MIN_TEST_SPLIT:
-        plan = LeaveOneOut() if table.n <= 40 else KFold(5)
-        notes.append(f"{table.n} poses are too few for a 15 % test split (fewer than {MIN_TEST_SPLIT}); "
-                     f"cross-validated ({plan}) instead")
+    plan = _plan_for_size(plan, table.n, notes)
     floor = rigid_candidates(table)
     auto = spec.method_entry.chooses
     if auto:
         candidates = auto_candidates(table, effects, spec.representation)
     else:
         candidates = [requested_candidate(effects, spec, seed), *floor]
+    fit_phase = _fit_fixed_split if isinstance(plan, FixedSplit) else _fit_cross_validated
+    return _warn_thin(fit_phase(table, candidates, floor, auto, plan, seed, say, notes))
+
+
+def _plan_for_size(plan: Plan, n: int, notes: list[str]) -> Plan:
+    """The held-out plan the table can bear: a fixed split of fewer than MIN_TEST_SPLIT poses
+    would test on a handful, so such tables are cross-validated instead (said in `notes`)."""
+    if isinstance(plan, FixedSplit) and n < MIN_TEST_SPLIT:
+        plan = LeaveOneOut() if n <= 40 else KFold(5)
+        notes.append(f"{n} poses are too few for a 15 % test split (fewer than {MIN_TEST_SPLIT}); "
+                     f"cross-validated ({plan}) instead")
+    return plan
+
+
+def _fit_fixed_split(table: PoseTable, candidates: list[Candidate], floor: list[Candidate], auto: bool,
+                     plan: FixedSplit, seed: int, say: Callable[[str], None], notes: list[str]) -> FitReport:
+    """The fixed-split phase: candidates fitted on the training rows, chosen on the validation
+    rows, the choice and the best rigid fit refitted on both and scored on the test rows."""
+    M, R, t = table.measured, table.reference, table.time()
+    arrays, with_rotation = (M, R, t), table.has_orientation
+    train, val, test = plan.indices(table.n, seed)
+    fit_rows = np.sort(np.concatenate([train, val]))
+    say(f"fitting {len(candidates)} candidate(s) on {len(train)} poses, choosing on {len(val)}, "
+        f"testing on {len(test)}")
+    prior = _priors(candidates, train, arrays, with_rotation)
+    shared: dict = {(names, 0.0): model for names, model in prior.items()}   # fitted on these very rows
+    held = Validation(M[val], R[val], None if t is None else t[val])
+    fitted = {c.name: _fit(c, train, arrays, with_rotation, prior, shared, validation=held)
+              for c in candidates}
+    scores = {name: _score(R[val], m.predict(M[val], None if t is None else t[val]), with_rotation)
+              for name, m in fitted.items()}
+    best = _best(candidates, scores)
+    floor_best = _best(floor, scores)
+    model = fitted[best.name] if _stops_early(best) else _fit(best, fit_rows, arrays, with_rotation, prior)
+    rigid = model if best == floor_best else _fit(floor_best, fit_rows, arrays, with_rotation, prior)
+    t_test = None if t is None else t[test]
+    raw = pose_metrics(R[test], M[test], with_rotation)
+    heldout = metric_block(raw, pose_metrics(R[test], model.predict(M[test], t_test), with_rotation))
+    baseline = metric_block(raw, pose_metrics(R[test], rigid.predict(M[test], t_test), with_rotation))
+    if best.rigid and not auto:
+        notes.append(f"the requested model did worse than the rigid fit on the {len(val)} validation poses "
+                     f"({scores[candidates[0].name]:.4g} against {scores[best.name]:.4g} rmse_total): "
+                     f"returning the rigid fit ({best.name})")
+    return FitReport(model, raw, heldout, plan, np.sort(fit_rows if not _stops_early(best) else train),
+                     best.name, auto_scores=scores if auto else {}, baseline=baseline, n_heldout=len(test),
+                     fell_back=bool(best.rigid) and not auto, notes=notes, test_index=test,
+                     baseline_name=floor_best.name, rigid_scores={c.name: scores[c.name] for c in floor})
+
+
+def _fit_cross_validated(table: PoseTable, candidates: list[Candidate], floor: list[Candidate], auto: bool,
+                         plan: Plan, seed: int, say: Callable[[str], None], notes: list[str]) -> FitReport:
+    """The cross-validated phase: out-of-fold scores of the choice and of every rigid variant,
+    a fallback to the best rigid variant where it does better, then the final fit on all poses."""
     M, R, t = table.measured, table.reference, table.time()
     arrays, with_rotation = (M, R, t), table.has_orientation
     everything = np.arange(table.n)
     raw_all = pose_metrics(R, M, with_rotation)
-
-    if isinstance(plan, FixedSplit):
-        train, val, test = plan.indices(table.n, seed)
-        fit_rows = np.sort(np.concatenate([train, val]))
-        say(f"fitting {len(candidates)} candidate(s) on {len(train)} poses, choosing on {len(val)}, "
-            f"testing on {len(test)}")
-        prior = _priors(candidates, train, arrays, with_rotation)
-        shared: dict = {(names, 0.0): model for names, model in prior.items()}   # fitted on these very rows
-        held = Validation(M[val], R[val], None if t is None else t[val])
-        fitted = {c.name: _fit(c, train, arrays, with_rotation, prior, shared, validation=held)
-                  for c in candidates}
-        scores = {name: _score(R[val], m.predict(M[val], None if t is None else t[val]), with_rotation)
-                  for name, m in fitted.items()}
-        best = _best(candidates, scores)
-        floor_best = _best(floor, scores)
-        model = fitted[best.name] if _stops_early(best) else _fit(best, fit_rows, arrays, with_rotation, prior)
-        rigid = model if best == floor_best else _fit(floor_best, fit_rows, arrays, with_rotation, prior)
-        t_test = None if t is None else t[test]
-        raw = pose_metrics(R[test], M[test], with_rotation)
-        heldout = metric_block(raw, pose_metrics(R[test], model.predict(M[test], t_test), with_rotation))
-        baseline = metric_block(raw, pose_metrics(R[test], rigid.predict(M[test], t_test), with_rotation))
-        if best.rigid and not auto:
-            notes.append(f"the requested model did worse than the rigid fit on the {len(val)} validation poses "
-                         f"({scores[candidates[0].name]:.4g} against {scores[best.name]:.4g} rmse_total): "
-                         f"returning the rigid fit ({best.name})")
-        report = FitReport(model, raw, heldout, plan, np.sort(fit_rows if not _stops_early(best) else train),
-                           best.name, auto_scores=scores if auto else {}, baseline=baseline, n_heldout=len(test),
-                           fell_back=bool(best.rigid) and not auto, notes=notes, test_index=test,
-                           baseline_name=floor_best.name, rigid_scores={c.name: scores[c.name] for c in floor})
-        return _warn_thin(report)
-
     splits = plan.folds(table.n, seed)
     prior = _priors(candidates, everything, arrays, with_rotation)
     if auto:
-        say(f"auto: choosing among {len(candidates)} candidates inside each of {len(splits)} outer folds")
-        predicted = np.empty_like(M)
-        for train, held in _progress_iter(splits, say, "outer fold"):
-            best, _ = choose(candidates, train, arrays, with_rotation, inner_plan(len(train)), seed, prior)
-            model = _fit(best, train, arrays, with_rotation, prior)
-            predicted[held] = model.predict(M[held], None if t is None else t[held])
-        say("auto: choosing on all poses")
-        best, scores = choose(candidates, everything, arrays, with_rotation, inner_plan(table.n), seed, prior)
-        floor_predicted = out_of_fold(floor, everything, arrays, with_rotation, splits, prior)
+        best, scores, predicted, floor_predicted = _out_of_fold_auto(
+            candidates, floor, arrays, with_rotation, splits, seed, prior, say)
     else:
         say(f"cross-validating {candidates[0].name} and the rigid fits ({plan.description})")
         every = out_of_fold(candidates, everything, arrays, with_rotation, splits, prior)
@@ -494,18 +506,44 @@ def fit_table(table: PoseTable, effects: Sequence[str], spec: ModelSpec, plan: P
                else metric_block(raw_all, pose_metrics(R, predicted, with_rotation)))
     fell_back = best != floor_best and baseline["rmse_total"] < heldout["rmse_total"]
     if fell_back:
-        worse = 100.0 * (heldout["rmse_total"] / baseline["rmse_total"] - 1.0)
-        what = f"auto's choice (made inside each fold; {best.name} on all poses)" if auto else best.name
-        notes.append(f"{what} did worse on held-out poses than the best rigid fit, {floor_best.name} "
-                     f"({heldout['rmse_total']:.4g} against {baseline['rmse_total']:.4g} rmse_total, "
-                     f"{worse:.2g} % worse): returning {floor_best.name}")
+        _note_fallback(best, floor_best, heldout, baseline, auto, notes)
         best, heldout = floor_best, baseline
     say(f"fitting {best.name} on all {table.n} poses")
     model = _fit(best, everything, arrays, with_rotation, prior)
-    report = FitReport(model, raw_all, heldout, plan, everything, best.name, auto_scores=scores, baseline=baseline,
-                       n_heldout=table.n, fell_back=fell_back, notes=notes, baseline_name=floor_best.name,
-                       rigid_scores=rigid_scores)
-    return _warn_thin(report)
+    return FitReport(model, raw_all, heldout, plan, everything, best.name, auto_scores=scores, baseline=baseline,
+                     n_heldout=table.n, fell_back=fell_back, notes=notes, baseline_name=floor_best.name,
+                     rigid_scores=rigid_scores)
+
+
+def _out_of_fold_auto(candidates: Sequence[Candidate], floor: Sequence[Candidate], arrays: tuple,
+                      with_rotation: bool, splits: list, seed: int, prior: dict,
+                      say: Callable[[str], None]) -> tuple[Candidate, dict[str, float], np.ndarray, dict]:
+    """The nested phase of "auto": each outer fold predicted by the choice an inner
+    cross-validation makes on its training rows, then the final choice made on all poses.
+    Returns (final choice, its inner scores, the outer folds' predictions, the rigid variants')."""
+    M, _, t = arrays
+    n = len(M)
+    everything = np.arange(n)
+    say(f"auto: choosing among {len(candidates)} candidates inside each of {len(splits)} outer folds")
+    predicted = np.empty_like(M)
+    for train, held in _progress_iter(splits, say, "outer fold"):
+        best, _ = choose(candidates, train, arrays, with_rotation, inner_plan(len(train)), seed, prior)
+        model = _fit(best, train, arrays, with_rotation, prior)
+        predicted[held] = model.predict(M[held], None if t is None else t[held])
+    say("auto: choosing on all poses")
+    best, scores = choose(candidates, everything, arrays, with_rotation, inner_plan(n), seed, prior)
+    floor_predicted = out_of_fold(floor, everything, arrays, with_rotation, splits, prior)
+    return best, scores, predicted, floor_predicted
+
+
+def _note_fallback(best: Candidate, floor_best: Candidate, heldout: dict, baseline: dict, auto: bool,
+                   notes: list[str]) -> None:
+    """Tells the user why the rigid fit is returned instead of the requested (or auto's) model."""
+    worse = 100.0 * (heldout["rmse_total"] / baseline["rmse_total"] - 1.0)
+    what = f"auto's choice (made inside each fold; {best.name} on all poses)" if auto else best.name
+    notes.append(f"{what} did worse on held-out poses than the best rigid fit, {floor_best.name} "
+                 f"({heldout['rmse_total']:.4g} against {baseline['rmse_total']:.4g} rmse_total, "
+                 f"{worse:.2g} % worse): returning {floor_best.name}")
 
 
 def refuse_gross_outliers(table: PoseTable) -> None:

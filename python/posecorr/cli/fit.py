@@ -78,21 +78,27 @@ def _parse_cv(text: str | None) -> Any:
 
 
 def run(args: argparse.Namespace) -> None:
-    from ..export.symbolic import ExportError
-    from ..fitting import write_fit
-    from ..textui import METRIC_HEADERS, metrics_rows, table as fmt_table
-    from ..train.pipeline import fit_table
-    from ..train.spec import spec_from_options
-    from ..train.splits import HeldOut
-
     from ..analysis.ledger import ledger_path
     from ..safeio import check_sidecar
+    from ..train.pipeline import fit_table
 
     apply_threads(args)
     check_sidecar(ledger_path(args.data))  # refused before the work, not after it
     load_effect_files(args)
     table = _read(args)
     effects = effect_names(args.effects)
+    spec = _spec(args)
+    report = fit_table(table, effects, spec, _parse_cv(args.cv), args.seed, progress=progress(args))
+    exported = _export(args, report, table, effects, spec)
+    effects_json = report.model.physics_.describe() if report.model.physics_ is not None else {}
+    emit(args, _payload(args, report, exported, effects_json),
+         lambda: _text(args, table, effects, report, exported, effects_json))
+
+
+def _spec(args: argparse.Namespace) -> Any:
+    """The model the options name; an MLP too large for its trainer is refused here, before the fit."""
+    from ..train.spec import spec_from_options
+
     hidden = None if args.hidden is None else options.layer_sizes(args.hidden, "--hidden")
     spec = spec_from_options(args.method, args.representation, hidden=hidden, network=args.network,
                              activation=args.activation, trainer=args.trainer, epochs=args.epochs)
@@ -100,18 +106,27 @@ def run(args: argparse.Namespace) -> None:
         from ..train.spec import DEFAULT_TRAINER
 
         options.check_network_size(tuple(spec.hidden), spec.trainer or DEFAULT_TRAINER, "--hidden")
-    report = fit_table(table, effects, spec, _parse_cv(args.cv), args.seed, progress=progress(args))
-    key = report.heldout_kind
+    return spec
+
+
+def _export(args: argparse.Namespace, report: Any, table: Any, effects: list, spec: Any) -> dict:
+    """The written fit's export record (nodes, size, parity); an export failure is one CliError line."""
+    from ..export.symbolic import ExportError
+    from ..fitting import write_fit
+
     try:
-        exported = write_fit(report, table, args.data, args.output, effects, save=args.save,
-                             spec=spec, seed=args.seed).exported
+        return write_fit(report, table, args.data, args.output, effects, save=args.save,
+                         spec=spec, seed=args.seed).exported
     except ExportError as exc:
         raise CliError(f"{args.output}: the model could not be exported: {exc}") from None
+
+
+def _payload(args: argparse.Namespace, report: Any, exported: dict, effects_json: dict) -> dict[str, Any]:
+    """`fit --json`: the model, its held-out scores against the rigid floor, and its physics."""
     info = report.model.export_info()
-    effects_json = report.model.physics_.describe() if report.model.physics_ is not None else {}
     payload: dict[str, Any] = {"model": str(args.output), "method": info.get("method"),
                                "chosen": report.chosen, "representation": info.get("representation"),
-                               "raw": report.raw, key: report.heldout, "effects": effects_json,
+                               "raw": report.raw, report.heldout_kind: report.heldout, "effects": effects_json,
                                "parity": exported.get("parity"), "nodes": exported.get("n_nodes")}
     payload.update({"baseline": {"model": report.baseline_name, **report.baseline}, "n_heldout": report.n_heldout,
                     "rigid_rmse_total": report.rigid_scores,
@@ -122,35 +137,41 @@ def run(args: argparse.Namespace) -> None:
         payload["spread"] = report.model.physics_.spread_.to_json()
     if report.auto_scores:
         payload["auto_cv_rmse_total"] = report.auto_scores
+    return payload
 
-    def text() -> str:
-        label = f"test split ({report.n_heldout})" if key is HeldOut.TEST else f"{report.chosen}, cv {report.plan}"
-        lines = [f"{args.data}: {table.n} poses; effects: {', '.join(effects) or 'none'}; "
-                 f"model: {report.chosen}" + (f" (auto: {_fmt_scores(report.auto_scores)})" if report.auto_scores else ""),
-                 fmt_table(METRIC_HEADERS + ["improvement"],
-                           [row + [imp] for row, imp in zip(
-                               metrics_rows({"raw": report.raw, label: report.heldout,
-                                             f"{report.baseline_name} (floor), same poses": report.baseline}),
-                               [None, report.heldout.get("improvement_total"),
-                                report.baseline.get("improvement_total")])])]
-        lines.append(f"  floor: {report.baseline_name}, the best of the rigid fits on the same poses ("
-                     + ", ".join(f"{name} {value:.4g}" for name, value in report.rigid_scores.items())
-                     + " rmse_total)")
-        if report.shrinkage is not None:
-            lines.append(f"  prior strength {report.shrinkage['prior_strength']:g}: "
-                         f"{report.shrinkage['effective_params']:.1f} effective parameters")
-        for name, params in effects_json.items():
-            lines.append(f"  {name}: " + "; ".join(f"{p} = {_value_pm(v)}" for p, v in params.items()))
-        for name, reason in report.fixed.items():
-            lines.append(f"  fixed {name}: {reason}")
-        lines += [f"  note: {note}" for note in report.notes]
-        parity = exported.get("parity") or {}
-        lines.append(f"-> {args.output} ({exported['n_nodes']} nodes, {exported['file_size']} bytes"
-                     + (f", parity {parity.get('max_pos_m', 0):.1e} m / {parity.get('max_rot_rad', 0):.1e} rad)"
-                        if parity else ")"))
-        return "\n".join(lines)
 
-    emit(args, payload, text)
+def _text(args: argparse.Namespace, table: Any, effects: list, report: Any, exported: dict,
+          effects_json: dict) -> str:
+    """The human summary: scores against the rigid floor, the physics found, notes, the file written."""
+    from ..textui import METRIC_HEADERS, metrics_rows, table as fmt_table
+    from ..train.splits import HeldOut
+
+    key = report.heldout_kind
+    label = f"test split ({report.n_heldout})" if key is HeldOut.TEST else f"{report.chosen}, cv {report.plan}"
+    lines = [f"{args.data}: {table.n} poses; effects: {', '.join(effects) or 'none'}; "
+             f"model: {report.chosen}" + (f" (auto: {_fmt_scores(report.auto_scores)})" if report.auto_scores else ""),
+             fmt_table(METRIC_HEADERS + ["improvement"],
+                       [row + [imp] for row, imp in zip(
+                           metrics_rows({"raw": report.raw, label: report.heldout,
+                                         f"{report.baseline_name} (floor), same poses": report.baseline}),
+                           [None, report.heldout.get("improvement_total"),
+                            report.baseline.get("improvement_total")])])]
+    lines.append(f"  floor: {report.baseline_name}, the best of the rigid fits on the same poses ("
+                 + ", ".join(f"{name} {value:.4g}" for name, value in report.rigid_scores.items())
+                 + " rmse_total)")
+    if report.shrinkage is not None:
+        lines.append(f"  prior strength {report.shrinkage['prior_strength']:g}: "
+                     f"{report.shrinkage['effective_params']:.1f} effective parameters")
+    for name, params in effects_json.items():
+        lines.append(f"  {name}: " + "; ".join(f"{p} = {_value_pm(v)}" for p, v in params.items()))
+    for name, reason in report.fixed.items():
+        lines.append(f"  fixed {name}: {reason}")
+    lines += [f"  note: {note}" for note in report.notes]
+    parity = exported.get("parity") or {}
+    lines.append(f"-> {args.output} ({exported['n_nodes']} nodes, {exported['file_size']} bytes"
+                 + (f", parity {parity.get('max_pos_m', 0):.1e} m / {parity.get('max_rot_rad', 0):.1e} rad)"
+                    if parity else ")"))
+    return "\n".join(lines)
 
 
 def _fmt_scores(scores: dict[str, float]) -> str:

@@ -428,52 +428,18 @@ def run_sweep(table: Any, configs: Sequence[ModelSpec], repeats: int = 30, store
     ``threads``: torch / BLAS threads per worker process (default ``default_threads(workers)``).
     """
     configs = list(configs)
-    keys = [c.key for c in configs]
-    if len(set(keys)) != len(keys):
-        raise ValueError("duplicate configurations in the grid")
-    from posecorr.data import require_rows
-
-    require_rows(table, 10, "the sweep's train/validation/test split")
-    if ray_address is not None:
-        try:
-            import ray  # optional dependency
-        except ImportError:
-            raise ModuleNotFoundError("--ray needs the ray package (pip install 'posecorr[ray]')",
-                                      name="ray") from None
+    ray = _check_sweep(table, configs, ray_address)
     fingerprint = table_fingerprint(table)
-    store_path = Path(store) if store is not None else None
-    done = _load_store(store_path, fingerprint, seed) if store_path else {}
-    if store_path:
-        store_path.parent.mkdir(parents=True, exist_ok=True)
-        # Open it for appending now: an unwritable store fails before hours of training, not after.
-        with open_sidecar(store_path, append=True):
-            pass
+    store_path, done = _open_store(store, fingerprint, seed)
     todo = [(c, r) for c in configs for r in range(repeats) if (c.key, r) not in done]
     rows = [done[(c.key, r)] for c in configs for r in range(repeats) if (c.key, r) in done]
     _, _, test = split_indices(table.n, seed, 0)
     with_rot = all(c.with_rotation for c in configs) and table.has_orientation
     raw = pose_metrics(table.reference[test], table.measured[test], with_rot)
 
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=len(configs) * repeats, initial=len(rows), unit="run", desc="sweep")
-    best = [min((r["rmse_total"] for r in rows), default=math.inf)]
+    record = _Recorder(rows, fingerprint, store_path,
+                       _progress_bar(len(configs) * repeats, len(rows)) if progress else None)
     t0 = time.perf_counter()
-
-    def record(row: dict[str, Any]) -> None:
-        row["data"] = fingerprint
-        rows.append(row)
-        if store_path:
-            append_line(store_path, json.dumps(row))
-        if row["rmse_total"] < best[0]:
-            best[0] = row["rmse_total"]
-            best.append(row["key"])
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix_str(f"best {best[0]:.4g} {best[-1] if len(best) > 1 else ''}")
-
     # longest jobs first keeps the pool busy at the end
     todo.sort(key=lambda cr: -_cost(cr[0]))
     if ray_address is not None and todo:
@@ -482,40 +448,109 @@ def run_sweep(table: Any, configs: Sequence[ModelSpec], repeats: int = 30, store
         for c, r in todo:
             record(run_one(table, c, r, seed))
     else:
-        from concurrent.futures import ProcessPoolExecutor, as_completed
-        import multiprocessing as mp
-
-        from posecorr.threads import default_threads
-
-        threads = threads or default_threads(workers)
-        ctx = mp.get_context("spawn" if os.name == "nt" else "fork")
-        pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
-                                   initargs=(threads, os.getpid()))
-        futures: list[Any] = []
-        recorded: set[Any] = set()
-        try:
-            with sigterm_as_interrupt():
-                futures = [pool.submit(_run_in_worker, table, c, r, seed, threads) for c, r in todo]
-                for fut in as_completed(futures):
-                    row = fut.result()
-                    recorded.add(fut)
-                    record(row)
-        except BaseException:
-            # Interrupted (Ctrl-C, SIGTERM) or a run failed: keep every run that finished.
-            for fut in futures:
-                if fut not in recorded and fut.done() and not fut.cancelled() and fut.exception() is None:
-                    record(fut.result())
-            _stop_pool(pool)
-            if bar is not None:
-                bar.close()
-            raise
-        pool.shutdown(wait=True)
-    if bar is not None:
-        bar.close()
-    order = {k: i for i, k in enumerate(keys)}
+        _sweep_on_pool(table, todo, seed, workers, threads, record)
+    record.close()
+    order = {c.key: i for i, c in enumerate(configs)}
     rows.sort(key=lambda r: (order.get(r["key"], 1 << 30), r["repeat"]))
     return SweepResult(configs, rows, raw, repeats, time.perf_counter() - t0,
                        str(store_path) if store_path else None)
+
+
+def _check_sweep(table: Any, configs: list[ModelSpec], ray_address: str | None) -> Any:
+    """Refuse a grid or table the sweep cannot run; return the ray module when Ray is asked for."""
+    keys = [c.key for c in configs]
+    if len(set(keys)) != len(keys):
+        raise ValueError("duplicate configurations in the grid")
+    from posecorr.data import require_rows
+
+    require_rows(table, 10, "the sweep's train/validation/test split")
+    if ray_address is None:
+        return None
+    try:
+        import ray  # optional dependency
+    except ImportError:
+        raise ModuleNotFoundError("--ray needs the ray package (pip install 'posecorr[ray]')",
+                                  name="ray") from None
+    return ray
+
+
+def _open_store(store: str | os.PathLike | None, fingerprint: str,
+                seed: int) -> tuple[Path | None, dict[tuple[str, int], dict[str, Any]]]:
+    """Return the store's path and the rows it already holds for this data and seed."""
+    store_path = Path(store) if store is not None else None
+    done = _load_store(store_path, fingerprint, seed) if store_path else {}
+    if store_path:
+        store_path.parent.mkdir(parents=True, exist_ok=True)
+        # Open it for appending now: an unwritable store fails before hours of training, not after.
+        with open_sidecar(store_path, append=True):
+            pass
+    return store_path, done
+
+
+def _progress_bar(total: int, initial: int) -> Any:
+    """A tqdm bar over the sweep's runs, starting at those the store already holds."""
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, initial=initial, unit="run", desc="sweep")
+
+
+class _Recorder:
+    """Takes each finished run: stamps its data, keeps it, appends it to the store, moves the bar."""
+
+    def __init__(self, rows: list[dict[str, Any]], fingerprint: str, store_path: Path | None,
+                 bar: Any) -> None:
+        self.rows, self.fingerprint, self.store_path, self.bar = rows, fingerprint, store_path, bar
+        self.best = [min((r["rmse_total"] for r in rows), default=math.inf)]
+
+    def __call__(self, row: dict[str, Any]) -> None:
+        row["data"] = self.fingerprint
+        self.rows.append(row)
+        if self.store_path:
+            append_line(self.store_path, json.dumps(row))
+        best = self.best
+        if row["rmse_total"] < best[0]:
+            best[0] = row["rmse_total"]
+            best.append(row["key"])
+        if self.bar is not None:
+            self.bar.update(1)
+            self.bar.set_postfix_str(f"best {best[0]:.4g} {best[-1] if len(best) > 1 else ''}")
+
+    def close(self) -> None:
+        """Close the progress bar, if any."""
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _sweep_on_pool(table: Any, todo: list[tuple[ModelSpec, int]], seed: int, workers: int,
+                   threads: int | None, record: _Recorder) -> None:
+    """Run ``todo`` on a local process pool, recording each run as it finishes."""
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    import multiprocessing as mp
+
+    from posecorr.threads import default_threads
+
+    threads = threads or default_threads(workers)
+    ctx = mp.get_context("spawn" if os.name == "nt" else "fork")
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
+                               initargs=(threads, os.getpid()))
+    futures: list[Any] = []
+    recorded: set[Any] = set()
+    try:
+        with sigterm_as_interrupt():
+            futures = [pool.submit(_run_in_worker, table, c, r, seed, threads) for c, r in todo]
+            for fut in as_completed(futures):
+                row = fut.result()
+                recorded.add(fut)
+                record(row)
+    except BaseException:
+        # Interrupted (Ctrl-C, SIGTERM) or a run failed: keep every run that finished.
+        for fut in futures:
+            if fut not in recorded and fut.done() and not fut.cancelled() and fut.exception() is None:
+                record(fut.result())
+        _stop_pool(pool)
+        record.close()
+        raise
+    pool.shutdown(wait=True)
 
 
 # A run lost with its node (the node died, its worker was killed) is retried on the nodes left;

@@ -65,21 +65,8 @@ def _tensor_proto(name: str, value: np.ndarray) -> Any:
     return numpy_helper.from_array(value, name)
 
 
-def build_model(forward: Callable[..., Any], *, graph_name: str = "posecorr",
-                doc: str = "", check: bool = True, time_input: bool = False) -> Any:
-    """Trace `forward(pose) -> corrected` into an onnx.ModelProto (no metadata yet).
-
-    time_input: the graph also takes `t` float32 [N] (seconds since the session's start),
-    traced as `forward(pose, t)`: the contract's optional second input, for models with a
-    time-dependent effect.
-
-    Unused nodes and initializers are dropped; the operator list, onnx.checker (full
-    check) and strict shape inference are applied when `check` is true.
-    """
-    import onnx
-    from onnx import TensorProto, helper
-
-    g = Graph()
+def _traced_output(g: Graph, forward: Callable[..., Any], time_input: bool) -> Sym:
+    """Trace `forward` on the graph's inputs; its result must be a pose-dependent float [N, 7]."""
     pose = g.input(INPUT_NAME, (-1, 7))
     out = g.lift(forward(pose, g.input(TIME_NAME, (-1,))) if time_input else forward(pose))
     if out.is_const:
@@ -88,16 +75,18 @@ def build_model(forward: Callable[..., Any], *, graph_name: str = "posecorr",
         raise ExportError(f"forward() must return a float [N, 7] tensor, got shape {out.shape}")
     if out.shape[0] == 1:
         raise ExportError("forward() lost the batch dimension (output shape [1, 7])")
-    if out.name == INPUT_NAME:
-        out = g.emit("Identity", [out], out.shape)
+    return out
 
-    # Rename the output tensor to the contract's name, in its producer and its consumers.
-    final = out.name
+
+def _rename_output(g: Graph, final: str) -> None:
+    """Give the output tensor the contract's name, in its producer and its consumers."""
     for node in g.nodes:
         node.inputs = [OUTPUT_NAME if n == final else n for n in node.inputs]
         node.outputs = [OUTPUT_NAME if n == final else n for n in node.outputs]
 
-    # Keep only what the output depends on (forward may compute things it does not use).
+
+def _needed_names(g: Graph) -> set[str]:
+    """The tensor names the output depends on (forward may compute things it does not use)."""
     producer = {o: node for node in g.nodes for o in node.outputs}
     needed: set[str] = set()
     stack = [OUTPUT_NAME]
@@ -109,12 +98,24 @@ def build_model(forward: Callable[..., Any], *, graph_name: str = "posecorr",
         node = producer.get(name)
         if node is not None:
             stack.extend(i for i in node.inputs if i)
+    return needed
+
+
+def _pruned(g: Graph, time_input: bool) -> tuple[list[Any], list[Any]]:
+    """The nodes and initializer protos the output needs; refused if it ignores an input."""
+    needed = _needed_names(g)
     nodes = [n for n in g.nodes if n.outputs[0] in needed]
     initializers = [_tensor_proto(k, v) for k, v in g.initializers.items() if k in needed]
     if INPUT_NAME not in needed:
         raise ExportError("the output does not depend on the input pose")
     if time_input and TIME_NAME not in needed:
         raise ExportError("the model takes a time input but its output does not depend on it")
+    return nodes, initializers
+
+
+def _graph_proto(nodes: list[Any], initializers: list[Any], graph_name: str, time_input: bool) -> Any:
+    """The onnx.GraphProto of the contract's inputs and output, with their doc strings."""
+    from onnx import TensorProto, helper
 
     node_protos = [helper.make_node(n.op_type, n.inputs, n.outputs, name=n.name, **n.attrs) for n in nodes]
     dims = [BATCH_DIM, 7]
@@ -129,11 +130,36 @@ def build_model(forward: Callable[..., Any], *, graph_name: str = "posecorr",
     if time_input:
         graph.input[1].doc_string = "time of each pose, s since the session's start"
     graph.output[0].doc_string = "corrected pose: x, y, z (m), qw, qx, qy, qz with qw >= 0"
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
-                              producer_name="posecorr", doc_string=doc)
-    model.ir_version = IR_VERSION
+    return graph
+
+
+def build_model(forward: Callable[..., Any], *, graph_name: str = "posecorr",
+                doc: str = "", check: bool = True, time_input: bool = False) -> Any:
+    """Trace `forward(pose) -> corrected` into an onnx.ModelProto (no metadata yet).
+
+    time_input: the graph also takes `t` float32 [N] (seconds since the session's start),
+    traced as `forward(pose, t)`: the contract's optional second input, for models with a
+    time-dependent effect.
+
+    Unused nodes and initializers are dropped; the operator list, onnx.checker (full
+    check) and strict shape inference are applied when `check` is true.
+    """
+    from onnx import helper
+
     from posecorr import __version__
 
+    g = Graph()
+    out = _traced_output(g, forward, time_input)
+    if out.name == INPUT_NAME:
+        # Renaming the output to the contract's name must not rename the input pose. Emitted
+        # here, not in a helper: a node's name records the function that emits it.
+        out = g.emit("Identity", [out], out.shape)
+    _rename_output(g, out.name)
+    nodes, initializers = _pruned(g, time_input)
+    model = helper.make_model(_graph_proto(nodes, initializers, graph_name, time_input),
+                              opset_imports=[helper.make_opsetid("", OPSET)],
+                              producer_name="posecorr", doc_string=doc)
+    model.ir_version = IR_VERSION
     model.producer_version = __version__
     if check:
         check_model(model)
@@ -294,6 +320,83 @@ def _training_arrays(estimator: Any, measured: Any, reference: Any) -> tuple[Any
     return measured, reference
 
 
+def _initial_info(estimator: Any, metadata: dict[str, Any]) -> dict[str, Any]:
+    """The estimator's own export_info() and representation, overridden by `metadata`."""
+    info: dict[str, Any] = dict(estimator.export_info()) if hasattr(estimator, "export_info") else {}
+    info.setdefault("representation", getattr(estimator, "representation", None))
+    info.update(metadata)
+    return info
+
+
+def _parity_report(estimator: Any, model: Any, measured: Any, t: Any, time_input: bool, parity: Parity,
+                   **check: Any) -> dict[str, Any]:
+    """Run the parity check (`check`: n_random, seed, tol_pos, tol_rot); raise ParityError
+    on a failure when `parity` says so."""
+    if measured is None:
+        raise ExportError("parity check needs the training data: pass measured=... "
+                          "(or parity='skip')")
+    if time_input and t is None:
+        raise ExportError("parity check of a model with a time input needs the training times: pass t=...")
+    report = check_parity(estimator, model, np.asarray(measured, float), **check,
+                          t=None if not time_input else np.asarray(t, float))
+    if not report["passed"] and parity is Parity.RAISE:
+        raise ParityError(
+            f"exported graph differs from predict(): max position error "
+            f"{report['max_pos_m']:.3g} m (tol {report['tol_pos_m']:.3g}), max rotation error "
+            f"{report['max_rot_rad']:.3g} rad (tol {check['tol_rot']:g})")
+    return report
+
+
+def _heldout_metrics(model: Any, heldout: tuple, time_input: bool) -> dict[str, Any]:
+    """The graph's own metrics (onnxruntime, float32) on poses the model never saw."""
+    from posecorr.metrics import metric_block, pose_metrics
+
+    from .parity import run_onnx
+
+    h_measured, h_reference, h_t, with_rotation = heldout
+    corrected = np.asarray(run_onnx(model, h_measured, h_t if time_input else None), float)
+    raw = pose_metrics(h_reference, h_measured, with_rotation)
+    return {"test": metric_block(raw, pose_metrics(h_reference, corrected, with_rotation)),
+            "raw": raw, "n_test": int(len(h_measured)),
+            "computed_by": "the exported graph (onnxruntime, float32) on held-out poses"}
+
+
+def _set_metadata(model: Any, info: dict[str, Any], measured: Any, reference: Any, t: Any,
+                  time_input: bool) -> None:
+    """Complete `info` (digest, bounds, reach, defaults) and store it as the model's
+    metadata_props, the digest still a placeholder."""
+    from posecorr import __version__
+
+    if measured is not None and "training_data_digest" not in info:
+        info["training_data_digest"] = data_digest(measured, reference)
+    _bounds_metadata(info, measured, t, time_input)
+    _reach_metadata(info, model, measured, t, time_input)
+    info.setdefault("posecorr_version", __version__)
+    info.setdefault("units", UNITS)
+    info["opset"] = OPSET
+    info.setdefault("effects", [])
+    for key in ("method", "architecture", "activation", "trainer", "test_metrics"):
+        info.setdefault(key, None)
+    info[digest.KEY] = digest.PLACEHOLDER  # filled in once the bytes are known
+    meta = encode_metadata(info)
+    _check_bounds(meta, time_input)
+    del model.metadata_props[:]
+    for key, value in meta.items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+
+
+def _write_model(model: Any, path: Path, write: Callable[[Path, bytes], None] | None) -> bytes:
+    """Sign the model's bytes and write them to `path`; returns the bytes written."""
+    if path.parent and not path.parent.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+    data = digest.sign(serialize_aligned(model))  # weights readable in place (PC_LOAD_IN_PLACE)
+    if write is None:
+        from posecorr.safeio import write_bytes as write
+    write(path, data)  # atomic: a controller polling the file never reads half a model
+    return data
+
+
 def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = None,
             reference: np.ndarray | None = None, t: np.ndarray | None = None, parity: Parity | str = Parity.RAISE,
             n_random: int = 10_000, heldout: tuple | None = None,
@@ -325,9 +428,7 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
         parity = Parity(parity)
     except ValueError:
         raise ValueError(f"parity must be {', '.join(repr(p.value) for p in Parity)}, got {parity!r}") from None
-    info: dict[str, Any] = dict(estimator.export_info()) if hasattr(estimator, "export_info") else {}
-    info.setdefault("representation", getattr(estimator, "representation", None))
-    info.update(metadata)
+    info = _initial_info(estimator, metadata)
     time_input = bool(getattr(estimator, "needs_time", False))
     model = build_model(estimator.forward, doc=f"posecorr {info.get('method', 'corrector')} "
                                                f"({info.get('representation')})", time_input=time_input)
@@ -339,61 +440,16 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
         t = getattr(estimator, "training_t_", None)
     parity_report: dict[str, Any] | None = None
     if parity is not Parity.SKIP:
-        if measured is None:
-            raise ExportError("parity check needs the training data: pass measured=... "
-                              "(or parity='skip')")
-        if time_input and t is None:
-            raise ExportError("parity check of a model with a time input needs the training times: pass t=...")
-        parity_report = check_parity(estimator, model, np.asarray(measured, float), n_random=n_random,
-                                     seed=seed, tol_pos=tol_pos, tol_rot=tol_rot,
-                                     t=None if not time_input else np.asarray(t, float))
-        if not parity_report["passed"] and parity is Parity.RAISE:
-            raise ParityError(
-                f"exported graph differs from predict(): max position error "
-                f"{parity_report['max_pos_m']:.3g} m (tol {parity_report['tol_pos_m']:.3g}), max rotation error "
-                f"{parity_report['max_rot_rad']:.3g} rad (tol {tol_rot:g})")
+        parity_report = _parity_report(estimator, model, measured, t, time_input, parity,
+                                       n_random=n_random, seed=seed, tol_pos=tol_pos, tol_rot=tol_rot)
         info["parity"] = parity_report
     heldout_metrics = None
     if heldout is not None:
-        from posecorr.metrics import metric_block, pose_metrics
-
-        from .parity import run_onnx
-
-        h_measured, h_reference, h_t, with_rotation = heldout
-        corrected = np.asarray(run_onnx(model, h_measured, h_t if time_input else None), float)
-        raw = pose_metrics(h_reference, h_measured, with_rotation)
-        heldout_metrics = {"test": metric_block(raw, pose_metrics(h_reference, corrected, with_rotation)),
-                           "raw": raw, "n_test": int(len(h_measured)),
-                           "computed_by": "the exported graph (onnxruntime, float32) on held-out poses"}
-        info["test_metrics"] = heldout_metrics
-    if measured is not None and "training_data_digest" not in info:
-        info["training_data_digest"] = data_digest(measured, reference)
-    _bounds_metadata(info, measured, t, time_input)
-    _reach_metadata(info, model, measured, t, time_input)
-
-    from posecorr import __version__
-
-    info.setdefault("posecorr_version", __version__)
-    info.setdefault("units", UNITS)
-    info["opset"] = OPSET
-    info.setdefault("effects", [])
-    for key in ("method", "architecture", "activation", "trainer", "test_metrics"):
-        info.setdefault(key, None)
-    info[digest.KEY] = digest.PLACEHOLDER  # filled in once the bytes are known
-    meta = encode_metadata(info)
-    _check_bounds(meta, time_input)
-    del model.metadata_props[:]
-    for key, value in meta.items():
-        entry = model.metadata_props.add()
-        entry.key, entry.value = key, value
+        heldout_metrics = info["test_metrics"] = _heldout_metrics(model, heldout, time_input)
+    _set_metadata(model, info, measured, reference, t, time_input)
 
     path = Path(path)
-    if path.parent and not path.parent.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
-    data = digest.sign(serialize_aligned(model))  # weights readable in place (PC_LOAD_IN_PLACE)
-    if write is None:
-        from posecorr.safeio import write_bytes as write
-    write(path, data)  # atomic: a controller polling the file never reads half a model
+    data = _write_model(model, path, write)
     counts = op_counts(model)
     return {"path": str(path), "metadata": info, "op_counts": counts, "n_nodes": sum(counts.values()),
             "file_size": len(data), "parity": parity_report, "heldout_metrics": heldout_metrics}

@@ -180,6 +180,141 @@ def _percentile(values: deque, q: float) -> float:
     return float(np.percentile(np.fromiter(values, float), q)) if values else float("nan")
 
 
+class _Correcting:
+    """The node's state and callbacks; make_node mixes it into rclpy's Node, which is
+    imported only with the `ros2` extra."""
+
+    def __init__(self, ros: dict[str, Any], first: Loaded, model: Path, *, node_name: str,
+                 input_topic: str, output_topic: str, frame: str, reliable: bool,
+                 t0: float | None, diag_period: float, log) -> None:
+        super().__init__(node_name)
+        self._ros, self._log = ros, log
+        self.watcher: ModelWatcher | None = None
+        self.current = first
+        self.incoming: Loaded | None = None
+        self.counts = Counters(per_generation={1: 0})
+        self.latency_us: deque = deque(maxlen=LATENCY_WINDOW)
+        self.t0 = t0
+        self.frame = frame
+        self._generation = 1
+        self._handover = threading.Lock()
+        self._create_topics(input_topic, output_topic, reliable)
+        self.declare_parameter("model", str(model))
+        self.add_on_set_parameters_callback(self.on_parameters)
+        self.timer = self.create_timer(diag_period, self.publish_diagnostics)
+        self._out = ros["PoseStamped"]()
+        self._out.header.frame_id = frame
+
+    def _create_topics(self, input_topic: str, output_topic: str, reliable: bool) -> None:
+        ros = self._ros
+        if reliable:
+            # Keep all: a burst waits in the queues (the writer is held back) instead of
+            # overwriting poses the node has not corrected yet.
+            qos = ros["QoSProfile"](depth=1000, reliability=ros["ReliabilityPolicy"].RELIABLE,
+                                    history=ros["HistoryPolicy"].KEEP_ALL)
+        else:
+            qos = ros["qos_profile_sensor_data"]
+        self.publisher = self.create_publisher(ros["PoseStamped"], output_topic, qos)
+        self.diagnostics = self.create_publisher(ros["DiagnosticArray"], "/diagnostics", 10)
+        self.subscription = self.create_subscription(ros["PoseStamped"], input_topic,
+                                                     self.on_pose, qos)
+
+    # -- hot path ----------------------------------------------------------------------
+    def _take_incoming(self) -> Loaded:
+        """The model for this pose: a delivered one is taken between two messages, so
+        every output comes from exactly one model."""
+        with self._handover:
+            if self.incoming is not None:
+                self.current, self.incoming = self.incoming, None
+                self.counts.per_generation.setdefault(self.current.generation, 0)
+                self.counts.swaps += 1
+        return self.current
+
+    def on_pose(self, msg) -> None:
+        arrival = time.perf_counter()
+        loaded = self._take_incoming()
+        self.counts.poses_in += 1
+        p, o = msg.pose.position, msg.pose.orientation
+        pose = np.array([p.x, p.y, p.z, o.w, o.x, o.y, o.z])
+        stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+        if self.t0 is None:
+            self.t0 = stamp
+        try:
+            if not np.all(np.isfinite(pose)):
+                raise PoseCorrError("a value is not finite")
+            if float(pose[3:] @ pose[3:]) < 1e-12:
+                raise PoseCorrError("zero quaternion")
+            c = loaded.corrector.correct(pose, stamp - self.t0)
+        except PoseCorrError as exc:
+            self.counts.refused += 1
+            self.counts.last_refusal = f"stamp {stamp:.9f}: {str(exc).splitlines()[0]}"
+            return
+        self._publish_pose(msg.header.stamp, c)
+        self.counts.poses_out += 1
+        self.counts.per_generation[loaded.generation] += 1
+        self.latency_us.append((time.perf_counter() - arrival) * 1e6)
+
+    def _publish_pose(self, stamp, c: np.ndarray) -> None:
+        out = self._out  # reused: no message allocated per pose
+        out.header.stamp = stamp
+        out.pose.position.x, out.pose.position.y, out.pose.position.z = (
+            float(c[0]), float(c[1]), float(c[2]))
+        (out.pose.orientation.w, out.pose.orientation.x, out.pose.orientation.y,
+         out.pose.orientation.z) = float(c[3]), float(c[4]), float(c[5]), float(c[6])
+        self.publisher.publish(out)
+
+    # -- off the hot path (the watcher's thread and the timer) --------------------------
+    def deliver(self, loaded: Loaded) -> None:
+        with self._handover:
+            self._generation += 1
+            loaded.generation = self._generation
+            self.incoming = loaded
+        self.counts.last_load_error = ""
+        self._log(f"posecorr ros2: loaded {loaded.model_id} as generation {loaded.generation}")
+
+    def report_error(self, message: str) -> None:
+        self.counts.last_load_error = message
+        self._log(f"posecorr ros2: kept {self.current.model_id}: {message}")
+
+    def on_parameters(self, params):
+        for p in params:
+            if p.name == "model":
+                self.watcher.request(Path(str(p.value)))
+        return self._ros["SetParametersResult"](successful=True)
+
+    def diagnostic_values(self) -> dict[str, str]:
+        c = self.counts
+        lat = self.latency_us
+        incoming = self.incoming
+        return {
+            "model": self.current.model_id, "generation": str(self.current.generation),
+            # loaded and checked, taken with the next pose
+            "pending_model": incoming.model_id if incoming is not None else "",
+            "poses_in": str(c.poses_in), "poses_out": str(c.poses_out),
+            "refused": str(c.refused), "swaps": str(c.swaps),
+            "poses_per_generation": ",".join(f"{g}:{n}" for g, n in sorted(c.per_generation.items())),
+            "latency_p50_us": f"{_percentile(lat, 50):.1f}",
+            "latency_p99_us": f"{_percentile(lat, 99):.1f}",
+            "latency_max_us": f"{max(lat) if lat else float('nan'):.1f}",
+            "last_refusal": c.last_refusal, "last_load_error": c.last_load_error,
+        }
+
+    def publish_diagnostics(self) -> None:
+        ros = self._ros
+        status = ros["DiagnosticStatus"]()
+        status.name = f"{self.get_name()}: pose correction"
+        status.hardware_id = self.current.model_id
+        c = self.counts
+        status.level = ros["DiagnosticStatus"].WARN if (c.refused or c.last_load_error) \
+            else ros["DiagnosticStatus"].OK
+        status.message = c.last_load_error or (f"{c.refused} poses refused" if c.refused else "ok")
+        status.values = [ros["KeyValue"](key=k, value=v) for k, v in self.diagnostic_values().items()]
+        array = ros["DiagnosticArray"]()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status = [status]
+        self.diagnostics.publish(array)
+
+
 def make_node(model: Path, *, input_topic: str = "/tracker/pose",
               output_topic: str = "/tracker/pose_corrected", frame: str = "base_link",
               reliable: bool = False, t0: float | None = None, diag_period: float = 1.0,
@@ -187,128 +322,15 @@ def make_node(model: Path, *, input_topic: str = "/tracker/pose",
     """The node (rclpy must be initialised). Returns (node, watcher); the caller spins it
     and stops the watcher."""
     ros = _import_ros()
-    Node = ros["Node"]
     first = load_checked(model, allow)
     first.generation = 1
-
-    class CorrectorNode(Node):
-        def __init__(self) -> None:
-            super().__init__(node_name)
-            self.current = first
-            self.incoming: Loaded | None = None
-            self.counts = Counters(per_generation={1: 0})
-            self.latency_us: deque = deque(maxlen=LATENCY_WINDOW)
-            self.t0 = t0
-            self.frame = frame
-            self._generation = 1
-            self._handover = threading.Lock()
-            if reliable:
-                # Keep all: a burst waits in the queues (the writer is held back) instead of
-                # overwriting poses the node has not corrected yet.
-                qos = ros["QoSProfile"](depth=1000, reliability=ros["ReliabilityPolicy"].RELIABLE,
-                                        history=ros["HistoryPolicy"].KEEP_ALL)
-            else:
-                qos = ros["qos_profile_sensor_data"]
-            self.publisher = self.create_publisher(ros["PoseStamped"], output_topic, qos)
-            self.diagnostics = self.create_publisher(ros["DiagnosticArray"], "/diagnostics", 10)
-            self.subscription = self.create_subscription(ros["PoseStamped"], input_topic,
-                                                         self.on_pose, qos)
-            self.declare_parameter("model", str(model))
-            self.add_on_set_parameters_callback(self.on_parameters)
-            self.timer = self.create_timer(diag_period, self.publish_diagnostics)
-            self._out = ros["PoseStamped"]()
-            self._out.header.frame_id = frame
-
-        # -- hot path ------------------------------------------------------------------
-        def on_pose(self, msg) -> None:
-            arrival = time.perf_counter()
-            with self._handover:
-                if self.incoming is not None:
-                    self.current, self.incoming = self.incoming, None
-                    self.counts.per_generation.setdefault(self.current.generation, 0)
-                    self.counts.swaps += 1
-            loaded = self.current
-            self.counts.poses_in += 1
-            p, o = msg.pose.position, msg.pose.orientation
-            pose = np.array([p.x, p.y, p.z, o.w, o.x, o.y, o.z])
-            stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
-            if self.t0 is None:
-                self.t0 = stamp
-            try:
-                if not np.all(np.isfinite(pose)):
-                    raise PoseCorrError("a value is not finite")
-                if float(pose[3:] @ pose[3:]) < 1e-12:
-                    raise PoseCorrError("zero quaternion")
-                c = loaded.corrector.correct(pose, stamp - self.t0)
-            except PoseCorrError as exc:
-                self.counts.refused += 1
-                self.counts.last_refusal = f"stamp {stamp:.9f}: {str(exc).splitlines()[0]}"
-                return
-            out = self._out
-            out.header.stamp = msg.header.stamp
-            out.pose.position.x, out.pose.position.y, out.pose.position.z = (
-                float(c[0]), float(c[1]), float(c[2]))
-            (out.pose.orientation.w, out.pose.orientation.x, out.pose.orientation.y,
-             out.pose.orientation.z) = float(c[3]), float(c[4]), float(c[5]), float(c[6])
-            self.publisher.publish(out)
-            self.counts.poses_out += 1
-            self.counts.per_generation[loaded.generation] += 1
-            self.latency_us.append((time.perf_counter() - arrival) * 1e6)
-
-        # -- off the hot path ----------------------------------------------------------
-        def deliver(self, loaded: Loaded) -> None:
-            with self._handover:
-                self._generation += 1
-                loaded.generation = self._generation
-                self.incoming = loaded
-            self.counts.last_load_error = ""
-            log(f"posecorr ros2: loaded {loaded.model_id} as generation {loaded.generation}")
-
-        def report_error(self, message: str) -> None:
-            self.counts.last_load_error = message
-            log(f"posecorr ros2: kept {self.current.model_id}: {message}")
-
-        def on_parameters(self, params):
-            for p in params:
-                if p.name == "model":
-                    watcher.request(Path(str(p.value)))
-            return ros["SetParametersResult"](successful=True)
-
-        def diagnostic_values(self) -> dict[str, str]:
-            c = self.counts
-            lat = self.latency_us
-            incoming = self.incoming
-            return {
-                "model": self.current.model_id, "generation": str(self.current.generation),
-                # loaded and checked, taken with the next pose
-                "pending_model": incoming.model_id if incoming is not None else "",
-                "poses_in": str(c.poses_in), "poses_out": str(c.poses_out),
-                "refused": str(c.refused), "swaps": str(c.swaps),
-                "poses_per_generation": ",".join(f"{g}:{n}" for g, n in sorted(c.per_generation.items())),
-                "latency_p50_us": f"{_percentile(lat, 50):.1f}",
-                "latency_p99_us": f"{_percentile(lat, 99):.1f}",
-                "latency_max_us": f"{max(lat) if lat else float('nan'):.1f}",
-                "last_refusal": c.last_refusal, "last_load_error": c.last_load_error,
-            }
-
-        def publish_diagnostics(self) -> None:
-            status = ros["DiagnosticStatus"]()
-            status.name = f"{self.get_name()}: pose correction"
-            status.hardware_id = self.current.model_id
-            c = self.counts
-            status.level = ros["DiagnosticStatus"].WARN if (c.refused or c.last_load_error) \
-                else ros["DiagnosticStatus"].OK
-            status.message = c.last_load_error or (f"{c.refused} poses refused" if c.refused else "ok")
-            status.values = [ros["KeyValue"](key=k, value=v) for k, v in self.diagnostic_values().items()]
-            array = ros["DiagnosticArray"]()
-            array.header.stamp = self.get_clock().now().to_msg()
-            array.status = [status]
-            self.diagnostics.publish(array)
-
-    node = CorrectorNode()
-    watcher = ModelWatcher(model, node.deliver, node.report_error, allow=allow)
-    watcher.start()
-    return node, watcher
+    node_class = type("CorrectorNode", (_Correcting, ros["Node"]), {})
+    node = node_class(ros, first, model, node_name=node_name, input_topic=input_topic,
+                      output_topic=output_topic, frame=frame, reliable=reliable, t0=t0,
+                      diag_period=diag_period, log=log)
+    node.watcher = ModelWatcher(model, node.deliver, node.report_error, allow=allow)
+    node.watcher.start()
+    return node, node.watcher
 
 
 def run_node(model: Path, log=print, **options) -> dict[str, str]:

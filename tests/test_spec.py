@@ -119,3 +119,13 @@ def test_levenberg_marquardt_gives_up_at_mu_max_in_the_shared_loop(trainer):
     val = np.mean((encode_pose(model.predict(M[300:]), "pos") - encode_pose(R[300:], "pos")) ** 2)
     want = min(model.history_["val_mse"]) if trainer == "lm" else model.history_["val_mse"][-1]
     assert val == pytest.approx(want, rel=1e-9)
+
+
+def test_one_plan_rule_for_small_tables():
+    """train/splits.py's plan_for is the one rule: a table's held-out score leaves one out up
+    to LOO_MAX_POSES poses; a choice nested in an outer fold only below NESTED_LOO_BELOW."""
+    from posecorr.train.splits import LOO_MAX_POSES, NESTED_LOO_BELOW, KFold, LeaveOneOut, plan_for
+
+    assert isinstance(plan_for(LOO_MAX_POSES), LeaveOneOut) and isinstance(plan_for(LOO_MAX_POSES + 1), KFold)
+    assert isinstance(plan_for(NESTED_LOO_BELOW - 1, nested=True), LeaveOneOut)
+    assert isinstance(plan_for(NESTED_LOO_BELOW, nested=True), KFold)

@@ -28,7 +28,7 @@ from .base import PoseRegressorMixin, Validation, as_validation, check_pair, che
 from .identify import describe_spread, rigid_variants
 from .physics import PhysicsModel, RigidModel
 from .spec import ModelSpec, spec_from_options
-from .splits import CrossValidationPlan, FixedSplit, HeldOut, KFold, LeaveOneOut, Plan
+from .splits import MIN_TEST_SPLIT, CrossValidationPlan, FixedSplit, HeldOut, KFold, Plan, plan_for
 
 
 class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
@@ -194,7 +194,6 @@ def cross_validate(make: Callable[[], Any], table: PoseTable, plan: CrossValidat
 # holds too few poses to mean anything, so fit cross-validates instead (and says so); a
 # held-out score resting on fewer than MIN_HELDOUT poses carries a warning.
 SMALL_TABLE = 200
-MIN_TEST_SPLIT = 100
 MIN_HELDOUT = 20
 # The physics stage's prior strengths auto chooses among (by the same held-out poses as
 # everything else): 0 is the free fit, each step ten times stronger holds the physical
@@ -344,11 +343,6 @@ def choose(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, wit
     return _best(candidates, scores), scores
 
 
-def inner_plan(n: int) -> CrossValidationPlan:
-    """The cross-validation inside a training set of n poses (leave-one-out below 10)."""
-    return KFold(5) if n >= 10 else LeaveOneOut()
-
-
 @dataclass
 class FitReport:
     """What `posecorr fit` learned: the model to export and its held-out evaluation.
@@ -437,7 +431,7 @@ def _plan_for_size(plan: Plan, n: int, notes: list[str]) -> Plan:
     """The held-out plan the table can bear: a fixed split of fewer than MIN_TEST_SPLIT poses
     would test on a handful, so such tables are cross-validated instead (said in `notes`)."""
     if isinstance(plan, FixedSplit) and n < MIN_TEST_SPLIT:
-        plan = LeaveOneOut() if n <= 40 else KFold(5)
+        plan = plan_for(n)
         notes.append(f"{n} poses are too few for a 15 % test split (fewer than {MIN_TEST_SPLIT}); "
                      f"cross-validated ({plan}) instead")
     return plan
@@ -527,11 +521,11 @@ def _out_of_fold_auto(candidates: Sequence[Candidate], floor: Sequence[Candidate
     say(f"auto: choosing among {len(candidates)} candidates inside each of {len(splits)} outer folds")
     predicted = np.empty_like(M)
     for train, held in _progress_iter(splits, say, "outer fold"):
-        best, _ = choose(candidates, train, arrays, with_rotation, inner_plan(len(train)), seed, prior)
+        best, _ = choose(candidates, train, arrays, with_rotation, plan_for(len(train), nested=True), seed, prior)
         model = _fit(best, train, arrays, with_rotation, prior)
         predicted[held] = model.predict(M[held], None if t is None else t[held])
     say("auto: choosing on all poses")
-    best, scores = choose(candidates, everything, arrays, with_rotation, inner_plan(n), seed, prior)
+    best, scores = choose(candidates, everything, arrays, with_rotation, plan_for(n, nested=True), seed, prior)
     floor_predicted = out_of_fold(floor, everything, arrays, with_rotation, splits, prior)
     return best, scores, predicted, floor_predicted
 

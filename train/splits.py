@@ -132,6 +132,23 @@ CrossValidationPlan = KFold | LeaveOneOut
 Plan = FixedSplit | KFold | LeaveOneOut
 
 
+# What a table of n poses can bear. Below MIN_TEST_SPLIT a 15 % test split holds a handful of
+# poses, so the table is cross-validated instead: every pose held out once (leave one out) up
+# to LOO_MAX_POSES, five folds beyond. A choice nested inside each fold's training set (auto's)
+# multiplies its cost by the outer folds: it leaves one out only below NESTED_LOO_BELOW poses.
+MIN_TEST_SPLIT = 100
+LOO_MAX_POSES = 40
+NESTED_LOO_BELOW = 10
+
+
+def plan_for(n: int, nested: bool = False) -> CrossValidationPlan:
+    """The cross-validation n poses can bear (the rule above): for a table's held-out score,
+    or, `nested`, for a choice made inside an outer fold's training poses."""
+    if nested:
+        return LeaveOneOut() if n < NESTED_LOO_BELOW else KFold(5)
+    return LeaveOneOut() if n <= LOO_MAX_POSES else KFold(5)
+
+
 def parse_plan(text: str | int | None) -> Plan:
     """"none" (or None): the fixed test split; "loo": leave one out; a number: that many folds."""
     if text is None or text == "none":

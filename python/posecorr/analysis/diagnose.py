@@ -71,8 +71,6 @@ def split_identifiable(table: PoseTable, effects: Sequence[str],
     for name in names:
         fixed = PhysicsModel(tuple(effects) + (name,), with_rotation=table.has_orientation).identifiability(
             table.measured, table.reference, table.time())
-        from ..effects import get_effect
-
         held = [key for key in fixed if key.split(" ")[0].split(".")[0] == name]
         whole = {key.split(" ")[0] for key in held if " along " not in key}
         if whole >= {f"{name}.{p.name}" for p in get_effect(name).params}:
@@ -242,11 +240,15 @@ class _Search:
     say: Callable[[str], None]
     base: "_FoldState"
 
+    def evaluate(self, name: str, state: "_FoldState") -> dict[str, Any]:
+        """The test of `name` added to the cross-validated model `state`."""
+        return _evaluate(self.table, state, name, len(self.names), self.alpha, self.min_gain, self.folds, self.seed)
+
     def given(self, name: str, others: Sequence[str], warm: list[dict] | None = None) -> dict[str, Any]:
         """The test of `name` added to the model of the effects and `others`."""
         state = _fold_state(self.table, self.effects + list(others), self.names, self.splits, self.folds,
                             self.seed, warm)
-        return _evaluate(self.table, state, name, len(self.names), self.alpha, self.min_gain, self.folds, self.seed)
+        return self.evaluate(name, state)
 
 
 def _earns(row: dict[str, Any]) -> bool:
@@ -262,10 +264,7 @@ def _forward(search: _Search, rows: list[dict[str, Any]]) -> list[str]:
     for row in rows:
         if _earns(row) and accepted:
             search.say(f"candidate {row['effect']} given {', '.join(accepted)}")
-            state = _fold_state(search.table, search.effects + accepted, search.names, search.splits,
-                                search.folds, search.seed, warm)
-            conditional = _evaluate(search.table, state, row["effect"], len(search.names), search.alpha,
-                                    search.min_gain, search.folds, search.seed)
+            conditional = search.given(row["effect"], accepted, warm)
             row.update(given=list(accepted), p_value_given=conditional["p_value"], score_given=conditional["score"],
                        passes_given=_earns(conditional), implausible_given=conditional["implausible"])
             if not _earns(conditional):
@@ -375,8 +374,7 @@ def _select(search: _Search) -> tuple[list[dict[str, Any]], list[str], list[dict
     rows = []
     for name in search.names:
         search.say(f"candidate {name}")
-        rows.append(_evaluate(search.table, search.base, name, len(search.names), search.alpha, search.min_gain,
-                              search.folds, search.seed))
+        rows.append(search.evaluate(name, search.base))
     rows.sort(key=lambda row: (-row["score"], row["p_value"]))
     by_name = {row["effect"]: row for row in rows}
     kept, dropped = _backward(search, _forward(search, rows), by_name)

@@ -39,11 +39,11 @@ def propose(search: Any, result: dict[str, Any], kept: Sequence[str],
             return None, (f"{a} and {b} cannot be told apart by this data: held-out gains "
                           f"{rows[a]['score']:.1%} and {rows[b]['score']:.1%}, and each adds nothing given the other")
     if not forms:
-        return None, _why_none(result, kept, rows)
+        return None, _why_none(result, kept)
     return _fitted_proposal(search, result, list(kept), forms), None
 
 
-def _why_none(result: dict[str, Any], kept: Sequence[str], rows: dict[str, dict]) -> str:
+def _why_none(result: dict[str, Any], kept: Sequence[str]) -> str:
     if kept:
         return (f"the catalogue explains the error: {', '.join(kept)} "
                 f"{'is' if len(kept) == 1 else 'are'} present, and no form earns a place beside "
@@ -133,7 +133,7 @@ def effect_file_text(proposal: dict[str, Any], command: str, data_name: str) -> 
         head += [f"{_proposed_name(form)}: {(effect.__doc__ or '').strip().splitlines()[0]}",
                  f"  Physical causes of this shape: {effect.causes}.",
                  "  Fitted on this session: " + "; ".join(
-                     f"{name} = {_numbers(values)} {_unit(effect, name)}"
+                     f"{name} = {numbers_text(values, 4)} {_unit(effect, name)}"
                      for name, values in proposal["values"][form].items()), ""]
     head += ["Fit it with:",
              f"    posecorr fit {data_name} --effect-file THIS_FILE --effects {effects_arg(proposal)}",
@@ -162,9 +162,10 @@ def effects_arg(proposal: dict[str, Any]) -> str:
     return ",".join(proposal["model_effects"] + names + [_proposed_name(f) for f in proposal["forms"]])
 
 
-def _numbers(values: Any) -> str:
+def numbers_text(values: Any, digits: int) -> str:
+    """A fitted parameter's value(s) with `digits` significant digits: '0.012' or '[0.012, -0.008]'."""
     values = values if isinstance(values, list) else [values]
-    text = ", ".join(f"{v:.4g}" for v in values)
+    text = ", ".join(f"{v:.{digits}g}" for v in values)
     return f"[{text}]" if len(values) > 1 else text
 
 

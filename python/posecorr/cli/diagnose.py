@@ -82,6 +82,7 @@ def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
 
 
 def _proposal_lines(args: argparse.Namespace, result: dict) -> list[str]:
+    from ..analysis.proposal import numbers_text
     from ..effects import get_effect
 
     proposal = result["proposal"]
@@ -91,7 +92,7 @@ def _proposal_lines(args: argparse.Namespace, result: dict) -> list[str]:
              f"whitened error falls by {proposal['gain']:.1%}, rmse_pos {1e3 * proposal['cv_rmse_pos_before']:.3g} -> "
              f"{1e3 * proposal['cv_rmse_pos_after']:.3g} mm ({result['folds']}-fold)"]
     for form in proposal["forms"]:
-        values = "; ".join(f"{name} = {_short(v)}" for name, v in proposal["values"][form].items())
+        values = "; ".join(f"{name} = {numbers_text(v, 3)}" for name, v in proposal["values"][form].items())
         lines.append(f"  {form}: {(get_effect(form).__doc__ or '').strip().splitlines()[0]} Fitted: {values}.")
         lines.append(f"  causes of this shape: {proposal['causes'][form]}")
     if proposal["file"]:
@@ -102,12 +103,6 @@ def _proposal_lines(args: argparse.Namespace, result: dict) -> list[str]:
     else:
         lines.append("  (--propose FILE writes it as an effect file)")
     return lines
-
-
-def _short(values) -> str:
-    values = values if isinstance(values, list) else [values]
-    text = ", ".join(f"{v:.3g}" for v in values)
-    return f"[{text}]" if len(values) > 1 else text
 
 
 VERB = Verb(

@@ -46,7 +46,8 @@ def session(scenario: str | None, seed: int, kind: str, n: int = 50):
     if "true_strain" not in EFFECTS:
         load_effect_file(OUTSIDE)
     extra = {} if scenario is None else {SCENARIOS[scenario][0]: get_effect(SCENARIOS[scenario][0]).default_theta()}
-    pin = {"robot": "ur5e"} if kind == "robot" else {"spread": "full", "position_only": False, "unremovable": 0.0}
+    pin = ({"robot": "ur5e"} if kind == "robot"
+           else {"spread": "full", "position_only": False, "unremovable": 0.0, "robot": ""})
     return simulate_session(seed, n=n, extra=extra, **pin).table
 
 
@@ -84,6 +85,8 @@ def one(scenario: str, seed: int, kind: str, folder: Path) -> dict[str, Any]:
     row = {"scenario": scenario, "kind": kind, "seed": seed, "expected": form, "diagnose_s": round(seconds, 2),
            "present_effects": [c["effect"] for c in result["candidates"] if c["present"] and c["kind"] == "effect"],
            "proposed": None if result["proposal"] is None else result["proposal"]["forms"],
+           "parameters": None if result["proposal"] is None else result["proposal"]["parameters"],
+           "terms": None if result["proposal"] is None else result["proposal"]["terms"],
            "no_proposal": result["no_proposal"], "metric": metric,
            "loo_base": base[metric], "loo_true": truth[metric], "loo_proposal": None, "recovery": None}
     if result["proposal"] is not None:
@@ -134,7 +137,12 @@ def summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
             recoveries = [r["recovery"] for r in mine if r["recovery"] is not None]
             out.append({"scenario": scenario, "kind": kind, "seeds": len(mine),
                         "expected_form_proposed": sum(r["proposed"] == [r["expected"]] for r in mine),
+                        # a session with no proposal recovers nothing
+                        "recovered_80": sum((r["recovery"] or 0.0) >= 0.8 for r in mine),
                         "recovery_min": min(recoveries) if recoveries else None,
+                        "true_gain_share_min": min((r["loo_base"] - r["loo_true"]) / r["loo_base"] for r in mine),
+                        "parameters_median": float(np.median([r["parameters"] for r in mine
+                                                              if r["parameters"] is not None] or [np.nan])),
                         "recovery_median": float(np.median(recoveries)) if recoveries else None,
                         "catalogue_marked_present": sorted({e for r in mine for e in r["present_effects"]}),
                         "sessions_naming_catalogue": sum(bool(r["present_effects"]) for r in mine),

@@ -156,3 +156,63 @@ def test_a_fitted_form_exports_and_runs_alike_on_every_back_end(name, tmp_path):
         got = Corrector(tmp_path / "m.onnx", backend=backend).correct(table.measured, t=t)
         assert np.abs(got[:, :3] - want[:, :3]).max() < 2e-5, backend
         assert np.abs(np.abs(np.sum(got[:, 3:] * want[:, 3:], axis=1)) - 1).max() < 1e-6, backend
+
+
+# Each form cut to a few of its terms: (the terms kept, the full theta they come from).
+CUTS = {name: sorted({0, len(THETA[name]) - 1, len(THETA[name]) // 2}) for name in FORMS}
+
+
+def _cut(name):
+    whole = get_effect(name)
+    terms = CUTS[name]
+    return whole, type(whole).keeping(terms, f"cut_{name}", np.asarray(THETA[name])[terms])()
+
+
+@pytest.mark.parametrize("name", FORMS)
+def test_a_cut_form_is_the_whole_form_with_the_other_terms_at_zero(name, poses, ctx):
+    """The formula (written per pose above) with every coefficient outside the cut zeroed,
+    on numpy, per-row theta and torch."""
+    p, R = poses
+    whole, cut = _cut(name)
+    theta = np.asarray(THETA[name])
+    zeroed = np.zeros_like(theta)
+    zeroed[CUTS[name]] = theta[CUTS[name]]
+    want_p, want_R = REFERENCES[name](p, R, zeroed, ctx)
+    got_p, got_R = cut.forward(p, R, cut.default_theta(), ctx)
+    assert np.abs(got_p - want_p).max() < 1e-12 and np.abs(got_R - want_R).max() < 1e-12
+    rows_p, _ = cut.forward(p, R, np.tile(cut.default_theta(), (N, 1)), ctx)
+    assert np.abs(rows_p - want_p).max() < 1e-15
+    tp, _ = cut.forward(torch.tensor(p), torch.tensor(R), torch.tensor(cut.default_theta()), ctx)
+    assert np.abs(tp.numpy() - want_p).max() < 1e-12
+    assert cut.term_labels() == [whole.labels[t] for t in CUTS[name]] and cut.size == len(CUTS[name])
+
+
+def test_a_cut_names_its_terms_or_is_refused():
+    from posecorr.forms import Quadratic
+
+    with pytest.raises(ValueError, match="terms must be 2 distinct indices of its 18"):
+        Quadratic.keeping([3, 3], "twice")()
+    with pytest.raises(ValueError, match="terms must be 1 distinct indices of its 18"):
+        Quadratic.keeping([18], "beyond")()
+
+
+def test_a_fitted_cut_form_exports_and_runs_alike_on_every_back_end(tmp_path):
+    """The proposal's effect (a form cut to its terms) is a user effect like any other."""
+    from posecorr.controller.runtime import Corrector
+    from posecorr.effects import register_effect, unregister_effect
+    from posecorr.export.onnx_export import to_onnx
+    from posecorr.simulate import simulate_session
+    from posecorr.train.physics import PhysicsModel
+
+    whole, cut = _cut("quadratic")
+    register_effect(type(cut), source="test")
+    try:
+        table = simulate_session(3, n=40, robot="ur5e", extra={"quadratic": THETA["quadratic"] / 2}).table
+        model = PhysicsModel(("station", "mount", cut.name)).fit(table.measured, table.reference)
+        to_onnx(model, tmp_path / "m.onnx", measured=table.measured, reference=table.reference)
+        want = model.predict(table.measured)
+        for backend in ("c", "onnxruntime"):
+            got = Corrector(tmp_path / "m.onnx", backend=backend).correct(table.measured)
+            assert np.abs(got[:, :3] - want[:, :3]).max() < 2e-5, backend
+    finally:
+        unregister_effect(cut.name)

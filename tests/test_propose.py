@@ -56,7 +56,8 @@ def test_a_form_wins_over_the_catalogue_effects_that_absorb_part_of_it():
     study.hide_outside()
     result = diagnose(table, study.BASE)
     assert [c["effect"] for c in result["candidates"] if c["present"]] == ["strain"]
-    assert result["proposal"]["forms"] == ["strain"] and result["proposal"]["parameters"] == 6
+    assert result["proposal"]["forms"] == ["strain"] and result["proposal"]["form_parameters"] == 6
+    assert 1 <= result["proposal"]["parameters"] <= 6
     absorbed = {row["effect"]: row for row in result["absorbed"]}
     assert absorbed, "no catalogue effect was named as taking part of the strain's gain"
     for row in absorbed.values():
@@ -75,9 +76,12 @@ def test_cli_writes_an_effect_file_that_fit_accepts_unchanged(tmp_path, capsys):
                  "--json"]) == 0
     proposal = json.loads(capsys.readouterr().out)["proposal"]
     assert proposal["file"] == str(proposal_file) and proposal["effect"] == "session_orientation_bias"
-    assert proposal["parameters"] == 9 and 0 < proposal["gain"] < 1
+    assert proposal["form_parameters"] == 9 and 0 < proposal["gain"] < 1
+    assert proposal["parameters"] == len(proposal["terms"]["orientation_bias"]) <= 9
     text = proposal_file.read_text()
     assert "class SessionOrientationBias(OrientationBias)" in text and "Physical causes" in text
+    if proposal["parameters"] < 9:
+        assert f"terms = {tuple(proposal['term_indices']['orientation_bias'])}" in text
     compile(text, str(proposal_file), "exec")
     out = tmp_path / "m.onnx"
     assert main(["fit", str(data), "--effect-file", str(proposal_file), "--effects",
@@ -85,6 +89,32 @@ def test_cli_writes_an_effect_file_that_fit_accepts_unchanged(tmp_path, capsys):
                  "--json"]) == 0
     fitted = json.loads(capsys.readouterr().out)
     assert out.exists() and "session_orientation_bias" in json.dumps(fitted)
+
+
+# The true law of each test-only effect as the form's terms (tests/data/forms_outside.py): the
+# bend's k = (0.03, -0.02) on dx^2 + dy^2 and dx dy; the attitude bias b m n^T with b = 4 mm,
+# m = (0, 0.6, -0.8), n = (0.6, 0, 0.8). z per a_z is shared with the mount's lever along z
+# (K = e I is a lever), so only its presence is checked.
+TRUE_TERMS = {
+    "bend": ("quadratic", {"x on dx dy": -0.02, "z on dx^2": 0.03, "z on dy^2": 0.03}),
+    "attitude_bias": ("orientation_bias", {"y per a_x": 0.004 * 0.6 * 0.6, "y per a_z": 0.004 * 0.6 * 0.8,
+                                           "z per a_x": -0.004 * 0.8 * 0.6, "z per a_z": None}),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario, kind, seed", [("bend", "hand", 7), ("attitude_bias", "robot", 1)])
+def test_the_proposal_keeps_the_terms_the_error_has(scenario, kind, seed):
+    """Cut to the terms the data needs, the proposal is the true law: its terms and values."""
+    table = study.session(scenario, seed, kind)
+    study.hide_outside()
+    proposal = diagnose(table, study.BASE)["proposal"]
+    form, truth = TRUE_TERMS[scenario]
+    got = proposal["terms"][form]
+    assert set(got) == set(truth), got
+    for label, value in truth.items():
+        if value is not None:
+            assert abs(got[label] - value) < 0.1 * abs(value), (label, got[label], value)
 
 
 @pytest.mark.parametrize("name", ["20201002_Exp1.csv", "20200717_Exp2.csv"])

@@ -624,12 +624,16 @@ for _cls in (Mount, Sweep, RangeScale, Incidence, Drift, Station, Noise):
 
 BUILTIN_NAMES: tuple[str, ...] = tuple(EFFECTS)
 
-from . import forms as _forms  # noqa: E402  (the forms subclass Effect, defined above)
+# The forms subclass Effect (defined above) and register themselves when their module ends,
+# so that importing posecorr.forms first works too.
+from . import forms as _forms  # noqa: E402,F401
 
-for _cls in _forms.FORMS:
-    register_effect(_cls)
 
-FORM_NAMES: tuple[str, ...] = tuple(name for name, effect in EFFECTS.items() if effect.generic)
+def __getattr__(name: str) -> Any:
+    # Computed when asked: were posecorr.forms imported first, it registers after this module ends.
+    if name == "FORM_NAMES":
+        return tuple(key for key, effect in EFFECTS.items() if effect.generic)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def unregister_effect(name: str) -> None:

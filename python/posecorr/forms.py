@@ -20,18 +20,69 @@ axis in the base frame; Exp(w) the rotation with rotation vector w.
 | sweep_harmonics | 8 | alpha' = alpha + sum_k (a_k cos k alpha + b_k sin k alpha), k = 1, 2 (likewise beta) |
 
 Each form declares `causes`: in words, the physical causes that produce its shape, for the
-proposal's text.
+proposal's text, and `labels`: one short name per coefficient. A session's proposal keeps only
+the coefficients its data needs (`Form.keeping`: SINDy's sparse regression over a library of
+terms, here over one form's terms): the others are held at zero, so the effect file says which
+terms the error has and fits fewer numbers on few poses.
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar, Sequence
+
+import numpy as np
 
 from ._xp import namespace
-from .effects import (Effect, Param, _to_namespace, from_station, station_coords, sweep_angles,
-                      sweep_direction)
+from .effects import (Effect, Param, _to_namespace, from_station, register_effect, station_coords,
+                      sweep_angles, sweep_direction)
 from .rotations import rotvec_to_matrix
 
 TIME_SCALE_S = 1000.0
+
+
+class Form(Effect):
+    """A generic form: a field of `labels` coefficients, all fitted, or only `terms` (indices
+    into `labels`, the others held at zero) in a subclass made by `keeping`."""
+
+    labels: ClassVar[tuple[str, ...]] = ()
+    terms: ClassVar[tuple[int, ...] | None] = None
+
+    def __init__(self) -> None:
+        if self.terms is not None:
+            self._check_terms(self.name, self.terms, self.size)
+
+    @classmethod
+    def _check_terms(cls, name: str, terms: Sequence[Any], size: int) -> None:
+        terms = tuple(terms)
+        if (len(set(terms)) != len(terms) or len(terms) != size
+                or any(not isinstance(t, int) or not 0 <= t < len(cls.labels) for t in terms)):
+            raise ValueError(f"effect {name!r}: terms must be {size} distinct indices of its "
+                             f"{len(cls.labels)} coefficients ({', '.join(cls.labels)}), got {terms}")
+
+    def coefficients(self, theta: Any) -> Any:
+        """The full coefficient vector (..., len(labels)) of a theta that keeps `terms`."""
+        if self.terms is None:
+            return theta
+        xp = namespace(theta)
+        select = np.zeros((len(self.terms), len(self.labels)))
+        select[np.arange(len(self.terms)), list(self.terms)] = 1.0
+        return xp.matmul(theta, xp.const(select, theta))
+
+    def term_labels(self) -> list[str]:
+        """The labels of the coefficients this effect fits."""
+        return list(self.labels) if self.terms is None else [self.labels[t] for t in self.terms]
+
+    @classmethod
+    def keeping(cls, terms: Sequence[int], name: str, values: Sequence[float] | None = None) -> type["Form"]:
+        """A subclass of this form that fits only `terms` (defaults `values`, else zero)."""
+        terms = tuple(int(t) for t in terms)
+        cls._check_terms(name, terms, len(terms))
+        first = cls.params[0]
+        default = tuple(float(v) for v in values) if values is not None else (0.0,) * len(terms)
+        # one block of the form's unit; named as the form's block when it has one
+        param = Param(first.name if len(cls.params) == 1 else "c", len(terms), default, first.scale, first.unit,
+                      doc="coefficients of " + ", ".join(cls.labels[t] for t in terms))
+        return type(f"{cls.__name__}Terms", (cls,), {"name": name, "terms": terms, "params": (param,),
+                                                     "generic": False, "__doc__": cls.__doc__})
 
 
 def _centred(p: Any, ctx: Any) -> Any:
@@ -53,7 +104,7 @@ def _matrix_times(theta: Any, first: int, d: Any) -> Any:
     return xp.concat([_rows(theta, first + i * n, d) for i in range(3)], axis=-1)
 
 
-class Strain(Effect, name="strain", order=5.7, per_row_theta=True, changes_rotation=False, generic=True,
+class Strain(Form, name="strain", order=5.7, per_row_theta=True, changes_rotation=False, generic=True,
              causes="a strain of the tracking space: a wrong base-station geometry (the stations' distance "
                     "or angle between them) or a scale of one sweep axis"):
     """An affine strain of the tracking space about the workspace centre.
@@ -63,11 +114,13 @@ class Strain(Effect, name="strain", order=5.7, per_row_theta=True, changes_rotat
     a rotation, which the station registration holds. Inverted by fixed-point steps.
     """
 
+    labels = ("s_xx", "s_yy", "s_zz", "s_xy", "s_xz", "s_yz")
     params = (Param("s", 6, (2e-3, -1e-3, 1e-3, 5e-4, -5e-4, 5e-4), 1e-3, "1",
                     doc="S entries xx, yy, zz, xy, xz, yz"),)
 
     def forward(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
+        theta = self.coefficients(theta)
         d = _centred(p, ctx)
         s = [theta[..., k:k + 1] for k in range(6)]
         dx, dy, dz = d[..., 0:1], d[..., 1:2], d[..., 2:3]
@@ -83,7 +136,7 @@ def _monomials(d: Any) -> Any:
     return xp.stack([x * x, y * y, z * z, x * y, x * z, y * z], axis=-1)
 
 
-class Quadratic(Effect, name="quadratic", order=5.8, per_row_theta=True, changes_rotation=False, generic=True,
+class Quadratic(Form, name="quadratic", order=5.8, per_row_theta=True, changes_rotation=False, generic=True,
                 causes="a curved tracking space: a lens or sweep-curvature error of a base station, or "
                        "a reference (the robot's) whose own calibration bends its workspace"):
     """A second-order field of position over the workspace.
@@ -92,15 +145,17 @@ class Quadratic(Effect, name="quadratic", order=5.8, per_row_theta=True, changes
     row by row (x's six, then y's, then z's); R unchanged. Inverted by fixed-point steps.
     """
 
+    labels = tuple(f"{axis} on {m}" for axis in "xyz" for m in ("dx^2", "dy^2", "dz^2", "dx dy", "dx dz", "dy dz"))
     params = (Param("q", 18, (2e-3,) + (0.0,) * 8 + (-2e-3,) + (0.0,) * 7 + (1e-3,), 1e-3, "1/m",
                     doc="coefficients of x, y, z on dx^2, dy^2, dz^2, dx dy, dx dz, dy dz"),)
 
     def forward(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
+        theta = self.coefficients(theta)
         return p + _matrix_times(theta, 0, _monomials(_centred(p, ctx))), R
 
 
-class OrientationField(Effect, name="orientation_field", order=5.75, per_row_theta=True, generic=True,
+class OrientationField(Form, name="orientation_field", order=5.75, per_row_theta=True, generic=True,
                        closed_form_inverse=True,
                        causes="an orientation error that varies over the workspace: the IMU fusion's "
                               "heading pulled by a magnetic or optical field, or a wrong station tilt "
@@ -111,6 +166,7 @@ class OrientationField(Effect, name="orientation_field", order=5.75, per_row_the
     R <- Exp(G d)^T R (d does not change).
     """
 
+    labels = tuple(f"turn {axis} per d{along}" for axis in "xyz" for along in "xyz")
     params = (Param("g", 9, (2e-3, 0.0, 0.0, 0.0, -2e-3, 0.0, 1e-3, 0.0, 0.0), 1e-3, "rad/m",
                     doc="G entries, row by row"),)
 
@@ -119,14 +175,16 @@ class OrientationField(Effect, name="orientation_field", order=5.75, per_row_the
 
     def forward(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
+        theta = self.coefficients(theta)
         return p, xp.matmul(self._turn(p, theta, ctx), R)
 
     def inverse(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
+        theta = self.coefficients(theta)
         return p, xp.matmul(xp.swap_last(self._turn(p, theta, ctx)), R)
 
 
-class OrientationBias(Effect, name="orientation_bias", order=1.5, per_row_theta=True, changes_rotation=False,
+class OrientationBias(Form, name="orientation_bias", order=1.5, per_row_theta=True, changes_rotation=False,
                       sensitivity="orientation",
                       generic=True, closed_form_inverse=True,
                       causes="a position bias that turns with the tracker but is no rigid lever: the "
@@ -139,6 +197,7 @@ class OrientationBias(Effect, name="orientation_bias", order=1.5, per_row_theta=
     unchanged, so p <- p - K a.
     """
 
+    labels = tuple(f"{axis} per a_{along}" for axis in "xyz" for along in "xyz")
     params = (Param("k", 9, (1e-3, 0.0, 0.0, 0.0, -1e-3, 0.0, 0.0, 0.0, 5e-4), 1e-3, "m",
                     doc="K entries, row by row"),)
 
@@ -147,14 +206,16 @@ class OrientationBias(Effect, name="orientation_bias", order=1.5, per_row_theta=
 
     def forward(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
+        theta = self.coefficients(theta)
         return p + self._bias(R, theta), R
 
     def inverse(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
+        theta = self.coefficients(theta)
         return p - self._bias(R, theta), R
 
 
-class TimeTrend(Effect, name="time_trend", order=5.1, per_row_theta=True, changes_rotation=False, generic=True,
+class TimeTrend(Form, name="time_trend", order=5.1, per_row_theta=True, changes_rotation=False, generic=True,
                 closed_form_inverse=True, needs_time=True, sensitivity="time",
                 causes="a slow change over the session that does not settle: a station warming up or "
                        "moving on its stand, the robot's base creeping"):
@@ -164,6 +225,7 @@ class TimeTrend(Effect, name="time_trend", order=5.1, per_row_theta=True, change
     start from ctx.t (the identity without it). Closed-form inverse.
     """
 
+    labels = tuple(f"{axis} on {power}" for power in ("t", "t^2") for axis in "xyz")
     params = (Param("u1", 3, (1e-3, -5e-4, 0.0), 1e-3, "m", doc="linear term, per T"),
               Param("u2", 3, (0.0, 0.0, 5e-4), 1e-3, "m", doc="quadratic term, per T^2"))
 
@@ -180,11 +242,13 @@ class TimeTrend(Effect, name="time_trend", order=5.1, per_row_theta=True, change
 
     def forward(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
+        theta = self.coefficients(theta)
         off = self._offset(p, theta, ctx)
         return (p if off is None else p + off), R
 
     def inverse(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
+        theta = self.coefficients(theta)
         off = self._offset(p, theta, ctx)
         return (p if off is None else p - off), R
 
@@ -195,7 +259,7 @@ def _harmonics(xp: Any, angle: Any, theta: Any, first: int) -> Any:
     return c[0] * xp.cos(angle) + c[1] * xp.sin(angle) + c[2] * xp.cos(2.0 * angle) + c[3] * xp.sin(2.0 * angle)
 
 
-class SweepHarmonics(Effect, name="sweep_harmonics", order=2.5, per_row_theta=True, changes_rotation=False,
+class SweepHarmonics(Form, name="sweep_harmonics", order=2.5, per_row_theta=True, changes_rotation=False,
                      generic=True, inverse_steps=8,
                      causes="a periodic error of a station's sweep angles: the rotor's speed ripple or "
                             "a wobble of its optics (SteamVR's gibbous terms)"):
@@ -206,11 +270,13 @@ class SweepHarmonics(Effect, name="sweep_harmonics", order=2.5, per_row_theta=Tr
     Inverse: fixed-point steps on the angles, a contraction for coefficients << 1 rad.
     """
 
+    labels = tuple(f"{angle} {wave}" for angle in ("alpha", "beta") for wave in ("cos", "sin", "cos 2", "sin 2"))
     params = (Param("alpha", 4, (1e-3, 0.0, 5e-4, 0.0), 1e-3, "rad", doc="a1, b1, a2, b2 of alpha"),
               Param("beta", 4, (0.0, -1e-3, 0.0, 5e-4), 1e-3, "rad", doc="a1, b1, a2, b2 of beta"))
 
     def forward(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
+        theta = self.coefficients(theta)
         alpha, beta, r = sweep_angles(xp, station_coords(p, ctx))
         a2 = alpha + _harmonics(xp, alpha, theta, 0)
         b2 = beta + _harmonics(xp, beta, theta, 4)
@@ -218,6 +284,7 @@ class SweepHarmonics(Effect, name="sweep_harmonics", order=2.5, per_row_theta=Tr
 
     def inverse(self, p, R, theta, ctx):
         xp, p, R, theta = _to_namespace(p, R, theta)
+        theta = self.coefficients(theta)
         a2, b2, r = sweep_angles(xp, station_coords(p, ctx))
         alpha, beta = a2, b2
         for _ in range(self.inverse_steps):
@@ -225,7 +292,10 @@ class SweepHarmonics(Effect, name="sweep_harmonics", order=2.5, per_row_theta=Tr
         return from_station(r * sweep_direction(xp, alpha, beta), ctx), R
 
 
-FORMS: tuple[type[Effect], ...] = (Strain, Quadratic, OrientationField, OrientationBias, TimeTrend, SweepHarmonics)
+FORMS: tuple[type[Form], ...] = (Strain, Quadratic, OrientationField, OrientationBias, TimeTrend, SweepHarmonics)
 
-__all__ = ["FORMS", "Strain", "Quadratic", "OrientationField", "OrientationBias", "TimeTrend", "SweepHarmonics",
+for _form in FORMS:
+    register_effect(_form)
+
+__all__ = ["FORMS", "Form", "Strain", "Quadratic", "OrientationField", "OrientationBias", "TimeTrend", "SweepHarmonics",
            "TIME_SCALE_S"]

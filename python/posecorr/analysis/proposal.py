@@ -57,35 +57,100 @@ def _why_none(result: dict[str, Any], kept: Sequence[str]) -> str:
 
 
 def _fitted_proposal(search: Any, result: dict[str, Any], kept: list[str], forms: list[str]) -> dict[str, Any]:
-    """The kept model fitted on every pose (the forms' values) and cross-validated on the
-    diagnosis's folds (its held-out gain over the base model)."""
-    from posecorr.train.physics import PhysicsModel
-    from posecorr.train.pipeline import CorrectionPipeline, cross_validate
-    from posecorr.train.splits import KFold
+    """The kept model with each form cut to the terms its data needs (`_fewest_terms`), fitted
+    on every pose (the forms' values) and cross-validated on the diagnosis's folds (its
+    held-out gain over the base model)."""
+    from contextlib import ExitStack
 
-    from .diagnose import _whitened_gain
+    from posecorr.train.physics import PhysicsModel
 
     table = search.table
-    search.say(f"the proposal: {', '.join(search.effects + kept)} on every pose")
-    t = table.time()
-    physics = PhysicsModel(tuple(search.effects + kept), with_rotation=table.has_orientation).fit(
-        table.measured, table.reference, t=t)
-    cv = cross_validate(lambda: CorrectionPipeline(search.effects + kept), table, KFold(search.folds), search.seed)
-    gains = [_whitened_gain(table, held, search.base.predicted, cv.predicted, search.base.per_fold[k][3])
-             for k, (_, held) in enumerate(search.splits)]
+    catalogue = [name for name in kept if name not in forms]
+    with ExitStack() as registered:
+        model = {form: form for form in forms}
+        for form in forms:
+            search.say(f"the terms of {form} this data needs")
+            model[form] = _fewest_terms(search, catalogue, model, form, registered)
+        effects = search.effects + catalogue + list(model.values())
+        search.say(f"the proposal: {', '.join(effects)} on every pose")
+        physics = PhysicsModel(tuple(effects), with_rotation=table.has_orientation).fit(
+            table.measured, table.reference, t=table.time())
+        gains, cv = _held_out_gains(search, effects)
+        chosen = {form: get_effect(model[form]) for form in forms}
+        values = {form: chosen[form].describe(physics.params_[model[form]]) for form in forms}
+        terms = {form: dict(zip(chosen[form].term_labels(), physics.params_[model[form]].tolist())) for form in forms}
+        indices = {form: None if chosen[form].terms is None else list(chosen[form].terms) for form in forms}
     return {
         "effect": ",".join(_proposed_name(form) for form in forms),
         "forms": forms,
         "file": None,
         "gain": float(np.mean(gains)),
-        "parameters": int(sum(get_effect(form).size for form in forms)),
-        "values": {form: get_effect(form).describe(physics.params_[form]) for form in forms},
+        "parameters": int(sum(effect.size for effect in chosen.values())),
+        "form_parameters": int(sum(get_effect(form).size for form in forms)),
+        "values": values,
+        "terms": terms,
+        "term_indices": indices,
         "cv_rmse_pos_before": result["cv_base"]["rmse_pos"],
         "cv_rmse_pos_after": float(cv.metrics["rmse_pos"]),
         "with": kept,
         "model_effects": list(search.effects),
         "causes": {form: get_effect(form).causes for form in forms},
     }
+
+
+def _held_out_gains(search: Any, effects: list[str]) -> tuple[np.ndarray, Any]:
+    """Per fold of the diagnosis, the fall of the held-out whitened error from the base model
+    to `effects`; and the cross-validation itself."""
+    from posecorr.train.pipeline import CorrectionPipeline, cross_validate
+    from posecorr.train.splits import KFold
+
+    from .diagnose import _whitened_gain
+
+    table = search.table
+    cv = cross_validate(lambda: CorrectionPipeline(effects), table, KFold(search.folds), search.seed)
+    gains = [_whitened_gain(table, held, search.base.predicted, cv.predicted, search.base.per_fold[k][3])
+             for k, (_, held) in enumerate(search.splits)]
+    return np.asarray(gains), cv
+
+
+def _fewest_terms(search: Any, catalogue: list[str], model: dict[str, str], form: str, registered: Any) -> str:
+    """The name of `form` cut to the fewest terms whose held-out error is within one standard
+    error of the best cut's (Breiman's one-standard-error rule, on the log of the whitened
+    error left in each fold), with a gain in every fold; `form` itself when no cut comes near
+    it. Cuts keep the largest terms on this session first (|theta_j| times its whitened
+    Jacobian column: SINDy's threshold on normalised coefficients). They are registered on
+    `registered` (an ExitStack), which removes them."""
+    from posecorr.train.physics import PhysicsModel
+
+    from ..effects import register_effect, unregister_effect
+    from .diagnose import _column_owners
+
+    table, whole = search.table, get_effect(form)
+    effects = search.effects + catalogue + list(model.values())
+    physics = PhysicsModel(tuple(effects), with_rotation=table.has_orientation).fit(
+        table.measured, table.reference, t=table.time())
+    _, J, _ = physics.residual_jacobian(table.measured, table.reference, table.time())
+    theta = physics.params_[form]
+    size = np.abs(theta) * np.linalg.norm(J[:, _column_owners(physics, []) == form], axis=0)
+    order = [int(j) for j in np.argsort(-size, kind="stable")]
+    names, left = [], []    # each cut's name and log of the whitened error it leaves, per fold
+    for count in range(1, whole.size + 1):
+        name = form
+        if count < whole.size:
+            terms = sorted(order[:count])
+            name = register_effect(type(whole).keeping(terms, f"_{form}_terms{count}", theta[terms]),
+                                   source=__name__).name
+            registered.callback(unregister_effect, name)
+        gains, _ = _held_out_gains(search, search.effects + catalogue + list({**model, form: name}.values()))
+        names.append(name if np.all(gains > 0) else None)
+        left.append(np.log(np.clip(1.0 - gains, 1e-12, None)))
+    best = left[int(np.argmin([np.mean(e) for e in left]))]
+    for name, errors in zip(names, left):
+        worse = errors - best
+        spread = np.std(worse, ddof=1) / np.sqrt(len(worse)) if len(worse) > 1 else 0.0
+        if name is not None and worse.mean() <= spread:
+            return name
+    return form
 
 
 def explain_absorbed(result: dict[str, Any], kept: Sequence[str]) -> list[dict[str, Any]]:
@@ -130,11 +195,11 @@ def effect_file_text(proposal: dict[str, Any], command: str, data_name: str) -> 
             f"{proposal['parameters']} parameters.", ""]
     for form in forms:
         effect = get_effect(form)
+        unit = effect.params[0].unit
         head += [f"{_proposed_name(form)}: {(effect.__doc__ or '').strip().splitlines()[0]}",
                  f"  Physical causes of this shape: {effect.causes}.",
-                 "  Fitted on this session: " + "; ".join(
-                     f"{name} = {numbers_text(values, 4)} {_unit(effect, name)}"
-                     for name, values in proposal["values"][form].items()), ""]
+                 f"  Fitted on this session ({terms_words(proposal, form)}): " + "; ".join(
+                     f"{label} = {value:.4g} {unit}" for label, value in proposal["terms"][form].items()), ""]
     head += ["Fit it with:",
              f"    posecorr fit {data_name} --effect-file THIS_FILE --effects {effects_arg(proposal)}",
              '"""']
@@ -142,17 +207,23 @@ def effect_file_text(proposal: dict[str, Any], command: str, data_name: str) -> 
     body = ["from posecorr.effects import Param",
             f"from posecorr.forms import {', '.join(imports)}", ""]
     for form in forms:
-        effect = get_effect(form)
+        effect, terms = get_effect(form), proposal["term_indices"][form]
+        if terms is not None:
+            effect = type(effect).keeping(terms, _proposed_name(form))()
         params = []
         for param in effect.params:
             values = proposal["values"][form][param.name]
             default = tuple(values) if isinstance(values, list) else (values,)
             params.append(f"        Param({param.name!r}, {param.size}, {_tuple(default)}, {param.scale!r}, "
                           f"{param.unit!r},\n              doc={param.doc!r}),")
-        body += ["", f"class {_class_name(form)}({type(effect).__name__}):",
+        kept = [] if terms is None else [
+            f"    # the terms this session needs, of the form's {len(effect.labels)}; the others are held at zero",
+            f"    terms = {_tuple(terms, int)}"]
+        body += ["", f"class {_class_name(form)}({type(get_effect(form)).__name__}):",
                  f'    """The {form} form, its defaults the values fitted on this session."""', "",
                  f"    name = {_proposed_name(form)!r}",
                  "    generic = False  # the user's own effect now, not a form the diagnosis proposes",
+                 *kept,
                  "    params = (", *params, "    )", ""]
     return "\n".join(head + body).rstrip() + "\n"
 
@@ -169,10 +240,11 @@ def numbers_text(values: Any, digits: int) -> str:
     return f"[{text}]" if len(values) > 1 else text
 
 
-def _unit(effect: Any, name: str) -> str:
-    return next(p.unit for p in effect.params if p.name == name)
+def terms_words(proposal: dict[str, Any], form: str) -> str:
+    kept, whole = len(proposal["terms"][form]), get_effect(form).size
+    return f"all {whole} terms" if kept == whole else f"{kept} of its {whole} terms"
 
 
-def _tuple(values: Sequence[float]) -> str:
-    inner = ", ".join(repr(float(v)) for v in values)
+def _tuple(values: Sequence[float], kind: type = float) -> str:
+    inner = ", ".join(repr(kind(v)) for v in values)
     return f"({inner},)" if len(values) == 1 else f"({inner})"

@@ -82,7 +82,7 @@ def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
 
 
 def _proposal_lines(args: argparse.Namespace, result: dict) -> list[str]:
-    from ..analysis.proposal import numbers_text
+    from ..analysis.proposal import terms_words, numbers_text
     from ..effects import get_effect
 
     proposal = result["proposal"]
@@ -92,8 +92,10 @@ def _proposal_lines(args: argparse.Namespace, result: dict) -> list[str]:
              f"whitened error falls by {proposal['gain']:.1%}, rmse_pos {1e3 * proposal['cv_rmse_pos_before']:.3g} -> "
              f"{1e3 * proposal['cv_rmse_pos_after']:.3g} mm ({result['folds']}-fold)"]
     for form in proposal["forms"]:
-        values = "; ".join(f"{name} = {numbers_text(v, 3)}" for name, v in proposal["values"][form].items())
-        lines.append(f"  {form}: {(get_effect(form).__doc__ or '').strip().splitlines()[0]} Fitted: {values}.")
+        effect = get_effect(form)
+        values = "; ".join(f"{label} = {numbers_text(v, 3)}" for label, v in proposal["terms"][form].items())
+        lines.append(f"  {form}: {(effect.__doc__ or '').strip().splitlines()[0]} Fitted "
+                     f"({terms_words(proposal, form)}, {effect.params[0].unit}): {values}.")
         lines.append(f"  causes of this shape: {proposal['causes'][form]}")
     if proposal["file"]:
         from ..analysis.proposal import effects_arg

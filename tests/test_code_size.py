@@ -159,6 +159,13 @@ def test_no_python_function_over_60_lines_without_its_comment():
     assert not found, _report(found)
 
 
+def test_no_c_function_over_60_lines_without_its_comment():
+    files = _c_files()
+    assert len(files) > 10, "the scan found too few C files: runtime_c moved?"
+    found = [(p, *f) for p in files for f in long_c_functions(p)]
+    assert not found, _report(found)
+
+
 def test_the_checker_measures_and_excuses(tmp_path):
     """The checkers find a long function, name its line, and let it pass with its comment:
     counted against functions written here with known lengths."""

@@ -21,6 +21,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
@@ -64,7 +65,6 @@ def _ros_runs(runs: list[tuple[str, float | None, int]]) -> list[dict]:
         qos = QoSProfile(depth=10_000, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_ALL)
         pub = node.create_publisher(PoseStamped, "/tracker/pose", qos)
-        sent_at: dict[int, float] = {}
         back: dict[int, float] = {}
         diags: list[dict[str, str]] = []
         sink.create_subscription(
@@ -77,48 +77,62 @@ def _ros_runs(runs: list[tuple[str, float | None, int]]) -> list[dict]:
         executor.add_node(sink)
         spinner = threading.Thread(target=executor.spin, daemon=True)
         spinner.start()
-        end = time.monotonic() + 30
-        while (pub.get_subscription_count() == 0 or not diags) and time.monotonic() < end:
-            time.sleep(0.05)
-        x = _poses(n)
-        period = 1.0 / rate if rate else 0.0
-        start = time.perf_counter()
-        for k, p in enumerate(x):
-            m = PoseStamped()
-            m.header.stamp.sec, m.header.stamp.nanosec = k // 1_000_000, (k % 1_000_000) * 1000
-            m.pose.position.x, m.pose.position.y, m.pose.position.z = map(float, p[:3])
-            (m.pose.orientation.w, m.pose.orientation.x, m.pose.orientation.y,
-             m.pose.orientation.z) = map(float, p[3:])
-            sent_at[k] = time.perf_counter()
-            pub.publish(m)
-            wait = start + (k + 1) * period - time.perf_counter() if period else 0.0
-            if wait > 0:  # sleep, not spin: a spinning publisher starves the node of a core
-                time.sleep(wait)
-        end = time.monotonic() + 30
-        while len(back) < n and time.monotonic() < end:
-            time.sleep(0.01)
-        end = time.monotonic() + 5
-        while (not diags or diags[-1]["poses_out"] != str(len(back))) and time.monotonic() < end:
-            time.sleep(0.05)
+        _wait_until(lambda: pub.get_subscription_count() > 0 and diags, 30, 0.05)
+        sent_at = _publish(pub, PoseStamped, _poses(n), rate)
+        _wait_until(lambda: len(back) >= n, 30, 0.01)
+        _wait_until(lambda: diags and diags[-1]["poses_out"] == str(len(back)), 5, 0.05)
         executor.shutdown()
         sink.destroy_node()
         node.destroy_node()
         rclpy.shutdown()
         proc.terminate()
         proc.communicate(timeout=30)
-        rtt = np.array([(back[k] - sent_at[k]) * 1e6 for k in back])
-        d = diags[-1] if diags else {}
-        result = {"run": label, "rate_hz": rate, "poses_sent": n, "poses_back": len(back),
-                  "node_added_latency": {k.replace("latency_", ""): float(v) for k, v in d.items()
-                                         if k.startswith("latency_")},
-                  "round_trip_through_dds": _stats(rtt)}
-        if rate is None and len(back) > 1:
-            # steady state: corrections received per second between the first and the last
-            times = sorted(back.values())
-            result["poses_per_second"] = round((len(times) - 1) / (times[-1] - times[0]), 1)
+        result = _run_result(label, rate, n, sent_at, back, diags)
         out.append(result)
         print(json.dumps(result), flush=True)
     return out
+
+
+def _wait_until(done: Callable[[], Any], timeout_s: float, poll_s: float) -> None:
+    end = time.monotonic() + timeout_s
+    while not done() and time.monotonic() < end:
+        time.sleep(poll_s)
+
+
+def _publish(pub: Any, pose_stamped: type, x: np.ndarray, rate: float | None) -> dict[int, float]:
+    """Publishes the poses at `rate` (as fast as possible when None), each stamped with its
+    index; returns when each was sent."""
+    sent_at: dict[int, float] = {}
+    period = 1.0 / rate if rate else 0.0
+    start = time.perf_counter()
+    for k, p in enumerate(x):
+        m = pose_stamped()
+        m.header.stamp.sec, m.header.stamp.nanosec = k // 1_000_000, (k % 1_000_000) * 1000
+        m.pose.position.x, m.pose.position.y, m.pose.position.z = map(float, p[:3])
+        (m.pose.orientation.w, m.pose.orientation.x, m.pose.orientation.y,
+         m.pose.orientation.z) = map(float, p[3:])
+        sent_at[k] = time.perf_counter()
+        pub.publish(m)
+        wait = start + (k + 1) * period - time.perf_counter() if period else 0.0
+        if wait > 0:  # sleep, not spin: a spinning publisher starves the node of a core
+            time.sleep(wait)
+    return sent_at
+
+
+def _run_result(label: str, rate: float | None, n: int, sent_at: dict[int, float],
+                back: dict[int, float], diags: list[dict[str, str]]) -> dict:
+    """One run's round trips and the node's own last latency report."""
+    rtt = np.array([(back[k] - sent_at[k]) * 1e6 for k in back])
+    d = diags[-1] if diags else {}
+    result = {"run": label, "rate_hz": rate, "poses_sent": n, "poses_back": len(back),
+              "node_added_latency": {k.replace("latency_", ""): float(v) for k, v in d.items()
+                                     if k.startswith("latency_")},
+              "round_trip_through_dds": _stats(rtt)}
+    if rate is None and len(back) > 1:
+        # steady state: corrections received per second between the first and the last
+        times = sorted(back.values())
+        result["poses_per_second"] = round((len(times) - 1) / (times[-1] - times[0]), 1)
+    return result
 
 
 def _posecorr_run(n: int) -> dict:

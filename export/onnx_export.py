@@ -182,7 +182,10 @@ def check_model(model: Any) -> None:
 # How far outside the training data a model still corrects (the runtimes refuse a pose or
 # time beyond with PC_ERR_RANGE): half the training extent per axis, and at least 0.1 m for
 # a position, 60 s for a time (a session's clock and the tracker's stamps may disagree by
-# seconds).
+# seconds). Times are seconds since the session's start, so the span reaches back no further
+# than 60 s before it: earlier is no time of the session, and there a time model
+# extrapolates without limit (drift's 1 - exp(-t / tau) overflows float32 hours before the
+# start when tau is a minute).
 BOUNDS_MARGIN_FRACTION = 0.5
 BOUNDS_MARGIN_MIN = 0.1
 TIME_MARGIN_MIN = 60.0
@@ -203,9 +206,12 @@ def input_bounds(measured: np.ndarray) -> list[list[float]]:
 
 
 def time_bounds(t: np.ndarray) -> list[float]:
-    """[t_lo, t_hi] (s): the span of the training times, widened."""
-    lo, hi = widened_box(np.asarray(t, float).reshape(-1, 1), TIME_MARGIN_MIN)
-    return [float(lo[0]), float(hi[0])]
+    """[t_lo, t_hi] (s): the span of the training times, widened, from no earlier than
+    TIME_MARGIN_MIN before the session's start (t = 0) or the first time."""
+    t = np.asarray(t, float).reshape(-1, 1)
+    lo, hi = widened_box(t, TIME_MARGIN_MIN)
+    start = min(float(t.min()), 0.0) - TIME_MARGIN_MIN
+    return [max(float(lo[0]), start), float(hi[0])]
 
 
 # How far a model's corrections may reach (the runtimes refuse a pose corrected farther, with
@@ -257,7 +263,24 @@ def model_reach(model: Any, measured: np.ndarray, box: Any, t: Any = None, span:
     if t is not None:
         rng = np.random.default_rng(REACH_SEED + 1)
         times = np.concatenate([np.asarray(t, float), rng.uniform(span[0], span[1], len(drawn))])
-    return correction_reach(poses, run_onnx(model, poses, times))
+    corrected = run_onnx(model, poses, times)
+    _refuse_non_finite(poses, times, corrected, len(poses) - len(drawn))
+    return correction_reach(poses, corrected)
+
+
+def _refuse_non_finite(poses: np.ndarray, times: np.ndarray | None, corrected: np.ndarray,
+                       n_training: int) -> None:
+    """A model that answers a pose the runtimes accept with a non-finite pose has no reach:
+    refused, naming the first such pose."""
+    bad = np.flatnonzero(~np.isfinite(corrected).all(axis=1))
+    if not bad.size:
+        return
+    i = int(bad[0])
+    which = (f"training pose {i}" if i < n_training
+             else f"pose {i - n_training} drawn inside input_bounds{'' if times is None else ' and time_bounds'}")
+    at = "" if times is None else f" at t = {times[i]:.6g} s"
+    raise ExportError(f"the model's correction of {which} ({', '.join(f'{v:.6g}' for v in poses[i])}){at} "
+                      f"is not finite ({bad.size} of {len(poses)} poses): it cannot be given a correction_reach")
 
 
 def _reach_metadata(info: dict[str, Any], model: Any, measured: Any, t: Any, time_input: bool) -> None:

@@ -1,6 +1,11 @@
 /* The public load entry points and accessors. Every load runs pc_load_impl: scan the
  * graph (graph.c), plan (plan.c), then the checks that need a built model: rows must be
  * independent, and the metadata the pose checks of pc_run use. */
+/* open, fstat and fdopen are POSIX, not C99: asked for before any header, where there is
+ * POSIX; elsewhere pc_load_file opens with fopen alone. */
+#if (defined(__unix__) || defined(__APPLE__)) && !defined(_POSIX_C_SOURCE)
+#define _POSIX_C_SOURCE 200112L
+#endif
 #include "graph.h"
 #include "load.h"
 #include "plan.h"
@@ -9,6 +14,12 @@
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
+#if defined(__unix__) || defined(__APPLE__)
+#include <fcntl.h>
+#include <sys/stat.h>
+#include <unistd.h>
+#define PC_POSIX_OPEN 1
+#endif
 
 
 /* ---- load-time checks ------------------------------------------------------------- */
@@ -368,6 +379,47 @@ pc_status pc_load_into(const void *data, size_t size, const pc_options *opts, vo
     return pc_load_impl(data, size, opts, 0, buffer, buffer_size, model, NULL, err);
 }
 
+#ifdef PC_POSIX_OPEN
+static const char *pc_file_kind(mode_t mode)
+{
+    return S_ISDIR(mode) ? "a folder" : S_ISFIFO(mode) ? "a FIFO" : S_ISCHR(mode) ? "a character device"
+         : S_ISBLK(mode) ? "a block device" : S_ISSOCK(mode) ? "a socket" : "a special file";
+}
+#endif
+
+/* fopen of a FIFO waits for a writer, forever, and a device reads without end: where there
+ * is POSIX the file is opened without waiting (O_NONBLOCK) and refused at once unless fstat
+ * says it is a regular file - the file opened, not one a stat before the open saw. */
+static pc_status pc_open_regular(const char *path, FILE **fp, pc_error *err)
+{
+#ifdef PC_POSIX_OPEN
+    struct stat st;
+    int flags;
+    const int fd = open(path, O_RDONLY | O_NONBLOCK);
+    *fp = NULL;
+    if (fd < 0)
+        return pc_fail(err, PC_ERR_IO, "cannot open '%s'", path);
+    if (fstat(fd, &st) != 0) {
+        close(fd);
+        return pc_fail(err, PC_ERR_IO, "cannot read '%s'", path);
+    }
+    if (!S_ISREG(st.st_mode)) {
+        close(fd);
+        return pc_fail(err, PC_ERR_IO, "cannot read '%s': is %s, expected a regular file", path,
+                       pc_file_kind(st.st_mode));
+    }
+    flags = fcntl(fd, F_GETFL);
+    if (flags == -1 || fcntl(fd, F_SETFL, flags & ~O_NONBLOCK) == -1 || !(*fp = fdopen(fd, "rb"))) {
+        close(fd);
+        return pc_fail(err, PC_ERR_IO, "cannot open '%s'", path);
+    }
+    return PC_OK;
+#else
+    *fp = fopen(path, "rb");
+    return *fp ? PC_OK : pc_fail(err, PC_ERR_IO, "cannot open '%s'", path);
+#endif
+}
+
 pc_status pc_load_file(const char *path, const pc_options *opts, pc_model **model,
                        pc_error *err)
 {
@@ -382,9 +434,9 @@ pc_status pc_load_file(const char *path, const pc_options *opts, pc_model **mode
         *model = NULL;
     if (!path || !model)
         return pc_fail(err, PC_ERR_ARGUMENT, "path or model pointer is NULL");
-    fp = fopen(path, "rb");
-    if (!fp)
-        return pc_fail(err, PC_ERR_IO, "cannot open '%s'", path);
+    st = pc_open_regular(path, &fp, err);
+    if (st != PC_OK)
+        return st;
     if (fseek(fp, 0, SEEK_END) != 0 || (len = ftell(fp)) < 0 || fseek(fp, 0, SEEK_SET) != 0) {
         fclose(fp);
         return pc_fail(err, PC_ERR_IO, "cannot determine the size of '%s'", path);

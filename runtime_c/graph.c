@@ -160,6 +160,28 @@ static pc_status pc_names_start(pc_builder *b, pc_names *t)
 
 /* ---- walk 2: names to references ----------------------------------------------------- */
 
+/* After the walk: the first input read before (or without) its producer, and the graph's
+ * outputs, each to the value that produces it. */
+static pc_status pc_resolve_ends(pc_builder *b, pc_names *t, pb_slice missing, pb_slice missing_node)
+{
+    uint32_t j;
+    if (missing.data) {
+        if (pc_names_find(b, t, missing))
+            return pc_fail(b->err, PC_ERR_GRAPH, "graph has a cycle or is not topologically "
+                           "sorted: node '%.*s' reads '%.*s' before the node that produces it",
+                           PC_NAME(missing_node), PC_NAME(missing));
+        return pc_fail(b->err, PC_ERR_GRAPH, "input '%.*s' of node '%.*s' is not produced by any "
+                       "node, initializer or graph input", PC_NAME(missing), PC_NAME(missing_node));
+    }
+    for (j = 0; j < b->n_outputs; j++) {
+        b->outputs[j].ref = pc_names_find(b, t, b->outputs[j].name);
+        if (!b->outputs[j].ref)
+            return pc_fail(b->err, PC_ERR_GRAPH, "graph output '%.*s' is not produced by any node",
+                           PC_NAME(b->outputs[j].name));
+    }
+    return PC_OK;
+}
+
 static pc_status pc_scan_refs(pc_builder *b, pc_names *t)
 {
     pb_reader r;
@@ -206,21 +228,7 @@ static pc_status pc_scan_refs(pc_builder *b, pc_names *t)
         return r.status;
     b->node_in0[i] = (uint16_t)ref;
     b->node_out0[i] = (uint16_t)ord;
-    if (missing.data) {
-        if (pc_names_find(b, t, missing))
-            return pc_fail(b->err, PC_ERR_GRAPH, "graph has a cycle or is not topologically "
-                           "sorted: node '%.*s' reads '%.*s' before the node that produces it",
-                           PC_NAME(missing_node), PC_NAME(missing));
-        return pc_fail(b->err, PC_ERR_GRAPH, "input '%.*s' of node '%.*s' is not produced by any "
-                       "node, initializer or graph input", PC_NAME(missing), PC_NAME(missing_node));
-    }
-    for (j = 0; j < b->n_outputs; j++) {
-        b->outputs[j].ref = pc_names_find(b, t, b->outputs[j].name);
-        if (!b->outputs[j].ref)
-            return pc_fail(b->err, PC_ERR_GRAPH, "graph output '%.*s' is not produced by any node",
-                           PC_NAME(b->outputs[j].name));
-    }
-    return PC_OK;
+    return pc_resolve_ends(b, t, missing, missing_node);
 }
 
 /* ---- dead nodes, folding ------------------------------------------------------------- */

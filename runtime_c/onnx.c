@@ -10,12 +10,46 @@
 
 /* ---- TensorProto ------------------------------------------------------------------ */
 
+/* The tensor's element type, count and payload, checked against its shape before anything
+ * is allocated for it. */
+static pc_status onnx_tensor_check(const pc_builder *b, onnx_tensor *t)
+{
+    size_t k, esize, have;
+    t->count = 1;
+    for (k = 0; k < t->rank; k++) {
+        if (!pc_mul_count(&t->count, t->dims[k], PC_MAX_ELEMENTS))
+            return pc_fail(b->err, PC_ERR_MALFORMED, "tensor '%.*s' has an invalid shape",
+                           PC_NAME(t->name));
+    }
+    switch (t->data_type) {
+    case ONNX_FLOAT: t->dtype = PC_F32; break;
+    case ONNX_INT32: case ONNX_INT64: t->dtype = PC_I64; break;
+    case ONNX_BOOL: t->dtype = PC_BOOL; break;
+    default:
+        return pc_fail(b->err, PC_ERR_UNSUPPORTED, "tensor '%.*s' has unsupported data type %lld",
+                       PC_NAME(t->name), (long long)t->data_type);
+    }
+    esize = t->data_type == ONNX_INT32 ? 4 : pc_dtype_size(t->dtype);
+    if (t->has_raw) {
+        if (t->raw.size != t->count * esize)
+            return pc_fail(b->err, PC_ERR_MALFORMED,
+                           "tensor '%.*s': raw_data has %zu bytes, shape needs %zu",
+                           PC_NAME(t->name), t->raw.size, t->count * esize);
+        return PC_OK;
+    }
+    have = t->dtype == PC_F32 ? t->n_float : t->data_type == ONNX_INT64 ? t->n_int64 : t->n_int32;
+    if (have != t->count)
+        return pc_fail(b->err, PC_ERR_MALFORMED, "tensor '%.*s' has %zu values, shape needs %zu",
+                       PC_NAME(t->name), have, t->count);
+    return PC_OK;
+}
+
 pc_status onnx_tensor_header(const pc_builder *b, pb_slice msg, onnx_tensor *t)
 {
     pb_reader r;
     pb_field f;
     pc_status st;
-    size_t k, n, esize, have;
+    size_t k, n;
     int more;
     memset(t, 0, sizeof *t);
     pb_init(&r, b->file, msg);
@@ -61,34 +95,7 @@ pc_status onnx_tensor_header(const pc_builder *b, pb_slice msg, onnx_tensor *t)
     }
     if (more == PB_ERROR)
         return r.status;
-    t->count = 1;
-    for (k = 0; k < t->rank; k++) {
-        if (!pc_mul_count(&t->count, t->dims[k], PC_MAX_ELEMENTS))
-            return pc_fail(b->err, PC_ERR_MALFORMED, "tensor '%.*s' has an invalid shape",
-                           PC_NAME(t->name));
-    }
-    switch (t->data_type) {
-    case ONNX_FLOAT: t->dtype = PC_F32; break;
-    case ONNX_INT32: case ONNX_INT64: t->dtype = PC_I64; break;
-    case ONNX_BOOL: t->dtype = PC_BOOL; break;
-    default:
-        return pc_fail(b->err, PC_ERR_UNSUPPORTED, "tensor '%.*s' has unsupported data type %lld",
-                       PC_NAME(t->name), (long long)t->data_type);
-    }
-    /* The payload against the shape, before anything is allocated for it. */
-    esize = t->data_type == ONNX_INT32 ? 4 : pc_dtype_size(t->dtype);
-    if (t->has_raw) {
-        if (t->raw.size != t->count * esize)
-            return pc_fail(b->err, PC_ERR_MALFORMED,
-                           "tensor '%.*s': raw_data has %zu bytes, shape needs %zu",
-                           PC_NAME(t->name), t->raw.size, t->count * esize);
-        return PC_OK;
-    }
-    have = t->dtype == PC_F32 ? t->n_float : t->data_type == ONNX_INT64 ? t->n_int64 : t->n_int32;
-    if (have != t->count)
-        return pc_fail(b->err, PC_ERR_MALFORMED, "tensor '%.*s' has %zu values, shape needs %zu",
-                       PC_NAME(t->name), have, t->count);
-    return PC_OK;
+    return onnx_tensor_check(b, t);
 }
 
 /* Raw little-endian data the host reads as it lies: float32 or int64 at its alignment. */
@@ -100,6 +107,49 @@ static int onnx_in_place(const onnx_tensor *t)
     memcpy(&little, &one, 1);
     return little && t->has_raw && (t->data_type == ONNX_FLOAT || t->data_type == ONNX_INT64) &&
            ((uintptr_t)t->raw.data % esize) == 0;
+}
+
+/* raw_data into the tensor's buffer: int32 widened to int64, booleans to 0 or 1, the rest
+ * copied (little-endian, maybe unaligned in the file). */
+static void onnx_raw_copy(const onnx_tensor *t, void *v)
+{
+    size_t k;
+    if (t->data_type == ONNX_INT32) {
+        int64_t *o = (int64_t *)v;
+        for (k = 0; k < t->count; k++) {
+            const uint8_t *q = t->raw.data + 4 * k;
+            const uint32_t u = (uint32_t)q[0] | (uint32_t)q[1] << 8 | (uint32_t)q[2] << 16 |
+                               (uint32_t)q[3] << 24;
+            o[k] = (int64_t)(int32_t)u;
+        }
+    } else if (t->dtype == PC_BOOL) {
+        uint8_t *o = (uint8_t *)v;
+        for (k = 0; k < t->count; k++)
+            o[k] = t->raw.data[k] != 0;
+    } else {
+        memcpy(v, t->raw.data, t->raw.size);
+    }
+}
+
+/* Booleans of an int32_data field, one element at a time so that they land in a 1-byte
+ * buffer; past `count` they are read and dropped. */
+static pc_status onnx_bool_field(pc_builder *b, const pb_field *f, uint8_t *o, size_t count, size_t *n)
+{
+    pb_reader rr;
+    uint64_t x;
+    pc_status st = PC_OK;
+    if (f->wire == PB_VARINT) {
+        if (*n < count)
+            o[(*n)++] = f->varint != 0;
+        return PC_OK;
+    }
+    pb_init(&rr, b->file, f->bytes);
+    while (st == PC_OK && rr.pos < rr.end) {
+        st = pb_read_varint(&rr, &x, b->err);
+        if (st == PC_OK && *n < count)
+            o[(*n)++] = x != 0;
+    }
+    return st;
 }
 
 static pc_status onnx_tensor_decode(pc_builder *b, pb_slice msg, const onnx_tensor *t, int end,
@@ -119,22 +169,7 @@ static pc_status onnx_tensor_decode(pc_builder *b, pb_slice msg, const onnx_tens
     if (!v)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory for tensor '%.*s'", PC_NAME(t->name));
     if (t->has_raw) {
-        if (t->data_type == ONNX_INT32) {
-            int64_t *o = (int64_t *)v;
-            for (k = 0; k < t->count; k++) {
-                const uint8_t *q = t->raw.data + 4 * k;
-                const uint32_t u = (uint32_t)q[0] | (uint32_t)q[1] << 8 | (uint32_t)q[2] << 16 |
-                                   (uint32_t)q[3] << 24;
-                o[k] = (int64_t)(int32_t)u;
-            }
-        } else if (t->dtype == PC_BOOL) {
-            uint8_t *o = (uint8_t *)v;
-            for (k = 0; k < t->count; k++)
-                o[k] = t->raw.data[k] != 0;
-        } else {
-            /* raw_data is little-endian and may be unaligned in the file. */
-            memcpy(v, t->raw.data, t->raw.size);
-        }
+        onnx_raw_copy(t, v);
         return PC_OK;
     }
     pb_init(&r, b->file, msg);
@@ -154,20 +189,7 @@ static pc_status onnx_tensor_decode(pc_builder *b, pb_slice msg, const onnx_tens
             for (k = from; st == PC_OK && k < n; k++) /* int32 varints are sign-extended */
                 ((int64_t *)v)[k] = (int64_t)(int32_t)((int64_t *)v)[k];
         } else if (t->dtype == PC_BOOL && f.number == ONNX_TENSOR_INT32_DATA) {
-            /* One element at a time, so that booleans land in a 1-byte buffer. */
-            if (f.wire == PB_VARINT) {
-                if (n < t->count)
-                    ((uint8_t *)v)[n++] = f.varint != 0;
-            } else {
-                pb_reader rr;
-                uint64_t x;
-                pb_init(&rr, b->file, f.bytes);
-                while (st == PC_OK && rr.pos < rr.end) {
-                    st = pb_read_varint(&rr, &x, b->err);
-                    if (st == PC_OK && n < t->count)
-                        ((uint8_t *)v)[n++] = x != 0;
-                }
-            }
+            st = onnx_bool_field(b, &f, (uint8_t *)v, t->count, &n);
         }
         if (st != PC_OK)
             return st;
@@ -489,6 +511,32 @@ static pc_status onnx_is_initializer(const pc_builder *b, pb_slice name, int *is
     return PC_OK;
 }
 
+/* A graph input, unless it is an initializer (IR < 4) or repeated; checked against the
+ * contract. */
+static pc_status onnx_add_input(pc_builder *b, pb_slice name, int64_t elem, const pc_io *io)
+{
+    pc_status st;
+    int is_init;
+    size_t k;
+    if ((st = onnx_is_initializer(b, name, &is_init)) != PC_OK)
+        return st;
+    for (k = 0; k < b->n_inputs && !is_init; k++)
+        is_init = pb_slice_same(b->inputs[k].name, name);
+    if (is_init)
+        return PC_OK;
+    if ((st = onnx_check_input(b, name, elem, io)) != PC_OK)
+        return st;
+    if (b->n_inputs > PC_MAX_INDEX)
+        return pc_fail(b->err, PC_ERR_UNSUPPORTED, "graph has too many inputs");
+    b->inputs[b->n_inputs++] = *io;
+    /* the pose contract keeps 'pose' first, 't' (if any) second */
+    if (!b->any_io && b->n_inputs == 2 && pb_slice_eq(name, "pose")) {
+        b->inputs[1] = b->inputs[0];
+        b->inputs[0] = *io;
+    }
+    return PC_OK;
+}
+
 pc_status onnx_parse_io(pc_builder *b, size_t n_io)
 {
     pb_reader r;
@@ -497,7 +545,7 @@ pc_status onnx_parse_io(pc_builder *b, size_t n_io)
     pb_slice name;
     int64_t elem;
     pc_io io;
-    int more, is_init;
+    int more;
     size_t k;
     b->inputs = pc_scratch_alloc(&b->scratch, PC_KEEP, (n_io + 1) * sizeof(pc_io));
     b->outputs = pc_scratch_alloc(&b->scratch, PC_KEEP, (n_io + 1) * sizeof(pc_io));
@@ -512,28 +560,12 @@ pc_status onnx_parse_io(pc_builder *b, size_t n_io)
             return st;
         io.dtype = onnx_dtype(elem);
         io.name = name;
-        if (f.number == ONNX_GRAPH_INPUT) {
-            if ((st = onnx_is_initializer(b, name, &is_init)) != PC_OK)
-                return st;
-            for (k = 0; k < b->n_inputs && !is_init; k++)
-                is_init = pb_slice_same(b->inputs[k].name, name);
-            if (is_init)
-                continue;
-            if ((st = onnx_check_input(b, name, elem, &io)) != PC_OK)
-                return st;
-            if (b->n_inputs > PC_MAX_INDEX)
-                return pc_fail(b->err, PC_ERR_UNSUPPORTED, "graph has too many inputs");
-            b->inputs[b->n_inputs++] = io;
-            /* the pose contract keeps 'pose' first, 't' (if any) second */
-            if (!b->any_io && b->n_inputs == 2 && pb_slice_eq(name, "pose")) {
-                b->inputs[1] = b->inputs[0];
-                b->inputs[0] = io;
-            }
-        } else {
-            if ((st = onnx_check_output(b, name, elem, &io)) != PC_OK)
-                return st;
+        if (f.number == ONNX_GRAPH_INPUT)
+            st = onnx_add_input(b, name, elem, &io);
+        else if ((st = onnx_check_output(b, name, elem, &io)) == PC_OK)
             b->outputs[b->n_outputs++] = io;
-        }
+        if (st != PC_OK)
+            return st;
     }
     if (more == PB_ERROR)
         return r.status;

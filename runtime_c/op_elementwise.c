@@ -64,15 +64,14 @@ static pc_status pc_bcast_shape(pc_prep *p, size_t n_ops, pc_value *const *ins, 
     return PC_OK;
 }
 
-/* Coalesced strides of each operand against the output shape. Returns the layout class;
- * d/st are padded on the left to PC_MAX_RANK for the general kernels. */
-static int pc_bcast_layout(size_t n_ops, pc_value *const *ins, int rank, const int64_t *dims,
-                           size_t *d_out, size_t (*st_out)[PC_MAX_RANK])
+/* Each operand's strides against the output shape, innermost dimension first, with
+ * dimensions merged where every operand steps through them as one (a single pass from the
+ * innermost); size-1 dimensions dropped. Returns the number of dimensions left. */
+static int pc_bcast_coalesce(size_t n_ops, pc_value *const *ins, int rank, const int64_t *dims,
+                             size_t *d, size_t (*st)[PC_MAX_RANK])
 {
-    size_t d[PC_MAX_RANK], st[PC_BMAX][PC_MAX_RANK];
-    int r = 0, j, same[PC_BMAX], scalar[PC_BMAX], all_same = 1;
+    int r = 0, j;
     size_t k;
-    /* Walk from the innermost dimension so merging is a single pass. */
     for (j = rank - 1; j >= 0; j--) {
         size_t s[PC_BMAX];
         int merge = r > 0;
@@ -102,7 +101,14 @@ static int pc_bcast_layout(size_t n_ops, pc_value *const *ins, int rank, const i
             r++;
         }
     }
-    /* d/st are innermost-first here. */
+    return r;
+}
+
+/* The layout class of coalesced (innermost-first) dimensions and strides. */
+static int pc_bcast_class(size_t n_ops, int r, const size_t *d, size_t (*st)[PC_MAX_RANK])
+{
+    int j, same[PC_BMAX], scalar[PC_BMAX], all_same = 1;
+    size_t k;
     for (k = 0; k < n_ops; k++) {
         same[k] = r == 0 || (r == 1 && st[k][0] == 1);
         scalar[k] = 1;
@@ -112,19 +118,13 @@ static int pc_bcast_layout(size_t n_ops, pc_value *const *ins, int rank, const i
         if (!same[k])
             all_same = 0;
     }
-    for (j = 0; j < PC_MAX_RANK; j++) {
-        const int src = PC_MAX_RANK - 1 - j; /* innermost-first -> outermost-first */
-        d_out[j] = src < r ? d[src] : 1;
-        for (k = 0; k < n_ops; k++)
-            st_out[k][j] = src < r ? st[k][src] : 0;
-    }
     if (all_same)
         return PC_SAME;
     if (n_ops == 2 && scalar[0] && same[1])
         return PC_SCALAR_A;
     if (n_ops == 2 && same[0] && scalar[1])
         return PC_SCALAR_B;
-    /* Innermost-first here: A is [M,K] contiguous, B strides (1, 0) or (0, 1). */
+    /* A is [M,K] contiguous, B strides (1, 0) or (0, 1). */
     if (n_ops == 2 && r == 2 && st[0][0] == 1 && st[0][1] == d[0]) {
         if (st[1][0] == 1 && st[1][1] == 0)
             return PC_ROW_B;
@@ -132,6 +132,24 @@ static int pc_bcast_layout(size_t n_ops, pc_value *const *ins, int rank, const i
             return PC_COL_B;
     }
     return r <= 2 ? PC_GENERAL2 : PC_GENERAL;
+}
+
+/* Coalesced strides of each operand against the output shape. Returns the layout class;
+ * d/st are padded on the left to PC_MAX_RANK for the general kernels. */
+static int pc_bcast_layout(size_t n_ops, pc_value *const *ins, int rank, const int64_t *dims,
+                           size_t *d_out, size_t (*st_out)[PC_MAX_RANK])
+{
+    size_t d[PC_MAX_RANK], st[PC_BMAX][PC_MAX_RANK];
+    const int r = pc_bcast_coalesce(n_ops, ins, rank, dims, d, st);
+    int j;
+    size_t k;
+    for (j = 0; j < PC_MAX_RANK; j++) {
+        const int src = PC_MAX_RANK - 1 - j; /* innermost-first -> outermost-first */
+        d_out[j] = src < r ? d[src] : 1;
+        for (k = 0; k < n_ops; k++)
+            st_out[k][j] = src < r ? st[k][src] : 0;
+    }
+    return pc_bcast_class(n_ops, r, d, st);
 }
 
 /* Prepares an n-ary broadcast op: output shape, layout class, params for general. */

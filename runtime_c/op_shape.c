@@ -307,48 +307,80 @@ pc_status pc_op_Transpose(pc_prep *p)
     return pc_strided_prepare(p, a->rank, dims, st, 0);
 }
 
+/* Slice's starts, ends, axes (default 0, 1, ...) and steps (default 1), all of one length
+ * *n. */
+static pc_status pc_slice_args(pc_prep *p, int64_t *starts, int64_t *ends, int64_t *axes,
+                               int64_t *steps, size_t *n)
+{
+    size_t ns, ne, na, nst, k;
+    pc_status s;
+    if ((s = pc_input_ints(p, 1, starts, PC_MAX_RANK, &ns)) != PC_OK ||
+        (s = pc_input_ints(p, 2, ends, PC_MAX_RANK, &ne)) != PC_OK)
+        return s;
+    if (ns != ne)
+        return pc_prep_fail(p, PC_ERR_SHAPE, "starts and ends differ in length");
+    na = nst = ns;
+    for (k = 0; k < ns; k++) {
+        axes[k] = (int64_t)k;
+        steps[k] = 1;
+    }
+    if (p->n_in > 3 && p->in[3] && (s = pc_input_ints(p, 3, axes, PC_MAX_RANK, &na)) != PC_OK)
+        return s;
+    if (p->n_in > 4 && p->in[4] && (s = pc_input_ints(p, 4, steps, PC_MAX_RANK, &nst)) != PC_OK)
+        return s;
+    if (na != ns || nst != ns)
+        return pc_prep_fail(p, PC_ERR_SHAPE, "starts, ends, axes and steps differ in length");
+    *n = ns;
+    return PC_OK;
+}
+
+/* One axis of length d sliced from *b to e by *stp, as numpy clamps them: returns the
+ * number of elements, *b the first one's index, *stp the step. */
+static int64_t pc_slice_axis(int64_t d, int64_t *b, int64_t e, int64_t *stp)
+{
+    /* A step of at least the dimension picks one element either way; clamping it keeps
+     * the stride arithmetic far from overflow. */
+    if (*stp > d)
+        *stp = d > 0 ? d : 1;
+    if (*stp < -d)
+        *stp = d > 0 ? -d : -1;
+    if (*b < 0)
+        *b = *b < -d ? 0 : *b + d; /* clamp before adding to avoid overflow */
+    if (e < 0)
+        e = e < -d ? -1 : e + d;
+    if (*stp > 0) {
+        if (*b > d) *b = d;
+        if (e > d) e = d;
+        if (e < 0) e = 0;
+        return e > *b ? (e - *b + *stp - 1) / *stp : 0;
+    }
+    if (*b > d - 1) *b = d - 1;
+    if (e > d - 1) e = d - 1;
+    if (*b < 0 && d == 0) *b = 0;
+    return *b > e ? (*b - e + (-*stp) - 1) / (-*stp) : 0;
+}
+
 pc_status pc_op_Slice(pc_prep *p)
 {
     int64_t starts[PC_MAX_RANK], ends[PC_MAX_RANK], axes[PC_MAX_RANK], steps[PC_MAX_RANK];
     int64_t dims[PC_MAX_RANK];
     ptrdiff_t in_st[PC_MAX_RANK], st[PC_MAX_RANK], base = 0;
-    size_t ns, ne, na, nst, k;
+    size_t ns = 0, k;
     int j, seen[PC_MAX_RANK] = {0};
     const pc_value *a;
     pc_status s;
     if (p->n_in < 3 || !p->in[0] || p->n_out != 1)
         return pc_prep_fail(p, PC_ERR_GRAPH, "needs data, starts and ends");
     a = p->in[0];
-    if ((s = pc_input_ints(p, 1, starts, PC_MAX_RANK, &ns)) != PC_OK ||
-        (s = pc_input_ints(p, 2, ends, PC_MAX_RANK, &ne)) != PC_OK)
+    if ((s = pc_slice_args(p, starts, ends, axes, steps, &ns)) != PC_OK)
         return s;
-    if (ns != ne)
-        return pc_prep_fail(p, PC_ERR_SHAPE, "starts and ends differ in length");
-    na = ns;
-    if (p->n_in > 3 && p->in[3]) {
-        if ((s = pc_input_ints(p, 3, axes, PC_MAX_RANK, &na)) != PC_OK)
-            return s;
-    } else {
-        for (k = 0; k < ns; k++)
-            axes[k] = (int64_t)k;
-    }
-    nst = ns;
-    if (p->n_in > 4 && p->in[4]) {
-        if ((s = pc_input_ints(p, 4, steps, PC_MAX_RANK, &nst)) != PC_OK)
-            return s;
-    } else {
-        for (k = 0; k < ns; k++)
-            steps[k] = 1;
-    }
-    if (na != ns || nst != ns)
-        return pc_prep_fail(p, PC_ERR_SHAPE, "starts, ends, axes and steps differ in length");
     pc_contig_strides(a, in_st);
     for (j = 0; j < a->rank; j++) {
         dims[j] = a->dims[j];
         st[j] = in_st[j];
     }
     for (k = 0; k < ns; k++) {
-        int64_t ax = axes[k], d, b, e, stp = steps[k], len;
+        int64_t ax = axes[k], b = starts[k], stp = steps[k], len;
         if ((s = pc_norm_axis(p, &ax, a->rank)) != PC_OK)
             return s;
         if (seen[ax])
@@ -356,30 +388,7 @@ pc_status pc_op_Slice(pc_prep *p)
         seen[ax] = 1;
         if (stp == 0)
             return pc_prep_fail(p, PC_ERR_SHAPE, "step 0");
-        d = a->dims[ax];
-        b = starts[k];
-        e = ends[k];
-        /* A step of at least the dimension picks one element either way; clamping it
-         * keeps the stride arithmetic below far from overflow. */
-        if (stp > d)
-            stp = d > 0 ? d : 1;
-        if (stp < -d)
-            stp = d > 0 ? -d : -1;
-        if (b < 0)
-            b = b < -d ? 0 : b + d; /* clamp before adding to avoid overflow */
-        if (e < 0)
-            e = e < -d ? -1 : e + d;
-        if (stp > 0) {
-            if (b > d) b = d;
-            if (e > d) e = d;
-            if (e < 0) e = 0;
-            len = e > b ? (e - b + stp - 1) / stp : 0;
-        } else {
-            if (b > d - 1) b = d - 1;
-            if (e > d - 1) e = d - 1;
-            if (b < 0 && d == 0) b = 0;
-            len = b > e ? (b - e + (-stp) - 1) / (-stp) : 0;
-        }
+        len = pc_slice_axis(a->dims[ax], &b, ends[k], &stp);
         dims[ax] = len;
         if (len > 0)
             base += (ptrdiff_t)b * in_st[ax];

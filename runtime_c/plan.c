@@ -131,6 +131,59 @@ static void pc_alias(pc_pass *pp, int32_t o, int32_t src)
     }
 }
 
+/* The node's value ids: its inputs resolved (temp[j]: a constant made for it), a new
+ * record for each named output. */
+static pc_status pc_node_values(pc_pass *pp, uint32_t i, const pc_node *n, int32_t *ids, uint8_t *temp)
+{
+    pc_builder *b = pp->b;
+    uint32_t j;
+    pc_status st;
+    for (j = 0; j < n->n_in; j++) {
+        int t;
+        if ((st = pc_resolve(pp, b->in_ref[b->node_in0[i] + j], &ids[j], &t)) != PC_OK)
+            return st;
+        temp[j] = (uint8_t)t;
+    }
+    for (j = 0; j < n->n_out; j++) {
+        int32_t *o = &ids[n->n_in + j];
+        const uint32_t ord = b->node_out0[i] + j;
+        *o = -1;
+        if (!n->out_names[j].size)
+            continue;
+        if ((st = pc_value_new(b, o)) != PC_OK)
+            return st;
+        b->values[*o].ordinal = (int32_t)ord;
+        b->values[*o].last = b->last_use[ord];
+    }
+    return PC_OK;
+}
+
+/* A prepared node that neither aliases nor joins the open program: the program closed,
+ * blocks for its outputs, and its step (a layer of a one-pose chain, or its kernel). */
+static pc_status pc_node_step(pc_pass *pp, const pc_prep *p)
+{
+    pc_builder *b = pp->b;
+    const size_t n_ids = p->n_in + p->n_out;
+    int32_t *io;
+    size_t k;
+    pc_status st;
+    if ((st = pc_program_close(pp)) != PC_OK)
+        return st;
+    for (k = 0; k < p->n_out; k++)
+        if (p->out_ids[k] >= 0 && (st = pc_give_block(pp, p->out_ids[k])) != PC_OK)
+            return st;
+    if (pp->batch == 1 && p->layer)
+        return pc_emit_layer(pp, p);
+    io = pc_scratch_alloc(&b->scratch, PC_WORK, (n_ids + 1) * sizeof(int32_t));
+    if (!io)
+        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
+    for (k = 0; k < p->n_in; k++)
+        io[k] = p->in_ids[k];
+    for (k = 0; k < p->n_out; k++)
+        io[p->n_in + k] = p->out_ids[k];
+    return pc_emit_step(pp, p->fn, io, n_ids, p->prm, p->prm_size, p->out[0] ? p->out[0]->count : 0);
+}
+
 static pc_status pc_plan_node(pc_pass *pp, uint32_t i, pb_slice msg)
 {
     pc_builder *b = pp->b;
@@ -149,53 +202,13 @@ static pc_status pc_plan_node(pc_pass *pp, uint32_t i, pb_slice msg)
     temp = pc_scratch_alloc(&b->scratch, PC_WORK, n.n_in + 1);
     if (!ids || !temp)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    for (j = 0; j < n.n_in; j++) {
-        int t;
-        if ((st = pc_resolve(pp, b->in_ref[b->node_in0[i] + j], &ids[j], &t)) != PC_OK)
-            return st;
-        temp[j] = (uint8_t)t;
-    }
-    for (j = 0; j < n.n_out; j++) {
-        int32_t *o = &ids[n.n_in + j];
-        const uint32_t ord = b->node_out0[i] + j;
-        *o = -1;
-        if (!n.out_names[j].size)
-            continue;
-        if ((st = pc_value_new(b, o)) != PC_OK)
-            return st;
-        b->values[*o].ordinal = (int32_t)ord;
-        b->values[*o].last = b->last_use[ord];
-    }
-    if ((st = pc_prepare_node(b, &n, ids, ids + n.n_in, 0, &p)) != PC_OK)
+    if ((st = pc_node_values(pp, i, &n, ids, temp)) != PC_OK ||
+        (st = pc_prepare_node(b, &n, ids, ids + n.n_in, 0, &p)) != PC_OK)
         return st;
-    if (p.alias_of >= 0) {
+    if (p.alias_of >= 0)
         pc_alias(pp, p.out_ids[0], p.alias_of);
-    } else if (pc_program_takes(pp, &p)) {
-        if ((st = pc_program_expand(pp, &p)) != PC_OK)
-            return st;
-    } else {
-        if ((st = pc_program_close(pp)) != PC_OK)
-            return st;
-        for (k = 0; k < p.n_out; k++)
-            if (p.out_ids[k] >= 0 && (st = pc_give_block(pp, p.out_ids[k])) != PC_OK)
-                return st;
-        if (pp->batch == 1 && p.layer) {
-            st = pc_emit_layer(pp, &p);
-        } else {
-            const size_t n_ids = p.n_in + p.n_out;
-            int32_t *io = pc_scratch_alloc(&b->scratch, PC_WORK, (n_ids + 1) * sizeof(int32_t));
-            if (!io)
-                return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-            for (k = 0; k < p.n_in; k++)
-                io[k] = p.in_ids[k];
-            for (k = 0; k < p.n_out; k++)
-                io[p.n_in + k] = p.out_ids[k];
-            st = pc_emit_step(pp, p.fn, io, n_ids, p.prm, p.prm_size,
-                              p.out[0] ? p.out[0]->count : 0);
-        }
-        if (st != PC_OK)
-            return st;
-    }
+    else if ((st = pc_program_takes(pp, &p) ? pc_program_expand(pp, &p) : pc_node_step(pp, &p)) != PC_OK)
+        return st;
     /* Records whose last reader this node was, constants made for it, outputs nothing
      * reads. */
     for (j = 0; j < n.n_in; j++)
@@ -252,44 +265,13 @@ static pc_status pc_check_output(const pc_builder *b, const pc_value *o, size_t 
                    (long long)(o->rank > 1 ? o->dims[1] : -1), batch);
 }
 
-/* The plan for `batch` poses; plan and slots are written in the filling pass. */
-static pc_status pc_plan_one(pc_pass *pp, size_t batch, pc_plan *plan, pc_slot *slots)
+/* Where the plan's inputs and outputs lie (plan->in, t, out; slots: every graph input and
+ * output, for the conformance runs), each output checked against the contract. */
+static pc_status pc_plan_ends(pc_pass *pp, size_t batch, pc_plan *plan, pc_slot *slots)
 {
     pc_builder *b = pp->b;
-    pb_reader r;
-    pb_slice msg;
-    int more;
-    uint32_t i = 0;
     size_t k;
     pc_status st;
-    memset(b->values, 0, b->cap_values * sizeof *b->values);
-    memset(pp->blocks, 0, pp->cap_blocks * sizeof *pp->blocks);
-    pp->n_live = 0;
-    pp->batch = batch;
-    pp->n_steps = 0;
-    pp->last_step = NULL;
-    pp->last_layer = 0;
-    pp->defer_frees = 0;
-    if (plan)
-        plan->steps = (pc_step *)(pp->region[PC_REGION_STEPS].base +
-                                  pp->region[PC_REGION_STEPS].used);
-    if ((st = pc_plan_inputs(pp)) != PC_OK)
-        return st;
-    pb_init(&r, b->file, b->graph);
-    while ((more = onnx_next_node(b, &r, &msg)) == PB_FIELD) {
-        if (b->node_op[i] != PC_NODE_SKIP) {
-            const pc_scratch_mark mark = pc_scratch_save(&b->scratch, PC_WORK);
-            st = pc_plan_node(pp, i, msg);
-            pc_scratch_restore(&b->scratch, mark);
-            if (st != PC_OK)
-                return st;
-        }
-        i++;
-    }
-    if (more == PB_ERROR)
-        return r.status;
-    if ((st = pc_program_close(pp)) != PC_OK)
-        return st;
     for (k = 0; k < b->n_outputs; k++) {
         const pc_scratch_mark mark = pc_scratch_save(&b->scratch, PC_WORK);
         int32_t id;
@@ -321,6 +303,46 @@ static pc_status pc_plan_one(pc_pass *pp, size_t batch, pc_plan *plan, pc_slot *
             slots[k].bytes = v->count * pc_dtype_size(v->dtype);
         }
     }
+    return PC_OK;
+}
+
+/* The plan for `batch` poses; plan and slots are written in the filling pass. */
+static pc_status pc_plan_one(pc_pass *pp, size_t batch, pc_plan *plan, pc_slot *slots)
+{
+    pc_builder *b = pp->b;
+    pb_reader r;
+    pb_slice msg;
+    int more;
+    uint32_t i = 0;
+    pc_status st;
+    memset(b->values, 0, b->cap_values * sizeof *b->values);
+    memset(pp->blocks, 0, pp->cap_blocks * sizeof *pp->blocks);
+    pp->n_live = 0;
+    pp->batch = batch;
+    pp->n_steps = 0;
+    pp->last_step = NULL;
+    pp->last_layer = 0;
+    pp->defer_frees = 0;
+    if (plan)
+        plan->steps = (pc_step *)(pp->region[PC_REGION_STEPS].base +
+                                  pp->region[PC_REGION_STEPS].used);
+    if ((st = pc_plan_inputs(pp)) != PC_OK)
+        return st;
+    pb_init(&r, b->file, b->graph);
+    while ((more = onnx_next_node(b, &r, &msg)) == PB_FIELD) {
+        if (b->node_op[i] != PC_NODE_SKIP) {
+            const pc_scratch_mark mark = pc_scratch_save(&b->scratch, PC_WORK);
+            st = pc_plan_node(pp, i, msg);
+            pc_scratch_restore(&b->scratch, mark);
+            if (st != PC_OK)
+                return st;
+        }
+        i++;
+    }
+    if (more == PB_ERROR)
+        return r.status;
+    if ((st = pc_program_close(pp)) != PC_OK || (st = pc_plan_ends(pp, batch, plan, slots)) != PC_OK)
+        return st;
     if (plan) {
         plan->batch = batch;
         plan->n_steps = pp->n_steps;
@@ -475,6 +497,43 @@ static pc_status pc_arena(pc_builder *b, size_t size, void *buf, size_t buf_size
     return PC_OK;
 }
 
+/* The pass's records, from the load's scratch (kept for both passes). */
+static pc_status pc_pass_alloc(pc_builder *b, pc_pass *pp)
+{
+    const pc_const *c;
+    size_t n_consts = 0;
+    for (c = b->consts; c; c = c->next)
+        n_consts++;
+    b->values = pc_scratch_alloc(&b->scratch, PC_KEEP, b->cap_values * sizeof(pc_value));
+    /* Blocks held at once: those of the records alive when a program opened (kept while
+     * it is open), those it gives the records it leaves, and its temporaries. */
+    pp->cap_blocks = 2 * b->cap_values + 2;
+    pp->blocks = pc_scratch_alloc(&b->scratch, PC_KEEP, pp->cap_blocks * sizeof(pc_block));
+    pp->live = pc_scratch_alloc(&b->scratch, PC_KEEP, pp->cap_blocks * sizeof(int32_t));
+    pp->cap_placed = b->n_inits + n_consts + 1;
+    pp->placed = pc_scratch_alloc(&b->scratch, PC_KEEP, pp->cap_placed * sizeof(pc_placed));
+    pp->input_ids = pc_scratch_alloc(&b->scratch, PC_KEEP, (b->n_inputs + 1) * sizeof(int32_t));
+    if (!b->values || !pp->blocks || !pp->live || !pp->placed || !pp->input_ids)
+        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
+    return PC_OK;
+}
+
+/* The arena's size from the sizing pass's parts (L->size), at most 512 MiB. */
+static pc_status pc_arena_size(const pc_builder *b, pc_layout *L)
+{
+    size_t k;
+    L->slot_bytes = b->any_io ? pc_round((b->n_inputs + b->n_outputs) * sizeof(pc_slot) + 1) : 0;
+    L->size = pc_round(sizeof(pc_model)) + pc_round(L->n_plans * sizeof(pc_plan)) + L->slot_bytes +
+              pc_round(2 * (L->n_meta + 1) * sizeof(char *)) + pc_round(L->meta_bytes + 1) +
+              L->act_bytes + 2 * PC_ALIGN;
+    for (k = 0; k < PC_REGIONS; k++)
+        L->size += L->region[k];
+    if (L->size > ((size_t)1 << 29))
+        return pc_fail(b->err, PC_ERR_UNSUPPORTED, "model needs a %zu-byte arena (limit 512 MiB)",
+                       L->size);
+    return PC_OK;
+}
+
 pc_status pc_plan_build(pc_builder *b, const pc_options *opts, void *buf, size_t buf_size,
                         pc_model **model_out)
 {
@@ -483,27 +542,14 @@ pc_status pc_plan_build(pc_builder *b, const pc_options *opts, void *buf, size_t
     pc_program_limits limits;
     uint8_t *arena;
     pc_model *m;
-    pc_const *c;
-    size_t k, n_consts = 0;
     pc_status st;
     memset(&L, 0, sizeof L);
     memset(&pp, 0, sizeof pp);
     memset(&limits, 0, sizeof limits);
     pp.b = b;
     pc_batches(b, opts, &L);
-    for (c = b->consts; c; c = c->next)
-        n_consts++;
-    b->values = pc_scratch_alloc(&b->scratch, PC_KEEP, b->cap_values * sizeof(pc_value));
-    /* Blocks held at once: those of the records alive when a program opened (kept while
-     * it is open), those it gives the records it leaves, and its temporaries. */
-    pp.cap_blocks = 2 * b->cap_values + 2;
-    pp.blocks = pc_scratch_alloc(&b->scratch, PC_KEEP, pp.cap_blocks * sizeof(pc_block));
-    pp.live = pc_scratch_alloc(&b->scratch, PC_KEEP, pp.cap_blocks * sizeof(int32_t));
-    pp.cap_placed = b->n_inits + n_consts + 1;
-    pp.placed = pc_scratch_alloc(&b->scratch, PC_KEEP, pp.cap_placed * sizeof(pc_placed));
-    pp.input_ids = pc_scratch_alloc(&b->scratch, PC_KEEP, (b->n_inputs + 1) * sizeof(int32_t));
-    if (!b->values || !pp.blocks || !pp.live || !pp.placed || !pp.input_ids)
-        return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
+    if ((st = pc_pass_alloc(b, &pp)) != PC_OK)
+        return st;
     if (!(opts && (opts->flags & PC_LOAD_NO_PROGRAMS))) {
         limits.ops = opts ? opts->program_ops : 0;
         limits.interpret = opts && (opts->flags & PC_LOAD_INTERPRET);
@@ -514,15 +560,8 @@ pc_status pc_plan_build(pc_builder *b, const pc_options *opts, void *buf, size_t
         return st;
     if (!(opts && (opts->flags & PC_LOAD_NO_METADATA)) && (st = pc_count_meta(b, &L)) != PC_OK)
         return st;
-    L.slot_bytes = b->any_io ? pc_round((b->n_inputs + b->n_outputs) * sizeof(pc_slot) + 1) : 0;
-    L.size = pc_round(sizeof(pc_model)) + pc_round(L.n_plans * sizeof(pc_plan)) + L.slot_bytes +
-             pc_round(2 * (L.n_meta + 1) * sizeof(char *)) + pc_round(L.meta_bytes + 1) +
-             L.act_bytes + 2 * PC_ALIGN;
-    for (k = 0; k < PC_REGIONS; k++)
-        L.size += L.region[k];
-    if (L.size > ((size_t)1 << 29))
-        return pc_fail(b->err, PC_ERR_UNSUPPORTED, "model needs a %zu-byte arena (limit 512 MiB)",
-                       L.size);
+    if ((st = pc_arena_size(b, &L)) != PC_OK)
+        return st;
     /* From here on the arena is in use too: the load's peak is the larger of the two. */
     b->peak_unplaced = b->scratch.peak;
     b->scratch.peak = b->scratch.used[PC_KEEP] + b->scratch.used[PC_WORK];

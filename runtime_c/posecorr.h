@@ -148,6 +148,8 @@ typedef struct pc_model pc_model;
  * err may be NULL. On failure *model is NULL. */
 PC_API pc_status pc_load_memory(const void *data, size_t size, const pc_options *opts,
                                 pc_model **model, pc_error *err);
+/* Load from a file, which must be a regular file: where there is POSIX, a FIFO, a device or
+ * a folder is refused at once (PC_ERR_IO), without waiting for a writer. */
 PC_API pc_status pc_load_file(const char *path, const pc_options *opts,
                               pc_model **model, pc_error *err);
 PC_API void pc_free(pc_model *model);

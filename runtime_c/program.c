@@ -374,12 +374,64 @@ static pc_status pc_dot(pc_pass *pp, int32_t c, const int32_t *a, const int32_t 
 
 /* ---- expansion -------------------------------------------------------------------------- */
 
+/* Element e of a sum over the last axis: one dot entry, each summand times 1 (exact: the
+ * kernel's plain sum) or, a product summed, its own term. */
+static pc_status pc_expand_sum(pc_pass *pp, const pc_prep *p, size_t e, int32_t *r)
+{
+    const size_t len = ((const pc_reduce *)p->prm)->d[5];
+    int32_t ta[PC_PROGRAM_MAX_TERMS], tb[PC_PROGRAM_MAX_TERMS], zero, one;
+    size_t k;
+    pc_status st;
+    if ((st = pc_kf(pp, 0.0f, &zero)) != PC_OK || (st = pc_kf(pp, 1.0f, &one)) != PC_OK)
+        return st;
+    for (k = 0; k < len; k++) {
+        if ((st = pc_elem(pp, p->in[0], e * len + k, &ta[k])) != PC_OK)
+            return st;
+        tb[k] = one;
+        if (pc_is_mul(pp->prog, ta[k])) {
+            tb[k] = PC_OP(pp->prog, ta[k]).b;
+            ta[k] = PC_OP(pp->prog, ta[k]).a;
+        }
+    }
+    return pc_dot(pp, zero, ta, tb, len, r);
+}
+
+/* Element e of a Gemm or MatMul: C's element (or 0), the dot over K, the activation. */
+static pc_status pc_expand_product(pc_pass *pp, const pc_prep *p, size_t e, int32_t *r)
+{
+    const pc_gemm *q = (const pc_gemm *)p->prm;
+    const size_t i = e / q->N, n = e % q->N;
+    int32_t ta[PC_PROGRAM_MAX_TERMS], tb[PC_PROGRAM_MAX_TERMS], c, dot;
+    size_t k;
+    pc_status st;
+    if (q->c_mode == 0) {
+        st = pc_kf(pp, 0.0f, &c);
+    } else {
+        const size_t ci = q->c_mode == 1 ? 0 : q->c_mode == 2 ? n : q->c_mode == 3 ? i
+                                                                               : i * q->N + n;
+        st = pc_elem(pp, p->in[2], ci, &c);
+    }
+    if (st != PC_OK)
+        return st;
+    for (k = 0; k < q->K; k++)
+        if ((st = pc_elem(pp, p->in[0], i * q->a_rs + k * q->a_cs, &ta[k])) != PC_OK ||
+            (st = pc_elem(pp, p->in[1], k * q->b_rs + n * q->b_cs, &tb[k])) != PC_OK)
+            return st;
+    if ((st = pc_dot(pp, c, ta, tb, q->K, &dot)) != PC_OK)
+        return st;
+    switch (q->act) {
+    case PC_ACT_TANH: return pc_sop(pp, PC_SOP_TANH, dot, 0, 0, r);
+    case PC_ACT_SIGMOID: return pc_sop(pp, PC_SOP_SIGMOID, dot, 0, 0, r);
+    case PC_ACT_RELU: return pc_sop(pp, PC_SOP_RELU, dot, 0, 0, r);
+    default: *r = dot; return PC_OK;
+    }
+}
+
 static pc_status pc_expand_element(pc_pass *pp, const pc_prep *p, size_t e, int32_t *r)
 {
     const pc_value *o = p->out[0];
     int32_t x[3] = {0, 0, 0};
-    int32_t ta[PC_PROGRAM_MAX_TERMS], tb[PC_PROGRAM_MAX_TERMS];
-    size_t j, k;
+    size_t j;
     pc_status st;
     switch (p->emap) {
     case PC_EMAP_SOP: {
@@ -395,48 +447,8 @@ static pc_status pc_expand_element(pc_pass *pp, const pc_prep *p, size_t e, int3
         p->select(p, e, &input, &elem);
         return pc_elem(pp, p->in[input], elem, r);
     }
-    case PC_EMAP_SUM: {
-        const size_t len = ((const pc_reduce *)p->prm)->d[5];
-        int32_t zero, one;
-        if ((st = pc_kf(pp, 0.0f, &zero)) != PC_OK || (st = pc_kf(pp, 1.0f, &one)) != PC_OK)
-            return st;
-        for (k = 0; k < len; k++) {
-            if ((st = pc_elem(pp, p->in[0], e * len + k, &ta[k])) != PC_OK)
-                return st;
-            tb[k] = one; /* x 1 is exact: the kernel's plain sum */
-            if (pc_is_mul(pp->prog, ta[k])) { /* a product summed: its own term */
-                tb[k] = PC_OP(pp->prog, ta[k]).b;
-                ta[k] = PC_OP(pp->prog, ta[k]).a;
-            }
-        }
-        return pc_dot(pp, zero, ta, tb, len, r);
-    }
-    case PC_EMAP_PRODUCT: {
-        const pc_gemm *q = (const pc_gemm *)p->prm;
-        const size_t i = e / q->N, n = e % q->N;
-        int32_t c, dot;
-        if (q->c_mode == 0) {
-            st = pc_kf(pp, 0.0f, &c);
-        } else {
-            const size_t ci = q->c_mode == 1 ? 0 : q->c_mode == 2 ? n : q->c_mode == 3 ? i
-                                                                                   : i * q->N + n;
-            st = pc_elem(pp, p->in[2], ci, &c);
-        }
-        if (st != PC_OK)
-            return st;
-        for (k = 0; k < q->K; k++)
-            if ((st = pc_elem(pp, p->in[0], i * q->a_rs + k * q->a_cs, &ta[k])) != PC_OK ||
-                (st = pc_elem(pp, p->in[1], k * q->b_rs + n * q->b_cs, &tb[k])) != PC_OK)
-                return st;
-        if ((st = pc_dot(pp, c, ta, tb, q->K, &dot)) != PC_OK)
-            return st;
-        switch (q->act) {
-        case PC_ACT_TANH: return pc_sop(pp, PC_SOP_TANH, dot, 0, 0, r);
-        case PC_ACT_SIGMOID: return pc_sop(pp, PC_SOP_SIGMOID, dot, 0, 0, r);
-        case PC_ACT_RELU: return pc_sop(pp, PC_SOP_RELU, dot, 0, 0, r);
-        default: *r = dot; return PC_OK;
-        }
-    }
+    case PC_EMAP_SUM: return pc_expand_sum(pp, p, e, r);
+    case PC_EMAP_PRODUCT: return pc_expand_product(pp, p, e, r);
     default:
         return pc_fail(pp->b->err, PC_ERR_GRAPH, "no element form");
     }
@@ -567,23 +579,24 @@ static int pc_unit(const pc_program *g, size_t i)
  * can: all ready operations of the current code run, and those they make ready, before
  * the code changes; the next code is that of the ready operation heading the longest
  * chain. level counts an operation's unscheduled operands, last its chain's length. */
-static pc_status pc_order(pc_pass *pp, int32_t **order_out, size_t *n_out)
+/* Each operation's readers, as edge[start[r] .. start[r + 1]) (only units read); level:
+ * its unscheduled operands; *n_units: the units to schedule. */
+static pc_status pc_readers(pc_pass *pp, int32_t **start_out, int32_t **edge_out, size_t *n_units)
 {
     pc_program *g = pp->prog;
     const size_t n_ops = g->n_ops;
-    int32_t *order = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK, (n_ops + 1) * sizeof(int32_t));
     int32_t *start = pc_scratch_alloc(&pp->b->scratch, PC_WORK, (n_ops + 2) * sizeof(int32_t));
-    int32_t *edge;
-    size_t n_units = 0, done = 0, i, edges = 0;
-    int cur = -1;
-    if (!order || !start)
+    int32_t *edge, *fill;
+    size_t i, edges = 0;
+    if (!start)
         return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory");
+    *n_units = 0;
     for (i = 0; i < n_ops; i++) {
         PC_OP(g, i).level = 0;
         PC_OP(g, i).last = 1;
         if (!pc_unit(g, i))
             continue;
-        n_units++;
+        (*n_units)++;
         PC_FOR_OPERANDS(g, i, if (r >= 0) {
             start[r + 1]++;
             PC_OP(g, i).level++;
@@ -593,19 +606,52 @@ static pc_status pc_order(pc_pass *pp, int32_t **order_out, size_t *n_out)
     for (i = 0; i < n_ops; i++)
         start[i + 1] += start[i];
     edge = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK, (edges + 1) * sizeof(int32_t));
-    if (!edge)
-        return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory");
     /* r's readers fill [start[r], start[r + 1]) from the top; fill[r] is the next free */
-    {
-        int32_t *fill = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK,
-                                             (n_ops + 1) * sizeof(int32_t));
-        if (!fill)
-            return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory");
-        memcpy(fill, start + 1, n_ops * sizeof(int32_t));
-        for (i = 0; i < n_ops; i++)
-            if (pc_unit(g, i))
-                PC_FOR_OPERANDS(g, i, if (r >= 0) edge[--fill[r]] = (int32_t)i);
-    }
+    fill = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK, (n_ops + 1) * sizeof(int32_t));
+    if (!edge || !fill)
+        return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory");
+    memcpy(fill, start + 1, n_ops * sizeof(int32_t));
+    for (i = 0; i < n_ops; i++)
+        if (pc_unit(g, i))
+            PC_FOR_OPERANDS(g, i, if (r >= 0) edge[--fill[r]] = (int32_t)i);
+    *start_out = start;
+    *edge_out = edge;
+    return PC_OK;
+}
+
+/* The ready operation to run next: one of the current code, else the one heading the
+ * longest chain; -1 when none is ready. */
+static int pc_next_ready(const pc_program *g, int cur)
+{
+    const size_t n_ops = g->n_ops;
+    size_t i;
+    int best = -1;
+    for (i = 0; i < n_ops; i++)
+        if (pc_unit(g, i) && PC_OP(g, i).out == 1 && PC_OP(g, i).level == 0 && PC_OP(g, i).code == cur)
+            return (int)i;
+    for (i = 0; i < n_ops; i++)
+        if (pc_unit(g, i) && PC_OP(g, i).out == 1 && PC_OP(g, i).level == 0 &&
+            (best < 0 || PC_OP(g, i).last > PC_OP(g, (size_t)best).last))
+            best = (int)i;
+    return best;
+}
+
+/* The kept operations (not terms) in an order that runs as few groups of one code as it
+ * can: all ready operations of the current code run, and those they make ready, before
+ * the code changes; the next code is that of the ready operation heading the longest
+ * chain. level counts an operation's unscheduled operands, last its chain's length. */
+static pc_status pc_order(pc_pass *pp, int32_t **order_out, size_t *n_out)
+{
+    pc_program *g = pp->prog;
+    const size_t n_ops = g->n_ops;
+    int32_t *order = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK, (n_ops + 1) * sizeof(int32_t));
+    int32_t *start = NULL, *edge = NULL;
+    size_t n_units = 0, done = 0, i;
+    pc_status st;
+    if (!order)
+        return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory");
+    if ((st = pc_readers(pp, &start, &edge, &n_units)) != PC_OK)
+        return st;
     for (i = n_ops; i-- > 0;) {
         int32_t k, h = 1;
         for (k = start[i]; k < start[i + 1]; k++)
@@ -614,16 +660,8 @@ static pc_status pc_order(pc_pass *pp, int32_t **order_out, size_t *n_out)
         PC_OP(g, i).last = h;
     }
     while (done < n_units) {
-        int progress = 1, best = -1;
-        for (i = 0; i < n_ops; i++)
-            if (pc_unit(g, i) && PC_OP(g, i).out == 1 && PC_OP(g, i).level == 0 &&
-                (PC_OP(g, i).code == cur ? (best = (int)i, 1) : 0))
-                break;
-        if (best < 0)
-            for (i = 0; i < n_ops; i++)
-                if (pc_unit(g, i) && PC_OP(g, i).out == 1 && PC_OP(g, i).level == 0 &&
-                    (best < 0 || PC_OP(g, i).last > PC_OP(g, (size_t)best).last))
-                    best = (int)i;
+        const int best = pc_next_ready(g, done ? PC_OP(g, (size_t)order[done - 1]).code : -1);
+        int progress = 1, cur;
         if (best < 0)
             return pc_fail(pp->b->err, PC_ERR_GRAPH, "one-pose program has a cycle");
         cur = PC_OP(g, (size_t)best).code;
@@ -800,20 +838,15 @@ static pc_kernel_fn pc_compiled_kernel(pc_program *g, const int32_t *order, size
 
 #endif
 
-/* Writes the program (or, sizing pass, only takes its bytes). Both passes make the same
- * choices: offsets are the same in both, and the pool's are bounded (PC_KPOOL_MAX). */
-static pc_status pc_emit_program(pc_pass *pp, const int32_t *order, size_t n, int32_t temp)
+/* The program's entries (a header per group of one code, an entry per operation, one per
+ * dot term), with the temporaries placed at `temp`; *hi: the largest activation offset
+ * read or written, which decides the entries' width. */
+static size_t pc_program_entries(pc_program *g, const int32_t *order, size_t n, int32_t temp,
+                                 int32_t *hi)
 {
-    pc_program *g = pp->prog;
-    size_t entries = 0, pos, t, k = 0, header = 0, group = 0;
-    int32_t kpool_off, hi = 0;
-    uint32_t *kpool;
-    void *q, *ops;
-    int last_code = -1, wide;
-    pc_step *s;
-    void **io;
-    /* The pool sits just below the activations: its entries are negative offsets. */
-    kpool_off = (int32_t)pp->region[PC_REGION_KPOOL].used - (int32_t)pp->kpool_total;
+    size_t entries = 0, pos;
+    int last_code = -1;
+    *hi = 0;
     for (pos = 0; pos < n; pos++) {
         pc_eop *x = &PC_OP(g, order[pos]);
         if (x->dest == PC_NO_DEST)
@@ -822,34 +855,22 @@ static pc_status pc_emit_program(pc_pass *pp, const int32_t *order, size_t n, in
         if (x->code != last_code)
             entries++;
         last_code = x->code;
-        if (x->out > hi)
-            hi = x->out;
+        if (x->out > *hi)
+            *hi = x->out;
         PC_FOR_OPERANDS(g, (size_t)order[pos], if (r < 0 && PC_EXT_KIND(r) == 0 &&
-                                                   (int32_t)PC_EXT_INDEX(r) > hi) hi =
+                                                   (int32_t)PC_EXT_INDEX(r) > *hi) *hi =
                                                    (int32_t)PC_EXT_INDEX(r));
     }
-    wide = hi > INT16_MAX;
-    kpool = pc_region_take(pp, PC_REGION_KPOOL, g->n_k * 4);
-    if (kpool)
-        memcpy(kpool, g->k, g->n_k * 4);
-    s = pc_region_take(pp, PC_REGION_STEPS, sizeof *s);
-    io = pc_region_take(pp, PC_REGION_IO, 2 * sizeof(void *));
-    q = pc_region_take(pp, PC_REGION_PARAMS,
-                       wide ? offsetof(pc_scalar_program, ops) + entries * sizeof(pc_scalar_op)
-                            : offsetof(pc_scalar_program16, ops) + entries * sizeof(pc_scalar_op16));
-    pp->n_steps++;
-    pp->last_step = s;
-    pp->last_layer = 0;
-    if (!q)
-        return PC_OK; /* sizing pass */
-    if (wide) {
-        ((pc_scalar_program *)q)->n_ops = entries;
-        ops = ((pc_scalar_program *)q)->ops;
-    } else {
-        ((pc_scalar_program16 *)q)->n_ops = entries;
-        ops = ((pc_scalar_program16 *)q)->ops;
-    }
-    last_code = -1;
+    return entries;
+}
+
+/* The entries into ops, each group of one code behind its header (code, count). */
+static void pc_program_write(pc_pass *pp, void *ops, int wide, const int32_t *order, size_t n,
+                             int32_t kpool_off)
+{
+    const pc_program *g = pp->prog;
+    size_t pos, t, k = 0, header = 0, group = 0;
+    int last_code = -1;
     for (pos = 0; pos < n; pos++) {
         const int32_t i = order[pos];
         const pc_eop *x = &PC_OP(g, i);
@@ -873,6 +894,45 @@ static pc_status pc_emit_program(pc_pass *pp, const int32_t *order, size_t n, in
     }
     if (last_code >= 0)
         pc_put(ops, wide, header, last_code, (int32_t)group, 0, 0);
+}
+
+/* Writes the program (or, sizing pass, only takes its bytes). Both passes make the same
+ * choices: offsets are the same in both, and the pool's are bounded (PC_KPOOL_MAX). */
+static pc_status pc_emit_program(pc_pass *pp, const int32_t *order, size_t n, int32_t temp)
+{
+    pc_program *g = pp->prog;
+    size_t entries;
+    int32_t kpool_off, hi;
+    uint32_t *kpool;
+    void *q, *ops;
+    int wide;
+    pc_step *s;
+    void **io;
+    /* The pool sits just below the activations: its entries are negative offsets. */
+    kpool_off = (int32_t)pp->region[PC_REGION_KPOOL].used - (int32_t)pp->kpool_total;
+    entries = pc_program_entries(g, order, n, temp, &hi);
+    wide = hi > INT16_MAX;
+    kpool = pc_region_take(pp, PC_REGION_KPOOL, g->n_k * 4);
+    if (kpool)
+        memcpy(kpool, g->k, g->n_k * 4);
+    s = pc_region_take(pp, PC_REGION_STEPS, sizeof *s);
+    io = pc_region_take(pp, PC_REGION_IO, 2 * sizeof(void *));
+    q = pc_region_take(pp, PC_REGION_PARAMS,
+                       wide ? offsetof(pc_scalar_program, ops) + entries * sizeof(pc_scalar_op)
+                            : offsetof(pc_scalar_program16, ops) + entries * sizeof(pc_scalar_op16));
+    pp->n_steps++;
+    pp->last_step = s;
+    pp->last_layer = 0;
+    if (!q)
+        return PC_OK; /* sizing pass */
+    if (wide) {
+        ((pc_scalar_program *)q)->n_ops = entries;
+        ops = ((pc_scalar_program *)q)->ops;
+    } else {
+        ((pc_scalar_program16 *)q)->n_ops = entries;
+        ops = ((pc_scalar_program16 *)q)->ops;
+    }
+    pc_program_write(pp, ops, wide, order, n, kpool_off);
     io[0] = pp->act_base;
     io[1] = NULL;
     s->fn = wide ? k_scalar_program : k_scalar_program16;

@@ -86,75 +86,98 @@ static void pc_put_signed(pc_out *o, long long v)
         pc_put_unsigned(o, (unsigned long long)v, 10, 0);
 }
 
+/* A conversion's precision (-1: none; ".*" takes it from the arguments) and length
+ * (1: l, 2: ll, 3: z); returns where its conversion character is. The va_list goes by
+ * pointer: C99 leaves one passed by value indeterminate in the caller once used. */
+static const char *pc_read_spec(const char *fmt, va_list *ap, int *precision, int *length)
+{
+    *precision = -1;
+    *length = 0;
+    if (*fmt == '.') {
+        fmt++;
+        if (*fmt == '*') {
+            *precision = va_arg(*ap, int);
+            fmt++;
+        } else {
+            for (*precision = 0; *fmt >= '0' && *fmt <= '9'; fmt++)
+                *precision = *precision * 10 + (*fmt - '0');
+        }
+    }
+    if (*fmt == 'z') {
+        *length = 3;
+        fmt++;
+    } else {
+        for (; *fmt == 'l' && *length < 2; fmt++)
+            (*length)++;
+    }
+    return fmt;
+}
+
+/* One conversion of the subset, its argument taken from ap; returns 0 for a character that
+ * is none (shown as is by the caller, nothing consumed). */
+static int pc_convert(pc_out *o, char conv, int precision, int length, va_list *ap)
+{
+    switch (conv) {
+    case 'd': case 'i':
+        pc_put_signed(o, length == 2 ? va_arg(*ap, long long)
+                         : length == 1 ? (long long)va_arg(*ap, long)
+                         : length == 3 ? (long long)va_arg(*ap, ptrdiff_t)
+                                       : (long long)va_arg(*ap, int));
+        return 1;
+    case 'u': case 'x':
+        pc_put_unsigned(o, length == 2 ? va_arg(*ap, unsigned long long)
+                           : length == 1 ? (unsigned long long)va_arg(*ap, unsigned long)
+                           : length == 3 ? (unsigned long long)va_arg(*ap, size_t)
+                                         : (unsigned long long)va_arg(*ap, unsigned),
+                        conv == 'x' ? 16u : 10u, 0);
+        return 1;
+    case 's': {
+        const char *str = va_arg(*ap, const char *);
+        int k;
+        if (!str)
+            str = "(null)";
+        for (k = 0; str[k] && (precision < 0 || k < precision); k++)
+            pc_put(o, str[k]);
+        return 1;
+    }
+    case 'c':
+        pc_put(o, (char)va_arg(*ap, int));
+        return 1;
+    case '%':
+        pc_put(o, '%');
+        return 1;
+    default:
+        return 0;
+    }
+}
+
 void pc_vformat(char *buf, size_t size, const char *fmt, va_list ap)
 {
     pc_out o;
+    va_list args;
     o.buf = buf;
     o.size = size;
     o.len = 0;
     if (!size)
         return;
+    va_copy(args, ap);
     for (; *fmt; fmt++) {
-        int precision = -1, length = 0; /* 1: l, 2: ll, 3: z */
+        int precision, length;
         if (*fmt != '%') {
             pc_put(&o, *fmt);
             continue;
         }
-        fmt++;
-        if (*fmt == '.') {
-            fmt++;
-            if (*fmt == '*') {
-                precision = va_arg(ap, int);
-                fmt++;
-            } else {
-                for (precision = 0; *fmt >= '0' && *fmt <= '9'; fmt++)
-                    precision = precision * 10 + (*fmt - '0');
-            }
-        }
-        if (*fmt == 'z') {
-            length = 3;
-            fmt++;
-        } else {
-            for (; *fmt == 'l' && length < 2; fmt++)
-                length++;
-        }
-        switch (*fmt) {
-        case 'd': case 'i':
-            pc_put_signed(&o, length == 2 ? va_arg(ap, long long)
-                              : length == 1 ? (long long)va_arg(ap, long)
-                              : length == 3 ? (long long)va_arg(ap, ptrdiff_t)
-                                            : (long long)va_arg(ap, int));
-            break;
-        case 'u': case 'x':
-            pc_put_unsigned(&o, length == 2 ? va_arg(ap, unsigned long long)
-                                : length == 1 ? (unsigned long long)va_arg(ap, unsigned long)
-                                : length == 3 ? (unsigned long long)va_arg(ap, size_t)
-                                              : (unsigned long long)va_arg(ap, unsigned),
-                            *fmt == 'x' ? 16u : 10u, 0);
-            break;
-        case 's': {
-            const char *str = va_arg(ap, const char *);
-            int k;
-            if (!str)
-                str = "(null)";
-            for (k = 0; str[k] && (precision < 0 || k < precision); k++)
-                pc_put(&o, str[k]);
-            break;
-        }
-        case 'c':
-            pc_put(&o, (char)va_arg(ap, int));
-            break;
-        case '%':
-            pc_put(&o, '%');
-            break;
-        default: /* not a conversion of the subset: shown as is, nothing consumed */
-            pc_put(&o, '%');
-            if (!*fmt)
-                fmt--;
-            else
-                pc_put(&o, *fmt);
-        }
+        fmt = pc_read_spec(fmt + 1, &args, &precision, &length);
+        if (pc_convert(&o, *fmt, precision, length, &args))
+            continue;
+        /* not a conversion of the subset: shown as is, nothing consumed */
+        pc_put(&o, '%');
+        if (!*fmt)
+            fmt--;
+        else
+            pc_put(&o, *fmt);
     }
+    va_end(args);
     o.buf[o.len < o.size ? o.len : o.size - 1] = '\0';
 }
 

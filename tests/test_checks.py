@@ -317,10 +317,65 @@ def drift(tmp_path_factory) -> tuple[Path, PoseTable, list[float]]:
 
 
 def test_time_bounds_are_the_training_span_widened(drift):
+    """Widened by half the span on both sides, but from no earlier than 60 s before the
+    session's start: times are seconds since it."""
     _, table, span = drift
     t = table.extras["t"]
     margin = max(0.5 * (t.max() - t.min()), 60.0)
-    assert span == pytest.approx([t.min() - margin, t.max() + margin], abs=1e-9)
+    assert t.min() - margin < -60.0     # the session's start bounds this table's span
+    assert span == pytest.approx([-60.0, t.max() + margin], abs=1e-9)
+    from posecorr.export.onnx_export import time_bounds
+    assert time_bounds(np.array([1000.0, 1100.0])) == pytest.approx([940.0, 1160.0])
+    assert time_bounds(np.array([-30.0, 10.0])) == pytest.approx([-90.0, 70.0])
+
+
+def _drift_alone(seed: int):
+    """drift alone fitted on 60 poses of a simulated Experiment III: the fit pins its time
+    constant at the lower bound (a minute), where 1 - exp(-t / tau) overflows float32 an
+    hour and a half before the session's start."""
+    from posecorr.simulate import simulate
+    from posecorr.train.physics import PhysicsModel
+
+    table = simulate(3, seed=seed).table
+    idx = np.linspace(0, len(table.measured) - 1, 60).astype(int)
+    m, r, t = table.measured[idx], table.reference[idx], table.extras["t"][idx]
+    return PhysicsModel(effects=("drift",)).fit(m, r, t=t), m, r, t
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_drift_alone_exports_with_the_reach_of_its_formula(tmp_path, seed):
+    """`posecorr fit E3.csv --effects drift` failed at export ("correction_reach is
+    '[null, ...]'"): the reach was drawn at times down to hours before the session's start.
+    Now the reach is finite and within the formula's: |d| (exp(60 s / tau) - 1) at most on
+    the span, |d| (1 - exp(-t / tau)) at least on the training times."""
+    from posecorr.export import to_onnx
+
+    est, m, r, t = _drift_alone(seed)
+    d, tau = est.params_["drift"][:3], est.params_["drift"][3]
+    assert tau == pytest.approx(60.0, rel=1e-3)   # the case of the bug (see _drift_alone)
+    report = to_onnx(est, tmp_path / "drift.onnx", measured=m, reference=r, t=t)
+    reach = report["metadata"]["correction_reach"][0]
+    size = float(np.linalg.norm(d))
+    assert 2 * size * np.max(1 - np.exp(-t / tau)) + 0.01 - 1e-5 <= reach
+    assert reach <= 2 * size * (np.exp(60.0 / tau) - 1) + 0.01 + 1e-5
+
+
+def test_a_model_with_non_finite_corrections_is_not_exported(tmp_path):
+    """Given a span reaching far before the start, drift's correction overflows: the export
+    is refused in one line naming the drawn pose and its time, and writes nothing."""
+    from posecorr.export import ExportError, to_onnx
+
+    est, m, r, t = _drift_alone(0)
+    path = tmp_path / "drift.onnx"
+    with pytest.raises(ExportError) as info:
+        to_onnx(est, path, measured=m, reference=r, t=t, time_bounds=[-1e5, 1e5])
+    text = str(info.value)
+    assert "\n" not in text and not path.exists()
+    assert "the model's correction of pose " in text and "drawn inside input_bounds and time_bounds" in text
+    assert "is not finite" in text and "cannot be given a correction_reach" in text
+    when = float(text.split(" at t = ")[1].split(" s ")[0])
+    tau = est.params_["drift"][3]
+    assert -when / tau > np.log(np.finfo(np.float32).max)   # exp(-t / tau) overflows float32 there
 
 
 @pytest.mark.parametrize("when", [-100000.0, 1e7, np.nan])

@@ -615,4 +615,27 @@ def test_the_c_loader_says_a_folder_cannot_be_read(tmp_path) -> None:
     handle, err = ctypes.c_void_p(), runtime._Error()
     status = lib.pc_load_file(os.fsencode(tmp_path), None, ctypes.byref(handle), ctypes.byref(err))
     assert status == 2 and handle.value is None  # PC_ERR_IO
-    assert err.message.decode() == f"cannot read '{tmp_path}': not a regular file (a folder?)"
+    assert err.message.decode() == f"cannot read '{tmp_path}': is a folder, expected a regular file"
+
+
+def test_the_c_loader_refuses_a_fifo_at_once(tmp_path) -> None:
+    """pc_load_file itself (C callers, without the shim's check): fopen of a FIFO without a
+    writer waited forever; now PC_ERR_IO at once (a subprocess with a timeout, so that a
+    regression fails and does not hang the suite). posecorr-run and the shim refuse it in
+    the same one line, the command line's words."""
+    import subprocess
+
+    fifo = tmp_path / "m.onnx"
+    os.mkfifo(fifo)
+    code = ("import ctypes, os, sys\nfrom posecorr.controller import runtime\n"
+            "lib = runtime.load_library()\nhandle, err = ctypes.c_void_p(), runtime._Error()\n"
+            "st = lib.pc_load_file(os.fsencode(sys.argv[1]), None, ctypes.byref(handle), ctypes.byref(err))\n"
+            "print(st, handle.value, err.message.decode())\n")
+    run = subprocess.run([sys.executable, "-c", code, str(fifo)], capture_output=True, text=True, timeout=60)
+    assert run.stdout.strip() == f"2 None cannot read '{fifo}': is a FIFO, expected a regular file", run
+    tool = Path(sys.executable).parent / "posecorr-run"
+    run = subprocess.run([str(tool), str(fifo)], input="0,0,0,1,0,0,0\n", capture_output=True, text=True,
+                         timeout=60)
+    assert run.returncode == 1 and run.stdout == "", run
+    # the shim's line (test_the_shim_refuses_a_fifo_and_a_folder_as_the_model), after the tool's name
+    assert run.stderr.splitlines() == [f"posecorr-run: {fifo}: is a FIFO, expected a file"], run

@@ -133,15 +133,23 @@ def _fmt(v: Any, digits: int = 5) -> str:
 def model_card(spec: Spec, report: dict[str, Any], data: dict[str, Any], epochs: int) -> str:
     """The markdown card of one exported model."""
     meta = report["metadata"]
-    test = meta["test_metrics"]
-    parity = report["parity"]
     exp_name = {1: "I", 2: "II", 3: "III"}[spec.experiment]
-    model = spec.model
-    n, n_test = len(data["measured"]), len(data["test"])
     lines = [
         f"# {spec.name}", "",
         f"Correction model for the HTC VIVE tracker, fitted on the simulated Experiment {exp_name} "
         f"(posecorr `simulate(experiment={spec.experiment}, seed={data['seed']})`, default effect mix).", "",
+        *_card_data(meta, data),
+        *_card_method(spec, meta, epochs),
+        *_card_metrics(meta["test_metrics"]),
+        *_card_export(spec, report, epochs),
+    ]
+    return "\n".join(lines)
+
+
+def _card_data(meta: dict[str, Any], data: dict[str, Any]) -> list[str]:
+    """The card's data section: the table, its fixed split, digest and raw error."""
+    n, n_test = len(data["measured"]), len(data["test"])
+    return [
         "## Data", "",
         f"- N = {n} poses ({'position and orientation' if data['with_rotation'] else 'position only'}); "
         f"fixed test rows: {n_test}, `{FixedSplit().test_recipe(data['split_seed'])}` "
@@ -151,18 +159,27 @@ def model_card(spec: Spec, report: dict[str, Any], data: dict[str, Any], epochs:
         f"- raw data (whole table): rmse_pos {_fmt(data['raw']['rmse_pos'])} m, rmse_rot "
         f"{_fmt(data['raw']['rmse_rot'])} rad, rmse_total {_fmt(data['raw']['rmse_total'])}; "
         f"simulator noise floor rmse_total {_fmt(data['noise_floor']['rmse_total'])}.", "",
-        "## Method", "",
     ]
+
+
+def _card_method(spec: Spec, meta: dict[str, Any], epochs: int) -> list[str]:
+    """The card's method section: the polynomial map or the network and its training."""
+    model = spec.model
     if not model.is_network:
-        lines.append(f"- PMC (paper 2.3): full quadratic least-squares map of the {model.representation} "
-                     f"input vector, {meta.get('architecture')}.")
-    else:
-        lines.append(f"- MLP (paper 2.4): {model.representation} representation, hidden layers "
-                     f"{'-'.join(map(str, model.hidden))}, activation {model.activation}, trainer {model.trainer} "
-                     f"(paper label `{spec.paper_label}`: the best of its representation in the paper's "
-                     f"table {2 if spec.experiment == 1 else 4}); at most {epochs} epochs "
-                     f"(paper: 1000), stopped after {meta.get('epochs')} ({meta.get('stop_reason')}).")
-    lines += [
+        return ["## Method", "",
+                f"- PMC (paper 2.3): full quadratic least-squares map of the {model.representation} "
+                f"input vector, {meta.get('architecture')}."]
+    return ["## Method", "",
+            f"- MLP (paper 2.4): {model.representation} representation, hidden layers "
+            f"{'-'.join(map(str, model.hidden))}, activation {model.activation}, trainer {model.trainer} "
+            f"(paper label `{spec.paper_label}`: the best of its representation in the paper's "
+            f"table {2 if spec.experiment == 1 else 4}); at most {epochs} epochs "
+            f"(paper: 1000), stopped after {meta.get('epochs')} ({meta.get('stop_reason')})."]
+
+
+def _card_metrics(test: dict[str, Any]) -> list[str]:
+    """The card's table of test metrics, raw against corrected."""
+    lines = [
         "",
         "## Test metrics (fixed test split)", "",
         "| metric | raw | corrected | improvement |", "|---|---|---|---|",
@@ -172,7 +189,13 @@ def model_card(spec: Spec, report: dict[str, Any], data: dict[str, Any], epochs:
                      ("rmse_total", "improvement_total")):
         unit = {"rmse_pos": " m", "rmse_rot": " rad", "rmse_total": ""}[key]
         lines.append(f"| {key}{unit} | {_fmt(raw_test.get(key))} | {_fmt(test.get(key))} | {_fmt(test.get(imp), 4)} |")
-    lines += [
+    return lines
+
+
+def _card_export(spec: Spec, report: dict[str, Any], epochs: int) -> list[str]:
+    """The card's export and regenerate sections: the file, its parity, interface and reach."""
+    meta, parity = report["metadata"], report["parity"]
+    return [
         "", "## Export", "",
         f"- file size {report['file_size']} bytes, {report['n_nodes']} nodes, opset {meta['opset']}; operators: "
         + ", ".join(f"{k} {v}" for k, v in report["op_counts"].items()) + ".",
@@ -183,7 +206,7 @@ def model_card(spec: Spec, report: dict[str, Any], data: dict[str, Any], epochs:
         f"{parity['random']['max_rot_rad']:.2e} rad); tolerance 1e-5 m / 1e-5 rad: "
         f"{'passed' if parity['passed'] else 'FAILED'}.",
         "- input `pose` float32 [N, 7] (x, y, z in m, qw, qx, qy, qz); output `corrected` float32 [N, 7]"
-        + (" (qw >= 0)." if model.with_rotation else " (orientation passed through)."),
+        + (" (qw >= 0)." if spec.model.with_rotation else " (orientation passed through)."),
         bounds_line(meta["input_bounds"]),
         reach_line(meta["correction_reach"]),
         "", "## Regenerate", "",
@@ -191,7 +214,6 @@ def model_card(spec: Spec, report: dict[str, Any], data: dict[str, Any], epochs:
             "" if epochs == MLP_EPOCHS else f" --epochs {epochs}"), "```", "",
         "`posecorr info models/" + spec.name + ".onnx` prints the metadata stored in the file.", "",
     ]
-    return "\n".join(lines)
 
 
 def bounds_line(box: list[list[float]]) -> str:

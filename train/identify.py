@@ -171,35 +171,13 @@ def rigid_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference
         return hand_eye_registration(measured_p, measured_R, reference_p, reference_R)
     n = len(measured_p)
     R, t = _kabsch(measured_p, reference_p)
-    residual = reference_p - (measured_p @ R.T + t)
-    sigma0 = float(np.sqrt(np.sum(residual ** 2) / max(3 * n - 6, 1)))
-    # The lever's carrier: p_ref = R p_meas + t + C_i z, C_i = R R_meas,i ("lever") or -R_ref,i.
     carrier_R = reference_R if variant == "lever-ref" else measured_R
-    # Information about the lever along direction u: sum_i |(R_i - mean R) u|^2.
-    centred = carrier_R - carrier_R.mean(axis=0)
-    info = np.einsum("nki,nkj->ij", centred, centred)
-    values, vectors = np.linalg.eigh(info)
-    std = max(sigma0, 1e-6) / np.sqrt(np.maximum(values, 1e-300))
-    # The orientations must really turn about a direction (not by their noise) to show the lever.
-    turned = np.sqrt(np.maximum(values, 0.0) / n) > AXIS_MIN_RAD
-    determined = (std < LEVER_LIMIT) & turned & (variant != "kabsch")
+    determined, vectors = _lever_directions(measured_p, reference_p, R, t, carrier_R, variant)
     free = vectors[:, determined]
     lever = np.zeros(3)
     if free.shape[1]:
-        for _ in range(iterations):
-            carrier = R @ measured_R @ free if variant == "lever" else -reference_R @ free
-            # Given R: p_ref - R p_meas = t + C_i (free z), linear in (t, z).
-            A = np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)), carrier], axis=2)
-            sol, *_ = np.linalg.lstsq(A.reshape(3 * n, -1), (reference_p - measured_p @ R.T).reshape(-1), rcond=None)
-            new = free @ sol[3:]
-            if variant == "lever":
-                R, t = _kabsch(measured_p + measured_R @ new, reference_p)
-            else:
-                R, t = _kabsch(measured_p, reference_p + reference_R @ new)
-            if np.max(np.abs(new - lever)) < 1e-10:   # m: alternation converges linearly
-                lever = new
-                break
-            lever = new
+        R, t, lever = _alternate_lever(measured_p, measured_R, reference_p, reference_R,
+                                       free, R, t, iterations, variant)
     mount = np.eye(3)
     if reference_R is not None:
         # R_ref = R R_meas X^T  =>  X = mean of R_ref^T R R_meas.
@@ -211,6 +189,47 @@ def rigid_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference
     residual = reference_p - (fitted @ R.T + t)
     sigma_p = float(np.sqrt(np.sum(residual ** 2) / max(3 * n - 6 - free.shape[1], 1)))
     return RigidRegistration(R, t, lever, held, mount, sigma_p)
+
+
+def _lever_directions(measured_p: np.ndarray, reference_p: np.ndarray, R: np.ndarray,
+                      t: np.ndarray, carrier_R: np.ndarray, variant: str) -> tuple[np.ndarray, np.ndarray]:
+    """Which lever directions the table determines (a mask over the eigenvectors of the
+    carrier's information) and the eigenvectors, from the residual of the fit without lever."""
+    n = len(measured_p)
+    residual = reference_p - (measured_p @ R.T + t)
+    sigma0 = float(np.sqrt(np.sum(residual ** 2) / max(3 * n - 6, 1)))
+    # The lever's carrier: p_ref = R p_meas + t + C_i z, C_i = R R_meas,i ("lever") or -R_ref,i.
+    # Information about the lever along direction u: sum_i |(R_i - mean R) u|^2.
+    centred = carrier_R - carrier_R.mean(axis=0)
+    info = np.einsum("nki,nkj->ij", centred, centred)
+    values, vectors = np.linalg.eigh(info)
+    std = max(sigma0, 1e-6) / np.sqrt(np.maximum(values, 1e-300))
+    # The orientations must really turn about a direction (not by their noise) to show the lever.
+    turned = np.sqrt(np.maximum(values, 0.0) / n) > AXIS_MIN_RAD
+    return (std < LEVER_LIMIT) & turned & (variant != "kabsch"), vectors
+
+
+def _alternate_lever(measured_p: np.ndarray, measured_R: np.ndarray, reference_p: np.ndarray,
+                     reference_R: np.ndarray | None, free: np.ndarray, R: np.ndarray,
+                     t: np.ndarray, iterations: int, variant: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The lever along the `free` directions and the rotation and translation, by alternating
+    a linear fit of (t, lever) given R with a Kabsch fit of (R, t) given the lever."""
+    n = len(measured_p)
+    lever = np.zeros(3)
+    for _ in range(iterations):
+        carrier = R @ measured_R @ free if variant == "lever" else -reference_R @ free
+        # Given R: p_ref - R p_meas = t + C_i (free z), linear in (t, z).
+        A = np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)), carrier], axis=2)
+        sol, *_ = np.linalg.lstsq(A.reshape(3 * n, -1), (reference_p - measured_p @ R.T).reshape(-1), rcond=None)
+        new = free @ sol[3:]
+        if variant == "lever":
+            R, t = _kabsch(measured_p + measured_R @ new, reference_p)
+        else:
+            R, t = _kabsch(measured_p, reference_p + reference_R @ new)
+        if np.max(np.abs(new - lever)) < 1e-10:   # m: alternation converges linearly
+            return R, t, new
+        lever = new
+    return R, t, lever
 
 
 def hand_eye_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference_p: np.ndarray,

@@ -202,7 +202,7 @@ def iterate(step_class: type) -> Callable[..., TrainResult]:
         early_stop = Xv is not None and not step.bayesian
         history: dict[str, list[float]] = {"mse": [], "val_mse": []}
         check = ValidationCheck(theta)
-        stop = "Maximum epoch reached"
+        stop = None
         t0 = time.perf_counter()
         epoch = 0
         for epoch in range(int(est.epochs) + 1):
@@ -211,44 +211,54 @@ def iterate(step_class: type) -> Callable[..., TrainResult]:
                 with torch.no_grad():
                     vmse = net.sse(theta, Xv, Tv) / Tv.numel()
                 check.update(vmse, theta)
-            history["mse"].append(mse)
-            history["val_mse"].append(vmse)
-            state = step.state()
-            for key, value in state.items():
-                history.setdefault(key, []).append(value)
-            if est.verbose and epoch % int(est.verbose) == 0:
-                print(f"epoch {epoch:4d} mse {mse:.4g} val {vmse:.4g}"
-                      + "".join(f" {key} {value:.4g}" for key, value in state.items()), flush=True)
-            # The step's own stop first: the point it could not leave is recorded, then the run ends.
-            if step.stop_reason:
-                stop = step.stop_reason
-                break
-            if epoch >= int(est.epochs):
-                break
-            if not math.isfinite(mse):
-                stop = "Diverged"
-                break
-            if mse <= est.goal:
-                stop = "Performance goal met"
-                break
-            if float(torch.linalg.vector_norm(g)) < est.min_grad:
-                stop = "Minimum gradient reached"
-                break
-            if early_stop and check.fails >= int(est.max_fail):
-                stop = "Validation stop"
+            _record(history, step.state(), epoch, mse, vmse, est.verbose)
+            stop = _stop_reason(step, est, epoch, mse, g, early_stop and check.fails >= int(est.max_fail))
+            if stop:
                 break
             theta, mse, g = step(epoch, theta, mse, g)
 
         final = check.best_theta if early_stop and check.best < math.inf else theta
         coefs_out, intercepts_out = net.to_numpy(final)
         seconds = time.perf_counter() - t0
-        return TrainResult(coefs_out, intercepts_out, epoch, stop, history, check.best_or_none,
+        return TrainResult(coefs_out, intercepts_out, epoch, stop or "Maximum epoch reached", history, check.best_or_none,
                            problem.mse(final),
                            {"seconds": seconds, "seconds_per_epoch": seconds / max(epoch, 1), **step.extra()})
 
     train.__name__ = f"train_{step_class.__name__.lower()}"
     train.__doc__ = step_class.__doc__
     return train
+
+
+def _record(history: dict[str, list[float]], state: dict[str, float], epoch: int, mse: float,
+            vmse: float, verbose: Any) -> None:
+    """One epoch's errors and step state into the history, printed every `verbose` epochs."""
+    history["mse"].append(mse)
+    history["val_mse"].append(vmse)
+    for key, value in state.items():
+        history.setdefault(key, []).append(value)
+    if verbose and epoch % int(verbose) == 0:
+        print(f"epoch {epoch:4d} mse {mse:.4g} val {vmse:.4g}"
+              + "".join(f" {key} {value:.4g}" for key, value in state.items()), flush=True)
+
+
+def _stop_reason(step: Step, est: Any, epoch: int, mse: float, g: Any, validation_failed: bool) -> str | None:
+    """Why training stops after this epoch's record, None to take another step."""
+    import torch
+
+    # The step's own stop first: the point it could not leave is recorded, then the run ends.
+    if step.stop_reason:
+        return step.stop_reason
+    if epoch >= int(est.epochs):
+        return "Maximum epoch reached"
+    if not math.isfinite(mse):
+        return "Diverged"
+    if mse <= est.goal:
+        return "Performance goal met"
+    if float(torch.linalg.vector_norm(g)) < est.min_grad:
+        return "Minimum gradient reached"
+    if validation_failed:
+        return "Validation stop"
+    return None
 
 
 # --- Levenberg-Marquardt -------------------------------------------------------------------------

@@ -120,6 +120,54 @@ def c_bench(path: str | os.PathLike, n_single: int = 100000, batch: int = 10000)
     return json.loads(r.stdout)
 
 
+def _onnxruntime_backends(path: Path, single_poses: np.ndarray, batch_poses: np.ndarray,
+                          n_single: int) -> dict[str, tuple] | None:
+    """onnxruntime on one thread, plain and with bound buffers: per back-end the single-pose
+    (median, p99), the batch function and its poses, and the count of single poses; None
+    when onnxruntime is not installed."""
+    try:
+        import onnxruntime as ort
+    except ImportError:
+        return None
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 1
+    so.inter_op_num_threads = 1
+    sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+    n_ort = min(n_single, 20000)
+
+    def run_ort(p):
+        return sess.run(["corrected"], {"pose": p.reshape(-1, 7)})[0]
+
+    x1 = np.zeros((1, 7), np.float32)
+    y1 = np.zeros((1, 7), np.float32)
+    io = sess.io_binding()
+    io.bind_cpu_input("pose", x1)
+    io.bind_output("corrected", "cpu", 0, np.float32, [1, 7], y1.ctypes.data)
+
+    def run_bound(p):
+        x1[0] = p
+        sess.run_with_iobinding(io)
+        return y1
+
+    xb = np.ascontiguousarray(batch_poses)
+    yb = np.zeros_like(xb)
+    iob = sess.io_binding()
+    iob.bind_cpu_input("pose", xb)
+    iob.bind_output("corrected", "cpu", 0, np.float32, list(xb.shape), yb.ctypes.data)
+
+    def run_batch_bound(p):
+        # The bound buffers are raw pointers to onnxruntime: this closure keeps them alive.
+        sess.run_with_iobinding(iob)
+        return yb
+
+    return {
+        "onnxruntime": (_time_single(run_ort, single_poses, n_ort),
+                        (run_ort, batch_poses), n_ort),
+        "onnxruntime_iobinding": (_time_single(run_bound, single_poses, n_ort),
+                                  (run_batch_bound, xb), n_ort),
+    }
+
+
 def bench_model(path: str | os.PathLike, n_single: int = 100000, batch: int = 10000) -> dict:
     """Benchmarks one model on every available back-end (layout: see module doc)."""
     from .controller.runtime import Corrector
@@ -142,43 +190,9 @@ def bench_model(path: str | os.PathLike, n_single: int = 100000, batch: int = 10
     med["shim"], p99["shim"] = _time_single(corr.correct, single_poses, n_single)
     batch_fns = {"shim": (corr.correct, poses[:batch])}
     counts["shim"] = n_single
-
-    try:
-        import onnxruntime as ort
-    except ImportError:
-        ort = None
-    if ort is not None:
-        so = ort.SessionOptions()
-        so.intra_op_num_threads = 1
-        so.inter_op_num_threads = 1
-        sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
-        n_ort = min(n_single, 20000)
-
-        def run_ort(p):
-            return sess.run(["corrected"], {"pose": p.reshape(-1, 7)})[0]
-
-        med["onnxruntime"], p99["onnxruntime"] = _time_single(run_ort, single_poses, n_ort)
-        batch_fns["onnxruntime"] = (run_ort, poses[:batch])
-        x1 = np.zeros((1, 7), np.float32)
-        y1 = np.zeros((1, 7), np.float32)
-        io = sess.io_binding()
-        io.bind_cpu_input("pose", x1)
-        io.bind_output("corrected", "cpu", 0, np.float32, [1, 7], y1.ctypes.data)
-
-        def run_bound(p):
-            x1[0] = p
-            sess.run_with_iobinding(io)
-            return y1
-
-        med["onnxruntime_iobinding"], p99["onnxruntime_iobinding"] = _time_single(
-            run_bound, single_poses, n_ort)
-        xb = np.ascontiguousarray(poses[:batch])
-        yb = np.zeros_like(xb)
-        iob = sess.io_binding()
-        iob.bind_cpu_input("pose", xb)
-        iob.bind_output("corrected", "cpu", 0, np.float32, list(xb.shape), yb.ctypes.data)
-        batch_fns["onnxruntime_iobinding"] = (lambda p: sess.run_with_iobinding(iob), xb)
-        counts["onnxruntime"] = counts["onnxruntime_iobinding"] = n_ort
+    for name, ((m, q), fn, n) in (_onnxruntime_backends(path, single_poses, poses[:batch],
+                                                         n_single) or {}).items():
+        med[name], p99[name], batch_fns[name], counts[name] = m, q, fn, n
 
     bat.update(_time_batches(batch_fns))
     # posecorr-bench runs in its own process, so it cannot take turns with the others; a

@@ -290,8 +290,8 @@ static int run_text(pc_model *model, int strict)
     return status ? status : failed;
 }
 
-/* What a model path is when it is not a regular file (the words of `posecorr info`), or
- * NULL: a FIFO would block the load forever, a folder or a device would read as nonsense. */
+/* What a model path is when it is not a regular file, or NULL: refused in the words of
+ * `posecorr info` and the shim (pc_load_file refuses it too, in the library's words). */
 static const char *not_a_file(const char *path)
 {
 #if defined(__unix__) || defined(__APPLE__)

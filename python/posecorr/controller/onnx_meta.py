@@ -162,6 +162,20 @@ def read_info(path: str | os.PathLike[str]) -> dict[str, Any]:
 def _parse(data: bytes, path: str) -> dict[str, Any]:
     if not data:
         raise _Malformed("empty file")
+    meta, model = _model_fields(data)
+    graph = _graph_fields(model.pop("graph"))
+    structure = {"file": path, "file_size": len(data), **model, **graph}
+    info = dict(meta)
+    for key, value in structure.items():
+        if key in info:
+            info[f"metadata_{key}"] = info.pop(key)  # never let metadata hide the file's facts
+        info[key] = value
+    return info
+
+
+def _model_fields(data: bytes) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The ModelProto's metadata (values decoded) and its header: ir_version, producer,
+    opset_import and the graph's bytes."""
     meta: dict[str, Any] = {}
     opsets: dict[str, int] = {}
     ir_version = None
@@ -184,7 +198,32 @@ def _parse(data: bytes, path: str) -> dict[str, Any]:
             meta[_str(entry[1])] = decode_value(_str(entry[2]))
     if ir_version is None or graph is None:
         raise _Malformed("no ir_version or no graph (is this an ONNX ModelProto?)")
+    return meta, {"ir_version": ir_version, "producer": producer, "opset_import": opsets,
+                  "graph": graph}
 
+
+def _initializer(buf: bytes) -> tuple[str, int]:
+    """A TensorProto initializer's name and element count (dims packed or not)."""
+    dims, name = [], ""
+    for tf, twire, tv in _fields(buf):
+        if tf == 1:
+            if twire == 2:  # packed
+                pos, b = 0, _msg(tv)
+                while pos < len(b):
+                    d, pos = _varint(b, pos)
+                    dims.append(_signed(d))
+            else:
+                dims.append(_signed(tv))
+        elif tf == 8:
+            name = _str(tv)
+    size = 1
+    for d in dims:
+        size *= max(d, 0)
+    return name, size
+
+
+def _graph_fields(graph: bytes) -> dict[str, Any]:
+    """The GraphProto's inputs, outputs, op counts and initializer counts."""
     ops: Counter[str] = Counter()
     inputs, outputs = [], []
     initializer_names: set[str] = set()
@@ -195,41 +234,19 @@ def _parse(data: bytes, path: str) -> dict[str, Any]:
             op, domain = _str(node[4]), _str(node[7])
             ops[f"{domain}::{op}" if domain and domain != "ai.onnx" else op] += 1
         elif f == 5 and wire == 2:
-            dims, name = [], ""
-            for tf, twire, tv in _fields(_msg(v)):
-                if tf == 1:
-                    if twire == 2:  # packed
-                        pos, b = 0, _msg(tv)
-                        while pos < len(b):
-                            d, pos = _varint(b, pos)
-                            dims.append(_signed(d))
-                    else:
-                        dims.append(_signed(tv))
-                elif tf == 8:
-                    name = _str(tv)
+            name, size = _initializer(_msg(v))
             initializer_names.add(name)
-            size = 1
-            for d in dims:
-                size *= max(d, 0)
             n_params += size
         elif f == 11 and wire == 2:
             inputs.append(_value_info(_msg(v)))
         elif f == 12 and wire == 2:
             outputs.append(_value_info(_msg(v)))
-    structure = {
-        "file": path, "file_size": len(data), "ir_version": ir_version,
-        "producer": producer, "opset_import": opsets,
+    return {
         # Graph inputs that are initializers (IR < 4 style) are not real inputs.
         "inputs": [i for i in inputs if i["name"] not in initializer_names], "outputs": outputs,
         "op_counts": dict(sorted(ops.items())), "node_count": int(sum(ops.values())),
         "initializer_count": len(initializer_names), "parameter_count": n_params,
     }
-    info = dict(meta)
-    for key, value in structure.items():
-        if key in info:
-            info[f"metadata_{key}"] = info.pop(key)  # never let metadata hide the file's facts
-        info[key] = value
-    return info
 
 
 FLOAT = 1  # TensorProto.FLOAT

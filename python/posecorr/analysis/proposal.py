@@ -98,19 +98,24 @@ def _fitted_proposal(search: Any, result: dict[str, Any], kept: list[str], forms
     }
 
 
-def _held_out_gains(search: Any, effects: list[str]) -> tuple[np.ndarray, Any]:
+def _held_out_gains(search: Any, effects: list[str], whiten: Sequence[Any] | None = None) -> tuple[np.ndarray, Any]:
     """Per fold of the diagnosis, the fall of the held-out whitened error from the base model
-    to `effects`; and the cross-validation itself."""
+    to `effects` (`_gains`); and the cross-validation itself."""
     from posecorr.train.pipeline import CorrectionPipeline, cross_validate
     from posecorr.train.splits import KFold
 
+    cv = cross_validate(lambda: CorrectionPipeline(effects), search.table, KFold(search.folds), search.seed)
+    return _gains(search, cv, whiten), cv
+
+
+def _gains(search: Any, cv: Any, whiten: Sequence[Any] | None = None) -> np.ndarray:
+    """Per fold, the fall of the held-out whitened error from the base model to `cv`'s,
+    whitened by the sigmas of `whiten`'s fold models (default: the base model's)."""
     from .diagnose import _whitened_gain
 
-    table = search.table
-    cv = cross_validate(lambda: CorrectionPipeline(effects), table, KFold(search.folds), search.seed)
-    gains = [_whitened_gain(table, held, search.base.predicted, cv.predicted, search.base.per_fold[k][3])
-             for k, (_, held) in enumerate(search.splits)]
-    return np.asarray(gains), cv
+    whiten = whiten or [physics for _, _, _, physics in search.base.per_fold]
+    return np.asarray([_whitened_gain(search.table, held, search.base.predicted, cv.predicted, whiten[k])
+                       for k, (_, held) in enumerate(search.splits)])
 
 
 def _fewest_terms(search: Any, catalogue: list[str], model: dict[str, str], form: str, registered: Any) -> str:
@@ -133,15 +138,21 @@ def _fewest_terms(search: Any, catalogue: list[str], model: dict[str, str], form
     theta = physics.params_[form]
     size = np.abs(theta) * np.linalg.norm(J[:, _column_owners(physics, []) == form], axis=0)
     order = [int(j) for j in np.argsort(-size, kind="stable")]
+    # Whitened by the whole form's fold sigmas: the base model's hold the missing error itself,
+    # and would make a cut that leaves three times the orientation error look as good.
+    _, whole_cv = _held_out_gains(search, effects)
+    whiten = [fitted.physics_ for fitted in whole_cv.fitted]
     names, left = [], []    # each cut's name and log of the whitened error it leaves, per fold
     for count in range(1, whole.size + 1):
-        name = form
-        if count < whole.size:
+        if count == whole.size:
+            name, gains = form, _gains(search, whole_cv, whiten)
+        else:
             terms = sorted(order[:count])
             name = register_effect(type(whole).keeping(terms, f"_{form}_terms{count}", theta[terms]),
                                    source=__name__).name
             registered.callback(unregister_effect, name)
-        gains, _ = _held_out_gains(search, search.effects + catalogue + list({**model, form: name}.values()))
+            gains, _ = _held_out_gains(search, search.effects + catalogue + list({**model, form: name}.values()),
+                                       whiten)
         names.append(name if np.all(gains > 0) else None)
         left.append(np.log(np.clip(1.0 - gains, 1e-12, None)))
     best = left[int(np.argmin([np.mean(e) for e in left]))]

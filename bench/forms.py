@@ -77,6 +77,8 @@ def one(scenario: str, seed: int, kind: str, folder: Path) -> dict[str, Any]:
     table = session(scenario, seed, kind)
     true_name, form, metric = SCENARIOS[scenario]
     truth = loo(table, BASE + [true_name])
+    # Would the truth itself, known and alone, pass the diagnosis's test on this session?
+    known = diagnose(table, BASE, folds=5, seed=0, candidates=[true_name])["candidates"][0]
     hide_outside()
     started = time.perf_counter()
     result = diagnose(table, BASE, folds=5, seed=0)
@@ -88,6 +90,8 @@ def one(scenario: str, seed: int, kind: str, folder: Path) -> dict[str, Any]:
            "parameters": None if result["proposal"] is None else result["proposal"]["parameters"],
            "terms": None if result["proposal"] is None else result["proposal"]["terms"],
            "no_proposal": result["no_proposal"], "metric": metric,
+           "true_form_passes": bool(known["passes"]), "true_form_p": known["p_value"],
+           "true_form_gain": known["score"],
            "loo_base": base[metric], "loo_true": truth[metric], "loo_proposal": None, "recovery": None}
     if result["proposal"] is not None:
         path = folder / f"{scenario}-{kind}-{seed}.py"
@@ -139,6 +143,7 @@ def summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
                         "expected_form_proposed": sum(r["proposed"] == [r["expected"]] for r in mine),
                         # a session with no proposal recovers nothing
                         "recovered_80": sum((r["recovery"] or 0.0) >= 0.8 for r in mine),
+                        "true_form_passes": sum(r["true_form_passes"] for r in mine),
                         "recovery_min": min(recoveries) if recoveries else None,
                         "true_gain_share_min": min((r["loo_base"] - r["loo_true"]) / r["loo_base"] for r in mine),
                         "parameters_median": float(np.median([r["parameters"] for r in mine

@@ -312,11 +312,11 @@ def _dense_function(act: int) -> str:
 
 
 def formulas_header() -> str:
-    """runtime_c/formulas.h as installed beside libposecorr (or in the checkout)."""
-    for path in (NATIVE / "formulas.h", Path(__file__).resolve().parents[3] / "runtime_c" / "formulas.h"):
-        if path.is_file():
-            return path.read_text()
-    raise FileNotFoundError(f"{NATIVE / 'formulas.h'} is missing; reinstall posecorr (pip install .)")
+    """runtime_c/formulas.h, which the package build places beside libposecorr."""
+    path = NATIVE / "formulas.h"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing; reinstall posecorr (pip install .)")
+    return path.read_text()
 
 
 def source(p: Plan, name: str, origin: str, digest: str | None = None) -> str:

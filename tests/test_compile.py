@@ -1,4 +1,4 @@
-"""`posecorr compile MODEL.onnx -o model.c`: the C file of a model's one-pose function, built
+"""`posecorr compile MODEL.onnx -o OUT.c`: the C file of a model's one-pose function, built
 here with the host's C compiler, gives pc_run's bits (libposecorr through the shim) on
 thousands of poses: the shipped zhou MLP, a table-1 MLP nobody shipped (drawn anew each
 run), and the demo's physics + PMC model. Refusals are one line, exit 2."""

@@ -1,9 +1,9 @@
-/* The element formulas of libposecorr: Max and Min as ONNX has them, ReLU, Clip, the
- * logistic sigmoid and the library's tanh, and the list of the float element operations
- * with their expression in a and b. The kernels, the one-pose programs and the dense
- * layers compute with these (kernels.h includes this file), and `posecorr compile` copies
- * this file, as it is, into the C it writes, so that compiled code computes the same bits.
- * C99 and <math.h> only: nothing here may depend on the rest of the library. */
+/* Layer 4, kernels: the element formulas of libposecorr (Max and Min as ONNX has them,
+ * ReLU, Clip, the logistic sigmoid, the library's tanh) and the list of the float element
+ * operations with their expression in a and b. The kernels, the one-pose programs and the
+ * dense layers compute with these (kernels.h includes this file), and `posecorr compile`
+ * copies this file, as it is, into the C it writes, so that compiled code computes the same
+ * bits. C99 and <math.h> only: nothing here may depend on the rest of the library. */
 #ifndef PC_FORMULAS_H
 #define PC_FORMULAS_H
 

@@ -174,6 +174,7 @@ class _Body:
         self.n_vars = 0
         self.m_floats = 0
         self.weights: list[str] = []
+        self.n_layers = 0
         self.activations: set[int] = set()
 
     # -- element operations
@@ -242,15 +243,16 @@ class _Body:
                 self.in_memory.add(off)
         self.m_floats = max(self.m_floats, at // 4 + count)
 
-    def operand(self, x: Operand, count: int, label: str) -> str:
+    def operand(self, x: Operand, count: int, label: str, what: str) -> str:
         if x.at is not None:
             if x.at % 4:
                 raise Unsupported(f"a layer operand at byte offset {x.at}")
             self.store(x.at, count)
             return f"m + {x.at // 4}" if x.at else "m"
-        name = f"{label}{len(self.weights)}"
+        name = f"{label}{self.n_layers}"
         rows = [", ".join(literal(v) for v in x.values[i:i + 6]) for i in range(0, len(x.values), 6)]
-        self.weights.append(f"static const float {name}[{len(x.values)}] = {{\n    "
+        self.weights.append(f"/* layer {self.n_layers}: {what} */\n"
+                            f"static const float {name}[{len(x.values)}] = {{\n    "
                             + ",\n    ".join(rows) + "\n};")
         return name
 
@@ -266,9 +268,10 @@ class _Body:
         reads = [(x.at, count) for x, count in ((g.a, g.k), (g.b, g.k * g.n), (g.c, g.n)) if x.at is not None]
         if any(at < g.o + 4 * g.n and g.o < at + 4 * count for at, count in reads):
             raise Unsupported("a dense layer whose output overlaps its input")
-        a = self.operand(g.a, g.k, "x")
-        w = self.operand(g.b, g.k * g.n, "w")
-        bias = self.operand(g.c, g.n, "b")
+        a = self.operand(g.a, g.k, "x", f"its input, {g.k} values")
+        w = self.operand(g.b, g.k * g.n, "w", f"W, {g.k} x {g.n} by rows")
+        bias = self.operand(g.c, g.n, "b", f"the bias, {g.n} values")
+        self.n_layers += 1
         self.activations.add(g.act)
         act = ACTIVATIONS[g.act][0]
         extra = f", {literal(g.lo)}, {literal(g.hi)}" if g.act == 4 else ""
@@ -330,9 +333,10 @@ def source(p: Plan, name: str, origin: str, digest: str | None = None) -> str:
     memory = [f"    float m[{body.m_floats}]; /* the activations the dense layers read and write */"] \
         if body.m_floats else []
     header = _header(name, origin, digest, p.time is not None)
-    run = ([f"int {name}_run(const float in[{POSE_WIDTH}], {time}float out[{POSE_WIDTH}])", "{"]
-           + memory + lines
-           + ["    return !(" + " && ".join(f"isfinite(out[{j}])" for j in range(POSE_WIDTH)) + ");", "}"])
+    run = ([f"int {name}_run(const float in[{POSE_WIDTH}], {time}float out[{POSE_WIDTH}])", "{",
+            "    int j;"] + memory + lines
+           + [f"    for (j = 0; j < {POSE_WIDTH}; j++)", "        if (!isfinite(out[j]))",
+              "            return 1;", "    return 0;", "}"])
     parts = [header, "/* ---- libposecorr's element formulas (runtime_c/formulas.h, as it is) ---- */",
              formulas_header().strip(), "/* ---- the weights ---- */", *body.weights,
              "/* ---- the dense layer: y = act(x W + b), W [K][N] by rows; per output, the bias\n"

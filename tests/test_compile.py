@@ -92,6 +92,17 @@ def test_shipped_zhou_mlp_gives_pc_run_bits(tmp_path):
     assert text.count("static const float w") == 5 and "dense_tanh(" in text
 
 
+SHIPPED = sorted((ROOT / "models").glob("*.onnx"))
+REFUSED = {"pmc-R.onnx"}  # see test_a_model_with_a_step_of_no_c_form_is_refused
+
+
+@pytest.mark.parametrize("path", [p for p in SHIPPED if p.name not in REFUSED], ids=lambda p: p.name)
+def test_every_shipped_model_it_takes_gives_pc_run_bits(path, tmp_path):
+    """MLPs of every activation (tansig, logsig through a Gemm with its sigmoid, radbas
+    through a one-pose program) and the PMC models whose plans are programs and dense layers."""
+    assert_same_bits(path, tmp_path, graphs.poses_in_box(path, 1000, seed=7))
+
+
 def test_fused_multiply_add_stays_off_on_an_fma_target(tmp_path):
     """GNU C contracts a * b + c into one rounding where the target has FMA; the file turns
     that off itself, so a build for such a CPU keeps pc_run's bits."""
@@ -170,11 +181,12 @@ def test_not_an_onnx_file_is_refused_in_one_line(tmp_path):
 
 
 def test_a_model_with_a_step_of_no_c_form_is_refused(tmp_path):
-    """pmc-R's one-pose plan runs node kernels (ReduceSum-like steps) besides programs and
-    dense layers: refused, naming the step, and nothing written."""
+    """pmc-R's one-pose plan gathers and multiplies its 90 features with node kernels (more
+    elements than a one-pose program takes): refused, naming the step and its kernel, and
+    nothing written."""
     out = tmp_path / "pmc.c"
     line = _refusal(compile_cli(ROOT / "models" / "pmc-R.onnx", out))
-    assert "cannot compile: step 1 of its one-pose plan runs a kernel" in line
+    assert "cannot compile: step 1 of its one-pose plan runs k_gather_cols_4, which has no C form" in line
     assert not out.exists()
 
 

@@ -15,7 +15,7 @@
  *   step K dense L               L layers of act(A B + C), one pose each:
  *   layer M K N ACT LO HI ALPHA BETA A B C O, with B as K x N and C as N values:
  *                                "a:OFF" or "k:" followed by the constant's words
- *   step K kernel                a kernel posecorr compile does not translate
+ *   step K kernel NAME           a kernel posecorr compile does not translate
  *
  * Exit status 1 with the runtime's message when the model does not load. */
 #include "model.h"
@@ -165,6 +165,35 @@ static void print_codes(void)
 #undef PRINT_NAME
 }
 
+/* The name of a kernel the plan runs, for the message of a step without a C form. */
+static const char *kernel_name(pc_kernel_fn fn)
+{
+    static const char *const layouts[PC_LAYOUTS] = {"same", "scalar_a", "scalar_b", "row_b",
+                                                    "col_b", "general2", "general"};
+    static char name[48];
+    int l;
+#define BINARY_NAME(KERNEL, CODE, EXPR)                                                        \
+    for (l = 0; l < PC_LAYOUTS; l++)                                                           \
+        if (fn == KERNEL[l]) {                                                                 \
+            snprintf(name, sizeof name, "%s (layout %s)", #KERNEL, layouts[l]);                \
+            return name;                                                                       \
+        }
+#define UNARY_NAME(KERNEL, CODE, EXPR)                                                         \
+    if (fn == KERNEL)                                                                          \
+        return #KERNEL;
+#define NAME(KERNEL)                                                                           \
+    if (fn == KERNEL)                                                                          \
+        return #KERNEL;
+    PC_FLOAT_BINARY_OPS(BINARY_NAME)
+    PC_FLOAT_UNARY_OPS(UNARY_NAME)
+    NAME(k_where_f_same) NAME(k_copy_4) NAME(k_strided2_4) NAME(k_concat) NAME(k_gather_cols_4)
+    NAME(k_reduce_sum_last)
+#undef BINARY_NAME
+#undef UNARY_NAME
+#undef NAME
+    return "a node's own kernel";
+}
+
 static void print_plan(const pc_model *m)
 {
     const pc_plan *p = &m->plans[0];
@@ -186,7 +215,7 @@ static void print_plan(const pc_model *m)
             printf("program\n");
             print_program32(m, (const pc_scalar_program *)s->prm);
         } else if (!print_dense(m, s)) {
-            printf("kernel\n");
+            printf("kernel %s\n", kernel_name(s->fn));
         }
     }
 }

@@ -116,8 +116,8 @@ def parse(text: str) -> Plan:
             head = dict(w.split("=") for w in words[1:])
         elif kind == "step":
             if words[2] == "kernel":
-                raise Unsupported(f"step {words[1]} of its one-pose plan runs a kernel that has no C "
-                                  "form here (only one-pose programs and dense layers have)")
+                raise Unsupported(f"step {words[1]} of its one-pose plan runs {' '.join(words[3:])}, which "
+                                  "has no C form here (one-pose programs and dense layers have)")
             steps.append(Program() if words[2] == "program" else Dense())
         elif kind == "op":
             code, a, b, c, o = map(int, words[1:])

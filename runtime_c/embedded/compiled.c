@@ -40,10 +40,6 @@ int main(void)
             pc_fw_compiled_run(pc_fw_poses[k], out);
     fw_report_count("compiled", fw_ticks_since(t), per_tick,
                     (unsigned long)FW_COUNT_RUNS * PC_FW_N_POSES);
-    fw_put("mallocs=");
-    fw_put_u(board_allocations());
-    fw_put_kv("stack_peak", board_stack_peak());
-    fw_put_kv("stack_reserved", board_stack_size());
-    fw_put("\n");
+    fw_put_memory();
     board_exit(0);
 }

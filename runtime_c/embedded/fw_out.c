@@ -2,6 +2,8 @@
  * their instruction counts (see fw_out.h). */
 #include "fw_out.h"
 
+#include "board.h"
+
 #include <string.h>
 
 #define FW_POSE_WIDTH 7
@@ -121,5 +123,14 @@ void fw_report_count(const char *impl, uint32_t ticks, unsigned long per_tick_mi
               (unsigned long)((unsigned long long)ticks * per_tick_milli / 1000u / poses));
     fw_put_kv("ticks", ticks);
     fw_put_kv("poses", poses);
+    fw_put("\n");
+}
+
+void fw_put_memory(void)
+{
+    fw_put("mallocs=");
+    fw_put_u(board_allocations());
+    fw_put_kv("stack_peak", board_stack_peak());
+    fw_put_kv("stack_reserved", board_stack_size());
     fw_put("\n");
 }

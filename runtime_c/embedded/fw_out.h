@@ -16,6 +16,8 @@ void fw_put_u(unsigned long v);
 void fw_put_kv(const char *key, unsigned long v);
 /* "out IMPL K h0 .. h6": pose K as float32 bit patterns */
 void fw_put_pose(const char *impl, unsigned k, const float *p);
+/* "mallocs=N stack_peak=N stack_reserved=N" (board.h's figures so far) */
+void fw_put_memory(void);
 
 /* Starts SysTick and prints its calibration; returns instructions per tick x 1000. */
 unsigned long fw_count_start(void);

@@ -146,10 +146,6 @@ int main(void)
     fw_report_count("emlearn", fw_ticks_since(t), per_tick, FW_COUNTED_POSES);
 #endif
 
-    fw_put("mallocs=");
-    fw_put_u(board_allocations());
-    fw_put_kv("stack_peak", board_stack_peak());
-    fw_put_kv("stack_reserved", board_stack_size());
-    fw_put("\n");
+    fw_put_memory();
     board_exit(0);
 }

@@ -201,3 +201,17 @@ def test_output_onto_the_input_is_refused(tmp_path):
 def test_a_name_that_is_no_c_identifier_is_refused(tmp_path):
     line = _refusal(compile_cli(ZHOU, tmp_path / "m.c", "--name", "2fast"))
     assert "--name '2fast': a C identifier is expected" in line
+    line = _refusal(compile_cli(ZHOU, tmp_path / "2fast.c"))
+    assert "the output's name gives '2fast'; --name: a C identifier is expected" in line
+    assert not (tmp_path / "2fast.c").exists()
+
+
+def test_the_function_is_named_after_the_output(tmp_path):
+    out = tmp_path / "arm-zhou.c"
+    r = compile_cli(ZHOU, out, "--json")
+    assert r.returncode == 0, r.stderr
+    import json
+
+    report = json.loads(r.stdout)
+    assert report["function"] == "arm_zhou_run" and report["steps"] == 3
+    assert "int arm_zhou_run(const float in[7], float out[7])\n{" in out.read_text()

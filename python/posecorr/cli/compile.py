@@ -16,9 +16,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def function_prefix(args: argparse.Namespace) -> str:
+    """NAME of NAME_run: --name, else the output's stem with _ for what C does not take."""
     name = args.name if args.name is not None else re.sub(r"\W", "_", args.output.stem)
     if not re.fullmatch(r"[A-Za-z_]\w{0,62}", name):
-        raise CliError(f"--name {name!r}: a C identifier is expected (letters, digits, _; not a digit first)")
+        given = f"--name {name!r}" if args.name is not None else f"the output's name gives {name!r}; --name"
+        raise CliError(f"{given}: a C identifier is expected (letters, digits, _; not a digit first)")
     return name
 
 

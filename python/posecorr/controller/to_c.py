@@ -6,10 +6,11 @@ the activations, constants from a pool) and its dense layers (act(A B + C) with 
 `plan()` reads that; `source()` writes it as C99: each element operation as one statement on
 a local variable, in the program's order; each dense layer as a loop that sums, per output,
 its bias and then x[k] W[k][n] for k ascending (libposecorr's order), the weights as
-`static const float` arrays. The element formulas (tanh, sigmoid, ONNX's Max and Min, ...)
-are libposecorr's: runtime_c/formulas.h is copied into the file as it is, and the
-expression of each operation is the one the runtime was compiled from (posecorr-plan prints
-it). So the function computes what pc_run computes, bit for bit (tests/test_compile.py).
+`static const float` arrays by columns (each output reads its weights in a row). The
+element formulas (tanh, sigmoid, ONNX's Max and Min, ...) are libposecorr's:
+runtime_c/formulas.h is copied into the file as it is, and the expression of each
+operation is the one the runtime was compiled from (posecorr-plan prints it). So the
+function computes what pc_run computes, bit for bit (tests/test_compile.py).
 """
 from __future__ import annotations
 
@@ -269,7 +270,11 @@ class _Body:
         if any(at < g.o + 4 * g.n and g.o < at + 4 * count for at, count in reads):
             raise Unsupported("a dense layer whose output overlaps its input")
         a = self.operand(g.a, g.k, "x", f"its input, {g.k} values")
-        w = self.operand(g.b, g.k * g.n, "w", f"W, {g.k} x {g.n} by rows")
+        if g.b.values is None:
+            raise Unsupported("a dense layer whose weights are computed (a MatMul of two activations)")
+        # by columns: output n reads its K weights in a row, the order it sums them in
+        g.b.values = g.b.values.reshape(g.k, g.n).T.ravel()
+        w = self.operand(g.b, g.k * g.n, "w", f"W ({g.k} x {g.n}) by columns: {g.n} rows of {g.k}")
         bias = self.operand(g.c, g.n, "b", f"the bias, {g.n} values")
         self.n_layers += 1
         self.activations.add(g.act)
@@ -307,10 +312,10 @@ def _without_unused(lines: list[str]) -> list[str]:
 def _dense_function(act: int) -> str:
     name, expr = ACTIVATIONS[act]
     clip = ", float lo, float hi" if act == 4 else ""
-    return (f"static void dense_{name}(const float *x, int K, const float *w, const float *b, int N{clip},\n"
+    return (f"static void dense_{name}(const float *x, int K, const float *wt, const float *b, int N{clip},\n"
             f"                       float *y)\n"
             "{\n    int n, k;\n    for (n = 0; n < N; n++) {\n        float acc = b[n];\n"
-            "        for (k = 0; k < K; k++)\n            acc += x[k] * w[k * N + n];\n"
+            "        for (k = 0; k < K; k++)\n            acc += x[k] * wt[n * K + k];\n"
             f"        y[n] = {expr};\n    }}\n}}")
 
 
@@ -339,8 +344,9 @@ def source(p: Plan, name: str, origin: str, digest: str | None = None) -> str:
               "            return 1;", "    return 0;", "}"])
     parts = [header, "/* ---- libposecorr's element formulas (runtime_c/formulas.h, as it is) ---- */",
              formulas_header().strip(), "/* ---- the weights ---- */", *body.weights,
-             "/* ---- the dense layer: y = act(x W + b), W [K][N] by rows; per output, the bias\n"
-             " * then x[k] W[k][n] for k ascending (libposecorr's order) ---- */",
+             "/* ---- the dense layer: y = act(x W + b), W [K][N] given by columns (wt[n K + k] =\n"
+             " * W[k][n]); per output, the bias then x[k] W[k][n] for k ascending (libposecorr's\n"
+             " * order) ---- */",
              *(_dense_function(a) for a in sorted(body.activations)),
              "/* ---- the one-pose function ---- */", "\n".join(run)]
     return "\n\n".join(parts) + "\n"

@@ -92,14 +92,11 @@ def test_shipped_zhou_mlp_gives_pc_run_bits(tmp_path):
     assert text.count("static const float w") == 5 and "dense_tanh(" in text
 
 
-SHIPPED = sorted((ROOT / "models").glob("*.onnx"))
-REFUSED = {"pmc-R.onnx"}  # see test_a_model_with_a_step_of_no_c_form_is_refused
-
-
-@pytest.mark.parametrize("path", [p for p in SHIPPED if p.name not in REFUSED], ids=lambda p: p.name)
-def test_every_shipped_model_it_takes_gives_pc_run_bits(path, tmp_path):
+@pytest.mark.parametrize("path", sorted((ROOT / "models").glob("*.onnx")), ids=lambda p: p.name)
+def test_every_shipped_model_gives_pc_run_bits(path, tmp_path):
     """MLPs of every activation (tansig, logsig through a Gemm with its sigmoid, radbas
-    through a one-pose program) and the PMC models whose plans are programs and dense layers."""
+    through a one-pose program) and the PMC models (pmc-R's 90 features gathered, multiplied
+    and concatenated by node kernels, written as element operations)."""
     assert_same_bits(path, tmp_path, graphs.poses_in_box(path, 1000, seed=7))
 
 
@@ -181,13 +178,22 @@ def test_not_an_onnx_file_is_refused_in_one_line(tmp_path):
 
 
 def test_a_model_with_a_step_of_no_c_form_is_refused(tmp_path):
-    """pmc-R's one-pose plan gathers and multiplies its 90 features with node kernels (more
-    elements than a one-pose program takes): refused, naming the step and its kernel, and
+    """A sum over 70 columns of the pose runs k_reduce_sum_last (more terms than a one-pose
+    program takes), a kernel with no C form: refused, naming the step and the kernel, and
     nothing written."""
-    out = tmp_path / "pmc.c"
-    line = _refusal(compile_cli(ROOT / "models" / "pmc-R.onnx", out))
-    assert "cannot compile: step 1 of its one-pose plan runs k_gather_cols_4, which has no C form" in line
+    g = graphs.G()
+    total = g.op("ReduceSum", [g.shaped("pose", [70]), g.i64([1])], keepdims=1)
+    head = g.op("Slice", ["pose", g.i64([0]), g.i64([3]), g.i64([1])])
+    tail = g.op("Slice", ["pose", g.i64([3]), g.i64([7]), g.i64([1])])
+    pos = g.op("Add", [head, g.op("Mul", [total, g.f32([1e-3])])])
+    model = tmp_path / "wide.onnx"
+    model.write_bytes(g.model(g.op("Concat", [pos, tail], axis=1), metadata=graphs.BOUNDED).SerializeToString())
+    out = tmp_path / "wide.c"
+    line = _refusal(compile_cli(model, out, "--allow-unsigned"))
+    assert "cannot compile: step 1 of its one-pose plan runs k_reduce_sum_last, which has no C form" in line
     assert not out.exists()
+    # without --allow-unsigned the runtime's own refusal of an unsigned file, in one line
+    assert "no metadata model_digest" in _refusal(compile_cli(model, out))
 
 
 def test_output_onto_the_input_is_refused(tmp_path):

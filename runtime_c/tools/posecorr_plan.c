@@ -15,7 +15,9 @@
  *   step K dense L               L layers of act(A B + C), one pose each:
  *   layer M K N ACT LO HI ALPHA BETA A B C O, with B as K x N and C as N values:
  *                                "a:OFF" or "k:" followed by the constant's words
- *   step K kernel NAME           a kernel posecorr compile does not translate
+ *   step K kernel NAME           a kernel posecorr compile does not translate (node
+ *                                kernels of element arithmetic or copies of 4-byte
+ *                                elements are printed as programs)
  *
  * Exit status 1 with the runtime's message when the model does not load. */
 #include "model.h"
@@ -93,6 +95,29 @@ static int is_program(pc_kernel_fn fn)
     return fn == k_scalar_program16;
 }
 
+/* One entry of a program's form; lo follows the lowest (pool) offset read. */
+static void print_op(long *lo, int code, long a, long b, long c, long o)
+{
+    printf("op %d %ld %ld %ld %ld\n", code, a, b, c, o);
+    *lo = a < *lo ? a : *lo;
+    *lo = b < *lo ? b : *lo;
+    *lo = c < *lo ? c : *lo;
+}
+
+/* The words from offset lo (negative: constants below the activations) up to 0. */
+static void print_pool(const pc_model *m, long lo)
+{
+    uint32_t w;
+    if (lo >= 0)
+        return;
+    printf("pool %ld", lo);
+    for (; lo < 0; lo += 4) {
+        memcpy(&w, m->act + lo, 4);
+        printf(" %08lx", (unsigned long)w);
+    }
+    printf("\n");
+}
+
 #define PRINT_PROGRAM(NAME, PROGRAM, TERM)                                                     \
     static void NAME(const pc_model *m, const PROGRAM *q)                                      \
     {                                                                                          \
@@ -102,28 +127,145 @@ static int is_program(pc_kernel_fn fn)
             const int code = q->ops[i].a;                                                      \
             for (end = i + 1 + (size_t)q->ops[i].b, i++; i < end; i++) {                       \
                 const long a = q->ops[i].a, b = q->ops[i].b, c = q->ops[i].c;                  \
-                if (q->ops[i].o == (TERM))                                                     \
+                if (q->ops[i].o == (TERM)) {                                                   \
                     printf("term %ld %ld\n", a, b);                                            \
-                else                                                                           \
-                    printf("op %d %ld %ld %ld %ld\n", code, a, b, c, (long)q->ops[i].o);      \
-                lo = a < lo ? a : lo;                                                          \
-                lo = b < lo ? b : lo;                                                          \
-                lo = c < lo ? c : lo;                                                          \
+                    lo = a < lo ? a : lo;                                                      \
+                    lo = b < lo ? b : lo;                                                      \
+                } else {                                                                       \
+                    print_op(&lo, code, a, b, c, (long)q->ops[i].o);                           \
+                }                                                                              \
             }                                                                                  \
         }                                                                                      \
-        if (lo < 0) {                                                                          \
-            uint32_t w;                                                                        \
-            printf("pool %ld", lo);                                                            \
-            for (; lo < 0; lo += 4) {                                                          \
-                memcpy(&w, m->act + lo, 4);                                                    \
-                printf(" %08lx", (unsigned long)w);                                            \
-            }                                                                                  \
-            printf("\n");                                                                      \
-        }                                                                                      \
+        print_pool(m, lo);                                                                     \
     }
 PRINT_PROGRAM(print_program16, pc_scalar_program16, PC_DOT_TERM16)
 PRINT_PROGRAM(print_program32, pc_scalar_program, PC_DOT_TERM)
 #undef PRINT_PROGRAM
+
+/* ---- node kernels whose work is element operations ------------------------------------ */
+
+/* Byte offset of an operand from the activations; 0 when it lies outside the arena (a
+ * constant read where it lies in the file). */
+static int arena_offset(const pc_model *m, const void *p, long *off)
+{
+    const uint8_t *u = (const uint8_t *)p;
+    if (u < (const uint8_t *)m || u >= (const uint8_t *)m + m->arena_bytes)
+        return 0;
+    *off = (long)(u - m->act);
+    return 1;
+}
+
+/* The first n operands of a step as offsets (arena_offset). */
+static int offsets(const pc_model *m, const pc_step *s, size_t n, long *off)
+{
+    size_t i;
+    for (i = 0; i < n; i++)
+        if (!arena_offset(m, s->io[i], &off[i]))
+            return 0;
+    return 1;
+}
+
+/* A binary float kernel in one of the layouts of one block (kernels.c), as operations. */
+static int print_binary(const pc_model *m, const pc_step *s, int code, int layout)
+{
+    const pc_bcast *q = (const pc_bcast *)s->prm;
+    long x[3], lo = 0;
+    size_t i, r, k;
+    if (layout > PC_COL_B || !offsets(m, s, 3, x))
+        return 0;
+    printf("program\n");
+    if (layout == PC_ROW_B || layout == PC_COL_B) {
+        for (r = 0; r < q->d[4]; r++)
+            for (k = 0; k < q->d[5]; k++) {
+                const long e = (long)(4 * (r * q->d[5] + k));
+                print_op(&lo, code, x[0] + e, x[1] + 4 * (long)(layout == PC_ROW_B ? k : r), 0, x[2] + e);
+            }
+    } else {
+        for (i = 0; i < s->n; i++)
+            print_op(&lo, code, x[0] + (layout == PC_SCALAR_A ? 0 : 4 * (long)i),
+                     x[1] + (layout == PC_SCALAR_B ? 0 : 4 * (long)i), 0, x[2] + 4 * (long)i);
+    }
+    print_pool(m, lo);
+    return 1;
+}
+
+static int print_unary(const pc_model *m, const pc_step *s, int code)
+{
+    long x[2], lo = 0;
+    size_t i;
+    if (!offsets(m, s, 2, x))
+        return 0;
+    printf("program\n");
+    for (i = 0; i < s->n; i++)
+        print_op(&lo, code, x[0] + 4 * (long)i, 0, 0, x[1] + 4 * (long)i);
+    print_pool(m, lo);
+    return 1;
+}
+
+/* Copies of 4-byte elements: contiguous, two-level strided, concatenated, gathered. */
+static int print_copies(const pc_model *m, const pc_step *s)
+{
+    long x[PC_MAX_RANK + 2], lo = 0;
+    size_t i, j, k;
+    if (s->fn == k_copy_4 || s->fn == k_strided2_4) {
+        const pc_strided *q = (const pc_strided *)s->prm;
+        const int flat = s->fn == k_copy_4;
+        const size_t rows = flat ? 1 : q->d[4], cols = flat ? s->n : q->d[5];
+        if (!offsets(m, s, 2, x))
+            return 0;
+        printf("program\n");
+        for (i = 0; i < rows; i++)
+            for (j = 0; j < cols; j++)
+                print_op(&lo, PC_SOP_COPY, x[0] + 4 * (q->base + (flat ? (long)j : (long)i * q->st[4] +
+                                                                             (long)j * q->st[5])),
+                         0, 0, x[1] + 4 * (long)(i * cols + j));
+    } else if (s->fn == k_concat) {
+        const pc_concat *q = (const pc_concat *)s->prm;
+        long out;
+        if (q->esize != 4 || q->n_in > PC_MAX_RANK + 1 || !offsets(m, s, q->n_in + 1, x))
+            return 0;
+        printf("program\n");
+        for (out = x[q->n_in], i = 0; i < q->outer; i++)
+            for (k = 0; k < q->n_in; k++)
+                for (j = 0; j < q->inner[k]; j++, out += 4)
+                    print_op(&lo, PC_SOP_COPY, x[k] + 4 * (long)(i * q->inner[k] + j), 0, 0, out);
+    } else if (s->fn == k_gather_cols_4) {
+        const pc_gather *q = (const pc_gather *)s->prm;
+        const int64_t *idx = (const int64_t *)s->io[1];
+        if (!arena_offset(m, s->io[0], &x[0]) || !arena_offset(m, s->io[2], &x[2]) || q->inner != 1)
+            return 0;
+        printf("program\n");
+        for (i = 0; i < q->outer; i++)
+            for (j = 0; j < q->n_idx; j++)
+                print_op(&lo, PC_SOP_COPY,
+                         x[0] + 4 * (long)(i * q->len + (size_t)(idx[j] < 0 ? idx[j] + (int64_t)q->len : idx[j])),
+                         0, 0, x[2] + 4 * (long)(i * q->n_idx + j));
+    } else {
+        return 0;
+    }
+    print_pool(m, lo);
+    return 1;
+}
+
+/* A node's kernel whose work has the program form (element operations of its own
+ * arithmetic, on the same elements in the same order), printed as a program; 0 prints
+ * nothing. */
+static int print_elements(const pc_model *m, const pc_step *s)
+{
+    int l;
+#define BINARY_CASE(KERNEL, CODE, EXPR)                                                        \
+    for (l = 0; l < PC_LAYOUTS; l++)                                                           \
+        if (s->fn == KERNEL[l])                                                                \
+            return print_binary(m, s, CODE, l);
+#define UNARY_CASE(KERNEL, CODE, EXPR)                                                         \
+    if (s->fn == KERNEL)                                                                       \
+        return print_unary(m, s, CODE);
+    PC_FLOAT_BINARY_OPS(BINARY_CASE)
+    PC_FLOAT_UNARY_OPS(UNARY_CASE)
+#undef BINARY_CASE
+#undef UNARY_CASE
+    return print_copies(m, s);
+}
 
 static int is_dense(pc_kernel_fn fn)
 {
@@ -214,7 +356,7 @@ static void print_plan(const pc_model *m)
         } else if (s->fn == k_scalar_program) {
             printf("program\n");
             print_program32(m, (const pc_scalar_program *)s->prm);
-        } else if (!print_dense(m, s)) {
+        } else if (!print_dense(m, s) && !print_elements(m, s)) {
             printf("kernel %s\n", kernel_name(s->fn));
         }
     }

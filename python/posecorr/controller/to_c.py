@@ -118,7 +118,8 @@ def parse(text: str) -> Plan:
         elif kind == "step":
             if words[2] == "kernel":
                 raise Unsupported(f"step {words[1]} of its one-pose plan runs {' '.join(words[3:])}, which "
-                                  "has no C form here (one-pose programs and dense layers have)")
+                                  "has no C form here (one-pose programs, dense layers, element arithmetic and "
+                                  "copies have)")
             steps.append(Program() if words[2] == "program" else Dense())
         elif kind == "op":
             code, a, b, c, o = map(int, words[1:])

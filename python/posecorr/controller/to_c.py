@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import re
 import subprocess
+from functools import partial
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -206,7 +207,7 @@ class _Body:
     def operation(self, op: tuple, pool: dict[int, int]) -> None:
         code, a, b, c, o, terms = op
         name, expr = self.codes[code]
-        f = lambda x: self.read(x, pool)  # noqa: E731
+        f = partial(self.read, pool=pool)
         if name == "PC_SOP_COPY1":
             self.boolean[o] = self.read_bool(a, pool)
             return
@@ -223,9 +224,9 @@ class _Body:
             self.lines.append(f"    float {var} = {f(c)};")
             for ta, tb in [(a, b)] + terms:
                 self.lines.append(f"    {var} += {f(ta)} * {f(tb)};")
-        elif expr:
-            text = re.sub(r"\bb\b", "\x01", re.sub(r"\ba\b", "\x00", expr))
-            var = self.define("v", "float", text.replace("\x00", f(a)).replace("\x01", f(b) if "\x01" in text else ""))
+        elif expr:  # the runtime's expression in a and b, on these operands
+            operands = {"a": f(a), "b": f(b) if re.search(r"\bb\b", expr) else ""}
+            var = self.define("v", "float", re.sub(r"\b[ab]\b", lambda w: operands[w.group()], expr))
         else:
             raise Unsupported(f"element operation {name} has no C form here")
         self.value[o] = var

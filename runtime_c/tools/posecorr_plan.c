@@ -15,15 +15,17 @@
  *   step K dense L               L layers of act(A B + C), one pose each:
  *   layer M K N ACT LO HI ALPHA BETA A B C O, with B as K x N and C as N values:
  *                                "a:OFF" or "k:" followed by the constant's words
- *   step K kernel NAME           a kernel posecorr compile does not translate (node
- *                                kernels of element arithmetic or copies of 4-byte
- *                                elements are printed as programs)
+ *   step K elements NAME         a node's kernel NAME of element arithmetic or copies of
+ *                                4-byte elements: its work as op lines, as a program's
+ *   step K kernel NAME           a kernel posecorr compile does not translate
  *
  * Exit status 1 with the runtime's message when the model does not load. */
 #include "model.h"
 
 #include <stdio.h>
 #include <string.h>
+
+static const char *kernel_name(pc_kernel_fn fn);
 
 static int is_activation(const pc_model *m, const void *p)
 {
@@ -173,7 +175,7 @@ static int print_binary(const pc_model *m, const pc_step *s, int code, int layou
     size_t i, r, k;
     if (layout > PC_COL_B || !offsets(m, s, 3, x))
         return 0;
-    printf("program\n");
+    printf("elements %s\n", kernel_name(s->fn));
     if (layout == PC_ROW_B || layout == PC_COL_B) {
         for (r = 0; r < q->d[4]; r++)
             for (k = 0; k < q->d[5]; k++) {
@@ -195,7 +197,7 @@ static int print_unary(const pc_model *m, const pc_step *s, int code)
     size_t i;
     if (!offsets(m, s, 2, x))
         return 0;
-    printf("program\n");
+    printf("elements %s\n", kernel_name(s->fn));
     for (i = 0; i < s->n; i++)
         print_op(&lo, code, x[0] + 4 * (long)i, 0, 0, x[1] + 4 * (long)i);
     print_pool(m, lo);
@@ -213,7 +215,7 @@ static int print_copies(const pc_model *m, const pc_step *s)
         const size_t rows = flat ? 1 : q->d[4], cols = flat ? s->n : q->d[5];
         if (!offsets(m, s, 2, x))
             return 0;
-        printf("program\n");
+        printf("elements %s\n", kernel_name(s->fn));
         for (i = 0; i < rows; i++)
             for (j = 0; j < cols; j++)
                 print_op(&lo, PC_SOP_COPY, x[0] + 4 * (q->base + (flat ? (long)j : (long)i * q->st[4] +
@@ -224,7 +226,7 @@ static int print_copies(const pc_model *m, const pc_step *s)
         long out;
         if (q->esize != 4 || q->n_in > PC_MAX_RANK + 1 || !offsets(m, s, q->n_in + 1, x))
             return 0;
-        printf("program\n");
+        printf("elements %s\n", kernel_name(s->fn));
         for (out = x[q->n_in], i = 0; i < q->outer; i++)
             for (k = 0; k < q->n_in; k++)
                 for (j = 0; j < q->inner[k]; j++, out += 4)
@@ -234,7 +236,7 @@ static int print_copies(const pc_model *m, const pc_step *s)
         const int64_t *idx = (const int64_t *)s->io[1];
         if (!arena_offset(m, s->io[0], &x[0]) || !arena_offset(m, s->io[2], &x[2]) || q->inner != 1)
             return 0;
-        printf("program\n");
+        printf("elements %s\n", kernel_name(s->fn));
         for (i = 0; i < q->outer; i++)
             for (j = 0; j < q->n_idx; j++)
                 print_op(&lo, PC_SOP_COPY,

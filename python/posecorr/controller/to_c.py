@@ -64,8 +64,11 @@ class Layer:
 
 @dataclass
 class Program:
+    """A one-pose program, or a node's kernel (`kernel`) whose work has the same form."""
+
     ops: list[tuple] = field(default_factory=list)  # (code, a, b, c, o, [(a, b) terms])
     pool: dict[int, int] = field(default_factory=dict)  # offset -> 32-bit word
+    kernel: str | None = None
 
 
 @dataclass
@@ -121,7 +124,8 @@ def parse(text: str) -> Plan:
                 raise Unsupported(f"step {words[1]} of its one-pose plan runs {' '.join(words[3:])}, which "
                                   "has no C form here (one-pose programs, dense layers, element arithmetic and "
                                   "copies have)")
-            steps.append(Program() if words[2] == "program" else Dense())
+            steps.append(Dense() if words[2] == "dense" else
+                         Program(kernel=" ".join(words[3:]) if words[2] == "elements" else None))
         elif kind == "op":
             code, a, b, c, o = map(int, words[1:])
             steps[-1].ops.append((code, a, b, c, o, []))
@@ -233,7 +237,8 @@ class _Body:
         self.in_memory.discard(o)
 
     def program(self, step: Program, k: int) -> None:
-        self.lines.append(f"    /* step {k}: one-pose program, {len(step.ops)} operations */")
+        what = f"{step.kernel}, as its" if step.kernel else "one-pose program of"
+        self.lines.append(f"    /* step {k}: {what} {len(step.ops)} element operations */")
         for op in step.ops:
             self.operation(op, step.pool)
 

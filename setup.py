@@ -28,7 +28,9 @@ class CMakeLibrary(Extension):
 class BuildWithCMake(build_ext):
     """Runs CMake for the C runtime; library and tools land in posecorr/_native/."""
 
-    TOOLS = ("posecorr-run", "posecorr-bench")
+    TOOLS = ("posecorr-run", "posecorr-bench", "posecorr-plan")
+    # Copied into the C that `posecorr compile` writes (the runtime's element formulas).
+    HEADERS = ("formulas.h",)
 
     def get_ext_filename(self, fullname: str) -> str:
         ext = self.ext_map.get(fullname)
@@ -52,6 +54,8 @@ class BuildWithCMake(build_ext):
         shutil.copy2(build_dir / "libposecorr.so", target)
         for tool in self.TOOLS:
             shutil.copy2(build_dir / tool, target.parent / tool)
+        for header in self.HEADERS:
+            shutil.copy2(Path(ext.source_dir) / header, target.parent / header)
 
     def copy_extensions_to_source(self) -> None:
         # Editable installs: the tools travel with the library into the source tree.
@@ -60,7 +64,7 @@ class BuildWithCMake(build_ext):
             inplace_file, regular_file = self._get_inplace_equivalent(build_py, ext)
             Path(inplace_file).parent.mkdir(parents=True, exist_ok=True)
             if isinstance(ext, CMakeLibrary):
-                for tool in self.TOOLS:
+                for tool in self.TOOLS + self.HEADERS:
                     self.copy_file(str(Path(regular_file).parent / tool), str(Path(inplace_file).parent / tool))
         super().copy_extensions_to_source()
 

@@ -41,10 +41,8 @@ PC_INLINE void pc_apply_act(const pc_gemm *q, float *restrict o, size_t n)
             o[i] = PC_RELU_EXPR(o[i]);
         break;
     case PC_ACT_CLIP:
-        for (i = 0; i < n; i++) {
-            const float t = o[i] < lo ? lo : o[i];
-            o[i] = t > hi ? hi : t; /* min(max(x, lo), hi), as Clip */
-        }
+        for (i = 0; i < n; i++)
+            o[i] = pc_clip(o[i], lo, hi);
         break;
     default:
         break;

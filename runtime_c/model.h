@@ -31,6 +31,8 @@ struct pc_model {
     size_t max_batch;
     size_t n_plans;
     pc_plan *plans;     /* batch 1, PC_PLAN_STRIDE, PC_PLAN_STRIDE^2, ..., max_batch */
+    const uint8_t *act; /* the activations (the arena's last part), which tools tell from
+                         * constants (tools/posecorr_plan.c) */
     size_t n_nodes;
     int takes_time;     /* the graph has the input 't' (pc_run_timed) */
     /* Checks of pc_run (see posecorr.h), the same for every model: unit quaternions in

@@ -398,27 +398,25 @@ pc_status pc_op_Sigmoid(pc_prep *p) { return pc_unary(p, k_sigmoid_f, NULL, NULL
 pc_status pc_op_Tanh(pc_prep *p) { return pc_unary(p, k_tanh_f, NULL, NULL, PC_SOP_TANH); }
 pc_status pc_op_Not(pc_prep *p) { return pc_unary(p, NULL, NULL, k_not_b, 0); }
 
-typedef struct pc_clip {
+typedef struct pc_clip_range {
     float lo, hi;
-} pc_clip;
+} pc_clip_range;
 
 static pc_status k_clip_f(const pc_step *s)
 {
-    const pc_clip *q = (const pc_clip *)s->prm;
+    const pc_clip_range *q = (const pc_clip_range *)s->prm;
     const float *restrict A = (const float *)s->io[0];
     float *restrict O = (float *)s->io[s->prm ? 3 : 1];
     const float lo = q->lo, hi = q->hi;
     size_t i;
-    for (i = 0; i < s->n; i++) {
-        const float t = A[i] < lo ? lo : A[i];
-        O[i] = t > hi ? hi : t; /* min(max(a, lo), hi): hi when lo > hi, as ONNX says */
-    }
+    for (i = 0; i < s->n; i++)
+        O[i] = pc_clip(A[i], lo, hi); /* hi when lo > hi, as ONNX says */
     return PC_OK;
 }
 
 pc_status pc_op_Clip(pc_prep *p)
 {
-    pc_clip *q;
+    pc_clip_range *q;
     pc_status st;
     if (p->n_in < 1 || !p->in[0] || p->in[0]->dtype != PC_F32 || p->n_out != 1)
         return pc_prep_fail(p, PC_ERR_UNSUPPORTED, "needs one float input");

@@ -476,6 +476,7 @@ static pc_model *pc_layout_model(pc_builder *b, const pc_layout *L, uint8_t *are
         cursor += L->region[i];
     }
     pp->kpool_total = L->region[PC_REGION_KPOOL];
+    m->act = pp->act_base;
     return m;
 }
 

@@ -148,8 +148,9 @@ def test_size_report(firmware_log):
 
 @pytest.fixture(scope="module")
 def small_boards() -> list[dict]:
-    """`make small`: the 16 KB (zhou MLP) and 32 KB (physics + PMC) firmwares link, run under
-    QEMU with -icount shift=0, and their report's checks pass."""
+    """`make small`: the 16 KB (zhou MLP) and 32 KB (physics + PMC) firmwares and the 2 KB one
+    (the zhou MLP compiled to C) link, run under QEMU with -icount shift=0, and their
+    report's checks pass."""
     r = make("small")
     assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
     import json
@@ -158,7 +159,7 @@ def small_boards() -> list[dict]:
 
 
 def test_small_boards_fit_their_ram_and_never_call_malloc(small_boards):
-    assert [b["board_ram_kb"] for b in small_boards] == [16, 32]
+    assert [b["board_ram_kb"] for b in small_boards] == [16, 32, 2]
     for b in small_boards:
         ram = b["ram"]
         assert ram["total"] <= b["board_ram_kb"] * 1024  # the linker enforced it; the map agrees
@@ -168,9 +169,30 @@ def test_small_boards_fit_their_ram_and_never_call_malloc(small_boards):
 
 
 def test_small_boards_match_x86_bit_for_bit(small_boards):
-    for b in small_boards:
+    for b in small_boards[:2]:
         m = b["match"]
         assert m["pc_run_identical_poses"] == m["poses"] == 16, m
+
+
+def test_compiled_zhou_mlp_runs_in_2_kb_with_pc_run_bits(small_boards):
+    """`posecorr compile` of the zhou MLP, linked into a firmware whose linker script gives it
+    2 KB of RAM, stack included: it links, runs under QEMU, gives the x86 pc_run's bits on
+    every pose, and is counted against the 16 KB board's three implementations."""
+    b = small_boards[2]
+    assert b["model"] == MODEL.name
+    m = b["match"]
+    assert m["compiled_identical_poses"] == m["poses"] == 16, m
+    assert m["compiled_max_abs_diff"] == 0.0
+    ram = b["ram"]
+    assert ram["total"] <= 2048 and ram["stack_peak"] < ram["stack_reserved"]
+    assert b["mallocs"] == 0
+    # the weights are constants in flash: 1,649 parameters of 4 bytes
+    assert b["flash"]["rodata (model included)"] >= 1649 * 4
+    count = b["instructions_per_pose"]["compiled"]
+    assert 1000 < count < small_boards[0]["instructions_per_pose"]["pc_run"]
+    assert set(b["ratios"]) == {f"compiled/{k} (16 KB board)" for k in ("pc_run", "reference", "emlearn")}
+    source = (BUILD / "gen" / "zhou_compiled.c").read_text()
+    assert "int pc_fw_compiled_run(const float in[7], float out[7]);" in source
 
 
 def test_instruction_counts_of_the_three_implementations(small_boards):
@@ -192,5 +214,16 @@ def test_a_board_too_small_does_not_link(small_boards):
     r = make("SMALL16_ARENA=15000", str(BUILD / "small16.elf"))
     (BUILD / "small16.log").unlink(missing_ok=True)
     assert r.returncode != 0
+    assert re.search(r"overflow|will not fit|region .RAM. overflowed", r.stdout + r.stderr), \
+        (r.stdout + r.stderr)[-2000:]
+
+
+def test_the_2_kb_script_refuses_the_runtime(small_boards):
+    """The 2 KB linker script is a real limit: the 16 KB board's firmware (libposecorr with
+    its arena) does not link under it."""
+    (BUILD / "small16.elf").unlink(missing_ok=True)
+    r = make("SMALL16_LD=board_2k.ld", str(BUILD / "small16.elf"))
+    (BUILD / "small16.log").unlink(missing_ok=True)
+    assert r.returncode != 0 and not (BUILD / "small16.elf").exists()
     assert re.search(r"overflow|will not fit|region .RAM. overflowed", r.stdout + r.stderr), \
         (r.stdout + r.stderr)[-2000:]

@@ -141,6 +141,7 @@ def test_wheel_holds_every_package_and_no_harness(wheel):
     harness = [n for n in modules if is_harness(n)]
     assert not harness, f"benchmark or model-building modules in the wheel: {harness}"
     for product in ("posecorr/latency.py", "posecorr/_native/libposecorr.so", "posecorr/_native/posecorr-bench",
+                    "posecorr/_native/posecorr-plan", "posecorr/_native/formulas.h",
                     "posecorr/export/operators.txt"):
         assert product in names
 
@@ -169,7 +170,13 @@ def test_installed_wheel_answers_help_for_every_verb(wheel, tmp_path):
     assert top.returncode == 0, top.stderr
     verbs = re.findall(r"^ {4}([a-z][a-z0-9_]*)(?: |$)", top.stdout, re.M)
     assert {"simulate", "ingest", "fit", "diagnose", "report", "sweep", "export", "demo", "info", "apply",
-            "ros2", "bench"} <= set(verbs), top.stdout
+            "ros2", "bench", "compile"} <= set(verbs), top.stdout
     for verb in verbs:
         r = subprocess.run([exe, verb, "--help"], capture_output=True, text=True, cwd=tmp_path)
         assert r.returncode == 0 and r.stdout.startswith(f"usage: posecorr {verb}"), (verb, r.stderr)
+    # compile from the wheel alone: the plan printer and formulas.h travel with libposecorr
+    out = tmp_path / "zhou_fw.c"
+    r = subprocess.run([exe, "compile", str(ROOT / "models" / "mlp-zhou-tansig-20x20x20x20-br.onnx"), "-o", str(out)],
+                       capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "int zhou_fw_run(const float in[7], float out[7])\n{" in out.read_text()

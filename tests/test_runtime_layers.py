@@ -24,7 +24,7 @@ LAYERS = [
     ("protobuf wire format", ["pb.h", "pb.c"]),
     ("records of the load", ["ir.h", "ir.c"]),
     ("ONNX decoding", ["onnx.h", "onnx.c"]),
-    ("kernels", ["kernels.h", "kernels.c", "dense.c", "programs_compiled.c"]),
+    ("kernels", ["kernels.h", "formulas.h", "kernels.c", "dense.c", "programs_compiled.c"]),
     ("operators", ["op.h", "op.c", "op_elementwise.c", "op_shape.c", "op_dense.c",
                    "op_reduce.c", "op_table.c"]),
     ("graph scan", ["graph.h", "graph.c"]),

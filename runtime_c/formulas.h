@@ -1,0 +1,79 @@
+/* Layer 4, kernels: the element formulas of libposecorr (Max and Min as ONNX has them,
+ * ReLU, Clip, the logistic sigmoid, the library's tanh) and the list of the float element
+ * operations with their expression in a and b. The kernels, the one-pose programs and the
+ * dense layers compute with these (kernels.h includes this file), and `posecorr compile`
+ * copies this file, as it is, into the C it writes, so that compiled code computes the same
+ * bits. C99 and <math.h> only: nothing here may depend on the rest of the library. */
+#ifndef PC_FORMULAS_H
+#define PC_FORMULAS_H
+
+#include <math.h>
+
+/* Max/Min as ONNX has them: NaN from either side propagates. */
+#define PC_MAX_EXPR(a, b) (((a) != (a) || (b) != (b)) ? (a) + (b) : (a) > (b) ? (a) : (b))
+#define PC_MIN_EXPR(a, b) (((a) != (a) || (b) != (b)) ? (a) + (b) : (a) < (b) ? (a) : (b))
+
+/* The hot float elementwise operators, X(kernel, element operation, expression of a and
+ * b): one list makes the kernels (a table per layout for the binary ones, kernels.c) and
+ * the one-pose programs' cases (k_scalar_program), so both compute the same formula. */
+#define PC_RELU_EXPR(a) ((a) > 0.0f ? (a) : ((a) != (a) ? (a) : 0.0f))
+#define PC_FLOAT_BINARY_OPS(X)                                                                 \
+    X(k_add_f, PC_SOP_ADD, a + b)                                                              \
+    X(k_sub_f, PC_SOP_SUB, a - b)                                                              \
+    X(k_mul_f, PC_SOP_MUL, a * b)                                                              \
+    X(k_div_f, PC_SOP_DIV, a / b)                                                              \
+    X(k_max_f, PC_SOP_MAX, PC_MAX_EXPR(a, b))                                                  \
+    X(k_min_f, PC_SOP_MIN, PC_MIN_EXPR(a, b))
+#define PC_FLOAT_UNARY_OPS(X)                                                                  \
+    X(k_abs_f, PC_SOP_ABS, fabsf(a))                                                           \
+    X(k_neg_f, PC_SOP_NEG, -a)                                                                 \
+    X(k_atan_f, PC_SOP_ATAN, atanf(a))                                                         \
+    X(k_cos_f, PC_SOP_COS, cosf(a))                                                            \
+    X(k_sin_f, PC_SOP_SIN, sinf(a))                                                            \
+    X(k_tan_f, PC_SOP_TAN, tanf(a))                                                            \
+    X(k_exp_f, PC_SOP_EXP, expf(a))                                                            \
+    X(k_sqrt_f, PC_SOP_SQRT, sqrtf(a))                                                         \
+    X(k_relu_f, PC_SOP_RELU, PC_RELU_EXPR(a))                                                  \
+    X(k_sigmoid_f, PC_SOP_SIGMOID, pc_sigmoid(a))                                              \
+    X(k_tanh_f, PC_SOP_TANH, pc_tanh_inline(a))
+
+/* Clip as the dense layers fuse it: min(max(x, lo), hi). */
+static inline float pc_clip(float x, float lo, float hi)
+{
+    const float t = x < lo ? lo : x;
+    return t > hi ? hi : t;
+}
+
+static inline float pc_sigmoid(float x)
+{
+    return 1.0f / (1.0f + expf(-x));
+}
+
+/* tanh(x) = x P(x^2) / Q(x^2) on |x| <= 9, +-1 beyond (tanh(9) = 1 - 3e-8). Coefficients
+ * fitted for this library by iteratively reweighted least squares towards minimax
+ * absolute error (5.9e-9 in exact arithmetic, 3.2e-7 evaluated in float32). Branch-free
+ * so that loops over it vectorise; NaN propagates through the clamps. */
+static inline float pc_tanh_inline(float x)
+{
+    float c = x > 9.0f ? 9.0f : x;
+    float t, p, q;
+    c = c < -9.0f ? -9.0f : c;
+    t = c * c;
+    p = -8.291313e-14f;
+    p = p * t + 5.1926935e-11f;
+    p = p * t + -2.0029567e-08f;
+    p = p * t + 1.1101826e-05f;
+    p = p * t + 0.0030986548f;
+    p = p * t + 0.13079165f;
+    p = p * t + 0.99999994f;
+    q = 0.00025386017f;
+    q = q * t + 0.024473764f;
+    q = q * t + 0.46412486f;
+    q = q * t + 1.0f;
+    p = c * p / q;
+    /* |tanh| <= 1 must hold exactly: callers may feed it to acos-like maths. */
+    p = p > 1.0f ? 1.0f : p;
+    return p < -1.0f ? -1.0f : p;
+}
+
+#endif

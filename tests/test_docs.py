@@ -36,7 +36,7 @@ NOT_REPOSITORY_FILES = {
     "model_data.c", "poses.h",     # written by the firmware build (runtime_c/embedded/Makefile)
     "zhou_compiled.c",             # ... by `posecorr compile` there
     "metadata.yaml",               # the index file of a ROS 2 bag folder
-    "proposed.py",                 # the effect file `diagnose --propose` writes in the loop's examples
+    "proposed.py", "bend.py",      # the effect files `diagnose --propose` writes in the loop's examples
     "reference/cli.md", "../reference/cli.md",   # the site's page written at build time (tools/docs_site.py)
 }
 

@@ -10,7 +10,7 @@ reads (the field order of pc_zhou_weights in zhou_reference.h).
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import onnx
@@ -21,8 +21,8 @@ WIDTH = {"zhou": 9, "quat": 7}
 ZHOU_SHAPES = [(9, 20), (20, 20), (20, 20), (20, 20), (20, 9)]
 
 
-@dataclass
-class Network:
+class Network(NamedTuple):
+    # a NamedTuple, not a dataclass: bench/latency.py loads this file outside sys.modules
     representation: str
     in_scale: np.ndarray
     in_offset: np.ndarray

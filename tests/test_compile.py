@@ -159,6 +159,18 @@ def test_a_model_that_takes_time_gives_pc_run_bits(tmp_path):
     to_onnx(est, path, measured=m, reference=r, t=t)
     text = assert_same_bits(path, tmp_path, graphs.poses_in_box(path, 1000, seed=6))
     assert "int drift_run(const float in[7], float t, float out[7]);" in text
+    # times outside the fitted span (time_bounds) or not finite: pc_run's refusals
+    from posecorr.controller.onnx_meta import read_info
+
+    t_lo, t_hi = (np.float32(v) for v in read_info(path)["time_bounds"])
+    times = np.array([t_lo, t_hi, np.nextafter(t_lo, np.float32(-1e9)), np.nextafter(t_hi, np.float32(1e9)),
+                      np.nan, np.inf], np.float32)
+    x = np.repeat(graphs.poses_in_box(path, 1, seed=6), len(times), axis=0)
+    codes, statuses = refusals(path, tmp_path, x, t=times)
+    assert codes == [0, 0, 2, 2, 4, 4], codes
+    from posecorr.controller.checks import Status
+
+    assert statuses == [0, 0, Status.RANGE, Status.RANGE, Status.NONFINITE, Status.NONFINITE], statuses
 
 
 def _refusal(r: subprocess.CompletedProcess) -> str:
@@ -225,20 +237,21 @@ def test_the_function_is_named_after_the_output(tmp_path):
 
 # -- pc_run's refusals -------------------------------------------------------------------------
 
-def refusals(model: Path, tmp: Path, x: np.ndarray, *flags: str, **allow) -> tuple[list[int], list[int]]:
-    """(the compiled function's return code, pc_run's status) of each pose, one at a time;
-    where both accept, the same bits."""
+def refusals(model: Path, tmp: Path, x: np.ndarray, *flags: str, t: np.ndarray | None = None,
+             **allow) -> tuple[list[int], list[int]]:
+    """(the compiled function's return code, pc_run's status) of each pose (at time t[i] for
+    a model that takes time), one at a time; where both accept, the same bits."""
     from posecorr.controller.checks import PoseCorrError
 
     out = tmp / f"{model.stem.replace('-', '_')}.c"
     r = compile_cli(model, out, *flags)
     assert r.returncode == 0, r.stderr
-    got, codes = run_compiled(build(out, out.stem, False), x)
+    got, codes = run_compiled(build(out, out.stem, t is not None), x, t)
     c = Corrector(model, backend="c", max_batch=1, **allow)
     statuses = []
     for i in range(len(x)):
         try:
-            want = c.correct(x[i]).astype(np.float32)
+            want = c.correct(x[i], t=None if t is None else float(t[i])).astype(np.float32)
         except PoseCorrError as e:
             statuses.append(e.status)
             continue

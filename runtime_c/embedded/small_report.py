@@ -7,10 +7,15 @@ also to the other boards' implementations of its model), and the match with the 
     python small_report.py --size arm-none-eabi-size --json OUT.json \\
         --board 16 small16.log small16.elf MODEL.onnx [--board 32 ...]
 
-Exit status 1 when a board's firmware did not finish, called malloc, or a pc_run or compiled
-output differs from the x86 runtime (posecorr.Corrector, backend "c") in any bit; the hand-written
-function must match pc_run within TOLERANCE (it is the same arithmetic, so it matches
-exactly), and emlearn's difference (its own summation order and libm's tanhf) is reported.
+With --networks FOLDER NAME ..., the networks table instead (Makefile: networks): per
+network, pc_run on its board and the compiled, hand-written and emlearn functions each on a
+2 KB board, their instructions a pose, RAM, and ratios to the hand-written function and to
+emlearn (issue 33's floor: <= FLOOR_RATIO and <= 1); --json writes the table.
+
+Exit status 1 when a board's firmware did not finish, called malloc, or a pc_run, compiled
+or hand-written output differs from the x86 runtime (posecorr.Corrector, backend "c") in any
+bit (the hand-written function is the same arithmetic), or emlearn's (its own summation
+order and libm's tanhf) by more than TOLERANCE.
 """
 from __future__ import annotations
 

@@ -55,8 +55,10 @@ fuzz:
 
 # Cross-builds the runtime for a Cortex-M4F, runs the firmware in QEMU and compares with x86
 # (needs gcc-arm-none-eabi, libnewlib-arm-none-eabi, qemu-system-arm; see runtime_c/embedded).
+# The networks table goes to bench/results, where docs/guides/microcontrollers.md reads it.
 embedded: $(STAMP)
-	@$(MAKE) --no-print-directory -C runtime_c/embedded PYTHON=$(abspath $(VPY))
+	@$(MAKE) --no-print-directory -C runtime_c/embedded PYTHON=$(abspath $(VPY)) \
+	    NETWORKS_JSON=$(abspath bench/results/embedded_networks.json)
 
 clean:
 	rm -rf build site runtime_c/build* python/posecorr/_native *.egg-info

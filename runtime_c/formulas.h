@@ -76,4 +76,66 @@ static inline float pc_tanh_inline(float x)
     return p < -1.0f ? -1.0f : p;
 }
 
+/* ---- pc_run's contract on a pose (run.c), which the functions `posecorr compile` writes
+ * check the same way, with the same numbers ---- */
+
+/* An input quaternion's norm may be off 1 by 1e-3 (posecorr.h). The model normalises what
+ * it is given, so a few lost bits change nothing; the tolerance is the one of the pose
+ * tables (python/posecorr/data.py) and posecorr-run, so that a pose they accept is accepted
+ * here. A float32 unit quaternion is within 1e-7 of norm 1, one printed with four decimals
+ * within 2e-4: both pass. A zero, a norm-3 or a garbled vector is a glitch, not an
+ * orientation, and normalising it would answer with a made-up rotation. Compared on |q|^2
+ * in double: (1 -+ 1e-3)^2. */
+#define PC_QUAT_NORM2_LO 0.998001
+#define PC_QUAT_NORM2_HI 1.002001
+/* |q|^2 of a float32 unit quaternion after a few dozen operations is within 1e-5 of 1;
+ * an output beyond 1e-3 is not a rotation. */
+#define PC_UNIT_TOLERANCE 1e-3f
+
+/* |q|^2 of an input quaternion q[4], in double. */
+static inline double pc_input_norm2(const float *q)
+{
+    return (double)q[0] * q[0] + (double)q[1] * q[1] + (double)q[2] * q[2] + (double)q[3] * q[3];
+}
+
+static inline int pc_unit_input(double norm2)
+{
+    return norm2 >= PC_QUAT_NORM2_LO && norm2 <= PC_QUAT_NORM2_HI;
+}
+
+/* How the output pose p[7] moved from the input pose in[7]: |p_out - p_in|^2, |q_out|^2,
+ * q_in . q_out and |q_in|^2, each summed in column order. */
+typedef struct pc_move {
+    float d2, n2, dot, n_in2;
+} pc_move;
+
+static inline pc_move pc_move_of(const float *in, const float *p)
+{
+    pc_move v = {0.0f, 0.0f, 0.0f, 0.0f};
+    int c;
+    for (c = 0; c < 3; c++) {
+        const float d = p[c] - in[c];
+        v.d2 += d * d;
+    }
+    for (c = 3; c < 7; c++) {
+        v.n2 += p[c] * p[c];
+        v.dot += p[c] * in[c];
+        v.n_in2 += in[c] * in[c];
+    }
+    return v;
+}
+
+static inline int pc_unit_output(const pc_move *v)
+{
+    return fabsf(v->n2 - 1.0f) <= PC_UNIT_TOLERANCE;
+}
+
+/* Within the model's reach, compared on squares: |p_out - p_in|^2 against reach_pos2, and
+ * (q_in . q_out)^2 against cos^2(reach / 2) |q_in|^2 |q_out|^2 (reach_cos2 0: any rotation),
+ * a few multiplications a pose. */
+static inline int pc_within_reach(const pc_move *v, float reach_pos2, float reach_cos2)
+{
+    return v->d2 <= reach_pos2 && v->dot * v->dot >= reach_cos2 * v->n_in2 * v->n2;
+}
+
 #endif

@@ -7,18 +7,9 @@
 #include <math.h>
 #include <string.h>
 
-/* |q|^2 of a float32 unit quaternion after a few dozen operations is within 1e-5 of 1;
- * anything beyond 1e-3 is not a rotation. */
-#define PC_UNIT_TOLERANCE 1e-3f
-/* An input quaternion's norm may be off 1 by this much (posecorr.h). The model normalises
- * what it is given, so a few lost bits change nothing; the tolerance is the one of the
- * pose tables (python/posecorr/data.py) and posecorr-run, so that a pose they accept is
- * accepted here. A float32 unit quaternion is within 1e-7 of norm 1, one printed with
- * four decimals within 2e-4: both pass. A zero, a norm-3 or a garbled vector is a
- * glitch, not an orientation, and normalising it would answer with a made-up rotation.
- * Compared on |q|^2 in double: (1 -+ 1e-3)^2. */
-#define PC_QUAT_NORM2_LO 0.998001
-#define PC_QUAT_NORM2_HI 1.002001
+/* The contract's numbers and tests (PC_QUAT_NORM2_LO/HI, PC_UNIT_TOLERANCE, pc_move_of,
+ * pc_within_reach) are formulas.h's, which `posecorr compile` copies into its functions. */
+#include "formulas.h"
 
 PC_HOT pc_status pc_run_steps(pc_model *m, const pc_plan *plan)
 {
@@ -55,40 +46,30 @@ PC_RARE static void pc_beyond_reach(pc_model *m, size_t pose, float d2, float do
 }
 
 /* The output contract: finite, a unit quaternion, and a correction (from the input in)
- * within the model's reach. The reach is compared on squares: |p_out - p_in|^2 against
- * reach_pos2, and for the rotation (q_in . q_out)^2 against cos^2(reach / 2) |q_in|^2
- * |q_out|^2, a few multiplications a pose. */
+ * within the model's reach (formulas.h: pc_move_of, pc_within_reach). */
 PC_HOT static pc_status pc_check_output(pc_model *m, const float *in, const float *out, size_t n,
                                         size_t first)
 {
     size_t r, c;
     for (r = 0; r < n; r++, in += PC_POSE_WIDTH) {
         const float *p = out + r * PC_POSE_WIDTH;
-        float n2 = 0.0f, d2 = 0.0f, dot = 0.0f, n_in2 = 0.0f;
-        for (c = 0; c < PC_POSE_WIDTH; c++) {
+        pc_move v;
+        for (c = 0; c < PC_POSE_WIDTH; c++)
             if (!isfinite(p[c])) {
                 pc_format(m->message, sizeof m->message,
                           "output 'corrected' of pose %zu is not finite in column %zu "
                           "(expected a finite number)", first + r, c);
                 return PC_ERR_RUNTIME;
             }
-            if (c >= 3) {
-                n2 += p[c] * p[c];
-                dot += p[c] * in[c];
-                n_in2 += in[c] * in[c];
-            } else {
-                const float d = p[c] - in[c];
-                d2 += d * d;
-            }
-        }
-        if (!(fabsf(n2 - 1.0f) <= PC_UNIT_TOLERANCE)) {
+        v = pc_move_of(in, p);
+        if (!pc_unit_output(&v)) {
             pc_format(m->message, sizeof m->message,
                       "output 'corrected' of pose %zu has a quaternion that is not unit "
                       "(columns 3-6, expected |q|^2 within 0.001 of 1)", first + r);
             return PC_ERR_RUNTIME;
         }
-        if (!(d2 <= m->reach_pos2 && dot * dot >= m->reach_cos2 * n_in2 * n2)) {
-            pc_beyond_reach(m, first + r, d2, dot, n_in2, n2);
+        if (!pc_within_reach(&v, m->reach_pos2, m->reach_cos2)) {
+            pc_beyond_reach(m, first + r, v.d2, v.dot, v.n_in2, v.n2);
             return PC_ERR_RUNTIME;
         }
     }
@@ -199,9 +180,8 @@ PC_HOT static pc_status pc_check_input(pc_model *m, const float *in, const float
                 pc_outside(m, what, in[c], m->lo[c], m->hi[c], "m", "input_bounds");
                 return PC_ERR_RANGE;
             }
-        n2 = (double)in[3] * in[3] + (double)in[4] * in[4] + (double)in[5] * in[5] +
-             (double)in[6] * in[6];
-        if (!(n2 >= PC_QUAT_NORM2_LO && n2 <= PC_QUAT_NORM2_HI)) {
+        n2 = pc_input_norm2(in + 3);
+        if (!pc_unit_input(n2)) {
             char norm[24];
             pc_decimal(norm, sizeof norm, sqrt(n2), 6);
             pc_format(m->message, sizeof m->message,

@@ -30,7 +30,7 @@ DRIVER = r"""
 int NAME_run(const float in[7], TIME_PARAM float out[7]);
 int main(void)
 {
-    float in[8], out[7];
+    float in[8], out[7] = {0};
     while (fread(in, sizeof(float), WIDTH, stdin) == WIDTH) {
         int status = NAME_run(in, TIME_ARG out);
         fwrite(out, sizeof out, 1, stdout);
@@ -159,6 +159,18 @@ def test_a_model_that_takes_time_gives_pc_run_bits(tmp_path):
     to_onnx(est, path, measured=m, reference=r, t=t)
     text = assert_same_bits(path, tmp_path, graphs.poses_in_box(path, 1000, seed=6))
     assert "int drift_run(const float in[7], float t, float out[7]);" in text
+    # times outside the fitted span (time_bounds) or not finite: pc_run's refusals
+    from posecorr.controller.onnx_meta import read_info
+
+    t_lo, t_hi = (np.float32(v) for v in read_info(path)["time_bounds"])
+    times = np.array([t_lo, t_hi, np.nextafter(t_lo, np.float32(-1e9)), np.nextafter(t_hi, np.float32(1e9)),
+                      np.nan, np.inf], np.float32)
+    x = np.repeat(graphs.poses_in_box(path, 1, seed=6), len(times), axis=0)
+    codes, statuses = refusals(path, tmp_path, x, t=times)
+    assert codes == [0, 0, 2, 2, 4, 4], codes
+    from posecorr.controller.checks import Status
+
+    assert statuses == [0, 0, Status.RANGE, Status.RANGE, Status.NONFINITE, Status.NONFINITE], statuses
 
 
 def _refusal(r: subprocess.CompletedProcess) -> str:
@@ -221,3 +233,95 @@ def test_the_function_is_named_after_the_output(tmp_path):
     report = json.loads(r.stdout)
     assert report["function"] == "arm_zhou_run" and report["steps"] == 3
     assert "int arm_zhou_run(const float in[7], float out[7])\n{" in out.read_text()
+
+
+# -- pc_run's refusals -------------------------------------------------------------------------
+
+def refusals(model: Path, tmp: Path, x: np.ndarray, *flags: str, t: np.ndarray | None = None,
+             **allow) -> tuple[list[int], list[int]]:
+    """(the compiled function's return code, pc_run's status) of each pose (at time t[i] for
+    a model that takes time), one at a time; where both accept, the same bits."""
+    from posecorr.controller.checks import PoseCorrError
+
+    out = tmp / f"{model.stem.replace('-', '_')}.c"
+    r = compile_cli(model, out, *flags)
+    assert r.returncode == 0, r.stderr
+    got, codes = run_compiled(build(out, out.stem, t is not None), x, t)
+    c = Corrector(model, backend="c", max_batch=1, **allow)
+    statuses = []
+    for i in range(len(x)):
+        try:
+            want = c.correct(x[i], t=None if t is None else float(t[i])).astype(np.float32)
+        except PoseCorrError as e:
+            statuses.append(e.status)
+            continue
+        statuses.append(0)
+        assert np.array_equal(got[i].view(np.uint32), want.view(np.uint32)), i
+    return [int(k) for k in codes], statuses
+
+
+def test_compiled_function_refuses_what_pc_run_refuses(tmp_path):
+    """Positions outside the model's input_bounds (and on them), quaternions off unit by more
+    than 1e-3 (and by less), NaN and infinity: the compiled function's code is pc_run's refusal
+    (documented at the top of the file), with the bounds pc_run compares."""
+    from posecorr.controller.checks import Status
+    from posecorr.controller.onnx_meta import read_info
+
+    lo, hi = (np.array(b, np.float32) for b in read_info(ZHOU)["input_bounds"])
+    base = graphs.poses_in_box(ZHOU, 1, seed=11)[0]
+    cases = {}
+    for k in range(3):
+        for side, v in (("below", np.nextafter(lo[k], np.float32(-1))), ("above", np.nextafter(hi[k], np.float32(1))),
+                        ("on low", lo[k]), ("on high", hi[k])):
+            cases[f"column {k} {side}"] = (k, v)
+    x = []
+    for k, v in cases.values():
+        p = base.copy()
+        p[k] = v
+        x.append(p)
+    for scale in (1.5, 0.0, 1.0011, 0.9989, 1.0009, 0.9991):
+        p = base.copy()
+        p[3:] = p[3:] / np.linalg.norm(p[3:]) * scale
+        x.append(p)
+    for bad in (np.nan, np.inf):
+        p = base.copy()
+        p[5] = bad
+        x.append(p)
+    codes, statuses = refusals(ZHOU, tmp_path, np.array(x, np.float32))
+    code_of = {Status.OK: 0, Status.RANGE: 2, Status.NONFINITE: 4, Status.QUATERNION: 5}
+    assert codes == [code_of[Status(s)] for s in statuses], list(zip(codes, statuses))
+    # each kind of refusal and acceptance occurred (the cases are what they claim)
+    assert set(codes) == {0, 2, 4, 5}
+    assert codes[:12] == [2, 2, 0, 0] * 3
+    assert codes[12:18] == [5, 5, 5, 5, 0, 0]
+    text = (tmp_path / f"{ZHOU.stem.replace('-', '_')}.c").read_text()
+    for code in ("2  the input is outside", "3  the correction moves", "5  the input quaternion"):
+        assert f" *   {code}" in text
+
+
+def test_correction_beyond_reach_and_unbounded_models(tmp_path):
+    """A model whose correction_reach its corrections exceed: pc_run refuses every pose
+    (PC_ERR_RUNTIME), the compiled function returns 3. Without input_bounds and
+    correction_reach, compiled with --allow-unbounded: any position passes, as in pc_run."""
+    import onnx
+
+    from posecorr.controller.checks import Status
+
+    model = graphs.without_metadata(onnx.load(str(ZHOU)), "correction_reach")
+    entry = model.metadata_props.add()
+    entry.key, entry.value = "correction_reach", "[0.0001, 0.0001]"
+    tight = tmp_path / "tight.onnx"
+    tight.write_bytes(graphs.signed(model, aligned=True))
+    x = graphs.poses_in_box(ZHOU, 20, seed=5)
+    codes, statuses = refusals(tight, tmp_path, x)
+    assert statuses == [Status.RUNTIME] * len(x) and codes == [3] * len(x)
+
+    free = tmp_path / "free.onnx"
+    free.write_bytes(graphs.signed(graphs.without_metadata(model, "input_bounds", "correction_reach")))
+    far = x.copy()
+    far[:, 0] += 5.0
+    assert compile_cli(free, tmp_path / "refused.c").returncode != 0  # unbounded needs the flag
+    codes, statuses = refusals(free, tmp_path, far, "--allow-unbounded", allow_unbounded=True)
+    assert codes == statuses == [0] * len(x)
+    text = (tmp_path / "free.c").read_text()
+    assert "return 2;" not in text and "return 3;" not in text

@@ -34,7 +34,8 @@ NOT_REPOSITORY_FILES = {
     "F.py", "OUT.c", "OUT.h",      # placeholders in usage lines
     "Python.h", "eml_net.h",       # headers of CPython and emlearn
     "model_data.c", "poses.h",     # written by the firmware build (runtime_c/embedded/Makefile)
-    "zhou_compiled.c",             # ... by `posecorr compile` there
+    "mlp_weights.h",
+    "zhou_compiled.c",             # ... by `posecorr compile` there (the guide's example)
     "metadata.yaml",               # the index file of a ROS 2 bag folder
     "proposed.py", "bend.py",      # the effect files `diagnose --propose` writes in the loop's examples
     "reference/cli.md", "../reference/cli.md",   # the site's page written at build time (tools/docs_site.py)

@@ -134,3 +134,24 @@ void fw_put_memory(void)
     fw_put_kv("stack_reserved", board_stack_size());
     fw_put("\n");
 }
+
+void fw_count(const char *impl, int (*run)(const float *, float *), const float (*poses)[7],
+              unsigned n, unsigned runs, unsigned long per_tick_milli)
+{
+    float out[FW_POSE_WIDTH];
+    uint32_t t;
+    unsigned r, k;
+    for (k = 0; k < n; k++) {
+        if (run(poses[k], out) != 0) {
+            fw_put(impl);
+            fw_put(" failed\n");
+            board_exit(1);
+        }
+        fw_put_pose(impl, k, out);
+    }
+    t = fw_ticks_now();
+    for (r = 0; r < runs; r++)
+        for (k = 0; k < n; k++)
+            run(poses[k], out);
+    fw_report_count(impl, fw_ticks_since(t), per_tick_milli, (unsigned long)runs * n);
+}

@@ -26,5 +26,9 @@ uint32_t fw_ticks_since(uint32_t start);
 /* "count IMPL instructions_per_pose=N ticks=N poses=N" for `poses` poses in `ticks`. */
 void fw_report_count(const char *impl, uint32_t ticks, unsigned long per_tick_milli,
                      unsigned long poses);
+/* Corrects the n poses with `run` ("out IMPL K ..." lines; exit 1 if it fails), then counts
+ * its instructions over `runs` passes ("count IMPL ..."). */
+void fw_count(const char *impl, int (*run)(const float *, float *), const float (*poses)[7],
+              unsigned n, unsigned runs, unsigned long per_tick_milli);
 
 #endif

@@ -8,7 +8,7 @@
  *   load ok arena_reserved=N arena_used=N steps=N
  *   out input K h0 .. h6             (pose K as float32 bit patterns)
  *   out pc_run K h0 .. h6            (its correction)
- *   out reference K ...  / out emlearn K ...   (zhou MLP builds)
+ *   out reference K ...  / out emlearn K ...   (MLP builds: FW_HAND, FW_EMLEARN)
  *   count IMPL instructions_per_pose=N ticks=N poses=N
  *   mallocs=N stack_peak=N stack_reserved=N
  *
@@ -21,12 +21,8 @@
 #include <stdint.h>
 #include <string.h>
 
-#ifdef FW_ZHOU
-#include "zhou_reference.h"
-extern const pc_zhou_weights *const pc_fw_zhou;
-#endif
-#ifdef FW_EMLEARN
-#include "eml_net.h"
+#if defined(FW_HAND) || defined(FW_EMLEARN)
+#include "fw_impls.h"
 #endif
 
 extern const unsigned char pc_fw_model[];
@@ -44,36 +40,6 @@ extern const unsigned long pc_fw_model_size;
 #define FW_COUNTED_POSES ((unsigned long)FW_COUNT_RUNS * PC_FW_N_POSES)
 
 static unsigned char fw_arena[FW_ARENA_BYTES] __attribute__((aligned(8)));
-
-#ifdef FW_EMLEARN
-/* The zhou MLP's four hidden layers and its output layer, in emlearn's structures, over
- * the same weights (emlearn reads W[i][o] at o + i * n_outputs, the exporter's layout). */
-static float eml_buffer1[PC_ZHOU_HIDDEN], eml_buffer2[PC_ZHOU_HIDDEN];
-static EmlNetLayer eml_layers[PC_ZHOU_LAYERS];
-static EmlNet eml_model = {PC_ZHOU_LAYERS, eml_layers, eml_buffer1, eml_buffer2, PC_ZHOU_HIDDEN};
-
-static void eml_setup(const pc_zhou_weights *w)
-{
-    int l;
-    eml_layers[0] = (EmlNetLayer){PC_ZHOU_HIDDEN, PC_ZHOU_IN, w->w_in, w->b_in,
-                                  EmlNetActivationTanh};
-    for (l = 0; l < PC_ZHOU_LAYERS - 2; l++)
-        eml_layers[l + 1] = (EmlNetLayer){PC_ZHOU_HIDDEN, PC_ZHOU_HIDDEN, w->w_hidden[l],
-                                          w->b_hidden[l], EmlNetActivationTanh};
-    eml_layers[PC_ZHOU_LAYERS - 1] = (EmlNetLayer){PC_ZHOU_IN, PC_ZHOU_HIDDEN, w->w_out,
-                                                   w->b_out, EmlNetActivationIdentity};
-}
-
-static int eml_pose(const pc_zhou_weights *w, const float *in, float *out)
-{
-    float x[PC_ZHOU_IN], y[PC_ZHOU_IN];
-    pc_zhou_encode(w, in, x);
-    if (eml_net_regress(&eml_model, x, PC_ZHOU_IN, y, PC_ZHOU_IN) != EmlOk)
-        return 0;
-    pc_zhou_decode(w, y, out);
-    return 1;
-}
-#endif
 
 int main(void)
 {
@@ -121,29 +87,12 @@ int main(void)
             pc_run(model, pc_fw_poses[k], 1, out[0]);
     fw_report_count("pc_run", fw_ticks_since(t), per_tick, FW_COUNTED_POSES);
 
-#ifdef FW_ZHOU
-    for (k = 0; k < PC_FW_N_POSES; k++) {
-        pc_zhou_reference(pc_fw_zhou, pc_fw_poses[k], out[0]);
-        fw_put_pose("reference", k, out[0]);
-    }
-    t = fw_ticks_now();
-    for (r = 0; r < FW_COUNT_RUNS; r++)
-        for (k = 0; k < PC_FW_N_POSES; k++)
-            pc_zhou_reference(pc_fw_zhou, pc_fw_poses[k], out[0]);
-    fw_report_count("reference", fw_ticks_since(t), per_tick, FW_COUNTED_POSES);
+#ifdef FW_HAND
+    fw_count("reference", fw_hand, pc_fw_poses, PC_FW_N_POSES, FW_COUNT_RUNS, per_tick);
 #endif
 #ifdef FW_EMLEARN
-    eml_setup(pc_fw_zhou);
-    for (k = 0; k < PC_FW_N_POSES; k++) {
-        if (!eml_pose(pc_fw_zhou, pc_fw_poses[k], out[0]))
-            board_exit(1);
-        fw_put_pose("emlearn", k, out[0]);
-    }
-    t = fw_ticks_now();
-    for (r = 0; r < FW_COUNT_RUNS; r++)
-        for (k = 0; k < PC_FW_N_POSES; k++)
-            eml_pose(pc_fw_zhou, pc_fw_poses[k], out[0]);
-    fw_report_count("emlearn", fw_ticks_since(t), per_tick, FW_COUNTED_POSES);
+    fw_emlearn_setup();
+    fw_count("emlearn", fw_emlearn, pc_fw_poses, PC_FW_N_POSES, FW_COUNT_RUNS, per_tick);
 #endif
 
     fw_put_memory();

@@ -97,7 +97,7 @@ static void make_poses(float *p, size_t n, const double lo[3], const double hi[3
 #define REF_ROUNDS 7
 #define REF_POSES 1000
 
-static double per_call_ns(pc_model *model, const pc_zhou_weights *w, const float *poses,
+static double per_call_ns(pc_model *model, const pc_mlp *w, const float *poses,
                           size_t n_poses, size_t batch, float *out)
 {
     size_t reps = 0, i;
@@ -108,14 +108,14 @@ static double per_call_ns(pc_model *model, const pc_zhou_weights *w, const float
                 pc_run(model, poses, batch, out);
             else
                 for (i = 0; i < batch; i++)
-                    pc_zhou_reference(w, poses + i * 7, out + i * 7);
+                    pc_mlp_reference(w, poses + i * 7, out + i * 7);
             reps += batch;
         } else {
             for (i = 0; i < n_poses; i++) {
                 if (model)
                     pc_run(model, poses + i * 7, 1, out);
                 else
-                    pc_zhou_reference(w, poses + i * 7, out);
+                    pc_mlp_reference(w, poses + i * 7, out);
             }
             reps += n_poses;
         }
@@ -127,6 +127,8 @@ static int bench_reference(const char *wpath, pc_model *model, const float *pose
                            size_t n_poses, size_t batch, float *out, char *json, size_t size)
 {
     static pc_zhou_weights w;
+    pc_mlp_layer layer[PC_ZHOU_LAYERS];
+    pc_mlp mlp;
     float a[7], b[7];
     double best[4] = {-1.0, -1.0, -1.0, -1.0}, diff = 0.0;
     size_t i, same = 0, k;
@@ -140,6 +142,7 @@ static int bench_reference(const char *wpath, pc_model *model, const float *pose
         return 0;
     }
     fclose(f);
+    pc_zhou_describe(&w, layer, &mlp);
     if (n_poses > REF_POSES)
         n_poses = REF_POSES;
     for (i = 0; i < n_poses; i++) {
@@ -147,7 +150,7 @@ static int bench_reference(const char *wpath, pc_model *model, const float *pose
             fprintf(stderr, "posecorr-bench: pose %zu: %s\n", i, pc_model_message(model));
             return 0;
         }
-        pc_zhou_reference(&w, poses + i * 7, b);
+        pc_mlp_reference(&mlp, poses + i * 7, b);
         for (j = 0, k = 1; j < 7; j++) {
             const double d = fabs((double)a[j] - (double)b[j]);
             diff = d > diff ? d : diff;
@@ -159,14 +162,14 @@ static int bench_reference(const char *wpath, pc_model *model, const float *pose
         for (j = 0; j < 4; j++) {
             /* order alternates per round: pc_run first on even rounds */
             const int which = (j + round) % 2, batched = j >= 2;
-            const double t = per_call_ns(which ? NULL : model, &w, poses, n_poses,
+            const double t = per_call_ns(which ? NULL : model, &mlp, poses, n_poses,
                                          batched ? batch : 1, out);
             const int slot = which + 2 * batched;
             if (best[slot] < 0.0 || t < best[slot])
                 best[slot] = t;
         }
     snprintf(json, size,
-             ", \"reference\": {\"function\": \"pc_zhou_reference (tools/zhou_reference.c)\", "
+             ", \"reference\": {\"function\": \"pc_mlp_reference (tools/zhou_reference.c)\", "
              "\"pc_run_single_ns\": %.2f, \"reference_single_ns\": %.2f, "
              "\"single_ratio\": %.3f, \"pc_run_batch_ns_per_pose\": %.2f, "
              "\"reference_batch_ns_per_pose\": %.2f, \"batch_ratio\": %.3f, "

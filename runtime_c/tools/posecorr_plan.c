@@ -6,6 +6,9 @@
  * their float32 bits. One line each:
  *
  *   sop CODE NAME [EXPR]         an element operation's code, name and expression in a, b
+ *   checks lo=X,Y,Z hi=X,Y,Z reach_pos2=W reach_cos2=W span=LO,HI|-
+ *                                pc_run's input and reach checks, their numbers as pc_run
+ *                                compares them (float32 bits; unbounded: infinities, 0)
  *   plan steps=N in=OFF t=OFF|- out=OFF
  *   step K program               a one-pose program; its entries follow:
  *   op CODE A B C O              element operation CODE (kernels.h PC_SOP_*) of the
@@ -338,11 +341,23 @@ static const char *kernel_name(pc_kernel_fn fn)
     return "a node's own kernel";
 }
 
+static void print_checks(const pc_model *m)
+{
+    printf("checks lo=%08lx,%08lx,%08lx hi=%08lx,%08lx,%08lx reach_pos2=%08lx reach_cos2=%08lx span=",
+           bits(m->lo[0]), bits(m->lo[1]), bits(m->lo[2]), bits(m->hi[0]), bits(m->hi[1]),
+           bits(m->hi[2]), bits(m->reach_pos2), bits(m->reach_cos2));
+    if (m->has_span)
+        printf("%08lx,%08lx\n", bits(m->t_lo), bits(m->t_hi));
+    else
+        printf("-\n");
+}
+
 static void print_plan(const pc_model *m)
 {
     const pc_plan *p = &m->plans[0];
     size_t k;
     print_codes();
+    print_checks(m);
     printf("plan steps=%zu in=%ld t=", p->n_steps, offset_of(m, p->in));
     if (p->t)
         printf("%ld", offset_of(m, p->t));

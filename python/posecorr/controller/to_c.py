@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import re
 import subprocess
+import textwrap
 from functools import partial
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -77,12 +78,25 @@ class Dense:
 
 
 @dataclass
+class Checks:
+    """pc_run's input and reach checks on this model, their numbers as pc_run compares them
+    (an unbounded model's: infinite bounds, reach_pos2 infinite, reach_cos2 0)."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    reach_pos2: float
+    reach_cos2: float
+    span: tuple[float, float] | None
+
+
+@dataclass
 class Plan:
     codes: dict[int, tuple[str, str]]  # code -> (name, expression in a and b)
     input: int
     time: int | None
     output: int
     steps: list
+    checks: Checks | None = None
 
 
 def _floats(text: str) -> np.ndarray:
@@ -107,16 +121,26 @@ def _layer(words: list[str]) -> Layer:
                  _bits_float(beta), _operand(a), _operand(b), _operand(c), int(o[2:]))
 
 
+def _checks(words: list[str]) -> Checks:
+    f = dict(w.split("=") for w in words[1:])
+    span = None if f["span"] == "-" else tuple(float(v) for v in _floats(f["span"]))
+    return Checks(_floats(f["lo"]), _floats(f["hi"]), _bits_float(f["reach_pos2"]),
+                  _bits_float(f["reach_cos2"]), span)
+
+
 def parse(text: str) -> Plan:
     """The Plan of posecorr-plan's output; Unsupported names a step it cannot translate."""
     codes: dict[int, tuple[str, str]] = {}
     steps: list = []
     head: dict[str, str] = {}
+    checks = None
     for line in text.splitlines():
         words = line.split()
         kind = words[0]
         if kind == "sop":
             codes[int(words[1])] = (words[2], " ".join(words[3:]))
+        elif kind == "checks":
+            checks = _checks(words)
         elif kind == "plan":
             head = dict(w.split("=") for w in words[1:])
         elif kind == "step":
@@ -136,8 +160,10 @@ def parse(text: str) -> Plan:
             steps[-1].pool = {lo + 4 * i: int(w, 16) for i, w in enumerate(words[2:])}
         elif kind == "layer":
             steps[-1].layers.append(_layer(words))
+    if checks is None:
+        raise ValueError("posecorr-plan printed no checks line (a posecorr-plan older than this package)")
     return Plan(codes, int(head["in"]), None if head["t"] == "-" else int(head["t"]),
-                int(head["out"]), steps)
+                int(head["out"]), steps, checks)
 
 
 def plan(model: Path, *, allow_unbounded: bool = False, allow_unsigned: bool = False) -> Plan:
@@ -341,14 +367,14 @@ def source(p: Plan, name: str, origin: str, digest: str | None = None) -> str:
         (body.program if isinstance(step, Program) else body.dense)(step, k)
     outs = [body.read(p.output + 4 * j, {}) for j in range(POSE_WIDTH)]
     time = "float t, " if p.time is not None else ""
-    lines = _without_unused(body.lines + [f"    out[{j}] = {x};" for j, x in enumerate(outs)])
+    lines = _without_unused(body.lines + [f"    o[{j}] = {x};" for j, x in enumerate(outs)])
     memory = [f"    float m[{body.m_floats}]; /* the activations the dense layers read and write */"] \
         if body.m_floats else []
     header = _header(name, origin, digest, p.time is not None)
     run = ([f"int {name}_run(const float in[{POSE_WIDTH}], {time}float out[{POSE_WIDTH}])", "{",
-            "    int j;"] + memory + lines
-           + [f"    for (j = 0; j < {POSE_WIDTH}; j++)", "        if (!isfinite(out[j]))",
-              "            return 1;", "    return 0;", "}"])
+            f"    float o[{POSE_WIDTH}];", "    int j;"] + memory
+           + _input_checks(p.checks, p.time is not None) + lines + _output_checks(p.checks)
+           + [f"    for (j = 0; j < {POSE_WIDTH}; j++)", "        out[j] = o[j];", "    return 0;", "}"])
     parts = [header, "/* ---- libposecorr's element formulas (runtime_c/formulas.h, as it is) ---- */",
              formulas_header().strip(), "/* ---- the weights ---- */", *body.weights,
              "/* ---- the dense layer: y = act(x W + b), W [K][N] given by columns (wt[n K + k] =\n"
@@ -359,6 +385,51 @@ def source(p: Plan, name: str, origin: str, digest: str | None = None) -> str:
     return "\n\n".join(parts) + "\n"
 
 
+# The function's return codes: pc_run's refusals (runtime_c/run.c), each its own number.
+STATUS = {0: "corrected: out holds the corrected pose",
+          1: "an output is not finite (pc_run: PC_ERR_RUNTIME)",
+          2: "the input is outside the range the model was fitted on: a position outside its "
+             "input_bounds, or a time outside its time_bounds (PC_ERR_RANGE)",
+          3: "the correction moves the pose beyond the model's correction_reach (PC_ERR_RUNTIME)",
+          4: "an input value (or the time) is not finite (PC_ERR_NONFINITE)",
+          5: "the input quaternion is not unit: |q|^2 outside [0.998001, 1.002001] (PC_ERR_QUATERNION)",
+          6: "the output quaternion is not unit: |q|^2 not within 0.001 of 1 (PC_ERR_RUNTIME)"}
+
+
+def _input_checks(c: Checks, takes_time: bool) -> list[str]:
+    """pc_run's input checks (run.c, pc_check_input), in its order: the time, then the pose's
+    values, its position against input_bounds and its quaternion. An unbounded model (loaded
+    with --allow-unbounded) has infinite bounds: every finite value passes, so none is written."""
+    lines = ["    /* pc_run's input checks, in its order (the return codes: top of the file) */"]
+    if takes_time:
+        lines += ["    if (!isfinite(t))", "        return 4;"]
+        if c.span:
+            lines += [f"    if (!(t >= {literal(c.span[0])} && t <= {literal(c.span[1])}))", "        return 2;"]
+    lines += [f"    for (j = 0; j < {POSE_WIDTH}; j++)", "        if (!isfinite(in[j]))", "            return 4;"]
+    bounded = [k for k in range(3) if np.isfinite(c.lo[k]) or np.isfinite(c.hi[k])]
+    if bounded:
+        tests = [f"!(in[{k}] >= {literal(c.lo[k])} && in[{k}] <= {literal(c.hi[k])})" for k in bounded]
+        lines += ["    if (" + " ||\n        ".join(tests) + ")", "        return 2;"]
+    return lines + ["    if (!pc_unit_input(pc_input_norm2(in + 3)))", "        return 5;"]
+
+
+def _output_checks(c: Checks) -> list[str]:
+    """pc_run's output checks (run.c, pc_check_output): finite, a unit quaternion, within reach."""
+    lines = ["    /* pc_run's output checks, in its order */",
+             f"    for (j = 0; j < {POSE_WIDTH}; j++)", "        if (!isfinite(o[j]))", "            return 1;",
+             "    {", "        const pc_move v = pc_move_of(in, o);",
+             "        if (!pc_unit_output(&v))", "            return 6;"]
+    if np.isfinite(c.reach_pos2) or c.reach_cos2 != 0.0:
+        lines += [f"        if (!pc_within_reach(&v, {literal(c.reach_pos2)}, {literal(c.reach_cos2)}))",
+                  "            return 3;"]
+    return lines + ["    }"]
+
+
+def _status_lines() -> str:
+    return "\n".join(textwrap.fill(text, 92, initial_indent=f" *   {k}  ", subsequent_indent=" *      ")
+                     for k, text in STATUS.items())
+
+
 def _header(name: str, origin: str, digest: str | None, takes_time: bool) -> str:
     time = "float t, " if takes_time else ""
     return f"""/* {origin} compiled by `posecorr compile`: its one-pose function in C99.
@@ -367,12 +438,14 @@ def _header(name: str, origin: str, digest: str | None, takes_time: bool) -> str
  *
  * in: one pose as the model's input "pose" (x, y, z, qw, qx, qy, qz; a unit quaternion){
     ', t: its time (s since the session start, the input "t")' if takes_time else ''};
- * out: the corrected pose as its output "corrected". Returns 0, or 1 when an output is
- * not finite. The same operations in the same order as libposecorr's pc_run on this
- * model, so the same bits (built without -ffast-math; contraction into fused
- * multiply-adds is switched off below). pc_run's checks (a unit quaternion in, the
- * input bounds, the correction's reach) are the caller's. Needs <math.h> only; no heap,
- * no global state: the activations live on the stack.
+ * out: the corrected pose as its output "corrected". The same operations in the same
+ * order as libposecorr's pc_run on this model, so the same bits (built without
+ * -ffast-math; contraction into fused multiply-adds is switched off below), and pc_run's
+ * checks with the numbers pc_run compares (the model's input bounds and correction reach:
+ * none when it has none and was compiled with --allow-unbounded). Returns, as pc_run
+ * refuses (out is written on 0 only):
+{_status_lines()}
+ * Needs <math.h> only; no heap, no global state: the activations live on the stack.
  * model_digest: {digest or '(none)'}
  */
 #if defined(__clang__)

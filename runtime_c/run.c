@@ -54,43 +54,105 @@ PC_RARE static void pc_beyond_reach(pc_model *m, size_t pose, float d2, float do
               angle, reach_pos, reach_rot);
 }
 
+/* Whether the seven values of a pose are all finite and its position inside [lo, hi], with
+ * no branch per value: the checks' common case in a few instructions (SSE2 on x86-64:
+ * x - x is NaN exactly for an infinity or a NaN; the loads of lanes 0-3 and 3-6 stay
+ * inside the pose, those of lo and hi inside the model). */
+#if defined(__SSE2__)
+#include <emmintrin.h>
+PC_HOT static int pc_pose_finite(const float *v)
+{
+    const __m128 a = _mm_loadu_ps(v), b = _mm_loadu_ps(v + 3);
+    const __m128 da = _mm_sub_ps(a, a), db = _mm_sub_ps(b, b);
+    return _mm_movemask_ps(_mm_and_ps(_mm_cmpord_ps(da, da), _mm_cmpord_ps(db, db))) == 15;
+}
+
+PC_HOT static int pc_pose_in_box(const pc_model *m, const float *v)
+{
+    const __m128 p = _mm_loadu_ps(v);
+    const __m128 in = _mm_and_ps(_mm_cmpge_ps(p, _mm_loadu_ps(m->lo)),
+                                 _mm_cmple_ps(p, _mm_loadu_ps(m->hi)));
+    return (_mm_movemask_ps(in) & 7) == 7;
+}
+#else
+PC_HOT static int pc_pose_finite(const float *v)
+{
+    uint32_t bad = 0, bits;
+    size_t i;
+    for (i = 0; i < PC_POSE_WIDTH; i++) {
+        memcpy(&bits, v + i, sizeof bits);
+        bad |= (uint32_t)((bits & 0x7f800000u) == 0x7f800000u);
+    }
+    return !bad;
+}
+
+PC_HOT static int pc_pose_in_box(const pc_model *m, const float *v)
+{
+    return (v[0] >= m->lo[0]) & (v[0] <= m->hi[0]) & (v[1] >= m->lo[1]) &
+           (v[1] <= m->hi[1]) & (v[2] >= m->lo[2]) & (v[2] <= m->hi[2]);
+}
+#endif
+
 /* The output contract: finite, a unit quaternion, and a correction (from the input in)
  * within the model's reach. The reach is compared on squares: |p_out - p_in|^2 against
  * reach_pos2, and for the rotation (q_in . q_out)^2 against cos^2(reach / 2) |q_in|^2
  * |q_out|^2, a few multiplications a pose. */
+typedef struct pc_output_sums {
+    float n2, d2, dot, n_in2;
+} pc_output_sums;
+
+PC_HOT static pc_output_sums pc_output_sums_of(const float *in, const float *p)
+{
+    pc_output_sums q = {0.0f, 0.0f, 0.0f, 0.0f};
+    size_t c;
+    for (c = 0; c < 3; c++) {
+        const float d = p[c] - in[c];
+        q.d2 += d * d;
+    }
+    for (c = 3; c < PC_POSE_WIDTH; c++) {
+        q.n2 += p[c] * p[c];
+        q.dot += p[c] * in[c];
+        q.n_in2 += in[c] * in[c];
+    }
+    return q;
+}
+
+/* The clause of the contract that pose `pose`'s output p breaks, as the message. */
+PC_RARE static pc_status pc_output_error(pc_model *m, const float *in, const float *p,
+                                         size_t pose)
+{
+    const pc_output_sums q = pc_output_sums_of(in, p);
+    size_t c;
+    for (c = 0; c < PC_POSE_WIDTH; c++)
+        if (!isfinite(p[c])) {
+            pc_format(m->message, sizeof m->message,
+                      "output 'corrected' of pose %zu is not finite in column %zu "
+                      "(expected a finite number)", pose, c);
+            return PC_ERR_RUNTIME;
+        }
+    if (!(fabsf(q.n2 - 1.0f) <= PC_UNIT_TOLERANCE)) {
+        pc_format(m->message, sizeof m->message,
+                  "output 'corrected' of pose %zu has a quaternion that is not unit "
+                  "(columns 3-6, expected |q|^2 within 0.001 of 1)", pose);
+        return PC_ERR_RUNTIME;
+    }
+    pc_beyond_reach(m, pose, q.d2, q.dot, q.n_in2, q.n2);
+    return PC_ERR_RUNTIME;
+}
+
+/* Each clause evaluated without a branch; a pose that fails one is reported by
+ * pc_output_error, which finds the first. */
 PC_HOT static pc_status pc_check_output(pc_model *m, const float *in, const float *out, size_t n,
                                         size_t first)
 {
-    size_t r, c;
+    size_t r;
     for (r = 0; r < n; r++, in += PC_POSE_WIDTH) {
         const float *p = out + r * PC_POSE_WIDTH;
-        float n2 = 0.0f, d2 = 0.0f, dot = 0.0f, n_in2 = 0.0f;
-        for (c = 0; c < PC_POSE_WIDTH; c++) {
-            if (!isfinite(p[c])) {
-                pc_format(m->message, sizeof m->message,
-                          "output 'corrected' of pose %zu is not finite in column %zu "
-                          "(expected a finite number)", first + r, c);
-                return PC_ERR_RUNTIME;
-            }
-            if (c >= 3) {
-                n2 += p[c] * p[c];
-                dot += p[c] * in[c];
-                n_in2 += in[c] * in[c];
-            } else {
-                const float d = p[c] - in[c];
-                d2 += d * d;
-            }
-        }
-        if (!(fabsf(n2 - 1.0f) <= PC_UNIT_TOLERANCE)) {
-            pc_format(m->message, sizeof m->message,
-                      "output 'corrected' of pose %zu has a quaternion that is not unit "
-                      "(columns 3-6, expected |q|^2 within 0.001 of 1)", first + r);
-            return PC_ERR_RUNTIME;
-        }
-        if (!(d2 <= m->reach_pos2 && dot * dot >= m->reach_cos2 * n_in2 * n2)) {
-            pc_beyond_reach(m, first + r, d2, dot, n_in2, n2);
-            return PC_ERR_RUNTIME;
-        }
+        const pc_output_sums q = pc_output_sums_of(in, p);
+        const int ok = pc_pose_finite(p) & (fabsf(q.n2 - 1.0f) <= PC_UNIT_TOLERANCE) &
+                       (q.d2 <= m->reach_pos2) & (q.dot * q.dot >= m->reach_cos2 * q.n_in2 * q.n2);
+        if (!ok)
+            return pc_output_error(m, in, p, first + r);
     }
     return PC_OK;
 }
@@ -160,6 +222,48 @@ PC_RARE static void pc_outside(pc_model *m, const char *what, float v, float lo,
               what, value, unit, low, high, unit, key);
 }
 
+/* |q|^2 of the input quaternion in double, the sum in one order for both checks. */
+static double pc_quat_norm2(const float *in)
+{
+    return (double)in[3] * in[3] + (double)in[4] * in[4] + (double)in[5] * in[5] +
+           (double)in[6] * in[6];
+}
+
+/* Whether a pose meets the input contract, each clause evaluated without a branch. */
+PC_HOT static int pc_pose_ok(const pc_model *m, const float *in)
+{
+    const double n2 = pc_quat_norm2(in);
+    return pc_pose_finite(in) & pc_pose_in_box(m, in) & (n2 >= PC_QUAT_NORM2_LO) &
+           (n2 <= PC_QUAT_NORM2_HI);
+}
+
+/* The first clause of the input contract that pose i breaks, as the message. */
+PC_RARE static pc_status pc_pose_error(pc_model *m, const float *in, size_t i)
+{
+    char what[96], norm[24];
+    const double n2 = pc_quat_norm2(in);
+    size_t c;
+    for (c = 0; c < PC_POSE_WIDTH; c++)
+        if (!isfinite(in[c])) {
+            pc_format(m->message, sizeof m->message,
+                      "pose %zu has a non-finite value in column %zu (expected a finite "
+                      "number)", i, c);
+            return PC_ERR_NONFINITE;
+        }
+    for (c = 0; c < 3; c++)
+        if (!(in[c] >= m->lo[c] && in[c] <= m->hi[c])) {
+            pc_format(what, sizeof what, "pose %zu is outside the range the model was "
+                      "fitted on in column %zu", i, c);
+            pc_outside(m, what, in[c], m->lo[c], m->hi[c], "m", "input_bounds");
+            return PC_ERR_RANGE;
+        }
+    pc_decimal(norm, sizeof norm, sqrt(n2), 6);
+    pc_format(m->message, sizeof m->message,
+              "pose %zu has a quaternion of norm %s in columns 3-6 (expected a unit "
+              "quaternion w, x, y, z: norm within 0.001 of 1)", i, norm);
+    return PC_ERR_QUATERNION;
+}
+
 /* The input contract, pose by pose (python/posecorr/controller/checks.py checks the same
  * in the same order): finite times inside the fitted span (when the model records one;
  * no t is t = 0), then finite poses, positions inside the training box (input_bounds)
@@ -167,7 +271,7 @@ PC_RARE static void pc_outside(pc_model *m, const char *what, float v, float lo,
 PC_HOT static pc_status pc_check_input(pc_model *m, const float *in, const float *t, size_t n)
 {
     char what[96];
-    size_t i, c;
+    size_t i;
     const size_t n_times = t ? n : m->has_span ? 1 : 0;
     for (i = 0; i < n_times; i++) {
         const float ti = t ? t[i] : 0.0f;
@@ -183,33 +287,9 @@ PC_HOT static pc_status pc_check_input(pc_model *m, const float *in, const float
             return PC_ERR_RANGE;
         }
     }
-    for (i = 0; i < n; i++, in += PC_POSE_WIDTH) {
-        double n2;
-        for (c = 0; c < PC_POSE_WIDTH; c++)
-            if (!isfinite(in[c])) {
-                pc_format(m->message, sizeof m->message,
-                          "pose %zu has a non-finite value in column %zu (expected a finite "
-                          "number)", i, c);
-                return PC_ERR_NONFINITE;
-            }
-        for (c = 0; c < 3; c++)
-            if (!(in[c] >= m->lo[c] && in[c] <= m->hi[c])) {
-                pc_format(what, sizeof what, "pose %zu is outside the range the model was "
-                          "fitted on in column %zu", i, c);
-                pc_outside(m, what, in[c], m->lo[c], m->hi[c], "m", "input_bounds");
-                return PC_ERR_RANGE;
-            }
-        n2 = (double)in[3] * in[3] + (double)in[4] * in[4] + (double)in[5] * in[5] +
-             (double)in[6] * in[6];
-        if (!(n2 >= PC_QUAT_NORM2_LO && n2 <= PC_QUAT_NORM2_HI)) {
-            char norm[24];
-            pc_decimal(norm, sizeof norm, sqrt(n2), 6);
-            pc_format(m->message, sizeof m->message,
-                      "pose %zu has a quaternion of norm %s in columns 3-6 (expected a unit "
-                      "quaternion w, x, y, z: norm within 0.001 of 1)", i, norm);
-            return PC_ERR_QUATERNION;
-        }
-    }
+    for (i = 0; i < n; i++, in += PC_POSE_WIDTH)
+        if (!pc_pose_ok(m, in))
+            return pc_pose_error(m, in, i);
     return PC_OK;
 }
 

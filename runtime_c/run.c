@@ -117,19 +117,27 @@ PC_HOT static pc_output_sums pc_output_sums_of(const float *in, const float *p)
     return q;
 }
 
+/* The first column of a pose that is not finite; PC_POSE_WIDTH when every one is. */
+PC_RARE static size_t pc_first_nonfinite(const float *v)
+{
+    size_t c = 0;
+    while (c < PC_POSE_WIDTH && isfinite(v[c]))
+        c++;
+    return c;
+}
+
 /* The clause of the contract that pose `pose`'s output p breaks, as the message. */
 PC_RARE static pc_status pc_output_error(pc_model *m, const float *in, const float *p,
                                          size_t pose)
 {
     const pc_output_sums q = pc_output_sums_of(in, p);
-    size_t c;
-    for (c = 0; c < PC_POSE_WIDTH; c++)
-        if (!isfinite(p[c])) {
-            pc_format(m->message, sizeof m->message,
-                      "output 'corrected' of pose %zu is not finite in column %zu "
-                      "(expected a finite number)", pose, c);
-            return PC_ERR_RUNTIME;
-        }
+    const size_t c = pc_first_nonfinite(p);
+    if (c < PC_POSE_WIDTH) {
+        pc_format(m->message, sizeof m->message,
+                  "output 'corrected' of pose %zu is not finite in column %zu "
+                  "(expected a finite number)", pose, c);
+        return PC_ERR_RUNTIME;
+    }
     if (!(fabsf(q.n2 - 1.0f) <= PC_UNIT_TOLERANCE)) {
         pc_format(m->message, sizeof m->message,
                   "output 'corrected' of pose %zu has a quaternion that is not unit "
@@ -242,14 +250,13 @@ PC_RARE static pc_status pc_pose_error(pc_model *m, const float *in, size_t i)
 {
     char what[96], norm[24];
     const double n2 = pc_quat_norm2(in);
-    size_t c;
-    for (c = 0; c < PC_POSE_WIDTH; c++)
-        if (!isfinite(in[c])) {
-            pc_format(m->message, sizeof m->message,
-                      "pose %zu has a non-finite value in column %zu (expected a finite "
-                      "number)", i, c);
-            return PC_ERR_NONFINITE;
-        }
+    size_t c = pc_first_nonfinite(in);
+    if (c < PC_POSE_WIDTH) {
+        pc_format(m->message, sizeof m->message,
+                  "pose %zu has a non-finite value in column %zu (expected a finite "
+                  "number)", i, c);
+        return PC_ERR_NONFINITE;
+    }
     for (c = 0; c < 3; c++)
         if (!(in[c] >= m->lo[c] && in[c] <= m->hi[c])) {
             pc_format(what, sizeof what, "pose %zu is outside the range the model was "

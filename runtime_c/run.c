@@ -57,8 +57,9 @@ PC_RARE static void pc_beyond_reach(pc_model *m, size_t pose, float d2, float do
 /* Whether the seven values of a pose are all finite and its position inside [lo, hi], with
  * no branch per value: the checks' common case in a few instructions (SSE2 on x86-64:
  * x - x is NaN exactly for an infinity or a NaN; the loads of lanes 0-3 and 3-6 stay
- * inside the pose, those of lo and hi inside the model). */
-#if defined(__SSE2__)
+ * inside the pose, those of lo and hi inside the model). A PC_NO_AVX2 build runs the
+ * portable form, which the tests compare with this one. */
+#if defined(__SSE2__) && !defined(PC_NO_AVX2)
 #include <emmintrin.h>
 PC_HOT static int pc_pose_finite(const float *v)
 {

@@ -92,7 +92,8 @@ static inline float pc_tanh_inline(float x)
  * an output beyond 1e-3 is not a rotation. */
 #define PC_UNIT_TOLERANCE 1e-3f
 
-/* |q|^2 of an input quaternion q[4], in double. */
+/* |q|^2 of an input quaternion q[4], in double. The tests below join their clauses with &,
+ * not &&: pc_run's hot check takes no branch per clause. */
 static inline double pc_input_norm2(const float *q)
 {
     return (double)q[0] * q[0] + (double)q[1] * q[1] + (double)q[2] * q[2] + (double)q[3] * q[3];
@@ -100,7 +101,7 @@ static inline double pc_input_norm2(const float *q)
 
 static inline int pc_unit_input(double norm2)
 {
-    return norm2 >= PC_QUAT_NORM2_LO && norm2 <= PC_QUAT_NORM2_HI;
+    return (norm2 >= PC_QUAT_NORM2_LO) & (norm2 <= PC_QUAT_NORM2_HI);
 }
 
 /* How the output pose p[7] moved from the input pose in[7]: |p_out - p_in|^2, |q_out|^2,
@@ -135,7 +136,7 @@ static inline int pc_unit_output(const pc_move *v)
  * a few multiplications a pose. */
 static inline int pc_within_reach(const pc_move *v, float reach_pos2, float reach_cos2)
 {
-    return v->d2 <= reach_pos2 && v->dot * v->dot >= reach_cos2 * v->n_in2 * v->n2;
+    return (v->d2 <= reach_pos2) & (v->dot * v->dot >= reach_cos2 * v->n_in2 * v->n2);
 }
 
 #endif

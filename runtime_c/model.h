@@ -40,7 +40,8 @@ struct pc_model {
      * allowed a model without); a correction within the reach (correction_reach) kept as
      * the squared distance and cos^2 of half the angle (infinity and 0 without); times
      * inside [t_lo, t_hi] (time_bounds, models that take time). */
-    float lo[3], hi[3];
+    float lo[3], hi[3]; /* run.c loads each as four floats, the fourth ignored: keep a
+                         * field after hi */
     float reach_pos2, reach_cos2;
     int has_span;
     float t_lo, t_hi;

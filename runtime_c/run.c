@@ -45,33 +45,92 @@ PC_RARE static void pc_beyond_reach(pc_model *m, size_t pose, float d2, float do
               angle, reach_pos, reach_rot);
 }
 
+/* Whether the seven values of a pose are all finite and its position inside [lo, hi], with
+ * no branch per value: the checks' common case in a few instructions (SSE2 on x86-64:
+ * x - x is NaN exactly for an infinity or a NaN; the loads of lanes 0-3 and 3-6 stay
+ * inside the pose, those of lo and hi inside the model). A PC_NO_AVX2 build runs the
+ * portable form, which the tests compare with this one. */
+#if defined(__SSE2__) && !defined(PC_NO_AVX2)
+#include <emmintrin.h>
+PC_HOT static int pc_pose_finite(const float *v)
+{
+    const __m128 a = _mm_loadu_ps(v), b = _mm_loadu_ps(v + 3);
+    const __m128 da = _mm_sub_ps(a, a), db = _mm_sub_ps(b, b);
+    return _mm_movemask_ps(_mm_and_ps(_mm_cmpord_ps(da, da), _mm_cmpord_ps(db, db))) == 15;
+}
+
+PC_HOT static int pc_pose_in_box(const pc_model *m, const float *v)
+{
+    const __m128 p = _mm_loadu_ps(v);
+    const __m128 in = _mm_and_ps(_mm_cmpge_ps(p, _mm_loadu_ps(m->lo)),
+                                 _mm_cmple_ps(p, _mm_loadu_ps(m->hi)));
+    return (_mm_movemask_ps(in) & 7) == 7;
+}
+#else
+PC_HOT static int pc_pose_finite(const float *v)
+{
+    uint32_t bad = 0, bits;
+    size_t i;
+    for (i = 0; i < PC_POSE_WIDTH; i++) {
+        memcpy(&bits, v + i, sizeof bits);
+        bad |= (uint32_t)((bits & 0x7f800000u) == 0x7f800000u);
+    }
+    return !bad;
+}
+
+PC_HOT static int pc_pose_in_box(const pc_model *m, const float *v)
+{
+    return (v[0] >= m->lo[0]) & (v[0] <= m->hi[0]) & (v[1] >= m->lo[1]) &
+           (v[1] <= m->hi[1]) & (v[2] >= m->lo[2]) & (v[2] <= m->hi[2]);
+}
+#endif
+
 /* The output contract: finite, a unit quaternion, and a correction (from the input in)
- * within the model's reach (formulas.h: pc_move_of, pc_within_reach). */
+ * within the model's reach (formulas.h: pc_move_of, pc_unit_output, pc_within_reach). */
+
+/* The first column of a pose that is not finite; PC_POSE_WIDTH when every one is. */
+PC_RARE static size_t pc_first_nonfinite(const float *v)
+{
+    size_t c = 0;
+    while (c < PC_POSE_WIDTH && isfinite(v[c]))
+        c++;
+    return c;
+}
+
+/* The clause of the contract that pose `pose`'s output p breaks, as the message. */
+PC_RARE static pc_status pc_output_error(pc_model *m, const float *in, const float *p,
+                                         size_t pose)
+{
+    const pc_move v = pc_move_of(in, p);
+    const size_t c = pc_first_nonfinite(p);
+    if (c < PC_POSE_WIDTH) {
+        pc_format(m->message, sizeof m->message,
+                  "output 'corrected' of pose %zu is not finite in column %zu "
+                  "(expected a finite number)", pose, c);
+        return PC_ERR_RUNTIME;
+    }
+    if (!pc_unit_output(&v)) {
+        pc_format(m->message, sizeof m->message,
+                  "output 'corrected' of pose %zu has a quaternion that is not unit "
+                  "(columns 3-6, expected |q|^2 within 0.001 of 1)", pose);
+        return PC_ERR_RUNTIME;
+    }
+    pc_beyond_reach(m, pose, v.d2, v.dot, v.n_in2, v.n2);
+    return PC_ERR_RUNTIME;
+}
+
+/* Each clause evaluated without a branch; a pose that fails one is reported by
+ * pc_output_error, which finds the first. */
 PC_HOT static pc_status pc_check_output(pc_model *m, const float *in, const float *out, size_t n,
                                         size_t first)
 {
-    size_t r, c;
+    size_t r;
     for (r = 0; r < n; r++, in += PC_POSE_WIDTH) {
         const float *p = out + r * PC_POSE_WIDTH;
-        pc_move v;
-        for (c = 0; c < PC_POSE_WIDTH; c++)
-            if (!isfinite(p[c])) {
-                pc_format(m->message, sizeof m->message,
-                          "output 'corrected' of pose %zu is not finite in column %zu "
-                          "(expected a finite number)", first + r, c);
-                return PC_ERR_RUNTIME;
-            }
-        v = pc_move_of(in, p);
-        if (!pc_unit_output(&v)) {
-            pc_format(m->message, sizeof m->message,
-                      "output 'corrected' of pose %zu has a quaternion that is not unit "
-                      "(columns 3-6, expected |q|^2 within 0.001 of 1)", first + r);
-            return PC_ERR_RUNTIME;
-        }
-        if (!pc_within_reach(&v, m->reach_pos2, m->reach_cos2)) {
-            pc_beyond_reach(m, first + r, v.d2, v.dot, v.n_in2, v.n2);
-            return PC_ERR_RUNTIME;
-        }
+        const pc_move v = pc_move_of(in, p);
+        if (!(pc_pose_finite(p) & pc_unit_output(&v) &
+              pc_within_reach(&v, m->reach_pos2, m->reach_cos2)))
+            return pc_output_error(m, in, p, first + r);
     }
     return PC_OK;
 }
@@ -141,6 +200,38 @@ PC_RARE static void pc_outside(pc_model *m, const char *what, float v, float lo,
               what, value, unit, low, high, unit, key);
 }
 
+/* Whether a pose meets the input contract, each clause evaluated without a branch. */
+PC_HOT static int pc_pose_ok(const pc_model *m, const float *in)
+{
+    return pc_pose_finite(in) & pc_pose_in_box(m, in) & pc_unit_input(pc_input_norm2(in + 3));
+}
+
+/* The first clause of the input contract that pose i breaks, as the message. */
+PC_RARE static pc_status pc_pose_error(pc_model *m, const float *in, size_t i)
+{
+    char what[96], norm[24];
+    const double n2 = pc_input_norm2(in + 3);
+    size_t c = pc_first_nonfinite(in);
+    if (c < PC_POSE_WIDTH) {
+        pc_format(m->message, sizeof m->message,
+                  "pose %zu has a non-finite value in column %zu (expected a finite "
+                  "number)", i, c);
+        return PC_ERR_NONFINITE;
+    }
+    for (c = 0; c < 3; c++)
+        if (!(in[c] >= m->lo[c] && in[c] <= m->hi[c])) {
+            pc_format(what, sizeof what, "pose %zu is outside the range the model was "
+                      "fitted on in column %zu", i, c);
+            pc_outside(m, what, in[c], m->lo[c], m->hi[c], "m", "input_bounds");
+            return PC_ERR_RANGE;
+        }
+    pc_decimal(norm, sizeof norm, sqrt(n2), 6);
+    pc_format(m->message, sizeof m->message,
+              "pose %zu has a quaternion of norm %s in columns 3-6 (expected a unit "
+              "quaternion w, x, y, z: norm within 0.001 of 1)", i, norm);
+    return PC_ERR_QUATERNION;
+}
+
 /* The input contract, pose by pose (python/posecorr/controller/checks.py checks the same
  * in the same order): finite times inside the fitted span (when the model records one;
  * no t is t = 0), then finite poses, positions inside the training box (input_bounds)
@@ -148,7 +239,7 @@ PC_RARE static void pc_outside(pc_model *m, const char *what, float v, float lo,
 PC_HOT static pc_status pc_check_input(pc_model *m, const float *in, const float *t, size_t n)
 {
     char what[96];
-    size_t i, c;
+    size_t i;
     const size_t n_times = t ? n : m->has_span ? 1 : 0;
     for (i = 0; i < n_times; i++) {
         const float ti = t ? t[i] : 0.0f;
@@ -164,32 +255,9 @@ PC_HOT static pc_status pc_check_input(pc_model *m, const float *in, const float
             return PC_ERR_RANGE;
         }
     }
-    for (i = 0; i < n; i++, in += PC_POSE_WIDTH) {
-        double n2;
-        for (c = 0; c < PC_POSE_WIDTH; c++)
-            if (!isfinite(in[c])) {
-                pc_format(m->message, sizeof m->message,
-                          "pose %zu has a non-finite value in column %zu (expected a finite "
-                          "number)", i, c);
-                return PC_ERR_NONFINITE;
-            }
-        for (c = 0; c < 3; c++)
-            if (!(in[c] >= m->lo[c] && in[c] <= m->hi[c])) {
-                pc_format(what, sizeof what, "pose %zu is outside the range the model was "
-                          "fitted on in column %zu", i, c);
-                pc_outside(m, what, in[c], m->lo[c], m->hi[c], "m", "input_bounds");
-                return PC_ERR_RANGE;
-            }
-        n2 = pc_input_norm2(in + 3);
-        if (!pc_unit_input(n2)) {
-            char norm[24];
-            pc_decimal(norm, sizeof norm, sqrt(n2), 6);
-            pc_format(m->message, sizeof m->message,
-                      "pose %zu has a quaternion of norm %s in columns 3-6 (expected a unit "
-                      "quaternion w, x, y, z: norm within 0.001 of 1)", i, norm);
-            return PC_ERR_QUATERNION;
-        }
-    }
+    for (i = 0; i < n; i++, in += PC_POSE_WIDTH)
+        if (!pc_pose_ok(m, in))
+            return pc_pose_error(m, in, i);
     return PC_OK;
 }
 

@@ -920,6 +920,35 @@ def test_portable_kernels_match_avx2_bit_for_bit(lib):
         np.testing.assert_array_equal(a1, a[:40], err_msg=path.name)
 
 
+def test_portable_checks_refuse_as_the_sse2_ones(lib):
+    """pc_run's input checks, SSE2 on x86-64 and portable in a -DPC_NO_AVX2 build, accept the
+    same poses and refuse the same ones with the same status and message (the first bad pose
+    and column named), in a batch and one pose at a time."""
+    portable = graphs.build_runtime(BUILD / "portable", "-DPC_NO_AVX2=ON")
+    path = ROOT / "models" / "mlp-zhou-tansig-20x20x20x20-br.onnx"
+    fast, plain = Corrector(path, library=lib), Corrector(path, library=str(portable / "libposecorr.so"))
+    good = graphs.poses_in_box(path, 8, seed=3)
+    np.testing.assert_array_equal(fast.correct(good), plain.correct(good))
+    breaks = {"non-finite value in column 4": (2, (4,), np.nan),
+              "non-finite value in column 0": (5, (0,), np.inf),
+              "non-finite value in column 6": (1, (6,), -np.inf),
+              "quaternion of norm 1.010000": (6, (3, 4, 5, 6), None)}
+    for col in range(3):
+        for side in (-100.0, 100.0):    # each bound of each position column
+            breaks[f"column {col} ({side})"] = (col + 2, (col,), side)
+    for expected, (row, cols, value) in breaks.items():
+        x = good.copy()
+        x[row, list(cols)] = x[row, list(cols)] * 1.01 if value is None else value
+        for poses, pose in ((x, row), (x[row:row + 1], 0)):
+            refusals = []
+            for c in (fast, plain):
+                with pytest.raises(PoseCorrError) as info:
+                    c.correct(poses)
+                refusals.append((info.value.status, str(info.value)))
+            assert refusals[0] == refusals[1], expected
+            assert f"pose {pose} " in refusals[0][1] and expected.split(" (")[0] in refusals[0][1], refusals[0]
+
+
 # -- sanitizers, valgrind, install ---------------------------------------------------------
 
 @pytest.fixture(scope="session")

@@ -73,6 +73,8 @@ def read_model(path):
     I = {t.name: numpy_helper.to_array(t) for t in m.graph.initializer}
     nodes = list(m.graph.node)
     gemms = [n for n in nodes if n.op_type == "Gemm"]
+    if not gemms or meta.get("method") != "mlp":
+        raise SystemExit(f"{path}: method {meta.get('method')!r}: an MLP (method 'mlp', Gemm layers) is expected")
     assert all(not g.attribute for g in gemms), "Gemm attributes not handled"
     by_out = lambda name: [n for n in nodes if name in n.output][0]
     pre_add = by_out(gemms[0].input[0]); pre_mul = by_out(pre_add.input[0])

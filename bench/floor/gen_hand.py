@@ -40,7 +40,7 @@ static inline __m256 tanh8(__m256 x)
 '''
 
 
-def hidden_activation(nodes, gemm, nxt_gemm) -> str:
+def hidden_activation(path, nodes, gemm, nxt_gemm) -> str:
     """The activation between gemm and nxt_gemm: Tanh, Sigmoid, or Mul(x, x) -> Neg -> Exp."""
     users = lambda name: [n for n in nodes if name in n.input]
     first = users(gemm.output[0])
@@ -54,7 +54,7 @@ def hidden_activation(nodes, gemm, nxt_gemm) -> str:
         return "sigmoid"
     if ops == ["Mul", "Neg", "Exp"] and list(chain[0].input) == [gemm.output[0]] * 2:
         return "radbas"
-    raise SystemExit(f"hidden activation {' -> '.join(ops) or 'none'} after {gemm.name or gemm.output[0]}: "
+    raise SystemExit(f"{path}: hidden activation {' -> '.join(ops) or 'none'} after {gemm.name or gemm.output[0]}: "
                      "expected Tanh, Sigmoid or Mul(x, x) -> Neg -> Exp")
 
 
@@ -82,7 +82,7 @@ def read_model(path):
     post_mul = [n for n in nodes if gemms[-1].output[0] in n.input][0]
     post_add = [n for n in nodes if post_mul.output[0] in n.input][0]
     scaling = [I[pre_mul.input[1]], I[pre_add.input[1]], I[post_mul.input[1]], I[post_add.input[1]]]
-    acts = [hidden_activation(nodes, g, h) for g, h in zip(gemms, gemms[1:])]
+    acts = [hidden_activation(path, nodes, g, h) for g, h in zip(gemms, gemms[1:])]
     layers = [(I[g.input[1]], I[g.input[2]]) for g in gemms]
     return rep, scaling, layers, acts
 

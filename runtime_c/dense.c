@@ -255,7 +255,7 @@ PC_INLINE void pc_gemm_rows(const pc_gemm *q, void *const *io)
     const float *C = (const float *)io[2];
     float *restrict O = (float *)io[3];
     const size_t N = q->N, K = q->K, M = q->M;
-    size_t m = 0, n;
+    size_t m = 0;
 #ifdef PC_HAVE_ROWS4
     for (; m + 4 <= M; m += 4)
         pc_rows4(A + m * K, K, B, N, C, O + m * N);
@@ -264,14 +264,13 @@ PC_INLINE void pc_gemm_rows(const pc_gemm *q, void *const *io)
 #else
     for (; m < M; m++) {
         float *restrict o = O + m * N;
+        size_t n;
         for (n = 0; n < N; n++)
             o[n] = C[n];
         pc_row(A + m * K, 1, B, N, K, N, o);
     }
 #endif
-    if (q->act == PC_ACT_TANH)
-        for (n = 0; n < M * N; n++)
-            O[n] = pc_tanh_inline(O[n]);
+    pc_apply_act(q, O, M * N);
 }
 
 /* One copy of the layer serves the step and the chain. */
@@ -424,16 +423,27 @@ __attribute__((target("avx2"))) static pc_status k_gemm_rows_avx2(const pc_step 
     return PC_OK;
 }
 
-/* A one-pose layer with a bias row and tanh or no activation, up to 32 outputs, runs in
- * registers with K and N read at run time; anything else is the rows kernel (a call:
- * inlined, its loops would take the registers the block accumulators need). */
+/* The sigmoid of a one-pose layer's outputs, after the store: expf has no eight-lane form
+ * with libm's bits, so it runs lane by lane, as the portable layer does. */
+PC_AVX2_INLINE void pc_sigmoid_after(const pc_gemm *l, float *O)
+{
+    size_t n;
+    if (l->act == PC_ACT_SIGMOID)
+        for (n = 0; n < l->N; n++)
+            O[n] = pc_sigmoid(O[n]);
+}
+
+/* A one-pose layer with a bias row and tanh, sigmoid or no activation, up to 32 outputs,
+ * runs in registers with K and N read at run time; anything else is the rows kernel (a
+ * call: inlined, its loops would take the registers the block accumulators need). */
 __attribute__((target("avx2"), noinline)) static void pc_chain_layer_avx2(const pc_gemm *l,
                                                                           void *const *io)
 {
     const float *a = (const float *)io[0], *B = (const float *)io[1], *C = (const float *)io[2];
     float *O = (float *)io[3];
     const int tanh_act = l->act == PC_ACT_TANH;
-    if (l->M != 1 || l->N == 0 || l->N > 32 || !(tanh_act || l->act == PC_ACT_NONE))
+    if (l->M != 1 || l->N == 0 || l->N > 32 ||
+        !(tanh_act || l->act == PC_ACT_NONE || l->act == PC_ACT_SIGMOID))
         pc_layer_rows_avx2(l, io);
     else if (l->N > 24)
         pc_layer1_blocks(a, B, l->K, l->N, C, tanh_act, O, 4);
@@ -443,6 +453,7 @@ __attribute__((target("avx2"), noinline)) static void pc_chain_layer_avx2(const 
         pc_layer1_blocks(a, B, l->K, l->N, C, tanh_act, O, 2);
     else
         pc_layer1_blocks(a, B, l->K, l->N, C, tanh_act, O, 1);
+    pc_sigmoid_after(l, O);
 }
 
 /* Specialised one-pose layers: one function per (K, N) of the layers the project trains
@@ -457,6 +468,7 @@ __attribute__((target("avx2"), noinline)) static void pc_chain_layer_avx2(const 
         pc_layer1_blocks((const float *)io[0], (const float *)io[1], K, N,                     \
                          (const float *)io[2], l->act == PC_ACT_TANH, (float *)io[3],          \
                          ((N) + 7) / 8);                                                       \
+        pc_sigmoid_after(l, (float *)io[3]);                                                   \
     }
 PC_LAYER_SHAPES(PC_LAYER_SPECIALISED)
 #undef PC_LAYER_SPECIALISED

@@ -287,8 +287,8 @@ typedef struct pc_gemm {
     size_t nbd, bd[4], a_bst[4], b_bst[4];
 } pc_gemm;
 pc_status k_gemm(const pc_step *s);
-/* The MLP layer act(A B + c), act tanh or none: [0] portable, [1] AVX2 (the portable one
- * again where AVX2 is not built). pc_cpu_avx2() says which this CPU runs. */
+/* The MLP layer act(A B + c), act tanh, sigmoid or none: [0] portable, [1] AVX2 (the
+ * portable one again where AVX2 is not built). pc_cpu_avx2() says which this CPU runs. */
 extern const pc_kernel_fn pc_gemm_rows_kernels[2];
 /* One layer of a one-pose chain on its operands io = A, B, C, O. */
 typedef void (*pc_layer_fn)(const pc_gemm *l, void *const *io);

@@ -81,7 +81,7 @@ pc_status pc_op_Gemm(pc_prep *p)
     p->fn = k_gemm;
     pc_product(p, q);
     if (!ta && !tb && q->c_mode == 2 && q->alpha == 1.0f && q->beta == 1.0f &&
-        (q->act == PC_ACT_TANH || q->act == PC_ACT_NONE)) {
+        (q->act == PC_ACT_TANH || q->act == PC_ACT_SIGMOID || q->act == PC_ACT_NONE)) {
         if (p->b->cpu_avx2 < 0)
             p->b->cpu_avx2 = pc_cpu_avx2(); /* cpuid traps to the hypervisor in a VM: ask once */
         p->fn = pc_gemm_rows_kernels[p->b->cpu_avx2];

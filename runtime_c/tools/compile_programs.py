@@ -76,29 +76,76 @@ def operand_count(name: str, n_terms: int) -> int:
     return 1
 
 
+# Operations worth a branch: a select whose sides need one of these computes only the side
+# it takes (the graph computes both; the selected values, so the bits, are the same).
+COSTLY = {"PC_SOP_DIV", "PC_SOP_SQRT", "PC_SOP_EXP", "PC_SOP_SIN", "PC_SOP_COS", "PC_SOP_TAN",
+          "PC_SOP_ATAN", "PC_SOP_TANH", "PC_SOP_SIGMOID"}
+
+
+def _lazy_selects(shape: Shape) -> dict[int, tuple[list[int], list[set[int]]]]:
+    """The selects to run as branches, by their last member: WHERE operations of one computed
+    condition, read only after the last of them, with the operations only one side needs
+    (its cone: not stored, every use on that side), when a cone holds a costly operation."""
+    n = len(shape.ops)
+    users: list[list[tuple[int, int]]] = [[] for _ in range(n)]
+    for pos, (_, _, _, refs) in enumerate(shape.ops):
+        for slot, back in enumerate(refs):
+            if back:
+                users[pos - back].append((pos, slot))
+    groups: dict[int, list[int]] = {}
+    for pos, (name, _, _, refs) in enumerate(shape.ops):
+        if name == "PC_SOP_WHERE" and refs[2]:
+            groups.setdefault(pos - refs[2], []).append(pos)
+    lazy = {}
+    for members in groups.values():
+        last, inside = members[-1], set(members)
+        if any(u <= last for m in members for u, _ in users[m] if u not in inside):
+            continue
+        cones: list[set[int]] = []
+        for slot in (0, 1):
+            cone: set[int] = set()
+            for pos in range(last - 1, -1, -1):
+                if pos in inside or shape.ops[pos][2] or not users[pos]:
+                    continue
+                if all((u in inside and s == slot) or u in cone for u, s in users[pos]):
+                    cone.add(pos)
+            cones.append(cone)
+        if any(shape.ops[p][0] in COSTLY for cone in cones for p in cone):
+            lazy[last] = (members, cones)
+    return lazy
+
+
 def function(shape: Shape, fn_name: str) -> str:
     """C for one shape. Entry numbering as program.c emits it: a header entry where the
     code changes, one entry per operation, one per DOT term."""
-    lines = [f"PC_HOT static pc_status {fn_name}(const pc_step *s)", "{",
-             "    char *const base = (char *)s->io[0];",
-             "    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;"]
+    head = [f"PC_HOT static pc_status {fn_name}(const pc_step *s)", "{",
+            "    char *const base = (char *)s->io[0];",
+            "    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;"]
     entry, last = 0, None
-    kinds = []  # per position: "f" float or "b" bool
+    kinds, first_entry = [], []  # per position: "f" float or "b" bool; its entry
 
     def read(pos: int, back: int, kind: str, k: int, field: str) -> str:
         if back:
             return f"{kinds[pos - back]}{pos - back}"
         return f"PC_X{kind.upper()}({k}, {field})"
 
-    for pos, (name, n_terms, stored, refs) in enumerate(shape.ops):
+    for name, n_terms, _, _ in shape.ops:
         if name != last:
             entry += 1  # the group's header
             last = name
-        k = entry
+        first_entry.append(entry)
         entry += 1 + (n_terms if name == "PC_SOP_DOT" else 0)
-        kind = "b" if name in BOOL_RESULT else "f"
-        kinds.append(kind)
-        var = f"{kind}{pos}"
+        kinds.append("b" if name in BOOL_RESULT else "f")
+
+    def store(pos: int, pad: str) -> list[str]:
+        if not shape.ops[pos][2]:
+            return []
+        return [f"{pad}PC_STORE{kinds[pos].upper()}({first_entry[pos]}, {kinds[pos]}{pos});"]
+
+    def op_lines(pos: int, pad: str) -> list[str]:
+        name, n_terms, _, refs = shape.ops[pos]
+        k, kind, var = first_entry[pos], kinds[pos], f"{kinds[pos]}{pos}"
+        lines = []
         if name in BINARY:
             a, b = read(pos, refs[0], "f", k, "a"), read(pos, refs[1], "f", k, "b")
             expr = f"pc_sop_float({name}, {a}, {b})"
@@ -116,22 +163,46 @@ def function(shape: Shape, fn_name: str) -> str:
         elif name == "PC_SOP_DOT":
             a, b = read(pos, refs[0], "f", k, "a"), read(pos, refs[1], "f", k, "b")
             c = read(pos, refs[2], "f", k, "c")
-            lines.append(f"    float {var} = {c};")
-            lines.append(f"    {var} += {a} * {b};")
+            lines.append(f"{pad}float {var} = {c};")
+            lines.append(f"{pad}{var} += {a} * {b};")
             for t in range(1, n_terms + 1):
                 ta = read(pos, refs[1 + 2 * t], "f", k + t, "a")
                 tb = read(pos, refs[2 + 2 * t], "f", k + t, "b")
-                lines.append(f"    {var} += {ta} * {tb};")
+                lines.append(f"{pad}{var} += {ta} * {tb};")
             expr = None
         else:  # unary
             expr = f"pc_sop_float({name}, {read(pos, refs[0], 'f', k, 'a')}, 0.0f)"
         if expr is not None:
             ctype = "uint8_t" if kind == "b" else "float"
-            lines.append(f"    const {ctype} {var} = {expr};")
-        if stored:
-            lines.append(f"    PC_STORE{kind.upper()}({k}, {var});")
-    lines += ["    return PC_OK;", "}"]
-    return "\n".join(lines)
+            lines.append(f"{pad}const {ctype} {var} = {expr};")
+        return lines + store(pos, pad)
+
+    lazy = _lazy_selects(shape)
+
+    def emit(positions: set[int], pad: str) -> list[str]:
+        mine = {last: g for last, g in lazy.items() if set(g[0]) <= positions}
+        owned = {p for members, cones in mine.values() for p in (*members, *cones[0], *cones[1])}
+        nested = {p for members, cones in mine.values() for p in (*cones[0], *cones[1])}
+        lines = []
+        for pos in sorted(positions):
+            if pos not in owned:
+                lines += op_lines(pos, pad)
+            elif pos in mine and pos not in nested:
+                members, cones = mine[pos]
+                cond = f"b{pos - shape.ops[pos][3][2]}"
+                lines += [f"{pad}float {', '.join(f'f{m}' for m in members)};", f"{pad}if ({cond}) {{"]
+                for slot, cone in enumerate(cones):
+                    if slot:
+                        lines.append(f"{pad}}} else {{")
+                    lines += emit(cone, pad + "    ")
+                    lines += [f"{pad}    f{m} = {read(m, shape.ops[m][3][slot], 'f', first_entry[m], 'ab'[slot])};"
+                              for m in members]
+                lines.append(f"{pad}}}")
+                for m in members:
+                    lines += store(m, pad)
+        return lines
+
+    return "\n".join(head + emit(set(range(len(shape.ops))), "    ") + ["    return PC_OK;", "}"])
 
 
 def generate(shapes: list[bytes], codes: dict[int, str]) -> str:

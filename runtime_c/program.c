@@ -71,6 +71,7 @@ struct pc_program {
     size_t n_chunks, n_ops, cap_ops;
     uint32_t *k;        /* the constant pool, as bits */
     size_t n_k, cap_k;
+    int32_t zero_k;     /* the sums' starting zero (pc_kzero), or -1 */
     int open;
     int interpret;      /* PC_LOAD_INTERPRET */
     pc_scratch_mark mark; /* keep end at opening: element maps above it */
@@ -100,6 +101,7 @@ pc_status pc_program_start(pc_pass *pp, const pc_program_limits *limits)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory for one-pose programs "
                        "(pc_options.program_ops)");
     g->interpret = limits && limits->interpret;
+    g->zero_k = -1;
     pp->prog = g;
     return PC_OK;
 }
@@ -189,7 +191,7 @@ static pc_status pc_k(pc_pass *pp, uint32_t bits, int32_t *r)
     pc_program *g = pp->prog;
     size_t i;
     for (i = 0; i < g->n_k; i++)
-        if (g->k[i] == bits) {
+        if (g->k[i] == bits && (int32_t)i != g->zero_k) {
             *r = PC_K_REF(i);
             return PC_OK;
         }
@@ -197,6 +199,22 @@ static pc_status pc_k(pc_pass *pp, uint32_t bits, int32_t *r)
         return pc_program_full(pp);
     g->k[g->n_k] = bits;
     *r = PC_K_REF(g->n_k++);
+    return PC_OK;
+}
+
+/* The zero a sum starts from, in a slot of its own: the shape tells it from a model's zero,
+ * so that compiled code may start a sum of squares at its first square (exact: a square is
+ * never -0, and 0 + x is x for every other x). */
+static pc_status pc_kzero(pc_pass *pp, int32_t *r)
+{
+    pc_program *g = pp->prog;
+    if (g->zero_k < 0) {
+        if (g->n_k == g->cap_k)
+            return pc_program_full(pp);
+        g->k[g->n_k] = 0;
+        g->zero_k = (int32_t)g->n_k++;
+    }
+    *r = PC_K_REF(g->zero_k);
     return PC_OK;
 }
 
@@ -382,7 +400,7 @@ static pc_status pc_expand_sum(pc_pass *pp, const pc_prep *p, size_t e, int32_t 
     int32_t ta[PC_PROGRAM_MAX_TERMS], tb[PC_PROGRAM_MAX_TERMS], zero, one;
     size_t k;
     pc_status st;
-    if ((st = pc_kf(pp, 0.0f, &zero)) != PC_OK || (st = pc_kf(pp, 1.0f, &one)) != PC_OK)
+    if ((st = pc_kzero(pp, &zero)) != PC_OK || (st = pc_kf(pp, 1.0f, &one)) != PC_OK)
         return st;
     for (k = 0; k < len; k++) {
         if ((st = pc_elem(pp, p->in[0], e * len + k, &ta[k])) != PC_OK)
@@ -405,7 +423,7 @@ static pc_status pc_expand_product(pc_pass *pp, const pc_prep *p, size_t e, int3
     size_t k;
     pc_status st;
     if (q->c_mode == 0) {
-        st = pc_kf(pp, 0.0f, &c);
+        st = pc_kzero(pp, &c);
     } else {
         const size_t ci = q->c_mode == 1 ? 0 : q->c_mode == 2 ? n : q->c_mode == 3 ? i
                                                                                : i * q->N + n;
@@ -478,6 +496,7 @@ pc_status pc_program_expand(pc_pass *pp, const pc_prep *p)
     if (!g->open) {
         g->open = 1;
         g->n_ops = g->n_k = g->pending = g->n_chunks = 0;
+        g->zero_k = -1;
         g->mark = pc_scratch_save(&pp->b->scratch, PC_KEEP);
         pp->defer_frees = 1;
     }
@@ -749,11 +768,12 @@ static void pc_put(void *ops, int wide, size_t k, int32_t a, int32_t b, int32_t 
 
 /* A program's shape: for each operation in order its code, its term count, whether its
  * result is stored, and for each operand how many operations back it was computed (0:
- * read from the arena; 254: a constant; 255, then two bytes, when 254 or farther). Offsets
- * and values are not part of it: a compiled program reads the arena through the entries,
- * as the interpreter does, its constants in the order it reads them from a block after
- * the entries (pc_compiled_constants), and keeps in registers what the shape says it
- * computed itself. Equal shapes are the same computation. */
+ * read from the arena; 254: a constant; 253: a sum's starting zero (pc_kzero); 255, then
+ * two bytes, when 253 or farther). Offsets and values are not part of it: a compiled
+ * program reads the arena through the entries, as the interpreter does, its constants in
+ * the order it reads them from a block after the entries (pc_compiled_constants), and
+ * keeps in registers what the shape says it computed itself. Equal shapes are the same
+ * computation. */
 typedef struct pc_shape_walk {
     uint64_t hash;               /* FNV-1a of the bytes */
     size_t len;
@@ -780,11 +800,11 @@ static void pc_shape_ref(pc_shape_walk *w, const pc_program *g, int32_t r, size_
     size_t back;
     if (r < 0) {
         w->n_k += PC_IS_K(r);
-        pc_shape_byte(w, PC_IS_K(r) ? 254 : 0);
+        pc_shape_byte(w, !PC_IS_K(r) ? 0 : (int32_t)PC_EXT_INDEX(r) == g->zero_k ? 253 : 254);
         return;
     }
     back = pos - PC_OP(g, r).level; /* level holds an ordered operation's position here */
-    if (back < 254) {
+    if (back < 253) {
         pc_shape_byte(w, (unsigned)back);
     } else {
         pc_shape_byte(w, 255);

@@ -41,6 +41,7 @@ class Shape:
         self.data = data
         self.ops = []  # (name, n_terms, stored, [back-references; 0 arena; -1 - j constant j])
         self.n_k = 0
+        self.zeros: set[int] = set()  # the constants that are a sum's starting zero
         at = 0
         while at < len(data):
             name = codes[data[at]]
@@ -50,7 +51,9 @@ class Shape:
             for _ in range(operand_count(name, n_terms)):
                 back = data[at]
                 at += 1
-                if back == 254:
+                if back in (253, 254):
+                    if back == 253:
+                        self.zeros.add(self.n_k)
                     back = -1 - self.n_k
                     self.n_k += 1
                 elif back == 255:
@@ -168,8 +171,13 @@ class _Writer:
         elif name in ("PC_SOP_COPY", "PC_SOP_COPY1"):
             expr = self.read(pos, 0, kind)
         elif name == "PC_SOP_DOT":
-            lines.append(f"{pad}float {var} = {self.read(pos, 2, 'f')};")
-            lines.append(f"{pad}{var} += {self.read(pos, 0, 'f')} * {self.read(pos, 1, 'f')};")
+            refs = self.shape.ops[pos][3]
+            first = f"{self.read(pos, 0, 'f')} * {self.read(pos, 1, 'f')}"
+            if refs[2] < 0 and -1 - refs[2] in self.shape.zeros and refs[0] == refs[1] > 0:
+                lines.append(f"{pad}float {var} = {first}; /* a square: 0 + it is it */")
+            else:
+                lines.append(f"{pad}float {var} = {self.read(pos, 2, 'f')};")
+                lines.append(f"{pad}{var} += {first};")
             for t in range(1, n_terms + 1):
                 k = self.entry[pos] + t
                 lines.append(f"{pad}{var} += {self.read(pos, 1 + 2 * t, 'f', k)} * "

@@ -244,7 +244,8 @@ static inline float pc_sop_float(const int code, const float a, const float b)
 /* One-pose programs compiled ahead of time (programs_compiled.c, written by
  * tools/compile_programs.py from the shipped models' programs). A program whose shape
  * (program.c) equals `shape` runs `fn` instead of the interpreter: the same operations on
- * the same entries, its own results kept in registers. */
+ * the same entries, its own results kept in registers, its constants read from the block
+ * after the entries (one float per constant operand, in the shape's order). */
 typedef struct pc_compiled_program {
     uint32_t n_bytes;
     uint64_t hash;       /* FNV-1a of shape */

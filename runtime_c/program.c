@@ -71,6 +71,7 @@ struct pc_program {
     size_t n_chunks, n_ops, cap_ops;
     uint32_t *k;        /* the constant pool, as bits */
     size_t n_k, cap_k;
+    int32_t zero_k;     /* the sums' starting zero (pc_kzero), or -1 */
     int open;
     int interpret;      /* PC_LOAD_INTERPRET */
     pc_scratch_mark mark; /* keep end at opening: element maps above it */
@@ -100,6 +101,7 @@ pc_status pc_program_start(pc_pass *pp, const pc_program_limits *limits)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory for one-pose programs "
                        "(pc_options.program_ops)");
     g->interpret = limits && limits->interpret;
+    g->zero_k = -1;
     pp->prog = g;
     return PC_OK;
 }
@@ -189,7 +191,7 @@ static pc_status pc_k(pc_pass *pp, uint32_t bits, int32_t *r)
     pc_program *g = pp->prog;
     size_t i;
     for (i = 0; i < g->n_k; i++)
-        if (g->k[i] == bits) {
+        if (g->k[i] == bits && (int32_t)i != g->zero_k) {
             *r = PC_K_REF(i);
             return PC_OK;
         }
@@ -197,6 +199,22 @@ static pc_status pc_k(pc_pass *pp, uint32_t bits, int32_t *r)
         return pc_program_full(pp);
     g->k[g->n_k] = bits;
     *r = PC_K_REF(g->n_k++);
+    return PC_OK;
+}
+
+/* The zero a sum starts from, in a slot of its own: the shape tells it from a model's zero,
+ * so that compiled code may start a sum of squares at its first square (exact: a square is
+ * never -0, and 0 + x is x for every other x). */
+static pc_status pc_kzero(pc_pass *pp, int32_t *r)
+{
+    pc_program *g = pp->prog;
+    if (g->zero_k < 0) {
+        if (g->n_k == g->cap_k)
+            return pc_program_full(pp);
+        g->k[g->n_k] = 0;
+        g->zero_k = (int32_t)g->n_k++;
+    }
+    *r = PC_K_REF(g->zero_k);
     return PC_OK;
 }
 
@@ -382,7 +400,7 @@ static pc_status pc_expand_sum(pc_pass *pp, const pc_prep *p, size_t e, int32_t 
     int32_t ta[PC_PROGRAM_MAX_TERMS], tb[PC_PROGRAM_MAX_TERMS], zero, one;
     size_t k;
     pc_status st;
-    if ((st = pc_kf(pp, 0.0f, &zero)) != PC_OK || (st = pc_kf(pp, 1.0f, &one)) != PC_OK)
+    if ((st = pc_kzero(pp, &zero)) != PC_OK || (st = pc_kf(pp, 1.0f, &one)) != PC_OK)
         return st;
     for (k = 0; k < len; k++) {
         if ((st = pc_elem(pp, p->in[0], e * len + k, &ta[k])) != PC_OK)
@@ -405,7 +423,7 @@ static pc_status pc_expand_product(pc_pass *pp, const pc_prep *p, size_t e, int3
     size_t k;
     pc_status st;
     if (q->c_mode == 0) {
-        st = pc_kf(pp, 0.0f, &c);
+        st = pc_kzero(pp, &c);
     } else {
         const size_t ci = q->c_mode == 1 ? 0 : q->c_mode == 2 ? n : q->c_mode == 3 ? i
                                                                                : i * q->N + n;
@@ -478,6 +496,7 @@ pc_status pc_program_expand(pc_pass *pp, const pc_prep *p)
     if (!g->open) {
         g->open = 1;
         g->n_ops = g->n_k = g->pending = g->n_chunks = 0;
+        g->zero_k = -1;
         g->mark = pc_scratch_save(&pp->b->scratch, PC_KEEP);
         pp->defer_frees = 1;
     }
@@ -749,13 +768,16 @@ static void pc_put(void *ops, int wide, size_t k, int32_t a, int32_t b, int32_t 
 
 /* A program's shape: for each operation in order its code, its term count, whether its
  * result is stored, and for each operand how many operations back it was computed (0:
- * read from the arena or the pool; 255, then two bytes, when farther). Offsets are not
- * part of it: a compiled program reads them from the entries, as the interpreter does,
- * and keeps in registers what the shape says it computed itself. Equal shapes are the
- * same computation. */
+ * read from the arena; 254: a constant; 253: a sum's starting zero (pc_kzero); 255, then
+ * two bytes, when 253 or farther). Offsets and values are not part of it: a compiled
+ * program reads the arena through the entries, as the interpreter does, its constants in
+ * the order it reads them from a block after the entries (pc_compiled_constants), and
+ * keeps in registers what the shape says it computed itself. Equal shapes are the same
+ * computation. */
 typedef struct pc_shape_walk {
     uint64_t hash;               /* FNV-1a of the bytes */
     size_t len;
+    size_t n_k;                  /* constant operands */
     const uint8_t *expect;       /* compare against these (len bytes known to match in size) */
     int differs;
     int print;
@@ -777,11 +799,12 @@ static void pc_shape_ref(pc_shape_walk *w, const pc_program *g, int32_t r, size_
 {
     size_t back;
     if (r < 0) {
-        pc_shape_byte(w, 0);
+        w->n_k += PC_IS_K(r);
+        pc_shape_byte(w, !PC_IS_K(r) ? 0 : (int32_t)PC_EXT_INDEX(r) == g->zero_k ? 253 : 254);
         return;
     }
     back = pos - PC_OP(g, r).level; /* level holds an ordered operation's position here */
-    if (back < 255) {
+    if (back < 253) {
         pc_shape_byte(w, (unsigned)back);
     } else {
         pc_shape_byte(w, 255);
@@ -795,6 +818,7 @@ static void pc_shape(const pc_program *g, const int32_t *order, size_t n, pc_sha
     size_t pos;
     w->hash = 0xcbf29ce484222325ull;
     w->len = 0;
+    w->n_k = 0;
     w->differs = 0;
     for (pos = 0; pos < n; pos++) {
         const size_t i = (size_t)order[pos];
@@ -806,20 +830,25 @@ static void pc_shape(const pc_program *g, const int32_t *order, size_t n, pc_sha
     }
 }
 
-/* The compiled kernel of this program's shape (16-bit entries), or NULL. */
-static pc_kernel_fn pc_compiled_kernel(pc_program *g, const int32_t *order, size_t n)
+/* The compiled kernel of this program's shape (16-bit entries), or NULL; *n_k: the
+ * constants it reads. print: print the shape (PC_PRINT_SHAPES; once, in the write pass). */
+static pc_kernel_fn pc_compiled_kernel(pc_program *g, const int32_t *order, size_t n,
+                                       int print, size_t *n_k)
 {
     pc_shape_walk w;
     size_t pos, k;
+    *n_k = 0;
     if (g->interpret || n > UINT16_MAX)
         return NULL;
     for (pos = 0; pos < n; pos++)
         PC_OP(g, order[pos]).level = (uint16_t)pos;
     w.expect = NULL;
+    w.print = print;
 #ifdef PC_PRINT_SHAPES
-    w.print = 1;
-    pc_shape(g, order, n, &w);
-    pc_print_shape_end();
+    if (print) {
+        pc_shape(g, order, n, &w);
+        pc_print_shape_end();
+    }
 #endif
     w.print = 0;
     pc_shape(g, order, n, &w);
@@ -829,11 +858,21 @@ static pc_kernel_fn pc_compiled_kernel(pc_program *g, const int32_t *order, size
             continue;
         w.expect = c->shape;
         pc_shape(g, order, n, &w);
-        if (!w.differs)
+        if (!w.differs) {
+            *n_k = w.n_k;
             return c->fn;
+        }
         w.expect = NULL;
     }
     return NULL;
+}
+
+/* A compiled program's constants, each operand in the order the shape lists them. */
+static void pc_compiled_constants(const pc_program *g, const int32_t *order, size_t n, uint32_t *k)
+{
+    size_t pos;
+    for (pos = 0; pos < n; pos++)
+        PC_FOR_OPERANDS(g, (size_t)order[pos], if (PC_IS_K(r)) *k++ = g->k[PC_EXT_INDEX(r)]);
 }
 
 #endif
@@ -901,13 +940,14 @@ static void pc_program_write(pc_pass *pp, void *ops, int wide, const int32_t *or
 static pc_status pc_emit_program(pc_pass *pp, const int32_t *order, size_t n, int32_t temp)
 {
     pc_program *g = pp->prog;
-    size_t entries;
+    size_t entries, n_k = 0, size;
     int32_t kpool_off, hi;
     uint32_t *kpool;
     void *q, *ops;
     int wide;
     pc_step *s;
     void **io;
+    pc_kernel_fn fn;
     /* The pool sits just below the activations: its entries are negative offsets. */
     kpool_off = (int32_t)pp->region[PC_REGION_KPOOL].used - (int32_t)pp->kpool_total;
     entries = pc_program_entries(g, order, n, temp, &hi);
@@ -917,9 +957,17 @@ static pc_status pc_emit_program(pc_pass *pp, const int32_t *order, size_t n, in
         memcpy(kpool, g->k, g->n_k * 4);
     s = pc_region_take(pp, PC_REGION_STEPS, sizeof *s);
     io = pc_region_take(pp, PC_REGION_IO, 2 * sizeof(void *));
-    q = pc_region_take(pp, PC_REGION_PARAMS,
-                       wide ? offsetof(pc_scalar_program, ops) + entries * sizeof(pc_scalar_op)
-                            : offsetof(pc_scalar_program16, ops) + entries * sizeof(pc_scalar_op16));
+    fn = wide ? k_scalar_program : k_scalar_program16;
+#ifndef PC_NO_COMPILED_PROGRAMS
+    if (!wide) {
+        const pc_kernel_fn compiled = pc_compiled_kernel(g, order, n, pp->fill, &n_k);
+        if (compiled)
+            fn = compiled;
+    }
+#endif
+    size = wide ? offsetof(pc_scalar_program, ops) + entries * sizeof(pc_scalar_op)
+                : offsetof(pc_scalar_program16, ops) + entries * sizeof(pc_scalar_op16);
+    q = pc_region_take(pp, PC_REGION_PARAMS, size + n_k * sizeof(uint32_t));
     pp->n_steps++;
     pp->last_step = s;
     pp->last_layer = 0;
@@ -933,16 +981,12 @@ static pc_status pc_emit_program(pc_pass *pp, const int32_t *order, size_t n, in
         ops = ((pc_scalar_program16 *)q)->ops;
     }
     pc_program_write(pp, ops, wide, order, n, kpool_off);
+#ifndef PC_NO_COMPILED_PROGRAMS
+    pc_compiled_constants(g, order, n_k ? n : 0, (uint32_t *)((char *)q + size));
+#endif
     io[0] = pp->act_base;
     io[1] = NULL;
-    s->fn = wide ? k_scalar_program : k_scalar_program16;
-#ifndef PC_NO_COMPILED_PROGRAMS
-    if (!wide) {
-        const pc_kernel_fn compiled = pc_compiled_kernel(g, order, n);
-        if (compiled)
-            s->fn = compiled;
-    }
-#endif
+    s->fn = fn;
     s->io = io;
     s->prm = q;
     s->n = entries;

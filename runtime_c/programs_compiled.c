@@ -7,50 +7,54 @@
 
 #define PC_XF(k, f) (*(const float *)(base + e[k].f))
 #define PC_XB(k, f) (*(const uint8_t *)(base + e[k].f))
+#define PC_KF(j) (k[j])
+#define PC_KB(j) (*(const uint8_t *)&k[j])
 #define PC_STOREF(k, v) (*(float *)(base + e[k].o) = (v))
 #define PC_STOREB(k, v) (*(uint8_t *)(base + e[k].o) = (v))
 
-static const uint8_t pc_program_37e9ab999b1c3d7e_shape[18] = {
-    26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0,
+static const uint8_t pc_program_3e6e093e97893cd6_shape[18] = {
+    26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254,
 };
-PC_HOT static pc_status pc_program_37e9ab999b1c3d7e(const pc_step *s)
+PC_HOT static pc_status pc_program_3e6e093e97893cd6(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
-    f0 += PC_XF(1, a) * PC_XF(1, b);
+    const float *const k = (const float *)(const void *)(e + 4);
+    float f0 = PC_KF(1);
+    f0 += PC_XF(1, a) * PC_KF(0);
     PC_STOREF(1, f0);
-    float f1 = PC_XF(2, c);
-    f1 += PC_XF(2, a) * PC_XF(2, b);
+    float f1 = PC_KF(3);
+    f1 += PC_XF(2, a) * PC_KF(2);
     PC_STOREF(2, f1);
-    float f2 = PC_XF(3, c);
-    f2 += PC_XF(3, a) * PC_XF(3, b);
+    float f2 = PC_KF(5);
+    f2 += PC_XF(3, a) * PC_KF(4);
     PC_STOREF(3, f2);
     return PC_OK;
 }
 
-static const uint8_t pc_program_c971e2e5ff11b7ae_shape[63] = {
-    10, 0, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 26, 0, 1,
-    0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0, 23, 0, 1, 7, 0, 8, 23, 0, 1,
+static const uint8_t pc_program_77704bc8040ae058_shape[63] = {
+    10, 0, 0, 0, 254, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 26, 0, 1,
+    0, 254, 254, 26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254, 23, 0, 1, 7, 0, 8, 23, 0, 1,
     7, 0, 9, 23, 0, 1, 7, 0, 10, 23, 0, 1, 7, 0, 11,
 };
-PC_HOT static pc_status pc_program_c971e2e5ff11b7ae(const pc_step *s)
+PC_HOT static pc_status pc_program_77704bc8040ae058(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    const uint8_t b0 = PC_XF(1, a) < PC_XF(1, b);
+    const float *const k = (const float *)(const void *)(e + 16);
+    const uint8_t b0 = PC_XF(1, a) < PC_KF(0);
     const float f1 = pc_sop_float(PC_SOP_NEG, PC_XF(3, a), 0.0f);
     const float f2 = pc_sop_float(PC_SOP_NEG, PC_XF(4, a), 0.0f);
     const float f3 = pc_sop_float(PC_SOP_NEG, PC_XF(5, a), 0.0f);
     const float f4 = pc_sop_float(PC_SOP_NEG, PC_XF(6, a), 0.0f);
-    float f5 = PC_XF(8, c);
-    f5 += PC_XF(8, a) * PC_XF(8, b);
+    float f5 = PC_KF(2);
+    f5 += PC_XF(8, a) * PC_KF(1);
     PC_STOREF(8, f5);
-    float f6 = PC_XF(9, c);
-    f6 += PC_XF(9, a) * PC_XF(9, b);
+    float f6 = PC_KF(4);
+    f6 += PC_XF(9, a) * PC_KF(3);
     PC_STOREF(9, f6);
-    float f7 = PC_XF(10, c);
-    f7 += PC_XF(10, a) * PC_XF(10, b);
+    float f7 = PC_KF(6);
+    f7 += PC_XF(10, a) * PC_KF(5);
     PC_STOREF(10, f7);
     const float f8 = b0 ? f1 : PC_XF(12, b);
     PC_STOREF(12, f8);
@@ -63,68 +67,69 @@ PC_HOT static pc_status pc_program_c971e2e5ff11b7ae(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_0bb08452fbb3a9af_shape[159] = {
-    26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0, 3, 0, 0, 3, 3, 3,
+static const uint8_t pc_program_fee4c311f62a377d_shape[159] = {
+    26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254, 3, 0, 0, 3, 3, 3,
     0, 0, 4, 3, 3, 0, 0, 5, 3, 3, 0, 0, 5, 5, 3, 0, 0, 6, 5, 3, 0, 0, 6, 6,
-    10, 0, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 26, 8, 1,
-    14, 0, 0, 13, 0, 12, 0, 11, 0, 10, 0, 9, 0, 8, 0, 7, 0, 6, 0, 26, 8, 1, 15, 0,
-    0, 14, 0, 13, 0, 12, 0, 11, 0, 10, 0, 9, 0, 8, 0, 7, 0, 26, 8, 1, 16, 0, 0, 15,
-    0, 14, 0, 13, 0, 12, 0, 11, 0, 10, 0, 9, 0, 8, 0, 23, 0, 1, 7, 0, 8, 23, 0, 1,
+    10, 0, 0, 0, 254, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 26, 8, 1,
+    14, 254, 254, 13, 254, 12, 254, 11, 254, 10, 254, 9, 254, 8, 254, 7, 254, 6, 254, 26, 8, 1, 15, 254,
+    254, 14, 254, 13, 254, 12, 254, 11, 254, 10, 254, 9, 254, 8, 254, 7, 254, 26, 8, 1, 16, 254, 254, 15,
+    254, 14, 254, 13, 254, 12, 254, 11, 254, 10, 254, 9, 254, 8, 254, 23, 0, 1, 7, 0, 8, 23, 0, 1,
     7, 0, 9, 23, 0, 1, 7, 0, 10, 23, 0, 1, 7, 0, 11,
 };
-PC_HOT static pc_status pc_program_0bb08452fbb3a9af(const pc_step *s)
+PC_HOT static pc_status pc_program_fee4c311f62a377d(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
-    f0 += PC_XF(1, a) * PC_XF(1, b);
-    float f1 = PC_XF(2, c);
-    f1 += PC_XF(2, a) * PC_XF(2, b);
-    float f2 = PC_XF(3, c);
-    f2 += PC_XF(3, a) * PC_XF(3, b);
+    const float *const k = (const float *)(const void *)(e + 51);
+    float f0 = PC_KF(1);
+    f0 += PC_XF(1, a) * PC_KF(0);
+    float f1 = PC_KF(3);
+    f1 += PC_XF(2, a) * PC_KF(2);
+    float f2 = PC_KF(5);
+    f2 += PC_XF(3, a) * PC_KF(4);
     const float f3 = pc_sop_float(PC_SOP_MUL, f0, f0);
     const float f4 = pc_sop_float(PC_SOP_MUL, f0, f1);
     const float f5 = pc_sop_float(PC_SOP_MUL, f0, f2);
     const float f6 = pc_sop_float(PC_SOP_MUL, f1, f1);
     const float f7 = pc_sop_float(PC_SOP_MUL, f1, f2);
     const float f8 = pc_sop_float(PC_SOP_MUL, f2, f2);
-    const uint8_t b9 = PC_XF(12, a) < PC_XF(12, b);
+    const uint8_t b9 = PC_XF(12, a) < PC_KF(6);
     const float f10 = pc_sop_float(PC_SOP_NEG, PC_XF(14, a), 0.0f);
     const float f11 = pc_sop_float(PC_SOP_NEG, PC_XF(15, a), 0.0f);
     const float f12 = pc_sop_float(PC_SOP_NEG, PC_XF(16, a), 0.0f);
     const float f13 = pc_sop_float(PC_SOP_NEG, PC_XF(17, a), 0.0f);
-    float f14 = PC_XF(19, c);
-    f14 += f0 * PC_XF(19, b);
-    f14 += f1 * PC_XF(20, b);
-    f14 += f2 * PC_XF(21, b);
-    f14 += f3 * PC_XF(22, b);
-    f14 += f4 * PC_XF(23, b);
-    f14 += f5 * PC_XF(24, b);
-    f14 += f6 * PC_XF(25, b);
-    f14 += f7 * PC_XF(26, b);
-    f14 += f8 * PC_XF(27, b);
+    float f14 = PC_KF(8);
+    f14 += f0 * PC_KF(7);
+    f14 += f1 * PC_KF(9);
+    f14 += f2 * PC_KF(10);
+    f14 += f3 * PC_KF(11);
+    f14 += f4 * PC_KF(12);
+    f14 += f5 * PC_KF(13);
+    f14 += f6 * PC_KF(14);
+    f14 += f7 * PC_KF(15);
+    f14 += f8 * PC_KF(16);
     PC_STOREF(19, f14);
-    float f15 = PC_XF(28, c);
-    f15 += f0 * PC_XF(28, b);
-    f15 += f1 * PC_XF(29, b);
-    f15 += f2 * PC_XF(30, b);
-    f15 += f3 * PC_XF(31, b);
-    f15 += f4 * PC_XF(32, b);
-    f15 += f5 * PC_XF(33, b);
-    f15 += f6 * PC_XF(34, b);
-    f15 += f7 * PC_XF(35, b);
-    f15 += f8 * PC_XF(36, b);
+    float f15 = PC_KF(18);
+    f15 += f0 * PC_KF(17);
+    f15 += f1 * PC_KF(19);
+    f15 += f2 * PC_KF(20);
+    f15 += f3 * PC_KF(21);
+    f15 += f4 * PC_KF(22);
+    f15 += f5 * PC_KF(23);
+    f15 += f6 * PC_KF(24);
+    f15 += f7 * PC_KF(25);
+    f15 += f8 * PC_KF(26);
     PC_STOREF(28, f15);
-    float f16 = PC_XF(37, c);
-    f16 += f0 * PC_XF(37, b);
-    f16 += f1 * PC_XF(38, b);
-    f16 += f2 * PC_XF(39, b);
-    f16 += f3 * PC_XF(40, b);
-    f16 += f4 * PC_XF(41, b);
-    f16 += f5 * PC_XF(42, b);
-    f16 += f6 * PC_XF(43, b);
-    f16 += f7 * PC_XF(44, b);
-    f16 += f8 * PC_XF(45, b);
+    float f16 = PC_KF(28);
+    f16 += f0 * PC_KF(27);
+    f16 += f1 * PC_KF(29);
+    f16 += f2 * PC_KF(30);
+    f16 += f3 * PC_KF(31);
+    f16 += f4 * PC_KF(32);
+    f16 += f5 * PC_KF(33);
+    f16 += f6 * PC_KF(34);
+    f16 += f7 * PC_KF(35);
+    f16 += f8 * PC_KF(36);
     PC_STOREF(37, f16);
     const float f17 = b9 ? f10 : PC_XF(47, b);
     PC_STOREF(47, f17);
@@ -137,36 +142,37 @@ PC_HOT static pc_status pc_program_0bb08452fbb3a9af(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_ca406bcfedbc5acd_shape[204] = {
-    26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0,
-    26, 0, 1, 0, 0, 0, 5, 0, 0, 4, 0, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
+static const uint8_t pc_program_d63599a62c93ef2c_shape[204] = {
+    26, 3, 0, 0, 0, 253, 0, 0, 0, 0, 0, 0, 26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254,
+    26, 0, 1, 0, 254, 254, 5, 0, 0, 4, 254, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
     2, 4, 0, 0, 0, 3, 4, 0, 0, 0, 4, 3, 0, 0, 2, 2, 3, 0, 0, 4, 3, 3, 0, 0,
     6, 3, 3, 0, 0, 6, 4, 3, 0, 0, 8, 6, 3, 0, 0, 8, 8, 3, 0, 0, 8, 7, 26, 0,
     0, 8, 8, 7, 26, 0, 0, 12, 9, 7, 26, 0, 0, 10, 10, 4, 26, 0, 0, 14, 13, 4, 3, 0,
-    0, 4, 0, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0, 2, 0, 0, 0, 4, 2,
-    0, 0, 15, 14, 2, 0, 0, 0, 4, 2, 0, 0, 15, 14, 3, 0, 0, 3, 0, 3, 0, 0, 2, 0,
-    26, 0, 1, 6, 0, 0, 26, 0, 1, 10, 0, 0, 26, 0, 1, 3, 0, 0, 26, 0, 1, 5, 0, 0,
-    26, 0, 1, 8, 0, 0, 26, 0, 1, 12, 0, 0,
+    0, 4, 254, 3, 0, 0, 4, 254, 3, 0, 0, 4, 254, 3, 0, 0, 4, 254, 2, 0, 0, 254, 4, 2,
+    0, 0, 15, 14, 2, 0, 0, 254, 4, 2, 0, 0, 15, 14, 3, 0, 0, 3, 254, 3, 0, 0, 2, 254,
+    26, 0, 1, 6, 254, 254, 26, 0, 1, 10, 254, 254, 26, 0, 1, 3, 254, 254, 26, 0, 1, 5, 254, 254,
+    26, 0, 1, 8, 254, 254, 26, 0, 1, 12, 254, 254,
 };
-PC_HOT static pc_status pc_program_ca406bcfedbc5acd(const pc_step *s)
+PC_HOT static pc_status pc_program_d63599a62c93ef2c(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
+    const float *const k = (const float *)(const void *)(e + 50);
+    float f0 = PC_KF(0);
     f0 += PC_XF(1, a) * PC_XF(1, b);
     f0 += PC_XF(2, a) * PC_XF(2, b);
     f0 += PC_XF(3, a) * PC_XF(3, b);
     f0 += PC_XF(4, a) * PC_XF(4, b);
-    float f1 = PC_XF(5, c);
-    f1 += PC_XF(5, a) * PC_XF(5, b);
+    float f1 = PC_KF(2);
+    f1 += PC_XF(5, a) * PC_KF(1);
     PC_STOREF(5, f1);
-    float f2 = PC_XF(6, c);
-    f2 += PC_XF(6, a) * PC_XF(6, b);
+    float f2 = PC_KF(4);
+    f2 += PC_XF(6, a) * PC_KF(3);
     PC_STOREF(6, f2);
-    float f3 = PC_XF(7, c);
-    f3 += PC_XF(7, a) * PC_XF(7, b);
+    float f3 = PC_KF(6);
+    f3 += PC_XF(7, a) * PC_KF(5);
     PC_STOREF(7, f3);
-    const float f4 = pc_sop_float(PC_SOP_MAX, f0, PC_XF(9, b));
+    const float f4 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(7));
     const float f5 = pc_sop_float(PC_SOP_SQRT, f4, 0.0f);
     const float f6 = pc_sop_float(PC_SOP_DIV, PC_XF(13, a), f5);
     const float f7 = pc_sop_float(PC_SOP_DIV, PC_XF(14, a), f5);
@@ -187,33 +193,33 @@ PC_HOT static pc_status pc_program_ca406bcfedbc5acd(const pc_step *s)
     f19 += f9 * f9;
     float f20 = f16;
     f20 += f6 * f7;
-    const float f21 = pc_sop_float(PC_SOP_MUL, f17, PC_XF(31, b));
-    const float f22 = pc_sop_float(PC_SOP_MUL, f18, PC_XF(32, b));
-    const float f23 = pc_sop_float(PC_SOP_MUL, f19, PC_XF(33, b));
-    const float f24 = pc_sop_float(PC_SOP_MUL, f20, PC_XF(34, b));
-    const float f25 = pc_sop_float(PC_SOP_SUB, PC_XF(36, a), f21);
+    const float f21 = pc_sop_float(PC_SOP_MUL, f17, PC_KF(8));
+    const float f22 = pc_sop_float(PC_SOP_MUL, f18, PC_KF(9));
+    const float f23 = pc_sop_float(PC_SOP_MUL, f19, PC_KF(10));
+    const float f24 = pc_sop_float(PC_SOP_MUL, f20, PC_KF(11));
+    const float f25 = pc_sop_float(PC_SOP_SUB, PC_KF(12), f21);
     const float f26 = pc_sop_float(PC_SOP_SUB, f11, f12);
-    const float f27 = pc_sop_float(PC_SOP_SUB, PC_XF(38, a), f23);
+    const float f27 = pc_sop_float(PC_SOP_SUB, PC_KF(13), f23);
     const float f28 = pc_sop_float(PC_SOP_SUB, f13, f14);
-    const float f29 = pc_sop_float(PC_SOP_MUL, f26, PC_XF(41, b));
-    const float f30 = pc_sop_float(PC_SOP_MUL, f28, PC_XF(42, b));
-    float f31 = PC_XF(44, c);
-    f31 += f25 * PC_XF(44, b);
+    const float f29 = pc_sop_float(PC_SOP_MUL, f26, PC_KF(14));
+    const float f30 = pc_sop_float(PC_SOP_MUL, f28, PC_KF(15));
+    float f31 = PC_KF(17);
+    f31 += f25 * PC_KF(16);
     PC_STOREF(44, f31);
-    float f32 = PC_XF(45, c);
-    f32 += f22 * PC_XF(45, b);
+    float f32 = PC_KF(19);
+    f32 += f22 * PC_KF(18);
     PC_STOREF(45, f32);
-    float f33 = PC_XF(46, c);
-    f33 += f30 * PC_XF(46, b);
+    float f33 = PC_KF(21);
+    f33 += f30 * PC_KF(20);
     PC_STOREF(46, f33);
-    float f34 = PC_XF(47, c);
-    f34 += f29 * PC_XF(47, b);
+    float f34 = PC_KF(23);
+    f34 += f29 * PC_KF(22);
     PC_STOREF(47, f34);
-    float f35 = PC_XF(48, c);
-    f35 += f27 * PC_XF(48, b);
+    float f35 = PC_KF(25);
+    f35 += f27 * PC_KF(24);
     PC_STOREF(48, f35);
-    float f36 = PC_XF(49, c);
-    f36 += f24 * PC_XF(49, b);
+    float f36 = PC_KF(27);
+    f36 += f24 * PC_KF(26);
     PC_STOREF(49, f36);
     return PC_OK;
 }
@@ -318,38 +324,39 @@ PC_HOT static pc_status pc_program_edf9b746591a5529(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_7d8a951771d6e99c_shape[264] = {
-    26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0,
-    26, 0, 1, 0, 0, 0, 5, 0, 0, 4, 0, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
+static const uint8_t pc_program_42b2415b8b994855_shape[264] = {
+    26, 3, 0, 0, 0, 253, 0, 0, 0, 0, 0, 0, 26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254,
+    26, 0, 1, 0, 254, 254, 5, 0, 0, 4, 254, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
     2, 4, 0, 0, 0, 3, 4, 0, 0, 0, 4, 3, 0, 0, 2, 2, 3, 0, 0, 4, 3, 3, 0, 0,
     6, 3, 3, 0, 0, 6, 4, 3, 0, 0, 8, 6, 3, 0, 0, 8, 8, 3, 0, 0, 8, 7, 3, 0,
     0, 11, 10, 26, 0, 0, 9, 9, 8, 26, 0, 0, 13, 11, 6, 26, 0, 0, 14, 11, 9, 26, 0, 0,
-    12, 12, 6, 26, 0, 0, 16, 15, 6, 26, 0, 0, 15, 15, 8, 3, 0, 0, 6, 0, 3, 0, 0, 6,
-    0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 2, 0, 0,
-    0, 6, 2, 0, 0, 20, 19, 2, 0, 0, 0, 5, 2, 0, 0, 17, 16, 2, 0, 0, 21, 20, 2, 0,
-    0, 0, 6, 3, 0, 0, 5, 0, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0, 26, 0, 1, 9, 0, 0,
-    26, 0, 1, 4, 0, 0, 26, 0, 1, 16, 0, 0, 26, 0, 1, 16, 0, 0, 26, 0, 1, 11, 0, 0,
-    26, 0, 1, 7, 0, 0, 26, 0, 1, 7, 0, 0, 26, 0, 1, 18, 0, 0, 26, 0, 1, 12, 0, 0,
+    12, 12, 6, 26, 0, 0, 16, 15, 6, 26, 0, 0, 15, 15, 8, 3, 0, 0, 6, 254, 3, 0, 0, 6,
+    254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 2, 0, 0,
+    254, 6, 2, 0, 0, 20, 19, 2, 0, 0, 254, 5, 2, 0, 0, 17, 16, 2, 0, 0, 21, 20, 2, 0,
+    0, 254, 6, 3, 0, 0, 5, 254, 3, 0, 0, 4, 254, 3, 0, 0, 4, 254, 26, 0, 1, 9, 254, 254,
+    26, 0, 1, 4, 254, 254, 26, 0, 1, 16, 254, 254, 26, 0, 1, 16, 254, 254, 26, 0, 1, 11, 254, 254,
+    26, 0, 1, 7, 254, 254, 26, 0, 1, 7, 254, 254, 26, 0, 1, 18, 254, 254, 26, 0, 1, 12, 254, 254,
 };
-PC_HOT static pc_status pc_program_7d8a951771d6e99c(const pc_step *s)
+PC_HOT static pc_status pc_program_42b2415b8b994855(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
+    const float *const k = (const float *)(const void *)(e + 61);
+    float f0 = PC_KF(0);
     f0 += PC_XF(1, a) * PC_XF(1, b);
     f0 += PC_XF(2, a) * PC_XF(2, b);
     f0 += PC_XF(3, a) * PC_XF(3, b);
     f0 += PC_XF(4, a) * PC_XF(4, b);
-    float f1 = PC_XF(5, c);
-    f1 += PC_XF(5, a) * PC_XF(5, b);
+    float f1 = PC_KF(2);
+    f1 += PC_XF(5, a) * PC_KF(1);
     PC_STOREF(5, f1);
-    float f2 = PC_XF(6, c);
-    f2 += PC_XF(6, a) * PC_XF(6, b);
+    float f2 = PC_KF(4);
+    f2 += PC_XF(6, a) * PC_KF(3);
     PC_STOREF(6, f2);
-    float f3 = PC_XF(7, c);
-    f3 += PC_XF(7, a) * PC_XF(7, b);
+    float f3 = PC_KF(6);
+    f3 += PC_XF(7, a) * PC_KF(5);
     PC_STOREF(7, f3);
-    const float f4 = pc_sop_float(PC_SOP_MAX, f0, PC_XF(9, b));
+    const float f4 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(7));
     const float f5 = pc_sop_float(PC_SOP_SQRT, f4, 0.0f);
     const float f6 = pc_sop_float(PC_SOP_DIV, PC_XF(13, a), f5);
     const float f7 = pc_sop_float(PC_SOP_DIV, PC_XF(14, a), f5);
@@ -375,62 +382,62 @@ PC_HOT static pc_status pc_program_7d8a951771d6e99c(const pc_step *s)
     f22 += f6 * f7;
     float f23 = f15;
     f23 += f8 * f8;
-    const float f24 = pc_sop_float(PC_SOP_MUL, f18, PC_XF(34, b));
-    const float f25 = pc_sop_float(PC_SOP_MUL, f19, PC_XF(35, b));
-    const float f26 = pc_sop_float(PC_SOP_MUL, f20, PC_XF(36, b));
-    const float f27 = pc_sop_float(PC_SOP_MUL, f21, PC_XF(37, b));
-    const float f28 = pc_sop_float(PC_SOP_MUL, f22, PC_XF(38, b));
-    const float f29 = pc_sop_float(PC_SOP_MUL, f23, PC_XF(39, b));
-    const float f30 = pc_sop_float(PC_SOP_SUB, PC_XF(41, a), f24);
+    const float f24 = pc_sop_float(PC_SOP_MUL, f18, PC_KF(8));
+    const float f25 = pc_sop_float(PC_SOP_MUL, f19, PC_KF(9));
+    const float f26 = pc_sop_float(PC_SOP_MUL, f20, PC_KF(10));
+    const float f27 = pc_sop_float(PC_SOP_MUL, f21, PC_KF(11));
+    const float f28 = pc_sop_float(PC_SOP_MUL, f22, PC_KF(12));
+    const float f29 = pc_sop_float(PC_SOP_MUL, f23, PC_KF(13));
+    const float f30 = pc_sop_float(PC_SOP_SUB, PC_KF(14), f24);
     const float f31 = pc_sop_float(PC_SOP_SUB, f11, f12);
-    const float f32 = pc_sop_float(PC_SOP_SUB, PC_XF(43, a), f27);
+    const float f32 = pc_sop_float(PC_SOP_SUB, PC_KF(15), f27);
     const float f33 = pc_sop_float(PC_SOP_SUB, f16, f17);
     const float f34 = pc_sop_float(PC_SOP_SUB, f13, f14);
-    const float f35 = pc_sop_float(PC_SOP_SUB, PC_XF(46, a), f29);
-    const float f36 = pc_sop_float(PC_SOP_MUL, f31, PC_XF(48, b));
-    const float f37 = pc_sop_float(PC_SOP_MUL, f33, PC_XF(49, b));
-    const float f38 = pc_sop_float(PC_SOP_MUL, f34, PC_XF(50, b));
-    float f39 = PC_XF(52, c);
-    f39 += f30 * PC_XF(52, b);
+    const float f35 = pc_sop_float(PC_SOP_SUB, PC_KF(16), f29);
+    const float f36 = pc_sop_float(PC_SOP_MUL, f31, PC_KF(17));
+    const float f37 = pc_sop_float(PC_SOP_MUL, f33, PC_KF(18));
+    const float f38 = pc_sop_float(PC_SOP_MUL, f34, PC_KF(19));
+    float f39 = PC_KF(21);
+    f39 += f30 * PC_KF(20);
     PC_STOREF(52, f39);
-    float f40 = PC_XF(53, c);
-    f40 += f36 * PC_XF(53, b);
+    float f40 = PC_KF(23);
+    f40 += f36 * PC_KF(22);
     PC_STOREF(53, f40);
-    float f41 = PC_XF(54, c);
-    f41 += f25 * PC_XF(54, b);
+    float f41 = PC_KF(25);
+    f41 += f25 * PC_KF(24);
     PC_STOREF(54, f41);
-    float f42 = PC_XF(55, c);
-    f42 += f26 * PC_XF(55, b);
+    float f42 = PC_KF(27);
+    f42 += f26 * PC_KF(26);
     PC_STOREF(55, f42);
-    float f43 = PC_XF(56, c);
-    f43 += f32 * PC_XF(56, b);
+    float f43 = PC_KF(29);
+    f43 += f32 * PC_KF(28);
     PC_STOREF(56, f43);
-    float f44 = PC_XF(57, c);
-    f44 += f37 * PC_XF(57, b);
+    float f44 = PC_KF(31);
+    f44 += f37 * PC_KF(30);
     PC_STOREF(57, f44);
-    float f45 = PC_XF(58, c);
-    f45 += f38 * PC_XF(58, b);
+    float f45 = PC_KF(33);
+    f45 += f38 * PC_KF(32);
     PC_STOREF(58, f45);
-    float f46 = PC_XF(59, c);
-    f46 += f28 * PC_XF(59, b);
+    float f46 = PC_KF(35);
+    f46 += f28 * PC_KF(34);
     PC_STOREF(59, f46);
-    float f47 = PC_XF(60, c);
-    f47 += f35 * PC_XF(60, b);
+    float f47 = PC_KF(37);
+    f47 += f35 * PC_KF(36);
     PC_STOREF(60, f47);
     return PC_OK;
 }
 
-static const uint8_t pc_program_9f5d834c4237d873_shape[429] = {
-    26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0,
-    26, 0, 1, 0, 0, 0, 5, 0, 0, 4, 0, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
+static const uint8_t pc_program_3ad363986dd11b34_shape[429] = {
+    26, 3, 0, 0, 0, 253, 0, 0, 0, 0, 0, 0, 26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254,
+    26, 0, 1, 0, 254, 254, 5, 0, 0, 4, 254, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
     2, 4, 0, 0, 0, 3, 4, 0, 0, 0, 4, 3, 0, 0, 2, 2, 3, 0, 0, 4, 3, 3, 0, 0,
     6, 3, 3, 0, 0, 6, 4, 3, 0, 0, 8, 6, 3, 0, 0, 8, 8, 3, 0, 0, 8, 7, 3, 0,
     1, 16, 16, 3, 0, 1, 17, 16, 3, 0, 1, 18, 16, 3, 0, 1, 18, 18, 3, 0, 1, 19, 18, 3,
     0, 1, 19, 19, 26, 0, 0, 14, 14, 13, 26, 0, 0, 18, 15, 13, 26, 0, 0, 16, 16, 10, 26, 0,
-    0, 20, 19, 10, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0,
-    2, 0, 0, 0, 4, 2, 0, 0, 21, 20, 2, 0, 0, 0, 4, 2, 0, 0, 21, 20, 3, 0, 0, 3,
-    0, 3, 0, 0, 2, 0, 26, 0, 1, 6, 0, 0, 26, 0, 1, 10, 0, 0, 26, 0, 1, 3, 0, 0,
-    26, 0, 1, 5, 0, 0, 26, 0, 1, 8, 0, 0, 26, 0, 1, 12, 0, 0, 3, 0, 1, 42, 6, 3,
+    0, 20, 19, 10, 3, 0, 0, 4, 254, 3, 0, 0, 4, 254, 3, 0, 0, 4, 254, 3, 0, 0, 4, 254,
+    2, 0, 0, 254, 4, 2, 0, 0, 21, 20, 2, 0, 0, 254, 4, 2, 0, 0, 21, 20, 3, 0, 0, 3,
+    254, 3, 0, 0, 2, 254, 26, 0, 1, 6, 254, 254, 26, 0, 1, 10, 254, 254, 26, 0, 1, 3, 254, 254,
+    26, 0, 1, 5, 254, 254, 26, 0, 1, 8, 254, 254, 26, 0, 1, 12, 254, 254, 3, 0, 1, 42, 6, 3,
     0, 1, 43, 6, 3, 0, 1, 44, 6, 3, 0, 1, 45, 6, 3, 0, 1, 46, 6, 3, 0, 1, 47, 6,
     3, 0, 1, 47, 12, 3, 0, 1, 48, 12, 3, 0, 1, 49, 12, 3, 0, 1, 50, 12, 3, 0, 1, 51,
     12, 3, 0, 1, 52, 12, 3, 0, 1, 52, 18, 3, 0, 1, 53, 18, 3, 0, 1, 54, 18, 3, 0, 1,
@@ -440,25 +447,26 @@ static const uint8_t pc_program_9f5d834c4237d873_shape[429] = {
     3, 0, 1, 34, 33, 3, 0, 1, 35, 33, 3, 0, 1, 36, 33, 3, 0, 1, 36, 36, 3, 0, 1, 37,
     36, 3, 0, 1, 38, 36, 3, 0, 1, 38, 38, 3, 0, 1, 39, 38, 3, 0, 1, 39, 39,
 };
-PC_HOT static pc_status pc_program_9f5d834c4237d873(const pc_step *s)
+PC_HOT static pc_status pc_program_3ad363986dd11b34(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
+    const float *const k = (const float *)(const void *)(e + 96);
+    float f0 = PC_KF(0);
     f0 += PC_XF(1, a) * PC_XF(1, b);
     f0 += PC_XF(2, a) * PC_XF(2, b);
     f0 += PC_XF(3, a) * PC_XF(3, b);
     f0 += PC_XF(4, a) * PC_XF(4, b);
-    float f1 = PC_XF(5, c);
-    f1 += PC_XF(5, a) * PC_XF(5, b);
+    float f1 = PC_KF(2);
+    f1 += PC_XF(5, a) * PC_KF(1);
     PC_STOREF(5, f1);
-    float f2 = PC_XF(6, c);
-    f2 += PC_XF(6, a) * PC_XF(6, b);
+    float f2 = PC_KF(4);
+    f2 += PC_XF(6, a) * PC_KF(3);
     PC_STOREF(6, f2);
-    float f3 = PC_XF(7, c);
-    f3 += PC_XF(7, a) * PC_XF(7, b);
+    float f3 = PC_KF(6);
+    f3 += PC_XF(7, a) * PC_KF(5);
     PC_STOREF(7, f3);
-    const float f4 = pc_sop_float(PC_SOP_MAX, f0, PC_XF(9, b));
+    const float f4 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(7));
     const float f5 = pc_sop_float(PC_SOP_SQRT, f4, 0.0f);
     const float f6 = pc_sop_float(PC_SOP_DIV, PC_XF(13, a), f5);
     const float f7 = pc_sop_float(PC_SOP_DIV, PC_XF(14, a), f5);
@@ -491,33 +499,33 @@ PC_HOT static pc_status pc_program_9f5d834c4237d873(const pc_step *s)
     f25 += f9 * f9;
     float f26 = f16;
     f26 += f6 * f7;
-    const float f27 = pc_sop_float(PC_SOP_MUL, f23, PC_XF(37, b));
-    const float f28 = pc_sop_float(PC_SOP_MUL, f24, PC_XF(38, b));
-    const float f29 = pc_sop_float(PC_SOP_MUL, f25, PC_XF(39, b));
-    const float f30 = pc_sop_float(PC_SOP_MUL, f26, PC_XF(40, b));
-    const float f31 = pc_sop_float(PC_SOP_SUB, PC_XF(42, a), f27);
+    const float f27 = pc_sop_float(PC_SOP_MUL, f23, PC_KF(8));
+    const float f28 = pc_sop_float(PC_SOP_MUL, f24, PC_KF(9));
+    const float f29 = pc_sop_float(PC_SOP_MUL, f25, PC_KF(10));
+    const float f30 = pc_sop_float(PC_SOP_MUL, f26, PC_KF(11));
+    const float f31 = pc_sop_float(PC_SOP_SUB, PC_KF(12), f27);
     const float f32 = pc_sop_float(PC_SOP_SUB, f11, f12);
-    const float f33 = pc_sop_float(PC_SOP_SUB, PC_XF(44, a), f29);
+    const float f33 = pc_sop_float(PC_SOP_SUB, PC_KF(13), f29);
     const float f34 = pc_sop_float(PC_SOP_SUB, f13, f14);
-    const float f35 = pc_sop_float(PC_SOP_MUL, f32, PC_XF(47, b));
-    const float f36 = pc_sop_float(PC_SOP_MUL, f34, PC_XF(48, b));
-    float f37 = PC_XF(50, c);
-    f37 += f31 * PC_XF(50, b);
+    const float f35 = pc_sop_float(PC_SOP_MUL, f32, PC_KF(14));
+    const float f36 = pc_sop_float(PC_SOP_MUL, f34, PC_KF(15));
+    float f37 = PC_KF(17);
+    f37 += f31 * PC_KF(16);
     PC_STOREF(50, f37);
-    float f38 = PC_XF(51, c);
-    f38 += f28 * PC_XF(51, b);
+    float f38 = PC_KF(19);
+    f38 += f28 * PC_KF(18);
     PC_STOREF(51, f38);
-    float f39 = PC_XF(52, c);
-    f39 += f36 * PC_XF(52, b);
+    float f39 = PC_KF(21);
+    f39 += f36 * PC_KF(20);
     PC_STOREF(52, f39);
-    float f40 = PC_XF(53, c);
-    f40 += f35 * PC_XF(53, b);
+    float f40 = PC_KF(23);
+    f40 += f35 * PC_KF(22);
     PC_STOREF(53, f40);
-    float f41 = PC_XF(54, c);
-    f41 += f33 * PC_XF(54, b);
+    float f41 = PC_KF(25);
+    f41 += f33 * PC_KF(24);
     PC_STOREF(54, f41);
-    float f42 = PC_XF(55, c);
-    f42 += f30 * PC_XF(55, b);
+    float f42 = PC_KF(27);
+    f42 += f30 * PC_KF(26);
     PC_STOREF(55, f42);
     const float f43 = pc_sop_float(PC_SOP_MUL, f1, f37);
     PC_STOREF(57, f43);
@@ -600,47 +608,48 @@ PC_HOT static pc_status pc_program_9f5d834c4237d873(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_721639ef9faec53c_shape[584] = {
-    26, 2, 0, 0, 0, 0, 0, 0, 0, 0, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 0, 1,
-    4, 0, 0, 0, 2, 4, 0, 0, 0, 3, 26, 2, 0, 3, 0, 0, 2, 0, 1, 0, 3, 0, 0, 1,
+static const uint8_t pc_program_de059a448e1653ea_shape[584] = {
+    26, 2, 0, 0, 0, 253, 0, 0, 0, 0, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 0, 1,
+    4, 0, 0, 0, 2, 4, 0, 0, 0, 3, 26, 2, 0, 3, 0, 253, 2, 0, 1, 0, 3, 0, 0, 1,
     4, 3, 0, 0, 2, 4, 3, 0, 0, 3, 4, 2, 0, 0, 0, 3, 2, 0, 0, 0, 3, 2, 0, 0,
-    0, 3, 2, 0, 0, 0, 10, 26, 2, 0, 4, 4, 0, 3, 3, 2, 2, 5, 0, 0, 1, 0, 13, 0,
+    0, 3, 2, 0, 0, 254, 10, 26, 2, 0, 4, 4, 253, 3, 3, 2, 2, 5, 0, 0, 1, 254, 13, 0,
     0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 3, 0, 0, 16, 1, 3, 0,
     0, 16, 3, 3, 0, 0, 17, 5, 3, 0, 0, 20, 4, 3, 0, 0, 21, 6, 3, 0, 0, 21, 8, 1,
-    0, 0, 23, 0, 1, 0, 0, 1, 9, 1, 0, 0, 15, 10, 1, 0, 0, 12, 25, 2, 0, 0, 10, 9,
+    0, 0, 23, 254, 1, 0, 0, 1, 9, 1, 0, 0, 15, 10, 1, 0, 0, 12, 25, 2, 0, 0, 10, 9,
     2, 0, 0, 9, 8, 2, 0, 0, 8, 7, 2, 0, 0, 7, 15, 2, 0, 0, 1, 2, 2, 0, 0, 7,
     3, 2, 0, 0, 23, 18, 2, 0, 0, 18, 6, 2, 0, 0, 8, 33, 2, 0, 0, 35, 22, 1, 0, 0,
-    13, 8, 1, 0, 0, 5, 9, 1, 0, 0, 12, 37, 1, 0, 0, 12, 24, 5, 0, 0, 4, 0, 5, 0,
-    0, 11, 0, 5, 0, 0, 11, 0, 5, 0, 0, 6, 0, 5, 0, 0, 8, 14, 5, 0, 0, 14, 8, 13,
-    0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 3, 0, 0, 4, 0, 3, 0, 0, 4,
-    0, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0, 4, 0, 0, 0, 4, 4, 0, 0, 0, 4, 4, 0, 0,
-    0, 4, 4, 0, 0, 0, 4, 3, 0, 0, 22, 4, 3, 0, 0, 26, 5, 3, 0, 0, 26, 6, 3, 0,
+    13, 8, 1, 0, 0, 5, 9, 1, 0, 0, 12, 37, 1, 0, 0, 12, 24, 5, 0, 0, 4, 254, 5, 0,
+    0, 11, 254, 5, 0, 0, 11, 254, 5, 0, 0, 6, 254, 5, 0, 0, 8, 14, 5, 0, 0, 14, 8, 13,
+    0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 3, 0, 0, 4, 254, 3, 0, 0, 4,
+    254, 3, 0, 0, 4, 254, 3, 0, 0, 4, 254, 4, 0, 0, 254, 4, 4, 0, 0, 254, 4, 4, 0, 0,
+    254, 4, 4, 0, 0, 254, 4, 3, 0, 0, 22, 4, 3, 0, 0, 26, 5, 3, 0, 0, 26, 6, 3, 0,
     0, 26, 7, 3, 0, 0, 29, 7, 3, 0, 0, 33, 8, 3, 0, 0, 39, 9, 3, 0, 0, 27, 10, 3,
     0, 0, 32, 10, 3, 0, 0, 42, 11, 3, 0, 0, 37, 12, 3, 0, 0, 30, 13, 3, 0, 0, 35, 13,
     3, 0, 0, 33, 14, 3, 0, 0, 33, 15, 3, 0, 0, 36, 16, 9, 0, 0, 38, 44, 9, 0, 0, 44,
     38, 9, 0, 0, 32, 31, 23, 0, 0, 19, 15, 3, 23, 0, 0, 19, 15, 4, 23, 0, 0, 19, 15, 5,
     23, 0, 0, 19, 15, 6, 23, 0, 0, 15, 11, 6, 23, 0, 0, 15, 11, 7, 23, 0, 0, 15, 11, 8,
     23, 0, 0, 15, 11, 9, 23, 0, 0, 8, 4, 9, 23, 0, 0, 8, 4, 10, 23, 0, 0, 8, 4, 11,
-    23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 0, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13,
+    23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 253, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 254, 13,
     0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10,
-    0, 0, 4, 0, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1, 4,
+    0, 0, 4, 254, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1, 4,
     9, 5, 23, 0, 1, 4, 9, 6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4, 9, 8, 24, 0, 1, 0,
     24, 0, 1, 0, 24, 0, 1, 0,
 };
-PC_HOT static pc_status pc_program_721639ef9faec53c(const pc_step *s)
+PC_HOT static pc_status pc_program_de059a448e1653ea(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
+    const float *const k = (const float *)(const void *)(e + 151);
+    float f0 = PC_KF(0);
     f0 += PC_XF(1, a) * PC_XF(1, b);
     f0 += PC_XF(2, a) * PC_XF(2, b);
     f0 += PC_XF(3, a) * PC_XF(3, b);
-    const float f1 = pc_sop_float(PC_SOP_MAX, f0, PC_XF(5, b));
+    const float f1 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(1));
     const float f2 = pc_sop_float(PC_SOP_SQRT, f1, 0.0f);
     const float f3 = pc_sop_float(PC_SOP_DIV, PC_XF(9, a), f2);
     const float f4 = pc_sop_float(PC_SOP_DIV, PC_XF(10, a), f2);
     const float f5 = pc_sop_float(PC_SOP_DIV, PC_XF(11, a), f2);
-    float f6 = PC_XF(13, c);
+    float f6 = PC_KF(2);
     f6 += f3 * PC_XF(13, b);
     f6 += f4 * PC_XF(14, b);
     f6 += f5 * PC_XF(15, b);
@@ -650,12 +659,11 @@ PC_HOT static pc_status pc_program_721639ef9faec53c(const pc_step *s)
     const float f10 = pc_sop_float(PC_SOP_SUB, PC_XF(21, a), f7);
     const float f11 = pc_sop_float(PC_SOP_SUB, PC_XF(22, a), f8);
     const float f12 = pc_sop_float(PC_SOP_SUB, PC_XF(23, a), f9);
-    const float f13 = pc_sop_float(PC_SOP_SUB, PC_XF(24, a), f3);
-    float f14 = PC_XF(26, c);
-    f14 += f10 * f10;
+    const float f13 = pc_sop_float(PC_SOP_SUB, PC_KF(3), f3);
+    float f14 = f10 * f10; /* a square: 0 + it is it */
     f14 += f11 * f11;
     f14 += f12 * f12;
-    const float f15 = pc_sop_float(PC_SOP_MAX, f14, PC_XF(30, b));
+    const float f15 = pc_sop_float(PC_SOP_MAX, f14, PC_KF(5));
     const float f16 = pc_sop_float(PC_SOP_SQRT, f15, 0.0f);
     const float f17 = pc_sop_float(PC_SOP_DIV, f10, f16);
     const float f18 = pc_sop_float(PC_SOP_DIV, f11, f16);
@@ -666,7 +674,7 @@ PC_HOT static pc_status pc_program_721639ef9faec53c(const pc_step *s)
     const float f23 = pc_sop_float(PC_SOP_MUL, f3, f19);
     const float f24 = pc_sop_float(PC_SOP_MUL, f3, f18);
     const float f25 = pc_sop_float(PC_SOP_MUL, f4, f17);
-    const float f26 = pc_sop_float(PC_SOP_ADD, f3, PC_XF(45, b));
+    const float f26 = pc_sop_float(PC_SOP_ADD, f3, PC_KF(6));
     const float f27 = pc_sop_float(PC_SOP_ADD, f26, f18);
     const float f28 = pc_sop_float(PC_SOP_ADD, f13, f18);
     const float f29 = pc_sop_float(PC_SOP_ADD, f17, f4);
@@ -677,74 +685,97 @@ PC_HOT static pc_status pc_program_721639ef9faec53c(const pc_step *s)
     const float f34 = pc_sop_float(PC_SOP_SUB, f33, f32);
     const float f35 = pc_sop_float(PC_SOP_SUB, f28, f32);
     const float f36 = pc_sop_float(PC_SOP_SUB, f13, f18);
-    const float f37 = pc_sop_float(PC_SOP_SUB, f19, f31);
     const float f38 = pc_sop_float(PC_SOP_SUB, f30, f5);
     const float f39 = pc_sop_float(PC_SOP_SUB, f4, f17);
     const float f40 = pc_sop_float(PC_SOP_ADD, f27, f32);
     const float f41 = pc_sop_float(PC_SOP_ADD, f36, f32);
     const float f42 = pc_sop_float(PC_SOP_ADD, f30, f5);
-    const float f43 = pc_sop_float(PC_SOP_ADD, f31, f19);
-    const float f44 = pc_sop_float(PC_SOP_MAX, f40, PC_XF(66, b));
-    const float f45 = pc_sop_float(PC_SOP_MAX, f34, PC_XF(67, b));
-    const float f46 = pc_sop_float(PC_SOP_MAX, f35, PC_XF(68, b));
-    const float f47 = pc_sop_float(PC_SOP_MAX, f41, PC_XF(69, b));
     const float f48 = pc_sop_float(PC_SOP_MAX, f40, f34);
     const float f49 = pc_sop_float(PC_SOP_MAX, f35, f41);
-    const float f50 = pc_sop_float(PC_SOP_SQRT, f44, 0.0f);
-    const float f51 = pc_sop_float(PC_SOP_SQRT, f45, 0.0f);
-    const float f52 = pc_sop_float(PC_SOP_SQRT, f46, 0.0f);
-    const float f53 = pc_sop_float(PC_SOP_SQRT, f47, 0.0f);
-    const float f54 = pc_sop_float(PC_SOP_MUL, f50, PC_XF(78, b));
-    const float f55 = pc_sop_float(PC_SOP_MUL, f51, PC_XF(79, b));
-    const float f56 = pc_sop_float(PC_SOP_MUL, f52, PC_XF(80, b));
-    const float f57 = pc_sop_float(PC_SOP_MUL, f53, PC_XF(81, b));
-    const float f58 = pc_sop_float(PC_SOP_DIV, PC_XF(83, a), f54);
-    const float f59 = pc_sop_float(PC_SOP_DIV, PC_XF(84, a), f55);
-    const float f60 = pc_sop_float(PC_SOP_DIV, PC_XF(85, a), f56);
-    const float f61 = pc_sop_float(PC_SOP_DIV, PC_XF(86, a), f57);
-    const float f62 = pc_sop_float(PC_SOP_MUL, f40, f58);
-    const float f63 = pc_sop_float(PC_SOP_MUL, f37, f58);
-    const float f64 = pc_sop_float(PC_SOP_MUL, f38, f58);
-    const float f65 = pc_sop_float(PC_SOP_MUL, f39, f58);
-    const float f66 = pc_sop_float(PC_SOP_MUL, f37, f59);
-    const float f67 = pc_sop_float(PC_SOP_MUL, f34, f59);
-    const float f68 = pc_sop_float(PC_SOP_MUL, f29, f59);
-    const float f69 = pc_sop_float(PC_SOP_MUL, f42, f59);
-    const float f70 = pc_sop_float(PC_SOP_MUL, f38, f60);
-    const float f71 = pc_sop_float(PC_SOP_MUL, f29, f60);
-    const float f72 = pc_sop_float(PC_SOP_MUL, f35, f60);
-    const float f73 = pc_sop_float(PC_SOP_MUL, f43, f60);
-    const float f74 = pc_sop_float(PC_SOP_MUL, f39, f61);
-    const float f75 = pc_sop_float(PC_SOP_MUL, f42, f61);
-    const float f76 = pc_sop_float(PC_SOP_MUL, f43, f61);
-    const float f77 = pc_sop_float(PC_SOP_MUL, f41, f61);
-    const uint8_t b78 = f40 >= f34;
-    const uint8_t b79 = f35 >= f41;
     const uint8_t b80 = f48 >= f49;
-    const float f81 = b78 ? f62 : f66;
-    const float f82 = b78 ? f63 : f67;
-    const float f83 = b78 ? f64 : f68;
-    const float f84 = b78 ? f65 : f69;
-    const float f85 = b79 ? f70 : f74;
-    const float f86 = b79 ? f71 : f75;
-    const float f87 = b79 ? f72 : f76;
-    const float f88 = b79 ? f73 : f77;
-    const float f89 = b80 ? f81 : f85;
-    const float f90 = b80 ? f82 : f86;
-    const float f91 = b80 ? f83 : f87;
-    const float f92 = b80 ? f84 : f88;
-    float f93 = PC_XF(122, c);
-    f93 += f89 * f89;
+    float f89, f90, f91, f92;
+    if (b80) {
+        const float f37 = pc_sop_float(PC_SOP_SUB, f19, f31);
+        const uint8_t b78 = f40 >= f34;
+        float f81, f82, f83, f84;
+        if (b78) {
+            const float f44 = pc_sop_float(PC_SOP_MAX, f40, PC_KF(7));
+            const float f50 = pc_sop_float(PC_SOP_SQRT, f44, 0.0f);
+            const float f54 = pc_sop_float(PC_SOP_MUL, f50, PC_KF(11));
+            const float f58 = pc_sop_float(PC_SOP_DIV, PC_KF(15), f54);
+            const float f62 = pc_sop_float(PC_SOP_MUL, f40, f58);
+            const float f63 = pc_sop_float(PC_SOP_MUL, f37, f58);
+            const float f64 = pc_sop_float(PC_SOP_MUL, f38, f58);
+            const float f65 = pc_sop_float(PC_SOP_MUL, f39, f58);
+            f81 = f62;
+            f82 = f63;
+            f83 = f64;
+            f84 = f65;
+        } else {
+            const float f45 = pc_sop_float(PC_SOP_MAX, f34, PC_KF(8));
+            const float f51 = pc_sop_float(PC_SOP_SQRT, f45, 0.0f);
+            const float f55 = pc_sop_float(PC_SOP_MUL, f51, PC_KF(12));
+            const float f59 = pc_sop_float(PC_SOP_DIV, PC_KF(16), f55);
+            const float f66 = pc_sop_float(PC_SOP_MUL, f37, f59);
+            const float f67 = pc_sop_float(PC_SOP_MUL, f34, f59);
+            const float f68 = pc_sop_float(PC_SOP_MUL, f29, f59);
+            const float f69 = pc_sop_float(PC_SOP_MUL, f42, f59);
+            f81 = f66;
+            f82 = f67;
+            f83 = f68;
+            f84 = f69;
+        }
+        f89 = f81;
+        f90 = f82;
+        f91 = f83;
+        f92 = f84;
+    } else {
+        const float f43 = pc_sop_float(PC_SOP_ADD, f31, f19);
+        const uint8_t b79 = f35 >= f41;
+        float f85, f86, f87, f88;
+        if (b79) {
+            const float f46 = pc_sop_float(PC_SOP_MAX, f35, PC_KF(9));
+            const float f52 = pc_sop_float(PC_SOP_SQRT, f46, 0.0f);
+            const float f56 = pc_sop_float(PC_SOP_MUL, f52, PC_KF(13));
+            const float f60 = pc_sop_float(PC_SOP_DIV, PC_KF(17), f56);
+            const float f70 = pc_sop_float(PC_SOP_MUL, f38, f60);
+            const float f71 = pc_sop_float(PC_SOP_MUL, f29, f60);
+            const float f72 = pc_sop_float(PC_SOP_MUL, f35, f60);
+            const float f73 = pc_sop_float(PC_SOP_MUL, f43, f60);
+            f85 = f70;
+            f86 = f71;
+            f87 = f72;
+            f88 = f73;
+        } else {
+            const float f47 = pc_sop_float(PC_SOP_MAX, f41, PC_KF(10));
+            const float f53 = pc_sop_float(PC_SOP_SQRT, f47, 0.0f);
+            const float f57 = pc_sop_float(PC_SOP_MUL, f53, PC_KF(14));
+            const float f61 = pc_sop_float(PC_SOP_DIV, PC_KF(18), f57);
+            const float f74 = pc_sop_float(PC_SOP_MUL, f39, f61);
+            const float f75 = pc_sop_float(PC_SOP_MUL, f42, f61);
+            const float f76 = pc_sop_float(PC_SOP_MUL, f43, f61);
+            const float f77 = pc_sop_float(PC_SOP_MUL, f41, f61);
+            f85 = f74;
+            f86 = f75;
+            f87 = f76;
+            f88 = f77;
+        }
+        f89 = f85;
+        f90 = f86;
+        f91 = f87;
+        f92 = f88;
+    }
+    float f93 = f89 * f89; /* a square: 0 + it is it */
     f93 += f90 * f90;
     f93 += f91 * f91;
     f93 += f92 * f92;
-    const float f94 = pc_sop_float(PC_SOP_MAX, f93, PC_XF(127, b));
+    const float f94 = pc_sop_float(PC_SOP_MAX, f93, PC_KF(20));
     const float f95 = pc_sop_float(PC_SOP_SQRT, f94, 0.0f);
     const float f96 = pc_sop_float(PC_SOP_DIV, f89, f95);
     const float f97 = pc_sop_float(PC_SOP_DIV, f90, f95);
     const float f98 = pc_sop_float(PC_SOP_DIV, f91, f95);
     const float f99 = pc_sop_float(PC_SOP_DIV, f92, f95);
-    const uint8_t b100 = f96 < PC_XF(136, b);
+    const uint8_t b100 = f96 < PC_KF(21);
     const float f101 = pc_sop_float(PC_SOP_NEG, f96, 0.0f);
     const float f102 = pc_sop_float(PC_SOP_NEG, f97, 0.0f);
     const float f103 = pc_sop_float(PC_SOP_NEG, f98, 0.0f);
@@ -766,70 +797,70 @@ PC_HOT static pc_status pc_program_721639ef9faec53c(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_68f1683d7cbb1198_shape[626] = {
-    26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 0, 0, 0, 0,
-    26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0,
-    26, 0, 0, 0, 0, 0, 26, 2, 0, 6, 6, 0, 5, 5, 4, 4, 5, 0, 0, 1, 0, 13, 0, 0,
-    1, 4, 0, 0, 9, 1, 4, 0, 0, 9, 2, 4, 0, 0, 9, 3, 26, 2, 0, 3, 9, 0, 2, 8,
+static const uint8_t pc_program_f6dc4cdc3d1f0c66_shape[626] = {
+    26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254, 26, 0, 0, 0, 254, 254,
+    26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254,
+    26, 0, 0, 0, 254, 254, 26, 2, 0, 6, 6, 253, 5, 5, 4, 4, 5, 0, 0, 1, 254, 13, 0, 0,
+    1, 4, 0, 0, 9, 1, 4, 0, 0, 9, 2, 4, 0, 0, 9, 3, 26, 2, 0, 3, 9, 253, 2, 8,
     1, 7, 3, 0, 0, 1, 4, 3, 0, 0, 2, 4, 3, 0, 0, 3, 4, 2, 0, 0, 13, 3, 2, 0,
-    0, 13, 3, 2, 0, 0, 13, 3, 2, 0, 0, 0, 10, 26, 2, 0, 4, 4, 0, 3, 3, 2, 2, 5,
-    0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 3,
+    0, 13, 3, 2, 0, 0, 13, 3, 2, 0, 0, 254, 10, 26, 2, 0, 4, 4, 253, 3, 3, 2, 2, 5,
+    0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 3,
     0, 0, 16, 1, 3, 0, 0, 16, 3, 3, 0, 0, 17, 5, 3, 0, 0, 20, 4, 3, 0, 0, 21, 6,
-    3, 0, 0, 21, 8, 1, 0, 0, 23, 0, 1, 0, 0, 1, 9, 1, 0, 0, 15, 10, 1, 0, 0, 12,
+    3, 0, 0, 21, 8, 1, 0, 0, 23, 254, 1, 0, 0, 1, 9, 1, 0, 0, 15, 10, 1, 0, 0, 12,
     25, 2, 0, 0, 10, 9, 2, 0, 0, 9, 8, 2, 0, 0, 8, 7, 2, 0, 0, 7, 15, 2, 0, 0,
     1, 2, 2, 0, 0, 7, 3, 2, 0, 0, 23, 18, 2, 0, 0, 18, 6, 2, 0, 0, 8, 33, 2, 0,
     0, 35, 22, 1, 0, 0, 13, 8, 1, 0, 0, 5, 9, 1, 0, 0, 12, 37, 1, 0, 0, 12, 24, 5,
-    0, 0, 4, 0, 5, 0, 0, 11, 0, 5, 0, 0, 11, 0, 5, 0, 0, 6, 0, 5, 0, 0, 8, 14,
+    0, 0, 4, 254, 5, 0, 0, 11, 254, 5, 0, 0, 11, 254, 5, 0, 0, 6, 254, 5, 0, 0, 8, 14,
     5, 0, 0, 14, 8, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 3, 0, 0,
-    4, 0, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0, 4, 0, 0, 0, 4, 4, 0,
-    0, 0, 4, 4, 0, 0, 0, 4, 4, 0, 0, 0, 4, 3, 0, 0, 22, 4, 3, 0, 0, 26, 5, 3,
+    4, 254, 3, 0, 0, 4, 254, 3, 0, 0, 4, 254, 3, 0, 0, 4, 254, 4, 0, 0, 254, 4, 4, 0,
+    0, 254, 4, 4, 0, 0, 254, 4, 4, 0, 0, 254, 4, 3, 0, 0, 22, 4, 3, 0, 0, 26, 5, 3,
     0, 0, 26, 6, 3, 0, 0, 26, 7, 3, 0, 0, 29, 7, 3, 0, 0, 33, 8, 3, 0, 0, 39, 9,
     3, 0, 0, 27, 10, 3, 0, 0, 32, 10, 3, 0, 0, 42, 11, 3, 0, 0, 37, 12, 3, 0, 0, 30,
     13, 3, 0, 0, 35, 13, 3, 0, 0, 33, 14, 3, 0, 0, 33, 15, 3, 0, 0, 36, 16, 9, 0, 0,
     38, 44, 9, 0, 0, 44, 38, 9, 0, 0, 32, 31, 23, 0, 0, 19, 15, 3, 23, 0, 0, 19, 15, 4,
     23, 0, 0, 19, 15, 5, 23, 0, 0, 19, 15, 6, 23, 0, 0, 15, 11, 6, 23, 0, 0, 15, 11, 7,
     23, 0, 0, 15, 11, 8, 23, 0, 0, 15, 11, 9, 23, 0, 0, 8, 4, 9, 23, 0, 0, 8, 4, 10,
-    23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 0, 3, 3, 2, 2, 1, 1,
-    5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3,
-    4, 0, 0, 7, 4, 10, 0, 0, 4, 0, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0,
+    23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 253, 3, 3, 2, 2, 1, 1,
+    5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3,
+    4, 0, 0, 7, 4, 10, 0, 0, 4, 254, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0,
     0, 5, 23, 0, 1, 4, 9, 5, 23, 0, 1, 4, 9, 6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4,
     9, 8,
 };
-PC_HOT static pc_status pc_program_68f1683d7cbb1198(const pc_step *s)
+PC_HOT static pc_status pc_program_f6dc4cdc3d1f0c66(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
-    f0 += PC_XF(1, a) * PC_XF(1, b);
+    const float *const k = (const float *)(const void *)(e + 156);
+    float f0 = PC_KF(1);
+    f0 += PC_XF(1, a) * PC_KF(0);
     PC_STOREF(1, f0);
-    float f1 = PC_XF(2, c);
-    f1 += PC_XF(2, a) * PC_XF(2, b);
+    float f1 = PC_KF(3);
+    f1 += PC_XF(2, a) * PC_KF(2);
     PC_STOREF(2, f1);
-    float f2 = PC_XF(3, c);
-    f2 += PC_XF(3, a) * PC_XF(3, b);
+    float f2 = PC_KF(5);
+    f2 += PC_XF(3, a) * PC_KF(4);
     PC_STOREF(3, f2);
-    float f3 = PC_XF(4, c);
-    f3 += PC_XF(4, a) * PC_XF(4, b);
-    float f4 = PC_XF(5, c);
-    f4 += PC_XF(5, a) * PC_XF(5, b);
-    float f5 = PC_XF(6, c);
-    f5 += PC_XF(6, a) * PC_XF(6, b);
-    float f6 = PC_XF(7, c);
-    f6 += PC_XF(7, a) * PC_XF(7, b);
-    float f7 = PC_XF(8, c);
-    f7 += PC_XF(8, a) * PC_XF(8, b);
-    float f8 = PC_XF(9, c);
-    f8 += PC_XF(9, a) * PC_XF(9, b);
-    float f9 = PC_XF(10, c);
-    f9 += f3 * f3;
+    float f3 = PC_KF(7);
+    f3 += PC_XF(4, a) * PC_KF(6);
+    float f4 = PC_KF(9);
+    f4 += PC_XF(5, a) * PC_KF(8);
+    float f5 = PC_KF(11);
+    f5 += PC_XF(6, a) * PC_KF(10);
+    float f6 = PC_KF(13);
+    f6 += PC_XF(7, a) * PC_KF(12);
+    float f7 = PC_KF(15);
+    f7 += PC_XF(8, a) * PC_KF(14);
+    float f8 = PC_KF(17);
+    f8 += PC_XF(9, a) * PC_KF(16);
+    float f9 = f3 * f3; /* a square: 0 + it is it */
     f9 += f4 * f4;
     f9 += f5 * f5;
-    const float f10 = pc_sop_float(PC_SOP_MAX, f9, PC_XF(14, b));
+    const float f10 = pc_sop_float(PC_SOP_MAX, f9, PC_KF(19));
     const float f11 = pc_sop_float(PC_SOP_SQRT, f10, 0.0f);
     const float f12 = pc_sop_float(PC_SOP_DIV, f3, f11);
     const float f13 = pc_sop_float(PC_SOP_DIV, f4, f11);
     const float f14 = pc_sop_float(PC_SOP_DIV, f5, f11);
-    float f15 = PC_XF(22, c);
+    float f15 = PC_KF(20);
     f15 += f12 * f6;
     f15 += f13 * f7;
     f15 += f14 * f8;
@@ -839,12 +870,11 @@ PC_HOT static pc_status pc_program_68f1683d7cbb1198(const pc_step *s)
     const float f19 = pc_sop_float(PC_SOP_SUB, f6, f16);
     const float f20 = pc_sop_float(PC_SOP_SUB, f7, f17);
     const float f21 = pc_sop_float(PC_SOP_SUB, f8, f18);
-    const float f22 = pc_sop_float(PC_SOP_SUB, PC_XF(33, a), f12);
-    float f23 = PC_XF(35, c);
-    f23 += f19 * f19;
+    const float f22 = pc_sop_float(PC_SOP_SUB, PC_KF(21), f12);
+    float f23 = f19 * f19; /* a square: 0 + it is it */
     f23 += f20 * f20;
     f23 += f21 * f21;
-    const float f24 = pc_sop_float(PC_SOP_MAX, f23, PC_XF(39, b));
+    const float f24 = pc_sop_float(PC_SOP_MAX, f23, PC_KF(23));
     const float f25 = pc_sop_float(PC_SOP_SQRT, f24, 0.0f);
     const float f26 = pc_sop_float(PC_SOP_DIV, f19, f25);
     const float f27 = pc_sop_float(PC_SOP_DIV, f20, f25);
@@ -855,7 +885,7 @@ PC_HOT static pc_status pc_program_68f1683d7cbb1198(const pc_step *s)
     const float f32 = pc_sop_float(PC_SOP_MUL, f12, f28);
     const float f33 = pc_sop_float(PC_SOP_MUL, f12, f27);
     const float f34 = pc_sop_float(PC_SOP_MUL, f13, f26);
-    const float f35 = pc_sop_float(PC_SOP_ADD, f12, PC_XF(54, b));
+    const float f35 = pc_sop_float(PC_SOP_ADD, f12, PC_KF(24));
     const float f36 = pc_sop_float(PC_SOP_ADD, f35, f27);
     const float f37 = pc_sop_float(PC_SOP_ADD, f22, f27);
     const float f38 = pc_sop_float(PC_SOP_ADD, f26, f13);
@@ -866,74 +896,97 @@ PC_HOT static pc_status pc_program_68f1683d7cbb1198(const pc_step *s)
     const float f43 = pc_sop_float(PC_SOP_SUB, f42, f41);
     const float f44 = pc_sop_float(PC_SOP_SUB, f37, f41);
     const float f45 = pc_sop_float(PC_SOP_SUB, f22, f27);
-    const float f46 = pc_sop_float(PC_SOP_SUB, f28, f40);
     const float f47 = pc_sop_float(PC_SOP_SUB, f39, f14);
     const float f48 = pc_sop_float(PC_SOP_SUB, f13, f26);
     const float f49 = pc_sop_float(PC_SOP_ADD, f36, f41);
     const float f50 = pc_sop_float(PC_SOP_ADD, f45, f41);
     const float f51 = pc_sop_float(PC_SOP_ADD, f39, f14);
-    const float f52 = pc_sop_float(PC_SOP_ADD, f40, f28);
-    const float f53 = pc_sop_float(PC_SOP_MAX, f49, PC_XF(75, b));
-    const float f54 = pc_sop_float(PC_SOP_MAX, f43, PC_XF(76, b));
-    const float f55 = pc_sop_float(PC_SOP_MAX, f44, PC_XF(77, b));
-    const float f56 = pc_sop_float(PC_SOP_MAX, f50, PC_XF(78, b));
     const float f57 = pc_sop_float(PC_SOP_MAX, f49, f43);
     const float f58 = pc_sop_float(PC_SOP_MAX, f44, f50);
-    const float f59 = pc_sop_float(PC_SOP_SQRT, f53, 0.0f);
-    const float f60 = pc_sop_float(PC_SOP_SQRT, f54, 0.0f);
-    const float f61 = pc_sop_float(PC_SOP_SQRT, f55, 0.0f);
-    const float f62 = pc_sop_float(PC_SOP_SQRT, f56, 0.0f);
-    const float f63 = pc_sop_float(PC_SOP_MUL, f59, PC_XF(87, b));
-    const float f64 = pc_sop_float(PC_SOP_MUL, f60, PC_XF(88, b));
-    const float f65 = pc_sop_float(PC_SOP_MUL, f61, PC_XF(89, b));
-    const float f66 = pc_sop_float(PC_SOP_MUL, f62, PC_XF(90, b));
-    const float f67 = pc_sop_float(PC_SOP_DIV, PC_XF(92, a), f63);
-    const float f68 = pc_sop_float(PC_SOP_DIV, PC_XF(93, a), f64);
-    const float f69 = pc_sop_float(PC_SOP_DIV, PC_XF(94, a), f65);
-    const float f70 = pc_sop_float(PC_SOP_DIV, PC_XF(95, a), f66);
-    const float f71 = pc_sop_float(PC_SOP_MUL, f49, f67);
-    const float f72 = pc_sop_float(PC_SOP_MUL, f46, f67);
-    const float f73 = pc_sop_float(PC_SOP_MUL, f47, f67);
-    const float f74 = pc_sop_float(PC_SOP_MUL, f48, f67);
-    const float f75 = pc_sop_float(PC_SOP_MUL, f46, f68);
-    const float f76 = pc_sop_float(PC_SOP_MUL, f43, f68);
-    const float f77 = pc_sop_float(PC_SOP_MUL, f38, f68);
-    const float f78 = pc_sop_float(PC_SOP_MUL, f51, f68);
-    const float f79 = pc_sop_float(PC_SOP_MUL, f47, f69);
-    const float f80 = pc_sop_float(PC_SOP_MUL, f38, f69);
-    const float f81 = pc_sop_float(PC_SOP_MUL, f44, f69);
-    const float f82 = pc_sop_float(PC_SOP_MUL, f52, f69);
-    const float f83 = pc_sop_float(PC_SOP_MUL, f48, f70);
-    const float f84 = pc_sop_float(PC_SOP_MUL, f51, f70);
-    const float f85 = pc_sop_float(PC_SOP_MUL, f52, f70);
-    const float f86 = pc_sop_float(PC_SOP_MUL, f50, f70);
-    const uint8_t b87 = f49 >= f43;
-    const uint8_t b88 = f44 >= f50;
     const uint8_t b89 = f57 >= f58;
-    const float f90 = b87 ? f71 : f75;
-    const float f91 = b87 ? f72 : f76;
-    const float f92 = b87 ? f73 : f77;
-    const float f93 = b87 ? f74 : f78;
-    const float f94 = b88 ? f79 : f83;
-    const float f95 = b88 ? f80 : f84;
-    const float f96 = b88 ? f81 : f85;
-    const float f97 = b88 ? f82 : f86;
-    const float f98 = b89 ? f90 : f94;
-    const float f99 = b89 ? f91 : f95;
-    const float f100 = b89 ? f92 : f96;
-    const float f101 = b89 ? f93 : f97;
-    float f102 = PC_XF(131, c);
-    f102 += f98 * f98;
+    float f98, f99, f100, f101;
+    if (b89) {
+        const float f46 = pc_sop_float(PC_SOP_SUB, f28, f40);
+        const uint8_t b87 = f49 >= f43;
+        float f90, f91, f92, f93;
+        if (b87) {
+            const float f53 = pc_sop_float(PC_SOP_MAX, f49, PC_KF(25));
+            const float f59 = pc_sop_float(PC_SOP_SQRT, f53, 0.0f);
+            const float f63 = pc_sop_float(PC_SOP_MUL, f59, PC_KF(29));
+            const float f67 = pc_sop_float(PC_SOP_DIV, PC_KF(33), f63);
+            const float f71 = pc_sop_float(PC_SOP_MUL, f49, f67);
+            const float f72 = pc_sop_float(PC_SOP_MUL, f46, f67);
+            const float f73 = pc_sop_float(PC_SOP_MUL, f47, f67);
+            const float f74 = pc_sop_float(PC_SOP_MUL, f48, f67);
+            f90 = f71;
+            f91 = f72;
+            f92 = f73;
+            f93 = f74;
+        } else {
+            const float f54 = pc_sop_float(PC_SOP_MAX, f43, PC_KF(26));
+            const float f60 = pc_sop_float(PC_SOP_SQRT, f54, 0.0f);
+            const float f64 = pc_sop_float(PC_SOP_MUL, f60, PC_KF(30));
+            const float f68 = pc_sop_float(PC_SOP_DIV, PC_KF(34), f64);
+            const float f75 = pc_sop_float(PC_SOP_MUL, f46, f68);
+            const float f76 = pc_sop_float(PC_SOP_MUL, f43, f68);
+            const float f77 = pc_sop_float(PC_SOP_MUL, f38, f68);
+            const float f78 = pc_sop_float(PC_SOP_MUL, f51, f68);
+            f90 = f75;
+            f91 = f76;
+            f92 = f77;
+            f93 = f78;
+        }
+        f98 = f90;
+        f99 = f91;
+        f100 = f92;
+        f101 = f93;
+    } else {
+        const float f52 = pc_sop_float(PC_SOP_ADD, f40, f28);
+        const uint8_t b88 = f44 >= f50;
+        float f94, f95, f96, f97;
+        if (b88) {
+            const float f55 = pc_sop_float(PC_SOP_MAX, f44, PC_KF(27));
+            const float f61 = pc_sop_float(PC_SOP_SQRT, f55, 0.0f);
+            const float f65 = pc_sop_float(PC_SOP_MUL, f61, PC_KF(31));
+            const float f69 = pc_sop_float(PC_SOP_DIV, PC_KF(35), f65);
+            const float f79 = pc_sop_float(PC_SOP_MUL, f47, f69);
+            const float f80 = pc_sop_float(PC_SOP_MUL, f38, f69);
+            const float f81 = pc_sop_float(PC_SOP_MUL, f44, f69);
+            const float f82 = pc_sop_float(PC_SOP_MUL, f52, f69);
+            f94 = f79;
+            f95 = f80;
+            f96 = f81;
+            f97 = f82;
+        } else {
+            const float f56 = pc_sop_float(PC_SOP_MAX, f50, PC_KF(28));
+            const float f62 = pc_sop_float(PC_SOP_SQRT, f56, 0.0f);
+            const float f66 = pc_sop_float(PC_SOP_MUL, f62, PC_KF(32));
+            const float f70 = pc_sop_float(PC_SOP_DIV, PC_KF(36), f66);
+            const float f83 = pc_sop_float(PC_SOP_MUL, f48, f70);
+            const float f84 = pc_sop_float(PC_SOP_MUL, f51, f70);
+            const float f85 = pc_sop_float(PC_SOP_MUL, f52, f70);
+            const float f86 = pc_sop_float(PC_SOP_MUL, f50, f70);
+            f94 = f83;
+            f95 = f84;
+            f96 = f85;
+            f97 = f86;
+        }
+        f98 = f94;
+        f99 = f95;
+        f100 = f96;
+        f101 = f97;
+    }
+    float f102 = f98 * f98; /* a square: 0 + it is it */
     f102 += f99 * f99;
     f102 += f100 * f100;
     f102 += f101 * f101;
-    const float f103 = pc_sop_float(PC_SOP_MAX, f102, PC_XF(136, b));
+    const float f103 = pc_sop_float(PC_SOP_MAX, f102, PC_KF(38));
     const float f104 = pc_sop_float(PC_SOP_SQRT, f103, 0.0f);
     const float f105 = pc_sop_float(PC_SOP_DIV, f98, f104);
     const float f106 = pc_sop_float(PC_SOP_DIV, f99, f104);
     const float f107 = pc_sop_float(PC_SOP_DIV, f100, f104);
     const float f108 = pc_sop_float(PC_SOP_DIV, f101, f104);
-    const uint8_t b109 = f105 < PC_XF(145, b);
+    const uint8_t b109 = f105 < PC_KF(39);
     const float f110 = pc_sop_float(PC_SOP_NEG, f105, 0.0f);
     const float f111 = pc_sop_float(PC_SOP_NEG, f106, 0.0f);
     const float f112 = pc_sop_float(PC_SOP_NEG, f107, 0.0f);
@@ -949,22 +1002,22 @@ PC_HOT static pc_status pc_program_68f1683d7cbb1198(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_5702f51db0f08e54_shape[626] = {
-    26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0,
+static const uint8_t pc_program_5c2c7c81c2efd060_shape[626] = {
+    26, 3, 0, 0, 0, 253, 0, 0, 0, 0, 0, 0, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0,
     0, 1, 4, 0, 0, 0, 2, 4, 0, 0, 0, 3, 4, 0, 0, 0, 4, 3, 0, 0, 2, 2, 3, 0,
     0, 4, 3, 3, 0, 0, 6, 3, 3, 0, 0, 6, 4, 3, 0, 0, 8, 6, 3, 0, 0, 8, 8, 3,
     0, 0, 8, 7, 3, 0, 0, 11, 10, 26, 0, 0, 9, 9, 8, 26, 0, 0, 13, 11, 6, 26, 0, 0,
     14, 11, 9, 26, 0, 0, 12, 12, 6, 26, 0, 0, 16, 15, 6, 26, 0, 0, 15, 15, 8, 3, 0, 0,
-    6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0,
-    0, 6, 0, 2, 0, 0, 0, 6, 2, 0, 0, 20, 19, 2, 0, 0, 0, 5, 2, 0, 0, 17, 16, 2,
-    0, 0, 21, 20, 2, 0, 0, 0, 6, 2, 0, 0, 0, 6, 2, 0, 0, 1, 5, 1, 0, 0, 8, 0,
+    6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0,
+    0, 6, 254, 2, 0, 0, 254, 6, 2, 0, 0, 20, 19, 2, 0, 0, 254, 5, 2, 0, 0, 17, 16, 2,
+    0, 0, 21, 20, 2, 0, 0, 254, 6, 2, 0, 0, 254, 6, 2, 0, 0, 1, 5, 1, 0, 0, 8, 254,
     1, 0, 0, 1, 7, 1, 0, 0, 1, 5, 1, 0, 0, 5, 9, 1, 0, 0, 5, 7, 2, 0, 0, 5,
-    11, 2, 0, 0, 1, 9, 2, 0, 0, 4, 10, 5, 0, 0, 6, 0, 5, 0, 0, 3, 0, 5, 0, 0,
-    3, 0, 5, 0, 0, 7, 0, 5, 0, 0, 10, 6, 5, 0, 0, 6, 9, 13, 0, 0, 6, 13, 0, 0,
-    6, 13, 0, 0, 6, 13, 0, 0, 6, 3, 0, 0, 25, 0, 3, 0, 0, 24, 0, 3, 0, 0, 24, 0,
-    3, 0, 0, 7, 0, 3, 0, 0, 7, 0, 3, 0, 0, 7, 0, 3, 0, 0, 7, 0, 2, 0, 0, 35,
-    6, 2, 0, 0, 39, 6, 2, 0, 0, 39, 9, 26, 0, 0, 46, 0, 10, 26, 0, 0, 33, 0, 42, 26,
-    0, 0, 46, 0, 11, 4, 0, 0, 0, 10, 4, 0, 0, 0, 10, 4, 0, 0, 0, 10, 4, 0, 0, 0,
+    11, 2, 0, 0, 1, 9, 2, 0, 0, 4, 10, 5, 0, 0, 6, 254, 5, 0, 0, 3, 254, 5, 0, 0,
+    3, 254, 5, 0, 0, 7, 254, 5, 0, 0, 10, 6, 5, 0, 0, 6, 9, 13, 0, 0, 6, 13, 0, 0,
+    6, 13, 0, 0, 6, 13, 0, 0, 6, 3, 0, 0, 25, 254, 3, 0, 0, 24, 254, 3, 0, 0, 24, 254,
+    3, 0, 0, 7, 254, 3, 0, 0, 7, 254, 3, 0, 0, 7, 254, 3, 0, 0, 7, 254, 2, 0, 0, 35,
+    6, 2, 0, 0, 39, 6, 2, 0, 0, 39, 9, 26, 0, 0, 46, 254, 10, 26, 0, 0, 33, 254, 42, 26,
+    0, 0, 46, 254, 11, 4, 0, 0, 254, 10, 4, 0, 0, 254, 10, 4, 0, 0, 254, 10, 4, 0, 0, 254,
     10, 3, 0, 0, 33, 4, 3, 0, 0, 11, 5, 3, 0, 0, 11, 6, 3, 0, 0, 11, 7, 3, 0, 0,
     14, 7, 3, 0, 0, 34, 8, 3, 0, 0, 13, 9, 3, 0, 0, 13, 10, 3, 0, 0, 17, 10, 3, 0,
     0, 16, 11, 3, 0, 0, 38, 12, 3, 0, 0, 16, 13, 3, 0, 0, 20, 13, 3, 0, 0, 19, 14, 3,
@@ -972,22 +1025,23 @@ static const uint8_t pc_program_5702f51db0f08e54_shape[626] = {
     23, 0, 0, 19, 15, 3, 23, 0, 0, 19, 15, 4, 23, 0, 0, 19, 15, 5, 23, 0, 0, 19, 15, 6,
     23, 0, 0, 15, 11, 6, 23, 0, 0, 15, 11, 7, 23, 0, 0, 15, 11, 8, 23, 0, 0, 15, 11, 9,
     23, 0, 0, 8, 4, 9, 23, 0, 0, 8, 4, 10, 23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12,
-    26, 3, 0, 4, 4, 0, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0,
-    7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 0, 12, 0,
+    26, 3, 0, 4, 4, 253, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0,
+    7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 254, 12, 0,
     0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1, 4, 9, 5, 23, 0, 1, 4,
     9, 6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4, 9, 8, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0,
     1, 0,
 };
-PC_HOT static pc_status pc_program_5702f51db0f08e54(const pc_step *s)
+PC_HOT static pc_status pc_program_5c2c7c81c2efd060(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
+    const float *const k = (const float *)(const void *)(e + 153);
+    float f0 = PC_KF(0);
     f0 += PC_XF(1, a) * PC_XF(1, b);
     f0 += PC_XF(2, a) * PC_XF(2, b);
     f0 += PC_XF(3, a) * PC_XF(3, b);
     f0 += PC_XF(4, a) * PC_XF(4, b);
-    const float f1 = pc_sop_float(PC_SOP_MAX, f0, PC_XF(6, b));
+    const float f1 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(1));
     const float f2 = pc_sop_float(PC_SOP_SQRT, f1, 0.0f);
     const float f3 = pc_sop_float(PC_SOP_DIV, PC_XF(10, a), f2);
     const float f4 = pc_sop_float(PC_SOP_DIV, PC_XF(11, a), f2);
@@ -1013,21 +1067,20 @@ PC_HOT static pc_status pc_program_5702f51db0f08e54(const pc_step *s)
     f19 += f3 * f4;
     float f20 = f12;
     f20 += f5 * f5;
-    const float f21 = pc_sop_float(PC_SOP_MUL, f15, PC_XF(31, b));
-    const float f22 = pc_sop_float(PC_SOP_MUL, f16, PC_XF(32, b));
-    const float f23 = pc_sop_float(PC_SOP_MUL, f17, PC_XF(33, b));
-    const float f24 = pc_sop_float(PC_SOP_MUL, f18, PC_XF(34, b));
-    const float f25 = pc_sop_float(PC_SOP_MUL, f19, PC_XF(35, b));
-    const float f26 = pc_sop_float(PC_SOP_MUL, f20, PC_XF(36, b));
-    const float f27 = pc_sop_float(PC_SOP_SUB, PC_XF(38, a), f21);
+    const float f21 = pc_sop_float(PC_SOP_MUL, f15, PC_KF(2));
+    const float f22 = pc_sop_float(PC_SOP_MUL, f16, PC_KF(3));
+    const float f23 = pc_sop_float(PC_SOP_MUL, f17, PC_KF(4));
+    const float f24 = pc_sop_float(PC_SOP_MUL, f18, PC_KF(5));
+    const float f26 = pc_sop_float(PC_SOP_MUL, f20, PC_KF(7));
+    const float f27 = pc_sop_float(PC_SOP_SUB, PC_KF(8), f21);
     const float f28 = pc_sop_float(PC_SOP_SUB, f8, f9);
-    const float f29 = pc_sop_float(PC_SOP_SUB, PC_XF(40, a), f24);
+    const float f29 = pc_sop_float(PC_SOP_SUB, PC_KF(9), f24);
     const float f30 = pc_sop_float(PC_SOP_SUB, f13, f14);
     const float f31 = pc_sop_float(PC_SOP_SUB, f10, f11);
-    const float f32 = pc_sop_float(PC_SOP_SUB, PC_XF(43, a), f26);
-    const float f33 = pc_sop_float(PC_SOP_SUB, PC_XF(44, a), f27);
+    const float f32 = pc_sop_float(PC_SOP_SUB, PC_KF(10), f26);
+    const float f33 = pc_sop_float(PC_SOP_SUB, PC_KF(11), f27);
     const float f34 = pc_sop_float(PC_SOP_SUB, f33, f29);
-    const float f35 = pc_sop_float(PC_SOP_ADD, f27, PC_XF(47, b));
+    const float f35 = pc_sop_float(PC_SOP_ADD, f27, PC_KF(12));
     const float f36 = pc_sop_float(PC_SOP_ADD, f35, f29);
     const float f37 = pc_sop_float(PC_SOP_ADD, f36, f32);
     const float f38 = pc_sop_float(PC_SOP_ADD, f33, f29);
@@ -1035,79 +1088,103 @@ PC_HOT static pc_status pc_program_5702f51db0f08e54(const pc_step *s)
     const float f40 = pc_sop_float(PC_SOP_SUB, f35, f29);
     const float f41 = pc_sop_float(PC_SOP_SUB, f40, f32);
     const float f42 = pc_sop_float(PC_SOP_SUB, f38, f32);
-    const float f43 = pc_sop_float(PC_SOP_MAX, f37, PC_XF(57, b));
-    const float f44 = pc_sop_float(PC_SOP_MAX, f41, PC_XF(58, b));
-    const float f45 = pc_sop_float(PC_SOP_MAX, f42, PC_XF(59, b));
-    const float f46 = pc_sop_float(PC_SOP_MAX, f39, PC_XF(60, b));
     const float f47 = pc_sop_float(PC_SOP_MAX, f37, f41);
     const float f48 = pc_sop_float(PC_SOP_MAX, f42, f39);
-    const float f49 = pc_sop_float(PC_SOP_SQRT, f43, 0.0f);
-    const float f50 = pc_sop_float(PC_SOP_SQRT, f44, 0.0f);
-    const float f51 = pc_sop_float(PC_SOP_SQRT, f45, 0.0f);
-    const float f52 = pc_sop_float(PC_SOP_SQRT, f46, 0.0f);
-    const float f53 = pc_sop_float(PC_SOP_MUL, f28, PC_XF(69, b));
-    const float f54 = pc_sop_float(PC_SOP_MUL, f30, PC_XF(70, b));
-    const float f55 = pc_sop_float(PC_SOP_MUL, f31, PC_XF(71, b));
-    const float f56 = pc_sop_float(PC_SOP_MUL, f49, PC_XF(72, b));
-    const float f57 = pc_sop_float(PC_SOP_MUL, f50, PC_XF(73, b));
-    const float f58 = pc_sop_float(PC_SOP_MUL, f51, PC_XF(74, b));
-    const float f59 = pc_sop_float(PC_SOP_MUL, f52, PC_XF(75, b));
-    const float f60 = pc_sop_float(PC_SOP_SUB, f25, f54);
+    const float f53 = pc_sop_float(PC_SOP_MUL, f28, PC_KF(17));
+    const float f54 = pc_sop_float(PC_SOP_MUL, f30, PC_KF(18));
+    const float f55 = pc_sop_float(PC_SOP_MUL, f31, PC_KF(19));
     const float f61 = pc_sop_float(PC_SOP_SUB, f22, f55);
     const float f62 = pc_sop_float(PC_SOP_SUB, f23, f53);
     float f63 = f53;
-    f63 += f17 * PC_XF(81, b);
+    f63 += f17 * PC_KF(24);
     float f64 = f22;
-    f64 += f31 * PC_XF(82, b);
-    float f65 = f54;
-    f65 += f19 * PC_XF(83, b);
-    const float f66 = pc_sop_float(PC_SOP_DIV, PC_XF(85, a), f56);
-    const float f67 = pc_sop_float(PC_SOP_DIV, PC_XF(86, a), f57);
-    const float f68 = pc_sop_float(PC_SOP_DIV, PC_XF(87, a), f58);
-    const float f69 = pc_sop_float(PC_SOP_DIV, PC_XF(88, a), f59);
-    const float f70 = pc_sop_float(PC_SOP_MUL, f37, f66);
-    const float f71 = pc_sop_float(PC_SOP_MUL, f60, f66);
-    const float f72 = pc_sop_float(PC_SOP_MUL, f61, f66);
-    const float f73 = pc_sop_float(PC_SOP_MUL, f62, f66);
-    const float f74 = pc_sop_float(PC_SOP_MUL, f60, f67);
-    const float f75 = pc_sop_float(PC_SOP_MUL, f41, f67);
-    const float f76 = pc_sop_float(PC_SOP_MUL, f63, f67);
-    const float f77 = pc_sop_float(PC_SOP_MUL, f64, f67);
-    const float f78 = pc_sop_float(PC_SOP_MUL, f61, f68);
-    const float f79 = pc_sop_float(PC_SOP_MUL, f63, f68);
-    const float f80 = pc_sop_float(PC_SOP_MUL, f42, f68);
-    const float f81 = pc_sop_float(PC_SOP_MUL, f65, f68);
-    const float f82 = pc_sop_float(PC_SOP_MUL, f62, f69);
-    const float f83 = pc_sop_float(PC_SOP_MUL, f64, f69);
-    const float f84 = pc_sop_float(PC_SOP_MUL, f65, f69);
-    const float f85 = pc_sop_float(PC_SOP_MUL, f39, f69);
-    const uint8_t b86 = f37 >= f41;
-    const uint8_t b87 = f42 >= f39;
+    f64 += f31 * PC_KF(25);
     const uint8_t b88 = f47 >= f48;
-    const float f89 = b86 ? f70 : f74;
-    const float f90 = b86 ? f71 : f75;
-    const float f91 = b86 ? f72 : f76;
-    const float f92 = b86 ? f73 : f77;
-    const float f93 = b87 ? f78 : f82;
-    const float f94 = b87 ? f79 : f83;
-    const float f95 = b87 ? f80 : f84;
-    const float f96 = b87 ? f81 : f85;
-    const float f97 = b88 ? f89 : f93;
-    const float f98 = b88 ? f90 : f94;
-    const float f99 = b88 ? f91 : f95;
-    const float f100 = b88 ? f92 : f96;
-    float f101 = PC_XF(124, c);
-    f101 += f97 * f97;
+    float f97, f98, f99, f100;
+    if (b88) {
+        const float f25 = pc_sop_float(PC_SOP_MUL, f19, PC_KF(6));
+        const float f60 = pc_sop_float(PC_SOP_SUB, f25, f54);
+        const uint8_t b86 = f37 >= f41;
+        float f89, f90, f91, f92;
+        if (b86) {
+            const float f43 = pc_sop_float(PC_SOP_MAX, f37, PC_KF(13));
+            const float f49 = pc_sop_float(PC_SOP_SQRT, f43, 0.0f);
+            const float f56 = pc_sop_float(PC_SOP_MUL, f49, PC_KF(20));
+            const float f66 = pc_sop_float(PC_SOP_DIV, PC_KF(27), f56);
+            const float f70 = pc_sop_float(PC_SOP_MUL, f37, f66);
+            const float f71 = pc_sop_float(PC_SOP_MUL, f60, f66);
+            const float f72 = pc_sop_float(PC_SOP_MUL, f61, f66);
+            const float f73 = pc_sop_float(PC_SOP_MUL, f62, f66);
+            f89 = f70;
+            f90 = f71;
+            f91 = f72;
+            f92 = f73;
+        } else {
+            const float f44 = pc_sop_float(PC_SOP_MAX, f41, PC_KF(14));
+            const float f50 = pc_sop_float(PC_SOP_SQRT, f44, 0.0f);
+            const float f57 = pc_sop_float(PC_SOP_MUL, f50, PC_KF(21));
+            const float f67 = pc_sop_float(PC_SOP_DIV, PC_KF(28), f57);
+            const float f74 = pc_sop_float(PC_SOP_MUL, f60, f67);
+            const float f75 = pc_sop_float(PC_SOP_MUL, f41, f67);
+            const float f76 = pc_sop_float(PC_SOP_MUL, f63, f67);
+            const float f77 = pc_sop_float(PC_SOP_MUL, f64, f67);
+            f89 = f74;
+            f90 = f75;
+            f91 = f76;
+            f92 = f77;
+        }
+        f97 = f89;
+        f98 = f90;
+        f99 = f91;
+        f100 = f92;
+    } else {
+        float f65 = f54;
+        f65 += f19 * PC_KF(26);
+        const uint8_t b87 = f42 >= f39;
+        float f93, f94, f95, f96;
+        if (b87) {
+            const float f45 = pc_sop_float(PC_SOP_MAX, f42, PC_KF(15));
+            const float f51 = pc_sop_float(PC_SOP_SQRT, f45, 0.0f);
+            const float f58 = pc_sop_float(PC_SOP_MUL, f51, PC_KF(22));
+            const float f68 = pc_sop_float(PC_SOP_DIV, PC_KF(29), f58);
+            const float f78 = pc_sop_float(PC_SOP_MUL, f61, f68);
+            const float f79 = pc_sop_float(PC_SOP_MUL, f63, f68);
+            const float f80 = pc_sop_float(PC_SOP_MUL, f42, f68);
+            const float f81 = pc_sop_float(PC_SOP_MUL, f65, f68);
+            f93 = f78;
+            f94 = f79;
+            f95 = f80;
+            f96 = f81;
+        } else {
+            const float f46 = pc_sop_float(PC_SOP_MAX, f39, PC_KF(16));
+            const float f52 = pc_sop_float(PC_SOP_SQRT, f46, 0.0f);
+            const float f59 = pc_sop_float(PC_SOP_MUL, f52, PC_KF(23));
+            const float f69 = pc_sop_float(PC_SOP_DIV, PC_KF(30), f59);
+            const float f82 = pc_sop_float(PC_SOP_MUL, f62, f69);
+            const float f83 = pc_sop_float(PC_SOP_MUL, f64, f69);
+            const float f84 = pc_sop_float(PC_SOP_MUL, f65, f69);
+            const float f85 = pc_sop_float(PC_SOP_MUL, f39, f69);
+            f93 = f82;
+            f94 = f83;
+            f95 = f84;
+            f96 = f85;
+        }
+        f97 = f93;
+        f98 = f94;
+        f99 = f95;
+        f100 = f96;
+    }
+    float f101 = f97 * f97; /* a square: 0 + it is it */
     f101 += f98 * f98;
     f101 += f99 * f99;
     f101 += f100 * f100;
-    const float f102 = pc_sop_float(PC_SOP_MAX, f101, PC_XF(129, b));
+    const float f102 = pc_sop_float(PC_SOP_MAX, f101, PC_KF(32));
     const float f103 = pc_sop_float(PC_SOP_SQRT, f102, 0.0f);
     const float f104 = pc_sop_float(PC_SOP_DIV, f97, f103);
     const float f105 = pc_sop_float(PC_SOP_DIV, f98, f103);
     const float f106 = pc_sop_float(PC_SOP_DIV, f99, f103);
     const float f107 = pc_sop_float(PC_SOP_DIV, f100, f103);
-    const uint8_t b108 = f104 < PC_XF(138, b);
+    const uint8_t b108 = f104 < PC_KF(33);
     const float f109 = pc_sop_float(PC_SOP_NEG, f104, 0.0f);
     const float f110 = pc_sop_float(PC_SOP_NEG, f105, 0.0f);
     const float f111 = pc_sop_float(PC_SOP_NEG, f106, 0.0f);
@@ -1129,63 +1206,63 @@ PC_HOT static pc_status pc_program_5702f51db0f08e54(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_eec959fc49e33d72_shape[656] = {
-    26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 0, 0, 0, 0,
-    26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0, 26, 3, 0, 4, 4, 0,
-    3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7,
+static const uint8_t pc_program_0e2ac2e895ee3c02_shape[656] = {
+    26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254, 26, 0, 0, 0, 254, 254,
+    26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254, 26, 3, 0, 4, 4, 253,
+    3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7,
     2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 3, 0, 0, 2, 2, 3, 0, 0, 4, 3, 3, 0, 0,
     6, 3, 3, 0, 0, 6, 4, 3, 0, 0, 8, 6, 3, 0, 0, 8, 8, 3, 0, 0, 8, 7, 3, 0,
     0, 11, 10, 26, 0, 0, 9, 9, 8, 26, 0, 0, 13, 11, 6, 26, 0, 0, 14, 11, 9, 26, 0, 0,
-    12, 12, 6, 26, 0, 0, 16, 15, 6, 26, 0, 0, 15, 15, 8, 3, 0, 0, 6, 0, 3, 0, 0, 6,
-    0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 2, 0, 0,
-    0, 6, 2, 0, 0, 20, 19, 2, 0, 0, 0, 5, 2, 0, 0, 17, 16, 2, 0, 0, 21, 20, 2, 0,
-    0, 0, 6, 2, 0, 0, 0, 6, 2, 0, 0, 1, 5, 1, 0, 0, 8, 0, 1, 0, 0, 1, 7, 1,
+    12, 12, 6, 26, 0, 0, 16, 15, 6, 26, 0, 0, 15, 15, 8, 3, 0, 0, 6, 254, 3, 0, 0, 6,
+    254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 2, 0, 0,
+    254, 6, 2, 0, 0, 20, 19, 2, 0, 0, 254, 5, 2, 0, 0, 17, 16, 2, 0, 0, 21, 20, 2, 0,
+    0, 254, 6, 2, 0, 0, 254, 6, 2, 0, 0, 1, 5, 1, 0, 0, 8, 254, 1, 0, 0, 1, 7, 1,
     0, 0, 1, 5, 1, 0, 0, 5, 9, 1, 0, 0, 5, 7, 2, 0, 0, 5, 11, 2, 0, 0, 1, 9,
-    2, 0, 0, 4, 10, 5, 0, 0, 6, 0, 5, 0, 0, 3, 0, 5, 0, 0, 3, 0, 5, 0, 0, 7,
-    0, 5, 0, 0, 10, 6, 5, 0, 0, 6, 9, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13,
-    0, 0, 6, 3, 0, 0, 25, 0, 3, 0, 0, 24, 0, 3, 0, 0, 24, 0, 3, 0, 0, 7, 0, 3,
-    0, 0, 7, 0, 3, 0, 0, 7, 0, 3, 0, 0, 7, 0, 2, 0, 0, 35, 6, 2, 0, 0, 39, 6,
-    2, 0, 0, 39, 9, 26, 0, 0, 46, 0, 10, 26, 0, 0, 33, 0, 42, 26, 0, 0, 46, 0, 11, 4,
-    0, 0, 0, 10, 4, 0, 0, 0, 10, 4, 0, 0, 0, 10, 4, 0, 0, 0, 10, 3, 0, 0, 33, 4,
+    2, 0, 0, 4, 10, 5, 0, 0, 6, 254, 5, 0, 0, 3, 254, 5, 0, 0, 3, 254, 5, 0, 0, 7,
+    254, 5, 0, 0, 10, 6, 5, 0, 0, 6, 9, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13,
+    0, 0, 6, 3, 0, 0, 25, 254, 3, 0, 0, 24, 254, 3, 0, 0, 24, 254, 3, 0, 0, 7, 254, 3,
+    0, 0, 7, 254, 3, 0, 0, 7, 254, 3, 0, 0, 7, 254, 2, 0, 0, 35, 6, 2, 0, 0, 39, 6,
+    2, 0, 0, 39, 9, 26, 0, 0, 46, 254, 10, 26, 0, 0, 33, 254, 42, 26, 0, 0, 46, 254, 11, 4,
+    0, 0, 254, 10, 4, 0, 0, 254, 10, 4, 0, 0, 254, 10, 4, 0, 0, 254, 10, 3, 0, 0, 33, 4,
     3, 0, 0, 11, 5, 3, 0, 0, 11, 6, 3, 0, 0, 11, 7, 3, 0, 0, 14, 7, 3, 0, 0, 34,
     8, 3, 0, 0, 13, 9, 3, 0, 0, 13, 10, 3, 0, 0, 17, 10, 3, 0, 0, 16, 11, 3, 0, 0,
     38, 12, 3, 0, 0, 16, 13, 3, 0, 0, 20, 13, 3, 0, 0, 19, 14, 3, 0, 0, 19, 15, 3, 0,
     0, 46, 16, 9, 0, 0, 49, 45, 9, 0, 0, 45, 48, 9, 0, 0, 41, 40, 23, 0, 0, 19, 15, 3,
     23, 0, 0, 19, 15, 4, 23, 0, 0, 19, 15, 5, 23, 0, 0, 19, 15, 6, 23, 0, 0, 15, 11, 6,
     23, 0, 0, 15, 11, 7, 23, 0, 0, 15, 11, 8, 23, 0, 0, 15, 11, 9, 23, 0, 0, 8, 4, 9,
-    23, 0, 0, 8, 4, 10, 23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 0,
-    3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7,
-    2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 0, 12, 0, 0, 5, 12, 0, 0, 5,
+    23, 0, 0, 8, 4, 10, 23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 253,
+    3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7,
+    2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 254, 12, 0, 0, 5, 12, 0, 0, 5,
     12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1, 4, 9, 5, 23, 0, 1, 4, 9, 6, 23, 0, 1, 4,
     9, 7, 23, 0, 1, 4, 9, 8,
 };
-PC_HOT static pc_status pc_program_eec959fc49e33d72(const pc_step *s)
+PC_HOT static pc_status pc_program_0e2ac2e895ee3c02(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
-    f0 += PC_XF(1, a) * PC_XF(1, b);
+    const float *const k = (const float *)(const void *)(e + 156);
+    float f0 = PC_KF(1);
+    f0 += PC_XF(1, a) * PC_KF(0);
     PC_STOREF(1, f0);
-    float f1 = PC_XF(2, c);
-    f1 += PC_XF(2, a) * PC_XF(2, b);
+    float f1 = PC_KF(3);
+    f1 += PC_XF(2, a) * PC_KF(2);
     PC_STOREF(2, f1);
-    float f2 = PC_XF(3, c);
-    f2 += PC_XF(3, a) * PC_XF(3, b);
+    float f2 = PC_KF(5);
+    f2 += PC_XF(3, a) * PC_KF(4);
     PC_STOREF(3, f2);
-    float f3 = PC_XF(4, c);
-    f3 += PC_XF(4, a) * PC_XF(4, b);
-    float f4 = PC_XF(5, c);
-    f4 += PC_XF(5, a) * PC_XF(5, b);
-    float f5 = PC_XF(6, c);
-    f5 += PC_XF(6, a) * PC_XF(6, b);
-    float f6 = PC_XF(7, c);
-    f6 += PC_XF(7, a) * PC_XF(7, b);
-    float f7 = PC_XF(8, c);
-    f7 += f3 * f3;
+    float f3 = PC_KF(7);
+    f3 += PC_XF(4, a) * PC_KF(6);
+    float f4 = PC_KF(9);
+    f4 += PC_XF(5, a) * PC_KF(8);
+    float f5 = PC_KF(11);
+    f5 += PC_XF(6, a) * PC_KF(10);
+    float f6 = PC_KF(13);
+    f6 += PC_XF(7, a) * PC_KF(12);
+    float f7 = f3 * f3; /* a square: 0 + it is it */
     f7 += f4 * f4;
     f7 += f5 * f5;
     f7 += f6 * f6;
-    const float f8 = pc_sop_float(PC_SOP_MAX, f7, PC_XF(13, b));
+    const float f8 = pc_sop_float(PC_SOP_MAX, f7, PC_KF(15));
     const float f9 = pc_sop_float(PC_SOP_SQRT, f8, 0.0f);
     const float f10 = pc_sop_float(PC_SOP_DIV, f3, f9);
     const float f11 = pc_sop_float(PC_SOP_DIV, f4, f9);
@@ -1211,21 +1288,20 @@ PC_HOT static pc_status pc_program_eec959fc49e33d72(const pc_step *s)
     f26 += f10 * f11;
     float f27 = f19;
     f27 += f12 * f12;
-    const float f28 = pc_sop_float(PC_SOP_MUL, f22, PC_XF(38, b));
-    const float f29 = pc_sop_float(PC_SOP_MUL, f23, PC_XF(39, b));
-    const float f30 = pc_sop_float(PC_SOP_MUL, f24, PC_XF(40, b));
-    const float f31 = pc_sop_float(PC_SOP_MUL, f25, PC_XF(41, b));
-    const float f32 = pc_sop_float(PC_SOP_MUL, f26, PC_XF(42, b));
-    const float f33 = pc_sop_float(PC_SOP_MUL, f27, PC_XF(43, b));
-    const float f34 = pc_sop_float(PC_SOP_SUB, PC_XF(45, a), f28);
+    const float f28 = pc_sop_float(PC_SOP_MUL, f22, PC_KF(16));
+    const float f29 = pc_sop_float(PC_SOP_MUL, f23, PC_KF(17));
+    const float f30 = pc_sop_float(PC_SOP_MUL, f24, PC_KF(18));
+    const float f31 = pc_sop_float(PC_SOP_MUL, f25, PC_KF(19));
+    const float f33 = pc_sop_float(PC_SOP_MUL, f27, PC_KF(21));
+    const float f34 = pc_sop_float(PC_SOP_SUB, PC_KF(22), f28);
     const float f35 = pc_sop_float(PC_SOP_SUB, f15, f16);
-    const float f36 = pc_sop_float(PC_SOP_SUB, PC_XF(47, a), f31);
+    const float f36 = pc_sop_float(PC_SOP_SUB, PC_KF(23), f31);
     const float f37 = pc_sop_float(PC_SOP_SUB, f20, f21);
     const float f38 = pc_sop_float(PC_SOP_SUB, f17, f18);
-    const float f39 = pc_sop_float(PC_SOP_SUB, PC_XF(50, a), f33);
-    const float f40 = pc_sop_float(PC_SOP_SUB, PC_XF(51, a), f34);
+    const float f39 = pc_sop_float(PC_SOP_SUB, PC_KF(24), f33);
+    const float f40 = pc_sop_float(PC_SOP_SUB, PC_KF(25), f34);
     const float f41 = pc_sop_float(PC_SOP_SUB, f40, f36);
-    const float f42 = pc_sop_float(PC_SOP_ADD, f34, PC_XF(54, b));
+    const float f42 = pc_sop_float(PC_SOP_ADD, f34, PC_KF(26));
     const float f43 = pc_sop_float(PC_SOP_ADD, f42, f36);
     const float f44 = pc_sop_float(PC_SOP_ADD, f43, f39);
     const float f45 = pc_sop_float(PC_SOP_ADD, f40, f36);
@@ -1233,79 +1309,103 @@ PC_HOT static pc_status pc_program_eec959fc49e33d72(const pc_step *s)
     const float f47 = pc_sop_float(PC_SOP_SUB, f42, f36);
     const float f48 = pc_sop_float(PC_SOP_SUB, f47, f39);
     const float f49 = pc_sop_float(PC_SOP_SUB, f45, f39);
-    const float f50 = pc_sop_float(PC_SOP_MAX, f44, PC_XF(64, b));
-    const float f51 = pc_sop_float(PC_SOP_MAX, f48, PC_XF(65, b));
-    const float f52 = pc_sop_float(PC_SOP_MAX, f49, PC_XF(66, b));
-    const float f53 = pc_sop_float(PC_SOP_MAX, f46, PC_XF(67, b));
     const float f54 = pc_sop_float(PC_SOP_MAX, f44, f48);
     const float f55 = pc_sop_float(PC_SOP_MAX, f49, f46);
-    const float f56 = pc_sop_float(PC_SOP_SQRT, f50, 0.0f);
-    const float f57 = pc_sop_float(PC_SOP_SQRT, f51, 0.0f);
-    const float f58 = pc_sop_float(PC_SOP_SQRT, f52, 0.0f);
-    const float f59 = pc_sop_float(PC_SOP_SQRT, f53, 0.0f);
-    const float f60 = pc_sop_float(PC_SOP_MUL, f35, PC_XF(76, b));
-    const float f61 = pc_sop_float(PC_SOP_MUL, f37, PC_XF(77, b));
-    const float f62 = pc_sop_float(PC_SOP_MUL, f38, PC_XF(78, b));
-    const float f63 = pc_sop_float(PC_SOP_MUL, f56, PC_XF(79, b));
-    const float f64 = pc_sop_float(PC_SOP_MUL, f57, PC_XF(80, b));
-    const float f65 = pc_sop_float(PC_SOP_MUL, f58, PC_XF(81, b));
-    const float f66 = pc_sop_float(PC_SOP_MUL, f59, PC_XF(82, b));
-    const float f67 = pc_sop_float(PC_SOP_SUB, f32, f61);
+    const float f60 = pc_sop_float(PC_SOP_MUL, f35, PC_KF(31));
+    const float f61 = pc_sop_float(PC_SOP_MUL, f37, PC_KF(32));
+    const float f62 = pc_sop_float(PC_SOP_MUL, f38, PC_KF(33));
     const float f68 = pc_sop_float(PC_SOP_SUB, f29, f62);
     const float f69 = pc_sop_float(PC_SOP_SUB, f30, f60);
     float f70 = f60;
-    f70 += f24 * PC_XF(88, b);
+    f70 += f24 * PC_KF(38);
     float f71 = f29;
-    f71 += f38 * PC_XF(89, b);
-    float f72 = f61;
-    f72 += f26 * PC_XF(90, b);
-    const float f73 = pc_sop_float(PC_SOP_DIV, PC_XF(92, a), f63);
-    const float f74 = pc_sop_float(PC_SOP_DIV, PC_XF(93, a), f64);
-    const float f75 = pc_sop_float(PC_SOP_DIV, PC_XF(94, a), f65);
-    const float f76 = pc_sop_float(PC_SOP_DIV, PC_XF(95, a), f66);
-    const float f77 = pc_sop_float(PC_SOP_MUL, f44, f73);
-    const float f78 = pc_sop_float(PC_SOP_MUL, f67, f73);
-    const float f79 = pc_sop_float(PC_SOP_MUL, f68, f73);
-    const float f80 = pc_sop_float(PC_SOP_MUL, f69, f73);
-    const float f81 = pc_sop_float(PC_SOP_MUL, f67, f74);
-    const float f82 = pc_sop_float(PC_SOP_MUL, f48, f74);
-    const float f83 = pc_sop_float(PC_SOP_MUL, f70, f74);
-    const float f84 = pc_sop_float(PC_SOP_MUL, f71, f74);
-    const float f85 = pc_sop_float(PC_SOP_MUL, f68, f75);
-    const float f86 = pc_sop_float(PC_SOP_MUL, f70, f75);
-    const float f87 = pc_sop_float(PC_SOP_MUL, f49, f75);
-    const float f88 = pc_sop_float(PC_SOP_MUL, f72, f75);
-    const float f89 = pc_sop_float(PC_SOP_MUL, f69, f76);
-    const float f90 = pc_sop_float(PC_SOP_MUL, f71, f76);
-    const float f91 = pc_sop_float(PC_SOP_MUL, f72, f76);
-    const float f92 = pc_sop_float(PC_SOP_MUL, f46, f76);
-    const uint8_t b93 = f44 >= f48;
-    const uint8_t b94 = f49 >= f46;
+    f71 += f38 * PC_KF(39);
     const uint8_t b95 = f54 >= f55;
-    const float f96 = b93 ? f77 : f81;
-    const float f97 = b93 ? f78 : f82;
-    const float f98 = b93 ? f79 : f83;
-    const float f99 = b93 ? f80 : f84;
-    const float f100 = b94 ? f85 : f89;
-    const float f101 = b94 ? f86 : f90;
-    const float f102 = b94 ? f87 : f91;
-    const float f103 = b94 ? f88 : f92;
-    const float f104 = b95 ? f96 : f100;
-    const float f105 = b95 ? f97 : f101;
-    const float f106 = b95 ? f98 : f102;
-    const float f107 = b95 ? f99 : f103;
-    float f108 = PC_XF(131, c);
-    f108 += f104 * f104;
+    float f104, f105, f106, f107;
+    if (b95) {
+        const float f32 = pc_sop_float(PC_SOP_MUL, f26, PC_KF(20));
+        const float f67 = pc_sop_float(PC_SOP_SUB, f32, f61);
+        const uint8_t b93 = f44 >= f48;
+        float f96, f97, f98, f99;
+        if (b93) {
+            const float f50 = pc_sop_float(PC_SOP_MAX, f44, PC_KF(27));
+            const float f56 = pc_sop_float(PC_SOP_SQRT, f50, 0.0f);
+            const float f63 = pc_sop_float(PC_SOP_MUL, f56, PC_KF(34));
+            const float f73 = pc_sop_float(PC_SOP_DIV, PC_KF(41), f63);
+            const float f77 = pc_sop_float(PC_SOP_MUL, f44, f73);
+            const float f78 = pc_sop_float(PC_SOP_MUL, f67, f73);
+            const float f79 = pc_sop_float(PC_SOP_MUL, f68, f73);
+            const float f80 = pc_sop_float(PC_SOP_MUL, f69, f73);
+            f96 = f77;
+            f97 = f78;
+            f98 = f79;
+            f99 = f80;
+        } else {
+            const float f51 = pc_sop_float(PC_SOP_MAX, f48, PC_KF(28));
+            const float f57 = pc_sop_float(PC_SOP_SQRT, f51, 0.0f);
+            const float f64 = pc_sop_float(PC_SOP_MUL, f57, PC_KF(35));
+            const float f74 = pc_sop_float(PC_SOP_DIV, PC_KF(42), f64);
+            const float f81 = pc_sop_float(PC_SOP_MUL, f67, f74);
+            const float f82 = pc_sop_float(PC_SOP_MUL, f48, f74);
+            const float f83 = pc_sop_float(PC_SOP_MUL, f70, f74);
+            const float f84 = pc_sop_float(PC_SOP_MUL, f71, f74);
+            f96 = f81;
+            f97 = f82;
+            f98 = f83;
+            f99 = f84;
+        }
+        f104 = f96;
+        f105 = f97;
+        f106 = f98;
+        f107 = f99;
+    } else {
+        float f72 = f61;
+        f72 += f26 * PC_KF(40);
+        const uint8_t b94 = f49 >= f46;
+        float f100, f101, f102, f103;
+        if (b94) {
+            const float f52 = pc_sop_float(PC_SOP_MAX, f49, PC_KF(29));
+            const float f58 = pc_sop_float(PC_SOP_SQRT, f52, 0.0f);
+            const float f65 = pc_sop_float(PC_SOP_MUL, f58, PC_KF(36));
+            const float f75 = pc_sop_float(PC_SOP_DIV, PC_KF(43), f65);
+            const float f85 = pc_sop_float(PC_SOP_MUL, f68, f75);
+            const float f86 = pc_sop_float(PC_SOP_MUL, f70, f75);
+            const float f87 = pc_sop_float(PC_SOP_MUL, f49, f75);
+            const float f88 = pc_sop_float(PC_SOP_MUL, f72, f75);
+            f100 = f85;
+            f101 = f86;
+            f102 = f87;
+            f103 = f88;
+        } else {
+            const float f53 = pc_sop_float(PC_SOP_MAX, f46, PC_KF(30));
+            const float f59 = pc_sop_float(PC_SOP_SQRT, f53, 0.0f);
+            const float f66 = pc_sop_float(PC_SOP_MUL, f59, PC_KF(37));
+            const float f76 = pc_sop_float(PC_SOP_DIV, PC_KF(44), f66);
+            const float f89 = pc_sop_float(PC_SOP_MUL, f69, f76);
+            const float f90 = pc_sop_float(PC_SOP_MUL, f71, f76);
+            const float f91 = pc_sop_float(PC_SOP_MUL, f72, f76);
+            const float f92 = pc_sop_float(PC_SOP_MUL, f46, f76);
+            f100 = f89;
+            f101 = f90;
+            f102 = f91;
+            f103 = f92;
+        }
+        f104 = f100;
+        f105 = f101;
+        f106 = f102;
+        f107 = f103;
+    }
+    float f108 = f104 * f104; /* a square: 0 + it is it */
     f108 += f105 * f105;
     f108 += f106 * f106;
     f108 += f107 * f107;
-    const float f109 = pc_sop_float(PC_SOP_MAX, f108, PC_XF(136, b));
+    const float f109 = pc_sop_float(PC_SOP_MAX, f108, PC_KF(46));
     const float f110 = pc_sop_float(PC_SOP_SQRT, f109, 0.0f);
     const float f111 = pc_sop_float(PC_SOP_DIV, f104, f110);
     const float f112 = pc_sop_float(PC_SOP_DIV, f105, f110);
     const float f113 = pc_sop_float(PC_SOP_DIV, f106, f110);
     const float f114 = pc_sop_float(PC_SOP_DIV, f107, f110);
-    const uint8_t b115 = f111 < PC_XF(145, b);
+    const uint8_t b115 = f111 < PC_KF(47);
     const float f116 = pc_sop_float(PC_SOP_NEG, f111, 0.0f);
     const float f117 = pc_sop_float(PC_SOP_NEG, f112, 0.0f);
     const float f118 = pc_sop_float(PC_SOP_NEG, f113, 0.0f);
@@ -1321,55 +1421,56 @@ PC_HOT static pc_status pc_program_eec959fc49e33d72(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_e4627751465255bd_shape[656] = {
-    26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0,
-    26, 0, 1, 0, 0, 0, 5, 0, 0, 4, 0, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
+static const uint8_t pc_program_44da516777a1d7e9_shape[656] = {
+    26, 3, 0, 0, 0, 253, 0, 0, 0, 0, 0, 0, 26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254,
+    26, 0, 1, 0, 254, 254, 5, 0, 0, 4, 254, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
     2, 4, 0, 0, 0, 3, 4, 0, 0, 0, 4, 3, 0, 0, 2, 2, 3, 0, 0, 4, 3, 3, 0, 0,
     6, 3, 3, 0, 0, 6, 4, 3, 0, 0, 8, 6, 3, 0, 0, 8, 8, 3, 0, 0, 8, 7, 3, 0,
     0, 11, 10, 26, 0, 0, 9, 9, 8, 26, 0, 0, 13, 11, 6, 26, 0, 0, 14, 11, 9, 26, 0, 0,
-    12, 12, 6, 26, 0, 0, 16, 15, 6, 26, 0, 0, 15, 15, 8, 3, 0, 0, 6, 0, 3, 0, 0, 6,
-    0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 2, 0, 0,
-    0, 6, 2, 0, 0, 20, 19, 2, 0, 0, 0, 5, 2, 0, 0, 17, 16, 2, 0, 0, 21, 20, 2, 0,
-    0, 0, 6, 2, 0, 0, 0, 6, 2, 0, 0, 1, 5, 1, 0, 0, 8, 0, 1, 0, 0, 1, 7, 1,
+    12, 12, 6, 26, 0, 0, 16, 15, 6, 26, 0, 0, 15, 15, 8, 3, 0, 0, 6, 254, 3, 0, 0, 6,
+    254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 2, 0, 0,
+    254, 6, 2, 0, 0, 20, 19, 2, 0, 0, 254, 5, 2, 0, 0, 17, 16, 2, 0, 0, 21, 20, 2, 0,
+    0, 254, 6, 2, 0, 0, 254, 6, 2, 0, 0, 1, 5, 1, 0, 0, 8, 254, 1, 0, 0, 1, 7, 1,
     0, 0, 1, 5, 1, 0, 0, 5, 9, 1, 0, 0, 5, 7, 2, 0, 0, 5, 11, 2, 0, 0, 1, 9,
-    2, 0, 0, 4, 10, 5, 0, 0, 6, 0, 5, 0, 0, 3, 0, 5, 0, 0, 3, 0, 5, 0, 0, 7,
-    0, 5, 0, 0, 10, 6, 5, 0, 0, 6, 9, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13,
-    0, 0, 6, 3, 0, 0, 25, 0, 3, 0, 0, 24, 0, 3, 0, 0, 24, 0, 3, 0, 0, 7, 0, 3,
-    0, 0, 7, 0, 3, 0, 0, 7, 0, 3, 0, 0, 7, 0, 2, 0, 0, 35, 6, 2, 0, 0, 39, 6,
-    2, 0, 0, 39, 9, 26, 0, 0, 46, 0, 10, 26, 0, 0, 33, 0, 42, 26, 0, 0, 46, 0, 11, 4,
-    0, 0, 0, 10, 4, 0, 0, 0, 10, 4, 0, 0, 0, 10, 4, 0, 0, 0, 10, 3, 0, 0, 33, 4,
+    2, 0, 0, 4, 10, 5, 0, 0, 6, 254, 5, 0, 0, 3, 254, 5, 0, 0, 3, 254, 5, 0, 0, 7,
+    254, 5, 0, 0, 10, 6, 5, 0, 0, 6, 9, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13,
+    0, 0, 6, 3, 0, 0, 25, 254, 3, 0, 0, 24, 254, 3, 0, 0, 24, 254, 3, 0, 0, 7, 254, 3,
+    0, 0, 7, 254, 3, 0, 0, 7, 254, 3, 0, 0, 7, 254, 2, 0, 0, 35, 6, 2, 0, 0, 39, 6,
+    2, 0, 0, 39, 9, 26, 0, 0, 46, 254, 10, 26, 0, 0, 33, 254, 42, 26, 0, 0, 46, 254, 11, 4,
+    0, 0, 254, 10, 4, 0, 0, 254, 10, 4, 0, 0, 254, 10, 4, 0, 0, 254, 10, 3, 0, 0, 33, 4,
     3, 0, 0, 11, 5, 3, 0, 0, 11, 6, 3, 0, 0, 11, 7, 3, 0, 0, 14, 7, 3, 0, 0, 34,
     8, 3, 0, 0, 13, 9, 3, 0, 0, 13, 10, 3, 0, 0, 17, 10, 3, 0, 0, 16, 11, 3, 0, 0,
     38, 12, 3, 0, 0, 16, 13, 3, 0, 0, 20, 13, 3, 0, 0, 19, 14, 3, 0, 0, 19, 15, 3, 0,
     0, 46, 16, 9, 0, 0, 49, 45, 9, 0, 0, 45, 48, 9, 0, 0, 41, 40, 23, 0, 0, 19, 15, 3,
     23, 0, 0, 19, 15, 4, 23, 0, 0, 19, 15, 5, 23, 0, 0, 19, 15, 6, 23, 0, 0, 15, 11, 6,
     23, 0, 0, 15, 11, 7, 23, 0, 0, 15, 11, 8, 23, 0, 0, 15, 11, 9, 23, 0, 0, 8, 4, 9,
-    23, 0, 0, 8, 4, 10, 23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 0,
-    3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7,
-    2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 0, 12, 0, 0, 5, 12, 0, 0, 5,
+    23, 0, 0, 8, 4, 10, 23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 253,
+    3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7,
+    2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 254, 12, 0, 0, 5, 12, 0, 0, 5,
     12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 0, 4, 9, 5, 23, 0, 0, 4, 9, 6, 23, 0, 0, 4,
-    9, 7, 23, 0, 0, 4, 9, 8, 26, 0, 1, 4, 0, 0, 26, 0, 1, 4, 0, 0, 26, 0, 1, 4,
-    0, 0, 26, 0, 1, 4, 0, 0,
+    9, 7, 23, 0, 0, 4, 9, 8, 26, 0, 1, 4, 254, 254, 26, 0, 1, 4, 254, 254, 26, 0, 1, 4,
+    254, 254, 26, 0, 1, 4, 254, 254,
 };
-PC_HOT static pc_status pc_program_e4627751465255bd(const pc_step *s)
+PC_HOT static pc_status pc_program_44da516777a1d7e9(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
+    const float *const k = (const float *)(const void *)(e + 157);
+    float f0 = PC_KF(0);
     f0 += PC_XF(1, a) * PC_XF(1, b);
     f0 += PC_XF(2, a) * PC_XF(2, b);
     f0 += PC_XF(3, a) * PC_XF(3, b);
     f0 += PC_XF(4, a) * PC_XF(4, b);
-    float f1 = PC_XF(5, c);
-    f1 += PC_XF(5, a) * PC_XF(5, b);
+    float f1 = PC_KF(2);
+    f1 += PC_XF(5, a) * PC_KF(1);
     PC_STOREF(5, f1);
-    float f2 = PC_XF(6, c);
-    f2 += PC_XF(6, a) * PC_XF(6, b);
+    float f2 = PC_KF(4);
+    f2 += PC_XF(6, a) * PC_KF(3);
     PC_STOREF(6, f2);
-    float f3 = PC_XF(7, c);
-    f3 += PC_XF(7, a) * PC_XF(7, b);
+    float f3 = PC_KF(6);
+    f3 += PC_XF(7, a) * PC_KF(5);
     PC_STOREF(7, f3);
-    const float f4 = pc_sop_float(PC_SOP_MAX, f0, PC_XF(9, b));
+    const float f4 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(7));
     const float f5 = pc_sop_float(PC_SOP_SQRT, f4, 0.0f);
     const float f6 = pc_sop_float(PC_SOP_DIV, PC_XF(13, a), f5);
     const float f7 = pc_sop_float(PC_SOP_DIV, PC_XF(14, a), f5);
@@ -1395,21 +1496,20 @@ PC_HOT static pc_status pc_program_e4627751465255bd(const pc_step *s)
     f22 += f6 * f7;
     float f23 = f15;
     f23 += f8 * f8;
-    const float f24 = pc_sop_float(PC_SOP_MUL, f18, PC_XF(34, b));
-    const float f25 = pc_sop_float(PC_SOP_MUL, f19, PC_XF(35, b));
-    const float f26 = pc_sop_float(PC_SOP_MUL, f20, PC_XF(36, b));
-    const float f27 = pc_sop_float(PC_SOP_MUL, f21, PC_XF(37, b));
-    const float f28 = pc_sop_float(PC_SOP_MUL, f22, PC_XF(38, b));
-    const float f29 = pc_sop_float(PC_SOP_MUL, f23, PC_XF(39, b));
-    const float f30 = pc_sop_float(PC_SOP_SUB, PC_XF(41, a), f24);
+    const float f24 = pc_sop_float(PC_SOP_MUL, f18, PC_KF(8));
+    const float f25 = pc_sop_float(PC_SOP_MUL, f19, PC_KF(9));
+    const float f26 = pc_sop_float(PC_SOP_MUL, f20, PC_KF(10));
+    const float f27 = pc_sop_float(PC_SOP_MUL, f21, PC_KF(11));
+    const float f29 = pc_sop_float(PC_SOP_MUL, f23, PC_KF(13));
+    const float f30 = pc_sop_float(PC_SOP_SUB, PC_KF(14), f24);
     const float f31 = pc_sop_float(PC_SOP_SUB, f11, f12);
-    const float f32 = pc_sop_float(PC_SOP_SUB, PC_XF(43, a), f27);
+    const float f32 = pc_sop_float(PC_SOP_SUB, PC_KF(15), f27);
     const float f33 = pc_sop_float(PC_SOP_SUB, f16, f17);
     const float f34 = pc_sop_float(PC_SOP_SUB, f13, f14);
-    const float f35 = pc_sop_float(PC_SOP_SUB, PC_XF(46, a), f29);
-    const float f36 = pc_sop_float(PC_SOP_SUB, PC_XF(47, a), f30);
+    const float f35 = pc_sop_float(PC_SOP_SUB, PC_KF(16), f29);
+    const float f36 = pc_sop_float(PC_SOP_SUB, PC_KF(17), f30);
     const float f37 = pc_sop_float(PC_SOP_SUB, f36, f32);
-    const float f38 = pc_sop_float(PC_SOP_ADD, f30, PC_XF(50, b));
+    const float f38 = pc_sop_float(PC_SOP_ADD, f30, PC_KF(18));
     const float f39 = pc_sop_float(PC_SOP_ADD, f38, f32);
     const float f40 = pc_sop_float(PC_SOP_ADD, f39, f35);
     const float f41 = pc_sop_float(PC_SOP_ADD, f36, f32);
@@ -1417,79 +1517,103 @@ PC_HOT static pc_status pc_program_e4627751465255bd(const pc_step *s)
     const float f43 = pc_sop_float(PC_SOP_SUB, f38, f32);
     const float f44 = pc_sop_float(PC_SOP_SUB, f43, f35);
     const float f45 = pc_sop_float(PC_SOP_SUB, f41, f35);
-    const float f46 = pc_sop_float(PC_SOP_MAX, f40, PC_XF(60, b));
-    const float f47 = pc_sop_float(PC_SOP_MAX, f44, PC_XF(61, b));
-    const float f48 = pc_sop_float(PC_SOP_MAX, f45, PC_XF(62, b));
-    const float f49 = pc_sop_float(PC_SOP_MAX, f42, PC_XF(63, b));
     const float f50 = pc_sop_float(PC_SOP_MAX, f40, f44);
     const float f51 = pc_sop_float(PC_SOP_MAX, f45, f42);
-    const float f52 = pc_sop_float(PC_SOP_SQRT, f46, 0.0f);
-    const float f53 = pc_sop_float(PC_SOP_SQRT, f47, 0.0f);
-    const float f54 = pc_sop_float(PC_SOP_SQRT, f48, 0.0f);
-    const float f55 = pc_sop_float(PC_SOP_SQRT, f49, 0.0f);
-    const float f56 = pc_sop_float(PC_SOP_MUL, f31, PC_XF(72, b));
-    const float f57 = pc_sop_float(PC_SOP_MUL, f33, PC_XF(73, b));
-    const float f58 = pc_sop_float(PC_SOP_MUL, f34, PC_XF(74, b));
-    const float f59 = pc_sop_float(PC_SOP_MUL, f52, PC_XF(75, b));
-    const float f60 = pc_sop_float(PC_SOP_MUL, f53, PC_XF(76, b));
-    const float f61 = pc_sop_float(PC_SOP_MUL, f54, PC_XF(77, b));
-    const float f62 = pc_sop_float(PC_SOP_MUL, f55, PC_XF(78, b));
-    const float f63 = pc_sop_float(PC_SOP_SUB, f28, f57);
+    const float f56 = pc_sop_float(PC_SOP_MUL, f31, PC_KF(23));
+    const float f57 = pc_sop_float(PC_SOP_MUL, f33, PC_KF(24));
+    const float f58 = pc_sop_float(PC_SOP_MUL, f34, PC_KF(25));
     const float f64 = pc_sop_float(PC_SOP_SUB, f25, f58);
     const float f65 = pc_sop_float(PC_SOP_SUB, f26, f56);
     float f66 = f56;
-    f66 += f20 * PC_XF(84, b);
+    f66 += f20 * PC_KF(30);
     float f67 = f25;
-    f67 += f34 * PC_XF(85, b);
-    float f68 = f57;
-    f68 += f22 * PC_XF(86, b);
-    const float f69 = pc_sop_float(PC_SOP_DIV, PC_XF(88, a), f59);
-    const float f70 = pc_sop_float(PC_SOP_DIV, PC_XF(89, a), f60);
-    const float f71 = pc_sop_float(PC_SOP_DIV, PC_XF(90, a), f61);
-    const float f72 = pc_sop_float(PC_SOP_DIV, PC_XF(91, a), f62);
-    const float f73 = pc_sop_float(PC_SOP_MUL, f40, f69);
-    const float f74 = pc_sop_float(PC_SOP_MUL, f63, f69);
-    const float f75 = pc_sop_float(PC_SOP_MUL, f64, f69);
-    const float f76 = pc_sop_float(PC_SOP_MUL, f65, f69);
-    const float f77 = pc_sop_float(PC_SOP_MUL, f63, f70);
-    const float f78 = pc_sop_float(PC_SOP_MUL, f44, f70);
-    const float f79 = pc_sop_float(PC_SOP_MUL, f66, f70);
-    const float f80 = pc_sop_float(PC_SOP_MUL, f67, f70);
-    const float f81 = pc_sop_float(PC_SOP_MUL, f64, f71);
-    const float f82 = pc_sop_float(PC_SOP_MUL, f66, f71);
-    const float f83 = pc_sop_float(PC_SOP_MUL, f45, f71);
-    const float f84 = pc_sop_float(PC_SOP_MUL, f68, f71);
-    const float f85 = pc_sop_float(PC_SOP_MUL, f65, f72);
-    const float f86 = pc_sop_float(PC_SOP_MUL, f67, f72);
-    const float f87 = pc_sop_float(PC_SOP_MUL, f68, f72);
-    const float f88 = pc_sop_float(PC_SOP_MUL, f42, f72);
-    const uint8_t b89 = f40 >= f44;
-    const uint8_t b90 = f45 >= f42;
+    f67 += f34 * PC_KF(31);
     const uint8_t b91 = f50 >= f51;
-    const float f92 = b89 ? f73 : f77;
-    const float f93 = b89 ? f74 : f78;
-    const float f94 = b89 ? f75 : f79;
-    const float f95 = b89 ? f76 : f80;
-    const float f96 = b90 ? f81 : f85;
-    const float f97 = b90 ? f82 : f86;
-    const float f98 = b90 ? f83 : f87;
-    const float f99 = b90 ? f84 : f88;
-    const float f100 = b91 ? f92 : f96;
-    const float f101 = b91 ? f93 : f97;
-    const float f102 = b91 ? f94 : f98;
-    const float f103 = b91 ? f95 : f99;
-    float f104 = PC_XF(127, c);
-    f104 += f100 * f100;
+    float f100, f101, f102, f103;
+    if (b91) {
+        const float f28 = pc_sop_float(PC_SOP_MUL, f22, PC_KF(12));
+        const float f63 = pc_sop_float(PC_SOP_SUB, f28, f57);
+        const uint8_t b89 = f40 >= f44;
+        float f92, f93, f94, f95;
+        if (b89) {
+            const float f46 = pc_sop_float(PC_SOP_MAX, f40, PC_KF(19));
+            const float f52 = pc_sop_float(PC_SOP_SQRT, f46, 0.0f);
+            const float f59 = pc_sop_float(PC_SOP_MUL, f52, PC_KF(26));
+            const float f69 = pc_sop_float(PC_SOP_DIV, PC_KF(33), f59);
+            const float f73 = pc_sop_float(PC_SOP_MUL, f40, f69);
+            const float f74 = pc_sop_float(PC_SOP_MUL, f63, f69);
+            const float f75 = pc_sop_float(PC_SOP_MUL, f64, f69);
+            const float f76 = pc_sop_float(PC_SOP_MUL, f65, f69);
+            f92 = f73;
+            f93 = f74;
+            f94 = f75;
+            f95 = f76;
+        } else {
+            const float f47 = pc_sop_float(PC_SOP_MAX, f44, PC_KF(20));
+            const float f53 = pc_sop_float(PC_SOP_SQRT, f47, 0.0f);
+            const float f60 = pc_sop_float(PC_SOP_MUL, f53, PC_KF(27));
+            const float f70 = pc_sop_float(PC_SOP_DIV, PC_KF(34), f60);
+            const float f77 = pc_sop_float(PC_SOP_MUL, f63, f70);
+            const float f78 = pc_sop_float(PC_SOP_MUL, f44, f70);
+            const float f79 = pc_sop_float(PC_SOP_MUL, f66, f70);
+            const float f80 = pc_sop_float(PC_SOP_MUL, f67, f70);
+            f92 = f77;
+            f93 = f78;
+            f94 = f79;
+            f95 = f80;
+        }
+        f100 = f92;
+        f101 = f93;
+        f102 = f94;
+        f103 = f95;
+    } else {
+        float f68 = f57;
+        f68 += f22 * PC_KF(32);
+        const uint8_t b90 = f45 >= f42;
+        float f96, f97, f98, f99;
+        if (b90) {
+            const float f48 = pc_sop_float(PC_SOP_MAX, f45, PC_KF(21));
+            const float f54 = pc_sop_float(PC_SOP_SQRT, f48, 0.0f);
+            const float f61 = pc_sop_float(PC_SOP_MUL, f54, PC_KF(28));
+            const float f71 = pc_sop_float(PC_SOP_DIV, PC_KF(35), f61);
+            const float f81 = pc_sop_float(PC_SOP_MUL, f64, f71);
+            const float f82 = pc_sop_float(PC_SOP_MUL, f66, f71);
+            const float f83 = pc_sop_float(PC_SOP_MUL, f45, f71);
+            const float f84 = pc_sop_float(PC_SOP_MUL, f68, f71);
+            f96 = f81;
+            f97 = f82;
+            f98 = f83;
+            f99 = f84;
+        } else {
+            const float f49 = pc_sop_float(PC_SOP_MAX, f42, PC_KF(22));
+            const float f55 = pc_sop_float(PC_SOP_SQRT, f49, 0.0f);
+            const float f62 = pc_sop_float(PC_SOP_MUL, f55, PC_KF(29));
+            const float f72 = pc_sop_float(PC_SOP_DIV, PC_KF(36), f62);
+            const float f85 = pc_sop_float(PC_SOP_MUL, f65, f72);
+            const float f86 = pc_sop_float(PC_SOP_MUL, f67, f72);
+            const float f87 = pc_sop_float(PC_SOP_MUL, f68, f72);
+            const float f88 = pc_sop_float(PC_SOP_MUL, f42, f72);
+            f96 = f85;
+            f97 = f86;
+            f98 = f87;
+            f99 = f88;
+        }
+        f100 = f96;
+        f101 = f97;
+        f102 = f98;
+        f103 = f99;
+    }
+    float f104 = f100 * f100; /* a square: 0 + it is it */
     f104 += f101 * f101;
     f104 += f102 * f102;
     f104 += f103 * f103;
-    const float f105 = pc_sop_float(PC_SOP_MAX, f104, PC_XF(132, b));
+    const float f105 = pc_sop_float(PC_SOP_MAX, f104, PC_KF(38));
     const float f106 = pc_sop_float(PC_SOP_SQRT, f105, 0.0f);
     const float f107 = pc_sop_float(PC_SOP_DIV, f100, f106);
     const float f108 = pc_sop_float(PC_SOP_DIV, f101, f106);
     const float f109 = pc_sop_float(PC_SOP_DIV, f102, f106);
     const float f110 = pc_sop_float(PC_SOP_DIV, f103, f106);
-    const uint8_t b111 = f107 < PC_XF(141, b);
+    const uint8_t b111 = f107 < PC_KF(39);
     const float f112 = pc_sop_float(PC_SOP_NEG, f107, 0.0f);
     const float f113 = pc_sop_float(PC_SOP_NEG, f108, 0.0f);
     const float f114 = pc_sop_float(PC_SOP_NEG, f109, 0.0f);
@@ -1498,75 +1622,76 @@ PC_HOT static pc_status pc_program_e4627751465255bd(const pc_step *s)
     const float f117 = b111 ? f113 : f108;
     const float f118 = b111 ? f114 : f109;
     const float f119 = b111 ? f115 : f110;
-    float f120 = PC_XF(153, c);
-    f120 += f116 * PC_XF(153, b);
+    float f120 = PC_KF(41);
+    f120 += f116 * PC_KF(40);
     PC_STOREF(153, f120);
-    float f121 = PC_XF(154, c);
-    f121 += f117 * PC_XF(154, b);
+    float f121 = PC_KF(43);
+    f121 += f117 * PC_KF(42);
     PC_STOREF(154, f121);
-    float f122 = PC_XF(155, c);
-    f122 += f118 * PC_XF(155, b);
+    float f122 = PC_KF(45);
+    f122 += f118 * PC_KF(44);
     PC_STOREF(155, f122);
-    float f123 = PC_XF(156, c);
-    f123 += f119 * PC_XF(156, b);
+    float f123 = PC_KF(47);
+    f123 += f119 * PC_KF(46);
     PC_STOREF(156, f123);
     return PC_OK;
 }
 
-static const uint8_t pc_program_bc73bc9880d69e6e_shape[661] = {
-    26, 2, 0, 0, 0, 0, 0, 0, 0, 0, 10, 0, 0, 1, 0, 23, 0, 0, 0, 2, 1, 13, 0, 0,
-    1, 3, 0, 0, 1, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 16, 0, 0, 4, 16, 0, 0, 4,
-    4, 0, 0, 9, 0, 4, 0, 0, 3, 7, 4, 0, 0, 3, 7, 4, 0, 0, 12, 0, 3, 0, 0, 2,
-    0, 3, 0, 0, 1, 3, 2, 0, 0, 0, 6, 2, 0, 0, 0, 4, 23, 0, 0, 2, 7, 16, 23, 0,
+static const uint8_t pc_program_cb99cc0b0190648c_shape[661] = {
+    26, 2, 0, 0, 0, 253, 0, 0, 0, 0, 10, 0, 0, 1, 254, 23, 0, 0, 254, 2, 1, 13, 0, 0,
+    1, 3, 0, 0, 1, 254, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 16, 0, 0, 4, 16, 0, 0, 4,
+    4, 0, 0, 9, 254, 4, 0, 0, 3, 7, 4, 0, 0, 3, 7, 4, 0, 0, 12, 254, 3, 0, 0, 2,
+    254, 3, 0, 0, 1, 3, 2, 0, 0, 254, 6, 2, 0, 0, 254, 4, 23, 0, 0, 2, 7, 16, 23, 0,
     0, 2, 4, 17, 26, 0, 0, 0, 0, 14, 26, 0, 0, 0, 0, 14, 26, 0, 0, 0, 0, 15, 3, 0,
     0, 4, 3, 3, 0, 0, 5, 0, 3, 0, 0, 1, 0, 3, 0, 0, 8, 0, 3, 0, 0, 3, 0, 3,
     0, 0, 10, 0, 3, 0, 0, 10, 8, 3, 0, 0, 11, 0, 3, 0, 0, 1, 0, 3, 0, 0, 14, 0,
-    3, 0, 0, 14, 11, 2, 0, 0, 0, 11, 2, 0, 0, 10, 9, 2, 0, 0, 0, 7, 2, 0, 0, 6,
-    5, 2, 0, 0, 11, 10, 2, 0, 0, 0, 6, 2, 0, 0, 0, 6, 2, 0, 0, 1, 5, 1, 0, 0,
-    8, 0, 1, 0, 0, 1, 7, 1, 0, 0, 1, 5, 1, 0, 0, 5, 9, 1, 0, 0, 5, 7, 2, 0,
-    0, 5, 11, 2, 0, 0, 1, 9, 2, 0, 0, 4, 10, 5, 0, 0, 6, 0, 5, 0, 0, 3, 0, 5,
-    0, 0, 3, 0, 5, 0, 0, 7, 0, 5, 0, 0, 10, 6, 5, 0, 0, 6, 9, 13, 0, 0, 6, 13,
+    3, 0, 0, 14, 11, 2, 0, 0, 254, 11, 2, 0, 0, 10, 9, 2, 0, 0, 254, 7, 2, 0, 0, 6,
+    5, 2, 0, 0, 11, 10, 2, 0, 0, 254, 6, 2, 0, 0, 254, 6, 2, 0, 0, 1, 5, 1, 0, 0,
+    8, 254, 1, 0, 0, 1, 7, 1, 0, 0, 1, 5, 1, 0, 0, 5, 9, 1, 0, 0, 5, 7, 2, 0,
+    0, 5, 11, 2, 0, 0, 1, 9, 2, 0, 0, 4, 10, 5, 0, 0, 6, 254, 5, 0, 0, 3, 254, 5,
+    0, 0, 3, 254, 5, 0, 0, 7, 254, 5, 0, 0, 10, 6, 5, 0, 0, 6, 9, 13, 0, 0, 6, 13,
     0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 26, 0, 0, 42, 0, 33, 26, 0, 0, 43, 0, 36, 26,
-    0, 0, 44, 0, 31, 26, 1, 0, 45, 0, 38, 28, 0, 26, 1, 0, 46, 0, 37, 26, 0, 26, 1, 0,
-    47, 0, 34, 28, 0, 3, 0, 0, 10, 0, 3, 0, 0, 10, 0, 3, 0, 0, 10, 0, 3, 0, 0, 10,
-    0, 2, 0, 0, 8, 33, 2, 0, 0, 11, 33, 2, 0, 0, 11, 37, 4, 0, 0, 0, 7, 4, 0, 0,
-    0, 7, 4, 0, 0, 0, 7, 4, 0, 0, 0, 7, 3, 0, 0, 33, 4, 3, 0, 0, 8, 5, 3, 0,
+    0, 0, 44, 0, 31, 26, 1, 0, 45, 0, 38, 28, 254, 26, 1, 0, 46, 0, 37, 26, 254, 26, 1, 0,
+    47, 0, 34, 28, 254, 3, 0, 0, 10, 254, 3, 0, 0, 10, 254, 3, 0, 0, 10, 254, 3, 0, 0, 10,
+    254, 2, 0, 0, 8, 33, 2, 0, 0, 11, 33, 2, 0, 0, 11, 37, 4, 0, 0, 254, 7, 4, 0, 0,
+    254, 7, 4, 0, 0, 254, 7, 4, 0, 0, 254, 7, 3, 0, 0, 33, 4, 3, 0, 0, 8, 5, 3, 0,
     0, 8, 6, 3, 0, 0, 8, 7, 3, 0, 0, 11, 7, 3, 0, 0, 34, 8, 3, 0, 0, 20, 9, 3,
     0, 0, 20, 10, 3, 0, 0, 14, 10, 3, 0, 0, 23, 11, 3, 0, 0, 38, 12, 3, 0, 0, 23, 13,
     3, 0, 0, 17, 13, 3, 0, 0, 26, 14, 3, 0, 0, 26, 15, 3, 0, 0, 46, 16, 9, 0, 0, 49,
     45, 9, 0, 0, 45, 48, 9, 0, 0, 41, 40, 23, 0, 0, 19, 15, 3, 23, 0, 0, 19, 15, 4, 23,
     0, 0, 19, 15, 5, 23, 0, 0, 19, 15, 6, 23, 0, 0, 15, 11, 6, 23, 0, 0, 15, 11, 7, 23,
     0, 0, 15, 11, 8, 23, 0, 0, 15, 11, 9, 23, 0, 0, 8, 4, 9, 23, 0, 0, 8, 4, 10, 23,
-    0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 0, 3, 3, 2, 2, 1, 1, 5,
-    0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4,
-    0, 0, 7, 4, 10, 0, 0, 4, 0, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0,
+    0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 253, 3, 3, 2, 2, 1, 1, 5,
+    0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4,
+    0, 0, 7, 4, 10, 0, 0, 4, 254, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0,
     5, 23, 0, 1, 4, 9, 5, 23, 0, 1, 4, 9, 6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4, 9,
     8, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
 };
-PC_HOT static pc_status pc_program_bc73bc9880d69e6e(const pc_step *s)
+PC_HOT static pc_status pc_program_cb99cc0b0190648c(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
+    const float *const k = (const float *)(const void *)(e + 166);
+    float f0 = PC_KF(0);
     f0 += PC_XF(1, a) * PC_XF(1, b);
     f0 += PC_XF(2, a) * PC_XF(2, b);
     f0 += PC_XF(3, a) * PC_XF(3, b);
-    const uint8_t b1 = f0 < PC_XF(5, b);
-    const float f2 = b1 ? PC_XF(7, a) : f0;
+    const uint8_t b1 = f0 < PC_KF(1);
+    const float f2 = b1 ? PC_KF(2) : f0;
     const float f3 = pc_sop_float(PC_SOP_SQRT, f2, 0.0f);
-    const float f4 = pc_sop_float(PC_SOP_MUL, f3, PC_XF(11, b));
+    const float f4 = pc_sop_float(PC_SOP_MUL, f3, PC_KF(3));
     const float f5 = pc_sop_float(PC_SOP_MUL, PC_XF(12, a), PC_XF(12, b));
     const float f6 = pc_sop_float(PC_SOP_MUL, PC_XF(13, a), PC_XF(13, b));
     const float f7 = pc_sop_float(PC_SOP_SIN, f3, 0.0f);
     const float f8 = pc_sop_float(PC_SOP_SIN, f4, 0.0f);
-    const float f9 = pc_sop_float(PC_SOP_DIV, f0, PC_XF(18, b));
+    const float f9 = pc_sop_float(PC_SOP_DIV, f0, PC_KF(4));
     const float f10 = pc_sop_float(PC_SOP_DIV, f7, f3);
     const float f11 = pc_sop_float(PC_SOP_DIV, f8, f4);
-    const float f12 = pc_sop_float(PC_SOP_DIV, f0, PC_XF(21, b));
-    const float f13 = pc_sop_float(PC_SOP_MUL, f11, PC_XF(23, b));
+    const float f12 = pc_sop_float(PC_SOP_DIV, f0, PC_KF(5));
+    const float f13 = pc_sop_float(PC_SOP_MUL, f11, PC_KF(6));
     const float f14 = pc_sop_float(PC_SOP_MUL, f13, f11);
-    const float f15 = pc_sop_float(PC_SOP_SUB, PC_XF(26, a), f9);
-    const float f16 = pc_sop_float(PC_SOP_SUB, PC_XF(27, a), f12);
+    const float f15 = pc_sop_float(PC_SOP_SUB, PC_KF(7), f9);
+    const float f16 = pc_sop_float(PC_SOP_SUB, PC_KF(8), f12);
     const float f17 = b1 ? f15 : f10;
     const float f18 = b1 ? f16 : f14;
     float f19 = f5;
@@ -1586,15 +1711,15 @@ PC_HOT static pc_status pc_program_bc73bc9880d69e6e(const pc_step *s)
     const float f30 = pc_sop_float(PC_SOP_MUL, f29, PC_XF(44, b));
     const float f31 = pc_sop_float(PC_SOP_MUL, f17, PC_XF(45, b));
     const float f32 = pc_sop_float(PC_SOP_MUL, f18, f21);
-    const float f33 = pc_sop_float(PC_SOP_SUB, PC_XF(48, a), f22);
+    const float f33 = pc_sop_float(PC_SOP_SUB, PC_KF(9), f22);
     const float f34 = pc_sop_float(PC_SOP_SUB, f24, f25);
-    const float f35 = pc_sop_float(PC_SOP_SUB, PC_XF(50, a), f28);
+    const float f35 = pc_sop_float(PC_SOP_SUB, PC_KF(10), f28);
     const float f36 = pc_sop_float(PC_SOP_SUB, f30, f31);
     const float f37 = pc_sop_float(PC_SOP_SUB, f26, f27);
-    const float f38 = pc_sop_float(PC_SOP_SUB, PC_XF(53, a), f32);
-    const float f39 = pc_sop_float(PC_SOP_SUB, PC_XF(54, a), f33);
+    const float f38 = pc_sop_float(PC_SOP_SUB, PC_KF(11), f32);
+    const float f39 = pc_sop_float(PC_SOP_SUB, PC_KF(12), f33);
     const float f40 = pc_sop_float(PC_SOP_SUB, f39, f35);
-    const float f41 = pc_sop_float(PC_SOP_ADD, f33, PC_XF(57, b));
+    const float f41 = pc_sop_float(PC_SOP_ADD, f33, PC_KF(13));
     const float f42 = pc_sop_float(PC_SOP_ADD, f41, f35);
     const float f43 = pc_sop_float(PC_SOP_ADD, f42, f38);
     const float f44 = pc_sop_float(PC_SOP_ADD, f39, f35);
@@ -1602,85 +1727,108 @@ PC_HOT static pc_status pc_program_bc73bc9880d69e6e(const pc_step *s)
     const float f46 = pc_sop_float(PC_SOP_SUB, f41, f35);
     const float f47 = pc_sop_float(PC_SOP_SUB, f46, f38);
     const float f48 = pc_sop_float(PC_SOP_SUB, f44, f38);
-    const float f49 = pc_sop_float(PC_SOP_MAX, f43, PC_XF(67, b));
-    const float f50 = pc_sop_float(PC_SOP_MAX, f47, PC_XF(68, b));
-    const float f51 = pc_sop_float(PC_SOP_MAX, f48, PC_XF(69, b));
-    const float f52 = pc_sop_float(PC_SOP_MAX, f45, PC_XF(70, b));
     const float f53 = pc_sop_float(PC_SOP_MAX, f43, f47);
     const float f54 = pc_sop_float(PC_SOP_MAX, f48, f45);
-    const float f55 = pc_sop_float(PC_SOP_SQRT, f49, 0.0f);
-    const float f56 = pc_sop_float(PC_SOP_SQRT, f50, 0.0f);
-    const float f57 = pc_sop_float(PC_SOP_SQRT, f51, 0.0f);
-    const float f58 = pc_sop_float(PC_SOP_SQRT, f52, 0.0f);
     float f59 = f26;
     f59 += f17 * PC_XF(79, b);
     float f60 = f24;
     f60 += f17 * PC_XF(80, b);
-    float f61 = f30;
-    f61 += f17 * PC_XF(81, b);
     float f62 = f24;
     f62 += f17 * PC_XF(82, b);
-    f62 += f34 * PC_XF(83, b);
+    f62 += f34 * PC_KF(18);
     float f63 = f26;
     f63 += f17 * PC_XF(84, b);
-    f63 += f37 * PC_XF(85, b);
-    float f64 = f30;
-    f64 += f17 * PC_XF(86, b);
-    f64 += f36 * PC_XF(87, b);
-    const float f65 = pc_sop_float(PC_SOP_MUL, f55, PC_XF(89, b));
-    const float f66 = pc_sop_float(PC_SOP_MUL, f56, PC_XF(90, b));
-    const float f67 = pc_sop_float(PC_SOP_MUL, f57, PC_XF(91, b));
-    const float f68 = pc_sop_float(PC_SOP_MUL, f58, PC_XF(92, b));
-    const float f69 = pc_sop_float(PC_SOP_SUB, f61, f36);
+    f63 += f37 * PC_KF(19);
     const float f70 = pc_sop_float(PC_SOP_SUB, f59, f37);
     const float f71 = pc_sop_float(PC_SOP_SUB, f60, f34);
-    const float f72 = pc_sop_float(PC_SOP_DIV, PC_XF(98, a), f65);
-    const float f73 = pc_sop_float(PC_SOP_DIV, PC_XF(99, a), f66);
-    const float f74 = pc_sop_float(PC_SOP_DIV, PC_XF(100, a), f67);
-    const float f75 = pc_sop_float(PC_SOP_DIV, PC_XF(101, a), f68);
-    const float f76 = pc_sop_float(PC_SOP_MUL, f43, f72);
-    const float f77 = pc_sop_float(PC_SOP_MUL, f69, f72);
-    const float f78 = pc_sop_float(PC_SOP_MUL, f70, f72);
-    const float f79 = pc_sop_float(PC_SOP_MUL, f71, f72);
-    const float f80 = pc_sop_float(PC_SOP_MUL, f69, f73);
-    const float f81 = pc_sop_float(PC_SOP_MUL, f47, f73);
-    const float f82 = pc_sop_float(PC_SOP_MUL, f62, f73);
-    const float f83 = pc_sop_float(PC_SOP_MUL, f63, f73);
-    const float f84 = pc_sop_float(PC_SOP_MUL, f70, f74);
-    const float f85 = pc_sop_float(PC_SOP_MUL, f62, f74);
-    const float f86 = pc_sop_float(PC_SOP_MUL, f48, f74);
-    const float f87 = pc_sop_float(PC_SOP_MUL, f64, f74);
-    const float f88 = pc_sop_float(PC_SOP_MUL, f71, f75);
-    const float f89 = pc_sop_float(PC_SOP_MUL, f63, f75);
-    const float f90 = pc_sop_float(PC_SOP_MUL, f64, f75);
-    const float f91 = pc_sop_float(PC_SOP_MUL, f45, f75);
-    const uint8_t b92 = f43 >= f47;
-    const uint8_t b93 = f48 >= f45;
     const uint8_t b94 = f53 >= f54;
-    const float f95 = b92 ? f76 : f80;
-    const float f96 = b92 ? f77 : f81;
-    const float f97 = b92 ? f78 : f82;
-    const float f98 = b92 ? f79 : f83;
-    const float f99 = b93 ? f84 : f88;
-    const float f100 = b93 ? f85 : f89;
-    const float f101 = b93 ? f86 : f90;
-    const float f102 = b93 ? f87 : f91;
-    const float f103 = b94 ? f95 : f99;
-    const float f104 = b94 ? f96 : f100;
-    const float f105 = b94 ? f97 : f101;
-    const float f106 = b94 ? f98 : f102;
-    float f107 = PC_XF(137, c);
-    f107 += f103 * f103;
+    float f103, f104, f105, f106;
+    if (b94) {
+        float f61 = f30;
+        f61 += f17 * PC_XF(81, b);
+        const float f69 = pc_sop_float(PC_SOP_SUB, f61, f36);
+        const uint8_t b92 = f43 >= f47;
+        float f95, f96, f97, f98;
+        if (b92) {
+            const float f49 = pc_sop_float(PC_SOP_MAX, f43, PC_KF(14));
+            const float f55 = pc_sop_float(PC_SOP_SQRT, f49, 0.0f);
+            const float f65 = pc_sop_float(PC_SOP_MUL, f55, PC_KF(21));
+            const float f72 = pc_sop_float(PC_SOP_DIV, PC_KF(25), f65);
+            const float f76 = pc_sop_float(PC_SOP_MUL, f43, f72);
+            const float f77 = pc_sop_float(PC_SOP_MUL, f69, f72);
+            const float f78 = pc_sop_float(PC_SOP_MUL, f70, f72);
+            const float f79 = pc_sop_float(PC_SOP_MUL, f71, f72);
+            f95 = f76;
+            f96 = f77;
+            f97 = f78;
+            f98 = f79;
+        } else {
+            const float f50 = pc_sop_float(PC_SOP_MAX, f47, PC_KF(15));
+            const float f56 = pc_sop_float(PC_SOP_SQRT, f50, 0.0f);
+            const float f66 = pc_sop_float(PC_SOP_MUL, f56, PC_KF(22));
+            const float f73 = pc_sop_float(PC_SOP_DIV, PC_KF(26), f66);
+            const float f80 = pc_sop_float(PC_SOP_MUL, f69, f73);
+            const float f81 = pc_sop_float(PC_SOP_MUL, f47, f73);
+            const float f82 = pc_sop_float(PC_SOP_MUL, f62, f73);
+            const float f83 = pc_sop_float(PC_SOP_MUL, f63, f73);
+            f95 = f80;
+            f96 = f81;
+            f97 = f82;
+            f98 = f83;
+        }
+        f103 = f95;
+        f104 = f96;
+        f105 = f97;
+        f106 = f98;
+    } else {
+        float f64 = f30;
+        f64 += f17 * PC_XF(86, b);
+        f64 += f36 * PC_KF(20);
+        const uint8_t b93 = f48 >= f45;
+        float f99, f100, f101, f102;
+        if (b93) {
+            const float f51 = pc_sop_float(PC_SOP_MAX, f48, PC_KF(16));
+            const float f57 = pc_sop_float(PC_SOP_SQRT, f51, 0.0f);
+            const float f67 = pc_sop_float(PC_SOP_MUL, f57, PC_KF(23));
+            const float f74 = pc_sop_float(PC_SOP_DIV, PC_KF(27), f67);
+            const float f84 = pc_sop_float(PC_SOP_MUL, f70, f74);
+            const float f85 = pc_sop_float(PC_SOP_MUL, f62, f74);
+            const float f86 = pc_sop_float(PC_SOP_MUL, f48, f74);
+            const float f87 = pc_sop_float(PC_SOP_MUL, f64, f74);
+            f99 = f84;
+            f100 = f85;
+            f101 = f86;
+            f102 = f87;
+        } else {
+            const float f52 = pc_sop_float(PC_SOP_MAX, f45, PC_KF(17));
+            const float f58 = pc_sop_float(PC_SOP_SQRT, f52, 0.0f);
+            const float f68 = pc_sop_float(PC_SOP_MUL, f58, PC_KF(24));
+            const float f75 = pc_sop_float(PC_SOP_DIV, PC_KF(28), f68);
+            const float f88 = pc_sop_float(PC_SOP_MUL, f71, f75);
+            const float f89 = pc_sop_float(PC_SOP_MUL, f63, f75);
+            const float f90 = pc_sop_float(PC_SOP_MUL, f64, f75);
+            const float f91 = pc_sop_float(PC_SOP_MUL, f45, f75);
+            f99 = f88;
+            f100 = f89;
+            f101 = f90;
+            f102 = f91;
+        }
+        f103 = f99;
+        f104 = f100;
+        f105 = f101;
+        f106 = f102;
+    }
+    float f107 = f103 * f103; /* a square: 0 + it is it */
     f107 += f104 * f104;
     f107 += f105 * f105;
     f107 += f106 * f106;
-    const float f108 = pc_sop_float(PC_SOP_MAX, f107, PC_XF(142, b));
+    const float f108 = pc_sop_float(PC_SOP_MAX, f107, PC_KF(30));
     const float f109 = pc_sop_float(PC_SOP_SQRT, f108, 0.0f);
     const float f110 = pc_sop_float(PC_SOP_DIV, f103, f109);
     const float f111 = pc_sop_float(PC_SOP_DIV, f104, f109);
     const float f112 = pc_sop_float(PC_SOP_DIV, f105, f109);
     const float f113 = pc_sop_float(PC_SOP_DIV, f106, f109);
-    const uint8_t b114 = f110 < PC_XF(151, b);
+    const uint8_t b114 = f110 < PC_KF(31);
     const float f115 = pc_sop_float(PC_SOP_NEG, f110, 0.0f);
     const float f116 = pc_sop_float(PC_SOP_NEG, f111, 0.0f);
     const float f117 = pc_sop_float(PC_SOP_NEG, f112, 0.0f);
@@ -1702,25 +1850,25 @@ PC_HOT static pc_status pc_program_bc73bc9880d69e6e(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_0e4e088d61b779b3_shape[685] = {
-    26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 0, 0, 0, 0,
-    26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0, 26, 2, 0, 3, 3, 0, 2, 2, 1, 1, 10, 0,
-    0, 1, 0, 23, 0, 0, 0, 2, 1, 13, 0, 0, 1, 3, 0, 0, 1, 0, 3, 0, 0, 7, 7, 3,
-    0, 0, 9, 9, 16, 0, 0, 4, 16, 0, 0, 4, 4, 0, 0, 9, 0, 4, 0, 0, 3, 7, 4, 0,
-    0, 3, 7, 4, 0, 0, 12, 0, 3, 0, 0, 2, 0, 3, 0, 0, 1, 3, 2, 0, 0, 0, 6, 2,
-    0, 0, 0, 4, 23, 0, 0, 2, 7, 16, 23, 0, 0, 2, 4, 17, 26, 0, 0, 20, 20, 14, 26, 0,
+static const uint8_t pc_program_98d43f02acab8a5d_shape[685] = {
+    26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254, 26, 0, 0, 0, 254, 254,
+    26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254, 26, 2, 0, 3, 3, 253, 2, 2, 1, 1, 10, 0,
+    0, 1, 254, 23, 0, 0, 254, 2, 1, 13, 0, 0, 1, 3, 0, 0, 1, 254, 3, 0, 0, 7, 7, 3,
+    0, 0, 9, 9, 16, 0, 0, 4, 16, 0, 0, 4, 4, 0, 0, 9, 254, 4, 0, 0, 3, 7, 4, 0,
+    0, 3, 7, 4, 0, 0, 12, 254, 3, 0, 0, 2, 254, 3, 0, 0, 1, 3, 2, 0, 0, 254, 6, 2,
+    0, 0, 254, 4, 23, 0, 0, 2, 7, 16, 23, 0, 0, 2, 4, 17, 26, 0, 0, 20, 20, 14, 26, 0,
     0, 21, 21, 14, 26, 0, 0, 23, 23, 15, 3, 0, 0, 4, 3, 3, 0, 0, 5, 26, 3, 0, 0, 1,
     26, 3, 0, 0, 8, 26, 3, 0, 0, 3, 27, 3, 0, 0, 10, 29, 3, 0, 0, 10, 8, 3, 0, 0,
-    11, 31, 3, 0, 0, 1, 31, 3, 0, 0, 14, 34, 3, 0, 0, 14, 11, 2, 0, 0, 0, 11, 2, 0,
-    0, 10, 9, 2, 0, 0, 0, 7, 2, 0, 0, 6, 5, 2, 0, 0, 11, 10, 2, 0, 0, 0, 6, 2,
-    0, 0, 0, 6, 2, 0, 0, 1, 5, 1, 0, 0, 8, 0, 1, 0, 0, 1, 7, 1, 0, 0, 1, 5,
+    11, 31, 3, 0, 0, 1, 31, 3, 0, 0, 14, 34, 3, 0, 0, 14, 11, 2, 0, 0, 254, 11, 2, 0,
+    0, 10, 9, 2, 0, 0, 254, 7, 2, 0, 0, 6, 5, 2, 0, 0, 11, 10, 2, 0, 0, 254, 6, 2,
+    0, 0, 254, 6, 2, 0, 0, 1, 5, 1, 0, 0, 8, 254, 1, 0, 0, 1, 7, 1, 0, 0, 1, 5,
     1, 0, 0, 5, 9, 1, 0, 0, 5, 7, 2, 0, 0, 5, 11, 2, 0, 0, 1, 9, 2, 0, 0, 4,
-    10, 5, 0, 0, 6, 0, 5, 0, 0, 3, 0, 5, 0, 0, 3, 0, 5, 0, 0, 7, 0, 5, 0, 0,
+    10, 5, 0, 0, 6, 254, 5, 0, 0, 3, 254, 5, 0, 0, 3, 254, 5, 0, 0, 7, 254, 5, 0, 0,
     10, 6, 5, 0, 0, 6, 9, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 26,
     0, 0, 42, 61, 33, 26, 0, 0, 43, 61, 36, 26, 0, 0, 44, 64, 31, 26, 1, 0, 45, 63, 38, 28,
-    0, 26, 1, 0, 46, 65, 37, 26, 0, 26, 1, 0, 47, 67, 34, 28, 0, 3, 0, 0, 10, 0, 3, 0,
-    0, 10, 0, 3, 0, 0, 10, 0, 3, 0, 0, 10, 0, 2, 0, 0, 8, 33, 2, 0, 0, 11, 33, 2,
-    0, 0, 11, 37, 4, 0, 0, 0, 7, 4, 0, 0, 0, 7, 4, 0, 0, 0, 7, 4, 0, 0, 0, 7,
+    254, 26, 1, 0, 46, 65, 37, 26, 254, 26, 1, 0, 47, 67, 34, 28, 254, 3, 0, 0, 10, 254, 3, 0,
+    0, 10, 254, 3, 0, 0, 10, 254, 3, 0, 0, 10, 254, 2, 0, 0, 8, 33, 2, 0, 0, 11, 33, 2,
+    0, 0, 11, 37, 4, 0, 0, 254, 7, 4, 0, 0, 254, 7, 4, 0, 0, 254, 7, 4, 0, 0, 254, 7,
     3, 0, 0, 33, 4, 3, 0, 0, 8, 5, 3, 0, 0, 8, 6, 3, 0, 0, 8, 7, 3, 0, 0, 11,
     7, 3, 0, 0, 34, 8, 3, 0, 0, 20, 9, 3, 0, 0, 20, 10, 3, 0, 0, 14, 10, 3, 0, 0,
     23, 11, 3, 0, 0, 38, 12, 3, 0, 0, 23, 13, 3, 0, 0, 17, 13, 3, 0, 0, 26, 14, 3, 0,
@@ -1728,50 +1876,50 @@ static const uint8_t pc_program_0e4e088d61b779b3_shape[685] = {
     0, 0, 19, 15, 3, 23, 0, 0, 19, 15, 4, 23, 0, 0, 19, 15, 5, 23, 0, 0, 19, 15, 6, 23,
     0, 0, 15, 11, 6, 23, 0, 0, 15, 11, 7, 23, 0, 0, 15, 11, 8, 23, 0, 0, 15, 11, 9, 23,
     0, 0, 8, 4, 9, 23, 0, 0, 8, 4, 10, 23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26,
-    3, 0, 4, 4, 0, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 7,
-    1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 0, 12, 0, 0,
+    3, 0, 4, 4, 253, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 7,
+    1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 254, 12, 0, 0,
     5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1, 4, 9, 5, 23, 0, 1, 4, 9,
     6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4, 9, 8,
 };
-PC_HOT static pc_status pc_program_0e4e088d61b779b3(const pc_step *s)
+PC_HOT static pc_status pc_program_98d43f02acab8a5d(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
-    f0 += PC_XF(1, a) * PC_XF(1, b);
+    const float *const k = (const float *)(const void *)(e + 168);
+    float f0 = PC_KF(1);
+    f0 += PC_XF(1, a) * PC_KF(0);
     PC_STOREF(1, f0);
-    float f1 = PC_XF(2, c);
-    f1 += PC_XF(2, a) * PC_XF(2, b);
+    float f1 = PC_KF(3);
+    f1 += PC_XF(2, a) * PC_KF(2);
     PC_STOREF(2, f1);
-    float f2 = PC_XF(3, c);
-    f2 += PC_XF(3, a) * PC_XF(3, b);
+    float f2 = PC_KF(5);
+    f2 += PC_XF(3, a) * PC_KF(4);
     PC_STOREF(3, f2);
-    float f3 = PC_XF(4, c);
-    f3 += PC_XF(4, a) * PC_XF(4, b);
-    float f4 = PC_XF(5, c);
-    f4 += PC_XF(5, a) * PC_XF(5, b);
-    float f5 = PC_XF(6, c);
-    f5 += PC_XF(6, a) * PC_XF(6, b);
-    float f6 = PC_XF(7, c);
-    f6 += f3 * f3;
+    float f3 = PC_KF(7);
+    f3 += PC_XF(4, a) * PC_KF(6);
+    float f4 = PC_KF(9);
+    f4 += PC_XF(5, a) * PC_KF(8);
+    float f5 = PC_KF(11);
+    f5 += PC_XF(6, a) * PC_KF(10);
+    float f6 = f3 * f3; /* a square: 0 + it is it */
     f6 += f4 * f4;
     f6 += f5 * f5;
-    const uint8_t b7 = f6 < PC_XF(11, b);
-    const float f8 = b7 ? PC_XF(13, a) : f6;
+    const uint8_t b7 = f6 < PC_KF(13);
+    const float f8 = b7 ? PC_KF(14) : f6;
     const float f9 = pc_sop_float(PC_SOP_SQRT, f8, 0.0f);
-    const float f10 = pc_sop_float(PC_SOP_MUL, f9, PC_XF(17, b));
+    const float f10 = pc_sop_float(PC_SOP_MUL, f9, PC_KF(15));
     const float f11 = pc_sop_float(PC_SOP_MUL, f4, f4);
     const float f12 = pc_sop_float(PC_SOP_MUL, f3, f3);
     const float f13 = pc_sop_float(PC_SOP_SIN, f9, 0.0f);
     const float f14 = pc_sop_float(PC_SOP_SIN, f10, 0.0f);
-    const float f15 = pc_sop_float(PC_SOP_DIV, f6, PC_XF(24, b));
+    const float f15 = pc_sop_float(PC_SOP_DIV, f6, PC_KF(16));
     const float f16 = pc_sop_float(PC_SOP_DIV, f13, f9);
     const float f17 = pc_sop_float(PC_SOP_DIV, f14, f10);
-    const float f18 = pc_sop_float(PC_SOP_DIV, f6, PC_XF(27, b));
-    const float f19 = pc_sop_float(PC_SOP_MUL, f17, PC_XF(29, b));
+    const float f18 = pc_sop_float(PC_SOP_DIV, f6, PC_KF(17));
+    const float f19 = pc_sop_float(PC_SOP_MUL, f17, PC_KF(18));
     const float f20 = pc_sop_float(PC_SOP_MUL, f19, f17);
-    const float f21 = pc_sop_float(PC_SOP_SUB, PC_XF(32, a), f15);
-    const float f22 = pc_sop_float(PC_SOP_SUB, PC_XF(33, a), f18);
+    const float f21 = pc_sop_float(PC_SOP_SUB, PC_KF(19), f15);
+    const float f22 = pc_sop_float(PC_SOP_SUB, PC_KF(20), f18);
     const float f23 = b7 ? f21 : f16;
     const float f24 = b7 ? f22 : f20;
     float f25 = f11;
@@ -1791,15 +1939,15 @@ PC_HOT static pc_status pc_program_0e4e088d61b779b3(const pc_step *s)
     const float f36 = pc_sop_float(PC_SOP_MUL, f35, f5);
     const float f37 = pc_sop_float(PC_SOP_MUL, f23, f3);
     const float f38 = pc_sop_float(PC_SOP_MUL, f24, f27);
-    const float f39 = pc_sop_float(PC_SOP_SUB, PC_XF(54, a), f28);
+    const float f39 = pc_sop_float(PC_SOP_SUB, PC_KF(21), f28);
     const float f40 = pc_sop_float(PC_SOP_SUB, f30, f31);
-    const float f41 = pc_sop_float(PC_SOP_SUB, PC_XF(56, a), f34);
+    const float f41 = pc_sop_float(PC_SOP_SUB, PC_KF(22), f34);
     const float f42 = pc_sop_float(PC_SOP_SUB, f36, f37);
     const float f43 = pc_sop_float(PC_SOP_SUB, f32, f33);
-    const float f44 = pc_sop_float(PC_SOP_SUB, PC_XF(59, a), f38);
-    const float f45 = pc_sop_float(PC_SOP_SUB, PC_XF(60, a), f39);
+    const float f44 = pc_sop_float(PC_SOP_SUB, PC_KF(23), f38);
+    const float f45 = pc_sop_float(PC_SOP_SUB, PC_KF(24), f39);
     const float f46 = pc_sop_float(PC_SOP_SUB, f45, f41);
-    const float f47 = pc_sop_float(PC_SOP_ADD, f39, PC_XF(63, b));
+    const float f47 = pc_sop_float(PC_SOP_ADD, f39, PC_KF(25));
     const float f48 = pc_sop_float(PC_SOP_ADD, f47, f41);
     const float f49 = pc_sop_float(PC_SOP_ADD, f48, f44);
     const float f50 = pc_sop_float(PC_SOP_ADD, f45, f41);
@@ -1807,85 +1955,108 @@ PC_HOT static pc_status pc_program_0e4e088d61b779b3(const pc_step *s)
     const float f52 = pc_sop_float(PC_SOP_SUB, f47, f41);
     const float f53 = pc_sop_float(PC_SOP_SUB, f52, f44);
     const float f54 = pc_sop_float(PC_SOP_SUB, f50, f44);
-    const float f55 = pc_sop_float(PC_SOP_MAX, f49, PC_XF(73, b));
-    const float f56 = pc_sop_float(PC_SOP_MAX, f53, PC_XF(74, b));
-    const float f57 = pc_sop_float(PC_SOP_MAX, f54, PC_XF(75, b));
-    const float f58 = pc_sop_float(PC_SOP_MAX, f51, PC_XF(76, b));
     const float f59 = pc_sop_float(PC_SOP_MAX, f49, f53);
     const float f60 = pc_sop_float(PC_SOP_MAX, f54, f51);
-    const float f61 = pc_sop_float(PC_SOP_SQRT, f55, 0.0f);
-    const float f62 = pc_sop_float(PC_SOP_SQRT, f56, 0.0f);
-    const float f63 = pc_sop_float(PC_SOP_SQRT, f57, 0.0f);
-    const float f64 = pc_sop_float(PC_SOP_SQRT, f58, 0.0f);
     float f65 = f32;
     f65 += f23 * f4;
     float f66 = f30;
     f66 += f23 * f5;
-    float f67 = f36;
-    f67 += f23 * f3;
     float f68 = f30;
     f68 += f23 * f5;
-    f68 += f40 * PC_XF(89, b);
+    f68 += f40 * PC_KF(30);
     float f69 = f32;
     f69 += f23 * f4;
-    f69 += f43 * PC_XF(91, b);
-    float f70 = f36;
-    f70 += f23 * f3;
-    f70 += f42 * PC_XF(93, b);
-    const float f71 = pc_sop_float(PC_SOP_MUL, f61, PC_XF(95, b));
-    const float f72 = pc_sop_float(PC_SOP_MUL, f62, PC_XF(96, b));
-    const float f73 = pc_sop_float(PC_SOP_MUL, f63, PC_XF(97, b));
-    const float f74 = pc_sop_float(PC_SOP_MUL, f64, PC_XF(98, b));
-    const float f75 = pc_sop_float(PC_SOP_SUB, f67, f42);
+    f69 += f43 * PC_KF(31);
     const float f76 = pc_sop_float(PC_SOP_SUB, f65, f43);
     const float f77 = pc_sop_float(PC_SOP_SUB, f66, f40);
-    const float f78 = pc_sop_float(PC_SOP_DIV, PC_XF(104, a), f71);
-    const float f79 = pc_sop_float(PC_SOP_DIV, PC_XF(105, a), f72);
-    const float f80 = pc_sop_float(PC_SOP_DIV, PC_XF(106, a), f73);
-    const float f81 = pc_sop_float(PC_SOP_DIV, PC_XF(107, a), f74);
-    const float f82 = pc_sop_float(PC_SOP_MUL, f49, f78);
-    const float f83 = pc_sop_float(PC_SOP_MUL, f75, f78);
-    const float f84 = pc_sop_float(PC_SOP_MUL, f76, f78);
-    const float f85 = pc_sop_float(PC_SOP_MUL, f77, f78);
-    const float f86 = pc_sop_float(PC_SOP_MUL, f75, f79);
-    const float f87 = pc_sop_float(PC_SOP_MUL, f53, f79);
-    const float f88 = pc_sop_float(PC_SOP_MUL, f68, f79);
-    const float f89 = pc_sop_float(PC_SOP_MUL, f69, f79);
-    const float f90 = pc_sop_float(PC_SOP_MUL, f76, f80);
-    const float f91 = pc_sop_float(PC_SOP_MUL, f68, f80);
-    const float f92 = pc_sop_float(PC_SOP_MUL, f54, f80);
-    const float f93 = pc_sop_float(PC_SOP_MUL, f70, f80);
-    const float f94 = pc_sop_float(PC_SOP_MUL, f77, f81);
-    const float f95 = pc_sop_float(PC_SOP_MUL, f69, f81);
-    const float f96 = pc_sop_float(PC_SOP_MUL, f70, f81);
-    const float f97 = pc_sop_float(PC_SOP_MUL, f51, f81);
-    const uint8_t b98 = f49 >= f53;
-    const uint8_t b99 = f54 >= f51;
     const uint8_t b100 = f59 >= f60;
-    const float f101 = b98 ? f82 : f86;
-    const float f102 = b98 ? f83 : f87;
-    const float f103 = b98 ? f84 : f88;
-    const float f104 = b98 ? f85 : f89;
-    const float f105 = b99 ? f90 : f94;
-    const float f106 = b99 ? f91 : f95;
-    const float f107 = b99 ? f92 : f96;
-    const float f108 = b99 ? f93 : f97;
-    const float f109 = b100 ? f101 : f105;
-    const float f110 = b100 ? f102 : f106;
-    const float f111 = b100 ? f103 : f107;
-    const float f112 = b100 ? f104 : f108;
-    float f113 = PC_XF(143, c);
-    f113 += f109 * f109;
+    float f109, f110, f111, f112;
+    if (b100) {
+        float f67 = f36;
+        f67 += f23 * f3;
+        const float f75 = pc_sop_float(PC_SOP_SUB, f67, f42);
+        const uint8_t b98 = f49 >= f53;
+        float f101, f102, f103, f104;
+        if (b98) {
+            const float f55 = pc_sop_float(PC_SOP_MAX, f49, PC_KF(26));
+            const float f61 = pc_sop_float(PC_SOP_SQRT, f55, 0.0f);
+            const float f71 = pc_sop_float(PC_SOP_MUL, f61, PC_KF(33));
+            const float f78 = pc_sop_float(PC_SOP_DIV, PC_KF(37), f71);
+            const float f82 = pc_sop_float(PC_SOP_MUL, f49, f78);
+            const float f83 = pc_sop_float(PC_SOP_MUL, f75, f78);
+            const float f84 = pc_sop_float(PC_SOP_MUL, f76, f78);
+            const float f85 = pc_sop_float(PC_SOP_MUL, f77, f78);
+            f101 = f82;
+            f102 = f83;
+            f103 = f84;
+            f104 = f85;
+        } else {
+            const float f56 = pc_sop_float(PC_SOP_MAX, f53, PC_KF(27));
+            const float f62 = pc_sop_float(PC_SOP_SQRT, f56, 0.0f);
+            const float f72 = pc_sop_float(PC_SOP_MUL, f62, PC_KF(34));
+            const float f79 = pc_sop_float(PC_SOP_DIV, PC_KF(38), f72);
+            const float f86 = pc_sop_float(PC_SOP_MUL, f75, f79);
+            const float f87 = pc_sop_float(PC_SOP_MUL, f53, f79);
+            const float f88 = pc_sop_float(PC_SOP_MUL, f68, f79);
+            const float f89 = pc_sop_float(PC_SOP_MUL, f69, f79);
+            f101 = f86;
+            f102 = f87;
+            f103 = f88;
+            f104 = f89;
+        }
+        f109 = f101;
+        f110 = f102;
+        f111 = f103;
+        f112 = f104;
+    } else {
+        float f70 = f36;
+        f70 += f23 * f3;
+        f70 += f42 * PC_KF(32);
+        const uint8_t b99 = f54 >= f51;
+        float f105, f106, f107, f108;
+        if (b99) {
+            const float f57 = pc_sop_float(PC_SOP_MAX, f54, PC_KF(28));
+            const float f63 = pc_sop_float(PC_SOP_SQRT, f57, 0.0f);
+            const float f73 = pc_sop_float(PC_SOP_MUL, f63, PC_KF(35));
+            const float f80 = pc_sop_float(PC_SOP_DIV, PC_KF(39), f73);
+            const float f90 = pc_sop_float(PC_SOP_MUL, f76, f80);
+            const float f91 = pc_sop_float(PC_SOP_MUL, f68, f80);
+            const float f92 = pc_sop_float(PC_SOP_MUL, f54, f80);
+            const float f93 = pc_sop_float(PC_SOP_MUL, f70, f80);
+            f105 = f90;
+            f106 = f91;
+            f107 = f92;
+            f108 = f93;
+        } else {
+            const float f58 = pc_sop_float(PC_SOP_MAX, f51, PC_KF(29));
+            const float f64 = pc_sop_float(PC_SOP_SQRT, f58, 0.0f);
+            const float f74 = pc_sop_float(PC_SOP_MUL, f64, PC_KF(36));
+            const float f81 = pc_sop_float(PC_SOP_DIV, PC_KF(40), f74);
+            const float f94 = pc_sop_float(PC_SOP_MUL, f77, f81);
+            const float f95 = pc_sop_float(PC_SOP_MUL, f69, f81);
+            const float f96 = pc_sop_float(PC_SOP_MUL, f70, f81);
+            const float f97 = pc_sop_float(PC_SOP_MUL, f51, f81);
+            f105 = f94;
+            f106 = f95;
+            f107 = f96;
+            f108 = f97;
+        }
+        f109 = f105;
+        f110 = f106;
+        f111 = f107;
+        f112 = f108;
+    }
+    float f113 = f109 * f109; /* a square: 0 + it is it */
     f113 += f110 * f110;
     f113 += f111 * f111;
     f113 += f112 * f112;
-    const float f114 = pc_sop_float(PC_SOP_MAX, f113, PC_XF(148, b));
+    const float f114 = pc_sop_float(PC_SOP_MAX, f113, PC_KF(42));
     const float f115 = pc_sop_float(PC_SOP_SQRT, f114, 0.0f);
     const float f116 = pc_sop_float(PC_SOP_DIV, f109, f115);
     const float f117 = pc_sop_float(PC_SOP_DIV, f110, f115);
     const float f118 = pc_sop_float(PC_SOP_DIV, f111, f115);
     const float f119 = pc_sop_float(PC_SOP_DIV, f112, f115);
-    const uint8_t b120 = f116 < PC_XF(157, b);
+    const uint8_t b120 = f116 < PC_KF(43);
     const float f121 = pc_sop_float(PC_SOP_NEG, f116, 0.0f);
     const float f122 = pc_sop_float(PC_SOP_NEG, f117, 0.0f);
     const float f123 = pc_sop_float(PC_SOP_NEG, f118, 0.0f);
@@ -1901,24 +2072,24 @@ PC_HOT static pc_status pc_program_0e4e088d61b779b3(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_6ca4a22b64ec2bb9_shape[796] = {
-    26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0,
-    26, 0, 1, 0, 0, 0, 5, 0, 0, 4, 0, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
+static const uint8_t pc_program_170cbafe4f7eb3ad_shape[796] = {
+    26, 3, 0, 0, 0, 253, 0, 0, 0, 0, 0, 0, 26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254,
+    26, 0, 1, 0, 254, 254, 5, 0, 0, 4, 254, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
     2, 4, 0, 0, 0, 3, 4, 0, 0, 0, 4, 3, 0, 0, 2, 2, 3, 0, 0, 4, 3, 3, 0, 0,
     6, 3, 3, 0, 0, 6, 4, 3, 0, 0, 8, 6, 3, 0, 0, 8, 8, 3, 0, 0, 8, 7, 3, 0,
     0, 11, 10, 3, 0, 1, 17, 17, 3, 0, 1, 18, 17, 3, 0, 1, 19, 17, 3, 0, 1, 19, 19, 3,
     0, 1, 20, 19, 3, 0, 1, 20, 20, 26, 0, 0, 15, 15, 14, 26, 0, 0, 19, 17, 12, 26, 0, 0,
     20, 17, 15, 26, 0, 0, 18, 18, 12, 26, 0, 0, 22, 21, 12, 26, 0, 0, 21, 21, 14, 3, 0, 0,
-    6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0,
-    0, 6, 0, 2, 0, 0, 0, 6, 2, 0, 0, 26, 25, 2, 0, 0, 0, 5, 2, 0, 0, 23, 22, 2,
-    0, 0, 27, 26, 2, 0, 0, 0, 6, 2, 0, 0, 0, 6, 2, 0, 0, 1, 5, 1, 0, 0, 8, 0,
+    6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0,
+    0, 6, 254, 2, 0, 0, 254, 6, 2, 0, 0, 26, 25, 2, 0, 0, 254, 5, 2, 0, 0, 23, 22, 2,
+    0, 0, 27, 26, 2, 0, 0, 254, 6, 2, 0, 0, 254, 6, 2, 0, 0, 1, 5, 1, 0, 0, 8, 254,
     1, 0, 0, 1, 7, 1, 0, 0, 1, 5, 1, 0, 0, 5, 9, 1, 0, 0, 5, 7, 2, 0, 0, 5,
-    11, 2, 0, 0, 1, 9, 2, 0, 0, 4, 10, 5, 0, 0, 6, 0, 5, 0, 0, 3, 0, 5, 0, 0,
-    3, 0, 5, 0, 0, 7, 0, 5, 0, 0, 10, 6, 5, 0, 0, 6, 9, 13, 0, 0, 6, 13, 0, 0,
-    6, 13, 0, 0, 6, 13, 0, 0, 6, 3, 0, 0, 25, 0, 3, 0, 0, 24, 0, 3, 0, 0, 24, 0,
-    3, 0, 0, 7, 0, 3, 0, 0, 7, 0, 3, 0, 0, 7, 0, 3, 0, 0, 7, 0, 2, 0, 0, 35,
-    6, 2, 0, 0, 39, 6, 2, 0, 0, 39, 9, 26, 0, 0, 46, 0, 10, 26, 0, 0, 33, 0, 42, 26,
-    0, 0, 46, 0, 11, 4, 0, 0, 0, 10, 4, 0, 0, 0, 10, 4, 0, 0, 0, 10, 4, 0, 0, 0,
+    11, 2, 0, 0, 1, 9, 2, 0, 0, 4, 10, 5, 0, 0, 6, 254, 5, 0, 0, 3, 254, 5, 0, 0,
+    3, 254, 5, 0, 0, 7, 254, 5, 0, 0, 10, 6, 5, 0, 0, 6, 9, 13, 0, 0, 6, 13, 0, 0,
+    6, 13, 0, 0, 6, 13, 0, 0, 6, 3, 0, 0, 25, 254, 3, 0, 0, 24, 254, 3, 0, 0, 24, 254,
+    3, 0, 0, 7, 254, 3, 0, 0, 7, 254, 3, 0, 0, 7, 254, 3, 0, 0, 7, 254, 2, 0, 0, 35,
+    6, 2, 0, 0, 39, 6, 2, 0, 0, 39, 9, 26, 0, 0, 46, 254, 10, 26, 0, 0, 33, 254, 42, 26,
+    0, 0, 46, 254, 11, 4, 0, 0, 254, 10, 4, 0, 0, 254, 10, 4, 0, 0, 254, 10, 4, 0, 0, 254,
     10, 3, 0, 0, 33, 4, 3, 0, 0, 11, 5, 3, 0, 0, 11, 6, 3, 0, 0, 11, 7, 3, 0, 0,
     14, 7, 3, 0, 0, 34, 8, 3, 0, 0, 13, 9, 3, 0, 0, 13, 10, 3, 0, 0, 17, 10, 3, 0,
     0, 16, 11, 3, 0, 0, 38, 12, 3, 0, 0, 16, 13, 3, 0, 0, 20, 13, 3, 0, 0, 19, 14, 3,
@@ -1926,36 +2097,37 @@ static const uint8_t pc_program_6ca4a22b64ec2bb9_shape[796] = {
     23, 0, 0, 19, 15, 3, 23, 0, 0, 19, 15, 4, 23, 0, 0, 19, 15, 5, 23, 0, 0, 19, 15, 6,
     23, 0, 0, 15, 11, 6, 23, 0, 0, 15, 11, 7, 23, 0, 0, 15, 11, 8, 23, 0, 0, 15, 11, 9,
     23, 0, 0, 8, 4, 9, 23, 0, 0, 8, 4, 10, 23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12,
-    26, 3, 0, 4, 4, 0, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0,
-    7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 0, 12, 0,
+    26, 3, 0, 4, 4, 253, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0,
+    7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 254, 12, 0,
     0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 0, 4, 9, 5, 23, 0, 0, 4,
-    9, 6, 23, 0, 0, 4, 9, 7, 23, 0, 0, 4, 9, 8, 26, 0, 1, 4, 0, 0, 26, 0, 1, 4,
-    0, 0, 26, 0, 1, 4, 0, 0, 26, 0, 1, 4, 0, 0, 3, 0, 1, 129, 4, 3, 0, 1, 130, 4,
+    9, 6, 23, 0, 0, 4, 9, 7, 23, 0, 0, 4, 9, 8, 26, 0, 1, 4, 254, 254, 26, 0, 1, 4,
+    254, 254, 26, 0, 1, 4, 254, 254, 26, 0, 1, 4, 254, 254, 3, 0, 1, 129, 4, 3, 0, 1, 130, 4,
     3, 0, 1, 131, 4, 3, 0, 1, 132, 4, 3, 0, 1, 132, 8, 3, 0, 1, 133, 8, 3, 0, 1, 134,
     8, 3, 0, 1, 135, 8, 3, 0, 1, 135, 12, 3, 0, 1, 136, 12, 3, 0, 1, 137, 12, 3, 0, 1,
     138, 12, 3, 0, 1, 16, 16, 3, 0, 1, 17, 16, 3, 0, 1, 18, 16, 3, 0, 1, 19, 16, 3, 0,
     1, 19, 19, 3, 0, 1, 20, 19, 3, 0, 1, 21, 19, 3, 0, 1, 21, 21, 3, 0, 1, 22, 21, 3,
     0, 1, 22, 22,
 };
-PC_HOT static pc_status pc_program_6ca4a22b64ec2bb9(const pc_step *s)
+PC_HOT static pc_status pc_program_170cbafe4f7eb3ad(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
+    const float *const k = (const float *)(const void *)(e + 186);
+    float f0 = PC_KF(0);
     f0 += PC_XF(1, a) * PC_XF(1, b);
     f0 += PC_XF(2, a) * PC_XF(2, b);
     f0 += PC_XF(3, a) * PC_XF(3, b);
     f0 += PC_XF(4, a) * PC_XF(4, b);
-    float f1 = PC_XF(5, c);
-    f1 += PC_XF(5, a) * PC_XF(5, b);
+    float f1 = PC_KF(2);
+    f1 += PC_XF(5, a) * PC_KF(1);
     PC_STOREF(5, f1);
-    float f2 = PC_XF(6, c);
-    f2 += PC_XF(6, a) * PC_XF(6, b);
+    float f2 = PC_KF(4);
+    f2 += PC_XF(6, a) * PC_KF(3);
     PC_STOREF(6, f2);
-    float f3 = PC_XF(7, c);
-    f3 += PC_XF(7, a) * PC_XF(7, b);
+    float f3 = PC_KF(6);
+    f3 += PC_XF(7, a) * PC_KF(5);
     PC_STOREF(7, f3);
-    const float f4 = pc_sop_float(PC_SOP_MAX, f0, PC_XF(9, b));
+    const float f4 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(7));
     const float f5 = pc_sop_float(PC_SOP_SQRT, f4, 0.0f);
     const float f6 = pc_sop_float(PC_SOP_DIV, PC_XF(13, a), f5);
     const float f7 = pc_sop_float(PC_SOP_DIV, PC_XF(14, a), f5);
@@ -1993,21 +2165,20 @@ PC_HOT static pc_status pc_program_6ca4a22b64ec2bb9(const pc_step *s)
     f28 += f6 * f7;
     float f29 = f15;
     f29 += f8 * f8;
-    const float f30 = pc_sop_float(PC_SOP_MUL, f24, PC_XF(40, b));
-    const float f31 = pc_sop_float(PC_SOP_MUL, f25, PC_XF(41, b));
-    const float f32 = pc_sop_float(PC_SOP_MUL, f26, PC_XF(42, b));
-    const float f33 = pc_sop_float(PC_SOP_MUL, f27, PC_XF(43, b));
-    const float f34 = pc_sop_float(PC_SOP_MUL, f28, PC_XF(44, b));
-    const float f35 = pc_sop_float(PC_SOP_MUL, f29, PC_XF(45, b));
-    const float f36 = pc_sop_float(PC_SOP_SUB, PC_XF(47, a), f30);
+    const float f30 = pc_sop_float(PC_SOP_MUL, f24, PC_KF(8));
+    const float f31 = pc_sop_float(PC_SOP_MUL, f25, PC_KF(9));
+    const float f32 = pc_sop_float(PC_SOP_MUL, f26, PC_KF(10));
+    const float f33 = pc_sop_float(PC_SOP_MUL, f27, PC_KF(11));
+    const float f35 = pc_sop_float(PC_SOP_MUL, f29, PC_KF(13));
+    const float f36 = pc_sop_float(PC_SOP_SUB, PC_KF(14), f30);
     const float f37 = pc_sop_float(PC_SOP_SUB, f11, f12);
-    const float f38 = pc_sop_float(PC_SOP_SUB, PC_XF(49, a), f33);
+    const float f38 = pc_sop_float(PC_SOP_SUB, PC_KF(15), f33);
     const float f39 = pc_sop_float(PC_SOP_SUB, f16, f17);
     const float f40 = pc_sop_float(PC_SOP_SUB, f13, f14);
-    const float f41 = pc_sop_float(PC_SOP_SUB, PC_XF(52, a), f35);
-    const float f42 = pc_sop_float(PC_SOP_SUB, PC_XF(53, a), f36);
+    const float f41 = pc_sop_float(PC_SOP_SUB, PC_KF(16), f35);
+    const float f42 = pc_sop_float(PC_SOP_SUB, PC_KF(17), f36);
     const float f43 = pc_sop_float(PC_SOP_SUB, f42, f38);
-    const float f44 = pc_sop_float(PC_SOP_ADD, f36, PC_XF(56, b));
+    const float f44 = pc_sop_float(PC_SOP_ADD, f36, PC_KF(18));
     const float f45 = pc_sop_float(PC_SOP_ADD, f44, f38);
     const float f46 = pc_sop_float(PC_SOP_ADD, f45, f41);
     const float f47 = pc_sop_float(PC_SOP_ADD, f42, f38);
@@ -2015,79 +2186,103 @@ PC_HOT static pc_status pc_program_6ca4a22b64ec2bb9(const pc_step *s)
     const float f49 = pc_sop_float(PC_SOP_SUB, f44, f38);
     const float f50 = pc_sop_float(PC_SOP_SUB, f49, f41);
     const float f51 = pc_sop_float(PC_SOP_SUB, f47, f41);
-    const float f52 = pc_sop_float(PC_SOP_MAX, f46, PC_XF(66, b));
-    const float f53 = pc_sop_float(PC_SOP_MAX, f50, PC_XF(67, b));
-    const float f54 = pc_sop_float(PC_SOP_MAX, f51, PC_XF(68, b));
-    const float f55 = pc_sop_float(PC_SOP_MAX, f48, PC_XF(69, b));
     const float f56 = pc_sop_float(PC_SOP_MAX, f46, f50);
     const float f57 = pc_sop_float(PC_SOP_MAX, f51, f48);
-    const float f58 = pc_sop_float(PC_SOP_SQRT, f52, 0.0f);
-    const float f59 = pc_sop_float(PC_SOP_SQRT, f53, 0.0f);
-    const float f60 = pc_sop_float(PC_SOP_SQRT, f54, 0.0f);
-    const float f61 = pc_sop_float(PC_SOP_SQRT, f55, 0.0f);
-    const float f62 = pc_sop_float(PC_SOP_MUL, f37, PC_XF(78, b));
-    const float f63 = pc_sop_float(PC_SOP_MUL, f39, PC_XF(79, b));
-    const float f64 = pc_sop_float(PC_SOP_MUL, f40, PC_XF(80, b));
-    const float f65 = pc_sop_float(PC_SOP_MUL, f58, PC_XF(81, b));
-    const float f66 = pc_sop_float(PC_SOP_MUL, f59, PC_XF(82, b));
-    const float f67 = pc_sop_float(PC_SOP_MUL, f60, PC_XF(83, b));
-    const float f68 = pc_sop_float(PC_SOP_MUL, f61, PC_XF(84, b));
-    const float f69 = pc_sop_float(PC_SOP_SUB, f34, f63);
+    const float f62 = pc_sop_float(PC_SOP_MUL, f37, PC_KF(23));
+    const float f63 = pc_sop_float(PC_SOP_MUL, f39, PC_KF(24));
+    const float f64 = pc_sop_float(PC_SOP_MUL, f40, PC_KF(25));
     const float f70 = pc_sop_float(PC_SOP_SUB, f31, f64);
     const float f71 = pc_sop_float(PC_SOP_SUB, f32, f62);
     float f72 = f62;
-    f72 += f26 * PC_XF(90, b);
+    f72 += f26 * PC_KF(30);
     float f73 = f31;
-    f73 += f40 * PC_XF(91, b);
-    float f74 = f63;
-    f74 += f28 * PC_XF(92, b);
-    const float f75 = pc_sop_float(PC_SOP_DIV, PC_XF(94, a), f65);
-    const float f76 = pc_sop_float(PC_SOP_DIV, PC_XF(95, a), f66);
-    const float f77 = pc_sop_float(PC_SOP_DIV, PC_XF(96, a), f67);
-    const float f78 = pc_sop_float(PC_SOP_DIV, PC_XF(97, a), f68);
-    const float f79 = pc_sop_float(PC_SOP_MUL, f46, f75);
-    const float f80 = pc_sop_float(PC_SOP_MUL, f69, f75);
-    const float f81 = pc_sop_float(PC_SOP_MUL, f70, f75);
-    const float f82 = pc_sop_float(PC_SOP_MUL, f71, f75);
-    const float f83 = pc_sop_float(PC_SOP_MUL, f69, f76);
-    const float f84 = pc_sop_float(PC_SOP_MUL, f50, f76);
-    const float f85 = pc_sop_float(PC_SOP_MUL, f72, f76);
-    const float f86 = pc_sop_float(PC_SOP_MUL, f73, f76);
-    const float f87 = pc_sop_float(PC_SOP_MUL, f70, f77);
-    const float f88 = pc_sop_float(PC_SOP_MUL, f72, f77);
-    const float f89 = pc_sop_float(PC_SOP_MUL, f51, f77);
-    const float f90 = pc_sop_float(PC_SOP_MUL, f74, f77);
-    const float f91 = pc_sop_float(PC_SOP_MUL, f71, f78);
-    const float f92 = pc_sop_float(PC_SOP_MUL, f73, f78);
-    const float f93 = pc_sop_float(PC_SOP_MUL, f74, f78);
-    const float f94 = pc_sop_float(PC_SOP_MUL, f48, f78);
-    const uint8_t b95 = f46 >= f50;
-    const uint8_t b96 = f51 >= f48;
+    f73 += f40 * PC_KF(31);
     const uint8_t b97 = f56 >= f57;
-    const float f98 = b95 ? f79 : f83;
-    const float f99 = b95 ? f80 : f84;
-    const float f100 = b95 ? f81 : f85;
-    const float f101 = b95 ? f82 : f86;
-    const float f102 = b96 ? f87 : f91;
-    const float f103 = b96 ? f88 : f92;
-    const float f104 = b96 ? f89 : f93;
-    const float f105 = b96 ? f90 : f94;
-    const float f106 = b97 ? f98 : f102;
-    const float f107 = b97 ? f99 : f103;
-    const float f108 = b97 ? f100 : f104;
-    const float f109 = b97 ? f101 : f105;
-    float f110 = PC_XF(133, c);
-    f110 += f106 * f106;
+    float f106, f107, f108, f109;
+    if (b97) {
+        const float f34 = pc_sop_float(PC_SOP_MUL, f28, PC_KF(12));
+        const float f69 = pc_sop_float(PC_SOP_SUB, f34, f63);
+        const uint8_t b95 = f46 >= f50;
+        float f98, f99, f100, f101;
+        if (b95) {
+            const float f52 = pc_sop_float(PC_SOP_MAX, f46, PC_KF(19));
+            const float f58 = pc_sop_float(PC_SOP_SQRT, f52, 0.0f);
+            const float f65 = pc_sop_float(PC_SOP_MUL, f58, PC_KF(26));
+            const float f75 = pc_sop_float(PC_SOP_DIV, PC_KF(33), f65);
+            const float f79 = pc_sop_float(PC_SOP_MUL, f46, f75);
+            const float f80 = pc_sop_float(PC_SOP_MUL, f69, f75);
+            const float f81 = pc_sop_float(PC_SOP_MUL, f70, f75);
+            const float f82 = pc_sop_float(PC_SOP_MUL, f71, f75);
+            f98 = f79;
+            f99 = f80;
+            f100 = f81;
+            f101 = f82;
+        } else {
+            const float f53 = pc_sop_float(PC_SOP_MAX, f50, PC_KF(20));
+            const float f59 = pc_sop_float(PC_SOP_SQRT, f53, 0.0f);
+            const float f66 = pc_sop_float(PC_SOP_MUL, f59, PC_KF(27));
+            const float f76 = pc_sop_float(PC_SOP_DIV, PC_KF(34), f66);
+            const float f83 = pc_sop_float(PC_SOP_MUL, f69, f76);
+            const float f84 = pc_sop_float(PC_SOP_MUL, f50, f76);
+            const float f85 = pc_sop_float(PC_SOP_MUL, f72, f76);
+            const float f86 = pc_sop_float(PC_SOP_MUL, f73, f76);
+            f98 = f83;
+            f99 = f84;
+            f100 = f85;
+            f101 = f86;
+        }
+        f106 = f98;
+        f107 = f99;
+        f108 = f100;
+        f109 = f101;
+    } else {
+        float f74 = f63;
+        f74 += f28 * PC_KF(32);
+        const uint8_t b96 = f51 >= f48;
+        float f102, f103, f104, f105;
+        if (b96) {
+            const float f54 = pc_sop_float(PC_SOP_MAX, f51, PC_KF(21));
+            const float f60 = pc_sop_float(PC_SOP_SQRT, f54, 0.0f);
+            const float f67 = pc_sop_float(PC_SOP_MUL, f60, PC_KF(28));
+            const float f77 = pc_sop_float(PC_SOP_DIV, PC_KF(35), f67);
+            const float f87 = pc_sop_float(PC_SOP_MUL, f70, f77);
+            const float f88 = pc_sop_float(PC_SOP_MUL, f72, f77);
+            const float f89 = pc_sop_float(PC_SOP_MUL, f51, f77);
+            const float f90 = pc_sop_float(PC_SOP_MUL, f74, f77);
+            f102 = f87;
+            f103 = f88;
+            f104 = f89;
+            f105 = f90;
+        } else {
+            const float f55 = pc_sop_float(PC_SOP_MAX, f48, PC_KF(22));
+            const float f61 = pc_sop_float(PC_SOP_SQRT, f55, 0.0f);
+            const float f68 = pc_sop_float(PC_SOP_MUL, f61, PC_KF(29));
+            const float f78 = pc_sop_float(PC_SOP_DIV, PC_KF(36), f68);
+            const float f91 = pc_sop_float(PC_SOP_MUL, f71, f78);
+            const float f92 = pc_sop_float(PC_SOP_MUL, f73, f78);
+            const float f93 = pc_sop_float(PC_SOP_MUL, f74, f78);
+            const float f94 = pc_sop_float(PC_SOP_MUL, f48, f78);
+            f102 = f91;
+            f103 = f92;
+            f104 = f93;
+            f105 = f94;
+        }
+        f106 = f102;
+        f107 = f103;
+        f108 = f104;
+        f109 = f105;
+    }
+    float f110 = f106 * f106; /* a square: 0 + it is it */
     f110 += f107 * f107;
     f110 += f108 * f108;
     f110 += f109 * f109;
-    const float f111 = pc_sop_float(PC_SOP_MAX, f110, PC_XF(138, b));
+    const float f111 = pc_sop_float(PC_SOP_MAX, f110, PC_KF(38));
     const float f112 = pc_sop_float(PC_SOP_SQRT, f111, 0.0f);
     const float f113 = pc_sop_float(PC_SOP_DIV, f106, f112);
     const float f114 = pc_sop_float(PC_SOP_DIV, f107, f112);
     const float f115 = pc_sop_float(PC_SOP_DIV, f108, f112);
     const float f116 = pc_sop_float(PC_SOP_DIV, f109, f112);
-    const uint8_t b117 = f113 < PC_XF(147, b);
+    const uint8_t b117 = f113 < PC_KF(39);
     const float f118 = pc_sop_float(PC_SOP_NEG, f113, 0.0f);
     const float f119 = pc_sop_float(PC_SOP_NEG, f114, 0.0f);
     const float f120 = pc_sop_float(PC_SOP_NEG, f115, 0.0f);
@@ -2096,17 +2291,17 @@ PC_HOT static pc_status pc_program_6ca4a22b64ec2bb9(const pc_step *s)
     const float f123 = b117 ? f119 : f114;
     const float f124 = b117 ? f120 : f115;
     const float f125 = b117 ? f121 : f116;
-    float f126 = PC_XF(159, c);
-    f126 += f122 * PC_XF(159, b);
+    float f126 = PC_KF(41);
+    f126 += f122 * PC_KF(40);
     PC_STOREF(159, f126);
-    float f127 = PC_XF(160, c);
-    f127 += f123 * PC_XF(160, b);
+    float f127 = PC_KF(43);
+    f127 += f123 * PC_KF(42);
     PC_STOREF(160, f127);
-    float f128 = PC_XF(161, c);
-    f128 += f124 * PC_XF(161, b);
+    float f128 = PC_KF(45);
+    f128 += f124 * PC_KF(44);
     PC_STOREF(161, f128);
-    float f129 = PC_XF(162, c);
-    f129 += f125 * PC_XF(162, b);
+    float f129 = PC_KF(47);
+    f129 += f125 * PC_KF(46);
     PC_STOREF(162, f129);
     const float f130 = pc_sop_float(PC_SOP_MUL, f1, f126);
     PC_STOREF(164, f130);
@@ -2155,64 +2350,65 @@ PC_HOT static pc_status pc_program_6ca4a22b64ec2bb9(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_68ae4def9da9e6f8_shape[875] = {
-    26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0,
-    26, 0, 1, 0, 0, 0, 5, 0, 0, 4, 0, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
+static const uint8_t pc_program_f83ed264bf4df77e_shape[875] = {
+    26, 3, 0, 0, 0, 253, 0, 0, 0, 0, 0, 0, 26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254,
+    26, 0, 1, 0, 254, 254, 5, 0, 0, 4, 254, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
     2, 4, 0, 0, 0, 3, 4, 0, 0, 0, 4, 3, 0, 0, 2, 2, 3, 0, 0, 4, 3, 3, 0, 0,
     6, 3, 3, 0, 0, 6, 4, 3, 0, 0, 8, 6, 3, 0, 0, 8, 8, 3, 0, 0, 8, 7, 3, 0,
     0, 11, 10, 26, 0, 0, 9, 9, 8, 26, 0, 0, 13, 11, 6, 26, 0, 0, 14, 11, 9, 26, 0, 0,
-    12, 12, 6, 26, 0, 0, 16, 15, 6, 26, 0, 0, 15, 15, 8, 3, 0, 0, 6, 0, 3, 0, 0, 6,
-    0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 2, 0, 0,
-    0, 6, 2, 0, 0, 20, 19, 2, 0, 0, 0, 5, 2, 0, 0, 17, 16, 2, 0, 0, 21, 20, 2, 0,
-    0, 0, 6, 2, 0, 0, 0, 6, 2, 0, 0, 1, 5, 1, 0, 0, 8, 0, 1, 0, 0, 1, 7, 1,
+    12, 12, 6, 26, 0, 0, 16, 15, 6, 26, 0, 0, 15, 15, 8, 3, 0, 0, 6, 254, 3, 0, 0, 6,
+    254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 2, 0, 0,
+    254, 6, 2, 0, 0, 20, 19, 2, 0, 0, 254, 5, 2, 0, 0, 17, 16, 2, 0, 0, 21, 20, 2, 0,
+    0, 254, 6, 2, 0, 0, 254, 6, 2, 0, 0, 1, 5, 1, 0, 0, 8, 254, 1, 0, 0, 1, 7, 1,
     0, 0, 1, 5, 1, 0, 0, 5, 9, 1, 0, 0, 5, 7, 2, 0, 0, 5, 11, 2, 0, 0, 1, 9,
-    2, 0, 0, 4, 10, 5, 0, 0, 6, 0, 5, 0, 0, 3, 0, 5, 0, 0, 3, 0, 5, 0, 0, 7,
-    0, 5, 0, 0, 10, 6, 5, 0, 0, 6, 9, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13,
-    0, 0, 6, 3, 0, 0, 25, 0, 3, 0, 0, 24, 0, 3, 0, 0, 24, 0, 3, 0, 0, 7, 0, 3,
-    0, 0, 7, 0, 3, 0, 0, 7, 0, 3, 0, 0, 7, 0, 2, 0, 0, 35, 6, 2, 0, 0, 39, 6,
-    2, 0, 0, 39, 9, 26, 0, 0, 46, 0, 10, 26, 0, 0, 33, 0, 42, 26, 0, 0, 46, 0, 11, 4,
-    0, 0, 0, 10, 4, 0, 0, 0, 10, 4, 0, 0, 0, 10, 4, 0, 0, 0, 10, 3, 0, 0, 33, 4,
+    2, 0, 0, 4, 10, 5, 0, 0, 6, 254, 5, 0, 0, 3, 254, 5, 0, 0, 3, 254, 5, 0, 0, 7,
+    254, 5, 0, 0, 10, 6, 5, 0, 0, 6, 9, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13,
+    0, 0, 6, 3, 0, 0, 25, 254, 3, 0, 0, 24, 254, 3, 0, 0, 24, 254, 3, 0, 0, 7, 254, 3,
+    0, 0, 7, 254, 3, 0, 0, 7, 254, 3, 0, 0, 7, 254, 2, 0, 0, 35, 6, 2, 0, 0, 39, 6,
+    2, 0, 0, 39, 9, 26, 0, 0, 46, 254, 10, 26, 0, 0, 33, 254, 42, 26, 0, 0, 46, 254, 11, 4,
+    0, 0, 254, 10, 4, 0, 0, 254, 10, 4, 0, 0, 254, 10, 4, 0, 0, 254, 10, 3, 0, 0, 33, 4,
     3, 0, 0, 11, 5, 3, 0, 0, 11, 6, 3, 0, 0, 11, 7, 3, 0, 0, 14, 7, 3, 0, 0, 34,
     8, 3, 0, 0, 13, 9, 3, 0, 0, 13, 10, 3, 0, 0, 17, 10, 3, 0, 0, 16, 11, 3, 0, 0,
     38, 12, 3, 0, 0, 16, 13, 3, 0, 0, 20, 13, 3, 0, 0, 19, 14, 3, 0, 0, 19, 15, 3, 0,
     0, 46, 16, 9, 0, 0, 49, 45, 9, 0, 0, 45, 48, 9, 0, 0, 41, 40, 23, 0, 0, 19, 15, 3,
     23, 0, 0, 19, 15, 4, 23, 0, 0, 19, 15, 5, 23, 0, 0, 19, 15, 6, 23, 0, 0, 15, 11, 6,
     23, 0, 0, 15, 11, 7, 23, 0, 0, 15, 11, 8, 23, 0, 0, 15, 11, 9, 23, 0, 0, 8, 4, 9,
-    23, 0, 0, 8, 4, 10, 23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 0,
-    3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7,
-    2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 0, 12, 0, 0, 5, 12, 0, 0, 5,
+    23, 0, 0, 8, 4, 10, 23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 253,
+    3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7,
+    2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 254, 12, 0, 0, 5, 12, 0, 0, 5,
     12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 0, 4, 9, 5, 23, 0, 0, 4, 9, 6, 23, 0, 0, 4,
-    9, 7, 23, 0, 0, 4, 9, 8, 26, 3, 0, 4, 4, 0, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1,
-    0, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4, 0, 0, 7,
-    4, 10, 0, 0, 4, 0, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0,
+    9, 7, 23, 0, 0, 4, 9, 8, 26, 3, 0, 4, 4, 253, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1,
+    254, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4, 0, 0, 7,
+    4, 10, 0, 0, 4, 254, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0,
     0, 4, 9, 5, 23, 0, 0, 4, 9, 6, 23, 0, 0, 4, 9, 7, 23, 0, 0, 4, 9, 8, 26, 2,
-    0, 3, 3, 0, 2, 2, 1, 1, 10, 0, 0, 1, 0, 10, 0, 0, 6, 0, 23, 0, 0, 0, 3, 2,
-    23, 0, 0, 8, 0, 3, 7, 0, 0, 9, 0, 13, 0, 0, 3, 23, 0, 0, 0, 11, 2, 4, 0, 0,
-    0, 4, 4, 0, 0, 3, 2, 10, 0, 0, 4, 0, 3, 0, 0, 7, 0, 3, 0, 0, 1, 8, 19, 0,
-    0, 4, 23, 0, 0, 0, 0, 4, 1, 0, 0, 2, 1, 4, 0, 0, 16, 4, 23, 0, 0, 2, 4, 15,
-    2, 0, 0, 0, 2, 3, 0, 0, 11, 1, 3, 0, 0, 3, 0, 4, 0, 0, 1, 15, 23, 0, 0, 3,
-    1, 21, 3, 0, 0, 26, 1, 3, 0, 0, 26, 2, 3, 0, 0, 26, 3, 26, 0, 1, 3, 0, 0, 26,
-    0, 1, 3, 0, 0, 26, 0, 1, 3, 0, 0,
+    0, 3, 3, 253, 2, 2, 1, 1, 10, 0, 0, 1, 254, 10, 0, 0, 6, 254, 23, 0, 0, 254, 3, 2,
+    23, 0, 0, 8, 254, 3, 7, 0, 0, 9, 254, 13, 0, 0, 3, 23, 0, 0, 254, 11, 2, 4, 0, 0,
+    254, 4, 4, 0, 0, 3, 2, 10, 0, 0, 4, 254, 3, 0, 0, 7, 254, 3, 0, 0, 1, 8, 19, 0,
+    0, 4, 23, 0, 0, 254, 254, 4, 1, 0, 0, 2, 1, 4, 0, 0, 16, 4, 23, 0, 0, 2, 4, 15,
+    2, 0, 0, 254, 2, 3, 0, 0, 11, 1, 3, 0, 0, 3, 254, 4, 0, 0, 1, 15, 23, 0, 0, 3,
+    1, 21, 3, 0, 0, 26, 1, 3, 0, 0, 26, 2, 3, 0, 0, 26, 3, 26, 0, 1, 3, 254, 254, 26,
+    0, 1, 3, 254, 254, 26, 0, 1, 3, 254, 254,
 };
-PC_HOT static pc_status pc_program_68ae4def9da9e6f8(const pc_step *s)
+PC_HOT static pc_status pc_program_f83ed264bf4df77e(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
+    const float *const k = (const float *)(const void *)(e + 229);
+    float f0 = PC_KF(0);
     f0 += PC_XF(1, a) * PC_XF(1, b);
     f0 += PC_XF(2, a) * PC_XF(2, b);
     f0 += PC_XF(3, a) * PC_XF(3, b);
     f0 += PC_XF(4, a) * PC_XF(4, b);
-    float f1 = PC_XF(5, c);
-    f1 += PC_XF(5, a) * PC_XF(5, b);
+    float f1 = PC_KF(2);
+    f1 += PC_XF(5, a) * PC_KF(1);
     PC_STOREF(5, f1);
-    float f2 = PC_XF(6, c);
-    f2 += PC_XF(6, a) * PC_XF(6, b);
+    float f2 = PC_KF(4);
+    f2 += PC_XF(6, a) * PC_KF(3);
     PC_STOREF(6, f2);
-    float f3 = PC_XF(7, c);
-    f3 += PC_XF(7, a) * PC_XF(7, b);
+    float f3 = PC_KF(6);
+    f3 += PC_XF(7, a) * PC_KF(5);
     PC_STOREF(7, f3);
-    const float f4 = pc_sop_float(PC_SOP_MAX, f0, PC_XF(9, b));
+    const float f4 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(7));
     const float f5 = pc_sop_float(PC_SOP_SQRT, f4, 0.0f);
     const float f6 = pc_sop_float(PC_SOP_DIV, PC_XF(13, a), f5);
     const float f7 = pc_sop_float(PC_SOP_DIV, PC_XF(14, a), f5);
@@ -2238,21 +2434,20 @@ PC_HOT static pc_status pc_program_68ae4def9da9e6f8(const pc_step *s)
     f22 += f6 * f7;
     float f23 = f15;
     f23 += f8 * f8;
-    const float f24 = pc_sop_float(PC_SOP_MUL, f18, PC_XF(34, b));
-    const float f25 = pc_sop_float(PC_SOP_MUL, f19, PC_XF(35, b));
-    const float f26 = pc_sop_float(PC_SOP_MUL, f20, PC_XF(36, b));
-    const float f27 = pc_sop_float(PC_SOP_MUL, f21, PC_XF(37, b));
-    const float f28 = pc_sop_float(PC_SOP_MUL, f22, PC_XF(38, b));
-    const float f29 = pc_sop_float(PC_SOP_MUL, f23, PC_XF(39, b));
-    const float f30 = pc_sop_float(PC_SOP_SUB, PC_XF(41, a), f24);
+    const float f24 = pc_sop_float(PC_SOP_MUL, f18, PC_KF(8));
+    const float f25 = pc_sop_float(PC_SOP_MUL, f19, PC_KF(9));
+    const float f26 = pc_sop_float(PC_SOP_MUL, f20, PC_KF(10));
+    const float f27 = pc_sop_float(PC_SOP_MUL, f21, PC_KF(11));
+    const float f29 = pc_sop_float(PC_SOP_MUL, f23, PC_KF(13));
+    const float f30 = pc_sop_float(PC_SOP_SUB, PC_KF(14), f24);
     const float f31 = pc_sop_float(PC_SOP_SUB, f11, f12);
-    const float f32 = pc_sop_float(PC_SOP_SUB, PC_XF(43, a), f27);
+    const float f32 = pc_sop_float(PC_SOP_SUB, PC_KF(15), f27);
     const float f33 = pc_sop_float(PC_SOP_SUB, f16, f17);
     const float f34 = pc_sop_float(PC_SOP_SUB, f13, f14);
-    const float f35 = pc_sop_float(PC_SOP_SUB, PC_XF(46, a), f29);
-    const float f36 = pc_sop_float(PC_SOP_SUB, PC_XF(47, a), f30);
+    const float f35 = pc_sop_float(PC_SOP_SUB, PC_KF(16), f29);
+    const float f36 = pc_sop_float(PC_SOP_SUB, PC_KF(17), f30);
     const float f37 = pc_sop_float(PC_SOP_SUB, f36, f32);
-    const float f38 = pc_sop_float(PC_SOP_ADD, f30, PC_XF(50, b));
+    const float f38 = pc_sop_float(PC_SOP_ADD, f30, PC_KF(18));
     const float f39 = pc_sop_float(PC_SOP_ADD, f38, f32);
     const float f40 = pc_sop_float(PC_SOP_ADD, f39, f35);
     const float f41 = pc_sop_float(PC_SOP_ADD, f36, f32);
@@ -2260,79 +2455,103 @@ PC_HOT static pc_status pc_program_68ae4def9da9e6f8(const pc_step *s)
     const float f43 = pc_sop_float(PC_SOP_SUB, f38, f32);
     const float f44 = pc_sop_float(PC_SOP_SUB, f43, f35);
     const float f45 = pc_sop_float(PC_SOP_SUB, f41, f35);
-    const float f46 = pc_sop_float(PC_SOP_MAX, f40, PC_XF(60, b));
-    const float f47 = pc_sop_float(PC_SOP_MAX, f44, PC_XF(61, b));
-    const float f48 = pc_sop_float(PC_SOP_MAX, f45, PC_XF(62, b));
-    const float f49 = pc_sop_float(PC_SOP_MAX, f42, PC_XF(63, b));
     const float f50 = pc_sop_float(PC_SOP_MAX, f40, f44);
     const float f51 = pc_sop_float(PC_SOP_MAX, f45, f42);
-    const float f52 = pc_sop_float(PC_SOP_SQRT, f46, 0.0f);
-    const float f53 = pc_sop_float(PC_SOP_SQRT, f47, 0.0f);
-    const float f54 = pc_sop_float(PC_SOP_SQRT, f48, 0.0f);
-    const float f55 = pc_sop_float(PC_SOP_SQRT, f49, 0.0f);
-    const float f56 = pc_sop_float(PC_SOP_MUL, f31, PC_XF(72, b));
-    const float f57 = pc_sop_float(PC_SOP_MUL, f33, PC_XF(73, b));
-    const float f58 = pc_sop_float(PC_SOP_MUL, f34, PC_XF(74, b));
-    const float f59 = pc_sop_float(PC_SOP_MUL, f52, PC_XF(75, b));
-    const float f60 = pc_sop_float(PC_SOP_MUL, f53, PC_XF(76, b));
-    const float f61 = pc_sop_float(PC_SOP_MUL, f54, PC_XF(77, b));
-    const float f62 = pc_sop_float(PC_SOP_MUL, f55, PC_XF(78, b));
-    const float f63 = pc_sop_float(PC_SOP_SUB, f28, f57);
+    const float f56 = pc_sop_float(PC_SOP_MUL, f31, PC_KF(23));
+    const float f57 = pc_sop_float(PC_SOP_MUL, f33, PC_KF(24));
+    const float f58 = pc_sop_float(PC_SOP_MUL, f34, PC_KF(25));
     const float f64 = pc_sop_float(PC_SOP_SUB, f25, f58);
     const float f65 = pc_sop_float(PC_SOP_SUB, f26, f56);
     float f66 = f56;
-    f66 += f20 * PC_XF(84, b);
+    f66 += f20 * PC_KF(30);
     float f67 = f25;
-    f67 += f34 * PC_XF(85, b);
-    float f68 = f57;
-    f68 += f22 * PC_XF(86, b);
-    const float f69 = pc_sop_float(PC_SOP_DIV, PC_XF(88, a), f59);
-    const float f70 = pc_sop_float(PC_SOP_DIV, PC_XF(89, a), f60);
-    const float f71 = pc_sop_float(PC_SOP_DIV, PC_XF(90, a), f61);
-    const float f72 = pc_sop_float(PC_SOP_DIV, PC_XF(91, a), f62);
-    const float f73 = pc_sop_float(PC_SOP_MUL, f40, f69);
-    const float f74 = pc_sop_float(PC_SOP_MUL, f63, f69);
-    const float f75 = pc_sop_float(PC_SOP_MUL, f64, f69);
-    const float f76 = pc_sop_float(PC_SOP_MUL, f65, f69);
-    const float f77 = pc_sop_float(PC_SOP_MUL, f63, f70);
-    const float f78 = pc_sop_float(PC_SOP_MUL, f44, f70);
-    const float f79 = pc_sop_float(PC_SOP_MUL, f66, f70);
-    const float f80 = pc_sop_float(PC_SOP_MUL, f67, f70);
-    const float f81 = pc_sop_float(PC_SOP_MUL, f64, f71);
-    const float f82 = pc_sop_float(PC_SOP_MUL, f66, f71);
-    const float f83 = pc_sop_float(PC_SOP_MUL, f45, f71);
-    const float f84 = pc_sop_float(PC_SOP_MUL, f68, f71);
-    const float f85 = pc_sop_float(PC_SOP_MUL, f65, f72);
-    const float f86 = pc_sop_float(PC_SOP_MUL, f67, f72);
-    const float f87 = pc_sop_float(PC_SOP_MUL, f68, f72);
-    const float f88 = pc_sop_float(PC_SOP_MUL, f42, f72);
-    const uint8_t b89 = f40 >= f44;
-    const uint8_t b90 = f45 >= f42;
+    f67 += f34 * PC_KF(31);
     const uint8_t b91 = f50 >= f51;
-    const float f92 = b89 ? f73 : f77;
-    const float f93 = b89 ? f74 : f78;
-    const float f94 = b89 ? f75 : f79;
-    const float f95 = b89 ? f76 : f80;
-    const float f96 = b90 ? f81 : f85;
-    const float f97 = b90 ? f82 : f86;
-    const float f98 = b90 ? f83 : f87;
-    const float f99 = b90 ? f84 : f88;
-    const float f100 = b91 ? f92 : f96;
-    const float f101 = b91 ? f93 : f97;
-    const float f102 = b91 ? f94 : f98;
-    const float f103 = b91 ? f95 : f99;
-    float f104 = PC_XF(127, c);
-    f104 += f100 * f100;
+    float f100, f101, f102, f103;
+    if (b91) {
+        const float f28 = pc_sop_float(PC_SOP_MUL, f22, PC_KF(12));
+        const float f63 = pc_sop_float(PC_SOP_SUB, f28, f57);
+        const uint8_t b89 = f40 >= f44;
+        float f92, f93, f94, f95;
+        if (b89) {
+            const float f46 = pc_sop_float(PC_SOP_MAX, f40, PC_KF(19));
+            const float f52 = pc_sop_float(PC_SOP_SQRT, f46, 0.0f);
+            const float f59 = pc_sop_float(PC_SOP_MUL, f52, PC_KF(26));
+            const float f69 = pc_sop_float(PC_SOP_DIV, PC_KF(33), f59);
+            const float f73 = pc_sop_float(PC_SOP_MUL, f40, f69);
+            const float f74 = pc_sop_float(PC_SOP_MUL, f63, f69);
+            const float f75 = pc_sop_float(PC_SOP_MUL, f64, f69);
+            const float f76 = pc_sop_float(PC_SOP_MUL, f65, f69);
+            f92 = f73;
+            f93 = f74;
+            f94 = f75;
+            f95 = f76;
+        } else {
+            const float f47 = pc_sop_float(PC_SOP_MAX, f44, PC_KF(20));
+            const float f53 = pc_sop_float(PC_SOP_SQRT, f47, 0.0f);
+            const float f60 = pc_sop_float(PC_SOP_MUL, f53, PC_KF(27));
+            const float f70 = pc_sop_float(PC_SOP_DIV, PC_KF(34), f60);
+            const float f77 = pc_sop_float(PC_SOP_MUL, f63, f70);
+            const float f78 = pc_sop_float(PC_SOP_MUL, f44, f70);
+            const float f79 = pc_sop_float(PC_SOP_MUL, f66, f70);
+            const float f80 = pc_sop_float(PC_SOP_MUL, f67, f70);
+            f92 = f77;
+            f93 = f78;
+            f94 = f79;
+            f95 = f80;
+        }
+        f100 = f92;
+        f101 = f93;
+        f102 = f94;
+        f103 = f95;
+    } else {
+        float f68 = f57;
+        f68 += f22 * PC_KF(32);
+        const uint8_t b90 = f45 >= f42;
+        float f96, f97, f98, f99;
+        if (b90) {
+            const float f48 = pc_sop_float(PC_SOP_MAX, f45, PC_KF(21));
+            const float f54 = pc_sop_float(PC_SOP_SQRT, f48, 0.0f);
+            const float f61 = pc_sop_float(PC_SOP_MUL, f54, PC_KF(28));
+            const float f71 = pc_sop_float(PC_SOP_DIV, PC_KF(35), f61);
+            const float f81 = pc_sop_float(PC_SOP_MUL, f64, f71);
+            const float f82 = pc_sop_float(PC_SOP_MUL, f66, f71);
+            const float f83 = pc_sop_float(PC_SOP_MUL, f45, f71);
+            const float f84 = pc_sop_float(PC_SOP_MUL, f68, f71);
+            f96 = f81;
+            f97 = f82;
+            f98 = f83;
+            f99 = f84;
+        } else {
+            const float f49 = pc_sop_float(PC_SOP_MAX, f42, PC_KF(22));
+            const float f55 = pc_sop_float(PC_SOP_SQRT, f49, 0.0f);
+            const float f62 = pc_sop_float(PC_SOP_MUL, f55, PC_KF(29));
+            const float f72 = pc_sop_float(PC_SOP_DIV, PC_KF(36), f62);
+            const float f85 = pc_sop_float(PC_SOP_MUL, f65, f72);
+            const float f86 = pc_sop_float(PC_SOP_MUL, f67, f72);
+            const float f87 = pc_sop_float(PC_SOP_MUL, f68, f72);
+            const float f88 = pc_sop_float(PC_SOP_MUL, f42, f72);
+            f96 = f85;
+            f97 = f86;
+            f98 = f87;
+            f99 = f88;
+        }
+        f100 = f96;
+        f101 = f97;
+        f102 = f98;
+        f103 = f99;
+    }
+    float f104 = f100 * f100; /* a square: 0 + it is it */
     f104 += f101 * f101;
     f104 += f102 * f102;
     f104 += f103 * f103;
-    const float f105 = pc_sop_float(PC_SOP_MAX, f104, PC_XF(132, b));
+    const float f105 = pc_sop_float(PC_SOP_MAX, f104, PC_KF(38));
     const float f106 = pc_sop_float(PC_SOP_SQRT, f105, 0.0f);
     const float f107 = pc_sop_float(PC_SOP_DIV, f100, f106);
     const float f108 = pc_sop_float(PC_SOP_DIV, f101, f106);
     const float f109 = pc_sop_float(PC_SOP_DIV, f102, f106);
     const float f110 = pc_sop_float(PC_SOP_DIV, f103, f106);
-    const uint8_t b111 = f107 < PC_XF(141, b);
+    const uint8_t b111 = f107 < PC_KF(39);
     const float f112 = pc_sop_float(PC_SOP_NEG, f107, 0.0f);
     const float f113 = pc_sop_float(PC_SOP_NEG, f108, 0.0f);
     const float f114 = pc_sop_float(PC_SOP_NEG, f109, 0.0f);
@@ -2341,18 +2560,17 @@ PC_HOT static pc_status pc_program_68ae4def9da9e6f8(const pc_step *s)
     const float f117 = b111 ? f113 : f108;
     const float f118 = b111 ? f114 : f109;
     const float f119 = b111 ? f115 : f110;
-    float f120 = PC_XF(153, c);
-    f120 += f116 * f116;
+    float f120 = f116 * f116; /* a square: 0 + it is it */
     f120 += f117 * f117;
     f120 += f118 * f118;
     f120 += f119 * f119;
-    const float f121 = pc_sop_float(PC_SOP_MAX, f120, PC_XF(158, b));
+    const float f121 = pc_sop_float(PC_SOP_MAX, f120, PC_KF(41));
     const float f122 = pc_sop_float(PC_SOP_SQRT, f121, 0.0f);
     const float f123 = pc_sop_float(PC_SOP_DIV, f116, f122);
     const float f124 = pc_sop_float(PC_SOP_DIV, f117, f122);
     const float f125 = pc_sop_float(PC_SOP_DIV, f118, f122);
     const float f126 = pc_sop_float(PC_SOP_DIV, f119, f122);
-    const uint8_t b127 = f123 < PC_XF(167, b);
+    const uint8_t b127 = f123 < PC_KF(42);
     const float f128 = pc_sop_float(PC_SOP_NEG, f123, 0.0f);
     const float f129 = pc_sop_float(PC_SOP_NEG, f124, 0.0f);
     const float f130 = pc_sop_float(PC_SOP_NEG, f125, 0.0f);
@@ -2361,65 +2579,64 @@ PC_HOT static pc_status pc_program_68ae4def9da9e6f8(const pc_step *s)
     const float f133 = b127 ? f129 : f124;
     const float f134 = b127 ? f130 : f125;
     const float f135 = b127 ? f131 : f126;
-    float f136 = PC_XF(179, c);
-    f136 += f133 * f133;
+    float f136 = f133 * f133; /* a square: 0 + it is it */
     f136 += f134 * f134;
     f136 += f135 * f135;
-    const uint8_t b137 = f136 < PC_XF(183, b);
-    const uint8_t b138 = f132 < PC_XF(184, b);
-    const float f139 = b137 ? PC_XF(186, a) : f136;
-    const float f140 = b137 ? f132 : PC_XF(187, b);
-    const uint8_t b141 = f132 == PC_XF(189, b);
+    const uint8_t b137 = f136 < PC_KF(44);
+    const uint8_t b138 = f132 < PC_KF(45);
+    const float f139 = b137 ? PC_KF(46) : f136;
+    const float f140 = b137 ? f132 : PC_KF(47);
+    const uint8_t b141 = f132 == PC_KF(48);
     const float f142 = pc_sop_float(PC_SOP_SQRT, f139, 0.0f);
-    const float f143 = b141 ? PC_XF(193, a) : f132;
-    const float f144 = pc_sop_float(PC_SOP_DIV, PC_XF(195, a), f140);
+    const float f143 = b141 ? PC_KF(49) : f132;
+    const float f144 = pc_sop_float(PC_SOP_DIV, PC_KF(50), f140);
     const float f145 = pc_sop_float(PC_SOP_DIV, f142, f143);
-    const uint8_t b146 = f142 < PC_XF(198, b);
-    const float f147 = pc_sop_float(PC_SOP_MUL, f140, PC_XF(200, b));
+    const uint8_t b146 = f142 < PC_KF(51);
+    const float f147 = pc_sop_float(PC_SOP_MUL, f140, PC_KF(52));
     const float f148 = pc_sop_float(PC_SOP_MUL, f147, f140);
     const float f149 = pc_sop_float(PC_SOP_ATAN, f145, 0.0f);
-    const float f150 = b146 ? PC_XF(205, a) : PC_XF(205, b);
+    const float f150 = b146 ? PC_KF(53) : PC_KF(54);
     const float f151 = pc_sop_float(PC_SOP_ADD, f149, f150);
     const float f152 = pc_sop_float(PC_SOP_DIV, f136, f148);
     const float f153 = b138 ? f151 : f149;
-    const float f154 = pc_sop_float(PC_SOP_SUB, PC_XF(213, a), f152);
+    const float f154 = pc_sop_float(PC_SOP_SUB, PC_KF(55), f152);
     const float f155 = pc_sop_float(PC_SOP_MUL, f144, f154);
-    const float f156 = pc_sop_float(PC_SOP_MUL, f153, PC_XF(216, b));
+    const float f156 = pc_sop_float(PC_SOP_MUL, f153, PC_KF(56));
     const float f157 = pc_sop_float(PC_SOP_DIV, f156, f142);
     const float f158 = b137 ? f155 : f157;
     const float f159 = pc_sop_float(PC_SOP_MUL, f133, f158);
     const float f160 = pc_sop_float(PC_SOP_MUL, f134, f158);
     const float f161 = pc_sop_float(PC_SOP_MUL, f135, f158);
-    float f162 = PC_XF(226, c);
-    f162 += f159 * PC_XF(226, b);
+    float f162 = PC_KF(58);
+    f162 += f159 * PC_KF(57);
     PC_STOREF(226, f162);
-    float f163 = PC_XF(227, c);
-    f163 += f160 * PC_XF(227, b);
+    float f163 = PC_KF(60);
+    f163 += f160 * PC_KF(59);
     PC_STOREF(227, f163);
-    float f164 = PC_XF(228, c);
-    f164 += f161 * PC_XF(228, b);
+    float f164 = PC_KF(62);
+    f164 += f161 * PC_KF(61);
     PC_STOREF(228, f164);
     return PC_OK;
 }
 
-static const uint8_t pc_program_a734d6c3be2c7b05_shape[980] = {
-    26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0,
-    26, 0, 1, 0, 0, 0, 5, 0, 0, 4, 0, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
+static const uint8_t pc_program_f40896e148dae487_shape[980] = {
+    26, 3, 0, 0, 0, 253, 0, 0, 0, 0, 0, 0, 26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254,
+    26, 0, 1, 0, 254, 254, 5, 0, 0, 4, 254, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
     2, 4, 0, 0, 0, 3, 4, 0, 0, 0, 4, 3, 0, 0, 2, 2, 3, 0, 0, 4, 3, 3, 0, 0,
     6, 3, 3, 0, 0, 6, 4, 3, 0, 0, 8, 6, 3, 0, 0, 8, 8, 3, 0, 0, 8, 7, 3, 0,
     0, 11, 10, 3, 0, 1, 17, 17, 3, 0, 1, 18, 17, 3, 0, 1, 19, 17, 3, 0, 1, 19, 19, 3,
     0, 1, 20, 19, 3, 0, 1, 20, 20, 26, 0, 0, 15, 15, 14, 26, 0, 0, 19, 17, 12, 26, 0, 0,
     20, 17, 15, 26, 0, 0, 18, 18, 12, 26, 0, 0, 22, 21, 12, 26, 0, 0, 21, 21, 14, 3, 0, 0,
-    6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0,
-    0, 6, 0, 2, 0, 0, 0, 6, 2, 0, 0, 26, 25, 2, 0, 0, 0, 5, 2, 0, 0, 23, 22, 2,
-    0, 0, 27, 26, 2, 0, 0, 0, 6, 2, 0, 0, 0, 6, 2, 0, 0, 1, 5, 1, 0, 0, 8, 0,
+    6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0,
+    0, 6, 254, 2, 0, 0, 254, 6, 2, 0, 0, 26, 25, 2, 0, 0, 254, 5, 2, 0, 0, 23, 22, 2,
+    0, 0, 27, 26, 2, 0, 0, 254, 6, 2, 0, 0, 254, 6, 2, 0, 0, 1, 5, 1, 0, 0, 8, 254,
     1, 0, 0, 1, 7, 1, 0, 0, 1, 5, 1, 0, 0, 5, 9, 1, 0, 0, 5, 7, 2, 0, 0, 5,
-    11, 2, 0, 0, 1, 9, 2, 0, 0, 4, 10, 5, 0, 0, 6, 0, 5, 0, 0, 3, 0, 5, 0, 0,
-    3, 0, 5, 0, 0, 7, 0, 5, 0, 0, 10, 6, 5, 0, 0, 6, 9, 13, 0, 0, 6, 13, 0, 0,
-    6, 13, 0, 0, 6, 13, 0, 0, 6, 3, 0, 0, 25, 0, 3, 0, 0, 24, 0, 3, 0, 0, 24, 0,
-    3, 0, 0, 7, 0, 3, 0, 0, 7, 0, 3, 0, 0, 7, 0, 3, 0, 0, 7, 0, 2, 0, 0, 35,
-    6, 2, 0, 0, 39, 6, 2, 0, 0, 39, 9, 26, 0, 0, 46, 0, 10, 26, 0, 0, 33, 0, 42, 26,
-    0, 0, 46, 0, 11, 4, 0, 0, 0, 10, 4, 0, 0, 0, 10, 4, 0, 0, 0, 10, 4, 0, 0, 0,
+    11, 2, 0, 0, 1, 9, 2, 0, 0, 4, 10, 5, 0, 0, 6, 254, 5, 0, 0, 3, 254, 5, 0, 0,
+    3, 254, 5, 0, 0, 7, 254, 5, 0, 0, 10, 6, 5, 0, 0, 6, 9, 13, 0, 0, 6, 13, 0, 0,
+    6, 13, 0, 0, 6, 13, 0, 0, 6, 3, 0, 0, 25, 254, 3, 0, 0, 24, 254, 3, 0, 0, 24, 254,
+    3, 0, 0, 7, 254, 3, 0, 0, 7, 254, 3, 0, 0, 7, 254, 3, 0, 0, 7, 254, 2, 0, 0, 35,
+    6, 2, 0, 0, 39, 6, 2, 0, 0, 39, 9, 26, 0, 0, 46, 254, 10, 26, 0, 0, 33, 254, 42, 26,
+    0, 0, 46, 254, 11, 4, 0, 0, 254, 10, 4, 0, 0, 254, 10, 4, 0, 0, 254, 10, 4, 0, 0, 254,
     10, 3, 0, 0, 33, 4, 3, 0, 0, 11, 5, 3, 0, 0, 11, 6, 3, 0, 0, 11, 7, 3, 0, 0,
     14, 7, 3, 0, 0, 34, 8, 3, 0, 0, 13, 9, 3, 0, 0, 13, 10, 3, 0, 0, 17, 10, 3, 0,
     0, 16, 11, 3, 0, 0, 38, 12, 3, 0, 0, 16, 13, 3, 0, 0, 20, 13, 3, 0, 0, 19, 14, 3,
@@ -2427,43 +2644,44 @@ static const uint8_t pc_program_a734d6c3be2c7b05_shape[980] = {
     23, 0, 0, 19, 15, 3, 23, 0, 0, 19, 15, 4, 23, 0, 0, 19, 15, 5, 23, 0, 0, 19, 15, 6,
     23, 0, 0, 15, 11, 6, 23, 0, 0, 15, 11, 7, 23, 0, 0, 15, 11, 8, 23, 0, 0, 15, 11, 9,
     23, 0, 0, 8, 4, 9, 23, 0, 0, 8, 4, 10, 23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12,
-    26, 3, 0, 4, 4, 0, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0,
-    7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 0, 12, 0,
+    26, 3, 0, 4, 4, 253, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0,
+    7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 254, 12, 0,
     0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 0, 4, 9, 5, 23, 0, 0, 4,
-    9, 6, 23, 0, 0, 4, 9, 7, 23, 0, 0, 4, 9, 8, 26, 3, 0, 4, 4, 0, 3, 3, 2, 2,
-    1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0,
-    7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 0, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5,
+    9, 6, 23, 0, 0, 4, 9, 7, 23, 0, 0, 4, 9, 8, 26, 3, 0, 4, 4, 253, 3, 3, 2, 2,
+    1, 1, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0,
+    7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 254, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5,
     12, 0, 0, 5, 23, 0, 0, 4, 9, 5, 23, 0, 0, 4, 9, 6, 23, 0, 0, 4, 9, 7, 23, 0,
-    0, 4, 9, 8, 26, 2, 0, 3, 3, 0, 2, 2, 1, 1, 10, 0, 0, 1, 0, 10, 0, 0, 6, 0,
-    23, 0, 0, 0, 3, 2, 23, 0, 0, 8, 0, 3, 7, 0, 0, 9, 0, 13, 0, 0, 3, 23, 0, 0,
-    0, 11, 2, 4, 0, 0, 0, 4, 4, 0, 0, 3, 2, 10, 0, 0, 4, 0, 3, 0, 0, 7, 0, 3,
-    0, 0, 1, 8, 19, 0, 0, 4, 23, 0, 0, 0, 0, 4, 1, 0, 0, 2, 1, 4, 0, 0, 16, 4,
-    23, 0, 0, 2, 4, 15, 2, 0, 0, 0, 2, 3, 0, 0, 11, 1, 3, 0, 0, 3, 0, 4, 0, 0,
+    0, 4, 9, 8, 26, 2, 0, 3, 3, 253, 2, 2, 1, 1, 10, 0, 0, 1, 254, 10, 0, 0, 6, 254,
+    23, 0, 0, 254, 3, 2, 23, 0, 0, 8, 254, 3, 7, 0, 0, 9, 254, 13, 0, 0, 3, 23, 0, 0,
+    254, 11, 2, 4, 0, 0, 254, 4, 4, 0, 0, 3, 2, 10, 0, 0, 4, 254, 3, 0, 0, 7, 254, 3,
+    0, 0, 1, 8, 19, 0, 0, 4, 23, 0, 0, 254, 254, 4, 1, 0, 0, 2, 1, 4, 0, 0, 16, 4,
+    23, 0, 0, 2, 4, 15, 2, 0, 0, 254, 2, 3, 0, 0, 11, 1, 3, 0, 0, 3, 254, 4, 0, 0,
     1, 15, 23, 0, 0, 3, 1, 21, 3, 0, 0, 26, 1, 3, 0, 0, 26, 2, 3, 0, 0, 26, 3, 26,
-    0, 1, 3, 0, 0, 26, 0, 1, 3, 0, 0, 26, 0, 1, 3, 0, 0, 3, 0, 1, 170, 3, 3, 0,
+    0, 1, 3, 254, 254, 26, 0, 1, 3, 254, 254, 26, 0, 1, 3, 254, 254, 3, 0, 1, 170, 3, 3, 0,
     1, 171, 3, 3, 0, 1, 172, 3, 3, 0, 1, 172, 6, 3, 0, 1, 173, 6, 3, 0, 1, 174, 6, 3,
     0, 1, 174, 9, 3, 0, 1, 175, 9, 3, 0, 1, 176, 9, 3, 0, 1, 12, 12, 3, 0, 1, 13, 12,
     3, 0, 1, 14, 12, 3, 0, 1, 14, 14, 3, 0, 1, 15, 14, 3, 0, 1, 15, 15,
 };
-PC_HOT static pc_status pc_program_a734d6c3be2c7b05(const pc_step *s)
+PC_HOT static pc_status pc_program_f40896e148dae487(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
+    const float *const k = (const float *)(const void *)(e + 251);
+    float f0 = PC_KF(0);
     f0 += PC_XF(1, a) * PC_XF(1, b);
     f0 += PC_XF(2, a) * PC_XF(2, b);
     f0 += PC_XF(3, a) * PC_XF(3, b);
     f0 += PC_XF(4, a) * PC_XF(4, b);
-    float f1 = PC_XF(5, c);
-    f1 += PC_XF(5, a) * PC_XF(5, b);
+    float f1 = PC_KF(2);
+    f1 += PC_XF(5, a) * PC_KF(1);
     PC_STOREF(5, f1);
-    float f2 = PC_XF(6, c);
-    f2 += PC_XF(6, a) * PC_XF(6, b);
+    float f2 = PC_KF(4);
+    f2 += PC_XF(6, a) * PC_KF(3);
     PC_STOREF(6, f2);
-    float f3 = PC_XF(7, c);
-    f3 += PC_XF(7, a) * PC_XF(7, b);
+    float f3 = PC_KF(6);
+    f3 += PC_XF(7, a) * PC_KF(5);
     PC_STOREF(7, f3);
-    const float f4 = pc_sop_float(PC_SOP_MAX, f0, PC_XF(9, b));
+    const float f4 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(7));
     const float f5 = pc_sop_float(PC_SOP_SQRT, f4, 0.0f);
     const float f6 = pc_sop_float(PC_SOP_DIV, PC_XF(13, a), f5);
     const float f7 = pc_sop_float(PC_SOP_DIV, PC_XF(14, a), f5);
@@ -2501,21 +2719,20 @@ PC_HOT static pc_status pc_program_a734d6c3be2c7b05(const pc_step *s)
     f28 += f6 * f7;
     float f29 = f15;
     f29 += f8 * f8;
-    const float f30 = pc_sop_float(PC_SOP_MUL, f24, PC_XF(40, b));
-    const float f31 = pc_sop_float(PC_SOP_MUL, f25, PC_XF(41, b));
-    const float f32 = pc_sop_float(PC_SOP_MUL, f26, PC_XF(42, b));
-    const float f33 = pc_sop_float(PC_SOP_MUL, f27, PC_XF(43, b));
-    const float f34 = pc_sop_float(PC_SOP_MUL, f28, PC_XF(44, b));
-    const float f35 = pc_sop_float(PC_SOP_MUL, f29, PC_XF(45, b));
-    const float f36 = pc_sop_float(PC_SOP_SUB, PC_XF(47, a), f30);
+    const float f30 = pc_sop_float(PC_SOP_MUL, f24, PC_KF(8));
+    const float f31 = pc_sop_float(PC_SOP_MUL, f25, PC_KF(9));
+    const float f32 = pc_sop_float(PC_SOP_MUL, f26, PC_KF(10));
+    const float f33 = pc_sop_float(PC_SOP_MUL, f27, PC_KF(11));
+    const float f35 = pc_sop_float(PC_SOP_MUL, f29, PC_KF(13));
+    const float f36 = pc_sop_float(PC_SOP_SUB, PC_KF(14), f30);
     const float f37 = pc_sop_float(PC_SOP_SUB, f11, f12);
-    const float f38 = pc_sop_float(PC_SOP_SUB, PC_XF(49, a), f33);
+    const float f38 = pc_sop_float(PC_SOP_SUB, PC_KF(15), f33);
     const float f39 = pc_sop_float(PC_SOP_SUB, f16, f17);
     const float f40 = pc_sop_float(PC_SOP_SUB, f13, f14);
-    const float f41 = pc_sop_float(PC_SOP_SUB, PC_XF(52, a), f35);
-    const float f42 = pc_sop_float(PC_SOP_SUB, PC_XF(53, a), f36);
+    const float f41 = pc_sop_float(PC_SOP_SUB, PC_KF(16), f35);
+    const float f42 = pc_sop_float(PC_SOP_SUB, PC_KF(17), f36);
     const float f43 = pc_sop_float(PC_SOP_SUB, f42, f38);
-    const float f44 = pc_sop_float(PC_SOP_ADD, f36, PC_XF(56, b));
+    const float f44 = pc_sop_float(PC_SOP_ADD, f36, PC_KF(18));
     const float f45 = pc_sop_float(PC_SOP_ADD, f44, f38);
     const float f46 = pc_sop_float(PC_SOP_ADD, f45, f41);
     const float f47 = pc_sop_float(PC_SOP_ADD, f42, f38);
@@ -2523,79 +2740,103 @@ PC_HOT static pc_status pc_program_a734d6c3be2c7b05(const pc_step *s)
     const float f49 = pc_sop_float(PC_SOP_SUB, f44, f38);
     const float f50 = pc_sop_float(PC_SOP_SUB, f49, f41);
     const float f51 = pc_sop_float(PC_SOP_SUB, f47, f41);
-    const float f52 = pc_sop_float(PC_SOP_MAX, f46, PC_XF(66, b));
-    const float f53 = pc_sop_float(PC_SOP_MAX, f50, PC_XF(67, b));
-    const float f54 = pc_sop_float(PC_SOP_MAX, f51, PC_XF(68, b));
-    const float f55 = pc_sop_float(PC_SOP_MAX, f48, PC_XF(69, b));
     const float f56 = pc_sop_float(PC_SOP_MAX, f46, f50);
     const float f57 = pc_sop_float(PC_SOP_MAX, f51, f48);
-    const float f58 = pc_sop_float(PC_SOP_SQRT, f52, 0.0f);
-    const float f59 = pc_sop_float(PC_SOP_SQRT, f53, 0.0f);
-    const float f60 = pc_sop_float(PC_SOP_SQRT, f54, 0.0f);
-    const float f61 = pc_sop_float(PC_SOP_SQRT, f55, 0.0f);
-    const float f62 = pc_sop_float(PC_SOP_MUL, f37, PC_XF(78, b));
-    const float f63 = pc_sop_float(PC_SOP_MUL, f39, PC_XF(79, b));
-    const float f64 = pc_sop_float(PC_SOP_MUL, f40, PC_XF(80, b));
-    const float f65 = pc_sop_float(PC_SOP_MUL, f58, PC_XF(81, b));
-    const float f66 = pc_sop_float(PC_SOP_MUL, f59, PC_XF(82, b));
-    const float f67 = pc_sop_float(PC_SOP_MUL, f60, PC_XF(83, b));
-    const float f68 = pc_sop_float(PC_SOP_MUL, f61, PC_XF(84, b));
-    const float f69 = pc_sop_float(PC_SOP_SUB, f34, f63);
+    const float f62 = pc_sop_float(PC_SOP_MUL, f37, PC_KF(23));
+    const float f63 = pc_sop_float(PC_SOP_MUL, f39, PC_KF(24));
+    const float f64 = pc_sop_float(PC_SOP_MUL, f40, PC_KF(25));
     const float f70 = pc_sop_float(PC_SOP_SUB, f31, f64);
     const float f71 = pc_sop_float(PC_SOP_SUB, f32, f62);
     float f72 = f62;
-    f72 += f26 * PC_XF(90, b);
+    f72 += f26 * PC_KF(30);
     float f73 = f31;
-    f73 += f40 * PC_XF(91, b);
-    float f74 = f63;
-    f74 += f28 * PC_XF(92, b);
-    const float f75 = pc_sop_float(PC_SOP_DIV, PC_XF(94, a), f65);
-    const float f76 = pc_sop_float(PC_SOP_DIV, PC_XF(95, a), f66);
-    const float f77 = pc_sop_float(PC_SOP_DIV, PC_XF(96, a), f67);
-    const float f78 = pc_sop_float(PC_SOP_DIV, PC_XF(97, a), f68);
-    const float f79 = pc_sop_float(PC_SOP_MUL, f46, f75);
-    const float f80 = pc_sop_float(PC_SOP_MUL, f69, f75);
-    const float f81 = pc_sop_float(PC_SOP_MUL, f70, f75);
-    const float f82 = pc_sop_float(PC_SOP_MUL, f71, f75);
-    const float f83 = pc_sop_float(PC_SOP_MUL, f69, f76);
-    const float f84 = pc_sop_float(PC_SOP_MUL, f50, f76);
-    const float f85 = pc_sop_float(PC_SOP_MUL, f72, f76);
-    const float f86 = pc_sop_float(PC_SOP_MUL, f73, f76);
-    const float f87 = pc_sop_float(PC_SOP_MUL, f70, f77);
-    const float f88 = pc_sop_float(PC_SOP_MUL, f72, f77);
-    const float f89 = pc_sop_float(PC_SOP_MUL, f51, f77);
-    const float f90 = pc_sop_float(PC_SOP_MUL, f74, f77);
-    const float f91 = pc_sop_float(PC_SOP_MUL, f71, f78);
-    const float f92 = pc_sop_float(PC_SOP_MUL, f73, f78);
-    const float f93 = pc_sop_float(PC_SOP_MUL, f74, f78);
-    const float f94 = pc_sop_float(PC_SOP_MUL, f48, f78);
-    const uint8_t b95 = f46 >= f50;
-    const uint8_t b96 = f51 >= f48;
+    f73 += f40 * PC_KF(31);
     const uint8_t b97 = f56 >= f57;
-    const float f98 = b95 ? f79 : f83;
-    const float f99 = b95 ? f80 : f84;
-    const float f100 = b95 ? f81 : f85;
-    const float f101 = b95 ? f82 : f86;
-    const float f102 = b96 ? f87 : f91;
-    const float f103 = b96 ? f88 : f92;
-    const float f104 = b96 ? f89 : f93;
-    const float f105 = b96 ? f90 : f94;
-    const float f106 = b97 ? f98 : f102;
-    const float f107 = b97 ? f99 : f103;
-    const float f108 = b97 ? f100 : f104;
-    const float f109 = b97 ? f101 : f105;
-    float f110 = PC_XF(133, c);
-    f110 += f106 * f106;
+    float f106, f107, f108, f109;
+    if (b97) {
+        const float f34 = pc_sop_float(PC_SOP_MUL, f28, PC_KF(12));
+        const float f69 = pc_sop_float(PC_SOP_SUB, f34, f63);
+        const uint8_t b95 = f46 >= f50;
+        float f98, f99, f100, f101;
+        if (b95) {
+            const float f52 = pc_sop_float(PC_SOP_MAX, f46, PC_KF(19));
+            const float f58 = pc_sop_float(PC_SOP_SQRT, f52, 0.0f);
+            const float f65 = pc_sop_float(PC_SOP_MUL, f58, PC_KF(26));
+            const float f75 = pc_sop_float(PC_SOP_DIV, PC_KF(33), f65);
+            const float f79 = pc_sop_float(PC_SOP_MUL, f46, f75);
+            const float f80 = pc_sop_float(PC_SOP_MUL, f69, f75);
+            const float f81 = pc_sop_float(PC_SOP_MUL, f70, f75);
+            const float f82 = pc_sop_float(PC_SOP_MUL, f71, f75);
+            f98 = f79;
+            f99 = f80;
+            f100 = f81;
+            f101 = f82;
+        } else {
+            const float f53 = pc_sop_float(PC_SOP_MAX, f50, PC_KF(20));
+            const float f59 = pc_sop_float(PC_SOP_SQRT, f53, 0.0f);
+            const float f66 = pc_sop_float(PC_SOP_MUL, f59, PC_KF(27));
+            const float f76 = pc_sop_float(PC_SOP_DIV, PC_KF(34), f66);
+            const float f83 = pc_sop_float(PC_SOP_MUL, f69, f76);
+            const float f84 = pc_sop_float(PC_SOP_MUL, f50, f76);
+            const float f85 = pc_sop_float(PC_SOP_MUL, f72, f76);
+            const float f86 = pc_sop_float(PC_SOP_MUL, f73, f76);
+            f98 = f83;
+            f99 = f84;
+            f100 = f85;
+            f101 = f86;
+        }
+        f106 = f98;
+        f107 = f99;
+        f108 = f100;
+        f109 = f101;
+    } else {
+        float f74 = f63;
+        f74 += f28 * PC_KF(32);
+        const uint8_t b96 = f51 >= f48;
+        float f102, f103, f104, f105;
+        if (b96) {
+            const float f54 = pc_sop_float(PC_SOP_MAX, f51, PC_KF(21));
+            const float f60 = pc_sop_float(PC_SOP_SQRT, f54, 0.0f);
+            const float f67 = pc_sop_float(PC_SOP_MUL, f60, PC_KF(28));
+            const float f77 = pc_sop_float(PC_SOP_DIV, PC_KF(35), f67);
+            const float f87 = pc_sop_float(PC_SOP_MUL, f70, f77);
+            const float f88 = pc_sop_float(PC_SOP_MUL, f72, f77);
+            const float f89 = pc_sop_float(PC_SOP_MUL, f51, f77);
+            const float f90 = pc_sop_float(PC_SOP_MUL, f74, f77);
+            f102 = f87;
+            f103 = f88;
+            f104 = f89;
+            f105 = f90;
+        } else {
+            const float f55 = pc_sop_float(PC_SOP_MAX, f48, PC_KF(22));
+            const float f61 = pc_sop_float(PC_SOP_SQRT, f55, 0.0f);
+            const float f68 = pc_sop_float(PC_SOP_MUL, f61, PC_KF(29));
+            const float f78 = pc_sop_float(PC_SOP_DIV, PC_KF(36), f68);
+            const float f91 = pc_sop_float(PC_SOP_MUL, f71, f78);
+            const float f92 = pc_sop_float(PC_SOP_MUL, f73, f78);
+            const float f93 = pc_sop_float(PC_SOP_MUL, f74, f78);
+            const float f94 = pc_sop_float(PC_SOP_MUL, f48, f78);
+            f102 = f91;
+            f103 = f92;
+            f104 = f93;
+            f105 = f94;
+        }
+        f106 = f102;
+        f107 = f103;
+        f108 = f104;
+        f109 = f105;
+    }
+    float f110 = f106 * f106; /* a square: 0 + it is it */
     f110 += f107 * f107;
     f110 += f108 * f108;
     f110 += f109 * f109;
-    const float f111 = pc_sop_float(PC_SOP_MAX, f110, PC_XF(138, b));
+    const float f111 = pc_sop_float(PC_SOP_MAX, f110, PC_KF(38));
     const float f112 = pc_sop_float(PC_SOP_SQRT, f111, 0.0f);
     const float f113 = pc_sop_float(PC_SOP_DIV, f106, f112);
     const float f114 = pc_sop_float(PC_SOP_DIV, f107, f112);
     const float f115 = pc_sop_float(PC_SOP_DIV, f108, f112);
     const float f116 = pc_sop_float(PC_SOP_DIV, f109, f112);
-    const uint8_t b117 = f113 < PC_XF(147, b);
+    const uint8_t b117 = f113 < PC_KF(39);
     const float f118 = pc_sop_float(PC_SOP_NEG, f113, 0.0f);
     const float f119 = pc_sop_float(PC_SOP_NEG, f114, 0.0f);
     const float f120 = pc_sop_float(PC_SOP_NEG, f115, 0.0f);
@@ -2604,18 +2845,17 @@ PC_HOT static pc_status pc_program_a734d6c3be2c7b05(const pc_step *s)
     const float f123 = b117 ? f119 : f114;
     const float f124 = b117 ? f120 : f115;
     const float f125 = b117 ? f121 : f116;
-    float f126 = PC_XF(159, c);
-    f126 += f122 * f122;
+    float f126 = f122 * f122; /* a square: 0 + it is it */
     f126 += f123 * f123;
     f126 += f124 * f124;
     f126 += f125 * f125;
-    const float f127 = pc_sop_float(PC_SOP_MAX, f126, PC_XF(164, b));
+    const float f127 = pc_sop_float(PC_SOP_MAX, f126, PC_KF(41));
     const float f128 = pc_sop_float(PC_SOP_SQRT, f127, 0.0f);
     const float f129 = pc_sop_float(PC_SOP_DIV, f122, f128);
     const float f130 = pc_sop_float(PC_SOP_DIV, f123, f128);
     const float f131 = pc_sop_float(PC_SOP_DIV, f124, f128);
     const float f132 = pc_sop_float(PC_SOP_DIV, f125, f128);
-    const uint8_t b133 = f129 < PC_XF(173, b);
+    const uint8_t b133 = f129 < PC_KF(42);
     const float f134 = pc_sop_float(PC_SOP_NEG, f129, 0.0f);
     const float f135 = pc_sop_float(PC_SOP_NEG, f130, 0.0f);
     const float f136 = pc_sop_float(PC_SOP_NEG, f131, 0.0f);
@@ -2624,43 +2864,42 @@ PC_HOT static pc_status pc_program_a734d6c3be2c7b05(const pc_step *s)
     const float f139 = b133 ? f135 : f130;
     const float f140 = b133 ? f136 : f131;
     const float f141 = b133 ? f137 : f132;
-    float f142 = PC_XF(185, c);
-    f142 += f139 * f139;
+    float f142 = f139 * f139; /* a square: 0 + it is it */
     f142 += f140 * f140;
     f142 += f141 * f141;
-    const uint8_t b143 = f142 < PC_XF(189, b);
-    const uint8_t b144 = f138 < PC_XF(190, b);
-    const float f145 = b143 ? PC_XF(192, a) : f142;
-    const float f146 = b143 ? f138 : PC_XF(193, b);
-    const uint8_t b147 = f138 == PC_XF(195, b);
+    const uint8_t b143 = f142 < PC_KF(44);
+    const uint8_t b144 = f138 < PC_KF(45);
+    const float f145 = b143 ? PC_KF(46) : f142;
+    const float f146 = b143 ? f138 : PC_KF(47);
+    const uint8_t b147 = f138 == PC_KF(48);
     const float f148 = pc_sop_float(PC_SOP_SQRT, f145, 0.0f);
-    const float f149 = b147 ? PC_XF(199, a) : f138;
-    const float f150 = pc_sop_float(PC_SOP_DIV, PC_XF(201, a), f146);
+    const float f149 = b147 ? PC_KF(49) : f138;
+    const float f150 = pc_sop_float(PC_SOP_DIV, PC_KF(50), f146);
     const float f151 = pc_sop_float(PC_SOP_DIV, f148, f149);
-    const uint8_t b152 = f148 < PC_XF(204, b);
-    const float f153 = pc_sop_float(PC_SOP_MUL, f146, PC_XF(206, b));
+    const uint8_t b152 = f148 < PC_KF(51);
+    const float f153 = pc_sop_float(PC_SOP_MUL, f146, PC_KF(52));
     const float f154 = pc_sop_float(PC_SOP_MUL, f153, f146);
     const float f155 = pc_sop_float(PC_SOP_ATAN, f151, 0.0f);
-    const float f156 = b152 ? PC_XF(211, a) : PC_XF(211, b);
+    const float f156 = b152 ? PC_KF(53) : PC_KF(54);
     const float f157 = pc_sop_float(PC_SOP_ADD, f155, f156);
     const float f158 = pc_sop_float(PC_SOP_DIV, f142, f154);
     const float f159 = b144 ? f157 : f155;
-    const float f160 = pc_sop_float(PC_SOP_SUB, PC_XF(219, a), f158);
+    const float f160 = pc_sop_float(PC_SOP_SUB, PC_KF(55), f158);
     const float f161 = pc_sop_float(PC_SOP_MUL, f150, f160);
-    const float f162 = pc_sop_float(PC_SOP_MUL, f159, PC_XF(222, b));
+    const float f162 = pc_sop_float(PC_SOP_MUL, f159, PC_KF(56));
     const float f163 = pc_sop_float(PC_SOP_DIV, f162, f148);
     const float f164 = b143 ? f161 : f163;
     const float f165 = pc_sop_float(PC_SOP_MUL, f139, f164);
     const float f166 = pc_sop_float(PC_SOP_MUL, f140, f164);
     const float f167 = pc_sop_float(PC_SOP_MUL, f141, f164);
-    float f168 = PC_XF(232, c);
-    f168 += f165 * PC_XF(232, b);
+    float f168 = PC_KF(58);
+    f168 += f165 * PC_KF(57);
     PC_STOREF(232, f168);
-    float f169 = PC_XF(233, c);
-    f169 += f166 * PC_XF(233, b);
+    float f169 = PC_KF(60);
+    f169 += f166 * PC_KF(59);
     PC_STOREF(233, f169);
-    float f170 = PC_XF(234, c);
-    f170 += f167 * PC_XF(234, b);
+    float f170 = PC_KF(62);
+    f170 += f167 * PC_KF(61);
     PC_STOREF(234, f170);
     const float f171 = pc_sop_float(PC_SOP_MUL, f1, f168);
     PC_STOREF(236, f171);
@@ -2695,14 +2934,14 @@ PC_HOT static pc_status pc_program_a734d6c3be2c7b05(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_510a7b9f81e8bb81_shape[1045] = {
-    1, 0, 0, 0, 0, 1, 0, 0, 1, 0, 1, 0, 0, 1, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0,
-    0, 1, 0, 0, 0, 0, 2, 0, 0, 6, 0, 2, 0, 0, 1, 0, 2, 0, 0, 0, 0, 2, 0, 0,
+static const uint8_t pc_program_b8cde4db30b7496a_shape[1045] = {
+    1, 0, 0, 0, 254, 1, 0, 0, 1, 0, 1, 0, 0, 1, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0,
+    0, 1, 0, 0, 0, 0, 2, 0, 0, 6, 0, 2, 0, 0, 1, 0, 2, 0, 0, 254, 0, 2, 0, 0,
     1, 0, 2, 0, 0, 0, 0, 2, 0, 0, 0, 0, 2, 0, 0, 0, 0, 1, 0, 0, 5, 0, 1, 0,
-    0, 5, 0, 2, 0, 0, 2, 0, 5, 0, 0, 14, 0, 5, 0, 0, 10, 0, 5, 0, 0, 3, 0, 5,
-    0, 0, 5, 0, 5, 0, 0, 18, 13, 5, 0, 0, 6, 7, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0,
-    0, 6, 13, 0, 0, 6, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0, 3, 0, 0,
-    4, 0, 4, 0, 0, 0, 4, 4, 0, 0, 0, 4, 4, 0, 0, 0, 4, 4, 0, 0, 0, 4, 3, 0,
+    0, 5, 0, 2, 0, 0, 2, 0, 5, 0, 0, 14, 254, 5, 0, 0, 10, 254, 5, 0, 0, 3, 254, 5,
+    0, 0, 5, 254, 5, 0, 0, 18, 13, 5, 0, 0, 6, 7, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0,
+    0, 6, 13, 0, 0, 6, 3, 0, 0, 4, 254, 3, 0, 0, 4, 254, 3, 0, 0, 4, 254, 3, 0, 0,
+    4, 254, 4, 0, 0, 254, 4, 4, 0, 0, 254, 4, 4, 0, 0, 254, 4, 4, 0, 0, 254, 4, 3, 0,
     0, 32, 4, 3, 0, 0, 25, 5, 3, 0, 0, 25, 6, 3, 0, 0, 25, 7, 3, 0, 0, 28, 7, 3,
     0, 0, 32, 8, 3, 0, 0, 37, 9, 3, 0, 0, 37, 10, 3, 0, 0, 31, 10, 3, 0, 0, 40, 11,
     3, 0, 0, 29, 12, 3, 0, 0, 40, 13, 3, 0, 0, 34, 13, 3, 0, 0, 43, 14, 3, 0, 0, 43,
@@ -2710,118 +2949,142 @@ static const uint8_t pc_program_510a7b9f81e8bb81_shape[1045] = {
     19, 15, 3, 23, 0, 0, 19, 15, 4, 23, 0, 0, 19, 15, 5, 23, 0, 0, 19, 15, 6, 23, 0, 0,
     15, 11, 6, 23, 0, 0, 15, 11, 7, 23, 0, 0, 15, 11, 8, 23, 0, 0, 15, 11, 9, 23, 0, 0,
     8, 4, 9, 23, 0, 0, 8, 4, 10, 23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26, 3, 0,
-    4, 4, 0, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4,
-    0, 0, 7, 2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 0, 12, 0, 0, 5, 12,
+    4, 4, 253, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4,
+    0, 0, 7, 2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 254, 12, 0, 0, 5, 12,
     0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 0, 4, 9, 5, 23, 0, 0, 4, 9, 6, 23,
-    0, 0, 4, 9, 7, 23, 0, 0, 4, 9, 8, 26, 3, 0, 4, 4, 0, 3, 3, 2, 2, 1, 1, 5,
-    0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4,
+    0, 0, 4, 9, 7, 23, 0, 0, 4, 9, 8, 26, 3, 0, 4, 4, 253, 3, 3, 2, 2, 1, 1, 5,
+    0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4,
     0, 0, 7, 4, 3, 0, 0, 2, 2, 3, 0, 0, 4, 3, 3, 0, 0, 6, 3, 3, 0, 0, 6, 4,
     3, 0, 0, 8, 6, 3, 0, 0, 8, 8, 3, 0, 0, 8, 7, 3, 0, 0, 11, 10, 26, 0, 0, 9,
     9, 8, 26, 0, 0, 13, 11, 6, 26, 0, 0, 14, 11, 9, 26, 0, 0, 12, 12, 6, 26, 0, 0, 16,
-    15, 6, 26, 0, 0, 15, 15, 8, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3,
-    0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 2, 0, 0, 0, 6, 2, 0, 0, 20, 19,
-    2, 0, 0, 0, 5, 2, 0, 0, 17, 16, 2, 0, 0, 21, 20, 2, 0, 0, 0, 6, 2, 0, 0, 0,
-    6, 2, 0, 0, 1, 5, 1, 0, 0, 8, 0, 1, 0, 0, 1, 7, 1, 0, 0, 1, 5, 1, 0, 0,
+    15, 6, 26, 0, 0, 15, 15, 8, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3,
+    0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 2, 0, 0, 254, 6, 2, 0, 0, 20, 19,
+    2, 0, 0, 254, 5, 2, 0, 0, 17, 16, 2, 0, 0, 21, 20, 2, 0, 0, 254, 6, 2, 0, 0, 254,
+    6, 2, 0, 0, 1, 5, 1, 0, 0, 8, 254, 1, 0, 0, 1, 7, 1, 0, 0, 1, 5, 1, 0, 0,
     5, 9, 1, 0, 0, 5, 7, 2, 0, 0, 5, 11, 2, 0, 0, 1, 9, 2, 0, 0, 4, 10, 5, 0,
-    0, 6, 0, 5, 0, 0, 3, 0, 5, 0, 0, 3, 0, 5, 0, 0, 7, 0, 5, 0, 0, 10, 6, 5,
+    0, 6, 254, 5, 0, 0, 3, 254, 5, 0, 0, 3, 254, 5, 0, 0, 7, 254, 5, 0, 0, 10, 6, 5,
     0, 0, 6, 9, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 3, 0, 0, 25,
-    0, 3, 0, 0, 24, 0, 3, 0, 0, 24, 0, 3, 0, 0, 7, 0, 3, 0, 0, 7, 0, 3, 0, 0,
-    7, 0, 3, 0, 0, 7, 0, 2, 0, 0, 35, 6, 2, 0, 0, 39, 6, 2, 0, 0, 39, 9, 26, 0,
-    0, 46, 0, 10, 26, 0, 0, 33, 0, 42, 26, 0, 0, 46, 0, 11, 4, 0, 0, 0, 10, 4, 0, 0,
-    0, 10, 4, 0, 0, 0, 10, 4, 0, 0, 0, 10, 3, 0, 0, 33, 4, 3, 0, 0, 11, 5, 3, 0,
+    254, 3, 0, 0, 24, 254, 3, 0, 0, 24, 254, 3, 0, 0, 7, 254, 3, 0, 0, 7, 254, 3, 0, 0,
+    7, 254, 3, 0, 0, 7, 254, 2, 0, 0, 35, 6, 2, 0, 0, 39, 6, 2, 0, 0, 39, 9, 26, 0,
+    0, 46, 254, 10, 26, 0, 0, 33, 254, 42, 26, 0, 0, 46, 254, 11, 4, 0, 0, 254, 10, 4, 0, 0,
+    254, 10, 4, 0, 0, 254, 10, 4, 0, 0, 254, 10, 3, 0, 0, 33, 4, 3, 0, 0, 11, 5, 3, 0,
     0, 11, 6, 3, 0, 0, 11, 7, 3, 0, 0, 14, 7, 3, 0, 0, 34, 8, 3, 0, 0, 13, 9, 3,
     0, 0, 13, 10, 3, 0, 0, 17, 10, 3, 0, 0, 16, 11, 3, 0, 0, 38, 12, 3, 0, 0, 16, 13,
     3, 0, 0, 20, 13, 3, 0, 0, 19, 14, 3, 0, 0, 19, 15, 3, 0, 0, 46, 16, 9, 0, 0, 49,
     45, 9, 0, 0, 45, 48, 9, 0, 0, 41, 40, 23, 0, 0, 19, 15, 3, 23, 0, 0, 19, 15, 4, 23,
     0, 0, 19, 15, 5, 23, 0, 0, 19, 15, 6, 23, 0, 0, 15, 11, 6, 23, 0, 0, 15, 11, 7, 23,
     0, 0, 15, 11, 8, 23, 0, 0, 15, 11, 9, 23, 0, 0, 8, 4, 9, 23, 0, 0, 8, 4, 10, 23,
-    0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 0, 3, 3, 2, 2, 1, 1, 5,
-    0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4,
-    0, 0, 7, 4, 10, 0, 0, 4, 0, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0,
+    0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 253, 3, 3, 2, 2, 1, 1, 5,
+    0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4,
+    0, 0, 7, 4, 10, 0, 0, 4, 254, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0,
     5, 23, 0, 1, 4, 9, 5, 23, 0, 1, 4, 9, 6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4, 9,
     8, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
 };
-PC_HOT static pc_status pc_program_510a7b9f81e8bb81(const pc_step *s)
+PC_HOT static pc_status pc_program_b8cde4db30b7496a(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    const float f0 = pc_sop_float(PC_SOP_ADD, PC_XF(1, a), PC_XF(1, b));
+    const float *const k = (const float *)(const void *)(e + 255);
+    const float f0 = pc_sop_float(PC_SOP_ADD, PC_XF(1, a), PC_KF(0));
     const float f1 = pc_sop_float(PC_SOP_ADD, f0, PC_XF(2, b));
     const float f2 = pc_sop_float(PC_SOP_ADD, f1, PC_XF(3, b));
     const float f3 = pc_sop_float(PC_SOP_ADD, PC_XF(4, a), PC_XF(4, b));
     const float f4 = pc_sop_float(PC_SOP_ADD, PC_XF(5, a), PC_XF(5, b));
-    const float f5 = pc_sop_float(PC_SOP_ADD, PC_XF(6, a), PC_XF(6, b));
     const float f6 = pc_sop_float(PC_SOP_SUB, f0, PC_XF(8, b));
     const float f7 = pc_sop_float(PC_SOP_SUB, f6, PC_XF(9, b));
-    const float f8 = pc_sop_float(PC_SOP_SUB, PC_XF(10, a), PC_XF(10, b));
+    const float f8 = pc_sop_float(PC_SOP_SUB, PC_KF(1), PC_XF(10, b));
     const float f9 = pc_sop_float(PC_SOP_SUB, f8, PC_XF(11, b));
-    const float f10 = pc_sop_float(PC_SOP_SUB, PC_XF(12, a), PC_XF(12, b));
     const float f11 = pc_sop_float(PC_SOP_SUB, PC_XF(13, a), PC_XF(13, b));
     const float f12 = pc_sop_float(PC_SOP_SUB, PC_XF(14, a), PC_XF(14, b));
     const float f13 = pc_sop_float(PC_SOP_ADD, f8, PC_XF(16, b));
     const float f14 = pc_sop_float(PC_SOP_ADD, f9, PC_XF(17, b));
     const float f15 = pc_sop_float(PC_SOP_SUB, f13, PC_XF(19, b));
-    const float f16 = pc_sop_float(PC_SOP_MAX, f2, PC_XF(21, b));
-    const float f17 = pc_sop_float(PC_SOP_MAX, f7, PC_XF(22, b));
-    const float f18 = pc_sop_float(PC_SOP_MAX, f15, PC_XF(23, b));
-    const float f19 = pc_sop_float(PC_SOP_MAX, f14, PC_XF(24, b));
     const float f20 = pc_sop_float(PC_SOP_MAX, f2, f7);
     const float f21 = pc_sop_float(PC_SOP_MAX, f15, f14);
-    const float f22 = pc_sop_float(PC_SOP_SQRT, f16, 0.0f);
-    const float f23 = pc_sop_float(PC_SOP_SQRT, f17, 0.0f);
-    const float f24 = pc_sop_float(PC_SOP_SQRT, f18, 0.0f);
-    const float f25 = pc_sop_float(PC_SOP_SQRT, f19, 0.0f);
-    const float f26 = pc_sop_float(PC_SOP_MUL, f22, PC_XF(33, b));
-    const float f27 = pc_sop_float(PC_SOP_MUL, f23, PC_XF(34, b));
-    const float f28 = pc_sop_float(PC_SOP_MUL, f24, PC_XF(35, b));
-    const float f29 = pc_sop_float(PC_SOP_MUL, f25, PC_XF(36, b));
-    const float f30 = pc_sop_float(PC_SOP_DIV, PC_XF(38, a), f26);
-    const float f31 = pc_sop_float(PC_SOP_DIV, PC_XF(39, a), f27);
-    const float f32 = pc_sop_float(PC_SOP_DIV, PC_XF(40, a), f28);
-    const float f33 = pc_sop_float(PC_SOP_DIV, PC_XF(41, a), f29);
-    const float f34 = pc_sop_float(PC_SOP_MUL, f2, f30);
-    const float f35 = pc_sop_float(PC_SOP_MUL, f10, f30);
-    const float f36 = pc_sop_float(PC_SOP_MUL, f11, f30);
-    const float f37 = pc_sop_float(PC_SOP_MUL, f12, f30);
-    const float f38 = pc_sop_float(PC_SOP_MUL, f10, f31);
-    const float f39 = pc_sop_float(PC_SOP_MUL, f7, f31);
-    const float f40 = pc_sop_float(PC_SOP_MUL, f3, f31);
-    const float f41 = pc_sop_float(PC_SOP_MUL, f4, f31);
-    const float f42 = pc_sop_float(PC_SOP_MUL, f11, f32);
-    const float f43 = pc_sop_float(PC_SOP_MUL, f3, f32);
-    const float f44 = pc_sop_float(PC_SOP_MUL, f15, f32);
-    const float f45 = pc_sop_float(PC_SOP_MUL, f5, f32);
-    const float f46 = pc_sop_float(PC_SOP_MUL, f12, f33);
-    const float f47 = pc_sop_float(PC_SOP_MUL, f4, f33);
-    const float f48 = pc_sop_float(PC_SOP_MUL, f5, f33);
-    const float f49 = pc_sop_float(PC_SOP_MUL, f14, f33);
-    const uint8_t b50 = f2 >= f7;
-    const uint8_t b51 = f15 >= f14;
     const uint8_t b52 = f20 >= f21;
-    const float f53 = b50 ? f34 : f38;
-    const float f54 = b50 ? f35 : f39;
-    const float f55 = b50 ? f36 : f40;
-    const float f56 = b50 ? f37 : f41;
-    const float f57 = b51 ? f42 : f46;
-    const float f58 = b51 ? f43 : f47;
-    const float f59 = b51 ? f44 : f48;
-    const float f60 = b51 ? f45 : f49;
-    const float f61 = b52 ? f53 : f57;
-    const float f62 = b52 ? f54 : f58;
-    const float f63 = b52 ? f55 : f59;
-    const float f64 = b52 ? f56 : f60;
-    float f65 = PC_XF(77, c);
-    f65 += f61 * f61;
+    float f61, f62, f63, f64;
+    if (b52) {
+        const float f10 = pc_sop_float(PC_SOP_SUB, PC_XF(12, a), PC_XF(12, b));
+        const uint8_t b50 = f2 >= f7;
+        float f53, f54, f55, f56;
+        if (b50) {
+            const float f16 = pc_sop_float(PC_SOP_MAX, f2, PC_KF(2));
+            const float f22 = pc_sop_float(PC_SOP_SQRT, f16, 0.0f);
+            const float f26 = pc_sop_float(PC_SOP_MUL, f22, PC_KF(6));
+            const float f30 = pc_sop_float(PC_SOP_DIV, PC_KF(10), f26);
+            const float f34 = pc_sop_float(PC_SOP_MUL, f2, f30);
+            const float f35 = pc_sop_float(PC_SOP_MUL, f10, f30);
+            const float f36 = pc_sop_float(PC_SOP_MUL, f11, f30);
+            const float f37 = pc_sop_float(PC_SOP_MUL, f12, f30);
+            f53 = f34;
+            f54 = f35;
+            f55 = f36;
+            f56 = f37;
+        } else {
+            const float f17 = pc_sop_float(PC_SOP_MAX, f7, PC_KF(3));
+            const float f23 = pc_sop_float(PC_SOP_SQRT, f17, 0.0f);
+            const float f27 = pc_sop_float(PC_SOP_MUL, f23, PC_KF(7));
+            const float f31 = pc_sop_float(PC_SOP_DIV, PC_KF(11), f27);
+            const float f38 = pc_sop_float(PC_SOP_MUL, f10, f31);
+            const float f39 = pc_sop_float(PC_SOP_MUL, f7, f31);
+            const float f40 = pc_sop_float(PC_SOP_MUL, f3, f31);
+            const float f41 = pc_sop_float(PC_SOP_MUL, f4, f31);
+            f53 = f38;
+            f54 = f39;
+            f55 = f40;
+            f56 = f41;
+        }
+        f61 = f53;
+        f62 = f54;
+        f63 = f55;
+        f64 = f56;
+    } else {
+        const float f5 = pc_sop_float(PC_SOP_ADD, PC_XF(6, a), PC_XF(6, b));
+        const uint8_t b51 = f15 >= f14;
+        float f57, f58, f59, f60;
+        if (b51) {
+            const float f18 = pc_sop_float(PC_SOP_MAX, f15, PC_KF(4));
+            const float f24 = pc_sop_float(PC_SOP_SQRT, f18, 0.0f);
+            const float f28 = pc_sop_float(PC_SOP_MUL, f24, PC_KF(8));
+            const float f32 = pc_sop_float(PC_SOP_DIV, PC_KF(12), f28);
+            const float f42 = pc_sop_float(PC_SOP_MUL, f11, f32);
+            const float f43 = pc_sop_float(PC_SOP_MUL, f3, f32);
+            const float f44 = pc_sop_float(PC_SOP_MUL, f15, f32);
+            const float f45 = pc_sop_float(PC_SOP_MUL, f5, f32);
+            f57 = f42;
+            f58 = f43;
+            f59 = f44;
+            f60 = f45;
+        } else {
+            const float f19 = pc_sop_float(PC_SOP_MAX, f14, PC_KF(5));
+            const float f25 = pc_sop_float(PC_SOP_SQRT, f19, 0.0f);
+            const float f29 = pc_sop_float(PC_SOP_MUL, f25, PC_KF(9));
+            const float f33 = pc_sop_float(PC_SOP_DIV, PC_KF(13), f29);
+            const float f46 = pc_sop_float(PC_SOP_MUL, f12, f33);
+            const float f47 = pc_sop_float(PC_SOP_MUL, f4, f33);
+            const float f48 = pc_sop_float(PC_SOP_MUL, f5, f33);
+            const float f49 = pc_sop_float(PC_SOP_MUL, f14, f33);
+            f57 = f46;
+            f58 = f47;
+            f59 = f48;
+            f60 = f49;
+        }
+        f61 = f57;
+        f62 = f58;
+        f63 = f59;
+        f64 = f60;
+    }
+    float f65 = f61 * f61; /* a square: 0 + it is it */
     f65 += f62 * f62;
     f65 += f63 * f63;
     f65 += f64 * f64;
-    const float f66 = pc_sop_float(PC_SOP_MAX, f65, PC_XF(82, b));
+    const float f66 = pc_sop_float(PC_SOP_MAX, f65, PC_KF(15));
     const float f67 = pc_sop_float(PC_SOP_SQRT, f66, 0.0f);
     const float f68 = pc_sop_float(PC_SOP_DIV, f61, f67);
     const float f69 = pc_sop_float(PC_SOP_DIV, f62, f67);
     const float f70 = pc_sop_float(PC_SOP_DIV, f63, f67);
     const float f71 = pc_sop_float(PC_SOP_DIV, f64, f67);
-    const uint8_t b72 = f68 < PC_XF(91, b);
+    const uint8_t b72 = f68 < PC_KF(16);
     const float f73 = pc_sop_float(PC_SOP_NEG, f68, 0.0f);
     const float f74 = pc_sop_float(PC_SOP_NEG, f69, 0.0f);
     const float f75 = pc_sop_float(PC_SOP_NEG, f70, 0.0f);
@@ -2830,12 +3093,11 @@ PC_HOT static pc_status pc_program_510a7b9f81e8bb81(const pc_step *s)
     const float f78 = b72 ? f74 : f69;
     const float f79 = b72 ? f75 : f70;
     const float f80 = b72 ? f76 : f71;
-    float f81 = PC_XF(103, c);
-    f81 += f77 * f77;
+    float f81 = f77 * f77; /* a square: 0 + it is it */
     f81 += f78 * f78;
     f81 += f79 * f79;
     f81 += f80 * f80;
-    const float f82 = pc_sop_float(PC_SOP_MAX, f81, PC_XF(108, b));
+    const float f82 = pc_sop_float(PC_SOP_MAX, f81, PC_KF(18));
     const float f83 = pc_sop_float(PC_SOP_SQRT, f82, 0.0f);
     const float f84 = pc_sop_float(PC_SOP_DIV, f77, f83);
     const float f85 = pc_sop_float(PC_SOP_DIV, f78, f83);
@@ -2861,21 +3123,20 @@ PC_HOT static pc_status pc_program_510a7b9f81e8bb81(const pc_step *s)
     f100 += f84 * f85;
     float f101 = f93;
     f101 += f86 * f86;
-    const float f102 = pc_sop_float(PC_SOP_MUL, f96, PC_XF(133, b));
-    const float f103 = pc_sop_float(PC_SOP_MUL, f97, PC_XF(134, b));
-    const float f104 = pc_sop_float(PC_SOP_MUL, f98, PC_XF(135, b));
-    const float f105 = pc_sop_float(PC_SOP_MUL, f99, PC_XF(136, b));
-    const float f106 = pc_sop_float(PC_SOP_MUL, f100, PC_XF(137, b));
-    const float f107 = pc_sop_float(PC_SOP_MUL, f101, PC_XF(138, b));
-    const float f108 = pc_sop_float(PC_SOP_SUB, PC_XF(140, a), f102);
+    const float f102 = pc_sop_float(PC_SOP_MUL, f96, PC_KF(19));
+    const float f103 = pc_sop_float(PC_SOP_MUL, f97, PC_KF(20));
+    const float f104 = pc_sop_float(PC_SOP_MUL, f98, PC_KF(21));
+    const float f105 = pc_sop_float(PC_SOP_MUL, f99, PC_KF(22));
+    const float f107 = pc_sop_float(PC_SOP_MUL, f101, PC_KF(24));
+    const float f108 = pc_sop_float(PC_SOP_SUB, PC_KF(25), f102);
     const float f109 = pc_sop_float(PC_SOP_SUB, f89, f90);
-    const float f110 = pc_sop_float(PC_SOP_SUB, PC_XF(142, a), f105);
+    const float f110 = pc_sop_float(PC_SOP_SUB, PC_KF(26), f105);
     const float f111 = pc_sop_float(PC_SOP_SUB, f94, f95);
     const float f112 = pc_sop_float(PC_SOP_SUB, f91, f92);
-    const float f113 = pc_sop_float(PC_SOP_SUB, PC_XF(145, a), f107);
-    const float f114 = pc_sop_float(PC_SOP_SUB, PC_XF(146, a), f108);
+    const float f113 = pc_sop_float(PC_SOP_SUB, PC_KF(27), f107);
+    const float f114 = pc_sop_float(PC_SOP_SUB, PC_KF(28), f108);
     const float f115 = pc_sop_float(PC_SOP_SUB, f114, f110);
-    const float f116 = pc_sop_float(PC_SOP_ADD, f108, PC_XF(149, b));
+    const float f116 = pc_sop_float(PC_SOP_ADD, f108, PC_KF(29));
     const float f117 = pc_sop_float(PC_SOP_ADD, f116, f110);
     const float f118 = pc_sop_float(PC_SOP_ADD, f117, f113);
     const float f119 = pc_sop_float(PC_SOP_ADD, f114, f110);
@@ -2883,79 +3144,103 @@ PC_HOT static pc_status pc_program_510a7b9f81e8bb81(const pc_step *s)
     const float f121 = pc_sop_float(PC_SOP_SUB, f116, f110);
     const float f122 = pc_sop_float(PC_SOP_SUB, f121, f113);
     const float f123 = pc_sop_float(PC_SOP_SUB, f119, f113);
-    const float f124 = pc_sop_float(PC_SOP_MAX, f118, PC_XF(159, b));
-    const float f125 = pc_sop_float(PC_SOP_MAX, f122, PC_XF(160, b));
-    const float f126 = pc_sop_float(PC_SOP_MAX, f123, PC_XF(161, b));
-    const float f127 = pc_sop_float(PC_SOP_MAX, f120, PC_XF(162, b));
     const float f128 = pc_sop_float(PC_SOP_MAX, f118, f122);
     const float f129 = pc_sop_float(PC_SOP_MAX, f123, f120);
-    const float f130 = pc_sop_float(PC_SOP_SQRT, f124, 0.0f);
-    const float f131 = pc_sop_float(PC_SOP_SQRT, f125, 0.0f);
-    const float f132 = pc_sop_float(PC_SOP_SQRT, f126, 0.0f);
-    const float f133 = pc_sop_float(PC_SOP_SQRT, f127, 0.0f);
-    const float f134 = pc_sop_float(PC_SOP_MUL, f109, PC_XF(171, b));
-    const float f135 = pc_sop_float(PC_SOP_MUL, f111, PC_XF(172, b));
-    const float f136 = pc_sop_float(PC_SOP_MUL, f112, PC_XF(173, b));
-    const float f137 = pc_sop_float(PC_SOP_MUL, f130, PC_XF(174, b));
-    const float f138 = pc_sop_float(PC_SOP_MUL, f131, PC_XF(175, b));
-    const float f139 = pc_sop_float(PC_SOP_MUL, f132, PC_XF(176, b));
-    const float f140 = pc_sop_float(PC_SOP_MUL, f133, PC_XF(177, b));
-    const float f141 = pc_sop_float(PC_SOP_SUB, f106, f135);
+    const float f134 = pc_sop_float(PC_SOP_MUL, f109, PC_KF(34));
+    const float f135 = pc_sop_float(PC_SOP_MUL, f111, PC_KF(35));
+    const float f136 = pc_sop_float(PC_SOP_MUL, f112, PC_KF(36));
     const float f142 = pc_sop_float(PC_SOP_SUB, f103, f136);
     const float f143 = pc_sop_float(PC_SOP_SUB, f104, f134);
     float f144 = f134;
-    f144 += f98 * PC_XF(183, b);
+    f144 += f98 * PC_KF(41);
     float f145 = f103;
-    f145 += f112 * PC_XF(184, b);
-    float f146 = f135;
-    f146 += f100 * PC_XF(185, b);
-    const float f147 = pc_sop_float(PC_SOP_DIV, PC_XF(187, a), f137);
-    const float f148 = pc_sop_float(PC_SOP_DIV, PC_XF(188, a), f138);
-    const float f149 = pc_sop_float(PC_SOP_DIV, PC_XF(189, a), f139);
-    const float f150 = pc_sop_float(PC_SOP_DIV, PC_XF(190, a), f140);
-    const float f151 = pc_sop_float(PC_SOP_MUL, f118, f147);
-    const float f152 = pc_sop_float(PC_SOP_MUL, f141, f147);
-    const float f153 = pc_sop_float(PC_SOP_MUL, f142, f147);
-    const float f154 = pc_sop_float(PC_SOP_MUL, f143, f147);
-    const float f155 = pc_sop_float(PC_SOP_MUL, f141, f148);
-    const float f156 = pc_sop_float(PC_SOP_MUL, f122, f148);
-    const float f157 = pc_sop_float(PC_SOP_MUL, f144, f148);
-    const float f158 = pc_sop_float(PC_SOP_MUL, f145, f148);
-    const float f159 = pc_sop_float(PC_SOP_MUL, f142, f149);
-    const float f160 = pc_sop_float(PC_SOP_MUL, f144, f149);
-    const float f161 = pc_sop_float(PC_SOP_MUL, f123, f149);
-    const float f162 = pc_sop_float(PC_SOP_MUL, f146, f149);
-    const float f163 = pc_sop_float(PC_SOP_MUL, f143, f150);
-    const float f164 = pc_sop_float(PC_SOP_MUL, f145, f150);
-    const float f165 = pc_sop_float(PC_SOP_MUL, f146, f150);
-    const float f166 = pc_sop_float(PC_SOP_MUL, f120, f150);
-    const uint8_t b167 = f118 >= f122;
-    const uint8_t b168 = f123 >= f120;
+    f145 += f112 * PC_KF(42);
     const uint8_t b169 = f128 >= f129;
-    const float f170 = b167 ? f151 : f155;
-    const float f171 = b167 ? f152 : f156;
-    const float f172 = b167 ? f153 : f157;
-    const float f173 = b167 ? f154 : f158;
-    const float f174 = b168 ? f159 : f163;
-    const float f175 = b168 ? f160 : f164;
-    const float f176 = b168 ? f161 : f165;
-    const float f177 = b168 ? f162 : f166;
-    const float f178 = b169 ? f170 : f174;
-    const float f179 = b169 ? f171 : f175;
-    const float f180 = b169 ? f172 : f176;
-    const float f181 = b169 ? f173 : f177;
-    float f182 = PC_XF(226, c);
-    f182 += f178 * f178;
+    float f178, f179, f180, f181;
+    if (b169) {
+        const float f106 = pc_sop_float(PC_SOP_MUL, f100, PC_KF(23));
+        const float f141 = pc_sop_float(PC_SOP_SUB, f106, f135);
+        const uint8_t b167 = f118 >= f122;
+        float f170, f171, f172, f173;
+        if (b167) {
+            const float f124 = pc_sop_float(PC_SOP_MAX, f118, PC_KF(30));
+            const float f130 = pc_sop_float(PC_SOP_SQRT, f124, 0.0f);
+            const float f137 = pc_sop_float(PC_SOP_MUL, f130, PC_KF(37));
+            const float f147 = pc_sop_float(PC_SOP_DIV, PC_KF(44), f137);
+            const float f151 = pc_sop_float(PC_SOP_MUL, f118, f147);
+            const float f152 = pc_sop_float(PC_SOP_MUL, f141, f147);
+            const float f153 = pc_sop_float(PC_SOP_MUL, f142, f147);
+            const float f154 = pc_sop_float(PC_SOP_MUL, f143, f147);
+            f170 = f151;
+            f171 = f152;
+            f172 = f153;
+            f173 = f154;
+        } else {
+            const float f125 = pc_sop_float(PC_SOP_MAX, f122, PC_KF(31));
+            const float f131 = pc_sop_float(PC_SOP_SQRT, f125, 0.0f);
+            const float f138 = pc_sop_float(PC_SOP_MUL, f131, PC_KF(38));
+            const float f148 = pc_sop_float(PC_SOP_DIV, PC_KF(45), f138);
+            const float f155 = pc_sop_float(PC_SOP_MUL, f141, f148);
+            const float f156 = pc_sop_float(PC_SOP_MUL, f122, f148);
+            const float f157 = pc_sop_float(PC_SOP_MUL, f144, f148);
+            const float f158 = pc_sop_float(PC_SOP_MUL, f145, f148);
+            f170 = f155;
+            f171 = f156;
+            f172 = f157;
+            f173 = f158;
+        }
+        f178 = f170;
+        f179 = f171;
+        f180 = f172;
+        f181 = f173;
+    } else {
+        float f146 = f135;
+        f146 += f100 * PC_KF(43);
+        const uint8_t b168 = f123 >= f120;
+        float f174, f175, f176, f177;
+        if (b168) {
+            const float f126 = pc_sop_float(PC_SOP_MAX, f123, PC_KF(32));
+            const float f132 = pc_sop_float(PC_SOP_SQRT, f126, 0.0f);
+            const float f139 = pc_sop_float(PC_SOP_MUL, f132, PC_KF(39));
+            const float f149 = pc_sop_float(PC_SOP_DIV, PC_KF(46), f139);
+            const float f159 = pc_sop_float(PC_SOP_MUL, f142, f149);
+            const float f160 = pc_sop_float(PC_SOP_MUL, f144, f149);
+            const float f161 = pc_sop_float(PC_SOP_MUL, f123, f149);
+            const float f162 = pc_sop_float(PC_SOP_MUL, f146, f149);
+            f174 = f159;
+            f175 = f160;
+            f176 = f161;
+            f177 = f162;
+        } else {
+            const float f127 = pc_sop_float(PC_SOP_MAX, f120, PC_KF(33));
+            const float f133 = pc_sop_float(PC_SOP_SQRT, f127, 0.0f);
+            const float f140 = pc_sop_float(PC_SOP_MUL, f133, PC_KF(40));
+            const float f150 = pc_sop_float(PC_SOP_DIV, PC_KF(47), f140);
+            const float f163 = pc_sop_float(PC_SOP_MUL, f143, f150);
+            const float f164 = pc_sop_float(PC_SOP_MUL, f145, f150);
+            const float f165 = pc_sop_float(PC_SOP_MUL, f146, f150);
+            const float f166 = pc_sop_float(PC_SOP_MUL, f120, f150);
+            f174 = f163;
+            f175 = f164;
+            f176 = f165;
+            f177 = f166;
+        }
+        f178 = f174;
+        f179 = f175;
+        f180 = f176;
+        f181 = f177;
+    }
+    float f182 = f178 * f178; /* a square: 0 + it is it */
     f182 += f179 * f179;
     f182 += f180 * f180;
     f182 += f181 * f181;
-    const float f183 = pc_sop_float(PC_SOP_MAX, f182, PC_XF(231, b));
+    const float f183 = pc_sop_float(PC_SOP_MAX, f182, PC_KF(49));
     const float f184 = pc_sop_float(PC_SOP_SQRT, f183, 0.0f);
     const float f185 = pc_sop_float(PC_SOP_DIV, f178, f184);
     const float f186 = pc_sop_float(PC_SOP_DIV, f179, f184);
     const float f187 = pc_sop_float(PC_SOP_DIV, f180, f184);
     const float f188 = pc_sop_float(PC_SOP_DIV, f181, f184);
-    const uint8_t b189 = f185 < PC_XF(240, b);
+    const uint8_t b189 = f185 < PC_KF(50);
     const float f190 = pc_sop_float(PC_SOP_NEG, f185, 0.0f);
     const float f191 = pc_sop_float(PC_SOP_NEG, f186, 0.0f);
     const float f192 = pc_sop_float(PC_SOP_NEG, f187, 0.0f);
@@ -2977,178 +3262,202 @@ PC_HOT static pc_status pc_program_510a7b9f81e8bb81(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_c1b1401b8efb6e50_shape[1125] = {
-    26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 1, 0, 0, 0, 26, 0, 0, 0, 0, 0,
-    26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0,
-    26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0,
-    26, 1, 0, 0, 0, 0, 0, 0, 26, 3, 0, 0, 0, 0, 0, 0, 6, 0, 2, 0, 26, 1, 0, 0,
-    0, 0, 8, 0, 26, 1, 0, 0, 0, 0, 6, 0, 26, 1, 0, 0, 0, 0, 6, 0, 2, 0, 0, 5,
-    10, 2, 0, 0, 1, 7, 2, 0, 0, 0, 16, 2, 0, 0, 1, 13, 2, 0, 0, 11, 13, 2, 0, 0,
-    17, 13, 2, 0, 0, 17, 19, 26, 1, 0, 0, 0, 0, 5, 0, 26, 1, 0, 0, 0, 0, 5, 0, 2,
-    0, 0, 2, 15, 5, 0, 0, 14, 0, 5, 0, 0, 10, 0, 5, 0, 0, 3, 0, 5, 0, 0, 5, 0,
+static const uint8_t pc_program_8cff72a993f18847_shape[1125] = {
+    26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254, 26, 0, 0, 0, 254, 254,
+    26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254,
+    26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254,
+    26, 1, 0, 0, 254, 254, 254, 254, 26, 3, 0, 0, 254, 254, 254, 254, 6, 254, 2, 254, 26, 1, 0, 0,
+    254, 254, 8, 254, 26, 1, 0, 0, 254, 254, 6, 254, 26, 1, 0, 0, 254, 254, 6, 254, 2, 0, 0, 5,
+    10, 2, 0, 0, 1, 7, 2, 0, 0, 254, 16, 2, 0, 0, 1, 13, 2, 0, 0, 11, 13, 2, 0, 0,
+    17, 13, 2, 0, 0, 17, 19, 26, 1, 0, 0, 254, 254, 5, 254, 26, 1, 0, 0, 254, 254, 5, 254, 2,
+    0, 0, 2, 15, 5, 0, 0, 14, 254, 5, 0, 0, 10, 254, 5, 0, 0, 3, 254, 5, 0, 0, 5, 254,
     5, 0, 0, 18, 13, 5, 0, 0, 6, 7, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0,
-    0, 6, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0, 4, 0,
-    0, 0, 4, 4, 0, 0, 0, 4, 4, 0, 0, 0, 4, 4, 0, 0, 0, 4, 3, 0, 0, 32, 4, 3,
+    0, 6, 3, 0, 0, 4, 254, 3, 0, 0, 4, 254, 3, 0, 0, 4, 254, 3, 0, 0, 4, 254, 4, 0,
+    0, 254, 4, 4, 0, 0, 254, 4, 4, 0, 0, 254, 4, 4, 0, 0, 254, 4, 3, 0, 0, 32, 4, 3,
     0, 0, 25, 5, 3, 0, 0, 25, 6, 3, 0, 0, 25, 7, 3, 0, 0, 28, 7, 3, 0, 0, 32, 8,
     3, 0, 0, 37, 9, 3, 0, 0, 37, 10, 3, 0, 0, 31, 10, 3, 0, 0, 40, 11, 3, 0, 0, 29,
     12, 3, 0, 0, 40, 13, 3, 0, 0, 34, 13, 3, 0, 0, 43, 14, 3, 0, 0, 43, 15, 3, 0, 0,
     35, 16, 9, 0, 0, 48, 43, 9, 0, 0, 36, 37, 9, 0, 0, 32, 31, 23, 0, 0, 19, 15, 3, 23,
     0, 0, 19, 15, 4, 23, 0, 0, 19, 15, 5, 23, 0, 0, 19, 15, 6, 23, 0, 0, 15, 11, 6, 23,
     0, 0, 15, 11, 7, 23, 0, 0, 15, 11, 8, 23, 0, 0, 15, 11, 9, 23, 0, 0, 8, 4, 9, 23,
-    0, 0, 8, 4, 10, 23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 0, 3,
-    3, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2,
-    4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 0, 12, 0, 0, 5, 12, 0, 0, 5, 12,
+    0, 0, 8, 4, 10, 23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 253, 3,
+    3, 2, 2, 1, 1, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2,
+    4, 0, 0, 7, 3, 4, 0, 0, 7, 4, 10, 0, 0, 4, 254, 12, 0, 0, 5, 12, 0, 0, 5, 12,
     0, 0, 5, 12, 0, 0, 5, 23, 0, 0, 4, 9, 5, 23, 0, 0, 4, 9, 6, 23, 0, 0, 4, 9,
-    7, 23, 0, 0, 4, 9, 8, 26, 3, 0, 4, 4, 0, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 0,
+    7, 23, 0, 0, 4, 9, 8, 26, 3, 0, 4, 4, 253, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 254,
     13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4,
     3, 0, 0, 2, 2, 3, 0, 0, 4, 3, 3, 0, 0, 6, 3, 3, 0, 0, 6, 4, 3, 0, 0, 8,
     6, 3, 0, 0, 8, 8, 3, 0, 0, 8, 7, 3, 0, 0, 11, 10, 26, 0, 0, 9, 9, 8, 26, 0,
     0, 13, 11, 6, 26, 0, 0, 14, 11, 9, 26, 0, 0, 12, 12, 6, 26, 0, 0, 16, 15, 6, 26, 0,
-    0, 15, 15, 8, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 3, 0, 0, 6, 0,
-    3, 0, 0, 6, 0, 3, 0, 0, 6, 0, 2, 0, 0, 0, 6, 2, 0, 0, 20, 19, 2, 0, 0, 0,
-    5, 2, 0, 0, 17, 16, 2, 0, 0, 21, 20, 2, 0, 0, 0, 6, 2, 0, 0, 0, 6, 2, 0, 0,
-    1, 5, 1, 0, 0, 8, 0, 1, 0, 0, 1, 7, 1, 0, 0, 1, 5, 1, 0, 0, 5, 9, 1, 0,
-    0, 5, 7, 2, 0, 0, 5, 11, 2, 0, 0, 1, 9, 2, 0, 0, 4, 10, 5, 0, 0, 6, 0, 5,
-    0, 0, 3, 0, 5, 0, 0, 3, 0, 5, 0, 0, 7, 0, 5, 0, 0, 10, 6, 5, 0, 0, 6, 9,
-    13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 3, 0, 0, 25, 0, 3, 0, 0,
-    24, 0, 3, 0, 0, 24, 0, 3, 0, 0, 7, 0, 3, 0, 0, 7, 0, 3, 0, 0, 7, 0, 3, 0,
-    0, 7, 0, 2, 0, 0, 35, 6, 2, 0, 0, 39, 6, 2, 0, 0, 39, 9, 26, 0, 0, 46, 0, 10,
-    26, 0, 0, 33, 0, 42, 26, 0, 0, 46, 0, 11, 4, 0, 0, 0, 10, 4, 0, 0, 0, 10, 4, 0,
-    0, 0, 10, 4, 0, 0, 0, 10, 3, 0, 0, 33, 4, 3, 0, 0, 11, 5, 3, 0, 0, 11, 6, 3,
+    0, 15, 15, 8, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254,
+    3, 0, 0, 6, 254, 3, 0, 0, 6, 254, 2, 0, 0, 254, 6, 2, 0, 0, 20, 19, 2, 0, 0, 254,
+    5, 2, 0, 0, 17, 16, 2, 0, 0, 21, 20, 2, 0, 0, 254, 6, 2, 0, 0, 254, 6, 2, 0, 0,
+    1, 5, 1, 0, 0, 8, 254, 1, 0, 0, 1, 7, 1, 0, 0, 1, 5, 1, 0, 0, 5, 9, 1, 0,
+    0, 5, 7, 2, 0, 0, 5, 11, 2, 0, 0, 1, 9, 2, 0, 0, 4, 10, 5, 0, 0, 6, 254, 5,
+    0, 0, 3, 254, 5, 0, 0, 3, 254, 5, 0, 0, 7, 254, 5, 0, 0, 10, 6, 5, 0, 0, 6, 9,
+    13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 3, 0, 0, 25, 254, 3, 0, 0,
+    24, 254, 3, 0, 0, 24, 254, 3, 0, 0, 7, 254, 3, 0, 0, 7, 254, 3, 0, 0, 7, 254, 3, 0,
+    0, 7, 254, 2, 0, 0, 35, 6, 2, 0, 0, 39, 6, 2, 0, 0, 39, 9, 26, 0, 0, 46, 254, 10,
+    26, 0, 0, 33, 254, 42, 26, 0, 0, 46, 254, 11, 4, 0, 0, 254, 10, 4, 0, 0, 254, 10, 4, 0,
+    0, 254, 10, 4, 0, 0, 254, 10, 3, 0, 0, 33, 4, 3, 0, 0, 11, 5, 3, 0, 0, 11, 6, 3,
     0, 0, 11, 7, 3, 0, 0, 14, 7, 3, 0, 0, 34, 8, 3, 0, 0, 13, 9, 3, 0, 0, 13, 10,
     3, 0, 0, 17, 10, 3, 0, 0, 16, 11, 3, 0, 0, 38, 12, 3, 0, 0, 16, 13, 3, 0, 0, 20,
     13, 3, 0, 0, 19, 14, 3, 0, 0, 19, 15, 3, 0, 0, 46, 16, 9, 0, 0, 49, 45, 9, 0, 0,
     45, 48, 9, 0, 0, 41, 40, 23, 0, 0, 19, 15, 3, 23, 0, 0, 19, 15, 4, 23, 0, 0, 19, 15,
     5, 23, 0, 0, 19, 15, 6, 23, 0, 0, 15, 11, 6, 23, 0, 0, 15, 11, 7, 23, 0, 0, 15, 11,
     8, 23, 0, 0, 15, 11, 9, 23, 0, 0, 8, 4, 9, 23, 0, 0, 8, 4, 10, 23, 0, 0, 8, 4,
-    11, 23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 0, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 0,
+    11, 23, 0, 0, 8, 4, 12, 26, 3, 0, 4, 4, 253, 3, 3, 2, 2, 1, 1, 5, 0, 0, 1, 254,
     13, 0, 0, 1, 4, 0, 0, 7, 1, 4, 0, 0, 7, 2, 4, 0, 0, 7, 3, 4, 0, 0, 7, 4,
-    10, 0, 0, 4, 0, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1,
+    10, 0, 0, 4, 254, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1,
     4, 9, 5, 23, 0, 1, 4, 9, 6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4, 9, 8,
 };
-PC_HOT static pc_status pc_program_c1b1401b8efb6e50(const pc_step *s)
+PC_HOT static pc_status pc_program_8cff72a993f18847(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
-    f0 += PC_XF(1, a) * PC_XF(1, b);
+    const float *const k = (const float *)(const void *)(e + 271);
+    float f0 = PC_KF(1);
+    f0 += PC_XF(1, a) * PC_KF(0);
     PC_STOREF(1, f0);
-    float f1 = PC_XF(2, c);
-    f1 += PC_XF(2, a) * PC_XF(2, b);
+    float f1 = PC_KF(3);
+    f1 += PC_XF(2, a) * PC_KF(2);
     PC_STOREF(2, f1);
-    float f2 = PC_XF(3, c);
-    f2 += PC_XF(3, a) * PC_XF(3, b);
+    float f2 = PC_KF(5);
+    f2 += PC_XF(3, a) * PC_KF(4);
     PC_STOREF(3, f2);
-    float f3 = PC_XF(4, c);
-    f3 += PC_XF(4, a) * PC_XF(4, b);
-    float f4 = PC_XF(5, c);
-    f4 += PC_XF(5, a) * PC_XF(5, b);
-    float f5 = PC_XF(6, c);
-    f5 += PC_XF(6, a) * PC_XF(6, b);
-    float f6 = PC_XF(7, c);
-    f6 += PC_XF(7, a) * PC_XF(7, b);
-    float f7 = PC_XF(8, c);
-    f7 += PC_XF(8, a) * PC_XF(8, b);
-    float f8 = PC_XF(9, c);
-    f8 += PC_XF(9, a) * PC_XF(9, b);
-    float f9 = PC_XF(10, c);
-    f9 += PC_XF(10, a) * PC_XF(10, b);
-    float f10 = PC_XF(11, c);
-    f10 += PC_XF(11, a) * PC_XF(11, b);
-    float f11 = PC_XF(12, c);
-    f11 += PC_XF(12, a) * PC_XF(12, b);
-    float f12 = PC_XF(13, c);
-    f12 += PC_XF(13, a) * PC_XF(13, b);
-    f12 += PC_XF(14, a) * PC_XF(14, b);
-    float f13 = PC_XF(15, c);
-    f13 += PC_XF(15, a) * PC_XF(15, b);
-    f13 += PC_XF(16, a) * PC_XF(16, b);
-    f13 += f7 * PC_XF(17, b);
-    f13 += f11 * PC_XF(18, b);
-    float f14 = PC_XF(19, c);
-    f14 += PC_XF(19, a) * PC_XF(19, b);
-    f14 += f6 * PC_XF(20, b);
-    float f15 = PC_XF(21, c);
-    f15 += PC_XF(21, a) * PC_XF(21, b);
-    f15 += f9 * PC_XF(22, b);
-    float f16 = PC_XF(23, c);
-    f16 += PC_XF(23, a) * PC_XF(23, b);
-    f16 += f10 * PC_XF(24, b);
+    float f3 = PC_KF(7);
+    f3 += PC_XF(4, a) * PC_KF(6);
+    float f4 = PC_KF(9);
+    f4 += PC_XF(5, a) * PC_KF(8);
+    float f5 = PC_KF(11);
+    f5 += PC_XF(6, a) * PC_KF(10);
+    float f6 = PC_KF(13);
+    f6 += PC_XF(7, a) * PC_KF(12);
+    float f7 = PC_KF(15);
+    f7 += PC_XF(8, a) * PC_KF(14);
+    float f9 = PC_KF(19);
+    f9 += PC_XF(10, a) * PC_KF(18);
+    float f10 = PC_KF(21);
+    f10 += PC_XF(11, a) * PC_KF(20);
+    float f11 = PC_KF(23);
+    f11 += PC_XF(12, a) * PC_KF(22);
+    float f12 = PC_KF(25);
+    f12 += PC_XF(13, a) * PC_KF(24);
+    f12 += PC_KF(26) * PC_KF(27);
+    float f13 = PC_KF(29);
+    f13 += PC_XF(15, a) * PC_KF(28);
+    f13 += PC_KF(30) * PC_KF(31);
+    f13 += f7 * PC_KF(32);
+    f13 += f11 * PC_KF(33);
+    float f14 = PC_KF(35);
+    f14 += PC_XF(19, a) * PC_KF(34);
+    f14 += f6 * PC_KF(36);
+    float f15 = PC_KF(38);
+    f15 += PC_XF(21, a) * PC_KF(37);
+    f15 += f9 * PC_KF(39);
     const float f17 = pc_sop_float(PC_SOP_SUB, f12, f7);
     const float f18 = pc_sop_float(PC_SOP_SUB, f17, f11);
-    const float f19 = pc_sop_float(PC_SOP_SUB, PC_XF(28, a), f3);
+    const float f19 = pc_sop_float(PC_SOP_SUB, PC_KF(43), f3);
     const float f20 = pc_sop_float(PC_SOP_SUB, f19, f7);
-    const float f21 = pc_sop_float(PC_SOP_SUB, f10, f8);
     const float f22 = pc_sop_float(PC_SOP_SUB, f5, f9);
     const float f23 = pc_sop_float(PC_SOP_SUB, f6, f4);
-    float f24 = PC_XF(34, c);
-    f24 += PC_XF(34, a) * PC_XF(34, b);
-    f24 += f19 * PC_XF(35, b);
-    float f25 = PC_XF(36, c);
-    f25 += PC_XF(36, a) * PC_XF(36, b);
-    f25 += f20 * PC_XF(37, b);
+    float f24 = PC_KF(45);
+    f24 += PC_XF(34, a) * PC_KF(44);
+    f24 += f19 * PC_KF(46);
+    float f25 = PC_KF(48);
+    f25 += PC_XF(36, a) * PC_KF(47);
+    f25 += f20 * PC_KF(49);
     const float f26 = pc_sop_float(PC_SOP_SUB, f24, f11);
-    const float f27 = pc_sop_float(PC_SOP_MAX, f13, PC_XF(41, b));
-    const float f28 = pc_sop_float(PC_SOP_MAX, f18, PC_XF(42, b));
-    const float f29 = pc_sop_float(PC_SOP_MAX, f26, PC_XF(43, b));
-    const float f30 = pc_sop_float(PC_SOP_MAX, f25, PC_XF(44, b));
     const float f31 = pc_sop_float(PC_SOP_MAX, f13, f18);
     const float f32 = pc_sop_float(PC_SOP_MAX, f26, f25);
-    const float f33 = pc_sop_float(PC_SOP_SQRT, f27, 0.0f);
-    const float f34 = pc_sop_float(PC_SOP_SQRT, f28, 0.0f);
-    const float f35 = pc_sop_float(PC_SOP_SQRT, f29, 0.0f);
-    const float f36 = pc_sop_float(PC_SOP_SQRT, f30, 0.0f);
-    const float f37 = pc_sop_float(PC_SOP_MUL, f33, PC_XF(53, b));
-    const float f38 = pc_sop_float(PC_SOP_MUL, f34, PC_XF(54, b));
-    const float f39 = pc_sop_float(PC_SOP_MUL, f35, PC_XF(55, b));
-    const float f40 = pc_sop_float(PC_SOP_MUL, f36, PC_XF(56, b));
-    const float f41 = pc_sop_float(PC_SOP_DIV, PC_XF(58, a), f37);
-    const float f42 = pc_sop_float(PC_SOP_DIV, PC_XF(59, a), f38);
-    const float f43 = pc_sop_float(PC_SOP_DIV, PC_XF(60, a), f39);
-    const float f44 = pc_sop_float(PC_SOP_DIV, PC_XF(61, a), f40);
-    const float f45 = pc_sop_float(PC_SOP_MUL, f13, f41);
-    const float f46 = pc_sop_float(PC_SOP_MUL, f21, f41);
-    const float f47 = pc_sop_float(PC_SOP_MUL, f22, f41);
-    const float f48 = pc_sop_float(PC_SOP_MUL, f23, f41);
-    const float f49 = pc_sop_float(PC_SOP_MUL, f21, f42);
-    const float f50 = pc_sop_float(PC_SOP_MUL, f18, f42);
-    const float f51 = pc_sop_float(PC_SOP_MUL, f14, f42);
-    const float f52 = pc_sop_float(PC_SOP_MUL, f15, f42);
-    const float f53 = pc_sop_float(PC_SOP_MUL, f22, f43);
-    const float f54 = pc_sop_float(PC_SOP_MUL, f14, f43);
-    const float f55 = pc_sop_float(PC_SOP_MUL, f26, f43);
-    const float f56 = pc_sop_float(PC_SOP_MUL, f16, f43);
-    const float f57 = pc_sop_float(PC_SOP_MUL, f23, f44);
-    const float f58 = pc_sop_float(PC_SOP_MUL, f15, f44);
-    const float f59 = pc_sop_float(PC_SOP_MUL, f16, f44);
-    const float f60 = pc_sop_float(PC_SOP_MUL, f25, f44);
-    const uint8_t b61 = f13 >= f18;
-    const uint8_t b62 = f26 >= f25;
     const uint8_t b63 = f31 >= f32;
-    const float f64 = b61 ? f45 : f49;
-    const float f65 = b61 ? f46 : f50;
-    const float f66 = b61 ? f47 : f51;
-    const float f67 = b61 ? f48 : f52;
-    const float f68 = b62 ? f53 : f57;
-    const float f69 = b62 ? f54 : f58;
-    const float f70 = b62 ? f55 : f59;
-    const float f71 = b62 ? f56 : f60;
-    const float f72 = b63 ? f64 : f68;
-    const float f73 = b63 ? f65 : f69;
-    const float f74 = b63 ? f66 : f70;
-    const float f75 = b63 ? f67 : f71;
-    float f76 = PC_XF(97, c);
-    f76 += f72 * f72;
+    float f72, f73, f74, f75;
+    if (b63) {
+        float f8 = PC_KF(17);
+        f8 += PC_XF(9, a) * PC_KF(16);
+        const float f21 = pc_sop_float(PC_SOP_SUB, f10, f8);
+        const uint8_t b61 = f13 >= f18;
+        float f64, f65, f66, f67;
+        if (b61) {
+            const float f27 = pc_sop_float(PC_SOP_MAX, f13, PC_KF(50));
+            const float f33 = pc_sop_float(PC_SOP_SQRT, f27, 0.0f);
+            const float f37 = pc_sop_float(PC_SOP_MUL, f33, PC_KF(54));
+            const float f41 = pc_sop_float(PC_SOP_DIV, PC_KF(58), f37);
+            const float f45 = pc_sop_float(PC_SOP_MUL, f13, f41);
+            const float f46 = pc_sop_float(PC_SOP_MUL, f21, f41);
+            const float f47 = pc_sop_float(PC_SOP_MUL, f22, f41);
+            const float f48 = pc_sop_float(PC_SOP_MUL, f23, f41);
+            f64 = f45;
+            f65 = f46;
+            f66 = f47;
+            f67 = f48;
+        } else {
+            const float f28 = pc_sop_float(PC_SOP_MAX, f18, PC_KF(51));
+            const float f34 = pc_sop_float(PC_SOP_SQRT, f28, 0.0f);
+            const float f38 = pc_sop_float(PC_SOP_MUL, f34, PC_KF(55));
+            const float f42 = pc_sop_float(PC_SOP_DIV, PC_KF(59), f38);
+            const float f49 = pc_sop_float(PC_SOP_MUL, f21, f42);
+            const float f50 = pc_sop_float(PC_SOP_MUL, f18, f42);
+            const float f51 = pc_sop_float(PC_SOP_MUL, f14, f42);
+            const float f52 = pc_sop_float(PC_SOP_MUL, f15, f42);
+            f64 = f49;
+            f65 = f50;
+            f66 = f51;
+            f67 = f52;
+        }
+        f72 = f64;
+        f73 = f65;
+        f74 = f66;
+        f75 = f67;
+    } else {
+        float f16 = PC_KF(41);
+        f16 += PC_XF(23, a) * PC_KF(40);
+        f16 += f10 * PC_KF(42);
+        const uint8_t b62 = f26 >= f25;
+        float f68, f69, f70, f71;
+        if (b62) {
+            const float f29 = pc_sop_float(PC_SOP_MAX, f26, PC_KF(52));
+            const float f35 = pc_sop_float(PC_SOP_SQRT, f29, 0.0f);
+            const float f39 = pc_sop_float(PC_SOP_MUL, f35, PC_KF(56));
+            const float f43 = pc_sop_float(PC_SOP_DIV, PC_KF(60), f39);
+            const float f53 = pc_sop_float(PC_SOP_MUL, f22, f43);
+            const float f54 = pc_sop_float(PC_SOP_MUL, f14, f43);
+            const float f55 = pc_sop_float(PC_SOP_MUL, f26, f43);
+            const float f56 = pc_sop_float(PC_SOP_MUL, f16, f43);
+            f68 = f53;
+            f69 = f54;
+            f70 = f55;
+            f71 = f56;
+        } else {
+            const float f30 = pc_sop_float(PC_SOP_MAX, f25, PC_KF(53));
+            const float f36 = pc_sop_float(PC_SOP_SQRT, f30, 0.0f);
+            const float f40 = pc_sop_float(PC_SOP_MUL, f36, PC_KF(57));
+            const float f44 = pc_sop_float(PC_SOP_DIV, PC_KF(61), f40);
+            const float f57 = pc_sop_float(PC_SOP_MUL, f23, f44);
+            const float f58 = pc_sop_float(PC_SOP_MUL, f15, f44);
+            const float f59 = pc_sop_float(PC_SOP_MUL, f16, f44);
+            const float f60 = pc_sop_float(PC_SOP_MUL, f25, f44);
+            f68 = f57;
+            f69 = f58;
+            f70 = f59;
+            f71 = f60;
+        }
+        f72 = f68;
+        f73 = f69;
+        f74 = f70;
+        f75 = f71;
+    }
+    float f76 = f72 * f72; /* a square: 0 + it is it */
     f76 += f73 * f73;
     f76 += f74 * f74;
     f76 += f75 * f75;
-    const float f77 = pc_sop_float(PC_SOP_MAX, f76, PC_XF(102, b));
+    const float f77 = pc_sop_float(PC_SOP_MAX, f76, PC_KF(63));
     const float f78 = pc_sop_float(PC_SOP_SQRT, f77, 0.0f);
     const float f79 = pc_sop_float(PC_SOP_DIV, f72, f78);
     const float f80 = pc_sop_float(PC_SOP_DIV, f73, f78);
     const float f81 = pc_sop_float(PC_SOP_DIV, f74, f78);
     const float f82 = pc_sop_float(PC_SOP_DIV, f75, f78);
-    const uint8_t b83 = f79 < PC_XF(111, b);
+    const uint8_t b83 = f79 < PC_KF(64);
     const float f84 = pc_sop_float(PC_SOP_NEG, f79, 0.0f);
     const float f85 = pc_sop_float(PC_SOP_NEG, f80, 0.0f);
     const float f86 = pc_sop_float(PC_SOP_NEG, f81, 0.0f);
@@ -3157,12 +3466,11 @@ PC_HOT static pc_status pc_program_c1b1401b8efb6e50(const pc_step *s)
     const float f89 = b83 ? f85 : f80;
     const float f90 = b83 ? f86 : f81;
     const float f91 = b83 ? f87 : f82;
-    float f92 = PC_XF(123, c);
-    f92 += f88 * f88;
+    float f92 = f88 * f88; /* a square: 0 + it is it */
     f92 += f89 * f89;
     f92 += f90 * f90;
     f92 += f91 * f91;
-    const float f93 = pc_sop_float(PC_SOP_MAX, f92, PC_XF(128, b));
+    const float f93 = pc_sop_float(PC_SOP_MAX, f92, PC_KF(66));
     const float f94 = pc_sop_float(PC_SOP_SQRT, f93, 0.0f);
     const float f95 = pc_sop_float(PC_SOP_DIV, f88, f94);
     const float f96 = pc_sop_float(PC_SOP_DIV, f89, f94);
@@ -3188,21 +3496,20 @@ PC_HOT static pc_status pc_program_c1b1401b8efb6e50(const pc_step *s)
     f111 += f95 * f96;
     float f112 = f104;
     f112 += f97 * f97;
-    const float f113 = pc_sop_float(PC_SOP_MUL, f107, PC_XF(153, b));
-    const float f114 = pc_sop_float(PC_SOP_MUL, f108, PC_XF(154, b));
-    const float f115 = pc_sop_float(PC_SOP_MUL, f109, PC_XF(155, b));
-    const float f116 = pc_sop_float(PC_SOP_MUL, f110, PC_XF(156, b));
-    const float f117 = pc_sop_float(PC_SOP_MUL, f111, PC_XF(157, b));
-    const float f118 = pc_sop_float(PC_SOP_MUL, f112, PC_XF(158, b));
-    const float f119 = pc_sop_float(PC_SOP_SUB, PC_XF(160, a), f113);
+    const float f113 = pc_sop_float(PC_SOP_MUL, f107, PC_KF(67));
+    const float f114 = pc_sop_float(PC_SOP_MUL, f108, PC_KF(68));
+    const float f115 = pc_sop_float(PC_SOP_MUL, f109, PC_KF(69));
+    const float f116 = pc_sop_float(PC_SOP_MUL, f110, PC_KF(70));
+    const float f118 = pc_sop_float(PC_SOP_MUL, f112, PC_KF(72));
+    const float f119 = pc_sop_float(PC_SOP_SUB, PC_KF(73), f113);
     const float f120 = pc_sop_float(PC_SOP_SUB, f100, f101);
-    const float f121 = pc_sop_float(PC_SOP_SUB, PC_XF(162, a), f116);
+    const float f121 = pc_sop_float(PC_SOP_SUB, PC_KF(74), f116);
     const float f122 = pc_sop_float(PC_SOP_SUB, f105, f106);
     const float f123 = pc_sop_float(PC_SOP_SUB, f102, f103);
-    const float f124 = pc_sop_float(PC_SOP_SUB, PC_XF(165, a), f118);
-    const float f125 = pc_sop_float(PC_SOP_SUB, PC_XF(166, a), f119);
+    const float f124 = pc_sop_float(PC_SOP_SUB, PC_KF(75), f118);
+    const float f125 = pc_sop_float(PC_SOP_SUB, PC_KF(76), f119);
     const float f126 = pc_sop_float(PC_SOP_SUB, f125, f121);
-    const float f127 = pc_sop_float(PC_SOP_ADD, f119, PC_XF(169, b));
+    const float f127 = pc_sop_float(PC_SOP_ADD, f119, PC_KF(77));
     const float f128 = pc_sop_float(PC_SOP_ADD, f127, f121);
     const float f129 = pc_sop_float(PC_SOP_ADD, f128, f124);
     const float f130 = pc_sop_float(PC_SOP_ADD, f125, f121);
@@ -3210,79 +3517,103 @@ PC_HOT static pc_status pc_program_c1b1401b8efb6e50(const pc_step *s)
     const float f132 = pc_sop_float(PC_SOP_SUB, f127, f121);
     const float f133 = pc_sop_float(PC_SOP_SUB, f132, f124);
     const float f134 = pc_sop_float(PC_SOP_SUB, f130, f124);
-    const float f135 = pc_sop_float(PC_SOP_MAX, f129, PC_XF(179, b));
-    const float f136 = pc_sop_float(PC_SOP_MAX, f133, PC_XF(180, b));
-    const float f137 = pc_sop_float(PC_SOP_MAX, f134, PC_XF(181, b));
-    const float f138 = pc_sop_float(PC_SOP_MAX, f131, PC_XF(182, b));
     const float f139 = pc_sop_float(PC_SOP_MAX, f129, f133);
     const float f140 = pc_sop_float(PC_SOP_MAX, f134, f131);
-    const float f141 = pc_sop_float(PC_SOP_SQRT, f135, 0.0f);
-    const float f142 = pc_sop_float(PC_SOP_SQRT, f136, 0.0f);
-    const float f143 = pc_sop_float(PC_SOP_SQRT, f137, 0.0f);
-    const float f144 = pc_sop_float(PC_SOP_SQRT, f138, 0.0f);
-    const float f145 = pc_sop_float(PC_SOP_MUL, f120, PC_XF(191, b));
-    const float f146 = pc_sop_float(PC_SOP_MUL, f122, PC_XF(192, b));
-    const float f147 = pc_sop_float(PC_SOP_MUL, f123, PC_XF(193, b));
-    const float f148 = pc_sop_float(PC_SOP_MUL, f141, PC_XF(194, b));
-    const float f149 = pc_sop_float(PC_SOP_MUL, f142, PC_XF(195, b));
-    const float f150 = pc_sop_float(PC_SOP_MUL, f143, PC_XF(196, b));
-    const float f151 = pc_sop_float(PC_SOP_MUL, f144, PC_XF(197, b));
-    const float f152 = pc_sop_float(PC_SOP_SUB, f117, f146);
+    const float f145 = pc_sop_float(PC_SOP_MUL, f120, PC_KF(82));
+    const float f146 = pc_sop_float(PC_SOP_MUL, f122, PC_KF(83));
+    const float f147 = pc_sop_float(PC_SOP_MUL, f123, PC_KF(84));
     const float f153 = pc_sop_float(PC_SOP_SUB, f114, f147);
     const float f154 = pc_sop_float(PC_SOP_SUB, f115, f145);
     float f155 = f145;
-    f155 += f109 * PC_XF(203, b);
+    f155 += f109 * PC_KF(89);
     float f156 = f114;
-    f156 += f123 * PC_XF(204, b);
-    float f157 = f146;
-    f157 += f111 * PC_XF(205, b);
-    const float f158 = pc_sop_float(PC_SOP_DIV, PC_XF(207, a), f148);
-    const float f159 = pc_sop_float(PC_SOP_DIV, PC_XF(208, a), f149);
-    const float f160 = pc_sop_float(PC_SOP_DIV, PC_XF(209, a), f150);
-    const float f161 = pc_sop_float(PC_SOP_DIV, PC_XF(210, a), f151);
-    const float f162 = pc_sop_float(PC_SOP_MUL, f129, f158);
-    const float f163 = pc_sop_float(PC_SOP_MUL, f152, f158);
-    const float f164 = pc_sop_float(PC_SOP_MUL, f153, f158);
-    const float f165 = pc_sop_float(PC_SOP_MUL, f154, f158);
-    const float f166 = pc_sop_float(PC_SOP_MUL, f152, f159);
-    const float f167 = pc_sop_float(PC_SOP_MUL, f133, f159);
-    const float f168 = pc_sop_float(PC_SOP_MUL, f155, f159);
-    const float f169 = pc_sop_float(PC_SOP_MUL, f156, f159);
-    const float f170 = pc_sop_float(PC_SOP_MUL, f153, f160);
-    const float f171 = pc_sop_float(PC_SOP_MUL, f155, f160);
-    const float f172 = pc_sop_float(PC_SOP_MUL, f134, f160);
-    const float f173 = pc_sop_float(PC_SOP_MUL, f157, f160);
-    const float f174 = pc_sop_float(PC_SOP_MUL, f154, f161);
-    const float f175 = pc_sop_float(PC_SOP_MUL, f156, f161);
-    const float f176 = pc_sop_float(PC_SOP_MUL, f157, f161);
-    const float f177 = pc_sop_float(PC_SOP_MUL, f131, f161);
-    const uint8_t b178 = f129 >= f133;
-    const uint8_t b179 = f134 >= f131;
+    f156 += f123 * PC_KF(90);
     const uint8_t b180 = f139 >= f140;
-    const float f181 = b178 ? f162 : f166;
-    const float f182 = b178 ? f163 : f167;
-    const float f183 = b178 ? f164 : f168;
-    const float f184 = b178 ? f165 : f169;
-    const float f185 = b179 ? f170 : f174;
-    const float f186 = b179 ? f171 : f175;
-    const float f187 = b179 ? f172 : f176;
-    const float f188 = b179 ? f173 : f177;
-    const float f189 = b180 ? f181 : f185;
-    const float f190 = b180 ? f182 : f186;
-    const float f191 = b180 ? f183 : f187;
-    const float f192 = b180 ? f184 : f188;
-    float f193 = PC_XF(246, c);
-    f193 += f189 * f189;
+    float f189, f190, f191, f192;
+    if (b180) {
+        const float f117 = pc_sop_float(PC_SOP_MUL, f111, PC_KF(71));
+        const float f152 = pc_sop_float(PC_SOP_SUB, f117, f146);
+        const uint8_t b178 = f129 >= f133;
+        float f181, f182, f183, f184;
+        if (b178) {
+            const float f135 = pc_sop_float(PC_SOP_MAX, f129, PC_KF(78));
+            const float f141 = pc_sop_float(PC_SOP_SQRT, f135, 0.0f);
+            const float f148 = pc_sop_float(PC_SOP_MUL, f141, PC_KF(85));
+            const float f158 = pc_sop_float(PC_SOP_DIV, PC_KF(92), f148);
+            const float f162 = pc_sop_float(PC_SOP_MUL, f129, f158);
+            const float f163 = pc_sop_float(PC_SOP_MUL, f152, f158);
+            const float f164 = pc_sop_float(PC_SOP_MUL, f153, f158);
+            const float f165 = pc_sop_float(PC_SOP_MUL, f154, f158);
+            f181 = f162;
+            f182 = f163;
+            f183 = f164;
+            f184 = f165;
+        } else {
+            const float f136 = pc_sop_float(PC_SOP_MAX, f133, PC_KF(79));
+            const float f142 = pc_sop_float(PC_SOP_SQRT, f136, 0.0f);
+            const float f149 = pc_sop_float(PC_SOP_MUL, f142, PC_KF(86));
+            const float f159 = pc_sop_float(PC_SOP_DIV, PC_KF(93), f149);
+            const float f166 = pc_sop_float(PC_SOP_MUL, f152, f159);
+            const float f167 = pc_sop_float(PC_SOP_MUL, f133, f159);
+            const float f168 = pc_sop_float(PC_SOP_MUL, f155, f159);
+            const float f169 = pc_sop_float(PC_SOP_MUL, f156, f159);
+            f181 = f166;
+            f182 = f167;
+            f183 = f168;
+            f184 = f169;
+        }
+        f189 = f181;
+        f190 = f182;
+        f191 = f183;
+        f192 = f184;
+    } else {
+        float f157 = f146;
+        f157 += f111 * PC_KF(91);
+        const uint8_t b179 = f134 >= f131;
+        float f185, f186, f187, f188;
+        if (b179) {
+            const float f137 = pc_sop_float(PC_SOP_MAX, f134, PC_KF(80));
+            const float f143 = pc_sop_float(PC_SOP_SQRT, f137, 0.0f);
+            const float f150 = pc_sop_float(PC_SOP_MUL, f143, PC_KF(87));
+            const float f160 = pc_sop_float(PC_SOP_DIV, PC_KF(94), f150);
+            const float f170 = pc_sop_float(PC_SOP_MUL, f153, f160);
+            const float f171 = pc_sop_float(PC_SOP_MUL, f155, f160);
+            const float f172 = pc_sop_float(PC_SOP_MUL, f134, f160);
+            const float f173 = pc_sop_float(PC_SOP_MUL, f157, f160);
+            f185 = f170;
+            f186 = f171;
+            f187 = f172;
+            f188 = f173;
+        } else {
+            const float f138 = pc_sop_float(PC_SOP_MAX, f131, PC_KF(81));
+            const float f144 = pc_sop_float(PC_SOP_SQRT, f138, 0.0f);
+            const float f151 = pc_sop_float(PC_SOP_MUL, f144, PC_KF(88));
+            const float f161 = pc_sop_float(PC_SOP_DIV, PC_KF(95), f151);
+            const float f174 = pc_sop_float(PC_SOP_MUL, f154, f161);
+            const float f175 = pc_sop_float(PC_SOP_MUL, f156, f161);
+            const float f176 = pc_sop_float(PC_SOP_MUL, f157, f161);
+            const float f177 = pc_sop_float(PC_SOP_MUL, f131, f161);
+            f185 = f174;
+            f186 = f175;
+            f187 = f176;
+            f188 = f177;
+        }
+        f189 = f185;
+        f190 = f186;
+        f191 = f187;
+        f192 = f188;
+    }
+    float f193 = f189 * f189; /* a square: 0 + it is it */
     f193 += f190 * f190;
     f193 += f191 * f191;
     f193 += f192 * f192;
-    const float f194 = pc_sop_float(PC_SOP_MAX, f193, PC_XF(251, b));
+    const float f194 = pc_sop_float(PC_SOP_MAX, f193, PC_KF(97));
     const float f195 = pc_sop_float(PC_SOP_SQRT, f194, 0.0f);
     const float f196 = pc_sop_float(PC_SOP_DIV, f189, f195);
     const float f197 = pc_sop_float(PC_SOP_DIV, f190, f195);
     const float f198 = pc_sop_float(PC_SOP_DIV, f191, f195);
     const float f199 = pc_sop_float(PC_SOP_DIV, f192, f195);
-    const uint8_t b200 = f196 < PC_XF(260, b);
+    const uint8_t b200 = f196 < PC_KF(98);
     const float f201 = pc_sop_float(PC_SOP_NEG, f196, 0.0f);
     const float f202 = pc_sop_float(PC_SOP_NEG, f197, 0.0f);
     const float f203 = pc_sop_float(PC_SOP_NEG, f198, 0.0f);
@@ -3298,24 +3629,24 @@ PC_HOT static pc_status pc_program_c1b1401b8efb6e50(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_0042e12f957ab815_shape[1285] = {
-    26, 2, 0, 0, 0, 0, 0, 0, 0, 0, 26, 2, 0, 0, 0, 0, 0, 0, 0, 0, 26, 2, 0, 0,
-    0, 0, 0, 0, 0, 0, 26, 2, 0, 0, 0, 0, 0, 0, 0, 0, 26, 2, 0, 0, 0, 0, 0, 0,
-    0, 0, 26, 2, 0, 0, 0, 0, 0, 0, 0, 0, 26, 2, 0, 0, 0, 0, 0, 0, 0, 0, 26, 2,
-    0, 0, 0, 0, 0, 0, 0, 0, 26, 2, 0, 0, 0, 0, 0, 0, 0, 0, 26, 2, 0, 9, 0, 0,
-    8, 0, 7, 0, 26, 2, 0, 7, 0, 0, 6, 0, 5, 0, 26, 2, 0, 5, 0, 0, 4, 0, 3, 0,
-    26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 26, 5, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0,
-    9, 0, 5, 0, 26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 11, 0, 26, 3, 0, 0, 0, 0, 0, 0,
-    0, 0, 9, 0, 26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 9, 0, 3, 0, 0, 0, 0, 3, 0, 0,
-    0, 0, 3, 0, 0, 1, 0, 2, 0, 0, 0, 3, 2, 0, 0, 0, 2, 2, 0, 0, 10, 18, 2, 0,
-    0, 1, 15, 2, 0, 0, 0, 24, 2, 0, 0, 1, 21, 2, 0, 0, 19, 21, 2, 0, 0, 25, 21, 2,
-    0, 0, 25, 27, 26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 5, 0, 26, 3, 0, 0, 0, 0, 0, 0,
-    0, 0, 5, 0, 2, 0, 0, 2, 23, 3, 0, 0, 11, 0, 3, 0, 0, 1, 12, 3, 0, 0, 14, 0,
-    3, 0, 0, 1, 15, 5, 0, 0, 23, 0, 5, 0, 0, 14, 0, 5, 0, 0, 7, 0, 5, 0, 0, 9,
-    0, 5, 0, 0, 27, 17, 5, 0, 0, 10, 11, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13,
-    0, 0, 6, 2, 0, 0, 0, 13, 2, 0, 0, 0, 12, 3, 0, 0, 1, 0, 3, 0, 0, 1, 2, 3,
-    0, 0, 4, 0, 3, 0, 0, 1, 5, 3, 0, 0, 10, 0, 3, 0, 0, 10, 0, 3, 0, 0, 10, 0,
-    3, 0, 0, 10, 0, 4, 0, 0, 0, 4, 4, 0, 0, 0, 4, 4, 0, 0, 0, 4, 4, 0, 0, 0,
+static const uint8_t pc_program_dea986dc5ba36fb8_shape[1285] = {
+    26, 2, 0, 0, 254, 253, 0, 254, 0, 254, 26, 2, 0, 0, 254, 253, 0, 254, 0, 254, 26, 2, 0, 0,
+    254, 253, 0, 254, 0, 254, 26, 2, 0, 0, 254, 253, 0, 254, 0, 254, 26, 2, 0, 0, 254, 253, 0, 254,
+    0, 254, 26, 2, 0, 0, 254, 253, 0, 254, 0, 254, 26, 2, 0, 0, 254, 253, 0, 254, 0, 254, 26, 2,
+    0, 0, 254, 253, 0, 254, 0, 254, 26, 2, 0, 0, 254, 253, 0, 254, 0, 254, 26, 2, 0, 9, 254, 253,
+    8, 254, 7, 254, 26, 2, 0, 7, 254, 253, 6, 254, 5, 254, 26, 2, 0, 5, 254, 253, 4, 254, 3, 254,
+    26, 3, 0, 0, 254, 253, 0, 254, 0, 254, 254, 254, 26, 5, 0, 0, 254, 253, 0, 254, 0, 254, 254, 254,
+    9, 254, 5, 254, 26, 3, 0, 0, 254, 253, 0, 254, 0, 254, 11, 254, 26, 3, 0, 0, 254, 253, 0, 254,
+    0, 254, 9, 254, 26, 3, 0, 0, 254, 253, 0, 254, 0, 254, 9, 254, 3, 0, 0, 0, 0, 3, 0, 0,
+    0, 254, 3, 0, 0, 1, 0, 2, 0, 0, 0, 3, 2, 0, 0, 0, 2, 2, 0, 0, 10, 18, 2, 0,
+    0, 1, 15, 2, 0, 0, 254, 24, 2, 0, 0, 1, 21, 2, 0, 0, 19, 21, 2, 0, 0, 25, 21, 2,
+    0, 0, 25, 27, 26, 3, 0, 0, 254, 253, 0, 254, 0, 254, 5, 254, 26, 3, 0, 0, 254, 253, 0, 254,
+    0, 254, 5, 254, 2, 0, 0, 2, 23, 3, 0, 0, 11, 254, 3, 0, 0, 1, 12, 3, 0, 0, 14, 254,
+    3, 0, 0, 1, 15, 5, 0, 0, 23, 254, 5, 0, 0, 14, 254, 5, 0, 0, 7, 254, 5, 0, 0, 9,
+    254, 5, 0, 0, 27, 17, 5, 0, 0, 10, 11, 13, 0, 0, 6, 13, 0, 0, 6, 13, 0, 0, 6, 13,
+    0, 0, 6, 2, 0, 0, 0, 13, 2, 0, 0, 0, 12, 3, 0, 0, 1, 254, 3, 0, 0, 1, 2, 3,
+    0, 0, 4, 254, 3, 0, 0, 1, 5, 3, 0, 0, 10, 254, 3, 0, 0, 10, 254, 3, 0, 0, 10, 254,
+    3, 0, 0, 10, 254, 4, 0, 0, 254, 4, 4, 0, 0, 254, 4, 4, 0, 0, 254, 4, 4, 0, 0, 254,
     4, 3, 0, 0, 47, 4, 3, 0, 0, 35, 5, 3, 0, 0, 35, 6, 3, 0, 0, 35, 7, 3, 0, 0,
     38, 7, 3, 0, 0, 42, 8, 3, 0, 0, 52, 9, 3, 0, 0, 52, 10, 3, 0, 0, 41, 10, 3, 0,
     0, 55, 11, 3, 0, 0, 39, 12, 3, 0, 0, 55, 13, 3, 0, 0, 44, 13, 3, 0, 0, 58, 14, 3,
@@ -3323,27 +3654,27 @@ static const uint8_t pc_program_0042e12f957ab815_shape[1285] = {
     2, 0, 0, 0, 30, 2, 0, 0, 0, 29, 23, 0, 0, 21, 17, 5, 23, 0, 0, 21, 17, 6, 23, 0,
     0, 21, 17, 7, 23, 0, 0, 21, 17, 8, 23, 0, 0, 17, 13, 8, 23, 0, 0, 17, 13, 9, 23, 0,
     0, 17, 13, 10, 23, 0, 0, 17, 13, 11, 23, 0, 0, 8, 4, 11, 23, 0, 0, 8, 4, 12, 23, 0,
-    0, 8, 4, 13, 23, 0, 0, 8, 4, 14, 3, 0, 0, 13, 0, 3, 0, 0, 1, 14, 3, 0, 0, 16,
-    0, 3, 0, 0, 1, 17, 26, 3, 0, 8, 8, 0, 7, 7, 6, 6, 5, 5, 2, 0, 0, 0, 4, 2,
-    0, 0, 0, 3, 5, 0, 0, 3, 0, 3, 0, 0, 2, 0, 3, 0, 0, 1, 3, 3, 0, 0, 5, 0,
+    0, 8, 4, 13, 23, 0, 0, 8, 4, 14, 3, 0, 0, 13, 254, 3, 0, 0, 1, 14, 3, 0, 0, 16,
+    254, 3, 0, 0, 1, 17, 26, 3, 0, 8, 8, 253, 7, 7, 6, 6, 5, 5, 2, 0, 0, 0, 4, 2,
+    0, 0, 0, 3, 5, 0, 0, 3, 254, 3, 0, 0, 2, 254, 3, 0, 0, 1, 3, 3, 0, 0, 5, 254,
     3, 0, 0, 1, 6, 13, 0, 0, 5, 4, 0, 0, 17, 1, 4, 0, 0, 17, 2, 4, 0, 0, 17, 3,
-    4, 0, 0, 17, 4, 2, 0, 0, 0, 8, 2, 0, 0, 0, 7, 10, 0, 0, 6, 0, 12, 0, 0, 7,
+    4, 0, 0, 17, 4, 2, 0, 0, 0, 8, 2, 0, 0, 0, 7, 10, 0, 0, 6, 254, 12, 0, 0, 7,
     12, 0, 0, 7, 12, 0, 0, 7, 12, 0, 0, 7, 18, 0, 0, 7, 18, 0, 0, 7, 23, 0, 0, 6,
     13, 7, 23, 0, 0, 6, 13, 8, 23, 0, 0, 6, 13, 9, 23, 0, 0, 6, 13, 10, 1, 0, 0, 6,
-    0, 1, 0, 0, 6, 0, 26, 0, 0, 8, 0, 0, 26, 2, 0, 3, 3, 0, 2, 2, 1, 1, 26, 3,
-    0, 8, 8, 0, 7, 7, 6, 6, 5, 5, 5, 0, 0, 2, 0, 5, 0, 0, 2, 0, 13, 0, 0, 2,
+    254, 1, 0, 0, 6, 254, 26, 0, 0, 8, 254, 254, 26, 2, 0, 3, 3, 253, 2, 2, 1, 1, 26, 3,
+    0, 8, 8, 253, 7, 7, 6, 6, 5, 5, 5, 0, 0, 2, 254, 5, 0, 0, 2, 254, 13, 0, 0, 2,
     13, 0, 0, 2, 4, 0, 0, 9, 2, 4, 0, 0, 9, 3, 4, 0, 0, 9, 4, 4, 0, 0, 16, 4,
     4, 0, 0, 16, 5, 4, 0, 0, 16, 6, 4, 0, 0, 16, 7, 3, 0, 0, 0, 7, 3, 0, 0, 0,
     7, 3, 0, 0, 0, 7, 3, 0, 0, 5, 5, 3, 0, 0, 7, 6, 3, 0, 0, 9, 6, 3, 0, 0,
-    9, 7, 3, 0, 0, 11, 9, 3, 0, 0, 11, 11, 3, 0, 0, 11, 10, 26, 3, 0, 10, 0, 0, 9,
-    0, 8, 0, 0, 0, 26, 3, 0, 11, 0, 0, 10, 0, 9, 0, 0, 0, 26, 3, 0, 12, 0, 0, 11,
-    0, 10, 0, 0, 0, 26, 0, 0, 14, 14, 10, 26, 0, 0, 18, 15, 10, 26, 0, 0, 16, 16, 7, 26,
-    0, 0, 20, 19, 7, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0, 3, 0, 0, 4, 0, 3, 0, 0, 4,
-    0, 2, 0, 0, 11, 151, 2, 0, 0, 11, 151, 2, 0, 0, 11, 151, 2, 0, 0, 0, 7, 2, 0, 0,
-    21, 20, 2, 0, 0, 0, 7, 2, 0, 0, 21, 20, 3, 0, 0, 3, 0, 3, 0, 0, 2, 0, 26, 0,
-    1, 9, 0, 0, 26, 0, 1, 9, 0, 0, 26, 0, 1, 9, 0, 0, 26, 0, 1, 9, 0, 0, 26, 0,
-    1, 16, 0, 0, 26, 0, 1, 6, 0, 0, 26, 0, 1, 8, 0, 0, 26, 0, 1, 11, 0, 0, 26, 0,
-    1, 18, 0, 0, 3, 0, 1, 9, 9, 3, 0, 1, 10, 9, 3, 0, 1, 11, 9, 3, 0, 1, 12, 9,
+    9, 7, 3, 0, 0, 11, 9, 3, 0, 0, 11, 11, 3, 0, 0, 11, 10, 26, 3, 0, 10, 254, 253, 9,
+    254, 8, 254, 254, 254, 26, 3, 0, 11, 254, 253, 10, 254, 9, 254, 254, 254, 26, 3, 0, 12, 254, 253, 11,
+    254, 10, 254, 254, 254, 26, 0, 0, 14, 14, 10, 26, 0, 0, 18, 15, 10, 26, 0, 0, 16, 16, 7, 26,
+    0, 0, 20, 19, 7, 3, 0, 0, 4, 254, 3, 0, 0, 4, 254, 3, 0, 0, 4, 254, 3, 0, 0, 4,
+    254, 2, 0, 0, 11, 151, 2, 0, 0, 11, 151, 2, 0, 0, 11, 151, 2, 0, 0, 254, 7, 2, 0, 0,
+    21, 20, 2, 0, 0, 254, 7, 2, 0, 0, 21, 20, 3, 0, 0, 3, 254, 3, 0, 0, 2, 254, 26, 0,
+    1, 9, 254, 254, 26, 0, 1, 9, 254, 254, 26, 0, 1, 9, 254, 254, 26, 0, 1, 9, 254, 254, 26, 0,
+    1, 16, 254, 254, 26, 0, 1, 6, 254, 254, 26, 0, 1, 8, 254, 254, 26, 0, 1, 11, 254, 254, 26, 0,
+    1, 18, 254, 254, 3, 0, 1, 9, 9, 3, 0, 1, 10, 9, 3, 0, 1, 11, 9, 3, 0, 1, 12, 9,
     3, 0, 1, 13, 9, 3, 0, 1, 14, 9, 3, 0, 1, 15, 9, 3, 0, 1, 16, 9, 3, 0, 1, 17,
     9, 3, 0, 1, 17, 17, 3, 0, 1, 18, 17, 3, 0, 1, 19, 17, 3, 0, 1, 20, 17, 3, 0, 1,
     21, 17, 3, 0, 1, 22, 17, 3, 0, 1, 23, 17, 3, 0, 1, 24, 17, 3, 0, 1, 24, 24, 3, 0,
@@ -3354,184 +3685,208 @@ static const uint8_t pc_program_0042e12f957ab815_shape[1285] = {
     41, 39, 3, 0, 1, 42, 39, 3, 0, 1, 42, 42, 3, 0, 1, 43, 42, 3, 0, 1, 44, 42, 3, 0,
     1, 44, 44, 3, 0, 1, 45, 44, 3, 0, 1, 45, 45,
 };
-PC_HOT static pc_status pc_program_0042e12f957ab815(const pc_step *s)
+PC_HOT static pc_status pc_program_dea986dc5ba36fb8(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
-    f0 += PC_XF(1, a) * PC_XF(1, b);
-    f0 += PC_XF(2, a) * PC_XF(2, b);
-    f0 += PC_XF(3, a) * PC_XF(3, b);
-    float f1 = PC_XF(4, c);
-    f1 += PC_XF(4, a) * PC_XF(4, b);
-    f1 += PC_XF(5, a) * PC_XF(5, b);
-    f1 += PC_XF(6, a) * PC_XF(6, b);
-    float f2 = PC_XF(7, c);
-    f2 += PC_XF(7, a) * PC_XF(7, b);
-    f2 += PC_XF(8, a) * PC_XF(8, b);
-    f2 += PC_XF(9, a) * PC_XF(9, b);
-    float f3 = PC_XF(10, c);
-    f3 += PC_XF(10, a) * PC_XF(10, b);
-    f3 += PC_XF(11, a) * PC_XF(11, b);
-    f3 += PC_XF(12, a) * PC_XF(12, b);
-    float f4 = PC_XF(13, c);
-    f4 += PC_XF(13, a) * PC_XF(13, b);
-    f4 += PC_XF(14, a) * PC_XF(14, b);
-    f4 += PC_XF(15, a) * PC_XF(15, b);
-    float f5 = PC_XF(16, c);
-    f5 += PC_XF(16, a) * PC_XF(16, b);
-    f5 += PC_XF(17, a) * PC_XF(17, b);
-    f5 += PC_XF(18, a) * PC_XF(18, b);
-    float f6 = PC_XF(19, c);
-    f6 += PC_XF(19, a) * PC_XF(19, b);
-    f6 += PC_XF(20, a) * PC_XF(20, b);
-    f6 += PC_XF(21, a) * PC_XF(21, b);
-    float f7 = PC_XF(22, c);
-    f7 += PC_XF(22, a) * PC_XF(22, b);
-    f7 += PC_XF(23, a) * PC_XF(23, b);
-    f7 += PC_XF(24, a) * PC_XF(24, b);
-    float f8 = PC_XF(25, c);
-    f8 += PC_XF(25, a) * PC_XF(25, b);
-    f8 += PC_XF(26, a) * PC_XF(26, b);
-    f8 += PC_XF(27, a) * PC_XF(27, b);
-    float f9 = PC_XF(28, c);
-    f9 += f0 * PC_XF(28, b);
-    f9 += f1 * PC_XF(29, b);
-    f9 += f2 * PC_XF(30, b);
-    float f10 = PC_XF(31, c);
-    f10 += f3 * PC_XF(31, b);
-    f10 += f4 * PC_XF(32, b);
-    f10 += f5 * PC_XF(33, b);
-    float f11 = PC_XF(34, c);
-    f11 += f6 * PC_XF(34, b);
-    f11 += f7 * PC_XF(35, b);
-    f11 += f8 * PC_XF(36, b);
-    float f12 = PC_XF(37, c);
-    f12 += PC_XF(37, a) * PC_XF(37, b);
-    f12 += PC_XF(38, a) * PC_XF(38, b);
-    f12 += PC_XF(39, a) * PC_XF(39, b);
-    f12 += PC_XF(40, a) * PC_XF(40, b);
-    float f13 = PC_XF(41, c);
-    f13 += PC_XF(41, a) * PC_XF(41, b);
-    f13 += PC_XF(42, a) * PC_XF(42, b);
-    f13 += PC_XF(43, a) * PC_XF(43, b);
-    f13 += PC_XF(44, a) * PC_XF(44, b);
-    f13 += f4 * PC_XF(45, b);
-    f13 += f8 * PC_XF(46, b);
-    float f14 = PC_XF(47, c);
-    f14 += PC_XF(47, a) * PC_XF(47, b);
-    f14 += PC_XF(48, a) * PC_XF(48, b);
-    f14 += PC_XF(49, a) * PC_XF(49, b);
-    f14 += f3 * PC_XF(50, b);
-    float f15 = PC_XF(51, c);
-    f15 += PC_XF(51, a) * PC_XF(51, b);
-    f15 += PC_XF(52, a) * PC_XF(52, b);
-    f15 += PC_XF(53, a) * PC_XF(53, b);
-    f15 += f6 * PC_XF(54, b);
-    float f16 = PC_XF(55, c);
-    f16 += PC_XF(55, a) * PC_XF(55, b);
-    f16 += PC_XF(56, a) * PC_XF(56, b);
-    f16 += PC_XF(57, a) * PC_XF(57, b);
-    f16 += f7 * PC_XF(58, b);
+    const float *const k = (const float *)(const void *)(e + 326);
+    float f0 = PC_KF(1);
+    f0 += PC_XF(1, a) * PC_KF(0);
+    f0 += PC_XF(2, a) * PC_KF(2);
+    f0 += PC_XF(3, a) * PC_KF(3);
+    float f1 = PC_KF(5);
+    f1 += PC_XF(4, a) * PC_KF(4);
+    f1 += PC_XF(5, a) * PC_KF(6);
+    f1 += PC_XF(6, a) * PC_KF(7);
+    float f2 = PC_KF(9);
+    f2 += PC_XF(7, a) * PC_KF(8);
+    f2 += PC_XF(8, a) * PC_KF(10);
+    f2 += PC_XF(9, a) * PC_KF(11);
+    float f3 = PC_KF(13);
+    f3 += PC_XF(10, a) * PC_KF(12);
+    f3 += PC_XF(11, a) * PC_KF(14);
+    f3 += PC_XF(12, a) * PC_KF(15);
+    float f4 = PC_KF(17);
+    f4 += PC_XF(13, a) * PC_KF(16);
+    f4 += PC_XF(14, a) * PC_KF(18);
+    f4 += PC_XF(15, a) * PC_KF(19);
+    float f5 = PC_KF(21);
+    f5 += PC_XF(16, a) * PC_KF(20);
+    f5 += PC_XF(17, a) * PC_KF(22);
+    f5 += PC_XF(18, a) * PC_KF(23);
+    float f6 = PC_KF(25);
+    f6 += PC_XF(19, a) * PC_KF(24);
+    f6 += PC_XF(20, a) * PC_KF(26);
+    f6 += PC_XF(21, a) * PC_KF(27);
+    float f7 = PC_KF(29);
+    f7 += PC_XF(22, a) * PC_KF(28);
+    f7 += PC_XF(23, a) * PC_KF(30);
+    f7 += PC_XF(24, a) * PC_KF(31);
+    float f8 = PC_KF(33);
+    f8 += PC_XF(25, a) * PC_KF(32);
+    f8 += PC_XF(26, a) * PC_KF(34);
+    f8 += PC_XF(27, a) * PC_KF(35);
+    float f9 = PC_KF(37);
+    f9 += f0 * PC_KF(36);
+    f9 += f1 * PC_KF(38);
+    f9 += f2 * PC_KF(39);
+    float f10 = PC_KF(41);
+    f10 += f3 * PC_KF(40);
+    f10 += f4 * PC_KF(42);
+    f10 += f5 * PC_KF(43);
+    float f11 = PC_KF(45);
+    f11 += f6 * PC_KF(44);
+    f11 += f7 * PC_KF(46);
+    f11 += f8 * PC_KF(47);
+    float f12 = PC_KF(49);
+    f12 += PC_XF(37, a) * PC_KF(48);
+    f12 += PC_XF(38, a) * PC_KF(50);
+    f12 += PC_XF(39, a) * PC_KF(51);
+    f12 += PC_KF(52) * PC_KF(53);
+    float f13 = PC_KF(55);
+    f13 += PC_XF(41, a) * PC_KF(54);
+    f13 += PC_XF(42, a) * PC_KF(56);
+    f13 += PC_XF(43, a) * PC_KF(57);
+    f13 += PC_KF(58) * PC_KF(59);
+    f13 += f4 * PC_KF(60);
+    f13 += f8 * PC_KF(61);
+    float f14 = PC_KF(63);
+    f14 += PC_XF(47, a) * PC_KF(62);
+    f14 += PC_XF(48, a) * PC_KF(64);
+    f14 += PC_XF(49, a) * PC_KF(65);
+    f14 += f3 * PC_KF(66);
+    float f15 = PC_KF(68);
+    f15 += PC_XF(51, a) * PC_KF(67);
+    f15 += PC_XF(52, a) * PC_KF(69);
+    f15 += PC_XF(53, a) * PC_KF(70);
+    f15 += f6 * PC_KF(71);
     const float f17 = pc_sop_float(PC_SOP_MUL, PC_XF(60, a), PC_XF(60, b));
-    const float f18 = pc_sop_float(PC_SOP_MUL, PC_XF(61, a), PC_XF(61, b));
+    const float f18 = pc_sop_float(PC_SOP_MUL, PC_XF(61, a), PC_KF(77));
     const float f19 = pc_sop_float(PC_SOP_MUL, f18, PC_XF(62, b));
     const float f20 = pc_sop_float(PC_SOP_SUB, PC_XF(64, a), f17);
     const float f21 = pc_sop_float(PC_SOP_SUB, PC_XF(65, a), f19);
     const float f22 = pc_sop_float(PC_SOP_SUB, f12, f4);
     const float f23 = pc_sop_float(PC_SOP_SUB, f22, f8);
-    const float f24 = pc_sop_float(PC_SOP_SUB, PC_XF(68, a), f0);
+    const float f24 = pc_sop_float(PC_SOP_SUB, PC_KF(78), f0);
     const float f25 = pc_sop_float(PC_SOP_SUB, f24, f4);
-    const float f26 = pc_sop_float(PC_SOP_SUB, f7, f5);
     const float f27 = pc_sop_float(PC_SOP_SUB, f2, f6);
     const float f28 = pc_sop_float(PC_SOP_SUB, f3, f1);
-    float f29 = PC_XF(74, c);
-    f29 += PC_XF(74, a) * PC_XF(74, b);
-    f29 += PC_XF(75, a) * PC_XF(75, b);
-    f29 += PC_XF(76, a) * PC_XF(76, b);
-    f29 += f24 * PC_XF(77, b);
-    float f30 = PC_XF(78, c);
-    f30 += PC_XF(78, a) * PC_XF(78, b);
-    f30 += PC_XF(79, a) * PC_XF(79, b);
-    f30 += PC_XF(80, a) * PC_XF(80, b);
-    f30 += f25 * PC_XF(81, b);
+    float f29 = PC_KF(80);
+    f29 += PC_XF(74, a) * PC_KF(79);
+    f29 += PC_XF(75, a) * PC_KF(81);
+    f29 += PC_XF(76, a) * PC_KF(82);
+    f29 += f24 * PC_KF(83);
+    float f30 = PC_KF(85);
+    f30 += PC_XF(78, a) * PC_KF(84);
+    f30 += PC_XF(79, a) * PC_KF(86);
+    f30 += PC_XF(80, a) * PC_KF(87);
+    f30 += f25 * PC_KF(88);
     const float f31 = pc_sop_float(PC_SOP_SUB, f29, f8);
-    const float f32 = pc_sop_float(PC_SOP_MUL, f21, PC_XF(85, b));
+    const float f32 = pc_sop_float(PC_SOP_MUL, f21, PC_KF(89));
     const float f33 = pc_sop_float(PC_SOP_MUL, f32, f21);
-    const float f34 = pc_sop_float(PC_SOP_MUL, f20, PC_XF(87, b));
+    const float f34 = pc_sop_float(PC_SOP_MUL, f20, PC_KF(90));
     const float f35 = pc_sop_float(PC_SOP_MUL, f34, f20);
-    const float f36 = pc_sop_float(PC_SOP_MAX, f13, PC_XF(90, b));
-    const float f37 = pc_sop_float(PC_SOP_MAX, f23, PC_XF(91, b));
-    const float f38 = pc_sop_float(PC_SOP_MAX, f31, PC_XF(92, b));
-    const float f39 = pc_sop_float(PC_SOP_MAX, f30, PC_XF(93, b));
     const float f40 = pc_sop_float(PC_SOP_MAX, f13, f23);
     const float f41 = pc_sop_float(PC_SOP_MAX, f31, f30);
-    const float f42 = pc_sop_float(PC_SOP_SQRT, f36, 0.0f);
-    const float f43 = pc_sop_float(PC_SOP_SQRT, f37, 0.0f);
-    const float f44 = pc_sop_float(PC_SOP_SQRT, f38, 0.0f);
-    const float f45 = pc_sop_float(PC_SOP_SQRT, f39, 0.0f);
     const float f46 = pc_sop_float(PC_SOP_SUB, PC_XF(102, a), f33);
     const float f47 = pc_sop_float(PC_SOP_SUB, PC_XF(103, a), f35);
-    const float f48 = pc_sop_float(PC_SOP_MUL, f47, PC_XF(105, b));
+    const float f48 = pc_sop_float(PC_SOP_MUL, f47, PC_KF(95));
     const float f49 = pc_sop_float(PC_SOP_MUL, f48, f47);
-    const float f50 = pc_sop_float(PC_SOP_MUL, f46, PC_XF(107, b));
+    const float f50 = pc_sop_float(PC_SOP_MUL, f46, PC_KF(96));
     const float f51 = pc_sop_float(PC_SOP_MUL, f50, f46);
-    const float f52 = pc_sop_float(PC_SOP_MUL, f42, PC_XF(109, b));
-    const float f53 = pc_sop_float(PC_SOP_MUL, f43, PC_XF(110, b));
-    const float f54 = pc_sop_float(PC_SOP_MUL, f44, PC_XF(111, b));
-    const float f55 = pc_sop_float(PC_SOP_MUL, f45, PC_XF(112, b));
-    const float f56 = pc_sop_float(PC_SOP_DIV, PC_XF(114, a), f52);
-    const float f57 = pc_sop_float(PC_SOP_DIV, PC_XF(115, a), f53);
-    const float f58 = pc_sop_float(PC_SOP_DIV, PC_XF(116, a), f54);
-    const float f59 = pc_sop_float(PC_SOP_DIV, PC_XF(117, a), f55);
-    const float f60 = pc_sop_float(PC_SOP_MUL, f13, f56);
-    const float f61 = pc_sop_float(PC_SOP_MUL, f26, f56);
-    const float f62 = pc_sop_float(PC_SOP_MUL, f27, f56);
-    const float f63 = pc_sop_float(PC_SOP_MUL, f28, f56);
-    const float f64 = pc_sop_float(PC_SOP_MUL, f26, f57);
-    const float f65 = pc_sop_float(PC_SOP_MUL, f23, f57);
-    const float f66 = pc_sop_float(PC_SOP_MUL, f14, f57);
-    const float f67 = pc_sop_float(PC_SOP_MUL, f15, f57);
-    const float f68 = pc_sop_float(PC_SOP_MUL, f27, f58);
-    const float f69 = pc_sop_float(PC_SOP_MUL, f14, f58);
-    const float f70 = pc_sop_float(PC_SOP_MUL, f31, f58);
-    const float f71 = pc_sop_float(PC_SOP_MUL, f16, f58);
-    const float f72 = pc_sop_float(PC_SOP_MUL, f28, f59);
-    const float f73 = pc_sop_float(PC_SOP_MUL, f15, f59);
-    const float f74 = pc_sop_float(PC_SOP_MUL, f16, f59);
-    const float f75 = pc_sop_float(PC_SOP_MUL, f30, f59);
-    const uint8_t b76 = f13 >= f23;
-    const uint8_t b77 = f31 >= f30;
     const uint8_t b78 = f40 >= f41;
     const float f79 = pc_sop_float(PC_SOP_SUB, PC_XF(140, a), f49);
     const float f80 = pc_sop_float(PC_SOP_SUB, PC_XF(141, a), f51);
-    const float f81 = b76 ? f60 : f64;
-    const float f82 = b76 ? f61 : f65;
-    const float f83 = b76 ? f62 : f66;
-    const float f84 = b76 ? f63 : f67;
-    const float f85 = b77 ? f68 : f72;
-    const float f86 = b77 ? f69 : f73;
-    const float f87 = b77 ? f70 : f74;
-    const float f88 = b77 ? f71 : f75;
-    const float f89 = b78 ? f81 : f85;
-    const float f90 = b78 ? f82 : f86;
-    const float f91 = b78 ? f83 : f87;
-    const float f92 = b78 ? f84 : f88;
-    const float f93 = pc_sop_float(PC_SOP_MUL, f80, PC_XF(156, b));
+    float f89, f90, f91, f92;
+    if (b78) {
+        const float f26 = pc_sop_float(PC_SOP_SUB, f7, f5);
+        const uint8_t b76 = f13 >= f23;
+        float f81, f82, f83, f84;
+        if (b76) {
+            const float f36 = pc_sop_float(PC_SOP_MAX, f13, PC_KF(91));
+            const float f42 = pc_sop_float(PC_SOP_SQRT, f36, 0.0f);
+            const float f52 = pc_sop_float(PC_SOP_MUL, f42, PC_KF(97));
+            const float f56 = pc_sop_float(PC_SOP_DIV, PC_KF(101), f52);
+            const float f60 = pc_sop_float(PC_SOP_MUL, f13, f56);
+            const float f61 = pc_sop_float(PC_SOP_MUL, f26, f56);
+            const float f62 = pc_sop_float(PC_SOP_MUL, f27, f56);
+            const float f63 = pc_sop_float(PC_SOP_MUL, f28, f56);
+            f81 = f60;
+            f82 = f61;
+            f83 = f62;
+            f84 = f63;
+        } else {
+            const float f37 = pc_sop_float(PC_SOP_MAX, f23, PC_KF(92));
+            const float f43 = pc_sop_float(PC_SOP_SQRT, f37, 0.0f);
+            const float f53 = pc_sop_float(PC_SOP_MUL, f43, PC_KF(98));
+            const float f57 = pc_sop_float(PC_SOP_DIV, PC_KF(102), f53);
+            const float f64 = pc_sop_float(PC_SOP_MUL, f26, f57);
+            const float f65 = pc_sop_float(PC_SOP_MUL, f23, f57);
+            const float f66 = pc_sop_float(PC_SOP_MUL, f14, f57);
+            const float f67 = pc_sop_float(PC_SOP_MUL, f15, f57);
+            f81 = f64;
+            f82 = f65;
+            f83 = f66;
+            f84 = f67;
+        }
+        f89 = f81;
+        f90 = f82;
+        f91 = f83;
+        f92 = f84;
+    } else {
+        float f16 = PC_KF(73);
+        f16 += PC_XF(55, a) * PC_KF(72);
+        f16 += PC_XF(56, a) * PC_KF(74);
+        f16 += PC_XF(57, a) * PC_KF(75);
+        f16 += f7 * PC_KF(76);
+        const uint8_t b77 = f31 >= f30;
+        float f85, f86, f87, f88;
+        if (b77) {
+            const float f38 = pc_sop_float(PC_SOP_MAX, f31, PC_KF(93));
+            const float f44 = pc_sop_float(PC_SOP_SQRT, f38, 0.0f);
+            const float f54 = pc_sop_float(PC_SOP_MUL, f44, PC_KF(99));
+            const float f58 = pc_sop_float(PC_SOP_DIV, PC_KF(103), f54);
+            const float f68 = pc_sop_float(PC_SOP_MUL, f27, f58);
+            const float f69 = pc_sop_float(PC_SOP_MUL, f14, f58);
+            const float f70 = pc_sop_float(PC_SOP_MUL, f31, f58);
+            const float f71 = pc_sop_float(PC_SOP_MUL, f16, f58);
+            f85 = f68;
+            f86 = f69;
+            f87 = f70;
+            f88 = f71;
+        } else {
+            const float f39 = pc_sop_float(PC_SOP_MAX, f30, PC_KF(94));
+            const float f45 = pc_sop_float(PC_SOP_SQRT, f39, 0.0f);
+            const float f55 = pc_sop_float(PC_SOP_MUL, f45, PC_KF(100));
+            const float f59 = pc_sop_float(PC_SOP_DIV, PC_KF(104), f55);
+            const float f72 = pc_sop_float(PC_SOP_MUL, f28, f59);
+            const float f73 = pc_sop_float(PC_SOP_MUL, f15, f59);
+            const float f74 = pc_sop_float(PC_SOP_MUL, f16, f59);
+            const float f75 = pc_sop_float(PC_SOP_MUL, f30, f59);
+            f85 = f72;
+            f86 = f73;
+            f87 = f74;
+            f88 = f75;
+        }
+        f89 = f85;
+        f90 = f86;
+        f91 = f87;
+        f92 = f88;
+    }
+    const float f93 = pc_sop_float(PC_SOP_MUL, f80, PC_KF(105));
     const float f94 = pc_sop_float(PC_SOP_MUL, f93, f80);
-    const float f95 = pc_sop_float(PC_SOP_MUL, f79, PC_XF(158, b));
+    const float f95 = pc_sop_float(PC_SOP_MUL, f79, PC_KF(106));
     const float f96 = pc_sop_float(PC_SOP_MUL, f95, f79);
-    float f97 = PC_XF(161, c);
-    f97 += f89 * f89;
+    float f97 = f89 * f89; /* a square: 0 + it is it */
     f97 += f90 * f90;
     f97 += f91 * f91;
     f97 += f92 * f92;
     const float f98 = pc_sop_float(PC_SOP_SUB, PC_XF(166, a), f94);
     const float f99 = pc_sop_float(PC_SOP_SUB, PC_XF(167, a), f96);
-    const float f100 = pc_sop_float(PC_SOP_MAX, f97, PC_XF(169, b));
-    const float f101 = pc_sop_float(PC_SOP_MUL, f99, PC_XF(171, b));
+    const float f100 = pc_sop_float(PC_SOP_MAX, f97, PC_KF(108));
+    const float f101 = pc_sop_float(PC_SOP_MUL, f99, PC_KF(109));
     const float f102 = pc_sop_float(PC_SOP_MUL, f101, f99);
-    const float f103 = pc_sop_float(PC_SOP_MUL, f98, PC_XF(173, b));
+    const float f103 = pc_sop_float(PC_SOP_MUL, f98, PC_KF(110));
     const float f104 = pc_sop_float(PC_SOP_MUL, f103, f98);
     const float f105 = pc_sop_float(PC_SOP_SQRT, f100, 0.0f);
     const float f106 = pc_sop_float(PC_SOP_DIV, f89, f105);
@@ -3540,7 +3895,7 @@ PC_HOT static pc_status pc_program_0042e12f957ab815(const pc_step *s)
     const float f109 = pc_sop_float(PC_SOP_DIV, f92, f105);
     const float f110 = pc_sop_float(PC_SOP_SUB, PC_XF(183, a), f102);
     const float f111 = pc_sop_float(PC_SOP_SUB, PC_XF(184, a), f104);
-    const uint8_t b112 = f106 < PC_XF(186, b);
+    const uint8_t b112 = f106 < PC_KF(111);
     const float f113 = pc_sop_float(PC_SOP_NEG, f106, 0.0f);
     const float f114 = pc_sop_float(PC_SOP_NEG, f107, 0.0f);
     const float f115 = pc_sop_float(PC_SOP_NEG, f108, 0.0f);
@@ -3551,21 +3906,19 @@ PC_HOT static pc_status pc_program_0042e12f957ab815(const pc_step *s)
     const float f120 = b112 ? f114 : f107;
     const float f121 = b112 ? f115 : f108;
     const float f122 = b112 ? f116 : f109;
-    const float f123 = pc_sop_float(PC_SOP_ADD, f117, PC_XF(201, b));
-    const float f124 = pc_sop_float(PC_SOP_ADD, f118, PC_XF(202, b));
-    float f125 = PC_XF(204, c);
-    f125 += f117 * PC_XF(204, b);
-    float f126 = PC_XF(205, c);
-    f126 += f123 * f123;
+    const float f123 = pc_sop_float(PC_SOP_ADD, f117, PC_KF(112));
+    const float f124 = pc_sop_float(PC_SOP_ADD, f118, PC_KF(113));
+    float f125 = PC_KF(115);
+    f125 += f117 * PC_KF(114);
+    float f126 = f123 * f123; /* a square: 0 + it is it */
     f126 += f124 * f124;
     f126 += f125 * f125;
-    float f127 = PC_XF(208, c);
-    f127 += f119 * f119;
+    float f127 = f119 * f119; /* a square: 0 + it is it */
     f127 += f120 * f120;
     f127 += f121 * f121;
     f127 += f122 * f122;
-    const float f128 = pc_sop_float(PC_SOP_MAX, f126, PC_XF(213, b));
-    const float f129 = pc_sop_float(PC_SOP_MAX, f127, PC_XF(214, b));
+    const float f128 = pc_sop_float(PC_SOP_MAX, f126, PC_KF(118));
+    const float f129 = pc_sop_float(PC_SOP_MAX, f127, PC_KF(119));
     const float f130 = pc_sop_float(PC_SOP_SQRT, f128, 0.0f);
     const float f131 = pc_sop_float(PC_SOP_SQRT, f129, 0.0f);
     const float f132 = pc_sop_float(PC_SOP_DIV, f123, f130);
@@ -3585,21 +3938,21 @@ PC_HOT static pc_status pc_program_0042e12f957ab815(const pc_step *s)
     const float f146 = pc_sop_float(PC_SOP_MUL, f135, f137);
     const float f147 = pc_sop_float(PC_SOP_MUL, f136, f136);
     const float f148 = pc_sop_float(PC_SOP_MUL, f137, f138);
-    float f149 = PC_XF(238, c);
-    f149 += f139 * PC_XF(238, b);
-    f149 += f140 * PC_XF(239, b);
-    f149 += f141 * PC_XF(240, b);
-    f149 += PC_XF(241, a) * PC_XF(241, b);
-    float f150 = PC_XF(242, c);
-    f150 += f139 * PC_XF(242, b);
-    f150 += f140 * PC_XF(243, b);
-    f150 += f141 * PC_XF(244, b);
-    f150 += PC_XF(245, a) * PC_XF(245, b);
-    float f151 = PC_XF(246, c);
-    f151 += f139 * PC_XF(246, b);
-    f151 += f140 * PC_XF(247, b);
-    f151 += f141 * PC_XF(248, b);
-    f151 += PC_XF(249, a) * PC_XF(249, b);
+    float f149 = PC_KF(121);
+    f149 += f139 * PC_KF(120);
+    f149 += f140 * PC_KF(122);
+    f149 += f141 * PC_KF(123);
+    f149 += PC_KF(124) * PC_KF(125);
+    float f150 = PC_KF(127);
+    f150 += f139 * PC_KF(126);
+    f150 += f140 * PC_KF(128);
+    f150 += f141 * PC_KF(129);
+    f150 += PC_KF(130) * PC_KF(131);
+    float f151 = PC_KF(133);
+    f151 += f139 * PC_KF(132);
+    f151 += f140 * PC_KF(134);
+    f151 += f141 * PC_KF(135);
+    f151 += PC_KF(136) * PC_KF(137);
     float f152 = f142;
     f152 += f138 * f138;
     float f153 = f143;
@@ -3608,45 +3961,45 @@ PC_HOT static pc_status pc_program_0042e12f957ab815(const pc_step *s)
     f154 += f138 * f138;
     float f155 = f148;
     f155 += f135 * f136;
-    const float f156 = pc_sop_float(PC_SOP_MUL, f152, PC_XF(255, b));
-    const float f157 = pc_sop_float(PC_SOP_MUL, f153, PC_XF(256, b));
-    const float f158 = pc_sop_float(PC_SOP_MUL, f154, PC_XF(257, b));
-    const float f159 = pc_sop_float(PC_SOP_MUL, f155, PC_XF(258, b));
+    const float f156 = pc_sop_float(PC_SOP_MUL, f152, PC_KF(138));
+    const float f157 = pc_sop_float(PC_SOP_MUL, f153, PC_KF(139));
+    const float f158 = pc_sop_float(PC_SOP_MUL, f154, PC_KF(140));
+    const float f159 = pc_sop_float(PC_SOP_MUL, f155, PC_KF(141));
     const float f160 = pc_sop_float(PC_SOP_SUB, f149, f9);
     const float f161 = pc_sop_float(PC_SOP_SUB, f150, f10);
     const float f162 = pc_sop_float(PC_SOP_SUB, f151, f11);
-    const float f163 = pc_sop_float(PC_SOP_SUB, PC_XF(263, a), f156);
+    const float f163 = pc_sop_float(PC_SOP_SUB, PC_KF(142), f156);
     const float f164 = pc_sop_float(PC_SOP_SUB, f143, f144);
-    const float f165 = pc_sop_float(PC_SOP_SUB, PC_XF(265, a), f158);
+    const float f165 = pc_sop_float(PC_SOP_SUB, PC_KF(143), f158);
     const float f166 = pc_sop_float(PC_SOP_SUB, f145, f146);
-    const float f167 = pc_sop_float(PC_SOP_MUL, f164, PC_XF(268, b));
-    const float f168 = pc_sop_float(PC_SOP_MUL, f166, PC_XF(269, b));
-    float f169 = PC_XF(271, c);
-    f169 += f160 * PC_XF(271, b);
+    const float f167 = pc_sop_float(PC_SOP_MUL, f164, PC_KF(144));
+    const float f168 = pc_sop_float(PC_SOP_MUL, f166, PC_KF(145));
+    float f169 = PC_KF(147);
+    f169 += f160 * PC_KF(146);
     PC_STOREF(271, f169);
-    float f170 = PC_XF(272, c);
-    f170 += f161 * PC_XF(272, b);
+    float f170 = PC_KF(149);
+    f170 += f161 * PC_KF(148);
     PC_STOREF(272, f170);
-    float f171 = PC_XF(273, c);
-    f171 += f162 * PC_XF(273, b);
+    float f171 = PC_KF(151);
+    f171 += f162 * PC_KF(150);
     PC_STOREF(273, f171);
-    float f172 = PC_XF(274, c);
-    f172 += f163 * PC_XF(274, b);
+    float f172 = PC_KF(153);
+    f172 += f163 * PC_KF(152);
     PC_STOREF(274, f172);
-    float f173 = PC_XF(275, c);
-    f173 += f157 * PC_XF(275, b);
+    float f173 = PC_KF(155);
+    f173 += f157 * PC_KF(154);
     PC_STOREF(275, f173);
-    float f174 = PC_XF(276, c);
-    f174 += f168 * PC_XF(276, b);
+    float f174 = PC_KF(157);
+    f174 += f168 * PC_KF(156);
     PC_STOREF(276, f174);
-    float f175 = PC_XF(277, c);
-    f175 += f167 * PC_XF(277, b);
+    float f175 = PC_KF(159);
+    f175 += f167 * PC_KF(158);
     PC_STOREF(277, f175);
-    float f176 = PC_XF(278, c);
-    f176 += f165 * PC_XF(278, b);
+    float f176 = PC_KF(161);
+    f176 += f165 * PC_KF(160);
     PC_STOREF(278, f176);
-    float f177 = PC_XF(279, c);
-    f177 += f159 * PC_XF(279, b);
+    float f177 = PC_KF(163);
+    f177 += f159 * PC_KF(162);
     PC_STOREF(279, f177);
     const float f178 = pc_sop_float(PC_SOP_MUL, f169, f169);
     PC_STOREF(281, f178);
@@ -3741,108 +4094,109 @@ PC_HOT static pc_status pc_program_0042e12f957ab815(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_ac6ceacb51d4b83b_shape[1608] = {
-    26, 3, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 5, 0, 0, 1, 0, 13, 0, 0, 1, 2, 0, 0,
-    0, 0, 2, 0, 0, 0, 0, 2, 0, 0, 0, 0, 4, 0, 0, 0, 4, 4, 0, 0, 0, 5, 4, 0,
-    0, 0, 6, 4, 0, 0, 0, 7, 26, 3, 0, 7, 0, 0, 6, 0, 5, 0, 0, 0, 26, 3, 0, 8,
-    0, 0, 7, 0, 6, 0, 0, 0, 26, 3, 0, 9, 0, 0, 8, 0, 7, 0, 0, 0, 3, 0, 0, 5,
+static const uint8_t pc_program_6933f2da6dd5679b_shape[1608] = {
+    26, 3, 0, 0, 0, 253, 0, 0, 0, 0, 0, 0, 5, 0, 0, 1, 254, 13, 0, 0, 1, 2, 0, 0,
+    0, 254, 2, 0, 0, 0, 254, 2, 0, 0, 0, 254, 4, 0, 0, 0, 4, 4, 0, 0, 0, 5, 4, 0,
+    0, 0, 6, 4, 0, 0, 0, 7, 26, 3, 0, 7, 254, 253, 6, 254, 5, 254, 254, 254, 26, 3, 0, 8,
+    254, 253, 7, 254, 6, 254, 254, 254, 26, 3, 0, 9, 254, 253, 8, 254, 7, 254, 254, 254, 3, 0, 0, 5,
     5, 3, 0, 0, 7, 6, 3, 0, 0, 9, 6, 3, 0, 0, 9, 7, 3, 0, 0, 11, 9, 3, 0, 0,
     11, 11, 3, 0, 0, 11, 10, 3, 0, 0, 14, 13, 2, 0, 0, 7, 6, 2, 0, 0, 3, 2, 2, 0,
-    0, 7, 6, 2, 0, 0, 14, 0, 2, 0, 0, 14, 0, 2, 0, 0, 14, 0, 26, 0, 0, 18, 18, 14,
+    0, 7, 6, 2, 0, 0, 14, 254, 2, 0, 0, 14, 254, 2, 0, 0, 14, 254, 26, 0, 0, 18, 18, 14,
     26, 0, 0, 22, 20, 12, 26, 0, 0, 23, 20, 15, 26, 0, 0, 21, 21, 12, 26, 0, 0, 25, 24, 12,
-    26, 0, 0, 24, 24, 14, 26, 2, 0, 9, 9, 0, 8, 8, 7, 7, 3, 0, 0, 7, 0, 3, 0, 0,
-    14, 0, 3, 0, 0, 8, 0, 3, 0, 0, 8, 0, 3, 0, 0, 8, 0, 3, 0, 0, 17, 0, 3, 0,
-    0, 17, 0, 3, 0, 0, 10, 0, 3, 0, 0, 10, 0, 5, 0, 0, 10, 0, 2, 0, 0, 0, 10, 2,
-    0, 0, 0, 7, 2, 0, 0, 0, 4, 13, 0, 0, 4, 26, 2, 1, 0, 4, 0, 0, 11, 0, 8, 26,
-    2, 1, 0, 14, 0, 0, 4, 0, 8, 26, 2, 1, 0, 14, 0, 0, 11, 0, 4, 26, 2, 1, 0, 7,
-    0, 0, 14, 0, 11, 26, 2, 1, 0, 17, 0, 0, 7, 0, 11, 26, 2, 1, 0, 17, 0, 0, 14, 0,
-    7, 26, 2, 1, 0, 10, 0, 0, 17, 0, 14, 26, 2, 1, 0, 20, 0, 0, 10, 0, 14, 26, 2, 1,
-    0, 20, 0, 0, 17, 0, 10, 4, 0, 0, 33, 10, 4, 0, 0, 33, 11, 4, 0, 0, 33, 12, 26, 2,
-    0, 10, 3, 0, 7, 2, 4, 1, 26, 3, 0, 11, 4, 0, 8, 3, 5, 2, 0, 0, 3, 0, 0, 1,
-    0, 3, 0, 0, 3, 6, 3, 0, 0, 4, 6, 3, 0, 0, 5, 6, 2, 0, 0, 16, 3, 2, 0, 0,
-    14, 3, 2, 0, 0, 12, 3, 26, 5, 0, 66, 0, 0, 65, 0, 64, 0, 0, 0, 7, 12, 3, 0, 26,
-    5, 0, 67, 0, 0, 66, 0, 65, 0, 0, 0, 8, 12, 3, 0, 26, 5, 0, 68, 0, 0, 67, 0, 66,
-    0, 0, 0, 9, 12, 3, 0, 2, 0, 0, 3, 62, 2, 0, 0, 3, 62, 2, 0, 0, 3, 62, 2, 0,
-    0, 65, 3, 2, 0, 0, 65, 3, 2, 0, 0, 65, 3, 2, 0, 0, 3, 0, 2, 0, 0, 3, 0, 2,
-    0, 0, 3, 0, 26, 2, 0, 3, 3, 0, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4,
-    0, 0, 6, 1, 4, 0, 0, 6, 2, 4, 0, 0, 6, 3, 26, 2, 0, 37, 3, 0, 34, 2, 31, 1,
-    26, 3, 0, 38, 4, 0, 35, 3, 32, 2, 0, 0, 3, 0, 0, 1, 0, 3, 0, 0, 3, 6, 3, 0,
+    26, 0, 0, 24, 24, 14, 26, 2, 0, 9, 9, 253, 8, 8, 7, 7, 3, 0, 0, 7, 254, 3, 0, 0,
+    14, 254, 3, 0, 0, 8, 254, 3, 0, 0, 8, 254, 3, 0, 0, 8, 254, 3, 0, 0, 17, 254, 3, 0,
+    0, 17, 254, 3, 0, 0, 10, 254, 3, 0, 0, 10, 254, 5, 0, 0, 10, 254, 2, 0, 0, 254, 10, 2,
+    0, 0, 254, 7, 2, 0, 0, 254, 4, 13, 0, 0, 4, 26, 2, 1, 254, 4, 253, 254, 11, 254, 8, 26,
+    2, 1, 254, 14, 253, 254, 4, 254, 8, 26, 2, 1, 254, 14, 253, 254, 11, 254, 4, 26, 2, 1, 254, 7,
+    253, 254, 14, 254, 11, 26, 2, 1, 254, 17, 253, 254, 7, 254, 11, 26, 2, 1, 254, 17, 253, 254, 14, 254,
+    7, 26, 2, 1, 254, 10, 253, 254, 17, 254, 14, 26, 2, 1, 254, 20, 253, 254, 10, 254, 14, 26, 2, 1,
+    254, 20, 253, 254, 17, 254, 10, 4, 0, 0, 33, 10, 4, 0, 0, 33, 11, 4, 0, 0, 33, 12, 26, 2,
+    0, 10, 3, 253, 7, 2, 4, 1, 26, 3, 0, 11, 4, 253, 8, 3, 5, 2, 254, 254, 3, 0, 0, 1,
+    254, 3, 0, 0, 3, 6, 3, 0, 0, 4, 6, 3, 0, 0, 5, 6, 2, 0, 0, 16, 3, 2, 0, 0,
+    14, 3, 2, 0, 0, 12, 3, 26, 5, 0, 66, 254, 253, 65, 254, 64, 254, 254, 254, 7, 12, 3, 254, 26,
+    5, 0, 67, 254, 253, 66, 254, 65, 254, 254, 254, 8, 12, 3, 254, 26, 5, 0, 68, 254, 253, 67, 254, 66,
+    254, 254, 254, 9, 12, 3, 254, 2, 0, 0, 3, 62, 2, 0, 0, 3, 62, 2, 0, 0, 3, 62, 2, 0,
+    0, 65, 3, 2, 0, 0, 65, 3, 2, 0, 0, 65, 3, 2, 0, 0, 3, 254, 2, 0, 0, 3, 254, 2,
+    0, 0, 3, 254, 26, 2, 0, 3, 3, 253, 2, 2, 1, 1, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4,
+    0, 0, 6, 1, 4, 0, 0, 6, 2, 4, 0, 0, 6, 3, 26, 2, 0, 37, 3, 253, 34, 2, 31, 1,
+    26, 3, 0, 38, 4, 253, 35, 3, 32, 2, 254, 254, 3, 0, 0, 1, 254, 3, 0, 0, 3, 6, 3, 0,
     0, 4, 6, 3, 0, 0, 5, 6, 2, 0, 0, 43, 3, 2, 0, 0, 41, 3, 2, 0, 0, 39, 3, 26,
-    1, 0, 7, 12, 21, 3, 0, 26, 1, 0, 8, 12, 21, 3, 0, 26, 1, 0, 9, 12, 21, 3, 0, 2,
+    1, 0, 7, 12, 21, 3, 254, 26, 1, 0, 8, 12, 21, 3, 254, 26, 1, 0, 9, 12, 21, 3, 254, 2,
     0, 0, 3, 89, 2, 0, 0, 3, 89, 2, 0, 0, 3, 89, 2, 0, 0, 27, 3, 2, 0, 0, 27, 3,
-    2, 0, 0, 27, 3, 2, 0, 0, 3, 0, 2, 0, 0, 3, 0, 2, 0, 0, 3, 0, 26, 2, 0, 3,
-    3, 0, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 6, 1, 4, 0, 0, 6,
-    2, 4, 0, 0, 6, 3, 26, 2, 0, 64, 3, 0, 61, 2, 58, 1, 26, 3, 0, 65, 4, 0, 62, 3,
-    59, 2, 0, 0, 3, 0, 0, 1, 0, 3, 0, 0, 3, 6, 3, 0, 0, 4, 6, 3, 0, 0, 5, 6,
-    2, 0, 0, 70, 3, 2, 0, 0, 68, 3, 2, 0, 0, 66, 3, 26, 1, 0, 7, 12, 21, 3, 0, 26,
-    1, 0, 8, 12, 21, 3, 0, 26, 1, 0, 9, 12, 21, 3, 0, 2, 0, 0, 3, 116, 2, 0, 0, 3,
+    2, 0, 0, 27, 3, 2, 0, 0, 3, 254, 2, 0, 0, 3, 254, 2, 0, 0, 3, 254, 26, 2, 0, 3,
+    3, 253, 2, 2, 1, 1, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 6, 1, 4, 0, 0, 6,
+    2, 4, 0, 0, 6, 3, 26, 2, 0, 64, 3, 253, 61, 2, 58, 1, 26, 3, 0, 65, 4, 253, 62, 3,
+    59, 2, 254, 254, 3, 0, 0, 1, 254, 3, 0, 0, 3, 6, 3, 0, 0, 4, 6, 3, 0, 0, 5, 6,
+    2, 0, 0, 70, 3, 2, 0, 0, 68, 3, 2, 0, 0, 66, 3, 26, 1, 0, 7, 12, 21, 3, 254, 26,
+    1, 0, 8, 12, 21, 3, 254, 26, 1, 0, 9, 12, 21, 3, 254, 2, 0, 0, 3, 116, 2, 0, 0, 3,
     116, 2, 0, 0, 3, 116, 2, 0, 0, 27, 3, 2, 0, 0, 27, 3, 2, 0, 0, 27, 3, 2, 0, 0,
-    3, 0, 2, 0, 0, 3, 0, 2, 0, 0, 3, 0, 26, 2, 0, 3, 3, 0, 2, 2, 1, 1, 5, 0,
-    0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 6, 1, 4, 0, 0, 6, 2, 4, 0, 0, 6, 3, 26, 2,
-    0, 91, 3, 0, 88, 2, 85, 1, 26, 3, 0, 92, 4, 0, 89, 3, 86, 2, 0, 0, 3, 0, 0, 1,
-    0, 3, 0, 0, 3, 6, 3, 0, 0, 4, 6, 3, 0, 0, 5, 6, 2, 0, 0, 97, 3, 2, 0, 0,
-    95, 3, 2, 0, 0, 93, 3, 26, 1, 0, 7, 12, 21, 3, 0, 26, 1, 0, 8, 12, 21, 3, 0, 26,
-    1, 0, 9, 12, 21, 3, 0, 2, 0, 0, 3, 143, 2, 0, 0, 3, 143, 2, 0, 0, 3, 143, 2, 0,
-    0, 27, 3, 2, 0, 0, 27, 3, 2, 0, 0, 27, 3, 2, 0, 0, 3, 0, 2, 0, 0, 3, 0, 2,
-    0, 0, 3, 0, 26, 2, 0, 3, 3, 0, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4,
-    0, 0, 6, 1, 4, 0, 0, 6, 2, 4, 0, 0, 6, 3, 26, 2, 0, 118, 3, 0, 115, 2, 112, 1,
-    26, 3, 0, 119, 4, 0, 116, 3, 113, 2, 0, 0, 3, 0, 0, 1, 0, 3, 0, 0, 3, 6, 3, 0,
+    3, 254, 2, 0, 0, 3, 254, 2, 0, 0, 3, 254, 26, 2, 0, 3, 3, 253, 2, 2, 1, 1, 5, 0,
+    0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 6, 1, 4, 0, 0, 6, 2, 4, 0, 0, 6, 3, 26, 2,
+    0, 91, 3, 253, 88, 2, 85, 1, 26, 3, 0, 92, 4, 253, 89, 3, 86, 2, 254, 254, 3, 0, 0, 1,
+    254, 3, 0, 0, 3, 6, 3, 0, 0, 4, 6, 3, 0, 0, 5, 6, 2, 0, 0, 97, 3, 2, 0, 0,
+    95, 3, 2, 0, 0, 93, 3, 26, 1, 0, 7, 12, 21, 3, 254, 26, 1, 0, 8, 12, 21, 3, 254, 26,
+    1, 0, 9, 12, 21, 3, 254, 2, 0, 0, 3, 143, 2, 0, 0, 3, 143, 2, 0, 0, 3, 143, 2, 0,
+    0, 27, 3, 2, 0, 0, 27, 3, 2, 0, 0, 27, 3, 2, 0, 0, 3, 254, 2, 0, 0, 3, 254, 2,
+    0, 0, 3, 254, 26, 2, 0, 3, 3, 253, 2, 2, 1, 1, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4,
+    0, 0, 6, 1, 4, 0, 0, 6, 2, 4, 0, 0, 6, 3, 26, 2, 0, 118, 3, 253, 115, 2, 112, 1,
+    26, 3, 0, 119, 4, 253, 116, 3, 113, 2, 254, 254, 3, 0, 0, 1, 254, 3, 0, 0, 3, 6, 3, 0,
     0, 4, 6, 3, 0, 0, 5, 6, 2, 0, 0, 124, 3, 2, 0, 0, 122, 3, 2, 0, 0, 120, 3, 26,
-    1, 0, 7, 12, 21, 3, 0, 26, 1, 0, 8, 12, 21, 3, 0, 26, 1, 0, 9, 12, 21, 3, 0, 2,
+    1, 0, 7, 12, 21, 3, 254, 26, 1, 0, 8, 12, 21, 3, 254, 26, 1, 0, 9, 12, 21, 3, 254, 2,
     0, 0, 3, 170, 2, 0, 0, 3, 170, 2, 0, 0, 3, 170, 2, 0, 0, 27, 3, 2, 0, 0, 27, 3,
-    2, 0, 0, 27, 3, 2, 0, 0, 3, 0, 2, 0, 0, 3, 0, 2, 0, 0, 3, 0, 26, 2, 0, 3,
-    3, 0, 2, 2, 1, 1, 5, 0, 0, 1, 0, 13, 0, 0, 1, 4, 0, 0, 6, 1, 4, 0, 0, 6,
-    2, 4, 0, 0, 6, 3, 26, 2, 0, 145, 3, 0, 142, 2, 139, 1, 26, 3, 0, 146, 4, 0, 143, 3,
-    140, 2, 0, 0, 3, 0, 0, 1, 0, 3, 0, 0, 3, 6, 3, 0, 0, 4, 6, 3, 0, 0, 5, 6,
-    2, 0, 0, 151, 3, 2, 0, 0, 149, 3, 2, 0, 0, 147, 3, 26, 1, 0, 7, 12, 21, 3, 0, 26,
-    1, 0, 8, 12, 21, 3, 0, 26, 1, 0, 9, 12, 21, 3, 0, 2, 0, 0, 3, 197, 2, 0, 0, 3,
+    2, 0, 0, 27, 3, 2, 0, 0, 3, 254, 2, 0, 0, 3, 254, 2, 0, 0, 3, 254, 26, 2, 0, 3,
+    3, 253, 2, 2, 1, 1, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 6, 1, 4, 0, 0, 6,
+    2, 4, 0, 0, 6, 3, 26, 2, 0, 145, 3, 253, 142, 2, 139, 1, 26, 3, 0, 146, 4, 253, 143, 3,
+    140, 2, 254, 254, 3, 0, 0, 1, 254, 3, 0, 0, 3, 6, 3, 0, 0, 4, 6, 3, 0, 0, 5, 6,
+    2, 0, 0, 151, 3, 2, 0, 0, 149, 3, 2, 0, 0, 147, 3, 26, 1, 0, 7, 12, 21, 3, 254, 26,
+    1, 0, 8, 12, 21, 3, 254, 26, 1, 0, 9, 12, 21, 3, 254, 2, 0, 0, 3, 197, 2, 0, 0, 3,
     197, 2, 0, 0, 3, 197, 2, 0, 0, 27, 3, 2, 0, 0, 27, 3, 2, 0, 0, 27, 3, 2, 0, 0,
-    3, 0, 2, 0, 0, 3, 0, 2, 0, 0, 3, 0, 4, 0, 0, 3, 0, 4, 0, 0, 3, 0, 4, 0,
-    0, 3, 0, 1, 0, 0, 3, 0, 1, 0, 0, 3, 0, 1, 0, 0, 3, 0, 2, 0, 0, 3, 0, 2,
-    0, 0, 3, 0, 2, 0, 0, 3, 0, 26, 2, 0, 3, 0, 0, 2, 0, 1, 0, 26, 2, 0, 4, 0,
-    0, 3, 0, 2, 0, 26, 2, 0, 5, 0, 0, 4, 0, 3, 0, 26, 2, 0, 3, 3, 0, 2, 2, 1,
-    1, 12, 0, 0, 2, 7, 0, 0, 1, 0, 23, 0, 0, 0, 2, 1, 4, 0, 0, 7, 1, 4, 0, 0,
-    7, 2, 10, 0, 0, 9, 0, 10, 0, 0, 6, 0, 10, 0, 0, 10, 0, 19, 0, 0, 5, 19, 0, 0,
-    5, 23, 0, 0, 0, 0, 5, 23, 0, 0, 0, 0, 4, 1, 0, 0, 4, 2, 1, 0, 0, 4, 2, 23,
-    0, 0, 2, 6, 8, 23, 0, 0, 2, 6, 9, 2, 0, 1, 2, 0, 2, 0, 1, 2, 0, 3, 0, 0,
-    1, 0, 3, 0, 0, 1, 2, 3, 0, 0, 4, 0, 3, 0, 0, 1, 5, 2, 0, 0, 6, 3, 2, 0,
-    0, 6, 2, 3, 0, 0, 1, 0, 3, 0, 0, 1, 2, 3, 0, 0, 4, 0, 3, 0, 0, 1, 5, 2,
-    0, 0, 12, 3, 2, 0, 0, 12, 2, 3, 0, 0, 1, 0, 3, 0, 0, 1, 2, 3, 0, 0, 4, 0,
-    3, 0, 0, 1, 5, 2, 0, 1, 18, 3, 2, 0, 1, 18, 2, 13, 0, 1, 37, 3, 0, 1, 2, 0,
+    3, 254, 2, 0, 0, 3, 254, 2, 0, 0, 3, 254, 4, 0, 0, 3, 254, 4, 0, 0, 3, 254, 4, 0,
+    0, 3, 254, 1, 0, 0, 3, 254, 1, 0, 0, 3, 254, 1, 0, 0, 3, 254, 2, 0, 0, 3, 254, 2,
+    0, 0, 3, 254, 2, 0, 0, 3, 254, 26, 2, 0, 3, 254, 253, 2, 254, 1, 254, 26, 2, 0, 4, 254,
+    253, 3, 254, 2, 254, 26, 2, 0, 5, 254, 253, 4, 254, 3, 254, 26, 2, 0, 3, 3, 253, 2, 2, 1,
+    1, 12, 0, 0, 2, 7, 0, 0, 1, 254, 23, 0, 0, 254, 2, 1, 4, 0, 0, 7, 1, 4, 0, 0,
+    7, 2, 10, 0, 0, 9, 254, 10, 0, 0, 6, 254, 10, 0, 0, 10, 254, 19, 0, 0, 5, 19, 0, 0,
+    5, 23, 0, 0, 254, 254, 5, 23, 0, 0, 254, 254, 4, 1, 0, 0, 4, 2, 1, 0, 0, 4, 2, 23,
+    0, 0, 2, 6, 8, 23, 0, 0, 2, 6, 9, 2, 0, 1, 2, 254, 2, 0, 1, 2, 254, 3, 0, 0,
+    1, 254, 3, 0, 0, 1, 2, 3, 0, 0, 4, 254, 3, 0, 0, 1, 5, 2, 0, 0, 6, 3, 2, 0,
+    0, 6, 2, 3, 0, 0, 1, 254, 3, 0, 0, 1, 2, 3, 0, 0, 4, 254, 3, 0, 0, 1, 5, 2,
+    0, 0, 12, 3, 2, 0, 0, 12, 2, 3, 0, 0, 1, 254, 3, 0, 0, 1, 2, 3, 0, 0, 4, 254,
+    3, 0, 0, 1, 5, 2, 0, 1, 18, 3, 2, 0, 1, 18, 2, 13, 0, 1, 37, 3, 0, 1, 2, 254,
 };
-PC_HOT static pc_status pc_program_ac6ceacb51d4b83b(const pc_step *s)
+PC_HOT static pc_status pc_program_6933f2da6dd5679b(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
-    float f0 = PC_XF(1, c);
+    const float *const k = (const float *)(const void *)(e + 464);
+    float f0 = PC_KF(0);
     f0 += PC_XF(1, a) * PC_XF(1, b);
     f0 += PC_XF(2, a) * PC_XF(2, b);
     f0 += PC_XF(3, a) * PC_XF(3, b);
     f0 += PC_XF(4, a) * PC_XF(4, b);
-    const float f1 = pc_sop_float(PC_SOP_MAX, f0, PC_XF(6, b));
+    const float f1 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(1));
     const float f2 = pc_sop_float(PC_SOP_SQRT, f1, 0.0f);
-    const float f3 = pc_sop_float(PC_SOP_SUB, PC_XF(10, a), PC_XF(10, b));
-    const float f4 = pc_sop_float(PC_SOP_SUB, PC_XF(11, a), PC_XF(11, b));
-    const float f5 = pc_sop_float(PC_SOP_SUB, PC_XF(12, a), PC_XF(12, b));
+    const float f3 = pc_sop_float(PC_SOP_SUB, PC_XF(10, a), PC_KF(2));
+    const float f4 = pc_sop_float(PC_SOP_SUB, PC_XF(11, a), PC_KF(3));
+    const float f5 = pc_sop_float(PC_SOP_SUB, PC_XF(12, a), PC_KF(4));
     const float f6 = pc_sop_float(PC_SOP_DIV, PC_XF(14, a), f2);
     const float f7 = pc_sop_float(PC_SOP_DIV, PC_XF(15, a), f2);
     const float f8 = pc_sop_float(PC_SOP_DIV, PC_XF(16, a), f2);
     const float f9 = pc_sop_float(PC_SOP_DIV, PC_XF(17, a), f2);
-    float f10 = PC_XF(19, c);
-    f10 += f3 * PC_XF(19, b);
-    f10 += f4 * PC_XF(20, b);
-    f10 += f5 * PC_XF(21, b);
-    f10 += PC_XF(22, a) * PC_XF(22, b);
-    float f11 = PC_XF(23, c);
-    f11 += f3 * PC_XF(23, b);
-    f11 += f4 * PC_XF(24, b);
-    f11 += f5 * PC_XF(25, b);
-    f11 += PC_XF(26, a) * PC_XF(26, b);
-    float f12 = PC_XF(27, c);
-    f12 += f3 * PC_XF(27, b);
-    f12 += f4 * PC_XF(28, b);
-    f12 += f5 * PC_XF(29, b);
-    f12 += PC_XF(30, a) * PC_XF(30, b);
+    float f10 = PC_KF(6);
+    f10 += f3 * PC_KF(5);
+    f10 += f4 * PC_KF(7);
+    f10 += f5 * PC_KF(8);
+    f10 += PC_KF(9) * PC_KF(10);
+    float f11 = PC_KF(12);
+    f11 += f3 * PC_KF(11);
+    f11 += f4 * PC_KF(13);
+    f11 += f5 * PC_KF(14);
+    f11 += PC_KF(15) * PC_KF(16);
+    float f12 = PC_KF(18);
+    f12 += f3 * PC_KF(17);
+    f12 += f4 * PC_KF(19);
+    f12 += f5 * PC_KF(20);
+    f12 += PC_KF(21) * PC_KF(22);
     const float f13 = pc_sop_float(PC_SOP_MUL, f8, f8);
     const float f14 = pc_sop_float(PC_SOP_MUL, f7, f8);
     const float f15 = pc_sop_float(PC_SOP_MUL, f6, f9);
@@ -3854,9 +4208,9 @@ PC_HOT static pc_status pc_program_ac6ceacb51d4b83b(const pc_step *s)
     const float f21 = pc_sop_float(PC_SOP_SUB, f14, f15);
     const float f22 = pc_sop_float(PC_SOP_SUB, f19, f20);
     const float f23 = pc_sop_float(PC_SOP_SUB, f16, f17);
-    const float f24 = pc_sop_float(PC_SOP_SUB, f10, PC_XF(44, b));
-    const float f25 = pc_sop_float(PC_SOP_SUB, f11, PC_XF(45, b));
-    const float f26 = pc_sop_float(PC_SOP_SUB, f12, PC_XF(46, b));
+    const float f24 = pc_sop_float(PC_SOP_SUB, f10, PC_KF(23));
+    const float f25 = pc_sop_float(PC_SOP_SUB, f11, PC_KF(24));
+    const float f26 = pc_sop_float(PC_SOP_SUB, f12, PC_KF(25));
     float f27 = f13;
     f27 += f9 * f9;
     float f28 = f16;
@@ -3869,137 +4223,135 @@ PC_HOT static pc_status pc_program_ac6ceacb51d4b83b(const pc_step *s)
     f31 += f6 * f7;
     float f32 = f18;
     f32 += f8 * f8;
-    float f33 = PC_XF(54, c);
-    f33 += f24 * f24;
+    float f33 = f24 * f24; /* a square: 0 + it is it */
     f33 += f25 * f25;
     f33 += f26 * f26;
-    const float f34 = pc_sop_float(PC_SOP_MUL, f27, PC_XF(58, b));
-    const float f35 = pc_sop_float(PC_SOP_MUL, f21, PC_XF(59, b));
-    const float f36 = pc_sop_float(PC_SOP_MUL, f28, PC_XF(60, b));
-    const float f37 = pc_sop_float(PC_SOP_MUL, f29, PC_XF(61, b));
-    const float f38 = pc_sop_float(PC_SOP_MUL, f30, PC_XF(62, b));
-    const float f39 = pc_sop_float(PC_SOP_MUL, f22, PC_XF(63, b));
-    const float f40 = pc_sop_float(PC_SOP_MUL, f23, PC_XF(64, b));
-    const float f41 = pc_sop_float(PC_SOP_MUL, f31, PC_XF(65, b));
-    const float f42 = pc_sop_float(PC_SOP_MUL, f32, PC_XF(66, b));
-    const float f43 = pc_sop_float(PC_SOP_MAX, f33, PC_XF(68, b));
-    const float f44 = pc_sop_float(PC_SOP_SUB, PC_XF(70, a), f34);
-    const float f45 = pc_sop_float(PC_SOP_SUB, PC_XF(71, a), f38);
-    const float f46 = pc_sop_float(PC_SOP_SUB, PC_XF(72, a), f42);
+    const float f34 = pc_sop_float(PC_SOP_MUL, f27, PC_KF(27));
+    const float f35 = pc_sop_float(PC_SOP_MUL, f21, PC_KF(28));
+    const float f36 = pc_sop_float(PC_SOP_MUL, f28, PC_KF(29));
+    const float f37 = pc_sop_float(PC_SOP_MUL, f29, PC_KF(30));
+    const float f38 = pc_sop_float(PC_SOP_MUL, f30, PC_KF(31));
+    const float f39 = pc_sop_float(PC_SOP_MUL, f22, PC_KF(32));
+    const float f40 = pc_sop_float(PC_SOP_MUL, f23, PC_KF(33));
+    const float f41 = pc_sop_float(PC_SOP_MUL, f31, PC_KF(34));
+    const float f42 = pc_sop_float(PC_SOP_MUL, f32, PC_KF(35));
+    const float f43 = pc_sop_float(PC_SOP_MAX, f33, PC_KF(36));
+    const float f44 = pc_sop_float(PC_SOP_SUB, PC_KF(37), f34);
+    const float f45 = pc_sop_float(PC_SOP_SUB, PC_KF(38), f38);
+    const float f46 = pc_sop_float(PC_SOP_SUB, PC_KF(39), f42);
     const float f47 = pc_sop_float(PC_SOP_SQRT, f43, 0.0f);
-    float f48 = PC_XF(76, c);
-    f48 += PC_XF(76, a) * f44;
-    f48 += PC_XF(77, a) * f37;
-    f48 += PC_XF(78, a) * f40;
+    float f48 = PC_KF(41);
+    f48 += PC_KF(40) * f44;
+    f48 += PC_KF(42) * f37;
+    f48 += PC_KF(43) * f40;
     PC_STOREF(76, f48);
-    float f49 = PC_XF(79, c);
-    f49 += PC_XF(79, a) * f35;
-    f49 += PC_XF(80, a) * f45;
-    f49 += PC_XF(81, a) * f41;
+    float f49 = PC_KF(45);
+    f49 += PC_KF(44) * f35;
+    f49 += PC_KF(46) * f45;
+    f49 += PC_KF(47) * f41;
     PC_STOREF(79, f49);
-    float f50 = PC_XF(82, c);
-    f50 += PC_XF(82, a) * f36;
-    f50 += PC_XF(83, a) * f39;
-    f50 += PC_XF(84, a) * f46;
+    float f50 = PC_KF(49);
+    f50 += PC_KF(48) * f36;
+    f50 += PC_KF(50) * f39;
+    f50 += PC_KF(51) * f46;
     PC_STOREF(82, f50);
-    float f51 = PC_XF(85, c);
-    f51 += PC_XF(85, a) * f44;
-    f51 += PC_XF(86, a) * f37;
-    f51 += PC_XF(87, a) * f40;
+    float f51 = PC_KF(53);
+    f51 += PC_KF(52) * f44;
+    f51 += PC_KF(54) * f37;
+    f51 += PC_KF(55) * f40;
     PC_STOREF(85, f51);
-    float f52 = PC_XF(88, c);
-    f52 += PC_XF(88, a) * f35;
-    f52 += PC_XF(89, a) * f45;
-    f52 += PC_XF(90, a) * f41;
+    float f52 = PC_KF(57);
+    f52 += PC_KF(56) * f35;
+    f52 += PC_KF(58) * f45;
+    f52 += PC_KF(59) * f41;
     PC_STOREF(88, f52);
-    float f53 = PC_XF(91, c);
-    f53 += PC_XF(91, a) * f36;
-    f53 += PC_XF(92, a) * f39;
-    f53 += PC_XF(93, a) * f46;
+    float f53 = PC_KF(61);
+    f53 += PC_KF(60) * f36;
+    f53 += PC_KF(62) * f39;
+    f53 += PC_KF(63) * f46;
     PC_STOREF(91, f53);
-    float f54 = PC_XF(94, c);
-    f54 += PC_XF(94, a) * f44;
-    f54 += PC_XF(95, a) * f37;
-    f54 += PC_XF(96, a) * f40;
+    float f54 = PC_KF(65);
+    f54 += PC_KF(64) * f44;
+    f54 += PC_KF(66) * f37;
+    f54 += PC_KF(67) * f40;
     PC_STOREF(94, f54);
-    float f55 = PC_XF(97, c);
-    f55 += PC_XF(97, a) * f35;
-    f55 += PC_XF(98, a) * f45;
-    f55 += PC_XF(99, a) * f41;
+    float f55 = PC_KF(69);
+    f55 += PC_KF(68) * f35;
+    f55 += PC_KF(70) * f45;
+    f55 += PC_KF(71) * f41;
     PC_STOREF(97, f55);
-    float f56 = PC_XF(100, c);
-    f56 += PC_XF(100, a) * f36;
-    f56 += PC_XF(101, a) * f39;
-    f56 += PC_XF(102, a) * f46;
+    float f56 = PC_KF(73);
+    f56 += PC_KF(72) * f36;
+    f56 += PC_KF(74) * f39;
+    f56 += PC_KF(75) * f46;
     PC_STOREF(100, f56);
     const float f57 = pc_sop_float(PC_SOP_DIV, f24, f47);
     const float f58 = pc_sop_float(PC_SOP_DIV, f25, f47);
     const float f59 = pc_sop_float(PC_SOP_DIV, f26, f47);
-    float f60 = PC_XF(108, c);
+    float f60 = PC_KF(76);
     f60 += f50 * f57;
     f60 += f53 * f58;
     f60 += f56 * f59;
-    float f61 = PC_XF(111, c);
+    float f61 = PC_KF(77);
     f61 += f50 * f57;
     f61 += f53 * f58;
     f61 += f56 * f59;
-    f61 += PC_XF(114, a) * PC_XF(114, b);
-    const float f62 = pc_sop_float(PC_SOP_MUL, f61, PC_XF(116, b));
+    f61 += PC_KF(78) * PC_KF(79);
+    const float f62 = pc_sop_float(PC_SOP_MUL, f61, PC_KF(80));
     const float f63 = pc_sop_float(PC_SOP_MUL, f60, f57);
     const float f64 = pc_sop_float(PC_SOP_MUL, f60, f58);
     const float f65 = pc_sop_float(PC_SOP_MUL, f60, f59);
     const float f66 = pc_sop_float(PC_SOP_SUB, f50, f63);
     const float f67 = pc_sop_float(PC_SOP_SUB, f53, f64);
     const float f68 = pc_sop_float(PC_SOP_SUB, f56, f65);
-    float f69 = PC_XF(125, c);
-    f69 += f3 * PC_XF(125, b);
-    f69 += f4 * PC_XF(126, b);
-    f69 += f5 * PC_XF(127, b);
-    f69 += PC_XF(128, a) * PC_XF(128, b);
+    float f69 = PC_KF(82);
+    f69 += f3 * PC_KF(81);
+    f69 += f4 * PC_KF(83);
+    f69 += f5 * PC_KF(84);
+    f69 += PC_KF(85) * PC_KF(86);
     f69 += f62 * f57;
-    f69 += f66 * PC_XF(130, b);
-    float f70 = PC_XF(131, c);
-    f70 += f3 * PC_XF(131, b);
-    f70 += f4 * PC_XF(132, b);
-    f70 += f5 * PC_XF(133, b);
-    f70 += PC_XF(134, a) * PC_XF(134, b);
+    f69 += f66 * PC_KF(87);
+    float f70 = PC_KF(89);
+    f70 += f3 * PC_KF(88);
+    f70 += f4 * PC_KF(90);
+    f70 += f5 * PC_KF(91);
+    f70 += PC_KF(92) * PC_KF(93);
     f70 += f62 * f58;
-    f70 += f67 * PC_XF(136, b);
-    float f71 = PC_XF(137, c);
-    f71 += f3 * PC_XF(137, b);
-    f71 += f4 * PC_XF(138, b);
-    f71 += f5 * PC_XF(139, b);
-    f71 += PC_XF(140, a) * PC_XF(140, b);
+    f70 += f67 * PC_KF(94);
+    float f71 = PC_KF(96);
+    f71 += f3 * PC_KF(95);
+    f71 += f4 * PC_KF(97);
+    f71 += f5 * PC_KF(98);
+    f71 += PC_KF(99) * PC_KF(100);
     f71 += f62 * f59;
-    f71 += f68 * PC_XF(142, b);
+    f71 += f68 * PC_KF(101);
     const float f72 = pc_sop_float(PC_SOP_SUB, f69, f10);
     const float f73 = pc_sop_float(PC_SOP_SUB, f70, f11);
     const float f74 = pc_sop_float(PC_SOP_SUB, f71, f12);
     const float f75 = pc_sop_float(PC_SOP_SUB, f10, f72);
     const float f76 = pc_sop_float(PC_SOP_SUB, f11, f73);
     const float f77 = pc_sop_float(PC_SOP_SUB, f12, f74);
-    const float f78 = pc_sop_float(PC_SOP_SUB, f75, PC_XF(150, b));
-    const float f79 = pc_sop_float(PC_SOP_SUB, f76, PC_XF(151, b));
-    const float f80 = pc_sop_float(PC_SOP_SUB, f77, PC_XF(152, b));
-    float f81 = PC_XF(154, c);
-    f81 += f78 * f78;
+    const float f78 = pc_sop_float(PC_SOP_SUB, f75, PC_KF(102));
+    const float f79 = pc_sop_float(PC_SOP_SUB, f76, PC_KF(103));
+    const float f80 = pc_sop_float(PC_SOP_SUB, f77, PC_KF(104));
+    float f81 = f78 * f78; /* a square: 0 + it is it */
     f81 += f79 * f79;
     f81 += f80 * f80;
-    const float f82 = pc_sop_float(PC_SOP_MAX, f81, PC_XF(158, b));
+    const float f82 = pc_sop_float(PC_SOP_MAX, f81, PC_KF(106));
     const float f83 = pc_sop_float(PC_SOP_SQRT, f82, 0.0f);
     const float f84 = pc_sop_float(PC_SOP_DIV, f78, f83);
     const float f85 = pc_sop_float(PC_SOP_DIV, f79, f83);
     const float f86 = pc_sop_float(PC_SOP_DIV, f80, f83);
-    float f87 = PC_XF(166, c);
+    float f87 = PC_KF(107);
     f87 += f50 * f84;
     f87 += f53 * f85;
     f87 += f56 * f86;
-    float f88 = PC_XF(169, c);
+    float f88 = PC_KF(108);
     f88 += f50 * f84;
     f88 += f53 * f85;
     f88 += f56 * f86;
-    f88 += PC_XF(172, a) * PC_XF(172, b);
-    const float f89 = pc_sop_float(PC_SOP_MUL, f88, PC_XF(174, b));
+    f88 += PC_KF(109) * PC_KF(110);
+    const float f89 = pc_sop_float(PC_SOP_MUL, f88, PC_KF(111));
     const float f90 = pc_sop_float(PC_SOP_MUL, f87, f84);
     const float f91 = pc_sop_float(PC_SOP_MUL, f87, f85);
     const float f92 = pc_sop_float(PC_SOP_MUL, f87, f86);
@@ -4008,41 +4360,40 @@ PC_HOT static pc_status pc_program_ac6ceacb51d4b83b(const pc_step *s)
     const float f95 = pc_sop_float(PC_SOP_SUB, f56, f92);
     float f96 = f75;
     f96 += f89 * f84;
-    f96 += f93 * PC_XF(184, b);
+    f96 += f93 * PC_KF(112);
     float f97 = f76;
     f97 += f89 * f85;
-    f97 += f94 * PC_XF(186, b);
+    f97 += f94 * PC_KF(113);
     float f98 = f77;
     f98 += f89 * f86;
-    f98 += f95 * PC_XF(188, b);
+    f98 += f95 * PC_KF(114);
     const float f99 = pc_sop_float(PC_SOP_SUB, f96, f10);
     const float f100 = pc_sop_float(PC_SOP_SUB, f97, f11);
     const float f101 = pc_sop_float(PC_SOP_SUB, f98, f12);
     const float f102 = pc_sop_float(PC_SOP_SUB, f75, f99);
     const float f103 = pc_sop_float(PC_SOP_SUB, f76, f100);
     const float f104 = pc_sop_float(PC_SOP_SUB, f77, f101);
-    const float f105 = pc_sop_float(PC_SOP_SUB, f102, PC_XF(196, b));
-    const float f106 = pc_sop_float(PC_SOP_SUB, f103, PC_XF(197, b));
-    const float f107 = pc_sop_float(PC_SOP_SUB, f104, PC_XF(198, b));
-    float f108 = PC_XF(200, c);
-    f108 += f105 * f105;
+    const float f105 = pc_sop_float(PC_SOP_SUB, f102, PC_KF(115));
+    const float f106 = pc_sop_float(PC_SOP_SUB, f103, PC_KF(116));
+    const float f107 = pc_sop_float(PC_SOP_SUB, f104, PC_KF(117));
+    float f108 = f105 * f105; /* a square: 0 + it is it */
     f108 += f106 * f106;
     f108 += f107 * f107;
-    const float f109 = pc_sop_float(PC_SOP_MAX, f108, PC_XF(204, b));
+    const float f109 = pc_sop_float(PC_SOP_MAX, f108, PC_KF(119));
     const float f110 = pc_sop_float(PC_SOP_SQRT, f109, 0.0f);
     const float f111 = pc_sop_float(PC_SOP_DIV, f105, f110);
     const float f112 = pc_sop_float(PC_SOP_DIV, f106, f110);
     const float f113 = pc_sop_float(PC_SOP_DIV, f107, f110);
-    float f114 = PC_XF(212, c);
+    float f114 = PC_KF(120);
     f114 += f50 * f111;
     f114 += f53 * f112;
     f114 += f56 * f113;
-    float f115 = PC_XF(215, c);
+    float f115 = PC_KF(121);
     f115 += f50 * f111;
     f115 += f53 * f112;
     f115 += f56 * f113;
-    f115 += PC_XF(218, a) * PC_XF(218, b);
-    const float f116 = pc_sop_float(PC_SOP_MUL, f115, PC_XF(220, b));
+    f115 += PC_KF(122) * PC_KF(123);
+    const float f116 = pc_sop_float(PC_SOP_MUL, f115, PC_KF(124));
     const float f117 = pc_sop_float(PC_SOP_MUL, f114, f111);
     const float f118 = pc_sop_float(PC_SOP_MUL, f114, f112);
     const float f119 = pc_sop_float(PC_SOP_MUL, f114, f113);
@@ -4051,41 +4402,40 @@ PC_HOT static pc_status pc_program_ac6ceacb51d4b83b(const pc_step *s)
     const float f122 = pc_sop_float(PC_SOP_SUB, f56, f119);
     float f123 = f102;
     f123 += f116 * f111;
-    f123 += f120 * PC_XF(230, b);
+    f123 += f120 * PC_KF(125);
     float f124 = f103;
     f124 += f116 * f112;
-    f124 += f121 * PC_XF(232, b);
+    f124 += f121 * PC_KF(126);
     float f125 = f104;
     f125 += f116 * f113;
-    f125 += f122 * PC_XF(234, b);
+    f125 += f122 * PC_KF(127);
     const float f126 = pc_sop_float(PC_SOP_SUB, f123, f10);
     const float f127 = pc_sop_float(PC_SOP_SUB, f124, f11);
     const float f128 = pc_sop_float(PC_SOP_SUB, f125, f12);
     const float f129 = pc_sop_float(PC_SOP_SUB, f102, f126);
     const float f130 = pc_sop_float(PC_SOP_SUB, f103, f127);
     const float f131 = pc_sop_float(PC_SOP_SUB, f104, f128);
-    const float f132 = pc_sop_float(PC_SOP_SUB, f129, PC_XF(242, b));
-    const float f133 = pc_sop_float(PC_SOP_SUB, f130, PC_XF(243, b));
-    const float f134 = pc_sop_float(PC_SOP_SUB, f131, PC_XF(244, b));
-    float f135 = PC_XF(246, c);
-    f135 += f132 * f132;
+    const float f132 = pc_sop_float(PC_SOP_SUB, f129, PC_KF(128));
+    const float f133 = pc_sop_float(PC_SOP_SUB, f130, PC_KF(129));
+    const float f134 = pc_sop_float(PC_SOP_SUB, f131, PC_KF(130));
+    float f135 = f132 * f132; /* a square: 0 + it is it */
     f135 += f133 * f133;
     f135 += f134 * f134;
-    const float f136 = pc_sop_float(PC_SOP_MAX, f135, PC_XF(250, b));
+    const float f136 = pc_sop_float(PC_SOP_MAX, f135, PC_KF(132));
     const float f137 = pc_sop_float(PC_SOP_SQRT, f136, 0.0f);
     const float f138 = pc_sop_float(PC_SOP_DIV, f132, f137);
     const float f139 = pc_sop_float(PC_SOP_DIV, f133, f137);
     const float f140 = pc_sop_float(PC_SOP_DIV, f134, f137);
-    float f141 = PC_XF(258, c);
+    float f141 = PC_KF(133);
     f141 += f50 * f138;
     f141 += f53 * f139;
     f141 += f56 * f140;
-    float f142 = PC_XF(261, c);
+    float f142 = PC_KF(134);
     f142 += f50 * f138;
     f142 += f53 * f139;
     f142 += f56 * f140;
-    f142 += PC_XF(264, a) * PC_XF(264, b);
-    const float f143 = pc_sop_float(PC_SOP_MUL, f142, PC_XF(266, b));
+    f142 += PC_KF(135) * PC_KF(136);
+    const float f143 = pc_sop_float(PC_SOP_MUL, f142, PC_KF(137));
     const float f144 = pc_sop_float(PC_SOP_MUL, f141, f138);
     const float f145 = pc_sop_float(PC_SOP_MUL, f141, f139);
     const float f146 = pc_sop_float(PC_SOP_MUL, f141, f140);
@@ -4094,41 +4444,40 @@ PC_HOT static pc_status pc_program_ac6ceacb51d4b83b(const pc_step *s)
     const float f149 = pc_sop_float(PC_SOP_SUB, f56, f146);
     float f150 = f129;
     f150 += f143 * f138;
-    f150 += f147 * PC_XF(276, b);
+    f150 += f147 * PC_KF(138);
     float f151 = f130;
     f151 += f143 * f139;
-    f151 += f148 * PC_XF(278, b);
+    f151 += f148 * PC_KF(139);
     float f152 = f131;
     f152 += f143 * f140;
-    f152 += f149 * PC_XF(280, b);
+    f152 += f149 * PC_KF(140);
     const float f153 = pc_sop_float(PC_SOP_SUB, f150, f10);
     const float f154 = pc_sop_float(PC_SOP_SUB, f151, f11);
     const float f155 = pc_sop_float(PC_SOP_SUB, f152, f12);
     const float f156 = pc_sop_float(PC_SOP_SUB, f129, f153);
     const float f157 = pc_sop_float(PC_SOP_SUB, f130, f154);
     const float f158 = pc_sop_float(PC_SOP_SUB, f131, f155);
-    const float f159 = pc_sop_float(PC_SOP_SUB, f156, PC_XF(288, b));
-    const float f160 = pc_sop_float(PC_SOP_SUB, f157, PC_XF(289, b));
-    const float f161 = pc_sop_float(PC_SOP_SUB, f158, PC_XF(290, b));
-    float f162 = PC_XF(292, c);
-    f162 += f159 * f159;
+    const float f159 = pc_sop_float(PC_SOP_SUB, f156, PC_KF(141));
+    const float f160 = pc_sop_float(PC_SOP_SUB, f157, PC_KF(142));
+    const float f161 = pc_sop_float(PC_SOP_SUB, f158, PC_KF(143));
+    float f162 = f159 * f159; /* a square: 0 + it is it */
     f162 += f160 * f160;
     f162 += f161 * f161;
-    const float f163 = pc_sop_float(PC_SOP_MAX, f162, PC_XF(296, b));
+    const float f163 = pc_sop_float(PC_SOP_MAX, f162, PC_KF(145));
     const float f164 = pc_sop_float(PC_SOP_SQRT, f163, 0.0f);
     const float f165 = pc_sop_float(PC_SOP_DIV, f159, f164);
     const float f166 = pc_sop_float(PC_SOP_DIV, f160, f164);
     const float f167 = pc_sop_float(PC_SOP_DIV, f161, f164);
-    float f168 = PC_XF(304, c);
+    float f168 = PC_KF(146);
     f168 += f50 * f165;
     f168 += f53 * f166;
     f168 += f56 * f167;
-    float f169 = PC_XF(307, c);
+    float f169 = PC_KF(147);
     f169 += f50 * f165;
     f169 += f53 * f166;
     f169 += f56 * f167;
-    f169 += PC_XF(310, a) * PC_XF(310, b);
-    const float f170 = pc_sop_float(PC_SOP_MUL, f169, PC_XF(312, b));
+    f169 += PC_KF(148) * PC_KF(149);
+    const float f170 = pc_sop_float(PC_SOP_MUL, f169, PC_KF(150));
     const float f171 = pc_sop_float(PC_SOP_MUL, f168, f165);
     const float f172 = pc_sop_float(PC_SOP_MUL, f168, f166);
     const float f173 = pc_sop_float(PC_SOP_MUL, f168, f167);
@@ -4137,41 +4486,40 @@ PC_HOT static pc_status pc_program_ac6ceacb51d4b83b(const pc_step *s)
     const float f176 = pc_sop_float(PC_SOP_SUB, f56, f173);
     float f177 = f156;
     f177 += f170 * f165;
-    f177 += f174 * PC_XF(322, b);
+    f177 += f174 * PC_KF(151);
     float f178 = f157;
     f178 += f170 * f166;
-    f178 += f175 * PC_XF(324, b);
+    f178 += f175 * PC_KF(152);
     float f179 = f158;
     f179 += f170 * f167;
-    f179 += f176 * PC_XF(326, b);
+    f179 += f176 * PC_KF(153);
     const float f180 = pc_sop_float(PC_SOP_SUB, f177, f10);
     const float f181 = pc_sop_float(PC_SOP_SUB, f178, f11);
     const float f182 = pc_sop_float(PC_SOP_SUB, f179, f12);
     const float f183 = pc_sop_float(PC_SOP_SUB, f156, f180);
     const float f184 = pc_sop_float(PC_SOP_SUB, f157, f181);
     const float f185 = pc_sop_float(PC_SOP_SUB, f158, f182);
-    const float f186 = pc_sop_float(PC_SOP_SUB, f183, PC_XF(334, b));
-    const float f187 = pc_sop_float(PC_SOP_SUB, f184, PC_XF(335, b));
-    const float f188 = pc_sop_float(PC_SOP_SUB, f185, PC_XF(336, b));
-    float f189 = PC_XF(338, c);
-    f189 += f186 * f186;
+    const float f186 = pc_sop_float(PC_SOP_SUB, f183, PC_KF(154));
+    const float f187 = pc_sop_float(PC_SOP_SUB, f184, PC_KF(155));
+    const float f188 = pc_sop_float(PC_SOP_SUB, f185, PC_KF(156));
+    float f189 = f186 * f186; /* a square: 0 + it is it */
     f189 += f187 * f187;
     f189 += f188 * f188;
-    const float f190 = pc_sop_float(PC_SOP_MAX, f189, PC_XF(342, b));
+    const float f190 = pc_sop_float(PC_SOP_MAX, f189, PC_KF(158));
     const float f191 = pc_sop_float(PC_SOP_SQRT, f190, 0.0f);
     const float f192 = pc_sop_float(PC_SOP_DIV, f186, f191);
     const float f193 = pc_sop_float(PC_SOP_DIV, f187, f191);
     const float f194 = pc_sop_float(PC_SOP_DIV, f188, f191);
-    float f195 = PC_XF(350, c);
+    float f195 = PC_KF(159);
     f195 += f50 * f192;
     f195 += f53 * f193;
     f195 += f56 * f194;
-    float f196 = PC_XF(353, c);
+    float f196 = PC_KF(160);
     f196 += f50 * f192;
     f196 += f53 * f193;
     f196 += f56 * f194;
-    f196 += PC_XF(356, a) * PC_XF(356, b);
-    const float f197 = pc_sop_float(PC_SOP_MUL, f196, PC_XF(358, b));
+    f196 += PC_KF(161) * PC_KF(162);
+    const float f197 = pc_sop_float(PC_SOP_MUL, f196, PC_KF(163));
     const float f198 = pc_sop_float(PC_SOP_MUL, f195, f192);
     const float f199 = pc_sop_float(PC_SOP_MUL, f195, f193);
     const float f200 = pc_sop_float(PC_SOP_MUL, f195, f194);
@@ -4180,82 +4528,81 @@ PC_HOT static pc_status pc_program_ac6ceacb51d4b83b(const pc_step *s)
     const float f203 = pc_sop_float(PC_SOP_SUB, f56, f200);
     float f204 = f183;
     f204 += f197 * f192;
-    f204 += f201 * PC_XF(368, b);
+    f204 += f201 * PC_KF(164);
     float f205 = f184;
     f205 += f197 * f193;
-    f205 += f202 * PC_XF(370, b);
+    f205 += f202 * PC_KF(165);
     float f206 = f185;
     f206 += f197 * f194;
-    f206 += f203 * PC_XF(372, b);
+    f206 += f203 * PC_KF(166);
     const float f207 = pc_sop_float(PC_SOP_SUB, f204, f10);
     const float f208 = pc_sop_float(PC_SOP_SUB, f205, f11);
     const float f209 = pc_sop_float(PC_SOP_SUB, f206, f12);
     const float f210 = pc_sop_float(PC_SOP_SUB, f183, f207);
     const float f211 = pc_sop_float(PC_SOP_SUB, f184, f208);
     const float f212 = pc_sop_float(PC_SOP_SUB, f185, f209);
-    const float f213 = pc_sop_float(PC_SOP_SUB, f210, PC_XF(380, b));
-    const float f214 = pc_sop_float(PC_SOP_SUB, f211, PC_XF(381, b));
-    const float f215 = pc_sop_float(PC_SOP_SUB, f212, PC_XF(382, b));
-    const float f216 = pc_sop_float(PC_SOP_DIV, f213, PC_XF(384, b));
-    const float f217 = pc_sop_float(PC_SOP_DIV, f214, PC_XF(385, b));
-    const float f218 = pc_sop_float(PC_SOP_DIV, f215, PC_XF(386, b));
-    const float f219 = pc_sop_float(PC_SOP_ADD, f216, PC_XF(388, b));
-    const float f220 = pc_sop_float(PC_SOP_ADD, f217, PC_XF(389, b));
-    const float f221 = pc_sop_float(PC_SOP_ADD, f218, PC_XF(390, b));
-    const float f222 = pc_sop_float(PC_SOP_SUB, f219, PC_XF(392, b));
-    const float f223 = pc_sop_float(PC_SOP_SUB, f220, PC_XF(393, b));
-    const float f224 = pc_sop_float(PC_SOP_SUB, f221, PC_XF(394, b));
-    float f225 = PC_XF(396, c);
-    f225 += f222 * PC_XF(396, b);
-    f225 += f223 * PC_XF(397, b);
-    f225 += f224 * PC_XF(398, b);
-    float f226 = PC_XF(399, c);
-    f226 += f222 * PC_XF(399, b);
-    f226 += f223 * PC_XF(400, b);
-    f226 += f224 * PC_XF(401, b);
-    float f227 = PC_XF(402, c);
-    f227 += f222 * PC_XF(402, b);
-    f227 += f223 * PC_XF(403, b);
-    f227 += f224 * PC_XF(404, b);
-    float f228 = PC_XF(405, c);
-    f228 += f225 * f225;
+    const float f213 = pc_sop_float(PC_SOP_SUB, f210, PC_KF(167));
+    const float f214 = pc_sop_float(PC_SOP_SUB, f211, PC_KF(168));
+    const float f215 = pc_sop_float(PC_SOP_SUB, f212, PC_KF(169));
+    const float f216 = pc_sop_float(PC_SOP_DIV, f213, PC_KF(170));
+    const float f217 = pc_sop_float(PC_SOP_DIV, f214, PC_KF(171));
+    const float f218 = pc_sop_float(PC_SOP_DIV, f215, PC_KF(172));
+    const float f219 = pc_sop_float(PC_SOP_ADD, f216, PC_KF(173));
+    const float f220 = pc_sop_float(PC_SOP_ADD, f217, PC_KF(174));
+    const float f221 = pc_sop_float(PC_SOP_ADD, f218, PC_KF(175));
+    const float f222 = pc_sop_float(PC_SOP_SUB, f219, PC_KF(176));
+    const float f223 = pc_sop_float(PC_SOP_SUB, f220, PC_KF(177));
+    const float f224 = pc_sop_float(PC_SOP_SUB, f221, PC_KF(178));
+    float f225 = PC_KF(180);
+    f225 += f222 * PC_KF(179);
+    f225 += f223 * PC_KF(181);
+    f225 += f224 * PC_KF(182);
+    float f226 = PC_KF(184);
+    f226 += f222 * PC_KF(183);
+    f226 += f223 * PC_KF(185);
+    f226 += f224 * PC_KF(186);
+    float f227 = PC_KF(188);
+    f227 += f222 * PC_KF(187);
+    f227 += f223 * PC_KF(189);
+    f227 += f224 * PC_KF(190);
+    float f228 = f225 * f225; /* a square: 0 + it is it */
     f228 += f226 * f226;
     f228 += f227 * f227;
     const float f229 = pc_sop_float(PC_SOP_NEG, f227, 0.0f);
-    const uint8_t b230 = f229 == PC_XF(411, b);
-    const float f231 = b230 ? PC_XF(413, a) : f229;
+    const uint8_t b230 = f229 == PC_KF(192);
+    const float f231 = b230 ? PC_KF(193) : f229;
     const float f232 = pc_sop_float(PC_SOP_DIV, f225, f231);
     const float f233 = pc_sop_float(PC_SOP_DIV, f226, f231);
-    const uint8_t b234 = f225 < PC_XF(418, b);
-    const uint8_t b235 = f229 < PC_XF(419, b);
-    const uint8_t b236 = f226 < PC_XF(420, b);
+    const uint8_t b234 = f225 < PC_KF(194);
+    const uint8_t b235 = f229 < PC_KF(195);
+    const uint8_t b236 = f226 < PC_KF(196);
     const float f237 = pc_sop_float(PC_SOP_ATAN, f232, 0.0f);
     const float f238 = pc_sop_float(PC_SOP_ATAN, f233, 0.0f);
-    const float f239 = b234 ? PC_XF(425, a) : PC_XF(425, b);
-    const float f240 = b236 ? PC_XF(426, a) : PC_XF(426, b);
+    const float f239 = b234 ? PC_KF(197) : PC_KF(198);
+    const float f240 = b236 ? PC_KF(199) : PC_KF(200);
     const float f241 = pc_sop_float(PC_SOP_ADD, f237, f239);
     const float f242 = pc_sop_float(PC_SOP_ADD, f238, f240);
     const float f243 = b235 ? f241 : f237;
     const float f244 = b235 ? f242 : f238;
-    const float f245 = pc_sop_float(PC_SOP_SUB, f243, PC_XF(434, b));
+    const float f245 = pc_sop_float(PC_SOP_SUB, f243, PC_KF(201));
     PC_STOREF(434, f245);
-    const float f246 = pc_sop_float(PC_SOP_SUB, f244, PC_XF(435, b));
+    const float f246 = pc_sop_float(PC_SOP_SUB, f244, PC_KF(202));
     PC_STOREF(435, f246);
-    const float f247 = pc_sop_float(PC_SOP_MUL, f246, PC_XF(437, b));
+    const float f247 = pc_sop_float(PC_SOP_MUL, f246, PC_KF(203));
     const float f248 = pc_sop_float(PC_SOP_MUL, f247, f246);
-    const float f249 = pc_sop_float(PC_SOP_MUL, f245, PC_XF(439, b));
+    const float f249 = pc_sop_float(PC_SOP_MUL, f245, PC_KF(204));
     const float f250 = pc_sop_float(PC_SOP_MUL, f249, f245);
     const float f251 = pc_sop_float(PC_SOP_SUB, f245, f248);
     const float f252 = pc_sop_float(PC_SOP_SUB, f246, f250);
-    const float f253 = pc_sop_float(PC_SOP_MUL, f252, PC_XF(445, b));
+    const float f253 = pc_sop_float(PC_SOP_MUL, f252, PC_KF(205));
     const float f254 = pc_sop_float(PC_SOP_MUL, f253, f252);
-    const float f255 = pc_sop_float(PC_SOP_MUL, f251, PC_XF(447, b));
+    const float f255 = pc_sop_float(PC_SOP_MUL, f251, PC_KF(206));
     const float f256 = pc_sop_float(PC_SOP_MUL, f255, f251);
     const float f257 = pc_sop_float(PC_SOP_SUB, f245, f254);
     const float f258 = pc_sop_float(PC_SOP_SUB, f246, f256);
-    const float f259 = pc_sop_float(PC_SOP_MUL, f258, PC_XF(453, b));
+    const float f259 = pc_sop_float(PC_SOP_MUL, f258, PC_KF(207));
     const float f260 = pc_sop_float(PC_SOP_MUL, f259, f258);
-    const float f261 = pc_sop_float(PC_SOP_MUL, f257, PC_XF(455, b));
+    const float f261 = pc_sop_float(PC_SOP_MUL, f257, PC_KF(208));
     const float f262 = pc_sop_float(PC_SOP_MUL, f261, f257);
     const float f263 = pc_sop_float(PC_SOP_SUB, f245, f260);
     PC_STOREF(458, f263);
@@ -4263,32 +4610,32 @@ PC_HOT static pc_status pc_program_ac6ceacb51d4b83b(const pc_step *s)
     PC_STOREF(459, f264);
     const float f265 = pc_sop_float(PC_SOP_SQRT, f228, 0.0f);
     PC_STOREF(461, f265);
-    const float f266 = pc_sop_float(PC_SOP_MUL, f264, PC_XF(463, b));
+    const float f266 = pc_sop_float(PC_SOP_MUL, f264, PC_KF(209));
     PC_STOREF(463, f266);
     return PC_OK;
 }
 
 const pc_compiled_program pc_compiled_programs[21] = {
-    {18u, 0x37e9ab999b1c3d7eull, pc_program_37e9ab999b1c3d7e_shape, pc_program_37e9ab999b1c3d7e},
-    {63u, 0xc971e2e5ff11b7aeull, pc_program_c971e2e5ff11b7ae_shape, pc_program_c971e2e5ff11b7ae},
-    {159u, 0x0bb08452fbb3a9afull, pc_program_0bb08452fbb3a9af_shape, pc_program_0bb08452fbb3a9af},
-    {204u, 0xca406bcfedbc5acdull, pc_program_ca406bcfedbc5acd_shape, pc_program_ca406bcfedbc5acd},
+    {18u, 0x3e6e093e97893cd6ull, pc_program_3e6e093e97893cd6_shape, pc_program_3e6e093e97893cd6},
+    {63u, 0x77704bc8040ae058ull, pc_program_77704bc8040ae058_shape, pc_program_77704bc8040ae058},
+    {159u, 0xfee4c311f62a377dull, pc_program_fee4c311f62a377d_shape, pc_program_fee4c311f62a377d},
+    {204u, 0xd63599a62c93ef2cull, pc_program_d63599a62c93ef2c_shape, pc_program_d63599a62c93ef2c},
     {260u, 0xedf9b746591a5529ull, pc_program_edf9b746591a5529_shape, pc_program_edf9b746591a5529},
-    {264u, 0x7d8a951771d6e99cull, pc_program_7d8a951771d6e99c_shape, pc_program_7d8a951771d6e99c},
-    {429u, 0x9f5d834c4237d873ull, pc_program_9f5d834c4237d873_shape, pc_program_9f5d834c4237d873},
-    {584u, 0x721639ef9faec53cull, pc_program_721639ef9faec53c_shape, pc_program_721639ef9faec53c},
-    {626u, 0x68f1683d7cbb1198ull, pc_program_68f1683d7cbb1198_shape, pc_program_68f1683d7cbb1198},
-    {626u, 0x5702f51db0f08e54ull, pc_program_5702f51db0f08e54_shape, pc_program_5702f51db0f08e54},
-    {656u, 0xeec959fc49e33d72ull, pc_program_eec959fc49e33d72_shape, pc_program_eec959fc49e33d72},
-    {656u, 0xe4627751465255bdull, pc_program_e4627751465255bd_shape, pc_program_e4627751465255bd},
-    {661u, 0xbc73bc9880d69e6eull, pc_program_bc73bc9880d69e6e_shape, pc_program_bc73bc9880d69e6e},
-    {685u, 0x0e4e088d61b779b3ull, pc_program_0e4e088d61b779b3_shape, pc_program_0e4e088d61b779b3},
-    {796u, 0x6ca4a22b64ec2bb9ull, pc_program_6ca4a22b64ec2bb9_shape, pc_program_6ca4a22b64ec2bb9},
-    {875u, 0x68ae4def9da9e6f8ull, pc_program_68ae4def9da9e6f8_shape, pc_program_68ae4def9da9e6f8},
-    {980u, 0xa734d6c3be2c7b05ull, pc_program_a734d6c3be2c7b05_shape, pc_program_a734d6c3be2c7b05},
-    {1045u, 0x510a7b9f81e8bb81ull, pc_program_510a7b9f81e8bb81_shape, pc_program_510a7b9f81e8bb81},
-    {1125u, 0xc1b1401b8efb6e50ull, pc_program_c1b1401b8efb6e50_shape, pc_program_c1b1401b8efb6e50},
-    {1285u, 0x0042e12f957ab815ull, pc_program_0042e12f957ab815_shape, pc_program_0042e12f957ab815},
-    {1608u, 0xac6ceacb51d4b83bull, pc_program_ac6ceacb51d4b83b_shape, pc_program_ac6ceacb51d4b83b},
+    {264u, 0x42b2415b8b994855ull, pc_program_42b2415b8b994855_shape, pc_program_42b2415b8b994855},
+    {429u, 0x3ad363986dd11b34ull, pc_program_3ad363986dd11b34_shape, pc_program_3ad363986dd11b34},
+    {584u, 0xde059a448e1653eaull, pc_program_de059a448e1653ea_shape, pc_program_de059a448e1653ea},
+    {626u, 0xf6dc4cdc3d1f0c66ull, pc_program_f6dc4cdc3d1f0c66_shape, pc_program_f6dc4cdc3d1f0c66},
+    {626u, 0x5c2c7c81c2efd060ull, pc_program_5c2c7c81c2efd060_shape, pc_program_5c2c7c81c2efd060},
+    {656u, 0x0e2ac2e895ee3c02ull, pc_program_0e2ac2e895ee3c02_shape, pc_program_0e2ac2e895ee3c02},
+    {656u, 0x44da516777a1d7e9ull, pc_program_44da516777a1d7e9_shape, pc_program_44da516777a1d7e9},
+    {661u, 0xcb99cc0b0190648cull, pc_program_cb99cc0b0190648c_shape, pc_program_cb99cc0b0190648c},
+    {685u, 0x98d43f02acab8a5dull, pc_program_98d43f02acab8a5d_shape, pc_program_98d43f02acab8a5d},
+    {796u, 0x170cbafe4f7eb3adull, pc_program_170cbafe4f7eb3ad_shape, pc_program_170cbafe4f7eb3ad},
+    {875u, 0xf83ed264bf4df77eull, pc_program_f83ed264bf4df77e_shape, pc_program_f83ed264bf4df77e},
+    {980u, 0xf40896e148dae487ull, pc_program_f40896e148dae487_shape, pc_program_f40896e148dae487},
+    {1045u, 0xb8cde4db30b7496aull, pc_program_b8cde4db30b7496a_shape, pc_program_b8cde4db30b7496a},
+    {1125u, 0x8cff72a993f18847ull, pc_program_8cff72a993f18847_shape, pc_program_8cff72a993f18847},
+    {1285u, 0xdea986dc5ba36fb8ull, pc_program_dea986dc5ba36fb8_shape, pc_program_dea986dc5ba36fb8},
+    {1608u, 0x6933f2da6dd5679bull, pc_program_6933f2da6dd5679b_shape, pc_program_6933f2da6dd5679b},
 };
 const size_t pc_n_compiled_programs = 21;

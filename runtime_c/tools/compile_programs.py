@@ -6,9 +6,11 @@ PRINT_SHAPES is tools/print_shapes.c linked with a library built with PC_PRINT_S
 CMake target posecorr-print-shapes); it prints the shape of every program the loader builds
 (program.c: per operation its code, term count, stored flag and where each operand comes
 from). Each distinct shape becomes one function that performs the interpreter's operations
-on the same entries in the same order, keeping the values it computed itself in registers
-and storing only the results the shape marks as stored. The loader runs such a function in
-place of the interpreter when a program's shape equals it byte for byte.
+on the same entries in the same order, keeping the values it computed itself in registers,
+reading its constants from the block the loader writes after the entries, and storing only
+the results the shape marks as stored; a select whose sides need a costly operation runs
+as a branch (_lazy_selects). The loader runs such a function in place of the interpreter
+when a program's shape equals it byte for byte.
 
 --check: exit 1 when FILE lacks a shape of these models (the test suite's freshness check).
 """
@@ -37,7 +39,9 @@ class Shape:
 
     def __init__(self, data: bytes, codes: dict[int, str]):
         self.data = data
-        self.ops = []  # (name, n_terms, stored, [operand back-references; 0 external])
+        self.ops = []  # (name, n_terms, stored, [back-references; 0 arena; -1 - j constant j])
+        self.n_k = 0
+        self.zeros: set[int] = set()  # the constants that are a sum's starting zero
         at = 0
         while at < len(data):
             name = codes[data[at]]
@@ -47,7 +51,12 @@ class Shape:
             for _ in range(operand_count(name, n_terms)):
                 back = data[at]
                 at += 1
-                if back == 255:
+                if back in (253, 254):
+                    if back == 253:
+                        self.zeros.add(self.n_k)
+                    back = -1 - self.n_k
+                    self.n_k += 1
+                elif back == 255:
                     back = data[at] | data[at + 1] << 8
                     at += 2
                 refs.append(back)
@@ -76,62 +85,148 @@ def operand_count(name: str, n_terms: int) -> int:
     return 1
 
 
-def function(shape: Shape, fn_name: str) -> str:
-    """C for one shape. Entry numbering as program.c emits it: a header entry where the
-    code changes, one entry per operation, one per DOT term."""
-    lines = [f"PC_HOT static pc_status {fn_name}(const pc_step *s)", "{",
-             "    char *const base = (char *)s->io[0];",
-             "    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;"]
-    entry, last = 0, None
-    kinds = []  # per position: "f" float or "b" bool
+# Operations worth a branch: a select whose sides need one of these computes only the side
+# it takes (the graph computes both; the selected values, so the bits, are the same).
+COSTLY = {"PC_SOP_DIV", "PC_SOP_SQRT", "PC_SOP_EXP", "PC_SOP_SIN", "PC_SOP_COS", "PC_SOP_TAN",
+          "PC_SOP_ATAN", "PC_SOP_TANH", "PC_SOP_SIGMOID"}
 
-    def read(pos: int, back: int, kind: str, k: int, field: str) -> str:
-        if back:
-            return f"{kinds[pos - back]}{pos - back}"
+
+def _lazy_selects(shape: Shape) -> dict[int, tuple[list[int], list[set[int]]]]:
+    """The selects to run as branches, by their last member: WHERE operations of one computed
+    condition, read only after the last of them, with the operations only one side needs
+    (its cone: not stored, every use on that side), when a cone holds a costly operation."""
+    n = len(shape.ops)
+    users: list[list[tuple[int, int]]] = [[] for _ in range(n)]
+    for pos, (_, _, _, refs) in enumerate(shape.ops):
+        for slot, back in enumerate(refs):
+            if back > 0:
+                users[pos - back].append((pos, slot))
+    groups: dict[int, list[int]] = {}
+    for pos, (name, _, _, refs) in enumerate(shape.ops):
+        if name == "PC_SOP_WHERE" and refs[2] > 0:
+            groups.setdefault(pos - refs[2], []).append(pos)
+    lazy = {}
+    for members in groups.values():
+        last, inside = members[-1], set(members)
+        if any(u <= last for m in members for u, _ in users[m] if u not in inside):
+            continue
+        cones: list[set[int]] = []
+        for slot in (0, 1):
+            cone: set[int] = set()
+            for pos in range(last - 1, -1, -1):
+                if pos in inside or shape.ops[pos][2] or not users[pos]:
+                    continue
+                if all((u in inside and s == slot) or u in cone for u, s in users[pos]):
+                    cone.add(pos)
+            cones.append(cone)
+        if any(shape.ops[p][0] in COSTLY for cone in cones for p in cone):
+            lazy[last] = (members, cones)
+    return lazy
+
+
+class _Writer:
+    """The C of one shape's operations. Entry numbering as program.c emits it: a header
+    entry where the code changes, one entry per operation, one per DOT term."""
+
+    def __init__(self, shape: Shape):
+        self.shape, self.kinds, self.entry = shape, [], []  # kind "f" float or "b" bool
+        entry, last = 0, None
+        for name, n_terms, _, _ in shape.ops:
+            if name != last:
+                entry += 1  # the group's header
+                last = name
+            self.entry.append(entry)
+            entry += 1 + (n_terms if name == "PC_SOP_DOT" else 0)
+            self.kinds.append("b" if name in BOOL_RESULT else "f")
+        self.n_entries = entry
+        self.lazy = _lazy_selects(shape)
+
+    def read(self, pos: int, slot: int, kind: str, k: int | None = None) -> str:
+        back = self.shape.ops[pos][3][slot]
+        if back > 0:
+            return f"{self.kinds[pos - back]}{pos - back}"
+        if back < 0:
+            return f"PC_K{kind.upper()}({-1 - back})"
+        if k is None:  # the operation's own entry; a DOT's terms have one each
+            k, field = self.entry[pos], "abc"[slot]
+        else:
+            field = "a" if slot % 2 else "b"
         return f"PC_X{kind.upper()}({k}, {field})"
 
-    for pos, (name, n_terms, stored, refs) in enumerate(shape.ops):
-        if name != last:
-            entry += 1  # the group's header
-            last = name
-        k = entry
-        entry += 1 + (n_terms if name == "PC_SOP_DOT" else 0)
-        kind = "b" if name in BOOL_RESULT else "f"
-        kinds.append(kind)
-        var = f"{kind}{pos}"
+    def store(self, pos: int, pad: str) -> list[str]:
+        if not self.shape.ops[pos][2]:
+            return []
+        kind = self.kinds[pos]
+        return [f"{pad}PC_STORE{kind.upper()}({self.entry[pos]}, {kind}{pos});"]
+
+    def op(self, pos: int, pad: str) -> list[str]:
+        name, n_terms, _, _ = self.shape.ops[pos]
+        kind, var, lines = self.kinds[pos], f"{self.kinds[pos]}{pos}", []
         if name in BINARY:
-            a, b = read(pos, refs[0], "f", k, "a"), read(pos, refs[1], "f", k, "b")
-            expr = f"pc_sop_float({name}, {a}, {b})"
+            expr = f"pc_sop_float({name}, {self.read(pos, 0, 'f')}, {self.read(pos, 1, 'f')})"
         elif name in COMPARE:
-            a, b = read(pos, refs[0], "f", k, "a"), read(pos, refs[1], "f", k, "b")
-            expr = f"{a} {COMPARE[name]} {b}"
+            expr = f"{self.read(pos, 0, 'f')} {COMPARE[name]} {self.read(pos, 1, 'f')}"
         elif name == "PC_SOP_WHERE":
-            a, b = read(pos, refs[0], "f", k, "a"), read(pos, refs[1], "f", k, "b")
-            c = read(pos, refs[2], "b", k, "c")
-            expr = f"{c} ? {a} : {b}"
-        elif name == "PC_SOP_COPY":
-            expr = read(pos, refs[0], "f", k, "a")
-        elif name == "PC_SOP_COPY1":
-            expr = read(pos, refs[0], "b", k, "a")
+            expr = f"{self.read(pos, 2, 'b')} ? {self.read(pos, 0, 'f')} : {self.read(pos, 1, 'f')}"
+        elif name in ("PC_SOP_COPY", "PC_SOP_COPY1"):
+            expr = self.read(pos, 0, kind)
         elif name == "PC_SOP_DOT":
-            a, b = read(pos, refs[0], "f", k, "a"), read(pos, refs[1], "f", k, "b")
-            c = read(pos, refs[2], "f", k, "c")
-            lines.append(f"    float {var} = {c};")
-            lines.append(f"    {var} += {a} * {b};")
+            refs = self.shape.ops[pos][3]
+            first = f"{self.read(pos, 0, 'f')} * {self.read(pos, 1, 'f')}"
+            if refs[2] < 0 and -1 - refs[2] in self.shape.zeros and refs[0] == refs[1] > 0:
+                lines.append(f"{pad}float {var} = {first}; /* a square: 0 + it is it */")
+            else:
+                lines.append(f"{pad}float {var} = {self.read(pos, 2, 'f')};")
+                lines.append(f"{pad}{var} += {first};")
             for t in range(1, n_terms + 1):
-                ta = read(pos, refs[1 + 2 * t], "f", k + t, "a")
-                tb = read(pos, refs[2 + 2 * t], "f", k + t, "b")
-                lines.append(f"    {var} += {ta} * {tb};")
+                k = self.entry[pos] + t
+                lines.append(f"{pad}{var} += {self.read(pos, 1 + 2 * t, 'f', k)} * "
+                             f"{self.read(pos, 2 + 2 * t, 'f', k)};")
             expr = None
         else:  # unary
-            expr = f"pc_sop_float({name}, {read(pos, refs[0], 'f', k, 'a')}, 0.0f)"
+            expr = f"pc_sop_float({name}, {self.read(pos, 0, 'f')}, 0.0f)"
         if expr is not None:
-            ctype = "uint8_t" if kind == "b" else "float"
-            lines.append(f"    const {ctype} {var} = {expr};")
-        if stored:
-            lines.append(f"    PC_STORE{kind.upper()}({k}, {var});")
-    lines += ["    return PC_OK;", "}"]
-    return "\n".join(lines)
+            lines.append(f"{pad}const {'uint8_t' if kind == 'b' else 'float'} {var} = {expr};")
+        return lines + self.store(pos, pad)
+
+    def select(self, last: int, pad: str) -> list[str]:
+        """A lazy select (_lazy_selects) as an if: each side computes its own cone."""
+        members, cones = self.lazy[last]
+        lines = [f"{pad}float {', '.join(f'f{m}' for m in members)};",
+                 f"{pad}if ({self.read(last, 2, 'b')}) {{"]
+        for slot, cone in enumerate(cones):
+            if slot:
+                lines.append(f"{pad}}} else {{")
+            lines += self.emit(cone, pad + "    ")
+            lines += [f"{pad}    f{m} = {self.read(m, slot, 'f')};" for m in members]
+        lines.append(f"{pad}}}")
+        return lines + [line for m in members for line in self.store(m, pad)]
+
+    def emit(self, positions: set[int], pad: str) -> list[str]:
+        """The operations at these positions in order, the lazy selects among them as ifs."""
+        mine = {last: g for last, g in self.lazy.items() if set(g[0]) <= positions}
+        cone = {p for _, cones in mine.values() for p in (*cones[0], *cones[1])}
+        owned = cone | {p for members, _ in mine.values() for p in members}
+        lines = []
+        for pos in sorted(positions):
+            if pos not in owned:
+                lines += self.op(pos, pad)
+            elif pos in mine and pos not in cone:
+                lines += self.select(pos, pad)
+        return lines
+
+
+def function(shape: Shape, fn_name: str) -> str:
+    """C for one shape: the interpreter's operations on the same entries in the same order
+    (but for lazy selects), the values it computes in registers."""
+    w = _Writer(shape)
+    head = [f"PC_HOT static pc_status {fn_name}(const pc_step *s)", "{",
+            "    char *const base = (char *)s->io[0];",
+            "    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;"]
+    body = w.emit(set(range(len(shape.ops))), "    ")
+    if shape.n_k:  # the constants follow the entries (program.c, pc_compiled_constants)
+        head.append(f"    const float *const k = (const float *)(const void *)(e + {w.n_entries});")
+    return "\n".join(head + body + ["    return PC_OK;", "}"])
 
 
 def generate(shapes: list[bytes], codes: dict[int, str]) -> str:
@@ -144,6 +239,8 @@ def generate(shapes: list[bytes], codes: dict[int, str]) -> str:
            '#include "kernels.h"', "", "#include <stdint.h>", "",
            "#define PC_XF(k, f) (*(const float *)(base + e[k].f))",
            "#define PC_XB(k, f) (*(const uint8_t *)(base + e[k].f))",
+           "#define PC_KF(j) (k[j])",
+           "#define PC_KB(j) (*(const uint8_t *)&k[j])",
            "#define PC_STOREF(k, v) (*(float *)(base + e[k].o) = (v))",
            "#define PC_STOREB(k, v) (*(uint8_t *)(base + e[k].o) = (v))", ""]
     table = []

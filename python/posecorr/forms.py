@@ -49,6 +49,9 @@ class Form(Effect):
     def __init__(self) -> None:
         if self.terms is not None:
             self._check_terms(self.name, self.terms, self.size)
+            # theta (..., kept) @ select = the full coefficients: one product in every namespace
+            self._select = np.zeros((len(self.terms), len(self.labels)))
+            self._select[np.arange(len(self.terms)), list(self.terms)] = 1.0
 
     @classmethod
     def _check_terms(cls, name: str, terms: Sequence[Any], size: int) -> None:
@@ -63,9 +66,7 @@ class Form(Effect):
         if self.terms is None:
             return theta
         xp = namespace(theta)
-        select = np.zeros((len(self.terms), len(self.labels)))
-        select[np.arange(len(self.terms)), list(self.terms)] = 1.0
-        return xp.matmul(theta, xp.const(select, theta))
+        return xp.matmul(theta, xp.const(self._select, theta))
 
     def term_labels(self) -> list[str]:
         """The labels of the coefficients this effect fits."""

@@ -70,12 +70,13 @@ def _fitted_proposal(search: Any, result: dict[str, Any], kept: list[str], forms
         model = {form: form for form in forms}
         for form in forms:
             search.say(f"the terms of {form} this data needs")
-            model[form] = _fewest_terms(search, catalogue, model, form, registered)
+            # the last form's cut is cross-validated with every form as it stays: the proposal's
+            model[form], cv = _fewest_terms(search, catalogue, model, form, registered)
         effects = search.effects + catalogue + list(model.values())
         search.say(f"the proposal: {', '.join(effects)} on every pose")
         physics = PhysicsModel(tuple(effects), with_rotation=table.has_orientation).fit(
             table.measured, table.reference, t=table.time())
-        gains, cv = _held_out_gains(search, effects)
+        gains = _gains(search, cv)
         chosen = {form: get_effect(model[form]) for form in forms}
         values = {form: chosen[form].describe(physics.params_[model[form]]) for form in forms}
         terms = {form: dict(zip(chosen[form].term_labels(), physics.params_[model[form]].tolist())) for form in forms}
@@ -98,14 +99,12 @@ def _fitted_proposal(search: Any, result: dict[str, Any], kept: list[str], forms
     }
 
 
-def _held_out_gains(search: Any, effects: list[str], whiten: Sequence[Any] | None = None) -> tuple[np.ndarray, Any]:
-    """Per fold of the diagnosis, the fall of the held-out whitened error from the base model
-    to `effects` (`_gains`); and the cross-validation itself."""
+def _cross_validated(search: Any, effects: list[str]) -> Any:
+    """`effects` cross-validated on the diagnosis's folds."""
     from posecorr.train.pipeline import CorrectionPipeline, cross_validate
     from posecorr.train.splits import KFold
 
-    cv = cross_validate(lambda: CorrectionPipeline(effects), search.table, KFold(search.folds), search.seed)
-    return _gains(search, cv, whiten), cv
+    return cross_validate(lambda: CorrectionPipeline(effects), search.table, KFold(search.folds), search.seed)
 
 
 def _gains(search: Any, cv: Any, whiten: Sequence[Any] | None = None) -> np.ndarray:
@@ -118,13 +117,15 @@ def _gains(search: Any, cv: Any, whiten: Sequence[Any] | None = None) -> np.ndar
                        for k, (_, held) in enumerate(search.splits)])
 
 
-def _fewest_terms(search: Any, catalogue: list[str], model: dict[str, str], form: str, registered: Any) -> str:
+def _fewest_terms(search: Any, catalogue: list[str], model: dict[str, str], form: str,
+                  registered: Any) -> tuple[str, Any]:
     """The name of `form` cut to the fewest terms whose held-out error is within one standard
     error of the best cut's (Breiman's one-standard-error rule, on the log of the whitened
     error left in each fold), with a gain in every fold; `form` itself when no cut comes near
     it. Cuts keep the largest terms on this session first (|theta_j| times its whitened
-    Jacobian column: SINDy's threshold on normalised coefficients). They are registered on
-    `registered` (an ExitStack), which removes them."""
+    Jacobian column: SINDy's threshold on normalised coefficients). Returned with the cut's
+    cross-validation. The cuts are registered on `registered` (an ExitStack), which removes
+    them."""
     from posecorr.train.physics import PhysicsModel
 
     from ..effects import register_effect, unregister_effect
@@ -140,28 +141,31 @@ def _fewest_terms(search: Any, catalogue: list[str], model: dict[str, str], form
     order = [int(j) for j in np.argsort(-size, kind="stable")]
     # Whitened by the whole form's fold sigmas: the base model's hold the missing error itself,
     # and would make a cut that leaves three times the orientation error look as good.
-    _, whole_cv = _held_out_gains(search, effects)
+    whole_cv = _cross_validated(search, effects)
     whiten = [fitted.physics_ for fitted in whole_cv.fitted]
-    names, left = [], []    # each cut's name and log of the whitened error it leaves, per fold
+    # each cut's name (None without a gain in every fold), its cross-validation and the log of
+    # the whitened error it leaves, per fold
+    names, cvs, left = [], [], []
     for count in range(1, whole.size + 1):
         if count == whole.size:
-            name, gains = form, _gains(search, whole_cv, whiten)
+            name, cv = form, whole_cv
         else:
             terms = sorted(order[:count])
             name = register_effect(type(whole).keeping(terms, f"_{form}_terms{count}", theta[terms]),
                                    source=__name__).name
             registered.callback(unregister_effect, name)
-            gains, _ = _held_out_gains(search, search.effects + catalogue + list({**model, form: name}.values()),
-                                       whiten)
+            cv = _cross_validated(search, search.effects + catalogue + list({**model, form: name}.values()))
+        gains = _gains(search, cv, whiten)
         names.append(name if np.all(gains > 0) else None)
+        cvs.append(cv)
         left.append(np.log(np.clip(1.0 - gains, 1e-12, None)))
     best = left[int(np.argmin([np.mean(e) for e in left]))]
-    for name, errors in zip(names, left):
+    for name, cv, errors in zip(names, cvs, left):
         worse = errors - best
         spread = np.std(worse, ddof=1) / np.sqrt(len(worse)) if len(worse) > 1 else 0.0
         if name is not None and worse.mean() <= spread:
-            return name
-    return form
+            return name, cv
+    return form, whole_cv
 
 
 def explain_absorbed(result: dict[str, Any], kept: Sequence[str]) -> list[dict[str, Any]]:

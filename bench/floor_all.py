@@ -69,33 +69,16 @@ def _shipped(rep: str, activation: str, hidden: tuple[int, ...]) -> Path | None:
 
 def export_models(work: Path) -> dict[str, Path]:
     """label -> an MLP: "10-10" for zhou tansig (every table-1 architecture), "quat-10-10"
-    for the others (OTHERS, OTHER_HIDDEN)."""
-    import numpy as np
-
-    from posecorr.export import to_onnx
-    from posecorr.simulate import simulate
-    from posecorr.train.mlp import MLP
+    for the others (OTHERS, OTHER_HIDDEN); the shipped file where there is one, else
+    tools/models.py's unshipped recipe."""
     from posecorr.train.spec import ARCHITECTURES
+    from tools.models import unshipped_mlp
 
-    table = simulate(3, seed=0).table
-    idx = np.linspace(0, len(table.measured) - 1, 200).astype(int)
-    m, r = table.measured[idx], table.reference[idx]
     wanted = [("zhou", "tansig", hidden, "-".join(map(str, hidden))) for hidden in ARCHITECTURES]
     wanted += [(rep, act, hidden, f"{rep}-" + "-".join(map(str, hidden)))
                for rep, act in OTHERS.items() for hidden in OTHER_HIDDEN]
-    models = {}
-    for rep, act, hidden, label in wanted:
-        models[label] = _shipped(rep, act, hidden)
-        if models[label] is not None:
-            continue
-        est = MLP(representation=rep, hidden=hidden, activation=act, trainer="lm", epochs=2,
-                  random_state=1).fit(m, r)
-        models[label] = work / f"{label}.onnx"
-        # two epochs leave a near-random network whose float32 graph may miss the float64
-        # estimator by more than the parity tolerance: recorded, not refused (the weights do
-        # not change the work of a pose)
-        to_onnx(est, models[label], measured=m, reference=r, parity="warn")
-    return models
+    return {label: _shipped(rep, act, hidden) or unshipped_mlp(rep, hidden, work / f"{label}.onnx", act, rows=200)
+            for rep, act, hidden, label in wanted}
 
 
 def instructions(exe: Path, model: Path, which: str) -> float:

@@ -116,19 +116,12 @@ def test_fused_multiply_add_stays_off_on_an_fma_target(tmp_path):
 def test_unshipped_table1_mlp_gives_pc_run_bits(tmp_path):
     """A representation and table-1 architecture drawn anew (the message names it), trained
     two epochs and exported by the project's exporter."""
-    from posecorr.export import to_onnx
-    from posecorr.simulate import simulate
-    from posecorr.train.mlp import MLP
     from posecorr.train.spec import ARCHITECTURES
+    from tools.models import unshipped_mlp
 
     rep, hidden = random.choice([(rep, arch) for rep in ("pos", "eaa", "quat", "R", "zhou")
                                  for arch in ARCHITECTURES])
-    table = simulate(3, seed=0).table
-    idx = np.linspace(0, len(table.measured) - 1, 120).astype(int)
-    m, r = table.measured[idx], table.reference[idx]
-    est = MLP(representation=rep, hidden=hidden, trainer="lm", epochs=2, random_state=1).fit(m, r)
-    path = tmp_path / f"mlp-{rep}-{'x'.join(map(str, hidden))}.onnx"
-    to_onnx(est, path, measured=m, reference=r, parity="warn")
+    path = unshipped_mlp(rep, hidden, tmp_path / f"mlp-{rep}-{'x'.join(map(str, hidden))}.onnx")
     try:
         assert_same_bits(path, tmp_path, graphs.poses_in_box(path, N_POSES, seed=4))
     except AssertionError as e:

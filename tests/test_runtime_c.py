@@ -549,10 +549,8 @@ def test_unshipped_table1_mlp_runs_specialised_and_matches_portable(lib, testing
     and in batches."""
     import random
 
-    from posecorr.export import to_onnx
-    from posecorr.simulate import simulate
-    from posecorr.train.mlp import MLP
     from posecorr.train.spec import ARCHITECTURES
+    from tools.models import unshipped_mlp
 
     if not testing_lib.pc_test_cpu_avx2():
         pytest.skip("the specialised layers are AVX2 kernels")
@@ -564,14 +562,7 @@ def test_unshipped_table1_mlp_runs_specialised_and_matches_portable(lib, testing
     rep, hidden = random.choice([(rep, arch) for rep in ("pos", "eaa", "quat", "R", "zhou")
                                  for arch in ARCHITECTURES if (rep, arch) not in shipped])
     label = f"{rep} {'-'.join(map(str, hidden))}"
-    table = simulate(3, seed=0).table
-    idx = np.linspace(0, len(table.measured) - 1, 120).astype(int)
-    m, r = table.measured[idx], table.reference[idx]
-    est = MLP(representation=rep, hidden=hidden, trainer="lm", epochs=2, random_state=1).fit(m, r)
-    path = tmp_path / "unshipped.onnx"
-    # a near-random network may miss the float64 estimator by more than the exporter's parity
-    # tolerance; the truth here is the portable build's bits
-    to_onnx(est, path, measured=m, reference=r, parity="warn")
+    path = unshipped_mlp(rep, hidden, tmp_path / "unshipped.onnx")
 
     c = Corrector(path, library=lib)
     layers = [int(k) for k in c.metadata["layers"].split("-")]

@@ -344,6 +344,28 @@ def demo_physics_pmc(path: Path) -> int:
     return model.to_onnx(path, measured=data.measured[rows], reference=data.reference[rows])["n_nodes"]
 
 
+def unshipped_mlp(representation: str, hidden: tuple[int, ...], path: Path, activation: str | None = None,
+                  rows: int = 120) -> Path:
+    """A table-1 MLP nobody shipped: fitted two epochs (Levenberg-Marquardt, random_state 1) on
+    `rows` rows of the simulated Experiment III and exported to `path` by the project's
+    exporter. Near-random weights of the right architecture: what an instruction count, a
+    timing or a bit-for-bit comparison of two back ends needs."""
+    from posecorr.export import to_onnx
+    from posecorr.simulate import simulate
+    from posecorr.train.mlp import MLP
+
+    table = simulate(3, seed=0).table
+    idx = np.linspace(0, len(table.measured) - 1, rows).astype(int)
+    m, r = table.measured[idx], table.reference[idx]
+    chosen = {} if activation is None else {"activation": activation}
+    est = MLP(representation=representation, hidden=tuple(hidden), trainer="lm", epochs=2, random_state=1,
+              **chosen).fit(m, r)
+    # two epochs leave a float32 graph that may miss the float64 estimator by more than the
+    # exporter's parity tolerance: recorded, not refused (the weights do not change the work)
+    to_onnx(est, path, measured=m, reference=r, parity="warn")
+    return path
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m tools.models", description=__doc__.split("\n")[0])
     parser.add_argument("-o", "--out", type=Path, default=MODELS_DIR, help="output directory (default: models/)")

@@ -87,23 +87,11 @@ def weights_source(onnx_path: Path) -> str:
 
 
 def table1_mlp(representation: str, hidden: str, out: Path) -> None:
-    """A table-1 MLP nobody shipped, fitted two epochs (Levenberg-Marquardt, random_state 1)
-    on 120 rows of the simulated Experiment III and exported by the project's exporter: near
-    random weights of the right architecture, which is what an instruction count needs."""
-    import numpy as np
+    """A table-1 MLP nobody shipped (tools/models.py's recipe), e.g. quat 10-10."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+    from tools.models import unshipped_mlp
 
-    from posecorr.export import to_onnx
-    from posecorr.simulate import simulate
-    from posecorr.train.mlp import MLP
-
-    table = simulate(3, seed=0).table
-    idx = np.linspace(0, len(table.measured) - 1, 120).astype(int)
-    m, r = table.measured[idx], table.reference[idx]
-    layers = tuple(int(h) for h in hidden.split("-"))
-    est = MLP(representation=representation, hidden=layers, trainer="lm", epochs=2, random_state=1).fit(m, r)
-    # two epochs leave a float32 graph that may miss the float64 estimator by more than the
-    # parity tolerance: recorded, not refused (bench/floor_all.py does the same)
-    to_onnx(est, out, measured=m, reference=r, parity="warn")
+    unshipped_mlp(representation, tuple(int(h) for h in hidden.split("-")), out)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -124,6 +124,28 @@ def test_real_sessions_propose_nothing_and_say_why(name):
     assert result["no_proposal"] and ("no form" in result["no_proposal"] or "catalogue" in result["no_proposal"])
 
 
+def test_no_proposal_names_the_test_it_fails_and_the_span_it_had():
+    """An attitude-dependent bias on a tracker turned by less than 20 degrees: no form passes,
+    and the reason gives the threshold the best one misses (alpha over the candidates) and
+    the orientations' span, checked against scipy's mean rotation."""
+    import re
+
+    from scipy.spatial.transform import Rotation
+
+    table = study.session("attitude_bias", 5, "hand")
+    study.hide_outside()
+    result = diagnose(table, study.BASE)
+    why = result["no_proposal"]
+    assert result["proposal"] is None and why.startswith("no form earns its place"), why
+    best = max((row for row in result["candidates"] if row["kind"] == "form"), key=lambda row: row["score"])
+    threshold = 1e-3 / len(result["candidates"])
+    assert best["p_value"] >= threshold and f"p above {threshold:.2g}" in why, why
+    turns = Rotation.from_quat(table.meas_q[:, [1, 2, 3, 0]])
+    span = np.rad2deg(np.max((turns.mean().inv() * turns).magnitude()))
+    said = float(re.search(r"orientations span ([0-9.]+) deg", why).group(1))
+    assert abs(said - span) < 0.5, (said, span)
+
+
 def test_undetermined_names_its_cause_drift_and_a_small_span():
     """Drift on a session far shorter than its time constant names the session's length; a
     spatial effect on poses bunched within a few millimetres names the positions' span."""

@@ -28,7 +28,7 @@ question for cross-validation (`pipeline.fit_table` compares every model with th
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -82,6 +82,24 @@ class Spread:
                 "rotation_span_deg": float(np.rad2deg(self.rotation_span)),
                 "position_axes": self.position_axes, "rotation_axes": self.rotation_axes,
                 "has_orientation": self.has_orientation}
+
+
+def poses_lack(effect: Any, spread: Spread, t: np.ndarray | None) -> str:
+    """What these poses offer `effect` to show in, by what it varies with
+    (`Effect.sensitivity`): the session's length, the orientations' span or the positions'."""
+    if effect.sensitivity == "time":
+        if t is None:
+            return "the table has no time column t"
+        ranges = [f"{effect.name}.{p.name} {p.bounds[0]:g} to {p.bounds[1]:g} {p.unit}"
+                  for p in effect.params if p.bounds is not None]
+        words = f"the session lasts {float(np.ptp(t)):.0f} s"
+        if ranges:
+            words += (f", short against {', '.join(ranges)} (over a session much shorter than the time "
+                      f"constant only a straight line shows)")
+        return words
+    if effect.sensitivity == "orientation":
+        return spread.orientation_words()
+    return spread.position_words()
 
 
 def chordal_mean(R: np.ndarray) -> np.ndarray:

@@ -38,7 +38,7 @@ from posecorr.metrics import pose_metrics
 
 from .base import PoseRegressorMixin, check_pair, check_poses
 from .identify import (Block, RigidRegistration, chordal_mean, describe_spread, determined_directions, direction_label,
-                       rigid_registration)
+                       poses_lack, rigid_registration)
 
 DEFAULT_SIGMA_P = 3e-4   # m, docs/design.md default noise
 DEFAULT_SIGMA_R = 5e-4   # rad
@@ -242,22 +242,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         return [block for _, _, block in sorted(owned, key=lambda item: item[:2])]
 
     def _undetermined_words(self, effect: Any) -> str:
-        """What these poses lack for `effect` to show, by what it varies with
-        (`Effect.sensitivity`): the session's length, the positions' span or the orientations'."""
-        if effect.sensitivity == "time":
-            t = self.ctx_.t
-            if t is None:
-                return "the table has no time column t"
-            ranges = [f"{effect.name}.{p.name} {p.bounds[0]:g} to {p.bounds[1]:g} {p.unit}"
-                      for p in effect.params if p.bounds is not None]
-            words = f"the session lasts {float(np.ptp(t)):.0f} s"
-            if ranges:
-                words += (f", short against {', '.join(ranges)} (over a session much shorter than the time "
-                          f"constant only a straight line shows)")
-            return words
-        if effect.sensitivity == "orientation":
-            return self.spread_.orientation_words()
-        return self.spread_.position_words()
+        return poses_lack(effect, self.spread_, self.ctx_.t)
 
     def _identify(self, theta0: np.ndarray, measured: np.ndarray, reference: np.ndarray,
                   sigma_p: float, sigma_r: float) -> tuple[np.ndarray, dict[str, str]]:

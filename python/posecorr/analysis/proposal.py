@@ -39,11 +39,11 @@ def propose(search: Any, result: dict[str, Any], kept: Sequence[str],
             return None, (f"{a} and {b} cannot be told apart by this data: held-out gains "
                           f"{rows[a]['score']:.1%} and {rows[b]['score']:.1%}, and each adds nothing given the other")
     if not forms:
-        return None, _why_none(result, kept)
+        return None, _why_none(search, result, kept)
     return _fitted_proposal(search, result, list(kept), forms), None
 
 
-def _why_none(result: dict[str, Any], kept: Sequence[str]) -> str:
+def _why_none(search: Any, result: dict[str, Any], kept: Sequence[str]) -> str:
     if kept:
         return (f"the catalogue explains the error: {', '.join(kept)} "
                 f"{'is' if len(kept) == 1 else 'are'} present, and no form earns a place beside "
@@ -53,7 +53,27 @@ def _why_none(result: dict[str, Any], kept: Sequence[str]) -> str:
         return "no form could be tested on this data (see the effects that cannot be determined)"
     best = max(forms, key=lambda row: row["score"])
     return (f"no form earns its place: the best, {best['effect']}, lowers the held-out whitened error by "
-            f"{best['score']:.1%} (p = {best['p_value']:.2g}, worst fold {best['fold_gain_min']:.1%})")
+            f"{best['score']:.1%} (p = {best['p_value']:.2g}, worst fold {best['fold_gain_min']:.1%}); "
+            f"{_fails(search, best)}")
+
+
+def _fails(search: Any, row: dict[str, Any]) -> str:
+    """The parts of the test `row` fails, with the figures, and what the poses offer the form
+    to show in (a form that varies with the orientation needs the orientations to vary)."""
+    from posecorr.rotations import quat_to_matrix
+    from posecorr.train.identify import describe_spread, poses_lack
+
+    threshold = search.alpha / max(len(search.names), 1)
+    fails = []
+    if row["p_value"] >= threshold:
+        fails.append(f"p above {threshold:.2g} ({search.alpha:g} over {len(search.names)} candidates)")
+    if row["fold_gain_min"] <= 0:
+        fails.append("a fold where the error rises")
+    if row["score"] < search.min_gain:
+        fails.append(f"a mean gain below {search.min_gain:.1%}")
+    table = search.table
+    spread = describe_spread(table.meas_p, quat_to_matrix(table.meas_q), table.has_orientation)
+    return f"{', '.join(fails) or 'implausible values'}; {poses_lack(get_effect(row['effect']), spread, table.time())}"
 
 
 def _fitted_proposal(search: Any, result: dict[str, Any], kept: list[str], forms: list[str]) -> dict[str, Any]:

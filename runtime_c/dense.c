@@ -133,7 +133,10 @@ PC_COLD pc_status k_gemm(const pc_step *s)
     return PC_OK;
 }
 
-#if defined(__GNUC__)
+/* GCC/Clang vector types where the target has vector registers (no intrinsics): on a
+ * Cortex-M's scalar FPU the compiler splits them through the stack, and the plain rows
+ * (pc_row) run in fewer instructions. */
+#if defined(__GNUC__) && !(defined(__arm__) && !defined(__ARM_NEON))
 #define PC_HAVE_ROWS4 1
 /* GCC/Clang vector types (no intrinsics, no ISA assumption): lanes are independent, so
  * per output the summation order is that of pc_row (C first, then k ascending) and the
@@ -246,6 +249,37 @@ PC_INLINE void pc_row1(const float *a, const float *B, size_t K, size_t N, const
 }
 #endif
 
+#ifndef PC_HAVE_ROWS4
+/* a B + c for one row on a scalar FPU: the columns in blocks of eight, then four, then one,
+ * their sums in registers over the whole pass on k (a load, a multiply and an add per
+ * multiply-add; stores and reloads of o per k doubled that). Same order as pc_row. */
+#define PC_SCALAR_BLOCK(W, BODY)                                                               \
+    for (; n0 + (W) <= N; n0 += (W)) {                                                         \
+        const float *b = B + n0, *const a_end = a + K, *ak;                                    \
+        float s0 = C[n0], s1 = 0.0f, s2 = 0.0f, s3 = 0.0f, s4 = 0.0f, s5 = 0.0f, s6 = 0.0f,     \
+              s7 = 0.0f;                                                                       \
+        if ((W) > 1) { s1 = C[n0 + 1]; s2 = C[n0 + 2]; s3 = C[n0 + 3]; }                        \
+        if ((W) > 4) { s4 = C[n0 + 4]; s5 = C[n0 + 5]; s6 = C[n0 + 6]; s7 = C[n0 + 7]; }        \
+        for (ak = a; ak < a_end; ak++, b += N) {                                               \
+            const float av = *ak;                                                              \
+            BODY;                                                                              \
+        }                                                                                      \
+        O[n0] = s0;                                                                            \
+        if ((W) > 1) { O[n0 + 1] = s1; O[n0 + 2] = s2; O[n0 + 3] = s3; }                        \
+        if ((W) > 4) { O[n0 + 4] = s4; O[n0 + 5] = s5; O[n0 + 6] = s6; O[n0 + 7] = s7; }        \
+    }
+PC_INLINE void pc_row_scalar(const float *a, const float *B, size_t K, size_t N,
+                             const float *C, float *restrict O)
+{
+    size_t n0 = 0;
+    PC_SCALAR_BLOCK(8, s0 += av * b[0]; s1 += av * b[1]; s2 += av * b[2]; s3 += av * b[3];
+                    s4 += av * b[4]; s5 += av * b[5]; s6 += av * b[6]; s7 += av * b[7])
+    PC_SCALAR_BLOCK(4, s0 += av * b[0]; s1 += av * b[1]; s2 += av * b[2]; s3 += av * b[3])
+    PC_SCALAR_BLOCK(1, s0 += av * b[0])
+}
+#undef PC_SCALAR_BLOCK
+#endif
+
 /* Rows of act(A B + c): no transposes, bias row, alpha = beta = 1 (the MLP layer). Four
  * rows at a time for batches; the activation runs once over the whole contiguous output. */
 PC_INLINE void pc_gemm_rows(const pc_gemm *q, void *const *io)
@@ -262,13 +296,8 @@ PC_INLINE void pc_gemm_rows(const pc_gemm *q, void *const *io)
     for (; m < M; m++)
         pc_row1(A + m * K, B, K, N, C, O + m * N);
 #else
-    for (; m < M; m++) {
-        float *restrict o = O + m * N;
-        size_t n;
-        for (n = 0; n < N; n++)
-            o[n] = C[n];
-        pc_row(A + m * K, 1, B, N, K, N, o);
-    }
+    for (; m < M; m++)
+        pc_row_scalar(A + m * K, B, K, N, C, O + m * N);
 #endif
     pc_apply_act(q, O, M * N);
 }

@@ -172,11 +172,16 @@ int pc_program_takes(const pc_pass *pp, const pc_prep *p)
             return 0;
     }
     /* A layer with a kernel of its K and N runs in the dense chain: 8 lanes a row there,
-     * one multiply-add an operation here. */
+     * one multiply-add an operation here. So does every layer of a build without AVX2
+     * kernels: its rows keep their sums in registers (a load, a multiply and an add a
+     * multiply-add, where the interpreter spends about ten), and its programs are then
+     * those of the AVX2 build, whose compiled forms match. */
     if (p->layer) {
+        const int avx2 = p->fn == pc_gemm_rows_kernels[1] &&
+                         pc_gemm_rows_kernels[1] != pc_gemm_rows_kernels[0];
         const char *why;
-        pc_chain_layer_fn((const pc_gemm *)p->prm, p->fn == pc_gemm_rows_kernels[1], &why);
-        if (!*why)
+        pc_chain_layer_fn((const pc_gemm *)p->prm, avx2, &why);
+        if (!avx2 || !*why)
             return 0;
     }
     /* what one node may add: operations, copies at the close, pool constants */

@@ -237,8 +237,9 @@ NETWORKS = {"shipped": ("zhou", "20-20-20-20"), "quat-10-10": ("quat", "10-10"),
 
 @pytest.fixture(scope="module")
 def networks() -> dict:
-    """`make networks`: per network, pc_run on its board and the compiled, hand-written and
-    emlearn functions each on a 2 KB board, run under QEMU; the report's checks pass."""
+    """`make networks`: per network, pc_run on the 32 KB board (and the 16 KB one where the
+    model loads there) and the compiled, hand-written and emlearn functions each on a 2 KB
+    board, run under QEMU; the report's checks pass."""
     r = make("networks")
     assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
     import json
@@ -262,7 +263,9 @@ def test_every_build_of_every_network_gives_x86_bits(networks):
     """pc_run, the compiled function and the hand-written one give the x86 runtime's bits on
     all 16 poses; emlearn (its own summation order, libm's tanhf) comes within 1e-5."""
     for name, row in networks.items():
-        for impl in ("pc_run", "compiled", "reference"):
+        for impl in ("pc_run", "pc_run_16kb", "compiled", "reference"):
+            if impl not in row:
+                continue
             assert row[impl]["identical_poses"] == 16, (name, impl)
             assert row[impl]["max_abs_diff_to_x86"] == 0.0, (name, impl)
         assert row["emlearn"]["max_abs_diff_to_x86"] <= TOLERANCE, name
@@ -280,17 +283,42 @@ def test_compiled_build_meets_the_floor_on_every_network(networks):
         for impl in ("compiled", "reference", "emlearn"):
             assert row[impl]["board_ram_kb"] == 2
             assert row[impl]["ram_used"] <= row[impl]["ram_reserved"] <= 2048, (name, impl)
-        # the interpreter is what pays for generality: more instructions and more RAM
-        assert count["pc_run"] > count["compiled"]
+        # the loader is what pays for generality: RAM
         assert row["pc_run"]["ram_used"] > 8 * row["compiled"]["ram_used"]
 
 
+def test_pc_run_meets_the_floor_on_every_network(networks):
+    """Issue 33 for pc_run: on the 32 KB board (program_ops 512, where the plan's programs
+    are those compiled ahead of time) within 1.3x the hand-written function and at or below
+    emlearn on the three networks; on the 16 KB board (program_ops 32, the interpreter runs
+    the encoding and decoding) too for the zhou MLP, whose dense layers dominate."""
+    for name, row in networks.items():
+        hand, eml = row["reference"]["instructions_per_pose"], row["emlearn"]["instructions_per_pose"]
+        for key in ("pc_run", "pc_run_16kb"):
+            if key not in row:
+                continue
+            count = row[key]["instructions_per_pose"]
+            assert count <= 1.3 * hand and count <= eml, (name, key, count, hand, eml)
+            assert row[key]["meets_floor"] is True
+        assert row["pc_run"]["program_ops"] == 512
+        # the 32 KB build's arena is the price of the compiled programs: the 16 KB one loads
+        # the zhou MLP in 12,800 B at program_ops 32
+        assert row["pc_run"]["ram_reserved"] <= 32 * 1024
+    zhou = networks["shipped"]
+    assert zhou["pc_run_16kb"]["program_ops"] == 32
+    assert zhou["pc_run_16kb"]["arena_reserved"] < zhou["pc_run"]["arena_reserved"]
+    # the 16 KB build runs more instructions: its programs are interpreted
+    assert zhou["pc_run_16kb"]["instructions_per_pose"] > zhou["pc_run"]["instructions_per_pose"]
+
+
 def test_pc_run_boards_of_the_networks(networks):
-    """The shipped zhou MLP runs pc_run in 16 KB; a quat MLP needs the 32 KB board: in the
-    16 KB firmware its load is refused for want of arena (the guide says so)."""
-    assert networks["shipped"]["pc_run"]["board_ram_kb"] == 16
-    for name in ("quat-10-10", "quat-5-5-5-5"):
+    """Every network runs pc_run on the 32 KB board; the shipped zhou MLP also in 16 KB,
+    where a quat MLP's load is refused for want of arena (the guide says so)."""
+    for name in NETWORKS:
         assert networks[name]["pc_run"]["board_ram_kb"] == 32
+    assert networks["shipped"]["pc_run_16kb"]["board_ram_kb"] == 16
+    for name in ("quat-10-10", "quat-5-5-5-5"):
+        assert "pc_run_16kb" not in networks[name]
     r = make(str(BUILD / "net" / "quat-10-10" / "pc16.log"))
     assert r.returncode != 0
     assert "buffer is too small for this model" in r.stdout + r.stderr, (r.stdout + r.stderr)[-2000:]

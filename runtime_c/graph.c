@@ -133,7 +133,9 @@ static pc_status pc_names_start(pc_builder *b, pc_names *t)
     const size_t entries = b->n_ordinals + b->n_inits + b->n_inputs;
     size_t size = 16, k;
     pc_status st;
-    while (size < 2 * entries)
+    /* At most 4/5 full: linear probing stays short, and the table is the scan's largest
+     * part (a small target's load peaks here). */
+    while (4 * size < 5 * entries)
         size *= 2;
     t->mask = size - 1;
     t->hash = pc_scratch_alloc_raw(&b->scratch, PC_WORK, size * sizeof *t->hash);
@@ -480,6 +482,7 @@ static pc_status pc_act_of(pc_builder *b, uint32_t a, int *act, float *lo, float
 static pc_status pc_scan_fuse(pc_builder *b, const uint8_t *readers)
 {
     uint32_t g, j;
+    pc_fused *f;
     pc_status st;
     for (g = 0; g < b->n_nodes; g++) {
         uint32_t og, oa, a;
@@ -507,17 +510,14 @@ static pc_status pc_scan_fuse(pc_builder *b, const uint8_t *readers)
                 b->outputs[j].ref = PC_REF(PC_REF_OUTPUT, og);
         b->last_use[og] = b->last_use[oa];
         b->node_op[a] = PC_NODE_SKIP;
-        b->node_act[g] = (uint8_t)act;
-        if (act == PC_ACT_CLIP) {
-            pc_clip_bounds *c = pc_scratch_alloc(&b->scratch, PC_KEEP, sizeof *c);
-            if (!c)
-                return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-            c->node = g;
-            c->lo = lo;
-            c->hi = hi;
-            c->next = b->clips;
-            b->clips = c;
-        }
+        if (!(f = pc_scratch_alloc(&b->scratch, PC_KEEP, sizeof *f)))
+            return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
+        f->node = g;
+        f->act = act;
+        f->lo = lo;
+        f->hi = hi;
+        f->next = b->fused;
+        b->fused = f;
     }
     return PC_OK;
 }
@@ -556,10 +556,15 @@ static pc_status pc_scan_width(pc_builder *b)
     return PC_OK;
 }
 
+/* What the scan leaves for the passes (keep end): the operator of each node, every input
+ * resolved, each value's last reader, the fused activations and folded constants. What
+ * only the scan reads (each node's first input and output, the names, the readers) is on
+ * the work end and gone when it returns: the passes count inputs and outputs as they
+ * stream the nodes. */
 pc_status pc_scan_graph(pc_builder *b)
 {
     size_t n_io, max_in, max_out;
-    pc_scratch_mark mark;
+    pc_scratch_mark mark, scan_mark;
     pc_names names;
     uint8_t *readers;
     pc_status st;
@@ -567,11 +572,11 @@ pc_status pc_scan_graph(pc_builder *b)
         (st = onnx_graph_counts(b, &b->n_nodes, &b->n_inits, &n_io)) != PC_OK ||
         (st = pc_scan_inits(b)) != PC_OK || (st = onnx_parse_io(b, n_io)) != PC_OK)
         return st;
+    scan_mark = pc_scratch_save(&b->scratch, PC_WORK);
     b->node_op = pc_scratch_alloc(&b->scratch, PC_KEEP, b->n_nodes + 1);
-    b->node_act = pc_scratch_alloc(&b->scratch, PC_KEEP, b->n_nodes + 1);
-    b->node_in0 = pc_scratch_alloc(&b->scratch, PC_KEEP, (b->n_nodes + 1) * sizeof(uint16_t));
-    b->node_out0 = pc_scratch_alloc(&b->scratch, PC_KEEP, (b->n_nodes + 1) * sizeof(uint16_t));
-    if (!b->node_op || !b->node_act || !b->node_in0 || !b->node_out0)
+    b->node_in0 = pc_scratch_alloc(&b->scratch, PC_WORK, (b->n_nodes + 1) * sizeof(uint16_t));
+    b->node_out0 = pc_scratch_alloc(&b->scratch, PC_WORK, (b->n_nodes + 1) * sizeof(uint16_t));
+    if (!b->node_op || !b->node_in0 || !b->node_out0)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
     if ((st = pc_scan_sizes(b, &max_in, &max_out)) != PC_OK)
         return st;
@@ -599,7 +604,8 @@ pc_status pc_scan_graph(pc_builder *b)
     pc_scan_last_use(b, readers);
     if ((st = pc_scan_fuse(b, readers)) != PC_OK || (st = pc_scan_width(b)) != PC_OK)
         return st;
-    pc_scratch_restore(&b->scratch, mark);
+    pc_scratch_restore(&b->scratch, scan_mark);
     b->values = NULL;
+    b->node_in0 = b->node_out0 = NULL;
     return PC_OK;
 }

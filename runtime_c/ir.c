@@ -33,6 +33,8 @@ pc_status pc_value_new(pc_builder *b, int32_t *id)
         v->last = PC_USE_NONE;
         v->block = -1;
         *id = (int32_t)i;
+        if (i >= b->values_high)
+            b->values_high = i + 1;
         return PC_OK;
     }
     return pc_fail(b->err, PC_ERR_GRAPH, "more values alive at once than the scan counted (%zu)",

@@ -90,12 +90,12 @@ typedef struct pc_builder {
     pb_slice graph;
     /* graph scan (graph.c) */
     uint32_t n_nodes, n_ordinals, n_inits, n_refs;
-    uint16_t *node_in0, *node_out0;  /* n_nodes + 1: first ref and first ordinal of a node */
+    uint16_t *node_in0, *node_out0;  /* n_nodes + 1: first ref and first ordinal of a node
+                                      * (the scan's only: a pass counts them as it streams) */
     uint16_t *in_ref;                /* every node input, resolved */
     uint16_t *last_use;              /* per ordinal */
     uint8_t *node_op;                /* per node: operator, or PC_NODE_SKIP */
-    uint8_t *node_act;               /* per node: pc_act fused in */
-    struct pc_clip_bounds *clips;    /* bounds of the fused Clips */
+    struct pc_fused *fused;          /* the activations fused into Gemm nodes */
     pb_slice *inits;                 /* TensorProto of each initializer */
     pc_io *inputs, *outputs;
     size_t n_inputs, n_outputs;
@@ -104,16 +104,19 @@ typedef struct pc_builder {
     /* plan pass (plan.c): records */
     pc_value *values;
     size_t cap_values;
+    size_t values_high;              /* records a pass has taken at once, at most */
     int cpu_avx2;                    /* -1 until asked */
     size_t peak_unplaced;            /* scratch peak before the arena was placed */
 } pc_builder;
 
-/* The bounds of a Clip the scan fused into Gemm node `node`. */
-typedef struct pc_clip_bounds {
-    struct pc_clip_bounds *next;
+/* The activation the scan fused into Gemm node `node` (a list: few nodes have one), with
+ * a Clip's bounds. */
+typedef struct pc_fused {
+    struct pc_fused *next;
     uint32_t node;
+    int act;
     float lo, hi;
-} pc_clip_bounds;
+} pc_fused;
 
 /* Scan flags in node_op: the node is skipped by every plan (dead, folded, fused away). */
 #define PC_NODE_SKIP 0xffu

@@ -42,6 +42,8 @@ pc_status pc_block_new(pc_pass *pp, size_t bytes, int32_t *block)
     pp->blocks[id].size = size;
     pp->blocks[id].refs = 1;
     pp->blocks[id].deferred = 0;
+    if (id >= pp->blocks_high)
+        pp->blocks_high = id + 1;
     if (off + size > pp->act_peak)
         pp->act_peak = off + size;
     *block = (int32_t)id;

@@ -65,6 +65,8 @@ typedef struct pc_pass {
     /* the MLP-layer chain the last step is (extended in place) */
     size_t chain_io, chain_prm, chain_layers;
     int32_t *input_ids; /* records of the graph inputs */
+    uint32_t in0, out0; /* the node being planned: its first input (in_ref), first output */
+    size_t blocks_high; /* blocks a pass has taken at once, at most */
 } pc_pass;
 
 /* Bytes of a region's entry, so that both passes round the same way. */

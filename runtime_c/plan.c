@@ -105,13 +105,14 @@ static pc_status pc_emit_layer(pc_pass *pp, const pc_prep *p)
 
 static void pc_node_act(const pc_builder *b, uint32_t i, pc_node *n)
 {
-    const pc_clip_bounds *c;
-    n->act = b->node_act[i];
+    const pc_fused *f;
+    n->act = PC_ACT_NONE;
     n->act_lo = n->act_hi = 0.0f;
-    for (c = b->clips; c; c = c->next)
-        if (c->node == i) {
-            n->act_lo = c->lo;
-            n->act_hi = c->hi;
+    for (f = b->fused; f; f = f->next)
+        if (f->node == i) {
+            n->act = f->act;
+            n->act_lo = f->lo;
+            n->act_hi = f->hi;
         }
 }
 
@@ -133,20 +134,20 @@ static void pc_alias(pc_pass *pp, int32_t o, int32_t src)
 
 /* The node's value ids: its inputs resolved (temp[j]: a constant made for it), a new
  * record for each named output. */
-static pc_status pc_node_values(pc_pass *pp, uint32_t i, const pc_node *n, int32_t *ids, uint8_t *temp)
+static pc_status pc_node_values(pc_pass *pp, const pc_node *n, int32_t *ids, uint8_t *temp)
 {
     pc_builder *b = pp->b;
     uint32_t j;
     pc_status st;
     for (j = 0; j < n->n_in; j++) {
         int t;
-        if ((st = pc_resolve(pp, b->in_ref[b->node_in0[i] + j], &ids[j], &t)) != PC_OK)
+        if ((st = pc_resolve(pp, b->in_ref[pp->in0 + j], &ids[j], &t)) != PC_OK)
             return st;
         temp[j] = (uint8_t)t;
     }
     for (j = 0; j < n->n_out; j++) {
         int32_t *o = &ids[n->n_in + j];
-        const uint32_t ord = b->node_out0[i] + j;
+        const uint32_t ord = pp->out0 + j;
         *o = -1;
         if (!n->out_names[j].size)
             continue;
@@ -184,26 +185,24 @@ static pc_status pc_node_step(pc_pass *pp, const pc_prep *p)
     return pc_emit_step(pp, p->fn, io, n_ids, p->prm, p->prm_size, p->out[0] ? p->out[0]->count : 0);
 }
 
-static pc_status pc_plan_node(pc_pass *pp, uint32_t i, pb_slice msg)
+/* Node i, parsed as n; its inputs are refs pp->in0.., its outputs ordinals pp->out0.. */
+static pc_status pc_plan_node(pc_pass *pp, uint32_t i, pc_node *n)
 {
     pc_builder *b = pp->b;
-    pc_node n;
     pc_prep p;
     int32_t *ids;
     uint8_t *temp;
     uint32_t j;
     size_t k;
     pc_status st;
-    if ((st = onnx_parse_node(b, msg, i, &n)) != PC_OK)
-        return st;
-    n.op = b->node_op[i];
-    pc_node_act(b, i, &n);
-    ids = pc_scratch_alloc(&b->scratch, PC_WORK, (n.n_in + n.n_out + 1) * sizeof(int32_t));
-    temp = pc_scratch_alloc(&b->scratch, PC_WORK, n.n_in + 1);
+    n->op = b->node_op[i];
+    pc_node_act(b, i, n);
+    ids = pc_scratch_alloc(&b->scratch, PC_WORK, (n->n_in + n->n_out + 1) * sizeof(int32_t));
+    temp = pc_scratch_alloc(&b->scratch, PC_WORK, n->n_in + 1);
     if (!ids || !temp)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory");
-    if ((st = pc_node_values(pp, i, &n, ids, temp)) != PC_OK ||
-        (st = pc_prepare_node(b, &n, ids, ids + n.n_in, 0, &p)) != PC_OK)
+    if ((st = pc_node_values(pp, n, ids, temp)) != PC_OK ||
+        (st = pc_prepare_node(b, n, ids, ids + n->n_in, 0, &p)) != PC_OK)
         return st;
     if (p.alias_of >= 0)
         pc_alias(pp, p.out_ids[0], p.alias_of);
@@ -211,14 +210,14 @@ static pc_status pc_plan_node(pc_pass *pp, uint32_t i, pb_slice msg)
         return st;
     /* Records whose last reader this node was, constants made for it, outputs nothing
      * reads. */
-    for (j = 0; j < n.n_in; j++)
+    for (j = 0; j < n->n_in; j++)
         if (temp[j])
             pc_value_release(b, ids[j]);
     for (k = 0; k < b->cap_values; k++) {
         const pc_value *v = &b->values[k];
         if (v->used && !v->input && v->ordinal >= 0 &&
-            (v->last == i || (v->last == PC_USE_NONE && b->node_out0[i] <= (uint32_t)v->ordinal &&
-                              (uint32_t)v->ordinal < b->node_out0[i + 1])))
+            (v->last == i || (v->last == PC_USE_NONE && pp->out0 <= (uint32_t)v->ordinal &&
+                              (uint32_t)v->ordinal < pp->out0 + n->n_out)))
             pc_drop(pp, (int32_t)k);
     }
     return PC_OK;
@@ -323,6 +322,7 @@ static pc_status pc_plan_one(pc_pass *pp, size_t batch, pc_plan *plan, pc_slot *
     pp->last_step = NULL;
     pp->last_layer = 0;
     pp->defer_frees = 0;
+    pp->in0 = pp->out0 = 0;
     if (plan)
         plan->steps = (pc_step *)(pp->region[PC_REGION_STEPS].base +
                                   pp->region[PC_REGION_STEPS].used);
@@ -330,13 +330,16 @@ static pc_status pc_plan_one(pc_pass *pp, size_t batch, pc_plan *plan, pc_slot *
         return st;
     pb_init(&r, b->file, b->graph);
     while ((more = onnx_next_node(b, &r, &msg)) == PB_FIELD) {
-        if (b->node_op[i] != PC_NODE_SKIP) {
-            const pc_scratch_mark mark = pc_scratch_save(&b->scratch, PC_WORK);
-            st = pc_plan_node(pp, i, msg);
-            pc_scratch_restore(&b->scratch, mark);
-            if (st != PC_OK)
-                return st;
-        }
+        const pc_scratch_mark mark = pc_scratch_save(&b->scratch, PC_WORK);
+        pc_node n;
+        st = onnx_parse_node(b, msg, i, &n);
+        if (st == PC_OK && b->node_op[i] != PC_NODE_SKIP)
+            st = pc_plan_node(pp, i, &n);
+        pc_scratch_restore(&b->scratch, mark);
+        if (st != PC_OK)
+            return st;
+        pp->in0 += n.n_in;
+        pp->out0 += n.n_out;
         i++;
     }
     if (more == PB_ERROR)
@@ -498,20 +501,35 @@ static pc_status pc_arena(pc_builder *b, size_t size, void *buf, size_t buf_size
     return PC_OK;
 }
 
-/* The pass's records, from the load's scratch (kept for both passes). */
-static pc_status pc_pass_alloc(pc_builder *b, pc_pass *pp)
+/* The sizing pass's records, as many as the scan says a pass may hold at once. */
+static void pc_pass_bounds(pc_builder *b, pc_pass *pp)
 {
     const pc_const *c;
     size_t n_consts = 0;
     for (c = b->consts; c; c = c->next)
         n_consts++;
-    b->values = pc_scratch_alloc(&b->scratch, PC_KEEP, b->cap_values * sizeof(pc_value));
     /* Blocks held at once: those of the records alive when a program opened (kept while
      * it is open), those it gives the records it leaves, and its temporaries. */
     pp->cap_blocks = 2 * b->cap_values + 2;
+    pp->cap_placed = b->n_inits + n_consts + 1;
+    b->values_high = pp->blocks_high = 0;
+}
+
+/* The filling pass's: as many as the sizing pass took (it makes the same choices, so it
+ * takes the same ones), which leaves more of a small target's buffer to the arena. */
+static void pc_pass_exact(pc_builder *b, pc_pass *pp)
+{
+    b->cap_values = b->values_high;
+    pp->cap_blocks = pp->blocks_high;
+    pp->cap_placed = pp->n_placed + 1;
+}
+
+/* The pass's records (keep end), of the sizes set above. */
+static pc_status pc_pass_alloc(pc_builder *b, pc_pass *pp)
+{
+    b->values = pc_scratch_alloc(&b->scratch, PC_KEEP, b->cap_values * sizeof(pc_value));
     pp->blocks = pc_scratch_alloc(&b->scratch, PC_KEEP, pp->cap_blocks * sizeof(pc_block));
     pp->live = pc_scratch_alloc(&b->scratch, PC_KEEP, pp->cap_blocks * sizeof(int32_t));
-    pp->cap_placed = b->n_inits + n_consts + 1;
     pp->placed = pc_scratch_alloc(&b->scratch, PC_KEEP, pp->cap_placed * sizeof(pc_placed));
     pp->input_ids = pc_scratch_alloc(&b->scratch, PC_KEEP, (b->n_inputs + 1) * sizeof(int32_t));
     if (!b->values || !pp->blocks || !pp->live || !pp->placed || !pp->input_ids)
@@ -535,33 +553,44 @@ static pc_status pc_arena_size(const pc_builder *b, pc_layout *L)
     return PC_OK;
 }
 
+/* The pass's records and the one-pose compiler's state (keep end). */
+static pc_status pc_pass_start(pc_pass *pp, const pc_options *opts)
+{
+    pc_program_limits limits;
+    pc_status st;
+    if ((st = pc_pass_alloc(pp->b, pp)) != PC_OK || (opts && (opts->flags & PC_LOAD_NO_PROGRAMS)))
+        return st;
+    limits.ops = opts ? opts->program_ops : 0;
+    limits.interpret = opts && (opts->flags & PC_LOAD_INTERPRET);
+    return pc_program_start(pp, &limits);
+}
+
 pc_status pc_plan_build(pc_builder *b, const pc_options *opts, void *buf, size_t buf_size,
                         pc_model **model_out)
 {
     pc_layout L;
     pc_pass pp;
-    pc_program_limits limits;
+    pc_scratch_mark pass_mark;
     uint8_t *arena;
     pc_model *m;
     pc_status st;
     memset(&L, 0, sizeof L);
     memset(&pp, 0, sizeof pp);
-    memset(&limits, 0, sizeof limits);
     pp.b = b;
     pc_batches(b, opts, &L);
-    if ((st = pc_pass_alloc(b, &pp)) != PC_OK)
+    pass_mark = pc_scratch_save(&b->scratch, PC_KEEP);
+    pc_pass_bounds(b, &pp);
+    if ((st = pc_pass_start(&pp, opts)) != PC_OK)
         return st;
-    if (!(opts && (opts->flags & PC_LOAD_NO_PROGRAMS))) {
-        limits.ops = opts ? opts->program_ops : 0;
-        limits.interpret = opts && (opts->flags & PC_LOAD_INTERPRET);
-        if ((st = pc_program_start(&pp, &limits)) != PC_OK)
-            return st;
-    }
     if ((st = pc_plan_pass(&pp, &L, NULL)) != PC_OK)
         return st;
     if (!(opts && (opts->flags & PC_LOAD_NO_METADATA)) && (st = pc_count_meta(b, &L)) != PC_OK)
         return st;
     if ((st = pc_arena_size(b, &L)) != PC_OK)
+        return st;
+    pc_scratch_restore(&b->scratch, pass_mark);
+    pc_pass_exact(b, &pp);
+    if ((st = pc_pass_start(&pp, opts)) != PC_OK)
         return st;
     /* From here on the arena is in use too: the load's peak is the larger of the two. */
     b->peak_unplaced = b->scratch.peak;

@@ -291,34 +291,33 @@ def test_pc_run_meets_the_floor_on_every_network(networks):
     """Issue 33 for pc_run: on the 32 KB board (program_ops 512, where the plan's programs
     are those compiled ahead of time) within 1.3x the hand-written function and at or below
     emlearn on the three networks; on the 16 KB board (program_ops 32, the interpreter runs
-    the encoding and decoding) too for the zhou MLP, whose dense layers dominate."""
+    the encoding and decoding) too for the zhou MLP, whose dense layers dominate. The quat
+    MLPs' 16 KB builds are slower than their 32 KB ones (the guide gives both)."""
     for name, row in networks.items():
         hand, eml = row["reference"]["instructions_per_pose"], row["emlearn"]["instructions_per_pose"]
-        for key in ("pc_run", "pc_run_16kb"):
-            if key not in row:
-                continue
+        for key in ("pc_run", "pc_run_16kb") if name == "shipped" else ("pc_run",):
             count = row[key]["instructions_per_pose"]
             assert count <= 1.3 * hand and count <= eml, (name, key, count, hand, eml)
             assert row[key]["meets_floor"] is True
         assert row["pc_run"]["program_ops"] == 512
-        # the 32 KB build's arena is the price of the compiled programs: the 16 KB one loads
-        # the zhou MLP in 12,800 B at program_ops 32
         assert row["pc_run"]["ram_reserved"] <= 32 * 1024
-    zhou = networks["shipped"]
-    assert zhou["pc_run_16kb"]["program_ops"] == 32
-    assert zhou["pc_run_16kb"]["arena_reserved"] < zhou["pc_run"]["arena_reserved"]
-    # the 16 KB build runs more instructions: its programs are interpreted
-    assert zhou["pc_run_16kb"]["instructions_per_pose"] > zhou["pc_run"]["instructions_per_pose"]
+        # the 32 KB build's arena is the price of the compiled programs: the 16 KB one loads
+        # at program_ops 32 in a smaller one, and runs more instructions (interpreted)
+        small = row["pc_run_16kb"]
+        assert small["program_ops"] == 32
+        assert small["arena_reserved"] < row["pc_run"]["arena_reserved"]
+        assert small["instructions_per_pose"] > row["pc_run"]["instructions_per_pose"]
+        assert small["meets_floor"] is (small["instructions_per_pose"] <= 1.3 * hand
+                                        and small["instructions_per_pose"] <= eml)
 
 
 def test_pc_run_boards_of_the_networks(networks):
-    """Every network runs pc_run on the 32 KB board; the shipped zhou MLP also in 16 KB,
-    where a quat MLP's load is refused for want of arena (the guide says so)."""
+    """Every network runs pc_run on the 32 KB board and on the 16 KB one: the quat MLPs'
+    graphs (their encoding and decoding each through a rotation matrix) load within the
+    16 KB board's static arena, .data, .bss and stack included (the linker's check)."""
     for name in NETWORKS:
         assert networks[name]["pc_run"]["board_ram_kb"] == 32
-    assert networks["shipped"]["pc_run_16kb"]["board_ram_kb"] == 16
-    for name in ("quat-10-10", "quat-5-5-5-5"):
-        assert "pc_run_16kb" not in networks[name]
-    r = make(str(BUILD / "net" / "quat-10-10" / "pc16.log"))
-    assert r.returncode != 0
-    assert "buffer is too small for this model" in r.stdout + r.stderr, (r.stdout + r.stderr)[-2000:]
+        small = networks[name]["pc_run_16kb"]
+        assert small["board_ram_kb"] == 16
+        assert small["arena_used"] < small["arena_reserved"] < 13 * 1024, (name, small)
+        assert small["ram_reserved"] <= 16 * 1024, (name, small)

@@ -12,6 +12,56 @@
 #define PC_STOREF(k, v) (*(float *)(base + e[k].o) = (v))
 #define PC_STOREB(k, v) (*(uint8_t *)(base + e[k].o) = (v))
 
+static const uint8_t pc_program_fdacaeb3267d16a4_shape[12] = {
+    24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_fdacaeb3267d16a4(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float f0 = PC_XF(1, a);
+    PC_STOREF(1, f0);
+    const float f1 = PC_XF(2, a);
+    PC_STOREF(2, f1);
+    const float f2 = PC_XF(3, a);
+    PC_STOREF(3, f2);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_6de52950720b126e_shape[15] = {
+    2, 0, 1, 0, 254, 2, 0, 1, 0, 254, 2, 0, 1, 0, 254,
+};
+PC_HOT static pc_status pc_program_6de52950720b126e(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 4);
+    const float f0 = pc_sop_float(PC_SOP_SUB, PC_XF(1, a), PC_KF(0));
+    PC_STOREF(1, f0);
+    const float f1 = pc_sop_float(PC_SOP_SUB, PC_XF(2, a), PC_KF(1));
+    PC_STOREF(2, f1);
+    const float f2 = pc_sop_float(PC_SOP_SUB, PC_XF(3, a), PC_KF(2));
+    PC_STOREF(3, f2);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_1912d78d622026b3_shape[15] = {
+    3, 0, 1, 0, 254, 3, 0, 1, 0, 254, 3, 0, 1, 0, 254,
+};
+PC_HOT static pc_status pc_program_1912d78d622026b3(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 4);
+    const float f0 = pc_sop_float(PC_SOP_MUL, PC_XF(1, a), PC_KF(0));
+    PC_STOREF(1, f0);
+    const float f1 = pc_sop_float(PC_SOP_MUL, PC_XF(2, a), PC_KF(1));
+    PC_STOREF(2, f1);
+    const float f2 = pc_sop_float(PC_SOP_MUL, PC_XF(3, a), PC_KF(2));
+    PC_STOREF(3, f2);
+    return PC_OK;
+}
+
 static const uint8_t pc_program_3e6e093e97893cd6_shape[18] = {
     26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254,
 };
@@ -29,6 +79,309 @@ PC_HOT static pc_status pc_program_3e6e093e97893cd6(const pc_step *s)
     float f2 = PC_KF(5);
     f2 += PC_XF(3, a) * PC_KF(4);
     PC_STOREF(3, f2);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_6ab777400bf7561a_shape[25] = {
+    1, 0, 0, 0, 254, 3, 0, 0, 1, 254, 3, 0, 1, 1, 0, 3, 0, 1, 2, 0, 3, 0, 1, 3,
+    0,
+};
+PC_HOT static pc_status pc_program_6ab777400bf7561a(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 7);
+    const float f0 = pc_sop_float(PC_SOP_ADD, PC_XF(1, a), PC_KF(0));
+    const float f1 = pc_sop_float(PC_SOP_MUL, f0, PC_KF(1));
+    const float f2 = pc_sop_float(PC_SOP_MUL, f1, PC_XF(4, b));
+    PC_STOREF(4, f2);
+    const float f3 = pc_sop_float(PC_SOP_MUL, f1, PC_XF(5, b));
+    PC_STOREF(5, f3);
+    const float f4 = pc_sop_float(PC_SOP_MUL, f1, PC_XF(6, b));
+    PC_STOREF(6, f4);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_9398cc147e4fb695_shape[30] = {
+    3, 0, 1, 0, 254, 3, 0, 1, 0, 254, 3, 0, 1, 0, 254, 3, 0, 1, 0, 254, 3, 0, 1, 0,
+    254, 3, 0, 1, 0, 254,
+};
+PC_HOT static pc_status pc_program_9398cc147e4fb695(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 7);
+    const float f0 = pc_sop_float(PC_SOP_MUL, PC_XF(1, a), PC_KF(0));
+    PC_STOREF(1, f0);
+    const float f1 = pc_sop_float(PC_SOP_MUL, PC_XF(2, a), PC_KF(1));
+    PC_STOREF(2, f1);
+    const float f2 = pc_sop_float(PC_SOP_MUL, PC_XF(3, a), PC_KF(2));
+    PC_STOREF(3, f2);
+    const float f3 = pc_sop_float(PC_SOP_MUL, PC_XF(4, a), PC_KF(3));
+    PC_STOREF(4, f3);
+    const float f4 = pc_sop_float(PC_SOP_MUL, PC_XF(5, a), PC_KF(4));
+    PC_STOREF(5, f4);
+    const float f5 = pc_sop_float(PC_SOP_MUL, PC_XF(6, a), PC_KF(5));
+    PC_STOREF(6, f5);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_e730829675a10053_shape[35] = {
+    3, 0, 1, 0, 254, 3, 0, 1, 0, 254, 3, 0, 1, 0, 254, 3, 0, 1, 0, 254, 3, 0, 1, 0,
+    254, 3, 0, 1, 0, 254, 3, 0, 1, 0, 254,
+};
+PC_HOT static pc_status pc_program_e730829675a10053(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 8);
+    const float f0 = pc_sop_float(PC_SOP_MUL, PC_XF(1, a), PC_KF(0));
+    PC_STOREF(1, f0);
+    const float f1 = pc_sop_float(PC_SOP_MUL, PC_XF(2, a), PC_KF(1));
+    PC_STOREF(2, f1);
+    const float f2 = pc_sop_float(PC_SOP_MUL, PC_XF(3, a), PC_KF(2));
+    PC_STOREF(3, f2);
+    const float f3 = pc_sop_float(PC_SOP_MUL, PC_XF(4, a), PC_KF(3));
+    PC_STOREF(4, f3);
+    const float f4 = pc_sop_float(PC_SOP_MUL, PC_XF(5, a), PC_KF(4));
+    PC_STOREF(5, f4);
+    const float f5 = pc_sop_float(PC_SOP_MUL, PC_XF(6, a), PC_KF(5));
+    PC_STOREF(6, f5);
+    const float f6 = pc_sop_float(PC_SOP_MUL, PC_XF(7, a), PC_KF(6));
+    PC_STOREF(7, f6);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_e6539e7073697c15_shape[42] = {
+    1, 0, 0, 0, 0, 3, 0, 1, 1, 254, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0,
+    1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_e6539e7073697c15(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 13);
+    const float f0 = pc_sop_float(PC_SOP_ADD, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_MUL, f0, PC_KF(0));
+    PC_STOREF(3, f1);
+    const float f2 = PC_XF(5, a);
+    PC_STOREF(5, f2);
+    const float f3 = PC_XF(6, a);
+    PC_STOREF(6, f3);
+    const float f4 = PC_XF(7, a);
+    PC_STOREF(7, f4);
+    const float f5 = PC_XF(8, a);
+    PC_STOREF(8, f5);
+    const float f6 = PC_XF(9, a);
+    PC_STOREF(9, f6);
+    const float f7 = PC_XF(10, a);
+    PC_STOREF(10, f7);
+    const float f8 = PC_XF(11, a);
+    PC_STOREF(11, f8);
+    const float f9 = PC_XF(12, a);
+    PC_STOREF(12, f9);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_e1640cbbdd279744_shape[42] = {
+    3, 0, 1, 0, 0, 3, 0, 1, 0, 0, 3, 0, 1, 0, 0, 3, 0, 1, 0, 0, 3, 0, 1, 0,
+    0, 3, 0, 1, 0, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_e1640cbbdd279744(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float f0 = pc_sop_float(PC_SOP_MUL, PC_XF(1, a), PC_XF(1, b));
+    PC_STOREF(1, f0);
+    const float f1 = pc_sop_float(PC_SOP_MUL, PC_XF(2, a), PC_XF(2, b));
+    PC_STOREF(2, f1);
+    const float f2 = pc_sop_float(PC_SOP_MUL, PC_XF(3, a), PC_XF(3, b));
+    PC_STOREF(3, f2);
+    const float f3 = pc_sop_float(PC_SOP_MUL, PC_XF(4, a), PC_XF(4, b));
+    PC_STOREF(4, f3);
+    const float f4 = pc_sop_float(PC_SOP_MUL, PC_XF(5, a), PC_XF(5, b));
+    PC_STOREF(5, f4);
+    const float f5 = pc_sop_float(PC_SOP_MUL, PC_XF(6, a), PC_XF(6, b));
+    PC_STOREF(6, f5);
+    const float f6 = PC_XF(8, a);
+    PC_STOREF(8, f6);
+    const float f7 = PC_XF(9, a);
+    PC_STOREF(9, f7);
+    const float f8 = PC_XF(10, a);
+    PC_STOREF(10, f8);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_c83143816c484653_shape[42] = {
+    26, 2, 1, 0, 254, 253, 0, 254, 0, 254, 26, 3, 0, 0, 254, 253, 0, 254, 0, 254, 254, 254, 3, 0,
+    0, 1, 254, 3, 0, 1, 1, 0, 3, 0, 1, 2, 0, 3, 0, 1, 3, 0,
+};
+PC_HOT static pc_status pc_program_c83143816c484653(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 13);
+    float f0 = PC_KF(1);
+    f0 += PC_XF(1, a) * PC_KF(0);
+    f0 += PC_XF(2, a) * PC_KF(2);
+    f0 += PC_XF(3, a) * PC_KF(3);
+    PC_STOREF(1, f0);
+    float f1 = PC_KF(5);
+    f1 += PC_XF(4, a) * PC_KF(4);
+    f1 += PC_XF(5, a) * PC_KF(6);
+    f1 += PC_XF(6, a) * PC_KF(7);
+    f1 += PC_KF(8) * PC_KF(9);
+    const float f2 = pc_sop_float(PC_SOP_MUL, f1, PC_KF(10));
+    const float f3 = pc_sop_float(PC_SOP_MUL, f2, PC_XF(10, b));
+    PC_STOREF(10, f3);
+    const float f4 = pc_sop_float(PC_SOP_MUL, f2, PC_XF(11, b));
+    PC_STOREF(11, f4);
+    const float f5 = pc_sop_float(PC_SOP_MUL, f2, PC_XF(12, b));
+    PC_STOREF(12, f5);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_3fc2825bbc2a7896_shape[45] = {
+    3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 2, 0, 0, 0, 3, 2, 0, 0, 0,
+    3, 2, 0, 0, 0, 3, 3, 0, 1, 3, 254, 3, 0, 1, 3, 254, 3, 0, 1, 3, 254,
+};
+PC_HOT static pc_status pc_program_3fc2825bbc2a7896(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 12);
+    const float f0 = pc_sop_float(PC_SOP_MUL, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_MUL, PC_XF(2, a), PC_XF(2, b));
+    const float f2 = pc_sop_float(PC_SOP_MUL, PC_XF(3, a), PC_XF(3, b));
+    const float f3 = pc_sop_float(PC_SOP_SUB, PC_XF(5, a), f0);
+    const float f4 = pc_sop_float(PC_SOP_SUB, PC_XF(6, a), f1);
+    const float f5 = pc_sop_float(PC_SOP_SUB, PC_XF(7, a), f2);
+    const float f6 = pc_sop_float(PC_SOP_MUL, f3, PC_KF(0));
+    PC_STOREF(9, f6);
+    const float f7 = pc_sop_float(PC_SOP_MUL, f4, PC_KF(1));
+    PC_STOREF(10, f7);
+    const float f8 = pc_sop_float(PC_SOP_MUL, f5, PC_KF(2));
+    PC_STOREF(11, f8);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_fd78145ac8432819_shape[48] = {
+    2, 0, 0, 0, 0, 1, 0, 0, 0, 0, 3, 0, 1, 2, 254, 3, 0, 1, 2, 254, 24, 0, 1, 0,
+    24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_fd78145ac8432819(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 15);
+    const float f0 = pc_sop_float(PC_SOP_SUB, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_ADD, PC_XF(3, a), PC_XF(3, b));
+    const float f2 = pc_sop_float(PC_SOP_MUL, f0, PC_KF(0));
+    PC_STOREF(5, f2);
+    const float f3 = pc_sop_float(PC_SOP_MUL, f1, PC_KF(1));
+    PC_STOREF(6, f3);
+    const float f4 = PC_XF(8, a);
+    PC_STOREF(8, f4);
+    const float f5 = PC_XF(9, a);
+    PC_STOREF(9, f5);
+    const float f6 = PC_XF(10, a);
+    PC_STOREF(10, f6);
+    const float f7 = PC_XF(11, a);
+    PC_STOREF(11, f7);
+    const float f8 = PC_XF(12, a);
+    PC_STOREF(12, f8);
+    const float f9 = PC_XF(13, a);
+    PC_STOREF(13, f9);
+    const float f10 = PC_XF(14, a);
+    PC_STOREF(14, f10);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_09534b7dcdc7fa85_shape[49] = {
+    26, 2, 0, 0, 0, 253, 0, 0, 0, 0, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 0, 1,
+    4, 0, 0, 0, 2, 4, 0, 0, 0, 3, 3, 0, 1, 0, 3, 3, 0, 1, 0, 3, 3, 0, 1, 0,
+    3,
+};
+PC_HOT static pc_status pc_program_09534b7dcdc7fa85(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 16);
+    float f0 = PC_KF(0);
+    f0 += PC_XF(1, a) * PC_XF(1, b);
+    f0 += PC_XF(2, a) * PC_XF(2, b);
+    f0 += PC_XF(3, a) * PC_XF(3, b);
+    const float f1 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(1));
+    const float f2 = pc_sop_float(PC_SOP_SQRT, f1, 0.0f);
+    const float f3 = pc_sop_float(PC_SOP_DIV, PC_XF(9, a), f2);
+    const float f4 = pc_sop_float(PC_SOP_DIV, PC_XF(10, a), f2);
+    const float f5 = pc_sop_float(PC_SOP_DIV, PC_XF(11, a), f2);
+    const float f6 = pc_sop_float(PC_SOP_MUL, PC_XF(13, a), f3);
+    PC_STOREF(13, f6);
+    const float f7 = pc_sop_float(PC_SOP_MUL, PC_XF(14, a), f4);
+    PC_STOREF(14, f7);
+    const float f8 = pc_sop_float(PC_SOP_MUL, PC_XF(15, a), f5);
+    PC_STOREF(15, f8);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_5d736994581975e6_shape[57] = {
+    10, 0, 0, 0, 254, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 23, 0, 1,
+    4, 0, 5, 23, 0, 1, 4, 0, 6, 23, 0, 1, 4, 0, 7, 23, 0, 1, 4, 0, 8, 24, 0, 1,
+    0, 24, 0, 1, 0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_5d736994581975e6(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 16);
+    const uint8_t b0 = PC_XF(1, a) < PC_KF(0);
+    const float f1 = pc_sop_float(PC_SOP_NEG, PC_XF(3, a), 0.0f);
+    const float f2 = pc_sop_float(PC_SOP_NEG, PC_XF(4, a), 0.0f);
+    const float f3 = pc_sop_float(PC_SOP_NEG, PC_XF(5, a), 0.0f);
+    const float f4 = pc_sop_float(PC_SOP_NEG, PC_XF(6, a), 0.0f);
+    const float f5 = b0 ? f1 : PC_XF(8, b);
+    PC_STOREF(8, f5);
+    const float f6 = b0 ? f2 : PC_XF(9, b);
+    PC_STOREF(9, f6);
+    const float f7 = b0 ? f3 : PC_XF(10, b);
+    PC_STOREF(10, f7);
+    const float f8 = b0 ? f4 : PC_XF(11, b);
+    PC_STOREF(11, f8);
+    const float f9 = PC_XF(13, a);
+    PC_STOREF(13, f9);
+    const float f10 = PC_XF(14, a);
+    PC_STOREF(14, f10);
+    const float f11 = PC_XF(15, a);
+    PC_STOREF(15, f11);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_fce5e0c0f059f3c3_shape[60] = {
+    2, 0, 0, 0, 0, 2, 0, 0, 0, 0, 2, 0, 0, 0, 0, 2, 0, 0, 0, 3, 2, 0, 0, 0,
+    3, 2, 0, 0, 0, 3, 2, 0, 0, 3, 254, 2, 0, 0, 3, 254, 2, 0, 0, 3, 254, 4, 0, 1,
+    3, 254, 4, 0, 1, 3, 254, 4, 0, 1, 3, 254,
+};
+PC_HOT static pc_status pc_program_fce5e0c0f059f3c3(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 14);
+    const float f0 = pc_sop_float(PC_SOP_SUB, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_SUB, PC_XF(2, a), PC_XF(2, b));
+    const float f2 = pc_sop_float(PC_SOP_SUB, PC_XF(3, a), PC_XF(3, b));
+    const float f3 = pc_sop_float(PC_SOP_SUB, PC_XF(4, a), f0);
+    const float f4 = pc_sop_float(PC_SOP_SUB, PC_XF(5, a), f1);
+    const float f5 = pc_sop_float(PC_SOP_SUB, PC_XF(6, a), f2);
+    const float f6 = pc_sop_float(PC_SOP_SUB, f3, PC_KF(0));
+    const float f7 = pc_sop_float(PC_SOP_SUB, f4, PC_KF(1));
+    const float f8 = pc_sop_float(PC_SOP_SUB, f5, PC_KF(2));
+    const float f9 = pc_sop_float(PC_SOP_DIV, f6, PC_KF(3));
+    PC_STOREF(11, f9);
+    const float f10 = pc_sop_float(PC_SOP_DIV, f7, PC_KF(4));
+    PC_STOREF(12, f10);
+    const float f11 = pc_sop_float(PC_SOP_DIV, f8, PC_KF(5));
+    PC_STOREF(13, f11);
     return PC_OK;
 }
 
@@ -64,6 +417,1677 @@ PC_HOT static pc_status pc_program_77704bc8040ae058(const pc_step *s)
     PC_STOREF(14, f10);
     const float f11 = b0 ? f4 : PC_XF(15, b);
     PC_STOREF(15, f11);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_a20d227085916ff8_shape[63] = {
+    26, 3, 0, 0, 0, 253, 0, 0, 0, 0, 0, 0, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 1,
+    0, 1, 4, 0, 1, 0, 2, 4, 0, 1, 0, 3, 4, 0, 1, 0, 4, 3, 0, 1, 2, 2, 3, 0,
+    1, 2, 2, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_a20d227085916ff8(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 21);
+    float f0 = PC_KF(0);
+    f0 += PC_XF(1, a) * PC_XF(1, b);
+    f0 += PC_XF(2, a) * PC_XF(2, b);
+    f0 += PC_XF(3, a) * PC_XF(3, b);
+    f0 += PC_XF(4, a) * PC_XF(4, b);
+    const float f1 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(1));
+    const float f2 = pc_sop_float(PC_SOP_SQRT, f1, 0.0f);
+    const float f3 = pc_sop_float(PC_SOP_DIV, PC_XF(10, a), f2);
+    PC_STOREF(10, f3);
+    const float f4 = pc_sop_float(PC_SOP_DIV, PC_XF(11, a), f2);
+    PC_STOREF(11, f4);
+    const float f5 = pc_sop_float(PC_SOP_DIV, PC_XF(12, a), f2);
+    PC_STOREF(12, f5);
+    const float f6 = pc_sop_float(PC_SOP_DIV, PC_XF(13, a), f2);
+    PC_STOREF(13, f6);
+    const float f7 = pc_sop_float(PC_SOP_MUL, f5, f5);
+    PC_STOREF(15, f7);
+    const float f8 = pc_sop_float(PC_SOP_MUL, f6, f6);
+    PC_STOREF(16, f8);
+    const float f9 = PC_XF(18, a);
+    PC_STOREF(18, f9);
+    const float f10 = PC_XF(19, a);
+    PC_STOREF(19, f10);
+    const float f11 = PC_XF(20, a);
+    PC_STOREF(20, f11);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_33895605c1f75561_shape[68] = {
+    26, 2, 0, 0, 0, 253, 0, 0, 0, 0, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 1, 0, 1,
+    4, 0, 1, 0, 2, 4, 0, 1, 0, 3, 26, 2, 1, 3, 0, 253, 2, 0, 1, 0, 24, 0, 1, 0,
+    24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_33895605c1f75561(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 23);
+    float f0 = PC_KF(0);
+    f0 += PC_XF(1, a) * PC_XF(1, b);
+    f0 += PC_XF(2, a) * PC_XF(2, b);
+    f0 += PC_XF(3, a) * PC_XF(3, b);
+    const float f1 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(1));
+    const float f2 = pc_sop_float(PC_SOP_SQRT, f1, 0.0f);
+    const float f3 = pc_sop_float(PC_SOP_DIV, PC_XF(9, a), f2);
+    PC_STOREF(9, f3);
+    const float f4 = pc_sop_float(PC_SOP_DIV, PC_XF(10, a), f2);
+    PC_STOREF(10, f4);
+    const float f5 = pc_sop_float(PC_SOP_DIV, PC_XF(11, a), f2);
+    PC_STOREF(11, f5);
+    float f6 = PC_KF(2);
+    f6 += f3 * PC_XF(13, b);
+    f6 += f4 * PC_XF(14, b);
+    f6 += f5 * PC_XF(15, b);
+    PC_STOREF(13, f6);
+    const float f7 = PC_XF(17, a);
+    PC_STOREF(17, f7);
+    const float f8 = PC_XF(18, a);
+    PC_STOREF(18, f8);
+    const float f9 = PC_XF(19, a);
+    PC_STOREF(19, f9);
+    const float f10 = PC_XF(20, a);
+    PC_STOREF(20, f10);
+    const float f11 = PC_XF(21, a);
+    PC_STOREF(21, f11);
+    const float f12 = PC_XF(22, a);
+    PC_STOREF(22, f12);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_1ba133b6d1e2b184_shape[71] = {
+    2, 0, 0, 0, 254, 2, 0, 0, 0, 254, 2, 0, 0, 0, 254, 26, 2, 0, 3, 3, 253, 2, 2, 1,
+    1, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 1, 6, 1, 4, 0, 1, 6, 2, 4, 0, 1, 6,
+    3, 26, 2, 1, 0, 3, 253, 0, 2, 0, 1, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_1ba133b6d1e2b184(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 24);
+    const float f0 = pc_sop_float(PC_SOP_SUB, PC_XF(1, a), PC_KF(0));
+    const float f1 = pc_sop_float(PC_SOP_SUB, PC_XF(2, a), PC_KF(1));
+    const float f2 = pc_sop_float(PC_SOP_SUB, PC_XF(3, a), PC_KF(2));
+    float f3 = f0 * f0; /* a square: 0 + it is it */
+    f3 += f1 * f1;
+    f3 += f2 * f2;
+    const float f4 = pc_sop_float(PC_SOP_MAX, f3, PC_KF(4));
+    const float f5 = pc_sop_float(PC_SOP_SQRT, f4, 0.0f);
+    const float f6 = pc_sop_float(PC_SOP_DIV, f0, f5);
+    PC_STOREF(13, f6);
+    const float f7 = pc_sop_float(PC_SOP_DIV, f1, f5);
+    PC_STOREF(14, f7);
+    const float f8 = pc_sop_float(PC_SOP_DIV, f2, f5);
+    PC_STOREF(15, f8);
+    float f9 = PC_KF(5);
+    f9 += PC_XF(17, a) * f6;
+    f9 += PC_XF(18, a) * f7;
+    f9 += PC_XF(19, a) * f8;
+    PC_STOREF(17, f9);
+    const float f10 = PC_XF(21, a);
+    PC_STOREF(21, f10);
+    const float f11 = PC_XF(22, a);
+    PC_STOREF(22, f11);
+    const float f12 = PC_XF(23, a);
+    PC_STOREF(23, f12);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_38ad1587184f3658_shape[72] = {
+    1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 2, 0, 0, 0, 0, 3, 0, 1, 0, 254, 3, 0, 1, 2,
+    254, 3, 0, 1, 5, 254, 3, 0, 0, 5, 254, 2, 0, 1, 254, 1, 24, 0, 1, 0, 24, 0, 1, 0,
+    24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_38ad1587184f3658(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 21);
+    const float f0 = pc_sop_float(PC_SOP_ADD, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_ADD, PC_XF(2, a), PC_XF(2, b));
+    const float f2 = pc_sop_float(PC_SOP_SUB, PC_XF(4, a), PC_XF(4, b));
+    const float f3 = pc_sop_float(PC_SOP_MUL, PC_XF(6, a), PC_KF(0));
+    PC_STOREF(6, f3);
+    const float f4 = pc_sop_float(PC_SOP_MUL, f2, PC_KF(1));
+    PC_STOREF(7, f4);
+    const float f5 = pc_sop_float(PC_SOP_MUL, f0, PC_KF(2));
+    PC_STOREF(8, f5);
+    const float f6 = pc_sop_float(PC_SOP_MUL, f1, PC_KF(3));
+    const float f7 = pc_sop_float(PC_SOP_SUB, PC_KF(4), f6);
+    PC_STOREF(11, f7);
+    const float f8 = PC_XF(13, a);
+    PC_STOREF(13, f8);
+    const float f9 = PC_XF(14, a);
+    PC_STOREF(14, f9);
+    const float f10 = PC_XF(15, a);
+    PC_STOREF(15, f10);
+    const float f11 = PC_XF(16, a);
+    PC_STOREF(16, f11);
+    const float f12 = PC_XF(17, a);
+    PC_STOREF(17, f12);
+    const float f13 = PC_XF(18, a);
+    PC_STOREF(18, f13);
+    const float f14 = PC_XF(19, a);
+    PC_STOREF(19, f14);
+    const float f15 = PC_XF(20, a);
+    PC_STOREF(20, f15);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_3e2e10e6589b9b30_shape[72] = {
+    1, 0, 0, 0, 0, 23, 0, 0, 1, 0, 0, 3, 0, 0, 1, 254, 3, 0, 1, 0, 254, 3, 0, 1,
+    0, 254, 3, 0, 1, 0, 254, 4, 0, 0, 4, 0, 23, 0, 0, 0, 1, 0, 3, 0, 0, 0, 1, 3,
+    0, 0, 0, 2, 3, 0, 0, 0, 3, 3, 0, 1, 3, 254, 3, 0, 1, 3, 254, 3, 0, 1, 3, 254,
+};
+PC_HOT static pc_status pc_program_3e2e10e6589b9b30(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 20);
+    const float f0 = pc_sop_float(PC_SOP_ADD, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = PC_XB(3, c) ? f0 : PC_XF(3, b);
+    const float f2 = pc_sop_float(PC_SOP_MUL, f1, PC_KF(0));
+    const float f3 = pc_sop_float(PC_SOP_MUL, PC_XF(6, a), PC_KF(1));
+    PC_STOREF(6, f3);
+    const float f4 = pc_sop_float(PC_SOP_MUL, PC_XF(7, a), PC_KF(2));
+    PC_STOREF(7, f4);
+    const float f5 = pc_sop_float(PC_SOP_MUL, PC_XF(8, a), PC_KF(3));
+    PC_STOREF(8, f5);
+    const float f6 = pc_sop_float(PC_SOP_DIV, f2, PC_XF(10, b));
+    const float f7 = PC_XB(12, c) ? PC_XF(12, a) : f6;
+    const float f8 = pc_sop_float(PC_SOP_MUL, PC_XF(14, a), f7);
+    const float f9 = pc_sop_float(PC_SOP_MUL, PC_XF(15, a), f7);
+    const float f10 = pc_sop_float(PC_SOP_MUL, PC_XF(16, a), f7);
+    const float f11 = pc_sop_float(PC_SOP_MUL, f8, PC_KF(4));
+    PC_STOREF(17, f11);
+    const float f12 = pc_sop_float(PC_SOP_MUL, f9, PC_KF(5));
+    PC_STOREF(18, f12);
+    const float f13 = pc_sop_float(PC_SOP_MUL, f10, PC_KF(6));
+    PC_STOREF(19, f13);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_2743116c85de11ab_shape[75] = {
+    1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 2, 0, 0, 0, 0, 2, 0, 1, 0, 254, 2, 0, 1, 0,
+    254, 2, 0, 1, 0, 254, 3, 0, 1, 0, 254, 3, 0, 1, 5, 254, 3, 0, 1, 8, 254, 3, 0, 0,
+    8, 254, 2, 0, 1, 254, 1, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24,
+    0, 1, 0,
+};
+PC_HOT static pc_status pc_program_2743116c85de11ab(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 21);
+    const float f0 = pc_sop_float(PC_SOP_ADD, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_ADD, PC_XF(2, a), PC_XF(2, b));
+    const float f2 = pc_sop_float(PC_SOP_SUB, PC_XF(4, a), PC_XF(4, b));
+    const float f3 = pc_sop_float(PC_SOP_SUB, PC_XF(5, a), PC_KF(0));
+    PC_STOREF(5, f3);
+    const float f4 = pc_sop_float(PC_SOP_SUB, PC_XF(6, a), PC_KF(1));
+    PC_STOREF(6, f4);
+    const float f5 = pc_sop_float(PC_SOP_SUB, PC_XF(7, a), PC_KF(2));
+    PC_STOREF(7, f5);
+    const float f6 = pc_sop_float(PC_SOP_MUL, PC_XF(9, a), PC_KF(3));
+    PC_STOREF(9, f6);
+    const float f7 = pc_sop_float(PC_SOP_MUL, f2, PC_KF(4));
+    PC_STOREF(10, f7);
+    const float f8 = pc_sop_float(PC_SOP_MUL, f0, PC_KF(5));
+    PC_STOREF(11, f8);
+    const float f9 = pc_sop_float(PC_SOP_MUL, f1, PC_KF(6));
+    const float f10 = pc_sop_float(PC_SOP_SUB, PC_KF(7), f9);
+    PC_STOREF(14, f10);
+    const float f11 = PC_XF(16, a);
+    PC_STOREF(16, f11);
+    const float f12 = PC_XF(17, a);
+    PC_STOREF(17, f12);
+    const float f13 = PC_XF(18, a);
+    PC_STOREF(18, f13);
+    const float f14 = PC_XF(19, a);
+    PC_STOREF(19, f14);
+    const float f15 = PC_XF(20, a);
+    PC_STOREF(20, f15);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_90d08eb988bef9a4_shape[75] = {
+    1, 0, 0, 0, 254, 1, 0, 0, 1, 0, 1, 0, 1, 1, 0, 1, 0, 1, 0, 0, 1, 0, 1, 0,
+    0, 2, 0, 0, 5, 0, 2, 0, 1, 1, 0, 2, 0, 0, 254, 0, 2, 0, 0, 1, 0, 2, 0, 1,
+    0, 0, 2, 0, 1, 0, 0, 2, 0, 1, 0, 0, 1, 0, 0, 5, 0, 1, 0, 1, 5, 0, 2, 0,
+    1, 2, 0,
+};
+PC_HOT static pc_status pc_program_90d08eb988bef9a4(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 19);
+    const float f0 = pc_sop_float(PC_SOP_ADD, PC_XF(1, a), PC_KF(0));
+    const float f1 = pc_sop_float(PC_SOP_ADD, f0, PC_XF(2, b));
+    const float f2 = pc_sop_float(PC_SOP_ADD, f1, PC_XF(3, b));
+    PC_STOREF(3, f2);
+    const float f3 = pc_sop_float(PC_SOP_ADD, PC_XF(4, a), PC_XF(4, b));
+    PC_STOREF(4, f3);
+    const float f4 = pc_sop_float(PC_SOP_ADD, PC_XF(5, a), PC_XF(5, b));
+    PC_STOREF(5, f4);
+    const float f5 = pc_sop_float(PC_SOP_SUB, f0, PC_XF(7, b));
+    const float f6 = pc_sop_float(PC_SOP_SUB, f5, PC_XF(8, b));
+    PC_STOREF(8, f6);
+    const float f7 = pc_sop_float(PC_SOP_SUB, PC_KF(1), PC_XF(9, b));
+    const float f8 = pc_sop_float(PC_SOP_SUB, f7, PC_XF(10, b));
+    const float f9 = pc_sop_float(PC_SOP_SUB, PC_XF(11, a), PC_XF(11, b));
+    PC_STOREF(11, f9);
+    const float f10 = pc_sop_float(PC_SOP_SUB, PC_XF(12, a), PC_XF(12, b));
+    PC_STOREF(12, f10);
+    const float f11 = pc_sop_float(PC_SOP_SUB, PC_XF(13, a), PC_XF(13, b));
+    PC_STOREF(13, f11);
+    const float f12 = pc_sop_float(PC_SOP_ADD, f7, PC_XF(15, b));
+    const float f13 = pc_sop_float(PC_SOP_ADD, f8, PC_XF(16, b));
+    PC_STOREF(16, f13);
+    const float f14 = pc_sop_float(PC_SOP_SUB, f12, PC_XF(18, b));
+    PC_STOREF(18, f14);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_d75e4416a6374942_shape[77] = {
+    3, 0, 0, 0, 0, 3, 0, 1, 0, 0, 3, 0, 1, 0, 0, 3, 0, 1, 0, 0, 26, 0, 0, 0,
+    0, 0, 26, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 3, 0, 1, 3, 254, 3, 0, 1, 2, 254, 3,
+    0, 0, 4, 254, 2, 0, 1, 254, 1, 2, 0, 0, 9, 8, 2, 0, 0, 0, 12, 3, 0, 1, 2, 254,
+    3, 0, 1, 2, 254,
+};
+PC_HOT static pc_status pc_program_d75e4416a6374942(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 21);
+    const float f0 = pc_sop_float(PC_SOP_MUL, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_MUL, PC_XF(2, a), PC_XF(2, b));
+    PC_STOREF(2, f1);
+    const float f2 = pc_sop_float(PC_SOP_MUL, PC_XF(3, a), PC_XF(3, b));
+    PC_STOREF(3, f2);
+    const float f3 = pc_sop_float(PC_SOP_MUL, PC_XF(4, a), PC_XF(4, b));
+    PC_STOREF(4, f3);
+    float f4 = PC_XF(6, c);
+    f4 += PC_XF(6, a) * PC_XF(6, b);
+    float f5 = PC_XF(7, c);
+    f5 += PC_XF(7, a) * PC_XF(7, b);
+    const float f6 = pc_sop_float(PC_SOP_ADD, PC_XF(9, a), PC_XF(9, b));
+    const float f7 = pc_sop_float(PC_SOP_MUL, f4, PC_KF(0));
+    PC_STOREF(11, f7);
+    const float f8 = pc_sop_float(PC_SOP_MUL, f6, PC_KF(1));
+    PC_STOREF(12, f8);
+    const float f9 = pc_sop_float(PC_SOP_MUL, f5, PC_KF(2));
+    const float f10 = pc_sop_float(PC_SOP_SUB, PC_KF(3), f9);
+    PC_STOREF(15, f10);
+    const float f11 = pc_sop_float(PC_SOP_SUB, f2, f3);
+    const float f12 = pc_sop_float(PC_SOP_SUB, PC_XF(17, a), f0);
+    const float f13 = pc_sop_float(PC_SOP_MUL, f11, PC_KF(4));
+    PC_STOREF(19, f13);
+    const float f14 = pc_sop_float(PC_SOP_MUL, f12, PC_KF(5));
+    PC_STOREF(20, f14);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_5f3f6df8db4588ce_shape[77] = {
+    4, 0, 0, 0, 0, 4, 0, 0, 0, 0, 4, 0, 0, 0, 0, 4, 0, 0, 0, 0, 10, 0, 0, 4,
+    254, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1, 4, 9, 5, 23,
+    0, 1, 4, 9, 6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4, 9, 8, 24, 0, 1, 0, 24, 0, 1,
+    0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_5f3f6df8db4588ce(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 21);
+    const float f0 = pc_sop_float(PC_SOP_DIV, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_DIV, PC_XF(2, a), PC_XF(2, b));
+    const float f2 = pc_sop_float(PC_SOP_DIV, PC_XF(3, a), PC_XF(3, b));
+    const float f3 = pc_sop_float(PC_SOP_DIV, PC_XF(4, a), PC_XF(4, b));
+    const uint8_t b4 = f0 < PC_KF(0);
+    const float f5 = pc_sop_float(PC_SOP_NEG, f0, 0.0f);
+    const float f6 = pc_sop_float(PC_SOP_NEG, f1, 0.0f);
+    const float f7 = pc_sop_float(PC_SOP_NEG, f2, 0.0f);
+    const float f8 = pc_sop_float(PC_SOP_NEG, f3, 0.0f);
+    const float f9 = b4 ? f5 : f0;
+    PC_STOREF(13, f9);
+    const float f10 = b4 ? f6 : f1;
+    PC_STOREF(14, f10);
+    const float f11 = b4 ? f7 : f2;
+    PC_STOREF(15, f11);
+    const float f12 = b4 ? f8 : f3;
+    PC_STOREF(16, f12);
+    const float f13 = PC_XF(18, a);
+    PC_STOREF(18, f13);
+    const float f14 = PC_XF(19, a);
+    PC_STOREF(19, f14);
+    const float f15 = PC_XF(20, a);
+    PC_STOREF(20, f15);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_3bbbaacd07511b66_shape[79] = {
+    3, 0, 0, 0, 0, 3, 0, 1, 0, 0, 3, 0, 1, 0, 0, 3, 0, 1, 0, 0, 3, 0, 1, 0,
+    0, 23, 0, 1, 0, 5, 0, 26, 0, 0, 0, 0, 5, 3, 0, 0, 2, 1, 3, 0, 0, 3, 0, 3,
+    0, 1, 1, 0, 3, 0, 1, 2, 0, 2, 0, 1, 254, 4, 2, 0, 1, 3, 9, 24, 0, 1, 0, 24,
+    0, 1, 0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_3bbbaacd07511b66(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 22);
+    const float f0 = pc_sop_float(PC_SOP_MUL, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_MUL, PC_XF(2, a), PC_XF(2, b));
+    PC_STOREF(2, f1);
+    const float f2 = pc_sop_float(PC_SOP_MUL, PC_XF(3, a), PC_XF(3, b));
+    PC_STOREF(3, f2);
+    const float f3 = pc_sop_float(PC_SOP_MUL, PC_XF(4, a), PC_XF(4, b));
+    PC_STOREF(4, f3);
+    const float f4 = pc_sop_float(PC_SOP_MUL, PC_XF(5, a), PC_XF(5, b));
+    PC_STOREF(5, f4);
+    const float f5 = PC_XB(7, c) ? PC_XF(7, a) : f0;
+    PC_STOREF(7, f5);
+    float f6 = f1;
+    f6 += PC_XF(9, a) * PC_XF(9, b);
+    const float f7 = pc_sop_float(PC_SOP_MUL, f5, f6);
+    const float f8 = pc_sop_float(PC_SOP_MUL, f5, PC_XF(12, b));
+    const float f9 = pc_sop_float(PC_SOP_MUL, f8, PC_XF(13, b));
+    PC_STOREF(13, f9);
+    const float f10 = pc_sop_float(PC_SOP_MUL, f8, PC_XF(14, b));
+    PC_STOREF(14, f10);
+    const float f11 = pc_sop_float(PC_SOP_SUB, PC_KF(0), f7);
+    PC_STOREF(16, f11);
+    const float f12 = pc_sop_float(PC_SOP_SUB, f9, f3);
+    PC_STOREF(17, f12);
+    const float f13 = PC_XF(19, a);
+    PC_STOREF(19, f13);
+    const float f14 = PC_XF(20, a);
+    PC_STOREF(20, f14);
+    const float f15 = PC_XF(21, a);
+    PC_STOREF(21, f15);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_269de7733901592d_shape[81] = {
+    26, 2, 0, 0, 254, 253, 0, 254, 0, 254, 26, 2, 0, 0, 254, 253, 0, 254, 0, 254, 26, 2, 0, 0,
+    254, 253, 0, 254, 0, 254, 2, 0, 1, 0, 3, 2, 0, 1, 0, 3, 2, 0, 1, 0, 3, 24, 0, 1,
+    0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1,
+    0, 24, 0, 1, 0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_269de7733901592d(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 24);
+    float f0 = PC_KF(1);
+    f0 += PC_XF(1, a) * PC_KF(0);
+    f0 += PC_XF(2, a) * PC_KF(2);
+    f0 += PC_XF(3, a) * PC_KF(3);
+    float f1 = PC_KF(5);
+    f1 += PC_XF(4, a) * PC_KF(4);
+    f1 += PC_XF(5, a) * PC_KF(6);
+    f1 += PC_XF(6, a) * PC_KF(7);
+    float f2 = PC_KF(9);
+    f2 += PC_XF(7, a) * PC_KF(8);
+    f2 += PC_XF(8, a) * PC_KF(10);
+    f2 += PC_XF(9, a) * PC_KF(11);
+    const float f3 = pc_sop_float(PC_SOP_SUB, PC_XF(11, a), f0);
+    PC_STOREF(11, f3);
+    const float f4 = pc_sop_float(PC_SOP_SUB, PC_XF(12, a), f1);
+    PC_STOREF(12, f4);
+    const float f5 = pc_sop_float(PC_SOP_SUB, PC_XF(13, a), f2);
+    PC_STOREF(13, f5);
+    const float f6 = PC_XF(15, a);
+    PC_STOREF(15, f6);
+    const float f7 = PC_XF(16, a);
+    PC_STOREF(16, f7);
+    const float f8 = PC_XF(17, a);
+    PC_STOREF(17, f8);
+    const float f9 = PC_XF(18, a);
+    PC_STOREF(18, f9);
+    const float f10 = PC_XF(19, a);
+    PC_STOREF(19, f10);
+    const float f11 = PC_XF(20, a);
+    PC_STOREF(20, f11);
+    const float f12 = PC_XF(21, a);
+    PC_STOREF(21, f12);
+    const float f13 = PC_XF(22, a);
+    PC_STOREF(22, f13);
+    const float f14 = PC_XF(23, a);
+    PC_STOREF(23, f14);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_8db3196a13a85452_shape[84] = {
+    5, 0, 0, 0, 0, 5, 0, 0, 0, 0, 23, 0, 0, 0, 0, 0, 23, 0, 0, 0, 0, 0, 23, 0,
+    0, 0, 0, 0, 23, 0, 0, 0, 0, 0, 9, 0, 0, 6, 5, 23, 0, 1, 0, 5, 1, 23, 0, 1,
+    0, 5, 2, 23, 0, 1, 0, 5, 3, 23, 0, 1, 0, 5, 4, 26, 3, 0, 4, 4, 253, 3, 3, 2,
+    2, 1, 1, 5, 0, 0, 1, 254, 13, 0, 1, 1,
+};
+PC_HOT static pc_status pc_program_8db3196a13a85452(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 24);
+    const float f0 = pc_sop_float(PC_SOP_MAX, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_MAX, PC_XF(2, a), PC_XF(2, b));
+    const float f2 = PC_XB(4, c) ? PC_XF(4, a) : PC_XF(4, b);
+    const float f3 = PC_XB(5, c) ? PC_XF(5, a) : PC_XF(5, b);
+    const float f4 = PC_XB(6, c) ? PC_XF(6, a) : PC_XF(6, b);
+    const float f5 = PC_XB(7, c) ? PC_XF(7, a) : PC_XF(7, b);
+    const uint8_t b6 = f0 >= f1;
+    const float f7 = b6 ? PC_XF(11, a) : f2;
+    PC_STOREF(11, f7);
+    const float f8 = b6 ? PC_XF(12, a) : f3;
+    PC_STOREF(12, f8);
+    const float f9 = b6 ? PC_XF(13, a) : f4;
+    PC_STOREF(13, f9);
+    const float f10 = b6 ? PC_XF(14, a) : f5;
+    PC_STOREF(14, f10);
+    float f11 = f7 * f7; /* a square: 0 + it is it */
+    f11 += f8 * f8;
+    f11 += f9 * f9;
+    f11 += f10 * f10;
+    const float f12 = pc_sop_float(PC_SOP_MAX, f11, PC_KF(1));
+    const float f13 = pc_sop_float(PC_SOP_SQRT, f12, 0.0f);
+    PC_STOREF(23, f13);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_6c29ce1a20a64b71_shape[85] = {
+    1, 0, 0, 0, 254, 1, 0, 0, 1, 0, 1, 0, 1, 1, 0, 2, 0, 0, 3, 0, 2, 0, 1, 1,
+    0, 2, 0, 0, 254, 0, 2, 0, 1, 1, 0, 1, 0, 0, 2, 0, 2, 0, 1, 1, 0, 24, 0, 1,
+    0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1,
+    0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_6c29ce1a20a64b71(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 24);
+    const float f0 = pc_sop_float(PC_SOP_ADD, PC_XF(1, a), PC_KF(0));
+    const float f1 = pc_sop_float(PC_SOP_ADD, f0, PC_XF(2, b));
+    const float f2 = pc_sop_float(PC_SOP_ADD, f1, PC_XF(3, b));
+    PC_STOREF(3, f2);
+    const float f3 = pc_sop_float(PC_SOP_SUB, f0, PC_XF(5, b));
+    const float f4 = pc_sop_float(PC_SOP_SUB, f3, PC_XF(6, b));
+    PC_STOREF(6, f4);
+    const float f5 = pc_sop_float(PC_SOP_SUB, PC_KF(1), PC_XF(7, b));
+    const float f6 = pc_sop_float(PC_SOP_SUB, f5, PC_XF(8, b));
+    PC_STOREF(8, f6);
+    const float f7 = pc_sop_float(PC_SOP_ADD, f5, PC_XF(10, b));
+    const float f8 = pc_sop_float(PC_SOP_SUB, f7, PC_XF(12, b));
+    PC_STOREF(12, f8);
+    const float f9 = PC_XF(14, a);
+    PC_STOREF(14, f9);
+    const float f10 = PC_XF(15, a);
+    PC_STOREF(15, f10);
+    const float f11 = PC_XF(16, a);
+    PC_STOREF(16, f11);
+    const float f12 = PC_XF(17, a);
+    PC_STOREF(17, f12);
+    const float f13 = PC_XF(18, a);
+    PC_STOREF(18, f13);
+    const float f14 = PC_XF(19, a);
+    PC_STOREF(19, f14);
+    const float f15 = PC_XF(20, a);
+    PC_STOREF(20, f15);
+    const float f16 = PC_XF(21, a);
+    PC_STOREF(21, f16);
+    const float f17 = PC_XF(22, a);
+    PC_STOREF(22, f17);
+    const float f18 = PC_XF(23, a);
+    PC_STOREF(23, f18);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_64cf7416c5145253_shape[85] = {
+    3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 1, 0, 0, 0, 254, 1, 0, 0, 1, 0, 2, 0, 1, 0,
+    0, 2, 0, 1, 5, 4, 2, 0, 0, 4, 0, 2, 0, 1, 1, 2, 2, 0, 0, 254, 0, 2, 0, 1,
+    1, 0, 1, 0, 1, 7, 5, 1, 0, 0, 3, 0, 2, 0, 1, 1, 7, 24, 0, 1, 0, 24, 0, 1,
+    0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_64cf7416c5145253(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 24);
+    const float f0 = pc_sop_float(PC_SOP_MUL, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_MUL, PC_XF(2, a), PC_XF(2, b));
+    const float f2 = pc_sop_float(PC_SOP_ADD, PC_XF(4, a), PC_KF(0));
+    const float f3 = pc_sop_float(PC_SOP_ADD, f2, PC_XF(5, b));
+    const float f4 = pc_sop_float(PC_SOP_SUB, PC_XF(7, a), PC_XF(7, b));
+    PC_STOREF(7, f4);
+    const float f5 = pc_sop_float(PC_SOP_SUB, f0, f1);
+    PC_STOREF(8, f5);
+    const float f6 = pc_sop_float(PC_SOP_SUB, f2, PC_XF(9, b));
+    const float f7 = pc_sop_float(PC_SOP_SUB, f6, f5);
+    PC_STOREF(10, f7);
+    const float f8 = pc_sop_float(PC_SOP_SUB, PC_KF(1), PC_XF(11, b));
+    const float f9 = pc_sop_float(PC_SOP_SUB, f8, PC_XF(12, b));
+    PC_STOREF(12, f9);
+    const float f10 = pc_sop_float(PC_SOP_ADD, f3, f5);
+    PC_STOREF(14, f10);
+    const float f11 = pc_sop_float(PC_SOP_ADD, f8, PC_XF(15, b));
+    const float f12 = pc_sop_float(PC_SOP_SUB, f11, f5);
+    PC_STOREF(17, f12);
+    const float f13 = PC_XF(19, a);
+    PC_STOREF(19, f13);
+    const float f14 = PC_XF(20, a);
+    PC_STOREF(20, f14);
+    const float f15 = PC_XF(21, a);
+    PC_STOREF(21, f15);
+    const float f16 = PC_XF(22, a);
+    PC_STOREF(22, f16);
+    const float f17 = PC_XF(23, a);
+    PC_STOREF(23, f17);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_c93a5fd1f89180de_shape[85] = {
+    12, 0, 0, 0, 7, 0, 0, 1, 254, 23, 0, 0, 254, 2, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
+    2, 10, 0, 0, 0, 254, 10, 0, 1, 6, 254, 10, 0, 0, 0, 254, 19, 0, 0, 5, 19, 0, 1, 5,
+    23, 0, 0, 254, 254, 5, 23, 0, 1, 254, 254, 4, 26, 2, 0, 0, 0, 253, 0, 0, 0, 0, 1, 0,
+    0, 5, 3, 13, 0, 1, 2, 23, 0, 1, 2, 7, 9,
+};
+PC_HOT static pc_status pc_program_c93a5fd1f89180de(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 29);
+    const float f0 = pc_sop_float(PC_SOP_NEG, PC_XF(1, a), 0.0f);
+    const uint8_t b1 = f0 == PC_KF(0);
+    const float f2 = b1 ? PC_KF(1) : f0;
+    const float f3 = pc_sop_float(PC_SOP_DIV, PC_XF(7, a), f2);
+    const float f4 = pc_sop_float(PC_SOP_DIV, PC_XF(8, a), f2);
+    const uint8_t b5 = PC_XF(10, a) < PC_KF(2);
+    const uint8_t b6 = f0 < PC_KF(3);
+    PC_STOREB(11, b6);
+    const uint8_t b7 = PC_XF(12, a) < PC_KF(4);
+    const float f8 = pc_sop_float(PC_SOP_ATAN, f3, 0.0f);
+    const float f9 = pc_sop_float(PC_SOP_ATAN, f4, 0.0f);
+    PC_STOREF(15, f9);
+    const float f10 = b5 ? PC_KF(5) : PC_KF(6);
+    const float f11 = b7 ? PC_KF(7) : PC_KF(8);
+    PC_STOREF(18, f11);
+    float f12 = PC_KF(9);
+    f12 += PC_XF(20, a) * PC_XF(20, b);
+    f12 += PC_XF(21, a) * PC_XF(21, b);
+    f12 += PC_XF(22, a) * PC_XF(22, b);
+    const float f13 = pc_sop_float(PC_SOP_ADD, f8, f10);
+    const float f14 = pc_sop_float(PC_SOP_SQRT, f12, 0.0f);
+    PC_STOREF(26, f14);
+    const float f15 = b6 ? f13 : f8;
+    PC_STOREF(28, f15);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_02efbac8a3ea516a_shape[86] = {
+    1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 254, 1, 0, 0, 1, 0, 3, 0, 1, 0,
+    254, 3, 0, 1, 5, 254, 3, 0, 0, 5, 254, 2, 0, 0, 0, 0, 2, 0, 1, 254, 2, 2, 0, 0,
+    7, 0, 2, 0, 1, 1, 2, 2, 0, 1, 254, 0, 3, 0, 1, 5, 254, 1, 0, 1, 10, 5, 24, 0,
+    1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_02efbac8a3ea516a(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 24);
+    const float f0 = pc_sop_float(PC_SOP_ADD, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_ADD, PC_XF(2, a), PC_XF(2, b));
+    const float f2 = pc_sop_float(PC_SOP_ADD, PC_XF(3, a), PC_KF(0));
+    const float f3 = pc_sop_float(PC_SOP_ADD, f2, PC_XF(4, b));
+    const float f4 = pc_sop_float(PC_SOP_MUL, PC_XF(6, a), PC_KF(1));
+    PC_STOREF(6, f4);
+    const float f5 = pc_sop_float(PC_SOP_MUL, f0, PC_KF(2));
+    PC_STOREF(7, f5);
+    const float f6 = pc_sop_float(PC_SOP_MUL, f1, PC_KF(3));
+    const float f7 = pc_sop_float(PC_SOP_SUB, PC_XF(10, a), PC_XF(10, b));
+    const float f8 = pc_sop_float(PC_SOP_SUB, PC_KF(4), f6);
+    PC_STOREF(11, f8);
+    const float f9 = pc_sop_float(PC_SOP_SUB, f2, PC_XF(12, b));
+    const float f10 = pc_sop_float(PC_SOP_SUB, f9, f8);
+    PC_STOREF(13, f10);
+    const float f11 = pc_sop_float(PC_SOP_SUB, PC_KF(5), PC_XF(14, b));
+    PC_STOREF(14, f11);
+    const float f12 = pc_sop_float(PC_SOP_MUL, f7, PC_KF(6));
+    PC_STOREF(16, f12);
+    const float f13 = pc_sop_float(PC_SOP_ADD, f3, f8);
+    PC_STOREF(18, f13);
+    const float f14 = PC_XF(20, a);
+    PC_STOREF(20, f14);
+    const float f15 = PC_XF(21, a);
+    PC_STOREF(21, f15);
+    const float f16 = PC_XF(22, a);
+    PC_STOREF(22, f16);
+    const float f17 = PC_XF(23, a);
+    PC_STOREF(23, f17);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_b791a0fa2ff63ea3_shape[90] = {
+    1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 254, 1, 0, 0, 1, 0, 3, 0, 1, 4,
+    254, 3, 0, 0, 4, 254, 2, 0, 1, 254, 1, 2, 0, 0, 5, 0, 2, 0, 1, 1, 2, 2, 0, 0,
+    254, 0, 2, 0, 1, 1, 0, 1, 0, 1, 8, 5, 1, 0, 0, 3, 0, 2, 0, 1, 1, 7, 24, 0,
+    1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_b791a0fa2ff63ea3(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 25);
+    const float f0 = pc_sop_float(PC_SOP_ADD, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_ADD, PC_XF(2, a), PC_XF(2, b));
+    const float f2 = pc_sop_float(PC_SOP_ADD, PC_XF(3, a), PC_KF(0));
+    const float f3 = pc_sop_float(PC_SOP_ADD, f2, PC_XF(4, b));
+    const float f4 = pc_sop_float(PC_SOP_MUL, f0, PC_KF(1));
+    PC_STOREF(6, f4);
+    const float f5 = pc_sop_float(PC_SOP_MUL, f1, PC_KF(2));
+    const float f6 = pc_sop_float(PC_SOP_SUB, PC_KF(3), f5);
+    PC_STOREF(9, f6);
+    const float f7 = pc_sop_float(PC_SOP_SUB, f2, PC_XF(10, b));
+    const float f8 = pc_sop_float(PC_SOP_SUB, f7, f6);
+    PC_STOREF(11, f8);
+    const float f9 = pc_sop_float(PC_SOP_SUB, PC_KF(4), PC_XF(12, b));
+    const float f10 = pc_sop_float(PC_SOP_SUB, f9, PC_XF(13, b));
+    PC_STOREF(13, f10);
+    const float f11 = pc_sop_float(PC_SOP_ADD, f3, f6);
+    PC_STOREF(15, f11);
+    const float f12 = pc_sop_float(PC_SOP_ADD, f9, PC_XF(16, b));
+    const float f13 = pc_sop_float(PC_SOP_SUB, f12, f6);
+    PC_STOREF(18, f13);
+    const float f14 = PC_XF(20, a);
+    PC_STOREF(20, f14);
+    const float f15 = PC_XF(21, a);
+    PC_STOREF(21, f15);
+    const float f16 = PC_XF(22, a);
+    PC_STOREF(22, f16);
+    const float f17 = PC_XF(23, a);
+    PC_STOREF(23, f17);
+    const float f18 = PC_XF(24, a);
+    PC_STOREF(24, f18);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_ceff1fb5d745ec7e_shape[92] = {
+    26, 3, 0, 0, 254, 253, 0, 254, 0, 254, 0, 254, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 1,
+    0, 1, 4, 0, 1, 0, 2, 4, 0, 1, 0, 3, 4, 0, 1, 0, 4, 3, 0, 1, 2, 2, 3, 0,
+    1, 2, 2, 3, 0, 1, 5, 4, 3, 0, 1, 7, 4, 3, 0, 1, 7, 5, 26, 0, 0, 6, 6, 5,
+    3, 0, 0, 1, 254, 2, 0, 1, 254, 1, 2, 0, 0, 6, 5, 3, 0, 1, 1, 254,
+};
+PC_HOT static pc_status pc_program_ceff1fb5d745ec7e(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 29);
+    float f0 = PC_KF(1);
+    f0 += PC_XF(1, a) * PC_KF(0);
+    f0 += PC_XF(2, a) * PC_KF(2);
+    f0 += PC_XF(3, a) * PC_KF(3);
+    f0 += PC_XF(4, a) * PC_KF(4);
+    const float f1 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(5));
+    const float f2 = pc_sop_float(PC_SOP_SQRT, f1, 0.0f);
+    const float f3 = pc_sop_float(PC_SOP_DIV, PC_XF(10, a), f2);
+    PC_STOREF(10, f3);
+    const float f4 = pc_sop_float(PC_SOP_DIV, PC_XF(11, a), f2);
+    PC_STOREF(11, f4);
+    const float f5 = pc_sop_float(PC_SOP_DIV, PC_XF(12, a), f2);
+    PC_STOREF(12, f5);
+    const float f6 = pc_sop_float(PC_SOP_DIV, PC_XF(13, a), f2);
+    PC_STOREF(13, f6);
+    const float f7 = pc_sop_float(PC_SOP_MUL, f5, f5);
+    PC_STOREF(15, f7);
+    const float f8 = pc_sop_float(PC_SOP_MUL, f6, f6);
+    PC_STOREF(16, f8);
+    const float f9 = pc_sop_float(PC_SOP_MUL, f4, f5);
+    PC_STOREF(17, f9);
+    const float f10 = pc_sop_float(PC_SOP_MUL, f3, f6);
+    PC_STOREF(18, f10);
+    const float f11 = pc_sop_float(PC_SOP_MUL, f4, f6);
+    PC_STOREF(19, f11);
+    float f12 = f7;
+    f12 += f6 * f6;
+    const float f13 = pc_sop_float(PC_SOP_MUL, f12, PC_KF(6));
+    const float f14 = pc_sop_float(PC_SOP_SUB, PC_KF(7), f13);
+    PC_STOREF(25, f14);
+    const float f15 = pc_sop_float(PC_SOP_SUB, f9, f10);
+    const float f16 = pc_sop_float(PC_SOP_MUL, f15, PC_KF(8));
+    PC_STOREF(28, f16);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_2e47c7a1ade5db97_shape[93] = {
+    5, 0, 0, 0, 254, 5, 0, 0, 0, 254, 13, 0, 0, 2, 13, 0, 0, 2, 3, 0, 0, 2, 254, 3,
+    0, 0, 2, 254, 2, 0, 1, 0, 0, 2, 0, 1, 0, 0, 2, 0, 1, 0, 0, 4, 0, 0, 254, 5,
+    4, 0, 1, 254, 5, 1, 0, 1, 0, 0, 1, 0, 1, 0, 0, 1, 0, 1, 0, 0, 1, 0, 1, 0,
+    0, 3, 0, 1, 0, 6, 3, 0, 1, 10, 7, 3, 0, 1, 10, 8, 3, 0, 1, 10, 9,
+};
+PC_HOT static pc_status pc_program_2e47c7a1ade5db97(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 26);
+    const float f0 = pc_sop_float(PC_SOP_MAX, PC_XF(1, a), PC_KF(0));
+    const float f1 = pc_sop_float(PC_SOP_MAX, PC_XF(2, a), PC_KF(1));
+    const float f2 = pc_sop_float(PC_SOP_SQRT, f0, 0.0f);
+    const float f3 = pc_sop_float(PC_SOP_SQRT, f1, 0.0f);
+    const float f4 = pc_sop_float(PC_SOP_MUL, f2, PC_KF(2));
+    const float f5 = pc_sop_float(PC_SOP_MUL, f3, PC_KF(3));
+    const float f6 = pc_sop_float(PC_SOP_SUB, PC_XF(10, a), PC_XF(10, b));
+    PC_STOREF(10, f6);
+    const float f7 = pc_sop_float(PC_SOP_SUB, PC_XF(11, a), PC_XF(11, b));
+    PC_STOREF(11, f7);
+    const float f8 = pc_sop_float(PC_SOP_SUB, PC_XF(12, a), PC_XF(12, b));
+    PC_STOREF(12, f8);
+    const float f9 = pc_sop_float(PC_SOP_DIV, PC_KF(4), f4);
+    const float f10 = pc_sop_float(PC_SOP_DIV, PC_KF(5), f5);
+    PC_STOREF(15, f10);
+    const float f11 = pc_sop_float(PC_SOP_ADD, PC_XF(17, a), PC_XF(17, b));
+    PC_STOREF(17, f11);
+    const float f12 = pc_sop_float(PC_SOP_ADD, PC_XF(18, a), PC_XF(18, b));
+    PC_STOREF(18, f12);
+    const float f13 = pc_sop_float(PC_SOP_ADD, PC_XF(19, a), PC_XF(19, b));
+    PC_STOREF(19, f13);
+    const float f14 = pc_sop_float(PC_SOP_ADD, PC_XF(20, a), PC_XF(20, b));
+    PC_STOREF(20, f14);
+    const float f15 = pc_sop_float(PC_SOP_MUL, PC_XF(22, a), f9);
+    PC_STOREF(22, f15);
+    const float f16 = pc_sop_float(PC_SOP_MUL, f6, f9);
+    PC_STOREF(23, f16);
+    const float f17 = pc_sop_float(PC_SOP_MUL, f7, f9);
+    PC_STOREF(24, f17);
+    const float f18 = pc_sop_float(PC_SOP_MUL, f8, f9);
+    PC_STOREF(25, f18);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_745aa9ae7e8b0df4_shape[93] = {
+    5, 0, 0, 0, 254, 5, 0, 0, 0, 254, 13, 0, 0, 2, 13, 0, 0, 2, 3, 0, 1, 0, 0, 3,
+    0, 1, 0, 0, 3, 0, 1, 0, 0, 3, 0, 1, 0, 0, 3, 0, 0, 6, 254, 3, 0, 0, 6, 254,
+    4, 0, 0, 254, 2, 4, 0, 1, 254, 2, 3, 0, 1, 0, 2, 3, 0, 1, 0, 3, 3, 0, 1, 0,
+    4, 3, 0, 1, 0, 5, 3, 0, 1, 0, 5, 3, 0, 1, 0, 6, 3, 0, 1, 0, 7,
+};
+PC_HOT static pc_status pc_program_745aa9ae7e8b0df4(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 24);
+    const float f0 = pc_sop_float(PC_SOP_MAX, PC_XF(1, a), PC_KF(0));
+    const float f1 = pc_sop_float(PC_SOP_MAX, PC_XF(2, a), PC_KF(1));
+    const float f2 = pc_sop_float(PC_SOP_SQRT, f0, 0.0f);
+    const float f3 = pc_sop_float(PC_SOP_SQRT, f1, 0.0f);
+    const float f4 = pc_sop_float(PC_SOP_MUL, PC_XF(7, a), PC_XF(7, b));
+    PC_STOREF(7, f4);
+    const float f5 = pc_sop_float(PC_SOP_MUL, PC_XF(8, a), PC_XF(8, b));
+    PC_STOREF(8, f5);
+    const float f6 = pc_sop_float(PC_SOP_MUL, PC_XF(9, a), PC_XF(9, b));
+    PC_STOREF(9, f6);
+    const float f7 = pc_sop_float(PC_SOP_MUL, PC_XF(10, a), PC_XF(10, b));
+    PC_STOREF(10, f7);
+    const float f8 = pc_sop_float(PC_SOP_MUL, f2, PC_KF(2));
+    const float f9 = pc_sop_float(PC_SOP_MUL, f3, PC_KF(3));
+    const float f10 = pc_sop_float(PC_SOP_DIV, PC_KF(4), f8);
+    const float f11 = pc_sop_float(PC_SOP_DIV, PC_KF(5), f9);
+    PC_STOREF(15, f11);
+    const float f12 = pc_sop_float(PC_SOP_MUL, PC_XF(17, a), f10);
+    PC_STOREF(17, f12);
+    const float f13 = pc_sop_float(PC_SOP_MUL, PC_XF(18, a), f10);
+    PC_STOREF(18, f13);
+    const float f14 = pc_sop_float(PC_SOP_MUL, PC_XF(19, a), f10);
+    PC_STOREF(19, f14);
+    const float f15 = pc_sop_float(PC_SOP_MUL, PC_XF(20, a), f10);
+    PC_STOREF(20, f15);
+    const float f16 = pc_sop_float(PC_SOP_MUL, PC_XF(21, a), f11);
+    PC_STOREF(21, f16);
+    const float f17 = pc_sop_float(PC_SOP_MUL, PC_XF(22, a), f11);
+    PC_STOREF(22, f17);
+    const float f18 = pc_sop_float(PC_SOP_MUL, PC_XF(23, a), f11);
+    PC_STOREF(23, f18);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_1b2d2becbd92ceba_shape[93] = {
+    5, 0, 0, 0, 254, 13, 0, 0, 1, 3, 0, 1, 0, 0, 3, 0, 1, 0, 0, 3, 0, 1, 0, 0,
+    3, 0, 1, 0, 0, 3, 0, 0, 5, 254, 4, 0, 0, 254, 1, 9, 0, 0, 0, 0, 9, 0, 1, 0,
+    0, 3, 0, 1, 0, 3, 3, 0, 1, 0, 4, 3, 0, 1, 0, 5, 3, 0, 1, 0, 6, 23, 0, 1,
+    0, 0, 6, 23, 0, 1, 0, 0, 7, 23, 0, 1, 0, 0, 8, 23, 0, 1, 0, 0, 9,
+};
+PC_HOT static pc_status pc_program_1b2d2becbd92ceba(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 25);
+    const float f0 = pc_sop_float(PC_SOP_MAX, PC_XF(1, a), PC_KF(0));
+    const float f1 = pc_sop_float(PC_SOP_SQRT, f0, 0.0f);
+    const float f2 = pc_sop_float(PC_SOP_MUL, PC_XF(5, a), PC_XF(5, b));
+    PC_STOREF(5, f2);
+    const float f3 = pc_sop_float(PC_SOP_MUL, PC_XF(6, a), PC_XF(6, b));
+    PC_STOREF(6, f3);
+    const float f4 = pc_sop_float(PC_SOP_MUL, PC_XF(7, a), PC_XF(7, b));
+    PC_STOREF(7, f4);
+    const float f5 = pc_sop_float(PC_SOP_MUL, PC_XF(8, a), PC_XF(8, b));
+    PC_STOREF(8, f5);
+    const float f6 = pc_sop_float(PC_SOP_MUL, f1, PC_KF(1));
+    const float f7 = pc_sop_float(PC_SOP_DIV, PC_KF(2), f6);
+    const uint8_t b8 = PC_XF(13, a) >= PC_XF(13, b);
+    const uint8_t b9 = PC_XF(14, a) >= PC_XF(14, b);
+    PC_STOREB(14, b9);
+    const float f10 = pc_sop_float(PC_SOP_MUL, PC_XF(16, a), f7);
+    PC_STOREF(16, f10);
+    const float f11 = pc_sop_float(PC_SOP_MUL, PC_XF(17, a), f7);
+    PC_STOREF(17, f11);
+    const float f12 = pc_sop_float(PC_SOP_MUL, PC_XF(18, a), f7);
+    PC_STOREF(18, f12);
+    const float f13 = pc_sop_float(PC_SOP_MUL, PC_XF(19, a), f7);
+    PC_STOREF(19, f13);
+    const float f14 = b8 ? PC_XF(21, a) : PC_XF(21, b);
+    PC_STOREF(21, f14);
+    const float f15 = b8 ? PC_XF(22, a) : PC_XF(22, b);
+    PC_STOREF(22, f15);
+    const float f16 = b8 ? PC_XF(23, a) : PC_XF(23, b);
+    PC_STOREF(23, f16);
+    const float f17 = b8 ? PC_XF(24, a) : PC_XF(24, b);
+    PC_STOREF(24, f17);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_df8cf44115f8afdf_shape[94] = {
+    2, 0, 0, 0, 0, 2, 0, 0, 0, 0, 2, 0, 0, 0, 0, 2, 0, 1, 0, 3, 2, 0, 1, 0,
+    3, 2, 0, 1, 0, 3, 2, 0, 0, 3, 254, 2, 0, 0, 3, 254, 2, 0, 0, 3, 254, 26, 2, 0,
+    3, 3, 253, 2, 2, 1, 1, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 1, 6, 1, 4, 0, 1,
+    6, 2, 4, 0, 1, 6, 3, 3, 0, 1, 0, 3, 3, 0, 1, 0, 3, 3, 0, 1, 0, 3,
+};
+PC_HOT static pc_status pc_program_df8cf44115f8afdf(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 26);
+    const float f0 = pc_sop_float(PC_SOP_SUB, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_SUB, PC_XF(2, a), PC_XF(2, b));
+    const float f2 = pc_sop_float(PC_SOP_SUB, PC_XF(3, a), PC_XF(3, b));
+    const float f3 = pc_sop_float(PC_SOP_SUB, PC_XF(4, a), f0);
+    PC_STOREF(4, f3);
+    const float f4 = pc_sop_float(PC_SOP_SUB, PC_XF(5, a), f1);
+    PC_STOREF(5, f4);
+    const float f5 = pc_sop_float(PC_SOP_SUB, PC_XF(6, a), f2);
+    PC_STOREF(6, f5);
+    const float f6 = pc_sop_float(PC_SOP_SUB, f3, PC_KF(0));
+    const float f7 = pc_sop_float(PC_SOP_SUB, f4, PC_KF(1));
+    const float f8 = pc_sop_float(PC_SOP_SUB, f5, PC_KF(2));
+    float f9 = f6 * f6; /* a square: 0 + it is it */
+    f9 += f7 * f7;
+    f9 += f8 * f8;
+    const float f10 = pc_sop_float(PC_SOP_MAX, f9, PC_KF(4));
+    const float f11 = pc_sop_float(PC_SOP_SQRT, f10, 0.0f);
+    const float f12 = pc_sop_float(PC_SOP_DIV, f6, f11);
+    PC_STOREF(19, f12);
+    const float f13 = pc_sop_float(PC_SOP_DIV, f7, f11);
+    PC_STOREF(20, f13);
+    const float f14 = pc_sop_float(PC_SOP_DIV, f8, f11);
+    PC_STOREF(21, f14);
+    const float f15 = pc_sop_float(PC_SOP_MUL, PC_XF(23, a), f12);
+    PC_STOREF(23, f15);
+    const float f16 = pc_sop_float(PC_SOP_MUL, PC_XF(24, a), f13);
+    PC_STOREF(24, f16);
+    const float f17 = pc_sop_float(PC_SOP_MUL, PC_XF(25, a), f14);
+    PC_STOREF(25, f17);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_de421ac59765ed2d_shape[94] = {
+    5, 0, 0, 0, 254, 5, 0, 1, 0, 254, 13, 0, 0, 2, 3, 0, 0, 1, 254, 1, 0, 0, 0, 0,
+    1, 0, 1, 0, 0, 1, 0, 1, 0, 0, 1, 0, 1, 0, 0, 2, 0, 1, 4, 0, 2, 0, 0, 0,
+    0, 2, 0, 1, 0, 0, 2, 0, 1, 0, 0, 2, 0, 1, 0, 0, 4, 0, 0, 254, 10, 1, 0, 1,
+    5, 0, 3, 0, 1, 0, 2, 3, 0, 1, 6, 3, 3, 0, 1, 6, 4, 3, 0, 1, 6, 5,
+};
+PC_HOT static pc_status pc_program_de421ac59765ed2d(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 27);
+    const float f0 = pc_sop_float(PC_SOP_MAX, PC_XF(1, a), PC_KF(0));
+    const float f1 = pc_sop_float(PC_SOP_MAX, PC_XF(2, a), PC_KF(1));
+    PC_STOREF(2, f1);
+    const float f2 = pc_sop_float(PC_SOP_SQRT, f0, 0.0f);
+    const float f3 = pc_sop_float(PC_SOP_MUL, f2, PC_KF(2));
+    const float f4 = pc_sop_float(PC_SOP_ADD, PC_XF(8, a), PC_XF(8, b));
+    const float f5 = pc_sop_float(PC_SOP_ADD, PC_XF(9, a), PC_XF(9, b));
+    PC_STOREF(9, f5);
+    const float f6 = pc_sop_float(PC_SOP_ADD, PC_XF(10, a), PC_XF(10, b));
+    PC_STOREF(10, f6);
+    const float f7 = pc_sop_float(PC_SOP_ADD, PC_XF(11, a), PC_XF(11, b));
+    PC_STOREF(11, f7);
+    const float f8 = pc_sop_float(PC_SOP_SUB, f4, PC_XF(13, b));
+    PC_STOREF(13, f8);
+    const float f9 = pc_sop_float(PC_SOP_SUB, PC_XF(14, a), PC_XF(14, b));
+    const float f10 = pc_sop_float(PC_SOP_SUB, PC_XF(15, a), PC_XF(15, b));
+    PC_STOREF(15, f10);
+    const float f11 = pc_sop_float(PC_SOP_SUB, PC_XF(16, a), PC_XF(16, b));
+    PC_STOREF(16, f11);
+    const float f12 = pc_sop_float(PC_SOP_SUB, PC_XF(17, a), PC_XF(17, b));
+    PC_STOREF(17, f12);
+    const float f13 = pc_sop_float(PC_SOP_DIV, PC_KF(3), f3);
+    const float f14 = pc_sop_float(PC_SOP_ADD, f9, PC_XF(21, b));
+    PC_STOREF(21, f14);
+    const float f15 = pc_sop_float(PC_SOP_MUL, PC_XF(23, a), f13);
+    PC_STOREF(23, f15);
+    const float f16 = pc_sop_float(PC_SOP_MUL, f10, f13);
+    PC_STOREF(24, f16);
+    const float f17 = pc_sop_float(PC_SOP_MUL, f11, f13);
+    PC_STOREF(25, f17);
+    const float f18 = pc_sop_float(PC_SOP_MUL, f12, f13);
+    PC_STOREF(26, f18);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_17185cbc9791440e_shape[97] = {
+    4, 0, 0, 0, 0, 4, 0, 0, 0, 0, 4, 0, 0, 0, 0, 4, 0, 0, 0, 0, 10, 0, 0, 4,
+    254, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1, 4, 9, 5, 23,
+    0, 1, 4, 9, 6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4, 9, 8, 3, 0, 1, 4, 4, 3, 0,
+    1, 4, 4, 3, 0, 1, 4, 4, 3, 0, 1, 4, 4, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1,
+    0,
+};
+PC_HOT static pc_status pc_program_17185cbc9791440e(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 26);
+    const float f0 = pc_sop_float(PC_SOP_DIV, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_DIV, PC_XF(2, a), PC_XF(2, b));
+    const float f2 = pc_sop_float(PC_SOP_DIV, PC_XF(3, a), PC_XF(3, b));
+    const float f3 = pc_sop_float(PC_SOP_DIV, PC_XF(4, a), PC_XF(4, b));
+    const uint8_t b4 = f0 < PC_KF(0);
+    const float f5 = pc_sop_float(PC_SOP_NEG, f0, 0.0f);
+    const float f6 = pc_sop_float(PC_SOP_NEG, f1, 0.0f);
+    const float f7 = pc_sop_float(PC_SOP_NEG, f2, 0.0f);
+    const float f8 = pc_sop_float(PC_SOP_NEG, f3, 0.0f);
+    const float f9 = b4 ? f5 : f0;
+    PC_STOREF(13, f9);
+    const float f10 = b4 ? f6 : f1;
+    PC_STOREF(14, f10);
+    const float f11 = b4 ? f7 : f2;
+    PC_STOREF(15, f11);
+    const float f12 = b4 ? f8 : f3;
+    PC_STOREF(16, f12);
+    const float f13 = pc_sop_float(PC_SOP_MUL, f9, f9);
+    PC_STOREF(18, f13);
+    const float f14 = pc_sop_float(PC_SOP_MUL, f10, f10);
+    PC_STOREF(19, f14);
+    const float f15 = pc_sop_float(PC_SOP_MUL, f11, f11);
+    PC_STOREF(20, f15);
+    const float f16 = pc_sop_float(PC_SOP_MUL, f12, f12);
+    PC_STOREF(21, f16);
+    const float f17 = PC_XF(23, a);
+    PC_STOREF(23, f17);
+    const float f18 = PC_XF(24, a);
+    PC_STOREF(24, f18);
+    const float f19 = PC_XF(25, a);
+    PC_STOREF(25, f19);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_1416c90e014c5941_shape[97] = {
+    26, 2, 0, 0, 254, 253, 0, 254, 0, 254, 10, 0, 1, 1, 254, 10, 0, 1, 0, 254, 23, 0, 0, 254,
+    3, 2, 23, 0, 0, 0, 254, 3, 3, 0, 0, 1, 254, 3, 0, 0, 1, 2, 7, 0, 0, 0, 254, 13,
+    0, 1, 5, 4, 0, 0, 254, 5, 4, 0, 0, 10, 4, 23, 0, 0, 254, 0, 4, 2, 0, 0, 254, 2,
+    4, 0, 0, 5, 2, 10, 0, 0, 6, 254, 3, 0, 1, 6, 3, 19, 0, 1, 3, 23, 0, 1, 254, 254,
+    3,
+};
+PC_HOT static pc_status pc_program_1416c90e014c5941(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 34);
+    float f0 = PC_KF(1);
+    f0 += PC_XF(1, a) * PC_KF(0);
+    f0 += PC_XF(2, a) * PC_KF(2);
+    f0 += PC_XF(3, a) * PC_KF(3);
+    const uint8_t b1 = f0 < PC_KF(4);
+    PC_STOREB(5, b1);
+    const uint8_t b2 = PC_XF(6, a) < PC_KF(5);
+    PC_STOREB(6, b2);
+    const float f3 = b1 ? PC_KF(6) : f0;
+    const float f4 = b1 ? PC_XF(9, a) : PC_KF(7);
+    const float f5 = pc_sop_float(PC_SOP_MUL, f4, PC_KF(8));
+    const float f6 = pc_sop_float(PC_SOP_MUL, f5, f4);
+    const uint8_t b7 = PC_XF(14, a) == PC_KF(9);
+    const float f8 = pc_sop_float(PC_SOP_SQRT, f3, 0.0f);
+    PC_STOREF(16, f8);
+    const float f9 = pc_sop_float(PC_SOP_DIV, PC_KF(10), f4);
+    const float f10 = pc_sop_float(PC_SOP_DIV, f0, f6);
+    const float f11 = b7 ? PC_KF(11) : PC_XF(21, b);
+    const float f12 = pc_sop_float(PC_SOP_SUB, PC_KF(12), f10);
+    const float f13 = pc_sop_float(PC_SOP_DIV, f8, f11);
+    const uint8_t b14 = f8 < PC_KF(13);
+    const float f15 = pc_sop_float(PC_SOP_MUL, f9, f12);
+    PC_STOREF(29, f15);
+    const float f16 = pc_sop_float(PC_SOP_ATAN, f13, 0.0f);
+    PC_STOREF(31, f16);
+    const float f17 = b14 ? PC_KF(14) : PC_KF(15);
+    PC_STOREF(33, f17);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_8237509ce417907e_shape[98] = {
+    26, 3, 0, 0, 254, 253, 0, 254, 0, 254, 0, 254, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0,
+    0, 1, 4, 0, 0, 0, 2, 4, 0, 0, 0, 3, 4, 0, 0, 0, 4, 10, 0, 0, 4, 254, 12, 0,
+    0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1, 4, 9, 5, 23, 0, 1, 4,
+    9, 6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4, 9, 8, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0,
+    1, 0,
+};
+PC_HOT static pc_status pc_program_8237509ce417907e(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 30);
+    float f0 = PC_KF(1);
+    f0 += PC_XF(1, a) * PC_KF(0);
+    f0 += PC_XF(2, a) * PC_KF(2);
+    f0 += PC_XF(3, a) * PC_KF(3);
+    f0 += PC_XF(4, a) * PC_KF(4);
+    const float f1 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(5));
+    const float f2 = pc_sop_float(PC_SOP_SQRT, f1, 0.0f);
+    const float f3 = pc_sop_float(PC_SOP_DIV, PC_XF(10, a), f2);
+    const float f4 = pc_sop_float(PC_SOP_DIV, PC_XF(11, a), f2);
+    const float f5 = pc_sop_float(PC_SOP_DIV, PC_XF(12, a), f2);
+    const float f6 = pc_sop_float(PC_SOP_DIV, PC_XF(13, a), f2);
+    const uint8_t b7 = f3 < PC_KF(6);
+    const float f8 = pc_sop_float(PC_SOP_NEG, f3, 0.0f);
+    const float f9 = pc_sop_float(PC_SOP_NEG, f4, 0.0f);
+    const float f10 = pc_sop_float(PC_SOP_NEG, f5, 0.0f);
+    const float f11 = pc_sop_float(PC_SOP_NEG, f6, 0.0f);
+    const float f12 = b7 ? f8 : f3;
+    PC_STOREF(22, f12);
+    const float f13 = b7 ? f9 : f4;
+    PC_STOREF(23, f13);
+    const float f14 = b7 ? f10 : f5;
+    PC_STOREF(24, f14);
+    const float f15 = b7 ? f11 : f6;
+    PC_STOREF(25, f15);
+    const float f16 = PC_XF(27, a);
+    PC_STOREF(27, f16);
+    const float f17 = PC_XF(28, a);
+    PC_STOREF(28, f17);
+    const float f18 = PC_XF(29, a);
+    PC_STOREF(29, f18);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_d89e0ded32d7cfa9_shape[101] = {
+    3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 2, 0, 0, 0, 3, 2, 0, 0, 0,
+    3, 2, 0, 0, 0, 3, 26, 2, 0, 3, 3, 253, 2, 2, 1, 1, 5, 0, 0, 1, 254, 13, 0, 0,
+    1, 4, 0, 1, 6, 1, 4, 0, 1, 6, 2, 4, 0, 1, 6, 3, 3, 0, 0, 0, 1, 3, 0, 0,
+    0, 3, 3, 0, 1, 0, 5, 3, 0, 1, 0, 4, 2, 0, 1, 4, 3, 24, 0, 1, 0, 24, 0, 1,
+    0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_d89e0ded32d7cfa9(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 31);
+    const float f0 = pc_sop_float(PC_SOP_MUL, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_MUL, PC_XF(2, a), PC_XF(2, b));
+    const float f2 = pc_sop_float(PC_SOP_MUL, PC_XF(3, a), PC_XF(3, b));
+    const float f3 = pc_sop_float(PC_SOP_SUB, PC_XF(5, a), f0);
+    const float f4 = pc_sop_float(PC_SOP_SUB, PC_XF(6, a), f1);
+    const float f5 = pc_sop_float(PC_SOP_SUB, PC_XF(7, a), f2);
+    float f6 = f3 * f3; /* a square: 0 + it is it */
+    f6 += f4 * f4;
+    f6 += f5 * f5;
+    const float f7 = pc_sop_float(PC_SOP_MAX, f6, PC_KF(1));
+    const float f8 = pc_sop_float(PC_SOP_SQRT, f7, 0.0f);
+    const float f9 = pc_sop_float(PC_SOP_DIV, f3, f8);
+    PC_STOREF(17, f9);
+    const float f10 = pc_sop_float(PC_SOP_DIV, f4, f8);
+    PC_STOREF(18, f10);
+    const float f11 = pc_sop_float(PC_SOP_DIV, f5, f8);
+    PC_STOREF(19, f11);
+    const float f12 = pc_sop_float(PC_SOP_MUL, PC_XF(21, a), f11);
+    const float f13 = pc_sop_float(PC_SOP_MUL, PC_XF(22, a), f10);
+    const float f14 = pc_sop_float(PC_SOP_MUL, PC_XF(23, a), f9);
+    PC_STOREF(23, f14);
+    const float f15 = pc_sop_float(PC_SOP_MUL, PC_XF(24, a), f11);
+    PC_STOREF(24, f15);
+    const float f16 = pc_sop_float(PC_SOP_SUB, f12, f13);
+    PC_STOREF(26, f16);
+    const float f17 = PC_XF(28, a);
+    PC_STOREF(28, f17);
+    const float f18 = PC_XF(29, a);
+    PC_STOREF(29, f18);
+    const float f19 = PC_XF(30, a);
+    PC_STOREF(30, f19);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_f4168f4deafc99e1_shape[101] = {
+    26, 3, 0, 0, 254, 253, 0, 254, 0, 254, 0, 254, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0,
+    0, 1, 4, 0, 0, 0, 2, 4, 0, 0, 0, 3, 4, 0, 0, 0, 4, 10, 0, 0, 4, 254, 12, 0,
+    0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1, 4, 9, 5, 23, 0, 1, 4,
+    9, 6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4, 9, 8, 3, 0, 1, 3, 3, 3, 0, 1, 3, 3,
+    3, 0, 1, 3, 3,
+};
+PC_HOT static pc_status pc_program_f4168f4deafc99e1(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 30);
+    float f0 = PC_KF(1);
+    f0 += PC_XF(1, a) * PC_KF(0);
+    f0 += PC_XF(2, a) * PC_KF(2);
+    f0 += PC_XF(3, a) * PC_KF(3);
+    f0 += PC_XF(4, a) * PC_KF(4);
+    const float f1 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(5));
+    const float f2 = pc_sop_float(PC_SOP_SQRT, f1, 0.0f);
+    const float f3 = pc_sop_float(PC_SOP_DIV, PC_XF(10, a), f2);
+    const float f4 = pc_sop_float(PC_SOP_DIV, PC_XF(11, a), f2);
+    const float f5 = pc_sop_float(PC_SOP_DIV, PC_XF(12, a), f2);
+    const float f6 = pc_sop_float(PC_SOP_DIV, PC_XF(13, a), f2);
+    const uint8_t b7 = f3 < PC_KF(6);
+    const float f8 = pc_sop_float(PC_SOP_NEG, f3, 0.0f);
+    const float f9 = pc_sop_float(PC_SOP_NEG, f4, 0.0f);
+    const float f10 = pc_sop_float(PC_SOP_NEG, f5, 0.0f);
+    const float f11 = pc_sop_float(PC_SOP_NEG, f6, 0.0f);
+    const float f12 = b7 ? f8 : f3;
+    PC_STOREF(22, f12);
+    const float f13 = b7 ? f9 : f4;
+    PC_STOREF(23, f13);
+    const float f14 = b7 ? f10 : f5;
+    PC_STOREF(24, f14);
+    const float f15 = b7 ? f11 : f6;
+    PC_STOREF(25, f15);
+    const float f16 = pc_sop_float(PC_SOP_MUL, f13, f13);
+    PC_STOREF(27, f16);
+    const float f17 = pc_sop_float(PC_SOP_MUL, f14, f14);
+    PC_STOREF(28, f17);
+    const float f18 = pc_sop_float(PC_SOP_MUL, f15, f15);
+    PC_STOREF(29, f18);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_512ab29be3f5ff66_shape[102] = {
+    5, 0, 0, 0, 254, 5, 0, 0, 0, 254, 5, 0, 0, 0, 254, 13, 0, 0, 3, 13, 0, 0, 3, 13,
+    0, 0, 3, 3, 0, 0, 3, 254, 3, 0, 0, 3, 254, 3, 0, 0, 3, 254, 4, 0, 0, 254, 3, 4,
+    0, 0, 254, 3, 4, 0, 1, 254, 3, 1, 0, 1, 0, 0, 3, 0, 1, 0, 4, 3, 0, 1, 0, 5,
+    3, 0, 1, 0, 6, 3, 0, 1, 0, 7, 3, 0, 1, 0, 7, 3, 0, 1, 0, 8, 3, 0, 1, 0,
+    9, 3, 0, 1, 0, 10,
+};
+PC_HOT static pc_status pc_program_512ab29be3f5ff66(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 27);
+    const float f0 = pc_sop_float(PC_SOP_MAX, PC_XF(1, a), PC_KF(0));
+    const float f1 = pc_sop_float(PC_SOP_MAX, PC_XF(2, a), PC_KF(1));
+    const float f2 = pc_sop_float(PC_SOP_MAX, PC_XF(3, a), PC_KF(2));
+    const float f3 = pc_sop_float(PC_SOP_SQRT, f0, 0.0f);
+    const float f4 = pc_sop_float(PC_SOP_SQRT, f1, 0.0f);
+    const float f5 = pc_sop_float(PC_SOP_SQRT, f2, 0.0f);
+    const float f6 = pc_sop_float(PC_SOP_MUL, f3, PC_KF(3));
+    const float f7 = pc_sop_float(PC_SOP_MUL, f4, PC_KF(4));
+    const float f8 = pc_sop_float(PC_SOP_MUL, f5, PC_KF(5));
+    const float f9 = pc_sop_float(PC_SOP_DIV, PC_KF(6), f6);
+    const float f10 = pc_sop_float(PC_SOP_DIV, PC_KF(7), f7);
+    const float f11 = pc_sop_float(PC_SOP_DIV, PC_KF(8), f8);
+    PC_STOREF(15, f11);
+    const float f12 = pc_sop_float(PC_SOP_ADD, PC_XF(17, a), PC_XF(17, b));
+    PC_STOREF(17, f12);
+    const float f13 = pc_sop_float(PC_SOP_MUL, PC_XF(19, a), f9);
+    PC_STOREF(19, f13);
+    const float f14 = pc_sop_float(PC_SOP_MUL, PC_XF(20, a), f9);
+    PC_STOREF(20, f14);
+    const float f15 = pc_sop_float(PC_SOP_MUL, PC_XF(21, a), f9);
+    PC_STOREF(21, f15);
+    const float f16 = pc_sop_float(PC_SOP_MUL, PC_XF(22, a), f9);
+    PC_STOREF(22, f16);
+    const float f17 = pc_sop_float(PC_SOP_MUL, PC_XF(23, a), f10);
+    PC_STOREF(23, f17);
+    const float f18 = pc_sop_float(PC_SOP_MUL, PC_XF(24, a), f10);
+    PC_STOREF(24, f18);
+    const float f19 = pc_sop_float(PC_SOP_MUL, PC_XF(25, a), f10);
+    PC_STOREF(25, f19);
+    const float f20 = pc_sop_float(PC_SOP_MUL, PC_XF(26, a), f10);
+    PC_STOREF(26, f20);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_d7f2738a23207fb7_shape[102] = {
+    5, 0, 0, 0, 254, 5, 0, 0, 0, 254, 13, 0, 0, 0, 13, 0, 0, 3, 13, 0, 0, 3, 3, 0,
+    0, 3, 254, 3, 0, 0, 3, 254, 3, 0, 0, 3, 254, 4, 0, 0, 254, 3, 4, 0, 0, 254, 3, 4,
+    0, 1, 254, 3, 3, 0, 1, 0, 3, 3, 0, 1, 0, 4, 3, 0, 1, 0, 5, 3, 0, 1, 0, 6,
+    3, 0, 1, 0, 6, 3, 0, 1, 0, 7, 3, 0, 1, 0, 8, 3, 0, 1, 0, 9, 3, 0, 1, 0,
+    9, 3, 0, 1, 0, 10,
+};
+PC_HOT static pc_status pc_program_d7f2738a23207fb7(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 26);
+    const float f0 = pc_sop_float(PC_SOP_MAX, PC_XF(1, a), PC_KF(0));
+    const float f1 = pc_sop_float(PC_SOP_MAX, PC_XF(2, a), PC_KF(1));
+    const float f2 = pc_sop_float(PC_SOP_SQRT, PC_XF(4, a), 0.0f);
+    const float f3 = pc_sop_float(PC_SOP_SQRT, f0, 0.0f);
+    const float f4 = pc_sop_float(PC_SOP_SQRT, f1, 0.0f);
+    const float f5 = pc_sop_float(PC_SOP_MUL, f2, PC_KF(2));
+    const float f6 = pc_sop_float(PC_SOP_MUL, f3, PC_KF(3));
+    const float f7 = pc_sop_float(PC_SOP_MUL, f4, PC_KF(4));
+    const float f8 = pc_sop_float(PC_SOP_DIV, PC_KF(5), f5);
+    const float f9 = pc_sop_float(PC_SOP_DIV, PC_KF(6), f6);
+    const float f10 = pc_sop_float(PC_SOP_DIV, PC_KF(7), f7);
+    PC_STOREF(14, f10);
+    const float f11 = pc_sop_float(PC_SOP_MUL, PC_XF(16, a), f8);
+    PC_STOREF(16, f11);
+    const float f12 = pc_sop_float(PC_SOP_MUL, PC_XF(17, a), f8);
+    PC_STOREF(17, f12);
+    const float f13 = pc_sop_float(PC_SOP_MUL, PC_XF(18, a), f8);
+    PC_STOREF(18, f13);
+    const float f14 = pc_sop_float(PC_SOP_MUL, PC_XF(19, a), f8);
+    PC_STOREF(19, f14);
+    const float f15 = pc_sop_float(PC_SOP_MUL, PC_XF(20, a), f9);
+    PC_STOREF(20, f15);
+    const float f16 = pc_sop_float(PC_SOP_MUL, PC_XF(21, a), f9);
+    PC_STOREF(21, f16);
+    const float f17 = pc_sop_float(PC_SOP_MUL, PC_XF(22, a), f9);
+    PC_STOREF(22, f17);
+    const float f18 = pc_sop_float(PC_SOP_MUL, PC_XF(23, a), f9);
+    PC_STOREF(23, f18);
+    const float f19 = pc_sop_float(PC_SOP_MUL, PC_XF(24, a), f10);
+    PC_STOREF(24, f19);
+    const float f20 = pc_sop_float(PC_SOP_MUL, PC_XF(25, a), f10);
+    PC_STOREF(25, f20);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_d4002b453ffad562_shape[103] = {
+    1, 0, 0, 0, 0, 3, 0, 0, 1, 254, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 1, 0,
+    0, 3, 0, 1, 0, 0, 3, 0, 1, 0, 0, 3, 0, 1, 0, 0, 3, 0, 1, 0, 0, 26, 0, 0,
+    0, 0, 5, 26, 0, 0, 0, 0, 8, 26, 0, 0, 0, 0, 0, 2, 0, 1, 254, 11, 2, 0, 0, 11,
+    10, 2, 0, 1, 7, 6, 3, 0, 1, 2, 254, 3, 0, 1, 7, 254, 3, 0, 1, 7, 254, 3, 0, 0,
+    7, 254, 2, 0, 1, 254, 1,
+};
+PC_HOT static pc_status pc_program_d4002b453ffad562(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 26);
+    const float f0 = pc_sop_float(PC_SOP_ADD, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_MUL, f0, PC_KF(0));
+    const float f2 = pc_sop_float(PC_SOP_MUL, PC_XF(4, a), PC_XF(4, b));
+    const float f3 = pc_sop_float(PC_SOP_MUL, PC_XF(5, a), PC_XF(5, b));
+    const float f4 = pc_sop_float(PC_SOP_MUL, PC_XF(6, a), PC_XF(6, b));
+    PC_STOREF(6, f4);
+    const float f5 = pc_sop_float(PC_SOP_MUL, PC_XF(7, a), PC_XF(7, b));
+    PC_STOREF(7, f5);
+    const float f6 = pc_sop_float(PC_SOP_MUL, PC_XF(8, a), PC_XF(8, b));
+    PC_STOREF(8, f6);
+    const float f7 = pc_sop_float(PC_SOP_MUL, PC_XF(9, a), PC_XF(9, b));
+    PC_STOREF(9, f7);
+    const float f8 = pc_sop_float(PC_SOP_MUL, PC_XF(10, a), PC_XF(10, b));
+    PC_STOREF(10, f8);
+    float f9 = f4;
+    f9 += PC_XF(12, a) * PC_XF(12, b);
+    float f10 = f2;
+    f10 += PC_XF(13, a) * PC_XF(13, b);
+    float f11 = PC_XF(14, c);
+    f11 += PC_XF(14, a) * PC_XF(14, b);
+    const float f12 = pc_sop_float(PC_SOP_SUB, PC_KF(1), f1);
+    PC_STOREF(16, f12);
+    const float f13 = pc_sop_float(PC_SOP_SUB, f2, f3);
+    const float f14 = pc_sop_float(PC_SOP_SUB, f7, f8);
+    PC_STOREF(18, f14);
+    const float f15 = pc_sop_float(PC_SOP_MUL, f13, PC_KF(2));
+    PC_STOREF(20, f15);
+    const float f16 = pc_sop_float(PC_SOP_MUL, f9, PC_KF(3));
+    PC_STOREF(21, f16);
+    const float f17 = pc_sop_float(PC_SOP_MUL, f10, PC_KF(4));
+    PC_STOREF(22, f17);
+    const float f18 = pc_sop_float(PC_SOP_MUL, f11, PC_KF(5));
+    const float f19 = pc_sop_float(PC_SOP_SUB, PC_KF(6), f18);
+    PC_STOREF(25, f19);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_3aef25d05878da51_shape[103] = {
+    26, 2, 0, 0, 0, 253, 0, 0, 0, 0, 10, 0, 1, 1, 254, 23, 0, 0, 254, 2, 1, 13, 0, 0,
+    1, 3, 0, 0, 1, 254, 4, 0, 0, 5, 254, 4, 0, 0, 6, 254, 16, 0, 0, 4, 16, 0, 0, 4,
+    2, 0, 0, 254, 4, 2, 0, 1, 254, 4, 4, 0, 0, 4, 8, 4, 0, 1, 4, 8, 23, 0, 1, 4,
+    2, 12, 3, 0, 1, 2, 254, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24,
+    0, 1, 0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_3aef25d05878da51(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 35);
+    float f0 = PC_KF(0);
+    f0 += PC_XF(1, a) * PC_XF(1, b);
+    f0 += PC_XF(2, a) * PC_XF(2, b);
+    f0 += PC_XF(3, a) * PC_XF(3, b);
+    const uint8_t b1 = f0 < PC_KF(1);
+    PC_STOREB(5, b1);
+    const float f2 = b1 ? PC_KF(2) : f0;
+    const float f3 = pc_sop_float(PC_SOP_SQRT, f2, 0.0f);
+    const float f4 = pc_sop_float(PC_SOP_MUL, f3, PC_KF(3));
+    const float f5 = pc_sop_float(PC_SOP_DIV, f0, PC_KF(4));
+    const float f6 = pc_sop_float(PC_SOP_DIV, f0, PC_KF(5));
+    const float f7 = pc_sop_float(PC_SOP_SIN, f3, 0.0f);
+    const float f8 = pc_sop_float(PC_SOP_SIN, f4, 0.0f);
+    const float f9 = pc_sop_float(PC_SOP_SUB, PC_KF(6), f5);
+    const float f10 = pc_sop_float(PC_SOP_SUB, PC_KF(7), f6);
+    PC_STOREF(20, f10);
+    const float f11 = pc_sop_float(PC_SOP_DIV, f7, f3);
+    const float f12 = pc_sop_float(PC_SOP_DIV, f8, f4);
+    PC_STOREF(23, f12);
+    const float f13 = b1 ? f9 : f11;
+    PC_STOREF(25, f13);
+    const float f14 = pc_sop_float(PC_SOP_MUL, f12, PC_KF(8));
+    PC_STOREF(27, f14);
+    const float f15 = PC_XF(29, a);
+    PC_STOREF(29, f15);
+    const float f16 = PC_XF(30, a);
+    PC_STOREF(30, f16);
+    const float f17 = PC_XF(31, a);
+    PC_STOREF(31, f17);
+    const float f18 = PC_XF(32, a);
+    PC_STOREF(32, f18);
+    const float f19 = PC_XF(33, a);
+    PC_STOREF(33, f19);
+    const float f20 = PC_XF(34, a);
+    PC_STOREF(34, f20);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_495cb269c110f8af_shape[106] = {
+    26, 3, 0, 0, 254, 253, 0, 254, 0, 254, 0, 254, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0,
+    0, 1, 4, 0, 0, 0, 2, 4, 0, 0, 0, 3, 4, 0, 0, 0, 4, 10, 0, 0, 4, 254, 12, 0,
+    0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1, 4, 9, 5, 23, 0, 1, 4,
+    9, 6, 23, 0, 1, 4, 9, 7, 23, 0, 1, 4, 9, 8, 3, 0, 1, 4, 4, 3, 0, 1, 4, 4,
+    3, 0, 1, 4, 4, 3, 0, 1, 4, 4,
+};
+PC_HOT static pc_status pc_program_495cb269c110f8af(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 31);
+    float f0 = PC_KF(1);
+    f0 += PC_XF(1, a) * PC_KF(0);
+    f0 += PC_XF(2, a) * PC_KF(2);
+    f0 += PC_XF(3, a) * PC_KF(3);
+    f0 += PC_XF(4, a) * PC_KF(4);
+    const float f1 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(5));
+    const float f2 = pc_sop_float(PC_SOP_SQRT, f1, 0.0f);
+    const float f3 = pc_sop_float(PC_SOP_DIV, PC_XF(10, a), f2);
+    const float f4 = pc_sop_float(PC_SOP_DIV, PC_XF(11, a), f2);
+    const float f5 = pc_sop_float(PC_SOP_DIV, PC_XF(12, a), f2);
+    const float f6 = pc_sop_float(PC_SOP_DIV, PC_XF(13, a), f2);
+    const uint8_t b7 = f3 < PC_KF(6);
+    const float f8 = pc_sop_float(PC_SOP_NEG, f3, 0.0f);
+    const float f9 = pc_sop_float(PC_SOP_NEG, f4, 0.0f);
+    const float f10 = pc_sop_float(PC_SOP_NEG, f5, 0.0f);
+    const float f11 = pc_sop_float(PC_SOP_NEG, f6, 0.0f);
+    const float f12 = b7 ? f8 : f3;
+    PC_STOREF(22, f12);
+    const float f13 = b7 ? f9 : f4;
+    PC_STOREF(23, f13);
+    const float f14 = b7 ? f10 : f5;
+    PC_STOREF(24, f14);
+    const float f15 = b7 ? f11 : f6;
+    PC_STOREF(25, f15);
+    const float f16 = pc_sop_float(PC_SOP_MUL, f12, f12);
+    PC_STOREF(27, f16);
+    const float f17 = pc_sop_float(PC_SOP_MUL, f13, f13);
+    PC_STOREF(28, f17);
+    const float f18 = pc_sop_float(PC_SOP_MUL, f14, f14);
+    PC_STOREF(29, f18);
+    const float f19 = pc_sop_float(PC_SOP_MUL, f15, f15);
+    PC_STOREF(30, f19);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_24e6339064ec76e1_shape[113] = {
+    26, 0, 0, 0, 0, 0, 26, 0, 0, 0, 0, 0, 3, 0, 0, 0, 2, 3, 0, 0, 0, 0, 3, 0,
+    0, 1, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 5, 1, 0, 1, 0, 0, 1, 0, 1, 0, 0, 2,
+    0, 1, 254, 7, 2, 0, 1, 6, 5, 2, 0, 1, 0, 0, 2, 0, 1, 254, 6, 26, 0, 1, 0, 0,
+    9, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 11, 24, 0, 1,
+    11, 24, 0, 1, 11, 24, 0, 1, 11, 24, 0, 1, 11, 24, 0, 1, 10,
+};
+PC_HOT static pc_status pc_program_24e6339064ec76e1(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 30);
+    float f0 = PC_XF(1, c);
+    f0 += PC_XF(1, a) * PC_XF(1, b);
+    float f1 = PC_XF(2, c);
+    f1 += PC_XF(2, a) * PC_XF(2, b);
+    const float f2 = pc_sop_float(PC_SOP_MUL, PC_XF(4, a), f0);
+    const float f3 = pc_sop_float(PC_SOP_MUL, PC_XF(5, a), PC_XF(5, b));
+    const float f4 = pc_sop_float(PC_SOP_MUL, f3, PC_XF(6, b));
+    const float f5 = pc_sop_float(PC_SOP_MUL, PC_XF(7, a), PC_XF(7, b));
+    const float f6 = pc_sop_float(PC_SOP_MUL, PC_XF(8, a), f1);
+    const float f7 = pc_sop_float(PC_SOP_ADD, PC_XF(10, a), PC_XF(10, b));
+    PC_STOREF(10, f7);
+    const float f8 = pc_sop_float(PC_SOP_ADD, PC_XF(11, a), PC_XF(11, b));
+    PC_STOREF(11, f8);
+    const float f9 = pc_sop_float(PC_SOP_SUB, PC_KF(0), f2);
+    PC_STOREF(13, f9);
+    const float f10 = pc_sop_float(PC_SOP_SUB, f4, f5);
+    PC_STOREF(14, f10);
+    const float f11 = pc_sop_float(PC_SOP_SUB, PC_XF(15, a), PC_XF(15, b));
+    PC_STOREF(15, f11);
+    const float f12 = pc_sop_float(PC_SOP_SUB, PC_KF(1), f6);
+    PC_STOREF(16, f12);
+    float f13 = f4;
+    f13 += PC_XF(18, a) * PC_XF(18, b);
+    PC_STOREF(18, f13);
+    const float f14 = PC_XF(20, a);
+    PC_STOREF(20, f14);
+    const float f15 = PC_XF(21, a);
+    PC_STOREF(21, f15);
+    const float f16 = PC_XF(22, a);
+    PC_STOREF(22, f16);
+    const float f17 = PC_XF(23, a);
+    PC_STOREF(23, f17);
+    const float f18 = f7;
+    PC_STOREF(24, f18);
+    const float f19 = f8;
+    PC_STOREF(25, f19);
+    const float f20 = f9;
+    PC_STOREF(26, f20);
+    const float f21 = f10;
+    PC_STOREF(27, f21);
+    const float f22 = f11;
+    PC_STOREF(28, f22);
+    const float f23 = f13;
+    PC_STOREF(29, f23);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_6bd0c3f3a7b056a4_shape[122] = {
+    3, 0, 0, 0, 0, 9, 0, 0, 0, 0, 9, 0, 0, 0, 0, 5, 0, 0, 0, 0, 5, 0, 0, 0,
+    0, 23, 0, 0, 0, 0, 4, 23, 0, 0, 0, 0, 5, 23, 0, 0, 0, 0, 6, 23, 0, 0, 0, 0,
+    7, 23, 0, 0, 0, 0, 7, 23, 0, 0, 0, 0, 8, 23, 0, 0, 0, 0, 9, 23, 0, 0, 0, 12,
+    10, 9, 0, 0, 10, 9, 23, 0, 1, 9, 5, 1, 23, 0, 1, 9, 5, 2, 23, 0, 1, 9, 5, 3,
+    23, 0, 1, 9, 5, 4, 3, 0, 1, 4, 4, 3, 0, 1, 4, 4, 3, 0, 1, 4, 4, 3, 0, 1,
+    4, 4,
+};
+PC_HOT static pc_status pc_program_6bd0c3f3a7b056a4(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float f0 = pc_sop_float(PC_SOP_MUL, PC_XF(1, a), PC_XF(1, b));
+    const uint8_t b1 = PC_XF(3, a) >= PC_XF(3, b);
+    const uint8_t b2 = PC_XF(4, a) >= PC_XF(4, b);
+    const float f3 = pc_sop_float(PC_SOP_MAX, PC_XF(6, a), PC_XF(6, b));
+    const float f4 = pc_sop_float(PC_SOP_MAX, PC_XF(7, a), PC_XF(7, b));
+    const float f5 = b1 ? PC_XF(9, a) : PC_XF(9, b);
+    const float f6 = b1 ? PC_XF(10, a) : PC_XF(10, b);
+    const float f7 = b1 ? PC_XF(11, a) : PC_XF(11, b);
+    const float f8 = b1 ? PC_XF(12, a) : PC_XF(12, b);
+    const float f9 = b2 ? PC_XF(13, a) : PC_XF(13, b);
+    const float f10 = b2 ? PC_XF(14, a) : PC_XF(14, b);
+    const float f11 = b2 ? PC_XF(15, a) : PC_XF(15, b);
+    const float f12 = b2 ? PC_XF(16, a) : f0;
+    const uint8_t b13 = f3 >= f4;
+    const float f14 = b13 ? f5 : f9;
+    PC_STOREF(20, f14);
+    const float f15 = b13 ? f6 : f10;
+    PC_STOREF(21, f15);
+    const float f16 = b13 ? f7 : f11;
+    PC_STOREF(22, f16);
+    const float f17 = b13 ? f8 : f12;
+    PC_STOREF(23, f17);
+    const float f18 = pc_sop_float(PC_SOP_MUL, f14, f14);
+    PC_STOREF(25, f18);
+    const float f19 = pc_sop_float(PC_SOP_MUL, f15, f15);
+    PC_STOREF(26, f19);
+    const float f20 = pc_sop_float(PC_SOP_MUL, f16, f16);
+    PC_STOREF(27, f20);
+    const float f21 = pc_sop_float(PC_SOP_MUL, f17, f17);
+    PC_STOREF(28, f21);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_ad3263f9f4000457_shape[127] = {
+    3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 9, 0, 0, 0, 0, 9, 0, 0, 0, 0, 5, 0, 0, 0,
+    0, 5, 0, 0, 0, 0, 23, 0, 0, 0, 0, 4, 23, 0, 0, 0, 0, 5, 23, 0, 0, 0, 0, 6,
+    23, 0, 0, 0, 0, 7, 23, 0, 0, 0, 0, 7, 23, 0, 0, 0, 0, 8, 23, 0, 0, 0, 12, 9,
+    23, 0, 0, 0, 12, 10, 9, 0, 0, 10, 9, 23, 0, 1, 9, 5, 1, 23, 0, 1, 9, 5, 2, 23,
+    0, 1, 9, 5, 3, 23, 0, 1, 9, 5, 4, 3, 0, 1, 4, 4, 3, 0, 1, 4, 4, 3, 0, 1,
+    4, 4, 3, 0, 1, 4, 4,
+};
+PC_HOT static pc_status pc_program_ad3263f9f4000457(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float f0 = pc_sop_float(PC_SOP_MUL, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_MUL, PC_XF(2, a), PC_XF(2, b));
+    const uint8_t b2 = PC_XF(4, a) >= PC_XF(4, b);
+    const uint8_t b3 = PC_XF(5, a) >= PC_XF(5, b);
+    const float f4 = pc_sop_float(PC_SOP_MAX, PC_XF(7, a), PC_XF(7, b));
+    const float f5 = pc_sop_float(PC_SOP_MAX, PC_XF(8, a), PC_XF(8, b));
+    const float f6 = b2 ? PC_XF(10, a) : PC_XF(10, b);
+    const float f7 = b2 ? PC_XF(11, a) : PC_XF(11, b);
+    const float f8 = b2 ? PC_XF(12, a) : PC_XF(12, b);
+    const float f9 = b2 ? PC_XF(13, a) : PC_XF(13, b);
+    const float f10 = b3 ? PC_XF(14, a) : PC_XF(14, b);
+    const float f11 = b3 ? PC_XF(15, a) : PC_XF(15, b);
+    const float f12 = b3 ? PC_XF(16, a) : f0;
+    const float f13 = b3 ? PC_XF(17, a) : f1;
+    const uint8_t b14 = f4 >= f5;
+    const float f15 = b14 ? f6 : f10;
+    PC_STOREF(21, f15);
+    const float f16 = b14 ? f7 : f11;
+    PC_STOREF(22, f16);
+    const float f17 = b14 ? f8 : f12;
+    PC_STOREF(23, f17);
+    const float f18 = b14 ? f9 : f13;
+    PC_STOREF(24, f18);
+    const float f19 = pc_sop_float(PC_SOP_MUL, f15, f15);
+    PC_STOREF(26, f19);
+    const float f20 = pc_sop_float(PC_SOP_MUL, f16, f16);
+    PC_STOREF(27, f20);
+    const float f21 = pc_sop_float(PC_SOP_MUL, f17, f17);
+    PC_STOREF(28, f21);
+    const float f22 = pc_sop_float(PC_SOP_MUL, f18, f18);
+    PC_STOREF(29, f22);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_55592d021c4cb38d_shape[131] = {
+    1, 0, 0, 0, 0, 2, 0, 1, 0, 254, 23, 0, 0, 2, 0, 0, 3, 0, 0, 2, 254, 3, 0, 0,
+    1, 3, 2, 0, 1, 3, 254, 2, 0, 0, 1, 2, 3, 0, 0, 2, 254, 3, 0, 0, 1, 3, 3, 0,
+    0, 3, 254, 3, 0, 0, 1, 4, 2, 0, 0, 10, 3, 2, 0, 0, 11, 2, 3, 0, 0, 2, 254, 3,
+    0, 0, 1, 3, 3, 0, 0, 3, 254, 3, 0, 0, 1, 4, 2, 0, 0, 12, 3, 2, 0, 0, 13, 2,
+    3, 0, 0, 2, 254, 3, 0, 0, 1, 3, 3, 0, 0, 3, 254, 3, 0, 0, 1, 4, 2, 0, 1, 22,
+    3, 2, 0, 1, 23, 2, 3, 0, 1, 2, 254,
+};
+PC_HOT static pc_status pc_program_55592d021c4cb38d(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 38);
+    const float f0 = pc_sop_float(PC_SOP_ADD, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_SUB, PC_XF(3, a), PC_KF(0));
+    PC_STOREF(3, f1);
+    const float f2 = PC_XB(5, c) ? f0 : PC_XF(5, b);
+    const float f3 = pc_sop_float(PC_SOP_MUL, f1, PC_KF(1));
+    const float f4 = pc_sop_float(PC_SOP_MUL, f3, f1);
+    const float f5 = pc_sop_float(PC_SOP_SUB, f2, PC_KF(2));
+    PC_STOREF(10, f5);
+    const float f6 = pc_sop_float(PC_SOP_SUB, f5, f4);
+    const float f7 = pc_sop_float(PC_SOP_MUL, f5, PC_KF(3));
+    const float f8 = pc_sop_float(PC_SOP_MUL, f7, f5);
+    const float f9 = pc_sop_float(PC_SOP_MUL, f6, PC_KF(4));
+    const float f10 = pc_sop_float(PC_SOP_MUL, f9, f6);
+    const float f11 = pc_sop_float(PC_SOP_SUB, f1, f8);
+    const float f12 = pc_sop_float(PC_SOP_SUB, f1, f10);
+    const float f13 = pc_sop_float(PC_SOP_MUL, f11, PC_KF(5));
+    const float f14 = pc_sop_float(PC_SOP_MUL, f13, f11);
+    const float f15 = pc_sop_float(PC_SOP_MUL, f12, PC_KF(6));
+    const float f16 = pc_sop_float(PC_SOP_MUL, f15, f12);
+    const float f17 = pc_sop_float(PC_SOP_SUB, f5, f14);
+    const float f18 = pc_sop_float(PC_SOP_SUB, f5, f16);
+    const float f19 = pc_sop_float(PC_SOP_MUL, f17, PC_KF(7));
+    const float f20 = pc_sop_float(PC_SOP_MUL, f19, f17);
+    const float f21 = pc_sop_float(PC_SOP_MUL, f18, PC_KF(8));
+    const float f22 = pc_sop_float(PC_SOP_MUL, f21, f18);
+    const float f23 = pc_sop_float(PC_SOP_SUB, f1, f20);
+    PC_STOREF(34, f23);
+    const float f24 = pc_sop_float(PC_SOP_SUB, f1, f22);
+    PC_STOREF(35, f24);
+    const float f25 = pc_sop_float(PC_SOP_MUL, f23, PC_KF(9));
+    PC_STOREF(37, f25);
+    return PC_OK;
+}
+
+static const uint8_t pc_program_fab4e1b2727cfe54_shape[143] = {
+    3, 0, 0, 0, 0, 3, 0, 0, 0, 254, 3, 0, 0, 1, 0, 2, 0, 0, 0, 3, 2, 0, 0, 0,
+    2, 3, 0, 0, 2, 254, 3, 0, 0, 1, 3, 3, 0, 0, 3, 254, 3, 0, 0, 1, 4, 2, 0, 0,
+    0, 3, 2, 0, 0, 0, 2, 3, 0, 0, 2, 254, 3, 0, 0, 1, 3, 3, 0, 0, 3, 254, 3, 0,
+    0, 1, 4, 2, 0, 0, 0, 3, 2, 0, 0, 0, 2, 3, 0, 0, 2, 254, 3, 0, 0, 1, 3, 3,
+    0, 0, 3, 254, 3, 0, 0, 1, 4, 2, 0, 0, 0, 3, 2, 0, 0, 0, 2, 3, 0, 0, 2, 254,
+    3, 0, 0, 1, 3, 2, 0, 0, 0, 1, 18, 0, 1, 4, 18, 0, 1, 2, 3, 0, 1, 2, 254,
+};
+PC_HOT static pc_status pc_program_fab4e1b2727cfe54(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;
+    const float *const k = (const float *)(const void *)(e + 41);
+    const float f0 = pc_sop_float(PC_SOP_MUL, PC_XF(1, a), PC_XF(1, b));
+    const float f1 = pc_sop_float(PC_SOP_MUL, PC_XF(2, a), PC_KF(0));
+    const float f2 = pc_sop_float(PC_SOP_MUL, f1, PC_XF(3, b));
+    const float f3 = pc_sop_float(PC_SOP_SUB, PC_XF(5, a), f0);
+    const float f4 = pc_sop_float(PC_SOP_SUB, PC_XF(6, a), f2);
+    const float f5 = pc_sop_float(PC_SOP_MUL, f3, PC_KF(1));
+    const float f6 = pc_sop_float(PC_SOP_MUL, f5, f3);
+    const float f7 = pc_sop_float(PC_SOP_MUL, f4, PC_KF(2));
+    const float f8 = pc_sop_float(PC_SOP_MUL, f7, f4);
+    const float f9 = pc_sop_float(PC_SOP_SUB, PC_XF(13, a), f6);
+    const float f10 = pc_sop_float(PC_SOP_SUB, PC_XF(14, a), f8);
+    const float f11 = pc_sop_float(PC_SOP_MUL, f9, PC_KF(3));
+    const float f12 = pc_sop_float(PC_SOP_MUL, f11, f9);
+    const float f13 = pc_sop_float(PC_SOP_MUL, f10, PC_KF(4));
+    const float f14 = pc_sop_float(PC_SOP_MUL, f13, f10);
+    const float f15 = pc_sop_float(PC_SOP_SUB, PC_XF(21, a), f12);
+    const float f16 = pc_sop_float(PC_SOP_SUB, PC_XF(22, a), f14);
+    const float f17 = pc_sop_float(PC_SOP_MUL, f15, PC_KF(5));
+    const float f18 = pc_sop_float(PC_SOP_MUL, f17, f15);
+    const float f19 = pc_sop_float(PC_SOP_MUL, f16, PC_KF(6));
+    const float f20 = pc_sop_float(PC_SOP_MUL, f19, f16);
+    const float f21 = pc_sop_float(PC_SOP_SUB, PC_XF(29, a), f18);
+    const float f22 = pc_sop_float(PC_SOP_SUB, PC_XF(30, a), f20);
+    const float f23 = pc_sop_float(PC_SOP_MUL, f21, PC_KF(7));
+    const float f24 = pc_sop_float(PC_SOP_MUL, f23, f21);
+    const float f25 = pc_sop_float(PC_SOP_SUB, PC_XF(35, a), f24);
+    const float f26 = pc_sop_float(PC_SOP_TAN, f22, 0.0f);
+    PC_STOREF(37, f26);
+    const float f27 = pc_sop_float(PC_SOP_TAN, f25, 0.0f);
+    PC_STOREF(38, f27);
+    const float f28 = pc_sop_float(PC_SOP_MUL, f26, PC_KF(8));
+    PC_STOREF(40, f28);
     return PC_OK;
 }
 
@@ -4615,9 +6639,61 @@ PC_HOT static pc_status pc_program_6933f2da6dd5679b(const pc_step *s)
     return PC_OK;
 }
 
-const pc_compiled_program pc_compiled_programs[21] = {
+const pc_compiled_program pc_compiled_programs[73] = {
+    {12u, 0xfdacaeb3267d16a4ull, pc_program_fdacaeb3267d16a4_shape, pc_program_fdacaeb3267d16a4},
+    {15u, 0x6de52950720b126eull, pc_program_6de52950720b126e_shape, pc_program_6de52950720b126e},
+    {15u, 0x1912d78d622026b3ull, pc_program_1912d78d622026b3_shape, pc_program_1912d78d622026b3},
     {18u, 0x3e6e093e97893cd6ull, pc_program_3e6e093e97893cd6_shape, pc_program_3e6e093e97893cd6},
+    {25u, 0x6ab777400bf7561aull, pc_program_6ab777400bf7561a_shape, pc_program_6ab777400bf7561a},
+    {30u, 0x9398cc147e4fb695ull, pc_program_9398cc147e4fb695_shape, pc_program_9398cc147e4fb695},
+    {35u, 0xe730829675a10053ull, pc_program_e730829675a10053_shape, pc_program_e730829675a10053},
+    {42u, 0xe6539e7073697c15ull, pc_program_e6539e7073697c15_shape, pc_program_e6539e7073697c15},
+    {42u, 0xe1640cbbdd279744ull, pc_program_e1640cbbdd279744_shape, pc_program_e1640cbbdd279744},
+    {42u, 0xc83143816c484653ull, pc_program_c83143816c484653_shape, pc_program_c83143816c484653},
+    {45u, 0x3fc2825bbc2a7896ull, pc_program_3fc2825bbc2a7896_shape, pc_program_3fc2825bbc2a7896},
+    {48u, 0xfd78145ac8432819ull, pc_program_fd78145ac8432819_shape, pc_program_fd78145ac8432819},
+    {49u, 0x09534b7dcdc7fa85ull, pc_program_09534b7dcdc7fa85_shape, pc_program_09534b7dcdc7fa85},
+    {57u, 0x5d736994581975e6ull, pc_program_5d736994581975e6_shape, pc_program_5d736994581975e6},
+    {60u, 0xfce5e0c0f059f3c3ull, pc_program_fce5e0c0f059f3c3_shape, pc_program_fce5e0c0f059f3c3},
     {63u, 0x77704bc8040ae058ull, pc_program_77704bc8040ae058_shape, pc_program_77704bc8040ae058},
+    {63u, 0xa20d227085916ff8ull, pc_program_a20d227085916ff8_shape, pc_program_a20d227085916ff8},
+    {68u, 0x33895605c1f75561ull, pc_program_33895605c1f75561_shape, pc_program_33895605c1f75561},
+    {71u, 0x1ba133b6d1e2b184ull, pc_program_1ba133b6d1e2b184_shape, pc_program_1ba133b6d1e2b184},
+    {72u, 0x38ad1587184f3658ull, pc_program_38ad1587184f3658_shape, pc_program_38ad1587184f3658},
+    {72u, 0x3e2e10e6589b9b30ull, pc_program_3e2e10e6589b9b30_shape, pc_program_3e2e10e6589b9b30},
+    {75u, 0x2743116c85de11abull, pc_program_2743116c85de11ab_shape, pc_program_2743116c85de11ab},
+    {75u, 0x90d08eb988bef9a4ull, pc_program_90d08eb988bef9a4_shape, pc_program_90d08eb988bef9a4},
+    {77u, 0xd75e4416a6374942ull, pc_program_d75e4416a6374942_shape, pc_program_d75e4416a6374942},
+    {77u, 0x5f3f6df8db4588ceull, pc_program_5f3f6df8db4588ce_shape, pc_program_5f3f6df8db4588ce},
+    {79u, 0x3bbbaacd07511b66ull, pc_program_3bbbaacd07511b66_shape, pc_program_3bbbaacd07511b66},
+    {81u, 0x269de7733901592dull, pc_program_269de7733901592d_shape, pc_program_269de7733901592d},
+    {84u, 0x8db3196a13a85452ull, pc_program_8db3196a13a85452_shape, pc_program_8db3196a13a85452},
+    {85u, 0x6c29ce1a20a64b71ull, pc_program_6c29ce1a20a64b71_shape, pc_program_6c29ce1a20a64b71},
+    {85u, 0x64cf7416c5145253ull, pc_program_64cf7416c5145253_shape, pc_program_64cf7416c5145253},
+    {85u, 0xc93a5fd1f89180deull, pc_program_c93a5fd1f89180de_shape, pc_program_c93a5fd1f89180de},
+    {86u, 0x02efbac8a3ea516aull, pc_program_02efbac8a3ea516a_shape, pc_program_02efbac8a3ea516a},
+    {90u, 0xb791a0fa2ff63ea3ull, pc_program_b791a0fa2ff63ea3_shape, pc_program_b791a0fa2ff63ea3},
+    {92u, 0xceff1fb5d745ec7eull, pc_program_ceff1fb5d745ec7e_shape, pc_program_ceff1fb5d745ec7e},
+    {93u, 0x2e47c7a1ade5db97ull, pc_program_2e47c7a1ade5db97_shape, pc_program_2e47c7a1ade5db97},
+    {93u, 0x745aa9ae7e8b0df4ull, pc_program_745aa9ae7e8b0df4_shape, pc_program_745aa9ae7e8b0df4},
+    {93u, 0x1b2d2becbd92cebaull, pc_program_1b2d2becbd92ceba_shape, pc_program_1b2d2becbd92ceba},
+    {94u, 0xdf8cf44115f8afdfull, pc_program_df8cf44115f8afdf_shape, pc_program_df8cf44115f8afdf},
+    {94u, 0xde421ac59765ed2dull, pc_program_de421ac59765ed2d_shape, pc_program_de421ac59765ed2d},
+    {97u, 0x17185cbc9791440eull, pc_program_17185cbc9791440e_shape, pc_program_17185cbc9791440e},
+    {97u, 0x1416c90e014c5941ull, pc_program_1416c90e014c5941_shape, pc_program_1416c90e014c5941},
+    {98u, 0x8237509ce417907eull, pc_program_8237509ce417907e_shape, pc_program_8237509ce417907e},
+    {101u, 0xd89e0ded32d7cfa9ull, pc_program_d89e0ded32d7cfa9_shape, pc_program_d89e0ded32d7cfa9},
+    {101u, 0xf4168f4deafc99e1ull, pc_program_f4168f4deafc99e1_shape, pc_program_f4168f4deafc99e1},
+    {102u, 0x512ab29be3f5ff66ull, pc_program_512ab29be3f5ff66_shape, pc_program_512ab29be3f5ff66},
+    {102u, 0xd7f2738a23207fb7ull, pc_program_d7f2738a23207fb7_shape, pc_program_d7f2738a23207fb7},
+    {103u, 0xd4002b453ffad562ull, pc_program_d4002b453ffad562_shape, pc_program_d4002b453ffad562},
+    {103u, 0x3aef25d05878da51ull, pc_program_3aef25d05878da51_shape, pc_program_3aef25d05878da51},
+    {106u, 0x495cb269c110f8afull, pc_program_495cb269c110f8af_shape, pc_program_495cb269c110f8af},
+    {113u, 0x24e6339064ec76e1ull, pc_program_24e6339064ec76e1_shape, pc_program_24e6339064ec76e1},
+    {122u, 0x6bd0c3f3a7b056a4ull, pc_program_6bd0c3f3a7b056a4_shape, pc_program_6bd0c3f3a7b056a4},
+    {127u, 0xad3263f9f4000457ull, pc_program_ad3263f9f4000457_shape, pc_program_ad3263f9f4000457},
+    {131u, 0x55592d021c4cb38dull, pc_program_55592d021c4cb38d_shape, pc_program_55592d021c4cb38d},
+    {143u, 0xfab4e1b2727cfe54ull, pc_program_fab4e1b2727cfe54_shape, pc_program_fab4e1b2727cfe54},
     {159u, 0xfee4c311f62a377dull, pc_program_fee4c311f62a377d_shape, pc_program_fee4c311f62a377d},
     {204u, 0xd63599a62c93ef2cull, pc_program_d63599a62c93ef2c_shape, pc_program_d63599a62c93ef2c},
     {260u, 0xedf9b746591a5529ull, pc_program_edf9b746591a5529_shape, pc_program_edf9b746591a5529},
@@ -4638,4 +6714,4 @@ const pc_compiled_program pc_compiled_programs[21] = {
     {1285u, 0xdea986dc5ba36fb8ull, pc_program_dea986dc5ba36fb8_shape, pc_program_dea986dc5ba36fb8},
     {1608u, 0x6933f2da6dd5679bull, pc_program_6933f2da6dd5679b_shape, pc_program_6933f2da6dd5679b},
 };
-const size_t pc_n_compiled_programs = 21;
+const size_t pc_n_compiled_programs = 73;

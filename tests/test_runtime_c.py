@@ -440,6 +440,8 @@ def test_lean_load_options_give_the_same_bits(lib, path):
     x = graphs.poses_in_box(blob, 12, seed=4)
     results = []
     for fields in ({}, {"program_ops": 16}, {"program_ops": 48, "flags": LEAN},
+                   {"program_ops": 32, "flags": LEAN},
+                   {"program_ops": 32, "flags": LEAN | LOAD["PC_LOAD_INTERPRET"]},
                    {"flags": LOAD["PC_LOAD_NO_PROGRAMS"]}, {"flags": PC_LOAD_INTERPRET}):
         h = _load_with(L, blob, max_batch=1, **fields)
         out = np.zeros_like(x)
@@ -467,7 +469,8 @@ def testing_lib(c_build):
 
 def test_shipped_models_run_compiled_programs(c_build, testing_lib):
     """Every one-pose program of every shipped model has its compiled form
-    (runtime_c/programs_compiled.c is what `make programs` writes for models/), and
+    (runtime_c/programs_compiled.c is what `make programs` writes for models/), at the
+    default program_ops and at the small boards' 32 (runtime_c/embedded), and
     PC_LOAD_INTERPRET runs none of them."""
     import ctypes
 
@@ -485,9 +488,9 @@ def test_shipped_models_run_compiled_programs(c_build, testing_lib):
                                  ctypes.POINTER(ctypes.c_void_p), ctypes.POINTER(_Error)]
     for path in MODELS:
         blob = path.read_bytes()
-        for flags, want_compiled in ((0, True), (PC_LOAD_INTERPRET, False)):
+        for flags, ops, want_compiled in ((0, 0, True), (0, 32, True), (PC_LOAD_INTERPRET, 0, False)):
             handle, err = ctypes.c_void_p(), _Error()
-            opts = _Options(max_batch=16, flags=flags)
+            opts = _Options(max_batch=16, flags=flags, program_ops=ops)
             assert T.pc_load_memory(blob, len(blob), ctypes.byref(opts), ctypes.byref(handle),
                                     ctypes.byref(err)) == 0, err.message
             compiled, interpreted = ctypes.c_size_t(), ctypes.c_size_t()

@@ -8,10 +8,11 @@ also to the other boards' implementations of its model), and the match with the 
         --board 16 small16.log small16.elf MODEL.onnx [--board 32 ...]
 
 With --networks FOLDER NAME ..., the networks table instead (Makefile: networks): per
-network, pc_run on the 32 KB board (program_ops 512: the compiled programs run) and, where
-the model loads there, on the 16 KB one (the interpreter), and the compiled, hand-written
-and emlearn functions each on a 2 KB board, their instructions a pose, RAM, and ratios to the hand-written function and to
-emlearn (issue 33's floor: <= FLOOR_RATIO and <= 1); --json writes the table.
+network, pc_run on the 32 KB board (program_ops 512: the whole programs run compiled) and,
+where the model loads there, on the 16 KB one (program_ops 32: compiled in chunks), and the
+compiled, hand-written and emlearn functions each on a 2 KB board, their instructions a
+pose, RAM, and ratios to the hand-written function and to emlearn (issue 33's floor:
+<= FLOOR_RATIO and <= 1); --json writes the table.
 
 Exit status 1 when a board's firmware did not finish, called malloc, or a pc_run, compiled
 or hand-written output differs from the x86 runtime (posecorr.Corrector, backend "c") in any

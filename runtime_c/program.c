@@ -54,11 +54,11 @@ void pc_print_shape_end(void);
 typedef struct pc_eop {
     uint8_t code;       /* PC_SOP_*, or PC_TERM */
     uint8_t n_terms;    /* DOT: PC_TERM entries after it */
-    uint16_t level;     /* dependency depth (close) */
+    uint16_t level;     /* position in the order (close) */
     int32_t a, b, c;
     int32_t dest;       /* arena offset of a needed element, or PC_NO_DEST */
     int32_t out;        /* close: first 1 when kept, then where the result goes */
-    int32_t last;       /* position of its last reader in the order (close) */
+    int32_t last;       /* close: its chain's length, then its last reader's position */
 } pc_eop;
 
 /* Operations live in chunks on the keep end, taken as the program grows and given back
@@ -69,8 +69,8 @@ typedef struct pc_program pc_program;
 struct pc_program {
     pc_eop **chunk;
     size_t n_chunks, n_ops, cap_ops;
-    uint32_t *k;        /* the constant pool, as bits */
-    size_t n_k, cap_k;
+    uint32_t **kchunk;  /* the constant pool, as bits, in chunks taken as it grows */
+    size_t n_k, cap_k, n_kchunks;
     int32_t zero_k;     /* the sums' starting zero (pc_kzero), or -1 */
     int open;
     int interpret;      /* PC_LOAD_INTERPRET */
@@ -79,6 +79,8 @@ struct pc_program {
 };
 
 #define PC_OP(g, i) ((g)->chunk[(size_t)(i) / PC_CHUNK_OPS][(size_t)(i) % PC_CHUNK_OPS])
+#define PC_CHUNK_K 32
+#define PC_KBITS(g, i) ((g)->kchunk[(size_t)(i) / PC_CHUNK_K][(size_t)(i) % PC_CHUNK_K])
 
 static pc_status pc_program_full(pc_pass *pp)
 {
@@ -96,8 +98,9 @@ pc_status pc_program_start(pc_pass *pp, const pc_program_limits *limits)
     g->cap_k = g->cap_ops / 2 + 16;
     g->chunk = pc_scratch_alloc_raw(&b->scratch, PC_KEEP,
                                     g->cap_ops / PC_CHUNK_OPS * sizeof *g->chunk);
-    g->k = pc_scratch_alloc_raw(&b->scratch, PC_KEEP, g->cap_k * sizeof *g->k);
-    if (!g->chunk || !g->k)
+    g->kchunk = pc_scratch_alloc_raw(&b->scratch, PC_KEEP,
+                                     (g->cap_k + PC_CHUNK_K - 1) / PC_CHUNK_K * sizeof *g->kchunk);
+    if (!g->chunk || !g->kchunk)
         return pc_fail(b->err, PC_ERR_MEMORY, "out of memory for one-pose programs "
                        "(pc_options.program_ops)");
     g->interpret = limits && limits->interpret;
@@ -113,16 +116,21 @@ static int pc_element_type(int dtype)
     return dtype == PC_F32 || dtype == PC_BOOL;
 }
 
+/* Operations one output element of node p adds, at most. */
+static size_t pc_element_ops(const pc_prep *p)
+{
+    switch (p->emap) {
+    case PC_EMAP_SOP: return p->sop == PC_SOP_ADD ? PC_EXTEND_MAX_TERMS + 1 : 1;
+    case PC_EMAP_SUM: return ((const pc_reduce *)p->prm)->d[5] + 1;
+    case PC_EMAP_PRODUCT: return ((const pc_gemm *)p->prm)->K + 2;
+    default: return 0;
+    }
+}
+
 /* Operations node p adds, at most. */
 static size_t pc_expansion_ops(const pc_prep *p)
 {
-    const size_t n = p->out[0]->count;
-    switch (p->emap) {
-    case PC_EMAP_SOP: return p->sop == PC_SOP_ADD ? n * (PC_EXTEND_MAX_TERMS + 1) : n;
-    case PC_EMAP_SUM: return n * (((const pc_reduce *)p->prm)->d[5] + 1);
-    case PC_EMAP_PRODUCT: return n * (((const pc_gemm *)p->prm)->K + 2);
-    default: return 0;
-    }
+    return p->out[0]->count * pc_element_ops(p);
 }
 
 /* Pool constants node p may add, at most: its constant operands' elements and what
@@ -191,19 +199,37 @@ int pc_program_takes(const pc_pass *pp, const pc_prep *p)
 
 /* ---- element references --------------------------------------------------------------- */
 
+/* A new pool constant; its index in *i. */
+static pc_status pc_k_push(pc_pass *pp, uint32_t bits, size_t *i)
+{
+    pc_program *g = pp->prog;
+    if (g->n_k == g->cap_k)
+        return pc_program_full(pp);
+    if (g->n_k == g->n_kchunks * PC_CHUNK_K) {
+        uint32_t *c = pc_scratch_alloc_raw(&pp->b->scratch, PC_KEEP, PC_CHUNK_K * sizeof *c);
+        if (!c)
+            return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory for a one-pose program "
+                           "(pc_options.program_ops, PC_LOAD_NO_PROGRAMS)");
+        g->kchunk[g->n_kchunks++] = c;
+    }
+    PC_KBITS(g, g->n_k) = bits;
+    *i = g->n_k++;
+    return PC_OK;
+}
+
 static pc_status pc_k(pc_pass *pp, uint32_t bits, int32_t *r)
 {
     pc_program *g = pp->prog;
     size_t i;
+    pc_status st;
     for (i = 0; i < g->n_k; i++)
-        if (g->k[i] == bits && (int32_t)i != g->zero_k) {
+        if (PC_KBITS(g, i) == bits && (int32_t)i != g->zero_k) {
             *r = PC_K_REF(i);
             return PC_OK;
         }
-    if (g->n_k == g->cap_k)
-        return pc_program_full(pp);
-    g->k[g->n_k] = bits;
-    *r = PC_K_REF(g->n_k++);
+    if ((st = pc_k_push(pp, bits, &i)) != PC_OK)
+        return st;
+    *r = PC_K_REF(i);
     return PC_OK;
 }
 
@@ -213,11 +239,12 @@ static pc_status pc_k(pc_pass *pp, uint32_t bits, int32_t *r)
 static pc_status pc_kzero(pc_pass *pp, int32_t *r)
 {
     pc_program *g = pp->prog;
+    size_t i;
+    pc_status st;
     if (g->zero_k < 0) {
-        if (g->n_k == g->cap_k)
-            return pc_program_full(pp);
-        g->k[g->n_k] = 0;
-        g->zero_k = (int32_t)g->n_k++;
+        if ((st = pc_k_push(pp, 0, &i)) != PC_OK)
+            return st;
+        g->zero_k = (int32_t)i;
     }
     *r = PC_K_REF(g->zero_k);
     return PC_OK;
@@ -298,7 +325,7 @@ static int32_t pc_new_op(pc_program *g, int code, int32_t a, int32_t b, int32_t 
 static float pc_kval(const pc_program *g, int32_t r)
 {
     float x;
-    memcpy(&x, &g->k[PC_EXT_INDEX(r)], 4);
+    memcpy(&x, &PC_KBITS(g, PC_EXT_INDEX(r)), 4);
     return x;
 }
 
@@ -360,13 +387,13 @@ static pc_status pc_sop(pc_pass *pp, int code, int32_t a, int32_t b, int32_t c, 
     pc_program *g = pp->prog;
     const int binary = PC_SOP_IS_BINARY(code), where = code == PC_SOP_WHERE;
     if (where && PC_IS_K(c)) {
-        *r = g->k[PC_EXT_INDEX(c)] ? a : b;
+        *r = PC_KBITS(g, PC_EXT_INDEX(c)) ? a : b;
         return PC_OK;
     }
     if (PC_IS_K(a) && (!(binary || where) || PC_IS_K(b)) && (!where || PC_IS_K(c)))
-        return pc_k(pp, pc_sop_eval(code, g->k[PC_EXT_INDEX(a)],
-                                    binary || where ? g->k[PC_EXT_INDEX(b)] : 0,
-                                    where ? g->k[PC_EXT_INDEX(c)] : 0), r);
+        return pc_k(pp, pc_sop_eval(code, PC_KBITS(g, PC_EXT_INDEX(a)),
+                                    binary || where ? PC_KBITS(g, PC_EXT_INDEX(b)) : 0,
+                                    where ? PC_KBITS(g, PC_EXT_INDEX(c)) : 0), r);
     if (code == PC_SOP_ADD && (*r = pc_add_as_dot(pp, a, b)) >= 0)
         return PC_OK;
     *r = pc_new_op(g, code, a, binary || where ? b : 0, where ? c : 0);
@@ -500,7 +527,7 @@ pc_status pc_program_expand(pc_pass *pp, const pc_prep *p)
         return st;
     if (!g->open) {
         g->open = 1;
-        g->n_ops = g->n_k = g->pending = g->n_chunks = 0;
+        g->n_ops = g->n_k = g->pending = g->n_chunks = g->n_kchunks = 0;
         g->zero_k = -1;
         g->mark = pc_scratch_save(&pp->b->scratch, PC_KEEP);
         pp->defer_frees = 1;
@@ -510,13 +537,14 @@ pc_status pc_program_expand(pc_pass *pp, const pc_prep *p)
             return st;
         return pc_program_expand(pp, p);
     }
-    if ((st = pc_reserve(pp, pc_expansion_ops(p))) != PC_OK)
-        return st;
     o->elems = pc_scratch_alloc_raw(&pp->b->scratch, PC_KEEP, o->count * sizeof(int32_t));
     if (!o->elems)
         return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory");
+    /* Room taken an element at a time: the bound of a whole node (an addition's, nine
+     * operations an element) would hold chunks the program never fills. */
     for (e = 0; e < o->count; e++)
-        if ((st = pc_expand_element(pp, p, e, &o->elems[e])) != PC_OK)
+        if ((st = pc_reserve(pp, pc_element_ops(p))) != PC_OK ||
+            (st = pc_expand_element(pp, p, e, &o->elems[e])) != PC_OK)
             return st;
     return PC_OK;
 }
@@ -599,48 +627,32 @@ static int pc_unit(const pc_program *g, size_t i)
     return PC_OP(g, i).out && PC_OP(g, i).code != PC_TERM;
 }
 
-/* The kept operations (not terms) in an order that runs as few groups of one code as it
- * can: all ready operations of the current code run, and those they make ready, before
- * the code changes; the next code is that of the ready operation heading the longest
- * chain. level counts an operation's unscheduled operands, last its chain's length. */
-/* Each operation's readers, as edge[start[r] .. start[r + 1]) (only units read); level:
- * its unscheduled operands; *n_units: the units to schedule. */
-static pc_status pc_readers(pc_pass *pp, int32_t **start_out, int32_t **edge_out, size_t *n_units)
+/* Each kept operation's chain length (last): 1 plus its longest reader's. Readers come
+ * after what they read, so walking back, an operation's length is final when reached and
+ * it passes it on to its operands. */
+static size_t pc_chains(pc_program *g)
 {
-    pc_program *g = pp->prog;
-    const size_t n_ops = g->n_ops;
-    int32_t *start = pc_scratch_alloc(&pp->b->scratch, PC_WORK, (n_ops + 2) * sizeof(int32_t));
-    int32_t *edge, *fill;
-    size_t i, edges = 0;
-    if (!start)
-        return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory");
-    *n_units = 0;
-    for (i = 0; i < n_ops; i++) {
-        PC_OP(g, i).level = 0;
+    size_t i, n_units = 0;
+    for (i = 0; i < g->n_ops; i++)
         PC_OP(g, i).last = 1;
+    for (i = g->n_ops; i-- > 0;) {
+        int32_t h;
         if (!pc_unit(g, i))
             continue;
-        (*n_units)++;
-        PC_FOR_OPERANDS(g, i, if (r >= 0) {
-            start[r + 1]++;
-            PC_OP(g, i).level++;
-            edges++;
-        });
+        n_units++;
+        h = PC_OP(g, i).last + 1;
+        PC_FOR_OPERANDS(g, i, if (r >= 0 && PC_OP(g, r).last < h) PC_OP(g, r).last = h);
     }
-    for (i = 0; i < n_ops; i++)
-        start[i + 1] += start[i];
-    edge = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK, (edges + 1) * sizeof(int32_t));
-    /* r's readers fill [start[r], start[r + 1]) from the top; fill[r] is the next free */
-    fill = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK, (n_ops + 1) * sizeof(int32_t));
-    if (!edge || !fill)
-        return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory");
-    memcpy(fill, start + 1, n_ops * sizeof(int32_t));
-    for (i = 0; i < n_ops; i++)
-        if (pc_unit(g, i))
-            PC_FOR_OPERANDS(g, i, if (r >= 0) edge[--fill[r]] = (int32_t)i);
-    *start_out = start;
-    *edge_out = edge;
-    return PC_OK;
+    return n_units;
+}
+
+/* A kept operation not yet ordered (out 1) whose operands all are (out 2). */
+static int pc_ready(const pc_program *g, size_t i)
+{
+    int ready = pc_unit(g, i) && PC_OP(g, i).out == 1;
+    if (ready)
+        PC_FOR_OPERANDS(g, i, if (r >= 0 && PC_OP(g, r).out != 2) ready = 0);
+    return ready;
 }
 
 /* The ready operation to run next: one of the current code, else the one heading the
@@ -651,11 +663,10 @@ static int pc_next_ready(const pc_program *g, int cur)
     size_t i;
     int best = -1;
     for (i = 0; i < n_ops; i++)
-        if (pc_unit(g, i) && PC_OP(g, i).out == 1 && PC_OP(g, i).level == 0 && PC_OP(g, i).code == cur)
+        if (PC_OP(g, i).code == cur && pc_ready(g, i))
             return (int)i;
     for (i = 0; i < n_ops; i++)
-        if (pc_unit(g, i) && PC_OP(g, i).out == 1 && PC_OP(g, i).level == 0 &&
-            (best < 0 || PC_OP(g, i).last > PC_OP(g, (size_t)best).last))
+        if (pc_ready(g, i) && (best < 0 || PC_OP(g, i).last > PC_OP(g, (size_t)best).last))
             best = (int)i;
     return best;
 }
@@ -663,26 +674,17 @@ static int pc_next_ready(const pc_program *g, int cur)
 /* The kept operations (not terms) in an order that runs as few groups of one code as it
  * can: all ready operations of the current code run, and those they make ready, before
  * the code changes; the next code is that of the ready operation heading the longest
- * chain. level counts an operation's unscheduled operands, last its chain's length. */
+ * chain. No reader lists: readiness is asked of the operands, which keeps the close's
+ * working memory to the order. */
 static pc_status pc_order(pc_pass *pp, int32_t **order_out, size_t *n_out)
 {
     pc_program *g = pp->prog;
     const size_t n_ops = g->n_ops;
     int32_t *order = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK, (n_ops + 1) * sizeof(int32_t));
-    int32_t *start = NULL, *edge = NULL;
-    size_t n_units = 0, done = 0, i;
-    pc_status st;
+    const size_t n_units = pc_chains(g);
+    size_t done = 0, i;
     if (!order)
         return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory");
-    if ((st = pc_readers(pp, &start, &edge, &n_units)) != PC_OK)
-        return st;
-    for (i = n_ops; i-- > 0;) {
-        int32_t k, h = 1;
-        for (k = start[i]; k < start[i + 1]; k++)
-            if (PC_OP(g, edge[k]).last + 1 > h)
-                h = PC_OP(g, edge[k]).last + 1;
-        PC_OP(g, i).last = h;
-    }
     while (done < n_units) {
         const int best = pc_next_ready(g, done ? PC_OP(g, (size_t)order[done - 1]).code : -1);
         int progress = 1, cur;
@@ -692,14 +694,10 @@ static pc_status pc_order(pc_pass *pp, int32_t **order_out, size_t *n_out)
         while (progress) {
             progress = 0;
             for (i = 0; i < n_ops; i++) {
-                int32_t k;
-                if (!pc_unit(g, i) || PC_OP(g, i).out != 1 || PC_OP(g, i).level ||
-                    PC_OP(g, i).code != cur)
+                if (PC_OP(g, i).code != cur || !pc_ready(g, i))
                     continue;
                 PC_OP(g, i).out = 2;
                 order[done++] = (int32_t)i;
-                for (k = start[i]; k < start[i + 1]; k++)
-                    PC_OP(g, edge[k]).level--;
                 progress = 1;
             }
         }
@@ -877,7 +875,7 @@ static void pc_compiled_constants(const pc_program *g, const int32_t *order, siz
 {
     size_t pos;
     for (pos = 0; pos < n; pos++)
-        PC_FOR_OPERANDS(g, (size_t)order[pos], if (PC_IS_K(r)) *k++ = g->k[PC_EXT_INDEX(r)]);
+        PC_FOR_OPERANDS(g, (size_t)order[pos], if (PC_IS_K(r)) *k++ = PC_KBITS(g, PC_EXT_INDEX(r)));
 }
 
 #endif
@@ -945,7 +943,7 @@ static void pc_program_write(pc_pass *pp, void *ops, int wide, const int32_t *or
 static pc_status pc_emit_program(pc_pass *pp, const int32_t *order, size_t n, int32_t temp)
 {
     pc_program *g = pp->prog;
-    size_t entries, n_k = 0, size;
+    size_t entries, n_k = 0, size, k;
     int32_t kpool_off, hi;
     uint32_t *kpool;
     void *q, *ops;
@@ -958,8 +956,8 @@ static pc_status pc_emit_program(pc_pass *pp, const int32_t *order, size_t n, in
     entries = pc_program_entries(g, order, n, temp, &hi);
     wide = hi > INT16_MAX;
     kpool = pc_region_take(pp, PC_REGION_KPOOL, g->n_k * 4);
-    if (kpool)
-        memcpy(kpool, g->k, g->n_k * 4);
+    for (k = 0; kpool && k < g->n_k; k++)
+        kpool[k] = PC_KBITS(g, k);
     s = pc_region_take(pp, PC_REGION_STEPS, sizeof *s);
     io = pc_region_take(pp, PC_REGION_IO, 2 * sizeof(void *));
     fn = wide ? k_scalar_program : k_scalar_program16;

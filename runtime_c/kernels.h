@@ -243,9 +243,11 @@ static inline float pc_sop_float(const int code, const float a, const float b)
 
 /* One-pose programs compiled ahead of time (programs_compiled.c, written by
  * tools/compile_programs.py from the shipped models' programs). A program whose shape
- * (program.c) equals `shape` runs `fn` instead of the interpreter: the same operations on
- * the same entries, its own results kept in registers, its constants read from the block
- * after the entries (one float per constant operand, in the shape's order). */
+ * (program.c) equals `shape` runs `fn` instead of the interpreter: the same operations, its
+ * own results kept in registers. Its parameters (s->prm) are what it reads from memory,
+ * in the shape's order: an int16_t offset from the activations per arena operand and
+ * per stored result (their count rounded up to even), then one float per constant
+ * operand. A small target's arena keeps no entries for the operations in between. */
 typedef struct pc_compiled_program {
     uint32_t n_bytes;
     uint64_t hash;       /* FNV-1a of shape */

@@ -773,14 +773,14 @@ static void pc_put(void *ops, int wide, size_t k, int32_t a, int32_t b, int32_t 
  * result is stored, and for each operand how many operations back it was computed (0:
  * read from the arena; 254: a constant; 253: a sum's starting zero (pc_kzero); 255, then
  * two bytes, when 253 or farther). Offsets and values are not part of it: a compiled
- * program reads the arena through the entries, as the interpreter does, its constants in
- * the order it reads them from a block after the entries (pc_compiled_constants), and
+ * program's parameters are only what it reads from memory (pc_compiled_params), and it
  * keeps in registers what the shape says it computed itself. Equal shapes are the same
  * computation. */
 typedef struct pc_shape_walk {
     uint64_t hash;               /* FNV-1a of the bytes */
     size_t len;
     size_t n_k;                  /* constant operands */
+    size_t n_x;                  /* arena operands and stored results */
     const uint8_t *expect;       /* compare against these (len bytes known to match in size) */
     int differs;
     int print;
@@ -803,6 +803,7 @@ static void pc_shape_ref(pc_shape_walk *w, const pc_program *g, int32_t r, size_
     size_t back;
     if (r < 0) {
         w->n_k += PC_IS_K(r);
+        w->n_x += !PC_IS_K(r);
         pc_shape_byte(w, !PC_IS_K(r) ? 0 : (int32_t)PC_EXT_INDEX(r) == g->zero_k ? 253 : 254);
         return;
     }
@@ -821,7 +822,7 @@ static void pc_shape(const pc_program *g, const int32_t *order, size_t n, pc_sha
     size_t pos;
     w->hash = 0xcbf29ce484222325ull;
     w->len = 0;
-    w->n_k = 0;
+    w->n_k = w->n_x = 0;
     w->differs = 0;
     for (pos = 0; pos < n; pos++) {
         const size_t i = (size_t)order[pos];
@@ -829,18 +830,20 @@ static void pc_shape(const pc_program *g, const int32_t *order, size_t n, pc_sha
         pc_shape_byte(w, x->code);
         pc_shape_byte(w, x->code == PC_SOP_DOT ? x->n_terms : 0);
         pc_shape_byte(w, x->dest != PC_NO_DEST);
+        w->n_x += x->dest != PC_NO_DEST;
         PC_FOR_OPERANDS(g, i, pc_shape_ref(w, g, r, pos));
     }
 }
 
-/* The compiled kernel of this program's shape (16-bit entries), or NULL; *n_k: the
- * constants it reads. print: print the shape (PC_PRINT_SHAPES; once, in the write pass). */
+/* The compiled kernel of this program's shape (16-bit offsets), or NULL; *n_k: the
+ * constants it reads, *n_x: its offsets. print: print the shape (PC_PRINT_SHAPES; once,
+ * in the write pass). */
 static pc_kernel_fn pc_compiled_kernel(pc_program *g, const int32_t *order, size_t n,
-                                       int print, size_t *n_k)
+                                       int print, size_t *n_k, size_t *n_x)
 {
     pc_shape_walk w;
     size_t pos, k;
-    *n_k = 0;
+    *n_k = *n_x = 0;
     if (g->interpret || n > UINT16_MAX)
         return NULL;
     for (pos = 0; pos < n; pos++)
@@ -863,6 +866,7 @@ static pc_kernel_fn pc_compiled_kernel(pc_program *g, const int32_t *order, size
         pc_shape(g, order, n, &w);
         if (!w.differs) {
             *n_k = w.n_k;
+            *n_x = w.n_x;
             return c->fn;
         }
         w.expect = NULL;
@@ -870,12 +874,20 @@ static pc_kernel_fn pc_compiled_kernel(pc_program *g, const int32_t *order, size
     return NULL;
 }
 
-/* A compiled program's constants, each operand in the order the shape lists them. */
-static void pc_compiled_constants(const pc_program *g, const int32_t *order, size_t n, uint32_t *k)
+/* A compiled program's parameters, in the order the shape lists them (kernels.h,
+ * pc_compiled_program): the offsets of its arena operands and stored results (x), then
+ * its constant operands (k). Nothing else: it keeps its own results in registers. */
+static void pc_compiled_params(const pc_program *g, const int32_t *order, size_t n, int16_t *x,
+                               uint32_t *k)
 {
     size_t pos;
-    for (pos = 0; pos < n; pos++)
-        PC_FOR_OPERANDS(g, (size_t)order[pos], if (PC_IS_K(r)) *k++ = PC_KBITS(g, PC_EXT_INDEX(r)));
+    for (pos = 0; pos < n; pos++) {
+        const pc_eop *op = &PC_OP(g, order[pos]);
+        PC_FOR_OPERANDS(g, (size_t)order[pos], if (PC_IS_K(r)) *k++ = PC_KBITS(g, PC_EXT_INDEX(r));
+                        else if (r < 0) *x++ = (int16_t)PC_EXT_INDEX(r));
+        if (op->dest != PC_NO_DEST)
+            *x++ = (int16_t)op->out;
+    }
 }
 
 #endif
@@ -943,14 +955,14 @@ static void pc_program_write(pc_pass *pp, void *ops, int wide, const int32_t *or
 static pc_status pc_emit_program(pc_pass *pp, const int32_t *order, size_t n, int32_t temp)
 {
     pc_program *g = pp->prog;
-    size_t entries, n_k = 0, size, k;
+    size_t entries, n_k = 0, n_x = 0, size, k;
     int32_t kpool_off, hi;
     uint32_t *kpool;
     void *q, *ops;
     int wide;
     pc_step *s;
     void **io;
-    pc_kernel_fn fn;
+    pc_kernel_fn fn, compiled = NULL;
     /* The pool sits just below the activations: its entries are negative offsets. */
     kpool_off = (int32_t)pp->region[PC_REGION_KPOOL].used - (int32_t)pp->kpool_total;
     entries = pc_program_entries(g, order, n, temp, &hi);
@@ -962,20 +974,32 @@ static pc_status pc_emit_program(pc_pass *pp, const int32_t *order, size_t n, in
     io = pc_region_take(pp, PC_REGION_IO, 2 * sizeof(void *));
     fn = wide ? k_scalar_program : k_scalar_program16;
 #ifndef PC_NO_COMPILED_PROGRAMS
-    if (!wide) {
-        const pc_kernel_fn compiled = pc_compiled_kernel(g, order, n, pp->fill, &n_k);
-        if (compiled)
-            fn = compiled;
-    }
+    if (!wide && (compiled = pc_compiled_kernel(g, order, n, pp->fill, &n_k, &n_x)) != NULL)
+        fn = compiled;
 #endif
-    size = wide ? offsetof(pc_scalar_program, ops) + entries * sizeof(pc_scalar_op)
-                : offsetof(pc_scalar_program16, ops) + entries * sizeof(pc_scalar_op16);
+    /* A compiled program's offsets, their count rounded up to even (its constants are
+     * 4-byte words), or the interpreter's entries. */
+    size = compiled ? (n_x + 1) / 2 * 2 * sizeof(int16_t)
+           : wide   ? offsetof(pc_scalar_program, ops) + entries * sizeof(pc_scalar_op)
+                    : offsetof(pc_scalar_program16, ops) + entries * sizeof(pc_scalar_op16);
     q = pc_region_take(pp, PC_REGION_PARAMS, size + n_k * sizeof(uint32_t));
     pp->n_steps++;
     pp->last_step = s;
     pp->last_layer = 0;
     if (!q)
         return PC_OK; /* sizing pass */
+    s->fn = fn;
+    s->io = io;
+    s->prm = q;
+    s->n = entries;
+    io[0] = pp->act_base;
+    io[1] = NULL;
+#ifndef PC_NO_COMPILED_PROGRAMS
+    if (compiled) {
+        pc_compiled_params(g, order, n, (int16_t *)q, (uint32_t *)((char *)q + size));
+        return PC_OK;
+    }
+#endif
     if (wide) {
         ((pc_scalar_program *)q)->n_ops = entries;
         ops = ((pc_scalar_program *)q)->ops;
@@ -984,15 +1008,6 @@ static pc_status pc_emit_program(pc_pass *pp, const int32_t *order, size_t n, in
         ops = ((pc_scalar_program16 *)q)->ops;
     }
     pc_program_write(pp, ops, wide, order, n, kpool_off);
-#ifndef PC_NO_COMPILED_PROGRAMS
-    pc_compiled_constants(g, order, n_k ? n : 0, (uint32_t *)((char *)q + size));
-#endif
-    io[0] = pp->act_base;
-    io[1] = NULL;
-    s->fn = fn;
-    s->io = io;
-    s->prm = q;
-    s->n = entries;
     return PC_OK;
 }
 

@@ -6,9 +6,9 @@ PRINT_SHAPES is tools/print_shapes.c linked with a library built with PC_PRINT_S
 CMake target posecorr-print-shapes); it prints the shape of every program the loader builds
 (program.c: per operation its code, term count, stored flag and where each operand comes
 from). Each distinct shape becomes one function that performs the interpreter's operations
-on the same entries in the same order, keeping the values it computed itself in registers,
-reading its constants from the block the loader writes after the entries, and storing only
-the results the shape marks as stored; a select whose sides need a costly operation runs
+in the same order, keeping the values it computed itself in registers; its parameters
+(the loader writes them in place of the interpreter's entries) are only the offsets of
+its arena operands and of the results the shape marks as stored, then its constants; a select whose sides need a costly operation runs
 as a branch (_lazy_selects). The loader runs such a function in place of the interpreter
 when a program's shape equals it byte for byte.
 
@@ -125,39 +125,37 @@ def _lazy_selects(shape: Shape) -> dict[int, tuple[list[int], list[set[int]]]]:
 
 
 class _Writer:
-    """The C of one shape's operations. Entry numbering as program.c emits it: a header
-    entry where the code changes, one entry per operation, one per DOT term."""
+    """The C of one shape's operations. Offset numbering as program.c writes them
+    (pc_compiled_params): per operation in order, its arena operands, then its result
+    when stored."""
 
     def __init__(self, shape: Shape):
-        self.shape, self.kinds, self.entry = shape, [], []  # kind "f" float or "b" bool
-        entry, last = 0, None
-        for name, n_terms, _, _ in shape.ops:
-            if name != last:
-                entry += 1  # the group's header
-                last = name
-            self.entry.append(entry)
-            entry += 1 + (n_terms if name == "PC_SOP_DOT" else 0)
+        self.shape, self.kinds = shape, []  # kind "f" float or "b" bool
+        self.x: dict[tuple[int, int], int] = {}  # (position, operand slot) -> offset index
+        self.x_store: dict[int, int] = {}  # position -> offset index of its stored result
+        for pos, (name, _, stored, refs) in enumerate(shape.ops):
+            for slot, back in enumerate(refs):
+                if back == 0:
+                    self.x[pos, slot] = len(self.x) + len(self.x_store)
+            if stored:
+                self.x_store[pos] = len(self.x) + len(self.x_store)
             self.kinds.append("b" if name in BOOL_RESULT else "f")
-        self.n_entries = entry
+        self.n_x = len(self.x) + len(self.x_store)
         self.lazy = _lazy_selects(shape)
 
-    def read(self, pos: int, slot: int, kind: str, k: int | None = None) -> str:
+    def read(self, pos: int, slot: int, kind: str) -> str:
         back = self.shape.ops[pos][3][slot]
         if back > 0:
             return f"{self.kinds[pos - back]}{pos - back}"
         if back < 0:
             return f"PC_K{kind.upper()}({-1 - back})"
-        if k is None:  # the operation's own entry; a DOT's terms have one each
-            k, field = self.entry[pos], "abc"[slot]
-        else:
-            field = "a" if slot % 2 else "b"
-        return f"PC_X{kind.upper()}({k}, {field})"
+        return f"PC_X{kind.upper()}({self.x[pos, slot]})"
 
     def store(self, pos: int, pad: str) -> list[str]:
         if not self.shape.ops[pos][2]:
             return []
         kind = self.kinds[pos]
-        return [f"{pad}PC_STORE{kind.upper()}({self.entry[pos]}, {kind}{pos});"]
+        return [f"{pad}PC_STORE{kind.upper()}({self.x_store[pos]}, {kind}{pos});"]
 
     def op(self, pos: int, pad: str) -> list[str]:
         name, n_terms, _, _ = self.shape.ops[pos]
@@ -179,9 +177,8 @@ class _Writer:
                 lines.append(f"{pad}float {var} = {self.read(pos, 2, 'f')};")
                 lines.append(f"{pad}{var} += {first};")
             for t in range(1, n_terms + 1):
-                k = self.entry[pos] + t
-                lines.append(f"{pad}{var} += {self.read(pos, 1 + 2 * t, 'f', k)} * "
-                             f"{self.read(pos, 2 + 2 * t, 'f', k)};")
+                lines.append(f"{pad}{var} += {self.read(pos, 1 + 2 * t, 'f')} * "
+                             f"{self.read(pos, 2 + 2 * t, 'f')};")
             expr = None
         else:  # unary
             expr = f"pc_sop_float({name}, {self.read(pos, 0, 'f')}, 0.0f)"
@@ -217,15 +214,18 @@ class _Writer:
 
 
 def function(shape: Shape, fn_name: str) -> str:
-    """C for one shape: the interpreter's operations on the same entries in the same order
-    (but for lazy selects), the values it computes in registers."""
+    """C for one shape: the interpreter's operations in the same order (but for lazy
+    selects), the values it computes in registers, the arena read and written at the
+    offsets its parameters list."""
     w = _Writer(shape)
-    head = [f"PC_HOT static pc_status {fn_name}(const pc_step *s)", "{",
-            "    char *const base = (char *)s->io[0];",
-            "    const pc_scalar_op16 *const e = ((const pc_scalar_program16 *)s->prm)->ops;"]
+    head = [f"PC_HOT static pc_status {fn_name}(const pc_step *s)", "{"]
+    if w.n_x:
+        head += ["    char *const base = (char *)s->io[0];",
+                 "    const int16_t *const x = (const int16_t *)s->prm;"]
     body = w.emit(set(range(len(shape.ops))), "    ")
-    if shape.n_k:  # the constants follow the entries (program.c, pc_compiled_constants)
-        head.append(f"    const float *const k = (const float *)(const void *)(e + {w.n_entries});")
+    if shape.n_k:  # the constants follow the offsets, their count rounded up to even
+        head.append(f"    const float *const k = (const float *)(const void *)"
+                    f"((const int16_t *)s->prm + {(w.n_x + 1) // 2 * 2});")
     return "\n".join(head + body + ["    return PC_OK;", "}"])
 
 
@@ -237,12 +237,12 @@ def generate(shapes: list[bytes], codes: dict[int, str]) -> str:
            " * do not edit. Each function is the interpreter's program of one shape, with the",
            " * values it computes kept in registers (kernels.h, pc_compiled_program). */",
            '#include "kernels.h"', "", "#include <stdint.h>", "",
-           "#define PC_XF(k, f) (*(const float *)(base + e[k].f))",
-           "#define PC_XB(k, f) (*(const uint8_t *)(base + e[k].f))",
+           "#define PC_XF(j) (*(const float *)(base + x[j]))",
+           "#define PC_XB(j) (*(const uint8_t *)(base + x[j]))",
            "#define PC_KF(j) (k[j])",
            "#define PC_KB(j) (*(const uint8_t *)&k[j])",
-           "#define PC_STOREF(k, v) (*(float *)(base + e[k].o) = (v))",
-           "#define PC_STOREB(k, v) (*(uint8_t *)(base + e[k].o) = (v))", ""]
+           "#define PC_STOREF(j, v) (*(float *)(base + x[j]) = (v))",
+           "#define PC_STOREB(j, v) (*(uint8_t *)(base + x[j]) = (v))", ""]
     table = []
     for shape in parsed:
         h = shape.fnv1a()

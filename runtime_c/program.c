@@ -51,15 +51,25 @@ void pc_print_shape_end(void);
 /* An entry that adds a b to the DOT before it. */
 #define PC_TERM 0xff
 
+/* What the close makes of an operation (pc_eop.state). */
+enum { PC_DEAD = 0, PC_KEPT, PC_ORDERED, PC_STORED };
+
+/* 24 bytes: the one-pose compiler's working memory is mostly these. */
 typedef struct pc_eop {
     uint8_t code;       /* PC_SOP_*, or PC_TERM */
     uint8_t n_terms;    /* DOT: PC_TERM entries after it */
-    uint16_t level;     /* position in the order (close) */
+    uint16_t state;     /* close: PC_DEAD .. PC_STORED */
     int32_t a, b, c;
-    int32_t dest;       /* arena offset of a needed element, or PC_NO_DEST */
-    int32_t out;        /* close: first 1 when kept, then where the result goes */
-    int32_t last;       /* close: its chain's length, then its last reader's position */
+    int32_t out;        /* the arena offset of a needed element (PC_NO_DEST: none yet), or
+                         * once ordered, its temporary's slot, then where the result goes */
+    int32_t last;       /* close: its chain's length, then its last reader's position, then
+                         * its own position */
 } pc_eop;
+
+/* An operation's index in the close's arrays: a program holds fewer than 4,100 operations
+ * (cap_ops: beyond that its pool would pass PC_KPOOL_MAX, and pc_program_takes takes no
+ * node). */
+typedef uint16_t pc_opid;
 
 /* Operations live in chunks on the keep end, taken as the program grows and given back
  * when it closes. */
@@ -318,7 +328,7 @@ static int32_t pc_new_op(pc_program *g, int code, int32_t a, int32_t b, int32_t 
     op->a = a;
     op->b = b;
     op->c = c;
-    op->dest = PC_NO_DEST;
+    op->out = PC_NO_DEST;
     return (int32_t)g->n_ops++;
 }
 
@@ -572,11 +582,11 @@ static pc_status pc_materialize(pc_pass *pp)
         for (e = 0; e < v->count; e++) {
             const int32_t dest = (int32_t)(pp->blocks[v->block].off + e * esize);
             const int32_t r = v->elems[e];
-            if (r >= 0 && PC_OP(g, r).dest == PC_NO_DEST) {
-                PC_OP(g, r).dest = dest;
+            if (r >= 0 && PC_OP(g, r).out == PC_NO_DEST) {
+                PC_OP(g, r).out = dest;
             } else {
                 const int32_t copy = pc_new_op(g, esize == 1 ? PC_SOP_COPY1 : PC_SOP_COPY, r, 0, 0);
-                PC_OP(g, copy).dest = dest;
+                PC_OP(g, copy).out = dest;
             }
         }
         v->elems = NULL;
@@ -614,17 +624,17 @@ static void pc_keep_needed(pc_program *g)
 {
     size_t i;
     for (i = 0; i < g->n_ops; i++)
-        PC_OP(g, i).out = PC_OP(g, i).dest != PC_NO_DEST;
+        PC_OP(g, i).state = PC_OP(g, i).out != PC_NO_DEST ? PC_KEPT : PC_DEAD;
     for (i = g->n_ops; i-- > 0;) {
-        if (!PC_OP(g, i).out || PC_OP(g, i).code == PC_TERM)
+        if (!PC_OP(g, i).state || PC_OP(g, i).code == PC_TERM)
             continue;
-        PC_FOR_OPERANDS(g, i, if (r >= 0) PC_OP(g, r).out = 1);
+        PC_FOR_OPERANDS(g, i, if (r >= 0) PC_OP(g, r).state = PC_KEPT);
     }
 }
 
 static int pc_unit(const pc_program *g, size_t i)
 {
-    return PC_OP(g, i).out && PC_OP(g, i).code != PC_TERM;
+    return PC_OP(g, i).state && PC_OP(g, i).code != PC_TERM;
 }
 
 /* Each kept operation's chain length (last): 1 plus its longest reader's. Readers come
@@ -649,9 +659,9 @@ static size_t pc_chains(pc_program *g)
 /* A kept operation not yet ordered (out 1) whose operands all are (out 2). */
 static int pc_ready(const pc_program *g, size_t i)
 {
-    int ready = pc_unit(g, i) && PC_OP(g, i).out == 1;
+    int ready = pc_unit(g, i) && PC_OP(g, i).state == PC_KEPT;
     if (ready)
-        PC_FOR_OPERANDS(g, i, if (r >= 0 && PC_OP(g, r).out != 2) ready = 0);
+        PC_FOR_OPERANDS(g, i, if (r >= 0 && PC_OP(g, r).state != PC_ORDERED) ready = 0);
     return ready;
 }
 
@@ -676,11 +686,11 @@ static int pc_next_ready(const pc_program *g, int cur)
  * the code changes; the next code is that of the ready operation heading the longest
  * chain. No reader lists: readiness is asked of the operands, which keeps the close's
  * working memory to the order. */
-static pc_status pc_order(pc_pass *pp, int32_t **order_out, size_t *n_out)
+static pc_status pc_order(pc_pass *pp, pc_opid **order_out, size_t *n_out)
 {
     pc_program *g = pp->prog;
     const size_t n_ops = g->n_ops;
-    int32_t *order = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK, (n_ops + 1) * sizeof(int32_t));
+    pc_opid *order = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK, (n_ops + 1) * sizeof *order);
     const size_t n_units = pc_chains(g);
     size_t done = 0, i;
     if (!order)
@@ -696,8 +706,8 @@ static pc_status pc_order(pc_pass *pp, int32_t **order_out, size_t *n_out)
             for (i = 0; i < n_ops; i++) {
                 if (PC_OP(g, i).code != cur || !pc_ready(g, i))
                     continue;
-                PC_OP(g, i).out = 2;
-                order[done++] = (int32_t)i;
+                PC_OP(g, i).state = PC_ORDERED;
+                order[done++] = (pc_opid)i;
                 progress = 1;
             }
         }
@@ -709,10 +719,10 @@ static pc_status pc_order(pc_pass *pp, int32_t **order_out, size_t *n_out)
 
 /* Temporaries of the results not stored: 4-byte slots reused once their last reader
  * has run. Returns the slot count. */
-static pc_status pc_temps(pc_pass *pp, const int32_t *order, size_t n, size_t *n_slots)
+static pc_status pc_temps(pc_pass *pp, const pc_opid *order, size_t n, size_t *n_slots)
 {
     pc_program *g = pp->prog;
-    int32_t *slot_free_at = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK, (n + 1) * sizeof(int32_t));
+    pc_opid *slot_free_at = pc_scratch_alloc_raw(&pp->b->scratch, PC_WORK, (n + 1) * sizeof *slot_free_at);
     size_t pos, slots = 0, s;
     if (!slot_free_at)
         return pc_fail(pp->b->err, PC_ERR_MEMORY, "out of memory");
@@ -722,16 +732,16 @@ static pc_status pc_temps(pc_pass *pp, const int32_t *order, size_t n, size_t *n
         PC_FOR_OPERANDS(g, (size_t)order[pos], if (r >= 0) PC_OP(g, r).last = (int32_t)pos);
     for (pos = 0; pos < n; pos++) {
         pc_eop *x = &PC_OP(g, order[pos]);
-        if (x->dest != PC_NO_DEST) {
-            x->out = x->dest;
+        if (x->out != PC_NO_DEST) {
+            x->state = PC_STORED;
             continue;
         }
         /* A slot whose last reader ran before this operation is free again. */
-        for (s = 0; s < slots && slot_free_at[s] >= (int32_t)pos; s++)
+        for (s = 0; s < slots && slot_free_at[s] >= pos; s++)
             ;
         if (s == slots)
             slots++;
-        slot_free_at[s] = x->last;
+        slot_free_at[s] = (pc_opid)x->last; /* read, so >= 0 */
         x->out = (int32_t)s; /* slot for now; an offset once the block is placed */
     }
     *n_slots = slots;
@@ -807,7 +817,7 @@ static void pc_shape_ref(pc_shape_walk *w, const pc_program *g, int32_t r, size_
         pc_shape_byte(w, !PC_IS_K(r) ? 0 : (int32_t)PC_EXT_INDEX(r) == g->zero_k ? 253 : 254);
         return;
     }
-    back = pos - PC_OP(g, r).level; /* level holds an ordered operation's position here */
+    back = pos - (size_t)PC_OP(g, r).last; /* last holds an ordered operation's position here */
     if (back < 253) {
         pc_shape_byte(w, (unsigned)back);
     } else {
@@ -817,7 +827,7 @@ static void pc_shape_ref(pc_shape_walk *w, const pc_program *g, int32_t r, size_
     }
 }
 
-static void pc_shape(const pc_program *g, const int32_t *order, size_t n, pc_shape_walk *w)
+static void pc_shape(const pc_program *g, const pc_opid *order, size_t n, pc_shape_walk *w)
 {
     size_t pos;
     w->hash = 0xcbf29ce484222325ull;
@@ -829,8 +839,8 @@ static void pc_shape(const pc_program *g, const int32_t *order, size_t n, pc_sha
         const pc_eop *x = &PC_OP(g, i);
         pc_shape_byte(w, x->code);
         pc_shape_byte(w, x->code == PC_SOP_DOT ? x->n_terms : 0);
-        pc_shape_byte(w, x->dest != PC_NO_DEST);
-        w->n_x += x->dest != PC_NO_DEST;
+        pc_shape_byte(w, x->state == PC_STORED);
+        w->n_x += x->state == PC_STORED;
         PC_FOR_OPERANDS(g, i, pc_shape_ref(w, g, r, pos));
     }
 }
@@ -838,7 +848,7 @@ static void pc_shape(const pc_program *g, const int32_t *order, size_t n, pc_sha
 /* The compiled kernel of this program's shape (16-bit offsets), or NULL; *n_k: the
  * constants it reads, *n_x: its offsets. print: print the shape (PC_PRINT_SHAPES; once,
  * in the write pass). */
-static pc_kernel_fn pc_compiled_kernel(pc_program *g, const int32_t *order, size_t n,
+static pc_kernel_fn pc_compiled_kernel(pc_program *g, const pc_opid *order, size_t n,
                                        int print, size_t *n_k, size_t *n_x)
 {
     pc_shape_walk w;
@@ -847,7 +857,7 @@ static pc_kernel_fn pc_compiled_kernel(pc_program *g, const int32_t *order, size
     if (g->interpret || n > UINT16_MAX)
         return NULL;
     for (pos = 0; pos < n; pos++)
-        PC_OP(g, order[pos]).level = (uint16_t)pos;
+        PC_OP(g, order[pos]).last = (int32_t)pos;
     w.expect = NULL;
     w.print = print;
 #ifdef PC_PRINT_SHAPES
@@ -877,7 +887,7 @@ static pc_kernel_fn pc_compiled_kernel(pc_program *g, const int32_t *order, size
 /* A compiled program's parameters, in the order the shape lists them (kernels.h,
  * pc_compiled_program): the offsets of its arena operands and stored results (x), then
  * its constant operands (k). Nothing else: it keeps its own results in registers. */
-static void pc_compiled_params(const pc_program *g, const int32_t *order, size_t n, int16_t *x,
+static void pc_compiled_params(const pc_program *g, const pc_opid *order, size_t n, int16_t *x,
                                uint32_t *k)
 {
     size_t pos;
@@ -885,7 +895,7 @@ static void pc_compiled_params(const pc_program *g, const int32_t *order, size_t
         const pc_eop *op = &PC_OP(g, order[pos]);
         PC_FOR_OPERANDS(g, (size_t)order[pos], if (PC_IS_K(r)) *k++ = PC_KBITS(g, PC_EXT_INDEX(r));
                         else if (r < 0) *x++ = (int16_t)PC_EXT_INDEX(r));
-        if (op->dest != PC_NO_DEST)
+        if (op->state == PC_STORED)
             *x++ = (int16_t)op->out;
     }
 }
@@ -895,7 +905,7 @@ static void pc_compiled_params(const pc_program *g, const int32_t *order, size_t
 /* The program's entries (a header per group of one code, an entry per operation, one per
  * dot term), with the temporaries placed at `temp`; *hi: the largest activation offset
  * read or written, which decides the entries' width. */
-static size_t pc_program_entries(pc_program *g, const int32_t *order, size_t n, int32_t temp,
+static size_t pc_program_entries(pc_program *g, const pc_opid *order, size_t n, int32_t temp,
                                  int32_t *hi)
 {
     size_t entries = 0, pos;
@@ -903,7 +913,7 @@ static size_t pc_program_entries(pc_program *g, const int32_t *order, size_t n, 
     *hi = 0;
     for (pos = 0; pos < n; pos++) {
         pc_eop *x = &PC_OP(g, order[pos]);
-        if (x->dest == PC_NO_DEST)
+        if (x->state != PC_STORED)
             x->out = temp + 4 * x->out;
         entries += 1 + (x->code == PC_SOP_DOT ? x->n_terms : 0);
         if (x->code != last_code)
@@ -919,7 +929,7 @@ static size_t pc_program_entries(pc_program *g, const int32_t *order, size_t n, 
 }
 
 /* The entries into ops, each group of one code behind its header (code, count). */
-static void pc_program_write(pc_pass *pp, void *ops, int wide, const int32_t *order, size_t n,
+static void pc_program_write(pc_pass *pp, void *ops, int wide, const pc_opid *order, size_t n,
                              int32_t kpool_off)
 {
     const pc_program *g = pp->prog;
@@ -952,7 +962,7 @@ static void pc_program_write(pc_pass *pp, void *ops, int wide, const int32_t *or
 
 /* Writes the program (or, sizing pass, only takes its bytes). Both passes make the same
  * choices: offsets are the same in both, and the pool's are bounded (PC_KPOOL_MAX). */
-static pc_status pc_emit_program(pc_pass *pp, const int32_t *order, size_t n, int32_t temp)
+static pc_status pc_emit_program(pc_pass *pp, const pc_opid *order, size_t n, int32_t temp)
 {
     pc_program *g = pp->prog;
     size_t entries, n_k = 0, n_x = 0, size, k;
@@ -1015,7 +1025,8 @@ pc_status pc_program_close(pc_pass *pp)
 {
     pc_program *g = pp->prog;
     pc_scratch_mark work;
-    int32_t *order = NULL, temp_block = -1;
+    pc_opid *order = NULL;
+    int32_t temp_block = -1;
     size_t n = 0, n_slots = 0;
     pc_status st;
     if (!g || !g->open)

@@ -288,27 +288,23 @@ def test_compiled_build_meets_the_floor_on_every_network(networks):
 
 
 def test_pc_run_meets_the_floor_on_every_network(networks):
-    """Issue 33 for pc_run: on the 32 KB board (program_ops 512, where the plan's programs
-    are those compiled ahead of time) within 1.3x the hand-written function and at or below
-    emlearn on the three networks; on the 16 KB board (program_ops 32, the interpreter runs
-    the encoding and decoding) too for the zhou MLP, whose dense layers dominate. The quat
-    MLPs' 16 KB builds are slower than their 32 KB ones (the guide gives both)."""
+    """Issue 33 for pc_run: on both boards, within 1.3x the hand-written function and at or
+    below emlearn on the three networks. Both load at the default program_ops (512), where
+    the plan's encoding and decoding are whole programs and run compiled; the 16 KB build's
+    12,800-byte arena holds the load (the one-pose compiler's working memory) and the model,
+    which keeps less than the 32 KB build's reserves. Same plan, so the same count."""
     for name, row in networks.items():
         hand, eml = row["reference"]["instructions_per_pose"], row["emlearn"]["instructions_per_pose"]
-        for key in ("pc_run", "pc_run_16kb") if name == "shipped" else ("pc_run",):
+        for key in ("pc_run", "pc_run_16kb"):
             count = row[key]["instructions_per_pose"]
             assert count <= 1.3 * hand and count <= eml, (name, key, count, hand, eml)
             assert row[key]["meets_floor"] is True
-        assert row["pc_run"]["program_ops"] == 512
+            assert row[key]["program_ops"] == 512
         assert row["pc_run"]["ram_reserved"] <= 32 * 1024
-        # the 32 KB build's arena is the price of the compiled programs: the 16 KB one loads
-        # at program_ops 32 in a smaller one, and runs more instructions (interpreted)
         small = row["pc_run_16kb"]
-        assert small["program_ops"] == 32
         assert small["arena_reserved"] < row["pc_run"]["arena_reserved"]
-        assert small["instructions_per_pose"] > row["pc_run"]["instructions_per_pose"]
-        assert small["meets_floor"] is (small["instructions_per_pose"] <= 1.3 * hand
-                                        and small["instructions_per_pose"] <= eml)
+        assert small["arena_used"] == row["pc_run"]["arena_used"]
+        assert small["instructions_per_pose"] == row["pc_run"]["instructions_per_pose"]
 
 
 def test_pc_run_boards_of_the_networks(networks):

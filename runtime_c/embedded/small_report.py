@@ -8,8 +8,8 @@ also to the other boards' implementations of its model), and the match with the 
         --board 16 small16.log small16.elf MODEL.onnx [--board 32 ...]
 
 With --networks FOLDER NAME ..., the networks table instead (Makefile: networks): per
-network, pc_run on the 32 KB board (program_ops 512: the whole programs run compiled) and,
-where the model loads there, on the 16 KB one (program_ops 32: compiled in chunks), and the
+network, pc_run on the 32 KB board and, where the model loads there, on the 16 KB one (both
+at program_ops 512: the whole programs run compiled), and the
 compiled, hand-written and emlearn functions each on a 2 KB board, their instructions a
 pose, RAM, and ratios to the hand-written function and to emlearn (issue 33's floor:
 <= FLOOR_RATIO and <= 1); --json writes the table.

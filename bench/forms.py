@@ -74,7 +74,7 @@ def loo(table: Any, effects: list[str]) -> dict[str, float]:
 
 def one(scenario: str, seed: int, kind: str, folder: Path) -> dict[str, Any]:
     """Diagnose one session, write the proposal, and measure base / true / proposal by LOO."""
-    from posecorr.analysis.diagnose import diagnose
+    from posecorr.analysis.diagnose import ALPHA, diagnose
     from posecorr.analysis.proposal import effect_file_text
     from posecorr.effects import load_effect_file
 
@@ -97,7 +97,7 @@ def one(scenario: str, seed: int, kind: str, folder: Path) -> dict[str, Any]:
            "no_proposal": result["no_proposal"], "metric": metric,
            "true_form_passes": bool(known["passes"]), "true_form_p": known["p_value"],
            "true_form_gain": known["score"], "told_terms_p": told["p_value"],
-           "p_threshold": 1e-3 / len(result["candidates"]),
+           "p_threshold": ALPHA / len(result["candidates"]),
            "loo_base": base[metric], "loo_true": truth[metric], "loo_proposal": None, "recovery": None}
     if result["proposal"] is not None:
         path = folder / f"{scenario}-{kind}-{seed}.py"

@@ -656,7 +656,7 @@ static size_t pc_chains(pc_program *g)
     return n_units;
 }
 
-/* A kept operation not yet ordered (out 1) whose operands all are (out 2). */
+/* A kept operation not yet ordered (PC_KEPT) whose operands all are (PC_ORDERED). */
 static int pc_ready(const pc_program *g, size_t i)
 {
     int ready = pc_unit(g, i) && PC_OP(g, i).state == PC_KEPT;

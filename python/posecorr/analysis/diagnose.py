@@ -39,6 +39,8 @@ from ..rotations import matrix_to_rotvec, quat_to_matrix
 from .features import FEATURES, pose_features
 
 ALIAS_CORRELATION = 0.99
+# The test's level, before the Bonferroni correction over the candidates.
+ALPHA = 1e-3
 PRESENT_TEST = ("score (Lagrange multiplier) test on held-out residuals, Bonferroni-corrected p < {alpha:g}; "
                 "held-out whitened error lower in every one of {folds} folds; mean gain >= {gain:.1%}; "
                 "still so given the others present (forward selection, backward elimination); "
@@ -175,6 +177,21 @@ def _fold_state(table: PoseTable, effects: list[str], names: Sequence[str], spli
     return _FoldState(effects, predicted, fold_rmse, before, per_fold, _column_owners(per_fold[0][3], names))
 
 
+def failed_parts(p_value: float, fold_gain_min: float, score: float, n_candidates: int, alpha: float,
+                 min_gain: float) -> list[str]:
+    """The parts of the test (`PRESENT_TEST`, alone) a candidate fails, each with its figure:
+    none when it passes."""
+    threshold = alpha / max(n_candidates, 1)
+    parts = []
+    if not p_value < threshold:
+        parts.append(f"p above {threshold:.2g} ({alpha:g} over {n_candidates} candidates)")
+    if not fold_gain_min > 0:
+        parts.append("a fold where the error rises")
+    if not score >= min_gain:
+        parts.append(f"a mean gain below {min_gain:.1%}")
+    return parts
+
+
 def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int, alpha: float, min_gain: float,
               folds: int, seed: int) -> dict[str, Any]:
     """Score test and held-out gain of adding `name` to the state's model."""
@@ -201,7 +218,6 @@ def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int,
     cv = cross_validate(lambda: CorrectionPipeline(state.effects + [name]), table, plan, seed, fit_kwargs=warm)
     gains = np.array([_whitened_gain(table, held, state.predicted, cv.predicted, state.per_fold[k][3])
                       for k, (_, held) in enumerate(plan.folds(table.n, seed))])
-    significant = p_value < alpha / max(n_candidates, 1)
     effect = get_effect(name)
     # A physical explanation must take physical values in every fold (`Param.plausible`).
     worst: dict[str, str] = {}   # one line per parameter: its farthest value over the folds
@@ -213,7 +229,8 @@ def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int,
             "score": float(np.mean(gains)), "p_value": p_value, "lm_statistic": lm, "df": rank,
             "cv_rmse_before": state.before, "cv_rmse_after": float(cv.metrics["rmse_total"]),
             "cv_rmse_pos_after": float(cv.metrics["rmse_pos"]), "fold_gain_min": float(gains.min()),
-            "passes": bool(significant and np.all(gains > 0) and np.mean(gains) >= min_gain),
+            "passes": not failed_parts(p_value, float(gains.min()), float(np.mean(gains)), n_candidates, alpha,
+                                       min_gain),
             "implausible": implausible,
             "fold_params": [model.physics_.params_ for model in cv.fitted]}
 
@@ -302,7 +319,7 @@ def _backward(search: _Search, accepted: list[str], by_name: dict[str, dict]) ->
 
 
 def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed: int = 0,
-             alpha: float = 1e-3, min_gain: float = 0.005, candidates: Sequence[str] | None = None,
+             alpha: float = ALPHA, min_gain: float = 0.005, candidates: Sequence[str] | None = None,
              forms: bool = True, model_predict: Callable[[np.ndarray], np.ndarray] | None = None,
              progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Rank the effects `effects` lacks, catalogue effects and generic forms on the same

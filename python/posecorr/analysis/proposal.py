@@ -63,14 +63,10 @@ def _fails(search: Any, row: dict[str, Any]) -> str:
     from posecorr.rotations import quat_to_matrix
     from posecorr.train.identify import describe_spread, poses_lack
 
-    threshold = search.alpha / max(len(search.names), 1)
-    fails = []
-    if row["p_value"] >= threshold:
-        fails.append(f"p above {threshold:.2g} ({search.alpha:g} over {len(search.names)} candidates)")
-    if row["fold_gain_min"] <= 0:
-        fails.append("a fold where the error rises")
-    if row["score"] < search.min_gain:
-        fails.append(f"a mean gain below {search.min_gain:.1%}")
+    from .diagnose import failed_parts
+
+    fails = failed_parts(row["p_value"], row["fold_gain_min"], row["score"], len(search.names), search.alpha,
+                         search.min_gain)
     table = search.table
     spread = describe_spread(table.meas_p, quat_to_matrix(table.meas_q), table.has_orientation)
     return f"{', '.join(fails) or 'implausible values'}; {poses_lack(get_effect(row['effect']), spread, table.time())}"

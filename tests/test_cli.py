@@ -109,6 +109,15 @@ def test_fit_station_and_mount_in_the_trackers_own_frame_with_loo(tmp_path) -> N
     assert set(result["effects"]) == {"station", "mount"}
     mount_e, _ = result["effects"]["mount"]["e"]
     np.testing.assert_allclose(mount_e, X_t, atol=1e-3)
+    # Raw measures the frame's 1.7 m: the ratio that means something is against the rigid floor.
+    assert result["frames_unregistered"] is True
+    assert result["vs_floor"]["improvement_total"] == pytest.approx(
+        result["baseline"]["rmse_total"] / result["cv"]["rmse_total"], rel=1e-12)
+    text = posecorr("fit", str(path), "-o", str(tmp_path / "m.onnx"), "--effects", "station,mount",
+                    "--method", "none", "--cv", "loo")
+    assert text.returncode == 0, text.stderr
+    header, _, raw_row = text.stdout.splitlines()[1:4]
+    assert header.split()[-2:] == ["vs", "floor"] and raw_row.startswith("raw (frames unregistered)")
 
 
 def test_controller_side_verbs_import_nothing_heavier_than_numpy(tmp_path) -> None:
@@ -165,7 +174,10 @@ def test_fit_prints_the_metrics_of_the_file_it_writes(tmp_path) -> None:
     run = posecorr("fit", str(data), "-o", str(model), "--effects", "station,mount,drift", "--method", "pmc",
                    "--json", cwd=tmp_path)
     assert run.returncode == 0, run.stderr
-    printed = json.loads(run.stdout)["test"]
+    fitted = json.loads(run.stdout)
+    printed = fitted["test"]
+    # the paper's frames are registered: raw is a few cm, and the ratio stays against it
+    assert fitted["frames_unregistered"] is False
     _, _, test = split_indices(table.n, 0)
     held = tmp_path / "test_rows.csv"
     write_table(table.subset(test), held)

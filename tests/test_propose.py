@@ -43,6 +43,8 @@ def test_the_proposal_recovers_the_true_forms_gain(scenario, kind, tmp_path):
 @pytest.mark.slow
 def test_null_sessions_propose_nothing():
     rows = study.null_study([0, 1], kinds=("robot", "hand"))
+    outside = {name for name, *_ in study.SCENARIOS.values()}
+    assert not any(outside & set(r["candidates"]) for r in rows), "the test-only effects were candidates"
     assert not any(r["proposed"] for r in rows), rows
     assert not any(r["present"] for r in rows), rows
 

@@ -34,6 +34,12 @@ RULE = (f"raw rmse_pos exceeds both {UNREGISTERED_FACTOR:g}× the best rigid fit
         f"{UNREGISTERED_MIN_M * 1e3:g} mm (frames unregistered)")
 
 
+def frames_unregistered(raw: Mapping[str, Any], rigid: Mapping[str, Any]) -> bool:
+    """`RULE` on the metrics of the measurements and of the best rigid fit, on the same poses:
+    where it holds, raw measures the frames' offset, not the tracker."""
+    return bool(raw["rmse_pos"] > max(UNREGISTERED_FACTOR * rigid["rmse_pos"], UNREGISTERED_MIN_M))
+
+
 @dataclass
 class Comparison:
     """The poses the page shows (`rows` of the table) before and after, and on what they rest.
@@ -111,12 +117,12 @@ def compare(table: PoseTable, corrected: np.ndarray, entry: Mapping[str, Any] | 
     reference, measured = table.reference[rows], table.measured[rows]
     raw = pose_metrics(reference, measured, with_rot)
     rigid = pose_metrics(reference, rigid_pred, with_rot)
-    unregistered = raw["rmse_pos"] > max(UNREGISTERED_FACTOR * rigid["rmse_pos"], UNREGISTERED_MIN_M)
+    unregistered = frames_unregistered(raw, rigid)
     from .ledger import held_out as ledger_block
 
     return Comparison(rows, reference, rigid_pred if unregistered else measured, after,
                       rigid_label(rigid_name) if unregistered else "raw", scored, held is not None,
-                      bool(unregistered), raw, rigid, rigid_label(rigid_name), pose_metrics(reference, after, with_rot),
+                      unregistered, raw, rigid, rigid_label(rigid_name), pose_metrics(reference, after, with_rot),
                       reason, ledger_block(entry)[1] if entry else None)
 
 

@@ -41,6 +41,8 @@ from .features import FEATURES, pose_features
 ALIAS_CORRELATION = 0.99
 # The test's level, before the Bonferroni correction over the candidates.
 ALPHA = 1e-3
+# The least mean relative fall of the held-out whitened error that counts as a gain.
+MIN_GAIN = 0.005
 PRESENT_TEST = ("score (Lagrange multiplier) test on held-out residuals, Bonferroni-corrected p < {alpha:g}; "
                 "held-out whitened error lower in every one of {folds} folds; mean gain >= {gain:.1%}; "
                 "still so given the others present (forward selection, backward elimination); "
@@ -319,7 +321,7 @@ def _backward(search: _Search, accepted: list[str], by_name: dict[str, dict]) ->
 
 
 def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed: int = 0,
-             alpha: float = ALPHA, min_gain: float = 0.005, candidates: Sequence[str] | None = None,
+             alpha: float = ALPHA, min_gain: float = MIN_GAIN, candidates: Sequence[str] | None = None,
              forms: bool = True, model_predict: Callable[[np.ndarray], np.ndarray] | None = None,
              progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Rank the effects `effects` lacks, catalogue effects and generic forms on the same

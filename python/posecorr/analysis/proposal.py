@@ -52,8 +52,9 @@ def _why_none(search: Any, result: dict[str, Any], kept: Sequence[str]) -> str:
     if not forms:
         return "no form could be tested on this data (see the effects that cannot be determined)"
     best = max(forms, key=lambda row: row["score"])
-    return (f"no form earns its place: the best, {best['effect']}, lowers the held-out whitened error by "
-            f"{best['score']:.1%} (p = {best['p_value']:.2g}, worst fold {best['fold_gain_min']:.1%}); "
+    moves = "lowers" if best["score"] >= 0 else "raises"
+    return (f"no form earns its place: the best, {best['effect']}, {moves} the held-out whitened error by "
+            f"{abs(best['score']):.1%} (p = {best['p_value']:.2g}, worst fold {best['fold_gain_min']:.1%}); "
             f"{_fails(search, best)}")
 
 

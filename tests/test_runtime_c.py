@@ -328,19 +328,27 @@ def test_graph_mixing_rows_is_refused_at_load(label, model, lib):
     assert e.value.status == _status("PC_ERR_GRAPH")
 
 
-def test_load_into_caller_buffer_matches_load_memory(lib):
+def _caller_buffer_api(lib):
+    """The library with pc_required_bytes and pc_load_into typed (the shim uses neither)."""
     import ctypes
 
     from posecorr.controller.runtime import _Error, load_library
 
     L = load_library(lib)
-    blob = MLP_ZHOU.read_bytes()
     vp, sz = ctypes.c_void_p, ctypes.c_size_t
-    L.pc_required_bytes.argtypes = [ctypes.c_char_p, sz, vp, ctypes.POINTER(sz),
-                                    ctypes.POINTER(_Error)]
-    L.pc_load_into.argtypes = [ctypes.c_char_p, sz, vp, vp, sz, ctypes.POINTER(vp),
-                               ctypes.POINTER(_Error)]
-    need, err, handle = sz(), _Error(), vp()
+    L.pc_required_bytes.argtypes = [ctypes.c_char_p, sz, vp, ctypes.POINTER(sz), ctypes.POINTER(_Error)]
+    L.pc_load_into.argtypes = [ctypes.c_char_p, sz, vp, vp, sz, ctypes.POINTER(vp), ctypes.POINTER(_Error)]
+    return L
+
+
+def test_load_into_caller_buffer_matches_load_memory(lib):
+    import ctypes
+
+    from posecorr.controller.runtime import _Error
+
+    L = _caller_buffer_api(lib)
+    blob = MLP_ZHOU.read_bytes()
+    need, err, handle = ctypes.c_size_t(), _Error(), ctypes.c_void_p()
     assert L.pc_required_bytes(blob, len(blob), None, ctypes.byref(need), ctypes.byref(err)) == 0
     buf = np.zeros(need.value, dtype=np.uint8)
     assert L.pc_load_into(blob, len(blob), None, buf.ctypes.data, need.value // 2,
@@ -405,17 +413,12 @@ def test_lean_load_peak_is_a_small_multiple_of_the_arena(lib):
     within 4x the arena the model keeps, and pc_load_into needs no more than it reports."""
     import ctypes
 
-    from posecorr.controller.runtime import _Error, _Options, load_library
+    from posecorr.controller.runtime import _Error, _Options
 
-    L = load_library(lib)
+    L = _caller_buffer_api(lib)
     blob = MLP_ZHOU.read_bytes()
-    vp, sz = ctypes.c_void_p, ctypes.c_size_t
-    L.pc_required_bytes.argtypes = [ctypes.c_char_p, sz, vp, ctypes.POINTER(sz),
-                                    ctypes.POINTER(_Error)]
-    L.pc_load_into.argtypes = [ctypes.c_char_p, sz, vp, vp, sz, ctypes.POINTER(vp),
-                               ctypes.POINTER(_Error)]
     opts = _Options(max_batch=1, flags=LEAN, program_ops=32)
-    need, err, handle = sz(), _Error(), vp()
+    need, err, handle = ctypes.c_size_t(), _Error(), ctypes.c_void_p()
     assert L.pc_required_bytes(blob, len(blob), ctypes.byref(opts), ctypes.byref(need),
                                ctypes.byref(err)) == 0, err.message
     buf = np.zeros(need.value, dtype=np.uint8)

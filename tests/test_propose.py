@@ -192,3 +192,29 @@ def test_a_hidden_catalogue_effect_is_named_not_a_form(hidden, factor):
     result = diagnose(table, study.BASE)
     assert [c["effect"] for c in result["candidates"] if c["present"]] == [hidden], result["candidates"]
     assert result["proposal"] is None and "the catalogue explains the error" in result["no_proposal"]
+
+
+def test_a_form_is_fitted_where_the_per_pose_error_is_large():
+    """A real session's rigid floor is tens of mm: with 30 mm of per-pose error and a 5 %
+    strain, the strain form spans what the true effect spans, so it predicts held-out poses
+    as well; none of its directions is held (their standard errors are tens of the form's
+    units, a fraction of the strain there is)."""
+    from posecorr.effects import get_effect, load_effect_file
+    from posecorr.simulate import simulate_session
+    from posecorr.train.physics import PhysicsModel
+    from posecorr.train.pipeline import CorrectionPipeline, cross_validate
+    from posecorr.train.splits import KFold
+
+    if "true_strain" not in EFFECTS:
+        load_effect_file(study.OUTSIDE)
+    strain = 4 * get_effect("true_strain").default_theta()
+    table = simulate_session(1, n=50, robot="ur5e", unremovable=0.03, extra={"true_strain": strain}).table
+    scores = {name: cross_validate(lambda: CorrectionPipeline(study.BASE + [name]), table, KFold(5), 0)
+              .metrics["rmse_pos"] for name in ("true_strain", "strain")}
+    assert scores["strain"] <= 1.01 * scores["true_strain"], scores
+    fits = {name: PhysicsModel(tuple(study.BASE + [name])).fit(table.measured, table.reference)
+            for name in ("true_strain", "strain")}
+    assert not [label for label in fits["strain"].fixed_ if label.startswith("strain")], fits["strain"].fixed_
+    # the same map written twice: the same values (the noise moves both alike)
+    np.testing.assert_allclose(fits["strain"].params_["strain"], fits["true_strain"].params_["true_strain"],
+                               atol=1e-4)

@@ -19,7 +19,8 @@ offset). Three pieces keep that from happening:
   with the earlier block and the later one holds its nominal value.
 
 A direction counts as determined when its standard error, given the blocks before it, is
-below `LIMIT_SCALES` times the parameter's typical magnitude (`Param.scale`), and when at
+below `LIMIT_SCALES` times the parameter's typical magnitude (`Param.scale`; for a form,
+whose scale is only its coefficients' unit, `FORM_LIMIT_SCALES`), and when at
 least `MIN_INDEPENDENT` of its effect on the data is not already the effect of an earlier
 block: otherwise the fit would only move it by noise (with thousands of poses the noise
 itself makes a tiny, meaningless difference look "determined"). Whether a determined but weak parameter pays is then a
@@ -36,6 +37,10 @@ from posecorr.geometry import nearest_rotation
 from posecorr.registration import umeyama
 
 LIMIT_SCALES = 10.0            # determined: std error < LIMIT_SCALES * Param.scale
+# A form's scale is the unit of its coefficients, not the size of the error it stands for (a
+# strain of several % on a real session whose rigid floor is tens of mm): its directions are
+# held only where the data pin them no better than this many units.
+FORM_LIMIT_SCALES = 100.0
 MIN_INDEPENDENT = 0.02         # ... and at least 2 % of its effect unexplained by earlier blocks
 LEVER_LIMIT = 0.1              # m: the same rule for the rigid fit's lever arm (mount e scale 1e-2 m)
 AXIS_MIN_RAD = np.deg2rad(1.0)  # an orientation axis "spreads" beyond 1 deg RMS
@@ -321,22 +326,22 @@ class Block:
     scale: float
     unit: str
     reason: str
-    # False for the registration (station w, v; mount rotation d): unregistered frames put them
-    # anywhere (metres, any rotation), so no typical size bounds their standard error; only
-    # whether the data can tell them from the blocks before them counts.
-    bounded: bool = True
+    # The largest standard error, in `scale`s, of a direction kept. None for the registration
+    # (station w, v; mount rotation d): unregistered frames put them anywhere (metres, any
+    # rotation), so no typical size bounds their standard error; only whether the data can
+    # tell them from the blocks before them counts.
+    limit: float | None = LIMIT_SCALES
 
 
-def determined_directions(J: np.ndarray, blocks: Sequence[Block],
-                          limit_scales: float = LIMIT_SCALES) -> tuple[np.ndarray, dict[str, str]]:
+def determined_directions(J: np.ndarray, blocks: Sequence[Block]) -> tuple[np.ndarray, dict[str, str]]:
     """Basis B (n_theta, k) of the determined directions of theta, and {label: reason} of the rest.
 
     J: the whitened Jacobian (residuals / their noise), columns in theta's units. Blocks are
     taken in the given order; each block's columns, scaled to its typical magnitude, are
     projected off the span kept so far; the SVD of what remains gives its directions and
     their standard errors (1 / singular value, in typical magnitudes). A direction is kept when
-    at least MIN_INDEPENDENT of its effect is its own and, for a `bounded` block, that error is
-    below `limit_scales`. B has orthonormal columns in scaled units: theta =
+    at least MIN_INDEPENDENT of its effect is its own and that error is below the block's
+    `limit` (if it has one). B has orthonormal columns in scaled units: theta =
     theta0 + diag(scale) B z.
     """
     n_theta = J.shape[1]
@@ -350,8 +355,8 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block],
         std = 1.0 / np.maximum(s, 1e-300)
         independent = s / np.maximum(np.linalg.norm(own @ Vt.T, axis=0), 1e-300)
         keep = independent > MIN_INDEPENDENT
-        if block.bounded:
-            keep &= std < limit_scales
+        if block.limit is not None:
+            keep &= std < block.limit
         for v in Vt[keep]:
             column = np.zeros(n_theta)
             column[block.index] = v if len(v) > 1 else np.abs(v)   # a 1-D block keeps its sign
@@ -380,4 +385,4 @@ def _why_held(block: Block, independent: float, std: float) -> str:
 
 
 __all__ = ["CLOSED_FORM", "RIGID_VARIANTS", "rigid_variants", "gross_outliers", "MIN_INDEPENDENT", "Spread", "describe_spread", "chordal_mean", "RigidRegistration", "rigid_registration", "Block",
-           "determined_directions", "direction_label", "LIMIT_SCALES", "LEVER_LIMIT"]
+           "determined_directions", "direction_label", "LIMIT_SCALES", "FORM_LIMIT_SCALES", "LEVER_LIMIT"]

@@ -37,8 +37,8 @@ from posecorr.effects import (REGISTRATION_ROLES, EffectContext, get_effect, inv
 from posecorr.metrics import pose_metrics
 
 from .base import PoseRegressorMixin, check_pair, check_poses
-from .identify import (Block, RigidRegistration, chordal_mean, describe_spread, determined_directions, direction_label,
-                       poses_lack, rigid_registration)
+from .identify import (FORM_LIMIT_SCALES, LIMIT_SCALES, Block, RigidRegistration, chordal_mean, describe_spread,
+                       determined_directions, direction_label, poses_lack, rigid_registration)
 
 DEFAULT_SIGMA_P = 3e-4   # m, docs/design.md default noise
 DEFAULT_SIGMA_R = 5e-4   # rad
@@ -236,8 +236,9 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
             for param in effect.params:
                 index = np.arange(i, i + param.size)
                 label = f"{effect.name}.{param.name}"
+                limit = None if param.unbounded else LIMIT_SCALES if effect.typical_scale else FORM_LIMIT_SCALES
                 owned.append((first.get(effect.registration, len(first)), len(owned),
-                              Block(label, index, param.scale, param.unit, reason, not param.unbounded)))
+                              Block(label, index, param.scale, param.unit, reason, limit)))
                 i += param.size
         return [block for _, _, block in sorted(owned, key=lambda item: item[:2])]
 

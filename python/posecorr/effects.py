@@ -165,7 +165,8 @@ def _rows_times(p: Any, M: Any) -> Any:
 
 # What an effect declares about itself besides its map (see `Effect`).
 CAPABILITIES = ("name", "params", "order", "random", "needs_time", "closed_form_inverse", "per_row_theta",
-                "changes_rotation", "inverse_steps", "doc", "generic", "causes", "sensitivity", "registration")
+                "changes_rotation", "inverse_steps", "doc", "generic", "causes", "sensitivity", "registration",
+                "typical_scale")
 
 # The parts an effect may play in registering the tracker's frames (`Effect.registration`),
 # in the order a fit identifies them: the unknown rigid motion between the tracker's reporting
@@ -206,6 +207,10 @@ class Effect:
     causes: ClassVar[str] = ""                # physical causes of this shape, in words
     sensitivity: ClassVar[str] = "position"   # one of SENSITIVITIES
     registration: ClassVar[str] = ""          # one of REGISTRATION_ROLES, or "" for none
+    # Each Param.scale is the size a real tracker shows, so a fit holds a direction the data
+    # pin no better than ten of them (`train.identify`). False for a form, whose scale is only
+    # the unit of its coefficients.
+    typical_scale: ClassVar[bool] = True
 
     def __init_subclass__(cls, **capabilities: Any) -> None:
         """The capabilities above may be given as class keywords, all in one line:

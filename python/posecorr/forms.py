@@ -45,6 +45,7 @@ class Form(Effect):
 
     labels: ClassVar[tuple[str, ...]] = ()
     terms: ClassVar[tuple[int, ...] | None] = None
+    typical_scale = False   # the scale is the coefficients' unit: real errors run to many of it
 
     def __init__(self) -> None:
         if self.terms is not None:

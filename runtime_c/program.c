@@ -977,9 +977,6 @@ static pc_status pc_emit_program(pc_pass *pp, const pc_opid *order, size_t n, in
     kpool_off = (int32_t)pp->region[PC_REGION_KPOOL].used - (int32_t)pp->kpool_total;
     entries = pc_program_entries(g, order, n, temp, &hi);
     wide = hi > INT16_MAX;
-    kpool = pc_region_take(pp, PC_REGION_KPOOL, g->n_k * 4);
-    for (k = 0; kpool && k < g->n_k; k++)
-        kpool[k] = PC_KBITS(g, k);
     s = pc_region_take(pp, PC_REGION_STEPS, sizeof *s);
     io = pc_region_take(pp, PC_REGION_IO, 2 * sizeof(void *));
     fn = wide ? k_scalar_program : k_scalar_program16;
@@ -987,6 +984,11 @@ static pc_status pc_emit_program(pc_pass *pp, const pc_opid *order, size_t n, in
     if (!wide && (compiled = pc_compiled_kernel(g, order, n, pp->fill, &n_k, &n_x)) != NULL)
         fn = compiled;
 #endif
+    /* The pool is the interpreter's: a compiled program reads its constants from its
+     * parameters. Both passes decide alike, so the pool's offsets agree. */
+    kpool = compiled ? NULL : pc_region_take(pp, PC_REGION_KPOOL, g->n_k * 4);
+    for (k = 0; kpool && k < g->n_k; k++)
+        kpool[k] = PC_KBITS(g, k);
     /* A compiled program's offsets, their count rounded up to even (its constants are
      * 4-byte words), or the interpreter's entries. */
     size = compiled ? (n_x + 1) / 2 * 2 * sizeof(int16_t)

@@ -88,6 +88,8 @@ def one(scenario: str, seed: int, kind: str, folder: Path, **heavy: float) -> di
     from posecorr.analysis.diagnose import ALPHA, MIN_GAIN, diagnose, failed_parts
     from posecorr.analysis.proposal import effect_file_text
     from posecorr.effects import load_effect_file
+    from posecorr.rotations import quat_to_matrix
+    from posecorr.train.identify import describe_spread
 
     table = session(scenario, seed, kind, **heavy)
     true_name, form, metric, _ = SCENARIOS[scenario]
@@ -100,6 +102,7 @@ def one(scenario: str, seed: int, kind: str, folder: Path, **heavy: float) -> di
     result = diagnose(table, BASE, folds=5, seed=0)
     seconds = time.perf_counter() - started
     base = loo(table, BASE)
+    spread = describe_spread(table.meas_p, quat_to_matrix(table.meas_q), table.has_orientation)
     row = {"scenario": scenario, "kind": kind, "seed": seed, "expected": form, "diagnose_s": round(seconds, 2),
            "present_effects": [c["effect"] for c in result["candidates"] if c["present"] and c["kind"] == "effect"],
            "proposed": None if result["proposal"] is None else result["proposal"]["forms"],
@@ -113,7 +116,10 @@ def one(scenario: str, seed: int, kind: str, folder: Path, **heavy: float) -> di
            "told_terms_passes": not failed_parts(told["p_value"], told["fold_gain_min"], told["score"],
                                                  len(result["candidates"]), ALPHA, MIN_GAIN),
            "p_threshold": ALPHA / len(result["candidates"]),
-           "loo_base": base[metric], "loo_true": truth[metric], "loo_proposal": None, "recovery": None}
+           "loo_base": base[metric], "loo_true": truth[metric], "loo_proposal": None, "recovery": None,
+           "true_gain_share": (base[metric] - truth[metric]) / base[metric],
+           # what the poses offer an effect that varies with the tracker's attitude
+           "orientation_span_deg": float(np.rad2deg(spread.rotation_span))}
     if result["proposal"] is not None:
         path = folder / f"{scenario}-{kind}-{seed}.py"
         path.write_text(effect_file_text(result["proposal"], "bench/forms.py", "session.csv"))
@@ -180,15 +186,21 @@ def summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
             if not mine:
                 continue
             recoveries = [r["recovery"] for r in mine if r["recovery"] is not None]
+            hit = [r["proposed"] == [r["expected"]] for r in mine]
+            spans = {True: [r["orientation_span_deg"] for r, h in zip(mine, hit) if h],
+                     False: [r["orientation_span_deg"] for r, h in zip(mine, hit) if not h]}
             out.append({"scenario": scenario, "kind": kind, "seeds": len(mine),
-                        "expected_form_proposed": sum(r["proposed"] == [r["expected"]] for r in mine),
+                        "expected_form_proposed": sum(hit),
+                        # do the misses lie where the poses turn least?
+                        "span_deg_min_proposed": min(spans[True], default=None),
+                        "span_deg_max_missed": max(spans[False], default=None),
                         # a session with no proposal recovers nothing
                         "recovered_80": sum((r["recovery"] or 0.0) >= 0.8 for r in mine),
                         "true_form_passes": sum(r["true_form_passes"] for r in mine),
                         # the expected form, told its true terms, passes the diagnosis's test
                         "told_terms_pass": sum(r["told_terms_passes"] for r in mine),
                         "recovery_min": min(recoveries) if recoveries else None,
-                        "true_gain_share_min": min((r["loo_base"] - r["loo_true"]) / r["loo_base"] for r in mine),
+                        "true_gain_share_min": min(r["true_gain_share"] for r in mine),
                         "parameters_median": float(np.median([r["parameters"] for r in mine
                                                               if r["parameters"] is not None] or [np.nan])),
                         "recovery_median": float(np.median(recoveries)) if recoveries else None,

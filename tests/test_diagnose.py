@@ -77,6 +77,28 @@ def test_feature_r2_finds_the_feature_that_carries_the_error() -> None:
     assert all(row["r2"] < 0.05 for row in rows[1:])
 
 
+def test_diagnose_text_lists_only_features_with_structure() -> None:
+    """`posecorr diagnose`'s feature table holds the features that explain something; pure noise
+    reads as one line, not a table of zeros."""
+    from posecorr.cli.diagnose import _feature_lines
+
+    rng = np.random.default_rng(1)
+    n = 400
+    features = {name: rng.uniform(-1, 1, n) for name in ("x", "y", "azimuth", "yaw")}
+    carried = np.stack([np.sin(6 * features["azimuth"]), rng.normal(scale=0.1, size=n)], axis=1)
+    rows = feature_r2(carried, features)
+    text = "\n".join(_feature_lines(rows))
+    zero = [row["feature"] for row in rows if row["r2"] == 0.0]
+    listed = [line.split()[0] for line in text.splitlines()[3:] if not line.startswith("cv R^2 0 along")]
+    assert listed == [row["feature"] for row in rows if row["r2"] > 0.0] and listed[0] == "azimuth"
+    assert zero and f"cv R^2 0 along {', '.join(zero)}" in text
+    # on noise a smooth fit predicts the held-out residual worse than its mean: R^2 clipped to 0
+    noise = feature_r2(rng.normal(size=(n, 2)), features)
+    assert [row["r2"] for row in noise] == [0.0] * 4
+    assert _feature_lines(noise) == ["Residual structure by feature (smooth fit, cross-validated): none "
+                                     "(cv R^2 0 along " + ", ".join(row["feature"] for row in noise) + ")"]
+
+
 def test_auto_never_returns_a_model_worse_than_the_rigid_fit() -> None:
     """A small real-sized data set (30 poses): a 55-term quadratic would overfit it."""
     from posecorr.metrics import pose_metrics

@@ -65,8 +65,7 @@ def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
                         "present"], rows,
                        title="Missing effects and forms (score = mean relative fall of the held-out whitened error)"),
              f"present = {result['test']}",
-             fmt_table(["feature", "cv R^2"], [[f["feature"], f["r2"]] for f in result["features"]],
-                       title="Residual structure by feature (smooth fit, cross-validated)")]
+             *_feature_lines(result["features"])]
     for pair in result["aliases"]:
         lines.append(f"cannot be told apart by this data: {pair['effects'][0]} ~ {pair['effects'][1]} "
                      f"(canonical correlation {pair['correlation']:.4f} of their effects on these poses)")
@@ -79,6 +78,19 @@ def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
         lines.append(f"add: --effects {','.join(effects + present)}")
     lines += _proposal_lines(args, result)
     return "\n".join(lines)
+
+
+def _feature_lines(features: list[dict]) -> list[str]:
+    """The features along which a smooth fit explains some held-out residual; the others in
+    one line, so that a session with no structure reads as such."""
+    from ..textui import table as fmt_table
+
+    title = "Residual structure by feature (smooth fit, cross-validated)"
+    some = [[f["feature"], f["r2"]] for f in features if f["r2"] > 0]
+    none = ", ".join(f["feature"] for f in features if not f["r2"] > 0)
+    if not some:
+        return [f"{title}: none (cv R^2 0 along {none})"] if none else []
+    return [fmt_table(["feature", "cv R^2"], some, title=title)] + ([f"cv R^2 0 along {none}"] if none else [])
 
 
 def _proposal_lines(args: argparse.Namespace, result: dict) -> list[str]:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import base64
+import json
 import re
 from html.parser import HTMLParser
 from pathlib import Path
@@ -361,6 +362,10 @@ def test_held_out_where_the_ledger_knows_the_folds_in_sample_otherwise(tmp_path:
     # model file on the same test poses (float32 graph, the same C runtime as fit's scoring).
     tolerance = 1e-6 if cv == "5" else 1e-4
     assert after["rmse_pos"] == pytest.approx(fitted[kind]["rmse_pos"], rel=tolerance)
+    # the ledger's own figures beside them, and no improvement against raw (frames unregistered)
+    assert report["unregistered"] is True
+    assert after["ledger"] == pytest.approx({k: fitted[kind][k] for k in ("rmse_pos", "rmse_rot", "rmse_total")})
+    assert "improvement" not in json.dumps(after)
     assert report["baseline"]["name"] == "rigid fit ({})".format(fitted["baseline"]["model"].removeprefix("rigid-"))
     assert report["baseline"]["rmse_pos"] == pytest.approx(fitted["baseline"]["rmse_pos"], rel=1e-6)
     if cv == "5":

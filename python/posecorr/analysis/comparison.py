@@ -85,7 +85,9 @@ class Comparison:
                              "rmse_rot": self.before_metrics.get("rmse_rot")},
                 "after": {"scored": self.scored, "held_out": self.held_out, "n": int(len(self.rows)),
                           **figures_of(self.after_metrics), "reason": self.reason or None,
-                          "ledger": dict(self.ledger) if self.ledger else None},
+                          # the ledger's figures only: the improvements fit recorded are against raw,
+                          # which on unregistered frames measures the frames' offset
+                          "ledger": figures_of(self.ledger) if self.ledger else None},
                 "improvement": {k: block.get(f"improvement_{k}") for k in ("pos", "rot", "total")},
                 "unregistered": self.unregistered, "rule": RULE,
                 "raw": figures_of(self.raw), "rigid_fit": {"name": self.rigid_name, **figures_of(self.rigid)},

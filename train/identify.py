@@ -99,8 +99,8 @@ def poses_lack(effect: Any, spread: Spread, t: np.ndarray | None) -> str:
                   for p in effect.params if p.bounds is not None]
         words = f"the session lasts {float(np.ptp(t)):.0f} s"
         if ranges:
-            words += (f", short against {', '.join(ranges)} (over a session much shorter than the time "
-                      f"constant only a straight line shows)")
+            words += (f", against {', '.join(ranges)} (a time constant longer than the session shows "
+                      f"only as a straight line)")
         return words
     if effect.sensitivity == "orientation":
         return spread.orientation_words()

@@ -117,7 +117,7 @@ def test_fit_station_and_mount_in_the_trackers_own_frame_with_loo(tmp_path) -> N
                     "--method", "none", "--cv", "loo")
     assert text.returncode == 0, text.stderr
     header, _, raw_row = text.stdout.splitlines()[1:4]
-    assert header.split()[-2:] == ["vs", "floor"] and raw_row.startswith("raw (frames unregistered)")
+    assert header.split()[-3:] == ["improvement", "vs", "floor"] and raw_row.startswith("raw (frames unregistered)")
 
 
 def test_controller_side_verbs_import_nothing_heavier_than_numpy(tmp_path) -> None:

@@ -159,7 +159,7 @@ def _text(args: argparse.Namespace, table: Any, effects: list, report: Any, expo
     # Raw in a frame metres away measures that offset: the floor is then what a model must beat.
     unregistered = frames_unregistered(report.raw, report.baseline)
     if unregistered:
-        header, raw_label = "vs floor", "raw (frames unregistered)"
+        header, raw_label = "improvement vs floor", "raw (frames unregistered)"
         ratios = [None, improvement(report.baseline, report.heldout)["improvement_total"], 1.0]
     else:
         header, raw_label = "improvement", "raw"

@@ -386,6 +386,26 @@ def test_held_out_where_the_ledger_knows_the_folds_in_sample_otherwise(tmp_path:
     assert rows[0][1] == "in-sample" and rows[1][1] == "in-sample"
 
 
+def test_auto_is_held_out_as_fit_scored_it(tmp_path: Path) -> None:
+    """`--method auto` scores each fold by the candidate an inner cross-validation chooses on
+    its training poses; the report rebuilds those predictions and gets fit's figure."""
+    from posecorr.data import write_table
+    from posecorr.simulate import simulate_session
+
+    table = simulate_session(2, n=30, spread="full", position_only=False, unremovable=0.0).table
+    data = tmp_path / "s.csv"
+    write_table(table, data)
+    fitted = _cli("fit", str(data), "-o", "m.onnx", "--effects", "station,mount", "--method", "auto",
+                  "--cv", "5", cwd=tmp_path)
+    assert not fitted["chosen"].startswith("rigid"), fitted["chosen"]    # the nested path, not a rigid one
+    report = _cli("report", str(data), "--model", "m.onnx", "-o", "r.html", "--no-diagnosis", cwd=tmp_path)
+    after = report["after"]
+    assert after["held_out"] is True and after["scored"] == "held-out (5 folds, 30 poses)"
+    for key in ("rmse_pos", "rmse_rot", "rmse_total"):
+        assert after[key] == pytest.approx(fitted["cv"][key], rel=1e-6)
+    assert report["baseline"]["rmse_pos"] == pytest.approx(fitted["baseline"]["rmse_pos"], rel=1e-6)
+
+
 def test_the_history_plot_draws_each_fit_against_the_rigid_fit() -> None:
     """The loop's history: each ledger line's held-out rmse_pos, and the rigid fit on the
     same poses as a line where the ledger line has it (older lines: none)."""

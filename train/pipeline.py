@@ -515,19 +515,27 @@ def _out_of_fold_auto(candidates: Sequence[Candidate], floor: Sequence[Candidate
     """The nested phase of "auto": each outer fold predicted by the choice an inner
     cross-validation makes on its training rows, then the final choice made on all poses.
     Returns (final choice, its inner scores, the outer folds' predictions, the rigid variants')."""
-    M, _, t = arrays
-    n = len(M)
+    n = len(arrays[0])
     everything = np.arange(n)
+    predicted = nested_out_of_fold(candidates, arrays, with_rotation, splits, seed, prior, say)
+    say("auto: choosing on all poses")
+    best, scores = choose(candidates, everything, arrays, with_rotation, plan_for(n, nested=True), seed, prior)
+    floor_predicted = out_of_fold(floor, everything, arrays, with_rotation, splits, prior)
+    return best, scores, predicted, floor_predicted
+
+
+def nested_out_of_fold(candidates: Sequence[Candidate], arrays: tuple, with_rotation: bool, splits: list,
+                       seed: int, prior: dict, say: Callable[[str], None]) -> np.ndarray:
+    """(N, 7): each outer fold's poses predicted by the candidate an inner cross-validation on
+    the fold's training rows chooses, fitted on those rows: how "auto" is scored."""
+    M, _, t = arrays
     say(f"auto: choosing among {len(candidates)} candidates inside each of {len(splits)} outer folds")
     predicted = np.empty_like(M)
     for train, held in _progress_iter(splits, say, "outer fold"):
         best, _ = choose(candidates, train, arrays, with_rotation, plan_for(len(train), nested=True), seed, prior)
         model = _fit(best, train, arrays, with_rotation, prior)
         predicted[held] = model.predict(M[held], None if t is None else t[held])
-    say("auto: choosing on all poses")
-    best, scores = choose(candidates, everything, arrays, with_rotation, plan_for(n, nested=True), seed, prior)
-    floor_predicted = out_of_fold(floor, everything, arrays, with_rotation, splits, prior)
-    return best, scores, predicted, floor_predicted
+    return predicted
 
 
 def _note_fallback(best: Candidate, floor_best: Candidate, heldout: dict, baseline: dict, auto: bool,

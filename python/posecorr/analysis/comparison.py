@@ -11,8 +11,9 @@ and the improvement is against it.
 After: held-out where the ledger holds the fit that wrote the model file (matched by the
 file's SHA-256): on a test split the file itself on the test poses, the rigid fit refitted on
 the fit's other poses; under cross-validation every pose predicted by the model and the rigid
-fit refitted on the same folds without it (`pipeline.out_of_fold`), as `fit` scored them.
-Otherwise the model file on every pose, in-sample, beside the rigid fit on every pose.
+fit refitted on the same folds without it (`pipeline.out_of_fold`; for "auto", each fold by
+the candidate chosen inside its training rows, `pipeline.nested_out_of_fold`), as `fit`
+scored them. Otherwise the model file on every pose, in-sample, beside the rigid fit on every pose.
 """
 from __future__ import annotations
 
@@ -179,24 +180,30 @@ def _held_out(table: PoseTable, entry: Mapping[str, Any] | None,
 
 def _cross_validated(table: PoseTable, entry: Mapping[str, Any], plan: Any, seed: int, rigid: Any,
                      say: Callable[[str], None]) -> tuple[Rebuilt | None, str]:
-    from ..train.pipeline import requested_candidate
+    from ..train.pipeline import auto_candidates, requested_candidate
     from ..train.spec import ModelSpec
 
     spec = ModelSpec(**entry["spec"]) if isinstance(entry.get("spec"), Mapping) else None
+    effects = tuple(entry.get("effects") or ())
+    everything, splits = np.arange(table.n), plan.folds(table.n, seed)
+    scored = f"held-out ({plan.description}, {table.n} poses)"
     if entry.get("rigid"):
         model = _rigid_candidate(table, entry.get("chosen"))
     elif spec is None:
         return None, "the ledger line of this model lacks its spec (written by an older posecorr)"
     elif spec.method_entry.chooses:
-        return None, f"{spec.method}'s nested choice is not rebuilt here; its held-out figure is in the ledger"
+        # scored as fit scored it: each fold by the choice made inside its training rows
+        say(f"rebuilding the held-out predictions: {spec.method}'s choice inside each fold and {rigid.name}, "
+            f"{plan.description}")
+        chosen = _nested_out_of_fold(auto_candidates(table, effects, spec.representation), splits, seed, table)
+        return (everything, chosen, rigid.name, _out_of_fold([rigid], everything, splits, table)[rigid.name],
+                scored), ""
     else:
-        model = requested_candidate(tuple(entry.get("effects") or ()), spec, seed)
-    everything = np.arange(table.n)
+        model = requested_candidate(effects, spec, seed)
     say(f"rebuilding the held-out predictions: {model.name} and {rigid.name}, {plan.description}")
     candidates = [model] if model.name == rigid.name else [model, rigid]
-    predicted = _out_of_fold(candidates, everything, plan.folds(table.n, seed), table)
-    return (everything, predicted[model.name], rigid.name, predicted[rigid.name],
-            f"held-out ({plan.description}, {table.n} poses)"), ""
+    predicted = _out_of_fold(candidates, everything, splits, table)
+    return (everything, predicted[model.name], rigid.name, predicted[rigid.name], scored), ""
 
 
 def _out_of_fold(candidates: list, start_rows: np.ndarray, splits: list, table: PoseTable) -> dict[str, np.ndarray]:
@@ -208,6 +215,16 @@ def _out_of_fold(candidates: list, start_rows: np.ndarray, splits: list, table: 
     arrays = (table.measured, table.reference, table.time())
     prior = _priors(candidates, start_rows, arrays, table.has_orientation)
     return out_of_fold(candidates, np.arange(table.n), arrays, table.has_orientation, splits, prior)
+
+
+def _nested_out_of_fold(candidates: list, splits: list, seed: int, table: PoseTable) -> np.ndarray:
+    """(N, 7): each fold's poses predicted by the candidate chosen inside its training rows,
+    from the same start as `posecorr fit --method auto` (the physics stages on every pose)."""
+    from ..train.pipeline import _priors, nested_out_of_fold
+
+    arrays = (table.measured, table.reference, table.time())
+    prior = _priors(candidates, np.arange(table.n), arrays, table.has_orientation)
+    return nested_out_of_fold(candidates, arrays, table.has_orientation, splits, seed, prior, lambda message: None)
 
 
 def _rigid_candidate(table: PoseTable, name: Any) -> Any:

@@ -195,7 +195,7 @@ def _cross_validated(table: PoseTable, entry: Mapping[str, Any], plan: Any, seed
         # scored as fit scored it: each fold by the choice made inside its training rows
         say(f"rebuilding the held-out predictions: {spec.method}'s choice inside each fold and {rigid.name}, "
             f"{plan.description}")
-        chosen = _nested_out_of_fold(auto_candidates(table, effects, spec.representation), splits, seed, table)
+        chosen = _nested_out_of_fold(auto_candidates(table, effects, spec.representation), splits, seed, table, say)
         return (everything, chosen, rigid.name, _out_of_fold([rigid], everything, splits, table)[rigid.name],
                 scored), ""
     else:
@@ -217,14 +217,15 @@ def _out_of_fold(candidates: list, start_rows: np.ndarray, splits: list, table: 
     return out_of_fold(candidates, np.arange(table.n), arrays, table.has_orientation, splits, prior)
 
 
-def _nested_out_of_fold(candidates: list, splits: list, seed: int, table: PoseTable) -> np.ndarray:
+def _nested_out_of_fold(candidates: list, splits: list, seed: int, table: PoseTable,
+                        say: Callable[[str], None]) -> np.ndarray:
     """(N, 7): each fold's poses predicted by the candidate chosen inside its training rows,
     from the same start as `posecorr fit --method auto` (the physics stages on every pose)."""
     from ..train.pipeline import _priors, nested_out_of_fold
 
     arrays = (table.measured, table.reference, table.time())
     prior = _priors(candidates, np.arange(table.n), arrays, table.has_orientation)
-    return nested_out_of_fold(candidates, arrays, table.has_orientation, splits, seed, prior, lambda message: None)
+    return nested_out_of_fold(candidates, arrays, table.has_orientation, splits, seed, prior, say)
 
 
 def _rigid_candidate(table: PoseTable, name: Any) -> Any:

@@ -474,16 +474,16 @@ def test_the_browser_check_sees_a_broken_page(tmp_path: Path) -> None:
 
 
 def test_a_ledger_line_that_cannot_rebuild_the_held_out_says_why(unregistered: PoseTable) -> None:
-    """In-sample, with the reason, for a line of an older posecorr, of another table, or of
-    auto (whose nested choice is not rebuilt); the rigid variant the line names is kept."""
+    """In-sample, with the reason, for a line of an older posecorr, of another table, or one
+    whose plan cannot be read; the rigid variant the line names is kept."""
     from posecorr.analysis.comparison import compare
 
     table = unregistered
     baseline = {"model": "rigid-kabsch", "rmse_pos": 0.02}
     cases = [({"cv": {}, "baseline": baseline}, "lacks plan, seed, n"),
              ({"plan": "5", "seed": 0, "n": table.n + 1, "baseline": baseline}, f"{table.n + 1} poses"),
-             ({"plan": "5", "seed": 0, "n": table.n, "baseline": baseline, "effects": ["station"],
-               "spec": {"method": "auto", "representation": "zhou"}}, "auto's nested choice")]
+             ({"plan": "5 folds of", "seed": 0, "n": table.n, "baseline": baseline, "effects": ["station"],
+               "spec": {"method": "auto", "representation": "zhou"}}, "could not be rebuilt from the ledger line")]
     for entry, why in cases:
         comparison = compare(table, table.reference, entry)
         assert not comparison.held_out and comparison.scored == "in-sample"

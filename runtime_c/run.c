@@ -52,11 +52,16 @@ PC_RARE static void pc_beyond_reach(pc_model *m, size_t pose, float d2, float do
  * portable form, which the tests compare with this one. */
 #if defined(__SSE2__) && !defined(PC_NO_AVX2)
 #include <emmintrin.h>
-PC_HOT static int pc_pose_finite(const float *v)
+/* Lanes 0-3 (a) and 3-6 (b) of a pose all finite. */
+PC_HOT static int pc_lanes_finite(__m128 a, __m128 b)
 {
-    const __m128 a = _mm_loadu_ps(v), b = _mm_loadu_ps(v + 3);
     const __m128 da = _mm_sub_ps(a, a), db = _mm_sub_ps(b, b);
     return _mm_movemask_ps(_mm_and_ps(_mm_cmpord_ps(da, da), _mm_cmpord_ps(db, db))) == 15;
+}
+
+PC_HOT static int pc_pose_finite(const float *v)
+{
+    return pc_lanes_finite(_mm_loadu_ps(v), _mm_loadu_ps(v + 3));
 }
 
 PC_HOT static int pc_pose_in_box(const pc_model *m, const float *v)
@@ -65,6 +70,47 @@ PC_HOT static int pc_pose_in_box(const pc_model *m, const float *v)
     const __m128 in = _mm_and_ps(_mm_cmpge_ps(p, _mm_loadu_ps(m->lo)),
                                  _mm_cmple_ps(p, _mm_loadu_ps(m->hi)));
     return (_mm_movemask_ps(in) & 7) == 7;
+}
+
+/* A pose's seven floats between the caller's buffer and the arena, as two overlapping
+ * groups of four. */
+PC_HOT static void pc_pose_copy(float *to, const float *from)
+{
+    const __m128 a = _mm_loadu_ps(from), b = _mm_loadu_ps(from + 3);
+    _mm_storeu_ps(to, a);
+    _mm_storeu_ps(to + 3, b);
+}
+
+/* pc_move_of's four sums as four lanes, each lane the same products added in the same
+ * column order: the rows [d_c^2 (c < 3, then 0), q_c^2, q_c in_c, in_c^2] of columns
+ * c = 0-3 and 3-6, transposed and added (a first term added to 0.0f is that term, but for
+ * the sign of a zero dot, which the checks only square). */
+PC_HOT static pc_move pc_move_lanes(__m128 pa, __m128 pb, const float *in)
+{
+    const __m128 ib = _mm_loadu_ps(in + 3);
+    const __m128 d = _mm_sub_ps(pa, _mm_loadu_ps(in));
+    const __m128 first3 = _mm_castsi128_ps(_mm_set_epi32(0, -1, -1, -1));
+    __m128 r0 = _mm_and_ps(_mm_mul_ps(d, d), first3), r1 = _mm_mul_ps(pb, pb);
+    __m128 r2 = _mm_mul_ps(pb, ib), r3 = _mm_mul_ps(ib, ib), sum;
+    float lanes[4];
+    pc_move v;
+    _MM_TRANSPOSE4_PS(r0, r1, r2, r3);
+    sum = _mm_add_ps(_mm_add_ps(_mm_add_ps(r0, r1), r2), r3);
+    _mm_storeu_ps(lanes, sum);
+    v.d2 = lanes[0];
+    v.n2 = lanes[1];
+    v.dot = lanes[2];
+    v.n_in2 = lanes[3];
+    return v;
+}
+
+/* Output p of input in meets the output contract (below). */
+PC_INLINE int pc_output_ok(const pc_model *m, const float *in, const float *p)
+{
+    const __m128 pa = _mm_loadu_ps(p), pb = _mm_loadu_ps(p + 3);
+    const pc_move v = pc_move_lanes(pa, pb, in);
+    return pc_lanes_finite(pa, pb) & pc_unit_output(&v) &
+           pc_within_reach(&v, m->reach_pos2, m->reach_cos2);
 }
 #else
 PC_HOT static int pc_pose_finite(const float *v)
@@ -82,6 +128,20 @@ PC_HOT static int pc_pose_in_box(const pc_model *m, const float *v)
 {
     return (v[0] >= m->lo[0]) & (v[0] <= m->hi[0]) & (v[1] >= m->lo[1]) &
            (v[1] <= m->hi[1]) & (v[2] >= m->lo[2]) & (v[2] <= m->hi[2]);
+}
+
+PC_HOT static void pc_pose_copy(float *to, const float *from)
+{
+    size_t i;
+    for (i = 0; i < PC_POSE_WIDTH; i++)
+        to[i] = from[i];
+}
+
+PC_INLINE int pc_output_ok(const pc_model *m, const float *in, const float *p)
+{
+    const pc_move v = pc_move_of(in, p);
+    return pc_pose_finite(p) & pc_unit_output(&v) &
+           pc_within_reach(&v, m->reach_pos2, m->reach_cos2);
 }
 #endif
 
@@ -125,28 +185,39 @@ PC_HOT static pc_status pc_check_output(pc_model *m, const float *in, const floa
                                         size_t first)
 {
     size_t r;
-    for (r = 0; r < n; r++, in += PC_POSE_WIDTH) {
-        const float *p = out + r * PC_POSE_WIDTH;
-        const pc_move v = pc_move_of(in, p);
-        if (!(pc_pose_finite(p) & pc_unit_output(&v) &
-              pc_within_reach(&v, m->reach_pos2, m->reach_cos2)))
-            return pc_output_error(m, in, p, first + r);
-    }
+    for (r = 0; r < n; r++, in += PC_POSE_WIDTH, out += PC_POSE_WIDTH)
+        if (!pc_output_ok(m, in, out))
+            return pc_output_error(m, in, out, first + r);
+    return PC_OK;
+}
+
+/* One pose through the plan of batch 1, its input already checked (pose `index` of the
+ * call, for the message); t NULL: t = 0. */
+PC_INLINE pc_status pc_run_pose(pc_model *m, const float *in, const float *t, float *out,
+                                size_t index)
+{
+    const pc_plan *plan = &m->plans[0];
+    pc_status st;
+    pc_pose_copy(plan->in, in);
+    if (plan->t)
+        plan->t[0] = t ? t[0] : 0.0f;
+    if ((st = pc_run_steps(m, plan)) != PC_OK)
+        return st;
+    if (!pc_output_ok(m, in, plan->out))
+        return pc_output_error(m, in, plan->out, index);
+    pc_pose_copy(out, plan->out);
     return PC_OK;
 }
 
 /* t NULL: every pose at t = 0. */
-PC_HOT static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in,
-                                    const float *t, float *out, size_t first)
+static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, const float *t,
+                             float *out, size_t first)
 {
     const size_t count = plan->batch * PC_POSE_WIDTH;
-    size_t i;
     pc_status st;
-    if (plan->batch == 1) /* one pose: seven values, not a library call */
-        for (i = 0; i < PC_POSE_WIDTH; i++)
-            plan->in[i] = in[i];
-    else
-        memcpy(plan->in, in, count * sizeof(float));
+    if (plan->batch == 1)
+        return pc_run_pose(m, in, t, out, first);
+    memcpy(plan->in, in, count * sizeof(float));
     if (plan->t) {
         if (t)
             memcpy(plan->t, t, plan->batch * sizeof(float));
@@ -156,11 +227,8 @@ PC_HOT static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const floa
     if ((st = pc_run_steps(m, plan)) != PC_OK ||
         (st = pc_check_output(m, in, plan->out, plan->batch, first)) != PC_OK)
         return st;
-    if (plan->batch == 1)
-        for (i = 0; i < PC_POSE_WIDTH; i++)
-            out[i] = plan->out[i];
-    else /* the caller's out never overlaps the arena */
-        memcpy(out, plan->out, count * sizeof(float));
+    /* the caller's out never overlaps the arena */
+    memcpy(out, plan->out, count * sizeof(float));
     return PC_OK;
 }
 
@@ -261,9 +329,30 @@ PC_HOT static pc_status pc_check_input(pc_model *m, const float *in, const float
     return PC_OK;
 }
 
-/* pc_run and pc_run_timed; called directly, not through the library's own PLT entry. */
-PC_HOT static pc_status pc_run_poses(pc_model *model, const float *in, const float *t, size_t n,
-                                     float *out)
+/* The time of a pose (t NULL: 0) meets the input contract: pc_check_input's clauses, with
+ * a branch on whether the model has a span (a constant of the model: predicted). */
+PC_INLINE int pc_time_ok(const pc_model *m, const float *t)
+{
+    const float v = t ? *t : 0.0f;
+    if (!m->has_span)
+        return !t || isfinite(v);
+    return (v >= m->t_lo) & (v <= m->t_hi); /* the bounds are finite */
+}
+
+/* pc_run of one pose (model, in and out not NULL): the control loop's call, its contract
+ * checked on values already in registers; a pose that breaks it gets pc_check_input's
+ * message. */
+PC_INLINE pc_status pc_run_one(pc_model *m, const float *in, const float *t, float *out)
+{
+    if (!(pc_time_ok(m, t) & pc_pose_ok(m, in)))
+        return pc_check_input(m, in, t, 1);
+    m->message[0] = '\0';
+    return pc_run_pose(m, in, t, out, 0);
+}
+
+/* Any n: the arguments checked, the input whole, then chunks of the planned sizes. */
+PC_NOINLINE static pc_status pc_run_chunks(pc_model *model, const float *in, const float *t,
+                                           size_t n, float *out)
 {
     size_t k, done = 0;
     pc_status st;
@@ -284,8 +373,6 @@ PC_HOT static pc_status pc_run_poses(pc_model *model, const float *in, const flo
     if ((st = pc_check_input(model, in, t, n)) != PC_OK)
         return st;
     model->message[0] = '\0';
-    if (n == 1)
-        return pc_run_plan(model, &model->plans[0], in, t, out, 0);
     while (done < n) {
         const size_t left = n - done;
         for (k = model->n_plans - 1; model->plans[k].batch > left; k--)
@@ -297,6 +384,15 @@ PC_HOT static pc_status pc_run_poses(pc_model *model, const float *in, const flo
         done += model->plans[k].batch;
     }
     return PC_OK;
+}
+
+/* pc_run and pc_run_timed, each one function on the one-pose path. */
+PC_INLINE pc_status pc_run_poses(pc_model *model, const float *in, const float *t, size_t n,
+                                 float *out)
+{
+    if (n == 1 && model && in && out)
+        return pc_run_one(model, in, t, out);
+    return pc_run_chunks(model, in, t, n, out);
 }
 
 PC_HOT pc_status pc_run(pc_model *model, const float *in, size_t n, float *out)

@@ -946,6 +946,83 @@ def test_portable_checks_refuse_as_the_sse2_ones(lib):
             assert f"pose {pose} " in refusals[0][1] and expected.split(" (")[0] in refusals[0][1], refusals[0]
 
 
+def _reach_rule(x: np.ndarray, y: np.ndarray, metres: np.float32, radians: np.float32) -> np.ndarray:
+    """formulas.h's reach rule (pc_move_of, pc_within_reach) in float32, each sum in column
+    order, for float32 inputs x and outputs y; the metadata's numbers as the loader keeps
+    them."""
+    d = y[:, :3] - x[:, :3]
+    d2 = (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) + d[:, 2] * d[:, 2]
+    q, qi = y[:, 3:], x[:, 3:]
+    total = lambda a: ((a[:, 0] + a[:, 1]) + a[:, 2]) + a[:, 3]
+    n2, dot, n_in2 = total(q * q), total(q * qi), total(qi * qi)
+    cos2 = np.float32(np.cos(0.5 * np.float64(radians)) ** 2 if radians < np.pi else 0.0)
+    return (d2 <= metres * metres) & (dot * dot >= (cos2 * n_in2) * n2)
+
+
+def _steps(v: float, k: int) -> np.float32:
+    """The float32 k steps (ulps) from float32(v)."""
+    x = np.float32(v)
+    for _ in range(abs(k)):
+        x = np.nextafter(x, np.float32(np.inf if k > 0 else -np.inf))
+    return x
+
+
+def _one_by_one(c: _Corrector, x: np.ndarray, y: np.ndarray) -> list:
+    """For each pose alone: "kept" (its output y's row) or the refusal's status and text."""
+    answers = []
+    for i in range(len(x)):
+        try:
+            np.testing.assert_array_equal(c.correct(x[i:i + 1]), y[i:i + 1])
+            answers.append("kept")
+        except PoseCorrError as e:
+            answers.append((e.status, str(e)))
+    return answers
+
+
+def test_output_checks_refuse_as_the_rule_and_alike_on_both_builds(lib):
+    """pc_run's output check (four lanes on x86-64, pc_move_of in a -DPC_NO_AVX2 build)
+    refuses exactly the poses formulas.h's reach rule refuses, computed here in float32: the
+    shipped zhou MLP with its correction_reach cut to the median correction (of position,
+    then of rotation), and to float32 steps around three poses' own corrections (where the
+    last bit of each sum decides), pose by pose and in one batch, the same status and
+    message from both builds."""
+    portable = str(graphs.build_runtime(BUILD / "portable", "-DPC_NO_AVX2=ON") / "libposecorr.so")
+    x = graphs.poses_in_box(MLP_ZHOU, 120, seed=5)
+    y = Corrector(MLP_ZHOU, library=lib).correct(x).astype(np.float32)  # float32 results
+    moved = np.linalg.norm(y[:, :3].astype(np.float64) - x[:, :3], axis=1)
+    cos = np.abs(np.sum(y[:, 3:].astype(np.float64) * x[:, 3:], axis=1))
+    turned = 2 * np.arccos(np.minimum(cos / np.linalg.norm(x[:, 3:], axis=1)
+                                      / np.linalg.norm(y[:, 3:], axis=1), 1.0))
+    cases = [(None, np.median(moved), 4.0), (None, 1.0, np.median(turned))]
+    cases += [(k, _steps(moved[k], step), 4.0) for k in range(3) for step in range(-3, 4)]
+    cases += [(k, 1.0, _steps(turned[k], step)) for k in range(3) for step in range(-3, 4)]
+    probed: dict = {}
+    for pose, metres, radians in cases:
+        metres, radians = np.float32(metres), np.float32(radians)
+        model = graphs.without_metadata(onnx.load(MLP_ZHOU), "correction_reach")
+        entry = model.metadata_props.add()
+        entry.key, entry.value = "correction_reach", f"[{float(metres)!r}, {float(radians)!r}]"
+        blob = graphs.signed(model)
+        kept = _reach_rule(x, y, metres, radians)
+        if pose is None:
+            assert 0 < kept.sum() < len(x)
+        else:
+            probed.setdefault((pose, radians < 4.0), []).append(bool(kept[pose]))
+        answers = []
+        for library in (lib, portable):
+            c = Corrector(blob, library=library)
+            answers.append(_one_by_one(c, x, y))
+            assert [a == "kept" for a in answers[-1]] == kept.tolist(), (metres, radians)
+            assert all("pose 0 moves the pose by" in a[1] for a in answers[-1] if a != "kept")
+            if not kept.all():
+                with pytest.raises(PoseCorrError, match=f"pose {int(np.argmin(kept))} moves"):
+                    c.correct(x)
+        assert answers[0] == answers[1]
+    # each probed pose is refused at its lowest step and kept at its highest: the steps
+    # straddle the reach, so the last bit of its sums was compared
+    assert all(seq[0] is False and seq[-1] is True for seq in probed.values()), probed
+
+
 # -- sanitizers, valgrind, install ---------------------------------------------------------
 
 @pytest.fixture(scope="session")

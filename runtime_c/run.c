@@ -11,17 +11,23 @@
  * pc_within_reach) are formulas.h's, which `posecorr compile` copies into its functions. */
 #include "formulas.h"
 
+/* The failing step of a plan, as the message. */
+PC_RARE static pc_status pc_step_failed(pc_model *m, const pc_plan *plan, const pc_step *s,
+                                        pc_status st)
+{
+    pc_format(m->message, sizeof m->message, "step %zu of the N=%zu plan failed: %s",
+              (size_t)(s - plan->steps), plan->batch, pc_status_name(st));
+    return st;
+}
+
 PC_HOT pc_status pc_run_steps(pc_model *m, const pc_plan *plan)
 {
     const pc_step *s = plan->steps;
     const pc_step *const end = s + plan->n_steps;
     for (; s < end; s++) {
         const pc_status st = s->fn(s);
-        if (st != PC_OK) {
-            pc_format(m->message, sizeof m->message, "step %zu of the N=%zu plan failed: %s",
-                      (size_t)(s - plan->steps), plan->batch, pc_status_name(st));
-            return st;
-        }
+        if (st != PC_OK)
+            return pc_step_failed(m, plan, s, st);
     }
     return PC_OK;
 }
@@ -72,6 +78,15 @@ PC_HOT static int pc_pose_in_box(const pc_model *m, const float *v)
     return (_mm_movemask_ps(in) & 7) == 7;
 }
 
+/* |q|^2 of an input quaternion in float, in the lanes' order (PC_QUAT_NORM2_BAND). */
+PC_HOT static float pc_norm2_float(const float *q)
+{
+    const __m128 v = _mm_loadu_ps(q);
+    const __m128 sq = _mm_mul_ps(v, v);
+    const __m128 half = _mm_add_ps(sq, _mm_movehl_ps(sq, sq));
+    return _mm_cvtss_f32(_mm_add_ss(half, _mm_shuffle_ps(half, half, 1)));
+}
+
 /* A pose's seven floats between the caller's buffer and the arena, as two overlapping
  * groups of four. */
 PC_HOT static void pc_pose_copy(float *to, const float *from)
@@ -109,8 +124,8 @@ PC_INLINE int pc_output_ok(const pc_model *m, const float *in, const float *p)
 {
     const __m128 pa = _mm_loadu_ps(p), pb = _mm_loadu_ps(p + 3);
     const pc_move v = pc_move_lanes(pa, pb, in);
-    return pc_lanes_finite(pa, pb) & pc_unit_output(&v) &
-           pc_within_reach(&v, m->reach_pos2, m->reach_cos2);
+    const int ok = pc_unit_output(&v) & pc_within_reach(&v, m->reach_pos2, m->reach_cos2);
+    return m->bounded ? ok : ok & pc_lanes_finite(pa, pb);
 }
 #else
 PC_HOT static int pc_pose_finite(const float *v)
@@ -130,6 +145,11 @@ PC_HOT static int pc_pose_in_box(const pc_model *m, const float *v)
            (v[1] <= m->hi[1]) & (v[2] >= m->lo[2]) & (v[2] <= m->hi[2]);
 }
 
+PC_HOT static float pc_norm2_float(const float *q)
+{
+    return ((q[0] * q[0] + q[1] * q[1]) + q[2] * q[2]) + q[3] * q[3];
+}
+
 PC_HOT static void pc_pose_copy(float *to, const float *from)
 {
     size_t i;
@@ -140,8 +160,8 @@ PC_HOT static void pc_pose_copy(float *to, const float *from)
 PC_INLINE int pc_output_ok(const pc_model *m, const float *in, const float *p)
 {
     const pc_move v = pc_move_of(in, p);
-    return pc_pose_finite(p) & pc_unit_output(&v) &
-           pc_within_reach(&v, m->reach_pos2, m->reach_cos2);
+    const int ok = pc_unit_output(&v) & pc_within_reach(&v, m->reach_pos2, m->reach_cos2);
+    return m->bounded ? ok : ok & pc_pose_finite(p);
 }
 #endif
 
@@ -268,10 +288,21 @@ PC_RARE static void pc_outside(pc_model *m, const char *what, float v, float lo,
               what, value, unit, low, high, unit, key);
 }
 
-/* Whether a pose meets the input contract, each clause evaluated without a branch. */
-PC_HOT static int pc_pose_ok(const pc_model *m, const float *in)
+/* pc_unit_input of an input quaternion, summed in double only outside the float band. */
+PC_INLINE int pc_quaternion_ok(const float *q)
 {
-    return pc_pose_finite(in) & pc_pose_in_box(m, in) & pc_unit_input(pc_input_norm2(in + 3));
+    if (fabsf(pc_norm2_float(q) - 1.0f) <= PC_QUAT_NORM2_BAND)
+        return 1;
+    return pc_unit_input(pc_input_norm2(q));
+}
+
+/* Whether a pose meets the input contract, the clauses joined without a branch; the finite
+ * test only where the box does not imply it (m->bounded: a quaternion of unit norm is
+ * finite too), a branch on a constant of the model. */
+PC_INLINE int pc_pose_ok(const pc_model *m, const float *in)
+{
+    const int ok = pc_pose_in_box(m, in) & pc_quaternion_ok(in + 3);
+    return m->bounded ? ok : ok & pc_pose_finite(in);
 }
 
 /* The first clause of the input contract that pose i breaks, as the message. */
@@ -304,7 +335,8 @@ PC_RARE static pc_status pc_pose_error(pc_model *m, const float *in, size_t i)
  * in the same order): finite times inside the fitted span (when the model records one;
  * no t is t = 0), then finite poses, positions inside the training box (input_bounds)
  * and unit quaternions. */
-PC_HOT static pc_status pc_check_input(pc_model *m, const float *in, const float *t, size_t n)
+PC_NOINLINE static pc_status pc_check_input(pc_model *m, const float *in, const float *t,
+                                            size_t n)
 {
     char what[96];
     size_t i;

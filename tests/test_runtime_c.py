@@ -946,6 +946,61 @@ def test_portable_checks_refuse_as_the_sse2_ones(lib):
             assert f"pose {pose} " in refusals[0][1] and expected.split(" (")[0] in refusals[0][1], refusals[0]
 
 
+def test_a_model_without_bounds_still_refuses_non_finite_poses(lib):
+    """pc_run leaves the finite tests to the box and the reach where both are finite (a pose
+    inside the box is finite); without them (PC_LOAD_ALLOW_UNBOUNDED) an infinite position
+    would pass the box [-inf, inf] and an infinite result the reach: both are still refused,
+    on both builds, one pose and in a batch."""
+    portable = graphs.build_runtime(BUILD / "portable", "-DPC_NO_AVX2=ON")
+    blob = _without_metadata(MLP_ZHOU, "input_bounds", "correction_reach")
+    x = graphs.poses_in_box(MLP_ZHOU, 4, seed=2)
+    for library in (lib, str(portable / "libposecorr.so")):
+        c = Corrector(blob, library=library)
+        for value in (np.inf, -np.inf, np.nan):
+            bad = x.copy()
+            bad[1, 0] = value
+            for poses, pose in ((bad, 1), (bad[1:2], 0)):
+                with pytest.raises(PoseCorrError, match=f"pose {pose} has a non-finite value in column 0"):
+                    c.correct(poses)
+    # a result overflowing to infinity: the model without its box, a pose 1e30 m away
+    c = Corrector(_without_metadata(PMC_ZHOU, "input_bounds", "correction_reach"), library=lib)
+    far = np.array([[1e30, -0.6, 0.5, 1, 0, 0, 0]], dtype=np.float32)
+    with pytest.raises(PoseCorrError, match="output 'corrected' of pose 0 is not finite"):
+        c.correct(far)
+
+
+def test_input_quaternion_test_is_the_double_rule_at_its_edges_on_both_builds(lib):
+    """pc_run sums |q|^2 in float first and in double only outside a band inside the
+    tolerance (formulas.h, PC_QUAT_NORM2_BAND): quaternions scaled to |q|^2 a few 1e-8 around
+    the tolerance's ends (0.998001, 1.002001) and the band's (1 -+ 0.00199) are accepted
+    exactly when the double sum (numpy, float64 in column order) is inside [0.998001,
+    1.002001], on the SSE2 and the portable build, pose by pose."""
+    portable = str(graphs.build_runtime(BUILD / "portable", "-DPC_NO_AVX2=ON") / "libposecorr.so")
+    base = graphs.poses_in_box(MLP_ZHOU, 8, seed=9)
+    rows = []
+    for target in (0.998001, 1.002001, 1 - 0.00199, 1 + 0.00199):
+        for k in range(-40, 41, 4):
+            x = base[len(rows) % len(base)].copy()
+            x[3:] = (x[3:] * np.sqrt(target * (1 + k * 1e-8))).astype(np.float32)
+            rows.append(x)
+    x = np.array(rows, dtype=np.float32)
+    q = x[:, 3:].astype(np.float64)
+    n2 = ((q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1]) + q[:, 2] * q[:, 2]) + q[:, 3] * q[:, 3]
+    expected = (n2 >= 0.998001) & (n2 <= 1.002001)
+    assert 0 < expected.sum() < len(x)
+    for library in (lib, portable):
+        c = Corrector(MLP_ZHOU, library=library)
+        got = []
+        for i in range(len(x)):
+            try:
+                c.correct(x[i:i + 1])
+                got.append(True)
+            except PoseCorrError as e:
+                assert e.status == _status("PC_ERR_QUATERNION"), str(e)
+                got.append(False)
+        assert got == expected.tolist(), library
+
+
 def _reach_rule(x: np.ndarray, y: np.ndarray, metres: np.float32, radians: np.float32) -> np.ndarray:
     """formulas.h's reach rule (pc_move_of, pc_within_reach) in float32, each sum in column
     order, for float32 inputs x and outputs y; the metadata's numbers as the loader keeps

@@ -58,16 +58,11 @@ PC_RARE static void pc_beyond_reach(pc_model *m, size_t pose, float d2, float do
  * portable form, which the tests compare with this one. */
 #if defined(__SSE2__) && !defined(PC_NO_AVX2)
 #include <emmintrin.h>
-/* Lanes 0-3 (a) and 3-6 (b) of a pose all finite. */
-PC_HOT static int pc_lanes_finite(__m128 a, __m128 b)
-{
-    const __m128 da = _mm_sub_ps(a, a), db = _mm_sub_ps(b, b);
-    return _mm_movemask_ps(_mm_and_ps(_mm_cmpord_ps(da, da), _mm_cmpord_ps(db, db))) == 15;
-}
-
 PC_HOT static int pc_pose_finite(const float *v)
 {
-    return pc_lanes_finite(_mm_loadu_ps(v), _mm_loadu_ps(v + 3));
+    const __m128 a = _mm_loadu_ps(v), b = _mm_loadu_ps(v + 3);
+    const __m128 da = _mm_sub_ps(a, a), db = _mm_sub_ps(b, b);
+    return _mm_movemask_ps(_mm_and_ps(_mm_cmpord_ps(da, da), _mm_cmpord_ps(db, db))) == 15;
 }
 
 PC_HOT static int pc_pose_in_box(const pc_model *m, const float *v)
@@ -96,37 +91,6 @@ PC_HOT static void pc_pose_copy(float *to, const float *from)
     _mm_storeu_ps(to + 3, b);
 }
 
-/* pc_move_of's four sums as four lanes, each lane the same products added in the same
- * column order: the rows [d_c^2 (c < 3, then 0), q_c^2, q_c in_c, in_c^2] of columns
- * c = 0-3 and 3-6, transposed and added (a first term added to 0.0f is that term, but for
- * the sign of a zero dot, which the checks only square). */
-PC_HOT static pc_move pc_move_lanes(__m128 pa, __m128 pb, const float *in)
-{
-    const __m128 ib = _mm_loadu_ps(in + 3);
-    const __m128 d = _mm_sub_ps(pa, _mm_loadu_ps(in));
-    const __m128 first3 = _mm_castsi128_ps(_mm_set_epi32(0, -1, -1, -1));
-    __m128 r0 = _mm_and_ps(_mm_mul_ps(d, d), first3), r1 = _mm_mul_ps(pb, pb);
-    __m128 r2 = _mm_mul_ps(pb, ib), r3 = _mm_mul_ps(ib, ib), sum;
-    float lanes[4];
-    pc_move v;
-    _MM_TRANSPOSE4_PS(r0, r1, r2, r3);
-    sum = _mm_add_ps(_mm_add_ps(_mm_add_ps(r0, r1), r2), r3);
-    _mm_storeu_ps(lanes, sum);
-    v.d2 = lanes[0];
-    v.n2 = lanes[1];
-    v.dot = lanes[2];
-    v.n_in2 = lanes[3];
-    return v;
-}
-
-/* Output p of input in meets the output contract (below). */
-PC_INLINE int pc_output_ok(const pc_model *m, const float *in, const float *p)
-{
-    const __m128 pa = _mm_loadu_ps(p), pb = _mm_loadu_ps(p + 3);
-    const pc_move v = pc_move_lanes(pa, pb, in);
-    const int ok = pc_unit_output(&v) & pc_within_reach(&v, m->reach_pos2, m->reach_cos2);
-    return m->bounded ? ok : ok & pc_lanes_finite(pa, pb);
-}
 #else
 PC_HOT static int pc_pose_finite(const float *v)
 {
@@ -157,16 +121,19 @@ PC_HOT static void pc_pose_copy(float *to, const float *from)
         to[i] = from[i];
 }
 
+#endif
+
+/* The output contract: finite, a unit quaternion, and a correction (from the input in)
+ * within the model's reach (formulas.h: pc_move_of, pc_unit_output, pc_within_reach); the
+ * finite test only where the reach does not imply it (m->bounded). The sums read the
+ * decoder's results as it stored them, one float at a time: a wider load of values just
+ * stored one by one waits for the stores to reach the cache. */
 PC_INLINE int pc_output_ok(const pc_model *m, const float *in, const float *p)
 {
     const pc_move v = pc_move_of(in, p);
     const int ok = pc_unit_output(&v) & pc_within_reach(&v, m->reach_pos2, m->reach_cos2);
     return m->bounded ? ok : ok & pc_pose_finite(p);
 }
-#endif
-
-/* The output contract: finite, a unit quaternion, and a correction (from the input in)
- * within the model's reach (formulas.h: pc_move_of, pc_unit_output, pc_within_reach). */
 
 /* The first column of a pose that is not finite; PC_POSE_WIDTH when every one is. */
 PC_RARE static size_t pc_first_nonfinite(const float *v)

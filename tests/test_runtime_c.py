@@ -1035,8 +1035,9 @@ def _one_by_one(c: _Corrector, x: np.ndarray, y: np.ndarray) -> list:
 
 
 def test_output_checks_refuse_as_the_rule_and_alike_on_both_builds(lib):
-    """pc_run's output check (four lanes on x86-64, pc_move_of in a -DPC_NO_AVX2 build)
-    refuses exactly the poses formulas.h's reach rule refuses, computed here in float32: the
+    """pc_run's output check (formulas.h's pc_move_of and pc_within_reach, the finite test
+    left to the reach) refuses exactly the poses the reach rule refuses, computed here in
+    float32: the
     shipped zhou MLP with its correction_reach cut to the median correction (of position,
     then of rotation), and to float32 steps around three poses' own corrections (where the
     last bit of each sum decides), pose by pose and in one batch, the same status and

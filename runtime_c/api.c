@@ -229,6 +229,7 @@ static pc_status pc_read_checks(const pc_builder *b, pc_model *m, unsigned flags
     }
     if (found[2].data && (st = pc_read_reach(b, found[2], m)) != PC_OK)
         return st;
+    m->bounded = found[0].data && m->reach_pos2 < INFINITY;
     return PC_OK;
 }
 

@@ -28,6 +28,14 @@
 #define PC_NOINLINE
 #endif
 
+/* Inlined wherever it is called: a kernel's AVX2 copy then really runs AVX2 loops
+ * (dense.c), and pc_run's one-pose path is one function with one prologue (run.c). */
+#ifdef __GNUC__
+#define PC_INLINE static inline __attribute__((always_inline))
+#else
+#define PC_INLINE static inline
+#endif
+
 /* A function of the one-pose path. GCC and Clang put these in .text.hot, which the linker
  * keeps together: the code a pose runs spans a few pages instead of the library's width.
  * Not in a build for size (the firmware): there `hot` would also optimise for speed, at

@@ -14,12 +14,6 @@
 #define PC_HAVE_AVX2 1
 #include <cpuid.h>
 #endif
-/* Inlined into each variant so the AVX2 copy of a kernel really runs AVX2 loops. */
-#ifdef __GNUC__
-#define PC_INLINE static inline __attribute__((always_inline))
-#else
-#define PC_INLINE static inline
-#endif
 
 
 /* Separate flat loops so each one vectorises. */

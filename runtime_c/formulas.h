@@ -88,6 +88,11 @@ static inline float pc_tanh_inline(float x)
  * in double: (1 -+ 1e-3)^2. */
 #define PC_QUAT_NORM2_LO 0.998001
 #define PC_QUAT_NORM2_HI 1.002001
+/* |q|^2 summed in float, in any order, is within 3e-7 (relative) of the exact sum: one
+ * within this of 1 is inside [LO, HI] in double for certain (0.00199 + 3e-7 < 0.001999).
+ * pc_run sums in double only outside it: a pose it refuses, or one within 1e-5 of the
+ * tolerance (a Cortex-M4's FPU has no double). */
+#define PC_QUAT_NORM2_BAND 0.00199f
 /* |q|^2 of a float32 unit quaternion after a few dozen operations is within 1e-5 of 1;
  * an output beyond 1e-3 is not a rotation. */
 #define PC_UNIT_TOLERANCE 1e-3f

@@ -43,6 +43,9 @@ struct pc_model {
     float lo[3], hi[3]; /* run.c loads each as four floats, the fourth ignored: keep a
                          * field after hi */
     float reach_pos2, reach_cos2;
+    int bounded;        /* box and reach finite (every exported model): a pose inside the
+                         * box and a correction within the reach are finite, so pc_run
+                         * leaves the finite tests to the models without */
     int has_span;
     float t_lo, t_hi;
     pc_slot *slots;     /* any-name models: inputs then outputs; NULL otherwise */

@@ -11,17 +11,23 @@
  * pc_within_reach) are formulas.h's, which `posecorr compile` copies into its functions. */
 #include "formulas.h"
 
+/* The failing step of a plan, as the message. */
+PC_RARE static pc_status pc_step_failed(pc_model *m, const pc_plan *plan, const pc_step *s,
+                                        pc_status st)
+{
+    pc_format(m->message, sizeof m->message, "step %zu of the N=%zu plan failed: %s",
+              (size_t)(s - plan->steps), plan->batch, pc_status_name(st));
+    return st;
+}
+
 PC_HOT pc_status pc_run_steps(pc_model *m, const pc_plan *plan)
 {
     const pc_step *s = plan->steps;
     const pc_step *const end = s + plan->n_steps;
     for (; s < end; s++) {
         const pc_status st = s->fn(s);
-        if (st != PC_OK) {
-            pc_format(m->message, sizeof m->message, "step %zu of the N=%zu plan failed: %s",
-                      (size_t)(s - plan->steps), plan->batch, pc_status_name(st));
-            return st;
-        }
+        if (st != PC_OK)
+            return pc_step_failed(m, plan, s, st);
     }
     return PC_OK;
 }
@@ -66,6 +72,25 @@ PC_HOT static int pc_pose_in_box(const pc_model *m, const float *v)
                                  _mm_cmple_ps(p, _mm_loadu_ps(m->hi)));
     return (_mm_movemask_ps(in) & 7) == 7;
 }
+
+/* |q|^2 of an input quaternion in float, in the lanes' order (PC_QUAT_NORM2_BAND). */
+PC_HOT static float pc_norm2_float(const float *q)
+{
+    const __m128 v = _mm_loadu_ps(q);
+    const __m128 sq = _mm_mul_ps(v, v);
+    const __m128 half = _mm_add_ps(sq, _mm_movehl_ps(sq, sq));
+    return _mm_cvtss_f32(_mm_add_ss(half, _mm_shuffle_ps(half, half, 1)));
+}
+
+/* A pose's seven floats between the caller's buffer and the arena, as two overlapping
+ * groups of four. */
+PC_HOT static void pc_pose_copy(float *to, const float *from)
+{
+    const __m128 a = _mm_loadu_ps(from), b = _mm_loadu_ps(from + 3);
+    _mm_storeu_ps(to, a);
+    _mm_storeu_ps(to + 3, b);
+}
+
 #else
 PC_HOT static int pc_pose_finite(const float *v)
 {
@@ -83,10 +108,32 @@ PC_HOT static int pc_pose_in_box(const pc_model *m, const float *v)
     return (v[0] >= m->lo[0]) & (v[0] <= m->hi[0]) & (v[1] >= m->lo[1]) &
            (v[1] <= m->hi[1]) & (v[2] >= m->lo[2]) & (v[2] <= m->hi[2]);
 }
+
+PC_HOT static float pc_norm2_float(const float *q)
+{
+    return ((q[0] * q[0] + q[1] * q[1]) + q[2] * q[2]) + q[3] * q[3];
+}
+
+PC_HOT static void pc_pose_copy(float *to, const float *from)
+{
+    size_t i;
+    for (i = 0; i < PC_POSE_WIDTH; i++)
+        to[i] = from[i];
+}
+
 #endif
 
 /* The output contract: finite, a unit quaternion, and a correction (from the input in)
- * within the model's reach (formulas.h: pc_move_of, pc_unit_output, pc_within_reach). */
+ * within the model's reach (formulas.h: pc_move_of, pc_unit_output, pc_within_reach); the
+ * finite test only where the reach does not imply it (m->bounded). The sums read the
+ * decoder's results as it stored them, one float at a time: a wider load of values just
+ * stored one by one waits for the stores to reach the cache. */
+PC_INLINE int pc_output_ok(const pc_model *m, const float *in, const float *p)
+{
+    const pc_move v = pc_move_of(in, p);
+    const int ok = pc_unit_output(&v) & pc_within_reach(&v, m->reach_pos2, m->reach_cos2);
+    return m->bounded ? ok : ok & pc_pose_finite(p);
+}
 
 /* The first column of a pose that is not finite; PC_POSE_WIDTH when every one is. */
 PC_RARE static size_t pc_first_nonfinite(const float *v)
@@ -125,28 +172,39 @@ PC_HOT static pc_status pc_check_output(pc_model *m, const float *in, const floa
                                         size_t first)
 {
     size_t r;
-    for (r = 0; r < n; r++, in += PC_POSE_WIDTH) {
-        const float *p = out + r * PC_POSE_WIDTH;
-        const pc_move v = pc_move_of(in, p);
-        if (!(pc_pose_finite(p) & pc_unit_output(&v) &
-              pc_within_reach(&v, m->reach_pos2, m->reach_cos2)))
-            return pc_output_error(m, in, p, first + r);
-    }
+    for (r = 0; r < n; r++, in += PC_POSE_WIDTH, out += PC_POSE_WIDTH)
+        if (!pc_output_ok(m, in, out))
+            return pc_output_error(m, in, out, first + r);
+    return PC_OK;
+}
+
+/* One pose through the plan of batch 1, its input already checked (pose `index` of the
+ * call, for the message); t NULL: t = 0. */
+PC_INLINE pc_status pc_run_pose(pc_model *m, const float *in, const float *t, float *out,
+                                size_t index)
+{
+    const pc_plan *plan = &m->plans[0];
+    pc_status st;
+    pc_pose_copy(plan->in, in);
+    if (plan->t)
+        plan->t[0] = t ? t[0] : 0.0f;
+    if ((st = pc_run_steps(m, plan)) != PC_OK)
+        return st;
+    if (!pc_output_ok(m, in, plan->out))
+        return pc_output_error(m, in, plan->out, index);
+    pc_pose_copy(out, plan->out);
     return PC_OK;
 }
 
 /* t NULL: every pose at t = 0. */
-PC_HOT static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in,
-                                    const float *t, float *out, size_t first)
+static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, const float *t,
+                             float *out, size_t first)
 {
     const size_t count = plan->batch * PC_POSE_WIDTH;
-    size_t i;
     pc_status st;
-    if (plan->batch == 1) /* one pose: seven values, not a library call */
-        for (i = 0; i < PC_POSE_WIDTH; i++)
-            plan->in[i] = in[i];
-    else
-        memcpy(plan->in, in, count * sizeof(float));
+    if (plan->batch == 1)
+        return pc_run_pose(m, in, t, out, first);
+    memcpy(plan->in, in, count * sizeof(float));
     if (plan->t) {
         if (t)
             memcpy(plan->t, t, plan->batch * sizeof(float));
@@ -156,11 +214,8 @@ PC_HOT static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const floa
     if ((st = pc_run_steps(m, plan)) != PC_OK ||
         (st = pc_check_output(m, in, plan->out, plan->batch, first)) != PC_OK)
         return st;
-    if (plan->batch == 1)
-        for (i = 0; i < PC_POSE_WIDTH; i++)
-            out[i] = plan->out[i];
-    else /* the caller's out never overlaps the arena */
-        memcpy(out, plan->out, count * sizeof(float));
+    /* the caller's out never overlaps the arena */
+    memcpy(out, plan->out, count * sizeof(float));
     return PC_OK;
 }
 
@@ -200,10 +255,21 @@ PC_RARE static void pc_outside(pc_model *m, const char *what, float v, float lo,
               what, value, unit, low, high, unit, key);
 }
 
-/* Whether a pose meets the input contract, each clause evaluated without a branch. */
-PC_HOT static int pc_pose_ok(const pc_model *m, const float *in)
+/* pc_unit_input of an input quaternion, summed in double only outside the float band. */
+PC_INLINE int pc_quaternion_ok(const float *q)
 {
-    return pc_pose_finite(in) & pc_pose_in_box(m, in) & pc_unit_input(pc_input_norm2(in + 3));
+    if (fabsf(pc_norm2_float(q) - 1.0f) <= PC_QUAT_NORM2_BAND)
+        return 1;
+    return pc_unit_input(pc_input_norm2(q));
+}
+
+/* Whether a pose meets the input contract, the clauses joined without a branch; the finite
+ * test only where the box does not imply it (m->bounded: a quaternion of unit norm is
+ * finite too), a branch on a constant of the model. */
+PC_INLINE int pc_pose_ok(const pc_model *m, const float *in)
+{
+    const int ok = pc_pose_in_box(m, in) & pc_quaternion_ok(in + 3);
+    return m->bounded ? ok : ok & pc_pose_finite(in);
 }
 
 /* The first clause of the input contract that pose i breaks, as the message. */
@@ -236,7 +302,8 @@ PC_RARE static pc_status pc_pose_error(pc_model *m, const float *in, size_t i)
  * in the same order): finite times inside the fitted span (when the model records one;
  * no t is t = 0), then finite poses, positions inside the training box (input_bounds)
  * and unit quaternions. */
-PC_HOT static pc_status pc_check_input(pc_model *m, const float *in, const float *t, size_t n)
+PC_NOINLINE static pc_status pc_check_input(pc_model *m, const float *in, const float *t,
+                                            size_t n)
 {
     char what[96];
     size_t i;
@@ -261,9 +328,30 @@ PC_HOT static pc_status pc_check_input(pc_model *m, const float *in, const float
     return PC_OK;
 }
 
-/* pc_run and pc_run_timed; called directly, not through the library's own PLT entry. */
-PC_HOT static pc_status pc_run_poses(pc_model *model, const float *in, const float *t, size_t n,
-                                     float *out)
+/* The time of a pose (t NULL: 0) meets the input contract: pc_check_input's clauses, with
+ * a branch on whether the model has a span (a constant of the model: predicted). */
+PC_INLINE int pc_time_ok(const pc_model *m, const float *t)
+{
+    const float v = t ? *t : 0.0f;
+    if (!m->has_span)
+        return !t || isfinite(v);
+    return (v >= m->t_lo) & (v <= m->t_hi); /* the bounds are finite */
+}
+
+/* pc_run of one pose (model, in and out not NULL): the control loop's call, its contract
+ * checked on values already in registers; a pose that breaks it gets pc_check_input's
+ * message. */
+PC_INLINE pc_status pc_run_one(pc_model *m, const float *in, const float *t, float *out)
+{
+    if (!(pc_time_ok(m, t) & pc_pose_ok(m, in)))
+        return pc_check_input(m, in, t, 1);
+    m->message[0] = '\0';
+    return pc_run_pose(m, in, t, out, 0);
+}
+
+/* Any n: the arguments checked, the input whole, then chunks of the planned sizes. */
+PC_NOINLINE static pc_status pc_run_chunks(pc_model *model, const float *in, const float *t,
+                                           size_t n, float *out)
 {
     size_t k, done = 0;
     pc_status st;
@@ -284,8 +372,6 @@ PC_HOT static pc_status pc_run_poses(pc_model *model, const float *in, const flo
     if ((st = pc_check_input(model, in, t, n)) != PC_OK)
         return st;
     model->message[0] = '\0';
-    if (n == 1)
-        return pc_run_plan(model, &model->plans[0], in, t, out, 0);
     while (done < n) {
         const size_t left = n - done;
         for (k = model->n_plans - 1; model->plans[k].batch > left; k--)
@@ -297,6 +383,15 @@ PC_HOT static pc_status pc_run_poses(pc_model *model, const float *in, const flo
         done += model->plans[k].batch;
     }
     return PC_OK;
+}
+
+/* pc_run and pc_run_timed, each one function on the one-pose path. */
+PC_INLINE pc_status pc_run_poses(pc_model *model, const float *in, const float *t, size_t n,
+                                 float *out)
+{
+    if (n == 1 && model && in && out)
+        return pc_run_one(model, in, t, out);
+    return pc_run_chunks(model, in, t, n, out);
 }
 
 PC_HOT pc_status pc_run(pc_model *model, const float *in, size_t n, float *out)

@@ -946,6 +946,139 @@ def test_portable_checks_refuse_as_the_sse2_ones(lib):
             assert f"pose {pose} " in refusals[0][1] and expected.split(" (")[0] in refusals[0][1], refusals[0]
 
 
+def test_a_model_without_bounds_still_refuses_non_finite_poses(lib):
+    """pc_run leaves the finite tests to the box and the reach where both are finite (a pose
+    inside the box is finite); without them (PC_LOAD_ALLOW_UNBOUNDED) an infinite position
+    would pass the box [-inf, inf] and an infinite result the reach: both are still refused,
+    on both builds, one pose and in a batch."""
+    portable = graphs.build_runtime(BUILD / "portable", "-DPC_NO_AVX2=ON")
+    blob = _without_metadata(MLP_ZHOU, "input_bounds", "correction_reach")
+    x = graphs.poses_in_box(MLP_ZHOU, 4, seed=2)
+    for library in (lib, str(portable / "libposecorr.so")):
+        c = Corrector(blob, library=library)
+        for value in (np.inf, -np.inf, np.nan):
+            bad = x.copy()
+            bad[1, 0] = value
+            for poses, pose in ((bad, 1), (bad[1:2], 0)):
+                with pytest.raises(PoseCorrError, match=f"pose {pose} has a non-finite value in column 0"):
+                    c.correct(poses)
+    # a result overflowing to infinity: the model without its box, a pose 1e30 m away
+    c = Corrector(_without_metadata(PMC_ZHOU, "input_bounds", "correction_reach"), library=lib)
+    far = np.array([[1e30, -0.6, 0.5, 1, 0, 0, 0]], dtype=np.float32)
+    with pytest.raises(PoseCorrError, match="output 'corrected' of pose 0 is not finite"):
+        c.correct(far)
+
+
+def test_input_quaternion_test_is_the_double_rule_at_its_edges_on_both_builds(lib):
+    """pc_run sums |q|^2 in float first and in double only outside a band inside the
+    tolerance (formulas.h, PC_QUAT_NORM2_BAND): quaternions scaled to |q|^2 a few 1e-8 around
+    the tolerance's ends (0.998001, 1.002001) and the band's (1 -+ 0.00199) are accepted
+    exactly when the double sum (numpy, float64 in column order) is inside [0.998001,
+    1.002001], on the SSE2 and the portable build, pose by pose."""
+    portable = str(graphs.build_runtime(BUILD / "portable", "-DPC_NO_AVX2=ON") / "libposecorr.so")
+    base = graphs.poses_in_box(MLP_ZHOU, 8, seed=9)
+    rows = []
+    for target in (0.998001, 1.002001, 1 - 0.00199, 1 + 0.00199):
+        for k in range(-40, 41, 4):
+            x = base[len(rows) % len(base)].copy()
+            x[3:] = (x[3:] * np.sqrt(target * (1 + k * 1e-8))).astype(np.float32)
+            rows.append(x)
+    x = np.array(rows, dtype=np.float32)
+    q = x[:, 3:].astype(np.float64)
+    n2 = ((q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1]) + q[:, 2] * q[:, 2]) + q[:, 3] * q[:, 3]
+    expected = (n2 >= 0.998001) & (n2 <= 1.002001)
+    assert 0 < expected.sum() < len(x)
+    for library in (lib, portable):
+        c = Corrector(MLP_ZHOU, library=library)
+        got = []
+        for i in range(len(x)):
+            try:
+                c.correct(x[i:i + 1])
+                got.append(True)
+            except PoseCorrError as e:
+                assert e.status == _status("PC_ERR_QUATERNION"), str(e)
+                got.append(False)
+        assert got == expected.tolist(), library
+
+
+def _reach_rule(x: np.ndarray, y: np.ndarray, metres: np.float32, radians: np.float32) -> np.ndarray:
+    """formulas.h's reach rule (pc_move_of, pc_within_reach) in float32, each sum in column
+    order, for float32 inputs x and outputs y; the metadata's numbers as the loader keeps
+    them."""
+    d = y[:, :3] - x[:, :3]
+    d2 = (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) + d[:, 2] * d[:, 2]
+    q, qi = y[:, 3:], x[:, 3:]
+    total = lambda a: ((a[:, 0] + a[:, 1]) + a[:, 2]) + a[:, 3]
+    n2, dot, n_in2 = total(q * q), total(q * qi), total(qi * qi)
+    cos2 = np.float32(np.cos(0.5 * np.float64(radians)) ** 2 if radians < np.pi else 0.0)
+    return (d2 <= metres * metres) & (dot * dot >= (cos2 * n_in2) * n2)
+
+
+def _steps(v: float, k: int) -> np.float32:
+    """The float32 k steps (ulps) from float32(v)."""
+    x = np.float32(v)
+    for _ in range(abs(k)):
+        x = np.nextafter(x, np.float32(np.inf if k > 0 else -np.inf))
+    return x
+
+
+def _one_by_one(c: _Corrector, x: np.ndarray, y: np.ndarray) -> list:
+    """For each pose alone: "kept" (its output y's row) or the refusal's status and text."""
+    answers = []
+    for i in range(len(x)):
+        try:
+            np.testing.assert_array_equal(c.correct(x[i:i + 1]), y[i:i + 1])
+            answers.append("kept")
+        except PoseCorrError as e:
+            answers.append((e.status, str(e)))
+    return answers
+
+
+def test_output_checks_refuse_as_the_rule_and_alike_on_both_builds(lib):
+    """pc_run's output check (formulas.h's pc_move_of and pc_within_reach, the finite test
+    left to the reach) refuses exactly the poses the reach rule refuses, computed here in
+    float32: the
+    shipped zhou MLP with its correction_reach cut to the median correction (of position,
+    then of rotation), and to float32 steps around three poses' own corrections (where the
+    last bit of each sum decides), pose by pose and in one batch, the same status and
+    message from both builds."""
+    portable = str(graphs.build_runtime(BUILD / "portable", "-DPC_NO_AVX2=ON") / "libposecorr.so")
+    x = graphs.poses_in_box(MLP_ZHOU, 120, seed=5)
+    y = Corrector(MLP_ZHOU, library=lib).correct(x).astype(np.float32)  # float32 results
+    moved = np.linalg.norm(y[:, :3].astype(np.float64) - x[:, :3], axis=1)
+    cos = np.abs(np.sum(y[:, 3:].astype(np.float64) * x[:, 3:], axis=1))
+    turned = 2 * np.arccos(np.minimum(cos / np.linalg.norm(x[:, 3:], axis=1)
+                                      / np.linalg.norm(y[:, 3:], axis=1), 1.0))
+    cases = [(None, np.median(moved), 4.0), (None, 1.0, np.median(turned))]
+    cases += [(k, _steps(moved[k], step), 4.0) for k in range(3) for step in range(-3, 4)]
+    cases += [(k, 1.0, _steps(turned[k], step)) for k in range(3) for step in range(-3, 4)]
+    probed: dict = {}
+    for pose, metres, radians in cases:
+        metres, radians = np.float32(metres), np.float32(radians)
+        model = graphs.without_metadata(onnx.load(MLP_ZHOU), "correction_reach")
+        entry = model.metadata_props.add()
+        entry.key, entry.value = "correction_reach", f"[{float(metres)!r}, {float(radians)!r}]"
+        blob = graphs.signed(model)
+        kept = _reach_rule(x, y, metres, radians)
+        if pose is None:
+            assert 0 < kept.sum() < len(x)
+        else:
+            probed.setdefault((pose, radians < 4.0), []).append(bool(kept[pose]))
+        answers = []
+        for library in (lib, portable):
+            c = Corrector(blob, library=library)
+            answers.append(_one_by_one(c, x, y))
+            assert [a == "kept" for a in answers[-1]] == kept.tolist(), (metres, radians)
+            assert all("pose 0 moves the pose by" in a[1] for a in answers[-1] if a != "kept")
+            if not kept.all():
+                with pytest.raises(PoseCorrError, match=f"pose {int(np.argmin(kept))} moves"):
+                    c.correct(x)
+        assert answers[0] == answers[1]
+    # each probed pose is refused at its lowest step and kept at its highest: the steps
+    # straddle the reach, so the last bit of its sums was compared
+    assert all(seq[0] is False and seq[-1] is True for seq in probed.values()), probed
+
+
 # -- sanitizers, valgrind, install ---------------------------------------------------------
 
 @pytest.fixture(scope="session")

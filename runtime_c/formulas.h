@@ -109,6 +109,15 @@ static inline int pc_unit_input(double norm2)
     return (norm2 >= PC_QUAT_NORM2_LO) & (norm2 <= PC_QUAT_NORM2_HI);
 }
 
+/* pc_unit_input of q[4] given norm2_float, its |q|^2 summed in float in any order: the sum
+ * in double only outside PC_QUAT_NORM2_BAND, where the float one cannot decide. */
+static inline int pc_unit_input_banded(float norm2_float, const float *q)
+{
+    if (fabsf(norm2_float - 1.0f) <= PC_QUAT_NORM2_BAND)
+        return 1;
+    return pc_unit_input(pc_input_norm2(q));
+}
+
 /* How the output pose p[7] moved from the input pose in[7]: |p_out - p_in|^2, |q_out|^2,
  * q_in . q_out and |q_in|^2, each summed in column order. */
 typedef struct pc_move {

@@ -255,20 +255,12 @@ PC_RARE static void pc_outside(pc_model *m, const char *what, float v, float lo,
               what, value, unit, low, high, unit, key);
 }
 
-/* pc_unit_input of an input quaternion, summed in double only outside the float band. */
-PC_INLINE int pc_quaternion_ok(const float *q)
-{
-    if (fabsf(pc_norm2_float(q) - 1.0f) <= PC_QUAT_NORM2_BAND)
-        return 1;
-    return pc_unit_input(pc_input_norm2(q));
-}
-
 /* Whether a pose meets the input contract, the clauses joined without a branch; the finite
  * test only where the box does not imply it (m->bounded: a quaternion of unit norm is
  * finite too), a branch on a constant of the model. */
 PC_INLINE int pc_pose_ok(const pc_model *m, const float *in)
 {
-    const int ok = pc_pose_in_box(m, in) & pc_quaternion_ok(in + 3);
+    const int ok = pc_pose_in_box(m, in) & pc_unit_input_banded(pc_norm2_float(in + 3), in + 3);
     return m->bounded ? ok : ok & pc_pose_finite(in);
 }
 

@@ -280,6 +280,13 @@ def test_compiled_function_refuses_what_pc_run_refuses(tmp_path):
         p = base.copy()
         p[5] = bad
         x.append(p)
+    # |q|^2 a few 1e-8 around the tolerance's ends and the float band's (PC_QUAT_NORM2_BAND),
+    # where the double sum decides
+    for target in (0.998001, 1.002001, 1 - 0.00199, 1 + 0.00199):
+        for k in range(-40, 41, 8):
+            p = base.copy()
+            p[3:] = (p[3:] / np.linalg.norm(p[3:]) * np.sqrt(target * (1 + k * 1e-8))).astype(np.float32)
+            x.append(p)
     codes, statuses = refusals(ZHOU, tmp_path, np.array(x, np.float32))
     code_of = {Status.OK: 0, Status.RANGE: 2, Status.NONFINITE: 4, Status.QUATERNION: 5}
     assert codes == [code_of[Status(s)] for s in statuses], list(zip(codes, statuses))
@@ -287,6 +294,7 @@ def test_compiled_function_refuses_what_pc_run_refuses(tmp_path):
     assert set(codes) == {0, 2, 4, 5}
     assert codes[:12] == [2, 2, 0, 0] * 3
     assert codes[12:18] == [5, 5, 5, 5, 0, 0]
+    assert {0, 5} <= set(codes[20:])
     text = (tmp_path / f"{ZHOU.stem.replace('-', '_')}.c").read_text()
     for code in ("2  the input is outside", "3  the correction moves", "5  the input quaternion"):
         assert f" *   {code}" in text

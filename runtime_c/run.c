@@ -342,23 +342,39 @@ PC_INLINE int pc_time_ok(const pc_model *m, const float *t)
     return (v >= m->t_lo) & (v <= m->t_hi); /* the bounds are finite */
 }
 
+/* Whether pc_run of one pose runs the network before it checks the input. On an
+ * out-of-order core it does: the steps only write the arena, a refused pose's result never
+ * reaches out, and the encoder's first chain (|q|, its square root, the divisions) then
+ * starts without the check's instructions ahead of it, so it overlaps more of the previous
+ * call's last results (x86-64, an EPYC, the old and new library alternating in one process:
+ * zhou 5 107 -> 104 ns a pose, zhou 10 111 -> 108, 10-10-10 168 -> 165). An in-order core
+ * (the Cortex-M4) gains nothing and would keep in, t and out across the steps: 4
+ * instructions a pose more. */
+#if defined(__x86_64__) || defined(_M_X64)
+#define PC_STEPS_FIRST 1
+#else
+#define PC_STEPS_FIRST 0
+#endif
+
 /* pc_run of one pose (model, in and out not NULL): the control loop's call, its contract
  * checked on values already in registers; a pose that breaks it gets pc_check_input's
- * message. The network runs first and the input is checked after it: the steps only write
- * the arena, and a refused pose's result never reaches out, but the encoder's first
- * dependent chain (|q|, its square root, the divisions) starts without the check's
- * instructions ahead of it, so it overlaps more of the previous call's last results
- * (zhou 5 on the EPYC: 107 -> 105 ns a pose, the old and new library alternating in one
- * process). */
+ * message. */
 PC_INLINE pc_status pc_run_one(pc_model *m, const float *in, const float *t, float *out)
 {
+#if PC_STEPS_FIRST
     const pc_plan *plan = &m->plans[0];
     pc_status st;
-    m->message[0] = '\0';
+    m->message[0] = '\0'; /* before the steps: a failing one writes it */
     st = pc_pose_steps(m, plan, in, t);
     if (!(pc_time_ok(m, t) & pc_pose_ok(m, in)))
         return pc_check_input(m, in, t, 1);
     return st != PC_OK ? st : pc_pose_out(m, plan, in, out, 0);
+#else
+    if (!(pc_time_ok(m, t) & pc_pose_ok(m, in)))
+        return pc_check_input(m, in, t, 1);
+    m->message[0] = '\0';
+    return pc_run_pose(m, in, t, out, 0);
+#endif
 }
 
 /* Any n: the arguments checked, the input whole, then chunks of the planned sizes. */

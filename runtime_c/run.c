@@ -302,6 +302,31 @@ PC_RARE static pc_status pc_pose_error(pc_model *m, const float *in, size_t i)
     return PC_ERR_QUATERNION;
 }
 
+/* The time of a pose (t NULL: 0) meets the input contract: finite, and inside the fitted
+ * span when the model records one (a constant of the model: the branch is predicted). */
+PC_INLINE int pc_time_ok(const pc_model *m, const float *t)
+{
+    const float v = t ? *t : 0.0f;
+    if (!m->has_span)
+        return !t || isfinite(v);
+    return (v >= m->t_lo) & (v <= m->t_hi); /* the bounds are finite */
+}
+
+/* The clause of the input contract that the time of pose i breaks, as the message. */
+PC_RARE static pc_status pc_time_error(pc_model *m, float ti, size_t i)
+{
+    char what[96];
+    if (!isfinite(ti)) {
+        pc_format(m->message, sizeof m->message, "time of pose %zu is not finite "
+                  "(expected seconds since the session's start)", i);
+        return PC_ERR_NONFINITE;
+    }
+    pc_format(what, sizeof what, "time of pose %zu is outside the span the model was fitted on",
+              i);
+    pc_outside(m, what, ti, m->t_lo, m->t_hi, "s", "time_bounds");
+    return PC_ERR_RANGE;
+}
+
 /* The input contract, pose by pose (python/posecorr/controller/checks.py checks the same
  * in the same order): finite times inside the fitted span (when the model records one;
  * no t is t = 0), then finite poses, positions inside the training box (input_bounds)
@@ -309,37 +334,15 @@ PC_RARE static pc_status pc_pose_error(pc_model *m, const float *in, size_t i)
 PC_NOINLINE static pc_status pc_check_input(pc_model *m, const float *in, const float *t,
                                             size_t n)
 {
-    char what[96];
     size_t i;
     const size_t n_times = t ? n : m->has_span ? 1 : 0;
-    for (i = 0; i < n_times; i++) {
-        const float ti = t ? t[i] : 0.0f;
-        if (!isfinite(ti)) {
-            pc_format(m->message, sizeof m->message, "time of pose %zu is not finite "
-                      "(expected seconds since the session's start)", i);
-            return PC_ERR_NONFINITE;
-        }
-        if (m->has_span && !(ti >= m->t_lo && ti <= m->t_hi)) {
-            pc_format(what, sizeof what, "time of pose %zu is outside the span the model was "
-                      "fitted on", i);
-            pc_outside(m, what, ti, m->t_lo, m->t_hi, "s", "time_bounds");
-            return PC_ERR_RANGE;
-        }
-    }
+    for (i = 0; i < n_times; i++)
+        if (!pc_time_ok(m, t ? t + i : NULL))
+            return pc_time_error(m, t ? t[i] : 0.0f, i);
     for (i = 0; i < n; i++, in += PC_POSE_WIDTH)
         if (!pc_pose_ok(m, in))
             return pc_pose_error(m, in, i);
     return PC_OK;
-}
-
-/* The time of a pose (t NULL: 0) meets the input contract: pc_check_input's clauses, with
- * a branch on whether the model has a span (a constant of the model: predicted). */
-PC_INLINE int pc_time_ok(const pc_model *m, const float *t)
-{
-    const float v = t ? *t : 0.0f;
-    if (!m->has_span)
-        return !t || isfinite(v);
-    return (v >= m->t_lo) & (v <= m->t_hi); /* the bounds are finite */
 }
 
 /* Whether pc_run of one pose runs the network before it checks the input. On an

@@ -15,7 +15,7 @@ with its reason) are held to their order of magnitude. A block that cannot run h
 why in an HTML comment on the line before its fence, `<!-- outputs not checked: REASON -->`,
 and is reported as such.
 
-    python -m tools.doc_outputs [PAGE.md ...]     # every guide with commands, by default
+    python -m tools.doc_outputs [PAGE ...]     # every page of docs/ with commands, by default
 
 tests/test_doc_outputs.py runs it on every page.
 """

@@ -132,6 +132,46 @@ def test_real_sessions_propose_nothing_and_say_why(name):
         assert f", {moved} the held-out whitened error by {abs(best['score']):.1%} " in why, why
 
 
+# The p values of the real sessions' candidates, printed as JSON by a fresh interpreter.
+_P_VALUES = """
+import json, sys
+from posecorr.analysis.diagnose import diagnose
+from posecorr.data import read_table
+out = {}
+for path in sys.argv[1:]:
+    for row in diagnose(read_table(path), ["station", "mount"], folds=5)["candidates"]:
+        out[f"{path}: {row['effect']}"] = [row["p_value"], row["df"]]
+print(json.dumps(out))
+"""
+
+
+def test_real_sessions_p_values_do_not_depend_on_the_cpus_kernels():
+    """OpenBLAS picks its kernels for the CPU at run time; forcing another set (Nehalem's,
+    which every x86-64 machine runs) must leave every candidate's p value and degrees of
+    freedom as they are. With the rank thresholds inside the Jacobian's noise, Exp1's
+    range_scale read p = 0.42 on this machine's kernels and 0.36 on Nehalem's."""
+    import os
+    import platform
+    import subprocess
+    import sys
+
+    if platform.machine() not in ("x86_64", "AMD64") or "openblas" not in str(np.show_config(mode="dicts")).lower():
+        pytest.skip("the kernel switch is OpenBLAS's on x86-64")
+    paths = [str(REALDATA / name) for name in ("20201002_Exp1.csv", "20200717_Exp2.csv")]
+
+    def p_values(**env: str) -> dict:
+        base = {k: v for k, v in os.environ.items() if k != "OPENBLAS_CORETYPE"}
+        done = subprocess.run([sys.executable, "-c", _P_VALUES, *paths], env={**base, **env},
+                              capture_output=True, text=True, check=True)
+        return json.loads(done.stdout)
+
+    here, nehalem = p_values(), p_values(OPENBLAS_CORETYPE="Nehalem")
+    assert here.keys() == nehalem.keys() and len(here) >= 10
+    for key, (p, df) in here.items():
+        assert nehalem[key][1] == df, (key, df, nehalem[key][1])
+        assert nehalem[key][0] == pytest.approx(p, rel=1e-2, abs=1e-6), (key, p, nehalem[key][0])
+
+
 def test_no_proposal_names_the_test_it_fails_and_the_span_it_had():
     """An attitude-dependent bias on a tracker turned by less than 20 degrees: no form passes,
     and the reason gives the threshold the best one misses (alpha over the candidates) and

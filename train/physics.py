@@ -78,7 +78,8 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
     measured one (`PoseTable.reference`) and carries no information.
     Fitted: `params_` {effect: theta}, `std_errors_` {effect: std of theta, NaN where not
     determined}, `sigma_p_`, `sigma_r_`, `ctx_` (frames used), `with_rotation_`, `cost_`,
-    `spread_` (`identify.Spread`), `basis_` (the determined directions, scaled units) and
+    `spread_` (`identify.Spread`), `basis_` (the determined directions, scaled units;
+    `directions_` in the parameters' units) and
     `fixed_` {parameter or direction: why the data cannot determine it}; those are held at
     their start value (the rigid registration's, or the identity). `prior_strength` s >= 0:
     the prior's weight (`_shrink`); `effective_params_` the number of parameters the fit used.
@@ -314,6 +315,12 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
     def _scales(self) -> np.ndarray:
         return np.concatenate([e.scales() for e in self._chosen]) if self._chosen else np.zeros(0)
 
+    @property
+    def directions_(self) -> np.ndarray:
+        """The determined directions in the parameters' units, (theta size, k): the fit moves
+        theta along these only (`basis_` scaled by the parameters' typical magnitudes)."""
+        return self._scales()[:, None] * self.basis_
+
     def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
         lower, upper = [], []
         for effect in self._chosen:
@@ -329,18 +336,17 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         (S the parameters' typical magnitudes, B = `basis_`), the rest held at theta0."""
         from scipy.optimize import least_squares
 
-        B = self.basis_
         residual = self._residual_fn(measured, reference, sigma_p, sigma_r)
-        if theta0.size == 0 or B.shape[1] == 0:
+        if theta0.size == 0 or self.basis_.shape[1] == 0:
             self.cost_ = float(np.sum(residual(theta0) ** 2)) if theta0.size else 0.0
             self.effective_params_ = 0.0
             self._free = None
             return theta0
-        SB = self._scales()[:, None] * B
+        SB = self.directions_
         lower, upper = self._bounds()
         theta0 = np.clip(theta0, lower, upper)
         # A bounded parameter is a block of its own: its direction is +-1 on that entry alone.
-        z_lower, z_upper = np.full(B.shape[1], -np.inf), np.full(B.shape[1], np.inf)
+        z_lower, z_upper = np.full(SB.shape[1], -np.inf), np.full(SB.shape[1], np.inf)
         for k in np.flatnonzero(np.isfinite(lower) | np.isfinite(upper)):
             column = np.flatnonzero(SB[k] != 0)
             for j in column:
@@ -357,8 +363,8 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
 
         bounded = bool(np.any(np.isfinite(z_lower) | np.isfinite(z_upper)))
         # MINPACK's Levenberg-Marquardt where nothing is bounded: a third of trf's overhead.
-        method = "trf" if bounded or residual.size < B.shape[1] else "lm"
-        result = least_squares(f, np.zeros(B.shape[1]), jac=jac, method=method,
+        method = "trf" if bounded or residual.size < SB.shape[1] else "lm"
+        result = least_squares(f, np.zeros(SB.shape[1]), jac=jac, method=method,
                                bounds=(z_lower, z_upper) if bounded else (-np.inf, np.inf),
                                max_nfev=self.max_nfev, xtol=1e-9, ftol=1e-9, gtol=1e-9)
         self.cost_ = float(2.0 * result.cost)
@@ -438,7 +444,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         direction touches or that sits on a bound: no number is better than a false one."""
         if theta.size == 0:
             return theta
-        SB = self._scales()[:, None] * self.basis_
+        SB = self.directions_
         std = np.full(theta.size, np.nan)
         if SB.shape[1]:
             residual = self._residual_fn(measured, reference, self.sigma_p_, self.sigma_r_ or DEFAULT_SIGMA_R)

@@ -5,8 +5,8 @@ it lacks (user effects included once loaded):
 
 * **score test on held-out residuals** (Lagrange multiplier test): in each fold, at the
   base model fitted without that fold, the held-out whitened residuals r and Jacobian
-  columns J_e of the candidate (at its identity value) are projected off the base
-  model's columns; pooled over folds, g = sum J_e'^T r' and I = sum J_e'^T J_e' give
+  columns J_e of the candidate (at its identity value) are projected off what the base
+  fit can move (its Jacobian along the directions it determined); pooled over folds, g = sum J_e'^T r' and I = sum J_e'^T J_e' give
   LM = g^T I^+ g / s^2, chi-square with rank(I) degrees of freedom under "not missing";
 * **cross-validated RMSE before and after** adding the effect (K folds of whole poses,
   each after-fit warm-started from that fold's base fit);
@@ -124,7 +124,16 @@ def feature_r2(residuals: np.ndarray, features: dict[str, np.ndarray], folds: in
     return sorted(out, key=lambda row: -row["r2"])
 
 
-def _orthonormal_basis(A: np.ndarray, tol: float = 1e-8) -> np.ndarray:
+# Singular values below this fraction of the largest are the Jacobian's noise, not directions:
+# forward differences at a fit converged to its tolerance differ by ~1e-6 between float
+# kernels, and a structural degeneracy (two held-out poses against twelve parameters) shows as
+# 1e-12 to 1e-8 depending on the CPU's kernels, while the weakest direction a fit determines
+# stands at 6e-5 and more (the shared real sessions). A threshold inside the noise made the
+# projection's rank, and the p value, depend on the CPU.
+RANK_TOLERANCE = 1e-6
+
+
+def _orthonormal_basis(A: np.ndarray, tol: float = RANK_TOLERANCE) -> np.ndarray:
     if A.size == 0:
         return A
     U, s, _ = np.linalg.svd(A, full_matrices=False)
@@ -143,6 +152,26 @@ def _project_off(A: np.ndarray, basis: np.ndarray) -> np.ndarray:
 
 
 @dataclass
+class _Fold:
+    """One fold of the base model, on its held-out poses."""
+
+    r: np.ndarray            # whitened residuals
+    J: np.ndarray            # their Jacobian: the base model's columns, then the candidates' (`is_extra`)
+    is_extra: np.ndarray
+    physics: Any             # the fold's fitted physics model
+    # An orthonormal basis of what the base fit can move on these rows: its Jacobian along the
+    # directions it determined (`basis_`); directions it holds are not part of the null model.
+    base: np.ndarray
+
+    @classmethod
+    def of(cls, r: np.ndarray, J: np.ndarray, is_extra: np.ndarray, physics: Any) -> "_Fold":
+        base = J[:, ~is_extra]
+        if base.shape[1]:
+            base = base @ physics.directions_
+        return cls(r, J, is_extra, physics, _orthonormal_basis(base))
+
+
+@dataclass
 class _FoldState:
     """A base model cross-validated: each fold's fit, held-out residuals and Jacobians."""
 
@@ -150,7 +179,7 @@ class _FoldState:
     predicted: np.ndarray                  # out-of-fold corrected poses
     fold_rmse: np.ndarray                  # held-out rmse_total per fold
     before: float                          # pooled held-out rmse_total
-    per_fold: list[tuple[np.ndarray, np.ndarray, np.ndarray, Any]]   # (r, J, is_extra, physics)
+    per_fold: list[_Fold]
     column_owner: np.ndarray               # effect name of each Jacobian column
 
 
@@ -174,9 +203,9 @@ def _fold_state(table: PoseTable, effects: list[str], names: Sequence[str], spli
         physics = _base_physics(cv, k, table, train, effects)
         r, J, is_extra = physics.residual_jacobian(measured[held], reference[held],
                                                    None if t is None else t[held], names)
-        per_fold.append((r, J, is_extra, physics))
+        per_fold.append(_Fold.of(r, J, is_extra, physics))
     before = rmse_total(*pose_errors(reference, predicted, with_rotation))
-    return _FoldState(effects, predicted, fold_rmse, before, per_fold, _column_owners(per_fold[0][3], names))
+    return _FoldState(effects, predicted, fold_rmse, before, per_fold, _column_owners(per_fold[0].physics, names))
 
 
 def failed_parts(p_value: float, fold_gain_min: float, score: float, n_candidates: int, alpha: float,
@@ -203,22 +232,21 @@ def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int,
     from posecorr.train.splits import KFold
 
     g, info, ss, m = 0.0, 0.0, 0.0, 0
-    for r, J, is_extra, _ in state.per_fold:
-        base_basis = _orthonormal_basis(J[:, ~is_extra])
-        Je = _project_off(J[:, state.column_owner == name], base_basis)
-        rp = _project_off(r[:, None], base_basis)[:, 0]
+    for fold in state.per_fold:
+        Je = _project_off(fold.J[:, state.column_owner == name], fold.base)
+        rp = _project_off(fold.r[:, None], fold.base)[:, 0]
         g = g + Je.T @ rp
         info = info + Je.T @ Je
         ss += float(rp @ rp)
-        m += r.size - base_basis.shape[1]
+        m += fold.r.size - fold.base.shape[1]
     pinv, rank = _pinv_rank(np.atleast_2d(info))
     lm = float(g @ pinv @ g / (ss / max(m, 1))) if rank else 0.0
     p_value = float(chi2.sf(lm, rank)) if rank else 1.0
 
-    warm = (lambda k: {"warm_start": state.per_fold[k][3].params_}) if state.effects else None
+    warm = (lambda k: {"warm_start": state.per_fold[k].physics.params_}) if state.effects else None
     plan = KFold(folds)
     cv = cross_validate(lambda: CorrectionPipeline(state.effects + [name]), table, plan, seed, fit_kwargs=warm)
-    gains = np.array([_whitened_gain(table, held, state.predicted, cv.predicted, state.per_fold[k][3])
+    gains = np.array([_whitened_gain(table, held, state.predicted, cv.predicted, state.per_fold[k].physics)
                       for k, (_, held) in enumerate(plan.folds(table.n, seed))])
     effect = get_effect(name)
     # A physical explanation must take physical values in every fold (`Param.plausible`).
@@ -439,7 +467,13 @@ def _column_owners(physics: Any, names: Sequence[str]) -> np.ndarray:
     return np.concatenate([np.full(e.size, e.name, dtype=object) for e in chosen])
 
 
-def _pinv_rank(A: np.ndarray, tol: float = 1e-9) -> tuple[np.ndarray, int]:
+# The score's information matrix: eigenvalues below this fraction of the largest are noise
+# (up to 1e-8 across float kernels on the shared real sessions, from directions projected off
+# the base), while a candidate's weakest real direction there stands at 6e-7 and more.
+INFORMATION_TOLERANCE = 1e-7
+
+
+def _pinv_rank(A: np.ndarray, tol: float = INFORMATION_TOLERANCE) -> tuple[np.ndarray, int]:
     U, s, Vt = np.linalg.svd(A)
     keep = s > tol * max(s.max(), 1e-300) if s.size else s.astype(bool)
     inv = (Vt[keep].T / s[keep]) @ U[:, keep].T
@@ -454,8 +488,8 @@ def _aliases(names: list[str], state: _FoldState, effects: list[str]) -> list[li
     projected = {}
     for name in names:
         blocks = []
-        for _, J, is_extra, _ in state.per_fold:
-            blocks.append(_project_off(J[:, state.column_owner == name], _orthonormal_basis(J[:, ~is_extra])))
+        for fold in state.per_fold:
+            blocks.append(_project_off(fold.J[:, state.column_owner == name], fold.base))
         projected[name] = np.concatenate(blocks)
     # A form holds catalogue effects as special cases (range_scale in strain): that nesting is
     # what the selection weighs, not an alias; aliases are between catalogue effects.
@@ -465,7 +499,7 @@ def _aliases(names: list[str], state: _FoldState, effects: list[str]) -> list[li
             correlation = _max_canonical_correlation(projected[a], projected[b])
             if correlation > ALIAS_CORRELATION:
                 pairs.append({"effects": [a, b], "correlation": correlation})
-    full = np.concatenate([J for _, J, _, _ in state.per_fold])
+    full = np.concatenate([fold.J for fold in state.per_fold])
     for a in physical:
         for b in effects:
             owner = state.column_owner

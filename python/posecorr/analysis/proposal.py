@@ -129,7 +129,7 @@ def _gains(search: Any, cv: Any, whiten: Sequence[Any] | None = None) -> np.ndar
     whitened by the sigmas of `whiten`'s fold models (default: the base model's)."""
     from .diagnose import _whitened_gain
 
-    whiten = whiten or [physics for _, _, _, physics in search.base.per_fold]
+    whiten = whiten or [fold.physics for fold in search.base.per_fold]
     return np.asarray([_whitened_gain(search.table, held, search.base.predicted, cv.predicted, whiten[k])
                        for k, (_, held) in enumerate(search.splits)])
 

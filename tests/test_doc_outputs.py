@@ -44,7 +44,8 @@ def test_cpu_dependent_figures_are_held_to_their_order_of_magnitude():
     line = "-> m.onnx (151 nodes, 18304 bytes, parity {} m / 5.0e-07 rad)"
     assert lines_agree(line.format("1.7e-07"), line.format("3.1e-07"))
     assert not lines_agree(line.format("1.7e-07"), line.format("2.0e-05"))
-    assert not lines_agree(line.format("1.7e-07").replace("18304", "18305"), line.format("1.7e-07"))
+    assert lines_agree(line.format("1.7e-07").replace("18304", "18288"), line.format("1.7e-07"))
+    assert not lines_agree(line.format("1.7e-07").replace("151", "152"), line.format("1.7e-07"))
 
 
 def test_a_page_is_run_in_order_and_its_cuts_and_reasons_kept(tmp_path: Path):

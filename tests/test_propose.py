@@ -172,6 +172,35 @@ def test_real_sessions_p_values_do_not_depend_on_the_cpus_kernels():
         assert nehalem[key][0] == pytest.approx(p, rel=1e-2, abs=1e-6), (key, p, nehalem[key][0])
 
 
+def test_where_the_poses_are_too_few_for_any_candidate_it_says_so():
+    """The score statistic is the share of the projected residual a candidate explains times
+    m, the residual dimensions the base fit cannot move: p >= chi2.sf(m, 1) for every
+    candidate. Six poses in five folds leave m = 2 (a fold of one pose, six residuals against
+    twelve parameters, leaves none); nine poses of one orientation leave too few to reach
+    the threshold; a 50-pose session leaves plenty."""
+    from scipy.stats import chi2
+
+    cases = {"six": read_table(REALDATA / "20201002_Exp1.csv").subset(np.arange(6)), "exp2": read_table(REALDATA / "20200717_Exp2.csv"),
+             "robot": study.session(None, 0, "robot")}
+    study.hide_outside()
+    for name, table in cases.items():
+        result = diagnose(table, study.BASE, folds=5)
+        reach = result["reach"]
+        assert reach["best_p"] == pytest.approx(chi2.sf(reach["residual_dims"], 1))
+        for row in result["candidates"]:
+            assert row["lm_statistic"] <= reach["residual_dims"] * (1 + 1e-9), (name, row["effect"])
+            assert row["p_value"] >= reach["best_p"] * (1 - 1e-9), (name, row["effect"])
+        if name == "six":
+            assert reach["residual_dims"] == 2
+        if name == "robot":
+            assert reach["can_pass"] and reach["residual_dims"] > 200
+            continue
+        assert not reach["can_pass"], (name, reach)
+        why = result["no_proposal"]
+        assert (f"the held-out poses leave {reach['residual_dims']} dimensions of residual that station, mount "
+                f"cannot move, so no p falls below {reach['best_p']:.2g}") in why, why
+
+
 def test_no_proposal_names_the_test_it_fails_and_the_span_it_had():
     """An attitude-dependent bias on a tracker turned by less than 20 degrees: no form passes,
     and the reason gives the threshold the best one misses (alpha over the candidates) and

@@ -182,6 +182,26 @@ class _FoldState:
     per_fold: list[_Fold]
     column_owner: np.ndarray               # effect name of each Jacobian column
 
+    @property
+    def residual_dims(self) -> int:
+        """The held-out residual's dimensions that the base fit cannot move, over all folds:
+        the score test's m. A fold of one pose against twelve parameters leaves none."""
+        return sum(fold.r.size - fold.base.shape[1] for fold in self.per_fold)
+
+
+def test_reach(state: _FoldState, n_candidates: int, alpha: float) -> dict[str, Any]:
+    """How far the score test can go on these poses. The statistic is the share of the
+    projected residual a candidate explains, times m (`residual_dims`), so it never exceeds
+    m: p >= chi2.sf(m, df) for any candidate, whatever it explains. Where even one parameter
+    cannot reach the threshold, no candidate can pass: the poses are too few, not the
+    candidates wrong."""
+    from scipy.stats import chi2
+
+    m = state.residual_dims
+    threshold = alpha / max(n_candidates, 1)
+    best_p = float(chi2.sf(m, 1)) if m > 0 else 1.0
+    return {"residual_dims": m, "best_p": best_p, "threshold": threshold, "can_pass": best_p < threshold}
+
 
 def _fold_state(table: PoseTable, effects: list[str], names: Sequence[str], splits: list, folds: int,
                 seed: int, warm: list[dict] | None = None) -> _FoldState:
@@ -396,6 +416,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         "folds": folds,
         "cv_base": {"rmse_total": state.before, "rmse_pos": float(np.sqrt(np.mean(dp ** 2)))},
         "rows": {"given": rows_given, "used": table.n},
+        "reach": test_reach(state, len(names), alpha),
     }
     result["proposal"], result["no_proposal"] = propose(search, result, kept, dropped)
     result["absorbed"] = explain_absorbed(result, kept)

@@ -53,9 +53,14 @@ def _why_none(search: Any, result: dict[str, Any], kept: Sequence[str]) -> str:
         return "no form could be tested on this data (see the effects that cannot be determined)"
     best = max(forms, key=lambda row: row["score"])
     moves = "lowers" if best["score"] >= 0 else "raises"
+    reach = result["reach"]
+    beyond = "" if reach["can_pass"] else (
+        f"; nor could any candidate: the held-out poses leave {reach['residual_dims']} dimensions of residual that "
+        f"{', '.join(search.effects) or 'the model'} cannot move, so no p falls below {reach['best_p']:.2g} "
+        f"(threshold {reach['threshold']:.2g}): more poses")
     return (f"no form earns its place: the best, {best['effect']}, {moves} the held-out whitened error by "
             f"{abs(best['score']):.1%} (p = {best['p_value']:.2g}, worst fold {best['fold_gain_min']:.1%}); "
-            f"{_fails(search, best)}")
+            f"{_fails(search, best)}{beyond}")
 
 
 def _fails(search: Any, row: dict[str, Any]) -> str:

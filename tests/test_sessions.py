@@ -196,6 +196,13 @@ def test_real_session_cli_names_fixed_parameters(tmp_path: Path) -> None:
     assert set(floor) == {"rigid-kabsch", "rigid-lever", "rigid-lever-ref", "rigid-joint"}
     assert payload["baseline"]["model"] == min(floor, key=floor.get)
     assert payload["baseline"]["rmse_total"] == pytest.approx(min(floor.values()), rel=1e-12)
+    # each variant's position error too: the plain Kabsch fit's is the independent one's
+    assert set(payload["rigid_rmse_pos"]) == set(floor)
+    assert payload["baseline"]["rmse_pos"] == pytest.approx(payload["rigid_rmse_pos"][payload["baseline"]["model"]],
+                                                            rel=1e-12)
+    table = read_table(data)
+    independent, _ = rigid_heldout(table, LeaveOneOut().folds(table.n), "kabsch")
+    assert payload["rigid_rmse_pos"]["rigid-kabsch"] == pytest.approx(independent, rel=1e-4)
     assert out.stat().st_size > 0
     assert "Traceback" not in run.stderr
 

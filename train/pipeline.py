@@ -350,7 +350,8 @@ class FitReport:
     heldout: metrics of the returned model on poses it never saw (test split, or out of fold;
     for auto the choice itself is made inside each outer fold). baseline: the best rigid
     variant's metrics on the same poses (`baseline_name`, one of `rigid_candidates`; the
-    rigid variants' scores in `rigid_scores`). n_heldout: how many poses each score rests on.
+    rigid variants' scores in `rigid_scores`, and under cross-validation their rmse_pos in
+    `rigid_rmse_pos`). n_heldout: how many poses each score rests on.
     notes: what the user must know (a fallback to the rigid fit, a switch to
     cross-validation, a thin score).
     """
@@ -369,6 +370,7 @@ class FitReport:
     test_index: np.ndarray | None = None    # the test split's rows (plan `FixedSplit`)
     baseline_name: str = ""
     rigid_scores: dict[str, float] = field(default_factory=dict)
+    rigid_rmse_pos: dict[str, float] = field(default_factory=dict)
 
     @property
     def heldout_kind(self) -> HeldOut:
@@ -506,7 +508,8 @@ def _fit_cross_validated(table: PoseTable, candidates: list[Candidate], floor: l
     model = _fit(best, everything, arrays, with_rotation, prior)
     return FitReport(model, raw_all, heldout, plan, everything, best.name, auto_scores=scores, baseline=baseline,
                      n_heldout=table.n, fell_back=fell_back, notes=notes, baseline_name=floor_best.name,
-                     rigid_scores=rigid_scores)
+                     rigid_scores=rigid_scores,
+                     rigid_rmse_pos={name: m["rmse_pos"] for name, m in floor_metrics.items()})
 
 
 def _out_of_fold_auto(candidates: Sequence[Candidate], floor: Sequence[Candidate], arrays: tuple,

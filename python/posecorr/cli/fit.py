@@ -135,7 +135,7 @@ def _payload(args: argparse.Namespace, report: Any, exported: dict, effects_json
                     # raw measures the frames' offset where they are unregistered: the floor is the reference
                     "frames_unregistered": frames_unregistered(report.raw, report.baseline),
                     "vs_floor": improvement(report.baseline, report.heldout),
-                    "rigid_rmse_total": report.rigid_scores,
+                    "rigid_rmse_total": report.rigid_scores, "rigid_rmse_pos": report.rigid_rmse_pos,
                     "fell_back_to_rigid": report.fell_back, "fixed": report.fixed, "notes": report.notes})
     if report.shrinkage is not None:
         payload["shrinkage"] = report.shrinkage
@@ -171,9 +171,15 @@ def _text(args: argparse.Namespace, table: Any, effects: list, report: Any, expo
                            metrics_rows({raw_label: report.raw, label: report.heldout,
                                          f"{report.baseline_name} (floor), same poses": report.baseline}),
                            ratios)])]
-    lines.append(f"  floor: {report.baseline_name}, the best of the rigid fits on the same poses ("
-                 + ", ".join(f"{name} {value:.4g}" for name, value in report.rigid_scores.items())
-                 + " rmse_total)")
+    if report.rigid_rmse_pos:
+        scores = ", ".join(f"{name} {value:.4g} / {1e3 * report.rigid_rmse_pos[name]:.4g}"
+                           for name, value in report.rigid_scores.items())
+        lines.append(f"  floor: {report.baseline_name}, the best of the rigid fits on the same poses "
+                     f"(rmse_total / rmse_pos [mm]: {scores})")
+    else:
+        lines.append(f"  floor: {report.baseline_name}, the best of the rigid fits on the same poses ("
+                     + ", ".join(f"{name} {value:.4g}" for name, value in report.rigid_scores.items())
+                     + " rmse_total)")
     if report.shrinkage is not None:
         lines.append(f"  prior strength {report.shrinkage['prior_strength']:g}: "
                      f"{report.shrinkage['effective_params']:.1f} effective parameters")

@@ -6,8 +6,10 @@ it lacks (user effects included once loaded):
 * **score test on held-out residuals** (Lagrange multiplier test): in each fold, at the
   base model fitted without that fold, the held-out whitened residuals r and Jacobian
   columns J_e of the candidate (at its identity value) are projected off what the base
-  fit can move (its Jacobian along the directions it determined); pooled over folds, g = sum J_e'^T r' and I = sum J_e'^T J_e' give
-  LM = g^T I^+ g / s^2, chi-square with rank(I) degrees of freedom under "not missing";
+  fit can move (its Jacobian along the directions it determined); pooled over folds,
+  g = sum J_e'^T r' and I = sum J_e'^T J_e' give LM = g^T I^+ g / s^2, chi-square with
+  rank(I) degrees of freedom under "not missing" (`score_test_reach`: LM <= m, the
+  residual's dimensions left, so few poses bound p from below);
 * **cross-validated RMSE before and after** adding the effect (K folds of whole poses,
   each after-fit warm-started from that fold's base fit);
 * `score`: the mean over folds of the relative fall of the held-out whitened error
@@ -189,7 +191,7 @@ class _FoldState:
         return sum(fold.r.size - fold.base.shape[1] for fold in self.per_fold)
 
 
-def test_reach(state: _FoldState, n_candidates: int, alpha: float) -> dict[str, Any]:
+def score_test_reach(state: _FoldState, n_candidates: int, alpha: float) -> dict[str, Any]:
     """How far the score test can go on these poses. The statistic is the share of the
     projected residual a candidate explains, times m (`residual_dims`), so it never exceeds
     m: p >= chi2.sf(m, df) for any candidate, whatever it explains. Where even one parameter
@@ -251,14 +253,13 @@ def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int,
     from posecorr.train.pipeline import CorrectionPipeline, cross_validate
     from posecorr.train.splits import KFold
 
-    g, info, ss, m = 0.0, 0.0, 0.0, 0
+    g, info, ss, m = 0.0, 0.0, 0.0, state.residual_dims
     for fold in state.per_fold:
         Je = _project_off(fold.J[:, state.column_owner == name], fold.base)
         rp = _project_off(fold.r[:, None], fold.base)[:, 0]
         g = g + Je.T @ rp
         info = info + Je.T @ Je
         ss += float(rp @ rp)
-        m += fold.r.size - fold.base.shape[1]
     pinv, rank = _pinv_rank(np.atleast_2d(info))
     lm = float(g @ pinv @ g / (ss / max(m, 1))) if rank else 0.0
     p_value = float(chi2.sf(lm, rank)) if rank else 1.0
@@ -416,7 +417,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         "folds": folds,
         "cv_base": {"rmse_total": state.before, "rmse_pos": float(np.sqrt(np.mean(dp ** 2)))},
         "rows": {"given": rows_given, "used": table.n},
-        "reach": test_reach(state, len(names), alpha),
+        "reach": score_test_reach(state, len(names), alpha),
     }
     result["proposal"], result["no_proposal"] = propose(search, result, kept, dropped)
     result["absorbed"] = explain_absorbed(result, kept)

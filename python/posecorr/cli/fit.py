@@ -171,15 +171,11 @@ def _text(args: argparse.Namespace, table: Any, effects: list, report: Any, expo
                            metrics_rows({raw_label: report.raw, label: report.heldout,
                                          f"{report.baseline_name} (floor), same poses": report.baseline}),
                            ratios)])]
-    if report.rigid_rmse_pos:
-        scores = ", ".join(f"{name} {value:.4g} / {1e3 * report.rigid_rmse_pos[name]:.4g}"
-                           for name, value in report.rigid_scores.items())
-        lines.append(f"  floor: {report.baseline_name}, the best of the rigid fits on the same poses "
-                     f"(rmse_total / rmse_pos [mm]: {scores})")
-    else:
-        lines.append(f"  floor: {report.baseline_name}, the best of the rigid fits on the same poses ("
-                     + ", ".join(f"{name} {value:.4g}" for name, value in report.rigid_scores.items())
-                     + " rmse_total)")
+    pos = report.rigid_rmse_pos     # under cross-validation only
+    scores = ", ".join(f"{name} {value:.4g}" + (f" / {1e3 * pos[name]:.4g}" if pos else "")
+                       for name, value in report.rigid_scores.items())
+    lines.append(f"  floor: {report.baseline_name}, the best of the rigid fits on the same poses "
+                 f"({'rmse_total / rmse_pos [mm]' if pos else 'rmse_total'}: {scores})")
     if report.shrinkage is not None:
         lines.append(f"  prior strength {report.shrinkage['prior_strength']:g}: "
                      f"{report.shrinkage['effective_params']:.1f} effective parameters")

@@ -75,6 +75,9 @@ OPTIONS = {"integer 1..1000": (options.integer(1, 1000), 1, 1000),
 @example(name="number >= 0", text="nan")
 @example(name="integer 1..1000", text="0")
 @example(name="integer 1..1000", text="1e3")
+@example(name="integer 1..1000", text="1\x1f")     # a control character str.strip() takes and int() refuses
+@example(name="number >= 0", text="1\x1f")
+@example(name="integer 1..1000", text=" 7\n")       # blanks int() takes itself
 def test_numeric_options_give_a_value_in_range_or_a_usage_error(name, text) -> None:
     parse, lo, hi = OPTIONS[name]
     try:

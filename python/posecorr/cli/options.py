@@ -13,7 +13,9 @@ def integer(lo: int, hi: int | None = None, *, what: str = "") -> Callable[[str]
     """An int in [lo, hi] (hi None: no upper bound)."""
     def parse(text: str) -> int:
         try:
-            value = int(text.strip())
+            # int() and float() take the blanks around a number themselves; str.strip() would
+            # also take control characters (U+001C..U+001F) they refuse: "1\x1f" is no number.
+            value = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
         if value < lo or (hi is not None and value > hi):
@@ -30,7 +32,7 @@ def real(lo: float | None = None, hi: float | None = None, *, open_lo: bool = Fa
     """A finite float in [lo, hi] ((lo, hi] when open_lo)."""
     def parse(text: str) -> float:
         try:
-            value = float(text.strip())
+            value = float(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
         if not math.isfinite(value):

@@ -85,7 +85,7 @@ def loo(table: Any, effects: list[str]) -> dict[str, float]:
 
 def one(scenario: str, seed: int, kind: str, folder: Path, **heavy: float) -> dict[str, Any]:
     """Diagnose one session, write the proposal, and measure base / true / proposal by LOO."""
-    from posecorr.analysis.diagnose import ALPHA, MIN_GAIN, diagnose, failed_parts
+    from posecorr.analysis.diagnose import ALPHA, MIN_GAIN, diagnose, failed_parts, p_threshold
     from posecorr.analysis.proposal import effect_file_text
     from posecorr.effects import load_effect_file
     from posecorr.rotations import quat_to_matrix
@@ -115,7 +115,7 @@ def one(scenario: str, seed: int, kind: str, folder: Path, **heavy: float) -> di
            # the whole test at the diagnosis's threshold (alpha over all its candidates)
            "told_terms_passes": not failed_parts(told["p_value"], told["fold_gain_min"], told["score"],
                                                  len(result["candidates"]), ALPHA, MIN_GAIN),
-           "p_threshold": ALPHA / len(result["candidates"]),
+           "p_threshold": p_threshold(ALPHA, len(result["candidates"])),
            "loo_base": base[metric], "loo_true": truth[metric], "loo_proposal": None, "recovery": None,
            "true_gain_share": (base[metric] - truth[metric]) / base[metric],
            # what the poses offer an effect that varies with the tracker's attitude

@@ -29,6 +29,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -121,6 +122,11 @@ def lines_agree(shown: str, real: str) -> bool:
                for s, r in zip(shown_numbers, real_numbers))
 
 
+def _shown_path(page: Path) -> Path:
+    """A page as the reader names it: from the repository's root, or whole if outside it."""
+    return page.relative_to(ROOT) if page.is_relative_to(ROOT) else page
+
+
 @dataclass
 class Mismatch:
     page: Path
@@ -130,8 +136,7 @@ class Mismatch:
     nearest: str     # the real line most like it, for the reader
 
     def __str__(self) -> str:
-        where = self.page.relative_to(ROOT) if self.page.is_relative_to(ROOT) else self.page
-        return (f"{where}:{self.line}: not in the output of `{self.command}`\n"
+        return (f"{_shown_path(self.page)}:{self.line}: not in the output of `{self.command}`\n"
                 f"  page: {self.shown.strip()}\n  real: {self.nearest.strip()}")
 
 
@@ -182,8 +187,8 @@ class PageResult:
 def check(page: Path, scratch: Path | None = None) -> PageResult:
     """Run the page's commands in order (one scratch folder for the page) and compare."""
     result = PageResult(page)
-    with tempfile.TemporaryDirectory(prefix="doc-outputs-") as tmp:
-        cwd = scratch_folder(scratch or Path(tmp))
+    with (nullcontext(str(scratch)) if scratch else tempfile.TemporaryDirectory(prefix="doc-outputs-")) as tmp:
+        cwd = scratch_folder(Path(tmp))
         for block in blocks(page):
             if block.not_checked is not None:
                 result.not_checked.append((block.line, block.not_checked))
@@ -206,10 +211,10 @@ def main(argv: list[str] | None = None) -> int:
     for page in [p.resolve() for p in args.pages] or pages_with_commands():
         result = check(page)
         for line, reason in result.not_checked:
-            print(f"{page.relative_to(ROOT)}:{line}: not checked: {reason}")
+            print(f"{_shown_path(page)}:{line}: not checked: {reason}")
         for mismatch in result.mismatches:
             print(mismatch)
-        print(f"{page.relative_to(ROOT)}: {result.commands} commands, "
+        print(f"{_shown_path(page)}: {result.commands} commands, "
               f"{len(result.mismatches)} shown lines not in their output")
         failed += bool(result.mismatches)
     return 1 if failed else 0

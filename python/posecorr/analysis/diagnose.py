@@ -191,6 +191,11 @@ class _FoldState:
         return sum(fold.r.size - fold.base.shape[1] for fold in self.per_fold)
 
 
+def p_threshold(alpha: float, n_candidates: int) -> float:
+    """The test's p threshold: `alpha` Bonferroni-corrected over the candidates."""
+    return alpha / max(n_candidates, 1)
+
+
 def score_test_reach(state: _FoldState, n_candidates: int, alpha: float) -> dict[str, Any]:
     """How far the score test can go on these poses. The statistic is the share of the
     projected residual a candidate explains, times m (`residual_dims`), so it never exceeds
@@ -200,7 +205,7 @@ def score_test_reach(state: _FoldState, n_candidates: int, alpha: float) -> dict
     from scipy.stats import chi2
 
     m = state.residual_dims
-    threshold = alpha / max(n_candidates, 1)
+    threshold = p_threshold(alpha, n_candidates)
     best_p = float(chi2.sf(m, 1)) if m > 0 else 1.0
     return {"residual_dims": m, "best_p": best_p, "threshold": threshold, "can_pass": best_p < threshold}
 
@@ -234,7 +239,7 @@ def failed_parts(p_value: float, fold_gain_min: float, score: float, n_candidate
                  min_gain: float) -> list[str]:
     """The parts of the test (`PRESENT_TEST`, alone) a candidate fails, each with its figure:
     none when it passes."""
-    threshold = alpha / max(n_candidates, 1)
+    threshold = p_threshold(alpha, n_candidates)
     parts = []
     if not p_value < threshold:
         parts.append(f"p above {threshold:.2g} ({alpha:g} over {n_candidates} candidates)")

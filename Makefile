@@ -57,8 +57,8 @@ fuzz:
 # (needs gcc-arm-none-eabi, libnewlib-arm-none-eabi, qemu-system-arm; see runtime_c/embedded).
 # The networks table goes to bench/results, where docs/guides/microcontrollers.md reads it.
 embedded: $(STAMP)
-	@$(MAKE) --no-print-directory -C runtime_c/embedded PYTHON=$(abspath $(VPY)) \
-	    NETWORKS_JSON=$(abspath bench/results/embedded_networks.json)
+	@$(MAKE) --no-print-directory -C runtime_c/embedded PYTHON="$(abspath $(VPY))" \
+	    NETWORKS_JSON="$(abspath bench/results/embedded_networks.json)"
 
 clean:
 	rm -rf build site runtime_c/build* python/posecorr/_native *.egg-info

@@ -45,9 +45,15 @@ def load_script(name: str):
     return module
 
 
+def target(path: Path) -> str:
+    """A file under BUILD as the Makefile names it: relative to its folder (make cannot name a
+    target whose path holds a space, and a checkout may lie under one)."""
+    return os.path.relpath(path, EMBEDDED)
+
+
 def make(*targets: str) -> subprocess.CompletedProcess:
     return subprocess.run(["make", "--no-print-directory", "-C", str(EMBEDDED),
-                           f"BUILD={BUILD}", f"PYTHON={sys.executable}", *targets],
+                           f"BUILD={target(BUILD)}", f"PYTHON={sys.executable}", *targets],
                           capture_output=True, text=True, timeout=900)
 
 
@@ -211,7 +217,7 @@ def test_a_board_too_small_does_not_link(small_boards):
     """The proof is the linker's: the same 16 KB firmware with a larger static arena fails
     to link rather than run out of memory later."""
     (BUILD / "small16.elf").unlink()
-    r = make("SMALL16_ARENA=15000", str(BUILD / "small16.elf"))
+    r = make("SMALL16_ARENA=15000", target(BUILD / "small16.elf"))
     (BUILD / "small16.log").unlink(missing_ok=True)
     assert r.returncode != 0
     assert re.search(r"overflow|will not fit|region .RAM. overflowed", r.stdout + r.stderr), \
@@ -222,7 +228,7 @@ def test_the_2_kb_script_refuses_the_runtime(small_boards):
     """The 2 KB linker script is a real limit: the 16 KB board's firmware (libposecorr with
     its arena) does not link under it."""
     (BUILD / "small16.elf").unlink(missing_ok=True)
-    r = make("SMALL16_LD=board_2k.ld", str(BUILD / "small16.elf"))
+    r = make("SMALL16_LD=board_2k.ld", target(BUILD / "small16.elf"))
     (BUILD / "small16.log").unlink(missing_ok=True)
     assert r.returncode != 0 and not (BUILD / "small16.elf").exists()
     assert re.search(r"overflow|will not fit|region .RAM. overflowed", r.stdout + r.stderr), \

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import pickle
+import shlex
 import sys
 from pathlib import Path
 
@@ -479,8 +480,8 @@ def test_info_escapes_control_characters_from_metadata(tmp_path, capsys) -> None
 def test_a_closed_pipe_and_a_numpy_only_install_give_one_line(tmp_path) -> None:
     import subprocess
 
-    p = subprocess.run(f"{sys.executable} -m posecorr.cli info {MODEL} | head -1", shell=True,
-                       capture_output=True, text=True, timeout=120)
+    command = f"{shlex.quote(sys.executable)} -m posecorr.cli info {shlex.quote(str(MODEL))} | head -1"
+    p = subprocess.run(command, shell=True, capture_output=True, text=True, timeout=120)
     assert p.stdout.count("\n") == 1 and "Traceback" not in p.stderr and p.stderr == ""
     # Block the train extra's modules as a numpy-only install lacks them.
     write_table(_table(20), tmp_path / "d.csv")

@@ -75,7 +75,10 @@ def rel_err(got: np.ndarray, ref: np.ndarray) -> float:
 
 
 def test_c_unit_tests(c_build):
-    r = subprocess.run([str(c_build / "pc_unit_tests")], capture_output=True, text=True,
+    """The C unit tests, and every shipped model loaded and run at the centre of its fitted
+    positions."""
+    models = sorted(str(p) for p in (ROOT / "models").glob("*.onnx"))
+    r = subprocess.run([str(c_build / "pc_unit_tests"), *models], capture_output=True, text=True,
                        timeout=120)
     tail = r.stdout.strip().splitlines()[-1]
     assert r.returncode == 0, r.stdout + r.stderr

@@ -688,6 +688,24 @@ static void test_errors(void)
     CHECK(strstr(err.message, "/nonexistent/model.onnx") != NULL);
 }
 
+/* The centre of the positions and times a model was fitted on (its metadata "input_bounds"
+ * and "time_bounds"): a pose there is one pc_run_timed must accept. Zero where the model
+ * records no bounds. */
+static void fitted_centre(const pc_model *m, float p[3], float *t)
+{
+    const char *box = pc_metadata_lookup(m, "input_bounds");
+    const char *span = pc_metadata_lookup(m, "time_bounds");
+    double lo[3], hi[3];
+    int k;
+    p[0] = p[1] = p[2] = *t = 0.0f;
+    if (box && sscanf(box, " [ [ %lf , %lf , %lf ] , [ %lf , %lf , %lf ] ]", &lo[0], &lo[1],
+                      &lo[2], &hi[0], &hi[1], &hi[2]) == 6)
+        for (k = 0; k < 3; k++)
+            p[k] = (float)(0.5 * (lo[k] + hi[k]));
+    if (span && sscanf(span, " [ %lf , %lf ]", &lo[0], &hi[0]) == 2)
+        *t = (float)(0.5 * (lo[0] + hi[0]));
+}
+
 int main(int argc, char **argv)
 {
     test_varint();
@@ -700,16 +718,18 @@ int main(int argc, char **argv)
     test_checks();
     test_contract();
     test_errors();
-    /* optional: model files given on the command line must load and run */
+    /* model files given on the command line must load and run at the centre of the
+     * positions they were fitted on */
     {
         int a;
         for (a = 1; a < argc; a++) {
             pc_model *m;
             pc_error err;
-            float in[7] = {0.1f, 0.2f, 0.3f, 1.0f, 0.0f, 0.0f, 0.0f}, out[7];
+            float in[7] = {0.0f, 0.0f, 0.0f, 1.0f, 0.0f, 0.0f, 0.0f}, out[7], t = 0.0f;
             CHECK(pc_load_file(argv[a], NULL, &m, &err) == PC_OK);
             if (m) {
-                CHECK(pc_run(m, in, 1, out) == PC_OK);
+                fitted_centre(m, in, &t);
+                CHECK(pc_run_timed(m, in, &t, 1, out) == PC_OK);
                 pc_free(m);
             }
         }

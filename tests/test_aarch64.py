@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -21,15 +20,11 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "runtime_c" / "tests"))
-CC, QEMU, SYSROOT = "aarch64-linux-gnu-gcc", "qemu-aarch64", Path("/usr/aarch64-linux-gnu")
+sys.path.insert(0, str(ROOT / "tests"))
+from toolchains import require  # noqa: E402
 
-missing = [tool for tool in (CC, QEMU) if shutil.which(tool) is None]
-if missing:
-    reason = (f"aarch64 cross toolchain not installed: {', '.join(missing)} "
-              "(apt-get install gcc-aarch64-linux-gnu qemu-user)")
-    if os.environ.get("POSECORR_REQUIRE_EMBEDDED") == "1":
-        raise RuntimeError(reason)
-    pytest.skip(reason, allow_module_level=True)
+CC, QEMU, SYSROOT = "aarch64-linux-gnu-gcc", "qemu-aarch64", Path("/usr/aarch64-linux-gnu")
+require("aarch64 cross toolchain", (CC, QEMU), "gcc-aarch64-linux-gnu qemu-user")
 
 ort = pytest.importorskip("onnxruntime")
 MODELS = sorted((ROOT / "models").glob("*.onnx"))

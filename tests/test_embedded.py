@@ -26,13 +26,10 @@ MODEL = ROOT / "models" / "mlp-zhou-tansig-20x20x20x20-br.onnx"
 TOOLS = ("arm-none-eabi-gcc", "arm-none-eabi-size", "qemu-system-arm")
 TOLERANCE = 1e-5
 
-missing = [t for t in TOOLS if shutil.which(t) is None]
-if missing:
-    reason = (f"embedded toolchain not installed: {', '.join(missing)} "
-              "(apt-get install gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm)")
-    if os.environ.get("POSECORR_REQUIRE_EMBEDDED") == "1":
-        raise RuntimeError(reason)
-    pytest.skip(reason, allow_module_level=True)
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from toolchains import require  # noqa: E402
+
+require("embedded toolchain", TOOLS, "gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm")
 
 from posecorr.controller.runtime import Corrector  # noqa: E402
 

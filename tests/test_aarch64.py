@@ -20,8 +20,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "runtime_c" / "tests"))
-sys.path.insert(0, str(ROOT / "tests"))
-from toolchains import require  # noqa: E402
+from toolchains import require  # noqa: E402  (tests/, beside this file, as pytest imports it)
 
 CC, QEMU, SYSROOT = "aarch64-linux-gnu-gcc", "qemu-aarch64", Path("/usr/aarch64-linux-gnu")
 require("aarch64 cross toolchain", (CC, QEMU), "gcc-aarch64-linux-gnu qemu-user")
@@ -34,7 +33,7 @@ MODELS = sorted((ROOT / "models").glob("*.onnx"))
 def builds() -> dict[str, Path]:
     import graphs
 
-    return {"x86-64": graphs.build_runtime(ROOT / "build" / "c-test", "-DPC_BUILD_TESTS=ON"),
+    return {"x86-64": graphs.build_test_runtime(),
             "aarch64": graphs.build_runtime(ROOT / "build" / "aarch64-test", "-DPC_BUILD_TESTS=ON",
                                             "-DCMAKE_SYSTEM_NAME=Linux",
                                             "-DCMAKE_SYSTEM_PROCESSOR=aarch64",
@@ -57,11 +56,11 @@ def test_unit_tests_pass_on_arm(builds):
     assert r.returncode == 0 and tail.endswith(" 0 failed"), r.stdout.decode() + r.stderr.decode()
 
 
-def poses_in_bounds(model: Path, n: int = 2000) -> np.ndarray:
+def poses_in_bounds(session, n: int = 2000) -> np.ndarray:
+    """n poses in the model's fitted box (its metadata input_bounds), turned up to ~0.2 rad."""
     from scipy.spatial.transform import Rotation
 
-    meta = ort.InferenceSession(str(model)).get_modelmeta().custom_metadata_map
-    lo, hi = np.array(json.loads(meta["input_bounds"]))
+    lo, hi = np.array(json.loads(session.get_modelmeta().custom_metadata_map["input_bounds"]))
     rng = np.random.default_rng(0)
     q = Rotation.from_rotvec(rng.normal(scale=0.2, size=(n, 3))).as_quat(canonical=True)
     return np.concatenate([rng.uniform(lo, hi, (n, 3)), q[:, [3, 0, 1, 2]]], 1).astype(np.float32)
@@ -69,13 +68,13 @@ def poses_in_bounds(model: Path, n: int = 2000) -> np.ndarray:
 
 @pytest.mark.parametrize("model", MODELS, ids=[m.stem for m in MODELS])
 def test_arm_corrects_as_x86_and_onnxruntime(model, builds):
-    x = poses_in_bounds(model)
+    session = ort.InferenceSession(str(model))
+    x = poses_in_bounds(session)
     arm = on_arm(builds["aarch64"], "posecorr-run", str(model), "--binary", data=x.tobytes())
     here = subprocess.run([str(builds["x86-64"] / "posecorr-run"), str(model), "--binary"],
                           input=x.tobytes(), capture_output=True, timeout=300)
     assert arm.returncode == 0 and here.returncode == 0, arm.stderr[-500:] + here.stderr[-500:]
     arm_out, here_out = (np.frombuffer(r.stdout, np.float32).reshape(-1, 7) for r in (arm, here))
-    session = ort.InferenceSession(str(model))
     want = session.run(None, {session.get_inputs()[0].name: x})[0]
     np.testing.assert_allclose(arm_out, want, rtol=0, atol=2e-6)
     bits_equal = np.all(arm_out.view(np.uint32) == here_out.view(np.uint32), axis=1).mean()

@@ -108,25 +108,26 @@ def test_python_block_runs(where, code, reason, session, scratch):
 def runtime():
     import graphs
 
-    return graphs.build_runtime(ROOT / "build" / "c-test", "-DPC_BUILD_TESTS=ON")
+    return graphs.build_test_runtime()
 
 
 PROTOTYPE = re.compile(r"^\s*int (\w+)_run\(const float in\[7\], float out\[7\]\);")
 
 
-def as_program(code: str, compiled: Path | None) -> str:
+def as_program(code: str, compiled: tuple[Path, str] | None) -> str:
     """The block as a C file: its #include lines at the top, the rest in a main that has the
     pose's names and reads the model named on the command line. A block that only declares
-    `NAME_run` (what `posecorr compile --name NAME` writes) follows the written file, so a
-    declaration that differs from the definition does not compile, and main calls it."""
+    `NAME_run` comes with `compiled`, (the file `posecorr compile --name NAME` wrote, NAME):
+    the declaration follows that file, so one that differs from the definition does not
+    compile, and main calls it."""
     lines = code.splitlines()
     top = [line for line in lines if line.startswith("#")]
     body = "\n".join(line for line in lines if not line.startswith("#"))
     for name in MODEL_NAMES:
         body = body.replace(f'"{name}"', "argv[1]")
-    prototype = PROTOTYPE.match(body)
     if compiled is not None:
-        top, body = [f'#include "{compiled}"', *top, body], f"    if ({prototype.group(1)}_run(in, out)) return 3;"
+        file, function = compiled
+        top, body = [f'#include "{file}"', *top, body], f"    if ({function}_run(in, out)) return 3;"
     return "\n".join([
         "#include <stdio.h>", *top,
         "int main(int argc, char **argv) {",
@@ -148,9 +149,9 @@ def test_c_block_compiles_and_runs(where, code, reason, runtime, tmp_path):
     compiled = None
     prototype = PROTOTYPE.match(code)
     if prototype:
-        compiled = tmp_path / "compiled.c"
+        compiled = (tmp_path / "compiled.c", prototype.group(1))
         subprocess.run([sys.executable, "-m", "posecorr.cli", "compile", str(SHIPPED), "-o",
-                        str(compiled), "--name", prototype.group(1)], check=True, capture_output=True)
+                        str(compiled[0]), "--name", compiled[1]], check=True, capture_output=True)
     source = tmp_path / "snippet.c"
     source.write_text(as_program(code, compiled))
     exe = tmp_path / "snippet"

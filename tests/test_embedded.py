@@ -26,8 +26,7 @@ MODEL = ROOT / "models" / "mlp-zhou-tansig-20x20x20x20-br.onnx"
 TOOLS = ("arm-none-eabi-gcc", "arm-none-eabi-size", "qemu-system-arm")
 TOLERANCE = 1e-5
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from toolchains import require  # noqa: E402
+from toolchains import require  # noqa: E402  (tests/, beside this file, as pytest imports it)
 
 require("embedded toolchain", TOOLS, "gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm")
 

@@ -132,7 +132,7 @@ def skip_reason(case) -> str | None:
 
 @pytest.fixture(scope="module")
 def testing_lib() -> ctypes.CDLL:
-    build = graphs.build_runtime(ROOT / "build" / "c-test", "-DPC_BUILD_TESTS=ON")
+    build = graphs.build_test_runtime()
     lib = ctypes.CDLL(str(build / "libposecorr_testing.so"))
     vp, sz = ctypes.c_void_p, ctypes.c_size_t
     lib.pc_test_load.argtypes = [ctypes.c_char_p, sz, ctypes.POINTER(vp), ctypes.POINTER(_Error)]

@@ -98,7 +98,7 @@ def test_numeric_options_give_a_value_in_range_or_a_usage_error(name, text) -> N
 
 @pytest.fixture(scope="module")
 def run_tool() -> Path:
-    return graphs.build_runtime(ROOT / "build" / "c-test", "-DPC_BUILD_TESTS=ON") / "posecorr-run"
+    return graphs.build_test_runtime() / "posecorr-run"
 
 
 pose_lines = st.one_of(

@@ -24,7 +24,7 @@ GOOD = np.array([[0.02, -0.61, 0.48, 1.0, 0.0, 0.0, 0.0],
 
 @pytest.fixture(scope="module")
 def run_tool() -> Path:
-    return graphs.build_runtime(ROOT / "build" / "c-test", "-DPC_BUILD_TESTS=ON") / "posecorr-run"
+    return graphs.build_test_runtime() / "posecorr-run"
 
 
 def _run(tool: Path, data: str | bytes, *flags: str) -> subprocess.CompletedProcess:

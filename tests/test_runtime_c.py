@@ -50,7 +50,7 @@ CROSS_ROW = graphs.CROSS_ROW
 
 @pytest.fixture(scope="session")
 def c_build() -> Path:
-    return graphs.build_runtime(BUILD / "c-test", "-DPC_BUILD_TESTS=ON")
+    return graphs.build_test_runtime()
 
 
 @pytest.fixture(scope="session")

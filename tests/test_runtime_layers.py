@@ -105,7 +105,7 @@ def test_header_comments_number_their_layer_as_the_table_does():
 def objects() -> dict[str, Path]:
     if shutil.which("nm") is None:
         pytest.skip("nm (binutils) not installed")
-    build = graphs.build_runtime(ROOT / "build" / "c-test", "-DPC_BUILD_TESTS=ON")
+    build = graphs.build_test_runtime()
     objs = {p.name[:-2]: p for p in (build / "CMakeFiles" / "posecorr_obj.dir").glob("*.c.o")}
     assert objs, "no objects in the build"
     return objs

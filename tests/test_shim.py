@@ -25,8 +25,7 @@ from posecorr.controller.runtime import Corrector, PoseCorrError, library_path  
 @pytest.fixture(scope="module")
 def lib() -> str:
     # A build of the current sources (the installed copy may predate them).
-    return str(graphs.build_runtime(ROOT / "build" / "c-test", "-DPC_BUILD_TESTS=ON")
-               / "libposecorr.so")
+    return str(graphs.build_test_runtime() / "libposecorr.so")
 
 
 def test_installed_library_is_found():

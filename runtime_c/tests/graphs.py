@@ -674,3 +674,10 @@ def build_runtime(build_dir, *options: str, build_type: str = "Release"):
     if r.returncode != 0:
         raise RuntimeError(f"building runtime_c failed:\n{r.stdout[-4000:]}\n{r.stderr[-4000:]}")
     return build_dir
+
+
+def build_test_runtime():
+    """The runtime with its C tests, in build/c-test: the one build the test modules share."""
+    from pathlib import Path
+
+    return build_runtime(Path(__file__).resolve().parents[2] / "build" / "c-test", "-DPC_BUILD_TESTS=ON")

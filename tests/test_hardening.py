@@ -286,6 +286,7 @@ def test_degenerate_tables_are_refused_with_the_reason() -> None:
 
 
 def test_errors_cross_process_pools_intact(tmp_path) -> None:
+    import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
     from posecorr.train.protocol import run_sweep
@@ -296,7 +297,7 @@ def test_errors_cross_process_pools_intact(tmp_path) -> None:
     assert (type(back), str(back), back.row, back.column) == (TableError, str(err), 7, "meas_y")
     perr = pickle.loads(pickle.dumps(PoseCorrError("m.onnx: bad", 3)))
     assert (str(perr), perr.status) == ("m.onnx: bad", 3)
-    with ProcessPoolExecutor(1) as pool:
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("forkserver")) as pool:
         with pytest.raises(TableError) as info:
             pool.submit(_raise_table_error).result()
     assert str(info.value) == "w.csv, row 4, column ref_z: expected a finite number, got 'nan'"

@@ -27,10 +27,12 @@ from posecorr.data import PoseTable, write_table
 ROOT = Path(__file__).resolve().parents[1]
 MODEL = ROOT / "models" / "pmc-zhou.onnx"
 
-# The hook: argv = mode, ready-file prefix, then the posecorr arguments.
+# The hook, run as a script: argv = the posecorr arguments; the mode and the ready-file prefix
+# come by the environment. The sweep's pool starts its workers from a forkserver, which runs
+# this script's top (not its __main__ part) first: so the sweep's patch reaches the workers.
 HOOK = r"""
 import os, sys, time
-mode, ready = sys.argv[1], sys.argv[2]
+mode, ready = os.environ["HOOK_MODE"], os.environ["HOOK_READY"]
 
 def pause():
     with open(f"{ready}.{os.getpid()}", "w") as f:
@@ -63,8 +65,9 @@ elif mode == "sweep":
         return real_run(table, config, repeat, seed, threads)
     protocol.run_one = run_one
 
-from posecorr.cli import main
-sys.exit(main(sys.argv[3:]))
+if __name__ == "__main__":
+    from posecorr.cli import main
+    sys.exit(main(sys.argv[1:]))
 """
 
 
@@ -76,7 +79,7 @@ def _table(n: int, seed: int = 0) -> PoseTable:
 
 
 def _snapshot(folder: Path) -> dict[str, bytes]:
-    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file() and not p.name.startswith("ready")}
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file() and not p.name.startswith(("ready", "hook"))}
 
 
 def _descendants(pid: int) -> set[int]:
@@ -108,8 +111,10 @@ def _alive(pid: int) -> bool:
 def _run_and_kill(mode: str, sig: int, folder: Path, argv: list[str], ready_count: int = 1,
                   until=lambda: True) -> tuple[subprocess.CompletedProcess | None, int, set[int], str]:
     ready = folder / "ready"
-    proc = subprocess.Popen([sys.executable, "-c", HOOK, mode, str(ready), *argv], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    hook = folder / "hook.py"
+    hook.write_text(HOOK)
+    proc = subprocess.Popen([sys.executable, str(hook), *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env={**os.environ, "HOOK_MODE": mode, "HOOK_READY": str(ready)})
     deadline = time.monotonic() + 240
     while not (len(list(folder.glob("ready.*"))) >= ready_count and until()):
         if proc.poll() is not None:

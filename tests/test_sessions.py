@@ -10,6 +10,7 @@ robot-world-hand-eye solution. Issue 23: auto may be at most 2 % worse than the 
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import subprocess
 import sys
@@ -275,7 +276,8 @@ def _hand_eye_recovery(session) -> dict[str, float]:
 @pytest.fixture(scope="module")
 def corpus() -> list[dict]:
     workers = min(2, os.cpu_count() or 1)
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    # forkserver: a fork of this process would copy torch's and BLAS's threads' locks.
+    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("forkserver")) as pool:
         return list(pool.map(_session_result, range(SESSIONS), chunksize=4))
 
 

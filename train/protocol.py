@@ -341,48 +341,35 @@ def _load_store(path: Path, fingerprint: str, seed: int) -> dict[tuple[str, int]
     return done
 
 
-def _worker_init(threads: int, parent: int) -> None:
+def _worker_init(threads: int) -> None:
     """Pool worker set-up: its torch threads, and no life of its own.
 
     Ctrl-C reaches the whole process group; the parent alone decides (it stops the pool),
     so workers ignore SIGINT and take SIGTERM's default. A worker whose parent died, even
-    by kill -9, exits: Linux delivers SIGKILL on the parent's death (PR_SET_PDEATHSIG),
-    elsewhere a thread watches the parent id.
+    by kill -9, exits: a thread waits on the parent's sentinel, a pipe the parent alone holds
+    open (the forkserver and spawn start methods give it no other holder), which the kernel
+    closes when the parent dies however it dies.
     """
+    import multiprocessing
+    import multiprocessing.connection
     import signal
     import threading
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    if not _die_with_parent():
+    parent = multiprocessing.parent_process()
+    if parent is not None:
         def watch() -> None:
-            while os.getppid() == parent:
-                time.sleep(0.5)
+            multiprocessing.connection.wait([parent.sentinel])
             os._exit(1)
 
         threading.Thread(target=watch, daemon=True).start()
-    if os.getppid() != parent:  # the parent died before the request took effect
-        os._exit(1)
     try:
         import torch
 
         torch.set_num_threads(threads)
     except ImportError:
         pass
-
-
-def _die_with_parent() -> bool:
-    import ctypes
-    import signal
-    import sys
-
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        return libc.prctl(1, int(signal.SIGKILL), 0, 0, 0) == 0  # 1 = PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        return False
 
 
 def _run_in_worker(table: Any, config: ModelSpec, repeat: int, seed: int, threads: int) -> dict[str, Any]:
@@ -530,9 +517,11 @@ def _sweep_on_pool(table: Any, todo: list[tuple[ModelSpec, int]], seed: int, wor
     from posecorr.threads import default_threads
 
     threads = threads or default_threads(workers)
-    ctx = mp.get_context("spawn" if os.name == "nt" else "fork")
+    # Not fork: this process runs torch's and BLAS's threads, and a fork copies their locks
+    # in whatever state they are (Python 3.12 warns of it, 3.14 no longer forks by default).
+    ctx = mp.get_context("forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn")
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
-                               initargs=(threads, os.getpid()))
+                               initargs=(threads,))
     futures: list[Any] = []
     recorded: set[Any] = set()
     try:

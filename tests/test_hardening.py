@@ -12,6 +12,7 @@ import json
 import os
 import pickle
 import shlex
+import stat
 import sys
 from pathlib import Path
 
@@ -332,6 +333,33 @@ def test_atomic_output_replaces_whole_or_not_at_all(tmp_path) -> None:
     inode = target.stat().st_ino
     write_bytes(target, b"new model")
     assert target.read_bytes() == b"new model" and target.stat().st_ino != inode  # renamed over, not rewritten
+
+
+@pytest.mark.parametrize("without", ["O_TMPFILE", "/proc"])
+def test_fallback_writes_keep_the_permissions_open_gives(tmp_path, monkeypatch, without) -> None:
+    """Where the file system has no unnamed files (or /proc is missing to name one), the new
+    file is a named temporary: it must still end with the mode a plain open() gives under the
+    umask, not the 0o600 of a private temporary, and leave no temporary behind."""
+    from posecorr import safeio
+
+    if without == "O_TMPFILE":
+        monkeypatch.setattr(safeio, "_unnamed_file", lambda folder: None)
+    else:
+        def no_proc(*args, **kwargs):
+            raise FileNotFoundError(2, "No such file or directory", args[0])
+        monkeypatch.setattr(safeio.os, "link", no_proc)
+    old = os.umask(0o027)
+    try:
+        (tmp_path / "plain").write_bytes(b"")  # the kernel's own creation mode: the truth
+        safeio.write_bytes(tmp_path / "model.onnx", b"old")
+        safeio.write_bytes(tmp_path / "model.onnx", b"new model")
+    finally:
+        os.umask(old)
+    mode = stat.S_IMODE((tmp_path / "plain").stat().st_mode)
+    assert mode == 0o640
+    assert stat.S_IMODE((tmp_path / "model.onnx").stat().st_mode) == mode
+    assert (tmp_path / "model.onnx").read_bytes() == b"new model"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.onnx", "plain"]
 
 
 def test_torn_last_line_is_moved_aside_and_the_next_record_kept(tmp_path, capsys) -> None:

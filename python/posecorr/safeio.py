@@ -23,7 +23,6 @@ import errno
 import os
 import stat
 import sys
-import tempfile
 from pathlib import Path
 from typing import IO, Any, Callable, Iterable, Iterator
 
@@ -168,6 +167,23 @@ def _fsync_folder(folder: Path) -> None:
         os.close(fd)
 
 
+def _hidden_name(name: str) -> str:
+    return f".{name}.{os.getpid()}.{os.urandom(4).hex()}.tmp"
+
+
+def _named_file(folder: Path, name: str) -> tuple[int, str]:
+    """A new hidden temporary file beside `name`, created as ``open`` creates a file (mode
+    0o666 less the umask and what the folder's default ACL takes away): the result keeps
+    those permissions when renamed over `name`, and no reading of the umask races a thread."""
+    for _ in range(100):
+        path = os.path.join(folder, _hidden_name(name))
+        try:
+            return os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666), path
+        except FileExistsError:
+            continue
+    raise FileExistsError(errno.EEXIST, "no free temporary name", os.path.join(folder, f".{name}.*.tmp"))
+
+
 def _unnamed_file(folder: Path) -> int | None:
     """An O_TMPFILE descriptor in `folder` (Linux), or None where unsupported."""
     flag = getattr(os, "O_TMPFILE", None)
@@ -190,12 +206,9 @@ class _Pending:
         self.named: str | None = None
         if self.fd is None:
             try:
-                self.fd, self.named = tempfile.mkstemp(dir=self.folder, prefix=f".{self.path.name}.", suffix=".tmp")
+                self.fd, self.named = _named_file(self.folder, self.path.name)
             except OSError as exc:
                 raise OutputPathError(f"{self.path}: cannot create a file in {self.folder}: {exc.strerror}") from None
-            umask = os.umask(0)
-            os.umask(umask)
-            os.fchmod(self.fd, 0o666 & ~umask)
 
     def _device(self, exc: OSError) -> OutputPathError:
         return OutputPathError(f"{self.path}: cannot write: {exc.strerror}; the previous file is unchanged")
@@ -267,7 +280,7 @@ def _link_unnamed(fd: int, folder: Path, name: str) -> str:
     folder_fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
     try:
         for _ in range(100):
-            base = f".{name}.{os.getpid()}.{os.urandom(4).hex()}.tmp"
+            base = _hidden_name(name)
             try:
                 os.link(f"/proc/self/fd/{fd}", base, dst_dir_fd=folder_fd, follow_symlinks=True)
                 return os.path.join(folder, base)
@@ -277,7 +290,7 @@ def _link_unnamed(fd: int, folder: Path, name: str) -> str:
                 break
     finally:
         os.close(folder_fd)
-    copy_fd, copy = tempfile.mkstemp(dir=folder, prefix=f".{name}.", suffix=".tmp")
+    copy_fd, copy = _named_file(folder, name)
     try:
         os.lseek(fd, 0, os.SEEK_SET)
         while block := os.read(fd, 1 << 20):

@@ -514,12 +514,12 @@ def test_a_closed_pipe_and_a_numpy_only_install_give_one_line(tmp_path) -> None:
     assert p.stdout.count("\n") == 1 and "Traceback" not in p.stderr and p.stderr == ""
     # Block the train extra's modules as a numpy-only install lacks them.
     write_table(_table(20), tmp_path / "d.csv")
-    script = f"""
+    script = """
 import sys
 class Missing:
     def find_spec(self, name, path=None, target=None):
         if name.split(".")[0] in sys.argv[1].split(","):
-            raise ModuleNotFoundError(f"No module named {{name!r}}", name=name)
+            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
 sys.meta_path.insert(0, Missing())
 from posecorr.cli import main
 sys.exit(main(sys.argv[2:]))

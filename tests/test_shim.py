@@ -12,10 +12,6 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "runtime_c" / "tests"))
-try:
-    import posecorr.controller.runtime  # noqa: F401
-except ImportError:
-    sys.path.insert(0, str(ROOT / "python"))
 
 onnx = pytest.importorskip("onnx")
 import graphs  # noqa: E402

@@ -230,8 +230,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         """Parameter blocks in the order the identification takes them: the registration
         (its roles in `REGISTRATION_ROLES` order) first, then the other effects in catalogue order."""
         first = {role: rank for rank, role in enumerate(REGISTRATION_ROLES)}
-        blocks, i = [], 0
-        owned = []
+        i, owned = 0, []
         for effect in self._chosen:
             reason = self._undetermined_words(effect)
             for param in effect.params:

@@ -102,7 +102,7 @@ def resolve_mix(experiment: int | str, effects: str | Mapping[str, Any] | None =
         mix.setdefault(name, get_effect(name).default_theta())
     overrides = parse_effects_arg(effects) if isinstance(effects, str) else dict(effects or {})
     for name, theta in overrides.items():
-        effect = get_effect(name)
+        get_effect(name)  # an unknown name fails here, one given to remove too
         if theta is None:
             mix.pop(name, None)
         else:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+from pathlib import Path
 from typing import Callable
 
 
@@ -49,11 +50,9 @@ def real(lo: float | None = None, hi: float | None = None, *, open_lo: bool = Fa
     return parse
 
 
-def file_name(text: str) -> "Path":
+def file_name(text: str) -> Path:
     """A file to write. A trailing separator names a folder, and Path would drop it
     (`-o newdir/` would write a file named newdir)."""
-    from pathlib import Path
-
     if text.endswith(("/", os.sep)):
         raise argparse.ArgumentTypeError(f"{text!r} ends with a separator (a folder); expected a file name to write")
     return Path(text)

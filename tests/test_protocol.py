@@ -109,6 +109,25 @@ def test_sweep_in_worker_processes_matches_in_process(tmp_path):
     assert ka == kb
 
 
+def test_sweep_progress_in_a_log_is_whole_lines(tmp_path, capsys):
+    """Where stderr is no terminal (a log, a pipe; pytest's capture), the progress is whole
+    lines, never a bar's carriage returns, and the last names every run and the best so far,
+    the store's runs included."""
+    table = synthetic_table()
+    configs = [ModelSpec("pmc", "zhou"), ModelSpec("pmc", "R")]
+    store = tmp_path / "runs.jsonl"
+    first = run_sweep(table, configs[:1], repeats=2, store=store, workers=1, progress=True)
+    err = capsys.readouterr().err
+    assert "\r" not in err
+    best = min(first.rows, key=lambda r: r["rmse_total"])
+    assert err.splitlines()[-1].startswith("sweep: 2/2 runs, ")
+    assert err.splitlines()[-1].endswith(f"best {best['rmse_total']:.4g} {best['key']}")
+    second = run_sweep(table, configs, repeats=2, store=store, workers=1, progress=True)
+    best = min(second.rows, key=lambda r: r["rmse_total"])
+    last = capsys.readouterr().err.splitlines()[-1]
+    assert last.startswith("sweep: 4/4 runs, ") and last.endswith(f"best {best['rmse_total']:.4g} {best['key']}")
+
+
 def test_cross_validation_pools_out_of_fold_predictions():
     """`fit --cv`'s cross-validation (`pipeline.cross_validate`) of a bare core."""
     from posecorr.train.pipeline import CorrectionPipeline, cross_validate

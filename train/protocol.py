@@ -25,7 +25,8 @@ repeat) together with a fingerprint of the data and the seed; an interrupted swe
 again with the same store skips the runs it already has. Runs are spread over local
 processes (``concurrent.futures.ProcessPoolExecutor``, torch limited to
 cores // workers threads each) or over a Ray cluster with ``ray_address`` (when ray is
-installed). A tqdm bar shows runs done, ETA and the best test rmse_total so far.
+installed). A tqdm bar shows runs done, ETA and the best test rmse_total so far (on a terminal;
+written to a log, a line every 30 s and the last).
 """
 from __future__ import annotations
 
@@ -475,10 +476,47 @@ def _open_store(store: str | os.PathLike | None, fingerprint: str,
 
 
 def _progress_bar(total: int, initial: int) -> Any:
-    """A tqdm bar over the sweep's runs, starting at those the store already holds."""
-    from tqdm.auto import tqdm
+    """Progress over the sweep's runs, starting at those the store already holds: a tqdm bar on
+    a terminal (or a notebook), plain lines where stderr goes to a log or a pipe."""
+    import sys
 
-    return tqdm(total=total, initial=initial, unit="run", desc="sweep")
+    if sys.stderr.isatty() or "ipykernel" in sys.modules:
+        from tqdm.auto import tqdm
+
+        return tqdm(total=total, initial=initial, unit="run", desc="sweep")
+    return _ProgressLines(total, initial)
+
+
+class _ProgressLines:
+    """The bar's content as whole lines, for a log: a bar redraws itself with carriage returns,
+    which a file keeps as one ever longer line. One line at most every ``every`` seconds, and
+    the last."""
+
+    def __init__(self, total: int, initial: int, every: float = 30.0) -> None:
+        self.total, self.initial, self.n, self.every = total, initial, initial, every
+        self.postfix = ""
+        self.start = self.last = time.monotonic()
+
+    def set_postfix_str(self, text: str, refresh: bool = True) -> None:
+        self.postfix = text
+
+    def update(self, n: int = 1) -> None:
+        self.n += n
+        if time.monotonic() - self.last >= self.every:
+            self._print()
+
+    def close(self) -> None:
+        self._print()
+
+    def _print(self) -> None:
+        import sys
+
+        self.last = time.monotonic()
+        elapsed = self.last - self.start
+        line = f"sweep: {self.n}/{self.total} runs, {elapsed:.0f} s"
+        if self.total > self.n > self.initial:
+            line += f", about {elapsed / (self.n - self.initial) * (self.total - self.n):.0f} s left"
+        print(f"{line}, {self.postfix}" if self.postfix else line, file=sys.stderr, flush=True)
 
 
 class _Recorder:
@@ -487,20 +525,24 @@ class _Recorder:
     def __init__(self, rows: list[dict[str, Any]], fingerprint: str, store_path: Path | None,
                  bar: Any) -> None:
         self.rows, self.fingerprint, self.store_path, self.bar = rows, fingerprint, store_path, bar
-        self.best = [min((r["rmse_total"] for r in rows), default=math.inf)]
+        self.best: tuple[float, str] = (math.inf, "")
+        for row in rows:
+            self._keep_best(row)
 
     def __call__(self, row: dict[str, Any]) -> None:
         row["data"] = self.fingerprint
         self.rows.append(row)
         if self.store_path:
             append_line(self.store_path, json.dumps(row))
-        best = self.best
-        if row["rmse_total"] < best[0]:
-            best[0] = row["rmse_total"]
-            best.append(row["key"])
+        self._keep_best(row)
         if self.bar is not None:
             self.bar.update(1)
-            self.bar.set_postfix_str(f"best {best[0]:.4g} {best[-1] if len(best) > 1 else ''}")
+
+    def _keep_best(self, row: dict[str, Any]) -> None:
+        if row["rmse_total"] < self.best[0]:
+            self.best = (row["rmse_total"], row["key"])
+            if self.bar is not None:
+                self.bar.set_postfix_str(f"best {self.best[0]:.4g} {self.best[1]}", refresh=False)
 
     def close(self) -> None:
         """Close the progress bar, if any."""

@@ -138,31 +138,41 @@ PC_COLD pc_status k_gemm(const pc_step *s)
 typedef float pc_v8 __attribute__((vector_size(32)));
 typedef float pc_v4 __attribute__((vector_size(16)));
 
+/* A scalar times a vector is written as a vector of that scalar: where C evaluates float
+ * arithmetic in a wider type (FLT_EVAL_METHOD 1 on s390x, 2 on x87), GCC refuses a scalar
+ * operand whose lanes would narrow it. The splat is the broadcast the scalar form compiles to
+ * (a macro: a function returning a 32-byte vector has an ABI that depends on AVX). X is a
+ * plain float variable, read once per lane. */
+#define PC_SPLAT8(X) ((pc_v8){(X), (X), (X), (X), (X), (X), (X), (X)})
+#define PC_SPLAT4(X) ((pc_v4){(X), (X), (X), (X)})
+
 PC_INLINE void pc_rows4(const float *A, size_t K, const float *B, size_t N, const float *C,
                         float *O)
 {
     size_t n0 = 0, k, j;
     /* Columns in blocks of WIDTH lanes of type VEC, four rows at a time. */
-#define PC_ROWS4_BLOCKS(VEC, WIDTH)                                  \
+#define PC_ROWS4_BLOCKS(VEC, WIDTH, SPLAT)                           \
     for (; n0 + (WIDTH) <= N; n0 += (WIDTH)) {                       \
         VEC a0, a1, a2, a3;                                          \
         memcpy(&a0, C + n0, sizeof a0);                              \
         a1 = a2 = a3 = a0;                                           \
         for (k = 0; k < K; k++) {                                    \
+            const float s0 = A[k], s1 = A[K + k], s2 = A[2 * K + k], \
+                        s3 = A[3 * K + k];                           \
             VEC b;                                                   \
             memcpy(&b, B + k * N + n0, sizeof b);                    \
-            a0 += A[k] * b;                                          \
-            a1 += A[K + k] * b;                                      \
-            a2 += A[2 * K + k] * b;                                  \
-            a3 += A[3 * K + k] * b;                                  \
+            a0 += SPLAT(s0) * b;                                     \
+            a1 += SPLAT(s1) * b;                                     \
+            a2 += SPLAT(s2) * b;                                     \
+            a3 += SPLAT(s3) * b;                                     \
         }                                                            \
         memcpy(O + n0, &a0, sizeof a0);                              \
         memcpy(O + N + n0, &a1, sizeof a1);                          \
         memcpy(O + 2 * N + n0, &a2, sizeof a2);                      \
         memcpy(O + 3 * N + n0, &a3, sizeof a3);                      \
     }
-    PC_ROWS4_BLOCKS(pc_v8, 8)
-    PC_ROWS4_BLOCKS(pc_v4, 4)
+    PC_ROWS4_BLOCKS(pc_v8, 8, PC_SPLAT8)
+    PC_ROWS4_BLOCKS(pc_v4, 4, PC_SPLAT4)
 #undef PC_ROWS4_BLOCKS
     for (; n0 < N; n0++) {
         for (j = 0; j < 4; j++) {
@@ -192,16 +202,18 @@ PC_INLINE void pc_row1_block(const float *a, const float *B, size_t K, size_t N,
         memcpy(&acc4[j], C4 + 4 * j, sizeof acc4[j]);
     for (k = 0; k < K; k++) {
         const float av = a[k];
+        const pc_v8 av8 = PC_SPLAT8(av);
+        const pc_v4 av4 = PC_SPLAT4(av);
         const float *b = B + k * N;
         for (j = 0; j < NV8; j++) {
             pc_v8 bv;
             memcpy(&bv, b + 8 * j, sizeof bv);
-            acc8[j] += av * bv;
+            acc8[j] += av8 * bv;
         }
         for (j = 0; j < NV4; j++) {
             pc_v4 bv;
             memcpy(&bv, b + 8 * NV8 + 4 * j, sizeof bv);
-            acc4[j] += av * bv;
+            acc4[j] += av4 * bv;
         }
     }
     for (j = 0; j < NV8; j++)

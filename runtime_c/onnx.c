@@ -98,19 +98,26 @@ pc_status onnx_tensor_header(const pc_builder *b, pb_slice msg, onnx_tensor *t)
     return onnx_tensor_check(b, t);
 }
 
+static int onnx_host_little_endian(void)
+{
+    const uint16_t one = 1;
+    uint8_t first;
+    memcpy(&first, &one, 1);
+    return first == 1;
+}
+
 /* Raw little-endian data the host reads as it lies: float32 or int64 at its alignment. */
 static int onnx_in_place(const onnx_tensor *t)
 {
-    const uint16_t one = 1;
     const size_t esize = pc_dtype_size(t->dtype);
-    uint8_t little;
-    memcpy(&little, &one, 1);
-    return little && t->has_raw && (t->data_type == ONNX_FLOAT || t->data_type == ONNX_INT64) &&
+    return onnx_host_little_endian() && t->has_raw &&
+           (t->data_type == ONNX_FLOAT || t->data_type == ONNX_INT64) &&
            ((uintptr_t)t->raw.data % esize) == 0;
 }
 
 /* raw_data into the tensor's buffer: int32 widened to int64, booleans to 0 or 1, the rest
- * copied (little-endian, maybe unaligned in the file). */
+ * copied (little-endian, maybe unaligned in the file; on a big-endian host each element's
+ * bytes reversed). */
 static void onnx_raw_copy(const onnx_tensor *t, void *v)
 {
     size_t k;
@@ -126,8 +133,15 @@ static void onnx_raw_copy(const onnx_tensor *t, void *v)
         uint8_t *o = (uint8_t *)v;
         for (k = 0; k < t->count; k++)
             o[k] = t->raw.data[k] != 0;
-    } else {
+    } else if (onnx_host_little_endian()) {
         memcpy(v, t->raw.data, t->raw.size);
+    } else {
+        const size_t esize = pc_dtype_size(t->dtype);
+        uint8_t *o = (uint8_t *)v;
+        size_t i;
+        for (k = 0; k < t->count; k++)
+            for (i = 0; i < esize; i++)
+                o[k * esize + i] = t->raw.data[k * esize + esize - 1 - i];
     }
 }
 

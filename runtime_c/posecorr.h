@@ -106,7 +106,7 @@ enum {
      * model is used: in flash, a memory-mapped file, a static array. float32 and int64
      * initializers stored as little-endian raw_data at an aligned offset (posecorr's
      * exporter aligns them to 16 bytes) are then read where they lie instead of being
-     * copied into the arena. */
+     * copied into the arena; a big-endian host copies them (byte-swapped) all the same. */
     PC_LOAD_IN_PLACE = 1u << 0,
     /* One-pose plans run every node as its own kernel instead of compiling the small
      * elementwise subgraphs into one-pose programs: less load-time memory, slower. */

@@ -5,12 +5,14 @@
 #include "posecorr.h"
 
 #include <math.h>
+#include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 
-static unsigned long rng_state = 88172645463325252UL;
-static unsigned long rnd(void)
+/* xorshift64: 64-bit state on every host (unsigned long is 32 bits on a 32-bit one). */
+static uint64_t rng_state = 88172645463325252ULL;
+static uint64_t rnd(void)
 {
     rng_state ^= rng_state << 13;
     rng_state ^= rng_state >> 7;

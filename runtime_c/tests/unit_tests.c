@@ -49,6 +49,18 @@ static void put_bytes(buf *b, unsigned field, const void *p, size_t n)
     b->n += n;
 }
 static void put_str(buf *b, unsigned field, const char *s) { put_bytes(b, field, s, strlen(s)); }
+/* The float sum a model computes: C may evaluate the test's own sum wider (FLT_EVAL_METHOD 1
+ * on s390x, 2 on x87) and compare it unrounded; the call rounds it as the runtime stores it. */
+static float f32(float x) { return x; }
+/* A float as the wire format and raw_data hold it: little-endian, whatever the host. */
+static void put_f32le(buf *b, float x)
+{
+    uint32_t u;
+    int i;
+    memcpy(&u, &x, 4);
+    for (i = 0; i < 4; i++)
+        b->d[b->n++] = (uint8_t)(u >> (8 * i));
+}
 static void put_msg(buf *b, unsigned field, const buf *m) { put_bytes(b, field, m->d, m->n); }
 
 static void value_info(buf *out, unsigned field, const char *name, int width, int elem)
@@ -94,16 +106,10 @@ static void build(buf *model, const spec *s, const float *c)
         put_int(&tensor, 1, 7);
         put_int(&tensor, 2, 1);
         put_str(&tensor, 8, "c");
-        if (s->raw) {
-            put_bytes(&tensor, 9, c, 7 * sizeof(float));
-        } else {
-            put_tag(&tensor, 4, 2);
-            put_varint(&tensor, 7 * 4);
-            for (k = 0; k < 7; k++) {
-                memcpy(tensor.d + tensor.n, &c[k], 4);
-                tensor.n += 4;
-            }
-        }
+        put_tag(&tensor, s->raw ? 9 : 4, 2); /* raw_data, or packed float_data */
+        put_varint(&tensor, 7 * 4);
+        for (k = 0; k < 7; k++)
+            put_f32le(&tensor, c[k]);
         put_msg(&graph, 5, &tensor);
     }
     value_info(&graph, 11, s->in_name, s->in_width, 1);
@@ -196,8 +202,7 @@ static void test_fields(void)
     size_t n = 0, count = 0;
     put_int(&b, 3, 300);
     put_tag(&b, 2, 5);
-    memcpy(b.d + b.n, &x, 4);
-    b.n += 4;
+    put_f32le(&b, x);
     put_str(&b, 1, "abc");
     put_tag(&b, 8, 2); /* packed ints 1, 2, 300 */
     put_varint(&b, 4);
@@ -328,7 +333,7 @@ static void test_load_and_run(void)
         CHECK(pc_run(m, in, 1000, out) == PC_OK);
         ok = 1;
         for (i = 0; i < 1000 * 7; i++)
-            if (out[i] != in[i] + c[i % 7])
+            if (out[i] != f32(in[i] + c[i % 7]))
                 ok = 0;
         CHECK(ok);
         /* every n up to 40 (chunk decomposition), exact */
@@ -338,13 +343,13 @@ static void test_load_and_run(void)
             CHECK(pc_run(m, in + 7, i, out) == PC_OK);
             ok = 1;
             for (j = 0; j < i * 7; j++)
-                if (out[j] != in[7 + j] + c[j % 7])
+                if (out[j] != f32(in[7 + j] + c[j % 7]))
                     ok = 0;
             CHECK(ok);
         }
         /* in-place */
         memcpy(out, in, 10 * 7 * sizeof(float));
-        CHECK(pc_run(m, out, 10, out) == PC_OK && out[0] == in[0] + c[0] && out[3] == in[3]);
+        CHECK(pc_run(m, out, 10, out) == PC_OK && out[0] == f32(in[0] + c[0]) && out[3] == in[3]);
         /* n = 0 is a no-op */
         out[0] = 42.0f;
         CHECK(pc_run(m, NULL, 0, NULL) == PC_OK);
@@ -436,13 +441,13 @@ static void test_load_into(void)
     CHECK(n_heap_calls == 0);
 #endif
     for (i = 0; m && i < 40 * 7; i++)
-        if (out[i] != in[i] + c[i % 7])
+        if (out[i] != f32(in[i] + c[i % 7]))
             ok = 0;
     CHECK(ok);
     CHECK((unsigned char *)m >= arena && (unsigned char *)m + pc_arena_bytes(m) <= arena + 1 + need);
     /* the scratch before the model is the caller's again */
     memset(arena, 0xA5, (size_t)((unsigned char *)m - arena));
-    CHECK(m && pc_run(m, in, 40, out) == PC_OK && out[7] == in[7] + c[0]);
+    CHECK(m && pc_run(m, in, 40, out) == PC_OK && out[7] == f32(in[7] + c[0]));
     pc_free(m); /* a no-op: the caller owns the buffer */
     CHECK(pc_load_into(model.d, model.n, &ALLOW, NULL, need, &m, &err) == PC_ERR_ARGUMENT);
 }

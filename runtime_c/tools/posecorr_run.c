@@ -21,6 +21,7 @@
 #include "posecorr.h"
 
 #include <math.h>
+#include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -196,21 +197,44 @@ static int write_text_pose(const float *out)
     return n > 0 && fflush(stdout) == 0;
 }
 
+/* A record's floats between the stream's little-endian bytes and the host's order. */
+static void float_from_le(const unsigned char *b, float *x)
+{
+    const uint32_t u = (uint32_t)b[0] | (uint32_t)b[1] << 8 | (uint32_t)b[2] << 16 |
+                       (uint32_t)b[3] << 24;
+    memcpy(x, &u, sizeof *x);
+}
+
+static void float_to_le(float x, unsigned char *b)
+{
+    uint32_t u;
+    int i;
+    memcpy(&u, &x, sizeof u);
+    for (i = 0; i < 4; i++)
+        b[i] = (unsigned char)(u >> (8 * i));
+}
+
 static int write_binary_pose(const float *out)
 {
-    return fwrite(out, sizeof(float), PC_POSE_WIDTH, stdout) == PC_POSE_WIDTH &&
-           fflush(stdout) == 0;
+    unsigned char record[4 * PC_POSE_WIDTH];
+    int i;
+    for (i = 0; i < PC_POSE_WIDTH; i++)
+        float_to_le(out[i], record + 4 * i);
+    return fwrite(record, 1, sizeof record, stdout) == sizeof record && fflush(stdout) == 0;
 }
 
 static int run_binary(pc_model *model, int strict)
 {
+    unsigned char bytes[4 * PC_POSE_WIDTH];
     float in[PC_POSE_WIDTH], out[PC_POSE_WIDTH];
     unsigned long record = 0;
-    int failed = 0;
+    int failed = 0, i;
     size_t got;
-    while ((got = fread(in, 1, sizeof in, stdin)) == sizeof in) {
+    while ((got = fread(bytes, 1, sizeof bytes, stdin)) == sizeof bytes) {
         pc_status st;
         record++;
+        for (i = 0; i < PC_POSE_WIDTH; i++)
+            float_from_le(bytes + 4 * i, in + i);
         if ((st = pc_run(model, in, 1, out)) != PC_OK) {
             fprintf(stderr, "posecorr-run: record %lu: %s: %s\n", record, pc_status_name(st),
                     pc_model_message(model));
@@ -225,7 +249,7 @@ static int run_binary(pc_model *model, int strict)
     if (got != 0) {
         fprintf(stderr, "posecorr-run: record %lu: partial record of %lu bytes at the end of "
                         "input (a record is %lu bytes: 7 float32)\n",
-                record + 1, (unsigned long)got, (unsigned long)sizeof in);
+                record + 1, (unsigned long)got, (unsigned long)sizeof bytes);
         return 1;
     }
     if (ferror(stdin)) {

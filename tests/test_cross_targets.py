@@ -1,19 +1,21 @@
 """libposecorr on other processors: the runtime cross-built with Debian's GCC cross compilers
-and run under QEMU's user-mode emulator, on three hosts that differ from this one where a C
-runtime can go wrong:
+and run under QEMU's user-mode emulator, on hosts that differ from this one where a C runtime
+can go wrong:
 
 - aarch64: a 64-bit ARM controller (a Jetson, a Raspberry Pi);
 - s390x: big-endian (the ONNX file's raw weights and posecorr-run's binary records are
-  little-endian whatever the host), and C evaluates float arithmetic in double there
-  (FLT_EVAL_METHOD 1);
-- i686: 32-bit pointers and sizes, and the x87 unit, which evaluates float arithmetic in
-  long double (FLT_EVAL_METHOD 2).
+  little-endian whatever the host), and ISO C evaluates float arithmetic in double there
+  (FLT_EVAL_METHOD 1), which the build turns off (-fexcess-precision=fast);
+- i686: 32-bit pointers and sizes, with the x87 unit, which evaluates float arithmetic in long
+  double (FLT_EVAL_METHOD 2) and has no float arithmetic to turn to, and built for SSE2.
 
-On each the C unit tests pass, and `posecorr-run` corrects 2,000 poses per shipped model within
-float32 rounding of onnxruntime and of this machine's build (bit for bit on aarch64 but for
-the eaa encoding's trigonometry). Needs each target's gcc-TARGET-linux-gnu and qemu-user
-(`.ci/run` installs them; with POSECORR_REQUIRE_EMBEDDED=1 their absence is a failure, as for
-the microcontroller).
+On each the C unit tests pass and `posecorr-run` corrects 2,000 poses per shipped model within
+float32 rounding of onnxruntime and of this machine's build: bit for bit where float
+arithmetic is evaluated as float (every target here but x87), but for glibc's atanf, sinf and
+cosf in the eaa encoding. The one-pose function `posecorr compile` writes for each model,
+built with the same flags, gives `posecorr-run`'s bits there (on x87, its rounding).
+Needs gcc-{aarch64,s390x,i686}-linux-gnu and qemu-user (`.ci/run` installs them; with
+POSECORR_REQUIRE_EMBEDDED=1 their absence is a failure, as for the microcontroller).
 """
 from __future__ import annotations
 
@@ -37,13 +39,16 @@ MODELS = sorted((ROOT / "models").glob("*.onnx"))
 
 @dataclass(frozen=True)
 class Target:
+    name: str
     processor: str       # CMAKE_SYSTEM_PROCESSOR and Debian's triplet's first part
     emulator: str
     elf_machine: int     # e_machine of its executables
-    # IEEE single-precision arithmetic as on x86-64, so the same bits: only glibc's atanf,
-    # sinf and cosf (the eaa encoding) round a few ties apart. Where C evaluates float
-    # arithmetic wider (FLT_EVAL_METHOD 1 or 2), most poses differ in their last bits.
-    same_arithmetic: bool
+    # What a user adds to build for float arithmetic evaluated as float (CMAKE_C_FLAGS and
+    # the compiled function's flags); libposecorr's build adds s390x's itself.
+    flags: tuple[str, ...] = ()
+    # IEEE single-precision arithmetic as on x86-64, so the same bits. Where C evaluates
+    # float arithmetic wider (x87) most poses differ in their last bits.
+    same_bits: bool = True
 
     @property
     def compiler(self) -> str:
@@ -54,10 +59,11 @@ class Target:
         return Path(f"/usr/{self.processor}-linux-gnu")
 
 
-TARGETS = {t.processor: t for t in (
-    Target("aarch64", "qemu-aarch64", 183, same_arithmetic=True),
-    Target("s390x", "qemu-s390x", 22, same_arithmetic=False),
-    Target("i686", "qemu-i386", 3, same_arithmetic=False),
+TARGETS = {t.name: t for t in (
+    Target("aarch64", "aarch64", "qemu-aarch64", 183),
+    Target("s390x", "s390x", "qemu-s390x", 22, flags=("-fexcess-precision=fast",)),
+    Target("i686-x87", "i686", "qemu-i386", 3, same_bits=False),
+    Target("i686-sse2", "i686", "qemu-i386", 3, flags=("-msse2", "-mfpmath=sse")),
 )}
 
 
@@ -68,9 +74,10 @@ def target(request) -> tuple[Target, Path]:
     t = TARGETS[request.param]
     require(f"{t.processor} cross toolchain", (t.compiler, t.emulator),
             f"gcc-{t.processor}-linux-gnu qemu-user")
-    build = graphs.build_runtime(ROOT / "build" / f"{t.processor}-test", "-DPC_BUILD_TESTS=ON",
+    flags = [] if t.processor == "s390x" else [f"-DCMAKE_C_FLAGS={' '.join(t.flags)}"] if t.flags else []
+    build = graphs.build_runtime(ROOT / "build" / f"{t.name}-test", "-DPC_BUILD_TESTS=ON",
                                  "-DCMAKE_SYSTEM_NAME=Linux", f"-DCMAKE_SYSTEM_PROCESSOR={t.processor}",
-                                 f"-DCMAKE_C_COMPILER={t.compiler}")
+                                 f"-DCMAKE_C_COMPILER={t.compiler}", *flags)
     return t, build
 
 
@@ -93,12 +100,53 @@ def test_the_build_is_for_the_target(target):
     order = "little" if header[5] == 1 else "big"  # EI_DATA
     assert header[:4] == b"\x7fELF" and int.from_bytes(header[18:20], order) == t.elf_machine
     assert (order == "big") == (t.processor == "s390x")
+    # s390x's build evaluates float as float by itself; x87 cannot
+    flags = (build / "CMakeFiles" / "posecorr_obj.dir" / "flags.make").read_text()
+    assert ("-fexcess-precision=fast" in flags) == (t.processor == "s390x")
 
 
 def test_unit_tests_pass(target):
     r = emulated(target, "pc_unit_tests", *map(str, MODELS))
     tail = r.stdout.decode().strip().splitlines()[-1]
     assert r.returncode == 0 and tail.endswith(" 0 failed"), r.stdout.decode() + r.stderr.decode()
+
+
+# The compiled function between posecorr-run's records: little-endian float32 in and out,
+# seven NaN where the function refuses the pose.
+DRIVER = r"""
+#include <math.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <string.h>
+int m_run(const float in[7], float out[7]);
+int main(void)
+{
+    unsigned char rec[28];
+    float in[7], out[7];
+    int i;
+    while (fread(rec, 1, sizeof rec, stdin) == sizeof rec) {
+        for (i = 0; i < 7; i++) {
+            const unsigned char *b = rec + 4 * i;
+            const uint32_t u = (uint32_t)b[0] | (uint32_t)b[1] << 8 | (uint32_t)b[2] << 16 |
+                               (uint32_t)b[3] << 24;
+            memcpy(&in[i], &u, 4);
+        }
+        if (m_run(in, out) != 0)
+            for (i = 0; i < 7; i++)
+                out[i] = NAN;
+        for (i = 0; i < 7; i++) {
+            uint32_t u;
+            memcpy(&u, &out[i], 4);
+            rec[4 * i] = (unsigned char)u;
+            rec[4 * i + 1] = (unsigned char)(u >> 8);
+            rec[4 * i + 2] = (unsigned char)(u >> 16);
+            rec[4 * i + 3] = (unsigned char)(u >> 24);
+        }
+        fwrite(rec, 1, sizeof rec, stdout);
+    }
+    return 0;
+}
+"""
 
 
 def poses_in_bounds(session, n: int = 2000) -> np.ndarray:
@@ -126,11 +174,35 @@ def test_corrects_as_x86_and_onnxruntime(model, target, here):
     want = session.run(None, {session.get_inputs()[0].name: x})[0]
     np.testing.assert_allclose(there_out, want, rtol=0, atol=2e-6)
     bits_equal = np.all(there_out.view(np.uint32) == mine_out.view(np.uint32), axis=1).mean()
-    print(f"{t.processor} {model.stem}: {bits_equal:.2%} of {len(x)} poses bit-equal to x86-64, max |{t.processor} - "
-          f"x86| {np.abs(there_out - mine_out).max():.2g}, max |{t.processor} - onnxruntime| "
+    print(f"{t.name} {model.stem}: {bits_equal:.2%} of {len(x)} poses bit-equal to x86-64, max |{t.name} - "
+          f"x86| {np.abs(there_out - mine_out).max():.2g}, max |{t.name} - onnxruntime| "
           f"{np.abs(there_out - want).max():.2g}")
     assert np.abs(there_out - mine_out).max() <= 1e-6
-    if t.same_arithmetic and "eaa" in model.stem:
+    if t.same_bits and "eaa" in model.stem:
         assert bits_equal >= 0.99
-    elif t.same_arithmetic:
+    elif t.same_bits:
         assert bits_equal == 1.0, f"{1 - bits_equal:.2%} of poses differ in their bits"
+
+
+@pytest.mark.parametrize("model", MODELS, ids=[m.stem for m in MODELS])
+def test_compiled_function_gives_pc_run_bits(model, target, tmp_path):
+    t, _ = target
+    source, driver, exe = tmp_path / "m.c", tmp_path / "driver.c", tmp_path / "m"
+    r = subprocess.run([sys.executable, "-m", "posecorr.cli", "compile", str(model), "-o", str(source),
+                        "--name", "m"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    driver.write_text(DRIVER)
+    r = subprocess.run([t.compiler, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic", *t.flags,
+                        str(source), str(driver), "-lm", "-o", str(exe)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+    x = poses_in_bounds(ort.InferenceSession(str(model)), 1000).astype("<f4").tobytes()
+    compiled = subprocess.run([t.emulator, str(exe)], input=x, capture_output=True, timeout=300,
+                              env={**os.environ, "QEMU_LD_PREFIX": str(t.sysroot)})
+    run = emulated(target, "posecorr-run", str(model), "--binary", data=x)
+    assert compiled.returncode == 0 and run.returncode == 0, compiled.stderr[-500:] + run.stderr[-500:]
+    got, want = (np.frombuffer(r.stdout, "<f4").reshape(-1, 7) for r in (compiled, run))
+    if t.same_bits:
+        same = np.all(got.view(np.uint32) == want.view(np.uint32), axis=1)
+        assert same.all(), f"{t.name}: {np.sum(~same)} of {len(same)} poses differ from pc_run's bits"
+    else:  # each rounds its wide sums where its own code stores them
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)

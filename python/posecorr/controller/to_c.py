@@ -443,7 +443,9 @@ def _header(name: str, origin: str, digest: str | None, takes_time: bool) -> str
     ', t: its time (s since the session start, the input "t")' if takes_time else ''};
  * out: the corrected pose as its output "corrected". The same operations in the same
  * order as libposecorr's pc_run on this model, so the same bits (built without
- * -ffast-math; contraction into fused multiply-adds is switched off below), and pc_run's
+ * -ffast-math, with float arithmetic evaluated as float, FLT_EVAL_METHOD 0 as on x86-64 and
+ * ARM: on s390x add -fexcess-precision=fast, on x87 -msse2 -mfpmath=sse; contraction into
+ * fused multiply-adds is switched off below), and pc_run's
  * checks with the numbers pc_run compares (the model's input bounds and correction reach:
  * none when it has none and was compiled with --allow-unbounded). Returns, as pc_run
  * refuses (out is written on 0 only):

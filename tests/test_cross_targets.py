@@ -14,9 +14,10 @@ float32 rounding of onnxruntime and of this machine's build: bit for bit where f
 arithmetic is evaluated as float (every target here but x87), but for glibc's atanf, sinf and
 cosf in the eaa encoding. The one-pose function `posecorr compile` writes for each model,
 built with the same flags, gives `posecorr-run`'s bits there (on x87, its rounding).
-Clang (macOS's compiler, and ARM's) builds it here with every warning an error and gives
-GCC's bits. Needs gcc-{aarch64,s390x,i686}-linux-gnu, qemu-user and clang (`.ci/run` installs
-them; with POSECORR_REQUIRE_EMBEDDED=1 their absence is a failure, as for the microcontroller).
+Clang (macOS's compiler, and ARM's) and tcc (no GNU C extensions) build it here and give
+GCC's bits. Needs gcc-{aarch64,s390x,i686}-linux-gnu, qemu-user, clang and tcc (`.ci/run`
+installs them; with POSECORR_REQUIRE_EMBEDDED=1 their absence is a failure, as for the
+microcontroller).
 """
 from __future__ import annotations
 
@@ -209,16 +210,24 @@ def test_compiled_function_gives_pc_run_bits(model, target, tmp_path):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
 
 
-def test_clang_build_gives_gcc_bits(here):
+# Other compilers on this machine: clang (macOS's, and ARM's), and tcc, which defines no
+# __GNUC__, so it builds the paths a compiler without GNU C's extensions takes (MSVC's): no
+# vector types, no AVX2 copy, no attributes.
+OTHER_COMPILERS = ("clang", "tcc")
+
+
+@pytest.mark.parametrize("compiler", OTHER_COMPILERS)
+def test_other_compiler_gives_gcc_bits(compiler, here):
     import graphs
 
-    require("clang", ("clang",), "clang")
-    build = graphs.build_runtime(ROOT / "build" / "clang-test", "-DPC_BUILD_TESTS=ON", "-DCMAKE_C_COMPILER=clang")
+    require(compiler, (compiler,), compiler)
+    build = graphs.build_runtime(ROOT / "build" / f"{compiler}-test", "-DPC_BUILD_TESTS=ON",
+                                 f"-DCMAKE_C_COMPILER={compiler}")
     r = subprocess.run([str(build / "pc_unit_tests"), *map(str, MODELS)], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0 and r.stdout.strip().endswith(" 0 failed"), r.stdout[-2000:] + r.stderr[-2000:]
     for model in MODELS:
         x = poses_in_bounds(ort.InferenceSession(str(model)), 1000).tobytes()
-        clang, gcc = (subprocess.run([str(b / "posecorr-run"), str(model), "--binary"], input=x, capture_output=True,
+        other, gcc = (subprocess.run([str(b / "posecorr-run"), str(model), "--binary"], input=x, capture_output=True,
                                      timeout=300) for b in (build, here))
-        assert clang.returncode == 0 and gcc.returncode == 0, clang.stderr[-500:] + gcc.stderr[-500:]
-        assert clang.stdout == gcc.stdout, f"{model.stem}: clang's outputs differ from GCC's in their bits"
+        assert other.returncode == 0 and gcc.returncode == 0, other.stderr[-500:] + gcc.stderr[-500:]
+        assert other.stdout == gcc.stdout, f"{model.stem}: {compiler}'s outputs differ from GCC's in their bits"

@@ -33,6 +33,7 @@ WHOLE_NAMES = {"Makefile", "CMakeLists.txt"}
 NOT_REPOSITORY_FILES = {
     "F.py", "OUT.c", "OUT.h",      # placeholders in usage lines
     "Python.h", "eml_net.h",       # headers of CPython and emlearn
+    "stdatomic.h",                 # C11's, looked for by runtime_c/CMakeLists.txt
     "model_data.c", "poses.h",     # written by the firmware build (runtime_c/embedded/Makefile)
     "mlp_weights.h",
     "zhou_compiled.c",             # ... by `posecorr compile` there (the guide's example)

@@ -128,6 +128,38 @@ def test_sweep_progress_in_a_log_is_whole_lines(tmp_path, capsys):
     assert last.startswith("sweep: 4/4 runs, ") and last.endswith(f"best {best['rmse_total']:.4g} {best['key']}")
 
 
+SWEEP_SCRIPT = """
+from posecorr.simulate import simulate
+from posecorr.train.protocol import run_sweep
+from posecorr.train.spec import ModelSpec
+
+def main():
+    rows = run_sweep(simulate(3, seed=0).table, [ModelSpec("pmc", "zhou")], repeats=2, workers=2,
+                     progress=False).rows
+    print(len(rows), "runs")
+"""
+
+
+@pytest.mark.parametrize("guarded", [True, False])
+def test_a_script_runs_the_sweep_on_workers_under_the_main_guard(tmp_path, guarded):
+    """Workers start from a forkserver and import the main script first: a script that calls
+    run_sweep at its top level is told in one line to guard it, not left with a page of
+    multiprocessing's text and a BrokenProcessPool."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "sweep_script.py"
+    script.write_text(SWEEP_SCRIPT + ('if __name__ == "__main__":\n    main()\n' if guarded else "main()\n"))
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    if guarded:
+        assert r.returncode == 0 and r.stdout.strip() == "2 runs", r.stderr[-2000:]
+    else:
+        last = r.stderr.strip().splitlines()[-1]
+        assert r.returncode == 1 and last.startswith("RuntimeError: a sweep worker died before its run ended")
+        assert 'call run_sweep under `if __name__ == "__main__":`' in last
+        assert "BrokenProcessPool" not in r.stderr and "freeze_support" not in r.stderr
+
+
 def test_cross_validation_pools_out_of_fold_predictions():
     """`fit --cv`'s cross-validation (`pipeline.cross_validate`) of a bare core."""
     from posecorr.train.pipeline import CorrectionPipeline, cross_validate

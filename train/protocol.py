@@ -414,6 +414,8 @@ def run_sweep(table: Any, configs: Sequence[ModelSpec], repeats: int = 30, store
     process). ``ray_address``: run on a Ray cluster instead (its head's "host:port", "auto" for
     the cluster this machine belongs to, "ray://host:port" through Ray Client, or "local").
     ``threads``: torch / BLAS threads per worker process (default ``default_threads(workers)``).
+    Local workers start from a forkserver and import the main script first: a script calls
+    run_sweep with ``workers`` > 1 under ``if __name__ == "__main__":``.
     """
     configs = list(configs)
     ray = _check_sweep(table, configs, ray_address)
@@ -554,10 +556,16 @@ def _sweep_on_pool(table: Any, todo: list[tuple[ModelSpec, int]], seed: int, wor
                    threads: int | None, record: _Recorder) -> None:
     """Run ``todo`` on a local process pool, recording each run as it finishes."""
     from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
     import multiprocessing as mp
 
     from posecorr.threads import default_threads
 
+    # A worker starts by importing the main script: one that calls run_sweep at its top level
+    # would call it again there. multiprocessing marks that import with _inheriting (its own
+    # check reads it too); say what to do in one line instead of its page of text.
+    if getattr(mp.current_process(), "_inheriting", False):
+        raise RuntimeError(f"run_sweep was called while a worker imported the script that calls it: {UNGUARDED_SCRIPT}")
     threads = threads or default_threads(workers)
     # Not fork: this process runs torch's and BLAS's threads, and a fork copies their locks
     # in whatever state they are (Python 3.12 warns of it, 3.14 no longer forks by default).
@@ -573,15 +581,23 @@ def _sweep_on_pool(table: Any, todo: list[tuple[ModelSpec, int]], seed: int, wor
                 row = fut.result()
                 recorded.add(fut)
                 record(row)
-    except BaseException:
+    except BaseException as exc:
         # Interrupted (Ctrl-C, SIGTERM) or a run failed: keep every run that finished.
         for fut in futures:
             if fut not in recorded and fut.done() and not fut.cancelled() and fut.exception() is None:
                 record(fut.result())
         _stop_pool(pool)
         record.close()
+        if isinstance(exc, BrokenProcessPool):
+            raise RuntimeError("a sweep worker died before its run ended: killed, out of memory, or it imported a "
+                               f"script that calls run_sweep at its top level ({UNGUARDED_SCRIPT}); the runs that "
+                               "finished are kept") from None
         raise
     pool.shutdown(wait=True)
+
+
+UNGUARDED_SCRIPT = ("call run_sweep under `if __name__ == \"__main__\":`, as every process pool that does not "
+                    "fork asks: each worker imports the main script first")
 
 
 # A run lost with its node (the node died, its worker was killed) is retried on the nodes left;

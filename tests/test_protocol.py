@@ -154,9 +154,11 @@ def test_a_script_runs_the_sweep_on_workers_under_the_main_guard(tmp_path, guard
     if guarded:
         assert r.returncode == 0 and r.stdout.strip() == "2 runs", r.stderr[-2000:]
     else:
-        last = r.stderr.strip().splitlines()[-1]
-        assert r.returncode == 1 and last.startswith("RuntimeError: a sweep worker died before its run ended")
-        assert 'call run_sweep under `if __name__ == "__main__":`' in last
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 1 and lines[-1].startswith("posecorr.train.protocol.SweepWorkerError: a sweep worker "
+                                                          "died before its run ended")
+        assert any(line.startswith("posecorr.train.protocol.SweepWorkerError: run_sweep was called while a worker")
+                   and 'call run_sweep under `if __name__ == "__main__":`' in line for line in lines)
         assert "BrokenProcessPool" not in r.stderr and "freeze_support" not in r.stderr
 
 

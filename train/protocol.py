@@ -565,7 +565,9 @@ def _sweep_on_pool(table: Any, todo: list[tuple[ModelSpec, int]], seed: int, wor
     # would call it again there. multiprocessing marks that import with _inheriting (its own
     # check reads it too); say what to do in one line instead of its page of text.
     if getattr(mp.current_process(), "_inheriting", False):
-        raise RuntimeError(f"run_sweep was called while a worker imported the script that calls it: {UNGUARDED_SCRIPT}")
+        raise SweepWorkerError("run_sweep was called while a worker imported the script that calls it: call "
+                               "run_sweep under `if __name__ == \"__main__\":`, as every process pool that does not "
+                               "fork asks: each worker imports the main script first")
     threads = threads or default_threads(workers)
     # Not fork: this process runs torch's and BLAS's threads, and a fork copies their locks
     # in whatever state they are (Python 3.12 warns of it, 3.14 no longer forks by default).
@@ -589,15 +591,15 @@ def _sweep_on_pool(table: Any, todo: list[tuple[ModelSpec, int]], seed: int, wor
         _stop_pool(pool)
         record.close()
         if isinstance(exc, BrokenProcessPool):
-            raise RuntimeError("a sweep worker died before its run ended: killed, out of memory, or it imported a "
-                               f"script that calls run_sweep at its top level ({UNGUARDED_SCRIPT}); the runs that "
-                               "finished are kept") from None
+            raise SweepWorkerError("a sweep worker died before its run ended (killed, out of memory, or it could not "
+                               "start: then its own message is above); the runs that finished are kept") from None
         raise
     pool.shutdown(wait=True)
 
 
-UNGUARDED_SCRIPT = ("call run_sweep under `if __name__ == \"__main__\":`, as every process pool that does not "
-                    "fork asks: each worker imports the main script first")
+class SweepWorkerError(RuntimeError):
+    """A local worker process could not run or died: the cause is outside the data (one line
+    from the CLI)."""
 
 
 # A run lost with its node (the node died, its worker was killed) is retried on the nodes left;

@@ -592,7 +592,7 @@ def _sweep_on_pool(table: Any, todo: list[tuple[ModelSpec, int]], seed: int, wor
         record.close()
         if isinstance(exc, BrokenProcessPool):
             raise SweepWorkerError("a sweep worker died before its run ended (killed, out of memory, or it could not "
-                               "start: then its own message is above); the runs that finished are kept") from None
+                                   "start: then its own message is above); the runs that finished are kept") from None
         raise
     pool.shutdown(wait=True)
 

@@ -569,10 +569,7 @@ def _sweep_on_pool(table: Any, todo: list[tuple[ModelSpec, int]], seed: int, wor
                                "run_sweep under `if __name__ == \"__main__\":`, as every process pool that does not "
                                "fork asks: each worker imports the main script first")
     threads = threads or default_threads(workers)
-    # Not fork: this process runs torch's and BLAS's threads, and a fork copies their locks
-    # in whatever state they are (Python 3.12 warns of it, 3.14 no longer forks by default).
-    ctx = mp.get_context("forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn")
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=_pool_context(), initializer=_worker_init,
                                initargs=(threads,))
     futures: list[Any] = []
     recorded: set[Any] = set()
@@ -595,6 +592,25 @@ def _sweep_on_pool(table: Any, todo: list[tuple[ModelSpec, int]], seed: int, wor
                                    "start: then its own message is above); the runs that finished are kept") from None
         raise
     pool.shutdown(wait=True)
+
+
+def _pool_context() -> Any:
+    """How pool workers start. Not by fork: this process runs torch's and BLAS's threads, and
+    a fork copies their locks in whatever state they are (Python 3.12 warns of it, 3.14 no
+    longer forks by default). A forkserver where one starts, else spawn: the forkserver's
+    socket lives under TMPDIR, and a TMPDIR past ~90 bytes leaves its path too long for a
+    Unix socket (Python 3.11-3.13 do not fall back themselves)."""
+    import multiprocessing as mp
+
+    if "forkserver" in mp.get_all_start_methods():
+        from multiprocessing import forkserver
+
+        try:
+            forkserver.ensure_running()
+            return mp.get_context("forkserver")
+        except OSError:
+            pass
+    return mp.get_context("spawn")
 
 
 class SweepWorkerError(RuntimeError):

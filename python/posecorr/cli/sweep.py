@@ -27,7 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--epochs", type=options.integer(1, 1_000_000), help="epoch cap of every MLP")
     p.add_argument("--repeats", type=options.integer(1, 10_000), default=30)
     p.add_argument("--store", type=Path, help="results store (JSON lines); an interrupted sweep resumes from it")
-    p.add_argument("--workers", type=options.integer(1, 1024), default=2)
+    p.add_argument("--workers", type=options.integer(1, 1024), default=None,
+                   help="local worker processes (default 2, or 1 on a one-core machine; at most the cores)")
     threads_option(p, "per worker process")
     p.add_argument("--ray", metavar="ADDRESS",
                    help="run on a Ray cluster instead: its head's HOST:PORT, 'auto' (the cluster this machine "
@@ -46,10 +47,10 @@ def run(args: argparse.Namespace) -> None:
     for arch in (args.architectures or "").split(","):
         if arch.strip() and not arch.strip().startswith("#"):
             options.layer_sizes(arch, "--architectures")
-    if args.workers > options.cores():
-        print(f"sweep: --workers {args.workers} capped at the {options.cores()} cores of this machine",
-              file=sys.stderr)
-        args.workers = options.cores()
+    # Said when the work starts, so that a command refused below still ends in one line.
+    requested = args.workers
+    capped = requested is not None and requested > options.cores()
+    args.workers = min(requested or 2, options.cores())
     threads = apply_threads(args, workers=args.workers)
     if (args.experiment is None) == (args.data is None):
         raise CliError("give either --experiment N or a DATA.csv")
@@ -74,6 +75,8 @@ def run(args: argparse.Namespace) -> None:
                          options=grid_options)
     store = args.store or default_store
     _check_store(store)
+    if capped:
+        print(f"sweep: --workers {requested} capped at the {options.cores()} cores of this machine", file=sys.stderr)
     # stdout carries the verb's result alone: what a Ray cluster prints while it works (a node
     # lost, a run retried) goes to stderr with the progress bar.
     with exclusive(store), contextlib.redirect_stdout(sys.stderr):

@@ -605,9 +605,15 @@ def _pool_context() -> Any:
     if "forkserver" in mp.get_all_start_methods():
         from multiprocessing import forkserver
 
+        # The server preloads this module, not the main script (multiprocessing's default):
+        # a script that calls run_sweep unguarded would call it inside the server, which
+        # then dies with the pool's requests in flight, and the pool can wait on it forever.
+        # Each worker still imports the script itself, and fails alone, in one line.
+        ctx = mp.get_context("forkserver")
+        ctx.set_forkserver_preload([__name__])
         try:
             forkserver.ensure_running()
-            return mp.get_context("forkserver")
+            return ctx
         except OSError:
             pass
     return mp.get_context("spawn")

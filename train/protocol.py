@@ -342,35 +342,48 @@ def _load_store(path: Path, fingerprint: str, seed: int) -> dict[tuple[str, int]
     return done
 
 
-def _worker_init(threads: int) -> None:
+def _worker_init(threads: int, parent: int) -> None:
     """Pool worker set-up: its torch threads, and no life of its own.
 
     Ctrl-C reaches the whole process group; the parent alone decides (it stops the pool),
     so workers ignore SIGINT and take SIGTERM's default. A worker whose parent died, even
-    by kill -9, exits: a thread waits on the parent's sentinel, a pipe the parent alone holds
-    open (the forkserver and spawn start methods give it no other holder), which the kernel
-    closes when the parent dies however it dies.
+    by kill -9, exits: Linux delivers SIGKILL on the parent's death (PR_SET_PDEATHSIG),
+    elsewhere a thread watches the parent id.
     """
-    import multiprocessing
-    import multiprocessing.connection
     import signal
     import threading
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    parent = multiprocessing.parent_process()
-    if parent is not None:
+    if not _die_with_parent():
         def watch() -> None:
-            multiprocessing.connection.wait([parent.sentinel])
+            while os.getppid() == parent:
+                time.sleep(0.5)
             os._exit(1)
 
         threading.Thread(target=watch, daemon=True).start()
+    if os.getppid() != parent:  # the parent died before the request took effect
+        os._exit(1)
     try:
         import torch
 
         torch.set_num_threads(threads)
     except ImportError:
         pass
+
+
+def _die_with_parent() -> bool:
+    import ctypes
+    import signal
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc.prctl(1, int(signal.SIGKILL), 0, 0, 0) == 0  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return False
 
 
 def _run_in_worker(table: Any, config: ModelSpec, repeat: int, seed: int, threads: int) -> dict[str, Any]:
@@ -414,8 +427,6 @@ def run_sweep(table: Any, configs: Sequence[ModelSpec], repeats: int = 30, store
     process). ``ray_address``: run on a Ray cluster instead (its head's "host:port", "auto" for
     the cluster this machine belongs to, "ray://host:port" through Ray Client, or "local").
     ``threads``: torch / BLAS threads per worker process (default ``default_threads(workers)``).
-    Local workers start from a forkserver and import the main script first: a script calls
-    run_sweep with ``workers`` > 1 under ``if __name__ == "__main__":``.
     """
     configs = list(configs)
     ray = _check_sweep(table, configs, ray_address)
@@ -561,16 +572,12 @@ def _sweep_on_pool(table: Any, todo: list[tuple[ModelSpec, int]], seed: int, wor
 
     from posecorr.threads import default_threads
 
-    # A worker starts by importing the main script: one that calls run_sweep at its top level
-    # would call it again there. multiprocessing marks that import with _inheriting (its own
-    # check reads it too); say what to do in one line instead of its page of text.
-    if getattr(mp.current_process(), "_inheriting", False):
-        raise SweepWorkerError("run_sweep was called while a worker imported the script that calls it: call "
-                               "run_sweep under `if __name__ == \"__main__\":`, as every process pool that does not "
-                               "fork asks: each worker imports the main script first")
     threads = threads or default_threads(workers)
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=_pool_context(), initializer=_worker_init,
-                               initargs=(threads,))
+    # fork, where there is one: a script that calls run_sweep needs no `if __name__ ==
+    # "__main__":` guard (spawn and forkserver import the main script in every worker).
+    ctx = mp.get_context("spawn" if os.name == "nt" else "fork")
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
+                               initargs=(threads, os.getpid()))
     futures: list[Any] = []
     recorded: set[Any] = set()
     try:
@@ -588,35 +595,10 @@ def _sweep_on_pool(table: Any, todo: list[tuple[ModelSpec, int]], seed: int, wor
         _stop_pool(pool)
         record.close()
         if isinstance(exc, BrokenProcessPool):
-            raise SweepWorkerError("a sweep worker died before its run ended (killed, out of memory, or it could not "
-                                   "start: then its own message is above); the runs that finished are kept") from None
+            raise SweepWorkerError("a sweep worker died before its run ended (killed, or out of memory); the runs "
+                                   "that finished are kept") from None
         raise
     pool.shutdown(wait=True)
-
-
-def _pool_context() -> Any:
-    """How pool workers start. Not by fork: this process runs torch's and BLAS's threads, and
-    a fork copies their locks in whatever state they are (Python 3.12 warns of it, 3.14 no
-    longer forks by default). A forkserver where one starts, else spawn: the forkserver's
-    socket lives under TMPDIR, and a TMPDIR past ~90 bytes leaves its path too long for a
-    Unix socket (Python 3.11-3.13 do not fall back themselves)."""
-    import multiprocessing as mp
-
-    if "forkserver" in mp.get_all_start_methods():
-        from multiprocessing import forkserver
-
-        # The server preloads this module, not the main script (multiprocessing's default):
-        # a script that calls run_sweep unguarded would call it inside the server, which
-        # then dies with the pool's requests in flight, and the pool can wait on it forever.
-        # Each worker still imports the script itself, and fails alone, in one line.
-        ctx = mp.get_context("forkserver")
-        ctx.set_forkserver_preload([__name__])
-        try:
-            forkserver.ensure_running()
-            return ctx
-        except OSError:
-            pass
-    return mp.get_context("spawn")
 
 
 class SweepWorkerError(RuntimeError):

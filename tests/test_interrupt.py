@@ -28,8 +28,8 @@ ROOT = Path(__file__).resolve().parents[1]
 MODEL = ROOT / "models" / "pmc-zhou.onnx"
 
 # The hook, run as a script: argv = the posecorr arguments; the mode and the ready-file prefix
-# come by the environment. The sweep's pool starts its workers from a forkserver, which runs
-# this script's top (not its __main__ part) first: so the sweep's patch reaches the workers.
+# come by the environment. The sweep's pool forks its workers after the patch below, so they
+# inherit it; were they spawned, each would run this script's top (not its __main__ part).
 HOOK = r"""
 import os, sys, time
 mode, ready = os.environ["HOOK_MODE"], os.environ["HOOK_READY"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
 import shutil
 import subprocess
 import sys
@@ -1184,8 +1185,10 @@ def test_install_find_package_and_pkg_config(c_build, pose_file, tmp_path):
     if shutil.which("pkg-config") is None:
         pytest.skip("pkg-config not on PATH")
     penv = dict(env, PKG_CONFIG_PATH=str(libdir / "pkgconfig"))
-    flags = subprocess.run(["pkg-config", "--cflags", "--libs", "posecorr"], env=penv,
-                           capture_output=True, text=True, check=True).stdout.split()
+    # pkg-config escapes for a shell, byte by byte: a space or a non-ASCII prefix comes out as
+    # backslashed bytes, as make's $(shell ...) and a shell's eval expect them
+    flags = shlex.split(os.fsdecode(subprocess.run(["pkg-config", "--cflags", "--libs", "posecorr"], env=penv,
+                                                   capture_output=True, check=True).stdout))
     exe = tmp_path / "consumer_pc"
     subprocess.run([os.environ.get("CC", "cc"), str(proj / "main.c"), "-o", str(exe), *flags],
                    check=True, capture_output=True)

@@ -16,6 +16,7 @@ cosf in the eaa encoding. The one-pose function `posecorr compile` writes for ea
 built with the same flags, gives `posecorr-run`'s bits there (on x87, its rounding).
 Clang (macOS's compiler, and ARM's) and tcc (no GNU C extensions) build it here and give
 GCC's bits; so does GCC over musl instead of glibc, but for the eaa encoding's trigonometry.
+On x86-64 CPUs without AVX2, emulated, the runtime takes its portable kernels: the same bits.
 Needs gcc-{aarch64,s390x,i686}-linux-gnu, qemu-user, clang, tcc and musl-tools (`.ci/run`
 installs them; with POSECORR_REQUIRE_EMBEDDED=1 their absence is a failure, as for the
 microcontroller).
@@ -239,3 +240,42 @@ def test_other_compiler_gives_gcc_bits(name, here):
             assert bits_equal >= 0.9 and np.abs(mine - theirs).max() <= 1e-6, (bits_equal, np.abs(mine - theirs).max())
         else:
             assert bits_equal == 1.0, f"{model.stem}: {1 - bits_equal:.2%} of {name}'s outputs differ from GCC's bits"
+
+
+# x86-64 processors without AVX2 (older PCs, many Atom and Celeron controllers): the runtime
+# asks cpuid and XCR0 as it loads a model and takes its portable kernels, which sum in the AVX2
+# kernels' order.
+# QEMU's user-mode emulator reports the CPU it is told but still runs AVX2 instructions, so
+# this checks the choice and the bits; an AVX2 instruction outside the guard would not fault.
+X86_CPUS = {"Nehalem": 0, "SandyBridge": 0, "Haswell-v4": 1}   # SSE4.2; AVX but not AVX2; AVX2
+CPU_PROBE = "#include <stdio.h>\nint pc_test_cpu_avx2(void);\nint main(void) { printf(\"%d\\n\", pc_test_cpu_avx2()); }\n"
+
+
+@pytest.fixture(scope="module")
+def x86_emulator() -> str:
+    import platform
+
+    if platform.machine() != "x86_64":
+        pytest.skip("the host is not x86-64")
+    require("x86-64 emulator", ("qemu-x86_64",), "qemu-user")
+    return "qemu-x86_64"
+
+
+@pytest.mark.parametrize("cpu", list(X86_CPUS))
+def test_the_runtime_reads_the_cpu_it_runs_on(cpu, x86_emulator, here, tmp_path):
+    exe = tmp_path / "cpu_avx2"
+    (tmp_path / "cpu.c").write_text(CPU_PROBE)
+    subprocess.run([os.environ.get("CC", "cc"), str(tmp_path / "cpu.c"), "-o", str(exe), f"-L{here}",
+                    "-lposecorr_testing", f"-Wl,-rpath,{here}"], check=True)
+    r = subprocess.run([x86_emulator, "-cpu", cpu, str(exe)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.strip() == str(X86_CPUS[cpu]), r.stdout + r.stderr[-500:]
+
+
+def test_without_avx2_the_same_bits(x86_emulator, here):
+    for model in MODELS:
+        x = poses_in_bounds(ort.InferenceSession(str(model)), 500).tobytes()
+        old, new = (subprocess.run([*cpu, str(here / "posecorr-run"), str(model), "--binary"], input=x,
+                                   capture_output=True, timeout=300)
+                    for cpu in ([x86_emulator, "-cpu", "Nehalem"], []))
+        assert old.returncode == 0 and new.returncode == 0, old.stderr[-500:] + new.stderr[-500:]
+        assert old.stdout == new.stdout, f"{model.stem}: without AVX2, other bits"

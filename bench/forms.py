@@ -201,8 +201,8 @@ def summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
                         "told_terms_pass": sum(r["told_terms_passes"] for r in mine),
                         "recovery_min": min(recoveries) if recoveries else None,
                         # the seeds together: the proposals' LOO gain over the true form's
-                        "recovery_pooled": sum(r["loo_base"] - (r["loo_proposal"] if r["loo_proposal"] is not None
-                                                                else r["loo_base"]) for r in mine)
+                        "recovery_pooled": sum(r["loo_base"] - r["loo_proposal"] for r in mine
+                                               if r["loo_proposal"] is not None)
                         / sum(r["loo_base"] - r["loo_true"] for r in mine),
                         "true_gain_share_min": min(r["true_gain_share"] for r in mine),
                         "parameters_median": float(np.median([r["parameters"] for r in mine

@@ -26,7 +26,8 @@ Run from the repository root: `python -m bench [--only NAME]`.
 * `forms.json`: the loop when the missing effect is outside the catalogue: on simulated
   50-pose sessions with a strain, a bend, an attitude bias or a heading field, what
   `diagnose` proposes, how much of the true form's leave-one-out gain the proposal's file
-  recovers, how often null sessions get a proposal, and how long `diagnose` takes
+  recovers, how often null sessions get a proposal, whether sessions with the poses the
+  diagnosis asks for show the form (and, without it, nothing), and how long `diagnose` takes
   (`bench/forms.py`).
 * `fit_long.json`: `posecorr fit` on 10^6 rows (wall time, peak memory): refused past
   the rows a fit takes, and fitted on an even draw with `--subsample` (`bench/fit_long.py`).

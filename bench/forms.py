@@ -13,7 +13,9 @@ expected form's test when told which of its terms the error has (`told_terms`): 
 that does not pass, no selection of terms can. And the time `diagnose`
 takes on one 50-pose session (goal: 30 s). And the strain on sessions with a real session's
 floor (`HEAVY`: 30 mm of per-pose error), where a form's directions must not be held for
-their standard error in its units.
+their standard error in its units. And where nothing was proposed but the diagnosis said how
+many poses would show the best form (`poses_to_pass`): the same settings with that many
+poses, diagnosed again (`planned`), with the error and, for the null sessions, without it.
 
 `study` and `null_study` are what tests/test_propose.py runs on fewer seeds.
 """
@@ -83,15 +85,16 @@ def loo(table: Any, effects: list[str]) -> dict[str, float]:
     return {key: float(cv.metrics[key]) for key in ("rmse_pos", "rmse_rot")}
 
 
-def one(scenario: str, seed: int, kind: str, folder: Path, **heavy: float) -> dict[str, Any]:
-    """Diagnose one session, write the proposal, and measure base / true / proposal by LOO."""
+def one(scenario: str, seed: int, kind: str, folder: Path, n: int = 50, **heavy: float) -> dict[str, Any]:
+    """Diagnose one session of `n` poses, write the proposal, and measure base / true /
+    proposal by LOO."""
     from posecorr.analysis.diagnose import ALPHA, MIN_GAIN, diagnose, failed_parts, p_threshold
     from posecorr.analysis.proposal import effect_file_text
     from posecorr.effects import load_effect_file
     from posecorr.rotations import quat_to_matrix
     from posecorr.train.identify import describe_spread
 
-    table = session(scenario, seed, kind, **heavy)
+    table = session(scenario, seed, kind, n=n, **heavy)
     true_name, form, metric, _ = SCENARIOS[scenario]
     truth = loo(table, BASE + [true_name])
     # Would the truth itself, known and alone, pass the diagnosis's test on this session?
@@ -103,12 +106,14 @@ def one(scenario: str, seed: int, kind: str, folder: Path, **heavy: float) -> di
     seconds = time.perf_counter() - started
     base = loo(table, BASE)
     spread = describe_spread(table.meas_p, quat_to_matrix(table.meas_q), table.has_orientation)
-    row = {"scenario": scenario, "kind": kind, "seed": seed, "expected": form, "diagnose_s": round(seconds, 2),
+    row = {"scenario": scenario, "kind": kind, "seed": seed, "poses": n, "expected": form,
+           "diagnose_s": round(seconds, 2),
            "present_effects": [c["effect"] for c in result["candidates"] if c["present"] and c["kind"] == "effect"],
            "proposed": None if result["proposal"] is None else result["proposal"]["forms"],
            "parameters": None if result["proposal"] is None else result["proposal"]["parameters"],
            "terms": None if result["proposal"] is None else result["proposal"]["terms"],
-           "no_proposal": result["no_proposal"], "metric": metric,
+           "no_proposal": result["no_proposal"], "poses_to_pass": result["reach"]["poses_to_pass"],
+           "metric": metric,
            "true_form_passes": bool(known["passes"]), "true_form_p": known["p_value"],
            "true_form_gain": known["score"], "told_terms_p": told["p_value"],
            "told_terms_gain": told["score"], "told_terms_fold_gain_min": told["fold_gain_min"],
@@ -121,7 +126,7 @@ def one(scenario: str, seed: int, kind: str, folder: Path, **heavy: float) -> di
            # what the poses offer an effect that varies with the tracker's attitude
            "orientation_span_deg": float(np.rad2deg(spread.rotation_span))}
     if result["proposal"] is not None:
-        path = folder / f"{scenario}-{kind}-{seed}.py"
+        path = folder / f"{scenario}-{kind}-{seed}-{n}.py"
         path.write_text(effect_file_text(result["proposal"], "bench/forms.py", "session.csv"))
         names = load_effect_file(path)
         got = loo(table, BASE + names)
@@ -157,6 +162,15 @@ def study(seeds: list[int], kinds: tuple[str, ...] = KINDS, scenarios: tuple[str
         return [one(scenario, seed, kind, where) for scenario in scenarios for kind in kinds for seed in seeds]
 
 
+def planned_study(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Where nothing was proposed and the diagnosis said how many poses would show the best
+    form: the same session's settings (spread, noise, the error's size) with that many poses,
+    diagnosed again. Does the estimate hold?"""
+    with tempfile.TemporaryDirectory() as tmp:
+        return [one(r["scenario"], r["seed"], r["kind"], Path(tmp), n=r["poses_to_pass"]["poses"])
+                for r in rows if r["proposed"] is None and r["poses_to_pass"] is not None]
+
+
 def null_study(seeds: list[int], kinds: tuple[str, ...] = KINDS) -> list[dict[str, Any]]:
     from posecorr.analysis.diagnose import ALPHA, MIN_GAIN, diagnose, failed_parts
 
@@ -167,7 +181,12 @@ def null_study(seeds: list[int], kinds: tuple[str, ...] = KINDS) -> list[dict[st
             # making a session registers the test-only effects: the diagnosis must not see them
             hide_outside()
             result = diagnose(table, BASE, folds=5, seed=0)
-            rows.append({"kind": kind, "seed": seed, "proposed": result["proposal"] is not None,
+            plan = result["reach"]["poses_to_pass"]
+            if plan is not None:  # the estimate's other side: more poses of nothing show nothing
+                more = session(None, seed, kind, n=plan["poses"])
+                hide_outside()
+                plan = {**plan, "proposed_then": diagnose(more, BASE, folds=5, seed=0)["proposal"] is not None}
+            rows.append({"kind": kind, "seed": seed, "proposed": result["proposal"] is not None, "poses_to_pass": plan,
                          "candidates": [c["effect"] for c in result["candidates"]],
                          # what the test's parts other than p let through: the p threshold's share
                          "passes_but_p": [c["effect"] for c in result["candidates"]
@@ -223,11 +242,20 @@ def run(path: str, seeds: int = 10, null_seeds: int = 20) -> dict:
     nulls = null_study(list(range(null_seeds)))
     with tempfile.TemporaryDirectory() as tmp:
         heavy = [one("strain", seed, "robot", Path(tmp), **HEAVY) for seed in range(seeds)]
+    planned = planned_study(rows)
     times = [r["diagnose_s"] for r in rows]
     result = {"load_average_1min": round(load, 2), "summary": summary(rows),
               "null": {"sessions": len(nulls), "proposed": sum(r["proposed"] for r in nulls),
                        "any_present": sum(bool(r["present"]) for r in nulls),
-                       "passes_but_p": sum(bool(r["passes_but_p"]) for r in nulls)},
+                       "passes_but_p": sum(bool(r["passes_but_p"]) for r in nulls),
+                       "planned": sum(r["poses_to_pass"] is not None for r in nulls),
+                       "proposed_at_planned_poses": sum(bool(r["poses_to_pass"] and r["poses_to_pass"]["proposed_then"])
+                                                        for r in nulls)},
+              "planned": {"sessions": len(planned),
+                          "expected_form_proposed": sum(r["proposed"] == [r["expected"]] for r in planned),
+                          "recovered_80": sum((r["recovery"] or 0.0) >= 0.8 for r in planned),
+                          "sessions_naming_catalogue": sum(bool(r["present_effects"]) for r in planned),
+                          "rows": planned},
               "diagnose_s": {"median": float(np.median(times)), "max": float(np.max(times)), "goal": 30.0},
               "heavy": {**HEAVY, "summary": summary(heavy)[0], "rows": heavy},
               "rows": rows}

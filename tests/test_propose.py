@@ -172,6 +172,27 @@ def test_real_sessions_p_values_do_not_depend_on_the_cpus_kernels():
         assert nehalem[key][0] == pytest.approx(p, rel=1e-2, abs=1e-6), (key, p, nehalem[key][0])
 
 
+def test_poses_to_pass_agrees_with_the_one_degree_closed_form():
+    """With one degree of freedom the statistic is (Z + sqrt(nc))^2, so its chance of passing
+    is Phi(sqrt(nc) - sqrt(c)) + Phi(-sqrt(nc) - sqrt(c)) with c the critical value: the
+    estimate is the least number of poses whose grown noncentrality passes 80 % of the time."""
+    from scipy.stats import chi2, norm
+
+    from posecorr.analysis.diagnose import poses_to_pass
+
+    def power(nc, threshold):
+        c = np.sqrt(chi2.isf(threshold, 1))
+        return norm.cdf(np.sqrt(nc) - c) + norm.cdf(-np.sqrt(nc) - c)
+
+    for lm, poses, threshold in [(5.0, 50, 1.25e-4), (2.5, 11, 1e-3), (9.0, 300, 1e-6)]:
+        planned = poses_to_pass(lm, 1, poses, threshold)
+        assert power((lm - 1) * planned / poses, threshold) >= 0.8 - 1e-9, (lm, planned)
+        assert planned == poses + 1 or power((lm - 1) * (planned - 1) / poses, threshold) < 0.8, (lm, planned)
+    assert poses_to_pass(0.7, 1, 50, 1e-4) is None                       # no sign of an effect
+    assert poses_to_pass(chi2.isf(1e-5, 3), 3, 50, 1e-4) is None         # it passes already
+    assert poses_to_pass(10.0, 3, 50, 1e-4) > poses_to_pass(15.0, 3, 50, 1e-4) > 50  # a weaker sign asks more
+
+
 def test_where_the_poses_are_too_few_for_any_candidate_it_says_so():
     """The score statistic is the share of the projected residual a candidate explains times
     m, the residual dimensions the base fit cannot move: p >= chi2.sf(m, 1) for every
@@ -221,6 +242,21 @@ def test_no_proposal_names_the_test_it_fails_and_the_span_it_had():
     span = np.rad2deg(np.max((turns.mean().inv() * turns).magnitude()))
     said = float(re.search(r"orientations span ([0-9.]+) deg", why).group(1))
     assert abs(said - span) < 0.5, (said, span)
+    plan = result["reach"]["poses_to_pass"]
+    assert plan["effect"] == best["effect"] and plan["poses"] > table.n, plan
+    assert f"about {plan['poses']} poses of this spread would take its p below the threshold" in why, why
+
+
+@pytest.mark.slow
+def test_the_poses_it_asks_for_show_the_form(tmp_path):
+    """The session above asks for about N poses; the same settings (spread, noise, the bias's
+    size) with N poses propose the form and recover most of the true form's gain."""
+    table = study.session("attitude_bias", 5, "hand")
+    study.hide_outside()
+    poses = diagnose(table, study.BASE)["reach"]["poses_to_pass"]["poses"]
+    row = study.one("attitude_bias", 5, "hand", tmp_path, n=poses)
+    assert row["proposed"] == ["orientation_bias"] and row["present_effects"] == [], row
+    assert row["recovery"] >= 0.8, row
 
 
 def test_undetermined_names_its_cause_drift_and_a_small_span():

@@ -210,6 +210,44 @@ def score_test_reach(state: _FoldState, n_candidates: int, alpha: float) -> dict
     return {"residual_dims": m, "best_p": best_p, "threshold": threshold, "can_pass": best_p < threshold}
 
 
+# The chance of passing at which `poses_to_pass` plans: the usual figure, four sessions in five.
+PLANNING_POWER = 0.8
+
+
+def poses_to_pass(lm: float, df: int, poses: int, threshold: float, power: float = PLANNING_POWER) -> int | None:
+    """Poses of the same spread at which the score test's p falls below `threshold` with
+    chance `power`, if the candidate's effect is as large as this session's statistic says.
+    Under an effect the statistic is noncentral chi-square with `df` degrees; its
+    noncentrality grows in proportion to the poses (the score's information is a sum over
+    them) and is estimated here as lm - df, its mean's excess. A rough guide: that estimate
+    is as noisy as the statistic. None where the statistic shows no effect (lm <= df) or its
+    p already passes."""
+    from scipy.optimize import brentq
+    from scipy.stats import chi2, ncx2
+
+    if df < 1 or lm <= df or chi2.sf(lm, df) < threshold:
+        return None
+    critical = float(chi2.isf(threshold, df))
+    needed = brentq(lambda nc: ncx2.sf(critical, df, nc) - power, 1e-9, 10.0 * critical + 100.0)
+    return max(poses + 1, int(np.ceil(poses * needed / (lm - df))))
+
+
+def _planned(rows: list[dict[str, Any]], kept: Sequence[str], poses: int, threshold: float,
+             min_gain: float) -> dict[str, Any] | None:
+    """Where nothing is kept: how many poses would let the best form (by held-out gain) pass
+    the p part of its test, when its gain already reaches the minimum (more poses do not
+    raise a gain too small to count)."""
+    forms = [row for row in rows if row["kind"] == "form"]
+    if kept or not forms:
+        return None
+    best = max(forms, key=lambda row: row["score"])
+    if best["score"] < min_gain:
+        return None
+    poses_needed = poses_to_pass(best["lm_statistic"], best["df"], poses, threshold)
+    return None if poses_needed is None else {"effect": best["effect"], "poses": poses_needed,
+                                                "lm_statistic": best["lm_statistic"], "df": best["df"]}
+
+
 def _fold_state(table: PoseTable, effects: list[str], names: Sequence[str], splits: list, folds: int,
                 seed: int, warm: list[dict] | None = None) -> _FoldState:
     from posecorr.train.pipeline import CorrectionPipeline, cross_validate
@@ -424,6 +462,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         "rows": {"given": rows_given, "used": table.n},
         "reach": score_test_reach(state, len(names), alpha),
     }
+    result["reach"]["poses_to_pass"] = _planned(rows, kept, table.n, result["reach"]["threshold"], min_gain)
     result["proposal"], result["no_proposal"] = propose(search, result, kept, dropped)
     result["absorbed"] = explain_absorbed(result, kept)
     return result

@@ -44,6 +44,8 @@ def propose(search: Any, result: dict[str, Any], kept: Sequence[str],
 
 
 def _why_none(search: Any, result: dict[str, Any], kept: Sequence[str]) -> str:
+    from .diagnose import PLANNING_POWER
+
     if kept:
         return (f"the catalogue explains the error: {', '.join(kept)} "
                 f"{'is' if len(kept) == 1 else 'are'} present, and no form earns a place beside "
@@ -58,9 +60,14 @@ def _why_none(search: Any, result: dict[str, Any], kept: Sequence[str]) -> str:
         f"; nor could any candidate: the held-out poses leave {reach['residual_dims']} dimensions of residual that "
         f"{', '.join(search.effects) or 'the model'} cannot move, so no p falls below {reach['best_p']:.2g} "
         f"(threshold {reach['threshold']:.2g}): more poses")
+    plan = reach["poses_to_pass"]
+    planned = "" if plan is None else (
+        f"; if its gain is real, about {plan['poses']} poses of this spread would take its p below the threshold "
+        f"in {PLANNING_POWER:.0%} of sessions (its statistic, {plan['lm_statistic']:.3g} on {plan['df']} degrees "
+        f"of freedom, grows with the poses)")
     return (f"no form earns its place: the best, {best['effect']}, {moves} the held-out whitened error by "
             f"{abs(best['score']):.1%} (p = {best['p_value']:.2g}, worst fold {best['fold_gain_min']:.1%}); "
-            f"{_fails(search, best)}{beyond}")
+            f"{_fails(search, best)}{beyond}{planned}")
 
 
 def _fails(search: Any, row: dict[str, Any]) -> str:

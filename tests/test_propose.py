@@ -222,17 +222,24 @@ def test_where_the_poses_are_too_few_for_any_candidate_it_says_so():
                 f"cannot move, so no p falls below {reach['best_p']:.2g}") in why, why
 
 
-def test_no_proposal_names_the_test_it_fails_and_the_span_it_had():
-    """An attitude-dependent bias on a tracker turned by less than 20 degrees: no form passes,
-    and the reason gives the threshold the best one misses (alpha over the candidates) and
-    the orientations' span, checked against scipy's mean rotation."""
+@pytest.fixture(scope="module")
+def hand5():
+    """An attitude-dependent bias on a tracker turned by less than 20 degrees (the forms
+    study's seed 5, set down by hand) and its diagnosis, where no form passes."""
+    table = study.session("attitude_bias", 5, "hand")
+    study.hide_outside()
+    return table, diagnose(table, study.BASE)
+
+
+def test_no_proposal_names_the_test_it_fails_and_the_span_it_had(hand5):
+    """No form passes, and the reason gives the threshold the best one misses (alpha over the
+    candidates), the orientations' span, checked against scipy's mean rotation, and the poses
+    that would show the best form."""
     import re
 
     from scipy.spatial.transform import Rotation
 
-    table = study.session("attitude_bias", 5, "hand")
-    study.hide_outside()
-    result = diagnose(table, study.BASE)
+    table, result = hand5
     why = result["no_proposal"]
     assert result["proposal"] is None and why.startswith("no form earns its place"), why
     best = max((row for row in result["candidates"] if row["kind"] == "form"), key=lambda row: row["score"])
@@ -247,13 +254,11 @@ def test_no_proposal_names_the_test_it_fails_and_the_span_it_had():
     assert f"about {plan['poses']} poses of this spread would take its p below the threshold" in why, why
 
 
-def test_the_poses_it_asks_for_show_the_form():
+def test_the_poses_it_asks_for_show_the_form(hand5):
     """The session above asks for about N poses to show its best form; the same settings
     (spread, noise, the bias's size) with N poses propose it, and nothing else (how much of
     the true form's gain those proposals recover: `planned` in `make bench`'s forms.json)."""
-    table = study.session("attitude_bias", 5, "hand")
-    study.hide_outside()
-    plan = diagnose(table, study.BASE)["reach"]["poses_to_pass"]
+    plan = hand5[1]["reach"]["poses_to_pass"]
     more = study.session("attitude_bias", 5, "hand", n=plan["poses"])
     study.hide_outside()
     result = diagnose(more, study.BASE)

@@ -232,16 +232,18 @@ def poses_to_pass(lm: float, df: int, poses: int, threshold: float, power: float
     return max(poses + 1, int(np.ceil(poses * needed / (lm - df))))
 
 
+def best_form(rows: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """The form with the largest held-out gain among the ranked candidates, or None."""
+    return max((row for row in rows if row["kind"] == "form"), key=lambda row: row["score"], default=None)
+
+
 def _planned(rows: list[dict[str, Any]], kept: Sequence[str], poses: int, threshold: float,
              min_gain: float) -> dict[str, Any] | None:
     """Where nothing is kept: how many poses would let the best form (by held-out gain) pass
     the p part of its test, when its gain already reaches the minimum (more poses do not
     raise a gain too small to count)."""
-    forms = [row for row in rows if row["kind"] == "form"]
-    if kept or not forms:
-        return None
-    best = max(forms, key=lambda row: row["score"])
-    if best["score"] < min_gain:
+    best = best_form(rows)
+    if kept or best is None or best["score"] < min_gain:
         return None
     poses_needed = poses_to_pass(best["lm_statistic"], best["df"], poses, threshold)
     return None if poses_needed is None else {"effect": best["effect"], "poses": poses_needed,

@@ -44,16 +44,15 @@ def propose(search: Any, result: dict[str, Any], kept: Sequence[str],
 
 
 def _why_none(search: Any, result: dict[str, Any], kept: Sequence[str]) -> str:
-    from .diagnose import PLANNING_POWER
+    from .diagnose import PLANNING_POWER, best_form
 
     if kept:
         return (f"the catalogue explains the error: {', '.join(kept)} "
                 f"{'is' if len(kept) == 1 else 'are'} present, and no form earns a place beside "
                 f"{'it' if len(kept) == 1 else 'them'}")
-    forms = [row for row in result["candidates"] if row["kind"] == "form"]
-    if not forms:
+    best = best_form(result["candidates"])
+    if best is None:
         return "no form could be tested on this data (see the effects that cannot be determined)"
-    best = max(forms, key=lambda row: row["score"])
     moves = "lowers" if best["score"] >= 0 else "raises"
     reach = result["reach"]
     beyond = "" if reach["can_pass"] else (

@@ -489,3 +489,69 @@ def test_a_ledger_line_that_cannot_rebuild_the_held_out_says_why(unregistered: P
         assert not comparison.held_out and comparison.scored == "in-sample"
         assert why in comparison.reason
         assert comparison.baseline == "rigid fit (kabsch)"
+
+
+# --- a session of a few poses: no noise drawn as a trend -------------------------------------
+
+def test_a_median_point_stands_for_three_poses_or_more() -> None:
+    from posecorr.analysis.figures import MIN_PER_GROUP, _binned_median
+
+    rng = np.random.default_rng(4)
+    x, y = rng.permutation(np.arange(11.0)), rng.uniform(1, 10, 11)
+    mx, my = _binned_median(x, y)
+    by_x = y[np.argsort(x)]
+    # 11 distinct poses: three equal-count bins (4, 4, 3), each point the median of its bin.
+    assert np.allclose(my, [np.median(by_x[:4]), np.median(by_x[4:8]), np.median(by_x[8:])])
+    assert np.allclose(mx, [1.5, 5.5, 9.0])
+    assert _binned_median(x[:5], y[:5])[0].size == 0  # fewer than two bins of three: no line
+    # A few distinct values, each held by three poses or more (a lattice): one point per value.
+    lattice = np.repeat([0.0, 1.0, 2.0], MIN_PER_GROUP + 1)
+    values = rng.uniform(1, 10, lattice.size)
+    mx, my = _binned_median(lattice, values)
+    assert np.allclose(mx, [0, 1, 2]) and np.allclose(my, [np.median(values[lattice == v]) for v in (0, 1, 2)])
+
+
+def test_a_few_poses_are_boxed_three_or_more_and_counted_in_whole_poses() -> None:
+    from posecorr.analysis.figures import MIN_PER_GROUP, _groups, features_figure, histogram_figure
+
+    yaw = np.linspace(75.0, 99.0, 11)  # 11 distinct yaws: one pose per value
+    labels, index = _groups(yaw)
+    assert min(map(len, index)) >= MIN_PER_GROUP and len(labels) == len(index) == 3
+    assert sorted(np.concatenate(index).tolist()) == list(range(11))
+    many = np.repeat([10.0, 20.0, 30.0], 5)  # few values, each of five poses: grouped by value
+    assert _groups(many)[0] == ["10", "20", "30"]
+
+    rng = np.random.default_rng(5)
+    five = {"x": rng.uniform(0, 1, 5), "yaw": np.radians(rng.uniform(0, 90, 5))}
+    fig = features_figure(five, rng.uniform(1, 9, 5), rng.uniform(1, 9, 5), "position error", "mm")
+    assert all(not ax.get_lines() for ax in fig.axes[:2])
+    legend = [t.get_text() for ax in fig.axes for lg in [ax.get_legend()] if lg for t in lg.get_texts()]
+    assert legend and not any("median" in t for t in legend)
+
+    fig = histogram_figure((rng.uniform(1, 9, 11), rng.uniform(1, 9, 11)), None)
+    ticks = fig.axes[0].get_yticks()
+    assert np.allclose(ticks, np.round(ticks))
+
+
+def test_no_structure_reads_as_one_line_and_a_form_is_named_as_one(tmp_path: Path,
+                                                                   small: tuple[PoseTable, np.ndarray]) -> None:
+    table, corrected = small
+    flat = {**DIAGNOSIS, "features": [{"feature": "x", "r2": 0.0}, {"feature": "yaw", "r2": 0.0}]}
+    text, parsed = _parse(write_report(tmp_path / "flat.html", table, corrected, None, flat))
+    section = text[text.index('id="diagnosis"'):text.index('id="ledger"')]
+    assert "None: a smooth fit along a feature explains none of the held-out residual" in section
+    assert "R² 0 along x, yaw" in section and "cv R²</th>" not in section
+    assert len(parsed.imgs) == 5  # workspace, features (pos, rot), orientation, histograms: no R² bars
+
+    mixed = {**DIAGNOSIS, "features": [{"feature": "x", "r2": 0.0}, {"feature": "yaw", "r2": 0.4}]}
+    section = _parse(write_report(tmp_path / "mixed.html", table, corrected, None, mixed))[0]
+    section = section[section.index('id="diagnosis"'):section.index('id="ledger"')]
+    assert section.count('<td class="l">yaw</td>') == 1 and '<td class="l">x</td>' not in section
+    assert "R² 0 along x." in section
+
+    form = {"candidates": [{"effect": "strain", "kind": "form", "rank": 1, "p_value": 1e-9, "present": True,
+                            "cv_rmse_before": 7e-3, "cv_rmse_after": 1.5e-3}]}
+    line = takeaway(form, ["station", "mount"])
+    assert line.startswith("Most likely missing: strain, a form outside the catalogue (present: yes")
+    assert line.endswith("--effects station,mount,strain")
+    assert takeaway({"candidates": [], "features": []}).endswith("no effect or form tried explains what is left.")

@@ -81,8 +81,14 @@ def _nice_length(x: float) -> float:
     return min(options, key=lambda v: abs(math.log(v / x)))
 
 
+# The fewest poses a box or a point of a median line stands for: the median of one or two
+# poses is those poses, and a line or a box per pose draws their noise as a trend.
+MIN_PER_GROUP = 3
+
+
 def _groups(values: np.ndarray, max_distinct: int = 13, n_bins: int = 8) -> tuple[list[str], list[np.ndarray]]:
-    """Group indices by distinct value (rounded to 0.1) when few, else by equal-width bins.
+    """Group indices by distinct value (rounded to 0.1) when few, else by equal-width bins; by
+    equal-count bins where those groups would hold fewer than MIN_PER_GROUP poses.
 
     A spread below 1 (deg) is one group: a fixed orientation seen through tracker noise (as in a
     position-only table, whose orientation is the measured one) is no variable to group by.
@@ -93,25 +99,33 @@ def _groups(values: np.ndarray, max_distinct: int = 13, n_bins: int = 8) -> tupl
     distinct = np.unique(rounded)
     if len(distinct) <= max_distinct:
         # + 0.0 turns -0.0 into 0.0, so no "-0" label
-        return [f"{v + 0.0:g}" for v in distinct], [np.flatnonzero(rounded == v) for v in distinct]
-    edges = np.linspace(values.min(), values.max(), n_bins + 1)
-    which = np.clip(np.searchsorted(edges, values, side="right") - 1, 0, n_bins - 1)
-    labels, index = [], []
-    for b in range(n_bins):
-        idx = np.flatnonzero(which == b)
-        if idx.size:
-            labels.append(f"{edges[b]:.0f}…{edges[b + 1]:.0f}")
-            index.append(idx)
-    return labels, index
+        labels, index = [f"{v + 0.0:g}" for v in distinct], [np.flatnonzero(rounded == v) for v in distinct]
+    else:
+        edges = np.linspace(values.min(), values.max(), n_bins + 1)
+        which = np.clip(np.searchsorted(edges, values, side="right") - 1, 0, n_bins - 1)
+        labels, index = [], []
+        for b in range(n_bins):
+            idx = np.flatnonzero(which == b)
+            if idx.size:
+                labels.append(f"{edges[b]:.0f}…{edges[b + 1]:.0f}")
+                index.append(idx)
+    if min(map(len, index)) >= MIN_PER_GROUP:
+        return labels, index
+    chunks = np.array_split(np.argsort(values, kind="stable"), max(1, min(n_bins, len(values) // MIN_PER_GROUP)))
+    return [f"{values[c].min():.1f}…{values[c].max():.1f}" for c in chunks], [np.sort(c) for c in chunks]
 
 
 def _binned_median(x: np.ndarray, y: np.ndarray, n_bins: int = 12) -> tuple[np.ndarray, np.ndarray]:
-    """Median of y per distinct x (if few) or per equal-count bin of x."""
-    distinct = np.unique(x)
-    if len(distinct) <= 15:
+    """Median of y per distinct x (if few, each of MIN_PER_GROUP poses or more), else per
+    equal-count bin of x of MIN_PER_GROUP poses or more; empty where that makes fewer than two
+    bins (no line)."""
+    distinct, counts = np.unique(x, return_counts=True)
+    if len(distinct) <= 15 and counts.min() >= MIN_PER_GROUP:
         return distinct, np.array([np.median(y[x == v]) for v in distinct])
-    order = np.argsort(x, kind="stable")
-    chunks = [c for c in np.array_split(order, min(n_bins, len(x))) if c.size]
+    bins = min(n_bins, len(x) // MIN_PER_GROUP)
+    if bins < 2:
+        return np.empty(0), np.empty(0)
+    chunks = np.array_split(np.argsort(x, kind="stable"), bins)
     return np.array([np.median(x[c]) for c in chunks]), np.array([np.median(y[c]) for c in chunks])
 
 
@@ -203,6 +217,7 @@ def features_figure(features: Mapping[str, np.ndarray], before_mm: np.ndarray, a
     b = np.maximum(before_mm, LOG_FLOOR_MM)
     a = np.maximum(after_mm, LOG_FLOOR_MM)
     size = 6 if len(b) > 1000 else 10
+    medians = False
     for k, name in enumerate(names):
         ax = axes.flat[k]
         x = feature_display(name, np.asarray(features[name], float))
@@ -211,7 +226,9 @@ def features_figure(features: Mapping[str, np.ndarray], before_mm: np.ndarray, a
         ax.scatter(xj, a, s=size, c=AFTER_COLOUR, alpha=0.45, linewidths=0, rasterized=True, label="after")
         for y, colour in ((b, "0.25"), (a, "#0b3d66")):
             mx, my = _binned_median(x, y)
-            ax.plot(mx, my, "-o", color=colour, lw=1.6, ms=3)
+            if mx.size:
+                ax.plot(mx, my, "-o", color=colour, lw=1.6, ms=3)
+                medians = True
         ax.set_yscale("log")
         _plain_log(ax, "y", (1.0, 2.0, 5.0), minor=False)
         ax.set_xlabel(f"{name} [{FEATURE_UNITS.get(name, '')}]")
@@ -226,7 +243,7 @@ def features_figure(features: Mapping[str, np.ndarray], before_mm: np.ndarray, a
     handles = [Line2D([], [], ls="", marker="o", color=BEFORE_COLOUR, label=f"before ({before_label})"),
                Line2D([], [], ls="", marker="o", color=AFTER_COLOUR, label=f"after ({after_label})"),
                Line2D([], [], color="0.25", lw=1.6, label="binned median, before"),
-               Line2D([], [], color="#0b3d66", lw=1.6, label="binned median, after")]
+               Line2D([], [], color="#0b3d66", lw=1.6, label="binned median, after")][:4 if medians else 2]
     target = axes.flat[len(names)] if len(names) < nrows * ncols else axes.flat[0]
     target.legend(handles=handles, loc="center" if len(names) < nrows * ncols else "upper right")
     fig.suptitle(f"Per-pose {quantity} against features (log scale)", fontsize=10)
@@ -269,6 +286,8 @@ def histogram_figure(pos: tuple[np.ndarray, np.ndarray], rot: tuple[np.ndarray, 
                      before_label: str = "raw", after_label: str = "corrected") -> Any:
     """Histograms on log-spaced bins so raw and corrected (20x apart) are both readable."""
     plt = _pyplot()
+    from matplotlib.ticker import MaxNLocator
+
     panels = [("position error", "mm", pos)]
     if rot is not None:
         panels.append(("rotation error", "mrad", rot))
@@ -278,7 +297,8 @@ def histogram_figure(pos: tuple[np.ndarray, np.ndarray], rot: tuple[np.ndarray, 
         a = np.maximum(after, LOG_FLOOR_MM)
         lo = max(min(b.min(), a.min()), LOG_FLOOR_MM)
         hi = max(b.max(), a.max(), lo * 10)
-        bins = np.logspace(np.log10(lo), np.log10(hi), 50)
+        # About two bins per square root of the poses: 50 bins over 11 poses are 11 spikes.
+        bins = np.logspace(np.log10(lo), np.log10(hi), int(np.clip(2 * np.sqrt(len(b)), 8, 50)) + 1)
         ax.hist(b, bins=bins, color=BEFORE_COLOUR, alpha=0.7, label=f"before ({before_label})")
         ax.hist(a, bins=bins, color=AFTER_COLOUR, alpha=0.7, label=f"after ({after_label})")
         for v, colour, name in ((before, "0.3", "before"), (after, "#0b3d66", "after")):
@@ -289,6 +309,7 @@ def histogram_figure(pos: tuple[np.ndarray, np.ndarray], rot: tuple[np.ndarray, 
         _plain_log(ax, "x", (1.0,), minor=False)
         ax.set_xlabel(f"{quantity} [{unit}] (log scale)")
         ax.set_ylabel("poses")
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))  # a count of poses
         ax.legend(loc="upper left")
         ax.grid(True, alpha=0.3)
     return fig

@@ -80,6 +80,14 @@ def cv_gain(candidate: Mapping[str, Any]) -> float | None:
     return None
 
 
+def split_features(features: Sequence[Any]) -> tuple[list[Mapping[str, Any]], list[str]]:
+    """(the features along which a smooth fit explains some held-out residual, cv R^2 > 0; the
+    names of those where it explains none), so that a session with no structure reads as such
+    in a line. A feature without a number is in neither."""
+    rows = [f for f in features if isinstance(f, Mapping) and isinstance(f.get("r2"), (int, float))]
+    return [f for f in rows if f["r2"] > 0], [str(f.get("feature", "?")) for f in rows if not f["r2"] > 0]
+
+
 def is_structure(r2: Any) -> bool:
     """Whether a feature's cross-validated R^2 is structure the model misses."""
     return isinstance(r2, (int, float)) and r2 >= STRUCTURE_R2
@@ -103,7 +111,8 @@ def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] =
             effects.append(effect)
         gain = cv_gain(top)
         gain_text = f"; it cuts the cross-validated RMSE {gain:.2g}×" if gain is not None else ""
-        return (f"Most likely missing: {effect} (present: yes{p_text}{gain_text}). "
+        what = f"{effect}, a form outside the catalogue" if top.get("kind") == "form" else effect
+        return (f"Most likely missing: {what} (present: yes{p_text}{gain_text}). "
                 f"Add it with --effects {','.join(effects)}")
     r2 = [f for f in diagnosis.get("features") or []
           if isinstance(f, Mapping) and isinstance(f.get("r2"), (int, float))]
@@ -113,7 +122,8 @@ def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] =
             return (f"No catalogue effect is missing{test}, but {best['r2']:.2f} of the residual is explained "
                     f"by {best.get('feature')}: an effect outside the catalogue (add your own with --effect-file).")
     top = f" (best candidate: {candidates[0].get('effect')}, not present)" if candidates else ""
-    return f"No catalogue effect is missing{test}{top}; the residual looks like noise."
+    # Not "noise": on a few poses an error no candidate explains fails the test just the same.
+    return f"No catalogue effect is missing{test}{top}; no effect or form tried explains what is left."
 
 
 def worst_order(pos_err: np.ndarray, rot_err: np.ndarray | None = None) -> np.ndarray:

@@ -36,7 +36,7 @@ from . import figures
 from .comparison import RULE, Comparison, compare
 from .features import table_features
 from .interpretation import (STRUCTURE_R2, cv_gain, effect_list, is_structure, model_effects, p_value_text,
-                             ranked_candidates, takeaway, worst_order)
+                             ranked_candidates, split_features, takeaway, worst_order)
 from .ledger import held_out
 
 SECTIONS = (("summary", "Summary"), ("metrics", "Metrics"), ("workspace", "Workspace"),
@@ -273,17 +273,20 @@ def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[st
         body += ("<h3>Not ranked: this data cannot determine them</h3><ul>"
                  + "".join(f"<li><b>{_e(u.get('effect', '?'))}</b>: {_e(u.get('reason', ''))}</li>"
                            for u in undetermined) + "</ul>")
-    feats = [f for f in diagnosis.get("features") or [] if isinstance(f, Mapping)]
+    feats, others = split_features(diagnosis.get("features") or [])
     if feats:
         body += "<h3>Residual structure by feature</h3>"
-        rows = [[_e(f.get("feature", "?")),
-                 f"{f['r2']:.3f}" if isinstance(f.get("r2"), (int, float)) else "–"] for f in feats]
+        rows = [[_e(f.get("feature", "?")), f"{f['r2']:.3f}"] for f in feats]
         classes = ["present" if is_structure(f.get("r2")) else "" for f in feats]
         body += ('<div style="display:flex;gap:24px;align-items:flex-start;flex-wrap:wrap"><div>'
                  + _table(["feature", "cv R²"], rows, row_classes=classes) + "</div><div>"
                  + _img(figures.r2_figure(feats), "cross-validated R² of the residual per feature") + "</div></div>")
-        body += ('<p class="note">R² near 0: the feature explains nothing of what is left; highlighted '
-                 f"(R² ≥ {STRUCTURE_R2:g}): structure that the model misses along that feature.</p>")
+        body += ('<p class="note">The cross-validated R² of a smooth fit of the residual along each feature; '
+                 f"highlighted (R² ≥ {STRUCTURE_R2:g}): structure that the model misses along that feature."
+                 + (f" R² 0 along {_e(', '.join(others))}." if others else "") + "</p>")
+    elif others:
+        body += ("<h3>Residual structure by feature</h3><p>None: a smooth fit along a feature explains none of "
+                 f"the held-out residual (cross-validated R² 0 along {_e(', '.join(others))}).</p>")
     known = {"candidates", "features", "aliases", "model_effects", "test", "undetermined", "proposal", "no_proposal",
              "absorbed"}
     other = {k: v for k, v in diagnosis.items() if k not in known and isinstance(v, (str, int, float))}
@@ -410,14 +413,16 @@ def _figure_sections(comparison: Comparison, feats: Mapping[str, np.ndarray], po
                                              before, after), "rotation error against features")
     note = ("Features of the reference pose (angles in degrees; azimuth/elevation as seen from the station, "
             "incidence: tracker z axis vs line of sight). A trend in the blue median line is structure "
-            "the model misses." + ("" if "t" in feats else " No time column: t is not shown."))
+            f"the model misses; each of its points is the median of {figures.MIN_PER_GROUP} poses or more, "
+            "so a session of fewer than twice that has none." + ("" if "t" in feats else " No time column: t is not shown."))
     sections.append(_section("features", "Error against features", body, _e(note)))
     fig = figures.orientation_figure(feats, pos[1] * 1e3, None if rot is None else rot[1] * 1e3,
                                      pos[0] * 1e3, None if rot is None else rot[0] * 1e3)
     sections.append(_section("orientation", "Error by orientation",
                              _img(fig, "corrected error grouped by roll, pitch, yaw"),
                              _e("Roll, pitch, yaw of the reference orientation relative to upright (Z-Y-X); "
-                                "distinct values when there are few, else equal-width bins.")))
+                                "distinct values when there are few, else equal-width bins, or bins of equal "
+                                f"counts where those would hold fewer than {figures.MIN_PER_GROUP} poses.")))
     fig = figures.histogram_figure((pos[0] * 1e3, pos[1] * 1e3), None if rot is None else (rot[0] * 1e3, rot[1] * 1e3),
                                    before, after)
     sections.append(_section("histograms", "Error histograms", _img(fig, "error histograms before and after"),

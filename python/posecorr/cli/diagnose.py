@@ -83,14 +83,16 @@ def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
 def _feature_lines(features: list[dict]) -> list[str]:
     """The features along which a smooth fit explains some held-out residual; the others in
     one line, so that a session with no structure reads as such."""
+    from ..analysis.interpretation import split_features
     from ..textui import table as fmt_table
 
     title = "Residual structure by feature (smooth fit, cross-validated)"
-    some = [[f["feature"], f["r2"]] for f in features if f["r2"] > 0]
-    none = ", ".join(f["feature"] for f in features if not f["r2"] > 0)
+    some, others = split_features(features)
+    none = ", ".join(others)
     if not some:
         return [f"{title}: none (cv R^2 0 along {none})"] if none else []
-    return [fmt_table(["feature", "cv R^2"], some, title=title)] + ([f"cv R^2 0 along {none}"] if none else [])
+    return ([fmt_table(["feature", "cv R^2"], [[f["feature"], f["r2"]] for f in some], title=title)]
+            + ([f"cv R^2 0 along {none}"] if none else []))
 
 
 def _proposal_lines(args: argparse.Namespace, result: dict) -> list[str]:

@@ -215,6 +215,23 @@ def test_one_grammar_of_layer_sizes(tmp_path) -> None:
             and line.endswith(f"{option}: layer sizes are integers in 1..1024, got 0"), run.stderr
 
 
+def test_folds_too_small_to_fit_end_in_one_line_that_names_the_folds_that_fit(tmp_path) -> None:
+    """Four poses in two folds leave two to fit on: fit, diagnose and report refuse it in one
+    line that names the folds that would do, and those folds do."""
+    from posecorr.simulate import simulate_session
+
+    data = tmp_path / "four.csv"
+    write_table(simulate_session(3, n=6).table.subset(np.arange(4)), data)
+    for verb, extra in (("diagnose", ["--effects", "station,mount"]),
+                        ("fit", ["--effects", "station,mount", "--method", "none", "-o", "m.onnx"])):
+        run = posecorr(verb, str(data), *extra, "--cv", "2", cwd=tmp_path)
+        assert run.returncode == 2 and run.stderr.count("\n") == 1, run.stderr
+        assert run.stderr.strip() == (f"posecorr {verb}: error: {data}: 4 rows, but with 2 folds a fold fits on 2 of "
+                                      "them, and a fit needs at least 3: more folds (--cv 4)")
+        assert not (tmp_path / "m.onnx").exists()  # the refused fit wrote nothing; the fit below writes it
+        assert posecorr(verb, str(data), *extra, "--cv", "4", cwd=tmp_path).returncode == 0
+
+
 def test_a_new_verb_is_one_file(tmp_path, capsys) -> None:
     """A module defining `VERB = Verb(...)` beside its add_arguments and run, dropped into
     the package's folder, is a verb of `posecorr` (its help, its options, its run); a

@@ -273,3 +273,36 @@ def test_sweep_cli_takes_the_papers_network_labels(tmp_path, capsys):
     assert "Zhou-PMC" in out and "Friedman" in out and "2 methods" in out
     assert main(argv[:7] + ["17/1"] + argv[8:]) == 2
     assert "architecture '17'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("n", range(3, 16))
+def test_the_fewest_poses_a_fold_fits_on_are_those_of_its_folds(n: int) -> None:
+    """`fewest_to_fit` against the folds themselves: the smallest training set of each plan,
+    and, nested, the smallest an inner plan (`plan_for(m, nested=True)`) leaves in any fold."""
+    from posecorr.train.splits import KFold, LeaveOneOut, fewest_to_fit, plan_for
+
+    def smallest(m: int, plan, nested: bool) -> int:
+        sizes = []
+        for train, _ in plan.folds(m, seed=n):
+            inner = plan_for(len(train), nested=True)
+            sizes.append(smallest(len(train), inner, False) if nested and len(train) > 1 else len(train))
+        return min(sizes)
+
+    for plan in [LeaveOneOut(), *(KFold(k) for k in range(2, n + 1))]:
+        for nested in (False, True):
+            assert fewest_to_fit(n, plan, nested) == smallest(n, plan, nested), (plan, nested)
+
+
+def test_folds_too_small_to_fit_are_refused_with_the_folds_that_fit() -> None:
+    from posecorr.train.splits import FixedSplit, KFold, LeaveOneOut, MIN_FIT_POSES, fewest_to_fit, \
+        require_enough_to_fit
+
+    with pytest.raises(ValueError, match=r"^4 rows, but with 2 folds a fold fits on 2 of them, and a fit needs at "
+                                         r"least 3: more folds \(--cv 4\)$"):
+        require_enough_to_fit(4, KFold(2))
+    assert fewest_to_fit(4, KFold(4)) >= MIN_FIT_POSES
+    with pytest.raises(ValueError, match=r"inside a fold \(auto's\) fits on 2 of them.*: at least 5 rows$"):
+        require_enough_to_fit(4, LeaveOneOut(), nested=True)
+    assert fewest_to_fit(5, LeaveOneOut(), nested=True) >= MIN_FIT_POSES
+    require_enough_to_fit(6, KFold(3), nested=True)
+    require_enough_to_fit(4, FixedSplit())  # the protocol's split: tables that small are cross-validated first

@@ -28,7 +28,8 @@ from .base import PoseRegressorMixin, Validation, as_validation, check_pair, che
 from .identify import describe_spread, rigid_variants
 from .physics import PhysicsModel, RigidModel
 from .spec import ModelSpec, spec_from_options
-from .splits import MIN_TEST_SPLIT, CrossValidationPlan, FixedSplit, HeldOut, KFold, Plan, plan_for
+from .splits import (MIN_TEST_SPLIT, CrossValidationPlan, FixedSplit, HeldOut, KFold, Plan, plan_for,
+                     require_enough_to_fit)
 
 
 class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
@@ -421,6 +422,7 @@ def fit_table(table: PoseTable, effects: Sequence[str], spec: ModelSpec, plan: P
     plan = _plan_for_size(plan, table.n, notes)
     floor = rigid_candidates(table)
     auto = spec.method_entry.chooses
+    require_enough_to_fit(table.n, plan, nested=auto)
     if auto:
         candidates = auto_candidates(table, effects, spec.representation)
     else:

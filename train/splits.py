@@ -149,6 +149,35 @@ def plan_for(n: int, nested: bool = False) -> CrossValidationPlan:
     return LeaveOneOut() if n <= LOO_MAX_POSES else KFold(5)
 
 
+# The fewest poses a fit takes: a rigid registration needs three points.
+MIN_FIT_POSES = 3
+
+
+def fewest_to_fit(n: int, plan: CrossValidationPlan, nested: bool = False) -> int:
+    """The fewest poses a fold of `plan` on n poses leaves to fit on; `nested`: the fewest that
+    the cross-validation of a choice made inside such a fold (`plan_for(m, nested=True)`, auto's)
+    leaves."""
+    k = n if isinstance(plan, LeaveOneOut) else min(int(plan.k), n)
+    fewest = n - -(-n // max(k, 1))                  # the largest held-out part is ceil(n / k)
+    return fewest_to_fit(fewest, plan_for(fewest, nested=True)) if nested and fewest > 1 else fewest
+
+
+def require_enough_to_fit(n: int, plan: Plan, nested: bool = False) -> None:
+    """ValueError when a fold of `plan` (and, `nested`, the choice made inside it) would fit on
+    fewer than MIN_FIT_POSES poses, naming the folds that would do, or the rows it takes."""
+    if isinstance(plan, FixedSplit):
+        return
+    fewest = fewest_to_fit(n, plan, nested)
+    if fewest >= MIN_FIT_POSES:
+        return
+    where = "a choice made inside a fold (auto's)" if nested else "a fold"
+    more = [k for k in range(int(getattr(plan, "k", n)) + 1, n + 1) if fewest_to_fit(n, KFold(k), nested) >= MIN_FIT_POSES]
+    rows = next(m for m in range(n + 1, n + 10) if fewest_to_fit(m, LeaveOneOut(), nested) >= MIN_FIT_POSES)
+    advice = f"more folds (--cv {more[0]})" if more else f"at least {rows} rows"
+    raise ValueError(f"{n} rows, but with {plan.description} {where} fits on {fewest} of them, and a fit needs "
+                     f"at least {MIN_FIT_POSES}: {advice}")
+
+
 def parse_plan(text: str | int | None) -> Plan:
     """"none" (or None): the fixed test split; "loo": leave one out; a number: that many folds."""
     if text is None or text == "none":

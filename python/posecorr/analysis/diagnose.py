@@ -430,11 +430,12 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     feature R^2 uses its residuals instead of the base physics model's out-of-fold ones.
     """
     from posecorr.data import require_rows
-    from posecorr.train.splits import KFold
+    from posecorr.train.splits import KFold, require_enough_to_fit
 
     from .proposal import explain_absorbed, propose
 
     require_rows(table, max(folds, 2), f"a {folds}-fold diagnosis")
+    require_enough_to_fit(table.n, KFold(folds))
     rows_given = table.n
     table, model_predict = _thinned(table, model_predict, seed)
     effects = list(effects)

@@ -306,9 +306,9 @@ def test_errors_cross_process_pools_intact(tmp_path) -> None:
     # BrokenProcessPool, and the runs that finished are in the store.
     table = _table(100)
     store = tmp_path / "s.jsonl"
-    with pytest.raises(ValueError, match="unknown representation 'bogus'"):
-        run_sweep(table, [ModelSpec("pmc", "zhou"), ModelSpec("pmc", "bogus")], repeats=3, store=store, workers=2,
-                  progress=False)
+    failing = ModelSpec("pmc", "zhou", options={"degree": 3})  # passes the grid's checks, fails in its run
+    with pytest.raises(ValueError, match="degree must be 1 \\(affine\\) or 2 \\(quadratic\\), got 3"):
+        run_sweep(table, [ModelSpec("pmc", "zhou"), failing], repeats=3, store=store, workers=2, progress=False)
     stored = [json.loads(line) for line in store.read_text().splitlines()]
     assert stored and all(row["key"] == "zhou-pmc" for row in stored)
 

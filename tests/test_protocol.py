@@ -306,3 +306,58 @@ def test_folds_too_small_to_fit_are_refused_with_the_folds_that_fit() -> None:
     assert fewest_to_fit(5, LeaveOneOut(), nested=True) >= MIN_FIT_POSES
     require_enough_to_fit(6, KFold(3), nested=True)
     require_enough_to_fit(4, FixedSplit())  # the protocol's split: tables that small are cross-validated first
+
+
+def test_a_grid_the_split_cannot_train_is_refused_before_any_run(tmp_path):
+    """A 50-pose session: the split trains on 34 poses, fewer than a quadratic PMC on
+    quaternions (1 + 7 + 28 terms) or on zhou's 9 numbers (1 + 9 + 45) takes. The sweep says so
+    before any run, with the rows it would need; a grid without them runs."""
+    from posecorr.simulate import simulate
+
+    table = simulate(3, seed=0).table.subset(np.arange(50))
+    grid = [ModelSpec("pmc", rep) for rep in ("pos", "quat", "zhou")]
+    store = tmp_path / "store.jsonl"
+    with pytest.raises(ValueError) as refused:
+        run_sweep(table, grid, repeats=2, store=store, workers=1, progress=False)
+    message = str(refused.value)
+    assert message.startswith("50 rows: the sweep's split trains on 34 of them, and 2 of its 3 configurations")
+    assert "zhou-pmc 55, quat-pmc 36 poses" in message
+    rows = next(m for m in range(50, 200) if m - 2 * round(0.15 * m) >= 55)
+    assert f"at least {rows} rows" in message and not store.exists()
+    assert len(run_sweep(table, grid[:1], repeats=2, workers=1, progress=False).rows) == 2
+
+
+def _kabsch_test_rmse_pos(table, fitted_on, test) -> float:
+    """An independent plain Kabsch fit (ref = R meas + t, positions alone), scored on `test`."""
+    P, Q = table.meas_p[fitted_on], table.ref_p[fitted_on]
+    Pc, Qc = P - P.mean(0), Q - Q.mean(0)
+    U, _, Vt = np.linalg.svd(Pc.T @ Qc)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    t = Q.mean(0) - R @ P.mean(0)
+    miss = table.meas_p[test] @ R.T + t - table.ref_p[test]
+    return float(np.sqrt(np.mean(np.sum(miss ** 2, axis=1))))
+
+
+def test_on_unregistered_frames_the_sweep_says_what_the_rigid_fit_reaches():
+    """Raw measures the frames' offset on a session in the tracker's own frame: the sweep
+    names the best rigid fit on the same test poses (no worse than an independent Kabsch fit)
+    and how the best method compares with it; on the paper's registered data it says nothing."""
+    from posecorr.simulate import simulate, simulate_session
+
+    session = simulate_session(2, n=50).table
+    result = run_sweep(session, [ModelSpec("pmc", "pos")], repeats=2, workers=1, progress=False)
+    train, val, test = split_indices(session.n, 0, 0)
+    assert result.frames_unregistered and result.raw["rmse_pos"] > 1.0
+    assert result.rigid["rmse_pos"] <= _kabsch_test_rmse_pos(session, np.union1d(train, val), test) * (1 + 1e-9)
+    pmc = result.summary()[0]["rmse_total"]["min"]
+    ratio = max(pmc, result.rigid["rmse_total"]) / min(pmc, result.rigid["rmse_total"])
+    text = result.format()
+    assert (f"against {1e3 * result.rigid['rmse_pos']:.4g} mm for the best rigid fit ({result.rigid['name']})"
+            in text) and f"{ratio:.3g}x {'lower' if pmc <= result.rigid['rmse_total'] else 'higher'}" in text
+    assert json.loads(json.dumps(result.to_json()))["frames_unregistered"] is True
+
+    registered = run_sweep(simulate(3, seed=0).table.subset(np.arange(300)), [ModelSpec("pmc", "pos")], repeats=1,
+                           workers=1, progress=False)
+    assert not registered.frames_unregistered and "unregistered" not in registered.format()
+    assert registered.to_json()["rigid"]["rmse_pos"] < registered.raw["rmse_pos"]

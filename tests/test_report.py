@@ -257,7 +257,8 @@ def unregistered() -> PoseTable:
 
 
 def test_unregistered_frames_are_measured_against_the_rigid_fit(tmp_path: Path, unregistered: PoseTable) -> None:
-    from posecorr.analysis.comparison import UNREGISTERED_FACTOR, UNREGISTERED_MIN_M, compare
+    from posecorr.analysis.comparison import compare
+    from posecorr.metrics import UNREGISTERED_FACTOR, UNREGISTERED_MIN_M
 
     table = unregistered
     rng = np.random.default_rng(5)

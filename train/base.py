@@ -136,16 +136,17 @@ class BaseCorrector(PoseRegressorMixin, BaseEstimator):
         correctors take no time input); ``validation`` (``Validation``) is for early stopping."""
         rotations.check_representation(self.representation)
         measured, reference = check_pair(measured, reference)
-        if len(measured) < self._min_rows():
+        if len(measured) < self.min_rows():
             raise ValueError(f"{type(self).__name__}({self.representation}) needs at least "
-                             f"{self._min_rows()} poses, got {len(measured)}")
+                             f"{self.min_rows()} poses, got {len(measured)}")
         X = encode_pose(measured, self.representation)
         Y = encode_pose(reference, self.representation)
         self._fit_vectors(np.asarray(X, np.float64), np.asarray(Y, np.float64), as_validation(validation))
         self.n_features_in_ = 7
         return self
 
-    def _min_rows(self) -> int:
+    def min_rows(self) -> int:
+        """The fewest poses `fit` takes (a quadratic PMC: one more than its terms)."""
         return 1
 
     def _fit_vectors(self, X: np.ndarray, Y: np.ndarray, validation: Validation | None) -> None:

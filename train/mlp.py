@@ -154,7 +154,7 @@ class MLP(BaseCorrector):
     uses_validation = True
 
     # --- fit ----------------------------------------------------------------------------
-    def _min_rows(self) -> int:
+    def min_rows(self) -> int:
         return 4
 
     def _fit_vectors(self, X: np.ndarray, Y: np.ndarray, validation: Validation | None) -> None:

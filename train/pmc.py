@@ -120,7 +120,7 @@ class PMC(BaseCorrector):
 
     method = "pmc"
 
-    def _min_rows(self) -> int:
+    def min_rows(self) -> int:
         d = vector_size(self.representation)
         return n_features(d, self.degree) + 1 if self.alpha in (0, 0.0) else 2
 

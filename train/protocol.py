@@ -31,6 +31,7 @@ written to a log, a line every 30 s and the last).
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import math
 import os
@@ -41,7 +42,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from posecorr.metrics import METRIC_KEYS, improvement, metric_block, pose_metrics, summarize
+from posecorr.metrics import METRIC_KEYS, frames_unregistered, improvement, metric_block, pose_metrics, summarize
 from posecorr.rotations import POSITION_ONLY, REPRESENTATIONS
 from posecorr.safeio import append_line, open_sidecar, sigterm_as_interrupt
 
@@ -202,6 +203,8 @@ class SweepResult:
     repeats: int
     seconds: float = 0.0
     store: str | None = None
+    # The best rigid fit on the test poses (`best_rigid_on_test`): {"name", rmse_pos, ...}.
+    rigid: dict[str, Any] | None = None
     _by_key: dict[str, list[dict[str, Any]]] = field(default_factory=dict, repr=False)
 
     def runs(self, config: ModelSpec) -> list[dict[str, Any]]:
@@ -274,9 +277,15 @@ class SweepResult:
         tiers = stats.tier_list(fr.mean_ranks, comps)
         return {"configs": cfgs, "friedman": fr, "comparisons": comps, "tiers": tiers}
 
+    @property
+    def frames_unregistered(self) -> bool:
+        """Whether raw measures the frames' offset rather than the tracker (`metrics.RULE`)."""
+        return self.rigid is not None and frames_unregistered(self.raw, self.rigid)
+
     def to_json(self) -> dict[str, Any]:
         st = self.statistics()
-        out: dict[str, Any] = {"raw": self.raw, "repeats": self.repeats, "seconds": self.seconds,
+        out: dict[str, Any] = {"raw": self.raw, "rigid": self.rigid, "frames_unregistered": self.frames_unregistered,
+                               "repeats": self.repeats, "seconds": self.seconds,
                                "store": self.store, "summary": self.summary(),
                                "methods": self.summary(self.methods())}
         if st:
@@ -306,6 +315,8 @@ class SweepResult:
             self.raw, self.summary(methods),
             f"{number}: per representation the PMC and the best network per activation, {len(methods)} methods, "
             f"over {self.repeats} runs (imp = raw / min)"))
+        if self.frames_unregistered:
+            text.append(self._unregistered_note(methods))
         st = self.statistics()
         if st:
             names = [c.name for c in st["configs"]]
@@ -320,6 +331,43 @@ class SweepResult:
                             f"(alpha 0.05, {len(st['comparisons'])} pairs)\n"
                             + tables.format_comparisons(names, st["comparisons"]))
         return "\n".join(text)
+
+
+    def _unregistered_note(self, methods: Sequence[ModelSpec]) -> str:
+        rigid = self.rigid or {}
+        line = (f"\nThe frames are unregistered: raw rmse_pos {1e3 * self.raw['rmse_pos']:.4g} mm against "
+                f"{1e3 * rigid['rmse_pos']:.4g} mm for the best rigid fit ({rigid['name']}) on the same test "
+                "poses, so imp measures their offset, not the tracker.")
+        scored = [row for row in self.summary(methods) if row.get("rmse_total")]
+        if scored:
+            best = min(scored, key=lambda row: row["rmse_total"]["min"])
+            ratio = rigid["rmse_total"] / best["rmse_total"]["min"]
+            than = f"{ratio:.3g}x lower" if ratio >= 1 else f"{1 / ratio:.3g}x higher"
+            line += (f" The best method, {best['name']}, reaches rmse_total {best['rmse_total']['min']:.4g}: {than} "
+                     f"than the rigid fit's {rigid['rmse_total']:.4g}.")
+        return line
+
+
+def best_rigid_on_test(table: Any, seed: int = 0, with_rotation: bool = True) -> dict[str, Any]:
+    """The best of the rigid fits `fit` scores as its floor (`pipeline.rigid_candidates`),
+    each fitted on the poses the protocol's split does not test and scored on its test poses:
+    {"name", "rmse_pos", "rmse_rot", "rmse_total"}. Where raw measures unregistered frames,
+    this is what a correction must beat."""
+    from .pipeline import rigid_candidates
+
+    train, val, test = split_indices(table.n, seed, 0)
+    fitted_on = np.union1d(train, val)
+    M, R, t = table.measured, table.reference, table.time()
+    best: dict[str, Any] | None = None
+    for candidate in rigid_candidates(table):
+        model = candidate.make(table.has_orientation).fit(M[fitted_on], R[fitted_on],
+                                                          t=None if t is None else t[fitted_on])
+        predicted = model.predict(M[test], None if t is None else t[test])
+        metrics = pose_metrics(R[test], predicted, with_rotation and table.has_orientation)
+        if best is None or metrics["rmse_total"] < best["rmse_total"]:
+            best = {"name": candidate.name, **metrics}
+    assert best is not None  # rigid_candidates always holds the plain Kabsch fit
+    return best
 
 
 def _load_store(path: Path, fingerprint: str, seed: int) -> dict[tuple[str, int], dict[str, Any]]:
@@ -437,6 +485,7 @@ def run_sweep(table: Any, configs: Sequence[ModelSpec], repeats: int = 30, store
     _, _, test = split_indices(table.n, seed, 0)
     with_rot = all(c.with_rotation for c in configs) and table.has_orientation
     raw = pose_metrics(table.reference[test], table.measured[test], with_rot)
+    rigid = best_rigid_on_test(table, seed, with_rot)
 
     record = _Recorder(rows, fingerprint, store_path,
                        _progress_bar(len(configs) * repeats, len(rows)) if progress else None)
@@ -454,7 +503,7 @@ def run_sweep(table: Any, configs: Sequence[ModelSpec], repeats: int = 30, store
     order = {c.key: i for i, c in enumerate(configs)}
     rows.sort(key=lambda r: (order.get(r["key"], 1 << 30), r["repeat"]))
     return SweepResult(configs, rows, raw, repeats, time.perf_counter() - t0,
-                       str(store_path) if store_path else None)
+                       str(store_path) if store_path else None, rigid)
 
 
 def _check_sweep(table: Any, configs: list[ModelSpec], ray_address: str | None) -> Any:
@@ -465,14 +514,34 @@ def _check_sweep(table: Any, configs: list[ModelSpec], ray_address: str | None) 
     from posecorr.data import require_rows
 
     require_rows(table, 10, "the sweep's train/validation/test split")
-    if ray_address is None:
-        return None
-    try:
-        import ray  # optional dependency
-    except ImportError:
-        raise ModuleNotFoundError("--ray needs the ray package (pip install 'posecorr[ray]')",
-                                  name="ray") from None
+    ray = None
+    if ray_address is not None:
+        try:
+            import ray  # optional dependency
+        except ImportError:
+            raise ModuleNotFoundError("--ray needs the ray package (pip install 'posecorr[ray]')",
+                                      name="ray") from None
+    _require_training_rows(table.n, configs)
     return ray
+
+
+def _require_training_rows(n: int, configs: Sequence[ModelSpec]) -> None:
+    """ValueError, before any run, where the protocol's split leaves a configuration fewer
+    training poses than it takes, naming them and the rows they would need."""
+    def training(rows: int) -> int:
+        return len(split_indices(rows)[0])
+
+    needs = {c.key: c.make(seed=0).min_rows() for c in configs}
+    short = {key: k for key, k in needs.items() if k > training(n)}
+    if not short:
+        return
+    most = max(short.values())
+    rows = next(m for m in itertools.count(n + 1) if training(m) >= most)
+    named = ", ".join(f"{key} {k}" for key, k in sorted(short.items(), key=lambda kv: (-kv[1], kv[0]))[:4])
+    more = f" and {len(short) - 4} more" if len(short) > 4 else ""
+    raise ValueError(f"{n} rows: the sweep's split trains on {training(n)} of them, and {len(short)} of its "
+                     f"{len(configs)} configurations need more ({named}{more} poses): at least {rows} rows, or a "
+                     "grid without them; on a session this size `posecorr fit --cv loo` scores a model on every pose")
 
 
 def _open_store(store: str | os.PathLike | None, fingerprint: str,

@@ -83,6 +83,22 @@ def metric_block(raw: Mapping[str, float | None], corrected: Mapping[str, float 
     return {**{k: corrected.get(k) for k in METRIC_KEYS}, **improvement(raw, corrected)}
 
 
+# The frames are unregistered when the raw rmse_pos is both this many times the best rigid
+# fit's and above UNREGISTERED_MIN_M: the paper's registered experiments, whose raw error
+# holds a station registration error of a few cm, stay 20-30x above the rigid fit; a tracker's
+# own frame is metres away.
+UNREGISTERED_FACTOR = 10.0
+UNREGISTERED_MIN_M = 0.1
+RULE = (f"raw rmse_pos exceeds both {UNREGISTERED_FACTOR:g}× the best rigid fit's on the same poses and "
+        f"{UNREGISTERED_MIN_M * 1e3:g} mm (frames unregistered)")
+
+
+def frames_unregistered(raw: Mapping[str, float | None], rigid: Mapping[str, float | None]) -> bool:
+    """`RULE` on the metrics of the measurements and of the best rigid fit, on the same poses:
+    where it holds, raw measures the frames' offset, not the tracker."""
+    return bool(raw["rmse_pos"] > max(UNREGISTERED_FACTOR * rigid["rmse_pos"], UNREGISTERED_MIN_M))
+
+
 def summarize(values: Iterable[float]) -> dict[str, float]:
     """min / avg / max over repeats, the layout of tables 2-4."""
     v = np.asarray(list(values), dtype=float)

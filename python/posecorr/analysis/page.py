@@ -30,10 +30,10 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from ..data import PoseTable
-from ..metrics import W_POS, W_ROT, pose_errors
+from ..metrics import RULE, W_POS, W_ROT, pose_errors
 from ..safeio import write_text
 from . import figures
-from .comparison import RULE, Comparison, compare
+from .comparison import Comparison, compare
 from .features import table_features
 from .interpretation import (STRUCTURE_R2, cv_gain, effect_list, is_structure, model_effects, p_value_text,
                              ranked_candidates, split_features, takeaway, worst_order)

@@ -315,8 +315,8 @@ class SweepResult:
             self.raw, self.summary(methods),
             f"{number}: per representation the PMC and the best network per activation, {len(methods)} methods, "
             f"over {self.repeats} runs (imp = raw / min)"))
-        if self.frames_unregistered:
-            text.append(self._unregistered_note(methods))
+        if self.rigid is not None and self.frames_unregistered:
+            text.append(self._unregistered_note(methods, self.rigid))
         st = self.statistics()
         if st:
             names = [c.name for c in st["configs"]]
@@ -332,9 +332,7 @@ class SweepResult:
                             + tables.format_comparisons(names, st["comparisons"]))
         return "\n".join(text)
 
-
-    def _unregistered_note(self, methods: Sequence[ModelSpec]) -> str:
-        rigid = self.rigid or {}
+    def _unregistered_note(self, methods: Sequence[ModelSpec], rigid: Mapping[str, Any]) -> str:
         line = (f"\nThe frames are unregistered: raw rmse_pos {1e3 * self.raw['rmse_pos']:.4g} mm against "
                 f"{1e3 * rigid['rmse_pos']:.4g} mm for the best rigid fit ({rigid['name']}) on the same test "
                 "poses, so imp measures their offset, not the tracker.")

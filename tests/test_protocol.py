@@ -361,3 +361,19 @@ def test_on_unregistered_frames_the_sweep_says_what_the_rigid_fit_reaches():
                            workers=1, progress=False)
     assert not registered.frames_unregistered and "unregistered" not in registered.format()
     assert registered.to_json()["rigid"]["rmse_pos"] < registered.raw["rmse_pos"]
+
+
+def test_a_cross_validated_fit_reports_its_folds_as_they_start():
+    """`fit --cv` said one line and then nothing for minutes (an MLP on each of 11 folds): the
+    folds are reported as they start, at most about ten lines."""
+    from posecorr.simulate import simulate_session
+    from posecorr.train.pipeline import fit_table
+    from posecorr.train.splits import KFold, LeaveOneOut
+
+    table = simulate_session(3, n=30).table
+    for plan, n_folds in ((LeaveOneOut(), 30), (KFold(5), 5)):
+        said: list[str] = []
+        fit_table(table, ["station", "mount"], ModelSpec("none"), plan, progress=said.append)
+        folds = [line for line in said if line.startswith("fold ")]
+        step = max(1, n_folds // 10)
+        assert folds == [f"fold {k + 1}/{n_folds}" for k in range(0, n_folds, step)], said

@@ -308,12 +308,13 @@ def _fitted_effects(candidate: Candidate) -> tuple[str, ...]:
 
 
 def out_of_fold(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, with_rotation: bool,
-                splits: list[tuple[np.ndarray, np.ndarray]], prior: dict) -> dict[str, np.ndarray]:
+                splits: list[tuple[np.ndarray, np.ndarray]], prior: dict,
+                say: Callable[[str], None] | None = None) -> dict[str, np.ndarray]:
     """{name: (len(rows), 7) predictions}, each pose predicted by a fit that never saw it;
-    `splits` index into `rows`."""
+    `splits` index into `rows`. `say`: where to report the folds as they start."""
     M, _, t = arrays
     predicted = {c.name: np.empty((len(rows), 7)) for c in candidates}
-    for train, held in splits:
+    for train, held in _progress_iter(splits, say, "fold") if say else splits:
         shared: dict = {}
         stages: dict = {}          # candidates sharing a physics stage correct the held-out poses once
         for candidate in candidates:
@@ -491,7 +492,7 @@ def _fit_cross_validated(table: PoseTable, candidates: list[Candidate], floor: l
             candidates, floor, arrays, with_rotation, splits, seed, prior, say)
     else:
         say(f"cross-validating {candidates[0].name} and the rigid fits ({plan.description})")
-        every = out_of_fold(candidates, everything, arrays, with_rotation, splits, prior)
+        every = out_of_fold(candidates, everything, arrays, with_rotation, splits, prior, say)
         best, scores = candidates[0], {}
         predicted, floor_predicted = every[best.name], {c.name: every[c.name] for c in floor}
     floor_metrics = {c.name: metric_block(raw_all, pose_metrics(R, floor_predicted[c.name], with_rotation))

@@ -39,6 +39,7 @@ from posecorr.metrics import pose_metrics
 from .base import PoseRegressorMixin, check_pair, check_poses
 from .identify import (FORM_LIMIT_SCALES, LIMIT_SCALES, Block, RigidRegistration, chordal_mean, describe_spread,
                        determined_directions, direction_label, poses_lack, rigid_registration)
+from .splits import MIN_FIT_POSES
 
 DEFAULT_SIGMA_P = 3e-4   # m, docs/design.md default noise
 DEFAULT_SIGMA_R = 5e-4   # rad
@@ -157,9 +158,9 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         for effect in chosen:
             if effect.random:
                 raise ValueError(f"effect {effect.name!r} is random noise; it cannot be fitted as a bias")
-        if len(measured) < 3:
+        if len(measured) < MIN_FIT_POSES:
             raise ValueError(f"fitting {', '.join(e.name for e in chosen) or 'a registration'} needs at least "
-                             f"3 poses, got {len(measured)}")
+                             f"{MIN_FIT_POSES} poses, got {len(measured)}")
         base = EffectContext.default()
         self.ctx_ = EffectContext(base.R_S, base.t_S, reference[:, :3].mean(axis=0),
                                   t=None if t is None else np.asarray(t, float))
@@ -584,8 +585,8 @@ class RigidModel(PhysicsModel):
         if self.variant == "joint":
             return super().fit(measured, reference, t, validation, warm_start=warm_start)
         measured, reference = check_pair(measured, reference)
-        if len(measured) < 3:
-            raise ValueError(f"a rigid registration needs at least 3 poses, got {len(measured)}")
+        if len(measured) < MIN_FIT_POSES:
+            raise ValueError(f"a rigid registration needs at least {MIN_FIT_POSES} poses, got {len(measured)}")
         measured, reference, chosen = self._setup(measured, reference, None)
         with_rotation = self.with_rotation_
         theta, self.sigma_p_, sigma_r, rigid = self._initial_theta(measured, reference, chosen, {}, self.variant)

@@ -347,25 +347,22 @@ class SweepResult:
 
 
 def best_rigid_on_test(table: Any, seed: int = 0, with_rotation: bool = True) -> dict[str, Any]:
-    """The best of the rigid fits `fit` scores as its floor (`pipeline.rigid_candidates`),
-    each fitted on the poses the protocol's split does not test and scored on its test poses:
-    {"name", "rmse_pos", "rmse_rot", "rmse_total"}. Where raw measures unregistered frames,
-    this is what a correction must beat."""
-    from .pipeline import rigid_candidates
+    """The best of the rigid fits `fit` scores as its floor, fitted as `fit` fits them
+    (`pipeline.out_of_fold`) on the poses the protocol's split does not test and scored on its
+    test poses: {"name", "rmse_pos", "rmse_rot", "rmse_total"}. Where raw measures
+    unregistered frames, this is what a correction must beat."""
+    from .pipeline import _best, _priors, out_of_fold, rigid_candidates
 
     train, val, test = split_indices(table.n, seed, 0)
     fitted_on = np.union1d(train, val)
-    M, R, t = table.measured, table.reference, table.time()
-    best: dict[str, Any] | None = None
-    for candidate in rigid_candidates(table):
-        model = candidate.make(table.has_orientation).fit(M[fitted_on], R[fitted_on],
-                                                          t=None if t is None else t[fitted_on])
-        predicted = model.predict(M[test], None if t is None else t[test])
-        metrics = pose_metrics(R[test], predicted, with_rotation and table.has_orientation)
-        if best is None or metrics["rmse_total"] < best["rmse_total"]:
-            best = {"name": candidate.name, **metrics}
-    assert best is not None  # rigid_candidates always holds the plain Kabsch fit
-    return best
+    floor = rigid_candidates(table)
+    arrays, with_rot = (table.measured, table.reference, table.time()), table.has_orientation
+    predicted = out_of_fold(floor, np.arange(table.n), arrays, with_rot, [(fitted_on, test)],
+                            _priors(floor, fitted_on, arrays, with_rot))
+    metrics = {c.name: pose_metrics(table.reference[test], predicted[c.name][test], with_rotation and with_rot)
+               for c in floor}
+    best = _best(floor, {name: m["rmse_total"] for name, m in metrics.items()})
+    return {"name": best.name, **metrics[best.name]}
 
 
 def _load_store(path: Path, fingerprint: str, seed: int) -> dict[tuple[str, int], dict[str, Any]]:

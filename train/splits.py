@@ -15,6 +15,7 @@ early-stopping split (`validation_split`).
 """
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import ClassVar
@@ -149,7 +150,8 @@ def plan_for(n: int, nested: bool = False) -> CrossValidationPlan:
     return LeaveOneOut() if n <= LOO_MAX_POSES else KFold(5)
 
 
-# The fewest poses a fit takes: a rigid registration needs three points.
+# The fewest poses a fit takes (a rigid registration needs three points): the physics stage
+# and the rigid fits refuse fewer, and the folds are checked against it before any work.
 MIN_FIT_POSES = 3
 
 
@@ -172,7 +174,7 @@ def require_enough_to_fit(n: int, plan: Plan, nested: bool = False) -> None:
         return
     where = "a choice made inside a fold (auto's)" if nested else "a fold"
     more = [k for k in range(int(getattr(plan, "k", n)) + 1, n + 1) if fewest_to_fit(n, KFold(k), nested) >= MIN_FIT_POSES]
-    rows = next(m for m in range(n + 1, n + 10) if fewest_to_fit(m, LeaveOneOut(), nested) >= MIN_FIT_POSES)
+    rows = next(m for m in itertools.count(n + 1) if fewest_to_fit(m, LeaveOneOut(), nested) >= MIN_FIT_POSES)
     advice = f"more folds (--cv {more[0]})" if more else f"at least {rows} rows"
     raise ValueError(f"{n} rows, but with {plan.description} {where} fits on {fewest} of them, and a fit needs "
                      f"at least {MIN_FIT_POSES}: {advice}")

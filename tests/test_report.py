@@ -407,6 +407,31 @@ def test_auto_is_held_out_as_fit_scored_it(tmp_path: Path) -> None:
     assert report["baseline"]["rmse_pos"] == pytest.approx(fitted["baseline"]["rmse_pos"], rel=1e-6)
 
 
+def test_too_few_poses_for_a_diagnosis_still_give_the_page_and_say_why(tmp_path: Path) -> None:
+    """Four poses: the default 5-fold diagnosis cannot run, the page is written without it and
+    says why and which folds can (a fold of 4 leaves 3 to fit on, the fewest a fit takes); the
+    folds it names do diagnose the table. Three poses (the model fitted on four): no folds can,
+    it names the rows."""
+    from posecorr.analysis.diagnose import diagnose
+    from posecorr.data import write_table
+    from posecorr.simulate import simulate_session
+    from posecorr.train.splits import MIN_FIT_POSES
+
+    table = simulate_session(3, n=6, spread="full", position_only=False, unremovable=0.0).table
+    write_table(table.subset(np.arange(4)), tmp_path / "fit.csv")
+    _cli("fit", "fit.csv", "-o", "m.onnx", "--effects", "station", "--method", "none", cwd=tmp_path)
+    for n, why in ((4, "4 rows, but a 5-fold diagnosis needs at least 5: fewer folds (--cv 4)"),
+                   (3, f"3 rows, but a 5-fold diagnosis needs at least 5: at least {MIN_FIT_POSES + 1} rows")):
+        data = tmp_path / f"s{n}.csv"
+        write_table(table.subset(np.arange(n)), data)
+        report = _cli("report", str(data), "--model", "m.onnx", "-o", f"r{n}.html", cwd=tmp_path)
+        assert report["diagnosis"] is None and report["no_diagnosis"] == why
+        page, _ = _parse(tmp_path / f"r{n}.html")
+        assert f"No diagnosis: {why}." in page
+    result = diagnose(table.subset(np.arange(4)), ["station"], folds=4)
+    assert result["folds"] == 4 and result["rows"]["used"] == 4
+
+
 def test_the_history_plot_draws_each_fit_against_the_rigid_fit() -> None:
     """The loop's history: each ledger line's held-out rmse_pos, and the rigid fit on the
     same poses as a line where the ledger line has it (older lines: none)."""

@@ -414,6 +414,23 @@ def _backward(search: _Search, accepted: list[str], by_name: dict[str, dict]) ->
     return accepted, dropped
 
 
+def require_diagnosable(table: PoseTable, folds: int) -> None:
+    """ValueError (TableError for the table's own faults) when `table` cannot be diagnosed with
+    `folds` folds, naming the folds that can or the rows it takes."""
+    import itertools
+
+    from posecorr.data import TableError, require_rows
+    from posecorr.train.splits import MIN_FIT_POSES, KFold, LeaveOneOut, fewest_to_fit, require_enough_to_fit
+
+    if table.n < folds:
+        fewer = [k for k in range(table.n, 1, -1) if fewest_to_fit(table.n, KFold(k)) >= MIN_FIT_POSES]
+        rows = next(m for m in itertools.count(2) if fewest_to_fit(m, LeaveOneOut()) >= MIN_FIT_POSES)
+        advice = f"fewer folds (--cv {fewer[0]})" if fewer else f"at least {rows} rows"
+        raise TableError(table.path, f"{table.n} rows, but a {folds}-fold diagnosis needs at least {folds}: {advice}")
+    require_rows(table, max(folds, 2), f"a {folds}-fold diagnosis")
+    require_enough_to_fit(table.n, KFold(folds))
+
+
 def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed: int = 0,
              alpha: float = ALPHA, min_gain: float = MIN_GAIN, candidates: Sequence[str] | None = None,
              forms: bool = True, model_predict: Callable[[np.ndarray], np.ndarray] | None = None,
@@ -429,13 +446,11 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     model_predict: corrected poses of a given model (an ONNX file, say); when given, the
     feature R^2 uses its residuals instead of the base physics model's out-of-fold ones.
     """
-    from posecorr.data import require_rows
-    from posecorr.train.splits import KFold, require_enough_to_fit
+    from posecorr.train.splits import KFold
 
     from .proposal import explain_absorbed, propose
 
-    require_rows(table, max(folds, 2), f"a {folds}-fold diagnosis")
-    require_enough_to_fit(table.n, KFold(folds))
+    require_diagnosable(table, folds)
     rows_given = table.n
     table, model_predict = _thinned(table, model_predict, seed)
     effects = list(effects)

@@ -93,9 +93,12 @@ def is_structure(r2: Any) -> bool:
     return isinstance(r2, (int, float)) and r2 >= STRUCTURE_R2
 
 
-def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] = ()) -> str:
-    """The diagnosis in one plain-language line (plain text, not escaped)."""
+def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] = (), why_none: str | None = None) -> str:
+    """The diagnosis in one plain-language line (plain text, not escaped); why_none: why there
+    is none, where the data cannot have one."""
     if not diagnosis:
+        if why_none:
+            return f"No diagnosis: {why_none}."
         return "No diagnosis given (run `posecorr diagnose` to rank missing effects)."
     candidates = ranked_candidates(diagnosis)
     present = [c for c in candidates if c.get("present")]

@@ -237,8 +237,8 @@ def _worst_section(table: PoseTable, rows_shown: np.ndarray, feats: Mapping[str,
     return _section("worst", "Worst poses after correction", _table(header, rows, left=2, compact=True), _e(note))
 
 
-def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[str]) -> str:
-    line = takeaway(diagnosis, effects)
+def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[str], why_none: str | None = None) -> str:
+    line = takeaway(diagnosis, effects, why_none)
     body = f'<p class="takeaway" id="takeaway">{_e(line)}</p>'
     if not diagnosis:
         return _section("diagnosis", "Diagnosis", body)
@@ -433,14 +433,16 @@ def _figure_sections(comparison: Comparison, feats: Mapping[str, np.ndarray], po
 def write_report(output_path: str | Path, table: PoseTable, corrected: np.ndarray,
                  model_info: Mapping[str, Any] | None = None, diagnosis: Mapping[str, Any] | None = None,
                  ledger: Sequence[Mapping[str, Any]] = (), title: str | None = None,
-                 segments: Mapping[str, Any] | None = None, comparison: Comparison | None = None) -> Path:
+                 segments: Mapping[str, Any] | None = None, comparison: Comparison | None = None,
+                 no_diagnosis: str | None = None) -> Path:
     """Write the self-contained HTML report of `table` against its (N, 7) `corrected` poses.
 
     model_info: `onnx_meta.read_info` of the model (optional); diagnosis: the `diagnose --json`
     dict (optional, unknown keys are shown or ignored); ledger: `ledger.read_ledger` records;
     segments: the sidecar `posecorr ingest` writes beside the table (TABLE.csv.segments.json);
     comparison: the before and after the page shows (`comparison.compare`; by default of
-    `corrected` on every pose, in-sample).
+    `corrected` on every pose, in-sample); no_diagnosis: why there is no diagnosis, where the
+    data cannot have one.
     Returns the written path. Raises ValueError when `corrected` does not fit the table.
     """
     corrected = np.asarray(corrected, dtype=float)
@@ -466,7 +468,7 @@ def write_report(output_path: str | Path, table: PoseTable, corrected: np.ndarra
              *_figure_sections(comparison, feats, pos, rot)]
     short = "rigid" if comparison.unregistered else "raw"
     parts.append(_worst_section(table, comparison.rows, feats, pos, rot, short))
-    parts.append(_diagnosis_section(diagnosis, model_effects(model_info, diagnosis)))
+    parts.append(_diagnosis_section(diagnosis, model_effects(model_info, diagnosis), no_diagnosis))
     parts.append(_ledger_section(list(ledger)))
     parts.append(_segments_section(segments))
 

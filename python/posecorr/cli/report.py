@@ -38,25 +38,32 @@ def run(args: argparse.Namespace) -> None:
     corrected = Corrector(args.model, backend=args.backend).correct(table.measured, t=table.time())
     ledger = read_ledger(args.data)
     comparison = compare(table, corrected, entry_for_model(ledger, args.model), say=progress(args))
-    diagnosis = None
+    diagnosis, no_diagnosis = None, None
     if not args.no_diagnosis:
-        from ..analysis.diagnose import diagnose
+        from ..analysis.diagnose import diagnose, require_diagnosable
 
-        effects = effect_names(args.effects) if args.effects is not None else list(info.get("effects") or [])
-        diagnosis = diagnose(table, effects, folds=args.folds, seed=args.seed,
-                             model_predict=lambda measured: corrected, progress=progress(args))
+        try:
+            require_diagnosable(table, args.folds)
+        except ValueError as error:  # the page is still worth having without its diagnosis
+            no_diagnosis = getattr(error, "message", str(error))
+        else:
+            effects = effect_names(args.effects) if args.effects is not None else list(info.get("effects") or [])
+            diagnosis = diagnose(table, effects, folds=args.folds, seed=args.seed,
+                                 model_predict=lambda measured: corrected, progress=progress(args))
     segments = None
     handle = open_sidecar(segments_path(args.data))
     if handle is not None:
         with handle:
             segments = json.loads(handle.read())
     path = write_report(args.output, table, corrected, info, diagnosis, ledger, segments=segments,
-                        comparison=comparison)
+                        comparison=comparison, no_diagnosis=no_diagnosis)
     summary = comparison.to_json()
-    emit(args, {"report": str(path), "bytes": path.stat().st_size, **summary, "diagnosis": diagnosis},
+    emit(args, {"report": str(path), "bytes": path.stat().st_size, **summary, "diagnosis": diagnosis,
+               "no_diagnosis": no_diagnosis},
          lambda: (f"{args.data} against {args.model} -> {path} ({path.stat().st_size // 1024} KiB)\n"
                   f"  before: {summary['baseline']['name']}, rmse_pos {1e3 * summary['baseline']['rmse_pos']:.4g} mm; "
-                  f"after: {summary['after']['scored']}, rmse_pos {1e3 * summary['after']['rmse_pos']:.4g} mm"))
+                  f"after: {summary['after']['scored']}, rmse_pos {1e3 * summary['after']['rmse_pos']:.4g} mm"
+                  + (f"\n  note: no diagnosis on the page: {no_diagnosis}" if no_diagnosis else "")))
 
 
 VERB = Verb(

@@ -377,3 +377,37 @@ def test_a_cross_validated_fit_reports_its_folds_as_they_start():
         folds = [line for line in said if line.startswith("fold ")]
         step = max(1, n_folds // 10)
         assert folds == [f"fold {k + 1}/{n_folds}" for k in range(0, n_folds, step)], said
+
+
+@pytest.mark.parametrize("representation", ["zhou", "quat", "pos"])
+def test_a_core_knows_its_weights_before_the_fit(representation):
+    """`n_weights` (before the fit) is the count of numbers the fit sets."""
+    from posecorr.simulate import simulate
+    from posecorr.train.mlp import MLP
+    from posecorr.train.pmc import PMC
+
+    table = simulate(1, seed=0).table
+    for core in (MLP(representation, hidden=(5, 4), epochs=2), PMC(representation), PMC(representation, degree=1)):
+        expected = core.n_weights()
+        core.fit(table.measured, table.reference)
+        arrays = (core.coefs_ + core.intercepts_) if isinstance(core, MLP) else (core.coef_, core.intercept_)
+        assert expected == sum(np.size(a) for a in arrays), core
+
+
+def test_a_network_with_more_weights_than_numbers_is_noted_before_the_work():
+    """The default network (20-20-20-20, 1,649 weights on zhou's 9 numbers) on 11 poses: each
+    leave-one-out fit has 10 poses, 90 numbers. Said before the first fold, and kept in the
+    notes; an affine PMC on positions there (12 weights against 30 numbers) is no surprise."""
+    from posecorr.simulate import simulate_session
+    from posecorr.train.pipeline import fit_table
+    from posecorr.train.splits import LeaveOneOut
+
+    table = simulate_session(3, n=11, spread="full", position_only=False, unremovable=0.0).table
+    said: list[str] = []
+    report = fit_table(table, [], ModelSpec("mlp", epochs=1), LeaveOneOut(), progress=said.append)
+    note = "mlp-zhou has 1,649 weights to fit on 10 poses (90 numbers) in each fit"
+    assert said[0].startswith(f"note: {note}") and said[1].startswith("cross-validating"), said[:2]
+    assert any(n.startswith(note) for n in report.notes)
+    said.clear()
+    report = fit_table(table, [], ModelSpec("pmc", "pos", options={"degree": 1}), LeaveOneOut(), progress=said.append)
+    assert not any("weights" in line for line in said + report.notes)

@@ -149,6 +149,11 @@ class BaseCorrector(PoseRegressorMixin, BaseEstimator):
         """The fewest poses `fit` takes (a quadratic PMC: one more than its terms)."""
         return 1
 
+    def n_weights(self) -> int | None:
+        """The numbers `fit` sets (weights and biases), known before the fit; None where a
+        core cannot say."""
+        return None
+
     def _fit_vectors(self, X: np.ndarray, Y: np.ndarray, validation: Validation | None) -> None:
         raise NotImplementedError
 

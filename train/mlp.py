@@ -40,7 +40,7 @@ import numpy as np
 from posecorr._xp import namespace
 
 from .activations import get_activation, mlp_forward
-from .base import BaseCorrector, Validation, check_poses, encode_pose
+from .base import BaseCorrector, Validation, check_poses, encode_pose, vector_size
 from .spec import DEFAULT_ACTIVATION, DEFAULT_EPOCHS, DEFAULT_HIDDEN, DEFAULT_TRAINER, parse_hidden
 from .splits import validation_split
 from .trainers import TRAINERS
@@ -156,6 +156,11 @@ class MLP(BaseCorrector):
     # --- fit ----------------------------------------------------------------------------
     def min_rows(self) -> int:
         return 4
+
+    def n_weights(self) -> int:
+        d = vector_size(self.representation)
+        sizes = [d, *parse_hidden(self.hidden), d]
+        return sum((a + 1) * b for a, b in zip(sizes, sizes[1:]))
 
     def _fit_vectors(self, X: np.ndarray, Y: np.ndarray, validation: Validation | None) -> None:
         import torch

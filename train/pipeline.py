@@ -24,12 +24,12 @@ from posecorr.data import PoseTable
 from posecorr.metrics import metric_block, pose_errors, pose_metrics, rmse_total
 from posecorr.rotations import POSITION_ONLY
 
-from .base import PoseRegressorMixin, Validation, as_validation, check_pair, check_poses
+from .base import PoseRegressorMixin, Validation, as_validation, check_pair, check_poses, vector_size
 from .identify import describe_spread, rigid_variants
 from .physics import PhysicsModel, RigidModel
 from .spec import ModelSpec, spec_from_options
-from .splits import (MIN_TEST_SPLIT, CrossValidationPlan, FixedSplit, HeldOut, KFold, Plan, plan_for,
-                     require_enough_to_fit)
+from .splits import (MIN_TEST_SPLIT, CrossValidationPlan, FixedSplit, HeldOut, KFold, Plan, fewest_to_fit,
+                     plan_for, require_enough_to_fit)
 
 
 class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
@@ -428,8 +428,28 @@ def fit_table(table: PoseTable, effects: Sequence[str], spec: ModelSpec, plan: P
         candidates = auto_candidates(table, effects, spec.representation)
     else:
         candidates = [requested_candidate(effects, spec, seed), *floor]
+        _note_more_weights_than_numbers(candidates[0], table.n, plan, seed, say, notes)
     fit_phase = _fit_fixed_split if isinstance(plan, FixedSplit) else _fit_cross_validated
     return _warn_thin(fit_phase(table, candidates, floor, auto, plan, seed, say, notes))
+
+
+def _note_more_weights_than_numbers(candidate: Candidate, n: int, plan: Plan, seed: int,
+                                    say: Callable[[str], None], notes: list[str]) -> None:
+    """Said before the work: a core with more weights than the poses it is fitted on hold
+    numbers (a default MLP on a session of tens of poses) takes minutes and rarely beats the
+    rigid fit."""
+    core = candidate.make_core()
+    weights = None if core is None else core.n_weights()
+    if weights is None:
+        return
+    rows = len(plan.indices(n, seed)[0]) if isinstance(plan, FixedSplit) else fewest_to_fit(n, plan)
+    numbers = rows * vector_size(core.representation)
+    if weights <= numbers:
+        return
+    note = (f"{candidate.name} has {weights:,} weights to fit on {rows} poses ({numbers:,} numbers) in each fit: "
+            "expect the rigid fit to do better on held-out poses")
+    say(f"note: {note}")
+    notes.append(note)
 
 
 def _plan_for_size(plan: Plan, n: int, notes: list[str]) -> Plan:

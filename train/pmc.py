@@ -124,6 +124,10 @@ class PMC(BaseCorrector):
         d = vector_size(self.representation)
         return n_features(d, self.degree) + 1 if self.alpha in (0, 0.0) else 2
 
+    def n_weights(self) -> int:
+        d = vector_size(self.representation)
+        return (n_features(d, self.degree) + 1) * d
+
     def _fit_vectors(self, X: np.ndarray, Y: np.ndarray, validation: Validation | None) -> None:
         # validation is ignored: PMC is not iterative.
         if self.degree not in (1, 2):

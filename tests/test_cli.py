@@ -232,6 +232,78 @@ def test_folds_too_small_to_fit_end_in_one_line_that_names_the_folds_that_fit(tm
         assert posecorr(verb, str(data), *extra, "--cv", "4", cwd=tmp_path).returncode == 0
 
 
+def test_drift_on_a_table_without_time_is_refused_before_any_work(tmp_path) -> None:
+    """Drift works on each pose's time: on a session with no t column, fit ran every fold
+    and then failed at the export asking for a Python argument; now fit (every method) and
+    diagnose refuse it in one line naming the column, and the table with t is fitted."""
+    from posecorr.data import read_table
+    from posecorr.simulate import simulate_session
+
+    table = simulate_session(4, n=12, spread="full", position_only=False, unremovable=0.0).table
+    timeless = tmp_path / "timeless.csv"
+    write_table(table, timeless)
+    assert read_table(timeless).time() is None
+    for verb, extra in (("diagnose", ["--effects", "station,drift", "--cv", "4"]),
+                        ("fit", ["--effects", "station,mount,drift", "--method", "none", "-o", "m.onnx"]),
+                        ("fit", ["--effects", "drift", "--method", "auto", "-o", "m.onnx"])):
+        run = posecorr(verb, str(timeless), *extra, cwd=tmp_path)
+        assert run.returncode == 2 and run.stderr.count("\n") == 1, run.stderr
+        assert run.stderr.strip() == (f"posecorr {verb}: error: {timeless}, column t: drift needs each pose's time "
+                                      "(seconds since the session's start), and the table has no such column")
+    assert not (tmp_path / "m.onnx").exists()
+    table.extras["t"] = np.linspace(0.0, 600.0, table.n)
+    timed = tmp_path / "timed.csv"
+    write_table(table, timed)
+    assert posecorr("fit", str(timed), "--effects", "station,mount,drift", "--method", "none", "-o", "m.onnx",
+                    cwd=tmp_path).returncode == 0
+
+
+def test_info_says_what_the_file_is_before_its_metadata(tmp_path, capsys) -> None:
+    """`info` starts with a few lines read from the metadata: what corrects, the size, the
+    held-out figures (a shipped model's test split; a fitted one's cross-validation), the
+    parity and the box; then every key. A file whose metadata is missing or of other types
+    still gets its first line."""
+    import onnx
+
+    from posecorr.cli import main
+    from posecorr.controller.onnx_meta import read_info
+    from posecorr.simulate import simulate_session
+
+    shipped = Path(__file__).resolve().parents[1] / "models" / "mlp-zhou-tansig-20x20x20x20-br.onnx"
+    meta = read_info(shipped)
+    assert main(["info", str(shipped)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    test = meta["test_metrics"]
+    assert lines[0] == f"{shipped.name}: mlp 20-20-20-20 (tansig, br) on zhou; physical effects: none"
+    assert lines[1] == f"  {meta['parameter_count']:,} parameters, {meta['node_count']} nodes, {meta['file_size']:,} bytes"
+    assert lines[2] == (f"  held out (test split, {test['n']} poses): rmse_pos {1e3 * test['rmse_pos']:.4g} mm, "
+                        f"rmse_rot {1e3 * test['rmse_rot']:.4g} mrad; raw rmse_pos {1e3 * test['raw']['rmse_pos']:.4g} mm, "
+                        f"rmse_rot {1e3 * test['raw']['rmse_rot']:.4g} mrad")
+    assert lines[3].startswith("  parity with the fitted estimator: passed, worst ")
+    assert lines[4].startswith("  corrects positions within x ")
+    assert lines[5:7] == ["", "metadata and structure:"]
+    assert sum(line.split(":")[0].strip() in meta for line in lines[7:]) == len(meta)
+
+    data = tmp_path / "s.csv"
+    write_table(simulate_session(2, n=12, spread="full", position_only=False, unremovable=0.0).table, data)
+    fitted = json.loads(posecorr("fit", str(data), "--effects", "station,mount", "--method", "none", "--cv", "4",
+                                 "-o", str(tmp_path / "m.onnx"), "--json").stdout)
+    assert main(["info", str(tmp_path / "m.onnx")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].endswith("; physical effects: station, mount") or lines[0].endswith("; physical effects: mount, station")
+    assert lines[2].startswith(f"  held out (cross-validated): rmse_pos {1e3 * fitted['cv']['rmse_pos']:.4g} mm")
+
+    bare = onnx.load(shipped)
+    del bare.metadata_props[:]
+    entry = bare.metadata_props.add()
+    entry.key, entry.value = "test_metrics", "[1, 2]"
+    onnx.save(bare, tmp_path / "bare.onnx")
+    assert main(["info", str(tmp_path / "bare.onnx")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "bare.onnx: unknown method; physical effects: none"
+    assert lines[2:4] == ["", "metadata and structure:"]
+
+
 def test_a_new_verb_is_one_file(tmp_path, capsys) -> None:
     """A module defining `VERB = Verb(...)` beside its add_arguments and run, dropped into
     the package's folder, is a verb of `posecorr` (its help, its options, its run); a

@@ -3,7 +3,7 @@
 A guide shows a command's output in a ```text block: a line `$ COMMAND` (posecorr on PATH,
 run from the repository's root), then lines of what it printed, often a few of many (a
 `...` line marks a cut, but any line may be left out). This harness runs a page's commands
-in order in a scratch folder holding copies of `examples/` and `tests/data/` (a `fit` appends
+in order in a scratch folder holding copies of `examples/`, `tests/data/` and `models/` (a `fit` appends
 a ledger beside its data: the checkout is never written), and checks that every shown line
 is a line of the real output, in order.
 
@@ -36,7 +36,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs"
 # What the commands read, copied into the scratch folder under the same names.
-INPUTS = ("examples", "tests/data")
+INPUTS = ("examples", "tests/data", "models")
 NOT_CHECKED = re.compile(r"<!--\s*outputs not checked:\s*(.+?)\s*-->")
 NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
 # Figures that depend on the CPU's kernels, not on posecorr: checked to their order of magnitude.

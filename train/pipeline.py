@@ -413,8 +413,10 @@ def fit_table(table: PoseTable, effects: Sequence[str], spec: ModelSpec, plan: P
     from dataclasses import replace
 
     from posecorr.data import require_rows
+    from posecorr.effects import require_time
 
     require_rows(table, 4, "a fit")
+    require_time(effects, table)
     refuse_gross_outliers(table)
     if not table.has_orientation:
         spec = replace(spec, representation=POSITION_ONLY)
@@ -436,8 +438,8 @@ def fit_table(table: PoseTable, effects: Sequence[str], spec: ModelSpec, plan: P
 def _note_more_weights_than_numbers(candidate: Candidate, n: int, plan: Plan, seed: int,
                                     say: Callable[[str], None], notes: list[str]) -> None:
     """Said before the work: a core with more weights than the poses it is fitted on hold
-    numbers (a default MLP on a session of tens of poses) takes minutes and rarely beats the
-    rigid fit."""
+    numbers (a default MLP on a session of tens of poses) is settled by its regularisation
+    more than by the data; an MLP there takes minutes and seldom beats the rigid fit."""
     core = candidate.make_core()
     weights = None if core is None else core.n_weights()
     if weights is None:
@@ -447,7 +449,7 @@ def _note_more_weights_than_numbers(candidate: Candidate, n: int, plan: Plan, se
     if weights <= numbers:
         return
     note = (f"{candidate.name} has {weights:,} weights to fit on {rows} poses ({numbers:,} numbers) in each fit: "
-            "expect the rigid fit to do better on held-out poses")
+            "its regularisation, not the data, settles most of them")
     say(f"note: {note}")
     notes.append(note)
 

@@ -651,6 +651,17 @@ def get_effect(name: str) -> Effect:
     return EFFECTS.lookup(name)
 
 
+def require_time(names: Iterable[str], table: Any) -> None:
+    """TableError before any work where an effect of `names` works on time (`needs_time`,
+    drift) and the PoseTable `table` has no time column."""
+    from .data import TableError
+
+    timed = [name for name in names if get_effect(name).needs_time]
+    if timed and table.time() is None:
+        raise TableError(table.path, f"{', '.join(timed)} {'needs' if len(timed) == 1 else 'need'} each pose's time "
+                         "(seconds since the session's start), and the table has no such column", column="t")
+
+
 def registration_effects() -> dict[str, str]:
     """{role: name} of the registered effects that play a registration role (the first of each)."""
     out: dict[str, str] = {}

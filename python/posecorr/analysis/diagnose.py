@@ -35,7 +35,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ..data import PoseTable
-from ..effects import get_effect
+from ..effects import get_effect, require_time
 from ..metrics import pose_errors, rmse_total
 from ..rotations import matrix_to_rotvec, quat_to_matrix
 from .features import FEATURES, pose_features
@@ -451,6 +451,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     from .proposal import explain_absorbed, propose
 
     require_diagnosable(table, folds)
+    require_time(effects, table)
     rows_given = table.n
     table, model_predict = _thinned(table, model_predict, seed)
     effects = list(effects)

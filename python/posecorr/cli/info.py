@@ -23,9 +23,62 @@ def run(args: argparse.Namespace) -> None:
         info["one_pose_steps"] = [{"path": p, "why": why} for p, why in paths]
     # Metadata is whatever the file's author wrote: escape what a terminal would obey.
     emit(args, info, lambda: "\n".join(
+        [printable(line) for line in summary(info)] + ["", "metadata and structure:"] +
         [f"{printable(str(k)):>22}: {printable(_one_line(v))}" for k, v in info.items()
          if k != "one_pose_steps"] +
         [f"{'one-pose step ' + str(i):>22}: {p}: {why}" for i, (p, why) in enumerate(paths or ())]))
+
+
+def summary(info: dict[str, Any]) -> list[str]:
+    """What a model file is and what it states of itself, in a few lines: what it corrects
+    with, its size, its held-out figures, its parity, the poses it takes. Every metadata value
+    may be missing or of another type (the author wrote it): what is not there is left out."""
+    from ..controller.onnx_meta import stated_metrics
+
+    lines = [f"{Path(str(info.get('file'))).name}: {_describe(info)}"]
+    size = [f"{info[k]:,} {word}" for k, word in (("parameter_count", "parameters"), ("node_count", "nodes"),
+                                                   ("file_size", "bytes")) if isinstance(info.get(k), int)]
+    lines.append("  " + ", ".join(size))
+    stated = stated_metrics(info)
+    if stated is not None:
+        kind, figures, raw = stated
+        where = ("cross-validated" if kind == "cv" else "test split") + (
+            f", {figures['n']} poses" if isinstance(figures.get("n"), int) else "")
+        lines.append(f"  held out ({where}): {_errors(figures)}" + (f"; raw {_errors(raw)}" if raw else ""))
+    parity = info.get("parity")
+    if isinstance(parity, dict) and isinstance(parity.get("passed"), bool):
+        worst = (f", worst {parity['max_pos_m']:.1e} m / {parity['max_rot_rad']:.1e} rad"
+                 if all(isinstance(parity.get(k), (int, float)) for k in ("max_pos_m", "max_rot_rad")) else "")
+        lines.append(f"  parity with the fitted estimator: {'passed' if parity['passed'] else 'FAILED'}{worst}")
+    box = info.get("input_bounds")
+    if (isinstance(box, list) and len(box) == 2 and all(isinstance(b, list) and len(b) == 3 for b in box)
+            and all(isinstance(v, (int, float)) for b in box for v in b)):
+        lines.append("  corrects positions within " + ", ".join(
+            f"{axis} {lo:.3f}..{hi:.3f}" for axis, lo, hi in zip("xyz", *box)) + " m")
+    return lines
+
+
+def _describe(info: dict[str, Any]) -> str:
+    """"mlp 20-20-20-20 (tansig, br) on zhou", "pmc quadratic-9in-55terms (lstsq) on zhou",
+    "rigid joint": what corrects, then the physical effects."""
+    def given(key: str) -> str | None:
+        value = info.get(key)
+        return None if value in (None, "", "None", "none", "linear") else str(value)
+
+    method = given("method") or "unknown method"
+    text = " ".join(v for v in (method, given("rigid_variant") if method == "rigid" else given("architecture")) if v)
+    details = [v for v in (given("activation"), given("trainer")) if v]
+    text += f" ({', '.join(details)})" if details else ""
+    text += f" on {given('representation')}" if given("representation") and method != "rigid" else ""
+    effects = info.get("effects")
+    return f"{text}; physical effects: {', '.join(map(str, effects)) if isinstance(effects, list) and effects else 'none'}"
+
+
+def _errors(figures: dict[str, Any]) -> str:
+    out = [f"rmse_pos {1e3 * figures['rmse_pos']:.4g} mm"] if isinstance(figures.get("rmse_pos"), (int, float)) else []
+    if isinstance(figures.get("rmse_rot"), (int, float)):
+        out.append(f"rmse_rot {1e3 * figures['rmse_rot']:.4g} mrad")
+    return ", ".join(out) or "no figures"
 
 
 def _step_paths(model: Path) -> list[tuple[str, str]] | None:

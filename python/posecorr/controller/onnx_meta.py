@@ -159,6 +159,22 @@ def read_info(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise ValueError(f"{path}: not a valid ONNX model (nesting too deep)") from None
 
 
+def stated_metrics(info: dict[str, Any]) -> tuple[str, dict[str, Any], dict[str, Any] | None] | None:
+    """The held-out figures a model file states of itself (its `test_metrics`): (kind,
+    figures, raw figures or None); kind "test" (a shipped model's fixed split, or fit's) or
+    "cv" (fit's cross-validation). None where it states none in either layout."""
+    stated = info.get("test_metrics")
+    if not isinstance(stated, dict):
+        return None
+    raw = stated.get("raw") if isinstance(stated.get("raw"), dict) else None
+    if isinstance(stated.get("rmse_pos"), (int, float)):      # tools/models.py: the figures at the top
+        return "test", stated, raw
+    for kind in ("test", "cv"):                                  # fit: {kind: figures, "raw": figures}
+        if isinstance(stated.get(kind), dict) and isinstance(stated[kind].get("rmse_pos"), (int, float)):
+            return kind, stated[kind], raw
+    return None
+
+
 def _parse(data: bytes, path: str) -> dict[str, Any]:
     if not data:
         raise _Malformed("empty file")

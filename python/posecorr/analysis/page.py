@@ -29,6 +29,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from ..controller.onnx_meta import stated_metrics
 from ..data import PoseTable
 from ..metrics import RULE, W_POS, W_ROT, pose_errors
 from ..safeio import write_text
@@ -194,11 +195,13 @@ def _metrics_section(comparison: Comparison, pos: tuple[np.ndarray, np.ndarray],
             "measures, so there the before is the best rigid fit's residual. "
             + ("Held-out: every pose predicted by a fit that never saw it, as `posecorr fit` scored it."
                if comparison.held_out else f"In-sample: {comparison.reason}."))
-    tm = (model_info or {}).get("test_metrics")
-    if isinstance(tm, Mapping) and tm.get("rmse_pos") is not None:
-        n_text = f" on {tm['n']} held-out poses" if tm.get("n") else ""
+    stated = stated_metrics(dict(model_info or {}))
+    if stated is not None:
+        kind, tm, _ = stated
+        n_text = (" (cross-validated)" if kind == "cv" else
+                  f" on {tm['n']} held-out poses" if isinstance(tm.get("n"), int) else " on its test split")
         rot_text = f", rmse_rot {_num(tm.get('rmse_rot'), 1e3)} mrad" if tm.get("rmse_rot") is not None else ""
-        body += (f'<p class="note">The model\'s own test metrics{_e(n_text)} (from its metadata): rmse_pos '
+        body += (f'<p class="note">The model\'s own held-out metrics{_e(n_text)} (from its metadata): rmse_pos '
                  f"{_num(tm.get('rmse_pos'), 1e3)} mm{rot_text}, rmse_total {_num(tm.get('rmse_total'), 1e3)}"
                  f"{' mm + mrad' if rot_text else ' mm'}.</p>")
     return _section("metrics", "Metrics", body, _e(note))

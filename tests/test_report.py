@@ -378,8 +378,8 @@ def test_held_out_where_the_ledger_knows_the_folds_in_sample_otherwise(tmp_path:
     rows = _metrics_rows(page)
     assert rows[1][1] == after["scored"] and rows[0][1] == after["scored"]
     # the figures the file states of itself, in fit's layout ({kind: figures, "raw": ...})
-    stated = " (cross-validated)" if cv == "5" else " on its test split"
-    assert f"The model's own held-out metrics{stated} (from its metadata): rmse_pos" in page
+    stated = ", cross-validated" if cv == "5" else " on its test split"
+    assert f"From its metadata, the model's own held-out figures{stated}: rmse_pos" in page
 
     # The same model without its ledger line: in-sample, said in the table.
     (tmp_path / "s.csv.ledger.jsonl").unlink()

@@ -29,7 +29,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from ..controller.onnx_meta import stated_metrics
+from ..controller.onnx_meta import describe_corrector, stated_metrics
 from ..data import PoseTable
 from ..metrics import RULE, W_POS, W_ROT, pose_errors
 from ..safeio import write_text
@@ -135,12 +135,10 @@ def _summary_section(table: PoseTable, model_info: Mapping[str, Any] | None, tit
     if model_info:
         effects = ",".join(effect_list(model_info.get("effects"))) or "none"
         items += [("model file", model_info.get("file", "?")),
-                  ("method", model_info.get("method", "?")),
-                  ("representation", model_info.get("representation", "?")),
+                  ("corrector", describe_corrector(dict(model_info))),
                   ("effects in the model", effects)]
-        for key in ("architecture", "activation", "trainer", "posecorr_version"):
-            if model_info.get(key) not in (None, ""):
-                items.append((key.replace("_", " "), model_info[key]))
+        if model_info.get("posecorr_version") not in (None, ""):
+            items.append(("posecorr version", model_info["posecorr_version"]))
         if isinstance(model_info.get("fixed"), Mapping):
             for name, reason in model_info["fixed"].items():
                 items.append((f"held (not determined): {name}", reason))
@@ -198,10 +196,10 @@ def _metrics_section(comparison: Comparison, pos: tuple[np.ndarray, np.ndarray],
     stated = stated_metrics(dict(model_info or {}))
     if stated is not None:
         kind, tm, _ = stated
-        n_text = (" (cross-validated)" if kind == "cv" else
+        n_text = (", cross-validated" if kind == "cv" else
                   f" on {tm['n']} held-out poses" if isinstance(tm.get("n"), int) else " on its test split")
         rot_text = f", rmse_rot {_num(tm.get('rmse_rot'), 1e3)} mrad" if tm.get("rmse_rot") is not None else ""
-        body += (f'<p class="note">The model\'s own held-out metrics{_e(n_text)} (from its metadata): rmse_pos '
+        body += (f'<p class="note">From its metadata, the model\'s own held-out figures{_e(n_text)}: rmse_pos '
                  f"{_num(tm.get('rmse_pos'), 1e3)} mm{rot_text}, rmse_total {_num(tm.get('rmse_total'), 1e3)}"
                  f"{' mm + mrad' if rot_text else ' mm'}.</p>")
     return _section("metrics", "Metrics", body, _e(note))

@@ -59,19 +59,11 @@ def summary(info: dict[str, Any]) -> list[str]:
 
 
 def _describe(info: dict[str, Any]) -> str:
-    """"mlp 20-20-20-20 (tansig, br) on zhou", "pmc quadratic-9in-55terms (lstsq) on zhou",
-    "rigid joint": what corrects, then the physical effects."""
-    def given(key: str) -> str | None:
-        value = info.get(key)
-        return None if value in (None, "", "None", "none", "linear") else str(value)
+    from ..controller.onnx_meta import describe_corrector
 
-    method = given("method") or "unknown method"
-    text = " ".join(v for v in (method, given("rigid_variant") if method == "rigid" else given("architecture")) if v)
-    details = [v for v in (given("activation"), given("trainer")) if v]
-    text += f" ({', '.join(details)})" if details else ""
-    text += f" on {given('representation')}" if given("representation") and method != "rigid" else ""
     effects = info.get("effects")
-    return f"{text}; physical effects: {', '.join(map(str, effects)) if isinstance(effects, list) and effects else 'none'}"
+    return (f"{describe_corrector(info)}; physical effects: "
+            f"{', '.join(map(str, effects)) if isinstance(effects, list) and effects else 'none'}")
 
 
 def _errors(figures: dict[str, Any]) -> str:

@@ -175,6 +175,22 @@ def stated_metrics(info: dict[str, Any]) -> tuple[str, dict[str, Any], dict[str,
     return None
 
 
+def describe_corrector(info: dict[str, Any]) -> str:
+    """What a model file corrects with, from its metadata: "mlp 20-20-20-20 (tansig, br) on
+    zhou", "pmc quadratic-9in-55terms (lstsq) on zhou", "rigid joint", "physics". The
+    representation is named only for a data-driven core (one with an architecture)."""
+    def given(key: str) -> str | None:
+        value = info.get(key)
+        return None if value in (None, "", "None", "none", "linear") else str(value)
+
+    method = given("method") or "unknown method"
+    core = given("architecture")
+    text = " ".join(v for v in (method, given("rigid_variant") if method == "rigid" else core) if v)
+    details = [v for v in (given("activation"), given("trainer")) if v]
+    text += f" ({', '.join(details)})" if details else ""
+    return text + (f" on {given('representation')}" if core and given("representation") else "")
+
+
 def _parse(data: bytes, path: str) -> dict[str, Any]:
     if not data:
         raise _Malformed("empty file")

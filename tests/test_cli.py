@@ -235,27 +235,40 @@ def test_folds_too_small_to_fit_end_in_one_line_that_names_the_folds_that_fit(tm
 def test_drift_on_a_table_without_time_is_refused_before_any_work(tmp_path) -> None:
     """Drift works on each pose's time: on a session with no t column, fit ran every fold
     and then failed at the export asking for a Python argument; now fit (every method) and
-    diagnose refuse it in one line naming the column, and the table with t is fitted."""
+    diagnose refuse it in one line naming the column, and the table with t is fitted. The
+    model it gives is refused the timeless table by apply and report."""
     from posecorr.data import read_table
-    from posecorr.simulate import simulate_session
 
-    table = simulate_session(4, n=12, spread="full", position_only=False, unremovable=0.0).table
+    table = simulate(1, seed=5).table
+    table = table.subset(np.arange(0, table.n, 10))          # 134 poses over the session
+    timed = tmp_path / "timed.csv"
+    write_table(table, timed)
+    del table.extras["t"]
     timeless = tmp_path / "timeless.csv"
     write_table(table, timeless)
     assert read_table(timeless).time() is None
-    for verb, extra in (("diagnose", ["--effects", "station,drift", "--cv", "4"]),
-                        ("fit", ["--effects", "station,mount,drift", "--method", "none", "-o", "m.onnx"]),
+    refused = ("drift needs each pose's time (seconds since the session's start), and the table has no such column")
+    for verb, extra in (("diagnose", ["--effects", "station,drift"]),
+                        ("fit", ["--effects", "station,drift", "--method", "none", "-o", "m.onnx"]),
                         ("fit", ["--effects", "drift", "--method", "auto", "-o", "m.onnx"])):
         run = posecorr(verb, str(timeless), *extra, cwd=tmp_path)
         assert run.returncode == 2 and run.stderr.count("\n") == 1, run.stderr
-        assert run.stderr.strip() == (f"posecorr {verb}: error: {timeless}, column t: drift needs each pose's time "
-                                      "(seconds since the session's start), and the table has no such column")
+        assert run.stderr.strip() == f"posecorr {verb}: error: {timeless}, column t: {refused}"
     assert not (tmp_path / "m.onnx").exists()
-    table.extras["t"] = np.linspace(0.0, 600.0, table.n)
-    timed = tmp_path / "timed.csv"
-    write_table(table, timed)
-    assert posecorr("fit", str(timed), "--effects", "station,mount,drift", "--method", "none", "-o", "m.onnx",
-                    cwd=tmp_path).returncode == 0
+    fitted = posecorr("fit", str(timed), "--effects", "station,drift", "--method", "none", "-o", "m.onnx", "--json",
+                      cwd=tmp_path)
+    assert fitted.returncode == 0 and json.loads(fitted.stdout)["chosen"] == "physics", fitted.stderr
+    # The model takes time: apply and report refuse the timeless table (corrected as at t = 0,
+    # the API's default, its drift would be left out without a word) and write nothing.
+    for verb, argv in (("apply", ["apply", "m.onnx", str(timeless), "-o", "out.csv"]),
+                       ("report", ["report", str(timeless), "--model", "m.onnx", "-o", "out.html"])):
+        run = posecorr(*argv, cwd=tmp_path)
+        assert run.returncode == 2 and run.stderr.count("\n") == 1, run.stderr
+        assert run.stderr.strip() == (f"posecorr {verb}: error: {timeless}, row 1, column t: m.onnx takes each pose's "
+                                      "time (it models a time-dependent effect such as drift), and the table has no "
+                                      "such column (seconds since the session's start)")
+    assert not list(tmp_path.glob("out.*"))
+    assert posecorr("apply", "m.onnx", str(timed), "-o", "out.csv", cwd=tmp_path).returncode == 0
 
 
 def test_info_says_what_the_file_is_before_its_metadata(tmp_path, capsys) -> None:

@@ -24,6 +24,7 @@ def run(args: argparse.Namespace) -> None:
     from ..analysis.comparison import compare
     from ..analysis.ledger import entry_for_model, ledger_path, read_ledger
     from ..analysis.page import write_report
+    from ..controller.apply import refuse_missing_time
     from ..controller.onnx_meta import read_info
     from ..controller.runtime import Corrector
     from ..data import require_rows
@@ -35,7 +36,9 @@ def run(args: argparse.Namespace) -> None:
     table = read_data(args)
     require_rows(table, 3, "a report (its baseline is the best rigid fit)")
     info = read_info(args.model)
-    corrected = Corrector(args.model, backend=args.backend).correct(table.measured, t=table.time())
+    corrector = Corrector(args.model, backend=args.backend)
+    refuse_missing_time(corrector, args.model, table.path, table.time() is not None)
+    corrected = corrector.correct(table.measured, t=table.time())
     ledger = read_ledger(args.data)
     comparison = compare(table, corrected, entry_for_model(ledger, args.model), say=progress(args))
     diagnosis, no_diagnosis = None, None

@@ -104,6 +104,16 @@ class _RmseSums:
         return out
 
 
+def refuse_missing_time(corrector: Corrector, model: str | os.PathLike[str], path: Any, has_time: bool) -> None:
+    """TableError where `model` takes each pose's time and the table at `path` has none:
+    corrected as at t = 0 (`Corrector.correct`'s default), its time-dependent effects would
+    be left out without a word."""
+    if corrector.takes_time and not has_time:
+        raise TableError(path, f"{os.path.basename(os.fspath(model))} takes each pose's time (it models a "
+                         "time-dependent effect such as drift), and the table has no such column (seconds since "
+                         "the session's start)", 1, "t")
+
+
 def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], output: str | os.PathLike[str],
                backend: str = "c", chunk_rows: int = CHUNK_ROWS, allow_unbounded: bool = False,
                allow_unsigned: bool = False) -> dict[str, Any]:
@@ -115,6 +125,7 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                           allow_unsigned=allow_unsigned)
     n = 0
     with TableReader(table, require_reference=False) as reader:
+        refuse_missing_time(corrector, model, reader.path, "t" in reader.header)
         clash = [c for c in CORR_COLUMNS if c in reader.header]
         if clash:
             raise TableError(reader.path, "column already present: apply writes the corrected pose to "
@@ -128,7 +139,7 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
             for chunk in reader.chunks(chunk_rows):
                 measured = np.concatenate([chunk.block(MEAS_POS), chunk.block(MEAS_QUAT)], axis=1)
                 # A model with a time input gets the table's t (s since the session's start).
-                times = chunk.block(("t",))[:, 0] if corrector.takes_time and "t" in reader.header else None
+                times = chunk.block(("t",))[:, 0] if corrector.takes_time else None
                 try:
                     corrected = corrector.correct(measured, t=times)
                 except PoseCorrError as error:

@@ -178,6 +178,26 @@ def test_takeaway_without_present_effect() -> None:
     assert takeaway({"candidates": [], "features": []}).startswith("No catalogue effect is missing")
 
 
+def test_where_no_candidate_could_pass_the_banner_says_the_poses_cannot_show_it() -> None:
+    """The real 9-pose session 20200717_Exp2: its held-out residual leaves too few dimensions
+    for any candidate's p to reach the threshold (chi2.sf of all of them on one degree of
+    freedom, `score_test_reach`). The banner says so with those figures instead of "no
+    catalogue effect is missing", which the test could not have shown."""
+    from scipy.stats import chi2
+
+    from posecorr.analysis.diagnose import diagnose
+    from posecorr.data import read_table
+
+    diagnosis = diagnose(read_table(Path(__file__).parent / "data" / "realdata" / "20200717_Exp2.csv"),
+                         ["station", "mount"], folds=5, seed=0)
+    reach = diagnosis["reach"]
+    assert reach["can_pass"] is False and reach["best_p"] == pytest.approx(chi2.sf(reach["residual_dims"], 1))
+    line = takeaway(diagnosis, ["station", "mount"])
+    assert line.startswith(f"These 9 poses cannot show a missing effect: no candidate's p can fall below the test's "
+                           f"threshold (at best {reach['best_p']:.2g} against {reach['threshold']:.2g})")
+    assert "No catalogue effect is missing" not in line
+
+
 def test_report_shows_the_still_segments_of_an_ingested_table(tmp_path) -> None:
     """Issue 15: a table from `posecorr ingest` has its segments beside it; the report lists
     them, rejected ones with their reason, and the clock offset."""
@@ -542,7 +562,7 @@ def test_a_median_point_stands_for_three_poses_or_more() -> None:
 
 
 def test_a_few_poses_are_boxed_three_or_more_and_counted_in_whole_poses() -> None:
-    from posecorr.analysis.figures import MIN_PER_GROUP, _groups, features_figure, histogram_figure
+    from posecorr.analysis.figures import MIN_PER_GROUP, _groups, features_figure, histogram_figure, orientation_figure
 
     yaw = np.linspace(75.0, 99.0, 11)  # 11 distinct yaws: one pose per value
     labels, index = _groups(yaw)
@@ -561,6 +581,14 @@ def test_a_few_poses_are_boxed_three_or_more_and_counted_in_whole_poses() -> Non
     fig = histogram_figure((rng.uniform(1, 9, 11), rng.uniform(1, 9, 11)), None)
     ticks = fig.axes[0].get_yticks()
     assert np.allclose(ticks, np.round(ticks))
+
+    # a box's count once where every box holds the same (nine poses of one orientation: "9", not "9–9")
+    still = {"roll": np.zeros(9), "pitch": np.zeros(9), "yaw": np.full(9, 1.5)}
+    fig = orientation_figure(still, rng.uniform(1, 9, 9), None, rng.uniform(1, 9, 9), None)
+    assert fig.axes[0].get_title() == "position error by roll (n per box: 9)"
+    eleven = {"roll": np.zeros(11), "pitch": np.zeros(11), "yaw": np.radians(yaw)}
+    fig = orientation_figure(eleven, rng.uniform(1, 9, 11), None, rng.uniform(1, 9, 11), None)
+    assert fig.axes[2].get_title() == "position error by yaw (n per box: 3–4)"
 
 
 def test_no_structure_reads_as_one_line_and_a_form_is_named_as_one(tmp_path: Path,
@@ -584,4 +612,4 @@ def test_no_structure_reads_as_one_line_and_a_form_is_named_as_one(tmp_path: Pat
     line = takeaway(form, ["station", "mount"])
     assert line.startswith("Most likely missing: strain, a form outside the catalogue (present: yes")
     assert line.endswith("--effects station,mount,strain")
-    assert takeaway({"candidates": [], "features": []}).endswith("no effect or form tried explains what is left.")
+    assert takeaway({"candidates": [], "features": []}).endswith("nothing tried explains what is left.")

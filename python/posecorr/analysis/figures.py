@@ -277,7 +277,8 @@ def orientation_figure(features: Mapping[str, np.ndarray], pos_mm: np.ndarray, r
             if len(labels) > 8:
                 ax.tick_params(axis="x", labelrotation=45)
             ax.grid(True, axis="y", alpha=0.3)
-            ax.set_title(f"{quantity} by {angle} (n per box: {min(map(len, index))}–{max(map(len, index))})")
+            fewest, most = min(map(len, index)), max(map(len, index))
+            ax.set_title(f"{quantity} by {angle} (n per box: {fewest}{f'–{most}' if most > fewest else ''})")
     fig.suptitle("Corrected error grouped by orientation (boxes: quartiles, whiskers 1.5 IQR)", fontsize=10)
     return fig
 

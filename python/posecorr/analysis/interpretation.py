@@ -102,7 +102,6 @@ def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] =
         return "No diagnosis given (run `posecorr diagnose` to rank missing effects)."
     candidates = ranked_candidates(diagnosis)
     present = [c for c in candidates if c.get("present")]
-    test = f" ({diagnosis['test']})" if diagnosis.get("test") else ""
     if present:
         top = present[0]
         effect = str(top.get("effect", "?"))
@@ -119,14 +118,26 @@ def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] =
                 f"Add it with --effects {','.join(effects)}")
     r2 = [f for f in diagnosis.get("features") or []
           if isinstance(f, Mapping) and isinstance(f.get("r2"), (int, float))]
-    if r2:
-        best = max(r2, key=lambda f: f["r2"])
-        if is_structure(best["r2"]):
-            return (f"No catalogue effect is missing{test}, but {best['r2']:.2f} of the residual is explained "
-                    f"by {best.get('feature')}: an effect outside the catalogue (add your own with --effect-file).")
+    structure = max(r2, key=lambda f: f["r2"]) if r2 else None
+    structure_text = (f"{structure['r2']:.2f} of the residual is explained by {structure.get('feature')}: an effect "
+                      "outside the catalogue (add your own with --effect-file)"
+                      if structure is not None and is_structure(structure["r2"]) else None)
+    reach = diagnosis.get("reach") if isinstance(diagnosis.get("reach"), Mapping) else {}
+    if reach.get("can_pass") is False and all(isinstance(reach.get(k), (int, float)) for k in ("best_p", "threshold")):
+        # Not "nothing is missing": on these poses the test could not have said otherwise.
+        used = (diagnosis.get("rows") or {}).get("used") if isinstance(diagnosis.get("rows"), Mapping) else None
+        plan = reach.get("poses_to_pass") if isinstance(reach.get("poses_to_pass"), Mapping) else None
+        more = (f"; if its gain is real, about {plan['poses']} poses of this spread would let {plan['effect']} pass"
+                if plan and plan.get("poses") and plan.get("effect") else "")
+        line = (f"{f'These {used} poses' if used else 'These poses'} cannot show a missing effect: no candidate's p can "
+                f"fall below the test's threshold (at best {reach['best_p']:.2g} against {reach['threshold']:.2g}){more}.")
+        return line + (f" Yet {structure_text}." if structure_text else "")
+    # The test's words stand under the candidates' table; the banner keeps to the finding.
+    if structure_text:
+        return f"No catalogue effect is missing, but {structure_text}."
     top = f" (best candidate: {candidates[0].get('effect')}, not present)" if candidates else ""
     # Not "noise": on a few poses an error no candidate explains fails the test just the same.
-    return f"No catalogue effect is missing{test}{top}; no effect or form tried explains what is left."
+    return f"No catalogue effect is missing and no form earns its place{top}; nothing tried explains what is left."
 
 
 def worst_order(pos_err: np.ndarray, rot_err: np.ndarray | None = None) -> np.ndarray:

@@ -22,6 +22,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> None:
     from ..analysis.comparison import compare
+    from ..analysis.interpretation import model_effects, takeaway
     from ..analysis.ledger import entry_for_model, ledger_path, read_ledger
     from ..analysis.page import write_report
     from ..controller.apply import refuse_missing_time
@@ -66,7 +67,8 @@ def run(args: argparse.Namespace) -> None:
          lambda: (f"{args.data} against {args.model} -> {path} ({path.stat().st_size // 1024} KiB)\n"
                   f"  before: {summary['baseline']['name']}, rmse_pos {1e3 * summary['baseline']['rmse_pos']:.4g} mm; "
                   f"after: {summary['after']['scored']}, rmse_pos {1e3 * summary['after']['rmse_pos']:.4g} mm"
-                  + (f"\n  note: no diagnosis on the page: {no_diagnosis}" if no_diagnosis else "")))
+                  + (f"\n  note: no diagnosis on the page: {no_diagnosis}" if no_diagnosis else "")
+                  + (f"\n  diagnosis: {takeaway(diagnosis, model_effects(info, diagnosis))}" if diagnosis else "")))
 
 
 VERB = Verb(

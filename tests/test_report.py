@@ -170,6 +170,18 @@ def test_wrong_shape_rejected(tmp_path: Path, small: tuple[PoseTable, np.ndarray
         write_report(tmp_path / "x.html", table, corrected[:-1])
 
 
+def test_the_history_names_a_representation_only_where_a_core_has_one(tmp_path, small) -> None:
+    """A physics or rigid model's file carries the representation its graph computes in (R);
+    the history shows it only for a method with a data-driven core (`METHODS`)."""
+    table, corrected = small
+    physics = {**LEDGER[0], "model": "c.onnx", "method": "physics", "representation": "R"}
+    text, _ = _parse(write_report(tmp_path / "r.html", table, corrected, None, None, [LEDGER[0], physics]))
+    section = text[text.index('id="ledger"'):]
+    rows = re.findall(r"<tr[^>]*>(.*?)</tr>", section, flags=re.S)[1:3]
+    cells = [re.findall(r"<td[^>]*>(.*?)</td>", row, flags=re.S) for row in rows]
+    assert [row[4:6] for row in cells] == [["pmc", "zhou"], ["physics", "–"]], cells
+
+
 def test_takeaway_without_present_effect() -> None:
     diag = {"candidates": [{"effect": "drift", "rank": 1, "present": False}],
             "features": [{"feature": "yaw", "r2": 0.4}]}

@@ -343,6 +343,15 @@ def _segments_section(segments: Mapping[str, Any] | None) -> str:
     return _section("segments", "Still segments", f"<p>{_e(head)}</p>" + table)
 
 
+def _core_representation(entry: Mapping[str, Any]) -> str:
+    """A ledger line's representation where its method has a data-driven core (a physics or
+    rigid model's is internal), else "–"."""
+    from posecorr.train.methods import METHODS
+
+    method = METHODS.get(str(entry.get("method")))
+    return str(entry.get("representation") or "–") if method is not None and method.has_core else "–"
+
+
 def _ledger_section(ledger: Sequence[Mapping[str, Any]]) -> str:
     if not ledger:
         return _section("ledger", "Ledger", "<p>No models fitted on this data yet (the ledger is empty).</p>")
@@ -359,7 +368,7 @@ def _ledger_section(ledger: Sequence[Mapping[str, Any]]) -> str:
         model = str(entry.get("model", ""))
         rows.append([str(k), _e(when), f'<span title="{_e(model)}">{_e(Path(model).name if model else "")}</span>',
                      _e(",".join(effect_list(entry.get("effects"))) or "none"), _e(entry.get("method", "")),
-                     _e(entry.get("representation", "")), _e(kind or "–"),
+                     _e(_core_representation(entry)), _e(kind or "–"),
                      _num(block.get("rmse_pos"), 1e3), _num(block.get("rmse_rot"), 1e3),
                      _num(block.get("rmse_total"), 1e3), _rigid_cell(entry.get("baseline")),
                      (_num(gain) + "×") if gain is not None else "–"])

@@ -164,6 +164,12 @@ def fewest_to_fit(n: int, plan: CrossValidationPlan, nested: bool = False) -> in
     return fewest_to_fit(fewest, plan_for(fewest, nested=True)) if nested and fewest > 1 else fewest
 
 
+def fewest_rows_to_fit(nested: bool = False) -> int:
+    """The fewest rows on which some plan (leave one out, and `nested`: the choice made inside
+    its folds) leaves every fit MIN_FIT_POSES poses."""
+    return next(m for m in itertools.count(2) if fewest_to_fit(m, LeaveOneOut(), nested) >= MIN_FIT_POSES)
+
+
 def require_enough_to_fit(n: int, plan: Plan, nested: bool = False) -> None:
     """ValueError when a fold of `plan` (and, `nested`, the choice made inside it) would fit on
     fewer than MIN_FIT_POSES poses, naming the folds that would do, or the rows it takes."""
@@ -174,8 +180,7 @@ def require_enough_to_fit(n: int, plan: Plan, nested: bool = False) -> None:
         return
     where = "a choice made inside a fold (auto's)" if nested else "a fold"
     more = [k for k in range(int(getattr(plan, "k", n)) + 1, n + 1) if fewest_to_fit(n, KFold(k), nested) >= MIN_FIT_POSES]
-    rows = next(m for m in itertools.count(n + 1) if fewest_to_fit(m, LeaveOneOut(), nested) >= MIN_FIT_POSES)
-    advice = f"more folds (--cv {more[0]})" if more else f"at least {rows} rows"
+    advice = f"more folds (--cv {more[0]})" if more else f"at least {fewest_rows_to_fit(nested)} rows"
     raise ValueError(f"{n} rows, but with {plan.description} {where} fits on {fewest} of them, and a fit needs "
                      f"at least {MIN_FIT_POSES}: {advice}")
 

@@ -26,7 +26,6 @@ from ..data import PoseTable
 from ..metrics import RULE, frames_unregistered, metric_block, pose_metrics
 
 
-
 @dataclass
 class Comparison:
     """The poses the page shows (`rows` of the table) before and after, and on what they rest.

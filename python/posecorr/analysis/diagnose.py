@@ -417,15 +417,13 @@ def _backward(search: _Search, accepted: list[str], by_name: dict[str, dict]) ->
 def require_diagnosable(table: PoseTable, folds: int) -> None:
     """ValueError (TableError for the table's own faults) when `table` cannot be diagnosed with
     `folds` folds, naming the folds that can or the rows it takes."""
-    import itertools
-
     from posecorr.data import TableError, require_rows
-    from posecorr.train.splits import MIN_FIT_POSES, KFold, LeaveOneOut, fewest_to_fit, require_enough_to_fit
+    from posecorr.train.splits import (MIN_FIT_POSES, KFold, fewest_rows_to_fit, fewest_to_fit,
+                                       require_enough_to_fit)
 
     if table.n < folds:
         fewer = [k for k in range(table.n, 1, -1) if fewest_to_fit(table.n, KFold(k)) >= MIN_FIT_POSES]
-        rows = next(m for m in itertools.count(2) if fewest_to_fit(m, LeaveOneOut()) >= MIN_FIT_POSES)
-        advice = f"fewer folds (--cv {fewer[0]})" if fewer else f"at least {rows} rows"
+        advice = f"fewer folds (--cv {fewer[0]})" if fewer else f"at least {fewest_rows_to_fit()} rows"
         raise TableError(table.path, f"{table.n} rows, but a {folds}-fold diagnosis needs at least {folds}: {advice}")
     require_rows(table, max(folds, 2), f"a {folds}-fold diagnosis")
     require_enough_to_fit(table.n, KFold(folds))

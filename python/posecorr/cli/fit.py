@@ -128,8 +128,7 @@ def _payload(args: argparse.Namespace, report: Any, exported: dict, effects_json
                                "chosen": report.chosen, "representation": info.get("representation"),
                                "raw": report.raw, report.heldout_kind: report.heldout, "effects": effects_json,
                                "parity": exported.get("parity"), "nodes": exported.get("n_nodes")}
-    from ..metrics import frames_unregistered
-    from ..metrics import improvement
+    from ..metrics import frames_unregistered, improvement
 
     payload.update({"baseline": {"model": report.baseline_name, **report.baseline}, "n_heldout": report.n_heldout,
                     # raw measures the frames' offset where they are unregistered: the floor is the reference
@@ -149,8 +148,7 @@ def _payload(args: argparse.Namespace, report: Any, exported: dict, effects_json
 def _text(args: argparse.Namespace, table: Any, effects: list, report: Any, exported: dict,
           effects_json: dict) -> str:
     """The human summary: scores against the rigid floor, the physics found, notes, the file written."""
-    from ..metrics import frames_unregistered
-    from ..metrics import improvement
+    from ..metrics import frames_unregistered, improvement
     from ..textui import METRIC_HEADERS, metrics_rows, table as fmt_table
     from ..train.splits import HeldOut
 

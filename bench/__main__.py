@@ -16,8 +16,9 @@ Run from the repository root: `python -m bench [--only NAME]`.
 * `previous.json`: `pc_run` on one pose against an earlier revision's (c654a8e, before the
   host-floor work), both linked into one process, alternating rounds, quiet and with a
   memcpy on the other core (`bench/previous.py`).
-* `floor_all.json`: every table-1 zhou tansig MLP (16 architectures), and the 10-10 and 20-20
-  MLPs of quat (tansig), eaa (radbas) and R (logsig), against a hand-written AVX2 function
+* `floor_all.json`: every table-1 zhou tansig MLP (16 architectures), the 10-10 and 20-20
+  MLPs of quat (tansig), eaa (radbas) and R (logsig), and nine networks of widths outside
+  table 1 (`OUTSIDE`), against a hand-written AVX2 function
   of the same network (pc_run's bits, `bench/floor/gen_hand.py`): instructions a pose of `pc_run` (this checkout and an
   earlier revision) and of the hand function under callgrind, time ratios with the load
   average, and what each step of a pose runs (`bench/floor_all.py`).

@@ -1,5 +1,6 @@
-"""Every table-1 zhou tansig MLP, and the 10-10 and 20-20 MLPs of quat (tansig), eaa (radbas)
-and R (logsig), against its hand-written floor, by instructions and by time.
+"""Every table-1 zhou tansig MLP, the 10-10 and 20-20 MLPs of quat (tansig), eaa (radbas) and
+R (logsig), and networks of widths outside table 1, against the hand-written floor, by
+instructions and by time.
 
 For each of table 1's 16 architectures of zhou, and 10-10 and 20-20 of the other
 representations with the paper's activation for each (the shipped files where there is one,
@@ -17,7 +18,7 @@ representation's encode/decode, no FMA: pc_run's bits, `max_abs_diff`). Then:
   is what the issue's figure quotes; on a busy host it is noise-bound;
 * what each step of a pose runs (`Corrector.step_paths`).
 
-    python -m bench.floor_all [--rev a4423e5] [--runs 3] [-o bench/results/floor_all.json]
+    python -m bench.floor_all [--rev a4423e5] [--rev-outside d577528] [--runs 3] [-o bench/results/floor_all.json]
 """
 from __future__ import annotations
 
@@ -39,6 +40,13 @@ GOAL_RATIO = 1.2
 # its activation in the paper
 OTHERS = {"quat": "tansig", "eaa": "radbas", "R": "logsig"}
 OTHER_HIDDEN = ((10, 10), (20, 20))
+# Networks of widths outside table 1 (no kernel of their K and N: the general layer, K and N
+# read at run time), labelled "outside-...": one unit, odd widths, past 32 and past 64
+# outputs, and the other activations; against the revision before such layers left the
+# one-pose programs (`--rev-outside`), where their multiply-adds ran in the interpreter.
+OUTSIDE = (("zhou", "tansig", (1,)), ("zhou", "tansig", (7, 7)), ("zhou", "tansig", (12, 12, 12)),
+           ("zhou", "tansig", (33, 33)), ("zhou", "tansig", (48, 48)), ("zhou", "tansig", (70,)),
+           ("quat", "tansig", (12, 12)), ("eaa", "radbas", (12, 12)), ("R", "logsig", (12, 12)))
 
 
 def _run(cmd: list[str], **kw) -> str:
@@ -77,6 +85,8 @@ def export_models(work: Path) -> dict[str, Path]:
     wanted = [("zhou", "tansig", hidden, "-".join(map(str, hidden))) for hidden in ARCHITECTURES]
     wanted += [(rep, act, hidden, f"{rep}-" + "-".join(map(str, hidden)))
                for rep, act in OTHERS.items() for hidden in OTHER_HIDDEN]
+    wanted += [(rep, act, hidden, f"outside-{rep}-" + "-".join(map(str, hidden)))
+               for rep, act, hidden in OUTSIDE]
     return {label: _shipped(rep, act, hidden) or unshipped_mlp(rep, hidden, work / f"{label}.onnx", act, rows=200)
             for rep, act, hidden, label in wanted}
 
@@ -137,18 +147,26 @@ def one_model(model: Path, libs: dict[str, Path], work: Path, runs: int) -> dict
     return row
 
 
-def run(out: str | None = None, rev: str = "a4423e5", runs: int = 3) -> dict:
+def run(out: str | None = None, rev: str = "a4423e5", runs: int = 3,
+        rev_outside: str = "d577528") -> dict:
+    from tqdm import tqdm
+
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        libs = {"current": build_library(ROOT, work / "build-current"),
-                "previous": build_library(revision_tree(rev, work), work / "build-previous")}
+        current = build_library(ROOT, work / "build-current")
+        libs = {"current": current, "previous": build_library(revision_tree(rev, work), work / "build-previous")}
+        libs_outside = {"current": current,
+                        "previous": build_library(revision_tree(rev_outside, work), work / "build-outside")}
         models = export_models(work)
-        rows = {label: one_model(path, libs, work, runs) for label, path in models.items()}
-    others = [row for label, row in rows.items() if label.split("-")[0] in OTHERS]
-    zhou = [row for row in rows.values() if not any(row is o for o in others)]
-    met = lambda some: f"{sum(row['within_goal'] == 'yes' for row in some)} of {len(some)}"
-    result = {"previous_revision": rev, "goal_ratio": GOAL_RATIO, "within_goal": met(zhou),
-              "within_goal_others": met(others),
+        rows = {label: one_model(path, libs_outside if label.startswith("outside-") else libs, work, runs)
+                for label, path in tqdm(models.items(), desc="floor", unit="network")}
+    group = lambda label: ("outside" if label.startswith("outside-") else
+                           "others" if label.split("-")[0] in OTHERS else "zhou")
+    met = lambda name: (lambda some: f"{sum(row['within_goal'] == 'yes' for row in some)} of {len(some)}")(
+        [row for label, row in rows.items() if group(label) == name])
+    result = {"previous_revision": rev, "previous_revision_outside": rev_outside, "goal_ratio": GOAL_RATIO,
+              "within_goal": met("zhou"), "within_goal_others": met("others"),
+              "within_goal_outside": met("outside"),
               "unit_instructions": "per pose (callgrind, 1,024 poses)",
               "unit_time": "ns per pose, median of 41 rounds (floor.c)", "networks": rows}
     if out:
@@ -162,10 +180,12 @@ def run(out: str | None = None, rev: str = "a4423e5", runs: int = 3) -> dict:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.floor_all", description=__doc__.splitlines()[0])
     parser.add_argument("--rev", default="a4423e5", help="earlier revision for the 'previous' counts")
+    parser.add_argument("--rev-outside", default="d577528",
+                        help="earlier revision for the 'previous' counts of the outside-table-1 networks")
     parser.add_argument("--runs", type=int, default=3, help="timed runs per network")
     parser.add_argument("-o", "--out", default=str(RESULTS / "floor_all.json"))
     args = parser.parse_args(argv)
-    print(json.dumps(run(args.out, args.rev, args.runs), indent=2))
+    print(json.dumps(run(args.out, args.rev, args.runs, args.rev_outside), indent=2))
     return 0
 
 

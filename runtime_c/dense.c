@@ -38,6 +38,10 @@ PC_INLINE void pc_apply_act(const pc_gemm *q, float *restrict o, size_t n)
         for (i = 0; i < n; i++)
             o[i] = pc_clip(o[i], lo, hi);
         break;
+    case PC_ACT_RADBAS:
+        for (i = 0; i < n; i++)
+            o[i] = pc_radbas(o[i]);
+        break;
     default:
         break;
     }
@@ -383,42 +387,55 @@ PC_AVX2_INLINE void pc_store_lanes(float *o, __m256 v, int n)
         _mm_store_ss(o, part);
 }
 
-/* One pose through one layer of at most 8 NB outputs: NB accumulators that stay in
- * registers over the whole pass on k, the activation applied to them before the one
- * store. The last block reads whole vectors while they lie inside B (its lanes past N
- * then hold the next row's weights: summed, never stored) and masked loads for the last
- * rows, so nothing is read beyond B and weights used in place need no padding. Per lane
- * the order is that of pc_row1 (c, then k ascending, no fused multiply-add): results are
- * bit-identical. */
-PC_AVX2_INLINE void pc_layer1_blocks(const float *a, const float *B, size_t K, size_t N,
-                                     const float *C, int tanh_act, float *O, const int NB)
+/* Eight-lane blocks a one-pose layer keeps in registers at most. */
+#define PC_MAX_BLOCKS 8
+
+/* One pose through one layer of at most 8 NB outputs (NB up to PC_MAX_BLOCKS): NB
+ * accumulators that stay in registers over the whole pass on k, the activation applied
+ * to them before the one store. The last block reads whole vectors while they lie inside
+ * B (its lanes past N then hold the next row's weights: summed, never stored) and masked
+ * loads for the last rows, so nothing is read beyond B and weights used in place need no
+ * padding. Per lane the order is that of pc_row1 (c, then k ascending, no fused
+ * multiply-add): results are bit-identical. The accumulators are named, not an array:
+ * GCC then schedules the activation of three blocks without spilling. It stays whole:
+ * its parts share those accumulators, which a call between them would send to memory. */
+PC_AVX2_INLINE void pc_layer1_blocks(const float *a, const float *B, size_t ldb, size_t K,
+                                     size_t N, const float *C, int tanh_act, float *O,
+                                     const int NB)
 {
     const int tail = (int)(N - 8 * (size_t)(NB - 1));
     const __m256i mask = _mm256_cmpgt_epi32(_mm256_set1_epi32(tail),
                                             _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
-    /* The last block reads `over` floats past a row: the rows from `whole` on would
-     * read past B (no division for N >= over, which every layer of NB > 1 has). */
+    /* The last block reads `over` floats past a row, which ends the row of B (ldb apart):
+     * the rows from `whole` on would read past B (no division for ldb >= over, which
+     * every layer of NB > 1 has). */
     const size_t over = (size_t)(8 - tail);
-    const size_t masked_rows = over == 0 ? 0 : over <= N ? 1 : (over + N - 1) / N;
+    const size_t masked_rows = over == 0 ? 0 : over <= ldb ? 1 : (over + ldb - 1) / ldb;
     const size_t whole = K > masked_rows ? K - masked_rows : 0;
-    __m256 a0, a1 = _mm256_setzero_ps(), a2 = a1, a3 = a1;
+    __m256 a0, a1 = _mm256_setzero_ps(), a2 = a1, a3 = a1, a4 = a1, a5 = a1, a6 = a1, a7 = a1;
     size_t k;
 #define PC_LOAD_BLOCK(p, j, last_masked)                                                  \
     ((last_masked) && (j) == NB - 1 ? _mm256_maskload_ps((p) + 8 * (j), mask)             \
                                     : _mm256_loadu_ps((p) + 8 * (j)))
+#define PC_ACC(j, b, last_masked)                                                         \
+    if (NB > (j)) a##j = _mm256_add_ps(a##j, _mm256_mul_ps(av, PC_LOAD_BLOCK(b, j, last_masked)))
 #define PC_ROW(k, last_masked)                                                            \
     do {                                                                                  \
         const __m256 av = _mm256_broadcast_ss(a + (k));                                   \
-        const float *b = B + (k) * N;                                                     \
-        a0 = _mm256_add_ps(a0, _mm256_mul_ps(av, PC_LOAD_BLOCK(b, 0, last_masked)));      \
-        if (NB > 1) a1 = _mm256_add_ps(a1, _mm256_mul_ps(av, PC_LOAD_BLOCK(b, 1, last_masked))); \
-        if (NB > 2) a2 = _mm256_add_ps(a2, _mm256_mul_ps(av, PC_LOAD_BLOCK(b, 2, last_masked))); \
-        if (NB > 3) a3 = _mm256_add_ps(a3, _mm256_mul_ps(av, PC_LOAD_BLOCK(b, 3, last_masked))); \
+        const float *b = B + (k) * ldb;                                                   \
+        PC_ACC(0, b, last_masked);                                                        \
+        PC_ACC(1, b, last_masked);                                                        \
+        PC_ACC(2, b, last_masked);                                                        \
+        PC_ACC(3, b, last_masked);                                                        \
+        PC_ACC(4, b, last_masked);                                                        \
+        PC_ACC(5, b, last_masked);                                                        \
+        PC_ACC(6, b, last_masked);                                                        \
+        PC_ACC(7, b, last_masked);                                                        \
     } while (0)
-    a0 = PC_LOAD_BLOCK(C, 0, 1);
-    if (NB > 1) a1 = PC_LOAD_BLOCK(C, 1, 1);
-    if (NB > 2) a2 = PC_LOAD_BLOCK(C, 2, 1);
-    if (NB > 3) a3 = PC_LOAD_BLOCK(C, 3, 1);
+#define PC_EACH(X) X(0) X(1) X(2) X(3) X(4) X(5) X(6) X(7)
+#define PC_INIT(j) if (NB > (j)) a##j = PC_LOAD_BLOCK(C, j, 1);
+    PC_EACH(PC_INIT)
+#undef PC_INIT
     /* four rows a turn: a quarter of the loop's bookkeeping, the same order per lane */
     for (k = 0; k + 4 <= whole; k += 4) {
         PC_ROW(k, 0);
@@ -431,19 +448,22 @@ PC_AVX2_INLINE void pc_layer1_blocks(const float *a, const float *B, size_t K, s
     for (; k < K; k++)
         PC_ROW(k, 1);
 #undef PC_ROW
+#undef PC_ACC
 #undef PC_LOAD_BLOCK
     if (tanh_act) {
-        a0 = pc_tanh8(a0);
-        if (NB > 1) a1 = pc_tanh8(a1);
-        if (NB > 2) a2 = pc_tanh8(a2);
-        if (NB > 3) a3 = pc_tanh8(a3);
+#define PC_TANH(j) if (NB > (j)) a##j = pc_tanh8(a##j);
+        PC_EACH(PC_TANH)
+#undef PC_TANH
     }
-    /* The last block's lanes are stored in pieces: a masked store costs more than the
-     * whole layer's tail, and the next layer's loads would wait behind it. */
-    if (NB > 1) _mm256_storeu_ps(O, a0);
-    if (NB > 2) _mm256_storeu_ps(O + 8, a1);
-    if (NB > 3) _mm256_storeu_ps(O + 16, a2);
-    pc_store_lanes(O + 8 * (NB - 1), NB == 1 ? a0 : NB == 2 ? a1 : NB == 3 ? a2 : a3, tail);
+    /* Whole blocks, then the last block's lanes in pieces: a masked store costs more than
+     * the whole layer's tail, and the next layer's loads would wait behind it. */
+#define PC_STORE(j) if (NB > (j) + 1) _mm256_storeu_ps(O + 8 * (j), a##j);
+    PC_EACH(PC_STORE)
+#undef PC_STORE
+#undef PC_EACH
+    pc_store_lanes(O + 8 * (NB - 1),
+                   NB == 1 ? a0 : NB == 2 ? a1 : NB == 3 ? a2 : NB == 4 ? a3 :
+                   NB == 5 ? a4 : NB == 6 ? a5 : NB == 7 ? a6 : a7, tail);
 }
 
 __attribute__((target("avx2"), noinline)) static void pc_layer_rows_avx2(const pc_gemm *q,
@@ -458,37 +478,54 @@ __attribute__((target("avx2"))) static pc_status k_gemm_rows_avx2(const pc_step 
     return PC_OK;
 }
 
-/* The sigmoid of a one-pose layer's outputs, after the store: expf has no eight-lane form
- * with libm's bits, so it runs lane by lane, as the portable layer does. */
-PC_AVX2_INLINE void pc_sigmoid_after(const pc_gemm *l, float *O)
+/* Any activation but tanh on a one-pose layer's outputs, after the store, lane by lane:
+ * expf (sigmoid, radbas) has no eight-lane form with libm's bits, and the others are
+ * rare enough that the portable layer's forms serve. */
+PC_AVX2_INLINE void pc_act_after(const pc_gemm *l, float *O)
 {
-    size_t n;
-    if (l->act == PC_ACT_SIGMOID)
-        for (n = 0; n < l->N; n++)
-            O[n] = pc_sigmoid(O[n]);
+    if (l->act != PC_ACT_TANH && l->act != PC_ACT_NONE)
+        pc_apply_act(l, O, l->N);
 }
 
-/* A one-pose layer with a bias row and tanh, sigmoid or no activation, up to 32 outputs,
- * runs in registers with K and N read at run time; anything else is the rows kernel (a
- * call: inlined, its loops would take the registers the block accumulators need). */
+/* The block kernel for any K and N: its outputs in groups of PC_MAX_BLOCKS blocks of 8,
+ * each group in one pass on k (a pose's layer is bound by the latency of its chains of
+ * additions: one pass for all the blocks overlaps them). */
+PC_AVX2_INLINE void pc_layer1_any(const float *a, const float *B, size_t K, size_t N,
+                                  const float *C, int tanh_act, float *O)
+{
+    size_t n0;
+    for (n0 = 0; n0 < N; n0 += 8 * PC_MAX_BLOCKS) {
+        const size_t w = N - n0 < 8 * PC_MAX_BLOCKS ? N - n0 : 8 * PC_MAX_BLOCKS;
+        switch ((w + 7) / 8) {
+#define PC_BLOCKS_CASE(NB)                                                                     \
+    case NB: pc_layer1_blocks(a, B + n0, N, K, w, C + n0, tanh_act, O + n0, NB); break;
+            PC_BLOCKS_CASE(1)
+            PC_BLOCKS_CASE(2)
+            PC_BLOCKS_CASE(3)
+            PC_BLOCKS_CASE(4)
+            PC_BLOCKS_CASE(5)
+            PC_BLOCKS_CASE(6)
+            PC_BLOCKS_CASE(7)
+            default: pc_layer1_blocks(a, B + n0, N, K, w, C + n0, tanh_act, O + n0, 8); break;
+#undef PC_BLOCKS_CASE
+        }
+    }
+}
+
+/* A one-pose layer (a bias row, any activation: every layer the planner chains) runs in
+ * registers with K and N read at run time; more rows would be the rows kernel (a call:
+ * inlined, its loops would take the registers the block accumulators need). */
 __attribute__((target("avx2"), noinline)) static void pc_chain_layer_avx2(const pc_gemm *l,
                                                                           void *const *io)
 {
-    const float *a = (const float *)io[0], *B = (const float *)io[1], *C = (const float *)io[2];
-    float *O = (float *)io[3];
     const int tanh_act = l->act == PC_ACT_TANH;
-    if (l->M != 1 || l->N == 0 || l->N > 32 ||
-        !(tanh_act || l->act == PC_ACT_NONE || l->act == PC_ACT_SIGMOID))
+    if (l->M != 1 || l->N == 0) {
         pc_layer_rows_avx2(l, io);
-    else if (l->N > 24)
-        pc_layer1_blocks(a, B, l->K, l->N, C, tanh_act, O, 4);
-    else if (l->N > 16)
-        pc_layer1_blocks(a, B, l->K, l->N, C, tanh_act, O, 3);
-    else if (l->N > 8)
-        pc_layer1_blocks(a, B, l->K, l->N, C, tanh_act, O, 2);
-    else
-        pc_layer1_blocks(a, B, l->K, l->N, C, tanh_act, O, 1);
-    pc_sigmoid_after(l, O);
+        return;
+    }
+    pc_layer1_any((const float *)io[0], (const float *)io[1], l->K, l->N,
+                  (const float *)io[2], tanh_act, (float *)io[3]);
+    pc_act_after(l, (float *)io[3]);
 }
 
 /* Specialised one-pose layers: one function per (K, N) of the layers the project trains
@@ -500,13 +537,36 @@ __attribute__((target("avx2"), noinline)) static void pc_chain_layer_avx2(const 
     __attribute__((target("avx2"), hot)) static void pc_layer_##K##_##N(const pc_gemm *l,      \
                                                                         void *const *io)       \
     {                                                                                          \
-        pc_layer1_blocks((const float *)io[0], (const float *)io[1], K, N,                     \
+        pc_layer1_blocks((const float *)io[0], (const float *)io[1], N, K, N,                  \
                          (const float *)io[2], l->act == PC_ACT_TANH, (float *)io[3],          \
                          ((N) + 7) / 8);                                                       \
-        pc_sigmoid_after(l, (float *)io[3]);                                                   \
+        pc_act_after(l, (float *)io[3]);                                                   \
     }
 PC_LAYER_SHAPES(PC_LAYER_SPECIALISED)
 #undef PC_LAYER_SPECIALISED
+
+/* One-pose layers of up to 64 outputs by their number of 8-lane blocks, K and N read at
+ * run time: the planner picks the function, so the run has no branch on N left. */
+#define PC_LAYER_BLOCKS(NB)                                                                    \
+    __attribute__((target("avx2"), hot)) static void pc_layer_blocks_##NB(const pc_gemm *l,    \
+                                                                          void *const *io)     \
+    {                                                                                          \
+        pc_layer1_blocks((const float *)io[0], (const float *)io[1], l->N, l->K, l->N,         \
+                         (const float *)io[2], l->act == PC_ACT_TANH, (float *)io[3], NB);     \
+        pc_act_after(l, (float *)io[3]);                                                   \
+    }
+PC_LAYER_BLOCKS(1)
+PC_LAYER_BLOCKS(2)
+PC_LAYER_BLOCKS(3)
+PC_LAYER_BLOCKS(4)
+PC_LAYER_BLOCKS(5)
+PC_LAYER_BLOCKS(6)
+PC_LAYER_BLOCKS(7)
+PC_LAYER_BLOCKS(8)
+#undef PC_LAYER_BLOCKS
+static const pc_layer_fn pc_layers_by_blocks[PC_MAX_BLOCKS] = {
+    pc_layer_blocks_1, pc_layer_blocks_2, pc_layer_blocks_3, pc_layer_blocks_4,
+    pc_layer_blocks_5, pc_layer_blocks_6, pc_layer_blocks_7, pc_layer_blocks_8};
 
 /* AVX2 needs the CPU flag and the OS saving YMM state (XCR0 bits 1 and 2). */
 int pc_cpu_avx2(void)
@@ -572,7 +632,12 @@ pc_layer_fn pc_chain_layer_fn(const pc_gemm *l, int avx2, const char **why)
     else if (!pc_layer_size(l->K) || !pc_layer_size(l->N))
         *why = "K or N is not a layer size the project trains (" PC_LAYER_SIZES_TEXT ")";
     else
-        *why = "a layer from one pose vector to another (no hidden layer)";
+        *why = "no specialised kernel for this pair of sizes (into a hidden width of table 1, "
+               "or out of one)";
+#ifdef PC_HAVE_AVX2
+    if (avx2 && l->M == 1 && l->N >= 1 && l->N <= 8 * PC_MAX_BLOCKS)
+        return pc_layers_by_blocks[(l->N - 1) / 8];
+#endif
     return pc_layers_general[avx2 != 0];
 }
 

@@ -49,6 +49,14 @@ static inline float pc_sigmoid(float x)
     return 1.0f / (1.0f + expf(-x));
 }
 
+/* The radial basis, as its three graph nodes compute it (Mul, Neg, Exp): the square is
+ * rounded to float before the exponential, as their stored results are. */
+static inline float pc_radbas(float x)
+{
+    const float square = x * x;
+    return expf(-square);
+}
+
 /* tanh(x) = x P(x^2) / Q(x^2) on |x| <= 9, +-1 beyond (tanh(9) = 1 - 3e-8). Coefficients
  * fitted for this library by iteratively reweighted least squares towards minimax
  * absolute error (5.9e-9 in exact arithmetic, 3.2e-7 evaluated in float32). Branch-free

@@ -477,28 +477,72 @@ static pc_status pc_act_of(pc_builder *b, uint32_t a, int *act, float *lo, float
     return PC_OK;
 }
 
-/* A Gemm whose only reader is an activation takes it over: the activation's readers
- * read the Gemm's output instead. */
+/* The node that reads output o as its only reader, through its input 0, and has one
+ * output; or -1. */
+static int64_t pc_sole_reader(const pc_builder *b, const uint8_t *readers, uint32_t o)
+{
+    uint32_t a;
+    if (readers[o] != 1 || b->last_use[o] >= PC_USE_FOREVER)
+        return -1;
+    a = b->last_use[o];
+    if (b->node_out0[a + 1] - b->node_out0[a] != 1 ||
+        b->in_ref[b->node_in0[a]] != PC_REF(PC_REF_OUTPUT, o))
+        return -1;
+    return a;
+}
+
+/* Radbas as an exporter writes it, exp(-(x * x)), after output o: Mul(o, o), the only
+ * reader of o, then Neg and Exp, each the only reader of the one before. The Exp node,
+ * or -1. */
+static int64_t pc_radbas_after(const pc_builder *b, const uint8_t *readers, uint32_t o)
+{
+    const uint16_t ref = PC_REF(PC_REF_OUTPUT, o);
+    uint32_t mul, j, refs = 0;
+    int64_t neg, exp_node;
+    if (b->last_use[o] >= PC_USE_FOREVER)
+        return -1;
+    mul = b->last_use[o];
+    if (b->node_op[mul] != PC_OP_Mul || b->node_in0[mul + 1] - b->node_in0[mul] != 2 ||
+        b->in_ref[b->node_in0[mul]] != ref || b->in_ref[b->node_in0[mul] + 1] != ref ||
+        b->node_out0[mul + 1] - b->node_out0[mul] != 1)
+        return -1;
+    for (j = 0; j < b->n_refs; j++) /* readers[] stops counting at two */
+        refs += b->in_ref[j] == ref;
+    if (refs != 2)
+        return -1;
+    neg = pc_sole_reader(b, readers, b->node_out0[mul]);
+    if (neg < 0 || b->node_op[neg] != PC_OP_Neg)
+        return -1;
+    exp_node = pc_sole_reader(b, readers, b->node_out0[neg]);
+    if (exp_node < 0 || b->node_op[exp_node] != PC_OP_Exp)
+        return -1;
+    return exp_node;
+}
+
+/* A Gemm whose only reader is an activation (or radbas's three nodes) takes it over: the
+ * activation's readers read the Gemm's output instead. */
 static pc_status pc_scan_fuse(pc_builder *b, const uint8_t *readers)
 {
     uint32_t g, j;
     pc_fused *f;
     pc_status st;
     for (g = 0; g < b->n_nodes; g++) {
-        uint32_t og, oa, a;
-        int act;
-        float lo, hi;
+        uint32_t og, oa;
+        int64_t a;
+        int act = PC_ACT_NONE;
+        float lo = 0.0f, hi = 0.0f;
         if (b->node_op[g] != PC_OP_Gemm || b->node_out0[g + 1] - b->node_out0[g] != 1)
             continue;
         og = b->node_out0[g];
-        if (readers[og] != 1 || b->last_use[og] >= PC_USE_FOREVER)
-            continue;
-        a = b->last_use[og];
-        if (b->node_out0[a + 1] - b->node_out0[a] != 1 ||
-            b->in_ref[b->node_in0[a]] != PC_REF(PC_REF_OUTPUT, og))
-            continue;
-        if ((st = pc_act_of(b, a, &act, &lo, &hi)) != PC_OK)
+        if ((a = pc_sole_reader(b, readers, og)) >= 0 &&
+            (st = pc_act_of(b, (uint32_t)a, &act, &lo, &hi)) != PC_OK)
             return st;
+        if (act == PC_ACT_NONE && (a = pc_radbas_after(b, readers, og)) >= 0) {
+            /* the Mul and the Neg: only the Exp's output is read on */
+            b->node_op[b->last_use[og]] = PC_NODE_SKIP;
+            b->node_op[b->last_use[b->node_out0[b->last_use[og]]]] = PC_NODE_SKIP;
+            act = PC_ACT_RADBAS;
+        }
         if (act == PC_ACT_NONE)
             continue;
         oa = b->node_out0[a];

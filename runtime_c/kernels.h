@@ -24,7 +24,8 @@ typedef enum pc_act {
     PC_ACT_TANH,
     PC_ACT_SIGMOID,
     PC_ACT_RELU,
-    PC_ACT_CLIP
+    PC_ACT_CLIP,
+    PC_ACT_RADBAS /* exp(-(x * x)) */
 } pc_act;
 
 /* Kernels that only unusual graphs reach are built for size inside optimised files. */

@@ -14,7 +14,7 @@ static void pc_product(pc_prep *p, const pc_gemm *q)
 {
     if (q->alpha == 1.0f && (q->c_mode == 0 || q->beta == 1.0f) &&
         (q->act == PC_ACT_NONE || q->act == PC_ACT_TANH || q->act == PC_ACT_SIGMOID ||
-         q->act == PC_ACT_RELU))
+         q->act == PC_ACT_RELU || q->act == PC_ACT_RADBAS))
         p->emap = PC_EMAP_PRODUCT;
 }
 
@@ -80,8 +80,9 @@ pc_status pc_op_Gemm(pc_prep *p)
     dims[1] = (int64_t)q->N;
     p->fn = k_gemm;
     pc_product(p, q);
-    if (!ta && !tb && q->c_mode == 2 && q->alpha == 1.0f && q->beta == 1.0f &&
-        (q->act == PC_ACT_TANH || q->act == PC_ACT_SIGMOID || q->act == PC_ACT_NONE)) {
+    /* the MLP layer: a bias row (one output's bias is also its scalar), any activation */
+    if (!ta && !tb && (q->c_mode == 2 || (q->c_mode == 1 && q->N == 1)) && q->alpha == 1.0f &&
+        q->beta == 1.0f) {
         if (p->b->cpu_avx2 < 0)
             p->b->cpu_avx2 = pc_cpu_avx2(); /* cpuid traps to the hypervisor in a VM: ask once */
         p->fn = pc_gemm_rows_kernels[p->b->cpu_avx2];

@@ -189,17 +189,20 @@ int pc_program_takes(const pc_pass *pp, const pc_prep *p)
         if (q->K == 0 || q->K > PC_PROGRAM_MAX_TERMS || o->count * q->K > PC_PROGRAM_MAX_MACS)
             return 0;
     }
-    /* A layer with a kernel of its K and N runs in the dense chain: 8 lanes a row there,
-     * one multiply-add an operation here. So does every layer of a build without AVX2
-     * kernels: its rows keep their sums in registers (a load, a multiply and an add a
-     * multiply-add, where the interpreter spends about ten), and its programs are then
-     * those of the AVX2 build, whose compiled forms match. */
+    /* An MLP layer runs in the dense chain: 8 lanes a row there (AVX2) or sums kept in
+     * registers (a load, a multiply and an add a multiply-add), where the interpreter
+     * spends about ten instructions a multiply-add; left out, it also leaves the programs
+     * beside it the shapes of the shipped models' encoders and decoders, whose compiled
+     * forms match whatever the hidden widths. The exception is a linear map, without a
+     * kernel of its K and N, of values the open program computes (PMC's features to the
+     * correction): leaving would split that program in two. */
     if (p->layer) {
         const int avx2 = p->fn == pc_gemm_rows_kernels[1] &&
                          pc_gemm_rows_kernels[1] != pc_gemm_rows_kernels[0];
         const char *why;
         pc_chain_layer_fn((const pc_gemm *)p->prm, avx2, &why);
-        if (!avx2 || !*why)
+        if (!avx2 || !*why || ((const pc_gemm *)p->prm)->act != PC_ACT_NONE ||
+            !p->in[0] || !p->in[0]->elems)
             return 0;
     }
     /* what one node may add: operations, copies at the close, pool constants */
@@ -483,6 +486,11 @@ static pc_status pc_expand_product(pc_pass *pp, const pc_prep *p, size_t e, int3
     case PC_ACT_TANH: return pc_sop(pp, PC_SOP_TANH, dot, 0, 0, r);
     case PC_ACT_SIGMOID: return pc_sop(pp, PC_SOP_SIGMOID, dot, 0, 0, r);
     case PC_ACT_RELU: return pc_sop(pp, PC_SOP_RELU, dot, 0, 0, r);
+    case PC_ACT_RADBAS: /* as its nodes expand: Mul(x, x), Neg, Exp */
+        if ((st = pc_sop(pp, PC_SOP_MUL, dot, dot, 0, &dot)) != PC_OK ||
+            (st = pc_sop(pp, PC_SOP_NEG, dot, 0, 0, &dot)) != PC_OK)
+            return st;
+        return pc_sop(pp, PC_SOP_EXP, dot, 0, 0, r);
     default: *r = dot; return PC_OK;
     }
 }

@@ -2248,106 +2248,6 @@ PC_HOT static pc_status pc_program_d63599a62c93ef2c(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_edf9b746591a5529_shape[260] = {
-    3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0,
-    0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0,
-    0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0,
-    0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3, 0, 0, 0, 0, 3,
-    0, 0, 0, 0, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20,
-    12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20,
-    12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20,
-    12, 0, 0, 20, 12, 0, 0, 20, 12, 0, 0, 20, 15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20,
-    15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20,
-    15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20,
-    15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20, 15, 0, 1, 20,
-};
-PC_HOT static pc_status pc_program_edf9b746591a5529(const pc_step *s)
-{
-    char *const base = (char *)s->io[0];
-    const int16_t *const x = (const int16_t *)s->prm;
-    const float f0 = pc_sop_float(PC_SOP_MUL, PC_XF(0), PC_XF(1));
-    const float f1 = pc_sop_float(PC_SOP_MUL, PC_XF(2), PC_XF(3));
-    const float f2 = pc_sop_float(PC_SOP_MUL, PC_XF(4), PC_XF(5));
-    const float f3 = pc_sop_float(PC_SOP_MUL, PC_XF(6), PC_XF(7));
-    const float f4 = pc_sop_float(PC_SOP_MUL, PC_XF(8), PC_XF(9));
-    const float f5 = pc_sop_float(PC_SOP_MUL, PC_XF(10), PC_XF(11));
-    const float f6 = pc_sop_float(PC_SOP_MUL, PC_XF(12), PC_XF(13));
-    const float f7 = pc_sop_float(PC_SOP_MUL, PC_XF(14), PC_XF(15));
-    const float f8 = pc_sop_float(PC_SOP_MUL, PC_XF(16), PC_XF(17));
-    const float f9 = pc_sop_float(PC_SOP_MUL, PC_XF(18), PC_XF(19));
-    const float f10 = pc_sop_float(PC_SOP_MUL, PC_XF(20), PC_XF(21));
-    const float f11 = pc_sop_float(PC_SOP_MUL, PC_XF(22), PC_XF(23));
-    const float f12 = pc_sop_float(PC_SOP_MUL, PC_XF(24), PC_XF(25));
-    const float f13 = pc_sop_float(PC_SOP_MUL, PC_XF(26), PC_XF(27));
-    const float f14 = pc_sop_float(PC_SOP_MUL, PC_XF(28), PC_XF(29));
-    const float f15 = pc_sop_float(PC_SOP_MUL, PC_XF(30), PC_XF(31));
-    const float f16 = pc_sop_float(PC_SOP_MUL, PC_XF(32), PC_XF(33));
-    const float f17 = pc_sop_float(PC_SOP_MUL, PC_XF(34), PC_XF(35));
-    const float f18 = pc_sop_float(PC_SOP_MUL, PC_XF(36), PC_XF(37));
-    const float f19 = pc_sop_float(PC_SOP_MUL, PC_XF(38), PC_XF(39));
-    const float f20 = pc_sop_float(PC_SOP_NEG, f0, 0.0f);
-    const float f21 = pc_sop_float(PC_SOP_NEG, f1, 0.0f);
-    const float f22 = pc_sop_float(PC_SOP_NEG, f2, 0.0f);
-    const float f23 = pc_sop_float(PC_SOP_NEG, f3, 0.0f);
-    const float f24 = pc_sop_float(PC_SOP_NEG, f4, 0.0f);
-    const float f25 = pc_sop_float(PC_SOP_NEG, f5, 0.0f);
-    const float f26 = pc_sop_float(PC_SOP_NEG, f6, 0.0f);
-    const float f27 = pc_sop_float(PC_SOP_NEG, f7, 0.0f);
-    const float f28 = pc_sop_float(PC_SOP_NEG, f8, 0.0f);
-    const float f29 = pc_sop_float(PC_SOP_NEG, f9, 0.0f);
-    const float f30 = pc_sop_float(PC_SOP_NEG, f10, 0.0f);
-    const float f31 = pc_sop_float(PC_SOP_NEG, f11, 0.0f);
-    const float f32 = pc_sop_float(PC_SOP_NEG, f12, 0.0f);
-    const float f33 = pc_sop_float(PC_SOP_NEG, f13, 0.0f);
-    const float f34 = pc_sop_float(PC_SOP_NEG, f14, 0.0f);
-    const float f35 = pc_sop_float(PC_SOP_NEG, f15, 0.0f);
-    const float f36 = pc_sop_float(PC_SOP_NEG, f16, 0.0f);
-    const float f37 = pc_sop_float(PC_SOP_NEG, f17, 0.0f);
-    const float f38 = pc_sop_float(PC_SOP_NEG, f18, 0.0f);
-    const float f39 = pc_sop_float(PC_SOP_NEG, f19, 0.0f);
-    const float f40 = pc_sop_float(PC_SOP_EXP, f20, 0.0f);
-    PC_STOREF(40, f40);
-    const float f41 = pc_sop_float(PC_SOP_EXP, f21, 0.0f);
-    PC_STOREF(41, f41);
-    const float f42 = pc_sop_float(PC_SOP_EXP, f22, 0.0f);
-    PC_STOREF(42, f42);
-    const float f43 = pc_sop_float(PC_SOP_EXP, f23, 0.0f);
-    PC_STOREF(43, f43);
-    const float f44 = pc_sop_float(PC_SOP_EXP, f24, 0.0f);
-    PC_STOREF(44, f44);
-    const float f45 = pc_sop_float(PC_SOP_EXP, f25, 0.0f);
-    PC_STOREF(45, f45);
-    const float f46 = pc_sop_float(PC_SOP_EXP, f26, 0.0f);
-    PC_STOREF(46, f46);
-    const float f47 = pc_sop_float(PC_SOP_EXP, f27, 0.0f);
-    PC_STOREF(47, f47);
-    const float f48 = pc_sop_float(PC_SOP_EXP, f28, 0.0f);
-    PC_STOREF(48, f48);
-    const float f49 = pc_sop_float(PC_SOP_EXP, f29, 0.0f);
-    PC_STOREF(49, f49);
-    const float f50 = pc_sop_float(PC_SOP_EXP, f30, 0.0f);
-    PC_STOREF(50, f50);
-    const float f51 = pc_sop_float(PC_SOP_EXP, f31, 0.0f);
-    PC_STOREF(51, f51);
-    const float f52 = pc_sop_float(PC_SOP_EXP, f32, 0.0f);
-    PC_STOREF(52, f52);
-    const float f53 = pc_sop_float(PC_SOP_EXP, f33, 0.0f);
-    PC_STOREF(53, f53);
-    const float f54 = pc_sop_float(PC_SOP_EXP, f34, 0.0f);
-    PC_STOREF(54, f54);
-    const float f55 = pc_sop_float(PC_SOP_EXP, f35, 0.0f);
-    PC_STOREF(55, f55);
-    const float f56 = pc_sop_float(PC_SOP_EXP, f36, 0.0f);
-    PC_STOREF(56, f56);
-    const float f57 = pc_sop_float(PC_SOP_EXP, f37, 0.0f);
-    PC_STOREF(57, f57);
-    const float f58 = pc_sop_float(PC_SOP_EXP, f38, 0.0f);
-    PC_STOREF(58, f58);
-    const float f59 = pc_sop_float(PC_SOP_EXP, f39, 0.0f);
-    PC_STOREF(59, f59);
-    return PC_OK;
-}
-
 static const uint8_t pc_program_42b2415b8b994855_shape[264] = {
     26, 3, 0, 0, 0, 253, 0, 0, 0, 0, 0, 0, 26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254,
     26, 0, 1, 0, 254, 254, 5, 0, 0, 4, 254, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
@@ -6639,7 +6539,7 @@ PC_HOT static pc_status pc_program_6933f2da6dd5679b(const pc_step *s)
     return PC_OK;
 }
 
-const pc_compiled_program pc_compiled_programs[73] = {
+const pc_compiled_program pc_compiled_programs[72] = {
     {12u, 0xfdacaeb3267d16a4ull, pc_program_fdacaeb3267d16a4_shape, pc_program_fdacaeb3267d16a4},
     {15u, 0x6de52950720b126eull, pc_program_6de52950720b126e_shape, pc_program_6de52950720b126e},
     {15u, 0x1912d78d622026b3ull, pc_program_1912d78d622026b3_shape, pc_program_1912d78d622026b3},
@@ -6696,7 +6596,6 @@ const pc_compiled_program pc_compiled_programs[73] = {
     {143u, 0xfab4e1b2727cfe54ull, pc_program_fab4e1b2727cfe54_shape, pc_program_fab4e1b2727cfe54},
     {159u, 0xfee4c311f62a377dull, pc_program_fee4c311f62a377d_shape, pc_program_fee4c311f62a377d},
     {204u, 0xd63599a62c93ef2cull, pc_program_d63599a62c93ef2c_shape, pc_program_d63599a62c93ef2c},
-    {260u, 0xedf9b746591a5529ull, pc_program_edf9b746591a5529_shape, pc_program_edf9b746591a5529},
     {264u, 0x42b2415b8b994855ull, pc_program_42b2415b8b994855_shape, pc_program_42b2415b8b994855},
     {429u, 0x3ad363986dd11b34ull, pc_program_3ad363986dd11b34_shape, pc_program_3ad363986dd11b34},
     {584u, 0xde059a448e1653eaull, pc_program_de059a448e1653ea_shape, pc_program_de059a448e1653ea},
@@ -6714,4 +6613,4 @@ const pc_compiled_program pc_compiled_programs[73] = {
     {1285u, 0xdea986dc5ba36fb8ull, pc_program_dea986dc5ba36fb8_shape, pc_program_dea986dc5ba36fb8},
     {1608u, 0x6933f2da6dd5679bull, pc_program_6933f2da6dd5679b_shape, pc_program_6933f2da6dd5679b},
 };
-const size_t pc_n_compiled_programs = 73;
+const size_t pc_n_compiled_programs = 72;

@@ -242,6 +242,11 @@ def case_gemm(transA=0, transB=0, c_shape=(5,), act=None, alpha=1.0, beta=1.0):
         y = g.op("Gemm", ins, transA=transA, transB=transB, alpha=alpha, beta=beta)
         if act == "Clip":
             y = g.op("Clip", [y, g.f32(-0.5), g.f32(0.7)])
+        elif act in ("radbas", "radbas_shared"):
+            # exp(-(y * y)) as the exporter writes it; shared: y is read on as well, so the
+            # three nodes cannot become the Gemm's activation
+            r = g.op("Exp", [g.op("Neg", [g.op("Mul", [y, y])])])
+            y = g.op("Add", [r, y]) if act == "radbas_shared" else r
         elif act:
             y = g.op(act, [y])
         return finish(g, y, M)
@@ -439,6 +444,10 @@ def op_cases() -> dict:
     cases["gemm_no_c"] = case_gemm(c_shape=None, transB=1)
     for act in ("Tanh", "Sigmoid", "Relu", "Clip"):
         cases[f"gemm_fused_{act}"] = case_gemm(transB=1, act=act)
+    # the MLP layer (B as [K, N], a bias row) with the activations it fuses
+    for act in ("Tanh", "Sigmoid", "Relu", "Clip", "radbas"):
+        cases[f"gemm_layer_{act}"] = case_gemm(act=act)
+    cases["gemm_layer_radbas_shared"] = case_gemm(act="radbas_shared")
     cases["matmul_2d"] = case_matmul([4], [4, 3])
     cases["matmul_batched_constB"] = case_matmul([2, 3], [3, 4])
     cases["matmul_batched_runtimeB"] = case_matmul([2, 3], [3, 2], b_const=False)

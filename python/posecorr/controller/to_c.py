@@ -29,7 +29,7 @@ POSE_WIDTH = 7
 # pc_act (kernels.h): the activation a dense layer applies, as an expression of `acc`.
 ACTIVATIONS = {0: ("none", "acc"), 1: ("tanh", "pc_tanh_inline(acc)"),
                2: ("sigmoid", "pc_sigmoid(acc)"), 3: ("relu", "PC_RELU_EXPR(acc)"),
-               4: ("clip", "pc_clip(acc, lo, hi)")}
+               4: ("clip", "pc_clip(acc, lo, hi)"), 5: ("radbas", "pc_radbas(acc)")}
 COMPARE = {"PC_SOP_EQ": "==", "PC_SOP_GT": ">", "PC_SOP_GE": ">=", "PC_SOP_LT": "<",
            "PC_SOP_LE": "<="}
 

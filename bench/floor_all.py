@@ -160,10 +160,11 @@ def run(out: str | None = None, rev: str = "a4423e5", runs: int = 3,
         models = export_models(work)
         rows = {label: one_model(path, libs_outside if label.startswith("outside-") else libs, work, runs)
                 for label, path in tqdm(models.items(), desc="floor", unit="network")}
-    group = lambda label: ("outside" if label.startswith("outside-") else
-                           "others" if label.split("-")[0] in OTHERS else "zhou")
-    met = lambda name: (lambda some: f"{sum(row['within_goal'] == 'yes' for row in some)} of {len(some)}")(
-        [row for label, row in rows.items() if group(label) == name])
+    def met(group: str) -> str:
+        some = [row for label, row in rows.items()
+                if group == ("outside" if label.startswith("outside-") else
+                             "others" if label.split("-")[0] in OTHERS else "zhou")]
+        return f"{sum(row['within_goal'] == 'yes' for row in some)} of {len(some)}"
     result = {"previous_revision": rev, "previous_revision_outside": rev_outside, "goal_ratio": GOAL_RATIO,
               "within_goal": met("zhou"), "within_goal_others": met("others"),
               "within_goal_outside": met("outside"),

@@ -492,9 +492,10 @@ static int64_t pc_sole_reader(const pc_builder *b, const uint8_t *readers, uint3
 }
 
 /* Radbas as an exporter writes it, exp(-(x * x)), after output o: Mul(o, o), the only
- * reader of o, then Neg and Exp, each the only reader of the one before. The Exp node,
- * or -1. */
-static int64_t pc_radbas_after(const pc_builder *b, const uint8_t *readers, uint32_t o)
+ * reader of o, then Neg and Exp, each the only reader of the one before. The Exp node
+ * (the Mul and the Neg in *mul_node and *neg_node), or -1. */
+static int64_t pc_radbas_after(const pc_builder *b, const uint8_t *readers, uint32_t o,
+                               uint32_t *mul_node, uint32_t *neg_node)
 {
     const uint16_t ref = PC_REF(PC_REF_OUTPUT, o);
     uint32_t mul, j, refs = 0;
@@ -516,6 +517,8 @@ static int64_t pc_radbas_after(const pc_builder *b, const uint8_t *readers, uint
     exp_node = pc_sole_reader(b, readers, b->node_out0[neg]);
     if (exp_node < 0 || b->node_op[exp_node] != PC_OP_Exp)
         return -1;
+    *mul_node = mul;
+    *neg_node = (uint32_t)neg;
     return exp_node;
 }
 
@@ -527,7 +530,7 @@ static pc_status pc_scan_fuse(pc_builder *b, const uint8_t *readers)
     pc_fused *f;
     pc_status st;
     for (g = 0; g < b->n_nodes; g++) {
-        uint32_t og, oa;
+        uint32_t og, oa, mul, neg;
         int64_t a;
         int act = PC_ACT_NONE;
         float lo = 0.0f, hi = 0.0f;
@@ -537,10 +540,10 @@ static pc_status pc_scan_fuse(pc_builder *b, const uint8_t *readers)
         if ((a = pc_sole_reader(b, readers, og)) >= 0 &&
             (st = pc_act_of(b, (uint32_t)a, &act, &lo, &hi)) != PC_OK)
             return st;
-        if (act == PC_ACT_NONE && (a = pc_radbas_after(b, readers, og)) >= 0) {
-            /* the Mul and the Neg: only the Exp's output is read on */
-            b->node_op[b->last_use[og]] = PC_NODE_SKIP;
-            b->node_op[b->last_use[b->node_out0[b->last_use[og]]]] = PC_NODE_SKIP;
+        if (act == PC_ACT_NONE && (a = pc_radbas_after(b, readers, og, &mul, &neg)) >= 0) {
+            /* only the Exp's output is read on */
+            b->node_op[mul] = PC_NODE_SKIP;
+            b->node_op[neg] = PC_NODE_SKIP;
             act = PC_ACT_RADBAS;
         }
         if (act == PC_ACT_NONE)

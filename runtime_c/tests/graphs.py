@@ -442,7 +442,8 @@ def op_cases() -> dict:
     cases["gemm_alpha_beta"] = case_gemm(alpha=0.7, beta=-1.3, c_shape=(1, 5))
     cases["gemm_c_scalar"] = case_gemm(c_shape=())
     cases["gemm_no_c"] = case_gemm(c_shape=None, transB=1)
-    for act in ("Tanh", "Sigmoid", "Relu", "Clip"):
+    # B transposed: not the MLP layer, so the one-pose plan expands it (radbas as its nodes)
+    for act in ("Tanh", "Sigmoid", "Relu", "Clip", "radbas"):
         cases[f"gemm_fused_{act}"] = case_gemm(transB=1, act=act)
     # the MLP layer (B as [K, N], a bias row) with the activations it fuses
     for act in ("Tanh", "Sigmoid", "Relu", "Clip", "radbas"):

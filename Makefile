@@ -19,8 +19,12 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/posecorr demo
 
+# The test files run in parallel (pytest-xdist), one file to a process so that a file's
+# shared fixtures (the session corpus, the C builds) are made once; at most TEST_PROCESSES
+# processes, fewer on a machine with fewer cores.
+TEST_PROCESSES ?= 2
 test: $(STAMP)
-	$(VPY) -m pytest -q
+	$(VPY) -m pytest -q -n auto --maxprocesses $(TEST_PROCESSES) --dist loadfile
 
 # The documentation site (mkdocs.yml, docs/) into site/; its command-line reference, API
 # reference and figures are generated at build time (tools/docs_site.py).

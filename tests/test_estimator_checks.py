@@ -82,7 +82,7 @@ def table():
 
 
 @pytest.mark.parametrize("name", list(_estimators()))
-def test_check_estimator(name: str, capsys) -> None:
+def test_check_estimator(name: str, summary) -> None:
     estimator = _estimators()[name]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -92,9 +92,8 @@ def test_check_estimator(name: str, capsys) -> None:
     stale = sorted({r["check_name"] for r in results if r["status"] == "passed" and r["expected_to_fail"]})
     passed = sorted({r["check_name"] for r in results if r["status"] == "passed"})
     skipped = sorted({r["check_name"] for r in results if r["status"] in ("xfail", "skipped")})
-    with capsys.disabled():
-        print(f"\ncheck_estimator {name}: {len(passed)} checks passed, {len(skipped)} skipped (named in "
-              f"SKIPPED), {len(failed)} failed")
+    summary(f"check_estimator {name}: {len(passed)} checks passed, {len(skipped)} skipped (named in "
+            f"SKIPPED), {len(failed)} failed")
     assert not failed, "\n".join(failed)
     assert not stale, f"checks in SKIPPED that now pass (remove them from the table): {stale}"
     # The checks every estimator must pass whatever its data: the API contract and the refusals.

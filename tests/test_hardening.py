@@ -160,7 +160,7 @@ def _unwritable_folder(folder: Path) -> Path:
     return ro
 
 
-def test_bad_input_corpus_every_verb(tmp_path, capsys) -> None:
+def test_bad_input_corpus_every_verb(tmp_path, capsys, summary) -> None:
     tables = tmp_path / "tables"
     models = tmp_path / "models"
     paths = tmp_path / "paths"
@@ -245,9 +245,8 @@ def test_bad_input_corpus_every_verb(tmp_path, capsys) -> None:
             failures.append(f"{verb} / {case}: exit {code}, escaped {escaped}, stderr {err.strip()[-300:]!r}, "
                             f"expected {expected}")
     verbs = sorted({v.split()[0] for v, *_ in runs})
-    with capsys.disabled():
-        print(f"\nbad-input corpus: {len(runs)} cases over {len(verbs)} verbs ({', '.join(verbs)}): "
-              f"{len(runs) - len(failures)} ended in one located line with exit 2, {tracebacks} tracebacks")
+    summary(f"bad-input corpus: {len(runs)} cases over {len(verbs)} verbs ({', '.join(verbs)}): "
+            f"{len(runs) - len(failures)} ended in one located line with exit 2, {tracebacks} tracebacks")
     assert not failures, "\n".join(failures)
     assert tracebacks == 0
     assert {p: p.read_bytes() for p in (good_csv, MODEL)} == before  # inputs untouched

@@ -185,7 +185,7 @@ def _cases(f: Path) -> list[tuple[str, str, list[str], list[str]]]:
     return cases
 
 
-def test_hostile_corpus(folder, capsys) -> None:
+def test_hostile_corpus(folder, capsys, summary) -> None:
     before = _checksums(folder)
     counts: Counter = Counter()
     failures = []
@@ -201,11 +201,10 @@ def test_hostile_corpus(folder, capsys) -> None:
             changed = sorted(set(after.items()) ^ set(before.items()))
             failures.append(f"{kind} / {case}: exit {code}, stderr {err.strip()!r}, expected {expected}, "
                             f"changed {changed[:4]}")
-    with capsys.disabled():
-        kinds = sorted({k for k, _ in counts})
-        print("\nhostile corpus (issue 21): " + ", ".join(
-            f"{k} {counts[k, True]}/{counts[k, True] + counts[k, False]}" for k in kinds)
-            + " cases ended in one located line, exit 2, no file changed")
+    kinds = sorted({k for k, _ in counts})
+    summary("hostile corpus (issue 21): " + ", ".join(
+        f"{k} {counts[k, True]}/{counts[k, True] + counts[k, False]}" for k in kinds)
+        + " cases ended in one located line, exit 2, no file changed")
     assert not failures, "\n".join(failures)
 
 

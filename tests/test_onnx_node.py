@@ -206,7 +206,7 @@ def test_claimed_opsets_keep_every_operator_signature():
             assert new[1:] == old[1:], (op, opset)
 
 
-def test_onnx_node_conformance(testing_lib, capsys):
+def test_onnx_node_conformance(testing_lib, summary):
     chosen, other = select(_load_cases())
     passed, skipped, failed = [], Counter(), []
     for case in chosen:
@@ -225,7 +225,6 @@ def test_onnx_node_conformance(testing_lib, capsys):
              f"claims)"]
     lines += [f"  skipped {n}: {reason}" for reason, n in sorted(skipped.items())]
     lines += [f"  not run {n}: {reason}" for reason, n in sorted(other.items())]
-    with capsys.disabled():  # shown in `make test` output, which runs pytest -q
-        print("\n" + "\n".join(lines))
+    summary("\n".join(lines))
     assert len(passed) >= 100, "implausibly few node tests ran"
     assert not failed, "\n".join(failed)

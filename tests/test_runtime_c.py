@@ -478,8 +478,9 @@ def test_shipped_models_run_compiled_programs(c_build, testing_lib):
     from posecorr.controller.runtime import _Error, _Options
 
     T = testing_lib
-    subprocess.run(["cmake", "--build", str(c_build), "--target", "posecorr-print-shapes"],
-                   check=True, capture_output=True)
+    with graphs.build_lock(c_build):
+        subprocess.run(["cmake", "--build", str(c_build), "--target", "posecorr-print-shapes"],
+                       check=True, capture_output=True)
     check = subprocess.run(
         [sys.executable, str(ROOT / "runtime_c" / "tools" / "compile_programs.py"), "--check",
          "--shapes", str(c_build / "posecorr-print-shapes"), *map(str, MODELS)],

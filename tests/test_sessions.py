@@ -138,22 +138,21 @@ def test_independent_rigid_reproduces_the_published_baselines() -> None:
 # --- the two real sessions ---------------------------------------------------------------
 
 @pytest.mark.parametrize("name, published", [("20201002_Exp1", 0.0101), ("20200717_Exp2", 0.0145)])
-def test_real_session_auto_no_worse_than_rigid(name: str, published: float, capsys) -> None:
+def test_real_session_auto_no_worse_than_rigid(name: str, published: float, summary) -> None:
     table = read_table(REALDATA / f"{name}.csv")
     report = fit_table(table, ["station", "mount"], ModelSpec("auto"), LeaveOneOut(), seed=0)
     variant, rigid_pos, rigid_total = best_rigid_heldout(table, LeaveOneOut().folds(table.n))
-    with capsys.disabled():
-        print(f"\n{name}: auto ({report.chosen}; floor {report.baseline_name}) LOO rmse_pos "
-              f"{1000 * report.heldout['rmse_pos']:.2f} mm, rmse_total {1000 * report.heldout['rmse_total']:.2f}; "
-              f"best independent rigid ({variant}) {1000 * rigid_pos:.2f} mm, {1000 * rigid_total:.2f}; "
-              f"published rigid {1000 * published:.1f} mm; fixed {report.fixed}")
+    summary(f"{name}: auto ({report.chosen}; floor {report.baseline_name}) LOO rmse_pos "
+            f"{1000 * report.heldout['rmse_pos']:.2f} mm, rmse_total {1000 * report.heldout['rmse_total']:.2f}; "
+            f"best independent rigid ({variant}) {1000 * rigid_pos:.2f} mm, {1000 * rigid_total:.2f}; "
+            f"published rigid {1000 * published:.1f} mm; fixed {report.fixed}")
     assert report.heldout["rmse_pos"] <= published
     assert report.heldout["rmse_total"] <= TOLERANCE * rigid_total
     # What the data cannot see is named: the lever arm along the yaw axis, or all of it.
     assert any(key.startswith("mount.e") for key in report.fixed)
 
 
-def test_bad_position_only_session_keeps_the_plain_kabsch_floor(capsys) -> None:
+def test_bad_position_only_session_keeps_the_plain_kabsch_floor(summary) -> None:
     """Issue 23's first case: 22 poses, position-only reference, the tracker's orientations
     spanning about 62 degrees about one axis, 100 mm of error no model removes. A plain Kabsch
     fit (no lever) was 16 % better than posecorr's rigid fit; now it is one of the floor's
@@ -169,11 +168,10 @@ def test_bad_position_only_session_keeps_the_plain_kabsch_floor(capsys) -> None:
     report = fit_table(table, [], ModelSpec("auto"), LeaveOneOut(), seed=0)
     kabsch = rigid_heldout(table, splits, "kabsch")[1]
     variant, _, best = best_rigid_heldout(table, splits)
-    with capsys.disabled():
-        print(f"\nbad position-only session: auto ({report.chosen}) {1000 * report.heldout['rmse_total']:.1f}, "
-              f"floor {report.baseline_name} {1000 * report.baseline['rmse_total']:.1f} (rigid-lever "
-              f"{1000 * report.rigid_scores['rigid-lever']:.1f}), independent kabsch "
-              f"{1000 * kabsch:.1f}, best independent ({variant}) {1000 * best:.1f} rmse_total x 1000, LOO")
+    summary(f"bad position-only session: auto ({report.chosen}) {1000 * report.heldout['rmse_total']:.1f}, "
+            f"floor {report.baseline_name} {1000 * report.baseline['rmse_total']:.1f} (rigid-lever "
+            f"{1000 * report.rigid_scores['rigid-lever']:.1f}), independent kabsch "
+            f"{1000 * kabsch:.1f}, best independent ({variant}) {1000 * best:.1f} rmse_total x 1000, LOO")
     assert report.rigid_scores["rigid-kabsch"] == pytest.approx(kabsch, rel=1e-6)
     assert report.heldout["rmse_total"] <= TOLERANCE * best
 
@@ -275,6 +273,9 @@ def _hand_eye_recovery(session) -> dict[str, float]:
 
 @pytest.fixture(scope="module")
 def corpus() -> list[dict]:
+    # Two processes even beside the other test process of `make test` (pytest-xdist): this
+    # file starts first there (conftest.LONG_FIRST), and the pool keeps both cores once the
+    # other process's files are done.
     workers = min(2, os.cpu_count() or 1)
     # forkserver: a fork of this process would copy torch's and BLAS's threads' locks.
     with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("forkserver")) as pool:
@@ -291,44 +292,42 @@ def test_corpus_covers_what_real_cells_produce(corpus: list[dict]) -> None:
     assert sum(r["class"] == "robot" for r in corpus) >= 15
 
 
-def test_corpus_auto_never_worse_than_rigid(corpus: list[dict], capsys) -> None:
+def test_corpus_auto_never_worse_than_rigid(corpus: list[dict], summary) -> None:
     ratios = np.array([r["auto"] / r["rigid"] for r in corpus])
     worst = corpus[int(np.argmax(ratios))]
     chosen = {name: sum(r["chosen"] == name for r in corpus) for name in sorted({r["chosen"] for r in corpus})}
-    with capsys.disabled():
-        print(f"\n{len(corpus)} sessions: auto / best independent rigid held-out rmse_total")
-        print(f"{'class':<20} {'n':>4} {'median':>7} {'worst':>7} {'better':>6}")
-        for name in sorted({r["class"] for r in corpus}):
-            mine = np.array([r["auto"] / r["rigid"] for r in corpus if r["class"] == name])
-            print(f"{name:<20} {len(mine):>4} {np.median(mine):>7.3f} {mine.max():>7.3f} {int(np.sum(mine < 1)):>6}")
-        print(f"worst {ratios.max():.3f} (seed {worst['seed']}, {worst['class']}, auto {worst['chosen']}, "
-              f"rigid {worst['rigid_variant']}); chosen {chosen}; worse than the best rigid by more than "
-              f"{100 * (TOLERANCE - 1):.0f} %: {int(np.sum(ratios > TOLERANCE))}")
+    lines = [f"{len(corpus)} sessions: auto / best independent rigid held-out rmse_total",
+             f"{'class':<20} {'n':>4} {'median':>7} {'worst':>7} {'better':>6}"]
+    for name in sorted({r["class"] for r in corpus}):
+        mine = np.array([r["auto"] / r["rigid"] for r in corpus if r["class"] == name])
+        lines.append(f"{name:<20} {len(mine):>4} {np.median(mine):>7.3f} {mine.max():>7.3f} {int(np.sum(mine < 1)):>6}")
+    lines.append(f"worst {ratios.max():.3f} (seed {worst['seed']}, {worst['class']}, auto {worst['chosen']}, "
+                 f"rigid {worst['rigid_variant']}); chosen {chosen}; worse than the best rigid by more than "
+                 f"{100 * (TOLERANCE - 1):.0f} %: {int(np.sum(ratios > TOLERANCE))}")
+    summary("\n".join(lines))
     assert len(corpus) >= 200
     assert np.all(ratios <= TOLERANCE), [r for r in corpus if r["auto"] > TOLERANCE * r["rigid"]]
 
 
-def test_corpus_robot_sessions_recover_registration_and_mount(corpus: list[dict], capsys) -> None:
+def test_corpus_robot_sessions_recover_registration_and_mount(corpus: list[dict], summary) -> None:
     """The robot-carried class: the hand-eye closed form and the joint fit recover the station
     registration and the flange-to-tracker mount within 1 mm / 1 mrad of the simulated truth
     (at the tracker's noise), and agree with OpenCV's hand-eye solution."""
     rows = [r["recovery"] for r in corpus if r["recovery"] is not None]
     worst = {key: max(row[key] for row in rows) for key in rows[0]}
-    with capsys.disabled():
-        print(f"\n{len(rows)} robot sessions: worst error against the truth {1000 * worst['truth_m']:.3f} mm, "
-              f"{1000 * worst['truth_rad']:.3f} mrad; against OpenCV {1000 * worst['opencv_m']:.3f} mm, "
-              f"{1000 * worst['opencv_rad']:.3f} mrad")
+    summary(f"{len(rows)} robot sessions: worst error against the truth {1000 * worst['truth_m']:.3f} mm, "
+            f"{1000 * worst['truth_rad']:.3f} mrad; against OpenCV {1000 * worst['opencv_m']:.3f} mm, "
+            f"{1000 * worst['opencv_rad']:.3f} mrad")
     assert len(rows) >= 15
     assert worst["truth_m"] < 1e-3 and worst["truth_rad"] < 1e-3
     assert worst["opencv_m"] < 1e-3 and worst["opencv_rad"] < 1e-3
 
 
-def test_corpus_physics_reaches_the_noise_floor_with_full_spread(corpus: list[dict], capsys) -> None:
+def test_corpus_physics_reaches_the_noise_floor_with_full_spread(corpus: list[dict], summary) -> None:
     rows = [r for r in corpus if r["physics_loo"] is not None]
     ratios = np.array([r["physics_loo"] / r["floor"] for r in rows])
-    with capsys.disabled():
-        print(f"\n{len(rows)} sessions with full spread and >= 20 poses: physics LOO / noise floor "
-              f"median {np.median(ratios):.3f}, worst {ratios.max():.3f}")
+    summary(f"{len(rows)} sessions with full spread and >= 20 poses: physics LOO / noise floor "
+            f"median {np.median(ratios):.3f}, worst {ratios.max():.3f}")
     assert len(rows) >= 20
     assert np.all(ratios <= FLOOR_RATIO), [r for r in rows if r["physics_loo"] > FLOOR_RATIO * r["floor"]]
 

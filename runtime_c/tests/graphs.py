@@ -8,6 +8,8 @@ sanitizer runs and the fuzz seed corpus.
 """
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
@@ -664,6 +666,23 @@ def op_inputs(n: int, seed: int = 0) -> np.ndarray:
 
 # -- building the runtime for tests -------------------------------------------------------
 
+@contextlib.contextmanager
+def build_lock(build_dir):
+    """Holds build_dir for one builder: the test suite runs its files in several processes
+    (pytest-xdist), and two cmake builds in one folder overwrite each other's objects."""
+    import fcntl
+    from pathlib import Path
+
+    build_dir = Path(build_dir)
+    build_dir.parent.mkdir(parents=True, exist_ok=True)
+    with open(build_dir.parent / f".{build_dir.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            yield build_dir
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
 def build_runtime(build_dir, *options: str, build_type: str = "Release"):
     """Configures and builds runtime_c into build_dir (incremental); returns the Path."""
     import shutil
@@ -675,12 +694,13 @@ def build_runtime(build_dir, *options: str, build_type: str = "Release"):
     cmake = shutil.which("cmake")
     if cmake is None:
         raise RuntimeError("cmake is required to build runtime_c")
-    if not (build_dir / "CMakeCache.txt").exists():
-        subprocess.run([cmake, "-S", str(src), "-B", str(build_dir),
-                        f"-DCMAKE_BUILD_TYPE={build_type}", *options],
-                       check=True, capture_output=True, text=True)
-    r = subprocess.run([cmake, "--build", str(build_dir), "--parallel", "2"],
-                       capture_output=True, text=True)
+    with build_lock(build_dir):
+        if not (build_dir / "CMakeCache.txt").exists():
+            subprocess.run([cmake, "-S", str(src), "-B", str(build_dir),
+                            f"-DCMAKE_BUILD_TYPE={build_type}", *options],
+                           check=True, capture_output=True, text=True)
+        r = subprocess.run([cmake, "--build", str(build_dir), "--parallel", "2"],
+                           capture_output=True, text=True)
     if r.returncode != 0:
         raise RuntimeError(f"building runtime_c failed:\n{r.stdout[-4000:]}\n{r.stderr[-4000:]}")
     return build_dir

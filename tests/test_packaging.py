@@ -158,7 +158,11 @@ def test_installed_wheel_answers_help_for_every_verb(wheel, tmp_path):
     subprocess.run([sys._base_executable, "-m", "venv", "--without-pip", str(env)], check=True)
     target = Path(subprocess.run([str(env / "bin" / "python"), "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
                                  capture_output=True, text=True, check=True).stdout.strip())
-    (target / "posecorr_test_dependencies.pth").write_text(sysconfig.get_path("purelib") + "\n")
+    # An import line with the folder as an ASCII literal: Python 3.11 reads .pth files in the
+    # locale's encoding, not UTF-8 mode's, and a checkout under "/tmp/prüf ü" with a locale
+    # the system lacks (C, ASCII) could not read the folder's name written plainly.
+    (target / "posecorr_test_dependencies.pth").write_text(
+        f"import sys; sys.path.append({ascii(sysconfig.get_path('purelib'))})\n", encoding="ascii")
     subprocess.run([sys.executable, "-m", "pip", "--python", str(env / "bin" / "python"), "install", "-q",
                     "--no-deps", "--no-index", str(wheel)], check=True, capture_output=True)
     where = subprocess.run([str(env / "bin" / "python"), "-c", "import posecorr; print(posecorr.__file__)"],

@@ -669,7 +669,10 @@ def op_inputs(n: int, seed: int = 0) -> np.ndarray:
 @contextlib.contextmanager
 def build_lock(build_dir):
     """Holds build_dir for one builder: the test suite runs its files in several processes
-    (pytest-xdist), and two cmake builds in one folder overwrite each other's objects."""
+    (pytest-xdist), and two cmake builds in one folder overwrite each other's objects. The
+    lock ends with the file's closing. Unlike posecorr.safeio.exclusive, it waits for the
+    other builder, and it keeps its file: an unlinked lock file lets a third process hold a
+    new one beside a process still waiting on the old."""
     import fcntl
     from pathlib import Path
 
@@ -677,10 +680,7 @@ def build_lock(build_dir):
     build_dir.parent.mkdir(parents=True, exist_ok=True)
     with open(build_dir.parent / f".{build_dir.name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        try:
-            yield build_dir
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
+        yield
 
 
 def build_runtime(build_dir, *options: str, build_type: str = "Release"):

@@ -65,3 +65,16 @@ def summary(request):
     def add(text: str) -> None:
         request.node.user_properties.append((SUMMARY, text.strip("\n")))
     return add
+
+
+@pytest.fixture(scope="module")
+def workspace_poses():
+    """40 poses around the workspace centre, orientations up to about 1 rad from identity:
+    the poses the effects' and forms' formula tests run on."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(5)
+    p = np.array([0.0, -0.6, 0.5]) + rng.uniform(-0.25, 0.25, (40, 3))
+    R = Rotation.from_rotvec(rng.normal(scale=0.6, size=(40, 3))).as_matrix()
+    return p, R

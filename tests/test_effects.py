@@ -16,7 +16,7 @@ from posecorr import effects as fx
 from posecorr.effects import EffectContext, get_effect, parse_effects_arg
 
 DATA = Path(__file__).parent / "data"
-N = 40
+N = 40   # the poses of conftest.workspace_poses
 INVERTIBLE = ("mount", "sweep", "range_scale", "incidence", "drift", "station")
 
 
@@ -28,15 +28,6 @@ def Exp(w: np.ndarray) -> np.ndarray:
 def ctx() -> EffectContext:
     rng = np.random.default_rng(11)
     return EffectContext.default(t=rng.uniform(0.0, 30000.0, N))
-
-
-@pytest.fixture(scope="module")
-def poses() -> tuple[np.ndarray, np.ndarray]:
-    """Poses around the workspace centre, orientations up to ~1 rad from identity."""
-    rng = np.random.default_rng(5)
-    p = np.array([0.0, -0.6, 0.5]) + rng.uniform(-0.25, 0.25, (N, 3))
-    R = Rotation.from_rotvec(rng.normal(scale=0.6, size=(N, 3))).as_matrix()
-    return p, R
 
 
 # Realistic but clearly non-zero parameters, a few times the default magnitudes.
@@ -118,8 +109,8 @@ def test_catalogue_names_order_and_sizes():
 
 
 @pytest.mark.parametrize("name", list(REFERENCES))
-def test_forward_matches_design_formula(name, poses, ctx):
-    p, R = poses
+def test_forward_matches_design_formula(name, workspace_poses, ctx):
+    p, R = workspace_poses
     got_p, got_R = get_effect(name).forward(p, R, THETA[name], ctx)
     want_p, want_R = REFERENCES[name](p, R, THETA[name], ctx)
     np.testing.assert_allclose(got_p, want_p, rtol=0, atol=1e-13)
@@ -146,8 +137,8 @@ def test_incidence_degenerate_and_head_on(ctx):
                                ref_incidence(p, away, b, ctx)[0], atol=1e-15)
 
 
-def test_noise_with_given_draws(poses, ctx):
-    p, R = poses
+def test_noise_with_given_draws(workspace_poses, ctx):
+    p, R = workspace_poses
     rng = np.random.default_rng(3)
     draws = fx.Noise.draw(rng, N)
     c = EffectContext(ctx.R_S, ctx.t_S, ctx.c, noise_draws=draws)
@@ -181,8 +172,8 @@ def test_noise_statistics(ctx):
 
 
 @pytest.mark.parametrize("name", fx.BUILTIN_NAMES)
-def test_identity_parameters(name, poses, ctx):
-    p, R = poses
+def test_identity_parameters(name, workspace_poses, ctx):
+    p, R = workspace_poses
     e = get_effect(name)
     c = EffectContext(ctx.R_S, ctx.t_S, ctx.c, t=ctx.t, rng=np.random.default_rng(0))
     q, Q = e.forward(p, R, e.identity_theta(), c)
@@ -191,8 +182,8 @@ def test_identity_parameters(name, poses, ctx):
 
 
 @pytest.mark.parametrize("name", INVERTIBLE)
-def test_inverse_of_forward(name, poses, ctx):
-    p, R = poses
+def test_inverse_of_forward(name, workspace_poses, ctx):
+    p, R = workspace_poses
     e = get_effect(name)
     q, Q = e.forward(p, R, THETA[name], ctx)
     p2, R2 = e.inverse(q, Q, THETA[name], ctx)
@@ -200,8 +191,8 @@ def test_inverse_of_forward(name, poses, ctx):
     np.testing.assert_allclose(R2, R, rtol=0, atol=1e-12)
 
 
-def test_chain_inverse_and_order(poses, ctx):
-    p, R = poses
+def test_chain_inverse_and_order(workspace_poses, ctx):
+    p, R = workspace_poses
     mix = {name: THETA[name] for name in reversed(INVERTIBLE)}   # given in any order
     q, Q = fx.apply_effects(p, R, mix, ctx)
     # The chain applies mount first ... station last.
@@ -215,8 +206,8 @@ def test_chain_inverse_and_order(poses, ctx):
     np.testing.assert_allclose(R2, R, atol=1e-12)
 
 
-def test_drift_without_time_is_identity_and_says_so(poses, ctx):
-    p, R = poses
+def test_drift_without_time_is_identity_and_says_so(workspace_poses, ctx):
+    p, R = workspace_poses
     c = EffectContext(ctx.R_S, ctx.t_S, ctx.c)
     assert get_effect("drift").notes(c) and not get_effect("drift").notes(ctx)
     with pytest.warns(UserWarning, match="no time column"):
@@ -227,8 +218,8 @@ def test_drift_without_time_is_identity_and_says_so(poses, ctx):
 # --- torch: agreement and gradients ---------------------------------------------------------
 
 @pytest.mark.parametrize("name", INVERTIBLE)
-def test_torch_matches_numpy(name, poses, ctx):
-    p, R = poses
+def test_torch_matches_numpy(name, workspace_poses, ctx):
+    p, R = workspace_poses
     e = get_effect(name)
     tp, tR, tth = (torch.tensor(x, dtype=torch.float64) for x in (p, R, THETA[name]))
     for method in (e.forward, e.inverse):
@@ -243,8 +234,8 @@ def test_torch_matches_numpy(name, poses, ctx):
 
 
 @pytest.mark.parametrize("name", INVERTIBLE + ("noise",))
-def test_torch_gradients_match_finite_differences(name, poses, ctx):
-    p, R = poses
+def test_torch_gradients_match_finite_differences(name, workspace_poses, ctx):
+    p, R = workspace_poses
     e = get_effect(name)
     c = ctx.subset(np.arange(6))
     c.noise_draws = fx.Noise.draw(np.random.default_rng(1), 6)
@@ -299,7 +290,7 @@ def user_effect():
         fx.unregister_effect("mount")
 
 
-def test_user_effect_file(user_effect, poses, ctx):
+def test_user_effect_file(user_effect, workspace_poses, ctx):
     names = user_effect
     assert names == ["z_scale"]
     assert fx.load_effect_file(DATA / "example_effect.py") == ["z_scale"]   # idempotent
@@ -307,7 +298,7 @@ def test_user_effect_file(user_effect, poses, ctx):
     names = list(fx.EFFECTS)
     assert isinstance(e, fx.Effect) and names.index("drift") < names.index("z_scale") < names.index("station")
     assert [x.order for x in fx.EFFECTS.values()] == sorted(x.order for x in fx.EFFECTS.values())
-    p, R = poses
+    p, R = workspace_poses
     q, Q = e.forward(p, R, np.array([0.02]), ctx)
     np.testing.assert_allclose(q[:, 2], p[:, 2] + 0.02 * (p[:, 2] - ctx.c[2]), atol=1e-15)
     np.testing.assert_array_equal(q[:, :2], p[:, :2])
@@ -405,9 +396,9 @@ class _Strict:
 
 
 @pytest.mark.parametrize("name", INVERTIBLE)
-def test_maps_use_only_the_namespace_interface(name, poses, ctx):
+def test_maps_use_only_the_namespace_interface(name, workspace_poses, ctx):
     """What the ONNX exporter's tensors support is enough for every invertible map and its inverse."""
-    p, R = poses
+    p, R = workspace_poses
     e = get_effect(name)
     c = EffectContext(ctx.R_S, ctx.t_S, ctx.c, t=_Strict(ctx.t))
     for method in (e.forward, e.inverse):

@@ -14,7 +14,7 @@ from posecorr import effects as fx
 from posecorr.effects import EffectContext, get_effect
 from posecorr.forms import TIME_SCALE_S
 
-N = 40
+N = 40   # the poses of conftest.workspace_poses
 FORMS = ("strain", "quadratic", "orientation_field", "orientation_bias", "time_trend", "sweep_harmonics")
 THETA = {
     "strain": np.array([0.012, -0.008, 0.004, 0.006, -0.005, 0.003]),
@@ -30,14 +30,6 @@ THETA = {
 def ctx() -> EffectContext:
     rng = np.random.default_rng(11)
     return EffectContext.default(t=rng.uniform(0.0, 3000.0, N))
-
-
-@pytest.fixture(scope="module")
-def poses() -> tuple[np.ndarray, np.ndarray]:
-    rng = np.random.default_rng(5)
-    p = np.array([0.0, -0.6, 0.5]) + rng.uniform(-0.25, 0.25, (N, 3))
-    R = Rotation.from_rotvec(rng.normal(scale=0.6, size=(N, 3))).as_matrix()
-    return p, R
 
 
 def ref_strain(p, R, th, ctx):
@@ -107,8 +99,8 @@ def _poses():
 
 
 @pytest.mark.parametrize("name", FORMS)
-def test_forward_matches_the_formula(name, poses, ctx):
-    p, R = poses
+def test_forward_matches_the_formula(name, workspace_poses, ctx):
+    p, R = workspace_poses
     got_p, got_R = get_effect(name).forward(p, R, THETA[name], ctx)
     want_p, want_R = REFERENCES[name](p, R, THETA[name], ctx)
     assert np.abs(got_p - want_p).max() < 1e-12
@@ -116,9 +108,9 @@ def test_forward_matches_the_formula(name, poses, ctx):
 
 
 @pytest.mark.parametrize("name", FORMS)
-def test_inverse_of_forward(name, poses, ctx):
+def test_inverse_of_forward(name, workspace_poses, ctx):
     effect = get_effect(name)
-    p, R = poses
+    p, R = workspace_poses
     fp, fR = effect.forward(p, R, THETA[name], ctx)
     bp, bR = effect.inverse(fp, fR, THETA[name], ctx)
     assert np.abs(bp - p).max() < 1e-9
@@ -126,9 +118,9 @@ def test_inverse_of_forward(name, poses, ctx):
 
 
 @pytest.mark.parametrize("name", FORMS)
-def test_per_row_theta_and_torch_agree_with_numpy(name, poses, ctx):
+def test_per_row_theta_and_torch_agree_with_numpy(name, workspace_poses, ctx):
     effect = get_effect(name)
-    p, R = poses
+    p, R = workspace_poses
     want_p, want_R = effect.forward(p, R, THETA[name], ctx)
     rows_p, rows_R = effect.forward(p, R, np.tile(THETA[name], (N, 1)), ctx)
     assert np.abs(rows_p - want_p).max() < 1e-15 and np.abs(rows_R - want_R).max() < 1e-15
@@ -169,10 +161,10 @@ def _cut(name):
 
 
 @pytest.mark.parametrize("name", FORMS)
-def test_a_cut_form_is_the_whole_form_with_the_other_terms_at_zero(name, poses, ctx):
+def test_a_cut_form_is_the_whole_form_with_the_other_terms_at_zero(name, workspace_poses, ctx):
     """The formula (written per pose above) with every coefficient outside the cut zeroed,
     on numpy, per-row theta and torch."""
-    p, R = poses
+    p, R = workspace_poses
     whole, cut = _cut(name)
     theta = np.asarray(THETA[name])
     zeroed = np.zeros_like(theta)

@@ -38,6 +38,25 @@ def test_simulate_json_matches_the_paper_raw_rows(tmp_path, experiment: int) -> 
     assert (tmp_path / "x.csv").read_text().count("\n") == result["n"] + 1
 
 
+def test_a_session_with_drift_needs_a_duration_and_then_has_times(tmp_path) -> None:
+    out_csv = tmp_path / "s.csv"
+    base = ("simulate", "--session", "--poses", "12", "--seed", "2", "--effects", "drift=0.002,0,0,900",
+            "-o", str(out_csv))
+    out = posecorr(*base)
+    assert out.returncode == 2 and not out_csv.exists()
+    assert out.stderr.strip().splitlines()[-1].endswith(
+        "error: drift acts over the session's time, and the session has none: give --duration SECONDS "
+        "(a robot takes about 40 s a pose: 50 poses, --duration 2000)"), out.stderr
+    out = posecorr("simulate", "--experiment", "3", "--duration", "60", "-o", str(out_csv))
+    assert out.returncode == 2 and "--duration goes with --session" in out.stderr
+    out = posecorr(*base, "--duration", "600", "--json")
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout)["session"]["duration"] == 600.0
+    from posecorr.data import read_table
+
+    np.testing.assert_allclose(read_table(out_csv).time(), 50.0 * np.arange(1, 13))
+
+
 HEADER = "meas_x,meas_y,meas_z,meas_qw,meas_qx,meas_qy,meas_qz,ref_x,ref_y,ref_z"
 GOOD = "0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3"
 

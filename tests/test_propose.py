@@ -330,3 +330,59 @@ def test_a_form_is_fitted_where_the_per_pose_error_is_large():
     # the same map written twice: the same values (the noise moves both alike)
     np.testing.assert_allclose(fits["strain"].params_["strain"], fits["true_strain"].params_["true_strain"],
                                atol=1e-4)
+
+
+def test_a_catalogue_effect_that_gains_and_is_not_present_says_which_parts_it_fails():
+    """The table's "no" beside a good score is explained: each part of the test failed, with
+    its figure; an effect kept beside the others, one a form absorbs and one without the
+    minimum gain are not listed."""
+    from types import SimpleNamespace
+
+    from posecorr.analysis.proposal import explain_absent
+
+    def row(effect, score, p_value, fold_gain_min, implausible=(), present=False, **more):
+        return {"effect": effect, "kind": "effect", "score": score, "p_value": p_value,
+                "fold_gain_min": fold_gain_min, "implausible": list(implausible), "present": present, **more}
+
+    search = SimpleNamespace(min_gain=0.005, alpha=1e-3, names=["drift", "sweep", "incidence", "mount", "range_scale"])
+    result = {"candidates": [
+        row("drift", 0.073, 2e-6, -0.013, ["drift.d = 0.585 m lies outside the plausible -0.02 to 0.02 m"]),
+        row("sweep", 0.05, 1e-9, 0.01, present=True),
+        row("incidence", 0.04, 1e-9, 0.02, passes=True,
+            dropped={"given": ["sweep"], "p_value_given": 0.3, "score_given": -0.001}),
+        row("mount", 0.03, 0.01, 0.001),
+        row("range_scale", 0.004, 1e-9, 0.001)],
+        "absorbed": []}
+    absent = {a["effect"]: a for a in explain_absent(search, result)}
+    assert set(absent) == {"drift", "incidence", "mount"}
+    assert absent["drift"]["why"] == ("a fold where the error rises (worst fold -1.3%); "
+                                      "drift.d = 0.585 m lies outside the plausible -0.02 to 0.02 m")
+    assert absent["incidence"]["why"] == "it adds nothing once sweep is in (p = 0.3, gain -0.1%)"
+    # 0.001 over the five candidates
+    assert absent["mount"]["why"] == "p above 0.0002 (0.001 over 5 candidates)"
+    result["absorbed"] = [{"effect": "mount"}]
+    assert {a["effect"] for a in explain_absent(search, result)} == {"drift", "incidence"}
+
+
+def test_every_catalogue_effect_that_gains_is_present_or_explained(tmp_path, capsys):
+    """A session with a clock and a small drift (about the noise): whatever the test decides
+    for drift, a catalogue effect with the minimum gain is present, absorbed by a form, or
+    listed with the parts of the test it fails, in the JSON and in the text."""
+    from posecorr.cli import main
+
+    data = tmp_path / "timed.csv"
+    assert main(["simulate", "--session", "--robot", "ur5e", "--poses", "50", "--seed", "3", "--duration", "2000",
+                 "--effects", "drift=0.002,-0.001,0.0015,1800", "-o", str(data)]) == 0
+    capsys.readouterr()
+    assert main(["diagnose", str(data), "--effects", "station,mount", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    explained = {a["effect"] for a in result["absent"]} | {a["effect"] for a in result["absorbed"]}
+    present = {row["effect"] for row in result["candidates"] if row["present"]}
+    for row in result["candidates"]:
+        if row["kind"] == "effect" and row["score"] >= 0.005 and not row["present"]:
+            assert row["effect"] in explained, (row, result["absent"])
+    assert "drift" in explained | present, result["candidates"]
+    assert main(["diagnose", str(data), "--effects", "station,mount"]) == 0
+    text = capsys.readouterr().out
+    for absent in result["absent"]:
+        assert f"not present: {absent['effect']} lowers the held-out whitened error by" in text, text

@@ -191,3 +191,26 @@ def test_user_effect_in_simulate(user_effect_file):
     assert sim.raw["rmse_pos"] == pytest.approx(expected, rel=1e-9)
     sim = simulate(1, effects="z_scale=off", effect_files=[user_effect_file])
     assert "z_scale" not in sim.effects and sim.effects_json()["station"]["v"] == DEFAULT_MIX[1]["station"][3:]
+
+
+# --- realistic sessions with a clock --------------------------------------------------------
+
+def test_a_session_with_a_duration_has_its_clock_and_its_drift():
+    from posecorr.simulate import simulate_session
+
+    plain = simulate_session(4, n=20)
+    timed = simulate_session(4, n=20, duration=800.0)
+    assert plain.table.time() is None
+    # Pose k at (k + 1) duration / n; the clock draws nothing, so the session is the same.
+    np.testing.assert_allclose(timed.table.time(), 40.0 * np.arange(1, 21))
+    np.testing.assert_array_equal(timed.table.measured, plain.table.measured)
+    d, tau = np.array([4e-3, -2e-3, 3e-3]), 600.0
+    drifting = simulate_session(4, n=20, duration=800.0, extra={"drift": [*d, tau]})
+    # The drift acts in the cell (design: p + d (1 - exp(-t / tau))); the unknown station
+    # frame turns it into the tracker's coordinates. Rows times R is R^T applied to each row.
+    R_station = Rotation.from_rotvec(drifting.effects["station"][:3]).as_matrix()
+    moved = (drifting.table.meas_p - timed.table.meas_p) @ R_station
+    # atol: the range term of the noise sees the drifted position (k2 r^2, about 1e-5 m here)
+    np.testing.assert_allclose(moved, np.outer(1.0 - np.exp(-timed.table.time() / tau), d), atol=5e-5)
+    with pytest.raises(ValueError, match="duration"):
+        simulate_session(4, n=20, duration=-1.0)

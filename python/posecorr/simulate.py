@@ -170,7 +170,9 @@ class SessionSpec:
     `kinematics.UR_ARMS` ("ur5e", or the KUKA-sized "ur10e") carries the tracker on its flange
     through random joint angles (30-60 poses, full orientation): the reference is the flange
     pose, the mount the unknown flange-to-tracker offset of a hand-eye calibration; "" for a
-    tracker set down by hand.
+    tracker set down by hand. duration: the session's length in s, pose k measured at
+    (k + 1) duration / n, as the table's time column t; 0 for a table without times (as the
+    real sessions come), where a time-dependent effect is the identity.
     """
 
     n: int
@@ -183,6 +185,7 @@ class SessionSpec:
     box: float
     max_angle: float
     robot: str = ""
+    duration: float = 0.0
 
 
 ROBOTS = ("ur5e", "ur10e")
@@ -190,13 +193,16 @@ ROBOTS = ("ur5e", "ur10e")
 
 def draw_session_spec(rng: np.random.Generator, n: int | None = None, spread: str | None = None,
                       position_only: bool | None = None, unremovable: float | None = None,
-                      robot: str | None = None) -> SessionSpec:
-    """A random session of the kinds real cells produce; the arguments pin what they name."""
+                      robot: str | None = None, duration: float = 0.0) -> SessionSpec:
+    """A random session of the kinds real cells produce; the arguments pin what they name.
+    The duration is never drawn (a drawn session has no clock, as the real ones)."""
     spread = spread if spread is not None else str(rng.choice(SPREADS))
     if spread not in SPREADS:
         raise ValueError(f"spread must be one of {', '.join(SPREADS)}, got {spread!r}")
     if n is not None and n < 6:
         raise ValueError(f"a session needs at least 6 poses, got {n}")
+    if not duration >= 0.0:
+        raise ValueError(f"a session's duration is 0 (no times) or more seconds, got {duration!r}")
     drawn = SessionSpec(
         n=int(rng.integers(6, 41)), spread=spread, planar=bool(rng.random() < 0.3),
         position_only=bool(rng.random() < 0.25),
@@ -214,7 +220,8 @@ def draw_session_spec(rng: np.random.Generator, n: int | None = None, spread: st
                         unremovable=0.0, lever=float(rng.uniform(0.05, 0.15)), robot=robot)
     return replace(drawn, n=drawn.n if n is None else int(n),
                    position_only=drawn.position_only if position_only is None else bool(position_only),
-                   unremovable=drawn.unremovable if unremovable is None else float(unremovable))
+                   unremovable=drawn.unremovable if unremovable is None else float(unremovable),
+                   duration=float(duration))
 
 
 def _random_rotvec(rng: np.random.Generator, size: int | None = None) -> np.ndarray:
@@ -248,7 +255,7 @@ def simulate_session(seed: int = 0, spec: SessionSpec | None = None, extra: Mapp
     """A realistic session (see `SessionSpec`): few poses, an unregistered tracker frame, a
     lever arm, the given orientation spread, noise at the DESIGN defaults, and optionally an
     error no model removes. `pin` fixes fields of the drawn spec (n, spread, position_only,
-    unremovable). `extra` {effect: theta} adds effects where the tracker is, in the cell (a
+    unremovable, duration). `extra` {effect: theta} adds effects where the tracker is, in the cell (a
     user's effect or a form, say), applied with the mount in catalogue order. The reference frame is the robot base; the workspace centre of the effects
     is the mean reference position, as a fit takes it."""
     from .rotations import rotvec_to_matrix
@@ -278,7 +285,8 @@ def simulate_session(seed: int = 0, spec: SessionSpec | None = None, extra: Mapp
     mix = {"mount": np.concatenate([_random_rotvec(rng), spec.lever * lever / np.linalg.norm(lever)]),
            "station": np.concatenate([_random_rotvec(rng), spec.offset * direction / np.linalg.norm(direction)]),
            "noise": get_effect("noise").default_theta()}
-    ctx = replace(EffectContext.default(noise_draws=Noise.draw(rng, spec.n)), c=p_ref.mean(axis=0))
+    t = (np.arange(spec.n) + 1.0) * spec.duration / spec.n if spec.duration else None
+    ctx = replace(EffectContext.default(t=t, noise_draws=Noise.draw(rng, spec.n)), c=p_ref.mean(axis=0))
     # The noise acts where the tracker is, in the cell, before the unknown frame turns it into
     # the tracker's own coordinates (its range term would otherwise see the frame's offset).
     mix.update({name: np.asarray(theta, float) for name, theta in (extra or {}).items()})
@@ -294,7 +302,8 @@ def simulate_session(seed: int = 0, spec: SessionSpec | None = None, extra: Mapp
     q_ref = matrix_to_quat(R_ref)
     table = PoseTable(meas_p=np.asarray(p_meas), meas_q=np.asarray(matrix_to_quat(R_meas)), ref_p=p_ref,
                       ref_q=None if spec.position_only else q_ref,
-                      extras={"id": np.array([str(i) for i in range(spec.n)], dtype=object)})
+                      extras={"id": np.array([str(i) for i in range(spec.n)], dtype=object),
+                              **({} if t is None else {"t": t})})
     with_rotation = not spec.position_only
     reference = np.concatenate([p_ref, q_ref], axis=1)
     raw = pose_metrics(reference, table.measured, with_rotation)

@@ -446,7 +446,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     """
     from posecorr.train.splits import KFold
 
-    from .proposal import explain_absorbed, propose
+    from .proposal import explain_absent, explain_absorbed, propose
 
     require_diagnosable(table, folds)
     require_time(effects, table)
@@ -482,6 +482,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     result["reach"]["poses_to_pass"] = _planned(rows, kept, table.n, result["reach"]["threshold"], min_gain)
     result["proposal"], result["no_proposal"] = propose(search, result, kept, dropped)
     result["absorbed"] = explain_absorbed(result, kept)
+    result["absent"] = explain_absent(search, result)
     return result
 
 

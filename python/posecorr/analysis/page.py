@@ -289,7 +289,7 @@ def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[st
         body += ("<h3>Residual structure by feature</h3><p>None: a smooth fit along a feature explains none of "
                  f"the held-out residual (cross-validated R² 0 along {_e(', '.join(others))}).</p>")
     known = {"candidates", "features", "aliases", "model_effects", "test", "undetermined", "proposal", "no_proposal",
-             "absorbed"}
+             "absorbed", "absent"}
     other = {k: v for k, v in diagnosis.items() if k not in known and isinstance(v, (str, int, float))}
     if other:
         body += '<dl class="kv">' + "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in other.items()) + "</dl>"
@@ -298,7 +298,8 @@ def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[st
 
 def _proposal_html(diagnosis: Mapping[str, Any]) -> str:
     """The diagnosis's proposal (a generic form that explains what the catalogue does not), or
-    why there is none, and the catalogue effects that take part of a proposed form's gain."""
+    why there is none, the catalogue effects that take part of a proposed form's gain, and
+    those that lower the error and still fail the test."""
     proposal = diagnosis.get("proposal")
     if isinstance(proposal, Mapping):
         html = (f"<h3>Proposal</h3><p><b>{_e(', '.join(proposal.get('forms') or []))}</b> "
@@ -318,6 +319,11 @@ def _proposal_html(diagnosis: Mapping[str, Any]) -> str:
         html += "<ul>" + "".join(f"<li><b>{_e(a.get('effect', '?'))}</b> takes {_num(a.get('share'), 100)} % of "
                                  f"{_e(a.get('form', '?'))}'s gain alone, but {_e(a.get('why', ''))}</li>"
                                  for a in absorbed) + "</ul>"
+    absent = [a for a in diagnosis.get("absent") or [] if isinstance(a, Mapping)]
+    if absent:
+        html += "<ul>" + "".join(f"<li><b>{_e(a.get('effect', '?'))}</b> lowers the held-out whitened error by "
+                                 f"{_num(a.get('score'), 100)} % and is not present: {_e(a.get('why', ''))}</li>"
+                                 for a in absent) + "</ul>"
     return html
 
 

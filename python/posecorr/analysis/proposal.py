@@ -210,11 +210,32 @@ def explain_absorbed(result: dict[str, Any], kept: Sequence[str]) -> list[dict[s
             if not (row["passes"] or row["implausible"]):
                 continue
             out.append({"effect": row["effect"], "form": form, "share": min(row["score"] / form_row["score"], 1.0),
-                        "why": _why_not(row, form)})
+                        "why": _why_not(row) or f"{form} explains more of the same error"})
     return out
 
 
-def _why_not(row: dict[str, Any], form: str) -> str:
+def explain_absent(search: Any, result: dict[str, Any]) -> list[dict[str, Any]]:
+    """The catalogue effects that lower the held-out error by the test's minimum gain and are
+    still not present, each with the parts of the test it fails (a table's "no" beside a
+    good score says nothing by itself); those a kept form absorbs are `explain_absorbed`'s."""
+    from .diagnose import failed_parts
+
+    absorbed = {row["effect"] for row in result["absorbed"]}
+    out = []
+    for row in result["candidates"]:
+        if row["kind"] != "effect" or row["present"] or row["score"] < search.min_gain or row["effect"] in absorbed:
+            continue
+        fails = failed_parts(row["p_value"], row["fold_gain_min"], row["score"], len(search.names), search.alpha,
+                             search.min_gain)
+        alone = [f"{part} (worst fold {row['fold_gain_min']:.1%})" if part.startswith("a fold") else part
+                 for part in fails] + list(row["implausible"])
+        out.append({"effect": row["effect"], "score": row["score"], "p_value": row["p_value"],
+                    "why": "; ".join(alone) if alone else _why_not(row)})
+    return out
+
+
+def _why_not(row: dict[str, Any]) -> str | None:
+    """Why a candidate that passes alone is not kept beside the others, if that is why."""
     dropped = row.get("dropped")
     if dropped is not None:
         return (f"it adds nothing once {', '.join(dropped['given'])} "
@@ -226,7 +247,7 @@ def _why_not(row: dict[str, Any], form: str) -> str:
         reason = "; ".join(row.get("implausible_given") or []) or (
             f"p = {row['p_value_given']:.2g}, gain {row['score_given']:.1%}")
         return f"it adds nothing given {', '.join(row['given'])} ({reason})"
-    return f"{form} explains more of the same error"
+    return None
 
 
 def effect_file_text(proposal: dict[str, Any], command: str, data_name: str) -> str:

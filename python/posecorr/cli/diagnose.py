@@ -73,6 +73,9 @@ def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
         lines.append(f"not ranked: {row['effect']} cannot be determined by this data ({row['reason']})")
     for row in result["absorbed"]:
         lines.append(f"{row['effect']} takes {row['share']:.0%} of {row['form']}'s gain alone, but {row['why']}")
+    for row in result["absent"]:
+        lines.append(f"not present: {row['effect']} lowers the held-out whitened error by {row['score']:.1%} "
+                     f"(p = {row['p_value']:.2g}), but {row['why']}")
     present = [c["effect"] for c in result["candidates"] if c["present"] and c["kind"] == "effect"]
     if present:
         lines.append(f"add: --effects {','.join(effects + present)}")

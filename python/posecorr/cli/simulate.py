@@ -21,6 +21,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --session: RMS (mm) of an error no model removes")
     p.add_argument("--robot", help="with --session: a robot (ur5e, or the KUKA-sized ur10e) carries the tracker on "
                                    "its flange through 30-60 poses of every orientation")
+    p.add_argument("--duration", type=options.real(1.0, 1e8), metavar="SECONDS",
+                   help="with --session: the session's length; the table gets a time column t, the poses evenly "
+                        "spaced (a drift or another time-dependent effect needs it; a robot takes about 40 s a pose)")
     p.add_argument("--effects", help="NAME=V1,V2,...;NAME... override or add effects (values in parameter order)")
     p.add_argument("--only", action="store_true", help="use only the --effects given (plus noise), not the default mix")
     effect_file_option(p)
@@ -50,6 +53,8 @@ def run(args: argparse.Namespace) -> None:
             raise OutputPathError(f"{args.recording}: is also -o; the recording and its table are two files")
     if (args.experiment is None) == (not args.session):
         raise CliError("give either --experiment N or --session")
+    if args.duration is not None and not args.session:
+        raise CliError("--duration goes with --session: an experiment's table has its own times")
     if args.session:
         if args.recording is not None:
             raise CliError("--recording drives the robot through an experiment's targets: give --experiment N")
@@ -97,6 +102,7 @@ SESSION_DRAWS = ("station", "mount", "noise")
 
 
 def _simulate_session(args: argparse.Namespace, effects: dict) -> Any:
+    from ..effects import get_effect
     from ..simulate import ROBOTS, SPREADS, simulate_session
 
     if args.only:
@@ -111,9 +117,14 @@ def _simulate_session(args: argparse.Namespace, effects: dict) -> Any:
         raise CliError(f"--spread takes {', '.join(SPREADS)}, got {args.spread!r}")
     if args.robot is not None and args.robot not in ROBOTS:
         raise CliError(f"--robot takes {', '.join(ROBOTS)}, got {args.robot!r}")
+    timed = [name for name in effects if get_effect(name).needs_time]
+    if timed and args.duration is None:
+        raise CliError(f"{', '.join(timed)} {'acts' if len(timed) == 1 else 'act'} over the session's time, and the "
+                       f"session has none: give "
+                       f"--duration SECONDS (a robot takes about 40 s a pose: 50 poses, --duration 2000)")
     pin = {"n": args.poses, "spread": args.spread, "unremovable": None if args.unremovable is None
            else args.unremovable / 1000.0, "position_only": True if args.position_only else None,
-           "robot": args.robot}
+           "robot": args.robot, "duration": args.duration}
     return simulate_session(args.seed, extra=effects, **{k: v for k, v in pin.items() if v is not None})
 
 
@@ -122,6 +133,7 @@ def _session_words(spec: Any) -> str:
              "planar" if spec.planar and not spec.robot else "",
              "position-only reference" if spec.position_only else "",
              f"unremovable error {1000 * spec.unremovable:.0f} mm" if spec.unremovable else "",
+             f"{spec.duration:.0f} s long (column t)" if spec.duration else "",
              f"tracker frame {spec.offset:.1f} m away, lever arm {1000 * spec.lever:.0f} mm"]
     return "; ".join(p for p in parts if p)
 

@@ -188,6 +188,12 @@ def test_takeaway_without_present_effect() -> None:
     line = takeaway(diag, ["station"])
     assert "No catalogue effect is missing" in line and "yaw" in line
     assert takeaway({"candidates": [], "features": []}).startswith("No catalogue effect is missing")
+    # An effect that gains and fails the test is no "nothing is missing": the banner says which part.
+    diag["absent"] = [{"effect": "drift", "score": 0.073, "p_value": 2e-6,
+                       "why": "a fold where the error rises (worst fold -1.3%)"}]
+    assert takeaway(diag, ["station"]) == (
+        "No effect passes the test: drift lowers the held-out whitened error by 7.3% but is not present "
+        "(a fold where the error rises (worst fold -1.3%)); no form earns its place.")
 
 
 def test_where_no_candidate_could_pass_the_banner_says_the_poses_cannot_show_it() -> None:

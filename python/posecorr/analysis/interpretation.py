@@ -133,6 +133,12 @@ def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] =
                 f"fall below the test's threshold (at best {reach['best_p']:.2g} against {reach['threshold']:.2g}){more}.")
         return line + (f" Yet {structure_text}." if structure_text else "")
     # The test's words stand under the candidates' table; the banner keeps to the finding.
+    absent = [a for a in diagnosis.get("absent") or [] if isinstance(a, Mapping)]
+    if absent and isinstance(absent[0].get("score"), (int, float)):
+        # Not "nothing is missing": an effect gains and fails the test, which says why.
+        first = absent[0]
+        return (f"No effect passes the test: {first.get('effect')} lowers the held-out whitened error by "
+                f"{first['score']:.1%} but is not present ({first.get('why')}); no form earns its place.")
     if structure_text:
         return f"No catalogue effect is missing, but {structure_text}."
     top = f" (best candidate: {candidates[0].get('effect')}, not present)" if candidates else ""

@@ -230,7 +230,7 @@ def explain_absent(search: Any, result: dict[str, Any]) -> list[dict[str, Any]]:
         alone = [f"{part} (worst fold {row['fold_gain_min']:.1%})" if part.startswith("a fold") else part
                  for part in fails] + list(row["implausible"])
         out.append({"effect": row["effect"], "score": row["score"], "p_value": row["p_value"],
-                    "why": "; ".join(alone) if alone else _why_not(row)})
+                    "why": "; ".join(alone) or _why_not(row) or "it is not kept beside the others"})
     return out
 
 

@@ -120,8 +120,8 @@ def _simulate_session(args: argparse.Namespace, effects: dict) -> Any:
     timed = [name for name in effects if get_effect(name).needs_time]
     if timed and args.duration is None:
         raise CliError(f"{', '.join(timed)} {'acts' if len(timed) == 1 else 'act'} over the session's time, and the "
-                       f"session has none: give "
-                       f"--duration SECONDS (a robot takes about 40 s a pose: 50 poses, --duration 2000)")
+                       "session has none: give --duration SECONDS (a robot takes about 40 s a pose: 50 poses, "
+                       "--duration 2000)")
     pin = {"n": args.poses, "spread": args.spread, "unremovable": None if args.unremovable is None
            else args.unremovable / 1000.0, "position_only": True if args.position_only else None,
            "robot": args.robot, "duration": args.duration}

@@ -12,7 +12,7 @@ from posecorr import effects, geometry
 from posecorr.data import read_table, write_table
 from posecorr.effects import get_effect, invert_effects
 from posecorr.metrics import pose_metrics
-from posecorr.simulate import DEFAULT_MIX, resolve_mix, simulate
+from posecorr.simulate import DEFAULT_MIX, resolve_mix, simulate, simulate_session
 
 DATA = Path(__file__).parent / "data"
 
@@ -196,8 +196,6 @@ def test_user_effect_in_simulate(user_effect_file):
 # --- realistic sessions with a clock --------------------------------------------------------
 
 def test_a_session_with_a_duration_has_its_clock_and_its_drift():
-    from posecorr.simulate import simulate_session
-
     plain = simulate_session(4, n=20)
     timed = simulate_session(4, n=20, duration=800.0)
     assert plain.table.time() is None

@@ -275,6 +275,11 @@ def _fold_state(table: PoseTable, effects: list[str], names: Sequence[str], spli
     return _FoldState(effects, predicted, fold_rmse, before, per_fold, _column_owners(per_fold[0].physics, names))
 
 
+# The part of the test a candidate fails when its held-out error rises in some fold (the
+# words `failed_parts` gives it; `proposal.explain_absent` adds the worst fold's figure).
+FOLD_RISES = "a fold where the error rises"
+
+
 def failed_parts(p_value: float, fold_gain_min: float, score: float, n_candidates: int, alpha: float,
                  min_gain: float) -> list[str]:
     """The parts of the test (`PRESENT_TEST`, alone) a candidate fails, each with its figure:
@@ -284,7 +289,7 @@ def failed_parts(p_value: float, fold_gain_min: float, score: float, n_candidate
     if not p_value < threshold:
         parts.append(f"p above {threshold:.2g} ({alpha:g} over {n_candidates} candidates)")
     if not fold_gain_min > 0:
-        parts.append("a fold where the error rises")
+        parts.append(FOLD_RISES)
     if not score >= min_gain:
         parts.append(f"a mean gain below {min_gain:.1%}")
     return parts

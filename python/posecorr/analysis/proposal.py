@@ -218,7 +218,7 @@ def explain_absent(search: Any, result: dict[str, Any]) -> list[dict[str, Any]]:
     """The catalogue effects that lower the held-out error by the test's minimum gain and are
     still not present, each with the parts of the test it fails (a table's "no" beside a
     good score says nothing by itself); those a kept form absorbs are `explain_absorbed`'s."""
-    from .diagnose import failed_parts
+    from .diagnose import FOLD_RISES, failed_parts
 
     absorbed = {row["effect"] for row in result["absorbed"]}
     out = []
@@ -227,7 +227,7 @@ def explain_absent(search: Any, result: dict[str, Any]) -> list[dict[str, Any]]:
             continue
         fails = failed_parts(row["p_value"], row["fold_gain_min"], row["score"], len(search.names), search.alpha,
                              search.min_gain)
-        alone = [f"{part} (worst fold {row['fold_gain_min']:.1%})" if part.startswith("a fold") else part
+        alone = [f"{part} (worst fold {row['fold_gain_min']:.1%})" if part == FOLD_RISES else part
                  for part in fails] + list(row["implausible"])
         out.append({"effect": row["effect"], "score": row["score"], "p_value": row["p_value"],
                     "why": "; ".join(alone) or _why_not(row) or "it is not kept beside the others"})

@@ -406,3 +406,23 @@ def test_maps_use_only_the_namespace_interface(name, workspace_poses, ctx):
         want_q, want_Q = method(p, R, THETA[name], ctx)
         np.testing.assert_allclose(q.a, want_q, atol=1e-14)
         np.testing.assert_allclose(Q.a, want_Q, atol=1e-14)
+
+
+def test_a_value_is_implausible_only_where_the_data_rejects_the_plausible_range():
+    """incidence's plausible range is +-5 mm: 15.1 mm with a standard error of 1.7 mm lies 5.9
+    standard errors beyond it; with 10 mm, or held (NaN), the data does not reject the range."""
+    incidence = get_effect("incidence")
+    lo, hi = incidence.params[0].plausible
+    theta = np.array([0.0151, 0.003])
+    assert lo == -0.005 and hi == 0.005
+    assert incidence.implausible(theta) == [
+        "incidence.b1 = 0.0151 m lies outside the plausible -0.005 to 0.005 m"]
+    assert incidence.implausible(theta, [0.0017, 1e-4]) == [
+        "incidence.b1 = 0.0151 m lies outside the plausible -0.005 to 0.005 m (5.9 standard errors beyond)"]
+    assert incidence.implausible(theta, [0.01, 1e-4]) == []
+    assert incidence.implausible(theta, [np.nan, 1e-4]) == incidence.implausible(theta)
+    assert incidence.implausible([0.004, -0.0049], [1e-6, 1e-6]) == []
+    drift = get_effect("drift")
+    # d (3) beyond by 0.05 m with 0.02 m errors: 2.5 standard errors, the farthest entry named
+    assert drift.implausible([0.07, 0.01, -0.03, 3600.0], [0.02, 0.02, 0.02, 100.0]) == [
+        "drift.d = 0.07 m lies outside the plausible -0.02 to 0.02 m (2.5 standard errors beyond)"]

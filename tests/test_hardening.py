@@ -99,7 +99,7 @@ def _bad_tables(folder: Path) -> list[tuple[str, Path, list[str], bool]]:
         ("header only", HEADER_Q + "\n", ["no data rows"], False),
         ("control characters", f"{HEADER_Q}\n\x1b[31m" + good[0][good[0].index(","):],
          ["row 2", "column meas_x", "\\x1b"], False),
-        ("one row", f"{HEADER_Q}\n{good[0]}\n", ["1 rows"], True),
+        ("one row", f"{HEADER_Q}\n{good[0]}\n", ["1 row,"], True),
         # two: the report's rigid baseline takes three (and then writes its page without a diagnosis)
         ("two rows", f"{HEADER_Q}\n" + "\n".join(good[:2]) + "\n", ["2 rows"], True),
         ("400 identical poses", f"{HEADER_Q}\n" + f"{good[0]}\n" * 400, ["only 1 distinct"], True),
@@ -278,7 +278,7 @@ def test_a_byte_order_mark_is_skipped(tmp_path) -> None:
 def test_degenerate_tables_are_refused_with_the_reason() -> None:
     t = _table(40)
     same = t.subset(np.zeros(40, dtype=int))
-    with pytest.raises(TableError, match="40 rows but only 1 distinct measured poses"):
+    with pytest.raises(TableError, match="40 rows but only 1 distinct measured pose;"):
         require_rows(same, 10, "a fit")
     jitter = PoseTable(same.meas_p + 1e-15 * np.arange(40)[:, None], same.meas_q, same.ref_p, same.ref_q)
     with pytest.raises(TableError, match=r"measured positions span only 3.9e-14 m"):

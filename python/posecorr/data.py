@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .textui import counted
+
 MEAS_POS = ("meas_x", "meas_y", "meas_z")
 MEAS_QUAT = ("meas_qw", "meas_qx", "meas_qy", "meas_qz")
 REF_POS = ("ref_x", "ref_y", "ref_z")
@@ -126,10 +128,10 @@ def require_rows(table: PoseTable, needed: int, purpose: str) -> None:
     """Raise TableError when the table cannot support `purpose`: fewer than `needed` rows,
     fewer than `needed` distinct poses, or poses that do not spread over a workspace."""
     if table.n < needed:
-        raise TableError(table.path, f"{table.n} rows, but {purpose} needs at least {needed}")
+        raise TableError(table.path, f"{counted(table.n, 'row')}, but {purpose} needs at least {needed}")
     distinct = len(np.unique(table.measured, axis=0))
     if distinct < needed:
-        raise TableError(table.path, f"{table.n} rows but only {distinct} distinct measured poses; "
+        raise TableError(table.path, f"{counted(table.n, 'row')} but only {counted(distinct, 'distinct measured pose')}; "
                          f"{purpose} needs at least {needed}")
     for name, p in (("measured", table.meas_p), ("reference", table.ref_p)):
         spread = float(np.max(np.ptp(p, axis=0)))

@@ -53,6 +53,11 @@ __all__ = [
 ]
 
 
+# A fitted value counts as implausible only this many standard errors beyond its plausible
+# range: the data must reject every plausible value, not merely prefer a far one.
+PLAUSIBLE_SIGMAS = 2.0
+
+
 @dataclass(frozen=True)
 class Param:
     """One named parameter block of an effect.
@@ -64,8 +69,9 @@ class Param:
     domain: where the map is defined at all, whatever a fit's bounds: a key of `DOMAINS`
         ("positive" for a divisor, "nonnegative" for a standard deviation, "scale" for the k
         of a factor 1 + k).
-    plausible: (lower, upper) the values a real tracker shows (None: any); a fitted value
-        outside is no physical explanation, and the diagnosis does not mark the effect present.
+    plausible: (lower, upper) the values a real tracker shows (None: any); a fitted value the
+        data puts outside (`Effect.implausible`) is no physical explanation, and the diagnosis
+        does not mark the effect present.
     unbounded: a registration's parameter: unregistered frames put it anywhere (metres, any
         rotation), so no typical size bounds it, and no prior draws it towards its identity.
     """
@@ -273,18 +279,29 @@ class Effect:
         values = np.asarray(theta, dtype=float).reshape(-1)
         return {name: values[s].tolist() for name, s in self.slices().items()}
 
-    def implausible(self, theta: Any) -> list[str]:
-        """Words for each parameter whose fitted value lies outside its `Param.plausible`."""
+    def implausible(self, theta: Any, std: Any = None) -> list[str]:
+        """Words for each parameter whose fitted value the data puts outside its
+        `Param.plausible`: beyond it by more than `PLAUSIBLE_SIGMAS` of its standard errors
+        `std` (theta's shape; NaN or None: the value alone decides). A value the data does not
+        determine is no evidence: over a session of about drift's time constant the data sees
+        little more than the displacement over the session, and a fit may run along that
+        valley to any d."""
         values = np.asarray(theta, float).reshape(-1)
+        errors = np.full(values.shape, np.nan) if std is None else np.asarray(std, float).reshape(-1)
         out = []
         for param, part in zip(self.params, self.slices().values()):
             if param.plausible is None:
                 continue
             lo, hi = param.plausible
-            worst = values[part][np.argmax(np.abs(values[part]))] if param.size > 1 else values[part][0]
-            if np.any(values[part] < lo) or np.any(values[part] > hi):
+            beyond = np.maximum(lo - values[part], values[part] - hi)
+            known = np.isfinite(errors[part]) & (errors[part] > 0)
+            outside = beyond > PLAUSIBLE_SIGMAS * np.where(known, errors[part], 0.0)
+            if np.any(outside):
+                k = int(np.argmax(np.where(outside, beyond, -np.inf)))
+                worst, error = values[part][k], errors[part][k]
+                firm = f" ({beyond[k] / error:.2g} standard errors beyond)" if known[k] else ""
                 out.append(f"{self.name}.{param.name} = {worst:.3g} {param.unit} lies outside the plausible "
-                           f"{lo:g} to {hi:g} {param.unit}")
+                           f"{lo:g} to {hi:g} {param.unit}{firm}")
         return out
 
     def notes(self, ctx: EffectContext) -> list[str]:

@@ -18,6 +18,11 @@ def fmt(value: Any, digits: int = 4) -> str:
     return str(value)
 
 
+def counted(n: int, noun: str) -> str:
+    """'1 row', '2 rows': a count with its noun in the number it takes."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
 def table(headers: Sequence[str], rows: Sequence[Sequence[Any]], title: str | None = None) -> str:
     """A left-aligned first column, right-aligned others, a rule under the header."""
     cells = [[fmt(c) for c in row] for row in rows]

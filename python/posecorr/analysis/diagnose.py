@@ -38,6 +38,7 @@ from ..data import PoseTable
 from ..effects import get_effect, require_time
 from ..metrics import pose_errors, rmse_total
 from ..rotations import matrix_to_rotvec, quat_to_matrix
+from ..textui import counted
 from .features import FEATURES, pose_features
 
 ALIAS_CORRELATION = 0.99
@@ -320,11 +321,14 @@ def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int,
     gains = np.array([_whitened_gain(table, held, state.predicted, cv.predicted, state.per_fold[k].physics)
                       for k, (_, held) in enumerate(plan.folds(table.n, seed))])
     effect = get_effect(name)
-    # A physical explanation must take physical values in every fold (`Param.plausible`).
+    # A physical explanation must take physical values in every fold (`Param.plausible`), where
+    # the fold's data determines them (the standard errors, computed only for a value outside).
     worst: dict[str, str] = {}   # one line per parameter: its farthest value over the folds
     for model in sorted(cv.fitted, key=lambda m: -np.abs(m.physics_.params_[name]).max()):
-        for words in effect.implausible(model.physics_.params_[name]):
-            worst.setdefault(words.split(" = ")[0], words)
+        theta = model.physics_.params_[name]
+        if effect.implausible(theta):
+            for words in effect.implausible(theta, model.physics_.std_errors_[name]):
+                worst.setdefault(words.split(" = ")[0], words)
     implausible = list(worst.values())
     return {"effect": name, "kind": "form" if effect.generic else "effect", "parameters": effect.size,
             "score": float(np.mean(gains)), "p_value": p_value, "lm_statistic": lm, "df": rank,
@@ -429,7 +433,7 @@ def require_diagnosable(table: PoseTable, folds: int) -> None:
     if table.n < folds:
         fewer = [k for k in range(table.n, 1, -1) if fewest_to_fit(table.n, KFold(k)) >= MIN_FIT_POSES]
         advice = f"fewer folds (--cv {fewer[0]})" if fewer else f"at least {fewest_rows_to_fit()} rows"
-        raise TableError(table.path, f"{table.n} rows, but a {folds}-fold diagnosis needs at least {folds}: {advice}")
+        raise TableError(table.path, f"{counted(table.n, 'row')}, but a {folds}-fold diagnosis needs at least {folds}: {advice}")
     require_rows(table, max(folds, 2), f"a {folds}-fold diagnosis")
     require_enough_to_fit(table.n, KFold(folds))
 

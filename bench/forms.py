@@ -155,43 +155,51 @@ def told_terms(table: Any, scenario: str) -> dict[str, Any]:
         unregister_effect(name)
 
 
+def _counted(items: list, label: str, progress: bool) -> Any:
+    """`items`, with a progress bar on stderr when `progress` (a run of `make bench` takes ~20 min)."""
+    from tqdm import tqdm
+
+    return tqdm(items, desc=label, unit="session", disable=not progress)
+
+
 def study(seeds: list[int], kinds: tuple[str, ...] = KINDS, scenarios: tuple[str, ...] = tuple(SCENARIOS),
-          folder: Path | None = None) -> list[dict[str, Any]]:
+          folder: Path | None = None, progress: bool = False) -> list[dict[str, Any]]:
+    jobs = [(scenario, seed, kind) for scenario in scenarios for kind in kinds for seed in seeds]
     with tempfile.TemporaryDirectory() as tmp:
         where = folder or Path(tmp)
-        return [one(scenario, seed, kind, where) for scenario in scenarios for kind in kinds for seed in seeds]
+        return [one(scenario, seed, kind, where) for scenario, seed, kind in _counted(jobs, "forms", progress)]
 
 
-def planned_study(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def planned_study(rows: list[dict[str, Any]], progress: bool = False) -> list[dict[str, Any]]:
     """Where nothing was proposed and the diagnosis said how many poses would show the best
     form: the same session's settings (spread, noise, the error's size) with that many poses,
     diagnosed again. Does the estimate hold?"""
     with tempfile.TemporaryDirectory() as tmp:
+        due = [r for r in rows if r["proposed"] is None and r["poses_to_pass"] is not None]
         return [one(r["scenario"], r["seed"], r["kind"], Path(tmp), n=r["poses_to_pass"]["poses"])
-                for r in rows if r["proposed"] is None and r["poses_to_pass"] is not None]
+                for r in _counted(due, "planned", progress)]
 
 
-def null_study(seeds: list[int], kinds: tuple[str, ...] = KINDS) -> list[dict[str, Any]]:
+def null_study(seeds: list[int], kinds: tuple[str, ...] = KINDS, progress: bool = False) -> list[dict[str, Any]]:
     from posecorr.analysis.diagnose import ALPHA, MIN_GAIN, diagnose, failed_parts
 
     rows = []
-    for kind in kinds:
-        for seed in seeds:
-            table = session(None, seed, kind)
-            # making a session registers the test-only effects: the diagnosis must not see them
+    for kind, seed in _counted([(kind, seed) for kind in kinds for seed in seeds], "null", progress):
+        table = session(None, seed, kind)
+        # making a session registers the test-only effects: the diagnosis must not see them
+        hide_outside()
+        result = diagnose(table, BASE, folds=5, seed=0)
+        plan = result["reach"]["poses_to_pass"]
+        if plan is not None:  # the estimate's other side: more poses of nothing show nothing
+            more = session(None, seed, kind, n=plan["poses"])
             hide_outside()
-            result = diagnose(table, BASE, folds=5, seed=0)
-            plan = result["reach"]["poses_to_pass"]
-            if plan is not None:  # the estimate's other side: more poses of nothing show nothing
-                more = session(None, seed, kind, n=plan["poses"])
-                hide_outside()
-                plan = {**plan, "proposed_then": diagnose(more, BASE, folds=5, seed=0)["proposal"] is not None}
-            rows.append({"kind": kind, "seed": seed, "proposed": result["proposal"] is not None, "poses_to_pass": plan,
-                         "candidates": [c["effect"] for c in result["candidates"]],
-                         # what the test's parts other than p let through: the p threshold's share
-                         "passes_but_p": [c["effect"] for c in result["candidates"]
-                                          if not failed_parts(0.0, c["fold_gain_min"], c["score"], 1, ALPHA, MIN_GAIN)],
-                         "present": [c["effect"] for c in result["candidates"] if c["present"]]})
+            plan = {**plan, "proposed_then": diagnose(more, BASE, folds=5, seed=0)["proposal"] is not None}
+        rows.append({"kind": kind, "seed": seed, "proposed": result["proposal"] is not None, "poses_to_pass": plan,
+                     "candidates": [c["effect"] for c in result["candidates"]],
+                     # what the test's parts other than p let through: the p threshold's share
+                     "passes_but_p": [c["effect"] for c in result["candidates"]
+                                      if not failed_parts(0.0, c["fold_gain_min"], c["score"], 1, ALPHA, MIN_GAIN)],
+                     "present": [c["effect"] for c in result["candidates"] if c["present"]]})
     return rows
 
 
@@ -238,11 +246,12 @@ def summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def run(path: str, seeds: int = 10, null_seeds: int = 20) -> dict:
     load = os.getloadavg()[0]
-    rows = study(list(range(seeds)))
-    nulls = null_study(list(range(null_seeds)))
+    rows = study(list(range(seeds)), progress=True)
+    nulls = null_study(list(range(null_seeds)), progress=True)
     with tempfile.TemporaryDirectory() as tmp:
-        heavy = [one("strain", seed, "robot", Path(tmp), **HEAVY) for seed in range(seeds)]
-    planned = planned_study(rows)
+        heavy = [one("strain", seed, "robot", Path(tmp), **HEAVY)
+                 for seed in _counted(list(range(seeds)), "heavy", True)]
+    planned = planned_study(rows, progress=True)
     times = [r["diagnose_s"] for r in rows]
     result = {"load_average_1min": round(load, 2), "summary": summary(rows),
               "null": {"sessions": len(nulls), "proposed": sum(r["proposed"] for r in nulls),

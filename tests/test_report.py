@@ -453,7 +453,7 @@ def test_too_few_poses_for_a_diagnosis_still_give_the_page_and_say_why(tmp_path:
     """Four poses: the default 5-fold diagnosis cannot run, the page is written without it and
     says why and which folds can (a fold of 4 leaves 3 to fit on, the fewest a fit takes); the
     folds it names do diagnose the table. Three poses (the model fitted on four): no folds can,
-    it names the rows."""
+    it names the rows a diagnosis takes and the folds for them."""
     from posecorr.analysis.diagnose import diagnose
     from posecorr.data import write_table
     from posecorr.simulate import simulate_session
@@ -463,7 +463,8 @@ def test_too_few_poses_for_a_diagnosis_still_give_the_page_and_say_why(tmp_path:
     write_table(table.subset(np.arange(4)), tmp_path / "fit.csv")
     _cli("fit", "fit.csv", "-o", "m.onnx", "--effects", "station", "--method", "none", cwd=tmp_path)
     for n, why in ((4, "4 rows, but a 5-fold diagnosis needs at least 5: fewer folds (--cv 4)"),
-                   (3, f"3 rows, but a 5-fold diagnosis needs at least 5: at least {MIN_FIT_POSES + 1} rows")):
+                   (3, f"3 rows, but a 5-fold diagnosis needs at least 5: a diagnosis takes at least "
+                       f"{MIN_FIT_POSES + 1} rows (with --cv {MIN_FIT_POSES + 1})")):
         data = tmp_path / f"s{n}.csv"
         write_table(table.subset(np.arange(n)), data)
         report = _cli("report", str(data), "--model", "m.onnx", "-o", f"r{n}.html", cwd=tmp_path)

@@ -5,7 +5,9 @@ Three libraries pick their kernels by CPU at run time, and each kernel rounds it
 user's machine differs from the one that wrote the shipped models. numpy's OpenBLAS picks a
 kernel family (OPENBLAS_CORETYPE names another), numpy its own loops' SIMD targets
 (NPY_DISABLE_CPU_FEATURES turns this machine's off) and torch its ATen kernels
-(ATEN_CPU_CAPABILITY=default: no SIMD). Setting all three reproduces another CPU anywhere."""
+(ATEN_CPU_CAPABILITY=default: no SIMD). Setting all three reproduces another CPU anywhere; MKL,
+torch's BLAS, is asked for SSE4.2's kernels too (MKL_ENABLE_INSTRUCTIONS: it cannot be read
+back)."""
 from __future__ import annotations
 
 import json
@@ -45,7 +47,7 @@ def test_float_sensitive_tests_pass_under_another_cpus_kernels():
     own = _kernels({**os.environ})
     other = "Haswell" if own["openblas"].lower() == "sandybridge" else "Sandybridge"
     env = {**os.environ, "OPENBLAS_CORETYPE": other, "ATEN_CPU_CAPABILITY": "default",
-           "NPY_DISABLE_CPU_FEATURES": " ".join(own["numpy_targets"])}
+           "NPY_DISABLE_CPU_FEATURES": " ".join(own["numpy_targets"]), "MKL_ENABLE_INSTRUCTIONS": "SSE4_2"}
     theirs = _kernels(env)
     assert theirs["openblas"].lower() == other.lower(), "OPENBLAS_CORETYPE was not honoured"
     assert theirs["numpy_targets"] == [], "NPY_DISABLE_CPU_FEATURES was not honoured"

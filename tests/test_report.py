@@ -192,8 +192,8 @@ def test_takeaway_without_present_effect() -> None:
     diag["absent"] = [{"effect": "drift", "score": 0.073, "p_value": 2e-6,
                        "why": "a fold where the error rises (worst fold -1.3%)"}]
     assert takeaway(diag, ["station"]) == (
-        "No effect passes the test: drift lowers the held-out whitened error by 7.3% but is not present "
-        "(a fold where the error rises (worst fold -1.3%)); no form earns its place.")
+        "No effect passes the test: drift lowers the held-out whitened error by 7.3% but is not present: "
+        "a fold where the error rises (worst fold -1.3%). No form earns its place.")
 
 
 def test_where_no_candidate_could_pass_the_banner_says_the_poses_cannot_show_it() -> None:

@@ -138,7 +138,7 @@ def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] =
         # Not "nothing is missing": an effect gains and fails the test, which says why.
         first = absent[0]
         return (f"No effect passes the test: {first.get('effect')} lowers the held-out whitened error by "
-                f"{first['score']:.1%} but is not present ({first.get('why')}); no form earns its place.")
+                f"{first['score']:.1%} but is not present: {first.get('why')}. No form earns its place.")
     if structure_text:
         return f"No catalogue effect is missing, but {structure_text}."
     top = f" (best candidate: {candidates[0].get('effect')}, not present)" if candidates else ""

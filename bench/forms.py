@@ -155,7 +155,7 @@ def told_terms(table: Any, scenario: str) -> dict[str, Any]:
         unregister_effect(name)
 
 
-def _counted(items: list, label: str, progress: bool) -> Any:
+def _with_progress(items: list, label: str, progress: bool) -> Any:
     """`items`, with a progress bar on stderr when `progress` (a run of `make bench` takes ~20 min)."""
     from tqdm import tqdm
 
@@ -167,7 +167,7 @@ def study(seeds: list[int], kinds: tuple[str, ...] = KINDS, scenarios: tuple[str
     jobs = [(scenario, seed, kind) for scenario in scenarios for kind in kinds for seed in seeds]
     with tempfile.TemporaryDirectory() as tmp:
         where = folder or Path(tmp)
-        return [one(scenario, seed, kind, where) for scenario, seed, kind in _counted(jobs, "forms", progress)]
+        return [one(scenario, seed, kind, where) for scenario, seed, kind in _with_progress(jobs, "forms", progress)]
 
 
 def planned_study(rows: list[dict[str, Any]], progress: bool = False) -> list[dict[str, Any]]:
@@ -177,14 +177,14 @@ def planned_study(rows: list[dict[str, Any]], progress: bool = False) -> list[di
     with tempfile.TemporaryDirectory() as tmp:
         due = [r for r in rows if r["proposed"] is None and r["poses_to_pass"] is not None]
         return [one(r["scenario"], r["seed"], r["kind"], Path(tmp), n=r["poses_to_pass"]["poses"])
-                for r in _counted(due, "planned", progress)]
+                for r in _with_progress(due, "planned", progress)]
 
 
 def null_study(seeds: list[int], kinds: tuple[str, ...] = KINDS, progress: bool = False) -> list[dict[str, Any]]:
     from posecorr.analysis.diagnose import ALPHA, MIN_GAIN, diagnose, failed_parts
 
     rows = []
-    for kind, seed in _counted([(kind, seed) for kind in kinds for seed in seeds], "null", progress):
+    for kind, seed in _with_progress([(kind, seed) for kind in kinds for seed in seeds], "null", progress):
         table = session(None, seed, kind)
         # making a session registers the test-only effects: the diagnosis must not see them
         hide_outside()
@@ -250,7 +250,7 @@ def run(path: str, seeds: int = 10, null_seeds: int = 20) -> dict:
     nulls = null_study(list(range(null_seeds)), progress=True)
     with tempfile.TemporaryDirectory() as tmp:
         heavy = [one("strain", seed, "robot", Path(tmp), **HEAVY)
-                 for seed in _counted(list(range(seeds)), "heavy", True)]
+                 for seed in _with_progress(list(range(seeds)), "heavy", True)]
     planned = planned_study(rows, progress=True)
     times = [r["diagnose_s"] for r in rows]
     result = {"load_average_1min": round(load, 2), "summary": summary(rows),

@@ -131,8 +131,8 @@ def require_rows(table: PoseTable, needed: int, purpose: str) -> None:
         raise TableError(table.path, f"{counted(table.n, 'row')}, but {purpose} needs at least {needed}")
     distinct = len(np.unique(table.measured, axis=0))
     if distinct < needed:
-        raise TableError(table.path, f"{counted(table.n, 'row')} but only {counted(distinct, 'distinct measured pose')}; "
-                         f"{purpose} needs at least {needed}")
+        raise TableError(table.path, f"{counted(table.n, 'row')} but only "
+                         f"{counted(distinct, 'distinct measured pose')}; {purpose} needs at least {needed}")
     for name, p in (("measured", table.meas_p), ("reference", table.ref_p)):
         spread = float(np.max(np.ptp(p, axis=0)))
         if spread < MIN_SPREAD:

@@ -180,7 +180,7 @@ def require_enough_to_fit(n: int, plan: Plan, nested: bool = False) -> None:
         return
     where = "a choice made inside a fold (auto's)" if nested else "a fold"
     more = [k for k in range(int(getattr(plan, "k", n)) + 1, n + 1) if fewest_to_fit(n, KFold(k), nested) >= MIN_FIT_POSES]
-    advice = f"more folds (--cv {more[0]})" if more else f"at least {fewest_rows_to_fit(nested)} rows"
+    advice = f"more folds (--cv {more[0]})" if more else f"at least {fewest_rows_to_fit(nested)} rows (with --cv loo)"
     raise ValueError(f"{n} rows, but with {plan.description} {where} fits on {fewest} of them, and a fit needs "
                      f"at least {MIN_FIT_POSES}: {advice}")
 

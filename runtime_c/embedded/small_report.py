@@ -11,7 +11,7 @@ With --networks FOLDER NAME ..., the networks table instead (Makefile: networks)
 network, pc_run on the 32 KB board and, where the model loads there, on the 16 KB one (both
 at program_ops 512: the whole programs run compiled), and the
 compiled, hand-written and emlearn functions each on a 2 KB board, their instructions a
-pose, RAM, and ratios to the hand-written function and to emlearn (issue 33's floor:
+pose, RAM, and ratios to the hand-written function and to emlearn (the goal:
 <= FLOOR_RATIO and <= 1); --json writes the table.
 
 Exit status 1 when a board's firmware did not finish, called malloc, or a pc_run, compiled
@@ -62,7 +62,7 @@ def sections(elf: Path, size_tool: str) -> dict[str, int]:
 # (every one is compared with it), and those also compared with pc_run on the target.
 EXACT = ("pc_run", "compiled", "reference")
 CLOSE = ("reference", "emlearn")
-# What issue 33 asks of a build on the M4: instructions a pose within 1.3x the hand-written
+# The goal for a build on the M4: instructions a pose within 1.3x the hand-written
 # function's, and at or below emlearn's.
 FLOOR_RATIO = 1.3
 
@@ -164,12 +164,12 @@ def board_ok(r: dict) -> bool:
 NETWORK_BUILDS = {"pc32": ("pc_run", "pc_run", 32), "pc16": ("pc_run", "pc_run_16kb", 16),
                   "compiled2": ("compiled", "compiled", 2),
                   "reference2": ("reference", "reference", 2), "emlearn2": ("emlearn", "emlearn", 2)}
-# the builds held to issue 33's floor, as the table prints them
+# the builds held to the goal, as the table prints them
 FLOOR_BUILDS = {"pc_run": "pc_run 32 KB", "pc_run_16kb": "pc_run 16 KB", "compiled": "compiled"}
 
 
 def network_row(folder: Path, size_tool: str) -> tuple[dict, list[dict]]:
-    """One network's row (instructions and RAM of each build, the issue's ratios) and the
+    """One network's row (instructions and RAM of each build, the goal's ratios) and the
     board reports it comes from."""
     import onnx
 
@@ -205,7 +205,7 @@ def network_row(folder: Path, size_tool: str) -> tuple[dict, list[dict]]:
 def print_networks(rows: dict[str, dict]) -> None:
     print("\nM4 instructions a pose (qemu -icount shift=0) / RAM used (.data + .bss + stack peak), "
           "each build on its own board; ratio to the hand-written function, <= 1.3 and "
-          "<= emlearn is issue 33's floor:")
+          "<= emlearn is the goal:")
     print(f"  {'network':<20}{'pc_run 32 KB':>18}{'pc_run 16 KB':>18}{'compiled 2 KB':>18}"
           f"{'hand 2 KB':>18}{'emlearn 2 KB':>18}   "
           + "  ".join(f"{label + '/hand':>15}" for label in FLOOR_BUILDS.values()))

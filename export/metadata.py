@@ -25,30 +25,17 @@ Keys written by the exporter (other keys may be added by callers):
 """
 from __future__ import annotations
 
-import hashlib
 import json
 from typing import Any, Mapping
 
 import numpy as np
 
+from posecorr.controller.digest import data_digest
+
 UNITS = {
     "pose": "x, y, z in m (robot base frame); qw, qx, qy, qz unit quaternion, scalar first",
     "rmse_pos": "m", "rmse_rot": "rad", "rmse_total": "m + rad (w_pos = 1/m, w_rot = 1)",
 }
-
-
-def data_digest(measured: np.ndarray, reference: np.ndarray | None = None) -> str:
-    """`sha256:<hex>` of the training arrays, as float64 little-endian C-order bytes,
-    each preceded by its shape, so that a model can be traced to the exact data it saw."""
-    h = hashlib.sha256()
-    for name, arr in (("measured", measured), ("reference", reference)):
-        if arr is None:
-            h.update(f"{name}:none;".encode())
-            continue
-        a = np.ascontiguousarray(np.asarray(arr, dtype="<f8"))
-        h.update(f"{name}:{a.shape};".encode())
-        h.update(a.tobytes())
-    return "sha256:" + h.hexdigest()
 
 
 def _jsonable(value: Any) -> Any:

@@ -471,6 +471,43 @@ def test_apply_names_the_row_a_model_refuses_in_a_late_chunk(tmp_path, capsys) -
     code, err, escaped = _run(["apply", str(model), str(path), "-o", str(tmp_path / "out.csv")], capsys)
     assert code == 2 and escaped is None and len(err.strip().splitlines()) == 1
     assert "row 46, column meas_y" in err and not (tmp_path / "out.csv").exists()
+    assert "in column" not in err     # the table's column named once, not the model's input index too
+
+
+def test_apply_marks_the_poses_a_model_was_fitted_on_as_in_sample(tmp_path, capsys) -> None:
+    """On the table a fit saw, apply's corrected figures are in-sample: it says so and puts
+    the fit's held-out figures (as `fit --json` printed them) beside them; with one cell a
+    nanometre off, the figures are that table's own, unmarked. Chunks do not matter."""
+    from posecorr.controller.apply import apply_file
+
+    session = tmp_path / "session.csv"
+    write_table(_table(12, seed=3), session)
+    model = tmp_path / "m.onnx"
+    capsys.readouterr()
+    assert main(["fit", str(session), "--effects", "station,mount", "--method", "none", "--cv", "loo",
+                 "--json", "-o", str(model)]) == 0
+    held_out = json.loads(capsys.readouterr().out)["cv"]
+    for chunk_rows in (5, 1000):
+        got = apply_file(model, session, tmp_path / f"c{chunk_rows}.csv", chunk_rows=chunk_rows)
+        assert got["in_sample"] is True and got["held_out"]["source"] == "cv"
+        for key in ("rmse_pos", "rmse_rot", "rmse_total"):
+            assert got["held_out"][key] == pytest.approx(held_out[key], rel=1e-12)
+    assert main(["apply", str(model), str(session), "-o", str(tmp_path / "c.csv")]) == 0
+    shown = capsys.readouterr().out
+    assert "corrected (in-sample)" in shown and "held out (the fit's cross-validation)" in shown
+    assert f"{held_out['rmse_pos'] * 1e3:.4g}" in shown.split("held out")[1]
+
+    lines = session.read_text().splitlines()
+    column = lines[0].split(",").index("ref_x")
+    cells = lines[4].split(",")
+    cells[column] = repr(float(cells[column]) + 1e-9)
+    lines[4] = ",".join(cells)
+    other = tmp_path / "other.csv"
+    other.write_text("\n".join(lines) + "\n")
+    got = apply_file(model, other, tmp_path / "o.csv")
+    assert got["in_sample"] is False and got["held_out"] is None
+    assert main(["apply", str(model), str(other), "-o", str(tmp_path / "o2.csv")]) == 0
+    assert "in-sample" not in capsys.readouterr().out
 
 
 def read_csv_columns(path: Path) -> dict[str, np.ndarray]:

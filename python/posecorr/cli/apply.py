@@ -7,6 +7,10 @@ from pathlib import Path
 from .common import Verb, allow_arguments, allow_options, backend_option, emit, output_option
 
 
+# where a model's stated held-out figures come from (its test_metrics' key)
+HELD_OUT_SOURCES = {"cv": "the fit's cross-validation", "test": "the fit's test split"}
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("model", type=Path)
     p.add_argument("input", type=Path)
@@ -27,8 +31,16 @@ def run(args: argparse.Namespace) -> None:
                 f"(columns corr_x..corr_qz beside the raw meas_*)")
         if payload["raw"] is None:
             return head + "\nno ref_* columns: no metrics"
-        return head + "\n" + fmt_table(METRIC_HEADERS, metrics_rows({"raw": payload["raw"],
-                                                                     "corrected": payload["corrected"]}))
+        if not payload["in_sample"]:
+            return head + "\n" + fmt_table(METRIC_HEADERS, metrics_rows({"raw": payload["raw"],
+                                                                         "corrected": payload["corrected"]}))
+        blocks = {"raw": payload["raw"], "corrected (in-sample)": payload["corrected"]}
+        held = payload["held_out"]
+        if held is not None:
+            blocks[f"held out ({HELD_OUT_SOURCES[held['source']]})"] = held
+        return (head + "\n" + fmt_table(METRIC_HEADERS, metrics_rows(blocks))
+                + f"\nnote: {args.model.name} was fitted on these poses (its training_data_digest): corrected is "
+                "in-sample" + ("; held out is the fit's, as the model states it" if held else ""))
 
     emit(args, payload, text)
 

@@ -5,7 +5,9 @@ flat for any number of rows. The output holds every input column as read, then t
 corrected pose as ``corr_x, corr_y, corr_z, corr_qw, corr_qx, corr_qy, corr_qz``: the raw
 ``meas_*`` stay beside it. A measurement-only table (no ``ref_*`` columns, e.g. a
 demonstration recording) is corrected the same way; metrics (raw and corrected RMSEs,
-improvement) are computed only when the table has references. The output is written
+improvement) are computed only when the table has references, and where the table is the
+one the model was fitted on (its `training_data_digest`), they are marked in-sample and the
+fit's held-out figures from the model's metadata go beside them. The output is written
 through `safeio.atomic_output`: an interrupted apply leaves the previous file.
 """
 from __future__ import annotations
@@ -21,6 +23,8 @@ import numpy as np
 from ..data import CHUNK_ROWS, MEAS_POS, MEAS_QUAT, REF_POS, REF_QUAT, TableError, TableReader
 from ..metrics import METRIC_KEYS, metric_block, pose_errors
 from ..safeio import atomic_output, check_output
+from .digest import data_digest
+from .onnx_meta import decode_value, stated_metrics
 from .runtime import Corrector, PoseCorrError
 
 CORR_COLUMNS = tuple("corr_" + name.split("_", 1)[1] for name in MEAS_POS + MEAS_QUAT)
@@ -55,8 +59,10 @@ def _refused_row(path: str, model: Any, chunk: Any, measured: np.ndarray, times:
             corrector.correct(measured[i], t=None if times is None else times[i])
         except PoseCorrError as one:
             text = re.sub(r"\bpose 0\b", "the pose", str(one))   # it ran alone: its pose 0
-            return TableError(path, f"{os.fspath(model)}: {text}", chunk.row_numbers[i],
-                              _input_column(text, times is not None))
+            column = _input_column(text, times is not None)
+            if column is not None:   # named by the table's column in front, not the model's input index
+                text = re.sub(r" in columns? \d(-\d)?", "", text)
+            return TableError(path, f"{os.fspath(model)}: {text}", chunk.row_numbers[i], column)
     return TableError(path, f"{os.fspath(model)}: {error}")
 
 
@@ -104,6 +110,47 @@ class _RmseSums:
         return out
 
 
+# The rows of a table `apply` keeps to tell whether the model was fitted on it: a session's
+# table, not a recording's (a table longer than this is not the one a fit saw whole).
+FITTED_ON_MAX_ROWS = 100_000
+
+
+class _FittedOn:
+    """Whether a table's poses are the ones the model was fitted on: the digest of its
+    measured and reference arrays (as a fit reads them) against `training_data_digest`."""
+
+    def __init__(self, metadata: dict[str, str]):
+        self.expected = decode_value(metadata.get("training_data_digest", "null"))
+        self.metrics = decode_value(metadata.get("test_metrics", "null"))
+        self.blocks: list[tuple[np.ndarray, np.ndarray]] | None = [] if self.expected else None
+        self.rows = 0
+
+    def add(self, measured: np.ndarray, reference: np.ndarray) -> None:
+        if self.blocks is None:
+            return
+        self.rows += len(measured)
+        self.blocks = (self.blocks + [(measured.copy(), reference.copy())]
+                       if self.rows <= FITTED_ON_MAX_ROWS else None)
+
+    def verdict(self) -> bool | None:
+        """True: fitted on these poses; False: not on exactly these; None: not known (no
+        digest in the model, or too many rows to keep)."""
+        if not self.blocks:
+            return None
+        measured = np.concatenate([m for m, _ in self.blocks])
+        reference = np.concatenate([r for _, r in self.blocks])
+        return data_digest(measured, reference) == self.expected
+
+    def held_out(self) -> dict[str, Any] | None:
+        """The fit's held-out figures (its cross-validation's or its test split's), as the
+        model states them."""
+        stated = stated_metrics({"test_metrics": self.metrics})
+        if stated is None:
+            return None
+        kind, figures, _ = stated
+        return {"source": kind, **{k: figures.get(k) for k in ("rmse_pos", "rmse_rot", "rmse_total")}}
+
+
 def refuse_missing_time(corrector: Corrector, model: str | os.PathLike[str], path: Any, has_time: bool) -> None:
     """TableError where `model` takes each pose's time and the table at `path` has none:
     corrected as at t = 0 (`Corrector.correct`'s default), its time-dependent effects would
@@ -131,6 +178,7 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
             raise TableError(reader.path, "column already present: apply writes the corrected pose to "
                              + ", ".join(CORR_COLUMNS) + " (use the raw table as input)", 1, clash[0])
         raw_sums = corr_sums = None
+        fitted_on = _FittedOn(corrector.metadata)
         if reader.has_reference:
             raw_sums, corr_sums = _RmseSums(reader.has_ref_orientation), _RmseSums(reader.has_ref_orientation)
         with atomic_output(output) as handle:
@@ -151,10 +199,13 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                     reference = np.concatenate([chunk.block(REF_POS), q], axis=1)
                     raw_sums.add(reference, measured)
                     corr_sums.add(reference, corrected)
+                    fitted_on.add(measured, reference)
                 n += len(chunk.rows)
             if n == 0:  # inside the block: the previous output stays
                 raise TableError(reader.path, "no data rows after the header")
     raw = raw_sums.metrics() if raw_sums is not None else None
     corrected_block = metric_block(raw, corr_sums.metrics()) if raw is not None and corr_sums is not None else None
+    in_sample = fitted_on.verdict() if raw is not None else None
     return {"n": n, "output": str(output), "backend": backend, "reference": raw is not None,
-            "columns_added": list(CORR_COLUMNS), "raw": raw, "corrected": corrected_block}
+            "columns_added": list(CORR_COLUMNS), "raw": raw, "corrected": corrected_block,
+            "in_sample": in_sample, "held_out": fitted_on.held_out() if in_sample else None}

@@ -1,16 +1,22 @@
-"""The digest a posecorr model carries (docs/design.md, "Integrity"), stdlib only.
+"""The digests a posecorr model carries (docs/design.md, "Integrity"); the model's in the stdlib alone.
 
 Metadata `model_digest` = ``crc32c:`` and eight lowercase hexadecimal digits: the CRC-32C
 (Castagnoli) of the file's bytes with those eight digits read as ``00000000``. The value
 has a fixed width, so the exporter serialises the model once with the zeros, computes the
 CRC and writes the digits over the zeros, and a loader checks a file as it lies, without
 serialising anything again (libposecorr: api.c's pc_check_digest).
+
+Metadata `training_data_digest` = ``sha256:`` and the hex digest of the arrays a model was
+fitted on (`data_digest`): `apply` tells a table the model was fitted on by it.
 """
 from __future__ import annotations
 
+import hashlib
+from typing import Any
+
 from .onnx_meta import _Malformed, _varint
 
-__all__ = ["KEY", "PLACEHOLDER", "crc32c", "digest_span", "file_digest", "length_delimited", "sign"]
+__all__ = ["KEY", "PLACEHOLDER", "crc32c", "data_digest", "digest_span", "file_digest", "length_delimited", "sign"]
 
 KEY = "model_digest"
 PREFIX = b"crc32c:"
@@ -95,3 +101,19 @@ def sign(data: bytes) -> bytes:
     if span is None or data[span[0]:span[1]] != PLACEHOLDER.encode():
         raise ValueError(f"the model's metadata {KEY} must be {PLACEHOLDER!r} before signing")
     return data[:span[0]] + file_digest(data, span).encode() + data[span[1]:]
+
+
+def data_digest(measured: Any, reference: Any = None) -> str:
+    """`sha256:<hex>` of the training arrays, as float64 little-endian C-order bytes,
+    each preceded by its shape, so that a model can be traced to the exact data it saw."""
+    import numpy as np  # the model digest's functions are stdlib only
+
+    h = hashlib.sha256()
+    for name, arr in (("measured", measured), ("reference", reference)):
+        if arr is None:
+            h.update(f"{name}:none;".encode())
+            continue
+        a = np.ascontiguousarray(np.asarray(arr, dtype="<f8"))
+        h.update(f"{name}:{a.shape};".encode())
+        h.update(a.tobytes())
+    return "sha256:" + h.hexdigest()

@@ -244,6 +244,20 @@ def test_a_model_with_non_finite_weights_is_refused_at_load(value, raw):
     assert text.startswith(f"model of {len(blob)} bytes: ")
 
 
+@pytest.mark.parametrize("blob", [b"hello, this is not a model\n", b"id,meas_x,meas_y\n0,1,2\n"])
+def test_bytes_that_are_no_onnx_file_are_named_so_by_both_back_ends(blob, tmp_path):
+    """A text file given as the model: both back ends (and `info`) say what it is not, not
+    only which byte the protobuf parser stumbled on."""
+    from posecorr.controller import read_info
+
+    text = _same(_load_errors(blob), S.MALFORMED, "not a valid ONNX model (")
+    path = tmp_path / "m.onnx"
+    path.write_bytes(blob)
+    with pytest.raises(ValueError) as info:
+        read_info(path)
+    assert str(info.value).split(": ", 1)[1] == text.split(": ", 1)[1]
+
+
 def test_weights_read_in_place_are_checked_too(tmp_path):
     """PC_LOAD_IN_PLACE reads an aligned file's weights where they lie: still checked."""
     import ctypes

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from . import checks
+from . import checks, onnx_meta
 from .checks import PoseCorrError
 
 __all__ = ["Corrector", "PoseCorrError", "load_library", "library_path"]
@@ -173,7 +173,7 @@ class _CBackend:
             st = lib.pc_load_file(os.fsencode(path), ctypes.byref(opts), ctypes.byref(handle),
                                   ctypes.byref(err))
         if st != 0:
-            raise PoseCorrError(f"{_where(path)}: {err.message.decode(errors='replace')}", st)
+            raise PoseCorrError(f"{_where(path)}: {_load_message(path, st, err.message)}", st)
         self.handle = handle.value
         # Single-pose path: fixed buffers and raw addresses, so a call is one copy in,
         # one foreign call and one copy out.
@@ -289,6 +289,22 @@ def _check_file(path: str | os.PathLike) -> None:
         check_input(path)
     except InputPathError as exc:
         raise PoseCorrError(str(exc), int(checks.Status.IO)) from None
+
+
+def _load_message(path: str | os.PathLike | bytes, status: int, message: bytes) -> str:
+    """libposecorr's words for a failed load; for bytes that are not an ONNX file at all,
+    the words of the other back end and of `info` ("not a valid ONNX model (...)"), where the
+    C parser's alone ("unsupported wire type 4 at byte 2") would not say what the file is not."""
+    text = message.decode(errors="replace")
+    if status != checks.Status.MALFORMED:    # a truncated file is named so, with its byte
+        return text
+    try:
+        onnx_meta.read_graph(bytes(path) if isinstance(path, (bytes, bytearray)) else Path(path).read_bytes())
+    except ValueError as exc:
+        return f"not a valid ONNX model ({exc})"
+    except OSError:
+        pass
+    return text
 
 
 def _where(path: str | os.PathLike | bytes) -> str:

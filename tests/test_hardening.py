@@ -472,6 +472,9 @@ def test_apply_names_the_row_a_model_refuses_in_a_late_chunk(tmp_path, capsys) -
     assert code == 2 and escaped is None and len(err.strip().splitlines()) == 1
     assert "row 46, column meas_y" in err and not (tmp_path / "out.csv").exists()
     assert "in column" not in err     # the table's column named once, not the model's input index too
+    code, err, escaped = _run(["report", str(path), "--model", str(model), "-o", str(tmp_path / "r.html")], capsys)
+    assert code == 2 and escaped is None and len(err.strip().splitlines()) == 1
+    assert "t.csv, row 46, column meas_y: " in err and not (tmp_path / "r.html").exists()
 
 
 def test_apply_marks_the_poses_a_model_was_fitted_on_as_in_sample(tmp_path, capsys) -> None:

@@ -66,6 +66,20 @@ def _refused_row(path: str, model: Any, chunk: Any, measured: np.ndarray, times:
     return TableError(path, f"{os.fspath(model)}: {error}")
 
 
+def refused_row_of(path: Any, model: Any, corrector: Corrector, error: PoseCorrError) -> TableError:
+    """The row of the table at `path` (and its column) where `corrector` refused a pose it was
+    given whole (`error`), found as `apply` finds it, chunk by chunk."""
+    with TableReader(path, require_reference=False) as reader:
+        for chunk in reader.chunks():
+            measured = np.concatenate([chunk.block(MEAS_POS), chunk.block(MEAS_QUAT)], axis=1)
+            times = chunk.block(("t",))[:, 0] if corrector.takes_time else None
+            try:
+                corrector.correct(measured, t=times)
+            except PoseCorrError as located:
+                return _refused_row(reader.path, model, chunk, measured, times, corrector, located)
+    return TableError(os.fspath(path), f"{os.fspath(model)}: {error}")
+
+
 def _line_writer(width: int):
     """Cells as read -> one CSV line (no newline): joined directly when no cell needs
     quoting (the common case, many times faster), through the csv module otherwise."""

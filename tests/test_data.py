@@ -54,6 +54,19 @@ def test_unknown_columns_are_kept(tmp_path) -> None:
     assert "operator" in (tmp_path / "out.csv").read_text().splitlines()[0]
 
 
+def test_a_misspelled_optional_column_is_kept_with_one_warning_naming_the_likely_one(tmp_path, capsys) -> None:
+    """`jiter_mm` for `jitter_mm` is kept as an unknown column, as any unknown one, but its
+    meaning would be lost unsaid: one warning line names the file, the column and jitter_mm;
+    a column far from every known name (operator) draws none."""
+    path = _write(tmp_path, f"{HEADER},jiter_mm,operator\n{ROW},0.2,alice\n")
+    table = read_table(path)
+    assert list(table.extras["jiter_mm"]) == ["0.2"] and "jitter_mm" not in table.extras
+    assert capsys.readouterr().err == (f"posecorr: warning: {path}: column 'jiter_mm' is not one posecorr knows "
+                                       "and is kept as is; did you mean jitter_mm?\n")
+    read_table(_write(tmp_path, f"{HEADER},jitter_mm,jiter_mm\n{ROW},0.2,0.3\n"))
+    assert capsys.readouterr().err == ""  # beside the known column it is no misspelling of it
+
+
 @pytest.mark.parametrize("text, row, column, what", [
     (HEADER.replace(",ref_z", "") + "\n" + ROW.rsplit(",", 1)[0] + "\n", 1, "ref_z", "missing column"),
     (f"{HEADER},ref_qw\n{ROW},1\n", 1, "ref_qx", "missing column"),

@@ -12,6 +12,7 @@ with the same checks (`posecorr apply` on millions of rows).
 from __future__ import annotations
 
 import csv
+import difflib
 import math
 import re
 from dataclasses import dataclass, field
@@ -206,6 +207,23 @@ def _decoded_lines(handle, path: str, counter: list[int]):
         yield line
 
 
+KNOWN_COLUMNS = REQUIRED + REF_QUAT + NUMERIC_OPTIONAL + TEXT_OPTIONAL
+
+
+def _warn_misspelled(path: str, header: list[str]) -> None:
+    """One warning line for each unknown column whose name is close to a known one the table
+    lacks (`jiter_mm`): it is kept as an unknown column, so its meaning would be lost unsaid."""
+    from .safeio import warn
+
+    missing = [c for c in KNOWN_COLUMNS if c not in header]
+    for name in header:
+        if name in KNOWN_COLUMNS or not name:
+            continue
+        close = difflib.get_close_matches(name.lower(), missing, n=1, cutoff=0.8)
+        if close:
+            warn(f"{path}: column {name!r} is not one posecorr knows and is kept as is; did you mean {close[0]}?")
+
+
 class TableReader:
     """A paired-pose CSV read in chunks, every cell checked (see the module doc).
 
@@ -259,6 +277,7 @@ class TableReader:
         self.numeric = list(required) + present_ref_q + [c for c in NUMERIC_OPTIONAL if c in self.index]
         numeric = set(self.numeric)
         self.text = [c for c in header if c not in numeric]
+        _warn_misspelled(path, header)
         return header
 
     def __enter__(self) -> "TableReader":

@@ -362,3 +362,112 @@ def test_a_new_verb_is_one_file(tmp_path, capsys) -> None:
         cli.__path__.remove(str(tmp_path))
         for name in ("posecorr.cli.hello", "posecorr.cli.stray"):
             sys.modules.pop(name, None)
+
+
+def _refusal(capsys, *argv: str) -> str:
+    """The one stderr line of a command refused with exit code 2."""
+    from posecorr.cli import main
+
+    capsys.readouterr()
+    assert main(list(argv)) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    return err.rstrip("\n")
+
+
+def test_a_misspelled_option_is_named_by_its_verb_before_a_missing_required_argument(tmp_path, capsys) -> None:
+    """`--efects` hid behind "the following arguments are required: -o/--output", and with -o
+    it was the top parser's "posecorr: error: unrecognized arguments" pointing to
+    `posecorr --help`: now it is the verb's line, with the option it likely meant."""
+    data = tmp_path / "good.csv"
+    write_table(simulate(2, seed=0).table.subset(np.arange(20)), data)
+    line = "posecorr fit: error: unrecognized option --efects (did you mean --effects?) (see posecorr fit --help)"
+    assert _refusal(capsys, "fit", str(data), "--efects", "station") == line
+    assert _refusal(capsys, "fit", str(data), "--efects", "station", "-o", str(tmp_path / "a.onnx")) == line
+    assert _refusal(capsys, "fit", str(data)) == ("posecorr fit: error: the following arguments are required: "
+                                                  "-o/--output (see posecorr fit --help)")
+    assert _refusal(capsys, "fit", str(data), "more.csv", "-o", str(tmp_path / "a.onnx")) == (
+        "posecorr fit: error: unrecognized arguments: more.csv (see posecorr fit --help)")
+    assert not (tmp_path / "a.onnx").exists()
+
+
+def test_a_bad_option_value_names_the_option_not_the_table(tmp_path, capsys) -> None:
+    """`--cv lo` and `--effects station,mout` were reported as the table's faults
+    ("good.csv: unknown effect 'mout'"); they are the option's, with the likely name, and
+    fit finds them before it reads the table."""
+    from posecorr.effects import EFFECTS
+
+    data = tmp_path / "good.csv"
+    write_table(simulate(2, seed=0).table.subset(np.arange(20)), data)
+    out = str(tmp_path / "a.onnx")
+    assert _refusal(capsys, "fit", str(data), "--cv", "lo", "-o", out) == (
+        "posecorr fit: error: --cv takes none, loo or a number of folds in 2..1000, got 'lo'")
+    for verb, extra in (("fit", ["-o", out]), ("diagnose", [])):
+        assert _refusal(capsys, verb, str(data), "--effects", "station,mout", *extra) == (
+            f"posecorr {verb}: error: --effects: unknown effect 'mout' (did you mean mount?); "
+            f"expected one of {', '.join(EFFECTS)}")
+    assert _refusal(capsys, "fit", "/no/such.csv", "--cv", "lo", "-o", out).startswith(
+        "posecorr fit: error: /no/such.csv")  # a missing table is still found first, by its path check
+
+
+def test_diagnose_cv_takes_a_number_of_folds_and_says_so(capsys) -> None:
+    """diagnose's help said "as fit's --cv K" and `--cv loo` got "expected an integer": the
+    help and the error say it takes a number of folds, and why not loo."""
+    from posecorr.cli import build_parser
+
+    verb_parsers = next(a for a in build_parser()._actions if a.dest == "verb").choices
+    for verb in ("diagnose", "report"):
+        cv = next(a for a in verb_parsers[verb]._actions if "--cv" in a.option_strings)
+        assert cv.help.startswith("number of folds of the held-out test (whole poses), 2..1000 (default: 5)")
+    assert _refusal(capsys, "diagnose", "d.csv", "--cv", "loo") == (
+        "posecorr diagnose: error: argument --cv: expected a number of folds in 2..1000, got 'loo' (the diagnosis "
+        "needs folds: fit's none and loo are not taken here) (see posecorr diagnose --help)")
+
+
+def test_simulate_takes_bare_effect_names_separated_by_commas(tmp_path, capsys) -> None:
+    """`--effects sweep,range_scale` was "unknown effect 'sweep,range_scale'"; bare names may
+    be separated by ',', and where values make ',' ambiguous the error says to use ';'. A
+    session of 50 poses, beyond the drawn 6-40, is what --poses asks."""
+    from posecorr.cli import main
+
+    capsys.readouterr()
+    assert main(["simulate", "--session", "--seed", "3", "--poses", "50", "--effects", "sweep,range_scale",
+                 "-o", str(tmp_path / "s.csv"), "--json"]) == 0
+    payload = json.loads(capsys.readouterr().out)
+    assert payload["n"] == 50 and {"sweep", "range_scale"} <= set(payload["effects"])
+    assert _refusal(capsys, "simulate", "--session", "--effects", "sweep,range_scale=0.01", "-o",
+                    str(tmp_path / "t.csv")) == (
+        "posecorr simulate: error: --effects: unknown effect 'sweep,range_scale': separate effects with ';', "
+        "as values take ',' (sweep;drift=0.002,-0.001,0.0015,1800)")
+
+
+def test_every_argument_of_the_main_verbs_has_help_with_its_default() -> None:
+    """fit's --method had no help and showed no default; now every argument of these verbs
+    says what it is, and fit's --effects names the registry's effects."""
+    from posecorr.cli import build_parser
+    from posecorr.effects import EFFECTS
+
+    verb_parsers = next(a for a in build_parser()._actions if a.dest == "verb").choices
+    for verb in ("simulate", "fit", "diagnose", "report", "apply", "demo"):
+        bare = [a.dest for a in verb_parsers[verb]._actions if not a.help]
+        assert bare == [], (verb, bare)
+    fit = {a.dest: a.help for a in verb_parsers["fit"]._actions}
+    assert fit["method"].endswith("(default: pmc)") and fit["epochs"].endswith("(default: 1000)")
+    assert f"known: {', '.join(EFFECTS)}" in fit["effects"]
+    session = next(a for a in verb_parsers["simulate"]._actions if a.dest == "session")
+    assert session.help.startswith("a realistic session: 6-40 poses unless --poses or --robot (30-60) says otherwise")
+    assert "Experiment III" in verb_parsers["demo"].description
+
+
+def test_percentages_print_in_plain_digits() -> None:
+    """A fit that does far worse than the rigid fit said "3.2e+02 % worse"."""
+    from posecorr.textui import percent
+    from posecorr.train.pipeline import Candidate, _note_fallback
+
+    assert [percent(v) for v in (6.81, 0.0512, 320.4, 1e4, 12345.0, -3.2, 0.0)] == \
+        ["6.8", "0.051", "320", "10,000", "12,000", "-3.2", "0"]
+    notes: list[str] = []
+    _note_fallback(Candidate("pmc"), Candidate("rigid-joint", rigid="joint"), {"rmse_total": 4.204},
+                   {"rmse_total": 1.0}, False, notes)
+    assert notes == ["pmc did worse on held-out poses than the best rigid fit, rigid-joint (4.204 against 1 "
+                     "rmse_total, 320 % worse): returning rigid-joint"]

@@ -265,8 +265,18 @@ def test_parse_effects_arg():
     assert parse_effects_arg("") == {}
 
 
+def test_bare_effect_names_may_be_separated_by_commas():
+    """An item without '=' has no values, so its ',' can only separate names; with values the
+    ';' is needed, and the error says why."""
+    out = parse_effects_arg("sweep,range_scale;drift=0.002,-0.001,0.0015,1800")
+    assert list(out) == ["sweep", "range_scale", "drift"]
+    np.testing.assert_array_equal(out["drift"], [0.002, -0.001, 0.0015, 1800])
+
+
 @pytest.mark.parametrize("text, pattern", [
     ("bogus=1", r"unknown effect 'bogus'.*mount.*station"),
+    ("mout", r"^unknown effect 'mout' \(did you mean mount\?\); expected one of mount, "),
+    ("sweep,range_scale=0.01", r"^unknown effect 'sweep,range_scale': separate effects with ';', as values take ','"),
     ("mount=1,2", r"'mount' takes 6 values \(d\[3\] rad, e\[3\] m\), got 2"),
     ("range_scale=0.1,0.2", r"'range_scale' takes 1 values \(k 1\), got 2"),
     ("sweep=a,b,c,d", r"'sweep': expected 4 numbers"),

@@ -23,6 +23,7 @@ from sklearn.exceptions import NotFittedError
 from posecorr.data import PoseTable
 from posecorr.metrics import metric_block, pose_errors, pose_metrics, rmse_total
 from posecorr.rotations import POSITION_ONLY
+from posecorr.textui import percent
 
 from .base import PoseRegressorMixin, Validation, as_validation, check_pair, check_poses, vector_size
 from .identify import describe_spread, rigid_variants
@@ -573,7 +574,7 @@ def _note_fallback(best: Candidate, floor_best: Candidate, heldout: dict, baseli
     what = f"auto's choice (made inside each fold; {best.name} on all poses)" if auto else best.name
     notes.append(f"{what} did worse on held-out poses than the best rigid fit, {floor_best.name} "
                  f"({heldout['rmse_total']:.4g} against {baseline['rmse_total']:.4g} rmse_total, "
-                 f"{worse:.2g} % worse): returning {floor_best.name}")
+                 f"{percent(worse)} % worse): returning {floor_best.name}")
 
 
 def refuse_gross_outliers(table: PoseTable) -> None:

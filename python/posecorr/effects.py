@@ -723,14 +723,19 @@ def parse_effects_arg(text: str) -> dict[str, np.ndarray]:
     """Parse the CLI syntax 'NAME=V1,V2,...;NAME;NAME=off' into {name: theta}.
 
     Values are in parameter order; a bare NAME means its default magnitude; NAME=off gives
-    None (remove the effect from a base mix). ValueError on unknown names, wrong value counts,
-    non-numbers or a name given twice.
+    None (remove the effect from a base mix). Bare names may also be separated by ','
+    ('sweep,range_scale'): an item without '=' has no values for ',' to separate. ValueError
+    on unknown names, wrong value counts, non-numbers or a name given twice.
     """
     out: dict[str, np.ndarray | None] = {}
-    for item in (s.strip() for s in text.split(";")):
+    items = [s.strip() for s in text.split(";")]
+    for item in (part.strip() for s in items for part in (s.split(",") if "=" not in s else [s])):
         if not item:
             continue
         name, sep, values = (s.strip() for s in item.partition("="))
+        if "," in name:
+            raise ValueError(f"unknown effect {name!r}: separate effects with ';', as values take ',' "
+                             "(sweep;drift=0.002,-0.001,0.0015,1800)")
         effect = get_effect(name)
         if name in out:
             raise ValueError(f"effect {name!r} is given twice in {text!r}")

@@ -1,6 +1,7 @@
 """The tables posecorr looks names up in (activations, methods, ...): one lookup and one refusal."""
 from __future__ import annotations
 
+import difflib
 from typing import Any
 
 
@@ -21,4 +22,6 @@ class Registry(dict):
         try:
             return self[name]
         except KeyError:
-            raise ValueError(f"unknown {self.kind} {name!r}; expected one of {', '.join(self)}") from None
+            close = difflib.get_close_matches(str(name), list(self), n=1, cutoff=0.6)
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            raise ValueError(f"unknown {self.kind} {name!r}{hint}; expected one of {', '.join(self)}") from None

@@ -18,6 +18,16 @@ def fmt(value: Any, digits: int = 4) -> str:
     return str(value)
 
 
+def percent(value: float) -> str:
+    """A percentage in plain digits, two significant ones: '6.8', '320', '10,000' (a note's
+    '3.2e+02 % worse' reads as a formula, not a number)."""
+    if value == 0 or not math.isfinite(value):
+        return f"{value:g}"
+    rounded = float(f"{value:.2g}")
+    decimals = max(0, 1 - math.floor(math.log10(abs(rounded))))
+    return f"{rounded:,.{decimals}f}"
+
+
 def counted(n: int, noun: str) -> str:
     """'1 row', '2 rows': a count with its noun in the number it takes."""
     return f"{n} {noun}" if n == 1 else f"{n} {noun}s"

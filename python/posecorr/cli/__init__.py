@@ -11,11 +11,13 @@ Ctrl-C end a verb cleanly (exit 143 / 130), and every file is written atomically
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import os
 import pkgutil
 import sys
 import warnings
+from typing import Any
 
 from .. import __version__
 from . import failures
@@ -45,10 +47,49 @@ def verbs() -> dict[str, Verb]:
 
 class _Parser(argparse.ArgumentParser):
     """A bad option is one line too (`posecorr fit: error: argument --epochs: ...`), not
-    the usage block first: the line names the option, `--help` shows the rest."""
+    the usage block first: the line names the option, `--help` shows the rest. It is the
+    verb's line (`posecorr fit: error:`, `see posecorr fit --help`), and a misspelled option
+    is named before the required argument it may have hidden (`--efects` for `--effects`)."""
+
+    _words: list[str] = []  # kept for error(): an unknown option among them explains a missing required one
+
+    def parse_known_args(self, args: Any = None, namespace: Any = None) -> tuple[argparse.Namespace, list[str]]:
+        self._words = list(sys.argv[1:] if args is None else args)
+        namespace, extras = super().parse_known_args(args, namespace)
+        # A verb's leftovers would otherwise reach the top parser, which names itself, not the verb.
+        if extras and self._subparsers is None:
+            self.error(self._unrecognized(extras) or f"unrecognized arguments: {' '.join(extras)}")
+        return namespace, extras
 
     def error(self, message: str) -> None:  # type: ignore[override]
+        if message.startswith("the following arguments are required"):
+            message = self._unrecognized(self._words) or message
         self.exit(failures.EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+    def _unrecognized(self, words: list[str]) -> str:
+        """'unrecognized option --efects (did you mean --effects?)' for the words that look
+        like options this parser does not know, "" when there are none."""
+        unknown = []
+        for word in words:
+            if word == "--":
+                break
+            if not word.startswith("-") or word == "-" or self._negative_number_matcher.match(word):
+                continue
+            name = word.split("=", 1)[0]
+            known = name in self._option_string_actions or (
+                not word.startswith("--") and word[:2] in self._option_string_actions) or (
+                name.startswith("--") and any(o.startswith(name) for o in self._option_string_actions))
+            if not known:
+                unknown.append(name)
+        if not unknown:
+            return ""
+        offered = [o for a in self._actions if a.help != argparse.SUPPRESS for o in a.option_strings
+                   if o.startswith("--")]
+        words_out = []
+        for name in unknown:
+            close = difflib.get_close_matches(name, offered, n=1, cutoff=0.6)
+            words_out.append(name + (f" (did you mean {close[0]}?)" if close else ""))
+        return f"unrecognized option{'s' if len(unknown) > 1 else ''} {', '.join(words_out)}"
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -12,9 +12,9 @@ HELD_OUT_SOURCES = {"cv": "the fit's cross-validation", "test": "the fit's test 
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("model", type=Path)
-    p.add_argument("input", type=Path)
-    output_option(p)
+    p.add_argument("model", type=Path, help="the exported model (ONNX)")
+    p.add_argument("input", type=Path, help="the table (CSV) whose meas_* poses to correct; ref_* columns optional")
+    output_option(p, help="the CSV to write: the input's columns, then corr_x..corr_qz")
     backend_option(p)
     allow_options(p)
 

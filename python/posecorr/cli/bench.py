@@ -9,7 +9,7 @@ from .common import Verb, emit
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("model", type=Path)
+    p.add_argument("model", type=Path, help="the model (ONNX)")
     p.add_argument("--n", type=options.integer(1, 10_000_000), default=100_000, help="single-pose calls per backend")
     p.add_argument("--batch", type=options.integer(1, 1_000_000), default=10_000, help="poses per batch call")
 

@@ -76,7 +76,7 @@ def output_option(p: argparse.ArgumentParser, help: str | None = None, **kw: Any
 def seed_option(p: argparse.ArgumentParser) -> None:
     from .options import SEED
 
-    p.add_argument("--seed", type=SEED, default=0)
+    p.add_argument("--seed", type=SEED, default=0, help="seed of the random draws (default: 0)")
 
 
 def effect_file_option(p: argparse.ArgumentParser) -> None:
@@ -86,7 +86,8 @@ def effect_file_option(p: argparse.ArgumentParser) -> None:
 
 
 def backend_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--backend", choices=BACKENDS, default="c")
+    p.add_argument("--backend", choices=BACKENDS, default="c",
+                   help="what runs the model: c, posecorr's C runtime, or onnxruntime (default: c)")
 
 
 def allow_options(p: argparse.ArgumentParser) -> None:
@@ -114,13 +115,27 @@ def threads_option(p: argparse.ArgumentParser, scope: str = "") -> None:
 
 def diagnosis_options(p: argparse.ArgumentParser) -> None:
     """The diagnosis' cross-validation (diagnose, report), its seed and its threads."""
-    from .options import integer
-
-    p.add_argument("--cv", dest="folds", type=integer(2, 1000), default=5, metavar="K",
-                   help="folds of the held-out test (whole poses), as fit's --cv K")
-    p.add_argument("--folds", dest="folds", type=integer(2, 1000), action=Renamed, new="--cv", help=argparse.SUPPRESS)
+    p.add_argument("--cv", dest="folds", type=diagnosis_folds, default=5, metavar="K",
+                   help="number of folds of the held-out test (whole poses), 2..1000 (default: 5); the diagnosis "
+                        "needs folds, so fit's none and loo are not taken")
+    p.add_argument("--folds", dest="folds", type=diagnosis_folds, action=Renamed, new="--cv", help=argparse.SUPPRESS)
     seed_option(p)
     threads_option(p)
+
+
+def diagnosis_folds(text: str) -> int:
+    """A number of folds; a word of fit's --cv (loo, none) is named as such, not as a bad integer."""
+    from .options import integer
+
+    try:
+        return integer(2, 1000)(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected a number of folds in 2..1000, got {text!r}"
+                                         + (" (the diagnosis needs folds: fit's none and loo are not taken here)"
+                                            if text.strip().lower() in ("loo", "none") else "")) from None
+
+
+diagnosis_folds.__name__ = "number of folds"
 
 
 class Renamed(argparse.Action):
@@ -154,13 +169,24 @@ def load_effect_files(args: argparse.Namespace) -> list[str]:
 
 
 def effect_names(text: str | None) -> list[str]:
-    """'station,mount' -> checked names (unknown ones fail naming the catalogue)."""
+    """'station,mount' -> checked names; an unknown one fails naming the option, the likely
+    name and the catalogue (the fault is the option's, not the table's)."""
     from ..effects import get_effect
 
     names = [n.strip() for n in (text or "").split(",") if n.strip()]
     for name in names:
-        get_effect(name)
+        try:
+            get_effect(name)
+        except ValueError as exc:
+            raise CliError(f"--effects: {exc}") from None
     return names
+
+
+def effects_help(what: str) -> str:
+    """An --effects help naming the catalogue's effects (and forms) known when the parser is built."""
+    from ..effects import EFFECTS
+
+    return f"{what}; known: {', '.join(EFFECTS)} (an --effect-file adds its own)"
 
 
 def read_data(args: argparse.Namespace) -> Any:

@@ -8,7 +8,8 @@ from .common import Verb, print_json, apply_threads, seed_option, threads_option
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("-o", "--output", type=Path, default=Path("out/demo"))
+    p.add_argument("-o", "--output", type=Path, default=Path("out/demo"),
+                   help="the folder to fill with the table, model and C build (default: out/demo)")
     seed_option(p)
     threads_option(p)
 
@@ -23,7 +24,8 @@ def run(args: argparse.Namespace) -> None:
 
 
 VERB = Verb(
-    help="the main job on the embedded default: simulate Exp III, fit, export, run in C",
+    help="simulate the paper's Experiment III; fit PMC, an MLP and a physics pipeline; export them as ONNX, run "
+         "them in C and print the paper's table 4 beside theirs",
     rank=8,
     needs="train",
     outputs=("output",),

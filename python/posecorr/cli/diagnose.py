@@ -4,14 +4,16 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import (Verb, backend_option, diagnosis_options, effect_file_option, effect_names, emit, progress,
-                     read_data)
+from .common import (Verb, backend_option, diagnosis_options, effect_file_option, effect_names, effects_help, emit,
+                     progress, read_data)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("data", type=Path)
-    p.add_argument("--effects", help="the model's effects (default: those of --model, else none)")
-    p.add_argument("--model", type=Path, help="an exported model whose residuals to analyse")
+    p.add_argument("data", type=Path, help="the paired-pose table (CSV) to diagnose")
+    p.add_argument("--effects", help=effects_help("comma-separated effects of the model (default: those of --model, "
+                                                  "else none)"))
+    p.add_argument("--model", type=Path, help="an exported model (ONNX) whose residuals to analyse (default: the "
+                                              "physics stage of --effects, fitted here)")
     p.add_argument("--propose", type=Path, metavar="FILE",
                    help="write the proposed form as an effect file that fit --effect-file accepts")
     p.add_argument("--no-forms", dest="forms", action="store_false",

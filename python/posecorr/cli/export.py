@@ -8,8 +8,8 @@ from .common import Verb, emit, output_option
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("estimator", type=Path)
-    output_option(p)
+    p.add_argument("estimator", type=Path, help="a fitted estimator saved by `posecorr fit --save`")
+    output_option(p, help="the ONNX model to write")
     p.add_argument("--no-parity", action="store_true", help="skip the onnxruntime parity check")
 
 

@@ -69,7 +69,7 @@ def missing_module_line(exc: ModuleNotFoundError) -> str:
 
 def error_line(exc: BaseException, args: argparse.Namespace, outputs: tuple[str, ...]) -> str:
     """One line: the message, its first line only, escaped, prefixed with the input it
-    concerns when it does not name a file itself."""
+    concerns when it names neither a file nor an option itself."""
     if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
         message = f"{exc.filename}: {exc.strerror}"
     else:
@@ -79,7 +79,9 @@ def error_line(exc: BaseException, args: argparse.Namespace, outputs: tuple[str,
         message = message.replace(str(path), printable(str(path)))
     lines = [line for line in message.splitlines() if line.strip()] or [type(exc).__name__]
     message = printable(lines[0].strip()) + (" ..." if len(lines) > 1 else "")
-    if ins and not any(printable(str(p)) in message for p in ins + outs):
+    # A message that starts with an option (`--cv: ...`) is that option's fault, not the table's.
+    names_option = isinstance(exc, CliError) and message.startswith("-")
+    if ins and not names_option and not any(printable(str(p)) in message for p in ins + outs):
         message = f"{printable(str(ins[0]))}: {message}"
     return message
 

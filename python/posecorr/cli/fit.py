@@ -6,35 +6,46 @@ from pathlib import Path
 from typing import Any
 
 from . import options
-from .common import (Verb, CliError, emit, progress, apply_threads, load_effect_files, effect_names,
+from .common import (Verb, CliError, emit, progress, apply_threads, load_effect_files, effect_names, effects_help,
                      output_option, seed_option, effect_file_option, threads_option)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("data", type=Path)
-    output_option(p)
-    p.add_argument("--effects", help="comma-separated effects of the physics stage, e.g. station,mount")
+    from ..train.spec import DEFAULT_ACTIVATION, DEFAULT_EPOCHS, DEFAULT_HIDDEN, DEFAULT_TRAINER
+
+    p.add_argument("data", type=Path, help="the paired-pose table (CSV) to fit")
+    output_option(p, help="the ONNX model to write")
+    p.add_argument("--effects", help=effects_help("comma-separated effects of the physics stage, e.g. station,mount "
+                                                  "(default: none)"))
     effect_file_option(p)
     from ..train.methods import METHODS
 
-    p.add_argument("--method", choices=tuple(METHODS), default="pmc")
+    p.add_argument("--method", choices=tuple(METHODS), default="pmc",
+                   help="the core after the physics stage: pmc, mlp, auto (a cross-validated choice among "
+                        "candidates) or none (the physics stage alone) (default: pmc)")
     from ..rotations import orientations
 
     p.add_argument("--representation", choices=orientations(), default="zhou",
-                   help="orientation representation of the core (position-only tables use position only)")
-    p.add_argument("--hidden", help="MLP hidden layer sizes: 20-20, 20x20 or 20,20; #N is table 1's N-th")
+                   help="orientation representation of the core (position-only tables use position only) "
+                        "(default: zhou)")
+    p.add_argument("--hidden", help="MLP hidden layer sizes: 20-20, 20x20 or 20,20; #N is table 1's N-th "
+                                    f"(default: {'-'.join(map(str, DEFAULT_HIDDEN))})")
     p.add_argument("--network", help="an MLP named as in the paper, ARCHITECTURE/ALGORITHM: 16/2 = table 1's "
                                      "architecture 16 trained by algorithm 2 (overrides --hidden and --trainer)")
     from ..train.activations import ACTIVATIONS
 
-    p.add_argument("--activation", choices=tuple(ACTIVATIONS))
+    p.add_argument("--activation", choices=tuple(ACTIVATIONS),
+                   help=f"the MLP's activation function (default: {DEFAULT_ACTIVATION})")
     from ..train.trainers import TRAINERS
 
-    p.add_argument("--trainer", choices=tuple(TRAINERS), help="the MLP's training algorithm")
-    p.add_argument("--epochs", type=options.integer(1, 1_000_000))
-    p.add_argument("--cv", default="none", help="none (fixed 15%% test split), loo, or a number of folds")
+    p.add_argument("--trainer", choices=tuple(TRAINERS),
+                   help=f"the MLP's training algorithm (default: {DEFAULT_TRAINER})")
+    p.add_argument("--epochs", type=options.integer(1, 1_000_000), metavar="N",
+                   help=f"the MLP's most training epochs (default: {DEFAULT_EPOCHS})")
+    p.add_argument("--cv", default="none", help="held-out test: none (fixed 15%% test split), loo, or a number of "
+                                                "folds (default: none)")
     seed_option(p)
-    p.add_argument("--save", type=Path,
+    p.add_argument("--save", type=Path, metavar="FILE",
                    help="also save the fitted estimator, signed for this account (for `posecorr export`)")
     threads_option(p)
     p.add_argument("--subsample", type=options.integer(4, FIT_ROWS_MAX), metavar="N",
@@ -85,10 +96,10 @@ def run(args: argparse.Namespace) -> None:
     apply_threads(args)
     check_sidecar(ledger_path(args.data))  # refused before the work, not after it
     load_effect_files(args)
+    # The options are checked before the table is read: their faults are theirs, and found at once.
+    effects, plan, spec = effect_names(args.effects), _parse_cv(args.cv), _spec(args)
     table = _read(args)
-    effects = effect_names(args.effects)
-    spec = _spec(args)
-    report = fit_table(table, effects, spec, _parse_cv(args.cv), args.seed, progress=progress(args))
+    report = fit_table(table, effects, spec, plan, args.seed, progress=progress(args))
     exported = _export(args, report, table, effects, spec)
     effects_json = report.model.physics_.describe() if report.model.physics_ is not None else {}
     emit(args, _payload(args, report, exported, effects_json),

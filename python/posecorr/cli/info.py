@@ -11,7 +11,7 @@ from .common import Verb, emit, printable
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("model", type=Path)
+    p.add_argument("model", type=Path, help="the model (ONNX)")
 
 
 def run(args: argparse.Namespace) -> None:

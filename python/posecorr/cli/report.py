@@ -5,15 +5,16 @@ import argparse
 import json
 from pathlib import Path
 
-from .common import (Verb, backend_option, diagnosis_options, effect_file_option, effect_names, emit, output_option,
-                     progress, read_data)
+from .common import (Verb, backend_option, diagnosis_options, effect_file_option, effect_names, effects_help, emit,
+                     output_option, progress, read_data)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("data", type=Path)
-    p.add_argument("--model", type=Path, required=True)
-    output_option(p)
-    p.add_argument("--effects", help="the model's effects for the diagnosis (default: from the model file)")
+    p.add_argument("data", type=Path, help="the paired-pose table (CSV) the model is judged on")
+    p.add_argument("--model", type=Path, required=True, help="the exported model (ONNX) to judge")
+    output_option(p, help="the HTML page to write")
+    p.add_argument("--effects", help=effects_help("the model's effects for the diagnosis (default: from the model "
+                                                  "file)"))
     effect_file_option(p)
     p.add_argument("--no-diagnosis", action="store_true", help="skip the (slower) diagnosis section")
     backend_option(p)

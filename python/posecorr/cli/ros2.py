@@ -10,7 +10,7 @@ from .common import Verb, allow_arguments, allow_options, print_json
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("model", type=Path)
+    p.add_argument("model", type=Path, help="the model (ONNX)")
     p.add_argument("--input", default="/tracker/pose", help="PoseStamped topic of the raw tracker pose")
     p.add_argument("--output", default="/tracker/pose_corrected", help="topic of the corrected pose")
     p.add_argument("--frame", default="base_link", help="frame id of the corrected pose (the robot's)")

@@ -6,15 +6,17 @@ from pathlib import Path
 from typing import Any
 
 from . import options
-from .common import Verb, CliError, emit, load_effect_files, output_option, seed_option, effect_file_option
+from .common import (Verb, CliError, effect_file_option, effects_help, emit, load_effect_files, output_option,
+                     seed_option)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--experiment", type=int, choices=(1, 2, 3))
+    p.add_argument("--experiment", type=int, choices=(1, 2, 3), help="the paper's experiment I, II or III")
     p.add_argument("--session", action="store_true",
-                   help="a realistic session: 6-40 poses, the tracker's own frame, a lever arm (drawn from --seed); "
-                        "--effects adds effects in the cell")
-    p.add_argument("--poses", type=options.integer(6, 100_000), help="with --session: number of poses (6 or more)")
+                   help="a realistic session: 6-40 poses unless --poses or --robot (30-60) says otherwise, the "
+                        "tracker's own frame, a lever arm (drawn from --seed); --effects adds effects in the cell")
+    p.add_argument("--poses", type=options.integer(6, 100_000), metavar="N",
+                   help="with --session: number of poses, 6..100,000 (default: drawn)")
     p.add_argument("--spread", help="with --session: orientation spread none, yaw or full")
     p.add_argument("--position-only", action="store_true", help="with --session: no reference orientation")
     p.add_argument("--unremovable", type=options.real(0, 1000),
@@ -24,11 +26,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=options.real(1.0, 1e8), metavar="SECONDS",
                    help="with --session: the session's length; the table gets a time column t, the poses evenly "
                         "spaced (a drift or another time-dependent effect needs it; a robot takes about 40 s a pose)")
-    p.add_argument("--effects", help="NAME=V1,V2,...;NAME... override or add effects (values in parameter order)")
+    p.add_argument("--effects", help=effects_help(
+        "override or add effects: NAME=V1,V2,...;NAME;NAME=off, values in parameter order; effects are "
+        "separated by ';' as values take ',' (bare names may also be separated by ',': sweep,range_scale)"))
     p.add_argument("--only", action="store_true", help="use only the --effects given (plus noise), not the default mix")
     effect_file_option(p)
     seed_option(p)
-    output_option(p)
+    output_option(p, help="the paired-pose table (CSV) to write")
     p.add_argument("--recording", type=Path, metavar="OUT.(bag|mcap|csv)",
                    help="also write the recording behind the table: ROS 1 .bag, .mcap, .csv, or a name without "
                         "suffix for a ROS 2 bag directory; -o then holds the recorded poses only")
@@ -38,12 +42,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> None:
     from ..data import write_table
-    from ..effects import parse_effects_arg
     from ..simulate import simulate
     from ..textui import METRIC_HEADERS, metrics_rows, table
 
     files = load_effect_files(args)  # before parsing: --effects may name the file's effects
-    effects = parse_effects_arg(args.effects) if args.effects else None
+    effects = _effects(args.effects)
     if args.recording is not None:
         from ..recording import check_recording_output
         from ..safeio import OutputPathError
@@ -95,6 +98,16 @@ def run(args: argparse.Namespace) -> None:
         return "\n".join(lines)
 
     emit(args, payload, text)
+
+
+def _effects(text: str | None) -> dict | None:
+    """--effects as {name: theta}; a fault in it is the option's, named as such."""
+    from ..effects import parse_effects_arg
+
+    try:
+        return parse_effects_arg(text) if text else None
+    except ValueError as exc:
+        raise CliError(f"--effects: {exc}") from None
 
 
 # A session draws these itself (the unknown frame, the lever arm, the noise).

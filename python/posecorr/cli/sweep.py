@@ -22,10 +22,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--architectures", help="layer sizes, e.g. 10,5-5,20-20-20-20 (#16 = table 1's number 16)")
     p.add_argument("--networks", help="the paper's ARCHITECTURE/ALGORITHM labels, e.g. 16/2,14/2,(8-8)/adam; "
                                       "replace --architectures x --trainers")
-    p.add_argument("--no-pmc", action="store_true")
-    p.add_argument("--no-mlp", action="store_true")
+    p.add_argument("--no-pmc", action="store_true", help="leave PMC out of the grid")
+    p.add_argument("--no-mlp", action="store_true", help="leave the MLPs out of the grid")
     p.add_argument("--epochs", type=options.integer(1, 1_000_000), help="epoch cap of every MLP")
-    p.add_argument("--repeats", type=options.integer(1, 10_000), default=30)
+    p.add_argument("--repeats", type=options.integer(1, 10_000), default=30,
+                   help="runs of each model, each on a fresh random 70/15 split (default: 30)")
     p.add_argument("--store", type=Path, help="results store (JSON lines); an interrupted sweep resumes from it")
     p.add_argument("--workers", type=options.integer(1, 1024), default=None,
                    help="local worker processes (default 2, or 1 on a one-core machine; at most the cores)")

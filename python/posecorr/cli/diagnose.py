@@ -12,8 +12,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", type=Path, help="the paired-pose table (CSV) to diagnose")
     p.add_argument("--effects", help=effects_help("comma-separated effects of the model (default: those of --model, "
                                                   "else none)"))
-    p.add_argument("--model", type=Path, help="an exported model (ONNX) whose residuals to analyse (default: the "
-                                              "physics stage of --effects, fitted here)")
+    p.add_argument("--model", type=Path, help="an exported model (ONNX) whose residuals to analyse (default: those "
+                                              "of the physics stage of --effects, fitted fold by fold)")
     p.add_argument("--propose", type=Path, metavar="FILE",
                    help="write the proposed form as an effect file that fit --effect-file accepts")
     p.add_argument("--no-forms", dest="forms", action="store_false",

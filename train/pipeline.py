@@ -571,7 +571,8 @@ def _note_fallback(best: Candidate, floor_best: Candidate, heldout: dict, baseli
                    notes: list[str]) -> None:
     """Tells the user why the rigid fit is returned instead of the requested (or auto's) model."""
     worse = 100.0 * (heldout["rmse_total"] / baseline["rmse_total"] - 1.0)
-    what = f"auto's choice (made inside each fold; {best.name} on all poses)" if auto else best.name
+    # auto is scored by the choices made inside each outer fold, not by its scores on all poses
+    what = f"auto (its choice in each outer fold; {best.name} on all poses)" if auto else best.name
     notes.append(f"{what} did worse on held-out poses than the best rigid fit, {floor_best.name} "
                  f"({heldout['rmse_total']:.4g} against {baseline['rmse_total']:.4g} rmse_total, "
                  f"{percent(worse)} % worse): returning {floor_best.name}")

@@ -173,8 +173,10 @@ def _text(args: argparse.Namespace, table: Any, effects: list, report: Any, expo
     else:
         header, raw_label = "improvement", "raw"
         ratios = [None, report.heldout.get("improvement_total"), report.baseline.get("improvement_total")]
-    lines = [f"{args.data}: {table.n} poses; effects: {', '.join(effects) or 'none'}; "
-             f"model: {report.chosen}" + (f" (auto: {_fmt_scores(report.auto_scores)})" if report.auto_scores else ""),
+    # auto's scores on all poses chose the final model; the table's held-out row scores auto itself
+    auto = (f" (auto's inner cross-validation on all poses, rmse_total: {_fmt_scores(report.auto_scores)})"
+            if report.auto_scores else "")
+    lines = [f"{args.data}: {table.n} poses; effects: {', '.join(effects) or 'none'}; model: {report.chosen}{auto}",
              fmt_table(METRIC_HEADERS + [header],
                        [row + [ratio] for row, ratio in zip(
                            metrics_rows({raw_label: report.raw, label: report.heldout,
@@ -188,6 +190,8 @@ def _text(args: argparse.Namespace, table: Any, effects: list, report: Any, expo
     if report.shrinkage is not None:
         lines.append(f"  prior strength {report.shrinkage['prior_strength']:g}: "
                      f"{report.shrinkage['effective_params']:.1f} effective parameters")
+    if effects_json and report.chosen.startswith("rigid-"):   # effects asked or not, the rigid fit has these
+        lines.append(f"  {report.chosen}'s registration and lever, as the station and mount effects hold them:")
     for name, params in effects_json.items():
         lines.append(f"  {name}: " + "; ".join(f"{p} = {_value_pm(v)}" for p, v in params.items()))
     for name, reason in report.fixed.items():

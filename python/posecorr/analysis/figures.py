@@ -88,7 +88,8 @@ MIN_PER_GROUP = 3
 
 def _groups(values: np.ndarray, max_distinct: int = 13, n_bins: int = 8) -> tuple[list[str], list[np.ndarray]]:
     """Group indices by distinct value (rounded to 0.1) when few, else by equal-width bins; by
-    equal-count bins where those groups would hold fewer than MIN_PER_GROUP poses.
+    equal-count bins where those groups would hold fewer than MIN_PER_GROUP poses. A bin is
+    labelled "≈" its median in whole degrees: eight ranges ("-163.4…-108.9") overlap on a panel.
 
     A spread below 1 (deg) is one group: a fixed orientation seen through tracker noise (as in a
     position-only table, whose orientation is the measured one) is no variable to group by.
@@ -107,12 +108,19 @@ def _groups(values: np.ndarray, max_distinct: int = 13, n_bins: int = 8) -> tupl
         for b in range(n_bins):
             idx = np.flatnonzero(which == b)
             if idx.size:
-                labels.append(f"{edges[b]:.0f}…{edges[b + 1]:.0f}")
+                labels.append(_bin_label(values[idx]))
                 index.append(idx)
     if min(map(len, index)) >= MIN_PER_GROUP:
         return labels, index
     chunks = np.array_split(np.argsort(values, kind="stable"), max(1, min(n_bins, len(values) // MIN_PER_GROUP)))
-    return [f"{values[c].min():.1f}…{values[c].max():.1f}" for c in chunks], [np.sort(c) for c in chunks]
+    labels = [_bin_label(values[c]) for c in chunks]
+    if len(set(labels)) < len(labels):  # bins within a degree of each other: a decimal tells them apart
+        labels = [_bin_label(values[c], 1) for c in chunks]
+    return labels, [np.sort(c) for c in chunks]
+
+
+def _bin_label(values: np.ndarray, digits: int = 0) -> str:
+    return f"≈{round(float(np.median(values)), digits) + 0.0:.{digits}f}"  # + 0.0: no "-0"
 
 
 def _binned_median(x: np.ndarray, y: np.ndarray, n_bins: int = 12) -> tuple[np.ndarray, np.ndarray]:
@@ -190,9 +198,11 @@ def workspace_figure(ref_p: np.ndarray, before: np.ndarray, after: np.ndarray,
             ax.set_xlabel(f"{names[i]} [m]")
             ax.set_ylabel(f"{names[j]} [m]")
             ax.set_title(f"{names[i]}-{names[j]}, {label}")
-            ax.quiverkey(q, 0.90, 1.015, key_mm / 1e3, f"{key_mm:g} mm", labelpos="W", coordinates="axes",
+            # Inside the lower right corner, in the margin the limits leave: on the title's line
+            # it overlapped the longer titles (a y-z panel's). The arrow starts at X: its end stays inside.
+            reach = (key_mm / 1e3 / scale) / (np.ptp(ref_p[:, i]) + 2 * pad)
+            ax.quiverkey(q, 0.96 - reach, 0.05, key_mm / 1e3, f"{key_mm:g} mm", labelpos="W", coordinates="axes",
                          color="#d62728", fontproperties={"size": 8})
-            ax.title.set_position((0.36, 1.0))  # leave the right of the title line to the key
         cb = fig.colorbar(q, ax=axes[row, :], shrink=0.85, pad=0.01)
         cb.set_label(f"|error| [mm], {label}")
     fig.suptitle("Position error vectors at the reference positions, magnified "
@@ -271,7 +281,8 @@ def orientation_figure(features: Mapping[str, np.ndarray], pos_mm: np.ndarray, r
                        medianprops={"color": "#0b3d66", "lw": 1.6},
                        boxprops={"color": AFTER_COLOUR}, whiskerprops={"color": AFTER_COLOUR},
                        capprops={"color": AFTER_COLOUR})
-            ax.set_xlabel(f"{angle} [deg]")
+            binned = any(label.startswith("≈") and not label.endswith("(fixed)") for label in labels)
+            ax.set_xlabel(f"{angle} [deg]" + (", ≈ median of a bin" if binned else ""))
             ax.set_ylabel(f"{quantity} after [{unit}]")
             ax.set_ylim(bottom=0)
             if len(labels) > 8:

@@ -291,6 +291,34 @@ def test_undetermined_names_its_cause_drift_and_a_small_span():
     assert "of its effect on these poses is its own" in reasons["range_scale"], reasons
 
 
+def test_a_form_taken_into_the_model_is_named_as_in_it_not_as_undetermined():
+    """After the loop takes a proposal (a subclass of the strain form in the model), the strain
+    form is not ranked because the model has it already: its line names that effect, not the
+    poses. Without that effect the same poses determine the strain."""
+    from posecorr.analysis.diagnose import split_identifiable
+    from posecorr.analysis.interpretation import not_ranked_why
+    from posecorr.effects import register_effect
+    from posecorr.forms import Strain
+
+    class TakenStrain(Strain):
+        name = "taken_strain"
+        generic = False
+
+    table = study.session(None, 4, "robot", n=30)
+    study.hide_outside()
+    assert split_identifiable(table, study.BASE, ["strain"]) == (["strain"], [])
+    register_effect(TakenStrain, source=__file__)
+    try:
+        _, undetermined = split_identifiable(table, study.BASE + ["taken_strain"], ["strain", "range_scale"])
+    finally:
+        unregister_effect("taken_strain")
+    rows = {row["effect"]: row for row in undetermined}
+    assert rows["strain"]["in_model"] == "taken_strain" and rows["strain"]["same"], undetermined
+    assert not_ranked_why(rows["strain"]) == "is already in the model as taken_strain"
+    assert "of its effect on these poses is its own (the rest is what taken_strain does)" in rows["strain"]["reason"]
+    assert "range_scale" not in rows, undetermined   # the poses determine it beside the strain
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("hidden, factor", [("range_scale", 2.0), ("incidence", 3.0)])
 def test_a_hidden_catalogue_effect_is_named_not_a_form(hidden, factor):

@@ -103,7 +103,10 @@ def test_full_report(tmp_path: Path, small: tuple[PoseTable, np.ndarray]) -> Non
     text, parsed = _parse(out)
 
     for sid, _ in SECTIONS:
-        assert sid in parsed.ids, sid
+        if sid != "segments":
+            assert sid in parsed.ids, sid
+    # Not from `posecorr ingest`: no segments section, and no menu entry to one.
+    assert "segments" not in parsed.ids and 'href="#segments"' not in text
     # Every image is an embedded PNG; nothing is fetched from anywhere.
     # Figures: workspace, features (pos, rot), orientation, histograms, diagnosis R^2, ledger.
     assert len(parsed.imgs) == 7
@@ -155,7 +158,7 @@ def test_position_only_small_no_time(tmp_path: Path) -> None:
     out = write_report(tmp_path / "p.html", table, corrected)
     text, parsed = _parse(out)
     for sid, _ in SECTIONS:
-        assert sid in parsed.ids, sid
+        assert sid in parsed.ids or sid == "segments", sid
     # Workspace, position features, orientation, histograms: no rotation, R^2 or ledger figure.
     assert len(parsed.imgs) == 4
     assert "position only" in text and "rot err [mrad]" not in text
@@ -194,6 +197,27 @@ def test_takeaway_without_present_effect() -> None:
     assert takeaway(diag, ["station"]) == (
         "No effect passes the test: drift lowers the held-out whitened error by 7.3% but is not present: "
         "a fold where the error rises (worst fold -1.3%). No form earns its place.")
+
+
+def test_nothing_missing_keeps_to_what_the_poses_determine_and_names_the_best_by_kind() -> None:
+    """On the real 11-pose session the diagnosis leaves a form undetermined and aliases effects
+    with the registration: "no catalogue effect is missing" would claim more than the poses
+    show, so the banner counts those it cannot judge. The best candidate is named by its kind
+    (the proposal's words name the best form, which may be another)."""
+    diag = {"candidates": [{"effect": "range_scale", "kind": "effect", "rank": 1, "present": False},
+                           {"effect": "strain", "kind": "form", "rank": 2, "present": False}],
+            "features": [], "model_effects": ["station", "mount"],
+            "aliases": [{"effects": ["station", "incidence"]}, {"effects": ["range_scale", "incidence"]}],
+            "undetermined": [{"effect": "orientation_bias", "reason": "..."},
+                             {"effect": "quadratic", "reason": "...", "in_model": "session_quadratic", "same": True}]}
+    assert takeaway(diag, ["station", "mount"]) == (
+        "No catalogue effect these poses can determine is missing (3 candidates they cannot determine or tell "
+        "apart: orientation_bias, incidence, range_scale) and no form earns its place (best catalogue effect: "
+        "range_scale, not present); nothing tried explains what is left.")
+    diag.update(aliases=[], undetermined=diag["undetermined"][1:], candidates=diag["candidates"][1:])
+    assert takeaway(diag, ["station", "mount"]) == (
+        "No catalogue effect is missing and no form earns its place (best form: strain, not present); "
+        "nothing tried explains what is left.")
 
 
 def test_where_no_candidate_could_pass_the_banner_says_the_poses_cannot_show_it() -> None:
@@ -235,6 +259,7 @@ def test_report_shows_the_still_segments_of_an_ingested_table(tmp_path) -> None:
     page = write_report(tmp_path / "r.html", table, table.reference,
                         segments=_json.loads(segments_path(data).read_text())).read_text()
     assert "5 still segments found, 1 rejected" in page
+    assert 'href="#segments"' in page and '<section id="segments">' in page
     assert "jitter 0.9 mm &gt; 0.5 mm" in page
     assert "+0.1370 s (estimated)" in page
 
@@ -519,7 +544,7 @@ def test_the_page_in_headless_chromium(tmp_path: Path, unregistered: PoseTable) 
     assert len(seen["images"]) == len(parsed.imgs) == 7
     undecoded = [i["alt"] for i in seen["images"] if not (i["complete"] and i["width"] > 0 and i["height"] > 0)]
     assert not undecoded, f"figures that do not decode in Chromium: {undecoded}"
-    assert [a["href"] for a in seen["anchors"]] == [f"#{sid}" for sid, _ in SECTIONS]
+    assert [a["href"] for a in seen["anchors"]] == [f"#{sid}" for sid, _ in SECTIONS if sid != "segments"]
     assert all(a["resolves"] for a in seen["anchors"]), [a for a in seen["anchors"] if not a["resolves"]]
     assert seen["errors"] == [] and seen["console"] == []
 
@@ -586,6 +611,7 @@ def test_a_few_poses_are_boxed_three_or_more_and_counted_in_whole_poses() -> Non
     yaw = np.linspace(75.0, 99.0, 11)  # 11 distinct yaws: one pose per value
     labels, index = _groups(yaw)
     assert min(map(len, index)) >= MIN_PER_GROUP and len(labels) == len(index) == 3
+    assert labels == ["≈79", "≈88", "≈97"]   # each bin's median, whole degrees: ranges overlapped
     assert sorted(np.concatenate(index).tolist()) == list(range(11))
     many = np.repeat([10.0, 20.0, 30.0], 5)  # few values, each of five poses: grouped by value
     assert _groups(many)[0] == ["10", "20", "30"]
@@ -632,3 +658,57 @@ def test_no_structure_reads_as_one_line_and_a_form_is_named_as_one(tmp_path: Pat
     assert line.startswith("Most likely missing: strain, a form outside the catalogue (present: yes")
     assert line.endswith("--effects station,mount,strain")
     assert takeaway({"candidates": [], "features": []}).endswith("nothing tried explains what is left.")
+
+
+def test_in_the_model_code_and_a_best_row_read_as_they_are(tmp_path: Path, small: tuple[PoseTable, np.ndarray]) -> None:
+    """A form held because the model has it already sits under its own heading, naming that
+    effect; Markdown `code` in the words shows as <code>, never as backticks; the corrected row
+    is highlighted only where it is better than the before."""
+    table, corrected = small
+    diag = {**DIAGNOSIS, "undetermined": [
+        {"effect": "strain", "in_model": "session_strain", "same": True,
+         "reason": "strain.s: only 0% of its effect on these poses is its own (the rest is what session_strain does)"},
+        {"effect": "orientation_bias",
+         "reason": "orientation_bias.k: only 0% of its effect on these poses is its own"}]}
+    text, _ = _parse(write_report(tmp_path / "r.html", table, corrected, None, diag))
+    section = text[text.index('id="diagnosis"'):text.index('id="ledger"')]
+    held = section[section.index("<h3>Not ranked: already in the model</h3>"):]
+    held = held[:held.index("</ul>")]
+    assert "<b>strain</b> is already in the model as session_strain: strain.s" in held
+    assert "orientation_bias" not in held
+    unseen = section[section.index("<h3>Not ranked: this data cannot determine them</h3>"):]
+    assert "<b>orientation_bias</b> cannot be determined by this data" in unseen[:unseen.index("</ul>")]
+    assert "`" not in text
+    metrics = text[text.index('id="metrics"'):text.index('id="workspace"')]
+    assert metrics.count('class="best"') == 1
+
+    text, _ = _parse(write_report(tmp_path / "same.html", table, table.measured.copy(), None, None))
+    assert "<code>posecorr diagnose</code>" in text and "`" not in text
+    metrics = text[text.index('id="metrics"'):text.index('id="workspace"')]
+    assert 'class="best"' not in metrics   # equal rows: nothing is better
+
+
+def test_the_arrow_key_stays_inside_its_panel_off_the_title() -> None:
+    """On the real 11-pose session the workspace panels' scale key ("10 mm") sat on the title
+    line and its arrow ran out of the panel: the key, text and arrow, is inside its panel."""
+    from matplotlib.quiver import QuiverKey
+
+    from posecorr.analysis.figures import workspace_figure
+    from posecorr.data import read_table
+
+    ref_p = read_table(Path(__file__).parent / "data" / "realdata" / "20201002_Exp1.csv").ref_p
+    rng = np.random.default_rng(0)
+    fig = workspace_figure(ref_p, rng.normal(0, 5e-3, ref_p.shape), rng.normal(0, 5e-4, ref_p.shape),
+                           "before: rigid fit (joint)", "after: held-out")
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    keys = [(ax, k) for ax in fig.axes for k in ax.get_children() if isinstance(k, QuiverKey)]
+    assert len(keys) == 6
+    for ax, key in keys:
+        text = key.text.get_window_extent(renderer)
+        assert text.y1 <= ax.bbox.y1 and text.x0 >= ax.bbox.x0, ax.get_title()
+        assert not text.overlaps(ax.title.get_window_extent(renderer)), ax.get_title()
+        arrow = key.vector
+        start = arrow.get_offset_transform().transform(arrow.get_offsets())[0]
+        ends = np.concatenate([arrow.get_transform().transform(p.vertices) + start for p in arrow.get_paths()])
+        assert ends[:, 0].max() <= ax.bbox.x1 and ends[:, 1].max() <= ax.bbox.y1, ax.get_title()

@@ -377,12 +377,16 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block]) -> tuple[np.nd
     return B, fixed
 
 
+# The end of the words for a direction held as an alias: `diagnose.split_identifiable` names
+# the effect instead where one effect of the model is what it aliases.
+BEFORE_IT = "(the rest is what the parameters before it do)"
+
+
 def _why_held(block: Block, independent: float, std: float) -> str:
     if independent <= MIN_INDEPENDENT:
-        return (f"only {independent:.0%} of its effect on these poses is its own "
-                f"(the rest is what the parameters before it do)")
+        return f"only {independent:.0%} of its effect on these poses is its own {BEFORE_IT}"
     return f"its standard error would be {std:.3g} x its typical size ({block.scale:g} {block.unit})"
 
 
 __all__ = ["CLOSED_FORM", "RIGID_VARIANTS", "rigid_variants", "gross_outliers", "MIN_INDEPENDENT", "Spread", "describe_spread", "chordal_mean", "RigidRegistration", "rigid_registration", "Block",
-           "determined_directions", "direction_label", "LIMIT_SCALES", "FORM_LIMIT_SCALES", "LEVER_LIMIT"]
+           "determined_directions", "direction_label", "BEFORE_IT", "LIMIT_SCALES", "FORM_LIMIT_SCALES", "LEVER_LIMIT"]

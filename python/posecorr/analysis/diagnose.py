@@ -71,20 +71,48 @@ def split_identifiable(table: PoseTable, effects: Sequence[str],
                        names: Sequence[str]) -> tuple[list[str], list[dict[str, Any]]]:
     """(candidates the data can determine, [{"effect", "reason"}] of those it cannot): a
     candidate whose every parameter the identification of the model with it added holds
-    (`PhysicsModel.identifiability`) would only be ranked by noise, so it is not ranked."""
-    from posecorr.train.physics import PhysicsModel
+    (`PhysicsModel.identifiability`) would only be ranked by noise, so it is not ranked. Where
+    an effect of the model (not a registration) is what holds it, the data could determine it
+    without that effect: its record names that effect as "in_model", and says whether the
+    effect is the candidate itself (its subclass: a proposal fitted and taken) as "same"."""
+    from posecorr.train.identify import BEFORE_IT
 
     keep, undetermined = [], []
     for name in names:
-        fixed = PhysicsModel(tuple(effects) + (name,), with_rotation=table.has_orientation).identifiability(
-            table.measured, table.reference, table.time())
-        held = [key for key in fixed if key.split(" ")[0].split(".")[0] == name]
-        whole = {key.split(" ")[0] for key in held if " along " not in key}
-        if whole >= {f"{name}.{p.name}" for p in get_effect(name).params}:
-            undetermined.append({"effect": name, "reason": "; ".join(f"{k}: {fixed[k]}" for k in held)})
-        else:
+        held = _held(table, list(effects), name)
+        if held is None:
             keep.append(name)
+            continue
+        record = {"effect": name, "reason": "; ".join(f"{k}: {v}" for k, v in held.items())}
+        spanning = _spanning_effect(table, effects, name)
+        if spanning is not None:
+            record.update(in_model=spanning, same=isinstance(get_effect(spanning), type(get_effect(name))),
+                          reason=record["reason"].replace(BEFORE_IT, f"(the rest is what {spanning} does)"))
+        undetermined.append(record)
     return keep, undetermined
+
+
+def _held(table: PoseTable, effects: list[str], name: str) -> dict[str, str] | None:
+    """{parameter: why} of `name` held in the model `effects` + `name`, None unless all are."""
+    from posecorr.train.physics import PhysicsModel
+
+    fixed = PhysicsModel(tuple(effects) + (name,), with_rotation=table.has_orientation).identifiability(
+        table.measured, table.reference, table.time())
+    held = {key: why for key, why in fixed.items() if key.split(" ")[0].split(".")[0] == name}
+    whole = {key.split(" ")[0] for key in held if " along " not in key}
+    return held if whole >= {f"{name}.{p.name}" for p in get_effect(name).params} else None
+
+
+def _spanning_effect(table: PoseTable, effects: Sequence[str], name: str) -> str | None:
+    """The model's effect without which the data determines `name`, or None. Registrations are
+    not tried: a model without them is no model of unregistered frames, and a candidate they
+    alias is one these poses cannot tell from the registration ("cannot be determined")."""
+    for other in effects:
+        if get_effect(other).registration:
+            continue
+        if _held(table, [e for e in effects if e != other], name) is None:
+            return other
+    return None
 
 
 def residual_components(reference: np.ndarray, predicted: np.ndarray, with_rotation: bool) -> np.ndarray:

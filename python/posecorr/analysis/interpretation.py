@@ -93,6 +93,17 @@ def is_structure(r2: Any) -> bool:
     return isinstance(r2, (int, float)) and r2 >= STRUCTURE_R2
 
 
+def not_ranked_why(record: Mapping[str, Any]) -> str:
+    """Why the diagnosis did not rank a candidate (one of its "undetermined" records), as the
+    words after its name: an effect of the model already does what it does (the data would
+    determine it without that effect), or the poses cannot determine it at all."""
+    spanning = record.get("in_model")
+    if spanning:
+        return (f"is already in the model as {spanning}" if record.get("same")
+                else f"does what {spanning}, already in the model, does")
+    return "cannot be determined by this data"
+
+
 def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] = (), why_none: str | None = None) -> str:
     """The diagnosis in one plain-language line (plain text, not escaped); why_none: why there
     is none, where the data cannot have one."""
@@ -139,11 +150,30 @@ def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] =
         first = absent[0]
         return (f"No effect passes the test: {first.get('effect')} lowers the held-out whitened error by "
                 f"{first['score']:.1%} but is not present: {first.get('why')}. No form earns its place.")
+    # What the poses cannot show is not shown missing: the claim keeps to what they determine.
+    unseen = _unseen(diagnosis, model_effects)
+    none_missing = ("No catalogue effect is missing" if not unseen else
+                    f"No catalogue effect these poses can determine is missing ({len(unseen)} "
+                    f"{'candidate' if len(unseen) == 1 else 'candidates'} they cannot determine or tell apart: "
+                    f"{', '.join(unseen)})")
     if structure_text:
-        return f"No catalogue effect is missing, but {structure_text}."
-    top = f" (best candidate: {candidates[0].get('effect')}, not present)" if candidates else ""
+        return f"{none_missing}, but {structure_text}."
+    # Named by kind: the proposal's words name the best form, which may be another candidate.
+    kind = "form" if candidates and candidates[0].get("kind") == "form" else "catalogue effect"
+    top = f" (best {kind}: {candidates[0].get('effect')}, not present)" if candidates else ""
     # Not "noise": on a few poses an error no candidate explains fails the test just the same.
-    return f"No catalogue effect is missing and no form earns its place{top}; nothing tried explains what is left."
+    return f"{none_missing} and no form earns its place{top}; nothing tried explains what is left."
+
+
+def _unseen(diagnosis: Mapping[str, Any], model_effects: Sequence[str]) -> list[str]:
+    """The candidates the diagnosis could not judge: those the poses cannot determine (not
+    those an effect of the model already does), then those aliased with another effect."""
+    out = [str(u.get("effect")) for u in diagnosis.get("undetermined") or []
+           if isinstance(u, Mapping) and not u.get("in_model")]
+    for pair in diagnosis.get("aliases") or []:
+        if isinstance(pair, Mapping):
+            out += [str(e) for e in pair.get("effects") or [] if e not in model_effects and str(e) not in out]
+    return out
 
 
 def worst_order(pos_err: np.ndarray, rot_err: np.ndarray | None = None) -> np.ndarray:

@@ -7,8 +7,9 @@ where it fails, read which physical effect the diagnosis says is missing, and wa
 held-out error fall across the ledger of models fitted on the same data.
 
 Sections (HTML ids): summary, metrics, workspace, features, orientation, histograms, worst,
-diagnosis, ledger, segments. Units on the page: mm and mrad; angles of features in degrees.
-All numbers handed in are SI (m, rad, s), as everywhere in posecorr.
+diagnosis, ledger, and segments for a table from `posecorr ingest`. Units on the page: mm and
+mrad; angles of features in degrees. All numbers handed in are SI (m, rad, s), as everywhere
+in posecorr.
 
 What the page compares comes from `comparison`: the before is raw where the frames are
 registered, the best rigid fit's residual where they are not; the after is held-out where the
@@ -23,6 +24,7 @@ from __future__ import annotations
 import base64
 import html
 import math
+import re
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
@@ -36,8 +38,8 @@ from ..safeio import write_text
 from . import figures
 from .comparison import Comparison, compare
 from .features import table_features
-from .interpretation import (STRUCTURE_R2, cv_gain, effect_list, is_structure, model_effects, p_value_text,
-                             ranked_candidates, split_features, takeaway, worst_order)
+from .interpretation import (STRUCTURE_R2, cv_gain, effect_list, is_structure, model_effects, not_ranked_why,
+                             p_value_text, ranked_candidates, split_features, takeaway, worst_order)
 from .ledger import held_out
 
 SECTIONS = (("summary", "Summary"), ("metrics", "Metrics"), ("workspace", "Workspace"),
@@ -79,6 +81,11 @@ code{background:#f0f0f0;padding:0 3px;border-radius:3px}
 def _e(value: Any) -> str:
     """HTML-escaped text of any value."""
     return html.escape(str(value), quote=True)
+
+
+def _t(value: Any) -> str:
+    """HTML-escaped prose, its `code` spans (the Markdown of the words that say them) as <code>."""
+    return re.sub(r"`([^`\n]+)`", r"<code>\1</code>", _e(value))
 
 
 def _num(value: Any, scale: float = 1.0, digits: int = 3) -> str:
@@ -150,7 +157,7 @@ def _summary_section(table: PoseTable, model_info: Mapping[str, Any] | None, tit
     else:
         items.append(("model", "(none given: 'after' is the corrected poses handed in)"))
     items.append(("generated", datetime.now(timezone.utc).isoformat(timespec="seconds")))
-    body = '<dl class="kv">' + "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in items) + "</dl>"
+    body = '<dl class="kv">' + "".join(f"<dt>{_e(k)}</dt><dd>{_t(v)}</dd>" for k, v in items) + "</dl>"
     return _section("summary", "Summary", body)
 
 
@@ -185,7 +192,11 @@ def _metrics_section(comparison: Comparison, pos: tuple[np.ndarray, np.ndarray],
         improvement.append(_num(block.get("improvement_rot")) + "×")
     improvement.append(_num(block.get("improvement_total")) + "×")
     rows.append(improvement + [""] * (len(header) - len(improvement)))
-    body = _table(header, rows, left=2, row_classes=["", "best", ""])
+    # "best" only for a strict improvement, one the figures shown tell: a model that changes
+    # nothing (equal rows) is no better than before.
+    totals = [comparison.before_metrics["rmse_total"], comparison.after_metrics["rmse_total"]]
+    better = totals[1] < totals[0] and _num(totals[1], 1e3) != _num(totals[0], 1e3)
+    body = _table(header, rows, left=2, row_classes=["", "best" if better else "", ""])
     note = (f"Over {n} poses of this file (paper eqs. 39-43, w_pos = {W_POS:g}/m, w_rot = {W_ROT:g}). "
             f"The before is the raw measurement unless the {RULE}; here raw rmse_pos is "
             f"{_num(comparison.raw['rmse_pos'], 1e3)} mm against {_num(comparison.rigid['rmse_pos'], 1e3)} mm for "
@@ -202,7 +213,7 @@ def _metrics_section(comparison: Comparison, pos: tuple[np.ndarray, np.ndarray],
         body += (f'<p class="note">From its metadata, the model\'s own held-out figures{_e(n_text)}: rmse_pos '
                  f"{_num(tm.get('rmse_pos'), 1e3)} mm{rot_text}, rmse_total {_num(tm.get('rmse_total'), 1e3)}"
                  f"{' mm + mrad' if rot_text else ' mm'}.</p>")
-    return _section("metrics", "Metrics", body, _e(note))
+    return _section("metrics", "Metrics", body, _t(note))
 
 
 def _worst_section(table: PoseTable, rows_shown: np.ndarray, feats: Mapping[str, np.ndarray],
@@ -235,12 +246,12 @@ def _worst_section(table: PoseTable, rows_shown: np.ndarray, feats: Mapping[str,
     crit = "position error + rotation error (1 mm ≙ 1 mrad, paper eq. 43)" if rot is not None else "position error"
     note = (f"The {len(total)} poses with the largest corrected error, ranked by {crit}. "
             "row: 0-based data row of the table; x, y, z: reference position.")
-    return _section("worst", "Worst poses after correction", _table(header, rows, left=2, compact=True), _e(note))
+    return _section("worst", "Worst poses after correction", _table(header, rows, left=2, compact=True), _t(note))
 
 
 def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[str], why_none: str | None = None) -> str:
     line = takeaway(diagnosis, effects, why_none)
-    body = f'<p class="takeaway" id="takeaway">{_e(line)}</p>'
+    body = f'<p class="takeaway" id="takeaway">{_t(line)}</p>'
     if not diagnosis:
         return _section("diagnosis", "Diagnosis", body)
     candidates = ranked_candidates(diagnosis)
@@ -260,7 +271,7 @@ def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[st
         body += ('<p class="note">Highlighted: present (the test says adding the effect helps). '
                  "cv RMSE: cross-validated, shown ×1000 (mm, or mm + mrad for full poses).")
         if diagnosis.get("test"):
-            body += " Test: " + _e(diagnosis["test"]) + "."
+            body += " Test: " + _t(diagnosis["test"]) + "."
         body += "</p>"
     body += _proposal_html(diagnosis)
     aliases = [a for a in diagnosis.get("aliases") or [] if isinstance(a, Mapping) and a.get("effects")]
@@ -270,10 +281,12 @@ def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[st
                              + (f" (canonical correlation {a['correlation']:.4f})"
                                 if isinstance(a.get("correlation"), (int, float)) else "") for a in aliases) + "</p>")
     undetermined = [u for u in diagnosis.get("undetermined") or [] if isinstance(u, Mapping)]
-    if undetermined:
-        body += ("<h3>Not ranked: this data cannot determine them</h3><ul>"
-                 + "".join(f"<li><b>{_e(u.get('effect', '?'))}</b>: {_e(u.get('reason', ''))}</li>"
-                           for u in undetermined) + "</ul>")
+    for title, group in (("already in the model", [u for u in undetermined if u.get("in_model")]),
+                         ("this data cannot determine them", [u for u in undetermined if not u.get("in_model")])):
+        if group:
+            body += (f"<h3>Not ranked: {title}</h3><ul>"
+                     + "".join(f"<li><b>{_e(u.get('effect', '?'))}</b> {_e(not_ranked_why(u))}: "
+                               f"{_t(u.get('reason', ''))}</li>" for u in group) + "</ul>")
     feats, others = split_features(diagnosis.get("features") or [])
     if feats:
         body += "<h3>Residual structure by feature</h3>"
@@ -292,7 +305,7 @@ def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[st
              "absorbed", "absent"}
     other = {k: v for k, v in diagnosis.items() if k not in known and isinstance(v, (str, int, float))}
     if other:
-        body += '<dl class="kv">' + "".join(f"<dt>{_e(k)}</dt><dd>{_e(v)}</dd>" for k, v in other.items()) + "</dl>"
+        body += '<dl class="kv">' + "".join(f"<dt>{_e(k)}</dt><dd>{_t(v)}</dd>" for k, v in other.items()) + "</dl>"
     return _section("diagnosis", "Diagnosis", body)
 
 
@@ -306,33 +319,30 @@ def _proposal_html(diagnosis: Mapping[str, Any]) -> str:
                 f"({_e(proposal.get('parameters', '?'))} parameters): the held-out whitened error falls by "
                 f"{_num(proposal.get('gain'), 100)} %.")
         causes = proposal.get("causes") or {}
-        html += "".join(f" Causes of the {_e(form)} shape: {_e(text)}." for form, text in causes.items())
+        html += "".join(f" Causes of the {_e(form)} shape: {_t(text)}." for form, text in causes.items())
         if proposal.get("file"):
             html += f" Written to <code>{_e(proposal['file'])}</code>."
         html += "</p>"
     elif diagnosis.get("no_proposal"):
-        html = f"<h3>Proposal</h3><p>None: {_e(diagnosis['no_proposal'])}.</p>"
+        html = f"<h3>Proposal</h3><p>None: {_t(diagnosis['no_proposal'])}.</p>"
     else:
         return ""
     absorbed = [a for a in diagnosis.get("absorbed") or [] if isinstance(a, Mapping)]
     if absorbed:
         html += "<ul>" + "".join(f"<li><b>{_e(a.get('effect', '?'))}</b> takes {_num(a.get('share'), 100)} % of "
-                                 f"{_e(a.get('form', '?'))}'s gain alone, but {_e(a.get('why', ''))}</li>"
+                                 f"{_e(a.get('form', '?'))}'s gain alone, but {_t(a.get('why', ''))}</li>"
                                  for a in absorbed) + "</ul>"
     absent = [a for a in diagnosis.get("absent") or [] if isinstance(a, Mapping)]
     if absent:
         html += "<ul>" + "".join(f"<li><b>{_e(a.get('effect', '?'))}</b> lowers the held-out whitened error by "
-                                 f"{_num(a.get('score'), 100)} % and is not present: {_e(a.get('why', ''))}</li>"
+                                 f"{_num(a.get('score'), 100)} % and is not present: {_t(a.get('why', ''))}</li>"
                                  for a in absent) + "</ul>"
     return html
 
 
-def _segments_section(segments: Mapping[str, Any] | None) -> str:
+def _segments_section(segments: Mapping[str, Any]) -> str:
     """Where the robot stood still in the recording the table came from (`posecorr ingest`):
     every segment found, the rejected ones with their reason, and the clock offset."""
-    if not segments:
-        return _section("segments", "Still segments",
-                        _e("The table does not come from `posecorr ingest` (no TABLE.csv.segments.json beside it)."))
     rows, classes = [], []
     for seg in segments.get("segments") or []:
         rows.append([_e(seg.get("segment", "")), _e(seg.get("row", "–")), _e(seg.get("status", "")),
@@ -346,7 +356,7 @@ def _segments_section(segments: Mapping[str, Any] | None) -> str:
             + (f"{offset:+.4f} s ({segments.get('offset_source', '?')})" if isinstance(offset, (int, float)) else "?"))
     table = _table(["segment", "row", "status", "reason", "start [s]", "duration [s]", "samples kept", "jitter [mm]"],
                    rows, left=4, row_classes=classes)
-    return _section("segments", "Still segments", f"<p>{_e(head)}</p>" + table)
+    return _section("segments", "Still segments", f"<p>{_t(head)}</p>" + table)
 
 
 def _core_representation(entry: Mapping[str, Any]) -> str:
@@ -387,7 +397,7 @@ def _ledger_section(ledger: Sequence[Mapping[str, Any]]) -> str:
     note = ("The loop's history: every model fitted on this data (the ledger beside it), oldest first; "
             "highlighted: the lowest held-out rmse_total. The plot: each fit's held-out rmse_pos against the "
             "best rigid fit on the same poses (dashed).")
-    return _section("ledger", "History: models fitted on this data", body, _e(note))
+    return _section("ledger", "History: models fitted on this data", body, _t(note))
 
 
 def _gain(baseline: Any, block: Mapping[str, Any]) -> float | None:
@@ -418,7 +428,7 @@ def _figure_sections(comparison: Comparison, feats: Mapping[str, np.ndarray], po
     sections = [_section("workspace", "Residual arrows over the workspace",
                          _img(fig, "position error vectors in x-y, x-z, y-z, before and after",
                               {"data-before-key-mm": f"{keys[0]:g}", "data-after-key-mm": f"{keys[1]:g}"}),
-                         _e(f"Arrow = {before} (top) or {comparison.scored} correction (bottom) minus reference "
+                         _t(f"Arrow = {before} (top) or {comparison.scored} correction (bottom) minus reference "
                             "position, drawn at the "
                             "reference position, in three projections; colour = 3D error magnitude. "
                             "Arrows are magnified; the key in each panel gives the scale."))]
@@ -431,18 +441,19 @@ def _figure_sections(comparison: Comparison, feats: Mapping[str, np.ndarray], po
             "incidence: tracker z axis vs line of sight). A trend in the blue median line is structure "
             f"the model misses; each of its points is the median of {figures.MIN_PER_GROUP} poses or more, "
             "so a session of fewer than twice that has none." + ("" if "t" in feats else " No time column: t is not shown."))
-    sections.append(_section("features", "Error against features", body, _e(note)))
+    sections.append(_section("features", "Error against features", body, _t(note)))
     fig = figures.orientation_figure(feats, pos[1] * 1e3, None if rot is None else rot[1] * 1e3,
                                      pos[0] * 1e3, None if rot is None else rot[0] * 1e3)
     sections.append(_section("orientation", "Error by orientation",
                              _img(fig, "corrected error grouped by roll, pitch, yaw"),
-                             _e("Roll, pitch, yaw of the reference orientation relative to upright (Z-Y-X); "
+                             _t("Roll, pitch, yaw of the reference orientation relative to upright (Z-Y-X); "
                                 "distinct values when there are few, else equal-width bins, or bins of equal "
-                                f"counts where those would hold fewer than {figures.MIN_PER_GROUP} poses.")))
+                                f"counts where those would hold fewer than {figures.MIN_PER_GROUP} poses; "
+                                "a bin is labelled ≈ its median angle.")))
     fig = figures.histogram_figure((pos[0] * 1e3, pos[1] * 1e3), None if rot is None else (rot[0] * 1e3, rot[1] * 1e3),
                                    before, after)
     sections.append(_section("histograms", "Error histograms", _img(fig, "error histograms before and after"),
-                             _e(f"Log-spaced bins so both the {before} and the corrected errors are readable.")))
+                             _t(f"Log-spaced bins so both the {before} and the corrected errors are readable.")))
     return sections
 
 
@@ -486,9 +497,12 @@ def write_report(output_path: str | Path, table: PoseTable, corrected: np.ndarra
     parts.append(_worst_section(table, comparison.rows, feats, pos, rot, short))
     parts.append(_diagnosis_section(diagnosis, model_effects(model_info, diagnosis), no_diagnosis))
     parts.append(_ledger_section(list(ledger)))
-    parts.append(_segments_section(segments))
+    # A table not from `posecorr ingest` has no segments: no section, and no menu entry to nothing.
+    if segments:
+        parts.append(_segments_section(segments))
+    shown = [(sid, label) for sid, label in SECTIONS if segments or sid != "segments"]
 
-    nav = "".join(f'<a href="#{sid}">{_e(label)}</a>' for sid, label in SECTIONS)
+    nav = "".join(f'<a href="#{sid}">{_e(label)}</a>' for sid, label in shown)
     page = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             f"<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\"><title>{_e(name)}</title>"
             f"<style>{_CSS}</style></head><body><header><h1>{_e(name)}</h1></header><nav>{nav}</nav><main>"

@@ -64,7 +64,7 @@ def _why_none(search: Any, result: dict[str, Any], kept: Sequence[str]) -> str:
         f"; if its gain is real, about {plan['poses']} poses of this spread would take its p below the threshold "
         f"in {PLANNING_POWER:.0%} of sessions (its statistic, {plan['lm_statistic']:.3g} on {plan['df']} degrees "
         f"of freedom, grows with the poses)")
-    return (f"no form earns its place: the best, {best['effect']}, {moves} the held-out whitened error by "
+    return (f"no form earns its place: the best form, {best['effect']}, {moves} the held-out whitened error by "
             f"{abs(best['score']):.1%} (p = {best['p_value']:.2g}, worst fold {best['fold_gain_min']:.1%}); "
             f"{_fails(search, best)}{beyond}{planned}")
 

@@ -54,6 +54,7 @@ def run(args: argparse.Namespace) -> None:
 
 
 def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
+    from ..analysis.interpretation import not_ranked_why
     from ..textui import table as fmt_table
 
     rows = [[c["rank"], c["effect"], c["kind"], c["parameters"], c["score"], c["p_value"], c["cv_rmse_before"],
@@ -72,7 +73,7 @@ def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
         lines.append(f"cannot be told apart by this data: {pair['effects'][0]} ~ {pair['effects'][1]} "
                      f"(canonical correlation {pair['correlation']:.4f} of their effects on these poses)")
     for row in result.get("undetermined", []):
-        lines.append(f"not ranked: {row['effect']} cannot be determined by this data ({row['reason']})")
+        lines.append(f"not ranked: {row['effect']} {not_ranked_why(row)} ({row['reason']})")
     for row in result["absorbed"]:
         lines.append(f"{row['effect']} takes {row['share']:.0%} of {row['form']}'s gain alone, but {row['why']}")
     for row in result["absent"]:

@@ -58,4 +58,5 @@ def metrics_rows(blocks: dict[str, dict[str, Any]]) -> list[list[Any]]:
     return rows
 
 
-METRIC_HEADERS = ["", "rmse_pos [mm]", "rmse_rot [mrad]", "rmse_total"]
+# rmse_total keeps the metrics' own units (w_pos = 1/m, w_rot = 1): its unit said beside it
+METRIC_HEADERS = ["", "rmse_pos [mm]", "rmse_rot [mrad]", "rmse_total [m + rad]"]

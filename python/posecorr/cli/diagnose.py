@@ -60,13 +60,14 @@ def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
     rows = [[c["rank"], c["effect"], c["kind"], c["parameters"], c["score"], c["p_value"], c["cv_rmse_before"],
              c["cv_rmse_after"], "yes" if c["present"] else "no"] for c in result["candidates"]]
     lines = [f"{args.data}: model effects {', '.join(effects) or 'none'}; "
-             f"cross-validated rmse_total {result['cv_base']['rmse_total']:.4g}, "
+             f"cross-validated rmse_total {result['cv_base']['rmse_total']:.4g} m + rad, "
              f"rmse_pos {1e3 * result['cv_base']['rmse_pos']:.3g} mm"
              + (f" (on {result['rows']['used']} of {result['rows']['given']} rows, drawn evenly)"
                 if result["rows"]["used"] < result["rows"]["given"] else ""),
              fmt_table(["rank", "candidate", "kind", "params", "score", "p_value", "cv_rmse_before", "cv_rmse_after",
                         "present"], rows,
-                       title="Missing effects and forms (score = mean relative fall of the held-out whitened error)"),
+                       title="Missing effects and forms (score = mean relative fall of the held-out whitened error; "
+                             "cv_rmse: held-out rmse_total, m + rad)"),
              f"present = {result['test']}",
              *_feature_lines(result["features"])]
     for pair in result["aliases"]:

@@ -22,6 +22,8 @@ ANGLE_FEATURES = ("azimuth", "elevation", "incidence", "roll", "pitch", "yaw")
 FEATURE_UNITS = {"x": "m", "y": "m", "z": "m", "range": "m", "t": "s", **{a: "deg" for a in ANGLE_FEATURES}}
 BEFORE_COLOUR = "0.6"        # grey: raw measurements
 AFTER_COLOUR = "#1f77b4"     # blue: corrected by the model
+BEFORE_MEDIAN = {"color": "0.3", "lw": 1.4, "ls": "--"}
+AFTER_MEDIAN = {"color": "#0b3d66", "lw": 2.0, "ls": "-"}
 # A floor for log axes: an error of exactly zero (a pass-through orientation) has no log.
 LOG_FLOOR_MM = 1e-4
 
@@ -234,10 +236,11 @@ def features_figure(features: Mapping[str, np.ndarray], before_mm: np.ndarray, a
         xj = _jitter(x, rng)
         ax.scatter(xj, b, s=size, c=BEFORE_COLOUR, alpha=0.35, linewidths=0, rasterized=True, label="before")
         ax.scatter(xj, a, s=size, c=AFTER_COLOUR, alpha=0.45, linewidths=0, rasterized=True, label="after")
-        for y, colour in ((b, "0.25"), (a, "#0b3d66")):
+        # before dashed, after solid: where the model changes little the two lie on each other
+        for y, style in ((b, BEFORE_MEDIAN), (a, AFTER_MEDIAN)):
             mx, my = _binned_median(x, y)
             if mx.size:
-                ax.plot(mx, my, "-o", color=colour, lw=1.6, ms=3)
+                ax.plot(mx, my, marker="o", ms=3, **style)
                 medians = True
         ax.set_yscale("log")
         _plain_log(ax, "y", (1.0, 2.0, 5.0), minor=False)
@@ -252,8 +255,8 @@ def features_figure(features: Mapping[str, np.ndarray], before_mm: np.ndarray, a
     from matplotlib.lines import Line2D
     handles = [Line2D([], [], ls="", marker="o", color=BEFORE_COLOUR, label=f"before ({before_label})"),
                Line2D([], [], ls="", marker="o", color=AFTER_COLOUR, label=f"after ({after_label})"),
-               Line2D([], [], color="0.25", lw=1.6, label="binned median, before"),
-               Line2D([], [], color="#0b3d66", lw=1.6, label="binned median, after")][:4 if medians else 2]
+               Line2D([], [], label="binned median, before (dashed)", **BEFORE_MEDIAN),
+               Line2D([], [], label="binned median, after (solid)", **AFTER_MEDIAN)][:4 if medians else 2]
     target = axes.flat[len(names)] if len(names) < nrows * ncols else axes.flat[0]
     target.legend(handles=handles, loc="center" if len(names) < nrows * ncols else "upper right")
     fig.suptitle(f"Per-pose {quantity} against features (log scale)", fontsize=10)

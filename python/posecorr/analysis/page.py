@@ -438,7 +438,7 @@ def _figure_sections(comparison: Comparison, feats: Mapping[str, np.ndarray], po
         body += _img(figures.features_figure(feats, rot[0] * 1e3, rot[1] * 1e3, "rotation error", "mrad",
                                              before, after), "rotation error against features")
     note = ("Features of the reference pose (angles in degrees; azimuth/elevation as seen from the station, "
-            "incidence: tracker z axis vs line of sight). A trend in the blue median line is structure "
+            "incidence: tracker z axis vs line of sight). A trend in the solid blue median line (after) is structure "
             f"the model misses; each of its points is the median of {figures.MIN_PER_GROUP} poses or more, "
             "so a session of fewer than twice that has none." + ("" if "t" in feats else " No time column: t is not shown."))
     sections.append(_section("features", "Error against features", body, _t(note)))

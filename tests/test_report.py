@@ -488,8 +488,7 @@ def test_too_few_poses_for_a_diagnosis_still_give_the_page_and_say_why(tmp_path:
     write_table(table.subset(np.arange(4)), tmp_path / "fit.csv")
     _cli("fit", "fit.csv", "-o", "m.onnx", "--effects", "station", "--method", "none", cwd=tmp_path)
     for n, why in ((4, "4 rows, but a 5-fold diagnosis needs at least 5: fewer folds (--cv 4)"),
-                   (3, f"3 rows, but a 5-fold diagnosis needs at least 5: a diagnosis takes at least "
-                       f"{MIN_FIT_POSES + 1} rows (with --cv {MIN_FIT_POSES + 1})")):
+                   (3, f"3 rows, but a diagnosis takes at least {MIN_FIT_POSES + 1} (with --cv {MIN_FIT_POSES + 1})")):
         data = tmp_path / f"s{n}.csv"
         write_table(table.subset(np.arange(n)), data)
         report = _cli("report", str(data), "--model", "m.onnx", "-o", f"r{n}.html", cwd=tmp_path)

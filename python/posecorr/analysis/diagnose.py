@@ -461,10 +461,11 @@ def require_diagnosable(table: PoseTable, folds: int) -> None:
     if table.n < folds:
         fewer = [k for k in range(table.n, 1, -1) if fewest_to_fit(table.n, KFold(k)) >= MIN_FIT_POSES]
         fewest = fewest_rows_to_fit()
-        advice = (f"fewer folds (--cv {fewer[0]})" if fewer
-                  else f"a diagnosis takes at least {fewest} rows (with --cv {fewest})")
+        if not fewer:   # no number of folds will do: the one minimum that matters
+            raise TableError(table.path, f"{counted(table.n, 'row')}, but a diagnosis takes at least {fewest} "
+                                         f"(with --cv {fewest})")
         raise TableError(table.path, f"{counted(table.n, 'row')}, but a {folds}-fold diagnosis needs at least "
-                                     f"{folds}: {advice}")
+                                     f"{folds}: fewer folds (--cv {fewer[0]})")
     require_rows(table, max(folds, 2), f"a {folds}-fold diagnosis")
     require_enough_to_fit(table.n, KFold(folds))
 

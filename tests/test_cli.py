@@ -307,7 +307,8 @@ def test_info_says_what_the_file_is_before_its_metadata(tmp_path, capsys) -> Non
     lines = capsys.readouterr().out.splitlines()
     test = meta["test_metrics"]
     assert lines[0] == f"{shipped.name}: mlp 20-20-20-20 (tansig, br) on zhou; physical effects: none"
-    assert lines[1] == f"  {meta['parameter_count']:,} parameters, {meta['node_count']} nodes, {meta['file_size']:,} bytes"
+    assert lines[1] == (f"  {meta['n_parameters']:,} fitted parameters, {meta['parameter_count']:,} numbers in the "
+                        f"graph's constants, {meta['node_count']} nodes, {meta['file_size']:,} bytes")
     assert lines[2] == (f"  held out (test split, {test['n']} poses): rmse_pos {1e3 * test['rmse_pos']:.4g} mm, "
                         f"rmse_rot {1e3 * test['rmse_rot']:.4g} mrad; raw rmse_pos {1e3 * test['raw']['rmse_pos']:.4g} mm, "
                         f"rmse_rot {1e3 * test['raw']['rmse_rot']:.4g} mrad")
@@ -333,7 +334,19 @@ def test_info_says_what_the_file_is_before_its_metadata(tmp_path, capsys) -> Non
     assert main(["info", str(tmp_path / "bare.onnx")]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == "bare.onnx: unknown method; physical effects: none"
-    assert lines[2:4] == ["", "metadata and structure:"]
+    assert lines[2].startswith("  DAMAGED or unsigned, every runtime refuses it: no metadata model_digest")
+    assert lines[3:5] == ["", "metadata and structure:"]
+
+    # One byte of a weight flipped: the metadata still reads, the digest no longer matches.
+    data = bytearray(shipped.read_bytes())
+    weights = max(onnx.load(shipped).graph.initializer, key=lambda t: len(t.raw_data)).raw_data
+    data[data.find(weights) + 5] ^= 1
+    (tmp_path / "flipped.onnx").write_bytes(bytes(data))
+    assert main(["info", str(tmp_path / "flipped.onnx"), "--json"]) == 0
+    integrity = json.loads(capsys.readouterr().out)["integrity"]
+    assert not integrity["ok"] and f"where its metadata model_digest says {meta['model_digest']}" in integrity["why"]
+    assert main(["info", str(shipped), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["integrity"] == {"ok": True, "why": None}
 
 
 def test_a_new_verb_is_one_file(tmp_path, capsys) -> None:

@@ -18,6 +18,7 @@ def run(args: argparse.Namespace) -> None:
     from ..controller.onnx_meta import read_info
 
     info = read_info(args.model)
+    info["integrity"] = _integrity(args.model)
     paths = _step_paths(args.model)
     if paths is not None:
         info["one_pose_steps"] = [{"path": p, "why": why} for p, why in paths]
@@ -25,7 +26,7 @@ def run(args: argparse.Namespace) -> None:
     emit(args, info, lambda: "\n".join(
         [printable(line) for line in summary(info)] + ["", "metadata and structure:"] +
         [f"{printable(str(k)):>22}: {printable(_one_line(v))}" for k, v in info.items()
-         if k != "one_pose_steps"] +
+         if k not in ("one_pose_steps", "integrity")] +
         [f"{'one-pose step ' + str(i):>22}: {p}: {why}" for i, (p, why) in enumerate(paths or ())]))
 
 
@@ -36,9 +37,15 @@ def summary(info: dict[str, Any]) -> list[str]:
     from ..controller.onnx_meta import stated_metrics
 
     lines = [f"{Path(str(info.get('file'))).name}: {_describe(info)}"]
-    size = [f"{info[k]:,} {word}" for k, word in (("parameter_count", "parameters"), ("node_count", "nodes"),
-                                                   ("file_size", "bytes")) if isinstance(info.get(k), int)]
+    # the graph's constants hold the fitted parameters and the encodings' own numbers
+    size = [f"{info[k]:,} {word}" for k, word in (("n_parameters", "fitted parameters"),
+                                                   ("parameter_count", "numbers in the graph's constants"),
+                                                   ("node_count", "nodes"), ("file_size", "bytes"))
+            if isinstance(info.get(k), int)]
     lines.append("  " + ", ".join(size))
+    integrity = info.get("integrity")
+    if isinstance(integrity, dict) and not integrity.get("ok"):
+        lines.append(f"  DAMAGED or unsigned, every runtime refuses it: {integrity.get('why')}")
     stated = stated_metrics(info)
     if stated is not None:
         kind, figures, raw = stated
@@ -71,6 +78,18 @@ def _errors(figures: dict[str, Any]) -> str:
     if isinstance(figures.get("rmse_rot"), (int, float)):
         out.append(f"rmse_rot {1e3 * figures['rmse_rot']:.4g} mrad")
     return ", ".join(out) or "no figures"
+
+
+def _integrity(model: Path) -> dict[str, Any]:
+    """{"ok", "why"}: whether the file's bytes give the digest its metadata states, as every
+    loader checks before it runs a model (the metadata is shown either way)."""
+    from ..controller.checks import PoseCorrError, check_digest
+
+    try:
+        check_digest(model.read_bytes(), model.name)
+    except PoseCorrError as error:
+        return {"ok": False, "why": str(error).split(": ", 1)[-1]}
+    return {"ok": True, "why": None}
 
 
 def _step_paths(model: Path) -> list[tuple[str, str]] | None:

@@ -822,6 +822,9 @@ def test_tools_are_on_path_after_pip_install(pose_file):
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["batch_ns_per_pose"] > 0
+    for tool in (run, bench):   # --help is usage on stdout, not a file named --help
+        r = subprocess.run([tool, "--help"], capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0 and r.stdout.startswith("usage: ") and "MODEL.onnx" in r.stdout, (tool, r)
 
 
 def test_hot_swap_example_serves_every_pose_from_exactly_one_model(c_build, tmp_path):

@@ -199,6 +199,8 @@ static void print_paths(const pc_model *model)
     printf("]");
 }
 
+#define BENCH_USAGE "usage: %s MODEL.onnx [--n N] [--batch B] [--max-batch M] [--reference-zhou W]\n"
+
 int main(int argc, char **argv)
 {
     const char *path = NULL, *reference = NULL;
@@ -215,7 +217,10 @@ int main(int argc, char **argv)
     volatile float sink = 0.0f;
 
     for (a = 1; a < argc; a++) {
-        if (strcmp(argv[a], "--n") == 0 && a + 1 < argc)
+        if (strcmp(argv[a], "-h") == 0 || strcmp(argv[a], "--help") == 0) {
+            printf(BENCH_USAGE, argv[0]);
+            return 0;
+        } else if (strcmp(argv[a], "--n") == 0 && a + 1 < argc)
             n = (size_t)strtoul(argv[++a], NULL, 10);
         else if (strcmp(argv[a], "--batch") == 0 && a + 1 < argc)
             batch = (size_t)strtoul(argv[++a], NULL, 10);
@@ -226,12 +231,12 @@ int main(int argc, char **argv)
         else if (!path)
             path = argv[a];
         else {
-            fprintf(stderr, "usage: %s MODEL.onnx [--n N] [--batch B] [--max-batch M] [--reference-zhou W]\n", argv[0]);
+            fprintf(stderr, BENCH_USAGE, argv[0]);
             return 2;
         }
     }
     if (!path || n == 0 || batch == 0) {
-        fprintf(stderr, "usage: %s MODEL.onnx [--n N] [--batch B] [--max-batch M] [--reference-zhou W]\n", argv[0]);
+        fprintf(stderr, BENCH_USAGE, argv[0]);
         return 2;
     }
     /* Load time: median of repeated loads (file read included). */

@@ -484,3 +484,21 @@ def test_percentages_print_in_plain_digits() -> None:
                    {"rmse_total": 1.0}, False, notes)
     assert notes == ["pmc did worse on held-out poses than the best rigid fit, rigid-joint (4.204 against 1 "
                      "rmse_total, 320 % worse): returning rigid-joint"]
+
+
+def test_a_fit_that_falls_back_says_so_where_it_names_the_model(tmp_path) -> None:
+    """On the real 11-pose session auto's choice does worse held out than the joint rigid fit
+    (tests/test_sessions.py): the written model is the rigid fit, and the line naming it says
+    that it is not the one asked for, before the scores of auto's choice on all poses."""
+    import shutil
+
+    data = tmp_path / "exp1.csv"
+    shutil.copy(Path(__file__).resolve().parent / "data" / "realdata" / "20201002_Exp1.csv", data)
+    run = posecorr("fit", str(data), "--effects", "station,mount", "--method", "auto", "--cv", "loo",
+                   "-o", str(tmp_path / "m.onnx"), cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    lines = run.stdout.splitlines()
+    assert ("; model: rigid-joint, not the one asked for: it did worse held out (see the note); auto's inner "
+            "cross-validation on all poses, rmse_total: physics ") in lines[0]
+    assert any(line.startswith("  note: auto (its choice in each outer fold; physics on all poses) did worse on "
+                               "held-out poses than the best rigid fit, rigid-joint") for line in lines)

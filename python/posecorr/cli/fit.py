@@ -174,9 +174,13 @@ def _text(args: argparse.Namespace, table: Any, effects: list, report: Any, expo
         header, raw_label = "improvement", "raw"
         ratios = [None, report.heldout.get("improvement_total"), report.baseline.get("improvement_total")]
     # auto's scores on all poses chose the final model; the table's held-out row scores auto itself
-    auto = (f" (auto's inner cross-validation on all poses, rmse_total: {_fmt_scores(report.auto_scores)})"
-            if report.auto_scores else "")
-    lines = [f"{args.data}: {table.n} poses; effects: {', '.join(effects) or 'none'}; model: {report.chosen}{auto}",
+    auto = f"auto's inner cross-validation on all poses, rmse_total: {_fmt_scores(report.auto_scores)}"
+    # a fallback writes another model than the one asked for: said where the model is named
+    model = report.chosen + (", not the one asked for: it did worse held out (see the note)" if report.fell_back
+                             else "")
+    if report.auto_scores:
+        model += f"; {auto}" if report.fell_back else f" ({auto})"
+    lines = [f"{args.data}: {table.n} poses; effects: {', '.join(effects) or 'none'}; model: {model}",
              fmt_table(METRIC_HEADERS + [header],
                        [row + [ratio] for row, ratio in zip(
                            metrics_rows({raw_label: report.raw, label: report.heldout,

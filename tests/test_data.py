@@ -76,6 +76,7 @@ def test_a_misspelled_optional_column_is_kept_with_one_warning_naming_the_likely
     (f"{HEADER}\n{ROW}\n0.1,0.2,0.3,1,0,0,0,,0.2,0.3\n", 3, "ref_x", "empty value"),
     (f"{HEADER}\n{ROW}\n\n0.1,0.2,0.3,1.01,0,0,0,0.1,0.2,0.3\n", 4, "meas_qw..meas_qz", "quaternion norm"),
     (f"{HEADER}\n{ROW}\n0.1,0.2\n", 3, None, "2 fields, expected 10"),
+    (f"{HEADER}\n{ROW}\n".replace(",", ";"), 1, "meas_x", "the header is one column holding ';': posecorr reads commas"),
 ])
 def test_malformed_tables_name_file_row_and_column(tmp_path, text, row, column, what) -> None:
     path = _write(tmp_path, text)

@@ -265,7 +265,10 @@ class TableReader:
         required = REQUIRED if require_reference or ref_present else MEAS_POS + MEAS_QUAT
         for name in required:
             if name not in self.index:
-                raise TableError(path, "missing column (required: " + ", ".join(required) + ")", 1, name)
+                # a spreadsheet's export in a comma-decimal locale: one column whose name holds them all
+                other = next((sep for sep in ";\t|" if len(header) == 1 and name in header[0].split(sep)), None)
+                hint = f"; the header is one column holding {other!r}: posecorr reads commas" if other else ""
+                raise TableError(path, "missing column (required: " + ", ".join(required) + ")" + hint, 1, name)
         present_ref_q = [c for c in REF_QUAT if c in self.index]
         if present_ref_q and len(present_ref_q) != 4:
             missing = next(c for c in REF_QUAT if c not in self.index)

@@ -477,6 +477,49 @@ def test_apply_names_the_row_a_model_refuses_in_a_late_chunk(tmp_path, capsys) -
     assert "t.csv, row 46, column meas_y: " in err and not (tmp_path / "r.html").exists()
 
 
+def test_apply_keep_going_writes_a_refused_pose_as_nan_and_counts_it(tmp_path, capsys) -> None:
+    """--keep-going: the poses the model refuses (outside its box) are written as nan and
+    counted with their rows, every other pose as a plain apply of the table without them
+    writes it, and the metrics are over the poses corrected; all refused is an error."""
+    from posecorr.controller.apply import apply_file
+    from posecorr.train.pmc import PMC
+
+    t = _table(200, seed=5)
+    model = tmp_path / "bounded.onnx"
+    PMC(representation="zhou").fit(t.measured, t.reference).to_onnx(model, measured=t.measured,
+                                                                       reference=t.reference)
+    path, kept = tmp_path / "t.csv", tmp_path / "kept.csv"
+    write_table(_table(60, seed=6), path)
+    lines = path.read_text().splitlines()
+    for row in (46, 50):          # file rows (the header is row 1)
+        cells = lines[row - 1].split(",")
+        cells[2] = "5.0"
+        lines[row - 1] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    kept.write_text("\n".join(line for i, line in enumerate(lines, 1) if i not in (46, 50)) + "\n")
+    got = apply_file(model, path, tmp_path / "out.csv", chunk_rows=7, keep_going=True)
+    plain = apply_file(model, kept, tmp_path / "plain.csv")
+    assert got["refused"]["count"] == 2 and got["refused"]["rows"] == [46, 50]
+    assert got["refused"]["first"].startswith(f"{path}, row 46, column meas_y: ")
+    out, want = read_csv_columns(tmp_path / "out.csv"), read_csv_columns(tmp_path / "plain.csv")
+    refused = ~np.isfinite(out["corr_x"])
+    assert list(np.flatnonzero(refused) + 2) == [46, 50]
+    for column in ("corr_x", "corr_y", "corr_z", "corr_qw", "corr_qx", "corr_qy", "corr_qz"):
+        np.testing.assert_array_equal(out[column][~refused], want[column])
+    for key in ("rmse_pos", "rmse_rot", "rmse_total"):
+        assert got["corrected"][key] == pytest.approx(plain["corrected"][key], rel=1e-12)
+    assert main(["apply", str(model), str(path), "-o", str(tmp_path / "o.csv"), "--keep-going"]) == 0
+    shown = capsys.readouterr().out.splitlines()
+    assert shown[0].startswith("58 of 60 poses corrected") and shown[1].startswith(
+        "2 poses refused by the model, written as nan (rows 46, 50); the metrics are over the others")
+
+    every = tmp_path / "every.csv"
+    every.write_text("\n".join([lines[0], lines[45], lines[49]]) + "\n")
+    with pytest.raises(TableError, match="the model refused every pose; the first: .*row 2, column meas_y"):
+        apply_file(model, every, tmp_path / "none.csv", keep_going=True)
+    assert not (tmp_path / "none.csv").exists()
+
+
 def test_apply_marks_the_poses_a_model_was_fitted_on_as_in_sample(tmp_path, capsys) -> None:
     """On the table a fit saw, apply's corrected figures are in-sample: it says so and puts
     the fit's held-out figures (as `fit --json` printed them) beside them; with one cell a

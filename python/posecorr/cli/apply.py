@@ -17,18 +17,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     output_option(p, help="the CSV to write: the input's columns, then corr_x..corr_qz")
     backend_option(p)
     allow_options(p)
+    p.add_argument("--keep-going", action="store_true",
+                   help="write a pose the model refuses (outside its box, say) as nan and go on, counting them, "
+                        "instead of stopping at the first (default: stop)")
 
 
 def run(args: argparse.Namespace) -> None:
     from ..controller.apply import apply_file
 
-    payload = apply_file(args.model, args.input, args.output, backend=args.backend, **allow_arguments(args))
+    payload = apply_file(args.model, args.input, args.output, backend=args.backend, keep_going=args.keep_going,
+                         **allow_arguments(args))
 
     def text() -> str:
-        from ..textui import METRIC_HEADERS, metrics_rows, table as fmt_table
+        from ..textui import METRIC_HEADERS, counted, metrics_rows, table as fmt_table
 
-        head = (f"{payload['n']} poses corrected with {args.model} ({args.backend}) -> {args.output} "
+        refused = payload["refused"]
+        done = f"{payload['n'] - refused['count']} of {payload['n']}" if refused["count"] else f"{payload['n']}"
+        head = (f"{done} poses corrected with {args.model} ({args.backend}) -> {args.output} "
                 f"(columns corr_x..corr_qz beside the raw meas_*)")
+        if refused["count"]:
+            shown = ", ".join(map(str, refused["rows"])) + (", ..." if refused["count"] > len(refused["rows"]) else "")
+            head += (f"\n{counted(refused['count'], 'pose')} refused by the model, written as nan "
+                     f"({'row' if refused['count'] == 1 else 'rows'} {shown}); the metrics are over the others; "
+                     f"the first: {refused['first']}")
         if payload["raw"] is None:
             return head + "\nno ref_* columns: no metrics"
         if not payload["in_sample"]:

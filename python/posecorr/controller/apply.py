@@ -49,21 +49,29 @@ def _input_column(text: str, has_times: bool) -> str | None:
     return names[int(found.group(1))] if found else None
 
 
-def _refused_row(path: str, model: Any, chunk: Any, measured: np.ndarray, times: np.ndarray | None,
-                 corrector: Corrector, error: PoseCorrError) -> TableError:
-    """The table row a model refused. The runtime names the pose within its call (a chunk), so
-    the chunk's poses go through one by one to find the file's row; an input column it names
-    becomes the table's column."""
+def _pose_by_pose(path: str, model: Any, chunk: Any, measured: np.ndarray, times: np.ndarray | None,
+                  corrector: Corrector) -> tuple[np.ndarray, list[TableError]]:
+    """A chunk the model refused, corrected pose by pose: (the corrected poses, NaN where
+    refused; a TableError for each refused pose). The runtime names a pose within its call,
+    so alone each is its file's row; an input column it names becomes the table's column."""
+    corrected, refused = np.full_like(measured, np.nan), []
     for i in range(len(measured)):
         try:
-            corrector.correct(measured[i], t=None if times is None else times[i])
+            corrected[i] = corrector.correct(measured[i], t=None if times is None else times[i])
         except PoseCorrError as one:
             text = re.sub(r"\bpose 0\b", "the pose", str(one))   # it ran alone: its pose 0
             column = _input_column(text, times is not None)
             if column is not None:   # named by the table's column in front, not the model's input index
                 text = re.sub(r" in columns? \d(-\d)?", "", text)
-            return TableError(path, f"{os.fspath(model)}: {text}", chunk.row_numbers[i], column)
-    return TableError(path, f"{os.fspath(model)}: {error}")
+            refused.append(TableError(path, f"{os.fspath(model)}: {text}", chunk.row_numbers[i], column))
+    return corrected, refused
+
+
+def _refused_row(path: str, model: Any, chunk: Any, measured: np.ndarray, times: np.ndarray | None,
+                 corrector: Corrector, error: PoseCorrError) -> TableError:
+    """The first table row of a chunk the model refused (`error`, the whole chunk's)."""
+    refused = _pose_by_pose(path, model, chunk, measured, times, corrector)[1]
+    return refused[0] if refused else TableError(path, f"{os.fspath(model)}: {error}")
 
 
 def refused_row_of(path: Any, model: Any, corrector: Corrector, error: PoseCorrError) -> TableError:
@@ -124,6 +132,9 @@ class _RmseSums:
         return out
 
 
+# The refused rows `apply --keep-going` names (it counts them all).
+REFUSED_SHOWN = 10
+
 # The rows of a table `apply` keeps to tell whether the model was fitted on it: a session's
 # table, not a recording's (a table longer than this is not the one a fit saw whole).
 FITTED_ON_MAX_ROWS = 100_000
@@ -177,10 +188,13 @@ def refuse_missing_time(corrector: Corrector, model: str | os.PathLike[str], pat
 
 def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], output: str | os.PathLike[str],
                backend: str = "c", chunk_rows: int = CHUNK_ROWS, allow_unbounded: bool = False,
-               allow_unsigned: bool = False) -> dict[str, Any]:
+               allow_unsigned: bool = False, keep_going: bool = False) -> dict[str, Any]:
     """Correct `table` with `model` into `output`; returns {"n", "output", "backend",
-    "reference", "raw", "corrected"} (raw / corrected None without reference columns).
-    allow_unbounded, allow_unsigned: as `Corrector`'s."""
+    "reference", "raw", "corrected", "in_sample", "held_out", "refused"} (raw / corrected None
+    without reference columns). allow_unbounded, allow_unsigned: as `Corrector`'s. A pose the
+    model refuses stops the work (TableError naming its row), or with `keep_going` is written
+    as nan and counted in "refused" ({"count", "rows": the first REFUSED_SHOWN, "first": its
+    message}); the metrics are then over the poses corrected."""
     check_output(output, [model, table])
     corrector = Corrector(model, backend=backend, allow_unbounded=allow_unbounded,
                           allow_unsigned=allow_unsigned)
@@ -192,6 +206,7 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
             raise TableError(reader.path, "column already present: apply writes the corrected pose to "
                              + ", ".join(CORR_COLUMNS) + " (use the raw table as input)", 1, clash[0])
         raw_sums = corr_sums = None
+        refused: list[TableError] = []
         fitted_on = _FittedOn(corrector.metadata)
         if reader.has_reference:
             raw_sums, corr_sums = _RmseSums(reader.has_ref_orientation), _RmseSums(reader.has_ref_orientation)
@@ -205,21 +220,29 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                 try:
                     corrected = corrector.correct(measured, t=times)
                 except PoseCorrError as error:
-                    raise _refused_row(reader.path, model, chunk, measured, times, corrector, error) from None
+                    if not keep_going:
+                        raise _refused_row(reader.path, model, chunk, measured, times, corrector, error) from None
+                    corrected, errors = _pose_by_pose(reader.path, model, chunk, measured, times, corrector)
+                    refused += errors
                 handle.write("".join(line(row) + (_CORR_FORMAT % tuple(values))
                                      for row, values in zip(chunk.rows, corrected.tolist())))
                 if raw_sums is not None and corr_sums is not None:
                     q = chunk.block(REF_QUAT) if reader.has_ref_orientation else measured[:, 3:7]
                     reference = np.concatenate([chunk.block(REF_POS), q], axis=1)
-                    raw_sums.add(reference, measured)
-                    corr_sums.add(reference, corrected)
+                    kept = np.all(np.isfinite(corrected), axis=1)   # the refused poses out of both
+                    raw_sums.add(reference[kept], measured[kept])
+                    corr_sums.add(reference[kept], corrected[kept])
                     fitted_on.add(measured, reference)
                 n += len(chunk.rows)
             if n == 0:  # inside the block: the previous output stays
                 raise TableError(reader.path, "no data rows after the header")
+            if len(refused) == n:   # a table of nan is no correction: the previous output stays
+                raise TableError(reader.path, f"the model refused every pose; the first: {refused[0]}")
     raw = raw_sums.metrics() if raw_sums is not None else None
     corrected_block = metric_block(raw, corr_sums.metrics()) if raw is not None and corr_sums is not None else None
     in_sample = fitted_on.verdict() if raw is not None else None
     return {"n": n, "output": str(output), "backend": backend, "reference": raw is not None,
             "columns_added": list(CORR_COLUMNS), "raw": raw, "corrected": corrected_block,
-            "in_sample": in_sample, "held_out": fitted_on.held_out() if in_sample else None}
+            "in_sample": in_sample, "held_out": fitted_on.held_out() if in_sample else None,
+            "refused": {"count": len(refused), "rows": [e.row for e in refused[:REFUSED_SHOWN]],
+                        "first": str(refused[0]) if refused else None}}

@@ -42,16 +42,13 @@ def run(args: argparse.Namespace) -> None:
                      f"the first: {refused['first']}")
         if payload["raw"] is None:
             return head + "\nno ref_* columns: no metrics"
-        if not payload["in_sample"]:
-            return head + "\n" + fmt_table(METRIC_HEADERS, metrics_rows({"raw": payload["raw"],
-                                                                         "corrected": payload["corrected"]}))
-        blocks = {"raw": payload["raw"], "corrected (in-sample)": payload["corrected"]}
-        held = payload["held_out"]
+        in_sample, held = payload["in_sample"], payload["held_out"]
+        blocks = {"raw": payload["raw"], "corrected (in-sample)" if in_sample else "corrected": payload["corrected"]}
         if held is not None:
             blocks[f"held out ({HELD_OUT_SOURCES[held['source']]})"] = held
-        return (head + "\n" + fmt_table(METRIC_HEADERS, metrics_rows(blocks))
-                + f"\nnote: {args.model.name} was fitted on these poses (its training_data_digest): corrected is "
-                "in-sample" + ("; held out is the fit's, as the model states it" if held else ""))
+        note = (f"\nnote: {args.model.name} was fitted on these poses (its training_data_digest): corrected is "
+                "in-sample" + ("; held out is the fit's, as the model states it" if held else "")) if in_sample else ""
+        return head + "\n" + fmt_table(METRIC_HEADERS, metrics_rows(blocks)) + note
 
     emit(args, payload, text)
 

@@ -135,6 +135,19 @@ class _RmseSums:
 # The refused rows `apply --keep-going` names (it counts them all).
 REFUSED_SHOWN = 10
 
+class _Refused:
+    """The poses `apply --keep-going` wrote as nan: all counted, the first REFUSED_SHOWN rows
+    and the first message kept (a recording far outside the box keeps memory flat)."""
+
+    def __init__(self) -> None:
+        self.count, self.rows, self.first = 0, [], None
+
+    def add(self, errors: list[TableError]) -> None:
+        self.count += len(errors)
+        self.rows += [e.row for e in errors[:REFUSED_SHOWN - len(self.rows)]]
+        self.first = self.first or (errors[0] if errors else None)
+
+
 # The rows of a table `apply` keeps to tell whether the model was fitted on it: a session's
 # table, not a recording's (a table longer than this is not the one a fit saw whole).
 FITTED_ON_MAX_ROWS = 100_000
@@ -154,8 +167,10 @@ class _FittedOn:
         if self.blocks is None:
             return
         self.rows += len(measured)
-        self.blocks = (self.blocks + [(measured.copy(), reference.copy())]
-                       if self.rows <= FITTED_ON_MAX_ROWS else None)
+        if self.rows > FITTED_ON_MAX_ROWS:   # a recording, not a session: memory stays flat
+            self.blocks = None
+        else:   # each chunk's arrays are its own (concatenated from its cells), kept as they are
+            self.blocks.append((measured, reference))
 
     def verdict(self) -> bool | None:
         """True: fitted on these poses; False: not on exactly these; None: not known (no
@@ -206,7 +221,7 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
             raise TableError(reader.path, "column already present: apply writes the corrected pose to "
                              + ", ".join(CORR_COLUMNS) + " (use the raw table as input)", 1, clash[0])
         raw_sums = corr_sums = None
-        refused: list[TableError] = []
+        refused = _Refused()
         fitted_on = _FittedOn(corrector.metadata)
         if reader.has_reference:
             raw_sums, corr_sums = _RmseSums(reader.has_ref_orientation), _RmseSums(reader.has_ref_orientation)
@@ -223,7 +238,7 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                     if not keep_going:
                         raise _refused_row(reader.path, model, chunk, measured, times, corrector, error) from None
                     corrected, errors = _pose_by_pose(reader.path, model, chunk, measured, times, corrector)
-                    refused += errors
+                    refused.add(errors)
                 handle.write("".join(line(row) + (_CORR_FORMAT % tuple(values))
                                      for row, values in zip(chunk.rows, corrected.tolist())))
                 if raw_sums is not None and corr_sums is not None:
@@ -236,13 +251,13 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                 n += len(chunk.rows)
             if n == 0:  # inside the block: the previous output stays
                 raise TableError(reader.path, "no data rows after the header")
-            if len(refused) == n:   # a table of nan is no correction: the previous output stays
-                raise TableError(reader.path, f"the model refused every pose; the first: {refused[0]}")
+            if refused.count == n:   # a table of nan is no correction: the previous output stays
+                raise TableError(reader.path, f"the model refused every pose; the first: {refused.first}")
     raw = raw_sums.metrics() if raw_sums is not None else None
     corrected_block = metric_block(raw, corr_sums.metrics()) if raw is not None and corr_sums is not None else None
     in_sample = fitted_on.verdict() if raw is not None else None
     return {"n": n, "output": str(output), "backend": backend, "reference": raw is not None,
             "columns_added": list(CORR_COLUMNS), "raw": raw, "corrected": corrected_block,
             "in_sample": in_sample, "held_out": fitted_on.held_out() if in_sample else None,
-            "refused": {"count": len(refused), "rows": [e.row for e in refused[:REFUSED_SHOWN]],
-                        "first": str(refused[0]) if refused else None}}
+            "refused": {"count": refused.count, "rows": refused.rows,
+                        "first": None if refused.first is None else str(refused.first)}}

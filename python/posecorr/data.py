@@ -12,7 +12,6 @@ with the same checks (`posecorr apply` on millions of rows).
 from __future__ import annotations
 
 import csv
-import difflib
 import math
 import re
 from dataclasses import dataclass, field
@@ -20,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .textui import counted
+from .textui import closest, counted
 
 MEAS_POS = ("meas_x", "meas_y", "meas_z")
 MEAS_QUAT = ("meas_qw", "meas_qx", "meas_qy", "meas_qz")
@@ -219,9 +218,9 @@ def _warn_misspelled(path: str, header: list[str]) -> None:
     for name in header:
         if name in KNOWN_COLUMNS or not name:
             continue
-        close = difflib.get_close_matches(name.lower(), missing, n=1, cutoff=0.8)
+        close = closest(name.lower(), missing, cutoff=0.8)
         if close:
-            warn(f"{path}: column {name!r} is not one posecorr knows and is kept as is; did you mean {close[0]}?")
+            warn(f"{path}: column {name!r} is not one posecorr knows and is kept as is; did you mean {close}?")
 
 
 class TableReader:

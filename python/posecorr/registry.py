@@ -1,8 +1,9 @@
 """The tables posecorr looks names up in (activations, methods, ...): one lookup and one refusal."""
 from __future__ import annotations
 
-import difflib
 from typing import Any
+
+from .textui import did_you_mean
 
 
 class Registry(dict):
@@ -22,6 +23,5 @@ class Registry(dict):
         try:
             return self[name]
         except KeyError:
-            close = difflib.get_close_matches(str(name), list(self), n=1, cutoff=0.6)
-            hint = f" (did you mean {close[0]}?)" if close else ""
-            raise ValueError(f"unknown {self.kind} {name!r}{hint}; expected one of {', '.join(self)}") from None
+            raise ValueError(f"unknown {self.kind} {name!r}{did_you_mean(str(name), list(self))}; "
+                             f"expected one of {', '.join(self)}") from None

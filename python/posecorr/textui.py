@@ -28,6 +28,20 @@ def percent(value: float) -> str:
     return f"{rounded:,.{decimals}f}"
 
 
+def closest(name: str, known: Sequence[str], cutoff: float = 0.6) -> str | None:
+    """The known name closest to a mistyped one (difflib's ratio at least `cutoff`), or None."""
+    import difflib
+
+    close = difflib.get_close_matches(name, list(known), n=1, cutoff=cutoff)
+    return close[0] if close else None
+
+
+def did_you_mean(name: str, known: Sequence[str]) -> str:
+    """' (did you mean mount?)', or '' when no known name is close: what a refused name adds."""
+    close = closest(name, known)
+    return f" (did you mean {close}?)" if close else ""
+
+
 def counted(n: int, noun: str) -> str:
     """'1 row', '2 rows': a count with its noun in the number it takes."""
     return f"{n} {noun}" if n == 1 else f"{n} {noun}s"

@@ -11,7 +11,6 @@ Ctrl-C end a verb cleanly (exit 143 / 130), and every file is written atomically
 from __future__ import annotations
 
 import argparse
-import difflib
 import importlib
 import os
 import pkgutil
@@ -20,6 +19,7 @@ import warnings
 from typing import Any
 
 from .. import __version__
+from ..textui import did_you_mean
 from . import failures
 from .common import CliError, Verb
 
@@ -85,10 +85,7 @@ class _Parser(argparse.ArgumentParser):
             return ""
         offered = [o for a in self._actions if a.help != argparse.SUPPRESS for o in a.option_strings
                    if o.startswith("--")]
-        words_out = []
-        for name in unknown:
-            close = difflib.get_close_matches(name, offered, n=1, cutoff=0.6)
-            words_out.append(name + (f" (did you mean {close[0]}?)" if close else ""))
+        words_out = [name + did_you_mean(name, offered) for name in unknown]
         return f"unrecognized option{'s' if len(unknown) > 1 else ''} {', '.join(words_out)}"
 
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -502,3 +503,6 @@ def test_a_fit_that_falls_back_says_so_where_it_names_the_model(tmp_path) -> Non
             "cross-validation on all poses, rmse_total: physics ") in lines[0]
     assert any(line.startswith("  note: auto (its choice in each outer fold; physics on all poses) did worse on "
                                "held-out poses than the best rigid fit, rigid-joint") for line in lines)
+    # the rigid fit's registration and lever in the effects' units (Param.unit): rad, m
+    mount = next(line for line in lines if line.startswith("  mount: d = ["))
+    assert re.fullmatch(r"  mount: d = \[[^]]+\] rad; e = \[[^]]+\] m", mount), mount

@@ -197,7 +197,8 @@ def _text(args: argparse.Namespace, table: Any, effects: list, report: Any, expo
     if effects_json and report.chosen.startswith("rigid-"):   # effects asked or not, the rigid fit has these
         lines.append(f"  {report.chosen}'s registration and lever, as the station and mount effects hold them:")
     for name, params in effects_json.items():
-        lines.append(f"  {name}: " + "; ".join(f"{p} = {_value_pm(v)}" for p, v in params.items()))
+        units = _units(name)
+        lines.append(f"  {name}: " + "; ".join(f"{p} = {_value_pm(v)}{units.get(p, '')}" for p, v in params.items()))
     for name, reason in report.fixed.items():
         lines.append(f"  fixed {name}: {reason}")
     lines += [f"  note: {note}" for note in report.notes]
@@ -210,6 +211,15 @@ def _text(args: argparse.Namespace, table: Any, effects: list, report: Any, expo
 
 def _fmt_scores(scores: dict[str, float]) -> str:
     return ", ".join(f"{name} {value:.3g}" for name, value in sorted(scores.items(), key=lambda kv: kv[1]))
+
+
+def _units(effect: str) -> dict[str, str]:
+    """{param name: ' UNIT'} of a registered effect, as its `Param`s declare them (none for a
+    dimensionless one, unit '1')."""
+    from ..effects import EFFECTS
+
+    found = EFFECTS.get(effect)
+    return {param.name: f" {param.unit}" for param in found.params if param.unit not in ("", "1")} if found is not None else {}
 
 
 def _value_pm(pair: list) -> str:

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from posecorr.data import PoseTable, TableError, read_table, require_rows, write_table
+from posecorr.data import PoseTable, TableError, TableReader, read_table, require_rows, write_table
 
 
 def _table(n: int = 5, with_orientation: bool = True) -> PoseTable:
@@ -107,3 +107,25 @@ def test_too_few_rows_for_a_fit(tmp_path) -> None:
     table = read_table(_write(tmp_path, f"{HEADER}\n{ROW}\n{ROW}\n"))
     with pytest.raises(TableError, match=r"2 rows, but a quadratic fit needs at least 10"):
         require_rows(table, 10, "a quadratic fit")
+
+
+def test_each_pose_keeps_its_file_row_through_subset_draw_and_correction(tmp_path) -> None:
+    """Blank lines (empty, spaces, only commas) and the header make a pose's file row differ
+    from its index + 2: the table keeps the row every message names, in chunks as whole, and
+    a table made in memory has none."""
+    rows = [ROW.replace("0.1,", f"0.{i},", 1) for i in range(1, 7)]
+    text = "\n".join([HEADER, rows[0], "", rows[1], "   ", ",,,,,,,,,", rows[2], rows[3], "", rows[4], rows[5]])
+    path = _write(tmp_path, text + "\n")
+    expected = [2, 4, 7, 8, 10, 11]
+    table = read_table(path)
+    np.testing.assert_array_equal(table.rows, expected)
+    np.testing.assert_array_equal(table.meas_p[:, 0], [0.1, 0.2, 0.3, 0.4, 0.5, 0.6])
+    with TableReader(path) as reader:   # apply's chunks name the same rows
+        assert [c.row_numbers for c in reader.chunks(4)] == [expected[:4], expected[4:]]
+    np.testing.assert_array_equal(table.subset(np.array([5, 1])).rows, [11, 4])
+    drawn, keep = table.draw(3, seed=1)
+    np.testing.assert_array_equal(drawn.rows, np.asarray(expected)[keep])
+    np.testing.assert_array_equal(table.with_measured(table.measured).rows, expected)
+    assert _table().rows is None and _table().subset(np.arange(2)).rows is None
+    with pytest.raises(ValueError, match="rows has shape"):
+        PoseTable(table.meas_p, table.meas_q, table.ref_p, rows=np.arange(2))

@@ -449,7 +449,8 @@ def test_apply_streams_in_chunks_with_the_same_result(tmp_path) -> None:
 def test_apply_names_the_row_a_model_refuses_in_a_late_chunk(tmp_path, capsys) -> None:
     """A pose outside the box a model was fitted on (input_bounds) is refused by the runtime,
     which counts poses within its call: apply names the file's row and column (not the
-    chunk's pose number), ends in one line with exit 2 and writes nothing."""
+    chunk's pose number), ends in one line with exit 2 and writes nothing; so do report and
+    diagnose --model."""
     from posecorr.controller.apply import apply_file
     from posecorr.train.pmc import PMC
 
@@ -475,6 +476,10 @@ def test_apply_names_the_row_a_model_refuses_in_a_late_chunk(tmp_path, capsys) -
     code, err, escaped = _run(["report", str(path), "--model", str(model), "-o", str(tmp_path / "r.html")], capsys)
     assert code == 2 and escaped is None and len(err.strip().splitlines()) == 1
     assert "t.csv, row 46, column meas_y: " in err and not (tmp_path / "r.html").exists()
+    # diagnose --model said "pose 44" (its place in the call), after the whole diagnosis
+    code, err, escaped = _run(["diagnose", str(path), "--model", str(model)], capsys)
+    assert code == 2 and escaped is None and len(err.strip().splitlines()) == 1
+    assert "t.csv, row 46, column meas_y: " in err and "pose 44" not in err
 
 
 def test_apply_keep_going_writes_a_refused_pose_as_nan_and_counts_it(tmp_path, capsys) -> None:

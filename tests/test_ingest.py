@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from posecorr.data import read_table
 from posecorr.ingest import IngestError, IngestOptions, JointStream, PoseStream, ingest
-from posecorr.ingest.csvlog import write_csv_log
+from posecorr.ingest.csvlog import read_csv_log, write_csv_log
 from posecorr.ingest.segments import StillOptions, find_segments, gate, quaternion_mean
 from posecorr.recording import RecordingOptions, simulate_recording, write_recording
 from posecorr.simulate import simulate
@@ -278,6 +278,11 @@ def test_bad_csv_cell_names_row_and_column(recording, tmp_path) -> None:
     lines[5] = ",".join(cells)
     path.write_text("\n".join(lines) + "\n")
     one_line_error(posecorr("ingest", str(path), "-o", str(tmp_path / "t.csv")), "row 6", "column q2", "'abc'")
+    # blank lines above it are rows of the file too (it said row 6 here, after skipping them)
+    lines[2:2] = ["", "," * lines[0].count(",")]
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(IngestError, match=r"row 8, column q2: expected a number, got 'abc'"):
+        read_csv_log([path])
 
 
 def test_an_offset_that_is_given_is_used(recording, tmp_path) -> None:

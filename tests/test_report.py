@@ -131,6 +131,7 @@ def test_full_report(tmp_path: Path, small: tuple[PoseTable, np.ndarray]) -> Non
     rows = re.findall(r"<tr[^>]*><td[^>]*>(\d+)</td><td[^>]*>([^<]*)</td><td>(\d+)</td>", section)
     assert len(rows) == N_WORST
     assert [int(r[2]) for r in rows] == list(worst[:N_WORST])
+    assert "<th>index</th>" in section and "made in memory, not read from a file" in section  # no file rows
     assert rows[0][1] == table.extras["id"][worst[0]]
     assert f"{dp[worst[0]] * 1e3:.3f}" in section
 
@@ -145,6 +146,38 @@ def test_full_report(tmp_path: Path, small: tuple[PoseTable, np.ndarray]) -> Non
     assert ">70.0<" in ledger and ">2.00<" in ledger  # rmse_total in mm + mrad
     # Against the rigid fit on the same poses where the line has it (6 / 70), else nothing.
     assert ">4.00 (joint)<" in ledger and ">0.0857×<" in ledger
+
+
+def test_the_worst_pose_is_named_by_its_row_in_the_file(tmp_path: Path, capsys) -> None:
+    """The worst-poses table named a pose by its 0-based index where every other message names
+    the file's row: a pose whose measurement is 3 cm off, after blank lines (empty, spaces,
+    only commas), is the worst and is named by the row an editor shows it on."""
+    from posecorr.cli import main
+    from posecorr.data import write_table
+    from posecorr.train.pmc import PMC
+
+    table = simulate(3, seed=0).table.subset(np.arange(80))
+    model = tmp_path / "m.onnx"
+    PMC(representation="zhou").fit(table.measured, table.reference).to_onnx(
+        model, measured=table.measured, reference=table.reference)
+    k = 50
+    measured = table.measured
+    toward = table.meas_p.mean(axis=0) - measured[k, :3]   # inside the model's box: toward the middle
+    measured[k, :3] += 0.03 * toward / np.linalg.norm(toward)
+    path = tmp_path / "d.csv"
+    write_table(table.with_measured(measured), path)
+    lines = path.read_text().splitlines()
+    lines[30:30] = ["", "   ", "," * (len(lines[0].split(",")) - 1)]
+    path.write_text("\n".join(lines) + "\n")
+    assert lines[k + 1 + 3].startswith(f"{table.extras['id'][k]},")   # the pose, 3 lines further down
+
+    assert main(["report", str(path), "--model", str(model), "-o", str(tmp_path / "r.html"), "--no-diagnosis"]) == 0
+    text = (tmp_path / "r.html").read_text(encoding="utf-8")
+    section = text[text.index('id="worst"'):text.index('id="diagnosis"')]
+    assert "<th>row in d.csv</th>" in section and "the row of the file as an editor shows it" in section
+    first = re.search(r"<tbody><tr><td[^>]*>1</td><td[^>]*>([^<]*)</td><td>(\d+)</td>", section)
+    assert first is not None and first.group(1) == str(table.extras["id"][k])
+    assert int(first.group(2)) == k + 2 + 3 and lines[int(first.group(2)) - 1] == lines[k + 1 + 3]
 
 
 def test_position_only_small_no_time(tmp_path: Path) -> None:

@@ -56,7 +56,11 @@ class TableError(ValueError):
 
 @dataclass
 class PoseTable:
-    """Measured and reference poses, (N, 3) positions and (N, 4) unit quaternions."""
+    """Measured and reference poses, (N, 3) positions and (N, 4) unit quaternions.
+
+    rows: each pose's row in the file it was read from, as an editor or a spreadsheet numbers
+    it (the header is row 1; blank lines count); None for a table made in memory (`simulate`).
+    """
 
     meas_p: np.ndarray
     meas_q: np.ndarray
@@ -64,6 +68,7 @@ class PoseTable:
     ref_q: np.ndarray | None = None
     extras: dict[str, np.ndarray] = field(default_factory=dict)
     path: str | None = None
+    rows: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.meas_p)
@@ -76,6 +81,8 @@ class PoseTable:
         for name, a in self.extras.items():
             if len(a) != n:
                 raise ValueError(f"column {name} has {len(a)} rows, expected {n}")
+        if self.rows is not None and np.shape(self.rows) != (n,):
+            raise ValueError(f"rows has shape {np.shape(self.rows)}, expected ({n},)")
 
     @property
     def n(self) -> int:
@@ -102,7 +109,8 @@ class PoseTable:
     def subset(self, index: np.ndarray) -> "PoseTable":
         return PoseTable(self.meas_p[index], self.meas_q[index], self.ref_p[index],
                          None if self.ref_q is None else self.ref_q[index],
-                         {k: v[index] for k, v in self.extras.items()}, self.path)
+                         {k: v[index] for k, v in self.extras.items()}, self.path,
+                         None if self.rows is None else self.rows[index])
 
     def draw(self, n: int, seed: int = 0) -> tuple["PoseTable", np.ndarray]:
         """An even random draw of n rows in table order (the whole table when it has at most
@@ -116,7 +124,7 @@ class PoseTable:
         """A copy whose measured poses are replaced by an (N, 7) array (a correction's output)."""
         return PoseTable(np.array(measured[:, :3], dtype=float), np.array(measured[:, 3:7], dtype=float),
                          self.ref_p.copy(), None if self.ref_q is None else self.ref_q.copy(),
-                         dict(self.extras), self.path)
+                         dict(self.extras), self.path, self.rows)
 
 
 # Below this extent (metres, under the tracker's jitter) the poses are one pose seen twice
@@ -338,9 +346,10 @@ class TooManyRows(TableError):
 def read_table(path: str | Path, max_rows: int | None = None) -> PoseTable:
     """Read a paired-pose CSV; TableError on anything malformed, TooManyRows past
     `max_rows` data rows (read no further). Only the parsed columns are kept of each chunk,
-    not its cells as text."""
+    not its cells as text, and each pose's file row (`PoseTable.rows`)."""
     values: list[dict[str, np.ndarray]] = []
     cells: list[dict[str, list[str]]] = []
+    numbers: list[np.ndarray] = []
     rows = 0
     with TableReader(path) as reader:
         numeric, text = reader.numeric, reader.text
@@ -350,6 +359,7 @@ def read_table(path: str | Path, max_rows: int | None = None) -> PoseTable:
             if max_rows is not None and rows > max_rows:
                 raise TooManyRows(str(path), f"more than {max_rows:,} data rows")
             values.append(chunk.values)
+            numbers.append(np.asarray(chunk.row_numbers, dtype=np.int64))
             cells.append({c: [row[index[c]].strip() for row in chunk.rows] for c in text})
     path = str(path)
     if not values:
@@ -363,7 +373,8 @@ def read_table(path: str | Path, max_rows: int | None = None) -> PoseTable:
         return np.stack([arrays[c] for c in names], axis=1)
 
     return PoseTable(meas_p=block(MEAS_POS), meas_q=block(MEAS_QUAT), ref_p=block(REF_POS),
-                     ref_q=block(REF_QUAT) if has_ref_q else None, extras=extras, path=path)
+                     ref_q=block(REF_QUAT) if has_ref_q else None, extras=extras, path=path,
+                     rows=np.concatenate(numbers))
 
 
 def _check_quaternions(path: str | None, q: np.ndarray, columns: tuple[str, ...], rows: list[int]) -> None:

@@ -216,13 +216,24 @@ def _metrics_section(comparison: Comparison, pos: tuple[np.ndarray, np.ndarray],
     return _section("metrics", "Metrics", body, _t(note))
 
 
+def _pose_place(table: PoseTable) -> tuple[np.ndarray, str, str]:
+    """How the page names a pose: (each pose's name, the column's header, its note). A table
+    read from a file names it by the file's row, as every other message of posecorr does."""
+    if table.rows is not None:
+        name = f"row in {Path(table.path).name if table.path else 'the file'}"
+        return table.rows, _e(name), f"{name}: the row of the file as an editor shows it (the header is row 1)"
+    return (np.arange(table.n), "index",
+            "index: the pose's 0-based place in the table, which was made in memory, not read from a file")
+
+
 def _worst_section(table: PoseTable, rows_shown: np.ndarray, feats: Mapping[str, np.ndarray],
                    pos: tuple[np.ndarray, np.ndarray], rot: tuple[np.ndarray, np.ndarray] | None,
                    before: str) -> str:
     total = worst_order(pos[1], None if rot is None else rot[1])[:N_WORST]
     ids = table.extras.get("id")
     shown = [f for f in ("range", "azimuth", "elevation", "incidence", "roll", "pitch", "yaw", "t") if f in feats]
-    header = ["#", "id", "row", "x [m]", "y [m]", "z [m]", "pos err [mm]"]
+    where, where_header, where_note = _pose_place(table)
+    header = ["#", "id", where_header, "x [m]", "y [m]", "z [m]", "pos err [mm]"]
     if rot is not None:
         header.append("rot err [mrad]")
     header.append(f"{before} pos [mm]")
@@ -232,7 +243,7 @@ def _worst_section(table: PoseTable, rows_shown: np.ndarray, feats: Mapping[str,
     rows = []
     for rank, i in enumerate(total, start=1):
         r = int(rows_shown[i])
-        row = [str(rank), _e(ids[r]) if ids is not None else "–", str(r),
+        row = [str(rank), _e(ids[r]) if ids is not None else "–", str(where[r]),
                *(f"{v:.3f}" for v in table.ref_p[r]), f"{pos[1][i] * 1e3:.3f}"]
         if rot is not None:
             row.append(f"{rot[1][i] * 1e3:.3f}")
@@ -245,7 +256,7 @@ def _worst_section(table: PoseTable, rows_shown: np.ndarray, feats: Mapping[str,
         rows.append(row)
     crit = "position error + rotation error (1 mm ≙ 1 mrad, paper eq. 43)" if rot is not None else "position error"
     note = (f"The {len(total)} poses with the largest corrected error, ranked by {crit}. "
-            "row: 0-based data row of the table; x, y, z: reference position.")
+            f"{where_note}; x, y, z: reference position.")
     return _section("worst", "Worst poses after correction", _table(header, rows, left=2, compact=True), _t(note))
 
 

@@ -32,14 +32,15 @@ def run(args: argparse.Namespace) -> None:
     effects = effect_names(args.effects)
     model_predict = None
     if args.model is not None:
+        from ..controller.apply import correct_table
         from ..controller.onnx_meta import read_info
         from ..controller.runtime import Corrector
 
         if args.effects is None:
             effects = list(read_info(args.model).get("effects") or [])
-        corrector = Corrector(args.model, backend=args.backend)
-        times = table.time()
-        model_predict = lambda measured: corrector.correct(measured, t=times)  # noqa: E731
+        # corrected before the diagnosis: a pose the model refuses stops it at once, by its row
+        corrected = correct_table(Corrector(args.model, backend=args.backend), args.model, table)
+        model_predict = lambda measured: corrected  # noqa: E731  (diagnose hands in the whole table)
     result = diagnose(table, effects, folds=args.folds, seed=args.seed, forms=args.forms,
                       model_predict=model_predict, progress=progress(args))
     proposal = result["proposal"]

@@ -26,9 +26,9 @@ def run(args: argparse.Namespace) -> None:
     from ..analysis.interpretation import model_effects, takeaway
     from ..analysis.ledger import entry_for_model, ledger_path, read_ledger
     from ..analysis.page import write_report
-    from ..controller.apply import refuse_missing_time, refused_row_of
+    from ..controller.apply import correct_table, refuse_missing_time
     from ..controller.onnx_meta import read_info
-    from ..controller.runtime import Corrector, PoseCorrError
+    from ..controller.runtime import Corrector
     from ..data import require_rows
     from ..ingest.pipeline import segments_path
     from ..safeio import check_sidecar, open_sidecar
@@ -40,10 +40,7 @@ def run(args: argparse.Namespace) -> None:
     info = read_info(args.model)
     corrector = Corrector(args.model, backend=args.backend)
     refuse_missing_time(corrector, args.model, table.path, table.time() is not None)
-    try:
-        corrected = corrector.correct(table.measured, t=table.time())
-    except PoseCorrError as error:   # named by the file's row and column, as apply names it
-        raise refused_row_of(table.path, args.model, corrector, error) from None
+    corrected = correct_table(corrector, args.model, table)
     ledger = read_ledger(args.data)
     comparison = compare(table, corrected, entry_for_model(ledger, args.model), say=progress(args))
     diagnosis, no_diagnosis = None, None

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from ..data import CHUNK_ROWS, MEAS_POS, MEAS_QUAT, REF_POS, REF_QUAT, TableError, TableReader
+from ..data import CHUNK_ROWS, MEAS_POS, MEAS_QUAT, REF_POS, REF_QUAT, PoseTable, TableError, TableReader
 from ..metrics import METRIC_KEYS, metric_block, pose_errors
 from ..safeio import atomic_output, check_output
 from .digest import data_digest
@@ -86,6 +86,18 @@ def refused_row_of(path: Any, model: Any, corrector: Corrector, error: PoseCorrE
             except PoseCorrError as located:
                 return _refused_row(reader.path, model, chunk, measured, times, corrector, located)
     return TableError(os.fspath(path), f"{os.fspath(model)}: {error}")
+
+
+def correct_table(corrector: Corrector, model: Any, table: PoseTable) -> np.ndarray:
+    """The (N, 7) measured poses of a table read whole (`report`, `diagnose --model`)
+    corrected in one call; a pose the model refuses is named by its file's row and column, as
+    apply names it, not by its place in the call."""
+    try:
+        return corrector.correct(table.measured, t=table.time())
+    except PoseCorrError as error:
+        if table.path is None:
+            raise
+        raise refused_row_of(table.path, model, corrector, error) from None
 
 
 def _line_writer(width: int):

@@ -43,10 +43,13 @@ def _read_block(path: Path, columns: CsvColumns) -> dict[str, np.ndarray | None]
             raise IngestError(f"{path}: not a CSV log: {exc}") from None
     if columns.time not in header:
         raise IngestError(f"{path}: row 1: no time column {columns.time!r} (header: {', '.join(header)})")
-    rows = [r for r in rows if any(r)]
-    for i, row in enumerate(rows):
+    # a blank line carries no sample; the others keep their file row (the header is row 1) for the messages
+    numbered = [(number, r) for number, r in enumerate(rows, start=2) if any(r)]
+    file_rows = np.array([number for number, _ in numbered], dtype=np.int64)
+    rows = [r for _, r in numbered]
+    for number, row in numbered:
         if len(row) != len(header):
-            raise IngestError(f"{path}: row {i + 2}: {len(row)} fields, expected {len(header)} as in the header")
+            raise IngestError(f"{path}: row {number}: {len(row)} fields, expected {len(header)} as in the header")
     cells = np.array(rows, dtype=object).reshape(len(rows), len(header))
     out: dict[str, np.ndarray | None] = {}
     for key, names in (("joints", columns.joints), ("pose", columns.pose)):
@@ -64,21 +67,22 @@ def _read_block(path: Path, columns: CsvColumns) -> dict[str, np.ndarray | None]
         if partial.size:
             r = int(partial[0])
             col = names[int(np.flatnonzero(~filled[r])[0])]
-            raise IngestError(f"{path}: row {r + 2}, column {col}: empty, expected a number like the rest of the row's "
-                              f"{key} columns")
+            raise IngestError(f"{path}: row {file_rows[r]}, column {col}: empty, expected a number like the rest "
+                              f"of the row's {key} columns")
         rows_with = np.flatnonzero(filled.all(axis=1))
-        out[key] = _numbers(path, block[rows_with], rows_with, (columns.time,) + tuple(names))
+        out[key] = _numbers(path, block[rows_with], file_rows[rows_with], (columns.time,) + tuple(names))
         # Rates, speeds and the clock alignment divide by time steps: each must be > 0.
         stalled = np.flatnonzero(np.diff(out[key][:, 0]) <= 0)
         if stalled.size:
             r = int(stalled[0]) + 1
-            raise IngestError(f"{path}: row {int(rows_with[r]) + 2}, column {columns.time}: time "
+            raise IngestError(f"{path}: row {file_rows[rows_with[r]]}, column {columns.time}: time "
                               f"{float(out[key][r, 0])!r} is not after the previous {key} row's "
                               f"{float(out[key][r - 1, 0])!r} (times must increase)")
     return out
 
 
 def _numbers(path: Path, block: np.ndarray, rows: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
+    """The block's cells as float64; `rows`: each line's file row, for the message of a bad cell."""
     try:
         values = block.astype(float)
     except ValueError:
@@ -87,13 +91,13 @@ def _numbers(path: Path, block: np.ndarray, rows: np.ndarray, names: tuple[str, 
                 try:
                     float(cell)
                 except ValueError:
-                    raise IngestError(f"{path}: row {int(rows[i]) + 2}, column {names[j]}: expected a number, "
+                    raise IngestError(f"{path}: row {rows[i]}, column {names[j]}: expected a number, "
                                       f"got {cell.strip()!r}") from None
         raise
     bad = np.argwhere(~np.isfinite(values))
     if bad.size:
         i, j = bad[0]
-        raise IngestError(f"{path}: row {int(rows[i]) + 2}, column {names[j]}: expected a finite number")
+        raise IngestError(f"{path}: row {rows[i]}, column {names[j]}: expected a finite number")
     return values
 
 

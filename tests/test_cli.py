@@ -506,3 +506,52 @@ def test_a_fit_that_falls_back_says_so_where_it_names_the_model(tmp_path) -> Non
     # the rigid fit's registration and lever in the effects' units (Param.unit): rad, m
     mount = next(line for line in lines if line.startswith("  mount: d = ["))
     assert re.fullmatch(r"  mount: d = \[[^]]+\] rad; e = \[[^]]+\] m", mount), mount
+
+
+def test_a_model_and_a_table_given_in_each_others_place_are_named_with_the_order(tmp_path, capsys) -> None:
+    """`apply DATA MODEL` (report's order) said "not a valid ONNX model (unsupported wire type
+    4 (field 5))" of the table, and `report MODEL --model DATA` "missing column meas_x" of the
+    model: every verb that takes a model or a table says which the file is, by its first bytes
+    or else its name, and the order, in one line before any work."""
+    import importlib.util
+
+    from posecorr.cli.failures import EXTRA_MODULES
+
+    model = Path(__file__).resolve().parents[1] / "models" / "pmc-zhou.onnx"
+    data = tmp_path / "d.csv"
+    write_table(simulate(3, seed=0).table.subset(np.arange(20)), data)
+    table_dat, model_bin, text_onnx, empty_onnx = (tmp_path / n for n in ("t.dat", "m.bin", "text.onnx", "e.onnx"))
+    table_dat.write_bytes(data.read_bytes())          # the bytes say what each is, not the name
+    model_bin.write_bytes(model.read_bytes())
+    text_onnx.write_text("meas_x,meas_y\n1,2\n")
+    empty_onnx.write_bytes(b"")                       # no bytes to go by: the name says it
+    out = tmp_path / "out"
+    table_first = {"report": "the order is posecorr report DATA --model MODEL",
+                   "diagnose": "the order is posecorr diagnose DATA --model MODEL"}
+    cases = [
+        (["apply", str(data), str(model), "-o", str(out)], f"{data} is a pose table, not a model: "
+                                                           "the order is posecorr apply MODEL DATA"),
+        (["apply", str(table_dat), str(model_bin), "-o", str(out)], f"{table_dat} is a pose table, not a model: "
+                                                                     "the order is posecorr apply MODEL DATA"),
+        (["apply", str(model), str(model), "-o", str(out)], f"{model} is a model, not a pose table: "
+                                                            "the order is posecorr apply MODEL DATA"),
+        (["apply", str(model), str(empty_onnx), "-o", str(out)], f"{empty_onnx} is a model, not a pose table: "
+                                                                 "the order is posecorr apply MODEL DATA"),
+        (["fit", str(model), "-o", str(out)], f"{model} is a model, not the pose table posecorr fit takes"),
+        (["sweep", str(model_bin)], f"{model_bin} is a model, not the pose table posecorr sweep takes"),
+    ]
+    for verb, order in table_first.items():
+        extra = ["-o", str(out)] if verb == "report" else []
+        cases += [([verb, str(model), "--model", str(data), *extra], f"{model} is a model, not a pose table: {order}"),
+                  ([verb, str(data), "--model", str(text_onnx), *extra],
+                   f"{text_onnx} is a pose table, not a model: {order}")]
+    ros2 = all(importlib.util.find_spec(m) is not None for m in EXTRA_MODULES["ros2"])
+    for verb in ("info", "bench", "compile", *(("ros2",) if ros2 else ())):
+        extra = ["-o", str(out)] if verb == "compile" else []
+        cases.append(([verb, str(data), *extra], f"{data} is a pose table, not the model posecorr {verb} takes"))
+    for argv, message in cases:
+        assert _refusal(capsys, *argv) == f"posecorr {argv[0]}: error: {message}", argv
+    assert not out.exists()
+    from posecorr.cli import main
+
+    assert main(["apply", str(model_bin), str(table_dat), "-o", str(out)]) == 0   # in their places: no refusal

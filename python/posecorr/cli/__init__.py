@@ -118,6 +118,7 @@ def main(argv: list[str] | None = None) -> int:
         with sigterm_as_interrupt(), warnings.catch_warnings(record=True) as held:
             failures.check_extras(verb)
             failures.check_paths(args, verb)
+            failures.check_kinds(args, verb)
             verb.run(args)
             sys.stdout.flush()
         for w in held:

@@ -57,6 +57,8 @@ VERB = Verb(
     help="correct the measured poses of a table with a model",
     rank=10,
     outputs=("output",),
+    models=("model",),
+    tables=("input",),
     add_arguments=add_arguments,
     run=run,
 )

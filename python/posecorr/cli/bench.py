@@ -43,6 +43,7 @@ def run(args: argparse.Namespace) -> None:
 VERB = Verb(
     help="single-pose latency and batch throughput, C runtime against the alternatives",
     rank=12,
+    models=("model",),
     add_arguments=add_arguments,
     run=run,
 )

@@ -27,7 +27,9 @@ class Verb:
     outputs: the argument names of the files it writes (checked before it runs; every other
     path argument is an input). needs: the extra it needs (`failures.EXTRA_MODULES`), "" for
     none. folder_inputs: inputs that may be folders. checks_itself: path arguments it checks
-    itself. folder_output: its output is a folder it fills.
+    itself. folder_output: its output is a folder it fills. models, tables: the arguments that
+    name a model (ONNX) and a pose table (CSV); a file clearly of the other kind is refused
+    before the verb runs, with the order of its arguments (`apply DATA MODEL`).
     """
 
     help: str
@@ -39,6 +41,8 @@ class Verb:
     folder_inputs: tuple[str, ...] = ()
     checks_itself: tuple[str, ...] = ()
     folder_output: bool = False
+    models: tuple[str, ...] = ()
+    tables: tuple[str, ...] = ()
 
 
 def print_json(obj: Any) -> None:

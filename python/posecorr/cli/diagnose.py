@@ -135,6 +135,8 @@ VERB = Verb(
     rank=4,
     needs="train",
     outputs=("propose",),
+    models=("model",),
+    tables=("data",),
     add_arguments=add_arguments,
     run=run,
 )

@@ -1,5 +1,6 @@
 """Before a verb runs and after it fails: the optional packages it needs, its output paths,
-and the one line (exit 2) that an anticipated failure becomes."""
+whether its model and table arguments hold what they should, and the one line (exit 2)
+that an anticipated failure becomes."""
 from __future__ import annotations
 
 import argparse
@@ -58,6 +59,73 @@ def check_paths(args: argparse.Namespace, verb: Verb) -> None:
     ins, outs = paths(args, verb.outputs)
     for i, out in enumerate(outs):
         check_output(out, ins + outs[:i])
+
+
+# What a path argument holds, where its file is clearly one or the other.
+MODEL, TABLE = "model", "pose table"
+_KIND_BY_NAME = {".onnx": MODEL, ".csv": TABLE}
+_KIND_WORD = {MODEL: "MODEL", TABLE: "DATA"}
+
+
+def file_kind(path: Path) -> str | None:
+    """MODEL or TABLE where the file clearly is one, None where unsure. Its first bytes
+    decide where they can (ONNX's opening; text is never a model, and a table where its first
+    line holds a comma or its name says so), else its name (.onnx, .csv)."""
+    from ..controller.onnx_meta import starts_like_onnx
+
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(4096)
+    except OSError:
+        return None   # the verb's own reading says why
+    by_name = _KIND_BY_NAME.get(path.suffix.lower())
+    if starts_like_onnx(head):
+        return MODEL
+    text = _text(head)
+    if text:
+        return TABLE if "," in text.split("\n", 1)[0] or by_name == TABLE else None
+    return by_name
+
+
+def _text(head: bytes) -> str:
+    """The bytes as text where they are text (UTF-8 with no control character but tabs and
+    line breaks; a character cut short at the end is no fault), else ""."""
+    import codecs
+
+    try:
+        text = codecs.getincrementaldecoder("utf-8")().decode(head.removeprefix(codecs.BOM_UTF8))
+    except UnicodeDecodeError:
+        return ""
+    return text if all(c.isprintable() or c in "\t\r\n" for c in text) else ""
+
+
+def _operands(verb: Verb) -> list[tuple[str, str, str]]:
+    """(argument, kind, its words in the usage) of the verb's models and tables, positional
+    arguments first, each as its parser declares it: ("model", MODEL, "--model MODEL")."""
+    parser = argparse.ArgumentParser(add_help=False)
+    verb.add_arguments(parser)
+    kinds = {**dict.fromkeys(verb.models, MODEL), **dict.fromkeys(verb.tables, TABLE)}
+    actions = sorted((a for a in parser._actions if a.dest in kinds), key=lambda a: bool(a.option_strings))
+    return [(a.dest, kinds[a.dest], " ".join([*a.option_strings[:1], _KIND_WORD[kinds[a.dest]]])) for a in actions]
+
+
+def check_kinds(args: argparse.Namespace, verb: Verb) -> None:
+    """A model given where the verb takes a table, or a table where it takes a model (`apply
+    DATA MODEL`, in report's order), is refused before any work, with the verb's order: the
+    file's own error would say what it is not ("missing column meas_x"), not the swap. Runs
+    after `check_paths`: a FIFO is refused before it could block this read."""
+    expected = {**dict.fromkeys(verb.models, MODEL), **dict.fromkeys(verb.tables, TABLE)}
+    found = {name: file_kind(path) for name in expected if isinstance(path := getattr(args, name, None), Path)}
+    wrong = {name for name, kind in found.items() if kind is not None and kind != expected[name]}
+    if not wrong:
+        return
+    operands = _operands(verb)
+    name = next(name for name, _, _ in operands if name in wrong)   # the first in the verb's order
+    path, kind, want = getattr(args, name), found[name], expected[name]
+    if not (verb.models and verb.tables):   # no order to get wrong: what the verb takes
+        raise CliError(f"{path} is a {kind}, not the {want} posecorr {args.verb} takes")
+    usage = " ".join(["posecorr", args.verb, *(words for _, _, words in operands)])
+    raise CliError(f"{path} is a {kind}, not a {want}: the order is {usage}")
 
 
 def missing_module_line(exc: ModuleNotFoundError) -> str:

@@ -239,6 +239,7 @@ VERB = Verb(
     rank=3,
     needs="train",
     outputs=("output", "save"),
+    tables=("data",),
     add_arguments=add_arguments,
     run=run,
 )

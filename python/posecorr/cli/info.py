@@ -112,6 +112,7 @@ def _one_line(value: Any) -> str:
 VERB = Verb(
     help="print a model file's metadata",
     rank=9,
+    models=("model",),
     add_arguments=add_arguments,
     run=run,
 )

@@ -77,6 +77,8 @@ VERB = Verb(
     rank=5,
     needs="train",
     outputs=("output",),
+    models=("model",),
+    tables=("data",),
     add_arguments=add_arguments,
     run=run,
 )

@@ -49,6 +49,7 @@ VERB = Verb(
     help="a ROS 2 node: correct a PoseStamped topic live, swap models while it runs",
     rank=11,
     needs="ros2",
+    models=("model",),
     add_arguments=add_arguments,
     run=run,
 )

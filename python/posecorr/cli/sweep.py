@@ -116,6 +116,7 @@ VERB = Verb(
     rank=6,
     needs="train",
     outputs=("store",),
+    tables=("data",),
     add_arguments=add_arguments,
     run=run,
 )

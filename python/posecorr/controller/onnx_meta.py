@@ -139,6 +139,13 @@ def decode_value(text: str) -> Any:
         return text
 
 
+def starts_like_onnx(head: bytes) -> bool:
+    """Whether a file's first bytes open an ONNX ModelProto: its ir_version (field 1, a
+    varint of one byte) comes first, as writers serialize fields in order. No text starts so
+    (0x08 is a control character): a table is never taken for a model."""
+    return len(head) >= 2 and head[0] == 0x08 and 0 < head[1] < 0x80
+
+
 def read_info(path: str | os.PathLike[str]) -> dict[str, Any]:
     """Metadata and structure of an ONNX model file.
 

@@ -170,14 +170,14 @@ PC_API pc_status pc_load_into(const void *data, size_t size, const pc_options *o
 /* Corrects n poses: in and out hold n*7 floats and may alias. n == 0 is a no-op.
  * Checks, the same for every model whoever wrote it, each with a message naming the pose
  * and column and what was expected (pc_model_message); the input is checked whole before
- * anything is written:
+ * anything is written, and a pose's first broken clause, in this order, is reported:
  *  - a non-finite input value: PC_ERR_NONFINITE, out untouched;
- *  - a position outside the model's metadata "input_bounds" ("[[x_lo, y_lo, z_lo],
- *    [x_hi, y_hi, z_hi]]", metres; posecorr's exporter writes the training positions'
- *    box, widened): PC_ERR_RANGE, out untouched;
  *  - an input quaternion whose norm is off 1 by more than 1e-3, the pose tables'
  *    tolerance (the model normalises what it gets, so a zero or a norm-3 vector would come
  *    out as a made-up rotation): PC_ERR_QUATERNION, out untouched;
+ *  - a position outside the model's metadata "input_bounds" ("[[x_lo, y_lo, z_lo],
+ *    [x_hi, y_hi, z_hi]]", metres; posecorr's exporter writes the training positions'
+ *    box, widened): PC_ERR_RANGE, out untouched;
  *  - a result that is not finite, whose quaternion is not unit within 1e-3 on |q|^2, or
  *    that moves the pose farther than the metadata "correction_reach" ("[metres,
  *    radians]": the largest correction of position and of rotation the exporter saw on
@@ -189,7 +189,12 @@ PC_API pc_status pc_load_into(const void *data, size_t size, const pc_options *o
  * holding NaN or infinity, and "input_bounds", "time_bounds" or "correction_reach" that
  * are not finite float32 numbers or whose lower bound is above the upper one. A model
  * without "input_bounds" or "correction_reach" loads only with PC_LOAD_ALLOW_UNBOUNDED,
- * one without "model_digest" only with PC_LOAD_ALLOW_UNSIGNED. */
+ * one without "model_digest" only with PC_LOAD_ALLOW_UNSIGNED.
+ * The message of a pose's refusal reads "pose I: CLAUSE", I the pose's index in this call
+ * (0 when n is 1: a caller that runs one pose at a time and names it otherwise, by a line
+ * of its input, may show CLAUSE alone), CLAUSE naming a column by the contract's names at
+ * the top of this file (x, y, z, qw, qx, qy, qz; t the time), e.g. "pose 3: y = 5.000 m is
+ * outside the range the model was fitted on, -0.797 to -0.374 m (metadata input_bounds)". */
 PC_API pc_status pc_run(pc_model *model, const float *in, size_t n, float *out);
 
 /* pc_run with the time of each pose: t holds n floats, seconds since the session's start

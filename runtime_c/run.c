@@ -34,7 +34,11 @@ PC_HOT pc_status pc_run_steps(pc_model *m, const pc_plan *plan)
 
 PC_RARE static void pc_decimal(char *buf, size_t size, double v, int places);
 
-/* "...a correction of D m and A rad, beyond ..." of a pose moved farther than the
+/* The contract's names of a pose's columns, in and out (posecorr.h): a message names a
+ * column by them, where an index ("column 1") read as the first or as the second. */
+static const char pc_column_names[PC_POSE_WIDTH][3] = {"x", "y", "z", "qw", "qx", "qy", "qz"};
+
+/* "...moves the pose by D m and A rad, beyond ..." of a pose moved farther than the
  * model's correction_reach (python/posecorr/controller/checks.py writes the same). */
 PC_RARE static void pc_beyond_reach(pc_model *m, size_t pose, float d2, float dot, float n_in2,
                                     float n_out2)
@@ -46,7 +50,7 @@ PC_RARE static void pc_beyond_reach(pc_model *m, size_t pose, float d2, float do
     pc_decimal(reach_pos, sizeof reach_pos, sqrt((double)m->reach_pos2), 3);
     pc_decimal(reach_rot, sizeof reach_rot, 2.0 * acos(sqrt((double)m->reach_cos2)), 3);
     pc_format(m->message, sizeof m->message,
-              "output 'corrected' of pose %zu moves the pose by %s m and %s rad, beyond the "
+              "pose %zu: output 'corrected' moves the pose by %s m and %s rad, beyond the "
               "model's reach of %s m and %s rad (metadata correction_reach)", pose, dist,
               angle, reach_pos, reach_rot);
 }
@@ -151,15 +155,13 @@ PC_RARE static pc_status pc_output_error(pc_model *m, const float *in, const flo
     const pc_move v = pc_move_of(in, p);
     const size_t c = pc_first_nonfinite(p);
     if (c < PC_POSE_WIDTH) {
-        pc_format(m->message, sizeof m->message,
-                  "output 'corrected' of pose %zu is not finite in column %zu "
-                  "(expected a finite number)", pose, c);
+        pc_format(m->message, sizeof m->message, "pose %zu: %s of output 'corrected' is not "
+                  "finite (expected a finite number)", pose, pc_column_names[c]);
         return PC_ERR_RUNTIME;
     }
     if (!pc_unit_output(&v)) {
-        pc_format(m->message, sizeof m->message,
-                  "output 'corrected' of pose %zu has a quaternion that is not unit "
-                  "(columns 3-6, expected |q|^2 within 0.001 of 1)", pose);
+        pc_format(m->message, sizeof m->message, "pose %zu: the quaternion qw, qx, qy, qz of "
+                  "output 'corrected' is not unit (expected |q|^2 within 0.001 of 1)", pose);
         return PC_ERR_RUNTIME;
     }
     pc_beyond_reach(m, pose, v.d2, v.dot, v.n_in2, v.n2);
@@ -255,16 +257,20 @@ PC_RARE static void pc_decimal(char *buf, size_t size, double v, int places)
               frac);
 }
 
-/* "...: VALUE UNIT, expected LO to HI UNIT (metadata KEY)" of a value outside bounds. */
-PC_RARE static void pc_outside(pc_model *m, const char *what, float v, float lo, float hi,
-                               const char *unit, const char *key)
+/* "pose I: NAME = VALUE UNIT is outside the range the model was fitted on, LO to HI UNIT
+ * (metadata input_bounds)" of a position outside the box, or of a time (NAME t) outside
+ * the span. */
+PC_RARE static void pc_outside(pc_model *m, size_t pose, const char *name, float v, float lo,
+                               float hi, int time)
 {
     char value[24], low[24], high[24];
+    const char *unit = time ? "s" : "m";
     pc_decimal(value, sizeof value, v, 3);
     pc_decimal(low, sizeof low, lo, 3);
     pc_decimal(high, sizeof high, hi, 3);
-    pc_format(m->message, sizeof m->message, "%s: %s %s, expected %s to %s %s (metadata %s)",
-              what, value, unit, low, high, unit, key);
+    pc_format(m->message, sizeof m->message, "pose %zu: %s = %s %s is outside the %s the model "
+              "was fitted on, %s to %s %s (metadata %s)", pose, name, value, unit,
+              time ? "span" : "range", low, high, unit, time ? "time_bounds" : "input_bounds");
 }
 
 /* Whether a pose meets the input contract, the clauses joined without a branch; the finite
@@ -276,30 +282,29 @@ PC_INLINE int pc_pose_ok(const pc_model *m, const float *in)
     return m->bounded ? ok : ok & pc_pose_finite(in);
 }
 
-/* The first clause of the input contract that pose i breaks, as the message. */
+/* The first clause of the input contract that pose i breaks, as the message: a value not
+ * finite, then the quaternion (SteamVR's "no pose" is all zeros, its position too: that is
+ * a zero quaternion, not a position outside the box), then the position. */
 PC_RARE static pc_status pc_pose_error(pc_model *m, const float *in, size_t i)
 {
-    char what[96], norm[24];
+    char norm[24];
     const double n2 = pc_input_norm2(in + 3);
     size_t c = pc_first_nonfinite(in);
     if (c < PC_POSE_WIDTH) {
-        pc_format(m->message, sizeof m->message,
-                  "pose %zu has a non-finite value in column %zu (expected a finite "
-                  "number)", i, c);
+        pc_format(m->message, sizeof m->message, "pose %zu: %s is not finite (expected a "
+                  "finite number)", i, pc_column_names[c]);
         return PC_ERR_NONFINITE;
     }
-    for (c = 0; c < 3; c++)
-        if (!(in[c] >= m->lo[c] && in[c] <= m->hi[c])) {
-            pc_format(what, sizeof what, "pose %zu is outside the range the model was "
-                      "fitted on in column %zu", i, c);
-            pc_outside(m, what, in[c], m->lo[c], m->hi[c], "m", "input_bounds");
-            return PC_ERR_RANGE;
-        }
-    pc_decimal(norm, sizeof norm, sqrt(n2), 6);
-    pc_format(m->message, sizeof m->message,
-              "pose %zu has a quaternion of norm %s in columns 3-6 (expected a unit "
-              "quaternion w, x, y, z: norm within 0.001 of 1)", i, norm);
-    return PC_ERR_QUATERNION;
+    if (!pc_unit_input(n2)) { /* pc_unit_input_banded's answer, without its float shortcut */
+        pc_decimal(norm, sizeof norm, sqrt(n2), 6);
+        pc_format(m->message, sizeof m->message, "pose %zu: the quaternion qw, qx, qy, qz has "
+                  "norm %s (expected a unit quaternion: norm within 0.001 of 1)", i, norm);
+        return PC_ERR_QUATERNION;
+    }
+    for (c = 0; c < 2 && in[c] >= m->lo[c] && in[c] <= m->hi[c]; c++)
+        ;
+    pc_outside(m, i, pc_column_names[c], in[c], m->lo[c], m->hi[c], 0);
+    return PC_ERR_RANGE;
 }
 
 /* The time of a pose (t NULL: 0) meets the input contract: finite, and inside the fitted
@@ -315,22 +320,19 @@ PC_INLINE int pc_time_ok(const pc_model *m, const float *t)
 /* The clause of the input contract that the time of pose i breaks, as the message. */
 PC_RARE static pc_status pc_time_error(pc_model *m, float ti, size_t i)
 {
-    char what[96];
     if (!isfinite(ti)) {
-        pc_format(m->message, sizeof m->message, "time of pose %zu is not finite "
-                  "(expected seconds since the session's start)", i);
+        pc_format(m->message, sizeof m->message, "pose %zu: t is not finite (expected seconds "
+                  "since the session's start)", i);
         return PC_ERR_NONFINITE;
     }
-    pc_format(what, sizeof what, "time of pose %zu is outside the span the model was fitted on",
-              i);
-    pc_outside(m, what, ti, m->t_lo, m->t_hi, "s", "time_bounds");
+    pc_outside(m, i, "t", ti, m->t_lo, m->t_hi, 1);
     return PC_ERR_RANGE;
 }
 
 /* The input contract, pose by pose (python/posecorr/controller/checks.py checks the same
  * in the same order): finite times inside the fitted span (when the model records one;
- * no t is t = 0), then finite poses, positions inside the training box (input_bounds)
- * and unit quaternions. */
+ * no t is t = 0), then finite poses, unit quaternions and positions inside the training
+ * box (input_bounds). */
 PC_NOINLINE static pc_status pc_check_input(pc_model *m, const float *in, const float *t,
                                             size_t n)
 {

@@ -137,9 +137,10 @@ def test_a_pose_outside_the_box_is_refused_alike(column, value):
     x = _inside()
     x[7, column] = value
     lo, hi = graphs.model_box(PMC_ZHOU)
-    text = _same(_both(PMC_ZHOU, x), S.RANGE, f"pose 7 is outside the range the model was fitted on in "
-                 f"column {column}: {checks.decimal(np.float32(value))} m, expected "
-                 f"{checks.decimal(lo[column])} to {checks.decimal(hi[column])} m (metadata input_bounds)")
+    name = "xyz"[column]
+    text = _same(_both(PMC_ZHOU, x), S.RANGE, f"pose 7: {name} = {checks.decimal(np.float32(value))} m is outside "
+                 f"the range the model was fitted on, {checks.decimal(lo[column])} to "
+                 f"{checks.decimal(hi[column])} m (metadata input_bounds)")
     assert text.startswith("pose outside the fitted range: ")
 
 
@@ -170,7 +171,7 @@ def test_range_messages_agree_on_many_values():
 def test_a_non_finite_pose_is_refused_alike(value):
     x = _inside()
     x[3, 5] = value
-    _same(_both(PMC_ZHOU, x), S.NONFINITE, "pose 3 has a non-finite value in column 5 (expected a finite number)")
+    _same(_both(PMC_ZHOU, x), S.NONFINITE, "pose 3: qy is not finite (expected a finite number)")
 
 
 @pytest.mark.parametrize("scale,norm", [(3.0, "3.000000"), (0.0, "0.000000"), (1.01, "1.010000")])
@@ -179,10 +180,22 @@ def test_a_quaternion_that_is_not_unit_is_refused_not_normalised(scale, norm):
     one. Now both back ends (and the shim's single-pose path) refuse it."""
     x = _inside()
     x[4, 3:] *= scale
-    _same(_both(PMC_ZHOU, x), S.QUATERNION, f"pose 4 has a quaternion of norm {norm} in columns 3-6",
-          "expected a unit quaternion")
+    _same(_both(PMC_ZHOU, x), S.QUATERNION, f"pose 4: the quaternion qw, qx, qy, qz has norm {norm} "
+          "(expected a unit quaternion: norm within 0.001 of 1)")
     one = _both(PMC_ZHOU, x[4])
-    _same(one, S.QUATERNION, "pose 0 has a quaternion")
+    _same(one, S.QUATERNION, "pose 0: the quaternion qw, qx, qy, qz has norm")
+
+
+@pytest.mark.parametrize("position", [(0.0, 0.0, 0.0), (999.0, -5.0, 3.0)])
+def test_a_zero_quaternion_is_named_before_the_box(position):
+    """SteamVR's "no pose" is all zeros: its position is outside the box too, and what is wrong
+    is the quaternion. Both back ends check a pose's clauses in one order: finite, the unit
+    quaternion, the box."""
+    x = _inside()
+    x[2, :3], x[2, 3:] = position, 0.0
+    _same(_both(PMC_ZHOU, x), S.QUATERNION, "pose 2: the quaternion qw, qx, qy, qz has norm 0.000000")
+    x[2, 4] = np.nan
+    _same(_both(PMC_ZHOU, x), S.NONFINITE, "pose 2: qx is not finite")
 
 
 def test_the_quaternion_tolerance_is_the_tables():
@@ -196,7 +209,7 @@ def test_the_quaternion_tolerance_is_the_tables():
     for backend in BACKENDS:
         assert np.all(np.isfinite(Corrector(PMC_ZHOU, backend=backend).correct(x)))
     x[1, 3:] *= 1 - 0.3 * QUAT_NORM_TOLERANCE
-    _same(_both(PMC_ZHOU, x), S.QUATERNION, "pose 1 has a quaternion of norm 0.9988")
+    _same(_both(PMC_ZHOU, x), S.QUATERNION, "pose 1: the quaternion qw, qx, qy, qz has norm 0.9988")
 
 
 # --- results that are not poses ---------------------------------------------------------------
@@ -212,13 +225,13 @@ def test_an_infinite_output_is_refused_alike():
     x = _inside()
     x[:, 6] = np.abs(x[:, 6]) + 0.1
     x[:, 3:] /= np.linalg.norm(x[:, 3:], axis=1, keepdims=True)
-    _same(_both(blob, x), S.RUNTIME, "output 'corrected' of pose 0 is not finite in column 6 (expected a finite number)")
+    _same(_both(blob, x), S.RUNTIME, "pose 0: qz of output 'corrected' is not finite (expected a finite number)")
 
 
 def test_a_zero_output_quaternion_is_refused_alike():
     blob = _posecorr_graph([1, 1, 1, 0, 0, 0, 0])
-    _same(_both(blob, _inside()), S.RUNTIME, "output 'corrected' of pose 0 has a quaternion that is not unit",
-          "expected |q|^2 within 0.001 of 1")
+    _same(_both(blob, _inside()), S.RUNTIME, "pose 0: the quaternion qw, qx, qy, qz of output 'corrected' is not "
+          "unit (expected |q|^2 within 0.001 of 1)")
 
 
 # --- models refused at load -------------------------------------------------------------------
@@ -398,16 +411,15 @@ def test_a_time_outside_the_span_is_refused_alike(drift, when):
     x, t = table.measured[:10].copy(), table.extras["t"][:10].copy()
     t[6] = when
     if np.isnan(when):
-        _same(_both(path, x, t), S.NONFINITE, "time of pose 6 is not finite")
+        _same(_both(path, x, t), S.NONFINITE, "pose 6: t is not finite (expected seconds since the session's start)")
         return
     lo, hi = np.float32(span)
-    _same(_both(path, x, t), S.RANGE, f"time of pose 6 is outside the span the model was fitted on: "
-          f"{checks.decimal(np.float32(when))} s, expected {checks.decimal(lo)} to {checks.decimal(hi)} s "
-          "(metadata time_bounds)")
+    _same(_both(path, x, t), S.RANGE, f"pose 6: t = {checks.decimal(np.float32(when))} s is outside the span the "
+          f"model was fitted on, {checks.decimal(lo)} to {checks.decimal(hi)} s (metadata time_bounds)")
     if when == -100000.0:  # without the check (a span opened wide) kilometres away: the reach
         wide = graphs.signed(_edited(path, time_bounds="[-1e30, 1e30]"))  # catches it still
         errors = _both(wide, x[6:7], t[6:7])
-        text = _same(errors, S.RUNTIME, "output 'corrected' of pose 0 moves the pose by ",
+        text = _same(errors, S.RUNTIME, "pose 0: output 'corrected' moves the pose by ",
                      "(metadata correction_reach)")
         assert float(text.split("moves the pose by ")[1].split(" m")[0]) > 1000.0
 
@@ -417,8 +429,8 @@ def test_no_time_is_time_zero_and_is_checked_too(drift):
     refused (C: pc_run_timed with t NULL), the same on onnxruntime."""
     path, table, _ = drift
     blob = graphs.signed(_edited(path, time_bounds="[10, 20]"))
-    _same(_both(blob, table.measured[:3]), S.RANGE, "time of pose 0 is outside the span the model was fitted on: "
-          "0.000 s, expected 10.000 to 20.000 s")
+    _same(_both(blob, table.measured[:3]), S.RANGE, "pose 0: t = 0.000 s is outside the span the model was fitted "
+          "on, 10.000 to 20.000 s")
     for backend in BACKENDS:  # inside the span: corrected
         assert np.all(np.isfinite(Corrector(blob, backend=backend).correct(table.measured[:3], np.full(3, 15.0))))
 
@@ -481,7 +493,9 @@ def test_apply_refuses_a_pose_outside_the_box(tmp_path, capsys, backend, column,
     code, err, escaped = _run(["apply", str(PMC_ZHOU), str(table), "-o", str(out), "--backend", backend], capsys)
     assert escaped is None and code == 2, err
     assert len(err.strip().splitlines()) == 1
-    assert f"row 17, column {column}: " in err and "the pose is outside the range the model was fitted on" in err
+    name = column.split("_")[1]
+    assert f"row 17, column {column}: " in err and f": {name} = {value}.000 m is outside the range the model was " \
+        "fitted on, " in err and "pose 0" not in err
     assert _checksums(tmp_path) == before
 
 
@@ -495,7 +509,7 @@ def test_apply_refuses_a_time_outside_the_span(tmp_path, capsys, drift, backend)
     code, err, escaped = _run(["apply", str(path), str(csv), "-o", str(out), "--backend", backend], capsys)
     assert escaped is None and code == 2, err
     assert len(err.strip().splitlines()) == 1
-    assert "row 9, column t: " in err and "time of the pose is outside the span" in err
+    assert "row 9, column t: " in err and ": t = -100000.000 s is outside the span" in err and "pose 0" not in err
     assert _checksums(tmp_path) == before
 
 
@@ -527,20 +541,78 @@ def test_apply_refuses_a_result_that_is_not_a_pose(tmp_path, capsys):
     before = _checksums(tmp_path)
     code, err, _ = _run(["apply", str(model), str(table), "-o", str(out), "--backend", "onnxruntime"], capsys)
     assert code == 2 and len(err.strip().splitlines()) == 1
-    assert "row 2: " in err and "output 'corrected' of the pose is not finite in column 6" in err
+    assert "row 2: " in err and "runtime error: qz of output 'corrected' is not finite" in err and "pose 0" not in err
     assert _checksums(tmp_path) == before
 
 
-def test_posecorr_run_refuses_a_pose_outside_the_box():
+def _posecorr_run(model, text: str | bytes, *args: str) -> subprocess.CompletedProcess:
     run = Path(sys.executable).parent / "posecorr-run"
+    return subprocess.run([str(run), str(model), *args], input=text, capture_output=True,
+                          text=isinstance(text, str), timeout=60)
+
+
+def _lines(x: np.ndarray, t: np.ndarray | None = None) -> str:
+    rows = x if t is None else np.column_stack([x, t])
+    return "\n".join(",".join(f"{v:.9g}" for v in row) for row in rows) + "\n"
+
+
+def test_posecorr_run_refuses_a_pose_outside_the_box():
     x = _inside(2)
     x[1, 0] = 999.0
-    text = "\n".join(",".join(f"{v:.9g}" for v in row) for row in x) + "\n"
-    r = subprocess.run([str(run), str(PMC_ZHOU)], input=text, capture_output=True, text=True, timeout=60)
+    r = _posecorr_run(PMC_ZHOU, _lines(x))
     lines = r.stdout.splitlines()
     assert r.returncode == 1 and len(lines) == 2 and "nan" in lines[1].lower()
-    assert "line 2: pose outside the fitted range: pose 0 is outside the range the model was fitted on " \
-           "in column 0: 999.000 m" in r.stderr
+    lo, hi = graphs.model_box(PMC_ZHOU)
+    assert r.stderr == (f"posecorr-run: line 2: pose outside the fitted range: x = 999.000 m is outside the range "
+                        f"the model was fitted on, {checks.decimal(lo[0])} to {checks.decimal(hi[0])} m (metadata "
+                        "input_bounds)\n")
+
+
+def test_posecorr_run_names_each_refusal_by_its_line_alone():
+    """A line is a call of one pose: the tool gives the library's clause after the line's
+    number, without the call's "pose 0", in the words of the Python back ends (whose messages
+    name the pose in its call)."""
+    x = _inside(5)
+    x[1, 4] = np.inf
+    x[2, :3], x[2, 3:] = (5.0, 5.0, 5.0), 0.0      # a zero quaternion, outside the box too
+    x[3, 1] = 5.0
+    r = _posecorr_run(PMC_ZHOU, _lines(x))
+    assert r.returncode == 1 and len(r.stdout.splitlines()) == 5
+    said = {}
+    for k in (1, 2, 3):
+        with pytest.raises(PoseCorrError) as info:
+            Corrector(PMC_ZHOU).correct(x[k])
+        status, pose, clause = str(info.value).split(": ", 2)
+        assert pose == "pose 0"
+        said[k] = f"posecorr-run: line {k + 1}: {status}: {clause}"
+    assert r.stderr.splitlines() == [said[1], said[2], said[3]]
+    assert said[1].endswith("line 2: non-finite input: qx is not finite (expected a finite number)")
+    assert said[2].endswith("line 3: quaternion not unit: the quaternion qw, qx, qy, qz has norm 0.000000 "
+                            "(expected a unit quaternion: norm within 0.001 of 1)")
+    assert said[3].startswith("posecorr-run: line 4: pose outside the fitted range: y = 5.000 m is outside")
+    # --binary: the record's number, the same clause
+    r = _posecorr_run(PMC_ZHOU, x.astype("<f4").tobytes(), "--binary")
+    assert r.returncode == 1 and r.stderr.decode().splitlines()[1] == said[2].replace("line 3", "record 3")
+
+
+def test_posecorr_run_names_a_time_and_an_output_by_their_line(drift):
+    path, table, span = drift
+    x, t = table.measured[:3].copy(), table.extras["t"][:3].copy()
+    t[1] = -100000.0
+    r = _posecorr_run(path, _lines(x, t))
+    assert r.returncode == 1
+    assert r.stderr == (f"posecorr-run: line 2: pose outside the fitted range: t = -100000.000 s is outside the span "
+                        f"the model was fitted on, {checks.decimal(np.float32(span[0]))} to "
+                        f"{checks.decimal(np.float32(span[1]))} s (metadata time_bounds)\n")
+    blob = _posecorr_graph([1, 1, 1, 1, 1, 1, 0], op="Div")  # qz / 0
+    x = _inside(1)
+    x[:, 6] = np.abs(x[:, 6]) + 0.1
+    x[:, 3:] /= np.linalg.norm(x[:, 3:], axis=1, keepdims=True)
+    model = path.parent / "inf.onnx"
+    model.write_bytes(blob)
+    r = _posecorr_run(model, _lines(x))
+    assert r.stderr == ("posecorr-run: line 1: runtime error: qz of output 'corrected' is not finite (expected a "
+                        "finite number)\n")
 
 
 # --- the digest, the reach and the allow flags: the same words on both back ends --------------
@@ -595,7 +667,7 @@ def test_a_correction_beyond_the_reach_is_refused_alike(dx):
         np.testing.assert_allclose(c, o, atol=2e-6)
         return
     first = int(np.argmax(moved > 1.01 * reach[0]))
-    _same(_both(blob, x), S.RUNTIME, f"output 'corrected' of pose {first} moves the pose by "
+    _same(_both(blob, x), S.RUNTIME, f"pose {first}: output 'corrected' moves the pose by "
           f"{checks.decimal(moved[first])[:-1]}", f"beyond the model's reach of {checks.decimal(reach[0])} m "
           f"and {checks.decimal(reach[1])} rad (metadata correction_reach)")
 

@@ -280,6 +280,9 @@ def test_compiled_function_refuses_what_pc_run_refuses(tmp_path):
         p = base.copy()
         p[5] = bad
         x.append(p)
+    p = base.copy()   # SteamVR's "no pose": a zero quaternion (5, before the box), at a position outside
+    p[:3], p[3:] = hi + 1, 0
+    x.append(p)
     # |q|^2 a few 1e-8 around the tolerance's ends and the float band's (PC_QUAT_NORM2_BAND),
     # where the double sum decides
     for target in (0.998001, 1.002001, 1 - 0.00199, 1 + 0.00199):
@@ -294,7 +297,8 @@ def test_compiled_function_refuses_what_pc_run_refuses(tmp_path):
     assert set(codes) == {0, 2, 4, 5}
     assert codes[:12] == [2, 2, 0, 0] * 3
     assert codes[12:18] == [5, 5, 5, 5, 0, 0]
-    assert {0, 5} <= set(codes[20:])
+    assert codes[18:21] == [4, 4, 5]
+    assert {0, 5} <= set(codes[21:])
     text = (tmp_path / f"{ZHOU.stem.replace('-', '_')}.c").read_text()
     for code in ("2  the input is outside", "3  the correction moves", "5  the input quaternion"):
         assert f" *   {code}" in text

@@ -429,7 +429,7 @@ def _hostile_models(folder: Path) -> dict[str, tuple[Path, str, list[str]]]:
     g = graphs.G()
     y = g.op("Mul", ["pose", g.f32(np.array([1, 1, 1, 2, 2, 2, 2], np.float32))])
     save("norm2.onnx", graphs.signed(g.model(y, metadata=graphs.BOUNDED)), "RUNTIME",
-         "has a quaternion that is not unit")
+         "the quaternion qw, qx, qy, qz of output 'corrected' is not unit")
     save("unsigned.onnx", g.model(y, metadata=graphs.BOUNDED).SerializeToString(), "INTEGRITY",
          "no metadata model_digest", "--allow-unsigned")
     return out
@@ -514,7 +514,7 @@ def test_a_zero_input_quaternion_is_refused_everywhere(folder, capsys):
         lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
         assert code == 2 and len(lines) == 1 and "zero.csv" in lines[0] and "row 9" in lines[0], lines
         pose = np.concatenate([table.meas_p[7], table.meas_q[7]])
-        with pytest.raises(PoseCorrError, match="quaternion of norm 0.000000") as info:
+        with pytest.raises(PoseCorrError, match="pose 0: the quaternion qw, qx, qy, qz has norm 0.000000") as info:
             Corrector(MODEL, backend=backend).correct(pose)
         assert info.value.status == _status("QUATERNION")
     run = Path(sys.executable).parent / "posecorr-run"
@@ -560,8 +560,8 @@ def _poses(n: int, seed: int) -> np.ndarray:
 def test_one_corrector_shared_by_8_threads_gives_the_bits_of_one(backend) -> None:
     """8 threads call one Corrector at once, on batches of several sizes (across the C
     runtime's 1/16/256 chunks) and on single poses: every result is the single-threaded
-    one bit for bit, and no call raises (before the lock: poses 2e12 m off, false
-    'quaternion that is not unit' errors)."""
+    one bit for bit, and no call raises (before the lock: poses 2e12 m off, false refusals
+    of output quaternions not unit)."""
     import threading
 
     corrector = Corrector(MODEL, backend=backend)

@@ -223,7 +223,7 @@ def test_nan_input_leaves_output_untouched(lib):
     out = np.full((4, 7), 7.0, dtype=np.float32)
     st = L.pc_run(c._impl.handle, x.ctypes.data, 4, out.ctypes.data)
     assert st != 0 and np.all(out == 7.0)
-    assert b"pose 2" in L.pc_model_message(c._impl.handle)
+    assert L.pc_model_message(c._impl.handle).startswith(b"pose 2: qy is not finite")
     with pytest.raises(PoseCorrError):
         c.correct(x)
     assert L.pc_run(c._impl.handle, None, 0, None) == 0
@@ -275,7 +275,7 @@ def test_non_unit_quaternion_is_an_error_for_every_model(lib):
         c = Corrector(g.model(y, metadata=meta).SerializeToString(), library=lib)
         st, out, msg = _run_raw(c, lib, x)
         assert st == _status("PC_ERR_RUNTIME") and b"not unit" in msg
-        assert b"pose 0" in msg and np.all(out == 7.0)
+        assert msg.startswith(b"pose 0: ") and np.all(out == 7.0)
 
 
 def _with_metadata(path: Path, **meta: str) -> bytes:
@@ -298,7 +298,7 @@ def test_input_bounds_flag_poses_outside_the_fitted_range(lib):
         x[3, col] = value
         st, out, msg = _run_raw(c, lib, x)
         assert st == _status("PC_ERR_RANGE"), msg
-        assert b"pose 3 is outside" in msg and f"column {col}".encode() in msg
+        assert msg.startswith(f"pose 3: {'xyz'[col]} = ".encode()) and b" is outside the range" in msg
         assert np.all(out == 7.0), "output must stay untouched"
     with pytest.raises(PoseCorrError, match="input_bounds"):
         Corrector(_with_metadata(MLP_ZHOU, input_bounds="[[0, 0], [1, 1]]"), library=lib)
@@ -734,8 +734,8 @@ def test_pc_run_timed_with_null_time_is_pc_run(drift_model, lib):
     out = np.full_like(x, 7.0)
     st = L.pc_run_timed(h, x.ctypes.data, bad.ctypes.data, 20, out.ctypes.data)
     assert st == _status("PC_ERR_NONFINITE") and np.all(out == 7.0)
-    assert b"time of pose 4" in L.pc_model_message(h)
-    with pytest.raises(PoseCorrError, match="time of pose 4"):
+    assert L.pc_model_message(h).startswith(b"pose 4: t is not finite")
+    with pytest.raises(PoseCorrError, match="pose 4: t is not finite"):
         c.correct(x, bad)
 
 
@@ -985,13 +985,13 @@ def test_portable_checks_refuse_as_the_sse2_ones(lib):
     fast, plain = Corrector(path, library=lib), Corrector(path, library=str(portable / "libposecorr.so"))
     good = graphs.poses_in_box(path, 8, seed=3)
     np.testing.assert_array_equal(fast.correct(good), plain.correct(good))
-    breaks = {"non-finite value in column 4": (2, (4,), np.nan),
-              "non-finite value in column 0": (5, (0,), np.inf),
-              "non-finite value in column 6": (1, (6,), -np.inf),
-              "quaternion of norm 1.010000": (6, (3, 4, 5, 6), None)}
+    breaks = {"qx is not finite": (2, (4,), np.nan),
+              "x is not finite": (5, (0,), np.inf),
+              "qz is not finite": (1, (6,), -np.inf),
+              "qw, qx, qy, qz has norm 1.010000": (6, (3, 4, 5, 6), None)}
     for col in range(3):
         for side in (-100.0, 100.0):    # each bound of each position column
-            breaks[f"column {col} ({side})"] = (col + 2, (col,), side)
+            breaks[f"{'xyz'[col]} = {side:.3f} m ({side})"] = (col + 2, (col,), side)
     for expected, (row, cols, value) in breaks.items():
         x = good.copy()
         x[row, list(cols)] = x[row, list(cols)] * 1.01 if value is None else value
@@ -1002,7 +1002,7 @@ def test_portable_checks_refuse_as_the_sse2_ones(lib):
                     c.correct(poses)
                 refusals.append((info.value.status, str(info.value)))
             assert refusals[0] == refusals[1], expected
-            assert f"pose {pose} " in refusals[0][1] and expected.split(" (")[0] in refusals[0][1], refusals[0]
+            assert f"pose {pose}: " in refusals[0][1] and expected.split(" (")[0] in refusals[0][1], refusals[0]
 
 
 def test_a_model_without_bounds_still_refuses_non_finite_poses(lib):
@@ -1019,12 +1019,12 @@ def test_a_model_without_bounds_still_refuses_non_finite_poses(lib):
             bad = x.copy()
             bad[1, 0] = value
             for poses, pose in ((bad, 1), (bad[1:2], 0)):
-                with pytest.raises(PoseCorrError, match=f"pose {pose} has a non-finite value in column 0"):
+                with pytest.raises(PoseCorrError, match=f"pose {pose}: x is not finite"):
                     c.correct(poses)
     # a result overflowing to infinity: the model without its box, a pose 1e30 m away
     c = Corrector(_without_metadata(PMC_ZHOU, "input_bounds", "correction_reach"), library=lib)
     far = np.array([[1e30, -0.6, 0.5, 1, 0, 0, 0]], dtype=np.float32)
-    with pytest.raises(PoseCorrError, match="output 'corrected' of pose 0 is not finite"):
+    with pytest.raises(PoseCorrError, match="pose 0: x of output 'corrected' is not finite"):
         c.correct(far)
 
 
@@ -1128,9 +1128,9 @@ def test_output_checks_refuse_as_the_rule_and_alike_on_both_builds(lib):
             c = Corrector(blob, library=library)
             answers.append(_one_by_one(c, x, y))
             assert [a == "kept" for a in answers[-1]] == kept.tolist(), (metres, radians)
-            assert all("pose 0 moves the pose by" in a[1] for a in answers[-1] if a != "kept")
+            assert all("pose 0: output 'corrected' moves the pose by" in a[1] for a in answers[-1] if a != "kept")
             if not kept.all():
-                with pytest.raises(PoseCorrError, match=f"pose {int(np.argmin(kept))} moves"):
+                with pytest.raises(PoseCorrError, match=f"pose {int(np.argmin(kept))}: output 'corrected' moves"):
                     c.correct(x)
         assert answers[0] == answers[1]
     # each probed pose is refused at its lowest step and kept at its highest: the steps

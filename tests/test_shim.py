@@ -102,7 +102,7 @@ def test_single_pose_fast_path_equals_ctypes(lib, model_path):
     impl._call1 = importlib.import_module("posecorr.controller._call1")
     bad = x[0].copy()
     bad[4] = np.nan
-    with pytest.raises(PoseCorrError, match="non-finite value in column 4"):
+    with pytest.raises(PoseCorrError, match="pose 0: qx is not finite"):
         c.correct(bad)
     # float32 takes the fast path too; strided and list inputs the general one: same result
     assert impl._call1.run1(impl._run_address, impl.handle, x[0].astype(np.float32),

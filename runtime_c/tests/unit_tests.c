@@ -492,8 +492,9 @@ static void test_checks(void)
         expect_run(m, unit, PC_OK, "");
         memcpy(pose, unit, sizeof pose);
         pose[3] = 3.0f;
-        expect_run(m, pose, PC_ERR_QUATERNION, "pose 0 has a quaternion of norm 3.000000 in "
-                                               "columns 3-6");
+        expect_run(m, pose, PC_ERR_QUATERNION, "pose 0: the quaternion qw, qx, qy, qz has norm "
+                                               "3.000000 (expected a unit quaternion: norm "
+                                               "within 0.001 of 1)");
         pose[3] = 0.0f;
         expect_run(m, pose, PC_ERR_QUATERNION, "norm 0.000000");
         pose[3] = 0.9995f; /* within the tables' tolerance */
@@ -505,8 +506,9 @@ static void test_checks(void)
     build(&model, &ADD, c);
     CHECK(pc_load_memory(model.d, model.n, &ALLOW, &m, &err) == PC_OK);
     if (m) {
-        expect_run(m, unit, PC_ERR_RUNTIME, "output 'corrected' of pose 0 has a quaternion that "
-                                            "is not unit");
+        expect_run(m, unit, PC_ERR_RUNTIME, "pose 0: the quaternion qw, qx, qy, qz of output "
+                                            "'corrected' is not unit (expected |q|^2 within "
+                                            "0.001 of 1)");
         pc_free(m);
     }
     c[3] = 0.0f;
@@ -516,15 +518,33 @@ static void test_checks(void)
     if (m) {
         memcpy(pose, unit, sizeof pose);
         pose[2] = 2.0f;
-        expect_run(m, pose, PC_ERR_RANGE, "pose 0 is outside the range the model was fitted on in "
-                                          "column 2: 2.000 m, expected -1.000 to 1.500 m "
-                                          "(metadata input_bounds)");
+        expect_run(m, pose, PC_ERR_RANGE, "pose 0: z = 2.000 m is outside the range the model was "
+                                          "fitted on, -1.000 to 1.500 m (metadata input_bounds)");
         pose[2] = -1.0625f;
-        expect_run(m, pose, PC_ERR_RANGE, "-1.063 m");
+        expect_run(m, pose, PC_ERR_RANGE, "z = -1.063 m");
         pose[2] = -3e30f;
-        expect_run(m, pose, PC_ERR_RANGE, "beyond -1e9 m");
+        expect_run(m, pose, PC_ERR_RANGE, "z = beyond -1e9 m");
         pose[2] = 1.5f;
         expect_run(m, pose, PC_OK, "");
+        /* SteamVR's "no pose", all zeros but for a position outside: its quaternion is named,
+         * before the box; a value not finite before both */
+        pose[0] = 5.0f;
+        pose[3] = 0.0f;
+        expect_run(m, pose, PC_ERR_QUATERNION, "pose 0: the quaternion qw, qx, qy, qz has norm "
+                                               "0.000000");
+        pose[5] = NAN;
+        expect_run(m, pose, PC_ERR_NONFINITE, "pose 0: qy is not finite (expected a finite "
+                                              "number)");
+        /* in a call of several poses, the pose's index in it */
+        {
+            float three[21], out[21];
+            memcpy(three, unit, sizeof unit);
+            memcpy(three + 7, unit, sizeof unit);
+            memcpy(three + 14, unit, sizeof unit);
+            three[15] = -2.0f;
+            CHECK(pc_run(m, three, 3, out) == PC_ERR_RANGE);
+            CHECK(strncmp(pc_model_message(m), "pose 2: y = -2.000 m is outside", 31) == 0);
+        }
         pc_free(m);
     }
     /* bounds edited into NaN, infinity, an inverted box or the wrong count: refused */
@@ -616,7 +636,7 @@ static void test_contract(void)
     at = sign(&model);
     CHECK(pc_load_memory(model.d, model.n, NULL, &m, &err) == PC_OK);
     if (m) {
-        expect_run(m, unit, PC_ERR_RUNTIME, "output 'corrected' of pose 0 moves the pose by 2.291 m "
+        expect_run(m, unit, PC_ERR_RUNTIME, "pose 0: output 'corrected' moves the pose by 2.291 m "
                                             "and 0.000 rad, beyond the model's reach of 0.100 m "
                                             "and 0.500 rad (metadata correction_reach)");
         pc_free(m);

@@ -223,6 +223,17 @@ static int write_binary_pose(const float *out)
     return fwrite(record, 1, sizeof record, stdout) == sizeof record && fflush(stdout) == 0;
 }
 
+/* pc_run's message for a line (record) that names the pose already: a refusal reads
+ * "pose I: CLAUSE" (posecorr.h), I the pose's index in the call, 0 here where every call is
+ * one pose; "line 2: pose 0: ..." would name one pose twice, the second time wrongly. */
+static const char *refusal(const pc_model *model)
+{
+    static const char one_pose[] = "pose 0: ";
+    const char *message = pc_model_message(model);
+    return strncmp(message, one_pose, sizeof one_pose - 1) == 0 ? message + sizeof one_pose - 1
+                                                                 : message;
+}
+
 static int run_binary(pc_model *model, int strict)
 {
     unsigned char bytes[4 * PC_POSE_WIDTH];
@@ -237,7 +248,7 @@ static int run_binary(pc_model *model, int strict)
             float_from_le(bytes + 4 * i, in + i);
         if ((st = pc_run(model, in, 1, out)) != PC_OK) {
             fprintf(stderr, "posecorr-run: record %lu: %s: %s\n", record, pc_status_name(st),
-                    pc_model_message(model));
+                    refusal(model));
             if (strict)
                 return 1;
             failed = 1;
@@ -297,7 +308,7 @@ static int run_text(pc_model *model, int strict)
             fill_nan(out);
         } else if ((st = pc_run_timed(model, in, has_t ? &t : NULL, 1, out)) != PC_OK) {
             fprintf(stderr, "posecorr-run: line %lu: %s: %s\n", line_no, pc_status_name(st),
-                    pc_model_message(model));
+                    refusal(model));
             if (strict) {
                 status = 1;
                 break;

@@ -15,7 +15,6 @@ from __future__ import annotations
 import csv
 import io
 import os
-import re
 from typing import Any
 
 import numpy as np
@@ -23,6 +22,7 @@ import numpy as np
 from ..data import CHUNK_ROWS, MEAS_POS, MEAS_QUAT, REF_POS, REF_QUAT, PoseTable, TableError, TableReader
 from ..metrics import METRIC_KEYS, metric_block, pose_errors
 from ..safeio import atomic_output, check_output
+from .checks import COLUMNS, QUATERNION, TIME_INPUT
 from .digest import data_digest
 from .onnx_meta import decode_value, stated_metrics
 from .runtime import Corrector, PoseCorrError
@@ -34,35 +34,35 @@ CORR_COLUMNS = tuple("corr_" + name.split("_", 1)[1] for name in MEAS_POS + MEAS
 _CORR_FORMAT = ",%.9g,%.9g,%.9g,%.9g,%.9g,%.9g,%.9g\n"
 
 
-def _input_column(text: str, has_times: bool) -> str | None:
-    """The table column an input check's message names (`checks`, run.c): "in column 2",
-    "in columns 3-6" (the quaternion) or the time; None for an output check."""
+def _input_column(clause: str, has_times: bool) -> str | None:
+    """The table column an input check's clause names (`checks`, run.c: "y = 5.000 m is
+    outside ...", "the quaternion qw, qx, qy, qz has norm ...", "t is not finite"); None for
+    an output check."""
     names = MEAS_POS + MEAS_QUAT
-    if "output 'corrected'" in text:
+    if "output 'corrected'" in clause:
         return None
-    if "time of the pose" in text:
+    if clause.startswith(QUATERNION):
+        return f"{names[3]}..{names[6]}"
+    first = clause.split(" ", 1)[0]
+    if first == TIME_INPUT:
         return "t" if has_times else None
-    found = re.search(r"in columns (\d)-(\d)", text)
-    if found:
-        return f"{names[int(found.group(1))]}..{names[int(found.group(2))]}"
-    found = re.search(r"in column (\d)", text)
-    return names[int(found.group(1))] if found else None
+    return names[COLUMNS.index(first)] if first in COLUMNS else None
 
 
 def _pose_by_pose(path: str, model: Any, chunk: Any, measured: np.ndarray, times: np.ndarray | None,
                   corrector: Corrector) -> tuple[np.ndarray, list[TableError]]:
     """A chunk the model refused, corrected pose by pose: (the corrected poses, NaN where
-    refused; a TableError for each refused pose). The runtime names a pose within its call,
-    so alone each is its file's row; an input column it names becomes the table's column."""
+    refused; a TableError for each refused pose). The runtime names a pose within its call
+    ("pose 0: CLAUSE", posecorr.h), so alone each is its file's row, named in front with the
+    table's column of an input the clause names."""
     corrected, refused = np.full_like(measured, np.nan), []
     for i in range(len(measured)):
         try:
             corrected[i] = corrector.correct(measured[i], t=None if times is None else times[i])
         except PoseCorrError as one:
-            text = re.sub(r"\bpose 0\b", "the pose", str(one))   # it ran alone: its pose 0
-            column = _input_column(text, times is not None)
-            if column is not None:   # named by the table's column in front, not the model's input index
-                text = re.sub(r" in columns? \d(-\d)?", "", text)
+            status, _, clause = str(one).partition(": pose 0: ")
+            text = f"{status}: {clause}" if clause else str(one)
+            column = _input_column(clause, times is not None)
             refused.append(TableError(path, f"{os.fspath(model)}: {text}", chunk.row_numbers[i], column))
     return corrected, refused
 

@@ -19,8 +19,10 @@ unbounded ones (CONTRACT).
 
 Per call (`check_input`, `check_output`), the same for every model whoever wrote it:
 finite times inside `time_bounds` (models that take time; no t is t = 0), finite poses,
-positions inside `input_bounds`, unit quaternions in and out, and a correction within
-`correction_reach`.
+unit quaternions, positions inside `input_bounds`, and out, finite poses with unit
+quaternions and a correction within `correction_reach`. A pose's refusal reads "pose I:
+CLAUSE" (posecorr.h's pc_run), I its index in the call and CLAUSE naming a column by the
+contract's names (`COLUMNS`, t the time).
 """
 from __future__ import annotations
 
@@ -102,6 +104,9 @@ ALLOW_UNBOUNDED = "load with PC_LOAD_ALLOW_UNBOUNDED, on the command line --allo
 ALLOW_UNSIGNED = "load with PC_LOAD_ALLOW_UNSIGNED, on the command line --allow-unsigned"
 # The contract's optional second input: float32 [N], s since the session's start.
 TIME_INPUT = "t"
+# The columns of a pose in and out (posecorr.h; run.c's pc_column_names), as the messages name them.
+COLUMNS = ("x", "y", "z", "qw", "qx", "qy", "qz")
+QUATERNION = "the quaternion qw, qx, qy, qz"
 
 
 def failure(status: Status, message: str) -> PoseCorrError:
@@ -119,8 +124,11 @@ def decimal(value: float, places: int = 3) -> str:
     return f"{'-' if value < 0 and units else ''}{units // int(scale)}.{units % int(scale):0{places}d}"
 
 
-def _outside(what: str, value: float, lo: float, hi: float, unit: str, key: str) -> str:
-    return f"{what}: {decimal(value)} {unit}, expected {decimal(lo)} to {decimal(hi)} {unit} (metadata {key})"
+def _outside(pose: int, name: str, value: float, lo: float, hi: float) -> str:
+    """run.c's pc_outside: a position (metres, input_bounds) or the time t (seconds, time_bounds)."""
+    unit, span, key = ("s", "span", "time_bounds") if name == TIME_INPUT else ("m", "range", "input_bounds")
+    return (f"pose {pose}: {name} = {decimal(value)} {unit} is outside the {span} the model was fitted on, "
+            f"{decimal(lo)} to {decimal(hi)} {unit} (metadata {key})")
 
 
 def _refuse_constant(name: str) -> Any:
@@ -312,10 +320,9 @@ def check_input(limits: Limits, poses: np.ndarray, t: np.ndarray | None) -> None
         i = _first(nonfinite | outside)
         if i is not None:
             if nonfinite[i]:
-                raise failure(Status.NONFINITE, f"time of pose {i} is not finite "
-                                                "(expected seconds since the session's start)")
-            raise failure(Status.RANGE, _outside(f"time of pose {i} is outside the span the model was fitted on",
-                                                 times[i], lo, hi, "s", "time_bounds"))
+                raise failure(Status.NONFINITE, f"pose {i}: t is not finite (expected seconds since the "
+                                                "session's start)")
+            raise failure(Status.RANGE, _outside(i, TIME_INPUT, times[i], lo, hi))
     finite = np.isfinite(poses)
     bad = ~finite.all(axis=1)
     lo3, hi3 = limits.box
@@ -325,18 +332,20 @@ def check_input(limits: Limits, poses: np.ndarray, t: np.ndarray | None) -> None
     q = poses[:, 3:7].astype(np.float64)
     with np.errstate(invalid="ignore", over="ignore"):
         norm2 = q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3]
-        bad |= ~((norm2 >= INPUT_NORM2_RANGE[0]) & (norm2 <= INPUT_NORM2_RANGE[1]))
-    i = _first(bad)
+        unit = (norm2 >= INPUT_NORM2_RANGE[0]) & (norm2 <= INPUT_NORM2_RANGE[1])
+    i = _first(bad | ~unit)
     if i is None:
         return
+    # run.c's pc_pose_error: the quaternion before the box, so that SteamVR's "no pose" (all
+    # zeros, its position too) is named a zero quaternion
     c = _first(~finite[i])
     if c is not None:
-        raise failure(Status.NONFINITE, f"pose {i} has a non-finite value in column {c} (expected a finite number)")
-    if (c := _first(~inside[i])) is not None:
-        raise failure(Status.RANGE, _outside(f"pose {i} is outside the range the model was fitted on in column {c}",
-                                             poses[i, c], limits.box[0][c], limits.box[1][c], "m", "input_bounds"))
-    raise failure(Status.QUATERNION, f"pose {i} has a quaternion of norm {decimal(math.sqrt(norm2[i]), 6)} in "
-                                     "columns 3-6 (expected a unit quaternion w, x, y, z: norm within 0.001 of 1)")
+        raise failure(Status.NONFINITE, f"pose {i}: {COLUMNS[c]} is not finite (expected a finite number)")
+    if not unit[i]:
+        raise failure(Status.QUATERNION, f"pose {i}: {QUATERNION} has norm {decimal(math.sqrt(norm2[i]), 6)} "
+                                         "(expected a unit quaternion: norm within 0.001 of 1)")
+    c = _first(~inside[i])
+    raise failure(Status.RANGE, _outside(i, COLUMNS[c], poses[i, c], limits.box[0][c], limits.box[1][c]))
 
 
 def _sum4(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -363,13 +372,13 @@ def check_output(limits: Limits, poses: np.ndarray, out: np.ndarray) -> None:
         return
     c = _first(~finite[i])
     if c is not None:
-        raise failure(Status.RUNTIME, f"output 'corrected' of pose {i} is not finite in column {c} "
+        raise failure(Status.RUNTIME, f"pose {i}: {COLUMNS[c]} of output 'corrected' is not finite "
                                       "(expected a finite number)")
     if not_unit[i]:
-        raise failure(Status.RUNTIME, f"output 'corrected' of pose {i} has a quaternion that is not unit "
-                                      "(columns 3-6, expected |q|^2 within 0.001 of 1)")
+        raise failure(Status.RUNTIME, f"pose {i}: {QUATERNION} of output 'corrected' is not unit "
+                                      "(expected |q|^2 within 0.001 of 1)")
     cos = min(1.0, abs(float(dot[i])) / math.sqrt(float(n_in2[i]) * float(n2[i])))
-    raise failure(Status.RUNTIME, f"output 'corrected' of pose {i} moves the pose by "
+    raise failure(Status.RUNTIME, f"pose {i}: output 'corrected' moves the pose by "
                                   f"{decimal(math.sqrt(float(d2[i])))} m and {decimal(2 * math.acos(cos))} rad, "
                                   f"beyond the model's reach of {decimal(math.sqrt(float(limits.reach_pos2)))} m "
                                   f"and {decimal(2 * math.acos(math.sqrt(float(limits.reach_cos2))))} rad "

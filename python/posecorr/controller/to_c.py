@@ -398,7 +398,7 @@ STATUS = {0: "corrected: out holds the corrected pose",
 
 def _input_checks(c: Checks, takes_time: bool) -> list[str]:
     """pc_run's input checks (run.c, pc_check_input), in its order: the time, then the pose's
-    values, its position against input_bounds and its quaternion. An unbounded model (loaded
+    values, its quaternion and its position against input_bounds. An unbounded model (loaded
     with --allow-unbounded) has infinite bounds: every finite value passes, so none is written."""
     lines = ["    /* pc_run's input checks, in its order (the return codes: top of the file) */"]
     if takes_time:
@@ -406,14 +406,15 @@ def _input_checks(c: Checks, takes_time: bool) -> list[str]:
         if c.span:
             lines += [f"    if (!(t >= {literal(c.span[0])} && t <= {literal(c.span[1])}))", "        return 2;"]
     lines += [f"    for (j = 0; j < {POSE_WIDTH}; j++)", "        if (!isfinite(in[j]))", "            return 4;"]
+    # |q|^2 in double only where the float sum cannot decide, as pc_run (a Cortex-M4 sums
+    # doubles in software)
+    lines += ["    if (!pc_unit_input_banded(((in[3] * in[3] + in[4] * in[4]) + in[5] * in[5]) + in[6] * in[6],",
+              "                              in + 3))", "        return 5;"]
     bounded = [k for k in range(3) if np.isfinite(c.lo[k]) or np.isfinite(c.hi[k])]
     if bounded:
         tests = [f"!(in[{k}] >= {literal(c.lo[k])} && in[{k}] <= {literal(c.hi[k])})" for k in bounded]
         lines += ["    if (" + " ||\n        ".join(tests) + ")", "        return 2;"]
-    # |q|^2 in double only where the float sum cannot decide, as pc_run (a Cortex-M4 sums
-    # doubles in software)
-    return lines + ["    if (!pc_unit_input_banded(((in[3] * in[3] + in[4] * in[4]) + in[5] * in[5]) + in[6] * in[6],",
-                    "                              in + 3))", "        return 5;"]
+    return lines
 
 
 def _output_checks(c: Checks) -> list[str]:

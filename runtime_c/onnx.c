@@ -680,7 +680,8 @@ int onnx_next_meta(const pc_builder *b, pb_reader *r, pb_slice *key, pb_slice *v
     return more;
 }
 
-pc_status onnx_scan_model(pc_builder *b)
+/* The model's top level: its graph, opsets and metadata entries read as fields. */
+static pc_status onnx_read_model(pc_builder *b)
 {
     pb_reader r;
     pb_field f;
@@ -716,8 +717,25 @@ pc_status onnx_scan_model(pc_builder *b)
     }
     if (more == PB_ERROR)
         return r.status;
-    if (!has_graph)
-        return pc_fail(b->err, PC_ERR_MALFORMED, "model has no graph (not an ONNX file?)");
+    return has_graph ? PC_OK : pc_fail(b->err, PC_ERR_MALFORMED, "no graph");
+}
+
+/* A file whose top level does not read as a model (bytes that are not protobuf, a field of
+ * the wrong type, no graph) is no ONNX model at all, and the message says so before where
+ * the reader stopped, as the Python back end and `posecorr info` do: a text file given as
+ * the model is "not a valid ONNX model (unsupported wire type 4 at byte 2)". A truncated
+ * file keeps its own words: it is a model cut short. */
+pc_status onnx_scan_model(pc_builder *b)
+{
+    char where[96];
+    const pc_status st = onnx_read_model(b);
+    if (st == PC_ERR_MALFORMED) {
+        memcpy(where, b->err->message, sizeof where - 1);
+        where[sizeof where - 1] = '\0';
+        return pc_fail(b->err, PC_ERR_MALFORMED, "not a valid ONNX model (%s)", where);
+    }
+    if (st != PC_OK)
+        return st;
     if (b->opset < PC_OPSET_MIN || b->opset > PC_OPSET_MAX)
         return pc_fail(b->err, PC_ERR_UNSUPPORTED,
                        "default-domain opset %lld is not supported (%d..%d)", (long long)b->opset,

@@ -145,7 +145,9 @@ typedef struct pc_options {
 typedef struct pc_model pc_model;
 
 /* Load from a buffer; the buffer may be freed once the call returns. opts may be NULL;
- * err may be NULL. On failure *model is NULL. */
+ * err may be NULL. On failure *model is NULL. Bytes whose top level is no ONNX model (a
+ * text file, say) are PC_ERR_MALFORMED "not a valid ONNX model (unsupported wire type 4 at
+ * byte 2)": where the reader stopped, in parentheses; a file cut short is PC_ERR_TRUNCATED. */
 PC_API pc_status pc_load_memory(const void *data, size_t size, const pc_options *opts,
                                 pc_model **model, pc_error *err);
 /* Load from a file, which must be a regular file: where there is POSIX, a FIFO, a device or

@@ -615,6 +615,20 @@ def test_posecorr_run_names_a_time_and_an_output_by_their_line(drift):
                         "finite number)\n")
 
 
+@pytest.mark.parametrize("blob,where", [(b"hello, this is not a model\n", "unsupported wire type 4 at byte 2"),
+                                        (b"8 is not bytes", "model field 7 at byte 0 is not bytes")])
+def test_posecorr_run_says_a_text_file_is_no_onnx_model(tmp_path, blob, where):
+    """As the Python back ends and `info` say (their parser's words in the parentheses)."""
+    model = tmp_path / "m.onnx"
+    model.write_bytes(blob)
+    r = _posecorr_run(model, "", "--allow-unsigned")
+    assert r.returncode == 1 and r.stderr == f"posecorr-run: {model}: not a valid ONNX model ({where})\n"
+    for backend in BACKENDS:
+        with pytest.raises(PoseCorrError, match=r"not a valid ONNX model \(") as info:
+            Corrector(model, backend=backend, allow_unsigned=True)
+        assert str(info.value).count("not a valid ONNX model") == 1
+
+
 # --- the digest, the reach and the allow flags: the same words on both back ends --------------
 
 def _strip_where(errors: list[PoseCorrError]) -> list[PoseCorrError]:

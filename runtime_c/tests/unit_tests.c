@@ -707,6 +707,19 @@ static void test_errors(void)
         if (st == PC_ERR_TRUNCATED)
             CHECK(strstr(err.message, "byte") != NULL);
     }
+    /* bytes whose top level is no ModelProto: said so, then where the reader stopped; a
+     * model cut short keeps its own words (above) */
+    {
+        static const unsigned char no_graph[] = {0x08, 0x07}; /* ir_version 7, nothing else */
+        const char *text = "hello, this is not a model\n";
+        CHECK(pc_load_memory(text, strlen(text), &ALLOW, &m, &err) == PC_ERR_MALFORMED && !m);
+        CHECK(strcmp(err.message, "not a valid ONNX model (unsupported wire type 4 at byte 2)") == 0);
+        CHECK(pc_load_memory(no_graph, sizeof no_graph, &ALLOW, &m, &err) == PC_ERR_MALFORMED);
+        CHECK(strcmp(err.message, "not a valid ONNX model (no graph)") == 0);
+        CHECK(pc_load_memory("8 is not", 8, &ALLOW, &m, &err) == PC_ERR_MALFORMED);
+        CHECK(strcmp(err.message, "not a valid ONNX model (model field 7 at byte 0 is not bytes)")
+              == 0);
+    }
     CHECK(pc_load_memory(NULL, 10, NULL, &m, &err) == PC_ERR_ARGUMENT);
     CHECK(pc_load_memory(model.d, model.n, NULL, NULL, &err) == PC_ERR_ARGUMENT);
     CHECK(pc_load_file("/nonexistent/model.onnx", NULL, &m, &err) == PC_ERR_IO);

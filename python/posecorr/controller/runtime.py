@@ -293,8 +293,10 @@ def _check_file(path: str | os.PathLike) -> None:
 
 def _load_message(path: str | os.PathLike | bytes, status: int, message: bytes) -> str:
     """libposecorr's words for a failed load; for bytes that are not an ONNX file at all,
-    the words of the other back end and of `info` ("not a valid ONNX model (...)"), where the
-    C parser's alone ("unsupported wire type 4 at byte 2") would not say what the file is not."""
+    those of the other back end and of `info`: libposecorr says "not a valid ONNX model
+    (unsupported wire type 4 at byte 2)" of a text file (posecorr-run prints it so), this
+    parser "not a valid ONNX model (unsupported wire type 4 (field 13))", and the shim's back
+    ends say the same word for word (tests/test_checks.py)."""
     text = message.decode(errors="replace")
     if status != checks.Status.MALFORMED:    # a truncated file is named so, with its byte
         return text

@@ -31,7 +31,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from . import RESULTS, ROOT
+from . import RESULTS, ROOT, cpu
 
 HERE = Path(__file__).resolve().parent / "floor"
 # issue 33: pc_run within 1.2x of the hand-written floor for every table-1 architecture
@@ -165,7 +165,7 @@ def run(out: str | None = None, rev: str = "a4423e5", runs: int = 3,
                 if group == ("outside" if label.startswith("outside-") else
                              "others" if label.split("-")[0] in OTHERS else "zhou")]
         return f"{sum(row['within_goal'] == 'yes' for row in some)} of {len(some)}"
-    result = {"previous_revision": rev, "previous_revision_outside": rev_outside, "goal_ratio": GOAL_RATIO,
+    result = {"cpu": cpu(), "previous_revision": rev, "previous_revision_outside": rev_outside, "goal_ratio": GOAL_RATIO,
               "within_goal": met("zhou"), "within_goal_others": met("others"),
               "within_goal_outside": met("outside"),
               "unit_instructions": "per pose (callgrind, 1,024 poses)",

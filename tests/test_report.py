@@ -658,6 +658,15 @@ def test_a_few_poses_are_boxed_three_or_more_and_counted_in_whole_poses() -> Non
     fig = histogram_figure((rng.uniform(1, 9, 11), rng.uniform(1, 9, 11)), None)
     ticks = fig.axes[0].get_yticks()
     assert np.allclose(ticks, np.round(ticks))
+    # errors within one decade (a rotation error 0.3-1.3 mrad): labels at 1, 2 and 5 x 10^k, not
+    # the one decade label that leaves "1" alone; before's RMSE dashed, after's solid
+    fig = histogram_figure((rng.uniform(0.3, 1.3, 50), rng.uniform(0.3, 1.3, 50)), None)
+    fig.canvas.draw()
+    ax = fig.axes[0]
+    lo, hi = ax.get_xlim()
+    shown = [t.get_text() for t, v in zip(ax.get_xticklabels(), ax.get_xticks()) if lo <= v <= hi]
+    assert len(shown) >= 3 and "0.5" in shown and "1" in shown, shown
+    assert [line.get_linestyle() for line in ax.get_lines()] == ["--", "-"]
 
     # a box's count once where every box holds the same (nine poses of one orientation: "9", not "9–9")
     still = {"roll": np.zeros(9), "pitch": np.zeros(9), "yaw": np.full(9, 1.5)}

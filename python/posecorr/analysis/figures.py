@@ -316,12 +316,14 @@ def histogram_figure(pos: tuple[np.ndarray, np.ndarray], rot: tuple[np.ndarray, 
         bins = np.logspace(np.log10(lo), np.log10(hi), int(np.clip(2 * np.sqrt(len(b)), 8, 50)) + 1)
         ax.hist(b, bins=bins, color=BEFORE_COLOUR, alpha=0.7, label=f"before ({before_label})")
         ax.hist(a, bins=bins, color=AFTER_COLOUR, alpha=0.7, label=f"after ({after_label})")
-        for v, colour, name in ((before, "0.3", "before"), (after, "#0b3d66", "after")):
+        # dashed before, solid after, as the feature panels' medians
+        for v, colour, style, name in ((before, "0.3", "--", "before"), (after, "#0b3d66", "-", "after")):
             r = float(np.sqrt(np.mean(np.square(v))))
             if r > 0:
-                ax.axvline(r, color=colour, ls="--", lw=1.2, label=f"RMSE {name}: {r:.3g} {unit}")
+                ax.axvline(r, color=colour, ls=style, lw=1.2, label=f"RMSE {name}: {r:.3g} {unit}")
         ax.set_xscale("log")
-        _plain_log(ax, "x", (1.0,), minor=False)
+        # within two decades a label per decade leaves one or two labels: 1, 2 and 5 too
+        _plain_log(ax, "x", (1.0,) if bins[-1] / bins[0] > 100 else (1.0, 2.0, 5.0), minor=False)
         ax.set_xlabel(f"{quantity} [{unit}] (log scale)")
         ax.set_ylabel("poses")
         ax.yaxis.set_major_locator(MaxNLocator(integer=True))  # a count of poses

@@ -94,6 +94,11 @@ class Param:
         if self.domain not in DOMAINS:
             raise ValueError(f"parameter {self.name}: domain {self.domain!r} is not one of {', '.join(DOMAINS)}")
 
+    def unit_after(self, separator: str = " ") -> str:
+        """The unit as it follows a value in a message: nothing for a dimensionless one (unit
+        '1'), where "0.012 1" would read as two numbers."""
+        return "" if self.unit in ("", "1") else separator + self.unit
+
 
 # A parameter's domain: name -> (the test of its values, the words of the refusal).
 DOMAINS: dict[str, tuple[Callable[[np.ndarray], np.ndarray], str]] = {
@@ -761,8 +766,7 @@ def checked_theta(effect: Effect, theta: Any) -> np.ndarray:
         test, words = DOMAINS[param.domain]
         if not np.all(test(values[part])):
             got = values[part].tolist()
-            unit = "" if param.unit == "1" else f" {param.unit}"
-            raise ValueError(f"effect {effect.name!r}: {param.name} must be {words}{unit}, "
+            raise ValueError(f"effect {effect.name!r}: {param.name} must be {words}{param.unit_after()}, "
                              f"got {got[0] if len(got) == 1 else got}")
     return values
 

@@ -116,9 +116,8 @@ def _proposal_lines(args: argparse.Namespace, result: dict) -> list[str]:
     for form in proposal["forms"]:
         effect = get_effect(form)
         values = "; ".join(f"{label} = {numbers_text(v, 3)}" for label, v in proposal["terms"][form].items())
-        unit = "" if effect.params[0].unit == "1" else f", {effect.params[0].unit}"
         lines.append(f"  {form}: {(effect.__doc__ or '').strip().splitlines()[0]} Fitted "
-                     f"({terms_words(proposal, form)}{unit}): {values}.")
+                     f"({terms_words(proposal, form)}{effect.params[0].unit_after(', ')}): {values}.")
         lines.append(f"  causes of this shape: {proposal['causes'][form]}")
     if proposal["file"]:
         from ..analysis.proposal import effects_arg

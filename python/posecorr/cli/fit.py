@@ -214,12 +214,11 @@ def _fmt_scores(scores: dict[str, float]) -> str:
 
 
 def _units(effect: str) -> dict[str, str]:
-    """{param name: ' UNIT'} of a registered effect, as its `Param`s declare them (none for a
-    dimensionless one, unit '1')."""
+    """{param name: ' UNIT'} of a registered effect, as its `Param`s declare them."""
     from ..effects import EFFECTS
 
     found = EFFECTS.get(effect)
-    return {param.name: f" {param.unit}" for param in found.params if param.unit not in ("", "1")} if found is not None else {}
+    return {param.name: param.unit_after() for param in found.params} if found is not None else {}
 
 
 def _value_pm(pair: list) -> str:

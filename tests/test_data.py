@@ -129,3 +129,46 @@ def test_each_pose_keeps_its_file_row_through_subset_draw_and_correction(tmp_pat
     assert _table().rows is None and _table().subset(np.arange(2)).rows is None
     with pytest.raises(ValueError, match="rows has shape"):
         PoseTable(table.meas_p, table.meas_q, table.ref_p, rows=np.arange(2))
+
+
+def test_comment_lines_are_no_poses_and_keep_the_rows_of_the_rest(tmp_path, capsys) -> None:
+    """A logger's preamble and a pose left out by hand ('#' first, as numpy's loadtxt and
+    pandas read it): the table is the one without those lines, every other pose keeps the
+    number of its line in the file, and the lines among the poses are named in one warning."""
+    table = _table(6)
+    plain = tmp_path / "plain.csv"
+    write_table(table, plain)
+    lines = plain.read_text().splitlines()
+    commented = ["# Vive Pro, 2026-11-29", '# stations A, "B (a quote opens no cell)'] + lines[:3] + ["#" + lines[3], "# a note"] + lines[4:]
+    path = _write(tmp_path, "\n".join(commented + ["# end"]) + "\n")
+    got = read_table(path)
+    expected = table.subset(np.array([0, 1, 3, 4, 5]))
+    np.testing.assert_array_equal(got.measured, expected.measured)
+    np.testing.assert_array_equal(got.reference, expected.reference)
+    np.testing.assert_array_equal(got.extras["t"], expected.extras["t"])
+    # the rows an editor shows: count the file's lines, skip the comment ones
+    numbered = [i for i, line in enumerate(path.read_text().splitlines(), 1) if not line.startswith("#")][1:]
+    np.testing.assert_array_equal(got.rows, numbered)
+    assert capsys.readouterr().err.strip() == (f"posecorr: warning: {path}: rows 6, 7, 11 start with '#': read as "
+                                               "comments, not data")
+    # a header of its own after the comments: its errors name its line
+    bad = _write(tmp_path, "# x\n\n" + HEADER.replace("meas_y", "meas_y,meas_y") + "\n")
+    with pytest.raises(TableError, match=r"row 3, column meas_y: duplicate column in header"):
+        read_table(bad)
+
+
+def test_a_commented_header_is_named_and_an_id_starting_with_a_hash_round_trips(tmp_path) -> None:
+    """numpy's savetxt writes its header as '# meas_x,...': the error says so, not that the
+    first pose's cells are no header. A cell that starts with '#' at the start of a row is
+    written quoted, so that it reads back as a pose, not as a comment."""
+    with pytest.raises(TableError, match=r"row 1: the line naming the columns starts with '#'"):
+        read_table(_write(tmp_path, f"# {HEADER}\n{ROW}\n"))
+    with pytest.raises(TableError, match=r"only comment lines, expected a header row"):
+        read_table(_write(tmp_path, "# nothing yet\n\n"))
+    table = _table(4)
+    table.extras["id"] = np.array(["#1", "plain", '#"2"', "a\n#b"], dtype=object)
+    path = tmp_path / "ids.csv"
+    write_table(table, path)
+    back = read_table(path)
+    assert list(back.extras["id"]) == ["#1", "plain", '#"2"', "a\n#b"]   # a line inside a cell is the cell's
+    np.testing.assert_array_equal(back.measured, table.measured)

@@ -757,3 +757,28 @@ def test_the_c_loader_refuses_a_fifo_at_once(tmp_path) -> None:
     assert run.returncode == 1 and run.stdout == "", run
     # the shim's line (test_the_shim_refuses_a_fifo_and_a_folder_as_the_model), after the tool's name
     assert run.stderr.splitlines() == [f"posecorr-run: {fifo}: is a FIFO, expected a file"], run
+
+
+def test_apply_copies_comment_lines_where_they_stood(tmp_path, capsys) -> None:
+    """The corrected table is the plain one's with the input's comment lines (before the
+    header, among the poses, after them) at the same places: nothing of the file is lost, and
+    the chunks' edges do not move them."""
+    from posecorr.controller.apply import apply_file
+
+    t = _table(9, seed=5)
+    plain = tmp_path / "plain.csv"
+    write_table(t, plain)
+    lines = plain.read_text().splitlines()
+    commented = lines[:3] + ["# after pose 2", "# and another"] + lines[3:7] + ["#" + lines[7]] + lines[8:]
+    path = tmp_path / "commented.csv"
+    path.write_text("\n".join(["# preamble"] + commented + ["# end"]) + "\n")
+    notes = ["# preamble", "# after pose 2", "# and another", "#" + lines[7], "# end"]
+    apply_file(MODEL, plain, tmp_path / "plain_out.csv")
+    for chunk_rows in (2, 3, 1000):
+        apply_file(MODEL, path, tmp_path / "out.csv", chunk_rows=chunk_rows)
+        want = (tmp_path / "plain_out.csv").read_text().splitlines()
+        del want[7]   # the pose commented out is no pose of the output
+        got = (tmp_path / "out.csv").read_text().splitlines()
+        assert [x for x in got if not x.startswith("#")] == want
+        assert [x for x in got if x.startswith("#")] == notes
+        assert got.index("# after pose 2") == 4 and got[0] == "# preamble" and got[-1] == "# end"

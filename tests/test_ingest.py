@@ -326,3 +326,24 @@ def test_mcap_with_the_ros1_profile(recording, tmp_path) -> None:
     from_bag = ingest([write_recording(recording, tmp_path / "rec.bag")])
     np.testing.assert_allclose(from_mcap.table.meas_p, from_bag.table.meas_p, atol=1e-12)
     np.testing.assert_allclose(from_mcap.table.ref_p, from_bag.table.ref_p, atol=1e-12)
+
+
+def test_a_csv_log_with_comment_lines_reads_as_without_them(recording, tmp_path, capsys) -> None:
+    """A logger's preamble and a note among the samples are no samples; the rows named in
+    messages stay the file's lines."""
+    path = write_recording(recording, tmp_path / "rec.csv")
+    plain = read_csv_log([path])
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(["# logger v2", "# 250 Hz"] + lines[:4] + ["# operator bumped the table"]
+                              + lines[4:]) + "\n")
+    commented = read_csv_log([path])
+    np.testing.assert_array_equal(plain[0].t, commented[0].t)
+    np.testing.assert_array_equal(plain[0].q, commented[0].q)
+    np.testing.assert_array_equal(plain[1].p, commented[1].p)
+    np.testing.assert_array_equal(plain[1].q, commented[1].q)
+    assert "row 7 starts with '#': read as comments, not data" in capsys.readouterr().err
+    cells = lines[5].split(",")
+    cells[2] = "abc"
+    path.write_text("\n".join(["# logger v2"] + lines[:5] + [",".join(cells)] + lines[6:]) + "\n")
+    with pytest.raises(IngestError, match=r"row 7, column q2: expected a number, got 'abc'"):
+        read_csv_log([path])

@@ -6,16 +6,21 @@ Bad input raises `TableError`, whose message names the file, the row, the column
 what was expected; nothing is silently dropped: columns posecorr does not know are kept
 and written back. Numbers are plain decimal notation (what Python's float() takes beyond
 that, "1_0", "inf", "0x1p3", is an error), text is UTF-8 (a byte order mark is skipped),
-quaternions are unit (a zero one is an error). `TableReader` streams a table in chunks
-with the same checks (`posecorr apply` on millions of rows).
+quaternions are unit (a zero one is an error). A line that starts with '#' is a comment
+(a logger's preamble before the header, a pose left out by hand), as numpy and pandas read
+one: it is no pose, the reader says how many it passed over among the poses, and `apply`
+copies each to its output where it stood. `TableReader` streams a table in chunks with the
+same checks (`posecorr apply` on millions of rows).
 """
 from __future__ import annotations
 
 import csv
+import io
 import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -58,8 +63,8 @@ class TableError(ValueError):
 class PoseTable:
     """Measured and reference poses, (N, 3) positions and (N, 4) unit quaternions.
 
-    rows: each pose's row in the file it was read from, as an editor or a spreadsheet numbers
-    it (the header is row 1; blank lines count); None for a table made in memory (`simulate`).
+    rows: each pose's row in the file it was read from, the number of its line as an editor
+    shows it (blank and comment lines count); None for a table made in memory (`simulate`).
     """
 
     meas_p: np.ndarray
@@ -195,23 +200,77 @@ class Chunk:
     rows: list[list[str]]
     row_numbers: list[int]
     values: dict[str, np.ndarray]
+    # (how many of `rows` come before it, its text): the comment lines among these rows
+    comments: list[tuple[int, str]] = field(default_factory=list)
 
     def block(self, names: tuple[str, ...]) -> np.ndarray:
         return np.stack([self.values[c] for c in names], axis=1)
 
 
-def _decoded_lines(handle, path: str, counter: list[int]):
-    """The file's lines as text; a byte that is not UTF-8 fails naming its line."""
+COMMENT = "#"
+
+
+@dataclass
+class _Cursor:
+    """Where `csv_records` is in a file: the lines read, the line the record being read
+    starts on, and that line's text if it is a comment."""
+
+    line: int = 0
+    start: int = 1
+    comment: str | None = None
+
+
+def _decoded_lines(handle, path: str, cursor: _Cursor):
+    """The file's lines as text; a byte that is not UTF-8 fails naming its line. A record's
+    first line that starts with COMMENT is kept in `cursor` and reaches the csv module as a
+    blank line: a quote in a comment opens no cell (a line inside a quoted cell is read as is)."""
     for raw in handle:
-        counter[0] += 1
+        cursor.line += 1
         try:
             line = raw.decode("utf-8")
         except UnicodeDecodeError as exc:
             raise TableError(path, f"not UTF-8 text (byte 0x{raw[exc.start]:02x} at character {exc.start + 1}); "
-                             "save the table as UTF-8 CSV", counter[0]) from None
-        if counter[0] == 1 and line.startswith("\ufeff"):
+                             "save the table as UTF-8 CSV", cursor.line) from None
+        if cursor.line == 1 and line.startswith("\ufeff"):
             line = line[1:]  # a byte order mark is an encoding detail, not part of the first name
+        if cursor.line == cursor.start and line.startswith(COMMENT):
+            cursor.comment, line = line.rstrip("\r\n"), "\n"
         yield line
+
+
+def csv_records(handle, path: str):
+    """A CSV file's records as (the line it starts on, its cells, its text if it is a comment
+    line, else None). `handle` is opened in binary: the lines are decoded here."""
+    cursor = _Cursor()
+    reader = csv.reader(_decoded_lines(handle, path, cursor))
+    while True:
+        cursor.start, cursor.comment = cursor.line + 1, None
+        try:
+            cells = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:
+            raise TableError(path, f"malformed CSV: {exc}", cursor.line) from None
+        yield cursor.start, cells, cursor.comment
+
+
+def protect_comment(line: str, first: str) -> str:
+    """A CSV line (no newline) whose first cell `first`, written bare, would read back as a
+    comment: that cell quoted."""
+    if not line.startswith(COMMENT):
+        return line
+    return '"' + first.replace('"', '""') + '"' + line[len(first):]
+
+
+def warn_comments(path: str, rows: list[int], shown: int = 5) -> None:
+    """One warning line for the comment lines after a header: 'rows 7, 9, 12, 15, 18 and 3
+    more start with '#'': a line left out by hand is said to be left out."""
+    from .safeio import warn
+
+    head = ", ".join(map(str, rows[:shown]))
+    more = f" and {len(rows) - shown} more" if len(rows) > shown else ""
+    which = f"row {head} starts" if len(rows) == 1 else f"rows {head}{more} start"
+    warn(f"{path}: {which} with {COMMENT!r}: read as comments, not data")
 
 
 KNOWN_COLUMNS = REQUIRED + REF_QUAT + NUMERIC_OPTIONAL + TEXT_OPTIONAL
@@ -246,8 +305,12 @@ class TableReader:
             self._handle = open(self.path, "rb")
         except OSError as exc:
             raise TableError(self.path, f"cannot open: {exc.strerror}") from None
-        self._line = [0]
-        self._reader = csv.reader(_decoded_lines(self._handle, self.path, self._line))
+        self._records = csv_records(self._handle, self.path)
+        # the comment lines before the header (row, text); the rows of those among the poses,
+        # and the text of those after the last pose (`chunks`)
+        self.preamble: list[tuple[int, str]] = []
+        self.comment_rows: list[int] = []
+        self.trailing: list[str] = []
         try:
             self.header = self._read_header(require_reference)
         except BaseException:
@@ -256,18 +319,26 @@ class TableReader:
 
     def _read_header(self, require_reference: bool) -> list[str]:
         path = self.path
-        try:
-            header = [h.strip() for h in next(self._reader)]
-        except StopIteration:
-            raise TableError(path, "empty file, expected a header row") from None
-        except csv.Error as exc:
-            raise TableError(path, f"not a CSV file: {exc}", 1) from None
+        for self.header_row, cells, comment in self._records:
+            if comment is not None:
+                self.preamble.append((self.header_row, comment))
+            elif "".join(cells).strip():
+                break
+        else:
+            raise TableError(path, "empty file, expected a header row" if not self.preamble else
+                             "only comment lines, expected a header row naming the columns")
+        header = [h.strip() for h in cells]
+        # numpy's savetxt writes its header as a comment: name the line, not the first pose's cells
+        named, text = self.preamble[-1] if self.preamble else (0, "")
+        if MEAS_POS[0] not in header and MEAS_POS[0] in (c.strip() for c in text.lstrip(COMMENT).split(",")):
+            raise TableError(path, f"the line naming the columns starts with {COMMENT!r}, which makes it a comment: "
+                             f"remove the {COMMENT!r} to make it the header", named)
         # Linear in the number of columns: a header of a million names is refused or read
         # in a second, not in hours.
         self.index = {}
         for i, name in enumerate(header):
             if self.index.setdefault(name, i) != i:
-                raise TableError(path, "duplicate column in header", 1, name)
+                raise TableError(path, "duplicate column in header", self.header_row, name)
         ref_present = [c for c in REF_POS if c in self.index]
         required = REQUIRED if require_reference or ref_present else MEAS_POS + MEAS_QUAT
         for name in required:
@@ -275,13 +346,16 @@ class TableReader:
                 # a spreadsheet's export in a comma-decimal locale: one column whose name holds them all
                 other = next((sep for sep in ";\t|" if len(header) == 1 and name in header[0].split(sep)), None)
                 hint = f"; the header is one column holding {other!r}: posecorr reads commas" if other else ""
-                raise TableError(path, "missing column (required: " + ", ".join(required) + ")" + hint, 1, name)
+                raise TableError(path, "missing column (required: " + ", ".join(required) + ")" + hint,
+                                 self.header_row, name)
         present_ref_q = [c for c in REF_QUAT if c in self.index]
         if present_ref_q and len(present_ref_q) != 4:
             missing = next(c for c in REF_QUAT if c not in self.index)
-            raise TableError(path, "missing column (ref_qw..ref_qz come as a set, or not at all)", 1, missing)
+            raise TableError(path, "missing column (ref_qw..ref_qz come as a set, or not at all)",
+                             self.header_row, missing)
         if present_ref_q and not ref_present:
-            raise TableError(path, "missing column (ref_qw..ref_qz need ref_x, ref_y, ref_z)", 1, "ref_x")
+            raise TableError(path, "missing column (ref_qw..ref_qz need ref_x, ref_y, ref_z)", self.header_row,
+                             "ref_x")
         self.has_reference = bool(ref_present)
         self.has_ref_orientation = bool(present_ref_q)
         self.numeric = list(required) + present_ref_q + [c for c in NUMERIC_OPTIONAL if c in self.index]
@@ -300,33 +374,39 @@ class TableReader:
         self._handle.close()
 
     def chunks(self, size: int = CHUNK_ROWS):
-        """Chunks of up to `size` data rows; blank lines carry no pose and are skipped."""
+        """Chunks of up to `size` data rows; blank lines carry no pose and are skipped, comment
+        lines go into the chunk's `comments` (those after the last pose into `trailing`), and a
+        warning names the comment lines among the poses once the table is read."""
         width = len(self.header)
         rows: list[list[str]] = []
         numbers: list[int] = []
-        record = 1
-        try:
-            for record, row in enumerate(self._reader, start=2):
-                if len(row) != width or not row[0].strip():
-                    if not "".join(row).strip():
-                        continue  # a blank line carries no pose
-                    if len(row) != width:
-                        raise TableError(self.path, f"{len(row)} fields, expected {width} as in the header",
-                                         record)
-                rows.append(row)
-                numbers.append(record)
-                if len(rows) == size:
-                    yield self._parse(rows, numbers)
-                    rows, numbers = [], []
-        except csv.Error as exc:
-            raise TableError(self.path, f"malformed CSV: {exc}", record + 1) from None
+        comments: list[tuple[int, str]] = []
+        for record, row, comment in self._records:
+            if comment is not None:
+                comments.append((len(rows), comment))
+                self.comment_rows.append(record)
+                continue
+            if len(row) != width or not row[0].strip():
+                if not "".join(row).strip():
+                    continue  # a blank line carries no pose
+                if len(row) != width:
+                    raise TableError(self.path, f"{len(row)} fields, expected {width} as in the header", record)
+            rows.append(row)
+            numbers.append(record)
+            if len(rows) == size:
+                yield self._parse(rows, numbers, comments)
+                rows, numbers, comments = [], [], []
         if rows:
-            yield self._parse(rows, numbers)
+            yield self._parse(rows, numbers, comments)
+            comments = []
+        self.trailing = [text for _, text in comments]
+        if self.comment_rows:
+            warn_comments(self.path, self.comment_rows)
 
-    def _parse(self, rows: list[list[str]], numbers: list[int]) -> Chunk:
+    def _parse(self, rows: list[list[str]], numbers: list[int], comments: list[tuple[int, str]]) -> Chunk:
         values = {c: _parse_column([row[self.index[c]] for row in rows], self.path, numbers, c)
                   for c in self.numeric}
-        chunk = Chunk(rows, numbers, values)
+        chunk = Chunk(rows, numbers, values, comments)
         for c in MEAS_POS + (REF_POS if self.has_reference else ()):
             far = np.flatnonzero(np.abs(values[c]) > MAX_POSITION)
             if far.size:
@@ -419,9 +499,17 @@ def write_table(table: PoseTable, path: str | Path) -> None:
     columns += [(c, v) for c, v in table.extras.items() if c != "id"]
     from .safeio import atomic_output
 
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)   # the csv module's "\r\n", as RFC 4180 has it
+
+    def line(cells: list[Any]) -> str:
+        buffer.seek(0)
+        buffer.truncate()
+        writer.writerow(cells)
+        return protect_comment(buffer.getvalue(), str(cells[0]))
+
     with atomic_output(path) as handle:
-        writer = csv.writer(handle)
-        writer.writerow([c for c, _ in columns])
+        handle.write(line([c for c, _ in columns]))
         for i in range(table.n):
-            writer.writerow([repr(float(v[i])) if isinstance(v[i], (float, np.floating)) else v[i]
-                             for _, v in columns])
+            handle.write(line([repr(float(v[i])) if isinstance(v[i], (float, np.floating)) else v[i]
+                               for _, v in columns]))

@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from ..data import CHUNK_ROWS, MEAS_POS, MEAS_QUAT, REF_POS, REF_QUAT, PoseTable, TableError, TableReader
+from ..data import (CHUNK_ROWS, MEAS_POS, MEAS_QUAT, REF_POS, REF_QUAT, PoseTable, TableError, TableReader,
+                    protect_comment)
 from ..metrics import METRIC_KEYS, metric_block, pose_errors
 from ..safeio import atomic_output, check_output
 from .checks import COLUMNS, QUATERNION, TIME_INPUT
@@ -111,13 +112,22 @@ def _line_writer(width: int):
     def line(cells: list[str]) -> str:
         text = ",".join(cells)
         if text.count(",") == width - 1 and '"' not in text and "\n" not in text and "\r" not in text:
-            return text
+            return protect_comment(text, cells[0])
         buffer.seek(0)
         buffer.truncate()
         writer.writerow(cells)
-        return buffer.getvalue()[:-1]
+        return protect_comment(buffer.getvalue()[:-1], cells[0])
 
     return line
+
+
+def _with_comments(lines: list[str], comments: list[tuple[int, str]]) -> str:
+    """A chunk's written lines with its comment lines back where they stood."""
+    out, done = [], 0
+    for before, text in comments:
+        out += lines[done:before] + [text + "\n"]
+        done = before
+    return "".join(out + lines[done:])
 
 
 class _RmseSums:
@@ -203,14 +213,18 @@ class _FittedOn:
         return {"source": kind, **{k: figures.get(k) for k in ("rmse_pos", "rmse_rot", "rmse_total")}}
 
 
-def refuse_missing_time(corrector: Corrector, model: str | os.PathLike[str], path: Any, has_time: bool) -> None:
+def refuse_missing_time(corrector: Corrector, model: str | os.PathLike[str], path: Any, has_time: bool,
+                        header_row: int | None = None) -> None:
     """TableError where `model` takes each pose's time and the table at `path` has none:
     corrected as at t = 0 (`Corrector.correct`'s default), its time-dependent effects would
-    be left out without a word."""
+    be left out without a word. The error names the header's row (read again if not given)."""
     if corrector.takes_time and not has_time:
+        if header_row is None and path is not None:
+            with TableReader(path, require_reference=False) as reader:
+                header_row = reader.header_row
         raise TableError(path, f"{os.path.basename(os.fspath(model))} takes each pose's time (it models a "
                          "time-dependent effect such as drift), and the table has no such column (seconds since "
-                         "the session's start)", 1, "t")
+                         "the session's start)", header_row, "t")
 
 
 def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], output: str | os.PathLike[str],
@@ -227,11 +241,11 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                           allow_unsigned=allow_unsigned)
     n = 0
     with TableReader(table, require_reference=False) as reader:
-        refuse_missing_time(corrector, model, reader.path, "t" in reader.header)
+        refuse_missing_time(corrector, model, reader.path, "t" in reader.header, reader.header_row)
         clash = [c for c in CORR_COLUMNS if c in reader.header]
         if clash:
             raise TableError(reader.path, "column already present: apply writes the corrected pose to "
-                             + ", ".join(CORR_COLUMNS) + " (use the raw table as input)", 1, clash[0])
+                             + ", ".join(CORR_COLUMNS) + " (use the raw table as input)", reader.header_row, clash[0])
         raw_sums = corr_sums = None
         refused = _Refused()
         fitted_on = _FittedOn(corrector.metadata)
@@ -239,6 +253,7 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
             raw_sums, corr_sums = _RmseSums(reader.has_ref_orientation), _RmseSums(reader.has_ref_orientation)
         with atomic_output(output) as handle:
             line = _line_writer(len(reader.header))
+            handle.write("".join(text + "\n" for _, text in reader.preamble))
             handle.write(line(reader.header) + "," + ",".join(CORR_COLUMNS) + "\n")
             for chunk in reader.chunks(chunk_rows):
                 measured = np.concatenate([chunk.block(MEAS_POS), chunk.block(MEAS_QUAT)], axis=1)
@@ -251,8 +266,8 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                         raise _refused_row(reader.path, model, chunk, measured, times, corrector, error) from None
                     corrected, errors = _pose_by_pose(reader.path, model, chunk, measured, times, corrector)
                     refused.add(errors)
-                handle.write("".join(line(row) + (_CORR_FORMAT % tuple(values))
-                                     for row, values in zip(chunk.rows, corrected.tolist())))
+                handle.write(_with_comments([line(row) + (_CORR_FORMAT % tuple(values))
+                                             for row, values in zip(chunk.rows, corrected.tolist())], chunk.comments))
                 if raw_sums is not None and corr_sums is not None:
                     q = chunk.block(REF_QUAT) if reader.has_ref_orientation else measured[:, 3:7]
                     reference = np.concatenate([chunk.block(REF_POS), q], axis=1)
@@ -261,6 +276,7 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                     corr_sums.add(reference[kept], corrected[kept])
                     fitted_on.add(measured, reference)
                 n += len(chunk.rows)
+            handle.write("".join(text + "\n" for text in reader.trailing))
             if n == 0:  # inside the block: the previous output stays
                 raise TableError(reader.path, "no data rows after the header")
             if refused.count == n:   # a table of nan is no correction: the previous output stays

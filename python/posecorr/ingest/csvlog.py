@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..data import csv_records, TableError, warn_comments
 from .streams import IngestError, JointStream, PoseStream
 
 
@@ -29,22 +30,33 @@ class CsvColumns:
 def _read_block(path: Path, columns: CsvColumns) -> dict[str, np.ndarray | None]:
     """{'joints': (t, values) or None, 'pose': ...} of one file."""
     try:
-        handle = open(path, newline="", encoding="utf-8")
+        handle = open(path, "rb")
     except OSError as exc:
         raise IngestError(f"{path}: cannot open: {exc.strerror}") from None
+    # (file row, cells) of each record that carries a sample: blank and comment lines carry none
+    numbered: list[tuple[int, list[str]]] = []
+    comment_rows: list[int] = []
+    header: list[str] | None = None
     with handle:
-        reader = csv.reader(handle)
         try:
-            header = [h.strip() for h in next(reader)]
-            rows = list(reader)
-        except StopIteration:
-            raise IngestError(f"{path}: empty file, expected a header row") from None
-        except (csv.Error, UnicodeDecodeError) as exc:
-            raise IngestError(f"{path}: not a CSV log: {exc}") from None
+            for number, cells, comment in csv_records(handle, str(path)):
+                if comment is not None:
+                    comment_rows += [number] if header is not None else []
+                elif not "".join(cells).strip():
+                    continue
+                elif header is None:
+                    header_row, header = number, cells
+                else:
+                    numbered.append((number, cells))
+        except TableError as exc:
+            raise IngestError(str(exc)) from None
+    if header is None:
+        raise IngestError(f"{path}: empty file, expected a header row")
+    if comment_rows:
+        warn_comments(str(path), comment_rows)
+    header = [h.strip() for h in header]
     if columns.time not in header:
-        raise IngestError(f"{path}: row 1: no time column {columns.time!r} (header: {', '.join(header)})")
-    # a blank line carries no sample; the others keep their file row (the header is row 1) for the messages
-    numbered = [(number, r) for number, r in enumerate(rows, start=2) if any(r)]
+        raise IngestError(f"{path}: row {header_row}: no time column {columns.time!r} (header: {', '.join(header)})")
     file_rows = np.array([number for number, _ in numbered], dtype=np.int64)
     rows = [r for _, r in numbered]
     for number, row in numbered:
@@ -59,7 +71,7 @@ def _read_block(path: Path, columns: CsvColumns) -> dict[str, np.ndarray | None]
             continue
         if len(present) != len(names):
             missing = next(n for n in names if n not in header)
-            raise IngestError(f"{path}: row 1, column {missing}: missing (expected {', '.join(names)})")
+            raise IngestError(f"{path}: row {header_row}, column {missing}: missing (expected {', '.join(names)})")
         index = [header.index(n) for n in (columns.time,) + tuple(names)]
         block = cells[:, index]
         filled = block[:, 1:] != ""

@@ -142,7 +142,7 @@ def test_full_report(tmp_path: Path, small: tuple[PoseTable, np.ndarray]) -> Non
 
     # Ledger rows, both kinds of held-out block.
     ledger = text[text.index('id="ledger"'):]
-    assert "b_station.onnx" in ledger and "station,mount" in ledger
+    assert "b_station.onnx" in ledger and "station, mount" in ledger
     assert ">70.0<" in ledger and ">2.00<" in ledger  # rmse_total in mm + mrad
     # Against the rigid fit on the same poses where the line has it (6 / 70), else nothing.
     assert ">4.00 (joint)<" in ledger and ">0.0857×<" in ledger
@@ -753,3 +753,26 @@ def test_the_arrow_key_stays_inside_its_panel_off_the_title() -> None:
         start = arrow.get_offset_transform().transform(arrow.get_offsets())[0]
         ends = np.concatenate([arrow.get_transform().transform(p.vertices) + start for p in arrow.get_paths()])
         assert ends[:, 0].max() <= ax.bbox.x1 and ends[:, 1].max() <= ax.bbox.y1, ax.get_title()
+
+
+def test_the_feature_panels_tick_labels_do_not_run_into_each_other() -> None:
+    """On the real 11-pose session the z panel (the poses within 30 mm of one height) read
+    '-0.030-0.025-0.020-0.015-0.010-0.0050.000': every panel's x labels stand apart."""
+    from posecorr.analysis.features import table_features
+    from posecorr.analysis.figures import features_figure
+    from posecorr.data import read_table
+
+    table = read_table(Path(__file__).parent / "data" / "realdata" / "20201002_Exp1.csv")
+    features = table_features(table)
+    rng = np.random.default_rng(0)
+    fig = features_figure(features, rng.uniform(1, 9, table.n), rng.uniform(1, 9, table.n), "position error", "mm")
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    panels = [ax for ax in fig.axes if ax.get_xlabel()]
+    assert any(ax.get_xlabel() == "z [m]" for ax in panels)
+    for ax in panels:
+        boxes = [t.get_window_extent(renderer) for t in ax.get_xticklabels() if t.get_visible() and t.get_text()
+                 and ax.get_xlim()[0] <= t.get_position()[0] <= ax.get_xlim()[1]]
+        assert len(boxes) >= 2, ax.get_xlabel()
+        for left, right in zip(boxes, boxes[1:]):
+            assert left.x1 < right.x0, (ax.get_xlabel(), [t.get_text() for t in ax.get_xticklabels()])

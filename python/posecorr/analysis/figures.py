@@ -215,6 +215,8 @@ def workspace_figure(ref_p: np.ndarray, before: np.ndarray, after: np.ndarray,
 def features_figure(features: Mapping[str, np.ndarray], before_mm: np.ndarray, after_mm: np.ndarray,
                      quantity: str, unit: str, before_label: str = "raw", after_label: str = "corrected") -> Any:
     """Scatter of per-pose error (log y) against each feature, before grey, after blue."""
+    from matplotlib.ticker import MaxNLocator
+
     plt = _pyplot()
     names = [f for f in FEATURES if f in features]
     ncols = 4
@@ -245,6 +247,8 @@ def features_figure(features: Mapping[str, np.ndarray], before_mm: np.ndarray, a
         ax.set_yscale("log")
         _plain_log(ax, "y", (1.0, 2.0, 5.0), minor=False)
         ax.set_xlabel(f"{name} [{FEATURE_UNITS.get(name, '')}]")
+        # a panel is 2.7 inches wide: at most 5 labels, or '-0.025' runs into '-0.020'
+        ax.xaxis.set_major_locator(MaxNLocator(nbins=5))
         if k % ncols == 0:
             ax.set_ylabel(f"{quantity} [{unit}]")
         ax.grid(True, which="major", alpha=0.3)

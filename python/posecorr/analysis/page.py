@@ -140,7 +140,7 @@ def _summary_section(table: PoseTable, model_info: Mapping[str, Any] | None, tit
               else "position only (rotation panels skipped)"),
              ("optional columns", ", ".join(extras) or "none")]
     if model_info:
-        effects = ",".join(effect_list(model_info.get("effects"))) or "none"
+        effects = ", ".join(effect_list(model_info.get("effects"))) or "none"
         items += [("model file", model_info.get("file", "?")),
                   ("corrector", describe_corrector(dict(model_info))),
                   ("effects in the model", effects)]
@@ -221,7 +221,7 @@ def _pose_place(table: PoseTable) -> tuple[np.ndarray, str, str]:
     read from a file names it by the file's row, as every other message of posecorr does."""
     if table.rows is not None:
         name = f"row in {Path(table.path).name if table.path else 'the file'}"
-        return table.rows, _e(name), f"{name}: the row of the file as an editor shows it (the header is row 1)"
+        return table.rows, _e(name), f"{name}: the row of the file as an editor shows it (its line number)"
     return (np.arange(table.n), "index",
             "index: the pose's 0-based place in the table, which was made in memory, not read from a file")
 
@@ -394,7 +394,7 @@ def _ledger_section(ledger: Sequence[Mapping[str, Any]]) -> str:
         when = str(entry.get("time", "")).replace("T", " ").removesuffix("+00:00")
         model = str(entry.get("model", ""))
         rows.append([str(k), _e(when), f'<span title="{_e(model)}">{_e(Path(model).name if model else "")}</span>',
-                     _e(",".join(effect_list(entry.get("effects"))) or "none"), _e(entry.get("method", "")),
+                     _e(", ".join(effect_list(entry.get("effects"))) or "none"), _e(entry.get("method", "")),
                      _e(_core_representation(entry)), _e(kind or "–"),
                      _num(block.get("rmse_pos"), 1e3), _num(block.get("rmse_rot"), 1e3),
                      _num(block.get("rmse_total"), 1e3), _rigid_cell(entry.get("baseline")),

@@ -172,3 +172,22 @@ def test_a_commented_header_is_named_and_an_id_starting_with_a_hash_round_trips(
     back = read_table(path)
     assert list(back.extras["id"]) == ["#1", "plain", '#"2"', "a\n#b"]   # a line inside a cell is the cell's
     np.testing.assert_array_equal(back.measured, table.measured)
+
+
+def test_positions_spanning_more_than_a_cell_draw_a_units_warning(tmp_path, capsys) -> None:
+    """A registered table in millimetres within 1000 mm of the base passes every cell check
+    (it is under MAX_POSITION 'metres'): its span, hundreds of 'metres', is what gives it away."""
+    table = _table(6)
+    table.ref_p = table.ref_p * 0.3
+    table.meas_p = table.ref_p + 1e-3
+    path = tmp_path / "m.csv"
+    write_table(table, path)
+    read_table(path)
+    assert capsys.readouterr().err == ""
+    table.ref_p, table.meas_p = table.ref_p * 1000, table.meas_p * 1000
+    assert np.abs(table.ref_p).max() < 1000 and np.ptp(table.ref_p, axis=0).max() > 100
+    write_table(table, path)
+    read_table(path)
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 2 and "the measured positions span" in err[0] and "the reference positions span" in err[1]
+    assert err[1].endswith("are ref_x..ref_z in millimetres?")

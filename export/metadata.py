@@ -14,7 +14,7 @@ Keys written by the exporter (other keys may be added by callers):
 | `activation`, `trainer` | MLP activation and training algorithm (null for PMC) |
 | `effects` | fitted physical-effect stages in front of the core, with their parameters |
 | `training_data_digest` | `sha256:<hex>` of the training arrays, see `data_digest` |
-| `test_metrics` | rmse_pos (m), rmse_rot (rad), rmse_total and improvements on the test split |
+| `test_metrics` | rmse_pos (m), rmse_rot (rad), rmse_total and improvements on the held-out poses; "raw"; "rigid": the best rigid fit scored alike (fit) |
 | `units` | units of the input/output columns and the metrics |
 | `opset` | ONNX opset of the default domain |
 | `parity` | float32 graph vs float64 `predict`: max errors and the check's settings |

@@ -311,12 +311,13 @@ def test_info_says_what_the_file_is_before_its_metadata(tmp_path, capsys) -> Non
     assert lines[1] == (f"  {meta['n_parameters']:,} fitted parameters, {meta['parameter_count']:,} numbers in the "
                         f"graph's constants, {meta['node_count']} nodes, {meta['file_size']:,} bytes")
     assert lines[2] == (f"  held out (test split, {test['n']} poses): rmse_pos {1e3 * test['rmse_pos']:.4g} mm, "
-                        f"rmse_rot {1e3 * test['rmse_rot']:.4g} mrad; raw rmse_pos {1e3 * test['raw']['rmse_pos']:.4g} mm, "
-                        f"rmse_rot {1e3 * test['raw']['rmse_rot']:.4g} mrad")
-    assert lines[3].startswith("  parity with the fitted estimator: passed, worst ")
-    assert lines[4].startswith("  corrects positions within x ")
-    assert lines[5:7] == ["", "metadata and structure:"]
-    assert sum(line.split(":")[0].strip() in meta for line in lines[7:]) == len(meta)
+                        f"rmse_rot {1e3 * test['rmse_rot']:.4g} mrad")
+    assert lines[3] == (f"  raw: rmse_pos {1e3 * test['raw']['rmse_pos']:.4g} mm, "
+                        f"rmse_rot {1e3 * test['raw']['rmse_rot']:.4g} mrad")   # registered: raw is the tracker's
+    assert lines[4].startswith("  parity with the fitted estimator: passed, worst ")
+    assert lines[5].startswith("  corrects positions within x ")
+    assert lines[6:8] == ["", "metadata and structure:"]
+    assert sum(line.split(":")[0].strip() in meta for line in lines[8:]) == len(meta)
 
     data = tmp_path / "s.csv"
     write_table(simulate_session(2, n=12, spread="full", position_only=False, unremovable=0.0).table, data)
@@ -326,6 +327,14 @@ def test_info_says_what_the_file_is_before_its_metadata(tmp_path, capsys) -> Non
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].endswith("; physical effects: station, mount") or lines[0].endswith("; physical effects: mount, station")
     assert lines[2].startswith(f"  held out (cross-validated): rmse_pos {1e3 * fitted['cv']['rmse_pos']:.4g} mm")
+    # a fitted model states its floor, the best rigid fit scored alike; raw is the frames' offset here
+    rigid = fitted["baseline"]
+    assert fitted["frames_unregistered"] and lines[3] == (
+        f"  the best rigid fit ({rigid['model']}), same poses: rmse_pos {1e3 * rigid['rmse_pos']:.4g} mm, "
+        f"rmse_rot {1e3 * rigid['rmse_rot']:.4g} mrad")
+    assert lines[4] == (f"  raw: rmse_pos {1e3 * fitted['raw']['rmse_pos']:.4g} mm, rmse_rot "
+                        f"{1e3 * fitted['raw']['rmse_rot']:.4g} mrad (frames unregistered: their offset, not the "
+                        "tracker's error)")
 
     bare = onnx.load(shipped)
     del bare.metadata_props[:]

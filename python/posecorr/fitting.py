@@ -47,7 +47,9 @@ def export_fit(report: Any, table: Any, output: str | Path, write: Any = None) -
     fit = training_fit(report, table)
     exported = report.model.to_onnx(output, measured=fit.measured, reference=fit.reference, t=fit.t,
                                     heldout=heldout_poses(report, table), write=write,
-                                    test_metrics={report.heldout_kind: report.heldout, "raw": report.raw})
+                                    test_metrics={report.heldout_kind: report.heldout, "raw": report.raw,
+                                                  # the floor: the best rigid fit, scored alike
+                                                  "rigid": {"model": report.baseline_name, **report.baseline}})
     if exported.get("heldout_metrics"):
         report.heldout = exported["heldout_metrics"]["test"]
     return exported

@@ -46,6 +46,8 @@ def run(args: argparse.Namespace) -> None:
         blocks = {"raw": payload["raw"], "corrected (in-sample)" if in_sample else "corrected": payload["corrected"]}
         if held is not None:
             blocks[f"held out ({HELD_OUT_SOURCES[held['source']]})"] = held
+            if held["rigid"] is not None:   # the floor the fit measured itself against
+                blocks[f"the best rigid fit ({held['rigid']['model']}), held out alike"] = held["rigid"]
         note = (f"\nnote: {args.model.name} was fitted on these poses (its training_data_digest): corrected is "
                 "in-sample" + ("; held out is the fit's, as the model states it" if held else "")) if in_sample else ""
         return head + "\n" + fmt_table(METRIC_HEADERS, metrics_rows(blocks)) + note

@@ -34,7 +34,8 @@ def summary(info: dict[str, Any]) -> list[str]:
     """What a model file is and what it states of itself, in a few lines: what it corrects
     with, its size, its held-out figures, its parity, the poses it takes. Every metadata value
     may be missing or of another type (the author wrote it): what is not there is left out."""
-    from ..controller.onnx_meta import stated_metrics
+    from ..controller.onnx_meta import stated_metrics, stated_rigid
+    from ..metrics import frames_unregistered
 
     lines = [f"{Path(str(info.get('file'))).name}: {_describe(info)}"]
     # the graph's constants hold the fitted parameters and the encodings' own numbers
@@ -51,7 +52,15 @@ def summary(info: dict[str, Any]) -> list[str]:
         kind, figures, raw = stated
         where = ("cross-validated" if kind == "cv" else "test split") + (
             f", {figures['n']} poses" if isinstance(figures.get("n"), int) else "")
-        lines.append(f"  held out ({where}): {_errors(figures)}" + (f"; raw {_errors(raw)}" if raw else ""))
+        lines.append(f"  held out ({where}): {_errors(figures)}")
+        rigid = stated_rigid(info)
+        if rigid is not None:
+            lines.append(f"  the best rigid fit ({rigid.get('model', 'rigid')}), same poses: {_errors(rigid)}")
+        if raw is not None:
+            # raw measures the frames' offset where they are unregistered, not the tracker
+            offset = rigid is not None and isinstance(raw.get("rmse_pos"), (int, float)) and frames_unregistered(raw, rigid)
+            lines.append(f"  raw: {_errors(raw)}" + (" (frames unregistered: their offset, not the tracker's error)"
+                                                     if offset else ""))
     parity = info.get("parity")
     if isinstance(parity, dict) and isinstance(parity.get("passed"), bool):
         worst = (f", worst {parity['max_pos_m']:.1e} m / {parity['max_rot_rad']:.1e} rad"

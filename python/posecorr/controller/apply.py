@@ -25,7 +25,7 @@ from ..metrics import METRIC_KEYS, metric_block, pose_errors
 from ..safeio import atomic_output, check_output
 from .checks import COLUMNS, QUATERNION, TIME_INPUT
 from .digest import data_digest
-from .onnx_meta import decode_value, stated_metrics
+from .onnx_meta import decode_value, stated_metrics, stated_rigid
 from .runtime import Corrector, PoseCorrError
 
 CORR_COLUMNS = tuple("corr_" + name.split("_", 1)[1] for name in MEAS_POS + MEAS_QUAT)
@@ -210,7 +210,9 @@ class _FittedOn:
         if stated is None:
             return None
         kind, figures, _ = stated
-        return {"source": kind, **{k: figures.get(k) for k in ("rmse_pos", "rmse_rot", "rmse_total")}}
+        rigid = stated_rigid({"test_metrics": self.metrics})
+        return {"source": kind, **{k: figures.get(k) for k in ("rmse_pos", "rmse_rot", "rmse_total")},
+                "rigid": None if rigid is None else {k: rigid.get(k) for k in ("model", *METRIC_KEYS)}}
 
 
 def refuse_missing_time(corrector: Corrector, model: str | os.PathLike[str], path: Any, has_time: bool,
@@ -235,7 +237,9 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
     without reference columns). allow_unbounded, allow_unsigned: as `Corrector`'s. A pose the
     model refuses stops the work (TableError naming its row), or with `keep_going` is written
     as nan and counted in "refused" ({"count", "rows": the first REFUSED_SHOWN, "first": its
-    message}); the metrics are then over the poses corrected."""
+    message}); the metrics are then over the poses corrected. "held_out" (on the poses the model
+    was fitted on) is the fit's figures as the model states them, with "rigid", the best rigid
+    fit's scored alike (None where the model states none)."""
     check_output(output, [model, table])
     corrector = Corrector(model, backend=backend, allow_unbounded=allow_unbounded,
                           allow_unsigned=allow_unsigned)

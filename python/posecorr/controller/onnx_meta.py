@@ -182,6 +182,15 @@ def stated_metrics(info: dict[str, Any]) -> tuple[str, dict[str, Any], dict[str,
     return None
 
 
+def stated_rigid(info: dict[str, Any]) -> dict[str, Any] | None:
+    """The best rigid fit's figures on the same poses, scored as the model's held-out ones, as
+    `fit` states them (`test_metrics` "rigid": {"model": its variant, "rmse_pos", ...}); None
+    where the model states none (a shipped model, an older file)."""
+    stated = info.get("test_metrics")
+    rigid = stated.get("rigid") if isinstance(stated, dict) else None
+    return rigid if isinstance(rigid, dict) and isinstance(rigid.get("rmse_pos"), (int, float)) else None
+
+
 def describe_corrector(info: dict[str, Any]) -> str:
     """What a model file corrects with, from its metadata: "mlp 20-20-20-20 (tansig, br) on
     zhou", "pmc quadratic-9in-55terms (lstsq) on zhou", "rigid joint", "physics". The

@@ -9,9 +9,7 @@ squeezed along others about the middle of the workspace:
 c the workspace centre. A uniform S would be the catalogue's range scale; this one is not.
 Used by examples/loop.sh to make a session whose error the catalogue cannot name.
 """
-import numpy as np
-
-from posecorr.effects import Effect, Param
+from posecorr.effects import Effect, Param, to_namespace
 
 
 class SpaceStrain(Effect):
@@ -21,6 +19,11 @@ class SpaceStrain(Effect):
                     doc="S entries xx, yy, zz, xy, xz, yz"),)
 
     def forward(self, p, R, theta, ctx):
-        xx, yy, zz, xy, xz, yz = np.asarray(theta, float)
-        S = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
-        return ctx.c + (p - ctx.c) @ (np.eye(3) + S).T, R
+        # Written with the arguments' array namespace (numpy, torch or the ONNX exporter's
+        # symbolic tensors), not numpy's functions: so the map also fits and exports.
+        xp, p, R, theta = to_namespace(p, R, theta)
+        xx, yy, zz, xy, xz, yz = (theta[..., k] for k in range(6))
+        rows = ((1 + xx, xy, xz), (xy, 1 + yy, yz), (xz, yz, 1 + zz))
+        stretch = xp.stack([xp.stack(list(row), axis=-1) for row in rows], axis=-2)   # I + S
+        c = xp.const(ctx.c, p)
+        return c + xp.matmul(p - c, xp.swap_last(stretch)), R

@@ -5,6 +5,7 @@ loops, scipy's Rotation for Exp), not from posecorr's helpers.
 """
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -337,6 +338,29 @@ def test_user_effect_file_errors(tmp_path):
         fx.load_effect_file(tmp_path / "missing.py")
 
 
+@pytest.mark.parametrize("body,expected", [
+    ("a, b = theta\n        return p, R", r"raised ValueError: not enough values to unpack \(expected 2, got 1\) "
+                                           r"\(line 9: a, b = theta\)"),
+    ("return p[:, :2], R", r"returned p of shape \(4, 2\), expected \(4, 3\)"),
+    ("return p", r"returned ndarray, expected the pair \(p, R\)"),
+    ("return p / 0.0, R", r"returned p with values that are not finite"),
+])
+def test_a_user_effect_whose_forward_fails_is_refused_when_its_file_loads(tmp_path, body, expected):
+    """A mistake in forward was a fit's error naming the data file ("d.csv: too many values to
+    unpack"): it is found when the file loads, named by the effect and the file's line, and
+    the file's effects are not left registered."""
+    path = tmp_path / "wrong.py"
+    path.write_text("from posecorr.effects import Effect, Param\n\n\nclass Wrong(Effect):\n    name = 'wrong'\n"
+                    "    params = (Param('k', 1, (0.01,), 0.01, '1'),)\n\n    def forward(self, p, R, theta, ctx):\n"
+                    f"        {body}\n")
+    with pytest.raises(ValueError) as info:
+        fx.load_effect_file(path)
+    assert str(info.value).startswith(f"effect file {path}: effect 'wrong': forward(p, R, theta, ctx) on 4 poses at "
+                                      "its default theta ")
+    assert re.search(expected, str(info.value)), str(info.value)
+    assert "wrong" not in fx.EFFECTS
+
+
 # --- export-readiness: only the array-namespace interface ----------------------------------
 
 class _StrictNamespace:
@@ -436,3 +460,32 @@ def test_a_value_is_implausible_only_where_the_data_rejects_the_plausible_range(
     # d (3) beyond by 0.05 m with 0.02 m errors: 2.5 standard errors, the farthest entry named
     assert drift.implausible([0.07, 0.01, -0.03, 3600.0], [0.02, 0.02, 0.02, 100.0]) == [
         "drift.d = 0.07 m lies outside the plausible -0.02 to 0.02 m (2.5 standard errors beyond)"]
+
+
+def test_fit_refuses_an_effect_whose_map_does_not_trace_before_the_work(tmp_path, capsys):
+    """np.sin on the pose runs in the fit and failed in its export, after the work, as an
+    "internal error" of posecorr: `fit` traces each loaded effect first and names the line;
+    the same effect written with the namespace fits and exports."""
+    from posecorr.cli import main
+    from posecorr.data import write_table
+    from posecorr.simulate import simulate_session
+
+    data = tmp_path / "s.csv"
+    write_table(simulate_session(1, n=20).table, data)
+    numpy_only = tmp_path / "wavy.py"
+    numpy_only.write_text("import numpy as np\nfrom posecorr.effects import Effect, Param\n\n\nclass Wavy(Effect):\n"
+                          "    name = 'wavy'\n    changes_rotation = False\n"
+                          "    params = (Param('a', 1, (0.001,), 1e-3, 'm'),)\n\n"
+                          "    def forward(self, p, R, theta, ctx):\n        return p + theta[0] * np.sin(p), R\n")
+    args = ["fit", str(data), "--effects", "station,mount,wavy", "--method", "none", "-o", str(tmp_path / "m.onnx")]
+    assert main([*args, "--effect-file", str(numpy_only)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "effect 'wavy': its map does not trace into the ONNX graph fit exports" in err
+    assert "(line 11: return p + theta[0] * np.sin(p), R)" in err and "fold" not in err
+    assert "wavy" not in fx.EFFECTS and not (tmp_path / "m.onnx").exists()
+    numpy_only.write_text(numpy_only.read_text().replace("Param\n", "Param, to_namespace\n").replace(
+        "        return p + theta[0] * np.sin(p), R",
+        "        xp, p, R, theta = to_namespace(p, R, theta)\n        return p + theta[..., 0] * xp.sin(p), R"))
+    assert main([*args, "--effect-file", str(numpy_only)]) == 0, capsys.readouterr().err
+    assert (tmp_path / "m.onnx").exists()
+    fx.unregister_effect("wavy")

@@ -721,7 +721,52 @@ def load_effect_file(path: str | Path) -> list[str]:
                if isinstance(obj, type) and issubclass(obj, Effect) and obj.__module__ == module_name]
     if not classes:
         raise ValueError(f"effect file {path} defines no subclass of posecorr.effects.Effect")
-    return [register_effect(cls, source=str(path)).name for cls in classes]
+    names = [register_effect(cls, source=str(path)).name for cls in classes]
+    for name in names:
+        problem = _trial_forward(get_effect(name), path)
+        if problem:
+            for registered in names:
+                unregister_effect(registered)
+            raise ValueError(f"effect file {path}: effect {name!r}: {problem}")
+    return names
+
+
+def raised_in(exc: BaseException, path: str | Path) -> str:
+    """'TypeError: message (line 11: the line)': an exception a user's effect file raised,
+    with the last line of that file it passed through."""
+    import traceback
+
+    frames = [f for f in traceback.extract_tb(exc.__traceback__) if Path(f.filename) == Path(path).resolve()]
+    where = f" (line {frames[-1].lineno}: {frames[-1].line})" if frames else ""
+    return f"{type(exc).__name__}: {exc}{where}"
+
+
+# The poses a user effect is tried on when its file loads: about the workspace centre,
+# turned every way, a few seconds apart.
+_TRIAL_POSES = 4
+
+
+def _trial_forward(effect: Effect, path: Path) -> str | None:
+    """What is wrong with `effect.forward` on a few poses at its default theta (an exception,
+    with the line of `path` it came from, or an output of the wrong shape or not finite);
+    None when nothing is. Said at load, not as a fit's error naming the data file."""
+    ctx = EffectContext.default(t=np.arange(_TRIAL_POSES) * 5.0, rng=np.random.default_rng(0))
+    p = ctx.c + np.linspace(-0.2, 0.2, _TRIAL_POSES * 3).reshape(_TRIAL_POSES, 3)
+    R = rotvec_to_matrix(np.linspace(-1.0, 1.0, _TRIAL_POSES * 3).reshape(_TRIAL_POSES, 3))
+    call = f"forward(p, R, theta, ctx) on {_TRIAL_POSES} poses at its default theta"
+    try:
+        out = effect.forward(p, R, effect.default_theta(), ctx)
+    except Exception as exc:  # the user's code: any exception is its error
+        return f"{call} raised {raised_in(exc, path)}"
+    if not (isinstance(out, tuple) and len(out) == 2):
+        return f"{call} returned {type(out).__name__}, expected the pair (p, R)"
+    for name, value, shape in (("p", out[0], p.shape), ("R", out[1], R.shape)):
+        value = np.asarray(value)
+        if value.shape != shape:
+            return f"{call} returned {name} of shape {value.shape}, expected {shape}"
+        if not np.all(np.isfinite(value)):
+            return f"{call} returned {name} with values that are not finite"
+    return None
 
 
 def parse_effects_arg(text: str) -> dict[str, np.ndarray]:

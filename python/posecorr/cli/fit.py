@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> None:
 
     apply_threads(args)
     check_sidecar(ledger_path(args.data))  # refused before the work, not after it
-    load_effect_files(args)
+    load_effect_files(args, exported=True)
     # The options are checked before the table is read: their faults are theirs, and found at once.
     effects, plan, spec = effect_names(args.effects), _parse_cv(args.cv), _spec(args)
     table = _read(args)

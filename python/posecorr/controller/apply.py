@@ -229,6 +229,16 @@ def refuse_missing_time(corrector: Corrector, model: str | os.PathLike[str], pat
                          "the session's start)", header_row, "t")
 
 
+def _check_header(reader: TableReader, corrector: Corrector, model: str | os.PathLike[str]) -> None:
+    """TableError where the table lacks the time the model takes, or already holds a column
+    apply writes."""
+    refuse_missing_time(corrector, model, reader.path, "t" in reader.header, reader.header_row)
+    clash = [c for c in CORR_COLUMNS if c in reader.header]
+    if clash:
+        raise TableError(reader.path, "column already present: apply writes the corrected pose to "
+                         + ", ".join(CORR_COLUMNS) + " (use the raw table as input)", reader.header_row, clash[0])
+
+
 def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], output: str | os.PathLike[str],
                backend: str = "c", chunk_rows: int = CHUNK_ROWS, allow_unbounded: bool = False,
                allow_unsigned: bool = False, keep_going: bool = False) -> dict[str, Any]:
@@ -245,11 +255,7 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                           allow_unsigned=allow_unsigned)
     n = 0
     with TableReader(table, require_reference=False) as reader:
-        refuse_missing_time(corrector, model, reader.path, "t" in reader.header, reader.header_row)
-        clash = [c for c in CORR_COLUMNS if c in reader.header]
-        if clash:
-            raise TableError(reader.path, "column already present: apply writes the corrected pose to "
-                             + ", ".join(CORR_COLUMNS) + " (use the raw table as input)", reader.header_row, clash[0])
+        _check_header(reader, corrector, model)
         raw_sums = corr_sums = None
         refused = _Refused()
         fitted_on = _FittedOn(corrector.metadata)
@@ -257,8 +263,8 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
             raw_sums, corr_sums = _RmseSums(reader.has_ref_orientation), _RmseSums(reader.has_ref_orientation)
         with atomic_output(output) as handle:
             line = _line_writer(len(reader.header))
-            handle.write("".join(text + "\n" for _, text in reader.preamble))
-            handle.write(line(reader.header) + "," + ",".join(CORR_COLUMNS) + "\n")
+            handle.write("".join(text + "\n" for _, text in reader.preamble) + line(reader.header) + ","
+                         + ",".join(CORR_COLUMNS) + "\n")
             for chunk in reader.chunks(chunk_rows):
                 measured = np.concatenate([chunk.block(MEAS_POS), chunk.block(MEAS_QUAT)], axis=1)
                 # A model with a time input gets the table's t (s since the session's start).

@@ -27,16 +27,17 @@ class CsvColumns:
     pose: tuple[str, ...] = ("x", "y", "z", "qw", "qx", "qy", "qz")
 
 
-def _read_block(path: Path, columns: CsvColumns) -> dict[str, np.ndarray | None]:
-    """{'joints': (t, values) or None, 'pose': ...} of one file."""
+def _records(path: Path) -> tuple[int, list[str], list[tuple[int, list[str]]]]:
+    """(the header's row, its cells, (file row, cells) of each row that carries a sample):
+    blank and comment lines carry none; those among the samples are named in a warning."""
     try:
         handle = open(path, "rb")
     except OSError as exc:
         raise IngestError(f"{path}: cannot open: {exc.strerror}") from None
-    # (file row, cells) of each record that carries a sample: blank and comment lines carry none
     numbered: list[tuple[int, list[str]]] = []
     comment_rows: list[int] = []
     header: list[str] | None = None
+    header_row = 1
     with handle:
         try:
             for number, cells, comment in csv_records(handle, str(path)):
@@ -54,6 +55,12 @@ def _read_block(path: Path, columns: CsvColumns) -> dict[str, np.ndarray | None]
         raise IngestError(f"{path}: empty file, expected a header row")
     if comment_rows:
         warn_comments(str(path), comment_rows)
+    return header_row, header, numbered
+
+
+def _read_block(path: Path, columns: CsvColumns) -> dict[str, np.ndarray | None]:
+    """{'joints': (t, values) or None, 'pose': ...} of one file."""
+    header_row, header, numbered = _records(path)
     header = [h.strip() for h in header]
     if columns.time not in header:
         raise IngestError(f"{path}: row {header_row}: no time column {columns.time!r} (header: {', '.join(header)})")

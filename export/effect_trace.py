@@ -7,6 +7,7 @@ effect file when it loads, naming the line.
 """
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from posecorr.effects import EffectContext, raised_in
@@ -14,7 +15,7 @@ from posecorr.effects import EffectContext, raised_in
 from .symbolic import Graph
 
 
-def untraceable(effect: Any, source: str) -> str | None:
+def untraceable(effect: Any, source: str | Path) -> str | None:
     """What stops `effect.inverse` (which calls its forward map unless it has its own) from
     tracing into a graph, at the effect's default theta, with the line of `source` (the
     effect's file) it came from; None when it traces."""

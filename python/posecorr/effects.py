@@ -698,10 +698,12 @@ def sorted_effects(names: Iterable[str]) -> list[Effect]:
     return sorted((get_effect(n) for n in names), key=lambda e: e.order)
 
 
-def load_effect_file(path: str | Path) -> list[str]:
+def load_effect_file(path: str | Path, check: Callable[[Effect, Path], str | None] | None = None) -> list[str]:
     """Import a user's Python file and register every `Effect` subclass it defines.
 
-    Returns the registered names. Loading the same file again re-registers its effects.
+    Returns the registered names. Loading the same file again re-registers its effects. Each
+    effect's forward map is tried on a few poses, and `check(effect, path)` (what is wrong,
+    or None) is asked too; a problem unregisters the file's effects and raises ValueError.
     """
     path = Path(path).resolve()
     if not path.is_file():
@@ -723,7 +725,7 @@ def load_effect_file(path: str | Path) -> list[str]:
         raise ValueError(f"effect file {path} defines no subclass of posecorr.effects.Effect")
     names = [register_effect(cls, source=str(path)).name for cls in classes]
     for name in names:
-        problem = _trial_forward(get_effect(name), path)
+        problem = _trial_forward(get_effect(name), path) or (check(get_effect(name), path) if check else None)
         if problem:
             for registered in names:
                 unregister_effect(registered)
@@ -755,7 +757,8 @@ def _trial_forward(effect: Effect, path: Path) -> str | None:
     R = rotvec_to_matrix(np.linspace(-1.0, 1.0, _TRIAL_POSES * 3).reshape(_TRIAL_POSES, 3))
     call = f"forward(p, R, theta, ctx) on {_TRIAL_POSES} poses at its default theta"
     try:
-        out = effect.forward(p, R, effect.default_theta(), ctx)
+        with np.errstate(all="ignore"):   # a non-finite result is named below, in one line
+            out = effect.forward(p, R, effect.default_theta(), ctx)
     except Exception as exc:  # the user's code: any exception is its error
         return f"{call} raised {raised_in(exc, path)}"
     if not (isinstance(out, tuple) and len(out) == 2):

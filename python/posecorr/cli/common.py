@@ -166,21 +166,14 @@ def apply_threads(args: argparse.Namespace, workers: int = 1) -> int:
 def load_effect_files(args: argparse.Namespace, exported: bool = False) -> list[str]:
     """Load each --effect-file; `exported` (a verb that exports the fit): each of their effects
     must also trace into an ONNX graph, checked now rather than after the fit."""
-    from ..effects import load_effect_file, unregister_effect
+    from ..effects import load_effect_file
 
+    check = None
+    if exported:
+        from ..export.effect_trace import untraceable as check
     files = [str(path) for path in getattr(args, "effect_file", None) or []]
     for path in files:
-        names = load_effect_file(path)
-        if exported:
-            from ..effects import get_effect
-            from ..export.effect_trace import untraceable
-
-            for name in names:
-                problem = untraceable(get_effect(name), path)
-                if problem:
-                    for loaded in names:
-                        unregister_effect(loaded)
-                    raise ValueError(f"effect file {Path(path).resolve()}: effect {name!r}: {problem}")
+        load_effect_file(path, check)
     return files
 
 

@@ -274,9 +274,13 @@ def check_model(data: bytes, where: str, allow_unbounded: bool = False,
                 allow_unsigned: bool = False) -> tuple[dict[str, str], Limits]:
     """The load-time checks of libposecorr on a model's bytes: (metadata as strings, the
     run-time limits). Raises PoseCorrError naming `where` and what was expected."""
+    if not data:   # before the digest, as api.c: an empty file is no unsigned model
+        raise PoseCorrError(f"{where}: truncated file at byte 0 (empty)", int(Status.TRUNCATED))
     check_digest(data, where, allow_unsigned)
     try:
         graph = onnx_meta.read_graph(data)
+    except onnx_meta.TruncatedModel as exc:
+        raise PoseCorrError(f"{where}: {exc}", int(Status.TRUNCATED)) from None
     except ValueError as exc:
         raise PoseCorrError(f"{where}: not a valid ONNX model ({exc})", int(Status.MALFORMED)) from None
     opset = graph["opset_import"].get("ai.onnx")

@@ -30,47 +30,66 @@ class _Malformed(Exception):
     pass
 
 
+class _Truncated(_Malformed):
+    """Bytes that end inside a field: libposecorr's status TRUNCATED, in its words."""
+
+
+class TruncatedModel(ValueError):
+    """A model file cut short, named as libposecorr names it: "truncated file at byte N (...)"."""
+
+
+class _Slice(bytes):
+    """A length-delimited field's bytes, with where they start in the file (`base`): an
+    error names a byte by its offset in the file, as libposecorr does."""
+
+    base = 0
+
+
+# libposecorr's protobuf reader (pb.c) and this one name a fault in the same words.
 def _varint(buf: bytes, pos: int) -> tuple[int, int]:
-    result = shift = 0
-    while True:
-        if pos >= len(buf):
-            raise _Malformed("truncated varint")
+    base = getattr(buf, "base", 0)
+    start, result, shift = pos, 0, 0
+    while pos < len(buf):
         b = buf[pos]
         pos += 1
+        if shift == 63 and b & 0x7E:
+            raise _Malformed(f"varint overflows 64 bits at byte {base + start}")
         result |= (b & 0x7F) << shift
         if not b & 0x80:
             return result, pos
         shift += 7
         if shift > 63:
-            raise _Malformed("varint longer than 10 bytes")
+            raise _Malformed(f"varint longer than 10 bytes at byte {base + start}")
+    raise _Truncated(f"truncated file at byte {base + pos} (inside a varint)")
 
 
 def _fields(buf: bytes) -> Iterator[tuple[int, int, Any]]:
     """(field number, wire type, value) of one message: value is an int (varint, fixed) or
-    the bytes of a length-delimited field."""
+    the bytes of a length-delimited field (a `_Slice`)."""
+    base = getattr(buf, "base", 0)
     pos, end = 0, len(buf)
     while pos < end:
+        start = pos
         key, pos = _varint(buf, pos)
         field, wire = key >> 3, key & 7
-        if field == 0:
-            raise _Malformed("field number 0")
+        if field == 0 or field > 0x1FFFFFFF:
+            raise _Malformed(f"invalid field number at byte {base + start}")
         if wire == 0:
             value, pos = _varint(buf, pos)
-        elif wire == 1:
-            if pos + 8 > end:
-                raise _Malformed("truncated fixed64")
-            value, pos = int.from_bytes(buf[pos:pos + 8], "little"), pos + 8
+        elif wire in (1, 5):
+            width = 8 if wire == 1 else 4
+            if end - pos < width:
+                raise _Truncated(f"truncated file at byte {base + pos} (inside a {width}-byte field)")
+            value, pos = int.from_bytes(buf[pos:pos + width], "little"), pos + width
         elif wire == 2:
             length, pos = _varint(buf, pos)
-            if pos + length > end:
-                raise _Malformed(f"length {length} of field {field} runs past the end")
-            value, pos = buf[pos:pos + length], pos + length
-        elif wire == 5:
-            if pos + 4 > end:
-                raise _Malformed("truncated fixed32")
-            value, pos = int.from_bytes(buf[pos:pos + 4], "little"), pos + 4
+            if length > end - pos:
+                raise _Truncated(f"truncated file at byte {base + pos} (field {field} declares {length} bytes, "
+                                 f"{end - pos} left)")
+            value = _Slice(buf[pos:pos + length])
+            value.base, pos = base + pos, pos + length
         else:
-            raise _Malformed(f"unsupported wire type {wire} (field {field})")
+            raise _Malformed(f"unsupported wire type {wire} at byte {base + start}")
         yield field, wire, value
 
 
@@ -96,7 +115,7 @@ def _str(value: Any) -> str:
 def _msg(value: Any) -> bytes:
     if not isinstance(value, (bytes, bytearray)):
         raise _Malformed("expected an embedded message")
-    return bytes(value)
+    return value if isinstance(value, _Slice) else bytes(value)
 
 
 def _signed(v: int) -> int:
@@ -160,6 +179,8 @@ def read_info(path: str | os.PathLike[str]) -> dict[str, Any]:
         data = fh.read()
     try:
         return _parse(data, path)
+    except _Truncated as exc:
+        raise TruncatedModel(f"{path}: {exc}") from None
     except _Malformed as exc:
         raise ValueError(f"{path}: not a valid ONNX model ({exc})") from None
     except RecursionError:
@@ -209,7 +230,7 @@ def describe_corrector(info: dict[str, Any]) -> str:
 
 def _parse(data: bytes, path: str) -> dict[str, Any]:
     if not data:
-        raise _Malformed("empty file")
+        raise _Truncated("truncated file at byte 0 (empty)")
     meta, model = _model_fields(data)
     graph = _graph_fields(model.pop("graph"))
     structure = {"file": path, "file_size": len(data), **model, **graph}
@@ -325,9 +346,14 @@ def read_graph(data: bytes) -> dict[str, Any]:
     "opset_import": {domain: version}, "nodes": [(op_type, domain, name)],
     "float_tensors": [float initialisers and Constant values, see _float_tensor],
     "inputs": [names of the graph's inputs]}.
-    Raises ValueError when the bytes are not an ONNX ModelProto."""
+    Raises ValueError when the bytes are not an ONNX ModelProto, TruncatedModel (one) when
+    they end inside a field."""
     try:
+        if not data:
+            raise _Truncated("truncated file at byte 0 (empty)")
         return _read_graph(data)
+    except _Truncated as exc:
+        raise TruncatedModel(str(exc)) from None
     except _Malformed as exc:
         raise ValueError(str(exc)) from None
     except RecursionError:

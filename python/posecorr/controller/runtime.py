@@ -293,15 +293,18 @@ def _check_file(path: str | os.PathLike) -> None:
 
 def _load_message(path: str | os.PathLike | bytes, status: int, message: bytes) -> str:
     """libposecorr's words for a failed load; for bytes that are not an ONNX file at all,
-    those of the other back end and of `info`: libposecorr says "not a valid ONNX model
-    (unsupported wire type 4 at byte 2)" of a text file (posecorr-run prints it so), this
-    parser "not a valid ONNX model (unsupported wire type 4 (field 13))", and the shim's back
-    ends say the same word for word (tests/test_checks.py)."""
+    those of the other back end and of `info`. The protobuf faults read alike in both parsers
+    ("unsupported wire type 4 at byte 2", "truncated file at byte 3 (inside a varint)"); a
+    field of the wrong type is this parser's "expected an embedded message" where libposecorr
+    says "model field 7 at byte 0 is not bytes", so that the shim's back ends say the same
+    word for word (tests/test_checks.py)."""
     text = message.decode(errors="replace")
     if status != checks.Status.MALFORMED:    # a truncated file is named so, with its byte
         return text
     try:
         onnx_meta.read_graph(bytes(path) if isinstance(path, (bytes, bytearray)) else Path(path).read_bytes())
+    except onnx_meta.TruncatedModel:
+        return text
     except ValueError as exc:
         return f"not a valid ONNX model ({exc})"
     except OSError:

@@ -77,6 +77,8 @@ def test_a_misspelled_optional_column_is_kept_with_one_warning_naming_the_likely
     (f"{HEADER}\n{ROW}\n\n0.1,0.2,0.3,1.01,0,0,0,0.1,0.2,0.3\n", 4, "meas_qw..meas_qz", "quaternion norm"),
     (f"{HEADER}\n{ROW}\n0.1,0.2\n", 3, None, "2 fields, expected 10"),
     (f"{HEADER}\n{ROW}\n".replace(",", ";"), 1, "meas_x", "the header is one column holding ';': posecorr reads commas"),
+    (f"# session 3\n\n{HEADER},ref_qw\n{ROW},1\n", 3, "ref_qx", "missing column"),   # the header's own row
+    (f"# v2\n{HEADER}\n{ROW}\n#{ROW}\n0.1,0.2\n", 5, None, "2 fields, expected 10"),  # comment lines count
 ])
 def test_malformed_tables_name_file_row_and_column(tmp_path, text, row, column, what) -> None:
     path = _write(tmp_path, text)

@@ -141,7 +141,8 @@ def test_comment_lines_are_no_poses_and_keep_the_rows_of_the_rest(tmp_path, caps
     plain = tmp_path / "plain.csv"
     write_table(table, plain)
     lines = plain.read_text().splitlines()
-    commented = ["# Vive Pro, 2026-11-29", '# stations A, "B (a quote opens no cell)'] + lines[:3] + ["#" + lines[3], "# a note"] + lines[4:]
+    preamble = ["# Vive Pro, 2026-11-29", '# stations A, "B (a quote opens no cell)']
+    commented = preamble + lines[:3] + ["#" + lines[3], "# a note"] + lines[4:]
     path = _write(tmp_path, "\n".join(commented + ["# end"]) + "\n")
     got = read_table(path)
     expected = table.subset(np.array([0, 1, 3, 4, 5]))

@@ -265,14 +265,20 @@ def protect_comment(line: str, first: str) -> str:
     return '"' + first.replace('"', '""') + '"' + line[len(first):]
 
 
-def warn_comments(path: str, rows: list[int], shown: int = 5) -> None:
-    """One warning line for the comment lines after a header: 'rows 7, 9, 12, 15, 18 and 3
-    more start with '#'': a line left out by hand is said to be left out."""
+# The comment lines a warning names by row; the rest it counts.
+COMMENTS_SHOWN = 5
+
+
+def warn_comments(path: str, rows: list[int], count: int | None = None) -> None:
+    """One warning line for the `count` comment lines after a header, the first of them at
+    `rows`: 'rows 7, 9, 12, 15, 18 and 3 more start with '#'': a line left out by hand is said
+    to be left out."""
     from .safeio import warn
 
-    head = ", ".join(map(str, rows[:shown]))
-    more = f" and {len(rows) - shown} more" if len(rows) > shown else ""
-    which = f"row {head} starts" if len(rows) == 1 else f"rows {head}{more} start"
+    count = len(rows) if count is None else count
+    head = ", ".join(map(str, rows[:COMMENTS_SHOWN]))
+    more = f" and {count - COMMENTS_SHOWN} more" if count > COMMENTS_SHOWN else ""
+    which = f"row {head} starts" if count == 1 else f"rows {head}{more} start"
     warn(f"{path}: {which} with {COMMENT!r}: read as comments, not data")
 
 
@@ -309,9 +315,10 @@ class TableReader:
         except OSError as exc:
             raise TableError(self.path, f"cannot open: {exc.strerror}") from None
         self._records = csv_records(self._handle, self.path)
-        # the comment lines before the header (row, text); the rows of those among the poses,
-        # and the text of those after the last pose (`chunks`)
+        # the comment lines before the header (row, text); how many among the poses and the
+        # rows of the first COMMENTS_SHOWN; the text of those after the last pose (`chunks`)
         self.preamble: list[tuple[int, str]] = []
+        self.comment_count = 0
         self.comment_rows: list[int] = []
         self.trailing: list[str] = []
         try:
@@ -387,7 +394,8 @@ class TableReader:
         for record, row, comment in self._records:
             if comment is not None:
                 comments.append((len(rows), comment))
-                self.comment_rows.append(record)
+                self.comment_count += 1
+                self.comment_rows += [record] if len(self.comment_rows) < COMMENTS_SHOWN else []
                 continue
             if len(row) != width or not row[0].strip():
                 if not "".join(row).strip():
@@ -403,8 +411,8 @@ class TableReader:
             yield self._parse(rows, numbers, comments)
             comments = []
         self.trailing = [text for _, text in comments]
-        if self.comment_rows:
-            warn_comments(self.path, self.comment_rows)
+        if self.comment_count:
+            warn_comments(self.path, self.comment_rows, self.comment_count)
 
     def _parse(self, rows: list[list[str]], numbers: list[int], comments: list[tuple[int, str]]) -> Chunk:
         values = {c: _parse_column([row[self.index[c]] for row in rows], self.path, numbers, c)

@@ -58,7 +58,8 @@ def summary(info: dict[str, Any]) -> list[str]:
             lines.append(f"  the best rigid fit ({rigid.get('model', 'rigid')}), same poses: {_errors(rigid)}")
         if raw is not None:
             # raw measures the frames' offset where they are unregistered, not the tracker
-            offset = rigid is not None and isinstance(raw.get("rmse_pos"), (int, float)) and frames_unregistered(raw, rigid)
+            offset = (rigid is not None and isinstance(raw.get("rmse_pos"), (int, float))
+                      and frames_unregistered(raw, rigid))
             lines.append(f"  raw: {_errors(raw)}" + (" (frames unregistered: their offset, not the tracker's error)"
                                                      if offset else ""))
     parity = info.get("parity")

@@ -39,9 +39,10 @@ QUAT_NORM_TOLERANCE = 1e-3
 # A tracker sees a few metres and a robot cell is a few metres wide: a coordinate beyond
 # this (metres) is a unit mistake (millimetres) or a corrupt value, not a pose.
 MAX_POSITION = 1e3
-# A Lighthouse system tracks within about 10 m and a robot cell is smaller: positions that
-# span more than this (metres) are another unit, most likely millimetres within MAX_POSITION.
-PLAUSIBLE_SPAN = 100.0
+# A Lighthouse system tracks within about 10 m and a robot cell is smaller: positions whose
+# median absolute deviation exceeds this (metres) are another unit, most likely millimetres
+# within MAX_POSITION. The median's statistic: one pose far away (a glitch) is no unit.
+PLAUSIBLE_SPREAD = 10.0
 
 
 class TableError(ValueError):
@@ -464,12 +465,13 @@ def read_table(path: str | Path, max_rows: int | None = None) -> PoseTable:
         return np.stack([arrays[c] for c in names], axis=1)
 
     for name, columns in (("measured", MEAS_POS), ("reference", REF_POS)):
-        span = float(np.max(np.ptp(block(columns), axis=0)))
-        if span > PLAUSIBLE_SPAN:
+        positions = block(columns)
+        spread = float(np.max(np.median(np.abs(positions - np.median(positions, axis=0)), axis=0)))
+        if spread > PLAUSIBLE_SPREAD:
             from .safeio import warn
 
-            warn(f"{path}: the {name} positions span {span:.4g} m; posecorr reads metres, and a tracked cell "
-                 f"spans a few: are {columns[0]}..{columns[-1]} in millimetres?")
+            warn(f"{path}: the {name} positions lie a typical {spread:.4g} m from their median; posecorr reads "
+                 f"metres, and a tracked cell spans a few: are {columns[0]}..{columns[-1]} in millimetres?")
     return PoseTable(meas_p=block(MEAS_POS), meas_q=block(MEAS_QUAT), ref_p=block(REF_POS),
                      ref_q=block(REF_QUAT) if has_ref_q else None, extras=extras, path=path,
                      rows=np.concatenate(numbers))

@@ -258,6 +258,19 @@ def csv_records(handle, path: str):
         yield cursor.start, cells, cursor.comment
 
 
+def header_record(records) -> tuple[int | None, list[str] | None, list[tuple[int, str]]]:
+    """Read `csv_records` up to the header, the first record neither blank nor a comment: (its
+    row, its cells, the comment lines before it as (row, text)); (None, None, those comment
+    lines) where the file has no header."""
+    preamble: list[tuple[int, str]] = []
+    for row, cells, comment in records:
+        if comment is not None:
+            preamble.append((row, comment))
+        elif "".join(cells).strip():
+            return row, cells, preamble
+    return None, None, preamble
+
+
 def protect_comment(line: str, first: str) -> str:
     """A CSV line (no newline) whose first cell `first`, written bare, would read back as a
     comment: that cell quoted."""
@@ -316,8 +329,9 @@ class TableReader:
         except OSError as exc:
             raise TableError(self.path, f"cannot open: {exc.strerror}") from None
         self._records = csv_records(self._handle, self.path)
-        # the comment lines before the header (row, text); how many among the poses and the
-        # rows of the first COMMENTS_SHOWN; the text of those after the last pose (`chunks`)
+        # the comment lines before the header (row, text: `_read_header`); how many among the
+        # poses and the rows of the first COMMENTS_SHOWN; the text of those after the last pose
+        # (`chunks`)
         self.preamble: list[tuple[int, str]] = []
         self.comment_count = 0
         self.comment_rows: list[int] = []
@@ -330,12 +344,8 @@ class TableReader:
 
     def _read_header(self, require_reference: bool) -> list[str]:
         path = self.path
-        for self.header_row, cells, comment in self._records:
-            if comment is not None:
-                self.preamble.append((self.header_row, comment))
-            elif "".join(cells).strip():
-                break
-        else:
+        self.header_row, cells, self.preamble = header_record(self._records)
+        if cells is None:
             raise TableError(path, "empty file, expected a header row" if not self.preamble else
                              "only comment lines, expected a header row naming the columns")
         header = [h.strip() for h in cells]
@@ -464,15 +474,15 @@ def read_table(path: str | Path, max_rows: int | None = None) -> PoseTable:
     def block(names: tuple[str, ...]) -> np.ndarray:
         return np.stack([arrays[c] for c in names], axis=1)
 
-    for name, columns in (("measured", MEAS_POS), ("reference", REF_POS)):
-        positions = block(columns)
+    meas_p, ref_p = block(MEAS_POS), block(REF_POS)
+    for name, columns, positions in (("measured", MEAS_POS, meas_p), ("reference", REF_POS, ref_p)):
         spread = float(np.max(np.median(np.abs(positions - np.median(positions, axis=0)), axis=0)))
         if spread > PLAUSIBLE_SPREAD:
             from .safeio import warn
 
             warn(f"{path}: the {name} positions lie a typical {spread:.4g} m from their median; posecorr reads "
                  f"metres, and a tracked cell spans a few: are {columns[0]}..{columns[-1]} in millimetres?")
-    return PoseTable(meas_p=block(MEAS_POS), meas_q=block(MEAS_QUAT), ref_p=block(REF_POS),
+    return PoseTable(meas_p=meas_p, meas_q=block(MEAS_QUAT), ref_p=ref_p,
                      ref_q=block(REF_QUAT) if has_ref_q else None, extras=extras, path=path,
                      rows=np.concatenate(numbers))
 

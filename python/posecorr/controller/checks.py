@@ -275,7 +275,7 @@ def check_model(data: bytes, where: str, allow_unbounded: bool = False,
     """The load-time checks of libposecorr on a model's bytes: (metadata as strings, the
     run-time limits). Raises PoseCorrError naming `where` and what was expected."""
     if not data:   # before the digest, as api.c: an empty file is no unsigned model
-        raise PoseCorrError(f"{where}: truncated file at byte 0 (empty)", int(Status.TRUNCATED))
+        raise PoseCorrError(f"{where}: {onnx_meta.EMPTY}", int(Status.TRUNCATED))
     check_digest(data, where, allow_unsigned)
     try:
         graph = onnx_meta.read_graph(data)

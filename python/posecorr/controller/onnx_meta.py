@@ -38,6 +38,10 @@ class TruncatedModel(ValueError):
     """A model file cut short, named as libposecorr names it: "truncated file at byte N (...)"."""
 
 
+# libposecorr's words for a file of no bytes (api.c), where every reader says them.
+EMPTY = "truncated file at byte 0 (empty)"
+
+
 class _Slice(bytes):
     """A length-delimited field's bytes, with where they start in the file (`base`): an
     error names a byte by its offset in the file, as libposecorr does."""
@@ -230,7 +234,7 @@ def describe_corrector(info: dict[str, Any]) -> str:
 
 def _parse(data: bytes, path: str) -> dict[str, Any]:
     if not data:
-        raise _Truncated("truncated file at byte 0 (empty)")
+        raise _Truncated(EMPTY)
     meta, model = _model_fields(data)
     graph = _graph_fields(model.pop("graph"))
     structure = {"file": path, "file_size": len(data), **model, **graph}
@@ -350,7 +354,7 @@ def read_graph(data: bytes) -> dict[str, Any]:
     they end inside a field."""
     try:
         if not data:
-            raise _Truncated("truncated file at byte 0 (empty)")
+            raise _Truncated(EMPTY)
         return _read_graph(data)
     except _Truncated as exc:
         raise TruncatedModel(str(exc)) from None

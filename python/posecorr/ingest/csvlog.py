@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data import csv_records, TableError, warn_comments
+from ..data import TableError, csv_records, header_record, warn_comments
 from .streams import IngestError, JointStream, PoseStream
 
 
@@ -36,22 +36,18 @@ def _records(path: Path) -> tuple[int, list[str], list[tuple[int, list[str]]]]:
         raise IngestError(f"{path}: cannot open: {exc.strerror}") from None
     numbered: list[tuple[int, list[str]]] = []
     comment_rows: list[int] = []
-    header: list[str] | None = None
-    header_row = 1
     with handle:
         try:
-            for number, cells, comment in csv_records(handle, str(path)):
+            records = csv_records(handle, str(path))
+            header_row, header, _ = header_record(records)
+            for number, cells, comment in records:
                 if comment is not None:
-                    comment_rows += [number] if header is not None else []
-                elif not "".join(cells).strip():
-                    continue
-                elif header is None:
-                    header_row, header = number, cells
-                else:
+                    comment_rows.append(number)
+                elif "".join(cells).strip():
                     numbered.append((number, cells))
         except TableError as exc:
             raise IngestError(str(exc)) from None
-    if header is None:
+    if header_row is None or header is None:
         raise IngestError(f"{path}: empty file, expected a header row")
     if comment_rows:
         warn_comments(str(path), comment_rows)

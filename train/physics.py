@@ -470,6 +470,22 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         Uses this fit's frames and sigmas on any poses (held-out ones, say). Returns
         (r, J, is_extra) with is_extra (n,) marking the columns of the extra effects.
         """
+        residual, theta, is_extra = self._probe(measured, reference, t, extra, (self.sigma_p_, self.sigma_r_))
+        with single_threaded():
+            r, J = residual(theta), residual.jacobian(theta)
+        return r, J, is_extra
+
+    def whitened_residual(self, measured: Any, reference: Any, t: np.ndarray | None = None,
+                          sigmas: tuple[float, float | None] | None = None) -> np.ndarray:
+        """The whitened residuals r (m,) of this fit on any poses, laid out as
+        `residual_jacobian`'s, whitened by `sigmas` (sigma_p, sigma_r; this fit's if None), so
+        that two fits' residuals on the same poses compare entry by entry."""
+        residual, theta, _ = self._probe(measured, reference, t, (), sigmas or (self.sigma_p_, self.sigma_r_))
+        return residual(theta)
+
+    def _probe(self, measured: Any, reference: Any, t: np.ndarray | None, extra: Sequence[str],
+               sigmas: tuple[float, float | None]) -> tuple["WhitenedResidual", np.ndarray, np.ndarray]:
+        """This fit's residual function on other poses, with `extra` effects at identity."""
         self._check_fitted()
         measured, reference = check_pair(measured, reference)
         probe = PhysicsModel(tuple(self.params_) + tuple(extra), self.sigma_p_, self.sigma_r_)
@@ -478,12 +494,11 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
                                    t=None if t is None else np.asarray(t, float))
         probe.with_rotation_ = self.with_rotation_
         theta = np.concatenate([self.params_[e.name] if e.name in self.params_ else e.identity_theta()
-                                for e in probe._chosen])
-        is_extra = np.concatenate([np.full(e.size, e.name not in self.params_) for e in probe._chosen])
-        residual = probe._residual_fn(measured, reference, self.sigma_p_, self.sigma_r_ or DEFAULT_SIGMA_R)
-        with single_threaded():
-            r, J = residual(theta), residual.jacobian(theta)
-        return r, J, is_extra
+                                for e in probe._chosen] or [np.zeros(0)])
+        is_extra = np.concatenate([np.full(e.size, e.name not in self.params_) for e in probe._chosen]
+                                  or [np.zeros(0, bool)])
+        sigma_p, sigma_r = sigmas
+        return probe._residual_fn(measured, reference, sigma_p, sigma_r or DEFAULT_SIGMA_R), theta, is_extra
 
     @property
     def std_errors_(self) -> dict[str, np.ndarray]:

@@ -2,8 +2,8 @@
 
 A real tracker is not bound by the catalogue (`posecorr.effects`). When the catalogue leaves a
 held-out error that a low-order field of the workspace explains, the diagnosis tests these
-forms exactly like catalogue effects (held-out score test, a gain in every fold, a minimum
-gain) and proposes the smallest that captures the gain (`posecorr diagnose --propose`). Each
+forms exactly like catalogue effects (held-out score and prediction tests, a gain in every
+fold, a minimum gain) and proposes the smallest that captures the gain (`posecorr diagnose --propose`). Each
 form is an `Effect`: written once against the array namespace, so it fits (numpy), trains
 (torch), exports to ONNX and runs in the C runtime like the catalogue's.
 

@@ -62,8 +62,8 @@ def _why_none(search: Any, result: dict[str, Any], kept: Sequence[str]) -> str:
     plan = reach["poses_to_pass"]
     planned = "" if plan is None else (
         f"; if its gain is real, about {plan['poses']} poses of this spread would take its p below the threshold "
-        f"in {PLANNING_POWER:.0%} of sessions (its statistic, {plan['lm_statistic']:.3g} on {plan['df']} degrees "
-        f"of freedom, grows with the poses)")
+        f"in {PLANNING_POWER:.0%} of sessions (its score statistic, {plan['lm_statistic']:.3g} on "
+        f"{plan['df']} degree{'s' if plan['df'] != 1 else ''} of freedom, grows with the poses)")
     return (f"no form earns its place: the best form, {best['effect']}, {moves} the held-out whitened error by "
             f"{abs(best['score']):.1%} (p = {best['p_value']:.2g}, worst fold {best['fold_gain_min']:.1%}); "
             f"{_fails(search, best)}{beyond}{planned}")
@@ -238,16 +238,18 @@ def _why_not(row: dict[str, Any]) -> str | None:
     """Why a candidate that passes alone is not kept beside the others, if that is why."""
     dropped = row.get("dropped")
     if dropped is not None:
-        return (f"it adds nothing once {', '.join(dropped['given'])} "
-                f"{'is' if len(dropped['given']) == 1 else 'are'} in (p = {dropped['p_value_given']:.2g}, "
-                f"gain {dropped['score_given']:.1%})")
+        return (f"once {', '.join(dropped['given'])} {'is' if len(dropped['given']) == 1 else 'are'} in, "
+                f"{_given_fails(dropped)}")
     if row["implausible"]:
         return "its fitted values are not physical: " + "; ".join(row["implausible"])
     if "passes_given" in row:
-        reason = "; ".join(row.get("implausible_given") or []) or (
-            f"p = {row['p_value_given']:.2g}, gain {row['score_given']:.1%}")
-        return f"it adds nothing given {', '.join(row['given'])} ({reason})"
+        return f"given {', '.join(row['given'])}, {_given_fails(row)}"
     return None
+
+
+def _given_fails(record: dict[str, Any]) -> str:
+    return (f"its gain is {record['score_given']:.1%} (p = {record['p_value_given']:.2g}) and it fails the test: "
+            f"{'; '.join(record['fails_given'])}")
 
 
 def effect_file_text(proposal: dict[str, Any], command: str, data_name: str) -> str:

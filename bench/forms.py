@@ -8,7 +8,8 @@ For each: `diagnose --effects station,mount` with the generic forms, the proposa
 an effect file, and the leave-one-out (LOO) error of station + mount alone, with the true
 form, and with the proposal's file. Recovery = (base - proposal) / (base - true) on the error
 the form acts on (rmse_pos; rmse_rot for the heading field). Null sessions (nothing outside
-what station and mount model): how often something is proposed. And for each session the
+what station and mount model): how often something is proposed, and how often each of the
+diagnosis's two tests gives p below 0.05, 0.01 and 0.001 (`calibration`). And for each session the
 expected form's test when told which of its terms the error has (`told_terms`): where even
 that does not pass, no selection of terms can. And the time `diagnose`
 takes on one 50-pose session (goal: 30 s). And the strain on sessions with a real session's
@@ -196,6 +197,9 @@ def null_study(seeds: list[int], kinds: tuple[str, ...] = KINDS, progress: bool 
             plan = {**plan, "proposed_then": diagnose(more, BASE, folds=5, seed=0)["proposal"] is not None}
         rows.append({"kind": kind, "seed": seed, "proposed": result["proposal"] is not None, "poses_to_pass": plan,
                      "candidates": [c["effect"] for c in result["candidates"]],
+                     # the two tests' p where nothing is missing: their calibration
+                     "p_local": [c["p_local"] for c in result["candidates"]],
+                     "p_predictive": [c["p_predictive"] for c in result["candidates"]],
                      # what the test's parts other than p let through: the p threshold's share
                      "passes_but_p": [c["effect"] for c in result["candidates"]
                                       if not failed_parts(0.0, c["fold_gain_min"], c["score"], 1, ALPHA, MIN_GAIN)],
@@ -244,6 +248,16 @@ def summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
+def calibration(nulls: list[dict[str, Any]]) -> dict[str, Any]:
+    """Over every candidate of the null sessions: the share of each test's p below each level
+    (a calibrated test: about the level; the Bonferroni threshold is far below them all)."""
+    out: dict[str, Any] = {"candidates": sum(len(r["candidates"]) for r in nulls)}
+    for test in ("p_local", "p_predictive"):
+        p = np.array([value for r in nulls for value in r[test]])
+        out[test] = {f"below_{level:g}".replace(".", "_"): float(np.mean(p < level)) for level in (0.05, 0.01, 0.001)}
+    return out
+
+
 def run(path: str, seeds: int = 10, null_seeds: int = 20) -> dict:
     load = os.getloadavg()[0]
     rows = study(list(range(seeds)), progress=True)
@@ -259,7 +273,8 @@ def run(path: str, seeds: int = 10, null_seeds: int = 20) -> dict:
                        "passes_but_p": sum(bool(r["passes_but_p"]) for r in nulls),
                        "planned": sum(r["poses_to_pass"] is not None for r in nulls),
                        "proposed_at_planned_poses": sum(bool(r["poses_to_pass"] and r["poses_to_pass"]["proposed_then"])
-                                                        for r in nulls)},
+                                                        for r in nulls),
+                       "calibration": calibration(nulls)},
               "planned": {"sessions": len(planned),
                           "expected_form_proposed": sum(r["proposed"] == [r["expected"]] for r in planned),
                           "recovered_80": sum((r["recovery"] or 0.0) >= 0.8 for r in planned),

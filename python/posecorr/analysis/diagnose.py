@@ -337,7 +337,8 @@ def failed_parts(p_value: float, fold_gain_min: float, score: float, n_candidate
 
 def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int, alpha: float, min_gain: float,
               folds: int, seed: int) -> dict[str, Any]:
-    """Score test and held-out gain of adding `name` to the state's model."""
+    """The score and prediction tests and the held-out gain of adding `name` to the state's
+    model."""
     from scipy.stats import chi2, norm
 
     from posecorr.train.pipeline import CorrectionPipeline, cross_validate
@@ -394,8 +395,10 @@ def _prediction_z(table: PoseTable, state: _FoldState, cv: Any, splits: list, va
     base fold's sigmas) and r_base are projected off what the base fit can move; pooled,
     z = sum d'.r' / (s |d'|), s^2 the score test's residual variance: the score statistic
     of lambda in r = lambda d + noise (forecast encompassing). Under "not missing" d is fixed
-    by the other folds' poses, independent of the held-out noise: z is standard normal.
-    Like the score test's, z^2 never exceeds m."""
+    by the other folds' poses, independent of the held-out noise, so z is near standard
+    normal; not exactly, for the pooled sum also holds those folds' residuals (its p runs
+    below its level on null sessions: `calibration` in the forms bench). Like the score
+    test's statistic, z^2 never exceeds m."""
     t = table.time()
     num = den = 0.0
     for k, (_, held) in enumerate(splits):
@@ -447,7 +450,7 @@ def _earns(row: dict[str, Any]) -> bool:
     return row["passes"] and not row["implausible"]
 
 
-def _fails(search: _Search, row: dict[str, Any]) -> list[str]:
+def _failures(search: _Search, row: dict[str, Any]) -> list[str]:
     """Why `row` does not earn its place: the parts of the test it fails, then its values
     that are not physical."""
     return failed_parts(row["p_value"], row["fold_gain_min"], row["score"], len(search.names), search.alpha,
@@ -466,7 +469,7 @@ def _forward(search: _Search, rows: list[dict[str, Any]]) -> list[str]:
             conditional = search.given(row["effect"], accepted, warm)
             row.update(given=list(accepted), p_value_given=conditional["p_value"], score_given=conditional["score"],
                        passes_given=_earns(conditional), implausible_given=conditional["implausible"],
-                       fails_given=_fails(search, conditional))
+                       fails_given=_failures(search, conditional))
             if not _earns(conditional):
                 continue
         if _earns(row):
@@ -496,7 +499,7 @@ def _backward(search: _Search, accepted: list[str], by_name: dict[str, dict]) ->
                  <= INDISTINCT_GAIN * max(by_name[name]["score"], by_name[drop]["score"])]
         dropped.append({"effect": drop, "given": others, "p_value_given": tests[drop]["p_value"],
                         "score_given": tests[drop]["score"], "implausible_given": tests[drop]["implausible"],
-                        "fails_given": _fails(search, tests[drop]), "indistinct_from": twins})
+                        "fails_given": _failures(search, tests[drop]), "indistinct_from": twins})
         accepted.remove(drop)
     return accepted, dropped
 

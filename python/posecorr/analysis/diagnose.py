@@ -201,13 +201,15 @@ class _Fold:
     # An orthonormal basis of what the base fit can move on these rows: its Jacobian along the
     # directions it determined (`basis_`); directions it holds are not part of the null model.
     base: np.ndarray
+    r_off: np.ndarray        # r projected off `base`: what both tests read, for every candidate
 
     @classmethod
     def of(cls, r: np.ndarray, J: np.ndarray, is_extra: np.ndarray, physics: Any) -> "_Fold":
         base = J[:, ~is_extra]
         if base.shape[1]:
             base = base @ physics.directions_
-        return cls(r, J, is_extra, physics, _orthonormal_basis(base))
+        base = _orthonormal_basis(base)
+        return cls(r, J, is_extra, physics, base, _project_off(r[:, None], base)[:, 0])
 
 
 @dataclass
@@ -226,6 +228,11 @@ class _FoldState:
         """The held-out residual's dimensions that the base fit cannot move, over all folds:
         the score test's m. A fold of one pose against twelve parameters leaves none."""
         return sum(fold.r.size - fold.base.shape[1] for fold in self.per_fold)
+
+    @property
+    def residual_variance(self) -> float:
+        """s^2 of both tests: the projected held-out residual's sum of squares over m."""
+        return sum(float(fold.r_off @ fold.r_off) for fold in self.per_fold) / max(self.residual_dims, 1)
 
 
 def p_threshold(alpha: float, n_candidates: int) -> float:
@@ -344,15 +351,13 @@ def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int,
     from posecorr.train.pipeline import CorrectionPipeline, cross_validate
     from posecorr.train.splits import KFold
 
-    g, info, ss, m = 0.0, 0.0, 0.0, state.residual_dims
+    g, info, variance = 0.0, 0.0, state.residual_variance
     for fold in state.per_fold:
         Je = _project_off(fold.J[:, state.column_owner == name], fold.base)
-        rp = _project_off(fold.r[:, None], fold.base)[:, 0]
-        g = g + Je.T @ rp
+        g = g + Je.T @ fold.r_off
         info = info + Je.T @ Je
-        ss += float(rp @ rp)
     pinv, rank = _pinv_rank(np.atleast_2d(info))
-    lm = float(g @ pinv @ g / (ss / max(m, 1))) if rank else 0.0
+    lm = float(g @ pinv @ g / variance) if rank else 0.0
     p_local = float(chi2.sf(lm, rank)) if rank else 1.0
 
     warm = (lambda k: {"warm_start": state.per_fold[k].physics.params_}) if state.effects else None
@@ -361,7 +366,7 @@ def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int,
     splits = plan.folds(table.n, seed)
     gains = np.array([_whitened_gain(table, held, state.predicted, cv.predicted, state.per_fold[k].physics)
                       for k, (_, held) in enumerate(splits)])
-    z = _prediction_z(table, state, cv, splits, ss / max(m, 1))
+    z = _prediction_z(table, state, cv, splits)
     p_predictive = float(norm.sf(z))
     # The score test sees the candidate's Jacobian at identity: a large nonlinear effect (a
     # mount turned half a turn) reaches out of that tangent plane, and only its refit shows
@@ -388,7 +393,7 @@ def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int,
             "fold_params": [model.physics_.params_ for model in cv.fitted]}
 
 
-def _prediction_z(table: PoseTable, state: _FoldState, cv: Any, splits: list, variance: float) -> float:
+def _prediction_z(table: PoseTable, state: _FoldState, cv: Any, splits: list) -> float:
     """The held-out prediction test's statistic: does the change of residual the candidate
     makes, fitted without the held-out poses, predict the base model's residual there? In
     each fold the change d = r_base - r_candidate on the held-out poses (both whitened by the
@@ -407,9 +412,9 @@ def _prediction_z(table: PoseTable, state: _FoldState, cv: Any, splits: list, va
             table.measured[held], table.reference[held], None if t is None else t[held],
             sigmas=(fold.physics.sigma_p_, fold.physics.sigma_r_))
         change = _project_off((fold.r - after)[:, None], fold.base)[:, 0]
-        rp = _project_off(fold.r[:, None], fold.base)[:, 0]
-        num += float(change @ rp)
+        num += float(change @ fold.r_off)
         den += float(change @ change)
+    variance = state.residual_variance
     return num / np.sqrt(den * variance) if den > 0 and variance > 0 else 0.0
 
 
@@ -450,11 +455,17 @@ def _earns(row: dict[str, Any]) -> bool:
     return row["passes"] and not row["implausible"]
 
 
+def row_failed_parts(search: Any, row: dict[str, Any]) -> list[str]:
+    """`failed_parts` of a candidate's row, at the threshold of `search` (its candidates
+    `names`, `alpha`, `min_gain`)."""
+    return failed_parts(row["p_value"], row["fold_gain_min"], row["score"], len(search.names), search.alpha,
+                        search.min_gain)
+
+
 def _failures(search: _Search, row: dict[str, Any]) -> list[str]:
     """Why `row` does not earn its place: the parts of the test it fails, then its values
     that are not physical."""
-    return failed_parts(row["p_value"], row["fold_gain_min"], row["score"], len(search.names), search.alpha,
-                        search.min_gain) + list(row["implausible"])
+    return row_failed_parts(search, row) + list(row["implausible"])
 
 
 def _forward(search: _Search, rows: list[dict[str, Any]]) -> list[str]:

@@ -75,10 +75,9 @@ def _fails(search: Any, row: dict[str, Any]) -> str:
     from posecorr.rotations import quat_to_matrix
     from posecorr.train.identify import describe_spread, poses_lack
 
-    from .diagnose import failed_parts
+    from .diagnose import row_failed_parts
 
-    fails = failed_parts(row["p_value"], row["fold_gain_min"], row["score"], len(search.names), search.alpha,
-                         search.min_gain)
+    fails = row_failed_parts(search, row)
     table = search.table
     spread = describe_spread(table.meas_p, quat_to_matrix(table.meas_q), table.has_orientation)
     return f"{', '.join(fails) or 'implausible values'}; {poses_lack(get_effect(row['effect']), spread, table.time())}"
@@ -218,15 +217,14 @@ def explain_absent(search: Any, result: dict[str, Any]) -> list[dict[str, Any]]:
     """The catalogue effects that lower the held-out error by the test's minimum gain and are
     still not present, each with the parts of the test it fails (a table's "no" beside a
     good score says nothing by itself); those a kept form absorbs are `explain_absorbed`'s."""
-    from .diagnose import FOLD_RISES, failed_parts
+    from .diagnose import FOLD_RISES, row_failed_parts
 
     absorbed = {row["effect"] for row in result["absorbed"]}
     out = []
     for row in result["candidates"]:
         if row["kind"] != "effect" or row["present"] or row["score"] < search.min_gain or row["effect"] in absorbed:
             continue
-        fails = failed_parts(row["p_value"], row["fold_gain_min"], row["score"], len(search.names), search.alpha,
-                             search.min_gain)
+        fails = row_failed_parts(search, row)
         alone = [f"{part} (worst fold {row['fold_gain_min']:.1%})" if part == FOLD_RISES else part
                  for part in fails] + list(row["implausible"])
         out.append({"effect": row["effect"], "score": row["score"], "p_value": row["p_value"],

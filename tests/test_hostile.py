@@ -271,14 +271,20 @@ def test_a_long_table_is_diagnosed_on_a_bounded_draw(monkeypatch) -> None:
 
     table = simulate(1, seed=0).table.subset(np.arange(300))
     monkeypatch.setattr(diagnosis, "MAX_ROWS", 120)
+    corrected = table.reference + np.linspace(0.0, 1e-3, 300)[:, None] * [1, 0, 0, 0, 0, 0, 0]
     seen = []
+    real_components = diagnosis.residual_components
 
-    def predict(measured):
-        seen.append(len(measured))
-        return measured
-    result = diagnosis.diagnose(table, ["station"], folds=3, model_predict=predict, candidates=["mount"])
+    def components(reference, predicted, with_rotation):
+        seen.append(predicted)
+        return real_components(reference, predicted, with_rotation)
+    monkeypatch.setattr(diagnosis, "residual_components", components)
+    result = diagnosis.diagnose(table, ["station"], folds=3, model_corrected=corrected, candidates=["mount"])
     assert result["rows"] == {"given": 300, "used": 120}
-    assert seen == [300]  # the model ran on the whole table once, its rows were then drawn
+    _, keep = table.draw(120, 0)
+    assert len(seen) == 1 and np.array_equal(seen[0], corrected[keep])  # the model's rows, drawn alike
+    with pytest.raises(ValueError, match=r"expected \(300, 7\)"):
+        diagnosis.diagnose(table, ["station"], folds=3, model_corrected=corrected[:10], candidates=["mount"])
 
 
 @pytest.mark.parametrize("verb", ["apply", "fit"])

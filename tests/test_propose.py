@@ -215,6 +215,46 @@ def test_frames_nobody_registered_are_named_from_nothing(capsys):
     assert "add: --effects station,mount" in capsys.readouterr().out
 
 
+def test_fold_sharing_is_the_variance_the_explicit_fits_give():
+    """The prediction test's pooled sum on a linear model, built from explicit least-squares
+    fits: each fold's base fit and base + candidate fit on the other folds' rows, the change
+    d_k they make on the held-out rows and the base residual there, both off the base's span.
+    Both are linear in the noise e, so sum_k d_k . r_k = e' Q e and sum_k |d_k|^2 = e' D e:
+    with white noise, var = 2 tr(((Q + Q') / 2)^2) against the tr(D) that "d fixed" counts.
+    `fold_sharing` (q x q products, no fit) must give their ratio, and on these shapes the
+    ratio is well above 1: treating d as fixed would understate the sum's variance."""
+    from types import SimpleNamespace
+
+    from posecorr.analysis import diagnose as dg
+
+    rng = np.random.default_rng(3)
+    for folds, rows, base_cols, cand_cols in [(5, 12, 4, 3), (3, 20, 2, 1), (4, 9, 5, 6)]:
+        Jb = [rng.normal(size=(rows, base_cols)) for _ in range(folds)]
+        Jc = [rng.normal(size=(rows, cand_cols)) + 0.5 * Jb[k][:, :1] for k in range(folds)]
+        owner = np.array(["base"] * base_cols + ["cand"] * cand_cols)
+        per_fold = [SimpleNamespace(J=np.hstack([Jb[k], Jc[k]]), is_extra=owner == "cand", r=np.zeros(rows),
+                                    physics=SimpleNamespace(directions_=np.eye(base_cols)),
+                                    base=dg._orthonormal_basis(Jb[k])) for k in range(folds)]
+        state = SimpleNamespace(per_fold=per_fold, column_owner=owner)
+        n = folds * rows
+        Q, D = np.zeros((n, n)), np.zeros((n, n))
+        for k in range(folds):
+            train = [j for j in range(folds) if j != k]
+            pick = np.zeros((rows, n)); pick[:, k * rows:(k + 1) * rows] = np.eye(rows)
+            pick_train = np.vstack([np.eye(n)[j * rows:(j + 1) * rows] for j in train])
+            base_fit = np.linalg.pinv(np.vstack([Jb[j] for j in train])) @ pick_train
+            full_fit = np.linalg.pinv(np.vstack([np.hstack([Jb[j], Jc[j]]) for j in train])) @ pick_train
+            off = np.eye(rows) - per_fold[k].base @ per_fold[k].base.T
+            r_base = pick - Jb[k] @ base_fit
+            change = off @ (r_base - (pick - np.hstack([Jb[k], Jc[k]]) @ full_fit))
+            Q += change.T @ (off @ r_base)
+            D += change.T @ change
+        sym = (Q + Q.T) / 2
+        explicit = 2 * np.trace(sym @ sym) / np.trace(D)
+        assert dg.fold_sharing(state, "cand") == pytest.approx(explicit, rel=1e-8), (folds, rows)
+        assert explicit > 1.2
+
+
 def test_where_the_poses_are_too_few_for_any_candidate_it_says_so():
     """The score statistic is the share of the projected residual a candidate explains times
     m, the residual dimensions the base fit cannot move: p >= chi2.sf(m, 1) for every

@@ -366,7 +366,7 @@ def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int,
     splits = plan.folds(table.n, seed)
     gains = np.array([_whitened_gain(table, held, state.predicted, cv.predicted, state.per_fold[k].physics)
                       for k, (_, held) in enumerate(splits)])
-    z = _prediction_z(table, state, cv, splits)
+    z = _prediction_z(table, state, name, cv, splits)
     p_predictive = float(norm.sf(z))
     # The score test sees the candidate's Jacobian at identity: a large nonlinear effect (a
     # mount turned half a turn) reaches out of that tangent plane, and only its refit shows
@@ -393,17 +393,18 @@ def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int,
             "fold_params": [model.physics_.params_ for model in cv.fitted]}
 
 
-def _prediction_z(table: PoseTable, state: _FoldState, cv: Any, splits: list) -> float:
+def _prediction_z(table: PoseTable, state: _FoldState, name: str, cv: Any, splits: list) -> float:
     """The held-out prediction test's statistic: does the change of residual the candidate
     makes, fitted without the held-out poses, predict the base model's residual there? In
     each fold the change d = r_base - r_candidate on the held-out poses (both whitened by the
     base fold's sigmas) and r_base are projected off what the base fit can move; pooled,
-    z = sum d'.r' / (s |d'|), s^2 the score test's residual variance: the score statistic
-    of lambda in r = lambda d + noise (forecast encompassing). Under "not missing" d is fixed
-    by the other folds' poses, independent of the held-out noise, so z is near standard
-    normal; not exactly, for the pooled sum also holds those folds' residuals (its p runs
-    below its level on null sessions: `calibration` in the forms bench). Like the score
-    test's statistic, z^2 never exceeds m."""
+    z = sum d'.r' / (s |d'| sqrt(c)), s^2 the score test's residual variance: the score
+    statistic of lambda in r = lambda d + noise (forecast encompassing). Under "not missing"
+    d is fixed by the other folds' poses, independent of the held-out noise; but the pooled
+    sum also holds those folds' residuals, so its terms are correlated, and c >= 1
+    (`fold_sharing`) scales the variance for it (without c, p ran below its level on null
+    sessions: `calibration` in the forms bench). Like the score test's statistic, z^2 never
+    exceeds m."""
     t = table.time()
     num = den = 0.0
     for k, (_, held) in enumerate(splits):
@@ -415,7 +416,47 @@ def _prediction_z(table: PoseTable, state: _FoldState, cv: Any, splits: list) ->
         num += float(change @ fold.r_off)
         den += float(change @ change)
     variance = state.residual_variance
-    return num / np.sqrt(den * variance) if den > 0 and variance > 0 else 0.0
+    if not (den > 0 and variance > 0):
+        return 0.0
+    return num / np.sqrt(den * variance * max(fold_sharing(state, name), 1.0))
+
+
+def fold_sharing(state: _FoldState, name: str) -> float:
+    """How much the prediction test's pooled sum varies beyond what its folds alone would.
+
+    Fold k's change d_k is fitted on the other folds' poses, so it holds their noise, and the
+    term d_j . r_j of a fold j among them holds that noise too: the terms are correlated,
+    and treating d as fixed (the denominator s |d|) understates the sum's variance. On the
+    model linearised at the base fits (each fold's Jacobian on its held-out rows, stacked for
+    the rows the fold was fitted on), with white noise of variance s^2, the sum is
+    S = sum_k e_k' M_kj e_j over pairs of folds, M_kj = A_k B_kj': A_k = P_k J_k G_k (the
+    candidate's columns on fold k's rows, off what its base can move, times the inverse of
+    their information on its training rows) and B_kj the candidate's columns, off the base,
+    on fold j's rows of fold k's training stack. Then var S = s^4 sum_{k<j} |M_kj + M_jk'|^2
+    while "d fixed" counts s^4 sum_{k<j} (|M_kj|^2 + |M_jk|^2); this returns their ratio
+    (0 to 2; 1 where the folds share nothing). Only q x q products: a table of thousands of
+    poses forms no rows x rows matrix."""
+    folds = state.per_fold
+    owner = state.column_owner
+    A, B = [], []
+    for k, fold in enumerate(folds):
+        others = [j for j in range(len(folds)) if j != k]
+        base = np.vstack([folds[j].J[:, ~folds[j].is_extra] for j in others]) @ fold.physics.directions_
+        candidate = _project_off(np.vstack([folds[j].J[:, owner == name] for j in others]), _orthonormal_basis(base))
+        inverse, _ = _pinv_rank(np.atleast_2d(candidate.T @ candidate))
+        A.append(_project_off(fold.J[:, owner == name], fold.base) @ inverse)
+        rows = np.cumsum([0] + [folds[j].r.size for j in others])
+        B.append({j: candidate[rows[i]:rows[i + 1]] for i, j in enumerate(others)})
+    fixed = shared = 0.0
+    for k in range(len(folds)):
+        for j in range(k + 1, len(folds)):
+            # |A B'|^2 = tr(A'A B'B); tr(M_kj M_jk) = tr(B_jk' A_k B_kj' A_j)
+            own_k = float(np.trace((A[k].T @ A[k]) @ (B[k][j].T @ B[k][j])))
+            own_j = float(np.trace((A[j].T @ A[j]) @ (B[j][k].T @ B[j][k])))
+            cross = float(np.trace((B[j][k].T @ A[k]) @ (B[k][j].T @ A[j])))
+            fixed += own_k + own_j
+            shared += own_k + own_j + 2.0 * cross
+    return shared / fixed if fixed > 0 else 1.0
 
 
 # Rows a diagnosis runs on at most (drawn evenly from a longer table).
@@ -536,7 +577,7 @@ def require_diagnosable(table: PoseTable, folds: int) -> None:
 
 def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed: int = 0,
              alpha: float = ALPHA, min_gain: float = MIN_GAIN, candidates: Sequence[str] | None = None,
-             forms: bool = True, model_predict: Callable[[np.ndarray], np.ndarray] | None = None,
+             forms: bool = True, model_corrected: np.ndarray | None = None,
              progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Rank the effects `effects` lacks, catalogue effects and generic forms on the same
     held-out poses; JSON-ready dict in the `diagnose` layout of docs/design.md.
@@ -546,8 +587,9 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     catalogue effect also needs physically plausible values in every fold (`Param.plausible`).
     Present forms make the `proposal` (`posecorr.analysis.proposal`); present catalogue
     effects the advice to add them.
-    model_predict: corrected poses of a given model (an ONNX file, say); when given, the
-    feature R^2 uses its residuals instead of the base physics model's out-of-fold ones.
+    model_corrected: (N, 7) poses of the table's rows as a given model (an ONNX file, say)
+    corrects them; when given, the feature R^2 uses its residuals instead of the base physics
+    model's out-of-fold ones.
     """
     from posecorr.train.splits import KFold
 
@@ -556,7 +598,10 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     require_diagnosable(table, folds)
     require_time(effects, table)
     rows_given = table.n
-    table, model_predict = _thinned(table, model_predict, seed)
+    if model_corrected is not None and np.shape(model_corrected) != (table.n, 7):
+        raise ValueError(f"model_corrected has shape {np.shape(model_corrected)}, expected ({table.n}, 7): "
+                         f"a corrected pose for each row of the table")
+    table, model_corrected = _thinned(table, model_corrected, seed)
     effects = list(effects)
     names = list(candidates) if candidates is not None else candidate_effects(table, effects, forms)
     say = progress or (lambda message: None)
@@ -568,7 +613,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     search = _Search(table, effects, names, splits, folds, seed, alpha, min_gain, say, state)
     rows, kept, dropped = _select(search)
 
-    residual_pred = model_predict(table.measured) if model_predict is not None else state.predicted
+    residual_pred = model_corrected if model_corrected is not None else state.predicted
     features = feature_r2(residual_components(table.reference, residual_pred, table.has_orientation),
                           pose_features(table.reference, table.time()), folds, seed)
     dp, _ = pose_errors(table.reference, state.predicted, table.has_orientation)
@@ -591,16 +636,14 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     return result
 
 
-def _thinned(table: PoseTable, model_predict: Callable | None, seed: int) -> tuple[PoseTable, Callable | None]:
+def _thinned(table: PoseTable, corrected: np.ndarray | None,
+             seed: int) -> tuple[PoseTable, np.ndarray | None]:
     """The table (and the model's corrections) on an even draw of MAX_ROWS rows when longer:
     the diagnosis costs a fit per candidate and fold, and a draw ranks the same effects."""
     if table.n <= MAX_ROWS:
-        return table, model_predict
+        return table, corrected
     drawn, keep = table.draw(MAX_ROWS, seed)
-    if model_predict is None:
-        return drawn, None
-    corrected = np.asarray(model_predict(table.measured))
-    return drawn, lambda measured: corrected[keep]
+    return drawn, None if corrected is None else np.asarray(corrected)[keep]
 
 
 def _select(search: _Search) -> tuple[list[dict[str, Any]], list[str], list[dict[str, Any]]]:

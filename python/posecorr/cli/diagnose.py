@@ -30,7 +30,7 @@ def run(args: argparse.Namespace) -> None:
 
     table = read_data(args)
     effects = effect_names(args.effects)
-    model_predict = None
+    corrected = None
     if args.model is not None:
         from ..controller.apply import correct_table
         from ..controller.onnx_meta import read_info
@@ -40,9 +40,8 @@ def run(args: argparse.Namespace) -> None:
             effects = list(read_info(args.model).get("effects") or [])
         # corrected before the diagnosis: a pose the model refuses stops it at once, by its row
         corrected = correct_table(Corrector(args.model, backend=args.backend), args.model, table)
-        model_predict = lambda measured: corrected  # noqa: E731  (diagnose hands in the whole table)
     result = diagnose(table, effects, folds=args.folds, seed=args.seed, forms=args.forms,
-                      model_predict=model_predict, progress=progress(args))
+                      model_corrected=corrected, progress=progress(args))
     proposal = result["proposal"]
     if proposal is not None and args.propose is not None:
         words = ["posecorr", "diagnose", str(args.data), "--effects", ",".join(effects) or "''"]

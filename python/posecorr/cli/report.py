@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> None:
         else:
             effects = effect_names(args.effects) if args.effects is not None else list(info.get("effects") or [])
             diagnosis = diagnose(table, effects, folds=args.folds, seed=args.seed,
-                                 model_predict=lambda measured: corrected, progress=progress(args))
+                                 model_corrected=corrected, progress=progress(args))
     segments = None
     handle = open_sidecar(segments_path(args.data))
     if handle is not None:

@@ -132,6 +132,33 @@ def test_real_sessions_propose_nothing_and_say_why(name):
         assert f", {moved} the held-out whitened error by {abs(best['score']):.1%} " in why, why
 
 
+def test_aliases_count_the_directions_two_effects_share():
+    """The canonical correlations are the cosines of the principal angles between the two
+    column spaces (scipy's `subspace_angles`). A pair is recorded with how many of the smaller
+    space's directions it shares, and reads "cannot be told apart" only when it shares them
+    all. On Exp2's bare measurements (nine poses at one orientation) the mount and the
+    station share four of six directions, not the station's turn of the positions about it."""
+    from scipy.linalg import subspace_angles
+
+    from posecorr.analysis import diagnose as dg
+    from posecorr.analysis.interpretation import alias_text
+
+    u = np.random.default_rng(5).normal(size=(60, 5))
+    A = u[:, :3] @ np.random.default_rng(6).normal(size=(3, 3))
+    B = np.column_stack([u[:, 0] + u[:, 1], u[:, 1], u[:, 3], u[:, 4]])
+    correlations, of = dg._canonical_correlations(A, B)
+    assert np.allclose(correlations, np.sort(np.cos(subspace_angles(A, B)))[::-1]) and of == 3
+    partial = dg._alias("a", "b", A, B)
+    assert (partial["shared"], partial["of"]) == (2, 3) and alias_text(partial).startswith("partly alike")
+    whole = dg._alias("a", "b", u[:, :2], B)
+    assert (whole["shared"], whole["of"]) == (2, 2) and alias_text(whole).startswith("cannot be told apart")
+    assert dg._alias("a", "b", u[:, :2], u[:, 2:]) is None
+
+    result = diagnose(read_table(REALDATA / "20200717_Exp2.csv"), [], folds=5)
+    pair = next(p for p in result["aliases"] if set(p["effects"]) == {"mount", "station"})
+    assert pair["correlation"] > 0.9999 and (pair["shared"], pair["of"]) == (4, 6), pair
+
+
 # The p values of the real sessions' candidates, printed as JSON by a fresh interpreter.
 _P_VALUES = """
 import json, sys
@@ -200,17 +227,22 @@ def test_frames_nobody_registered_are_named_from_nothing(capsys):
     bare measurements names both and nothing else, and says to add both. The mount's effect
     there is far from its Jacobian at identity: the score test alone rates it p = 0.004 given
     the station on Exp1 and above 0.5 alone on the robot session; its refit, held out, is what
-    shows it."""
+    shows it. On another robot session the mount alone gains too little in one fold (the
+    station's error swamps it): tested again given the station, it joins."""
     from posecorr.cli import main
 
-    tables = {"exp1": read_table(REALDATA / "20201002_Exp1.csv"), "robot": study.session(None, 0, "robot")}
+    tables = {"exp1": read_table(REALDATA / "20201002_Exp1.csv"), "robot1": study.session(None, 1, "robot"),
+              "robot": study.session(None, 0, "robot")}
     study.hide_outside()
+    mounts = {}
     for name, table in tables.items():
         result = diagnose(table, [], folds=5)
         present = sorted(row["effect"] for row in result["candidates"] if row["present"])
         assert present == ["mount", "station"], (name, present)
-    mount = next(row for row in result["candidates"] if row["effect"] == "mount")
-    assert mount["p_local"] > 0.01 and mount["p_value"] < result["reach"]["threshold"], mount
+        mounts[name] = next(row for row in result["candidates"] if row["effect"] == "mount")
+    assert mounts["robot"]["p_local"] > 0.01 and mounts["robot"]["p_value"] < result["reach"]["threshold"]
+    alone, given = mounts["robot1"]["fold_gain_min"], mounts["robot1"]["score_given"]
+    assert alone < 0 and mounts["robot1"]["given"] == ["station"] and given > 0.9, (alone, given)
     assert main(["diagnose", str(REALDATA / "20201002_Exp1.csv")]) == 0
     assert "add: --effects station,mount" in capsys.readouterr().out
 

@@ -24,7 +24,8 @@ DIAGNOSIS = {
          "cv_rmse_after": 2e-3, "present": False},
     ],
     "features": [{"feature": "azimuth", "r2": 0.3}, {"feature": "t", "r2": 0.01}],
-    "aliases": [{"effects": ["station", "mount"], "correlation": 0.995}],
+    "aliases": [{"effects": ["station", "mount"], "correlation": 0.995},
+                {"effects": ["sweep", "station"], "correlation": 0.996, "shared": 2, "of": 4}],
     "proposal": None,
     "no_proposal": "no form earns its place <b>",  # must come out escaped
     "model_effects": ["station", "mount"],
@@ -138,7 +139,8 @@ def test_full_report(tmp_path: Path, small: tuple[PoseTable, np.ndarray]) -> Non
     # Diagnosis takeaway and table.
     assert "Most likely missing: sweep (present: yes, p &lt; 1e-6" in text
     assert "--effects station,mount,sweep" in text
-    assert 'class="present"' in text and "station ≈ mount" in text
+    assert 'class="present"' in text and "cannot be told apart by this data: station ~ mount" in text
+    assert "partly alike on these poses: sweep ~ station along 2 of 4 directions" in text
 
     # Ledger rows, both kinds of held-out block.
     ledger = text[text.index('id="ledger"'):]

@@ -165,13 +165,33 @@ def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] =
     return f"{none_missing} and no form earns its place{top}; nothing tried explains what is left."
 
 
+def alias_whole(pair: Mapping[str, Any]) -> bool:
+    """Whether every direction of the pair's smaller effect moves the poses as the other
+    does (a record without the count, as a diagnosis written before it, counts as whole)."""
+    shared, of = pair.get("shared"), pair.get("of")
+    return not (isinstance(shared, int) and isinstance(of, int) and shared < of)
+
+
+def alias_text(pair: Mapping[str, Any]) -> str:
+    """One alias record in words: 'cannot be told apart' only where the smaller effect is
+    wholly the other's on these poses; else how many of its directions are shared."""
+    a, b = (str(e) for e in pair.get("effects") or ["?", "?"])
+    correlation = pair.get("correlation")
+    figure = f"canonical correlation {correlation:.4f}" if isinstance(correlation, (int, float)) else ""
+    if alias_whole(pair):
+        return f"cannot be told apart by this data: {a} ~ {b}" + (f" ({figure} of their effects on these poses)"
+                                                                  if figure else "")
+    return (f"partly alike on these poses: {a} ~ {b} along {pair['shared']} of {pair['of']} directions "
+            f"({figure}); this data cannot tell those apart")
+
+
 def _unseen(diagnosis: Mapping[str, Any], model_effects: Sequence[str]) -> list[str]:
     """The candidates the diagnosis could not judge: those the poses cannot determine (not
-    those an effect of the model already does), then those aliased with another effect."""
+    those an effect of the model already does), then those wholly aliased with another."""
     out = [str(u.get("effect")) for u in diagnosis.get("undetermined") or []
            if isinstance(u, Mapping) and not u.get("in_model")]
     for pair in diagnosis.get("aliases") or []:
-        if isinstance(pair, Mapping):
+        if isinstance(pair, Mapping) and alias_whole(pair):
             out += [str(e) for e in pair.get("effects") or [] if e not in model_effects and str(e) not in out]
     return out
 

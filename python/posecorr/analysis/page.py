@@ -38,7 +38,7 @@ from ..safeio import write_text
 from . import figures
 from .comparison import Comparison, compare
 from .features import table_features
-from .interpretation import (STRUCTURE_R2, cv_gain, effect_list, is_structure, model_effects, not_ranked_why,
+from .interpretation import (STRUCTURE_R2, alias_text, cv_gain, effect_list, is_structure, model_effects, not_ranked_why,
                              p_value_text, ranked_candidates, split_features, takeaway, worst_order)
 from .ledger import held_out
 
@@ -287,10 +287,8 @@ def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[st
     body += _proposal_html(diagnosis)
     aliases = [a for a in diagnosis.get("aliases") or [] if isinstance(a, Mapping) and a.get("effects")]
     if aliases:
-        body += ("<h3>Aliases</h3><p>Effects this data cannot tell apart (fitting one absorbs the other): "
-                 + "; ".join(" ≈ ".join(_e(x) for x in a["effects"])
-                             + (f" (canonical correlation {a['correlation']:.4f})"
-                                if isinstance(a.get("correlation"), (int, float)) else "") for a in aliases) + "</p>")
+        body += ("<h3>Aliases</h3><p>Effects that move these poses alike (fitting one absorbs that part of "
+                 "the other):</p><ul>" + "".join(f"<li>{_e(alias_text(a))}</li>" for a in aliases) + "</ul>")
     undetermined = [u for u in diagnosis.get("undetermined") or [] if isinstance(u, Mapping)]
     for title, group in (("already in the model", [u for u in undetermined if u.get("in_model")]),
                          ("this data cannot determine them", [u for u in undetermined if not u.get("in_model")])):

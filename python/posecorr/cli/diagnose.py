@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> None:
 
 
 def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
-    from ..analysis.interpretation import not_ranked_why
+    from ..analysis.interpretation import alias_text, not_ranked_why
     from ..textui import table as fmt_table
 
     rows = [[c["rank"], c["effect"], c["kind"], c["parameters"], c["score"], c["p_value"], c["cv_rmse_before"],
@@ -70,9 +70,7 @@ def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
                              "cv_rmse: held-out rmse_total, m + rad)"),
              f"present = {result['test']}",
              *_feature_lines(result["features"])]
-    for pair in result["aliases"]:
-        lines.append(f"cannot be told apart by this data: {pair['effects'][0]} ~ {pair['effects'][1]} "
-                     f"(canonical correlation {pair['correlation']:.4f} of their effects on these poses)")
+    lines += [alias_text(pair) for pair in result["aliases"]]
     for row in result.get("undetermined", []):
         lines.append(f"not ranked: {row['effect']} {not_ranked_why(row)} ({row['reason']})")
     for row in result["absorbed"]:

@@ -483,7 +483,7 @@ def test_a_catalogue_effect_that_gains_and_is_not_present_says_which_parts_it_fa
     assert absent["drift"]["why"] == ("a fold where the error rises (worst fold -1.3%); "
                                       "drift.d = 0.0585 m lies outside the plausible -0.02 to 0.02 m "
                                       "(3.8 standard errors beyond)")
-    assert absent["incidence"]["why"] == ("once sweep is in, its gain is -0.1% (p = 0.3) and it fails the test: "
+    assert absent["incidence"]["why"] == ("once sweep is in, it raises the held-out whitened error by 0.1% (p = 0.3) and it fails the test: "
                                           "p above 0.0002 (0.001 over 5 candidates); a mean gain below 0.5%")
     # 0.001 over the five candidates
     assert absent["mount"]["why"] == "p above 0.0002 (0.001 over 5 candidates)"

@@ -248,7 +248,9 @@ def _why_not(row: dict[str, Any]) -> str | None:
 
 
 def _given_fails(record: dict[str, Any]) -> str:
-    return (f"its gain is {record['score_given']:.1%} (p = {record['p_value_given']:.2g}) and it fails the test: "
+    gain = record["score_given"]
+    moves = f"its gain is {gain:.1%}" if gain >= 0 else f"it raises the held-out whitened error by {-gain:.1%}"
+    return (f"{moves} (p = {record['p_value_given']:.2g}) and it fails the test: "
             f"{'; '.join(record['fails_given'])}")
 
 

@@ -192,10 +192,9 @@ def _canonical_correlations(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, i
 
 def _alias(a: str, b: str, A: np.ndarray, B: np.ndarray) -> dict[str, Any] | None:
     """The pair as `aliases` records it, or None: `shared` of the smaller space's `of`
-    directions move the poses alike (canonical correlation above ALIAS_CORRELATION). Where
-    shared < of the pair is told apart along the other directions: Exp2's mount and station
-    share the three a constant offset takes at one orientation, and the station still
-    lowers the held-out error from 475 to 18 mm given the mount."""
+    directions move the poses alike (canonical correlation above ALIAS_CORRELATION); on
+    Exp2's bare measurements (nine poses at one orientation) the mount and the station share
+    four of six. Only shared == of makes the pair one the data cannot tell apart."""
     correlations, of = _canonical_correlations(A, B)
     shared = int(np.sum(correlations > ALIAS_CORRELATION))
     if not shared:
@@ -564,16 +563,14 @@ def _second_chance(search: _Search, rows: list[dict[str, Any]], accepted: list[s
                    and not _earns(row) and row.get("given") != physical]
         if not physical or not waiting:
             return accepted
-        joined = False
         for row in waiting:
             search.say(f"candidate {row['effect']} given {', '.join(physical)}")
             conditional = search.given(row["effect"], physical)
             _record_given(search, row, physical, conditional)
             if _earns(conditional):
                 accepted.append(row["effect"])
-                joined = True
                 break   # the context has changed: those still waiting are tested given it
-        if not joined:
+        else:
             return accepted
 
 

@@ -267,7 +267,8 @@ def test_fold_sharing_is_the_variance_the_explicit_fits_give():
         per_fold = [SimpleNamespace(J=np.hstack([Jb[k], Jc[k]]), is_extra=owner == "cand", r=np.zeros(rows),
                                     physics=SimpleNamespace(directions_=np.eye(base_cols)),
                                     base=dg._orthonormal_basis(Jb[k])) for k in range(folds)]
-        state = SimpleNamespace(per_fold=per_fold, column_owner=owner)
+        state = dg._FoldState(effects=["base"], predicted=None, fold_rmse=None, before=0.0, per_fold=per_fold,
+                              column_owner=owner)
         n = folds * rows
         Q, D = np.zeros((n, n)), np.zeros((n, n))
         for k in range(folds):
@@ -483,8 +484,8 @@ def test_a_catalogue_effect_that_gains_and_is_not_present_says_which_parts_it_fa
     assert absent["drift"]["why"] == ("a fold where the error rises (worst fold -1.3%); "
                                       "drift.d = 0.0585 m lies outside the plausible -0.02 to 0.02 m "
                                       "(3.8 standard errors beyond)")
-    assert absent["incidence"]["why"] == ("once sweep is in, it raises the held-out whitened error by 0.1% (p = 0.3) and it fails the test: "
-                                          "p above 0.0002 (0.001 over 5 candidates); a mean gain below 0.5%")
+    assert absent["incidence"]["why"] == ("once sweep is in, it raises the held-out whitened error by 0.1% (p = 0.3) "
+                                          "and it fails the test: p above 0.0002 (0.001 over 5 candidates); a mean gain below 0.5%")
     # 0.001 over the five candidates
     assert absent["mount"]["why"] == "p above 0.0002 (0.001 over 5 candidates)"
     result["absorbed"] = [{"effect": "mount"}]

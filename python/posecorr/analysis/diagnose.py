@@ -245,6 +245,12 @@ class _FoldState:
         the score test's m. A fold of one pose against twelve parameters leaves none."""
         return sum(fold.r.size - fold.base.shape[1] for fold in self.per_fold)
 
+    def held_off(self, name: str) -> list[np.ndarray]:
+        """Each fold's Jacobian columns of candidate `name` on its held-out rows, projected off
+        what its base fit can move: what the score test, the prediction test's variance and
+        the aliases read."""
+        return [_project_off(fold.J[:, self.column_owner == name], fold.base) for fold in self.per_fold]
+
     @property
     def residual_variance(self) -> float:
         """s^2 of both tests: the projected held-out residual's sum of squares over m."""
@@ -368,8 +374,7 @@ def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int,
     from posecorr.train.splits import KFold
 
     g, info, variance = 0.0, 0.0, state.residual_variance
-    for fold in state.per_fold:
-        Je = _project_off(fold.J[:, state.column_owner == name], fold.base)
+    for fold, Je in zip(state.per_fold, state.held_off(name)):
         g = g + Je.T @ fold.r_off
         info = info + Je.T @ Je
     pinv, rank = _pinv_rank(np.atleast_2d(info))
@@ -455,12 +460,12 @@ def fold_sharing(state: _FoldState, name: str) -> float:
     folds = state.per_fold
     owner = state.column_owner
     A, B = [], []
-    for k, fold in enumerate(folds):
+    for k, (fold, held) in enumerate(zip(folds, state.held_off(name))):
         others = [j for j in range(len(folds)) if j != k]
         base = np.vstack([folds[j].J[:, ~folds[j].is_extra] for j in others]) @ fold.physics.directions_
         candidate = _project_off(np.vstack([folds[j].J[:, owner == name] for j in others]), _orthonormal_basis(base))
         inverse, _ = _pinv_rank(np.atleast_2d(candidate.T @ candidate))
-        A.append(_project_off(fold.J[:, owner == name], fold.base) @ inverse)
+        A.append(held @ inverse)
         rows = np.cumsum([0] + [folds[j].r.size for j in others])
         B.append({j: candidate[rows[i]:rows[i + 1]] for i, j in enumerate(others)})
     fixed = shared = 0.0
@@ -757,19 +762,14 @@ def _pinv_rank(A: np.ndarray, tol: float = INFORMATION_TOLERANCE) -> tuple[np.nd
 
 
 def _aliases(names: list[str], state: _FoldState, effects: list[str]) -> list[dict[str, Any]]:
-    """Pairs whose column spaces (held-out rows of all folds) are nearly the same, with their
-    largest canonical correlation: among the catalogue's candidates (projected off the model's
-    columns) and between such a candidate and a model effect."""
+    """Pairs whose column spaces (held-out rows of all folds) move the poses alike along some
+    direction (`_alias`): among the catalogue's candidates (projected off the model's columns)
+    and between such a candidate and a model effect."""
     pairs = []
-    projected = {}
-    for name in names:
-        blocks = []
-        for fold in state.per_fold:
-            blocks.append(_project_off(fold.J[:, state.column_owner == name], fold.base))
-        projected[name] = np.concatenate(blocks)
     # A form holds catalogue effects as special cases (range_scale in strain): that nesting is
     # what the selection weighs, not an alias; aliases are between catalogue effects.
     physical = [name for name in names if not get_effect(name).generic]
+    projected = {name: np.concatenate(state.held_off(name)) for name in physical}
     for i, a in enumerate(physical):
         for b in physical[i + 1:]:
             pairs.append(_alias(a, b, projected[a], projected[b]))

@@ -38,8 +38,8 @@ from ..safeio import write_text
 from . import figures
 from .comparison import Comparison, compare
 from .features import table_features
-from .interpretation import (STRUCTURE_R2, alias_text, cv_gain, effect_list, is_structure, model_effects, not_ranked_why,
-                             p_value_text, ranked_candidates, split_features, takeaway, worst_order)
+from .interpretation import (STRUCTURE_R2, alias_text, cv_gain, effect_list, is_structure, model_effects,
+                             not_ranked_why, p_value_text, ranked_candidates, split_features, takeaway, worst_order)
 from .ledger import held_out
 
 SECTIONS = (("summary", "Summary"), ("metrics", "Metrics"), ("workspace", "Workspace"),

@@ -160,6 +160,30 @@ def test_comment_lines_are_no_poses_and_keep_the_rows_of_the_rest(tmp_path, caps
         read_table(bad)
 
 
+def test_a_run_of_comment_lines_is_read_a_chunk_at_a_time(tmp_path, capsys) -> None:
+    """Thousands of comment lines between two poses (a logger's status lines) are handed on
+    at most `size` at a time, in order, not held until the next pose; a table of comments
+    alone after its header is still "no data rows"."""
+    table = _table(2)
+    plain = tmp_path / "plain.csv"
+    write_table(table, plain)
+    header, first, second = plain.read_text().splitlines()
+    notes = [f"# status {i}" for i in range(23)]
+    path = _write(tmp_path, "\n".join([header, first] + notes + [second] + notes[:9]) + "\n")
+    with TableReader(path) as reader:
+        chunks = list(reader.chunks(4))
+        trailing = reader.trailing
+    assert max(len(c.comments) for c in chunks) == 4 and max(len(c.rows) for c in chunks) <= 4
+    assert [text for c in chunks for _, text in c.comments] + trailing == notes + notes[:9]
+    assert sum(len(c.rows) for c in chunks) == 2 and len(trailing) <= 4
+    got = read_table(path)
+    np.testing.assert_array_equal(got.measured, table.measured)
+    only_notes = _write(tmp_path, "\n".join([header] + notes) + "\n")
+    with pytest.raises(TableError, match="no data rows after the header"):
+        read_table(only_notes)
+    capsys.readouterr()
+
+
 def test_a_commented_header_is_named_and_an_id_starting_with_a_hash_round_trips(tmp_path) -> None:
     """numpy's savetxt writes its header as '# meas_x,...': the error says so, not that the
     first pose's cells are no header. A cell that starts with '#' at the start of a row is

@@ -397,7 +397,9 @@ class TableReader:
     def chunks(self, size: int = CHUNK_ROWS):
         """Chunks of up to `size` data rows; blank lines carry no pose and are skipped, comment
         lines go into the chunk's `comments` (those after the last pose into `trailing`), and a
-        warning names the comment lines among the poses once the table is read."""
+        warning names the comment lines among the poses once the table is read. A chunk also
+        ends at `size` comment lines, even with no rows: a file of millions of comment lines
+        between two poses is held `size` lines at a time, not whole."""
         width = len(self.header)
         rows: list[list[str]] = []
         numbers: list[int] = []
@@ -407,6 +409,9 @@ class TableReader:
                 comments.append((len(rows), comment))
                 self.comment_count += 1
                 self.comment_rows += [record] if len(self.comment_rows) < COMMENTS_SHOWN else []
+                if len(comments) == size:
+                    yield self._parse(rows, numbers, comments)
+                    rows, numbers, comments = [], [], []
                 continue
             if len(row) != width or not row[0].strip():
                 if not "".join(row).strip():
@@ -464,7 +469,7 @@ def read_table(path: str | Path, max_rows: int | None = None) -> PoseTable:
             numbers.append(np.asarray(chunk.row_numbers, dtype=np.int64))
             cells.append({c: [row[index[c]].strip() for row in chunk.rows] for c in text})
     path = str(path)
-    if not values:
+    if rows == 0:
         raise TableError(path, "no data rows after the header")
     arrays = {c: np.concatenate([v[c] for v in values]) for c in numeric}
     extras: dict[str, np.ndarray] = {c: arrays[c] for c in NUMERIC_OPTIONAL if c in arrays}

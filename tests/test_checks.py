@@ -615,18 +615,103 @@ def test_posecorr_run_names_a_time_and_an_output_by_their_line(drift):
                         "finite number)\n")
 
 
-@pytest.mark.parametrize("blob,where", [(b"hello, this is not a model\n", "unsupported wire type 4 at byte 2"),
-                                        (b"8 is not bytes", "model field 7 at byte 0 is not bytes")])
-def test_posecorr_run_says_a_text_file_is_no_onnx_model(tmp_path, blob, where):
-    """As the Python back ends and `info` say (their parser's words in the parentheses)."""
+def _protobuf_varint(n: int) -> bytes:
+    out = bytearray()
+    while True:
+        out.append((n & 0x7F) | (0x80 if n > 0x7F else 0))
+        n >>= 7
+        if not n:
+            return bytes(out)
+
+
+def _pose_model(**kw) -> onnx.ModelProto:
+    g = graphs.G()
+    return g.model(g.op("Mul", ["pose", g.f32(np.ones(7, np.float32))]), metadata=graphs.BOUNDED, **kw)
+
+
+def _graph_with(extra: bytes) -> tuple[bytes, int]:
+    """A pose model whose graph's bytes end in `extra` (fields onnx.helper would not write),
+    and the byte of the file `extra` starts on."""
+    model = _pose_model()
+    graph = model.graph.SerializeToString() + extra
+    model.ClearField("graph")
+    blob = model.SerializeToString() + b"\x3a" + _protobuf_varint(len(graph)) + graph
+    return blob, len(blob) - len(extra)
+
+
+def _edited_io(edit) -> bytes:
+    model = _pose_model()
+    edit(model.graph)
+    return graphs.signed(model)
+
+
+def _fixed_batch(graph) -> None:
+    graph.input[0].type.tensor_type.shape.dim[0].dim_value = 1
+
+
+def _second_output(graph) -> None:
+    graph.output.append(helper.make_tensor_value_info("corrected", onnx.TensorProto.FLOAT, ["N", 7]))
+
+
+def _renamed_output(graph) -> None:
+    graph.output[0].name = "y"
+
+
+def _float64_pose(graph) -> None:
+    graph.input[0].type.tensor_type.elem_type = onnx.TensorProto.DOUBLE
+
+
+def _structure_cases() -> list[tuple[str, bytes, str]]:
+    """(case, the model's bytes, what every reader says after the file's name)."""
+    field, at = _graph_with(b"\x60\x01")           # graph output (12) as a varint
+    node, node_at = _graph_with(b"\x0a\x02\x20\x01")  # a node whose op_type (4) is a varint
+    no_default = _pose_model(opset=17)
+    no_default.opset_import[0].domain = "com.example"
+    time_2d = helper.make_tensor_value_info("t", onnx.TensorProto.FLOAT, ["N", 1])
+    return [
+        ("text", b"hello, this is not a model\n", "not a valid ONNX model (unsupported wire type 4 at byte 2)"),
+        ("model field", b"8 is not bytes", "not a valid ONNX model (model field 7 at byte 0 is not bytes)"),
+        ("no graph", b"\x08\x08", "not a valid ONNX model (no graph)"),
+        ("no default opset", graphs.signed(no_default), "default-domain opset -1 is not supported (13..28)"),
+        ("graph field", field, f"graph field 12 at byte {at} is not bytes"),
+        ("node field", node, f"node field 4 at byte {node_at + 2} is not bytes"),
+        ("input name", graphs.signed(_pose_model(rename_input="x")),
+         "model input is 'x', the contract needs 'pose' float32 [N,7] and optionally 't' float32 [N]"),
+        # no bounds as well: the contract is named first, as libposecorr meets it first
+        ("input name, unbounded", _pose_model(rename_input="x").SerializeToString(),
+         "model input is 'x', the contract needs 'pose' float32 [N,7] and optionally 't' float32 [N]"),
+        ("pose width", graphs.signed(_pose_model(width=6)), "input 'pose' must have shape [N,7] (rank 2, width 6)"),
+        ("pose batch", _edited_io(_fixed_batch), "input 'pose' has a fixed batch size 1; N must be dynamic"),
+        ("pose type", _edited_io(_float64_pose), "input 'pose' has element type 11, the contract needs float32"),
+        ("time shape", graphs.signed(_pose_model(inputs_after=[time_2d])), "input 't' must have shape [N] (rank 2)"),
+        ("output name", _edited_io(_renamed_output), "model output is 'y', the contract needs 'corrected' float32 [N,7]"),
+        ("two outputs", _edited_io(_second_output), "model has 2 outputs, the contract needs exactly one ('corrected')"),
+    ]
+
+
+@pytest.mark.parametrize("case,blob,said", _structure_cases(), ids=lambda v: v if isinstance(v, str) else "")
+def test_a_file_that_is_no_pose_model_is_named_alike_by_every_reader(tmp_path, case, blob, said):
+    """A fault of a model's structure or of its pose contract reads the same from
+    `posecorr-run` (libposecorr), both back ends of the shim (`apply`), and, where the top
+    level is no model, from `info`: libposecorr's words, and of two faults the one its load
+    meets first."""
+    from posecorr.controller import read_info
+
     model = tmp_path / "m.onnx"
     model.write_bytes(blob)
     r = _posecorr_run(model, "", "--allow-unsigned")
-    assert r.returncode == 1 and r.stderr == f"posecorr-run: {model}: not a valid ONNX model ({where})\n"
+    assert r.returncode == 1 and r.stderr == f"posecorr-run: {model}: {said}\n", r.stderr
+    statuses = set()
     for backend in BACKENDS:
-        with pytest.raises(PoseCorrError, match=r"not a valid ONNX model \(") as info:
+        with pytest.raises(PoseCorrError) as info:
             Corrector(model, backend=backend, allow_unsigned=True)
-        assert str(info.value).count("not a valid ONNX model") == 1
+        assert str(info.value) == f"{model}: {said}", backend
+        statuses.add(info.value.status)
+    assert len(statuses) == 1
+    if said.startswith("not a valid ONNX model"):
+        with pytest.raises(ValueError) as info:
+            read_info(model)
+        assert str(info.value) == f"{model}: {said}"
 
 
 # --- the digest, the reach and the allow flags: the same words on both back ends --------------

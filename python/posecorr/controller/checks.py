@@ -7,8 +7,9 @@ through the C runtime (`Corrector(backend="onnxruntime")`, hence `posecorr apply
 onnxruntime`). tests/test_checks.py runs every hostile case on both back ends and compares
 their messages word for word.
 
-At load (`check_model`): the graph's operators are those of export/operators.txt in the
-default domain at a supported opset; no float tensor of the graph (an initialiser, a
+At load (`check_model`): the graph's inputs and outputs are the pose contract's (`pose`
+float32 [N,7], optionally `t` float32 [N]; `corrected` float32 [N,7]: `check_contract`); its
+operators are those of export/operators.txt in the default domain at a supported opset; no float tensor of the graph (an initialiser, a
 Constant's value) holds NaN or infinity; the metadata's bounds (`input_bounds`, metres, and
 `time_bounds`, seconds) are finite float32 numbers, lower ones not above upper ones.
 
@@ -277,16 +278,17 @@ def check_model(data: bytes, where: str, allow_unbounded: bool = False,
     if not data:   # before the digest, as api.c: an empty file is no unsigned model
         raise PoseCorrError(f"{where}: {onnx_meta.EMPTY}", int(Status.TRUNCATED))
     check_digest(data, where, allow_unsigned)
-    try:
-        graph = onnx_meta.read_graph(data)
-    except onnx_meta.TruncatedModel as exc:
-        raise PoseCorrError(f"{where}: {exc}", int(Status.TRUNCATED)) from None
-    except ValueError as exc:
-        raise PoseCorrError(f"{where}: not a valid ONNX model ({exc})", int(Status.MALFORMED)) from None
-    opset = graph["opset_import"].get("ai.onnx")
-    if opset is not None and not OPSETS[0] <= opset <= OPSETS[1]:
+    model = _structure(where, onnx_meta.read_model, data, "not a valid ONNX model ({})")
+    opset = model["opset_import"].get("ai.onnx", -1)   # none: libposecorr's -1, refused
+    if not OPSETS[0] <= opset <= OPSETS[1]:
         raise PoseCorrError(f"{where}: default-domain opset {opset} is not supported "
                             f"({OPSETS[0]}..{OPSETS[1]})", int(Status.UNSUPPORTED))
+    graph = _structure(where, onnx_meta.read_graph, model)
+    try:
+        check_contract(graph)
+    except PoseCorrError as exc:
+        raise PoseCorrError(f"{where}: {exc}", exc.status) from None
+    graph.update(_structure(where, onnx_meta.read_nodes, graph))
     allowed = operator_list()
     for op, domain, name in graph["nodes"]:
         if domain not in ("", "ai.onnx"):
@@ -301,10 +303,80 @@ def check_model(data: bytes, where: str, allow_unbounded: bool = False,
             raise PoseCorrError(f"{where}: tensor '{tensor['name']}' holds a non-finite value at "
                                 f"element {int(bad[0])} (expected finite weights)", int(Status.MALFORMED))
     try:
-        limits = Limits.from_metadata(graph["metadata"], TIME_INPUT in graph["inputs"], allow_unbounded)
+        takes_time = any(kind == "input" and io["name"] == TIME_INPUT for kind, io in graph["io"])
+        limits = Limits.from_metadata(model["metadata"], takes_time, allow_unbounded)
     except PoseCorrError as exc:
         raise PoseCorrError(f"{where}: {exc}", exc.status) from None
-    return graph["metadata"], limits
+    return model["metadata"], limits
+
+
+def _structure(where: str, read: Any, source: Any, words: str = "{}") -> dict[str, Any]:
+    """One stage of `onnx_meta`'s reading, its fault named as libposecorr names it: a top
+    level that does not read as a model is "not a valid ONNX model (...)" (`words`), a fault
+    inside its graph is named alone."""
+    try:
+        return read(source)
+    except onnx_meta.TruncatedModel as exc:
+        raise PoseCorrError(f"{where}: {exc}", int(Status.TRUNCATED)) from None
+    except ValueError as exc:
+        raise PoseCorrError(f"{where}: {words.format(exc)}", int(Status.MALFORMED)) from None
+
+
+def check_contract(graph: dict[str, Any]) -> None:
+    """onnx.c's pose contract on a graph's inputs and outputs (`onnx_meta.read_graph`'s
+    "io", in the file's order; an input that is an initializer or repeated is skipped, as
+    IR < 4 files list initializers among the inputs), in its words and order: the first
+    fault raised (CONTRACT), nothing when the graph keeps the contract."""
+    seen = {name for name, _ in graph["initializers"]}
+    inputs, outputs = [], 0
+    for kind, io in graph["io"]:
+        name, elem, shape = io["name"], io["elem"], io["shape"]
+        rank = -1 if shape is None else len(shape)
+        dims = [d if isinstance(d, int) else -1 for d in shape or ()]
+        if kind == "output":
+            outputs += 1
+            fault = _output_fault(name, elem, rank, dims)
+        elif name in seen:
+            continue
+        else:
+            seen.add(name)
+            inputs.append(name)
+            fault = _input_fault(name, elem, rank, dims)
+        if fault:
+            raise PoseCorrError(fault, int(Status.CONTRACT))
+    if "pose" not in inputs:
+        raise PoseCorrError("model has no input 'pose', the contract needs 'pose' float32 [N,7] and optionally 't' "
+                            "float32 [N]", int(Status.CONTRACT))
+    if outputs != 1:
+        raise PoseCorrError(f"model has {outputs} outputs, the contract needs exactly one ('corrected')",
+                            int(Status.CONTRACT))
+
+
+def _input_fault(name: str, elem: int, rank: int, dims: list[int]) -> str | None:
+    if name == TIME_INPUT:
+        if elem != onnx_meta.FLOAT:
+            return f"input 't' has element type {elem}, the contract needs float32"
+        if rank != 1:
+            return f"input 't' must have shape [N] (rank {rank})"
+        return f"input 't' has a fixed batch size {dims[0]}; N must be dynamic" if dims[0] >= 0 else None
+    if name != "pose":
+        return (f"model input is '{name}', the contract needs 'pose' float32 [N,7] and optionally 't' "
+                "float32 [N]")
+    if elem != onnx_meta.FLOAT:
+        return f"input 'pose' has element type {elem}, the contract needs float32"
+    if rank != 2 or dims[1] != len(COLUMNS):
+        return f"input 'pose' must have shape [N,7] (rank {rank}, width {dims[1] if rank >= 2 else -1})"
+    return f"input 'pose' has a fixed batch size {dims[0]}; N must be dynamic" if dims[0] >= 0 else None
+
+
+def _output_fault(name: str, elem: int, rank: int, dims: list[int]) -> str | None:
+    if name != "corrected":
+        return f"model output is '{name}', the contract needs 'corrected' float32 [N,7]"
+    if elem != onnx_meta.FLOAT:
+        return f"output 'corrected' has element type {elem}, the contract needs float32"
+    if rank >= 0 and (rank != 2 or dims[1] != len(COLUMNS)):
+        return "output 'corrected' must have shape [N,7]"
+    return None
 
 
 def _first(mask: np.ndarray) -> int | None:

@@ -3,8 +3,10 @@
 A minimal protobuf wire-format reader (stdlib only) for the few ModelProto fields that
 `info` shows: metadata_props, opset imports, producer, the graph's inputs / outputs with
 their element types and shapes, node operator counts and initializer sizes; and, for the
-load-time checks of the Python back ends (`checks.check_model`, `read_graph`), the nodes
-and the bytes of the graph's float tensors.
+load-time checks of the Python back ends (`checks.check_model`: `read_model`, `read_graph`,
+`read_nodes`, one per stage of libposecorr's load), the graph's inputs and outputs, its
+nodes and the bytes of its float tensors. A fault of the file's structure is named in
+libposecorr's words ("model field 7 at byte 0 is not bytes", "no graph").
 
 Field numbers follow onnx.proto (ModelProto: ir_version 1, producer_name 2,
 producer_version 3, doc_string 6, graph 7, opset_import 8, metadata_props 14; GraphProto:
@@ -16,10 +18,11 @@ t 5).
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 from collections import Counter
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 ELEM_TYPES = {1: "float32", 2: "uint8", 3: "int8", 4: "uint16", 5: "int16", 6: "int32", 7: "int64",
               8: "string", 9: "bool", 10: "float16", 11: "float64", 12: "uint32", 13: "uint64",
@@ -70,6 +73,29 @@ def _varint(buf: bytes, pos: int) -> tuple[int, int]:
 def _fields(buf: bytes) -> Iterator[tuple[int, int, Any]]:
     """(field number, wire type, value) of one message: value is an int (varint, fixed) or
     the bytes of a length-delimited field (a `_Slice`)."""
+    for field, wire, value, _ in _fields_at(buf):
+        yield field, wire, value
+
+
+# The fields libposecorr reads as messages or strings and refuses in other wire types
+# (onnx.c), by the message that holds them; a field of the wrong type elsewhere it skips, and
+# so does this reader. Its words name the field and the byte its key starts on.
+_BYTES_FIELDS = {"model": (7, 8, 14),               # graph, opset_import, metadata_props
+                 "graph": (1, 5, 11, 12),           # node, initializer, input, output
+                 "node": (1, 2, 3, 4, 5, 7)}        # input, output, name, op_type, attribute, domain
+
+
+def _message_fields(buf: bytes, kind: str) -> Iterator[tuple[int, int, Any]]:
+    """`_fields` of a model, graph or node message, refusing its `_BYTES_FIELDS` in another
+    wire type in libposecorr's words."""
+    for field, wire, value, at in _fields_at(buf):
+        if wire != 2 and field in _BYTES_FIELDS[kind]:
+            raise _Malformed(f"{kind} field {field} at byte {at} is not bytes")
+        yield field, wire, value
+
+
+def _fields_at(buf: bytes) -> Iterator[tuple[int, int, Any, int]]:
+    """`_fields`, each with the byte of the file its key starts on."""
     base = getattr(buf, "base", 0)
     pos, end = 0, len(buf)
     while pos < end:
@@ -94,32 +120,26 @@ def _fields(buf: bytes) -> Iterator[tuple[int, int, Any]]:
             value.base, pos = base + pos, pos + length
         else:
             raise _Malformed(f"unsupported wire type {wire} at byte {base + start}")
-        yield field, wire, value
+        yield field, wire, value, base + start
 
 
-def _pick(buf: bytes, defaults: dict[int, Any]) -> dict[int, Any]:
-    """{field number: value} of one message for the fields `defaults` names (the last
-    occurrence wins, as in protobuf), the default where a field is absent."""
+def _pick(fields: Iterator[tuple[int, int, Any]], defaults: dict[int, Any]) -> dict[int, Any]:
+    """{field number: value} of one message's `fields` for the fields `defaults` names (the
+    last occurrence wins, as in protobuf), the default where a field is absent. A field in
+    another wire type than its default's (an int: varint; bytes or None: length-delimited)
+    is skipped, as libposecorr skips it."""
     out = dict(defaults)
-    for field, _, value in _fields(buf):
-        if field in out:
+    for field, wire, value in fields:
+        if field in out and wire == (0 if isinstance(defaults[field], int) else 2):
             out[field] = value
     return out
 
 
-def _str(value: Any) -> str:
-    if not isinstance(value, (bytes, bytearray)):
-        raise _Malformed("expected a string field")
+def _str(value: bytes) -> str:
     try:
         return bytes(value).decode("utf-8")
     except UnicodeDecodeError as exc:
         raise _Malformed("string field is not UTF-8") from exc
-
-
-def _msg(value: Any) -> bytes:
-    if not isinstance(value, (bytes, bytearray)):
-        raise _Malformed("expected an embedded message")
-    return value if isinstance(value, _Slice) else bytes(value)
 
 
 def _signed(v: int) -> int:
@@ -127,31 +147,32 @@ def _signed(v: int) -> int:
 
 
 def _value_info(buf: bytes) -> dict[str, Any]:
-    out: dict[str, Any] = {"name": "", "dtype": None, "shape": None}
-    for f, _, v in _fields(buf):
-        if f == 1:
+    """A ValueInfoProto: its name, element type (by name, "dtype", and number, "elem": 0
+    without one) and shape (a dim: its value, its name, or None; None without a shape).
+    Every field read here is length-delimited but the element type, a varint."""
+    out: dict[str, Any] = {"name": "", "dtype": None, "elem": 0, "shape": None}
+    for f, wire, v in _fields(buf):
+        if f == 1 and wire == 2:
             out["name"] = _str(v)
-        elif f == 2:
-            for tf, _, tv in _fields(_msg(v)):
-                if tf != 1:        # tensor_type only
-                    continue
-                for ttf, _, ttv in _fields(_msg(tv)):
-                    if ttf == 1:
-                        out["dtype"] = ELEM_TYPES.get(ttv, f"type{ttv}")
-                    elif ttf == 2:
-                        shape: list[Any] = []
-                        for sf, _, sv in _fields(_msg(ttv)):
-                            if sf != 1:
-                                continue
-                            dim: Any = None
-                            for df, _, dv in _fields(_msg(sv)):
-                                if df == 1:
-                                    dim = _signed(dv)
-                                elif df == 2:
-                                    dim = _str(dv)
-                            shape.append(dim)
-                        out["shape"] = shape
+        elif f == 2 and wire == 2:
+            for tensor_type in (tv for tf, twire, tv in _fields(v) if tf == 1 and twire == 2):
+                for ttf, ttwire, ttv in _fields(tensor_type):
+                    if ttf == 1 and ttwire == 0:
+                        out["elem"], out["dtype"] = ttv, ELEM_TYPES.get(ttv, f"type{ttv}")
+                    elif ttf == 2 and ttwire == 2:
+                        out["shape"] = [_dim(sv) for sf, swire, sv in _fields(ttv) if sf == 1 and swire == 2]
     return out
+
+
+def _dim(buf: bytes) -> int | str | None:
+    """A TensorShapeProto.Dimension: dim_value, dim_param, or None (neither)."""
+    dim: int | str | None = None
+    for f, wire, v in _fields(buf):
+        if f == 1 and wire == 0:
+            dim = _signed(v)
+        elif f == 2 and wire == 2:
+            dim = _str(v)
+    return dim
 
 
 def decode_value(text: str) -> Any:
@@ -235,10 +256,25 @@ def describe_corrector(info: dict[str, Any]) -> str:
 def _parse(data: bytes, path: str) -> dict[str, Any]:
     if not data:
         raise _Truncated(EMPTY)
-    meta, model = _model_fields(data)
-    graph = _graph_fields(model.pop("graph"))
-    structure = {"file": path, "file_size": len(data), **model, **graph}
-    info = dict(meta)
+    top = _model(data)
+    if top["ir_version"] is None:
+        raise _Malformed("no ir_version")
+    graph = _graph(top["graph"])
+    graph.update(_nodes(graph))
+    init_names = {name for name, _ in graph["initializers"]}
+    ops: Counter[str] = Counter(f"{domain}::{op}" if domain and domain != "ai.onnx" else op
+                                for op, domain, _ in graph["nodes"])
+    shown = ("name", "dtype", "shape")
+    structure = {
+        "file": path, "file_size": len(data), "ir_version": top["ir_version"], "producer": top["producer"],
+        "opset_import": top["opset_import"],
+        # Graph inputs that are initializers (IR < 4 style) are not real inputs.
+        "inputs": [{k: v[k] for k in shown} for kind, v in graph["io"]
+                   if kind == "input" and v["name"] not in init_names],
+        "outputs": [{k: v[k] for k in shown} for kind, v in graph["io"] if kind == "output"],
+        "op_counts": dict(sorted(ops.items())), "node_count": len(graph["nodes"]),
+        "initializer_count": len(init_names), "parameter_count": sum(size for _, size in graph["initializers"])}
+    info = {key: decode_value(value) for key, value in top["metadata"].items()}
     for key, value in structure.items():
         if key in info:
             info[f"metadata_{key}"] = info.pop(key)  # never let metadata hide the file's facts
@@ -246,33 +282,29 @@ def _parse(data: bytes, path: str) -> dict[str, Any]:
     return info
 
 
-def _model_fields(data: bytes) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The ModelProto's metadata (values decoded) and its header: ir_version, producer,
-    opset_import and the graph's bytes."""
-    meta: dict[str, Any] = {}
+def _model(data: bytes) -> dict[str, Any]:
+    """The ModelProto's top level: "metadata" ({key: value as stored}), "ir_version" (None
+    without one), "producer", "opset_import" ({domain: version}) and the graph's bytes;
+    "no graph" without one, as libposecorr says."""
+    meta: dict[str, str] = {}
     opsets: dict[str, int] = {}
-    ir_version = None
-    producer = {"name": "", "version": ""}
-    graph: bytes | None = None
-    for f, wire, v in _fields(data):
+    top: dict[str, Any] = {"ir_version": None, "producer": {"name": "", "version": ""}, "graph": None}
+    for f, wire, v in _message_fields(data, "model"):
         if f == 1 and wire == 0:
-            ir_version = v
-        elif f == 2 and wire == 2:
-            producer["name"] = _str(v)
-        elif f == 3 and wire == 2:
-            producer["version"] = _str(v)
-        elif f == 7 and wire == 2:
-            graph = _msg(v)
-        elif f == 8 and wire == 2:
-            opset = _pick(_msg(v), {1: b"", 2: 0})       # OperatorSetIdProto: domain, version
+            top["ir_version"] = v
+        elif f in (2, 3) and wire == 2:
+            top["producer"]["name" if f == 2 else "version"] = _str(v)
+        elif f == 7:
+            top["graph"] = v
+        elif f == 8:
+            opset = _pick(_fields(v), {1: b"", 2: -1})      # OperatorSetIdProto: domain, version
             opsets[_str(opset[1]) or "ai.onnx"] = opset[2]
-        elif f == 14 and wire == 2:
-            entry = _pick(_msg(v), {1: b"", 2: b""})     # StringStringEntryProto: key, value
-            meta[_str(entry[1])] = decode_value(_str(entry[2]))
-    if ir_version is None or graph is None:
-        raise _Malformed("no ir_version or no graph (is this an ONNX ModelProto?)")
-    return meta, {"ir_version": ir_version, "producer": producer, "opset_import": opsets,
-                  "graph": graph}
+        elif f == 14:
+            entry = _pick(_fields(v), {1: b"", 2: b""})     # StringStringEntryProto: key, value
+            meta[_str(entry[1])] = _str(entry[2])
+    if top["graph"] is None:
+        raise _Malformed("no graph")
+    return {"metadata": meta, "opset_import": opsets, **top}
 
 
 def _initializer(buf: bytes) -> tuple[str, int]:
@@ -281,13 +313,13 @@ def _initializer(buf: bytes) -> tuple[str, int]:
     for tf, twire, tv in _fields(buf):
         if tf == 1:
             if twire == 2:  # packed
-                pos, b = 0, _msg(tv)
-                while pos < len(b):
-                    d, pos = _varint(b, pos)
+                pos = 0
+                while pos < len(tv):
+                    d, pos = _varint(tv, pos)
                     dims.append(_signed(d))
             else:
                 dims.append(_signed(tv))
-        elif tf == 8:
+        elif tf == 8 and twire == 2:
             name = _str(tv)
     size = 1
     for d in dims:
@@ -295,31 +327,48 @@ def _initializer(buf: bytes) -> tuple[str, int]:
     return name, size
 
 
-def _graph_fields(graph: bytes) -> dict[str, Any]:
-    """The GraphProto's inputs, outputs, op counts and initializer counts."""
-    ops: Counter[str] = Counter()
-    inputs, outputs = [], []
-    initializer_names: set[str] = set()
-    n_params = 0
-    for f, wire, v in _fields(graph):
-        if f == 1 and wire == 2:
-            node = _pick(_msg(v), {4: b"", 7: b""})      # NodeProto: op_type, domain
-            op, domain = _str(node[4]), _str(node[7])
-            ops[f"{domain}::{op}" if domain and domain != "ai.onnx" else op] += 1
-        elif f == 5 and wire == 2:
-            name, size = _initializer(_msg(v))
-            initializer_names.add(name)
-            n_params += size
-        elif f == 11 and wire == 2:
-            inputs.append(_value_info(_msg(v)))
-        elif f == 12 and wire == 2:
-            outputs.append(_value_info(_msg(v)))
-    return {
-        # Graph inputs that are initializers (IR < 4 style) are not real inputs.
-        "inputs": [i for i in inputs if i["name"] not in initializer_names], "outputs": outputs,
-        "op_counts": dict(sorted(ops.items())), "node_count": int(sum(ops.values())),
-        "initializer_count": len(initializer_names), "parameter_count": n_params,
-    }
+def _graph(graph: bytes) -> dict[str, Any]:
+    """The GraphProto's own fields, as libposecorr reads them before any node: "io"
+    [("input" or "output", `_value_info`)] in the file's order, "initializers" [(name,
+    element count)], and the bytes of its "node_messages" and "initializer_messages" (read by
+    `_nodes`, after the pose contract, as libposecorr reads them)."""
+    io, initializers, node_messages, initializer_messages = [], [], [], []
+    for f, _, v in _message_fields(graph, "graph"):
+        if f == 1:
+            node_messages.append(v)
+        elif f == 5:
+            initializers.append(_initializer(v))
+            initializer_messages.append(v)
+        elif f in (11, 12):
+            io.append(("input" if f == 11 else "output", _value_info(v)))
+    return {"io": io, "initializers": initializers, "node_messages": node_messages,
+            "initializer_messages": initializer_messages}
+
+
+def _nodes(graph: dict[str, Any]) -> dict[str, Any]:
+    """A `_graph`'s "nodes" [(op_type, domain, name)] and "float_tensors" (its float
+    initialisers and Constant values, see `_float_tensor`)."""
+    nodes, tensors = [], []
+    for message in graph["node_messages"]:
+        node = _pick(_message_fields(message, "node"), {3: b"", 4: b"", 7: b""})   # name, op_type, domain
+        nodes.append((_str(node[4]), _str(node[7]), _str(node[3])))
+        if nodes[-1][0] == "Constant":
+            tensors += _constant_values(message)
+    tensors += [t for t in map(_float_tensor, graph["initializer_messages"]) if t is not None]
+    return {"nodes": nodes, "float_tensors": tensors}
+
+
+def _constant_values(node: bytes) -> list[dict[str, Any]]:
+    """The float tensor of a Constant node's "value" attribute, if it has one."""
+    out = []
+    for f, wire, v in _fields(node):
+        if f == 5 and wire == 2:
+            attr = _pick(_fields(v), {1: b"", 5: None})     # AttributeProto: name, t
+            if _str(attr[1]) == "value" and attr[5] is not None:
+                tensor = _float_tensor(attr[5])
+                if tensor is not None:
+                    out.append(tensor)
+    return out
 
 
 FLOAT = 1  # TensorProto.FLOAT
@@ -336,8 +385,8 @@ def _float_tensor(buf: bytes) -> dict[str, Any] | None:
             data_type = v
         elif f == 9 and wire == 2:
             raw = bytes(v)
-        elif f == 4:
-            packed += _msg(v) if wire == 2 else int(v).to_bytes(4, "little")
+        elif f == 4 and wire in (2, 5):   # packed, or one fixed32 value
+            packed += bytes(v) if wire == 2 else int(v).to_bytes(4, "little")
     if data_type != FLOAT:
         return None
     if raw is not None and len(raw) % 4:
@@ -345,60 +394,42 @@ def _float_tensor(buf: bytes) -> dict[str, Any] | None:
     return {"name": name, "raw": raw, "float_data": bytes(packed)}
 
 
-def read_graph(data: bytes) -> dict[str, Any]:
-    """What the load-time checks look at: {"metadata": {key: value as stored},
-    "opset_import": {domain: version}, "nodes": [(op_type, domain, name)],
-    "float_tensors": [float initialisers and Constant values, see _float_tensor],
-    "inputs": [names of the graph's inputs]}.
-    Raises ValueError when the bytes are not an ONNX ModelProto, TruncatedModel (one) when
-    they end inside a field."""
-    try:
-        if not data:
-            raise _Truncated(EMPTY)
-        return _read_graph(data)
-    except _Truncated as exc:
-        raise TruncatedModel(str(exc)) from None
-    except _Malformed as exc:
-        raise ValueError(str(exc)) from None
-    except RecursionError:
-        raise ValueError("nesting too deep") from None
+def _readable(read: Callable[..., dict[str, Any]]) -> Callable[..., dict[str, Any]]:
+    """`read` raising ValueError where the bytes are no ONNX model, TruncatedModel (one)
+    where they end inside a field."""
+    @functools.wraps(read)
+    def wrapped(*args: Any) -> dict[str, Any]:
+        try:
+            return read(*args)
+        except _Truncated as exc:
+            raise TruncatedModel(str(exc)) from None
+        except _Malformed as exc:
+            raise ValueError(str(exc)) from None
+        except RecursionError:
+            raise ValueError("nesting too deep") from None
+    return wrapped
 
 
-def _read_graph(data: bytes) -> dict[str, Any]:
-    meta: dict[str, str] = {}
-    opsets: dict[str, int] = {}
-    graph: bytes | None = None
-    for f, wire, v in _fields(data):
-        if f == 7 and wire == 2:
-            graph = _msg(v)
-        elif f == 8 and wire == 2:
-            opset = _pick(_msg(v), {1: b"", 2: 0})
-            opsets[_str(opset[1]) or "ai.onnx"] = opset[2]
-        elif f == 14 and wire == 2:
-            entry = _pick(_msg(v), {1: b"", 2: b""})
-            meta[_str(entry[1])] = _str(entry[2])
-    if graph is None:
-        raise _Malformed("no graph (is this an ONNX ModelProto?)")
-    nodes, tensors, inputs = [], [], []
-    for f, wire, v in _fields(graph):
-        if f == 1 and wire == 2:
-            node = _pick(_msg(v), {3: b"", 4: b"", 7: b""})      # NodeProto: name, op_type, domain
-            op = _str(node[4])
-            nodes.append((op, _str(node[7]), _str(node[3])))
-            if op != "Constant":
-                continue
-            for nf, nwire, nv in _fields(_msg(v)):              # the Constant's "value" tensor
-                if nf == 5 and nwire == 2:
-                    attr = _pick(_msg(nv), {1: b"", 5: None})
-                    if _str(attr[1]) == "value" and attr[5] is not None:
-                        tensor = _float_tensor(_msg(attr[5]))
-                        if tensor is not None:
-                            tensors.append(tensor)
-        elif f == 5 and wire == 2:
-            tensor = _float_tensor(_msg(v))
-            if tensor is not None:
-                tensors.append(tensor)
-        elif f == 11 and wire == 2:
-            inputs.append(_str(_pick(_msg(v), {1: b""})[1]))
-    return {"metadata": meta, "opset_import": opsets, "nodes": nodes, "float_tensors": tensors,
-            "inputs": inputs}
+# The load-time checks' readers (`checks.check_model`), one per stage of libposecorr's load,
+# so that a file with two faults is named by the one libposecorr meets first.
+@_readable
+def read_model(data: bytes) -> dict[str, Any]:
+    """The ModelProto's top level: {"metadata": {key: value as stored}, "opset_import":
+    {domain: version}, "ir_version", "producer", "graph": its bytes}."""
+    if not data:
+        raise _Truncated(EMPTY)
+    return _model(data)
+
+
+@_readable
+def read_graph(model: dict[str, Any]) -> dict[str, Any]:
+    """A `read_model`'s graph, up to its nodes: {"io": [("input" or "output", {"name",
+    "dtype", "elem", "shape"})], "initializers": [(name, element count)], ...}."""
+    return _graph(model["graph"])
+
+
+@_readable
+def read_nodes(graph: dict[str, Any]) -> dict[str, Any]:
+    """A `read_graph`'s nodes: {"nodes": [(op_type, domain, name)], "float_tensors": [float
+    initialisers and Constant values, see _float_tensor]}."""
+    return _nodes(graph)

@@ -173,7 +173,7 @@ class _CBackend:
             st = lib.pc_load_file(os.fsencode(path), ctypes.byref(opts), ctypes.byref(handle),
                                   ctypes.byref(err))
         if st != 0:
-            raise PoseCorrError(f"{_where(path)}: {_load_message(path, st, err.message)}", st)
+            raise PoseCorrError(f"{_where(path)}: {err.message.decode(errors='replace')}", st)
         self.handle = handle.value
         # Single-pose path: fixed buffers and raw addresses, so a call is one copy in,
         # one foreign call and one copy out.
@@ -291,27 +291,6 @@ def _check_file(path: str | os.PathLike) -> None:
         raise PoseCorrError(str(exc), int(checks.Status.IO)) from None
 
 
-def _load_message(path: str | os.PathLike | bytes, status: int, message: bytes) -> str:
-    """libposecorr's words for a failed load; for bytes that are not an ONNX file at all,
-    those of the other back end and of `info`. The protobuf faults read alike in both parsers
-    ("unsupported wire type 4 at byte 2", "truncated file at byte 3 (inside a varint)"); a
-    field of the wrong type is this parser's "expected an embedded message" where libposecorr
-    says "model field 7 at byte 0 is not bytes", so that the shim's back ends say the same
-    word for word (tests/test_checks.py)."""
-    text = message.decode(errors="replace")
-    if status != checks.Status.MALFORMED:    # a truncated file is named so, with its byte
-        return text
-    try:
-        onnx_meta.read_graph(bytes(path) if isinstance(path, (bytes, bytearray)) else Path(path).read_bytes())
-    except onnx_meta.TruncatedModel:
-        return text
-    except ValueError as exc:
-        return f"not a valid ONNX model ({exc})"
-    except OSError:
-        pass
-    return text
-
-
 def _where(path: str | os.PathLike | bytes) -> str:
     """How a load error names the model."""
     return f"model of {len(path)} bytes" if isinstance(path, (bytes, bytearray)) else os.fspath(path)
@@ -343,14 +322,9 @@ class _OrtBackend:
             self.session = ort.InferenceSession(data, so, providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime's own exception types, one per failure kind
             raise PoseCorrError(f"{name}: onnxruntime cannot load it: {_first_line(exc)}") from None
-        inputs = {i.name: i.shape for i in self.session.get_inputs()}
-        outputs = {o.name for o in self.session.get_outputs()}
-        if "pose" not in inputs or "corrected" not in outputs:
-            raise PoseCorrError(f"{name}: not a posecorr corrector (inputs {sorted(inputs)}, outputs "
-                                f"{sorted(outputs)}; expected input 'pose' [N, 7] and output 'corrected')")
         self.name = name
         self.max_batch = None
-        self.takes_time = TIME_INPUT in inputs
+        self.takes_time = TIME_INPUT in {i.name for i in self.session.get_inputs()}
 
     def run(self, poses: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
         # InferenceSession.run is safe from several threads: no lock here.

@@ -714,6 +714,21 @@ def test_a_file_that_is_no_pose_model_is_named_alike_by_every_reader(tmp_path, c
         assert str(info.value) == f"{model}: {said}"
 
 
+def test_a_name_that_is_not_utf8_is_named_by_its_byte(tmp_path):
+    """The one fault of the Python reader's own (libposecorr reads names as bytes, and
+    onnxruntime cannot load such a file): named by the byte of the file it is at."""
+    from posecorr.controller import read_info
+
+    blob = bytearray(_pose_model().SerializeToString())
+    at = bytes(blob).index(b"posecorr-tests") + 3
+    blob[at] = 0xFF
+    model = tmp_path / "m.onnx"
+    model.write_bytes(bytes(blob))
+    with pytest.raises(ValueError) as info:
+        read_info(model)
+    assert str(info.value) == f"{model}: not a valid ONNX model (string at byte {at} is not UTF-8)"
+
+
 # --- the digest, the reach and the allow flags: the same words on both back ends --------------
 
 def _strip_where(errors: list[PoseCorrError]) -> list[PoseCorrError]:

@@ -139,7 +139,8 @@ def _str(value: bytes) -> str:
     try:
         return bytes(value).decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise _Malformed("string field is not UTF-8") from exc
+        # libposecorr takes names as bytes; onnxruntime cannot load such a file at all
+        raise _Malformed(f"string at byte {getattr(value, 'base', 0) + exc.start} is not UTF-8") from None
 
 
 def _signed(v: int) -> int:

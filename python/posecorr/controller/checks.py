@@ -7,11 +7,13 @@ through the C runtime (`Corrector(backend="onnxruntime")`, hence `posecorr apply
 onnxruntime`). tests/test_checks.py runs every hostile case on both back ends and compares
 their messages word for word.
 
-At load (`check_model`): the graph's inputs and outputs are the pose contract's (`pose`
-float32 [N,7], optionally `t` float32 [N]; `corrected` float32 [N,7]: `check_contract`); its
-operators are those of export/operators.txt in the default domain at a supported opset; no float tensor of the graph (an initialiser, a
-Constant's value) holds NaN or infinity; the metadata's bounds (`input_bounds`, metres, and
-`time_bounds`, seconds) are finite float32 numbers, lower ones not above upper ones.
+At load (`check_model`), in libposecorr's order: a supported default-domain opset; the
+graph's inputs and outputs are the pose contract's (`pose` float32 [N,7], optionally `t`
+float32 [N]; `corrected` float32 [N,7]: `check_contract`); its operators are those of
+export/operators.txt in the default domain; every value is produced once and before it is
+read (`check_references`); no float tensor of the graph (an initialiser, a Constant's value)
+holds NaN or infinity; the metadata's bounds (`input_bounds`, metres, and `time_bounds`,
+seconds) are finite float32 numbers, lower ones not above upper ones.
 
 Before those, the file's digest (metadata `model_digest`, `digest`): a file whose bytes do
 not give it is refused (INTEGRITY), one without it unless the caller allows unsigned files;
@@ -285,7 +287,7 @@ def check_model(data: bytes, where: str, allow_unbounded: bool = False,
                             f"({OPSETS[0]}..{OPSETS[1]})", int(Status.UNSUPPORTED))
     graph = _structure(where, onnx_meta.read_graph, model)
     try:
-        check_contract(graph)
+        inputs = check_contract(graph)
     except PoseCorrError as exc:
         raise PoseCorrError(f"{where}: {exc}", exc.status) from None
     graph.update(_structure(where, onnx_meta.read_nodes, graph))
@@ -297,6 +299,10 @@ def check_model(data: bytes, where: str, allow_unbounded: bool = False,
         if op not in allowed:
             raise PoseCorrError(f"{where}: unsupported operator {op} in node '{name}'",
                                 int(Status.UNSUPPORTED))
+    try:
+        check_references(graph, inputs)
+    except PoseCorrError as exc:
+        raise PoseCorrError(f"{where}: {exc}", exc.status) from None
     for tensor in graph["float_tensors"]:
         bad = np.flatnonzero(~np.isfinite(_float_values(tensor)))
         if bad.size:
@@ -307,6 +313,11 @@ def check_model(data: bytes, where: str, allow_unbounded: bool = False,
         limits = Limits.from_metadata(model["metadata"], takes_time, allow_unbounded)
     except PoseCorrError as exc:
         raise PoseCorrError(f"{where}: {exc}", exc.status) from None
+    # Last: libposecorr reads names as bytes and loads such a file; onnxruntime cannot.
+    at = onnx_meta.first_not_utf8(model, graph)
+    if at is not None:
+        raise PoseCorrError(f"{where}: the string at byte {at} is not UTF-8, which onnxruntime cannot load (the C "
+                            "back end can)", int(Status.MALFORMED))
     return model["metadata"], limits
 
 
@@ -322,13 +333,14 @@ def _structure(where: str, read: Any, source: Any, words: str = "{}") -> dict[st
         raise PoseCorrError(f"{where}: {words.format(exc)}", int(Status.MALFORMED)) from None
 
 
-def check_contract(graph: dict[str, Any]) -> None:
+def check_contract(graph: dict[str, Any]) -> list[str]:
     """onnx.c's pose contract on a graph's inputs and outputs (`onnx_meta.read_graph`'s
     "io", in the file's order; an input that is an initializer or repeated is skipped, as
     IR < 4 files list initializers among the inputs), in its words and order: the first
-    fault raised (CONTRACT), nothing when the graph keeps the contract."""
+    fault raised (CONTRACT); the graph inputs it kept, when the graph keeps the contract."""
     seen = {name for name, _ in graph["initializers"]}
-    inputs, outputs = [], 0
+    inputs: list[str] = []
+    outputs = 0
     for kind, io in graph["io"]:
         name, elem, shape = io["name"], io["elem"], io["shape"]
         rank = -1 if shape is None else len(shape)
@@ -350,6 +362,40 @@ def check_contract(graph: dict[str, Any]) -> None:
     if outputs != 1:
         raise PoseCorrError(f"model has {outputs} outputs, the contract needs exactly one ('corrected')",
                             int(Status.CONTRACT))
+    return inputs
+
+
+def check_references(graph: dict[str, Any], inputs: list[str]) -> None:
+    """graph.c's pc_scan_refs on a graph (`onnx_meta.read_nodes`' "node_io", `inputs` the
+    graph inputs `check_contract` kept), in its words and order: every value produced once,
+    every node's input produced by a graph input, an initializer or an earlier node (the
+    first that is not, reported after the walk, when it is known whether a later node
+    produces it), every graph output produced. Raises GRAPH."""
+    def fault(message: str) -> PoseCorrError:
+        return PoseCorrError(message, int(Status.GRAPH))
+
+    kinds = dict.fromkeys(inputs, "a graph input")
+    for name, _ in graph["initializers"]:
+        if kinds.get(name) == "an initializer":
+            raise fault(f"initializer '{name}' is defined twice")
+        kinds.setdefault(name, "an initializer")   # a graph input of that name stays one
+    missing = None
+    for (_, _, node), (reads, writes) in zip(graph["nodes"], graph["node_io"]):
+        missing = missing or next(((x, node) for x in reads if x and x not in kinds), None)
+        for y in filter(None, writes):
+            if y in kinds:
+                raise fault(f"'{y}' (output of node '{node}') is already {kinds[y]}: every value of a graph is "
+                            "produced once")
+            kinds[y] = "a node output"
+    if missing:
+        value, node = missing
+        if value in kinds:
+            raise fault(f"graph has a cycle or is not topologically sorted: node '{node}' reads '{value}' before "
+                        "the node that produces it")
+        raise fault(f"input '{value}' of node '{node}' is not produced by any node, initializer or graph input")
+    for kind, io in graph["io"]:
+        if kind == "output" and io["name"] not in kinds:
+            raise fault(f"graph output '{io['name']}' is not produced by any node")
 
 
 def _input_fault(name: str, elem: int, rank: int, dims: list[int]) -> str | None:

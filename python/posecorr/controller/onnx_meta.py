@@ -135,12 +135,38 @@ def _pick(fields: Iterator[tuple[int, int, Any]], defaults: dict[int, Any]) -> d
     return out
 
 
+class _Lossy(str):
+    """A string field that is not UTF-8, its undecodable bytes as U+FFFD (as the shim shows
+    them in libposecorr's messages, which take names as bytes); `at`: the byte of the file
+    where the first of them is. onnxruntime cannot load such a file (`first_not_utf8`)."""
+
+    at = 0
+
+
 def _str(value: bytes) -> str:
     try:
         return bytes(value).decode("utf-8")
     except UnicodeDecodeError as exc:
-        # libposecorr takes names as bytes; onnxruntime cannot load such a file at all
-        raise _Malformed(f"string at byte {getattr(value, 'base', 0) + exc.start} is not UTF-8") from None
+        text = _Lossy(bytes(value).decode("utf-8", errors="replace"))
+        text.at = getattr(value, "base", 0) + exc.start
+        return text
+
+
+def first_not_utf8(*read: Any) -> int | None:
+    """The byte of the file where the first string field of these readings (`read_model`,
+    `read_graph`, `read_nodes`, nested as they are) that is not UTF-8 starts to be not; None
+    where every one is."""
+    found = []
+    stack = list(read)
+    while stack:
+        item = stack.pop()
+        if isinstance(item, _Lossy):
+            found.append(item.at)
+        elif isinstance(item, dict):
+            stack += list(item) + list(item.values())
+        elif isinstance(item, (list, tuple)):
+            stack += item
+    return min(found, default=None)
 
 
 def _signed(v: int) -> int:
@@ -347,16 +373,24 @@ def _graph(graph: bytes) -> dict[str, Any]:
 
 
 def _nodes(graph: dict[str, Any]) -> dict[str, Any]:
-    """A `_graph`'s "nodes" [(op_type, domain, name)] and "float_tensors" (its float
-    initialisers and Constant values, see `_float_tensor`)."""
-    nodes, tensors = [], []
+    """A `_graph`'s "nodes" [(op_type, domain, name)], each node's "node_io" ([its inputs'
+    names], [its outputs']) and "float_tensors" (its float initialisers and Constant values,
+    see `_float_tensor`)."""
+    nodes, node_io, tensors = [], [], []
     for message in graph["node_messages"]:
-        node = _pick(_message_fields(message, "node"), {3: b"", 4: b"", 7: b""})   # name, op_type, domain
-        nodes.append((_str(node[4]), _str(node[7]), _str(node[3])))
+        strings: dict[int, bytes] = {3: b"", 4: b"", 7: b""}   # name, op_type, domain
+        inputs, outputs = [], []
+        for f, _, v in _message_fields(message, "node"):        # all of these length-delimited
+            if f in (1, 2):
+                (inputs if f == 1 else outputs).append(_str(v))
+            elif f in strings:
+                strings[f] = v
+        nodes.append((_str(strings[4]), _str(strings[7]), _str(strings[3])))
+        node_io.append((inputs, outputs))
         if nodes[-1][0] == "Constant":
             tensors += _constant_values(message)
     tensors += [t for t in map(_float_tensor, graph["initializer_messages"]) if t is not None]
-    return {"nodes": nodes, "float_tensors": tensors}
+    return {"nodes": nodes, "node_io": node_io, "float_tensors": tensors}
 
 
 def _constant_values(node: bytes) -> list[dict[str, Any]]:
@@ -431,6 +465,6 @@ def read_graph(model: dict[str, Any]) -> dict[str, Any]:
 
 @_readable
 def read_nodes(graph: dict[str, Any]) -> dict[str, Any]:
-    """A `read_graph`'s nodes: {"nodes": [(op_type, domain, name)], "float_tensors": [float
-    initialisers and Constant values, see _float_tensor]}."""
+    """A `read_graph`'s nodes: {"nodes": [(op_type, domain, name)], "node_io": [([inputs],
+    [outputs])], "float_tensors": [float initialisers and Constant values, see _float_tensor]}."""
     return _nodes(graph)

@@ -33,11 +33,12 @@ import importlib.util
 import json
 import math
 import re
+from contextlib import contextmanager
 from dataclasses import dataclass
 from enum import IntEnum
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 
@@ -286,10 +287,8 @@ def check_model(data: bytes, where: str, allow_unbounded: bool = False,
         raise PoseCorrError(f"{where}: default-domain opset {opset} is not supported "
                             f"({OPSETS[0]}..{OPSETS[1]})", int(Status.UNSUPPORTED))
     graph = _structure(where, onnx_meta.read_graph, model)
-    try:
+    with _named(where):
         inputs = check_contract(graph)
-    except PoseCorrError as exc:
-        raise PoseCorrError(f"{where}: {exc}", exc.status) from None
     graph.update(_structure(where, onnx_meta.read_nodes, graph))
     allowed = operator_list()
     for op, domain, name in graph["nodes"]:
@@ -299,26 +298,31 @@ def check_model(data: bytes, where: str, allow_unbounded: bool = False,
         if op not in allowed:
             raise PoseCorrError(f"{where}: unsupported operator {op} in node '{name}'",
                                 int(Status.UNSUPPORTED))
-    try:
+    with _named(where):
         check_references(graph, inputs)
-    except PoseCorrError as exc:
-        raise PoseCorrError(f"{where}: {exc}", exc.status) from None
     for tensor in graph["float_tensors"]:
         bad = np.flatnonzero(~np.isfinite(_float_values(tensor)))
         if bad.size:
             raise PoseCorrError(f"{where}: tensor '{tensor['name']}' holds a non-finite value at "
                                 f"element {int(bad[0])} (expected finite weights)", int(Status.MALFORMED))
-    try:
-        takes_time = any(kind == "input" and io["name"] == TIME_INPUT for kind, io in graph["io"])
+    takes_time = any(kind == "input" and io["name"] == TIME_INPUT for kind, io in graph["io"])
+    with _named(where):
         limits = Limits.from_metadata(model["metadata"], takes_time, allow_unbounded)
-    except PoseCorrError as exc:
-        raise PoseCorrError(f"{where}: {exc}", exc.status) from None
     # Last: libposecorr reads names as bytes and loads such a file; onnxruntime cannot.
     at = onnx_meta.first_not_utf8(model, graph)
     if at is not None:
         raise PoseCorrError(f"{where}: the string at byte {at} is not UTF-8, which onnxruntime cannot load (the C "
                             "back end can)", int(Status.MALFORMED))
     return model["metadata"], limits
+
+
+@contextmanager
+def _named(where: str) -> Iterator[None]:
+    """A check's fault with the model's name in front, as every load error reads."""
+    try:
+        yield
+    except PoseCorrError as exc:
+        raise PoseCorrError(f"{where}: {exc}", exc.status) from None
 
 
 def _structure(where: str, read: Any, source: Any, words: str = "{}") -> dict[str, Any]:

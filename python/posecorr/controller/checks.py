@@ -237,7 +237,7 @@ def check_digest(data: bytes, where: str, allow_unsigned: bool = False) -> None:
     try:
         span = digest.digest_span(data)
     except onnx_meta._Malformed:
-        return  # not a model: read_graph says where
+        return  # not a model: read_model says where
     except ValueError as exc:
         raise PoseCorrError(f"{where}: {exc}", int(Status.INTEGRITY)) from None
     if span is None:

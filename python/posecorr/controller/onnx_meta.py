@@ -230,13 +230,11 @@ def read_info(path: str | os.PathLike[str]) -> dict[str, Any]:
     with open(path, "rb") as fh:
         data = fh.read()
     try:
-        return _parse(data, path)
-    except _Truncated as exc:
+        return _readable(_parse)(data, path)
+    except TruncatedModel as exc:
         raise TruncatedModel(f"{path}: {exc}") from None
-    except _Malformed as exc:
+    except ValueError as exc:
         raise ValueError(f"{path}: not a valid ONNX model ({exc})") from None
-    except RecursionError:
-        raise ValueError(f"{path}: not a valid ONNX model (nesting too deep)") from None
 
 
 def stated_metrics(info: dict[str, Any]) -> tuple[str, dict[str, Any], dict[str, Any] | None] | None:

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from . import checks, onnx_meta
+from . import checks
 from .checks import PoseCorrError
 
 __all__ = ["Corrector", "PoseCorrError", "load_library", "library_path"]

@@ -226,7 +226,7 @@ def features_figure(features: Mapping[str, np.ndarray], before_mm: np.ndarray, a
     # here (it measures every tick label), and this grid has the same layout every time.
     fig, axes = plt.subplots(nrows, ncols, figsize=(12, height), sharey=True, squeeze=False,
                              gridspec_kw=_margins(12, height, left=0.75, right=0.15, top=0.4, bottom=0.5,
-                                                  wspace=0.06, hspace=0.42))
+                                                  wspace=0.16, hspace=0.42))
     rng = np.random.default_rng(0)  # fixed jitter: the same page for the same data
     b = np.maximum(before_mm, LOG_FLOOR_MM)
     a = np.maximum(after_mm, LOG_FLOOR_MM)
@@ -247,7 +247,8 @@ def features_figure(features: Mapping[str, np.ndarray], before_mm: np.ndarray, a
         ax.set_yscale("log")
         _plain_log(ax, "y", (1.0, 2.0, 5.0), minor=False)
         ax.set_xlabel(f"{name} [{FEATURE_UNITS.get(name, '')}]")
-        # a panel is 2.7 inches wide: at most 5 labels, or '-0.025' runs into '-0.020'
+        # a panel is 2.6 inches wide: at most 5 labels, or '-0.025' runs into '-0.020'; the gap
+        # between panels (wspace) leaves room for an edge label on each side, '2.4' beside '-0.032'
         ax.xaxis.set_major_locator(MaxNLocator(nbins=5))
         if k % ncols == 0:
             ax.set_ylabel(f"{quantity} [{unit}]")

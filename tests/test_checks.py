@@ -545,6 +545,28 @@ def test_apply_refuses_a_result_that_is_not_a_pose(tmp_path, capsys):
     assert _checksums(tmp_path) == before
 
 
+def test_a_model_onnxruntime_fails_to_run_is_named_in_one_line(tmp_path):
+    """A Gather whose constant index is past its data: libposecorr refuses it at load;
+    onnxruntime loads it and fails on the first pose. `apply` (its own process, so that
+    onnxruntime's log, written to the stderr file itself, would be seen) names the row, the
+    model once and onnxruntime's reason in one line, as pc_run names a fault: its status
+    first. onnxruntime's log printed the failure again, a dozen coloured lines."""
+    g = graphs.G()
+    past = g.op("Gather", [g.f32(np.ones(7, np.float32)), g.i64([9])], axis=0)
+    model = tmp_path / "past.onnx"
+    model.write_bytes(graphs.signed(g.model(g.op("Add", ["pose", past]), metadata=graphs.BOUNDED)))
+    table = _table(tmp_path)
+    with pytest.raises(PoseCorrError, match="index 9 out of range for axis of 7"):
+        Corrector(model, backend="c")
+    r = subprocess.run([sys.executable, "-m", "posecorr.cli", "apply", str(model), str(table), "-o",
+                        str(tmp_path / "out.csv"), "--backend", "onnxruntime"], capture_output=True, text=True)
+    assert r.returncode == 2
+    assert r.stderr.startswith(f"posecorr apply: error: {table}, row 2: {model}: runtime error: onnxruntime failed "
+                               "to run it: ") and "indices element out of data bounds" in r.stderr, r.stderr
+    assert len(r.stderr.splitlines()) == 1 and r.stderr.count(str(model)) == 1, r.stderr
+    assert not (tmp_path / "out.csv").exists()
+
+
 def _posecorr_run(model, text: str | bytes, *args: str) -> subprocess.CompletedProcess:
     run = Path(sys.executable).parent / "posecorr-run"
     return subprocess.run([str(run), str(model), *args], input=text, capture_output=True,
@@ -661,6 +683,57 @@ def _float64_pose(graph) -> None:
     graph.input[0].type.tensor_type.elem_type = onnx.TensorProto.DOUBLE
 
 
+def _edited_weight(edit, constant: bool = False) -> bytes:
+    """A pose model whose one weight tensor, an initializer (or the value of a Constant
+    node), `edit` changed."""
+    model = _pose_model()
+    tensor = model.graph.initializer[0]
+    if constant:
+        value = onnx.TensorProto()
+        value.CopyFrom(tensor)
+        del model.graph.initializer[:]
+        model.graph.node.insert(0, helper.make_node("Constant", [], [value.name], name="w", value=value))
+        tensor = model.graph.node[0].attribute[0].t
+    edit(tensor)
+    return graphs.signed(model)
+
+
+def _one_value_short(tensor) -> None:
+    values = numpy_helper.to_array(tensor).ravel()
+    tensor.ClearField("raw_data")
+    tensor.float_data.extend(values[:-1])
+
+
+def _rank_seven(tensor) -> None:
+    tensor.ClearField("dims")
+    tensor.dims.extend([1] * 6 + [7])
+
+
+def _tensor_cases() -> list[tuple[str, bytes, str]]:
+    """A weight whose shape, element type or size libposecorr does not take (onnx.c's
+    onnx_tensor_header), and an operator it does not know in one node before a node cut
+    short: the operator is named, as libposecorr looks at each node before reading the next."""
+    def edited(field: str, value):
+        return lambda tensor: setattr(tensor, field, value)
+
+    rank_seven = _edited_weight(_rank_seven)
+    # dims are not packed (onnx.proto is proto2): the seventh dims field's key is named
+    rank_at = rank_seven.find(b"\x08\x01" * 6 + b"\x08\x07") + 12
+    unknown_then_cut, cut_at = _graph_with(b"\x0a\x06\x22\x04Nope" + b"\x0a\x04\x22\x10ab")
+    return [
+        ("raw_data size", _edited_weight(edited("raw_data", bytes(32))), "tensor 'c1': raw_data has 32 bytes, shape needs 28"),
+        ("values short", _edited_weight(_one_value_short), "tensor 'c1' has 6 values, shape needs 7"),
+        ("constant short", _edited_weight(_one_value_short, constant=True), "tensor 'c1' has 6 values, shape needs 7"),
+        ("negative dim", _edited_weight(lambda tensor: tensor.dims.__setitem__(0, -7)), "tensor 'c1' has an invalid shape"),
+        ("float64 weight", _edited_weight(edited("data_type", onnx.TensorProto.DOUBLE)),
+         "tensor 'c1' has unsupported data type 11"),
+        ("external weight", _edited_weight(edited("data_location", onnx.TensorProto.EXTERNAL)),
+         "tensor 'c1' uses external data"),
+        ("weight rank", rank_seven, f"tensor at byte {rank_at} has rank > 6"),
+        ("operator before a cut", unknown_then_cut, "unsupported operator Nope in node ''"),
+    ]
+
+
 def _structure_cases() -> list[tuple[str, bytes, str]]:
     """(case, the model's bytes, what every reader says after the file's name)."""
     field, at = _graph_with(b"\x60\x01")           # graph output (12) as a varint
@@ -686,15 +759,16 @@ def _structure_cases() -> list[tuple[str, bytes, str]]:
         ("time shape", graphs.signed(_pose_model(inputs_after=[time_2d])), "input 't' must have shape [N] (rank 2)"),
         ("output name", _edited_io(_renamed_output), "model output is 'y', the contract needs 'corrected' float32 [N,7]"),
         ("two outputs", _edited_io(_second_output), "model has 2 outputs, the contract needs exactly one ('corrected')"),
+        *_tensor_cases(),
     ]
 
 
 @pytest.mark.parametrize("case,blob,said", _structure_cases(), ids=lambda v: v if isinstance(v, str) else "")
 def test_a_file_that_is_no_pose_model_is_named_alike_by_every_reader(tmp_path, case, blob, said):
-    """A fault of a model's structure or of its pose contract reads the same from
-    `posecorr-run` (libposecorr), both back ends of the shim (`apply`), and, where the top
-    level is no model, from `info`: libposecorr's words, and of two faults the one its load
-    meets first."""
+    """A fault of a model's structure, of its pose contract or of a weight tensor reads the
+    same from `posecorr-run` (libposecorr), both back ends of the shim (`apply`), and, where
+    the top level is no model, from `info`: libposecorr's words, and of two faults the one
+    its load meets first."""
     from posecorr.controller import read_info
 
     model = tmp_path / "m.onnx"

@@ -10,7 +10,8 @@ their messages word for word.
 At load (`check_model`), in libposecorr's order: a supported default-domain opset; the
 graph's inputs and outputs are the pose contract's (`pose` float32 [N,7], optionally `t`
 float32 [N]; `corrected` float32 [N,7]: `check_contract`); its operators are those of
-export/operators.txt in the default domain; every value is produced once and before it is
+export/operators.txt in the default domain; every weight tensor has a shape, element type
+and size libposecorr takes (`check_tensor`); every value is produced once and before it is
 read (`check_references`); no float tensor of the graph (an initialiser, a Constant's value)
 holds NaN or infinity; the metadata's bounds (`input_bounds`, metres, and `time_bounds`,
 seconds) are finite float32 numbers, lower ones not above upper ones.
@@ -36,7 +37,7 @@ import re
 from contextlib import contextmanager
 from dataclasses import dataclass
 from enum import IntEnum
-from functools import lru_cache
+from functools import lru_cache, partial
 from pathlib import Path
 from typing import Any, Iterator, Mapping
 
@@ -289,18 +290,24 @@ def check_model(data: bytes, where: str, allow_unbounded: bool = False,
     graph = _structure(where, onnx_meta.read_graph, model)
     with _named(where):
         inputs = check_contract(graph)
-    graph.update(_structure(where, onnx_meta.read_nodes, graph))
     allowed = operator_list()
-    for op, domain, name in graph["nodes"]:
+
+    def check_operator(op: str, domain: str, name: str) -> None:
         if domain not in ("", "ai.onnx"):
             raise PoseCorrError(f"{where}: unsupported operator {op} (domain '{domain}') in node "
                                 f"'{name}'", int(Status.UNSUPPORTED))
         if op not in allowed:
             raise PoseCorrError(f"{where}: unsupported operator {op} in node '{name}'",
                                 int(Status.UNSUPPORTED))
+    graph.update(_structure(where, partial(onnx_meta.read_nodes, each=check_operator), graph))
     with _named(where):
         check_references(graph, inputs)
-    for tensor in graph["float_tensors"]:
+    # Then libposecorr folds each Constant, reading its value.
+    constants = [t for node in graph["constant_nodes"] for t in _structure(where, onnx_meta.constant_tensors, node)]
+    with _named(where):
+        for tensor in constants:
+            check_tensor(tensor)
+    for tensor in filter(None, map(onnx_meta.float_tensor, constants + graph["initializer_messages"])):
         bad = np.flatnonzero(~np.isfinite(_float_values(tensor)))
         if bad.size:
             raise PoseCorrError(f"{where}: tensor '{tensor['name']}' holds a non-finite value at "
@@ -325,12 +332,14 @@ def _named(where: str) -> Iterator[None]:
         raise PoseCorrError(f"{where}: {exc}", exc.status) from None
 
 
-def _structure(where: str, read: Any, source: Any, words: str = "{}") -> dict[str, Any]:
+def _structure(where: str, read: Any, source: Any, words: str = "{}") -> Any:
     """One stage of `onnx_meta`'s reading, its fault named as libposecorr names it: a top
     level that does not read as a model is "not a valid ONNX model (...)" (`words`), a fault
     inside its graph is named alone."""
     try:
         return read(source)
+    except PoseCorrError:   # a check made while reading, already in its words
+        raise
     except onnx_meta.TruncatedModel as exc:
         raise PoseCorrError(f"{where}: {exc}", int(Status.TRUNCATED)) from None
     except ValueError as exc:
@@ -369,17 +378,28 @@ def check_contract(graph: dict[str, Any]) -> list[str]:
     return inputs
 
 
+def check_tensor(tensor: bytes) -> None:
+    """onnx.c's check of a TensorProto's shape, element type and size before it is held
+    (`onnx_meta.tensor_fault`), raised in its words and status."""
+    fault = onnx_meta.tensor_fault(tensor)
+    if fault is not None:
+        raise PoseCorrError(fault[1], int(Status[fault[0]]))
+
+
 def check_references(graph: dict[str, Any], inputs: list[str]) -> None:
-    """graph.c's pc_scan_refs on a graph (`onnx_meta.read_nodes`' "node_io", `inputs` the
-    graph inputs `check_contract` kept), in its words and order: every value produced once,
+    """graph.c's pc_names_start and pc_scan_refs on a graph (`onnx_meta.read_nodes`'
+    "node_io", `inputs` the graph inputs `check_contract` kept), in its words and order:
+    every initializer a tensor libposecorr holds (`check_tensor`), every value produced once,
     every node's input produced by a graph input, an initializer or an earlier node (the
     first that is not, reported after the walk, when it is known whether a later node
-    produces it), every graph output produced. Raises GRAPH."""
+    produces it), every graph output produced. Raises GRAPH (a tensor's fault: its own
+    status)."""
     def fault(message: str) -> PoseCorrError:
         return PoseCorrError(message, int(Status.GRAPH))
 
     kinds = dict.fromkeys(inputs, "a graph input")
-    for name, _ in graph["initializers"]:
+    for (name, _), tensor in zip(graph["initializers"], graph["initializer_messages"]):
+        check_tensor(tensor)
         if kinds.get(name) == "an initializer":
             raise fault(f"initializer '{name}' is defined twice")
         kinds.setdefault(name, "an initializer")   # a graph input of that name stays one

@@ -370,11 +370,12 @@ def _graph(graph: bytes) -> dict[str, Any]:
             "initializer_messages": initializer_messages}
 
 
-def _nodes(graph: dict[str, Any]) -> dict[str, Any]:
+def _nodes(graph: dict[str, Any], each: Callable[[str, str, str], None] | None = None) -> dict[str, Any]:
     """A `_graph`'s "nodes" [(op_type, domain, name)], each node's "node_io" ([its inputs'
-    names], [its outputs']) and "float_tensors" (its float initialisers and Constant values,
-    see `_float_tensor`)."""
-    nodes, node_io, tensors = [], [], []
+    names], [its outputs']) and "constant_nodes" (the bytes of its Constant nodes, whose
+    attributes `constant_tensors` reads). `each(op_type, domain, name)` sees each node as it
+    is read."""
+    nodes, node_io, constants = [], [], []
     for message in graph["node_messages"]:
         strings: dict[int, bytes] = {3: b"", 4: b"", 7: b""}   # name, op_type, domain
         inputs, outputs = [], []
@@ -385,31 +386,19 @@ def _nodes(graph: dict[str, Any]) -> dict[str, Any]:
                 strings[f] = v
         nodes.append((_str(strings[4]), _str(strings[7]), _str(strings[3])))
         node_io.append((inputs, outputs))
+        if each is not None:
+            each(*nodes[-1])
         if nodes[-1][0] == "Constant":
-            tensors += _constant_values(message)
-    tensors += [t for t in map(_float_tensor, graph["initializer_messages"]) if t is not None]
-    return {"nodes": nodes, "node_io": node_io, "float_tensors": tensors}
-
-
-def _constant_values(node: bytes) -> list[dict[str, Any]]:
-    """The float tensor of a Constant node's "value" attribute, if it has one."""
-    out = []
-    for f, wire, v in _fields(node):
-        if f == 5 and wire == 2:
-            attr = _pick(_fields(v), {1: b"", 5: None})     # AttributeProto: name, t
-            if _str(attr[1]) == "value" and attr[5] is not None:
-                tensor = _float_tensor(attr[5])
-                if tensor is not None:
-                    out.append(tensor)
-    return out
+            constants.append(message)
+    return {"nodes": nodes, "node_io": node_io, "constant_nodes": constants}
 
 
 FLOAT = 1  # TensorProto.FLOAT
 
 
-def _float_tensor(buf: bytes) -> dict[str, Any] | None:
-    """{"name", "raw", "float_data"} of a float TensorProto (the values as little-endian
-    float32 bytes), None for other element types."""
+def float_tensor(buf: bytes) -> dict[str, Any] | None:
+    """{"name", "raw", "float_data"} of a float TensorProto that `tensor_fault` passed (the
+    values as little-endian float32 bytes), None for other element types."""
     name, data_type, raw, packed = "", 0, None, bytearray()
     for f, wire, v in _fields(buf):
         if f == 8 and wire == 2:
@@ -422,18 +411,87 @@ def _float_tensor(buf: bytes) -> dict[str, Any] | None:
             packed += bytes(v) if wire == 2 else int(v).to_bytes(4, "little")
     if data_type != FLOAT:
         return None
-    if raw is not None and len(raw) % 4:
-        raise _Malformed(f"tensor '{name}': raw_data of {len(raw)} bytes is not float32")
     return {"name": name, "raw": raw, "float_data": bytes(packed)}
+
+
+# What onnx.c holds of a tensor: its rank, its element count (PC_MAX_ELEMENTS on a 64-bit
+# host), and the element types with their bytes in raw_data (int32 held as int64).
+MAX_RANK = 6
+MAX_ELEMENTS = 0x7FFFFFFF
+RAW_BYTES = {FLOAT: 4, 6: 4, 7: 8, 9: 1}                # float, int32, int64, bool
+# The repeated number fields and their elements' wire type: dims, float_data, int32_data,
+# int64_data (packed, or one element a field).
+_NUMBER_FIELDS = {1: 0, 4: 5, 5: 0, 7: 0}
+
+
+def tensor_fault(buf: bytes) -> tuple[str, str] | None:
+    """What onnx.c's onnx_tensor_header says of one TensorProto before it holds it: None
+    where it takes it, else (libposecorr's status name, its words): a rank above MAX_RANK,
+    external data, a negative or too large shape, an element type it does not hold, raw_data
+    or a values field whose size is not the shape's."""
+    try:
+        return _tensor_fault(buf)
+    except _Truncated as exc:
+        return "TRUNCATED", str(exc)
+    except _Malformed as exc:
+        return "MALFORMED", str(exc)
+
+
+def _tensor_fault(buf: bytes) -> tuple[str, str] | None:
+    name, dims, data_type, raw = "", [], 0, None
+    counts = {4: 0, 5: 0, 7: 0}
+    for f, wire, v, at in _fields_at(buf):
+        if f in _NUMBER_FIELDS:
+            elem = _NUMBER_FIELDS[f]
+            if wire == elem:
+                values = [v]
+            elif wire != 2:
+                return "MALFORMED", f"field {f} at byte {at} has wire type {wire}"
+            elif elem == 5:
+                if len(v) % 4:
+                    return "MALFORMED", f"packed field {f} at byte {at} is not a multiple of 4 bytes"
+                values = [0] * (len(v) // 4)
+            else:
+                values, pos = [], 0
+                while pos < len(v):
+                    value, pos = _varint(v, pos)
+                    values.append(value)
+            if f != 1:
+                counts[f] += len(values)
+            elif len(dims) + len(values) > MAX_RANK:
+                return "UNSUPPORTED", f"tensor at byte {at} has rank > {MAX_RANK}"
+            else:
+                dims += map(_signed, values)
+        elif f == 2 and wire == 0:
+            data_type = _signed(v)
+        elif f == 8 and wire == 2:
+            name = _str(v)
+        elif f == 9 and wire == 2:
+            raw = v
+        elif f == 14 and wire == 0 and v == 1:         # data_location EXTERNAL
+            return "UNSUPPORTED", f"tensor '{name}' uses external data"
+    count = 1
+    for d in dims:
+        if d < 0 or (d > 0 and count > MAX_ELEMENTS // d):
+            return "MALFORMED", f"tensor '{name}' has an invalid shape"
+        count *= d
+    if data_type not in RAW_BYTES:
+        return "UNSUPPORTED", f"tensor '{name}' has unsupported data type {data_type}"
+    if raw is not None:
+        need = count * RAW_BYTES[data_type]
+        return None if len(raw) == need else ("MALFORMED", f"tensor '{name}': raw_data has {len(raw)} bytes, "
+                                                           f"shape needs {need}")
+    have = counts[4] if data_type == FLOAT else counts[7] if data_type == 7 else counts[5]
+    return None if have == count else ("MALFORMED", f"tensor '{name}' has {have} values, shape needs {count}")
 
 
 def _readable(read: Callable[..., dict[str, Any]]) -> Callable[..., dict[str, Any]]:
     """`read` raising ValueError where the bytes are no ONNX model, TruncatedModel (one)
     where they end inside a field."""
     @functools.wraps(read)
-    def wrapped(*args: Any) -> dict[str, Any]:
+    def wrapped(*args: Any, **kwargs: Any) -> dict[str, Any]:
         try:
-            return read(*args)
+            return read(*args, **kwargs)
         except _Truncated as exc:
             raise TruncatedModel(str(exc)) from None
         except _Malformed as exc:
@@ -462,7 +520,22 @@ def read_graph(model: dict[str, Any]) -> dict[str, Any]:
 
 
 @_readable
-def read_nodes(graph: dict[str, Any]) -> dict[str, Any]:
+def read_nodes(graph: dict[str, Any], each: Callable[[str, str, str], None] | None = None) -> dict[str, Any]:
     """A `read_graph`'s nodes: {"nodes": [(op_type, domain, name)], "node_io": [([inputs],
-    [outputs])], "float_tensors": [float initialisers and Constant values, see _float_tensor]}."""
-    return _nodes(graph)
+    [outputs])], "constant_nodes": [the bytes of each Constant node]}. `each(op_type,
+    domain, name)` is called on each node before the next is read, as libposecorr looks at
+    a node's operator (a fault it raises stops the reading there)."""
+    return _nodes(graph, each)
+
+
+@_readable
+def constant_tensors(node: bytes) -> list[bytes]:
+    """The TensorProto of a Constant node's "value" attribute, if it has one: read where
+    libposecorr folds the node, after the graph's references."""
+    out = []
+    for f, wire, v in _fields(node):
+        if f == 5 and wire == 2:
+            attr = _pick(_fields(v), {1: b"", 5: None})     # AttributeProto: name, t
+            if _str(attr[1]) == "value" and attr[5] is not None:
+                out.append(attr[5])
+    return out

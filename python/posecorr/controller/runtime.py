@@ -318,6 +318,9 @@ class _OrtBackend:
         so = ort.SessionOptions()
         so.intra_op_num_threads = 1
         so.inter_op_num_threads = 1
+        # A file onnxruntime cannot load is named in one line below; its own log would print
+        # the same failure again on stderr, in colour, before it.
+        so.log_severity_level = 4
         try:
             self.session = ort.InferenceSession(data, so, providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime's own exception types, one per failure kind
@@ -339,11 +342,11 @@ class _OrtBackend:
             feeds[TIME_INPUT] = np.zeros(len(x), np.float32) if tt is None else tt
         try:
             out = session.run(["corrected"], feeds)[0]
-        except Exception as exc:
-            raise PoseCorrError(f"{self.name}: onnxruntime failed to run it: {_first_line(exc)}") from None
+        except Exception as exc:   # named as pc_run names its faults: the status, not the file
+            raise checks.failure(checks.Status.RUNTIME, f"onnxruntime failed to run it: {_first_line(exc)}") from None
         if out.shape != x.shape:
-            raise PoseCorrError(f"{self.name}: output 'corrected' has shape {list(out.shape)}, "
-                                f"expected {list(x.shape)}")
+            raise checks.failure(checks.Status.RUNTIME, f"output 'corrected' has shape {list(out.shape)}, "
+                                                        f"expected {list(x.shape)}")
         checks.check_output(self.limits, x, out)
         return out.astype(np.float64)
 

@@ -140,10 +140,12 @@ def exp3():
 
 
 @pytest.mark.parametrize("rep", ["R", "zhou"])
-def test_exp3_pmc_improves_at_least_5x(exp3, rep):
+def test_exp3_pmc_improves_to_the_noise_floor(exp3, rep):
     from posecorr.train.protocol import fit_one
     from posecorr.train.spec import ModelSpec
 
     res = fit_one(exp3.table, ModelSpec("pmc", rep), seed=0)
-    assert res.test["improvement_total"] >= 5.0
+    # measured 51.6x (R) and 47.4x (zhou); rmse_total 1.04x and 1.13x the floor
+    assert res.test["improvement_total"] >= 35.0
     assert res.test["rmse_total"] >= 0.9 * exp3.noise_floor["rmse_total"]  # cannot beat the noise
+    assert res.test["rmse_total"] <= 1.25 * exp3.noise_floor["rmse_total"]

@@ -32,7 +32,7 @@ def test_simulate_json_matches_the_paper_raw_rows(tmp_path, experiment: int) -> 
     result = json.loads(out.stdout)
     assert set(result) >= {"n", "raw", "noise_floor"}
     for key, paper in PAPER_RAW[experiment].items():
-        assert abs(result["raw"][key] - paper) <= 0.10 * paper, (key, result["raw"][key], paper)
+        assert abs(result["raw"][key] - paper) <= 0.02 * paper, (key, result["raw"][key], paper)
     assert result["noise_floor"]["rmse_total"] < result["raw"]["rmse_total"] / 10
     if experiment == 1:
         assert result["raw"]["rmse_rot"] is None

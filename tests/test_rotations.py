@@ -77,14 +77,24 @@ def test_decode_of_any_raw_vector_is_proper(rep: str) -> None:
     np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-12)
 
 
-def test_decode_is_differentiable_everywhere_used() -> None:
-    """Gradients are finite at the identity, where Rodrigues and the quaternion log are 0/0."""
-    for rep in rot.orientations():
-        params = torch.tensor(rot.encode(np.eye(3)[None], rep), requires_grad=True)
-        R = rot.decode(params, rep)
-        back = rot.encode(R, rep)
-        (R.sum() + back.sum()).backward()
-        assert torch.isfinite(params.grad).all(), rep
+@pytest.mark.parametrize("rep", rot.orientations())
+def test_decode_is_differentiable_everywhere_used(rep: str) -> None:
+    """Gradients are finite at the identity, where Rodrigues and the quaternion log are 0/0,
+    and match finite differences there, near it, in general and near pi, for decode both of
+    encoded and of raw (off-manifold) parameters and for encode."""
+    params = torch.tensor(rot.encode(np.eye(3)[None], rep), requires_grad=True)
+    R = rot.decode(params, rep)
+    back = rot.encode(R, rep)
+    (R.sum() + back.sum()).backward()
+    assert torch.isfinite(params.grad).all()
+    matrices = Rotation.from_rotvec([[0, 0, 0], [1e-8, -2e-8, 3e-8], [1e-4, 2e-4, -1e-4], [0.3, -1.2, 0.8],
+                                     [0, 0, np.pi - 1e-3]]).as_matrix()
+    encoded = rot.encode(matrices, rep)
+    raw = encoded + np.random.default_rng(3).normal(scale=0.05, size=encoded.shape)
+    for x in np.concatenate([encoded, raw]):
+        assert torch.autograd.gradcheck(lambda p: rot.decode(p, rep), (torch.tensor(x[None], requires_grad=True),))
+    for M in matrices:
+        assert torch.autograd.gradcheck(lambda m: rot.encode(m, rep), (torch.tensor(M[None], requires_grad=True),))
 
 
 def test_rotvec_gradient_matches_finite_differences() -> None:

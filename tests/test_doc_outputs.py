@@ -18,6 +18,7 @@ def test_the_guides_with_commands_are_found():
 
 
 @pytest.mark.parametrize("page", PAGES, ids=[page.name for page in PAGES])
+@pytest.mark.cpu_floats
 def test_shown_outputs_are_real(page: Path):
     result = check(page)
     assert not result.mismatches, "\n".join(map(str, result.mismatches))

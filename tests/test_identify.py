@@ -89,14 +89,30 @@ def test_determined_directions_keep_the_earlier_block() -> None:
 
 def test_physics_fit_on_yaw_only_experiment_stays_physical() -> None:
     """Issue 10: Experiment II (yaw only) ended at mount e_z = -3213 m against station
-    v_z = +3213 m. Now e along the yaw axis is held and every parameter stays physical."""
-    table = simulate(2, seed=0).table.subset(np.arange(0, 1625, 5))
+    v_z = +3213 m. Now e along the yaw axis is held, every parameter stays physical and the
+    ones the poses determine are the simulation's."""
+    sim = simulate(2, seed=0)
+    table = sim.table.subset(np.arange(0, 1625, 5))
     model = PhysicsModel(("station", "mount")).fit(table.measured, table.reference)
     assert any(key.startswith("mount.e") for key in model.fixed_)
     assert np.all(np.abs(model.params_["mount"][3:]) < 0.05)
     assert np.all(np.abs(model.params_["station"][3:]) < 0.05)
-    errors = model.describe()["mount"]["e"][1]
+    described = model.describe()
+    errors = described["mount"]["e"][1]
     assert errors[2] is None and errors[0] is not None
+    true_mount, true_station = sim.effects["mount"], sim.effects["station"]
+    # Across the yaw axis: within 1.5 standard errors here, 2.8 at most on seeds 0-5.
+    for block, name, truth in (("mount", "d", true_mount[:3]), ("mount", "e", true_mount[3:]),
+                               ("station", "w", true_station[:3])):
+        value, se = described[block][name]
+        for axis in (0, 1):
+            assert abs(value[axis] - truth[axis]) < 4 * se[axis], (block, name, axis, value[axis], truth[axis], se[axis])
+    # About it only the sum of the two rotations is seen (measured within 6.3e-5 rad on seeds
+    # 0-5): the other effects of the default mix pull d_z and w_z apart by 1-2 mrad. Station v
+    # is not compared: it takes up the held e_z and the mix's range scale, drift, sweep and
+    # incidence (6.6 mm off the truth on every seed).
+    fitted_sum = described["mount"]["d"][0][2] + described["station"]["w"][0][2]
+    assert fitted_sum == pytest.approx(true_mount[2] + true_station[2], abs=2e-4)
 
 
 def test_position_only_holds_the_mount_rotation() -> None:

@@ -55,6 +55,10 @@ def test_hand_eye_recovers_registration_and_mount(seed: int, robot: str) -> None
         assert _angle(mount[:3], Rotation.from_matrix(R_X).as_rotvec()) < 1e-4
         assert np.linalg.norm(mount[3:] - t_X) < 1e-4
         assert _angle(-station[:3], Rotation.from_matrix(R_Y).as_rotvec()) < 1e-4
+        # and p_ref = R_Y p_meas + t_Y against measured = c + Exp(w)(p_ref - c) + v, c the mean
+        # reference position: v = R_Y^T (c - t_Y) - c
+        c = table.ref_p.mean(axis=0)
+        assert np.linalg.norm(station[3:] - (R_Y.T @ (c - t_Y) - c)) < 1e-4
 
 
 def test_the_closed_form_is_the_rigid_stage_itself() -> None:

@@ -125,13 +125,18 @@ def _turns_about_two_axes(table) -> bool:
     return bool(np.sum(np.linalg.svd(w / np.sqrt(len(w)), compute_uv=False) > np.deg2rad(1.0)) >= 2)
 
 
-def test_independent_rigid_reproduces_the_published_baselines() -> None:
-    """The README of the real sessions: 10.1 and 14.5 mm leave-one-out (ours: lever arm along
-    the yaw plane where the orientations turn; none where they do not)."""
+def test_independent_rigid_fit_meets_the_published_baselines() -> None:
+    """The README of the real sessions publishes 10.1 and 14.5 mm leave-one-out for Kabsch
+    plus a constant lever arm. Ours (the lever along the yaw plane where the orientations
+    turn, none where they do not) gives the published 14.5 mm on Exp2, and on Exp1 6.39 mm,
+    below the published 10.1 mm, which it does not reproduce (plain Kabsch: 15.0 mm; the
+    README does not say how its lever was fitted). Its figures are pinned, so that the
+    baseline every "never worse than rigid" test leans on cannot drift unseen."""
     exp1, exp2 = read_table(REALDATA / "20201002_Exp1.csv"), read_table(REALDATA / "20200717_Exp2.csv")
     pos1, _ = rigid_heldout(exp1, LeaveOneOut().folds(exp1.n))
     pos2, _ = rigid_heldout(exp2, LeaveOneOut().folds(exp2.n))
-    assert pos1 <= 0.0101
+    assert pos1 == pytest.approx(0.00639, abs=0.0001) and pos1 <= 0.0101
+    assert rigid_heldout(exp1, LeaveOneOut().folds(exp1.n), "kabsch")[0] == pytest.approx(0.0150, abs=0.0001)
     assert pos2 == pytest.approx(0.0145, abs=0.0002)
 
 

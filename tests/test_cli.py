@@ -58,6 +58,57 @@ def test_a_session_with_drift_needs_a_duration_and_then_has_times(tmp_path) -> N
     np.testing.assert_allclose(read_table(out_csv).time(), 50.0 * np.arange(1, 13))
 
 
+def test_simulate_does_what_its_options_say_or_refuses_them(tmp_path) -> None:
+    """Seed 8 draws a robot, which turns the tracker every way: asked for no spread, the session
+    is set down by hand with none (it was carried by a robot, spread full); asked for a robot
+    too, the two are refused together. An experiment's table refuses a session's options (they
+    were ignored), and --targets goes with --recording."""
+    out_csv = tmp_path / "s.csv"
+    drawn = json.loads(posecorr("simulate", "--session", "--seed", "8", "-o", str(out_csv), "--json").stdout)
+    assert drawn["session"]["robot"] and drawn["session"]["spread"] == "full"
+    out = posecorr("simulate", "--session", "--spread", "none", "--poses", "10", "--seed", "8", "-o", str(out_csv),
+                   "--json")
+    assert out.returncode == 0, out.stderr
+    session = json.loads(out.stdout)["session"]
+    assert session["spread"] == "none" and not session["robot"]
+    from posecorr.data import read_table
+
+    turns = Rotation.from_quat(read_table(out_csv).ref_q, scalar_first=True)
+    assert np.max((turns[0].inv() * turns).magnitude()) < 1e-9
+    for argv, said in [
+        (("--session", "--spread", "yaw", "--robot", "ur5e"), "spread 'yaw' goes with a tracker set down by hand"),
+        (("--experiment", "1", "--poses", "10", "--unremovable", "50", "--spread", "yaw"),
+         "--poses, --spread, --unremovable go with --session"),
+        (("--experiment", "1", "--robot", "ur5e", "--position-only"), "--position-only, --robot go with --session"),
+        (("--experiment", "1", "--targets", "5"), "--targets goes with --recording")]:
+        out = posecorr("simulate", *argv, "-o", str(tmp_path / "refused.csv"))
+        assert out.returncode == 2 and said in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
+        assert not (tmp_path / "refused.csv").exists()
+
+
+def test_quaternions_written_scalar_last_are_named_by_fit_and_diagnose(tmp_path) -> None:
+    """A robot session whose measured quaternions were written with scipy's as_quat() (x, y, z,
+    w) under qw, qx, qy, qz: fit and diagnose say the two series look written in two orders;
+    the table as simulated draws no such note."""
+    from posecorr.data import read_table
+
+    good = tmp_path / "good.csv"
+    assert posecorr("simulate", "--session", "--robot", "ur5e", "--poses", "30", "--seed", "3", "-o",
+                    str(good)).returncode == 0
+    table = read_table(good)
+    swapped = tmp_path / "swapped.csv"
+    write_table(PoseTable(table.meas_p, Rotation.from_quat(table.meas_q, scalar_first=True).as_quat(), table.ref_p,
+                          table.ref_q), swapped)
+    for data, told in ((good, False), (swapped, True)):
+        fit = posecorr("fit", str(data), "--effects", "station,mount", "--method", "none", "--cv", "5", "-o",
+                       str(tmp_path / "m.onnx"), "--json")
+        diagnosed = posecorr("diagnose", str(data), "--effects", "station,mount", "--json")
+        for out in (fit, diagnosed):
+            assert out.returncode == 0, out.stderr
+            notes = json.loads(out.stdout)["notes"]
+            assert any("written in two orders" in note for note in notes) == told, notes
+
+
 HEADER = "meas_x,meas_y,meas_z,meas_qw,meas_qx,meas_qy,meas_qz,ref_x,ref_y,ref_z"
 GOOD = "0.1,0.2,0.3,1,0,0,0,0.1,0.2,0.3"
 
@@ -476,7 +527,10 @@ def test_every_argument_of_the_main_verbs_has_help_with_its_default() -> None:
         assert bare == [], (verb, bare)
     fit = {a.dest: a.help for a in verb_parsers["fit"]._actions}
     assert fit["method"].endswith("(default: pmc)") and fit["epochs"].endswith("(default: 1000)")
-    assert f"known: {', '.join(EFFECTS)}" in fit["effects"]
+    # the effects a model fits: not the noise a simulation draws, which simulate's help names too
+    assert f"known: {', '.join(name for name in EFFECTS if name != 'noise')} (" in fit["effects"]
+    simulated = next(a for a in verb_parsers["simulate"]._actions if a.dest == "effects")
+    assert f"known: {', '.join(EFFECTS)} (" in simulated.help
     session = next(a for a in verb_parsers["simulate"]._actions if a.dest == "session")
     assert session.help.startswith("a realistic session: 6-40 poses unless --poses or --robot (30-60) says otherwise")
     assert "Experiment III" in verb_parsers["demo"].description
@@ -564,3 +618,51 @@ def test_a_model_and_a_table_given_in_each_others_place_are_named_with_the_order
     from posecorr.cli import main
 
     assert main(["apply", str(model_bin), str(table_dat), "-o", str(out)]) == 0   # in their places: no refusal
+
+
+def test_an_output_over_a_file_of_the_other_kind_is_refused(tmp_path) -> None:
+    """fit's model written over a pose table, or simulate's and apply's table over a model, is
+    refused before any work (they replaced the file without a word); the files are intact."""
+    table, model = tmp_path / "session.csv", tmp_path / "model.onnx"
+    assert posecorr("simulate", "--session", "--poses", "12", "--seed", "1", "-o", str(table)).returncode == 0
+    assert posecorr("fit", str(table), "--effects", "station,mount", "--method", "none", "-o",
+                    str(model)).returncode == 0
+    other = tmp_path / "other.csv"
+    other.write_bytes(table.read_bytes())
+    kept = {path: path.read_bytes() for path in (table, model, other)}
+    for argv, said in [
+        (("fit", str(table), "--effects", "station,mount", "--method", "none", "-o", str(other)),
+         f"{other} is a pose table, and posecorr fit writes a model there"),
+        (("simulate", "--session", "--poses", "12", "-o", str(model)),
+         f"{model} is a model, and posecorr simulate writes a pose table there"),
+        (("apply", str(model), str(table), "-o", str(model)), str(model))]:
+        out = posecorr(*argv)
+        assert out.returncode == 2 and said in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
+    assert {path: path.read_bytes() for path in kept} == kept
+
+
+def test_diagnosis_options_are_checked_first_and_say_what_they_did(tmp_path) -> None:
+    """`noise` is refused by fit and diagnose as the option's fault (it named the table);
+    report refuses a misspelled effect before rebuilding any prediction, and --effects beside
+    --no-diagnosis; diagnose --propose with nothing proposed says the file was not written
+    (and that one already there is from before)."""
+    table, model = tmp_path / "session.csv", tmp_path / "model.onnx"
+    assert posecorr("simulate", "--session", "--poses", "12", "--seed", "1", "-o", str(table)).returncode == 0
+    for argv in (("fit", "-o", str(model)), ("diagnose",)):
+        out = posecorr(argv[0], str(table), "--effects", "station,noise", *argv[1:])
+        assert out.returncode == 2 and out.stderr.strip().splitlines()[-1].endswith(
+            "error: --effects: noise is random measurement noise, which a simulation draws and no model corrects; "
+            "leave it out (the fit weighs the residuals by the noise it estimates)"), out.stderr
+    assert posecorr("fit", str(table), "--effects", "station,mount", "--method", "none", "-o", str(model)).returncode == 0
+    out = posecorr("report", str(table), "--model", str(model), "--effects", "station,mout", "-o", str(tmp_path / "r.html"))
+    assert out.returncode == 2 and "unknown effect 'mout' (did you mean mount?)" in out.stderr
+    assert "rebuilding" not in out.stderr and not (tmp_path / "r.html").exists()
+    out = posecorr("report", str(table), "--model", str(model), "--effects", "station", "--no-diagnosis", "-o",
+                   str(tmp_path / "r.html"))
+    assert out.returncode == 2 and "which --no-diagnosis leaves out" in out.stderr
+    stale = tmp_path / "proposed.py"
+    stale.write_text("old\n")
+    out = posecorr("diagnose", str(table), "--effects", "station,mount", "--propose", str(stale))
+    assert out.returncode == 0, out.stderr
+    assert "no proposal: " in out.stdout and f"{stale}: not written (the file there is from before)" in out.stdout
+    assert stale.read_text() == "old\n"

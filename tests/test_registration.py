@@ -7,7 +7,7 @@ import scipy.linalg
 from scipy.spatial.transform import Rotation
 
 from posecorr.geometry import homogeneous, nearest_rotation
-from posecorr.registration import robot_world_hand_eye, umeyama
+from posecorr.registration import quaternion_order_note, robot_world_hand_eye, turn_mismatch, umeyama
 
 
 def test_umeyama_recovers_any_rigid_transform() -> None:
@@ -83,3 +83,41 @@ def test_robot_world_hand_eye_exact_and_noisy(seed: int) -> None:
 def test_robot_world_hand_eye_needs_three_poses() -> None:
     with pytest.raises(ValueError, match="at least 3 poses"):
         robot_world_hand_eye(np.tile(np.eye(4), (2, 1, 1)), np.tile(np.eye(4), (2, 1, 1)))
+
+
+def _related_orientations(n: int, seed: int, axes: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """(measured, reference) scalar-first quaternions of n poses related by a frame W and a
+    mount X, with 0.5 mrad of noise: the reference turned about `axes` axes."""
+    rng = np.random.default_rng(seed)
+    turns = rng.uniform(-0.6, 0.6, (n, 3))
+    turns[:, axes:] = 0.0
+    ref = Rotation.from_rotvec(turns) * Rotation.random(random_state=seed)
+    W, X = Rotation.random(random_state=seed + 1), Rotation.random(random_state=seed + 2)
+    meas = W * ref * X * Rotation.from_rotvec(rng.normal(scale=5e-4, size=(n, 3)))
+    return meas.as_quat(scalar_first=True), ref.as_quat(scalar_first=True)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_quaternions_written_in_two_orders_are_told(seed: int) -> None:
+    """scipy's as_quat() is x, y, z, w: written under qw, qx, qy, qz for one series, the two
+    orientation series no longer relate by a frame and a mount (their turns from pose 0 keep
+    their angles but not a common axis map), and the note says so; as written, or written so
+    for both (which keeps the relation: the orientations cannot tell it), nothing is said."""
+    meas, ref = _related_orientations(40, seed)
+    scalar_last = lambda q: Rotation.from_quat(q, scalar_first=True).as_quat()  # noqa: E731
+    assert turn_mismatch(meas, ref) < 0.01
+    assert quaternion_order_note(meas, ref) is None
+    assert quaternion_order_note(scalar_last(meas), scalar_last(ref)) is None
+    for pair in ((scalar_last(meas), ref), (meas, scalar_last(ref))):
+        assert turn_mismatch(*pair) > 0.5
+        note = quaternion_order_note(*pair)
+        assert note is not None and "written in two orders" in note and "x, y, z, w" in note
+
+
+def test_turns_about_one_axis_cannot_tell_the_order() -> None:
+    """All turns about one axis: any axis maps to any other, so the mismatch is small whatever
+    the order, and no note is made (the real session Exp1 turns about its yaw axis only)."""
+    meas, ref = _related_orientations(40, 0, axes=1)
+    scalar_last = Rotation.from_quat(meas, scalar_first=True).as_quat()
+    assert quaternion_order_note(scalar_last, ref) is None
+    assert turn_mismatch(meas, ref[:1].repeat(40, axis=0)) is None   # no turn at all: nothing to compare

@@ -22,6 +22,7 @@ from sklearn.exceptions import NotFittedError
 
 from posecorr.data import PoseTable
 from posecorr.metrics import metric_block, pose_errors, pose_metrics, rmse_total
+from posecorr.registration import orientation_notes
 from posecorr.rotations import POSITION_ONLY
 from posecorr.textui import percent
 
@@ -422,7 +423,7 @@ def fit_table(table: PoseTable, effects: Sequence[str], spec: ModelSpec, plan: P
     if not table.has_orientation:
         spec = replace(spec, representation=POSITION_ONLY)
     say = progress or (lambda message: None)
-    notes: list[str] = []
+    notes = orientation_notes(table.meas_q, table.ref_q)
     plan = _plan_for_size(plan, table.n, notes)
     floor = rigid_candidates(table)
     auto = spec.method_entry.chooses

@@ -9,7 +9,9 @@ unknown mount error X (true tracker frame -> nominal one):
 which is the robot-world-hand-eye problem A_i X = Y B_i with A_i = T_i, B_i = M_i and
 Y = W^-1. Both solvers below work for ANY rotation between the frames (data recorded in
 the tracker's own frame), which is what makes them good starting points for the joint
-nonlinear least-squares refinement.
+nonlinear least-squares refinement. The same relation read on the orientations alone
+(`turn_mismatch`) tells a table whose two quaternion series are written in two component
+orders (`quaternion_order_note`).
 """
 from __future__ import annotations
 
@@ -77,3 +79,59 @@ def robot_world_hand_eye(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.n
     rhs = (tB @ RY.T - tA).reshape(-1)
     sol, *_ = np.linalg.lstsq(lhs, rhs, rcond=None)
     return homogeneous(RX, sol[:3]), homogeneous(RY, sol[3:])
+
+
+# A relative turn shorter than this has no axis worth comparing (a tracker's orientation
+# noise is about 0.5 mrad; 2 degrees is 35 mrad).
+MIN_TURN = np.deg2rad(2.0)
+# Of the turns' size, what a rigid relation may leave (noise) and what only another relation
+# leaves.
+RIGID_LEFT, UNRELATED_LEFT = 0.05, 0.2
+
+
+def turn_mismatch(meas_q: np.ndarray, ref_q: np.ndarray) -> float | None:
+    """How far two orientation series (N, 4) are from a rigid relation, measured = W reference X
+    (W a frame, X a mount). Under it every turn from pose 0 of the measurements, R_0^T R_k, is
+    the reference's conjugated by X: the same angle, its axis turned by X. The RMS of what the
+    best X leaves of those turns, over their RMS size: about 0 for a rigid relation, about 1
+    for none. None where fewer than 3 reference turns exceed MIN_TURN."""
+    from .rotations import matrix_to_rotvec, quat_to_matrix
+
+    def turns(q: np.ndarray) -> np.ndarray:
+        R = quat_to_matrix(np.asarray(q, float))
+        return matrix_to_rotvec(np.swapaxes(R[:1], 1, 2) @ R)
+
+    a, b = turns(meas_q), turns(ref_q)
+    keep = np.linalg.norm(b, axis=1) > MIN_TURN
+    if keep.sum() < 3:
+        return None
+    a, b = a[keep], b[keep]
+    X = nearest_rotation(b.T @ a)          # rows: a_k = b_k X
+    size = np.mean(np.sum(a * a + b * b, axis=1)) / 2
+    return float(np.sqrt(np.mean(np.sum((a - b @ X) ** 2, axis=1)) / size))
+
+
+def quaternion_order_note(meas_q: np.ndarray, ref_q: np.ndarray) -> str | None:
+    """A note where the measured and reference quaternions look written in two component
+    orders: as written no frame and mount relate them, and with one series' components
+    shifted round (x, y, z, w written under qw, qx, qy, qz: scipy's as_quat order) one
+    does; None otherwise. Which series is turned the orientations cannot say:
+    turning both alike keeps the relation rigid."""
+    as_written = turn_mismatch(meas_q, ref_q)
+    if as_written is None or as_written < UNRELATED_LEFT:
+        return None
+    left = min((turn_mismatch(np.roll(meas_q, shift, axis=1), ref_q) or np.inf) for shift in (1, 2, 3))
+    if left > RIGID_LEFT:
+        return None
+    return (f"the measured and reference quaternions look written in two orders: as written, no frame and mount "
+            f"relate the two orientation series (the best leaves {as_written:.0%} of their turns), while with one "
+            f"series' components shifted round one does ({left:.1%} left). posecorr reads qw, qx, qy, "
+            "qz by their names: check which component each logger writes under each (scipy's as_quat() writes "
+            "x, y, z, w)")
+
+
+def orientation_notes(meas_q: np.ndarray, ref_q: np.ndarray | None) -> list[str]:
+    """What a fit or a diagnosis says of a table's orientations before its figures: the
+    `quaternion_order_note`, where there is one (none without reference orientations)."""
+    note = None if ref_q is None else quaternion_order_note(meas_q, ref_q)
+    return [note] if note else []

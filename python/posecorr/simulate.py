@@ -196,6 +196,7 @@ def draw_session_spec(rng: np.random.Generator, n: int | None = None, spread: st
                       robot: str | None = None, duration: float = 0.0) -> SessionSpec:
     """A random session of the kinds real cells produce; the arguments pin what they name.
     The duration is never drawn (a drawn session has no clock, as the real ones)."""
+    pinned_spread = spread
     spread = spread if spread is not None else str(rng.choice(SPREADS))
     if spread not in SPREADS:
         raise ValueError(f"spread must be one of {', '.join(SPREADS)}, got {spread!r}")
@@ -210,10 +211,15 @@ def draw_session_spec(rng: np.random.Generator, n: int | None = None, spread: st
         offset=float(rng.uniform(1.0, 4.0)), lever=float(rng.uniform(0.02, 0.08)),
         box=float(rng.uniform(0.3, 1.5)), max_angle=float(np.deg2rad(rng.uniform(10.0, 60.0))))
     carried = str(rng.choice(ROBOTS)) if rng.random() < 0.15 else ""
-    robot = carried if robot is None else robot
+    # A robot turns the tracker every way: a narrower spread asked for is a tracker set down by
+    # hand (drawn the same, so that every other session of a seed stays as it was).
+    robot = (carried if pinned_spread in (None, "full") else "") if robot is None else robot
     if robot:
         if robot not in ROBOTS:
             raise ValueError(f"robot must be one of {', '.join(ROBOTS)}, got {robot!r}")
+        if pinned_spread not in (None, "full"):
+            raise ValueError(f"a robot turns the tracker every way: spread {pinned_spread!r} goes with a tracker set "
+                             "down by hand, not with a robot (spread 'full', or no robot)")
         # A robot carries the tracker through 30-60 poses of every orientation, on a flange
         # adapter 5-15 cm long; the reference is exact, no per-pose error beyond the tracker's.
         drawn = replace(drawn, n=int(rng.integers(30, 61)), spread="full", position_only=False,

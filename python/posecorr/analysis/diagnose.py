@@ -45,6 +45,7 @@ import numpy as np
 from ..data import PoseTable
 from ..effects import get_effect, require_time
 from ..metrics import pose_errors, rmse_total
+from ..registration import orientation_notes
 from ..rotations import matrix_to_rotvec, quat_to_matrix
 from ..textui import counted
 from .features import FEATURES, pose_features
@@ -677,6 +678,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         "cv_base": {"rmse_total": state.before, "rmse_pos": float(np.sqrt(np.mean(dp ** 2)))},
         "rows": {"given": rows_given, "used": table.n},
         "reach": score_test_reach(state, len(names), alpha),
+        "notes": orientation_notes(table.meas_q, table.ref_q),
     }
     result["reach"]["poses_to_pass"] = _planned(rows, kept, table.n, result["reach"]["threshold"], min_gain)
     result["proposal"], result["no_proposal"] = propose(search, result, kept, dropped)

@@ -59,6 +59,7 @@ VERB = Verb(
     help="correct the measured poses of a table with a model",
     rank=10,
     outputs=("output",),
+    table_outputs=("output",),
     models=("model",),
     tables=("input",),
     add_arguments=add_arguments,

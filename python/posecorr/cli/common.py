@@ -30,6 +30,8 @@ class Verb:
     itself. folder_output: its output is a folder it fills. models, tables: the arguments that
     name a model (ONNX) and a pose table (CSV); a file clearly of the other kind is refused
     before the verb runs, with the order of its arguments (`apply DATA MODEL`).
+    model_outputs, table_outputs: the outputs that are a model and a pose table; an existing
+    file clearly of the other kind there is refused, not replaced.
     """
 
     help: str
@@ -43,6 +45,8 @@ class Verb:
     folder_output: bool = False
     models: tuple[str, ...] = ()
     tables: tuple[str, ...] = ()
+    model_outputs: tuple[str, ...] = ()
+    table_outputs: tuple[str, ...] = ()
 
 
 def print_json(obj: Any) -> None:
@@ -185,17 +189,22 @@ def effect_names(text: str | None) -> list[str]:
     names = [n.strip() for n in (text or "").split(",") if n.strip()]
     for name in names:
         try:
-            get_effect(name)
+            effect = get_effect(name)
         except ValueError as exc:
             raise CliError(f"--effects: {exc}") from None
+        if effect.random:
+            raise CliError(f"--effects: {name} is random measurement noise, which a simulation draws and no model "
+                           "corrects; leave it out (the fit weighs the residuals by the noise it estimates)")
     return names
 
 
-def effects_help(what: str) -> str:
-    """An --effects help naming the catalogue's effects (and forms) known when the parser is built."""
+def effects_help(what: str, fitted: bool = True) -> str:
+    """An --effects help naming the catalogue's effects (and forms) known when the parser is
+    built: those a model fits, or (`fitted` False) those a simulation draws as well."""
     from ..effects import EFFECTS
 
-    return f"{what}; known: {', '.join(EFFECTS)} (an --effect-file adds its own)"
+    known = [name for name, effect in EFFECTS.items() if not (fitted and effect.random)]
+    return f"{what}; known: {', '.join(known)} (an --effect-file adds its own)"
 
 
 def read_data(args: argparse.Namespace) -> Any:

@@ -70,6 +70,7 @@ def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
                              "cv_rmse: held-out rmse_total, m + rad)"),
              f"present = {result['test']}",
              *_feature_lines(result["features"])]
+    lines[1:1] = [f"note: {note}" for note in result["notes"]]
     lines += [alias_text(pair) for pair in result["aliases"]]
     for row in result.get("undetermined", []):
         lines.append(f"not ranked: {row['effect']} {not_ranked_why(row)} ({row['reason']})")
@@ -106,7 +107,11 @@ def _proposal_lines(args: argparse.Namespace, result: dict) -> list[str]:
 
     proposal = result["proposal"]
     if proposal is None:
-        return [f"no proposal: {result['no_proposal']}"]
+        lines = [f"no proposal: {result['no_proposal']}"]
+        if args.propose is not None:   # a file of an earlier run stays: not this diagnosis's
+            lines.append(f"  {args.propose}: not written" + (" (the file there is from before)"
+                                                            if Path(args.propose).exists() else ""))
+        return lines
     lines = [f"proposal: {', '.join(proposal['forms'])} ({proposal['parameters']} parameters): the held-out "
              f"whitened error falls by {proposal['gain']:.1%}, rmse_pos {1e3 * proposal['cv_rmse_pos_before']:.3g} -> "
              f"{1e3 * proposal['cv_rmse_pos_after']:.3g} mm ({result['folds']}-fold)"]

@@ -28,6 +28,7 @@ VERB = Verb(
     rank=7,
     needs="train",
     outputs=("output",),
+    model_outputs=("output",),
     add_arguments=add_arguments,
     run=run,
 )

@@ -112,8 +112,16 @@ def _operands(verb: Verb) -> list[tuple[str, str, str]]:
 def check_kinds(args: argparse.Namespace, verb: Verb) -> None:
     """A model given where the verb takes a table, or a table where it takes a model (`apply
     DATA MODEL`, in report's order), is refused before any work, with the verb's order: the
-    file's own error would say what it is not ("missing column meas_x"), not the swap. Runs
-    after `check_paths`: a FIFO is refused before it could block this read."""
+    file's own error would say what it is not ("missing column meas_x"), not the swap; and
+    so is an output that would replace a file of the other kind. Runs after `check_paths`: a
+    FIFO is refused before it could block this read."""
+    writes = {**dict.fromkeys(verb.model_outputs, MODEL), **dict.fromkeys(verb.table_outputs, TABLE)}
+    for name, want in writes.items():
+        path = getattr(args, name, None)
+        kind = file_kind(Path(path)) if path is not None and Path(path).is_file() else None
+        if kind is not None and kind != want:   # a model written over a table, or a table over a model
+            raise CliError(f"{path} is a {kind}, and posecorr {args.verb} writes a {want} there: refusing to "
+                           "replace it (choose another output name)")
     expected = {**dict.fromkeys(verb.models, MODEL), **dict.fromkeys(verb.tables, TABLE)}
     found = {name: file_kind(path) for name in expected if isinstance(path := getattr(args, name, None), Path)}
     wrong = {name for name, kind in found.items() if kind is not None and kind != expected[name]}

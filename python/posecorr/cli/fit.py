@@ -238,6 +238,7 @@ VERB = Verb(
     rank=3,
     needs="train",
     outputs=("output", "save"),
+    model_outputs=("output",),
     tables=("data",),
     add_arguments=add_arguments,
     run=run,

@@ -113,6 +113,7 @@ VERB = Verb(
     help="a recording (ROS 1/2 bag, MCAP, CSV log) -> the paired-pose table",
     rank=2,
     outputs=("output",),
+    table_outputs=("output",),
     folder_inputs=("recording",),  # a ROS 2 bag is a folder
     add_arguments=add_arguments,
     run=run,

@@ -5,8 +5,8 @@ import argparse
 import json
 from pathlib import Path
 
-from .common import (Verb, backend_option, diagnosis_options, effect_file_option, effect_names, effects_help, emit,
-                     output_option, progress, read_data)
+from .common import (CliError, Verb, backend_option, diagnosis_options, effect_file_option, effect_names,
+                     effects_help, emit, output_option, progress, read_data)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -35,7 +35,10 @@ def run(args: argparse.Namespace) -> None:
 
     for sidecar in (ledger_path(args.data), segments_path(args.data)):
         check_sidecar(sidecar)  # a link or a FIFO refused before the work, not after it
-    table = read_data(args)
+    table = read_data(args)   # its --effect-file first: --effects may name that file's effects
+    if args.no_diagnosis and args.effects is not None:
+        raise CliError("--effects names the model's effects for the diagnosis, which --no-diagnosis leaves out")
+    asked = effect_names(args.effects) if args.effects is not None else None   # its fault before the work
     require_rows(table, 3, "a report (its baseline is the best rigid fit)")
     info = read_info(args.model)
     corrector = Corrector(args.model, backend=args.backend)
@@ -52,7 +55,7 @@ def run(args: argparse.Namespace) -> None:
         except ValueError as error:  # the page is still worth having without its diagnosis
             no_diagnosis = getattr(error, "message", str(error))
         else:
-            effects = effect_names(args.effects) if args.effects is not None else list(info.get("effects") or [])
+            effects = asked if asked is not None else list(info.get("effects") or [])
             diagnosis = diagnose(table, effects, folds=args.folds, seed=args.seed,
                                  model_corrected=corrected, progress=progress(args))
     segments = None

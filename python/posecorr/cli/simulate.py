@@ -10,6 +10,11 @@ from .common import (Verb, CliError, effect_file_option, effects_help, emit, loa
                      seed_option)
 
 
+# The options of a drawn session (`--session`), which an experiment's table does not take.
+SESSION_OPTIONS = ("poses", "spread", "position_only", "unremovable", "robot", "duration")
+DEFAULT_TARGETS = 40
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--experiment", type=int, choices=(1, 2, 3), help="the paper's experiment I, II or III")
     p.add_argument("--session", action="store_true",
@@ -28,7 +33,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "spaced (a drift or another time-dependent effect needs it; a robot takes about 40 s a pose)")
     p.add_argument("--effects", help=effects_help(
         "override or add effects: NAME=V1,V2,...;NAME;NAME=off, values in parameter order; effects are "
-        "separated by ';' as values take ',' (bare names may also be separated by ',': sweep,range_scale)"))
+        "separated by ';' as values take ',' (bare names may also be separated by ',': sweep,range_scale)",
+        fitted=False))
     p.add_argument("--only", action="store_true", help="use only the --effects given (plus noise), not the default mix")
     effect_file_option(p)
     seed_option(p)
@@ -36,8 +42,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--recording", type=Path, metavar="OUT.(bag|mcap|csv)",
                    help="also write the recording behind the table: ROS 1 .bag, .mcap, .csv, or a name without "
                         "suffix for a ROS 2 bag directory; -o then holds the recorded poses only")
-    p.add_argument("--targets", type=options.integer(1, 10_000), default=40,
-                   help="poses visited by --recording, first of the measurement order (default 40: 7 minutes)")
+    p.add_argument("--targets", type=options.integer(1, 10_000),
+                   help=f"poses visited by --recording, first of the measurement order (default {DEFAULT_TARGETS}: 7 "
+                        "minutes)")
 
 
 def run(args: argparse.Namespace) -> None:
@@ -54,10 +61,7 @@ def run(args: argparse.Namespace) -> None:
         check_recording_output(args.recording)
         if args.recording.resolve() == args.output.resolve():
             raise OutputPathError(f"{args.recording}: is also -o; the recording and its table are two files")
-    if (args.experiment is None) == (not args.session):
-        raise CliError("give either --experiment N or --session")
-    if args.duration is not None and not args.session:
-        raise CliError("--duration goes with --session: an experiment's table has its own times")
+    _check_kind(args)
     if args.session:
         if args.recording is not None:
             raise CliError("--recording drives the robot through an experiment's targets: give --experiment N")
@@ -70,7 +74,7 @@ def run(args: argparse.Namespace) -> None:
     if args.recording is not None:
         from ..recording import simulate_recording, table_metrics, write_recording
 
-        recording = simulate_recording(result, n_targets=args.targets, seed=args.seed)
+        recording = simulate_recording(result, n_targets=args.targets or DEFAULT_TARGETS, seed=args.seed)
         write_recording(recording, args.recording)
         sim_table = recording.table
         raw, floor = table_metrics(result, sim_table.n)
@@ -141,6 +145,18 @@ def _simulate_session(args: argparse.Namespace, effects: dict) -> Any:
     return simulate_session(args.seed, extra=effects, **{k: v for k, v in pin.items() if v is not None})
 
 
+def _check_kind(args: argparse.Namespace) -> None:
+    """An experiment or a session, and only the options of the one asked for."""
+    if (args.experiment is None) == (not args.session):
+        raise CliError("give either --experiment N or --session")
+    given = [f"--{name.replace('_', '-')}" for name in SESSION_OPTIONS if getattr(args, name) not in (None, False)]
+    if given and not args.session:
+        raise CliError(f"{', '.join(given)} {'goes' if len(given) == 1 else 'go'} with --session: an experiment's "
+                       "table is the paper's protocol, its poses, orientations and times its own")
+    if args.targets is not None and args.recording is None:
+        raise CliError("--targets goes with --recording: it counts the poses the recording visits")
+
+
 def _session_words(spec: Any) -> str:
     parts = [f"realistic session: orientation spread {spec.spread}", f"carried by a {spec.robot}" if spec.robot else "",
              "planar" if spec.planar and not spec.robot else "",
@@ -165,6 +181,7 @@ VERB = Verb(
     help="simulate a paired-pose table of paper experiment I, II or III, or a realistic robot-cell session",
     rank=1,
     outputs=("output",),
+    table_outputs=("output",),
     checks_itself=("recording",),  # a file or a ROS 2 bag folder (recording.check_recording_output)
     add_arguments=add_arguments,
     run=run,

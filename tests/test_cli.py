@@ -62,7 +62,8 @@ def test_simulate_does_what_its_options_say_or_refuses_them(tmp_path) -> None:
     """Seed 8 draws a robot, which turns the tracker every way: asked for no spread, the session
     is set down by hand with none (it was carried by a robot, spread full); asked for a robot
     too, the two are refused together. An experiment's table refuses a session's options (they
-    were ignored), and --targets goes with --recording."""
+    were ignored), and --targets goes with --recording. An effect's values that hold another
+    effect's name were meant as two effects: the message says how to separate them."""
     out_csv = tmp_path / "s.csv"
     drawn = json.loads(posecorr("simulate", "--session", "--seed", "8", "-o", str(out_csv), "--json").stdout)
     assert drawn["session"]["robot"] and drawn["session"]["spread"] == "full"
@@ -80,7 +81,9 @@ def test_simulate_does_what_its_options_say_or_refuses_them(tmp_path) -> None:
         (("--experiment", "1", "--poses", "10", "--unremovable", "50", "--spread", "yaw"),
          "--poses, --spread, --unremovable go with --session"),
         (("--experiment", "1", "--robot", "ur5e", "--position-only"), "--position-only, --robot go with --session"),
-        (("--experiment", "1", "--targets", "5"), "--targets goes with --recording")]:
+        (("--experiment", "1", "--targets", "5"), "--targets goes with --recording"),
+        (("--experiment", "1", "--effects", "range_scale=0.01,sweep"),
+         "expected 1 number (k 1), got '0.01,sweep'; separate effects with ';', as values take ','")]:
         out = posecorr("simulate", *argv, "-o", str(tmp_path / "refused.csv"))
         assert out.returncode == 2 and said in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
         assert not (tmp_path / "refused.csv").exists()
@@ -666,3 +669,18 @@ def test_diagnosis_options_are_checked_first_and_say_what_they_did(tmp_path) -> 
     assert out.returncode == 0, out.stderr
     assert "no proposal: " in out.stdout and f"{stale}: not written (the file there is from before)" in out.stdout
     assert stale.read_text() == "old\n"
+
+
+def test_network_options_go_with_the_mlp(tmp_path) -> None:
+    """--hidden, --network, --activation, --trainer and --epochs set an MLP: with another method
+    they were ignored without a word; now refused, naming them."""
+    table = tmp_path / "session.csv"
+    assert posecorr("simulate", "--session", "--poses", "12", "--seed", "1", "-o", str(table)).returncode == 0
+    for method, extra, said in [("none", ("--hidden", "5", "--trainer", "adam", "--epochs", "3"),
+                                 "--hidden, --trainer, --epochs set the network of --method mlp; --method none "
+                                 "takes none"),
+                                ("pmc", ("--network", "16/2"), "--network sets the network of --method mlp"),
+                                ("auto", ("--activation", "tansig"), "--activation sets the network")]:
+        out = posecorr("fit", str(table), "--method", method, *extra, "-o", str(tmp_path / "m.onnx"))
+        assert out.returncode == 2 and said in out.stderr, out.stderr
+        assert not (tmp_path / "m.onnx").exists()

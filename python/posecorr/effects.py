@@ -801,8 +801,11 @@ def parse_effects_arg(text: str) -> dict[str, np.ndarray]:
         try:
             numbers = [float(v) for v in values.split(",")]
         except ValueError:
-            raise ValueError(f"effect {name!r}: expected {effect.size} numbers ({effect.signature()}), "
-                             f"got {values!r}") from None
+            stray = next((v.strip() for v in values.split(",") if v.strip() in EFFECTS), None)
+            raise ValueError(f"effect {name!r}: expected {effect.size} number{'' if effect.size == 1 else 's'} "
+                             f"({effect.signature()}), got {values!r}"
+                             + (f"; separate effects with ';', as values take ',' ({name}=...;{stray})" if stray
+                                else "")) from None
         out[name] = checked_theta(effect, numbers)
     return out  # type: ignore[return-value]
 

@@ -60,7 +60,7 @@ def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
     rows = [[c["rank"], c["effect"], c["kind"], c["parameters"], c["score"], c["p_value"], c["cv_rmse_before"],
              c["cv_rmse_after"], "yes" if c["present"] else "no"] for c in result["candidates"]]
     lines = [f"{args.data}: model effects {', '.join(effects) or 'none'}; "
-             f"cross-validated rmse_total {result['cv_base']['rmse_total']:.4g} m + rad, "
+             f"{result['folds']}-fold cross-validated rmse_total {result['cv_base']['rmse_total']:.4g} m + rad, "
              f"rmse_pos {1e3 * result['cv_base']['rmse_pos']:.3g} mm"
              + (f" (on {result['rows']['used']} of {result['rows']['given']} rows, drawn evenly)"
                 if result["rows"]["used"] < result["rows"]["given"] else ""),

@@ -106,11 +106,20 @@ def run(args: argparse.Namespace) -> None:
          lambda: _text(args, table, effects, report, exported, effects_json))
 
 
+# The options of an MLP (`--method mlp`), which the other methods do not take.
+NETWORK_OPTIONS = ("hidden", "network", "activation", "trainer", "epochs")
+
+
 def _spec(args: argparse.Namespace) -> Any:
     """The model the options name; an MLP too large for its trainer is refused here, before the fit."""
+    from ..train.methods import get_method
     from ..train.spec import spec_from_options
 
     hidden = None if args.hidden is None else options.layer_sizes(args.hidden, "--hidden")
+    network = [f"--{name}" for name in NETWORK_OPTIONS if getattr(args, name) is not None]
+    if network and not get_method(args.method).network:   # they were ignored without a word
+        raise CliError(f"{', '.join(network)} {'sets' if len(network) == 1 else 'set'} the network of --method mlp; "
+                       f"--method {args.method} takes none")
     spec = spec_from_options(args.method, args.representation, hidden=hidden, network=args.network,
                              activation=args.activation, trainer=args.trainer, epochs=args.epochs)
     if spec.hidden is not None:

@@ -647,7 +647,8 @@ def test_an_output_over_a_file_of_the_other_kind_is_refused(tmp_path) -> None:
 def test_diagnosis_options_are_checked_first_and_say_what_they_did(tmp_path) -> None:
     """`noise` is refused by fit and diagnose as the option's fault (it named the table);
     report refuses a misspelled effect before rebuilding any prediction, and --effects beside
-    --no-diagnosis; diagnose --propose with nothing proposed says the file was not written
+    --no-diagnosis; diagnose --model with --effects that are not the model's says what it
+    ranks against; diagnose --propose with nothing proposed says the file was not written
     (and that one already there is from before)."""
     table, model = tmp_path / "session.csv", tmp_path / "model.onnx"
     assert posecorr("simulate", "--session", "--poses", "12", "--seed", "1", "-o", str(table)).returncode == 0
@@ -663,6 +664,11 @@ def test_diagnosis_options_are_checked_first_and_say_what_they_did(tmp_path) -> 
     out = posecorr("report", str(table), "--model", str(model), "--effects", "station", "--no-diagnosis", "-o",
                    str(tmp_path / "r.html"))
     assert out.returncode == 2 and "which --no-diagnosis leaves out" in out.stderr
+    diagnosed = [json.loads(posecorr("diagnose", str(table), "--model", str(model), *extra, "--json").stdout)["notes"]
+                 for extra in ((), ("--effects", "station,sweep"))]
+    assert diagnosed[0] == [] and diagnosed[1] == [
+        f"--effects station, sweep are not {model}'s (mount, station): the candidates are ranked against a refit of "
+        "--effects; the model's own residuals feed the residual structure by feature"]
     stale = tmp_path / "proposed.py"
     stale.write_text("old\n")
     out = posecorr("diagnose", str(table), "--effects", "station,mount", "--propose", str(stale))

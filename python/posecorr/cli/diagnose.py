@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from .common import (Verb, backend_option, diagnosis_options, effect_file_option, effect_names, effects_help, emit,
                      progress, read_data)
@@ -29,19 +30,10 @@ def run(args: argparse.Namespace) -> None:
     from ..safeio import write_text
 
     table = read_data(args)
-    effects = effect_names(args.effects)
-    corrected = None
-    if args.model is not None:
-        from ..controller.apply import correct_table
-        from ..controller.onnx_meta import read_info
-        from ..controller.runtime import Corrector
-
-        if args.effects is None:
-            effects = list(read_info(args.model).get("effects") or [])
-        # corrected before the diagnosis: a pose the model refuses stops it at once, by its row
-        corrected = correct_table(Corrector(args.model, backend=args.backend), args.model, table)
+    effects, corrected, mismatch = _with_model(args, table, effect_names(args.effects))
     result = diagnose(table, effects, folds=args.folds, seed=args.seed, forms=args.forms,
                       model_corrected=corrected, progress=progress(args))
+    result["notes"] += [mismatch] if mismatch else []
     proposal = result["proposal"]
     if proposal is not None and args.propose is not None:
         words = ["posecorr", "diagnose", str(args.data), "--effects", ",".join(effects) or "''"]
@@ -51,6 +43,28 @@ def run(args: argparse.Namespace) -> None:
                                                   str(args.data)))
         proposal["file"] = str(args.propose)
     emit(args, result, lambda: _text(args, effects, result))
+
+
+def _with_model(args: argparse.Namespace, table: Any, effects: list[str]) -> tuple[list[str], Any, str | None]:
+    """(the effects to refit, the --model's corrections or None, a note where --effects are
+    not the model's): the ranking refits the effects; the model's residuals feed the
+    residual structure by feature."""
+    if args.model is None:
+        return effects, None, None
+    from ..controller.apply import correct_table
+    from ..controller.onnx_meta import read_info
+    from ..controller.runtime import Corrector
+
+    held = list(read_info(args.model).get("effects") or [])
+    mismatch = None
+    if args.effects is None:
+        effects = held
+    elif sorted(effects) != sorted(held):
+        mismatch = (f"--effects {', '.join(effects) or 'none'} are not {args.model}'s "
+                    f"({', '.join(held) or 'none'}): the candidates are ranked against a refit of --effects; the "
+                    "model's own residuals feed the residual structure by feature")
+    # corrected before the diagnosis: a pose the model refuses stops it at once, by its row
+    return effects, correct_table(Corrector(args.model, backend=args.backend), args.model, table), mismatch
 
 
 def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:

@@ -648,7 +648,7 @@ def test_diagnosis_options_are_checked_first_and_say_what_they_did(tmp_path) -> 
     """`noise` is refused by fit and diagnose as the option's fault (it named the table);
     report refuses a misspelled effect before rebuilding any prediction, and --effects beside
     --no-diagnosis; diagnose --model with --effects that are not the model's says what it
-    ranks against; diagnose --propose with nothing proposed says the file was not written
+    ranks against, and on a table without times, which effects it did not try; diagnose --propose with nothing proposed says the file was not written
     (and that one already there is from before)."""
     table, model = tmp_path / "session.csv", tmp_path / "model.onnx"
     assert posecorr("simulate", "--session", "--poses", "12", "--seed", "1", "-o", str(table)).returncode == 0
@@ -666,9 +666,11 @@ def test_diagnosis_options_are_checked_first_and_say_what_they_did(tmp_path) -> 
     assert out.returncode == 2 and "which --no-diagnosis leaves out" in out.stderr
     diagnosed = [json.loads(posecorr("diagnose", str(table), "--model", str(model), *extra, "--json").stdout)["notes"]
                  for extra in ((), ("--effects", "station,sweep"))]
-    assert diagnosed[0] == [] and diagnosed[1] == [
-        f"--effects station, sweep are not {model}'s (mount, station): the candidates are ranked against a refit of "
-        "--effects; the model's own residuals feed the residual structure by feature"]
+    untimed = ("not tried: drift, time_trend (acting over the session's time, they need a time column t, which this "
+               "table lacks)")
+    assert diagnosed[0] == [untimed] and diagnosed[1] == [
+        untimed, f"--effects station, sweep are not {model}'s (mount, station): the candidates are ranked against a "
+        "refit of --effects; the model's own residuals feed the residual structure by feature"]
     stale = tmp_path / "proposed.py"
     stale.write_text("old\n")
     out = posecorr("diagnose", str(table), "--effects", "station,mount", "--propose", str(stale))

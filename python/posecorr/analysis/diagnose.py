@@ -43,7 +43,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ..data import PoseTable
-from ..effects import get_effect, require_time
+from ..effects import EFFECTS, get_effect, require_time
 from ..metrics import pose_errors, rmse_total
 from ..registration import orientation_notes
 from ..rotations import matrix_to_rotvec, quat_to_matrix
@@ -76,6 +76,17 @@ def candidate_effects(table: PoseTable, effects: Sequence[str], forms: bool = Tr
             continue
         out.append(name)
     return out
+
+
+def _table_notes(table: PoseTable, effects: Sequence[str], candidates: Sequence[str] | None) -> list[str]:
+    """What the diagnosis says of the table before its figures: its quaternions' order
+    (`registration.orientation_notes`), and the effects it leaves untried for want of a
+    clock (they were left out without a word)."""
+    untimed = [] if candidates is not None or table.time() is not None else [
+        name for name, effect in EFFECTS.items() if effect.needs_time and not effect.random and name not in effects]
+    return orientation_notes(table.meas_q, table.ref_q) + (
+        [f"not tried: {', '.join(untimed)} (acting over the session's time, they need a time column t, which this "
+         "table lacks)"] if untimed else [])
 
 
 def split_identifiable(table: PoseTable, effects: Sequence[str],
@@ -678,7 +689,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         "cv_base": {"rmse_total": state.before, "rmse_pos": float(np.sqrt(np.mean(dp ** 2)))},
         "rows": {"given": rows_given, "used": table.n},
         "reach": score_test_reach(state, len(names), alpha),
-        "notes": orientation_notes(table.meas_q, table.ref_q),
+        "notes": _table_notes(table, effects, candidates),
     }
     result["reach"]["poses_to_pass"] = _planned(rows, kept, table.n, result["reach"]["threshold"], min_gain)
     result["proposal"], result["no_proposal"] = propose(search, result, kept, dropped)

@@ -258,3 +258,14 @@ def test_a_negative_prior_strength_is_refused() -> None:
     table = simulate(2, seed=4).table.subset(np.arange(20))
     with pytest.raises(ValueError, match="prior_strength must be a number >= 0, got -1"):
         PhysicsModel(("station", "mount"), prior_strength=-1).fit(table.measured, table.reference)
+
+
+def test_a_rigid_variant_gives_no_standard_error_for_the_lever_it_holds() -> None:
+    """The plain Kabsch fit has no lever arm: its mount e is 0 with no standard error (e_x and
+    e_y carried one, as if fitted); the lever variants, on poses turned every way, fit and
+    give one for all of e."""
+    table = simulate_session(3, robot="ur5e").table
+    kabsch = RigidModel(variant="kabsch").fit(table.measured, table.reference).describe()["mount"]["e"]
+    assert kabsch[0] == [0.0, 0.0, 0.0] and kabsch[1] == [None, None, None]
+    lever = RigidModel(variant="lever").fit(table.measured, table.reference).describe()["mount"]["e"]
+    assert all(error is not None and 0 < error < 0.01 for error in lever[1]), lever

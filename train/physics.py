@@ -610,6 +610,8 @@ class RigidModel(PhysicsModel):
         held = lever.held_without_orientation()
         self.fixed_ = {} if with_rotation else {f"{lever.name}.{name}": "the reference has no orientation"
                                                 for name in held}
+        # the lever directions the variant holds, as the lever effect's arm holds them (e = -X lever)
+        self._held_arm = [rigid.mount @ v for v in rigid.lever_fixed]
         if len(rigid.lever_fixed):
             arm = f"{lever.name}.{next(p.name for p in lever.params if p.name not in held)}"
             label = arm if len(rigid.lever_fixed) == 3 else f"{arm} along " + "; ".join(
@@ -629,7 +631,17 @@ class RigidModel(PhysicsModel):
         if self.variant == "joint":
             return super()._std_errors(theta, measured, reference)
         self.basis_, _ = self._identify(theta, measured, reference, self.sigma_p_, self.sigma_r_ or DEFAULT_SIGMA_R)
-        return super()._std_errors(theta, measured, reference)
+        std = super()._std_errors(theta, measured, reference)
+        # What the variant holds it did not fit, whatever the data could determine (a Kabsch
+        # fit's lever: no standard error beside its 0), by the physics stage's rule: an entry a
+        # held direction touches by more than a tenth.
+        lever = get_effect(registration_effects()["lever"])
+        arm = next(param.name for param in lever.params if param.name not in lever.held_without_orientation())
+        start = sum(effect.size for effect in self._chosen[:[e.name for e in self._chosen].index(lever.name)])
+        entries = np.arange(theta.size)[start:start + lever.size][lever.slices()[arm]]
+        for direction in self._held_arm:
+            std[entries[np.abs(direction) > 0.1]] = np.nan
+        return std
 
     def export_info(self) -> dict[str, str]:
         info = super().export_info()

@@ -468,7 +468,9 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
         info["parity"] = parity_report
     heldout_metrics = None
     if heldout is not None:
-        heldout_metrics = info["test_metrics"] = _heldout_metrics(model, heldout, time_input)
+        heldout_metrics = _heldout_metrics(model, heldout, time_input)
+        # the graph's own figures replace the caller's test and raw; the rest (fit's rigid floor) stays
+        info["test_metrics"] = {**(info.get("test_metrics") or {}), **heldout_metrics}
     _set_metadata(model, info, measured, reference, t, time_input)
 
     path = Path(path)

@@ -624,8 +624,9 @@ def test_a_model_and_a_table_given_in_each_others_place_are_named_with_the_order
 
 
 def test_an_output_over_a_file_of_the_other_kind_is_refused(tmp_path) -> None:
-    """fit's model written over a pose table, or simulate's and apply's table over a model, is
-    refused before any work (they replaced the file without a word); the files are intact."""
+    """fit's model written over a pose table, simulate's and apply's table over a model, or
+    compile's C over either, is refused before any work (they replaced the file without a
+    word); the files are intact."""
     table, model = tmp_path / "session.csv", tmp_path / "model.onnx"
     assert posecorr("simulate", "--session", "--poses", "12", "--seed", "1", "-o", str(table)).returncode == 0
     assert posecorr("fit", str(table), "--effects", "station,mount", "--method", "none", "-o",
@@ -638,7 +639,8 @@ def test_an_output_over_a_file_of_the_other_kind_is_refused(tmp_path) -> None:
          f"{other} is a pose table, and posecorr fit writes a model there"),
         (("simulate", "--session", "--poses", "12", "-o", str(model)),
          f"{model} is a model, and posecorr simulate writes a pose table there"),
-        (("apply", str(model), str(table), "-o", str(model)), str(model))]:
+        (("apply", str(model), str(table), "-o", str(model)), str(model)),
+        (("compile", str(model), "-o", str(other)), f"{other} is a pose table, and posecorr compile writes a C source")]:
         out = posecorr(*argv)
         assert out.returncode == 2 and said in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
     assert {path: path.read_bytes() for path in kept} == kept
@@ -692,3 +694,25 @@ def test_network_options_go_with_the_mlp(tmp_path) -> None:
         out = posecorr("fit", str(table), "--method", method, *extra, "-o", str(tmp_path / "m.onnx"))
         assert out.returncode == 2 and said in out.stderr, out.stderr
         assert not (tmp_path / "m.onnx").exists()
+
+
+def test_a_fit_on_the_test_split_keeps_its_rigid_floor_and_a_timed_model_benches(tmp_path) -> None:
+    """The file of a fit on the fixed test split states the best rigid fit beside its held-out
+    figures (the graph's own figures replaced the floor); `bench` runs a model that takes
+    time (onnxruntime was fed no t)."""
+    from posecorr.controller import read_info
+
+    table, model = tmp_path / "e3.csv", tmp_path / "e3.onnx"
+    assert posecorr("simulate", "--experiment", "3", "--seed", "0", "-o", str(table)).returncode == 0
+    assert posecorr("fit", str(table), "--method", "none", "--effects", "station,mount", "-o", str(model)).returncode == 0
+    metrics = read_info(model)["test_metrics"]
+    assert metrics["rigid"]["model"].startswith("rigid-") and {"test", "raw", "rigid"} <= set(metrics)
+    assert posecorr("info", str(model)).stdout.count("the best rigid fit (") == 1
+    timed, drift = tmp_path / "drift.csv", tmp_path / "drift.onnx"
+    assert posecorr("simulate", "--session", "--poses", "20", "--seed", "2", "--duration", "800", "--effects",
+                    "drift=0.002,0,0,900", "-o", str(timed)).returncode == 0
+    assert posecorr("fit", str(timed), "--effects", "station,mount,drift", "--method", "none", "--cv", "5", "-o",
+                    str(drift)).returncode == 0
+    out = posecorr("bench", str(drift), "--n", "20", "--batch", "20", "--json")
+    assert out.returncode == 0, out.stderr
+    assert {"c", "onnxruntime", "onnxruntime_iobinding"} <= set(json.loads(out.stdout)["single_pose_median_us"])

@@ -96,6 +96,9 @@ def test_joint_angles_are_the_inverse_kinematics_of_the_targets(recording, tmp_p
 def test_ros2_bag_directory_reads_like_the_ros1_bag(recording, tmp_path) -> None:
     ros1 = ingest([write_recording(recording, tmp_path / "rec.bag")])
     ros2 = ingest([write_recording(recording, tmp_path / "rec2")])
+    # its database is named after the folder, as a ROS 2 recorder names it (not after the
+    # hidden name it was written under)
+    assert sorted(p.name for p in (tmp_path / "rec2").iterdir()) == ["metadata.yaml", "rec2.db3"]
     np.testing.assert_allclose(ros2.table.meas_p, ros1.table.meas_p, atol=1e-12)
     np.testing.assert_allclose(ros2.table.ref_p, ros1.table.ref_p, atol=1e-12)
     assert ros2.alignment.offset == pytest.approx(ros1.alignment.offset, abs=1e-6)
@@ -291,6 +294,10 @@ def test_an_offset_that_is_given_is_used(recording, tmp_path) -> None:
     estimated = ingest([path])
     assert given.alignment.source == "given" and given.alignment.offset == OFFSET
     np.testing.assert_allclose(given.table.meas_p, estimated.table.meas_p, atol=2e-5)
+    # an offset given that parts the streams is named as given (the words were --max-offset 0's)
+    with pytest.raises(IngestError, match=r"\(with --offset 10000 s; the offset is the tracker clock minus the "
+                                          r"robot's\)$"):
+        ingest([path], IngestOptions(offset=10000.0))
 
 
 def test_joint_stream_without_the_robot_joints_is_refused(recording) -> None:

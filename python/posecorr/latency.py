@@ -134,31 +134,45 @@ def _onnxruntime_backends(path: Path, single_poses: np.ndarray, batch_poses: np.
     so.inter_op_num_threads = 1
     sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
     n_ort = min(n_single, 20000)
+    # a model with a time input runs at t = 0, as posecorr-bench runs it
+    timed = any(i.name == "t" for i in sess.get_inputs())
 
     def run_ort(p):
-        return sess.run(["corrected"], {"pose": p.reshape(-1, 7)})[0]
+        pose = p.reshape(-1, 7)
+        return sess.run(["corrected"], {"pose": pose, **({"t": np.zeros(len(pose), np.float32)} if timed else {})})[0]
 
     x1 = np.zeros((1, 7), np.float32)
     y1 = np.zeros((1, 7), np.float32)
     io = sess.io_binding()
     io.bind_cpu_input("pose", x1)
+    t1 = np.zeros(1, np.float32)
+    if timed:
+        io.bind_cpu_input("t", t1)
     io.bind_output("corrected", "cpu", 0, np.float32, [1, 7], y1.ctypes.data)
 
+    single = {"pose": x1, "t": t1, "corrected": y1}
+
     def run_bound(p):
-        x1[0] = p
+        # The bound buffers are raw pointers to onnxruntime: this closure keeps them alive.
+        single["pose"][0] = p
         sess.run_with_iobinding(io)
-        return y1
+        return single["corrected"]
 
     xb = np.ascontiguousarray(batch_poses)
     yb = np.zeros_like(xb)
     iob = sess.io_binding()
     iob.bind_cpu_input("pose", xb)
+    t_batch = np.zeros(len(xb), np.float32)
+    if timed:
+        iob.bind_cpu_input("t", t_batch)
     iob.bind_output("corrected", "cpu", 0, np.float32, list(xb.shape), yb.ctypes.data)
+
+    batch = {"pose": xb, "t": t_batch, "corrected": yb}
 
     def run_batch_bound(p):
         # The bound buffers are raw pointers to onnxruntime: this closure keeps them alive.
         sess.run_with_iobinding(iob)
-        return yb
+        return batch["corrected"]
 
     return {
         "onnxruntime": (_time_single(run_ort, single_poses, n_ort),

@@ -248,7 +248,15 @@ def write_recording(recording: Recording, path: str | Path) -> Path:
 
     check_recording_output(path)
     with replaced(path) as fresh:
-        writer(fresh, recording.joints, recording.tracker, recording.tracker.frame)
+        if path.suffix:
+            writer(fresh, recording.joints, recording.tracker, recording.tracker.frame)
+        else:   # a ROS 2 bag names its database after its folder: written under the final name, moved up
+            named = fresh / path.name
+            fresh.mkdir()
+            writer(named, recording.joints, recording.tracker, recording.tracker.frame)
+            for part in named.iterdir():
+                part.rename(fresh / part.name)
+            named.rmdir()
     return path
 
 

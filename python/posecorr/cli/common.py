@@ -30,8 +30,9 @@ class Verb:
     itself. folder_output: its output is a folder it fills. models, tables: the arguments that
     name a model (ONNX) and a pose table (CSV); a file clearly of the other kind is refused
     before the verb runs, with the order of its arguments (`apply DATA MODEL`).
-    model_outputs, table_outputs: the outputs that are a model and a pose table; an existing
-    file clearly of the other kind there is refused, not replaced.
+    model_outputs, table_outputs, source_outputs: the outputs that are a model, a pose table
+    and C source; an existing model or table there that is not what the verb writes is
+    refused, not replaced.
     """
 
     help: str
@@ -47,6 +48,7 @@ class Verb:
     tables: tuple[str, ...] = ()
     model_outputs: tuple[str, ...] = ()
     table_outputs: tuple[str, ...] = ()
+    source_outputs: tuple[str, ...] = ()
 
 
 def print_json(obj: Any) -> None:

@@ -48,6 +48,7 @@ VERB = Verb(
     help="write a model's one-pose function as a C99 file (the same bits as libposecorr)",
     rank=13,
     outputs=("output",),
+    source_outputs=("output",),
     models=("model",),
     add_arguments=add_arguments,
     run=run,

@@ -115,11 +115,12 @@ def check_kinds(args: argparse.Namespace, verb: Verb) -> None:
     file's own error would say what it is not ("missing column meas_x"), not the swap; and
     so is an output that would replace a file of the other kind. Runs after `check_paths`: a
     FIFO is refused before it could block this read."""
-    writes = {**dict.fromkeys(verb.model_outputs, MODEL), **dict.fromkeys(verb.table_outputs, TABLE)}
+    writes = {**dict.fromkeys(verb.model_outputs, MODEL), **dict.fromkeys(verb.table_outputs, TABLE),
+              **dict.fromkeys(verb.source_outputs, "C source")}
     for name, want in writes.items():
         path = getattr(args, name, None)
         kind = file_kind(Path(path)) if path is not None and Path(path).is_file() else None
-        if kind is not None and kind != want:   # a model written over a table, or a table over a model
+        if kind is not None and kind != want:   # a model written over a table, a table or C over a model
             raise CliError(f"{path} is a {kind}, and posecorr {args.verb} writes a {want} there: refusing to "
                            "replace it (choose another output name)")
     expected = {**dict.fromkeys(verb.models, MODEL), **dict.fromkeys(verb.tables, TABLE)}

@@ -46,13 +46,16 @@ def speed_on_grid(t: np.ndarray, p: np.ndarray, grid: np.ndarray) -> tuple[np.nd
     return np.linalg.norm(v, axis=1), valid
 
 
-def check_overlap(t_robot: np.ndarray, t_tracker: np.ndarray, max_offset: float, what: str) -> None:
-    """IngestError when the streams cannot overlap for any offset within +-max_offset."""
+def check_overlap(t_robot: np.ndarray, t_tracker: np.ndarray, max_offset: float, what: str,
+                  given: float | None = None) -> None:
+    """IngestError when the streams cannot overlap for any offset within +-max_offset, or,
+    with the offset `given` (--offset, already taken off t_tracker), at all."""
     if t_tracker[0] - max_offset <= t_robot[-1] and t_tracker[-1] + max_offset >= t_robot[0]:
         return
+    why = (f"with --offset {given:g} s; the offset is the tracker clock minus the robot's" if given is not None
+           else f"more than --max-offset {max_offset:g} s apart; give --offset if the clocks differ by more")
     raise IngestError(f"{what}: the streams do not overlap: joint states {t_robot[0]:.3f}..{t_robot[-1]:.3f} s, "
-                      f"tracker {t_tracker[0]:.3f}..{t_tracker[-1]:.3f} s (more than --max-offset "
-                      f"{max_offset:g} s apart; give --offset if the clocks differ by more)")
+                      f"tracker {t_tracker[0]:.3f}..{t_tracker[-1]:.3f} s ({why})")
 
 
 def _correlation(a: np.ndarray, a_ok: np.ndarray, b: np.ndarray, b_ok: np.ndarray) -> float:

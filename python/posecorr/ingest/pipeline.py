@@ -128,7 +128,7 @@ def ingest(paths: list[str | Path], options: IngestOptions | None = None) -> Ing
         alignment = estimate_offset(joints.t, reference_poses(arm, q, options.tool), tracker.t, tracker.p,
                                     options.max_offset, what)
     else:
-        check_overlap(joints.t, tracker.t - options.offset, 0.0, what)
+        check_overlap(joints.t, tracker.t - options.offset, 0.0, what, given=options.offset)
         alignment = Alignment(float(options.offset), None, "given")
     t_tracker = tracker.t - alignment.offset
 

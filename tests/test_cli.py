@@ -698,13 +698,21 @@ def test_network_options_go_with_the_mlp(tmp_path) -> None:
 
 def test_a_fit_on_the_test_split_keeps_its_rigid_floor_and_a_timed_model_benches(tmp_path) -> None:
     """The file of a fit on the fixed test split states the best rigid fit beside its held-out
-    figures (the graph's own figures replaced the floor); `bench` runs a model that takes
-    time (onnxruntime was fed no t)."""
+    figures (the graph's own figures replaced the floor); a saved estimator given where a
+    model goes is named as one, with the command that exports it; `bench` runs a model that
+    takes time (onnxruntime was fed no t)."""
     from posecorr.controller import read_info
 
     table, model = tmp_path / "e3.csv", tmp_path / "e3.onnx"
     assert posecorr("simulate", "--experiment", "3", "--seed", "0", "-o", str(table)).returncode == 0
     assert posecorr("fit", str(table), "--method", "none", "--effects", "station,mount", "-o", str(model)).returncode == 0
+    saved = tmp_path / "e3.est"
+    assert posecorr("fit", str(table), "--method", "none", "--effects", "station,mount", "-o", str(tmp_path / "x.onnx"),
+                    "--save", str(saved)).returncode == 0
+    for verb in (("info", str(saved)), ("apply", str(saved), str(table), "-o", str(tmp_path / "o.csv"))):
+        out = posecorr(*verb)   # it said "not a valid ONNX model (model field 14 at byte 0 is not bytes)"
+        assert out.returncode == 2 and f"{saved} is a saved estimator (fit --save), not the model posecorr " \
+            f"{verb[0]} takes: `posecorr export {saved} -o MODEL.onnx` writes its model" in out.stderr, out.stderr
     metrics = read_info(model)["test_metrics"]
     assert metrics["rigid"]["model"].startswith("rigid-") and {"test", "raw", "rigid"} <= set(metrics)
     assert posecorr("info", str(model)).stdout.count("the best rigid fit (") == 1

@@ -62,16 +62,18 @@ def check_paths(args: argparse.Namespace, verb: Verb) -> None:
 
 
 # What a path argument holds, where its file is clearly one or the other.
-MODEL, TABLE = "model", "pose table"
+MODEL, TABLE, ESTIMATOR = "model", "pose table", "saved estimator"
 _KIND_BY_NAME = {".onnx": MODEL, ".csv": TABLE}
 _KIND_WORD = {MODEL: "MODEL", TABLE: "DATA"}
 
 
 def file_kind(path: Path) -> str | None:
-    """MODEL or TABLE where the file clearly is one, None where unsure. Its first bytes
-    decide where they can (ONNX's opening; text is never a model, and a table where its first
-    line holds a comma or its name says so), else its name (.onnx, .csv)."""
+    """MODEL, TABLE or ESTIMATOR (`fit --save`'s) where the file clearly is one, None where
+    unsure. Its first bytes decide where they can (the saved estimator's magic, ONNX's
+    opening; text is never a model, and a table where its first line holds a comma or its
+    name says so), else its name (.onnx, .csv)."""
     from ..controller.onnx_meta import starts_like_onnx
+    from ..saved import MAGIC
 
     try:
         with open(path, "rb") as handle:
@@ -79,6 +81,8 @@ def file_kind(path: Path) -> str | None:
     except OSError:
         return None   # the verb's own reading says why
     by_name = _KIND_BY_NAME.get(path.suffix.lower())
+    if head.startswith(MAGIC):
+        return ESTIMATOR
     if starts_like_onnx(head):
         return MODEL
     text = _text(head)
@@ -131,6 +135,9 @@ def check_kinds(args: argparse.Namespace, verb: Verb) -> None:
     operands = _operands(verb)
     name = next(name for name, _, _ in operands if name in wrong)   # the first in the verb's order
     path, kind, want = getattr(args, name), found[name], expected[name]
+    if kind == ESTIMATOR and want == MODEL:
+        raise CliError(f"{path} is a {kind} (fit --save), not the {want} posecorr {args.verb} takes: `posecorr "
+                       f"export {path} -o MODEL.onnx` writes its model")
     if not (verb.models and verb.tables):   # no order to get wrong: what the verb takes
         raise CliError(f"{path} is a {kind}, not the {want} posecorr {args.verb} takes")
     usage = " ".join(["posecorr", args.verb, *(words for _, _, words in operands)])

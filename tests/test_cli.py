@@ -724,3 +724,20 @@ def test_a_fit_on_the_test_split_keeps_its_rigid_floor_and_a_timed_model_benches
     out = posecorr("bench", str(drift), "--n", "20", "--batch", "20", "--json")
     assert out.returncode == 0, out.stderr
     assert {"c", "onnxruntime", "onnxruntime_iobinding"} <= set(json.loads(out.stdout)["single_pose_median_us"])
+
+
+def test_bench_takes_another_producers_model_as_apply_does(tmp_path) -> None:
+    """An unsigned model is refused with the option that loads it, and bench (posecorr-bench
+    too) now has it: every back end timed."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "runtime_c" / "tests"))
+    import graphs
+
+    g = graphs.G()
+    model = tmp_path / "other.onnx"
+    model.write_bytes(g.model(g.op("Mul", ["pose", g.f32(np.ones(7, np.float32))]),
+                              metadata=graphs.BOUNDED).SerializeToString())
+    out = posecorr("bench", str(model), "--n", "20", "--batch", "20")
+    assert out.returncode == 2 and "on the command line --allow-unsigned" in out.stderr
+    out = posecorr("bench", str(model), "--n", "20", "--batch", "20", "--allow-unsigned", "--json")
+    assert out.returncode == 0, out.stderr
+    assert all(value is not None for value in json.loads(out.stdout)["single_pose_median_us"].values())

@@ -25,7 +25,7 @@ import platform
 import subprocess
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -109,14 +109,16 @@ def bench_binary() -> Path | None:
     return cand if cand.exists() else None
 
 
-def c_bench(path: str | os.PathLike, n_single: int = 100000, batch: int = 10000) -> dict | None:
+def c_bench(path: str | os.PathLike, n_single: int = 100000, batch: int = 10000,
+            allow: Sequence[str] = ()) -> dict | None:
     """The C runtime alone, timed by `posecorr-bench` (JSON: single_pose_median_us,
-    single_pose_p99_us, batch_ns_per_pose, load_us); None when the tool is not built."""
+    single_pose_p99_us, batch_ns_per_pose, load_us); None when the tool is not built.
+    allow: "unbounded", "unsigned" (its --allow-* options)."""
     exe = bench_binary()
     if exe is None:
         return None
-    r = subprocess.run([str(exe), str(path), "--n", str(n_single), "--batch", str(batch)],
-                       capture_output=True, text=True, check=True)
+    r = subprocess.run([str(exe), str(path), "--n", str(n_single), "--batch", str(batch),
+                        *(f"--allow-{what}" for what in allow)], capture_output=True, text=True, check=True)
     return json.loads(r.stdout)
 
 
@@ -182,12 +184,15 @@ def _onnxruntime_backends(path: Path, single_poses: np.ndarray, batch_poses: np.
     }
 
 
-def bench_model(path: str | os.PathLike, n_single: int = 100000, batch: int = 10000) -> dict:
-    """Benchmarks one model on every available back-end (layout: see module doc)."""
+def bench_model(path: str | os.PathLike, n_single: int = 100000, batch: int = 10000,
+                allow_unbounded: bool = False, allow_unsigned: bool = False) -> dict:
+    """Benchmarks one model on every available back-end (layout: see module doc); the allow
+    flags load another producer's model as `Corrector` does."""
     from .controller.runtime import Corrector
 
     path = Path(path)
-    corr = Corrector(path)
+    corr = Corrector(path, allow_unbounded=allow_unbounded, allow_unsigned=allow_unsigned)
+    allow = [what for what, given in (("unbounded", allow_unbounded), ("unsigned", allow_unsigned)) if given]
     poses = sample_poses(max(batch, 1000), model=corr)
     single_poses = poses[:1000]
     med: dict[str, float | None] = {k: None for k in _KEYS}
@@ -195,7 +200,7 @@ def bench_model(path: str | os.PathLike, n_single: int = 100000, batch: int = 10
     bat: dict[str, float | None] = {k: None for k in _KEYS}
     counts: dict[str, int] = {}
 
-    d = c_bench(path, n_single, batch)
+    d = c_bench(path, n_single, batch, allow)
     if d is not None:
         med["c"], p99["c"] = d["single_pose_median_us"], d["single_pose_p99_us"]
         bat["c"] = d["batch_ns_per_pose"]
@@ -211,7 +216,7 @@ def bench_model(path: str | os.PathLike, n_single: int = 100000, batch: int = 10
     bat.update(_time_batches(batch_fns))
     # posecorr-bench runs in its own process, so it cannot take turns with the others; a
     # second run after them gives it the same chance of missing a slow phase.
-    d = c_bench(path, 1000, batch) if bat["c"] is not None else None
+    d = c_bench(path, 1000, batch, allow) if bat["c"] is not None else None
     if d is not None:
         bat["c"] = min(bat["c"], d["batch_ns_per_pose"])
     return {"single_pose_median_us": med, "single_pose_p99_us": p99,

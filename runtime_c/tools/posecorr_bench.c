@@ -199,7 +199,9 @@ static void print_paths(const pc_model *model)
     printf("]");
 }
 
-#define BENCH_USAGE "usage: %s MODEL.onnx [--n N] [--batch B] [--max-batch M] [--reference-zhou W]\n"
+#define BENCH_USAGE                                                                              \
+    "usage: %s MODEL.onnx [--n N] [--batch B] [--max-batch M] [--reference-zhou W] "               \
+    "[--allow-unbounded] [--allow-unsigned]\n"
 
 int main(int argc, char **argv)
 {
@@ -228,6 +230,10 @@ int main(int argc, char **argv)
             opts.max_batch = (size_t)strtoul(argv[++a], NULL, 10);
         else if (strcmp(argv[a], "--reference-zhou") == 0 && a + 1 < argc)
             reference = argv[++a];
+        else if (strcmp(argv[a], "--allow-unbounded") == 0)
+            opts.flags |= PC_LOAD_ALLOW_UNBOUNDED;
+        else if (strcmp(argv[a], "--allow-unsigned") == 0)
+            opts.flags |= PC_LOAD_ALLOW_UNSIGNED;
         else if (!path)
             path = argv[a];
         else {

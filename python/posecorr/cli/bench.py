@@ -5,28 +5,30 @@ import argparse
 from pathlib import Path
 
 from . import options
-from .common import Verb, emit
+from .common import Verb, allow_arguments, allow_options, emit
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("model", type=Path, help="the model (ONNX)")
     p.add_argument("--n", type=options.integer(1, 10_000_000), default=100_000, help="single-pose calls per backend")
     p.add_argument("--batch", type=options.integer(1, 1_000_000), default=10_000, help="poses per batch call")
+    allow_options(p)
 
 
 def run(args: argparse.Namespace) -> None:
     from ..controller.runtime import Corrector
     from ..latency import bench_model
 
+    allow = allow_arguments(args)
     # Load it in every back end first: a file the runtimes refuse fails here, in one line.
-    Corrector(args.model).close()
+    Corrector(args.model, **allow).close()
     try:
         import onnxruntime  # noqa: F401
     except ImportError:
         pass
     else:
-        Corrector(args.model, backend="onnxruntime").close()
-    result = bench_model(args.model, n_single=args.n, batch=args.batch)
+        Corrector(args.model, backend="onnxruntime", **allow).close()
+    result = bench_model(args.model, n_single=args.n, batch=args.batch, **allow)
 
     def text() -> str:
         from ..textui import table

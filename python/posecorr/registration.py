@@ -120,7 +120,8 @@ def quaternion_order_note(meas_q: np.ndarray, ref_q: np.ndarray) -> str | None:
     as_written = turn_mismatch(meas_q, ref_q)
     if as_written is None or as_written < UNRELATED_LEFT:
         return None
-    left = min((turn_mismatch(np.roll(meas_q, shift, axis=1), ref_q) or np.inf) for shift in (1, 2, 3))
+    shifted = [turn_mismatch(np.roll(meas_q, shift, axis=1), ref_q) for shift in (1, 2, 3)]
+    left = min(value for value in shifted if value is not None)   # as many turns as as_written's
     if left > RIGID_LEFT:
         return None
     return (f"the measured and reference quaternions look written in two orders: as written, no frame and mount "

@@ -141,7 +141,8 @@ def _onnxruntime_backends(path: Path, single_poses: np.ndarray, batch_poses: np.
 
     def run_ort(p):
         pose = p.reshape(-1, 7)
-        return sess.run(["corrected"], {"pose": pose, **({"t": np.zeros(len(pose), np.float32)} if timed else {})})[0]
+        feeds = {"pose": pose, "t": np.zeros(len(pose), np.float32)} if timed else {"pose": pose}
+        return sess.run(["corrected"], feeds)[0]
 
     x1 = np.zeros((1, 7), np.float32)
     y1 = np.zeros((1, 7), np.float32)
@@ -152,13 +153,13 @@ def _onnxruntime_backends(path: Path, single_poses: np.ndarray, batch_poses: np.
         io.bind_cpu_input("t", t1)
     io.bind_output("corrected", "cpu", 0, np.float32, [1, 7], y1.ctypes.data)
 
-    single = {"pose": x1, "t": t1, "corrected": y1}
-
     def run_bound(p):
-        # The bound buffers are raw pointers to onnxruntime: this closure keeps them alive.
-        single["pose"][0] = p
+        x1[0] = p
         sess.run_with_iobinding(io)
-        return single["corrected"]
+        return y1
+
+    # The bound buffers are raw pointers to onnxruntime: the function keeps them alive.
+    run_bound.buffers = (x1, t1, y1)
 
     xb = np.ascontiguousarray(batch_poses)
     yb = np.zeros_like(xb)
@@ -169,12 +170,11 @@ def _onnxruntime_backends(path: Path, single_poses: np.ndarray, batch_poses: np.
         iob.bind_cpu_input("t", t_batch)
     iob.bind_output("corrected", "cpu", 0, np.float32, list(xb.shape), yb.ctypes.data)
 
-    batch = {"pose": xb, "t": t_batch, "corrected": yb}
-
     def run_batch_bound(p):
-        # The bound buffers are raw pointers to onnxruntime: this closure keeps them alive.
         sess.run_with_iobinding(iob)
-        return batch["corrected"]
+        return yb
+
+    run_batch_bound.buffers = (xb, t_batch, yb)
 
     return {
         "onnxruntime": (_time_single(run_ort, single_poses, n_ort),

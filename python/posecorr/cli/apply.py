@@ -19,7 +19,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     allow_options(p)
     p.add_argument("--keep-going", action="store_true",
                    help="write a pose the model refuses (outside its box, say) as nan and go on, counting them, "
-                        "instead of stopping at the first (default: stop)")
+                        "instead of stopping at the first (default: stop); a cell that is no number is the "
+                        "table's fault and stops it all the same")
 
 
 def run(args: argparse.Namespace) -> None:

@@ -43,6 +43,7 @@ import numpy as np
 from ._xp import namespace
 from .registry import Registry
 from .rotations import matrix_to_rotvec, normalize, rotvec_to_matrix
+from .textui import counted
 
 __all__ = [
     "Param", "Effect", "EffectContext", "EffectRegistry", "EFFECTS", "BUILTIN_NAMES", "FORM_NAMES", "SENSITIVITIES",
@@ -802,7 +803,7 @@ def parse_effects_arg(text: str) -> dict[str, np.ndarray]:
             numbers = [float(v) for v in values.split(",")]
         except ValueError:
             stray = next((v.strip() for v in values.split(",") if v.strip() in EFFECTS), None)
-            raise ValueError(f"effect {name!r}: expected {effect.size} number{'' if effect.size == 1 else 's'} "
+            raise ValueError(f"effect {name!r}: expected {counted(effect.size, 'number')} "
                              f"({effect.signature()}), got {values!r}"
                              + (f"; separate effects with ';', as values take ',' ({name}=...;{stray})" if stray
                                 else "")) from None

@@ -63,27 +63,27 @@ PRESENT_TEST = ("score test or held-out prediction test (the smaller p, doubled)
                 "catalogue effects within their plausible ranges")
 
 
+def _addable(effects: Sequence[str], forms: bool) -> list[tuple[str, Any]]:
+    """(name, effect) of the registered, fittable effects not in `effects`; the generic forms
+    (`posecorr.forms`) too unless `forms` is False."""
+    return [(name, effect) for name, effect in EFFECTS.items()
+            if name not in effects and not effect.random and (forms or not effect.generic)]
+
+
 def candidate_effects(table: PoseTable, effects: Sequence[str], forms: bool = True) -> list[str]:
-    """Registered, fittable effects not in `effects` (drift only when the table has time); the
-    generic forms (`posecorr.forms`) too unless `forms` is False."""
-    from ..effects import EFFECTS
-
-    out = []
-    for name, effect in EFFECTS.items():
-        if name in effects or effect.random or (effect.generic and not forms):
-            continue
-        if effect.needs_time and table.time() is None:
-            continue
-        out.append(name)
-    return out
+    """The `_addable` effects the table can show: those acting over time only where it has
+    times."""
+    timed = table.time() is not None
+    return [name for name, effect in _addable(effects, forms) if timed or not effect.needs_time]
 
 
-def _table_notes(table: PoseTable, effects: Sequence[str], candidates: Sequence[str] | None) -> list[str]:
+def _table_notes(table: PoseTable, effects: Sequence[str], candidates: Sequence[str] | None,
+                 forms: bool) -> list[str]:
     """What the diagnosis says of the table before its figures: its quaternions' order
     (`registration.orientation_notes`), and the effects it leaves untried for want of a
     clock (they were left out without a word)."""
     untimed = [] if candidates is not None or table.time() is not None else [
-        name for name, effect in EFFECTS.items() if effect.needs_time and not effect.random and name not in effects]
+        name for name, effect in _addable(effects, forms) if effect.needs_time]
     return orientation_notes(table.meas_q, table.ref_q) + (
         [f"not tried: {', '.join(untimed)} (acting over the session's time, they need a time column t, which this "
          "table lacks)"] if untimed else [])
@@ -689,7 +689,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         "cv_base": {"rmse_total": state.before, "rmse_pos": float(np.sqrt(np.mean(dp ** 2)))},
         "rows": {"given": rows_given, "used": table.n},
         "reach": score_test_reach(state, len(names), alpha),
-        "notes": _table_notes(table, effects, candidates),
+        "notes": _table_notes(table, effects, candidates, forms),
     }
     result["reach"]["poses_to_pass"] = _planned(rows, kept, table.n, result["reach"]["threshold"], min_gain)
     result["proposal"], result["no_proposal"] = propose(search, result, kept, dropped)

@@ -914,6 +914,34 @@ def test_posecorr_run_time_column(c_build, drift_model, pose_file):
     np.testing.assert_array_equal(plain, run(pose_file, x))
 
 
+def test_posecorr_run_binary_time(c_build, drift_model):
+    """--binary --timed reads records of 8 float32, t last: the poses of the text stream with
+    the same t; 7-float records of a model that takes time are t = 0, said once on stderr."""
+    path, m, t = drift_model
+    x, tt = m[:12].astype(np.float32), t[:12].astype(np.float32)
+    tool = str(c_build / "posecorr-run")
+
+    def run(records, *flags):
+        return subprocess.run([tool, str(path), "--binary", *flags], input=records.astype("<f4").tobytes(),
+                              capture_output=True, timeout=60)
+
+    timed = run(np.column_stack([x, tt]), "--timed")
+    assert timed.returncode == 0 and timed.stderr == b"", timed.stderr
+    got = np.frombuffer(timed.stdout, "<f4").reshape(-1, 7)
+    blob = path.read_bytes()
+    assert rel_err(got, ort_run_timed(blob, x, tt)) <= 2e-6
+    untimed = run(x)
+    assert untimed.returncode == 0
+    assert rel_err(np.frombuffer(untimed.stdout, "<f4").reshape(-1, 7),
+                   ort_run_timed(blob, x, np.zeros(12, np.float32))) <= 2e-6
+    assert untimed.stderr.decode().count("\n") == 1 and "--timed" in untimed.stderr.decode()
+    partial = run(np.column_stack([x, tt])[:2].ravel()[:12], "--timed")  # 1.5 records of 8
+    assert partial.returncode == 1 and b"partial record of 16 bytes" in partial.stderr
+    assert b"32 bytes: 8 float32" in partial.stderr and len(partial.stdout) == 28
+    text = subprocess.run([tool, str(path), "--timed"], input="", capture_output=True, text=True, timeout=60)
+    assert text.returncode == 2 and "--timed is for --binary" in text.stderr
+
+
 def test_posecorr_run_reports_line_numbers(c_build, pose_file):
     text = "0.1,0.2,0.3,1,0,0,0\n0.1,0.2,0.3,1,0,0,0\n0.1,oops,0.3,1,0,0,0\n"
     r = subprocess.run([str(c_build / "posecorr-run"), str(pose_file), "--strict"], input=text,

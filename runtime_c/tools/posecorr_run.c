@@ -1,11 +1,13 @@
-/* posecorr-run MODEL.onnx [--binary] [--strict] [--allow-unbounded] [--allow-unsigned]
+/* posecorr-run MODEL.onnx [--binary [--timed]] [--strict] [--allow-unbounded] [--allow-unsigned]
  *
  * Streams poses through a corrector: one CSV line "x,y,z,qw,qx,qy,qz" in, one line out,
  * flushed per pose so it can sit in a pipe next to a tracker. An optional 8th value
  * "x,y,z,qw,qx,qy,qz,t" is the pose's time t (s since the session's start), passed to
  * models that take time (pc_model_takes_time; others ignore it); without it such a model
  * corrects the pose as at t = 0. --binary reads and writes raw little-endian float32
- * records of 7 values instead. A first line of 7 (or 8) names is a header, passed through.
+ * records of 7 values instead; with --timed each record read holds 8, t the 8th (a record
+ * has no room for an optional value, so the width is said once; a model that takes time
+ * read without it is named on stderr at the start). A first line of 7 (or 8) names is a header, passed through.
  * Numbers are read as the table reader reads them: plain decimal notation (nan and inf read,
  * then refused as non-finite; a hexadecimal float such as 0x1p-5 is a bad line), on lines of
  * any length. The model must be a regular file: a FIFO, a device or a folder is refused.
@@ -29,7 +31,7 @@
 #include <sys/stat.h>
 #endif
 
-#define USAGE "usage: %s MODEL.onnx [--binary] [--strict] [--allow-unbounded] " \
+#define USAGE "usage: %s MODEL.onnx [--binary [--timed]] [--strict] [--allow-unbounded] " \
               "[--allow-unsigned] < poses > corrected\n"
 
 /* A line of any length reads: runs of blanks are kept as one (they only separate
@@ -234,19 +236,21 @@ static const char *refusal(const pc_model *model)
                                                                  : message;
 }
 
-static int run_binary(pc_model *model, int strict)
+/* Records of 7 float32, or 8 with the pose's time last (timed). */
+static int run_binary(pc_model *model, int strict, int timed)
 {
-    unsigned char bytes[4 * PC_POSE_WIDTH];
-    float in[PC_POSE_WIDTH], out[PC_POSE_WIDTH];
+    unsigned char bytes[4 * (PC_POSE_WIDTH + 1)];
+    const size_t width = 4 * (size_t)(PC_POSE_WIDTH + (timed ? 1 : 0));
+    float in[PC_POSE_WIDTH + 1], out[PC_POSE_WIDTH];
     unsigned long record = 0;
     int failed = 0, i;
     size_t got;
-    while ((got = fread(bytes, 1, sizeof bytes, stdin)) == sizeof bytes) {
+    while ((got = fread(bytes, 1, width, stdin)) == width) {
         pc_status st;
         record++;
-        for (i = 0; i < PC_POSE_WIDTH; i++)
+        for (i = 0; i < PC_POSE_WIDTH + (timed ? 1 : 0); i++)
             float_from_le(bytes + 4 * i, in + i);
-        if ((st = pc_run(model, in, 1, out)) != PC_OK) {
+        if ((st = pc_run_timed(model, in, timed ? in + PC_POSE_WIDTH : NULL, 1, out)) != PC_OK) {
             fprintf(stderr, "posecorr-run: record %lu: %s: %s\n", record, pc_status_name(st),
                     refusal(model));
             if (strict)
@@ -259,8 +263,9 @@ static int run_binary(pc_model *model, int strict)
     }
     if (got != 0) {
         fprintf(stderr, "posecorr-run: record %lu: partial record of %lu bytes at the end of "
-                        "input (a record is %lu bytes: 7 float32)\n",
-                record + 1, (unsigned long)got, (unsigned long)sizeof bytes);
+                        "input (a record is %lu bytes: %d float32)\n",
+                record + 1, (unsigned long)got, (unsigned long)width,
+                PC_POSE_WIDTH + (timed ? 1 : 0));
         return 1;
     }
     if (ferror(stdin)) {
@@ -345,7 +350,7 @@ static const char *not_a_file(const char *path)
 int main(int argc, char **argv)
 {
     const char *path = NULL;
-    int binary = 0, strict = 0, i, status;
+    int binary = 0, timed = 0, strict = 0, i, status;
     pc_model *model;
     pc_options opts = {0, 0, 0};
     pc_error err;
@@ -354,6 +359,8 @@ int main(int argc, char **argv)
     for (i = 1; i < argc; i++) {
         if (strcmp(argv[i], "--binary") == 0)
             binary = 1;
+        else if (strcmp(argv[i], "--timed") == 0)
+            timed = 1;
         else if (strcmp(argv[i], "--allow-unbounded") == 0)
             opts.flags |= PC_LOAD_ALLOW_UNBOUNDED;
         else if (strcmp(argv[i], "--allow-unsigned") == 0)
@@ -374,6 +381,11 @@ int main(int argc, char **argv)
         fprintf(stderr, USAGE, argv[0]);
         return 2;
     }
+    if (timed && !binary) {
+        fprintf(stderr, "posecorr-run: --timed is for --binary records (a text line takes its "
+                        "time as an optional 8th value)\n");
+        return 2;
+    }
     if (not_a_file(path)) {
         fprintf(stderr, "posecorr-run: %s: is %s, expected a file\n", path, not_a_file(path));
         return 1;
@@ -383,7 +395,10 @@ int main(int argc, char **argv)
         fprintf(stderr, "posecorr-run: %s: %s\n", path, err.message);
         return 1;
     }
-    status = binary ? run_binary(model, strict) : run_text(model, strict);
+    if (binary && !timed && pc_model_takes_time(model))
+        fprintf(stderr, "posecorr-run: %s: the model takes time t; records of 7 float32 are "
+                        "corrected as at t = 0 (--timed reads records of 8, t last)\n", path);
+    status = binary ? run_binary(model, strict, timed) : run_text(model, strict);
     pc_free(model);
     return status;
 }

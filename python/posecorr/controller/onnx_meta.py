@@ -18,8 +18,10 @@ t 5).
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
+import math
 import os
 from collections import Counter
 from typing import Any, Callable, Iterator
@@ -332,26 +334,6 @@ def _model(data: bytes) -> dict[str, Any]:
     return {"metadata": meta, "opset_import": opsets, **top}
 
 
-def _initializer(buf: bytes) -> tuple[str, int]:
-    """A TensorProto initializer's name and element count (dims packed or not)."""
-    dims, name = [], ""
-    for tf, twire, tv in _fields(buf):
-        if tf == 1:
-            if twire == 2:  # packed
-                pos = 0
-                while pos < len(tv):
-                    d, pos = _varint(tv, pos)
-                    dims.append(_signed(d))
-            else:
-                dims.append(_signed(tv))
-        elif tf == 8 and twire == 2:
-            name = _str(tv)
-    size = 1
-    for d in dims:
-        size *= max(d, 0)
-    return name, size
-
-
 def _graph(graph: bytes) -> dict[str, Any]:
     """The GraphProto's own fields, as libposecorr reads them before any node: "io"
     [("input" or "output", `_value_info`)] in the file's order, "initializers" [(name,
@@ -394,26 +376,6 @@ def _nodes(graph: dict[str, Any], each: Callable[[str, str, str], None] | None =
 
 
 FLOAT = 1  # TensorProto.FLOAT
-
-
-def float_tensor(buf: bytes) -> dict[str, Any] | None:
-    """{"name", "raw", "float_data"} of a float TensorProto that `tensor_fault` passed (the
-    values as little-endian float32 bytes), None for other element types."""
-    name, data_type, raw, packed = "", 0, None, bytearray()
-    for f, wire, v in _fields(buf):
-        if f == 8 and wire == 2:
-            name = _str(v)
-        elif f == 2 and wire == 0:
-            data_type = v
-        elif f == 9 and wire == 2:
-            raw = bytes(v)
-        elif f == 4 and wire in (2, 5):   # packed, or one fixed32 value
-            packed += bytes(v) if wire == 2 else int(v).to_bytes(4, "little")
-    if data_type != FLOAT:
-        return None
-    return {"name": name, "raw": raw, "float_data": bytes(packed)}
-
-
 # What onnx.c holds of a tensor: its rank, its element count (PC_MAX_ELEMENTS on a 64-bit
 # host), and the element types with their bytes in raw_data (int32 held as int64).
 MAX_RANK = 6
@@ -424,65 +386,108 @@ RAW_BYTES = {FLOAT: 4, 6: 4, 7: 8, 9: 1}                # float, int32, int64, b
 _NUMBER_FIELDS = {1: 0, 4: 5, 5: 0, 7: 0}
 
 
-def tensor_fault(buf: bytes) -> tuple[str, str] | None:
-    """What onnx.c's onnx_tensor_header says of one TensorProto before it holds it: None
-    where it takes it, else (libposecorr's status name, its words): a rank above MAX_RANK,
-    external data, a negative or too large shape, an element type it does not hold, raw_data
-    or a values field whose size is not the shape's."""
-    try:
-        return _tensor_fault(buf)
-    except _Truncated as exc:
-        return "TRUNCATED", str(exc)
-    except _Malformed as exc:
-        return "MALFORMED", str(exc)
+@dataclasses.dataclass
+class _Tensor:
+    """One TensorProto as read field by field: what the three readers below take of it.
+    `fault` is the first thing onnx.c's onnx_tensor_header refuses in the fields' order
+    (libposecorr's status name, its words); the fields after it are read all the same."""
+
+    name: str = ""
+    dims: list[int] = dataclasses.field(default_factory=list)
+    data_type: int = 0
+    raw: bytes | None = None
+    counts: dict[int, int] = dataclasses.field(default_factory=lambda: {4: 0, 5: 0, 7: 0})
+    float_data: bytearray = dataclasses.field(default_factory=bytearray)   # little-endian float32
+    fault: tuple[str, str] | None = None
 
 
-def _tensor_fault(buf: bytes) -> tuple[str, str] | None:
-    name, dims, data_type, raw = "", [], 0, None
-    counts = {4: 0, 5: 0, 7: 0}
+def _tensor(buf: bytes, values: bool = True) -> _Tensor:
+    """`values`: read the values fields too (the graph's first pass counts parameters from
+    the shape alone and leaves a fault inside the values to the tensor's own check, where
+    libposecorr meets it)."""
+    t = _Tensor()
+
+    def refuse(status: str, words: str) -> None:
+        t.fault = t.fault or (status, words)
+
     for f, wire, v, at in _fields_at(buf):
-        if f in _NUMBER_FIELDS:
+        if f in _NUMBER_FIELDS and (values or f == 1):
             elem = _NUMBER_FIELDS[f]
             if wire == elem:
                 values = [v]
+                if f == 4:
+                    t.float_data += int(v).to_bytes(4, "little")
             elif wire != 2:
-                return "MALFORMED", f"field {f} at byte {at} has wire type {wire}"
+                refuse("MALFORMED", f"field {f} at byte {at} has wire type {wire}")
+                continue
             elif elem == 5:
                 if len(v) % 4:
-                    return "MALFORMED", f"packed field {f} at byte {at} is not a multiple of 4 bytes"
+                    refuse("MALFORMED", f"packed field {f} at byte {at} is not a multiple of 4 bytes")
                 values = [0] * (len(v) // 4)
+                t.float_data += bytes(v)
             else:
                 values, pos = [], 0
                 while pos < len(v):
                     value, pos = _varint(v, pos)
                     values.append(value)
             if f != 1:
-                counts[f] += len(values)
-            elif len(dims) + len(values) > MAX_RANK:
-                return "UNSUPPORTED", f"tensor at byte {at} has rank > {MAX_RANK}"
-            else:
-                dims += map(_signed, values)
+                t.counts[f] += len(values)
+                continue
+            if len(t.dims) + len(values) > MAX_RANK:
+                refuse("UNSUPPORTED", f"tensor at byte {at} has rank > {MAX_RANK}")
+            t.dims += map(_signed, values)
         elif f == 2 and wire == 0:
-            data_type = _signed(v)
+            t.data_type = _signed(v)
         elif f == 8 and wire == 2:
-            name = _str(v)
+            t.name = _str(v)
         elif f == 9 and wire == 2:
-            raw = v
+            t.raw = bytes(v)
         elif f == 14 and wire == 0 and v == 1:         # data_location EXTERNAL
-            return "UNSUPPORTED", f"tensor '{name}' uses external data"
+            refuse("UNSUPPORTED", f"tensor '{t.name}' uses external data")
+    return t
+
+
+def _initializer(buf: bytes) -> tuple[str, int]:
+    """A TensorProto initializer's name and element count (a negative dimension as 0)."""
+    t = _tensor(buf, values=False)
+    return t.name, math.prod(max(d, 0) for d in t.dims)
+
+
+def float_tensor(buf: bytes) -> dict[str, Any] | None:
+    """{"name", "raw", "float_data"} of a float TensorProto that `tensor_fault` passed (the
+    values as little-endian float32 bytes), None for other element types."""
+    t = _tensor(buf)
+    if t.data_type != FLOAT:
+        return None
+    return {"name": t.name, "raw": t.raw, "float_data": bytes(t.float_data)}
+
+
+def tensor_fault(buf: bytes) -> tuple[str, str] | None:
+    """What onnx.c's onnx_tensor_header says of one TensorProto before it holds it: None
+    where it takes it, else (libposecorr's status name, its words): a rank above MAX_RANK,
+    external data, a negative or too large shape, an element type it does not hold, raw_data
+    or a values field whose size is not the shape's."""
+    try:
+        t = _tensor(buf)
+    except _Truncated as exc:
+        return "TRUNCATED", str(exc)
+    except _Malformed as exc:
+        return "MALFORMED", str(exc)
+    if t.fault:
+        return t.fault
     count = 1
-    for d in dims:
+    for d in t.dims:
         if d < 0 or (d > 0 and count > MAX_ELEMENTS // d):
-            return "MALFORMED", f"tensor '{name}' has an invalid shape"
+            return "MALFORMED", f"tensor '{t.name}' has an invalid shape"
         count *= d
-    if data_type not in RAW_BYTES:
-        return "UNSUPPORTED", f"tensor '{name}' has unsupported data type {data_type}"
-    if raw is not None:
-        need = count * RAW_BYTES[data_type]
-        return None if len(raw) == need else ("MALFORMED", f"tensor '{name}': raw_data has {len(raw)} bytes, "
-                                                           f"shape needs {need}")
-    have = counts[4] if data_type == FLOAT else counts[7] if data_type == 7 else counts[5]
-    return None if have == count else ("MALFORMED", f"tensor '{name}' has {have} values, shape needs {count}")
+    if t.data_type not in RAW_BYTES:
+        return "UNSUPPORTED", f"tensor '{t.name}' has unsupported data type {t.data_type}"
+    if t.raw is not None:
+        need = count * RAW_BYTES[t.data_type]
+        return None if len(t.raw) == need else ("MALFORMED", f"tensor '{t.name}': raw_data has "
+                                                             f"{len(t.raw)} bytes, shape needs {need}")
+    have = t.counts[4] if t.data_type == FLOAT else t.counts[7] if t.data_type == 7 else t.counts[5]
+    return None if have == count else ("MALFORMED", f"tensor '{t.name}' has {have} values, shape needs {count}")
 
 
 def _readable(read: Callable[..., dict[str, Any]]) -> Callable[..., dict[str, Any]]:

@@ -137,6 +137,14 @@ def test_skipped_checks_hold_on_pose_tables(name: str, table) -> None:
     # check_fit2d_predict1d
     with pytest.raises(ValueError, match="2-d"):
         estimator.predict(M[0])
+    # a zero or norm-2 quaternion is refused as the runtime and the table reader refuse it
+    for scale in (0.0, 2.0):
+        X = M.copy()
+        X[5, 3:] *= scale
+        with pytest.raises(ValueError, match=f"measured: row 5: .* norm {scale:g} .*within 0.001 of 1"):
+            estimator.predict(X)
+        with pytest.raises(ValueError, match="row 5: .*unit quaternion"):
+            clone(estimator).fit(X, R)
     # check_dict_unchanged
     before = {k: repr(v) for k, v in estimator.__dict__.items()}
     expected = estimator.predict(M)

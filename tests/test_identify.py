@@ -135,6 +135,12 @@ def test_fitted_models_pickle_round_trip(kind: str) -> None:
     clone = pickle.loads(pickle.dumps(model))
     assert np.array_equal(clone.predict(table.measured), model.predict(table.measured))
     assert clone.describe() == model.describe()
+    if kind == "physics":   # pickling leaves the live model whole; the copy says what it lacks
+        np.testing.assert_allclose(model.shrunk(1.0).predict(table.measured),
+                                   PhysicsModel(("station", "mount"), with_rotation=rotation, prior_strength=1.0)
+                                   .fit(table.measured, table.reference).predict(table.measured), atol=1e-9)
+        with pytest.raises(ValueError, match="pickled or saved model does not keep"):
+            clone.shrunk(1.0)
 
 
 def test_a_gross_outlier_is_refused_with_its_row() -> None:
@@ -173,6 +179,13 @@ def test_pipeline_and_physics_are_scikit_learn_estimators() -> None:
     table = simulate_session(2, n=30).table
     pipeline.fit(table.measured, table.reference)
     assert not hasattr(core, "coef_") and hasattr(pipeline.core_, "coef_")
+    # a refused refit leaves the last fit whole
+    before = pipeline.predict(table.measured)
+    with pytest.raises(ValueError, match="rigid pipeline has no further effects"):
+        pipeline.set_params(rigid="lever").fit(table.measured, table.reference)
+    assert np.array_equal(pipeline.predict(table.measured), before)
+    assert CorrectionPipeline(("station",), with_rotation=False).representation == \
+        CorrectionPipeline(("station",), with_rotation=False).fit(table.measured, table.reference).representation
     assert clone(PhysicsModel(("station", "mount"), sigma_p=1e-3)).get_params() == \
         {"effects": ("station", "mount"), "sigma_p": 1e-3, "sigma_r": None, "max_nfev": 200, "with_rotation": True,
              "prior_strength": 0.0}
@@ -269,3 +282,30 @@ def test_a_rigid_variant_gives_no_standard_error_for_the_lever_it_holds() -> Non
     assert kabsch[0] == [0.0, 0.0, 0.0] and kabsch[1] == [None, None, None]
     lever = RigidModel(variant="lever").fit(table.measured, table.reference).describe()["mount"]["e"]
     assert all(error is not None and 0 < error < 0.01 for error in lever[1]), lever
+
+
+def test_times_and_noise_levels_are_checked_and_identifiability_fits_nothing() -> None:
+    """A pose's time is finite, one a pose; sigma_p / sigma_r None or > 0 (0 is not 'estimate
+    it'); `identifiability` leaves the estimator unfitted in scikit-learn's eyes too."""
+    from sklearn.exceptions import NotFittedError
+    from sklearn.utils.validation import check_is_fitted
+
+    from posecorr.train.pipeline import CorrectionPipeline
+
+    table = simulate_session(3, n=40).table
+    M, R = table.measured, table.reference
+    t = np.linspace(0.0, 600.0, len(M))
+    pipeline = CorrectionPipeline(("station", "mount", "drift")).fit(M, R, t)
+    for bad, words in ((np.where(np.arange(len(M)) == 7, np.nan, t), r"t\[7\] is nan"),
+                       (t[:5], r"t must have shape \(40,\)")):
+        with pytest.raises(ValueError, match=words):
+            pipeline.predict(M, bad)
+        with pytest.raises(ValueError, match=words):
+            PhysicsModel(("station", "mount", "drift")).fit(M, R, t=bad)
+    for sigma in (0.0, -1e-3, "1e-3"):
+        with pytest.raises(ValueError, match="sigma_r must be None .* or a number > 0"):
+            PhysicsModel(sigma_r=sigma).fit(M, R)
+    physics = PhysicsModel(("station", "mount"))
+    physics.identifiability(M, R)   # what it finds: test_diagnose
+    with pytest.raises(NotFittedError):
+        check_is_fitted(physics)

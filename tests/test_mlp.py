@@ -91,6 +91,9 @@ def test_every_activation_constructs_trains_and_runs(act):
     meas = random_poses(120, rng)
     ref = distorted(meas)
     init = MLP("zhou", (6,), act, "lm", epochs=0).fit(meas, ref)
+    for bad in ({"epochs": -5}, {"epochs": 2.5}, {"validation_fraction": 1.0}, {"validation_fraction": -0.5}):
+        with pytest.raises(ValueError, match=f"{next(iter(bad))} must be"):
+            MLP("zhou", (6,), act, "lm", **bad).fit(meas, ref)
     model = MLP("zhou", (6,), act, "lm", epochs=5, max_fail=100).fit(meas, ref)
     out = model.predict(meas)
     assert out.shape == (120, 7) and np.all(np.isfinite(out))

@@ -78,6 +78,7 @@ def test_ridge_shrinks_towards_identity_and_cv_picks_from_grid():
     assert cv.alpha_ in (0.0, 1e-4, 1e-2, 1.0)
     assert cv.cv_scores_[cv.alpha_] == min(cv.cv_scores_.values())
     assert cv.alpha_ > 0  # on pure noise the unregularised fit is never the CV optimum
+    assert not hasattr(cv.set_params(alpha=0.0).fit(meas, ref), "cv_scores_")   # no scores left from the last fit
     with pytest.raises(ValueError):
         PMC("pos", alpha="bogus").fit(meas, ref)
 
@@ -104,6 +105,7 @@ def test_forward_torch_equals_predict_numpy(rep):
     rng = np.random.default_rng(5)
     meas = random_poses(120, rng, spread=0.4)
     ref = random_poses(120, rng, spread=0.4) * 0.01 + meas * 0.99
+    ref[:, 3:] /= np.linalg.norm(ref[:, 3:], axis=1, keepdims=True)   # the blend of two rotations, a rotation
     model = PMC(rep).fit(meas, ref)
     test = random_poses(40, rng, spread=0.4)
     out = model.forward(torch.tensor(test, dtype=torch.float64)).numpy()

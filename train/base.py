@@ -33,6 +33,7 @@ from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.exceptions import NotFittedError
 
 from posecorr import rotations
+from posecorr.data import QUAT_NORM_TOLERANCE
 from posecorr._xp import namespace
 from posecorr.metrics import pose_metrics
 
@@ -67,8 +68,8 @@ def decode_pose(vector: Any, pose: Any, rep: str) -> Any:
 
 
 def check_poses(a: Any, name: str, n: int | None = None) -> np.ndarray:
-    """An (N, 7) finite float64 array, or an error naming the argument (in scikit-learn's words
-    where it has some: sparse, complex, feature(s))."""
+    """An (N, 7) finite float64 array of unit quaternions, or an error naming the argument (in
+    scikit-learn's words where it has some: sparse, complex, feature(s))."""
     if issparse(a):
         raise TypeError(f"{name}: sparse input is not supported; poses are a dense (N, 7) table")
     arr = np.asarray(a)
@@ -85,6 +86,27 @@ def check_poses(a: Any, name: str, n: int | None = None) -> np.ndarray:
         raise ValueError(f"{name} has {arr.shape[0]} rows, expected {n} like measured")
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} contains NaN or infinite values")
+    # The runtime's and the table reader's rule: a zero or norm-3 quaternion is a glitch that
+    # normalising would turn into a made-up rotation.
+    norm = np.linalg.norm(arr[:, 3:], axis=1)
+    off = np.flatnonzero(np.abs(norm - 1.0) > QUAT_NORM_TOLERANCE)
+    if off.size:
+        raise ValueError(f"{name}: row {int(off[0])}: quaternion qw, qx, qy, qz has norm {norm[off[0]]:.6g} "
+                         f"(expected a unit quaternion: norm within {QUAT_NORM_TOLERANCE:g} of 1)")
+    return arr
+
+
+def check_times(t: Any, n: int, name: str = "t") -> np.ndarray | None:
+    """None, or the poses' times as an (n,) finite float64 array (s since the session's
+    start), or an error naming the argument."""
+    if t is None:
+        return None
+    arr = np.asarray(t, dtype=np.float64)
+    if arr.shape != (n,):
+        raise ValueError(f"{name} must have shape ({n},), one time a pose in seconds, got shape {arr.shape}")
+    bad = np.flatnonzero(~np.isfinite(arr))
+    if bad.size:
+        raise ValueError(f"{name}[{int(bad[0])}] is {arr[bad[0]]}: a pose's time must be a finite number of seconds")
     return arr
 
 

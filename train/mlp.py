@@ -32,6 +32,7 @@ and "br" (trainbr) solve with the Gauss-Newton matrix of ``lm.py``.
 """
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -169,6 +170,11 @@ class MLP(BaseCorrector):
         trainer = TRAINERS.lookup(self.trainer)   # refuses an unknown name before any work
         if self.normalization not in ("none", "standard"):
             raise ValueError("normalization must be 'none' or 'standard'")
+        if not (isinstance(self.epochs, numbers.Integral) and self.epochs >= 0):
+            raise ValueError(f"epochs must be a whole number >= 0 (0: the initial network), got {self.epochs!r}")
+        if not (isinstance(self.validation_fraction, numbers.Real) and 0 <= self.validation_fraction < 1):
+            raise ValueError("validation_fraction must be a number in [0, 1) (the share of the poses held for early "
+                             f"stopping), got {self.validation_fraction!r}")
         hidden = parse_hidden(self.hidden)
         rng = np.random.default_rng(self.random_state)
         if validation is not None:

@@ -21,13 +21,14 @@ forms where they exist, a fixed number of Newton / fixed-point steps otherwise
 """
 from __future__ import annotations
 
+import numbers
 import sys
 from contextlib import contextmanager
 from dataclasses import replace
 from typing import Any, Iterator, Sequence
 
 import numpy as np
-from sklearn.base import BaseEstimator
+from sklearn.base import BaseEstimator, clone
 from sklearn.exceptions import NotFittedError
 
 from posecorr import rotations
@@ -36,7 +37,7 @@ from posecorr.effects import (REGISTRATION_ROLES, EffectContext, get_effect, inv
                               sorted_effects)
 from posecorr.metrics import pose_metrics
 
-from .base import PoseRegressorMixin, check_pair, check_poses
+from .base import PoseRegressorMixin, check_pair, check_poses, check_times
 from .identify import (FORM_LIMIT_SCALES, LIMIT_SCALES, Block, RigidRegistration, chordal_mean, describe_spread,
                        determined_directions, direction_label, poses_lack, rigid_registration)
 from .splits import MIN_FIT_POSES
@@ -154,6 +155,11 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
     def _setup(self, measured: Any, reference: Any, t: np.ndarray | None) -> tuple:
         """Checked poses, the frames and the spread: what fitting and `identifiability` share."""
         measured, reference = check_pair(measured, reference)
+        t = check_times(t, len(measured))
+        for name in ("sigma_p", "sigma_r"):
+            sigma = getattr(self, name)
+            if sigma is not None and not (isinstance(sigma, numbers.Real) and 0 < sigma < np.inf):
+                raise ValueError(f"{name} must be None (estimated from the fit) or a number > 0, got {sigma!r}")
         chosen = sorted_effects(self.effects)
         for effect in chosen:
             if effect.random:
@@ -162,8 +168,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
             raise ValueError(f"fitting {', '.join(e.name for e in chosen) or 'a registration'} needs at least "
                              f"{MIN_FIT_POSES} poses, got {len(measured)}")
         base = EffectContext.default()
-        self.ctx_ = EffectContext(base.R_S, base.t_S, reference[:, :3].mean(axis=0),
-                                  t=None if t is None else np.asarray(t, float))
+        self.ctx_ = EffectContext(base.R_S, base.t_S, reference[:, :3].mean(axis=0), t=t)
         self.with_rotation_ = bool(self.with_rotation)
         self._chosen = chosen
         self.spread_ = describe_spread(measured[:, :3], rotations.quat_to_matrix(measured[:, 3:7]),
@@ -172,11 +177,12 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
 
     def identifiability(self, measured: Any, reference: Any, t: np.ndarray | None = None) -> dict[str, str]:
         """{parameter or direction: why} of what these poses cannot determine, without fitting
-        (the first step of `fit`). Leaves the estimator unfitted."""
-        measured, reference, chosen = self._setup(measured, reference, t)
-        theta0, sigma_p, sigma_r, _ = self._initial_theta(measured, reference, chosen, {})
+        (the first step of `fit`). Leaves the estimator as it was: the setup is a clone's."""
+        probe = clone(self)
+        measured, reference, chosen = probe._setup(measured, reference, t)
+        theta0, sigma_p, sigma_r, _ = probe._initial_theta(measured, reference, chosen, {})
         with single_threaded():
-            _, fixed = self._identify(theta0, measured, reference, self.sigma_p or sigma_p, self.sigma_r or sigma_r)
+            _, fixed = probe._identify(theta0, measured, reference, self.sigma_p or sigma_p, self.sigma_r or sigma_r)
         return fixed
 
     def _initial_theta(self, measured: np.ndarray, reference: np.ndarray, chosen: list,
@@ -403,6 +409,9 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         self._check_fitted()
         if self.prior_strength != 0:
             raise ValueError("shrunk starts from a free fit (prior_strength 0)")
+        if "_free" not in self.__dict__:
+            raise ValueError("shrunk needs the fit's data, which a pickled or saved model does not "
+                             "keep: fit it again")
         model = object.__new__(type(self))     # not copy.copy: __getstate__ resolves std errors and drops the data
         model.__dict__.update(self.__dict__)
         model.prior_strength = prior_strength
@@ -488,10 +497,10 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         """This fit's residual function on other poses, with `extra` effects at identity."""
         self._check_fitted()
         measured, reference = check_pair(measured, reference)
+        t = check_times(t, len(measured))
         probe = PhysicsModel(tuple(self.params_) + tuple(extra), self.sigma_p_, self.sigma_r_)
         probe._chosen = sorted_effects(probe.effects)
-        probe.ctx_ = EffectContext(self.ctx_.R_S, self.ctx_.t_S, self.ctx_.c,
-                                   t=None if t is None else np.asarray(t, float))
+        probe.ctx_ = EffectContext(self.ctx_.R_S, self.ctx_.t_S, self.ctx_.c, t=t)
         probe.with_rotation_ = self.with_rotation_
         theta = np.concatenate([self.params_[e.name] if e.name in self.params_ else e.identity_theta()
                                 for e in probe._chosen] or [np.zeros(0)])
@@ -514,7 +523,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
     def __getstate__(self) -> dict:
         if hasattr(self, "params_"):
             self.std_errors_  # noqa: B018  (resolve before pickling: the data is not kept)
-        state = super().__getstate__()
+        state = dict(super().__getstate__())   # object's is the live __dict__ itself
         for kept in ("_free", "_data"):
             state.pop(kept, None)
         return state
@@ -546,7 +555,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
     def predict(self, measured: Any, t: np.ndarray | None = None) -> np.ndarray:
         self._check_fitted()
         measured = check_poses(measured, "measured")
-        return np.asarray(self.forward(measured, t), dtype=np.float64)
+        return np.asarray(self.forward(measured, check_times(t, len(measured))), dtype=np.float64)
 
     def score(self, measured: Any, reference: Any, t: np.ndarray | None = None) -> float:
         """-rmse_total of the corrected poses (higher is better)."""

@@ -26,7 +26,7 @@ from posecorr.registration import orientation_notes
 from posecorr.rotations import POSITION_ONLY
 from posecorr.textui import percent
 
-from .base import PoseRegressorMixin, Validation, as_validation, check_pair, check_poses, vector_size
+from .base import PoseRegressorMixin, Validation, as_validation, check_pair, check_poses, check_times, vector_size
 from .identify import describe_spread, rigid_variants
 from .physics import PhysicsModel, RigidModel
 from .spec import ModelSpec, spec_from_options
@@ -59,7 +59,7 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
     def representation(self) -> str:
         if self.core is not None:
             return self.core.representation
-        return "R" if getattr(self, "with_rotation_", True) else POSITION_ONLY
+        return "R" if getattr(self, "with_rotation_", bool(self.with_rotation)) else POSITION_ONLY
 
     def fit(self, measured: np.ndarray, reference: np.ndarray, t: np.ndarray | None = None,
             validation: Validation | None = None, *, warm_start: Any = None,
@@ -72,27 +72,27 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
         differ only in their core), used as it is.
         """
         measured, reference = check_pair(measured, reference)
-        with_rotation = self.with_rotation_ = bool(self.with_rotation)
-        self.physics_ = None
-        stage = measured
+        t = check_times(t, len(measured))
         if self.rigid and self.effects:
             raise ValueError("a rigid pipeline has no further effects; give either a rigid variant or effects")
-        if physics is not None:
-            self.physics_ = physics
-        elif self.rigid:
-            self.physics_ = RigidModel(with_rotation, self.rigid).fit(measured, reference, t=t, warm_start=warm_start)
-        elif self.effects:
-            self.physics_ = PhysicsModel(self.effects, self.sigma_p, self.sigma_r, with_rotation=with_rotation,
-                                         prior_strength=self.prior_strength).fit(
+        with_rotation = bool(self.with_rotation)
+        if physics is None and self.rigid:
+            physics = RigidModel(with_rotation, self.rigid).fit(measured, reference, t=t, warm_start=warm_start)
+        elif physics is None and self.effects:
+            physics = PhysicsModel(self.effects, self.sigma_p, self.sigma_r, with_rotation=with_rotation,
+                                   prior_strength=self.prior_strength).fit(
                 measured, reference, t=t, warm_start=warm_start)
-        if self.physics_ is not None:
-            stage = self.physics_.predict(measured, t)
-        self.core_ = None if self.core is None else clone(self.core)
-        if self.core_ is not None:
+        core = None if self.core is None else clone(self.core)
+        if core is not None:
+            stage = measured if physics is None else physics.predict(measured, t)
             validation = as_validation(validation)
             if validation is not None:   # the core sees the held-out poses as the physics stage leaves them
-                validation = Validation(self.predict_physics(validation.measured, validation.t), validation.reference)
-            self.core_.fit(stage, reference, validation=validation)
+                held = (check_poses(validation.measured, "validation measured") if physics is None
+                        else physics.predict(validation.measured, validation.t))
+                validation = Validation(held, validation.reference)
+            core.fit(stage, reference, validation=validation)
+        # Only a fit that succeeds changes the fitted state: a refused one leaves the last fit whole.
+        self.with_rotation_, self.physics_, self.core_ = with_rotation, physics, core
         self.n_features_in_ = 7
         return self
 

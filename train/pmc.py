@@ -143,6 +143,7 @@ class PMC(BaseCorrector):
             alpha = float(self.alpha)
             if alpha < 0:
                 raise ValueError(f"alpha must be >= 0, got {alpha}")
+            self.__dict__.pop("cv_scores_", None)   # a refit with a given alpha scored none
         W, b = _solve(F, T, alpha)
         # Fold the identity back in: X = (xs - offset) / gain is linear in the features.
         d = X.shape[1]

@@ -25,6 +25,12 @@ def posecorr(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess
                           cwd=cwd, env=env, timeout=600)
 
 
+def test_python_dash_m_posecorr_is_the_command() -> None:
+    via_package = subprocess.run([sys.executable, "-m", "posecorr", "--help"], capture_output=True, text=True,
+                                 timeout=120)
+    assert via_package.returncode == 0 and via_package.stdout == posecorr("--help").stdout
+
+
 @pytest.mark.parametrize("experiment", [1, 2, 3])
 def test_simulate_json_matches_the_paper_raw_rows(tmp_path, experiment: int) -> None:
     out = posecorr("simulate", "--experiment", str(experiment), "--seed", "0", "-o", str(tmp_path / "x.csv"), "--json")

@@ -91,3 +91,20 @@ def test_the_blocking_hook_does_block() -> None:
                          timeout=60)
     assert run.returncode != 0 and "scipy is blocked" in run.stderr
 
+
+
+def test_controller_verbs_run_with_the_heavy_packages_unimportable(tmp_path) -> None:
+    """The verbs the docs give a controller-side install (info, apply, bench, compile) run
+    through the CLI with the heavy packages refused."""
+    table = simulate(3, seed=4).table.subset(np.arange(50))
+    write_table(table, tmp_path / "in.csv")
+    model = str(MODELS / SHIPPED[0])
+    verbs = [["info", model], ["apply", model, str(tmp_path / "in.csv"), "-o", str(tmp_path / "out.csv")],
+             ["bench", model, "--n", "200", "--batch", "50"], ["compile", model, "-o", str(tmp_path / "m.c")]]
+    hook = BLOCKED.split("import numpy")[0].format(heavy=HEAVY)
+    for argv in verbs:
+        script = hook + f"from posecorr.cli import main\nsys.exit(main({argv!r}))\n"
+        run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, (argv[0], run.stderr)
+    assert len((tmp_path / "out.csv").read_text().splitlines()) == 51
+    assert "int m_run(const float in[7], float out[7]);" in (tmp_path / "m.c").read_text()

@@ -806,7 +806,8 @@ def test_posecorr_run_csv(c_build, pose_file):
 
 def test_tools_are_on_path_after_pip_install(pose_file):
     """The package's console scripts start the C tools it built: posecorr-run answers the
-    same pose as the shim, posecorr-bench prints its JSON, both from the venv's bin."""
+    same pose as the shim, posecorr-bench prints its JSON, posecorr-plan its plan, all from
+    the venv's bin."""
     bindir = Path(sys.executable).parent
     run, bench = shutil.which("posecorr-run", path=bindir), shutil.which("posecorr-bench", path=bindir)
     assert run and bench, f"console scripts missing in {bindir}"
@@ -822,7 +823,11 @@ def test_tools_are_on_path_after_pip_install(pose_file):
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["batch_ns_per_pose"] > 0
-    for tool in (run, bench):   # --help is usage on stdout, not a file named --help
+    plan = shutil.which("posecorr-plan", path=bindir)
+    assert plan, f"posecorr-plan missing in {bindir}"
+    r = subprocess.run([plan, str(MLP_ZHOU)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.splitlines()[0].startswith("sop "), r
+    for tool in (run, bench, plan):   # --help is usage on stdout, not a file named --help
         r = subprocess.run([tool, "--help"], capture_output=True, text=True, timeout=60)
         assert r.returncode == 0 and r.stdout.startswith("usage: ") and "MODEL.onnx" in r.stdout, (tool, r)
 

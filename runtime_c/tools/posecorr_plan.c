@@ -373,6 +373,8 @@ static void print_plan(const pc_model *m)
     }
 }
 
+#define USAGE "usage: %s MODEL.onnx [--allow-unbounded] [--allow-unsigned] > plan\n"
+
 int main(int argc, char **argv)
 {
     pc_options opts;
@@ -380,8 +382,12 @@ int main(int argc, char **argv)
     pc_error err;
     int i;
     if (argc < 2) {
-        fprintf(stderr, "usage: %s MODEL.onnx [--allow-unbounded] [--allow-unsigned]\n", argv[0]);
+        fprintf(stderr, USAGE, argv[0]);
         return 2;
+    }
+    if (!strcmp(argv[1], "-h") || !strcmp(argv[1], "--help")) {
+        printf(USAGE, argv[0]);
+        return 0;
     }
     memset(&opts, 0, sizeof opts);
     opts.max_batch = 1;
@@ -399,7 +405,7 @@ int main(int argc, char **argv)
         }
     }
     if (pc_load_file(argv[1], &opts, &model, &err) != PC_OK) {
-        fprintf(stderr, "%s\n", err.message);
+        fprintf(stderr, "posecorr-plan: %s: %s\n", argv[1], err.message);
         return 1;
     }
     print_plan(model);

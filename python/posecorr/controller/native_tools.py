@@ -1,4 +1,4 @@
-"""`posecorr-run` and `posecorr-bench` on PATH after `pip install`: the C tools are built
+"""`posecorr-run`, `posecorr-bench` and `posecorr-plan` on PATH after `pip install`: the C tools are built
 beside libposecorr (posecorr/_native/) and these entry points start them in place of the
 Python process (exec: same pid, stdin/stdout and exit status untouched, no Python between
 a tracker's pipe and the tool)."""
@@ -27,3 +27,7 @@ def run() -> int:
 
 def bench() -> int:
     return _exec("posecorr-bench")
+
+
+def plan() -> int:
+    return _exec("posecorr-plan")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -172,6 +173,31 @@ def test_a_non_finite_pose_is_refused_alike(value):
     x = _inside()
     x[3, 5] = value
     _same(_both(PMC_ZHOU, x), S.NONFINITE, "pose 3: qy is not finite (expected a finite number)")
+
+
+@pytest.mark.parametrize("value", [1e39, -1e300])
+def test_a_value_beyond_float32_is_refused_as_outside_not_as_not_finite(value):
+    """A finite float64 beyond float32's range was cast to inf and refused as "not finite"
+    (on onnxruntime after numpy's warning). Now both back ends refuse it, one pose or a batch,
+    with no warning, in libposecorr's own words for float32's largest value of that sign
+    outside input_bounds; a model without input_bounds, as not fitting in float32."""
+    unbounded = graphs.signed(graphs.without_metadata(onnx.load(PMC_ZHOU), "input_bounds"))
+    x = _inside()
+    largest = x.astype(np.float32)
+    x[3, 0], largest[3, 0] = value, np.copysign(checks.FLOAT32_MAX, value)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for poses, pose in ((x, 3), (x[3], 0)):
+            said = _same(_both(PMC_ZHOU, poses), S.RANGE)
+            with pytest.raises(PoseCorrError) as library:
+                Corrector(PMC_ZHOU).correct(largest if poses.ndim == 2 else largest[3])
+            assert said == str(library.value)
+            errors = []
+            for backend in BACKENDS:
+                with pytest.raises(PoseCorrError) as info:
+                    Corrector(unbounded, backend=backend, allow_unbounded=True).correct(poses)
+                errors.append(info.value)
+            _same(errors, S.RANGE, f"pose {pose}: x = {value:.7g} m does not fit in float32")
 
 
 @pytest.mark.parametrize("scale,norm", [(3.0, "3.000000"), (0.0, "0.000000"), (1.01, "1.010000")])
@@ -409,7 +435,7 @@ def test_a_model_with_non_finite_corrections_is_not_exported(tmp_path):
     assert -when / tau > np.log(np.finfo(np.float32).max)   # exp(-t / tau) overflows float32 there
 
 
-@pytest.mark.parametrize("when", [-100000.0, 1e7, np.nan])
+@pytest.mark.parametrize("when", [-100000.0, 1e7, 1e39, np.nan])
 def test_a_time_outside_the_span_is_refused_alike(drift, when):
     path, table, span = drift
     x, t = table.measured[:10].copy(), table.extras["t"][:10].copy()
@@ -418,7 +444,7 @@ def test_a_time_outside_the_span_is_refused_alike(drift, when):
         _same(_both(path, x, t), S.NONFINITE, "pose 6: t is not finite (expected seconds since the session's start)")
         return
     lo, hi = np.float32(span)
-    _same(_both(path, x, t), S.RANGE, f"pose 6: t = {checks.decimal(np.float32(when))} s is outside the span the "
+    _same(_both(path, x, t), S.RANGE, f"pose 6: t = {checks.decimal(when)} s is outside the span the "
           f"model was fitted on, {checks.decimal(lo)} to {checks.decimal(hi)} s (metadata time_bounds)")
     if when == -100000.0:  # without the check (a span opened wide) kilometres away: the reach
         wide = graphs.signed(_edited(path, time_bounds="[-1e30, 1e30]"))  # catches it still

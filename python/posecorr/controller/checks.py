@@ -27,6 +27,11 @@ unit quaternions, positions inside `input_bounds`, and out, finite poses with un
 quaternions and a correction within `correction_reach`. A pose's refusal reads "pose I:
 CLAUSE" (posecorr.h's pc_run), I its index in the call and CLAUSE naming a column by the
 contract's names (`COLUMNS`, t the time).
+
+A caller's value wider than float32 (float64) may be finite and beyond float32's range: cast
+for the model it is infinite, and refused as not finite. `check_wide_input` names it as the
+caller gave it: outside the model's bounds in run.c's words, or, for a model without bounds,
+as not fitting in float32.
 """
 from __future__ import annotations
 
@@ -35,7 +40,7 @@ import json
 import math
 import re
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import IntEnum
 from functools import lru_cache, partial
 from pathlib import Path
@@ -46,7 +51,7 @@ import numpy as np
 from . import digest, onnx_meta
 
 __all__ = ["PoseCorrError", "Status", "Limits", "check_model", "check_input", "check_output",
-           "failure", "decimal"]
+           "check_wide_input", "failure", "decimal"]
 
 
 class PoseCorrError(ValueError):
@@ -101,6 +106,8 @@ OPSETS = (13, 28)
 OUTPUT_UNIT_TOLERANCE = np.float32(1e-3)
 INPUT_NORM2_RANGE = (0.998001, 1.002001)
 FLOAT32_MAX = float(np.finfo(np.float32).max)
+# What a time model without time_bounds takes of a caller's wider t (check_wide_input).
+_FLOAT32_SPAN = (np.float32(-FLOAT32_MAX), np.float32(FLOAT32_MAX))
 BOX_EXPECTED = "[[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]] in metres"
 SPAN_EXPECTED = "[t_lo, t_hi] in seconds"
 REACH_KEY = "correction_reach"
@@ -130,8 +137,12 @@ def decimal(value: float, places: int = 3) -> str:
 
 
 def _outside(pose: int, name: str, value: float, lo: float, hi: float) -> str:
-    """run.c's pc_outside: a position (metres, input_bounds) or the time t (seconds, time_bounds)."""
+    """run.c's pc_outside: a position (metres, input_bounds) or the time t (seconds, time_bounds).
+    A bound at float32's limit is no model's (`check_wide_input`): beyond it is beyond float32."""
     unit, span, key = ("s", "span", "time_bounds") if name == TIME_INPUT else ("m", "range", "input_bounds")
+    if abs(float(lo if value < lo else hi)) == FLOAT32_MAX:
+        return (f"pose {pose}: {name} = {float(value):.7g} {unit} does not fit in float32, the numbers the model "
+                f"computes in (their largest is {FLOAT32_MAX:.7g})")
     return (f"pose {pose}: {name} = {decimal(value)} {unit} is outside the {span} the model was fitted on, "
             f"{decimal(lo)} to {decimal(hi)} {unit} (metadata {key})")
 
@@ -455,9 +466,10 @@ def _first(mask: np.ndarray) -> int | None:
 
 
 def check_input(limits: Limits, poses: np.ndarray, t: np.ndarray | None) -> None:
-    """run.c's pc_check_input on float32 poses (N, 7) and times (N,) or None (t = 0)."""
+    """run.c's pc_check_input on float32 poses (N, 7) and times (N,) or None (t = 0) (wider
+    ones from `check_wide_input`)."""
     if t is not None or limits.span is not None:
-        times = np.asarray(t if t is not None else np.zeros(1, np.float32), np.float32)
+        times = t if t is not None else np.zeros(1, np.float32)
         nonfinite = ~np.isfinite(times)
         outside = np.zeros_like(nonfinite)
         if limits.span is not None:
@@ -492,6 +504,31 @@ def check_input(limits: Limits, poses: np.ndarray, t: np.ndarray | None) -> None
                                          "(expected a unit quaternion: norm within 0.001 of 1)")
     c = _first(~inside[i])
     raise failure(Status.RANGE, _outside(i, COLUMNS[c], poses[i, c], limits.box[0][c], limits.box[1][c]))
+
+
+def check_wide_input(limits: Limits, poses: np.ndarray, t: np.ndarray | None) -> None:
+    """check_input on a caller's poses (N, 7) and times (N,) or None wider than float32, when
+    one is finite and beyond float32's range: each value as the model reads it, rounded to
+    float32, but that one as given, outside the model's bounds or, where it has none, outside
+    float32's range. Returns when there is none: the refusal of the float32 values stands."""
+    if not (_beyond_float32(poses).any() or (t is not None and _beyond_float32(t).any())):
+        return
+    lo, hi = limits.box
+    span = limits.span if limits.span is not None or t is None else _FLOAT32_SPAN
+    within = replace(limits, box=(np.maximum(lo, -FLOAT32_MAX), np.minimum(hi, FLOAT32_MAX)), span=span)
+    check_input(within, _as_read(poses), None if t is None else _as_read(t))
+
+
+def _beyond_float32(values: np.ndarray) -> np.ndarray:
+    return np.isfinite(values) & (np.abs(values) > FLOAT32_MAX)
+
+
+def _as_read(values: np.ndarray) -> np.ndarray:
+    """`values` rounded to float32 as the model reads them, but those beyond float32's range
+    as given (the cast would make them infinite)."""
+    with np.errstate(over="ignore"):
+        read = values.astype(np.float32)
+    return np.where(_beyond_float32(values), values, read)
 
 
 def _sum4(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -196,6 +196,12 @@ class _CBackend:
         self.n_nodes = int(lib.pc_node_count(self.handle))
         self.takes_time = bool(lib.pc_model_takes_time(self.handle))
 
+    @property
+    def limits(self) -> checks.Limits:
+        """What pc_run checks, read from the metadata for the one refusal the shim makes
+        itself (a value beyond float32's range, Corrector.correct)."""
+        return checks.Limits.from_metadata(self.metadata, self.takes_time, allow_unbounded=True)
+
     def step_paths(self) -> list[tuple[str, str]]:
         """(path, why) of each step of the one-pose plan: "specialised", "general" or
         "interpreted", and what the step is and why it runs that path."""
@@ -233,7 +239,7 @@ class _CBackend:
                 if st > 0:
                     raise self._fail(st)
                 # st < 0: not a float64 contiguous (7,) array; the general path converts it
-            self._in1[:] = pose
+            self._in1[:] = _float32(pose)
             st = self._run(handle, self._in1_ptr, 1, self._out1_ptr)
             if st:
                 raise self._fail(st)
@@ -247,9 +253,9 @@ class _CBackend:
                 raise self._fail(st)
 
     def run(self, poses: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
-        x = np.ascontiguousarray(poses, dtype=np.float32)
+        x = _float32(poses)
         out = np.empty_like(x)
-        tt = None if t is None else np.ascontiguousarray(t, dtype=np.float32)
+        tt = None if t is None else _float32(t)
         with self._lock:
             handle = self._open()
             if tt is None:
@@ -274,6 +280,16 @@ class _CBackend:
             self.close()
         except Exception:
             pass
+
+
+def _float32(values: np.ndarray) -> np.ndarray:
+    """`values` as contiguous float32 for the model. A finite value beyond float32's range
+    becomes inf, refused as not finite and then named as given (Corrector.correct): numpy's
+    warning about the cast would only say it first, and less well."""
+    if values.dtype == np.float32:
+        return np.ascontiguousarray(values)
+    with np.errstate(over="ignore"):
+        return np.ascontiguousarray(values, dtype=np.float32)
 
 
 def _closed(name: str) -> PoseCorrError:
@@ -334,8 +350,8 @@ class _OrtBackend:
         session = self.session
         if session is None:
             raise _closed(self.name)
-        x = np.ascontiguousarray(poses, dtype=np.float32)
-        tt = None if t is None else np.ascontiguousarray(t, dtype=np.float32)
+        x = _float32(poses)
+        tt = None if t is None else _float32(t)
         checks.check_input(self.limits, x, tt)
         feeds = {"pose": x}
         if self.takes_time:
@@ -351,7 +367,7 @@ class _OrtBackend:
         return out.astype(np.float64)
 
     def run1(self, pose: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
-        return self.run(np.asarray(pose, dtype=np.float32).reshape(1, POSE_WIDTH), t)[0]
+        return self.run(_float32(pose).reshape(1, POSE_WIDTH), t)[0]
 
     def close(self) -> None:
         self.session = None
@@ -420,8 +436,9 @@ class Corrector:
         Without it such a model corrects every pose as at t = 0, the session's start.
         Returns float64 of the same shape. Raises PoseCorrError (its `status` is
         libposecorr's) for what either back end refuses: NaN/inf, a position outside the
-        model's input_bounds, a time outside its time_bounds, a quaternion that is not
-        unit, a result that is not a pose.
+        model's input_bounds, a time outside its time_bounds, a value beyond float32's range
+        (where the model has no bounds), a quaternion that is not unit, a result that is not
+        a pose.
         """
         a = _real(poses, "poses")
         single = a.shape == (POSE_WIDTH,)
@@ -434,11 +451,20 @@ class Corrector:
                                  f"for poses of shape {a.shape}, got {t.shape}")
             if not self.takes_time:
                 t = None
-        if single:
-            return self._impl.run1(a, None if t is None else t.reshape(1))
-        if a.shape[0] == 0:
-            return np.zeros((0, POSE_WIDTH))
-        return self._impl.run(a, t)
+        try:
+            if single:
+                return self._impl.run1(a, None if t is None else t.reshape(1))
+            if a.shape[0] == 0:
+                return np.zeros((0, POSE_WIDTH))
+            return self._impl.run(a, t)
+        except PoseCorrError as exc:
+            if exc.status != checks.Status.NONFINITE:
+                raise
+            refused = exc
+        # Checked only once refused, so that a float64 pose costs nothing more: a finite value
+        # beyond float32's range reached the model as inf, and is named here as the caller gave it.
+        checks.check_wide_input(self._impl.limits, a.reshape(-1, POSE_WIDTH), None if t is None else t.reshape(-1))
+        raise refused
 
     def step_paths(self) -> list[tuple[str, str]]:
         """What each step of a pose runs in libposecorr: [(path, why)], path "specialised"

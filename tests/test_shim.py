@@ -85,6 +85,18 @@ def test_errors(lib, model_path, tmp_path):
         Corrector(model_path, backend="tensorflow")
 
 
+def test_repr_names_model_bytes_as_load_errors_do(lib, model_path):
+    """repr of a Corrector loaded from bytes printed every byte of the model (65 kB for a
+    shipped one); now it names them as a load error does."""
+    data = model_path.read_bytes()
+    with pytest.raises(PoseCorrError) as info:
+        Corrector(data[:-1] + bytes([data[-1] ^ 1]), library=lib)   # the same size, one bit changed
+    named = str(info.value).split(": ")[0]
+    assert named == f"model of {len(data)} bytes"
+    assert repr(Corrector(data, library=lib)) == f"Corrector(<{named}>, backend='c')"
+    assert repr(Corrector(model_path, library=lib)) == f"Corrector({str(model_path)!r}, backend='c')"
+
+
 def test_single_pose_fast_path_equals_ctypes(lib, model_path):
     """The single-pose extension (posecorr.controller._call1) gives the ctypes path's result bit for
     bit, refuses what it refuses, and leaves other inputs to the general path."""

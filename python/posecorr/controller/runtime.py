@@ -489,4 +489,6 @@ class Corrector:
         self.close()
 
     def __repr__(self) -> str:
-        return f"Corrector({str(self.path)!r}, backend={self.backend!r})"
+        # A model given as bytes is named as its load errors name it, not by 65 kB of escapes.
+        model = repr(str(self.path)) if isinstance(self.path, Path) else f"<{_where(self.path)}>"
+        return f"Corrector({model}, backend={self.backend!r})"

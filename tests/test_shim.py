@@ -97,6 +97,22 @@ def test_repr_names_model_bytes_as_load_errors_do(lib, model_path):
     assert repr(Corrector(model_path, library=lib)) == f"Corrector({str(model_path)!r}, backend='c')"
 
 
+def test_predict_passes_the_poses_times(lib):
+    """predict had no t: a model that takes time corrected every pose as at t = 0. The test
+    model adds t * rate to the pose (graphs.time_model)."""
+    x = graphs.random_poses(6, seed=4)
+    t = np.linspace(0.0, 3000.0, 6)
+    expected = x + t[:, None] * np.array([1e-4, -2e-4, 3e-5, 0, 0, 0, 0])
+    blob = graphs.time_model().SerializeToString()
+    for c in (Corrector(blob, library=lib, allow_unbounded=True, allow_unsigned=True),
+              Corrector(blob, backend="onnxruntime", allow_unbounded=True, allow_unsigned=True)):
+        assert c.takes_time
+        np.testing.assert_allclose(c.predict(x, t), expected, rtol=0, atol=1e-6)
+        np.testing.assert_array_equal(c.predict(x, t), c.correct(x, t))
+        np.testing.assert_array_equal(c.predict(x[5], t[5]), c.correct(x, t)[5])
+        np.testing.assert_array_equal(c.predict(x), c.correct(x, np.zeros(6)))
+
+
 def test_single_pose_fast_path_equals_ctypes(lib, model_path):
     """The single-pose extension (posecorr.controller._call1) gives the ctypes path's result bit for
     bit, refuses what it refuses, and leaves other inputs to the general path."""

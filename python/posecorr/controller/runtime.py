@@ -473,9 +473,14 @@ class Corrector:
             raise ValueError("step paths describe libposecorr's plan: use backend='c'")
         return self._impl.step_paths()
 
-    def predict(self, measured: Any) -> np.ndarray:
-        """scikit-learn style alias of `correct`."""
-        return self.correct(measured)
+    def predict(self, measured: Any, t: Any = None) -> np.ndarray:
+        """scikit-learn style alias of `correct`: one pose (7,) or a batch (N, 7).
+
+        t: time of each pose, s since the session's start (a scalar for one pose, (N,) for
+        a batch); used by models that take time (`takes_time`), ignored by the others.
+        Without it such a model corrects every pose as at t = 0, the session's start.
+        """
+        return self.correct(measured, t)
 
     __call__ = correct
 

@@ -113,6 +113,24 @@ def test_predict_passes_the_poses_times(lib):
         np.testing.assert_array_equal(c.predict(x), c.correct(x, np.zeros(6)))
 
 
+def test_model_bytes_in_any_bytes_like_object(lib, model_path):
+    """Corrector(memoryview(data)) raised TypeError (expected str, bytes or os.PathLike):
+    bytes, bytearray and memoryview load the model, on both back ends, named by their size."""
+    data = model_path.read_bytes()
+    x = graphs.random_poses(5, seed=3)
+    for backend, kw in (("c", {"library": lib}), ("onnxruntime", {})):
+        expected = Corrector(model_path, backend=backend, **kw).correct(x)
+        for blob in (data, bytearray(data), memoryview(data), memoryview(bytearray(data))):
+            buffer = blob.obj if isinstance(blob, memoryview) else blob
+            c = Corrector(blob, backend=backend, **kw)
+            if isinstance(buffer, bytearray):  # the model keeps its own copy
+                buffer[:] = bytes(len(buffer))
+            np.testing.assert_array_equal(c.correct(x), expected)
+            assert repr(c) == f"Corrector(<model of {len(data)} bytes>, backend={backend!r})"
+        with pytest.raises(PoseCorrError, match="^model of 100 bytes: "):
+            Corrector(memoryview(data)[:100], backend=backend, **kw)
+
+
 def test_single_pose_fast_path_equals_ctypes(lib, model_path):
     """The single-pose extension (posecorr.controller._call1) gives the ctypes path's result bit for
     bit, refuses what it refuses, and leaves other inputs to the general path."""

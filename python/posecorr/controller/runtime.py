@@ -164,10 +164,9 @@ class _CBackend:
         handle = ctypes.c_void_p()
         err = _Error()
         opts = _Options(int(max_batch), flags)
-        if isinstance(path, (bytes, bytearray)):
-            self._blob = bytes(path)
-            st = lib.pc_load_memory(self._blob, len(self._blob), ctypes.byref(opts),
-                                    ctypes.byref(handle), ctypes.byref(err))
+        if isinstance(path, bytes):
+            st = lib.pc_load_memory(path, len(path), ctypes.byref(opts), ctypes.byref(handle),
+                                    ctypes.byref(err))
         else:
             _check_file(path)
             st = lib.pc_load_file(os.fsencode(path), ctypes.byref(opts), ctypes.byref(handle),
@@ -309,7 +308,7 @@ def _check_file(path: str | os.PathLike) -> None:
 
 def _where(path: str | os.PathLike | bytes) -> str:
     """How a load error names the model."""
-    return f"model of {len(path)} bytes" if isinstance(path, (bytes, bytearray)) else os.fspath(path)
+    return f"model of {len(path)} bytes" if isinstance(path, bytes) else os.fspath(path)
 
 
 class _OrtBackend:
@@ -321,8 +320,8 @@ class _OrtBackend:
         import onnxruntime as ort  # only for this backend
 
         name = _where(path)
-        if isinstance(path, (bytes, bytearray)):
-            data = bytes(path)
+        if isinstance(path, bytes):
+            data = path
         else:
             _check_file(path)
             try:
@@ -392,7 +391,7 @@ class Corrector:
 
     Parameters
     ----------
-    path: the .onnx file (or its bytes).
+    path: the .onnx file, or its bytes (bytes, bytearray or memoryview).
     backend: ``"c"`` (libposecorr, default) or ``"onnxruntime"``.
     library: explicit libposecorr path for the C backend (default: see module doc).
     max_batch: poses evaluated per C call, 1 to 4096 (chunking is internal; any N works).
@@ -405,7 +404,7 @@ class Corrector:
     bits of one thread; on the C back end they run one at a time under a lock.
     """
 
-    def __init__(self, path: str | os.PathLike | bytes, backend: str = "c", *,
+    def __init__(self, path: str | os.PathLike | bytes | bytearray | memoryview, backend: str = "c", *,
                  library: str | os.PathLike | None = None, max_batch: int = 256,
                  allow_unbounded: bool = False, allow_unsigned: bool = False) -> None:
         if backend not in ("c", "onnxruntime"):
@@ -413,7 +412,11 @@ class Corrector:
         if isinstance(max_batch, bool) or not isinstance(max_batch, (int, np.integer)) \
                 or not 1 <= max_batch <= MAX_MAX_BATCH:
             raise ValueError(f"max_batch must be an integer from 1 to {MAX_MAX_BATCH}, not {max_batch!r}")
-        self.path = path if isinstance(path, (bytes, bytearray)) else Path(path)
+        # Model bytes as one immutable copy, whatever held them: the back ends and the errors
+        # read bytes, and a later change to the caller's buffer cannot reach the loaded model.
+        if isinstance(path, (bytearray, memoryview)):
+            path = bytes(path)
+        self.path = path if isinstance(path, bytes) else Path(path)
         self.backend = backend
         if backend == "c":
             flags = (_ALLOW_UNBOUNDED if allow_unbounded else 0) | (_ALLOW_UNSIGNED if allow_unsigned else 0)

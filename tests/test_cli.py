@@ -241,6 +241,11 @@ def test_fit_save_round_trips_every_estimator_through_export(tmp_path, method: s
     outputs = [ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]).run(None, {"pose": poses})[0]
                for p in (fitted, exported)]
     assert np.array_equal(outputs[0], outputs[1])
+    # and states the fit's figures: held out, raw and the rigid floor
+    from posecorr.controller import read_info
+
+    stated = [read_info(p)["test_metrics"] for p in (fitted, exported)]
+    assert stated[0] == stated[1] and {"cv", "raw", "rigid"} <= set(stated[0])
 
 
 def test_fit_prints_the_metrics_of_the_file_it_writes(tmp_path) -> None:
@@ -252,10 +257,16 @@ def test_fit_prints_the_metrics_of_the_file_it_writes(tmp_path) -> None:
     data, model = tmp_path / "d.csv", tmp_path / "m.onnx"
     write_table(table, data)
     run = posecorr("fit", str(data), "-o", str(model), "--effects", "station,mount,drift", "--method", "pmc",
-                   "--json", cwd=tmp_path)
+                   "--json", "--save", str(tmp_path / "m.pkl"), cwd=tmp_path)
     assert run.returncode == 0, run.stderr
     fitted = json.loads(run.stdout)
     printed = fitted["test"]
+    # export of the saved estimator states the same test figures: the graph scores the same poses
+    from posecorr.controller import read_info
+
+    assert posecorr("export", str(tmp_path / "m.pkl"), "-o", str(tmp_path / "e.onnx"), cwd=tmp_path).returncode == 0
+    stated = [read_info(p)["test_metrics"] for p in (model, tmp_path / "e.onnx")]
+    assert stated[0] == stated[1] and stated[0]["test"]["rmse_pos"] == pytest.approx(printed["rmse_pos"], rel=1e-12)
     # the paper's frames are registered: raw is a few cm, and the ratio stays against it
     assert fitted["frames_unregistered"] is False
     _, _, test = split_indices(table.n, 0)

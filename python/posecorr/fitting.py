@@ -22,13 +22,17 @@ class FitFiles:
 
 
 def training_fit(report: Any, table: Any) -> Any:
-    """The fitted estimator with the poses it was trained on (for parity and `--save`)."""
+    """The fitted estimator with the poses it was trained on (for parity and `--save`), its
+    held-out poses and the figures its file states."""
     from .saved import SavedFit
 
     rows = report.train_index
     times = table.time()
     return SavedFit(report.model, table.measured[rows], table.reference[rows],
-                    None if times is None else times[rows])
+                    None if times is None else times[rows], heldout=heldout_poses(report, table),
+                    test_metrics={report.heldout_kind: report.heldout, "raw": report.raw,
+                                  # the floor: the best rigid fit, scored alike
+                                  "rigid": {"model": report.baseline_name, **report.baseline}})
 
 
 def heldout_poses(report: Any, table: Any) -> tuple | None:
@@ -44,12 +48,7 @@ def heldout_poses(report: Any, table: Any) -> tuple | None:
 def export_fit(report: Any, table: Any, output: str | Path, write: Any = None) -> dict[str, Any]:
     """Writes report.model to output (`write` as in `export.to_onnx`); report.heldout becomes
     the written graph's figures."""
-    fit = training_fit(report, table)
-    exported = report.model.to_onnx(output, measured=fit.measured, reference=fit.reference, t=fit.t,
-                                    heldout=heldout_poses(report, table), write=write,
-                                    test_metrics={report.heldout_kind: report.heldout, "raw": report.raw,
-                                                  # the floor: the best rigid fit, scored alike
-                                                  "rigid": {"model": report.baseline_name, **report.baseline}})
+    exported = report.model.to_onnx(output, write=write, **training_fit(report, table).export_arguments())
     if exported.get("heldout_metrics"):
         report.heldout = exported["heldout_metrics"]["test"]
     return exported
@@ -71,9 +70,10 @@ def write_fit(report: Any, table: Any, data_path: str | Path, output: str | Path
             written[str(path)] = bytes(data)
             stage.write_bytes(path, data)
 
+        saved = training_fit(report, table)    # before export_fit states the graph's own test figures
         exported = export_fit(report, table, output, write=write)
         if save is not None:
-            save_fit(save, training_fit(report, table), write=stage.write_bytes)
+            save_fit(save, saved, write=stage.write_bytes)
         entry = ledger_fit_entry(report, table, output, effects, written.get(str(output), b""), spec, seed)
         stage.before_replacing(lambda: entry.update(append_entry(data_path, entry)))
     return FitFiles(exported, entry)

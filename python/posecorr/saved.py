@@ -37,12 +37,23 @@ class SavedFileError(ValueError):
 
 @dataclass
 class SavedFit:
-    """A fitted estimator with the training arrays its export checks parity on."""
+    """A fitted estimator with the training arrays its export checks parity on, and what
+    the fit scored it on: its held-out poses (a test split's: the graph scores them again)
+    and the figures the file states (`test_metrics`). A file saved before these were kept
+    reads them as None: its export states no figures."""
 
     estimator: Any
     measured: np.ndarray
     reference: np.ndarray
     t: np.ndarray | None = None
+    heldout: tuple | None = None
+    test_metrics: dict[str, Any] | None = None
+
+    def export_arguments(self) -> dict[str, Any]:
+        """`to_onnx`'s keyword arguments for the file the fit wrote."""
+        stated = {} if self.test_metrics is None else {"test_metrics": self.test_metrics}
+        return {"measured": self.measured, "reference": self.reference, "t": self.t, "heldout": self.heldout,
+                **stated}
 
 
 def key_path() -> Path:
@@ -85,7 +96,8 @@ def save(path: str | Path, fit: SavedFit, write: Callable[[Path, bytes], None] |
         from .safeio import write_bytes as write
     payload = pickle.dumps({"estimator": fit.estimator, "measured": np.asarray(fit.measured),
                             "reference": np.asarray(fit.reference),
-                            "t": None if fit.t is None else np.asarray(fit.t)})
+                            "t": None if fit.t is None else np.asarray(fit.t),
+                            "heldout": fit.heldout, "test_metrics": fit.test_metrics})
     write(Path(path), MAGIC + _signature(_key(create=True), payload) + b"\n" + payload)
 
 
@@ -107,4 +119,5 @@ def load(path: str | Path) -> SavedFit:
     data = pickle.loads(payload)
     if not (isinstance(data, dict) and hasattr(data.get("estimator"), "forward")):
         raise SavedFileError(f"{path}: not a posecorr estimator (no forward method)")
-    return SavedFit(data["estimator"], data["measured"], data["reference"], data.get("t"))
+    return SavedFit(data["estimator"], data["measured"], data["reference"], data.get("t"), data.get("heldout"),
+                    data.get("test_metrics"))

@@ -17,8 +17,8 @@ def run(args: argparse.Namespace) -> None:
     from ..saved import load
 
     fit = load(args.estimator)
-    exported = fit.estimator.to_onnx(args.output, measured=fit.measured, reference=fit.reference, t=fit.t,
-                                     parity="skip" if args.no_parity else "raise")
+    exported = fit.estimator.to_onnx(args.output, parity="skip" if args.no_parity else "raise",
+                                     **fit.export_arguments())
     emit(args, {k: v for k, v in exported.items() if k != "metadata"},
          lambda: f"{args.estimator} -> {args.output} ({exported['n_nodes']} nodes, {exported['file_size']} bytes)")
 

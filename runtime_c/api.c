@@ -15,6 +15,7 @@
 #include <stdlib.h>
 #include <string.h>
 #if defined(__unix__) || defined(__APPLE__)
+#include <errno.h>
 #include <fcntl.h>
 #include <sys/stat.h>
 #include <unistd.h>
@@ -201,8 +202,13 @@ static pc_status pc_read_checks(const pc_builder *b, pc_model *m, unsigned flags
     pc_meta_start(b, &r);
     while ((more = onnx_next_meta(b, &r, &key, &value)) == PB_FIELD)
         for (k = 0; k < 3; k++)
-            if (pb_slice_eq(key, keys[k]))
+            if (pb_slice_eq(key, keys[k])) {
+                /* onnx.checker refuses it too; pc_metadata_lookup would show the first */
+                if (found[k].data)
+                    return pc_fail(b->err, PC_ERR_MALFORMED, "metadata %s appears twice",
+                                   keys[k]);
                 found[k] = value;
+            }
     if (more == PB_ERROR)
         return r.status;
     for (k = 0; k < 3; k += 2) /* input_bounds, correction_reach */
@@ -388,6 +394,24 @@ static const char *pc_file_kind(mode_t mode)
 }
 #endif
 
+#ifdef PC_POSIX_OPEN
+/* Why open(2) failed, in the words of strerror on glibc, without strerror (whose buffer
+ * another thread's call may share). */
+static const char *pc_open_cause(int e)
+{
+    switch (e) {
+    case ENOENT: return ": No such file or directory";
+    case EACCES: return ": Permission denied";
+    case ENOTDIR: return ": Not a directory";
+    case ELOOP: return ": Too many levels of symbolic links";
+    case ENAMETOOLONG: return ": File name too long";
+    case EMFILE: return ": Too many open files";
+    case ENFILE: return ": Too many open files in system";
+    default: return "";
+    }
+}
+#endif
+
 /* fopen of a FIFO waits for a writer, forever, and a device reads without end: where there
  * is POSIX the file is opened without waiting (O_NONBLOCK) and refused at once unless fstat
  * says it is a regular file - the file opened, not one a stat before the open saw. */
@@ -399,7 +423,7 @@ static pc_status pc_open_regular(const char *path, FILE **fp, pc_error *err)
     const int fd = open(path, O_RDONLY | O_NONBLOCK);
     *fp = NULL;
     if (fd < 0)
-        return pc_fail(err, PC_ERR_IO, "cannot open '%s'", path);
+        return pc_fail(err, PC_ERR_IO, "cannot open '%s'%s", path, pc_open_cause(errno));
     if (fstat(fd, &st) != 0) {
         close(fd);
         return pc_fail(err, PC_ERR_IO, "cannot read '%s'", path);
@@ -429,6 +453,7 @@ pc_status pc_load_file(const char *path, const pc_options *opts, pc_model **mode
     uint8_t *buf;
     pc_status st;
     pc_error local;
+    pc_options copied;
     if (!err)
         err = &local;
     if (model)
@@ -459,6 +484,12 @@ pc_status pc_load_file(const char *path, const pc_options *opts, pc_model **mode
         return pc_fail(err, PC_ERR_IO, "cannot read '%s'", path);
     }
     fclose(fp);
+    /* The bytes are freed on return: a model in place would read them after that. */
+    if (opts && (opts->flags & PC_LOAD_IN_PLACE)) {
+        copied = *opts;
+        copied.flags &= ~(unsigned)PC_LOAD_IN_PLACE;
+        opts = &copied;
+    }
     st = pc_load_memory(buf, (size_t)len, opts, model, err);
     free(buf);
     return st;

@@ -560,7 +560,7 @@ static pc_status pc_pass_start(pc_pass *pp, const pc_options *opts)
     pc_status st;
     if ((st = pc_pass_alloc(pp->b, pp)) != PC_OK || (opts && (opts->flags & PC_LOAD_NO_PROGRAMS)))
         return st;
-    limits.ops = opts ? opts->program_ops : 0;
+    limits.ops = !opts ? 0 : opts->program_ops > PC_MAX_PROGRAM_OPS ? PC_MAX_PROGRAM_OPS : opts->program_ops;
     limits.interpret = opts && (opts->flags & PC_LOAD_INTERPRET);
     return pc_program_start(pp, &limits);
 }

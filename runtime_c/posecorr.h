@@ -62,6 +62,8 @@ extern "C" {
 /* Default and upper bound of pc_options.max_batch. */
 #define PC_DEFAULT_MAX_BATCH 256
 #define PC_MAX_MAX_BATCH 4096
+/* Upper bound of pc_options.program_ops: a program's constants keep 16-bit offsets. */
+#define PC_MAX_PROGRAM_OPS 4064
 #define PC_MESSAGE_SIZE 256
 
 typedef enum pc_status {
@@ -138,7 +140,8 @@ typedef struct pc_options {
     /* PC_LOAD_* flags; 0 for the defaults. */
     unsigned flags;
     /* Element operations a one-pose program may hold while it is compiled (each takes
-     * 28 bytes of load-time scratch); 0 selects 512. */
+     * 28 bytes of load-time scratch); 0 selects 512, above PC_MAX_PROGRAM_OPS is taken as
+     * that. */
     size_t program_ops;
 } pc_options;
 
@@ -169,10 +172,13 @@ PC_API pc_status pc_load_into(const void *data, size_t size, const pc_options *o
                               void *buffer, size_t buffer_size, pc_model **model,
                               pc_error *err);
 
-/* Corrects n poses: in and out hold n*7 floats and may alias. n == 0 is a no-op.
+/* Corrects n poses: in and out hold n*7 floats and are the same array or do not overlap
+ * (a partial overlap is PC_ERR_ARGUMENT: a later pose would be read after an earlier one
+ * was written over it). n == 0 is a no-op.
  * Checks, the same for every model whoever wrote it, each with a message naming the pose
  * and column and what was expected (pc_model_message); the input is checked whole before
- * anything is written, and a pose's first broken clause, in this order, is reported:
+ * anything is written (with pc_run_timed the times first, every pose's, then the poses),
+ * and a pose's first broken clause, in this order, is reported:
  *  - a non-finite input value: PC_ERR_NONFINITE, out untouched;
  *  - an input quaternion whose norm is off 1 by more than 1e-3, the pose tables'
  *    tolerance (the model normalises what it gets, so a zero or a norm-3 vector would come
@@ -202,7 +208,7 @@ PC_API pc_status pc_run(pc_model *model, const float *in, size_t n, float *out);
 /* pc_run with the time of each pose: t holds n floats, seconds since the session's start
  * (a non-finite one: PC_ERR_NONFINITE naming the pose; one outside the model's metadata
  * "time_bounds", "[t_lo, t_hi]" in seconds, the span of the training times widened:
- * PC_ERR_RANGE, out untouched). A model without the input "t" ignores t. t may be NULL:
+ * PC_ERR_RANGE, out untouched). A model without the input "t" ignores t, unchecked. t may be NULL:
  * a model that takes time then sees t = 0 for every pose, i.e. a time-dependent
  * correction (drift) is evaluated at the session's start (and t = 0 is checked against
  * "time_bounds"); pc_run is pc_run_timed with t = NULL. */

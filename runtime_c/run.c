@@ -382,6 +382,14 @@ PC_INLINE pc_status pc_run_one(pc_model *m, const float *in, const float *t, flo
 #endif
 }
 
+/* Whether two buffers of `bytes` bytes overlap without being the same (the addresses as
+ * integers: comparing pointers into different objects is undefined). */
+static int pc_partly_overlap(const float *in, const float *out, size_t bytes)
+{
+    const uintptr_t a = (uintptr_t)in, b = (uintptr_t)out;
+    return a != b && a < b + bytes && b < a + bytes;
+}
+
 /* Any n: the arguments checked, the input whole, then chunks of the planned sizes. */
 PC_NOINLINE static pc_status pc_run_chunks(pc_model *model, const float *in, const float *t,
                                            size_t n, float *out)
@@ -390,6 +398,7 @@ PC_NOINLINE static pc_status pc_run_chunks(pc_model *model, const float *in, con
     pc_status st;
     if (!model)
         return PC_ERR_ARGUMENT;
+    model->message[0] = '\0';
     if (n == 0)
         return PC_OK;
     if (!in || !out) {
@@ -399,6 +408,13 @@ PC_NOINLINE static pc_status pc_run_chunks(pc_model *model, const float *in, con
     }
     if (n > ((size_t)-1) / (PC_POSE_WIDTH * sizeof(float))) {
         pc_format(model->message, sizeof model->message, "pc_run: n = %zu is too large", n);
+        return PC_ERR_ARGUMENT;
+    }
+    /* Chunk k's output would overwrite a later chunk's input (one pose reads all of its
+     * input before it writes, so pc_run_one needs no such check). */
+    if (pc_partly_overlap(in, out, n * PC_POSE_WIDTH * sizeof(float))) {
+        pc_format(model->message, sizeof model->message, "pc_run: out overlaps in without being "
+                  "it (give the same array, or two that do not overlap)");
         return PC_ERR_ARGUMENT;
     }
     /* Reject before writing anything, so that out is untouched on these errors. */
@@ -435,5 +451,6 @@ PC_HOT pc_status pc_run(pc_model *model, const float *in, size_t n, float *out)
 PC_HOT pc_status pc_run_timed(pc_model *model, const float *in, const float *t, size_t n,
                               float *out)
 {
-    return pc_run_poses(model, in, t, n, out);
+    /* a model without the input t ignores it: its times are not checked either */
+    return pc_run_poses(model, in, model && model->takes_time ? t : NULL, n, out);
 }

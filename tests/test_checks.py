@@ -351,6 +351,18 @@ def test_edited_input_bounds_are_refused_at_load(bounds, fragment):
     _same(_load_errors(blob), S.MALFORMED, fragment)
 
 
+@pytest.mark.parametrize("key", ["input_bounds", "time_bounds", "correction_reach"])
+def test_a_bound_given_twice_is_refused_at_load(key):
+    """onnx.checker refuses a key given twice; libposecorr's checks took the last value and
+    pc_metadata_lookup the first, so a file could say one box and enforce another."""
+    model = onnx.load(PMC_ZHOU)
+    value = {e.key: e.value for e in model.metadata_props}.get(key, "[0, 1]")
+    for _ in range(2):
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    _same(_load_errors(graphs.signed(model)), S.MALFORMED, f"metadata {key} appears twice")
+
+
 # --- time outside the fitted span -------------------------------------------------------------
 
 @pytest.fixture(scope="module")

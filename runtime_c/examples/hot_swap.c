@@ -38,14 +38,29 @@ typedef struct shared {
     atomic_int stop;
 } shared;
 
-/* A new model must answer a probe pose like a corrector: finite, unit quaternion (pc_run
- * checks both for posecorr's models) — on this thread, before the loop ever sees it. */
+/* The centre of the model's training box (metadata input_bounds), unturned: a pose it
+ * must take. The origin for a model without the box. */
+static void probe_pose(const pc_model *m, float pose[7])
+{
+    const char *box = pc_metadata_lookup(m, "input_bounds");
+    float lo[3], hi[3];
+    int k;
+    memset(pose, 0, 7 * sizeof *pose);
+    pose[3] = 1.0f;
+    if (box && sscanf(box, " [ [ %f , %f , %f ] , [ %f , %f , %f ] ]", &lo[0], &lo[1], &lo[2],
+                      &hi[0], &hi[1], &hi[2]) == 6)
+        for (k = 0; k < 3; k++)
+            pose[k] = 0.5f * (lo[k] + hi[k]);
+}
+
+/* A new model must answer the probe pose like a corrector: a finite pose with a unit
+ * quaternion, within the model's correction_reach (pc_run checks all three) — on this
+ * thread, before the loop ever sees it. */
 static int check_model(pc_model *m, char *why, size_t size)
 {
-    const float probe[7] = {0.0f, 0.0f, 0.5f, 1.0f, 0.0f, 0.0f, 0.0f};
-    float out[7];
-    const pc_status st = pc_run(m, probe, 1, out);
-    if (st != PC_OK && st != PC_ERR_RANGE) {
+    float probe[7], out[7];
+    probe_pose(m, probe);
+    if (pc_run(m, probe, 1, out) != PC_OK) {
         snprintf(why, size, "probe pose: %s", pc_model_message(m));
         return 0;
     }

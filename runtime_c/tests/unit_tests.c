@@ -350,6 +350,15 @@ static void test_load_and_run(void)
         /* in-place */
         memcpy(out, in, 10 * 7 * sizeof(float));
         CHECK(pc_run(m, out, 10, out) == PC_OK && out[0] == f32(in[0] + c[0]) && out[3] == in[3]);
+        /* a partial overlap of several poses: refused, out untouched (a later pose would be
+         * read after an earlier one's output was written over it); of one pose: answered,
+         * its input read whole before its output is written */
+        memcpy(out, in, 11 * 7 * sizeof(float));
+        CHECK(pc_run(m, out, 10, out + 7) == PC_ERR_ARGUMENT && out[7] == in[7]);
+        CHECK(strstr(pc_model_message(m), "out overlaps in") != NULL);
+        CHECK(pc_run(m, out + 7, 10, out) == PC_ERR_ARGUMENT && out[0] == in[0]);
+        CHECK(pc_run(m, out, 1, out + 3) == PC_OK && out[3] == f32(in[0] + c[0]) &&
+              out[5] == f32(in[2] + c[2]) && out[6] == in[3]);
         /* n = 0 is a no-op */
         out[0] = 42.0f;
         CHECK(pc_run(m, NULL, 0, NULL) == PC_OK);
@@ -362,6 +371,8 @@ static void test_load_and_run(void)
         CHECK(strstr(pc_model_message(m), "pose 2") != NULL);
         in[2 * 7 + 5] = -INFINITY;
         CHECK(pc_run(m, in, 3, out) == PC_ERR_NONFINITE);
+        /* a success, even of no pose, leaves no message of the failure before it */
+        CHECK(pc_run(m, in, 0, out) == PC_OK && pc_model_message(m)[0] == '\0');
         ok = 1;
         for (i = 0; i < 3 * 7; i++)
             if (out[i] != -7.0f)
@@ -369,6 +380,12 @@ static void test_load_and_run(void)
         CHECK(ok);
         CHECK(pc_run(m, in, 1, NULL) == PC_ERR_ARGUMENT);
         CHECK(pc_run(NULL, in, 1, out) == PC_ERR_ARGUMENT);
+        /* a model without the input t ignores the times, unchecked */
+        {
+            const float never[2] = {NAN, INFINITY};
+            CHECK(pc_run_timed(m, in, never, 2, out) == PC_OK && out[0] == f32(in[0] + c[0]));
+            CHECK(pc_run_timed(m, in, never, 1, out) == PC_OK);
+        }
         /* metadata */
         CHECK(pc_metadata_count(m) == 1);
         CHECK(strcmp(pc_metadata_key(m, 0), "method") == 0);
@@ -651,6 +668,11 @@ static void test_contract(void)
     model.d[at] = 'G'; /* not hexadecimal */
     CHECK(pc_load_memory(model.d, model.n, &ALLOW, &m, &err) == PC_ERR_INTEGRITY && !m);
     CHECK(strstr(err.message, "expected crc32c: and 8 lowercase hexadecimal digits") != NULL);
+    /* a bound given twice: refused (the checks would take one, pc_metadata_lookup the other) */
+    build_meta(&model, &ADD, c, "input_bounds", "[[-1, -1, -1], [1, 1, 1]]");
+    add_meta(&model, "input_bounds", "[[-1, 0, -1], [1, 1, 1]]");
+    CHECK(pc_load_memory(model.d, model.n, &ALLOW, &m, &err) == PC_ERR_MALFORMED && !m);
+    CHECK(strcmp(err.message, "metadata input_bounds appears twice") == 0);
     /* a reach that allows the correction: answered */
     build_meta(&model, &ADD, c, "correction_reach", "[2.5, 0.01]");
     CHECK(pc_load_memory(model.d, model.n, &ALLOW, &m, &err) == PC_OK);
@@ -724,6 +746,9 @@ static void test_errors(void)
     CHECK(pc_load_memory(model.d, model.n, NULL, NULL, &err) == PC_ERR_ARGUMENT);
     CHECK(pc_load_file("/nonexistent/model.onnx", NULL, &m, &err) == PC_ERR_IO);
     CHECK(strstr(err.message, "/nonexistent/model.onnx") != NULL);
+#if defined(__unix__) || defined(__APPLE__)
+    CHECK(strstr(err.message, ": No such file or directory") != NULL); /* the cause, not only the path */
+#endif
 }
 
 /* The centre of the positions and times a model was fitted on (its metadata "input_bounds"
@@ -764,12 +789,29 @@ int main(int argc, char **argv)
             pc_model *m;
             pc_error err;
             float in[7] = {0.0f, 0.0f, 0.0f, 1.0f, 0.0f, 0.0f, 0.0f}, out[7], t = 0.0f;
+            /* pc_load_file frees the file's bytes once loaded: it loads a copy whatever
+             * PC_LOAD_IN_PLACE says; program_ops beyond PC_MAX_PROGRAM_OPS is taken as
+             * that bound, not as no programs */
+            const pc_options in_place = {0, PC_LOAD_IN_PLACE, 0};
+            const pc_options most = {0, 0, PC_MAX_PROGRAM_OPS}, beyond = {0, 0, (size_t)-1};
+            pc_model *again, *capped, *huge;
+            float again_out[7];
             CHECK(pc_load_file(argv[a], NULL, &m, &err) == PC_OK);
-            if (m) {
+            CHECK(pc_load_file(argv[a], &in_place, &again, &err) == PC_OK);
+            CHECK(pc_load_file(argv[a], &most, &capped, &err) == PC_OK);
+            CHECK(pc_load_file(argv[a], &beyond, &huge, &err) == PC_OK);
+            if (m && again && capped && huge) {
                 fitted_centre(m, in, &t);
                 CHECK(pc_run_timed(m, in, &t, 1, out) == PC_OK);
-                pc_free(m);
+                CHECK(pc_run_timed(again, in, &t, 1, again_out) == PC_OK &&
+                      memcmp(out, again_out, sizeof out) == 0);
+                CHECK(pc_step_count(huge) == pc_step_count(capped) &&
+                      pc_arena_bytes(huge) == pc_arena_bytes(capped));
             }
+            pc_free(m);
+            pc_free(again);
+            pc_free(capped);
+            pc_free(huge);
         }
     }
     printf("%d passed, %d failed\n", n_pass, n_fail);

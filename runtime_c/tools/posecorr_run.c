@@ -301,7 +301,7 @@ static int run_text(pc_model *model, int strict)
             has_t = split_time(line, &t, &hex);
         if (buf.has_nul || buf.too_long || !parse_line(line, in, &hex) || hex) {
             fprintf(stderr, "posecorr-run: line %lu: expected 7 comma-separated numbers "
-                            "x,y,z,qw,qx,qy,qz%s\n", line_no,
+                            "x,y,z,qw,qx,qy,qz and an optional 8th, t%s\n", line_no,
                     buf.has_nul ? " (the line holds a NUL byte)"
                     : buf.too_long ? " (out of memory reading the line)"
                     : hex ? " in plain decimal notation (like -0.125 or 1.5e-3), not hexadecimal" : "");

@@ -44,7 +44,7 @@ from dataclasses import dataclass, replace
 from enum import IntEnum
 from functools import lru_cache, partial
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -223,10 +223,14 @@ class Limits:
 
     @classmethod
     def from_metadata(cls, metadata: Mapping[str, str], takes_time: bool,
-                      allow_unbounded: bool = False) -> "Limits":
+                      allow_unbounded: bool = False, repeated: Sequence[str] = ()) -> "Limits":
         """Raises PoseCorrError: status MALFORMED for bounds that are not finite float32
-        numbers or are inverted, CONTRACT for a model without input_bounds or
-        correction_reach unless `allow_unbounded`."""
+        numbers or are inverted, or given twice (`repeated`: the file's keys given again),
+        CONTRACT for a model without input_bounds or correction_reach unless
+        `allow_unbounded`."""
+        for key in repeated:
+            if key in ("input_bounds", "time_bounds", REACH_KEY):
+                raise PoseCorrError(f"metadata {key} appears twice", int(Status.MALFORMED))
         for key, what in (("input_bounds", "which positions it was fitted on"),
                           (REACH_KEY, "how far its corrections reach")):
             if key not in metadata and not allow_unbounded:
@@ -325,7 +329,7 @@ def check_model(data: bytes, where: str, allow_unbounded: bool = False,
                                 f"element {int(bad[0])} (expected finite weights)", int(Status.MALFORMED))
     takes_time = any(kind == "input" and io["name"] == TIME_INPUT for kind, io in graph["io"])
     with _named(where):
-        limits = Limits.from_metadata(model["metadata"], takes_time, allow_unbounded)
+        limits = Limits.from_metadata(model["metadata"], takes_time, allow_unbounded, model["repeated"])
     # Last: libposecorr reads names as bytes and loads such a file; onnxruntime cannot.
     at = onnx_meta.first_not_utf8(model, graph)
     if at is not None:

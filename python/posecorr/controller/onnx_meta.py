@@ -310,10 +310,12 @@ def _parse(data: bytes, path: str) -> dict[str, Any]:
 
 
 def _model(data: bytes) -> dict[str, Any]:
-    """The ModelProto's top level: "metadata" ({key: value as stored}), "ir_version" (None
-    without one), "producer", "opset_import" ({domain: version}) and the graph's bytes;
-    "no graph" without one, as libposecorr says."""
+    """The ModelProto's top level: "metadata" ({key: value as stored, the last of a key
+    given twice}), "repeated" (the keys given again, in the order of their second entry),
+    "ir_version" (None without one), "producer", "opset_import" ({domain: version}) and the
+    graph's bytes; "no graph" without one, as libposecorr says."""
     meta: dict[str, str] = {}
+    repeated: list[str] = []
     opsets: dict[str, int] = {}
     top: dict[str, Any] = {"ir_version": None, "producer": {"name": "", "version": ""}, "graph": None}
     for f, wire, v in _message_fields(data, "model"):
@@ -328,10 +330,13 @@ def _model(data: bytes) -> dict[str, Any]:
             opsets[_str(opset[1]) or "ai.onnx"] = opset[2]
         elif f == 14:
             entry = _pick(_fields(v), {1: b"", 2: b""})     # StringStringEntryProto: key, value
-            meta[_str(entry[1])] = _str(entry[2])
+            key = _str(entry[1])
+            if key in meta and key not in repeated:
+                repeated.append(key)
+            meta[key] = _str(entry[2])
     if top["graph"] is None:
         raise _Malformed("no graph")
-    return {"metadata": meta, "opset_import": opsets, **top}
+    return {"metadata": meta, "repeated": repeated, "opset_import": opsets, **top}
 
 
 def _graph(graph: bytes) -> dict[str, Any]:

@@ -87,9 +87,10 @@ class Cell:
                             + (f"; the node exited: {self.proc.stderr.read()}" if died else "") + ")")
             rclpy.spin_once(self.node, timeout_sec=0.02)
 
-    def publish(self, poses: np.ndarray, first: int, rate_hz: float, at_index=None) -> None:
-        """Publishes poses[k] with stamp (first + k) ms, paced at rate_hz; at_index[k]() runs
-        before pose k."""
+    def publish(self, poses: np.ndarray, first: int, rate_hz: float, at_index=None,
+                frame: str = "tracker") -> None:
+        """Publishes poses[k] with stamp (first + k) ms in `frame`, paced at rate_hz;
+        at_index[k]() runs before pose k."""
         period, start = 1.0 / rate_hz, time.perf_counter()
         for k, p in enumerate(poses):
             if at_index and k in at_index:
@@ -97,7 +98,7 @@ class Cell:
             msg = PoseStamped()
             ns = (first + k) * 1_000_000
             msg.header.stamp.sec, msg.header.stamp.nanosec = ns // 1_000_000_000, ns % 1_000_000_000
-            msg.header.frame_id = "tracker"
+            msg.header.frame_id = frame
             msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = map(float, p[:3])
             (msg.pose.orientation.w, msg.pose.orientation.x, msg.pose.orientation.y,
              msg.pose.orientation.z) = map(float, p[3:])
@@ -246,3 +247,45 @@ def test_model_parameter_switches_the_served_file(domain, tmp_path):
     finally:
         code, out, err = cell.stop()
     assert code == 130, err  # stopped by SIGINT (128 + 2)
+
+
+def test_input_frame_refuses_poses_in_another_frame(domain, tmp_path):
+    """--input-frame tracker: poses in 'lighthouse' are refused and counted, one log line for
+    the frame however many poses; the poses in 'tracker' around them are corrected, labelled
+    in the robot's frame."""
+    cell = Cell(FIRST, domain, "--input-frame", "tracker")
+    try:
+        x = _poses(60, seed=6)
+        cell.publish(x[:20], first=0, rate_hz=500.0)
+        cell.publish(x[20:50], first=20, rate_hz=500.0, frame="lighthouse")
+        cell.publish(x[50:], first=50, rate_hz=500.0)
+        cell.wait(lambda: cell.diagnostics[-1]["poses_in"] == "60", 10, "poses lost")
+        d = cell.diagnostics[-1]
+        assert (d["poses_out"], d["refused"]) == ("30", "30")
+        assert "frame 'lighthouse'" in d["last_refusal"] and "'tracker'" in d["last_refusal"], d
+        assert sorted(cell.got) == [k * 1_000_000 for k in [*range(20), *range(50, 60)]]
+        np.testing.assert_array_equal(cell.outputs(50, 10), _shim(FIRST, x[50:]))
+    finally:
+        code, out, err = cell.stop()
+    assert code == 130, err
+    assert "input frame 'tracker', output frame base_link" in err, err
+    assert [line for line in err.splitlines() if "frame 'lighthouse'" in line] == [
+        "posecorr ros2: refusing poses in frame 'lighthouse': the model takes 'tracker' (--input-frame)"], err
+
+
+def test_without_input_frame_every_frame_is_taken_and_named_once(domain):
+    """No --input-frame: poses in any frame are corrected, and the log names each distinct
+    frame once, so a tracker publishing in an unexpected frame is seen."""
+    cell = Cell(FIRST, domain)
+    try:
+        x = _poses(30, seed=7)
+        cell.publish(x[:20], first=0, rate_hz=500.0, frame="lighthouse")
+        cell.publish(x[20:], first=20, rate_hz=500.0)
+        cell.wait(lambda: len(cell.got) == len(x), 10, "poses lost")
+        np.testing.assert_array_equal(cell.outputs(0, len(x)), _shim(FIRST, x))
+    finally:
+        code, out, err = cell.stop()
+    assert code == 130, err
+    named = [line for line in err.splitlines() if "taken unchecked" in line]
+    assert len(named) == 2 and "'lighthouse'" in named[0] and "'tracker'" in named[1], err
+    assert "input frame any, output frame base_link" in err, err

@@ -13,7 +13,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("model", type=Path, help="the model (ONNX)")
     p.add_argument("--input", default="/tracker/pose", help="PoseStamped topic of the raw tracker pose")
     p.add_argument("--output", default="/tracker/pose_corrected", help="topic of the corrected pose")
-    p.add_argument("--frame", default="base_link", help="frame id of the corrected pose (the robot's)")
+    p.add_argument("--frame", default="base_link",
+                   help="frame id of the corrected pose (the robot's, where the model's reference poses were)")
+    p.add_argument("--input-frame", metavar="FRAME",
+                   help="the frame id of the raw poses the model was fitted in: a pose in any other "
+                        "is refused (default: every frame taken, each one logged once)")
     p.add_argument("--reliable", action="store_true", help="reliable QoS (default: sensor data, best effort)")
     p.add_argument("--t0", type=options.real(),
                    help="models with time: t = stamp - T0 (default: the first pose's stamp)")
@@ -29,7 +33,7 @@ def run(args: argparse.Namespace) -> None:
     from ..safeio import Terminated
 
     final = run_node(args.model, input_topic=args.input, output_topic=args.output,
-                     frame=args.frame, reliable=args.reliable, t0=args.t0,
+                     frame=args.frame, input_frame=args.input_frame, reliable=args.reliable, t0=args.t0,
                      diag_period=args.diagnostics_period, allow=allow_arguments(args),
                      log=(lambda m: print(m, file=sys.stderr, flush=True)))
     if args.json:

@@ -1,10 +1,15 @@
 """The correcting node: PoseStamped in, corrected PoseStamped out, models swapped live.
 
 - Each incoming pose is corrected on the subscription's thread by the C runtime (the
-  shim's single-pose path) and published with the input's stamp and the robot's frame id.
+  shim's single-pose path) and published with the input's stamp and the robot's frame id
+  (`frame`): the model maps the measured pose into the frame its reference poses were in.
   A pose the model refuses (non-finite, a zero quaternion, outside the model's
   `input_bounds`, a result that is not a pose) is not published; it is counted, and the
   last reason is in the diagnostics.
+- The input's frame id: the model knows poses only in the frame it was fitted in, and the
+  node cannot tell that frame from the file. With `input_frame` set, a pose in any other
+  frame is refused (counted, one log line per distinct frame); without it every frame is
+  taken, and each distinct one is logged once, so a stream in an unexpected frame shows.
 - Models with time take `t` from the stamps: seconds since the first pose, or since `t0`.
 - Hot swap: a watcher thread polls the model file (size, modification time, inode; read
   once it stayed the same for two polls, so a file being written is never read half-way;
@@ -38,6 +43,9 @@ from posecorr.controller.runtime import Corrector, PoseCorrError
 POLL_SECONDS = 0.05
 LATENCY_WINDOW = 10_000
 PROBE_POSES = 16
+# distinct input frames logged: a stream naming a new frame in every message must not log
+# every message
+FRAMES_LOGGED = 16
 
 
 @dataclass
@@ -185,8 +193,8 @@ class _Correcting:
     imported only with the `ros2` extra."""
 
     def __init__(self, ros: dict[str, Any], first: Loaded, model: Path, *, node_name: str,
-                 input_topic: str, output_topic: str, frame: str, reliable: bool,
-                 t0: float | None, diag_period: float, log) -> None:
+                 input_topic: str, output_topic: str, frame: str, input_frame: str | None,
+                 reliable: bool, t0: float | None, diag_period: float, log) -> None:
         super().__init__(node_name)
         self._ros, self._log = ros, log
         self.watcher: ModelWatcher | None = None
@@ -196,6 +204,11 @@ class _Correcting:
         self.latency_us: deque = deque(maxlen=LATENCY_WINDOW)
         self.t0 = t0
         self.frame = frame
+        self.input_frame = input_frame
+        self.frames_seen: set[str] = set()
+        # the frame of the last pose taken: only a pose in another one is looked at (one
+        # string compare on the hot path); None lets the first pose's frame be logged
+        self._frame_taken = input_frame
         self._generation = 1
         self._handover = threading.Lock()
         self._create_topics(input_topic, output_topic, reliable)
@@ -234,9 +247,11 @@ class _Correcting:
         arrival = time.perf_counter()
         loaded = self._take_incoming()
         self.counts.poses_in += 1
+        stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+        if msg.header.frame_id != self._frame_taken and not self._take_frame(msg.header.frame_id, stamp):
+            return
         p, o = msg.pose.position, msg.pose.orientation
         pose = np.array([p.x, p.y, p.z, o.w, o.x, o.y, o.z])
-        stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
         if self.t0 is None:
             self.t0 = stamp
         try:
@@ -253,6 +268,26 @@ class _Correcting:
         self.counts.poses_out += 1
         self.counts.per_generation[loaded.generation] += 1
         self.latency_us.append((time.perf_counter() - arrival) * 1e6)
+
+    def _take_frame(self, frame: str, stamp: float) -> bool:
+        """Whether a pose in `frame`, another than the last pose's, is corrected: any frame
+        without input_frame, only that one with it. Each distinct frame is logged once."""
+        first_time = frame not in self.frames_seen and len(self.frames_seen) < FRAMES_LOGGED
+        if first_time:
+            self.frames_seen.add(frame)
+        if self.input_frame is None:
+            self._frame_taken = frame
+            if first_time:
+                self._log(f"posecorr ros2: input in frame {frame!r}, taken unchecked (--input-frame "
+                          f"names the frame the model was fitted in and refuses any other)")
+            return True
+        self.counts.refused += 1
+        self.counts.last_refusal = (f"stamp {stamp:.9f}: frame {frame!r}, the model takes "
+                                    f"{self.input_frame!r} (--input-frame)")
+        if first_time:
+            self._log(f"posecorr ros2: refusing poses in frame {frame!r}: the model takes "
+                      f"{self.input_frame!r} (--input-frame)")
+        return False
 
     def _publish_pose(self, stamp, c: np.ndarray) -> None:
         out = self._out  # reused: no message allocated per pose
@@ -317,7 +352,8 @@ class _Correcting:
 
 def make_node(model: Path, *, input_topic: str = "/tracker/pose",
               output_topic: str = "/tracker/pose_corrected", frame: str = "base_link",
-              reliable: bool = False, t0: float | None = None, diag_period: float = 1.0,
+              input_frame: str | None = None, reliable: bool = False, t0: float | None = None,
+              diag_period: float = 1.0,
               node_name: str = "posecorr", log=print, allow: dict[str, bool] | None = None):
     """The node (rclpy must be initialised). Returns (node, watcher); the caller spins it
     and stops the watcher."""
@@ -326,8 +362,8 @@ def make_node(model: Path, *, input_topic: str = "/tracker/pose",
     first.generation = 1
     node_class = type("CorrectorNode", (_Correcting, ros["Node"]), {})
     node = node_class(ros, first, model, node_name=node_name, input_topic=input_topic,
-                      output_topic=output_topic, frame=frame, reliable=reliable, t0=t0,
-                      diag_period=diag_period, log=log)
+                      output_topic=output_topic, frame=frame, input_frame=input_frame,
+                      reliable=reliable, t0=t0, diag_period=diag_period, log=log)
     node.watcher = ModelWatcher(model, node.deliver, node.report_error, allow=allow)
     node.watcher.start()
     return node, node.watcher
@@ -354,7 +390,8 @@ def run_node(model: Path, log=print, **options) -> dict[str, str]:
     try:
         node, watcher = make_node(model, log=log, **options)
         log(f"posecorr ros2: {node.current.model_id} on {node.subscription.topic_name} -> "
-            f"{node.publisher.topic_name} (frame {node.frame})")
+            f"{node.publisher.topic_name} (input frame "
+            f"{'any' if node.input_frame is None else repr(node.input_frame)}, output frame {node.frame})")
         # rclpy's experimental events executor measured no faster here (1,020 against 1,140
         # poses/s unpaced, bench/ros2_latency.py, load 1.9)
         from rclpy.executors import SingleThreadedExecutor

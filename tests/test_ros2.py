@@ -289,3 +289,43 @@ def test_without_input_frame_every_frame_is_taken_and_named_once(domain):
     named = [line for line in err.splitlines() if "taken unchecked" in line]
     assert len(named) == 2 and "'lighthouse'" in named[0] and "'tracker'" in named[1], err
     assert "input frame any, output frame base_link" in err, err
+
+
+def test_model_parameter_naming_a_file_that_cannot_serve_is_refused(domain, tmp_path):
+    """`model` set to a missing file, then to a corrupt one: each set is refused with the
+    reason, the parameter still names the served file, the reason is logged once and in the
+    diagnostics, and the served file is still watched (replacing it swaps the model)."""
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
+    from posecorr.ros2.node import model_id
+
+    model = tmp_path / "model.onnx"
+    shutil.copy(FIRST, model)
+    corrupt = tmp_path / "corrupt.onnx"
+    corrupt.write_bytes(b"\x08\x07 half a model")
+    cell = Cell(model, domain)
+    try:
+        client = AsyncParameterClient(cell.node, "posecorr")
+        assert client.wait_for_services(timeout_sec=10.0)
+        for target, why in [(tmp_path / "missing.onnx", "No such file or directory"),
+                            (corrupt, "truncated file")]:
+            future = client.set_parameters([Parameter("model", value=str(target))])
+            cell.wait(future.done, 10, "the parameter service did not answer")
+            (result,) = future.result().results
+            assert not result.successful and str(target) in result.reason and why in result.reason, result
+            future = client.get_parameters(["model"])
+            cell.wait(future.done, 10, "the parameter service did not answer")
+            assert future.result().values[0].string_value == str(model)
+            cell.wait(lambda: str(target) in cell.diagnostics[-1]["last_load_error"], 5,
+                      "the refusal is not in the diagnostics")
+        tmp = tmp_path / "incoming.onnx"
+        shutil.copy(SECOND, tmp)
+        os.replace(tmp, model)
+        cell.wait(lambda: cell.diagnostics[-1]["pending_model"] == model_id(model, SECOND.read_bytes()),
+                  10, "the served file is no longer watched")
+    finally:
+        code, out, err = cell.stop()
+    assert code == 130, err
+    refused = [line for line in err.splitlines() if "model parameter refused" in line]
+    assert len(refused) == 2 and "missing.onnx" in refused[0] and "corrupt.onnx" in refused[1], err

@@ -21,7 +21,7 @@ rclpy = pytest.importorskip("rclpy", reason="the ros2 extra is not installed (pi
 
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PoseStamped  # noqa: E402
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
 
 from posecorr.controller.runtime import Corrector  # noqa: E402
 
@@ -329,3 +329,67 @@ def test_model_parameter_naming_a_file_that_cannot_serve_is_refused(domain, tmp_
     assert code == 130, err
     refused = [line for line in err.splitlines() if "model parameter refused" in line]
     assert len(refused) == 2 and "missing.onnx" in refused[0] and "corrupt.onnx" in refused[1], err
+
+
+def test_a_failed_file_after_a_swap_not_yet_taken_names_the_model_that_will_serve(domain, tmp_path):
+    """Model 2 loaded but not taken (no pose came since), then a corrupt file: the log says
+    model 2 is kept, the one the next pose gets, not model 1."""
+    from posecorr.ros2.node import model_id
+
+    model = tmp_path / "model.onnx"
+    shutil.copy(FIRST, model)
+    cell = Cell(model, domain)
+
+    def replace_with(data: bytes) -> None:
+        tmp = tmp_path / "incoming.onnx"
+        tmp.write_bytes(data)
+        os.replace(tmp, model)
+
+    second = model_id(model, SECOND.read_bytes())
+    try:
+        replace_with(SECOND.read_bytes())
+        cell.wait(lambda: cell.diagnostics[-1]["pending_model"] == second, 10, "model 2 not loaded")
+        replace_with(b"\x08\x07 half a model")
+        cell.wait(lambda: cell.diagnostics[-1]["last_load_error"], 10, "the corrupt file not reported")
+        assert cell.diagnostics[-1]["pending_model"] == second
+    finally:
+        code, out, err = cell.stop()
+    assert code == 130, err
+    (kept,) = [line for line in err.splitlines() if " kept " in line]
+    assert kept.startswith(f"posecorr ros2: kept {second}: "), err
+
+
+def test_non_unit_quaternions_are_refused(domain):
+    """A quaternion whose norm is off 1 by more than 1e-3 is refused and counted; one within
+    it is corrected."""
+    cell = Cell(FIRST, domain)
+    try:
+        x = _poses(2, seed=8)
+        x[0, 3:] *= 1.0005
+        x[1, 3:] *= 1.01
+        cell.publish(x, first=0, rate_hz=500.0)
+        cell.wait(lambda: cell.diagnostics[-1]["poses_in"] == "2", 10, "poses lost")
+        d = cell.diagnostics[-1]
+        assert (d["poses_out"], d["refused"]) == ("1", "1") and list(cell.got) == [0]
+        assert "norm 1.010000" in d["last_refusal"] and "within 0.001 of 1" in d["last_refusal"], d
+    finally:
+        cell.stop()
+
+
+# rclpy's own report of the mismatched QoS calls a logger method it deprecated
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_the_summary_of_a_node_that_published_no_pose_says_so(domain):
+    """A best-effort publisher and the node's reliable subscription never match: no pose
+    comes in, and the summary says 'no poses' where the latency would be (it said nan)."""
+    cell = Cell(FIRST, domain)
+    try:
+        cell.pub = cell.node.create_publisher(PoseStamped, "/tracker/pose", qos_profile_sensor_data)
+        cell.publish(_poses(20, seed=9), first=0, rate_hz=500.0)
+        cell.spin(0.5)
+        assert cell.diagnostics[-1]["poses_in"] == "0" and not cell.got
+    finally:
+        code, out, err = cell.stop()
+    assert code == 130, err
+    assert out.startswith("stopped: 0 poses in, 0 out, 0 refused; per model generation 1:0; "
+                          "added latency no poses"), out
+    assert "nan" not in out, out

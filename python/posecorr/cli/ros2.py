@@ -39,9 +39,12 @@ def run(args: argparse.Namespace) -> None:
     if args.json:
         print_json(final)
     else:
+        # no pose published has no latency (a publisher whose QoS the node's cannot take, say)
+        latency = (f"p50 {final['latency_p50_us']} us, p99 {final['latency_p99_us']} us"
+                   if final["poses_out"] != "0" else "no poses")
         print(f"stopped: {final['poses_in']} poses in, {final['poses_out']} out, "
               f"{final['refused']} refused; per model generation {final['poses_per_generation']}; "
-              f"added latency p50 {final['latency_p50_us']} us, p99 {final['latency_p99_us']} us")
+              f"added latency {latency}")
     sys.stdout.flush()
     if final["stopped_by"] == "SIGTERM":
         raise Terminated()

@@ -3,9 +3,10 @@
 - Each incoming pose is corrected on the subscription's thread by the C runtime (the
   shim's single-pose path) and published with the input's stamp and the robot's frame id
   (`frame`): the model maps the measured pose into the frame its reference poses were in.
-  A pose the model refuses (non-finite, a zero quaternion, outside the model's
-  `input_bounds`, a result that is not a pose) is not published; it is counted, and the
-  last reason is in the diagnostics.
+  A pose the model refuses (non-finite; a quaternion of norm off 1 by more than 1e-3, a
+  zero one included; outside the model's `input_bounds`, or its `time_bounds`; a result
+  that is not a pose) is not published; it is counted, and the last reason is in the
+  diagnostics.
 - The input's frame id: the model knows poses only in the frame it was fitted in, and the
   node cannot tell that frame from the file. With `input_frame` set, a pose in any other
   frame is refused (counted, one log line per distinct frame); without it every frame is
@@ -336,8 +337,10 @@ class _Correcting:
         self._log(f"posecorr ros2: loaded {loaded.model_id} as generation {loaded.generation}")
 
     def report_error(self, message: str) -> None:
+        with self._handover:  # a model loaded but not taken yet serves from the next pose on
+            serving = self.incoming or self.current
         self.counts.last_load_error = message
-        self._log(f"posecorr ros2: kept {self.current.model_id}: {message}")
+        self._log(f"posecorr ros2: kept {serving.model_id}: {message}")
 
     def on_parameters(self, params):
         """A `model` that cannot be loaded and checked is refused with the reason (the

@@ -309,6 +309,73 @@ def test_joint_stream_without_the_robot_joints_is_refused(recording) -> None:
         order_joints(joints, load_arm("ur5e"), None)
 
 
+# --- joint names, NaN, repeated stamps, units: a bag's streams as drivers publish them --------
+
+@pytest.fixture(scope="module")
+def short(experiment3):
+    """A 3-stop recording (35 s) for the tests that write a bag of their own."""
+    return simulate_recording(experiment3, n_targets=3, seed=0)
+
+
+def _bag(path: Path, recording, joints: JointStream | None = None, tracker: PoseStream | None = None) -> Path:
+    """A ROS 1 bag (the suffix's format) of the recording with its streams replaced."""
+    from dataclasses import replace
+
+    return write_recording(replace(recording, joints=joints or recording.joints, tracker=tracker or recording.tracker),
+                           path)
+
+
+def _assert_is_the_truth(result, recording) -> None:
+    """The table of the recording's targets: references to the micrometre, measurements within the jitter."""
+    assert result.table.n == recording.table.n
+    np.testing.assert_allclose(result.table.ref_p, recording.table.ref_p, atol=1e-6)
+    assert np.all(np.linalg.norm(result.table.meas_p - recording.table.meas_p, axis=1)
+                  < result.table.extras["jitter_mm"] * 1e-3)
+
+
+def test_joint_names_with_a_prefix_in_the_driver_order(short, tmp_path) -> None:
+    """The UR driver with a tf_prefix publishes ur_elbow_joint first: matched by name after the
+    prefix (it was read in message order: references 355 mm off, exit 0)."""
+    from posecorr.kinematics import UR_JOINT_NAMES
+
+    order = [2, 1, 0, 3, 4, 5]
+    names = tuple("ur_" + UR_JOINT_NAMES[i] for i in order)
+    path = _bag(tmp_path / "prefix.bag", short, JointStream(short.joints.t, short.joints.q[:, order], names))
+    result = ingest([path])
+    _assert_is_the_truth(result, short)
+    assert result.notes == [f"{path}:/ur/joint_states: the joint names carry the prefix 'ur_' (a driver's "
+                            f"tf_prefix): matched to the robot's {', '.join(UR_JOINT_NAMES)} after it"]
+    from posecorr.jsonable import json_default
+
+    assert json.loads(json.dumps(result.summary(), default=json_default))["notes"] == result.notes
+
+
+def test_joint_names_that_do_not_match_are_refused_not_read_in_message_order(short) -> None:
+    from posecorr.ingest.pipeline import order_joints
+    from posecorr.kinematics import UR_JOINT_NAMES, load_arm
+
+    arm = load_arm("ur5e")
+    names = ("j1", "j2", "j3", "j4", "j5", "j6")
+    joints = JointStream(short.joints.t, short.joints.q, names, source="rec.bag:/joint_states")
+    with pytest.raises(IngestError) as error:
+        order_joints(joints, arm, None)
+    assert str(error.value) == (f"rec.bag:/joint_states: joints {', '.join(names)} do not match the robot's "
+                                f"{', '.join(UR_JOINT_NAMES)}; name them in kinematic order with --joint-names")
+    # two arms on one topic: the model's names after either prefix, so neither is taken
+    both = JointStream(short.joints.t, np.hstack([short.joints.q, short.joints.q]),
+                       tuple(p + n for p in ("left_", "right_") for n in UR_JOINT_NAMES), source="two:/j")
+    with pytest.raises(IngestError, match=r"after each of the prefixes 'left_', 'right_'\); name them"):
+        order_joints(both, arm, None)
+    assert order_joints(both, arm, tuple("right_" + n for n in UR_JOINT_NAMES)) == (list(range(6, 12)), [])
+    # messages that name no joints: their order, said in a note; a CSV log's columns: theirs, by its layout
+    unnamed = JointStream(short.joints.t, short.joints.q, (), source="rec.bag:/joint_states")
+    assert order_joints(unnamed, arm, None) == (list(range(6)), [
+        f"rec.bag:/joint_states: the messages name no joints: read in their order as the robot's "
+        f"{', '.join(UR_JOINT_NAMES)}"])
+    assert order_joints(JointStream(short.joints.t, short.joints.q, names, positional=True), arm, None) == \
+        (list(range(6)), [])
+
+
 def test_mcap_with_the_ros1_profile(recording, tmp_path) -> None:
     from mcap.writer import Writer
     from rosbags.typesys import Stores, get_typestore

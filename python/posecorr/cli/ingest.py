@@ -27,7 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "TransformStamped or TF (default: the only one)")
     p.add_argument("--tracker-frame", help="TF: the tracker's child frame (default: the only one)")
     p.add_argument("--joint-names", help="the robot's joints in the message, comma-separated, in kinematic order "
-                   "(default: the model's names, else the message order)")
+                   "(default: the model's names, as they are or after one common prefix such as a driver's "
+                   "tf_prefix; messages that name no joints are read in their order)")
     p.add_argument("--stamps", choices=("header", "receive"), default="header",
                    help="header stamps (unset ones fall back to the receive time) or the recorder's receive times")
     p.add_argument("--time-col", default="t", help="CSV: time column (s)")
@@ -96,7 +97,7 @@ def run(args: argparse.Namespace) -> None:
         rates += f", {summary['tracker_samples']} tracker poses"
         if summary["tracker_rate_hz"]:
             rates += f" ({summary['tracker_rate_hz']:.0f} Hz)"
-        lines = [f"{', '.join(map(str, args.recording))}: {rates}",
+        lines = [f"{', '.join(map(str, args.recording))}: {rates}"] + [f"note: {note}" for note in result.notes] + [
                  f"clock offset tracker - robot: {a.offset:+.4f} s ({how})",
                  f"{len(result.segments)} still segments: {result.table.n} rows -> {args.output}, "
                  f"{len(result.rejected)} rejected"]

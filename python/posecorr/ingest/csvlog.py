@@ -127,7 +127,7 @@ def read_csv_log(paths: list[str | Path], columns: CsvColumns = CsvColumns()) ->
             if key == "joints":
                 if joints is not None:
                     raise IngestError(f"{path}: a second file with joint columns; give one")
-                joints = JointStream(value[:, 0], value[:, 1:], columns.joints, source=str(path))
+                joints = JointStream(value[:, 0], value[:, 1:], columns.joints, source=str(path), positional=True)
             else:
                 if pose is not None:
                     raise IngestError(f"{path}: a second file with pose columns; give one")

@@ -55,6 +55,7 @@ class IngestResult:
     joints: JointStream
     tracker: PoseStream
     options: IngestOptions
+    notes: list[str] = field(default_factory=list)      # what was read unusually or left out, and how
 
     @property
     def rejected(self) -> list[Segment]:
@@ -69,7 +70,7 @@ class IngestResult:
             "offset_correlation": self.alignment.correlation,
             "joint_samples": len(self.joints.t), "tracker_samples": len(self.tracker.t),
             "joint_rate_hz": _rate(self.joints.t), "tracker_rate_hz": _rate(self.tracker.t),
-            "robot": o.robot, "joint_names": list(self.joints.names), "still": asdict(o.still),
+            "robot": o.robot, "joint_names": list(self.joints.names), "notes": self.notes, "still": asdict(o.still),
             "segments": [s.describe(self.t0) for s in self.segments],
         }
 
@@ -100,15 +101,41 @@ def read_recording(paths: list[str | Path], options: IngestOptions) -> tuple[Joi
     return FORMATS["ros"](paths, options)
 
 
-def order_joints(joints: JointStream, arm: Arm, wanted: tuple[str, ...] | None) -> np.ndarray:
-    """(N, n) joint angles in the arm's order: by name when the stream names them, else in stream order."""
-    names = wanted or arm.joint_names
-    if set(names) <= set(joints.names):
-        return joints.q[:, [joints.names.index(n) for n in names]]
-    if wanted is None and joints.q.shape[1] == arm.n_joints:
-        return joints.q
-    raise IngestError(f"{joints.source}: joints {', '.join(joints.names)} do not include the robot's "
-                      f"{', '.join(names)}; name them with --joint-names")
+def order_joints(joints: JointStream, arm: Arm, wanted: tuple[str, ...] | None) -> tuple[list[int], list[str]]:
+    """The stream's columns of the arm's joints, in the arm's order, and a note on how they were found.
+
+    By name: the names given (--joint-names) or the model's, every one of them in the stream as
+    it is or, all of them, after one common prefix (a UR driver's tf_prefix: ur_shoulder_pan_joint).
+    By position only where the format fixes the order: a CSV log's columns (--joint-cols, in
+    kinematic order by its layout) and messages that name no joints. A stream that names its
+    joints otherwise is refused: read in message order it gives a wrong table without a sign
+    (the UR driver publishes the elbow first).
+    """
+    names, found = wanted or arm.joint_names, joints.names
+    if set(names) <= set(found):
+        return [found.index(n) for n in names], []
+    prefixes = _prefixes(names, found)
+    if len(prefixes) == 1:
+        prefix = prefixes[0]
+        return [found.index(prefix + n) for n in names], [
+            f"{joints.source}: the joint names carry the prefix {prefix!r} (a driver's tf_prefix): "
+            f"matched to the robot's {', '.join(names)} after it"]
+    columns = list(range(joints.q.shape[1]))
+    if wanted is None and len(columns) == arm.n_joints:
+        if joints.positional:
+            return columns, []
+        if not found:
+            return columns, [f"{joints.source}: the messages name no joints: read in their order as the robot's "
+                             f"{', '.join(names)}"]
+    several = f" (they match after each of the prefixes {', '.join(map(repr, prefixes))})" if prefixes else ""
+    raise IngestError(f"{joints.source}: joints {', '.join(found) or 'unnamed'} do not match the robot's "
+                      f"{', '.join(names)}{several}; name them in kinematic order with --joint-names")
+
+
+def _prefixes(names: tuple[str, ...], found: tuple[str, ...]) -> list[str]:
+    """The prefixes p with p + name among `found` for every one of `names`."""
+    candidates = {f[: len(f) - len(names[0])] for f in found if f.endswith(names[0])}
+    return sorted(p for p in candidates if all(p + n in found for n in names))
 
 
 def ingest(paths: list[str | Path], options: IngestOptions | None = None) -> IngestResult:
@@ -117,7 +144,8 @@ def ingest(paths: list[str | Path], options: IngestOptions | None = None) -> Ing
     arm = load_arm(options.robot, options.base_link, options.tip_link)
     joints, tracker = read_recording(paths, options)
     what = ", ".join(str(p) for p in paths)
-    q = order_joints(joints, arm, options.joint_names)
+    columns, notes = order_joints(joints, arm, options.joint_names)
+    q = joints.q[:, columns]
     norms = np.linalg.norm(tracker.q, axis=1)
     bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-3)
     if bad.size:
@@ -146,7 +174,7 @@ def ingest(paths: list[str | Path], options: IngestOptions | None = None) -> Ing
     for row, segment in enumerate(accepted):
         segment.row = row
     return IngestResult(_table(accepted, arm, options, float(joints.t[0]), what), segments, alignment,
-                        float(joints.t[0]), joints, tracker, options)
+                        float(joints.t[0]), joints, tracker, options, joints.notes + tracker.notes + notes)
 
 
 def _table(segments: list[Segment], arm: Arm, options: IngestOptions, t0: float, what: str) -> PoseTable:

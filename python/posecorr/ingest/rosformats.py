@@ -261,10 +261,14 @@ def _collect(path: Path, source: Any, topics: Topics, joint_topic: str, tracker_
                 names = msg_names
             elif msg_names != names and msg_names:
                 raise IngestError(f"{path}: topic {joint_topic} changes its joint names at message {len(jt) + 1} "
-                                  f"({', '.join(msg_names)} after {', '.join(names)})")
-            if len(position) != len(names):
-                raise IngestError(f"{path}: topic {joint_topic} message {len(jt) + 1} has {len(position)} "
-                                  f"positions for {len(names)} joint names")
+                                  f"({', '.join(msg_names)} after {', '.join(names) or 'none'})")
+            # Messages that name no joints (allowed by JointState) are read in their order
+            # (pipeline.order_joints), so each must carry as many as the first.
+            expected = len(names) if names else len(jq[0]) if jq else len(position)
+            if len(position) != expected:
+                raise IngestError(f"{path}: topic {joint_topic} message {len(jt) + 1} has {len(position)} positions "
+                                  + (f"for {expected} joint names" if names else
+                                     f"and no joint names, the first message {expected}"))
             jt.append(stamp)
             jlog.append(log_ns)
             jq.append(position)
@@ -282,12 +286,7 @@ def _collect(path: Path, source: Any, topics: Topics, joint_topic: str, tracker_
             plog.append(log_ns)
             pose.append((*position, o.w, o.x, o.y, o.z))
     if tracker_type == TF_TYPE:
-        if tracker_frame is None and len(child_frames) > 1:
-            raise IngestError(f"{path}: TF topic {tracker_topic} carries several frames "
-                              f"({', '.join(sorted(child_frames))}); choose the tracker's with --tracker-frame")
-        if tracker_frame is not None and tracker_frame not in child_frames:
-            raise IngestError(f"{path}: TF topic {tracker_topic} has no frame {tracker_frame} "
-                              f"(frames: {', '.join(sorted(child_frames)) or 'none'})")
+        _check_tf_frame(path, tracker_topic, tracker_frame, child_frames)
     if not jt:
         raise IngestError(f"{path}: topic {joint_topic} has no messages")
     if not pt:
@@ -296,6 +295,16 @@ def _collect(path: Path, source: Any, topics: Topics, joint_topic: str, tracker_
     return (JointStream(_times(jt, jlog, stamps), np.asarray(jq, dtype=float), names or (),
                         source=f"{path}:{joint_topic}"),
             PoseStream(_times(pt, plog, stamps), poses[:, :3], poses[:, 3:7], source=f"{path}:{tracker_topic}"))
+
+
+def _check_tf_frame(path: Path, topic: str, frame: str | None, child_frames: dict[str, int]) -> None:
+    """IngestError unless the TF topic's tracker frame is the one named, or the only one."""
+    if frame is None and len(child_frames) > 1:
+        raise IngestError(f"{path}: TF topic {topic} carries several frames "
+                          f"({', '.join(sorted(child_frames))}); choose the tracker's with --tracker-frame")
+    if frame is not None and frame not in child_frames:
+        raise IngestError(f"{path}: TF topic {topic} has no frame {frame} "
+                          f"(frames: {', '.join(sorted(child_frames)) or 'none'})")
 
 
 def _times(header_s: list[float], log_ns: list[int], stamps: str) -> np.ndarray:

@@ -5,7 +5,7 @@ recording keep sub-microsecond resolution); each stream is sorted by time on con
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -16,12 +16,18 @@ class IngestError(ValueError):
 
 @dataclass
 class JointStream:
-    """Joint angles q (N, n) in rad at times t (N,), columns named by `names`."""
+    """Joint angles q (N, n) in rad at times t (N,), columns named by `names`.
+
+    positional: the columns are the arm's joints in kinematic order by the format's layout
+    (a CSV log's --joint-cols), whatever their names. notes: what the reader left out.
+    """
 
     t: np.ndarray
     q: np.ndarray
     names: tuple[str, ...]
     source: str = ""
+    positional: bool = False
+    notes: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.t, self.q = _sorted(np.asarray(self.t, float), np.asarray(self.q, float))
@@ -36,6 +42,7 @@ class PoseStream:
     q: np.ndarray
     frame: str = ""
     source: str = ""
+    notes: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t, float)

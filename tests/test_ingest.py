@@ -421,3 +421,28 @@ def test_a_csv_log_with_comment_lines_reads_as_without_them(recording, tmp_path,
     path.write_text("\n".join(["# logger v2"] + lines[:5] + [",".join(cells)] + lines[6:]) + "\n")
     with pytest.raises(IngestError, match=r"row 7, column q2: expected a number, got 'abc'"):
         read_csv_log([path])
+
+
+def test_nan_samples_of_a_bag_are_left_out_and_counted(short, tmp_path) -> None:
+    """A tracker's NaN on losing track, in a stop and in a move, and a joint state's, are left
+    out with a note per topic (they ended in 'speeds correlate at most 0.00'); a gripper's
+    joint that never reads leaves the arm's alone."""
+    from posecorr.kinematics import UR_JOINT_NAMES
+
+    t_robot = short.tracker.t - OFFSET - short.joints.t[0]
+    stop = short.stands[1, 0]                                  # the second stop begins
+    move = 0.5 * (short.stands[0, 1] + short.stands[1, 0])     # the middle of the move to it
+    lost = np.flatnonzero(((t_robot > stop + 1.0) & (t_robot < stop + 1.1)) | ((t_robot > move) & (t_robot < move + 0.1)))
+    p, q = short.tracker.p.copy(), short.tracker.q.copy()
+    p[lost], q[lost[::2]] = np.nan, np.nan
+    angles = np.hstack([short.joints.q, np.full((len(short.joints.t), 1), np.nan)])
+    angles[1000, 2] = np.nan
+    path = _bag(tmp_path / "nan.bag", short, JointStream(short.joints.t, angles, UR_JOINT_NAMES + ("gripper",)),
+                PoseStream(short.tracker.t, p, q))
+    result = ingest([path])
+    _assert_is_the_truth(result, short)
+    n_joints, n_tracker = len(short.joints.t), len(short.tracker.t)
+    assert len(lost) > 20 and len(result.tracker.t) == n_tracker - len(lost)
+    assert result.notes == [f"{path}:/ur/joint_states: left out 1 of {n_joints} samples with NaN or infinite values",
+                            f"{path}:/vive/tracker/pose: left out {len(lost)} of {n_tracker} samples with NaN or "
+                            "infinite values"]

@@ -24,7 +24,7 @@ from .align import Alignment, check_overlap, estimate_offset
 from .csvlog import CsvColumns, read_csv_log
 from .rosformats import read_ros
 from .segments import Segment, StillOptions, find_segments, measure
-from .streams import IngestError, JointStream, PoseStream
+from .streams import IngestError, JointStream, PoseStream, keep_usable
 
 
 @dataclass
@@ -145,6 +145,8 @@ def ingest(paths: list[str | Path], options: IngestOptions | None = None) -> Ing
     joints, tracker = read_recording(paths, options)
     what = ", ".join(str(p) for p in paths)
     columns, notes = order_joints(joints, arm, options.joint_names)
+    joints = keep_usable(joints, joints.q[:, columns])       # a gripper's NaN leaves the arm's joints alone
+    tracker = keep_usable(tracker, np.hstack([tracker.p, tracker.q]))
     q = joints.q[:, columns]
     norms = np.linalg.norm(tracker.q, axis=1)
     bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-3)

@@ -5,7 +5,7 @@ recording keep sub-microsecond resolution); each stream is sorted by time on con
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -32,6 +32,9 @@ class JointStream:
     def __post_init__(self) -> None:
         self.t, self.q = _sorted(np.asarray(self.t, float), np.asarray(self.q, float))
 
+    def subset(self, keep: np.ndarray) -> "JointStream":
+        return replace(self, t=self.t[keep], q=self.q[keep], notes=list(self.notes))
+
 
 @dataclass
 class PoseStream:
@@ -48,6 +51,25 @@ class PoseStream:
         t = np.asarray(self.t, float)
         order = np.argsort(t, kind="stable")
         self.t, self.p, self.q = t[order], np.asarray(self.p, float)[order], np.asarray(self.q, float)[order]
+
+    def subset(self, keep: np.ndarray) -> "PoseStream":
+        return replace(self, t=self.t[keep], p=self.p[keep], q=self.q[keep], notes=list(self.notes))
+
+
+def keep_usable(stream: JointStream | PoseStream, values: np.ndarray) -> JointStream | PoseStream:
+    """The stream without the samples whose `values` (N, k) (the columns used) are not finite,
+    counted in a note: a tracker publishes NaN when it loses track, a driver for a joint it
+    cannot read, and a bag keeps them (a CSV log is refused for them, with the row: csvlog).
+    IngestError when none is left."""
+    finite = np.isfinite(values).all(axis=1) & np.isfinite(stream.t)
+    if finite.all():
+        return stream
+    if not finite.any():
+        raise IngestError(f"{stream.source}: every one of the {len(finite)} samples has NaN or infinite values")
+    kept = stream.subset(finite)
+    kept.notes.append(f"{stream.source}: left out {int(np.sum(~finite))} of {len(finite)} samples "
+                      "with NaN or infinite values")
+    return kept
 
 
 def _sorted(t: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -446,3 +446,27 @@ def test_nan_samples_of_a_bag_are_left_out_and_counted(short, tmp_path) -> None:
     assert result.notes == [f"{path}:/ur/joint_states: left out 1 of {n_joints} samples with NaN or infinite values",
                             f"{path}:/vive/tracker/pose: left out {len(lost)} of {n_tracker} samples with NaN or "
                             "infinite values"]
+
+
+def test_repeated_stamps_of_a_bag_keep_the_first_sample(short, tmp_path) -> None:
+    """A joint state published twice and tracker poses stamped like the one before are left out,
+    counted per topic (joints gave divide-by-zero warnings and 'a rigid registration needs at
+    least 3 points, got 0'; tracker poses were counted twice); both streams strictly increase."""
+    twice = np.sort(np.concatenate([np.arange(len(short.joints.t)), np.arange(0, len(short.joints.t), 50)]))
+    t = short.tracker.t.copy()
+    t[1::7] = t[0:-1:7]                    # every 7th pose a new one, stamped as the one before
+    path = _bag(tmp_path / "dup.bag", short, JointStream(short.joints.t[twice], short.joints.q[twice],
+                                                         short.joints.names),
+                PoseStream(t, short.tracker.p, short.tracker.q))
+    result = ingest([path])
+    _assert_is_the_truth(result, short)
+    first = np.ones(len(t), dtype=bool)
+    first[1::7] = False
+    np.testing.assert_array_equal(result.tracker.p, short.tracker.p[first])
+    np.testing.assert_array_equal(result.joints.q, short.joints.q)
+    assert np.all(np.diff(result.joints.t) > 0) and np.all(np.diff(result.tracker.t) > 0)
+    assert result.notes == [
+        f"{path}:/ur/joint_states: left out {len(twice) - len(short.joints.t)} samples that repeat the stamp of "
+        "the one before (the first of each stamp kept)",
+        f"{path}:/vive/tracker/pose: left out {int(np.sum(~first))} samples that repeat the stamp of the one before "
+        "(the first of each stamp kept)"]

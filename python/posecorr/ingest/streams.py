@@ -57,19 +57,30 @@ class PoseStream:
 
 
 def keep_usable(stream: JointStream | PoseStream, values: np.ndarray) -> JointStream | PoseStream:
-    """The stream without the samples whose `values` (N, k) (the columns used) are not finite,
-    counted in a note: a tracker publishes NaN when it loses track, a driver for a joint it
-    cannot read, and a bag keeps them (a CSV log is refused for them, with the row: csvlog).
-    IngestError when none is left."""
+    """The stream without the samples a bag may carry and no later step can use, each kind
+    counted in a note: samples whose `values` (N, k) (the columns used) are not finite (a
+    tracker publishes NaN when it loses track, a driver for a joint it cannot read), and
+    samples that repeat the stamp of the one before (a driver publishing a state twice, a
+    bridge stamping two poses alike: the first of each stamp is kept, as the recorder got it).
+    Rates, speeds and the clock alignment divide by time steps, so they must be > 0. A CSV log
+    is refused for either, naming the row (csvlog). IngestError when nothing is left."""
     finite = np.isfinite(values).all(axis=1) & np.isfinite(stream.t)
-    if finite.all():
-        return stream
     if not finite.any():
         raise IngestError(f"{stream.source}: every one of the {len(finite)} samples has NaN or infinite values")
-    kept = stream.subset(finite)
-    kept.notes.append(f"{stream.source}: left out {int(np.sum(~finite))} of {len(finite)} samples "
-                      "with NaN or infinite values")
-    return kept
+    # The stream is sorted stably by time: a repeated stamp follows its first sample.
+    kept = np.flatnonzero(finite)
+    repeated = np.zeros(len(finite), dtype=bool)
+    repeated[kept[1:]] = np.diff(stream.t[kept]) <= 0
+    if finite.all() and not repeated.any():
+        return stream
+    usable = stream.subset(finite & ~repeated)
+    if not finite.all():
+        usable.notes.append(f"{stream.source}: left out {int(np.sum(~finite))} of {len(finite)} samples "
+                            "with NaN or infinite values")
+    if repeated.any():
+        usable.notes.append(f"{stream.source}: left out {int(np.sum(repeated))} samples that repeat the stamp "
+                            "of the one before (the first of each stamp kept)")
+    return usable
 
 
 def _sorted(t: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -470,3 +470,23 @@ def test_repeated_stamps_of_a_bag_keep_the_first_sample(short, tmp_path) -> None
         "the one before (the first of each stamp kept)",
         f"{path}:/vive/tracker/pose: left out {int(np.sum(~first))} samples that repeat the stamp of the one before "
         "(the first of each stamp kept)"]
+
+
+def test_joints_in_degrees_and_tracker_in_millimetres_are_refused(short, tmp_path) -> None:
+    """Degrees gave a wrong table, exit 0; millimetres 'a rigid registration needs at least 3 points'."""
+    write_csv_log(tmp_path / "deg.csv", JointStream(short.joints.t, np.degrees(short.joints.q), short.joints.names),
+                  short.tracker)
+    column = int(np.argmax(np.abs(short.joints.q).max(axis=0)))
+    largest = np.degrees(short.joints.q[np.argmax(np.abs(short.joints.q[:, column])), column])
+    assert abs(largest) > 4 * np.pi
+    line = one_line_error(posecorr("ingest", str(tmp_path / "deg.csv"), "-o", str(tmp_path / "t.csv")))
+    assert line == (f"posecorr ingest: error: {tmp_path / 'deg.csv'}: joint q{column + 1} reads {largest:.6g}, "
+                    "beyond ±4π = 12.57 (a revolute joint reads within ±2π rad): degrees? expected radians")
+
+    mm = short.tracker.p * 1e3
+    spread = np.max(np.median(np.abs(mm - np.median(mm, axis=0)), axis=0))
+    path = _bag(tmp_path / "mm.bag", short, tracker=PoseStream(short.tracker.t, mm, short.tracker.q))
+    with pytest.raises(IngestError) as error:
+        ingest([path])
+    assert str(error.value) == (f"{path}:/vive/tracker/pose: the tracker positions lie a typical {spread:.4g} m "
+                                "from their median, and a tracked cell spans a few metres: millimetres? expected metres")

@@ -481,8 +481,8 @@ def read_table(path: str | Path, max_rows: int | None = None) -> PoseTable:
 
     meas_p, ref_p = block(MEAS_POS), block(REF_POS)
     for name, columns, positions in (("measured", MEAS_POS, meas_p), ("reference", REF_POS, ref_p)):
-        spread = float(np.max(np.median(np.abs(positions - np.median(positions, axis=0)), axis=0)))
-        if spread > PLAUSIBLE_SPREAD:
+        spread = implausible_spread(positions)
+        if spread is not None:
             from .safeio import warn
 
             warn(f"{path}: the {name} positions lie a typical {spread:.4g} m from their median; posecorr reads "
@@ -490,6 +490,13 @@ def read_table(path: str | Path, max_rows: int | None = None) -> PoseTable:
     return PoseTable(meas_p=meas_p, meas_q=block(MEAS_QUAT), ref_p=ref_p,
                      ref_q=block(REF_QUAT) if has_ref_q else None, extras=extras, path=path,
                      rows=np.concatenate(numbers))
+
+
+def implausible_spread(positions: np.ndarray) -> float | None:
+    """The typical distance (m) of positions (N, 3) from their median, the largest axis' median
+    absolute deviation, when it is beyond PLAUSIBLE_SPREAD (another unit); None otherwise."""
+    spread = float(np.max(np.median(np.abs(positions - np.median(positions, axis=0)), axis=0)))
+    return spread if spread > PLAUSIBLE_SPREAD else None
 
 
 def _check_quaternions(path: str | None, q: np.ndarray, columns: tuple[str, ...], rows: list[int]) -> None:

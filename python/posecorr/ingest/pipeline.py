@@ -15,7 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..data import JOINTS, PoseTable
+from ..data import JOINTS, PoseTable, implausible_spread
 from ..geometry import END_T_TRACKER, base_T_station, homogeneous
 from ..jsonable import json_default
 from ..kinematics import DEFAULT_ARM, Arm, load_arm, reference_poses
@@ -138,6 +138,31 @@ def _prefixes(names: tuple[str, ...], found: tuple[str, ...]) -> list[str]:
     return sorted(p for p in candidates if all(p + n in found for n in names))
 
 
+# A UR's joints turn within +-2 pi (+-360 deg: the e-series and CB3 data sheets, ur_description's
+# limits) and a URDF's continuous joint may be wound a turn further: radians stay within +-4 pi.
+# A calibration recording in degrees goes beyond on some joint (any pose more than 12.6 deg
+# from zero; a UR's home has the shoulder at -90), and read as radians gives a wrong table.
+MAX_JOINT_RAD = 4 * np.pi
+
+
+def check_units(joints: JointStream, columns: list[int], tracker: PoseStream) -> None:
+    """IngestError on joint angles (of the arm's `columns`) that cannot be radians and tracker
+    positions that cannot be metres. Refused, not warned: the still-speed threshold, the gate and
+    the forward kinematics all take these units, so nothing after them would be right."""
+    q = joints.q[:, columns]
+    peak = np.abs(q).max(axis=0)
+    j = int(np.argmax(peak))
+    if peak[j] > MAX_JOINT_RAD:
+        value = q[int(np.argmax(np.abs(q[:, j]))), j]
+        name = joints.names[columns[j]] if joints.names else f"{j + 1}"
+        raise IngestError(f"{joints.source}: joint {name} reads {value:.6g}, beyond ±4π = {MAX_JOINT_RAD:.4g} "
+                          "(a revolute joint reads within ±2π rad): degrees? expected radians")
+    spread = implausible_spread(tracker.p)
+    if spread is not None:
+        raise IngestError(f"{tracker.source}: the tracker positions lie a typical {spread:.4g} m from their "
+                          "median, and a tracked cell spans a few metres: millimetres? expected metres")
+
+
 def ingest(paths: list[str | Path], options: IngestOptions | None = None) -> IngestResult:
     """The paired-pose table of a recording (module docstring); IngestError on what cannot be used."""
     options = options or IngestOptions()
@@ -148,6 +173,7 @@ def ingest(paths: list[str | Path], options: IngestOptions | None = None) -> Ing
     joints = keep_usable(joints, joints.q[:, columns])       # a gripper's NaN leaves the arm's joints alone
     tracker = keep_usable(tracker, np.hstack([tracker.p, tracker.q]))
     q = joints.q[:, columns]
+    check_units(joints, columns, tracker)
     norms = np.linalg.norm(tracker.q, axis=1)
     bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-3)
     if bad.size:

@@ -432,7 +432,8 @@ def test_nan_samples_of_a_bag_are_left_out_and_counted(short, tmp_path) -> None:
     t_robot = short.tracker.t - OFFSET - short.joints.t[0]
     stop = short.stands[1, 0]                                  # the second stop begins
     move = 0.5 * (short.stands[0, 1] + short.stands[1, 0])     # the middle of the move to it
-    lost = np.flatnonzero(((t_robot > stop + 1.0) & (t_robot < stop + 1.1)) | ((t_robot > move) & (t_robot < move + 0.1)))
+    lost = np.flatnonzero(((t_robot > stop + 1.0) & (t_robot < stop + 1.1))
+                          | ((t_robot > move) & (t_robot < move + 0.1)))
     p, q = short.tracker.p.copy(), short.tracker.q.copy()
     p[lost], q[lost[::2]] = np.nan, np.nan
     angles = np.hstack([short.joints.q, np.full((len(short.joints.t), 1), np.nan)])
@@ -489,4 +490,31 @@ def test_joints_in_degrees_and_tracker_in_millimetres_are_refused(short, tmp_pat
     with pytest.raises(IngestError) as error:
         ingest([path])
     assert str(error.value) == (f"{path}:/vive/tracker/pose: the tracker positions lie a typical {spread:.4g} m "
-                                "from their median, and a tracked cell spans a few metres: millimetres? expected metres")
+                                "from their median, and a tracked cell spans a few metres: millimetres? "
+                                "expected metres")
+
+
+def test_a_quaternion_that_is_not_unit_is_named_by_csv_row_and_by_bag_stamp(short, tmp_path) -> None:
+    """It named the sample's index after sorting ('tracker sample 3001'), not where to find it."""
+    path = write_recording(short, tmp_path / "rec.csv")
+    lines = path.read_text().splitlines()
+    row = next(i for i, line in enumerate(lines) if i > 3000 and not line.endswith(","))   # a tracker row
+    cells = lines[row].split(",")
+    cells[-4:] = ["0.5", "0.5", "0.5", "0.6"]
+    lines[row] = ",".join(cells)
+    path.write_text("\n".join(["# logger v2"] + lines) + "\n")
+    with pytest.raises(IngestError) as error:
+        ingest([path])
+    assert str(error.value) == (f"{path}: row {row + 2}, column qw..qz: quaternion norm 1.05357 is off 1 by more "
+                                "than 0.001 (expected a unit quaternion w, x, y, z)")
+
+    q = short.tracker.q.copy()
+    q[[700, 900]] *= 1.01
+    path = _bag(tmp_path / "q.bag", short, tracker=PoseStream(short.tracker.t, short.tracker.p, q))
+    ns = int(round(short.tracker.t[700] * 1e9))
+    stamp = ns // 10**9 + ns % 10**9 * 1e-9           # as the header's sec and nanosec read
+    with pytest.raises(IngestError) as error:
+        ingest([path])
+    assert str(error.value) == (f"{path}: topic /vive/tracker/pose, the pose stamped {stamp:.6f} s (the first of 2): "
+                                "quaternion norm 1.01 is off 1 by "
+                                "more than 0.001 (expected a unit quaternion w, x, y, z)")

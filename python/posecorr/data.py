@@ -499,14 +499,23 @@ def implausible_spread(positions: np.ndarray) -> float | None:
     return spread if spread > PLAUSIBLE_SPREAD else None
 
 
-def _check_quaternions(path: str | None, q: np.ndarray, columns: tuple[str, ...], rows: list[int]) -> None:
+def quaternion_faults(q: np.ndarray) -> tuple[np.ndarray, str]:
+    """(the indices of the rows of q (N, 4) that are no unit quaternion, what is wrong with the
+    first: 'a zero quaternion' or 'quaternion norm 1.05 is off 1 by more than 0.001'). NaN rows
+    are not counted: the readers say where a value is not finite."""
     norm = np.linalg.norm(q, axis=1)
     bad = np.flatnonzero(np.abs(norm - 1.0) > QUAT_NORM_TOLERANCE)
+    if not bad.size:
+        return bad, ""
+    first = norm[bad[0]]
+    return bad, ("a zero quaternion" if first == 0 else
+                 f"quaternion norm {first:.6g} is off 1 by more than {QUAT_NORM_TOLERANCE:g}")
+
+
+def _check_quaternions(path: str | None, q: np.ndarray, columns: tuple[str, ...], rows: list[int]) -> None:
+    bad, what = quaternion_faults(q)
     if bad.size:
-        i = int(bad[0])
-        what = "a zero quaternion" if norm[i] == 0 else f"quaternion norm {norm[i]:.6g} is off 1 by more than " \
-            f"{QUAT_NORM_TOLERANCE:g}"
-        raise TableError(path, f"{what} (expected a unit quaternion w, x, y, z)", rows[i],
+        raise TableError(path, f"{what} (expected a unit quaternion w, x, y, z)", rows[int(bad[0])],
                          "..".join((columns[0], columns[-1])))
 
 

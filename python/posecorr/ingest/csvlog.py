@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data import TableError, csv_records, header_record, warn_comments
+from ..data import TableError, csv_records, header_record, quaternion_faults, warn_comments
 from .streams import IngestError, JointStream, PoseStream
 
 
@@ -86,6 +86,10 @@ def _read_block(path: Path, columns: CsvColumns) -> dict[str, np.ndarray | None]
                               f"of the row's {key} columns")
         rows_with = np.flatnonzero(filled.all(axis=1))
         out[key] = _numbers(path, block[rows_with], file_rows[rows_with], (columns.time,) + tuple(names))
+        bad, what = quaternion_faults(out[key][:, 4:8]) if key == "pose" else (np.zeros(0), "")
+        if bad.size:
+            raise IngestError(f"{path}: row {file_rows[rows_with[bad[0]]]}, column {names[3]}..{names[6]}: {what} "
+                              "(expected a unit quaternion w, x, y, z)")
         # Rates, speeds and the clock alignment divide by time steps: each must be > 0.
         stalled = np.flatnonzero(np.diff(out[key][:, 0]) <= 0)
         if stalled.size:

@@ -174,11 +174,6 @@ def ingest(paths: list[str | Path], options: IngestOptions | None = None) -> Ing
     tracker = keep_usable(tracker, np.hstack([tracker.p, tracker.q]))
     q = joints.q[:, columns]
     check_units(joints, columns, tracker)
-    norms = np.linalg.norm(tracker.q, axis=1)
-    bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-3)
-    if bad.size:
-        raise IngestError(f"{tracker.source}: tracker sample {int(bad[0]) + 1} has quaternion norm "
-                          f"{norms[bad[0]]:.6g}, expected a unit quaternion")
 
     if options.offset is None:
         alignment = estimate_offset(joints.t, reference_poses(arm, q, options.tool), tracker.t, tracker.p,

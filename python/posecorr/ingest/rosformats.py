@@ -16,6 +16,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
+from ..data import quaternion_faults
 from .fastdecode import decoder
 from .streams import IngestError, JointStream, PoseStream
 
@@ -174,12 +175,24 @@ def read_ros(path: str | Path, joint_topic: str | None = None, tracker_topic: st
             topics = source.topics()
             joint_topic = _pick_joint_topic(path, topics, joint_topic)
             tracker_topic = _pick_tracker_topic(path, topics, tracker_topic)
-            return _collect(path, source, topics, joint_topic, tracker_topic, tracker_frame, stamps)
+            joints, tracker = _collect(path, source, topics, joint_topic, tracker_topic, tracker_frame, stamps)
+        _check_tracker_quaternions(path, tracker_topic, tracker)
+        return joints, tracker
     except IngestError:
         raise
     except Exception as exc:  # noqa: BLE001 - any failure inside a foreign file is the file's fault
         raise IngestError(f"{path}: not a readable recording ({type(exc).__name__}: "
                           f"{str(exc).splitlines()[0] if str(exc) else 'no detail'})") from None
+
+
+def _check_tracker_quaternions(path: Path, topic: str, tracker: PoseStream) -> None:
+    """IngestError naming the stamp of the first pose that is no unit quaternion (a message has
+    no row; its stamp is what a bag viewer shows)."""
+    bad, what = quaternion_faults(tracker.q)
+    if bad.size:
+        many = f" (the first of {bad.size})" if bad.size > 1 else ""
+        raise IngestError(f"{path}: topic {topic}, the pose stamped {tracker.t[bad[0]]:.6f} s{many}: {what} "
+                          "(expected a unit quaternion w, x, y, z)")
 
 
 def _pick_joint_topic(path: Path, topics: Topics, wanted: str | None) -> str:

@@ -518,3 +518,50 @@ def test_a_quaternion_that_is_not_unit_is_named_by_csv_row_and_by_bag_stamp(shor
     assert str(error.value) == (f"{path}: topic /vive/tracker/pose, the pose stamped {stamp:.6f} s (the first of 2): "
                                 "quaternion norm 1.01 is off 1 by "
                                 "more than 0.001 (expected a unit quaternion w, x, y, z)")
+
+
+BOOT = 1234.5 - 1_700_000_000.0      # s: a tracker stamped on its boot clock, the robot on Unix time
+
+
+def _boot_clock_bag(path: Path, recording, latency: float = 0.003) -> Path:
+    """A ROS 2 bag whose tracker headers are on the tracker's boot clock (BOOT + its clock) and
+    whose receive times are the recorder's (the robot's clock, `latency` after the sample)."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from posecorr.ingest.rosformats import ros_messages
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    boot = PoseStream(recording.tracker.t + BOOT, recording.tracker.p, recording.tracker.q)
+    to_recorder = int(round((latency - BOOT - OFFSET) * 1e9))
+    with Writer(path, version=9) as writer:
+        connections: dict[str, object] = {}
+        for topic, msgtype, ns, msg in ros_messages(ts, recording.joints, boot, False, "lighthouse"):
+            if topic not in connections:
+                connections[topic] = writer.add_connection(topic, msgtype, typestore=ts)
+            received = ns + (to_recorder if msgtype == "geometry_msgs/msg/PoseStamped" else 0)
+            writer.write(connections[topic], received, ts.serialize_cdr(msg, msgtype))
+    return path
+
+
+def test_a_tracker_on_its_boot_clock(short, tmp_path) -> None:
+    """The refusal points to --stamps receive, which works; --offset takes the ~1.7e9 s it needs
+    (it took +-86400 s only, and the message pointed to it)."""
+    path = _boot_clock_bag(tmp_path / "boot", short)
+    with pytest.raises(IngestError) as error:
+        ingest([path])
+    j, t = short.joints.t, short.tracker.t + BOOT
+    assert str(error.value) == (
+        f"{path}: the streams do not overlap: joint states {j[0]:.3f}..{j[-1]:.3f} s, "
+        f"tracker {t[0]:.3f}..{t[-1]:.3f} s (more than --max-offset 5 s apart; a bag stamped on two clocks "
+        "(a tracker's boot time) reads on the recorder's with --stamps receive, else give --offset, the tracker "
+        "clock minus the robot's)")
+    received = ingest([path], IngestOptions(stamps="receive"))
+    _assert_is_the_truth(received, short)
+    assert abs(received.alignment.offset - 0.003) < 2e-3          # the latency, on the recorder's clock
+    out = posecorr("ingest", str(path), "-o", str(tmp_path / "table.csv"), "--offset", repr(OFFSET + BOOT), "--json")
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout)["offset_s"] == OFFSET + BOOT
+    table = read_table(tmp_path / "table.csv")
+    np.testing.assert_allclose(table.ref_p, short.table.ref_p, atol=1e-6)
+    assert np.all(np.linalg.norm(table.meas_p - short.table.meas_p, axis=1) < table.extras["jitter_mm"] * 1e-3)

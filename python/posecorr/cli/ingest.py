@@ -46,8 +46,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="mm: reject a segment whose kept samples scatter more (RMS, default 0.5)")
     p.add_argument("--min-samples", type=options.integer(1, 10_000_000), default=100,
                    help="reject a segment with fewer kept samples (default 100)")
-    p.add_argument("--offset", type=options.real(-86_400, 86_400),
-                   help="s, tracker clock - robot clock (default: estimated)")
+    # Any finite offset: a tracker stamped on its boot clock is ~1.7e9 s behind a robot on Unix time.
+    p.add_argument("--offset", type=options.real(),
+                   help="s, tracker clock - robot clock (default: estimated); for a bag stamped on two clocks, "
+                        "--stamps receive")
     p.add_argument("--max-offset", type=options.real(0, 3600, open_lo=True), default=5.0,
                    help="s: the offset search range (default 5)")
     p.add_argument("--session", help="the table's session column (default: the recording's name)")

@@ -52,8 +52,10 @@ def check_overlap(t_robot: np.ndarray, t_tracker: np.ndarray, max_offset: float,
     with the offset `given` (--offset, already taken off t_tracker), at all."""
     if t_tracker[0] - max_offset <= t_robot[-1] and t_tracker[-1] + max_offset >= t_robot[0]:
         return
-    why = (f"with --offset {given:g} s; the offset is the tracker clock minus the robot's" if given is not None
-           else f"more than --max-offset {max_offset:g} s apart; give --offset if the clocks differ by more")
+    why = (f"with --offset {given:.15g} s; the offset is the tracker clock minus the robot's" if given is not None
+           else f"more than --max-offset {max_offset:g} s apart; a bag stamped on two clocks (a tracker's boot "
+                "time) reads on the recorder's with --stamps receive, else give --offset, the tracker clock minus "
+                "the robot's")
     raise IngestError(f"{what}: the streams do not overlap: joint states {t_robot[0]:.3f}..{t_robot[-1]:.3f} s, "
                       f"tracker {t_tracker[0]:.3f}..{t_tracker[-1]:.3f} s ({why})")
 

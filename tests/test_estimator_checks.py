@@ -138,10 +138,10 @@ def test_skipped_checks_hold_on_pose_tables(name: str, table) -> None:
     with pytest.raises(ValueError, match="2-d"):
         estimator.predict(M[0])
     # a zero or norm-2 quaternion is refused as the runtime and the table reader refuse it
-    for scale in (0.0, 2.0):
+    for scale, what in ((0.0, "a zero quaternion"), (2.0, "quaternion norm 2 is off 1 by more than 0.001")):
         X = M.copy()
         X[5, 3:] *= scale
-        with pytest.raises(ValueError, match=f"measured: row 5: .* norm {scale:g} .*within 0.001 of 1"):
+        with pytest.raises(ValueError, match=f"^measured: row 5: {what} "):
             estimator.predict(X)
         with pytest.raises(ValueError, match="row 5: .*unit quaternion"):
             clone(estimator).fit(X, R)

@@ -33,7 +33,7 @@ from sklearn.base import BaseEstimator, RegressorMixin
 from sklearn.exceptions import NotFittedError
 
 from posecorr import rotations
-from posecorr.data import QUAT_NORM_TOLERANCE
+from posecorr.data import quaternion_faults
 from posecorr._xp import namespace
 from posecorr.metrics import pose_metrics
 
@@ -88,11 +88,9 @@ def check_poses(a: Any, name: str, n: int | None = None) -> np.ndarray:
         raise ValueError(f"{name} contains NaN or infinite values")
     # The runtime's and the table reader's rule: a zero or norm-3 quaternion is a glitch that
     # normalising would turn into a made-up rotation.
-    norm = np.linalg.norm(arr[:, 3:], axis=1)
-    off = np.flatnonzero(np.abs(norm - 1.0) > QUAT_NORM_TOLERANCE)
+    off, what = quaternion_faults(arr[:, 3:])
     if off.size:
-        raise ValueError(f"{name}: row {int(off[0])}: quaternion qw, qx, qy, qz has norm {norm[off[0]]:.6g} "
-                         f"(expected a unit quaternion: norm within {QUAT_NORM_TOLERANCE:g} of 1)")
+        raise ValueError(f"{name}: row {int(off[0])}: {what} (expected a unit quaternion qw, qx, qy, qz)")
     return arr
 
 

@@ -157,6 +157,13 @@ def test_10000_poses_at_1khz_none_lost_each_the_shims_bits(domain, tmp_path):
     assert code == 130, err  # stopped by SIGINT (128 + 2)
 
 
+def _replace_atomically(model: Path, data: bytes) -> None:
+    """The model file replaced as the exporter replaces it: written beside, then renamed."""
+    tmp = model.with_name("incoming.onnx")
+    tmp.write_bytes(data)
+    os.replace(tmp, model)
+
+
 def test_swap_mid_stream_and_a_corrupt_file(domain, tmp_path):
     """Model 1 serves, the file is replaced by model 2 (atomically) mid-stream, then by a
     corrupt file: every pose comes back exactly once, from model 1 until some pose and from
@@ -165,16 +172,11 @@ def test_swap_mid_stream_and_a_corrupt_file(domain, tmp_path):
     shutil.copy(FIRST, model)
     cell = Cell(model, domain)
 
-    def replace_with(data: bytes) -> None:
-        tmp = tmp_path / "incoming.onnx"
-        tmp.write_bytes(data)
-        os.replace(tmp, model)
-
     try:
         x = _poses(3000, seed=2)
         cell.publish(x, first=0, rate_hz=1000.0,
-                     at_index={1000: lambda: replace_with(SECOND.read_bytes()),
-                               2000: lambda: replace_with(b"\x08\x07 half a model")})
+                     at_index={1000: lambda: _replace_atomically(model, SECOND.read_bytes()),
+                               2000: lambda: _replace_atomically(model, b"\x08\x07 half a model")})
         cell.wait(lambda: len(cell.got) == len(x), 30, "not every pose came back")
         got = cell.outputs(0, len(x))
         by_first, by_second = _shim(FIRST, x), _shim(SECOND, x)
@@ -340,16 +342,11 @@ def test_a_failed_file_after_a_swap_not_yet_taken_names_the_model_that_will_serv
     shutil.copy(FIRST, model)
     cell = Cell(model, domain)
 
-    def replace_with(data: bytes) -> None:
-        tmp = tmp_path / "incoming.onnx"
-        tmp.write_bytes(data)
-        os.replace(tmp, model)
-
     second = model_id(model, SECOND.read_bytes())
     try:
-        replace_with(SECOND.read_bytes())
+        _replace_atomically(model, SECOND.read_bytes())
         cell.wait(lambda: cell.diagnostics[-1]["pending_model"] == second, 10, "model 2 not loaded")
-        replace_with(b"\x08\x07 half a model")
+        _replace_atomically(model, b"\x08\x07 half a model")
         cell.wait(lambda: cell.diagnostics[-1]["last_load_error"], 10, "the corrupt file not reported")
         assert cell.diagnostics[-1]["pending_model"] == second
     finally:

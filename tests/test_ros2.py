@@ -390,3 +390,30 @@ def test_the_summary_of_a_node_that_published_no_pose_says_so(domain):
     assert out.startswith("stopped: 0 poses in, 0 out, 0 refused; per model generation 1:0; "
                           "added latency no poses"), out
     assert "nan" not in out, out
+
+
+def test_registration_maps_each_pose_as_ingest_mapped_the_table(domain):
+    """--registration x,y,z,qw,qx,qy,qz: a pose published in the tracker's frame is mapped by
+    it before the model, as `ingest --registration` mapped the table's measured poses (scipy's
+    Rotation, the independent truth, makes the raw poses from poses in the model's box); a
+    registration that is no transform is refused in one line before ROS starts."""
+    from scipy.spatial.transform import Rotation
+
+    turn, shift = Rotation.from_euler("xyz", [0.2, -0.1, 0.7]), np.array([0.1, -0.2, 0.05])
+    qx, qy, qz, qw = turn.as_quat()
+    x = _poses(40, seed=9)
+    raw_p = turn.inv().apply(x[:, :3] - shift)
+    raw_q = (turn.inv() * Rotation.from_quat(x[:, [4, 5, 6, 3]])).as_quat()[:, [3, 0, 1, 2]]
+    cell = Cell(FIRST, domain, "--registration", ",".join(repr(float(v)) for v in (*shift, qw, qx, qy, qz)))
+    try:
+        cell.publish(np.column_stack([raw_p, raw_q]), first=0, rate_hz=500.0)
+        cell.wait(lambda: len(cell.got) == len(x), 10, "poses lost")
+        np.testing.assert_allclose(cell.outputs(0, len(x)), _shim(FIRST, x), rtol=0, atol=2e-6)
+    finally:
+        code, out, err = cell.stop()
+    assert code == 130, err
+    assert "poses mapped by the registration first" in err, err
+    bad = subprocess.run([POSECORR, "ros2", str(FIRST), "--registration", "1,2"], capture_output=True, text=True,
+                         timeout=120)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1, bad.stderr
+    assert "--registration '1,2': expected paper, none or x,y,z[,qw,qx,qy,qz]" in bad.stderr, bad.stderr

@@ -75,6 +75,34 @@ def homogeneous(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
+# Named transforms of --tool (end_T_tracker) and --registration (base_T_<tracker frame>), the
+# options of `ingest` and, for the registration, of the `ros2` node.
+NAMED_TRANSFORMS = {
+    "tool": {"paper": END_T_TRACKER.copy, "none": lambda: np.eye(4)},
+    "registration": {"paper": base_T_station, "none": lambda: np.eye(4)},
+}
+
+
+def parse_transform(text: str, kind: str, error: type[Exception] = ValueError) -> np.ndarray:
+    """A 4x4 transform from a name in NAMED_TRANSFORMS[kind] or 'x,y,z[,qw,qx,qy,qz]' (m, unit
+    quaternion); `error` (the caller's kind of refusal) naming the option otherwise."""
+    from .rotations import quat_to_matrix
+
+    named = NAMED_TRANSFORMS[kind]
+    if text.strip().lower() in named:
+        return named[text.strip().lower()]()
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) not in (3, 7) or not np.all(np.isfinite(values)):
+        raise error(f"--{kind} {text!r}: expected {', '.join(named)} or x,y,z[,qw,qx,qy,qz]")
+    quat = np.array(values[3:] or [1.0, 0.0, 0.0, 0.0])
+    if abs(np.linalg.norm(quat) - 1.0) > 1e-3:
+        raise error(f"--{kind} {text!r}: quaternion norm {np.linalg.norm(quat):.6g}, expected 1")
+    return homogeneous(quat_to_matrix(quat), np.array(values[:3]))
+
+
 def rot_x(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])

@@ -18,12 +18,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--input-frame", metavar="FRAME",
                    help="the frame id of the raw poses the model was fitted in: a pose in any other "
                         "is refused (default: every frame taken, each one logged once)")
+    p.add_argument("--registration", default="none", type=_registration, metavar="TRANSFORM",
+                   help="base_T_(tracker frame) that mapped the model's measured poses, as `ingest "
+                        "--registration` took it (paper, none, or x,y,z,qw,qx,qy,qz): each pose is mapped "
+                        "so before the model (default: none, the poses as published)")
     p.add_argument("--reliable", action="store_true", help="reliable QoS (default: sensor data, best effort)")
     p.add_argument("--t0", type=options.real(),
                    help="models with time: t = stamp - T0 (default: the first pose's stamp)")
     p.add_argument("--diagnostics-period", type=options.real(0, 3600, open_lo=True), default=1.0,
                    help="seconds between /diagnostics messages")
     allow_options(p)
+
+
+def _registration(text: str):
+    """None for none (no work a pose), else the 4x4 transform."""
+    from ..geometry import parse_transform
+
+    return None if text.strip().lower() == "none" else parse_transform(text, "registration", argparse.ArgumentTypeError)
 
 
 def run(args: argparse.Namespace) -> None:
@@ -33,7 +44,8 @@ def run(args: argparse.Namespace) -> None:
     from ..safeio import Terminated
 
     final = run_node(args.model, input_topic=args.input, output_topic=args.output,
-                     frame=args.frame, input_frame=args.input_frame, reliable=args.reliable, t0=args.t0,
+                     frame=args.frame, input_frame=args.input_frame, registration=args.registration,
+                     reliable=args.reliable, t0=args.t0,
                      diag_period=args.diagnostics_period, allow=allow_arguments(args),
                      log=(lambda m: print(m, file=sys.stderr, flush=True)))
     if args.json:

@@ -16,6 +16,7 @@ from typing import Callable
 import numpy as np
 
 from ..data import JOINTS, PoseTable, implausible_spread
+from .. import geometry
 from ..geometry import END_T_TRACKER, base_T_station, homogeneous
 from ..jsonable import json_default
 from ..kinematics import DEFAULT_ARM, Arm, load_arm, reference_poses
@@ -219,28 +220,9 @@ def _table(segments: list[Segment], arm: Arm, options: IngestOptions, t0: float,
                      ref_p=ref[:, :3, 3].copy(), ref_q=matrix_to_quat(ref[:, :3, :3]), extras=extras)
 
 
-# Named transforms of --tool (end_T_tracker) and --registration (base_T_<tracker frame>).
-NAMED_TRANSFORMS: dict[str, dict[str, Callable[[], np.ndarray]]] = {
-    "tool": {"paper": END_T_TRACKER.copy, "none": lambda: np.eye(4)},
-    "registration": {"paper": base_T_station, "none": lambda: np.eye(4)},
-}
-
-
 def parse_transform(text: str, kind: str) -> np.ndarray:
-    """A 4x4 transform from a name in NAMED_TRANSFORMS[kind] or 'x,y,z[,qw,qx,qy,qz]' (m, unit quaternion)."""
-    named = NAMED_TRANSFORMS[kind]
-    if text.strip().lower() in named:
-        return named[text.strip().lower()]()
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) not in (3, 7):
-        raise IngestError(f"--{kind} {text!r}: expected {', '.join(named)} or x,y,z[,qw,qx,qy,qz]")
-    quat = np.array(values[3:] or [1.0, 0.0, 0.0, 0.0])
-    if abs(np.linalg.norm(quat) - 1.0) > 1e-3:
-        raise IngestError(f"--{kind} {text!r}: quaternion norm {np.linalg.norm(quat):.6g}, expected 1")
-    return homogeneous(quat_to_matrix(quat), np.array(values[:3]))
+    """`geometry.parse_transform`, refused as an IngestError."""
+    return geometry.parse_transform(text, kind, IngestError)
 
 
 def segments_path(table_path: str | Path) -> Path:

@@ -11,6 +11,9 @@
   node cannot tell that frame from the file. With `input_frame` set, a pose in any other
   frame is refused (counted, one log line per distinct frame); without it every frame is
   taken, and each distinct one is logged once, so a stream in an unexpected frame shows.
+- The registration: a model fitted on a table that `ingest` mapped into the robot's base
+  frame (its `--registration`) takes poses mapped the same way; with `registration` (4x4
+  base_T_<tracker frame>) each pose is mapped so before the model, as ingest mapped them.
 - Models with time take `t` from the stamps: seconds since the first pose, or since `t0`.
 - Hot swap: a watcher thread polls the model file (size, modification time, inode; read
   once it stayed the same for two polls, so a file being written is never read half-way;
@@ -41,8 +44,9 @@ from typing import Any
 
 import numpy as np
 
-from posecorr.controller.checks import Limits
+from posecorr.controller.checks import INPUT_NORM2_RANGE, Limits
 from posecorr.controller.runtime import Corrector, PoseCorrError
+from posecorr.rotations import matrix_to_quat, quat_to_matrix
 
 POLL_SECONDS = 0.05
 LATENCY_WINDOW = 10_000
@@ -223,7 +227,8 @@ class _Correcting:
 
     def __init__(self, ros: dict[str, Any], first: Loaded, model: Path, *, node_name: str,
                  input_topic: str, output_topic: str, frame: str, input_frame: str | None,
-                 reliable: bool, t0: float | None, diag_period: float, log) -> None:
+                 registration: np.ndarray | None, reliable: bool, t0: float | None, diag_period: float,
+                 log) -> None:
         super().__init__(node_name)
         self._ros, self._log = ros, log
         self.watcher: ModelWatcher | None = None
@@ -234,6 +239,7 @@ class _Correcting:
         self.t0 = t0
         self.frame = frame
         self.input_frame = input_frame
+        self.registration = registration
         self.frames_seen: set[str] = set()
         # the frame of the last pose taken: only a pose in another one is looked at (one
         # string compare on the hot path); None lets the first pose's frame be logged
@@ -288,6 +294,8 @@ class _Correcting:
                 raise PoseCorrError("a value is not finite")
             if float(pose[3:] @ pose[3:]) < 1e-12:
                 raise PoseCorrError("zero quaternion")
+            if self.registration is not None:
+                pose = self._registered(pose)
             c = loaded.corrector.correct(pose, stamp - self.t0)
         except PoseCorrError as exc:
             self.counts.refused += 1
@@ -297,6 +305,17 @@ class _Correcting:
         self.counts.poses_out += 1
         self.counts.per_generation[loaded.generation] += 1
         self.latency_us.append((time.perf_counter() - arrival) * 1e6)
+
+    def _registered(self, pose: np.ndarray) -> np.ndarray:
+        """The pose mapped by the registration, as ingest mapped the table's measured poses. Its
+        quaternion is checked first, in the runtime's words: mapped, a norm-3 one would come
+        out unit, a made-up rotation."""
+        norm2 = float(pose[3:] @ pose[3:])
+        if not INPUT_NORM2_RANGE[0] <= norm2 <= INPUT_NORM2_RANGE[1]:
+            raise PoseCorrError(f"the quaternion qw, qx, qy, qz has norm {norm2 ** 0.5:.6f} (expected a unit "
+                                "quaternion: norm within 0.001 of 1)")
+        T = self.registration
+        return np.concatenate([T[:3, :3] @ pose[:3] + T[:3, 3], matrix_to_quat(T[:3, :3] @ quat_to_matrix(pose[3:]))])
 
     def _take_frame(self, frame: str, stamp: float) -> bool:
         """Whether a pose in `frame`, another than the last pose's, is corrected: any frame
@@ -390,8 +409,8 @@ class _Correcting:
 
 def make_node(model: Path, *, input_topic: str = "/tracker/pose",
               output_topic: str = "/tracker/pose_corrected", frame: str = "base_link",
-              input_frame: str | None = None, reliable: bool = False, t0: float | None = None,
-              diag_period: float = 1.0,
+              input_frame: str | None = None, registration: np.ndarray | None = None,
+              reliable: bool = False, t0: float | None = None, diag_period: float = 1.0,
               node_name: str = "posecorr", log=print, allow: dict[str, bool] | None = None):
     """The node (rclpy must be initialised). Returns (node, watcher); the caller spins it
     and stops the watcher."""
@@ -401,7 +420,7 @@ def make_node(model: Path, *, input_topic: str = "/tracker/pose",
     node_class = type("CorrectorNode", (_Correcting, ros["Node"]), {})
     node = node_class(ros, first, model, node_name=node_name, input_topic=input_topic,
                       output_topic=output_topic, frame=frame, input_frame=input_frame,
-                      reliable=reliable, t0=t0, diag_period=diag_period, log=log)
+                      registration=registration, reliable=reliable, t0=t0, diag_period=diag_period, log=log)
     node.watcher = ModelWatcher(model, node.deliver, node.report_error, allow=allow)
     node.watcher.start()
     return node, node.watcher
@@ -429,7 +448,8 @@ def run_node(model: Path, log=print, **options) -> dict[str, str]:
         node, watcher = make_node(model, log=log, **options)
         log(f"posecorr ros2: {node.current.model_id} on {node.subscription.topic_name} -> "
             f"{node.publisher.topic_name} (input frame "
-            f"{'any' if node.input_frame is None else repr(node.input_frame)}, output frame {node.frame})")
+            f"{'any' if node.input_frame is None else repr(node.input_frame)}, output frame {node.frame}"
+            f"{'' if node.registration is None else ', poses mapped by the registration first'})")
         # rclpy's experimental events executor measured no faster here (1,020 against 1,140
         # poses/s unpaced, bench/ros2_latency.py, load 1.9)
         from rclpy.executors import SingleThreadedExecutor

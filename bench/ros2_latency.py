@@ -55,6 +55,7 @@ def _ros_runs(runs: list[tuple[str, float | None, int]]) -> list[dict]:
     out = []
     for label, rate, n in runs:
         proc = subprocess.Popen([str(BIN / "posecorr"), "ros2", str(MODEL), "--reliable",
+                                 "--registration", "none",   # the poses sent are in the model's frame
                                  "--diagnostics-period", "0.2"], stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True)
         rclpy.init()

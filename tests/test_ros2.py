@@ -49,8 +49,10 @@ class Cell:
     def __init__(self, model: Path, domain: int, *extra: str) -> None:
         self.env = {**os.environ, "ROS_DOMAIN_ID": str(domain)}
         os.environ["ROS_DOMAIN_ID"] = str(domain)
+        # the test publishes poses in the model's frame: no registration unless a test gives one
+        registration = [] if "--registration" in extra else ["--registration", "none"]
         self.proc = subprocess.Popen([POSECORR, "ros2", str(model), "--reliable",
-                                      "--diagnostics-period", "0.2", *extra],
+                                      "--diagnostics-period", "0.2", *registration, *extra],
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                      env=self.env)
         rclpy.init()
@@ -417,3 +419,16 @@ def test_registration_maps_each_pose_as_ingest_mapped_the_table(domain):
                          timeout=120)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1, bad.stderr
     assert "--registration '1,2': expected paper, none or x,y,z[,qw,qx,qy,qz]" in bad.stderr, bad.stderr
+
+
+def test_the_nodes_registration_defaults_to_ingests():
+    """A model fitted on a table ingested with the defaults takes the bridge's poses with the
+    node's defaults: both map by the paper's base_T_station; none maps nothing."""
+    from posecorr.cli import build_parser
+    from posecorr.geometry import base_T_station
+    from posecorr.ingest.pipeline import IngestOptions
+
+    parse = build_parser().parse_args
+    np.testing.assert_array_equal(parse(["ros2", str(FIRST)]).registration, IngestOptions().registration)
+    np.testing.assert_array_equal(IngestOptions().registration, base_T_station())
+    assert parse(["ros2", str(FIRST), "--registration", "none"]).registration is None

@@ -18,10 +18,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--input-frame", metavar="FRAME",
                    help="the frame id of the raw poses the model was fitted in: a pose in any other "
                         "is refused (default: every frame taken, each one logged once)")
-    p.add_argument("--registration", default="none", type=_registration, metavar="TRANSFORM",
+    p.add_argument("--registration", default="paper", type=_registration, metavar="TRANSFORM",
                    help="base_T_(tracker frame) that mapped the model's measured poses, as `ingest "
                         "--registration` took it (paper, none, or x,y,z,qw,qx,qy,qz): each pose is mapped "
-                        "so before the model (default: none, the poses as published)")
+                        "so before the model (default: paper, ingest's default; none: the poses as published)")
     p.add_argument("--reliable", action="store_true", help="reliable QoS (default: sensor data, best effort)")
     p.add_argument("--t0", type=options.real(),
                    help="models with time: t = stamp - T0 (default: the first pose's stamp)")

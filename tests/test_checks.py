@@ -776,6 +776,23 @@ def _tensor_cases() -> list[tuple[str, bytes, str]]:
     ]
 
 
+def test_a_tensor_is_read_field_by_field_as_protobuf_reads_it():
+    """An empty packed dims field (a scalar's, as a hand-written writer may emit it) adds no
+    dimension and does not stop the values after it from being read: onnx's own parser is
+    the judge."""
+    import struct
+
+    from posecorr.controller import onnx_meta
+
+    value = struct.pack("<f", 1.5)
+    buf = b"\x0a\x00" + b"\x10\x01" + b"\x22\x04" + value + b"\x42\x01w"   # dims, data_type, float_data, name
+    judge = onnx.TensorProto.FromString(buf)
+    assert list(judge.dims) == [] and list(judge.float_data) == [1.5] and judge.name == "w"
+    assert onnx_meta.tensor_fault(buf) is None
+    assert onnx_meta.float_tensor(buf) == {"name": "w", "raw": None, "float_data": value}
+    assert onnx_meta._initializer(buf) == ("w", 1)
+
+
 def _structure_cases() -> list[tuple[str, bytes, str]]:
     """(case, the model's bytes, what every reader says after the file's name)."""
     field, at = _graph_with(b"\x60\x01")           # graph output (12) as a varint

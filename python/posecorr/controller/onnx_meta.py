@@ -406,9 +406,9 @@ class _Tensor:
     fault: tuple[str, str] | None = None
 
 
-def _tensor(buf: bytes, values: bool = True) -> _Tensor:
-    """`values`: read the values fields too (the graph's first pass counts parameters from
-    the shape alone and leaves a fault inside the values to the tensor's own check, where
+def _tensor(buf: bytes, read_values: bool = True) -> _Tensor:
+    """`read_values`: read the values fields too (the graph's first pass counts parameters
+    from the shape alone and leaves a fault inside the values to the tensor's own check, where
     libposecorr meets it)."""
     t = _Tensor()
 
@@ -416,7 +416,7 @@ def _tensor(buf: bytes, values: bool = True) -> _Tensor:
         t.fault = t.fault or (status, words)
 
     for f, wire, v, at in _fields_at(buf):
-        if f in _NUMBER_FIELDS and (values or f == 1):
+        if f in _NUMBER_FIELDS and (read_values or f == 1):
             elem = _NUMBER_FIELDS[f]
             if wire == elem:
                 values = [v]
@@ -454,7 +454,7 @@ def _tensor(buf: bytes, values: bool = True) -> _Tensor:
 
 def _initializer(buf: bytes) -> tuple[str, int]:
     """A TensorProto initializer's name and element count (a negative dimension as 0)."""
-    t = _tensor(buf, values=False)
+    t = _tensor(buf, read_values=False)
     return t.name, math.prod(max(d, 0) for d in t.dims)
 
 

@@ -420,7 +420,6 @@ PC_NOINLINE static pc_status pc_run_chunks(pc_model *model, const float *in, con
     /* Reject before writing anything, so that out is untouched on these errors. */
     if ((st = pc_check_input(model, in, t, n)) != PC_OK)
         return st;
-    model->message[0] = '\0';
     while (done < n) {
         const size_t left = n - done;
         for (k = model->n_plans - 1; model->plans[k].batch > left; k--)

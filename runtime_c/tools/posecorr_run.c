@@ -7,7 +7,8 @@
  * corrects the pose as at t = 0. --binary reads and writes raw little-endian float32
  * records of 7 values instead; with --timed each record read holds 8, t the 8th (a record
  * has no room for an optional value, so the width is said once; a model that takes time
- * read without it is named on stderr at the start). A first line of 7 (or 8) names is a header, passed through.
+ * read without it is named on stderr at the start). A first line of 7 (or 8) names is a
+ * header, passed through.
  * Numbers are read as the table reader reads them: plain decimal notation (nan and inf read,
  * then refused as non-finite; a hexadecimal float such as 0x1p-5 is a bad line), on lines of
  * any length. The model must be a regular file: a FIFO, a device or a folder is refused.
@@ -239,8 +240,9 @@ static const char *refusal(const pc_model *model)
 /* Records of 7 float32, or 8 with the pose's time last (timed). */
 static int run_binary(pc_model *model, int strict, int timed)
 {
+    const int values = PC_POSE_WIDTH + (timed ? 1 : 0);
+    const size_t width = 4 * (size_t)values;
     unsigned char bytes[4 * (PC_POSE_WIDTH + 1)];
-    const size_t width = 4 * (size_t)(PC_POSE_WIDTH + (timed ? 1 : 0));
     float in[PC_POSE_WIDTH + 1], out[PC_POSE_WIDTH];
     unsigned long record = 0;
     int failed = 0, i;
@@ -248,7 +250,7 @@ static int run_binary(pc_model *model, int strict, int timed)
     while ((got = fread(bytes, 1, width, stdin)) == width) {
         pc_status st;
         record++;
-        for (i = 0; i < PC_POSE_WIDTH + (timed ? 1 : 0); i++)
+        for (i = 0; i < values; i++)
             float_from_le(bytes + 4 * i, in + i);
         if ((st = pc_run_timed(model, in, timed ? in + PC_POSE_WIDTH : NULL, 1, out)) != PC_OK) {
             fprintf(stderr, "posecorr-run: record %lu: %s: %s\n", record, pc_status_name(st),
@@ -264,8 +266,7 @@ static int run_binary(pc_model *model, int strict, int timed)
     if (got != 0) {
         fprintf(stderr, "posecorr-run: record %lu: partial record of %lu bytes at the end of "
                         "input (a record is %lu bytes: %d float32)\n",
-                record + 1, (unsigned long)got, (unsigned long)width,
-                PC_POSE_WIDTH + (timed ? 1 : 0));
+                record + 1, (unsigned long)got, (unsigned long)width, values);
         return 1;
     }
     if (ferror(stdin)) {

@@ -411,6 +411,11 @@ def test_registration_maps_each_pose_as_ingest_mapped_the_table(domain):
         cell.publish(np.column_stack([raw_p, raw_q]), first=0, rate_hz=500.0)
         cell.wait(lambda: len(cell.got) == len(x), 10, "poses lost")
         np.testing.assert_allclose(cell.outputs(0, len(x)), _shim(FIRST, x), rtol=0, atol=2e-6)
+        # a quaternion of norm 3 is refused as the runtime refuses it, not mapped into a rotation
+        cell.publish(np.column_stack([raw_p[:1], 3 * raw_q[:1]]), first=len(x), rate_hz=500.0)
+        cell.wait(lambda: cell.diagnostics[-1]["refused"] == "1", 10, "the pose was not refused")
+        assert "quaternion not unit" in cell.diagnostics[-1]["last_refusal"], cell.diagnostics[-1]
+        assert len(cell.got) == len(x)
     finally:
         code, out, err = cell.stop()
     assert code == 130, err

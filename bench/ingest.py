@@ -43,6 +43,18 @@ def _best(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
     return best, value
 
 
+def _peak_memory_mb(path: Path) -> float:
+    """The peak resident memory of a fresh process that ingests `path` (its imports included)."""
+    import subprocess
+
+    code = ("import resource, sys\n"
+            "from posecorr.ingest.pipeline import ingest\n"
+            "ingest([sys.argv[1]])\n"
+            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
+    out = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, check=True)
+    return int(out.stdout.split()[-1]) / 1024.0         # ru_maxrss is in KiB on Linux
+
+
 def run(out_path: str | os.PathLike = "bench/results/ingest.json", repeats: int = 3) -> dict[str, Any]:
     from posecorr.ingest.pipeline import ingest
     from posecorr.recording import simulate_recording, write_recording
@@ -67,9 +79,9 @@ def run(out_path: str | os.PathLike = "bench/results/ingest.json", repeats: int 
             raw_seconds, messages = _best(lambda: _raw_read(path), repeats)
             result["formats"][Path(name).suffix[1:]] = {
                 "ingest_seconds": seconds, "raw_read_seconds": raw_seconds, "ratio_to_raw_read": seconds / raw_seconds,
-                "messages": messages, "file_bytes": path.stat().st_size, "write_seconds": written,
+                "messages": messages, "file_bytes": path.stat().st_size, "file_mb": path.stat().st_size / 1e6, "write_seconds": written,
                 "rows": ingested.table.n, "offset_error_ms": (ingested.alignment.offset - recording.offset) * 1e3,
-                "under_20_s": seconds < 20.0,
+                "under_20_s": seconds < 20.0, "peak_memory_mb": _peak_memory_mb(path),
             }
             print(f"{name}: ingest {seconds:.2f} s, raw read {raw_seconds:.2f} s, {ingested.table.n} rows",
                   file=sys.stderr, flush=True)

@@ -565,3 +565,44 @@ def test_a_tracker_on_its_boot_clock(short, tmp_path) -> None:
     table = read_table(tmp_path / "table.csv")
     np.testing.assert_allclose(table.ref_p, short.table.ref_p, atol=1e-6)
     assert np.all(np.linalg.norm(table.meas_p - short.table.meas_p, axis=1) < table.extras["jitter_mm"] * 1e-3)
+
+
+def test_a_csv_log_read_in_chunks_reads_as_one(recording, tmp_path, monkeypatch) -> None:
+    """A log is parsed CHUNK_ROWS records at a time: the streams do not depend on where the
+    chunks end, and a bad cell far into the file is still named by its row."""
+    import posecorr.ingest.csvlog as csvlog
+
+    path = write_recording(recording, tmp_path / "rec.csv")
+    whole = read_csv_log([path])
+    monkeypatch.setattr(csvlog, "CHUNK_ROWS", 997)      # a prime: chunks end mid-way in both streams
+    chunked = read_csv_log([path])
+    for a, b in zip(whole, chunked):
+        for name in ("t", "q", "p") if isinstance(a, PoseStream) else ("t", "q"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    np.testing.assert_array_equal(chunked[0].t, recording.joints.t)
+    lines = path.read_text().splitlines()
+    row = 5 * 997 + 3                                   # in the sixth chunk
+    cells = lines[row - 1].split(",")
+    cells[0] = "1e400"
+    lines[row - 1] = ",".join(cells)
+    lines[1:1] = ["# a comment line"]                   # a row of the file, not a sample
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(IngestError, match=rf"row {row + 1}, column t: expected a finite number"):
+        read_csv_log([path])
+
+
+def test_an_offset_beyond_the_search_is_named_not_aliased(experiment3, tmp_path) -> None:
+    """Clocks 6.5 s apart, searched within 5 s: one stop early matched fairly well (a table with
+    every pose paired to the wrong stop, correlation ~0.8); ingest names the offset that matches
+    best beyond the range instead, and finds it when the range is raised as it says."""
+    true = 6.5
+    recording = simulate_recording(experiment3, n_targets=TARGETS, seed=0,
+                                   options=RecordingOptions(clock_offset=true))
+    path = tmp_path / "late.csv"
+    write_csv_log(path, recording.joints, recording.tracker)
+    with pytest.raises(IngestError, match=r"match best at a clock offset of \+6\.50 s \(correlation 0\.9\d\), beyond "
+                                          r"--max-offset 5 s \(at most 0\.[5-8]\d within it\); raise --max-offset to 8"):
+        ingest([path])
+    found = ingest([path], IngestOptions(max_offset=8.0))
+    assert found.alignment.offset == pytest.approx(true, abs=1e-3)
+    assert found.table.n == TARGETS

@@ -11,12 +11,14 @@ options (`--time-col`, `--joint-cols`, `--pose-cols`).
 from __future__ import annotations
 
 import csv
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..data import TableError, csv_records, header_record, quaternion_faults, warn_comments
+from ..data import CHUNK_ROWS, TableError, csv_records, header_record, quaternion_faults, warn_comments
+from .progress import progress_bar
 from .streams import IngestError, JointStream, PoseStream
 
 
@@ -27,77 +29,114 @@ class CsvColumns:
     pose: tuple[str, ...] = ("x", "y", "z", "qw", "qx", "qy", "qz")
 
 
-def _records(path: Path) -> tuple[int, list[str], list[tuple[int, list[str]]]]:
-    """(the header's row, its cells, (file row, cells) of each row that carries a sample):
-    blank and comment lines carry none; those among the samples are named in a warning."""
+def _open(path: Path):
     try:
-        handle = open(path, "rb")
+        return open(path, "rb")
     except OSError as exc:
         raise IngestError(f"{path}: cannot open: {exc.strerror}") from None
-    numbered: list[tuple[int, list[str]]] = []
-    comment_rows: list[int] = []
-    with handle:
-        try:
-            records = csv_records(handle, str(path))
-            header_row, header, _ = header_record(records)
-            for number, cells, comment in records:
-                if comment is not None:
-                    comment_rows.append(number)
-                elif "".join(cells).strip():
-                    numbered.append((number, cells))
-        except TableError as exc:
-            raise IngestError(str(exc)) from None
-    if header_row is None or header is None:
-        raise IngestError(f"{path}: empty file, expected a header row")
-    if comment_rows:
-        warn_comments(str(path), comment_rows)
-    return header_row, header, numbered
 
 
 def _read_block(path: Path, columns: CsvColumns) -> dict[str, np.ndarray | None]:
-    """{'joints': (t, values) or None, 'pose': ...} of one file."""
-    header_row, header, numbered = _records(path)
-    header = [h.strip() for h in header]
-    if columns.time not in header:
-        raise IngestError(f"{path}: row {header_row}: no time column {columns.time!r} (header: {', '.join(header)})")
-    file_rows = np.array([number for number, _ in numbered], dtype=np.int64)
-    rows = [r for _, r in numbered]
-    for number, row in numbered:
-        if len(row) != len(header):
-            raise IngestError(f"{path}: row {number}: {len(row)} fields, expected {len(header)} as in the header")
-    cells = np.array(rows, dtype=object).reshape(len(rows), len(header))
-    out: dict[str, np.ndarray | None] = {}
+    """{'joints': (t, values) or None, 'pose': ...} of one file. Read in chunks of
+    CHUNK_ROWS records, each parsed to numbers before the next is read: a long log's cells as
+    Python strings would take ten times the file's size."""
+    comment_rows: list[int] = []
+    with _open(path) as handle, progress_bar(os.fstat(handle.fileno()).st_size, "B", path) as done:
+        try:
+            records = csv_records(handle, str(path))
+            header_row, header, _ = header_record(records)
+            if header_row is None or header is None:
+                raise IngestError(f"{path}: empty file, expected a header row")
+            header = [h.strip() for h in header]
+            if columns.time not in header:
+                raise IngestError(f"{path}: row {header_row}: no time column {columns.time!r} "
+                                  f"(header: {', '.join(header)})")
+            wanted = _wanted_columns(path, header_row, header, columns)
+            parts: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {key: [] for key in wanted}
+            for numbered in _sample_chunks(records, comment_rows):
+                for key, (values, file_rows) in _parse_chunk(path, header, numbered, wanted, columns).items():
+                    parts[key].append((values, file_rows))
+                done(handle.tell())
+        except TableError as exc:
+            raise IngestError(str(exc)) from None
+    if comment_rows:
+        warn_comments(str(path), comment_rows)
+    out: dict[str, np.ndarray | None] = {key: None for key in ("joints", "pose")}
+    for key, names in wanted.items():
+        values = np.concatenate([v for v, _ in parts[key]]) if parts[key] else np.zeros((0, len(names)))
+        file_rows = np.concatenate([r for _, r in parts[key]]) if parts[key] else np.zeros(0, np.int64)
+        _check_stream(path, key, names, values, file_rows)
+        out[key] = values
+    return out
+
+
+def _wanted_columns(path: Path, header_row: int, header: list[str],
+                    columns: CsvColumns) -> dict[str, tuple[str, ...]]:
+    """{stream: (time, its columns...)} for each stream whose columns the header has, all of them."""
+    wanted = {}
     for key, names in (("joints", columns.joints), ("pose", columns.pose)):
         present = [n for n in names if n in header]
         if not present:
-            out[key] = None
             continue
         if len(present) != len(names):
             missing = next(n for n in names if n not in header)
             raise IngestError(f"{path}: row {header_row}, column {missing}: missing (expected {', '.join(names)})")
-        index = [header.index(n) for n in (columns.time,) + tuple(names)]
-        block = cells[:, index]
+        wanted[key] = (columns.time,) + tuple(names)
+    return wanted
+
+
+def _sample_chunks(records, comment_rows: list[int]):
+    """Lists of (file row, cells) of the records that carry a sample, CHUNK_ROWS at most each:
+    blank and comment lines carry none (the comments' rows go to `comment_rows`)."""
+    numbered: list[tuple[int, list[str]]] = []
+    for number, cells, comment in records:
+        if comment is not None:
+            comment_rows.append(number)
+        elif "".join(cells).strip():
+            numbered.append((number, cells))
+            if len(numbered) == CHUNK_ROWS:
+                yield numbered
+                numbered = []
+    if numbered:
+        yield numbered
+
+
+def _parse_chunk(path: Path, header: list[str], numbered: list[tuple[int, list[str]]],
+                 wanted: dict[str, tuple[str, ...]], columns: CsvColumns) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """{stream: (its rows' numbers (time first), their file rows)} of one chunk; the rows that
+    carry no sample of a stream are left out of it."""
+    for number, row in numbered:
+        if len(row) != len(header):
+            raise IngestError(f"{path}: row {number}: {len(row)} fields, expected {len(header)} as in the header")
+    file_rows = np.array([number for number, _ in numbered], dtype=np.int64)
+    out = {}
+    for key, names in wanted.items():
+        index = [header.index(n) for n in names]
+        block = np.array([[row[i] for i in index] for _, row in numbered], dtype=object)
         filled = block[:, 1:] != ""
         partial = np.flatnonzero(filled.any(axis=1) & ~filled.all(axis=1))
         if partial.size:
             r = int(partial[0])
-            col = names[int(np.flatnonzero(~filled[r])[0])]
+            col = names[1 + int(np.flatnonzero(~filled[r])[0])]
             raise IngestError(f"{path}: row {file_rows[r]}, column {col}: empty, expected a number like the rest "
                               f"of the row's {key} columns")
         rows_with = np.flatnonzero(filled.all(axis=1))
-        out[key] = _numbers(path, block[rows_with], file_rows[rows_with], (columns.time,) + tuple(names))
-        bad, what = quaternion_faults(out[key][:, 4:8]) if key == "pose" else (np.zeros(0), "")
-        if bad.size:
-            raise IngestError(f"{path}: row {file_rows[rows_with[bad[0]]]}, column {names[3]}..{names[6]}: {what} "
-                              "(expected a unit quaternion w, x, y, z)")
-        # Rates, speeds and the clock alignment divide by time steps: each must be > 0.
-        stalled = np.flatnonzero(np.diff(out[key][:, 0]) <= 0)
-        if stalled.size:
-            r = int(stalled[0]) + 1
-            raise IngestError(f"{path}: row {file_rows[rows_with[r]]}, column {columns.time}: time "
-                              f"{float(out[key][r, 0])!r} is not after the previous {key} row's "
-                              f"{float(out[key][r - 1, 0])!r} (times must increase)")
+        out[key] = (_numbers(path, block[rows_with], file_rows[rows_with], names), file_rows[rows_with])
     return out
+
+
+def _check_stream(path: Path, key: str, names: tuple[str, ...], values: np.ndarray, file_rows: np.ndarray) -> None:
+    """A stream's whole-file rules: unit quaternions, and times that increase (rates, speeds
+    and the clock alignment divide by time steps: each must be > 0)."""
+    bad, what = quaternion_faults(values[:, 4:8]) if key == "pose" else (np.zeros(0), "")
+    if bad.size:
+        raise IngestError(f"{path}: row {file_rows[bad[0]]}, column {names[4]}..{names[7]}: {what} "
+                          "(expected a unit quaternion w, x, y, z)")
+    stalled = np.flatnonzero(np.diff(values[:, 0]) <= 0)
+    if stalled.size:
+        r = int(stalled[0]) + 1
+        raise IngestError(f"{path}: row {file_rows[r]}, column {names[0]}: time {float(values[r, 0])!r} is not "
+                          f"after the previous {key} row's {float(values[r - 1, 0])!r} (times must increase)")
 
 
 def _numbers(path: Path, block: np.ndarray, rows: np.ndarray, names: tuple[str, ...]) -> np.ndarray:

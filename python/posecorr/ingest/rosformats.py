@@ -18,6 +18,7 @@ import numpy as np
 
 from ..data import quaternion_faults
 from .fastdecode import decoder
+from .progress import progress_bar
 from .streams import IngestError, JointStream, PoseStream
 
 JOINT_TYPE = "sensor_msgs/msg/JointState"
@@ -74,6 +75,9 @@ class _BagSource:
     def topics(self) -> Topics:
         return Topics({c.topic: c.msgtype for c in self.reader.connections})
 
+    def count(self, topics: list[str]) -> int:
+        return sum(c.msgcount for c in self.reader.connections if c.topic in topics)
+
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, bytes]]:
         connections = [c for c in self.reader.connections if c.topic in topics]
         for connection, stamp, raw in self.reader.messages(connections=connections):
@@ -105,6 +109,7 @@ class _McapSource:
         if summary is None:
             raise IngestError(f"{self.path}: MCAP file without a summary section (truncated?)")
         self.schemas, self.channels = summary.schemas, summary.channels
+        self.counts = summary.statistics.channel_message_counts if summary.statistics else {}
         self._register_types()
         return self
 
@@ -135,6 +140,9 @@ class _McapSource:
         if len(encodings) != 1 or not encodings <= {"cdr", "ros1"}:
             raise IngestError(f"{self.path}: message encodings {', '.join(sorted(encodings))}, expected cdr or ros1")
         return encodings.pop()
+
+    def count(self, topics: list[str]) -> int:
+        return sum(self.counts.get(i, 0) for i, c in self.channels.items() if c.topic in topics)
 
     def messages(self, topics: list[str]) -> Iterator[tuple[str, int, bytes]]:
         for _, channel, message in self.reader.iter_messages(topics=topics):
@@ -250,6 +258,15 @@ def _generic_pose(extract: Callable[[Any], tuple[Any, Any, Any]], deserialize: C
     return decode
 
 
+def _reading(source: Any, topics: list[str], path: Path) -> Iterator[tuple[str, int, bytes]]:
+    """The topics' messages, counted on a progress bar."""
+    with progress_bar(source.count(topics), "msg", path) as done:
+        for index, message in enumerate(source.messages(topics)):
+            if index % 8192 == 0:
+                done(index)
+            yield message
+
+
 def _collect(path: Path, source: Any, topics: Topics, joint_topic: str, tracker_topic: str,
              tracker_frame: str | None, stamps: str) -> tuple[JointStream, PoseStream]:
     encoding = source.encoding
@@ -265,7 +282,7 @@ def _collect(path: Path, source: Any, topics: Topics, joint_topic: str, tracker_
     pt: list[float] = []
     plog: list[int] = []
     pose: list[tuple[float, ...]] = []
-    for topic, log_ns, raw in source.messages([joint_topic, tracker_topic]):
+    for topic, log_ns, raw in _reading(source, [joint_topic, tracker_topic], path):
         if topic == joint_topic:
             if fast_joints is None:
                 fast_joints = decoder(JOINT_TYPE, encoding, raw) or _generic_joints(source, encoding)

@@ -758,3 +758,42 @@ def test_bench_takes_another_producers_model_as_apply_does(tmp_path) -> None:
     out = posecorr("bench", str(model), "--n", "20", "--batch", "20", "--allow-unsigned", "--json")
     assert out.returncode == 0, out.stderr
     assert all(value is not None for value in json.loads(out.stdout)["single_pose_median_us"].values())
+
+
+def test_fit_states_a_parity_tolerance_widened_by_far_coordinates(tmp_path) -> None:
+    """A tracker frame 900 m from its origin: float32 steps there are 61 um, and the parity
+    check allows 64 of them, 3.9 mm. fit says so beside the parity figure (it printed the
+    figure alone); at a few metres it keeps to the figure."""
+    table = simulate(3, seed=0).table.subset(np.arange(40))
+    near = tmp_path / "near.csv"
+    write_table(table, near)
+    table.meas_p = table.meas_p + 900.0
+    far = tmp_path / "far.csv"
+    write_table(table, far)
+    tol = 64 * float(np.spacing(np.float32(np.abs(table.meas_p).max())))
+    for path, widened in ((near, False), (far, True)):
+        out = posecorr("fit", str(path), "--effects", "station,mount", "--method", "none", "-o",
+                       str(tmp_path / f"{path.stem}.onnx"))
+        assert out.returncode == 0, out.stderr
+        written = out.stdout.strip().splitlines()[-1]
+        assert ("(tolerance " in written) == widened, written
+        if widened:
+            assert f"(tolerance {tol:.1e} m: 64 float32 steps at the largest coordinate)" in written, written
+
+
+def test_diagnose_shows_a_candidate_whose_fits_ran_away_as_such(tmp_path) -> None:
+    """Exp1 diagnosed with no effects (frames unregistered, metres of error): the quadratic
+    form's fold fits predict the held-out poses ~1e82 m off. The table says "ran away" where a
+    candidate's held-out error grows 100-fold, and one line says so with the figure; --json
+    keeps the numbers."""
+    data = str(Path(__file__).parent / "data" / "realdata" / "20201002_Exp1.csv")
+    text = posecorr("diagnose", data)
+    result = json.loads(posecorr("diagnose", data, "--json").stdout)
+    assert text.returncode == 0, text.stderr
+    away = [c for c in result["candidates"] if c["cv_rmse_after"] >= 100 * c["cv_rmse_before"]]
+    assert [c["effect"] for c in away] == ["quadratic"], [(c["effect"], c["cv_rmse_after"]) for c in away]
+    rows = {line.split()[1]: line for line in text.stdout.splitlines() if re.match(r"\d+ +\w+ +(form|effect) ", line)}
+    for c in result["candidates"]:
+        assert ("ran away" in rows[c["effect"]]) == (c in away), rows[c["effect"]]
+    assert (f"ran away: quadratic's fits predict the held-out poses {away[0]['cv_rmse_after']:.3g} m + rad off "
+            f"(against {away[0]['cv_rmse_before']:.4g} before") in text.stdout

@@ -226,3 +226,57 @@ def test_positions_spanning_more_than_a_cell_draw_a_units_warning(tmp_path, caps
     assert len(err) == 2 and "the measured positions lie a typical" in err[0]
     assert err[1].endswith(f"the reference positions lie a typical {spread:.4g} m from their median; posecorr reads "
                            "metres, and a tracked cell spans a few: are ref_x..ref_z in millimetres?")
+
+
+def test_repeated_rows_are_named(tmp_path, capsys) -> None:
+    """Rows that repeat an earlier row's poses are kept (nothing is dropped unsaid) and named
+    by file row in one warning: held out, a repeat keeps its twin in training."""
+    table = _table(6)
+    twice = table.subset(np.array([0, 1, 2, 1, 3, 4, 5, 0]))
+    path = tmp_path / "twice.csv"
+    write_table(twice, path)
+    read = read_table(path)
+    assert read.n == 8
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].endswith(
+        "twice.csv: 2 rows (5, 9) repeat an earlier row's measured and reference pose: a repeat held out keeps its "
+        "twin in training, so held-out errors come out optimistic"), err
+    write_table(table, path)
+    read_table(path)
+    assert capsys.readouterr().err == ""
+
+
+def test_a_time_column_that_is_not_seconds_since_the_start_is_named(tmp_path, capsys) -> None:
+    """t is seconds since the session's start: negative times and a span of days (a
+    35-minute session in milliseconds) are said in a warning each; the table is read as is."""
+    table = _table(6)
+    path = tmp_path / "t.csv"
+    table.extras["t"] = np.arange(6) * 420.0 * 1000                # 35 minutes, in ms
+    write_table(table, path)
+    np.testing.assert_array_equal(read_table(path).time(), table.extras["t"])
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].endswith("column t spans 2.1e+06 s (24.3 days), and a session lasts minutes to "
+                                             "hours: milliseconds? posecorr reads seconds"), err
+    table.extras["t"] = np.arange(6) * 420.0 - 5000.0
+    write_table(table, path)
+    read_table(path)
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "column t starts at -5000 s; t is seconds since the session's start" in err[0], err
+    table.extras["t"] = np.arange(6) * 420.0
+    write_table(table, path)
+    read_table(path)
+    assert capsys.readouterr().err == ""
+
+
+def test_a_table_of_several_sessions_is_named(tmp_path, capsys) -> None:
+    """The session column is read, not modelled: a table naming two sessions says that one
+    tracker frame and one mount are fitted to all its rows."""
+    table = _table(6)
+    table.extras["session"] = np.array(["s1", "s1", "s1", "s2", "s2", "s2"], dtype=object)
+    path = tmp_path / "two.csv"
+    write_table(table, path)
+    np.testing.assert_array_equal(read_table(path).extras["session"], table.extras["session"])
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].endswith(
+        "two.csv: column session names 2 sessions (s1, s2); posecorr models one tracker frame and one mount for all "
+        "rows: where the sessions' frames differ, fit each session's rows alone"), err

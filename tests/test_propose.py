@@ -374,7 +374,15 @@ def test_undetermined_names_its_cause_drift_and_a_small_span():
     result = diagnose(short, study.BASE, candidates=["drift"], folds=3)
     reasons = {row["effect"]: row["reason"] for row in result["undetermined"]}
     assert "the session lasts 40 s" in reasons.get("drift", ""), result["undetermined"]
-    assert "drift.tau 60 to 1e+07 s" in reasons["drift"]
+    assert "drift.tau 60 to 1e+07 s (a time constant longer than the session shows only as a straight line)" in \
+        reasons["drift"]
+    # The same poses timed in ms (a 1,160 s session read as 1.16e6 s): every pose comes after
+    # the drift tested at tau = 3600 s has ended; the reason says that, not "longer than".
+    ms = replace(table, extras={**table.extras, "t": np.linspace(40.0, 1200.0, table.n) * 1000})
+    result = diagnose(ms, study.BASE, candidates=["drift"], folds=3)
+    reasons = {row["effect"]: row["reason"] for row in result["undetermined"]}
+    assert ("at drift.tau = 3600 s, where it is tested, it is over before the first pose, t = 40000 s, and shows "
+            "only as a constant offset; is t in seconds?") in reasons.get("drift", ""), result["undetermined"]
 
     spec = SessionSpec(n=30, spread="full", planar=False, position_only=False, unremovable=0.0, offset=2.0,
                        lever=0.05, box=0.004, max_angle=0.8)
@@ -542,3 +550,23 @@ def test_a_drift_the_session_barely_bends_is_not_called_implausible():
     row = next(c for c in diagnose(table, ["station", "mount"], candidates=["drift"])["candidates"]
                if c["effect"] == "drift")
     assert row["implausible"] == [], row
+
+
+def test_a_session_the_folds_leave_no_residual_names_fewer_folds() -> None:
+    """12 position-only poses in 5 folds: each fold holds out 2-3 poses, 6-9 residuals, and
+    the base fit (station and mount, 9 directions) moves them all: m = 0. Every p is then 1
+    (the statistics were a ratio of rounding errors, p = 0.34 shown beside "no p falls below
+    1"), and the reason names the fold count that leaves room, which a refit confirms."""
+    from posecorr.simulate import simulate_session
+
+    table = simulate_session(11, n=12, position_only=True, extra={"range_scale": [0.015]}).table
+    result = diagnose(table, study.BASE, folds=5)
+    reach = result["reach"]
+    assert reach["residual_dims"] == 0 and reach["best_p"] == 1.0 and not reach["can_pass"]
+    for row in result["candidates"]:
+        assert row["p_value"] == 1.0 and row["lm_statistic"] == 0.0 and row["prediction_z"] == 0.0, row
+    fewer = reach["folds_to_pass"]
+    assert fewer == {"folds": 2, "residual_dims": 18}
+    assert "fewer folds (--cv 2 would leave about 18 dimensions) or more poses" in result["no_proposal"]
+    refit = diagnose(table, study.BASE, folds=2)["reach"]
+    assert refit["residual_dims"] == fewer["residual_dims"] and refit["can_pass"]

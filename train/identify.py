@@ -89,18 +89,30 @@ class Spread:
                 "has_orientation": self.has_orientation}
 
 
+# A drift 1 - exp(-t / tau) is within 1 % of its end after this many time constants.
+ENDED_TIME_CONSTANTS = 5.0
+
+
 def poses_lack(effect: Any, spread: Spread, t: np.ndarray | None) -> str:
     """What these poses offer `effect` to show in, by what it varies with
     (`Effect.sensitivity`): the session's length, the orientations' span or the positions'."""
     if effect.sensitivity == "time":
         if t is None:
             return "the table has no time column t"
-        ranges = [f"{effect.name}.{p.name} {p.bounds[0]:g} to {p.bounds[1]:g} {p.unit}"
-                  for p in effect.params if p.bounds is not None]
+        bounded = [p for p in effect.params if p.bounds is not None]
         words = f"the session lasts {float(np.ptp(t)):.0f} s"
-        if ranges:
-            words += (f", against {', '.join(ranges)} (a time constant longer than the session shows "
-                      f"only as a straight line)")
+        if bounded:
+            ranges = ", ".join(f"{effect.name}.{p.name} {p.bounds[0]:g} to {p.bounds[1]:g} {p.unit}" for p in bounded)
+            # Tested at its default time constant, a drift either has not ended by the last
+            # pose (a straight line, only its slope shows) or had ended by the first (a
+            # constant offset, the station's: times in ms put every pose there).
+            tested = bounded[0]
+            tau = float(np.ravel(tested.default)[0])
+            why = (f"at {effect.name}.{tested.name} = {tau:g} {tested.unit}, where it is tested, it is over before "
+                   f"the first pose, t = {float(np.min(t)):.6g} s, and shows only as a constant offset; is t in seconds?"
+                   if float(np.min(t)) > ENDED_TIME_CONSTANTS * tau
+                   else "a time constant longer than the session shows only as a straight line")
+            words += f", against {ranges} ({why})"
         return words
     if effect.sensitivity == "orientation":
         return spread.orientation_words()

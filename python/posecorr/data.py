@@ -487,9 +487,70 @@ def read_table(path: str | Path, max_rows: int | None = None) -> PoseTable:
 
             warn(f"{path}: the {name} positions lie a typical {spread:.4g} m from their median; posecorr reads "
                  f"metres, and a tracked cell spans a few: are {columns[0]}..{columns[-1]} in millimetres?")
-    return PoseTable(meas_p=meas_p, meas_q=block(MEAS_QUAT), ref_p=ref_p,
-                     ref_q=block(REF_QUAT) if has_ref_q else None, extras=extras, path=path,
-                     rows=np.concatenate(numbers))
+    table = PoseTable(meas_p=meas_p, meas_q=block(MEAS_QUAT), ref_p=ref_p,
+                      ref_q=block(REF_QUAT) if has_ref_q else None, extras=extras, path=path,
+                      rows=np.concatenate(numbers))
+    _warn_repeats(table)
+    _warn_times(table)
+    _warn_sessions(table)
+    return table
+
+
+def _warn_sessions(table: PoseTable) -> None:
+    """One warning line for a table whose `session` column names several sessions: every
+    model has one tracker frame and one mount, so two sessions registered apart are fitted as
+    one (two simulated sessions of 10 poses joined scored 1.2 m leave-one-out, each alone 0.6-0.7 mm)."""
+    sessions = table.extras.get("session")
+    if sessions is None:
+        return
+    names = list(dict.fromkeys(str(s) for s in sessions if str(s).strip()))
+    if len(names) > 1:
+        from .safeio import warn
+
+        shown = ", ".join(names[:COMMENTS_SHOWN]) + (f" and {len(names) - COMMENTS_SHOWN} more"
+                                                      if len(names) > COMMENTS_SHOWN else "")
+        warn(f"{table.path}: column session names {len(names)} sessions ({shown}); posecorr models one tracker frame "
+             "and one mount for all rows: where the sessions' frames differ, fit each session's rows alone")
+
+
+def _warn_repeats(table: PoseTable) -> None:
+    """One warning line for rows that repeat an earlier row's measured and reference pose: held
+    out, a repeat keeps its twin in training, and every held-out error comes out better than
+    the tracker is (a table of six poses each written twice scored 0.70 mm leave-one-out, the
+    six alone 1.08 mm)."""
+    poses = np.concatenate([table.measured, table.reference], axis=1)
+    _, first = np.unique(poses, axis=0, return_index=True)
+    repeats = np.setdiff1d(np.arange(table.n), first)
+    if repeats.size:
+        from .safeio import warn
+
+        shown = ", ".join(str(table.rows[i]) for i in repeats[:COMMENTS_SHOWN])
+        more = f" and {repeats.size - COMMENTS_SHOWN} more" if repeats.size > COMMENTS_SHOWN else ""
+        verb = "repeats" if repeats.size == 1 else "repeat"
+        warn(f"{table.path}: {counted(int(repeats.size), 'row')} ({shown}{more}) {verb} an earlier row's measured and "
+             "reference pose: a repeat held out keeps its twin in training, so held-out errors come out optimistic")
+
+
+# A calibration session lasts minutes to hours; a time column that spans more is in another
+# unit (milliseconds of a 35-minute session span 24 days).
+PLAUSIBLE_SESSION_S = 2 * 86_400.0
+
+
+def _warn_times(table: PoseTable) -> None:
+    """Warning lines for a time column that cannot be seconds since the session's start: times
+    before it (drift grows from t = 0; before it, it runs backwards), or a span of days."""
+    t = table.time()
+    if t is None:
+        return
+    from .safeio import warn
+
+    if float(t.min()) < 0.0:
+        warn(f"{table.path}: column t starts at {float(t.min()):.6g} s; t is seconds since the session's start, "
+             "where drift is 0, so no time is negative")
+    span = float(np.ptp(t))
+    if span > PLAUSIBLE_SESSION_S:
+        warn(f"{table.path}: column t spans {span:.6g} s ({span / 86_400:.3g} days), and a session lasts minutes "
+             "to hours: milliseconds? posecorr reads seconds")
 
 
 def implausible_spread(positions: np.ndarray) -> float | None:

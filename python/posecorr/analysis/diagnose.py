@@ -265,8 +265,11 @@ class _FoldState:
 
     @property
     def residual_variance(self) -> float:
-        """s^2 of both tests: the projected held-out residual's sum of squares over m."""
-        return sum(float(fold.r_off @ fold.r_off) for fold in self.per_fold) / max(self.residual_dims, 1)
+        """s^2 of both tests: the projected held-out residual's sum of squares over m; 0 where
+        m is 0 (what is left then is rounding, ~1e-30, and a statistic divided by it is noise)."""
+        if not self.residual_dims:
+            return 0.0
+        return sum(float(fold.r_off @ fold.r_off) for fold in self.per_fold) / self.residual_dims
 
 
 def p_threshold(alpha: float, n_candidates: int) -> float:
@@ -274,18 +277,41 @@ def p_threshold(alpha: float, n_candidates: int) -> float:
     return alpha / max(n_candidates, 1)
 
 
-def score_test_reach(state: _FoldState, n_candidates: int, alpha: float) -> dict[str, Any]:
+def score_test_reach(state: _FoldState, n_candidates: int, alpha: float, poses: int) -> dict[str, Any]:
     """How far the score test can go on these poses. The statistic is the share of the
     projected residual a candidate explains, times m (`residual_dims`), so it never exceeds
-    m: p >= chi2.sf(m, df) for any candidate, whatever it explains. Where even one parameter
-    cannot reach the threshold, no candidate can pass: the poses are too few, not the
-    candidates wrong."""
+    m: p >= chi2.sf(m, df) for any candidate, whatever it explains (the prediction test's
+    z^2 too). Where even one parameter cannot reach the threshold, no candidate can pass:
+    the folds hold out too few poses, or the session has too few. `folds_to_pass`: the most
+    folds, fewer than these, at which the threshold comes within reach (`_folds_to_pass`),
+    None where none does."""
     from scipy.stats import chi2
 
     m = state.residual_dims
     threshold = p_threshold(alpha, n_candidates)
     best_p = float(chi2.sf(m, 1)) if m > 0 else 1.0
-    return {"residual_dims": m, "best_p": best_p, "threshold": threshold, "can_pass": best_p < threshold}
+    can_pass = best_p < threshold
+    return {"residual_dims": m, "best_p": best_p, "threshold": threshold, "can_pass": can_pass,
+            "folds_to_pass": None if can_pass else _folds_to_pass(state, poses, threshold)}
+
+
+def _folds_to_pass(state: _FoldState, poses: int, threshold: float) -> dict[str, int] | None:
+    """{folds, residual_dims}: the most folds, fewer than the state's, whose held-out poses would
+    leave the score test's m large enough for p to reach `threshold`, with training poses
+    enough for the base fit; estimated without refitting, each fold leaving the residual
+    dimensions of its held-out poses less the directions its base fit determines."""
+    from scipy.stats import chi2
+
+    from posecorr.train.splits import KFold
+
+    dims = sum(fold.r.size for fold in state.per_fold) / poses            # residuals a pose holds
+    moved = max(fold.physics.directions_.shape[1] for fold in state.per_fold)
+    for folds in range(len(state.per_fold) - 1, 1, -1):
+        sizes = [len(held) for _, held in KFold(folds).folds(poses, 0)]
+        m = sum(max(0, round(dims * size) - moved) for size in sizes)
+        if chi2.sf(m, 1) < threshold and round(dims * (poses - max(sizes))) > moved:
+            return {"folds": folds, "residual_dims": m}
+    return None
 
 
 # The chance of passing at which `poses_to_pass` plans: the usual figure, four sessions in five.
@@ -390,7 +416,7 @@ def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int,
         g = g + Je.T @ fold.r_off
         info = info + Je.T @ Je
     pinv, rank = _pinv_rank(np.atleast_2d(info))
-    lm = float(g @ pinv @ g / variance) if rank else 0.0
+    lm = float(g @ pinv @ g / variance) if rank and variance > 0 else 0.0
     p_local = float(chi2.sf(lm, rank)) if rank else 1.0
 
     warm = (lambda k: {"warm_start": state.per_fold[k].physics.params_}) if state.effects else None
@@ -688,7 +714,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         "folds": folds,
         "cv_base": {"rmse_total": state.before, "rmse_pos": float(np.sqrt(np.mean(dp ** 2)))},
         "rows": {"given": rows_given, "used": table.n},
-        "reach": score_test_reach(state, len(names), alpha),
+        "reach": score_test_reach(state, len(names), alpha, table.n),
         "notes": _table_notes(table, effects, candidates, forms),
     }
     result["reach"]["poses_to_pass"] = _planned(rows, kept, table.n, result["reach"]["threshold"], min_gain)

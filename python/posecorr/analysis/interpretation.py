@@ -140,6 +140,9 @@ def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] =
         plan = reach.get("poses_to_pass") if isinstance(reach.get("poses_to_pass"), Mapping) else None
         more = (f"; if its gain is real, about {plan['poses']} poses of this spread would let {plan['effect']} pass"
                 if plan and plan.get("poses") and plan.get("effect") else "")
+        fewer = reach.get("folds_to_pass") if isinstance(reach.get("folds_to_pass"), Mapping) else None
+        if fewer and isinstance(fewer.get("folds"), int):
+            more += f"; with fewer folds (diagnose --cv {fewer['folds']}) it would come within reach"
         line = (f"{f'These {used} poses' if used else 'These poses'} cannot show a missing effect: no candidate's p can "
                 f"fall below the test's threshold (at best {reach['best_p']:.2g} against {reach['threshold']:.2g}){more}.")
         return line + (f" Yet {structure_text}." if structure_text else "")

@@ -43,6 +43,16 @@ def propose(search: Any, result: dict[str, Any], kept: Sequence[str],
     return _fitted_proposal(search, result, list(kept), forms), None
 
 
+def fewer_folds_or_more_poses(reach: dict[str, Any]) -> str:
+    """What lets the test reach its threshold where it cannot: fewer folds, when they would
+    hold out poses enough (`diagnose._folds_to_pass`), else more poses."""
+    fewer = reach.get("folds_to_pass")
+    if not fewer:
+        return "more poses"
+    return (f"fewer folds (--cv {fewer['folds']} would leave about {fewer['residual_dims']} dimensions) "
+            "or more poses")
+
+
 def _why_none(search: Any, result: dict[str, Any], kept: Sequence[str]) -> str:
     from .diagnose import PLANNING_POWER, best_form
 
@@ -58,7 +68,7 @@ def _why_none(search: Any, result: dict[str, Any], kept: Sequence[str]) -> str:
     beyond = "" if reach["can_pass"] else (
         f"; nor could any candidate: the held-out poses leave {reach['residual_dims']} dimensions of residual that "
         f"{', '.join(search.effects) or 'the model'} cannot move, so no p falls below {reach['best_p']:.2g} "
-        f"(threshold {reach['threshold']:.2g}): more poses")
+        f"(threshold {reach['threshold']:.2g}): {fewer_folds_or_more_poses(reach)}")
     plan = reach["poses_to_pass"]
     planned = "" if plan is None else (
         f"; if its gain is real, about {plan['poses']} poses of this spread would take its p below the threshold "

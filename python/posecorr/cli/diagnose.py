@@ -67,12 +67,19 @@ def _with_model(args: argparse.Namespace, table: Any, effects: list[str]) -> tup
     return effects, correct_table(Corrector(args.model, backend=args.backend), args.model, table), mismatch
 
 
+# A candidate whose held-out error grows this many times is shown as having run away: the
+# figures (2.7e+82 m + rad on a real session with no frame registered) say nothing more.
+RAN_AWAY = 100.0
+
+
 def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
     from ..analysis.interpretation import alias_text, not_ranked_why
     from ..textui import table as fmt_table
 
-    rows = [[c["rank"], c["effect"], c["kind"], c["parameters"], c["score"], c["p_value"], c["cv_rmse_before"],
-             c["cv_rmse_after"], "yes" if c["present"] else "no"] for c in result["candidates"]]
+    ran_away = [c for c in result["candidates"] if not c["cv_rmse_after"] < RAN_AWAY * c["cv_rmse_before"]]
+    rows = [[c["rank"], c["effect"], c["kind"], c["parameters"], "ran away" if c in ran_away else c["score"],
+             c["p_value"], c["cv_rmse_before"], "ran away" if c in ran_away else c["cv_rmse_after"],
+             "yes" if c["present"] else "no"] for c in result["candidates"]]
     lines = [f"{args.data}: model effects {', '.join(effects) or 'none'}; "
              f"{result['folds']}-fold cross-validated rmse_total {result['cv_base']['rmse_total']:.4g} m + rad, "
              f"rmse_pos {1e3 * result['cv_base']['rmse_pos']:.3g} mm"
@@ -85,6 +92,10 @@ def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
              f"present = {result['test']}",
              *_feature_lines(result["features"])]
     lines[1:1] = [f"note: {note}" for note in result["notes"]]
+    lines += [f"ran away: {c['effect']}'s fits predict the held-out poses {c['cv_rmse_after']:.3g} m + rad off "
+              f"(against {c['cv_rmse_before']:.4g} before; --json has the figures): fitted to what "
+              f"{', '.join(effects) or 'a model of no effects'} leaves, its terms grow without bound"
+              for c in ran_away]
     lines += [alias_text(pair) for pair in result["aliases"]]
     for row in result.get("undetermined", []):
         lines.append(f"not ranked: {row['effect']} {not_ranked_why(row)} ({row['reason']})")

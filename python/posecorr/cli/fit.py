@@ -211,11 +211,24 @@ def _text(args: argparse.Namespace, table: Any, effects: list, report: Any, expo
     for name, reason in report.fixed.items():
         lines.append(f"  fixed {name}: {reason}")
     lines += [f"  note: {note}" for note in report.notes]
-    parity = exported.get("parity") or {}
     lines.append(f"-> {args.output} ({exported['n_nodes']} nodes, {exported['file_size']} bytes"
-                 + (f", parity {parity.get('max_pos_m', 0):.1e} m / {parity.get('max_rot_rad', 0):.1e} rad)"
-                    if parity else ")"))
+                 + _parity_words(exported.get("parity") or {}) + ")")
     return "\n".join(lines)
+
+
+def _parity_words(parity: dict[str, Any]) -> str:
+    """', parity 1.2e-04 m / 3.0e-07 rad', with the position tolerance where float32's steps
+    at the data's coordinates widened it to a tenth of a millimetre or more (coordinates
+    of 16 m or more: a tracker frame far from its origin), which a user of a millimetre
+    tracker must know the check allowed."""
+    from posecorr.export.parity import ULPS_POS
+
+    if not parity:
+        return ""
+    tol = parity.get("tol_pos_m", 0.0)
+    widened = (f" (tolerance {tol:.1e} m: {ULPS_POS} float32 steps at the largest coordinate)"
+               if tol >= 1e-4 else "")
+    return f", parity {parity.get('max_pos_m', 0):.1e} m{widened} / {parity.get('max_rot_rad', 0):.1e} rad"
 
 
 def _fmt_scores(scores: dict[str, float]) -> str:

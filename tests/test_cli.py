@@ -797,3 +797,23 @@ def test_diagnose_shows_a_candidate_whose_fits_ran_away_as_such(tmp_path) -> Non
         assert ("ran away" in rows[c["effect"]]) == (c in away), rows[c["effect"]]
     assert (f"ran away: quadratic's fits predict the held-out poses {away[0]['cv_rmse_after']:.3g} m + rad off "
             f"(against {away[0]['cv_rmse_before']:.4g} before") in text.stdout
+
+
+def test_fit_auto_on_the_fixed_split_scores_every_rigid_variant(tmp_path) -> None:
+    """`--method auto` without --cv on a table of 100 poses or more (the fixed split) ended in
+    KeyError 'rigid-lever': auto's candidates hold one rigid variant, and the floor is chosen
+    among all of them. Now every variant is fitted and scored on the validation poses, the
+    floor is their best, and the model is written."""
+    from posecorr.simulate import simulate_session
+    from posecorr.train.pipeline import rigid_candidates
+
+    session = simulate_session(4, n=120).table
+    data = tmp_path / "s120.csv"
+    write_table(session, data)
+    run = posecorr("fit", str(data), "--method", "auto", "-o", str(tmp_path / "a.onnx"), "--json", cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    result = json.loads(run.stdout)
+    assert set(result["rigid_rmse_total"]) == {c.name for c in rigid_candidates(session)}
+    scores = result["rigid_rmse_total"]
+    assert result["baseline"]["model"] == min(scores, key=scores.get)
+    assert "test" in result and result["n_heldout"] == 18 and (tmp_path / "a.onnx").exists()

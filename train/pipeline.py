@@ -474,16 +474,18 @@ def _fit_fixed_split(table: PoseTable, candidates: list[Candidate], floor: list[
     arrays, with_rotation = (M, R, t), table.has_orientation
     train, val, test = plan.indices(table.n, seed)
     fit_rows = np.sort(np.concatenate([train, val]))
-    say(f"fitting {len(candidates)} candidate(s) on {len(train)} poses, choosing on {len(val)}, "
-        f"testing on {len(test)}")
-    prior = _priors(candidates, train, arrays, with_rotation)
+    # Every rigid variant is fitted and scored: the floor, and the fallback where the
+    # validation poses prefer one ("auto"'s candidates hold one of them only).
+    named = {c.name for c in candidates}
+    pool = list(candidates) + [c for c in floor if c.name not in named]
+    say(f"fitting {len(pool)} candidate(s) on {len(train)} poses, choosing on {len(val)}, testing on {len(test)}")
+    prior = _priors(pool, train, arrays, with_rotation)
     shared: dict = {(names, 0.0): model for names, model in prior.items()}   # fitted on these very rows
     held = Validation(M[val], R[val], None if t is None else t[val])
-    fitted = {c.name: _fit(c, train, arrays, with_rotation, prior, shared, validation=held)
-              for c in candidates}
+    fitted = {c.name: _fit(c, train, arrays, with_rotation, prior, shared, validation=held) for c in pool}
     scores = {name: _score(R[val], m.predict(M[val], None if t is None else t[val]), with_rotation)
               for name, m in fitted.items()}
-    best = _best(candidates, scores)
+    best = _best(pool, scores)
     floor_best = _best(floor, scores)
     model = fitted[best.name] if _stops_early(best) else _fit(best, fit_rows, arrays, with_rotation, prior)
     rigid = model if best == floor_best else _fit(floor_best, fit_rows, arrays, with_rotation, prior)

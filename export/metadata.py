@@ -14,6 +14,7 @@ Keys written by the exporter (other keys may be added by callers):
 | `activation`, `trainer` | MLP activation and training algorithm (null for PMC) |
 | `effects` | fitted physical-effect stages in front of the core, with their parameters |
 | `training_data_digest` | `sha256:<hex>` of the training arrays, see `data_digest` |
+| `fitted_table_digest` | (`fit` with a test split) the same digest of the whole table it split |
 | `test_metrics` | rmse_pos (m), rmse_rot (rad), rmse_total and improvements on the held-out poses; "raw"; "rigid": the best rigid fit scored alike (fit) |
 | `units` | units of the input/output columns and the metrics |
 | `opset` | ONNX opset of the default domain |

@@ -567,6 +567,39 @@ def test_apply_marks_the_poses_a_model_was_fitted_on_as_in_sample(tmp_path, caps
     assert "in-sample" not in capsys.readouterr().out
 
 
+def test_apply_names_the_table_a_fit_with_a_test_split_read(tmp_path, capsys) -> None:
+    """A fit with the fixed test split trains on 85 % of its table: apply on that table was
+    shown as plain "corrected" (better than the test split's figure, unmarked). It is now "the
+    fit's table", mostly in-sample, with the fit's test-split figures beside it; the training
+    rows alone are in-sample; another table is neither."""
+    from posecorr.controller.apply import apply_file
+    from posecorr.simulate import simulate
+    from posecorr.train.protocol import split_indices
+
+    table = simulate(3, seed=5).table.subset(np.arange(300))
+    session = tmp_path / "session.csv"
+    write_table(table, session)
+    model = tmp_path / "m.onnx"
+    capsys.readouterr()
+    assert main(["fit", str(session), "--method", "pmc", "--json", "-o", str(model)]) == 0
+    fitted = json.loads(capsys.readouterr().out)
+    got = apply_file(model, session, tmp_path / "c.csv")
+    assert got["in_sample"] is True and got["fitted_on"] == "table" and got["held_out"]["source"] == "test"
+    assert got["held_out"]["rmse_pos"] == pytest.approx(fitted["test"]["rmse_pos"], rel=1e-12)
+    assert main(["apply", str(model), str(session), "-o", str(tmp_path / "c2.csv")]) == 0
+    shown = capsys.readouterr().out
+    assert "corrected (the fit's table)" in shown and "held out (the fit's test split)" in shown
+    assert "fitted on this table's training rows, its test split held out" in shown
+    train, val, _ = split_indices(table.n, 0)
+    trained = tmp_path / "trained.csv"
+    write_table(table.subset(np.sort(np.concatenate([train, val]))), trained)
+    got = apply_file(model, trained, tmp_path / "t.csv")
+    assert got["fitted_on"] == "training" and got["in_sample"] is True
+    write_table(table.subset(np.arange(250)), tmp_path / "part.csv")
+    got = apply_file(model, tmp_path / "part.csv", tmp_path / "p.csv")
+    assert got["fitted_on"] is None and got["in_sample"] is False
+
+
 def read_csv_columns(path: Path) -> dict[str, np.ndarray]:
     import csv
 

@@ -24,15 +24,18 @@ class FitFiles:
 def training_fit(report: Any, table: Any) -> Any:
     """The fitted estimator with the poses it was trained on (for parity and `--save`), its
     held-out poses and the figures its file states."""
+    from .controller.digest import data_digest
     from .saved import SavedFit
 
     rows = report.train_index
     times = table.time()
+    split = report.test_index is not None
     return SavedFit(report.model, table.measured[rows], table.reference[rows],
                     None if times is None else times[rows], heldout=heldout_poses(report, table),
                     test_metrics={report.heldout_kind: report.heldout, "raw": report.raw,
                                   # the floor: the best rigid fit, scored alike
-                                  "rigid": {"model": report.baseline_name, **report.baseline}})
+                                  "rigid": {"model": report.baseline_name, **report.baseline}},
+                    table_digest=data_digest(table.measured, table.reference) if split else None)
 
 
 def heldout_poses(report: Any, table: Any) -> tuple | None:

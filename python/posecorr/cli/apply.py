@@ -43,14 +43,19 @@ def run(args: argparse.Namespace) -> None:
                      f"the first: {refused['first']}")
         if payload["raw"] is None:
             return head + "\nno ref_* columns: no metrics"
-        in_sample, held = payload["in_sample"], payload["held_out"]
-        blocks = {"raw": payload["raw"], "corrected (in-sample)" if in_sample else "corrected": payload["corrected"]}
+        in_sample, held, fitted = payload["in_sample"], payload["held_out"], payload["fitted_on"]
+        label = {"training": "corrected (in-sample)", "table": "corrected (the fit's table)"}.get(fitted, "corrected")
+        blocks = {"raw": payload["raw"], label: payload["corrected"]}
         if held is not None:
             blocks[f"held out ({HELD_OUT_SOURCES[held['source']]})"] = held
             if held["rigid"] is not None:   # the floor the fit measured itself against
                 blocks[f"the best rigid fit ({held['rigid']['model']}), held out alike"] = held["rigid"]
-        note = (f"\nnote: {args.model.name} was fitted on these poses (its training_data_digest): corrected is "
-                "in-sample" + ("; held out is the fit's, as the model states it" if held else "")) if in_sample else ""
+        fitted_words = {
+            "training": "was fitted on these poses (its training_data_digest): corrected is in-sample",
+            "table": ("was fitted on this table's training rows, its test split held out (its fitted_table_digest): "
+                      "corrected is mostly in-sample")}
+        note = (f"\nnote: {args.model.name} {fitted_words[fitted]}"
+                + ("; held out is the fit's, as the model states it" if held else "")) if in_sample else ""
         return head + "\n" + fmt_table(METRIC_HEADERS, metrics_rows(blocks)) + note
 
     emit(args, payload, text)

@@ -177,12 +177,14 @@ FITTED_ON_MAX_ROWS = 100_000
 
 class _FittedOn:
     """Whether a table's poses are the ones the model was fitted on: the digest of its
-    measured and reference arrays (as a fit reads them) against `training_data_digest`."""
+    measured and reference arrays (as a fit reads them) against `training_data_digest`, or,
+    for a fit with a test split, against `fitted_table_digest`, the whole table it split."""
 
     def __init__(self, metadata: dict[str, str]):
-        self.expected = decode_value(metadata.get("training_data_digest", "null"))
+        self.expected = {"training": decode_value(metadata.get("training_data_digest", "null")),
+                         "table": decode_value(metadata.get("fitted_table_digest", "null"))}
         self.metrics = decode_value(metadata.get("test_metrics", "null"))
-        self.blocks: list[tuple[np.ndarray, np.ndarray]] | None = [] if self.expected else None
+        self.blocks: list[tuple[np.ndarray, np.ndarray]] | None = [] if any(self.expected.values()) else None
         self.rows = 0
 
     def add(self, measured: np.ndarray, reference: np.ndarray) -> None:
@@ -194,14 +196,16 @@ class _FittedOn:
         else:   # each chunk's arrays are its own (concatenated from its cells), kept as they are
             self.blocks.append((measured, reference))
 
-    def verdict(self) -> bool | None:
-        """True: fitted on these poses; False: not on exactly these; None: not known (no
+    def verdict(self) -> str | bool | None:
+        """"training": fitted on these poses; "table": these are the table the fit split (its
+        training rows and the test split it held out); False: neither; None: not known (no
         digest in the model, or too many rows to keep)."""
         if not self.blocks:
             return None
         measured = np.concatenate([m for m, _ in self.blocks])
         reference = np.concatenate([r for _, r in self.blocks])
-        return data_digest(measured, reference) == self.expected
+        digest = data_digest(measured, reference)
+        return next((kind for kind, expected in self.expected.items() if expected and digest == expected), False)
 
     def held_out(self) -> dict[str, Any] | None:
         """The fit's held-out figures (its cross-validation's or its test split's), as the
@@ -243,12 +247,13 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                backend: str = "c", chunk_rows: int = CHUNK_ROWS, allow_unbounded: bool = False,
                allow_unsigned: bool = False, keep_going: bool = False) -> dict[str, Any]:
     """Correct `table` with `model` into `output`; returns {"n", "output", "backend",
-    "reference", "raw", "corrected", "in_sample", "held_out", "refused"} (raw / corrected None
+    "reference", "raw", "corrected", "in_sample", "fitted_on", "held_out", "refused"} (raw / corrected None
     without reference columns). allow_unbounded, allow_unsigned: as `Corrector`'s. A pose the
     model refuses stops the work (TableError naming its row), or with `keep_going` is written
     as nan and counted in "refused" ({"count", "rows": the first REFUSED_SHOWN, "first": its
-    message}); the metrics are then over the poses corrected. "held_out" (on the poses the model
-    was fitted on) is the fit's figures as the model states them, with "rigid", the best rigid
+    message}); the metrics are then over the poses corrected. "fitted_on": "training" (these
+    are the poses the model was fitted on), "table" (the table a fit with a test split read:
+    mostly its training rows), or None; "in_sample" True for either. "held_out" (on those) is the fit's figures as the model states them, with "rigid", the best rigid
     fit's scored alike (None where the model states none)."""
     check_output(output, [model, table])
     corrector = Corrector(model, backend=backend, allow_unbounded=allow_unbounded,
@@ -293,9 +298,11 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                 raise TableError(reader.path, f"the model refused every pose; the first: {refused.first}")
     raw = raw_sums.metrics() if raw_sums is not None else None
     corrected_block = metric_block(raw, corr_sums.metrics()) if raw is not None and corr_sums is not None else None
-    in_sample = fitted_on.verdict() if raw is not None else None
+    fitted = fitted_on.verdict() if raw is not None else None
+    in_sample = None if fitted is None else bool(fitted)
     return {"n": n, "output": str(output), "backend": backend, "reference": raw is not None,
             "columns_added": list(CORR_COLUMNS), "raw": raw, "corrected": corrected_block,
-            "in_sample": in_sample, "held_out": fitted_on.held_out() if in_sample else None,
+            "in_sample": in_sample, "fitted_on": fitted or None,
+            "held_out": fitted_on.held_out() if in_sample else None,
             "refused": {"count": refused.count, "rows": refused.rows,
                         "first": None if refused.first is None else str(refused.first)}}

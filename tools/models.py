@@ -54,8 +54,8 @@ MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 
 @dataclass(frozen=True)
 class Spec:
-    """One shipped model: the experiment it is fitted on, its core and its label in the paper
-    (the table's "tansig 16/2")."""
+    """One shipped model: the experiment it is fitted on, its core and the label of the paper's
+    best network of its representation (the table's "tansig 16/2"; the core may be smaller)."""
 
     experiment: int
     model: ModelSpec
@@ -169,11 +169,14 @@ def _card_method(spec: Spec, meta: dict[str, Any], epochs: int) -> list[str]:
         return ["## Method", "",
                 f"- PMC (paper 2.3): full quadratic least-squares map of the {model.representation} "
                 f"input vector, {meta.get('architecture')}."]
+    table = 2 if spec.experiment == 1 else 4
+    best = (f"the best of its representation in the paper's table {table}" if model.label == spec.paper_label else
+            f"the best of its representation in the paper's table {table} is `{spec.paper_label}`, the same "
+            "activation and trainer on a larger network, left out to keep `make models` within minutes")
     return ["## Method", "",
             f"- MLP (paper 2.4): {model.representation} representation, hidden layers "
             f"{'-'.join(map(str, model.hidden))}, activation {model.activation}, trainer {model.trainer} "
-            f"(paper label `{spec.paper_label}`: the best of its representation in the paper's "
-            f"table {2 if spec.experiment == 1 else 4}); at most {epochs} epochs "
+            f"(paper label `{model.label}`: {best}); at most {epochs} epochs "
             f"(paper: 1000), stopped after {meta.get('epochs')} ({meta.get('stop_reason')})."]
 
 

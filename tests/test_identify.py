@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 from posecorr.simulate import simulate, simulate_session
 from posecorr.train.identify import (LIMIT_SCALES, Block, describe_spread, determined_directions,
                                      rigid_registration)
+from posecorr.train import MLP, PMC
 from posecorr.train.physics import PhysicsModel, RigidModel
 
 
@@ -302,6 +303,19 @@ def test_times_and_noise_levels_are_checked_and_identifiability_fits_nothing() -
             pipeline.predict(M, bad)
         with pytest.raises(ValueError, match=words):
             PhysicsModel(("station", "mount", "drift")).fit(M, R, t=bad)
+    # every estimator takes `t` in one signature and checks it alike, used or not (PMC and MLP
+    # took any t to fit, and predict took none)
+    big = simulate(3, seed=0).table.subset(np.arange(120))
+    M2, R2, t2 = big.measured, big.reference, np.linspace(0.0, 600.0, 120)
+    for bad, words in ((np.where(np.arange(120) == 7, np.nan, t2), r"t\[7\] is nan"),
+                       (t2[:5], r"t must have shape \(120,\)")):
+        for estimator in (PMC("zhou"), MLP("zhou", hidden=(3,), epochs=1), RigidModel(variant="kabsch")):
+            with pytest.raises(ValueError, match=words):
+                estimator.fit(M2, R2, t=bad)
+            fitted = estimator.fit(M2, R2, t=t2)
+            with pytest.raises(ValueError, match=words):
+                fitted.predict(M2, bad)
+            np.testing.assert_array_equal(fitted.predict(M2, t2), fitted.predict(M2))
     for sigma in (0.0, -1e-3, "1e-3"):
         with pytest.raises(ValueError, match="sigma_r must be None .* or a number > 0"):
             PhysicsModel(sigma_r=sigma).fit(M, R)

@@ -152,10 +152,12 @@ class BaseCorrector(PoseRegressorMixin, BaseEstimator):
 
     # --- fitting -----------------------------------------------------------------------
     def fit(self, measured: Any, reference: Any, t: Any = None, validation: Any = None) -> "BaseCorrector":
-        """Learn measured -> reference. ``t`` is accepted for the common signature (these
-        correctors take no time input); ``validation`` (``Validation``) is for early stopping."""
+        """Learn measured -> reference. ``t`` is taken for the common signature and checked as
+        every estimator checks it (these correctors take no time input); ``validation``
+        (``Validation``) is for early stopping."""
         rotations.check_representation(self.representation)
         measured, reference = check_pair(measured, reference)
+        check_times(t, len(measured))
         if len(measured) < self.min_rows():
             raise ValueError(f"{type(self).__name__}({self.representation}) needs at least "
                              f"{self.min_rows()} poses, got {len(measured)}")
@@ -193,10 +195,11 @@ class BaseCorrector(PoseRegressorMixin, BaseEstimator):
         y = self._core(x)
         return decode_pose(y, pose, self.representation)
 
-    def predict(self, measured: Any) -> np.ndarray:
-        """Corrected poses (N, 7), float64, qw >= 0."""
+    def predict(self, measured: Any, t: Any = None) -> np.ndarray:
+        """Corrected poses (N, 7), float64, qw >= 0; ``t`` as in `fit` (checked, not used)."""
         self._check_fitted()
         measured = check_poses(measured, "measured")
+        check_times(t, len(measured))
         return np.asarray(self.forward(measured), dtype=np.float64)
 
     def score(self, measured: Any, reference: Any, with_rotation: bool | None = None) -> float:

@@ -609,6 +609,7 @@ class RigidModel(PhysicsModel):
         if self.variant == "joint":
             return super().fit(measured, reference, t, validation, warm_start=warm_start)
         measured, reference = check_pair(measured, reference)
+        check_times(t, len(measured))
         if len(measured) < MIN_FIT_POSES:
             raise ValueError(f"a rigid registration needs at least {MIN_FIT_POSES} poses, got {len(measured)}")
         measured, reference, chosen = self._setup(measured, reference, None)

@@ -411,3 +411,41 @@ def test_a_network_with_more_weights_than_numbers_is_noted_before_the_work():
     said.clear()
     report = fit_table(table, [], ModelSpec("pmc", "pos", options={"degree": 1}), LeaveOneOut(), progress=said.append)
     assert not any("weights" in line for line in said + report.notes)
+
+
+def test_a_damaged_line_inside_the_store_is_said(tmp_path, capsys):
+    """A line inside the store that is no result (hand-edited, a disk error) was skipped in
+    silence: its run was done again and appended. It is now named by line in one warning, and
+    left as it is; the other runs are reused."""
+    table = synthetic_table()
+    configs = [ModelSpec("pmc", "zhou")]
+    store = tmp_path / "runs.jsonl"
+    run_sweep(table, configs, repeats=3, store=store, workers=1, progress=False)
+    lines = store.read_text().splitlines()
+    lines[1] = "garbage"
+    store.write_text("\n".join(lines + ['{"no": "key"}']) + "\n")
+    capsys.readouterr()
+    again = run_sweep(table, configs, repeats=3, store=store, workers=1, progress=False)
+    assert len(again.rows) == 3
+    err = capsys.readouterr().err.splitlines()
+    assert [e for e in err if "no sweep result" in e] == [
+        f"posecorr: warning: {store}: lines 2, 4 are no sweep result (not a JSON row with a key and a repeat): "
+        "left as they are and not read; a run they held is done again"], err
+    kept = store.read_text().splitlines()
+    assert kept[1] == "garbage" and len(kept) == 5
+
+
+def test_a_sweep_too_small_to_rank_says_why_it_shows_no_ranking():
+    """One run of two methods, or three runs of one: no Friedman test is possible, and the
+    output said nothing of it (`--comparisons` seemed ignored)."""
+    table = synthetic_table()
+    one_run = run_sweep(table, [ModelSpec("pmc", "zhou"), ModelSpec("pmc", "R")], repeats=1, workers=1,
+                        progress=False)
+    assert one_run.format(comparisons=True).endswith(
+        "No Friedman test, tier list or comparisons: they rank at least 2 methods over at least 2 runs each "
+        "method has, and there are 2 methods over 1 such run")
+    one_method = run_sweep(table, [ModelSpec("pmc", "zhou")], repeats=3, workers=1, progress=False)
+    assert one_method.format().endswith("No Friedman test or tier list: they rank at least 2 methods over at "
+                                        "least 2 runs each method has, and there is 1 method over 3 such runs")
+    assert "Friedman:" in run_sweep(table, [ModelSpec("pmc", "zhou"), ModelSpec("pmc", "R")], repeats=2,
+                                    workers=1, progress=False).format()

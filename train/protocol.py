@@ -45,6 +45,7 @@ import numpy as np
 from posecorr.metrics import METRIC_KEYS, frames_unregistered, improvement, metric_block, pose_metrics, summarize
 from posecorr.rotations import POSITION_ONLY, REPRESENTATIONS
 from posecorr.safeio import append_line, open_sidecar, sigterm_as_interrupt
+from posecorr.textui import counted
 
 from .activations import PAPER_ACTIVATIONS
 from .base import Validation
@@ -330,6 +331,12 @@ class SweepResult:
                 text.append("\n" + ("Table A1: " if table == 4 else "") + "Dunn-Sidak multiple comparison "
                             f"(alpha 0.05, {len(st['comparisons'])} pairs)\n"
                             + tables.format_comparisons(names, st["comparisons"]))
+        else:
+            cfgs, data = self.complete_matrix(methods)
+            text.append(f"\nNo Friedman test{', tier list or comparisons' if comparisons else ' or tier list'}: they rank "
+                        f"at least 2 methods over at least 2 runs each method has, and there "
+                        f"{'is' if data.shape[1] == 1 else 'are'} {counted(data.shape[1], 'method')} over "
+                        f"{counted(data.shape[0], 'such run')}")
         return "\n".join(text)
 
     def _unregistered_note(self, methods: Sequence[ModelSpec], rigid: Mapping[str, Any]) -> str:
@@ -370,18 +377,31 @@ def _load_store(path: Path, fingerprint: str, seed: int) -> dict[tuple[str, int]
     handle = open_sidecar(path)
     if handle is None:
         return done
+    unread: list[int] = []
     with handle:
-        for raw in handle:
+        for number, raw in enumerate(handle, 1):
             line = raw.decode("utf-8", errors="replace").strip()
             if not line:
                 continue
             try:
                 row = json.loads(line)
             except json.JSONDecodeError:
-                continue  # a line torn by an interruption: moved aside at the next append
-            if (isinstance(row, dict) and row.get("data") == fingerprint and row.get("seed") == seed
-                    and "key" in row and "repeat" in row):
+                row = None
+            if not (isinstance(row, dict) and "key" in row and "repeat" in row):
+                # the last line torn by an interruption is moved aside at the next append;
+                # any other is said, and stays as it is
+                if raw.endswith(b"\n"):
+                    unread.append(number)
+                continue
+            if row.get("data") == fingerprint and row.get("seed") == seed:
                 done[(row["key"], int(row["repeat"]))] = row
+    if unread:
+        from posecorr.safeio import warn
+
+        shown = ", ".join(map(str, unread[:5])) + (f" and {len(unread) - 5} more" if len(unread) > 5 else "")
+        warn(f"{path}: {'line' if len(unread) == 1 else 'lines'} {shown} {'is' if len(unread) == 1 else 'are'} "
+             "no sweep result (not a JSON row with a key and a repeat): left as they are and not read; a run "
+             "they held is done again")
     return done
 
 

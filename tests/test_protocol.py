@@ -449,3 +449,18 @@ def test_a_sweep_too_small_to_rank_says_why_it_shows_no_ranking():
                                         "least 2 runs each method has, and there is 1 method over 3 such runs")
     assert "Friedman:" in run_sweep(table, [ModelSpec("pmc", "zhou"), ModelSpec("pmc", "R")], repeats=2,
                                     workers=1, progress=False).format()
+
+
+def test_a_ray_address_where_nothing_listens_is_refused_at_once():
+    """`--ray HOST:PORT` with no head there: Ray's client retried for minutes, printing only
+    its log (the sweep hung). A connection refused now ends it in one line, before any run."""
+    import socket
+
+    pytest.importorskip("ray")
+    with socket.socket() as free:
+        free.bind(("127.0.0.1", 0))
+        port = free.getsockname()[1]
+    with pytest.raises(ConnectionError, match=rf"--ray 127\.0\.0\.1:{port}: nothing answers at 127\.0\.0\.1:{port} "
+                                              r"\(Connection refused\): start the head there"):
+        run_sweep(synthetic_table(), [ModelSpec("pmc", "zhou")], repeats=2, workers=1, progress=False,
+                  ray_address=f"127.0.0.1:{port}")

@@ -536,8 +536,32 @@ def _check_sweep(table: Any, configs: list[ModelSpec], ray_address: str | None) 
         except ImportError:
             raise ModuleNotFoundError("--ray needs the ray package (pip install 'posecorr[ray]')",
                                       name="ray") from None
+        _probe_ray_head(ray_address)
     _require_training_rows(table.n, configs)
     return ray
+
+
+# Seconds a head's port has to accept a connection: Ray's own client retries for minutes,
+# printing only its log, where nothing listens.
+RAY_PROBE_S = 5.0
+
+
+def _probe_ray_head(address: str) -> None:
+    """ConnectionError in one line where HOST:PORT (or ray://HOST:PORT) accepts no connection;
+    other addresses ("auto") are Ray's to resolve."""
+    import re
+    import socket
+
+    found = re.fullmatch(r"(?:ray://)?\[?([^\[\]/]+?)\]?:(\d+)", address)
+    if found is None:
+        return
+    host, port = found.group(1), int(found.group(2))
+    try:
+        socket.create_connection((host, port), timeout=RAY_PROBE_S).close()
+    except OSError as exc:
+        reason = "timed out" if isinstance(exc, TimeoutError) else (exc.strerror or type(exc).__name__)
+        raise ConnectionError(f"--ray {address}: nothing answers at {host}:{port} ({reason}): start the head there "
+                              f"(ray start --head --port {port}) or give its address") from None
 
 
 def _require_training_rows(n: int, configs: Sequence[ModelSpec]) -> None:

@@ -817,3 +817,18 @@ def test_fit_auto_on_the_fixed_split_scores_every_rigid_variant(tmp_path) -> Non
     scores = result["rigid_rmse_total"]
     assert result["baseline"]["model"] == min(scores, key=scores.get)
     assert "test" in result and result["n_heldout"] == 18 and (tmp_path / "a.onnx").exists()
+
+
+def test_fit_says_what_an_option_could_not_do(tmp_path) -> None:
+    """--representation with --method none set nothing (no core) and was taken in silence,
+    as --subsample beyond the table's rows was; the one is refused, the other said."""
+    data = tmp_path / "d.csv"
+    write_table(simulate(3, seed=0).table.subset(np.arange(150)), data)
+    out = posecorr("fit", str(data), "--method", "none", "--representation", "R", "-o", str(tmp_path / "n.onnx"))
+    assert out.returncode == 2 and out.stderr.strip() == (
+        "posecorr fit: error: --representation sets the orientation representation of the core after the physics "
+        "stage; --method none fits none")
+    out = posecorr("fit", str(data), "--method", "pmc", "--subsample", "500", "-o", str(tmp_path / "p.onnx"))
+    assert out.returncode == 0, out.stderr
+    assert "warning: --subsample 500: " in out.stderr and "has 150 rows; every one is fitted" in out.stderr
+    assert out.stdout.startswith("d.csv: 150 poses") or f"{data}: 150 poses" in out.stdout.splitlines()[0]

@@ -36,6 +36,8 @@ DEFAULT_HIDDEN: tuple[int, ...] = (20, 20, 20, 20)
 DEFAULT_ACTIVATION = "tansig"
 DEFAULT_TRAINER = "br"
 DEFAULT_EPOCHS = 1000
+# The paper's best representation (its table 5), and the orientation input of the shipped network.
+DEFAULT_REPRESENTATION = "zhou"
 
 
 def architecture_number(hidden: Any) -> int | None:
@@ -140,7 +142,7 @@ class ModelSpec:
     """
 
     method: str
-    representation: str = "zhou"
+    representation: str = DEFAULT_REPRESENTATION
     hidden: Any = None
     activation: str | None = None
     trainer: str | None = None
@@ -236,7 +238,7 @@ class ModelSpec:
         return f"{self.stem}.onnx"
 
 
-def spec_from_options(method: str = "pmc", representation: str = "zhou", *, hidden: Any = None,
+def spec_from_options(method: str = "pmc", representation: str = DEFAULT_REPRESENTATION, *, hidden: Any = None,
                       network: str | None = None, activation: str | None = None, trainer: str | None = None,
                       epochs: int | None = None, **options: Any) -> ModelSpec:
     """The spec `posecorr fit` builds from its options: ``network`` (the paper's "16/2")

@@ -25,7 +25,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "candidates) or none (the physics stage alone) (default: pmc)")
     from ..rotations import orientations
 
-    p.add_argument("--representation", choices=orientations(), default="zhou",
+    p.add_argument("--representation", choices=orientations(),
                    help="orientation representation of the core (position-only tables use position only) "
                         "(default: zhou)")
     p.add_argument("--hidden", help="MLP hidden layer sizes: 20-20, 20x20 or 20,20; #N is table 1's N-th "
@@ -65,7 +65,12 @@ def _read(args: argparse.Namespace) -> Any:
     from ..data import TooManyRows, read_table
 
     if args.subsample is not None:
-        return read_table(args.data).draw(args.subsample, args.seed)[0]
+        table = read_table(args.data)
+        if table.n <= args.subsample:
+            from ..safeio import warn
+
+            warn(f"--subsample {args.subsample}: {args.data} has {table.n} rows; every one is fitted")
+        return table.draw(args.subsample, args.seed)[0]
     try:
         return read_table(args.data, max_rows=FIT_ROWS_MAX)
     except TooManyRows:
@@ -113,14 +118,19 @@ NETWORK_OPTIONS = ("hidden", "network", "activation", "trainer", "epochs")
 def _spec(args: argparse.Namespace) -> Any:
     """The model the options name; an MLP too large for its trainer is refused here, before the fit."""
     from ..train.methods import get_method
-    from ..train.spec import spec_from_options
+    from ..train.spec import DEFAULT_REPRESENTATION, spec_from_options
 
     hidden = None if args.hidden is None else options.layer_sizes(args.hidden, "--hidden")
     network = [f"--{name}" for name in NETWORK_OPTIONS if getattr(args, name) is not None]
     if network and not get_method(args.method).network:   # they were ignored without a word
         raise CliError(f"{', '.join(network)} {'sets' if len(network) == 1 else 'set'} the network of --method mlp; "
                        f"--method {args.method} takes none")
-    spec = spec_from_options(args.method, args.representation, hidden=hidden, network=args.network,
+    method = get_method(args.method)
+    if args.representation is not None and not (method.has_core or method.chooses):
+        raise CliError(f"--representation sets the orientation representation of the core after the physics stage; "
+                       f"--method {args.method} fits none")
+    spec = spec_from_options(args.method, args.representation or DEFAULT_REPRESENTATION, hidden=hidden,
+                             network=args.network,
                              activation=args.activation, trainer=args.trainer, epochs=args.epochs)
     if spec.hidden is not None:
         from ..train.spec import DEFAULT_TRAINER
@@ -182,6 +192,8 @@ def _text(args: argparse.Namespace, table: Any, effects: list, report: Any, expo
     else:
         header, raw_label = "improvement", "raw"
         ratios = [None, report.heldout.get("improvement_total"), report.baseline.get("improvement_total")]
+    if key is HeldOut.TEST:    # raw is scored on the test split too, not on the table's every pose
+        raw_label += ", test split"
     # auto's scores on all poses chose the final model; the table's held-out row scores auto itself
     auto = f"auto's inner cross-validation on all poses, rmse_total: {_fmt_scores(report.auto_scores)}"
     # a fallback writes another model than the one asked for: said where the model is named

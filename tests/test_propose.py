@@ -93,6 +93,33 @@ def test_cli_writes_an_effect_file_that_fit_accepts_unchanged(tmp_path, capsys):
     assert out.exists() and "session_orientation_bias" in json.dumps(fitted)
 
 
+def test_a_second_rounds_fit_command_keeps_the_first_rounds_effect_file(tmp_path, capsys):
+    """Round two diagnoses with round one's proposal (session_strain) in the model; the fit it
+    prints, and the one in the new file's docstring, must load that file too, or fit refuses
+    the model's own session_strain as unknown."""
+    import shlex
+
+    from posecorr.cli import main
+
+    data, first, second = tmp_path / "s.csv", tmp_path / "p1.py", tmp_path / "p2.py"
+    assert main(["simulate", "--session", "--robot", "ur5e", "--poses", "50", "--seed", "2", "--effect-file",
+                 str(study.OUTSIDE), "--effects", "true_bend;true_strain", "-o", str(data)]) == 0
+    study.hide_outside()
+    first.write_text("from posecorr.forms import Strain\n\n\nclass SessionStrain(Strain):\n"
+                     "    name = 'session_strain'\n    generic = False\n")
+    capsys.readouterr()
+    assert main(["diagnose", str(data), "--effect-file", str(first), "--effects", "station,mount,session_strain",
+                 "--propose", str(second), "--cv", "3"]) == 0
+    printed = capsys.readouterr().out.split("fit it with: ")[1].splitlines()[0]
+    docstring = second.read_text().split("Fit it with:\n")[1].splitlines()[0].strip()
+    assert docstring == printed.replace(str(second), "THIS_FILE"), (docstring, printed)
+    words = shlex.split(printed)
+    assert words[:2] == ["posecorr", "fit"] and words.count("--effect-file") == 2, words
+    for name in [n for n in EFFECTS if n.startswith("session_")]:
+        unregister_effect(name)   # as a new process finds the catalogue
+    assert main(words[1:] + ["--method", "none", "--cv", "loo", "-o", str(tmp_path / "m.onnx")]) == 0
+
+
 # The true law of each test-only effect as the form's terms (tests/data/forms_outside.py): the
 # bend's k = (0.03, -0.02) on dx^2 + dy^2 and dx dy; the attitude bias b m n^T with b = 4 mm,
 # m = (0, 0.6, -0.8), n = (0.6, 0, 0.8). z per a_z is shared with the mount's lever along z

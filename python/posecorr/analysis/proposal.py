@@ -264,8 +264,10 @@ def _given_fails(record: dict[str, Any]) -> str:
             f"{'; '.join(record['fails_given'])}")
 
 
-def effect_file_text(proposal: dict[str, Any], command: str, data_name: str) -> str:
-    """A ready effect file: the proposal's forms as user effects with their fitted defaults."""
+def effect_file_text(proposal: dict[str, Any], command: str, data_name: str,
+                     effect_files: Sequence[str] = ()) -> str:
+    """A ready effect file: the proposal's forms as user effects with their fitted defaults;
+    `effect_files` are the diagnosis's own, which define effects the proposal keeps."""
     forms = proposal["forms"]
     head = [f'"""Proposed by `{command}`.', "",
             f"Held-out gain: the whitened error falls by {proposal['gain']:.1%} over the diagnosis's folds "
@@ -279,7 +281,7 @@ def effect_file_text(proposal: dict[str, Any], command: str, data_name: str) -> 
                  f"  Fitted on this session ({terms_words(proposal, form)}): " + "; ".join(
                      f"{label} = {value:.4g} {unit}" for label, value in proposal["terms"][form].items()), ""]
     head += ["Fit it with:",
-             f"    posecorr fit {data_name} --effect-file THIS_FILE --effects {effects_arg(proposal)}",
+             f"    {fit_command(data_name, effect_files, 'THIS_FILE', proposal)}",
              '"""']
     imports = sorted({type(get_effect(form)).__name__ for form in forms})
     body = ["from posecorr.effects import Param",
@@ -304,6 +306,17 @@ def effect_file_text(proposal: dict[str, Any], command: str, data_name: str) -> 
                  *kept,
                  "    params = (", *params, "    )", ""]
     return "\n".join(head + body).rstrip() + "\n"
+
+
+def fit_command(data_name: str, effect_files: Sequence[str], new_file: str, proposal: dict[str, Any]) -> str:
+    """The `posecorr fit` that takes the proposal: the diagnosis's effect files first, as the
+    effects they define (an earlier round's proposal) stay in the model, then the new one."""
+    import shlex
+
+    words = ["posecorr", "fit", data_name]
+    for path in [*effect_files, new_file]:
+        words += ["--effect-file", path]
+    return shlex.join(words + ["--effects", effects_arg(proposal)])
 
 
 def effects_arg(proposal: dict[str, Any]) -> str:

@@ -37,12 +37,16 @@ def run(args: argparse.Namespace) -> None:
     proposal = result["proposal"]
     if proposal is not None and args.propose is not None:
         words = ["posecorr", "diagnose", str(args.data), "--effects", ",".join(effects) or "''"]
-        for path in getattr(args, "effect_file", None) or []:
-            words += ["--effect-file", str(path)]
+        for path in _effect_files(args):
+            words += ["--effect-file", path]
         write_text(args.propose, effect_file_text(proposal, " ".join(words + ["--propose", str(args.propose)]),
-                                                  str(args.data)))
+                                                  str(args.data), _effect_files(args)))
         proposal["file"] = str(args.propose)
     emit(args, result, lambda: _text(args, effects, result))
+
+
+def _effect_files(args: argparse.Namespace) -> list[str]:
+    return [str(path) for path in getattr(args, "effect_file", None) or []]
 
 
 def _with_model(args: argparse.Namespace, table: Any, effects: list[str]) -> tuple[list[str], Any, str | None]:
@@ -147,10 +151,10 @@ def _proposal_lines(args: argparse.Namespace, result: dict) -> list[str]:
                      f"({terms_words(proposal, form)}{effect.params[0].unit_after(', ')}): {values}.")
         lines.append(f"  causes of this shape: {proposal['causes'][form]}")
     if proposal["file"]:
-        from ..analysis.proposal import effects_arg
+        from ..analysis.proposal import fit_command
 
-        lines.append(f"  written to {proposal['file']}; fit it with: posecorr fit {args.data} "
-                     f"--effect-file {proposal['file']} --effects {effects_arg(proposal)}")
+        lines.append(f"  written to {proposal['file']}; fit it with: "
+                     f"{fit_command(str(args.data), _effect_files(args), proposal['file'], proposal)}")
     else:
         lines.append("  (--propose FILE writes it as an effect file)")
     return lines

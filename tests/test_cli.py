@@ -496,12 +496,38 @@ def test_a_bad_option_value_names_the_option_not_the_table(tmp_path, capsys) -> 
     out = str(tmp_path / "a.onnx")
     assert _refusal(capsys, "fit", str(data), "--cv", "lo", "-o", out) == (
         "posecorr fit: error: --cv takes none, loo or a number of folds in 2..1000, got 'lo'")
+    fitted = [name for name, effect in EFFECTS.items() if not effect.random]   # noise is refused by name
+    assert "noise" in EFFECTS and "noise" not in fitted
     for verb, extra in (("fit", ["-o", out]), ("diagnose", [])):
         assert _refusal(capsys, verb, str(data), "--effects", "station,mout", *extra) == (
             f"posecorr {verb}: error: --effects: unknown effect 'mout' (did you mean mount?); "
-            f"expected one of {', '.join(EFFECTS)}")
+            f"expected one of {', '.join(fitted)}")
     assert _refusal(capsys, "fit", "/no/such.csv", "--cv", "lo", "-o", out).startswith(
         "posecorr fit: error: /no/such.csv")  # a missing table is still found first, by its path check
+
+
+def test_an_effect_named_twice_or_an_empty_name_is_refused_by_every_verb(tmp_path, capsys) -> None:
+    """`fit --effects station,mount,mount` fitted, and wrote mount both fitted and held;
+    diagnose and report with `station,station` ended in numpy's "matmul: Input operand 1 has a
+    mismatch"; `station,,mount` was taken as `station,mount`. Each is the option's fault, in
+    simulate's words, before any work."""
+    from posecorr.cli import main
+
+    data, model, page = tmp_path / "good.csv", tmp_path / "m.onnx", tmp_path / "r.html"
+    write_table(simulate(2, seed=0).table.subset(np.arange(20)), data)
+    assert main(["fit", str(data), "--effects", "station", "--method", "none", "--cv", "none", "-o",
+                 str(model)]) == 0
+    capsys.readouterr()
+    for verb, extra in (("fit", ["--method", "none", "--cv", "loo", "-o", str(tmp_path / "x.onnx")]),
+                        ("diagnose", []), ("report", ["--model", str(model), "-o", str(page)])):
+        assert _refusal(capsys, verb, str(data), "--effects", "station,mount,mount", *extra) == (
+            f"posecorr {verb}: error: --effects: effect 'mount' is given twice in 'station,mount,mount'")
+        assert _refusal(capsys, verb, str(data), "--effects", "station,,mount", *extra) == (
+            f"posecorr {verb}: error: --effects: an effect name is empty in 'station,,mount' (two separators in a "
+            "row, or one at an end)")
+    assert _refusal(capsys, "simulate", "--session", "--effects", "sweep,sweep", "-o", str(tmp_path / "s.csv")) == (
+        "posecorr simulate: error: --effects: effect 'sweep' is given twice in 'sweep,sweep'")
+    assert not (tmp_path / "x.onnx").exists() and not page.exists()
 
 
 def test_diagnose_cv_takes_a_number_of_folds_and_says_so(capsys) -> None:

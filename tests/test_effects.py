@@ -285,6 +285,8 @@ def test_bare_effect_names_may_be_separated_by_commas():
     ("drift=0,0,0,0", r"tau must be > 0"),
     ("noise=-1,0,0", r"must be >= 0"),
     ("range_scale=0.1;range_scale=0.2", r"given twice"),
+    ("sweep;;range_scale", r"^an effect name is empty in 'sweep;;range_scale'"),
+    ("sweep,", r"^an effect name is empty in 'sweep,'"),
 ])
 def test_parse_effects_arg_errors(text, pattern):
     with pytest.raises(ValueError, match=pattern):

@@ -674,6 +674,19 @@ def get_effect(name: str) -> Effect:
     return EFFECTS.lookup(name)
 
 
+def listed_effect(name: str, seen: Iterable[str], text: str, fitted: bool = False) -> Effect:
+    """The effect an item of the list `text` names, the items before it `seen`: ValueError
+    where the name is empty (two separators in a row, or one at an end), unknown (naming the
+    effects a model fits where `fitted`, else every effect) or given twice, which a fit would
+    take as two copies of one effect and a simulation as one."""
+    if not name:
+        raise ValueError(f"an effect name is empty in {text!r} (two separators in a row, or one at an end)")
+    effect = EFFECTS.lookup(name, [n for n, e in EFFECTS.items() if not e.random] if fitted else None)
+    if name in seen:
+        raise ValueError(f"effect {name!r} is given twice in {text!r}")
+    return effect
+
+
 def require_time(names: Iterable[str], table: Any) -> None:
     """TableError before any work where an effect of `names` works on time (`needs_time`,
     drift) and the PoseTable `table` has no time column."""
@@ -779,20 +792,18 @@ def parse_effects_arg(text: str) -> dict[str, np.ndarray]:
     Values are in parameter order; a bare NAME means its default magnitude; NAME=off gives
     None (remove the effect from a base mix). Bare names may also be separated by ','
     ('sweep,range_scale'): an item without '=' has no values for ',' to separate. ValueError
-    on unknown names, wrong value counts, non-numbers or a name given twice.
+    on unknown or empty names, wrong value counts, non-numbers or a name given twice.
     """
     out: dict[str, np.ndarray | None] = {}
+    if not text.strip():
+        return out  # type: ignore[return-value]
     items = [s.strip() for s in text.split(";")]
     for item in (part.strip() for s in items for part in (s.split(",") if "=" not in s else [s])):
-        if not item:
-            continue
         name, sep, values = (s.strip() for s in item.partition("="))
         if "," in name:
             raise ValueError(f"unknown effect {name!r}: separate effects with ';', as values take ',' "
                              "(sweep;drift=0.002,-0.001,0.0015,1800)")
-        effect = get_effect(name)
-        if name in out:
-            raise ValueError(f"effect {name!r} is given twice in {text!r}")
+        effect = listed_effect(name, out, text)
         if not sep:
             out[name] = effect.default_theta()
             continue

@@ -1,7 +1,7 @@
 """The tables posecorr looks names up in (activations, methods, ...): one lookup and one refusal."""
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Sequence
 
 from .textui import did_you_mean
 
@@ -19,9 +19,12 @@ class Registry(dict):
         self[name] = entry
         return entry
 
-    def lookup(self, name: str) -> Any:
+    def lookup(self, name: str, among: Sequence[str] | None = None) -> Any:
+        """The entry `name`; a refusal names `among` (default: every entry), the entries the
+        asking option takes, as the likely and the expected names."""
         try:
             return self[name]
         except KeyError:
-            raise ValueError(f"unknown {self.kind} {name!r}{did_you_mean(str(name), list(self))}; "
-                             f"expected one of {', '.join(self)}") from None
+            known = list(self) if among is None else list(among)
+            raise ValueError(f"unknown {self.kind} {name!r}{did_you_mean(str(name), known)}; "
+                             f"expected one of {', '.join(known)}") from None

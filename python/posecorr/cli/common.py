@@ -184,16 +184,20 @@ def load_effect_files(args: argparse.Namespace, exported: bool = False) -> list[
 
 
 def effect_names(text: str | None) -> list[str]:
-    """'station,mount' -> checked names; an unknown one fails naming the option, the likely
-    name and the catalogue (the fault is the option's, not the table's)."""
-    from ..effects import get_effect
+    """'station,mount' -> checked names; an unknown, empty or repeated one fails naming the
+    option (the fault is the option's, not the table's), an unknown one with the likely name
+    and the effects a model fits."""
+    from ..effects import listed_effect
 
-    names = [n.strip() for n in (text or "").split(",") if n.strip()]
-    for name in names:
+    names: list[str] = []
+    if not text or not text.strip():
+        return names
+    for name in (n.strip() for n in text.split(",")):
         try:
-            effect = get_effect(name)
+            effect = listed_effect(name, names, text, fitted=True)
         except ValueError as exc:
             raise CliError(f"--effects: {exc}") from None
+        names.append(name)
         if effect.random:
             raise CliError(f"--effects: {name} is random measurement noise, which a simulation draws and no model "
                            "corrects; leave it out (the fit weighs the residuals by the noise it estimates)")

@@ -689,6 +689,25 @@ def test_an_output_over_a_file_of_the_other_kind_is_refused(tmp_path) -> None:
     assert {path: path.read_bytes() for path in kept} == kept
 
 
+def test_a_model_with_a_user_effect_names_its_effect_file_before_the_work(tmp_path) -> None:
+    """diagnose/report --model on a model fitted with an --effect-file, given without it,
+    blamed the table ("session.csv: unknown effect 'z_scale'"), report only after rebuilding
+    its held-out predictions; now the model is named, with what to give, before any work."""
+    table, model, page = tmp_path / "session.csv", tmp_path / "model.onnx", tmp_path / "r.html"
+    effect_file = Path(__file__).parent / "data" / "example_effect.py"
+    assert posecorr("simulate", "--session", "--robot", "ur5e", "--poses", "30", "--seed", "1", "--effect-file",
+                    str(effect_file), "--effects", "z_scale", "-o", str(table)).returncode == 0
+    fitted = posecorr("fit", str(table), "--effect-file", str(effect_file), "--effects", "station,mount,z_scale",
+                      "--method", "none", "--cv", "loo", "-o", str(model), "--json")
+    assert fitted.returncode == 0 and "z_scale" in json.loads(fitted.stdout)["effects"], fitted.stderr
+    for verb, extra in (("diagnose", ()), ("report", ("-o", str(page)))):
+        out = posecorr(verb, str(table), "--model", str(model), *extra)
+        assert out.returncode == 2 and out.stderr.strip().splitlines() == [
+            f"posecorr {verb}: error: {model}: uses effect 'z_scale', which is not in the catalogue: give the "
+            "--effect-file that defines it"], out.stderr
+    assert not page.exists()
+
+
 def test_diagnosis_options_are_checked_first_and_say_what_they_did(tmp_path) -> None:
     """`noise` is refused by fit and diagnose as the option's fault (it named the table);
     report refuses a misspelled effect before rebuilding any prediction, and --effects beside

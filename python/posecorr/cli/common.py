@@ -204,6 +204,23 @@ def effect_names(text: str | None) -> list[str]:
     return names
 
 
+def model_effect_names(path: Path, info: dict[str, Any]) -> list[str]:
+    """The effects the model at `path` records (its ONNX metadata, `info`), for a diagnosis to
+    refit: one outside the catalogue (a user effect whose --effect-file was not given) is the
+    model's to name, before any work, not the table's once the refit looks it up."""
+    from ..analysis.interpretation import effect_list
+    from ..effects import EFFECTS
+
+    names = effect_list(info.get("effects"))   # the file's author wrote it: any type
+    missing = [name for name in names if name not in EFFECTS]
+    if missing:
+        one = len(missing) == 1
+        raise CliError(f"{path}: uses effect{'' if one else 's'} {', '.join(repr(n) for n in missing)}, which "
+                       f"{'is' if one else 'are'} not in the catalogue: give the --effect-file that defines "
+                       f"{'it' if one else 'them'}")
+    return names
+
+
 def effects_help(what: str, fitted: bool = True) -> str:
     """An --effects help naming the catalogue's effects (and forms) known when the parser is
     built: those a model fits, or (`fitted` False) those a simulation draws as well."""

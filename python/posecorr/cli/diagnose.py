@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from .common import (Verb, backend_option, diagnosis_options, effect_file_option, effect_names, effects_help, emit,
-                     progress, read_data)
+                     model_effect_names, progress, read_data)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -59,10 +59,11 @@ def _with_model(args: argparse.Namespace, table: Any, effects: list[str]) -> tup
     from ..controller.onnx_meta import read_info
     from ..controller.runtime import Corrector
 
-    held = list(read_info(args.model).get("effects") or [])
+    info = read_info(args.model)
+    held = list(info.get("effects") or [])
     mismatch = None
     if args.effects is None:
-        effects = held
+        effects = model_effect_names(args.model, info)
     elif sorted(effects) != sorted(held):
         mismatch = (f"--effects {', '.join(effects) or 'none'} are not {args.model}'s "
                     f"({', '.join(held) or 'none'}): the candidates are ranked against a refit of --effects; the "

@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from .common import (CliError, Verb, backend_option, diagnosis_options, effect_file_option, effect_names,
-                     effects_help, emit, output_option, progress, read_data)
+                     effects_help, emit, model_effect_names, output_option, progress, read_data)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -41,6 +41,8 @@ def run(args: argparse.Namespace) -> None:
     asked = effect_names(args.effects) if args.effects is not None else None   # its fault before the work
     require_rows(table, 3, "a report (its baseline is the best rigid fit)")
     info = read_info(args.model)
+    if asked is None and not args.no_diagnosis:
+        asked = model_effect_names(args.model, info)   # one its --effect-file defines named now, not after the work
     corrector = Corrector(args.model, backend=args.backend)
     refuse_missing_time(corrector, args.model, table.path, table.time() is not None)
     corrected = correct_table(corrector, args.model, table)
@@ -55,8 +57,7 @@ def run(args: argparse.Namespace) -> None:
         except ValueError as error:  # the page is still worth having without its diagnosis
             no_diagnosis = getattr(error, "message", str(error))
         else:
-            effects = asked if asked is not None else list(info.get("effects") or [])
-            diagnosis = diagnose(table, effects, folds=args.folds, seed=args.seed,
+            diagnosis = diagnose(table, asked, folds=args.folds, seed=args.seed,
                                  model_corrected=corrected, progress=progress(args))
     segments = None
     handle = open_sidecar(segments_path(args.data))

@@ -340,6 +340,42 @@ def test_user_effect_file_errors(tmp_path):
         fx.load_effect_file(tmp_path / "missing.py")
 
 
+_SHIFT = ("\n\nclass {cls}(Effect):\n    name = '{name}'\n    params = (Param('k', 1, (0.01,), 0.01, '1'),)\n\n"
+          "    def forward(self, p, R, theta, ctx):\n        return p, R\n")
+
+
+def test_an_effect_files_name_clash_names_the_file_and_what_it_clashes_with(tmp_path):
+    """A file's effect named as a built-in blamed the verb's table ("six.csv: effect 'mount' is
+    already defined"); two classes of one file named alike kept the second in silence; a name
+    two files define named only the first file. Each names the file (both files, or both
+    classes) and leaves none of the file's effects registered."""
+    head = "from posecorr.effects import Effect, Param\n"
+    clash = tmp_path / "clash.py"
+    clash.write_text(head + _SHIFT.format(cls="Fine", name="fine") + _SHIFT.format(cls="M", name="mount"))
+    with pytest.raises(ValueError) as info:
+        fx.load_effect_file(clash)
+    assert str(info.value) == f"effect file {clash}: effect 'mount' is already defined by the built-in catalogue"
+    assert "fine" not in fx.EFFECTS
+    twice = tmp_path / "twice.py"
+    twice.write_text(head + _SHIFT.format(cls="ShiftA", name="shift") + _SHIFT.format(cls="ShiftB", name="shift"))
+    with pytest.raises(ValueError) as info:
+        fx.load_effect_file(twice)
+    assert str(info.value) == (f"effect file {twice}: classes ShiftA and ShiftB are both named 'shift'; give each "
+                               "effect its own name")
+    assert "shift" not in fx.EFFECTS
+    first, second = tmp_path / "first.py", tmp_path / "second.py"
+    for path in (first, second):
+        path.write_text(head + _SHIFT.format(cls="Shift", name="shift"))
+    assert fx.load_effect_file(first) == ["shift"]
+    try:
+        with pytest.raises(ValueError) as info:
+            fx.load_effect_file(second)
+        assert str(info.value) == f"effect file {second}: effect 'shift' is already defined by {first}"
+        assert fx.load_effect_file(first) == ["shift"]   # the same file again still replaces its own
+    finally:
+        fx.unregister_effect("shift")
+
+
 @pytest.mark.parametrize("body,expected", [
     ("a, b = theta\n        return p, R", r"raised ValueError: not enough values to unpack \(expected 2, got 1\) "
                                            r"\(line 9: a, b = theta\)"),

@@ -737,13 +737,35 @@ def load_effect_file(path: str | Path, check: Callable[[Effect, Path], str | Non
                if isinstance(obj, type) and issubclass(obj, Effect) and obj.__module__ == module_name]
     if not classes:
         raise ValueError(f"effect file {path} defines no subclass of posecorr.effects.Effect")
-    names = [register_effect(cls, source=str(path)).name for cls in classes]
+    names = _register_file(classes, path)
     for name in names:
         problem = _trial_forward(get_effect(name), path) or (check(get_effect(name), path) if check else None)
         if problem:
             for registered in names:
                 unregister_effect(registered)
             raise ValueError(f"effect file {path}: effect {name!r}: {problem}")
+    return names
+
+
+def _register_file(classes: list[type[Effect]], path: Path) -> list[str]:
+    """Register the classes of the effect file `path`, all or none. A name two of its classes
+    share is refused (the second replaced the first in silence), and a refusal names the file:
+    its fault, not that of the table the verb reads."""
+    first: dict[str, str] = {}
+    for cls in classes:
+        name = getattr(cls, "name", "")
+        if name and name in first:
+            raise ValueError(f"effect file {path}: classes {first[name]} and {cls.__name__} are both named {name!r}; "
+                             "give each effect its own name")
+        first[name] = cls.__name__
+    names: list[str] = []
+    try:
+        for cls in classes:
+            names.append(register_effect(cls, source=str(path)).name)
+    except ValueError as exc:
+        for registered in names:
+            unregister_effect(registered)
+        raise ValueError(f"effect file {path}: {exc}") from None
     return names
 
 

@@ -120,6 +120,22 @@ def test_a_second_rounds_fit_command_keeps_the_first_rounds_effect_file(tmp_path
     assert main(words[1:] + ["--method", "none", "--cv", "loo", "-o", str(tmp_path / "m.onnx")]) == 0
 
 
+def test_no_forms_is_named_as_why_nothing_is_proposed(tmp_path, capsys):
+    """`diagnose --no-forms --propose` said "no form could be tested on this data (see the
+    effects that cannot be determined)": the option, not the data, left the forms out."""
+    from posecorr.cli import main
+
+    data, proposal_file = tmp_path / "s.csv", tmp_path / "np.py"
+    assert main(["simulate", "--session", "--robot", "ur5e", "--poses", "30", "--seed", "1", "-o", str(data)]) == 0
+    capsys.readouterr()
+    assert main(["diagnose", str(data), "--effects", "station,mount", "--no-forms", "--propose", str(proposal_file),
+                 "--cv", "3"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[-2:] == ["no proposal: the generic forms were not tested (--no-forms): the diagnosis ranked the "
+                        "catalogue's effects only", f"  {proposal_file}: not written"], out[-2:]
+    assert not proposal_file.exists()
+
+
 # The true law of each test-only effect as the form's terms (tests/data/forms_outside.py): the
 # bend's k = (0.03, -0.02) on dx^2 + dy^2 and dx dy; the attitude bias b m n^T with b = 4 mm,
 # m = (0, 0.6, -0.8), n = (0.6, 0, 0.8). z per a_z is shared with the mount's lever along z

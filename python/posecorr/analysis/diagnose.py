@@ -718,7 +718,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         "notes": _table_notes(table, effects, candidates, forms),
     }
     result["reach"]["poses_to_pass"] = _planned(rows, kept, table.n, result["reach"]["threshold"], min_gain)
-    result["proposal"], result["no_proposal"] = propose(search, result, kept, dropped)
+    result["proposal"], result["no_proposal"] = propose(search, result, kept, dropped, not forms and candidates is None)
     result["absorbed"] = explain_absorbed(result, kept)
     result["absent"] = explain_absent(search, result)
     return result

@@ -27,9 +27,12 @@ def _class_name(form: str) -> str:
     return "".join(part.title() for part in _proposed_name(form).split("_"))
 
 
-def propose(search: Any, result: dict[str, Any], kept: Sequence[str],
-            dropped: Sequence[dict[str, Any]]) -> tuple[dict[str, Any] | None, str | None]:
-    """(proposal, None) for the forms kept, or (None, why nothing is proposed)."""
+def propose(search: Any, result: dict[str, Any], kept: Sequence[str], dropped: Sequence[dict[str, Any]],
+            forms_off: bool = False) -> tuple[dict[str, Any] | None, str | None]:
+    """(proposal, None) for the forms kept, or (None, why nothing is proposed); `forms_off`:
+    the diagnosis was told to leave the forms out, which is then the reason."""
+    if forms_off:
+        return None, "the generic forms were not tested (--no-forms): the diagnosis ranked the catalogue's effects only"
     rows = {row["effect"]: row for row in result["candidates"]}
     forms = [name for name in kept if get_effect(name).generic]
     for record in dropped:

@@ -489,6 +489,23 @@ def test_held_out_where_the_ledger_knows_the_folds_in_sample_otherwise(tmp_path:
     assert rows[0][1] == "in-sample" and rows[1][1] == "in-sample"
 
 
+def test_report_json_carries_the_held_parameters_as_fit_does(tmp_path: Path) -> None:
+    """The page showed the parameters a fit held (not determined) and fit --json and info
+    --json carried them as `fixed`; report --json had no such key."""
+    from posecorr.data import write_table
+    from posecorr.simulate import simulate_session
+
+    write_table(simulate_session(1, n=12).table, tmp_path / "s.csv")   # too few for physics: Kabsch, no lever
+    fitted = _cli("fit", "s.csv", "-o", "m.onnx", "--effects", "station,mount", "--method", "none", cwd=tmp_path)
+    assert fitted["fixed"], fitted["chosen"]
+    report = _cli("report", "s.csv", "--model", "m.onnx", "-o", "r.html", "--no-diagnosis", cwd=tmp_path)
+    assert report["fixed"] == fitted["fixed"] == _cli("info", "m.onnx", cwd=tmp_path)["fixed"]
+    write_table(simulate_session(1, n=40, spread="full", position_only=False).table, tmp_path / "t.csv")
+    fitted = _cli("fit", "t.csv", "-o", "n.onnx", "--effects", "station,mount", "--method", "none", cwd=tmp_path)
+    report = _cli("report", "t.csv", "--model", "n.onnx", "-o", "r.html", "--no-diagnosis", cwd=tmp_path)
+    assert report["fixed"] == fitted["fixed"] == {}
+
+
 def test_auto_is_held_out_as_fit_scored_it(tmp_path: Path) -> None:
     """`--method auto` scores each fold by the candidate an inner cross-validation chooses on
     its training poses; the report rebuilds those predictions and gets fit's figure."""

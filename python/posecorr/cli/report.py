@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Mapping
 from pathlib import Path
 
 from .common import (CliError, Verb, backend_option, diagnosis_options, effect_file_option, effect_names,
@@ -67,8 +68,11 @@ def run(args: argparse.Namespace) -> None:
     path = write_report(args.output, table, corrected, info, diagnosis, ledger, segments=segments,
                         comparison=comparison, no_diagnosis=no_diagnosis)
     summary = comparison.to_json()
-    emit(args, {"report": str(path), "bytes": path.stat().st_size, **summary, "diagnosis": diagnosis,
-               "no_diagnosis": no_diagnosis},
+    # the held parameters the page shows, in fit --json's layout ({} when none; metadata that
+    # is not a mapping is the author's, shown by neither)
+    fixed = dict(info["fixed"]) if isinstance(info.get("fixed"), Mapping) else {}
+    emit(args, {"report": str(path), "bytes": path.stat().st_size, **summary, "fixed": fixed,
+                "diagnosis": diagnosis, "no_diagnosis": no_diagnosis},
          lambda: (f"{args.data} against {args.model} -> {path} ({path.stat().st_size // 1024} KiB)\n"
                   f"  before: {summary['baseline']['name']}, rmse_pos {1e3 * summary['baseline']['rmse_pos']:.4g} mm; "
                   f"after: {summary['after']['scored']}, rmse_pos {1e3 * summary['after']['rmse_pos']:.4g} mm"

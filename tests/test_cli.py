@@ -95,6 +95,39 @@ def test_simulate_does_what_its_options_say_or_refuses_them(tmp_path) -> None:
         assert not (tmp_path / "refused.csv").exists()
 
 
+def test_a_session_pins_a_full_pose_reference_or_a_tracker_set_down_by_hand(tmp_path, capsys) -> None:
+    """`--position-only` could only switch position-only on and `--robot` took no "no robot":
+    where the seed drew a position-only reference or a robot, a session could not be had
+    without. `--no-position-only` and `--robot none` pin them; the help says what is drawn,
+    and --only's help says what it does (no noise unless named, as the run shows)."""
+    from posecorr.cli import build_parser, main
+    from posecorr.data import read_table
+
+    def session(*argv: str) -> dict:
+        capsys.readouterr()
+        assert main(["simulate", "--session", *argv, "-o", str(tmp_path / "s.csv"), "--json"]) == 0
+        return json.loads(capsys.readouterr().out)["session"]
+
+    assert session("--seed", "22")["position_only"] is True   # what the seed draws
+    full = session("--seed", "22", "--no-position-only")
+    assert full["position_only"] is False and read_table(tmp_path / "s.csv").has_orientation
+    assert session("--seed", "8")["robot"] == "ur10e"
+    assert session("--seed", "8", "--robot", "none")["robot"] == ""
+    assert _refusal(capsys, "simulate", "--session", "--robot", "kuka", "-o", str(tmp_path / "k.csv")) == (
+        "posecorr simulate: error: --robot takes ur5e, ur10e or none (a tracker set down by hand), got 'kuka'")
+    assert _refusal(capsys, "simulate", "--experiment", "1", "--no-position-only", "-o", str(tmp_path / "k.csv")) == (
+        "posecorr simulate: error: --no-position-only goes with --session: an experiment's table is the paper's "
+        "protocol, its poses, orientations and times its own")
+    helps = {a.dest: a.help for a in next(a for a in build_parser()._actions if a.dest == "verb")
+             .choices["simulate"]._actions}
+    assert "0 in 85 %% of sessions set down by hand, else 60-110 mm; 0 with a robot" in helps["unremovable"]
+    assert "no noise unless noise is named" in helps["only"] and "plus noise" not in helps["only"]
+    capsys.readouterr()
+    assert main(["simulate", "--experiment", "1", "--only", "--effects", "sweep", "-o", str(tmp_path / "o.csv"),
+                 "--json"]) == 0
+    assert list(json.loads(capsys.readouterr().out)["effects"]) == ["sweep"]
+
+
 def test_quaternions_written_scalar_last_are_named_by_fit_and_diagnose(tmp_path) -> None:
     """A robot session whose measured quaternions were written with scipy's as_quat() (x, y, z,
     w) under qw, qx, qy, qz: fit and diagnose say the two series look written in two orders;

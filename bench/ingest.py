@@ -44,15 +44,17 @@ def _best(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
 
 
 def _peak_memory_mb(path: Path) -> float:
-    """The peak resident memory of a fresh process that ingests `path` (its imports included)."""
+    """The peak resident memory of a fresh process that ingests `path` (its imports included):
+    its VmHWM, which exec starts anew (ru_maxrss keeps the forking parent's, this benchmark's
+    hundreds of MB)."""
     import subprocess
 
-    code = ("import resource, sys\n"
+    code = ("import sys\n"
             "from posecorr.ingest.pipeline import ingest\n"
             "ingest([sys.argv[1]])\n"
-            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
+            "print(next(line.split()[1] for line in open('/proc/self/status') if line.startswith('VmHWM:')))")
     out = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, check=True)
-    return int(out.stdout.split()[-1]) / 1024.0         # ru_maxrss is in KiB on Linux
+    return int(out.stdout.split()[-1]) / 1024.0         # kB
 
 
 def run(out_path: str | os.PathLike = "bench/results/ingest.json", repeats: int = 3) -> dict[str, Any]:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import base64
+import html
 import json
 import re
 from html.parser import HTMLParser
@@ -479,14 +480,33 @@ def test_held_out_where_the_ledger_knows_the_folds_in_sample_otherwise(tmp_path:
     stated = ", cross-validated" if cv == "5" else " on its test split"
     assert f"From its metadata, the model's own held-out figures{stated}: rmse_pos" in page
 
-    # The same model without its ledger line: in-sample, said in the table.
+    # The table recorded again into the same file (20 references moved 20 mm), its ledger
+    # line still beside it: the fit's held-out figures were rebuilt on the new poses and shown
+    # as the model's. Now: the model file on poses it was not fitted on, said so.
+    from posecorr.controller.apply import apply_file
+
+    moved = table.subset(np.arange(n))
+    moved.ref_p = moved.ref_p.copy()
+    moved.ref_p[:20, 0] += 0.02
+    write_table(moved, data)
+    report = _cli("report", str(data), "--model", "m.onnx", "-o", "r.html", "--no-diagnosis", cwd=tmp_path)
+    assert report["after"]["held_out"] is False and report["after"]["scored"] == "not the fit's table"
+    assert "neither the model's training_data_digest nor its fitted_table_digest" in report["after"]["reason"]
+    applied = apply_file(tmp_path / "m.onnx", data, tmp_path / "a.csv", backend="c")
+    assert applied["in_sample"] is False
+    assert report["after"]["rmse_pos"] == pytest.approx(applied["corrected"]["rmse_pos"], rel=1e-6)
+    write_table(table, data)
+
+    # The same model without its ledger line: in-sample (a test split's table: mostly), said in
+    # the table.
     (tmp_path / "s.csv.ledger.jsonl").unlink()
     report = _cli("report", str(data), "--model", "m.onnx", "-o", "r.html", "--no-diagnosis", cwd=tmp_path)
-    assert report["after"]["held_out"] is False and report["after"]["scored"] == "in-sample"
+    scored = "in-sample" if cv == "5" else "the fit's table, mostly in-sample"
+    assert report["after"]["held_out"] is False and report["after"]["scored"] == scored
     assert "no ledger line" in report["after"]["reason"]
     assert report["after"]["n"] == n
     rows = _metrics_rows((tmp_path / "r.html").read_text())
-    assert rows[0][1] == "in-sample" and rows[1][1] == "in-sample"
+    assert rows[0][1] == "in-sample" and html.unescape(rows[1][1]) == scored
 
 
 def test_report_json_carries_the_held_parameters_as_fit_does(tmp_path: Path) -> None:

@@ -13,7 +13,10 @@ file's SHA-256): on a test split the file itself on the test poses, the rigid fi
 the fit's other poses; under cross-validation every pose predicted by the model and the rigid
 fit refitted on the same folds without it (`pipeline.out_of_fold`; for "auto", each fold by
 the candidate chosen inside its training rows, `pipeline.nested_out_of_fold`), as `fit`
-scored them. Otherwise the model file on every pose, in-sample, beside the rigid fit on every pose.
+scored them. Otherwise the model file on every pose, in-sample, beside the rigid fit on every pose;
+where the model's digests (`training_data_digest`, `fitted_table_digest`) say the table is not
+the one the fit read (a session recorded again into the same file, rows edited), no ledger
+line is rebuilt on it, and the after is the model file on poses it was not fitted on.
 """
 from __future__ import annotations
 
@@ -86,19 +89,33 @@ def rigid_label(candidate_name: str) -> str:
     return f"rigid fit ({candidate_name.removeprefix('rigid-')})"
 
 
+# The after's label where it is not held out, by what the model's digests say of the table.
+SCORED_ON = {"training": "in-sample", None: "in-sample", "table": "the fit's table, mostly in-sample",
+             False: "not the fit's table"}
+
+
 def compare(table: PoseTable, corrected: np.ndarray, entry: Mapping[str, Any] | None = None,
-            say: Callable[[str], None] | None = None) -> Comparison:
+            say: Callable[[str], None] | None = None, model_info: Mapping[str, Any] | None = None) -> Comparison:
     """The report's before and after for `table` and the model's (N, 7) `corrected` poses;
-    `entry`: the ledger record of the fit that wrote the model (`ledger.entry_for_model`)."""
+    `entry`: the ledger record of the fit that wrote the model (`ledger.entry_for_model`);
+    `model_info`: its metadata, whose digests say whether `table` is the one it was fitted on."""
+    from ..controller.digest import fitted_on
+
     say = say or (lambda message: None)
     with_rot = table.has_orientation
-    held, reason = _held_out(table, entry, say)
+    fitted = fitted_on(table.measured, table.reference, model_info or {})
+    if fitted is False:
+        held, reason = None, ("these poses are not those the model was fitted on (their digest is neither the "
+                              "model's training_data_digest nor its fitted_table_digest): the after is the model "
+                              "file on them, and what the ledger recorded was scored on the fit's own table")
+    else:
+        held, reason = _held_out(table, entry, say)
     if held is not None:
         rows, after, rigid_name, rigid_pred, scored = held
         after = corrected[rows] if after is None else after
     else:
         rows = np.arange(table.n)
-        after, scored = np.asarray(corrected, float), "in-sample"
+        after, scored = np.asarray(corrected, float), SCORED_ON[fitted]
         recorded = (entry or {}).get("baseline")
         wanted = recorded.get("model") if isinstance(recorded, Mapping) else None
         rigid_name, rigid_pred = _rigid_in_sample(table, wanted)

@@ -203,7 +203,7 @@ def _metrics_section(comparison: Comparison, pos: tuple[np.ndarray, np.ndarray],
             f"the {comparison.rigid_name}. Unregistered frames differ by an unknown rigid motion that raw "
             "measures, so there the before is the best rigid fit's residual. "
             + ("Held-out: every pose predicted by a fit that never saw it, as `posecorr fit` scored it."
-               if comparison.held_out else f"In-sample: {comparison.reason}."))
+               if comparison.held_out else f"{comparison.scored[0].upper()}{comparison.scored[1:]}: {comparison.reason}."))
     stated = stated_metrics(dict(model_info or {}))
     if stated is not None:
         kind, tm, _ = stated
@@ -429,7 +429,7 @@ def _figure_sections(comparison: Comparison, feats: Mapping[str, np.ndarray], po
                      rot: tuple[np.ndarray, np.ndarray] | None) -> list[str]:
     """Workspace arrows, error against features, by orientation, histograms: before against after."""
     before = comparison.baseline if comparison.unregistered else "raw"
-    after = "corrected, " + ("held-out" if comparison.held_out else "in-sample")
+    after = "corrected, " + ("held-out" if comparison.held_out else comparison.scored)
     ref_p = comparison.reference[:, :3]
     keys = (figures.arrow_key_mm(comparison.before[:, :3] - ref_p), figures.arrow_key_mm(comparison.after[:, :3] - ref_p))
     fig = figures.workspace_figure(ref_p, comparison.before[:, :3] - ref_p, comparison.after[:, :3] - ref_p,
@@ -489,7 +489,8 @@ def write_report(output_path: str | Path, table: PoseTable, corrected: np.ndarra
         raise ValueError("corrected poses contain NaN or inf")
     if table.n == 0:
         raise ValueError(f"{table.path or 'the table'}: no poses to report on")
-    comparison = comparison if comparison is not None else compare(table, corrected)
+    if comparison is None:
+        comparison = compare(table, corrected, model_info=model_info)
     with_rot = table.has_orientation
     pos_b, rot_b = pose_errors(comparison.reference, comparison.before, with_rot)
     pos_a, rot_a = pose_errors(comparison.reference, comparison.after, with_rot)

@@ -48,7 +48,8 @@ def run(args: argparse.Namespace) -> None:
     refuse_missing_time(corrector, args.model, table.path, table.time() is not None)
     corrected = correct_table(corrector, args.model, table)
     ledger = read_ledger(args.data)
-    comparison = compare(table, corrected, entry_for_model(ledger, args.model), say=progress(args))
+    comparison = compare(table, corrected, entry_for_model(ledger, args.model), say=progress(args),
+                         model_info=info)
     diagnosis, no_diagnosis = None, None
     if not args.no_diagnosis:
         from ..analysis.diagnose import diagnose, require_diagnosable

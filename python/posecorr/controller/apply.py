@@ -24,7 +24,7 @@ from ..data import (CHUNK_ROWS, MEAS_POS, MEAS_QUAT, REF_POS, REF_QUAT, PoseTabl
 from ..metrics import METRIC_KEYS, metric_block, pose_errors
 from ..safeio import atomic_output, check_output
 from .checks import COLUMNS, QUATERNION, TIME_INPUT
-from .digest import data_digest
+from .digest import FITTED_DIGESTS, fitted_on
 from .onnx_meta import decode_value, stated_metrics, stated_rigid
 from .runtime import Corrector, PoseCorrError
 
@@ -181,10 +181,9 @@ class _FittedOn:
     for a fit with a test split, against `fitted_table_digest`, the whole table it split."""
 
     def __init__(self, metadata: dict[str, str]):
-        self.expected = {"training": decode_value(metadata.get("training_data_digest", "null")),
-                         "table": decode_value(metadata.get("fitted_table_digest", "null"))}
+        self.digests = {key: decode_value(metadata.get(key, "null")) for key in FITTED_DIGESTS.values()}
         self.metrics = decode_value(metadata.get("test_metrics", "null"))
-        self.blocks: list[tuple[np.ndarray, np.ndarray]] | None = [] if any(self.expected.values()) else None
+        self.blocks: list[tuple[np.ndarray, np.ndarray]] | None = [] if any(self.digests.values()) else None
         self.rows = 0
 
     def add(self, measured: np.ndarray, reference: np.ndarray) -> None:
@@ -204,8 +203,7 @@ class _FittedOn:
             return None
         measured = np.concatenate([m for m, _ in self.blocks])
         reference = np.concatenate([r for _, r in self.blocks])
-        digest = data_digest(measured, reference)
-        return next((kind for kind, expected in self.expected.items() if expected and digest == expected), False)
+        return fitted_on(measured, reference, self.digests) or False
 
     def held_out(self) -> dict[str, Any] | None:
         """The fit's held-out figures (its cross-validation's or its test split's), as the

@@ -117,3 +117,19 @@ def data_digest(measured: Any, reference: Any = None) -> str:
         h.update(f"{name}:{a.shape};".encode())
         h.update(a.tobytes())
     return "sha256:" + h.hexdigest()
+
+
+# What a model's metadata says of the poses it was fitted on: its training arrays, and for a
+# fit with a test split the whole table the fit split.
+FITTED_DIGESTS = {"training": "training_data_digest", "table": "fitted_table_digest"}
+
+
+def fitted_on(measured: Any, reference: Any, metadata: Any) -> str | bool | None:
+    """"training" where (measured, reference) are the arrays the model was fitted on, "table"
+    where they are the table a fit with a test split read, False where neither, None where
+    the model's metadata (a dict of decoded values) states no digest."""
+    expected = {kind: metadata.get(key) for kind, key in FITTED_DIGESTS.items() if metadata.get(key)}
+    if not expected:
+        return None
+    digest = data_digest(measured, reference)
+    return next((kind for kind, value in expected.items() if value == digest), False)

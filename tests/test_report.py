@@ -201,6 +201,11 @@ def test_position_only_small_no_time(tmp_path: Path) -> None:
     section = text[text.index('id="worst"'):text.index('id="diagnosis"')]
     assert len(re.findall(r"<tr[^>]*><td[^>]*>\d+</td>", section)) == n  # all poses, fewer than 15
     assert "ledger is empty" in text and "No diagnosis given" in text
+    # the orientations shown are the measured ones (the table has none of the reference's):
+    # the captions said "reference orientation"
+    assert "Roll, pitch, yaw of the measured orientation" in text
+    assert "the angles are of the measured orientation, in the tracker's frame" in html.unescape(section)
+    assert "reference orientation relative to upright" not in text
 
 
 def test_wrong_shape_rejected(tmp_path: Path, small: tuple[PoseTable, np.ndarray]) -> None:

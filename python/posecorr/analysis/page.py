@@ -256,7 +256,9 @@ def _worst_section(table: PoseTable, rows_shown: np.ndarray, feats: Mapping[str,
         rows.append(row)
     crit = "position error + rotation error (1 mm ≙ 1 mrad, paper eq. 43)" if rot is not None else "position error"
     note = (f"The {len(total)} poses with the largest corrected error, ranked by {crit}. "
-            f"{where_note}; x, y, z: reference position.")
+            f"{where_note}; x, y, z: reference position"
+            + ("." if rot is not None else "; the angles are of the measured orientation, in the tracker's frame "
+               "(the table has no reference orientation)."))
     return _section("worst", "Worst poses after correction", _table(header, rows, left=2, compact=True), _t(note))
 
 
@@ -446,7 +448,11 @@ def _figure_sections(comparison: Comparison, feats: Mapping[str, np.ndarray], po
     if rot is not None:
         body += _img(figures.features_figure(feats, rot[0] * 1e3, rot[1] * 1e3, "rotation error", "mrad",
                                              before, after), "rotation error against features")
-    note = ("Features of the reference pose (angles in degrees; azimuth/elevation as seen from the station, "
+    # A position-only table's poses take the measured orientation, in the tracker's own frame.
+    whose = ("the reference pose" if rot is not None else
+             "the reference position and the measured orientation (the table has no reference orientation; the "
+             "measured one is in the tracker's frame, so incidence mixes two frames where they are unregistered)")
+    note = (f"Features of {whose} (angles in degrees; azimuth/elevation as seen from the station, "
             "incidence: tracker z axis vs line of sight). A trend in the solid blue median line (after) is structure "
             f"the model misses; each of its points is the median of {figures.MIN_PER_GROUP} poses or more, "
             "so a session of fewer than twice that has none." + ("" if "t" in feats else " No time column: t is not shown."))
@@ -455,7 +461,8 @@ def _figure_sections(comparison: Comparison, feats: Mapping[str, np.ndarray], po
                                      pos[0] * 1e3, None if rot is None else rot[0] * 1e3)
     sections.append(_section("orientation", "Error by orientation",
                              _img(fig, "corrected error grouped by roll, pitch, yaw"),
-                             _t("Roll, pitch, yaw of the reference orientation relative to upright (Z-Y-X); "
+                             _t(f"Roll, pitch, yaw of the {'reference' if rot is not None else 'measured'} "
+                                "orientation relative to upright (Z-Y-X); "
                                 "distinct values when there are few, else equal-width bins, or bins of equal "
                                 f"counts where those would hold fewer than {figures.MIN_PER_GROUP} poses; "
                                 "a bin is labelled ≈ its median angle.")))

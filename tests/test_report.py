@@ -261,7 +261,7 @@ def test_nothing_missing_keeps_to_what_the_poses_determine_and_names_the_best_by
         "nothing tried explains what is left.")
 
 
-def test_where_no_candidate_could_pass_the_banner_says_the_poses_cannot_show_it() -> None:
+def test_where_no_candidate_could_pass_the_banner_says_the_poses_cannot_show_it(tmp_path) -> None:
     """The real 9-pose session 20200717_Exp2: its held-out residual leaves too few dimensions
     for any candidate's p to reach the threshold (chi2.sf of all of them on one degree of
     freedom, `score_test_reach`). The banner says so with those figures instead of "no
@@ -279,6 +279,15 @@ def test_where_no_candidate_could_pass_the_banner_says_the_poses_cannot_show_it(
     assert line.startswith(f"These 9 poses cannot show a missing effect: no candidate's p can fall below the test's "
                            f"threshold (at best {reach['best_p']:.2g} against {reach['threshold']:.2g})")
     assert "No catalogue effect is missing" not in line
+
+    # The page of a model with a data-driven core says the diagnosis's base is its effects alone
+    # (its "cv RMSE before" read as the model's); a physics-only model's page has no such words.
+    table = read_table(Path(__file__).parent / "data" / "realdata" / "20200717_Exp2.csv")
+    words = "its data-driven core (pmc-zhou) is not part of that base, so cv RMSE before is the effects' alone"
+    for method, said in (("pmc", True), ("none", False)):
+        info = {"method": method, "representation": "zhou", "effects": [{"name": "station"}, {"name": "mount"}]}
+        page = write_report(tmp_path / f"{method}.html", table, table.reference, info, diagnosis)
+        assert (words in html.unescape(page.read_text())) == said, method
 
 
 def test_report_shows_the_still_segments_of_an_ingested_table(tmp_path) -> None:

@@ -262,7 +262,22 @@ def _worst_section(table: PoseTable, rows_shown: np.ndarray, feats: Mapping[str,
     return _section("worst", "Worst poses after correction", _table(header, rows, left=2, compact=True), _t(note))
 
 
-def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[str], why_none: str | None = None) -> str:
+def _core_note(model_info: Mapping[str, Any] | None, effects: Sequence[str]) -> str:
+    """Where the model has a data-driven core: the diagnosis's base is its physical effects
+    alone, so its "cv RMSE before" is not the model's held-out figure."""
+    from posecorr.train.methods import METHODS
+
+    method = (model_info or {}).get("method")
+    if not isinstance(method, str) or method not in METHODS or not METHODS[method].has_core:
+        return ""
+    core = f"{method}-{(model_info or {}).get('representation')}"
+    return (f" The diagnosis refits the model's physical effects ({', '.join(effects) or 'none'}) in each fold; "
+            f"its data-driven core ({core}) is not part of that base, so cv RMSE before is the effects' alone, "
+            "not the model's.")
+
+
+def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[str], why_none: str | None = None,
+                       core_note: str = "") -> str:
     line = takeaway(diagnosis, effects, why_none)
     body = f'<p class="takeaway" id="takeaway">{_t(line)}</p>'
     if not diagnosis:
@@ -285,7 +300,7 @@ def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[st
                  "cv RMSE: cross-validated, shown ×1000 (mm, or mm + mrad for full poses).")
         if diagnosis.get("test"):
             body += " Test: " + _t(diagnosis["test"]) + "."
-        body += "</p>"
+        body += _t(core_note) + "</p>"
     body += _proposal_html(diagnosis)
     aliases = [a for a in diagnosis.get("aliases") or [] if isinstance(a, Mapping) and a.get("effects")]
     if aliases:
@@ -512,7 +527,8 @@ def write_report(output_path: str | Path, table: PoseTable, corrected: np.ndarra
              *_figure_sections(comparison, feats, pos, rot)]
     short = "rigid" if comparison.unregistered else "raw"
     parts.append(_worst_section(table, comparison.rows, feats, pos, rot, short))
-    parts.append(_diagnosis_section(diagnosis, model_effects(model_info, diagnosis), no_diagnosis))
+    effects = model_effects(model_info, diagnosis)
+    parts.append(_diagnosis_section(diagnosis, effects, no_diagnosis, _core_note(model_info, effects)))
     parts.append(_ledger_section(list(ledger)))
     # A table not from `posecorr ingest` has no segments: no section, and no menu entry to nothing.
     if segments:

@@ -422,6 +422,10 @@ def test_info_says_what_the_file_is_before_its_metadata(tmp_path, capsys) -> Non
     assert lines[5].startswith("  corrects positions within x ")
     assert lines[6:8] == ["", "metadata and structure:"]
     assert sum(line.split(":")[0].strip() in meta for line in lines[8:]) == len(meta)
+    # the metadata's numbers of one kind carry their unit
+    box = next(line for line in lines[8:] if line.split(":")[0].strip() == "input_bounds")
+    reach = next(line for line in lines[8:] if line.split(":")[0].strip() == "correction_reach")
+    assert box.endswith("]] [m]") and reach.endswith("] [m, rad]"), (box, reach)
 
     data = tmp_path / "s.csv"
     write_table(simulate_session(2, n=12, spread="full", position_only=False, unremovable=0.0).table, data)
@@ -439,6 +443,16 @@ def test_info_says_what_the_file_is_before_its_metadata(tmp_path, capsys) -> Non
     assert lines[4] == (f"  raw: rmse_pos {1e3 * fitted['raw']['rmse_pos']:.4g} mm, rmse_rot "
                         f"{1e3 * fitted['raw']['rmse_rot']:.4g} mrad (frames unregistered: their offset, not the "
                         "tracker's error)")
+    # a model that takes the time says in which span, beside its box
+    timed = tmp_path / "timed.csv"
+    write_table(simulate_session(2, n=30, spread="full", position_only=False, unremovable=0.0, duration=600.0,
+                                 extra={"drift": [0.003, -0.002, 0.002, 300.0]}).table, timed)
+    assert posecorr("fit", str(timed), "--effects", "station,mount,drift", "--method", "none", "--cv", "4",
+                    "-o", str(tmp_path / "d.onnx")).returncode == 0
+    assert main(["info", str(tmp_path / "d.onnx")]) == 0
+    lo, hi = read_info(tmp_path / "d.onnx")["time_bounds"]
+    assert (f"  takes each pose's time t (s since the session's start) within {lo:g}..{hi:g} s"
+            in capsys.readouterr().out.splitlines())
 
     bare = onnx.load(shipped)
     del bare.metadata_props[:]

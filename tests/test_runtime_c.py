@@ -1257,10 +1257,15 @@ int main(int argc, char **argv) {
 
 
 def test_install_find_package_and_pkg_config(c_build, pose_file, tmp_path):
+    """The installed library, found by CMake and by pkg-config, at the header's version (the
+    CMake project said 0.2.0, the header 0.6.0: find_package(posecorr 0.6) refused it)."""
+    text = (ROOT / "runtime_c" / "posecorr.h").read_text()
+    version = ".".join(text.split(f"#define PC_VERSION_{k} ")[1].split()[0] for k in ("MAJOR", "MINOR", "PATCH"))
     prefix = tmp_path / "prefix"
     subprocess.run(["cmake", "--install", str(c_build), "--prefix", str(prefix)], check=True,
                    capture_output=True)
     libdir = next(p.parent for p in prefix.rglob("libposecorr.so"))
+    assert (libdir / f"libposecorr.so.{version}").exists()
     assert (prefix / "include" / "posecorr.h").exists()
     assert (prefix / "bin" / "posecorr-run").exists()
     env = dict(os.environ, LD_LIBRARY_PATH=str(libdir))
@@ -1272,7 +1277,7 @@ def test_install_find_package_and_pkg_config(c_build, pose_file, tmp_path):
     (proj / "main.c").write_text(CONSUMER_C)
     (proj / "CMakeLists.txt").write_text(
         "cmake_minimum_required(VERSION 3.16)\nproject(consumer C)\n"
-        "find_package(posecorr 0.1 REQUIRED)\nadd_executable(consumer main.c)\n"
+        f"find_package(posecorr {version} EXACT REQUIRED)\nadd_executable(consumer main.c)\n"
         "target_link_libraries(consumer PRIVATE posecorr::posecorr)\n")
     subprocess.run(["cmake", "-S", str(proj), "-B", str(proj / "b"),
                     f"-DCMAKE_PREFIX_PATH={prefix}"], check=True, capture_output=True)
@@ -1284,6 +1289,8 @@ def test_install_find_package_and_pkg_config(c_build, pose_file, tmp_path):
     if shutil.which("pkg-config") is None:
         pytest.skip("pkg-config not on PATH")
     penv = dict(env, PKG_CONFIG_PATH=str(libdir / "pkgconfig"))
+    assert subprocess.run(["pkg-config", "--modversion", "posecorr"], env=penv, capture_output=True, text=True,
+                          check=True).stdout.strip() == version
     # pkg-config escapes for a shell, byte by byte: a space or a non-ASCII prefix comes out as
     # backslashed bytes, as make's $(shell ...) and a shell's eval expect them
     flags = shlex.split(os.fsdecode(subprocess.run(["pkg-config", "--cflags", "--libs", "posecorr"], env=penv,

@@ -25,9 +25,19 @@ def run(args: argparse.Namespace) -> None:
     # Metadata is whatever the file's author wrote: escape what a terminal would obey.
     emit(args, info, lambda: "\n".join(
         [printable(line) for line in summary(info)] + ["", "metadata and structure:"] +
-        [f"{printable(str(k)):>22}: {printable(_one_line(v))}" for k, v in info.items()
+        [f"{printable(str(k)):>22}: {printable(_one_line(v))}{_unit(k)}" for k, v in info.items()
          if k not in ("one_pose_steps", "integrity")] +
         [f"{'one-pose step ' + str(i):>22}: {p}: {why}" for i, (p, why) in enumerate(paths or ())]))
+
+
+# The units of the metadata values that are numbers of one kind (the design's metadata table);
+# the metrics carry theirs in `units`.
+METADATA_UNITS = {"input_bounds": "m", "time_bounds": "s", "correction_reach": "m, rad", "file_size": "bytes"}
+
+
+def _unit(key: Any) -> str:
+    unit = METADATA_UNITS.get(str(key))
+    return f" [{unit}]" if unit else ""
 
 
 def summary(info: dict[str, Any]) -> list[str]:
@@ -72,6 +82,9 @@ def summary(info: dict[str, Any]) -> list[str]:
             and all(isinstance(v, (int, float)) for b in box for v in b)):
         lines.append("  corrects positions within " + ", ".join(
             f"{axis} {lo:.3f}..{hi:.3f}" for axis, lo, hi in zip("xyz", *box)) + " m")
+    span = info.get("time_bounds")
+    if isinstance(span, list) and len(span) == 2 and all(isinstance(v, (int, float)) for v in span):
+        lines.append(f"  takes each pose's time t (s since the session's start) within {span[0]:g}..{span[1]:g} s")
     return lines
 
 

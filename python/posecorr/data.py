@@ -78,6 +78,8 @@ class PoseTable:
     extras: dict[str, np.ndarray] = field(default_factory=dict)
     path: str | None = None
     rows: np.ndarray | None = None
+    # `require_rows` has said what a fit should know of these rows (`warn_fit_table`)
+    warned: bool = field(default=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         n = len(self.meas_p)
@@ -155,6 +157,7 @@ def require_rows(table: PoseTable, needed: int, purpose: str) -> None:
         if spread < MIN_SPREAD:
             raise TableError(table.path, f"the {name} positions span only {spread:.3g} m; {purpose} needs "
                              f"poses spread over the workspace (at least {MIN_SPREAD:g} m)")
+    warn_fit_table(table)
 
 
 # Plain decimal notation only: Python's float() also takes "1_0", "infinity", "nan" and
@@ -487,13 +490,21 @@ def read_table(path: str | Path, max_rows: int | None = None) -> PoseTable:
 
             warn(f"{path}: the {name} positions lie a typical {spread:.4g} m from their median; posecorr reads "
                  f"metres, and a tracked cell spans a few: are {columns[0]}..{columns[-1]} in millimetres?")
-    table = PoseTable(meas_p=meas_p, meas_q=block(MEAS_QUAT), ref_p=ref_p,
-                      ref_q=block(REF_QUAT) if has_ref_q else None, extras=extras, path=path,
-                      rows=np.concatenate(numbers))
+    return PoseTable(meas_p=meas_p, meas_q=block(MEAS_QUAT), ref_p=ref_p,
+                     ref_q=block(REF_QUAT) if has_ref_q else None, extras=extras, path=path,
+                     rows=np.concatenate(numbers))
+
+
+def warn_fit_table(table: PoseTable) -> None:
+    """What a verb that fits should say of a table it accepts, once: repeated rows, a time
+    column that is not seconds since the session's start, several sessions. Said after the
+    table's refusals, so that a refused table ends in its one line."""
+    if table.warned:
+        return
+    table.warned = True
     _warn_repeats(table)
     _warn_times(table)
     _warn_sessions(table)
-    return table
 
 
 def _warn_sessions(table: PoseTable) -> None:

@@ -104,6 +104,18 @@ def not_ranked_why(record: Mapping[str, Any]) -> str:
     return "cannot be determined by this data"
 
 
+def _reach_advice(reach: Mapping[str, Any]) -> str:
+    """What would let the test reach its threshold: more poses (if the best form's gain is
+    real), fewer folds."""
+    plan = reach.get("poses_to_pass") if isinstance(reach.get("poses_to_pass"), Mapping) else None
+    more = (f"; if its gain is real, about {plan['poses']} poses of this spread would let {plan['effect']} pass"
+            if plan and plan.get("poses") and plan.get("effect") else "")
+    fewer = reach.get("folds_to_pass") if isinstance(reach.get("folds_to_pass"), Mapping) else None
+    if fewer and isinstance(fewer.get("folds"), int):
+        more += f"; with fewer folds (diagnose --cv {fewer['folds']}) it would come within reach"
+    return more
+
+
 def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] = (), why_none: str | None = None) -> str:
     """The diagnosis in one plain-language line (plain text, not escaped); why_none: why there
     is none, where the data cannot have one."""
@@ -137,14 +149,9 @@ def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] =
     if reach.get("can_pass") is False and all(isinstance(reach.get(k), (int, float)) for k in ("best_p", "threshold")):
         # Not "nothing is missing": on these poses the test could not have said otherwise.
         used = (diagnosis.get("rows") or {}).get("used") if isinstance(diagnosis.get("rows"), Mapping) else None
-        plan = reach.get("poses_to_pass") if isinstance(reach.get("poses_to_pass"), Mapping) else None
-        more = (f"; if its gain is real, about {plan['poses']} poses of this spread would let {plan['effect']} pass"
-                if plan and plan.get("poses") and plan.get("effect") else "")
-        fewer = reach.get("folds_to_pass") if isinstance(reach.get("folds_to_pass"), Mapping) else None
-        if fewer and isinstance(fewer.get("folds"), int):
-            more += f"; with fewer folds (diagnose --cv {fewer['folds']}) it would come within reach"
         line = (f"{f'These {used} poses' if used else 'These poses'} cannot show a missing effect: no candidate's p can "
-                f"fall below the test's threshold (at best {reach['best_p']:.2g} against {reach['threshold']:.2g}){more}.")
+                f"fall below the test's threshold (at best {reach['best_p']:.2g} against {reach['threshold']:.2g})"
+                f"{_reach_advice(reach)}.")
         return line + (f" Yet {structure_text}." if structure_text else "")
     # The test's words stand under the candidates' table; the banner keeps to the finding.
     absent = [a for a in diagnosis.get("absent") or [] if isinstance(a, Mapping)]

@@ -244,15 +244,13 @@ def _check_header(reader: TableReader, corrector: Corrector, model: str | os.Pat
 def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], output: str | os.PathLike[str],
                backend: str = "c", chunk_rows: int = CHUNK_ROWS, allow_unbounded: bool = False,
                allow_unsigned: bool = False, keep_going: bool = False) -> dict[str, Any]:
-    """Correct `table` with `model` into `output`; returns {"n", "output", "backend",
-    "reference", "raw", "corrected", "in_sample", "fitted_on", "held_out", "refused"} (raw / corrected None
+    """Correct `table` with `model` into `output`; returns {"n", "output", "backend", "reference",
+    "raw", "corrected", "in_sample", "fitted_on", "held_out", "refused"} (raw / corrected None
     without reference columns). allow_unbounded, allow_unsigned: as `Corrector`'s. A pose the
     model refuses stops the work (TableError naming its row), or with `keep_going` is written
     as nan and counted in "refused" ({"count", "rows": the first REFUSED_SHOWN, "first": its
-    message}); the metrics are then over the poses corrected. "fitted_on": "training" (these
-    are the poses the model was fitted on), "table" (the table a fit with a test split read:
-    mostly its training rows), or None; "in_sample" True for either. "held_out" (on those) is the fit's figures as the model states them, with "rigid", the best rigid
-    fit's scored alike (None where the model states none)."""
+    message}); the metrics are then over the poses corrected. "fitted_on": `_FittedOn.verdict`;
+    "held_out" there: the fit's figures as the model states them, "rigid" the floor's."""
     check_output(output, [model, table])
     corrector = Corrector(model, backend=backend, allow_unbounded=allow_unbounded,
                           allow_unsigned=allow_unsigned)
@@ -297,10 +295,9 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
     raw = raw_sums.metrics() if raw_sums is not None else None
     corrected_block = metric_block(raw, corr_sums.metrics()) if raw is not None and corr_sums is not None else None
     fitted = fitted_on.verdict() if raw is not None else None
-    in_sample = None if fitted is None else bool(fitted)
     return {"n": n, "output": str(output), "backend": backend, "reference": raw is not None,
             "columns_added": list(CORR_COLUMNS), "raw": raw, "corrected": corrected_block,
-            "in_sample": in_sample, "fitted_on": fitted or None,
-            "held_out": fitted_on.held_out() if in_sample else None,
+            "in_sample": None if fitted is None else bool(fitted), "fitted_on": fitted or None,
+            "held_out": fitted_on.held_out() if fitted else None,
             "refused": {"count": refused.count, "rows": refused.rows,
                         "first": None if refused.first is None else str(refused.first)}}

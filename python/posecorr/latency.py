@@ -201,6 +201,7 @@ def bench_model(path: str | os.PathLike, n_single: int = 100000, batch: int = 10
     counts: dict[str, int] = {}
 
     d = c_bench(path, n_single, batch, allow)
+    load_us = None if d is None else d.get("load_us")
     if d is not None:
         med["c"], p99["c"] = d["single_pose_median_us"], d["single_pose_p99_us"]
         bat["c"] = d["batch_ns_per_pose"]
@@ -220,6 +221,6 @@ def bench_model(path: str | os.PathLike, n_single: int = 100000, batch: int = 10
     if d is not None:
         bat["c"] = min(bat["c"], d["batch_ns_per_pose"])
     return {"single_pose_median_us": med, "single_pose_p99_us": p99,
-            "batch_ns_per_pose": bat, "machine": machine_description(),
+            "batch_ns_per_pose": bat, "c_load_us": load_us, "machine": machine_description(),
             "model": str(path), "counts": counts, "batch": batch,
             "load_average": list(os.getloadavg())}

@@ -36,8 +36,13 @@ def run(args: argparse.Namespace) -> None:
         keys = list(result["single_pose_median_us"])
         rows = [[k, result["single_pose_median_us"][k], result["single_pose_p99_us"][k],
                  result["batch_ns_per_pose"][k]] for k in keys]
-        return table(["backend", "single median [us]", "single p99 [us]", "batch [ns/pose]"], rows,
-                     title=f"{args.model} on {result.get('machine', '?')}")
+        load = result.get("c_load_us")
+        # timings on a shared machine mean little without its load (what the benchmarks state)
+        tail = [f"load average {result['load_average'][0]:.2f} while it ran"
+                + (f"; the C runtime loads the file in {load:.0f} us (median of 21, file read included)"
+                   if load is not None else "")]
+        return "\n".join([table(["backend", "single median [us]", "single p99 [us]", "batch [ns/pose]"], rows,
+                                title=f"{args.model} on {result.get('machine', '?')}")] + tail)
 
     emit(args, result, text)
 

@@ -45,7 +45,7 @@ import numpy as np
 from posecorr.metrics import METRIC_KEYS, frames_unregistered, improvement, metric_block, pose_metrics, summarize
 from posecorr.rotations import POSITION_ONLY, REPRESENTATIONS
 from posecorr.safeio import append_line, open_sidecar, sigterm_as_interrupt
-from posecorr.textui import counted
+from posecorr.textui import counted, first_few
 
 from .activations import PAPER_ACTIVATIONS
 from .base import Validation
@@ -332,7 +332,7 @@ class SweepResult:
                             f"(alpha 0.05, {len(st['comparisons'])} pairs)\n"
                             + tables.format_comparisons(names, st["comparisons"]))
         else:
-            cfgs, data = self.complete_matrix(methods)
+            _, data = self.complete_matrix(methods)
             text.append(f"\nNo Friedman test{', tier list or comparisons' if comparisons else ' or tier list'}: they rank "
                         f"at least 2 methods over at least 2 runs each method has, and there "
                         f"{'is' if data.shape[1] == 1 else 'are'} {counted(data.shape[1], 'method')} over "
@@ -398,8 +398,7 @@ def _load_store(path: Path, fingerprint: str, seed: int) -> dict[tuple[str, int]
     if unread:
         from posecorr.safeio import warn
 
-        shown = ", ".join(map(str, unread[:5])) + (f" and {len(unread) - 5} more" if len(unread) > 5 else "")
-        warn(f"{path}: {'line' if len(unread) == 1 else 'lines'} {shown} {'is' if len(unread) == 1 else 'are'} "
+        warn(f"{path}: {'line' if len(unread) == 1 else 'lines'} {first_few(unread, 5)} {'is' if len(unread) == 1 else 'are'} "
              "no sweep result (not a JSON row with a key and a repeat): left as they are and not read; a run "
              "they held is done again")
     return done
@@ -576,10 +575,9 @@ def _require_training_rows(n: int, configs: Sequence[ModelSpec]) -> None:
         return
     most = max(short.values())
     rows = next(m for m in itertools.count(n + 1) if training(m) >= most)
-    named = ", ".join(f"{key} {k}" for key, k in sorted(short.items(), key=lambda kv: (-kv[1], kv[0]))[:4])
-    more = f" and {len(short) - 4} more" if len(short) > 4 else ""
+    named = first_few([f"{key} {k}" for key, k in sorted(short.items(), key=lambda kv: (-kv[1], kv[0]))], 4)
     raise ValueError(f"{n} rows: the sweep's split trains on {training(n)} of them, and {len(short)} of its "
-                     f"{len(configs)} configurations need more ({named}{more} poses): at least {rows} rows, or a "
+                     f"{len(configs)} configurations need more ({named} poses): at least {rows} rows, or a "
                      "grid without them; on a session this size `posecorr fit --cv loo` scores a model on every pose")
 
 

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from .textui import closest, counted
+from .textui import closest, counted, first_few
 
 MEAS_POS = ("meas_x", "meas_y", "meas_z")
 MEAS_QUAT = ("meas_qw", "meas_qx", "meas_qy", "meas_qz")
@@ -293,9 +293,7 @@ def warn_comments(path: str, rows: list[int], count: int | None = None) -> None:
     from .safeio import warn
 
     count = len(rows) if count is None else count
-    head = ", ".join(map(str, rows[:COMMENTS_SHOWN]))
-    more = f" and {count - COMMENTS_SHOWN} more" if count > COMMENTS_SHOWN else ""
-    which = f"row {head} starts" if count == 1 else f"rows {head}{more} start"
+    which = f"row {rows[0]} starts" if count == 1 else f"rows {first_few(rows, COMMENTS_SHOWN, count)} start"
     warn(f"{path}: {which} with {COMMENT!r}: read as comments, not data")
 
 
@@ -518,9 +516,7 @@ def _warn_sessions(table: PoseTable) -> None:
     if len(names) > 1:
         from .safeio import warn
 
-        shown = ", ".join(names[:COMMENTS_SHOWN]) + (f" and {len(names) - COMMENTS_SHOWN} more"
-                                                      if len(names) > COMMENTS_SHOWN else "")
-        warn(f"{table.path}: column session names {len(names)} sessions ({shown}); posecorr models one tracker frame "
+        warn(f"{table.path}: column session names {len(names)} sessions ({first_few(names, COMMENTS_SHOWN)}); posecorr models one tracker frame "
              "and one mount for all rows: where the sessions' frames differ, fit each session's rows alone")
 
 
@@ -535,10 +531,9 @@ def _warn_repeats(table: PoseTable) -> None:
     if repeats.size:
         from .safeio import warn
 
-        shown = ", ".join(str(table.rows[i]) for i in repeats[:COMMENTS_SHOWN])
-        more = f" and {repeats.size - COMMENTS_SHOWN} more" if repeats.size > COMMENTS_SHOWN else ""
         verb = "repeats" if repeats.size == 1 else "repeat"
-        warn(f"{table.path}: {counted(int(repeats.size), 'row')} ({shown}{more}) {verb} an earlier row's measured and "
+        warn(f"{table.path}: {counted(int(repeats.size), 'row')} ({first_few(table.rows[repeats].tolist(), COMMENTS_SHOWN)}) "
+             f"{verb} an earlier row's measured and "
              "reference pose: a repeat held out keeps its twin in training, so held-out errors come out optimistic")
 
 

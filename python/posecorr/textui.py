@@ -42,6 +42,14 @@ def did_you_mean(name: str, known: Sequence[str]) -> str:
     return f" (did you mean {close}?)" if close else ""
 
 
+def first_few(items: Sequence[Any], shown: int, total: int | None = None) -> str:
+    """'7, 9, 12 and 3 more': the first `shown` of `items`, and how many of `total` (default:
+    all of them) are left unnamed, as a line naming many rows says them."""
+    total = len(items) if total is None else total
+    head = ", ".join(map(str, list(items)[:shown]))
+    return head + (f" and {total - shown} more" if total > shown else "")
+
+
 def counted(n: int, noun: str) -> str:
     """'1 row', '2 rows': a count with its noun in the number it takes."""
     return f"{n} {noun}" if n == 1 else f"{n} {noun}s"

@@ -104,16 +104,23 @@ def not_ranked_why(record: Mapping[str, Any]) -> str:
     return "cannot be determined by this data"
 
 
+def fewer_folds(reach: Mapping[str, Any]) -> str | None:
+    """'fewer folds (--cv 2 would leave about 18 dimensions)', where fewer folds would let the
+    test reach its threshold (`diagnose._folds_to_pass`); None otherwise."""
+    fewer = reach.get("folds_to_pass") if isinstance(reach.get("folds_to_pass"), Mapping) else None
+    if not fewer or not isinstance(fewer.get("folds"), int):
+        return None
+    return f"fewer folds (--cv {fewer['folds']} would leave about {fewer.get('residual_dims')} dimensions)"
+
+
 def _reach_advice(reach: Mapping[str, Any]) -> str:
     """What would let the test reach its threshold: more poses (if the best form's gain is
     real), fewer folds."""
     plan = reach.get("poses_to_pass") if isinstance(reach.get("poses_to_pass"), Mapping) else None
     more = (f"; if its gain is real, about {plan['poses']} poses of this spread would let {plan['effect']} pass"
             if plan and plan.get("poses") and plan.get("effect") else "")
-    fewer = reach.get("folds_to_pass") if isinstance(reach.get("folds_to_pass"), Mapping) else None
-    if fewer and isinstance(fewer.get("folds"), int):
-        more += f"; with fewer folds (diagnose --cv {fewer['folds']}) it would come within reach"
-    return more
+    fewer = fewer_folds(reach)
+    return more + (f"; with {fewer}, it would come within reach" if fewer else "")
 
 
 def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] = (), why_none: str | None = None) -> str:

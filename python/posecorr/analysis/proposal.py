@@ -48,12 +48,11 @@ def propose(search: Any, result: dict[str, Any], kept: Sequence[str], dropped: S
 
 def fewer_folds_or_more_poses(reach: dict[str, Any]) -> str:
     """What lets the test reach its threshold where it cannot: fewer folds, when they would
-    hold out poses enough (`diagnose._folds_to_pass`), else more poses."""
-    fewer = reach.get("folds_to_pass")
-    if not fewer:
-        return "more poses"
-    return (f"fewer folds (--cv {fewer['folds']} would leave about {fewer['residual_dims']} dimensions) "
-            "or more poses")
+    hold out poses enough, else more poses."""
+    from .interpretation import fewer_folds
+
+    fewer = fewer_folds(reach)
+    return f"{fewer} or more poses" if fewer else "more poses"
 
 
 def _why_none(search: Any, result: dict[str, Any], kept: Sequence[str]) -> str:

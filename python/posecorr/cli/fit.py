@@ -121,17 +121,17 @@ def _spec(args: argparse.Namespace) -> Any:
     from ..train.spec import DEFAULT_REPRESENTATION, spec_from_options
 
     hidden = None if args.hidden is None else options.layer_sizes(args.hidden, "--hidden")
+    method = get_method(args.method)
     network = [f"--{name}" for name in NETWORK_OPTIONS if getattr(args, name) is not None]
-    if network and not get_method(args.method).network:   # they were ignored without a word
+    if network and not method.network:   # they were ignored without a word
         raise CliError(f"{', '.join(network)} {'sets' if len(network) == 1 else 'set'} the network of --method mlp; "
                        f"--method {args.method} takes none")
-    method = get_method(args.method)
     if args.representation is not None and not (method.has_core or method.chooses):
         raise CliError(f"--representation sets the orientation representation of the core after the physics stage; "
                        f"--method {args.method} fits none")
     spec = spec_from_options(args.method, args.representation or DEFAULT_REPRESENTATION, hidden=hidden,
-                             network=args.network,
-                             activation=args.activation, trainer=args.trainer, epochs=args.epochs)
+                             network=args.network, activation=args.activation, trainer=args.trainer,
+                             epochs=args.epochs)
     if spec.hidden is not None:
         from ..train.spec import DEFAULT_TRAINER
 

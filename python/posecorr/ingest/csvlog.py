@@ -54,7 +54,7 @@ def _read_block(path: Path, columns: CsvColumns) -> dict[str, np.ndarray | None]
             wanted = _wanted_columns(path, header_row, header, columns)
             parts: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {key: [] for key in wanted}
             for numbered in _sample_chunks(records, comment_rows):
-                for key, (values, file_rows) in _parse_chunk(path, header, numbered, wanted, columns).items():
+                for key, (values, file_rows) in _parse_chunk(path, header, numbered, wanted).items():
                     parts[key].append((values, file_rows))
                 done(handle.tell())
         except TableError as exc:
@@ -102,7 +102,7 @@ def _sample_chunks(records, comment_rows: list[int]):
 
 
 def _parse_chunk(path: Path, header: list[str], numbered: list[tuple[int, list[str]]],
-                 wanted: dict[str, tuple[str, ...]], columns: CsvColumns) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+                 wanted: dict[str, tuple[str, ...]]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """{stream: (its rows' numbers (time first), their file rows)} of one chunk; the rows that
     carry no sample of a stream are left out of it."""
     for number, row in numbered:

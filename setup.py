@@ -47,6 +47,8 @@ class BuildWithCMake(build_ext):
         cmake = shutil.which("cmake") or "cmake"
         subprocess.check_call([cmake, "-S", str(ext.source_dir), "-B", str(build_dir),
                                "-DCMAKE_BUILD_TYPE=Release", "-DPC_BUILD_TESTS=OFF",
+                               # one copy under its plain name: its SONAME must be that name
+                               "-DPC_VERSIONED_SONAME=OFF",
                                f"-DPython3_EXECUTABLE={sys.executable}"])
         subprocess.check_call([cmake, "--build", str(build_dir), "--parallel", "2"])
         target = Path(self.get_ext_fullpath(ext.name))

@@ -21,7 +21,7 @@ ort = pytest.importorskip("onnxruntime")
 
 import graphs  # noqa: E402
 from header import LOAD, STATUS  # noqa: E402
-from posecorr.controller.runtime import Corrector as _Corrector, PoseCorrError  # noqa: E402
+from posecorr.controller.runtime import Corrector as _Corrector, PoseCorrError, library_path  # noqa: E402
 
 
 def Corrector(*args, **kw) -> _Corrector:
@@ -1301,6 +1301,21 @@ def test_install_find_package_and_pkg_config(c_build, pose_file, tmp_path):
     r = subprocess.run([str(exe), str(pose_file)], capture_output=True, text=True, env=env,
                        check=True)
     np.testing.assert_allclose([float(v) for v in r.stdout.split()], ref, rtol=0, atol=2e-6)
+
+
+def test_a_program_links_against_the_library_pip_placed(pose_file, tmp_path):
+    """A C program linked against the copy beside the package finds it at run time: that copy
+    had the installed layout's SONAME, libposecorr.so.0, which no file there is named."""
+    lib_file = library_path()
+    exe = tmp_path / "consumer"
+    subprocess.run([os.environ.get("CC", "cc"), "-std=c99", f"-I{ROOT / 'runtime_c'}", "-x", "c", "-",
+                    "-o", str(exe), f"-L{lib_file.parent}", "-lposecorr", "-lm"],
+                   input=CONSUMER_C, text=True, check=True, capture_output=True)
+    r = subprocess.run([str(exe), str(pose_file)], capture_output=True, text=True, check=True,
+                       env=dict(os.environ, LD_LIBRARY_PATH=str(lib_file.parent)))
+    x = np.array([[0.1, -0.5, 0.4, 1.0, 0.0, 0.0, 0.0]], dtype=np.float32)
+    np.testing.assert_allclose([float(v) for v in r.stdout.split()], ort_run(pose_file.read_bytes(), x)[0],
+                               rtol=0, atol=2e-6)
 
 
 def test_shim_load_flags_are_the_headers():

@@ -453,8 +453,8 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
         raise ValueError(f"parity must be {', '.join(repr(p.value) for p in Parity)}, got {parity!r}") from None
     info = _initial_info(estimator, metadata)
     time_input = bool(getattr(estimator, "needs_time", False))
-    model = build_model(estimator.forward, doc=f"posecorr {info.get('method', 'corrector')} "
-                                               f"({info.get('representation')})", time_input=time_input)
+    on = f" ({info['representation']})" if info.get("representation") else ""
+    model = build_model(estimator.forward, doc=f"posecorr {info.get('method', 'corrector')}{on}", time_input=time_input)
     if time_input:
         info["time_input"] = f"{TIME_NAME}: float32 [N], s since the session's start"
 

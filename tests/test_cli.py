@@ -220,6 +220,7 @@ def test_fit_station_and_mount_in_the_trackers_own_frame_with_loo(tmp_path) -> N
     assert result["cv"]["rmse_pos"] < 1e-3                  # sub-millimetre after, held out
     assert result["cv"]["rmse_rot"] < 1e-6                  # orientations carry no noise here
     assert set(result["effects"]) == {"station", "mount"}
+    assert result["representation"] is None   # no core, so no core input (it said "R")
     mount_e, _ = result["effects"]["mount"]["e"]
     np.testing.assert_allclose(mount_e, X_t, atol=1e-3)
     # Raw measures the frame's 1.7 m: the ratio that means something is against the rigid floor.

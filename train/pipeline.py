@@ -124,7 +124,8 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
 
     def export_info(self) -> dict[str, Any]:
         self._check_fitted()
-        info: dict[str, Any] = {"method": "none", "representation": self.representation}
+        # the representation is the core's input: a model without a core has none
+        info: dict[str, Any] = {"method": "none", "representation": None}
         if self.core_ is not None:
             info.update(self.core_.export_info())
         if self.physics_ is not None:

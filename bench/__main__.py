@@ -5,6 +5,9 @@ Run from the repository root: `python -m bench [--only NAME]`.
 * `train.json`: seconds per LM epoch of the 9-20-20-20-20-9 network on 2360 samples against
   the torch-levenberg-marquardt package, and the wall time of 30 repeats of the paper's best
   Experiment III configuration (`bench/train.py`).
+* `train_small.json`: the default network fitted by trainbr on 12- and 50-pose sessions, its
+  damped system solved in error space (the trainers' choice there) and in weight space, in one
+  run (`bench/train.py`).
 * `fit.json`: wall time of `posecorr fit` on robot-cell tables (36-pose sessions, leave one
   out; 3375 simulated poses), with the load average (`bench/fit.py`).
 * `latency.json`: single-pose latency and batch throughput of the shipped zhou MLP in the C
@@ -74,6 +77,12 @@ def _train() -> dict:
     return train.run(str(RESULTS / "train.json"))
 
 
+def _train_small() -> dict:
+    from . import train
+
+    return train.run_small(str(RESULTS / "train_small.json"))
+
+
 def _previous() -> dict:
     from . import previous
 
@@ -107,7 +116,8 @@ def _ingest() -> dict:
 # name -> runner writing bench/results/NAME.json; `make bench` runs them in this order.
 BENCHMARKS = {"latency": _latency, "targets": _targets, "previous": _previous,
               "floor_all": _floor_all, "fit": _fit, "fit_long": _fit_long,
-              "apply": _apply, "ingest": _ingest, "train": _train, "forms": _forms}
+              "apply": _apply, "ingest": _ingest, "train": _train, "train_small": _train_small,
+              "forms": _forms}
 
 
 def main(argv: list[str] | None = None) -> int:

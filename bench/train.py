@@ -175,6 +175,54 @@ def lm_epoch_benchmark(epochs: int = 10, threads: int | None = None) -> dict[str
     return out
 
 
+def small_session_benchmark(poses: tuple[int, ...] = (12, 50), threads: int = 1) -> dict[str, Any]:
+    """A small session's fit (``python -m bench --only train_small``): what `posecorr fit
+    --method mlp --effects station,mount` fits, the default network (zhou 20-20-20-20, trainbr,
+    residual) after the physics stage, on 12 and 50 poses of a simulated robot session; the network's
+    damped system solved in error space (J J', the trainers' choice where the error terms are
+    fewer than the weights) and forced into weight space (J'J, P x P) in the same run: wall
+    time, epochs, stop reason and training error of each."""
+    import torch
+
+    from posecorr.simulate import simulate_session
+    from posecorr.train import lm
+    from posecorr.train.mlp import MLP
+    from posecorr.train.pipeline import CorrectionPipeline
+
+    torch.set_num_threads(threads)
+    weight_space = lambda self, theta, X, T: lm.Normal(*self.gauss_newton(theta, X, T))  # noqa: E731
+    rows = []
+    for n in poses:
+        table = simulate_session(0, n=n, robot="ur5e").table
+        row: dict[str, Any] = {"poses": n, "error_terms": 9 * n}
+        for label in ("error_space", "weight_space"):
+            saved = lm.Network.linearise
+            if label == "weight_space":
+                lm.Network.linearise = weight_space
+            try:
+                t0 = time.perf_counter()
+                network = MLP("zhou", (20, 20, 20, 20), "tansig", "br", residual=True, random_state=0)
+                model = CorrectionPipeline(("station", "mount"), network).fit(table.measured, table.reference)
+                seconds = time.perf_counter() - t0
+                est = model.core_
+            finally:
+                lm.Network.linearise = saved
+            row[label] = {"seconds": seconds, "epochs": est.n_epochs_, "stop_reason": est.stop_reason_,
+                          "training_rmse_total": -model.score(table.measured, table.reference)}
+        row["speedup"] = row["weight_space"]["seconds"] / row["error_space"]["seconds"]
+        rows.append(row)
+    return {"network": "zhou 9-20-20-20-20-9 tansig, trainbr (1,649 weights)", "torch_threads": threads,
+            "sessions": rows}
+
+
+def run_small(out_path: str | os.PathLike = "bench/results/train_small.json") -> dict[str, Any]:
+    load = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    result = {"load_average_before": load, **small_session_benchmark(),
+              "load_average_after": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
+    Path(out_path).write_text(json.dumps(result, indent=2))
+    return result
+
+
 def repeats_benchmark(repeats: int = 30, workers: int = 2, epochs: int = 100, store: str | None = None
                       ) -> dict[str, Any]:
     from posecorr.simulate import simulate

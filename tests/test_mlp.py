@@ -8,6 +8,7 @@ torch = pytest.importorskip("torch")
 
 from posecorr import rotations  # noqa: E402
 from posecorr.train import ACTIVATIONS, ARCHITECTURES, MLP  # noqa: E402
+from posecorr.train import lm  # noqa: E402
 from posecorr.train.lm import Network  # noqa: E402
 from posecorr.train.mlp import activation_xp, init_weights, mapminmax_settings  # noqa: E402
 from posecorr.train.spec import parse_hidden  # noqa: E402
@@ -85,6 +86,56 @@ def test_factored_gauss_newton_equals_autograd_jacobian(act):
     np.testing.assert_allclose(r.numpy(), net.residual(theta, X, T).numpy(), atol=0)
 
 
+def test_error_space_system_solves_the_weight_space_one():
+    """Fewer error terms than weights (a small session): the step and trainbr's trace come
+    from J J' (N x N); they equal the weight-space solve of J'J (P x P) and the autograd J."""
+    rng = np.random.default_rng(11)
+    net = Network([6, 5, 4, 3], "tansig", np.array([0.5, 2.0, 1.5]))
+    theta = torch.tensor(rng.standard_normal(net.n_params))
+    X, T = torch.tensor(rng.uniform(-1, 1, (7, 6))), torch.tensor(rng.uniform(-1, 1, (7, 3)))
+    J, r = net.jacobian_rows(theta, X, T)
+    np.testing.assert_allclose(J.numpy(), net.jacobian(theta, X, T).numpy(), atol=1e-12)
+    dual, normal = net.linearise(theta, X, T), lm.Normal(*net.gauss_newton(theta, X, T))
+    assert isinstance(dual, lm.Dual) and J.shape == (21, net.n_params) == (21, 74)
+    assert dual.ed == pytest.approx(normal.ed, rel=1e-14)
+    np.testing.assert_allclose(dual.g.numpy(), normal.g.numpy(), atol=1e-12)
+    for beta, c, alpha in ((1.0, 1e-3, 0.0), (3.0, 0.5, 0.2), (2.0, 5.0, 4.0), (0.05, 0.03, 0.02)):
+        want = torch.linalg.solve(beta * J.T @ J + c * torch.eye(74, dtype=torch.float64),
+                                  -(beta * J.T @ r.reshape(-1) + alpha * theta))
+        for system in (dual, normal):
+            np.testing.assert_allclose(system.step(beta, c, alpha, theta).numpy(), want.numpy(),
+                                       rtol=0, atol=1e-9 * float(want.abs().max()))
+        want_trace = float(torch.trace(torch.linalg.inv(beta * J.T @ J + alpha * torch.eye(74, dtype=torch.float64))))
+        if alpha > 0:
+            assert dual.trace_inverse(beta, alpha) == pytest.approx(want_trace, rel=1e-10)
+            assert normal.trace_inverse(beta, alpha) == pytest.approx(want_trace, rel=1e-10)
+    X, T = torch.tensor(rng.uniform(-1, 1, (30, 6))), torch.tensor(rng.uniform(-1, 1, (30, 3)))
+    assert isinstance(net.linearise(theta, X, T), lm.Normal)      # 90 error terms, 74 weights
+
+
+def test_training_in_error_space_reaches_the_weight_space_network(monkeypatch):
+    """trainlm on 12 poses (108 error terms, 1,649 weights) steps through J J'; forced through
+    J'J instead, it reaches the same network. (mu held at 0.1 and above keeps both solves well
+    posed; trainbr's damping alpha does so by itself, but on 12 poses it drives every weight
+    towards zero, which would make the comparison empty.)"""
+    rng = np.random.default_rng(12)
+    meas = random_poses(12, rng)
+    ref = distorted(meas)
+
+    def fit():
+        return MLP("zhou", (20, 20, 20, 20), "tansig", "lm", epochs=15, mu=0.1, mu_dec=0.5,
+                   random_state=0).fit(meas, ref)
+
+    dual = fit()
+    monkeypatch.setattr(Network, "linearise",
+                        lambda self, theta, X, T: lm.Normal(*self.gauss_newton(theta, X, T)))
+    normal = fit()
+    assert dual.n_epochs_ == normal.n_epochs_ >= 10
+    for a, b in zip(dual.coefs_ + dual.intercepts_, normal.coefs_ + normal.intercepts_):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
+    assert max(float(np.abs(w).max()) for w in dual.coefs_) > 0.5
+
+
 @pytest.mark.parametrize("act", ACTIVATIONS)
 def test_every_activation_constructs_trains_and_runs(act):
     rng = np.random.default_rng(8)
@@ -149,3 +200,48 @@ def test_exp3_zhou_tansig_20x4_br_reaches_paper_improvement():
     res = fit_one(sim.table, ModelSpec("mlp", "zhou", hidden, "tansig", trainer, epochs=100), seed=0)
     assert res.test["improvement_total"] >= 17.1
     assert res.test["rmse_total"] <= 1.5 * sim.noise_floor["rmse_total"]
+
+
+def test_network_after_the_physics_stage_learns_what_the_stage_left(tmp_path):
+    """A 200-pose session with a range scale (1.5 %) that the physics stage (station, mount)
+    does not model: `fit`'s network core learns the residual and removes most of it held out;
+    the paper's absolute network in its place is driven by trainbr to a constant pose, metres
+    from the truth (it made every physics+mlp fit fall back to the rigid fit). The residual
+    core's file runs as its estimator in onnxruntime and the C runtime."""
+    import onnxruntime as ort
+
+    from posecorr.controller.runtime import Corrector
+    from posecorr.effects import get_effect
+    from posecorr.export import to_onnx
+    from posecorr.metrics import pose_metrics
+    from posecorr.simulate import simulate_session
+    from posecorr.train.pipeline import CorrectionPipeline
+    from posecorr.train.spec import spec_from_options
+
+    table = simulate_session(0, n=200, robot="ur5e",
+                             extra={"range_scale": 3 * get_effect("range_scale").default_theta()}).table
+    folds = np.array_split(np.random.default_rng(0).permutation(table.n), 5)
+
+    def held_out_mm(make):
+        predicted = np.empty_like(table.measured)
+        for fold in folds:
+            train = np.setdiff1d(np.arange(table.n), fold)
+            predicted[fold] = make().fit(table.measured[train], table.reference[train]).predict(table.measured[fold])
+        return 1e3 * pose_metrics(table.reference, predicted, True)["rmse_pos"]
+
+    def network(residual):
+        return MLP("zhou", (5,), "tansig", "br", epochs=200, residual=residual)
+
+    assert spec_from_options("mlp", "zhou").make().residual is True
+    physics = held_out_mm(lambda: CorrectionPipeline(("station", "mount")))
+    residual = held_out_mm(lambda: CorrectionPipeline(("station", "mount"), network(True)))
+    absolute = held_out_mm(lambda: CorrectionPipeline(("station", "mount"), network(False)))
+    assert physics > 5.0 and residual < 0.4 * physics and absolute > 100.0, (physics, residual, absolute)
+    model = CorrectionPipeline(("station", "mount"), network(True)).fit(table.measured, table.reference)
+    to_onnx(model, tmp_path / "r.onnx", measured=table.measured)
+    x = table.measured[:50]
+    want = model.predict(x)
+    got = ort.InferenceSession(str(tmp_path / "r.onnx"), providers=["CPUExecutionProvider"]).run(
+        None, {"pose": x.astype(np.float32)})[0]
+    np.testing.assert_allclose(got[:, :3], want[:, :3], rtol=0, atol=2e-5)
+    np.testing.assert_allclose(Corrector(tmp_path / "r.onnx").correct(x)[:, :3], want[:, :3], rtol=0, atol=2e-5)

@@ -65,6 +65,8 @@ def get_method(name: str) -> Method:
 register_method(Method("none", ""))
 # `fit` picks the ridge penalty by cross-validation; the protocol keeps the paper's plain least squares.
 register_method(Method("pmc", "pmc:PMC", fit_params={"alpha": "cv"}, title="PMC"))
-register_method(Method("mlp", "mlp:MLP", settings=("hidden", "activation", "trainer", "epochs", "random_state")))
+# `fit`'s network follows the physics stage: it learns what the stage left (`MLP.residual`).
+register_method(Method("mlp", "mlp:MLP", settings=("hidden", "activation", "trainer", "epochs", "random_state"),
+                       fit_params={"residual": True}))
 # `fit --method auto`: a nested cross-validated choice among `pipeline.auto_candidates`.
 register_method(Method("auto", "", chooses=True))

@@ -124,6 +124,11 @@ class MLP(BaseCorrector):
         does not use validation for stopping).
     merge_validation : "br" only: train on train + validation (default False: the
         validation rows are only monitored, MATLAB's default)
+    residual : learn the reference's vector minus the input's and add the input back (default
+        False: the paper's network maps the pose itself). `posecorr fit` sets it for a core
+        after the physics stage: there trainbr, on a session's few poses, drives every weight
+        towards zero, which makes an absolute network a constant pose (hundreds of mm held
+        out) and a residual one the physics stage it follows.
     random_state : seed for the initial weights and the internal split
     num_threads : torch threads during fit (None = leave as is)
     verbose : print one line per ``verbose`` epochs (0 = silent)
@@ -147,6 +152,7 @@ class MLP(BaseCorrector):
     normalization: str = "none"
     validation_fraction: float = 0.15
     merge_validation: bool = False
+    residual: bool = False
     random_state: int = 0
     num_threads: int | None = None
     verbose: int = 0
@@ -175,13 +181,17 @@ class MLP(BaseCorrector):
         if not (isinstance(self.validation_fraction, numbers.Real) and 0 <= self.validation_fraction < 1):
             raise ValueError("validation_fraction must be a number in [0, 1) (the share of the poses held for early "
                              f"stopping), got {self.validation_fraction!r}")
+        if not isinstance(self.residual, (bool, np.bool_)):
+            raise ValueError(f"residual must be True or False, got {self.residual!r}")
         hidden = parse_hidden(self.hidden)
         rng = np.random.default_rng(self.random_state)
+        if self.residual:
+            Y = Y - X
         if validation is not None:
             mv = check_poses(validation.measured, "validation measured")
             rv = check_poses(validation.reference, "validation reference", len(mv))
             Xv = np.asarray(encode_pose(mv, self.representation), np.float64)
-            Yv = np.asarray(encode_pose(rv, self.representation), np.float64)
+            Yv = np.asarray(encode_pose(rv, self.representation), np.float64) - (Xv if self.residual else 0.0)
         elif not trainer.bayesian and self.validation_fraction > 0 and len(X) >= 10:
             train, held = validation_split(len(X), self.validation_fraction, rng)
             Xv, Yv = X[held], Y[held]
@@ -224,7 +234,8 @@ class MLP(BaseCorrector):
         xp = namespace(x)
         h = x * xp.const(self.x_gain_, x) + xp.const(self.x_offset_, x)
         h = mlp_forward(h, list(zip(self.coefs_, self.intercepts_)), self.activation)
-        return h * xp.const(1.0 / self.y_gain_, h) + xp.const(-self.y_offset_ / self.y_gain_, h)
+        y = h * xp.const(1.0 / self.y_gain_, h) + xp.const(-self.y_offset_ / self.y_gain_, h)
+        return x + y if self.residual else y
 
     def export_info(self) -> dict[str, str]:
         self._check_fitted()
@@ -235,6 +246,7 @@ class MLP(BaseCorrector):
                 "trainer": self.trainer, "epochs": str(self.n_epochs_), "stop_reason": self.stop_reason_,
                 "n_parameters": str(self.n_parameters_), "normalization": self.normalization,
                 "scaling": "mapminmax[-1,1] inputs and targets",
+                "output": "input + network" if self.residual else "network",
                 "train_loss_mse": f"{self.train_loss_:.6g}", "random_state": str(self.random_state)}
         if self.best_val_loss_ is not None:
             info["best_validation_mse"] = f"{self.best_val_loss_:.6g}"

@@ -47,7 +47,7 @@ import numpy as np
 
 from posecorr.registry import Registry
 
-from .lm import Network, _cholesky_solve, _trace_inverse
+from .lm import Network
 
 
 @dataclass
@@ -266,7 +266,7 @@ def _stop_reason(step: Step, est: Any, epoch: int, mse: float, g: Any, validatio
 @register("lm", "trainlm", 1, "Levenberg-Marquardt backpropagation (LM)")
 class LM(Step):
     """trainlm: each epoch solves (J'J + mu I) dx = -J'r (J'J and J'r of the sum of squared
-    errors Ed, ``Network.gauss_newton``, formed once per epoch) and takes the step when it
+    errors Ed, ``Network.linearise``, formed once per epoch) and takes the step when it
     lowers the objective: then mu *= mu_dec (0.1); else mu *= mu_inc (10) and the system is
     solved again with the new diagonal. mu starts at ``mu`` (trainlm 1e-3); beyond mu_max
     (1e10) the step gives up: "Maximum MU reached". The loop's gradient rule measures the
@@ -275,15 +275,13 @@ class LM(Step):
     mu_start = 1e-3
 
     def __init__(self, problem: Problem, theta: Any, est: Any) -> None:
-        import torch
-
         super().__init__(problem, theta, est)
         self.net, self.N = problem.net, problem.N
         self.P = self.net.n_params
-        self.eye = torch.eye(self.P, dtype=torch.float64)
         self.mu = float(est.mu if est.mu is not None else self.mu_start)
         self.mu_dec, self.mu_inc, self.mu_max = float(est.mu_dec), float(est.mu_inc), float(est.mu_max)
-        self.alpha = 0.0                 # the weight penalty: none for plain LM
+        # trainbr's scales of the errors and of the weight penalty: plain LM weighs the errors alone
+        self.beta, self.alpha = 1.0, 0.0
         self.t0 = time.perf_counter()
         if self.mu > self.mu_max:
             self.stop_reason = "Maximum MU reached"
@@ -293,38 +291,32 @@ class LM(Step):
         return self.ed / self.N, self.gradient(theta)
 
     def _linearise(self, theta: Any) -> None:
-        """J'J, J'r and Ed at theta: what the next step solves with."""
-        import torch
-
-        self.JJ, self.g, r = self.net.gauss_newton(theta, self.problem.X, self.problem.T)
-        self.ed = float(torch.sum(r * r))
+        """The damped system and Ed at theta: what the next step solves with."""
+        self.system = self.net.linearise(theta, self.problem.X, self.problem.T)
+        self.ed = self.system.ed
 
     def gradient(self, theta: Any) -> Any:
         """The gradient of the objective, for the loop's min_grad rule."""
-        return 2.0 * self.g
+        return 2.0 * (self.beta * self.system.g + self.alpha * theta)
 
     def objective(self, ed: float, theta: Any) -> float:
-        return ed
+        return self.beta * ed + self.alpha * float(theta @ theta)
 
-    def system(self, theta: Any) -> tuple[Any, Any]:
-        """(H, rhs) of the damped system (H + (mu + alpha) I) dx = rhs."""
-        return self.JJ, -self.g
-
-    def accepted(self, H: Any, ed: float, theta: Any) -> None:
+    def accepted(self, ed: float, theta: Any) -> None:
         """Hook after an accepted step (trainbr's evidence update)."""
 
     def __call__(self, epoch: int, theta: Any, mse: float, g: Any) -> tuple[Any, float, Any]:
         perf = self.objective(self.ed, theta)
-        H, rhs = self.system(theta)
         while self.mu <= self.mu_max:
-            dx = _cholesky_solve(H + (self.mu + self.alpha) * self.eye, rhs)
+            # (beta J'J + (mu + alpha) I) dx = -(beta J'r + alpha theta)
+            dx = self.system.step(self.beta, self.mu + self.alpha, self.alpha, theta)
             if dx is not None:
                 trial = theta + dx
                 ed = self.net.sse(trial, self.problem.X, self.problem.T)
                 new = self.objective(ed, trial)
                 if math.isfinite(new) and new < perf:
                     self.mu = max(self.mu * self.mu_dec, 1e-20)
-                    self.accepted(H, ed, trial)
+                    self.accepted(ed, trial)
                     self._linearise(trial)
                     return trial, self.ed / self.N, self.gradient(trial)
             self.mu *= self.mu_inc
@@ -358,17 +350,8 @@ class BR(LM):
             self.beta = 1.0
         self.alpha = self.gamma / (2.0 * ew) if ew > 0 else 1.0
 
-    def gradient(self, theta: Any) -> Any:
-        return 2.0 * (self.beta * self.g + self.alpha * theta)
-
-    def objective(self, ed: float, theta: Any) -> float:
-        return self.beta * ed + self.alpha * float(theta @ theta)
-
-    def system(self, theta: Any) -> tuple[Any, Any]:
-        return self.beta * self.JJ, -(self.beta * self.g + self.alpha * theta)
-
-    def accepted(self, H: Any, ed: float, theta: Any) -> None:
-        trace = _trace_inverse(H + self.alpha * self.eye)
+    def accepted(self, ed: float, theta: Any) -> None:
+        trace = self.system.trace_inverse(self.beta, self.alpha)
         if trace is not None:
             ew = float(theta @ theta)
             self.gamma = self.P - self.alpha * trace

@@ -644,6 +644,24 @@ def test_percentages_print_in_plain_digits() -> None:
                      "rmse_total, 320 % worse): returning rigid-joint"]
 
 
+def test_a_core_without_the_physics_stage_on_unregistered_frames_is_told_why(tmp_path) -> None:
+    """A core asked for with no effects on frames metres apart has to learn their offset and
+    falls back to the rigid fit; the note says so and names the stage that fits the
+    registration first. With the stage, or with registered frames, no such words."""
+    from posecorr.data import write_table
+    from posecorr.simulate import simulate_session
+
+    data = tmp_path / "s.csv"
+    write_table(simulate_session(2, n=12, spread="full", position_only=False, unremovable=0.0).table, data)
+    hint = "no physics stage came before the core, so it had to learn their offset: --effects station,mount fits"
+    for effects, told in (([], True), (["--effects", "station,mount"], False)):
+        out = posecorr("fit", str(data), "--method", "pmc", *effects, "--json", "-o", str(tmp_path / "m.onnx"))
+        assert out.returncode == 0, out.stderr
+        notes = " ".join(json.loads(out.stdout)["notes"])
+        assert (hint in notes) is told, notes
+        assert ("the frames are unregistered (raw rmse_pos" in notes) is told
+
+
 def test_a_fit_that_falls_back_says_so_where_it_names_the_model(tmp_path) -> None:
     """On the real 11-pose session auto's choice does worse held out than the joint rigid fit
     (tests/test_sessions.py): the written model is the rigid fit, and the line naming it says

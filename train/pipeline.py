@@ -497,7 +497,7 @@ def _fit_fixed_split(table: PoseTable, candidates: list[Candidate], floor: list[
     if best.rigid and not auto:
         notes.append(f"the requested model did worse than the rigid fit on the {len(val)} validation poses "
                      f"({scores[candidates[0].name]:.4g} against {scores[best.name]:.4g} rmse_total): "
-                     f"returning the rigid fit ({best.name})")
+                     f"returning the rigid fit ({best.name})" + _without_registration(candidates[0], raw, baseline))
     return FitReport(model, raw, heldout, plan, np.sort(fit_rows if not _stops_early(best) else train),
                      best.name, auto_scores=scores if auto else {}, baseline=baseline, n_heldout=len(test),
                      fell_back=bool(best.rigid) and not auto, notes=notes, test_index=test,
@@ -532,7 +532,7 @@ def _fit_cross_validated(table: PoseTable, candidates: list[Candidate], floor: l
                else metric_block(raw_all, pose_metrics(R, predicted, with_rotation)))
     fell_back = best != floor_best and baseline["rmse_total"] < heldout["rmse_total"]
     if fell_back:
-        _note_fallback(best, floor_best, heldout, baseline, auto, notes)
+        _note_fallback(best, floor_best, heldout, baseline, auto, notes, raw_all)
         best, heldout = floor_best, baseline
     say(f"fitting {best.name} on all {table.n} poses")
     model = _fit(best, everything, arrays, with_rotation, prior)
@@ -572,14 +572,27 @@ def nested_out_of_fold(candidates: Sequence[Candidate], arrays: tuple, with_rota
 
 
 def _note_fallback(best: Candidate, floor_best: Candidate, heldout: dict, baseline: dict, auto: bool,
-                   notes: list[str]) -> None:
+                   notes: list[str], raw: dict | None = None) -> None:
     """Tells the user why the rigid fit is returned instead of the requested (or auto's) model."""
     worse = 100.0 * (heldout["rmse_total"] / baseline["rmse_total"] - 1.0)
     # auto is scored by the choices made inside each outer fold, not by its scores on all poses
     what = f"auto (its choice in each outer fold; {best.name} on all poses)" if auto else best.name
     notes.append(f"{what} did worse on held-out poses than the best rigid fit, {floor_best.name} "
                  f"({heldout['rmse_total']:.4g} against {baseline['rmse_total']:.4g} rmse_total, "
-                 f"{percent(worse)} % worse): returning {floor_best.name}")
+                 f"{percent(worse)} % worse): returning {floor_best.name}"
+                 + ("" if auto or raw is None else _without_registration(best, raw, baseline)))
+
+
+def _without_registration(requested: Candidate, raw: dict, rigid: dict) -> str:
+    """Where a core was asked for with no physics stage on frames nobody registered: the core
+    had to learn the frames' offset (metres) from the poses, which the stage fits first."""
+    from posecorr.metrics import frames_unregistered
+
+    if requested.core is None or requested.effects or requested.rigid or not frames_unregistered(raw, rigid):
+        return ""
+    return (f"; the frames are unregistered (raw rmse_pos {1e3 * raw['rmse_pos']:.4g} mm, the rigid fit "
+            f"{1e3 * rigid['rmse_pos']:.4g} mm) and no physics stage came before the core, so it had to learn "
+            "their offset: --effects station,mount fits the registration first")
 
 
 def refuse_gross_outliers(table: PoseTable) -> None:

@@ -22,9 +22,11 @@ come from one batched back-propagation seeded with diag(escale) (the reverse map
 so the errors are in target units, MATLAB's default). J^T r is a_l^T (sum_k delta_k r_k).
 
 The damped systems (J^T J + mu I) and (beta J^T J + (alpha + mu) I) are solved by Cholesky
-(``_cholesky_solve``); trainbr's effective parameter count needs the trace of an inverse
-(``_trace_inverse``). A matrix that is not positive definite gives None: the step counts as
-failed and mu grows.
+(``Normal``); trainbr's effective parameter count needs the trace of an inverse. A matrix that
+is not positive definite gives None: the step counts as failed and mu grows. Where the error
+terms are fewer than the weights (a session of a few dozen poses against a network of
+1,649 weights), ``Network.linearise`` hands the same system over in error space (``Dual``:
+J from the same sensitivities, one eigendecomposition of J J^T per epoch).
 """
 from __future__ import annotations
 

@@ -136,7 +136,8 @@ static int pc_convert(pc_out *o, char conv, int precision, int length, va_list *
         int k;
         if (!str)
             str = "(null)";
-        for (k = 0; str[k] && (precision < 0 || k < precision); k++)
+        /* the precision first: a %.*s slice need not be terminated, so its end is not read */
+        for (k = 0; (precision < 0 || k < precision) && str[k]; k++)
             pc_put(o, str[k]);
         return 1;
     }

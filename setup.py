@@ -29,8 +29,9 @@ class BuildWithCMake(build_ext):
     """Runs CMake for the C runtime; library and tools land in posecorr/_native/."""
 
     TOOLS = ("posecorr-run", "posecorr-bench", "posecorr-plan")
-    # Copied into the C that `posecorr compile` writes (the runtime's element formulas).
-    HEADERS = ("formulas.h",)
+    # formulas.h: copied into the C that `posecorr compile` writes (the runtime's element
+    # formulas); posecorr.h: the header of the library beside it, for a program linked to it.
+    HEADERS = ("formulas.h", "posecorr.h")
 
     def get_ext_filename(self, fullname: str) -> str:
         ext = self.ext_map.get(fullname)

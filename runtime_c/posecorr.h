@@ -111,7 +111,8 @@ enum {
      * copied into the arena; a big-endian host copies them (byte-swapped) all the same. */
     PC_LOAD_IN_PLACE = 1u << 0,
     /* One-pose plans run every node as its own kernel instead of compiling the small
-     * elementwise subgraphs into one-pose programs: less load-time memory, slower. */
+     * elementwise subgraphs into one-pose programs: slower, and for most models a larger
+     * arena (every node's output its own buffer; pc_required_bytes says how much). */
     PC_LOAD_NO_PROGRAMS = 1u << 1,
     /* The metadata strings are not kept (pc_metadata_count is 0): a small target saves
      * their bytes. The checks pc_run takes from them (input_bounds, time_bounds,
@@ -186,14 +187,17 @@ PC_API pc_status pc_load_into(const void *data, size_t size, const pc_options *o
  *  - a position outside the model's metadata "input_bounds" ("[[x_lo, y_lo, z_lo],
  *    [x_hi, y_hi, z_hi]]", metres; posecorr's exporter writes the training positions'
  *    box, widened): PC_ERR_RANGE, out untouched;
- *  - a result that is not finite, whose quaternion is not unit within 1e-3 on |q|^2, or
+ *  - a result that is not finite, whose quaternion is not unit within 2e-3 on |q|^2 (the
+ *    input rule: a position-only model passes the input's quaternion through), or
  *    that moves the pose farther than the metadata "correction_reach" ("[metres,
  *    radians]": the largest correction of position and of rotation the exporter saw on
  *    the training data, with a margin): PC_ERR_RUNTIME; poses of earlier chunks (of
  *    max_batch, ..., 16, 1 poses) are written, the rest untouched.
  * Loading refuses a file whose metadata "model_digest" does not match its bytes
- * (PC_ERR_INTEGRITY), a graph whose rows are not independent (PC_ERR_GRAPH), so a result
- * never depends on how n is split, and (PC_ERR_MALFORMED) a float tensor of the graph
+ * (PC_ERR_INTEGRITY), a graph whose rows are not independent (PC_ERR_GRAPH: probe poses
+ * run as one batch and one by one must agree within 1e-5, relative; a probe finds a graph
+ * that mixes rows, it proves nothing of one whose mixing the probes do not show, such as
+ * one that adds a batch sum and takes it away again), and (PC_ERR_MALFORMED) a float tensor of the graph
  * holding NaN or infinity, and "input_bounds", "time_bounds" or "correction_reach" that
  * are not finite float32 numbers or whose lower bound is above the upper one. A model
  * without "input_bounds" or "correction_reach" loads only with PC_LOAD_ALLOW_UNBOUNDED,

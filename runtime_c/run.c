@@ -161,7 +161,7 @@ PC_RARE static pc_status pc_output_error(pc_model *m, const float *in, const flo
     }
     if (!pc_unit_output(&v)) {
         pc_format(m->message, sizeof m->message, "pose %zu: the quaternion qw, qx, qy, qz of "
-                  "output 'corrected' is not unit (expected |q|^2 within 0.001 of 1)", pose);
+                  "output 'corrected' is not unit (expected |q|^2 within 0.002 of 1)", pose);
         return PC_ERR_RUNTIME;
     }
     pc_beyond_reach(m, pose, v.d2, v.dot, v.n_in2, v.n2);

@@ -120,6 +120,8 @@ def as_program(code: str, compiled: tuple[Path, str] | None) -> str:
     `NAME_run` comes with `compiled`, (the file `posecorr compile --name NAME` wrote, NAME):
     the declaration follows that file, so one that differs from the definition does not
     compile, and main calls it."""
+    if "int main(" in code:      # a whole program, compiled as written (the frame below
+        return code             # added the <stdio.h> the runtime's first example lacked)
     lines = code.splitlines()
     top = [line for line in lines if line.startswith("#")]
     body = "\n".join(line for line in lines if not line.startswith("#"))
@@ -155,7 +157,8 @@ def test_c_block_compiles_and_runs(where, code, reason, runtime, tmp_path):
     source = tmp_path / "snippet.c"
     source.write_text(as_program(code, compiled))
     exe = tmp_path / "snippet"
-    built = subprocess.run([os.environ.get("CC", "cc"), "-std=c99", "-Wall", "-Werror",
+    whole = ["-Wextra", "-pedantic"] if "int main(" in code else []     # the frame's main is not the reader's
+    built = subprocess.run([os.environ.get("CC", "cc"), "-std=c99", "-Wall", *whole, "-Werror",
                             "-Wno-unused-variable", f"-I{ROOT / 'runtime_c'}", str(source), "-o",
                             str(exe), f"-L{runtime}", "-lposecorr", f"-Wl,-rpath,{runtime}", "-lm"],
                            capture_output=True, text=True)

@@ -32,7 +32,10 @@ def test_table1_architectures():
     assert len(ARCHITECTURES) == 16
     assert ARCHITECTURES[0] == (5,) and ARCHITECTURES[15] == (20, 20, 20, 20) and ARCHITECTURES[6] == (15, 15)
     assert parse_hidden("20-20") == (20, 20) and parse_hidden("#16") == (20, 20, 20, 20)
-    assert parse_hidden("10,5") == (10, 5) and parse_hidden(7) == (7,)
+    assert parse_hidden("10,5") == (10, 5) and parse_hidden(7) == (7,) and parse_hidden("") == ()
+    for text in ("5-", "-5", "5,,5"):        # "5-" was taken for one layer of 5
+        with pytest.raises(ValueError, match=f"got an empty one in '{text}'"):
+            parse_hidden(text)
 
 
 def test_transfer_functions_match_matlab_definitions():
@@ -238,6 +241,10 @@ def test_network_after_the_physics_stage_learns_what_the_stage_left(tmp_path):
     absolute = held_out_mm(lambda: CorrectionPipeline(("station", "mount"), network(False)))
     assert physics > 5.0 and residual < 0.4 * physics and absolute > 100.0, (physics, residual, absolute)
     model = CorrectionPipeline(("station", "mount"), network(True)).fit(table.measured, table.reference)
+    # the file counts the stage's 12 fitted directions with the network's weights (it said 104)
+    weights = sum(w.size + b.size for w, b in zip(model.core_.coefs_, model.core_.intercepts_))
+    assert weights == 104 and model.export_info()["n_parameters"] == "116"
+    assert model.export_info()["output"] == "input + network"
     to_onnx(model, tmp_path / "r.onnx", measured=table.measured)
     x = table.measured[:50]
     want = model.predict(x)

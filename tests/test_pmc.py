@@ -124,7 +124,9 @@ def test_contract_score_params_and_errors():
     clone = sklearn_base.clone(model)
     assert not hasattr(clone, "coef_") and clone.representation == "zhou"
     info = model.export_info()
-    assert info["method"] == "pmc" and info["representation"] == "zhou"
+    assert info["method"] == "pmc" and info["representation"] == "zhou" and info["trainer"] == "lstsq"
+    # a penalty (fit chooses one by cross-validation) is a ridge fit: it said "lstsq"
+    assert PMC("zhou", alpha=0.1).fit(meas, ref).export_info()["trainer"] == "ridge"
     with pytest.raises(ValueError):
         PMC("euler").fit(meas, ref)
     with pytest.raises(ValueError):

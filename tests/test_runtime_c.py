@@ -1304,11 +1304,14 @@ def test_install_find_package_and_pkg_config(c_build, pose_file, tmp_path):
 
 
 def test_a_program_links_against_the_library_pip_placed(pose_file, tmp_path):
-    """A C program linked against the copy beside the package finds it at run time: that copy
-    had the installed layout's SONAME, libposecorr.so.0, which no file there is named."""
+    """A C program built against the copy beside the package, with the header beside it, finds
+    it at run time: that copy had the installed layout's SONAME, libposecorr.so.0, which no
+    file there is named, and no header."""
     lib_file = library_path()
     exe = tmp_path / "consumer"
-    subprocess.run([os.environ.get("CC", "cc"), "-std=c99", f"-I{ROOT / 'runtime_c'}", "-x", "c", "-",
+    # the header beside the library, as a wheel install has it (no source checkout)
+    assert (lib_file.parent / "posecorr.h").read_bytes() == (ROOT / "runtime_c" / "posecorr.h").read_bytes()
+    subprocess.run([os.environ.get("CC", "cc"), "-std=c99", f"-I{lib_file.parent}", "-x", "c", "-",
                     "-o", str(exe), f"-L{lib_file.parent}", "-lposecorr", "-lm"],
                    input=CONSUMER_C, text=True, check=True, capture_output=True)
     r = subprocess.run([str(exe), str(pose_file)], capture_output=True, text=True, check=True,

@@ -137,6 +137,11 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
                 info["rigid_variant"] = self.rigid
             if self.physics_.fixed_:
                 info["fixed"] = dict(self.physics_.fixed_)
+            if not self.rigid:
+                # the stage's free directions are fitted parameters too: the core's count
+                # alone undercounted a physics + core model
+                free = int(self.physics_.basis_.shape[1])
+                info["n_parameters"] = str(free + int(info.get("n_parameters", 0)))
         return info
 
     @property

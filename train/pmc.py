@@ -179,6 +179,8 @@ class PMC(BaseCorrector):
         return {"method": "pmc", "representation": self.representation,
                 "architecture": f"{'quadratic' if self.degree == 2 else 'affine'}-{d}in-"
                                 f"{n_features(d, self.degree) + 1}terms",
-                "activation": "none", "trainer": "lstsq",
+                # a penalty chosen by fit's cross-validation is a ridge fit, not plain least squares
+                "activation": "none", "trainer": "ridge" if self.alpha_ else "lstsq",
                 "ridge_alpha": repr(self.alpha_),
+                "n_parameters": str(self.coef_.size + self.intercept_.size),
                 "train_rmse_vector": f"{self.train_rmse_vector_:.6g}"}

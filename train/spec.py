@@ -112,10 +112,11 @@ def parse_hidden(hidden: Any) -> tuple[int, ...]:
                 raise ValueError(f"a table-1 architecture is #1..#{len(ARCHITECTURES)}, got {text!r}")
             return ARCHITECTURES[int(number) - 1]
         text = text.removeprefix("(").removesuffix(")")
-        parts = [p.strip() for p in text.replace("-", ",").replace("x", ",").split(",") if p.strip()]
+        parts = [p.strip() for p in text.replace("-", ",").replace("x", ",").split(",")] if text else []
         bad = next((p for p in parts if not p.isdigit()), None)
         if bad is not None:
-            raise ValueError(f"layer sizes are integers in 1..{LAYER_WIDTH_MAX}, got {bad!r}")
+            got = repr(bad) if bad else f"an empty one in {hidden.strip()!r}"
+            raise ValueError(f"layer sizes are integers in 1..{LAYER_WIDTH_MAX}, got {got}")
         hidden = [int(p) for p in parts]
     elif isinstance(hidden, (int, np.integer)):
         hidden = [int(hidden)]

@@ -126,8 +126,9 @@ def threads_option(p: argparse.ArgumentParser, scope: str = "") -> None:
 def diagnosis_options(p: argparse.ArgumentParser) -> None:
     """The diagnosis' cross-validation (diagnose, report), its seed and its threads."""
     p.add_argument("--cv", dest="folds", type=diagnosis_folds, default=5, metavar="K",
-                   help="number of folds of the held-out test (whole poses), 2..1000 (default: 5); the diagnosis "
-                        "needs folds, so fit's none and loo are not taken")
+                   help="number of folds of the diagnosis's held-out test (whole poses), 2..1000 (default: 5); "
+                        "it needs folds, so fit's none and loo are not taken (report scores the model itself "
+                        "on the folds its fit used)")
     p.add_argument("--folds", dest="folds", type=diagnosis_folds, action=Renamed, new="--cv", help=argparse.SUPPRESS)
     seed_option(p)
     threads_option(p)

@@ -27,7 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--representation", choices=orientations(),
                    help="orientation representation of the core (position-only tables use position only) "
-                        "(default: zhou)")
+                        "(default: zhou; --method auto also tries a PMC in every other one on tables of 200 poses "
+                        "or more)")
     p.add_argument("--hidden", help="MLP hidden layer sizes: 20-20, 20x20 or 20,20; #N is table 1's N-th "
                                     f"(default: {'-'.join(map(str, DEFAULT_HIDDEN))})")
     p.add_argument("--network", help="an MLP named as in the paper, ARCHITECTURE/ALGORITHM: 16/2 = table 1's "

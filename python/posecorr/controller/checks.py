@@ -98,12 +98,13 @@ STATUS_NAMES = {
 
 # Default-domain opsets libposecorr loads (PC_OPSET_MIN, PC_OPSET_MAX in posecorr.h).
 OPSETS = (13, 28)
-# run.c's tolerances: an output |q|^2 within 1e-3 of 1 (float32, after a few dozen
-# operations it is within 1e-5); an input norm within 1e-3 of 1, the pose tables' rule
+# run.c's tolerances: an output |q|^2 within 2.002e-3 of 1, the input's rule with float slack
+# (after a few dozen float32 operations it is within 1e-5; a position-only model passes the
+# input's quaternion through); an input norm within 1e-3 of 1, the pose tables' rule
 # (posecorr.data.QUAT_NORM_TOLERANCE), compared on |q|^2 in float64 as (1 -+ 1e-3)^2. The
 # model normalises its input, so a few lost bits change nothing, while a zero or norm-3
 # vector is a glitch that normalising would turn into a made-up rotation.
-OUTPUT_UNIT_TOLERANCE = np.float32(1e-3)
+OUTPUT_UNIT_TOLERANCE = np.float32(2.002e-3)
 INPUT_NORM2_RANGE = (0.998001, 1.002001)
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 # What a time model without time_bounds takes of a caller's wider t (check_wide_input).
@@ -563,7 +564,7 @@ def check_output(limits: Limits, poses: np.ndarray, out: np.ndarray) -> None:
                                       "(expected a finite number)")
     if not_unit[i]:
         raise failure(Status.RUNTIME, f"pose {i}: {QUATERNION} of output 'corrected' is not unit "
-                                      "(expected |q|^2 within 0.001 of 1)")
+                                      "(expected |q|^2 within 0.002 of 1)")
     cos = min(1.0, abs(float(dot[i])) / math.sqrt(float(n_in2[i]) * float(n2[i])))
     raise failure(Status.RUNTIME, f"pose {i}: output 'corrected' moves the pose by "
                                   f"{decimal(math.sqrt(float(d2[i])))} m and {decimal(2 * math.acos(cos))} rad, "

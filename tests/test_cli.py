@@ -586,7 +586,7 @@ def test_diagnose_cv_takes_a_number_of_folds_and_says_so(capsys) -> None:
     verb_parsers = next(a for a in build_parser()._actions if a.dest == "verb").choices
     for verb in ("diagnose", "report"):
         cv = next(a for a in verb_parsers[verb]._actions if "--cv" in a.option_strings)
-        assert cv.help.startswith("number of folds of the held-out test (whole poses), 2..1000 (default: 5)")
+        assert cv.help.startswith("number of folds of the diagnosis's held-out test (whole poses), 2..1000 (default: 5)")
     assert _refusal(capsys, "diagnose", "d.csv", "--cv", "loo") == (
         "posecorr diagnose: error: argument --cv: expected a number of folds in 2..1000, got 'loo' (the diagnosis "
         "needs folds: fit's none and loo are not taken here) (see posecorr diagnose --help)")

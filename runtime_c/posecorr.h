@@ -197,9 +197,10 @@ PC_API pc_status pc_load_into(const void *data, size_t size, const pc_options *o
  * (PC_ERR_INTEGRITY), a graph whose rows are not independent (PC_ERR_GRAPH: probe poses
  * run as one batch and one by one must agree within 1e-5, relative; a probe finds a graph
  * that mixes rows, it proves nothing of one whose mixing the probes do not show, such as
- * one that adds a batch sum and takes it away again), and (PC_ERR_MALFORMED) a float tensor of the graph
- * holding NaN or infinity, and "input_bounds", "time_bounds" or "correction_reach" that
- * are not finite float32 numbers or whose lower bound is above the upper one. A model
+ * one that adds a batch sum and takes it away again), and (PC_ERR_MALFORMED) a float
+ * tensor of the graph holding NaN or infinity, and "input_bounds", "time_bounds" or
+ * "correction_reach" that are not finite float32 numbers or whose lower bound is above
+ * the upper one. A model
  * without "input_bounds" or "correction_reach" loads only with PC_LOAD_ALLOW_UNBOUNDED,
  * one without "model_digest" only with PC_LOAD_ALLOW_UNSIGNED.
  * The message of a pose's refusal reads "pose I: CLAUSE", I the pose's index in this call

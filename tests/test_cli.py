@@ -794,6 +794,13 @@ def test_diagnosis_options_are_checked_first_and_say_what_they_did(tmp_path) -> 
     out = posecorr("report", str(table), "--model", str(model), "--effects", "station", "--no-diagnosis", "-o",
                    str(tmp_path / "r.html"))
     assert out.returncode == 2 and "which --no-diagnosis leaves out" in out.stderr
+    # --cv K beside --no-diagnosis was ignored without a word (the model keeps its fit's folds)
+    for cv in (("--cv", "3"), ("--folds", "3")):
+        out = posecorr("report", str(table), "--model", str(model), *cv, "--no-diagnosis", "-o",
+                       str(tmp_path / "r.html"))
+        assert out.returncode == 2 and out.stderr.strip().splitlines()[-1].endswith(
+            "error: --cv sets the diagnosis's folds, which --no-diagnosis leaves out"), out.stderr
+    assert not (tmp_path / "r.html").exists()
     diagnosed = [json.loads(posecorr("diagnose", str(table), "--model", str(model), *extra, "--json").stdout)["notes"]
                  for extra in ((), ("--effects", "station,sweep"))]
     untimed = ("not tried: drift, time_trend (acting over the session's time, they need a time column t, which this "

@@ -125,7 +125,7 @@ def threads_option(p: argparse.ArgumentParser, scope: str = "") -> None:
 
 def diagnosis_options(p: argparse.ArgumentParser) -> None:
     """The diagnosis' cross-validation (diagnose, report), its seed and its threads."""
-    p.add_argument("--cv", dest="folds", type=diagnosis_folds, default=5, metavar="K",
+    p.add_argument("--cv", dest="folds", type=diagnosis_folds, default=5, metavar="K", action=Given,
                    help="number of folds of the diagnosis's held-out test (whole poses), 2..1000 (default: 5); "
                         "it needs folds, so fit's none and loo are not taken (report scores the model itself "
                         "on the folds its fit used)")
@@ -149,7 +149,20 @@ def diagnosis_folds(text: str) -> int:
 diagnosis_folds.__name__ = "number of folds"
 
 
-class Renamed(argparse.Action):
+class Given(argparse.Action):
+    """Stores the value and that the user gave it (`given(args, dest)`): an option that means
+    something only beside another can then be refused where it would be ignored."""
+
+    def __call__(self, parser: Any, namespace: argparse.Namespace, values: Any, option_string: str | None = None) -> None:
+        setattr(namespace, self.dest, values)
+        setattr(namespace, f"{self.dest}_given", True)
+
+
+def given(args: argparse.Namespace, dest: str) -> bool:
+    return bool(getattr(args, f"{dest}_given", False))
+
+
+class Renamed(Given):
     """An option's old spelling: still taken, with a note naming the new one."""
 
     def __init__(self, option_strings: list[str], dest: str, new: str, **kwargs: Any) -> None:
@@ -158,7 +171,7 @@ class Renamed(argparse.Action):
 
     def __call__(self, parser: Any, namespace: argparse.Namespace, values: Any, option_string: str | None = None) -> None:
         print(f"posecorr: note: {option_string} is now {self.new} (same meaning)", file=sys.stderr)
-        setattr(namespace, self.dest, values)
+        super().__call__(parser, namespace, values, option_string)
 
 
 # --- what the option groups give --------------------------------------------------------

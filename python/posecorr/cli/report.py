@@ -6,7 +6,7 @@ import json
 from collections.abc import Mapping
 from pathlib import Path
 
-from .common import (CliError, Verb, backend_option, diagnosis_options, effect_file_option, effect_names,
+from .common import (CliError, Verb, backend_option, diagnosis_options, effect_file_option, effect_names, given,
                      effects_help, emit, model_effect_names, output_option, progress, read_data)
 
 
@@ -39,6 +39,8 @@ def run(args: argparse.Namespace) -> None:
     table = read_data(args)   # its --effect-file first: --effects may name that file's effects
     if args.no_diagnosis and args.effects is not None:
         raise CliError("--effects names the model's effects for the diagnosis, which --no-diagnosis leaves out")
+    if args.no_diagnosis and given(args, "folds"):    # the model's own held-out test keeps its fit's folds
+        raise CliError("--cv sets the diagnosis's folds, which --no-diagnosis leaves out")
     asked = effect_names(args.effects) if args.effects is not None else None   # its fault before the work
     require_rows(table, 3, "a report (its baseline is the best rigid fit)")
     info = read_info(args.model)

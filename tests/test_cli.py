@@ -639,7 +639,7 @@ def test_percentages_print_in_plain_digits() -> None:
         ["6.8", "0.051", "320", "10,000", "12,000", "-3.2", "0"]
     notes: list[str] = []
     _note_fallback(Candidate("pmc"), Candidate("rigid-joint", rigid="joint"), {"rmse_total": 4.204},
-                   {"rmse_total": 1.0}, False, notes)
+                   {"rmse_total": 1.0}, False, notes, {"rmse_pos": 0.001})
     assert notes == ["pmc did worse on held-out poses than the best rigid fit, rigid-joint (4.204 against 1 "
                      "rmse_total, 320 % worse): returning rigid-joint"]
 

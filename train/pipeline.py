@@ -577,7 +577,7 @@ def nested_out_of_fold(candidates: Sequence[Candidate], arrays: tuple, with_rota
 
 
 def _note_fallback(best: Candidate, floor_best: Candidate, heldout: dict, baseline: dict, auto: bool,
-                   notes: list[str], raw: dict | None = None) -> None:
+                   notes: list[str], raw: dict) -> None:
     """Tells the user why the rigid fit is returned instead of the requested (or auto's) model."""
     worse = 100.0 * (heldout["rmse_total"] / baseline["rmse_total"] - 1.0)
     # auto is scored by the choices made inside each outer fold, not by its scores on all poses
@@ -585,7 +585,7 @@ def _note_fallback(best: Candidate, floor_best: Candidate, heldout: dict, baseli
     notes.append(f"{what} did worse on held-out poses than the best rigid fit, {floor_best.name} "
                  f"({heldout['rmse_total']:.4g} against {baseline['rmse_total']:.4g} rmse_total, "
                  f"{percent(worse)} % worse): returning {floor_best.name}"
-                 + ("" if auto or raw is None else _without_registration(best, raw, baseline)))
+                 + ("" if auto else _without_registration(best, raw, baseline)))
 
 
 def _without_registration(requested: Candidate, raw: dict, rigid: dict) -> str:
@@ -593,7 +593,7 @@ def _without_registration(requested: Candidate, raw: dict, rigid: dict) -> str:
     had to learn the frames' offset (metres) from the poses, which the stage fits first."""
     from posecorr.metrics import frames_unregistered
 
-    if requested.core is None or requested.effects or requested.rigid or not frames_unregistered(raw, rigid):
+    if requested.core is None or requested.effects or not frames_unregistered(raw, rigid):
         return ""
     return (f"; the frames are unregistered (raw rmse_pos {1e3 * raw['rmse_pos']:.4g} mm, the rigid fit "
             f"{1e3 * rigid['rmse_pos']:.4g} mm) and no physics stage came before the core, so it had to learn "

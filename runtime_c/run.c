@@ -233,28 +233,39 @@ static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, 
     return PC_OK;
 }
 
-/* v with `places` decimals (at most 6) for a message: pc_format has no %f. The rule is
- * python/posecorr/controller/checks.py's decimal(), so that both back ends write the
- * same text. */
+/* v with `places` decimals (at most 6) for a message, from 1e9 on as a mantissa and a
+ * power of ten (3.000e30): pc_format has no %f or %e. The rule is
+ * python/posecorr/controller/checks.py's decimal(), step for step in the same doubles, so
+ * that both back ends write the same text. */
 PC_RARE static void pc_decimal(char *buf, size_t size, double v, int places)
 {
-    char frac[8];
-    const double a = fabs(v);
-    double scale = 1.0;
+    char frac[8], power[8] = "";
+    const int scientific = fabs(v) >= 1e9;
+    double a = fabs(v), decade = 1e9, scale = 1.0;
     long long units, f;
-    int k;
-    if (!(a < 1e9)) {
-        pc_format(buf, size, "beyond %s1e9", v < 0 ? "-" : "");
-        return;
+    int k, exponent = 9;
+    if (scientific) {
+        while (a >= decade * 10.0) {
+            decade *= 10.0;
+            exponent++;
+        }
+        a /= decade;
     }
     for (k = 0; k < places; k++)
         scale *= 10.0;
     units = (long long)(a * scale + 0.5);
+    if (scientific) {
+        if (units >= 10 * (long long)scale) { /* 9.9996e12 rounds to 1.000e13 */
+            units /= 10;
+            exponent++;
+        }
+        pc_format(power, sizeof power, "e%d", exponent);
+    }
     for (k = places, f = units; k > 0; k--, f /= 10)
         frac[k - 1] = (char)('0' + f % 10);
     frac[places] = '\0';
-    pc_format(buf, size, "%s%lld.%s", v < 0 && units ? "-" : "", units / (long long)scale,
-              frac);
+    pc_format(buf, size, "%s%lld.%s%s", v < 0 && units ? "-" : "", units / (long long)scale,
+              frac, power);
 }
 
 /* "pose I: NAME = VALUE UNIT is outside the range the model was fitted on, LO to HI UNIT

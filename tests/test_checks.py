@@ -149,7 +149,7 @@ def test_range_messages_agree_on_many_values():
     """run.c's pc_decimal and checks.decimal write every value alike (C is the judge)."""
     rng = np.random.default_rng(7)
     values = np.concatenate([rng.uniform(-5, 5, 40), 10.0 ** rng.uniform(-3, 12, 30),
-                             -(10.0 ** rng.uniform(-3, 12, 30)), [0.2055, -0.2277, 999.9995, 1e9, -1e9,
+                             -(10.0 ** rng.uniform(-3, 12, 30)), [0.2055, -0.2277, 999.9995, 1e9, -1e9, 9.9996e12, -9.9996e12,
                                                                   0.2049999, 3.4e38]])
     c, o = (Corrector(PMC_ZHOU, backend=b) for b in BACKENDS)
     lo, hi = graphs.model_box(PMC_ZHOU)
@@ -168,6 +168,21 @@ def test_range_messages_agree_on_many_values():
     assert compared > 90
 
 
+@pytest.mark.parametrize("value, text", [(1e9, "1.000e9"), (-3e30, "-3.000e30"), (9.9996e12, "1.000e13"),
+                                         (9.9994e12, "9.999e12"), (999999999.0, "999999999.000")])
+def test_large_values_are_written_as_a_mantissa_and_a_power(value, text):
+    """A value of 1e9 or more reads as a number, and its text parses
+    back to the value within its rounding."""
+    assert checks.decimal(value) == text
+    assert float(text) == pytest.approx(value, rel=5e-4)
+
+
+def test_large_values_parse_back_within_their_rounding():
+    for v in 10.0 ** np.random.default_rng(3).uniform(9, 38, 200):
+        assert float(checks.decimal(v)) == pytest.approx(v, rel=5.1e-4)
+        assert float(checks.decimal(-v, 6)) == pytest.approx(-v, rel=5.1e-7)
+
+
 @pytest.mark.parametrize("value", [np.inf, -np.inf, np.nan])
 def test_a_non_finite_pose_is_refused_alike(value):
     x = _inside()
@@ -180,7 +195,8 @@ def test_a_value_beyond_float32_is_refused_as_outside_not_as_not_finite(value):
     """A finite float64 beyond float32's range was cast to inf and refused as "not finite"
     (on onnxruntime after numpy's warning). Now both back ends refuse it, one pose or a batch,
     with no warning, in libposecorr's own words for float32's largest value of that sign
-    outside input_bounds; a model without input_bounds, as not fitting in float32."""
+    outside input_bounds, but the value as given; a model without input_bounds, as not fitting
+    in float32."""
     unbounded = graphs.signed(graphs.without_metadata(onnx.load(PMC_ZHOU), "input_bounds"))
     x = _inside()
     largest = x.astype(np.float32)
@@ -191,7 +207,8 @@ def test_a_value_beyond_float32_is_refused_as_outside_not_as_not_finite(value):
             said = _same(_both(PMC_ZHOU, poses), S.RANGE)
             with pytest.raises(PoseCorrError) as library:
                 Corrector(PMC_ZHOU).correct(largest if poses.ndim == 2 else largest[3])
-            assert said == str(library.value)
+            as_given = checks.decimal(np.float32(largest[3, 0])), checks.decimal(value)
+            assert said == str(library.value).replace(*as_given) and as_given[1] in said
             errors = []
             for backend in BACKENDS:
                 with pytest.raises(PoseCorrError) as info:

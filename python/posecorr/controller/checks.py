@@ -128,13 +128,24 @@ def failure(status: Status, message: str) -> PoseCorrError:
 
 
 def decimal(value: float, places: int = 3) -> str:
-    """`value` with `places` decimals (mm, ms) as run.c's pc_decimal writes it."""
+    """`value` with `places` decimals (mm, ms), from 1e9 on as a mantissa and a power of ten
+    (3.000e30), as run.c's pc_decimal writes it: the same steps in the same doubles."""
     a = abs(float(value))
-    if not a < 1e9:
-        return f"beyond {'-' if value < 0 else ''}1e9"
+    power = ""
+    if a >= 1e9:
+        decade, exponent = 1e9, 9
+        while a >= decade * 10.0:
+            decade *= 10.0
+            exponent += 1
+        a /= decade
     scale = 10.0 ** places
     units = int(a * scale + 0.5)
-    return f"{'-' if value < 0 and units else ''}{units // int(scale)}.{units % int(scale):0{places}d}"
+    if abs(float(value)) >= 1e9:
+        if units >= 10 * int(scale):  # 9.9996e12 rounds to 1.000e13
+            units //= 10
+            exponent += 1
+        power = f"e{exponent}"
+    return f"{'-' if value < 0 and units else ''}{units // int(scale)}.{units % int(scale):0{places}d}{power}"
 
 
 def _outside(pose: int, name: str, value: float, lo: float, hi: float) -> str:

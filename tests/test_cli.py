@@ -439,7 +439,7 @@ def test_info_says_what_the_file_is_before_its_metadata(tmp_path, capsys) -> Non
     # a fitted model states its floor, the best rigid fit scored alike; raw is the frames' offset here
     rigid = fitted["baseline"]
     assert fitted["frames_unregistered"] and lines[3] == (
-        f"  the best rigid fit ({rigid['model']}), same poses: rmse_pos {1e3 * rigid['rmse_pos']:.4g} mm, "
+        f"  the best rigid fit ({rigid['name']}), same poses: rmse_pos {1e3 * rigid['rmse_pos']:.4g} mm, "
         f"rmse_rot {1e3 * rigid['rmse_rot']:.4g} mrad")
     assert lines[4] == (f"  raw: rmse_pos {1e3 * fitted['raw']['rmse_pos']:.4g} mm, rmse_rot "
                         f"{1e3 * fitted['raw']['rmse_rot']:.4g} mrad (frames unregistered: their offset, not the "
@@ -849,7 +849,7 @@ def test_a_fit_on_the_test_split_keeps_its_rigid_floor_and_a_timed_model_benches
         assert out.returncode == 2 and f"{saved} is a saved estimator (fit --save), not the model posecorr " \
             f"{verb[0]} takes: `posecorr export {saved} -o MODEL.onnx` writes its model" in out.stderr, out.stderr
     metrics = read_info(model)["test_metrics"]
-    assert metrics["rigid"]["model"].startswith("rigid-") and {"test", "raw", "rigid"} <= set(metrics)
+    assert metrics["rigid"]["name"].startswith("rigid-") and {"test", "raw", "rigid"} <= set(metrics)
     assert posecorr("info", str(model)).stdout.count("the best rigid fit (") == 1
     timed, drift = tmp_path / "drift.csv", tmp_path / "drift.onnx"
     assert posecorr("simulate", "--session", "--poses", "20", "--seed", "2", "--duration", "800", "--effects",
@@ -939,7 +939,7 @@ def test_fit_auto_on_the_fixed_split_scores_every_rigid_variant(tmp_path) -> Non
     result = json.loads(run.stdout)
     assert set(result["rigid_rmse_total"]) == {c.name for c in rigid_candidates(session)}
     scores = result["rigid_rmse_total"]
-    assert result["baseline"]["model"] == min(scores, key=scores.get)
+    assert result["baseline"]["name"] == min(scores, key=scores.get)
     assert "test" in result and result["n_heldout"] == 18 and (tmp_path / "a.onnx").exists()
 
 

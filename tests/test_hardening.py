@@ -542,7 +542,7 @@ def test_apply_marks_the_poses_a_model_was_fitted_on_as_in_sample(tmp_path, caps
     for chunk_rows in (5, 1000):
         got = apply_file(model, session, tmp_path / f"c{chunk_rows}.csv", chunk_rows=chunk_rows)
         assert got["in_sample"] is True and got["held_out"]["source"] == "cv"
-        assert got["held_out"]["rigid"]["model"] == rigid["model"]
+        assert got["held_out"]["rigid"]["name"] == rigid["name"]
         for key in ("rmse_pos", "rmse_rot", "rmse_total"):
             assert got["held_out"][key] == pytest.approx(held_out[key], rel=1e-12)
             assert got["held_out"]["rigid"][key] == pytest.approx(rigid[key], rel=1e-12)
@@ -551,7 +551,7 @@ def test_apply_marks_the_poses_a_model_was_fitted_on_as_in_sample(tmp_path, caps
     assert "corrected (in-sample)" in shown and "held out (the fit's cross-validation)" in shown
     assert f"{held_out['rmse_pos'] * 1e3:.4g}" in shown.split("held out")[1]
     floor = next(line for line in shown.splitlines() if line.startswith("the best rigid fit"))
-    assert floor.startswith(f"the best rigid fit ({rigid['model']}), held out alike")
+    assert floor.startswith(f"the best rigid fit ({rigid['name']}), held out alike")
     assert floor.split()[-3] == f"{rigid['rmse_pos'] * 1e3:.4g}"
 
     lines = session.read_text().splitlines()

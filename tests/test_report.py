@@ -36,7 +36,7 @@ DIAGNOSIS = {
 LEDGER = [
     {"time": "2024-01-01T00:00:00+00:00", "model": "a.onnx", "effects": [], "method": "pmc",
      "representation": "zhou", "cv": {"rmse_pos": 0.02, "rmse_rot": 0.05, "rmse_total": 0.07},
-     "baseline": {"model": "rigid-joint", "rmse_pos": 0.004, "rmse_rot": 0.002, "rmse_total": 0.006}},
+     "baseline": {"name": "rigid-joint", "rmse_pos": 0.004, "rmse_rot": 0.002, "rmse_total": 0.006}},
     {"time": "2024-01-01T00:05:00+00:00", "model": "b_station.onnx", "effects": ["station", "mount"],
      "method": "pmc", "representation": "zhou", "test": {"rmse_pos": 0.001, "rmse_rot": 0.001,
                                                          "rmse_total": 0.002}},
@@ -370,7 +370,7 @@ def unregistered() -> PoseTable:
 
 
 def test_unregistered_frames_are_measured_against_the_rigid_fit(tmp_path: Path, unregistered: PoseTable) -> None:
-    from posecorr.analysis.comparison import compare
+    from posecorr.analysis.comparison import compare, rigid_label
     from posecorr.metrics import UNREGISTERED_FACTOR, UNREGISTERED_MIN_M
 
     table = unregistered
@@ -386,7 +386,7 @@ def test_unregistered_frames_are_measured_against_the_rigid_fit(tmp_path: Path, 
     summary = comparison.to_json()
     baseline = summary["baseline"]
     assert comparison.unregistered and raw > max(UNREGISTERED_FACTOR * baseline["rmse_pos"], UNREGISTERED_MIN_M)
-    assert baseline["name"].startswith("rigid fit (")
+    assert baseline["name"].startswith("rigid-") and comparison.baseline == rigid_label(baseline["name"])
     # The best rigid fit is no worse than the plain Kabsch fit (one of its variants; the others
     # add the 2-8 cm lever arm), and the before poses are its residuals.
     assert baseline["rmse_pos"] <= kabsch_rmse * (1 + 1e-9)
@@ -413,10 +413,10 @@ def test_unregistered_frames_are_measured_against_the_rigid_fit(tmp_path: Path, 
 
     page = write_report(tmp_path / "u.html", table, corrected, comparison=comparison).read_text()
     rows = _metrics_rows(page)
-    assert rows[0][0] == f"before: {baseline['name']}" and rows[0][1] == "in-sample"
+    assert rows[0][0] == f"before: {rigid_label(baseline['name'])}" and rows[0][1] == "in-sample"
     assert rows[1][0] == "corrected (model)" and rows[1][1] == "in-sample"
     assert rows[0][2] == f"{1e3 * baseline['rmse_pos']:#.3g}".rstrip(".")
-    assert rows[2][0].startswith(f"improvement ({baseline['name']} / corrected)")
+    assert rows[2][0].startswith(f"improvement ({rigid_label(baseline['name'])} / corrected)")
     assert not any("raw" in row[0] for row in rows)                # raw is no before here...
     assert f"{1e3 * raw:.3g}" in page and "10× the best rigid fit" in page   # ...only the rule and its figure
     assert f'data-before-key-mm="{key:g}"' in page
@@ -480,7 +480,7 @@ def test_held_out_where_the_ledger_knows_the_folds_in_sample_otherwise(tmp_path:
     assert report["unregistered"] is True
     assert after["ledger"] == pytest.approx({k: fitted[kind][k] for k in ("rmse_pos", "rmse_rot", "rmse_total")})
     assert "improvement" not in json.dumps(after)
-    assert report["baseline"]["name"] == "rigid fit ({})".format(fitted["baseline"]["model"].removeprefix("rigid-"))
+    assert report["baseline"]["name"] == fitted["baseline"]["name"] == report["rigid_fit"]["name"]
     assert report["baseline"]["rmse_pos"] == pytest.approx(fitted["baseline"]["rmse_pos"], rel=1e-6)
     if cv == "5":
         assert after["n"] == n and after["scored"] == f"held-out (5 folds, {n} poses)"
@@ -652,13 +652,15 @@ def test_the_browser_check_sees_a_broken_page(tmp_path: Path) -> None:
     assert any("a message" in c for c in seen["console"])
 
 
-def test_a_ledger_line_that_cannot_rebuild_the_held_out_says_why(unregistered: PoseTable) -> None:
+@pytest.mark.parametrize("key", ["name", "model"])
+def test_a_ledger_line_that_cannot_rebuild_the_held_out_says_why(unregistered: PoseTable, key: str) -> None:
     """In-sample, with the reason, for a line of an older posecorr, of another table, or one
-    whose plan cannot be read; the rigid variant the line names is kept."""
+    whose plan cannot be read; the rigid variant the line names is kept, under the key fit
+    writes ("name") or the one older ledgers hold ("model")."""
     from posecorr.analysis.comparison import compare
 
     table = unregistered
-    baseline = {"model": "rigid-kabsch", "rmse_pos": 0.02}
+    baseline = {key: "rigid-kabsch", "rmse_pos": 0.02}
     cases = [({"cv": {}, "baseline": baseline}, "lacks plan, seed, n"),
              ({"plan": "5", "seed": 0, "n": table.n + 1, "baseline": baseline}, f"{table.n + 1} poses"),
              ({"plan": "5 folds of", "seed": 0, "n": table.n, "baseline": baseline, "effects": ["station"],
@@ -668,6 +670,7 @@ def test_a_ledger_line_that_cannot_rebuild_the_held_out_says_why(unregistered: P
         assert not comparison.held_out and comparison.scored == "in-sample"
         assert why in comparison.reason
         assert comparison.baseline == "rigid fit (kabsch)"
+        assert comparison.to_json()["baseline"]["name"] == comparison.rigid_name == "rigid-kabsch"
 
 
 # --- a session of a few poses: no noise drawn as a trend -------------------------------------

@@ -198,11 +198,11 @@ def test_real_session_cli_names_fixed_parameters(tmp_path: Path) -> None:
     # The floor: every rigid variant this table allows (one orientation: no hand-eye), the best named.
     floor = payload["rigid_rmse_total"]
     assert set(floor) == {"rigid-kabsch", "rigid-lever", "rigid-lever-ref", "rigid-joint"}
-    assert payload["baseline"]["model"] == min(floor, key=floor.get)
+    assert payload["baseline"]["name"] == min(floor, key=floor.get)
     assert payload["baseline"]["rmse_total"] == pytest.approx(min(floor.values()), rel=1e-12)
     # each variant's position error too: the plain Kabsch fit's is the independent one's
     assert set(payload["rigid_rmse_pos"]) == set(floor)
-    assert payload["baseline"]["rmse_pos"] == pytest.approx(payload["rigid_rmse_pos"][payload["baseline"]["model"]],
+    assert payload["baseline"]["rmse_pos"] == pytest.approx(payload["rigid_rmse_pos"][payload["baseline"]["name"]],
                                                             rel=1e-12)
     table = read_table(data)
     independent, _ = rigid_heldout(table, LeaveOneOut().folds(table.n), "kabsch")

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .metrics import named_block
+
 
 @dataclass
 class FitFiles:
@@ -34,7 +36,7 @@ def training_fit(report: Any, table: Any) -> Any:
                     None if times is None else times[rows], heldout=heldout_poses(report, table),
                     test_metrics={report.heldout_kind: report.heldout, "raw": report.raw,
                                   # the floor: the best rigid fit, scored alike
-                                  "rigid": {"model": report.baseline_name, **report.baseline}},
+                                  "rigid": named_block(report.baseline_name, report.baseline)},
                     table_digest=data_digest(table.measured, table.reference) if split else None)
 
 
@@ -95,7 +97,7 @@ def ledger_fit_entry(report: Any, table: Any, output: str | Path, effects: list[
     entry: dict[str, Any] = {"model": str(output), "effects": effects, "method": info.get("method"),
                              "representation": info.get("representation"), "raw": report.raw,
                              report.heldout_kind: report.heldout,
-                             "baseline": {"model": report.baseline_name, **report.baseline},
+                             "baseline": named_block(report.baseline_name, report.baseline),
                              "model_sha256": hashlib.sha256(model_bytes).hexdigest() if model_bytes else None,
                              "n": int(table.n), "plan": str(report.plan), "chosen": report.chosen,
                              "fell_back": bool(report.fell_back), "rigid": report.model.rigid or None}

@@ -99,6 +99,20 @@ def frames_unregistered(raw: Mapping[str, float | None], rigid: Mapping[str, flo
     return bool(raw["rmse_pos"] > max(UNREGISTERED_FACTOR * rigid["rmse_pos"], UNREGISTERED_MIN_M))
 
 
+def named_block(name: str, figures: Mapping[str, float | None]) -> dict[str, float | None | str]:
+    """A scored model's figures with its name, as fit's JSON, the ledger and a model file's
+    metadata keep the best rigid fit: {"name": "rigid-joint", "rmse_pos": ..., ...}."""
+    return {"name": name, **figures}
+
+
+def block_name(block: Mapping[str, object] | None) -> str | None:
+    """The name of a `named_block`; files written before it was "name" called it "model"."""
+    if not isinstance(block, Mapping):
+        return None
+    name = block.get("name", block.get("model"))
+    return None if name is None else str(name)
+
+
 def summarize(values: Iterable[float]) -> dict[str, float]:
     """min / avg / max over repeats, the layout of tables 2-4."""
     v = np.asarray(list(values), dtype=float)

@@ -26,7 +26,7 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from ..data import PoseTable
-from ..metrics import RULE, frames_unregistered, metric_block, pose_metrics
+from ..metrics import RULE, block_name, frames_unregistered, metric_block, pose_metrics
 
 
 @dataclass
@@ -35,7 +35,7 @@ class Comparison:
 
     reference, before, after: (len(rows), 7) poses; baseline: "raw" or "rigid fit (VARIANT)"; scored:
     "held-out (...)" or "in-sample"; raw, rigid: metrics of the measurements and of the best
-    rigid fit on `rows`; reason: why the after is in-sample (empty when held-out); ledger:
+    rigid fit on `rows`; rigid_name: its candidate name (rigid-joint); reason: why the after is in-sample (empty when held-out); ledger:
     the held-out block the ledger recorded for the model (for comparison with `after`).
     """
 
@@ -70,7 +70,8 @@ class Comparison:
             return {k: m.get(k) for k in ("rmse_pos", "rmse_rot", "rmse_total")}
 
         block = self.block
-        return {"baseline": {"name": self.baseline, "rmse_pos": self.before_metrics.get("rmse_pos"),
+        # names as fit's JSON and the ledger write them (rigid-joint), the page's words apart
+        return {"baseline": {"name": self.rigid_name if self.unregistered else "raw", "rmse_pos": self.before_metrics.get("rmse_pos"),
                              "rmse_rot": self.before_metrics.get("rmse_rot")},
                 "after": {"scored": self.scored, "held_out": self.held_out, "n": int(len(self.rows)),
                           **figures_of(self.after_metrics), "reason": self.reason or None,
@@ -117,7 +118,7 @@ def compare(table: PoseTable, corrected: np.ndarray, entry: Mapping[str, Any] | 
         rows = np.arange(table.n)
         after, scored = np.asarray(corrected, float), SCORED_ON[fitted]
         recorded = (entry or {}).get("baseline")
-        wanted = recorded.get("model") if isinstance(recorded, Mapping) else None
+        wanted = block_name(recorded)
         rigid_name, rigid_pred = _rigid_in_sample(table, wanted)
     reference, measured = table.reference[rows], table.measured[rows]
     raw = pose_metrics(reference, measured, with_rot)
@@ -127,7 +128,7 @@ def compare(table: PoseTable, corrected: np.ndarray, entry: Mapping[str, Any] | 
 
     return Comparison(rows, reference, rigid_pred if unregistered else measured, after,
                       rigid_label(rigid_name) if unregistered else "raw", scored, held is not None,
-                      unregistered, raw, rigid, rigid_label(rigid_name), pose_metrics(reference, after, with_rot),
+                      unregistered, raw, rigid, rigid_name, pose_metrics(reference, after, with_rot),
                       reason, ledger_block(entry)[1] if entry else None)
 
 
@@ -168,7 +169,7 @@ def _held_out(table: PoseTable, entry: Mapping[str, Any] | None,
         return None, f"the model was fitted on a table of {entry['n']} poses, this one has {table.n}"
     try:
         plan, seed = parse_plan(entry["plan"]), int(entry["seed"])
-        rigid = _rigid_candidate(table, entry["baseline"].get("model"))
+        rigid = _rigid_candidate(table, block_name(entry["baseline"]))
         if isinstance(plan, FixedSplit):
             # The model file itself never saw the test poses; the rigid fit is refitted on the
             # others, from fit's start (the physics stage on the training rows).

@@ -33,10 +33,10 @@ import numpy as np
 
 from ..controller.onnx_meta import describe_corrector, stated_metrics
 from ..data import PoseTable
-from ..metrics import RULE, W_POS, W_ROT, pose_errors
+from ..metrics import RULE, W_POS, W_ROT, block_name, pose_errors
 from ..safeio import write_text
 from . import figures
-from .comparison import Comparison, compare
+from .comparison import Comparison, compare, rigid_label
 from .features import table_features
 from .interpretation import (STRUCTURE_R2, alias_text, cv_gain, effect_list, is_structure, model_effects,
                              not_ranked_why, p_value_text, ranked_candidates, split_features, takeaway, worst_order)
@@ -200,7 +200,7 @@ def _metrics_section(comparison: Comparison, pos: tuple[np.ndarray, np.ndarray],
     note = (f"Over {n} poses of this file (paper eqs. 39-43, w_pos = {W_POS:g}/m, w_rot = {W_ROT:g}). "
             f"The before is the raw measurement unless the {RULE}; here raw rmse_pos is "
             f"{_num(comparison.raw['rmse_pos'], 1e3)} mm against {_num(comparison.rigid['rmse_pos'], 1e3)} mm for "
-            f"the {comparison.rigid_name}. Unregistered frames differ by an unknown rigid motion that raw "
+            f"the {rigid_label(comparison.rigid_name)}. Unregistered frames differ by an unknown rigid motion that raw "
             "measures, so there the before is the best rigid fit's residual. "
             + ("Held-out: every pose predicted by a fit that never saw it, as `posecorr fit` scored it."
                if comparison.held_out else f"{comparison.scored[0].upper()}{comparison.scored[1:]}: {comparison.reason}."))
@@ -439,7 +439,7 @@ def _rigid_cell(baseline: Any) -> str:
     """The ledger line's best rigid fit: 'rmse_pos (variant)', '–' for a line without it."""
     if not isinstance(baseline, Mapping) or baseline.get("rmse_pos") is None:
         return "–"
-    return f"{_num(baseline.get('rmse_pos'), 1e3)} ({_e(str(baseline.get('model', '')).removeprefix('rigid-'))})"
+    return f"{_num(baseline.get('rmse_pos'), 1e3)} ({_e((block_name(baseline) or '').removeprefix('rigid-'))})"
 
 
 def _figure_sections(comparison: Comparison, feats: Mapping[str, np.ndarray], pos: tuple[np.ndarray, np.ndarray],

@@ -30,6 +30,7 @@ def run(args: argparse.Namespace) -> None:
                          **allow_arguments(args))
 
     def text() -> str:
+        from ..metrics import block_name
         from ..textui import METRIC_HEADERS, counted, metrics_rows, table as fmt_table
 
         refused = payload["refused"]
@@ -49,7 +50,7 @@ def run(args: argparse.Namespace) -> None:
         if held is not None:
             blocks[f"held out ({HELD_OUT_SOURCES[held['source']]})"] = held
             if held["rigid"] is not None:   # the floor the fit measured itself against
-                blocks[f"the best rigid fit ({held['rigid']['model']}), held out alike"] = held["rigid"]
+                blocks[f"the best rigid fit ({block_name(held['rigid'])}), held out alike"] = held["rigid"]
         fitted_words = {
             "training": "was fitted on these poses (its training_data_digest): corrected is in-sample",
             "table": ("was fitted on this table's training rows, its test split held out (its fitted_table_digest): "

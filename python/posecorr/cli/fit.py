@@ -159,9 +159,9 @@ def _payload(args: argparse.Namespace, report: Any, exported: dict, effects_json
                                "chosen": report.chosen, "representation": info.get("representation"),
                                "raw": report.raw, report.heldout_kind: report.heldout, "effects": effects_json,
                                "parity": exported.get("parity"), "nodes": exported.get("n_nodes")}
-    from ..metrics import frames_unregistered, improvement
+    from ..metrics import frames_unregistered, improvement, named_block
 
-    payload.update({"baseline": {"model": report.baseline_name, **report.baseline}, "n_heldout": report.n_heldout,
+    payload.update({"baseline": named_block(report.baseline_name, report.baseline), "n_heldout": report.n_heldout,
                     # raw measures the frames' offset where they are unregistered: the floor is the reference
                     "frames_unregistered": frames_unregistered(report.raw, report.baseline),
                     "vs_floor": improvement(report.baseline, report.heldout),

@@ -45,7 +45,7 @@ def summary(info: dict[str, Any]) -> list[str]:
     with, its size, its held-out figures, its parity, the poses it takes. Every metadata value
     may be missing or of another type (the author wrote it): what is not there is left out."""
     from ..controller.onnx_meta import stated_metrics, stated_rigid
-    from ..metrics import frames_unregistered
+    from ..metrics import block_name, frames_unregistered
 
     lines = [f"{Path(str(info.get('file'))).name}: {_describe(info)}"]
     # the graph's constants hold the fitted parameters and the encodings' own numbers
@@ -65,7 +65,7 @@ def summary(info: dict[str, Any]) -> list[str]:
         lines.append(f"  held out ({where}): {_errors(figures)}")
         rigid = stated_rigid(info)
         if rigid is not None:
-            lines.append(f"  the best rigid fit ({rigid.get('model', 'rigid')}), same poses: {_errors(rigid)}")
+            lines.append(f"  the best rigid fit ({block_name(rigid) or 'rigid'}), same poses: {_errors(rigid)}")
         if raw is not None:
             # raw measures the frames' offset where they are unregistered, not the tracker
             offset = (rigid is not None and isinstance(raw.get("rmse_pos"), (int, float))

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..data import (CHUNK_ROWS, MEAS_POS, MEAS_QUAT, REF_POS, REF_QUAT, PoseTable, TableError, TableReader,
                     protect_comment)
-from ..metrics import METRIC_KEYS, metric_block, pose_errors
+from ..metrics import METRIC_KEYS, block_name, metric_block, named_block, pose_errors
 from ..safeio import atomic_output, check_output
 from .checks import COLUMNS, QUATERNION, TIME_INPUT
 from .digest import FITTED_DIGESTS, fitted_on
@@ -214,7 +214,7 @@ class _FittedOn:
         kind, figures, _ = stated
         rigid = stated_rigid({"test_metrics": self.metrics})
         return {"source": kind, **{k: figures.get(k) for k in ("rmse_pos", "rmse_rot", "rmse_total")},
-                "rigid": None if rigid is None else {k: rigid.get(k) for k in ("model", *METRIC_KEYS)}}
+                "rigid": None if rigid is None else named_block(block_name(rigid), {k: rigid.get(k) for k in METRIC_KEYS})}
 
 
 def refuse_missing_time(corrector: Corrector, model: str | os.PathLike[str], path: Any, has_time: bool,

@@ -257,7 +257,8 @@ def stated_metrics(info: dict[str, Any]) -> tuple[str, dict[str, Any], dict[str,
 
 def stated_rigid(info: dict[str, Any]) -> dict[str, Any] | None:
     """The best rigid fit's figures on the same poses, scored as the model's held-out ones, as
-    `fit` states them (`test_metrics` "rigid": {"model": its variant, "rmse_pos", ...}); None
+    `fit` states them (`test_metrics` "rigid": {"name": its variant, "rmse_pos", ...}, "model" in
+    files written before); None
     where the model states none (a shipped model, an older file)."""
     stated = info.get("test_metrics")
     rigid = stated.get("rigid") if isinstance(stated, dict) else None

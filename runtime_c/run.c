@@ -4,6 +4,7 @@
  * before it is copied out. */
 #include "model.h"
 
+#include <float.h>
 #include <math.h>
 #include <string.h>
 
@@ -234,7 +235,7 @@ static pc_status pc_run_plan(pc_model *m, const pc_plan *plan, const float *in, 
 }
 
 /* v with `places` decimals (at most 6) for a message, from 1e9 on as a mantissa and a
- * power of ten (3.000e30): pc_format has no %f or %e. The rule is
+ * power of ten (3.000e30), inf and nan as such: pc_format has no %f or %e. The rule is
  * python/posecorr/controller/checks.py's decimal(), step for step in the same doubles, so
  * that both back ends write the same text. */
 PC_RARE static void pc_decimal(char *buf, size_t size, double v, int places)
@@ -244,6 +245,10 @@ PC_RARE static void pc_decimal(char *buf, size_t size, double v, int places)
     double a = fabs(v), decade = 1e9, scale = 1.0;
     long long units, f;
     int k, exponent = 9;
+    if (!(a <= DBL_MAX)) { /* a reach or distance may be infinite, or nan */
+        pc_format(buf, size, "%s", a != a ? "nan" : v < 0 ? "-inf" : "inf");
+        return;
+    }
     if (scientific) {
         while (a >= decade * 10.0) {
             decade *= 10.0;

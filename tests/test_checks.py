@@ -169,12 +169,13 @@ def test_range_messages_agree_on_many_values():
 
 
 @pytest.mark.parametrize("value, text", [(1e9, "1.000e9"), (-3e30, "-3.000e30"), (9.9996e12, "1.000e13"),
-                                         (9.9994e12, "9.999e12"), (999999999.0, "999999999.000")])
+                                         (9.9994e12, "9.999e12"), (999999999.0, "999999999.000"),
+                                         (np.inf, "inf"), (-np.inf, "-inf"), (np.nan, "nan")])
 def test_large_values_are_written_as_a_mantissa_and_a_power(value, text):
-    """A value of 1e9 or more reads as a number, and its text parses
-    back to the value within its rounding."""
+    """A value of 1e9 or more reads as a number, inf and nan (a reach or a distance) as such,
+    and the text parses back to the value within its rounding."""
     assert checks.decimal(value) == text
-    assert float(text) == pytest.approx(value, rel=5e-4)
+    assert float(text) == pytest.approx(value, rel=5e-4, nan_ok=True)
 
 
 def test_large_values_parse_back_within_their_rounding():

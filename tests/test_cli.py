@@ -314,6 +314,31 @@ def test_fit_prints_the_metrics_of_the_file_it_writes(tmp_path) -> None:
         assert printed[key] == pytest.approx(applied[key], rel=1e-12), key
 
 
+def test_fit_names_the_network_it_sized_to_the_table(tmp_path) -> None:
+    """`fit --method mlp` with no network named fits the session network on a session's
+    poses, says so first among its notes, and records that network in the ledger (a report
+    rebuilds the held-out poses with it); a network named is fitted as named, without the note."""
+    from posecorr.analysis.ledger import read_ledger
+    from posecorr.simulate import simulate_session
+    from posecorr.train.spec import SESSION_EPOCHS, SESSION_HIDDEN
+
+    data = tmp_path / "s.csv"
+    write_table(simulate_session(5, n=30).table, data)
+    run = posecorr("fit", str(data), "-o", str(tmp_path / "m.onnx"), "--effects", "station,mount", "--method", "mlp",
+                   "--cv", "3", "--json", cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    notes = json.loads(run.stdout)["notes"]
+    assert notes[0].startswith(f"network {'-'.join(map(str, SESSION_HIDDEN))} (hidden units), {SESSION_EPOCHS} epochs "
+                               "(the default for 30 poses"), notes
+    spec = read_ledger(data)[-1]["spec"]
+    assert tuple(spec["hidden"]) == SESSION_HIDDEN and spec["epochs"] == SESSION_EPOCHS
+    run = posecorr("fit", str(data), "-o", str(tmp_path / "n.onnx"), "--method", "mlp", "--hidden", "3",
+                   "--epochs", "3", "--cv", "3", "--json", cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    assert not any(note.startswith("network ") for note in json.loads(run.stdout)["notes"])
+    assert read_ledger(data)[-1]["spec"]["hidden"] == [3]
+
+
 def test_one_grammar_of_layer_sizes(tmp_path) -> None:
     """`fit --hidden 20-20`, `20x20` and `20,20` are one network: the same file, byte for
     byte after its time stamp; a size out of bounds is refused in one line by each verb."""
@@ -620,7 +645,11 @@ def test_every_argument_of_the_main_verbs_has_help_with_its_default() -> None:
         bare = [a.dest for a in verb_parsers[verb]._actions if not a.help]
         assert bare == [], (verb, bare)
     fit = {a.dest: a.help for a in verb_parsers["fit"]._actions}
-    assert fit["method"].endswith("(default: pmc)") and fit["epochs"].endswith("(default: 1000)")
+    assert fit["method"].endswith("(default: pmc)")
+    # a network nobody named is sized to the table: both defaults are said
+    assert fit["epochs"].endswith("(default: 1000; 200 for the network a smaller table gets, see --hidden)")
+    assert fit["hidden"].endswith("(default: 20-20-20-20 where the table holds 10 numbers for each of its weights, "
+                                  "else 5 trained 200 epochs)")
     # the effects a model fits: not the noise a simulation draws, which simulate's help names too
     assert f"known: {', '.join(name for name in EFFECTS if name != 'noise')} (" in fit["effects"]
     simulated = next(a for a in verb_parsers["simulate"]._actions if a.dest == "effects")

@@ -129,3 +129,24 @@ def test_one_plan_rule_for_small_tables():
     assert isinstance(plan_for(LOO_MAX_POSES), LeaveOneOut) and isinstance(plan_for(LOO_MAX_POSES + 1), KFold)
     assert isinstance(plan_for(NESTED_LOO_BELOW - 1, nested=True), LeaveOneOut)
     assert isinstance(plan_for(NESTED_LOO_BELOW, nested=True), KFold)
+
+
+def test_fit_sizes_its_default_network_to_the_table():
+    """The paper's 20-20-20-20 in zhou has (9+1)20 + 3(21)20 + 21(9) = 1,649 weights; with ten
+    numbers (9 a pose) for each it wants 1,833 poses: from there on it is the default, below
+    it the session network (5 units, 200 epochs), and the choice is said. A method that is not
+    a network is left alone."""
+    from posecorr.train.spec import (DEFAULT_HIDDEN, SESSION_EPOCHS, SESSION_HIDDEN, session_network)
+
+    spec = spec_from_options("mlp", "zhou")
+    assert spec.make().n_weights() == 10 * 20 + 3 * 21 * 20 + 21 * 9 == 1649
+    small, said = session_network(spec, 1832)
+    assert (small.hidden, small.epochs) == (SESSION_HIDDEN, SESSION_EPOCHS)
+    assert small.make().residual and "1,649 weights" in said and "1,833 poses" in said
+    paper, said = session_network(spec, 1833)
+    assert (paper.hidden, paper.epochs) == (DEFAULT_HIDDEN, None) and "16,497 numbers" in said
+    # position only: 3 numbers a pose, (3+1)20 + 3(21)20 + 21(3) = 1,403 weights
+    small, said = session_network(spec_from_options("mlp", "pos"), 4676)
+    assert small.hidden == SESSION_HIDDEN and "4,677 poses" in said
+    pmc = spec_from_options("pmc", "zhou")
+    assert session_network(pmc, 10) == (pmc, "")

@@ -29,7 +29,7 @@ from posecorr.textui import percent
 from .base import PoseRegressorMixin, Validation, as_validation, check_pair, check_poses, check_times, vector_size
 from .identify import describe_spread, rigid_variants
 from .physics import PhysicsModel, RigidModel
-from .spec import ModelSpec, spec_from_options
+from .spec import SESSION_EPOCHS, SESSION_HIDDEN, ModelSpec, spec_from_options
 from .splits import (MIN_TEST_SPLIT, CrossValidationPlan, FixedSplit, HeldOut, KFold, Plan, fewest_to_fit,
                      plan_for, require_enough_to_fit)
 
@@ -261,7 +261,7 @@ def auto_candidates(table: PoseTable, effects: Sequence[str], representation: st
     if table.n >= SMALL_TABLE:
         reps = orientations() if table.has_orientation else ()
         out += [Candidate(f"physics+pmc-{r}", physics, pmc(r)) for r in reps if r != rep]
-        small_network = spec_from_options("mlp", rep, hidden=(5,), epochs=200)
+        small_network = spec_from_options("mlp", rep, hidden=SESSION_HIDDEN, epochs=SESSION_EPOCHS)
         out.append(Candidate(f"physics+{small_network.stem}", physics, small_network))
     return out
 

@@ -249,3 +249,37 @@ def spec_from_options(method: str = "pmc", representation: str = DEFAULT_REPRESE
         hidden, trainer = parse_network(network)
     return ModelSpec(method, representation, hidden, activation, trainer, epochs,
                      {**get_method(method).fit_params, **options})
+
+
+# `fit`'s network where none is named. The paper's (DEFAULT_HIDDEN) was trained on data sets
+# of thousands of poses; a network generalises when it has about ten numbers to fit for each
+# weight (the rule of thumb from Baum and Haussler's bound, examples >= weights / error, at an
+# error of 0.1). A session with fewer gets the network `auto` tries: one layer of
+# SESSION_HIDDEN units for SESSION_EPOCHS epochs, which trains in seconds.
+SESSION_HIDDEN: tuple[int, ...] = (5,)
+SESSION_EPOCHS = 200
+NUMBERS_PER_WEIGHT = 10
+
+
+def session_network(spec: ModelSpec, poses: int) -> tuple[ModelSpec, str]:
+    """(`spec` with the network a table of `poses` poses bears, what was chosen and why) for a
+    network spec built without hidden layers, epochs or a network named: the paper's network
+    where the table holds NUMBERS_PER_WEIGHT numbers for each of its weights, else the
+    session network. ("" and `spec` unchanged for a method that is not a network.)"""
+    from dataclasses import replace
+
+    from .base import vector_size
+
+    if not spec.is_network:
+        return spec, ""
+    paper = replace(spec, hidden=DEFAULT_HIDDEN, epochs=None)
+    weights = paper.make().n_weights()
+    numbers = poses * vector_size(spec.representation)
+    label = "-".join(map(str, DEFAULT_HIDDEN))
+    if numbers >= NUMBERS_PER_WEIGHT * weights:
+        return paper, f"network {label} (the default for {poses} poses: {numbers:,} numbers for its {weights:,} weights)"
+    small = replace(spec, hidden=SESSION_HIDDEN, epochs=SESSION_EPOCHS)
+    needed = -(-NUMBERS_PER_WEIGHT * weights // vector_size(spec.representation))
+    return small, (f"network {'-'.join(map(str, SESSION_HIDDEN))} (hidden units), {SESSION_EPOCHS} epochs (the default for "
+                   f"{poses} poses: the paper's {label} has {weights:,} weights and wants {NUMBERS_PER_WEIGHT} numbers "
+                   f"for each, {needed:,} poses; --hidden or --network to choose)")

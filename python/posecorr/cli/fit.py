@@ -11,7 +11,8 @@ from .common import (Verb, CliError, emit, progress, apply_threads, load_effect_
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from ..train.spec import DEFAULT_ACTIVATION, DEFAULT_EPOCHS, DEFAULT_HIDDEN, DEFAULT_TRAINER
+    from ..train.spec import (DEFAULT_ACTIVATION, DEFAULT_EPOCHS, DEFAULT_HIDDEN, DEFAULT_TRAINER, NUMBERS_PER_WEIGHT,
+                              SESSION_EPOCHS, SESSION_HIDDEN)
 
     p.add_argument("data", type=Path, help="the paired-pose table (CSV) to fit")
     output_option(p, help="the ONNX model to write")
@@ -30,7 +31,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(default: zhou; --method auto also tries a PMC in every other one on tables of 200 poses "
                         "or more)")
     p.add_argument("--hidden", help="MLP hidden layer sizes: 20-20, 20x20 or 20,20; #N is table 1's N-th "
-                                    f"(default: {'-'.join(map(str, DEFAULT_HIDDEN))})")
+                                    f"(default: {'-'.join(map(str, DEFAULT_HIDDEN))} where the table holds "
+                                    f"{NUMBERS_PER_WEIGHT} numbers for each of its weights, else "
+                                    f"{'-'.join(map(str, SESSION_HIDDEN))} trained {SESSION_EPOCHS} epochs)")
     p.add_argument("--network", help="an MLP named as in the paper, ARCHITECTURE/ALGORITHM: 16/2 = table 1's "
                                      "architecture 16 trained by algorithm 2 (overrides --hidden and --trainer)")
     from ..train.activations import ACTIVATIONS
@@ -42,7 +45,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trainer", choices=tuple(TRAINERS),
                    help=f"the MLP's training algorithm (default: {DEFAULT_TRAINER})")
     p.add_argument("--epochs", type=options.integer(1, 1_000_000), metavar="N",
-                   help=f"the MLP's most training epochs (default: {DEFAULT_EPOCHS})")
+                   help=f"the MLP's most training epochs (default: {DEFAULT_EPOCHS}; {SESSION_EPOCHS} for the "
+                        "network a smaller table gets, see --hidden)")
     p.add_argument("--cv", default="none", help="held-out test: none (fixed 15%% test split), loo, or a number of "
                                                 "folds (default: none)")
     seed_option(p)
@@ -105,7 +109,10 @@ def run(args: argparse.Namespace) -> None:
     # The options are checked before the table is read: their faults are theirs, and found at once.
     effects, plan, spec = effect_names(args.effects), _parse_cv(args.cv), _spec(args)
     table = _read(args)
+    spec, chosen_network = _sized_network(args, spec, table.n)
     report = fit_table(table, effects, spec, plan, args.seed, progress=progress(args))
+    if chosen_network:
+        report.notes.insert(0, chosen_network)
     exported = _export(args, report, table, effects, spec)
     effects_json = report.model.physics_.describe() if report.model.physics_ is not None else {}
     emit(args, _payload(args, report, exported, effects_json),
@@ -138,6 +145,16 @@ def _spec(args: argparse.Namespace) -> Any:
 
         options.check_network_size(tuple(spec.hidden), spec.trainer or DEFAULT_TRAINER, "--hidden")
     return spec
+
+
+def _sized_network(args: argparse.Namespace, spec: Any, poses: int) -> tuple[Any, str]:
+    """A network named by none of --hidden, --network, --epochs is sized to the table
+    (`spec.session_network`); (spec, what was chosen) or (spec, "") where the user chose."""
+    from ..train.spec import session_network
+
+    if any(getattr(args, name) is not None for name in ("hidden", "network", "epochs")):
+        return spec, ""
+    return session_network(spec, poses)
 
 
 def _export(args: argparse.Namespace, report: Any, table: Any, effects: list, spec: Any) -> dict:

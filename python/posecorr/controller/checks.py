@@ -107,6 +107,7 @@ OPSETS = (13, 28)
 OUTPUT_UNIT_TOLERANCE = np.float32(2.002e-3)
 INPUT_NORM2_RANGE = (0.998001, 1.002001)
 FLOAT32_MAX = float(np.finfo(np.float32).max)
+FLOAT64_MAX = float(np.finfo(np.float64).max)
 # What a time model without time_bounds takes of a caller's wider t (check_wide_input).
 _FLOAT32_SPAN = (np.float32(-FLOAT32_MAX), np.float32(FLOAT32_MAX))
 BOX_EXPECTED = "[[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]] in metres"
@@ -129,9 +130,11 @@ def failure(status: Status, message: str) -> PoseCorrError:
 
 def decimal(value: float, places: int = 3) -> str:
     """`value` with `places` decimals (mm, ms), from 1e9 on as a mantissa and a power of ten
-    (3.000e30), as run.c's pc_decimal writes it: the same steps in the same doubles."""
+    (3.000e30), inf and nan as such, as run.c's pc_decimal writes it: the same steps in the same doubles."""
     a = abs(float(value))
     power = ""
+    if not a <= FLOAT64_MAX:   # a reach or distance may be infinite, or nan
+        return "nan" if a != a else "-inf" if value < 0 else "inf"
     if a >= 1e9:
         decade, exponent = 1e9, 9
         while a >= decade * 10.0:

@@ -177,8 +177,9 @@ def lm_epoch_benchmark(epochs: int = 10, threads: int | None = None) -> dict[str
 
 def small_session_benchmark(poses: tuple[int, ...] = (12, 50), threads: int = 1) -> dict[str, Any]:
     """A small session's fit (``python -m bench --only train_small``): what `posecorr fit
-    --method mlp --effects station,mount` fits, the default network (zhou 20-20-20-20, trainbr,
-    residual) after the physics stage, on 12 and 50 poses of a simulated robot session; the network's
+    --method mlp --hidden 20-20-20-20 --effects station,mount` fits, the paper's network (zhou
+    20-20-20-20, trainbr, residual) after the physics stage, on 12 and 50 poses of a simulated
+    robot session (a network nobody named is smaller there, `spec.session_network`); the network's
     damped system solved in error space (J J', the trainers' choice where the error terms are
     fewer than the weights) and forced into weight space (J'J, P x P) in the same run: wall
     time, epochs, stop reason and training error of each."""

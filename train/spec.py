@@ -277,9 +277,10 @@ def session_network(spec: ModelSpec, poses: int) -> tuple[ModelSpec, str]:
     numbers = poses * vector_size(spec.representation)
     label = "-".join(map(str, DEFAULT_HIDDEN))
     if numbers >= NUMBERS_PER_WEIGHT * weights:
-        return paper, f"network {label} (the default for {poses} poses: {numbers:,} numbers for its {weights:,} weights)"
+        return paper, (f"network {label} (the default for {poses} poses: {numbers:,} numbers for its "
+                       f"{weights:,} weights)")
     small = replace(spec, hidden=SESSION_HIDDEN, epochs=SESSION_EPOCHS)
     needed = -(-NUMBERS_PER_WEIGHT * weights // vector_size(spec.representation))
-    return small, (f"network {'-'.join(map(str, SESSION_HIDDEN))} (hidden units), {SESSION_EPOCHS} epochs (the default for "
-                   f"{poses} poses: the paper's {label} has {weights:,} weights and wants {NUMBERS_PER_WEIGHT} numbers "
-                   f"for each, {needed:,} poses; --hidden or --network to choose)")
+    return small, (f"network {'-'.join(map(str, SESSION_HIDDEN))} (hidden units), {SESSION_EPOCHS} epochs "
+                   f"(the default for {poses} poses: the paper's {label} has {weights:,} weights and wants "
+                   f"{NUMBERS_PER_WEIGHT} numbers for each, {needed:,} poses; --hidden or --network to choose)")

@@ -130,7 +130,8 @@ def failure(status: Status, message: str) -> PoseCorrError:
 
 def decimal(value: float, places: int = 3) -> str:
     """`value` with `places` decimals (mm, ms), from 1e9 on as a mantissa and a power of ten
-    (3.000e30), inf and nan as such, as run.c's pc_decimal writes it: the same steps in the same doubles."""
+    (3.000e30), inf and nan as such, as run.c's pc_decimal writes it: the same steps in the
+    same doubles."""
     a = abs(float(value))
     power = ""
     if not a <= FLOAT64_MAX:   # a reach or distance may be infinite, or nan

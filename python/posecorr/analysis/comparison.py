@@ -33,17 +33,17 @@ from ..metrics import RULE, block_name, frames_unregistered, metric_block, pose_
 class Comparison:
     """The poses the page shows (`rows` of the table) before and after, and on what they rest.
 
-    reference, before, after: (len(rows), 7) poses; baseline: "raw" or "rigid fit (VARIANT)"; scored:
-    "held-out (...)" or "in-sample"; raw, rigid: metrics of the measurements and of the best
-    rigid fit on `rows`; rigid_name: its candidate name (rigid-joint); reason: why the after is in-sample (empty when held-out); ledger:
-    the held-out block the ledger recorded for the model (for comparison with `after`).
+    reference, before, after: (len(rows), 7) poses; scored: "held-out (...)" or "in-sample";
+    raw, rigid: metrics of the measurements and of the best rigid fit on `rows`; rigid_name:
+    its candidate name (rigid-joint); reason: why the after is in-sample (empty when
+    held-out); ledger: the held-out block the ledger recorded for the model (for comparison
+    with `after`).
     """
 
     rows: np.ndarray
     reference: np.ndarray
     before: np.ndarray
     after: np.ndarray
-    baseline: str
     scored: str
     held_out: bool
     unregistered: bool
@@ -53,6 +53,11 @@ class Comparison:
     after_metrics: dict[str, Any]
     reason: str = ""
     ledger: Mapping[str, Any] | None = None
+
+    @property
+    def baseline(self) -> str:
+        """The before in the page's words: "raw" or "rigid fit (VARIANT)"."""
+        return rigid_label(self.rigid_name) if self.unregistered else "raw"
 
     @property
     def before_metrics(self) -> dict[str, Any]:
@@ -71,7 +76,8 @@ class Comparison:
 
         block = self.block
         # names as fit's JSON and the ledger write them (rigid-joint), the page's words apart
-        return {"baseline": {"name": self.rigid_name if self.unregistered else "raw", "rmse_pos": self.before_metrics.get("rmse_pos"),
+        return {"baseline": {"name": self.rigid_name if self.unregistered else "raw",
+                             "rmse_pos": self.before_metrics.get("rmse_pos"),
                              "rmse_rot": self.before_metrics.get("rmse_rot")},
                 "after": {"scored": self.scored, "held_out": self.held_out, "n": int(len(self.rows)),
                           **figures_of(self.after_metrics), "reason": self.reason or None,
@@ -126,8 +132,7 @@ def compare(table: PoseTable, corrected: np.ndarray, entry: Mapping[str, Any] | 
     unregistered = frames_unregistered(raw, rigid)
     from .ledger import held_out as ledger_block
 
-    return Comparison(rows, reference, rigid_pred if unregistered else measured, after,
-                      rigid_label(rigid_name) if unregistered else "raw", scored, held is not None,
+    return Comparison(rows, reference, rigid_pred if unregistered else measured, after, scored, held is not None,
                       unregistered, raw, rigid, rigid_name, pose_metrics(reference, after, with_rot),
                       reason, ledger_block(entry)[1] if entry else None)
 

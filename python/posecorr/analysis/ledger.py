@@ -4,10 +4,11 @@ One JSON object per line, appended by `posecorr fit`, read by `posecorr report`,
 sees the error fall step by step as effects are added. Keys: time (UTC ISO 8601), model,
 effects (list), method, representation, raw, the held-out block ("cv" or "test") with
 rmse_pos, rmse_rot, rmse_total and improvements, and `baseline`: the best rigid fit on the
-same poses ({"name": its candidate name, the same figures}; "model" in ledgers written before). What lets a report rebuild the
-held-out predictions (`fitting.ledger_fit_entry`): model_sha256 (the model file's), n (the
-table's poses), plan ("none", "loo" or a number of folds), seed, spec (the requested
-`ModelSpec`'s fields), chosen (the candidate returned), fell_back, rigid (its variant, or null).
+same poses ({"name": its candidate name, the same figures}; "model" in ledgers written
+before). What lets a report rebuild the held-out predictions (`fitting.ledger_fit_entry`):
+model_sha256 (the model file's), n (the table's poses), plan ("none", "loo" or a number of
+folds), seed, spec (the requested `ModelSpec`'s fields), chosen (the candidate returned),
+fell_back, rigid (its variant, or null).
 
 Appends are whole lines (`safeio.append_line`): a line torn by an interrupted append is
 moved to DATA.csv.ledger.jsonl.corrupt at the next append; reading skips (and names) any

@@ -391,7 +391,7 @@ def _set_metadata(model: Any, info: dict[str, Any], measured: Any, reference: An
     from posecorr import __version__
 
     if measured is not None and "training_data_digest" not in info:
-        info["training_data_digest"] = data_digest(measured, reference)
+        info["training_data_digest"] = data_digest(measured, reference, t if time_input else None)
     _bounds_metadata(info, measured, t, time_input)
     _reach_metadata(info, model, measured, t, time_input)
     info.setdefault("posecorr_version", __version__)

@@ -92,45 +92,99 @@ PC_NOINLINE static pc_status pc_check_rows(pc_model *m, pc_error *err)
     return PC_OK;
 }
 
-/* Numbers of a JSON array such as [[-1, -0.5, 0], [1, 0.5, 1.2]] in the bytes [s, end),
- * read where they lie (a value of any length; a NUL byte is no part of a number), without
- * strtod (which may allocate on small C libraries). Returns the count, or -1 on anything
- * else. */
+/* Where a metadata value's bytes [s, end) are read: a NUL byte past the end. */
 #define PC_AT (s < end ? *s : '\0')
+#define PC_JSON_DEPTH 32
+static int pc_json_space(char c)
+{
+    return c == ' ' || c == '\t' || c == '\n' || c == '\r';
+}
+
+/* A JSON number at s, into *x: the first byte after it, or NULL where none starts at s. */
+static const char *pc_json_number(const char *s, const char *end, double *x)
+{
+    double v = 0.0, scale = 1.0;
+    int negative = 0, e = 0, esign = 1;
+    if (PC_AT == '-') {
+        negative = 1;
+        s++;
+    }
+    if (PC_AT == '0')
+        s++;
+    else if (PC_AT >= '1' && PC_AT <= '9')
+        for (; PC_AT >= '0' && PC_AT <= '9'; s++)
+            v = 10.0 * v + (PC_AT - '0');
+    else
+        return NULL;
+    if (PC_AT == '.') {
+        s++;
+        if (PC_AT < '0' || PC_AT > '9')
+            return NULL;
+        for (; PC_AT >= '0' && PC_AT <= '9'; s++)
+            v += (PC_AT - '0') * (scale *= 0.1);
+    }
+    if (PC_AT == 'e' || PC_AT == 'E') {
+        s++;
+        if (PC_AT == '-' || PC_AT == '+')
+            esign = *s++ == '-' ? -1 : 1;
+        if (PC_AT < '0' || PC_AT > '9')
+            return NULL;
+        for (; PC_AT >= '0' && PC_AT <= '9'; s++)
+            e = e < 400 ? 10 * e + (PC_AT - '0') : e; /* beyond: inf or 0 alike */
+    }
+    for (; e > 0; e--)
+        v = esign > 0 ? v * 10.0 : v / 10.0;
+    *x = negative ? -v : v;
+    return s;
+}
+
+/* Numbers of a JSON array such as [[-1, -0.5, 0], [1, 0.5, 1.2]] in the bytes [s, end),
+ * read where they lie (a value of any length; a NUL byte is no part of it), without strtod
+ * (which may allocate on small C libraries). JSON's grammar, as Python's json.loads reads
+ * it (checks.py reads the same values so): arrays nested at most PC_JSON_DEPTH deep, JSON
+ * numbers (no '+', no '.5', no leading zero), JSON's four white-space bytes between
+ * tokens. Returns the count, or -1 on anything else. */
 static int pc_parse_numbers(const char *s, const char *end, double *v, int cap)
 {
-    int n = 0;
-    while (s < end) {
-        double x = 0.0, scale = 1.0;
-        int sign = 1, e = 0, esign = 1, digits = 0;
-        if (PC_AT == '[' || PC_AT == ']' || PC_AT == ',' || PC_AT == ' ') {
+    int n = 0, depth = 0;
+    for (;;) {
+        /* a value: an array opening, or a number */
+        while (pc_json_space(PC_AT))
             s++;
-            continue;
-        }
-        if (PC_AT == '-' || PC_AT == '+')
-            sign = *s++ == '-' ? -1 : 1;
-        for (; PC_AT >= '0' && PC_AT <= '9'; s++, digits++)
-            x = 10.0 * x + (PC_AT - '0');
-        if (PC_AT == '.')
-            for (s++; PC_AT >= '0' && PC_AT <= '9'; s++, digits++)
-                x += (PC_AT - '0') * (scale *= 0.1);
-        if (!digits || n == cap)
-            return -1;
-        if (PC_AT == 'e' || PC_AT == 'E') {
-            s++;
-            if (PC_AT == '-' || PC_AT == '+')
-                esign = *s++ == '-' ? -1 : 1;
-            if (PC_AT < '0' || PC_AT > '9')
+        if (PC_AT == '[') {
+            if (++depth > PC_JSON_DEPTH)
                 return -1;
-            for (; PC_AT >= '0' && PC_AT <= '9' && e < 400; s++)
-                e = 10 * e + (PC_AT - '0');
+            s++;
+            while (pc_json_space(PC_AT))
+                s++;
+            if (PC_AT != ']')
+                continue;
+            s++;
+            depth--;
+        } else {
+            double x;
+            if (!(s = pc_json_number(s, end, &x)) || n == cap)
+                return -1;
+            v[n++] = x;
         }
-        for (; e > 0; e--)
-            x = esign > 0 ? x * 10.0 : x / 10.0;
-        v[n++] = sign * x;
+        /* after a value: the end of the text, a comma, or the closing of arrays */
+        for (;;) {
+            while (pc_json_space(PC_AT))
+                s++;
+            if (depth == 0)
+                return s == end ? n : -1;
+            if (PC_AT == ',') {
+                s++;
+                break;
+            }
+            if (PC_AT != ']')
+                return -1;
+            s++;
+            depth--;
+        }
     }
-    return n;
 }
+#undef PC_JSON_DEPTH
 #undef PC_AT
 
 /* A metadata value of bounds: `count` lower then `count` upper numbers, each a finite

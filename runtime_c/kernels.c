@@ -223,8 +223,8 @@ pc_status k_concat(const pc_step *s)
     const size_t n_in = q->n_in, outer = q->outer;
     uint8_t *O = (uint8_t *)s->io[n_in];
     size_t o, k;
-    if (q->esize == 4 && q->total == n_in) {
-        /* Columns into rows ([outer,1] x n_in -> [outer,n_in]): one strided pass each. */
+    if (q->columns) {
+        /* Columns into rows: one strided pass each. */
         for (k = 0; k < n_in; k++) {
             const float *restrict A = (const float *)s->io[k];
             float *restrict F = (float *)O + k;

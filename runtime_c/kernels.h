@@ -99,6 +99,7 @@ typedef struct pc_strided {
 
 typedef struct pc_concat {
     size_t outer, n_in, total, esize;
+    int columns; /* 4-byte elements, every inner 1: [outer,1] x n_in -> [outer,n_in] */
     size_t inner[1]; /* n_in entries; allocated longer */
 } pc_concat;
 

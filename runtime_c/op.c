@@ -139,11 +139,18 @@ pc_status pc_set_out(pc_prep *p, size_t k, int dtype, int rank, const int64_t *d
         return PC_OK;
     if (rank < 0 || rank > PC_MAX_RANK)
         return pc_prep_fail(p, PC_ERR_UNSUPPORTED, "output rank %d exceeds %d", rank, PC_MAX_RANK);
-    for (i = 0; i < rank; i++) {
-        if (!pc_mul_count(&count, dims[i], (size_t)1 << 24) || dims[i] > (1 << 24))
+    for (i = 0; i < rank; i++)
+        if (dims[i] < 0 || dims[i] > (1 << 24))
             return pc_prep_fail(p, PC_ERR_SHAPE, "output dimension %d is invalid (%lld)", i,
                                 (long long)dims[i]);
-    }
+    for (i = 0; i < rank; i++)
+        if (!pc_mul_count(&count, dims[i], (size_t)1 << 24))
+            /* The batch is the first dimension of a value that holds poses: a smaller
+             * max_batch may bring it within the limit, which the caller cannot tell alone. */
+            return pc_prep_fail(p, PC_ERR_SHAPE, "output holds more than 2^24 elements "
+                                "(dimension %d is %lld, the first %lld: the batch, where the "
+                                "value holds poses; a smaller max_batch may load it)", i,
+                                (long long)dims[i], (long long)dims[0]);
     v->dtype = dtype;
     v->rank = rank;
     for (i = 0; i < rank; i++)

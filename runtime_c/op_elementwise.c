@@ -28,7 +28,7 @@ static void pc_elementwise(pc_prep *p, int sop)
     p->emap = sop ? PC_EMAP_SOP : PC_EMAP_NONE;
 }
 
-#define PC_BMAX 8 /* operands of one broadcast kernel (Max/Min may take more: chained) */
+#define PC_BMAX 8 /* operands of one broadcast kernel: a Max or Min of more is refused */
 
 typedef struct pc_bcast_n {
     size_t n_in;

@@ -457,8 +457,12 @@ pc_status pc_op_Concat(pc_prep *p)
         q->outer *= (size_t)a->dims[j];
     q->n_in = p->n_in;
     q->esize = pc_dtype_size(a->dtype);
-    for (k = 0; k < p->n_in; k++)
+    q->columns = q->esize == 4;
+    for (k = 0; k < p->n_in; k++) {
         q->inner[k] = (size_t)p->in[k]->dims[axis] * after;
+        /* Inner sizes {2, 1, 0} sum to n_in as well: only all ones are columns. */
+        q->columns = q->columns && q->inner[k] == 1;
+    }
     q->total = (size_t)dims[axis] * after;
     p->fn = k_concat;
     if (a->dtype == PC_F32) {

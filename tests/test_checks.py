@@ -369,6 +369,60 @@ def test_edited_input_bounds_are_refused_at_load(bounds, fragment):
     _same(_load_errors(blob), S.MALFORMED, fragment)
 
 
+def _json_numbers(text: str) -> list[float] | None:
+    """The numbers of a JSON array of numbers, by Python's own parser (the truth both back
+    ends must agree with), None where it is no such array."""
+    def flat(value):
+        if isinstance(value, list):
+            return [x for v in value for x in flat(v)]
+        return [value] if isinstance(value, (int, float)) and not isinstance(value, bool) else [None]
+    try:
+        got = flat(json.loads(text, parse_constant=lambda name: None))
+    except ValueError:
+        return None
+    return None if None in got else [float(x) for x in got]
+
+
+# Bounds metadata as JSON writes it and as hands edit it: pretty-printed, tabs, and what is no
+# JSON (a number with two points, numbers without commas, closings left over, '+1', '.5', '01').
+BOUNDS_TEXTS = ["[[-1, -1, -1], [1, 1, 1]]", "[\n [\n  -1,\n  -1,\n  -1\n ],\n [1, 1, 1]\n]",
+                "[[-1,\t-1,\t-1],\r\n[1,1,1]]", " [[-1, -1, -1], [1, 1, 1]] ", "[[-1, -1, -1], [[1], [1, [1]]]]",
+                "[[-1.2.3, -1, -1], [1, 1, 1]]", "[[-1 -1 -1], [1 1 1]]", "[[-1, -1, -1], [1, 1, 1]]]]",
+                "[[-1, -1, -1], [+1, 1, 1]]", "[[-1, -1, -1], [.5, 1, 1]]", "[[-1, -1, -1], [01, 1, 1]]",
+                "[[-1, -1, -1], [1., 1, 1]]", "[[-1, -1, -1,], [1, 1, 1]]", "[[-1, -1, -1] [1, 1, 1]]",
+                "[[-1, -1, -1], [1, 1, 1e]]", "[[-1, -1, -1], [1, 1, 1E+0]]", "[[-1, -1, -1], [1, 1, -0]]",
+                "[[-1, -1, -1], [1, 1, 1]] x", "[[-1, -1, -1], [], [1, 1, 1]]", "[[-1, -1, -1], [1, 1, 1]\u000b]",
+                "[" * 40 + "-1, -1, -1, 1, 1, 1" + "]" * 40]
+
+
+@pytest.mark.parametrize("text", BOUNDS_TEXTS)
+def test_bounds_are_read_as_json_reads_them(text):
+    """The C parser of input_bounds read '-1.2.3' as two numbers and '1 1 1' without commas,
+    and refused pretty-printed JSON (a line break between numbers), where the other back end
+    (json.loads) decided the opposite: both now load exactly what JSON's grammar holds."""
+    numbers = _json_numbers(text)
+    blob = graphs.signed(_edited(PMC_ZHOU, input_bounds=text))
+    if numbers is not None and len(numbers) == 6 and text.count("[") <= checks.JSON_DEPTH:
+        # Loaded alike, the box read alike: a pose above its top is refused with its figure.
+        above = np.array([0.0, 0.0, numbers[5] + 0.5, 1.0, 0.0, 0.0, 0.0])
+        errors = []
+        for backend in BACKENDS:
+            with pytest.raises(PoseCorrError) as info:
+                Corrector(blob, backend=backend).correct(above)
+            errors.append(info.value)
+        _same(errors, S.RANGE, f"{checks.decimal(numbers[2])} to {checks.decimal(numbers[5])} m (metadata input_bounds)")
+    else:
+        _same(_load_errors(blob), S.MALFORMED, "metadata input_bounds is")
+
+
+@pytest.mark.parametrize("text", ["[" + " " * 300 + "0.5, 1.0]", "[0.5" + "0" * 300 + ", 1.0]", "[\n 0.5,\n 1.0\n]"])
+def test_a_long_or_pretty_reach_loads_alike(text):
+    """The onnxruntime back end cut correction_reach at 255 bytes, which C reads whole."""
+    blob = graphs.signed(_edited(PMC_ZHOU, correction_reach=text))
+    for backend in BACKENDS:
+        Corrector(blob, backend=backend)
+
+
 @pytest.mark.parametrize("key", ["input_bounds", "time_bounds", "correction_reach"])
 def test_a_bound_given_twice_is_refused_at_load(key):
     """onnx.checker refuses a key given twice; libposecorr's checks took the last value and

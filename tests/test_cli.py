@@ -761,24 +761,51 @@ def test_a_model_and_a_table_given_in_each_others_place_are_named_with_the_order
     assert main(["apply", str(model_bin), str(table_dat), "-o", str(out)]) == 0   # in their places: no refusal
 
 
+def test_simulate_says_when_an_effect_value_is_beyond_any_tracker(tmp_path) -> None:
+    """`--effects sweep=5,5,0,0` (degrees typed for radians) was simulated without a word; the
+    values outside the catalogue's plausible range are named, the table written as asked."""
+    out = posecorr("simulate", "--session", "--poses", "8", "--effects", "sweep=5,0.002,0,0", "-o",
+                   str(tmp_path / "s.csv"))
+    assert out.returncode == 0 and (tmp_path / "s.csv").exists()
+    assert out.stderr.strip().splitlines() == [
+        "posecorr: warning: --effects: sweep.phase_x = 5 rad lies outside the plausible -0.01 to 0.01 rad; "
+        "simulated as given"]
+    quiet = posecorr("simulate", "--session", "--poses", "8", "--effects", "sweep=0.005,0.002,0,0", "-o",
+                     str(tmp_path / "q.csv"))
+    assert quiet.returncode == 0 and quiet.stderr == ""
+
+
 def test_an_output_over_a_file_of_the_other_kind_is_refused(tmp_path) -> None:
-    """fit's model written over a pose table, simulate's and apply's table over a model, or
-    compile's C over either, is refused before any work (they replaced the file without a
-    word); the files are intact."""
+    """fit's model written over a pose table, simulate's and apply's table over a model, an
+    effect file or a page, compile's C over either, report's page, diagnose's proposal or
+    fit's saved estimator over a table or a model, is refused before any work (they replaced
+    the file without a word); the files are intact."""
     table, model = tmp_path / "session.csv", tmp_path / "model.onnx"
     assert posecorr("simulate", "--session", "--poses", "12", "--seed", "1", "-o", str(table)).returncode == 0
     assert posecorr("fit", str(table), "--effects", "station,mount", "--method", "none", "-o",
                     str(model)).returncode == 0
-    other = tmp_path / "other.csv"
+    other, effect_file, page = tmp_path / "other.csv", tmp_path / "mine.py", tmp_path / "page.html"
     other.write_bytes(table.read_bytes())
-    kept = {path: path.read_bytes() for path in (table, model, other)}
+    effect_file.write_text("from posecorr.effects import Effect\n")
+    page.write_text("<!DOCTYPE html>\n<html><body>a report</body></html>\n")
+    kept = {path: path.read_bytes() for path in (table, model, other, effect_file, page)}
     for argv, said in [
         (("fit", str(table), "--effects", "station,mount", "--method", "none", "-o", str(other)),
          f"{other} is a pose table, and posecorr fit writes a model there"),
         (("simulate", "--session", "--poses", "12", "-o", str(model)),
          f"{model} is a model, and posecorr simulate writes a pose table there"),
         (("apply", str(model), str(table), "-o", str(model)), str(model)),
-        (("compile", str(model), "-o", str(other)), f"{other} is a pose table, and posecorr compile writes a C source")]:
+        (("compile", str(model), "-o", str(other)), f"{other} is a pose table, and posecorr compile writes a C source"),
+        (("report", str(table), "--model", str(model), "-o", str(other)),
+         f"{other} is a pose table, and posecorr report writes a report page there"),
+        (("diagnose", str(table), "--effects", "station,mount", "--propose", str(model)),
+         f"{model} is a model, and posecorr diagnose writes an effect file there"),
+        (("fit", str(table), "--method", "none", "--save", str(model), "-o", str(tmp_path / "new.onnx")),
+         f"{model} is a model, and posecorr fit writes a saved estimator there"),
+        (("apply", str(model), str(table), "-o", str(effect_file)),
+         f"{effect_file} is an effect file, and posecorr apply writes a pose table there"),
+        (("apply", str(model), str(table), "-o", str(page)),
+         f"{page} is a report page, and posecorr apply writes a pose table there")]:
         out = posecorr(*argv)
         assert out.returncode == 2 and said in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
     assert {path: path.read_bytes() for path in kept} == kept

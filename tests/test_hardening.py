@@ -14,6 +14,7 @@ import pickle
 import shlex
 import stat
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -72,6 +73,10 @@ def _bad_tables(folder: Path) -> list[tuple[str, Path, list[str], bool]]:
          ["row 3", "column meas_y", "expected a number"], False),
         ("underscore", f"{HEADER_Q}\n{good[0]}\n1_0" + good[1][good[1].index(","):],
          ["row 3", "column meas_x", "plain decimal"], False),
+        # `sed 's/$/,x/'` on a file with Windows line endings: the csv module's own words
+        # ("do you need to open the file in universal-newline mode?") left the user nowhere
+        ("mixed line endings", f"{HEADER_Q}\r\n{good[0]}\r,x\n{good[1]}\r\n",
+         ["row 2", "carriage return", "line endings are mixed"], False),
         ("infinity", f"{HEADER_Q}\ninfinity" + good[0][good[0].index(","):], ["row 2", "column meas_x", "finite"],
          False),
         ("hex", f"{HEADER_Q}\n0x1p3" + good[0][good[0].index(","):], ["row 2", "column meas_x", "number"], False),
@@ -567,6 +572,32 @@ def test_apply_marks_the_poses_a_model_was_fitted_on_as_in_sample(tmp_path, caps
     assert "in-sample" not in capsys.readouterr().out
 
 
+def test_a_time_model_on_its_poses_at_other_times_is_not_in_sample(tmp_path, capsys) -> None:
+    """A model with drift takes the times: its poses with t in minutes, not seconds, are other
+    data to it. The digest left t out, so apply and report called them the fit's own and its
+    corrections in-sample; a model without time still matches whatever the t column holds."""
+    from posecorr import Corrector
+    from posecorr.controller.apply import apply_file
+    from posecorr.data import read_table
+    from posecorr.simulate import simulate_session
+
+    session, minutes = tmp_path / "session.csv", tmp_path / "minutes.csv"
+    table = simulate_session(3, robot="ur5e", n=50, duration=2000.0,
+                             extra={"drift": np.array([0.004, -0.002, 0.003, 1800.0])}).table
+    write_table(table, session)
+    write_table(replace(table, extras={**table.extras, "t": table.extras["t"] / 60.0}), minutes)
+    assert read_table(minutes).time() is not None
+    for effects, takes_time in (("station,mount,drift", True), ("station,mount", False)):
+        model = tmp_path / f"{takes_time}.onnx"
+        assert main(["fit", str(session), "--effects", effects, "--method", "none", "--cv", "loo", "-o",
+                     str(model)]) == 0
+        assert Corrector(model).takes_time is takes_time
+        assert apply_file(model, session, tmp_path / "s.csv")["in_sample"] is True
+        got = apply_file(model, minutes, tmp_path / "m.csv", keep_going=True)
+        assert got["in_sample"] is (not takes_time), effects
+    capsys.readouterr()
+
+
 def test_apply_names_the_table_a_fit_with_a_test_split_read(tmp_path, capsys) -> None:
     """A fit with the fixed test split trains on 85 % of its table: apply on that table was
     shown as plain "corrected" (better than the test split's figure, unmarked). It is now "the
@@ -796,6 +827,32 @@ def test_the_c_loader_refuses_a_fifo_at_once(tmp_path) -> None:
     assert run.returncode == 1 and run.stdout == "", run
     # the shim's line (test_the_shim_refuses_a_fifo_and_a_folder_as_the_model), after the tool's name
     assert run.stderr.splitlines() == [f"posecorr-run: {fifo}: is a FIFO, expected a file"], run
+
+
+def test_a_row_of_empty_cells_is_named_and_kept_in_place(tmp_path, capsys) -> None:
+    """A spreadsheet exports a deleted row as a line of commas: it was skipped without a word,
+    and apply's output lost the line, so matching its lines to the input's was off by one
+    from there. It is named now (one warning) and written back where it stood, as a blank
+    line is."""
+    from posecorr.controller.apply import apply_file
+    from posecorr.data import read_table
+
+    t = _table(9, seed=5)
+    plain = tmp_path / "plain.csv"
+    write_table(t, plain)
+    lines = plain.read_text().splitlines()
+    empty = "," * (lines[0].count(","))
+    path = tmp_path / "gaps.csv"
+    path.write_text("\n".join(lines[:3] + [empty] + lines[3:6] + [""] + lines[6:]) + "\n")
+    capsys.readouterr()
+    assert read_table(path).n == t.n
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"posecorr: warning: {path}: row 4 has every cell empty: no pose read there"]
+    apply_file(MODEL, plain, tmp_path / "plain_out.csv")
+    for chunk_rows in (2, 1000):
+        apply_file(MODEL, path, tmp_path / "out.csv", chunk_rows=chunk_rows)
+        want = (tmp_path / "plain_out.csv").read_text().splitlines()
+        assert (tmp_path / "out.csv").read_text().splitlines() == want[:3] + [empty] + want[3:6] + [""] + want[6:]
 
 
 def test_apply_copies_comment_lines_where_they_stood(tmp_path, capsys) -> None:

@@ -97,7 +97,7 @@ def _cases(f: Path) -> list[tuple[str, str, list[str], list[str]]]:
         ("output", "apply -o a FIFO", ["apply", m, d, "-o", str(f / "fifo")], ["fifo", "FIFO"]),
         ("output", "apply -o a symbolic link", ["apply", m, d, "-o", str(f / "link.csv")], ["link.csv", "symbolic"]),
         ("output", "sweep --store a model", ["sweep", d, "--repeats", "1", "--no-mlp", "--store", m],
-         ["m.onnx", "not a sweep store"]),
+         ["m.onnx is a model", "refusing to replace it"]),
         ("output", "simulate --recording a folder that is not a bag",
          ["simulate", "--experiment", "1", "-o", str(f / "s.csv"), "--recording", str(f / "not-a-bag")],
          ["not-a-bag", "ROS 2 bag"]),

@@ -644,6 +644,20 @@ def test_wide_sigmoid_layers_one_pose_match_onnxruntime(lib, tmp_path):
         np.testing.assert_array_equal(one, Corrector(path, library=lib).correct(x).astype(np.float32))
 
 
+def test_a_value_beyond_the_element_limit_names_the_batch(lib):
+    """[N, 20000] holds 2^24 elements or fewer at a batch of 256, more at 4096: the refusal
+    said "output dimension 1 is invalid (20000)", which no model could change; it names the
+    batch now, and the model loads with a smaller one."""
+    g = graphs.G()
+    wide = g.op("MatMul", ["pose", g.f32(np.eye(7, 20000, dtype=np.float32))])
+    blob = g.model(g.op("Slice", [wide, g.i64([0]), g.i64([7]), g.i64([1])])).SerializeToString()
+    with pytest.raises(PoseCorrError, match=r"more than 2\^24 elements \(dimension 1 is 20000, the first 4096: "
+                                            r"the batch.*a smaller max_batch may load it"):
+        Corrector(blob, library=lib, max_batch=4096)
+    x = graphs.op_inputs(300, seed=1)
+    np.testing.assert_allclose(Corrector(blob, library=lib, max_batch=256).correct(x), ort_run(blob, x), rtol=1e-6)
+
+
 def test_shim_checks_the_library_version(lib):
     from posecorr.controller import runtime
 

@@ -121,6 +121,10 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
             theta0 = np.concatenate([np.asarray(thetas[e.name], float) for e in chosen]) if chosen else np.zeros(0)
         else:
             theta0, sigma_p, sigma_r, _ = self._initial_theta(measured, reference, chosen, thetas)
+            # The registration the data cannot see is held where the closed form puts it for
+            # these effects: a warm start from a model of other effects (mount fitted without
+            # the station, say) is no registration of these.
+            start = self._initial_theta(measured, reference, chosen, {})[0] if thetas else theta0
         with single_threaded():
             if prior is not None:
                 self.sigma_p_, self.sigma_r_ = prior.sigma_p_, prior.sigma_r_
@@ -130,7 +134,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
                 sigma_p = self.sigma_p or sigma_p
                 sigma_r = self.sigma_r or sigma_r
                 self.basis_, self.fixed_ = self._identify(theta0, measured, reference, sigma_p, sigma_r)
-                theta0 = self._hold_nominal(theta0)
+                theta0 = self._hold_nominal(theta0, start)
                 theta = self._solve(theta0, measured, reference, sigma_p, sigma_r)
                 if self.sigma_p is None or (self.sigma_r is None and with_rotation):
                     # Re-weight position against orientation by the noise the first free fit
@@ -223,15 +227,19 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         theta = np.concatenate([thetas[e.name] for e in chosen]) if chosen else np.zeros(0)
         return theta, sigma_p, sigma_r, rigid
 
-    def _hold_nominal(self, theta: np.ndarray) -> np.ndarray:
-        """theta with every held direction at its nominal (identity) value: the closed-form
-        start may have put noise there, and what the data cannot see must not carry it."""
+    def _hold_nominal(self, theta: np.ndarray, start: np.ndarray) -> np.ndarray:
+        """theta with every held direction at its nominal value: a physical effect's identity
+        (the closed-form start may have put noise there, and what the data cannot see must not
+        carry it), a registration's closed-form `start` (its frames are anywhere: no value of
+        theirs is nominal, and the rigid fit's is the one consistent with the rest; at the
+        identity a mount rotation the orientations cannot separate from the station's made
+        the station turn to fit the orientations against the positions)."""
         if theta.size == 0:
             return theta
-        identity = self._identity_theta()
+        nominal = np.where(self._unbounded(), start, self._identity_theta())
         scales = self._scales()
-        u = (theta - identity) / scales
-        return identity + scales * (self.basis_ @ (self.basis_.T @ u))
+        u = (theta - nominal) / scales
+        return nominal + scales * (self.basis_ @ (self.basis_.T @ u))
 
     def _blocks(self) -> list[Block]:
         """Parameter blocks in the order the identification takes them: the registration
@@ -426,17 +434,17 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
     def _identity_theta(self) -> np.ndarray:
         return np.concatenate([e.identity_theta() for e in self._chosen]) if self._chosen else np.zeros(0)
 
+    def _unbounded(self) -> np.ndarray:
+        """For each entry of theta: does its parameter belong to the registration (`Param.unbounded`)?"""
+        return np.array([param.unbounded for effect in self._chosen for param in effect.params
+                         for _ in range(param.size)], bool)
+
     def _prior_weights(self) -> np.ndarray:
         """sqrt(prior_strength) / typical magnitude for each entry of theta outside the
         registration (whose frames are anywhere: no physical size bounds them), 0 elsewhere."""
         if not self.prior_strength >= 0:
             raise ValueError(f"prior_strength must be a number >= 0, got {self.prior_strength!r}")
-        weights = []
-        for effect in self._chosen:
-            for param in effect.params:
-                weight = 0.0 if param.unbounded else np.sqrt(self.prior_strength) / param.scale
-                weights += [weight] * param.size
-        return np.asarray(weights, float)
+        return np.where(self._unbounded(), 0.0, np.sqrt(self.prior_strength) / self._scales())
 
     def _param_label(self, k: int) -> str:
         i = 0

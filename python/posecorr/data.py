@@ -257,6 +257,10 @@ def csv_records(handle, path: str):
         except StopIteration:
             return
         except csv.Error as exc:
+            if "new-line character seen in unquoted field" in str(exc):   # the csv module's words
+                raise TableError(path, "a carriage return (\\r) inside the line, not at its end: its line endings "
+                                 "are mixed (text added after a Windows line ending?); save the table with "
+                                 "one kind of line ending", cursor.line) from None
             raise TableError(path, f"malformed CSV: {exc}", cursor.line) from None
         yield cursor.start, cells, cursor.comment
 
@@ -336,6 +340,9 @@ class TableReader:
         self.preamble: list[tuple[int, str]] = []
         self.comment_count = 0
         self.comment_rows: list[int] = []
+        # rows whose every cell is empty (a spreadsheet's deleted row): how many, the first few
+        self.empty_count = 0
+        self.empty_rows: list[int] = []
         self.trailing: list[str] = []
         try:
             self.header = self._read_header(require_reference)
@@ -396,9 +403,10 @@ class TableReader:
         self._handle.close()
 
     def chunks(self, size: int = CHUNK_ROWS):
-        """Chunks of up to `size` data rows; blank lines carry no pose and are skipped, comment
-        lines go into the chunk's `comments` (those after the last pose into `trailing`), and a
-        warning names the comment lines among the poses once the table is read. A chunk also
+        """Chunks of up to `size` data rows; comment lines and lines without a value (blank, or
+        every cell empty) go into the chunk's `comments` (those after the last pose into
+        `trailing`), and once the table is read a warning names the comment lines among the
+        poses and another the rows of empty cells. A chunk also
         ends at `size` comment lines, even with no rows: a file of millions of comment lines
         between two poses is held `size` lines at a time, not whole."""
         width = len(self.header)
@@ -406,19 +414,25 @@ class TableReader:
         numbers: list[int] = []
         comments: list[tuple[int, str]] = []
         for record, row, comment in self._records:
-            if comment is not None:
-                comments.append((len(rows), comment))
-                self.comment_count += 1
-                self.comment_rows += [record] if len(self.comment_rows) < COMMENTS_SHOWN else []
+            # A line without a value (blank, or every cell empty) carries no pose; like a
+            # comment it stays in its place among the poses (apply writes it back, so the
+            # output's lines stay the input's), and a row of empty cells is named: it may be
+            # a pose that was lost.
+            empty = comment is None and not "".join(row).strip()
+            if comment is not None or empty:
+                comments.append((len(rows), ",".join(row) if empty else comment))
+                if comment is not None:
+                    self.comment_count += 1
+                    self.comment_rows += [record] if len(self.comment_rows) < COMMENTS_SHOWN else []
+                elif row:
+                    self.empty_count += 1
+                    self.empty_rows += [record] if len(self.empty_rows) < COMMENTS_SHOWN else []
                 if len(comments) == size:
                     yield self._parse(rows, numbers, comments)
                     rows, numbers, comments = [], [], []
                 continue
-            if len(row) != width or not row[0].strip():
-                if not "".join(row).strip():
-                    continue  # a blank line carries no pose
-                if len(row) != width:
-                    raise TableError(self.path, f"{len(row)} fields, expected {width} as in the header", record)
+            if len(row) != width:
+                raise TableError(self.path, f"{len(row)} fields, expected {width} as in the header", record)
             rows.append(row)
             numbers.append(record)
             if len(rows) == size:
@@ -430,6 +444,12 @@ class TableReader:
         self.trailing = [text for _, text in comments]
         if self.comment_count:
             warn_comments(self.path, self.comment_rows, self.comment_count)
+        if self.empty_count:
+            from .safeio import warn
+
+            which = (f"row {self.empty_rows[0]} has" if self.empty_count == 1 else
+                     f"rows {first_few(self.empty_rows, COMMENTS_SHOWN, self.empty_count)} have")
+            warn(f"{self.path}: {which} every cell empty: no pose read there")
 
     def _parse(self, rows: list[list[str]], numbers: list[int], comments: list[tuple[int, str]]) -> Chunk:
         values = {c: _parse_column([row[self.index[c]] for row in rows], self.path, numbers, c)

@@ -37,7 +37,9 @@ def training_fit(report: Any, table: Any) -> Any:
                     test_metrics={report.heldout_kind: report.heldout, "raw": report.raw,
                                   # the floor: the best rigid fit, scored alike
                                   "rigid": named_block(report.baseline_name, report.baseline)},
-                    table_digest=data_digest(table.measured, table.reference) if split else None)
+                    table_digest=data_digest(table.measured, table.reference,
+                                             times if getattr(report.model, "needs_time", False) else None)
+                    if split else None)
 
 
 def heldout_poses(report: Any, table: Any) -> tuple | None:

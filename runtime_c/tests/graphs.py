@@ -394,6 +394,16 @@ def case_concat():
     return finish(g, y, 10)
 
 
+def case_concat_empty():
+    """Inner sizes 2, 1 and 0 add up to the number of inputs, as three columns would: the
+    columns kernel read the empty input's block for a column (past its end)."""
+    g = G()
+    t = g.shaped("pose", [2, 3])
+    axis = g.i64([2])
+    parts = [g.op("Slice", [t, g.i64([lo]), g.i64([hi]), axis]) for lo, hi in ((0, 2), (2, 3), (2, 2))]
+    return finish(g, g.op("Concat", parts, axis=2), 6)
+
+
 def case_folding():
     """A constant-only subgraph feeding the pose path (folded at load)."""
     g = G()
@@ -475,6 +485,7 @@ def op_cases() -> dict:
     cases["views"] = case_views
     cases["constant_forms"] = case_constant_forms
     cases["concat"] = case_concat
+    cases["concat_empty"] = case_concat_empty
     cases["folding"] = case_folding
     return cases
 

@@ -110,7 +110,7 @@ def compare(table: PoseTable, corrected: np.ndarray, entry: Mapping[str, Any] | 
 
     say = say or (lambda message: None)
     with_rot = table.has_orientation
-    fitted = fitted_on(table.measured, table.reference, model_info or {})
+    fitted = fitted_on(table.measured, table.reference, model_info or {}, table.time())
     if fitted is False:
         held, reason = None, ("these poses are not those the model was fitted on (their digest is neither the "
                               "model's training_data_digest nor its fitted_table_digest): the after is the model "

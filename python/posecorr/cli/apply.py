@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import Verb, allow_arguments, allow_options, backend_option, emit, output_option
+from .common import TABLE, Verb, allow_arguments, allow_options, backend_option, emit, output_option
 
 
 # where a model's stated held-out figures come from (its test_metrics' key)
@@ -65,8 +65,7 @@ def run(args: argparse.Namespace) -> None:
 VERB = Verb(
     help="correct the measured poses of a table with a model",
     rank=10,
-    outputs=("output",),
-    table_outputs=("output",),
+    outputs={"output": TABLE},
     models=("model",),
     tables=("input",),
     add_arguments=add_arguments,

@@ -5,13 +5,21 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 from ..jsonable import json_default
 
 BACKENDS = ("c", "onnxruntime")
+
+
+# What a file holds: the kinds a verb reads and writes. `failures.file_kind` recognises each
+# but the folder in a file already there.
+MODEL, TABLE, ESTIMATOR = "model", "pose table", "saved estimator"
+SOURCE, PAGE, EFFECT_FILE = "C source", "report page", "effect file"
+STORE, FOLDER = "results store (JSON lines)", "folder"
+KINDS = (MODEL, TABLE, ESTIMATOR, SOURCE, PAGE, EFFECT_FILE, STORE, FOLDER)
 
 
 class CliError(Exception):
@@ -24,31 +32,32 @@ class Verb:
     beside the `add_arguments` and `run` it names, and the dispatcher finds it there.
 
     help: one line for `posecorr --help`. rank: its place there (the work's order).
-    outputs: the argument names of the files it writes (checked before it runs; every other
-    path argument is an input). needs: the extra it needs (`failures.EXTRA_MODULES`), "" for
-    none. folder_inputs: inputs that may be folders. checks_itself: path arguments it checks
-    itself. folder_output: its output is a folder it fills. models, tables: the arguments that
-    name a model (ONNX) and a pose table (CSV); a file clearly of the other kind is refused
-    before the verb runs, with the order of its arguments (`apply DATA MODEL`).
-    model_outputs, table_outputs, source_outputs: the outputs that are a model, a pose table
-    and C source; an existing model or table there that is not what the verb writes is
-    refused, not replaced.
+    outputs: {argument name: what it writes, one of `KINDS`} for the files it writes
+    (checked before it runs; every other path argument is an input). A file already at an
+    output path that is clearly of another kind (`failures.file_kind`: a table where a page
+    would go) is refused, not replaced. needs: the extra it needs (`failures.EXTRA_MODULES`),
+    "" for none. folder_inputs: inputs that may be folders. checks_itself: path arguments it
+    checks itself. folder_output: its output is a folder it fills. models, tables: the
+    arguments that name a model (ONNX) and a pose table (CSV); a file clearly of the other
+    kind is refused before the verb runs, with the order of its arguments (`apply DATA MODEL`).
     """
 
     help: str
     rank: int
     add_arguments: Callable[[argparse.ArgumentParser], None]
     run: Callable[[argparse.Namespace], None]
-    outputs: tuple[str, ...] = ()
+    outputs: Mapping[str, str] = field(default_factory=dict)
     needs: str = ""
     folder_inputs: tuple[str, ...] = ()
     checks_itself: tuple[str, ...] = ()
     folder_output: bool = False
     models: tuple[str, ...] = ()
     tables: tuple[str, ...] = ()
-    model_outputs: tuple[str, ...] = ()
-    table_outputs: tuple[str, ...] = ()
-    source_outputs: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        unknown = set(self.outputs.values()) - set(KINDS)
+        if unknown:
+            raise ValueError(f"unknown output kind {sorted(unknown)}; the kinds are {KINDS}")
 
 
 def print_json(obj: Any) -> None:

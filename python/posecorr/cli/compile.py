@@ -5,7 +5,7 @@ import argparse
 import re
 from pathlib import Path
 
-from .common import CliError, Verb, allow_arguments, allow_options, emit, output_option
+from .common import CliError, SOURCE, Verb, allow_arguments, allow_options, emit, output_option
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -47,8 +47,7 @@ def run(args: argparse.Namespace) -> None:
 VERB = Verb(
     help="write a model's one-pose function as a C99 file (the same bits as libposecorr)",
     rank=13,
-    outputs=("output",),
-    source_outputs=("output",),
+    outputs={"output": SOURCE},
     models=("model",),
     add_arguments=add_arguments,
     run=run,

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import Verb, print_json, apply_threads, seed_option, threads_option
+from .common import FOLDER, Verb, apply_threads, print_json, seed_option, threads_option
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -28,7 +28,7 @@ VERB = Verb(
          "them in C and print the paper's table 4 beside theirs",
     rank=8,
     needs="train",
-    outputs=("output",),
+    outputs={"output": FOLDER},
     folder_output=True,  # -o is a folder it fills
     add_arguments=add_arguments,
     run=run,

@@ -5,8 +5,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from .common import (Verb, backend_option, diagnosis_options, effect_file_option, effect_names, effects_help, emit,
-                     model_effect_names, progress, read_data)
+from .common import (EFFECT_FILE, Verb, backend_option, diagnosis_options, effect_file_option, effect_names,
+                     effects_help, emit, model_effect_names, progress, read_data)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -42,6 +42,9 @@ def run(args: argparse.Namespace) -> None:
         write_text(args.propose, effect_file_text(proposal, " ".join(words + ["--propose", str(args.propose)]),
                                                   str(args.data), _effect_files(args)))
         proposal["file"] = str(args.propose)
+    present = [c["effect"] for c in result["candidates"] if c["present"] and c["kind"] == "effect"]
+    # the text's "add: --effects ..." line: the effects to fit next, None where none is present
+    result["add_effects"] = effects + present if present else None
     emit(args, result, lambda: _text(args, effects, result))
 
 
@@ -109,9 +112,8 @@ def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
     for row in result["absent"]:
         lines.append(f"not present: {row['effect']} lowers the held-out whitened error by {row['score']:.1%} "
                      f"(p = {row['p_value']:.2g}), but {row['why']}")
-    present = [c["effect"] for c in result["candidates"] if c["present"] and c["kind"] == "effect"]
-    if present:
-        lines.append(f"add: --effects {','.join(effects + present)}")
+    if result["add_effects"]:
+        lines.append(f"add: --effects {','.join(result['add_effects'])}")
     lines += _proposal_lines(args, result)
     return "\n".join(lines)
 
@@ -165,7 +167,7 @@ VERB = Verb(
     help="rank the physical effects and generic forms the model lacks; propose an effect file",
     rank=4,
     needs="train",
-    outputs=("propose",),
+    outputs={"propose": EFFECT_FILE},
     models=("model",),
     tables=("data",),
     add_arguments=add_arguments,

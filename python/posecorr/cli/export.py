@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .common import Verb, emit, output_option
+from .common import MODEL, Verb, emit, output_option
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -19,7 +19,12 @@ def run(args: argparse.Namespace) -> None:
     fit = load(args.estimator)
     exported = fit.estimator.to_onnx(args.output, parity="skip" if args.no_parity else "raise",
                                      **fit.export_arguments())
-    emit(args, {k: v for k, v in exported.items() if k != "metadata"},
+    # The JSON of fit's export, in fit --json's words: the file written, its nodes, and the
+    # held-out figures it states (its cross-validation's or its test split's).
+    payload = {"output": str(args.output), "nodes": exported["n_nodes"], "op_counts": exported["op_counts"],
+               "file_size": exported["file_size"], "parity": exported["parity"],
+               "test_metrics": exported["metadata"].get("test_metrics")}
+    emit(args, payload,
          lambda: f"{args.estimator} -> {args.output} ({exported['n_nodes']} nodes, {exported['file_size']} bytes)")
 
 
@@ -27,8 +32,7 @@ VERB = Verb(
     help="export an estimator saved by `fit --save` (signed by this account) to ONNX",
     rank=7,
     needs="train",
-    outputs=("output",),
-    model_outputs=("output",),
+    outputs={"output": MODEL},
     add_arguments=add_arguments,
     run=run,
 )

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+from collections.abc import Collection
 from pathlib import Path
-from .common import CliError, Verb, printable
+
+from .common import EFFECT_FILE, ESTIMATOR, MODEL, PAGE, SOURCE, STORE, TABLE, CliError, Verb, printable
 
 EXIT_USAGE = 2
 EXIT_INTERNAL = 1
@@ -30,7 +32,7 @@ def check_extras(verb: Verb) -> None:
             raise ModuleNotFoundError(f"No module named {module!r}", name=module)
 
 
-def paths(args: argparse.Namespace, outputs: tuple[str, ...]) -> tuple[list[Path], list[Path]]:
+def paths(args: argparse.Namespace, outputs: Collection[str]) -> tuple[list[Path], list[Path]]:
     """(inputs, outputs) named by the parsed arguments; `outputs` are the verb's output
     argument names, every other Path argument is an input."""
     ins: list[Path] = []
@@ -61,17 +63,18 @@ def check_paths(args: argparse.Namespace, verb: Verb) -> None:
         check_output(out, ins + outs[:i])
 
 
-# What a path argument holds, where its file is clearly one or the other.
-MODEL, TABLE, ESTIMATOR = "model", "pose table", "saved estimator"
-_KIND_BY_NAME = {".onnx": MODEL, ".csv": TABLE}
+# What a file's name says it holds, where its first bytes leave it open.
+_KIND_BY_NAME = {".onnx": MODEL, ".csv": TABLE, ".py": EFFECT_FILE, ".html": PAGE, ".htm": PAGE, ".c": SOURCE,
+                 ".h": SOURCE}
 _KIND_WORD = {MODEL: "MODEL", TABLE: "DATA"}
 
 
 def file_kind(path: Path) -> str | None:
-    """MODEL, TABLE or ESTIMATOR (`fit --save`'s) where the file clearly is one, None where
-    unsure. Its first bytes decide where they can (the saved estimator's magic, ONNX's
-    opening; text is never a model, and a table where its first line holds a comma or its
-    name says so), else its name (.onnx, .csv)."""
+    """What the file clearly holds (one of `common.KINDS`: a model, a table, `fit --save`'s
+    estimator, C source, a report page, an effect file, JSON lines), None where unsure. Its
+    first bytes decide where they can (the saved estimator's magic, ONNX's opening, an HTML
+    page's or a JSON object's opening; other text is never a model), then its name (.onnx,
+    .csv, .py, .html, .c), and text whose first line holds a comma is a table."""
     from ..controller.onnx_meta import starts_like_onnx
     from ..saved import MAGIC
 
@@ -86,9 +89,20 @@ def file_kind(path: Path) -> str | None:
     if starts_like_onnx(head):
         return MODEL
     text = _text(head)
-    if text:
-        return TABLE if "," in text.split("\n", 1)[0] or by_name == TABLE else None
-    return by_name
+    if not text:
+        return by_name if by_name in (MODEL, TABLE) else None
+    if text.lstrip()[:15].lower().startswith(("<!doctype html", "<html")):
+        return PAGE
+    if text.lstrip().startswith("{"):      # JSON lines: a sweep's store, a ledger
+        return STORE
+    if by_name not in (None, MODEL):
+        return by_name
+    return TABLE if "," in text.split("\n", 1)[0] else None
+
+
+def _a(kind: str) -> str:
+    """The kind with its article: "a model", "an effect file"."""
+    return f"{'an' if kind[0] in 'aeiou' else 'a'} {kind}"
 
 
 def _text(head: bytes) -> str:
@@ -117,15 +131,14 @@ def check_kinds(args: argparse.Namespace, verb: Verb) -> None:
     """A model given where the verb takes a table, or a table where it takes a model (`apply
     DATA MODEL`, in report's order), is refused before any work, with the verb's order: the
     file's own error would say what it is not ("missing column meas_x"), not the swap; and
-    so is an output that would replace a file of the other kind. Runs after `check_paths`: a
-    FIFO is refused before it could block this read."""
-    writes = {**dict.fromkeys(verb.model_outputs, MODEL), **dict.fromkeys(verb.table_outputs, TABLE),
-              **dict.fromkeys(verb.source_outputs, "C source")}
-    for name, want in writes.items():
+    so is an output that would replace a file of another kind than the verb writes there
+    (`Verb.outputs`). Runs after `check_paths`: a FIFO is refused before it could block this
+    read."""
+    for name, want in verb.outputs.items():
         path = getattr(args, name, None)
         kind = file_kind(Path(path)) if path is not None and Path(path).is_file() else None
-        if kind is not None and kind != want:   # a model written over a table, a table or C over a model
-            raise CliError(f"{path} is a {kind}, and posecorr {args.verb} writes a {want} there: refusing to "
+        if kind is not None and kind != want:   # a page written over a table, a table over an effect file
+            raise CliError(f"{path} is {_a(kind)}, and posecorr {args.verb} writes {_a(want)} there: refusing to "
                            "replace it (choose another output name)")
     expected = {**dict.fromkeys(verb.models, MODEL), **dict.fromkeys(verb.tables, TABLE)}
     found = {name: file_kind(path) for name in expected if isinstance(path := getattr(args, name, None), Path)}
@@ -136,12 +149,12 @@ def check_kinds(args: argparse.Namespace, verb: Verb) -> None:
     name = next(name for name, _, _ in operands if name in wrong)   # the first in the verb's order
     path, kind, want = getattr(args, name), found[name], expected[name]
     if kind == ESTIMATOR and want == MODEL:
-        raise CliError(f"{path} is a {kind} (fit --save), not the {want} posecorr {args.verb} takes: `posecorr "
+        raise CliError(f"{path} is {_a(kind)} (fit --save), not the {want} posecorr {args.verb} takes: `posecorr "
                        f"export {path} -o MODEL.onnx` writes its model")
     if not (verb.models and verb.tables):   # no order to get wrong: what the verb takes
-        raise CliError(f"{path} is a {kind}, not the {want} posecorr {args.verb} takes")
+        raise CliError(f"{path} is {_a(kind)}, not the {want} posecorr {args.verb} takes")
     usage = " ".join(["posecorr", args.verb, *(words for _, _, words in operands)])
-    raise CliError(f"{path} is a {kind}, not a {want}: the order is {usage}")
+    raise CliError(f"{path} is {_a(kind)}, not {_a(want)}: the order is {usage}")
 
 
 def missing_module_line(exc: ModuleNotFoundError) -> str:
@@ -151,7 +164,7 @@ def missing_module_line(exc: ModuleNotFoundError) -> str:
     return what + (f": {hint}" if hint else "")
 
 
-def error_line(exc: BaseException, args: argparse.Namespace, outputs: tuple[str, ...]) -> str:
+def error_line(exc: BaseException, args: argparse.Namespace, outputs: Collection[str]) -> str:
     """One line: the message, its first line only, escaped, prefixed with the input it
     concerns when it names neither a file nor an option itself."""
     if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:

@@ -6,8 +6,8 @@ from pathlib import Path
 from typing import Any
 
 from . import options
-from .common import (Verb, CliError, emit, progress, apply_threads, load_effect_files, effect_names, effects_help,
-                     output_option, seed_option, effect_file_option, threads_option)
+from .common import (ESTIMATOR, MODEL, Verb, CliError, emit, progress, apply_threads, load_effect_files,
+                     effect_names, effects_help, output_option, seed_option, effect_file_option, threads_option)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -172,7 +172,7 @@ def _export(args: argparse.Namespace, report: Any, table: Any, effects: list, sp
 def _payload(args: argparse.Namespace, report: Any, exported: dict, effects_json: dict) -> dict[str, Any]:
     """`fit --json`: the model, its held-out scores against the rigid floor, and its physics."""
     info = report.model.export_info()
-    payload: dict[str, Any] = {"model": str(args.output), "method": info.get("method"),
+    payload: dict[str, Any] = {"model": str(args.output), "output": str(args.output), "method": info.get("method"),
                                "chosen": report.chosen, "representation": info.get("representation"),
                                "raw": report.raw, report.heldout_kind: report.heldout, "effects": effects_json,
                                "parity": exported.get("parity"), "nodes": exported.get("n_nodes")}
@@ -289,8 +289,7 @@ VERB = Verb(
     help="fit a correction (physics effects, then PMC/MLP) and export it as ONNX",
     rank=3,
     needs="train",
-    outputs=("output", "save"),
-    model_outputs=("output",),
+    outputs={"output": MODEL, "save": ESTIMATOR},
     tables=("data",),
     add_arguments=add_arguments,
     run=run,

@@ -5,7 +5,7 @@ import argparse
 from pathlib import Path
 
 from . import options
-from .common import Verb, CliError, emit
+from .common import CliError, TABLE, Verb, emit
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -115,8 +115,7 @@ def run(args: argparse.Namespace) -> None:
 VERB = Verb(
     help="a recording (ROS 1/2 bag, MCAP, CSV log) -> the paired-pose table",
     rank=2,
-    outputs=("output",),
-    table_outputs=("output",),
+    outputs={"output": TABLE},
     folder_inputs=("recording",),  # a ROS 2 bag is a folder
     add_arguments=add_arguments,
     run=run,

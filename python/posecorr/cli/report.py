@@ -6,8 +6,8 @@ import json
 from collections.abc import Mapping
 from pathlib import Path
 
-from .common import (CliError, Verb, backend_option, diagnosis_options, effect_file_option, effect_names, given,
-                     effects_help, emit, model_effect_names, output_option, progress, read_data)
+from .common import (PAGE, CliError, Verb, backend_option, diagnosis_options, effect_file_option, effect_names,
+                     given, effects_help, emit, model_effect_names, output_option, progress, read_data)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> None:
     # the held parameters the page shows, in fit --json's layout ({} when none; metadata that
     # is not a mapping is the author's, shown by neither)
     fixed = dict(info["fixed"]) if isinstance(info.get("fixed"), Mapping) else {}
-    emit(args, {"report": str(path), "bytes": path.stat().st_size, **summary, "fixed": fixed,
+    emit(args, {"output": str(path), "bytes": path.stat().st_size, **summary, "fixed": fixed,
                 "diagnosis": diagnosis, "no_diagnosis": no_diagnosis},
          lambda: (f"{args.data} against {args.model} -> {path} ({path.stat().st_size // 1024} KiB)\n"
                   f"  before: {comparison.baseline}, rmse_pos {1e3 * summary['baseline']['rmse_pos']:.4g} mm; "
@@ -87,7 +87,7 @@ VERB = Verb(
     help="an HTML page: measurements against a model, where it fails, what is missing",
     rank=5,
     needs="train",
-    outputs=("output",),
+    outputs={"output": PAGE},
     models=("model",),
     tables=("data",),
     add_arguments=add_arguments,

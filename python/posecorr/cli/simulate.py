@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from . import options
-from .common import (Verb, CliError, effect_file_option, effects_help, emit, load_effect_files, output_option,
+from .common import (TABLE, Verb, CliError, effect_file_option, effects_help, emit, load_effect_files, output_option,
                      seed_option)
 
 
@@ -113,12 +113,19 @@ def run(args: argparse.Namespace) -> None:
 
 def _effects(text: str | None) -> dict | None:
     """--effects as {name: theta}; a fault in it is the option's, named as such."""
-    from ..effects import parse_effects_arg
+    from ..effects import get_effect, parse_effects_arg
+    from ..safeio import warn
 
     try:
-        return parse_effects_arg(text) if text else None
+        effects = parse_effects_arg(text) if text else None
     except ValueError as exc:
         raise CliError(f"--effects: {exc}") from None
+    # A value no tracker shows is simulated as given, but said: degrees typed for radians,
+    # millimetres for metres.
+    for name, theta in (effects or {}).items():
+        for words in get_effect(name).implausible(theta) if theta is not None else ():
+            warn(f"--effects: {words}; simulated as given")
+    return effects
 
 
 # A session draws these itself (the unknown frame, the lever arm, the noise).
@@ -195,8 +202,7 @@ def _fmt_params(params: dict[str, Any]) -> str:
 VERB = Verb(
     help="simulate a paired-pose table of paper experiment I, II or III, or a realistic robot-cell session",
     rank=1,
-    outputs=("output",),
-    table_outputs=("output",),
+    outputs={"output": TABLE},
     checks_itself=("recording",),  # a file or a ROS 2 bag folder (recording.check_recording_output)
     add_arguments=add_arguments,
     run=run,

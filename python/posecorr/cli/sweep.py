@@ -8,7 +8,7 @@ from pathlib import Path
 
 from . import options
 from ..safeio import exclusive
-from .common import Verb, CliError, emit, apply_threads, seed_option, threads_option
+from .common import CliError, STORE, Verb, apply_threads, emit, seed_option, threads_option
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -115,7 +115,7 @@ VERB = Verb(
     help="the paper's protocol: repeats x configurations, tables 2-4, Friedman, tier list",
     rank=6,
     needs="train",
-    outputs=("store",),
+    outputs={"store": STORE},
     tables=("data",),
     add_arguments=add_arguments,
     run=run,

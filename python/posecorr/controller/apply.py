@@ -183,17 +183,18 @@ class _FittedOn:
     def __init__(self, metadata: dict[str, str]):
         self.digests = {key: decode_value(metadata.get(key, "null")) for key in FITTED_DIGESTS.values()}
         self.metrics = decode_value(metadata.get("test_metrics", "null"))
-        self.blocks: list[tuple[np.ndarray, np.ndarray]] | None = [] if any(self.digests.values()) else None
+        self.blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] | None = (
+            [] if any(self.digests.values()) else None)
         self.rows = 0
 
-    def add(self, measured: np.ndarray, reference: np.ndarray) -> None:
+    def add(self, measured: np.ndarray, reference: np.ndarray, t: np.ndarray | None) -> None:
         if self.blocks is None:
             return
         self.rows += len(measured)
         if self.rows > FITTED_ON_MAX_ROWS:   # a recording, not a session: memory stays flat
             self.blocks = None
         else:   # each chunk's arrays are its own (concatenated from its cells), kept as they are
-            self.blocks.append((measured, reference))
+            self.blocks.append((measured, reference, t))
 
     def verdict(self) -> str | bool | None:
         """"training": fitted on these poses; "table": these are the table the fit split (its
@@ -201,9 +202,10 @@ class _FittedOn:
         digest in the model, or too many rows to keep)."""
         if not self.blocks:
             return None
-        measured = np.concatenate([m for m, _ in self.blocks])
-        reference = np.concatenate([r for _, r in self.blocks])
-        return fitted_on(measured, reference, self.digests) or False
+        measured = np.concatenate([m for m, _, _ in self.blocks])
+        reference = np.concatenate([r for _, r, _ in self.blocks])
+        t = None if self.blocks[0][2] is None else np.concatenate([t for _, _, t in self.blocks])
+        return fitted_on(measured, reference, self.digests, t) or False
 
     def held_out(self) -> dict[str, Any] | None:
         """The fit's held-out figures (its cross-validation's or its test split's), as the
@@ -285,7 +287,7 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                     kept = np.all(np.isfinite(corrected), axis=1)   # the refused poses out of both
                     raw_sums.add(reference[kept], measured[kept])
                     corr_sums.add(reference[kept], corrected[kept])
-                    fitted_on.add(measured, reference)
+                    fitted_on.add(measured, reference, times)
                 n += len(chunk.rows)
             handle.write("".join(text + "\n" for text in reader.trailing))
             if n == 0:  # inside the block: the previous output stays

@@ -167,9 +167,13 @@ def _refuse_constant(name: str) -> Any:
     raise ValueError(name)
 
 
-def _numbers(value: Any) -> list[float] | None:
-    """The numbers of a JSON array at any depth (api.c's pc_parse_numbers), None when it
-    holds anything else."""
+# How deep api.c's pc_parse_numbers reads nested arrays (PC_JSON_DEPTH).
+JSON_DEPTH = 32
+
+
+def _numbers(value: Any, depth: int = 0) -> list[float] | None:
+    """The numbers of a JSON array nested at most JSON_DEPTH deep (api.c's
+    pc_parse_numbers), None when it holds anything else."""
     if isinstance(value, bool):
         return None
     if isinstance(value, (int, float)):
@@ -177,10 +181,10 @@ def _numbers(value: Any) -> list[float] | None:
             return [float(value)]
         except OverflowError:  # an integer of 400 digits: infinite, as in C
             return [math.copysign(math.inf, value)]
-    if isinstance(value, list):
+    if isinstance(value, list) and depth < JSON_DEPTH:
         out: list[float] = []
         for v in value:
-            got = _numbers(v)
+            got = _numbers(v, depth + 1)
             if got is None:
                 return None
             out += got
@@ -212,7 +216,7 @@ def _read_bounds(key: str, value: str, count: int, expected: str) -> tuple[np.nd
 def _read_reach(value: str) -> tuple[np.float32, np.float32]:
     """(reach_pos2, reach_cos2) of correction_reach "[metres, radians]" as api.c's
     pc_read_reach keeps them: the squared distance and cos^2 of half the angle (float32)."""
-    text = value.encode("utf-8")[:255].decode("utf-8", errors="ignore")
+    text = value  # read whole, of any length, as the C parser reads it
     try:
         v = _numbers(json.loads(text, parse_constant=_refuse_constant))
     except (ValueError, RecursionError):

@@ -103,13 +103,16 @@ def sign(data: bytes) -> bytes:
     return data[:span[0]] + file_digest(data, span).encode() + data[span[1]:]
 
 
-def data_digest(measured: Any, reference: Any = None) -> str:
+def data_digest(measured: Any, reference: Any = None, t: Any = None) -> str:
     """`sha256:<hex>` of the training arrays, as float64 little-endian C-order bytes,
-    each preceded by its shape, so that a model can be traced to the exact data it saw."""
+    each preceded by its shape, so that a model can be traced to the exact data it saw.
+    `t`: the times, for a model that takes them (the same poses at other times are other
+    data to it); None leaves the digest of a model without time as it always was."""
     import numpy as np  # the model digest's functions are stdlib only
 
     h = hashlib.sha256()
-    for name, arr in (("measured", measured), ("reference", reference)):
+    arrays = [("measured", measured), ("reference", reference)] + ([("t", t)] if t is not None else [])
+    for name, arr in arrays:
         if arr is None:
             h.update(f"{name}:none;".encode())
             continue
@@ -124,12 +127,14 @@ def data_digest(measured: Any, reference: Any = None) -> str:
 FITTED_DIGESTS = {"training": "training_data_digest", "table": "fitted_table_digest"}
 
 
-def fitted_on(measured: Any, reference: Any, metadata: Any) -> str | bool | None:
+def fitted_on(measured: Any, reference: Any, metadata: Any, t: Any = None) -> str | bool | None:
     """"training" where (measured, reference) are the arrays the model was fitted on, "table"
     where they are the table a fit with a test split read, False where neither, None where
-    the model's metadata (a dict of decoded values) states no digest."""
+    the model's metadata (a dict of decoded values) states no digest. `t`: the table's times,
+    where it has them: a model that takes time states the digest with them, one that does
+    not, without."""
     expected = {kind: metadata.get(key) for kind, key in FITTED_DIGESTS.items() if metadata.get(key)}
     if not expected:
         return None
-    digest = data_digest(measured, reference)
-    return next((kind for kind, value in expected.items() if value == digest), False)
+    digests = {data_digest(measured, reference)} | ({data_digest(measured, reference, t)} if t is not None else set())
+    return next((kind for kind, value in expected.items() if value in digests), False)

@@ -85,8 +85,11 @@ def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
     from ..textui import table as fmt_table
 
     ran_away = [c for c in result["candidates"] if not c["cv_rmse_after"] < RAN_AWAY * c["cv_rmse_before"]]
+    # p to two significant digits, as the lines below and the page write it: a tail of the
+    # chi-square multiplies its statistic's rounding by about half the statistic, and another
+    # CPU's kernels move the fourth digit of a p of 1e-11.
     rows = [[c["rank"], c["effect"], c["kind"], c["parameters"], "ran away" if c in ran_away else c["score"],
-             c["p_value"], c["cv_rmse_before"], "ran away" if c in ran_away else c["cv_rmse_after"],
+             f"{c['p_value']:.2g}", c["cv_rmse_before"], "ran away" if c in ran_away else c["cv_rmse_after"],
              "yes" if c["present"] else "no"] for c in result["candidates"]]
     lines = [f"{args.data}: model effects {', '.join(effects) or 'none'}; "
              f"{result['folds']}-fold cross-validated rmse_total {result['cv_base']['rmse_total']:.4g} m + rad, "

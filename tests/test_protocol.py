@@ -435,6 +435,24 @@ def test_a_damaged_line_inside_the_store_is_said(tmp_path, capsys):
     assert kept[1] == "garbage" and len(kept) == 5
 
 
+def test_a_store_of_another_table_is_said_and_kept(tmp_path, capsys):
+    """A store holding another table's runs took this table's beside them without a word
+    (nothing mixed: rows are matched by the table's fingerprint and the seed); one warning now
+    says so, and the other runs stay."""
+    configs = [ModelSpec("pmc", "zhou")]
+    store = tmp_path / "runs.jsonl"
+    run_sweep(synthetic_table(), configs, repeats=2, store=store, workers=1, progress=False)
+    capsys.readouterr()
+    other = synthetic_table(n=300)
+    again = run_sweep(other, configs, repeats=2, store=store, workers=1, progress=False)
+    assert len(again.rows) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert [e for e in err if "another table" in e] == [
+        f"posecorr: warning: {store}: holds 2 runs of another table or seed: kept as they are, not resumed; "
+        "this sweep's runs are added beside them"], err
+    assert len(store.read_text().splitlines()) == 4
+
+
 def test_a_sweep_too_small_to_rank_says_why_it_shows_no_ranking():
     """One run of two methods, or three runs of one: no Friedman test is possible, and the
     output said nothing of it (`--comparisons` seemed ignored)."""

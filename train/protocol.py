@@ -378,6 +378,7 @@ def _load_store(path: Path, fingerprint: str, seed: int) -> dict[tuple[str, int]
     if handle is None:
         return done
     unread: list[int] = []
+    others = 0          # runs of another table or seed: kept, not resumed
     with handle:
         for number, raw in enumerate(handle, 1):
             line = raw.decode("utf-8", errors="replace").strip()
@@ -395,12 +396,19 @@ def _load_store(path: Path, fingerprint: str, seed: int) -> dict[tuple[str, int]
                 continue
             if row.get("data") == fingerprint and row.get("seed") == seed:
                 done[(row["key"], int(row["repeat"]))] = row
+            else:
+                others += 1
     if unread:
         from posecorr.safeio import warn
 
         warn(f"{path}: {'line' if len(unread) == 1 else 'lines'} {first_few(unread, 5)} {'is' if len(unread) == 1 else 'are'} "
              "no sweep result (not a JSON row with a key and a repeat): left as they are and not read; a run "
              "they held is done again")
+    if others:
+        from posecorr.safeio import warn
+
+        warn(f"{path}: holds {others} {'run' if others == 1 else 'runs'} of another table or seed: kept as they are, "
+             "not resumed; this sweep's runs are added beside them")
     return done
 
 

@@ -95,9 +95,13 @@ PC_NOINLINE static pc_status pc_check_rows(pc_model *m, pc_error *err)
 /* Where a metadata value's bytes [s, end) are read: a NUL byte past the end. */
 #define PC_AT (s < end ? *s : '\0')
 #define PC_JSON_DEPTH 32
-static int pc_json_space(char c)
+
+/* s past JSON's white space (its four bytes). */
+static const char *pc_json_skip(const char *s, const char *end)
 {
-    return c == ' ' || c == '\t' || c == '\n' || c == '\r';
+    while (PC_AT == ' ' || PC_AT == '\t' || PC_AT == '\n' || PC_AT == '\r')
+        s++;
+    return s;
 }
 
 /* A JSON number at s, into *x: the first byte after it, or NULL where none starts at s. */
@@ -149,14 +153,11 @@ static int pc_parse_numbers(const char *s, const char *end, double *v, int cap)
     int n = 0, depth = 0;
     for (;;) {
         /* a value: an array opening, or a number */
-        while (pc_json_space(PC_AT))
-            s++;
+        s = pc_json_skip(s, end);
         if (PC_AT == '[') {
             if (++depth > PC_JSON_DEPTH)
                 return -1;
-            s++;
-            while (pc_json_space(PC_AT))
-                s++;
+            s = pc_json_skip(s + 1, end);
             if (PC_AT != ']')
                 continue;
             s++;
@@ -169,8 +170,7 @@ static int pc_parse_numbers(const char *s, const char *end, double *v, int cap)
         }
         /* after a value: the end of the text, a comma, or the closing of arrays */
         for (;;) {
-            while (pc_json_space(PC_AT))
-                s++;
+            s = pc_json_skip(s, end);
             if (depth == 0)
                 return s == end ? n : -1;
             if (PC_AT == ',') {

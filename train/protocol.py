@@ -44,7 +44,7 @@ import numpy as np
 
 from posecorr.metrics import METRIC_KEYS, frames_unregistered, improvement, metric_block, pose_metrics, summarize
 from posecorr.rotations import POSITION_ONLY, REPRESENTATIONS
-from posecorr.safeio import append_line, open_sidecar, sigterm_as_interrupt
+from posecorr.safeio import append_line, open_sidecar, sigterm_as_interrupt, warn
 from posecorr.textui import counted, first_few
 
 from .activations import PAPER_ACTIVATIONS
@@ -399,14 +399,10 @@ def _load_store(path: Path, fingerprint: str, seed: int) -> dict[tuple[str, int]
             else:
                 others += 1
     if unread:
-        from posecorr.safeio import warn
-
         warn(f"{path}: {'line' if len(unread) == 1 else 'lines'} {first_few(unread, 5)} {'is' if len(unread) == 1 else 'are'} "
              "no sweep result (not a JSON row with a key and a repeat): left as they are and not read; a run "
              "they held is done again")
     if others:
-        from posecorr.safeio import warn
-
         warn(f"{path}: holds {others} {'run' if others == 1 else 'runs'} of another table or seed: kept as they are, "
              "not resumed; this sweep's runs are added beside them")
     return done

@@ -290,6 +290,12 @@ def protect_comment(line: str, first: str) -> str:
 COMMENTS_SHOWN = 5
 
 
+def rows_words(rows: list[int], count: int, one: str, many: str) -> str:
+    """'row 7 starts' or 'rows 7, 9, 12, 15, 18 and 3 more start': the first rows of `count`
+    a warning names, with its verb for one (`one`) or for many (`many`)."""
+    return f"row {rows[0]} {one}" if count == 1 else f"rows {first_few(rows, COMMENTS_SHOWN, count)} {many}"
+
+
 def warn_comments(path: str, rows: list[int], count: int | None = None) -> None:
     """One warning line for the `count` comment lines after a header, the first of them at
     `rows`: 'rows 7, 9, 12, 15, 18 and 3 more start with '#'': a line left out by hand is said
@@ -297,7 +303,7 @@ def warn_comments(path: str, rows: list[int], count: int | None = None) -> None:
     from .safeio import warn
 
     count = len(rows) if count is None else count
-    which = f"row {rows[0]} starts" if count == 1 else f"rows {first_few(rows, COMMENTS_SHOWN, count)} start"
+    which = rows_words(rows, count, "starts", "start")
     warn(f"{path}: {which} with {COMMENT!r}: read as comments, not data")
 
 
@@ -447,9 +453,8 @@ class TableReader:
         if self.empty_count:
             from .safeio import warn
 
-            which = (f"row {self.empty_rows[0]} has" if self.empty_count == 1 else
-                     f"rows {first_few(self.empty_rows, COMMENTS_SHOWN, self.empty_count)} have")
-            warn(f"{self.path}: {which} every cell empty: no pose read there")
+            warn(f"{self.path}: {rows_words(self.empty_rows, self.empty_count, 'has', 'have')} every cell empty: "
+                 "no pose read there")
 
     def _parse(self, rows: list[list[str]], numbers: list[int], comments: list[tuple[int, str]]) -> Chunk:
         values = {c: _parse_column([row[self.index[c]] for row in rows], self.path, numbers, c)

@@ -7,8 +7,13 @@ per output (d = 3 position only, 6 eaa, 7 quat, 12 R, 9 zhou).
 
 Numerics (what differs from a textbook normal-equation fit, not the model):
 
-* the inputs are scaled to [-1, 1] per column (min/max of the training set) before the
-  features are formed, so the columns of the design matrix have comparable size;
+* the inputs are centred per column and scaled per unit before the features are formed
+  (`unit_scaling`): the position columns by one gain, the representation's by another, so
+  the widest column of each spans [-1, 1]. One gain per unit, not per column: a column the
+  data barely moves (the tilt of a session turned about one axis only, the paper's Exp II)
+  keeps its small size, so the ridge holds its terms down; stretched to [-1, 1] it would
+  weigh as much as the yaw itself, and the polynomial would fit the tilt's noise with terms
+  that move a pose tilted 5 degrees by metres and turn float32 rounding into millimetres;
 * the coefficients are found with an SVD-based least squares solve (``numpy.linalg.lstsq``),
   never the normal equations (which square the condition number);
 * the fit is done on the correction Y - X and the identity is folded back into the
@@ -51,14 +56,18 @@ def quadratic_features(xs: Any, degree: int = 2) -> Any:
     return xp.concat([xs, xp.stack(products, axis=-1)], axis=-1)
 
 
-def minmax_scaling(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """gain, offset with X * gain + offset in [-1, 1] per column (constant column -> 0)."""
+def unit_scaling(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """gain, offset with X * gain + offset centred per column and the widest column of each
+    unit (positions: the first 3 columns; the representation's: the rest) in [-1, 1]; a
+    unit whose columns are all constant keeps gain 1."""
     lo, hi = X.min(axis=0), X.max(axis=0)
     span = hi - lo
-    const = span <= 1e-12 * np.maximum(1.0, np.abs(hi))
-    gain = np.where(const, 1.0, 2.0 / np.where(const, 1.0, span))
-    offset = np.where(const, -0.5 * (lo + hi), -1.0 - lo * gain)
-    return gain, offset
+    gain = np.ones(X.shape[1])
+    for unit in (slice(0, 3), slice(3, None)):
+        widest = float(np.max(span[unit], initial=0.0))
+        if widest > 1e-12 * max(1.0, float(np.max(np.abs(hi[unit]), initial=0.0))):
+            gain[unit] = 2.0 / widest
+    return gain, -0.5 * (lo + hi) * gain
 
 
 def _solve(F: np.ndarray, T: np.ndarray, alpha: float) -> tuple[np.ndarray, np.ndarray]:
@@ -132,7 +141,7 @@ class PMC(BaseCorrector):
         # validation is ignored: PMC is not iterative.
         if self.degree not in (1, 2):
             raise ValueError(f"degree must be 1 (affine) or 2 (quadratic), got {self.degree!r}")
-        gain, offset = minmax_scaling(X)
+        gain, offset = unit_scaling(X)
         F = np.asarray(quadratic_features(X * gain + offset, self.degree))
         T = Y - X
         if isinstance(self.alpha, str):

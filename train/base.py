@@ -25,7 +25,8 @@ The pose -> input vector encoding (``encode_pose``) and the output vector -> pos
 """
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+import functools
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 from scipy.sparse import issparse
@@ -128,6 +129,22 @@ def as_validation(validation: Any) -> Validation | None:
     return None if validation is None else Validation(*validation)
 
 
+def keeps_last_fit(fit: Callable[..., Any]) -> Callable[..., Any]:
+    """A `fit` that raises leaves its estimator as it was: fitted state is set step by step, and
+    a refusal half-way (a parameter the solver checks, a fold's data) would otherwise leave a
+    model that predicts neither the last fit nor the new one."""
+    @functools.wraps(fit)
+    def fit_or_keep(self: Any, *args: Any, **kwargs: Any) -> Any:
+        before = dict(self.__dict__)
+        try:
+            return fit(self, *args, **kwargs)
+        except BaseException:
+            self.__dict__.clear()
+            self.__dict__.update(before)
+            raise
+    return fit_or_keep
+
+
 class PoseRegressorMixin(RegressorMixin):
     """scikit-learn's tags of a corrector: a regressor from (N, 7) poses to (N, 7) poses."""
 
@@ -151,6 +168,7 @@ class BaseCorrector(PoseRegressorMixin, BaseEstimator):
     uses_validation = False       # fit uses `validation` poses (an MLP: early stopping, trainbr's monitor)
 
     # --- fitting -----------------------------------------------------------------------
+    @keeps_last_fit
     def fit(self, measured: Any, reference: Any, t: Any = None, validation: Any = None) -> "BaseCorrector":
         """Learn measured -> reference. ``t`` is taken for the common signature and checked as
         every estimator checks it (these correctors take no time input); ``validation``

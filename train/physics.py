@@ -37,7 +37,7 @@ from posecorr.effects import (REGISTRATION_ROLES, EffectContext, get_effect, inv
                               sorted_effects)
 from posecorr.metrics import pose_metrics
 
-from .base import PoseRegressorMixin, check_pair, check_poses, check_times
+from .base import PoseRegressorMixin, check_pair, check_poses, check_times, keeps_last_fit
 from .identify import (FORM_LIMIT_SCALES, LIMIT_SCALES, Block, RigidRegistration, chordal_mean, describe_spread,
                        determined_directions, direction_label, poses_lack, rigid_registration)
 from .splits import MIN_FIT_POSES
@@ -101,6 +101,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         self.prior_strength = prior_strength
 
     # --- fitting ----------------------------------------------------------------------
+    @keeps_last_fit
     def fit(self, measured: Any, reference: Any, t: np.ndarray | None = None, validation: Any = None, *,
             warm_start: "dict[str, np.ndarray] | PhysicsModel | None" = None) -> "PhysicsModel":
         """Fit the effects the data determine; hold the others at their start value.
@@ -610,6 +611,7 @@ class RigidModel(PhysicsModel):
         super().__init__(effects=tuple(roles[role] for role in REGISTRATION_ROLES), with_rotation=with_rotation)
         self.variant = variant
 
+    @keeps_last_fit
     def fit(self, measured: Any, reference: Any, t: np.ndarray | None = None, validation: Any = None, *,
             warm_start: Any = None) -> "RigidModel":
         """The closed form of the variant; "joint" is the physics stage of station and mount

@@ -26,7 +26,8 @@ from posecorr.registration import orientation_notes
 from posecorr.rotations import POSITION_ONLY
 from posecorr.textui import percent
 
-from .base import PoseRegressorMixin, Validation, as_validation, check_pair, check_poses, check_times, vector_size
+from .base import (PoseRegressorMixin, Validation, as_validation, check_pair, check_poses, check_times, keeps_last_fit,
+                   vector_size)
 from .identify import describe_spread, rigid_variants
 from .physics import PhysicsModel, RigidModel
 from .spec import SESSION_EPOCHS, SESSION_HIDDEN, ModelSpec, spec_from_options
@@ -61,6 +62,7 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
             return self.core.representation
         return "R" if getattr(self, "with_rotation_", bool(self.with_rotation)) else POSITION_ONLY
 
+    @keeps_last_fit
     def fit(self, measured: np.ndarray, reference: np.ndarray, t: np.ndarray | None = None,
             validation: Validation | None = None, *, warm_start: Any = None,
             physics: PhysicsModel | None = None) -> "CorrectionPipeline":
@@ -91,7 +93,6 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
                         else physics.predict(validation.measured, validation.t))
                 validation = Validation(held, validation.reference)
             core.fit(stage, reference, validation=validation)
-        # Only a fit that succeeds changes the fitted state: a refused one leaves the last fit whole.
         self.with_rotation_, self.physics_, self.core_ = with_rotation, physics, core
         self.n_features_in_ = 7
         return self

@@ -7,13 +7,15 @@ per output (d = 3 position only, 6 eaa, 7 quat, 12 R, 9 zhou).
 
 Numerics (what differs from a textbook normal-equation fit, not the model):
 
-* the inputs are centred per column and scaled per unit before the features are formed
-  (`unit_scaling`): the position columns by one gain, the representation's by another, so
-  the widest column of each spans [-1, 1]. One gain per unit, not per column: a column the
-  data barely moves (the tilt of a session turned about one axis only, the paper's Exp II)
-  keeps its small size, so the ridge holds its terms down; stretched to [-1, 1] it would
-  weigh as much as the yaw itself, and the polynomial would fit the tilt's noise with terms
-  that move a pose tilted 5 degrees by metres and turn float32 rounding into millimetres;
+* the inputs are scaled to [-1, 1] per column (min/max of the training set) before the
+  features are formed, so the columns of the design matrix have comparable size, but no
+  column is stretched beyond STRETCH_LIMIT times its unit's widest (`column_scaling`; the
+  units: the position, the representation's parameters). A column the data barely moves
+  (the tilt of a session turned about one axis only, the paper's Exp II: 0.2 to 0.8 % of
+  the yaw's span) holds noise about a constant; stretched to [-1, 1], its terms escape the
+  ridge, and the polynomial moves a pose tilted 5 degrees by metres and turns float32
+  rounding into millimetres. Exp III's columns span 20 % of their unit's widest and more:
+  the limit leaves them as they were;
 * the coefficients are found with an SVD-based least squares solve (``numpy.linalg.lstsq``),
   never the normal equations (which square the condition number);
 * the fit is done on the correction Y - X and the identity is folded back into the
@@ -56,17 +58,20 @@ def quadratic_features(xs: Any, degree: int = 2) -> Any:
     return xp.concat([xs, xp.stack(products, axis=-1)], axis=-1)
 
 
-def unit_scaling(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """gain, offset with X * gain + offset centred per column and the widest column of each
-    unit (positions: the first 3 columns; the representation's: the rest) in [-1, 1]; a
-    unit whose columns are all constant keeps gain 1."""
+STRETCH_LIMIT = 10.0
+
+
+def column_scaling(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """gain, offset with X * gain + offset centred per column and in [-1, 1], each column's
+    span taken as at least 1 / STRETCH_LIMIT of the widest in its unit (positions: the first
+    3 columns; the representation's: the rest); a unit of constant columns keeps gain 1."""
     lo, hi = X.min(axis=0), X.max(axis=0)
     span = hi - lo
     gain = np.ones(X.shape[1])
     for unit in (slice(0, 3), slice(3, None)):
         widest = float(np.max(span[unit], initial=0.0))
         if widest > 1e-12 * max(1.0, float(np.max(np.abs(hi[unit]), initial=0.0))):
-            gain[unit] = 2.0 / widest
+            gain[unit] = 2.0 / np.maximum(span[unit], widest / STRETCH_LIMIT)
     return gain, -0.5 * (lo + hi) * gain
 
 
@@ -141,7 +146,7 @@ class PMC(BaseCorrector):
         # validation is ignored: PMC is not iterative.
         if self.degree not in (1, 2):
             raise ValueError(f"degree must be 1 (affine) or 2 (quadratic), got {self.degree!r}")
-        gain, offset = unit_scaling(X)
+        gain, offset = column_scaling(X)
         F = np.asarray(quadratic_features(X * gain + offset, self.degree))
         T = Y - X
         if isinstance(self.alpha, str):

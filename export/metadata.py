@@ -9,8 +9,8 @@ Keys written by the exporter (other keys may be added by callers):
 |---|---|
 | `posecorr_version` | version of the package that exported the model |
 | `method` | `pmc`, `mlp`, `none`, ... |
-| `representation` | `eaa`, `quat`, `R`, `zhou` or `pos` (position only) |
-| `architecture` | hidden layer sizes, e.g. `[20, 20]` (MLP) or the PMC feature layout |
+| `representation` | the core's input: `eaa`, `quat`, `R`, `zhou` or `pos` (position only); null without a core |
+| `architecture` | text: the hidden layer sizes, e.g. `20-20` (MLP), or the PMC feature layout |
 | `activation`, `trainer` | MLP activation and training algorithm (null for PMC) |
 | `effects` | fitted physical-effect stages in front of the core, with their parameters |
 | `training_data_digest` | `sha256:<hex>` of the training arrays, see `data_digest` |
@@ -21,7 +21,7 @@ Keys written by the exporter (other keys may be added by callers):
 | `parity` | float32 graph vs float64 `predict`: max errors and the check's settings |
 | `input_bounds` | `[[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]]` (m): the training positions' box, widened; every runtime refuses a pose outside it |
 | `time_bounds` | `[t_lo, t_hi]` (s), models with the time input `t`: the training times' span, widened; a time outside is refused |
-| `correction_reach` | `[metres, radians]`: the largest correction of position and rotation on the training poses, with a margin (`onnx_export.REACH_*`); every runtime refuses a pose corrected farther |
+| `correction_reach` | `[metres, radians]`: the largest correction of position and rotation on the training poses and on poses of any orientation drawn inside `input_bounds`, with a margin (`onnx_export.REACH_*`); every runtime refuses a pose corrected farther |
 | `model_digest` | `crc32c:<8 hex>`: CRC-32C of the file's bytes with these 8 digits read as `00000000` (`posecorr.controller.digest`); every loader verifies it |
 """
 from __future__ import annotations

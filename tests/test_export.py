@@ -460,6 +460,46 @@ def test_parity_failure_is_refused(tmp_path):
     assert not (tmp_path / "m.onnx").exists()
 
 
+
+def test_an_output_that_breaks_the_contract_is_named(tmp_path):
+    """A graph whose output quaternion has qw < 0 was refused with its position and rotation
+    errors, both within tolerance: the message named no cause."""
+    from posecorr.export import ParityError
+
+    class Flipper(ToyCorrector):
+        def forward(self, pose):   # the same rotation, in the sign the contract does not allow
+            out = super().forward(pose)
+            return namespace(out).concat([out[..., 0:3], -out[..., 3:7]], axis=-1)
+
+        def predict(self, measured):
+            out = super().predict(measured)
+            out[:, 3:7] *= -1.0
+            return out
+
+    with pytest.raises(ParityError, match=r"breaks the output contract: an output quaternion with qw = -[0-9.e-]+ < 0"):
+        to_onnx(Flipper("zhou", core="pmc"), tmp_path / "m.onnx", measured=training_like_poses(100), n_random=100)
+    assert not (tmp_path / "m.onnx").exists()
+
+
+def test_a_pipeline_of_no_stage_gives_the_contracts_output(tmp_path):
+    """Fitted with no effect and no core it passed its input through: a quaternion of norm
+    1.0009 with qw < 0 came out, against the contract (unit, qw >= 0), and its export was
+    refused. scipy's Rotation gives the canonical unit quaternion to compare with."""
+    from scipy.spatial.transform import Rotation
+
+    from posecorr.export.parity import run_onnx
+    from posecorr.train.pipeline import CorrectionPipeline
+
+    measured = training_like_poses(50)
+    model = CorrectionPipeline().fit(measured, measured)
+    poses = measured[:5].copy()
+    poses[:, 3:] *= -1.0009
+    q = Rotation.from_quat(poses[:, [4, 5, 6, 3]]).as_quat(canonical=True)[:, [3, 0, 1, 2]]
+    expected = np.concatenate([poses[:, :3], q], axis=1)
+    assert np.allclose(model.predict(poses), expected, atol=1e-12)
+    model.to_onnx(tmp_path / "i.onnx", measured=measured, reference=measured)
+    assert np.allclose(run_onnx(tmp_path / "i.onnx", poses), expected, atol=1e-6)
+
 def test_metadata_round_trip(tmp_path):
     est = ToyCorrector("zhou", core="mlp", activation="logsig")
     measured = training_like_poses(300)

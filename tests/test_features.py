@@ -29,3 +29,29 @@ def test_station_angles_and_range() -> None:
     # the line of sight hits it head-on, incidence 0.
     np.testing.assert_allclose(f["incidence"], 0.0, atol=1e-7)
     assert f["t"][0] == 5.0
+
+
+def test_roll_pitch_yaw_rebuild_the_rotation_at_gimbal_lock() -> None:
+    """At pitch +-90 degrees roll and yaw came from atan2 of rounding errors: the three angles
+    rebuilt another rotation (a matrix error of 2). scipy's as_euler("ZYX") is the truth,
+    random rotations and locked ones alike."""
+    import warnings
+
+    from scipy.spatial.transform import Rotation
+
+    from posecorr.analysis.features import roll_pitch_yaw
+
+    rng = np.random.default_rng(0)
+    locked = Rotation.from_euler("ZYX", np.stack([rng.uniform(-3, 3, 20), np.repeat([np.pi / 2, -np.pi / 2], 10),
+                                                  rng.uniform(-3, 3, 20)], axis=1))
+    rotations = Rotation.concatenate([Rotation.random(200, random_state=1), locked])
+    got = roll_pitch_yaw(rotations.as_matrix())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)   # scipy's "gimbal lock detected"
+        yaw, pitch, roll = rotations.as_euler("ZYX").T
+    rebuilt = Rotation.from_euler("ZYX", np.stack([got["yaw"], got["pitch"], got["roll"]], axis=1))
+    np.testing.assert_allclose(rebuilt.as_matrix(), rotations.as_matrix(), atol=1e-9)
+    np.testing.assert_allclose(got["pitch"], pitch, atol=1e-9)
+    free = np.abs(np.cos(pitch)) > 1e-6
+    np.testing.assert_allclose(got["roll"][free], roll[free], atol=1e-9)
+    np.testing.assert_allclose(np.cos(got["yaw"] - yaw), 1.0, atol=1e-9)

@@ -36,13 +36,23 @@ def pose_features(poses: np.ndarray, t: np.ndarray | None = None) -> dict[str, n
         "x": p[:, 0], "y": p[:, 1], "z": p[:, 2],
         "range": distance[:, 0], "azimuth": azimuth, "elevation": elevation,
         "incidence": np.arccos(cos_incidence),
-        "roll": np.arctan2(rel[:, 2, 1], rel[:, 2, 2]),
-        "pitch": np.arcsin(np.clip(-rel[:, 2, 0], -1.0, 1.0)),
-        "yaw": np.arctan2(rel[:, 1, 0], rel[:, 0, 0]),
+        **roll_pitch_yaw(rel),
     }
     if t is not None:
         out["t"] = np.asarray(t, float)
     return out
+
+
+def roll_pitch_yaw(R: np.ndarray) -> dict[str, np.ndarray]:
+    """Angles (rad) with R = Rz(yaw) Ry(pitch) Rx(roll). At pitch +-90 degrees roll and yaw
+    turn about one axis and only their difference is defined (the atan2s of two rounding
+    errors otherwise, angles that rebuild another rotation): roll is taken as 0 there, the
+    convention of scipy's as_euler."""
+    cos_pitch = np.hypot(R[:, 0, 0], R[:, 1, 0])
+    locked = cos_pitch < 1e-9
+    return {"roll": np.where(locked, 0.0, np.arctan2(R[:, 2, 1], R[:, 2, 2])),
+            "pitch": np.arctan2(-R[:, 2, 0], cos_pitch),
+            "yaw": np.where(locked, np.arctan2(-R[:, 0, 1], R[:, 1, 1]), np.arctan2(R[:, 1, 0], R[:, 0, 0]))}
 
 
 def table_features(table: PoseTable) -> dict[str, np.ndarray]:

@@ -311,14 +311,18 @@ def effect_file_text(proposal: dict[str, Any], command: str, data_name: str,
 
 
 def fit_command(data_name: str, effect_files: Sequence[str], new_file: str, proposal: dict[str, Any]) -> str:
-    """The `posecorr fit` that takes the proposal: the diagnosis's effect files first, as the
-    effects they define (an earlier round's proposal) stay in the model, then the new one."""
+    """The `posecorr fit` that takes the proposal, ready to run: the diagnosis's effect files
+    first, as the effects they define (an earlier round's proposal) stay in the model, then
+    the new one; the model beside the data, named for the forms it adds."""
     import shlex
+    from pathlib import PurePath
 
     words = ["posecorr", "fit", data_name]
     for path in [*effect_files, new_file]:
         words += ["--effect-file", path]
-    return shlex.join(words + ["--effects", effects_arg(proposal)])
+    data = PurePath(data_name)
+    model = data.with_name(f"{data.stem}-{'-'.join(_proposed_name(f) for f in proposal['forms'])}.onnx")
+    return shlex.join(words + ["--effects", effects_arg(proposal), "-o", str(model)])
 
 
 def effects_arg(proposal: dict[str, Any]) -> str:

@@ -230,15 +230,20 @@ REACH_POSES = 10_000
 REACH_SEED = 0
 
 
-def correction_reach(measured: np.ndarray, corrected: np.ndarray) -> list[float]:
+def largest_correction(measured: np.ndarray, corrected: np.ndarray) -> list[float]:
     """[metres, radians]: the largest correction of position and of rotation from `measured`
-    to `corrected` ((N, 7) poses, the graph's own float32 answers), with the margin above
-    (the rotation at most pi, where every rotation is allowed)."""
+    to `corrected` ((N, 7) poses)."""
     from .parity import quat_angle
 
     m, c = np.asarray(measured, float), np.asarray(corrected, float)
-    pos = float(np.max(np.linalg.norm(c[:, :3] - m[:, :3], axis=1)))
-    rot = float(np.max(quat_angle(m[:, 3:7], c[:, 3:7])))
+    return [float(np.max(np.linalg.norm(c[:, :3] - m[:, :3], axis=1))), float(np.max(quat_angle(m[:, 3:7], c[:, 3:7])))]
+
+
+def correction_reach(measured: np.ndarray, corrected: np.ndarray) -> list[float]:
+    """[metres, radians]: `largest_correction` from `measured` to `corrected` ((N, 7) poses, the
+    graph's own float32 answers), with the margin above (the rotation at most pi, where every
+    rotation is allowed)."""
+    pos, rot = largest_correction(measured, corrected)
     return [REACH_FACTOR * pos + REACH_MIN_POS, min(np.pi, REACH_FACTOR * rot + REACH_MIN_ROT)]
 
 
@@ -252,9 +257,11 @@ def accepted_poses(box: Any, n: int = REACH_POSES, seed: int = REACH_SEED) -> np
     return np.concatenate([lo + (hi - lo) * rng.random((n, 3)), q], axis=1)
 
 
-def model_reach(model: Any, measured: np.ndarray, box: Any, t: Any = None, span: Any = None) -> list[float]:
+def model_reach(model: Any, measured: np.ndarray, box: Any, t: Any = None, span: Any = None
+                ) -> tuple[list[float], list[float]]:
     """correction_reach of `model` (ModelProto, bytes or path) on the training poses
-    `measured` (times `t`) and on accepted_poses in `box` (times uniform in `span`)."""
+    `measured` (times `t`) and on accepted_poses in `box` (times uniform in `span`), and the
+    largest correction on the training poses alone (how far beyond them the model goes)."""
     from .parity import run_onnx
 
     drawn = accepted_poses(box)
@@ -264,8 +271,9 @@ def model_reach(model: Any, measured: np.ndarray, box: Any, t: Any = None, span:
         rng = np.random.default_rng(REACH_SEED + 1)
         times = np.concatenate([np.asarray(t, float), rng.uniform(span[0], span[1], len(drawn))])
     corrected = run_onnx(model, poses, times)
-    _refuse_non_finite(poses, times, corrected, len(poses) - len(drawn))
-    return correction_reach(poses, corrected)
+    n_training = len(poses) - len(drawn)
+    _refuse_non_finite(poses, times, corrected, n_training)
+    return correction_reach(poses, corrected), largest_correction(poses[:n_training], corrected[:n_training])
 
 
 def _refuse_non_finite(poses: np.ndarray, times: np.ndarray | None, corrected: np.ndarray,
@@ -283,18 +291,20 @@ def _refuse_non_finite(poses: np.ndarray, times: np.ndarray | None, corrected: n
                       f"is not finite ({bad.size} of {len(poses)} poses): it cannot be given a correction_reach")
 
 
-def _reach_metadata(info: dict[str, Any], model: Any, measured: Any, t: Any, time_input: bool) -> None:
+def _reach_metadata(info: dict[str, Any], model: Any, measured: Any, t: Any, time_input: bool
+                    ) -> list[float] | None:
     """Every export carries how far its corrections reach (model_reach), or the reach it was
-    given."""
+    given; returns the largest correction on the training poses (None for a given reach)."""
     if "correction_reach" in info:
-        return
+        return None
     if measured is None:
         raise ExportError("the model's correction_reach needs the training poses: pass measured=... "
                           "(or correction_reach=[metres, radians])")
     if time_input and t is None:
         raise ExportError("the model's correction_reach needs the training times: pass t=...")
-    info["correction_reach"] = model_reach(model, measured, info["input_bounds"], t if time_input else None,
-                                           info.get("time_bounds"))
+    info["correction_reach"], training = model_reach(model, measured, info["input_bounds"],
+                                                     t if time_input else None, info.get("time_bounds"))
+    return training
 
 
 def _bounds_metadata(info: dict[str, Any], measured: Any, t: Any, time_input: bool) -> None:
@@ -388,15 +398,16 @@ def _heldout_metrics(model: Any, heldout: tuple, time_input: bool) -> dict[str, 
 
 
 def _set_metadata(model: Any, info: dict[str, Any], measured: Any, reference: Any, t: Any,
-                  time_input: bool) -> None:
+                  time_input: bool) -> list[float] | None:
     """Complete `info` (digest, bounds, reach, defaults) and store it as the model's
-    metadata_props, the digest still a placeholder."""
+    metadata_props, the digest still a placeholder; returns the largest correction on the
+    training poses where the reach was measured here."""
     from posecorr import __version__
 
     if measured is not None and "training_data_digest" not in info:
         info["training_data_digest"] = data_digest(measured, reference, t if time_input else None)
     _bounds_metadata(info, measured, t, time_input)
-    _reach_metadata(info, model, measured, t, time_input)
+    training_correction = _reach_metadata(info, model, measured, t, time_input)
     info.setdefault("posecorr_version", __version__)
     info.setdefault("units", UNITS)
     info["opset"] = OPSET
@@ -410,6 +421,7 @@ def _set_metadata(model: Any, info: dict[str, Any], measured: Any, reference: An
     for key, value in meta.items():
         entry = model.metadata_props.add()
         entry.key, entry.value = key, value
+    return training_correction
 
 
 def _write_model(model: Any, path: Path, write: Callable[[Path, bytes], None] | None) -> bytes:
@@ -448,7 +460,8 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
       time input) come from the training data unless given here; without either the
       export is refused (ExportError): no model leaves without the box it was fitted in.
 
-    Returns {"path", "metadata", "op_counts", "n_nodes", "file_size", "parity"}.
+    Returns {"path", "metadata", "op_counts", "n_nodes", "file_size", "parity", "heldout_metrics",
+    "training_correction" ([m, rad], the largest on the training poses; None for a given reach)}.
     """
     try:
         parity = Parity(parity)
@@ -474,10 +487,11 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
         heldout_metrics = _heldout_metrics(model, heldout, time_input)
         # the graph's own figures replace the caller's test and raw; the rest (fit's rigid floor) stays
         info["test_metrics"] = {**(info.get("test_metrics") or {}), **heldout_metrics}
-    _set_metadata(model, info, measured, reference, t, time_input)
+    training_correction = _set_metadata(model, info, measured, reference, t, time_input)
 
     path = Path(path)
     data = _write_model(model, path, write)
     counts = op_counts(model)
     return {"path": str(path), "metadata": info, "op_counts": counts, "n_nodes": sum(counts.values()),
-            "file_size": len(data), "parity": parity_report, "heldout_metrics": heldout_metrics}
+            "file_size": len(data), "parity": parity_report, "heldout_metrics": heldout_metrics,
+            "training_correction": training_correction}

@@ -175,3 +175,31 @@ def test_a_yaw_only_session_exports_and_a_tilt_stays_near_the_correction(tmp_pat
     tilted = np.concatenate([M[:, :3], quat_multiply(M[:, 3:], tilt[None])], axis=1)
     moved = np.max(np.linalg.norm(model.predict(tilted)[:, :3] - M[:, :3], axis=1))
     assert moved <= 3.0 * largest, (moved, largest)
+
+
+def test_fit_says_where_a_model_extrapolates(tmp_path, capsys):
+    """A PMC in eaa fitted on Exp II (yaw only; the CV keeps its tilt terms) moves poses of
+    other orientations by metres, which the runtimes accept (they bound positions, not
+    orientations): `fit` says so, with the figures. onnxruntime on the written file is the
+    truth of the claim; on Exp III (every orientation) nothing is said."""
+    from posecorr.cli import main
+    from posecorr.data import write_table
+    from posecorr.export.parity import run_onnx
+    from posecorr.simulate import simulate
+
+    said = {}
+    for experiment, rep in ((2, "eaa"), (3, "zhou")):
+        table = simulate(experiment, seed=0).table
+        data, model = tmp_path / f"e{experiment}.csv", tmp_path / f"e{experiment}.onnx"
+        write_table(table, data)
+        capsys.readouterr()
+        assert main(["fit", str(data), "--method", "pmc", "--representation", rep, "-o", str(model)]) == 0
+        said[experiment] = [line for line in capsys.readouterr().out.splitlines() if "it extrapolates" in line]
+        tilted = table.measured.copy()
+        tilted[:, 3:] = rotations.matrix_to_quat(rotations.quat_to_matrix(tilted[:, 3:]) @ rotations.rotvec_to_matrix(
+            np.array([0.5, 0.0, 0.0])))
+        moved = np.linalg.norm(run_onnx(model, tilted)[:, :3] - tilted[:, :3], axis=1).max()
+        largest = np.linalg.norm(run_onnx(model, table.measured)[:, :3] - table.measured[:, :3], axis=1).max()
+        assert (moved > 10 * largest) == (experiment == 2), (experiment, moved, largest)
+    assert len(said[2]) == 1 and " times its largest on the training poses " in said[2][0], said
+    assert said[3] == [], said

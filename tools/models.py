@@ -306,7 +306,7 @@ def rewrite_metadata(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
         meta["split"] = split_text(data["split_seed"])
         # a box already recorded stays as it is (its last digits may differ on this BLAS)
         box = json.loads(meta["input_bounds"]) if "input_bounds" in meta else input_bounds(M[tr])
-        reach = model_reach(path, M[tr], box)
+        reach, _ = model_reach(path, M[tr], box)
         meta["input_bounds"] = meta.get("input_bounds") or encode_value(box)
         meta["correction_reach"] = encode_value(reach)
         meta[digest.KEY] = digest.PLACEHOLDER

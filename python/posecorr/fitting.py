@@ -61,6 +61,25 @@ def export_fit(report: Any, table: Any, output: str | Path, write: Any = None) -
     return exported
 
 
+
+# A model whose reach (its largest correction on poses the runtimes accept, with the reach's
+# margin) is this many times its largest correction on the training poses extrapolates.
+EXTRAPOLATION_FACTOR = 10.0
+
+
+def extrapolation_note(exported: dict[str, Any]) -> str | None:
+    """Words for a model that moves poses unlike its training poses far more than it moves
+    those (a core fitted on orientations of one axis, turned about another), which the
+    runtimes accept: they refuse positions outside input_bounds, not orientations."""
+    training = exported.get("training_correction")
+    reach = (exported.get("metadata") or {}).get("correction_reach")
+    if not training or not reach or reach[0] <= EXTRAPOLATION_FACTOR * training[0]:
+        return None
+    return (f"on poses unlike its training poses (any orientation, positions in input_bounds) this model's "
+            f"corrections reach {reach[0]:.3g} m, {reach[0] / training[0]:.0f} times its largest on the "
+            f"training poses ({1e3 * training[0]:.3g} mm): it extrapolates, and the runtimes accept those "
+            "orientations; run it near the orientations it was fitted on")
+
 def write_fit(report: Any, table: Any, data_path: str | Path, output: str | Path, effects: list[str],
               save: str | Path | None = None, spec: Any = None, seed: int | None = None) -> FitFiles:
     """The model file, the saved estimator (when `save`) and the ledger line, all or none: the files reach the disk, then the ledger line,

@@ -101,6 +101,7 @@ def _parse_cv(text: str | None) -> Any:
 def run(args: argparse.Namespace) -> None:
     from ..analysis.ledger import ledger_path
     from ..safeio import check_sidecar
+    from ..fitting import extrapolation_note
     from ..train.pipeline import fit_table
 
     apply_threads(args)
@@ -114,6 +115,9 @@ def run(args: argparse.Namespace) -> None:
     if chosen_network:
         report.notes.insert(0, chosen_network)
     exported = _export(args, report, table, effects, spec)
+    extrapolates = extrapolation_note(exported)
+    if extrapolates:
+        report.notes.append(extrapolates)
     effects_json = report.model.physics_.describe() if report.model.physics_ is not None else {}
     emit(args, _payload(args, report, exported, effects_json),
          lambda: _text(args, table, effects, report, exported, effects_json))

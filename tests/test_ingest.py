@@ -273,6 +273,22 @@ def test_streams_that_do_not_overlap(recording, tmp_path) -> None:
                    "late.csv", "do not overlap")
 
 
+def test_a_joint_stream_too_short_for_the_offset_is_refused_with_its_length(tmp_path) -> None:
+    """One joint row and one tracker row (the documented columns): the offset search read the
+    second point of a speed grid that had none (IndexError, exit 1). Refused in one line with
+    the stream's length, what the estimate takes and --offset; given it, the log is read on."""
+    path = tmp_path / "short.csv"
+    path.write_text("t,q1,q2,q3,q4,q5,q6,x,y,z,qw,qx,qy,qz\n"
+                    "0,0,-1.5708,1.5708,0,1.5708,0,,,,,,,\n"
+                    "0.001,,,,,,,0.1,0.2,0.3,1,0,0,0\n")
+    table = str(tmp_path / "t.csv")
+    one_line_error(posecorr("ingest", str(path), "-o", table),
+                   "short.csv: the joint stream is too short to find the clock offset: it spans 0 s (1 joint state), "
+                   "and the estimate takes at least 0.1 s of the robot's motion; give --offset, the tracker clock "
+                   "minus the robot's")
+    one_line_error(posecorr("ingest", str(path), "-o", table, "--offset", "0.001"), "short.csv: no still segment")
+
+
 def test_bad_csv_cell_names_row_and_column(recording, tmp_path) -> None:
     path = write_recording(recording, tmp_path / "rec.csv")
     lines = path.read_text().splitlines()

@@ -6,15 +6,16 @@ import json
 import os
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from posecorr.data import read_table
+from posecorr.data import read_table, write_table
 from posecorr.ingest import IngestError, IngestOptions, JointStream, PoseStream, ingest
-from posecorr.ingest.csvlog import read_csv_log, write_csv_log
+from posecorr.ingest.csvlog import CsvColumns, read_csv_log, write_csv_log
 from posecorr.ingest.segments import StillOptions, find_segments, gate, quaternion_mean
 from posecorr.recording import RecordingOptions, simulate_recording, write_recording
 from posecorr.simulate import simulate
@@ -302,6 +303,43 @@ def test_bad_csv_cell_names_row_and_column(recording, tmp_path) -> None:
     path.write_text("\n".join(lines) + "\n")
     with pytest.raises(IngestError, match=r"row 8, column q2: expected a number, got 'abc'"):
         read_csv_log([path])
+
+
+def test_a_paired_table_given_to_ingest_is_sent_to_fit(recording, tmp_path) -> None:
+    """A table `posecorr fit` reads, given to ingest, was refused for a recording's column it
+    lacks (`no time column 't'`; with t, as simulate and ingest write it, `no joint samples`),
+    which did not say that the file needs no ingest."""
+    bare = tmp_path / "bare.csv"
+    write_table(replace(recording.table, extras={}), bare)
+    one_line_error(posecorr("ingest", str(bare), "-o", str(tmp_path / "t.csv")),
+                   "bare.csv: row 1: columns meas_x..ref_z: this file is already a paired pose table, not a "
+                   "recording; give it to `posecorr fit` directly")
+    joints = {f"q{i}": np.zeros(recording.table.n) for i in range(1, 7)}
+    ingested = tmp_path / "ingested.csv"
+    write_table(replace(recording.table, extras={**recording.table.extras, **joints}), ingested)
+    with pytest.raises(IngestError, match=r"ingested\.csv: row 1: columns meas_x\.\.ref_z: this file is already a "
+                                          r"paired pose table"):
+        read_csv_log([ingested])
+
+
+def test_stream_columns_named_otherwise_are_listed_with_the_option_that_reads_them(recording, tmp_path) -> None:
+    """A log whose joint columns are j1..j6 said `no joint samples (columns t, q1, ..., q6)`:
+    the columns found are named, and --joint-cols, which reads them (the tracker's: --pose-cols)."""
+    lines = write_recording(recording, tmp_path / "rec.csv").read_text().splitlines()
+    renamed = tmp_path / "j.csv"
+    assert lines[0] == "t,q1,q2,q3,q4,q5,q6,x,y,z,qw,qx,qy,qz"
+    renamed.write_text("\n".join(["t,j1,j2,j3,j4,j5,j6,x,y,z,qw,qx,qy,qz"] + lines[1:]) + "\n")
+    one_line_error(posecorr("ingest", str(renamed), "-o", str(tmp_path / "t.csv")),
+                   "j.csv: no joint columns q1, q2, q3, q4, q5, q6 in the header (found t, j1, j2, j3, j4, j5, j6, "
+                   "x, y, z, qw, qx, qy, qz); name the joint-angle columns with --joint-cols, comma-separated in "
+                   "kinematic order")
+    joints, _ = read_csv_log([renamed], CsvColumns(joints=tuple(f"j{i}" for i in range(1, 7))))
+    np.testing.assert_array_equal(joints.q, recording.joints.q)
+    with pytest.raises(IngestError, match=r"rec\.csv: no tracker columns px, py, pz, ow, ox, oy, oz in the header "
+                                          r"\(found t, q1, .*, qz\); name the tracker's position and quaternion "
+                                          r"columns with --pose-cols, comma-separated in the order x, y, z, qw, qx, "
+                                          r"qy, qz$"):
+        read_csv_log([tmp_path / "rec.csv"], CsvColumns(pose=("px", "py", "pz", "ow", "ox", "oy", "oz")))
 
 
 def test_an_offset_that_is_given_is_used(recording, tmp_path) -> None:

@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data import CHUNK_ROWS, TableError, csv_records, header_record, quaternion_faults, warn_comments
+from ..data import (CHUNK_ROWS, MEAS_POS, REF_POS, REQUIRED, TableError, csv_records, header_record,
+                    quaternion_faults, warn_comments)
 from .progress import progress_bar
 from .streams import IngestError, JointStream, PoseStream
 
@@ -36,8 +37,8 @@ def _open(path: Path):
         raise IngestError(f"{path}: cannot open: {exc.strerror}") from None
 
 
-def _read_block(path: Path, columns: CsvColumns) -> dict[str, np.ndarray | None]:
-    """{'joints': (t, values) or None, 'pose': ...} of one file. Read in chunks of
+def _read_block(path: Path, columns: CsvColumns) -> tuple[list[str], dict[str, np.ndarray | None]]:
+    """(the header, {'joints': (t, values) or None, 'pose': ...}) of one file. Read in chunks of
     CHUNK_ROWS records, each parsed to numbers before the next is read: a long log's cells as
     Python strings would take ten times the file's size."""
     comment_rows: list[int] = []
@@ -48,6 +49,7 @@ def _read_block(path: Path, columns: CsvColumns) -> dict[str, np.ndarray | None]
             if header_row is None or header is None:
                 raise IngestError(f"{path}: empty file, expected a header row")
             header = [h.strip() for h in header]
+            _refuse_paired_table(path, header_row, header, columns)
             if columns.time not in header:
                 raise IngestError(f"{path}: row {header_row}: no time column {columns.time!r} "
                                   f"(header: {', '.join(header)})")
@@ -67,7 +69,16 @@ def _read_block(path: Path, columns: CsvColumns) -> dict[str, np.ndarray | None]
         file_rows = np.concatenate([r for _, r in parts[key]]) if parts[key] else np.zeros(0, np.int64)
         _check_stream(path, key, names, values, file_rows)
         out[key] = values
-    return out
+    return header, out
+
+
+def _refuse_paired_table(path: Path, header_row: int, header: list[str], columns: CsvColumns) -> None:
+    """IngestError on a table that is paired already (what ingest writes and `posecorr fit`
+    reads) given as a recording: read as one, it was refused for a recording's column it lacks,
+    which did not say that it needs no ingest."""
+    if set(REQUIRED) <= set(header) and not set(columns.pose) <= set(header):
+        raise IngestError(f"{path}: row {header_row}: columns {MEAS_POS[0]}..{REF_POS[-1]}: this file is already a "
+                          "paired pose table, not a recording; give it to `posecorr fit` directly")
 
 
 def _wanted_columns(path: Path, header_row: int, header: list[str],
@@ -162,8 +173,10 @@ def _numbers(path: Path, block: np.ndarray, rows: np.ndarray, names: tuple[str, 
 def read_csv_log(paths: list[str | Path], columns: CsvColumns = CsvColumns()) -> tuple[JointStream, PoseStream]:
     """The joint and tracker streams of one or two CSV logs (layout in the module docstring)."""
     joints = pose = None
+    found: dict[str, None] = {}         # the files' header columns, in order
     for path in map(Path, paths):
-        block = _read_block(path, columns)
+        header, block = _read_block(path, columns)
+        found.update(dict.fromkeys(header))
         for key, value in block.items():
             if value is None or len(value) == 0:
                 continue
@@ -177,10 +190,22 @@ def read_csv_log(paths: list[str | Path], columns: CsvColumns = CsvColumns()) ->
                 pose = PoseStream(value[:, 0], value[:, 1:4], value[:, 4:8], source=str(path))
     names = ", ".join(map(str, paths))
     if joints is None:
-        raise IngestError(f"{names}: no joint samples (columns {columns.time}, {', '.join(columns.joints)})")
+        raise IngestError(_no_samples(names, "joint", columns.time, columns.joints, list(found),
+                                      "the joint-angle columns with --joint-cols, comma-separated in kinematic order"))
     if pose is None:
-        raise IngestError(f"{names}: no tracker samples (columns {columns.time}, {', '.join(columns.pose)})")
+        raise IngestError(_no_samples(names, "tracker", columns.time, columns.pose, list(found),
+                                      "the tracker's position and quaternion columns with --pose-cols, "
+                                      f"comma-separated in the order {', '.join(CsvColumns.pose)}"))
     return joints, pose
+
+
+def _no_samples(names: str, stream: str, time: str, wanted: tuple[str, ...], found: list[str], option: str) -> str:
+    """Why the files give a stream no sample: no row fills its columns, or (a log that names them
+    otherwise) the header has none of them: then the columns found, and the option that maps them."""
+    if wanted[0] in found:
+        return f"{names}: no {stream} samples (columns {time}, {', '.join(wanted)})"
+    return (f"{names}: no {stream} columns {', '.join(wanted)} in the header (found {', '.join(found)}); "
+            f"name {option}")
 
 
 def write_csv_log(path: Path, joints: JointStream, tracker: PoseStream, columns: CsvColumns = CsvColumns()) -> None:

@@ -482,3 +482,30 @@ def test_a_ray_address_where_nothing_listens_is_refused_at_once():
                                               r"\(Connection refused\): start the head there"):
         run_sweep(synthetic_table(), [ModelSpec("pmc", "zhou")], repeats=2, workers=1, progress=False,
                   ray_address=f"127.0.0.1:{port}")
+
+
+def test_ray_auto_with_no_cluster_running_is_refused_at_once(tmp_path, monkeypatch, capsys):
+    """`--ray auto` with no cluster: Ray's own error came through, naming an --address flag
+    posecorr does not have. One line now, before any run: how to start one, or what to give."""
+    pytest.importorskip("ray")
+    from ray._private import services
+
+    from posecorr.cli import main
+    from posecorr.data import write_table
+
+    # Nothing for "auto" to find (it never starts a cluster): no RAY_ADDRESS, no address file of
+    # a `ray start` (Ray's temporary folder is an empty one), no raylet among the processes
+    # (tests/test_sweep_ray.py may run a cluster alongside).
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    monkeypatch.setenv("RAY_TMPDIR", str(tmp_path))
+    monkeypatch.setattr(services, "_find_address_from_flag", lambda flag: set())    # Ray's scan of the processes
+    services.find_gcs_addresses.cache_clear()
+    data = tmp_path / "poses.csv"
+    write_table(synthetic_table(), data)
+    store = tmp_path / "s.jsonl"
+    assert main(["sweep", str(data), "--representations", "zhou", "--activations", "purelin", "--networks", "1/1",
+                 "--epochs", "2", "--repeats", "2", "--store", str(store), "--ray", "auto"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"posecorr sweep: error: {data}: --ray auto: no Ray cluster is running on this machine and RAY_ADDRESS is "
+        "unset: start one (ray start --head) or give its head's address (--ray HOST:PORT)"]
+    assert not store.exists()

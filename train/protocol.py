@@ -550,11 +550,14 @@ RAY_PROBE_S = 5.0
 
 
 def _probe_ray_head(address: str) -> None:
-    """ConnectionError in one line where HOST:PORT (or ray://HOST:PORT) accepts no connection;
-    other addresses ("auto") are Ray's to resolve."""
+    """ConnectionError in one line where HOST:PORT (or ray://HOST:PORT) accepts no connection
+    or "auto" finds no cluster; other addresses ("local") are Ray's to resolve."""
     import re
     import socket
 
+    if address == "auto":
+        _find_ray_cluster()
+        return
     found = re.fullmatch(r"(?:ray://)?\[?([^\[\]/]+?)\]?:(\d+)", address)
     if found is None:
         return
@@ -565,6 +568,20 @@ def _probe_ray_head(address: str) -> None:
         reason = "timed out" if isinstance(exc, TimeoutError) else (exc.strerror or type(exc).__name__)
         raise ConnectionError(f"--ray {address}: nothing answers at {host}:{port} ({reason}): start the head there "
                               f"(ray start --head --port {port}) or give its address") from None
+
+
+def _find_ray_cluster() -> None:
+    """ConnectionError in one line where `--ray auto` finds no cluster: Ray's own error names an
+    --address flag posecorr does not have. Looked up as ray.init will (RAY_ADDRESS, the address
+    the last `ray start` left, a raylet among the processes) by the function it calls, without
+    connecting: Ray has no public one."""
+    from ray._private.services import canonicalize_bootstrap_address
+
+    try:
+        canonicalize_bootstrap_address("auto")
+    except ConnectionError:
+        raise ConnectionError("--ray auto: no Ray cluster is running on this machine and RAY_ADDRESS is unset: "
+                              "start one (ray start --head) or give its head's address (--ray HOST:PORT)") from None
 
 
 def _require_training_rows(n: int, configs: Sequence[ModelSpec]) -> None:

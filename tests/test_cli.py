@@ -811,6 +811,22 @@ def test_an_output_over_a_file_of_the_other_kind_is_refused(tmp_path) -> None:
     assert {path: path.read_bytes() for path in kept} == kept
 
 
+def test_diagnose_propose_refuses_a_hand_written_effect_file(tmp_path) -> None:
+    """`diagnose --propose FILE` replaced a hand-written effect file (a copy of
+    examples/space_strain.py) without a word, as an effect file is what it writes; now only an
+    earlier proposal is replaced (tests/test_propose.py), this one is refused before any work,
+    in one line that names it and what to do, and it is intact."""
+    table, mine = tmp_path / "session.csv", tmp_path / "mine.py"
+    assert posecorr("simulate", "--session", "--poses", "12", "--seed", "1", "-o", str(table)).returncode == 0
+    mine.write_bytes((Path(__file__).parents[1] / "examples" / "space_strain.py").read_bytes())
+    kept = mine.read_bytes()
+    out = posecorr("diagnose", str(table), "--effects", "station,mount", "--propose", str(mine))
+    assert out.returncode == 2 and out.stderr.strip().splitlines() == [
+        f"posecorr diagnose: error: {mine} is an effect file that posecorr diagnose did not write: refusing to "
+        "replace it (give another name, or remove it)"], out.stderr
+    assert mine.read_bytes() == kept
+
+
 def test_a_model_with_a_user_effect_names_its_effect_file_before_the_work(tmp_path) -> None:
     """diagnose/report --model on a model fitted with an --effect-file, given without it,
     blamed the table ("session.csv: unknown effect 'z_scale'"), report only after rebuilding
@@ -864,12 +880,13 @@ def test_diagnosis_options_are_checked_first_and_say_what_they_did(tmp_path) -> 
     assert diagnosed[0] == [untimed] and diagnosed[1] == [
         untimed, f"--effects station, sweep are not {model}'s (mount, station): the candidates are ranked against a "
         "refit of --effects; the model's own residuals feed the residual structure by feature"]
-    stale = tmp_path / "proposed.py"
-    stale.write_text("old\n")
+    stale = tmp_path / "proposed.py"   # an earlier proposal: the one effect file --propose may replace
+    old = '"""Proposed by `posecorr diagnose session.csv --effects station --propose proposed.py`.\n"""\n'
+    stale.write_text(old)
     out = posecorr("diagnose", str(table), "--effects", "station,mount", "--propose", str(stale))
     assert out.returncode == 0, out.stderr
     assert "no proposal: " in out.stdout and f"{stale}: not written (the file there is from before)" in out.stdout
-    assert stale.read_text() == "old\n"
+    assert stale.read_text() == old
 
 
 def test_network_options_go_with_the_mlp(tmp_path) -> None:

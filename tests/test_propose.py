@@ -67,7 +67,11 @@ def test_a_form_wins_over_the_catalogue_effects_that_absorb_part_of_it():
 
 
 def test_cli_writes_an_effect_file_that_fit_accepts_unchanged(tmp_path, capsys):
+    from argparse import Namespace
+
     from posecorr.cli import main
+    from posecorr.cli.diagnose import VERB as DIAGNOSE
+    from posecorr.cli.failures import check_kinds
 
     data = tmp_path / "session.csv"
     write_table(study.session("attitude_bias", 2, "robot", n=40), data)
@@ -85,6 +89,12 @@ def test_cli_writes_an_effect_file_that_fit_accepts_unchanged(tmp_path, capsys):
     if proposal["parameters"] < 9:
         assert f"terms = {tuple(proposal['term_indices']['orientation_bias'])}" in text
     compile(text, str(proposal_file), "exec")
+    # A second diagnosis may replace it, under any name (its first line, the command, holds
+    # commas: without a .py it was taken for a pose table); a hand-written one is refused (test_cli).
+    bare = tmp_path / "proposal"
+    bare.write_text(text)
+    for path in (proposal_file, bare):
+        check_kinds(Namespace(verb="diagnose", data=data, model=None, propose=path), DIAGNOSE)
     out = tmp_path / "m.onnx"
     assert main(["fit", str(data), "--effect-file", str(proposal_file), "--effects",
                  "station,mount,session_orientation_bias", "--method", "none", "--cv", "loo", "-o", str(out),

@@ -17,6 +17,11 @@ import numpy as np
 from ..effects import get_effect
 
 PREFIX = "session_"
+# A proposal's first words, then the command that wrote it; one that `posecorr diagnose` wrote
+# opens with OPENING: `diagnose --propose` replaces such a file (an earlier proposal) and
+# refuses any other effect file (`cli.failures`: the user's own code).
+PROPOSED_BY = '"""Proposed by `'
+OPENING = PROPOSED_BY + "posecorr diagnose "
 
 
 def _proposed_name(form: str) -> str:
@@ -271,7 +276,7 @@ def effect_file_text(proposal: dict[str, Any], command: str, data_name: str,
     """A ready effect file: the proposal's forms as user effects with their fitted defaults;
     `effect_files` are the diagnosis's own, which define effects the proposal keeps."""
     forms = proposal["forms"]
-    head = [f'"""Proposed by `{command}`.', "",
+    head = [f'{PROPOSED_BY}{command}`.', "",
             f"Held-out gain: the whitened error falls by {proposal['gain']:.1%} over the diagnosis's folds "
             f"(rmse_pos {1e3 * proposal['cv_rmse_pos_before']:.3g} -> {1e3 * proposal['cv_rmse_pos_after']:.3g} mm); "
             f"{proposal['parameters']} parameters.", ""]

@@ -35,8 +35,9 @@ class Verb:
     outputs: {argument name: what it writes, one of `KINDS`} for the files it writes
     (checked before it runs; every other path argument is an input). A file already at an
     output path that is clearly of another kind (`failures.file_kind`: a table where a page
-    would go) is refused, not replaced. needs: the extra it needs (`failures.EXTRA_MODULES`),
-    "" for none. folder_inputs: inputs that may be folders. checks_itself: path arguments it
+    would go) is refused, not replaced, as is one of its own kind that the verb did not write
+    (a hand-written effect file where `diagnose --propose` would go). needs: the extra it
+    needs (`failures.EXTRA_MODULES`), "" for none. folder_inputs: inputs that may be folders. checks_itself: path arguments it
     checks itself. folder_output: its output is a folder it fills. models, tables: the
     arguments that name a model (ONNX) and a pose table (CSV); a file clearly of the other
     kind is refused before the verb runs, with the order of its arguments (`apply DATA MODEL`).

@@ -63,6 +63,8 @@ def check_paths(args: argparse.Namespace, verb: Verb) -> None:
         check_output(out, ins + outs[:i])
 
 
+# The first bytes of a file, which decide its kind where they can.
+_HEAD_BYTES = 4096
 # What a file's name says it holds, where its first bytes leave it open.
 _KIND_BY_NAME = {".onnx": MODEL, ".csv": TABLE, ".py": EFFECT_FILE, ".html": PAGE, ".htm": PAGE, ".c": SOURCE,
                  ".h": SOURCE}
@@ -73,14 +75,15 @@ def file_kind(path: Path) -> str | None:
     """What the file clearly holds (one of `common.KINDS`: a model, a table, `fit --save`'s
     estimator, C source, a report page, an effect file, JSON lines), None where unsure. Its
     first bytes decide where they can (the saved estimator's magic, ONNX's opening, an HTML
-    page's or a JSON object's opening; other text is never a model), then its name (.onnx,
-    .csv, .py, .html, .c), and text whose first line holds a comma is a table."""
+    page's or a JSON object's opening, a proposal's docstring; other text is never a model),
+    then its name (.onnx, .csv, .py, .html, .c), and text whose first line holds a comma is a
+    table."""
     from ..controller.onnx_meta import starts_like_onnx
     from ..saved import MAGIC
 
     try:
         with open(path, "rb") as handle:
-            head = handle.read(4096)
+            head = handle.read(_HEAD_BYTES)
     except OSError:
         return None   # the verb's own reading says why
     by_name = _KIND_BY_NAME.get(path.suffix.lower())
@@ -93,11 +96,30 @@ def file_kind(path: Path) -> str | None:
         return by_name if by_name in (MODEL, TABLE) else None
     if text.lstrip()[:15].lower().startswith(("<!doctype html", "<html")):
         return PAGE
+    if _is_proposal(text):   # whatever its name: its first line, the command, holds commas
+        return EFFECT_FILE
     if text.lstrip().startswith("{"):      # JSON lines: a sweep's store, a ledger
         return STORE
     if by_name not in (None, MODEL):
         return by_name
     return TABLE if "," in text.split("\n", 1)[0] else None
+
+
+def _is_proposal(text: str) -> bool:
+    """Whether a file's text opens as the proposals `diagnose --propose` writes (their docstring)."""
+    from ..analysis.proposal import OPENING
+
+    return text.startswith(OPENING)
+
+
+def _proposal_file(path: Path) -> bool:
+    with open(path, "rb") as handle:
+        return _is_proposal(_text(handle.read(_HEAD_BYTES)))
+
+
+# The kinds a verb replaces only where the file is its own, and how its own are known: an
+# effect file is the user's code unless `diagnose --propose` wrote it.
+_REPLACED_IF_OWN = {EFFECT_FILE: _proposal_file}
 
 
 def _a(kind: str) -> str:
@@ -132,14 +154,9 @@ def check_kinds(args: argparse.Namespace, verb: Verb) -> None:
     DATA MODEL`, in report's order), is refused before any work, with the verb's order: the
     file's own error would say what it is not ("missing column meas_x"), not the swap; and
     so is an output that would replace a file of another kind than the verb writes there
-    (`Verb.outputs`). Runs after `check_paths`: a FIFO is refused before it could block this
-    read."""
-    for name, want in verb.outputs.items():
-        path = getattr(args, name, None)
-        kind = file_kind(Path(path)) if path is not None and Path(path).is_file() else None
-        if kind is not None and kind != want:   # a page written over a table, a table over an effect file
-            raise CliError(f"{path} is {_a(kind)}, and posecorr {args.verb} writes {_a(want)} there: refusing to "
-                           "replace it (choose another output name)")
+    (`Verb.outputs`), or one of its kind that it did not write. Runs after `check_paths`: a
+    FIFO is refused before it could block this read."""
+    _check_outputs(args, verb)
     expected = {**dict.fromkeys(verb.models, MODEL), **dict.fromkeys(verb.tables, TABLE)}
     found = {name: file_kind(path) for name in expected if isinstance(path := getattr(args, name, None), Path)}
     wrong = {name for name, kind in found.items() if kind is not None and kind != expected[name]}
@@ -155,6 +172,20 @@ def check_kinds(args: argparse.Namespace, verb: Verb) -> None:
         raise CliError(f"{path} is {_a(kind)}, not the {want} posecorr {args.verb} takes")
     usage = " ".join(["posecorr", args.verb, *(words for _, _, words in operands)])
     raise CliError(f"{path} is {_a(kind)}, not {_a(want)}: the order is {usage}")
+
+
+def _check_outputs(args: argparse.Namespace, verb: Verb) -> None:
+    """An output over a file of another kind than the verb writes there, or over one of its
+    own kind that it did not write (`_REPLACED_IF_OWN`), is refused."""
+    for name, want in verb.outputs.items():
+        path = getattr(args, name, None)
+        kind = file_kind(Path(path)) if path is not None and Path(path).is_file() else None
+        if kind is not None and kind != want:   # a page written over a table, a table over an effect file
+            raise CliError(f"{path} is {_a(kind)}, and posecorr {args.verb} writes {_a(want)} there: refusing to "
+                           "replace it (choose another output name)")
+        if kind in _REPLACED_IF_OWN and not _REPLACED_IF_OWN[kind](Path(path)):   # the user's own effect file
+            raise CliError(f"{path} is {_a(kind)} that posecorr {args.verb} did not write: refusing to replace it "
+                           "(give another name, or remove it)")
 
 
 def missing_module_line(exc: ModuleNotFoundError) -> str:

@@ -574,9 +574,36 @@ def test_a_bad_option_value_names_the_option_not_the_table(tmp_path, capsys) -> 
     for verb, extra in (("fit", ["-o", out]), ("diagnose", [])):
         assert _refusal(capsys, verb, str(data), "--effects", "station,mout", *extra) == (
             f"posecorr {verb}: error: --effects: unknown effect 'mout' (did you mean mount?); "
-            f"expected one of {', '.join(fitted)}")
+            f"expected one of {', '.join(fitted)}; for an effect of your own, give the --effect-file that defines it")
     assert _refusal(capsys, "fit", "/no/such.csv", "--cv", "lo", "-o", out).startswith(
         "posecorr fit: error: /no/such.csv")  # a missing table is still found first, by its path check
+
+
+def test_an_effect_of_ones_own_without_its_effect_file_is_told_to_give_it(tmp_path, capsys) -> None:
+    """`fit --effects station,mount,session_strain` without the --effect-file that defines
+    session_strain (a proposal of diagnose) only offered "did you mean strain?": the likely
+    fault is the file forgotten, which every verb's --effects now names, in the words of
+    diagnose and report --model; and with the file the name is taken."""
+    from posecorr.cli import main
+    from posecorr.effects import unregister_effect
+
+    data, mine = tmp_path / "session.csv", tmp_path / "mine.py"
+    write_table(simulate(2, seed=0).table.subset(np.arange(20)), data)
+    mine.write_text("from posecorr.forms import Strain\n\n\nclass SessionStrain(Strain):\n"
+                    "    name = 'session_strain'\n    generic = False\n")
+    out = str(tmp_path / "a.onnx")
+    for verb, extra in (("fit", ["-o", out]), ("diagnose", [])):
+        said = _refusal(capsys, verb, str(data), "--effects", "station,mount,session_strain", *extra)
+        assert said.startswith(f"posecorr {verb}: error: --effects: unknown effect 'session_strain' (did you mean "
+                               "strain?); expected one of "), said
+        assert said.endswith("; for an effect of your own, give the --effect-file that defines it"), said
+    said = _refusal(capsys, "simulate", "--session", "--effects", "session_strain", "-o", str(tmp_path / "s.csv"))
+    assert said.endswith("; for an effect of your own, give the --effect-file that defines it"), said
+    try:
+        assert main(["fit", str(data), "--effect-file", str(mine), "--effects", "station,mount,session_strain",
+                     "--method", "none", "--cv", "loo", "-o", out]) == 0
+    finally:
+        unregister_effect("session_strain")   # as the next process finds the catalogue
 
 
 def test_an_effect_named_twice_or_an_empty_name_is_refused_by_every_verb(tmp_path, capsys) -> None:

@@ -674,14 +674,23 @@ def get_effect(name: str) -> Effect:
     return EFFECTS.lookup(name)
 
 
+def defined_by_effect_file(count: int = 1) -> str:
+    """What a message says of `count` effects outside the catalogue: one phrasing wherever one
+    is named (an --effects list, a model's metadata)."""
+    return f"give the --effect-file that defines {'it' if count == 1 else 'them'}"
+
+
 def listed_effect(name: str, seen: Iterable[str], text: str, fitted: bool = False) -> Effect:
     """The effect an item of the list `text` names, the items before it `seen`: ValueError
     where the name is empty (two separators in a row, or one at an end), unknown (naming the
-    effects a model fits where `fitted`, else every effect) or given twice, which a fit would
-    take as two copies of one effect and a simulation as one."""
+    effects a model fits where `fitted`, else every effect, and the --effect-file an effect of
+    the user's own needs) or given twice, which a fit would take as two copies of one effect
+    and a simulation as one."""
     if not name:
         raise ValueError(f"an effect name is empty in {text!r} (two separators in a row, or one at an end)")
-    effect = EFFECTS.lookup(name, [n for n, e in EFFECTS.items() if not e.random] if fitted else None)
+    # a name of the user's own, its --effect-file forgotten, is as likely as a misspelling
+    effect = EFFECTS.lookup(name, [n for n, e in EFFECTS.items() if not e.random] if fitted else None,
+                            hint=f"for an effect of your own, {defined_by_effect_file()}")
     if name in seen:
         raise ValueError(f"effect {name!r} is given twice in {text!r}")
     return effect

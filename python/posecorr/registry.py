@@ -19,12 +19,13 @@ class Registry(dict):
         self[name] = entry
         return entry
 
-    def lookup(self, name: str, among: Sequence[str] | None = None) -> Any:
+    def lookup(self, name: str, among: Sequence[str] | None = None, hint: str = "") -> Any:
         """The entry `name`; a refusal names `among` (default: every entry), the entries the
-        asking option takes, as the likely and the expected names."""
+        asking option takes, as the likely and the expected names, then `hint`: what else the
+        asking option's user may have meant."""
         try:
             return self[name]
         except KeyError:
             known = list(self) if among is None else list(among)
             raise ValueError(f"unknown {self.kind} {name!r}{did_you_mean(str(name), known)}; "
-                             f"expected one of {', '.join(known)}") from None
+                             f"expected one of {', '.join(known)}{'; ' + hint if hint else ''}") from None

@@ -233,15 +233,14 @@ def model_effect_names(path: Path, info: dict[str, Any]) -> list[str]:
     refit: one outside the catalogue (a user effect whose --effect-file was not given) is the
     model's to name, before any work, not the table's once the refit looks it up."""
     from ..analysis.interpretation import effect_list
-    from ..effects import EFFECTS
+    from ..effects import EFFECTS, defined_by_effect_file
 
     names = effect_list(info.get("effects"))   # the file's author wrote it: any type
     missing = [name for name in names if name not in EFFECTS]
     if missing:
         one = len(missing) == 1
         raise CliError(f"{path}: uses effect{'' if one else 's'} {', '.join(repr(n) for n in missing)}, which "
-                       f"{'is' if one else 'are'} not in the catalogue: give the --effect-file that defines "
-                       f"{'it' if one else 'them'}")
+                       f"{'is' if one else 'are'} not in the catalogue: {defined_by_effect_file(len(missing))}")
     return names
 
 

@@ -382,6 +382,23 @@ def test_folds_too_small_to_fit_end_in_one_line_that_names_the_folds_that_fit(tm
         assert posecorr(verb, str(data), *extra, "--cv", "4", cwd=tmp_path).returncode == 0
 
 
+def test_more_folds_than_poses_end_in_one_line_that_names_the_most_there_are(tmp_path) -> None:
+    """`fit --cv 20` on 12 poses said "20 folds need at least 20 poses, got 12", after the
+    fit began, and not what to do: now before any work, with the folds that do, and they do."""
+    from posecorr.simulate import simulate_session
+
+    data, model = tmp_path / "twelve.csv", tmp_path / "m.onnx"
+    write_table(simulate_session(3, n=12).table, data)
+    fit = ("fit", str(data), "--effects", "station,mount", "--method", "none", "-o", str(model))
+    run = posecorr(*fit, "--cv", "20")
+    assert run.returncode == 2 and run.stderr.strip().splitlines() == [
+        f"posecorr fit: error: {data}: 12 rows, but 20 folds need at least 20: at most 12 folds (--cv 12), or "
+        "--cv loo"], run.stderr
+    assert not model.exists()
+    for cv in ("12", "loo"):
+        assert posecorr(*fit, "--cv", cv).returncode == 0
+
+
 def test_drift_on_a_table_without_time_is_refused_before_any_work(tmp_path) -> None:
     """Drift works on each pose's time: on a session with no t column, fit ran every fold
     and then failed at the export asking for a Python argument; now fit (every method) and

@@ -306,6 +306,11 @@ def test_folds_too_small_to_fit_are_refused_with_the_folds_that_fit() -> None:
     assert fewest_to_fit(5, LeaveOneOut(), nested=True) >= MIN_FIT_POSES
     require_enough_to_fit(6, KFold(3), nested=True)
     require_enough_to_fit(4, FixedSplit())  # the protocol's split: tables that small are cross-validated first
+    # more folds than rows said only "100 folds need at least 100 poses, got 50", once the fit began
+    with pytest.raises(ValueError, match=r"^50 rows, but 100 folds need at least 100: at most 50 folds \(--cv 50\), "
+                                         r"or --cv loo$"):
+        require_enough_to_fit(50, KFold(100))
+    require_enough_to_fit(50, KFold(50))
 
 
 def test_a_grid_the_split_cannot_train_is_refused_before_any_run(tmp_path):

@@ -172,11 +172,16 @@ def fewest_rows_to_fit(nested: bool = False) -> int:
 
 def require_enough_to_fit(n: int, plan: Plan, nested: bool = False) -> None:
     """ValueError when a fold of `plan` (and, `nested`, the choice made inside it) would fit on
-    fewer than MIN_FIT_POSES poses, naming the folds that would do, or the rows it takes."""
+    fewer than MIN_FIT_POSES poses, naming the folds that would do, or the rows it takes; or
+    when it asks for more folds than n rows, naming the most it takes."""
     if isinstance(plan, FixedSplit):
         return
     fewest = fewest_to_fit(n, plan, nested)
     if fewest >= MIN_FIT_POSES:
+        # more folds than rows: counted above as n folds of one pose each, which fit, the most there are
+        if isinstance(plan, KFold) and plan.k > n:
+            raise ValueError(f"{n} rows, but {plan.k} folds need at least {plan.k}: at most {n} folds (--cv {n}), "
+                             "or --cv loo")
         return
     where = "a choice made inside a fold (auto's)" if nested else "a fold"
     more = [k for k in range(int(getattr(plan, "k", n)) + 1, n + 1) if fewest_to_fit(n, KFold(k), nested) >= MIN_FIT_POSES]

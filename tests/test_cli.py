@@ -95,6 +95,29 @@ def test_simulate_does_what_its_options_say_or_refuses_them(tmp_path) -> None:
         assert not (tmp_path / "refused.csv").exists()
 
 
+def test_simulate_robot_takes_every_arm_that_kinematics_holds(tmp_path, capsys) -> None:
+    """docs/guides/sessions.md points --robot to `kinematics.UR_ARMS`, which holds the ur5 (and
+    the ur3, ur10, ...: Universal Robots' published DH parameters), but `--robot ur5` was
+    refused ("takes ur5e, ur10e or none"): each arm there carries the tracker, its flange
+    within the arm's reach, and the help names them."""
+    from posecorr.cli import build_parser, main
+    from posecorr.data import read_table
+    from posecorr.kinematics import UR_ARMS
+
+    for name, arm in UR_ARMS.items():
+        capsys.readouterr()
+        assert main(["simulate", "--session", "--robot", name, "--seed", "1", "-o", str(tmp_path / "s.csv"),
+                     "--json"]) == 0
+        payload = json.loads(capsys.readouterr().out)
+        assert payload["session"]["robot"] == name and 30 <= payload["n"] <= 60, payload["session"]
+        reach = sum(map(abs, arm.a)) + sum(arm.d)
+        distance = np.linalg.norm(read_table(tmp_path / "s.csv").ref_p, axis=1)
+        assert 0.5 * reach < distance.max() <= reach, (name, distance.max(), reach)
+    robot = next(a for a in next(a for a in build_parser()._actions if a.dest == "verb").choices["simulate"]._actions
+                 if a.dest == "robot")
+    assert f"a robot arm ({', '.join(UR_ARMS)}) carries the tracker" in robot.help
+
+
 def test_a_session_pins_a_full_pose_reference_or_a_tracker_set_down_by_hand(tmp_path, capsys) -> None:
     """`--position-only` could only switch position-only on and `--robot` took no "no robot":
     where the seed drew a position-only reference or a robot, a session could not be had
@@ -114,7 +137,8 @@ def test_a_session_pins_a_full_pose_reference_or_a_tracker_set_down_by_hand(tmp_
     assert session("--seed", "8")["robot"] == "ur10e"
     assert session("--seed", "8", "--robot", "none")["robot"] == ""
     assert _refusal(capsys, "simulate", "--session", "--robot", "kuka", "-o", str(tmp_path / "k.csv")) == (
-        "posecorr simulate: error: --robot takes ur5e, ur10e or none (a tracker set down by hand), got 'kuka'")
+        "posecorr simulate: error: --robot takes ur3, ur5, ur10, ur3e, ur5e, ur10e, ur16e or none (a tracker set "
+        "down by hand), got 'kuka'")
     assert _refusal(capsys, "simulate", "--experiment", "1", "--no-position-only", "-o", str(tmp_path / "k.csv")) == (
         "posecorr simulate: error: --no-position-only goes with --session: an experiment's table is the paper's "
         "protocol, its poses, orientations and times its own")

@@ -22,6 +22,7 @@ from . import geometry
 from .data import PoseTable
 from .effects import (EffectContext, Noise, apply_effects, checked_theta, get_effect, load_effect_file,
                       parse_effects_arg, sorted_effects)
+from .kinematics import UR_ARMS
 from .metrics import pose_metrics
 from .rotations import matrix_to_quat
 
@@ -167,10 +168,10 @@ class SessionSpec:
     unremovable: RMS (m) of a per-pose error no model removes (0: none; bad real sessions
     show 60-110 mm). The tracker reports in its own frame (any rotation, `offset` m away), from a
     lever arm of `lever` m on a mount turned by any rotation. robot: a robot arm of
-    `kinematics.UR_ARMS` ("ur5e", or the KUKA-sized "ur10e") carries the tracker on its flange
-    through random joint angles (30-60 poses, full orientation): the reference is the flange
-    pose, the mount the unknown flange-to-tracker offset of a hand-eye calibration; "" for a
-    tracker set down by hand. duration: the session's length in s, pose k measured at
+    `kinematics.UR_ARMS` (a drawn one: "ur5e", or the KUKA-sized "ur10e") carries the tracker
+    on its flange through random joint angles (30-60 poses, full orientation): the reference
+    is the flange pose, the mount the unknown flange-to-tracker offset of a hand-eye
+    calibration; "" for a tracker set down by hand. duration: the session's length in s, pose k measured at
     (k + 1) duration / n, as the table's time column t; 0 for a table without times (as the
     real sessions come), where a time-dependent effect is the identity.
     """
@@ -188,7 +189,8 @@ class SessionSpec:
     duration: float = 0.0
 
 
-ROBOTS = ("ur5e", "ur10e")
+# The arms a session draws; any arm of `kinematics.UR_ARMS` may be asked for.
+DRAWN_ROBOTS = ("ur5e", "ur10e")
 
 
 def draw_session_spec(rng: np.random.Generator, n: int | None = None, spread: str | None = None,
@@ -210,13 +212,13 @@ def draw_session_spec(rng: np.random.Generator, n: int | None = None, spread: st
         unremovable=float(rng.uniform(0.06, 0.11)) if rng.random() < 0.15 else 0.0,
         offset=float(rng.uniform(1.0, 4.0)), lever=float(rng.uniform(0.02, 0.08)),
         box=float(rng.uniform(0.3, 1.5)), max_angle=float(np.deg2rad(rng.uniform(10.0, 60.0))))
-    carried = str(rng.choice(ROBOTS)) if rng.random() < 0.15 else ""
+    carried = str(rng.choice(DRAWN_ROBOTS)) if rng.random() < 0.15 else ""
     # A robot turns the tracker every way: a narrower spread asked for is a tracker set down by
     # hand (drawn the same, so that every other session of a seed stays as it was).
     robot = (carried if pinned_spread in (None, "full") else "") if robot is None else robot
     if robot:
-        if robot not in ROBOTS:
-            raise ValueError(f"robot must be one of {', '.join(ROBOTS)}, got {robot!r}")
+        if robot not in UR_ARMS:
+            raise ValueError(f"robot must be one of {', '.join(UR_ARMS)}, got {robot!r}")
         if pinned_spread not in (None, "full"):
             raise ValueError(f"a robot turns the tracker every way: spread {pinned_spread!r} goes with a tracker set "
                              "down by hand, not with a robot (spread 'full', or no robot)")
@@ -244,8 +246,6 @@ def robot_flange_poses(robot: str, n: int, rng: np.random.Generator) -> np.ndarr
     """(n, 4, 4) flange poses of a UR arm at random joint angles: shoulder and elbow in a
     working posture, the wrist anywhere; poses whose flange is below 10 cm above the base
     or nearer than 20 cm to its axis (the arm folded on itself) are drawn again."""
-    from .kinematics import UR_ARMS
-
     arm, poses = UR_ARMS[robot], []
     while sum(len(p) for p in poses) < n:
         q = np.column_stack([rng.uniform(-np.pi, np.pi, n), rng.uniform(-2.2, -0.6, n), rng.uniform(0.5, 2.3, n),

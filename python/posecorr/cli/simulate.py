@@ -16,6 +16,8 @@ DEFAULT_TARGETS = 40
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from ..kinematics import UR_ARMS
+
     p.add_argument("--experiment", type=int, choices=(1, 2, 3), help="the paper's experiment I, II or III")
     p.add_argument("--session", action="store_true",
                    help="a realistic session: 6-40 poses unless --poses or --robot (30-60) says otherwise, the "
@@ -29,10 +31,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--unremovable", type=options.real(0, 1000),
                    help="with --session: RMS (mm) of an error no model removes (default: drawn, 0 in 85 %% of "
                         "sessions set down by hand, else 60-110 mm; 0 with a robot)")
-    p.add_argument("--robot", help="with --session: a robot (ur5e, or the KUKA-sized ur10e) carries the tracker on "
-                                   "its flange through 30-60 poses of every orientation; none: a tracker set down by "
-                                   "hand (default: drawn, a robot in 15 %% of sessions, none where --spread is none "
-                                   "or yaw)")
+    p.add_argument("--robot", help=f"with --session: a robot arm ({', '.join(UR_ARMS)}) carries the tracker on its "
+                                   "flange through 30-60 poses of every orientation; none: a tracker set down by "
+                                   "hand (default: drawn, a ur5e or the KUKA-sized ur10e in 15 %% of sessions, none "
+                                   "where --spread is none or yaw)")
     p.add_argument("--duration", type=options.real(1.0, 1e8), metavar="SECONDS",
                    help="with --session: the session's length; the table gets a time column t, the poses evenly "
                         "spaced (a drift or another time-dependent effect needs it; a robot takes about 40 s a pose)")
@@ -136,7 +138,8 @@ NO_ROBOT = "none"
 
 def _simulate_session(args: argparse.Namespace, effects: dict) -> Any:
     from ..effects import get_effect
-    from ..simulate import ROBOTS, SPREADS, simulate_session
+    from ..kinematics import UR_ARMS
+    from ..simulate import SPREADS, simulate_session
 
     if args.only:
         raise CliError("--only goes with --experiment: a session draws its own frame, lever arm and noise")
@@ -148,8 +151,8 @@ def _simulate_session(args: argparse.Namespace, effects: dict) -> Any:
         raise CliError("--session has no default mix to switch an effect off in: NAME=off goes with --experiment")
     if args.spread is not None and args.spread not in SPREADS:
         raise CliError(f"--spread takes {', '.join(SPREADS)}, got {args.spread!r}")
-    if args.robot is not None and args.robot not in ROBOTS + (NO_ROBOT,):
-        raise CliError(f"--robot takes {', '.join(ROBOTS)} or {NO_ROBOT} (a tracker set down by hand), "
+    if args.robot is not None and args.robot not in (*UR_ARMS, NO_ROBOT):
+        raise CliError(f"--robot takes {', '.join(UR_ARMS)} or {NO_ROBOT} (a tracker set down by hand), "
                        f"got {args.robot!r}")
     timed = [name for name in effects if get_effect(name).needs_time]
     if timed and args.duration is None:

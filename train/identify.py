@@ -360,6 +360,7 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block]) -> tuple[np.nd
     kept_span = np.zeros((J.shape[0], 0))
     basis: list[np.ndarray] = []
     fixed: dict[str, str] = {}
+    kept_by_block: list[tuple[str, np.ndarray]] = []   # (label, orthonormal span of its kept effect)
     for block in blocks:
         own = J[:, block.index] * block.scale
         cols = own - kept_span @ (kept_span.T @ own) if kept_span.shape[1] else own
@@ -376,7 +377,8 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block]) -> tuple[np.nd
         if np.any(~keep):
             # The figure that decided: too little of its own effect (an alias of what came
             # before), or a standard error above the limit (too small an effect on these poses).
-            figures = [_why_held(block, independent[j], std[j]) for j in np.flatnonzero(~keep)]
+            figures = [_why_held(block, independent[j], std[j], _alias_of(own @ Vt[j], kept_by_block))
+                       for j in np.flatnonzero(~keep)]
             if len(block.index) == 1 or not np.any(keep):
                 fixed[block.label] = f"{block.reason}: {figures[int(np.argmax(std[~keep]))]}"
             else:
@@ -385,6 +387,7 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block]) -> tuple[np.nd
         if np.any(keep):
             # What this block adds is orthogonal to the span so far: append its orthonormal basis.
             kept_span = np.concatenate([kept_span, np.linalg.qr(cols @ Vt[keep].T)[0]], axis=1)
+            kept_by_block.append((block.label, np.linalg.qr(own @ Vt[keep].T)[0]))
     B = np.stack(basis, axis=1) if basis else np.zeros((n_theta, 0))
     return B, fixed
 
@@ -394,7 +397,26 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block]) -> tuple[np.nd
 BEFORE_IT = "(the rest is what the parameters before it do)"
 
 
-def _why_held(block: Block, independent: float, std: float) -> str:
+# A held direction is named as what one block before it does where that block alone holds
+# this much of its effect (the cosine of the angle between them: their canonical correlation).
+ALIAS_CORRELATION = 0.99
+
+
+def _alias_of(effect: np.ndarray, kept_by_block: Sequence[tuple[str, np.ndarray]]) -> tuple[str, float] | None:
+    """(label, correlation) of the block before whose kept effect comes nearest `effect`, where
+    it holds at least ALIAS_CORRELATION of it; None where the effect is spread over several."""
+    size = float(np.linalg.norm(effect))
+    if size == 0.0 or not kept_by_block:
+        return None
+    label, Q = max(kept_by_block, key=lambda item: float(np.linalg.norm(item[1].T @ effect)))
+    correlation = float(np.linalg.norm(Q.T @ effect)) / size
+    return (label, correlation) if correlation >= ALIAS_CORRELATION else None
+
+
+def _why_held(block: Block, independent: float, std: float, alias: tuple[str, float] | None = None) -> str:
+    if independent <= MIN_INDEPENDENT and alias is not None:
+        return (f"only {independent:.0%} of its effect on these poses is its own: it moves them as {alias[0]} does "
+                f"(correlation {alias[1]:.4f})")
     if independent <= MIN_INDEPENDENT:
         return f"only {independent:.0%} of its effect on these poses is its own {BEFORE_IT}"
     return f"its standard error would be {std:.3g} x its typical size ({block.scale:g} {block.unit})"

@@ -177,7 +177,7 @@ def _rows_times(p: Any, M: Any) -> Any:
 
 # What an effect declares about itself besides its map (see `Effect`).
 CAPABILITIES = ("name", "params", "order", "random", "needs_time", "closed_form_inverse", "per_row_theta",
-                "changes_rotation", "inverse_steps", "doc", "generic", "causes", "sensitivity", "registration",
+                "changes_rotation", "changes_position", "inverse_steps", "doc", "generic", "causes", "sensitivity", "registration",
                 "typical_scale")
 
 # The parts an effect may play in registering the tracker's frames (`Effect.registration`),
@@ -211,6 +211,8 @@ class Effect:
     # finite-difference steps in one call. A user effect written for one theta leaves it False.
     per_row_theta: ClassVar[bool] = False
     changes_rotation: ClassVar[bool] = True  # False: the generic inverse leaves R untouched
+    # False: the map leaves p untouched, so a table without reference orientations cannot show it
+    changes_position: ClassVar[bool] = True
     inverse_steps: ClassVar[int] = 6
     doc: ClassVar[str] = ""
     # A generic discrepancy form (`posecorr.forms`), not a physical effect: the diagnosis

@@ -158,7 +158,7 @@ class Quadratic(Form, name="quadratic", order=5.8, per_row_theta=True, changes_r
 
 
 class OrientationField(Form, name="orientation_field", order=5.75, per_row_theta=True, generic=True,
-                       closed_form_inverse=True,
+                       closed_form_inverse=True, changes_position=False,
                        causes="an orientation error that varies over the workspace: the IMU fusion's "
                               "heading pulled by a magnetic or optical field, or a wrong station tilt "
                               "seen differently across the space"):

@@ -125,7 +125,7 @@ def compare(table: PoseTable, corrected: np.ndarray, entry: Mapping[str, Any] | 
         after, scored = np.asarray(corrected, float), SCORED_ON[fitted]
         recorded = (entry or {}).get("baseline")
         wanted = block_name(recorded)
-        rigid_name, rigid_pred = _rigid_in_sample(table, wanted)
+        rigid_name, rigid_pred = rigid_in_sample(table, wanted)
     reference, measured = table.reference[rows], table.measured[rows]
     raw = pose_metrics(reference, measured, with_rot)
     rigid = pose_metrics(reference, rigid_pred, with_rot)
@@ -137,7 +137,7 @@ def compare(table: PoseTable, corrected: np.ndarray, entry: Mapping[str, Any] | 
                       reason, ledger_block(entry)[1] if entry else None)
 
 
-def _rigid_in_sample(table: PoseTable, wanted: str | None) -> tuple[str, np.ndarray]:
+def rigid_in_sample(table: PoseTable, wanted: str | None) -> tuple[str, np.ndarray]:
     """(candidate name, (N, 7) poses) of the rigid fit on every pose: `wanted` when it is one
     the table allows, else the variant with the lowest rmse_total."""
     from ..train.pipeline import rigid_candidates
@@ -152,7 +152,7 @@ def _rigid_in_sample(table: PoseTable, wanted: str | None) -> tuple[str, np.ndar
         if best is None or score < best[0]:
             best = (score, candidate.name, predicted)
     if best is None:
-        return _rigid_in_sample(table, None)
+        return rigid_in_sample(table, None)
     return best[1], best[2]
 
 

@@ -43,8 +43,8 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ..data import PoseTable
-from ..effects import EFFECTS, get_effect, require_time
-from ..metrics import pose_errors, rmse_total
+from ..effects import EFFECTS, REGISTRATION_ROLES, get_effect, registration_effects, require_time
+from ..metrics import frames_unregistered, pose_errors, pose_metrics, rmse_total
 from ..registration import orientation_notes
 from ..rotations import matrix_to_rotvec, quat_to_matrix
 from ..textui import counted
@@ -59,7 +59,7 @@ PRESENT_TEST = ("score test or held-out prediction test (the smaller p, doubled)
                 "p < {alpha:g}; "
                 "held-out whitened error lower in every one of {folds} folds; mean gain >= {gain:.1%}; "
                 "still so given the others present (forward selection, a catalogue effect that fails alone tested "
-                "again given the catalogue effects kept, backward elimination); "
+                "again given all kept, backward elimination); "
                 "catalogue effects within their plausible ranges")
 
 
@@ -72,21 +72,26 @@ def _addable(effects: Sequence[str], forms: bool) -> list[tuple[str, Any]]:
 
 def candidate_effects(table: PoseTable, effects: Sequence[str], forms: bool = True) -> list[str]:
     """The `_addable` effects the table can show: those acting over time only where it has
-    times."""
+    times, those acting on the orientation alone only where its reference has orientations."""
     timed = table.time() is not None
-    return [name for name, effect in _addable(effects, forms) if timed or not effect.needs_time]
+    return [name for name, effect in _addable(effects, forms)
+            if (timed or not effect.needs_time) and (table.has_orientation or effect.changes_position)]
 
 
 def _table_notes(table: PoseTable, effects: Sequence[str], candidates: Sequence[str] | None,
                  forms: bool) -> list[str]:
     """What the diagnosis says of the table before its figures: its quaternions' order
     (`registration.orientation_notes`), and the effects it leaves untried for want of a
-    clock (they were left out without a word)."""
-    untimed = [] if candidates is not None or table.time() is not None else [
-        name for name, effect in _addable(effects, forms) if effect.needs_time]
+    clock or of reference orientations (they would be left out without a word, or ranked
+    as held by the data for a cause that is not theirs)."""
+    addable = [] if candidates is not None else _addable(effects, forms)
+    untimed = [name for name, effect in addable if effect.needs_time and table.time() is None]
+    unturned = [name for name, effect in addable if not effect.changes_position and not table.has_orientation]
     return orientation_notes(table.meas_q, table.ref_q) + (
         [f"not tried: {', '.join(untimed)} (acting over the session's time, they need a time column t, which this "
-         "table lacks)"] if untimed else [])
+         "table lacks)"] if untimed else []) + (
+        [f"not tried: {', '.join(unturned)} (acting on the orientation alone, they need the reference's "
+         "orientations, which this table lacks)"] if unturned else [])
 
 
 def split_identifiable(table: PoseTable, effects: Sequence[str],
@@ -594,22 +599,22 @@ def _record_given(search: _Search, row: dict[str, Any], others: list[str], condi
 
 
 def _second_chance(search: _Search, rows: list[dict[str, Any]], accepted: list[str]) -> list[str]:
-    """A catalogue effect that failed alone, tested again given the catalogue effects kept,
-    until none joins. Frames nobody registered: alone, a robot session's mount gains 1.2 %
-    with one fold 0.06 % worse, for the station's error swamps it; given the station it
-    gains 99.5 % in every fold. Only catalogue effects are the context: beside a form, a
-    catalogue effect can join that the form's own error makes look useful (a sweep beside a
-    heading field)."""
+    """A catalogue effect that failed alone, tested again given all that is kept, until none
+    joins. Frames nobody registered: alone, a robot session's mount gains 1.2 % with one fold
+    0.06 % worse, for the station's error swamps it; given the station it gains 99.5 % in
+    every fold. Likewise a form: a range scale of 0.4 % under a bend of the space gains 1.1 %
+    alone with a fold 0.1 % worse, and given the quadratic that takes the bend, every fold.
+    Backward elimination then tests each kept given the others."""
     while True:
-        physical = [name for name in accepted if not get_effect(name).generic]
+        context = list(accepted)
         waiting = [row for row in rows if row["effect"] not in accepted and not get_effect(row["effect"]).generic
-                   and not _earns(row) and row.get("given") != physical]
-        if not physical or not waiting:
+                   and not _earns(row) and row.get("given") != context]
+        if not context or not waiting:
             return accepted
         for row in waiting:
-            search.say(f"candidate {row['effect']} given {', '.join(physical)}")
-            conditional = search.given(row["effect"], physical)
-            _record_given(search, row, physical, conditional)
+            search.say(f"candidate {row['effect']} given {', '.join(context)}")
+            conditional = search.given(row["effect"], context)
+            _record_given(search, row, context, conditional)
             if _earns(conditional):
                 accepted.append(row["effect"])
                 break   # the context has changed: those still waiting are tested given it
@@ -660,6 +665,37 @@ def require_diagnosable(table: PoseTable, folds: int) -> None:
                                      f"{folds}: fewer folds (--cv {fewer[0]})")
     require_rows(table, max(folds, 2), f"a {folds}-fold diagnosis")
     require_enough_to_fit(table.n, KFold(folds))
+
+
+def advised_effects(table: PoseTable, effects: Sequence[str], present: Sequence[str]
+                    ) -> tuple[list[str] | None, str | None]:
+    """(the effects to fit next, a note or None): the model's effects and the catalogue effects
+    present; None where none is. Where the frames are unregistered and the advice holds part
+    of the registration only, the rest joins it, said in the note: on a few poses turned alike
+    the test may keep the mount and fail the station given it (their effects alike along most
+    directions), and a model of a part fits the frames' offset worse than the rigid fit, the
+    floor every model is compared with, which holds them all."""
+    if not present:
+        return None, None
+    advice = list(effects) + [name for name in present if name not in effects]
+    roles = registration_effects()
+    registration = [roles[role] for role in REGISTRATION_ROLES if role in roles]
+    missing = [name for name in registration if name not in advice]
+    if not missing or len(missing) == len(registration):
+        return advice, None
+    from .comparison import rigid_in_sample
+
+    raw = pose_metrics(table.reference, table.measured, table.has_orientation)
+    rigid_name, rigid = rigid_in_sample(table, None)
+    fitted = pose_metrics(table.reference, rigid, table.has_orientation)
+    if not frames_unregistered(raw, fitted):
+        return advice, None
+    held = [name for name in registration if name in advice]
+    note = (f"{' and '.join(missing)} {'joins' if len(missing) == 1 else 'join'} {', '.join(held)} in the advice, "
+            f"though not present by the test: the frames are unregistered (raw rmse_pos {1e3 * raw['rmse_pos']:.3g} "
+            f"mm, the rigid fit's {1e3 * fitted['rmse_pos']:.3g} mm in-sample, {rigid_name}), and the rigid fit, the "
+            f"floor `fit` compares every model with, holds the whole registration")
+    return registration + [name for name in advice if name not in registration], note
 
 
 def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed: int = 0,

@@ -244,7 +244,7 @@ def explain_absent(search: Any, result: dict[str, Any]) -> list[dict[str, Any]]:
         fails = row_failed_parts(search, row)
         alone = [f"{part} (worst fold {row['fold_gain_min']:.1%})" if part == FOLD_RISES else part
                  for part in fails] + list(row["implausible"])
-        if alone and "passes_given" in row:   # tested again given the catalogue effects kept
+        if alone and "passes_given" in row:   # tested again given all kept
             alone.append(f"and given {', '.join(row['given'])}, {_given_fails(row)}")
         out.append({"effect": row["effect"], "score": row["score"], "p_value": row["p_value"],
                     "why": "; ".join(alone) or _why_not(row) or "it is not kept beside the others"})

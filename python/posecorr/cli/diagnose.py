@@ -25,7 +25,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> None:
-    from ..analysis.diagnose import diagnose
+    from ..analysis.diagnose import advised_effects, diagnose
     from ..analysis.proposal import effect_file_text
     from ..safeio import write_text
 
@@ -44,7 +44,8 @@ def run(args: argparse.Namespace) -> None:
         proposal["file"] = str(args.propose)
     present = [c["effect"] for c in result["candidates"] if c["present"] and c["kind"] == "effect"]
     # the text's "add: --effects ..." line: the effects to fit next, None where none is present
-    result["add_effects"] = effects + present if present else None
+    result["add_effects"], joined = advised_effects(table, effects, present)
+    result["notes"] += [joined] if joined else []
     emit(args, result, lambda: _text(args, effects, result))
 
 

@@ -9,6 +9,7 @@ bench/forms.py runs the same study on 10 seeds of each (`make bench`, bench/resu
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -84,6 +85,8 @@ def test_cli_writes_an_effect_file_that_fit_accepts_unchanged(tmp_path, capsys):
     assert proposal["file"] == str(proposal_file) and proposal["effect"] == "session_orientation_bias"
     assert proposal["form_parameters"] == 9 and 0 < proposal["gain"] < 1
     assert proposal["parameters"] == len(proposal["terms"]["orientation_bias"]) <= 9
+    # the table has orientations: the held-out rmse_rot beside rmse_pos, before and after
+    assert all(proposal[f"cv_rmse_{kind}_{when}"] > 0 for kind in ("pos", "rot") for when in ("before", "after"))
     text = proposal_file.read_text()
     assert "class SessionOrientationBias(OrientationBias)" in text and "Physical causes" in text
     if proposal["parameters"] < 9:
@@ -101,6 +104,25 @@ def test_cli_writes_an_effect_file_that_fit_accepts_unchanged(tmp_path, capsys):
                  "--json"]) == 0
     fitted = json.loads(capsys.readouterr().out)
     assert out.exists() and "session_orientation_bias" in json.dumps(fitted)
+
+
+def test_an_orientation_proposal_quotes_the_orientations_error(tmp_path, capsys):
+    """A heading field turns the orientation and barely moves the position: its proposal
+    quoted "rmse_pos 1.05 -> 0.917 mm" alone, where it takes rmse_rot from about 9 mrad to
+    the noise. The printed line and the effect file's docstring quote both."""
+    from posecorr.cli import main
+
+    data, proposal_file = tmp_path / "head.csv", tmp_path / "headp.py"
+    assert main(["simulate", "--session", "--robot", "ur5e", "--poses", "50", "--seed", "2", "--effect-file",
+                 str(study.OUTSIDE), "--effects", "true_heading_field", "-o", str(data)]) == 0
+    study.hide_outside()
+    capsys.readouterr()
+    assert main(["diagnose", str(data), "--effects", "station,mount", "--propose", str(proposal_file)]) == 0
+    line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("proposal: "))
+    figures = re.search(r"(rmse_pos \S+ -> \S+ mm, rmse_rot (\S+) -> (\S+) mrad) \(5-fold\)$", line)
+    assert figures, line
+    assert float(figures[3]) < 0.2 * float(figures[2]), line
+    assert f"({figures[1]}); " in proposal_file.read_text()
 
 
 def test_a_second_rounds_fit_command_keeps_the_first_rounds_effect_file(tmp_path, capsys):

@@ -138,7 +138,7 @@ def _feature_lines(features: list[dict]) -> list[str]:
 
 
 def _proposal_lines(args: argparse.Namespace, result: dict) -> list[str]:
-    from ..analysis.proposal import terms_words, numbers_text
+    from ..analysis.proposal import numbers_text, rmse_words, terms_words
     from ..effects import get_effect
 
     proposal = result["proposal"]
@@ -149,8 +149,7 @@ def _proposal_lines(args: argparse.Namespace, result: dict) -> list[str]:
                                                             if Path(args.propose).exists() else ""))
         return lines
     lines = [f"proposal: {', '.join(proposal['forms'])} ({proposal['parameters']} parameters): the held-out "
-             f"whitened error falls by {proposal['gain']:.1%}, rmse_pos {1e3 * proposal['cv_rmse_pos_before']:.3g} -> "
-             f"{1e3 * proposal['cv_rmse_pos_after']:.3g} mm ({result['folds']}-fold)"]
+             f"whitened error falls by {proposal['gain']:.1%}, {rmse_words(proposal)} ({result['folds']}-fold)"]
     for form in proposal["forms"]:
         effect = get_effect(form)
         values = "; ".join(f"{label} = {numbers_text(v, 3)}" for label, v in proposal["terms"][form].items())

@@ -500,6 +500,13 @@ def test_a_value_is_implausible_only_where_the_data_rejects_the_plausible_range(
         "drift.d = 0.07 m lies outside the plausible -0.02 to 0.02 m (2.5 standard errors beyond)"]
 
 
+def test_a_dimensionless_value_is_implausible_without_the_unit_1():
+    """range_scale's k has the unit "1": "k = -0.953 1 lies outside the plausible -0.02 to
+    0.02 1" read as two numbers each."""
+    assert get_effect("range_scale").implausible([-0.953]) == [
+        "range_scale.k = -0.953 lies outside the plausible -0.02 to 0.02"]
+
+
 def test_fit_refuses_an_effect_whose_map_does_not_trace_before_the_work(tmp_path, capsys):
     """np.sin on the pose runs in the fit and failed in its export, after the work, as an
     "internal error" of posecorr: `fit` traces each loaded effect first and names the line;

@@ -125,6 +125,21 @@ def test_an_orientation_proposal_quotes_the_orientations_error(tmp_path, capsys)
     assert f"({figures[1]}); " in proposal_file.read_text()
 
 
+def test_a_dimensionless_terms_value_is_written_without_the_unit_1():
+    """strain's unit is "1": the proposal file wrote "s_xx = 0.01197 1", a second number. Its
+    docstring on a position-only table quotes no rmse_rot."""
+    from posecorr.analysis.proposal import effect_file_text
+
+    proposal = {"forms": ["strain"], "gain": 0.2, "parameters": 2, "cv_rmse_pos_before": 0.002,
+                "cv_rmse_pos_after": 0.001, "cv_rmse_rot_before": None, "cv_rmse_rot_after": None,
+                "terms": {"strain": {"s_xx": 0.01197, "s_xy": -0.004}}, "values": {"strain": {"s": [0.01197, -0.004]}},
+                "term_indices": {"strain": [0, 3]}, "with": ["strain"], "model_effects": ["station", "mount"],
+                "causes": {"strain": get_effect("strain").causes}}
+    text = effect_file_text(proposal, "posecorr diagnose s.csv --effects station,mount --propose p.py", "s.csv")
+    assert "(rmse_pos 2 -> 1 mm); 2 parameters." in text
+    assert "Fitted on this session (2 of its 6 terms): s_xx = 0.01197; s_xy = -0.004\n" in text, text
+
+
 def test_a_second_rounds_fit_command_keeps_the_first_rounds_effect_file(tmp_path, capsys):
     """Round two diagnoses with round one's proposal (session_strain) in the model; the fit it
     prints, and the one in the new file's docstring, must load that file too, or fit refuses

@@ -308,8 +308,8 @@ class Effect:
                 k = int(np.argmax(np.where(outside, beyond, -np.inf)))
                 worst, error = values[part][k], errors[part][k]
                 firm = f" ({beyond[k] / error:.2g} standard errors beyond)" if known[k] else ""
-                out.append(f"{self.name}.{param.name} = {worst:.3g} {param.unit} lies outside the plausible "
-                           f"{lo:g} to {hi:g} {param.unit}{firm}")
+                out.append(f"{self.name}.{param.name} = {worst:.3g}{param.unit_after()} lies outside the plausible "
+                           f"{lo:g} to {hi:g}{param.unit_after()}{firm}")
         return out
 
     def notes(self, ctx: EffectContext) -> list[str]:

@@ -285,11 +285,11 @@ def effect_file_text(proposal: dict[str, Any], command: str, data_name: str,
             f"({rmse_words(proposal)}); {proposal['parameters']} parameters.", ""]
     for form in forms:
         effect = get_effect(form)
-        unit = effect.params[0].unit
+        unit = effect.params[0].unit_after()
         head += [f"{_proposed_name(form)}: {(effect.__doc__ or '').strip().splitlines()[0]}",
                  f"  Physical causes of this shape: {effect.causes}.",
                  f"  Fitted on this session ({terms_words(proposal, form)}): " + "; ".join(
-                     f"{label} = {value:.4g} {unit}" for label, value in proposal["terms"][form].items()), ""]
+                     f"{label} = {value:.4g}{unit}" for label, value in proposal["terms"][form].items()), ""]
     head += ["Fit it with:",
              f"    {fit_command(data_name, effect_files, 'THIS_FILE', proposal)}",
              '"""']

@@ -140,6 +140,31 @@ def test_a_dimensionless_terms_value_is_written_without_the_unit_1():
     assert "Fitted on this session (2 of its 6 terms): s_xx = 0.01197; s_xy = -0.004\n" in text, text
 
 
+def test_a_proposal_keeps_no_combination_the_fit_holds(tmp_path, capsys):
+    """orientation_bias's x per a_x + y per a_y + z per a_z (K = e I) is the mount's lever
+    along z: the proposal kept all three (8 of its 9 terms), and its fit held that combination
+    and marked the three "not determined". One of them is left out: the fit holds nothing."""
+    from posecorr.cli import main
+    from posecorr.effects import load_effect_file
+    from posecorr.train.physics import PhysicsModel
+
+    data, proposal_file = tmp_path / "ab32.csv", tmp_path / "abp32.py"
+    assert main(["simulate", "--session", "--robot", "none", "--spread", "full", "--no-position-only",
+                 "--unremovable", "0", "--poses", "40", "--seed", "32", "--effect-file", str(study.OUTSIDE),
+                 "--effects", "true_attitude_bias", "-o", str(data)]) == 0
+    study.hide_outside()
+    capsys.readouterr()
+    assert main(["diagnose", str(data), "--effects", "station,mount", "--propose", str(proposal_file),
+                 "--json"]) == 0
+    terms = json.loads(capsys.readouterr().out)["proposal"]["terms"]["orientation_bias"]
+    assert len({"x per a_x", "y per a_y", "z per a_z"} & set(terms)) == 2, terms
+    load_effect_file(proposal_file)
+    table = read_table(data)
+    physics = PhysicsModel(("station", "mount", "session_orientation_bias"), with_rotation=True).fit(
+        table.measured, table.reference, t=table.time())
+    assert physics.fixed_ == {} and np.all(np.isfinite(physics.std_errors_["session_orientation_bias"]))
+
+
 def test_a_second_rounds_fit_command_keeps_the_first_rounds_effect_file(tmp_path, capsys):
     """Round two diagnoses with round one's proposal (session_strain) in the model; the fit it
     prints, and the one in the new file's docstring, must load that file too, or fit refuses

@@ -169,11 +169,12 @@ def _fewest_terms(search: Any, catalogue: list[str], model: dict[str, str], form
                   registered: Any) -> tuple[str, Any]:
     """The name of `form` cut to the fewest terms whose held-out error is within one standard
     error of the best cut's (Breiman's one-standard-error rule, on the log of the whitened
-    error left in each fold), with a gain in every fold; `form` itself when no cut comes near
-    it. Cuts keep the largest terms on this session first (|theta_j| times its whitened
-    Jacobian column: SINDy's threshold on normalised coefficients). Returned with the cut's
-    cross-validation. The cuts are registered on `registered` (an ExitStack), which removes
-    them."""
+    error left in each fold), with a gain in every fold; the largest cut when no smaller one
+    comes near it. Cuts keep the largest terms on this session first (|theta_j| times its
+    whitened Jacobian column: SINDy's threshold on normalised coefficients), and never a
+    combination the fit holds (`_free_terms`): the largest is `form` itself only where the
+    data determine all of it. Returned with the cut's cross-validation. The cuts are
+    registered on `registered` (an ExitStack), which removes them."""
     from posecorr.train.physics import PhysicsModel
 
     from ..effects import register_effect, unregister_effect
@@ -184,17 +185,19 @@ def _fewest_terms(search: Any, catalogue: list[str], model: dict[str, str], form
     physics = PhysicsModel(tuple(effects), with_rotation=table.has_orientation).fit(
         table.measured, table.reference, t=table.time())
     _, J, _ = physics.residual_jacobian(table.measured, table.reference, table.time())
-    theta = physics.params_[form]
-    size = np.abs(theta) * np.linalg.norm(J[:, _column_owners(physics, []) == form], axis=0)
-    order = [int(j) for j in np.argsort(-size, kind="stable")]
+    owned = _column_owners(physics, []) == form
+    norms = np.linalg.norm(J[:, owned], axis=0)
+    free, theta = _free_terms(physics.basis_[owned], physics.params_[form], norms)
+    size = np.abs(theta) * norms
+    order = [int(j) for j in np.argsort(-size, kind="stable") if j in free]
     # Whitened by the whole form's fold sigmas: the base model's hold the missing error itself,
     # and would make a cut that leaves three times the orientation error look as good.
     whole_cv = _cross_validated(search, effects)
     whiten = [fitted.physics_ for fitted in whole_cv.fitted]
-    # each cut's name (None without a gain in every fold), its cross-validation and the log of
+    # each cut's name, its cross-validation and whether it gains in every fold, and the log of
     # the whitened error it leaves, per fold
-    names, cvs, left = [], [], []
-    for count in range(1, whole.size + 1):
+    cuts, left = [], []
+    for count in range(1, len(order) + 1):
         if count == whole.size:
             name, cv = form, whole_cv
         else:
@@ -204,16 +207,37 @@ def _fewest_terms(search: Any, catalogue: list[str], model: dict[str, str], form
             registered.callback(unregister_effect, name)
             cv = _cross_validated(search, search.effects + catalogue + list({**model, form: name}.values()))
         gains = _gains(search, cv, whiten)
-        names.append(name if np.all(gains > 0) else None)
-        cvs.append(cv)
+        cuts.append((name, cv, bool(np.all(gains > 0))))
         left.append(np.log(np.clip(1.0 - gains, 1e-12, None)))
     best = left[int(np.argmin([np.mean(e) for e in left]))]
-    for name, cv, errors in zip(names, cvs, left):
+    for (name, cv, everywhere), errors in zip(cuts, left):
         worse = errors - best
         spread = np.std(worse, ddof=1) / np.sqrt(len(worse)) if len(worse) > 1 else 0.0
-        if name is not None and worse.mean() <= spread:
+        if everywhere and worse.mean() <= spread:
             return name, cv
-    return form, whole_cv
+    return cuts[-1][:2]
+
+
+def _free_terms(basis: np.ndarray, theta: np.ndarray, norms: np.ndarray) -> tuple[list[int], np.ndarray]:
+    """The terms of a form a cut may keep, and theta with the others at zero. The fit holds
+    the combinations of the form's terms the data cannot determine (`PhysicsModel.fixed_`;
+    `basis`: its determined directions, the form's rows), as orientation_bias's K = e I, the
+    mount's lever along z: a cut that keeps every term of one holds it too, and the fit of the
+    proposal marks those terms "not determined". So one term of each is left out, the smallest
+    on this session (|theta_j| times `norms`_j) first, and theta moved along the held
+    combinations to where those terms are zero: for an alias, the effects before the form take
+    up the rest; otherwise the data cannot tell."""
+    values, vectors = np.linalg.eigh(np.eye(len(theta)) - basis @ basis.T)
+    held = vectors[:, values > 0.5]
+    out: list[int] = []
+    for j in np.argsort(np.abs(theta) * norms, kind="stable"):
+        # left out if it reaches a held combination the terms left out so far do not, by more
+        # than a tenth (what the fit's standard errors count as touching it)
+        if len(out) < held.shape[1] and np.linalg.matrix_rank(held[out + [int(j)]], tol=0.1) > len(out):
+            out.append(int(j))
+    if out:
+        theta = theta - held @ np.linalg.solve(held[out], theta[out])
+    return [j for j in range(len(theta)) if j not in out], theta
 
 
 def explain_absorbed(result: dict[str, Any], kept: Sequence[str]) -> list[dict[str, Any]]:

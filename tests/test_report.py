@@ -652,6 +652,57 @@ def test_the_browser_check_sees_a_broken_page(tmp_path: Path) -> None:
     assert any("a message" in c for c in seen["console"])
 
 
+def _many_held(table: PoseTable) -> dict:
+    """A model's metadata as the real 9-pose session's quadratic fit wrote it: mount.e held
+    whole, 11 of quadratic.q's 18 dimensions held along directions, each of 18 numbers."""
+    rng = np.random.default_rng(3)
+    opening = "positions spread (243, 163, 87) mm RMS along their principal axes"
+    fixed = {"mount.e": "orientations span 0.4 deg: only 0% of its effect on these poses is its own"}
+    for k in range(11):
+        direction = "[" + ", ".join(f"{v:.2f}" for v in rng.uniform(-0.6, 0.6, 18)) + "]"
+        fixed[f"quadratic.q along {direction}"] = f"{opening}: its standard error would be {100 + k} x its typical size"
+    return {"file": "e2q_" + "x" * 120 + ".onnx", "method": "none", "effects": ["station", "mount", "quadratic"],
+            "fixed": fixed}
+
+
+def test_a_parameter_held_along_many_directions_is_one_row(tmp_path: Path, small) -> None:
+    """11 held directions of quadratic.q were 11 rows "held (not determined): quadratic.q along
+    [18 numbers]": now one row per parameter, the directions in a collapsed list, the shared
+    reason said once in its summary line."""
+    table, corrected = small
+    info = _many_held(table)
+    text, _ = _parse(write_report(tmp_path / "r.html", table, corrected, info, None, []))
+    summary = text[text.index('id="summary"'):text.index('id="metrics"')]
+    labels = re.findall(r"<dt>held \(not determined\): ([^<]*)</dt>", summary)
+    assert labels == ["mount.e", "quadratic.q"]
+    held = summary[summary.index("<dt>held (not determined): quadratic.q</dt>"):]
+    held = held[:held.index("</details>")]
+    assert ("<summary>11 directions held: positions spread (243, 163, 87) mm RMS along their principal axes"
+            "</summary>") in held
+    items = re.findall(r"<li>along (\[[^]]*\]): its standard error would be (\d+) x its typical size</li>", held)
+    assert [f"quadratic.q along {d}" for d, _ in items] == [k for k in info["fixed"] if k != "mount.e"]
+    assert [int(v) for _, v in items] == list(range(100, 111))
+    assert "<dd>orientations span 0.4 deg: only 0% of its effect on these poses is its own</dd>" in summary
+
+
+def test_the_summary_of_many_held_directions_stays_inside_its_card(tmp_path: Path, small) -> None:
+    """In Chromium the 11 labels "held (not determined): quadratic.q along [18 numbers]" took the
+    label column's max-content width: the values were squeezed to ~80 px, their text ran past
+    the card's edge and the summary was ~1,300 px tall. Now the labels wrap in a bounded
+    column, the values keep most of the card, no text leaves it (a long model file name
+    neither) and the summary is a few lines."""
+    from posecorr.analysis.screenshot import check_page
+
+    _chromium()
+    table, corrected = small
+    out = write_report(tmp_path / "r.html", table, corrected, _many_held(table), None, [])
+    summary = check_page(out, tmp_path, timeout=120, width=1400)["sections"]["summary"]
+    assert summary["outside"] == []
+    label, value = summary["kv_columns"]
+    assert label < 0.3 * summary["width"] and value > 0.6 * summary["width"], summary
+    assert summary["height"] < 500, summary
+
+
 @pytest.mark.parametrize("key", ["name", "model"])
 def test_a_ledger_line_that_cannot_rebuild_the_held_out_says_why(unregistered: PoseTable, key: str) -> None:
     """In-sample, with the reason, for a line of an older posecorr, of another table, or one

@@ -68,8 +68,9 @@ td.l,th.l{text-align:left}
 tr.present td{background:#fde8d7;font-weight:600}
 tr.best td{background:#e3f3e3}
 img{max-width:100%;height:auto;display:block;margin:6px 0}
-dl.kv{display:grid;grid-template-columns:max-content auto;gap:2px 14px;margin:4px 0;font-size:.92em}
-dl.kv dt{color:#555}dl.kv dd{margin:0}
+dl.kv{display:grid;grid-template-columns:fit-content(17em) minmax(0,1fr);gap:2px 14px;margin:4px 0;font-size:.92em}
+dl.kv dt{color:#555;overflow-wrap:anywhere}dl.kv dd{margin:0;overflow-wrap:anywhere}
+dl.kv details ul{margin:2px 0;padding-left:1.4em}dl.kv summary{cursor:pointer}
 .takeaway{font-size:1.08em;background:#fff6d9;border-left:5px solid #e0a800;padding:8px 12px;margin:8px 0}
 .scroll{overflow-x:auto}
 code{background:#f0f0f0;padding:0 3px;border-radius:3px}
@@ -135,30 +136,55 @@ def _section(sid: str, title: str, body: str, note: str = "") -> str:
 
 def _summary_section(table: PoseTable, model_info: Mapping[str, Any] | None, title: str) -> str:
     extras = [c for c in ("id", "t", "session", "jitter_mm") if c in table.extras]
-    items = [("data file", table.path or "(in memory)"), ("poses", str(table.n)),
+    items = [("data file", _t(table.path or "(in memory)")), ("poses", str(table.n)),
              ("kind", "full pose (position and orientation)" if table.has_orientation
               else "position only (rotation panels skipped)"),
-             ("optional columns", ", ".join(extras) or "none")]
+             ("optional columns", _t(", ".join(extras) or "none"))]   # (label, HTML)
     if model_info:
         effects = ", ".join(effect_list(model_info.get("effects"))) or "none"
-        items += [("model file", model_info.get("file", "?")),
-                  ("corrector", describe_corrector(dict(model_info))),
-                  ("effects in the model", effects)]
+        items += [("model file", _t(model_info.get("file", "?"))),
+                  ("corrector", _t(describe_corrector(dict(model_info)))),
+                  ("effects in the model", _t(effects))]
         if model_info.get("posecorr_version") not in (None, ""):
-            items.append(("posecorr version", model_info["posecorr_version"]))
+            items.append(("posecorr version", _t(model_info["posecorr_version"])))
         if isinstance(model_info.get("fixed"), Mapping):
-            for name, reason in model_info["fixed"].items():
-                items.append((f"held (not determined): {name}", reason))
+            items += _held_rows(model_info["fixed"])
         if isinstance(model_info.get("file_size"), int):
             items.append(("file size", f"{model_info['file_size']:,} bytes"))
         if isinstance(model_info.get("op_counts"), Mapping):
             ops = ", ".join(f"{k} {v}" for k, v in model_info["op_counts"].items())
-            items.append(("operators", ops))
+            items.append(("operators", _t(ops)))
     else:
-        items.append(("model", "(none given: 'after' is the corrected poses handed in)"))
+        items.append(("model", _t("(none given: 'after' is the corrected poses handed in)")))
     items.append(("generated", datetime.now(timezone.utc).isoformat(timespec="seconds")))
-    body = '<dl class="kv">' + "".join(f"<dt>{_e(k)}</dt><dd>{_t(v)}</dd>" for k, v in items) + "</dl>"
+    body = '<dl class="kv">' + "".join(f"<dt>{_e(k)}</dt><dd>{v}</dd>" for k, v in items) + "</dl>"
     return _section("summary", "Summary", body)
+
+
+def _held_rows(fixed: Mapping[str, Any]) -> list[tuple[str, str]]:
+    """(label, HTML) rows of the parameters the fit held, one per parameter. A block of many
+    dimensions is held along directions ("quadratic.q along [18 numbers]"): a 9-pose session
+    held 11 of quadratic.q's, a row each made the summary a page tall. Several directions are
+    one row, their reason's shared opening (the block's, `identify`) said once, the directions
+    in a collapsed list."""
+    groups: dict[str, list[tuple[str, str]]] = {}
+    for key, reason in fixed.items():
+        name, _, direction = str(key).partition(" along ")
+        groups.setdefault(name, []).append((direction, str(reason)))
+    rows = []
+    for name, held in groups.items():
+        label = f"held (not determined): {name}"
+        if len(held) == 1:
+            direction, reason = held[0]
+            rows.append((label, _t(f"along {direction}: {reason}" if direction else reason)))
+            continue
+        openings = {reason.partition(": ")[0] for _, reason in held}
+        shared = openings.pop() if len(openings) == 1 and all(": " in r for _, r in held) else ""
+        lines = "".join(f"<li>{_t(f'along {d}: ' if d else '')}{_t(r.partition(': ')[2] if shared else r)}</li>"
+                        for d, r in held)
+        summary = f"{len(held)} directions held" + (f": {shared}" if shared else "")
+        rows.append((label, f"<details><summary>{_t(summary)}</summary><ul>{lines}</ul></details>"))
+    return rows
 
 
 def _metrics_section(comparison: Comparison, pos: tuple[np.ndarray, np.ndarray],

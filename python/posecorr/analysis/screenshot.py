@@ -61,6 +61,23 @@ _PROBE = """<script>
   var consoleError = console.error;
   console.error = function () { errors.push("console.error: " + Array.prototype.join.call(arguments, " "));
                                 return consoleError.apply(console, arguments); };
+  // A section's size, the widths of its first key-value list's columns, and the text that runs
+  // past its edges (a table's scrolling box is a way to show a wide table, not text lost).
+  function layout(section) {
+    var box = section.getBoundingClientRect(), outside = [], range = document.createRange();
+    var walker = document.createTreeWalker(section, NodeFilter.SHOW_TEXT);
+    for (var node = walker.nextNode(); node; node = walker.nextNode()) {
+      if (!node.textContent.trim() || node.parentElement.closest(".scroll")) continue;
+      range.selectNodeContents(node);
+      var r = range.getBoundingClientRect();
+      if (r.width > 0 && (r.right > box.right + 0.5 || r.left < box.left - 0.5)) {
+        outside.push(node.textContent.trim().slice(0, 80));
+      }
+    }
+    var kv = section.querySelector("dl.kv");
+    return {width: box.width, height: box.height, outside: outside,
+            kv_columns: kv ? getComputedStyle(kv).gridTemplateColumns.split(" ").map(parseFloat) : null};
+  }
   window.addEventListener("load", function () {
     var images = Array.prototype.map.call(document.images, function (img) {
       return {alt: img.alt, complete: img.complete, width: img.naturalWidth, height: img.naturalHeight};
@@ -69,9 +86,13 @@ _PROBE = """<script>
       var href = a.getAttribute("href") || "";
       return {href: href, resolves: href.charAt(0) === "#" && document.getElementById(href.slice(1)) !== null};
     });
+    var sections = {};
+    Array.prototype.forEach.call(document.querySelectorAll("section"), function (s) {
+      sections[s.id] = layout(s);
+    });
     var out = document.createElement("pre");
     out.id = "posecorr-browser-check";
-    out.textContent = JSON.stringify({images: images, anchors: anchors, errors: errors});
+    out.textContent = JSON.stringify({images: images, anchors: anchors, errors: errors, sections: sections});
     document.body.appendChild(out);
   });
 })();
@@ -80,10 +101,13 @@ _RESULT = re.compile(r'<pre id="posecorr-browser-check">(.*?)</pre>', re.S)
 _CONSOLE = re.compile(r"CONSOLE[^\]]*\]\s*(.*)")
 
 
-def check_page(html_path: str | Path, work_dir: str | Path, timeout: float = 120) -> dict[str, Any]:
-    """Load a report in headless Chromium and say what the browser saw: {"images": [{alt,
-    complete, width, height}], "anchors": [{href, resolves}] (the menu's), "errors": [script
-    errors, failed loads, console.error calls], "console": [console lines Chromium logged]}.
+def check_page(html_path: str | Path, work_dir: str | Path, timeout: float = 120, width: int = 1280) -> dict[str, Any]:
+    """Load a report in headless Chromium, in a window `width` px wide, and say what the
+    browser saw: {"images": [{alt, complete, width, height}], "anchors": [{href, resolves}]
+    (the menu's), "errors": [script errors, failed loads, console.error calls], "sections":
+    {id: {width, height (px), outside: [text running past the section's edges, outside a
+    table's scrolling box], kv_columns: [px of each column of its first key-value list] or
+    None}}, "console": [console lines Chromium logged]}.
 
     The page is copied into `work_dir` with a probe script in front (the report has no script
     of its own). Raises FileNotFoundError without a Chromium, RuntimeError when it fails or
@@ -101,8 +125,9 @@ def check_page(html_path: str | Path, work_dir: str | Path, timeout: float = 120
     probed.write_text(page[:head + 6] + _PROBE + page[head + 6:], encoding="utf-8")
     profile = work / "chromium-profile"
     try:
-        run = _run(browser, ["--enable-logging=stderr", "--v=0", "--virtual-time-budget=10000", "--dump-dom",
-                             probed.resolve().as_uri()], profile, timeout)
+        run = _run(browser, ["--enable-logging=stderr", "--v=0", "--virtual-time-budget=10000",
+                             f"--window-size={int(width)},2400", "--dump-dom", probed.resolve().as_uri()],
+                   profile, timeout)
     except subprocess.CalledProcessError as exc:
         raise RuntimeError(f"{browser} failed (exit {exc.returncode}): {exc.stderr.strip()[-600:]}") from None
     found = _RESULT.search(run.stdout)

@@ -599,6 +599,41 @@ def test_the_history_plot_draws_each_fit_against_the_rigid_fit() -> None:
     assert fig.axes[0].get_ylabel() == "held-out rmse_pos [mm]"
 
 
+def _history_rows(page: str) -> list[list[str]]:
+    """The history table's body rows as lists of cell texts."""
+    section = page[page.index('id="ledger"'):]
+    body = section[section.index("<tbody>"):section.index("</tbody>")]
+    return [re.findall(r"<td[^>]*>(.*?)</td>", row, flags=re.S) for row in re.findall(r"<tr[^>]*>(.*?)</tr>", body)]
+
+
+def test_the_history_names_a_held_out_plan_as_the_metrics_table_does(tmp_path: Path) -> None:
+    """A --cv loo fit: the metrics table said "held-out (leave one out, 12 poses)", the history's
+    held-out column and its plot's labels said "cv". Now both name the plan in the table's
+    words (leave one out, 3 folds); a line of an older posecorr, without its plan, by its
+    block: cross-validated or test split."""
+    from posecorr.analysis.figures import ledger_figure
+    from posecorr.analysis.ledger import read_ledger
+    from posecorr.data import write_table
+    from posecorr.simulate import simulate_session
+
+    write_table(simulate_session(1, n=12, spread="full", position_only=False).table, tmp_path / "s.csv")
+    for cv in ("3", "loo"):
+        _cli("fit", "s.csv", "-o", f"m{cv}.onnx", "--effects", "station,mount", "--method", "none", "--cv", cv,
+             cwd=tmp_path)
+    report = _cli("report", "s.csv", "--model", "mloo.onnx", "-o", "r.html", "--no-diagnosis", cwd=tmp_path)
+    assert report["after"]["scored"] == "held-out (leave one out, 12 poses)"
+    page = (tmp_path / "r.html").read_text()
+    assert _metrics_rows(page)[1][1] == report["after"]["scored"]
+    assert [row[6] for row in _history_rows(page)] == ["3 folds", "leave one out"]
+    ledger = read_ledger(tmp_path / "s.csv")
+    labels = [t.get_text() for t in ledger_figure(ledger).axes[0].get_xticklabels()]
+    assert [label.rsplit(", ", 1)[1] for label in labels] == ["3 folds", "leave one out"], labels
+
+    older = [{k: v for k, v in line.items() if k != "plan"} for line in LEDGER]
+    labels = [t.get_text() for t in ledger_figure(older).axes[0].get_xticklabels()]
+    assert [label.rsplit(", ", 1)[1] for label in labels] == ["cross-validated", "test split"], labels
+
+
 # --- the page in a real browser ------------------------------------------------------------
 
 def _chromium() -> None:

@@ -83,6 +83,10 @@ class FixedSplit:
         return (f"numpy.sort(numpy.random.default_rng([{int(seed)}, {TEST_STREAM}]).permutation(N)"
                 f"[:round({self.test_fraction!r} * N)])")
 
+    @property
+    def description(self) -> str:
+        return "test split"
+
     def __str__(self) -> str:
         return "none"
 

@@ -180,7 +180,7 @@ def _held_out(table: PoseTable, entry: Mapping[str, Any] | None,
             # others, from fit's start (the physics stage on the training rows).
             train, val, test = plan.indices(table.n, seed)
             predicted = _out_of_fold([rigid], train, [(np.union1d(train, val), test)], table)
-            return (test, None, rigid.name, predicted[rigid.name][test], f"held-out (test split, {len(test)} poses)"), ""
+            return (test, None, rigid.name, predicted[rigid.name][test], f"held-out ({plan.description}, {len(test)} poses)"), ""
         return _cross_validated(table, entry, plan, seed, rigid, say)
     except (KeyError, ValueError, TypeError) as exc:
         return None, f"the held-out predictions could not be rebuilt from the ledger line ({exc})"

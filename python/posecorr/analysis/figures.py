@@ -15,7 +15,7 @@ import numpy as np
 
 from .features import FEATURES
 from .interpretation import effect_list, effects_step, is_structure
-from .ledger import held_out
+from .ledger import held_out, plan_name
 
 DPI = 100
 ANGLE_FEATURES = ("azimuth", "elevation", "incidence", "roll", "pitch", "yaw")
@@ -368,11 +368,10 @@ def ledger_figure(ledger: Sequence[Mapping[str, Any]]) -> Any | None:
     values, floor, labels = [], [], []
     previous: list[str] | None = None
     for k, entry in enumerate(ledger, start=1):
-        kind, block = held_out(entry)
-        values.append(_mm(block))
+        values.append(_mm(held_out(entry)[1]))
         floor.append(_mm(entry.get("baseline")))
         effects = [str(e) for e in effect_list(entry.get("effects"))]
-        labels.append(f"{k}: {effects_step(previous, effects)}\n{entry.get('method', '')}, {kind or '?'}")
+        labels.append(f"{k}: {effects_step(previous, effects)}\n{entry.get('method', '')}, {plan_name(entry) or '?'}")
         previous = effects
     y, rigid = np.array(values), np.array(floor)
     if not np.isfinite(y).any():
@@ -396,7 +395,7 @@ def ledger_figure(ledger: Sequence[Mapping[str, Any]]) -> Any | None:
     ax.set_xticks(x, labels, fontsize=7)
     ax.set_xlim(0.5, len(y) + 0.5)
     ax.set_ylabel("held-out rmse_pos [mm]")
-    ax.set_xlabel("fit in the ledger (effects added or removed, method, held-out kind)")
+    ax.set_xlabel("fit in the ledger (effects added or removed, method, held-out plan)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(loc="upper right")
     return fig

@@ -73,6 +73,22 @@ def held_out(record: Mapping[str, Any]) -> tuple[str, Mapping[str, Any]]:
     return "", {}
 
 
+def plan_name(record: Mapping[str, Any]) -> str:
+    """The held-out plan of a record in the words the report's metrics table says it ("leave one
+    out", "5 folds", "test split": `splits`' description), not the key of its block ("cv"); a
+    line without a plan (older posecorr) by its block: "cross-validated" or "test split"; "" for
+    a line without held-out figures."""
+    from ..train.splits import parse_plan
+
+    kind, _ = held_out(record)
+    if kind and "plan" in record:
+        try:
+            return parse_plan(record["plan"]).description
+        except (ValueError, TypeError):
+            pass  # a plan no posecorr writes: named by its block, as an older line
+    return {"cv": "cross-validated", "test": "test split"}.get(kind, "")
+
+
 def entry_for_model(ledger: Sequence[Mapping[str, Any]], model_path: str | Path) -> Mapping[str, Any] | None:
     """The newest record whose model_sha256 is that of the file at `model_path` (the same
     bytes, wherever the file was moved since), or None."""

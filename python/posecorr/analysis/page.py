@@ -40,7 +40,7 @@ from .comparison import Comparison, compare, rigid_label
 from .features import table_features
 from .interpretation import (STRUCTURE_R2, alias_text, cv_gain, effect_list, is_structure, model_effects,
                              not_ranked_why, p_value_text, ranked_candidates, split_features, takeaway, worst_order)
-from .ledger import held_out
+from .ledger import held_out, plan_name
 
 SECTIONS = (("summary", "Summary"), ("metrics", "Metrics"), ("workspace", "Workspace"),
             ("features", "Error vs features"), ("orientation", "Orientation"),
@@ -429,14 +429,14 @@ def _ledger_section(ledger: Sequence[Mapping[str, Any]]) -> str:
     rows = []
     totals = []
     for k, entry in enumerate(ledger, start=1):
-        kind, block = held_out(entry)
+        block = held_out(entry)[1]
         totals.append(block.get("rmse_total") if isinstance(block.get("rmse_total"), (int, float)) else math.inf)
         gain = _gain(entry.get("baseline"), block)
         when = str(entry.get("time", "")).replace("T", " ").removesuffix("+00:00")
         model = str(entry.get("model", ""))
         rows.append([str(k), _e(when), f'<span title="{_e(model)}">{_e(Path(model).name if model else "")}</span>',
                      _e(", ".join(effect_list(entry.get("effects"))) or "none"), _e(entry.get("method", "")),
-                     _e(_core_representation(entry)), _e(kind or "–"),
+                     _e(_core_representation(entry)), _e(plan_name(entry) or "–"),
                      _num(block.get("rmse_pos"), 1e3), _num(block.get("rmse_rot"), 1e3),
                      _num(block.get("rmse_total"), 1e3), _rigid_cell(entry.get("baseline")),
                      (_num(gain) + "×") if gain is not None else "–"])

@@ -897,6 +897,70 @@ def test_the_arrow_key_stays_inside_its_panel_off_the_title() -> None:
         assert ends[:, 0].max() <= ax.bbox.x1 and ends[:, 1].max() <= ax.bbox.y1, ax.get_title()
 
 
+def _arrow_rows(fig) -> list[dict]:
+    """Per row of the workspace figure: its quivers' scales and colour limits, its keys'
+    lengths (m) and its panels' titles."""
+    from matplotlib.quiver import Quiver, QuiverKey
+
+    rows = []
+    for panels in (fig.axes[:3], fig.axes[3:6]):
+        quivers = [c for ax in panels for c in ax.collections if isinstance(c, Quiver)]
+        rows.append({"scale": {q.scale for q in quivers}, "clim": {q.get_clim() for q in quivers},
+                     "key": {k.U for ax in panels for k in ax.get_children() if isinstance(k, QuiverKey)},
+                     "titles": [ax.get_title() for ax in panels]})
+    return rows
+
+
+def test_the_arrow_rows_share_a_magnification_unless_the_after_arrows_would_vanish() -> None:
+    """The rows had a magnification and a colour scale each, said only in the figure's title:
+    on the real 9-pose session (after 0.6 of before) both keys read 20 mm, the after's arrows
+    were drawn 1.7x longer, a 16 mm error as long as a 30 mm one. Now the rows share one
+    magnification, colour scale and colour bar; where the after's arrows would be dots at the
+    before's (the loop session, 1/8), the after row is magnified more and every title says
+    by how much."""
+    from posecorr.analysis.figures import workspace_figure
+    from posecorr.data import read_table
+
+    ref_p = read_table(Path(__file__).parent / "data" / "realdata" / "20201002_Exp1.csv").ref_p
+    before = np.random.default_rng(0).normal(0, 5e-3, ref_p.shape)
+    fig = workspace_figure(ref_p, before, 0.6 * before[::-1], "before: rigid fit (joint)", "after: held-out")
+    top, bottom = _arrow_rows(fig)
+    assert len(top["scale"]) == 1 and top["scale"] == bottom["scale"]
+    assert len(top["clim"]) == 1 and top["clim"] == bottom["clim"]
+    assert len(top["key"]) == 1 and top["key"] == bottom["key"]
+    assert len(fig.axes) == 7                                            # one colour bar
+    assert not any("magnified" in t for t in top["titles"] + bottom["titles"])
+
+    fig = workspace_figure(ref_p, before, before[::-1] / 8, "before: rigid fit (joint)", "after: held-out")
+    top, bottom = _arrow_rows(fig)
+    (above,), (below,) = top["scale"], bottom["scale"]
+    assert above / below == pytest.approx(8)
+    assert top["clim"] != bottom["clim"] and len(fig.axes) == 8           # a colour bar each
+    assert all(t.endswith("\nmagnified 8× less than the after row") for t in top["titles"]), top["titles"]
+    assert all(t.endswith("\nmagnified 8× more than the before row") for t in bottom["titles"]), bottom["titles"]
+    assert top["key"] == {0.01} and bottom["key"] == {0.001}
+
+
+def test_the_page_says_whether_the_arrow_rows_share_a_magnification(tmp_path: Path, small) -> None:
+    """The page's keys (data-*-key-mm, report --json's "arrows") are those drawn, and its note
+    says whether the rows share a magnification and, where not, how they compare."""
+    from posecorr.analysis.comparison import compare
+
+    table, corrected = small
+    closer = table.measured.copy()
+    closer[:, :3] = table.ref_p + 0.6 * (table.meas_p - table.ref_p)   # the after 0.6 of the before
+    for after, shared in ((closer, True), (corrected, False)):
+        keys = compare(table, after).to_json()["arrows"]
+        text, _ = _parse(write_report(tmp_path / "r.html", table, after, None, None, []))
+        section = text[text.index('id="workspace"'):text.index('id="features"')]
+        assert (f'data-before-key-mm="{keys["before_key_mm"]:g}" data-after-key-mm="{keys["after_key_mm"]:g}"'
+                in section)
+        assert (keys["before_key_mm"] == keys["after_key_mm"]) is shared
+        assert ("Both rows have one magnification and one colour scale." in section) is shared
+        assert ("the after row is magnified" in section and "× more than the before row (compare the keys: "
+                f'{keys["before_key_mm"]:g} mm above, {keys["after_key_mm"]:g} mm below)' in section) is not shared
+
+
 def test_the_feature_panels_tick_labels_do_not_run_into_each_other() -> None:
     """On the real 11-pose session the z panel (the poses within 30 mm of one height) read
     '-0.030-0.025-0.020-0.015-0.010-0.0050.000': every panel's x labels stand apart."""

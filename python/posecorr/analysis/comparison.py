@@ -69,12 +69,13 @@ class Comparison:
         return metric_block(self.before_metrics, self.after_metrics)
 
     def to_json(self) -> dict[str, Any]:
-        from .figures import arrow_key_mm
+        from .figures import arrow_keys_mm
 
         def figures_of(m: Mapping[str, Any]) -> dict[str, Any]:
             return {k: m.get(k) for k in ("rmse_pos", "rmse_rot", "rmse_total")}
 
         block = self.block
+        keys = arrow_keys_mm(self.before[:, :3] - self.reference[:, :3], self.after[:, :3] - self.reference[:, :3])
         # names as fit's JSON and the ledger write them (rigid-joint), the page's words apart
         return {"baseline": {"name": self.rigid_name if self.unregistered else "raw",
                              "rmse_pos": self.before_metrics.get("rmse_pos"),
@@ -87,8 +88,7 @@ class Comparison:
                 "improvement": {k: block.get(f"improvement_{k}") for k in ("pos", "rot", "total")},
                 "unregistered": self.unregistered, "rule": RULE,
                 "raw": figures_of(self.raw), "rigid_fit": {"name": self.rigid_name, **figures_of(self.rigid)},
-                "arrows": {"before_key_mm": arrow_key_mm(self.before[:, :3] - self.reference[:, :3]),
-                           "after_key_mm": arrow_key_mm(self.after[:, :3] - self.reference[:, :3])}}
+                "arrows": {"before_key_mm": keys[0], "after_key_mm": keys[1]}}
 
 
 def rigid_label(candidate_name: str) -> str:

@@ -160,10 +160,28 @@ def _arrow_length(ref_p: np.ndarray) -> float:
     return min(0.6 * span / per_axis, 0.25 * span)
 
 
-def arrow_key_mm(errors: np.ndarray) -> float:
-    """The key arrow's length (mm) for (N, 3) error vectors (m): the round number nearest their
-    95th-percentile magnitude, which `workspace_figure` draws at a fixed length."""
-    return _nice_length(_typical_mm(errors))
+# The after row shares the before row's magnification where its arrows stay readable at it: a
+# typical corrected arrow a third of a typical before arrow still shows its direction. The real
+# sessions (after / before 0.6 and 1.0) share one; the loop guide's session, its error taken
+# eight times down (0.12), would be dots: its after row is magnified more, and says so.
+SHARED_SCALE_MIN_RATIO = 1 / 3
+
+
+def arrow_typical_mm(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
+    """The error (mm) each row's arrows are scaled to, drawn at one length, for (N, 3) error
+    vectors (m) before and after: the larger row's typical (95th-percentile) magnitude for
+    both where the smaller is at least SHARED_SCALE_MIN_RATIO of it, else each row's own."""
+    typical = (_typical_mm(before), _typical_mm(after))
+    if min(typical) >= SHARED_SCALE_MIN_RATIO * max(typical):
+        return max(typical), max(typical)
+    return typical
+
+
+def arrow_keys_mm(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
+    """The key arrows' lengths (mm), before and after, in `workspace_figure`: the round number
+    nearest each row's `arrow_typical_mm`."""
+    typical = arrow_typical_mm(before, after)
+    return _nice_length(typical[0]), _nice_length(typical[1])
 
 
 def _typical_mm(errors: np.ndarray) -> float:
@@ -171,27 +189,45 @@ def _typical_mm(errors: np.ndarray) -> float:
     return ref_mm if ref_mm > 0 else 1.0
 
 
+def _colour_limits(mag_mm: np.ndarray) -> tuple[float, float]:
+    lo, hi = (float(v) for v in np.percentile(mag_mm, [1, 99]))
+    return (lo, hi) if hi > lo else (0.0, max(hi, 1e-9))  # a 1-99 % range keeps colour contrast
+
+
+def magnification_words(factor: float, other: str) -> str:
+    """"magnified 8.2× more than the before row" for a row magnified `factor` times the other's."""
+    more = factor >= 1
+    times = float(f"{factor if more else 1 / factor:.2g}")
+    return f"magnified {times:g}× {'more' if more else 'less'} than the {other} row"
+
+
 def workspace_figure(ref_p: np.ndarray, before: np.ndarray, after: np.ndarray,
                      before_label: str = "before correction", after_label: str = "after correction") -> Any:
-    """Quiver of position error vectors (m) at the reference positions, 3 projections x 2 rows."""
+    """Quiver of position error vectors (m) at the reference positions, 3 projections x 2 rows,
+    at one magnification and colour scale unless the after's arrows would be too small to see
+    at the before's (`arrow_typical_mm`): then each row has its own, every title says how the
+    row's magnification compares with the other's and each row has its own colour bar."""
     plt = _pyplot()
     span = float(np.max(np.ptp(ref_p, axis=0))) or 0.1
     length = _arrow_length(ref_p)
     projections = ((0, 1), (0, 2), (1, 2))
     names = "xyz"
     fig, axes = plt.subplots(2, 3, figsize=(12, 8.4), layout="constrained")
+    typical = arrow_typical_mm(before, after)
+    shared = typical[0] == typical[1]
+    mags = [np.linalg.norm(d, axis=1) * 1e3 for d in (before, after)]
+    clims = [_colour_limits(np.concatenate(mags))] * 2 if shared else [_colour_limits(m) for m in mags]
+    # a row's magnification over the other's: the other's typical error over its own
+    words = ("", "") if shared else (f"\n{magnification_words(typical[1] / typical[0], 'after')}",
+                                     f"\n{magnification_words(typical[0] / typical[1], 'before')}")
     for row, (label, d) in enumerate(((before_label, before), (after_label, after))):
-        mag_mm = np.linalg.norm(d, axis=1) * 1e3
-        # Each row has its own magnification (corrected errors are ~20x smaller); the key says it.
-        scale = (_typical_mm(d) / 1e3) / length
-        key_mm = arrow_key_mm(d)
-        order = np.argsort(mag_mm)  # largest arrows on top
-        lo, hi = (float(v) for v in np.percentile(mag_mm, [1, 99]))
-        clim = (lo, hi) if hi > lo else (0.0, max(hi, 1e-9))  # a 1-99 % range keeps colour contrast
+        scale = (typical[row] / 1e3) / length
+        key_mm = _nice_length(typical[row])
+        order = np.argsort(mags[row])  # largest arrows on top
         for col, (i, j) in enumerate(projections):
             ax = axes[row, col]
-            q = ax.quiver(ref_p[order, i], ref_p[order, j], d[order, i], d[order, j], mag_mm[order],
-                          angles="xy", scale_units="xy", scale=scale, cmap="viridis", clim=clim,
+            q = ax.quiver(ref_p[order, i], ref_p[order, j], d[order, i], d[order, j], mags[row][order],
+                          angles="xy", scale_units="xy", scale=scale, cmap="viridis", clim=clims[row],
                           width=0.0045, headwidth=3.5, headlength=4, headaxislength=3.5, alpha=0.9)
             pad = 0.12 * span + length
             ax.set_xlim(ref_p[:, i].min() - pad, ref_p[:, i].max() + pad)
@@ -199,16 +235,19 @@ def workspace_figure(ref_p: np.ndarray, before: np.ndarray, after: np.ndarray,
             ax.set_aspect("equal", adjustable="box")
             ax.set_xlabel(f"{names[i]} [m]")
             ax.set_ylabel(f"{names[j]} [m]")
-            ax.set_title(f"{names[i]}-{names[j]}, {label}")
+            ax.set_title(f"{names[i]}-{names[j]}, {label}{words[row]}")
             # Inside the lower right corner, in the margin the limits leave: on the title's line
             # it overlapped the longer titles (a y-z panel's). The arrow starts at X: its end stays inside.
             reach = (key_mm / 1e3 / scale) / (np.ptp(ref_p[:, i]) + 2 * pad)
             ax.quiverkey(q, 0.96 - reach, 0.05, key_mm / 1e3, f"{key_mm:g} mm", labelpos="W", coordinates="axes",
                          color="#d62728", fontproperties={"size": 8})
-        cb = fig.colorbar(q, ax=axes[row, :], shrink=0.85, pad=0.01)
-        cb.set_label(f"|error| [mm], {label}")
-    fig.suptitle("Position error vectors at the reference positions, magnified "
-                 "(red key arrow per panel; the two rows have different magnifications)", fontsize=10)
+        if not shared:
+            fig.colorbar(q, ax=axes[row, :], shrink=0.85, pad=0.01).set_label(f"|error| [mm], {label} only")
+    if shared:
+        fig.colorbar(q, ax=axes, shrink=0.6, pad=0.01).set_label("|error| [mm], both rows")
+    fig.suptitle("Position error vectors at the reference positions, magnified (red key arrow per panel; "
+                 + ("the same magnification and colours in both rows)" if shared else
+                    "the rows differ in magnification and colours, as their titles say)"), fontsize=10)
     return fig
 
 

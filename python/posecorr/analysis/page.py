@@ -468,22 +468,32 @@ def _rigid_cell(baseline: Any) -> str:
     return f"{_num(baseline.get('rmse_pos'), 1e3)} ({_e((block_name(baseline) or '').removeprefix('rigid-'))})"
 
 
+def _workspace_section(comparison: Comparison, before: str, after: str) -> str:
+    """The residual arrows, before above after, and what their magnifications are."""
+    ref_p = comparison.reference[:, :3]
+    errors = (comparison.before[:, :3] - ref_p, comparison.after[:, :3] - ref_p)
+    keys, typical = figures.arrow_keys_mm(*errors), figures.arrow_typical_mm(*errors)
+    fig = figures.workspace_figure(ref_p, *errors, f"before: {before}", "after: " + after.removeprefix("corrected, "))
+    if typical[0] == typical[1]:
+        scale = "Both rows have one magnification and one colour scale."
+    else:
+        scale = (f"The rows do not share a magnification: at one, one row's arrows would be too small to see, so "
+                 f"the after row is {figures.magnification_words(typical[0] / typical[1], 'before')} (compare the "
+                 f"keys: {keys[0]:g} mm above, {keys[1]:g} mm below), and each row has its own colour scale.")
+    note = (f"Arrow = {before} (top) or {comparison.scored} correction (bottom) minus reference position, drawn at "
+            "the reference position, in three projections; colour = 3D error magnitude. Arrows are magnified; the "
+            f"red key in each panel gives the scale. {scale}")
+    return _section("workspace", "Residual arrows over the workspace",
+                    _img(fig, "position error vectors in x-y, x-z, y-z, before and after",
+                         {"data-before-key-mm": f"{keys[0]:g}", "data-after-key-mm": f"{keys[1]:g}"}), _t(note))
+
+
 def _figure_sections(comparison: Comparison, feats: Mapping[str, np.ndarray], pos: tuple[np.ndarray, np.ndarray],
                      rot: tuple[np.ndarray, np.ndarray] | None) -> list[str]:
     """Workspace arrows, error against features, by orientation, histograms: before against after."""
     before = comparison.baseline if comparison.unregistered else "raw"
     after = "corrected, " + ("held-out" if comparison.held_out else comparison.scored)
-    ref_p = comparison.reference[:, :3]
-    keys = (figures.arrow_key_mm(comparison.before[:, :3] - ref_p), figures.arrow_key_mm(comparison.after[:, :3] - ref_p))
-    fig = figures.workspace_figure(ref_p, comparison.before[:, :3] - ref_p, comparison.after[:, :3] - ref_p,
-                                   f"before: {before}", "after: " + after.removeprefix("corrected, "))
-    sections = [_section("workspace", "Residual arrows over the workspace",
-                         _img(fig, "position error vectors in x-y, x-z, y-z, before and after",
-                              {"data-before-key-mm": f"{keys[0]:g}", "data-after-key-mm": f"{keys[1]:g}"}),
-                         _t(f"Arrow = {before} (top) or {comparison.scored} correction (bottom) minus reference "
-                            "position, drawn at the "
-                            "reference position, in three projections; colour = 3D error magnitude. "
-                            "Arrows are magnified; the key in each panel gives the scale."))]
+    sections = [_workspace_section(comparison, before, after)]
     body = _img(figures.features_figure(feats, pos[0] * 1e3, pos[1] * 1e3, "position error", "mm", before, after),
                 "position error against features")
     if rot is not None:

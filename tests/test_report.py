@@ -650,8 +650,9 @@ def _chromium() -> None:
 
 
 def test_the_page_in_headless_chromium(tmp_path: Path, unregistered: PoseTable) -> None:
-    """Every figure decodes (naturalWidth > 0), every anchor of the menu resolves to a section
-    and neither a script error nor a console message shows, in a real Chromium."""
+    """Every figure decodes (naturalWidth > 0), every anchor of the menu resolves to a section,
+    neither a script error nor a console message shows and no text runs past its section's
+    edges, in a real Chromium."""
     from posecorr.analysis.screenshot import check_page
 
     _chromium()
@@ -667,19 +668,22 @@ def test_the_page_in_headless_chromium(tmp_path: Path, unregistered: PoseTable) 
     assert [a["href"] for a in seen["anchors"]] == [f"#{sid}" for sid, _ in SECTIONS if sid != "segments"]
     assert all(a["resolves"] for a in seen["anchors"]), [a for a in seen["anchors"] if not a["resolves"]]
     assert seen["errors"] == [] and seen["console"] == []
+    assert {sid: s["outside"] for sid, s in seen["sections"].items() if s["outside"]} == {}
 
 
 def test_the_browser_check_sees_a_broken_page(tmp_path: Path) -> None:
     """The check can fail: a figure that does not decode, a menu anchor to nothing, a script
-    error and a console message are each seen."""
+    error, a console message and text past a section's edges are each seen."""
     from posecorr.analysis.screenshot import check_page
 
     _chromium()
     page = tmp_path / "bad.html"
     page.write_text('<!DOCTYPE html><html><head><meta charset="utf-8"></head><body><nav><a href="#gone">x</a>'
                     '<a href="#s">s</a></nav><section id="s"><img alt="broken" src="data:image/png;base64,AAAA">'
-                    '<script>console.log("a message"); missing();</script></section></body></html>')
+                    '<script>console.log("a message"); missing();</script><p style="margin-left:-60px">'
+                    'out on the left</p><pre>' + "past the right edge " * 40 + '</pre></section></body></html>')
     seen = check_page(page, tmp_path, timeout=120)
+    assert seen["sections"]["s"]["outside"] == ["out on the left", ("past the right edge " * 40).strip()[:80]]
     assert seen["images"][0]["width"] == 0
     assert [a["resolves"] for a in seen["anchors"]] == [False, True]
     assert any("missing is not defined" in e for e in seen["errors"])

@@ -258,10 +258,11 @@ def accepted_poses(box: Any, n: int = REACH_POSES, seed: int = REACH_SEED) -> np
 
 
 def model_reach(model: Any, measured: np.ndarray, box: Any, t: Any = None, span: Any = None
-                ) -> tuple[list[float], list[float]]:
+                ) -> tuple[list[float], dict[str, list[float]]]:
     """correction_reach of `model` (ModelProto, bytes or path) on the training poses
-    `measured` (times `t`) and on accepted_poses in `box` (times uniform in `span`), and the
-    largest correction on the training poses alone (how far beyond them the model goes)."""
+    `measured` (times `t`) and on accepted_poses in `box` (times uniform in `span`), and
+    {"training", "accepted"}: the largest correction on the training poses and on all those
+    poses, without the reach's margin (how far beyond its training poses the model goes)."""
     from .parity import run_onnx
 
     drawn = accepted_poses(box)
@@ -273,7 +274,8 @@ def model_reach(model: Any, measured: np.ndarray, box: Any, t: Any = None, span:
     corrected = run_onnx(model, poses, times)
     n_training = len(poses) - len(drawn)
     _refuse_non_finite(poses, times, corrected, n_training)
-    return correction_reach(poses, corrected), largest_correction(poses[:n_training], corrected[:n_training])
+    return correction_reach(poses, corrected), {"training": largest_correction(poses[:n_training], corrected[:n_training]),
+                                                "accepted": largest_correction(poses, corrected)}
 
 
 def _refuse_non_finite(poses: np.ndarray, times: np.ndarray | None, corrected: np.ndarray,
@@ -292,9 +294,9 @@ def _refuse_non_finite(poses: np.ndarray, times: np.ndarray | None, corrected: n
 
 
 def _reach_metadata(info: dict[str, Any], model: Any, measured: Any, t: Any, time_input: bool
-                    ) -> list[float] | None:
+                    ) -> dict[str, list[float]] | None:
     """Every export carries how far its corrections reach (model_reach), or the reach it was
-    given; returns the largest correction on the training poses (None for a given reach)."""
+    given; returns model_reach's largest corrections (None for a given reach)."""
     if "correction_reach" in info:
         return None
     if measured is None:
@@ -302,9 +304,9 @@ def _reach_metadata(info: dict[str, Any], model: Any, measured: Any, t: Any, tim
                           "(or correction_reach=[metres, radians])")
     if time_input and t is None:
         raise ExportError("the model's correction_reach needs the training times: pass t=...")
-    info["correction_reach"], training = model_reach(model, measured, info["input_bounds"],
-                                                     t if time_input else None, info.get("time_bounds"))
-    return training
+    info["correction_reach"], largest = model_reach(model, measured, info["input_bounds"],
+                                                    t if time_input else None, info.get("time_bounds"))
+    return largest
 
 
 def _bounds_metadata(info: dict[str, Any], measured: Any, t: Any, time_input: bool) -> None:
@@ -398,16 +400,16 @@ def _heldout_metrics(model: Any, heldout: tuple, time_input: bool) -> dict[str, 
 
 
 def _set_metadata(model: Any, info: dict[str, Any], measured: Any, reference: Any, t: Any,
-                  time_input: bool) -> list[float] | None:
+                  time_input: bool) -> dict[str, list[float]] | None:
     """Complete `info` (digest, bounds, reach, defaults) and store it as the model's
-    metadata_props, the digest still a placeholder; returns the largest correction on the
-    training poses where the reach was measured here."""
+    metadata_props, the digest still a placeholder; returns model_reach's largest corrections
+    where the reach was measured here."""
     from posecorr import __version__
 
     if measured is not None and "training_data_digest" not in info:
         info["training_data_digest"] = data_digest(measured, reference, t if time_input else None)
     _bounds_metadata(info, measured, t, time_input)
-    training_correction = _reach_metadata(info, model, measured, t, time_input)
+    largest = _reach_metadata(info, model, measured, t, time_input)
     info.setdefault("posecorr_version", __version__)
     info.setdefault("units", UNITS)
     info["opset"] = OPSET
@@ -421,7 +423,7 @@ def _set_metadata(model: Any, info: dict[str, Any], measured: Any, reference: An
     for key, value in meta.items():
         entry = model.metadata_props.add()
         entry.key, entry.value = key, value
-    return training_correction
+    return largest
 
 
 def _write_model(model: Any, path: Path, write: Callable[[Path, bytes], None] | None) -> bytes:
@@ -461,7 +463,7 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
       export is refused (ExportError): no model leaves without the box it was fitted in.
 
     Returns {"path", "metadata", "op_counts", "n_nodes", "file_size", "parity", "heldout_metrics",
-    "training_correction" ([m, rad], the largest on the training poses; None for a given reach)}.
+    "largest_correction" (model_reach's {"training", "accepted"}, [m, rad]; None for a given reach)}.
     """
     try:
         parity = Parity(parity)
@@ -487,11 +489,11 @@ def to_onnx(estimator: Any, path: str | Path, *, measured: np.ndarray | None = N
         heldout_metrics = _heldout_metrics(model, heldout, time_input)
         # the graph's own figures replace the caller's test and raw; the rest (fit's rigid floor) stays
         info["test_metrics"] = {**(info.get("test_metrics") or {}), **heldout_metrics}
-    training_correction = _set_metadata(model, info, measured, reference, t, time_input)
+    largest = _set_metadata(model, info, measured, reference, t, time_input)
 
     path = Path(path)
     data = _write_model(model, path, write)
     counts = op_counts(model)
     return {"path": str(path), "metadata": info, "op_counts": counts, "n_nodes": sum(counts.values()),
             "file_size": len(data), "parity": parity_report, "heldout_metrics": heldout_metrics,
-            "training_correction": training_correction}
+            "largest_correction": largest}

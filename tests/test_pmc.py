@@ -201,5 +201,21 @@ def test_fit_says_where_a_model_extrapolates(tmp_path, capsys):
         moved = np.linalg.norm(run_onnx(model, tilted)[:, :3] - tilted[:, :3], axis=1).max()
         largest = np.linalg.norm(run_onnx(model, table.measured)[:, :3] - table.measured[:, :3], axis=1).max()
         assert (moved > 10 * largest) == (experiment == 2), (experiment, moved, largest)
-    assert len(said[2]) == 1 and " times its largest on the training poses " in said[2][0], said
+    assert len(said[2]) == 1 and " times its largest correction of the training poses " in said[2][0], said
     assert said[3] == [], said
+
+
+def test_the_extrapolation_note_compares_like_with_like():
+    """The note compared the reach, margin included (twice the largest plus 1 cm), with the
+    training poses' largest correction: a sub-millimetre model was said to extrapolate, and a
+    model that leaves its training poses as they are divided by zero."""
+    from posecorr.fitting import extrapolation_note
+
+    def note(training, accepted):
+        return extrapolation_note({"largest_correction": {"training": [training, 0.0], "accepted": [accepted, 0.0]}})
+
+    assert note(0.0005, 0.004) is None                # 8 times, and under a centimetre
+    assert note(0.01, 0.09) is None                   # 9 times
+    assert "11 times its largest correction" in note(0.01, 0.11)
+    assert "where it leaves the training poses as they are" in note(0.0, 0.5)
+    assert extrapolation_note({"largest_correction": None}) is None   # a reach given, not measured

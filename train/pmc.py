@@ -14,8 +14,9 @@ Numerics (what differs from a textbook normal-equation fit, not the model):
   (the tilt of a session turned about one axis only, the paper's Exp II: 0.2 to 0.8 % of
   the yaw's span) holds noise about a constant; stretched to [-1, 1], its terms escape the
   ridge, and the polynomial moves a pose tilted 5 degrees by metres and turns float32
-  rounding into millimetres. Exp III's columns span 20 % of their unit's widest and more:
-  the limit leaves them as they were;
+  rounding into millimetres. Without a ridge (alpha 0, which the cross-validation may
+  choose) the scaling changes nothing of the fit. Exp III's columns span 20 % of their
+  unit's widest and more: the limit leaves them as they were;
 * the coefficients are found with an SVD-based least squares solve (``numpy.linalg.lstsq``),
   never the normal equations (which square the condition number);
 * the fit is done on the correction Y - X and the identity is folded back into the

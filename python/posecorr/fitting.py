@@ -62,22 +62,28 @@ def export_fit(report: Any, table: Any, output: str | Path, write: Any = None) -
 
 
 
-# A model whose reach (its largest correction on poses the runtimes accept, with the reach's
-# margin) is this many times its largest correction on the training poses extrapolates.
+# A model whose largest correction on the poses the runtimes accept (any orientation,
+# positions in input_bounds) is this many times its largest on the training poses, and above
+# EXTRAPOLATION_MIN_M, extrapolates: a sub-millimetre model that moves a pose by 5 mm is no
+# hazard.
 EXTRAPOLATION_FACTOR = 10.0
+EXTRAPOLATION_MIN_M = 0.01
 
 
 def extrapolation_note(exported: dict[str, Any]) -> str | None:
     """Words for a model that moves poses unlike its training poses far more than it moves
     those (a core fitted on orientations of one axis, turned about another), which the
     runtimes accept: they refuse positions outside input_bounds, not orientations."""
-    training = exported.get("training_correction")
-    reach = (exported.get("metadata") or {}).get("correction_reach")
-    if not training or not reach or reach[0] <= EXTRAPOLATION_FACTOR * training[0]:
+    largest = exported.get("largest_correction")
+    if not largest:
         return None
-    return (f"on poses unlike its training poses (any orientation, positions in input_bounds) this model's "
-            f"corrections reach {reach[0]:.3g} m, {reach[0] / training[0]:.0f} times its largest on the "
-            f"training poses ({1e3 * training[0]:.3g} mm): it extrapolates, and the runtimes accept those "
+    training, accepted = largest["training"][0], largest["accepted"][0]
+    if accepted <= max(EXTRAPOLATION_FACTOR * training, EXTRAPOLATION_MIN_M):
+        return None
+    against = (f"{accepted / training:.0f} times its largest correction of the training poses "
+               f"({1e3 * training:.3g} mm)" if training > 0 else "where it leaves the training poses as they are")
+    return (f"on poses unlike its training poses (any orientation, positions in input_bounds) this model moves "
+            f"positions by up to {accepted:.3g} m, {against}: it extrapolates, and the runtimes accept those "
             "orientations; run it near the orientations it was fitted on")
 
 def write_fit(report: Any, table: Any, data_path: str | Path, output: str | Path, effects: list[str],

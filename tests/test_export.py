@@ -532,11 +532,15 @@ def test_read_info_rejects_malformed_files(tmp_path):
     good = tmp_path / "m.onnx"
     to_onnx(ToyCorrector("pos", core="pmc"), good, measured=training_like_poses(100), n_random=50)
     data = good.read_bytes()
-    cases = {"text": b"hello, this is not a model\n", "garbage": bytes(RNG.integers(0, 256, 4000, dtype=np.uint8))}
+    # Random bytes: a field whose length runs past the end reads as a file cut short (1 in 12
+    # seeds), the rest as no ONNX at all; a local generator, so the bytes do not depend on
+    # which tests ran before in this worker.
+    garbage = [bytes(np.random.default_rng(seed).integers(0, 256, 4000, dtype=np.uint8)) for seed in range(24)]
+    cases = {"text": b"hello, this is not a model\n", **{f"garbage{i}": blob for i, blob in enumerate(garbage)}}
     for name, blob in cases.items():
         p = tmp_path / f"{name}.onnx"
         p.write_bytes(blob)
-        with pytest.raises(ValueError, match="not a valid ONNX model"):
+        with pytest.raises(ValueError, match="not a valid ONNX model|truncated file at byte"):
             read_info(p)
     # Cut short: libposecorr's protobuf reader (C) and this one name the same byte in the same words.
     from posecorr.controller.runtime import Corrector, PoseCorrError
@@ -596,3 +600,49 @@ def test_export_aligns_weights_and_changes_nothing_else(tmp_path):
     runs = [ort.InferenceSession(b, providers=["CPUExecutionProvider"]).run(None, {"pose": x})[0]
             for b in (data, plain_bytes)]
     np.testing.assert_array_equal(runs[0], runs[1])
+
+
+@pytest.mark.parametrize("make", ["pmc-pos", "physics-position-only"])
+def test_a_position_only_model_passes_the_orientation_through_as_a_unit_quaternion(tmp_path, make):
+    """A table's quaternions are unit within 1e-3; a position-only core or physics stage
+    passed them through as they came, and the export refused its own graph (the output
+    quaternion's norm off 1 by 0.0005). scipy's Rotation gives the canonical unit
+    quaternion the output must be."""
+    from scipy.spatial.transform import Rotation
+
+    from posecorr.export.parity import run_onnx
+    from posecorr.train import PMC
+    from posecorr.train.physics import PhysicsModel
+
+    measured = training_like_poses(60)
+    measured[:, 3:] *= 1.0005
+    reference = measured.copy()
+    reference[:, :3] += 0.002 * measured[:, :3] ** 2
+    model = (PMC("pos") if make == "pmc-pos" else PhysicsModel(("station",), with_rotation=False)).fit(measured, reference)
+    to_onnx(model, tmp_path / "m.onnx", measured=measured, reference=reference)
+    q = Rotation.from_quat(measured[:, [4, 5, 6, 3]]).as_quat(canonical=True)[:, [3, 0, 1, 2]]
+    assert np.allclose(model.predict(measured)[:, 3:], q, atol=1e-12)
+    assert np.allclose(run_onnx(tmp_path / "m.onnx", measured)[:, 3:], q, atol=1e-6)
+
+
+def test_a_model_written_despite_a_broken_contract_says_which_clause(tmp_path, capsys):
+    """parity="warn" writes the model and records the failure; the clause was not kept, so
+    `posecorr info` printed FAILED beside errors within tolerance and no cause."""
+    from posecorr.cli import main
+
+    class Flipper(ToyCorrector):
+        def forward(self, pose):
+            out = super().forward(pose)
+            return namespace(out).concat([out[..., 0:3], -out[..., 3:7]], axis=-1)
+
+        def predict(self, measured):
+            out = super().predict(measured)
+            out[:, 3:7] *= -1.0
+            return out
+
+    to_onnx(Flipper("zhou", core="pmc"), tmp_path / "m.onnx", measured=training_like_poses(100), n_random=100,
+            parity="warn")
+    assert read_info(tmp_path / "m.onnx")["parity"]["broken_clause"].startswith("an output quaternion with qw = -")
+    assert main(["info", str(tmp_path / "m.onnx")]) == 0
+    line = next(l for l in capsys.readouterr().out.splitlines() if "parity with the fitted estimator" in l)
+    assert "FAILED" in line and "the graph breaks the output contract: an output quaternion with qw" in line, line

@@ -285,9 +285,17 @@ def test_a_joint_stream_too_short_for_the_offset_is_refused_with_its_length(tmp_
     table = str(tmp_path / "t.csv")
     one_line_error(posecorr("ingest", str(path), "-o", table),
                    "short.csv: the joint stream is too short to find the clock offset: it spans 0 s (1 joint state), "
-                   "and the estimate takes at least 0.1 s of the robot's motion; give --offset, the tracker clock "
+                   "and the estimate takes at least 0.1 s of motion; give --offset, the tracker clock "
                    "minus the robot's")
     one_line_error(posecorr("ingest", str(path), "-o", table, "--offset", "0.001"), "short.csv: no still segment")
+    # a second of joints beside a tracker stream of one pose: it said the speeds "correlate at
+    # most 0.00 ... wrong topics", after numpy's warnings
+    path.write_text("t,q1,q2,q3,q4,q5,q6,x,y,z,qw,qx,qy,qz\n"
+                    "0,0,-1.5708,1.5708,0,1.5708,0,,,,,,,\n"
+                    "0.5,,,,,,,0.1,0.2,0.3,1,0,0,0\n"
+                    "1,0.2,-1.5708,1.5708,0,1.5708,0,,,,,,,\n")
+    one_line_error(posecorr("ingest", str(path), "-o", table),
+                   "short.csv: the tracker stream is too short to find the clock offset: it spans 0 s (1 tracker pose)")
 
 
 def test_bad_csv_cell_names_row_and_column(recording, tmp_path) -> None:

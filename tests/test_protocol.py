@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -514,3 +515,15 @@ def test_ray_auto_with_no_cluster_running_is_refused_at_once(tmp_path, monkeypat
         f"posecorr sweep: error: {data}: --ray auto: no Ray cluster is running on this machine and RAY_ADDRESS is "
         "unset: start one (ray start --head) or give its head's address (--ray HOST:PORT)"]
     assert not store.exists()
+    # "auto" resolving to a head that is gone (RAY_ADDRESS left set): probed as HOST:PORT is
+    import socket
+    with socket.socket() as free:
+        free.bind(("127.0.0.1", 0))
+        port = free.getsockname()[1]
+    monkeypatch.setenv("RAY_ADDRESS", f"127.0.0.1:{port}")
+    assert main(["sweep", str(data), "--representations", "zhou", "--activations", "purelin", "--networks", "1/1",
+                 "--epochs", "2", "--repeats", "2", "--store", str(store), "--ray", "auto"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    # (Ray writes the loopback as this machine's address)
+    assert len(err) == 1 and re.match(rf"posecorr sweep: error: {re.escape(str(data))}: --ray auto: nothing answers "
+                                      rf"at [^ ]+:{port} \(", err[0]), err

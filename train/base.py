@@ -64,7 +64,7 @@ def decode_pose(vector: Any, pose: Any, rep: str) -> Any:
     if rotations.check_representation(rep).orientation:
         q = rotations.matrix_to_quat(rotations.decode(vector[..., 3:], rep))
     else:
-        q = rotations.canonical_quat(pose[..., 3:7])
+        q = rotations.unit_quat(pose[..., 3:7])
     return xp.concat([p, q], axis=-1)
 
 

@@ -558,7 +558,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         if t is None:
             thetas = {name: theta for name, theta in thetas.items() if not get_effect(name).needs_time}
         p, R = invert_effects(p, R, thetas, ctx)
-        q = rotations.matrix_to_quat(R) if self.with_rotation_ else rotations.canonical_quat(pose[..., 3:7])
+        q = rotations.matrix_to_quat(R) if self.with_rotation_ else rotations.unit_quat(pose[..., 3:7])
         return xp.concat([p, q], axis=-1)
 
     def predict(self, measured: Any, t: np.ndarray | None = None) -> np.ndarray:

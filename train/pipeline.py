@@ -20,29 +20,19 @@ import numpy as np
 from sklearn.base import BaseEstimator, clone
 from sklearn.exceptions import NotFittedError
 
-from posecorr import rotations
-from posecorr._xp import namespace
 from posecorr.data import PoseTable
 from posecorr.metrics import metric_block, pose_errors, pose_metrics, rmse_total
 from posecorr.registration import orientation_notes
 from posecorr.rotations import POSITION_ONLY
 from posecorr.textui import percent
 
-from .base import (PoseRegressorMixin, Validation, as_validation, check_pair, check_poses, check_times, keeps_last_fit,
-                   vector_size)
+from .base import (PoseRegressorMixin, Validation, as_validation, check_pair, check_poses, check_times, decode_pose,
+                   keeps_last_fit, vector_size)
 from .identify import describe_spread, rigid_variants
 from .physics import PhysicsModel, RigidModel
 from .spec import SESSION_EPOCHS, SESSION_HIDDEN, ModelSpec, spec_from_options
 from .splits import (MIN_TEST_SPLIT, CrossValidationPlan, FixedSplit, HeldOut, KFold, Plan, fewest_to_fit,
                      plan_for, require_enough_to_fit)
-
-
-def _unit_canonical(pose: Any) -> Any:
-    """The pose with its quaternion made unit and qw >= 0: the contract's output, which every
-    stage's decoding gives and a pipeline of no stage must give too."""
-    xp = namespace(pose)
-    q = rotations.canonical_quat(rotations.normalize(pose[..., 3:7]))
-    return xp.concat([pose[..., 0:3], q], axis=-1)
 
 
 class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
@@ -118,14 +108,15 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
     def forward(self, pose: Any, t: Any = None) -> Any:
         self._check_fitted()
         if self.physics_ is None and self.core_ is None:
-            return _unit_canonical(pose)
+            return decode_pose(pose[..., 0:3], pose, POSITION_ONLY)   # the contract's output, passed through
         out = pose if self.physics_ is None else self.physics_.forward(pose, t)
         return out if self.core_ is None else self.core_.forward(out)
 
     def predict(self, measured: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
         self._check_fitted()
         if self.physics_ is None and self.core_ is None:
-            return _unit_canonical(check_poses(measured, "measured"))
+            measured = check_poses(measured, "measured")
+            return decode_pose(measured[:, 0:3], measured, POSITION_ONLY)
         return self.predict_core(self.predict_physics(measured, t))
 
     def predict_core(self, stage: np.ndarray) -> np.ndarray:

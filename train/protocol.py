@@ -555,9 +555,9 @@ def _probe_ray_head(address: str) -> None:
     import re
     import socket
 
+    given = address
     if address == "auto":
-        _find_ray_cluster()
-        return
+        address = _find_ray_cluster() or address
     found = re.fullmatch(r"(?:ray://)?\[?([^\[\]/]+?)\]?:(\d+)", address)
     if found is None:
         return
@@ -566,19 +566,23 @@ def _probe_ray_head(address: str) -> None:
         socket.create_connection((host, port), timeout=RAY_PROBE_S).close()
     except OSError as exc:
         reason = "timed out" if isinstance(exc, TimeoutError) else (exc.strerror or type(exc).__name__)
-        raise ConnectionError(f"--ray {address}: nothing answers at {host}:{port} ({reason}): start the head there "
+        raise ConnectionError(f"--ray {given}: nothing answers at {host}:{port} ({reason}): start the head there "
                               f"(ray start --head --port {port}) or give its address") from None
 
 
-def _find_ray_cluster() -> None:
-    """ConnectionError in one line where `--ray auto` finds no cluster: Ray's own error names an
-    --address flag posecorr does not have. Looked up as ray.init will (RAY_ADDRESS, the address
-    the last `ray start` left, a raylet among the processes) by the function it calls, without
-    connecting: Ray has no public one."""
-    from ray._private.services import canonicalize_bootstrap_address
-
+def _find_ray_cluster() -> str | None:
+    """The address `--ray auto` resolves to, to be probed as HOST:PORT is (a stale address a
+    dead head left is found but does not answer); ConnectionError in one line where it finds
+    no cluster: Ray's own error names an --address flag posecorr does not have. Looked up as
+    ray.init will (RAY_ADDRESS, the address the last `ray start` left, a GCS among the
+    processes) by the function it calls, which is Ray's private one: where a Ray release
+    moves it, None, and Ray resolves "auto" itself."""
     try:
-        canonicalize_bootstrap_address("auto")
+        from ray._private.services import canonicalize_bootstrap_address
+    except ImportError:
+        return None
+    try:
+        return canonicalize_bootstrap_address("auto")
     except ConnectionError:
         raise ConnectionError("--ray auto: no Ray cluster is running on this machine and RAY_ADDRESS is unset: "
                               "start one (ray start --head) or give its head's address (--ray HOST:PORT)") from None

@@ -108,7 +108,7 @@ def matrix_to_quat(R: Any) -> Any:
     best23 = [xp.where(third_wins, a, b) for a, b in zip(scaled[2], scaled[3])]
     low_wins = xp.maximum(pivots[0], pivots[1]) >= xp.maximum(pivots[2], pivots[3])
     q = xp.stack([xp.where(low_wins, a, b) for a, b in zip(best01, best23)], axis=-1)
-    return canonical_quat(normalize(q))
+    return unit_quat(q)
 
 
 def canonical_quat(q: Any) -> Any:
@@ -116,6 +116,12 @@ def canonical_quat(q: Any) -> Any:
     xp = namespace(q)
     negative = xp.reshape(q[..., 0] < 0, tuple(q.shape[:-1]) + (1,))
     return xp.where(negative, -q, q)
+
+
+def unit_quat(q: Any) -> Any:
+    """q made unit with w >= 0: the contract's form of a rotation, which a pose passed
+    through must take too (a table's quaternions are unit within 1e-3 only)."""
+    return canonical_quat(normalize(q))
 
 
 # --- rotation vector <-> matrix --------------------------------------------------------
@@ -142,7 +148,7 @@ def rotvec_to_matrix(v: Any) -> Any:
 def quat_to_rotvec(q: Any) -> Any:
     """(..., 4) unit quaternion -> (..., 3) rotation vector with angle in [0, pi]."""
     xp = namespace(q)
-    q = canonical_quat(normalize(q))
+    q = unit_quat(q)
     w = q[..., 0]
     v = q[..., 1:4]
     s2 = xp.sum(v * v, axis=-1)

@@ -739,7 +739,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     residual_pred = model_corrected if model_corrected is not None else state.predicted
     features = feature_r2(residual_components(table.reference, residual_pred, table.has_orientation),
                           pose_features(table.reference, table.time()), folds, seed)
-    dp, _ = pose_errors(table.reference, state.predicted, table.has_orientation)
+    base = pose_metrics(table.reference, state.predicted, table.has_orientation)
     result = {
         "model_effects": effects,
         "candidates": rows,
@@ -748,7 +748,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         "aliases": _aliases(names, state, effects),
         "test": PRESENT_TEST.format(alpha=alpha, folds=folds, gain=min_gain),
         "folds": folds,
-        "cv_base": {"rmse_total": state.before, "rmse_pos": float(np.sqrt(np.mean(dp ** 2)))},
+        "cv_base": {"rmse_total": state.before, "rmse_pos": base["rmse_pos"], "rmse_rot": base["rmse_rot"]},
         "rows": {"given": rows_given, "used": table.n},
         "reach": score_test_reach(state, len(names), alpha, table.n),
         "notes": _table_notes(table, effects, candidates, forms),

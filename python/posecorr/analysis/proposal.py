@@ -106,7 +106,6 @@ def _fitted_proposal(search: Any, result: dict[str, Any], kept: list[str], forms
     held-out gain over the base model)."""
     from contextlib import ExitStack
 
-    from posecorr.metrics import pose_metrics
     from posecorr.train.physics import PhysicsModel
 
     table = search.table
@@ -139,7 +138,7 @@ def _fitted_proposal(search: Any, result: dict[str, Any], kept: list[str], forms
         "cv_rmse_pos_before": result["cv_base"]["rmse_pos"],
         "cv_rmse_pos_after": float(cv.metrics["rmse_pos"]),
         # where the table has orientations, what a form that turns them does (None otherwise)
-        "cv_rmse_rot_before": pose_metrics(table.reference, search.base.predicted, table.has_orientation)["rmse_rot"],
+        "cv_rmse_rot_before": result["cv_base"]["rmse_rot"],
         "cv_rmse_rot_after": cv.metrics["rmse_rot"],
         "with": kept,
         "model_effects": list(search.effects),
@@ -227,6 +226,8 @@ def _free_terms(basis: np.ndarray, theta: np.ndarray, norms: np.ndarray) -> tupl
     on this session (|theta_j| times `norms`_j) first, and theta moved along the held
     combinations to where those terms are zero: for an alias, the effects before the form take
     up the rest; otherwise the data cannot tell."""
+    from scipy.linalg import qr
+
     values, vectors = np.linalg.eigh(np.eye(len(theta)) - basis @ basis.T)
     held = vectors[:, values > 0.5]
     out: list[int] = []
@@ -234,6 +235,11 @@ def _free_terms(basis: np.ndarray, theta: np.ndarray, norms: np.ndarray) -> tupl
         # left out if it reaches a held combination the terms left out so far do not, by more
         # than a tenth (what the fit's standard errors count as touching it)
         if len(out) < held.shape[1] and np.linalg.matrix_rank(held[out + [int(j)]], tol=0.1) > len(out):
+            out.append(int(j))
+    # Where no small term reaches a held combination by a tenth, the terms that reach the rest
+    # best (QR with column pivoting): as many left out as combinations held, so theta can move.
+    for j in qr(held.T, pivoting=True)[2]:
+        if len(out) < held.shape[1] and j not in out and np.linalg.matrix_rank(held[out + [int(j)]]) > len(out):
             out.append(int(j))
     if out:
         theta = theta - held @ np.linalg.solve(held[out], theta[out])

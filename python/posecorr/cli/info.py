@@ -76,6 +76,8 @@ def summary(info: dict[str, Any]) -> list[str]:
     if isinstance(parity, dict) and isinstance(parity.get("passed"), bool):
         worst = (f", worst {parity['max_pos_m']:.1e} m / {parity['max_rot_rad']:.1e} rad"
                  if all(isinstance(parity.get(k), (int, float)) for k in ("max_pos_m", "max_rot_rad")) else "")
+        broken = parity.get("broken_clause")
+        worst += f"; the graph breaks the output contract: {broken}" if isinstance(broken, str) else ""
         lines.append(f"  parity with the fitted estimator: {'passed' if parity['passed'] else 'FAILED'}{worst}")
     box = info.get("input_bounds")
     if (isinstance(box, list) and len(box) == 2 and all(isinstance(b, list) and len(b) == 3 for b in box)

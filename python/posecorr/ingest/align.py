@@ -30,7 +30,7 @@ WELL_ALIGNED = 0.9
 WIDER = 4.0
 CLEARLY_BETTER = 0.1
 OUTLIER_FACTOR = 4.0       # residuals beyond this many medians leave the offset fit
-# s: the shortest joint stream the offset is estimated from. Its speeds are smoothed over SMOOTH_S
+# s: the shortest stream (joints, tracker) the offset is estimated from. Its speeds are smoothed over SMOOTH_S
 # on the COARSE_HZ grid: a stream of less than a few smoothing windows leaves next to no speed
 # sample that smoothing has not flattened, nothing to correlate (under one grid step, no grid).
 MIN_SPAN_S = 0.1
@@ -171,12 +171,13 @@ def estimate_offset(t_robot: np.ndarray, T_robot: np.ndarray, t_tracker: np.ndar
     tracker's positions p_tracker at t_tracker."""
     p_robot = T_robot[:, :3, 3]
     check_overlap(t_robot, t_tracker, max_offset, what)
-    span = float(t_robot[-1] - t_robot[0])
-    if span < MIN_SPAN_S:
-        states = f"{len(t_robot)} joint state" + ("s" if len(t_robot) != 1 else "")
-        raise IngestError(f"{what}: the joint stream is too short to find the clock offset: it spans {span:.3g} s "
-                          f"({states}), and the estimate takes at least {MIN_SPAN_S:g} s of the robot's motion; "
-                          "give --offset, the tracker clock minus the robot's")
+    for stream, t, sample in (("joint", t_robot, "joint state"), ("tracker", t_tracker, "tracker pose")):
+        span = float(t[-1] - t[0])
+        if span < MIN_SPAN_S:
+            samples = f"{len(t)} {sample}" + ("s" if len(t) != 1 else "")
+            raise IngestError(f"{what}: the {stream} stream is too short to find the clock offset: it spans "
+                              f"{span:.3g} s ({samples}), and the estimate takes at least {MIN_SPAN_S:g} s of "
+                              "motion; give --offset, the tracker clock minus the robot's")
     step = 1.0 / COARSE_HZ
     grid = np.arange(t_robot[0], t_robot[-1], step)
     r, r_ok = speed_on_grid(t_robot, p_robot, grid)

@@ -945,9 +945,11 @@ def test_diagnosis_options_are_checked_first_and_say_what_they_did(tmp_path) -> 
                  for extra in ((), ("--effects", "station,sweep"))]
     untimed = ("not tried: drift, time_trend (acting over the session's time, they need a time column t, which this "
                "table lacks)")
-    assert diagnosed[0] == [untimed] and diagnosed[1] == [
+    assert diagnosed[0] == [untimed] and diagnosed[1][:2] == [
         untimed, f"--effects station, sweep are not {model}'s (mount, station): the candidates are ranked against a "
         "refit of --effects; the model's own residuals feed the residual structure by feature"]
+    # the frames are unregistered: the advice completes the registration --effects leave half-done
+    assert len(diagnosed[1]) == 3 and diagnosed[1][2].startswith("mount joins station in the advice"), diagnosed[1]
     stale = tmp_path / "proposed.py"   # an earlier proposal: the one effect file --propose may replace
     old = '"""Proposed by `posecorr diagnose session.csv --effects station --propose proposed.py`.\n"""\n'
     stale.write_text(old)
@@ -1047,13 +1049,13 @@ def test_fit_states_a_parity_tolerance_widened_by_far_coordinates(tmp_path) -> N
 
 
 def test_diagnose_shows_a_candidate_whose_fits_ran_away_as_such(tmp_path) -> None:
-    """Exp1 diagnosed with no effects (frames unregistered, metres of error): the quadratic
-    form's fold fits predict the held-out poses ~1e82 m off. The table says "ran away" where a
-    candidate's held-out error grows 100-fold, and one line says so with the figure; --json
-    keeps the numbers."""
+    """Exp1 diagnosed with the mount alone (frames unregistered, the station's metres of offset
+    left): the quadratic form's fold fits predict the held-out poses ~1e12 m off. The table
+    says "ran away" where a candidate's held-out error grows 100-fold, and one line says so
+    with the figure; --json keeps the numbers."""
     data = str(Path(__file__).parent / "data" / "realdata" / "20201002_Exp1.csv")
-    text = posecorr("diagnose", data)
-    result = json.loads(posecorr("diagnose", data, "--json").stdout)
+    text = posecorr("diagnose", data, "--effects", "mount")
+    result = json.loads(posecorr("diagnose", data, "--effects", "mount", "--json").stdout)
     assert text.returncode == 0, text.stderr
     away = [c for c in result["candidates"] if c["cv_rmse_after"] >= 100 * c["cv_rmse_before"]]
     assert [c["effect"] for c in away] == ["quadratic"], [(c["effect"], c["cv_rmse_after"]) for c in away]

@@ -271,7 +271,8 @@ def test_aliases_count_the_directions_two_effects_share():
     assert (whole["shared"], whole["of"]) == (2, 2) and alias_text(whole).startswith("cannot be told apart")
     assert dg._alias("a", "b", u[:, :2], u[:, 2:]) is None
 
-    result = diagnose(read_table(REALDATA / "20200717_Exp2.csv"), [], folds=5)
+    exp2 = read_table(REALDATA / "20200717_Exp2.csv")
+    result = diagnose(exp2, [], folds=5, candidates=dg.candidate_effects(exp2, []))
     pair = next(p for p in result["aliases"] if set(p["effects"]) == {"mount", "station"})
     assert pair["correlation"] > 0.9999 and (pair["shared"], pair["of"]) == (4, 6), pair
 
@@ -346,6 +347,7 @@ def test_frames_nobody_registered_are_named_from_nothing(capsys):
     the station on Exp1 and above 0.5 alone on the robot session; its refit, held out, is what
     shows it. On another robot session the mount alone gains too little in one fold (the
     station's error swamps it): tested again given the station, it joins."""
+    from posecorr.analysis.diagnose import candidate_effects
     from posecorr.cli import main
 
     tables = {"exp1": read_table(REALDATA / "20201002_Exp1.csv"), "robot1": study.session(None, 1, "robot"),
@@ -353,7 +355,9 @@ def test_frames_nobody_registered_are_named_from_nothing(capsys):
     study.hide_outside()
     mounts = {}
     for name, table in tables.items():
-        result = diagnose(table, [], folds=5)
+        # every candidate given by name: the diagnosis of the bare measurements starts from the
+        # registration itself (below); here it must find it
+        result = diagnose(table, [], folds=5, candidates=candidate_effects(table, []))
         present = sorted(row["effect"] for row in result["candidates"] if row["present"])
         assert present == ["mount", "station"], (name, present)
         mounts[name] = next(row for row in result["candidates"] if row["effect"] == "mount")
@@ -361,7 +365,8 @@ def test_frames_nobody_registered_are_named_from_nothing(capsys):
     alone, given = mounts["robot1"]["fold_gain_min"], mounts["robot1"]["score_given"]
     assert alone < 0 and mounts["robot1"]["given"] == ["station"] and given > 0.9, (alone, given)
     assert main(["diagnose", str(REALDATA / "20201002_Exp1.csv")]) == 0
-    assert "add: --effects station,mount" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "add: --effects station,mount" in out and "model effects station, mount;" in out, out
 
 
 def test_fold_sharing_is_the_variance_the_explicit_fits_give():
@@ -692,17 +697,22 @@ def test_a_session_the_folds_leave_no_residual_names_fewer_folds() -> None:
 
 
 def test_the_advice_holds_the_whole_registration_where_the_frames_are_unregistered(tmp_path, capsys):
-    """Exp2's nine poses are turned alike: from the bare measurements the test keeps the mount
-    and fails the station given it (30 % of gain, p = 0.012), and the advice was `--effects
-    mount`, a model 25 times the rigid fit's error held out. A leave-one-out of
-    each model by hand is the truth: the advice now holds both, and fits as well as the rigid
-    fit on every pose left out."""
+    """Exp2's nine poses are turned alike: from the bare measurements the test kept the mount
+    and failed the station given it (30 % of gain, p = 0.012), and the advice was `--effects
+    mount`, a model 25 times the rigid fit's error held out. The bare diagnosis now starts
+    from the registration, and a model of part of it is advised the rest. A leave-one-out of
+    each model by hand is the truth: the advice fits as well as the rigid fit on every pose
+    left out, the mount alone does not."""
     from posecorr.cli import main
     from posecorr.train.physics import PhysicsModel, RigidModel
 
     data = tmp_path / "exp2.csv"
     data.write_bytes((REALDATA / "20200717_Exp2.csv").read_bytes())
     assert main(["diagnose", str(data), "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["model_effects"] == ["station", "mount"] and result["add_effects"] == ["station", "mount"], result
+    assert any("the model starts from their registration" in note for note in result["notes"]), result["notes"]
+    assert main(["diagnose", str(data), "--effects", "mount", "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["add_effects"] == ["station", "mount"], result["add_effects"]
     assert any(note.startswith("station joins mount in the advice") for note in result["notes"]), result["notes"]

@@ -667,34 +667,63 @@ def require_diagnosable(table: PoseTable, folds: int) -> None:
     require_enough_to_fit(table.n, KFold(folds))
 
 
-def advised_effects(table: PoseTable, effects: Sequence[str], present: Sequence[str]
-                    ) -> tuple[list[str] | None, str | None]:
-    """(the effects to fit next, a note or None): the model's effects and the catalogue effects
-    present; None where none is. Where the frames are unregistered and the advice holds part
-    of the registration only, the rest joins it, said in the note: on a few poses turned alike
-    the test may keep the mount and fail the station given it (their effects alike along most
-    directions), and a model of a part fits the frames' offset worse than the rigid fit, the
-    floor every model is compared with, which holds them all."""
-    if not present:
-        return None, None
-    advice = list(effects) + [name for name in present if name not in effects]
+def _registration() -> list[str]:
+    """The registration effects, frame first (`REGISTRATION_ROLES`): station, mount."""
     roles = registration_effects()
-    registration = [roles[role] for role in REGISTRATION_ROLES if role in roles]
-    missing = [name for name in registration if name not in advice]
-    if not missing or len(missing) == len(registration):
-        return advice, None
+    return [roles[role] for role in REGISTRATION_ROLES if role in roles]
+
+
+def _unregistered_words(table: PoseTable) -> str | None:
+    """Where the frames are unregistered (`metrics.frames_unregistered` against the best
+    in-sample rigid fit), the figures in words; None where they are not."""
     from .comparison import rigid_in_sample
 
     raw = pose_metrics(table.reference, table.measured, table.has_orientation)
     rigid_name, rigid = rigid_in_sample(table, None)
     fitted = pose_metrics(table.reference, rigid, table.has_orientation)
     if not frames_unregistered(raw, fitted):
-        return advice, None
+        return None
+    return (f"the frames are unregistered (raw rmse_pos {1e3 * raw['rmse_pos']:.3g} mm, the rigid fit's "
+            f"{1e3 * fitted['rmse_pos']:.3g} mm in-sample, {rigid_name})")
+
+
+def _with_registration(table: PoseTable, effects: list[str], candidates: Sequence[str] | None
+                       ) -> tuple[list[str], str | None]:
+    """(the model's effects, a note or None): where the frames are unregistered and the model
+    holds no registration effect, the registration in front of them, as `fit`'s rigid floor
+    holds it. Against the bare measurements every candidate would gain by taking up the
+    frames' offset: a sweep passed given the station and the mount alone where a bend, which
+    ran away fitted to metres of offset, was never tried again; a form stood in for the
+    mount; a proposal quoted the registration's gain as its own."""
+    registration = _registration()
+    if candidates is not None or any(name in effects for name in registration):
+        return effects, None
+    unregistered = _unregistered_words(table)
+    if unregistered is None:
+        return effects, None
+    return registration + effects, (f"{unregistered}: the model starts from their registration, "
+                                    f"{', '.join(registration)}, as fit's rigid floor does")
+
+
+def advised_effects(table: PoseTable, given: Sequence[str], effects: Sequence[str], present: Sequence[str]
+                    ) -> tuple[list[str] | None, str | None]:
+    """(the effects to fit next, a note or None): the model's `effects` and the catalogue
+    effects present; None where that is what was `given`. Where the frames
+    are unregistered and the advice holds part of the registration only, the rest joins it,
+    said in the note: on a few poses turned alike the test may keep the mount and fail the
+    station given it (their effects alike along most directions), and a model of a part fits
+    the frames' offset worse than the rigid fit, the floor every model is compared with,
+    which holds them all."""
+    advice = list(effects) + [name for name in present if name not in effects]
+    registration = _registration()
+    missing = [name for name in registration if name not in advice]
+    unregistered = None if not missing or len(missing) == len(registration) else _unregistered_words(table)
+    if unregistered is None:
+        return (advice if advice != list(given) else None), None
     held = [name for name in registration if name in advice]
     note = (f"{' and '.join(missing)} {'joins' if len(missing) == 1 else 'join'} {', '.join(held)} in the advice, "
-            f"though not present by the test: the frames are unregistered (raw rmse_pos {1e3 * raw['rmse_pos']:.3g} "
-            f"mm, the rigid fit's {1e3 * fitted['rmse_pos']:.3g} mm in-sample, {rigid_name}), and the rigid fit, the "
-            f"floor `fit` compares every model with, holds the whole registration")
+            f"though not present by the test: {unregistered}, and the rigid fit, the floor `fit` compares every "
+            f"model with, holds the whole registration")
     return registration + [name for name in advice if name not in registration], note
 
 
@@ -725,7 +754,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         raise ValueError(f"model_corrected has shape {np.shape(model_corrected)}, expected ({table.n}, 7): "
                          f"a corrected pose for each row of the table")
     table, model_corrected = _thinned(table, model_corrected, seed)
-    effects = list(effects)
+    effects, registered = _with_registration(table, list(effects), candidates)
     names = list(candidates) if candidates is not None else candidate_effects(table, effects, forms)
     say = progress or (lambda message: None)
     say("which candidate effects this data can determine")
@@ -751,7 +780,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         "cv_base": {"rmse_total": state.before, "rmse_pos": base["rmse_pos"], "rmse_rot": base["rmse_rot"]},
         "rows": {"given": rows_given, "used": table.n},
         "reach": score_test_reach(state, len(names), alpha, table.n),
-        "notes": _table_notes(table, effects, candidates, forms),
+        "notes": _table_notes(table, effects, candidates, forms) + ([registered] if registered else []),
     }
     result["reach"]["poses_to_pass"] = _planned(rows, kept, table.n, result["reach"]["threshold"], min_gain)
     result["proposal"], result["no_proposal"] = propose(search, result, kept, dropped, not forms and candidates is None)

@@ -44,9 +44,9 @@ def run(args: argparse.Namespace) -> None:
         proposal["file"] = str(args.propose)
     present = [c["effect"] for c in result["candidates"] if c["present"] and c["kind"] == "effect"]
     # the text's "add: --effects ..." line: the effects to fit next, None where none is present
-    result["add_effects"], joined = advised_effects(table, effects, present)
+    result["add_effects"], joined = advised_effects(table, effects, result["model_effects"], present)
     result["notes"] += [joined] if joined else []
-    emit(args, result, lambda: _text(args, effects, result))
+    emit(args, result, lambda: _text(args, result["model_effects"], result))
 
 
 def _effect_files(args: argparse.Namespace) -> list[str]:

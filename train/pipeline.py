@@ -424,16 +424,13 @@ def fit_table(table: PoseTable, effects: Sequence[str], spec: ModelSpec, plan: P
     cross-validation chooses among `auto_candidates` (around `spec.representation`), the outer
     folds score that choice; the final model is chosen the same way on all poses.
     """
-    from dataclasses import replace
-
     from posecorr.data import require_rows
     from posecorr.effects import require_time
 
     require_rows(table, 4, "a fit")
     require_time(effects, table)
     refuse_gross_outliers(table)
-    if not table.has_orientation:
-        spec = replace(spec, representation=POSITION_ONLY)
+    spec = spec_for_table(spec, table)
     say = progress or (lambda message: None)
     notes = orientation_notes(table.meas_q, table.ref_q)
     plan = _plan_for_size(plan, table.n, notes)
@@ -447,6 +444,15 @@ def fit_table(table: PoseTable, effects: Sequence[str], spec: ModelSpec, plan: P
         _note_more_weights_than_numbers(candidates[0], table.n, plan, seed, say, notes)
     fit_phase = _fit_fixed_split if isinstance(plan, FixedSplit) else _fit_cross_validated
     return _warn_thin(fit_phase(table, candidates, floor, auto, plan, seed, say, notes))
+
+
+def spec_for_table(spec: ModelSpec, table: PoseTable) -> ModelSpec:
+    """The model `fit_table` fits for `spec` on `table`: on a table without reference
+    orientations, its core in position only (the representation's orientation part has
+    nothing to learn from). `report` rebuilds a fit's held-out predictions by the same rule."""
+    from dataclasses import replace
+
+    return spec if table.has_orientation else replace(spec, representation=POSITION_ONLY)
 
 
 def _note_more_weights_than_numbers(candidate: Candidate, n: int, plan: Plan, seed: int,

@@ -188,10 +188,10 @@ def _held_out(table: PoseTable, entry: Mapping[str, Any] | None,
 
 def _cross_validated(table: PoseTable, entry: Mapping[str, Any], plan: Any, seed: int, rigid: Any,
                      say: Callable[[str], None]) -> tuple[Rebuilt | None, str]:
-    from ..train.pipeline import auto_candidates, requested_candidate
+    from ..train.pipeline import auto_candidates, requested_candidate, spec_for_table
     from ..train.spec import ModelSpec
 
-    spec = ModelSpec(**entry["spec"]) if isinstance(entry.get("spec"), Mapping) else None
+    spec = spec_for_table(ModelSpec(**entry["spec"]), table) if isinstance(entry.get("spec"), Mapping) else None
     effects = tuple(entry.get("effects") or ())
     everything, splits = np.arange(table.n), plan.folds(table.n, seed)
     scored = f"held-out ({plan.description}, {table.n} poses)"

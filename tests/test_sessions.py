@@ -200,9 +200,11 @@ def test_single_orientation_session_physics_keeps_the_rigid_registration(unremov
     # The diagnosis of the bare table tests each registration effect given the other: with
     # the mount's held rotation at the identity, or at the turn a mount fitted alone takes
     # (the frames' whole rotation), one of the two seemed to add nothing.
-    from posecorr.analysis.diagnose import diagnose
+    # (Named as candidates: the bare diagnosis itself starts from the registration where the
+    # frames are unregistered.)
+    from posecorr.analysis.diagnose import candidate_effects, diagnose
 
-    found = diagnose(table, [], folds=5, seed=0)
+    found = diagnose(table, [], folds=5, seed=0, candidates=candidate_effects(table, []))
     assert {c["effect"] for c in found["candidates"] if c["present"]} == {"station", "mount"}
 
 

@@ -114,6 +114,8 @@ def poses_lack(effect: Any, spread: Spread, t: np.ndarray | None) -> str:
                    else "a time constant longer than the session shows only as a straight line")
             words += f", against {ranges} ({why})"
         return words
+    if not spread.has_orientation and not effect.changes_position:
+        return f"the reference has no orientation, and {effect.name} turns the orientation alone"
     if effect.sensitivity == "orientation":
         return spread.orientation_words()
     return spread.position_words()
@@ -377,7 +379,7 @@ def determined_directions(J: np.ndarray, blocks: Sequence[Block]) -> tuple[np.nd
         if np.any(~keep):
             # The figure that decided: too little of its own effect (an alias of what came
             # before), or a standard error above the limit (too small an effect on these poses).
-            figures = [_why_held(block, independent[j], std[j], _alias_of(own @ Vt[j], kept_by_block))
+            figures = [_why_held(block, independent[j], std[j], own @ Vt[j], kept_by_block)
                        for j in np.flatnonzero(~keep)]
             if len(block.index) == 1 or not np.any(keep):
                 fixed[block.label] = f"{block.reason}: {figures[int(np.argmax(std[~keep]))]}"
@@ -413,8 +415,12 @@ def _alias_of(effect: np.ndarray, kept_by_block: Sequence[tuple[str, np.ndarray]
     return (label, correlation) if correlation >= ALIAS_CORRELATION else None
 
 
-def _why_held(block: Block, independent: float, std: float, alias: tuple[str, float] | None = None) -> str:
-    if independent <= MIN_INDEPENDENT and alias is not None:
+def _why_held(block: Block, independent: float, std: float, effect: np.ndarray,
+              kept_by_block: Sequence[tuple[str, np.ndarray]]) -> str:
+    if not np.any(effect):
+        return "it does not move these poses at all"
+    alias = _alias_of(effect, kept_by_block) if independent <= MIN_INDEPENDENT else None
+    if alias is not None:
         return (f"only {independent:.0%} of its effect on these poses is its own: it moves them as {alias[0]} does "
                 f"(correlation {alias[1]:.4f})")
     if independent <= MIN_INDEPENDENT:

@@ -343,3 +343,14 @@ def test_times_and_noise_levels_are_checked_and_identifiability_fits_nothing() -
     physics.identifiability(M, R)   # what it finds: test_diagnose
     with pytest.raises(NotFittedError):
         check_is_fitted(physics)
+
+
+def test_an_orientation_only_effect_without_reference_orientations_says_why_it_is_held():
+    """A table without reference orientations cannot show an effect that turns the orientation
+    alone; its hold read "positions spread ...: only 0% of its effect on these poses is its own
+    (the rest is what the parameters before it do)", neither of them the cause."""
+    table = simulate_session(14, n=36, robot="", position_only=True).table
+    model = PhysicsModel(("station", "mount", "orientation_field"), with_rotation=False).fit(
+        table.measured, table.reference)
+    assert model.fixed_["orientation_field.g"] == ("the reference has no orientation, and orientation_field turns the "
+                                                   "orientation alone: it does not move these poses at all")

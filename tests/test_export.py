@@ -461,20 +461,24 @@ def test_parity_failure_is_refused(tmp_path):
 
 
 
+class Flipper(ToyCorrector):
+    """A corrector whose output quaternion is the same rotation in the sign the contract does
+    not allow (qw < 0), in its graph and its predict alike."""
+
+    def forward(self, pose):
+        out = super().forward(pose)
+        return namespace(out).concat([out[..., 0:3], -out[..., 3:7]], axis=-1)
+
+    def predict(self, measured):
+        out = super().predict(measured)
+        out[:, 3:7] *= -1.0
+        return out
+
+
 def test_an_output_that_breaks_the_contract_is_named(tmp_path):
     """A graph whose output quaternion has qw < 0 was refused with its position and rotation
     errors, both within tolerance: the message named no cause."""
     from posecorr.export import ParityError
-
-    class Flipper(ToyCorrector):
-        def forward(self, pose):   # the same rotation, in the sign the contract does not allow
-            out = super().forward(pose)
-            return namespace(out).concat([out[..., 0:3], -out[..., 3:7]], axis=-1)
-
-        def predict(self, measured):
-            out = super().predict(measured)
-            out[:, 3:7] *= -1.0
-            return out
 
     with pytest.raises(ParityError, match=r"breaks the output contract: an output quaternion with qw = -[0-9.e-]+ < 0"):
         to_onnx(Flipper("zhou", core="pmc"), tmp_path / "m.onnx", measured=training_like_poses(100), n_random=100)
@@ -629,16 +633,6 @@ def test_a_model_written_despite_a_broken_contract_says_which_clause(tmp_path, c
     """parity="warn" writes the model and records the failure; the clause was not kept, so
     `posecorr info` printed FAILED beside errors within tolerance and no cause."""
     from posecorr.cli import main
-
-    class Flipper(ToyCorrector):
-        def forward(self, pose):
-            out = super().forward(pose)
-            return namespace(out).concat([out[..., 0:3], -out[..., 3:7]], axis=-1)
-
-        def predict(self, measured):
-            out = super().predict(measured)
-            out[:, 3:7] *= -1.0
-            return out
 
     to_onnx(Flipper("zhou", core="pmc"), tmp_path / "m.onnx", measured=training_like_poses(100), n_random=100,
             parity="warn")

@@ -239,11 +239,11 @@ def largest_correction(measured: np.ndarray, corrected: np.ndarray) -> list[floa
     return [float(np.max(np.linalg.norm(c[:, :3] - m[:, :3], axis=1))), float(np.max(quat_angle(m[:, 3:7], c[:, 3:7])))]
 
 
-def correction_reach(measured: np.ndarray, corrected: np.ndarray) -> list[float]:
-    """[metres, radians]: `largest_correction` from `measured` to `corrected` ((N, 7) poses, the
-    graph's own float32 answers), with the margin above (the rotation at most pi, where every
-    rotation is allowed)."""
-    pos, rot = largest_correction(measured, corrected)
+def with_margin(largest: list[float]) -> list[float]:
+    """The correction_reach of a largest correction [metres, radians] (the graph's own float32
+    answers): widened by the margin above, the rotation at most pi, where every rotation is
+    allowed."""
+    pos, rot = largest
     return [REACH_FACTOR * pos + REACH_MIN_POS, min(np.pi, REACH_FACTOR * rot + REACH_MIN_ROT)]
 
 
@@ -274,8 +274,9 @@ def model_reach(model: Any, measured: np.ndarray, box: Any, t: Any = None, span:
     corrected = run_onnx(model, poses, times)
     n_training = len(poses) - len(drawn)
     _refuse_non_finite(poses, times, corrected, n_training)
-    return correction_reach(poses, corrected), {"training": largest_correction(poses[:n_training], corrected[:n_training]),
-                                                "accepted": largest_correction(poses, corrected)}
+    accepted = largest_correction(poses, corrected)
+    return with_margin(accepted), {"training": largest_correction(poses[:n_training], corrected[:n_training]),
+                                   "accepted": accepted}
 
 
 def _refuse_non_finite(poses: np.ndarray, times: np.ndarray | None, corrected: np.ndarray,

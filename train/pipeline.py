@@ -115,8 +115,7 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
     def predict(self, measured: np.ndarray, t: np.ndarray | None = None) -> np.ndarray:
         self._check_fitted()
         if self.physics_ is None and self.core_ is None:
-            measured = check_poses(measured, "measured")
-            return decode_pose(measured[:, 0:3], measured, POSITION_ONLY)
+            return self.forward(check_poses(measured, "measured"))
         return self.predict_core(self.predict_physics(measured, t))
 
     def predict_core(self, stage: np.ndarray) -> np.ndarray:

@@ -61,7 +61,6 @@ def export_fit(report: Any, table: Any, output: str | Path, write: Any = None) -
     return exported
 
 
-
 # A model whose largest correction on the poses the runtimes accept (any orientation,
 # positions in input_bounds) is this many times its largest on the training poses, and above
 # EXTRAPOLATION_MIN_M, extrapolates: a sub-millimetre model that moves a pose by 5 mm is no
@@ -85,6 +84,7 @@ def extrapolation_note(exported: dict[str, Any]) -> str | None:
     return (f"on poses unlike its training poses (any orientation, positions in input_bounds) this model moves "
             f"positions by up to {accepted:.3g} m, {against}: it extrapolates, and the runtimes accept those "
             "orientations; run it near the orientations it was fitted on")
+
 
 def write_fit(report: Any, table: Any, data_path: str | Path, output: str | Path, effects: list[str],
               save: str | Path | None = None, spec: Any = None, seed: int | None = None) -> FitFiles:

@@ -100,8 +100,8 @@ def _parse_cv(text: str | None) -> Any:
 
 def run(args: argparse.Namespace) -> None:
     from ..analysis.ledger import ledger_path
-    from ..safeio import check_sidecar
     from ..fitting import extrapolation_note
+    from ..safeio import check_sidecar
     from ..train.pipeline import fit_table
 
     apply_threads(args)

@@ -152,6 +152,31 @@ PC_HOT static pc_status pc_program_e730829675a10053(const pc_step *s)
     return PC_OK;
 }
 
+static const uint8_t pc_program_70eae085eda54e84_shape[36] = {
+    23, 0, 1, 0, 0, 0, 23, 0, 1, 0, 0, 0, 23, 0, 1, 0, 0, 0, 23, 0, 1, 0, 0, 0,
+    24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
+};
+PC_HOT static pc_status pc_program_70eae085eda54e84(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const int16_t *const x = (const int16_t *)s->prm;
+    const float f0 = PC_XB(2) ? PC_XF(0) : PC_XF(1);
+    PC_STOREF(3, f0);
+    const float f1 = PC_XB(6) ? PC_XF(4) : PC_XF(5);
+    PC_STOREF(7, f1);
+    const float f2 = PC_XB(10) ? PC_XF(8) : PC_XF(9);
+    PC_STOREF(11, f2);
+    const float f3 = PC_XB(14) ? PC_XF(12) : PC_XF(13);
+    PC_STOREF(15, f3);
+    const float f4 = PC_XF(16);
+    PC_STOREF(17, f4);
+    const float f5 = PC_XF(18);
+    PC_STOREF(19, f5);
+    const float f6 = PC_XF(20);
+    PC_STOREF(21, f6);
+    return PC_OK;
+}
+
 static const uint8_t pc_program_e6539e7073697c15_shape[42] = {
     1, 0, 0, 0, 0, 3, 0, 1, 1, 254, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0,
     1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0, 24, 0, 1, 0,
@@ -325,38 +350,6 @@ PC_HOT static pc_status pc_program_09534b7dcdc7fa85(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_5d736994581975e6_shape[57] = {
-    10, 0, 0, 0, 254, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 23, 0, 1,
-    4, 0, 5, 23, 0, 1, 4, 0, 6, 23, 0, 1, 4, 0, 7, 23, 0, 1, 4, 0, 8, 24, 0, 1,
-    0, 24, 0, 1, 0, 24, 0, 1, 0,
-};
-PC_HOT static pc_status pc_program_5d736994581975e6(const pc_step *s)
-{
-    char *const base = (char *)s->io[0];
-    const int16_t *const x = (const int16_t *)s->prm;
-    const float *const k = (const float *)(const void *)((const int16_t *)s->prm + 20);
-    const uint8_t b0 = PC_XF(0) < PC_KF(0);
-    const float f1 = pc_sop_float(PC_SOP_NEG, PC_XF(1), 0.0f);
-    const float f2 = pc_sop_float(PC_SOP_NEG, PC_XF(2), 0.0f);
-    const float f3 = pc_sop_float(PC_SOP_NEG, PC_XF(3), 0.0f);
-    const float f4 = pc_sop_float(PC_SOP_NEG, PC_XF(4), 0.0f);
-    const float f5 = b0 ? f1 : PC_XF(5);
-    PC_STOREF(6, f5);
-    const float f6 = b0 ? f2 : PC_XF(7);
-    PC_STOREF(8, f6);
-    const float f7 = b0 ? f3 : PC_XF(9);
-    PC_STOREF(10, f7);
-    const float f8 = b0 ? f4 : PC_XF(11);
-    PC_STOREF(12, f8);
-    const float f9 = PC_XF(13);
-    PC_STOREF(14, f9);
-    const float f10 = PC_XF(15);
-    PC_STOREF(16, f10);
-    const float f11 = PC_XF(17);
-    PC_STOREF(18, f11);
-    return PC_OK;
-}
-
 static const uint8_t pc_program_fce5e0c0f059f3c3_shape[60] = {
     2, 0, 0, 0, 0, 2, 0, 0, 0, 0, 2, 0, 0, 0, 0, 2, 0, 0, 0, 3, 2, 0, 0, 0,
     3, 2, 0, 0, 0, 3, 2, 0, 0, 3, 254, 2, 0, 0, 3, 254, 2, 0, 0, 3, 254, 4, 0, 1,
@@ -385,38 +378,41 @@ PC_HOT static pc_status pc_program_fce5e0c0f059f3c3(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_77704bc8040ae058_shape[63] = {
-    10, 0, 0, 0, 254, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 26, 0, 1,
-    0, 254, 254, 26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254, 23, 0, 1, 7, 0, 8, 23, 0, 1,
-    7, 0, 9, 23, 0, 1, 7, 0, 10, 23, 0, 1, 7, 0, 11,
+static const uint8_t pc_program_9aff70f84aed7588_shape[62] = {
+    26, 3, 0, 0, 0, 253, 0, 0, 0, 0, 0, 0, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 1,
+    0, 1, 4, 0, 1, 0, 2, 4, 0, 1, 0, 3, 4, 0, 1, 0, 4, 10, 0, 1, 4, 254, 12, 0,
+    1, 5, 12, 0, 1, 5, 12, 0, 1, 5, 12, 0, 1, 5,
 };
-PC_HOT static pc_status pc_program_77704bc8040ae058(const pc_step *s)
+PC_HOT static pc_status pc_program_9aff70f84aed7588(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const int16_t *const x = (const int16_t *)s->prm;
-    const float *const k = (const float *)(const void *)((const int16_t *)s->prm + 20);
-    const uint8_t b0 = PC_XF(0) < PC_KF(0);
-    const float f1 = pc_sop_float(PC_SOP_NEG, PC_XF(1), 0.0f);
-    const float f2 = pc_sop_float(PC_SOP_NEG, PC_XF(2), 0.0f);
-    const float f3 = pc_sop_float(PC_SOP_NEG, PC_XF(3), 0.0f);
-    const float f4 = pc_sop_float(PC_SOP_NEG, PC_XF(4), 0.0f);
-    float f5 = PC_KF(2);
-    f5 += PC_XF(5) * PC_KF(1);
-    PC_STOREF(6, f5);
-    float f6 = PC_KF(4);
-    f6 += PC_XF(7) * PC_KF(3);
-    PC_STOREF(8, f6);
-    float f7 = PC_KF(6);
-    f7 += PC_XF(9) * PC_KF(5);
-    PC_STOREF(10, f7);
-    const float f8 = b0 ? f1 : PC_XF(11);
-    PC_STOREF(12, f8);
-    const float f9 = b0 ? f2 : PC_XF(13);
-    PC_STOREF(14, f9);
-    const float f10 = b0 ? f3 : PC_XF(15);
-    PC_STOREF(16, f10);
-    const float f11 = b0 ? f4 : PC_XF(17);
-    PC_STOREF(18, f11);
+    const float *const k = (const float *)(const void *)((const int16_t *)s->prm + 22);
+    float f0 = PC_KF(0);
+    f0 += PC_XF(0) * PC_XF(1);
+    f0 += PC_XF(2) * PC_XF(3);
+    f0 += PC_XF(4) * PC_XF(5);
+    f0 += PC_XF(6) * PC_XF(7);
+    const float f1 = pc_sop_float(PC_SOP_MAX, f0, PC_KF(1));
+    const float f2 = pc_sop_float(PC_SOP_SQRT, f1, 0.0f);
+    const float f3 = pc_sop_float(PC_SOP_DIV, PC_XF(8), f2);
+    PC_STOREF(9, f3);
+    const float f4 = pc_sop_float(PC_SOP_DIV, PC_XF(10), f2);
+    PC_STOREF(11, f4);
+    const float f5 = pc_sop_float(PC_SOP_DIV, PC_XF(12), f2);
+    PC_STOREF(13, f5);
+    const float f6 = pc_sop_float(PC_SOP_DIV, PC_XF(14), f2);
+    PC_STOREF(15, f6);
+    const uint8_t b7 = f3 < PC_KF(2);
+    PC_STOREB(16, b7);
+    const float f8 = pc_sop_float(PC_SOP_NEG, f3, 0.0f);
+    PC_STOREF(17, f8);
+    const float f9 = pc_sop_float(PC_SOP_NEG, f4, 0.0f);
+    PC_STOREF(18, f9);
+    const float f10 = pc_sop_float(PC_SOP_NEG, f5, 0.0f);
+    PC_STOREF(19, f10);
+    const float f11 = pc_sop_float(PC_SOP_NEG, f6, 0.0f);
+    PC_STOREF(20, f11);
     return PC_OK;
 }
 
@@ -1799,6 +1795,54 @@ PC_HOT static pc_status pc_program_3aef25d05878da51(const pc_step *s)
     return PC_OK;
 }
 
+static const uint8_t pc_program_75cffa292cd09c30_shape[104] = {
+    26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254, 26, 0, 1, 0, 254, 254, 26, 3, 0, 0, 0, 253,
+    0, 0, 0, 0, 0, 0, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
+    2, 4, 0, 0, 0, 3, 4, 0, 0, 0, 4, 10, 0, 0, 4, 254, 12, 0, 0, 5, 12, 0, 0, 5,
+    12, 0, 0, 5, 12, 0, 0, 5, 23, 0, 1, 4, 9, 5, 23, 0, 1, 4, 9, 6, 23, 0, 1, 4,
+    9, 7, 23, 0, 1, 4, 9, 8,
+};
+PC_HOT static pc_status pc_program_75cffa292cd09c30(const pc_step *s)
+{
+    char *const base = (char *)s->io[0];
+    const int16_t *const x = (const int16_t *)s->prm;
+    const float *const k = (const float *)(const void *)((const int16_t *)s->prm + 22);
+    float f0 = PC_KF(1);
+    f0 += PC_XF(0) * PC_KF(0);
+    PC_STOREF(1, f0);
+    float f1 = PC_KF(3);
+    f1 += PC_XF(2) * PC_KF(2);
+    PC_STOREF(3, f1);
+    float f2 = PC_KF(5);
+    f2 += PC_XF(4) * PC_KF(4);
+    PC_STOREF(5, f2);
+    float f3 = PC_KF(6);
+    f3 += PC_XF(6) * PC_XF(7);
+    f3 += PC_XF(8) * PC_XF(9);
+    f3 += PC_XF(10) * PC_XF(11);
+    f3 += PC_XF(12) * PC_XF(13);
+    const float f4 = pc_sop_float(PC_SOP_MAX, f3, PC_KF(7));
+    const float f5 = pc_sop_float(PC_SOP_SQRT, f4, 0.0f);
+    const float f6 = pc_sop_float(PC_SOP_DIV, PC_XF(14), f5);
+    const float f7 = pc_sop_float(PC_SOP_DIV, PC_XF(15), f5);
+    const float f8 = pc_sop_float(PC_SOP_DIV, PC_XF(16), f5);
+    const float f9 = pc_sop_float(PC_SOP_DIV, PC_XF(17), f5);
+    const uint8_t b10 = f6 < PC_KF(8);
+    const float f11 = pc_sop_float(PC_SOP_NEG, f6, 0.0f);
+    const float f12 = pc_sop_float(PC_SOP_NEG, f7, 0.0f);
+    const float f13 = pc_sop_float(PC_SOP_NEG, f8, 0.0f);
+    const float f14 = pc_sop_float(PC_SOP_NEG, f9, 0.0f);
+    const float f15 = b10 ? f11 : f6;
+    PC_STOREF(18, f15);
+    const float f16 = b10 ? f12 : f7;
+    PC_STOREF(19, f16);
+    const float f17 = b10 ? f13 : f8;
+    PC_STOREF(20, f17);
+    const float f18 = b10 ? f14 : f9;
+    PC_STOREF(21, f18);
+    return PC_OK;
+}
+
 static const uint8_t pc_program_495cb269c110f8af_shape[106] = {
     26, 3, 0, 0, 254, 253, 0, 254, 0, 254, 0, 254, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0,
     0, 1, 4, 0, 0, 0, 2, 4, 0, 0, 0, 3, 4, 0, 0, 0, 4, 10, 0, 0, 4, 254, 12, 0,
@@ -2091,78 +2135,91 @@ PC_HOT static pc_status pc_program_fab4e1b2727cfe54(const pc_step *s)
     return PC_OK;
 }
 
-static const uint8_t pc_program_fee4c311f62a377d_shape[159] = {
-    26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254, 3, 0, 0, 3, 3, 3,
-    0, 0, 4, 3, 3, 0, 0, 5, 3, 3, 0, 0, 5, 5, 3, 0, 0, 6, 5, 3, 0, 0, 6, 6,
-    10, 0, 0, 0, 254, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 12, 0, 0, 0, 26, 8, 1,
-    14, 254, 254, 13, 254, 12, 254, 11, 254, 10, 254, 9, 254, 8, 254, 7, 254, 6, 254, 26, 8, 1, 15, 254,
-    254, 14, 254, 13, 254, 12, 254, 11, 254, 10, 254, 9, 254, 8, 254, 7, 254, 26, 8, 1, 16, 254, 254, 15,
-    254, 14, 254, 13, 254, 12, 254, 11, 254, 10, 254, 9, 254, 8, 254, 23, 0, 1, 7, 0, 8, 23, 0, 1,
-    7, 0, 9, 23, 0, 1, 7, 0, 10, 23, 0, 1, 7, 0, 11,
+static const uint8_t pc_program_0a7c71600424d692_shape[200] = {
+    26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254, 26, 0, 0, 0, 254, 254, 26, 3, 0, 0, 0, 253,
+    0, 0, 0, 0, 0, 0, 5, 0, 0, 1, 254, 13, 0, 0, 1, 4, 0, 0, 0, 1, 4, 0, 0, 0,
+    2, 4, 0, 0, 0, 3, 4, 0, 0, 0, 4, 3, 0, 0, 10, 10, 3, 0, 0, 11, 10, 3, 0, 0,
+    12, 10, 3, 0, 0, 12, 12, 3, 0, 0, 13, 12, 3, 0, 0, 13, 13, 10, 0, 0, 10, 254, 12, 0,
+    0, 11, 12, 0, 0, 11, 12, 0, 0, 11, 12, 0, 0, 11, 26, 8, 1, 21, 254, 254, 20, 254, 19, 254,
+    11, 254, 10, 254, 9, 254, 8, 254, 7, 254, 6, 254, 26, 8, 1, 22, 254, 254, 21, 254, 20, 254, 12, 254,
+    11, 254, 10, 254, 9, 254, 8, 254, 7, 254, 26, 8, 1, 23, 254, 254, 22, 254, 21, 254, 13, 254, 12, 254,
+    11, 254, 10, 254, 9, 254, 8, 254, 23, 0, 1, 7, 18, 8, 23, 0, 1, 7, 18, 9, 23, 0, 1, 7,
+    18, 10, 23, 0, 1, 7, 18, 11,
 };
-PC_HOT static pc_status pc_program_fee4c311f62a377d(const pc_step *s)
+PC_HOT static pc_status pc_program_0a7c71600424d692(const pc_step *s)
 {
     char *const base = (char *)s->io[0];
     const int16_t *const x = (const int16_t *)s->prm;
-    const float *const k = (const float *)(const void *)((const int16_t *)s->prm + 20);
+    const float *const k = (const float *)(const void *)((const int16_t *)s->prm + 22);
     float f0 = PC_KF(1);
     f0 += PC_XF(0) * PC_KF(0);
     float f1 = PC_KF(3);
     f1 += PC_XF(1) * PC_KF(2);
     float f2 = PC_KF(5);
     f2 += PC_XF(2) * PC_KF(4);
-    const float f3 = pc_sop_float(PC_SOP_MUL, f0, f0);
-    const float f4 = pc_sop_float(PC_SOP_MUL, f0, f1);
-    const float f5 = pc_sop_float(PC_SOP_MUL, f0, f2);
-    const float f6 = pc_sop_float(PC_SOP_MUL, f1, f1);
-    const float f7 = pc_sop_float(PC_SOP_MUL, f1, f2);
-    const float f8 = pc_sop_float(PC_SOP_MUL, f2, f2);
-    const uint8_t b9 = PC_XF(3) < PC_KF(6);
-    const float f10 = pc_sop_float(PC_SOP_NEG, PC_XF(4), 0.0f);
-    const float f11 = pc_sop_float(PC_SOP_NEG, PC_XF(5), 0.0f);
-    const float f12 = pc_sop_float(PC_SOP_NEG, PC_XF(6), 0.0f);
-    const float f13 = pc_sop_float(PC_SOP_NEG, PC_XF(7), 0.0f);
-    float f14 = PC_KF(8);
-    f14 += f0 * PC_KF(7);
-    f14 += f1 * PC_KF(9);
-    f14 += f2 * PC_KF(10);
-    f14 += f3 * PC_KF(11);
-    f14 += f4 * PC_KF(12);
-    f14 += f5 * PC_KF(13);
-    f14 += f6 * PC_KF(14);
-    f14 += f7 * PC_KF(15);
-    f14 += f8 * PC_KF(16);
-    PC_STOREF(8, f14);
-    float f15 = PC_KF(18);
-    f15 += f0 * PC_KF(17);
-    f15 += f1 * PC_KF(19);
-    f15 += f2 * PC_KF(20);
-    f15 += f3 * PC_KF(21);
-    f15 += f4 * PC_KF(22);
-    f15 += f5 * PC_KF(23);
-    f15 += f6 * PC_KF(24);
-    f15 += f7 * PC_KF(25);
-    f15 += f8 * PC_KF(26);
-    PC_STOREF(9, f15);
-    float f16 = PC_KF(28);
-    f16 += f0 * PC_KF(27);
-    f16 += f1 * PC_KF(29);
-    f16 += f2 * PC_KF(30);
-    f16 += f3 * PC_KF(31);
-    f16 += f4 * PC_KF(32);
-    f16 += f5 * PC_KF(33);
-    f16 += f6 * PC_KF(34);
-    f16 += f7 * PC_KF(35);
-    f16 += f8 * PC_KF(36);
-    PC_STOREF(10, f16);
-    const float f17 = b9 ? f10 : PC_XF(11);
-    PC_STOREF(12, f17);
-    const float f18 = b9 ? f11 : PC_XF(13);
-    PC_STOREF(14, f18);
-    const float f19 = b9 ? f12 : PC_XF(15);
-    PC_STOREF(16, f19);
-    const float f20 = b9 ? f13 : PC_XF(17);
-    PC_STOREF(18, f20);
+    float f3 = PC_KF(6);
+    f3 += PC_XF(3) * PC_XF(4);
+    f3 += PC_XF(5) * PC_XF(6);
+    f3 += PC_XF(7) * PC_XF(8);
+    f3 += PC_XF(9) * PC_XF(10);
+    const float f4 = pc_sop_float(PC_SOP_MAX, f3, PC_KF(7));
+    const float f5 = pc_sop_float(PC_SOP_SQRT, f4, 0.0f);
+    const float f6 = pc_sop_float(PC_SOP_DIV, PC_XF(11), f5);
+    const float f7 = pc_sop_float(PC_SOP_DIV, PC_XF(12), f5);
+    const float f8 = pc_sop_float(PC_SOP_DIV, PC_XF(13), f5);
+    const float f9 = pc_sop_float(PC_SOP_DIV, PC_XF(14), f5);
+    const float f10 = pc_sop_float(PC_SOP_MUL, f0, f0);
+    const float f11 = pc_sop_float(PC_SOP_MUL, f0, f1);
+    const float f12 = pc_sop_float(PC_SOP_MUL, f0, f2);
+    const float f13 = pc_sop_float(PC_SOP_MUL, f1, f1);
+    const float f14 = pc_sop_float(PC_SOP_MUL, f1, f2);
+    const float f15 = pc_sop_float(PC_SOP_MUL, f2, f2);
+    const uint8_t b16 = f6 < PC_KF(8);
+    const float f17 = pc_sop_float(PC_SOP_NEG, f6, 0.0f);
+    const float f18 = pc_sop_float(PC_SOP_NEG, f7, 0.0f);
+    const float f19 = pc_sop_float(PC_SOP_NEG, f8, 0.0f);
+    const float f20 = pc_sop_float(PC_SOP_NEG, f9, 0.0f);
+    float f21 = PC_KF(10);
+    f21 += f0 * PC_KF(9);
+    f21 += f1 * PC_KF(11);
+    f21 += f2 * PC_KF(12);
+    f21 += f10 * PC_KF(13);
+    f21 += f11 * PC_KF(14);
+    f21 += f12 * PC_KF(15);
+    f21 += f13 * PC_KF(16);
+    f21 += f14 * PC_KF(17);
+    f21 += f15 * PC_KF(18);
+    PC_STOREF(15, f21);
+    float f22 = PC_KF(20);
+    f22 += f0 * PC_KF(19);
+    f22 += f1 * PC_KF(21);
+    f22 += f2 * PC_KF(22);
+    f22 += f10 * PC_KF(23);
+    f22 += f11 * PC_KF(24);
+    f22 += f12 * PC_KF(25);
+    f22 += f13 * PC_KF(26);
+    f22 += f14 * PC_KF(27);
+    f22 += f15 * PC_KF(28);
+    PC_STOREF(16, f22);
+    float f23 = PC_KF(30);
+    f23 += f0 * PC_KF(29);
+    f23 += f1 * PC_KF(31);
+    f23 += f2 * PC_KF(32);
+    f23 += f10 * PC_KF(33);
+    f23 += f11 * PC_KF(34);
+    f23 += f12 * PC_KF(35);
+    f23 += f13 * PC_KF(36);
+    f23 += f14 * PC_KF(37);
+    f23 += f15 * PC_KF(38);
+    PC_STOREF(17, f23);
+    const float f24 = b16 ? f17 : f6;
+    PC_STOREF(18, f24);
+    const float f25 = b16 ? f18 : f7;
+    PC_STOREF(19, f25);
+    const float f26 = b16 ? f19 : f8;
+    PC_STOREF(20, f26);
+    const float f27 = b16 ? f20 : f9;
+    PC_STOREF(21, f27);
     return PC_OK;
 }
 
@@ -6539,7 +6596,7 @@ PC_HOT static pc_status pc_program_6933f2da6dd5679b(const pc_step *s)
     return PC_OK;
 }
 
-const pc_compiled_program pc_compiled_programs[72] = {
+const pc_compiled_program pc_compiled_programs[73] = {
     {12u, 0xfdacaeb3267d16a4ull, pc_program_fdacaeb3267d16a4_shape, pc_program_fdacaeb3267d16a4},
     {15u, 0x6de52950720b126eull, pc_program_6de52950720b126e_shape, pc_program_6de52950720b126e},
     {15u, 0x1912d78d622026b3ull, pc_program_1912d78d622026b3_shape, pc_program_1912d78d622026b3},
@@ -6547,15 +6604,15 @@ const pc_compiled_program pc_compiled_programs[72] = {
     {25u, 0x6ab777400bf7561aull, pc_program_6ab777400bf7561a_shape, pc_program_6ab777400bf7561a},
     {30u, 0x9398cc147e4fb695ull, pc_program_9398cc147e4fb695_shape, pc_program_9398cc147e4fb695},
     {35u, 0xe730829675a10053ull, pc_program_e730829675a10053_shape, pc_program_e730829675a10053},
+    {36u, 0x70eae085eda54e84ull, pc_program_70eae085eda54e84_shape, pc_program_70eae085eda54e84},
     {42u, 0xe6539e7073697c15ull, pc_program_e6539e7073697c15_shape, pc_program_e6539e7073697c15},
     {42u, 0xe1640cbbdd279744ull, pc_program_e1640cbbdd279744_shape, pc_program_e1640cbbdd279744},
     {42u, 0xc83143816c484653ull, pc_program_c83143816c484653_shape, pc_program_c83143816c484653},
     {45u, 0x3fc2825bbc2a7896ull, pc_program_3fc2825bbc2a7896_shape, pc_program_3fc2825bbc2a7896},
     {48u, 0xfd78145ac8432819ull, pc_program_fd78145ac8432819_shape, pc_program_fd78145ac8432819},
     {49u, 0x09534b7dcdc7fa85ull, pc_program_09534b7dcdc7fa85_shape, pc_program_09534b7dcdc7fa85},
-    {57u, 0x5d736994581975e6ull, pc_program_5d736994581975e6_shape, pc_program_5d736994581975e6},
     {60u, 0xfce5e0c0f059f3c3ull, pc_program_fce5e0c0f059f3c3_shape, pc_program_fce5e0c0f059f3c3},
-    {63u, 0x77704bc8040ae058ull, pc_program_77704bc8040ae058_shape, pc_program_77704bc8040ae058},
+    {62u, 0x9aff70f84aed7588ull, pc_program_9aff70f84aed7588_shape, pc_program_9aff70f84aed7588},
     {63u, 0xa20d227085916ff8ull, pc_program_a20d227085916ff8_shape, pc_program_a20d227085916ff8},
     {68u, 0x33895605c1f75561ull, pc_program_33895605c1f75561_shape, pc_program_33895605c1f75561},
     {71u, 0x1ba133b6d1e2b184ull, pc_program_1ba133b6d1e2b184_shape, pc_program_1ba133b6d1e2b184},
@@ -6588,13 +6645,14 @@ const pc_compiled_program pc_compiled_programs[72] = {
     {102u, 0xd7f2738a23207fb7ull, pc_program_d7f2738a23207fb7_shape, pc_program_d7f2738a23207fb7},
     {103u, 0xd4002b453ffad562ull, pc_program_d4002b453ffad562_shape, pc_program_d4002b453ffad562},
     {103u, 0x3aef25d05878da51ull, pc_program_3aef25d05878da51_shape, pc_program_3aef25d05878da51},
+    {104u, 0x75cffa292cd09c30ull, pc_program_75cffa292cd09c30_shape, pc_program_75cffa292cd09c30},
     {106u, 0x495cb269c110f8afull, pc_program_495cb269c110f8af_shape, pc_program_495cb269c110f8af},
     {113u, 0x24e6339064ec76e1ull, pc_program_24e6339064ec76e1_shape, pc_program_24e6339064ec76e1},
     {122u, 0x6bd0c3f3a7b056a4ull, pc_program_6bd0c3f3a7b056a4_shape, pc_program_6bd0c3f3a7b056a4},
     {127u, 0xad3263f9f4000457ull, pc_program_ad3263f9f4000457_shape, pc_program_ad3263f9f4000457},
     {131u, 0x55592d021c4cb38dull, pc_program_55592d021c4cb38d_shape, pc_program_55592d021c4cb38d},
     {143u, 0xfab4e1b2727cfe54ull, pc_program_fab4e1b2727cfe54_shape, pc_program_fab4e1b2727cfe54},
-    {159u, 0xfee4c311f62a377dull, pc_program_fee4c311f62a377d_shape, pc_program_fee4c311f62a377d},
+    {200u, 0x0a7c71600424d692ull, pc_program_0a7c71600424d692_shape, pc_program_0a7c71600424d692},
     {204u, 0xd63599a62c93ef2cull, pc_program_d63599a62c93ef2c_shape, pc_program_d63599a62c93ef2c},
     {264u, 0x42b2415b8b994855ull, pc_program_42b2415b8b994855_shape, pc_program_42b2415b8b994855},
     {429u, 0x3ad363986dd11b34ull, pc_program_3ad363986dd11b34_shape, pc_program_3ad363986dd11b34},
@@ -6613,4 +6671,4 @@ const pc_compiled_program pc_compiled_programs[72] = {
     {1285u, 0xdea986dc5ba36fb8ull, pc_program_dea986dc5ba36fb8_shape, pc_program_dea986dc5ba36fb8},
     {1608u, 0x6933f2da6dd5679bull, pc_program_6933f2da6dd5679b_shape, pc_program_6933f2da6dd5679b},
 };
-const size_t pc_n_compiled_programs = 72;
+const size_t pc_n_compiled_programs = 73;

@@ -113,14 +113,14 @@ def test_fused_multiply_add_stays_off_on_an_fma_target(tmp_path):
     assert "vfmadd" not in asm and "vfmsub" not in asm and "vfnmadd" not in asm
 
 
-def test_unshipped_table1_mlp_gives_pc_run_bits(tmp_path):
-    """A representation and table-1 architecture drawn anew (the message names it), trained
-    two epochs and exported by the project's exporter."""
+@pytest.mark.parametrize("rep", ["pos", "eaa", "quat", "R", "zhou"])
+def test_unshipped_table1_mlp_gives_pc_run_bits(rep, tmp_path):
+    """Each representation with a table-1 architecture drawn anew (the message names it),
+    trained two epochs and exported by the project's exporter."""
     from posecorr.train.spec import ARCHITECTURES
     from tools.models import unshipped_mlp
 
-    rep, hidden = random.choice([(rep, arch) for rep in ("pos", "eaa", "quat", "R", "zhou")
-                                 for arch in ARCHITECTURES])
+    hidden = random.choice(ARCHITECTURES)
     path = unshipped_mlp(rep, hidden, tmp_path / f"mlp-{rep}-{'x'.join(map(str, hidden))}.onnx")
     try:
         assert_same_bits(path, tmp_path, graphs.poses_in_box(path, N_POSES, seed=4))

@@ -150,3 +150,29 @@ def test_split_recipe_is_the_draw(n, seed):
     np.testing.assert_array_equal(rows, split_indices(n, seed)[2])
     if n >= 100:
         assert not np.array_equal(rows, _recipe_rows(FixedSplit().test_recipe(seed + 1), n))
+
+
+PMC_FILES = [path for path in FILES if path.name.startswith("pmc-")]
+
+
+def test_shipped_pmc_models_are_what_the_exporter_writes_today(tmp_path):
+    """Each shipped PMC refitted from its seeds (`python -m tools.models --only`, a second in
+    all) gives the shipped graph: the same nodes, and weights equal to float32 rounding (the
+    fit's float64 sums differ across CPUs). The position-only decoder came to normalise its
+    quaternion while the shipped pos models kept the old graph; the C runtime's compiled
+    programs, written from models/, then missed every fresh pos export's decoder. The
+    networks take minutes to train; their encoders and decoders are the PMCs'."""
+    from onnx import numpy_helper
+
+    from tools.models import main
+
+    assert main(["--only", ",".join(path.stem for path in PMC_FILES), "-o", str(tmp_path)]) == 0
+    for path in PMC_FILES:
+        shipped, fresh = onnx.load(path).graph, onnx.load(tmp_path / path.name).graph
+        nodes = [[(n.op_type, list(n.input), list(n.output)) for n in g.node] for g in (shipped, fresh)]
+        assert nodes[0] == nodes[1], f"{path.name}: the exporter writes another graph; run `make models`"
+        weights = [{w.name: numpy_helper.to_array(w) for w in g.initializer} for g in (shipped, fresh)]
+        assert weights[0].keys() == weights[1].keys(), path.name
+        for name, value in weights[0].items():
+            np.testing.assert_allclose(weights[1][name], value, rtol=1e-5, atol=1e-6 * np.abs(value).max(initial=1.0),
+                                       err_msg=f"{path.name}: {name}")

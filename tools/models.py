@@ -408,10 +408,14 @@ def main(argv: list[str] | None = None) -> int:
                       "test_metrics": {k: test[k] for k in ("rmse_pos", "rmse_rot", "rmse_total")},
                       "parity": {k: report["parity"][k] for k in ("max_pos_m", "max_rot_rad", "passed")},
                       "n_nodes": report["n_nodes"], "file_size": report["file_size"]})
-    if not wanted:
-        (args.out / "index.json").write_text(json.dumps({"models": index, "data_seed": DATA_SEED,
-                                                          "split_seed": SPLIT_SEED, "max_epochs": args.epochs},
-                                                         indent=1) + "\n", encoding="utf-8")
+    index_path = args.out / "index.json"
+    if wanted and index_path.exists():
+        # --only rebuilds some models: the others keep their entries, in the specs' order
+        rebuilt = {entry["file"]: entry for entry in index}
+        kept = json.loads(index_path.read_text(encoding="utf-8"))["models"]
+        index = [rebuilt.pop(entry["file"], entry) for entry in kept] + list(rebuilt.values())
+    index_path.write_text(json.dumps({"models": index, "data_seed": DATA_SEED, "split_seed": SPLIT_SEED,
+                                      "max_epochs": args.epochs}, indent=1) + "\n", encoding="utf-8")
     return 0
 
 

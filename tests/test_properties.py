@@ -110,7 +110,7 @@ pose_lines = st.one_of(
 )
 
 
-@settings(max_examples=25, deadline=None)
+@settings(SETTINGS, max_examples=25)
 @given(lines=st.lists(pose_lines, min_size=1, max_size=12))
 @example(lines=["pose,abc", "0.01,-0.6,0.5,1,0,0,0"])
 @example(lines=["0,-0.6,0.5,1,0,0,0\x00junk"])

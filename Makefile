@@ -6,13 +6,18 @@ VENV   := .venv
 VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.posecorr-installed
 NATIVE_SOURCES := $(wildcard runtime_c/*.c runtime_c/*.h runtime_c/CMakeLists.txt runtime_c/cmake/* runtime_c/tools/*.c) export/operators.txt
+# The install builds the C runtime into the package: where it is gone (`make clean`, `git
+# clean`), the install runs again, whatever the stamp's age.
+NATIVE_LIBRARY := $(wildcard python/posecorr/_native/libposecorr.*)
 
-.PHONY: install demo test docs bench models programs fuzz embedded clean
+.PHONY: install demo test docs bench models programs fuzz embedded clean reinstall
 
-$(STAMP): pyproject.toml setup.py $(NATIVE_SOURCES)
+$(STAMP): pyproject.toml setup.py $(NATIVE_SOURCES) $(if $(NATIVE_LIBRARY),,reinstall)
 	@test -x $(VPY) || $(PYTHON) -m venv $(VENV)
 	$(VPY) -m pip install -q --disable-pip-version-check -e '.[train,test,ros2,embedded,docs,ray]'
 	@touch $(STAMP)
+
+reinstall:
 
 install: $(STAMP)
 

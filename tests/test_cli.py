@@ -154,7 +154,7 @@ def test_a_session_pins_a_full_pose_reference_or_a_tracker_set_down_by_hand(tmp_
 
 def test_quaternions_written_scalar_last_are_named_by_fit_and_diagnose(tmp_path) -> None:
     """A robot session whose measured quaternions were written with scipy's as_quat() (x, y, z,
-    w) under qw, qx, qy, qz: fit and diagnose say the two series look written in two orders;
+    w) under qw, qx, qy, qz: fit and diagnose say the quaternions look written in another order;
     the table as simulated draws no such note."""
     from posecorr.data import read_table
 
@@ -172,7 +172,7 @@ def test_quaternions_written_scalar_last_are_named_by_fit_and_diagnose(tmp_path)
         for out in (fit, diagnosed):
             assert out.returncode == 0, out.stderr
             notes = json.loads(out.stdout)["notes"]
-            assert any("written in two orders" in note for note in notes) == told, notes
+            assert any("written in another order" in note for note in notes) == told, notes
 
 
 HEADER = "meas_x,meas_y,meas_z,meas_qw,meas_qx,meas_qy,meas_qz,ref_x,ref_y,ref_z"

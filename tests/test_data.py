@@ -78,6 +78,11 @@ def test_a_misspelled_optional_column_is_kept_with_one_warning_naming_the_likely
     (f"{HEADER}\n{ROW}\n0.1,0.2\n", 3, None, "2 fields, expected 10"),
     (f"{HEADER}\n{ROW}\n".replace(",", ";"), 1, "meas_x", "the header is one column holding ';': posecorr reads commas"),
     (f"# session 3\n\n{HEADER},ref_qw\n{ROW},1\n", 3, "ref_qx", "missing column"),   # the header's own row
+    # a required column mistyped: the column in its place is named
+    (HEADER.replace("ref_y", "refy") + f"\n{ROW}\n", 1, "ref_y", "the header has 'refy': is it ref_y?"),
+    (HEADER.replace("meas_x", "meas_X") + f"\n{ROW}\n", 1, "meas_x", "the header has 'meas_X': is it meas_x?"),
+    (HEADER.replace("ref_x", "ref_x_m") + f"\n{ROW}\n", 1, "ref_x", "the header has 'ref_x_m': is it ref_x?"),
+    (f"{HEADER},ref_qw,ref_qx,ref_qy,ref_gz\n{ROW},1,0,0,0\n", 1, "ref_qz", "the header has 'ref_gz': is it ref_qz?"),
     (f"# v2\n{HEADER}\n{ROW}\n#{ROW}\n0.1,0.2\n", 5, None, "2 fields, expected 10"),  # comment lines count
 ])
 def test_malformed_tables_name_file_row_and_column(tmp_path, text, row, column, what) -> None:

@@ -55,3 +55,25 @@ def test_roll_pitch_yaw_rebuild_the_rotation_at_gimbal_lock() -> None:
     free = np.abs(np.cos(pitch)) > 1e-6
     np.testing.assert_allclose(got["roll"][free], roll[free], atol=1e-9)
     np.testing.assert_allclose(np.cos(got["yaw"] - yaw), 1.0, atol=1e-9)
+
+
+def test_unregistered_frames_have_no_station_and_angles_of_the_orientation_as_given() -> None:
+    """Where the frames are unregistered the station's place in the reference frame is unknown:
+    no range, azimuth, elevation or incidence, and roll, pitch, yaw are those of the reference
+    orientation itself (scipy's as_euler("ZYX") as the truth), not relative to the paper's
+    upright (which gave the identity a yaw of 85.5 degrees on the real session Exp1)."""
+    from scipy.spatial.transform import Rotation
+
+    from posecorr.analysis.features import STATION_FEATURES, pose_features
+
+    rotations = Rotation.concatenate([Rotation.identity(), Rotation.random(30, random_state=4)])
+    poses = np.hstack([np.random.default_rng(4).uniform(-2, 2, (31, 3)), rotations.as_quat(scalar_first=True)])
+    registered, unregistered = pose_features(poses), pose_features(poses, registered=False)
+    assert set(STATION_FEATURES) <= set(registered) and not set(STATION_FEATURES) & set(unregistered)
+    yaw, pitch, roll = rotations.as_euler("ZYX").T
+    np.testing.assert_allclose(unregistered["yaw"], yaw, atol=1e-9)
+    np.testing.assert_allclose(unregistered["pitch"], pitch, atol=1e-9)
+    np.testing.assert_allclose(unregistered["roll"], roll, atol=1e-9)
+    assert unregistered["yaw"][0] == 0.0 and abs(registered["yaw"][0]) > 0.1
+    for name in "xyz":
+        np.testing.assert_array_equal(unregistered[name], registered[name])

@@ -244,7 +244,9 @@ def test_nothing_missing_keeps_to_what_the_poses_determine_and_names_the_best_by
     """On the real 11-pose session the diagnosis leaves a form undetermined and aliases effects
     with the registration: "no catalogue effect is missing" would claim more than the poses
     show, so the banner counts those it cannot judge. The best candidate is named by its kind
-    (the proposal's words name the best form, which may be another)."""
+    (the proposal's words name the best form, which may be another), and among those the poses
+    tell apart: the banner named range_scale "best" just after counting it among those they
+    cannot tell from incidence."""
     diag = {"candidates": [{"effect": "range_scale", "kind": "effect", "rank": 1, "present": False},
                            {"effect": "strain", "kind": "form", "rank": 2, "present": False}],
             "features": [], "model_effects": ["station", "mount"],
@@ -253,8 +255,8 @@ def test_nothing_missing_keeps_to_what_the_poses_determine_and_names_the_best_by
                              {"effect": "quadratic", "reason": "...", "in_model": "session_quadratic", "same": True}]}
     assert takeaway(diag, ["station", "mount"]) == (
         "No catalogue effect these poses can determine is missing (3 candidates they cannot determine or tell "
-        "apart: orientation_bias, incidence, range_scale) and no form earns its place (best catalogue effect: "
-        "range_scale, not present); nothing tried explains what is left.")
+        "apart: orientation_bias, incidence, range_scale) and no form earns its place (best form: "
+        "strain, not present); nothing tried explains what is left.")
     diag.update(aliases=[], undetermined=diag["undetermined"][1:], candidates=diag["candidates"][1:])
     assert takeaway(diag, ["station", "mount"]) == (
         "No catalogue effect is missing and no form earns its place (best form: strain, not present); "
@@ -421,6 +423,12 @@ def test_unregistered_frames_are_measured_against_the_rigid_fit(tmp_path: Path, 
     assert f"{1e3 * raw:.3g}" in page and "10× the best rigid fit" in page   # ...only the rule and its figure
     assert f'data-before-key-mm="{key:g}"' in page
     assert "rigid pos [mm]" in page[page.index('id="worst"'):]
+    # where the station stands in these frames nobody knows: no feature is taken from it
+    from posecorr.analysis.features import STATION_FEATURES, UNPLACED_STATION
+
+    worst = page[page.index('id="worst"'):page.index('id="diagnosis"')]
+    assert "yaw [deg]" in worst and not any(f"{name} [" in worst for name in STATION_FEATURES)
+    assert UNPLACED_STATION in page.replace("&#x27;", "'")
 
 
 def test_registered_frames_keep_raw_as_the_before(tmp_path: Path, small: tuple[PoseTable, np.ndarray]) -> None:

@@ -437,7 +437,7 @@ def fit_table(table: PoseTable, effects: Sequence[str], spec: ModelSpec, plan: P
     refuse_gross_outliers(table)
     spec = spec_for_table(spec, table)
     say = progress or (lambda message: None)
-    notes = orientation_notes(table.meas_q, table.ref_q)
+    notes = orientation_notes(table.meas_q, table.ref_q, table.meas_p, table.ref_p)
     plan = _plan_for_size(plan, table.n, notes)
     floor = rigid_candidates(table)
     auto = spec.method_entry.chooses

@@ -324,6 +324,14 @@ def _warn_misspelled(path: str, header: list[str]) -> None:
             warn(f"{path}: column {name!r} is not one posecorr knows and is kept as is; did you mean {close}?")
 
 
+def _stand_in(name: str, header: list[str]) -> str:
+    """'; the header has 'refy': is it ref_y?' where a column posecorr does not know is a
+    mistyping of the missing `name` (refy, meas_X, ref_x_m), else ''."""
+    unknown = {h.lower(): h for h in header if h not in KNOWN_COLUMNS}
+    close = closest(name, list(unknown), cutoff=0.8)
+    return f"; the header has {unknown[close]!r}: is it {name}?" if close else ""
+
+
 class TableReader:
     """A paired-pose CSV read in chunks, every cell checked (see the module doc).
 
@@ -381,13 +389,14 @@ class TableReader:
                 # a spreadsheet's export in a comma-decimal locale: one column whose name holds them all
                 other = next((sep for sep in ";\t|" if len(header) == 1 and name in header[0].split(sep)), None)
                 hint = f"; the header is one column holding {other!r}: posecorr reads commas" if other else ""
+                hint += "" if other else _stand_in(name, header)
                 raise TableError(path, "missing column (required: " + ", ".join(required) + ")" + hint,
                                  self.header_row, name)
         present_ref_q = [c for c in REF_QUAT if c in self.index]
         if present_ref_q and len(present_ref_q) != 4:
             missing = next(c for c in REF_QUAT if c not in self.index)
-            raise TableError(path, "missing column (ref_qw..ref_qz come as a set, or not at all)",
-                             self.header_row, missing)
+            raise TableError(path, "missing column (ref_qw..ref_qz come as a set, or not at all)"
+                             + _stand_in(missing, header), self.header_row, missing)
         if present_ref_q and not ref_present:
             raise TableError(path, "missing column (ref_qw..ref_qz need ref_x, ref_y, ref_z)", self.header_row,
                              "ref_x")

@@ -84,55 +84,86 @@ def robot_world_hand_eye(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.n
 # A relative turn shorter than this has no axis worth comparing (a tracker's orientation
 # noise is about 0.5 mrad; 2 degrees is 35 mrad).
 MIN_TURN = np.deg2rad(2.0)
-# Of the turns' size, what a rigid relation may leave (noise) and what only another relation
-# leaves.
-RIGID_LEFT, UNRELATED_LEFT = 0.05, 0.2
+# Of the turns' size, what only another relation leaves (a rigid one leaves noise: 12.6 % of
+# the 13-degree turns of the real session 20201002_Exp1), and how much less another order
+# must leave to be taken for the one the logger wrote (that session misread: 142 %).
+UNRELATED_LEFT, ORDER_GAIN = 0.2, 4.0
 
 
-def turn_mismatch(meas_q: np.ndarray, ref_q: np.ndarray) -> float | None:
+def turn_mismatch(meas_q: np.ndarray, ref_q: np.ndarray, W: np.ndarray | None = None) -> float | None:
     """How far two orientation series (N, 4) are from a rigid relation, measured = W reference X
     (W a frame, X a mount). Under it every turn from pose 0 of the measurements, R_0^T R_k, is
     the reference's conjugated by X: the same angle, its axis turned by X. The RMS of what the
     best X leaves of those turns, over their RMS size: about 0 for a rigid relation, about 1
-    for none. None where fewer than 3 reference turns exceed MIN_TURN."""
+    for none. None where fewer than 3 reference turns exceed MIN_TURN.
+
+    Given W (the frames' rotation, from the positions), the turns in the frames, R_k R_0^T,
+    are compared instead: the measurements' are the reference's turned by W. Where every turn
+    is about one axis (poses set down by hand, turned about the vertical) a series read in
+    another component order still turns rigidly about some axis, only not about W's image."""
     from .rotations import matrix_to_rotvec, quat_to_matrix
 
     def turns(q: np.ndarray) -> np.ndarray:
         R = quat_to_matrix(np.asarray(q, float))
-        return matrix_to_rotvec(np.swapaxes(R[:1], 1, 2) @ R)
+        first_inverse = np.swapaxes(R[:1], 1, 2)
+        return matrix_to_rotvec(R @ first_inverse if W is not None else first_inverse @ R)
 
     a, b = turns(meas_q), turns(ref_q)
     keep = np.linalg.norm(b, axis=1) > MIN_TURN
     if keep.sum() < 3:
         return None
     a, b = a[keep], b[keep]
-    X = nearest_rotation(b.T @ a)          # rows: a_k = b_k X
+    X = nearest_rotation(b.T @ a) if W is None else np.asarray(W, float).T   # rows: a_k = b_k X
     size = np.mean(np.sum(a * a + b * b, axis=1)) / 2
     return float(np.sqrt(np.mean(np.sum((a - b @ X) ** 2, axis=1)) / size))
 
 
-def quaternion_order_note(meas_q: np.ndarray, ref_q: np.ndarray) -> str | None:
-    """A note where the measured and reference quaternions look written in two component
-    orders: as written no frame and mount relate them, and with one series' components
-    shifted round (x, y, z, w written under qw, qx, qy, qz: scipy's as_quat order) one
-    does; None otherwise. Which series is turned the orientations cannot say:
-    turning both alike keeps the relation rigid."""
-    as_written = turn_mismatch(meas_q, ref_q)
-    if as_written is None or as_written < UNRELATED_LEFT:
-        return None
-    shifted = [turn_mismatch(np.roll(meas_q, shift, axis=1), ref_q) for shift in (1, 2, 3)]
-    left = min(value for value in shifted if value is not None)   # as many turns as as_written's
-    if left > RIGID_LEFT:
-        return None
-    return (f"the measured and reference quaternions look written in two orders: as written, no frame and mount "
-            f"relate the two orientation series (the best leaves {as_written:.0%} of their turns), while with one "
-            f"series' components shifted round one does ({left:.1%} left). posecorr reads qw, qx, qy, "
-            "qz by their names: check which component each logger writes under each (scipy's as_quat() writes "
-            "x, y, z, w)")
+# The component orders a logger may have written, tried against the names: one series'
+# components shifted round (x, y, z, w under qw, qx, qy, qz: scipy's as_quat order), or both.
+_SHIFTS = tuple((which, shift) for which in ("measured", "reference", "both") for shift in (1, 2, 3))
 
 
-def orientation_notes(meas_q: np.ndarray, ref_q: np.ndarray | None) -> list[str]:
+def quaternion_order_note(meas_q: np.ndarray, ref_q: np.ndarray, meas_p: np.ndarray | None = None,
+                          ref_p: np.ndarray | None = None) -> str | None:
+    """A note where the quaternions look written in another component order than their
+    names say: as written no frame and mount relate the two orientation series, and with a
+    series' components shifted round one does; None otherwise. First on the turns alone
+    (which series is shifted they cannot say: turning both alike keeps the relation rigid),
+    then, with the positions, on the turns in the frames, with the positions' frame rotation
+    (`turn_mismatch`): a session turned about one axis shows it only so."""
+    checks = [(None, "no frame and mount relate the two orientation series")]
+    if meas_p is not None and ref_p is not None and len(ref_p) >= 3:
+        W = umeyama(np.asarray(ref_p, float), np.asarray(meas_p, float))[0]
+        checks.append((W, "the orientations turn about other axes than the positions' frame rotation allows"))
+    for W, unrelated in checks:
+        as_written = turn_mismatch(meas_q, ref_q, W)
+        if as_written is None or as_written < UNRELATED_LEFT:
+            continue
+        shifted = {}
+        for which, shift in _SHIFTS[:3] if W is None else _SHIFTS:
+            m = np.roll(meas_q, shift, axis=1) if which != "reference" else meas_q
+            r = np.roll(ref_q, shift, axis=1) if which != "measured" else ref_q
+            left = turn_mismatch(m, r, W)
+            if left is not None:
+                shifted[(which, shift)] = left
+        if not shifted:
+            continue
+        (which, _), left = min(shifted.items(), key=lambda item: item[1])
+        if left > min(UNRELATED_LEFT, as_written / ORDER_GAIN):
+            return None
+        series = ("one series'" if W is None else
+                  "both series'" if which == "both" else f"the {which} series'")
+        return (f"the quaternions look written in another order than their names: as written, {unrelated} "
+                f"({'the best mount leaves' if W is None else 'leaving'} {as_written:.0%} of their turns), while "
+                f"with {series} components shifted round "
+                f"they agree ({left:.1%} left). posecorr reads qw, qx, qy, qz by their names: check which component "
+                "each logger writes under each (scipy's as_quat() writes x, y, z, w)")
+    return None
+
+
+def orientation_notes(meas_q: np.ndarray, ref_q: np.ndarray | None, meas_p: np.ndarray | None = None,
+                      ref_p: np.ndarray | None = None) -> list[str]:
     """What a fit or a diagnosis says of a table's orientations before its figures: the
     `quaternion_order_note`, where there is one (none without reference orientations)."""
-    note = None if ref_q is None else quaternion_order_note(meas_q, ref_q)
+    note = None if ref_q is None else quaternion_order_note(meas_q, ref_q, meas_p, ref_p)
     return [note] if note else []

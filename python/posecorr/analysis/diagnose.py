@@ -48,7 +48,7 @@ from ..metrics import frames_unregistered, pose_errors, pose_metrics, rmse_total
 from ..registration import orientation_notes
 from ..rotations import matrix_to_rotvec, quat_to_matrix
 from ..textui import counted
-from .features import FEATURES, pose_features
+from .features import FEATURES, UNPLACED_STATION, pose_features
 
 ALIAS_CORRELATION = 0.99
 # The test's level, before the Bonferroni correction over the candidates.
@@ -87,7 +87,7 @@ def _table_notes(table: PoseTable, effects: Sequence[str], candidates: Sequence[
     addable = [] if candidates is not None else _addable(effects, forms)
     untimed = [name for name, effect in addable if effect.needs_time and table.time() is None]
     unturned = [name for name, effect in addable if not effect.changes_position and not table.has_orientation]
-    return orientation_notes(table.meas_q, table.ref_q) + (
+    return orientation_notes(table.meas_q, table.ref_q, table.meas_p, table.ref_p) + (
         [f"not tried: {', '.join(untimed)} (acting over the session's time, they need a time column t, which this "
          "table lacks)"] if untimed else []) + (
         [f"not tried: {', '.join(unturned)} (acting on the orientation alone, they need the reference's "
@@ -766,8 +766,9 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     rows, kept, dropped = _select(search)
 
     residual_pred = model_corrected if model_corrected is not None else state.predicted
+    placed = _unregistered_words(table) is None
     features = feature_r2(residual_components(table.reference, residual_pred, table.has_orientation),
-                          pose_features(table.reference, table.time()), folds, seed)
+                          pose_features(table.reference, table.time(), registered=placed), folds, seed)
     base = pose_metrics(table.reference, state.predicted, table.has_orientation)
     result = {
         "model_effects": effects,
@@ -780,7 +781,8 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         "cv_base": {"rmse_total": state.before, "rmse_pos": base["rmse_pos"], "rmse_rot": base["rmse_rot"]},
         "rows": {"given": rows_given, "used": table.n},
         "reach": score_test_reach(state, len(names), alpha, table.n),
-        "notes": _table_notes(table, effects, candidates, forms) + ([registered] if registered else []),
+        "notes": (_table_notes(table, effects, candidates, forms) + ([registered] if registered else [])
+                  + ([] if placed else [f"residual structure by feature: {UNPLACED_STATION}"])),
     }
     result["reach"]["poses_to_pass"] = _planned(rows, kept, table.n, result["reach"]["threshold"], min_gain)
     result["proposal"], result["no_proposal"] = propose(search, result, kept, dropped, not forms and candidates is None)

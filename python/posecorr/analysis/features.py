@@ -6,6 +6,11 @@ angles): s = R_S^T (p - t_S), the station looks along its -z axis; azimuth and e
 are the sweep angles of the `sweep` effect; incidence is the angle between the tracker's
 z axis and the line of sight back to the station. roll, pitch, yaw are the intrinsic Z-Y-X angles of the orientation relative to
 `geometry.upright_rotation()` (Experiment III's convention R = R_up Rz(yaw) Ry(pitch) Rx(roll)).
+
+Both the station and "upright" are places in the registered base frame. Where the frames are
+unregistered (`metrics.frames_unregistered`: the reference is a laser tracker's frame, say)
+nobody knows where the station stands in the reference frame: the station features are left
+out (`STATION_FEATURES`) and roll, pitch, yaw are of the orientation as the table gives it.
 """
 from __future__ import annotations
 
@@ -18,26 +23,31 @@ from ..geometry import upright_rotation
 from ..rotations import normalize, quat_to_matrix
 
 FEATURES = ("x", "y", "z", "range", "azimuth", "elevation", "incidence", "roll", "pitch", "yaw", "t")
+STATION_FEATURES = ("range", "azimuth", "elevation", "incidence")
+# What a page or a diagnosis says in their place.
+UNPLACED_STATION = ("range, azimuth, elevation and incidence are left out: the frames are unregistered, so "
+                    "where the station stands in the reference frame is unknown")
 
 
-def pose_features(poses: np.ndarray, t: np.ndarray | None = None) -> dict[str, np.ndarray]:
-    """{feature: (N,) values} of (N, 7) poses; "t" only when a time column is given."""
+def pose_features(poses: np.ndarray, t: np.ndarray | None = None,
+                  registered: bool = True) -> dict[str, np.ndarray]:
+    """{feature: (N,) values} of (N, 7) poses; "t" only when a time column is given; the
+    station's features and angles from upright only in `registered` frames."""
     poses = np.atleast_2d(np.asarray(poses, float))
     p = poses[:, :3]
     R = quat_to_matrix(poses[:, 3:7])
-    ctx = EffectContext.default()
-    s = station_coords(p, ctx)
-    # The sweep effect's own angles: a residual along azimuth is one that effect could bend.
-    azimuth, elevation, distance = sweep_angles(namespace(s), s)
-    u = normalize(p - ctx.t_S)
-    cos_incidence = np.clip(-np.einsum("ni,ni->n", R[:, :, 2], u), -1.0, 1.0)
-    rel = np.swapaxes(upright_rotation(), -1, -2) @ R
-    out = {
-        "x": p[:, 0], "y": p[:, 1], "z": p[:, 2],
-        "range": distance[:, 0], "azimuth": azimuth, "elevation": elevation,
-        "incidence": np.arccos(cos_incidence),
-        **roll_pitch_yaw(rel),
-    }
+    out = {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2]}
+    if registered:
+        ctx = EffectContext.default()
+        s = station_coords(p, ctx)
+        # The sweep effect's own angles: a residual along azimuth is one that effect could bend.
+        azimuth, elevation, distance = sweep_angles(namespace(s), s)
+        u = normalize(p - ctx.t_S)
+        cos_incidence = np.clip(-np.einsum("ni,ni->n", R[:, :, 2], u), -1.0, 1.0)
+        out.update({"range": distance[:, 0], "azimuth": azimuth, "elevation": elevation,
+                    "incidence": np.arccos(cos_incidence)})
+        R = np.swapaxes(upright_rotation(), -1, -2) @ R
+    out.update(roll_pitch_yaw(R))
     if t is not None:
         out["t"] = np.asarray(t, float)
     return out
@@ -55,6 +65,6 @@ def roll_pitch_yaw(R: np.ndarray) -> dict[str, np.ndarray]:
             "yaw": np.where(locked, np.arctan2(-R[:, 0, 1], R[:, 1, 1]), np.arctan2(R[:, 1, 0], R[:, 0, 0]))}
 
 
-def table_features(table: PoseTable) -> dict[str, np.ndarray]:
+def table_features(table: PoseTable, registered: bool = True) -> dict[str, np.ndarray]:
     """Features of a table's reference poses (the robot's, free of tracker error)."""
-    return pose_features(table.reference, table.time())
+    return pose_features(table.reference, table.time(), registered)

@@ -37,7 +37,7 @@ from ..metrics import RULE, W_POS, W_ROT, block_name, pose_errors
 from ..safeio import write_text
 from . import figures
 from .comparison import Comparison, compare, rigid_label
-from .features import table_features
+from .features import UNPLACED_STATION, table_features
 from .interpretation import (STRUCTURE_R2, alias_text, cv_gain, effect_list, is_structure, model_effects,
                              not_ranked_why, p_value_text, ranked_candidates, split_features, takeaway, worst_order)
 from .ledger import held_out, plan_name
@@ -503,8 +503,9 @@ def _figure_sections(comparison: Comparison, feats: Mapping[str, np.ndarray], po
     whose = ("the reference pose" if rot is not None else
              "the reference position and the measured orientation (the table has no reference orientation; the "
              "measured one is in the tracker's frame, so incidence mixes two frames where they are unregistered)")
-    note = (f"Features of {whose} (angles in degrees; azimuth/elevation as seen from the station, "
-            "incidence: tracker z axis vs line of sight). A trend in the solid blue median line (after) is structure "
+    station = ("azimuth/elevation as seen from the station, incidence: tracker z axis vs line of sight"
+               if "range" in feats else UNPLACED_STATION)
+    note = (f"Features of {whose} (angles in degrees; {station}). A trend in the solid blue median line (after) is structure "
             f"the model misses; each of its points is the median of {figures.MIN_PER_GROUP} poses or more, "
             "so a session of fewer than twice that has none." + ("" if "t" in feats else " No time column: t is not shown."))
     sections.append(_section("features", "Error against features", body, _t(note)))
@@ -513,7 +514,8 @@ def _figure_sections(comparison: Comparison, feats: Mapping[str, np.ndarray], po
     sections.append(_section("orientation", "Error by orientation",
                              _img(fig, "corrected error grouped by roll, pitch, yaw"),
                              _t(f"Roll, pitch, yaw of the {'reference' if rot is not None else 'measured'} "
-                                "orientation relative to upright (Z-Y-X); "
+                                f"orientation {'relative to upright' if 'range' in feats else 'as the table gives it'} "
+                                "(Z-Y-X); "
                                 "distinct values when there are few, else equal-width bins, or bins of equal "
                                 f"counts where those would hold fewer than {figures.MIN_PER_GROUP} poses; "
                                 "a bin is labelled ≈ its median angle.")))
@@ -554,7 +556,8 @@ def write_report(output_path: str | Path, table: PoseTable, corrected: np.ndarra
     pos_a, rot_a = pose_errors(comparison.reference, comparison.after, with_rot)
     pos = (pos_b, pos_a)
     rot = (rot_b, rot_a) if with_rot and rot_b is not None and rot_a is not None else None
-    feats = {k: np.asarray(v)[comparison.rows] for k, v in table_features(table).items()}
+    feats = {k: np.asarray(v)[comparison.rows]
+             for k, v in table_features(table, registered=not comparison.unregistered).items()}
     name = title or f"posecorr report: {Path(table.path).name if table.path else 'table'}"
     if model_info and model_info.get("file"):
         name = title or f"{name} vs {Path(str(model_info['file'])).name}"

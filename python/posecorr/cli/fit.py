@@ -223,7 +223,10 @@ def _text(args: argparse.Namespace, table: Any, effects: list, report: Any, expo
                              else "")
     if report.auto_scores:
         model += f"; {auto}" if report.fell_back else f" ({auto})"
-    lines = [f"{args.data}: {table.n} poses; effects: {', '.join(effects) or 'none'}; model: {model}",
+    # a rigid model written for the effects asked holds the registration's: "asked", not "none"
+    held = sorted(effects_json) if effects_json else sorted(effects)
+    asked = "effects" if held == sorted(effects) else "effects asked"
+    lines = [f"{args.data}: {table.n} poses; {asked}: {', '.join(effects) or 'none'}; model: {model}",
              fmt_table(METRIC_HEADERS + [header],
                        [row + [ratio] for row, ratio in zip(
                            metrics_rows({raw_label: report.raw, label: report.heldout,

@@ -663,6 +663,27 @@ def test_the_history_names_a_held_out_plan_as_the_metrics_table_does(tmp_path: P
     assert [label.rsplit(", ", 1)[1] for label in labels] == ["cross-validated", "test split"], labels
 
 
+
+def test_the_history_shows_what_a_fit_that_fell_back_asked_for(tmp_path: Path) -> None:
+    """Fits that fell back to the rigid fit were four identical rows ("rigid, 5.75 mm"): the
+    ledger keeps what was asked and how it scored held out (the figure fit's note gives, the
+    rigid fit's held-out block as the truth it lost to), and the history says it."""
+    from posecorr.analysis.ledger import read_ledger
+
+    data = tmp_path / "exp1.csv"
+    data.write_bytes((Path(__file__).parent / "data" / "realdata" / "20201002_Exp1.csv").read_bytes())
+    out = _cli("fit", "exp1.csv", "-o", "m.onnx", "--method", "pmc", "--cv", "4", cwd=tmp_path)
+    entry = read_ledger(data)[-1]
+    assert entry["fell_back"] and entry["method"] == "rigid" and out["fell_back_to_rigid"]
+    asked = entry["asked"]
+    assert asked["name"] == "pmc-zhou" and asked["on"] == "held-out"
+    assert asked["rmse_total"] > entry["cv"]["rmse_total"] == entry["baseline"]["rmse_total"]
+    assert any(f"{asked['rmse_total']:.4g}" in note for note in out["notes"]), (asked, out["notes"])
+    _cli("report", "exp1.csv", "--model", "m.onnx", "-o", "r.html", "--no-diagnosis", cwd=tmp_path)
+    method = html.unescape(_history_rows((tmp_path / "r.html").read_text())[0][4])
+    assert method.startswith("rigid (asked: pmc-zhou, ") and "held-out rmse_total; worse than the rigid fit" in method
+
+
 # --- the page in a real browser ------------------------------------------------------------
 
 def _chromium() -> None:

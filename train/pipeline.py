@@ -392,6 +392,9 @@ class FitReport:
     baseline_name: str = ""
     rigid_scores: dict[str, float] = field(default_factory=dict)
     rigid_rmse_pos: dict[str, float] = field(default_factory=dict)
+    # where it fell back: what the model asked for scored ({"name", "rmse_total", "on"}), which
+    # the ledger keeps so that a report's history shows what was tried, not four rigid fits
+    asked: dict[str, Any] | None = None
 
     @property
     def heldout_kind(self) -> HeldOut:
@@ -520,10 +523,13 @@ def _fit_fixed_split(table: PoseTable, candidates: list[Candidate], floor: list[
         notes.append(f"the requested model did worse than the rigid fit on the {len(val)} validation poses "
                      f"({scores[candidates[0].name]:.4g} against {scores[best.name]:.4g} rmse_total): "
                      f"returning the rigid fit ({best.name})" + _without_registration(candidates[0], raw, baseline))
+    fell_back = bool(best.rigid) and not auto
+    asked = ({"name": candidates[0].name, "rmse_total": scores[candidates[0].name], "on": "validation"}
+             if fell_back else None)
     return FitReport(model, raw, heldout, plan, np.sort(fit_rows if not _stops_early(best) else train),
                      best.name, auto_scores=scores if auto else {}, baseline=baseline, n_heldout=len(test),
-                     fell_back=bool(best.rigid) and not auto, notes=notes, test_index=test,
-                     baseline_name=floor_best.name, rigid_scores={c.name: scores[c.name] for c in floor})
+                     fell_back=fell_back, notes=notes, test_index=test,
+                     baseline_name=floor_best.name, rigid_scores={c.name: scores[c.name] for c in floor}, asked=asked)
 
 
 def _fit_cross_validated(table: PoseTable, candidates: list[Candidate], floor: list[Candidate], auto: bool,
@@ -553,14 +559,16 @@ def _fit_cross_validated(table: PoseTable, candidates: list[Candidate], floor: l
     heldout = (floor_metrics[best.name] if best.rigid
                else metric_block(raw_all, pose_metrics(R, predicted, with_rotation)))
     fell_back = best != floor_best and baseline["rmse_total"] * (1.0 + SAME_SCORE) < heldout["rmse_total"]
+    asked = None
     if fell_back:
         _note_fallback(best, floor_best, heldout, baseline, auto, notes, raw_all)
+        asked = {"name": "auto" if auto else best.name, "rmse_total": heldout["rmse_total"], "on": "held-out"}
         best, heldout = floor_best, baseline
     say(f"fitting {best.name} on all {table.n} poses")
     model = _fit(best, everything, arrays, with_rotation, prior)
     return FitReport(model, raw_all, heldout, plan, everything, best.name, auto_scores=scores, baseline=baseline,
                      n_heldout=table.n, fell_back=fell_back, notes=notes, baseline_name=floor_best.name,
-                     rigid_scores=rigid_scores,
+                     rigid_scores=rigid_scores, asked=asked,
                      rigid_rmse_pos={name: m["rmse_pos"] for name, m in floor_metrics.items()})
 
 

@@ -128,6 +128,8 @@ def ledger_fit_entry(report: Any, table: Any, output: str | Path, effects: list[
                              "model_sha256": hashlib.sha256(model_bytes).hexdigest() if model_bytes else None,
                              "n": int(table.n), "plan": str(report.plan), "chosen": report.chosen,
                              "fell_back": bool(report.fell_back), "rigid": report.model.rigid or None}
+    if report.asked is not None:
+        entry["asked"] = report.asked
     if seed is not None:
         entry["seed"] = int(seed)
     if spec is not None:

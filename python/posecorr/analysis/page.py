@@ -435,7 +435,8 @@ def _ledger_section(ledger: Sequence[Mapping[str, Any]]) -> str:
         when = str(entry.get("time", "")).replace("T", " ").removesuffix("+00:00")
         model = str(entry.get("model", ""))
         rows.append([str(k), _e(when), f'<span title="{_e(model)}">{_e(Path(model).name if model else "")}</span>',
-                     _e(", ".join(effect_list(entry.get("effects"))) or "none"), _e(entry.get("method", "")),
+                     _e(", ".join(effect_list(entry.get("effects"))) or "none"), _e(entry.get("method", ""))
+                     + _asked_words(entry.get("asked")),
                      _e(_core_representation(entry)), _e(plan_name(entry) or "–"),
                      _num(block.get("rmse_pos"), 1e3), _num(block.get("rmse_rot"), 1e3),
                      _num(block.get("rmse_total"), 1e3), _rigid_cell(entry.get("baseline")),
@@ -450,6 +451,15 @@ def _ledger_section(ledger: Sequence[Mapping[str, Any]]) -> str:
             "highlighted: the lowest held-out rmse_total. The plot: each fit's held-out rmse_pos against the "
             "best rigid fit on the same poses (dashed).")
     return _section("ledger", "History: models fitted on this data", body, _t(note))
+
+
+def _asked_words(asked: Any) -> str:
+    """' (asked: physics+mlp-zhou, 333 held out)' of a ledger line whose fit fell back to the
+    rigid fit, the figure its rmse_total in mm + mrad; '' otherwise."""
+    if not isinstance(asked, Mapping) or not isinstance(asked.get("rmse_total"), (int, float)):
+        return ""
+    return _e(f" (asked: {asked.get('name', '?')}, {_num(asked['rmse_total'], 1e3)} {asked.get('on', 'held-out')}"
+              f" rmse_total; worse than the rigid fit)")
 
 
 def _gain(baseline: Any, block: Mapping[str, Any]) -> float | None:

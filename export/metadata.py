@@ -34,7 +34,8 @@ import numpy as np
 from posecorr.controller.digest import data_digest
 
 UNITS = {
-    "pose": "x, y, z in m (robot base frame); qw, qx, qy, qz unit quaternion, scalar first",
+    "pose": ("x, y, z in m; qw, qx, qy, qz unit quaternion, scalar first; measured in the frame of the "
+             "tracker data the model was fitted on, corrected in the reference's frame (the robot base)"),
     "rmse_pos": "m", "rmse_rot": "rad", "rmse_total": "m + rad (w_pos = 1/m, w_rot = 1)",
 }
 

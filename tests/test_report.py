@@ -684,6 +684,24 @@ def test_the_history_shows_what_a_fit_that_fell_back_asked_for(tmp_path: Path) -
     assert method.startswith("rigid (asked: pmc-zhou, ") and "held-out rmse_total; worse than the rigid fit" in method
 
 
+
+def test_the_ledger_names_the_model_as_seen_from_the_data(tmp_path: Path) -> None:
+    """A fit run from another directory recorded the model by that directory's path: the
+    ledger, beside the data, now names it from there, whatever the working directory."""
+    from posecorr.analysis.ledger import read_ledger
+    from posecorr.data import write_table
+    from posecorr.simulate import simulate_session
+
+    (tmp_path / "cell" / "models").mkdir(parents=True)
+    write_table(simulate_session(1, n=12, spread="full", position_only=False).table, tmp_path / "cell" / "s.csv")
+    _cli("fit", "cell/s.csv", "-o", "cell/models/m.onnx", "--effects", "station,mount", "--method", "none",
+         "--cv", "3", cwd=tmp_path)
+    _cli("fit", "s.csv", "-o", str(tmp_path / "m2.onnx"), "--effects", "station,mount", "--method", "none",
+         "--cv", "3", cwd=tmp_path / "cell")
+    assert [line["model"] for line in read_ledger(tmp_path / "cell" / "s.csv")] == [
+        str(Path("models") / "m.onnx"), str(Path("..") / "m2.onnx")]
+
+
 # --- the page in a real browser ------------------------------------------------------------
 
 def _chromium() -> None:

@@ -28,6 +28,7 @@ def run(args: argparse.Namespace) -> None:
     from ..controller.onnx_meta import read_info
     from ..controller.to_c import Unsupported, plan, source
     from ..safeio import write_text
+    from ..textui import counted
 
     name = function_prefix(args)
     try:
@@ -40,7 +41,7 @@ def run(args: argparse.Namespace) -> None:
     write_text(args.output, text)
     emit(args, {"model": str(args.model), "output": str(args.output), "function": f"{name}_run",
                 "steps": len(steps.steps), "bytes": len(text.encode())},
-         lambda: f"{args.model} -> {args.output}: {name}_run, {len(steps.steps)} steps of libposecorr's "
+         lambda: f"{args.model} -> {args.output}: {name}_run, {counted(len(steps.steps), 'step')} of libposecorr's "
                  "one-pose plan as C")
 
 

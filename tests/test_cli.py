@@ -945,11 +945,15 @@ def test_diagnosis_options_are_checked_first_and_say_what_they_did(tmp_path) -> 
                  for extra in ((), ("--effects", "station,sweep"))]
     untimed = ("not tried: drift, time_trend (acting over the session's time, they need a time column t, which this "
                "table lacks)")
-    assert diagnosed[0] == [untimed] and diagnosed[1][:2] == [
-        untimed, f"--effects station, sweep are not {model}'s (mount, station): the candidates are ranked against a "
-        "refit of --effects; the model's own residuals feed the residual structure by feature"]
-    # the frames are unregistered: the advice completes the registration --effects leave half-done
-    assert len(diagnosed[1]) == 3 and diagnosed[1][2].startswith("mount joins station in the advice"), diagnosed[1]
+    # the frames are unregistered: no feature is taken from a station nobody placed in them
+    from posecorr.analysis.features import UNPLACED_STATION
+
+    unplaced = f"residual structure by feature: {UNPLACED_STATION}"
+    assert diagnosed[0] == [untimed, unplaced] and diagnosed[1][:3] == [
+        untimed, unplaced, f"--effects station, sweep are not {model}'s (mount, station): the candidates are ranked "
+        "against a refit of --effects; the model's own residuals feed the residual structure by feature"]
+    # and the advice completes the registration --effects leave half-done
+    assert len(diagnosed[1]) == 4 and diagnosed[1][3].startswith("mount joins station in the advice"), diagnosed[1]
     stale = tmp_path / "proposed.py"   # an earlier proposal: the one effect file --propose may replace
     old = '"""Proposed by `posecorr diagnose session.csv --effects station --propose proposed.py`.\n"""\n'
     stale.write_text(old)

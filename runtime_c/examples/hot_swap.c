@@ -33,6 +33,8 @@
 
 typedef struct shared {
     const char *path;
+    struct stat start; /* the file as it was before the first load */
+    int have_start;
     _Atomic(pc_model *) incoming; /* loader -> loop: a checked model, or NULL */
     _Atomic(pc_model *) retired;  /* loop -> loader: the model it stopped using */
     atomic_int stop;
@@ -84,10 +86,8 @@ static int same_file(const struct stat *a, const struct stat *b)
 static void *loader(void *arg)
 {
     shared *s = (shared *)arg;
-    struct stat seen, last;
-    int have_seen = 0, stable = 0;
-    if (stat(s->path, &seen) == 0)
-        have_seen = 1; /* the model loaded at start */
+    struct stat seen = s->start, last;
+    int have_seen = s->have_start, stable = 0;
     memset(&last, 0, sizeof last);
     while (!atomic_load(&s->stop)) {
         struct stat now;
@@ -163,6 +163,10 @@ int main(int argc, char **argv)
         fprintf(stderr, "usage: %s MODEL.onnx < poses > corrected\n", argv[0]);
         return 2;
     }
+    /* Seen before the load, not by the loader when it starts: on a busy machine the thread
+     * may first run after a replacement, take the new file for the one loaded, and never
+     * load it. A replacement between this and the load is loaded once more, harmlessly. */
+    s.have_start = stat(argv[1], &s.start) == 0;
     if (pc_load_file(argv[1], NULL, &current, &err) != PC_OK) {
         fprintf(stderr, "%s: %s\n", argv[1], err.message);
         return 1;

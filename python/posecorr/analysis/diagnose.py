@@ -765,10 +765,8 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     search = _Search(table, effects, names, splits, folds, seed, alpha, min_gain, say, state)
     rows, kept, dropped = _select(search)
 
-    residual_pred = model_corrected if model_corrected is not None else state.predicted
-    placed = _unregistered_words(table) is None
-    features = feature_r2(residual_components(table.reference, residual_pred, table.has_orientation),
-                          pose_features(table.reference, table.time(), registered=placed), folds, seed)
+    features, unplaced = _feature_scan(table, model_corrected if model_corrected is not None else state.predicted,
+                                       folds, seed)
     base = pose_metrics(table.reference, state.predicted, table.has_orientation)
     result = {
         "model_effects": effects,
@@ -781,14 +779,23 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         "cv_base": {"rmse_total": state.before, "rmse_pos": base["rmse_pos"], "rmse_rot": base["rmse_rot"]},
         "rows": {"given": rows_given, "used": table.n},
         "reach": score_test_reach(state, len(names), alpha, table.n),
-        "notes": (_table_notes(table, effects, candidates, forms) + ([registered] if registered else [])
-                  + ([] if placed else [f"residual structure by feature: {UNPLACED_STATION}"])),
+        "notes": _table_notes(table, effects, candidates, forms) + [n for n in (registered, unplaced) if n],
     }
     result["reach"]["poses_to_pass"] = _planned(rows, kept, table.n, result["reach"]["threshold"], min_gain)
     result["proposal"], result["no_proposal"] = propose(search, result, kept, dropped, not forms and candidates is None)
     result["absorbed"] = explain_absorbed(result, kept)
     result["absent"] = explain_absent(search, result)
     return result
+
+
+def _feature_scan(table: PoseTable, predicted: np.ndarray, folds: int, seed: int
+                  ) -> tuple[list[dict[str, Any]], str | None]:
+    """(`feature_r2` of the residuals, a note or None): where the frames are unregistered no
+    feature is taken from the station, whose place in them nobody knows."""
+    placed = _unregistered_words(table) is None
+    features = feature_r2(residual_components(table.reference, predicted, table.has_orientation),
+                          pose_features(table.reference, table.time(), registered=placed), folds, seed)
+    return features, None if placed else f"residual structure by feature: {UNPLACED_STATION}"
 
 
 def _thinned(table: PoseTable, corrected: np.ndarray | None,

@@ -130,9 +130,29 @@ class Cell:
 
 
 @pytest.fixture
-def domain() -> int:
-    """A ROS domain of this test's own (1..100)."""
-    return 1 + (os.getpid() * 7919 + time.monotonic_ns() // 1_000_000) % 100
+def domain():
+    """A ROS domain of this test's own (1..100): held under a lock file for the test's length,
+    so that two suites on one host (CI beside a developer's run) never publish into one
+    domain, where each would read the other's poses. Drawn from the pid and the clock, then
+    the next free one."""
+    import fcntl
+    import tempfile
+
+    start = os.getpid() * 7919 + time.monotonic_ns() // 1_000_000
+    for k in range(100):
+        number = 1 + (start + k) % 100
+        lock = open(Path(tempfile.gettempdir()) / f"posecorr-ros-domain-{number}.lock", "w")
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            lock.close()
+            continue
+        try:
+            yield number
+        finally:
+            lock.close()
+        return
+    pytest.fail("every ROS domain 1..100 is held by another test on this host")
 
 
 def _shim(model: Path, poses: np.ndarray) -> np.ndarray:

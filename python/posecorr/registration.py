@@ -150,7 +150,7 @@ def quaternion_order_note(meas_q: np.ndarray, ref_q: np.ndarray, meas_p: np.ndar
             continue
         (which, _), left = min(shifted.items(), key=lambda item: item[1])
         if left > min(UNRELATED_LEFT, as_written / ORDER_GAIN):
-            return None
+            continue
         series = ("one series'" if W is None else
                   "both series'" if which == "both" else f"the {which} series'")
         return (f"the quaternions look written in another order than their names: as written, {unrelated} "

@@ -454,8 +454,8 @@ def _ledger_section(ledger: Sequence[Mapping[str, Any]]) -> str:
 
 
 def _asked_words(asked: Any) -> str:
-    """' (asked: physics+mlp-zhou, 333 held out)' of a ledger line whose fit fell back to the
-    rigid fit, the figure its rmse_total in mm + mrad; '' otherwise."""
+    """' (asked: pmc-zhou, 333 held-out rmse_total; worse than the rigid fit)' of a ledger line
+    whose fit fell back to the rigid fit, the figure in mm + mrad; '' otherwise."""
     if not isinstance(asked, Mapping) or not isinstance(asked.get("rmse_total"), (int, float)):
         return ""
     return _e(f" (asked: {asked.get('name', '?')}, {_num(asked['rmse_total'], 1e3)} {asked.get('on', 'held-out')}"
@@ -512,9 +512,9 @@ def _figure_sections(comparison: Comparison, feats: Mapping[str, np.ndarray], po
     # A position-only table's poses take the measured orientation, in the tracker's own frame.
     whose = ("the reference pose" if rot is not None else
              "the reference position and the measured orientation (the table has no reference orientation; the "
-             "measured one is in the tracker's frame, so incidence mixes two frames where they are unregistered)")
-    station = ("azimuth/elevation as seen from the station, incidence: tracker z axis vs line of sight"
-               if "range" in feats else UNPLACED_STATION)
+             "measured one is in the tracker's frame)")
+    station = (UNPLACED_STATION if comparison.unregistered else
+               "azimuth/elevation as seen from the station, incidence: tracker z axis vs line of sight")
     note = (f"Features of {whose} (angles in degrees; {station}). A trend in the solid blue median line (after) is structure "
             f"the model misses; each of its points is the median of {figures.MIN_PER_GROUP} poses or more, "
             "so a session of fewer than twice that has none." + ("" if "t" in feats else " No time column: t is not shown."))
@@ -524,7 +524,7 @@ def _figure_sections(comparison: Comparison, feats: Mapping[str, np.ndarray], po
     sections.append(_section("orientation", "Error by orientation",
                              _img(fig, "corrected error grouped by roll, pitch, yaw"),
                              _t(f"Roll, pitch, yaw of the {'reference' if rot is not None else 'measured'} "
-                                f"orientation {'relative to upright' if 'range' in feats else 'as the table gives it'} "
+                                f"orientation {'as the table gives it' if comparison.unregistered else 'relative to upright'} "
                                 "(Z-Y-X); "
                                 "distinct values when there are few, else equal-width bins, or bins of equal "
                                 f"counts where those would hold fewer than {figures.MIN_PER_GROUP} poses; "

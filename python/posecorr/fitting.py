@@ -9,7 +9,6 @@ line beside the data; all or nothing (`safeio.staged_outputs`).
 from __future__ import annotations
 
 import os
-
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -108,10 +107,10 @@ def write_fit(report: Any, table: Any, data_path: str | Path, output: str | Path
         exported = export_fit(report, table, output, write=write)
         if save is not None:
             save_fit(save, saved, write=stage.write_bytes)
-        entry = ledger_fit_entry(report, table, output, effects, written.get(str(output), b""), spec, seed)
         # the model as seen from the data and its ledger: a fit run from elsewhere wrote its own
         # working directory's path, which the report, run from the data's, showed as another file
-        entry["model"] = os.path.relpath(os.path.abspath(output), os.path.dirname(os.path.abspath(data_path)))
+        seen = os.path.relpath(os.path.abspath(output), os.path.dirname(os.path.abspath(data_path)))
+        entry = ledger_fit_entry(report, table, seen, effects, written.get(str(output), b""), spec, seed)
         stage.before_replacing(lambda: entry.update(append_entry(data_path, entry)))
     return FitFiles(exported, entry)
 

@@ -140,7 +140,8 @@ def quaternion_order_note(meas_q: np.ndarray, ref_q: np.ndarray, meas_p: np.ndar
         if as_written is None or as_written < UNRELATED_LEFT:
             continue
         shifted = {}
-        for which, shift in _SHIFTS[:3] if W is None else _SHIFTS:
+        # on the turns alone a shift of both series keeps the relation: only one is tried
+        for which, shift in (s for s in _SHIFTS if W is not None or s[0] == "measured"):
             m = np.roll(meas_q, shift, axis=1) if which != "reference" else meas_q
             r = np.roll(ref_q, shift, axis=1) if which != "measured" else ref_q
             left = turn_mismatch(m, r, W)

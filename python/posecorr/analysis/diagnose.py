@@ -687,19 +687,17 @@ def _unregistered_words(table: PoseTable) -> str | None:
             f"{1e3 * fitted['rmse_pos']:.3g} mm in-sample, {rigid_name})")
 
 
-def _with_registration(table: PoseTable, effects: list[str], candidates: Sequence[str] | None
+def _with_registration(effects: list[str], candidates: Sequence[str] | None, unregistered: str | None
                        ) -> tuple[list[str], str | None]:
     """(the model's effects, a note or None): where the frames are unregistered and the model
     holds no registration effect, the registration in front of them, as `fit`'s rigid floor
     holds it. Against the bare measurements every candidate would gain by taking up the
     frames' offset: a sweep passed given the station and the mount alone where a bend, which
     ran away fitted to metres of offset, was never tried again; a form stood in for the
-    mount; a proposal quoted the registration's gain as its own."""
+    mount; a proposal quoted the registration's gain as its own. `unregistered`: the
+    table's `_unregistered_words`."""
     registration = _registration()
-    if candidates is not None or any(name in effects for name in registration):
-        return effects, None
-    unregistered = _unregistered_words(table)
-    if unregistered is None:
+    if candidates is not None or unregistered is None or any(name in effects for name in registration):
         return effects, None
     return registration + effects, (f"{unregistered}: the model starts from their registration, "
                                     f"{', '.join(registration)}, as fit's rigid floor does")
@@ -754,7 +752,8 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         raise ValueError(f"model_corrected has shape {np.shape(model_corrected)}, expected ({table.n}, 7): "
                          f"a corrected pose for each row of the table")
     table, model_corrected = _thinned(table, model_corrected, seed)
-    effects, registered = _with_registration(table, list(effects), candidates)
+    unregistered = _unregistered_words(table)   # the model's start and the features' alike
+    effects, registered = _with_registration(list(effects), candidates, unregistered)
     names = list(candidates) if candidates is not None else candidate_effects(table, effects, forms)
     say = progress or (lambda message: None)
     say("which candidate effects this data can determine")
@@ -766,7 +765,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     rows, kept, dropped = _select(search)
 
     features, unplaced = _feature_scan(table, model_corrected if model_corrected is not None else state.predicted,
-                                       folds, seed)
+                                       folds, seed, placed=unregistered is None)
     base = pose_metrics(table.reference, state.predicted, table.has_orientation)
     result = {
         "model_effects": effects,
@@ -788,11 +787,10 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     return result
 
 
-def _feature_scan(table: PoseTable, predicted: np.ndarray, folds: int, seed: int
+def _feature_scan(table: PoseTable, predicted: np.ndarray, folds: int, seed: int, placed: bool
                   ) -> tuple[list[dict[str, Any]], str | None]:
-    """(`feature_r2` of the residuals, a note or None): where the frames are unregistered no
-    feature is taken from the station, whose place in them nobody knows."""
-    placed = _unregistered_words(table) is None
+    """(`feature_r2` of the residuals, a note or None): where the frames are unregistered (not
+    `placed`) no feature is taken from the station, whose place in them nobody knows."""
     features = feature_r2(residual_components(table.reference, predicted, table.has_orientation),
                           pose_features(table.reference, table.time(), registered=placed), folds, seed)
     return features, None if placed else f"residual structure by feature: {UNPLACED_STATION}"

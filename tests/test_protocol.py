@@ -155,6 +155,34 @@ def test_a_script_runs_the_sweep_on_workers(tmp_path, guarded):
     assert r.returncode == 0 and r.stdout.strip() == "2 runs", r.stderr[-2000:]
 
 
+AFTER_TORCH_SCRIPT = """
+import torch
+torch.set_num_threads({parent})
+for _ in range(3):
+    torch.tanh(torch.ones(1 << 20)).sum()
+from posecorr.simulate import simulate
+from posecorr.train.protocol import run_sweep
+from posecorr.train.spec import ModelSpec
+rows = run_sweep(simulate(3, seed=0).table, [ModelSpec("mlp", "zhou", (8,), "tansig", "lm", epochs=2)], repeats=2,
+                 workers=2, threads=2, progress=False).rows
+print(len(rows), "runs")
+"""
+
+
+@pytest.mark.parametrize("parent", [1, 2])
+def test_a_sweep_after_torch_ran_on_threads_does_not_hang(parent):
+    """A parent that ran torch on two threads forks workers that would wait forever on a
+    second thread (GNU OpenMP's pool is not forked): the sweep runs them on one and says so.
+    A parent that ran torch on one thread has no pool to lose; its workers keep two."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", AFTER_TORCH_SCRIPT.format(parent=parent)], capture_output=True,
+                       text=True, timeout=240)
+    assert r.returncode == 0 and r.stdout.strip() == "2 runs", r.stderr[-2000:]
+    assert ("workers run 1 torch thread each, not 2" in r.stderr) == (parent == 2), r.stderr
+
+
 def test_cross_validation_pools_out_of_fold_predictions():
     """`fit --cv`'s cross-validation (`pipeline.cross_validate`) of a bare core."""
     from posecorr.train.pipeline import CorrectionPipeline, cross_validate

@@ -706,7 +706,10 @@ def _sweep_on_pool(table: Any, todo: list[tuple[ModelSpec, int]], seed: int, wor
     threads = threads or default_threads(workers)
     # fork, where there is one: a script that calls run_sweep needs no `if __name__ ==
     # "__main__":` guard (spawn and forkserver import the main script in every worker).
-    ctx = mp.get_context("spawn" if os.name == "nt" else "fork")
+    method = "spawn" if os.name == "nt" else "fork"
+    if method == "fork":
+        threads = _threads_a_fork_keeps(threads)
+    ctx = mp.get_context(method)
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
                                initargs=(threads, os.getpid()))
     futures: list[Any] = []
@@ -730,6 +733,56 @@ def _sweep_on_pool(table: Any, todo: list[tuple[ModelSpec, int]], seed: int, wor
                                    "that finished are kept") from None
         raise
     pool.shutdown(wait=True)
+
+
+# How long a forked probe may take to run torch on several threads before it counts as hung:
+# a healthy one takes milliseconds, a loaded machine a few hundred.
+FORK_PROBE_SECONDS = 3.0
+
+
+def _threads_a_fork_keeps(threads: int) -> int:
+    """``threads``, or 1 where a forked worker would hang on more.
+
+    GNU OpenMP (torch's intra-op pool on Linux) does not survive a fork: once the parent has
+    run torch on several threads, a forked child that asks for more than one waits forever on
+    the parent's pool threads, which it does not have. Whether the parent has is not visible
+    from Python, so a forked probe tries: it runs torch on ``threads`` threads, and where it
+    does not finish the workers run on one thread each, and the user is told.
+    """
+    import signal
+    import sys
+
+    if threads <= 1 or "torch" not in sys.modules:
+        return threads  # a parent without torch has no OpenMP pool for a child to inherit
+    pid = os.fork()
+    if pid == 0:  # the probe: torch's parallel loop and its BLAS, as a run uses them
+        code = 1
+        try:
+            import torch
+
+            torch.set_num_threads(threads)
+            square = torch.ones(256, 256)
+            torch.tanh(torch.ones(1 << 20)).sum().item()
+            (square @ square).sum().item()
+            code = 0
+        finally:
+            os._exit(code)
+    deadline = time.monotonic() + FORK_PROBE_SECONDS
+    status = None
+    while status is None and time.monotonic() < deadline:
+        done, raw = os.waitpid(pid, os.WNOHANG)
+        status = os.waitstatus_to_exitcode(raw) if done else None
+        if status is None:
+            time.sleep(0.005)
+    if status is None:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+    if status == 0:
+        return threads
+    warn(f"sweep workers run 1 torch thread each, not {threads}: this process has run torch on several threads, "
+         "and a worker forked from it hangs on more than one (GNU OpenMP does not survive a fork); "
+         "run the sweep from a fresh process (`posecorr sweep`) for more")
+    return 1
 
 
 class SweepWorkerError(RuntimeError):

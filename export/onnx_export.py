@@ -381,7 +381,7 @@ def _parity_report(estimator: Any, model: Any, measured: Any, t: Any, time_input
         raise ParityError(
             f"exported graph differs from predict(): max position error "
             f"{report['max_pos_m']:.3g} m (tol {report['tol_pos_m']:.3g}), max rotation error "
-            f"{report['max_rot_rad']:.3g} rad (tol {check['tol_rot']:g})")
+            f"{report['max_rot_rad']:.3g} rad (tol {report['tol_rot_rad']:.3g})")
     return report
 
 

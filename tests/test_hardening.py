@@ -488,7 +488,7 @@ def test_apply_names_the_row_a_model_refuses_in_a_late_chunk(tmp_path, capsys) -
 
 
 def test_apply_keep_going_writes_a_refused_pose_as_nan_and_counts_it(tmp_path, capsys) -> None:
-    """--keep-going: the poses the model refuses (outside its box) are written as nan and
+    """--keep-going: the poses the model refuses (outside its box, a zero quaternion) are written as nan and
     counted with their rows, every other pose as a plain apply of the table without them
     writes it, and the metrics are over the poses corrected; all refused is an error."""
     from posecorr.controller.apply import apply_file
@@ -505,23 +505,30 @@ def test_apply_keep_going_writes_a_refused_pose_as_nan_and_counts_it(tmp_path, c
         cells = lines[row - 1].split(",")
         cells[2] = "5.0"
         lines[row - 1] = ",".join(cells)
+    header = lines[0].split(",")
+    cells = lines[52 - 1].split(",")  # tracking lost: the log's zero quaternion
+    for column in ("meas_qw", "meas_qx", "meas_qy", "meas_qz"):
+        cells[header.index(column)] = "0"
+    lines[52 - 1] = ",".join(cells)
     path.write_text("\n".join(lines) + "\n")
-    kept.write_text("\n".join(line for i, line in enumerate(lines, 1) if i not in (46, 50)) + "\n")
+    kept.write_text("\n".join(line for i, line in enumerate(lines, 1) if i not in (46, 50, 52)) + "\n")
     got = apply_file(model, path, tmp_path / "out.csv", chunk_rows=7, keep_going=True)
     plain = apply_file(model, kept, tmp_path / "plain.csv")
-    assert got["refused"]["count"] == 2 and got["refused"]["rows"] == [46, 50]
+    assert got["refused"]["count"] == 3 and got["refused"]["rows"] == [46, 50, 52]
     assert got["refused"]["first"].startswith(f"{path}, row 46, column meas_y: ")
     out, want = read_csv_columns(tmp_path / "out.csv"), read_csv_columns(tmp_path / "plain.csv")
     refused = ~np.isfinite(out["corr_x"])
-    assert list(np.flatnonzero(refused) + 2) == [46, 50]
+    assert list(np.flatnonzero(refused) + 2) == [46, 50, 52]
     for column in ("corr_x", "corr_y", "corr_z", "corr_qw", "corr_qx", "corr_qy", "corr_qz"):
         np.testing.assert_array_equal(out[column][~refused], want[column])
     for key in ("rmse_pos", "rmse_rot", "rmse_total"):
         assert got["corrected"][key] == pytest.approx(plain["corrected"][key], rel=1e-12)
     assert main(["apply", str(model), str(path), "-o", str(tmp_path / "o.csv"), "--keep-going"]) == 0
     shown = capsys.readouterr().out.splitlines()
-    assert shown[0].startswith("58 of 60 poses corrected") and shown[1].startswith(
-        "2 poses refused by the model, written as nan (rows 46, 50); the metrics are over the others")
+    assert shown[0].startswith("57 of 60 poses corrected") and shown[1].startswith(
+        "3 poses refused by the model, written as nan (rows 46, 50, 52); the metrics are over the others")
+    with pytest.raises(TableError, match="row 52, column meas_qw..meas_qz: a zero quaternion"):
+        apply_file(model, path, tmp_path / "stopped.csv")   # without --keep-going the table's fault, as before
 
     every = tmp_path / "every.csv"
     every.write_text("\n".join([lines[0], lines[45], lines[49]]) + "\n")

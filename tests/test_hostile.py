@@ -61,6 +61,9 @@ def folder(tmp_path) -> Path:
     # sidecars that are not regular files: a ledger that is a link to someone's file, a
     # ledger and a segment list that are FIFOs, a default sweep store that is a link
     (tmp_path / "victim.txt").write_text("mine\n")
+    (tmp_path / "main.c").write_text("int main(void) { return 0; }\n")
+    (tmp_path / "notes.md").write_text("# what I measured\n")
+    (tmp_path / "notes").write_text("what I measured\n")
     for name in ("linked", "fifo-ledger", "fifo-segments"):
         write_table(_table(), tmp_path / f"{name}.csv")
     os.symlink(tmp_path / "victim.txt", tmp_path / "linked.csv.ledger.jsonl")
@@ -101,6 +104,12 @@ def _cases(f: Path) -> list[tuple[str, str, list[str], list[str]]]:
         ("output", "diagnose --propose over a hand-written effect file",
          ["diagnose", d, "--effects", "station,mount", "--propose", str(f / "exits.py")],
          ["exits.py is an effect file", "did not write", "remove it"]),
+        ("output", "compile -o a hand-written C file", ["compile", m, "-o", str(f / "main.c")],
+         ["main.c is a C source", "did not write", "remove it"]),
+        ("output", "apply -o a document", ["apply", m, d, "-o", str(f / "notes.md")],
+         ["notes.md is a document", "refusing to replace it"]),
+        ("output", "fit -o a file of no kind posecorr writes", ["fit", d, "-o", str(f / "notes")],
+         ["notes holds something posecorr fit does not write", "refusing to replace it"]),
         ("output", "simulate --recording a folder that is not a bag",
          ["simulate", "--experiment", "1", "-o", str(f / "s.csv"), "--recording", str(f / "not-a-bag")],
          ["not-a-bag", "ROS 2 bag"]),

@@ -63,6 +63,18 @@ def test_mapminmax_like_matlab():
     np.testing.assert_allclose(Xn[:, 2], [-1, 1, 0])
 
 
+def test_mapminmax_holds_a_row_float32_cannot_resolve_constant():
+    """A row that varies by fewer than CONSTANT_STEPS float32 steps of its magnitude is
+    constant (gain 1): the exported graph, in float32, would see its rounding, not its values."""
+    from posecorr.train.mlp import CONSTANT_STEPS
+
+    step = float(np.spacing(np.float32(1.0)))
+    X = np.array([[1.0, 0.5, 3.0], [1.0 - 0.5 * CONSTANT_STEPS * step, 0.5 + 1e-3, 3.0 + 2 * CONSTANT_STEPS * 2.4e-7]])
+    gain, offset = mapminmax_settings(X)
+    assert gain[0] == 1.0 and offset[0] == pytest.approx(-1.0 - X[:, 0].min())
+    np.testing.assert_allclose(gain[1:], 2.0 / (X.max(axis=0) - X.min(axis=0))[1:])
+
+
 def test_nguyen_widrow_init_spreads_tansig_units_over_active_range():
     rng = np.random.default_rng(0)
     coefs, biases = init_weights([9, 20, 20, 9], "tansig", rng)

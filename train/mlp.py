@@ -52,15 +52,23 @@ def activation_xp(name: str, n: Any) -> Any:
     return get_activation(name).forward(n)
 
 
+CONSTANT_STEPS = 4096
+
+
 def mapminmax_settings(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """MATLAB mapminmax to [-1, 1]: gain, offset with Xn = X * gain + offset.
 
     y = (ymax - ymin)(x - xmin)/(xmax - xmin) + ymin; a constant row gets gain 1, so it maps
-    to ymin = -1 (MATLAB's behaviour).
+    to ymin = -1 (MATLAB's behaviour). A row that varies by no more than CONSTANT_STEPS float32
+    steps of its magnitude counts as constant: the exported model runs in float32, where it
+    does not vary at all, and a gain of 2 / span would make its rounding the network's input
+    (a session held at one orientation: the corrected rotation's diagonal spans 1e-8, and the
+    graph's output moved by 2.5e-5 rad from predict's).
     """
     lo, hi = X.min(axis=0), X.max(axis=0)
     span = hi - lo
-    const = ~(span > 0)
+    resolution = CONSTANT_STEPS * np.spacing(np.maximum(np.abs(lo), np.abs(hi)).astype(np.float32))
+    const = ~(span > resolution)
     gain = np.where(const, 1.0, 2.0 / np.where(const, 1.0, span))
     offset = -1.0 - lo * gain
     return gain, offset

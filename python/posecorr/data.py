@@ -336,11 +336,16 @@ class TableReader:
     """A paired-pose CSV read in chunks, every cell checked (see the module doc).
 
     ``require_reference=False`` also accepts a measurement-only table (no ``ref_*``
-    columns; `posecorr apply`). Use as a context manager; `chunks()` yields `Chunk`s.
+    columns; `posecorr apply`). ``measured_quaternions_checked=False`` passes a measured
+    quaternion that is zero or not unit on to the model, which refuses that pose alone
+    (`apply --keep-going`: a tracker's log writes zeros where tracking was lost). Use as a
+    context manager; `chunks()` yields `Chunk`s.
     """
 
-    def __init__(self, path: str | Path, require_reference: bool = True) -> None:
+    def __init__(self, path: str | Path, require_reference: bool = True,
+                 measured_quaternions_checked: bool = True) -> None:
         self.path = str(path)
+        self.measured_quaternions_checked = measured_quaternions_checked
         if Path(self.path).is_dir():
             raise TableError(self.path, "is a folder, expected a CSV file")
         try:
@@ -475,7 +480,8 @@ class TableReader:
                 i = int(far[0])
                 raise TableError(self.path, f"{values[c][i]:.6g} m is more than {MAX_POSITION:g} m from the origin "
                                  "(positions are in metres)", numbers[i], c)
-        _check_quaternions(self.path, chunk.block(MEAS_QUAT), MEAS_QUAT, numbers)
+        if self.measured_quaternions_checked:
+            _check_quaternions(self.path, chunk.block(MEAS_QUAT), MEAS_QUAT, numbers)
         if self.has_ref_orientation:
             _check_quaternions(self.path, chunk.block(REF_QUAT), REF_QUAT, numbers)
         return chunk

@@ -20,6 +20,8 @@ MODEL, TABLE, ESTIMATOR = "model", "pose table", "saved estimator"
 SOURCE, PAGE, EFFECT_FILE = "C source", "report page", "effect file"
 STORE, FOLDER = "results store (JSON lines)", "folder"
 KINDS = (MODEL, TABLE, ESTIMATOR, SOURCE, PAGE, EFFECT_FILE, STORE, FOLDER)
+# A kind no verb writes, recognised so that none writes over one: prose (README.md, notes.txt).
+DOCUMENT = "document"
 
 
 class CliError(Exception):

@@ -8,7 +8,7 @@ import importlib.util
 from collections.abc import Collection
 from pathlib import Path
 
-from .common import EFFECT_FILE, ESTIMATOR, MODEL, PAGE, SOURCE, STORE, TABLE, CliError, Verb, printable
+from .common import DOCUMENT, EFFECT_FILE, ESTIMATOR, MODEL, PAGE, SOURCE, STORE, TABLE, CliError, Verb, printable
 
 EXIT_USAGE = 2
 EXIT_INTERNAL = 1
@@ -67,17 +67,20 @@ def check_paths(args: argparse.Namespace, verb: Verb) -> None:
 _HEAD_BYTES = 4096
 # What a file's name says it holds, where its first bytes leave it open.
 _KIND_BY_NAME = {".onnx": MODEL, ".csv": TABLE, ".py": EFFECT_FILE, ".html": PAGE, ".htm": PAGE, ".c": SOURCE,
-                 ".h": SOURCE}
+                 ".h": SOURCE, ".md": DOCUMENT, ".markdown": DOCUMENT, ".rst": DOCUMENT, ".tex": DOCUMENT}
+# Names whose text is a table where its first line holds a comma, prose otherwise.
+_TEXT_NAMES = (".txt",)
 _KIND_WORD = {MODEL: "MODEL", TABLE: "DATA"}
 
 
 def file_kind(path: Path) -> str | None:
     """What the file clearly holds (one of `common.KINDS`: a model, a table, `fit --save`'s
-    estimator, C source, a report page, an effect file, JSON lines), None where unsure. Its
-    first bytes decide where they can (the saved estimator's magic, ONNX's opening, an HTML
-    page's or a JSON object's opening, a proposal's docstring; other text is never a model),
-    then its name (.onnx, .csv, .py, .html, .c), and text whose first line holds a comma is a
-    table."""
+    estimator, C source, a report page, an effect file, JSON lines; or a document), None
+    where unsure. Its first bytes decide where they can (the saved estimator's magic, ONNX's
+    opening, an HTML page's or a JSON object's opening, a proposal's docstring; other text is
+    never a model), then its name (.onnx, .csv, .py, .html, .c, .md), and text whose first
+    record (comments and blank lines apart) holds a comma is a table (a .txt without one is
+    a document)."""
     from ..controller.onnx_meta import starts_like_onnx
     from ..saved import MAGIC
 
@@ -102,7 +105,14 @@ def file_kind(path: Path) -> str | None:
         return STORE
     if by_name not in (None, MODEL):
         return by_name
-    return TABLE if "," in text.split("\n", 1)[0] else None
+    if "," in _first_record(text):
+        return TABLE
+    return DOCUMENT if path.suffix.lower() in _TEXT_NAMES else None
+
+
+def _first_record(text: str) -> str:
+    """The first line that is neither blank nor a comment ('#', as a table's reader skips them)."""
+    return next((line for line in text.splitlines() if line.strip() and not line.startswith("#")), "")
 
 
 def _is_proposal(text: str) -> bool:
@@ -117,9 +127,18 @@ def _proposal_file(path: Path) -> bool:
         return _is_proposal(_text(handle.read(_HEAD_BYTES)))
 
 
+def _compiled_file(path: Path) -> bool:
+    """Whether a C file opens with the banner `posecorr compile` writes."""
+    from ..controller.to_c import BANNER
+
+    with open(path, "rb") as handle:
+        return BANNER in _text(handle.read(_HEAD_BYTES)).split("\n", 1)[0]
+
+
 # The kinds a verb replaces only where the file is its own, and how its own are known: an
-# effect file is the user's code unless `diagnose --propose` wrote it.
-_REPLACED_IF_OWN = {EFFECT_FILE: _proposal_file}
+# effect file or C source is the user's code unless `diagnose --propose` or `posecorr
+# compile` wrote it.
+_REPLACED_IF_OWN = {EFFECT_FILE: _proposal_file, SOURCE: _compiled_file}
 
 
 def _a(kind: str) -> str:
@@ -175,12 +194,18 @@ def check_kinds(args: argparse.Namespace, verb: Verb) -> None:
 
 
 def _check_outputs(args: argparse.Namespace, verb: Verb) -> None:
-    """An output over a file of another kind than the verb writes there, or over one of its
-    own kind that it did not write (`_REPLACED_IF_OWN`), is refused."""
+    """An output over a file of another kind than the verb writes there, over one whose kind
+    is unclear (every file a verb writes is clearly of its kind), or over one of its own kind
+    that it did not write (`_REPLACED_IF_OWN`), is refused. An empty file holds nothing to lose."""
     for name, want in verb.outputs.items():
         path = getattr(args, name, None)
-        kind = file_kind(Path(path)) if path is not None and Path(path).is_file() else None
-        if kind is not None and kind != want:   # a page written over a table, a table over an effect file
+        if path is None or not Path(path).is_file() or Path(path).stat().st_size == 0:
+            continue
+        kind = file_kind(Path(path))
+        if kind is None:
+            raise CliError(f"{path} holds something posecorr {args.verb} does not write (not {_a(want)}): refusing to "
+                           "replace it (choose another output name, or remove it)")
+        if kind != want:   # a page written over a table, a table over an effect file
             raise CliError(f"{path} is {_a(kind)}, and posecorr {args.verb} writes {_a(want)} there: refusing to "
                            "replace it (choose another output name)")
         if kind in _REPLACED_IF_OWN and not _REPLACED_IF_OWN[kind](Path(path)):   # the user's own effect file

@@ -434,9 +434,13 @@ def _status_lines() -> str:
                      for k, text in STATUS.items())
 
 
+# The words of the first line by which `posecorr compile` knows the files it wrote.
+BANNER = "compiled by `posecorr compile`"
+
+
 def _header(name: str, origin: str, digest: str | None, takes_time: bool) -> str:
     time = "float t, " if takes_time else ""
-    return f"""/* {origin} compiled by `posecorr compile`: its one-pose function in C99.
+    return f"""/* {origin} {BANNER}: its one-pose function in C99.
  *
  *     int {name}_run(const float in[7], {time}float out[7]);
  *

@@ -9,6 +9,14 @@
 
 #include <math.h>
 
+/* A file that includes these uses some of them only; `posecorr compile` copies them into the
+ * file it writes, where clang, unlike for a header's, warns of each one left unused. */
+#if defined(__GNUC__)
+#define PC_FORMULA static inline __attribute__((unused))
+#else
+#define PC_FORMULA static inline
+#endif
+
 /* Max/Min as ONNX has them: NaN from either side propagates. */
 #define PC_MAX_EXPR(a, b) (((a) != (a) || (b) != (b)) ? (a) + (b) : (a) > (b) ? (a) : (b))
 #define PC_MIN_EXPR(a, b) (((a) != (a) || (b) != (b)) ? (a) + (b) : (a) < (b) ? (a) : (b))
@@ -38,20 +46,20 @@
     X(k_tanh_f, PC_SOP_TANH, pc_tanh_inline(a))
 
 /* Clip as the dense layers fuse it: min(max(x, lo), hi). */
-static inline float pc_clip(float x, float lo, float hi)
+PC_FORMULA float pc_clip(float x, float lo, float hi)
 {
     const float t = x < lo ? lo : x;
     return t > hi ? hi : t;
 }
 
-static inline float pc_sigmoid(float x)
+PC_FORMULA float pc_sigmoid(float x)
 {
     return 1.0f / (1.0f + expf(-x));
 }
 
 /* The radial basis, as its three graph nodes compute it (Mul, Neg, Exp): the square is
  * rounded to float before the exponential, as their stored results are. */
-static inline float pc_radbas(float x)
+PC_FORMULA float pc_radbas(float x)
 {
     const float square = x * x;
     return expf(-square);
@@ -61,7 +69,7 @@ static inline float pc_radbas(float x)
  * fitted for this library by iteratively reweighted least squares towards minimax
  * absolute error (5.9e-9 in exact arithmetic, 3.2e-7 evaluated in float32). Branch-free
  * so that loops over it vectorise; NaN propagates through the clamps. */
-static inline float pc_tanh_inline(float x)
+PC_FORMULA float pc_tanh_inline(float x)
 {
     float c = x > 9.0f ? 9.0f : x;
     float t, p, q;
@@ -109,19 +117,19 @@ static inline float pc_tanh_inline(float x)
 
 /* |q|^2 of an input quaternion q[4], in double. The tests below join their clauses with &,
  * not &&: pc_run's hot check takes no branch per clause. */
-static inline double pc_input_norm2(const float *q)
+PC_FORMULA double pc_input_norm2(const float *q)
 {
     return (double)q[0] * q[0] + (double)q[1] * q[1] + (double)q[2] * q[2] + (double)q[3] * q[3];
 }
 
-static inline int pc_unit_input(double norm2)
+PC_FORMULA int pc_unit_input(double norm2)
 {
     return (norm2 >= PC_QUAT_NORM2_LO) & (norm2 <= PC_QUAT_NORM2_HI);
 }
 
 /* pc_unit_input of q[4] given norm2_float, its |q|^2 summed in float in any order: the sum
  * in double only outside PC_QUAT_NORM2_BAND, where the float one cannot decide. */
-static inline int pc_unit_input_banded(float norm2_float, const float *q)
+PC_FORMULA int pc_unit_input_banded(float norm2_float, const float *q)
 {
     if (fabsf(norm2_float - 1.0f) <= PC_QUAT_NORM2_BAND)
         return 1;
@@ -134,7 +142,7 @@ typedef struct pc_move {
     float d2, n2, dot, n_in2;
 } pc_move;
 
-static inline pc_move pc_move_of(const float *in, const float *p)
+PC_FORMULA pc_move pc_move_of(const float *in, const float *p)
 {
     pc_move v = {0.0f, 0.0f, 0.0f, 0.0f};
     int c;
@@ -150,7 +158,7 @@ static inline pc_move pc_move_of(const float *in, const float *p)
     return v;
 }
 
-static inline int pc_unit_output(const pc_move *v)
+PC_FORMULA int pc_unit_output(const pc_move *v)
 {
     return fabsf(v->n2 - 1.0f) <= PC_UNIT_TOLERANCE;
 }
@@ -158,7 +166,7 @@ static inline int pc_unit_output(const pc_move *v)
 /* Within the model's reach, compared on squares: |p_out - p_in|^2 against reach_pos2, and
  * (q_in . q_out)^2 against cos^2(reach / 2) |q_in|^2 |q_out|^2 (reach_cos2 0: any rotation),
  * a few multiplications a pose. */
-static inline int pc_within_reach(const pc_move *v, float reach_pos2, float reach_cos2)
+PC_FORMULA int pc_within_reach(const pc_move *v, float reach_pos2, float reach_cos2)
 {
     return (v->d2 <= reach_pos2) & (v->dot * v->dot >= reach_cos2 * v->n_in2 * v->n2);
 }

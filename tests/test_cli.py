@@ -406,6 +406,23 @@ def test_folds_too_small_to_fit_end_in_one_line_that_names_the_folds_that_fit(tm
         assert posecorr(verb, str(data), *extra, "--cv", "4", cwd=tmp_path).returncode == 0
 
 
+def test_a_core_that_needs_more_poses_than_a_fold_leaves_is_refused_before_the_work(tmp_path) -> None:
+    """An MLP fits on four poses at least: `fit --method mlp --cv 2` on six poses began the
+    first fold and then failed ("MLP(zhou) needs at least 4 poses, got 3"); it is refused
+    before any work, with the folds that leave enough, and those do."""
+    from posecorr.simulate import simulate_session
+
+    data = tmp_path / "six.csv"
+    write_table(simulate_session(3, n=6).table, data)
+    fit = ("fit", str(data), "--method", "mlp", "--hidden", "3", "--epochs", "5", "-o", "m.onnx")
+    run = posecorr(*fit, "--cv", "2", cwd=tmp_path)
+    assert run.returncode == 2 and run.stderr.strip() == (
+        f"posecorr fit: error: {data}: 6 rows, but with 2 folds a fold fits on 3 of them, and mlp-zhou needs at "
+        "least 4: more folds (--cv 3)"), run.stderr
+    assert "fold" not in run.stdout and not (tmp_path / "m.onnx").exists()
+    assert posecorr(*fit, "--cv", "3", cwd=tmp_path).returncode == 0
+
+
 def test_more_folds_than_poses_end_in_one_line_that_names_the_most_there_are(tmp_path) -> None:
     """`fit --cv 20` on 12 poses said "20 folds need at least 20 poses, got 12", after the
     fit began, and not what to do: now before any work, with the folds that do, and they do."""

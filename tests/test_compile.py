@@ -113,6 +113,17 @@ def test_fused_multiply_add_stays_off_on_an_fma_target(tmp_path):
     assert "vfmadd" not in asm and "vfmsub" not in asm and "vfnmadd" not in asm
 
 
+@pytest.mark.skipif(shutil.which("clang") is None, reason="no clang (Debian's clang; .ci/run installs it)")
+def test_the_file_builds_without_a_warning_under_clang(tmp_path):
+    """A firmware built with clang -Werror: the copied formulas a model leaves unused drew
+    -Wunused-function (clang warns of a file's own unused static functions, not a header's)."""
+    out = tmp_path / "zhou.c"
+    assert compile_cli(ZHOU, out).returncode == 0
+    r = subprocess.run(["clang", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic", "-c", "-o",
+                        str(tmp_path / "zhou.o"), str(out)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+
+
 @pytest.mark.parametrize("rep", ["pos", "eaa", "quat", "R", "zhou"])
 def test_unshipped_table1_mlp_gives_pc_run_bits(rep, tmp_path):
     """Each representation with a table-1 architecture drawn from a seed of its own (the same

@@ -449,9 +449,12 @@ def fit_table(table: PoseTable, effects: Sequence[str], spec: ModelSpec, plan: P
         candidates = auto_candidates(table, effects, spec.representation)
     else:
         candidates = [requested_candidate(effects, spec, seed), *floor]
+        core = candidates[0].make_core()
+        if core is not None:   # a core that needs more poses than a fold leaves fails before any work
+            require_enough_to_fit(table.n, plan, needs=core.min_rows(), model=candidates[0].name)
         _note_more_weights_than_numbers(candidates[0], table.n, plan, seed, say, notes)
     fit_phase = _fit_fixed_split if isinstance(plan, FixedSplit) else _fit_cross_validated
-    return _warn_thin(fit_phase(table, candidates, floor, auto, plan, seed, say, notes))
+    return _warn_thin(_note_trade(fit_phase(table, candidates, floor, auto, plan, seed, say, notes)))
 
 
 def spec_for_table(spec: ModelSpec, table: PoseTable) -> ModelSpec:
@@ -661,6 +664,33 @@ def _progress_iter(splits: list, say: Callable[[str], None], label: str):
         if k % max(1, len(splits) // 10) == 0:
             say(f"{label} {k + 1}/{len(splits)}")
         yield split
+
+
+def _note_trade(report: FitReport) -> FitReport:
+    """The choice is made on rmse_total (metres plus radians, the paper's score): a model that
+    beats the rigid fit there while it is worse in position (or in rotation) trades one for
+    the other, which a user who reads one column must be told."""
+    held, floor = report.heldout, report.baseline
+    if report.chosen == report.baseline_name or not floor:
+        return report
+    for key, unit, scale, other, other_unit in (("rmse_pos", "mm", 1e3, "rmse_rot", "mrad"),
+                                                ("rmse_rot", "mrad", 1e3, "rmse_pos", "mm")):
+        worse, better = held.get(key), held.get(other)
+        if worse is None or better is None or floor.get(key) is None or floor.get(other) is None:
+            continue
+        if worse > floor[key] * (1.0 + TRADE_MARGIN) and better < floor[other]:
+            report.notes.append(
+                f"{report.chosen} beats the rigid fit ({report.baseline_name}) in rmse_total, not in {key}: "
+                f"{scale * worse:.4g} against {scale * floor[key]:.4g} {unit} held out "
+                f"({100.0 * (worse / floor[key] - 1.0):.1f} % worse), for {scale * better:.4g} against "
+                f"{scale * floor[other]:.4g} {other_unit} in {other}; where {key} matters most, fit the rigid "
+                "fit itself (`--effects station,mount --method none`)")
+    return report
+
+
+# How much worse in one of position and rotation a model may be than the rigid fit before
+# fit says it trades that for the other: less is the folds' rounding.
+TRADE_MARGIN = 1e-3
 
 
 def _warn_thin(report: FitReport) -> FitReport:

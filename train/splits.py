@@ -168,30 +168,34 @@ def fewest_to_fit(n: int, plan: CrossValidationPlan, nested: bool = False) -> in
     return fewest_to_fit(fewest, plan_for(fewest, nested=True)) if nested and fewest > 1 else fewest
 
 
-def fewest_rows_to_fit(nested: bool = False) -> int:
+def fewest_rows_to_fit(nested: bool = False, needs: int = MIN_FIT_POSES) -> int:
     """The fewest rows on which some plan (leave one out, and `nested`: the choice made inside
-    its folds) leaves every fit MIN_FIT_POSES poses."""
-    return next(m for m in itertools.count(2) if fewest_to_fit(m, LeaveOneOut(), nested) >= MIN_FIT_POSES)
+    its folds) leaves every fit `needs` poses."""
+    return next(m for m in itertools.count(2) if fewest_to_fit(m, LeaveOneOut(), nested) >= needs)
 
 
-def require_enough_to_fit(n: int, plan: Plan, nested: bool = False) -> None:
+def require_enough_to_fit(n: int, plan: Plan, nested: bool = False, needs: int = MIN_FIT_POSES,
+                          model: str = "a fit") -> None:
     """ValueError when a fold of `plan` (and, `nested`, the choice made inside it) would fit on
-    fewer than MIN_FIT_POSES poses, naming the folds that would do, or the rows it takes; or
-    when it asks for more folds than n rows, naming the most it takes."""
+    fewer than `needs` poses (what `model` needs, MIN_FIT_POSES at least), naming the folds that
+    would do, or the rows it takes; or when it asks for more folds than n rows, naming the
+    most it takes."""
     if isinstance(plan, FixedSplit):
         return
+    needs = max(needs, MIN_FIT_POSES)
     fewest = fewest_to_fit(n, plan, nested)
-    if fewest >= MIN_FIT_POSES:
+    if fewest >= needs:
         # more folds than rows: counted above as n folds of one pose each, which fit, the most there are
         if isinstance(plan, KFold) and plan.k > n:
             raise ValueError(f"{n} rows, but {plan.k} folds need at least {plan.k}: at most {n} folds (--cv {n}), "
                              "or --cv loo")
         return
     where = "a choice made inside a fold (auto's)" if nested else "a fold"
-    more = [k for k in range(int(getattr(plan, "k", n)) + 1, n + 1) if fewest_to_fit(n, KFold(k), nested) >= MIN_FIT_POSES]
-    advice = f"more folds (--cv {more[0]})" if more else f"at least {fewest_rows_to_fit(nested)} rows (with --cv loo)"
-    raise ValueError(f"{n} rows, but with {plan.description} {where} fits on {fewest} of them, and a fit needs "
-                     f"at least {MIN_FIT_POSES}: {advice}")
+    more = [k for k in range(int(getattr(plan, "k", n)) + 1, n + 1) if fewest_to_fit(n, KFold(k), nested) >= needs]
+    advice = (f"more folds (--cv {more[0]})" if more
+              else f"at least {fewest_rows_to_fit(nested, needs)} rows (with --cv loo)")
+    raise ValueError(f"{n} rows, but with {plan.description} {where} fits on {fewest} of them, and {model} needs "
+                     f"at least {needs}: {advice}")
 
 
 def parse_plan(text: str | int | None) -> Plan:

@@ -9,7 +9,9 @@ from .common import CliError, SOURCE, Verb, allow_arguments, allow_options, emit
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("model", type=Path, help="the .onnx file (any model libposecorr runs)")
+    p.add_argument("model", type=Path, help="the .onnx file: a model libposecorr runs whose one-pose plan has a C form (every "
+                                           "shipped model; a step with no C form, a softmax layer's say, is refused, "
+                                           "naming the step)")
     output_option(p, help="the C file to write")
     p.add_argument("--name", help="prefix of the function, NAME_run (default: the output file's stem)")
     allow_options(p)

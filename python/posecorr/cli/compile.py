@@ -20,9 +20,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def function_prefix(args: argparse.Namespace) -> str:
     """NAME of NAME_run: --name, else the output's stem with _ for what C does not take."""
     name = args.name if args.name is not None else re.sub(r"\W", "_", args.output.stem)
-    if not re.fullmatch(r"[A-Za-z_]\w{0,62}", name):
+    # C reserves the names that begin with an underscore at file scope (and NAME_run's own)
+    if not re.fullmatch(r"[A-Za-z]\w{0,62}", name):
         given = f"--name {name!r}" if args.name is not None else f"the output's name gives {name!r}; --name"
-        raise CliError(f"{given}: a C identifier is expected (letters, digits, _; not a digit first)")
+        raise CliError(f"{given}: a C identifier is expected (letters, digits, _; a letter first: C reserves "
+                       "names that begin with _ or a digit)")
     return name
 
 

@@ -52,7 +52,11 @@ def real(lo: float | None = None, hi: float | None = None, *, open_lo: bool = Fa
 
 def file_name(text: str) -> Path:
     """A file to write. A trailing separator names a folder, and Path would drop it
-    (`-o newdir/` would write a file named newdir)."""
+    (`-o newdir/` would write a file named newdir); "-", standard output to most tools, would
+    be a file named "-" (every output here is a file, written whole or not at all)."""
+    if text == "-":
+        raise argparse.ArgumentTypeError("'-' would be a file named '-' (posecorr writes its outputs to files, "
+                                         "never to standard output); expected a file name to write")
     if text.endswith(("/", os.sep)):
         raise argparse.ArgumentTypeError(f"{text!r} ends with a separator (a folder); expected a file name to write")
     return Path(text)

@@ -27,7 +27,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--epochs", type=options.integer(1, 1_000_000), help="epoch cap of every MLP")
     p.add_argument("--repeats", type=options.integer(1, 10_000), default=30,
                    help="runs of each model, each on a fresh random 70/15 split (default: 30)")
-    p.add_argument("--store", type=Path, help="results store (JSON lines); an interrupted sweep resumes from it")
+    p.add_argument("--store", type=Path, help="results store (JSON lines), always written; an interrupted sweep resumes from it "
+                        "(default: DATA.sweep.jsonl beside the data, or sweep-expN-seedS.jsonl in the working "
+                        "folder for --experiment N)")
     p.add_argument("--workers", type=options.integer(1, 1024), default=None,
                    help="local worker processes (default 2, or 1 on a one-core machine; at most the cores)")
     threads_option(p, "per worker process")

@@ -157,6 +157,32 @@ def test_real_session_auto_no_worse_than_rigid(name: str, published: float, summ
     assert any(key.startswith("mount.e") for key in report.fixed)
 
 
+def test_a_model_whose_file_fails_parity_gives_way_to_the_rigid_fit(tmp_path: Path, monkeypatch, capsys) -> None:
+    """Where the chosen model's graph fails the parity check, fit wrote nothing ("could not be
+    exported") after all its work; it writes the rigid fit, and says why. The failure is made
+    real: mapminmax as it was (a row that float32 cannot resolve scaled to [-1, 1]), on the six
+    poses the test above exports."""
+    import posecorr.train.mlp as mlp
+    from posecorr.cli import main
+    from posecorr.controller.onnx_meta import read_info
+
+    monkeypatch.setattr(mlp, "CONSTANT_STEPS", 0)
+    data = tmp_path / "six.csv"
+    data.write_text("\n".join((REALDATA / "20200717_Exp2.csv").read_text().splitlines()[:7]) + "\n")
+    model = tmp_path / "m.onnx"
+    assert main(["fit", str(data), "--effects", "station,mount", "--method", "mlp", "--cv", "3", "-o", str(model),
+                 "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["fell_back_to_rigid"] and out["chosen"].startswith("rigid-"), out["chosen"]
+    note = next(n for n in out["notes"] if "could not be written" in n)
+    assert note.startswith("physics+mlp-zhou could not be written: exported graph differs from predict()")
+    assert not any("beats the rigid fit" in n for n in out["notes"])   # of the model not written
+    assert out[out.get("cv") and "cv" or "test"]["rmse_total"] == pytest.approx(out["baseline"]["rmse_total"])
+    assert read_info(model).get("method") == "rigid"
+    ledger = [json.loads(line) for line in (tmp_path / "six.csv.ledger.jsonl").read_text().splitlines()]
+    assert ledger[-1]["asked"]["why"] == "its file failed the export's parity check"
+
+
 def test_a_model_that_trades_position_for_rotation_is_said_to() -> None:
     """On 20200717_Exp2 `fit`'s default (physics + PMC) beats the rigid fit in rmse_total
     with a better rotation and a worse position held out; the data's README asks that no

@@ -13,7 +13,7 @@ the same poses, and returns the best rigid fit when the richer model does not be
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -664,6 +664,24 @@ def _progress_iter(splits: list, say: Callable[[str], None], label: str):
         if k % max(1, len(splits) // 10) == 0:
             say(f"{label} {k + 1}/{len(splits)}")
         yield split
+
+
+def floor_instead(report: FitReport, table: PoseTable, why: str) -> FitReport:
+    """The report of the best rigid fit in place of `report`'s model, which cannot be written
+    (`why`: its export failed its parity check): the floor fitted on the poses the model was
+    (all of them, or all but the test split), scored as `report` scored it."""
+    M, R, t = table.measured, table.reference, table.time()
+    rows = np.setdiff1d(np.arange(table.n), report.test_index if report.test_index is not None else [])
+    floor = {c.name: c for c in rigid_candidates(table)}[report.baseline_name]
+    model = _fit(floor, rows, (M, R, t), table.has_orientation, {})
+    on = "held-out" if report.test_index is None else "test"
+    note = (f"{report.chosen} could not be written: {why}; returning the rigid fit ({report.baseline_name}), "
+            f"which can")
+    return replace(report, model=model, heldout=report.baseline, chosen=report.baseline_name, fell_back=True,
+                   train_index=rows, auto_scores={},
+                   notes=[n for n in report.notes if not n.startswith(f"{report.chosen} beats")] + [note],
+                   asked={"name": report.chosen, "rmse_total": report.heldout.get("rmse_total"), "on": on,
+                          "why": "its file failed the export's parity check"})
 
 
 def _note_trade(report: FitReport) -> FitReport:

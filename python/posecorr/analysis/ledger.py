@@ -9,7 +9,8 @@ before). What lets a report rebuild the held-out predictions (`fitting.ledger_fi
 model_sha256 (the model file's), n (the table's poses), plan ("none", "loo" or a number of
 folds), seed, spec (the requested `ModelSpec`'s fields), chosen (the candidate returned),
 fell_back, rigid (its variant, or null), and where it fell back `asked`: the model asked for,
-scored ({"name", "rmse_total", "on": "held-out" or "validation"}).
+scored ({"name", "rmse_total", "on": "held-out", "validation" or "test"}, and "why" where it
+was not the score that sent it back: its file failed the export's parity check).
 
 Appends are whole lines (`safeio.append_line`): a line torn by an interrupted append is
 moved to DATA.csv.ledger.jsonl.corrupt at the next append; reading skips (and names) any

@@ -114,7 +114,7 @@ def run(args: argparse.Namespace) -> None:
     report = fit_table(table, effects, spec, plan, args.seed, progress=progress(args))
     if chosen_network:
         report.notes.insert(0, chosen_network)
-    exported = _export(args, report, table, effects, spec)
+    report, exported = _export(args, report, table, effects, spec)
     extrapolates = extrapolation_note(exported)
     if extrapolates:
         report.notes.append(extrapolates)
@@ -161,14 +161,27 @@ def _sized_network(args: argparse.Namespace, spec: Any, poses: int) -> tuple[Any
     return session_network(spec, poses)
 
 
-def _export(args: argparse.Namespace, report: Any, table: Any, effects: list, spec: Any) -> dict:
-    """The written fit's export record (nodes, size, parity); an export failure is one CliError line."""
+def _export(args: argparse.Namespace, report: Any, table: Any, effects: list, spec: Any) -> tuple[Any, dict]:
+    """(the report of what was written, its export record: nodes, size, parity). A model whose
+    graph fails the parity check (float32 cannot follow it: a network scaled to a feature
+    that barely varies) gives way to the rigid fit, said in a note; any other export failure,
+    or the rigid fit's own, is one CliError line."""
+    from ..export.onnx_export import ParityError
     from ..export.symbolic import ExportError
     from ..fitting import write_fit
+    from ..train.pipeline import floor_instead
 
     try:
-        return write_fit(report, table, args.data, args.output, effects, save=args.save,
-                         spec=spec, seed=args.seed).exported
+        try:
+            return report, write_fit(report, table, args.data, args.output, effects, save=args.save,
+                                     spec=spec, seed=args.seed).exported
+        except ParityError as exc:
+            if report.chosen == report.baseline_name:
+                raise
+            progress(args)(f"{report.chosen}: {exc}; writing the rigid fit instead")
+            report = floor_instead(report, table, str(exc))
+            return report, write_fit(report, table, args.data, args.output, effects, save=args.save,
+                                     spec=spec, seed=args.seed).exported
     except ExportError as exc:
         raise CliError(f"{args.output}: the model could not be exported: {exc}") from None
 
@@ -219,8 +232,8 @@ def _text(args: argparse.Namespace, table: Any, effects: list, report: Any, expo
     # auto's scores on all poses chose the final model; the table's held-out row scores auto itself
     auto = f"auto's inner cross-validation on all poses, rmse_total: {_fmt_scores(report.auto_scores)}"
     # a fallback writes another model than the one asked for: said where the model is named
-    model = report.chosen + (", not the one asked for: it did worse held out (see the note)" if report.fell_back
-                             else "")
+    why = (report.asked or {}).get("why") or "it did worse held out"
+    model = report.chosen + (f", not the one asked for: {why} (see the note)" if report.fell_back else "")
     if report.auto_scores:
         model += f"; {auto}" if report.fell_back else f" ({auto})"
     # a rigid model written for the effects asked holds the registration's: "asked", not "none"

@@ -378,10 +378,15 @@ def _parity_report(estimator: Any, model: Any, measured: Any, t: Any, time_input
     if "broken_clause" in report and parity is Parity.RAISE:
         raise ParityError(f"the exported graph breaks the output contract: {report['broken_clause']}")
     if not report["passed"] and parity is Parity.RAISE:
+        train = report["train"]
+        within = (train["max_pos_m"] <= report["tol_pos_m"] and train["max_rot_rad"] <= report["tol_rot_rad"]
+                  and "random" in report)
+        where = (f" on poses around the training ones ({report['random_poses']}; the training poses agree to "
+                 f"{train['max_pos_m']:.2g} m / {train['max_rot_rad']:.2g} rad)" if within else "")
         raise ParityError(
             f"exported graph differs from predict(): max position error "
             f"{report['max_pos_m']:.3g} m (tol {report['tol_pos_m']:.3g}), max rotation error "
-            f"{report['max_rot_rad']:.3g} rad (tol {report['tol_rot_rad']:.3g})")
+            f"{report['max_rot_rad']:.3g} rad (tol {report['tol_rot_rad']:.3g}){where}")
     return report
 
 

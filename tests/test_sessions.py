@@ -197,6 +197,7 @@ def test_a_model_that_trades_position_for_rotation_is_said_to() -> None:
     note = next(n for n in report.notes if "beats the rigid fit" in n)
     assert f"{1e3 * held['rmse_pos']:.4g} against {1e3 * floor['rmse_pos']:.4g} mm held out" in note
     assert f"{1e3 * held['rmse_rot']:.4g} against {1e3 * floor['rmse_rot']:.4g} mrad in rmse_rot" in note
+    assert note.endswith("fit the physics stage alone (`--effects station,mount --method none`)")
     rigid = fit_table(table, ["station", "mount"], ModelSpec("none"), LeaveOneOut(), seed=0)
     assert rigid.heldout["rmse_pos"] == pytest.approx(floor["rmse_pos"], rel=1e-3)   # what the note advises
     assert not any("beats the rigid fit" in n for n in rigid.notes)

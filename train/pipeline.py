@@ -454,7 +454,7 @@ def fit_table(table: PoseTable, effects: Sequence[str], spec: ModelSpec, plan: P
             require_enough_to_fit(table.n, plan, needs=core.min_rows(), model=candidates[0].name)
         _note_more_weights_than_numbers(candidates[0], table.n, plan, seed, say, notes)
     fit_phase = _fit_fixed_split if isinstance(plan, FixedSplit) else _fit_cross_validated
-    return _warn_thin(_note_trade(fit_phase(table, candidates, floor, auto, plan, seed, say, notes)))
+    return _warn_thin(_note_trade(fit_phase(table, candidates, floor, auto, plan, seed, say, notes), effects))
 
 
 def spec_for_table(spec: ModelSpec, table: PoseTable) -> ModelSpec:
@@ -684,13 +684,25 @@ def floor_instead(report: FitReport, table: PoseTable, why: str) -> FitReport:
                           "why": "its file failed the export's parity check"})
 
 
-def _note_trade(report: FitReport) -> FitReport:
+def _note_trade(report: FitReport, effects: Sequence[str]) -> FitReport:
     """The choice is made on rmse_total (metres plus radians, the paper's score): a model that
     beats the rigid fit there while it is worse in position (or in rotation) trades one for
-    the other, which a user who reads one column must be told."""
+    the other, which a user who reads one column must be told, with what to fit instead: the
+    physics stage of the effects given (the registration's with them) without the core, or,
+    where that is the model, the rigid fit."""
+    from posecorr.effects import REGISTRATION_ROLES, registration_effects
+
     held, floor = report.heldout, report.baseline
     if report.chosen == report.baseline_name or not floor:
         return report
+    roles = registration_effects()
+    registration = [roles[role] for role in REGISTRATION_ROLES if role in roles]
+    if report.model.core_ is not None:
+        instead = "the physics stage alone"
+        names = registration + [name for name in effects if name not in registration]
+    else:
+        instead, names = "the rigid fit itself", registration
+    advice = f"{instead} (`--effects {','.join(names)} --method none`)"
     for key, unit, scale, other, other_unit in (("rmse_pos", "mm", 1e3, "rmse_rot", "mrad"),
                                                 ("rmse_rot", "mrad", 1e3, "rmse_pos", "mm")):
         worse, better = held.get(key), held.get(other)
@@ -701,8 +713,7 @@ def _note_trade(report: FitReport) -> FitReport:
                 f"{report.chosen} beats the rigid fit ({report.baseline_name}) in rmse_total, not in {key}: "
                 f"{scale * worse:.4g} against {scale * floor[key]:.4g} {unit} held out "
                 f"({100.0 * (worse / floor[key] - 1.0):.1f} % worse), for {scale * better:.4g} against "
-                f"{scale * floor[other]:.4g} {other_unit} in {other}; where {key} matters most, fit the rigid "
-                "fit itself (`--effects station,mount --method none`)")
+                f"{scale * floor[other]:.4g} {other_unit} in {other}; where {key} matters most, fit {advice}")
     return report
 
 

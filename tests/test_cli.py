@@ -929,6 +929,16 @@ def test_a_model_with_a_user_effect_names_its_effect_file_before_the_work(tmp_pa
             f"posecorr {verb}: error: {model}: uses effect 'z_scale', which is not in the catalogue: give the "
             "--effect-file that defines it"], out.stderr
     assert not page.exists()
+    # another file's z_scale (a proposal of another session: every proposal names its effect
+    # session_strain) gave another model than the one fitted, without a word
+    other = tmp_path / "other_effect.py"
+    other.write_text(effect_file.read_text().replace('Param("k", 1, (0.01,)', 'Param("k", 2, (0.01, 0.0)'))
+    for verb, extra in (("diagnose", ()), ("report", ("-o", str(page)))):
+        out = posecorr(verb, str(table), "--model", str(model), "--effect-file", str(other), *extra)
+        assert out.returncode == 2 and out.stderr.strip().splitlines() == [
+            f"posecorr {verb}: error: {model} was fitted with z_scale.k of 1 values; z_scale as {other} defines it "
+            "has 2: give the effect file the model was fitted with"], out.stderr
+    assert not page.exists()
 
 
 def test_diagnosis_options_are_checked_first_and_say_what_they_did(tmp_path) -> None:

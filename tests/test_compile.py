@@ -227,8 +227,8 @@ def test_a_name_that_is_no_c_identifier_is_refused(tmp_path):
     line = _refusal(compile_cli(ZHOU, tmp_path / "2fast.c"))
     assert "the output's name gives '2fast'; --name: a C identifier is expected" in line
     assert not (tmp_path / "2fast.c").exists()
-    # a leading underscore: `-o -` (or `-o _.c`) named the function __run, which C reserves
-    line = _refusal(compile_cli(ZHOU, tmp_path / "_.c"))
+    # a leading underscore: `-o -` named the function __run, which C reserves, as an output named "_" would
+    line = _refusal(compile_cli(ZHOU, tmp_path / "_"))
     assert "the output's name gives '_'; --name: a C identifier is expected" in line and "reserves" in line
     run = compile_cli(ZHOU, Path("-"))
     assert run.returncode == 2 and "'-' would be a file named '-'" in run.stderr and not Path("-").exists()

@@ -20,7 +20,7 @@ MODEL, TABLE, ESTIMATOR = "model", "pose table", "saved estimator"
 SOURCE, PAGE, EFFECT_FILE = "C source", "report page", "effect file"
 STORE, FOLDER = "results store (JSON lines)", "folder"
 KINDS = (MODEL, TABLE, ESTIMATOR, SOURCE, PAGE, EFFECT_FILE, STORE, FOLDER)
-# A kind no verb writes, recognised so that none writes over one: prose (README.md, notes.txt).
+# A kind no verb writes, recognised so that none writes over one: prose (a README, notes in Markdown).
 DOCUMENT = "document"
 
 
@@ -284,7 +284,7 @@ def check_model_effects(model: Path, files: list[str]) -> None:
             if not isinstance(values, list) or not values:   # [value, its standard error], each a list or one number
                 continue
             size = len(values[0]) if isinstance(values[0], list) else 1
-            if size is not None and size != param.size:
+            if size != param.size:
                 where = EFFECTS.sources.get(name) or ", ".join(files)
                 raise CliError(f"{model} was fitted with {name}.{param.name} of {size} values; {name} as "
                                f"{where} defines it has {param.size}: give the effect file the model was "

@@ -690,13 +690,12 @@ def _note_trade(report: FitReport, effects: Sequence[str]) -> FitReport:
     the other, which a user who reads one column must be told, with what to fit instead: the
     physics stage of the effects given (the registration's with them) without the core, or,
     where that is the model, the rigid fit."""
-    from posecorr.effects import REGISTRATION_ROLES, registration_effects
+    from posecorr.effects import registration_names
 
     held, floor = report.heldout, report.baseline
     if report.chosen == report.baseline_name or not floor:
         return report
-    roles = registration_effects()
-    registration = [roles[role] for role in REGISTRATION_ROLES if role in roles]
+    registration = registration_names()
     if report.model.core_ is not None:
         instead = "the physics stage alone"
         names = registration + [name for name in effects if name not in registration]

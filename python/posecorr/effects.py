@@ -47,7 +47,7 @@ from .textui import counted
 
 __all__ = [
     "Param", "Effect", "EffectContext", "EffectRegistry", "EFFECTS", "BUILTIN_NAMES", "FORM_NAMES", "SENSITIVITIES",
-    "REGISTRATION_ROLES", "registration_effects", "get_effect", "register_effect",
+    "REGISTRATION_ROLES", "registration_effects", "registration_names", "get_effect", "register_effect",
     "unregister_effect", "to_namespace", "checked_theta",
     "parse_effects_arg", "load_effect_file", "apply_effects", "invert_effects",
     "sorted_effects", "station_coords", "from_station", "sweep_direction", "Mount", "Sweep", "RangeScale", "Incidence", "Drift", "Station", "Noise",
@@ -716,6 +716,12 @@ def registration_effects() -> dict[str, str]:
         if effect.registration:
             out.setdefault(effect.registration, name)
     return out
+
+
+def registration_names() -> list[str]:
+    """The registration effects' names, frame first (`REGISTRATION_ROLES`): station, mount."""
+    roles = registration_effects()
+    return [roles[role] for role in REGISTRATION_ROLES if role in roles]
 
 
 def sorted_effects(names: Iterable[str]) -> list[Effect]:

@@ -43,7 +43,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ..data import PoseTable
-from ..effects import EFFECTS, REGISTRATION_ROLES, get_effect, registration_effects, require_time
+from ..effects import EFFECTS, get_effect, registration_names, require_time
 from ..metrics import frames_unregistered, pose_errors, pose_metrics, rmse_total
 from ..registration import orientation_notes
 from ..rotations import matrix_to_rotvec, quat_to_matrix
@@ -667,12 +667,6 @@ def require_diagnosable(table: PoseTable, folds: int) -> None:
     require_enough_to_fit(table.n, KFold(folds))
 
 
-def _registration() -> list[str]:
-    """The registration effects, frame first (`REGISTRATION_ROLES`): station, mount."""
-    roles = registration_effects()
-    return [roles[role] for role in REGISTRATION_ROLES if role in roles]
-
-
 def _unregistered_words(table: PoseTable) -> str | None:
     """Where the frames are unregistered (`metrics.frames_unregistered` against the best
     in-sample rigid fit), the figures in words; None where they are not."""
@@ -696,7 +690,7 @@ def _with_registration(effects: list[str], candidates: Sequence[str] | None, unr
     ran away fitted to metres of offset, was never tried again; a form stood in for the
     mount; a proposal quoted the registration's gain as its own. `unregistered`: the
     table's `_unregistered_words`."""
-    registration = _registration()
+    registration = registration_names()
     if candidates is not None or unregistered is None or any(name in effects for name in registration):
         return effects, None
     return registration + effects, (f"{unregistered}: the model starts from their registration, "
@@ -713,7 +707,7 @@ def advised_effects(table: PoseTable, given: Sequence[str], effects: Sequence[st
     the frames' offset worse than the rigid fit, the floor every model is compared with,
     which holds them all."""
     advice = list(effects) + [name for name in present if name not in effects]
-    registration = _registration()
+    registration = registration_names()
     missing = [name for name in registration if name not in advice]
     unregistered = None if not missing or len(missing) == len(registration) else _unregistered_words(table)
     if unregistered is None:

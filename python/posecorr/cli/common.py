@@ -246,6 +246,29 @@ def model_effect_names(path: Path, info: dict[str, Any]) -> list[str]:
     return names
 
 
+def check_effect_files(path: Path, info: dict[str, Any]) -> None:
+    """The model at `path`'s effects that an --effect-file defines, as that file defines them
+    (its ONNX metadata, `info`, parameter by parameter), or CliError: every proposal names its
+    effect session_strain, and another session's file, with other terms kept, gave the report
+    and the diagnosis another model than the one fitted, without a word."""
+    from ..effects import EFFECTS
+
+    fitted = info.get("effect_params")
+    for name, params in (fitted if isinstance(fitted, dict) else {}).items():
+        source = EFFECTS.sources.get(name)
+        if not source or not isinstance(params, dict):   # not one of a file's: the catalogue's, or unknown
+            continue
+        for param in EFFECTS[name].params:
+            values = params.get(param.name)
+            if not isinstance(values, list) or not values:   # [value, its standard error], each a list or one number
+                continue
+            size = len(values[0]) if isinstance(values[0], list) else 1
+            if size != param.size:
+                raise CliError(f"{path} was fitted with {name}.{param.name} of {size} values; {name} as "
+                               f"{source} defines it has {param.size}: give the effect file the model was "
+                               "fitted with")
+
+
 def effects_help(what: str, fitted: bool = True) -> str:
     """An --effects help naming the catalogue's effects (and forms) known when the parser is
     built: those a model fits, or (`fitted` False) those a simulation draws as well."""
@@ -260,32 +283,5 @@ def read_data(args: argparse.Namespace) -> Any:
     from ..data import read_table
 
     apply_threads(args)
-    files = load_effect_files(args)
-    if files and isinstance(getattr(args, "model", None), Path):
-        check_model_effects(args.model, files)
+    load_effect_files(args)
     return read_table(args.data)
-
-
-def check_model_effects(model: Path, files: list[str]) -> None:
-    """A model's effects as the effect files loaded define them, parameter by parameter, or
-    CliError: every proposal names its effect session_strain, and another session's file,
-    with other terms kept, gave the report and the diagnosis another model than the one fitted,
-    without a word."""
-    from ..controller.onnx_meta import read_info
-    from ..effects import EFFECTS
-
-    fitted = read_info(model).get("effect_params")
-    for name, params in (fitted if isinstance(fitted, dict) else {}).items():
-        effect = EFFECTS.get(name)
-        if effect is None or not isinstance(params, dict):
-            continue
-        for param in effect.params:
-            values = params.get(param.name)
-            if not isinstance(values, list) or not values:   # [value, its standard error], each a list or one number
-                continue
-            size = len(values[0]) if isinstance(values[0], list) else 1
-            if size != param.size:
-                where = EFFECTS.sources.get(name) or ", ".join(files)
-                raise CliError(f"{model} was fitted with {name}.{param.name} of {size} values; {name} as "
-                               f"{where} defines it has {param.size}: give the effect file the model was "
-                               "fitted with")

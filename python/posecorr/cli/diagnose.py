@@ -5,8 +5,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from .common import (EFFECT_FILE, Verb, backend_option, diagnosis_options, effect_file_option, effect_names,
-                     effects_help, emit, model_effect_names, progress, read_data)
+from .common import (EFFECT_FILE, Verb, backend_option, check_effect_files, diagnosis_options, effect_file_option,
+                     effect_names, effects_help, emit, model_effect_names, progress, read_data)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -64,6 +64,7 @@ def _with_model(args: argparse.Namespace, table: Any, effects: list[str]) -> tup
     from ..controller.runtime import Corrector
 
     info = read_info(args.model)
+    check_effect_files(args.model, info)
     held = list(info.get("effects") or [])
     mismatch = None
     if args.effects is None:

@@ -6,8 +6,8 @@ import json
 from collections.abc import Mapping
 from pathlib import Path
 
-from .common import (PAGE, CliError, Verb, backend_option, diagnosis_options, effect_file_option, effect_names,
-                     given, effects_help, emit, model_effect_names, output_option, progress, read_data)
+from .common import (PAGE, CliError, Verb, backend_option, check_effect_files, diagnosis_options, effect_file_option,
+                     effect_names, given, effects_help, emit, model_effect_names, output_option, progress, read_data)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -44,6 +44,7 @@ def run(args: argparse.Namespace) -> None:
     asked = effect_names(args.effects) if args.effects is not None else None   # its fault before the work
     require_rows(table, 3, "a report (its baseline is the best rigid fit)")
     info = read_info(args.model)
+    check_effect_files(args.model, info)
     if asked is None and not args.no_diagnosis:
         asked = model_effect_names(args.model, info)   # one its --effect-file defines named now, not after the work
     corrector = Corrector(args.model, backend=args.backend)

@@ -554,15 +554,18 @@ def test_a_form_taken_into_the_model_is_named_as_in_it_not_as_undetermined():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("hidden, factor", [("range_scale", 2.0), ("incidence", 3.0)])
-def test_a_hidden_catalogue_effect_is_named_not_a_form(hidden, factor):
+@pytest.mark.parametrize("hidden, factor, seed, poses", [("range_scale", 2.0, 1, 50), ("incidence", 3.0, 1, 50),
+                                                         ("range_scale", 1.0, 3, 40), ("range_scale", 1.0, 7, 40)])
+def test_a_hidden_catalogue_effect_is_named_not_a_form(hidden, factor, seed, poses):
     """Where the catalogue explains the error, the physical effect is present and no form is
-    proposed, though a form (a strain for the range scale) explains as much."""
+    proposed, though a form (a strain for the range scale) explains as much: on seeds 3 and
+    7 of 40 poses the strain's held-out gain is above the range scale's (0.2680 against
+    0.2674 on seed 3), and the catalogue effect still goes first (`rank_key`)."""
     from posecorr.effects import get_effect
     from posecorr.simulate import simulate_session
 
     theta = get_effect(hidden).default_theta() * factor
-    table = simulate_session(1, n=50, robot="ur5e", extra={hidden: theta}).table
+    table = simulate_session(seed, n=poses, robot="ur5e", extra={hidden: theta}).table
     result = diagnose(table, study.BASE)
     assert [c["effect"] for c in result["candidates"] if c["present"]] == [hidden], result["candidates"]
     assert result["proposal"] is None and "the catalogue explains the error" in result["no_proposal"]

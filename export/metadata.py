@@ -22,6 +22,7 @@ Keys written by the exporter (other keys may be added by callers):
 | `input_bounds` | `[[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]]` (m): the training positions' box, widened; every runtime refuses a pose outside it |
 | `time_bounds` | `[t_lo, t_hi]` (s), models with the time input `t`: the training times' span, widened; a time outside is refused |
 | `correction_reach` | `[metres, radians]`: the largest correction of position and rotation on the training poses and on poses of any orientation drawn inside `input_bounds`, with a margin (`onnx_export.REACH_*`); every runtime refuses a pose corrected farther |
+| `training_orientations` | (a core that reads the orientation) `{"mean": [qw, qx, qy, qz], "within": rad}`: the training orientations' mean and the largest angle of any from it (`posecorr.coverage`); no runtime checks it, `apply` counts the poses beyond it |
 | `model_digest` | `crc32c:<8 hex>`: CRC-32C of the file's bytes with these 8 digits read as `00000000` (`posecorr.controller.digest`); every loader verifies it |
 """
 from __future__ import annotations

@@ -13,6 +13,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from posecorr import coverage
 from posecorr.controller import digest
 
 from .aligned import serialize_aligned
@@ -414,6 +415,8 @@ def _set_metadata(model: Any, info: dict[str, Any], measured: Any, reference: An
     if measured is not None and "training_data_digest" not in info:
         info["training_data_digest"] = data_digest(measured, reference, t if time_input else None)
     _bounds_metadata(info, measured, t, time_input)
+    if measured is not None and coverage.reads_orientation(info.get("representation")):
+        info.setdefault(coverage.KEY, coverage.cone(np.asarray(measured, float)[:, 3:7]))
     largest = _reach_metadata(info, model, measured, t, time_input)
     info.setdefault("posecorr_version", __version__)
     info.setdefault("units", UNITS)

@@ -457,3 +457,36 @@ def test_the_nodes_registration_defaults_to_ingests():
     np.testing.assert_array_equal(parse(["ros2", str(FIRST)]).registration, IngestOptions().registration)
     np.testing.assert_array_equal(IngestOptions().registration, base_T_station())
     assert parse(["ros2", str(FIRST), "--registration", "none"]).registration is None
+
+
+def test_poses_turned_beyond_the_training_orientations_are_counted(domain, tmp_path):
+    """A model fitted at one orientation (Exp2's nine poses, `fit`'s default PMC) serves its
+    own poses without a word; the same poses turned by 2 degrees are corrected all the same,
+    counted in the diagnostics as `apply` counts them, and named in the summary."""
+    from scipy.spatial.transform import Rotation
+
+    from posecorr.cli import main
+    from posecorr.data import read_table
+
+    data, model = tmp_path / "exp2.csv", tmp_path / "pmc.onnx"
+    data.write_bytes((ROOT / "tests" / "data" / "realdata" / "20200717_Exp2.csv").read_bytes())
+    assert main(["fit", str(data), "--effects", "station,mount", "--method", "pmc", "-o", str(model)]) == 0
+    own = read_table(data).measured
+    turned = own.copy()
+    turned[:, 3:] = (Rotation.from_quat(own[:, 3:], scalar_first=True)
+                     * Rotation.from_euler("x", 2.0, degrees=True)).as_quat(scalar_first=True)
+    cell = Cell(model, domain)
+    try:
+        cell.publish(own, first=0, rate_hz=500.0)
+        cell.wait(lambda: cell.diagnostics[-1]["poses_out"] == "9", 10, "poses lost")
+        assert cell.diagnostics[-1]["beyond_training_orientations"] == "0"
+        cell.publish(turned, first=9, rate_hz=500.0)
+        cell.wait(lambda: cell.diagnostics[-1]["poses_out"] == "18", 10, "poses lost")
+        assert cell.diagnostics[-1]["beyond_training_orientations"] == "9"
+        assert cell.diagnostics[-1]["refused"] == "0"
+        np.testing.assert_allclose(cell.outputs(9, 9), _shim(model, turned), rtol=0, atol=2e-6)
+    finally:
+        code, out, err = cell.stop()
+    assert code == 130, err
+    assert out.startswith("stopped: 18 poses in, 18 out, 0 refused, 9 beyond the orientations the model was "
+                          "fitted on; per model generation 1:18; "), out

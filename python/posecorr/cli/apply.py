@@ -42,6 +42,7 @@ def run(args: argparse.Namespace) -> None:
             head += (f"\n{counted(refused['count'], 'pose')} refused by the model, written as nan "
                      f"({'row' if refused['count'] == 1 else 'rows'} {shown}); the metrics are over the others; "
                      f"the first: {refused['first']}")
+        head += _turned_words(args.model.name, payload["beyond_training_orientations"])
         if payload["raw"] is None:
             return head + "\nno ref_* columns: no metrics"
         in_sample, held, fitted = payload["in_sample"], payload["held_out"], payload["fitted_on"]
@@ -60,6 +61,23 @@ def run(args: argparse.Namespace) -> None:
         return head + "\n" + fmt_table(METRIC_HEADERS, metrics_rows(blocks)) + note
 
     emit(args, payload, text)
+
+
+def _turned_words(model: str, beyond: dict | None) -> str:
+    """The note on poses turned away from every orientation the model was fitted on, or ""."""
+    if not beyond or not beyond["count"]:
+        return ""
+    import math
+
+    from ..textui import counted
+
+    shown = ", ".join(map(str, beyond["rows"])) + (", ..." if beyond["count"] > len(beyond["rows"]) else "")
+    return (f"\nnote: {counted(beyond['count'], 'pose')} ({'row' if beyond['count'] == 1 else 'rows'} {shown}) "
+            f"{'lies' if beyond['count'] == 1 else 'lie'} up to {math.degrees(beyond['largest_rad']):.3g} deg beyond "
+            f"the orientations {model} was fitted on (within {math.degrees(beyond['within_rad']):.3g} deg of their "
+            f"mean; counted from {math.degrees(beyond['margin_rad']):.3g} deg beyond): its core reads the "
+            "orientation and there it extrapolates (corrected all the same; a fit on poses that turn as these do "
+            "would know)")
 
 
 VERB = Verb(

@@ -44,6 +44,9 @@ def summary(info: dict[str, Any]) -> list[str]:
     """What a model file is and what it states of itself, in a few lines: what it corrects
     with, its size, its held-out figures, its parity, the poses it takes. Every metadata value
     may be missing or of another type (the author wrote it): what is not there is left out."""
+    import math
+
+    from .. import coverage
     from ..controller.onnx_meta import stated_metrics, stated_rigid
     from ..metrics import block_name, frames_unregistered
 
@@ -84,6 +87,11 @@ def summary(info: dict[str, Any]) -> list[str]:
             and all(isinstance(v, (int, float)) for b in box for v in b)):
         lines.append("  corrects positions within " + ", ".join(
             f"{axis} {lo:.3f}..{hi:.3f}" for axis, lo, hi in zip("xyz", *box)) + " m")
+    turned = info.get(coverage.KEY)
+    within = turned.get("within") if isinstance(turned, dict) else None
+    if isinstance(within, (int, float)) and not isinstance(within, bool):
+        lines.append(f"  fitted on orientations within {math.degrees(within):.3g} deg of their mean "
+                     "(apply counts the poses turned beyond)")
     span = info.get("time_bounds")
     if isinstance(span, list) and len(span) == 2 and all(isinstance(v, (int, float)) for v in span):
         lines.append(f"  takes each pose's time t (s since the session's start) within {span[0]:g}..{span[1]:g} s")

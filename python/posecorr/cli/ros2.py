@@ -55,7 +55,10 @@ def run(args: argparse.Namespace) -> None:
         latency = (f"p50 {final['latency_p50_us']} us, p99 {final['latency_p99_us']} us"
                    if final["poses_out"] != "0" else "no poses")
         print(f"stopped: {final['poses_in']} poses in, {final['poses_out']} out, "
-              f"{final['refused']} refused; per model generation {final['poses_per_generation']}; "
+              f"{final['refused']} refused"
+              + (f", {final['beyond_training_orientations']} beyond the orientations the model was fitted on"
+                 if final.get("beyond_training_orientations", "0") != "0" else "")
+              + f"; per model generation {final['poses_per_generation']}; "
               f"added latency {latency}")
     sys.stdout.flush()
     if final["stopped_by"] == "SIGTERM":

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import coverage
 from ..data import (CHUNK_ROWS, MEAS_POS, MEAS_QUAT, REF_POS, REF_QUAT, PoseTable, TableError, TableReader,
                     protect_comment)
 from ..metrics import METRIC_KEYS, block_name, metric_block, named_block, pose_errors
@@ -169,6 +170,9 @@ class _Refused:
         self.rows += [e.row for e in errors[:REFUSED_SHOWN - len(self.rows)]]
         self.first = self.first or (errors[0] if errors else None)
 
+    def record(self) -> dict[str, Any]:
+        return {"count": self.count, "rows": self.rows, "first": None if self.first is None else str(self.first)}
+
 
 # The rows of a table `apply` keeps to tell whether the model was fitted on it: a session's
 # table, not a recording's (a table longer than this is not the one a fit saw whole).
@@ -247,12 +251,14 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                backend: str = "c", chunk_rows: int = CHUNK_ROWS, allow_unbounded: bool = False,
                allow_unsigned: bool = False, keep_going: bool = False) -> dict[str, Any]:
     """Correct `table` with `model` into `output`; returns {"n", "output", "backend", "reference",
-    "raw", "corrected", "in_sample", "fitted_on", "held_out", "refused"} (raw / corrected None
-    without reference columns). allow_unbounded, allow_unsigned: as `Corrector`'s. A pose the
-    model refuses stops the work (TableError naming its row), or with `keep_going` is written
-    as nan and counted in "refused" ({"count", "rows": the first REFUSED_SHOWN, "first": its
+    "raw", "corrected", "in_sample", "fitted_on", "held_out", "refused", "beyond_training_orientations"}
+    (raw / corrected None without reference columns). allow_unbounded, allow_unsigned: as
+    `Corrector`'s. A pose the model refuses stops the work (TableError naming its row), or
+    with `keep_going` is written as nan and counted in "refused" ({"count", "rows": the first REFUSED_SHOWN, "first": its
     message}); the metrics are then over the poses corrected. "fitted_on": `_FittedOn.verdict`;
-    "held_out" there: the fit's figures as the model states them, "rigid" the floor's."""
+    "held_out" there: the fit's figures as the model states them, "rigid" the floor's.
+    "beyond_training_orientations": `coverage.Beyond.record`, the poses turned away from all
+    the model was fitted on (they are corrected all the same)."""
     check_output(output, [model, table])
     corrector = Corrector(model, backend=backend, allow_unbounded=allow_unbounded,
                           allow_unsigned=allow_unsigned)
@@ -262,6 +268,7 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
         raw_sums = corr_sums = None
         refused = _Refused()
         fitted_on = _FittedOn(corrector.metadata)
+        turned = coverage.Beyond(corrector.metadata, REFUSED_SHOWN)
         if reader.has_reference:
             raw_sums, corr_sums = _RmseSums(reader.has_ref_orientation), _RmseSums(reader.has_ref_orientation)
         with atomic_output(output) as handle:
@@ -279,12 +286,13 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                         raise _refused_row(reader.path, model, chunk, measured, times, corrector, error) from None
                     corrected, errors = _pose_by_pose(reader.path, model, chunk, measured, times, corrector)
                     refused.add(errors)
+                kept = np.all(np.isfinite(corrected), axis=1)   # the refused poses out of the count and sums
+                turned.add(measured[kept, 3:7], [r for r, k in zip(chunk.row_numbers, kept) if k])
                 handle.write(_with_comments([line(row) + (_CORR_FORMAT % tuple(values))
                                              for row, values in zip(chunk.rows, corrected.tolist())], chunk.comments))
                 if raw_sums is not None and corr_sums is not None:
                     q = chunk.block(REF_QUAT) if reader.has_ref_orientation else measured[:, 3:7]
                     reference = np.concatenate([chunk.block(REF_POS), q], axis=1)
-                    kept = np.all(np.isfinite(corrected), axis=1)   # the refused poses out of both
                     raw_sums.add(reference[kept], measured[kept])
                     corr_sums.add(reference[kept], corrected[kept])
                     fitted_on.add(measured, reference, times)
@@ -294,12 +302,16 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                 raise TableError(reader.path, "no data rows after the header")
             if refused.count == n:   # a table of nan is no correction: the previous output stays
                 raise TableError(reader.path, f"the model refused every pose; the first: {refused.first}")
+    return {"n": n, "output": str(output), "backend": backend, **_scored(raw_sums, corr_sums, fitted_on),
+            "refused": refused.record(), "beyond_training_orientations": turned.record()}
+
+
+def _scored(raw_sums: "_RmseSums | None", corr_sums: "_RmseSums | None", fitted_on: _FittedOn) -> dict[str, Any]:
+    """apply_file's figures: "reference", "columns_added", "raw", "corrected", "in_sample",
+    "fitted_on", "held_out"."""
     raw = raw_sums.metrics() if raw_sums is not None else None
     corrected_block = metric_block(raw, corr_sums.metrics()) if raw is not None and corr_sums is not None else None
     fitted = fitted_on.verdict() if raw is not None else None
-    return {"n": n, "output": str(output), "backend": backend, "reference": raw is not None,
-            "columns_added": list(CORR_COLUMNS), "raw": raw, "corrected": corrected_block,
-            "in_sample": None if fitted is None else bool(fitted), "fitted_on": fitted or None,
-            "held_out": fitted_on.held_out() if fitted else None,
-            "refused": {"count": refused.count, "rows": refused.rows,
-                        "first": None if refused.first is None else str(refused.first)}}
+    return {"reference": raw is not None, "columns_added": list(CORR_COLUMNS), "raw": raw,
+            "corrected": corrected_block, "in_sample": None if fitted is None else bool(fitted),
+            "fitted_on": fitted or None, "held_out": fitted_on.held_out() if fitted else None}

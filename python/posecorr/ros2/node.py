@@ -29,7 +29,9 @@
 - Diagnostics: a `diagnostic_msgs/DiagnosticArray` on /diagnostics every `diag_period`
   seconds: model id and generation, poses in / out / refused, poses per generation, the
   node's added latency (arrival of the message to its publication, p50 / p99 / max, µs),
-  the last refusal and the last load error.
+  the last refusal and the last load error, and the poses corrected though turned beyond
+  the orientations the model was fitted on (`posecorr.coverage`; a warning: its core
+  extrapolates there).
 """
 from __future__ import annotations
 
@@ -44,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from posecorr.coverage import Beyond
 from posecorr.controller.checks import INPUT_NORM2_RANGE, Limits
 from posecorr.controller.runtime import Corrector, PoseCorrError
 from posecorr.rotations import matrix_to_quat, quat_to_matrix
@@ -63,6 +66,7 @@ class Loaded:
     path: Path
     model_id: str
     generation: int = 0
+    turned: Beyond | None = None   # the orientations it was fitted on, and the poses beyond
 
 
 @dataclass
@@ -70,6 +74,7 @@ class Counters:
     poses_in: int = 0
     poses_out: int = 0
     refused: int = 0
+    turned: int = 0
     per_generation: dict[int, int] = field(default_factory=dict)
     last_refusal: str = ""
     last_load_error: str = ""
@@ -122,7 +127,7 @@ def load_checked(path: Path, allow: dict[str, bool] | None = None) -> Loaded:
         one = corrector.correct(pose, None if t is None else t[i])
         if not np.array_equal(one, batch[i]):
             raise PoseCorrError(f"{path}: probe pose {i} alone differs from the batch plan")
-    return Loaded(corrector, path, model_id(path, data))
+    return Loaded(corrector, path, model_id(path, data), turned=Beyond(corrector.metadata))
 
 
 def load_error(path: Path, exc: Exception) -> str:
@@ -302,6 +307,8 @@ class _Correcting:
             self.counts.last_refusal = f"stamp {stamp:.9f}: {str(exc).splitlines()[0]}"
             return
         self._publish_pose(msg.header.stamp, c)
+        if loaded.turned is not None and loaded.turned.one(pose[3:]):
+            self.counts.turned += 1
         self.counts.poses_out += 1
         self.counts.per_generation[loaded.generation] += 1
         self.latency_us.append((time.perf_counter() - arrival) * 1e6)
@@ -381,7 +388,7 @@ class _Correcting:
             # loaded and checked, taken with the next pose
             "pending_model": incoming.model_id if incoming is not None else "",
             "poses_in": str(c.poses_in), "poses_out": str(c.poses_out),
-            "refused": str(c.refused), "swaps": str(c.swaps),
+            "refused": str(c.refused), "beyond_training_orientations": str(c.turned), "swaps": str(c.swaps),
             "poses_per_generation": ",".join(f"{g}:{n}" for g, n in sorted(c.per_generation.items())),
             "latency_p50_us": f"{_percentile(lat, 50):.1f}",
             "latency_p99_us": f"{_percentile(lat, 99):.1f}",
@@ -395,9 +402,11 @@ class _Correcting:
         status.name = f"{self.get_name()}: pose correction"
         status.hardware_id = self.current.model_id
         c = self.counts
-        status.level = ros["DiagnosticStatus"].WARN if (c.refused or c.last_load_error) \
+        status.level = ros["DiagnosticStatus"].WARN if (c.refused or c.last_load_error or c.turned) \
             else ros["DiagnosticStatus"].OK
-        status.message = c.last_load_error or (f"{c.refused} poses refused" if c.refused else "ok")
+        counted = [f"{n} poses {what}" for n, what in ((c.refused, "refused"),
+                                                       (c.turned, "beyond the training orientations")) if n]
+        status.message = c.last_load_error or "; ".join(counted) or "ok"
         status.values = [ros["KeyValue"](key=k, value=v) for k, v in self.diagnostic_values().items()]
         array = ros["DiagnosticArray"]()
         array.header.stamp = self.get_clock().now().to_msg()

@@ -26,14 +26,14 @@ it lacks (user effects included once loaded):
   p < `alpha` (default 1e-3 over the number of candidates), the held-out whitened error
   lower in EVERY fold, and a mean relative gain of at least `min_gain` (default 0.5 %).
 
-Candidates are ranked by their score, except that a catalogue effect goes before a form whose
-score is less than `INDISTINCT_GAIN` above its own (`rank_key`): forward selection walks the
-ranking, and where both explain the error alike, the physical effect with its documented
-parameters is the answer, not the form that contains it (a range scale is an isotropic strain).
-Pairs of effects that move the poses alike along
-some direction are flagged as `aliases`: a canonical correlation of their (base-projected)
-Jacobian column spaces exceeds 0.99; the record counts how many do (`shared`, of the
-smaller space's `of` directions), and only a pair that shares them all cannot be told apart.
+Candidates are ranked by their score, except that a catalogue effect goes before a form when
+it scores at least 1 - `INDISTINCT_GAIN` of the form's score (`rank_key`): forward selection
+walks the ranking, and where both explain the error alike, the physical effect with its
+documented parameters is the answer, not the form that contains it (a range scale is an
+isotropic strain). Pairs of effects that move the poses alike along some direction are
+flagged as `aliases`: a canonical correlation of their (base-projected) Jacobian column
+spaces exceeds 0.99; the record counts how many do (`shared`, of the smaller space's `of`
+directions), and only a pair that shares them all cannot be told apart.
 
 It also reports residual structure that no catalogue effect may explain: for each feature
 (`posecorr.analysis.features`) the cross-validated R^2 of a smooth fit (cubic spline + ridge) of
@@ -63,7 +63,7 @@ PRESENT_TEST = ("score test or held-out prediction test (the smaller p, doubled)
                 "p < {alpha:g}; "
                 "held-out whitened error lower in every one of {folds} folds; mean gain >= {gain:.1%}; "
                 "still so given the others present (forward selection in rank order: by score, but a catalogue "
-                "effect before a form that gains less than {indistinct:.0%} more; a catalogue effect that fails "
+                "effect before a form when it gains at least {share:.0%} as much; a catalogue effect that fails "
                 "alone tested again given all kept; backward elimination; then each kept tested given a catalogue "
                 "effect not kept: a form gives way to one that passes and leaves it nothing, and two catalogue effects "
                 "of which one leaves the other nothing, gaining as much, are neither named); "
@@ -675,7 +675,7 @@ def _rivals(search: _Search, accepted: list[str], by_name: dict[str, dict]) -> t
     for name in list(accepted):
         form = get_effect(name).generic
         others = [a for a in accepted if a != name]
-        own = None if form else beside(name, others)
+        own = beside(name, others)
         for rival in by_name.values():
             if (rival["effect"] in accepted or get_effect(rival["effect"]).generic or rival["implausible"]
                     or rival["score"] < search.min_gain):
@@ -696,8 +696,7 @@ def _rivals(search: _Search, accepted: list[str], by_name: dict[str, dict]) -> t
                             "score_given": test["score"], "implausible_given": test["implausible"],
                             "fails_given": _failures(search, test), "indistinct_from": [],
                             "gave_way_to" if form else "told_apart_from": rival["effect"],
-                            "scores": {name: (by_name[name] if form else own)["score"],
-                                       rival["effect"]: context["score"]}})
+                            "scores": {name: own["score"], rival["effect"]: context["score"]}})
             break
     return accepted, dropped
 
@@ -834,7 +833,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         "undetermined": undetermined,
         "features": features,
         "aliases": _aliases(names, state, effects),
-        "test": PRESENT_TEST.format(alpha=alpha, folds=folds, gain=min_gain, indistinct=INDISTINCT_GAIN),
+        "test": PRESENT_TEST.format(alpha=alpha, folds=folds, gain=min_gain, share=1.0 - INDISTINCT_GAIN),
         "folds": folds,
         "cv_base": {"rmse_total": state.before, "rmse_pos": base["rmse_pos"], "rmse_rot": base["rmse_rot"]},
         "rows": {"given": rows_given, "used": table.n},
@@ -870,7 +869,8 @@ def _thinned(table: PoseTable, corrected: np.ndarray | None,
 
 def rank_key(row: dict[str, Any]) -> tuple[float, float]:
     """The order forward selection walks: by score, but a catalogue effect ahead of a form
-    that gains less than `INDISTINCT_GAIN` more. A range scale of 0.5 % on a 40-pose UR5e
+    when it gains at least 1 - `INDISTINCT_GAIN` (90 %) as much, the gains within
+    `INDISTINCT_GAIN` of each other as `_backward` counts twins. A range scale of 0.5 % on a 40-pose UR5e
     session scores 0.2674 and a strain, whose three diagonal terms take it whole, 0.2680:
     walked by score alone, the strain was proposed and the range scale, given it, gained
     nothing."""

@@ -101,6 +101,8 @@ def test_a_core_that_does_not_read_the_orientation_states_none(tmp_path: Path, c
 
 
 @pytest.mark.parametrize("value", ["[1, 0, 0, 0]", '{"mean": [1, 0, 0], "within": 0.1}',
+                                   '{"mean": [1, 0, 0, 0], "within": "0.001"}', '{"mean": [1, 0, 0, 0], "within": true}',
+                                   '{"mean": [1, 0, 0, 0], "within": 7}', '{"mean": [1, 0, 0, "0"], "within": 0.1}',
                                    '{"mean": [2, 0, 0, 0], "within": 0.1}', '{"mean": [1, 0, 0, 0], "within": -1}',
                                    '{"mean": [1, 0, 0, 0]}', "not json"])
 def test_a_cone_that_is_not_one_is_no_statement(value: str) -> None:
@@ -125,3 +127,18 @@ def test_a_pose_the_model_refused_is_not_counted_as_turned(pmc, tmp_path: Path, 
     assert payload["refused"]["count"] == 1 and payload["refused"]["rows"] == [3]
     assert payload["beyond_training_orientations"]["count"] == 8
     assert 3 not in payload["beyond_training_orientations"]["rows"]
+
+
+def test_one_pose_beyond_is_said_in_the_singular(pmc, tmp_path: Path, capsys) -> None:
+    data, model = pmc
+    _turned(data, tmp_path / "turned.csv", 5.0)
+    rows = _rows(data)
+    rows[4] = _rows(tmp_path / "turned.csv")[4]
+    with (tmp_path / "one.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    assert main(["apply", str(model), str(tmp_path / "one.csv"), "-o", str(tmp_path / "out.csv")]) == 0
+    text = capsys.readouterr().out
+    assert "note: 1 pose (row 6) lies " in text and "deg beyond the orientations pmc.onnx" in text, text
+    assert "a fit on poses that turn as this one does would know)\n" in text, text

@@ -47,19 +47,29 @@ def beyond_mean(quaternions: np.ndarray, mean: Any) -> np.ndarray:
 
 
 def stated(metadata: Mapping[str, str]) -> dict[str, Any] | None:
-    """The cone a model's metadata states (`KEY`), or None where it states none or one that
-    is not a unit quaternion and an angle (a file of an older posecorr, or of another
-    writer: it is a statement, and no runtime checks it)."""
+    """The cone a model's metadata states (`KEY`, as stored: JSON), or None: see `cone_of`."""
     try:
-        value = json.loads(metadata.get(KEY, "null"))
-        mean = np.asarray(value["mean"], float)
-        within = float(value["within"])
-    except (ValueError, TypeError, KeyError):
+        return cone_of(json.loads(metadata.get(KEY, "null")))
+    except ValueError:
         return None
-    if mean.shape != (4,) or not np.all(np.isfinite(mean)) or abs(np.linalg.norm(mean) - 1.0) > 1e-6 \
-            or not 0.0 <= within <= np.pi:
+
+
+def cone_of(value: Any) -> dict[str, Any] | None:
+    """{"mean": (4,) array, "within": rad} of a decoded `KEY` value, or None where it is not a
+    unit quaternion and an angle in [0, pi] given as numbers (a file of an older posecorr, or
+    of another writer: it is a statement, and no runtime checks it)."""
+    def number(v: Any) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    if not isinstance(value, Mapping):
         return None
-    return {"mean": mean, "within": within}
+    mean, within = value.get("mean"), value.get("within")
+    if not (isinstance(mean, list) and len(mean) == 4 and all(map(number, mean)) and number(within)):
+        return None
+    mean = np.asarray(mean, float)
+    if not np.all(np.isfinite(mean)) or abs(np.linalg.norm(mean) - 1.0) > 1e-6 or not 0.0 <= within <= np.pi:
+        return None
+    return {"mean": mean, "within": float(within)}
 
 
 def reads_orientation(representation: Any) -> bool:

@@ -690,29 +690,58 @@ def _rivals(search: _Search, accepted: list[str], by_name: dict[str, dict]) -> t
                 continue
             if form:
                 accepted[accepted.index(name)] = rival["effect"]
+                _settle_given(search, rival, others, context)
             else:
                 accepted.remove(name)
+            search.say(f"candidate {rival['effect']} given {', '.join(others + [name])}")
+            back = search.given(rival["effect"], others + [name])
             dropped.append({"effect": name, "given": others + [rival["effect"]], "p_value_given": test["p_value"],
                             "score_given": test["score"], "implausible_given": test["implausible"],
                             "fails_given": _failures(search, test), "indistinct_from": [],
                             "gave_way_to" if form else "told_apart_from": rival["effect"],
-                            "scores": {name: own["score"], rival["effect"]: context["score"]}})
+                            "scores": {name: own["score"], rival["effect"]: context["score"]},
+                            "rival_given": {"score_given": back["score"], "p_value_given": back["p_value"],
+                                            "fails_given": _failures(search, back),
+                                            # the rival adds more, significantly: the data tells them apart
+                                            "adds": bool(back["score"] >= search.min_gain and back["p_value"]
+                                                         < p_threshold(search.alpha, len(search.names)))}})
             break
     return accepted, dropped
 
 
+def _settle_given(search: _Search, row: dict[str, Any], others: list[str], context: dict[str, Any]) -> None:
+    """The record of the test that keeps `row`, taking a form's place: given `others`, or
+    alone (its forward test given the form it replaces no longer says why it is kept)."""
+    if others:
+        _record_given(search, row, others, context)
+    else:
+        for key in ("given", "p_value_given", "score_given", "passes_given", "implausible_given", "fails_given"):
+            row.pop(key, None)
+
+
 def _rival_words(record: dict[str, Any]) -> str:
-    """The note on a candidate `_rivals` dropped."""
+    """The note on a candidate `_rivals` dropped: the gains of both, what the dropped one does
+    given the other, and, for two catalogue effects, what the other does given it: where it
+    adds more, though it fails the test, the data tells them apart."""
+    def moves(gain: float, p: float) -> str:
+        return (f"gains {gain:.1%}" if gain >= 0 else f"raises the held-out whitened error by {-gain:.1%}") \
+            + f" (p = {p:.2g})"
+
     name = record["effect"]
     rival = record.get("gave_way_to") or record["told_apart_from"]
     others = [g for g in record["given"] if g != rival]
     where = f"given {', '.join(others)}" if others else "alone"
     scores = f"{name} gains {record['scores'][name]:.1%} {where} and {rival} {record['scores'][rival]:.1%}"
-    given = f"given {rival}, {name} gains {record['score_given']:.1%} and fails the test"
+    given = f"given {rival}, {name} {moves(record['score_given'], record['p_value_given'])}"
     if "gave_way_to" in record:
         return (f"{scores}, but {given}: {rival}, the catalogue's physical effect, explains the same error, and is "
                 "named instead of the form")
-    return f"{name} and {rival} cannot be told apart by this data: {scores}, and {given}; neither is named"
+    back = record["rival_given"]
+    back_words = f"given {name}, {rival} {moves(back['score_given'], back['p_value_given'])}"
+    if back["adds"]:
+        return (f"{name} is not named: {scores}; {given}, and {back_words}: {rival} explains {name}'s gain and "
+                f"more, but is not named either ({'; '.join(back['fails_given'])})")
+    return f"{name} and {rival} cannot be told apart by this data: {scores}; {given}, and {back_words}; neither is named"
 
 
 def require_diagnosable(table: PoseTable, folds: int) -> None:

@@ -328,6 +328,9 @@ def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[st
             body += " Test: " + _t(diagnosis["test"]) + "."
         body += _t(core_note) + "</p>"
     body += _proposal_html(diagnosis)
+    notes = [note for note in diagnosis.get("notes") or [] if isinstance(note, str)]
+    if notes:   # what the selection decided beyond the table (a form that gave way, a pair it cannot tell apart)
+        body += "<h3>Notes</h3><ul>" + "".join(f"<li>{_t(note)}</li>" for note in notes) + "</ul>"
     aliases = [a for a in diagnosis.get("aliases") or [] if isinstance(a, Mapping) and a.get("effects")]
     if aliases:
         body += ("<h3>Aliases</h3><p>Effects that move these poses alike (fitting one absorbs that part of "

@@ -279,7 +279,7 @@ def explain_absent(search: Any, result: dict[str, Any]) -> list[dict[str, Any]]:
         alone = [f"{part} (worst fold {row['fold_gain_min']:.1%})" if part == FOLD_RISES else part
                  for part in fails] + list(row["implausible"])
         if alone and "passes_given" in row:   # tested again given all kept
-            alone.append(f"and given {', '.join(row['given'])}, {_given_fails(row)}")
+            alone.append(f"and given {', '.join(row['given'])}, {given_fails(row)}")
         out.append({"effect": row["effect"], "score": row["score"], "p_value": row["p_value"],
                     "why": "; ".join(alone) or _why_not(row) or "it is not kept beside the others"})
     return out
@@ -288,17 +288,20 @@ def explain_absent(search: Any, result: dict[str, Any]) -> list[dict[str, Any]]:
 def _why_not(row: dict[str, Any]) -> str | None:
     """Why a candidate that passes alone is not kept beside the others, if that is why."""
     dropped = row.get("dropped")
+    if dropped is not None and "told_apart_from" in dropped:   # `_rivals`: the other is not kept either
+        return f"given {dropped['told_apart_from']}, which is not named either (see the note), {given_fails(dropped)}"
     if dropped is not None:
         return (f"once {', '.join(dropped['given'])} {'is' if len(dropped['given']) == 1 else 'are'} in, "
-                f"{_given_fails(dropped)}")
+                f"{given_fails(dropped)}")
     if row["implausible"]:
         return "its fitted values are not physical: " + "; ".join(row["implausible"])
     if "passes_given" in row:
-        return f"given {', '.join(row['given'])}, {_given_fails(row)}"
+        return f"given {', '.join(row['given'])}, {given_fails(row)}"
     return None
 
 
-def _given_fails(record: dict[str, Any]) -> str:
+def given_fails(record: dict[str, Any]) -> str:
+    """What a candidate's test given others (`score_given`, `p_value_given`, `fails_given`) gives."""
     gain = record["score_given"]
     moves = f"its gain is {gain:.1%}" if gain >= 0 else f"it raises the held-out whitened error by {-gain:.1%}"
     return (f"{moves} (p = {record['p_value_given']:.2g}) and it fails the test: "

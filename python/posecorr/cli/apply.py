@@ -71,13 +71,14 @@ def _turned_words(model: str, beyond: dict | None) -> str:
 
     from ..textui import counted
 
+    one = beyond["count"] == 1
     shown = ", ".join(map(str, beyond["rows"])) + (", ..." if beyond["count"] > len(beyond["rows"]) else "")
-    return (f"\nnote: {counted(beyond['count'], 'pose')} ({'row' if beyond['count'] == 1 else 'rows'} {shown}) "
-            f"{'lies' if beyond['count'] == 1 else 'lie'} up to {math.degrees(beyond['largest_rad']):.3g} deg beyond "
+    return (f"\nnote: {counted(beyond['count'], 'pose')} ({'row' if one else 'rows'} {shown}) "
+            f"{'lies' if one else 'lie up to'} {math.degrees(beyond['largest_rad']):.3g} deg beyond "
             f"the orientations {model} was fitted on (within {math.degrees(beyond['within_rad']):.3g} deg of their "
             f"mean; counted from {math.degrees(beyond['margin_rad']):.3g} deg beyond): its core reads the "
-            "orientation and there it extrapolates (corrected all the same; a fit on poses that turn as these do "
-            "would know)")
+            "orientation and there it extrapolates (corrected all the same; a fit on poses that turn as "
+            f"{'this one does' if one else 'these do'} would know)")
 
 
 VERB = Verb(

@@ -87,10 +87,9 @@ def summary(info: dict[str, Any]) -> list[str]:
             and all(isinstance(v, (int, float)) for b in box for v in b)):
         lines.append("  corrects positions within " + ", ".join(
             f"{axis} {lo:.3f}..{hi:.3f}" for axis, lo, hi in zip("xyz", *box)) + " m")
-    turned = info.get(coverage.KEY)
-    within = turned.get("within") if isinstance(turned, dict) else None
-    if isinstance(within, (int, float)) and not isinstance(within, bool):
-        lines.append(f"  fitted on orientations within {math.degrees(within):.3g} deg of their mean "
+    cone = coverage.cone_of(info.get(coverage.KEY)) if coverage.reads_orientation(info.get("representation")) else None
+    if cone is not None:   # as apply reads it: what apply ignores, info does not show
+        lines.append(f"  fitted on orientations within {math.degrees(cone['within']):.3g} deg of their mean "
                      "(apply counts the poses turned beyond)")
     span = info.get("time_bounds")
     if isinstance(span, list) and len(span) == 2 and all(isinstance(v, (int, float)) for v in span):

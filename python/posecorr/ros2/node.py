@@ -46,10 +46,11 @@ from typing import Any
 
 import numpy as np
 
-from posecorr.coverage import Beyond
 from posecorr.controller.checks import INPUT_NORM2_RANGE, Limits
 from posecorr.controller.runtime import Corrector, PoseCorrError
+from posecorr.coverage import Beyond
 from posecorr.rotations import matrix_to_quat, quat_to_matrix
+from posecorr.textui import counted
 
 POLL_SECONDS = 0.05
 LATENCY_WINDOW = 10_000
@@ -404,9 +405,9 @@ class _Correcting:
         c = self.counts
         status.level = ros["DiagnosticStatus"].WARN if (c.refused or c.last_load_error or c.turned) \
             else ros["DiagnosticStatus"].OK
-        counted = [f"{n} poses {what}" for n, what in ((c.refused, "refused"),
-                                                       (c.turned, "beyond the training orientations")) if n]
-        status.message = c.last_load_error or "; ".join(counted) or "ok"
+        said = [f"{counted(n, 'pose')} {what}" for n, what in ((c.refused, "refused"),
+                                                              (c.turned, "beyond the training orientations")) if n]
+        status.message = c.last_load_error or "; ".join(said) or "ok"
         status.values = [ros["KeyValue"](key=k, value=v) for k, v in self.diagnostic_values().items()]
         array = ros["DiagnosticArray"]()
         array.header.stamp = self.get_clock().now().to_msg()

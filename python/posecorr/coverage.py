@@ -6,9 +6,9 @@ effects), and where it does, the orientation a tracker may take is the user's bu
 core fitted on the orientations of one session answers a pose turned away from all of them
 with a guess, though: `20200717_Exp2` (nine poses within 0.4 degrees of one orientation)
 gives a PMC that corrects its own poses to 5.3 mm and the same poses turned by 1, 2 and 5
-degrees to 12, 37 and 204 mm. So every export states the cone of its training
-orientations (`KEY`: their mean and the largest angle from it) and `apply` counts the poses
-more than `MARGIN` beyond it, for the models whose core takes the orientation.
+degrees to 12, 37 and 204 mm. So an export whose core reads the orientation states the
+cone of its training orientations (`KEY`: their mean and the largest angle from it), and
+`apply` and the ROS 2 node count the poses more than `MARGIN` beyond it.
 
 A cone about the mean is the coarsest bound that still tells one orientation from many: a
 session turned about one axis only has a cone as wide as its turn about every axis.
@@ -25,8 +25,8 @@ from .metrics import rotation_errors
 from .rotations import REPRESENTATIONS, quat_to_matrix
 
 KEY = "training_orientations"
-# How far beyond the cone a pose may lie before `apply` says so: a quarter of the turn that
-# trebled Exp2's PMC error (above), and fifteen times its orientations' own spread.
+# How far beyond the cone a pose may lie before it is counted: half the turn (1 deg) that took
+# Exp2's PMC from 5.3 to 12 mm (above), about as wide as that session's own cone (0.44 deg).
 MARGIN = np.deg2rad(0.5)
 
 

@@ -308,7 +308,7 @@ class _Correcting:
             self.counts.last_refusal = f"stamp {stamp:.9f}: {str(exc).splitlines()[0]}"
             return
         self._publish_pose(msg.header.stamp, c)
-        if loaded.turned is not None and loaded.turned.one(pose[3:]):
+        if loaded.turned is not None and loaded.turned.one(pose[3:].tolist()):   # floats: 0.4 us, not 1.3
             self.counts.turned += 1
         self.counts.poses_out += 1
         self.counts.per_generation[loaded.generation] += 1

@@ -95,27 +95,26 @@ class Beyond:
             self._mean = [float(v) for v in self.cone["mean"]]
             self._cos = math.cos(0.5 * edge) if edge < np.pi else -1.0   # beyond pi: nothing lies beyond
 
-    def add(self, quaternions: np.ndarray, rows: list[int]) -> None:
-        """The unit quaternions (N, 4) of poses the model corrected, at the table's `rows`."""
+    def add(self, quaternions: np.ndarray, rows: list[int], corrected: np.ndarray) -> None:
+        """The unit quaternions (N, 4) of poses at the table's `rows`; those the model did not
+        correct (`corrected` False: refused, a lost pose's zero quaternion) are not counted."""
         if self.cone is None:
             return
         q = np.asarray(quaternions, float)
-        far = np.flatnonzero(np.abs(q @ self._mean) < self._cos * np.linalg.norm(q, axis=1))
+        far = np.flatnonzero(corrected & (np.abs(q @ self._mean) < self._cos * np.linalg.norm(q, axis=1)))
         self.count += len(far)
         self.rows += [rows[i] for i in far[:self.shown - len(self.rows)]]
         if len(far):
             self.largest = max(self.largest, float(np.max(beyond_mean(q[far], self._mean))) - self.cone["within"])
 
     def one(self, q: Sequence[float]) -> bool:
-        """Whether the unit quaternion `q` (w, x, y, z) of one corrected pose lies beyond:
-        counted (without a row) when it does."""
+        """Whether the unit quaternion `q` (w, x, y, z) of one pose lies beyond (the caller
+        counts: the ROS 2 node over every model it serves)."""
         if self.cone is None:
             return False
         m = self._mean
-        far = abs(q[0] * m[0] + q[1] * m[1] + q[2] * m[2] + q[3] * m[3]) \
+        return abs(q[0] * m[0] + q[1] * m[1] + q[2] * m[2] + q[3] * m[3]) \
             < self._cos * math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-        self.count += far
-        return far
 
     def record(self) -> dict[str, Any] | None:
         """{"count", "rows", "largest_rad", "within_rad", "margin_rad"}, or None where the

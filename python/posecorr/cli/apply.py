@@ -38,10 +38,8 @@ def run(args: argparse.Namespace) -> None:
         head = (f"{done} poses corrected with {args.model} ({args.backend}) -> {args.output} "
                 f"(columns corr_x..corr_qz beside the raw meas_*)")
         if refused["count"]:
-            shown = ", ".join(map(str, refused["rows"])) + (", ..." if refused["count"] > len(refused["rows"]) else "")
             head += (f"\n{counted(refused['count'], 'pose')} refused by the model, written as nan "
-                     f"({'row' if refused['count'] == 1 else 'rows'} {shown}); the metrics are over the others; "
-                     f"the first: {refused['first']}")
+                     f"({_rows_words(refused)}); the metrics are over the others; the first: {refused['first']}")
         head += _turned_words(args.model.name, payload["beyond_training_orientations"])
         if payload["raw"] is None:
             return head + "\nno ref_* columns: no metrics"
@@ -63,6 +61,12 @@ def run(args: argparse.Namespace) -> None:
     emit(args, payload, text)
 
 
+def _rows_words(counted_rows: dict) -> str:
+    """'row 6', 'rows 2, 3, ...' of a {"count", "rows": the first few} record."""
+    count, rows = counted_rows["count"], counted_rows["rows"]
+    return f"{'row' if count == 1 else 'rows'} " + ", ".join(map(str, rows)) + (", ..." if count > len(rows) else "")
+
+
 def _turned_words(model: str, beyond: dict | None) -> str:
     """The note on poses turned away from every orientation the model was fitted on, or ""."""
     if not beyond or not beyond["count"]:
@@ -72,8 +76,7 @@ def _turned_words(model: str, beyond: dict | None) -> str:
     from ..textui import counted
 
     one = beyond["count"] == 1
-    shown = ", ".join(map(str, beyond["rows"])) + (", ..." if beyond["count"] > len(beyond["rows"]) else "")
-    return (f"\nnote: {counted(beyond['count'], 'pose')} ({'row' if one else 'rows'} {shown}) "
+    return (f"\nnote: {counted(beyond['count'], 'pose')} ({_rows_words(beyond)}) "
             f"{'lies' if one else 'lie up to'} {math.degrees(beyond['largest_rad']):.3g} deg beyond "
             f"the orientations {model} was fitted on (within {math.degrees(beyond['within_rad']):.3g} deg of their "
             f"mean; counted from {math.degrees(beyond['margin_rad']):.3g} deg beyond): its core reads the "

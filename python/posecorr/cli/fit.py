@@ -171,17 +171,18 @@ def _export(args: argparse.Namespace, report: Any, table: Any, effects: list, sp
     from ..fitting import write_fit
     from ..train.pipeline import floor_instead
 
+    def written(report: Any) -> tuple[Any, dict]:
+        return report, write_fit(report, table, args.data, args.output, effects, save=args.save, spec=spec,
+                                 seed=args.seed).exported
+
     try:
         try:
-            return report, write_fit(report, table, args.data, args.output, effects, save=args.save,
-                                     spec=spec, seed=args.seed).exported
+            return written(report)
         except ParityError as exc:
             if report.chosen == report.baseline_name:
                 raise
             progress(args)(f"{report.chosen}: {exc}; writing the rigid fit instead")
-            report = floor_instead(report, table, str(exc))
-            return report, write_fit(report, table, args.data, args.output, effects, save=args.save,
-                                     spec=spec, seed=args.seed).exported
+            return written(floor_instead(report, table, str(exc)))
     except ExportError as exc:
         raise CliError(f"{args.output}: the model could not be exported: {exc}") from None
 

@@ -251,11 +251,12 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                backend: str = "c", chunk_rows: int = CHUNK_ROWS, allow_unbounded: bool = False,
                allow_unsigned: bool = False, keep_going: bool = False) -> dict[str, Any]:
     """Correct `table` with `model` into `output`; returns {"n", "output", "backend", "reference",
-    "raw", "corrected", "in_sample", "fitted_on", "held_out", "refused", "beyond_training_orientations"}
-    (raw / corrected None without reference columns). allow_unbounded, allow_unsigned: as
-    `Corrector`'s. A pose the model refuses stops the work (TableError naming its row), or
-    with `keep_going` is written as nan and counted in "refused" ({"count", "rows": the first REFUSED_SHOWN, "first": its
-    message}); the metrics are then over the poses corrected. "fitted_on": `_FittedOn.verdict`;
+    "raw", "corrected", "in_sample", "fitted_on", "held_out", "refused",
+    "beyond_training_orientations"} (raw / corrected None without reference columns).
+    allow_unbounded, allow_unsigned: as `Corrector`'s. A pose the model refuses stops the work
+    (TableError naming its row), or with `keep_going` is written as nan and counted in
+    "refused" ({"count", "rows": the first REFUSED_SHOWN, "first": its message}); the metrics
+    are then over the poses corrected. "fitted_on": `_FittedOn.verdict`;
     "held_out" there: the fit's figures as the model states them, "rigid" the floor's.
     "beyond_training_orientations": `coverage.Beyond.record`, the poses turned away from all
     the model was fitted on (they are corrected all the same)."""
@@ -287,7 +288,7 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                     corrected, errors = _pose_by_pose(reader.path, model, chunk, measured, times, corrector)
                     refused.add(errors)
                 kept = np.all(np.isfinite(corrected), axis=1)   # the refused poses out of the count and sums
-                turned.add(measured[kept, 3:7], [r for r, k in zip(chunk.row_numbers, kept) if k])
+                turned.add(measured[:, 3:7], chunk.row_numbers, kept)
                 handle.write(_with_comments([line(row) + (_CORR_FORMAT % tuple(values))
                                              for row, values in zip(chunk.rows, corrected.tolist())], chunk.comments))
                 if raw_sums is not None and corr_sums is not None:

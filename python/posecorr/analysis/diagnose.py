@@ -688,23 +688,23 @@ def _rivals(search: _Search, accepted: list[str], by_name: dict[str, dict]) -> t
             test = search.given(name, others + [rival["effect"]])
             if _earns(test):
                 continue
+            record = {"effect": name, "given": others + [rival["effect"]], "p_value_given": test["p_value"],
+                      "score_given": test["score"], "implausible_given": test["implausible"],
+                      "fails_given": _failures(search, test), "indistinct_from": [],
+                      "scores": {name: own["score"], rival["effect"]: context["score"]}}
             if form:
                 accepted[accepted.index(name)] = rival["effect"]
                 _settle_given(search, rival, others, context)
-            else:
+                record["gave_way_to"] = rival["effect"]
+            else:   # the other way round too: where the rival adds more, the data tells them apart
                 accepted.remove(name)
-            search.say(f"candidate {rival['effect']} given {', '.join(others + [name])}")
-            back = search.given(rival["effect"], others + [name])
-            dropped.append({"effect": name, "given": others + [rival["effect"]], "p_value_given": test["p_value"],
-                            "score_given": test["score"], "implausible_given": test["implausible"],
-                            "fails_given": _failures(search, test), "indistinct_from": [],
-                            "gave_way_to" if form else "told_apart_from": rival["effect"],
-                            "scores": {name: own["score"], rival["effect"]: context["score"]},
-                            "rival_given": {"score_given": back["score"], "p_value_given": back["p_value"],
-                                            "fails_given": _failures(search, back),
-                                            # the rival adds more, significantly: the data tells them apart
-                                            "adds": bool(back["score"] >= search.min_gain and back["p_value"]
-                                                         < p_threshold(search.alpha, len(search.names)))}})
+                search.say(f"candidate {rival['effect']} given {', '.join(others + [name])}")
+                back = search.given(rival["effect"], others + [name])
+                record.update(told_apart_from=rival["effect"], rival_given={
+                    "score_given": back["score"], "p_value_given": back["p_value"],
+                    "fails_given": _failures(search, back),
+                    "adds": set(row_failed_parts(search, back)) <= {FOLD_RISES}})
+            dropped.append(record)
             break
     return accepted, dropped
 

@@ -504,11 +504,14 @@ def test_info_says_what_the_file_is_before_its_metadata(tmp_path, capsys) -> Non
                         f"rmse_rot {1e3 * test['raw']['rmse_rot']:.4g} mrad")   # registered: raw is the tracker's
     assert lines[4].startswith("  parity with the fitted estimator: passed, worst ")
     assert lines[5].startswith("  corrects positions within x ")
-    assert lines[6:8] == ["", "metadata and structure:"]
-    assert sum(line.split(":")[0].strip() in meta for line in lines[8:]) == len(meta)
+    within = np.rad2deg(meta["training_orientations"]["within"])
+    assert lines[6] == (f"  fitted on orientations within {within:.3g} deg of their mean "
+                        "(apply counts the poses turned beyond)")
+    assert lines[7:9] == ["", "metadata and structure:"]
+    assert sum(line.split(":")[0].strip() in meta for line in lines[9:]) == len(meta)
     # the metadata's numbers of one kind carry their unit
-    box = next(line for line in lines[8:] if line.split(":")[0].strip() == "input_bounds")
-    reach = next(line for line in lines[8:] if line.split(":")[0].strip() == "correction_reach")
+    box = next(line for line in lines[9:] if line.split(":")[0].strip() == "input_bounds")
+    reach = next(line for line in lines[9:] if line.split(":")[0].strip() == "correction_reach")
     assert box.endswith("]] [m]") and reach.endswith("] [m, rad]"), (box, reach)
 
     data = tmp_path / "s.csv"

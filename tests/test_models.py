@@ -83,6 +83,30 @@ def test_card_metrics_reproduced_on_regenerated_test_split(path):
     assert row and float(row.group(1)) == pytest.approx(card["rmse_total"], rel=1e-4)
 
 
+@pytest.mark.parametrize("path", FILES, ids=lambda p: p.name)
+@pytest.mark.cpu_floats
+def test_cone_of_training_orientations_is_the_training_rows(path):
+    """A shipped core that reads the orientation states its training rows' cone (scipy's
+    mean and angles; the mean is the chordal one, so `within` is checked against it, and the
+    mean against scipy's to a small fraction of the cone); a position-only one states none."""
+    from scipy.spatial.transform import Rotation
+
+    from posecorr import coverage
+
+    info = read_info(path)
+    stated = coverage.cone_of(info.get(coverage.KEY))
+    if info["representation"] == "pos":
+        assert coverage.KEY not in info
+        return
+    data = _data(info["experiment"], info["data_seed"])
+    q = data["measured"][data["train"], 3:7]
+    turns = Rotation.from_quat(q[:, [1, 2, 3, 0]])
+    mean = Rotation.from_quat(stated["mean"][[1, 2, 3, 0]])
+    angles = (mean.inv() * turns).magnitude()
+    assert stated["within"] == pytest.approx(angles.max(), abs=1e-6)
+    assert (turns.mean().inv() * mean).magnitude() < 0.01 * stated["within"]
+
+
 @pytest.mark.parametrize("path", [p for p in FILES if read_info(p).get("experiment") == 3], ids=lambda p: p.name)
 @pytest.mark.cpu_floats
 def test_exp3_model_generalises_to_a_fresh_simulation(path):

@@ -26,7 +26,8 @@ regeneration command; `models/index.json` lists them.
 
 `python -m tools.models --metadata-only` rewrites, without refitting, what the code states
 about the models already in models/: the split's recipe (`split`), the box of poses
-(`input_bounds`, kept where recorded), the correction reach (`correction_reach`, the model's
+(`input_bounds`, kept where recorded), the cone of training orientations of a core that reads
+the orientation (`training_orientations`, kept where recorded), the correction reach (`correction_reach`, the model's
 graph on the training poses and drawn ones, as `to_onnx` records it) and the digest
 (`model_digest`), and each card from the file and the regenerated data. The data is
 regenerated from its seeds and checked to be the model's; the file is rewritten with
@@ -211,6 +212,7 @@ def _card_export(spec: Spec, report: dict[str, Any], epochs: int) -> list[str]:
         "- input `pose` float32 [N, 7] (x, y, z in m, qw, qx, qy, qz); output `corrected` float32 [N, 7]"
         + (" (qw >= 0)." if spec.model.with_rotation else " (orientation passed through)."),
         bounds_line(meta["input_bounds"]),
+        *cone_lines(meta),
         reach_line(meta["correction_reach"]),
         "", "## Regenerate", "",
         "```", "make models        # or: python -m tools.models" + (
@@ -224,6 +226,19 @@ def bounds_line(box: list[list[float]]) -> str:
     axes = ", ".join(f"{axis} {a:.3f}..{b:.3f}" for axis, a, b in zip("xyz", *box))
     return (f"- input_bounds: {axes} m (the training positions' box widened by half its extent, "
             "at least 0.1 m); a pose outside is refused (PC_ERR_RANGE), on every back end.")
+
+
+def cone_lines(meta: dict[str, Any]) -> list[str]:
+    """The card's line on the orientations the model was fitted on, where it states them."""
+    from posecorr import coverage
+
+    cone = coverage.cone_of(meta.get(coverage.KEY))
+    if cone is None:
+        return []
+    mean = ", ".join(f"{v:.4f}" for v in cone["mean"])
+    return [f"- training_orientations: within {np.rad2deg(cone['within']):.1f} deg of the mean (qw, qx, qy, qz) "
+            f"{mean}; `posecorr apply` and the ROS 2 node count the poses more than "
+            f"{np.rad2deg(coverage.MARGIN):.1f} deg beyond, and still correct them."]
 
 
 def reach_line(reach: list[float]) -> str:
@@ -283,7 +298,6 @@ def rewrite_metadata(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
     from posecorr.controller.onnx_meta import read_info
     from posecorr.export.aligned import serialize_aligned
     from posecorr.export.metadata import encode_value
-    from posecorr.export.onnx_export import input_bounds, model_reach
     from posecorr.metrics import pose_metrics
     from posecorr.safeio import write_bytes
 
@@ -294,7 +308,7 @@ def rewrite_metadata(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
     for spec in SPECS:
         path = out_dir / f"{spec.name}.onnx"
         data = data_cache.setdefault(spec.experiment, experiment_data(spec.experiment))
-        M, R, tr, te = data["measured"], data["reference"], data["train"], data["test"]
+        M, R, te = data["measured"], data["reference"], data["test"]
         model = onnx.load(str(path))
         meta = {p.key: p.value for p in model.metadata_props}
         stored = json.loads(meta["test_metrics"])["raw"]["rmse_total"]
@@ -303,12 +317,7 @@ def rewrite_metadata(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
             raise SystemExit(f"{path}: the regenerated data is not the data of this model "
                              f"(raw test rmse_total {again!r}, stored {stored!r}); refit with `make models`")
         graph = _graph_bytes(model)
-        meta["split"] = split_text(data["split_seed"])
-        # a box already recorded stays as it is (its last digits may differ on this BLAS)
-        box = json.loads(meta["input_bounds"]) if "input_bounds" in meta else input_bounds(M[tr])
-        reach, _ = model_reach(path, M[tr], box)
-        meta["input_bounds"] = meta.get("input_bounds") or encode_value(box)
-        meta["correction_reach"] = encode_value(reach)
+        reach = _state(meta, path, data)
         meta[digest.KEY] = digest.PLACEHOLDER
         del model.metadata_props[:]
         for key in sorted(meta):
@@ -330,6 +339,26 @@ def rewrite_metadata(out_dir: Path = MODELS_DIR) -> list[dict[str, Any]]:
         print(f"{path}: split {meta['split']}, correction_reach {encode_value(reach)}, {len(blob)} bytes", flush=True)
     write_bytes(index_path, (json.dumps(index, indent=1) + "\n").encode("utf-8"))
     return done
+
+
+def _state(meta: dict[str, str], path: Path, data: dict[str, Any]) -> list[float]:
+    """Sets in `meta` (a model's metadata, as stored) what the code states about the model at
+    `path` fitted on `data`'s training rows; returns its correction reach."""
+    from posecorr import coverage
+    from posecorr.export.metadata import encode_value
+    from posecorr.export.onnx_export import input_bounds, model_reach
+
+    M, tr = data["measured"], data["train"]
+    meta["split"] = split_text(data["split_seed"])
+    # a box already recorded stays as it is (its last digits may differ on this BLAS)
+    box = json.loads(meta["input_bounds"]) if "input_bounds" in meta else input_bounds(M[tr])
+    reach, _ = model_reach(path, M[tr], box)
+    meta["input_bounds"] = meta.get("input_bounds") or encode_value(box)
+    meta["correction_reach"] = encode_value(reach)
+    # the cone is stated as an export states it, and like the box kept where recorded
+    if coverage.reads_orientation(meta.get("representation")) and coverage.KEY not in meta:
+        meta[coverage.KEY] = encode_value(coverage.cone(M[tr][:, 3:7]))
+    return reach
 
 
 def demo_physics_pmc(path: Path) -> int:

@@ -142,3 +142,14 @@ def test_one_pose_beyond_is_said_in_the_singular(pmc, tmp_path: Path, capsys) ->
     text = capsys.readouterr().out
     assert "note: 1 pose (row 6) lies " in text and "deg beyond the orientations pmc.onnx" in text, text
     assert "a fit on poses that turn as this one does would know)\n" in text, text
+
+
+def test_one_pose_applied_is_said_in_the_singular(pmc, tmp_path: Path, capsys) -> None:
+    data, model = pmc
+    rows = _rows(data)[:1]
+    with (tmp_path / "first.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    assert main(["apply", str(model), str(tmp_path / "first.csv"), "-o", str(tmp_path / "out.csv")]) == 0
+    assert capsys.readouterr().out.startswith(f"1 pose corrected with {model} "), "the head line's count"

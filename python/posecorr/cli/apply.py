@@ -34,8 +34,9 @@ def run(args: argparse.Namespace) -> None:
         from ..textui import METRIC_HEADERS, counted, metrics_rows, table as fmt_table
 
         refused = payload["refused"]
-        done = f"{payload['n'] - refused['count']} of {payload['n']}" if refused["count"] else f"{payload['n']}"
-        head = (f"{done} poses corrected with {args.model} ({args.backend}) -> {args.output} "
+        done = (f"{payload['n'] - refused['count']} of {counted(payload['n'], 'pose')}" if refused["count"]
+                else counted(payload["n"], "pose"))
+        head = (f"{done} corrected with {args.model} ({args.backend}) -> {args.output} "
                 f"(columns corr_x..corr_qz beside the raw meas_*)")
         if refused["count"]:
             head += (f"\n{counted(refused['count'], 'pose')} refused by the model, written as nan "

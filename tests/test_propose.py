@@ -820,6 +820,9 @@ def test_a_form_gives_way_to_the_catalogue_effect_that_takes_its_gain():
                              "of the form") for note in result["notes"]), result["notes"]
     # kept alone now: no record of its test given the form it replaced
     assert "given" not in rows["drift"] and rows["drift"]["passes"], rows["drift"]
+    # the others' second chances were taken again in the model named, not beside the form
+    for row in rows.values():
+        assert set(row.get("given", ())) <= {"drift"}, row
 
 
 @pytest.mark.slow

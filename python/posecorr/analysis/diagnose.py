@@ -605,17 +605,23 @@ def _record_given(search: _Search, row: dict[str, Any], others: list[str], condi
                fails_given=_failures(search, conditional))
 
 
-def _second_chance(search: _Search, rows: list[dict[str, Any]], accepted: list[str]) -> list[str]:
+def _second_chance(search: _Search, rows: list[dict[str, Any]], accepted: list[str],
+                   dropped: set[str] = frozenset()) -> list[str]:
     """A catalogue effect that failed alone, tested again given all that is kept, until none
     joins. Frames nobody registered: alone, a robot session's mount gains 1.2 % with one fold
     0.06 % worse, for the station's error swamps it; given the station it gains 99.5 % in
     every fold. Likewise a form: a range scale of 0.4 % under a bend of the space gains 1.1 %
     alone with a fold 0.1 % worse, and given the quadratic that takes the bend, every fold.
-    Backward elimination then tests each kept given the others."""
+    Also one that earned alone but was tested given an effect no longer kept (dropped, or a
+    form that gave way): its record would explain its absence by a model that is not the one
+    named. Backward elimination then tests each kept given the others; what it (or `_rivals`)
+    has `dropped` is not tested again."""
     while True:
         context = list(accepted)
-        waiting = [row for row in rows if row["effect"] not in accepted and not get_effect(row["effect"]).generic
-                   and not _earns(row) and row.get("given") != context]
+        waiting = [row for row in rows if row["effect"] not in accepted and row["effect"] not in dropped
+                   and not get_effect(row["effect"]).generic
+                   and (not _earns(row) or not set(row.get("given", ())) <= set(context))
+                   and row.get("given") != context]
         if not context or not waiting:
             return accepted
         for row in waiting:
@@ -919,9 +925,17 @@ def _select(search: _Search) -> tuple[list[dict[str, Any]], list[str], list[dict
         rows.append(search.evaluate(name, search.base))
     rows.sort(key=rank_key)
     by_name = {row["effect"]: row for row in rows}
-    kept, dropped = _backward(search, _second_chance(search, rows, _forward(search, rows)), by_name)
-    kept, rivalled = _rivals(search, kept, by_name)
-    dropped += rivalled
+    kept, dropped = _forward(search, rows), []
+    # A drop, or a form giving way to a catalogue effect, changes the context the others were
+    # tested in: they are tested again in the new one, until it holds.
+    for _ in range(len(rows)):
+        dropped_before = {record["effect"] for record in dropped}
+        kept, backed = _backward(search, _second_chance(search, rows, kept, dropped_before), by_name)
+        kept, rivalled = _rivals(search, kept, by_name)
+        dropped += backed + rivalled
+        if not (backed or rivalled):
+            break
+    dropped = [record for record in dropped if record["effect"] not in kept]
     for rank_index, row in enumerate(rows, start=1):
         row["rank"] = rank_index
         row["present"] = row["effect"] in kept

@@ -327,6 +327,48 @@ def test_user_effect_file(user_effect, workspace_poses, ctx):
     assert th.grad.item() == pytest.approx(np.sum(p[:, 2] - ctx.c[2]), rel=1e-12)
 
 
+TURN_WITH_X = """
+from posecorr.effects import Effect, Param, to_namespace
+
+
+class TurnWithX(Effect):
+    name = "turn_with_x"
+    changes_rotation = True
+    params = (Param("a", 1, (0.05,), 1e-2, "rad/m"),)
+
+    def forward(self, p, R, theta, ctx):
+        xp, p, R, theta = to_namespace(p, R, theta)
+        angle = (theta[..., 0:1] * (p[..., 0:1] - xp.const(ctx.c, p)[..., 0:1]))[..., 0]
+        c, s = xp.cos(angle), xp.sin(angle)
+        z = c * 0.0
+        turn = xp.stack([xp.stack([c, -s, z], axis=-1), xp.stack([s, c, z], axis=-1),
+                         xp.stack([z, z, z + 1.0], axis=-1)], axis=-2)
+        return p, xp.matmul(turn, R)
+"""
+
+
+def test_generic_inverse_of_a_user_rotation_stays_a_rotation_in_float32(tmp_path, workspace_poses, ctx):
+    """The fixed-point inverse's residual holds x^T x, which doubled x's departure from
+    orthogonality at every step (6 float32 steps: 1.6e-5), and the export of a user rotation
+    effect failed its parity check; in float32, as the graph runs, the inverse is a rotation
+    and undoes the turn (scipy's angles) to float32's rounding."""
+    path = tmp_path / "turn_with_x.py"
+    path.write_text(TURN_WITH_X)
+    fx.load_effect_file(path)
+    try:
+        e = get_effect("turn_with_x")
+        p, R = workspace_poses
+        theta = np.array([0.2])
+        q, Q = e.forward(p, R, theta, ctx)
+        back_p, back_R = e.inverse(*(torch.tensor(a, dtype=torch.float32) for a in (q, Q, theta)), ctx)
+        back_R = back_R.double().numpy()
+        assert np.abs(np.swapaxes(back_R, 1, 2) @ back_R - np.eye(3)).max() < 2e-6
+        assert (Rotation.from_matrix(R).inv() * Rotation.from_matrix(back_R)).magnitude().max() < 2e-6
+        np.testing.assert_allclose(back_p.double().numpy(), p, atol=1e-6)
+    finally:
+        fx.unregister_effect("turn_with_x")
+
+
 def test_user_effect_file_errors(tmp_path):
     bad = tmp_path / "clash.py"
     bad.write_text("from posecorr.effects import Effect\nclass M(Effect):\n    name = 'mount'\n")

@@ -176,6 +176,8 @@ def test_a_model_whose_file_fails_parity_gives_way_to_the_rigid_fit(tmp_path: Pa
     assert out["fell_back_to_rigid"] and out["chosen"].startswith("rigid-"), out["chosen"]
     note = next(n for n in out["notes"] if "could not be written" in n)
     assert note.startswith("physics+mlp-zhou could not be written: exported graph differs from predict()")
+    assert note.endswith(f"; the rigid fit ({out['chosen']}) is written in its place, its figures on the same "
+                         "held-out poses"), note
     assert not any("beats the rigid fit" in n for n in out["notes"])   # of the model not written
     assert out[out.get("cv") and "cv" or "test"]["rmse_total"] == pytest.approx(out["baseline"]["rmse_total"])
     assert read_info(model).get("method") == "rigid"

@@ -675,8 +675,8 @@ def floor_instead(report: FitReport, table: PoseTable, why: str) -> FitReport:
     floor = {c.name: c for c in rigid_candidates(table)}[report.baseline_name]
     model = _fit(floor, rows, (M, R, t), table.has_orientation, {})
     on = "held-out" if report.test_index is None else "test"
-    note = (f"{report.chosen} could not be written: {why}; returning the rigid fit ({report.baseline_name}), "
-            f"which can")
+    note = (f"{report.chosen} could not be written: {why}; the rigid fit ({report.baseline_name}) is written in its "
+            f"place, its figures on the same {on} poses")
     return replace(report, model=model, heldout=report.baseline, chosen=report.baseline_name, fell_back=True,
                    train_index=rows, auto_scores={},
                    notes=[n for n in report.notes if not n.startswith(f"{report.chosen} beats")] + [note],

@@ -42,7 +42,10 @@ def test_simulate_json_matches_the_paper_raw_rows(tmp_path, experiment: int) -> 
     assert result["noise_floor"]["rmse_total"] < result["raw"]["rmse_total"] / 10
     if experiment == 1:
         assert result["raw"]["rmse_rot"] is None
-    assert (tmp_path / "x.csv").read_text().count("\n") == result["n"] + 1
+    # the line that marks it simulated, the header, the poses
+    text = (tmp_path / "x.csv").read_text()
+    assert text.startswith(f"# written by posecorr simulate (seed 0): simulated poses")
+    assert text.count("\n") == result["n"] + 2
 
 
 def test_a_session_with_drift_needs_a_duration_and_then_has_times(tmp_path) -> None:

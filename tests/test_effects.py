@@ -420,10 +420,16 @@ def test_an_effect_files_name_clash_names_the_file_and_what_it_clashes_with(tmp_
 
 @pytest.mark.parametrize("body,expected", [
     ("a, b = theta\n        return p, R", r"raised ValueError: not enough values to unpack \(expected 2, got 1\) "
-                                           r"\(line 9: a, b = theta\)"),
+                                           r"\(line 10: a, b = theta\)"),
     ("return p[:, :2], R", r"returned p of shape \(4, 2\), expected \(4, 3\)"),
     ("return p", r"returned ndarray, expected the pair \(p, R\)"),
     ("return p / 0.0, R", r"returned p with values that are not finite"),
+    # what it says of itself: a turn it does not declare (R @ R turns by R's own angle, the trial's largest
+    # 1.44 rad), times it does not ask for
+    ("return p, R @ R", r"turns R \(by up to 1.44 rad\), but the effect says changes_rotation = False, .* set "
+                        r"changes_rotation = True$"),
+    ("return p + theta * ctx.t[:, None], R", r"reads ctx.t, the poses' times, but the effect does not say "
+                                             r"needs_time = True .*: set needs_time = True$"),
 ])
 def test_a_user_effect_whose_forward_fails_is_refused_when_its_file_loads(tmp_path, body, expected):
     """A mistake in forward was a fit's error naming the data file ("d.csv: too many values to
@@ -431,14 +437,33 @@ def test_a_user_effect_whose_forward_fails_is_refused_when_its_file_loads(tmp_pa
     the file's effects are not left registered."""
     path = tmp_path / "wrong.py"
     path.write_text("from posecorr.effects import Effect, Param\n\n\nclass Wrong(Effect):\n    name = 'wrong'\n"
-                    "    params = (Param('k', 1, (0.01,), 0.01, '1'),)\n\n    def forward(self, p, R, theta, ctx):\n"
-                    f"        {body}\n")
+                    "    changes_rotation = False\n    params = (Param('k', 1, (0.01,), 0.01, '1'),)\n\n"
+                    f"    def forward(self, p, R, theta, ctx):\n        {body}\n")
     with pytest.raises(ValueError) as info:
         fx.load_effect_file(path)
     assert str(info.value).startswith(f"effect file {path}: effect 'wrong': forward(p, R, theta, ctx) on 4 poses at "
                                       "its default theta ")
     assert re.search(expected, str(info.value)), str(info.value)
     assert "wrong" not in fx.EFFECTS
+
+
+@pytest.mark.parametrize("change,expected", [
+    ({"size": 0, "default": ()}, "size must be a whole number >= 1, got 0"),
+    ({"scale": -1.0}, r"scale \(its typical magnitude\) must be finite and > 0, got -1.0"),
+    ({"scale": float("nan")}, "scale .* must be finite and > 0, got nan"),
+    ({"bounds": (1.0, -1.0)}, r"bounds must be \(lower, upper\) with lower < upper, got \(1.0, -1.0\)"),
+    ({"plausible": (None, 1.0)}, r"plausible must be \(lower, upper\) with lower < upper"),
+    ({"default": (5.0,), "bounds": (0.0, 1.0)}, r"default \(5.0,\) lies outside its bounds \(0.0, 1.0\)"),
+    ({"default": (0.0,), "domain": "positive"}, r"default \(0.0,\) must be > 0 \(domain 'positive'\)"),
+    ({"default": (float("inf"),)}, r"default \(inf,\) must be finite$"),
+])
+def test_a_param_that_contradicts_itself_is_refused_where_it_is_written(change, expected):
+    """A size of 0, a negative scale, bounds upside down, a default outside its bounds or
+    domain: each loaded, and the fit met it later as the data's fault or the solver's."""
+    fields = {"name": "a", "size": 1, "default": (0.5,), "scale": 1.0, "unit": "m", **change}
+    with pytest.raises(ValueError, match=f"^parameter a: {expected}"):
+        fx.Param(**fields)
+    assert fx.Param(name="a", size=1, default=(0.5,), scale=1.0, unit="m", bounds=(0.0, np.inf))
 
 
 # --- export-readiness: only the array-namespace interface ----------------------------------

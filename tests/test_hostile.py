@@ -106,6 +106,12 @@ def _cases(f: Path) -> list[tuple[str, str, list[str], list[str]]]:
          ["exits.py is an effect file", "did not write", "remove it"]),
         ("output", "compile -o a hand-written C file", ["compile", m, "-o", str(f / "main.c")],
          ["main.c is a C source", "did not write", "remove it"]),
+        # a session of measurements is lost for good where a simulated one or a correction replaces it
+        ("output", "simulate -o a table of measurements",
+         ["simulate", "--session", "--seed", "1", "-o", str(f / "far.csv")],
+         ["far.csv is a pose table that posecorr simulate did not write", "refusing to replace it"]),
+        ("output", "apply -o another table of measurements", ["apply", m, d, "-o", str(f / "far.csv")],
+         ["far.csv is a pose table that posecorr apply did not write", "refusing to replace it"]),
         ("output", "apply -o a document", ["apply", m, d, "-o", str(f / "notes.md")],
          ["notes.md is a document", "refusing to replace it"]),
         ("output", "fit -o a file of no kind posecorr writes", ["fit", d, "-o", str(f / "notes")],

@@ -642,9 +642,10 @@ def _check_writable(table: PoseTable, path: str) -> None:
         _check_quaternions(path, np.nan_to_num(table.ref_q, nan=0.0), REF_QUAT, rows)
 
 
-def write_table(table: PoseTable, path: str | Path) -> None:
-    """Write the table as CSV, every float with round-trip precision; a table `read_table`
-    would refuse (a NaN, a pose 1e6 m away, a zero quaternion) is refused instead."""
+def write_table(table: PoseTable, path: str | Path, comment: str | None = None) -> None:
+    """Write the table as CSV, every float with round-trip precision, after `comment` (one
+    line, written after '#', which `read_table` skips); a table `read_table` would refuse (a
+    NaN, a pose 1e6 m away, a zero quaternion) is refused instead."""
     _check_writable(table, str(path))
     columns: list[tuple[str, np.ndarray]] = []
     if "id" in table.extras:
@@ -667,6 +668,8 @@ def write_table(table: PoseTable, path: str | Path) -> None:
         return protect_comment(buffer.getvalue(), str(cells[0]))
 
     with atomic_output(path) as handle:
+        if comment is not None:
+            handle.write(f"{COMMENT} {' '.join(comment.split())}\r\n")
         handle.write(line([c for c, _ in columns]))
         for i in range(table.n):
             handle.write(line([repr(float(v[i])) if isinstance(v[i], (float, np.floating)) else v[i]

@@ -90,15 +90,42 @@ class Param:
     unbounded: bool = False
 
     def __post_init__(self) -> None:
+        if not (isinstance(self.size, int) and self.size >= 1):
+            raise ValueError(f"parameter {self.name}: size must be a whole number >= 1, got {self.size!r}")
         if len(self.default) != self.size:
             raise ValueError(f"parameter {self.name}: default has {len(self.default)} values, size is {self.size}")
         if self.domain not in DOMAINS:
             raise ValueError(f"parameter {self.name}: domain {self.domain!r} is not one of {', '.join(DOMAINS)}")
+        # each a mistake the fit would meet later as another one's (the data's, the solver's)
+        if not (np.isfinite(self.scale) and self.scale > 0):
+            raise ValueError(f"parameter {self.name}: scale (its typical magnitude) must be finite and > 0, "
+                             f"got {self.scale!r}")
+        default = np.asarray(self.default, float)
+        test, words = DOMAINS[self.domain]
+        if not np.all(np.isfinite(default)):
+            raise ValueError(f"parameter {self.name}: default {self.default} must be finite")
+        if not np.all(test(default)):
+            raise ValueError(f"parameter {self.name}: default {self.default} must be {words} (domain {self.domain!r})")
+        for which, span in (("bounds", self.bounds), ("plausible", self.plausible)):
+            if span is not None and not _interval(span):
+                raise ValueError(f"parameter {self.name}: {which} must be (lower, upper) with lower < upper, "
+                                 f"got {span!r}")
+        if self.bounds is not None and np.any((default < self.bounds[0]) | (default > self.bounds[1])):
+            raise ValueError(f"parameter {self.name}: default {self.default} lies outside its bounds {self.bounds}")
 
     def unit_after(self, separator: str = " ") -> str:
         """The unit as it follows a value in a message: nothing for a dimensionless one (unit
         '1'), where "0.012 1" would read as two numbers."""
         return "" if self.unit in ("", "1") else separator + self.unit
+
+
+def _interval(span: Any) -> bool:
+    """Whether `span` is (lower, upper), numbers (infinite ones too) with lower < upper."""
+    try:
+        lower, upper = (float(v) for v in span)
+    except (TypeError, ValueError):
+        return False
+    return lower < upper
 
 
 # A parameter's domain: name -> (the test of its values, the words of the refusal).
@@ -826,7 +853,25 @@ def _trial_forward(effect: Effect, path: Path) -> str | None:
             return f"{call} returned {name} of shape {value.shape}, expected {shape}"
         if not np.all(np.isfinite(value)):
             return f"{call} returned {name} with values that are not finite"
+    # what the effect says of itself decides what a fit undoes and what a table must hold
+    turn = np.linalg.norm(matrix_to_rotvec(np.swapaxes(R, -1, -2) @ np.asarray(out[1], float)), axis=-1).max()
+    if not effect.changes_rotation and turn > 1e-9:
+        return (f"{call} turns R (by up to {turn:.3g} rad), but the effect says changes_rotation = False, and the "
+                "fit would not undo the turn: set changes_rotation = True")
+    if not (effect.needs_time or effect.random) and not _same_without_time(effect, p, R, out, ctx):
+        return (f"{call} reads ctx.t, the poses' times, but the effect does not say needs_time = True (a table "
+                "without a t column would give it none): set needs_time = True")
     return None
+
+
+def _same_without_time(effect: Effect, p: np.ndarray, R: np.ndarray, out: tuple, ctx: EffectContext) -> bool:
+    """Whether `effect.forward` gives `out` again when `ctx` has no times."""
+    try:
+        with np.errstate(all="ignore"):
+            again = effect.forward(p, R, effect.default_theta(), replace(ctx, t=None))
+        return all(np.array_equal(np.asarray(a, float), np.asarray(b, float)) for a, b in zip(again, out))
+    except Exception:  # the user's code, reading the times it was not given
+        return False
 
 
 def parse_effects_arg(text: str) -> dict[str, np.ndarray]:

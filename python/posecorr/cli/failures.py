@@ -135,10 +135,28 @@ def _compiled_file(path: Path) -> bool:
         return BANNER in _text(handle.read(_HEAD_BYTES)).split("\n", 1)[0]
 
 
-# The kinds a verb replaces only where the file is its own, and how its own are known: an
+def _simulated_table(path: Path) -> bool:
+    """Whether a table opens with the line `posecorr simulate` writes."""
+    from .simulate import MARK
+
+    with open(path, "rb") as handle:
+        return _text(handle.read(_HEAD_BYTES)).startswith(f"# {MARK}")
+
+
+def _applied_table(path: Path) -> bool:
+    """Whether a table's header holds the columns `posecorr apply` adds."""
+    from ..controller.apply import CORR_COLUMNS
+
+    with open(path, "rb") as handle:
+        return set(CORR_COLUMNS) <= set(_first_record(_text(handle.read(_HEAD_BYTES))).split(","))
+
+
+# The outputs a verb replaces only where the file is its own, and how its own are known: an
 # effect file or C source is the user's code unless `diagnose --propose` or `posecorr
-# compile` wrote it.
-_REPLACED_IF_OWN = {EFFECT_FILE: _proposal_file, SOURCE: _compiled_file}
+# compile` wrote it; a table may be a session of measurements, which `simulate` or `apply`
+# would replace with no way back (`ingest` rewrites its own from the recording).
+_REPLACED_IF_OWN = {("diagnose", EFFECT_FILE): _proposal_file, ("compile", SOURCE): _compiled_file,
+                    ("simulate", TABLE): _simulated_table, ("apply", TABLE): _applied_table}
 
 
 def _a(kind: str) -> str:
@@ -208,7 +226,8 @@ def _check_outputs(args: argparse.Namespace, verb: Verb) -> None:
         if kind != want:   # a page written over a table, a table over an effect file
             raise CliError(f"{path} is {_a(kind)}, and posecorr {args.verb} writes {_a(want)} there: refusing to "
                            "replace it (choose another output name)")
-        if kind in _REPLACED_IF_OWN and not _REPLACED_IF_OWN[kind](Path(path)):   # the user's own effect file
+        own = _REPLACED_IF_OWN.get((args.verb, kind))
+        if own is not None and not own(Path(path)):   # the user's effect file, a session of measurements
             raise CliError(f"{path} is {_a(kind)} that posecorr {args.verb} did not write: refusing to replace it "
                            "(give another name, or remove it)")
 

@@ -56,6 +56,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "minutes)")
 
 
+# The first line of every table simulate writes: what it may replace (`failures`), for a
+# table of measurements under the same name would be lost.
+MARK = "written by posecorr simulate"
+
+
 def run(args: argparse.Namespace) -> None:
     from ..data import write_table
     from ..simulate import simulate
@@ -87,7 +92,7 @@ def run(args: argparse.Namespace) -> None:
         write_recording(recording, args.recording)
         sim_table = recording.table
         raw, floor = table_metrics(result, sim_table.n)
-    write_table(sim_table, args.output)
+    write_table(sim_table, args.output, comment=f"{MARK} (seed {args.seed}): simulated poses, not measurements")
     effects_used = result.effects_json()
     payload = {"n": sim_table.n, "output": str(args.output), "raw": raw,
                "noise_floor": floor, "effects": effects_used}

@@ -461,6 +461,30 @@ def _cli(*args: str, cwd: Path) -> dict:
     return json.loads(run.stdout)
 
 
+def test_the_history_holds_the_fits_of_this_table_only(tmp_path: Path) -> None:
+    """A session simulated into the name of another, its ledger still beside it: the page's
+    history showed the first table's fits as this one's. They are left out, and said so."""
+    import subprocess
+    import sys
+
+    from posecorr.analysis.ledger import read_ledger
+    from posecorr.data import write_table
+    from posecorr.simulate import simulate_session
+
+    data = tmp_path / "s.csv"
+    for seed, model in ((1, "first.onnx"), (2, "second.onnx")):
+        write_table(simulate_session(seed, n=20, spread="full", position_only=False, unremovable=0.0).table, data)
+        _cli("fit", str(data), "-o", model, "--effects", "station,mount", "--method", "none", "--cv", "5",
+             cwd=tmp_path)
+    assert [r["model"] for r in read_ledger(data)] == ["first.onnx", "second.onnx"]
+    run = subprocess.run([sys.executable, "-m", "posecorr.cli", "report", str(data), "--model", "second.onnx",
+                          "-o", "r.html", "--no-diagnosis"], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert run.returncode == 0, run.stderr
+    assert "s.csv.ledger.jsonl: 1 fit of another table under this name" in run.stderr, run.stderr
+    history = (tmp_path / "r.html").read_text().split('id="ledger"')[1]
+    assert "second.onnx" in history and "first.onnx" not in history
+
+
 @pytest.mark.parametrize("cv", ["5", "none"])
 def test_held_out_where_the_ledger_knows_the_folds_in_sample_otherwise(tmp_path: Path, cv: str) -> None:
     """A fit writes the ledger line; the report rebuilds the model's and the rigid fit's

@@ -124,13 +124,16 @@ def ledger_fit_entry(report: Any, table: Any, output: str | Path, effects: list[
     import dataclasses
     import hashlib
 
+    from .analysis.ledger import ledger_table_digest
+
     info = report.model.export_info()
     entry: dict[str, Any] = {"model": str(output), "effects": effects, "method": info.get("method"),
                              "representation": info.get("representation"), "raw": report.raw,
                              report.heldout_kind: report.heldout,
                              "baseline": named_block(report.baseline_name, report.baseline),
                              "model_sha256": hashlib.sha256(model_bytes).hexdigest() if model_bytes else None,
-                             "n": int(table.n), "plan": str(report.plan), "chosen": report.chosen,
+                             "n": int(table.n), "table_digest": ledger_table_digest(table),
+                             "plan": str(report.plan), "chosen": report.chosen,
                              "fell_back": bool(report.fell_back), "rigid": report.model.rigid or None}
     if report.asked is not None:
         entry["asked"] = report.asked

@@ -6,7 +6,8 @@ effects (list), method, representation, raw, the held-out block ("cv" or "test")
 rmse_pos, rmse_rot, rmse_total and improvements, and `baseline`: the best rigid fit on the
 same poses ({"name": its candidate name, the same figures}; "model" in ledgers written
 before). What lets a report rebuild the held-out predictions (`fitting.ledger_fit_entry`):
-model_sha256 (the model file's), n (the table's poses), plan ("none", "loo" or a number of
+model_sha256 (the model file's), n (the table's poses), table_digest (`ledger_table_digest`:
+the report's history keeps the lines of the table it reads), plan ("none", "loo" or a number of
 folds), seed, spec (the requested `ModelSpec`'s fields), chosen (the candidate returned),
 fell_back, rigid (its variant, or null), and where it fell back `asked`: the model asked for,
 scored ({"name", "rmse_total", "on": "held-out", "validation" or "test"}, and "why" where it
@@ -98,3 +99,20 @@ def entry_for_model(ledger: Sequence[Mapping[str, Any]], model_path: str | Path)
 
     digest = hashlib.sha256(Path(model_path).read_bytes()).hexdigest()
     return next((r for r in reversed(ledger) if r.get("model_sha256") == digest), None)
+
+
+def ledger_table_digest(table: Any) -> str:
+    """The digest a ledger line keeps of the table its fit read (`digest.data_digest` of its
+    poses and times): a file replaced under the same name has another."""
+    from ..controller.digest import data_digest
+
+    return data_digest(table.measured, table.reference, table.time())
+
+
+def of_table(ledger: Sequence[Mapping[str, Any]], table: Any) -> tuple[list[Mapping[str, Any]], int]:
+    """The records of fits on `table` (by `table_digest`; a record older than the digest, by
+    its number of poses), and how many are of another table under the same name: a session
+    simulated over another, a ledger copied beside another table."""
+    digest = ledger_table_digest(table)
+    mine = [r for r in ledger if (r["table_digest"] == digest if "table_digest" in r else r.get("n") == table.n)]
+    return mine, len(ledger) - len(mine)

@@ -25,14 +25,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> None:
     from ..analysis.comparison import compare
     from ..analysis.interpretation import model_effects, takeaway
-    from ..analysis.ledger import entry_for_model, ledger_path, read_ledger
+    from ..analysis.ledger import entry_for_model, ledger_path, of_table, read_ledger
     from ..analysis.page import write_report
     from ..controller.apply import correct_table, refuse_missing_time
     from ..controller.onnx_meta import read_info
     from ..controller.runtime import Corrector
     from ..data import require_rows
     from ..ingest.pipeline import segments_path
-    from ..safeio import check_sidecar, open_sidecar
+    from ..safeio import check_sidecar, open_sidecar, warn
+    from ..textui import counted
 
     for sidecar in (ledger_path(args.data), segments_path(args.data)):
         check_sidecar(sidecar)  # a link or a FIFO refused before the work, not after it
@@ -50,9 +51,14 @@ def run(args: argparse.Namespace) -> None:
     corrector = Corrector(args.model, backend=args.backend)
     refuse_missing_time(corrector, args.model, table.path, table.time() is not None)
     corrected = correct_table(corrector, args.model, table)
-    ledger = read_ledger(args.data)
-    comparison = compare(table, corrected, entry_for_model(ledger, args.model), say=progress(args),
+    records = read_ledger(args.data)
+    # the model's own line wherever it was fitted: compare says why a table is not the fit's
+    comparison = compare(table, corrected, entry_for_model(records, args.model), say=progress(args),
                          model_info=info)
+    ledger, elsewhere = of_table(records, table)
+    if elsewhere:
+        warn(f"{ledger_path(args.data)}: {counted(elsewhere, 'fit')} of another table under this name (other poses: "
+             "the file was replaced, or the ledger copied, since) left out of the history")
     diagnosis, no_diagnosis = None, None
     if not args.no_diagnosis:
         from ..analysis.diagnose import diagnose, require_diagnosable

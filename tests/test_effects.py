@@ -447,6 +447,35 @@ def test_a_user_effect_whose_forward_fails_is_refused_when_its_file_loads(tmp_pa
     assert "wrong" not in fx.EFFECTS
 
 
+@pytest.mark.parametrize("root,where", [
+    ("theta[..., 0:1] - 0.001", "where the fit starts, theta = [0]: its forward must be defined there"),
+    ("0.001 - theta[..., 0:1]", "a small step from its default values (in root.a, for the fit's derivatives): its "
+                                "forward must be defined around them"),
+])
+def test_a_user_effect_undefined_where_the_fit_starts_is_named(tmp_path, root, where):
+    """Defined at its default (so it loads) and not at its identity, where the fit starts, or
+    not a step above its default, where the fit's derivatives look: the solver's "Residuals
+    are not finite in the initial point" or numpy's "SVD did not converge" was the fit's
+    error, prefixed with the table's name. The effect and its file are named."""
+    from posecorr.simulate import simulate_session
+    from posecorr.train.physics import PhysicsModel
+
+    path = tmp_path / "root.py"
+    path.write_text("from posecorr.effects import Effect, Param, to_namespace\n\n\nclass Root(Effect):\n"
+                    "    name = 'root'\n    changes_rotation = False\n"
+                    "    params = (Param('a', 1, (0.001,), 0.001, 'm'),)\n\n"
+                    "    def forward(self, p, R, theta, ctx):\n        xp, p, R, theta = to_namespace(p, R, theta)\n"
+                    f"        return p + xp.sqrt({root}), R\n")
+    fx.load_effect_file(path)
+    try:
+        table = simulate_session(1, n=20, spread="full", position_only=False, unremovable=0.0).table
+        with pytest.raises(ValueError) as info:
+            PhysicsModel(["station", "mount", "root"]).fit(table.measured, table.reference)
+        assert str(info.value) == f"effect 'root' ({path.resolve()}) gives poses that are not finite {where}"
+    finally:
+        fx.unregister_effect("root")
+
+
 @pytest.mark.parametrize("change,expected", [
     ({"size": 0, "default": ()}, "size must be a whole number >= 1, got 0"),
     ({"scale": -1.0}, r"scale \(its typical magnitude\) must be finite and > 0, got -1.0"),

@@ -273,8 +273,16 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
             if not effect.registration:
                 probe[i:i + effect.size] = effect.default_theta()
             i += effect.size
-        J = self._residual_fn(measured, reference, sigma_p, sigma_r).jacobian(probe)
+        with np.errstate(all="ignore"):   # a value not finite is named below, in one line
+            J = self._residual_fn(measured, reference, sigma_p, sigma_r).jacobian(probe)
         blocks = self._blocks()
+        if not np.all(np.isfinite(J)):
+            self._require_defined(probe, reference, "at its default values")
+            # the poses are finite there: one a finite-difference step away is not
+            label = next(b.label for b in blocks if not np.all(np.isfinite(J[:, b.index])))
+            raise ValueError(f"{self._named(label.split('.')[0])} gives poses that are not finite a small step "
+                             f"from its default values (in {label}, for the fit's derivatives): its forward must "
+                             "be defined around them")
         fixed: dict[str, str] = {}
         if not self.with_rotation_:
             held = {f"{e.name}.{name}" for e in self._chosen for name in e.held_without_orientation()}
@@ -285,6 +293,31 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         B, more = determined_directions(J, blocks)
         fixed.update({k: v for k, v in more.items() if not k.startswith(tuple(fixed))})
         return B, fixed
+
+    def _require_defined(self, theta: np.ndarray, reference: np.ndarray, where: str) -> None:
+        """ValueError naming the effect (and the file that defines it) whose map gives poses
+        that are not finite at `theta`, where one does: a user's effect undefined at its
+        identity values met the solver as "Residuals are not finite in the initial point",
+        blamed on the table."""
+        from posecorr.effects import apply_effects
+
+        p, R = reference[..., 0:3], rotations.quat_to_matrix(reference[..., 3:7])
+        thetas = self._unflatten(theta)
+        with np.errstate(all="ignore"):
+            for effect in self._chosen:
+                q, Q = apply_effects(p, R, {effect.name: thetas[effect.name]}, self.ctx_)
+                if not (np.all(np.isfinite(q)) and np.all(np.isfinite(Q))):
+                    values = ", ".join(f"{v:.6g}" for v in thetas[effect.name])
+                    raise ValueError(f"{self._named(effect.name)} gives poses that are not finite {where}, theta = "
+                                     f"[{values}]: its forward must be defined there")
+
+    @staticmethod
+    def _named(name: str) -> str:
+        """"effect 'name' (the file that defines it)", the file where a user's effect has one."""
+        from posecorr.effects import EFFECTS
+
+        source = EFFECTS.sources.get(name)
+        return f"effect {name!r}" + (f" ({source})" if source else "")
 
     def _unflatten(self, theta: np.ndarray) -> dict[str, np.ndarray]:
         out, i = {}, 0
@@ -379,6 +412,10 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         bounded = bool(np.any(np.isfinite(z_lower) | np.isfinite(z_upper)))
         # MINPACK's Levenberg-Marquardt where nothing is bounded: a third of trf's overhead.
         method = "trf" if bounded or residual.size < SB.shape[1] else "lm"
+        with np.errstate(all="ignore"):
+            start_finite = np.all(np.isfinite(f(np.zeros(SB.shape[1]))))
+        if not start_finite:
+            self._require_defined(theta0, reference, "where the fit starts")
         result = least_squares(f, np.zeros(SB.shape[1]), jac=jac, method=method,
                                bounds=(z_lower, z_upper) if bounded else (-np.inf, np.inf),
                                max_nfev=self.max_nfev, xtol=1e-9, ftol=1e-9, gtol=1e-9)

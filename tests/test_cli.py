@@ -1136,3 +1136,52 @@ def test_fit_says_what_an_option_could_not_do(tmp_path) -> None:
     assert out.returncode == 0, out.stderr
     assert "warning: --subsample 500: " in out.stderr and "has 150 rows; every one is fitted" in out.stderr
     assert out.stdout.startswith("d.csv: 150 poses") or f"{data}: 150 poses" in out.stdout.splitlines()[0]
+
+
+def test_diagnose_warns_of_an_effect_the_fit_it_advises_would_refuse(tmp_path, capsys) -> None:
+    """An effect written with numpy calls: diagnose (numpy) ran it, then advised a fit that
+    refused it as untraceable. The warning comes first, with the line that does not trace."""
+    from posecorr.cli import main
+    from posecorr.effects import EFFECTS, unregister_effect
+    from posecorr.simulate import simulate_session
+
+    path = tmp_path / "scalar.py"
+    path.write_text("import numpy as np\nfrom posecorr.effects import Effect, Param\n\n\nclass Scalar(Effect):\n"
+                    "    name = 'scalar'\n    changes_rotation = False\n"
+                    "    params = (Param('a', 1, (0.001,), 0.001, '1'),)\n\n"
+                    "    def forward(self, p, R, theta, ctx):\n"
+                    "        a = float(np.asarray(theta).reshape(-1)[0])\n        return p * (1 + a), R\n")
+    data = tmp_path / "s.csv"
+    write_table(simulate_session(1, n=20, spread="full", position_only=False, unremovable=0.0).table, data)
+    try:
+        assert main(["diagnose", str(data), "--effect-file", str(path), "--effects", "station,mount"]) == 0
+    finally:
+        if "scalar" in EFFECTS:
+            unregister_effect("scalar")
+    warning = capsys.readouterr().err.splitlines()[0]
+    assert warning.startswith(f"posecorr: warning: effect file {path}: effect 'scalar': its map does not trace into "
+                              "the ONNX graph fit exports: "), warning
+    assert "(line 11: a = float(np.asarray(theta).reshape(-1)[0]))" in warning
+    assert warning.endswith("; fit refuses it until then")
+
+
+def test_a_model_naming_an_effect_twice_is_refused_naming_the_model(tmp_path) -> None:
+    """A model whose metadata names an effect twice (edited, then signed again): the diagnosis
+    refitted two copies and failed in numpy's words on the table ("matmul: Input operand 1 has
+    a mismatch ..."). It is the model's fault, named before any work."""
+    import onnx
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "runtime_c" / "tests"))
+    import graphs
+
+    table, model = tmp_path / "session.csv", tmp_path / "model.onnx"
+    assert posecorr("simulate", "--session", "--poses", "20", "--seed", "1", "-o", str(table)).returncode == 0
+    assert posecorr("fit", str(table), "--effects", "station,mount", "--method", "none", "--cv", "5",
+                    "-o", str(model)).returncode == 0
+    edited = onnx.load(model)
+    next(e for e in edited.metadata_props if e.key == "effects").value = '["mount", "station", "station"]'
+    model.write_bytes(graphs.signed(edited))
+    out = posecorr("diagnose", str(table), "--model", str(model))
+    assert out.returncode == 2 and out.stderr.strip().splitlines() == [
+        f"posecorr diagnose: error: {model}: its metadata 'effects' names 'station' more than once, which no fit "
+        "writes: the file was edited"], out.stderr

@@ -124,6 +124,7 @@ def _cases(f: Path) -> list[tuple[str, str, list[str], list[str]]]:
         ("output", "ingest -o whose segment list would be a folder",
          ["ingest", str(f / "equal-times.csv"), "-o", str(f / "seg.csv")], ["seg.csv.segments.json", "folder"]),
         ("output", "a NUL byte in -o", ["apply", m, d, "-o", str(f / "a\0b.csv")], ["NUL"]),
+        ("output", "an empty -o", ["fit", d, "-o", ""], ["-o/--output", "an empty name"]),
         ("output", "apply -o a new folder's name (newdir/)", ["apply", m, d, "-o", str(f / "newdir") + os.sep],
          ["newdir/", "separator", "file name"]),
         ("output", "apply -o an existing folder", ["apply", m, d, "-o", str(f / "not-a-bag")],

@@ -195,17 +195,22 @@ def apply_threads(args: argparse.Namespace, workers: int = 1) -> int:
     return set_threads(args.threads, workers)
 
 
-def load_effect_files(args: argparse.Namespace, exported: bool = False) -> list[str]:
+def load_effect_files(args: argparse.Namespace, exported: bool = False, advised: bool = False) -> list[str]:
     """Load each --effect-file; `exported` (a verb that exports the fit): each of their effects
-    must also trace into an ONNX graph, checked now rather than after the fit."""
-    from ..effects import load_effect_file
+    must also trace into an ONNX graph, checked now rather than after the fit; `advised` (a
+    verb whose advice is a fit with them): one that does not trace is named in a warning,
+    for the fit advised would refuse it."""
+    from ..effects import get_effect, load_effect_file
+    from ..export.effect_trace import untraceable
+    from ..safeio import warn
 
-    check = None
-    if exported:
-        from ..export.effect_trace import untraceable as check
     files = [str(path) for path in getattr(args, "effect_file", None) or []]
     for path in files:
-        load_effect_file(path, check)
+        names = load_effect_file(path, untraceable if exported else None)
+        for name in names if advised else ():
+            problem = untraceable(get_effect(name), Path(path).resolve())
+            if problem:
+                warn(f"effect file {path}: effect {name!r}: {problem}; fit refuses it until then")
     return files
 
 
@@ -238,6 +243,10 @@ def model_effect_names(path: Path, info: dict[str, Any]) -> list[str]:
     from ..effects import EFFECTS, defined_by_effect_file
 
     names = effect_list(info.get("effects"))   # the file's author wrote it: any type
+    twice = sorted({name for name in names if names.count(name) > 1})
+    if twice:   # a model applies each effect once: a refit of two copies failed on the table
+        raise CliError(f"{path}: its metadata 'effects' names {', '.join(repr(n) for n in twice)} more than once, "
+                       "which no fit writes: the file was edited")
     missing = [name for name in names if name not in EFFECTS]
     if missing:
         one = len(missing) == 1
@@ -278,10 +287,10 @@ def effects_help(what: str, fitted: bool = True) -> str:
     return f"{what}; known: {', '.join(known)} (an --effect-file adds its own)"
 
 
-def read_data(args: argparse.Namespace) -> Any:
-    """The verb's table, after --threads and --effect-file took effect."""
+def read_data(args: argparse.Namespace, advised: bool = False) -> Any:
+    """The verb's table, after --threads and --effect-file (`load_effect_files`) took effect."""
     from ..data import read_table
 
     apply_threads(args)
-    load_effect_files(args)
+    load_effect_files(args, advised=advised)
     return read_table(args.data)

@@ -29,7 +29,7 @@ def run(args: argparse.Namespace) -> None:
     from ..analysis.proposal import effect_file_text
     from ..safeio import write_text
 
-    table = read_data(args)
+    table = read_data(args, advised=True)   # its advice is a fit with the effects it loads
     effects, corrected, mismatch = _with_model(args, table, effect_names(args.effects))
     result = diagnose(table, effects, folds=args.folds, seed=args.seed, forms=args.forms,
                       model_corrected=corrected, progress=progress(args))

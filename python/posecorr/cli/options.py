@@ -57,6 +57,8 @@ def file_name(text: str) -> Path:
     if text == "-":
         raise argparse.ArgumentTypeError("'-' would be a file named '-' (posecorr writes its outputs to files, "
                                          "never to standard output); expected a file name to write")
+    if not text:   # Path("") is ".", the working folder
+        raise argparse.ArgumentTypeError("an empty name; expected a file name to write")
     if text.endswith(("/", os.sep)):
         raise argparse.ArgumentTypeError(f"{text!r} ends with a separator (a folder); expected a file name to write")
     return Path(text)

@@ -13,6 +13,7 @@ Keys written by the exporter (other keys may be added by callers):
 | `architecture` | text: the hidden layer sizes, e.g. `20-20` (MLP), or the PMC feature layout |
 | `activation`, `trainer` | MLP activation and training algorithm (null for PMC) |
 | `effects` | fitted physical-effect stages in front of the core, with their parameters |
+| `effect_behaviour` | (effects an `--effect-file` defines) the trial poses after each such effect at its fitted values (`posecorr.effects.behaviour`): another file's effect of the same name is told apart |
 | `training_data_digest` | `sha256:<hex>` of the training arrays, see `data_digest` |
 | `fitted_table_digest` | (`fit` with a test split) the same digest of the whole table it split |
 | `test_metrics` | rmse_pos (m), rmse_rot (rad), rmse_total and improvements on the held-out poses; "raw"; "rigid": the best rigid fit scored alike (fit) |

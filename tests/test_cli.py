@@ -945,6 +945,23 @@ def test_a_model_with_a_user_effect_names_its_effect_file_before_the_work(tmp_pa
             f"posecorr {verb}: error: {model} was fitted with z_scale.k of 1 values; z_scale as {other} defines it "
             "has 2: give the effect file the model was fitted with"], out.stderr
     assert not page.exists()
+    # the same name and sizes, another map (x scaled, not z): another model, said before any work
+    swapped = tmp_path / "x_scale.py"
+    swapped.write_text(effect_file.read_text().replace("p[..., 2] + k * (p[..., 2] - xp.const(ctx.c, p)[..., 2])",
+                                                       "p[..., 2] + k * (p[..., 0] - xp.const(ctx.c, p)[..., 0])"))
+    assert swapped.read_text() != effect_file.read_text()
+    for verb, extra in (("diagnose", ()), ("report", ("-o", str(page)))):
+        out = posecorr(verb, str(table), "--model", str(model), "--effect-file", str(swapped), *extra)
+        assert out.returncode == 2 and out.stderr.strip().splitlines() == [
+            f"posecorr {verb}: error: {model} was fitted with another z_scale than {swapped} defines: at the "
+            "model's values its map moves the same poses elsewhere (other terms, another formula): give the effect "
+            "file the model was fitted with"], out.stderr
+    assert not page.exists()
+    # the file it was fitted with, a copy under another name with another comment: the same map
+    copy = tmp_path / "copy.py"
+    copy.write_text("# my copy\n" + effect_file.read_text())
+    out = posecorr("diagnose", str(table), "--model", str(model), "--effect-file", str(copy))
+    assert out.returncode == 0, out.stderr
 
 
 def test_diagnosis_options_are_checked_first_and_say_what_they_did(tmp_path) -> None:

@@ -620,6 +620,14 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         self._check_fitted()
         return any(get_effect(name).needs_time for name in self.params_)
 
+    def user_behaviours(self) -> dict[str, list[float]]:
+        """{effect: `effects.behaviour` at its fitted theta} for the effects an effect file
+        defines: what `check_effect_files` compares another file's effect of that name with."""
+        from posecorr.effects import EFFECTS, behaviour
+
+        self._check_fitted()
+        return {name: behaviour(name, theta) for name, theta in self.params_.items() if EFFECTS.sources.get(name)}
+
     def describe(self) -> dict[str, dict[str, list]]:
         """{effect: {param: [value, std_error]}} (lists for vector parameters), SI units."""
         self._check_fitted()

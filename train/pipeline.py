@@ -136,6 +136,9 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
         if self.physics_ is not None:
             info["effects"] = list(self.physics_.params_)
             info["effect_params"] = self.physics_.describe()
+            behaviours = self.physics_.user_behaviours()
+            if behaviours:
+                info["effect_behaviour"] = behaviours
             if self.core_ is None:
                 info["method"] = "rigid" if self.rigid else "physics"
             if self.rigid:

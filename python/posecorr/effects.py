@@ -832,13 +832,31 @@ def raised_in(exc: BaseException, path: str | Path) -> str:
 _TRIAL_POSES = 4
 
 
+def _trial() -> tuple[np.ndarray, np.ndarray, EffectContext]:
+    """The poses (p, R) a user effect is tried on, and their context."""
+    ctx = EffectContext.default(t=np.arange(_TRIAL_POSES) * 5.0, rng=np.random.default_rng(0))
+    p = ctx.c + np.linspace(-0.2, 0.2, _TRIAL_POSES * 3).reshape(_TRIAL_POSES, 3)
+    R = rotvec_to_matrix(np.linspace(-1.0, 1.0, _TRIAL_POSES * 3).reshape(_TRIAL_POSES, 3))
+    return p, R, ctx
+
+
+def behaviour(name: str, theta: Any) -> list[float]:
+    """What the effect `name` does at `theta` to the trial poses: their positions and rotation
+    vectors after its forward map, flat. A model states it for each of its effects an effect
+    file defines, so that another file's effect of the same name and sizes (a proposal of
+    another session, other terms kept) is told apart from the one it was fitted with."""
+    p, R, ctx = _trial()
+    with np.errstate(all="ignore"):
+        q, Q = get_effect(name).forward(p, R, np.asarray(theta, float), ctx)
+    return [float(v) for v in np.concatenate([np.asarray(q, float).ravel(),
+                                               matrix_to_rotvec(np.asarray(Q, float)).ravel()])]
+
+
 def _trial_forward(effect: Effect, path: Path) -> str | None:
     """What is wrong with `effect.forward` on a few poses at its default theta (an exception,
     with the line of `path` it came from, or an output of the wrong shape or not finite);
     None when nothing is. Said at load, not as a fit's error naming the data file."""
-    ctx = EffectContext.default(t=np.arange(_TRIAL_POSES) * 5.0, rng=np.random.default_rng(0))
-    p = ctx.c + np.linspace(-0.2, 0.2, _TRIAL_POSES * 3).reshape(_TRIAL_POSES, 3)
-    R = rotvec_to_matrix(np.linspace(-1.0, 1.0, _TRIAL_POSES * 3).reshape(_TRIAL_POSES, 3))
+    p, R, ctx = _trial()
     call = f"forward(p, R, theta, ctx) on {_TRIAL_POSES} poses at its default theta"
     try:
         with np.errstate(all="ignore"):   # a non-finite result is named below, in one line

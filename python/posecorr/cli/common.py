@@ -276,6 +276,31 @@ def check_effect_files(path: Path, info: dict[str, Any]) -> None:
                 raise CliError(f"{path} was fitted with {name}.{param.name} of {size} values; {name} as "
                                f"{source} defines it has {param.size}: give the effect file the model was "
                                "fitted with")
+        _check_behaviour(path, info, name, params, source)
+
+
+# How far the trial poses through the file's effect may lie from what the model states (m,
+# rad): the file's map evaluated again, on another machine's floats, not another map.
+BEHAVIOUR_TOLERANCE = 1e-9
+
+
+def _check_behaviour(path: Path, info: dict[str, Any], name: str, params: dict[str, Any], source: str) -> None:
+    """CliError where `name` as `source` defines it moves the trial poses otherwise than the
+    model states at its fitted values (metadata `effect_behaviour`; a model of an older
+    posecorr states none)."""
+    import numpy as np
+
+    from ..effects import EFFECTS, behaviour
+
+    stated = (info.get("effect_behaviour") or {}).get(name) if isinstance(info.get("effect_behaviour"), dict) else None
+    if not isinstance(stated, list):
+        return
+    theta = [v for param in EFFECTS[name].params for v in np.atleast_1d(params[param.name][0])]
+    again = behaviour(name, theta)
+    if len(again) != len(stated) or not np.allclose(again, stated, rtol=0.0, atol=BEHAVIOUR_TOLERANCE):
+        raise CliError(f"{path} was fitted with another {name} than {source} defines: at the model's values its map "
+                       "moves the same poses elsewhere (other terms, another formula): give the effect file the "
+                       "model was fitted with")
 
 
 def effects_help(what: str, fitted: bool = True) -> str:

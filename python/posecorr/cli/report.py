@@ -5,6 +5,7 @@ import argparse
 import json
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 from .common import (PAGE, CliError, Verb, backend_option, check_effect_files, diagnosis_options, effect_file_option,
                      effect_names, given, effects_help, emit, model_effect_names, output_option, progress, read_data)
@@ -59,17 +60,7 @@ def run(args: argparse.Namespace) -> None:
     if elsewhere:
         warn(f"{ledger_path(args.data)}: {counted(elsewhere, 'fit')} of another table under this name (other poses: "
              "the file was replaced, or the ledger copied, since) left out of the history")
-    diagnosis, no_diagnosis = None, None
-    if not args.no_diagnosis:
-        from ..analysis.diagnose import diagnose, require_diagnosable
-
-        try:
-            require_diagnosable(table, args.folds)
-        except ValueError as error:  # the page is still worth having without its diagnosis
-            no_diagnosis = getattr(error, "message", str(error))
-        else:
-            diagnosis = diagnose(table, asked, folds=args.folds, seed=args.seed,
-                                 model_corrected=corrected, progress=progress(args))
+    diagnosis, no_diagnosis = (None, None) if args.no_diagnosis else _diagnosis(args, table, asked, corrected)
     segments = None
     handle = open_sidecar(segments_path(args.data))
     if handle is not None:
@@ -88,6 +79,19 @@ def run(args: argparse.Namespace) -> None:
                   f"after: {summary['after']['scored']}, rmse_pos {1e3 * summary['after']['rmse_pos']:.4g} mm"
                   + (f"\n  note: no diagnosis on the page: {no_diagnosis}" if no_diagnosis else "")
                   + (f"\n  diagnosis: {takeaway(diagnosis, model_effects(info, diagnosis))}" if diagnosis else "")))
+
+
+def _diagnosis(args: argparse.Namespace, table: Any, asked: list[str], corrected: Any) -> tuple[Any, str | None]:
+    """(the diagnosis, None), or (None, why there is none): the page is still worth having
+    without it."""
+    from ..analysis.diagnose import diagnose, require_diagnosable
+
+    try:
+        require_diagnosable(table, args.folds)
+    except ValueError as error:
+        return None, getattr(error, "message", str(error))
+    return diagnose(table, asked, folds=args.folds, seed=args.seed, model_corrected=corrected,
+                    progress=progress(args)), None
 
 
 VERB = Verb(

@@ -233,6 +233,27 @@ def test_positions_spanning_more_than_a_cell_draw_a_units_warning(tmp_path, caps
                            "metres, and a tracked cell spans a few: are ref_x..ref_z in millimetres?")
 
 
+def test_a_verb_that_fits_refuses_two_frames_in_two_units(tmp_path) -> None:
+    """The reference in millimetres, the measured in metres: read with a warning, then fit
+    went on and wrote a model that scored 258 m held out. A registration keeps distances: the
+    frames' spreads 1000 times apart are two units, refused naming the columns. One pose 99 m
+    off (a glitch) moves neither spread."""
+    table = _table(8)
+    table.ref_p = table.ref_p * 0.3
+    table.meas_p = table.ref_p + 1e-3
+    table.meas_p[2, 0] = 99.0
+    require_rows(table, 3, "a fit")
+    table.meas_p[2, 0] = table.ref_p[2, 0] + 1e-3
+    table.ref_p = table.ref_p * 1000
+    spread = lambda p: np.max(np.median(np.abs(p - np.median(p, axis=0)), axis=0))   # noqa: E731
+    with pytest.raises(TableError) as info:
+        require_rows(table, 3, "a fit")
+    assert str(info.value).endswith(
+        f"the reference positions lie a typical {spread(table.ref_p):.4g} m from their median and the measured "
+        f"{spread(table.meas_p):.3g} m: a registration keeps distances, so the two are in units 1000 times apart "
+        "(are ref_x..ref_z in millimetres or centimetres? posecorr reads metres)"), str(info.value)
+
+
 def test_repeated_rows_are_named(tmp_path, capsys) -> None:
     """Rows that repeat an earlier row's poses are kept (nothing is dropped unsaid) and named
     by file row in one warning: held out, a repeat keeps its twin in training."""

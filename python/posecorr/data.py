@@ -157,7 +157,30 @@ def require_rows(table: PoseTable, needed: int, purpose: str) -> None:
         if spread < MIN_SPREAD:
             raise TableError(table.path, f"the {name} positions span only {spread:.3g} m; {purpose} needs "
                              f"poses spread over the workspace (at least {MIN_SPREAD:g} m)")
+    _require_one_unit(table)
     warn_fit_table(table)
+
+
+# A rigid registration keeps distances, and no effect scales them by more than a few per cent:
+# the two frames' spreads this many times apart are two units (millimetres and metres: 1000).
+UNITS_APART = 30.0
+
+
+def _require_one_unit(table: PoseTable) -> None:
+    """TableError where the measured and reference positions spread by `UNITS_APART` times
+    or more apart, the larger a metre or more (the median absolute deviation, which a
+    glitching pose does not move): a fit went on after a warning and wrote a model off by
+    hundreds of metres."""
+    spreads = {name: float(np.max(np.median(np.abs(p - np.median(p, axis=0)), axis=0)))
+               for name, p in (("measured", table.meas_p), ("reference", table.ref_p))}
+    large, small = sorted(spreads, key=spreads.get, reverse=True)
+    if spreads[large] >= 1.0 and spreads[large] >= UNITS_APART * spreads[small]:
+        columns = REF_POS if large == "reference" else MEAS_POS
+        raise TableError(table.path, f"the {large} positions lie a typical {spreads[large]:.4g} m from their median "
+                                     f"and the {small} {spreads[small]:.3g} m: a registration keeps distances, so "
+                                     f"the two are in units {spreads[large] / spreads[small]:.0f} times apart (are "
+                                     f"{columns[0]}..{columns[-1]} in millimetres or centimetres? posecorr reads "
+                                     "metres)")
 
 
 # Plain decimal notation only: Python's float() also takes "1_0", "infinity", "nan" and

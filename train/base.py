@@ -117,6 +117,33 @@ def check_pair(measured: Any, reference: Any) -> tuple[np.ndarray, np.ndarray]:
     return measured, check_poses(reference, "reference", len(measured))
 
 
+class Rule(NamedTuple):
+    """What a numeric parameter must be: `test` of a finite real number, said as `words`;
+    whole: an integer; none: None allowed (a default chosen at fit)."""
+
+    test: Callable[[float], bool]
+    words: str
+    whole: bool = False
+    none: bool = False
+
+
+def check_parameters(estimator: Any, rules: dict[str, Rule]) -> None:
+    """ValueError naming the first of the estimator's parameters in `rules` that breaks its
+    rule (a bool is no number, nor is NaN): an LM damping of 0 never grew and the training
+    never ended."""
+    import numbers
+
+    for name, rule in rules.items():
+        value = getattr(estimator, name)
+        if value is None and rule.none:
+            continue
+        kind = numbers.Integral if rule.whole else numbers.Real
+        if not (isinstance(value, kind) and not isinstance(value, (bool, np.bool_)) and np.isfinite(value)
+                and rule.test(value)):
+            what = "a whole number" if rule.whole else "a finite number"
+            raise ValueError(f"{name} must be {'None or ' if rule.none else ''}{what} {rule.words}, got {value!r}")
+
+
 class Validation(NamedTuple):
     """Held-out poses for early stopping: the one shape ``fit(..., validation=)`` takes everywhere."""
 
@@ -156,6 +183,14 @@ class PoseRegressorMixin(RegressorMixin):
         return tags
 
 
+def _same(a: Any, b: Any) -> bool:
+    """Whether two parameter values are equal (arrays by their text: == gives no one answer)."""
+    try:
+        return bool(a == b)
+    except (TypeError, ValueError):
+        return repr(a) == repr(b)
+
+
 class BaseCorrector(PoseRegressorMixin, BaseEstimator):
     """Shared plumbing; subclasses implement ``_fit_vectors`` and ``_core``.
 
@@ -166,6 +201,9 @@ class BaseCorrector(PoseRegressorMixin, BaseEstimator):
 
     method = "base"
     uses_validation = False       # fit uses `validation` poses (an MLP: early stopping, trainbr's monitor)
+    # The parameters the fitted state is built for and `predict` and the export read: one
+    # changed by set_params after fit would give another model's shape to these weights.
+    shaping: tuple[str, ...] = ("representation",)
 
     # --- fitting -----------------------------------------------------------------------
     @keeps_last_fit
@@ -174,6 +212,7 @@ class BaseCorrector(PoseRegressorMixin, BaseEstimator):
         every estimator checks it (these correctors take no time input); ``validation``
         (``Validation``) is for early stopping."""
         rotations.check_representation(self.representation)
+        self._check_parameters()
         measured, reference = check_pair(measured, reference)
         check_times(t, len(measured))
         if len(measured) < self.min_rows():
@@ -182,8 +221,12 @@ class BaseCorrector(PoseRegressorMixin, BaseEstimator):
         X = encode_pose(measured, self.representation)
         Y = encode_pose(reference, self.representation)
         self._fit_vectors(np.asarray(X, np.float64), np.asarray(Y, np.float64), as_validation(validation))
+        self.fitted_with_ = {name: getattr(self, name) for name in self.shaping}
         self.n_features_in_ = 7
         return self
+
+    def _check_parameters(self) -> None:
+        """ValueError where a parameter is out of its range, before any work."""
 
     def min_rows(self) -> int:
         """The fewest poses `fit` takes (a quadratic PMC: one more than its terms)."""
@@ -204,6 +247,12 @@ class BaseCorrector(PoseRegressorMixin, BaseEstimator):
     def _check_fitted(self) -> None:
         if not hasattr(self, "n_features_in_"):
             raise NotFittedError(f"this {type(self).__name__} is not fitted yet: call fit first")
+        changed = next((name for name, value in getattr(self, "fitted_with_", {}).items()
+                        if not _same(getattr(self, name), value)), None)
+        if changed is not None:
+            raise NotFittedError(f"this {type(self).__name__} was fitted with {changed}="
+                                 f"{self.fitted_with_[changed]!r}, and set_params made it {getattr(self, changed)!r}: "
+                                 "call fit again")
 
     # --- inference -----------------------------------------------------------------------
     def forward(self, pose: Any) -> Any:

@@ -41,7 +41,7 @@ import numpy as np
 from posecorr._xp import namespace
 
 from .activations import get_activation, mlp_forward
-from .base import BaseCorrector, Validation, check_poses, encode_pose, vector_size
+from .base import BaseCorrector, Rule, Validation, check_parameters, check_poses, encode_pose, vector_size
 from .spec import DEFAULT_ACTIVATION, DEFAULT_EPOCHS, DEFAULT_HIDDEN, DEFAULT_TRAINER, parse_hidden
 from .splits import validation_split
 from .trainers import TRAINERS
@@ -107,6 +107,22 @@ def init_weights(sizes: Sequence[int], activation: str, rng: np.random.Generator
     return coefs, intercepts
 
 
+# The numeric parameters' ranges (`check_parameters`): a damping of 0 or a growth factor of 1
+# never reached mu_max, and the training never ended.
+PARAMETER_RULES = {
+    "goal": Rule(lambda v: v >= 0, ">= 0"),
+    "min_grad": Rule(lambda v: v >= 0, ">= 0"),
+    "max_fail": Rule(lambda v: v >= 1, ">= 1", whole=True),
+    "mu": Rule(lambda v: v > 0, "> 0", none=True),
+    "mu_dec": Rule(lambda v: 0 < v <= 1, "in (0, 1] (1: held)"),
+    "mu_inc": Rule(lambda v: v > 1, "> 1"),
+    "mu_max": Rule(lambda v: v > 0, "> 0"),
+    "lr": Rule(lambda v: v > 0, "> 0"),
+    "verbose": Rule(lambda v: v >= 0, ">= 0 (0: silent)", whole=True),
+    "num_threads": Rule(lambda v: v >= 1, ">= 1", whole=True, none=True),
+}
+
+
 @dataclass(repr=False, eq=False)
 class MLP(BaseCorrector):
     """Feed-forward network corrector, trained like MATLAB's ``train`` with ``trainFcn``.
@@ -167,6 +183,14 @@ class MLP(BaseCorrector):
 
     method = "mlp"
     uses_validation = True
+    shaping = ("representation", "hidden", "activation", "normalization", "residual")
+
+    def _check_parameters(self) -> None:
+        check_parameters(self, PARAMETER_RULES)
+        if not isinstance(self.merge_validation, (bool, np.bool_)):
+            raise ValueError(f"merge_validation must be True or False, got {self.merge_validation!r}")
+        if self.mu is not None and self.mu > self.mu_max:
+            raise ValueError(f"mu must be at most mu_max ({self.mu_max!r}), got {self.mu!r}")
 
     # --- fit ----------------------------------------------------------------------------
     def min_rows(self) -> int:

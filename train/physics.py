@@ -153,6 +153,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
             self.params_ = self._unflatten(theta)
             # Standard errors cost a Jacobian: computed when first asked for (folds never are).
             self._std_source = (theta, measured, reference)
+            self.__dict__.pop("_std_errors_cache", None)   # an earlier fit's, on other data
             self._data = (measured, reference)
         self.n_features_in_ = 7
         return self
@@ -687,6 +688,7 @@ class RigidModel(PhysicsModel):
         self.cost_ = float("nan")
         self.params_ = self._unflatten(theta)
         self._std_source = (theta, measured, reference)
+        self.__dict__.pop("_std_errors_cache", None)   # an earlier fit's, on other data
         self.n_features_in_ = 7
         return self
 

@@ -31,6 +31,7 @@ ops -> ONE ``xp.linear`` (a Gemm) -> decode. Outputs are decoded to a proper rot
 """
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -38,7 +39,7 @@ import numpy as np
 
 from posecorr._xp import namespace
 
-from .base import BaseCorrector, Validation, vector_size
+from .base import BaseCorrector, Rule, Validation, check_parameters, vector_size
 
 DEFAULT_ALPHA_GRID = (0.0, 1e-10, 1e-8, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0)
 
@@ -134,6 +135,19 @@ class PMC(BaseCorrector):
     degree: int = 2
 
     method = "pmc"
+    shaping = ("representation", "degree")
+
+    def _check_parameters(self) -> None:
+        if isinstance(self.degree, bool) or self.degree not in (1, 2):
+            raise ValueError(f"degree must be 1 (affine) or 2 (quadratic), got {self.degree!r}")
+        if self.alpha != "cv":
+            check_parameters(self, {"alpha": Rule(lambda v: v >= 0, ">= 0 or 'cv'")})
+            return
+        check_parameters(self, {"cv_folds": Rule(lambda v: v >= 2, ">= 2", whole=True)})
+        grid = list(self.alpha_grid) if not isinstance(self.alpha_grid, str) else []
+        if not grid or not all(isinstance(a, numbers.Real) and not isinstance(a, bool) and np.isfinite(a) and a >= 0
+                               for a in grid):
+            raise ValueError(f"alpha_grid must hold one or more finite numbers >= 0, got {self.alpha_grid!r}")
 
     def min_rows(self) -> int:
         d = vector_size(self.representation)
@@ -145,19 +159,13 @@ class PMC(BaseCorrector):
 
     def _fit_vectors(self, X: np.ndarray, Y: np.ndarray, validation: Validation | None) -> None:
         # validation is ignored: PMC is not iterative.
-        if self.degree not in (1, 2):
-            raise ValueError(f"degree must be 1 (affine) or 2 (quadratic), got {self.degree!r}")
         gain, offset = column_scaling(X)
         F = np.asarray(quadratic_features(X * gain + offset, self.degree))
         T = Y - X
-        if isinstance(self.alpha, str):
-            if self.alpha != "cv":
-                raise ValueError(f"alpha must be a number >= 0 or 'cv', got {self.alpha!r}")
+        if self.alpha == "cv":
             alpha, self.cv_scores_ = self._cross_validate(F, T)
         else:
             alpha = float(self.alpha)
-            if alpha < 0:
-                raise ValueError(f"alpha must be >= 0, got {alpha}")
             self.__dict__.pop("cv_scores_", None)   # a refit with a given alpha scored none
         W, b = _solve(F, T, alpha)
         # Fold the identity back in: X = (xs - offset) / gain is linear in the features.

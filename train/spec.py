@@ -15,6 +15,8 @@ Reading this module needs neither scikit-learn nor torch.
 """
 from __future__ import annotations
 
+import numbers
+
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -120,6 +122,10 @@ def parse_hidden(hidden: Any) -> tuple[int, ...]:
         hidden = [int(p) for p in parts]
     elif isinstance(hidden, (int, np.integer)):
         hidden = [int(hidden)]
+    not_whole = next((h for h in hidden if not isinstance(h, (numbers.Real, np.number)) or isinstance(h, bool)
+                      or not float(h).is_integer()), None)
+    if not_whole is not None:   # int() made 2.5 a layer of 2
+        raise ValueError(f"layer sizes are integers in 1..{LAYER_WIDTH_MAX}, got {not_whole!r}")
     out = tuple(int(h) for h in hidden)
     wrong = next((h for h in out if not 1 <= h <= LAYER_WIDTH_MAX), None)
     if wrong is not None:

@@ -755,8 +755,12 @@ def registration_names() -> list[str]:
     return [roles[role] for role in REGISTRATION_ROLES if role in roles]
 
 
-def sorted_effects(names: Iterable[str]) -> list[Effect]:
-    """The named effects in application order."""
+def sorted_effects(names: Iterable[str] | str) -> list[Effect]:
+    """The named effects in application order: `names` an iterable of names or one string of
+    them with commas, as the command line takes them (a string was iterated letter by
+    letter: "unknown effect 's'")."""
+    if isinstance(names, str):
+        names = [name.strip() for name in names.split(",")]
     return sorted((get_effect(n) for n in names), key=lambda e: e.order)
 
 

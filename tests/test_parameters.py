@@ -1,0 +1,101 @@
+"""The estimators' parameters: out of range refused before any work, naming the parameter and
+its range; one changed by set_params after fit refused until the next fit; a refit's state all
+its own (an audit of the Python API found each of these)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from sklearn.exceptions import NotFittedError
+
+from posecorr.simulate import simulate
+from posecorr.train.mlp import MLP
+from posecorr.train.physics import PhysicsModel
+from posecorr.train.pipeline import CorrectionPipeline
+from posecorr.train.pmc import PMC
+
+
+@pytest.fixture(scope="module")
+def poses():
+    table = simulate(3, seed=0).table.draw(120)[0]
+    return table.measured, table.reference
+
+
+@pytest.mark.parametrize("change,expected", [
+    # a damping of 0 never grew, a growth of 1 never reached mu_max: the training never ended
+    ({"mu": 0.0}, "mu must be None or a finite number > 0, got 0.0"),
+    ({"mu": -1.0}, "mu must be None or a finite number > 0, got -1.0"),
+    ({"mu": float("nan")}, "mu must be None or a finite number > 0, got nan"),
+    ({"mu_inc": 1.0}, "mu_inc must be a finite number > 1, got 1.0"),
+    ({"mu_dec": 1.5}, r"mu_dec must be a finite number in \(0, 1\] \(1: held\), got 1.5"),
+    ({"mu": 1e11}, r"mu must be at most mu_max \(10000000000.0\), got 100000000000.0"),
+    ({"lr": -1.0}, "lr must be a finite number > 0, got -1.0"),
+    ({"max_fail": -1}, "max_fail must be a whole number >= 1, got -1"),
+    ({"verbose": -1}, r"verbose must be a whole number >= 0 \(0: silent\), got -1"),
+    ({"num_threads": 0}, "num_threads must be None or a whole number >= 1, got 0"),
+    ({"goal": True}, "goal must be a finite number >= 0, got True"),
+    ({"merge_validation": "x"}, "merge_validation must be True or False, got 'x'"),
+    ({"hidden": (2.5,)}, r"layer sizes are integers in 1..1024, got 2.5"),
+])
+def test_an_mlp_parameter_out_of_range_is_refused_before_any_work(poses, change, expected):
+    with pytest.raises(ValueError, match=f"^{expected}$"):
+        MLP(**{"hidden": (3,), "epochs": 2, "trainer": "lm", **change}).fit(*poses)
+
+
+@pytest.mark.parametrize("change,expected", [
+    # NaN fitted an unpenalised minimum-norm map labelled "ridge"; inf met LAPACK
+    ({"alpha": float("nan")}, "alpha must be a finite number >= 0 or 'cv', got nan"),
+    ({"alpha": float("inf")}, "alpha must be a finite number >= 0 or 'cv', got inf"),
+    ({"alpha": None}, "alpha must be a finite number >= 0 or 'cv', got None"),
+    ({"alpha": "cv", "alpha_grid": [-0.5]}, r"alpha_grid must hold one or more finite numbers >= 0, got \[-0.5\]"),
+    ({"alpha": "cv", "alpha_grid": []}, r"alpha_grid must hold one or more finite numbers >= 0, got \[\]"),
+    ({"alpha": "cv", "cv_folds": 1}, "cv_folds must be a whole number >= 2, got 1"),
+    ({"degree": True}, r"degree must be 1 \(affine\) or 2 \(quadratic\), got True"),
+])
+def test_a_pmc_parameter_out_of_range_is_refused_before_any_work(poses, change, expected):
+    with pytest.raises(ValueError, match=f"^{expected}$"):
+        PMC(**change).fit(*poses)
+
+
+@pytest.mark.parametrize("make,change", [
+    (lambda: PMC(), {"degree": 1}),
+    (lambda: PMC(), {"representation": "quat"}),
+    (lambda: MLP(hidden=(3,), epochs=2), {"residual": True}),
+    (lambda: MLP(hidden=(3,), epochs=2), {"activation": "logsig"}),
+])
+def test_a_parameter_changed_after_fit_is_refused_until_the_next_fit(poses, make, change):
+    """predict read the parameter and the weights of the fit: residual=True moved the poses by
+    0.69 m without a word, degree=1 met numpy's shapes."""
+    measured, reference = poses
+    estimator = make().fit(measured, reference)
+    before = estimator.predict(measured)
+    (name, value), = change.items()
+    fitted = getattr(estimator, name)
+    estimator.set_params(**change)
+    with pytest.raises(NotFittedError, match=f"was fitted with {name}={fitted!r}, and set_params made it "
+                                             f"{value!r}: call fit again"):
+        estimator.predict(measured)
+    estimator.set_params(**{name: fitted})   # back as it was fitted: the same model
+    np.testing.assert_array_equal(estimator.predict(measured), before)
+    estimator.set_params(**change).fit(measured, reference)
+    assert estimator.predict(measured).shape == measured.shape
+
+
+def test_a_refit_has_the_standard_errors_of_its_own_data(poses):
+    """The first fit's standard errors stayed cached through a refit on other data, and
+    describe() showed them beside the new values."""
+    other = simulate(3, seed=5).table.draw(120)[0]
+    model = PhysicsModel(("station", "mount")).fit(*poses)
+    first = model.std_errors_["station"]
+    model.fit(other.measured, other.reference)
+    fresh = PhysicsModel(("station", "mount")).fit(other.measured, other.reference)
+    np.testing.assert_allclose(model.std_errors_["station"], fresh.std_errors_["station"], rtol=1e-9)
+    assert not np.allclose(model.std_errors_["station"], first)
+
+
+def test_effects_given_as_one_string_are_the_names_it_lists(poses):
+    """"station,mount", as the command line takes it, was read letter by letter."""
+    measured, reference = poses
+    assert list(PhysicsModel("station,mount").fit(measured, reference).params_) == ["mount", "station"]
+    assert list(PhysicsModel("station").fit(measured, reference).params_) == ["station"]
+    assert CorrectionPipeline(effects="station, mount").fit(measured, reference).export_info()["effects"] == [
+        "mount", "station"]

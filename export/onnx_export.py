@@ -354,6 +354,9 @@ def _training_arrays(estimator: Any, measured: Any, reference: Any) -> tuple[Any
             reference = getattr(estimator, attr, None)
             if reference is not None:
                 break
+    if measured is not None and reference is not None and len(measured) != len(reference):
+        # the digest and the parity check are of the pairs: poses that are not pairs are neither
+        raise ValueError(f"reference has {len(reference)} rows, expected {len(measured)} like measured")
     return measured, reference
 
 

@@ -99,3 +99,43 @@ def test_effects_given_as_one_string_are_the_names_it_lists(poses):
     assert list(PhysicsModel("station").fit(measured, reference).params_) == ["station"]
     assert CorrectionPipeline(effects="station, mount").fit(measured, reference).export_info()["effects"] == [
         "mount", "station"]
+
+
+def test_a_warm_start_that_is_not_one_is_refused_naming_it(poses):
+    """A fitted model of other effects met numpy's shapes ("could not be broadcast"); an
+    unknown effect's theta was ignored without a word; an unfitted model, an AttributeError."""
+    measured, reference = poses
+    wider = PhysicsModel(("station", "mount", "range_scale")).fit(measured, reference)
+    model = PhysicsModel(("station", "mount")).fit(measured, reference, warm_start=wider)   # its values, not its folds
+    fresh = PhysicsModel(("station", "mount")).fit(measured, reference)
+    for name in ("station", "mount"):
+        np.testing.assert_allclose(model.params_[name], fresh.params_[name], atol=1e-6)
+    for warm, expected in (({"foo": [1.0]}, r"warm_start names 'foo', which is not one of the effects fitted "
+                                            r"\(mount, station\)"),
+                           ({"station": [1.0, 2.0]}, r"warm_start\['station'\] must be 6 finite numbers, got \[1.0, 2.0\]"),
+                           (PhysicsModel(("station", "mount")), "not fitted yet")):
+        with pytest.raises(ValueError, match=expected):
+            PhysicsModel(("station", "mount")).fit(measured, reference, warm_start=warm)
+
+
+def test_a_value_that_is_not_finite_is_named_by_row_and_column(poses):
+    measured, reference = poses
+    broken = measured.copy()
+    broken[5, 1] = np.nan
+    with pytest.raises(ValueError, match=r"^measured contains NaN or infinite values: row 5, column 1 \(y\) is nan$"):
+        PMC().fit(broken, reference)
+
+
+def test_an_export_refuses_poses_that_are_not_pairs_and_a_folder(poses, tmp_path):
+    """to_onnx wrote a training digest of 120 measured poses against 10 references, and on a
+    folder failed after the work in a temporary file's name ('/.tmp.NNN.tmp' -> '/tmp')."""
+    from posecorr.export import to_onnx
+    from posecorr.safeio import OutputPathError
+
+    measured, reference = poses
+    model = PMC().fit(measured, reference)
+    with pytest.raises(ValueError, match="^reference has 10 rows, expected 120 like measured$"):
+        to_onnx(model, tmp_path / "m.onnx", measured=measured, reference=reference[:10])
+    with pytest.raises(OutputPathError, match=f"^{tmp_path}: is a folder, expected a file name to write$"):
+        to_onnx(model, tmp_path, measured=measured, reference=reference)
+    assert not (tmp_path / "m.onnx").exists()

@@ -68,6 +68,10 @@ def decode_pose(vector: Any, pose: Any, rep: str) -> Any:
     return xp.concat([p, q], axis=-1)
 
 
+# The contract's names of a pose's columns.
+POSE_COLUMNS = ("x", "y", "z", "qw", "qx", "qy", "qz")
+
+
 def check_poses(a: Any, name: str, n: int | None = None) -> np.ndarray:
     """An (N, 7) finite float64 array of unit quaternions, or an error naming the argument (in
     scikit-learn's words where it has some: sparse, complex, feature(s))."""
@@ -86,7 +90,9 @@ def check_poses(a: Any, name: str, n: int | None = None) -> np.ndarray:
     if n is not None and arr.shape[0] != n:
         raise ValueError(f"{name} has {arr.shape[0]} rows, expected {n} like measured")
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contains NaN or infinite values")
+        row, column = (int(i) for i in np.argwhere(~np.isfinite(arr))[0])
+        raise ValueError(f"{name} contains NaN or infinite values: row {row}, column {column} "
+                         f"({POSE_COLUMNS[column]}) is {arr[row, column]}")
     # The runtime's and the table reader's rule: a zero or norm-3 quaternion is a glitch that
     # normalising would turn into a made-up rotation.
     off, what = quaternion_faults(arr[:, 3:])

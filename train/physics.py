@@ -114,8 +114,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         """
         measured, reference, chosen = self._setup(measured, reference, t)
         with_rotation = self.with_rotation_
-        prior = warm_start if isinstance(warm_start, PhysicsModel) else None
-        thetas = dict(prior.params_) if prior is not None else dict(warm_start or {})
+        prior, thetas = _warm(warm_start, chosen)
         if prior is not None and all(effect.name in thetas for effect in chosen):
             # A fold of a fitted model: it lends the start and the noise levels, so the
             # closed-form start (and its noise estimate) would be discarded.
@@ -641,6 +640,28 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
                 error = [None if not np.isfinite(e) else float(e) for e in std[sl]]
                 out[name][param] = [value[0], error[0]] if len(value) == 1 else [value, error]
         return out
+
+
+def _warm(warm_start: Any, chosen: list) -> tuple["PhysicsModel | None", dict[str, np.ndarray]]:
+    """(the fitted model of these effects a fold starts from, or None; {effect: theta} to
+    start from), ValueError where `warm_start` cannot be either: it met numpy's shapes ("could
+    not be broadcast together") or was ignored without a word."""
+    sizes = {effect.name: effect.size for effect in chosen}
+    if isinstance(warm_start, PhysicsModel):
+        warm_start._check_fitted()
+        if set(warm_start.params_) == set(sizes):
+            return warm_start, dict(warm_start.params_)
+        warm_start = {name: theta for name, theta in warm_start.params_.items() if name in sizes}
+    thetas = dict(warm_start or {})
+    for name, theta in thetas.items():
+        if name not in sizes:
+            raise ValueError(f"warm_start names {name!r}, which is not one of the effects fitted "
+                             f"({', '.join(sizes)})")
+        value = np.asarray(theta, float).reshape(-1)
+        if value.size != sizes[name] or not np.all(np.isfinite(value)):
+            raise ValueError(f"warm_start[{name!r}] must be {sizes[name]} finite numbers, got {theta!r}")
+        thetas[name] = value
+    return None, thetas
 
 
 class RigidModel(PhysicsModel):

@@ -201,6 +201,8 @@ class _Pending:
 
     def __init__(self, path: str | os.PathLike[str]):
         self.path = Path(path)
+        if self.path.is_dir():   # the rename would fail after the work, in the temporary file's name
+            raise OutputPathError(f"{self.path}: is a folder, expected a file name to write")
         self.folder = self.path.parent if str(self.path.parent) else Path(".")
         self.fd = _unnamed_file(self.folder)
         self.named: str | None = None

@@ -139,3 +139,8 @@ def test_an_export_refuses_poses_that_are_not_pairs_and_a_folder(poses, tmp_path
     with pytest.raises(OutputPathError, match=f"^{tmp_path}: is a folder, expected a file name to write$"):
         to_onnx(model, tmp_path, measured=measured, reference=reference)
     assert not (tmp_path / "m.onnx").exists()
+
+
+def test_with_rotation_is_true_or_false(poses):
+    with pytest.raises(ValueError, match="^with_rotation must be True or False, got 'no'$"):   # was True
+        PhysicsModel(("station", "mount"), with_rotation="no").fit(*poses)

@@ -174,6 +174,8 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
                              f"{MIN_FIT_POSES} poses, got {len(measured)}")
         base = EffectContext.default()
         self.ctx_ = EffectContext(base.R_S, base.t_S, reference[:, :3].mean(axis=0), t=t)
+        if not isinstance(self.with_rotation, (bool, np.bool_)):   # "no" was True
+            raise ValueError(f"with_rotation must be True or False, got {self.with_rotation!r}")
         self.with_rotation_ = bool(self.with_rotation)
         self._chosen = chosen
         self.spread_ = describe_spread(measured[:, :3], rotations.quat_to_matrix(measured[:, 3:7]),

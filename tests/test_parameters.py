@@ -144,3 +144,20 @@ def test_an_export_refuses_poses_that_are_not_pairs_and_a_folder(poses, tmp_path
 def test_with_rotation_is_true_or_false(poses):
     with pytest.raises(ValueError, match="^with_rotation must be True or False, got 'no'$"):   # was True
         PhysicsModel(("station", "mount"), with_rotation="no").fit(*poses)
+
+
+def test_every_corrector_exports_itself(poses, tmp_path):
+    """The design lists to_onnx among every corrector's methods; the physics stage and the
+    rigid fit had none (posecorr.export.to_onnx took them)."""
+    import onnxruntime as ort
+
+    from posecorr.train.physics import RigidModel
+
+    measured, reference = poses
+    for model in (PhysicsModel(("station", "mount")), RigidModel()):
+        model.fit(measured, reference)
+        path = tmp_path / f"{type(model).__name__}.onnx"
+        model.to_onnx(path, measured=measured, reference=reference)
+        session = ort.InferenceSession(str(path))
+        got = session.run(None, {"pose": measured[:8].astype(np.float32)})[0]
+        np.testing.assert_allclose(got[:, :3], model.predict(measured[:8])[:, :3], atol=1e-5)

@@ -179,7 +179,15 @@ def keeps_last_fit(fit: Callable[..., Any]) -> Callable[..., Any]:
 
 
 class PoseRegressorMixin(RegressorMixin):
-    """scikit-learn's tags of a corrector: a regressor from (N, 7) poses to (N, 7) poses."""
+    """What every corrector shares: scikit-learn's tags of a regressor from (N, 7) poses to
+    (N, 7) poses, and its export."""
+
+    def to_onnx(self, path: Any, **metadata: Any) -> Any:
+        """Write the fitted corrector as an ONNX model (``posecorr.export.to_onnx``)."""
+        self._check_fitted()
+        from posecorr.export import to_onnx
+
+        return to_onnx(self, path, **metadata)
 
     def __sklearn_tags__(self) -> Any:
         tags = super().__sklearn_tags__()
@@ -291,9 +299,3 @@ class BaseCorrector(PoseRegressorMixin, BaseEstimator):
         """What the exported file's metadata says about the corrector (after fit)."""
         raise NotImplementedError
 
-    def to_onnx(self, path: Any, **metadata: Any) -> Any:
-        """Write the fitted corrector as an ONNX model (``posecorr.export.to_onnx``)."""
-        self._check_fitted()
-        from posecorr.export import to_onnx
-
-        return to_onnx(self, path, **metadata)

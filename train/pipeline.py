@@ -157,12 +157,6 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
         self._check_fitted()
         return self.physics_ is not None and self.physics_.needs_time
 
-    def to_onnx(self, path: Any, **metadata: Any) -> Any:
-        self._check_fitted()
-        from posecorr.export import to_onnx
-
-        return to_onnx(self, path, **metadata)
-
 
 # --- cross-validation ------------------------------------------------------------------
 

@@ -202,3 +202,20 @@ def test_hand_written_reference_equals_pc_run(lib, model_path, monkeypatch):
                 "reference_batch_ns_per_pose"):
         assert ref[key] > 0
     assert reference_bench(model_path) is None
+
+
+@pytest.mark.parametrize("backend", ["c", "onnxruntime"])
+def test_a_corrector_copies_by_loading_its_model_again(backend, tmp_path):
+    """pickle (a worker process) and deepcopy failed on the ctypes library; a copy is the
+    model loaded again from what the first was given (a file or its bytes), checks and
+    options included, and gives the same bits."""
+    import copy
+    import pickle
+
+    path = ROOT / "models" / "pmc-zhou.onnx"
+    poses = graphs.poses_in_box(path, 16, 3).astype(np.float64)
+    for given in (path, path.read_bytes()):
+        first = Corrector(given, backend, max_batch=4)
+        for again in (pickle.loads(pickle.dumps(first)), copy.deepcopy(first)):
+            assert again is not first and again.backend == backend and again._options["max_batch"] == 4
+            np.testing.assert_array_equal(again.correct(poses), first.correct(poses))

@@ -386,6 +386,11 @@ def _real(values: Any, what: str) -> np.ndarray:
     return a
 
 
+def _loaded(path: Any, backend: str, options: dict[str, Any]) -> "Corrector":
+    """A Corrector made again from its arguments (`Corrector.__reduce__`)."""
+    return Corrector(path, backend, **options)
+
+
 class Corrector:
     """An exported corrector: ``Corrector("model.onnx").correct(poses)``.
 
@@ -418,6 +423,8 @@ class Corrector:
             path = bytes(path)
         self.path = path if isinstance(path, bytes) else Path(path)
         self.backend = backend
+        self._options = {"library": library, "max_batch": max_batch, "allow_unbounded": allow_unbounded,
+                         "allow_unsigned": allow_unsigned}
         if backend == "c":
             flags = (_ALLOW_UNBOUNDED if allow_unbounded else 0) | (_ALLOW_UNSIGNED if allow_unsigned else 0)
             self._impl: Any = _CBackend(path, library, max_batch, flags)
@@ -430,6 +437,11 @@ class Corrector:
         self.output_name = "corrected"
         # The model has the input `t` (a time-dependent effect such as drift).
         self.takes_time: bool = self._impl.takes_time
+
+    def __reduce__(self) -> tuple:
+        # a loaded library and model are no data: a copy (pickle, deepcopy, a worker process)
+        # loads the model again from what this one was given, its checks included
+        return _loaded, (self.path, self.backend, self._options)
 
     def correct(self, poses: Any, t: Any = None) -> np.ndarray:
         """Corrects one pose (7,) or a batch (N, 7): x, y, z, qw, qx, qy, qz.

@@ -622,7 +622,11 @@ def _second_chance(search: _Search, rows: list[dict[str, Any]], accepted: list[s
                    and not get_effect(row["effect"]).generic
                    and (not _earns(row) or not set(row.get("given", ())) <= set(context))
                    and row.get("given") != context]
-        if not context or not waiting:
+        if not context:   # nothing kept to test them given: their test alone says why they are not
+            for row in waiting:
+                _settle_given(search, row, [], {})
+            return accepted
+        if not waiting:
             return accepted
         for row in waiting:
             search.say(f"candidate {row['effect']} given {', '.join(context)}")
@@ -716,8 +720,9 @@ def _rivals(search: _Search, accepted: list[str], by_name: dict[str, dict]) -> t
 
 
 def _settle_given(search: _Search, row: dict[str, Any], others: list[str], context: dict[str, Any]) -> None:
-    """The record of the test that keeps `row`, taking a form's place: given `others`, or
-    alone (its forward test given the form it replaces no longer says why it is kept)."""
+    """`row`'s record of its test given `others` (the test `context`), or with no others none:
+    its test alone then says why it is kept (taking a form's place: its forward test given
+    that form no longer does) or not (everything it was tested given has been dropped)."""
     if others:
         _record_given(search, row, others, context)
     else:

@@ -31,6 +31,7 @@ it. Without an `inverse` it is inverted by the generic fixed-point iteration of 
 from __future__ import annotations
 
 import importlib.util
+import numbers
 import re
 import sys
 import warnings
@@ -90,7 +91,7 @@ class Param:
     unbounded: bool = False
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.size, int) and self.size >= 1):
+        if isinstance(self.size, bool) or not (isinstance(self.size, numbers.Integral) and self.size >= 1):
             raise ValueError(f"parameter {self.name}: size must be a whole number >= 1, got {self.size!r}")
         if len(self.default) != self.size:
             raise ValueError(f"parameter {self.name}: default has {len(self.default)} values, size is {self.size}")

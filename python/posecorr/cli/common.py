@@ -200,11 +200,13 @@ def load_effect_files(args: argparse.Namespace, exported: bool = False, advised:
     must also trace into an ONNX graph, checked now rather than after the fit; `advised` (a
     verb whose advice is a fit with them): one that does not trace is named in a warning,
     for the fit advised would refuse it."""
+    files = [str(path) for path in getattr(args, "effect_file", None) or []]
+    if not files:
+        return files
     from ..effects import get_effect, load_effect_file
     from ..export.effect_trace import untraceable
     from ..safeio import warn
 
-    files = [str(path) for path in getattr(args, "effect_file", None) or []]
     for path in files:
         names = load_effect_file(path, untraceable if exported else None)
         for name in names if advised else ():
@@ -295,9 +297,14 @@ def _check_behaviour(path: Path, info: dict[str, Any], name: str, params: dict[s
     stated = (info.get("effect_behaviour") or {}).get(name) if isinstance(info.get("effect_behaviour"), dict) else None
     if not isinstance(stated, list):
         return
-    theta = [v for param in EFFECTS[name].params for v in np.atleast_1d(params[param.name][0])]
-    again = behaviour(name, theta)
-    if len(again) != len(stated) or not np.allclose(again, stated, rtol=0.0, atol=BEHAVIOUR_TOLERANCE):
+    try:   # the file's author wrote the metadata: what is not numbers states nothing
+        stated = np.asarray(stated, float).reshape(-1)
+        theta = np.concatenate([np.atleast_1d(np.asarray(params[param.name][0], float))
+                                for param in EFFECTS[name].params])
+    except (KeyError, TypeError, ValueError, IndexError):
+        return
+    again = np.asarray(behaviour(name, theta))
+    if again.shape != stated.shape or not np.allclose(again, stated, rtol=0.0, atol=BEHAVIOUR_TOLERANCE):
         raise CliError(f"{path} was fitted with another {name} than {source} defines: at the model's values its map "
                        "moves the same poses elsewhere (other terms, another formula): give the effect file the "
                        "model was fitted with")

@@ -414,9 +414,9 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         bounded = bool(np.any(np.isfinite(z_lower) | np.isfinite(z_upper)))
         # MINPACK's Levenberg-Marquardt where nothing is bounded: a third of trf's overhead.
         method = "trf" if bounded or residual.size < SB.shape[1] else "lm"
-        with np.errstate(all="ignore"):
+        with np.errstate(all="ignore"):   # one evaluation of the (1 + free parameters) each step takes
             start_finite = np.all(np.isfinite(f(np.zeros(SB.shape[1]))))
-        if not start_finite:
+        if not start_finite:   # scipy's words were "Residuals are not finite in the initial point", on the table
             self._require_defined(theta0, reference, "where the fit starts")
         result = least_squares(f, np.zeros(SB.shape[1]), jac=jac, method=method,
                                bounds=(z_lower, z_upper) if bounded else (-np.inf, np.inf),

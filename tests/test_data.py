@@ -245,7 +245,9 @@ def test_a_verb_that_fits_refuses_two_frames_in_two_units(tmp_path) -> None:
     require_rows(table, 3, "a fit")
     table.meas_p[2, 0] = table.ref_p[2, 0] + 1e-3
     table.ref_p = table.ref_p * 1000
-    spread = lambda p: np.max(np.median(np.abs(p - np.median(p, axis=0)), axis=0))   # noqa: E731
+    def spread(p: np.ndarray) -> float:   # the median absolute deviation of the worst axis
+        return np.max(np.median(np.abs(p - np.median(p, axis=0)), axis=0))
+
     with pytest.raises(TableError) as info:
         require_rows(table, 3, "a fit")
     assert str(info.value).endswith(

@@ -27,8 +27,9 @@ regeneration command; `models/index.json` lists them.
 `python -m tools.models --metadata-only` rewrites, without refitting, what the code states
 about the models already in models/: the split's recipe (`split`), the box of poses
 (`input_bounds`, kept where recorded), the cone of training orientations of a core that reads
-the orientation (`training_orientations`, kept where recorded), the correction reach (`correction_reach`, the model's
-graph on the training poses and drawn ones, as `to_onnx` records it) and the digest
+the orientation (`training_orientations`, kept where recorded), the correction reach
+(`correction_reach`, the model's graph on the training poses and drawn ones, as `to_onnx`
+records it) and the digest
 (`model_digest`), and each card from the file and the regenerated data. The data is
 regenerated from its seeds and checked to be the model's; the file is rewritten with
 `serialize_aligned` and signed, its graph and weights byte for byte the same (checked).

@@ -133,21 +133,28 @@ class Rule(NamedTuple):
     none: bool = False
 
 
-def check_parameters(estimator: Any, rules: dict[str, Rule]) -> None:
-    """ValueError naming the first of the estimator's parameters in `rules` that breaks its
-    rule (a bool is no number, nor is NaN): an LM damping of 0 never grew and the training
-    never ended."""
+def finite_number(value: Any, whole: bool = False) -> bool:
+    """Whether `value` is a finite real number (an integer where `whole`): a bool is none."""
     import numbers
 
+    kind = numbers.Integral if whole else numbers.Real
+    return isinstance(value, kind) and not isinstance(value, (bool, np.bool_)) and bool(np.isfinite(value))
+
+
+def check_parameters(estimator: Any, rules: dict[str, Rule], flags: tuple[str, ...] = ()) -> None:
+    """ValueError naming the first of the estimator's parameters in `rules` that breaks its
+    rule (a bool is no number, nor is NaN: an LM damping of 0 never grew and the training
+    never ended), or of its `flags` that is not True or False ("no" was True)."""
     for name, rule in rules.items():
         value = getattr(estimator, name)
         if value is None and rule.none:
             continue
-        kind = numbers.Integral if rule.whole else numbers.Real
-        if not (isinstance(value, kind) and not isinstance(value, (bool, np.bool_)) and np.isfinite(value)
-                and rule.test(value)):
+        if not (finite_number(value, rule.whole) and rule.test(value)):
             what = "a whole number" if rule.whole else "a finite number"
             raise ValueError(f"{name} must be {'None or ' if rule.none else ''}{what} {rule.words}, got {value!r}")
+    for name in flags:
+        if not isinstance(getattr(estimator, name), (bool, np.bool_)):
+            raise ValueError(f"{name} must be True or False, got {getattr(estimator, name)!r}")
 
 
 class Validation(NamedTuple):

@@ -32,7 +32,6 @@ and "br" (trainbr) solve with the Gauss-Newton matrix of ``lm.py``.
 """
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -120,6 +119,8 @@ PARAMETER_RULES = {
     "lr": Rule(lambda v: v > 0, "> 0"),
     "verbose": Rule(lambda v: v >= 0, ">= 0 (0: silent)", whole=True),
     "num_threads": Rule(lambda v: v >= 1, ">= 1", whole=True, none=True),
+    "epochs": Rule(lambda v: v >= 0, ">= 0 (0: the initial network)", whole=True),
+    "validation_fraction": Rule(lambda v: 0 <= v < 1, "in [0, 1) (the share of the poses held for early stopping)"),
 }
 
 
@@ -186,9 +187,7 @@ class MLP(BaseCorrector):
     shaping = ("representation", "hidden", "activation", "normalization", "residual")
 
     def _check_parameters(self) -> None:
-        check_parameters(self, PARAMETER_RULES)
-        if not isinstance(self.merge_validation, (bool, np.bool_)):
-            raise ValueError(f"merge_validation must be True or False, got {self.merge_validation!r}")
+        check_parameters(self, PARAMETER_RULES, flags=("merge_validation", "residual"))
         if self.mu is not None and self.mu > self.mu_max:
             raise ValueError(f"mu must be at most mu_max ({self.mu_max!r}), got {self.mu!r}")
 
@@ -208,13 +207,6 @@ class MLP(BaseCorrector):
         trainer = TRAINERS.lookup(self.trainer)   # refuses an unknown name before any work
         if self.normalization not in ("none", "standard"):
             raise ValueError("normalization must be 'none' or 'standard'")
-        if not (isinstance(self.epochs, numbers.Integral) and self.epochs >= 0):
-            raise ValueError(f"epochs must be a whole number >= 0 (0: the initial network), got {self.epochs!r}")
-        if not (isinstance(self.validation_fraction, numbers.Real) and 0 <= self.validation_fraction < 1):
-            raise ValueError("validation_fraction must be a number in [0, 1) (the share of the poses held for early "
-                             f"stopping), got {self.validation_fraction!r}")
-        if not isinstance(self.residual, (bool, np.bool_)):
-            raise ValueError(f"residual must be True or False, got {self.residual!r}")
         hidden = parse_hidden(self.hidden)
         rng = np.random.default_rng(self.random_state)
         if self.residual:

@@ -37,7 +37,7 @@ from posecorr.effects import (REGISTRATION_ROLES, EffectContext, get_effect, inv
                               sorted_effects)
 from posecorr.metrics import pose_metrics
 
-from .base import PoseRegressorMixin, check_pair, check_poses, check_times, keeps_last_fit
+from .base import PoseRegressorMixin, check_pair, check_parameters, check_poses, check_times, keeps_last_fit
 from .identify import (FORM_LIMIT_SCALES, LIMIT_SCALES, Block, RigidRegistration, chordal_mean, describe_spread,
                        determined_directions, direction_label, poses_lack, rigid_registration)
 from .splits import MIN_FIT_POSES
@@ -174,8 +174,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
                              f"{MIN_FIT_POSES} poses, got {len(measured)}")
         base = EffectContext.default()
         self.ctx_ = EffectContext(base.R_S, base.t_S, reference[:, :3].mean(axis=0), t=t)
-        if not isinstance(self.with_rotation, (bool, np.bool_)):   # "no" was True
-            raise ValueError(f"with_rotation must be True or False, got {self.with_rotation!r}")
+        check_parameters(self, {}, flags=("with_rotation",))
         self.with_rotation_ = bool(self.with_rotation)
         self._chosen = chosen
         self.spread_ = describe_spread(measured[:, :3], rotations.quat_to_matrix(measured[:, 3:7]),

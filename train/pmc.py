@@ -31,7 +31,6 @@ ops -> ONE ``xp.linear`` (a Gemm) -> decode. Outputs are decoded to a proper rot
 """
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -39,7 +38,7 @@ import numpy as np
 
 from posecorr._xp import namespace
 
-from .base import BaseCorrector, Rule, Validation, check_parameters, vector_size
+from .base import BaseCorrector, Rule, Validation, check_parameters, finite_number, vector_size
 
 DEFAULT_ALPHA_GRID = (0.0, 1e-10, 1e-8, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0)
 
@@ -145,8 +144,7 @@ class PMC(BaseCorrector):
             return
         check_parameters(self, {"cv_folds": Rule(lambda v: v >= 2, ">= 2", whole=True)})
         grid = list(self.alpha_grid) if not isinstance(self.alpha_grid, str) else []
-        if not grid or not all(isinstance(a, numbers.Real) and not isinstance(a, bool) and np.isfinite(a) and a >= 0
-                               for a in grid):
+        if not grid or not all(finite_number(a) and a >= 0 for a in grid):
             raise ValueError(f"alpha_grid must hold one or more finite numbers >= 0, got {self.alpha_grid!r}")
 
     def min_rows(self) -> int:

@@ -16,7 +16,6 @@ Reading this module needs neither scikit-learn nor torch.
 from __future__ import annotations
 
 import numbers
-
 from dataclasses import dataclass, fields
 from typing import Any
 

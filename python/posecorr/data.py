@@ -167,12 +167,10 @@ UNITS_APART = 30.0
 
 
 def _require_one_unit(table: PoseTable) -> None:
-    """TableError where the measured and reference positions spread by `UNITS_APART` times
-    or more apart, the larger a metre or more (the median absolute deviation, which a
-    glitching pose does not move): a fit went on after a warning and wrote a model off by
-    hundreds of metres."""
-    spreads = {name: float(np.max(np.median(np.abs(p - np.median(p, axis=0)), axis=0)))
-               for name, p in (("measured", table.meas_p), ("reference", table.ref_p))}
+    """TableError where the measured and reference positions spread (`typical_spread`, which
+    a glitching pose does not move) by `UNITS_APART` times or more apart, the larger a metre
+    or more: a fit went on after a warning and wrote a model off by hundreds of metres."""
+    spreads = {"measured": typical_spread(table.meas_p), "reference": typical_spread(table.ref_p)}
     large, small = sorted(spreads, key=spreads.get, reverse=True)
     if spreads[large] >= 1.0 and spreads[large] >= UNITS_APART * spreads[small]:
         columns = REF_POS if large == "reference" else MEAS_POS
@@ -622,10 +620,15 @@ def _warn_times(table: PoseTable) -> None:
              "to hours: milliseconds? posecorr reads seconds")
 
 
+def typical_spread(positions: np.ndarray) -> float:
+    """The typical distance (m) of positions (N, 3) from their median: the largest axis' median
+    absolute deviation, which one far pose does not move."""
+    return float(np.max(np.median(np.abs(positions - np.median(positions, axis=0)), axis=0)))
+
+
 def implausible_spread(positions: np.ndarray) -> float | None:
-    """The typical distance (m) of positions (N, 3) from their median, the largest axis' median
-    absolute deviation, when it is beyond PLAUSIBLE_SPREAD (another unit); None otherwise."""
-    spread = float(np.max(np.median(np.abs(positions - np.median(positions, axis=0)), axis=0)))
+    """`typical_spread` when it is beyond PLAUSIBLE_SPREAD (another unit); None otherwise."""
+    spread = typical_spread(positions)
     return spread if spread > PLAUSIBLE_SPREAD else None
 
 

@@ -85,6 +85,11 @@ def _check_name(path: Path, error: type[ValueError] | None = None) -> None:
         raise (error or OutputPathError)(f"{str(path)!r}: a file name cannot hold a NUL byte")
 
 
+def _folder(path: Path) -> OutputPathError:
+    """The refusal of a folder given where a file is written."""
+    return OutputPathError(f"{path}: is a folder, expected a file name to write")
+
+
 def check_output(path: str | os.PathLike[str], inputs: Iterable[str | os.PathLike[str] | None] = ()) -> Path:
     """The output path, or OutputPathError when writing it would fail or destroy an input:
     only a new path or an existing regular file is written (never a folder, a device, a
@@ -97,7 +102,7 @@ def check_output(path: str | os.PathLike[str], inputs: Iterable[str | os.PathLik
     found = _lstat(out)
     kind = None if found is None else _kind(found.st_mode)
     if kind == "a folder":
-        raise OutputPathError(f"{out}: is a folder, expected a file name to write")
+        raise _folder(out)
     if kind is not None:
         raise OutputPathError(f"{out}: is {kind}; posecorr writes only new or regular files (its atomic "
                               "rename would replace it)")
@@ -202,7 +207,7 @@ class _Pending:
     def __init__(self, path: str | os.PathLike[str]):
         self.path = Path(path)
         if self.path.is_dir():   # the rename would fail after the work, in the temporary file's name
-            raise OutputPathError(f"{self.path}: is a folder, expected a file name to write")
+            raise _folder(self.path)
         self.folder = self.path.parent if str(self.path.parent) else Path(".")
         self.fd = _unnamed_file(self.folder)
         self.named: str | None = None

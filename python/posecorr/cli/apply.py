@@ -63,9 +63,11 @@ def run(args: argparse.Namespace) -> None:
 
 
 def _rows_words(counted_rows: dict) -> str:
-    """'row 6', 'rows 2, 3, ...' of a {"count", "rows": the first few} record."""
+    """'row 6', 'rows 2, 3 and 8 more' of a {"count", "rows": the first few} record."""
+    from ..textui import first_few
+
     count, rows = counted_rows["count"], counted_rows["rows"]
-    return f"{'row' if count == 1 else 'rows'} " + ", ".join(map(str, rows)) + (", ..." if count > len(rows) else "")
+    return f"{'row' if count == 1 else 'rows'} {first_few(rows, len(rows), count)}"
 
 
 def _turned_words(model: str, beyond: dict | None) -> str:

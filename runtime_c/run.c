@@ -333,9 +333,19 @@ PC_INLINE int pc_time_ok(const pc_model *m, const float *t)
     return (v >= m->t_lo) & (v <= m->t_hi); /* the bounds are finite */
 }
 
-/* The clause of the input contract that the time of pose i breaks, as the message. */
-PC_RARE static pc_status pc_time_error(pc_model *m, float ti, size_t i)
+/* The clause of the input contract that the time of pose i breaks, as the message; a call
+ * without times (given 0) is told that its poses were taken at t = 0. */
+PC_RARE static pc_status pc_time_error(pc_model *m, float ti, size_t i, int given)
 {
+    char low[24], high[24];
+    if (!given) {
+        pc_decimal(low, sizeof low, m->t_lo, 3);
+        pc_decimal(high, sizeof high, m->t_hi, 3);
+        pc_format(m->message, sizeof m->message, "pose %zu: no t given, so t = 0 s, outside the "
+                  "span the model was fitted on, %s to %s s (metadata time_bounds): the model "
+                  "takes each pose's time", i, low, high);
+        return PC_ERR_RANGE;
+    }
     if (!isfinite(ti)) {
         pc_format(m->message, sizeof m->message, "pose %zu: t is not finite (expected seconds "
                   "since the session's start)", i);
@@ -356,7 +366,7 @@ PC_NOINLINE static pc_status pc_check_input(pc_model *m, const float *in, const 
     const size_t n_times = t ? n : m->has_span ? 1 : 0;
     for (i = 0; i < n_times; i++)
         if (!pc_time_ok(m, t ? t + i : NULL))
-            return pc_time_error(m, t ? t[i] : 0.0f, i);
+            return pc_time_error(m, t ? t[i] : 0.0f, i, t != NULL);
     for (i = 0; i < n; i++, in += PC_POSE_WIDTH)
         if (!pc_pose_ok(m, in))
             return pc_pose_error(m, in, i);

@@ -543,8 +543,8 @@ def test_no_time_is_time_zero_and_is_checked_too(drift):
     refused (C: pc_run_timed with t NULL), the same on onnxruntime."""
     path, table, _ = drift
     blob = graphs.signed(_edited(path, time_bounds="[10, 20]"))
-    _same(_both(blob, table.measured[:3]), S.RANGE, "pose 0: t = 0.000 s is outside the span the model was fitted "
-          "on, 10.000 to 20.000 s")
+    _same(_both(blob, table.measured[:3]), S.RANGE, "pose 0: no t given, so t = 0 s, outside the span the model "
+          "was fitted on, 10.000 to 20.000 s (metadata time_bounds): the model takes each pose's time")
     for backend in BACKENDS:  # inside the span: corrected
         assert np.all(np.isfinite(Corrector(blob, backend=backend).correct(table.measured[:3], np.full(3, 15.0))))
 

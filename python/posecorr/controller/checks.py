@@ -504,6 +504,10 @@ def check_input(limits: Limits, poses: np.ndarray, t: np.ndarray | None) -> None
             if nonfinite[i]:
                 raise failure(Status.NONFINITE, f"pose {i}: t is not finite (expected seconds since the "
                                                 "session's start)")
+            if t is None:
+                raise failure(Status.RANGE, f"pose {i}: no t given, so t = 0 s, outside the span the model was "
+                                            f"fitted on, {decimal(lo)} to {decimal(hi)} s (metadata time_bounds): "
+                                            "the model takes each pose's time")
             raise failure(Status.RANGE, _outside(i, TIME_INPUT, times[i], lo, hi))
     finite = np.isfinite(poses)
     bad = ~finite.all(axis=1)

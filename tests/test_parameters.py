@@ -161,3 +161,17 @@ def test_every_corrector_exports_itself(poses, tmp_path):
         session = ort.InferenceSession(str(path))
         got = session.run(None, {"pose": measured[:8].astype(np.float32)})[0]
         np.testing.assert_allclose(got[:, :3], model.predict(measured[:8])[:, :3], atol=1e-5)
+
+
+@pytest.mark.parametrize("make", [lambda: PhysicsModel(("station", "mount")), lambda: PMC(),
+                                  lambda: CorrectionPipeline(effects=("station", "mount"))])
+def test_score_names_the_argument_that_is_not_poses(poses, make):
+    """The physics stage blamed the reference for one measured pose ('reference has 120 rows,
+    expected 7 like measured'); the pipeline scored a reference of any shape."""
+    measured, reference = poses
+    model = make().fit(measured, reference)
+    with pytest.raises(ValueError, match=r"^measured must be a 2-d array of shape \(N, 7\)"):
+        model.score(measured[0], reference)
+    with pytest.raises(ValueError, match="^reference has 10 rows, expected 120 like measured$"):
+        model.score(measured, reference[:10])
+    assert model.score(measured, reference) == pytest.approx(model.score(measured.tolist(), reference.tolist()))

@@ -606,7 +606,8 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
 
     def score(self, measured: Any, reference: Any, t: np.ndarray | None = None) -> float:
         """-rmse_total of the corrected poses (higher is better)."""
-        reference = check_poses(reference, "reference", len(measured))
+        self._check_fitted()
+        measured, reference = check_pair(measured, reference)
         return -pose_metrics(reference, self.predict(measured, t), self.with_rotation_)["rmse_total"]
 
     def export_info(self) -> dict[str, str]:

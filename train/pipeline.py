@@ -125,6 +125,8 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
 
     def score(self, measured: np.ndarray, reference: np.ndarray, t: np.ndarray | None = None) -> float:
         """-rmse_total of the corrected poses (higher is better)."""
+        self._check_fitted()
+        measured, reference = check_pair(measured, reference)
         return -pose_metrics(reference, self.predict(measured, t), self.with_rotation_)["rmse_total"]
 
     def export_info(self) -> dict[str, Any]:

@@ -169,8 +169,15 @@ UNITS_APART = 30.0
 def _require_one_unit(table: PoseTable) -> None:
     """TableError where the measured and reference positions spread (`typical_spread`, which
     a glitching pose does not move) by `UNITS_APART` times or more apart, the larger a metre
-    or more: a fit went on after a warning and wrote a model off by hundreds of metres."""
+    or more, or both beyond `PLAUSIBLE_SPREAD`: a fit went on after a warning and wrote a
+    model off by hundreds of metres (the first), or fitted millimetres against thresholds in
+    metres (the second)."""
     spreads = {"measured": typical_spread(table.meas_p), "reference": typical_spread(table.ref_p)}
+    if min(spreads.values()) > PLAUSIBLE_SPREAD:   # the units warning's case in both frames
+        raise TableError(table.path, f"the measured positions lie a typical {spreads['measured']:.4g} m from their "
+                                     f"median and the reference {spreads['reference']:.4g} m, where a tracked cell "
+                                     f"spans a few metres (are {MEAS_POS[0]}..{MEAS_POS[-1]} and "
+                                     f"{REF_POS[0]}..{REF_POS[-1]} in millimetres? posecorr reads metres)")
     large, small = sorted(spreads, key=spreads.get, reverse=True)
     if spreads[large] >= 1.0 and spreads[large] >= UNITS_APART * spreads[small]:
         columns = REF_POS if large == "reference" else MEAS_POS

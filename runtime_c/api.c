@@ -350,6 +350,11 @@ static pc_status pc_check_digest(const pc_builder *b, unsigned flags)
 
 /* ---- loading ---------------------------------------------------------------------- */
 
+/* Every PC_LOAD_* flag of posecorr.h. */
+#define PC_LOAD_FLAGS                                                                          \
+    ((unsigned)(PC_LOAD_IN_PLACE | PC_LOAD_NO_PROGRAMS | PC_LOAD_NO_METADATA |                 \
+                PC_LOAD_INTERPRET | PC_LOAD_ALLOW_UNBOUNDED | PC_LOAD_ALLOW_UNSIGNED))
+
 pc_status pc_load_impl(const void *data, size_t size, const pc_options *opts, int any_io,
                        void *buf, size_t buf_size, pc_model **model, size_t *scratch_used,
                        pc_error *err)
@@ -367,6 +372,10 @@ pc_status pc_load_impl(const void *data, size_t size, const pc_options *opts, in
     *model = NULL;
     if (!data && size)
         return pc_fail(err, PC_ERR_ARGUMENT, "data is NULL");
+    /* a flag of a newer header, given to this library, would be ignored without a word */
+    if (flags & ~PC_LOAD_FLAGS)
+        return pc_fail(err, PC_ERR_ARGUMENT, "options.flags holds bits 0x%x that no PC_LOAD_* "
+                       "flag of this library names", flags & ~PC_LOAD_FLAGS);
     if (size == 0)
         return pc_fail(err, PC_ERR_TRUNCATED, "truncated file at byte 0 (empty)");
     memset(&b, 0, sizeof b);
@@ -536,6 +545,14 @@ pc_status pc_load_file(const char *path, const pc_options *opts, pc_model **mode
         fclose(fp);
         free(buf);
         return pc_fail(err, PC_ERR_IO, "cannot read '%s'", path);
+    }
+    /* /proc's files say 0 bytes and hold more: read as they say, they were "empty". */
+    if (getc(fp) != EOF) {
+        fclose(fp);
+        free(buf);
+        return pc_fail(err, PC_ERR_IO, "cannot read '%s': it holds more than the %lu bytes its "
+                       "size says (a file that changes, or one the system generates)", path,
+                       (unsigned long)len);
     }
     fclose(fp);
     /* The bytes are freed on return: a model in place would read them after that. */

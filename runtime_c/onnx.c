@@ -412,8 +412,15 @@ static pc_status onnx_parse_value_info(const pc_builder *b, pb_slice msg, pb_sli
                     io->dims[io->rank] = -1;
                     pb_init(&rd, b->file, fs.bytes);
                     while ((k = pb_next(&rd, &fd, b->err)) == PB_FIELD)
-                        if (fd.number == ONNX_DIM_VALUE && fd.wire == PB_VARINT)
+                        if (fd.number == ONNX_DIM_VALUE && fd.wire == PB_VARINT) {
+                            /* negative is no size; as -1 it would read as symbolic */
+                            if ((int64_t)fd.varint < 0)
+                                return pc_fail(b->err, PC_ERR_MALFORMED, "value '%.*s' has "
+                                               "dimension %lld, expected a size of 0 or more",
+                                               (int)name->size, name->data ? (const char *)name->data : "",
+                                               (long long)(int64_t)fd.varint);
                             io->dims[io->rank] = (int64_t)fd.varint;
+                        }
                     if (k == PB_ERROR)
                         return rd.status;
                     io->rank++;
@@ -622,7 +629,9 @@ pc_status onnx_graph_counts(pc_builder *b, uint32_t *nodes, uint32_t *inits, siz
         else if (f.number == ONNX_GRAPH_SPARSE_INITIALIZER)
             return pc_fail(b->err, PC_ERR_UNSUPPORTED, "sparse initializers are not supported");
         if (*nodes > PC_MAX_NODES || *inits > PC_MAX_INDEX)
-            return pc_fail(b->err, PC_ERR_UNSUPPORTED, "graph too large");
+            return pc_fail(b->err, PC_ERR_UNSUPPORTED, "graph too large (more than %u %s, the "
+                           "runtime's limit)", *nodes > PC_MAX_NODES ? PC_MAX_NODES : PC_MAX_INDEX,
+                           *nodes > PC_MAX_NODES ? "nodes" : "initializers");
     }
     return more == PB_ERROR ? r.status : PC_OK;
 }

@@ -363,6 +363,10 @@ def test_an_operator_outside_the_list_is_refused_alike(op, domain):
     ("[[-1, 1, -1], [1, -1, 1]]", "metadata input_bounds: lower bound above upper bound in column 1"),
     ("[[-1, -1], [1, 1]]", "expected [[x_lo, y_lo, z_lo], [x_hi, y_hi, z_hi]] in metres"),
     ("[[-1, -1, true], [1, 1, 1]]", "metadata input_bounds is"),
+    # an integer of 5000 digits is infinite in C; Python's json refused it (int digit limit)
+    ("[[-" + "1" * 5000 + ", -1, -1], [1, 1, 1]]", "metadata input_bounds: a bound is not a finite float32 in column 0"),
+    # C quotes a value up to a NUL byte
+    ("[[-1, -1, -1], [1, 1, 1]]\0x", "metadata input_bounds is '[[-1, -1, -1], [1, 1, 1]]', expected"),
 ])
 def test_edited_input_bounds_are_refused_at_load(bounds, fragment):
     blob = graphs.signed(_edited(PMC_ZHOU, input_bounds=bounds))
@@ -731,6 +735,25 @@ def test_posecorr_run_names_each_refusal_by_its_line_alone():
     assert r.returncode == 1 and r.stderr.decode().splitlines()[1] == said[2].replace("line 3", "record 3")
 
 
+def test_posecorr_run_names_a_value_beyond_float32_as_such(drift):
+    """1e39 is finite: strtof made it infinite, and the line read 'x is not finite'. A t beyond
+    float32 is refused by a model that takes time and ignored, as every t, by one that does not."""
+    x = _inside(2)
+    text = _lines(x)
+    lines = text.splitlines()
+    lines[1] = "1e39," + lines[1].split(",", 1)[1]
+    r = _posecorr_run(PMC_ZHOU, "\n".join(lines) + "\n")
+    assert r.returncode == 1 and r.stdout.splitlines()[1] == "nan,nan,nan,nan,nan,nan,nan"
+    assert r.stderr == ("posecorr-run: line 2: x = 1e+39 m does not fit in float32, the numbers the model computes "
+                        "in (their largest is 3.402823e+38)\n")
+    r = _posecorr_run(PMC_ZHOU, _lines(x, np.array([1.0, 1e40])))
+    assert r.returncode == 0 and r.stderr == "", r.stderr
+    path, table, _ = drift
+    r = _posecorr_run(path, _lines(table.measured[:2], np.array([1.0, 1e40])))
+    assert r.returncode == 1 and r.stderr == ("posecorr-run: line 2: t = 1e+40 s does not fit in float32, the numbers "
+                                              "the model computes in (their largest is 3.402823e+38)\n")
+
+
 def test_posecorr_run_names_a_time_and_an_output_by_their_line(drift):
     path, table, span = drift
     x, t = table.measured[:3].copy(), table.extras["t"][:3].copy()
@@ -783,6 +806,10 @@ def _edited_io(edit) -> bytes:
 
 def _fixed_batch(graph) -> None:
     graph.input[0].type.tensor_type.shape.dim[0].dim_value = 1
+
+
+def _negative_batch(graph) -> None:
+    graph.input[0].type.tensor_type.shape.dim[0].dim_value = -3
 
 
 def _second_output(graph) -> None:
@@ -886,6 +913,8 @@ def _structure_cases() -> list[tuple[str, bytes, str]]:
          "model input is 'x', the contract needs 'pose' float32 [N,7] and optionally 't' float32 [N]"),
         ("pose width", graphs.signed(_pose_model(width=6)), "input 'pose' must have shape [N,7] (rank 2, width 6)"),
         ("pose batch", _edited_io(_fixed_batch), "input 'pose' has a fixed batch size 1; N must be dynamic"),
+        # as -1 it read as symbolic: the model loaded in C
+        ("negative batch", _edited_io(_negative_batch), "value 'pose' has dimension -3, expected a size of 0 or more"),
         ("pose type", _edited_io(_float64_pose), "input 'pose' has element type 11, the contract needs float32"),
         ("time shape", graphs.signed(_pose_model(inputs_after=[time_2d])), "input 't' must have shape [N] (rank 2)"),
         ("output name", _edited_io(_renamed_output), "model output is 'y', the contract needs 'corrected' float32 [N,7]"),

@@ -813,6 +813,22 @@ def test_the_c_loader_says_a_folder_cannot_be_read(tmp_path) -> None:
     assert err.message.decode() == f"cannot read '{tmp_path}': is a folder, expected a regular file"
 
 
+@pytest.mark.skipif(not Path("/proc/self/status").is_file(), reason="no /proc (Linux's)")
+def test_the_c_loader_does_not_call_a_generated_file_empty() -> None:
+    """/proc's files are regular, say 0 bytes and hold more: pc_load_file read the size and
+    said 'truncated file at byte 0 (empty)' of a file that is not."""
+    import ctypes
+
+    from posecorr.controller import runtime
+
+    lib = runtime.load_library()
+    handle, err = ctypes.c_void_p(), runtime._Error()
+    status = lib.pc_load_file(b"/proc/self/status", None, ctypes.byref(handle), ctypes.byref(err))
+    assert status == 2 and handle.value is None  # PC_ERR_IO
+    assert err.message.decode() == ("cannot read '/proc/self/status': it holds more than the 0 bytes its size says "
+                                    "(a file that changes, or one the system generates)")
+
+
 def test_the_c_loader_refuses_a_fifo_at_once(tmp_path) -> None:
     """pc_load_file itself (C callers, without the shim's check): fopen of a FIFO without a
     writer waited forever; now PC_ERR_IO at once (a subprocess with a timeout, so that a

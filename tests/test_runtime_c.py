@@ -328,6 +328,30 @@ def test_graph_mixing_rows_is_refused_at_load(label, model, lib):
     assert e.value.status == _status("PC_ERR_GRAPH")
 
 
+def test_an_output_of_another_shape_is_named_with_every_dimension(lib):
+    """A rank-6 result (Where broadcasting the pose against [1,1,1,1,1,7]) read "rank 6
+    (1 x 1)": the message printed two dimensions of any rank."""
+    g = graphs.G()
+    mask = g.op("Greater", ["pose", g.f32(np.zeros(7))])
+    wide = g.op("Where", [mask, "pose", g.f32(np.zeros((1, 1, 1, 1, 1, 7)))])
+    with pytest.raises(PoseCorrError) as e:
+        Corrector(g.model(wide).SerializeToString(), library=lib)
+    assert str(e.value).endswith("output 'corrected' is float32 of shape [1, 1, 1, 1, 1, 7] for N=1, the "
+                                 "contract needs float32 [N,7]"), str(e.value)
+    assert e.value.status == _status("PC_ERR_CONTRACT")
+
+
+def test_a_graph_past_the_runtime_s_limits_names_the_limit(lib):
+    """16384 initializers (the runtime indexes 16383) read "graph too large" and no more."""
+    g = graphs.G()
+    for k in range(16384):
+        g.f32([float(k)])
+    with pytest.raises(PoseCorrError) as e:
+        Corrector(g.model("pose").SerializeToString(), library=lib)
+    assert str(e.value).endswith("graph too large (more than 16383 initializers, the runtime's limit)")
+    assert e.value.status == _status("PC_ERR_UNSUPPORTED")
+
+
 def _caller_buffer_api(lib):
     """The library with pc_required_bytes and pc_load_into typed (the shim uses neither)."""
     import ctypes
@@ -375,6 +399,27 @@ def _load_with(L, blob, **fields):
     assert L.pc_load_memory(blob, len(blob), ctypes.byref(opts), ctypes.byref(handle),
                             ctypes.byref(err)) == 0, err.message
     return handle.value
+
+
+def test_a_flag_the_library_does_not_know_is_refused(lib):
+    """A PC_LOAD_* flag of a newer header was ignored without a word; every flag the header
+    lists loads."""
+    import ctypes
+
+    from posecorr.controller.runtime import _Error, _Options, load_library
+
+    L = load_library(lib)
+    blob = MLP_ZHOU.read_bytes()
+    known = 0
+    for value in LOAD.values():
+        known |= value
+        L.pc_free(_load_with(L, blob, flags=value))
+    handle, err = ctypes.c_void_p(), _Error()
+    opts = _Options(flags=known + 1 if known & (known + 1) == 0 else known | 0x100)
+    status = L.pc_load_memory(blob, len(blob), ctypes.byref(opts), ctypes.byref(handle), ctypes.byref(err))
+    assert status == _status("PC_ERR_ARGUMENT") and handle.value is None
+    assert err.message.decode() == (f"options.flags holds bits {opts.flags & ~known:#x} that no PC_LOAD_* flag of "
+                                    "this library names")
 
 
 @pytest.mark.parametrize("max_batch", [1, 16])

@@ -23,6 +23,7 @@
  * (PC_LOAD_ALLOW_UNBOUNDED, PC_LOAD_ALLOW_UNSIGNED: models of other producers). */
 #include "posecorr.h"
 
+#include <float.h>
 #include <math.h>
 #include <stdint.h>
 #include <stdio.h>
@@ -86,27 +87,38 @@ static int read_line(FILE *in, line_buffer *buf)
     return (c == EOF && len == 0 && !buf->too_long && !buf->has_nul) ? 0 : 1;
 }
 
-/* strtof, restricted to what the table reader takes: plain decimal notation, and nan or
+/* What a line's numbers hold that no pose may: hexadecimal notation, or a finite value
+ * beyond float32's range (strtof would make it infinite, and pc_run would call it "not
+ * finite"); column is the first such value's (PC_POSE_WIDTH: the time t), -1 if none. */
+typedef struct line_faults {
+    int hex, column;
+    double value;
+} line_faults;
+
+/* strtod, restricted to what the table reader takes: plain decimal notation, and nan or
  * inf (which pc_run then refuses as non-finite, naming the column). A hexadecimal float
- * such as 0x1p-5 is no tracker's output: *hex is set and nothing is read. */
-static float read_number(const char *p, char **end, int *hex)
+ * such as 0x1p-5 is no tracker's output: faults->hex is set and nothing is read. */
+static float read_number(const char *p, char **end, int column, line_faults *faults)
 {
     const char *q = p;
-    float v = strtof(p, end);
+    const double v = strtod(p, end);
     if (*end == p)
-        return v;
+        return 0.0f;
     while (*q == ' ' || *q == '\t')
         q++;
     if (*q == '+' || *q == '-')
         q++;
     if (q[0] == '0' && (q[1] == 'x' || q[1] == 'X')) {
-        *hex = 1;
+        faults->hex = 1;
         *end = (char *)p;
+    } else if (fabs(v) > FLT_MAX && fabs(v) <= DBL_MAX && faults->column < 0) {
+        faults->column = column;
+        faults->value = v;
     }
-    return v;
+    return (float)(fabs(v) > FLT_MAX && fabs(v) <= DBL_MAX ? 0.0 : v);
 }
 
-static int parse_line(const char *line, float *v, int *hex)
+static int parse_line(const char *line, float *v, line_faults *faults)
 {
     const char *p = line;
     int k;
@@ -114,7 +126,7 @@ static int parse_line(const char *line, float *v, int *hex)
         char *end;
         while (*p == ' ' || *p == '\t')
             p++;
-        v[k] = read_number(p, &end, hex);
+        v[k] = read_number(p, &end, k, faults);
         if (end == p)
             return 0;
         p = end;
@@ -133,7 +145,7 @@ static int parse_line(const char *line, float *v, int *hex)
 
 /* Splits an optional 8th value (the time t) off a text line: returns 1 and cuts the line
  * before it when there is one, 0 (line untouched) otherwise. */
-static int split_time(char *line, float *t, int *hex)
+static int split_time(char *line, float *t, line_faults *faults)
 {
     char *p = line, *end;
     int commas = 0;
@@ -141,7 +153,7 @@ static int split_time(char *line, float *t, int *hex)
         p++;
     if (!*p)
         return 0;
-    *t = read_number(p + 1, &end, hex);
+    *t = read_number(p + 1, &end, PC_POSE_WIDTH, faults);
     if (end == p + 1)
         return 0;
     while (*end == ' ' || *end == '\t' || *end == '\r' || *end == '\n')
@@ -286,7 +298,8 @@ static int run_text(pc_model *model, int strict)
         char *line = buf.data;
         pc_status st;
         float t = 0.0f;
-        int has_t = 0, hex = 0;
+        int has_t = 0;
+        line_faults faults = {0, -1, 0.0};
         line_no++;
         if (!buf.has_nul && !buf.too_long && (line[0] == '#' || is_blank(line)))
             continue;
@@ -299,13 +312,27 @@ static int run_text(pc_model *model, int strict)
             continue;
         }
         if (!buf.has_nul && !buf.too_long)
-            has_t = split_time(line, &t, &hex);
-        if (buf.has_nul || buf.too_long || !parse_line(line, in, &hex) || hex) {
+            has_t = split_time(line, &t, &faults);
+        if (buf.has_nul || buf.too_long || !parse_line(line, in, &faults) || faults.hex) {
             fprintf(stderr, "posecorr-run: line %lu: expected 7 comma-separated numbers "
                             "x,y,z,qw,qx,qy,qz and an optional 8th, t%s\n", line_no,
                     buf.has_nul ? " (the line holds a NUL byte)"
                     : buf.too_long ? " (out of memory reading the line)"
-                    : hex ? " in plain decimal notation (like -0.125 or 1.5e-3), not hexadecimal" : "");
+                    : faults.hex ? " in plain decimal notation (like -0.125 or 1.5e-3), not hexadecimal" : "");
+            if (strict) {
+                status = 1;
+                break;
+            }
+            failed = 1;
+            fill_nan(out);
+        } else if (faults.column >= 0 && (faults.column < PC_POSE_WIDTH || pc_model_takes_time(model))) {
+            static const char *const names[PC_POSE_WIDTH + 1] = {"x", "y", "z", "qw", "qx", "qy",
+                                                                "qz", "t"};
+            static const char *const units[PC_POSE_WIDTH + 1] = {" m", " m", " m", "", "", "", "",
+                                                                " s"};
+            fprintf(stderr, "posecorr-run: line %lu: %s = %.7g%s does not fit in float32, the "
+                            "numbers the model computes in (their largest is %.7g)\n", line_no,
+                    names[faults.column], faults.value, units[faults.column], (double)FLT_MAX);
             if (strict) {
                 status = 1;
                 break;

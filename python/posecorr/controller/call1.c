@@ -6,6 +6,8 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
+#include <float.h>
+#include <math.h>
 #include <string.h>
 
 #define POSE_WIDTH 7
@@ -64,8 +66,17 @@ static PyObject *run1(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     if (in_f32)
         memcpy(a, in.buf, sizeof a);
     else
-        for (k = 0; k < POSE_WIDTH; k++)
-            a[k] = (float)((const double *)in.buf)[k];
+        for (k = 0; k < POSE_WIDTH; k++) {
+            const double v = ((const double *)in.buf)[k];
+            /* a finite value beyond float's range has no float (C99 6.3.1.5: undefined); the
+             * general path names it (checks.check_wide_input) */
+            if (isfinite(v) && fabs(v) > FLT_MAX) {
+                PyBuffer_Release(&in);
+                PyBuffer_Release(&out);
+                return PyLong_FromLong(-1);
+            }
+            a[k] = (float)v;
+        }
     /* the GIL stays held: releasing it would cost a fifth of the call */
     status = run(model, a, 1, b);
     if (status == 0)

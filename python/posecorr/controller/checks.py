@@ -174,13 +174,8 @@ JSON_DEPTH = 32
 def _numbers(value: Any, depth: int = 0) -> list[float] | None:
     """The numbers of a JSON array nested at most JSON_DEPTH deep (api.c's
     pc_parse_numbers), None when it holds anything else."""
-    if isinstance(value, bool):
-        return None
-    if isinstance(value, (int, float)):
-        try:
-            return [float(value)]
-        except OverflowError:  # an integer of 400 digits: infinite, as in C
-            return [math.copysign(math.inf, value)]
+    if isinstance(value, float):   # integers too: read with parse_int=float, 400 digits are inf as in C
+        return [value]
     if isinstance(value, list) and depth < JSON_DEPTH:
         out: list[float] = []
         for v in value:
@@ -192,15 +187,21 @@ def _numbers(value: Any, depth: int = 0) -> list[float] | None:
     return None
 
 
+def _quoted(text: str) -> str:
+    """A metadata value as api.c quotes it ('%.*s' of at most 60 bytes): its first 60 bytes
+    of UTF-8, up to a NUL, read back as the shim reads the C message."""
+    return text.encode("utf-8", "surrogatepass")[:60].split(b"\0", 1)[0].decode(errors="replace")
+
+
 def _read_bounds(key: str, value: str, count: int, expected: str) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) float32 of a bounds value, refused as api.c's pc_read_bounds refuses it."""
     text = value  # read whole, of any length, as the C parser reads it
     try:  # NaN and Infinity are not numbers, as in the C parser
-        v = _numbers(json.loads(text, parse_constant=_refuse_constant))
+        v = _numbers(json.loads(text, parse_constant=_refuse_constant, parse_int=float))
     except (ValueError, RecursionError):
         v = None
     if v is None or len(v) != 2 * count:
-        raise PoseCorrError(f"metadata {key} is '{text[:60]}', expected {expected}", int(Status.MALFORMED))
+        raise PoseCorrError(f"metadata {key} is '{_quoted(text)}', expected {expected}", int(Status.MALFORMED))
     for k in range(count):
         if not (abs(v[k]) <= FLOAT32_MAX and abs(v[k + count]) <= FLOAT32_MAX):
             raise PoseCorrError(f"metadata {key}: a bound is not a finite float32 in column {k} "
@@ -218,11 +219,11 @@ def _read_reach(value: str) -> tuple[np.float32, np.float32]:
     pc_read_reach keeps them: the squared distance and cos^2 of half the angle (float32)."""
     text = value  # read whole, of any length, as the C parser reads it
     try:
-        v = _numbers(json.loads(text, parse_constant=_refuse_constant))
+        v = _numbers(json.loads(text, parse_constant=_refuse_constant, parse_int=float))
     except (ValueError, RecursionError):
         v = None
     if v is None or len(v) != 2 or not all(0.0 <= x <= FLOAT32_MAX for x in v):
-        raise PoseCorrError(f"metadata {REACH_KEY} is '{text[:60]}', expected [metres, radians]: "
+        raise PoseCorrError(f"metadata {REACH_KEY} is '{_quoted(text)}', expected [metres, radians]: "
                             "two finite numbers, not negative", int(Status.MALFORMED))
     pos, rot = np.float32(v[0]), np.float32(v[1])
     cos2 = 0.0 if v[1] >= math.pi else math.cos(0.5 * float(rot)) * math.cos(0.5 * float(rot))
@@ -393,6 +394,10 @@ def check_contract(graph: dict[str, Any]) -> list[str]:
         name, elem, shape = io["name"], io["elem"], io["shape"]
         rank = -1 if shape is None else len(shape)
         dims = [d if isinstance(d, int) else -1 for d in shape or ()]
+        negative = next((d for d in shape or () if isinstance(d, int) and d < 0), None)
+        if negative is not None:   # as -1 it would read as symbolic
+            raise PoseCorrError(f"value '{name}' has dimension {negative}, expected a size of 0 or more",
+                                int(Status.MALFORMED))
         if kind == "output":
             outputs += 1
             fault = _output_fault(name, elem, rank, dims)

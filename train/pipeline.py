@@ -434,9 +434,8 @@ def fit_table(table: PoseTable, effects: Sequence[str], spec: ModelSpec, plan: P
     from posecorr.data import require_rows
     from posecorr.effects import require_time
 
-    require_rows(table, 4, "a fit")
+    require_rows(table, 4, "a fit", outliers=check_outliers)
     require_time(effects, table)
-    refuse_gross_outliers(table)
     spec = spec_for_table(spec, table)
     say = progress or (lambda message: None)
     notes = orientation_notes(table.meas_q, table.ref_q, table.meas_p, table.ref_p)
@@ -627,22 +626,36 @@ def _without_registration(requested: Candidate, raw: dict, rigid: dict) -> str:
             "their offset: --effects station,mount fits the registration first")
 
 
-def refuse_gross_outliers(table: PoseTable) -> None:
-    """TableError naming the rows a rigid fit of the other poses misses by metres: a blunder in
-    the table (a unit slip, a swapped row) that no model should be fitted to."""
+def check_outliers(table: PoseTable) -> list[str]:
+    """TableError naming the rows a rigid fit of the other poses misses by metres (a blunder in
+    the table: a unit slip, a swapped row, that no model should be fitted to); else the
+    warning lines naming the rows it misses by ten times the others' median or more (a
+    tracker glitch, a frozen pose: kept, the user decides). `require_rows`' `outliers`."""
     from posecorr.data import TableError
     from posecorr.rotations import quat_to_matrix
+    from posecorr.textui import counted
 
-    from .identify import OUTLIER_FACTOR, gross_outliers
+    from .identify import OUTLIER_FACTOR, OUTLIER_MIN_M, SUSPECT_FACTOR, outliers
 
-    found = gross_outliers(table.meas_p, quat_to_matrix(table.meas_q), table.ref_p)
-    if found:
-        ids = table.extras.get("id")
-        rows = "; ".join(f"row {i + 2}" + (f" (id {ids[i]})" if ids is not None else "") + f": {miss:.3g} m"
-                         for i, miss, _ in found)
+    found = outliers(table.meas_p, quat_to_matrix(table.meas_q), table.ref_p)
+    ids = table.extras.get("id")
+
+    def named(o) -> str:
+        return f"row {table.file_row(o.index)}" + (f" (id {ids[o.index]})" if ids is not None else "")
+
+    gross = [o for o in found if o.gross]
+    if gross:
+        rows = "; ".join(f"{named(o)}: {o.miss:.3g} m" for o in gross)
         raise TableError(table.path, f"gross outlier(s): a rigid fit of the other poses misses {rows}, against a "
-                         f"median of {1000 * found[0][2]:.3g} mm (more than {OUTLIER_FACTOR:g} times, and 0.5 m); "
-                         "fix or remove the row(s)", row=found[0][0] + 2)
+                         f"median of {1000 * gross[0].typical:.3g} mm (more than {OUTLIER_FACTOR:g} times, and "
+                         f"{OUTLIER_MIN_M:g} m); fix or remove the row(s)", row=table.file_row(gross[0].index))
+    if not found:
+        return []
+    rows = "; ".join(f"{named(o)}: {1000 * o.miss:.3g} mm, {o.miss / o.typical:.0f} times {1000 * o.typical:.3g} mm"
+                     for o in found)
+    return [f"{table.source}: a rigid fit of the other poses misses {counted(len(found), 'row')} by {SUSPECT_FACTOR:g} "
+            f"times their median miss or more: {rows}; a tracker glitch or a frozen pose? Kept: every fit and "
+            "held-out figure includes it (posecorr report lists the worst poses)"]
 
 
 def _priors(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, with_rotation: bool) -> dict:

@@ -161,7 +161,9 @@ def fit_one(table: Any, spec: ModelSpec, seed: int = 0, repeat: int = 0, split: 
         raise ValueError(f"this table is position-only (no ref_q columns): use representation={POSITION_ONLY!r}")
     from posecorr.data import require_rows
 
-    require_rows(table, 10, "fit with a train/validation/test split")
+    from .pipeline import check_outliers
+
+    require_rows(table, 10, "fit with a train/validation/test split", outliers=check_outliers)
     tr, va, te = split.indices(table.n, seed, repeat)
     M, R = table.measured, table.reference
     est = spec.make(seed=seed * 1000 + repeat)
@@ -531,7 +533,9 @@ def _check_sweep(table: Any, configs: list[ModelSpec], ray_address: str | None) 
         raise ValueError("duplicate configurations in the grid")
     from posecorr.data import require_rows
 
-    require_rows(table, 10, "the sweep's train/validation/test split")
+    from .pipeline import check_outliers
+
+    require_rows(table, 10, "the sweep's train/validation/test split", outliers=check_outliers)
     ray = None
     if ray_address is not None:
         try:

@@ -759,6 +759,7 @@ def require_diagnosable(table: PoseTable, folds: int) -> None:
     """ValueError (TableError for the table's own faults) when `table` cannot be diagnosed with
     `folds` folds, naming the folds that can or the rows it takes."""
     from posecorr.data import TableError, require_rows
+    from posecorr.train.pipeline import check_outliers
     from posecorr.train.splits import (MIN_FIT_POSES, KFold, fewest_rows_to_fit, fewest_to_fit,
                                        require_enough_to_fit)
 
@@ -770,7 +771,7 @@ def require_diagnosable(table: PoseTable, folds: int) -> None:
                                          f"(with --cv {fewest})")
         raise TableError(table.path, f"{counted(table.n, 'row')}, but a {folds}-fold diagnosis needs at least "
                                      f"{folds}: fewer folds (--cv {fewer[0]})")
-    require_rows(table, max(folds, 2), f"a {folds}-fold diagnosis")
+    require_rows(table, max(folds, 2), f"a {folds}-fold diagnosis", outliers=check_outliers)
     require_enough_to_fit(table.n, KFold(folds))
 
 

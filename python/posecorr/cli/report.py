@@ -32,6 +32,7 @@ def run(args: argparse.Namespace) -> None:
     from ..controller.onnx_meta import read_info
     from ..controller.runtime import Corrector
     from ..data import require_rows
+    from ..train.pipeline import check_outliers
     from ..ingest.pipeline import segments_path
     from ..safeio import check_sidecar, open_sidecar, warn
     from ..textui import counted
@@ -44,7 +45,7 @@ def run(args: argparse.Namespace) -> None:
     if args.no_diagnosis and given(args, "folds"):    # the model's own held-out test keeps its fit's folds
         raise CliError("--cv sets the diagnosis's folds, which --no-diagnosis leaves out")
     asked = effect_names(args.effects) if args.effects is not None else None   # its fault before the work
-    require_rows(table, 3, "a report (its baseline is the best rigid fit)")
+    require_rows(table, 3, "a report (its baseline is the best rigid fit)", outliers=check_outliers)
     info = read_info(args.model)
     check_effect_files(args.model, info)
     if asked is None and not args.no_diagnosis:

@@ -478,12 +478,21 @@ def test_apply_names_the_row_a_model_refuses_in_a_late_chunk(tmp_path, capsys) -
     assert code == 2 and escaped is None and len(err.strip().splitlines()) == 1
     assert "row 46, column meas_y" in err and not (tmp_path / "out.csv").exists()
     assert "in column" not in err     # the table's column named once, not the model's input index too
+    # report and diagnose fit: 5 m off is a gross outlier there, refused as such; 0.3 m off
+    # is named as a suspect (a warning) and refused by the model
     code, err, escaped = _run(["report", str(path), "--model", str(model), "-o", str(tmp_path / "r.html")], capsys)
     assert code == 2 and escaped is None and len(err.strip().splitlines()) == 1
-    assert "t.csv, row 46, column meas_y: " in err and not (tmp_path / "r.html").exists()
+    assert "t.csv, row 46: gross outlier(s)" in err and not (tmp_path / "r.html").exists()
+    cells[2] = "-0.3"
+    lines[45] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    code, err, escaped = _run(["report", str(path), "--model", str(model), "-o", str(tmp_path / "r.html")], capsys)
+    said = err.strip().splitlines()
+    assert code == 2 and escaped is None and len(said) == 2 and "misses 1 row" in said[0]
+    assert "t.csv, row 46, column meas_y: " in said[1] and not (tmp_path / "r.html").exists()
     # diagnose --model said "pose 44" (its place in the call), after the whole diagnosis
     code, err, escaped = _run(["diagnose", str(path), "--model", str(model)], capsys)
-    assert code == 2 and escaped is None and len(err.strip().splitlines()) == 1
+    assert code == 2 and escaped is None and len(err.strip().splitlines()) == 1   # the model read first
     assert "t.csv, row 46, column meas_y: " in err and "pose 44" not in err
 
 

@@ -668,3 +668,121 @@ def test_an_offset_beyond_the_search_is_named_not_aliased(experiment3, tmp_path)
     found = ingest([path], IngestOptions(max_offset=8.0))
     assert found.alignment.offset == pytest.approx(true, abs=1e-3)
     assert found.table.n == TARGETS
+
+
+# --- a CSV log in another time unit or layout, and what it leaves out ---------------------------
+
+def _csv_rows(path: Path, column: str) -> list[int]:
+    """The file rows (header row 1) whose `column` cell is filled."""
+    with open(path, newline="") as handle:
+        rows = list(csv.reader(handle))
+    index = rows[0].index(column)
+    return [number for number, cells in enumerate(rows[1:], start=2) if cells[index]]
+
+
+def test_times_in_nanoseconds_are_refused_with_their_span(short, tmp_path) -> None:
+    """Integer nanoseconds (a ROS stamp written out): the offset search asked numpy for a grid of
+    92 TiB ('internal error: MemoryError'). Refused on reading, naming the rows and the span."""
+    path = tmp_path / "ns.csv"
+    write_csv_log(path, JointStream(short.joints.t * 1e9, short.joints.q, short.joints.names),
+                  PoseStream(short.tracker.t * 1e9, short.tracker.p, short.tracker.q))
+    rows = _csv_rows(path, "q1")
+    span = float(np.ptp(short.joints.t * 1e9))
+    line = one_line_error(posecorr("ingest", str(path), "-o", str(tmp_path / "t.csv")))
+    assert line == (f"posecorr ingest: error: {path}: rows {rows[0]}..{rows[-1]}, column t: the joint stream spans "
+                    f"{span:.6g} s ({span / 86_400:.3g} days), and a session lasts minutes to hours: nanoseconds "
+                    "or milliseconds? posecorr reads seconds; convert the column to seconds")
+
+
+def test_an_offset_grid_beyond_a_session_is_refused_not_allocated() -> None:
+    """Joint stamps a stray one 30 000 years off the others (a bag's, which no column check
+    sees): the grid of the offset search is refused with its size, not allocated."""
+    from posecorr.ingest.align import estimate_offset
+
+    t_robot = np.array([0.0, 1.0, 1e12])
+    t_tracker = np.linspace(0.0, 1.0, 11)
+    with pytest.raises(IngestError) as error:
+        estimate_offset(t_robot, np.tile(np.eye(4), (3, 1, 1)), t_tracker, np.zeros((11, 3)), 5.0, "rec.bag")
+    assert str(error.value) == ("rec.bag: the joint states span 1e+12 s (1.16e+07 days), 1e+14 steps of the 100 Hz "
+                                "grid the clock offset is estimated on, more than a 2-day session's 1.73e+07; check "
+                                "the stamps (one far off the others?), or give --offset")
+
+
+def test_times_in_milliseconds_are_named_before_what_they_cause(short, tmp_path) -> None:
+    """Milliseconds since the start span under two days: the log read as a robot that never
+    moves ('give --offset'), with no word of the unit. A warning says so before the refusal."""
+    path = tmp_path / "ms.csv"
+    t0 = short.joints.t[0]
+    write_csv_log(path, JointStream((short.joints.t - t0) * 1e3, short.joints.q, short.joints.names),
+                  PoseStream((short.tracker.t - t0) * 1e3, short.tracker.p, short.tracker.q))
+    joint, tracker = (float(np.median(np.diff(t))) * 1e3 for t in (short.joints.t, short.tracker.t))
+    out = posecorr("ingest", str(path), "-o", str(tmp_path / "t.csv"))
+    assert out.returncode == 2, out.stderr
+    assert out.stderr.splitlines() == [
+        f"posecorr: warning: {path}: column t: the joint samples are a median {joint:.3g} s apart ({1 / joint:.3g} Hz), "
+        f"the tracker samples {tracker:.3g} s ({1 / tracker:.3g} Hz), where a robot cell records tens to thousands "
+        "of samples a second: milliseconds? posecorr reads seconds",
+        f"posecorr ingest: error: {path}: the robot does not move, so the clocks cannot be aligned on its motion; "
+        "give --offset"]
+
+
+def test_a_semicolon_separated_log_is_named_so(tmp_path) -> None:
+    """It said only 'no time column' beside a header that plainly starts with t."""
+    path = tmp_path / "semicolon.csv"
+    path.write_text("t;q1;q2;q3;q4;q5;q6;x;y;z;qw;qx;qy;qz\n0;0;-1.5708;1.5708;0;1.5708;0;;;;;;;\n")
+    with pytest.raises(IngestError) as error:
+        read_csv_log([path])
+    assert str(error.value) == (f"{path}: row 1: no time column 't' (header: t;q1;q2;q3;q4;q5;q6;x;y;z;qw;qx;qy;qz); "
+                                "the header is one column holding ';': posecorr reads commas")
+
+
+def test_tracker_quaternions_written_x_y_z_w_are_named(recording, tmp_path) -> None:
+    """x, y, z, w under qw, qx, qy, qz (scipy's order) went into the table without a word; the
+    forward kinematics' orientations say it, with the columns read and the option that maps
+    them, and --pose-cols' help gives the order."""
+    from posecorr.registration import quaternion_order_note
+
+    path = tmp_path / "xyzw.csv"
+    write_csv_log(path, recording.joints, PoseStream(recording.tracker.t, recording.tracker.p,
+                                                     np.roll(recording.tracker.q, -1, axis=1)))
+    result = ingest([path])
+    ok = [s for s in result.segments if s.status == "ok"]
+    note = quaternion_order_note(np.stack([s.quat for s in ok]), result.table.ref_q, np.stack([s.p for s in ok]),
+                                 result.table.ref_p)
+    assert note is not None and note.startswith("the quaternions look written in another order than their names")
+    assert result.notes == [f"{path}, tracker quaternions against the forward kinematics: {note}; ingest read the "
+                            "columns qw, qx, qy, qz as w, x, y, z (--pose-cols)"]
+    assert ingest([write_recording(recording, tmp_path / "rec.csv")]).notes == []
+    help_text = " ".join(posecorr("ingest", "--help").stdout.split())
+    assert ("--pose-cols POSE_COLS CSV: tracker pose columns, the position x, y, z (m), then the unit quaternion in "
+            "the order w, x, y, z (scalar first: for a log written x, y, z, w, name its w column first)") in help_text
+
+
+def test_csv_rows_with_a_time_and_no_values_are_counted(short, tmp_path) -> None:
+    """A logger's rows with the time alone were left out without a word (a bag's samples it
+    cannot use are counted); a note names how many, and the first rows."""
+    path = write_recording(short, tmp_path / "rec.csv")
+    lines = path.read_text().splitlines()
+    width = len(lines[0].split(","))
+    tracker_rows = [i for i, line in enumerate(lines) if i and not line.endswith(",")]
+    for bare in (tracker_rows[3000:3014:2], tracker_rows[3000:3001]):
+        cut = list(lines)
+        for i in bare:
+            cut[i] = cut[i].split(",")[0] + "," * (width - 1)
+        path.write_text("\n".join(cut) + "\n")
+        result = ingest([path])
+        assert len(result.tracker.t) == len(short.tracker.t) - len(bare)
+        rows = [str(i + 1) for i in bare]
+        assert result.notes == ([f"{path}: rows {', '.join(rows[:5])} and 2 more have a time but no joint or "
+                                 "tracker values: 7 rows left out"] if len(bare) > 1 else
+                                [f"{path}: row {rows[0]} has a time but no joint or tracker values: 1 row left out"])
+
+
+def test_a_repeated_stamp_is_counted_in_the_singular() -> None:
+    """'left out 1 samples that repeat the stamp'."""
+    from posecorr.ingest.streams import keep_usable
+
+    stream = PoseStream(np.array([0.0, 0.1, 0.1, 0.2]), np.zeros((4, 3)), np.tile([1.0, 0, 0, 0], (4, 1)),
+                        source="rec.bag:/pose")
+    assert keep_usable(stream, np.hstack([stream.p, stream.q])).notes == [
+        "rec.bag:/pose: left out 1 sample that repeats the stamp of the one before (the first of each stamp kept)"]

@@ -366,6 +366,14 @@ def _warn_misspelled(path: str, header: list[str]) -> None:
             warn(f"{path}: column {name!r} is not one posecorr knows and is kept as is; did you mean {close}?")
 
 
+def separator_hint(header: list[str], name: str) -> str:
+    """"; the header is one column holding ';': posecorr reads commas" where the header is one
+    column whose name holds `name` between another separator's; "" otherwise."""
+    # a spreadsheet's export in a comma-decimal locale: one column whose name holds them all
+    other = next((sep for sep in ";\t|" if len(header) == 1 and name in header[0].split(sep)), None)
+    return f"; the header is one column holding {other!r}: posecorr reads commas" if other else ""
+
+
 def _stand_in(name: str, header: list[str]) -> str:
     """'; the header has 'refy': is it ref_y?' where a column posecorr does not know is a
     mistyping of the missing `name` (refy, meas_X, ref_x_m), else ''."""
@@ -433,10 +441,7 @@ class TableReader:
         required = REQUIRED if require_reference or ref_present else MEAS_POS + MEAS_QUAT
         for name in required:
             if name not in self.index:
-                # a spreadsheet's export in a comma-decimal locale: one column whose name holds them all
-                other = next((sep for sep in ";\t|" if len(header) == 1 and name in header[0].split(sep)), None)
-                hint = f"; the header is one column holding {other!r}: posecorr reads commas" if other else ""
-                hint += "" if other else _stand_in(name, header)
+                hint = separator_hint(header, name) or _stand_in(name, header)
                 raise TableError(path, "missing column (required: " + ", ".join(required) + ")" + hint,
                                  self.header_row, name)
         present_ref_q = [c for c in REF_QUAT if c in self.index]
@@ -657,10 +662,18 @@ def _warn_times(table: PoseTable) -> None:
     if float(t.min()) < 0.0:
         warn(f"{table.source}: column t starts at {float(t.min()):.6g} s; t is seconds since the session's start, "
              "where drift is 0, so no time is negative")
-    span = float(np.ptp(t))
-    if span > PLAUSIBLE_SESSION_S:
-        warn(f"{table.source}: column t spans {span:.6g} s ({span / 86_400:.3g} days), and a session lasts minutes "
-             "to hours: milliseconds? posecorr reads seconds")
+    words = implausible_span(t)
+    if words:
+        warn(f"{table.source}: column t {words}: milliseconds? posecorr reads seconds")
+
+
+def implausible_span(t: np.ndarray) -> str | None:
+    """'spans 2.1e+06 s (24.3 days), and a session lasts minutes to hours' where the times t
+    span more than PLAUSIBLE_SESSION_S (another unit than seconds); None otherwise."""
+    span = float(np.ptp(t)) if len(t) else 0.0
+    if span <= PLAUSIBLE_SESSION_S:
+        return None
+    return f"spans {span:.6g} s ({span / 86_400:.3g} days), and a session lasts minutes to hours"
 
 
 def typical_spread(positions: np.ndarray) -> float:

@@ -33,7 +33,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="header stamps (unset ones fall back to the receive time) or the recorder's receive times")
     p.add_argument("--time-col", default="t", help="CSV: time column (s)")
     p.add_argument("--joint-cols", default="q1,q2,q3,q4,q5,q6", help="CSV: joint-angle columns (rad)")
-    p.add_argument("--pose-cols", default="x,y,z,qw,qx,qy,qz", help="CSV: tracker pose columns (m, quaternion)")
+    p.add_argument("--pose-cols", default="x,y,z,qw,qx,qy,qz",
+                   help="CSV: tracker pose columns, the position x, y, z (m), then the unit quaternion in the order "
+                        "w, x, y, z (scalar first: for a log written x, y, z, w, name its w column first)")
     p.add_argument("--still-speed", type=options.real(0, 100, open_lo=True), default=0.01,
                    help="rad/s: still = every joint slower (default 0.01)")
     p.add_argument("--min-still", type=options.real(0, 86_400, open_lo=True), default=2.0,

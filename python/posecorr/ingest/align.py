@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..data import PLAUSIBLE_SESSION_S
 from ..registration import umeyama
 from .segments import moving_average
 from .streams import IngestError
@@ -34,6 +35,10 @@ OUTLIER_FACTOR = 4.0       # residuals beyond this many medians leave the offset
 # on the COARSE_HZ grid: a stream of less than a few smoothing windows leaves next to no speed
 # sample that smoothing has not flattened, nothing to correlate (under one grid step, no grid).
 MIN_SPAN_S = 0.1
+# The most steps of the COARSE_HZ grid (the joint stream's span) the offset is estimated on: a
+# session's. Each step takes some hundred bytes; a stray stamp decades off, or stamps in
+# nanoseconds, would ask for terabytes.
+MAX_GRID_STEPS = PLAUSIBLE_SESSION_S * COARSE_HZ
 
 
 @dataclass(frozen=True)
@@ -179,6 +184,12 @@ def estimate_offset(t_robot: np.ndarray, T_robot: np.ndarray, t_tracker: np.ndar
                               f"{span:.3g} s ({samples}), and the estimate takes at least {MIN_SPAN_S:g} s of "
                               "motion; give --offset, the tracker clock minus the robot's")
     step = 1.0 / COARSE_HZ
+    span = float(t_robot[-1] - t_robot[0])
+    if span / step > MAX_GRID_STEPS:
+        raise IngestError(f"{what}: the joint states span {span:.6g} s ({span / 86_400:.3g} days), "
+                          f"{span / step:.3g} steps of the {COARSE_HZ:g} Hz grid the clock offset is estimated on, "
+                          f"more than a {PLAUSIBLE_SESSION_S / 86_400:g}-day session's {MAX_GRID_STEPS:.3g}; check the "
+                          "stamps (one far off the others?), or give --offset")
     grid = np.arange(t_robot[0], t_robot[-1], step)
     r, r_ok = speed_on_grid(t_robot, p_robot, grid)
     if not np.any(r[r_ok] > MIN_MOTION_M_S):

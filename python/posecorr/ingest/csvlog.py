@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from ..data import (CHUNK_ROWS, MEAS_POS, REF_POS, REQUIRED, TableError, csv_records, header_record,
-                    quaternion_faults, warn_comments)
+                    implausible_span, quaternion_faults, rows_words, separator_hint, warn_comments)
+from ..textui import counted
 from .progress import progress_bar
 from .streams import IngestError, JointStream, PoseStream
 
@@ -30,6 +31,14 @@ class CsvColumns:
     pose: tuple[str, ...] = ("x", "y", "z", "qw", "qx", "qy", "qz")
 
 
+# The streams' names in messages.
+STREAMS = {"joints": "joint", "pose": "tracker"}
+# s: robot drivers publish joint states at 125-500 Hz and trackers report at tens to a thousand
+# Hz; both streams a median step this long apart are milliseconds read as seconds (up to
+# 2 kHz), or a log too sparse for the still segments' --min-samples.
+SLOWEST_PERIOD_S = 0.5
+
+
 def _open(path: Path):
     try:
         return open(path, "rb")
@@ -37,11 +46,12 @@ def _open(path: Path):
         raise IngestError(f"{path}: cannot open: {exc.strerror}") from None
 
 
-def _read_block(path: Path, columns: CsvColumns) -> tuple[list[str], dict[str, np.ndarray | None]]:
-    """(the header, {'joints': (t, values) or None, 'pose': ...}) of one file. Read in chunks of
-    CHUNK_ROWS records, each parsed to numbers before the next is read: a long log's cells as
-    Python strings would take ten times the file's size."""
+def _read_block(path: Path, columns: CsvColumns) -> tuple[list[str], dict[str, np.ndarray | None], list[str]]:
+    """(the header, {'joints': (t, values) or None, 'pose': ...}, notes on what was left out) of
+    one file. Read in chunks of CHUNK_ROWS records, each parsed to numbers before the next is
+    read: a long log's cells as Python strings would take ten times the file's size."""
     comment_rows: list[int] = []
+    bare_rows: list[np.ndarray] = []        # rows with a time and no sample of either stream
     with _open(path) as handle, progress_bar(os.fstat(handle.fileno()).st_size, "B", path) as done:
         try:
             records = csv_records(handle, str(path))
@@ -52,12 +62,14 @@ def _read_block(path: Path, columns: CsvColumns) -> tuple[list[str], dict[str, n
             _refuse_paired_table(path, header_row, header, columns)
             if columns.time not in header:
                 raise IngestError(f"{path}: row {header_row}: no time column {columns.time!r} "
-                                  f"(header: {', '.join(header)})")
+                                  f"(header: {', '.join(header)}){separator_hint(header, columns.time)}")
             wanted = _wanted_columns(path, header_row, header, columns)
             parts: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {key: [] for key in wanted}
             for numbered in _sample_chunks(records, comment_rows):
-                for key, (values, file_rows) in _parse_chunk(path, header, numbered, wanted).items():
+                samples, bare = _parse_chunk(path, header, numbered, wanted)
+                for key, (values, file_rows) in samples.items():
                     parts[key].append((values, file_rows))
+                bare_rows.append(bare)
                 done(handle.tell())
         except TableError as exc:
             raise IngestError(str(exc)) from None
@@ -69,7 +81,11 @@ def _read_block(path: Path, columns: CsvColumns) -> tuple[list[str], dict[str, n
         file_rows = np.concatenate([r for _, r in parts[key]]) if parts[key] else np.zeros(0, np.int64)
         _check_stream(path, key, names, values, file_rows)
         out[key] = values
-    return header, out
+    bare = np.concatenate(bare_rows) if bare_rows else np.zeros(0, np.int64)
+    # A bag's samples that carry nothing usable are counted in a note (streams.keep_usable); so are a log's.
+    notes = [f"{path}: {rows_words(bare.tolist(), bare.size, 'has', 'have')} a time but no joint or tracker "
+             f"values: {counted(bare.size, 'row')} left out"] if bare.size else []
+    return header, out, notes
 
 
 def _refuse_paired_table(path: Path, header_row: int, header: list[str], columns: CsvColumns) -> None:
@@ -113,14 +129,15 @@ def _sample_chunks(records, comment_rows: list[int]):
 
 
 def _parse_chunk(path: Path, header: list[str], numbered: list[tuple[int, list[str]]],
-                 wanted: dict[str, tuple[str, ...]]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """{stream: (its rows' numbers (time first), their file rows)} of one chunk; the rows that
-    carry no sample of a stream are left out of it."""
+                 wanted: dict[str, tuple[str, ...]]) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], np.ndarray]:
+    """({stream: (its rows' numbers (time first), their file rows)}, the file rows that carry no
+    sample of any stream) of one chunk; the rows that carry no sample of a stream are left out of it."""
     for number, row in numbered:
         if len(row) != len(header):
             raise IngestError(f"{path}: row {number}: {len(row)} fields, expected {len(header)} as in the header")
     file_rows = np.array([number for number, _ in numbered], dtype=np.int64)
     out = {}
+    carried = np.zeros(len(numbered), dtype=bool)
     for key, names in wanted.items():
         index = [header.index(n) for n in names]
         block = np.array([[row[i] for i in index] for _, row in numbered], dtype=object)
@@ -132,13 +149,16 @@ def _parse_chunk(path: Path, header: list[str], numbered: list[tuple[int, list[s
             raise IngestError(f"{path}: row {file_rows[r]}, column {col}: empty, expected a number like the rest "
                               f"of the row's {key} columns")
         rows_with = np.flatnonzero(filled.all(axis=1))
+        carried[rows_with] = True
         out[key] = (_numbers(path, block[rows_with], file_rows[rows_with], names), file_rows[rows_with])
-    return out
+    return out, file_rows[~carried]
 
 
 def _check_stream(path: Path, key: str, names: tuple[str, ...], values: np.ndarray, file_rows: np.ndarray) -> None:
-    """A stream's whole-file rules: unit quaternions, and times that increase (rates, speeds
-    and the clock alignment divide by time steps: each must be > 0)."""
+    """A stream's whole-file rules: unit quaternions, times that increase (rates, speeds and
+    the clock alignment divide by time steps: each must be > 0) and span no more than a session
+    (nanoseconds of a minute span 1900 years; the clock alignment's grid of them does not fit
+    in memory)."""
     bad, what = quaternion_faults(values[:, 4:8]) if key == "pose" else (np.zeros(0), "")
     if bad.size:
         raise IngestError(f"{path}: row {file_rows[bad[0]]}, column {names[4]}..{names[7]}: {what} "
@@ -148,6 +168,26 @@ def _check_stream(path: Path, key: str, names: tuple[str, ...], values: np.ndarr
         r = int(stalled[0]) + 1
         raise IngestError(f"{path}: row {file_rows[r]}, column {names[0]}: time {float(values[r, 0])!r} is not "
                           f"after the previous {key} row's {float(values[r - 1, 0])!r} (times must increase)")
+    span = implausible_span(values[:, 0])
+    if span:
+        raise IngestError(f"{path}: rows {file_rows[0]}..{file_rows[-1]}, column {names[0]}: the {STREAMS[key]} stream "
+                          f"{span}: nanoseconds or milliseconds? posecorr reads seconds; convert the column "
+                          "to seconds")
+
+
+def _warn_sparse(names: str, time: str, joints: JointStream, pose: PoseStream) -> None:
+    """One warning line where both streams' samples come a median SLOWEST_PERIOD_S or more apart:
+    milliseconds read as seconds leave the robot still (speeds a thousand times too low) and
+    every still segment short of tracker samples, which would be the only words for it."""
+    periods = [float(np.median(np.diff(t))) if len(t) > 1 else 0.0 for t in (joints.t, pose.t)]
+    if min(periods) < SLOWEST_PERIOD_S:
+        return
+    from ..safeio import warn
+
+    joint, tracker = periods
+    warn(f"{names}: column {time}: the joint samples are a median {joint:.3g} s apart ({1 / joint:.3g} Hz), the "
+         f"tracker samples {tracker:.3g} s ({1 / tracker:.3g} Hz), where a robot cell records tens to thousands of "
+         "samples a second: milliseconds? posecorr reads seconds")
 
 
 def _numbers(path: Path, block: np.ndarray, rows: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
@@ -174,8 +214,10 @@ def read_csv_log(paths: list[str | Path], columns: CsvColumns = CsvColumns()) ->
     """The joint and tracker streams of one or two CSV logs (layout in the module docstring)."""
     joints = pose = None
     found: dict[str, None] = {}         # the files' header columns, in order
+    notes: list[str] = []
     for path in map(Path, paths):
-        header, block = _read_block(path, columns)
+        header, block, left_out = _read_block(path, columns)
+        notes += left_out
         found.update(dict.fromkeys(header))
         for key, value in block.items():
             if value is None or len(value) == 0:
@@ -196,6 +238,8 @@ def read_csv_log(paths: list[str | Path], columns: CsvColumns = CsvColumns()) ->
         raise IngestError(_no_samples(names, "tracker", columns.time, columns.pose, list(found),
                                       "the tracker's position and quaternion columns with --pose-cols, "
                                       f"comma-separated in the order {', '.join(CsvColumns.pose)}"))
+    _warn_sparse(names, columns.time, joints, pose)
+    joints.notes += notes
     return joints, pose
 
 

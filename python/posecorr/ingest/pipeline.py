@@ -20,6 +20,7 @@ from .. import geometry
 from ..geometry import END_T_TRACKER, base_T_station, homogeneous
 from ..jsonable import json_default
 from ..kinematics import DEFAULT_ARM, Arm, load_arm, reference_poses
+from ..registration import quaternion_order_note
 from ..rotations import matrix_to_quat, quat_to_matrix
 from .align import Alignment, check_overlap, estimate_offset
 from .csvlog import CsvColumns, read_csv_log
@@ -197,8 +198,23 @@ def ingest(paths: list[str | Path], options: IngestOptions | None = None) -> Ing
                           f"{'; ...' if len(segments) > 3 else ''})")
     for row, segment in enumerate(accepted):
         segment.row = row
-    return IngestResult(_table(accepted, arm, options, float(joints.t[0]), what), segments, alignment,
-                        float(joints.t[0]), joints, tracker, options, joints.notes + tracker.notes + notes)
+    table = _table(accepted, arm, options, float(joints.t[0]), what)
+    notes += _order_notes(accepted, table, tracker.source, options.csv if _is_csv([Path(p) for p in paths]) else None)
+    return IngestResult(table, segments, alignment, float(joints.t[0]), joints, tracker, options,
+                        joints.notes + tracker.notes + notes)
+
+
+def _order_notes(segments: list[Segment], table: PoseTable, source: str, csv: CsvColumns | None) -> list[str]:
+    """`registration.quaternion_order_note` on the tracker's quaternions as read (before the
+    registration, whose product would not shift back) against the forward kinematics', with
+    the columns a CSV log's were read from: a log written x, y, z, w read as w, x, y, z gives a
+    table that fits badly and says nothing of why."""
+    note = quaternion_order_note(np.stack([s.quat for s in segments]), table.ref_q,
+                                 np.stack([s.p for s in segments]), table.ref_p)
+    if note is None:
+        return []
+    columns = f"; ingest read the columns {', '.join(csv.pose[3:])} as w, x, y, z (--pose-cols)" if csv else ""
+    return [f"{source}, tracker quaternions against the forward kinematics: {note}{columns}"]
 
 
 def _table(segments: list[Segment], arm: Arm, options: IngestOptions, t0: float, what: str) -> PoseTable:

@@ -9,6 +9,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ..textui import counted
+
 
 class IngestError(ValueError):
     """A recording that cannot be turned into a table: one line naming the file and what was expected."""
@@ -78,8 +80,9 @@ def keep_usable(stream: JointStream | PoseStream, values: np.ndarray) -> JointSt
         usable.notes.append(f"{stream.source}: left out {int(np.sum(~finite))} of {len(finite)} samples "
                             "with NaN or infinite values")
     if repeated.any():
-        usable.notes.append(f"{stream.source}: left out {int(np.sum(repeated))} samples that repeat the stamp "
-                            "of the one before (the first of each stamp kept)")
+        n = int(np.sum(repeated))
+        usable.notes.append(f"{stream.source}: left out {counted(n, 'sample')} that {'repeats' if n == 1 else 'repeat'} "
+                            "the stamp of the one before (the first of each stamp kept)")
     return usable
 
 

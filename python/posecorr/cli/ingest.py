@@ -59,6 +59,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> None:
     from ..data import write_table
+    from ..textui import counted
     from ..ingest import IngestOptions, ingest, write_segments
     from ..ingest.csvlog import CsvColumns
     from ..ingest.pipeline import parse_transform
@@ -103,7 +104,7 @@ def run(args: argparse.Namespace) -> None:
             rates += f" ({summary['tracker_rate_hz']:.0f} Hz)"
         lines = [f"{', '.join(map(str, args.recording))}: {rates}"] + [f"note: {note}" for note in result.notes] + [
                  f"clock offset tracker - robot: {a.offset:+.4f} s ({how})",
-                 f"{len(result.segments)} still segments: {result.table.n} rows -> {args.output}, "
+                 f"{counted(len(result.segments), 'still segment')}: {counted(result.table.n, 'row')} -> {args.output}, "
                  f"{len(result.rejected)} rejected"]
         lines += [f"  rejected segment {s.index} (t {s.start - result.t0:.1f}..{s.end - result.t0:.1f} s): {s.reason}"
                   for s in result.rejected]

@@ -194,7 +194,8 @@ def ingest(paths: list[str | Path], options: IngestOptions | None = None) -> Ing
     accepted = [s for s in segments if s.status == "ok"]
     if not accepted:
         reasons = "; ".join(f"segment {s.index}: {s.reason}" for s in segments[:3])
-        raise IngestError(f"{what}: none of {len(segments)} still segments is usable ({reasons}"
+        which = "the one still segment is" if len(segments) == 1 else f"none of {len(segments)} still segments is"
+        raise IngestError(f"{what}: {which} usable ({reasons}"
                           f"{'; ...' if len(segments) > 3 else ''})")
     for row, segment in enumerate(accepted):
         segment.row = row

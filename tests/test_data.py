@@ -67,6 +67,18 @@ def test_a_misspelled_optional_column_is_kept_with_one_warning_naming_the_likely
     assert capsys.readouterr().err == ""  # beside the known column it is no misspelling of it
 
 
+def test_reference_angles_are_named_not_taken_for_a_quaternion(tmp_path, capsys) -> None:
+    """ref_rx, ref_ry, ref_rz (a robot's rotation vector) drew 'did you mean ref_qx?' three
+    times, and the table was read position-only without a word on why."""
+    path = _write(tmp_path, HEADER + ",ref_rx,ref_ry,ref_rz\n" + ROW + ",0.1,0.2,0.3\n")
+    assert not read_table(path).has_orientation
+    assert capsys.readouterr().err.splitlines() == [
+        f"posecorr: warning: {path}: columns 'ref_rx', 'ref_ry', 'ref_rz' look like angles (Euler or a rotation "
+        "vector), and posecorr reads the reference orientation as unit quaternions ref_qw..ref_qz: without them the "
+        "table is read position-only (convert them, scipy: Rotation.from_euler(sequence, angles, degrees=True), or "
+        "from_rotvec, then .as_quat(scalar_first=True))"]
+
+
 @pytest.mark.parametrize("text, row, column, what", [
     (HEADER.replace(",ref_z", "") + "\n" + ROW.rsplit(",", 1)[0] + "\n", 1, "ref_z", "missing column"),
     (f"{HEADER},ref_qw\n{ROW},1\n", 1, "ref_qx", "missing column"),
@@ -84,6 +96,20 @@ def test_a_misspelled_optional_column_is_kept_with_one_warning_naming_the_likely
     (HEADER.replace("ref_x", "ref_x_m") + f"\n{ROW}\n", 1, "ref_x", "the header has 'ref_x_m': is it ref_x?"),
     (f"{HEADER},ref_qw,ref_qx,ref_qy,ref_gz\n{ROW},1,0,0,0\n", 1, "ref_qz", "the header has 'ref_gz': is it ref_qz?"),
     (f"# v2\n{HEADER}\n{ROW}\n#{ROW}\n0.1,0.2\n", 5, None, "2 fields, expected 10"),  # comment lines count
+    # what stands in for a missing column, from an audit that brought its own tables
+    (HEADER.replace("meas_x", "meas_x [m]") + f"\n{ROW}\n", 1, "meas_x",
+     "the header has 'meas_x [m]': name the column meas_x, without a unit (posecorr reads positions in metres)"),
+    (HEADER.replace("meas_qw,meas_qx,meas_qy,meas_qz", "meas_roll,meas_pitch,meas_yaw") + "\n", 1, "meas_qw",
+     "the header has 'meas_roll', 'meas_pitch', 'meas_yaw': posecorr reads orientations as unit quaternions "
+     "meas_qw..meas_qz, not angles"),
+    ("stamp,tx,ty,tz,qw,qx,qy,qz,rx,ry,rz\n", 1, "meas_x",
+     "the header has 'stamp', 'tx', 'ty', 'tz', 'qw', 'qx', 'qy', 'qz', 'rx', 'ry', 'rz'"),
+    (f"{HEADER}\n{ROW}\n0.1,0.2,0.3,0.99,0.01,0.01,0.01,0.1,0.2,0.3\n", 3, "meas_qw..meas_qz",
+     "(expected a unit quaternion w, x, y, z); normalise the quaternions if they were rounded (4 decimals keep "
+     "the norm within 0.001)"),
+    (f"{HEADER}\n{ROW}\n0,0,0,0,0,0,0,0.1,0.2,0.3\n", 3, "meas_qw..meas_qz",
+     "a zero quaternion (expected a unit quaternion w, x, y, z); a tracker that lost tracking writes zeros: "
+     "remove the row"),
 ])
 def test_malformed_tables_name_file_row_and_column(tmp_path, text, row, column, what) -> None:
     path = _write(tmp_path, text)

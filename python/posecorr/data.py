@@ -36,6 +36,10 @@ JOINTS = tuple(f"q{i}" for i in range(1, 7))
 NUMERIC_OPTIONAL = ("t", "jitter_mm") + JOINTS
 TEXT_OPTIONAL = ("id", "session")
 QUAT_NORM_TOLERANCE = 1e-3
+# What a refused quaternion's line suggests: a zero one is a tracker's "no pose"; a norm a
+# little off is most often a quaternion rounded when written (4 decimals keep it within 0.001).
+ZERO_QUATERNION_FIX = "a tracker that lost tracking writes zeros: remove the row"
+NORM_FIX = "normalise the quaternions if they were rounded (4 decimals keep the norm within 0.001)"
 # A tracker sees a few metres and a robot cell is a few metres wide: a coordinate beyond
 # this (metres) is a unit mistake (millimetres) or a corrupt value, not a pose.
 MAX_POSITION = 1e3
@@ -358,8 +362,14 @@ def _warn_misspelled(path: str, header: list[str]) -> None:
     from .safeio import warn
 
     missing = [c for c in KNOWN_COLUMNS if c not in header]
+    euler = _euler_columns(header, "ref_") if REF_QUAT[0] not in header else []
+    if euler:
+        warn(f"{path}: columns {', '.join(map(repr, euler))} look like angles (Euler or a rotation vector), and "
+             f"posecorr reads the reference orientation as unit quaternions {REF_QUAT[0]}..{REF_QUAT[-1]}: without "
+             "them the table is read position-only (convert them, scipy: Rotation.from_euler(sequence, angles, "
+             "degrees=True), or from_rotvec, then .as_quat(scalar_first=True))")
     for name in header:
-        if name in KNOWN_COLUMNS or not name:
+        if name in KNOWN_COLUMNS or not name or name in euler:
             continue
         close = closest(name.lower(), missing, cutoff=0.8)
         if close:
@@ -374,12 +384,40 @@ def separator_hint(header: list[str], name: str) -> str:
     return f"; the header is one column holding {other!r}: posecorr reads commas" if other else ""
 
 
+# A name with its unit after it: 'meas_x [m]', 'ref_x (mm)'.
+_UNIT_SUFFIX = re.compile(r"(.+?)\s*[\[(][^\])]*[\])]\s*")
+# An orientation as angles, which posecorr does not read: Euler angles (roll, pitch, yaw;
+# KUKA's A, B, C), or a rotation vector (Universal Robots' rx, ry, rz), after meas_ or ref_.
+_ANGLE_NAME = re.compile(r"(roll|pitch|yaw|rpy|euler|rot|r[xyz]|[abc]\b|angle).*")
+HEADER_SHOWN = 12
+
+
+def _euler_columns(names: Sequence[str], side: str) -> list[str]:
+    """The columns among `names` of the `side` ('meas_' or 'ref_') that look like angles."""
+    return [h for h in names if h.lower().startswith(side) and _ANGLE_NAME.fullmatch(h.lower()[len(side):])]
+
+
 def _stand_in(name: str, header: list[str]) -> str:
-    """'; the header has 'refy': is it ref_y?' where a column posecorr does not know is a
-    mistyping of the missing `name` (refy, meas_X, ref_x_m), else ''."""
+    """What the header holds in place of the missing column `name`: the name with a unit after
+    it ('; the header has 'meas_x [m]': ...'), Euler angles in place of a quaternion, a
+    mistyping of it (refy, meas_X, ref_x_m: '; the header has 'refy': is it ref_y?'), else
+    the header's first names."""
+    for h in header:
+        bare = _UNIT_SUFFIX.fullmatch(h)
+        if bare and bare.group(1) == name:
+            return (f"; the header has {h!r}: name the column {name}, without a unit (posecorr reads positions in "
+                    "metres)")
+    side = name.split("_")[0] + "_"
+    euler = _euler_columns(header, side) if name in MEAS_QUAT + REF_QUAT else []
+    if euler:
+        return (f"; the header has {', '.join(map(repr, euler))}: posecorr reads orientations as unit quaternions "
+                f"{side}qw..{side}qz, not angles: convert them (scipy: Rotation.from_euler(sequence, angles, "
+                "degrees=True), or from_rotvec, then .as_quat(scalar_first=True))")
     unknown = {h.lower(): h for h in header if h not in KNOWN_COLUMNS}
     close = closest(name, list(unknown), cutoff=0.8)
-    return f"; the header has {unknown[close]!r}: is it {name}?" if close else ""
+    if close:
+        return f"; the header has {unknown[close]!r}: is it {name}?"
+    return f"; the header has {first_few([repr(h) for h in header], HEADER_SHOWN)}"
 
 
 class TableReader:
@@ -388,14 +426,16 @@ class TableReader:
     ``require_reference=False`` also accepts a measurement-only table (no ``ref_*``
     columns; `posecorr apply`). ``measured_quaternions_checked=False`` passes a measured
     quaternion that is zero or not unit on to the model, which refuses that pose alone
-    (`apply --keep-going`: a tracker's log writes zeros where tracking was lost). Use as a
+    (`apply --keep-going`: a tracker's log writes zeros where tracking was lost);
+    ``zero_fix`` is what the refusal of a zero measured quaternion suggests. Use as a
     context manager; `chunks()` yields `Chunk`s.
     """
 
     def __init__(self, path: str | Path, require_reference: bool = True,
-                 measured_quaternions_checked: bool = True) -> None:
+                 measured_quaternions_checked: bool = True, zero_fix: str = ZERO_QUATERNION_FIX) -> None:
         self.path = str(path)
         self.measured_quaternions_checked = measured_quaternions_checked
+        self.zero_fix = zero_fix
         if Path(self.path).is_dir():
             raise TableError(self.path, "is a folder, expected a CSV file")
         try:
@@ -528,7 +568,7 @@ class TableReader:
                 raise TableError(self.path, f"{values[c][i]:.6g} m is more than {MAX_POSITION:g} m from the origin "
                                  "(positions are in metres)", numbers[i], c)
         if self.measured_quaternions_checked:
-            _check_quaternions(self.path, chunk.block(MEAS_QUAT), MEAS_QUAT, numbers)
+            _check_quaternions(self.path, chunk.block(MEAS_QUAT), MEAS_QUAT, numbers, self.zero_fix)
         if self.has_ref_orientation:
             _check_quaternions(self.path, chunk.block(REF_QUAT), REF_QUAT, numbers)
         return chunk
@@ -701,10 +741,12 @@ def quaternion_faults(q: np.ndarray) -> tuple[np.ndarray, str]:
                  f"quaternion norm {first:.6g} is off 1 by more than {QUAT_NORM_TOLERANCE:g}")
 
 
-def _check_quaternions(path: str | None, q: np.ndarray, columns: tuple[str, ...], rows: list[int]) -> None:
+def _check_quaternions(path: str | None, q: np.ndarray, columns: tuple[str, ...], rows: list[int],
+                       zero_fix: str = ZERO_QUATERNION_FIX) -> None:
     bad, what = quaternion_faults(q)
     if bad.size:
-        raise TableError(path, f"{what} (expected a unit quaternion w, x, y, z)", rows[int(bad[0])],
+        fix = zero_fix if not np.any(q[bad[0]]) else NORM_FIX
+        raise TableError(path, f"{what} (expected a unit quaternion w, x, y, z); {fix}", rows[int(bad[0])],
                          "..".join((columns[0], columns[-1])))
 
 

@@ -247,6 +247,10 @@ def _check_header(reader: TableReader, corrector: Corrector, model: str | os.Pat
                          + ", ".join(CORR_COLUMNS) + " (use the raw table as input)", reader.header_row, clash[0])
 
 
+# A zero measured quaternion refused without --keep-going: the way on (a tracker's "no pose").
+KEEP_GOING_FIX = "a tracker that lost tracking writes zeros: --keep-going writes such a pose as nan and goes on"
+
+
 def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], output: str | os.PathLike[str],
                backend: str = "c", chunk_rows: int = CHUNK_ROWS, allow_unbounded: bool = False,
                allow_unsigned: bool = False, keep_going: bool = False) -> dict[str, Any]:
@@ -264,7 +268,8 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
     corrector = Corrector(model, backend=backend, allow_unbounded=allow_unbounded,
                           allow_unsigned=allow_unsigned)
     n = 0
-    with TableReader(table, require_reference=False, measured_quaternions_checked=not keep_going) as reader:
+    with TableReader(table, require_reference=False, measured_quaternions_checked=not keep_going,
+                     zero_fix=KEEP_GOING_FIX) as reader:
         _check_header(reader, corrector, model)
         raw_sums = corr_sums = None
         refused = _Refused()

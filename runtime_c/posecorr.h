@@ -138,7 +138,8 @@ typedef struct pc_options {
      * 0 selects PC_DEFAULT_MAX_BATCH. pc_run handles any n by chunking (plans exist
      * for 1, 16, 256, ... poses and max_batch). */
     size_t max_batch;
-    /* PC_LOAD_* flags; 0 for the defaults. */
+    /* PC_LOAD_* flags; 0 for the defaults. A bit no flag of this library names (one of a
+     * newer header) is refused (PC_ERR_ARGUMENT), not ignored. */
     unsigned flags;
     /* Element operations a one-pose program may hold while it is compiled (each takes
      * 28 bytes of load-time scratch); 0 selects 512, above PC_MAX_PROGRAM_OPS is taken as

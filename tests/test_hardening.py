@@ -547,6 +547,40 @@ def test_apply_keep_going_writes_a_refused_pose_as_nan_and_counts_it(tmp_path, c
     assert not (tmp_path / "none.csv").exists()
 
 
+def test_apply_keep_going_passes_a_lost_measured_cell_to_the_model(tmp_path) -> None:
+    """A log that writes an empty cell or nan where tracking was lost stopped apply even with
+    --keep-going ('empty value, expected a number'): now the model refuses that pose alone.
+    A reference cell, or a measured cell of text, is still the table's fault."""
+    from posecorr.controller.apply import apply_file
+    from posecorr.train.pmc import PMC
+
+    t = _table(200, seed=5)
+    model = tmp_path / "bounded.onnx"
+    PMC(representation="zhou").fit(t.measured, t.reference).to_onnx(model, measured=t.measured,
+                                                                       reference=t.reference)
+    path = tmp_path / "t.csv"
+    write_table(_table(20, seed=6), path)
+    lines = path.read_text().splitlines()
+    header = lines[0].split(",")
+    for row, column, text in ((5, "meas_x", ""), (9, "meas_qz", "NaN"), (12, "meas_y", " nan ")):
+        cells = lines[row - 1].split(",")
+        cells[header.index(column)] = text
+        lines[row - 1] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    got = apply_file(model, path, tmp_path / "out.csv", keep_going=True)
+    assert got["refused"]["count"] == 3 and got["refused"]["rows"] == [5, 9, 12]
+    assert got["refused"]["first"] == (f"{path}, row 5, column meas_x: {model}: non-finite input: x is not finite "
+                                       "(expected a finite number)")
+    with pytest.raises(TableError, match="row 5, column meas_x: empty value, expected a number"):
+        apply_file(model, path, tmp_path / "stopped.csv")
+    for column, text, said in (("ref_x", "", "empty value"), ("meas_x", "lost", "expected a number, got 'lost'")):
+        cells = lines[6].split(",")
+        cells[header.index(column)] = text
+        path.write_text("\n".join(lines[:6] + [",".join(cells)] + lines[7:]) + "\n")
+        with pytest.raises(TableError, match=f"row 7, column {column}: {said}"):
+            apply_file(model, path, tmp_path / "stopped.csv", keep_going=True)
+
+
 def test_apply_marks_the_poses_a_model_was_fitted_on_as_in_sample(tmp_path, capsys) -> None:
     """On the table a fit saw, apply's corrected figures are in-sample: it says so and puts
     the fit's held-out figures (as `fit --json` printed them) beside them; with one cell a

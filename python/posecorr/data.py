@@ -232,9 +232,13 @@ def _parse_number(text: str, path: str, row: int, column: str) -> float:
     return value
 
 
-def _parse_column(cells: list[str], path: str, rows: list[int], column: str) -> np.ndarray:
+# What a tracker's log writes where tracking was lost, read as nan by `apply --keep-going`.
+LOST_CELLS = ("", "nan")
+
+
+def _parse_column(cells: list[str], path: str, rows: list[int], column: str, lost_as_nan: bool = False) -> np.ndarray:
     """One column of a chunk as float64, checked as a whole; cell by cell only to name the
-    first bad one."""
+    first bad one. `lost_as_nan`: a cell of LOST_CELLS is nan, for the model to refuse."""
     if _DECIMAL_CHARS_RE.fullmatch("\n".join(cells)):
         try:
             values = np.array(list(map(float, cells)), dtype=np.float64)
@@ -243,7 +247,8 @@ def _parse_column(cells: list[str], path: str, rows: list[int], column: str) -> 
         else:
             if np.all(np.isfinite(values)):
                 return values
-    return np.array([_parse_number(c, path, r, column) for c, r in zip(cells, rows)], dtype=np.float64)
+    return np.array([math.nan if lost_as_nan and c.strip().lower() in LOST_CELLS else _parse_number(c, path, r, column)
+                     for c, r in zip(cells, rows)], dtype=np.float64)
 
 
 @dataclass
@@ -424,17 +429,17 @@ class TableReader:
     """A paired-pose CSV read in chunks, every cell checked (see the module doc).
 
     ``require_reference=False`` also accepts a measurement-only table (no ``ref_*``
-    columns; `posecorr apply`). ``measured_quaternions_checked=False`` passes a measured
-    quaternion that is zero or not unit on to the model, which refuses that pose alone
-    (`apply --keep-going`: a tracker's log writes zeros where tracking was lost);
-    ``zero_fix`` is what the refusal of a zero measured quaternion suggests. Use as a
-    context manager; `chunks()` yields `Chunk`s.
+    columns; `posecorr apply`). ``measured_checked=False`` passes a measured pose that
+    tracking lost on to the model, which refuses that pose alone (`apply --keep-going`): a
+    quaternion that is zero or not unit, a measured cell that is empty or nan (what a
+    tracker's log writes there), read as nan. ``zero_fix`` is what the refusal of a zero
+    measured quaternion suggests. Use as a context manager; `chunks()` yields `Chunk`s.
     """
 
     def __init__(self, path: str | Path, require_reference: bool = True,
-                 measured_quaternions_checked: bool = True, zero_fix: str = ZERO_QUATERNION_FIX) -> None:
+                 measured_checked: bool = True, zero_fix: str = ZERO_QUATERNION_FIX) -> None:
         self.path = str(path)
-        self.measured_quaternions_checked = measured_quaternions_checked
+        self.measured_checked = measured_checked
         self.zero_fix = zero_fix
         if Path(self.path).is_dir():
             raise TableError(self.path, "is a folder, expected a CSV file")
@@ -558,7 +563,8 @@ class TableReader:
                  "no pose read there")
 
     def _parse(self, rows: list[list[str]], numbers: list[int], comments: list[tuple[int, str]]) -> Chunk:
-        values = {c: _parse_column([row[self.index[c]] for row in rows], self.path, numbers, c)
+        values = {c: _parse_column([row[self.index[c]] for row in rows], self.path, numbers, c,
+                                   lost_as_nan=not self.measured_checked and c in MEAS_POS + MEAS_QUAT)
                   for c in self.numeric}
         chunk = Chunk(rows, numbers, values, comments)
         for c in MEAS_POS + (REF_POS if self.has_reference else ()):
@@ -567,7 +573,7 @@ class TableReader:
                 i = int(far[0])
                 raise TableError(self.path, f"{values[c][i]:.6g} m is more than {MAX_POSITION:g} m from the origin "
                                  "(positions are in metres)", numbers[i], c)
-        if self.measured_quaternions_checked:
+        if self.measured_checked:
             _check_quaternions(self.path, chunk.block(MEAS_QUAT), MEAS_QUAT, numbers, self.zero_fix)
         if self.has_ref_orientation:
             _check_quaternions(self.path, chunk.block(REF_QUAT), REF_QUAT, numbers)

@@ -18,9 +18,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     backend_option(p)
     allow_options(p)
     p.add_argument("--keep-going", action="store_true",
-                   help="write a pose the model refuses (outside its box, or a zero measured quaternion where "
-                        "tracking was lost, say) as nan and go on, counting them, instead of stopping at the first "
-                        "(default: stop); a cell that is no number is the table's fault and stops it all the same")
+                   help="write a pose the model refuses (outside its box, or where tracking was lost: a zero "
+                        "measured quaternion, a measured cell empty or nan) as nan and go on, counting them, instead "
+                        "of stopping at the first (default: stop); any other cell that is no number is the table's "
+                        "fault and stops it all the same")
 
 
 def run(args: argparse.Namespace) -> None:

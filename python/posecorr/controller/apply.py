@@ -268,7 +268,7 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
     corrector = Corrector(model, backend=backend, allow_unbounded=allow_unbounded,
                           allow_unsigned=allow_unsigned)
     n = 0
-    with TableReader(table, require_reference=False, measured_quaternions_checked=not keep_going,
+    with TableReader(table, require_reference=False, measured_checked=not keep_going,
                      zero_fix=KEEP_GOING_FIX) as reader:
         _check_header(reader, corrector, model)
         raw_sums = corr_sums = None

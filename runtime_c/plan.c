@@ -252,15 +252,14 @@ static pc_status pc_plan_inputs(pc_pass *pp)
     return PC_OK;
 }
 
-static pc_status pc_check_output(const pc_builder *b, const pc_value *o, size_t batch)
+/* The output against the contract's float32 [N,7], named with every dimension (a rank-6
+ * result is not "(1 x 1)"); its own frame, off the load's deepest path. */
+PC_RARE static pc_status pc_output_fault(const pc_builder *b, const pc_value *o, size_t batch)
 {
     char shape[PC_MAX_RANK * 22 + 3] = "[";
     size_t used = 1;
     int j;
-    if (b->any_io || (o->dtype == PC_F32 && o->rank == 2 && o->dims[0] == (int64_t)batch &&
-                      o->dims[1] == PC_POSE_WIDTH))
-        return PC_OK;
-    for (j = 0; j < o->rank; j++) { /* every dimension: a rank-6 output is not "(1 x 1)" */
+    for (j = 0; j < o->rank; j++) {
         pc_format(shape + used, sizeof shape - used, "%s%lld", j ? ", " : "",
                   (long long)o->dims[j]);
         used += strlen(shape + used);
@@ -269,6 +268,14 @@ static pc_status pc_check_output(const pc_builder *b, const pc_value *o, size_t 
     return pc_fail(b->err, PC_ERR_CONTRACT,
                    "output 'corrected' is %s of shape %s for N=%zu, the contract needs float32 "
                    "[N,7]", pc_dtype_name(o->dtype), shape, batch);
+}
+
+static pc_status pc_check_output(const pc_builder *b, const pc_value *o, size_t batch)
+{
+    if (b->any_io || (o->dtype == PC_F32 && o->rank == 2 && o->dims[0] == (int64_t)batch &&
+                      o->dims[1] == PC_POSE_WIDTH))
+        return PC_OK;
+    return pc_output_fault(b, o, batch);
 }
 
 /* Where the plan's inputs and outputs lie (plan->in, t, out; slots: every graph input and

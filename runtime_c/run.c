@@ -273,20 +273,30 @@ PC_RARE static void pc_decimal(char *buf, size_t size, double v, int places)
               frac, power);
 }
 
+/* What pc_outside says is outside: a position, a time the caller gave, or the t = 0 of a
+ * call without times. */
+enum { PC_POSITION, PC_TIME, PC_NO_TIME };
+
 /* "pose I: NAME = VALUE UNIT is outside the range the model was fitted on, LO to HI UNIT
  * (metadata input_bounds)" of a position outside the box, or of a time (NAME t) outside
- * the span. */
+ * the span; of a call without times, that its poses were taken at t = 0. */
 PC_RARE static void pc_outside(pc_model *m, size_t pose, const char *name, float v, float lo,
-                               float hi, int time)
+                               float hi, int what)
 {
     char value[24], low[24], high[24];
-    const char *unit = time ? "s" : "m";
+    const char *unit = what == PC_POSITION ? "m" : "s";
     pc_decimal(value, sizeof value, v, 3);
     pc_decimal(low, sizeof low, lo, 3);
     pc_decimal(high, sizeof high, hi, 3);
-    pc_format(m->message, sizeof m->message, "pose %zu: %s = %s %s is outside the %s the model "
-              "was fitted on, %s to %s %s (metadata %s)", pose, name, value, unit,
-              time ? "span" : "range", low, high, unit, time ? "time_bounds" : "input_bounds");
+    if (what == PC_NO_TIME)
+        pc_format(m->message, sizeof m->message, "pose %zu: no t given, so t = 0 s, outside the "
+                  "span the model was fitted on, %s to %s s (metadata time_bounds): the model "
+                  "takes each pose's time", pose, low, high);
+    else
+        pc_format(m->message, sizeof m->message, "pose %zu: %s = %s %s is outside the %s the model "
+                  "was fitted on, %s to %s %s (metadata %s)", pose, name, value, unit,
+                  what == PC_TIME ? "span" : "range", low, high, unit,
+                  what == PC_TIME ? "time_bounds" : "input_bounds");
 }
 
 /* Whether a pose meets the input contract, the clauses joined without a branch; the finite
@@ -319,7 +329,7 @@ PC_RARE static pc_status pc_pose_error(pc_model *m, const float *in, size_t i)
     }
     for (c = 0; c < 2 && in[c] >= m->lo[c] && in[c] <= m->hi[c]; c++)
         ;
-    pc_outside(m, i, pc_column_names[c], in[c], m->lo[c], m->hi[c], 0);
+    pc_outside(m, i, pc_column_names[c], in[c], m->lo[c], m->hi[c], PC_POSITION);
     return PC_ERR_RANGE;
 }
 
@@ -337,21 +347,12 @@ PC_INLINE int pc_time_ok(const pc_model *m, const float *t)
  * without times (given 0) is told that its poses were taken at t = 0. */
 PC_RARE static pc_status pc_time_error(pc_model *m, float ti, size_t i, int given)
 {
-    char low[24], high[24];
-    if (!given) {
-        pc_decimal(low, sizeof low, m->t_lo, 3);
-        pc_decimal(high, sizeof high, m->t_hi, 3);
-        pc_format(m->message, sizeof m->message, "pose %zu: no t given, so t = 0 s, outside the "
-                  "span the model was fitted on, %s to %s s (metadata time_bounds): the model "
-                  "takes each pose's time", i, low, high);
-        return PC_ERR_RANGE;
-    }
     if (!isfinite(ti)) {
         pc_format(m->message, sizeof m->message, "pose %zu: t is not finite (expected seconds "
                   "since the session's start)", i);
         return PC_ERR_NONFINITE;
     }
-    pc_outside(m, i, "t", ti, m->t_lo, m->t_hi, 1);
+    pc_outside(m, i, "t", ti, m->t_lo, m->t_hi, given ? PC_TIME : PC_NO_TIME);
     return PC_ERR_RANGE;
 }
 

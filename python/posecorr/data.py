@@ -367,14 +367,13 @@ def _warn_misspelled(path: str, header: list[str]) -> None:
     from .safeio import warn
 
     missing = [c for c in KNOWN_COLUMNS if c not in header]
-    euler = _euler_columns(header, "ref_") if REF_QUAT[0] not in header else []
-    if euler:
-        warn(f"{path}: columns {', '.join(map(repr, euler))} look like angles (Euler or a rotation vector), and "
+    angles = _angle_columns(header, "ref_") if REF_QUAT[0] not in header else []
+    if angles:
+        warn(f"{path}: columns {', '.join(map(repr, angles))} look like angles (Euler or a rotation vector), and "
              f"posecorr reads the reference orientation as unit quaternions {REF_QUAT[0]}..{REF_QUAT[-1]}: without "
-             "them the table is read position-only (convert them, scipy: Rotation.from_euler(sequence, angles, "
-             "degrees=True), or from_rotvec, then .as_quat(scalar_first=True))")
+             f"them the table is read position-only ({ANGLES_FIX})")
     for name in header:
-        if name in KNOWN_COLUMNS or not name or name in euler:
+        if name in KNOWN_COLUMNS or not name or name in angles:
             continue
         close = closest(name.lower(), missing, cutoff=0.8)
         if close:
@@ -394,10 +393,13 @@ _UNIT_SUFFIX = re.compile(r"(.+?)\s*[\[(][^\])]*[\])]\s*")
 # An orientation as angles, which posecorr does not read: Euler angles (roll, pitch, yaw;
 # KUKA's A, B, C), or a rotation vector (Universal Robots' rx, ry, rz), after meas_ or ref_.
 _ANGLE_NAME = re.compile(r"(roll|pitch|yaw|rpy|euler|rot|r[xyz]|[abc]\b|angle).*")
+# How angle columns become the quaternions posecorr reads.
+ANGLES_FIX = ("convert them (scipy: Rotation.from_euler(sequence, angles, degrees=True), or from_rotvec, then "
+              ".as_quat(scalar_first=True))")
 HEADER_SHOWN = 12
 
 
-def _euler_columns(names: Sequence[str], side: str) -> list[str]:
+def _angle_columns(names: Sequence[str], side: str) -> list[str]:
     """The columns among `names` of the `side` ('meas_' or 'ref_') that look like angles."""
     return [h for h in names if h.lower().startswith(side) and _ANGLE_NAME.fullmatch(h.lower()[len(side):])]
 
@@ -413,11 +415,10 @@ def _stand_in(name: str, header: list[str]) -> str:
             return (f"; the header has {h!r}: name the column {name}, without a unit (posecorr reads positions in "
                     "metres)")
     side = name.split("_")[0] + "_"
-    euler = _euler_columns(header, side) if name in MEAS_QUAT + REF_QUAT else []
-    if euler:
-        return (f"; the header has {', '.join(map(repr, euler))}: posecorr reads orientations as unit quaternions "
-                f"{side}qw..{side}qz, not angles: convert them (scipy: Rotation.from_euler(sequence, angles, "
-                "degrees=True), or from_rotvec, then .as_quat(scalar_first=True))")
+    angles = _angle_columns(header, side) if name in MEAS_QUAT + REF_QUAT else []
+    if angles:
+        return (f"; the header has {', '.join(map(repr, angles))}: posecorr reads orientations as unit quaternions "
+                f"{side}qw..{side}qz, not angles: {ANGLES_FIX}")
     unknown = {h.lower(): h for h in header if h not in KNOWN_COLUMNS}
     close = closest(name, list(unknown), cutoff=0.8)
     if close:

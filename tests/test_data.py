@@ -75,7 +75,7 @@ def test_reference_angles_are_named_not_taken_for_a_quaternion(tmp_path, capsys)
     assert capsys.readouterr().err.splitlines() == [
         f"posecorr: warning: {path}: columns 'ref_rx', 'ref_ry', 'ref_rz' look like angles (Euler or a rotation "
         "vector), and posecorr reads the reference orientation as unit quaternions ref_qw..ref_qz: without them the "
-        "table is read position-only (convert them, scipy: Rotation.from_euler(sequence, angles, degrees=True), or "
+        "table is read position-only; convert them (scipy: Rotation.from_euler(sequence, angles, degrees=True), or "
         "from_rotvec, then .as_quat(scalar_first=True))"]
 
 

@@ -371,7 +371,7 @@ def _warn_misspelled(path: str, header: list[str]) -> None:
     if angles:
         warn(f"{path}: columns {', '.join(map(repr, angles))} look like angles (Euler or a rotation vector), and "
              f"posecorr reads the reference orientation as unit quaternions {REF_QUAT[0]}..{REF_QUAT[-1]}: without "
-             f"them the table is read position-only ({ANGLES_FIX})")
+             f"them the table is read position-only; {ANGLES_FIX}")
     for name in header:
         if name in KNOWN_COLUMNS or not name or name in angles:
             continue

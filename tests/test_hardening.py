@@ -451,18 +451,25 @@ def test_apply_streams_in_chunks_with_the_same_result(tmp_path) -> None:
     assert not (tmp_path / "c.csv").exists()
 
 
-def test_apply_names_the_row_a_model_refuses_in_a_late_chunk(tmp_path, capsys) -> None:
-    """A pose outside the box a model was fitted on (input_bounds) is refused by the runtime,
-    which counts poses within its call: apply names the file's row and column (not the
-    chunk's pose number), ends in one line with exit 2 and writes nothing; so do report and
-    diagnose --model."""
-    from posecorr.controller.apply import apply_file
+def _bounded_model(tmp_path: Path) -> Path:
+    """A PMC fitted on 200 poses of `_table`, exported with its box (input_bounds)."""
     from posecorr.train.pmc import PMC
 
     t = _table(200, seed=5)
     model = tmp_path / "bounded.onnx"
     PMC(representation="zhou").fit(t.measured, t.reference).to_onnx(model, measured=t.measured,
                                                                        reference=t.reference)
+    return model
+
+
+def test_apply_names_the_row_a_model_refuses_in_a_late_chunk(tmp_path, capsys) -> None:
+    """A pose outside the box a model was fitted on (input_bounds) is refused by the runtime,
+    which counts poses within its call: apply names the file's row and column (not the
+    chunk's pose number), ends in one line with exit 2 and writes nothing; so do report and
+    diagnose --model."""
+    from posecorr.controller.apply import apply_file
+
+    model = _bounded_model(tmp_path)
     path = tmp_path / "t.csv"
     write_table(_table(60, seed=6), path)
     lines = path.read_text().splitlines()
@@ -501,12 +508,8 @@ def test_apply_keep_going_writes_a_refused_pose_as_nan_and_counts_it(tmp_path, c
     counted with their rows, every other pose as a plain apply of the table without them
     writes it, and the metrics are over the poses corrected; all refused is an error."""
     from posecorr.controller.apply import apply_file
-    from posecorr.train.pmc import PMC
 
-    t = _table(200, seed=5)
-    model = tmp_path / "bounded.onnx"
-    PMC(representation="zhou").fit(t.measured, t.reference).to_onnx(model, measured=t.measured,
-                                                                       reference=t.reference)
+    model = _bounded_model(tmp_path)
     path, kept = tmp_path / "t.csv", tmp_path / "kept.csv"
     write_table(_table(60, seed=6), path)
     lines = path.read_text().splitlines()
@@ -552,12 +555,8 @@ def test_apply_keep_going_passes_a_lost_measured_cell_to_the_model(tmp_path) -> 
     --keep-going ('empty value, expected a number'): now the model refuses that pose alone.
     A reference cell, or a measured cell of text, is still the table's fault."""
     from posecorr.controller.apply import apply_file
-    from posecorr.train.pmc import PMC
 
-    t = _table(200, seed=5)
-    model = tmp_path / "bounded.onnx"
-    PMC(representation="zhou").fit(t.measured, t.reference).to_onnx(model, measured=t.measured,
-                                                                       reference=t.reference)
+    model = _bounded_model(tmp_path)
     path = tmp_path / "t.csv"
     write_table(_table(20, seed=6), path)
     lines = path.read_text().splitlines()

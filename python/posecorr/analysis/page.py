@@ -89,6 +89,17 @@ def _t(value: Any) -> str:
     return re.sub(r"`([^`\n]+)`", r"<code>\1</code>", _e(value))
 
 
+def _proposal_gain(proposal: Mapping) -> str:
+    """`proposal.gain_words` of a diagnosis's proposal as the ledger or --json keeps it; its
+    gain alone where the figures it reads are not there (a record of an older posecorr)."""
+    from .proposal import gain_words
+
+    try:
+        return gain_words(dict(proposal))
+    except (KeyError, TypeError, ValueError):
+        return f"the held-out whitened error falls by {_num(proposal.get('gain'), 100)} %"
+
+
 def _num(value: Any, scale: float = 1.0, digits: int = 3) -> str:
     """A number (times scale) with `digits` significant digits; '–' for None/NaN."""
     if value is None:
@@ -371,8 +382,7 @@ def _proposal_html(diagnosis: Mapping[str, Any]) -> str:
     proposal = diagnosis.get("proposal")
     if isinstance(proposal, Mapping):
         html = (f"<h3>Proposal</h3><p><b>{_e(', '.join(proposal.get('forms') or []))}</b> "
-                f"({_e(proposal.get('parameters', '?'))} parameters): the held-out whitened error falls by "
-                f"{_num(proposal.get('gain'), 100)} %.")
+                f"({_e(proposal.get('parameters', '?'))} parameters): {_t(_proposal_gain(proposal))}.")
         causes = proposal.get("causes") or {}
         html += "".join(f" Causes of the {_e(form)} shape: {_t(text)}." for form, text in causes.items())
         if proposal.get("file"):

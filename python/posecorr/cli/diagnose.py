@@ -139,7 +139,7 @@ def _feature_lines(features: list[dict]) -> list[str]:
 
 
 def _proposal_lines(args: argparse.Namespace, result: dict) -> list[str]:
-    from ..analysis.proposal import numbers_text, rmse_words, terms_words
+    from ..analysis.proposal import gain_words, numbers_text, terms_words
     from ..effects import get_effect
 
     proposal = result["proposal"]
@@ -149,8 +149,8 @@ def _proposal_lines(args: argparse.Namespace, result: dict) -> list[str]:
             lines.append(f"  {args.propose}: not written" + (" (the file there is from before)"
                                                             if Path(args.propose).exists() else ""))
         return lines
-    lines = [f"proposal: {', '.join(proposal['forms'])} ({proposal['parameters']} parameters): the held-out "
-             f"whitened error falls by {proposal['gain']:.1%}, {rmse_words(proposal)} ({result['folds']}-fold)"]
+    lines = [f"proposal: {', '.join(proposal['forms'])} ({proposal['parameters']} parameters), "
+             f"{result['folds']}-fold: {gain_words(proposal)}"]
     for form in proposal["forms"]:
         effect = get_effect(form)
         values = "; ".join(f"{label} = {numbers_text(v, 3)}" for label, v in proposal["terms"][form].items())

@@ -77,6 +77,24 @@ def test_feature_r2_finds_the_feature_that_carries_the_error() -> None:
     assert all(row["r2"] < 0.05 for row in rows[1:])
 
 
+def test_feature_r2_scores_position_and_orientation_apart() -> None:
+    """A drift of position along t under orientation noise larger than it: pooled into
+    one R^2 the diagnosis read 'none (cv R^2 0 along ... t)' on a session where drift was
+    present; by block, t explains the position error."""
+    from posecorr.analysis.diagnose import ERROR_BLOCKS
+
+    rng = np.random.default_rng(4)
+    n = 40
+    features = {"t": np.sort(rng.uniform(0, 1600, n)), "x": rng.uniform(-1, 1, n)}
+    drift = 4.0 * (1 - np.exp(-features["t"] / 400.0))          # mm
+    position = np.outer(drift - drift.mean(), [1.0, -0.5, 0.8]) + rng.normal(scale=0.3, size=(n, 3))
+    residuals = np.concatenate([position, rng.normal(scale=3.0, size=(n, 3))], axis=1)
+    pooled = {row["feature"]: row["r2"] for row in feature_r2(residuals, features)}
+    rows = feature_r2(residuals, features, blocks=ERROR_BLOCKS)
+    assert pooled["t"] < 0.1
+    assert rows[0]["feature"] == "t" and rows[0]["error"] == "position" and rows[0]["r2"] > 0.5, rows
+
+
 def test_diagnose_text_lists_only_features_with_structure() -> None:
     """`posecorr diagnose`'s feature table holds the features that explain something; pure noise
     reads as one line, not a table of zeros."""

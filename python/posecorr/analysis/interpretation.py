@@ -152,7 +152,9 @@ def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] =
     r2 = [f for f in diagnosis.get("features") or []
           if isinstance(f, Mapping) and isinstance(f.get("r2"), (int, float))]
     structure = max(r2, key=lambda f: f["r2"]) if r2 else None
-    structure_text = (f"{structure['r2']:.2f} of the residual is explained by {structure.get('feature')}: an effect "
+    block = structure.get("error") if structure is not None else None
+    part = f"the residual's {block}" if block in ("position", "orientation") else "the residual"
+    structure_text = (f"{structure['r2']:.2f} of {part} is explained by {structure.get('feature')}: an effect "
                       "outside the catalogue (add your own with --effect-file)"
                       if structure is not None and is_structure(structure["r2"]) else None)
     reach = diagnosis.get("reach") if isinstance(diagnosis.get("reach"), Mapping) else {}

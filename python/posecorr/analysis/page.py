@@ -356,10 +356,10 @@ def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[st
     feats, others = split_features(diagnosis.get("features") or [])
     if feats:
         body += "<h3>Residual structure by feature</h3>"
-        rows = [[_e(f.get("feature", "?")), f"{f['r2']:.3f}"] for f in feats]
+        rows = [[_e(f.get("feature", "?")), f"{f['r2']:.3f}", _e(f.get("error", ""))] for f in feats]
         classes = ["present" if is_structure(f.get("r2")) else "" for f in feats]
         body += ('<div style="display:flex;gap:24px;align-items:flex-start;flex-wrap:wrap"><div>'
-                 + _table(["feature", "cv R²"], rows, row_classes=classes) + "</div><div>"
+                 + _table(["feature", "cv R²", "of the error in"], rows, row_classes=classes) + "</div><div>"
                  + _img(figures.r2_figure(feats), "cross-validated R² of the residual per feature") + "</div></div>")
         body += ('<p class="note">The cross-validated R² of a smooth fit of the residual along each feature; '
                  f"highlighted (R² ≥ {STRUCTURE_R2:g}): structure that the model misses along that feature."

@@ -134,7 +134,8 @@ def _feature_lines(features: list[dict]) -> list[str]:
     none = ", ".join(others)
     if not some:
         return [f"{title}: none (cv R^2 0 along {none})"] if none else []
-    return ([fmt_table(["feature", "cv R^2"], [[f["feature"], f["r2"]] for f in some], title=title)]
+    return ([fmt_table(["feature", "cv R^2", "of the error in"], [[f["feature"], f["r2"], f.get("error", "")]
+                                                                 for f in some], title=title)]
             + ([f"cv R^2 0 along {none}"] if none else []))
 
 

@@ -788,7 +788,7 @@ def _many_held(table: PoseTable) -> dict:
     whole, 11 of quadratic.q's 18 dimensions held along directions, each of 18 numbers."""
     rng = np.random.default_rng(3)
     opening = "positions spread (243, 163, 87) mm RMS along their principal axes"
-    fixed = {"mount.e": "orientations span 0.4 deg: only 0% of its effect on these poses is its own"}
+    fixed = {"mount.e": "orientations within 0.4 deg of their mean: only 0% of its effect on these poses is its own"}
     for k in range(11):
         direction = "[" + ", ".join(f"{v:.2f}" for v in rng.uniform(-0.6, 0.6, 18)) + "]"
         fixed[f"quadratic.q along {direction}"] = f"{opening}: its standard error would be {100 + k} x its typical size"
@@ -813,7 +813,7 @@ def test_a_parameter_held_along_many_directions_is_one_row(tmp_path: Path, small
     items = re.findall(r"<li>along (\[[^]]*\]): its standard error would be (\d+) x its typical size</li>", held)
     assert [f"quadratic.q along {d}" for d, _ in items] == [k for k in info["fixed"] if k != "mount.e"]
     assert [int(v) for _, v in items] == list(range(100, 111))
-    assert "<dd>orientations span 0.4 deg: only 0% of its effect on these poses is its own</dd>" in summary
+    assert "<dd>orientations within 0.4 deg of their mean: only 0% of its effect on these poses is its own</dd>" in summary
 
 
 def test_the_summary_of_many_held_directions_stays_inside_its_card(tmp_path: Path, small) -> None:

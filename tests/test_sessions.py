@@ -266,7 +266,7 @@ def test_real_session_cli_names_fixed_parameters(tmp_path: Path) -> None:
     payload = json.loads(run.stdout)
     # The cause, then the figure that decided: one orientation cannot tell a lever arm from a shift.
     assert list(payload["fixed"]) == ["mount.e"]
-    assert payload["fixed"]["mount.e"].startswith("orientations span 0.4 deg: only 0% of its effect on these poses "
+    assert payload["fixed"]["mount.e"].startswith("orientations within 0.4 deg of their mean: only 0% of its effect on these poses "
                                                   "is its own"), payload["fixed"]
     assert payload["effects"]["mount"]["e"][1] == [None, None, None]        # no standard error: not determined
     assert payload["cv"]["rmse_pos"] <= payload["baseline"]["rmse_pos"] * TOLERANCE
@@ -422,7 +422,7 @@ def test_diagnose_names_what_a_session_cannot_determine_instead_of_ranking_it() 
     undetermined = {row["effect"]: row["reason"] for row in result["undetermined"]}
     ranked = {row["effect"] for row in result["candidates"]}
     assert "incidence" in undetermined and "incidence" not in ranked
-    assert "orientations span 0.4 deg" in undetermined["incidence"]
+    assert "orientations within 0.4 deg of their mean" in undetermined["incidence"]
     assert ranked, "the effects the data can see are still ranked"
 
 

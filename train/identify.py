@@ -72,10 +72,11 @@ class Spread:
         return int(np.sum(self.rotation_extent > AXIS_MIN_RAD))
 
     def orientation_words(self) -> str:
-        """'orientations span 13.2 deg about one axis' and the like."""
+        """'orientations within 13.1 deg of their mean, about one axis' and the like (the largest
+        angle from the chordal mean: the pairwise span is up to twice it)."""
         span = np.rad2deg(self.rotation_span)
-        axes = {0: "", 1: " about one axis", 2: " about two axes", 3: " about three axes"}[self.rotation_axes]
-        return f"orientations span {span:.1f} deg{axes}"
+        axes = {0: "", 1: ", about one axis", 2: ", about two axes", 3: ", about three axes"}[self.rotation_axes]
+        return f"orientations within {span:.1f} deg of their mean{axes}"
 
     def position_words(self) -> str:
         extent = ", ".join(f"{1000 * e:.0f}" for e in self.position_extent)

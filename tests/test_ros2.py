@@ -392,6 +392,65 @@ def test_non_unit_quaternions_are_refused(domain):
         assert (d["poses_out"], d["refused"]) == ("1", "1") and list(cell.got) == [0]
         assert "norm 1.010000" in d["last_refusal"] and "within 0.001 of 1" in d["last_refusal"], d
     finally:
+        code, out, err = cell.stop()
+    # refusals were only in /diagnostics: a swap to a model that refuses every pose was silent
+    said = [line for line in err.splitlines() if "refused so far" in line]
+    assert len(said) == 1 and said[0].startswith("posecorr ros2: 1 pose refused so far; the last: stamp 0.001000000: "
+                                                 "quaternion not unit: "), err
+
+
+def test_a_bad_topic_name_is_a_usage_error():
+    """It was 'internal error: InvalidTopicNameException: MODEL: ...', blaming the model."""
+    bad = subprocess.run([POSECORR, "ros2", str(FIRST), "--input", "/bad//topic"], capture_output=True, text=True,
+                         timeout=120)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1, bad.stderr
+    assert "posecorr ros2: error: --input '/bad//topic': Invalid topic name: " in bad.stderr, bad.stderr
+
+
+def test_a_swap_to_a_model_that_asks_other_poses_is_said(tmp_path):
+    """A swapped-in model with a smaller box was loaded with 'loaded ... as generation 4' and
+    nothing else, then refused 985 poses in a row."""
+    import onnx
+
+    from posecorr.ros2.node import contract_change
+
+    sys.path.insert(0, str(ROOT / "runtime_c" / "tests"))
+    import graphs
+
+    model = onnx.load(str(SECOND))
+    for entry in model.metadata_props:
+        if entry.key == "input_bounds":
+            lo, hi = np.array(eval(entry.value))   # the exporter writes a JSON list of lists
+            entry.value = str([lo.tolist(), (lo + 0.5 * (hi - lo)).tolist()])
+    smaller = Corrector(graphs.signed(model))
+    assert contract_change(Corrector(FIRST), Corrector(SECOND)) == ""
+    said = contract_change(Corrector(SECOND), smaller)
+    assert said.startswith("; unlike the served model, its box (input_bounds, m) [") and said.endswith(
+        "leaves out part of the served model's: poses there will be refused"), said
+    assert contract_change(smaller, Corrector(SECOND)) == ""
+
+
+def test_a_refused_first_pose_does_not_set_the_time_origin(domain, tmp_path):
+    """t0 was the first pose's stamp even when that pose was refused: a NaN at start-up
+    stamped 0 made t = stamp - 0 for every later pose, and a time model refused them all."""
+    from posecorr.simulate import simulate_session
+    from posecorr.train.physics import PhysicsModel
+
+    table = simulate_session(3, n=30, robot="ur5e", duration=600.0, extra={"drift": [0.002, -0.001, 0.001, 300.0]}).table
+    t = table.time()
+    model = tmp_path / "drift.onnx"
+    PhysicsModel(("station", "mount", "drift")).fit(table.measured, table.reference, t=t).to_onnx(
+        model, measured=table.measured, reference=table.reference, t=t)
+    x = table.measured[:10].copy()
+    x[0, 0] = np.nan
+    cell = Cell(model, domain)
+    try:
+        cell.publish(x[:1], first=0, rate_hz=200.0)      # a start-up glitch, stamped 0
+        cell.publish(x[1:], first=1_700_000_000_000, rate_hz=200.0)   # ms: stamps of today's clock
+        cell.wait(lambda: cell.diagnostics and cell.diagnostics[-1]["poses_in"] == "10", 10, "poses lost")
+        d = cell.diagnostics[-1]
+        assert (d["poses_out"], d["refused"]) == ("9", "1"), d
+    finally:
         cell.stop()
 
 

@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 from . import options
-from .common import Verb, allow_arguments, allow_options, print_json
+from .common import CliError, Verb, allow_arguments, allow_options, print_json
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -40,9 +40,19 @@ def _registration(text: str):
 def run(args: argparse.Namespace) -> None:
     """Serves until a signal; the summary is printed, then the exit status is the
     signal's convention (SIGTERM 143, SIGINT 130), as for every verb."""
+    from rclpy.expand_topic_name import expand_topic_name
+    from rclpy.validate_full_topic_name import validate_full_topic_name
+    from rclpy.validate_topic_name import validate_topic_name
+
     from ..ros2.node import run_node
     from ..safeio import Terminated
 
+    for option, name in (("--input", args.input), ("--output", args.output)):
+        try:   # as the node resolves it (its name posecorr, the root namespace): '//' shows only then
+            validate_topic_name(name)
+            validate_full_topic_name(expand_topic_name(name, "posecorr", "/"))
+        except Exception as exc:   # rclpy's InvalidTopicNameException, its first line the reason
+            raise CliError(f"{option} {name!r}: {str(exc).splitlines()[0]}") from None
     final = run_node(args.model, input_topic=args.input, output_topic=args.output,
                      frame=args.frame, input_frame=args.input_frame, registration=args.registration,
                      reliable=args.reliable, t0=args.t0,

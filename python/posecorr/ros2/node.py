@@ -14,10 +14,13 @@
 - The registration: a model fitted on a table that `ingest` mapped into the robot's base
   frame (its `--registration`) takes poses mapped the same way; with `registration` (4x4
   base_T_<tracker frame>) each pose is mapped so before the model, as ingest mapped them.
-- Models with time take `t` from the stamps: seconds since the first pose, or since `t0`.
+- Models with time take `t` from the stamps: seconds since the first pose corrected, or
+  since `t0`.
+- A pose refused is counted; the 1st, 10th, 100th ... refusal is logged with its reason.
 - Hot swap: a watcher thread polls the model file (size, modification time, inode; read
-  once it stayed the same for two polls, so a file being written is never read half-way;
-  posecorr's exporter replaces files atomically anyway) and the `model` parameter
+  once it stayed the same for two polls, 0.1 s: a writer that pauses longer mid-file has
+  its half read and refused, the old model serving on, and the whole file loaded once it
+  settles; posecorr's exporter replaces files atomically) and the `model` parameter
   (`ros2 param set /posecorr model new.onnx`). A new model is loaded and checked (the
   runtime's own contract checks, then probe poses: each alone must give the batch plan's
   result), then handed over; the subscription takes it between two messages, so every output
@@ -25,7 +28,9 @@
   the old model serving; the reason is logged and in the diagnostics. The watched file is
   loaded on the watcher's thread; the parameter's file before the set is answered, so that
   one that cannot serve is refused with its reason, and the parameter and the watch stay on
-  the model that serves.
+  the model that serves. A model that takes other poses of the stream than the served one
+  (the time input, a box that leaves out part of the served one's) is loaded with a line
+  saying so; a watched file that is deleted is said once, the loaded model serving on.
 - Diagnostics: a `diagnostic_msgs/DiagnosticArray` on /diagnostics every `diag_period`
   seconds: model id and generation, poses in / out / refused, poses per generation, the
   node's added latency (arrival of the message to its publication, p50 / p99 / max, µs),
@@ -68,6 +73,10 @@ class Loaded:
     model_id: str
     generation: int = 0
     turned: Beyond | None = None   # the orientations it was fitted on, and the poses beyond
+
+
+# The refusal counts the log names (`_Correcting._refused`).
+_LOGGED_COUNTS = frozenset(10 ** k for k in range(19))
 
 
 @dataclass
@@ -131,6 +140,21 @@ def load_checked(path: Path, allow: dict[str, bool] | None = None) -> Loaded:
     return Loaded(corrector, path, model_id(path, data), turned=Beyond(corrector.metadata))
 
 
+def contract_change(before: Corrector, after: Corrector) -> str:
+    """'; unlike X, it takes ...' where a swapped-in model asks other poses of the stream than
+    the served one: the time input, or a box (input_bounds) that leaves out part of the
+    served one's (poses there, corrected until now, will be refused); '' otherwise."""
+    said = []
+    if before.takes_time != after.takes_time:
+        said.append("it takes the time t" if after.takes_time else "it takes no time t")
+    old, new = (Limits.from_metadata(c.metadata, c.takes_time, True).box for c in (before, after))
+    if np.any(new[0] > old[0]) or np.any(new[1] < old[1]):
+        lo, hi = (", ".join(f"{v:.3f}" for v in end) for end in new)
+        said.append(f"its box (input_bounds, m) [{lo}] to [{hi}] leaves out part of the served model's: poses "
+                    "there will be refused")
+    return f"; unlike the served model, {' and '.join(said)}" if said else ""
+
+
 def load_error(path: Path, exc: Exception) -> str:
     """A failed load's reason in one line that names the file."""
     message = str(exc).splitlines()[0]
@@ -184,6 +208,10 @@ class ModelWatcher(threading.Thread):
             with self._lock:
                 path = self._path
                 key = _file_key(path)
+                if key is None and self._seen is not None:   # said once, until it is back
+                    self._seen = self._pending_key = None
+                    self._report_error(f"{path}: the file is gone; the loaded model serves on, and a file "
+                                       "written there is loaded")
                 if key is None or key == self._seen:
                     continue
                 if key != self._pending_key:  # changed since the last poll: wait for it to settle
@@ -293,8 +321,9 @@ class _Correcting:
             return
         p, o = msg.pose.position, msg.pose.orientation
         pose = np.array([p.x, p.y, p.z, o.w, o.x, o.y, o.z])
-        if self.t0 is None:
-            self.t0 = stamp
+        # t0 is the first corrected pose's stamp: a refused first pose (a NaN at start-up) set
+        # it once to a stamp of 0, and a time model refused every pose after it
+        t0 = stamp if self.t0 is None else self.t0
         try:
             if not np.all(np.isfinite(pose)):
                 raise PoseCorrError("a value is not finite")
@@ -302,17 +331,27 @@ class _Correcting:
                 raise PoseCorrError("zero quaternion")
             if self.registration is not None:
                 pose = self._registered(pose)
-            c = loaded.corrector.correct(pose, stamp - self.t0)
+            c = loaded.corrector.correct(pose, stamp - t0)
         except PoseCorrError as exc:
-            self.counts.refused += 1
-            self.counts.last_refusal = f"stamp {stamp:.9f}: {str(exc).splitlines()[0]}"
+            self._refused(f"stamp {stamp:.9f}: {str(exc).splitlines()[0]}")
             return
+        self.t0 = t0
         self._publish_pose(msg.header.stamp, c)
         if loaded.turned is not None and loaded.turned.one(pose[3:].tolist()):   # floats: 0.4 us, not 1.3
             self.counts.turned += 1
         self.counts.poses_out += 1
         self.counts.per_generation[loaded.generation] += 1
         self.latency_us.append((time.perf_counter() - arrival) * 1e6)
+
+    def _refused(self, why: str, logged: bool = True) -> None:
+        """Counted; logged at the 1st, 10th, 100th ... refusal: a model that refuses every pose
+        (a swap to another box, the registration of another frame) is said in the log, not
+        only in /diagnostics, and a stream of refusals is a few lines. A pose of a refused
+        frame is not `logged`: its frame is, once."""
+        self.counts.refused += 1
+        self.counts.last_refusal = why
+        if logged and self.counts.refused in _LOGGED_COUNTS:
+            self._log(f"posecorr ros2: {counted(self.counts.refused, 'pose')} refused so far; the last: {why}")
 
     def _registered(self, pose: np.ndarray) -> np.ndarray:
         """The pose mapped by the registration, as ingest mapped the table's measured poses. A
@@ -335,9 +374,8 @@ class _Correcting:
                 self._log(f"posecorr ros2: input in frame {frame!r}, taken unchecked (--input-frame "
                           f"names the frame the model was fitted in and refuses any other)")
             return True
-        self.counts.refused += 1
-        self.counts.last_refusal = (f"stamp {stamp:.9f}: frame {frame!r}, the model takes "
-                                    f"{self.input_frame!r} (--input-frame)")
+        self._refused(f"stamp {stamp:.9f}: frame {frame!r}, the model takes {self.input_frame!r} (--input-frame)",
+                      logged=False)
         if first_time:
             self._log(f"posecorr ros2: refusing poses in frame {frame!r}: the model takes "
                       f"{self.input_frame!r} (--input-frame)")
@@ -355,11 +393,13 @@ class _Correcting:
     # -- off the hot path (the watcher's thread and the timer) --------------------------
     def deliver(self, loaded: Loaded) -> None:
         with self._handover:
+            serving = self.incoming or self.current
             self._generation += 1
             loaded.generation = self._generation
             self.incoming = loaded
         self.counts.last_load_error = ""
-        self._log(f"posecorr ros2: loaded {loaded.model_id} as generation {loaded.generation}")
+        self._log(f"posecorr ros2: loaded {loaded.model_id} as generation {loaded.generation}"
+                  + contract_change(serving.corrector, loaded.corrector))
 
     def report_error(self, message: str) -> None:
         with self._handover:  # a model loaded but not taken yet serves from the next pose on
@@ -442,14 +482,21 @@ def run_node(model: Path, log=print, **options) -> dict[str, str]:
     rclpy = ros["rclpy"]
     from rclpy.signals import SignalHandlerOptions
 
-    # posecorr's CLI turns SIGTERM into KeyboardInterrupt, and SIGINT is one even where the
-    # node was started in the background of a script (which starts it ignored); rclpy's own
-    # handlers would end the context under the executor instead.
+    # SIGINT and SIGTERM set a flag the spin loop reads between two spins (each at most 0.1 s):
+    # raised as KeyboardInterrupt, one could land between a pose's publication and its count,
+    # and the summary said one pose fewer out than were published. SIGINT is taken even where
+    # the node was started in the background of a script (which starts it ignored); rclpy's
+    # own handlers would end the context under the executor instead.
     import signal
     import threading
 
+    stop = {"by": ""}
+    previous: dict[int, Any] = {}
     if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        def _stop(signum: int, frame: Any) -> None:
+            stop["by"] = "SIGTERM" if signum == signal.SIGTERM else "SIGINT"
+
+        previous = {signum: signal.signal(signum, _stop) for signum in (signal.SIGINT, signal.SIGTERM)}
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = watcher = None
     try:
@@ -466,16 +513,17 @@ def run_node(model: Path, log=print, **options) -> dict[str, str]:
 
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        stopped_by = ""
         try:
-            while rclpy.ok():
+            while rclpy.ok() and not stop["by"]:
                 executor.spin_once(timeout_sec=0.1)
-        except KeyboardInterrupt as exc:
-            stopped_by = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
+        except KeyboardInterrupt as exc:   # off the main thread: the CLI's handlers raise
+            stop["by"] = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
         finally:
             executor.shutdown()
-        return {**node.diagnostic_values(), "stopped_by": stopped_by}
+        return {**node.diagnostic_values(), "stopped_by": stop["by"]}
     finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
         if watcher is not None:
             watcher.stop()
         if node is not None:

@@ -126,6 +126,19 @@ def _reach_advice(reach: Mapping[str, Any]) -> str:
     return more + (f"; {fewer}" if fewer else "")
 
 
+def _structure_words(features: Sequence[Any]) -> str | None:
+    """'0.23 of the residual's position is explained by t: an effect outside the catalogue
+    ...' of the feature that explains most, where that is structure; else None."""
+    r2 = [f for f in features if isinstance(f, Mapping) and isinstance(f.get("r2"), (int, float))]
+    structure = max(r2, key=lambda f: f["r2"]) if r2 else None
+    if structure is None or not is_structure(structure["r2"]):
+        return None
+    block = structure.get("error")
+    part = f"the residual's {block}" if block in ("position", "orientation") else "the residual"
+    return (f"{structure['r2']:.2f} of {part} is explained by {structure.get('feature')}: an effect outside the "
+            "catalogue (add your own with --effect-file)")
+
+
 def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] = (), why_none: str | None = None) -> str:
     """The diagnosis in one plain-language line (plain text, not escaped); why_none: why there
     is none, where the data cannot have one."""
@@ -149,14 +162,7 @@ def takeaway(diagnosis: Mapping[str, Any] | None, model_effects: Sequence[str] =
         what = f"{effect}, a form outside the catalogue" if top.get("kind") == "form" else effect
         return (f"Most likely missing: {what} (present: yes{p_text}{gain_text}). "
                 f"Add it with --effects {','.join(effects)}")
-    r2 = [f for f in diagnosis.get("features") or []
-          if isinstance(f, Mapping) and isinstance(f.get("r2"), (int, float))]
-    structure = max(r2, key=lambda f: f["r2"]) if r2 else None
-    block = structure.get("error") if structure is not None else None
-    part = f"the residual's {block}" if block in ("position", "orientation") else "the residual"
-    structure_text = (f"{structure['r2']:.2f} of {part} is explained by {structure.get('feature')}: an effect "
-                      "outside the catalogue (add your own with --effect-file)"
-                      if structure is not None and is_structure(structure["r2"]) else None)
+    structure_text = _structure_words(diagnosis.get("features") or [])
     reach = diagnosis.get("reach") if isinstance(diagnosis.get("reach"), Mapping) else {}
     if reach.get("can_pass") is False and all(isinstance(reach.get(k), (int, float)) for k in ("best_p", "threshold")):
         # Not "nothing is missing": on these poses the test could not have said otherwise.

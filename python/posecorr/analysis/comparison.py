@@ -208,7 +208,8 @@ def _cross_validated(table: PoseTable, entry: Mapping[str, Any], plan: Any, seed
                 scored), ""
     else:
         model = requested_candidate(effects, spec, seed)
-    say(f"rebuilding the held-out predictions: {model.name} and {rigid.name}, {plan.description}")
+    say(f"rebuilding the held-out predictions: {model.name}" + ("" if model.name == rigid.name else f" and {rigid.name}")
+        + f", {plan.description}")
     candidates = [model] if model.name == rigid.name else [model, rigid]
     predicted = _out_of_fold(candidates, everything, splits, table)
     return (everything, predicted[model.name], rigid.name, predicted[rigid.name], scored), ""

@@ -467,12 +467,12 @@ def _ledger_section(ledger: Sequence[Mapping[str, Any]]) -> str:
 
 
 def _asked_words(asked: Any) -> str:
-    """' (asked: pmc-zhou, 333 held-out rmse_total; worse than the rigid fit)' of a ledger line
+    """' (asked: pmc-zhou, 333 mm + mrad held-out rmse_total; worse than the rigid fit)' of a ledger line
     whose fit fell back to the rigid fit, the figure in mm + mrad, the reason where it was not
     the score (`asked["why"]`); '' otherwise."""
     if not isinstance(asked, Mapping) or not isinstance(asked.get("rmse_total"), (int, float)):
         return ""
-    return _e(f" (asked: {asked.get('name', '?')}, {_num(asked['rmse_total'], 1e3)} {asked.get('on', 'held-out')}"
+    return _e(f" (asked: {asked.get('name', '?')}, {_num(asked['rmse_total'], 1e3)} mm + mrad {asked.get('on', 'held-out')}"
               f" rmse_total; {asked.get('why', 'worse than the rigid fit')})")
 
 

@@ -117,7 +117,8 @@ def _fitted_proposal(search: Any, result: dict[str, Any], kept: list[str], forms
             # the last form's cut is cross-validated with every form as it stays: the proposal's
             model[form], cv = _fewest_terms(search, catalogue, model, form, registered)
         effects = search.effects + catalogue + list(model.values())
-        search.say(f"the proposal: {', '.join(effects)} on every pose")
+        # the forms by their names: a cut form is registered as '_{form}_terms{count}'
+        search.say(f"the proposal: {', '.join(search.effects + catalogue + list(forms))} on every pose")
         physics = PhysicsModel(tuple(effects), with_rotation=table.has_orientation).fit(
             table.measured, table.reference, t=table.time())
         gains = _gains(search, cv)

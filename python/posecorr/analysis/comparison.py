@@ -79,7 +79,9 @@ class Comparison:
         # names as fit's JSON and the ledger write them (rigid-joint), the page's words apart
         return {"baseline": {"name": self.rigid_name if self.unregistered else "raw",
                              "rmse_pos": self.before_metrics.get("rmse_pos"),
-                             "rmse_rot": self.before_metrics.get("rmse_rot")},
+                             "rmse_rot": self.before_metrics.get("rmse_rot"),
+                             # the rigid fit scored as the after is: on the fit's folds, or in-sample
+                             "held_out": self.held_out and self.unregistered},
                 "after": {"scored": self.scored, "held_out": self.held_out, "n": int(len(self.rows)),
                           **figures_of(self.after_metrics), "reason": self.reason or None,
                           # the ledger's figures only: the improvements fit recorded are against raw,

@@ -76,7 +76,8 @@ def run(args: argparse.Namespace) -> None:
     emit(args, {"output": str(path), "bytes": path.stat().st_size, **summary, "fixed": fixed,
                 "diagnosis": diagnosis, "no_diagnosis": no_diagnosis},
          lambda: (f"{args.data} against {args.model} -> {path} ({path.stat().st_size // 1024} KiB)\n"
-                  f"  before: {comparison.baseline}, rmse_pos {1e3 * summary['baseline']['rmse_pos']:.4g} mm; "
+                  f"  before: {comparison.baseline}, {'held out alike' if comparison.held_out else 'in-sample'}, "
+                  f"rmse_pos {1e3 * summary['baseline']['rmse_pos']:.4g} mm; "
                   f"after: {summary['after']['scored']}, rmse_pos {1e3 * summary['after']['rmse_pos']:.4g} mm"
                   + (f"\n  note: no diagnosis on the page: {no_diagnosis}" if no_diagnosis else "")
                   + (f"\n  diagnosis: {takeaway(diagnosis, model_effects(info, diagnosis))}" if diagnosis else "")))

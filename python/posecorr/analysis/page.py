@@ -333,8 +333,11 @@ def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[st
             classes.append("present" if c.get("present") else "")
         body += ("<h3>Candidate effects and forms the model lacks</h3>"
                  + _table(header, rows, left=4, row_classes=classes))
+        folds = diagnosis.get("folds")
         body += ('<p class="note">Highlighted: present (the test says adding the effect helps). '
-                 "cv RMSE: cross-validated, shown ×1000 (mm, or mm + mrad for full poses).")
+                 f"cv RMSE: held-out rmse_total over the diagnosis's {_e(folds) + ' ' if folds else ''}folds "
+                 "(not the fit's own held-out figure in the metrics, whose folds may differ), shown ×1000 (mm, "
+                 "or mm + mrad for full poses).")
         if diagnosis.get("test"):
             body += " Test: " + _t(diagnosis["test"]) + "."
         body += _t(core_note) + "</p>"

@@ -313,34 +313,41 @@ def _core_note(model_info: Mapping[str, Any] | None, effects: Sequence[str]) -> 
             "not the model's.")
 
 
+def _candidates_html(diagnosis: Mapping[str, Any], core_note: str) -> str:
+    """The diagnosis's ranked candidates as a table, with its note."""
+    candidates = ranked_candidates(diagnosis)
+    if not candidates:
+        return ""
+    header = ["rank", "candidate", "kind", "present", "score", "p-value", "cv RMSE before", "cv RMSE after", "gain"]
+    rows, classes = [], []
+    for c in candidates:
+        gain = cv_gain(c)
+        rows.append([_e(c.get("rank", "")), _e(c.get("effect", "?")), _e(c.get("kind", "effect")),
+                     "yes" if c.get("present") else "no",
+                     _num(c.get("score")), _e(p_value_text(c.get("p_value"))),
+                     _num(c.get("cv_rmse_before"), 1e3), _num(c.get("cv_rmse_after"), 1e3),
+                     f"{gain:.2f}×" if gain is not None else "–"])
+        classes.append("present" if c.get("present") else "")
+    body = ("<h3>Candidate effects and forms the model lacks</h3>"
+            + _table(header, rows, left=4, row_classes=classes))
+    folds = diagnosis.get("folds")
+    body += ('<p class="note">Highlighted: present (the test says adding the effect helps). '
+             f"cv RMSE: held-out rmse_total over the diagnosis's {_e(folds) + ' ' if folds else ''}folds "
+             "(not the fit's own held-out figure in the metrics, whose folds may differ), shown ×1000 (mm, "
+             "or mm + mrad for full poses).")
+    if diagnosis.get("test"):
+        body += " Test: " + _t(diagnosis["test"]) + "."
+    body += _t(core_note) + "</p>"
+    return body
+
+
 def _diagnosis_section(diagnosis: Mapping[str, Any] | None, effects: Sequence[str], why_none: str | None = None,
                        core_note: str = "") -> str:
     line = takeaway(diagnosis, effects, why_none)
     body = f'<p class="takeaway" id="takeaway">{_t(line)}</p>'
     if not diagnosis:
         return _section("diagnosis", "Diagnosis", body)
-    candidates = ranked_candidates(diagnosis)
-    if candidates:
-        header = ["rank", "candidate", "kind", "present", "score", "p-value", "cv RMSE before", "cv RMSE after", "gain"]
-        rows, classes = [], []
-        for c in candidates:
-            gain = cv_gain(c)
-            rows.append([_e(c.get("rank", "")), _e(c.get("effect", "?")), _e(c.get("kind", "effect")),
-                         "yes" if c.get("present") else "no",
-                         _num(c.get("score")), _e(p_value_text(c.get("p_value"))),
-                         _num(c.get("cv_rmse_before"), 1e3), _num(c.get("cv_rmse_after"), 1e3),
-                         f"{gain:.2f}×" if gain is not None else "–"])
-            classes.append("present" if c.get("present") else "")
-        body += ("<h3>Candidate effects and forms the model lacks</h3>"
-                 + _table(header, rows, left=4, row_classes=classes))
-        folds = diagnosis.get("folds")
-        body += ('<p class="note">Highlighted: present (the test says adding the effect helps). '
-                 f"cv RMSE: held-out rmse_total over the diagnosis's {_e(folds) + ' ' if folds else ''}folds "
-                 "(not the fit's own held-out figure in the metrics, whose folds may differ), shown ×1000 (mm, "
-                 "or mm + mrad for full poses).")
-        if diagnosis.get("test"):
-            body += " Test: " + _t(diagnosis["test"]) + "."
-        body += _t(core_note) + "</p>"
+    body += _candidates_html(diagnosis, core_note)
     body += _proposal_html(diagnosis)
     notes = [note for note in diagnosis.get("notes") or [] if isinstance(note, str)]
     if notes:   # what the selection decided beyond the table (a form that gave way, a pair it cannot tell apart)

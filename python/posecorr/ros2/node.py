@@ -141,9 +141,10 @@ def load_checked(path: Path, allow: dict[str, bool] | None = None) -> Loaded:
 
 
 def contract_change(before: Corrector, after: Corrector) -> str:
-    """'; unlike X, it takes ...' where a swapped-in model asks other poses of the stream than
-    the served one: the time input, or a box (input_bounds) that leaves out part of the
-    served one's (poses there, corrected until now, will be refused); '' otherwise."""
+    """'; unlike the served model, it takes the time t' and the like, where a swapped-in
+    model asks other poses of the stream than the served one: the time input, or a box
+    (input_bounds) that leaves out part of the served one's (poses there, corrected until
+    now, will be refused); '' otherwise."""
     said = []
     if before.takes_time != after.takes_time:
         said.append("it takes the time t" if after.takes_time else "it takes no time t")

@@ -391,6 +391,12 @@ def test_non_unit_quaternions_are_refused(domain):
         d = cell.diagnostics[-1]
         assert (d["poses_out"], d["refused"]) == ("1", "1") and list(cell.got) == [0]
         assert "norm 1.010000" in d["last_refusal"] and "within 0.001 of 1" in d["last_refusal"], d
+        nan = _poses(1, seed=9)
+        nan[0, 1] = np.nan   # the runtime's words name the column: the node's said "a value is not finite"
+        cell.publish(nan, first=2, rate_hz=500.0)
+        cell.wait(lambda: cell.diagnostics[-1]["poses_in"] == "3", 10, "the pose was lost")
+        assert cell.diagnostics[-1]["last_refusal"] == ("stamp 0.002000000: non-finite input: pose 0: y is not finite "
+                                                        "(expected a finite number)"), cell.diagnostics[-1]
     finally:
         code, out, err = cell.stop()
     # refusals were only in /diagnostics: a swap to a model that refuses every pose was silent

@@ -325,11 +325,7 @@ class _Correcting:
         # t0 is the first corrected pose's stamp: a refused first pose (a NaN at start-up) set
         # it once to a stamp of 0, and a time model refused every pose after it
         t0 = stamp if self.t0 is None else self.t0
-        try:
-            if not np.all(np.isfinite(pose)):
-                raise PoseCorrError("a value is not finite")
-            if float(pose[3:] @ pose[3:]) < 1e-12:
-                raise PoseCorrError("zero quaternion")
+        try:   # a pose that is not one (nan, a zero quaternion) is refused by the runtime, in its words
             if self.registration is not None:
                 pose = self._registered(pose)
             c = loaded.corrector.correct(pose, stamp - t0)

@@ -97,7 +97,8 @@ typedef struct line_faults {
 
 /* strtod, restricted to what the table reader takes: plain decimal notation, and nan or
  * inf (which pc_run then refuses as non-finite, naming the column). A hexadecimal float
- * such as 0x1p-5 is no tracker's output: faults->hex is set and nothing is read. */
+ * such as 0x1p-5 is no tracker's output: faults->hex is set and nothing is read. A finite
+ * value beyond float32 (its float would be inf) is noted in faults; 0 stands for it. */
 static float read_number(const char *p, char **end, int column, line_faults *faults)
 {
     const char *q = p;
@@ -111,11 +112,16 @@ static float read_number(const char *p, char **end, int column, line_faults *fau
     if (q[0] == '0' && (q[1] == 'x' || q[1] == 'X')) {
         faults->hex = 1;
         *end = (char *)p;
-    } else if (fabs(v) > FLT_MAX && fabs(v) <= DBL_MAX && faults->column < 0) {
-        faults->column = column;
-        faults->value = v;
+        return 0.0f;
     }
-    return (float)(fabs(v) > FLT_MAX && fabs(v) <= DBL_MAX ? 0.0 : v);
+    if (fabs(v) > FLT_MAX && fabs(v) <= DBL_MAX) {
+        if (faults->column < 0) {
+            faults->column = column;
+            faults->value = v;
+        }
+        return 0.0f;
+    }
+    return (float)v;
 }
 
 static int parse_line(const char *line, float *v, line_faults *faults)
@@ -298,7 +304,7 @@ static int run_text(pc_model *model, int strict)
         char *line = buf.data;
         pc_status st;
         float t = 0.0f;
-        int has_t = 0;
+        int has_t = 0, refused = 0;
         line_faults faults = {0, -1, 0.0};
         line_no++;
         if (!buf.has_nul && !buf.too_long && (line[0] == '#' || is_blank(line)))
@@ -319,12 +325,7 @@ static int run_text(pc_model *model, int strict)
                     buf.has_nul ? " (the line holds a NUL byte)"
                     : buf.too_long ? " (out of memory reading the line)"
                     : faults.hex ? " in plain decimal notation (like -0.125 or 1.5e-3), not hexadecimal" : "");
-            if (strict) {
-                status = 1;
-                break;
-            }
-            failed = 1;
-            fill_nan(out);
+            refused = 1;
         } else if (faults.column >= 0 && (faults.column < PC_POSE_WIDTH || pc_model_takes_time(model))) {
             static const char *const names[PC_POSE_WIDTH + 1] = {"x", "y", "z", "qw", "qx", "qy",
                                                                 "qz", "t"};
@@ -333,15 +334,13 @@ static int run_text(pc_model *model, int strict)
             fprintf(stderr, "posecorr-run: line %lu: %s = %.7g%s does not fit in float32, the "
                             "numbers the model computes in (their largest is %.7g)\n", line_no,
                     names[faults.column], faults.value, units[faults.column], (double)FLT_MAX);
-            if (strict) {
-                status = 1;
-                break;
-            }
-            failed = 1;
-            fill_nan(out);
+            refused = 1;
         } else if ((st = pc_run_timed(model, in, has_t ? &t : NULL, 1, out)) != PC_OK) {
             fprintf(stderr, "posecorr-run: line %lu: %s: %s\n", line_no, pc_status_name(st),
                     refusal(model));
+            refused = 1;
+        }
+        if (refused) { /* answered with NaN, or with --strict the end */
             if (strict) {
                 status = 1;
                 break;

@@ -21,7 +21,7 @@ from ..data import (CHUNK_ROWS, MEAS_POS, REF_POS, REQUIRED, TableError, csv_rec
                     implausible_span, quaternion_faults, rows_words, separator_hint, warn_comments)
 from ..textui import counted
 from .progress import progress_bar
-from .streams import IngestError, JointStream, PoseStream
+from .streams import IngestError, JointStream, PoseStream, median_period
 
 
 @dataclass(frozen=True)
@@ -179,7 +179,7 @@ def _warn_sparse(names: str, time: str, joints: JointStream, pose: PoseStream) -
     """One warning line where both streams' samples come a median SLOWEST_PERIOD_S or more apart:
     milliseconds read as seconds leave the robot still (speeds a thousand times too low) and
     every still segment short of tracker samples, which would be the only words for it."""
-    periods = [float(np.median(np.diff(t))) if len(t) > 1 else 0.0 for t in (joints.t, pose.t)]
+    periods = [median_period(t) for t in (joints.t, pose.t)]
     if min(periods) < SLOWEST_PERIOD_S:
         return
     from ..safeio import warn

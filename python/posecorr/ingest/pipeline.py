@@ -26,7 +26,7 @@ from .align import Alignment, check_overlap, estimate_offset
 from .csvlog import CsvColumns, read_csv_log
 from .rosformats import read_ros
 from .segments import Segment, StillOptions, find_segments, measure
-from .streams import IngestError, JointStream, PoseStream, keep_usable
+from .streams import IngestError, JointStream, PoseStream, keep_usable, median_period
 
 
 @dataclass
@@ -79,7 +79,7 @@ class IngestResult:
 
 def _rate(t: np.ndarray) -> float | None:
     """The publishing rate, from the median period (dropped samples do not lower it)."""
-    period = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    period = median_period(t)
     return 1.0 / period if period > 0 else None
 
 

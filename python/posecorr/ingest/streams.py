@@ -12,6 +12,12 @@ import numpy as np
 from ..textui import counted
 
 
+def median_period(t: np.ndarray) -> float:
+    """A stream's sampling period (s): the median step of its times (dropped samples do not
+    lengthen it), 0 with fewer than two."""
+    return float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+
+
 class IngestError(ValueError):
     """A recording that cannot be turned into a table: one line naming the file and what was expected."""
 

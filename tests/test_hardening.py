@@ -944,3 +944,24 @@ def test_apply_copies_comment_lines_where_they_stood(tmp_path, capsys) -> None:
         assert [x for x in got if not x.startswith("#")] == want
         assert [x for x in got if x.startswith("#")] == notes
         assert got.index("# after pose 2") == 4 and got[0] == "# preamble" and got[-1] == "# end"
+
+
+def test_apply_keeps_the_inputs_line_endings(tmp_path) -> None:
+    """A table with Windows line endings (CRLF) gives a corrected table with them, on every
+    line, a quoted cell's own line break included: byte for byte the LF table's output with
+    each LF turned CRLF."""
+    from posecorr.controller.apply import apply_file
+
+    plain = tmp_path / "plain.csv"
+    write_table(_table(6, seed=3), plain)
+    lines = [x for x in plain.read_text().splitlines() if not x.startswith("#")]
+    lines = [lines[0] + ",note"] + [x + (',"two\nlines"' if i == 2 else ",one") for i, x in enumerate(lines[1:])]
+    text = "# a session\n" + "\n".join(lines) + "\n# end\n"
+    unix, windows = tmp_path / "unix.csv", tmp_path / "windows.csv"
+    unix.write_bytes(text.encode())
+    windows.write_bytes(text.replace("\n", "\r\n").encode())
+    apply_file(MODEL, unix, tmp_path / "unix_out.csv")
+    apply_file(MODEL, windows, tmp_path / "windows_out.csv")
+    want = (tmp_path / "unix_out.csv").read_bytes()
+    assert b"\r" not in want and b'"two\nlines"' in want
+    assert (tmp_path / "windows_out.csv").read_bytes() == want.replace(b"\n", b"\r\n")

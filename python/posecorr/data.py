@@ -271,11 +271,13 @@ COMMENT = "#"
 @dataclass
 class _Cursor:
     """Where `csv_records` is in a file: the lines read, the line the record being read
-    starts on, and that line's text if it is a comment."""
+    starts on, that line's text if it is a comment, and how the first line ends (a table
+    written back, `posecorr apply`'s, keeps the input's line endings)."""
 
     line: int = 0
     start: int = 1
     comment: str | None = None
+    ending: str = "\n"
 
 
 def _decoded_lines(handle, path: str, cursor: _Cursor):
@@ -289,17 +291,20 @@ def _decoded_lines(handle, path: str, cursor: _Cursor):
         except UnicodeDecodeError as exc:
             raise TableError(path, f"not UTF-8 text (byte 0x{raw[exc.start]:02x} at character {exc.start + 1}); "
                              "save the table as UTF-8 CSV", cursor.line) from None
-        if cursor.line == 1 and line.startswith("\ufeff"):
-            line = line[1:]  # a byte order mark is an encoding detail, not part of the first name
+        if cursor.line == 1:
+            cursor.ending = "\r\n" if line.endswith("\r\n") else "\n"
+            if line.startswith("\ufeff"):
+                line = line[1:]  # a byte order mark is an encoding detail, not part of the first name
         if cursor.line == cursor.start and line.startswith(COMMENT):
             cursor.comment, line = line.rstrip("\r\n"), "\n"
         yield line
 
 
-def csv_records(handle, path: str):
+def csv_records(handle, path: str, cursor: _Cursor | None = None):
     """A CSV file's records as (the line it starts on, its cells, its text if it is a comment
-    line, else None). `handle` is opened in binary: the lines are decoded here."""
-    cursor = _Cursor()
+    line, else None). `handle` is opened in binary: the lines are decoded here. `cursor`: where
+    the reading is, for a caller that asks (a new one if None)."""
+    cursor = cursor or _Cursor()
     reader = csv.reader(_decoded_lines(handle, path, cursor))
     while True:
         cursor.start, cursor.comment = cursor.line + 1, None
@@ -448,7 +453,8 @@ class TableReader:
             self._handle = open(self.path, "rb")
         except OSError as exc:
             raise TableError(self.path, f"cannot open: {exc.strerror}") from None
-        self._records = csv_records(self._handle, self.path)
+        self._cursor = _Cursor()
+        self._records = csv_records(self._handle, self.path, self._cursor)
         # the comment lines before the header (row, text: `_read_header`); how many among the
         # poses and the rows of the first COMMENTS_SHOWN; the text of those after the last pose
         # (`chunks`)
@@ -505,6 +511,11 @@ class TableReader:
         self.text = [c for c in header if c not in numeric]
         _warn_misspelled(path, header)
         return header
+
+    @property
+    def line_ending(self) -> str:
+        """"\\r\\n" where the file's first line ends so, else "\\n"."""
+        return self._cursor.ending
 
     def __enter__(self) -> "TableReader":
         return self

@@ -102,9 +102,11 @@ def correct_table(corrector: Corrector, model: Any, table: PoseTable) -> np.ndar
         raise refused_row_of(table.path, model, corrector, error) from None
 
 
-def _line_writer(width: int):
+def _line_writer(width: int, ending: str = "\n"):
     """Cells as read -> one CSV line (no newline): joined directly when no cell needs
-    quoting (the common case, many times faster), through the csv module otherwise."""
+    quoting (the common case, many times faster), through the csv module otherwise. `ending`:
+    the file's line ending, which the output's newline translation writes for each "\\n"; a
+    line break inside a quoted cell, read with that ending, is given back as "\\n"."""
     buffer = io.StringIO()
     # "\n" as the terminator: the csv module quotes a cell holding its terminator's
     # characters, and with "" it would leave a line break inside a cell unquoted.
@@ -116,7 +118,7 @@ def _line_writer(width: int):
             return protect_comment(text, cells[0])
         buffer.seek(0)
         buffer.truncate()
-        writer.writerow(cells)
+        writer.writerow([cell.replace(ending, "\n") for cell in cells])
         return protect_comment(buffer.getvalue()[:-1], cells[0])
 
     return line
@@ -277,8 +279,9 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
         turned = coverage.Beyond(corrector.metadata, REFUSED_SHOWN)
         if reader.has_reference:
             raw_sums, corr_sums = _RmseSums(reader.has_ref_orientation), _RmseSums(reader.has_ref_orientation)
-        with atomic_output(output) as handle:
-            line = _line_writer(len(reader.header))
+        # "\n" written is the input's line ending on disk: a Windows table stays one
+        with atomic_output(output, newline=reader.line_ending) as handle:
+            line = _line_writer(len(reader.header), reader.line_ending)
             handle.write("".join(text + "\n" for _, text in reader.preamble) + line(reader.header) + ","
                          + ",".join(CORR_COLUMNS) + "\n")
             for chunk in reader.chunks(chunk_rows):

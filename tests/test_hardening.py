@@ -965,3 +965,41 @@ def test_apply_keeps_the_inputs_line_endings(tmp_path) -> None:
     want = (tmp_path / "unix_out.csv").read_bytes()
     assert b"\r" not in want and b'"two\nlines"' in want
     assert (tmp_path / "windows_out.csv").read_bytes() == want.replace(b"\n", b"\r\n")
+
+
+def test_apply_gives_no_improvement_over_the_offset_of_unregistered_frames(tmp_path, capsys) -> None:
+    """On a table in the tracker's own frame (the reference turned 90 deg and moved 2 m),
+    raw measures the frames' offset: apply gives no improvement over it, says so, and names the
+    Kabsch fit it judged by, whose figure equals scipy's own alignment of the same positions.
+    On registered frames the improvements are raw / corrected, as before."""
+    t = _table(30, seed=2)
+    turn = Rotation.from_euler("z", 90, degrees=True)
+    moved = replace(t, ref_p=turn.apply(t.ref_p) + [2.0, 0.5, 0.0], ref_q=(turn * Rotation.from_quat(
+        t.ref_q, scalar_first=True)).as_quat(scalar_first=True))
+    registered, unregistered = tmp_path / "registered.csv", tmp_path / "unregistered.csv"
+    write_table(t, registered)
+    write_table(moved, unregistered)
+
+    near = json.loads(_json_of(["apply", str(MODEL), str(registered), "-o", str(tmp_path / "a.csv")], capsys))
+    raw, corrected = near["raw"], near["corrected"]
+    assert near["unregistered"] is False
+    assert corrected["improvement_pos"] == pytest.approx(raw["rmse_pos"] / corrected["rmse_pos"], rel=1e-12)
+
+    far = json.loads(_json_of(["apply", str(MODEL), str(unregistered), "-o", str(tmp_path / "b.csv")], capsys))
+    assert far["unregistered"] is True and far["raw"]["rmse_pos"] > 1.0
+    assert [far["corrected"][f"improvement_{k}"] for k in ("pos", "rot", "total")] == [None] * 3
+    centred_m, centred_r = t.meas_p - t.meas_p.mean(axis=0), moved.ref_p - moved.ref_p.mean(axis=0)
+    aligned, _ = Rotation.align_vectors(centred_r, centred_m)
+    want = np.sqrt(np.mean(np.sum((aligned.apply(centred_m) - centred_r) ** 2, axis=1)))
+    assert far["kabsch_rmse_pos"] == pytest.approx(want, rel=1e-6)
+
+    assert main(["apply", str(MODEL), str(unregistered), "-o", str(tmp_path / "b.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "Kabsch fit of the positions, same poses (in-sample)" in out
+    assert "the frames are unregistered (raw rmse_pos above 10x a Kabsch fit's)" in out
+
+
+def _json_of(argv: list[str], capsys) -> str:
+    capsys.readouterr()
+    assert main(argv + ["--json"]) == 0
+    return capsys.readouterr().out

@@ -5,9 +5,10 @@ flat for any number of rows. The output holds every input column as read, then t
 corrected pose as ``corr_x, corr_y, corr_z, corr_qw, corr_qx, corr_qy, corr_qz``: the raw
 ``meas_*`` stay beside it. A measurement-only table (no ``ref_*`` columns, e.g. a
 demonstration recording) is corrected the same way; metrics (raw and corrected RMSEs,
-improvement) are computed only when the table has references, and where the table is the
-one the model was fitted on (its `training_data_digest`), they are marked in-sample and the
-fit's held-out figures from the model's metadata go beside them. The output is written
+improvement over raw unless the frames are unregistered, `_Kabsch`) are computed only when
+the table has references, and where the table is the one the model was fitted on (its
+`training_data_digest`), they are marked in-sample and the fit's held-out figures from the
+model's metadata go beside them. The output is written
 through `safeio.atomic_output`: an interrupted apply leaves the previous file.
 """
 from __future__ import annotations
@@ -22,7 +23,8 @@ import numpy as np
 from .. import coverage
 from ..data import (CHUNK_ROWS, MEAS_POS, MEAS_QUAT, REF_POS, REF_QUAT, PoseTable, TableError, TableReader,
                     protect_comment)
-from ..metrics import METRIC_KEYS, block_name, metric_block, named_block, pose_errors
+from ..metrics import METRIC_KEYS, block_name, frames_unregistered, metric_block, named_block, pose_errors
+from ..registration import umeyama
 from ..safeio import atomic_output, check_output
 from .checks import COLUMNS, QUATERNION, TIME_INPUT
 from .digest import FITTED_DIGESTS, fitted_on
@@ -225,6 +227,38 @@ class _FittedOn:
                 "rigid": None if rigid is None else named_block(block_name(rigid), {k: rigid.get(k) for k in METRIC_KEYS})}
 
 
+class _Kabsch:
+    """Whether the table's frames are unregistered, which makes raw measure their offset, not
+    the tracker (`metrics.RULE`): raw rmse_pos against a Kabsch fit of the measured positions
+    onto the reference's, the rigid fit the controller side can do with numpy alone. A fit
+    with a lever arm does better, never worse: raw above the rule's factor times the Kabsch
+    fit's is above it for the best rigid fit too, so the verdict is never wrongly
+    "unregistered"."""
+
+    def __init__(self) -> None:
+        self.measured: list[np.ndarray] | None = []
+        self.reference: list[np.ndarray] = []
+        self.rows = 0
+
+    def add(self, measured_p: np.ndarray, reference_p: np.ndarray) -> None:
+        if self.measured is None:
+            return
+        self.rows += len(measured_p)
+        if self.rows > FITTED_ON_MAX_ROWS:   # a recording: memory stays flat, the verdict unknown
+            self.measured = None
+        else:
+            self.measured.append(measured_p)
+            self.reference.append(reference_p)
+
+    def rmse_pos(self) -> float | None:
+        """The Kabsch fit's in-sample rmse_pos (None: too many rows kept, or fewer than 3)."""
+        if self.measured is None or self.rows < 3:
+            return None
+        measured, reference = np.concatenate(self.measured), np.concatenate(self.reference)
+        R, t, _ = umeyama(measured, reference)
+        return float(np.sqrt(np.mean(np.sum((measured @ R.T + t - reference) ** 2, axis=1))))
+
+
 def refuse_missing_time(corrector: Corrector, model: str | os.PathLike[str], path: Any, has_time: bool,
                         header_row: int | None = None) -> None:
     """TableError where `model` takes each pose's time and the table at `path` has none:
@@ -257,8 +291,8 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                backend: str = "c", chunk_rows: int = CHUNK_ROWS, allow_unbounded: bool = False,
                allow_unsigned: bool = False, keep_going: bool = False) -> dict[str, Any]:
     """Correct `table` with `model` into `output`; returns {"n", "output", "backend", "reference",
-    "raw", "corrected", "in_sample", "fitted_on", "held_out", "refused",
-    "beyond_training_orientations"} (raw / corrected None without reference columns).
+    "raw", "corrected", "in_sample", "fitted_on", "held_out", "unregistered", "kabsch_rmse_pos",
+    "refused", "beyond_training_orientations"} (raw / corrected None without reference columns).
     allow_unbounded, allow_unsigned: as `Corrector`'s. A pose the model refuses stops the work
     (TableError naming its row), or with `keep_going` is written as nan and counted in
     "refused" ({"count", "rows": the first REFUSED_SHOWN, "first": its message}); the metrics
@@ -273,12 +307,9 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
     with TableReader(table, require_reference=False, measured_checked=not keep_going,
                      zero_fix=KEEP_GOING_FIX) as reader:
         _check_header(reader, corrector, model)
-        raw_sums = corr_sums = None
         refused = _Refused()
-        fitted_on = _FittedOn(corrector.metadata)
+        scores = _Scores(reader, corrector.metadata) if reader.has_reference else None
         turned = coverage.Beyond(corrector.metadata, REFUSED_SHOWN)
-        if reader.has_reference:
-            raw_sums, corr_sums = _RmseSums(reader.has_ref_orientation), _RmseSums(reader.has_ref_orientation)
         # "\n" written is the input's line ending on disk: a Windows table stays one
         with atomic_output(output, newline=reader.line_ending) as handle:
             line = _line_writer(len(reader.header), reader.line_ending)
@@ -299,28 +330,55 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                 turned.add(measured[:, 3:7], chunk.row_numbers, kept)
                 handle.write(_with_comments([line(row) + (_CORR_FORMAT % tuple(values))
                                              for row, values in zip(chunk.rows, corrected.tolist())], chunk.comments))
-                if raw_sums is not None and corr_sums is not None:
-                    q = chunk.block(REF_QUAT) if reader.has_ref_orientation else measured[:, 3:7]
-                    reference = np.concatenate([chunk.block(REF_POS), q], axis=1)
-                    raw_sums.add(reference[kept], measured[kept])
-                    corr_sums.add(reference[kept], corrected[kept])
-                    fitted_on.add(measured, reference, times)
+                if scores is not None:
+                    scores.add(chunk, measured, corrected, kept, times)
                 n += len(chunk.rows)
             handle.write("".join(text + "\n" for text in reader.trailing))
             if n == 0:  # inside the block: the previous output stays
                 raise TableError(reader.path, "no data rows after the header")
             if refused.count == n:   # a table of nan is no correction: the previous output stays
                 raise TableError(reader.path, f"the model refused every pose; the first: {refused.first}")
-    return {"n": n, "output": str(output), "backend": backend, **_scored(raw_sums, corr_sums, fitted_on),
+    return {"n": n, "output": str(output), "backend": backend, **(NO_SCORES if scores is None else scores.record()),
             "refused": refused.record(), "beyond_training_orientations": turned.record()}
 
 
-def _scored(raw_sums: "_RmseSums | None", corr_sums: "_RmseSums | None", fitted_on: _FittedOn) -> dict[str, Any]:
-    """apply_file's figures: "reference", "columns_added", "raw", "corrected", "in_sample",
-    "fitted_on", "held_out"."""
-    raw = raw_sums.metrics() if raw_sums is not None else None
-    corrected_block = metric_block(raw, corr_sums.metrics()) if raw is not None and corr_sums is not None else None
-    fitted = fitted_on.verdict() if raw is not None else None
-    return {"reference": raw is not None, "columns_added": list(CORR_COLUMNS), "raw": raw,
-            "corrected": corrected_block, "in_sample": None if fitted is None else bool(fitted),
-            "fitted_on": fitted or None, "held_out": fitted_on.held_out() if fitted else None}
+# apply_file's figures of a table without reference columns
+NO_SCORES = {"reference": False, "columns_added": list(CORR_COLUMNS), "raw": None, "corrected": None,
+             "in_sample": None, "fitted_on": None, "held_out": None, "unregistered": None, "kabsch_rmse_pos": None}
+
+
+class _Scores:
+    """apply_file's figures of a table with reference columns, summed chunk by chunk."""
+
+    def __init__(self, reader: TableReader, metadata: dict[str, str]) -> None:
+        self.with_rotation = reader.has_ref_orientation
+        self.raw, self.corrected = _RmseSums(self.with_rotation), _RmseSums(self.with_rotation)
+        self.fitted_on, self.kabsch = _FittedOn(metadata), _Kabsch()
+
+    def add(self, chunk: Any, measured: np.ndarray, corrected: np.ndarray, kept: np.ndarray,
+            times: np.ndarray | None) -> None:
+        """A chunk's poses; `kept`: those the model corrected (the refused are out of the sums)."""
+        q = chunk.block(REF_QUAT) if self.with_rotation else measured[:, 3:7]
+        reference = np.concatenate([chunk.block(REF_POS), q], axis=1)
+        self.raw.add(reference[kept], measured[kept])
+        self.corrected.add(reference[kept], corrected[kept])
+        self.kabsch.add(measured[kept, :3], reference[kept, :3])
+        self.fitted_on.add(measured, reference, times)
+
+    def record(self) -> dict[str, Any]:
+        """{"reference", "columns_added", "raw", "corrected", "in_sample", "fitted_on", "held_out",
+        "unregistered" (`metrics.RULE` by `_Kabsch`: True, False, or None where not known),
+        "kabsch_rmse_pos" (the Kabsch fit's, m)}. The corrected block's improvements are
+        against raw, and None where the frames are unregistered: a ratio to the frames' offset
+        says nothing of the model."""
+        raw = self.raw.metrics()
+        corrected = metric_block(raw, self.corrected.metrics())
+        fitted = self.fitted_on.verdict()
+        floor = self.kabsch.rmse_pos()
+        unregistered = None if floor is None else frames_unregistered(raw, {"rmse_pos": floor})
+        if unregistered:
+            corrected = {k: (None if k.startswith("improvement_") else v) for k, v in corrected.items()}
+        return {"reference": True, "columns_added": list(CORR_COLUMNS), "raw": raw, "corrected": corrected,
+                "in_sample": None if fitted is None else bool(fitted), "fitted_on": fitted or None,
+                "held_out": self.fitted_on.held_out() if fitted else None, "unregistered": unregistered,
+                "kabsch_rmse_pos": floor}

@@ -252,8 +252,10 @@ def _text(args: argparse.Namespace, table: Any, effects: list, report: Any, expo
     lines.append(f"  floor: {report.baseline_name}, the best of the rigid fits on the same poses "
                  f"({'rmse_total / rmse_pos [mm]' if pos else 'rmse_total'}: {scores})")
     if report.shrinkage is not None:
+        # the trace of the physics stage's hat matrix: a core's weights are not in it
+        core = " (the core's weights apart)" if report.model.core_ is not None else ""
         lines.append(f"  prior strength {report.shrinkage['prior_strength']:g}: "
-                     f"{report.shrinkage['effective_params']:.1f} effective parameters")
+                     f"{report.shrinkage['effective_params']:.1f} effective parameters in the physics stage{core}")
     if effects_json and report.chosen.startswith("rigid-"):   # effects asked or not, the rigid fit has these
         lines.append(f"  {report.chosen}'s registration and lever, as the station and mount effects hold them:")
     for name, params in effects_json.items():

@@ -338,13 +338,14 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                 raise TableError(reader.path, "no data rows after the header")
             if refused.count == n:   # a table of nan is no correction: the previous output stays
                 raise TableError(reader.path, f"the model refused every pose; the first: {refused.first}")
-    return {"n": n, "output": str(output), "backend": backend, **(NO_SCORES if scores is None else scores.record()),
+    return {"n": n, "output": str(output), "backend": backend, **(_no_scores() if scores is None else scores.record()),
             "refused": refused.record(), "beyond_training_orientations": turned.record()}
 
 
-# apply_file's figures of a table without reference columns
-NO_SCORES = {"reference": False, "columns_added": list(CORR_COLUMNS), "raw": None, "corrected": None,
-             "in_sample": None, "fitted_on": None, "held_out": None, "unregistered": None, "kabsch_rmse_pos": None}
+def _no_scores() -> dict[str, Any]:
+    """apply_file's figures of a table without reference columns."""
+    return {"reference": False, "columns_added": list(CORR_COLUMNS), "raw": None, "corrected": None,
+            "in_sample": None, "fitted_on": None, "held_out": None, "unregistered": None, "kabsch_rmse_pos": None}
 
 
 class _Scores:

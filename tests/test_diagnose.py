@@ -62,6 +62,8 @@ def test_nothing_missing_nothing_present() -> None:
     report = diagnose(table, [e for e in CATALOGUE if e != "sweep"], folds=5, seed=7, forms=False)
     assert [row["effect"] for row in report["candidates"]] == ["sweep"]
     assert not report["candidates"][0]["present"]
+    # registered frames: the sweep is taken about the station where it stands, without a caveat
+    assert not [note for note in report["notes"] if "about where the base station stands" in note], report["notes"]
     assert report["cv_base"]["rmse_pos"] <= 1.3 * result.noise_floor["rmse_pos"]
 
 

@@ -256,6 +256,14 @@ def test_real_sessions_propose_nothing_and_say_why(name):
 
     assert not {row["feature"] for row in result["features"]} & set(STATION_FEATURES), result["features"]
     assert any(UNPLACED_STATION in note for note in result["notes"]), result["notes"]
+    # nor where the sweep's angles and the incidence's line of sight start: the candidates that bend about
+    # the station are named, with the nominal station their verdicts were taken about
+    from posecorr.analysis.diagnose import station_bound_words
+
+    ranked = [row["effect"] for row in result["candidates"]]
+    bound = [name for name in ranked if get_effect(name).about_station]
+    assert {"sweep", "sweep_harmonics"} <= set(bound), ranked
+    assert station_bound_words(ranked) in result["notes"], result["notes"]
 
 
 def test_aliases_count_the_directions_two_effects_share():
@@ -564,7 +572,6 @@ def test_a_hidden_catalogue_effect_is_named_not_a_form(hidden, factor, seed, pos
     proposed, though a form (a strain for the range scale) explains as much: on seeds 3 and
     7 of 40 poses the strain's held-out gain is above the range scale's (0.2680 against
     0.2674 on seed 3), and the catalogue effect still goes first (`rank_key`)."""
-    from posecorr.effects import get_effect
     from posecorr.simulate import simulate_session
 
     theta = get_effect(hidden).default_theta() * factor

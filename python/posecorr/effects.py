@@ -206,7 +206,7 @@ def _rows_times(p: Any, M: Any) -> Any:
 # What an effect declares about itself besides its map (see `Effect`).
 CAPABILITIES = ("name", "params", "order", "random", "needs_time", "closed_form_inverse", "per_row_theta",
                 "changes_rotation", "changes_position", "inverse_steps", "doc", "generic", "causes", "sensitivity", "registration",
-                "typical_scale")
+                "typical_scale", "about_station")
 
 # The parts an effect may play in registering the tracker's frames (`Effect.registration`),
 # in the order a fit identifies them: the unknown rigid motion between the tracker's reporting
@@ -253,6 +253,10 @@ class Effect:
     # pin no better than ten of them (`train.identify`). False for a form, whose scale is only
     # the unit of its coefficients.
     typical_scale: ClassVar[bool] = True
+    # The map bends about where the base station stands (ctx.R_S, ctx.t_S: the nominal
+    # station), not only through the frames' registration: on unregistered frames, where
+    # nobody knows where the user's station stands, a verdict on it holds only if it stands there.
+    about_station: ClassVar[bool] = False
 
     def __init_subclass__(cls, **capabilities: Any) -> None:
         """The capabilities above may be given as class keywords, all in one line:
@@ -450,7 +454,7 @@ def sweep_direction(xp: Any, alpha: Any, beta: Any) -> Any:
     return normalize(xp.stack([xp.tan(alpha), xp.tan(beta), -1.0], axis=-1))
 
 
-class Sweep(Effect, name="sweep", order=2, per_row_theta=True, inverse_steps=8):
+class Sweep(Effect, name="sweep", order=2, per_row_theta=True, inverse_steps=8, about_station=True):
     """Lighthouse sweep-angle calibration error (phase and curvature), station frame.
 
     alpha = atan2(s_x, -s_z), beta = atan2(s_y, -s_z) (rad), r = |s| (m);
@@ -504,7 +508,7 @@ class RangeScale(Effect, name="range_scale", order=3, per_row_theta=True, closed
 
 
 class Incidence(Effect, name="incidence", order=4, per_row_theta=True, changes_rotation=False, inverse_steps=6,
-                sensitivity="orientation"):
+                sensitivity="orientation", about_station=True):
     """Position bias growing with the incidence angle of the station's light on the tracker.
 
     u = unit(p - t_S) (station -> tracker), a = R[:, 2] (tracker z axis, base frame),

@@ -262,7 +262,7 @@ def _harmonics(xp: Any, angle: Any, theta: Any, first: int) -> Any:
 
 
 class SweepHarmonics(Form, name="sweep_harmonics", order=2.5, per_row_theta=True, changes_rotation=False,
-                     generic=True, inverse_steps=8,
+                     generic=True, inverse_steps=8, about_station=True,
                      causes="a periodic error of a station's sweep angles: the rotor's speed ripple or "
                             "a wobble of its optics (SteamVR's gibbous terms)"):
     """First- and second-order harmonics of the station's sweep angles (station frame).

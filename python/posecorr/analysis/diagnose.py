@@ -800,6 +800,24 @@ def _unregistered_words(table: PoseTable) -> str | None:
             f"{1e3 * fitted['rmse_pos']:.3g} mm in-sample, {rigid_name})")
 
 
+def station_bound_words(names: Sequence[str]) -> str | None:
+    """On unregistered frames, what a verdict on the effects among `names` that bend about
+    the base station (`Effect.about_station`) rests on, naming them in the order they apply;
+    None where there are none."""
+    from posecorr.geometry import station_pose
+
+    bound = sorted({name for name in names if get_effect(name).about_station}, key=lambda name: get_effect(name).order)
+    if not bound:
+        return None
+    one = len(bound) == 1
+    where = ", ".join(f"{x:.2f}" for x in station_pose()[1])
+    named = bound[0] if one else f"{', '.join(bound[:-1])} and {bound[-1]}"
+    return (f"{named} {'bends' if one else 'bend'} about where the base station stands, which unregistered "
+            f"frames do not say: {'it is' if one else 'they are'} taken about the nominal station (the paper's, at "
+            f"({where}) m in the reference frame), so a verdict on {'it' if one else 'them'} holds only if yours "
+            "stands there")
+
+
 def _with_registration(effects: list[str], candidates: Sequence[str] | None, unregistered: str | None
                        ) -> tuple[list[str], str | None]:
     """(the model's effects, a note or None): where the frames are unregistered and the model
@@ -877,7 +895,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     search = _Search(table, effects, names, splits, folds, seed, alpha, min_gain, say, state)
     rows, kept, dropped = _select(search)
     features, unplaced = _feature_scan(table, model_corrected if model_corrected is not None else state.predicted,
-                                       folds, seed, placed=unregistered is None)
+                                       folds, seed, placed=unregistered is None, tested=list(effects) + names)
     base = pose_metrics(table.reference, state.predicted, table.has_orientation)
     result = {
         "model_effects": effects,
@@ -890,7 +908,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
         "cv_base": {"rmse_total": state.before, "rmse_pos": base["rmse_pos"], "rmse_rot": base["rmse_rot"]},
         "rows": {"given": rows_given, "used": table.n},
         "reach": score_test_reach(state, len(names), alpha, table.n),
-        "notes": _table_notes(table, effects, candidates, forms) + [n for n in (registered, unplaced) if n],
+        "notes": _table_notes(table, effects, candidates, forms) + ([registered] if registered else []) + unplaced,
     }
     result["reach"]["poses_to_pass"] = _planned(rows, kept, table.n, result["reach"]["threshold"], min_gain)
     result["proposal"], result["no_proposal"] = propose(search, result, kept, dropped, not forms and candidates is None)
@@ -900,14 +918,18 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     return result
 
 
-def _feature_scan(table: PoseTable, predicted: np.ndarray, folds: int, seed: int, placed: bool
-                  ) -> tuple[list[dict[str, Any]], str | None]:
-    """(`feature_r2` of the residuals, a note or None): where the frames are unregistered (not
-    `placed`) no feature is taken from the station, whose place in them nobody knows."""
+def _feature_scan(table: PoseTable, predicted: np.ndarray, folds: int, seed: int, placed: bool,
+                  tested: Sequence[str]) -> tuple[list[dict[str, Any]], list[str]]:
+    """(`feature_r2` of the residuals, notes): where the frames are unregistered (not `placed`)
+    no feature is taken from the station, whose place in them nobody knows, and the effects
+    `tested` that bend about it are named (`station_bound_words`)."""
     blocks = {name: cols for name, cols in ERROR_BLOCKS.items() if table.has_orientation or name == "position"}
     features = feature_r2(residual_components(table.reference, predicted, table.has_orientation),
                           pose_features(table.reference, table.time(), registered=placed), folds, seed, blocks)
-    return features, None if placed else f"residual structure by feature: {UNPLACED_STATION}"
+    if placed:
+        return features, []
+    bound = station_bound_words(tested)
+    return features, [f"residual structure by feature: {UNPLACED_STATION}"] + ([bound] if bound else [])
 
 
 def _thinned(table: PoseTable, corrected: np.ndarray | None,

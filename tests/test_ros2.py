@@ -413,6 +413,65 @@ def test_a_bad_topic_name_is_a_usage_error():
     assert "posecorr ros2: error: --input '/bad//topic': Invalid topic name: " in bad.stderr, bad.stderr
 
 
+def test_two_nodes_named_apart_serve_one_domain(domain):
+    """Two trackers on one ROS domain: with --node-name each node carries its own name (its
+    parameters at /NAME, its diagnostics named so) and corrects its own topic with its own
+    model; the node's name was fixed, so a second tracker needed a domain of its own."""
+    from rclpy.parameter_client import AsyncParameterClient
+
+    cell = Cell(FIRST, domain, "--node-name", "posecorr_left")
+    right = subprocess.Popen([POSECORR, "ros2", str(SECOND), "--reliable", "--registration", "none",
+                              "--node-name", "posecorr_right", "--input", "/right/pose",
+                              "--output", "/right/pose_corrected"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=cell.env)
+    try:
+        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_ALL)
+        got_right: dict[int, PoseStamped] = {}
+        cell.node.create_subscription(PoseStamped, "/right/pose_corrected",
+                                      lambda m: got_right.__setitem__(Cell.key(m), m), qos)
+        statuses: set[str] = set()
+        cell.node.create_subscription(DiagnosticArray, "/diagnostics",
+                                      lambda m: statuses.update(s.name for s in m.status), 10)
+        left_pub, right_pub = cell.pub, cell.node.create_publisher(PoseStamped, "/right/pose", qos)
+        cell.wait(lambda: right_pub.get_subscription_count() > 0
+                  and {"posecorr_left", "posecorr_right"} <= set(cell.node.get_node_names()),
+                  30, "the second node never came up")
+        x = _poses(40, seed=10)
+        cell.publish(x[:20], first=0, rate_hz=500.0)
+        cell.pub = right_pub
+        cell.publish(x[20:], first=20, rate_hz=500.0)
+        cell.pub = left_pub
+        cell.wait(lambda: len(cell.got) == 20 and len(got_right) == 20, 10, "poses lost")
+        np.testing.assert_array_equal(cell.outputs(0, 20), _shim(FIRST, x[:20]))
+        np.testing.assert_array_equal(
+            [[m.pose.position.x, m.pose.position.y, m.pose.position.z, m.pose.orientation.w,
+              m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z]
+             for m in (got_right[(20 + k) * 1_000_000] for k in range(20))], _shim(SECOND, x[20:]))
+        for name, model in (("posecorr_left", FIRST), ("posecorr_right", SECOND)):
+            client = AsyncParameterClient(cell.node, name)
+            assert client.wait_for_services(timeout_sec=10.0), name
+            future = client.get_parameters(["model"])
+            cell.wait(future.done, 10, f"/{name}'s parameter service did not answer")
+            assert future.result().values[0].string_value == str(model)
+        cell.wait(lambda: {"posecorr_left: pose correction", "posecorr_right: pose correction"} <= statuses,
+                  10, "the diagnostics do not name both nodes")
+    finally:
+        code, out, err = cell.stop()
+        if right.poll() is None:
+            right.send_signal(signal.SIGINT)
+        right_out, right_err = right.communicate(timeout=30)
+    assert code == 130 and right.returncode == 130, (err, right_err)
+    assert out.startswith("stopped: 20 poses in, 20 out") and right_out.startswith("stopped: 20 poses in, 20 out")
+
+
+def test_a_bad_node_name_is_a_usage_error():
+    """A name ROS refuses is said in one line naming --node-name, before ROS starts."""
+    bad = subprocess.run([POSECORR, "ros2", str(FIRST), "--node-name", "left-1"], capture_output=True, text=True,
+                         timeout=120)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1, bad.stderr
+    assert bad.stderr.startswith("posecorr ros2: error: --node-name 'left-1': Invalid node name: "), bad.stderr
+
+
 def test_a_swap_to_a_model_that_asks_other_poses_is_said(tmp_path):
     """A swapped-in model with a smaller box was loaded with 'loaded ... as generation 4' and
     nothing else, then refused 985 poses in a row."""

@@ -13,6 +13,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("model", type=Path, help="the model (ONNX)")
     p.add_argument("--input", default="/tracker/pose", help="PoseStamped topic of the raw tracker pose")
     p.add_argument("--output", default="/tracker/pose_corrected", help="topic of the corrected pose")
+    p.add_argument("--node-name", default="posecorr", metavar="NAME",
+                   help="the node's name (its parameters at /NAME, its diagnostics named so): one per "
+                        "tracker where several run on one ROS domain")
     p.add_argument("--frame", default="base_link",
                    help="frame id of the corrected pose (the robot's, where the model's reference poses were)")
     p.add_argument("--input-frame", metavar="FRAME",
@@ -42,18 +45,23 @@ def run(args: argparse.Namespace) -> None:
     signal's convention (SIGTERM 143, SIGINT 130), as for every verb."""
     from rclpy.expand_topic_name import expand_topic_name
     from rclpy.validate_full_topic_name import validate_full_topic_name
+    from rclpy.validate_node_name import validate_node_name
     from rclpy.validate_topic_name import validate_topic_name
 
     from ..ros2.node import run_node
     from ..safeio import Terminated
 
+    try:
+        validate_node_name(args.node_name)
+    except Exception as exc:   # rclpy's InvalidNodeNameException, its first line the reason
+        raise CliError(f"--node-name {args.node_name!r}: {str(exc).splitlines()[0]}") from None
     for option, name in (("--input", args.input), ("--output", args.output)):
-        try:   # as the node resolves it (its name posecorr, the root namespace): '//' shows only then
+        try:   # as the node resolves it (its name, the root namespace): '//' shows only then
             validate_topic_name(name)
-            validate_full_topic_name(expand_topic_name(name, "posecorr", "/"))
+            validate_full_topic_name(expand_topic_name(name, args.node_name, "/"))
         except Exception as exc:   # rclpy's InvalidTopicNameException, its first line the reason
             raise CliError(f"{option} {name!r}: {str(exc).splitlines()[0]}") from None
-    final = run_node(args.model, input_topic=args.input, output_topic=args.output,
+    final = run_node(args.model, node_name=args.node_name, input_topic=args.input, output_topic=args.output,
                      frame=args.frame, input_frame=args.input_frame, registration=args.registration,
                      reliable=args.reliable, t0=args.t0,
                      diag_period=args.diagnostics_period, allow=allow_arguments(args),

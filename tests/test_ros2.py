@@ -225,6 +225,84 @@ def test_swap_mid_stream_and_a_corrupt_file(domain, tmp_path):
     assert "loaded" in err and "kept" in err
 
 
+def _until(condition, seconds: float, what: str) -> None:
+    end = time.monotonic() + seconds
+    while not condition():
+        if time.monotonic() > end:
+            pytest.fail(what)
+        time.sleep(0.01)
+
+
+def _watched(monkeypatch, model: Path, settle: float):
+    """A ModelWatcher on `model` (no ROS), what it delivers and reports, and two counters:
+    the loads that failed and the polls."""
+    from posecorr.ros2 import node
+
+    failed, polls = [], []
+    load, key = node.load_checked, node._file_key
+
+    def load_checked(path, allow=None):
+        try:
+            return load(path, allow)
+        except Exception as exc:
+            failed.append(exc)
+            raise
+
+    def file_key(path):
+        polls.append(path)
+        return key(path)
+
+    monkeypatch.setattr(node, "load_checked", load_checked)
+    monkeypatch.setattr(node, "_file_key", file_key)
+    delivered, reported = [], []
+    watcher = node.ModelWatcher(model, delivered.append, reported.append, settle=settle)
+    watcher.start()
+    return watcher, delivered, reported, failed, polls
+
+
+def test_a_model_file_written_with_a_pause_is_not_reported_half_written(tmp_path, monkeypatch):
+    """A slow copy in place: half the file, a pause in which the watcher reads the half and
+    fails, then the rest. The half was reported as a load error (the old model serving on);
+    now nothing is reported and the whole file is delivered. The settle time is beyond the
+    test's length, so no pause of a loaded machine reaches it."""
+    from posecorr.ros2.node import model_id
+
+    model = tmp_path / "model.onnx"
+    shutil.copy(FIRST, model)
+    watcher, delivered, reported, failed, _ = _watched(monkeypatch, model, settle=3600.0)
+    try:
+        data = SECOND.read_bytes()
+        with open(model, "wb") as f:
+            f.write(data[:len(data) // 2])
+            f.flush()
+            _until(lambda: failed, 30, "the half-written file was never read")
+            f.write(data[len(data) // 2:])
+        _until(lambda: delivered, 30, "the completed file was never delivered")
+    finally:
+        watcher.stop()
+        watcher.join(10)
+    assert reported == [] and [d.model_id for d in delivered] == [model_id(model, data)]
+
+
+def test_a_bad_model_file_at_rest_is_reported_once_settled(tmp_path, monkeypatch):
+    """A file that fails and stays as it is: reported once it has not changed for the settle
+    time (not before), and once only, however many polls follow."""
+    model = tmp_path / "model.onnx"
+    shutil.copy(FIRST, model)
+    watcher, delivered, reported, failed, polls = _watched(monkeypatch, model, settle=0.5)
+    try:
+        _replace_atomically(model, b"\x08\x07 half a model")
+        written = time.monotonic()
+        _until(lambda: reported, 30, "the bad file was never reported")
+        assert time.monotonic() - written >= 0.5 and len(failed) == 1
+        seen = len(polls)
+        _until(lambda: len(polls) >= seen + 20, 30, "the watcher stopped polling")
+    finally:
+        watcher.stop()
+        watcher.join(10)
+    assert len(reported) == 1 and reported[0].startswith(f"{model}: ") and not delivered, reported
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_signals_end_the_node_cleanly(domain, tmp_path, sig):
     cell = Cell(FIRST, domain)
@@ -376,6 +454,36 @@ def test_a_failed_file_after_a_swap_not_yet_taken_names_the_model_that_will_serv
     assert code == 130, err
     (kept,) = [line for line in err.splitlines() if " kept " in line]
     assert kept.startswith(f"posecorr ros2: kept {second}: "), err
+
+
+def test_a_slow_copy_over_the_model_file_swaps_without_a_load_error(domain, tmp_path):
+    """The model file written in place with a pause of 0.5 s mid-file (five times the 0.1 s
+    after which the watcher reads it, a quarter of the 2 s it waits before saying a file
+    fails): the node logged a false load error for the half; now it logs none, and the
+    completed file serves."""
+    from posecorr.ros2.node import model_id
+
+    model = tmp_path / "model.onnx"
+    shutil.copy(FIRST, model)
+    cell = Cell(model, domain)
+    data = SECOND.read_bytes()
+    try:
+        with open(model, "wb") as f:
+            f.write(data[:len(data) // 2])
+            f.flush()
+            cell.spin(0.5)
+            f.write(data[len(data) // 2:])
+        cell.wait(lambda: cell.diagnostics[-1]["pending_model"] == model_id(model, data), 10,
+                  "the completed file was not loaded")
+        x = _poses(20, seed=11)
+        cell.publish(x, first=0, rate_hz=500.0)
+        cell.wait(lambda: len(cell.got) == len(x), 10, "poses lost")
+        np.testing.assert_array_equal(cell.outputs(0, len(x)), _shim(SECOND, x))
+        assert all(d["last_load_error"] == "" for d in cell.diagnostics)
+    finally:
+        code, out, err = cell.stop()
+    assert code == 130, err
+    assert " kept " not in err and "generation 2" in err, err
 
 
 def test_non_unit_quaternions_are_refused(domain):

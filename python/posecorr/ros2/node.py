@@ -17,20 +17,21 @@
 - Models with time take `t` from the stamps: seconds since the first pose corrected, or
   since `t0`.
 - A pose refused is counted; the 1st, 10th, 100th ... refusal is logged with its reason.
-- Hot swap: a watcher thread polls the model file (size, modification time, inode; read
-  once it stayed the same for two polls, 0.1 s: a writer that pauses longer mid-file has
-  its half read and refused, the old model serving on, and the whole file loaded once it
-  settles; posecorr's exporter replaces files atomically) and the `model` parameter
-  (`ros2 param set /posecorr model new.onnx`). A new model is loaded and checked (the
-  runtime's own contract checks, then probe poses: each alone must give the batch plan's
-  result), then handed over; the subscription takes it between two messages, so every output
-  comes from exactly one model and no pose is lost or duplicated. A file that fails leaves
-  the old model serving; the reason is logged and in the diagnostics. The watched file is
-  loaded on the watcher's thread; the parameter's file before the set is answered, so that
+- Hot swap: a watcher thread polls the model file (size, modification time, inode; read once
+  it stayed the same for two polls, 0.1 s: a writer that pauses longer mid-file has its half
+  read and refused quietly, the old model serving on, and the whole file loaded once it is
+  complete; posecorr's exporter replaces files atomically) and the `model` parameter (`ros2
+  param set /posecorr model new.onnx`). A new model is loaded and checked (the runtime's own
+  contract checks, then probe poses: each alone must give the batch plan's result), then
+  handed over; the subscription takes it between two messages, so every output comes from
+  exactly one model and no pose is lost or duplicated. A watched file that fails leaves the
+  old model serving; once it has not changed for `SETTLE_SECONDS` (2 s) the reason is logged,
+  once, and in the diagnostics (a file still being written is no load error). The watched file
+  is loaded on the watcher's thread; the parameter's file before the set is answered, so that
   one that cannot serve is refused with its reason, and the parameter and the watch stay on
-  the model that serves. A model that takes other poses of the stream than the served one
-  (the time input, a box that leaves out part of the served one's) is loaded with a line
-  saying so; a watched file that is deleted is said once, the loaded model serving on.
+  the model that serves. A model that takes other poses of the stream than the served one (the
+  time input, a box that leaves out part of the served one's) is loaded with a line saying so;
+  a watched file that is deleted is said once, the loaded model serving on.
 - Diagnostics: a `diagnostic_msgs/DiagnosticArray` on /diagnostics every `diag_period`
   seconds: model id and generation, poses in / out / refused, poses per generation, the
   node's added latency (arrival of the message to its publication, p50 / p99 / max, µs),
@@ -58,6 +59,11 @@ from posecorr.rotations import matrix_to_quat, quat_to_matrix
 from posecorr.textui import counted
 
 POLL_SECONDS = 0.05
+# A watched file that fails to load is reported once it has not changed for this long: a
+# slow copy that pauses mid-file (a network share, a loaded disk) completes the file before,
+# and its half is never reported; a bad file at rest is said this much later, the old model
+# serving meanwhile.
+SETTLE_SECONDS = 2.0
 LATENCY_WINDOW = 10_000
 PROBE_POSES = 16
 # distinct input frames logged: a stream naming a new frame in every message must not log
@@ -174,17 +180,21 @@ class ModelWatcher(threading.Thread):
     """Polls the model file and the requested path; hands checked models to `deliver`."""
 
     def __init__(self, path: Path, deliver, report_error, poll: float = POLL_SECONDS,
-                 allow: dict[str, bool] | None = None) -> None:
+                 allow: dict[str, bool] | None = None, settle: float = SETTLE_SECONDS) -> None:
         super().__init__(name="posecorr-model-watcher", daemon=True)
         self._path = path
         self._allow = allow
         self._deliver, self._report_error = deliver, report_error
-        self._poll = poll
-        self._stop = threading.Event()
+        self._poll, self._settle = poll, settle
+        # not `_stop`: Thread.join calls a method of that name, which the Event hid
+        self._halt = threading.Event()
         self._lock = threading.Lock()
         self._seen = _file_key(path)
         self._pending_key: tuple[int, int, int] | None = None
         self._stable = 0
+        # a failed load is held in _failure, unsaid, until `settle` after _changed_at (monotonic)
+        self._changed_at = 0.0
+        self._failure = ""
 
     def switch(self, path: Path) -> str | None:
         """Serve `path` from now on (the `model` parameter): loaded and checked on the
@@ -197,31 +207,47 @@ class ModelWatcher(threading.Thread):
             return load_error(path, exc)
         with self._lock:
             self._path, self._seen = path, key
-            self._pending_key, self._stable = None, 0
+            self._pending_key, self._stable, self._failure = None, 0, ""
             self._deliver(loaded)
         return None
 
     def stop(self) -> None:
-        self._stop.set()
+        self._halt.set()
+
+    def _due(self, path: Path) -> bool:
+        """Whether the file is to be read now: it changed, then stayed the same for two polls.
+        A failure held back is said here once the file has not changed for `settle` seconds:
+        a writer that pauses mid-file is not reported, a bad file at rest is, once. Called
+        under the lock."""
+        key = _file_key(path)
+        if key is None and self._seen is not None:   # said once, until it is back
+            self._seen = self._pending_key = None
+            self._failure = ""
+            self._report_error(f"{path}: the file is gone; the loaded model serves on, and a file "
+                               "written there is loaded")
+        if key is None:
+            return False
+        if key == self._seen:
+            if self._failure and time.monotonic() - self._changed_at >= self._settle:
+                self._report_error(self._failure)
+                self._failure = ""
+            return False
+        if key != self._pending_key:  # changed since the last poll: the bytes that failed are gone
+            self._pending_key, self._stable, self._failure = key, 0, ""
+            self._changed_at = time.monotonic()
+            return False
+        self._stable += 1
+        if self._stable < 2:
+            return False
+        self._seen = key
+        return True
 
     def run(self) -> None:
-        while not self._stop.wait(self._poll):
+        while not self._halt.wait(self._poll):
             with self._lock:
                 path = self._path
-                key = _file_key(path)
-                if key is None and self._seen is not None:   # said once, until it is back
-                    self._seen = self._pending_key = None
-                    self._report_error(f"{path}: the file is gone; the loaded model serves on, and a file "
-                                       "written there is loaded")
-                if key is None or key == self._seen:
+                if not self._due(path):
                     continue
-                if key != self._pending_key:  # changed since the last poll: wait for it to settle
-                    self._pending_key, self._stable = key, 0
-                    continue
-                self._stable += 1
-                if self._stable < 2:
-                    continue
-                self._seen = key
             loaded, reason = None, ""
             try:
                 loaded = load_checked(path, self._allow)
@@ -231,7 +257,7 @@ class ModelWatcher(threading.Thread):
                 if path != self._path:  # the parameter moved the watch while this file loaded
                     continue
                 if loaded is None:
-                    self._report_error(reason)
+                    self._failure = reason   # perhaps a writer paused mid-file: said once the file settles
                 else:
                     self._deliver(loaded)
 

@@ -970,7 +970,8 @@ def test_apply_keeps_the_inputs_line_endings(tmp_path) -> None:
 def test_apply_gives_no_improvement_over_the_offset_of_unregistered_frames(tmp_path, capsys) -> None:
     """On a table in the tracker's own frame (the reference turned 90 deg and moved 2 m),
     raw measures the frames' offset: apply gives no improvement over it, says so, and names the
-    Kabsch fit it judged by, whose figure equals scipy's own alignment of the same positions.
+    Kabsch fit it judged by, whose figure equals scipy's own alignment of the same positions
+    (streamed in chunks of 4 poses alike).
     On registered frames the improvements are raw / corrected, as before."""
     t = _table(30, seed=2)
     turn = Rotation.from_euler("z", 90, degrees=True)
@@ -992,6 +993,10 @@ def test_apply_gives_no_improvement_over_the_offset_of_unregistered_frames(tmp_p
     aligned, _ = Rotation.align_vectors(centred_r, centred_m)
     want = np.sqrt(np.mean(np.sum((aligned.apply(centred_m) - centred_r) ** 2, axis=1)))
     assert far["kabsch_rmse_pos"] == pytest.approx(want, rel=1e-6)
+    from posecorr.controller.apply import apply_file   # its sums, chunk by chunk, give the same fit
+
+    chunked = apply_file(MODEL, unregistered, tmp_path / "c.csv", chunk_rows=4)
+    assert chunked["kabsch_rmse_pos"] == pytest.approx(far["kabsch_rmse_pos"], rel=1e-9)
 
     assert main(["apply", str(MODEL), str(unregistered), "-o", str(tmp_path / "b.csv")]) == 0
     out = capsys.readouterr().out

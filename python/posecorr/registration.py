@@ -19,7 +19,7 @@ import numpy as np
 
 from .geometry import homogeneous, nearest_rotation
 
-__all__ = ["umeyama", "robot_world_hand_eye"]
+__all__ = ["umeyama", "rotation_of_covariance", "robot_world_hand_eye"]
 
 
 def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
@@ -34,14 +34,20 @@ def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = False) ->
         raise ValueError(f"a rigid registration needs at least 3 points, got {len(source)}")
     mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
     xs, xt = source - mu_s, target - mu_t
-    cov = xt.T @ xs / len(source)
-    U, sigma, Vt = np.linalg.svd(cov)
-    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
-    D = np.diag([1.0, 1.0, d])
-    R = U @ D @ Vt
-    s = float(np.trace(np.diag(sigma) @ D) / np.mean(np.sum(xs * xs, axis=1))) if with_scale else 1.0
+    R, aligned = rotation_of_covariance(xt.T @ xs / len(source))
+    s = float(aligned / np.mean(np.sum(xs * xs, axis=1))) if with_scale else 1.0
     t = mu_t - s * R @ mu_s
     return R, t, s
+
+
+def rotation_of_covariance(cov: np.ndarray) -> tuple[np.ndarray, float]:
+    """(R, trace(R^T cov)): the rotation maximising trace(R^T cov) for the (3, 3) covariance
+    cov = mean(target_c source_c^T) of centred point sets (Kabsch, with the reflection fix),
+    and that maximum, which is all a streamed fit needs (`controller.apply`'s Kabsch fit keeps
+    the sums, not the points)."""
+    U, sigma, Vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    return U @ np.diag([1.0, 1.0, d]) @ Vt, float(sigma[0] + sigma[1] + d * sigma[2])
 
 
 def robot_world_hand_eye(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

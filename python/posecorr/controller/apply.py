@@ -24,7 +24,7 @@ from .. import coverage
 from ..data import (CHUNK_ROWS, MEAS_POS, MEAS_QUAT, REF_POS, REF_QUAT, PoseTable, TableError, TableReader,
                     protect_comment)
 from ..metrics import METRIC_KEYS, block_name, frames_unregistered, metric_block, named_block, pose_errors
-from ..registration import umeyama
+from ..registration import rotation_of_covariance
 from ..safeio import atomic_output, check_output
 from .checks import COLUMNS, QUATERNION, TIME_INPUT
 from .digest import FITTED_DIGESTS, fitted_on
@@ -233,30 +233,36 @@ class _Kabsch:
     onto the reference's, the rigid fit the controller side can do with numpy alone. A fit
     with a lever arm does better, never worse: raw above the rule's factor times the Kabsch
     fit's is above it for the best rigid fit too, so the verdict is never wrongly
-    "unregistered"."""
+    "unregistered". Its figure needs only sums of the positions (about the first pose, so
+    that metres of offset cost no digits of the millimetres), so memory stays flat for any
+    length."""
 
     def __init__(self) -> None:
-        self.measured: list[np.ndarray] | None = []
-        self.reference: list[np.ndarray] = []
-        self.rows = 0
+        self.n = 0
+        self.origin: tuple[np.ndarray, np.ndarray] | None = None
+        self.sums = {"m": np.zeros(3), "r": np.zeros(3), "rm": np.zeros((3, 3)), "mm": 0.0, "rr": 0.0}
 
     def add(self, measured_p: np.ndarray, reference_p: np.ndarray) -> None:
-        if self.measured is None:
+        if not len(measured_p):
             return
-        self.rows += len(measured_p)
-        if self.rows > FITTED_ON_MAX_ROWS:   # a recording: memory stays flat, the verdict unknown
-            self.measured = None
-        else:
-            self.measured.append(measured_p)
-            self.reference.append(reference_p)
+        if self.origin is None:
+            self.origin = measured_p[0].copy(), reference_p[0].copy()
+        m, r = measured_p - self.origin[0], reference_p - self.origin[1]
+        self.n += len(m)
+        for key, value in (("m", m.sum(axis=0)), ("r", r.sum(axis=0)), ("rm", r.T @ m),
+                           ("mm", float(np.sum(m * m))), ("rr", float(np.sum(r * r)))):
+            self.sums[key] = self.sums[key] + value
 
     def rmse_pos(self) -> float | None:
-        """The Kabsch fit's in-sample rmse_pos (None: too many rows kept, or fewer than 3)."""
-        if self.measured is None or self.rows < 3:
+        """The Kabsch fit's in-sample rmse_pos (None below 3 poses): mean |R m + t - r|^2 is
+        var(m) + var(r) - 2 trace(R^T cov) at the best R."""
+        if self.n < 3:
             return None
-        measured, reference = np.concatenate(self.measured), np.concatenate(self.reference)
-        R, t, _ = umeyama(measured, reference)
-        return float(np.sqrt(np.mean(np.sum((measured @ R.T + t - reference) ** 2, axis=1))))
+        sums, n = self.sums, self.n
+        mean_m, mean_r = sums["m"] / n, sums["r"] / n
+        _, aligned = rotation_of_covariance(sums["rm"] / n - np.outer(mean_r, mean_m))
+        mse = sums["mm"] / n - mean_m @ mean_m + sums["rr"] / n - mean_r @ mean_r - 2.0 * aligned
+        return float(np.sqrt(max(mse, 0.0)))
 
 
 def refuse_missing_time(corrector: Corrector, model: str | os.PathLike[str], path: Any, has_time: bool,

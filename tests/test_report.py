@@ -652,6 +652,55 @@ def test_the_history_plot_draws_each_fit_against_the_rigid_fit() -> None:
     assert fig.axes[0].get_ylabel() == "held-out rmse_pos [mm]"
 
 
+def _legends_over_data(fig: object) -> list[str]:
+    """Every legend of a drawn figure that covers a bar, a line, a set of markers or a value
+    label of a panel (each as drawn, clipped to its panel), or runs past the figure's edge."""
+    from matplotlib.transforms import Bbox
+
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    legends = [lg for lg in [*fig.legends, *(ax.get_legend() for ax in fig.axes)] if lg is not None]
+    assert legends
+    found = []
+    for legend in legends:
+        box = legend.get_window_extent(renderer)
+        name = legend.get_texts()[0].get_text()
+        if box.x0 < fig.bbox.x0 or box.y0 < fig.bbox.y0 or box.x1 > fig.bbox.x1 or box.y1 > fig.bbox.y1:
+            found.append(f"{name}: past the figure's edge")
+        for ax in fig.axes:
+            for artist in [*ax.patches, *ax.get_lines(), *ax.collections, *ax.texts]:
+                drawn = Bbox.intersection(artist.get_window_extent(renderer), ax.bbox)
+                if drawn is not None and drawn.width * drawn.height > 0 and box.overlaps(drawn):
+                    found.append(f"{name}: over {type(artist).__name__} {artist.get_label()!r}")
+    return found
+
+
+def test_no_legend_covers_what_it_describes() -> None:
+    """The history's legend stood in the upper right over the rigid fit's line, the histograms'
+    in the upper left over the tallest bars (the loop's page, the real sessions'): a legend
+    stands beside its data, on short and long histories, one or two histogram panels, bars to
+    either side, and feature panels with and without a spare panel for it."""
+    from posecorr.analysis.figures import features_figure, histogram_figure, ledger_figure
+
+    rng = np.random.default_rng(2)
+    steps = [["station", "mount"], ["station", "mount", "strain"], ["station"], ["station", "mount", "strain", "sweep"],
+             [], ["station", "mount", "strain", "range_scale"], ["station", "mount", "strain"]]
+    history = [{"effects": effects, "method": "none", "cv": {"rmse_pos": pos * 1e-3},
+                "baseline": {"rmse_pos": 6.4e-3}} for effects, pos in zip(steps, (6.45, 0.79, 2.05, 0.83, 6.55, 0.79, 0.8))]
+    same = np.array([2.0] * 6 + [3.0, 5.0, 9.0, 20.0, 40.0])  # a rigid model's: one histogram, tallest bar left
+    figures = {"history of 2": ledger_figure(LEDGER), "history of 7": ledger_figure(history),
+               "history of 1": ledger_figure(history[:1]),
+               "histograms": histogram_figure((rng.lognormal(1.8, 0.3, 50), rng.lognormal(-0.4, 0.5, 50)),
+                                              (rng.lognormal(-0.2, 0.4, 50), rng.lognormal(-0.2, 0.4, 50))),
+               "one histogram": histogram_figure((same, same), None)}
+    for n in (4, 6):  # a full grid, and one with a spare panel
+        features = {name: rng.uniform(0, 1, 30) for name in ("x", "y", "z", "roll", "pitch", "yaw")[:n]}
+        figures[f"{n} feature panels"] = features_figure(features, rng.uniform(1, 9, 30), rng.uniform(0.1, 1, 30),
+                                                         "position error", "mm")
+    for name, fig in figures.items():
+        assert not _legends_over_data(fig), (name, _legends_over_data(fig))
+
+
 def _history_rows(page: str) -> list[list[str]]:
     """The history table's body rows as lists of cell texts."""
     section = page[page.index('id="ledger"'):]

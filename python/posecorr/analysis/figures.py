@@ -260,11 +260,14 @@ def features_figure(features: Mapping[str, np.ndarray], before_mm: np.ndarray, a
     names = [f for f in FEATURES if f in features]
     ncols = 4
     nrows = math.ceil(len(names) / ncols)
-    height = 2.55 * nrows + 0.4
+    spare = len(names) < nrows * ncols
+    # Without a spare panel the legend takes a strip between the title and the panels.
+    top = 0.4 if spare else 0.7
+    height = 2.55 * nrows + top
     # Fixed margins instead of constrained layout: that layout engine costs seconds per figure
     # here (it measures every tick label), and this grid has the same layout every time.
     fig, axes = plt.subplots(nrows, ncols, figsize=(12, height), sharey=True, squeeze=False,
-                             gridspec_kw=_margins(12, height, left=0.75, right=0.15, top=0.4, bottom=0.5,
+                             gridspec_kw=_margins(12, height, left=0.75, right=0.15, top=top, bottom=0.5,
                                                   wspace=0.16, hspace=0.42))
     rng = np.random.default_rng(0)  # fixed jitter: the same page for the same data
     b = np.maximum(before_mm, LOG_FLOOR_MM)
@@ -295,14 +298,15 @@ def features_figure(features: Mapping[str, np.ndarray], before_mm: np.ndarray, a
     for k in range(len(names), nrows * ncols):
         ax = axes.flat[k]
         ax.axis("off")
-    # The legend goes into the spare panel when there is one.
     from matplotlib.lines import Line2D
     handles = [Line2D([], [], ls="", marker="o", color=BEFORE_COLOUR, label=f"before ({before_label})"),
                Line2D([], [], ls="", marker="o", color=AFTER_COLOUR, label=f"after ({after_label})"),
                Line2D([], [], label="binned median, before (dashed)", **BEFORE_MEDIAN),
                Line2D([], [], label="binned median, after (solid)", **AFTER_MEDIAN)][:4 if medians else 2]
-    target = axes.flat[len(names)] if len(names) < nrows * ncols else axes.flat[0]
-    target.legend(handles=handles, loc="center" if len(names) < nrows * ncols else "upper right")
+    if spare:
+        axes.flat[len(names)].legend(handles=handles, loc="center")
+    else:
+        fig.legend(handles=handles, loc="upper center", ncols=len(handles), bbox_to_anchor=(0.5, 1 - 0.3 / height))
     fig.suptitle(f"Per-pose {quantity} against features (log scale)", fontsize=10)
     return fig
 
@@ -350,7 +354,7 @@ def histogram_figure(pos: tuple[np.ndarray, np.ndarray], rot: tuple[np.ndarray, 
     panels = [("position error", "mm", pos)]
     if rot is not None:
         panels.append(("rotation error", "mrad", rot))
-    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 3.4), layout="constrained", squeeze=False)
+    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 3.9), layout="constrained", squeeze=False)
     for ax, (quantity, unit, (before, after)) in zip(axes.flat, panels):
         b = np.maximum(before, LOG_FLOOR_MM)
         a = np.maximum(after, LOG_FLOOR_MM)
@@ -371,7 +375,10 @@ def histogram_figure(pos: tuple[np.ndarray, np.ndarray], rot: tuple[np.ndarray, 
         ax.set_xlabel(f"{quantity} [{unit}] (log scale)")
         ax.set_ylabel("poses")
         ax.yaxis.set_major_locator(MaxNLocator(integer=True))  # a count of poses
-        ax.legend(loc="upper left")
+        # Above the panel, not inside it: the tallest bars or an RMSE line stood under any corner
+        # (the loop's before bars reach the top right, a real session's the top left). Two
+        # columns: a row per before and after, its bars beside its RMSE.
+        ax.legend(loc="lower left", bbox_to_anchor=(0, 1.02, 1, 0.2), mode="expand", ncols=2, borderaxespad=0)
         ax.grid(True, alpha=0.3)
     return fig
 
@@ -436,5 +443,7 @@ def ledger_figure(ledger: Sequence[Mapping[str, Any]]) -> Any | None:
     ax.set_ylabel("held-out rmse_pos [mm]")
     ax.set_xlabel("fit in the ledger (effects added or removed, method, held-out plan)")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(loc="upper right")
+    # Above the axes in one row: inside, the first fits (the highest errors, left) or the rigid
+    # line (across the top) stood under any corner.
+    ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.01), ncols=3, borderaxespad=0)
     return fig

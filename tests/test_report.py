@@ -652,6 +652,30 @@ def test_the_history_plot_draws_each_fit_against_the_rigid_fit() -> None:
     assert fig.axes[0].get_ylabel() == "held-out rmse_pos [mm]"
 
 
+def _long_history() -> list[dict]:
+    """Seven fits of one session, as the loop's ledger has them after a few more tries."""
+    steps = [["station", "mount"], ["station", "mount", "session_strain"], ["station", "mount"],
+             ["station", "mount", "session_strain", "sweep"], ["station"],
+             ["station", "mount", "session_strain", "range_scale"], ["station", "mount", "session_strain"]]
+    return [{"effects": effects, "method": "none", "plan": "loo", "cv": {"rmse_pos": pos * 1e-3},
+             "baseline": {"rmse_pos": 6.4e-3}} for effects, pos in zip(steps, (6.45, 0.79, 2.05, 0.83, 6.55, 0.79, 0.8))]
+
+
+def test_a_long_history_s_labels_stand_apart() -> None:
+    """Seven fits: '5: -mount,session_strain,sweep' ran into '6: +mount,session_strain,range_scale';
+    a label is broken after its commas to its fit's share of the axis."""
+    from posecorr.analysis.figures import ledger_figure
+
+    fig = ledger_figure(_long_history())
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    labels = fig.axes[0].get_xticklabels()
+    assert labels[4].get_text() == "5: -mount,session_strain,\nsweep\nnone, leave one out"
+    boxes = [t.get_window_extent(renderer) for t in labels]
+    for k, (left, right) in enumerate(zip(boxes, boxes[1:])):
+        assert left.x1 < right.x0, (labels[k].get_text(), labels[k + 1].get_text())
+
+
 def _legends_over_data(fig: object) -> list[str]:
     """Every legend of a drawn figure that covers a bar, a line, a set of markers or a value
     label of a panel (each as drawn, clipped to its panel), or runs past the figure's edge."""
@@ -683,10 +707,7 @@ def test_no_legend_covers_what_it_describes() -> None:
     from posecorr.analysis.figures import features_figure, histogram_figure, ledger_figure
 
     rng = np.random.default_rng(2)
-    steps = [["station", "mount"], ["station", "mount", "strain"], ["station"], ["station", "mount", "strain", "sweep"],
-             [], ["station", "mount", "strain", "range_scale"], ["station", "mount", "strain"]]
-    history = [{"effects": effects, "method": "none", "cv": {"rmse_pos": pos * 1e-3},
-                "baseline": {"rmse_pos": 6.4e-3}} for effects, pos in zip(steps, (6.45, 0.79, 2.05, 0.83, 6.55, 0.79, 0.8))]
+    history = _long_history()
     same = np.array([2.0] * 6 + [3.0, 5.0, 9.0, 20.0, 40.0])  # a rigid model's: one histogram, tallest bar left
     figures = {"history of 2": ledger_figure(LEDGER), "history of 7": ledger_figure(history),
                "history of 1": ledger_figure(history[:1]),

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import math
+import re
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -408,6 +409,22 @@ def _mm(block: Any, key: str = "rmse_pos") -> float:
     return float(v) * 1e3 if isinstance(v, (int, float)) and v > 0 else np.nan
 
 
+def _wrap_at_commas(text: str, width: int) -> str:
+    """Each line of `text` broken after its commas into lines of at most `width` characters
+    where it can be (a single longer item stays whole)."""
+    out = []
+    for line in text.split("\n"):
+        current = ""
+        for item in re.split(r"(?<=,)", line):
+            if current and len(current) + len(item) > width:
+                out.append(current)
+                item = item.lstrip()
+                current = ""
+            current += item
+        out.append(current)
+    return "\n".join(out)
+
+
 def ledger_figure(ledger: Sequence[Mapping[str, Any]]) -> Any | None:
     """The loop's history: the held-out rmse_pos of each fit in the ledger, oldest first (log y),
     with the best rigid fit on the same poses (the ledger line's `baseline`) as a dashed line."""
@@ -423,7 +440,11 @@ def ledger_figure(ledger: Sequence[Mapping[str, Any]]) -> Any | None:
     if not np.isfinite(y).any():
         return None
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(max(6.0, min(12.0, 1.3 * len(y) + 3)), 3.6), layout="constrained")
+    width = max(6.0, min(12.0, 1.3 * len(y) + 3))
+    # A 7 pt character is about 0.055 in: a label wider than its fit's share of the axis ran
+    # into its neighbour's ("5: -mount,session_strain,sweep6: +mount,...").
+    labels = [_wrap_at_commas(label, int((width - 1.0) / len(y) / 0.055)) for label in labels]
+    fig, ax = plt.subplots(figsize=(width, 3.6), layout="constrained")
     x = np.arange(1, len(y) + 1)
     if np.isfinite(rigid).any():
         ax.step(x, rigid, where="mid", color="0.45", ls="--", lw=1.4, label="best rigid fit, same poses")

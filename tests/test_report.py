@@ -1148,3 +1148,26 @@ def test_the_feature_panels_tick_labels_do_not_run_into_each_other() -> None:
         assert len(boxes) >= 2, ax.get_xlabel()
         for left, right in zip(boxes, boxes[1:]):
             assert left.x1 < right.x0, (ax.get_xlabel(), [t.get_text() for t in ax.get_xticklabels()])
+
+
+def test_a_long_diagnosis_is_announced_with_the_way_around_it(tmp_path: Path, capsys, monkeypatch) -> None:
+    """From LONG_DIAGNOSIS_POSES poses on, the report says before its diagnosis that it takes
+    minutes and how to leave it out; below, it does not (the threshold moved to a 12-pose
+    session's size, so that the diagnosis stays seconds)."""
+    from posecorr.cli import main
+    from posecorr.cli import report as report_cli
+    from posecorr.data import write_table
+
+    table = simulate(3, seed=2).table.subset(np.arange(12))
+    path, model = tmp_path / "s.csv", tmp_path / "m.onnx"
+    write_table(table, path)
+    assert main(["fit", str(path), "--method", "none", "--cv", "3", "-o", str(model)]) == 0
+    said = []
+    for threshold in (12, 13):
+        monkeypatch.setattr(report_cli, "LONG_DIAGNOSIS_POSES", threshold)
+        capsys.readouterr()
+        assert main(["report", str(path), "--model", str(model), "--cv", "3", "-o", str(tmp_path / "r.html")]) == 0
+        said.append(capsys.readouterr().err)
+    announced = ("the diagnosis of 12 poses refits each candidate on every fold: minutes on a table this size "
+                 "(--no-diagnosis leaves it out)")
+    assert announced in said[0] and "the diagnosis of" not in said[1]

@@ -83,6 +83,11 @@ def run(args: argparse.Namespace) -> None:
                   + (f"\n  diagnosis: {takeaway(diagnosis, model_effects(info, diagnosis))}" if diagnosis else "")))
 
 
+# From this many poses the diagnosis takes a minute or more: 300 of the paper's Experiment II
+# took 60 s, 600 took 323 s (docs/guides/loop.md), against 3 s for a 50-pose session.
+LONG_DIAGNOSIS_POSES = 300
+
+
 def _diagnosis(args: argparse.Namespace, table: Any, asked: list[str], corrected: Any) -> tuple[Any, str | None]:
     """(the diagnosis, None), or (None, why there is none): the page is still worth having
     without it."""
@@ -92,8 +97,11 @@ def _diagnosis(args: argparse.Namespace, table: Any, asked: list[str], corrected
         require_diagnosable(table, args.folds)
     except ValueError as error:
         return None, getattr(error, "message", str(error))
-    return diagnose(table, asked, folds=args.folds, seed=args.seed, model_corrected=corrected,
-                    progress=progress(args)), None
+    say = progress(args)
+    if table.n >= LONG_DIAGNOSIS_POSES:
+        say(f"the diagnosis of {table.n} poses refits each candidate on every fold: minutes on a table this size "
+            "(--no-diagnosis leaves it out)")
+    return diagnose(table, asked, folds=args.folds, seed=args.seed, model_corrected=corrected, progress=say), None
 
 
 VERB = Verb(

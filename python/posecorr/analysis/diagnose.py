@@ -41,7 +41,7 @@ the out-of-fold residuals (position mm, orientation mrad) on that feature alone.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -380,17 +380,36 @@ def _planned(rows: list[dict[str, Any]], kept: Sequence[str], poses: int, thresh
                                                 "lm_statistic": best["lm_statistic"], "df": best["df"]}
 
 
-def _fold_state(table: PoseTable, effects: list[str], names: Sequence[str], splits: list, folds: int,
-                seed: int, warm: list[dict] | None = None) -> _FoldState:
+def _cross_validated(table: PoseTable, effects: Sequence[str], folds: int, seed: int,
+                     fit_kwargs: Callable[[int], dict] | None, fitted: dict[frozenset, Any] | None) -> Any:
+    """The cross-validation of the model of `effects` (`pipeline.cross_validate`), done once
+    per set of effects in `fitted`: the selection asks for the same model again and again (the
+    model of all kept, given each of them in turn; a base model for each candidate), and these
+    refits were most of a diagnosis' time (56 of 89 s on 300 poses of the paper's Experiment
+    II). The first fit of a set stands for it, whichever warm start it had: where the data
+    determine the model they converge alike, and where two of its effects share a direction
+    (a range scale within a strain) one fit of a model is as good as another, and each test
+    given that model now sees the same one."""
     from posecorr.train.pipeline import CorrectionPipeline, cross_validate
     from posecorr.train.splits import KFold
 
+    key = frozenset(effects)
+    if fitted is not None and key in fitted:
+        return fitted[key]
+    cv = cross_validate(lambda: CorrectionPipeline(list(effects)), table, KFold(folds), seed, fit_kwargs=fit_kwargs)
+    if fitted is not None:
+        fitted[key] = cv
+    return cv
+
+
+def _fold_state(table: PoseTable, effects: list[str], names: Sequence[str], splits: list, folds: int,
+                seed: int, warm: list[dict] | None = None, fitted: dict[frozenset, Any] | None = None) -> _FoldState:
     measured, reference, t = table.measured, table.reference, table.time()
     with_rotation = table.has_orientation
     names = [n for n in names if n not in effects]
     if effects:
-        fit_kwargs = (lambda k: {"warm_start": warm[k]}) if warm else None
-        cv = cross_validate(lambda: CorrectionPipeline(effects), table, KFold(folds), seed, fit_kwargs=fit_kwargs)
+        cv = _cross_validated(table, effects, folds, seed, (lambda k: {"warm_start": warm[k]}) if warm else None,
+                              fitted)
         predicted, fold_rmse = cv.predicted, cv.fold_rmse
     else:
         cv, predicted = None, measured
@@ -426,12 +445,11 @@ def failed_parts(p_value: float, fold_gain_min: float, score: float, n_candidate
 
 
 def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int, alpha: float, min_gain: float,
-              folds: int, seed: int) -> dict[str, Any]:
+              folds: int, seed: int, fitted: dict[frozenset, Any] | None = None) -> dict[str, Any]:
     """The score and prediction tests and the held-out gain of adding `name` to the state's
-    model."""
+    model (its cross-validation kept in `fitted`, `_cross_validated`)."""
     from scipy.stats import chi2, norm
 
-    from posecorr.train.pipeline import CorrectionPipeline, cross_validate
     from posecorr.train.splits import KFold
 
     g, info, variance = 0.0, 0.0, state.residual_variance
@@ -444,7 +462,7 @@ def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int,
 
     warm = (lambda k: {"warm_start": state.per_fold[k].physics.params_}) if state.effects else None
     plan = KFold(folds)
-    cv = cross_validate(lambda: CorrectionPipeline(state.effects + [name]), table, plan, seed, fit_kwargs=warm)
+    cv = _cross_validated(table, state.effects + [name], folds, seed, warm, fitted)
     splits = plan.folds(table.n, seed)
     gains = np.array([_whitened_gain(table, held, state.predicted, cv.predicted, state.per_fold[k].physics)
                       for k, (_, held) in enumerate(splits)])
@@ -562,15 +580,18 @@ class _Search:
     min_gain: float
     say: Callable[[str], None]
     base: "_FoldState"
+    # each model's cross-validation, by its set of effects (`_cross_validated`)
+    fitted: dict[frozenset, Any] = field(default_factory=dict)
 
     def evaluate(self, name: str, state: "_FoldState") -> dict[str, Any]:
         """The test of `name` added to the cross-validated model `state`."""
-        return _evaluate(self.table, state, name, len(self.names), self.alpha, self.min_gain, self.folds, self.seed)
+        return _evaluate(self.table, state, name, len(self.names), self.alpha, self.min_gain, self.folds, self.seed,
+                         self.fitted)
 
     def given(self, name: str, others: Sequence[str], warm: list[dict] | None = None) -> dict[str, Any]:
         """The test of `name` added to the model of the effects and `others`."""
         state = _fold_state(self.table, self.effects + list(others), self.names, self.splits, self.folds,
-                            self.seed, warm)
+                            self.seed, warm, self.fitted)
         return self.evaluate(name, state)
 
 
@@ -891,8 +912,8 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     names, undetermined = split_identifiable(table, effects, names)
     splits = KFold(folds).folds(table.n, seed)
     say(f"base model ({', '.join(effects) or 'no effects'}), {folds}-fold cross-validation")
-    state = _fold_state(table, effects, names, splits, folds, seed)
-    search = _Search(table, effects, names, splits, folds, seed, alpha, min_gain, say, state)
+    state = _fold_state(table, effects, names, splits, folds, seed, fitted=(fitted := {}))   # the search's too
+    search = _Search(table, effects, names, splits, folds, seed, alpha, min_gain, say, state, fitted)
     rows, kept, dropped = _select(search)
     features, unplaced = _feature_scan(table, model_corrected if model_corrected is not None else state.predicted,
                                        folds, seed, placed=unregistered is None, tested=list(effects) + names)

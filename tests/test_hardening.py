@@ -1001,7 +1001,7 @@ def test_apply_gives_no_improvement_over_the_offset_of_unregistered_frames(tmp_p
     assert main(["apply", str(MODEL), str(unregistered), "-o", str(tmp_path / "b.csv")]) == 0
     out = capsys.readouterr().out
     assert "Kabsch fit of the positions, same poses (in-sample)" in out
-    assert "the frames are unregistered (raw rmse_pos above 10x a Kabsch fit's)" in out
+    assert "the frames are unregistered (raw rmse_pos above 10x a Kabsch fit's and 100 mm)" in out
 
 
 def _json_of(argv: list[str], capsys) -> str:

@@ -59,11 +59,11 @@ def run(args: argparse.Namespace) -> None:
         note = (f"\nnote: {args.model.name} {fitted_words[fitted]}"
                 + ("; held out is the fit's, as the model states it" if held else "")) if in_sample else ""
         if payload["unregistered"]:
-            from ..metrics import UNREGISTERED_FACTOR
+            from ..metrics import UNREGISTERED_FACTOR, UNREGISTERED_MIN_M
 
             blocks["Kabsch fit of the positions, same poses (in-sample)"] = {"rmse_pos": payload["kabsch_rmse_pos"]}
             note += ("\nnote: the frames are unregistered (raw rmse_pos above "
-                     f"{UNREGISTERED_FACTOR:g}x a Kabsch fit's): raw measures "
+                     f"{UNREGISTERED_FACTOR:g}x a Kabsch fit's and {UNREGISTERED_MIN_M * 1e3:g} mm): raw measures "
                      "their offset, not the tracker, and no improvement over it is given; `posecorr report` sets "
                      "the corrected poses against the best rigid fit")
         return head + "\n" + fmt_table(METRIC_HEADERS, metrics_rows(blocks)) + note

@@ -1207,3 +1207,18 @@ def test_a_model_naming_an_effect_twice_is_refused_naming_the_model(tmp_path) ->
     assert out.returncode == 2 and out.stderr.strip().splitlines() == [
         f"posecorr diagnose: error: {model}: its metadata 'effects' names 'station' more than once, which no fit "
         "writes: the file was edited"], out.stderr
+
+
+def test_diagnose_prints_its_test_one_condition_to_a_line():
+    """The presence test ran to one 900-character line; each condition is a line now, the
+    semicolons inside its parentheses kept, and nothing of the --json wording lost."""
+    from posecorr.analysis.diagnose import PRESENT_TEST
+    from posecorr.cli.diagnose import _test_lines
+
+    test = PRESENT_TEST.format(alpha=0.001, folds=5, gain=0.005, share=0.9)
+    head, *items = _test_lines(test)
+    assert head == "present where all of these hold:" and all(item.startswith("  - ") for item in items)
+    conditions = [item[4:] for item in items]
+    assert "; ".join(conditions) == test
+    assert len(conditions) == 5 and conditions[1] == "held-out whitened error lower in every one of 5 folds"
+    assert all(c.count("(") == c.count(")") for c in conditions)

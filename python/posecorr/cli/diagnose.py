@@ -102,7 +102,7 @@ def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
                         "present"], rows,
                        title="Missing effects and forms (score = mean relative fall of the held-out whitened error; "
                              "cv_rmse: held-out rmse_total, m + rad)"),
-             f"present = {result['test']}",
+             *_test_lines(result["test"]),
              *_feature_lines(result["features"])]
     lines[1:1] = [f"note: {note}" for note in result["notes"]]
     lines += [f"ran away: {c['effect']}'s fits predict the held-out poses {c['cv_rmse_after']:.3g} m + rad off "
@@ -121,6 +121,17 @@ def _text(args: argparse.Namespace, effects: list[str], result: dict) -> str:
         lines.append(f"add: --effects {','.join(result['add_effects'])}")
     lines += _proposal_lines(args, result)
     return "\n".join(lines)
+
+
+def _test_lines(test: str) -> list[str]:
+    """The test's conditions one to a line: in one line it ran to 900 characters."""
+    parts, depth, start = [], 0, 0
+    for at, char in enumerate(test):
+        depth += {"(": 1, ")": -1}.get(char, 0)
+        if depth == 0 and test.startswith("; ", at):
+            parts.append(test[start:at])
+            start = at + 2
+    return ["present where all of these hold:"] + [f"  - {part}" for part in parts + [test[start:]]]
 
 
 def _feature_lines(features: list[dict]) -> list[str]:

@@ -15,7 +15,9 @@ Keys written by the exporter (other keys may be added by callers):
 | `effects` | fitted physical-effect stages in front of the core, with their parameters |
 | `effect_behaviour` | (effects an `--effect-file` defines) the trial poses after each such effect at its fitted values (`posecorr.effects.behaviour`): another file's effect of the same name is told apart |
 | `training_data_digest` | `sha256:<hex>` of the training arrays, see `data_digest` |
+| `training_set_digest` | `sha256:<hex>` of the same rows in any order, see `set_digest` (models exported before it was added state none) |
 | `fitted_table_digest` | (`fit` with a test split) the same digest of the whole table it split |
+| `fitted_table_set_digest` | (`fit` with a test split) that table's rows in any order, see `set_digest` |
 | `test_metrics` | rmse_pos (m), rmse_rot (rad), rmse_total and improvements on the held-out poses; "raw"; "rigid": the best rigid fit scored alike (fit) |
 | `units` | units of the input/output columns and the metrics |
 | `opset` | ONNX opset of the default domain |

@@ -417,6 +417,7 @@ def _set_metadata(model: Any, info: dict[str, Any], measured: Any, reference: An
 
     if measured is not None and "training_data_digest" not in info:
         info["training_data_digest"] = data_digest(measured, reference, t if time_input else None)
+        info.setdefault("training_set_digest", digest.set_digest(measured, reference, t if time_input else None))
     _bounds_metadata(info, measured, t, time_input)
     if measured is not None and coverage.reads_orientation(info.get("representation")):
         info.setdefault(coverage.KEY, coverage.cone(np.asarray(measured, float)[:, 3:7]))

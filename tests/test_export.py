@@ -521,6 +521,13 @@ def test_metadata_round_trip(tmp_path):
     assert info["opset"] == 17 and info["opset_import"] == {"ai.onnx": 17}
     assert info["training_data_digest"] == data_digest(measured, reference)
     assert info["training_data_digest"] != data_digest(measured, reference + 1e-12)
+    # the same rows in any order, and no others
+    from posecorr.controller.digest import set_digest
+
+    shuffle = np.random.default_rng(0).permutation(len(measured))
+    assert info["training_set_digest"] == set_digest(measured[shuffle], reference[shuffle])
+    assert info["training_set_digest"] != set_digest(measured[shuffle], reference[shuffle] + 1e-12)
+    assert info["training_set_digest"] != set_digest(measured[1:], reference[1:])
     assert info["parity"]["passed"] is True and info["parity"]["max_pos_m"] < 1e-5
     assert info["posecorr_version"] and "pose" in info["units"]
     assert info["inputs"] == [{"name": "pose", "dtype": "float32", "shape": ["N", 7]}]

@@ -622,6 +622,36 @@ def test_apply_marks_the_poses_a_model_was_fitted_on_as_in_sample(tmp_path, caps
     assert "in-sample" not in capsys.readouterr().out
 
 
+def test_apply_knows_the_fits_poses_in_another_order(tmp_path, capsys) -> None:
+    """The table a fit saw, sorted (a spreadsheet, `sort`): apply showed plain "corrected", as
+    on poses the model never saw. Its poses are the fit's (the model's training_set_digest):
+    in-sample, said so, the fit's held-out figures beside them; one cell off, they are not."""
+    from posecorr.controller.apply import apply_file
+
+    table = _table(12, seed=3)
+    session, model = tmp_path / "session.csv", tmp_path / "m.onnx"
+    write_table(table, session)
+    assert main(["fit", str(session), "--effects", "station,mount", "--method", "none", "--cv", "loo",
+                 "-o", str(model)]) == 0
+    reordered = tmp_path / "reordered.csv"
+    write_table(table.subset(np.argsort(table.meas_p[:, 0])), reordered)
+    got = apply_file(model, reordered, tmp_path / "r.csv")
+    assert got["in_sample"] is True and got["fitted_on"] == "training-reordered"
+    assert got["held_out"] == apply_file(model, session, tmp_path / "s.csv")["held_out"]
+    capsys.readouterr()
+    assert main(["apply", str(model), str(reordered), "-o", str(tmp_path / "r2.csv")]) == 0
+    shown = capsys.readouterr().out
+    assert "corrected (in-sample)" in shown and "held out (the fit's cross-validation)" in shown
+    assert "was fitted on these poses, in another order (its training_set_digest)" in shown
+
+    moved = table.subset(np.arange(table.n)[::-1])
+    moved.ref_p = moved.ref_p.copy()
+    moved.ref_p[4, 0] += 1e-9
+    write_table(moved, reordered)
+    got = apply_file(model, reordered, tmp_path / "m.csv")
+    assert got["in_sample"] is False and got["fitted_on"] is None and got["held_out"] is None
+
+
 def test_a_time_model_on_its_poses_at_other_times_is_not_in_sample(tmp_path, capsys) -> None:
     """A model with drift takes the times: its poses with t in minutes, not seconds, are other
     data to it. The digest left t out, so apply and report called them the fit's own and its
@@ -679,6 +709,14 @@ def test_apply_names_the_table_a_fit_with_a_test_split_read(tmp_path, capsys) ->
     write_table(table.subset(np.arange(250)), tmp_path / "part.csv")
     got = apply_file(model, tmp_path / "part.csv", tmp_path / "p.csv")
     assert got["fitted_on"] is None and got["in_sample"] is False
+    # the table, and its training rows, in another order: the same poses
+    write_table(table.subset(np.arange(table.n)[::-1]), tmp_path / "reversed.csv")
+    got = apply_file(model, tmp_path / "reversed.csv", tmp_path / "v.csv")
+    assert got["fitted_on"] == "table-reordered" and got["in_sample"] is True and got["held_out"]["source"] == "test"
+    assert main(["apply", str(model), str(tmp_path / "reversed.csv"), "-o", str(tmp_path / "v2.csv")]) == 0
+    assert "the table in another order (its fitted_table_set_digest)" in capsys.readouterr().out
+    write_table(table.subset(np.concatenate([train, val])[::-1]), trained)
+    assert apply_file(model, trained, tmp_path / "t2.csv")["fitted_on"] == "training-reordered"
 
 
 def read_csv_columns(path: Path) -> dict[str, np.ndarray]:

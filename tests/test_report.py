@@ -555,6 +555,133 @@ def test_held_out_where_the_ledger_knows_the_folds_in_sample_otherwise(tmp_path:
     assert rows[0][1] == "in-sample" and html.unescape(rows[1][1]) == scored
 
 
+def _compared(data: Path, model: Path):
+    """The report's `Comparison` of the table at `data` against `model`, with the ledger line
+    beside the table (the Python API under `posecorr report`)."""
+    from posecorr.analysis.comparison import compare
+    from posecorr.analysis.ledger import entry_for_model, read_ledger
+    from posecorr.controller.apply import correct_table
+    from posecorr.controller.onnx_meta import read_info
+    from posecorr.controller.runtime import Corrector
+    from posecorr.data import read_table
+
+    table = read_table(data)
+    corrected = correct_table(Corrector(model), model, table)
+    return table, compare(table, corrected, entry_for_model(read_ledger(data), model), model_info=read_info(model))
+
+
+@pytest.mark.parametrize("cv", ["loo", "5", "none"])
+def test_the_fits_poses_in_another_order_are_held_out_on_its_folds(tmp_path: Path, cv: str) -> None:
+    """The fit's table shuffled in place (a spreadsheet's sort): the report called it "not the
+    fit's table" and lost the held-out figures. Its rows are put back in the fit's order (the
+    ledger's row_ranks): the same folds, the same figures, each pose still the table's own row.
+    A shuffled copy without the ledger, or with an older ledger line, is the fit's poses
+    in-sample, said so."""
+    from posecorr.analysis.ledger import of_table, read_ledger
+    from posecorr.data import write_table
+    from posecorr.simulate import simulate_session
+
+    n = 40 if cv != "none" else 120
+    table = simulate_session(1, n=n, spread="full", position_only=False, unremovable=0.0).table
+    data, model = tmp_path / "s.csv", tmp_path / "m.onnx"
+    write_table(table, data)
+    _cli("fit", str(data), "-o", str(model), "--effects", "station,mount", "--method", "none", "--cv", cv,
+         cwd=tmp_path)
+    original = _cli("report", str(data), "--model", str(model), "-o", "r.html", "--no-diagnosis", cwd=tmp_path)
+    assert original["after"]["held_out"] is True
+    shuffle = np.random.default_rng(7).permutation(n)
+    write_table(table.subset(shuffle), data)
+    shuffled = _cli("report", str(data), "--model", str(model), "-o", "r.html", "--no-diagnosis", cwd=tmp_path)
+    assert shuffled["after"]["held_out"] is True and shuffled["after"]["scored"] == original["after"]["scored"]
+    for key in ("rmse_pos", "rmse_rot", "rmse_total"):
+        assert shuffled["after"][key] == pytest.approx(original["after"][key], rel=1e-9), key
+    for key in ("rmse_pos", "rmse_rot"):
+        assert shuffled["baseline"][key] == pytest.approx(original["baseline"][key], rel=1e-9), key
+    # each figure is of the shuffled table's own row: row `shuffle[i]` of the fit's is its row i
+    read, comparison = _compared(data, model)
+    _, fit_order = _compared_in_order(tmp_path, table, model)
+    np.testing.assert_array_equal(shuffle[comparison.rows], fit_order.rows)
+    assert of_table(read_ledger(data), read)[1] == 0   # the fit is in this table's history
+
+    copy = tmp_path / "copy.csv"
+    write_table(table.subset(shuffle), copy)
+    label = "the fit's poses in another order, in-sample" if cv != "none" else \
+        "the fit's table in another order, mostly in-sample"
+    without = _cli("report", str(copy), "--model", str(model), "-o", "c.html", "--no-diagnosis", cwd=tmp_path)
+    assert without["after"]["held_out"] is False and without["after"]["scored"] == label
+    assert "in another order" in without["after"]["reason"] and "no ledger line" in without["after"]["reason"]
+    lines = [json.loads(line) for line in (tmp_path / "s.csv.ledger.jsonl").read_text().splitlines()]
+    (tmp_path / "copy.csv.ledger.jsonl").write_text(
+        "".join(json.dumps({k: v for k, v in line.items() if k != "row_ranks"}) + "\n" for line in lines))
+    older = _cli("report", str(copy), "--model", str(model), "-o", "c.html", "--no-diagnosis", cwd=tmp_path)
+    assert older["after"]["held_out"] is False and older["after"]["scored"] == label
+    assert "no row_ranks" in older["after"]["reason"]
+
+
+def _compared_in_order(tmp_path: Path, table: PoseTable, model: Path):
+    """`_compared` of `table` as the fit read it, its ledger line beside it."""
+    from posecorr.data import write_table
+
+    data = tmp_path / "in_order.csv"
+    write_table(table, data)
+    (tmp_path / "in_order.csv.ledger.jsonl").write_text((tmp_path / "s.csv.ledger.jsonl").read_text())
+    return _compared(data, model)
+
+
+def test_a_model_without_the_digest_of_any_order_says_only_what_it_knows() -> None:
+    """A model exported before training_set_digest cannot tell its poses reversed from other
+    poses: "not the fit's table" would be false of them, "in its order" is true of both."""
+    from posecorr.analysis.comparison import compare
+    from posecorr.controller.digest import data_digest, set_digest
+    from posecorr.simulate import simulate_session
+
+    table = simulate_session(1, n=20).table
+    reversed_table = table.subset(np.arange(table.n)[::-1])
+    older = {"training_data_digest": data_digest(table.measured, table.reference)}
+    comparison = compare(reversed_table, reversed_table.measured, model_info=older)
+    assert comparison.scored == "not the fit's table in its order" and not comparison.held_out
+    assert "cannot tell them in another order from other poses" in comparison.reason
+    newer = {**older, "training_set_digest": set_digest(table.measured, table.reference)}
+    comparison = compare(reversed_table, reversed_table.measured, model_info=newer)
+    assert comparison.scored == "the fit's poses in another order, in-sample"
+    moved = table.subset(np.arange(table.n))
+    moved.ref_p = moved.ref_p + 1e-9
+    assert compare(moved, moved.measured, model_info=newer).scored == "not the fit's table"
+
+
+def test_identical_rows_are_interchangeable_in_the_fits_order(tmp_path: Path) -> None:
+    """Two rows of the same pose (a robot sent to one pose twice, a row pasted twice): the table
+    shuffled puts either copy in either place, and each row of the table is still scored once,
+    on the fit's folds."""
+    from posecorr.controller.digest import set_digest
+    from posecorr.data import write_table
+    from posecorr.simulate import simulate_session
+
+    n = 40
+    table = simulate_session(1, n=n, spread="full", position_only=False, unremovable=0.0).table
+    twice = np.arange(n)
+    twice[17] = 3
+    table = table.subset(twice)
+    data, model = tmp_path / "s.csv", tmp_path / "m.onnx"
+    write_table(table, data)
+    _cli("fit", str(data), "-o", str(model), "--effects", "station,mount", "--method", "none", "--cv", "5",
+         cwd=tmp_path)
+    first, original = _compared(data, model)
+    assert original.held_out is True
+    # the shuffle puts the second copy before the first
+    shuffle = np.random.default_rng(3).permutation(n)
+    assert list(shuffle).index(17) < list(shuffle).index(3)
+    swapped = table.subset(shuffle)
+    assert set_digest(swapped.measured, swapped.reference) == set_digest(table.measured, table.reference)
+    write_table(swapped, data)
+    read, comparison = _compared(data, model)
+    assert comparison.held_out is True and comparison.scored == original.scored
+    assert sorted(comparison.rows) == list(range(n))   # no row taken twice, none left out
+    np.testing.assert_array_equal(read.measured[comparison.rows], first.measured[original.rows])
+    for key in ("rmse_pos", "rmse_rot", "rmse_total"):
+        assert comparison.after_metrics[key] == pytest.approx(original.after_metrics[key], rel=1e-9), key
+
+
 def test_report_json_carries_the_held_parameters_as_fit_does(tmp_path: Path) -> None:
     """The page showed the parameters a fit held (not determined) and fit --json and info
     --json carried them as `fixed`; report --json had no such key."""

@@ -27,20 +27,21 @@ class FitFiles:
 def training_fit(report: Any, table: Any) -> Any:
     """The fitted estimator with the poses it was trained on (for parity and `--save`), its
     held-out poses and the figures its file states."""
-    from .controller.digest import data_digest
+    from .controller.digest import data_digest, set_digest
     from .saved import SavedFit
 
     rows = report.train_index
     times = table.time()
-    split = report.test_index is not None
+    # the whole table a fit with a test split read, in its order and in any
+    split = ((table.measured, table.reference, times if getattr(report.model, "needs_time", False) else None)
+             if report.test_index is not None else None)
     return SavedFit(report.model, table.measured[rows], table.reference[rows],
                     None if times is None else times[rows], heldout=heldout_poses(report, table),
                     test_metrics={report.heldout_kind: report.heldout, "raw": report.raw,
                                   # the floor: the best rigid fit, scored alike
                                   "rigid": named_block(report.baseline_name, report.baseline)},
-                    table_digest=data_digest(table.measured, table.reference,
-                                             times if getattr(report.model, "needs_time", False) else None)
-                    if split else None)
+                    table_digest=data_digest(*split) if split else None,
+                    table_set_digest=set_digest(*split) if split else None)
 
 
 def heldout_poses(report: Any, table: Any) -> tuple | None:
@@ -119,12 +120,13 @@ def ledger_fit_entry(report: Any, table: Any, output: str | Path, effects: list[
                      spec: Any = None, seed: int | None = None) -> dict[str, Any]:
     """The ledger line of a fit: what it scored (raw, the held-out block, the best rigid fit on
     the same poses) and what a report needs to tell the model file apart and to rebuild the
-    held-out predictions: the file's SHA-256, the plan, the seed, the table's size, the spec
+    held-out predictions: the file's SHA-256, the plan, the seed, the table's size and
+    digests, its rows' ranks (the table reordered since is put back in this order), the spec
     and the candidate chosen (a rigid variant when the fit fell back)."""
     import dataclasses
     import hashlib
 
-    from .analysis.ledger import ledger_table_digest
+    from .analysis.ledger import ledger_set_digest, ledger_table_digest, row_ranks
 
     info = report.model.export_info()
     entry: dict[str, Any] = {"model": str(output), "effects": effects, "method": info.get("method"),
@@ -133,6 +135,8 @@ def ledger_fit_entry(report: Any, table: Any, output: str | Path, effects: list[
                              "baseline": named_block(report.baseline_name, report.baseline),
                              "model_sha256": hashlib.sha256(model_bytes).hexdigest() if model_bytes else None,
                              "n": int(table.n), "table_digest": ledger_table_digest(table),
+                             # the same table in another order of rows, and the way back to this one
+                             "table_set_digest": ledger_set_digest(table), "row_ranks": row_ranks(table),
                              "plan": str(report.plan), "chosen": report.chosen,
                              "fell_back": bool(report.fell_back), "rigid": report.model.rigid or None}
     if report.asked is not None:

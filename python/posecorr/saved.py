@@ -48,14 +48,16 @@ class SavedFit:
     t: np.ndarray | None = None
     heldout: tuple | None = None
     test_metrics: dict[str, Any] | None = None
-    # The digest of the whole table a fit with a test split read (its training rows are a
-    # part): `apply` on that table says whose poses they are.
+    # The digests of the whole table a fit with a test split read (its training rows are a
+    # part), in its order and in any: `apply` on that table says whose poses they are.
     table_digest: str | None = None
+    table_set_digest: str | None = None
 
     def export_arguments(self) -> dict[str, Any]:
         """`to_onnx`'s keyword arguments for the file the fit wrote."""
         stated = {} if self.test_metrics is None else {"test_metrics": self.test_metrics}
-        table = {} if self.table_digest is None else {"fitted_table_digest": self.table_digest}
+        table = {key: value for key, value in (("fitted_table_digest", self.table_digest),
+                                               ("fitted_table_set_digest", self.table_set_digest)) if value is not None}
         return {"measured": self.measured, "reference": self.reference, "t": self.t, "heldout": self.heldout,
                 **stated, **table}
 

@@ -16,7 +16,11 @@ the candidate chosen inside its training rows, `pipeline.nested_out_of_fold`), a
 scored them. Otherwise the model file on every pose, in-sample, beside the rigid fit on every pose;
 where the model's digests (`training_data_digest`, `fitted_table_digest`) say the table is not
 the one the fit read (a session recorded again into the same file, rows edited), no ledger
-line is rebuilt on it, and the after is the model file on poses it was not fitted on.
+line is rebuilt on it, and the after is the model file on poses it was not fitted on. A table
+of the fit's poses in another order (sorted, reversed: the digests of any order,
+`training_set_digest`, `fitted_table_set_digest`) is the fit's: the folds are by row, so the
+ledger line's `row_ranks` put its rows back in the fit's order (`ledger.fit_order`), and
+without them it is in-sample, said so.
 """
 from __future__ import annotations
 
@@ -100,7 +104,12 @@ def rigid_label(candidate_name: str) -> str:
 
 # The after's label where it is not held out, by what the model's digests say of the table.
 SCORED_ON = {"training": "in-sample", None: "in-sample", "table": "the fit's table, mostly in-sample",
+             "training-reordered": "the fit's poses in another order, in-sample",
+             "table-reordered": "the fit's table in another order, mostly in-sample",
              False: "not the fit's table"}
+# A model written before the digests of any order (`training_set_digest`) cannot tell its poses
+# in another order from other poses.
+NOT_IN_ITS_ORDER = "not the fit's table in its order"
 
 
 def compare(table: PoseTable, corrected: np.ndarray, entry: Mapping[str, Any] | None = None,
@@ -108,23 +117,21 @@ def compare(table: PoseTable, corrected: np.ndarray, entry: Mapping[str, Any] | 
     """The report's before and after for `table` and the model's (N, 7) `corrected` poses;
     `entry`: the ledger record of the fit that wrote the model (`ledger.entry_for_model`);
     `model_info`: its metadata, whose digests say whether `table` is the one it was fitted on."""
-    from ..controller.digest import fitted_on
+    from ..controller.digest import FITTED_SET_DIGESTS, fitted_on
 
     say = say or (lambda message: None)
     with_rot = table.has_orientation
-    fitted = fitted_on(table.measured, table.reference, model_info or {}, table.time())
-    if fitted is False:
-        held, reason = None, ("these poses are not those the model was fitted on (their digest is neither the "
-                              "model's training_data_digest nor its fitted_table_digest): the after is the model "
-                              "file on them, and what the ledger recorded was scored on the fit's own table")
-    else:
-        held, reason = _held_out(table, entry, say)
+    model_info = model_info or {}
+    fitted = fitted_on(table.measured, table.reference, model_info, table.time())
+    any_order = any(model_info.get(key) for key in FITTED_SET_DIGESTS.values())
+    held, reason = _rebuilt(table, entry, fitted, any_order, say)
     if held is not None:
         rows, after, rigid_name, rigid_pred, scored = held
         after = corrected[rows] if after is None else after
     else:
         rows = np.arange(table.n)
-        after, scored = np.asarray(corrected, float), SCORED_ON[fitted]
+        after = np.asarray(corrected, float)
+        scored = SCORED_ON[fitted] if fitted is not False or any_order else NOT_IN_ITS_ORDER
         recorded = (entry or {}).get("baseline")
         wanted = block_name(recorded)
         rigid_name, rigid_pred = rigid_in_sample(table, wanted)
@@ -137,6 +144,48 @@ def compare(table: PoseTable, corrected: np.ndarray, entry: Mapping[str, Any] | 
     return Comparison(rows, reference, rigid_pred if unregistered else measured, after, scored, held is not None,
                       unregistered, raw, rigid, rigid_name, pose_metrics(reference, after, with_rot),
                       reason, ledger_block(entry)[1] if entry else None)
+
+
+def _rebuilt(table: PoseTable, entry: Mapping[str, Any] | None, fitted: str | bool | None, any_order: bool,
+             say: Callable[[str], None]) -> tuple["Rebuilt | None", str]:
+    """`_held_out` on `table` as the fit read it, its rows those of `table`; (None, why not)
+    where the table is not the fit's (`fitted`: `digest.fitted_on`'s verdict; `any_order`:
+    the model states the digests of its poses in any order), or is in another order that the
+    ledger line cannot undo: the fit's folds are by row."""
+    from ..controller.digest import FITTED_SET_DIGESTS, REORDERED
+    from .ledger import fit_order
+
+    if fitted is False:
+        order_words = ("in any order of the rows" if any_order else
+                       "in this order of the rows; the model, written before posecorr stated a digest of its poses "
+                       "in any order, cannot tell them in another order from other poses")
+        return None, ("these poses are not those the model was fitted on (their digest is neither the model's "
+                      f"training_data_digest nor its fitted_table_digest, {order_words}): the after is the model "
+                      "file on them, and what the ledger recorded was scored on the fit's own table")
+    if not (isinstance(fitted, str) and fitted.endswith(REORDERED)):
+        return _held_out(table, entry, say)
+    order = None if entry is None else fit_order(entry, table)
+    if order is None:
+        return None, (f"these are the poses the model was fitted on, in another order (the model's "
+                      f"{FITTED_SET_DIGESTS[fitted.removesuffix(REORDERED)]}), and the fit's folds are by row: "
+                      + _no_fit_order(table, entry))
+    say("the table holds the fit's poses in another order: its rows are taken in the fit's order for its folds")
+    held, reason = _held_out(table.subset(order), entry, say)
+    if held is None:
+        return None, reason
+    rows, *rest = held
+    return (order[rows], *rest), ""
+
+
+def _no_fit_order(table: PoseTable, entry: Mapping[str, Any] | None) -> str:
+    """Why `ledger.fit_order` cannot put `table` back in the order of the fit `entry` records."""
+    if entry is None:
+        return "no ledger line for this model file (fits by `posecorr fit` are recorded beside the data)"
+    if "row_ranks" not in entry:
+        return "its ledger line has no row_ranks to put them back in that order (written by an older posecorr)"
+    if entry.get("n") != table.n:
+        return f"its ledger line is of a fit on a table of {entry.get('n')} poses, this one has {table.n}"
+    return "its ledger line's row_ranks do not give the fit's table from these rows"
 
 
 def rigid_in_sample(table: PoseTable, wanted: str | None) -> tuple[str, np.ndarray]:

@@ -7,11 +7,14 @@ rmse_pos, rmse_rot, rmse_total and improvements, and `baseline`: the best rigid 
 same poses ({"name": its candidate name, the same figures}; "model" in ledgers written
 before). What lets a report rebuild the held-out predictions (`fitting.ledger_fit_entry`):
 model_sha256 (the model file's), n (the table's poses), table_digest (`ledger_table_digest`:
-the report's history keeps the lines of the table it reads), plan ("none", "loo" or a number of
-folds), seed, spec (the requested `ModelSpec`'s fields), chosen (the candidate returned),
-fell_back, rigid (its variant, or null), and where it fell back `asked`: the model asked for,
-scored ({"name", "rmse_total", "on": "held-out", "validation" or "test"}, and "why" where it
-was not the score that sent it back: its file failed the export's parity check).
+the report's history keeps the lines of the table it reads), table_set_digest (the same in any
+order of its rows, `ledger_set_digest`), row_ranks (`row_ranks`: the table sorted or reversed
+since is put back in the fit's order, whose folds are by row: `fit_order`), plan ("none",
+"loo" or a number of folds), seed, spec (the requested `ModelSpec`'s fields), chosen (the
+candidate returned), fell_back, rigid (its variant, or null), and where it fell back `asked`:
+the model asked for, scored ({"name", "rmse_total", "on": "held-out", "validation" or
+"test"}, and "why" where it was not the score that sent it back: its file failed the
+export's parity check).
 
 Appends are whole lines (`safeio.append_line`): a line torn by an interrupted append is
 moved to DATA.csv.ledger.jsonl.corrupt at the next append; reading skips (and names) any
@@ -25,6 +28,8 @@ import json
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Mapping, Sequence
+
+import numpy as np
 
 
 def ledger_path(data_path: str | Path) -> Path:
@@ -101,18 +106,82 @@ def entry_for_model(ledger: Sequence[Mapping[str, Any]], model_path: str | Path)
     return next((r for r in reversed(ledger) if r.get("model_sha256") == digest), None)
 
 
+def _table_arrays(table: Any) -> tuple[Any, Any, Any]:
+    """What the ledger's digests read of a table: its poses and times."""
+    return table.measured, table.reference, table.time()
+
+
 def ledger_table_digest(table: Any) -> str:
     """The digest a ledger line keeps of the table its fit read (`digest.data_digest` of its
     poses and times): a file replaced under the same name has another."""
     from ..controller.digest import data_digest
 
-    return data_digest(table.measured, table.reference, table.time())
+    return data_digest(*_table_arrays(table))
+
+
+def ledger_set_digest(table: Any) -> str:
+    """`table_set_digest`: the same poses and times in any order (`digest.set_digest`): the
+    fit's table sorted or reversed in place is still its table."""
+    from ..controller.digest import set_digest
+
+    return set_digest(*_table_arrays(table))
+
+
+def row_ranks(table: Any) -> str:
+    """`row_ranks`: each row's place in `digest.row_order`, as base64 of little-endian unsigned
+    integers (2 bytes each, 4 from 65,537 rows): 8 characters for every 3 rows (4,336 for
+    1,626), half what the numbers take as a JSON list."""
+    import base64
+
+    from ..controller.digest import row_order
+
+    ranks = np.empty(table.n, dtype="<u2" if table.n <= 1 << 16 else "<u4")
+    ranks[row_order(*_table_arrays(table))] = np.arange(table.n)
+    return base64.b64encode(ranks.tobytes()).decode("ascii")
+
+
+def _decoded_ranks(text: Any, n: int) -> np.ndarray | None:
+    """The ranks `row_ranks` wrote for a table of n rows, or None where `text` is not them."""
+    import base64
+    import binascii
+
+    try:
+        raw = base64.b64decode(text, validate=True)
+    except (binascii.Error, TypeError, ValueError):
+        return None
+    width = len(raw) // n if n else 0
+    if width not in (2, 4) or len(raw) != width * n:
+        return None
+    ranks = np.frombuffer(raw, dtype=f"<u{width}").astype(np.intp)
+    return ranks if np.array_equal(np.sort(ranks), np.arange(n)) else None
+
+
+def fit_order(record: Mapping[str, Any], table: Any) -> np.ndarray | None:
+    """`table`'s rows in the order of the fit whose ledger line is `record`, where `table` holds
+    that fit's poses in another order: `table.subset(order)` is the table the fit read
+    (checked against the line's `table_digest`). None where the line has no `row_ranks` (an
+    older posecorr) or they do not give that table. Identical rows are interchangeable: either
+    will do."""
+    from ..controller.digest import row_order
+
+    ranks = _decoded_ranks(record.get("row_ranks"), table.n)
+    if ranks is None:
+        return None
+    order = np.asarray(row_order(*_table_arrays(table)), dtype=np.intp)[ranks]
+    return order if ledger_table_digest(table.subset(order)) == record.get("table_digest") else None
 
 
 def of_table(ledger: Sequence[Mapping[str, Any]], table: Any) -> tuple[list[Mapping[str, Any]], int]:
-    """The records of fits on `table` (by `table_digest`; a record older than the digest, by
-    its number of poses), and how many are of another table under the same name: a session
-    simulated over another, a ledger copied beside another table."""
-    digest = ledger_table_digest(table)
-    mine = [r for r in ledger if (r["table_digest"] == digest if "table_digest" in r else r.get("n") == table.n)]
-    return mine, len(ledger) - len(mine)
+    """The records of fits on `table`, in any order of its rows (by `table_digest` or
+    `table_set_digest`; a record older than the digest, by its number of poses), and how many
+    are of another table under the same name: a session simulated over another, a ledger
+    copied beside another table."""
+    ordered, unordered = ledger_table_digest(table), ledger_set_digest(table)
+
+    def mine(record: Mapping[str, Any]) -> bool:
+        if "table_digest" not in record:
+            return record.get("n") == table.n
+        return record["table_digest"] == ordered or record.get("table_set_digest") == unordered
+
+    kept = [r for r in ledger if mine(r)]
+    return kept, len(ledger) - len(kept)

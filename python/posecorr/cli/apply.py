@@ -46,7 +46,9 @@ def run(args: argparse.Namespace) -> None:
         if payload["raw"] is None:
             return head + "\nno ref_* columns: no metrics"
         in_sample, held, fitted = payload["in_sample"], payload["held_out"], payload["fitted_on"]
-        label = {"training": "corrected (in-sample)", "table": "corrected (the fit's table)"}.get(fitted, "corrected")
+        label = {"training": "corrected (in-sample)", "table": "corrected (the fit's table)",
+                 "training-reordered": "corrected (in-sample)",
+                 "table-reordered": "corrected (the fit's table)"}.get(fitted, "corrected")
         blocks = {"raw": payload["raw"], label: payload["corrected"]}
         if held is not None:
             blocks[f"held out ({HELD_OUT_SOURCES[held['source']]})"] = held
@@ -55,7 +57,11 @@ def run(args: argparse.Namespace) -> None:
         fitted_words = {
             "training": "was fitted on these poses (its training_data_digest): corrected is in-sample",
             "table": ("was fitted on this table's training rows, its test split held out (its fitted_table_digest): "
-                      "corrected is mostly in-sample")}
+                      "corrected is mostly in-sample"),
+            "training-reordered": ("was fitted on these poses, in another order (its training_set_digest): corrected "
+                                   "is in-sample"),
+            "table-reordered": ("was fitted on this table's training rows, its test split held out, the table in "
+                                "another order (its fitted_table_set_digest): corrected is mostly in-sample")}
         note = (f"\nnote: {args.model.name} {fitted_words[fitted]}"
                 + ("; held out is the fit's, as the model states it" if held else "")) if in_sample else ""
         if payload["unregistered"]:

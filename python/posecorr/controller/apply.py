@@ -7,8 +7,8 @@ corrected pose as ``corr_x, corr_y, corr_z, corr_qw, corr_qx, corr_qy, corr_qz``
 demonstration recording) is corrected the same way; metrics (raw and corrected RMSEs,
 improvement over raw unless the frames are unregistered, `_Kabsch`) are computed only when
 the table has references, and where the table is the one the model was fitted on (its
-`training_data_digest`), they are marked in-sample and the fit's held-out figures from the
-model's metadata go beside them. The output is written
+`training_data_digest`, or its rows in another order: `training_set_digest`), they are marked
+in-sample and the fit's held-out figures from the model's metadata go beside them. The output is written
 through `safeio.atomic_output`: an interrupted apply leaves the previous file.
 """
 from __future__ import annotations
@@ -27,7 +27,7 @@ from ..metrics import METRIC_KEYS, block_name, frames_unregistered, metric_block
 from ..registration import rotation_of_covariance
 from ..safeio import atomic_output, check_output
 from .checks import COLUMNS, QUATERNION, TIME_INPUT
-from .digest import FITTED_DIGESTS, fitted_on
+from .digest import FITTED_DIGESTS, FITTED_SET_DIGESTS, fitted_on
 from .onnx_meta import decode_value, stated_metrics, stated_rigid
 from .runtime import Corrector, PoseCorrError
 
@@ -186,10 +186,12 @@ FITTED_ON_MAX_ROWS = 100_000
 class _FittedOn:
     """Whether a table's poses are the ones the model was fitted on: the digest of its
     measured and reference arrays (as a fit reads them) against `training_data_digest`, or,
-    for a fit with a test split, against `fitted_table_digest`, the whole table it split."""
+    for a fit with a test split, against `fitted_table_digest`, the whole table it split; in
+    any order of the rows, against their `training_set_digest` and `fitted_table_set_digest`."""
 
     def __init__(self, metadata: dict[str, str]):
-        self.digests = {key: decode_value(metadata.get(key, "null")) for key in FITTED_DIGESTS.values()}
+        self.digests = {key: decode_value(metadata.get(key, "null"))
+                        for key in (*FITTED_DIGESTS.values(), *FITTED_SET_DIGESTS.values())}
         self.metrics = decode_value(metadata.get("test_metrics", "null"))
         self.blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] | None = (
             [] if any(self.digests.values()) else None)
@@ -206,8 +208,9 @@ class _FittedOn:
 
     def verdict(self) -> str | bool | None:
         """"training": fitted on these poses; "table": these are the table the fit split (its
-        training rows and the test split it held out); False: neither; None: not known (no
-        digest in the model, or too many rows to keep)."""
+        training rows and the test split it held out); either with "-reordered" where they are
+        those poses in another order; False: neither; None: not known (no digest in the model,
+        or too many rows to keep)."""
         if not self.blocks:
             return None
         measured = np.concatenate([m for m, _, _ in self.blocks])

@@ -326,8 +326,12 @@ def test_fit_prints_the_metrics_of_the_file_it_writes(tmp_path) -> None:
     from posecorr.controller import read_info
 
     assert posecorr("export", str(tmp_path / "m.pkl"), "-o", str(tmp_path / "e.onnx"), cwd=tmp_path).returncode == 0
-    stated = [read_info(p)["test_metrics"] for p in (model, tmp_path / "e.onnx")]
+    infos = [read_info(p) for p in (model, tmp_path / "e.onnx")]
+    stated = [info["test_metrics"] for info in infos]
     assert stated[0] == stated[1] and stated[0]["test"]["rmse_pos"] == pytest.approx(printed["rmse_pos"], rel=1e-12)
+    # and the digests of the whole table it split, by which apply and report know that table
+    for key in ("fitted_table_digest", "fitted_table_set_digest", "training_data_digest", "training_set_digest"):
+        assert infos[0].get(key) and infos[0].get(key) == infos[1].get(key), key
     # the paper's frames are registered: raw is a few cm, and the ratio stays against it
     assert fitted["frames_unregistered"] is False
     _, _, test = split_indices(table.n, 0)

@@ -103,7 +103,8 @@ def save(path: str | Path, fit: SavedFit, write: Callable[[Path, bytes], None] |
     payload = pickle.dumps({"estimator": fit.estimator, "measured": np.asarray(fit.measured),
                             "reference": np.asarray(fit.reference),
                             "t": None if fit.t is None else np.asarray(fit.t),
-                            "heldout": fit.heldout, "test_metrics": fit.test_metrics})
+                            "heldout": fit.heldout, "test_metrics": fit.test_metrics,
+                            "table_digest": fit.table_digest, "table_set_digest": fit.table_set_digest})
     write(Path(path), MAGIC + _signature(_key(create=True), payload) + b"\n" + payload)
 
 
@@ -126,4 +127,4 @@ def load(path: str | Path) -> SavedFit:
     if not (isinstance(data, dict) and hasattr(data.get("estimator"), "forward")):
         raise SavedFileError(f"{path}: not a posecorr estimator (no forward method)")
     return SavedFit(data["estimator"], data["measured"], data["reference"], data.get("t"), data.get("heldout"),
-                    data.get("test_metrics"))
+                    data.get("test_metrics"), data.get("table_digest"), data.get("table_set_digest"))

@@ -144,6 +144,21 @@ def test_fitted_models_pickle_round_trip(kind: str) -> None:
             clone.shrunk(1.0)
 
 
+def test_forget_free_fit_keeps_predictions_and_standard_errors() -> None:
+    """The diagnosis keeps every cross-validation it runs; its models drop the free fit's
+    Jacobian (a third of its memory on 300 poses), and must predict and state errors as before."""
+    table = simulate_session(4).table
+    fitted = [PhysicsModel(("station", "mount", "sweep"), with_rotation=table.has_orientation)
+              .fit(table.measured, table.reference) for _ in range(2)]
+    light = fitted[1].forget_free_fit()
+    assert np.array_equal(light.predict(table.measured), fitted[0].predict(table.measured))
+    for name, errors in fitted[0].std_errors_.items():
+        np.testing.assert_array_equal(light.std_errors_[name], errors)
+    with pytest.raises(ValueError, match="nor one after forget_free_fit"):
+        light.shrunk(1.0)
+    assert fitted[0].shrunk(1.0).params_    # the other still shrinks
+
+
 def test_a_gross_outlier_is_refused_with_its_row() -> None:
     """Issue 14: a row 100 m off (a unit slip) is named, not fitted; real per-pose errors of
     60-100 mm (the corpus' unremovable sessions) are data and pass."""

@@ -458,7 +458,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
             raise ValueError("shrunk starts from a free fit (prior_strength 0)")
         if "_free" not in self.__dict__:
             raise ValueError("shrunk needs the fit's data, which a pickled or saved model does not "
-                             "keep: fit it again")
+                             "keep, nor one after forget_free_fit: fit it again")
         model = object.__new__(type(self))     # not copy.copy: __getstate__ resolves std errors and drops the data
         model.__dict__.update(self.__dict__)
         model.prior_strength = prior_strength
@@ -469,6 +469,15 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         model.params_ = model._unflatten(theta)
         model._std_source = (theta,) + self._data
         return model
+
+    def forget_free_fit(self) -> "PhysicsModel":
+        """Drops what only `shrunk` reads: the free fit's Jacobian (rows x parameters) and its
+        data. A model kept for its predictions, parameters and standard errors, many at once
+        (the diagnosis keeps every cross-validation it runs), need not hold them: on 300 poses
+        of the paper's Experiment II they were a third of the diagnosis' memory."""
+        for kept in ("_free", "_data"):
+            self.__dict__.pop(kept, None)
+        return self
 
     def _identity_theta(self) -> np.ndarray:
         return np.concatenate([e.identity_theta() for e in self._chosen]) if self._chosen else np.zeros(0)

@@ -398,6 +398,8 @@ def _cross_validated(table: PoseTable, effects: Sequence[str], folds: int, seed:
         return fitted[key]
     cv = cross_validate(lambda: CorrectionPipeline(list(effects)), table, KFold(folds), seed, fit_kwargs=fit_kwargs)
     if fitted is not None:
+        for model in cv.fitted:     # kept for the whole diagnosis: without what only a prior's shrink reads
+            model.physics_.forget_free_fit()
         fitted[key] = cv
     return cv
 

@@ -70,6 +70,11 @@ def single_threaded() -> Iterator[None]:
             torch.set_num_threads(before)
 
 
+# What only `PhysicsModel.shrunk` reads (the free fit's solution, Jacobian and data): neither
+# pickled nor kept after `forget_free_fit`.
+_FREE_FIT = ("_free", "_data")
+
+
 class PhysicsModel(PoseRegressorMixin, BaseEstimator):
     """Fit the named effects (station, mount, sweep, ...) and correct by their inverse.
 
@@ -475,7 +480,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         data. A model kept for its predictions, parameters and standard errors, many at once
         (the diagnosis keeps every cross-validation it runs), need not hold them: on 300 poses
         of the paper's Experiment II they were a third of the diagnosis' memory."""
-        for kept in ("_free", "_data"):
+        for kept in _FREE_FIT:
             self.__dict__.pop(kept, None)
         return self
 
@@ -580,7 +585,7 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         if hasattr(self, "params_"):
             self.std_errors_  # noqa: B018  (resolve before pickling: the data is not kept)
         state = dict(super().__getstate__())   # object's is the live __dict__ itself
-        for kept in ("_free", "_data"):
+        for kept in _FREE_FIT:
             state.pop(kept, None)
         return state
 

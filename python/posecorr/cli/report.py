@@ -83,8 +83,8 @@ def run(args: argparse.Namespace) -> None:
                   + (f"\n  diagnosis: {takeaway(diagnosis, model_effects(info, diagnosis))}" if diagnosis else "")))
 
 
-# From this many poses the diagnosis takes half a minute or more: 300 of the paper's Experiment
-# II took 31 s, 600 took 132 s (docs/guides/loop.md), against 3 s for a 50-pose session.
+# From this many poses the diagnosis takes about half a minute or more: 300 of the paper's
+# Experiment II took 22 s, 600 took 103 s (docs/guides/loop.md), against 3 s for a 50-pose session.
 LONG_DIAGNOSIS_POSES = 300
 
 

@@ -14,6 +14,7 @@ Keys written by the exporter (other keys may be added by callers):
 | `activation`, `trainer` | MLP activation and training algorithm (null for PMC) |
 | `effects` | fitted physical-effect stages in front of the core, with their parameters |
 | `effect_behaviour` | (effects an `--effect-file` defines) the trial poses after each such effect at its fitted values (`posecorr.effects.behaviour`): another file's effect of the same name is told apart |
+| `station_pose` | (a physics stage fitted with `--station-pose`) `{"stated": the option's text, "reference": [x, y, z, qw, qx, qy, qz]}`: where the base station was taken to stand, in the reference frame; `report` and `diagnose` take it as their default |
 | `training_data_digest` | `sha256:<hex>` of the training arrays, see `data_digest` |
 | `training_set_digest` | `sha256:<hex>` of the same rows in any order, see `set_digest` (models exported before it was added state none) |
 | `fitted_table_digest` | (`fit` with a test split) the same digest of the whole table it split |

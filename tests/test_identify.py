@@ -244,7 +244,7 @@ def test_pipeline_and_physics_are_scikit_learn_estimators() -> None:
         CorrectionPipeline(("station",), with_rotation=False).fit(table.measured, table.reference).representation
     assert clone(PhysicsModel(("station", "mount"), sigma_p=1e-3)).get_params() == \
         {"effects": ("station", "mount"), "sigma_p": 1e-3, "sigma_r": None, "max_nfev": 200, "with_rotation": True,
-             "prior_strength": 0.0}
+             "prior_strength": 0.0, "station_pose": None}
     assert isinstance(clone(RigidModel()), RigidModel)
 
 

@@ -33,8 +33,9 @@ from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
-from posecorr.geometry import nearest_rotation
+from posecorr.geometry import nearest_rotation, parse_station_pose
 from posecorr.registration import umeyama
+from posecorr.rotations import quat_to_matrix
 
 LIMIT_SCALES = 10.0            # determined: std error < LIMIT_SCALES * Param.scale
 # A form's scale is the unit of its coefficients, not the size of the error it stands for (a
@@ -227,6 +228,18 @@ def rigid_registration(measured_p: np.ndarray, measured_R: np.ndarray, reference
     residual = reference_p - (fitted @ R.T + t)
     sigma_p = float(np.sqrt(np.sum(residual ** 2) / max(3 * n - 6 - free.shape[1], 1)))
     return RigidRegistration(R, t, lever, held, mount, sigma_p)
+
+
+def station_in_reference(station_pose: str | None, measured: np.ndarray, reference: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """(R_S, t_S) in the reference frame of the station stated by `station_pose`
+    (`geometry.parse_station_pose`); one stated in the tracker's own frame is placed there by
+    the closed-form rigid fit of these (N, 7) poses."""
+    stated = parse_station_pose(station_pose)
+    if not stated.in_tracker_frame:
+        return stated.in_reference(None)
+    rigid = rigid_registration(measured[:, :3], quat_to_matrix(measured[:, 3:7]), reference[:, :3])
+    return stated.in_reference((rigid.R, rigid.t))
 
 
 def _lever_directions(measured_p: np.ndarray, reference_p: np.ndarray, R: np.ndarray,

@@ -39,7 +39,8 @@ from posecorr.metrics import pose_metrics
 
 from .base import PoseRegressorMixin, check_pair, check_parameters, check_poses, check_times, keeps_last_fit
 from .identify import (FORM_LIMIT_SCALES, LIMIT_SCALES, Block, RigidRegistration, chordal_mean, describe_spread,
-                       determined_directions, direction_label, poses_lack, rigid_registration)
+                       determined_directions, direction_label, poses_lack, rigid_registration,
+                       station_in_reference)
 from .splits import MIN_FIT_POSES
 
 DEFAULT_SIGMA_P = 3e-4   # m, docs/design.md default noise
@@ -82,7 +83,9 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
     `sigma_p` (m) and `sigma_r` (rad) weight the position and orientation residuals
     (None: estimated); `max_nfev` bounds the solver's evaluations; `with_rotation` False for a
     position-only table (`PoseTable.has_orientation`), whose reference orientation is the
-    measured one (`PoseTable.reference`) and carries no information.
+    measured one (`PoseTable.reference`) and carries no information; `station_pose` where the
+    base station stood (`geometry.parse_station_pose`: None for the paper's, eq. 23), about
+    which sweep, range scale and incidence bend.
     Fitted: `params_` {effect: theta}, `std_errors_` {effect: std of theta, NaN where not
     determined}, `sigma_p_`, `sigma_r_`, `ctx_` (frames used), `with_rotation_`, `cost_`,
     `spread_` (`identify.Spread`), `basis_` (the determined directions, scaled units;
@@ -97,13 +100,14 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
 
     def __init__(self, effects: Sequence[str] = ("station", "mount"), sigma_p: float | None = None,
                  sigma_r: float | None = None, max_nfev: int = 200, with_rotation: bool = True,
-                 prior_strength: float = 0.0) -> None:
+                 prior_strength: float = 0.0, station_pose: str | None = None) -> None:
         self.effects = effects
         self.sigma_p = sigma_p
         self.sigma_r = sigma_r
         self.max_nfev = max_nfev
         self.with_rotation = with_rotation
         self.prior_strength = prior_strength
+        self.station_pose = station_pose
 
     # --- fitting ----------------------------------------------------------------------
     @keeps_last_fit
@@ -177,8 +181,8 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         if len(measured) < MIN_FIT_POSES:
             raise ValueError(f"fitting {', '.join(e.name for e in chosen) or 'a registration'} needs at least "
                              f"{MIN_FIT_POSES} poses, got {len(measured)}")
-        base = EffectContext.default()
-        self.ctx_ = EffectContext(base.R_S, base.t_S, reference[:, :3].mean(axis=0), t=t)
+        R_S, t_S = station_in_reference(self.station_pose, measured, reference)
+        self.ctx_ = EffectContext(R_S, t_S, reference[:, :3].mean(axis=0), t=t)
         check_parameters(self, {}, flags=("with_rotation",))
         self.with_rotation_ = bool(self.with_rotation)
         self._chosen = chosen
@@ -559,7 +563,8 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         self._check_fitted()
         measured, reference = check_pair(measured, reference)
         t = check_times(t, len(measured))
-        probe = PhysicsModel(tuple(self.params_) + tuple(extra), self.sigma_p_, self.sigma_r_)
+        probe = PhysicsModel(tuple(self.params_) + tuple(extra), self.sigma_p_, self.sigma_r_,
+                             station_pose=self.station_pose)
         probe._chosen = sorted_effects(probe.effects)
         probe.ctx_ = EffectContext(self.ctx_.R_S, self.ctx_.t_S, self.ctx_.c, t=t)
         probe.with_rotation_ = self.with_rotation_
@@ -629,6 +634,13 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
         info = {"method": "physics", "representation": "R" if self.with_rotation_ else rotations.POSITION_ONLY,
                 "effects": ",".join(self.params_)}
         return info
+
+    def station_placed(self) -> dict[str, Any]:
+        """Where the fit took the base station to stand: `station_pose` as stated, and its pose
+        in the reference frame [x, y, z (m), qw, qx, qy, qz] (metadata `station_pose`)."""
+        self._check_fitted()
+        q = rotations.matrix_to_quat(self.ctx_.R_S)
+        return {"stated": self.station_pose, "reference": [float(v) for v in np.concatenate([self.ctx_.t_S, q])]}
 
     @property
     def needs_time(self) -> bool:

@@ -14,7 +14,7 @@ the same poses, and returns the best rigid fit when the richer model does not be
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 from sklearn.base import BaseEstimator, clone
@@ -35,6 +35,22 @@ from .splits import (MIN_TEST_SPLIT, CrossValidationPlan, FixedSplit, HeldOut, K
                      plan_for, require_enough_to_fit)
 
 
+class SessionSetup(NamedTuple):
+    """What a session fixes of every model fitted on it, as `PhysicsModel` parameters: whether
+    its reference has orientations, and where its base station stood (`PoseTable.station_pose`)."""
+
+    with_rotation: bool = True
+    station_pose: str | None = None
+
+    def params_for(self, estimator: Any) -> dict[str, Any]:
+        """The settings `estimator` takes (a rigid fit has no station)."""
+        return {k: v for k, v in self._asdict().items() if k in estimator.get_params(deep=False)}
+
+
+def session_setup(table: PoseTable) -> SessionSetup:
+    return SessionSetup(table.has_orientation, table.station_pose)
+
+
 class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
     """Physics stage (may be empty) followed by a core corrector (may be None).
 
@@ -42,12 +58,13 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
     `rigid` (a variant of `identify.RIGID_VARIANTS`, or "" for none), `with_rotation`,
     `prior_strength` (the physics stage's, `PhysicsModel`)) are never changed by fit; the fitted parts are `physics_` and
     `core_`, a clone of `core` (so `clone(pipeline)` and nested parameters such as
-    `core__alpha` work). `with_rotation` False for a position-only table (`PhysicsModel`).
+    `core__alpha` work). `with_rotation` False for a position-only table, `station_pose` where
+    the base station stood (both `PhysicsModel`'s).
     """
 
     def __init__(self, effects: Sequence[str] = (), core: Any = None, sigma_p: float | None = None,
                  sigma_r: float | None = None, rigid: str = "", with_rotation: bool = True,
-                 prior_strength: float = 0.0) -> None:
+                 prior_strength: float = 0.0, station_pose: str | None = None) -> None:
         self.effects = effects
         self.core = core
         self.sigma_p = sigma_p
@@ -55,6 +72,7 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
         self.rigid = rigid
         self.with_rotation = with_rotation
         self.prior_strength = prior_strength
+        self.station_pose = station_pose
 
     @property
     def representation(self) -> str:
@@ -82,7 +100,7 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
             physics = RigidModel(with_rotation, self.rigid).fit(measured, reference, t=t, warm_start=warm_start)
         elif physics is None and self.effects:
             physics = PhysicsModel(self.effects, self.sigma_p, self.sigma_r, with_rotation=with_rotation,
-                                   prior_strength=self.prior_strength).fit(
+                                   prior_strength=self.prior_strength, station_pose=self.station_pose).fit(
                 measured, reference, t=t, warm_start=warm_start)
         core = None if self.core is None else clone(self.core)
         if core is not None:
@@ -147,6 +165,8 @@ class CorrectionPipeline(PoseRegressorMixin, BaseEstimator):
                 info["rigid_variant"] = self.rigid
             if self.physics_.fixed_:
                 info["fixed"] = dict(self.physics_.fixed_)
+            if self.physics_.station_pose is not None:
+                info["station_pose"] = self.physics_.station_placed()
             if not self.rigid:
                 # the stage's free directions are fitted parameters too: the core's count
                 # alone undercounted a physics + core model
@@ -181,13 +201,15 @@ def cross_validate(make: Callable[[], Any], table: PoseTable, plan: CrossValidat
                    fit_kwargs: Callable[[int], dict] | None = None) -> CrossValidation:
     """Fit `make()` on each training part of `plan`'s folds and predict the held-out poses.
     `make()` builds an estimator with a `with_rotation` parameter (a pipeline or physics
-    stage; a bare core goes in `CorrectionPipeline(core=...)`): the table sets it."""
+    stage; a bare core goes in `CorrectionPipeline(core=...)`): the table sets it, and the
+    station's pose where the estimator has one (`SessionSetup`)."""
     measured, reference, t = table.measured, table.reference, table.time()
     predicted = np.empty_like(measured)
     fold_of = np.empty(table.n, dtype=int)
     fold_rmse, fitted = [], []
     for k, (train, held) in enumerate(plan.folds(table.n, seed)):
-        model = make().set_params(with_rotation=table.has_orientation)
+        model = make()
+        model.set_params(**session_setup(table).params_for(model))
         extra = fit_kwargs(k) if fit_kwargs else {}
         model.fit(measured[train], reference[train], t=None if t is None else t[train], **extra)
         predicted[held] = model.predict(measured[held], None if t is None else t[held])
@@ -229,9 +251,9 @@ class Candidate:
     def make_core(self) -> Any:
         return None if self.core is None else self.core.make(self.seed)
 
-    def make(self, with_rotation: bool = True) -> CorrectionPipeline:
-        return CorrectionPipeline(self.effects, self.make_core(), rigid=self.rigid, with_rotation=with_rotation,
-                                  prior_strength=self.prior_strength)
+    def make(self, setup: SessionSetup = SessionSetup()) -> CorrectionPipeline:
+        return CorrectionPipeline(self.effects, self.make_core(), rigid=self.rigid, with_rotation=setup.with_rotation,
+                                  prior_strength=self.prior_strength, station_pose=setup.station_pose)
 
 
 def rigid_candidates(table: PoseTable) -> list[Candidate]:
@@ -289,7 +311,7 @@ def _stops_early(candidate: Candidate) -> bool:
     return getattr(candidate.make_core(), "uses_validation", False)
 
 
-def _fit(candidate: Candidate, rows: np.ndarray, arrays: tuple, with_rotation: bool, prior: dict,
+def _fit(candidate: Candidate, rows: np.ndarray, arrays: tuple, setup: SessionSetup, prior: dict,
          shared: dict | None = None, validation: Validation | None = None) -> CorrectionPipeline:
     """Fit a candidate on `rows`; physics stages of equal effects and prior strength are
     fitted once per `shared` dict (candidates that differ only in their core share them) and
@@ -302,13 +324,13 @@ def _fit(candidate: Candidate, rows: np.ndarray, arrays: tuple, with_rotation: b
         shared = {} if shared is None else shared
         free = (effects, 0.0)
         if free not in shared:
-            shared[free] = PhysicsModel(effects, with_rotation=with_rotation).fit(
+            shared[free] = PhysicsModel(effects, **setup._asdict()).fit(
                 M[rows], R[rows], t=t_rows, warm_start=prior.get(effects))
         key = (effects, candidate.prior_strength)
         if key not in shared:       # a prior strength: the free fit shrunk, no further solve
             shared[key] = shared[free].shrunk(candidate.prior_strength)
         physics = shared[key]
-    return candidate.make(with_rotation).fit(M[rows], R[rows], t=t_rows, validation=validation, physics=physics)
+    return candidate.make(setup).fit(M[rows], R[rows], t=t_rows, validation=validation, physics=physics)
 
 
 def _fitted_effects(candidate: Candidate) -> tuple[str, ...]:
@@ -319,7 +341,7 @@ def _fitted_effects(candidate: Candidate) -> tuple[str, ...]:
     return candidate.effects
 
 
-def out_of_fold(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, with_rotation: bool,
+def out_of_fold(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, setup: SessionSetup,
                 splits: list[tuple[np.ndarray, np.ndarray]], prior: dict,
                 say: Callable[[str], None] | None = None) -> dict[str, np.ndarray]:
     """{name: (len(rows), 7) predictions}, each pose predicted by a fit that never saw it;
@@ -330,7 +352,7 @@ def out_of_fold(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple
         shared: dict = {}
         stages: dict = {}          # candidates sharing a physics stage correct the held-out poses once
         for candidate in candidates:
-            model = _fit(candidate, rows[train], arrays, with_rotation, prior, shared)
+            model = _fit(candidate, rows[train], arrays, setup, prior, shared)
             key = id(model.physics_)           # the stage is held in `stages`: its id stays its own
             if key not in stages:
                 stages[key] = (model.physics_, model.predict_physics(M[rows[held]], None if t is None else t[rows[held]]))
@@ -353,13 +375,13 @@ def _best(candidates: Sequence[Candidate], scores: dict[str, float]) -> Candidat
     return min(candidates, key=lambda c: (scores[c.name], not c.rigid))
 
 
-def choose(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, with_rotation: bool,
+def choose(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, setup: SessionSetup,
            plan: CrossValidationPlan, seed: int, prior: dict) -> tuple[Candidate, dict[str, float]]:
     """The candidate with the lowest cross-validated rmse_total on `rows` (a rigid variant on ties)."""
     splits = plan.folds(len(rows), seed)
-    predicted = out_of_fold(candidates, rows, arrays, with_rotation, splits, prior)
+    predicted = out_of_fold(candidates, rows, arrays, setup, splits, prior)
     reference = arrays[1][rows]
-    scores = {name: _score(reference, p, with_rotation) for name, p in predicted.items()}
+    scores = {name: _score(reference, p, setup.with_rotation) for name, p in predicted.items()}
     return _best(candidates, scores), scores
 
 
@@ -498,7 +520,8 @@ def _fit_fixed_split(table: PoseTable, candidates: list[Candidate], floor: list[
     """The fixed-split phase: candidates fitted on the training rows, chosen on the validation
     rows, the choice and the best rigid fit refitted on both and scored on the test rows."""
     M, R, t = table.measured, table.reference, table.time()
-    arrays, with_rotation = (M, R, t), table.has_orientation
+    arrays, setup = (M, R, t), session_setup(table)
+    with_rotation = setup.with_rotation
     train, val, test = plan.indices(table.n, seed)
     fit_rows = np.sort(np.concatenate([train, val]))
     # Every rigid variant is fitted and scored: the floor, and the fallback where the
@@ -506,16 +529,16 @@ def _fit_fixed_split(table: PoseTable, candidates: list[Candidate], floor: list[
     named = {c.name for c in candidates}
     pool = list(candidates) + [c for c in floor if c.name not in named]
     say(f"fitting {len(pool)} candidate(s) on {len(train)} poses, choosing on {len(val)}, testing on {len(test)}")
-    prior = _priors(pool, train, arrays, with_rotation)
+    prior = _priors(pool, train, arrays, setup)
     shared: dict = {(names, 0.0): model for names, model in prior.items()}   # fitted on these very rows
     held = Validation(M[val], R[val], None if t is None else t[val])
-    fitted = {c.name: _fit(c, train, arrays, with_rotation, prior, shared, validation=held) for c in pool}
+    fitted = {c.name: _fit(c, train, arrays, setup, prior, shared, validation=held) for c in pool}
     scores = {name: _score(R[val], m.predict(M[val], None if t is None else t[val]), with_rotation)
               for name, m in fitted.items()}
     best = _best(pool, scores)
     floor_best = _best(floor, scores)
-    model = fitted[best.name] if _stops_early(best) else _fit(best, fit_rows, arrays, with_rotation, prior)
-    rigid = model if best == floor_best else _fit(floor_best, fit_rows, arrays, with_rotation, prior)
+    model = fitted[best.name] if _stops_early(best) else _fit(best, fit_rows, arrays, setup, prior)
+    rigid = model if best == floor_best else _fit(floor_best, fit_rows, arrays, setup, prior)
     t_test = None if t is None else t[test]
     raw = pose_metrics(R[test], M[test], with_rotation)
     heldout = metric_block(raw, pose_metrics(R[test], model.predict(M[test], t_test), with_rotation))
@@ -538,17 +561,18 @@ def _fit_cross_validated(table: PoseTable, candidates: list[Candidate], floor: l
     """The cross-validated phase: out-of-fold scores of the choice and of every rigid variant,
     a fallback to the best rigid variant where it does better, then the final fit on all poses."""
     M, R, t = table.measured, table.reference, table.time()
-    arrays, with_rotation = (M, R, t), table.has_orientation
+    arrays, setup = (M, R, t), session_setup(table)
+    with_rotation = setup.with_rotation
     everything = np.arange(table.n)
     raw_all = pose_metrics(R, M, with_rotation)
     splits = plan.folds(table.n, seed)
-    prior = _priors(candidates, everything, arrays, with_rotation)
+    prior = _priors(candidates, everything, arrays, setup)
     if auto:
         best, scores, predicted, floor_predicted = _out_of_fold_auto(
-            candidates, floor, arrays, with_rotation, splits, seed, prior, say)
+            candidates, floor, arrays, setup, splits, seed, prior, say)
     else:
         say(f"cross-validating {candidates[0].name} and the rigid fits ({plan.description})")
-        every = out_of_fold(candidates, everything, arrays, with_rotation, splits, prior, say)
+        every = out_of_fold(candidates, everything, arrays, setup, splits, prior, say)
         best, scores = candidates[0], {}
         predicted, floor_predicted = every[best.name], {c.name: every[c.name] for c in floor}
     floor_metrics = {c.name: metric_block(raw_all, pose_metrics(R, floor_predicted[c.name], with_rotation))
@@ -566,7 +590,7 @@ def _fit_cross_validated(table: PoseTable, candidates: list[Candidate], floor: l
         asked = {"name": "auto" if auto else best.name, "rmse_total": heldout["rmse_total"], "on": "held-out"}
         best, heldout = floor_best, baseline
     say(f"fitting {best.name} on all {table.n} poses")
-    model = _fit(best, everything, arrays, with_rotation, prior)
+    model = _fit(best, everything, arrays, setup, prior)
     return FitReport(model, raw_all, heldout, plan, everything, best.name, auto_scores=scores, baseline=baseline,
                      n_heldout=table.n, fell_back=fell_back, notes=notes, baseline_name=floor_best.name,
                      rigid_scores=rigid_scores, asked=asked,
@@ -574,21 +598,21 @@ def _fit_cross_validated(table: PoseTable, candidates: list[Candidate], floor: l
 
 
 def _out_of_fold_auto(candidates: Sequence[Candidate], floor: Sequence[Candidate], arrays: tuple,
-                      with_rotation: bool, splits: list, seed: int, prior: dict,
+                      setup: SessionSetup, splits: list, seed: int, prior: dict,
                       say: Callable[[str], None]) -> tuple[Candidate, dict[str, float], np.ndarray, dict]:
     """The nested phase of "auto": each outer fold predicted by the choice an inner
     cross-validation makes on its training rows, then the final choice made on all poses.
     Returns (final choice, its inner scores, the outer folds' predictions, the rigid variants')."""
     n = len(arrays[0])
     everything = np.arange(n)
-    predicted = nested_out_of_fold(candidates, arrays, with_rotation, splits, seed, prior, say)
+    predicted = nested_out_of_fold(candidates, arrays, setup, splits, seed, prior, say)
     say("auto: choosing on all poses")
-    best, scores = choose(candidates, everything, arrays, with_rotation, plan_for(n, nested=True), seed, prior)
-    floor_predicted = out_of_fold(floor, everything, arrays, with_rotation, splits, prior)
+    best, scores = choose(candidates, everything, arrays, setup, plan_for(n, nested=True), seed, prior)
+    floor_predicted = out_of_fold(floor, everything, arrays, setup, splits, prior)
     return best, scores, predicted, floor_predicted
 
 
-def nested_out_of_fold(candidates: Sequence[Candidate], arrays: tuple, with_rotation: bool, splits: list,
+def nested_out_of_fold(candidates: Sequence[Candidate], arrays: tuple, setup: SessionSetup, splits: list,
                        seed: int, prior: dict, say: Callable[[str], None]) -> np.ndarray:
     """(N, 7): each outer fold's poses predicted by the candidate an inner cross-validation on
     the fold's training rows chooses, fitted on those rows: how "auto" is scored."""
@@ -596,8 +620,8 @@ def nested_out_of_fold(candidates: Sequence[Candidate], arrays: tuple, with_rota
     say(f"auto: choosing among {len(candidates)} candidates inside each of {len(splits)} outer folds")
     predicted = np.empty_like(M)
     for train, held in _progress_iter(splits, say, "outer fold"):
-        best, _ = choose(candidates, train, arrays, with_rotation, plan_for(len(train), nested=True), seed, prior)
-        model = _fit(best, train, arrays, with_rotation, prior)
+        best, _ = choose(candidates, train, arrays, setup, plan_for(len(train), nested=True), seed, prior)
+        model = _fit(best, train, arrays, setup, prior)
         predicted[held] = model.predict(M[held], None if t is None else t[held])
     return predicted
 
@@ -658,7 +682,7 @@ def check_outliers(table: PoseTable) -> list[str]:
             "held-out figure includes it (posecorr report lists the worst poses)"]
 
 
-def _priors(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, with_rotation: bool) -> dict:
+def _priors(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, setup: SessionSetup) -> dict:
     """The physics stage of each distinct effect list, fitted once on `rows`: the warm start
     (and the determined directions) of every fold's fit."""
     M, R, t = arrays
@@ -666,7 +690,7 @@ def _priors(candidates: Sequence[Candidate], rows: np.ndarray, arrays: tuple, wi
     for candidate in candidates:
         effects = _fitted_effects(candidate)
         if effects and effects not in prior:
-            prior[effects] = PhysicsModel(effects, with_rotation=with_rotation).fit(
+            prior[effects] = PhysicsModel(effects, **setup._asdict()).fit(
                 M[rows], R[rows], t=None if t is None else t[rows])
     return prior
 
@@ -685,7 +709,7 @@ def floor_instead(report: FitReport, table: PoseTable, why: str) -> FitReport:
     M, R, t = table.measured, table.reference, table.time()
     rows = np.setdiff1d(np.arange(table.n), report.test_index if report.test_index is not None else [])
     floor = {c.name: c for c in rigid_candidates(table)}[report.baseline_name]
-    model = _fit(floor, rows, (M, R, t), table.has_orientation, {})
+    model = _fit(floor, rows, (M, R, t), session_setup(table), {})
     on = "held-out" if report.test_index is None else "test"
     note = (f"{report.chosen} could not be written: {why}; the rigid fit ({report.baseline_name}) is written in its "
             f"place, its figures on the same {on} poses")

@@ -360,14 +360,15 @@ def best_rigid_on_test(table: Any, seed: int = 0, with_rotation: bool = True) ->
     (`pipeline.out_of_fold`) on the poses the protocol's split does not test and scored on its
     test poses: {"name", "rmse_pos", "rmse_rot", "rmse_total"}. Where raw measures
     unregistered frames, this is what a correction must beat."""
-    from .pipeline import _best, _priors, out_of_fold, rigid_candidates
+    from .pipeline import _best, _priors, out_of_fold, rigid_candidates, session_setup
 
     train, val, test = split_indices(table.n, seed, 0)
     fitted_on = np.union1d(train, val)
     floor = rigid_candidates(table)
-    arrays, with_rot = (table.measured, table.reference, table.time()), table.has_orientation
-    predicted = out_of_fold(floor, np.arange(table.n), arrays, with_rot, [(fitted_on, test)],
-                            _priors(floor, fitted_on, arrays, with_rot))
+    arrays, setup = (table.measured, table.reference, table.time()), session_setup(table)
+    with_rot = setup.with_rotation
+    predicted = out_of_fold(floor, np.arange(table.n), arrays, setup, [(fitted_on, test)],
+                            _priors(floor, fitted_on, arrays, setup))
     metrics = {c.name: pose_metrics(table.reference[test], predicted[c.name][test], with_rotation and with_rot)
                for c in floor}
     best = _best(floor, {name: m["rmse_total"] for name, m in metrics.items()})

@@ -73,6 +73,8 @@ class PoseTable:
 
     rows: each pose's row in the file it was read from, the number of its line as an editor
     shows it (blank and comment lines count); None for a table made in memory (`simulate`).
+    station_pose: where the session's base station stood, as the user states it
+    (`geometry.parse_station_pose`, `--station-pose`); None: the paper's station (eq. 23).
     """
 
     meas_p: np.ndarray
@@ -82,6 +84,7 @@ class PoseTable:
     extras: dict[str, np.ndarray] = field(default_factory=dict)
     path: str | None = None
     rows: np.ndarray | None = None
+    station_pose: str | None = None
     # `require_rows` has said what a fit should know of these rows (`warn_fit_table`)
     warned: bool = field(default=False, repr=False, compare=False)
 
@@ -136,7 +139,7 @@ class PoseTable:
         return PoseTable(self.meas_p[index], self.meas_q[index], self.ref_p[index],
                          None if self.ref_q is None else self.ref_q[index],
                          {k: v[index] for k, v in self.extras.items()}, self.path,
-                         None if self.rows is None else self.rows[index])
+                         None if self.rows is None else self.rows[index], self.station_pose)
 
     def draw(self, n: int, seed: int = 0) -> tuple["PoseTable", np.ndarray]:
         """An even random draw of n rows in table order (the whole table when it has at most
@@ -150,7 +153,7 @@ class PoseTable:
         """A copy whose measured poses are replaced by an (N, 7) array (a correction's output)."""
         return PoseTable(np.array(measured[:, :3], dtype=float), np.array(measured[:, 3:7], dtype=float),
                          self.ref_p.copy(), None if self.ref_q is None else self.ref_q.copy(),
-                         dict(self.extras), self.path, self.rows)
+                         dict(self.extras), self.path, self.rows, self.station_pose)
 
 
 # Below this extent (metres, under the tracker's jitter) the poses are one pose seen twice

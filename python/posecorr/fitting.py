@@ -139,6 +139,8 @@ def ledger_fit_entry(report: Any, table: Any, output: str | Path, effects: list[
                              "table_set_digest": ledger_set_digest(table), "row_ranks": row_ranks(table),
                              "plan": str(report.plan), "chosen": report.chosen,
                              "fell_back": bool(report.fell_back), "rigid": report.model.rigid or None}
+    if table.station_pose is not None:
+        entry["station_pose"] = table.station_pose
     if report.asked is not None:
         entry["asked"] = report.asked
     if seed is not None:

@@ -80,6 +80,7 @@ def homogeneous(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 NAMED_TRANSFORMS = {
     "tool": {"paper": END_T_TRACKER.copy, "none": lambda: np.eye(4)},
     "registration": {"paper": base_T_station, "none": lambda: np.eye(4)},
+    "station_pose": {"paper": base_T_station},
 }
 
 
@@ -101,6 +102,65 @@ def parse_transform(text: str, kind: str, error: type[Exception] = ValueError) -
     if abs(np.linalg.norm(quat) - 1.0) > 1e-3:
         raise error(f"--{kind} {text!r}: quaternion norm {np.linalg.norm(quat):.6g}, expected 1")
     return homogeneous(quat_to_matrix(quat), np.array(values[:3]))
+
+
+# Where a session's base station stood (`--station-pose`): its pose in the reference frame, or
+# with this prefix in the tracker's own frame (where SteamVR reports its base stations).
+TRACKER_FRAME_PREFIX = "tracker:"
+
+
+@dataclass(frozen=True)
+class StationPose:
+    """Where the base station stood, as stated: `text` as written (None: the paper's station,
+    eq. 23), and its rotation and origin in the frame it names (the reference frame, or the
+    tracker's own with `in_tracker_frame`). The station looks along its own -z axis."""
+
+    text: str | None
+    R: np.ndarray
+    t: np.ndarray
+    in_tracker_frame: bool = False
+
+    def in_reference(self, tracker_to_reference: tuple[np.ndarray, np.ndarray] | None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """(R_S, t_S) in the reference frame. A pose stated in the tracker's frame is carried
+        there by `tracker_to_reference`, (R, t) with p_ref = R p_tracker + t: a rigid fit of
+        the session. Its error (millimetres of a metres-wide sweep) moves the station by as
+        much, far below what the station's effects can tell."""
+        if not self.in_tracker_frame:
+            return self.R, self.t
+        if tracker_to_reference is None:
+            raise ValueError(f"--station-pose {self.text!r} is in the tracker's frame: it needs the session's "
+                             "poses to place it in the reference frame")
+        R, t = tracker_to_reference
+        return R @ self.R, R @ self.t + t
+
+    def words(self) -> str:
+        """The pose in a sentence: the frame and the origin."""
+        frame = "the tracker's frame" if self.in_tracker_frame else "the reference frame"
+        where = ", ".join(f"{x:.2f}" for x in self.t)
+        return f"({where}) m in {frame}"
+
+
+def parse_station_pose(text: str | None, error: type[Exception] = ValueError) -> StationPose:
+    """`--station-pose`: None or "paper" (eq. 23), 'x,y,z[,qw,qx,qy,qz]' in the reference
+    frame, or the same after "tracker:" in the tracker's own frame; `error` the caller's kind
+    of refusal."""
+    if text is None or text.strip().lower() == "paper":
+        R, t = station_pose()
+        return StationPose(None, R, t)
+    body = text.strip()
+    in_tracker = body.lower().startswith(TRACKER_FRAME_PREFIX)
+    if in_tracker:
+        body = body[len(TRACKER_FRAME_PREFIX):]
+    try:
+        if in_tracker and body.strip().lower() == "paper":   # the paper's is a reference-frame pose
+            raise error(body)
+        T = parse_transform(body, "station_pose", error)
+    except error as exc:
+        raise error(f"--station-pose {text!r}: expected paper, x,y,z[,qw,qx,qy,qz] (m, reference frame) or "
+                    f"{TRACKER_FRAME_PREFIX}x,y,z[,qw,qx,qy,qz] (the tracker's own frame)"
+                    + (f"; {str(exc).split(': ', 1)[1]}" if "norm" in str(exc) else "")) from None
+    return StationPose(text.strip(), T[:3, :3], T[:3, 3], in_tracker)
 
 
 def rot_x(a: float) -> np.ndarray:

@@ -91,6 +91,26 @@ class SimulationResult:
         """{effect: {param: values}}, JSON-ready."""
         return {name: get_effect(name).describe(theta) for name, theta in self.effects.items()}
 
+    def station_in_tracker_frame(self) -> str:
+        """Where the base station stands in the measurements' own frame, as `--station-pose`
+        takes it ("tracker:x,y,z,qw,qx,qy,qz"): what SteamVR would report of it. The frame is
+        the reference's moved by the `station` effect, the registration error."""
+        R_S, t_S = self.context.R_S, self.context.t_S
+        p, R = (t_S[None], R_S[None]) if "station" not in self.effects else \
+            get_effect("station").forward(t_S[None], R_S[None], self.effects["station"], self.context)
+        values = np.concatenate([np.asarray(p)[0], matrix_to_quat(np.asarray(R))[0]])
+        return geometry.TRACKER_FRAME_PREFIX + ",".join(f"{v:.6f}" for v in values)
+
+
+def _placed(ctx: EffectContext, station_pose: str | None, **changes: Any) -> EffectContext:
+    """`ctx` with the base station where `station_pose` puts it in the reference frame (the
+    simulator makes that frame, so a pose in the tracker's frame is not taken), and `changes`."""
+    stated = geometry.parse_station_pose(station_pose)
+    if stated.in_tracker_frame:
+        raise ValueError(f"station_pose {station_pose!r}: a simulated station is placed in the reference frame "
+                         f"(the tracker's frame is what the simulation makes: `station_in_tracker_frame`)")
+    return replace(ctx, R_S=stated.R, t_S=stated.t, **changes)
+
 
 def resolve_mix(experiment: int | str, effects: str | Mapping[str, Any] | None = None,
                 base: str = "default", file_effects: Iterable[str] = ()) -> dict[str, np.ndarray]:
@@ -113,12 +133,14 @@ def resolve_mix(experiment: int | str, effects: str | Mapping[str, Any] | None =
 
 def simulate(experiment: int | str, effects: str | Mapping[str, Any] | None = None, seed: int = 0,
              effect_files: Iterable[str] = (), order: str = "random", base: str = "default",
-             dwell: float = geometry.DWELL_S) -> SimulationResult:
+             dwell: float = geometry.DWELL_S, station_pose: str | None = None) -> SimulationResult:
     """Simulate Experiment 1/2/3 (I/II/III): reference lattice -> effects -> paired table.
 
     effects: None, a CLI string 'NAME=V1,...;NAME' or {name: theta or None}; see the module
     docstring for how it combines with `base` and `effect_files`. order: "random" (seeded
     measurement order) or "lattice". dwell: seconds per pose (t of pose k is (k + 1) dwell).
+    station_pose: where the base station stands, in the reference frame
+    (`geometry.parse_station_pose`; None: the paper's).
     """
     file_effects: list[str] = []
     for path in effect_files:
@@ -134,7 +156,7 @@ def simulate(experiment: int | str, effects: str | Mapping[str, Any] | None = No
     index = rng.permutation(n) if order == "random" else np.arange(n)
     p_ref, R_ref = p_ref[index], R_ref[index]
     t = (np.arange(n) + 1.0) * dwell
-    ctx = EffectContext.default(t=t, noise_draws=Noise.draw(rng, n))
+    ctx = _placed(EffectContext.default(t=t, noise_draws=Noise.draw(rng, n)), station_pose)
 
     p_meas, R_meas = apply_effects(p_ref, R_ref, mix, ctx)
     if "noise" in mix:
@@ -257,13 +279,14 @@ def robot_flange_poses(robot: str, n: int, rng: np.random.Generator) -> np.ndarr
 
 
 def simulate_session(seed: int = 0, spec: SessionSpec | None = None, extra: Mapping[str, Any] | None = None,
-                     **pin: Any) -> SimulationResult:
+                     station_pose: str | None = None, **pin: Any) -> SimulationResult:
     """A realistic session (see `SessionSpec`): few poses, an unregistered tracker frame, a
     lever arm, the given orientation spread, noise at the DESIGN defaults, and optionally an
     error no model removes. `pin` fixes fields of the drawn spec (n, spread, position_only,
     unremovable, duration). `extra` {effect: theta} adds effects where the tracker is, in the cell (a
     user's effect or a form, say), applied with the mount in catalogue order. The reference frame is the robot base; the workspace centre of the effects
-    is the mean reference position, as a fit takes it."""
+    is the mean reference position, as a fit takes it. `station_pose`: where the base station
+    stands, as `simulate`'s."""
     from .rotations import rotvec_to_matrix
 
     rng = np.random.default_rng([int(seed), 20261122])
@@ -292,7 +315,7 @@ def simulate_session(seed: int = 0, spec: SessionSpec | None = None, extra: Mapp
            "station": np.concatenate([_random_rotvec(rng), spec.offset * direction / np.linalg.norm(direction)]),
            "noise": get_effect("noise").default_theta()}
     t = (np.arange(spec.n) + 1.0) * spec.duration / spec.n if spec.duration else None
-    ctx = replace(EffectContext.default(t=t, noise_draws=Noise.draw(rng, spec.n)), c=p_ref.mean(axis=0))
+    ctx = _placed(EffectContext.default(t=t, noise_draws=Noise.draw(rng, spec.n)), station_pose, c=p_ref.mean(axis=0))
     # The noise acts where the tracker is, in the cell, before the unknown frame turns it into
     # the tracker's own coordinates (its range term would otherwise see the frame's offset).
     mix.update({name: np.asarray(theta, float) for name, theta in (extra or {}).items()})

@@ -191,14 +191,14 @@ def _no_fit_order(table: PoseTable, entry: Mapping[str, Any] | None) -> str:
 def rigid_in_sample(table: PoseTable, wanted: str | None) -> tuple[str, np.ndarray]:
     """(candidate name, (N, 7) poses) of the rigid fit on every pose: `wanted` when it is one
     the table allows, else the variant with the lowest rmse_total."""
-    from ..train.pipeline import rigid_candidates
+    from ..train.pipeline import rigid_candidates, session_setup
 
     M, R, t = table.measured, table.reference, table.time()
     best: tuple[float, str, np.ndarray] | None = None
     for candidate in rigid_candidates(table):
         if wanted and candidate.name != wanted:
             continue
-        predicted = candidate.make(table.has_orientation).fit(M, R, t=t).predict(M, t)
+        predicted = candidate.make(session_setup(table)).fit(M, R, t=t).predict(M, t)
         score = pose_metrics(R, predicted, table.has_orientation)["rmse_total"]
         if best is None or score < best[0]:
             best = (score, candidate.name, predicted)
@@ -270,22 +270,24 @@ def _out_of_fold(candidates: list, start_rows: np.ndarray, splits: list, table: 
     """{name: (N, 7)} predictions of each held-out row (rows outside every split: undefined), as
     `posecorr fit` makes them: every fold's fit starts from the physics stage fitted on
     `start_rows` (`_priors`), so the iterative fits reach the solutions fit scored."""
-    from ..train.pipeline import _priors, out_of_fold
+    from ..train.pipeline import _priors, out_of_fold, session_setup
 
     arrays = (table.measured, table.reference, table.time())
-    prior = _priors(candidates, start_rows, arrays, table.has_orientation)
-    return out_of_fold(candidates, np.arange(table.n), arrays, table.has_orientation, splits, prior)
+    setup = session_setup(table)
+    prior = _priors(candidates, start_rows, arrays, setup)
+    return out_of_fold(candidates, np.arange(table.n), arrays, setup, splits, prior)
 
 
 def _nested_out_of_fold(candidates: list, splits: list, seed: int, table: PoseTable,
                         say: Callable[[str], None]) -> np.ndarray:
     """(N, 7): each fold's poses predicted by the candidate chosen inside its training rows,
     from the same start as `posecorr fit --method auto` (the physics stages on every pose)."""
-    from ..train.pipeline import _priors, nested_out_of_fold
+    from ..train.pipeline import _priors, nested_out_of_fold, session_setup
 
     arrays = (table.measured, table.reference, table.time())
-    prior = _priors(candidates, np.arange(table.n), arrays, table.has_orientation)
-    return nested_out_of_fold(candidates, arrays, table.has_orientation, splits, seed, prior, say)
+    setup = session_setup(table)
+    prior = _priors(candidates, np.arange(table.n), arrays, setup)
+    return nested_out_of_fold(candidates, arrays, setup, splits, seed, prior, say)
 
 
 def _rigid_candidate(table: PoseTable, name: Any) -> Any:

@@ -52,7 +52,7 @@ from ..metrics import frames_unregistered, pose_errors, pose_metrics, rmse_total
 from ..registration import orientation_notes
 from ..rotations import matrix_to_rotvec, quat_to_matrix
 from ..textui import counted
-from .features import FEATURES, UNPLACED_STATION, pose_features
+from .features import FEATURES, UNPLACED_STATION, pose_features, stated_station
 
 ALIAS_CORRELATION = 0.99
 # The test's level, before the Bonferroni correction over the candidates.
@@ -129,8 +129,9 @@ def split_identifiable(table: PoseTable, effects: Sequence[str],
 def _held(table: PoseTable, effects: list[str], name: str) -> dict[str, str] | None:
     """{parameter: why} of `name` held in the model `effects` + `name`, None unless all are."""
     from posecorr.train.physics import PhysicsModel
+    from posecorr.train.pipeline import session_setup
 
-    fixed = PhysicsModel(tuple(effects) + (name,), with_rotation=table.has_orientation).identifiability(
+    fixed = PhysicsModel(tuple(effects) + (name,), **session_setup(table)._asdict()).identifiability(
         table.measured, table.reference, table.time())
     held = {key: why for key, why in fixed.items() if key.split(" ")[0].split(".")[0] == name}
     whole = {key.split(" ")[0] for key in held if " along " not in key}
@@ -823,18 +824,22 @@ def _unregistered_words(table: PoseTable) -> str | None:
             f"{1e3 * fitted['rmse_pos']:.3g} mm in-sample, {rigid_name})")
 
 
-def station_bound_words(names: Sequence[str]) -> str | None:
-    """On unregistered frames, what a verdict on the effects among `names` that bend about
-    the base station (`Effect.about_station`) rests on, naming them in the order they apply;
-    None where there are none."""
-    from posecorr.geometry import station_pose
+def station_bound_words(names: Sequence[str], station_pose: str | None = None) -> str | None:
+    """What a verdict on the effects among `names` that bend about the base station
+    (`Effect.about_station`) rests on, naming them in the order they apply: the station the
+    session states (`station_pose`), or on unregistered frames the nominal one, which they do
+    not place; None where there are none."""
+    from posecorr.geometry import parse_station_pose
 
     bound = sorted({name for name in names if get_effect(name).about_station}, key=lambda name: get_effect(name).order)
     if not bound:
         return None
     one = len(bound) == 1
-    where = ", ".join(f"{x:.2f}" for x in station_pose()[1])
+    stated = parse_station_pose(station_pose)
     named = bound[0] if one else f"{', '.join(bound[:-1])} and {bound[-1]}"
+    if station_pose is not None:
+        return f"{named} {'is' if one else 'are'} taken about the stated base station, at {stated.words()}"
+    where = ", ".join(f"{x:.2f}" for x in stated.t)
     return (f"{named} {'bends' if one else 'bend'} about where the base station stands, which unregistered "
             f"frames do not say: {'it is' if one else 'they are'} taken about the nominal station (the paper's, at "
             f"({where}) m in the reference frame), so a verdict on {'it' if one else 'them'} holds only if yours "
@@ -944,14 +949,18 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
 def _feature_scan(table: PoseTable, predicted: np.ndarray, folds: int, seed: int, placed: bool,
                   tested: Sequence[str]) -> tuple[list[dict[str, Any]], list[str]]:
     """(`feature_r2` of the residuals, notes): where the frames are unregistered (not `placed`)
-    no feature is taken from the station, whose place in them nobody knows, and the effects
-    `tested` that bend about it are named (`station_bound_words`)."""
+    and the session states no station, no feature is taken from the station, whose place in
+    them nobody knows; the effects `tested` that bend about it are named with the station
+    they are taken about (`station_bound_words`)."""
     blocks = {name: cols for name, cols in ERROR_BLOCKS.items() if table.has_orientation or name == "position"}
+    station = stated_station(table)
     features = feature_r2(residual_components(table.reference, predicted, table.has_orientation),
-                          pose_features(table.reference, table.time(), registered=placed), folds, seed, blocks)
+                          pose_features(table.reference, table.time(), placed, station), folds, seed, blocks)
+    bound = station_bound_words(tested, table.station_pose)
+    if station is not None:
+        return features, [bound] if bound else []
     if placed:
         return features, []
-    bound = station_bound_words(tested)
     return features, [f"residual structure by feature: {UNPLACED_STATION}"] + ([bound] if bound else [])
 
 
@@ -1026,11 +1035,12 @@ def _whitened_gain(table: PoseTable, held: np.ndarray, before: np.ndarray, after
 def _base_physics(base_cv: Any, k: int, table: PoseTable, train: np.ndarray, effects: list[str]) -> Any:
     """The physics model of fold k (an empty one, still carrying frames and sigmas, if no effects)."""
     from posecorr.train.physics import PhysicsModel
+    from posecorr.train.pipeline import session_setup
 
     if base_cv is not None:
         return base_cv.fitted[k].physics_
     t = table.time()
-    return PhysicsModel((), with_rotation=table.has_orientation).fit(table.measured[train], table.reference[train],
+    return PhysicsModel((), **session_setup(table)._asdict()).fit(table.measured[train], table.reference[train],
                                                                      t=None if t is None else t[train])
 
 

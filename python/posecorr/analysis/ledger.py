@@ -10,7 +10,8 @@ model_sha256 (the model file's), n (the table's poses), table_digest (`ledger_ta
 the report's history keeps the lines of the table it reads), table_set_digest (the same in any
 order of its rows, `ledger_set_digest`), row_ranks (`row_ranks`: the table sorted or reversed
 since is put back in the fit's order, whose folds are by row: `fit_order`), plan ("none",
-"loo" or a number of folds), seed, spec (the requested `ModelSpec`'s fields), chosen (the
+"loo" or a number of folds), seed, station_pose (where `--station-pose` stated one), spec (the
+requested `ModelSpec`'s fields), chosen (the
 candidate returned), fell_back, rigid (its variant, or null), and where it fell back `asked`:
 the model asked for, scored ({"name", "rmse_total", "on": "held-out", "validation" or
 "test"}, and "why" where it was not the score that sent it back: its file failed the

@@ -537,7 +537,7 @@ def _figure_sections(comparison: Comparison, feats: Mapping[str, np.ndarray], po
     whose = ("the reference pose" if rot is not None else
              "the reference position and the measured orientation (the table has no reference orientation; the "
              "measured one is in the tracker's frame)")
-    station = (UNPLACED_STATION if comparison.unregistered else
+    station = (UNPLACED_STATION if "range" not in feats else
                "azimuth/elevation as seen from the station, incidence: tracker z axis vs line of sight")
     note = (f"Features of {whose} (angles in degrees; {station}). A trend in the solid blue median line (after) is structure "
             f"the model misses; each of its points is the median of {figures.MIN_PER_GROUP} poses or more, "

@@ -107,6 +107,7 @@ def _fitted_proposal(search: Any, result: dict[str, Any], kept: list[str], forms
     from contextlib import ExitStack
 
     from posecorr.train.physics import PhysicsModel
+    from posecorr.train.pipeline import session_setup
 
     table = search.table
     catalogue = [name for name in kept if name not in forms]
@@ -119,7 +120,7 @@ def _fitted_proposal(search: Any, result: dict[str, Any], kept: list[str], forms
         effects = search.effects + catalogue + list(model.values())
         # the forms by their names: a cut form is registered as '_{form}_terms{count}'
         search.say(f"the proposal: {', '.join(search.effects + catalogue + list(forms))} on every pose")
-        physics = PhysicsModel(tuple(effects), with_rotation=table.has_orientation).fit(
+        physics = PhysicsModel(tuple(effects), **session_setup(table)._asdict()).fit(
             table.measured, table.reference, t=table.time())
         gains = _gains(search, cv)
         chosen = {form: get_effect(model[form]) for form in forms}
@@ -176,13 +177,14 @@ def _fewest_terms(search: Any, catalogue: list[str], model: dict[str, str], form
     data determine all of it. Returned with the cut's cross-validation. The cuts are
     registered on `registered` (an ExitStack), which removes them."""
     from posecorr.train.physics import PhysicsModel
+    from posecorr.train.pipeline import session_setup
 
     from ..effects import register_effect, unregister_effect
     from .diagnose import _column_owners
 
     table, whole = search.table, get_effect(form)
     effects = search.effects + catalogue + list(model.values())
-    physics = PhysicsModel(tuple(effects), with_rotation=table.has_orientation).fit(
+    physics = PhysicsModel(tuple(effects), **session_setup(table)._asdict()).fit(
         table.measured, table.reference, t=table.time())
     _, J, _ = physics.residual_jacobian(table.measured, table.reference, table.time())
     owned = _column_owners(physics, []) == form

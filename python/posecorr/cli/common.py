@@ -107,6 +107,17 @@ def effect_file_option(p: argparse.ArgumentParser) -> None:
                         "(like `python FILE`): give only files you trust")
 
 
+def station_pose_option(p: argparse.ArgumentParser, default: str = "the paper's station") -> None:
+    from .options import station_pose
+
+    p.add_argument("--station-pose", type=station_pose, metavar="POSE", action=Given,
+                   help="where the base station stood, about which sweep, range_scale and incidence bend: paper "
+                        "(the paper's, eq. 23), x,y,z[,qw,qx,qy,qz] (m, unit quaternion: the station's pose in the "
+                        "reference frame, looking along its -z) or tracker:x,y,z[,qw,qx,qy,qz] (in the tracker's "
+                        "own frame, as SteamVR reports a base station: placed by the session's rigid fit); "
+                        f"default: {default}")
+
+
 def backend_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", choices=BACKENDS, default="c",
                    help="what runs the model: c, posecorr's C runtime, or onnxruntime (default: c)")
@@ -172,6 +183,23 @@ class Given(argparse.Action):
 
 def given(args: argparse.Namespace, dest: str) -> bool:
     return bool(getattr(args, f"{dest}_given", False))
+
+
+def station_pose_of(args: argparse.Namespace, model: Path, info: Mapping[str, Any]) -> str | None:
+    """--station-pose where given, else the station the model at `model` was fitted about
+    (its metadata `station_pose`), else None: the paper's."""
+    from ..geometry import parse_station_pose
+
+    if given(args, "station_pose"):
+        return args.station_pose
+    stated = info.get("station_pose")
+    text = stated.get("stated") if isinstance(stated, Mapping) else None
+    if text is None:
+        return None
+    try:
+        return parse_station_pose(text, CliError).text
+    except CliError as exc:
+        raise CliError(f"{model}: metadata station_pose: {exc}") from None
 
 
 class Renamed(Given):
@@ -325,4 +353,6 @@ def read_data(args: argparse.Namespace, advised: bool = False) -> Any:
 
     apply_threads(args)
     load_effect_files(args, advised=advised)
-    return read_table(args.data)
+    table = read_table(args.data)
+    table.station_pose = getattr(args, "station_pose", None)
+    return table

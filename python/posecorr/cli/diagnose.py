@@ -6,7 +6,8 @@ from pathlib import Path
 from typing import Any
 
 from .common import (EFFECT_FILE, Verb, backend_option, check_effect_files, diagnosis_options, effect_file_option,
-                     effect_names, effects_help, emit, model_effect_names, progress, read_data)
+                     effect_names, effects_help, emit, model_effect_names, progress, read_data, station_pose_of,
+                     station_pose_option)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -21,6 +22,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="test the catalogue's effects only, not the generic forms")
     backend_option(p)
     effect_file_option(p)
+    station_pose_option(p, "the --model's (its metadata station_pose), else the paper's station")
     diagnosis_options(p)
 
 
@@ -65,6 +67,7 @@ def _with_model(args: argparse.Namespace, table: Any, effects: list[str]) -> tup
 
     info = read_info(args.model)
     check_effect_files(args.model, info)
+    table.station_pose = station_pose_of(args, args.model, info)
     held = list(info.get("effects") or [])
     mismatch = None
     if args.effects is None:

@@ -7,7 +7,8 @@ from typing import Any
 
 from . import options
 from .common import (ESTIMATOR, MODEL, Verb, CliError, emit, progress, apply_threads, load_effect_files,
-                     effect_names, effects_help, output_option, seed_option, effect_file_option, threads_option)
+                     effect_names, effects_help, output_option, seed_option, effect_file_option, station_pose_option,
+                     threads_option)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -19,6 +20,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--effects", help=effects_help("comma-separated effects of the physics stage, e.g. station,mount "
                                                   "(default: none)"))
     effect_file_option(p)
+    station_pose_option(p)
     from ..train.methods import METHODS
 
     p.add_argument("--method", choices=tuple(METHODS), default="pmc",
@@ -65,8 +67,15 @@ FIT_ROWS_MAX = 50_000
 
 
 def _read(args: argparse.Namespace) -> Any:
-    """The table to fit, or its draw with --subsample; a table of more than FIT_ROWS_MAX
-    rows is refused once that many are read, before any fitting, saying how to reduce it."""
+    """The table to fit (where its station stood, `--station-pose`), or its draw with
+    --subsample; a table of more than FIT_ROWS_MAX rows is refused once that many are read,
+    before any fitting, saying how to reduce it."""
+    table = _read_rows(args)
+    table.station_pose = args.station_pose
+    return table
+
+
+def _read_rows(args: argparse.Namespace) -> Any:
     from ..data import TooManyRows, read_table
 
     if args.subsample is not None:

@@ -104,3 +104,14 @@ def check_network_size(hidden: tuple[int, ...], trainer: str, option: str) -> No
         raise CliError(f"{option}: a network of more than {weights:,} weights; trainer {trainer} keeps "
                        f"matrices of weights x weights, so it takes at most {SECOND_ORDER_WEIGHTS_MAX:,} "
                        "(choose smaller layers or a first-order --trainer such as adam or rp)")
+
+
+def station_pose(text: str) -> str | None:
+    """`--station-pose`, checked where argparse reads it (`geometry.parse_station_pose`): the
+    text as written, None for the paper's station."""
+    from ..geometry import parse_station_pose
+
+    try:
+        return parse_station_pose(text, argparse.ArgumentTypeError).text
+    except argparse.ArgumentTypeError as exc:   # argparse names the option itself
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--station-pose ")) from None

@@ -8,7 +8,8 @@ from pathlib import Path
 from typing import Any
 
 from .common import (PAGE, CliError, Verb, backend_option, check_effect_files, diagnosis_options, effect_file_option,
-                     effect_names, given, effects_help, emit, model_effect_names, output_option, progress, read_data)
+                     effect_names, given, effects_help, emit, model_effect_names, output_option, progress, read_data,
+                     station_pose_of, station_pose_option)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -18,6 +19,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--effects", help=effects_help("the model's effects for the diagnosis (default: from the model "
                                                   "file)"))
     effect_file_option(p)
+    station_pose_option(p, "the model's (its metadata station_pose), else the paper's station")
     p.add_argument("--no-diagnosis", action="store_true", help="skip the (slower) diagnosis section")
     backend_option(p)
     diagnosis_options(p)
@@ -48,6 +50,7 @@ def run(args: argparse.Namespace) -> None:
     require_rows(table, 3, "a report (its baseline is the best rigid fit)", outliers=check_outliers)
     info = read_info(args.model)
     check_effect_files(args.model, info)
+    table.station_pose = station_pose_of(args, args.model, info)
     if asked is None and not args.no_diagnosis:
         asked = model_effect_names(args.model, info)   # one its --effect-file defines named now, not after the work
     corrector = Corrector(args.model, backend=args.backend)

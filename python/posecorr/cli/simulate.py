@@ -45,6 +45,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--only", action="store_true",
                    help="with --experiment: start from nothing, not the default mix: only the --effects given and an "
                         "--effect-file's effects act (no noise unless noise is named)")
+    p.add_argument("--station-pose", type=options.station_pose, metavar="POSE",
+                   help="where the base station stands, in the reference frame: paper (the paper's, eq. 23) or "
+                        "x,y,z[,qw,qx,qy,qz] (m, unit quaternion; the station looks along its -z); simulate prints "
+                        "where it stands in the tracker's own frame, as --station-pose tracker:... takes it "
+                        "(default: paper)")
     effect_file_option(p)
     seed_option(p)
     output_option(p, help="the paired-pose table (CSV) to write")
@@ -82,7 +87,7 @@ def run(args: argparse.Namespace) -> None:
         result = _simulate_session(args, effects or {})
     else:
         result = simulate(args.experiment, effects=effects, seed=args.seed, effect_files=files,
-                          base="none" if args.only else "default")
+                          base="none" if args.only else "default", station_pose=_station_pose(args))
     sim_table, raw, floor = result.table, result.raw, result.noise_floor
     recording = None
     if args.recording is not None:
@@ -95,7 +100,8 @@ def run(args: argparse.Namespace) -> None:
     write_table(sim_table, args.output, comment=f"{MARK} (seed {args.seed}): simulated poses, not measurements")
     effects_used = result.effects_json()
     payload = {"n": sim_table.n, "output": str(args.output), "raw": raw,
-               "noise_floor": floor, "effects": effects_used}
+               "noise_floor": floor, "effects": effects_used,
+               "station_pose": {"reference": args.station_pose or "paper", "tracker": result.station_in_tracker_frame()}}
     if recording is not None:
         payload["recording"] = {"path": str(args.recording), "joint_samples": len(recording.joints.t),
                                 "tracker_samples": len(recording.tracker.t), "clock_offset_s": recording.offset,
@@ -109,6 +115,8 @@ def run(args: argparse.Namespace) -> None:
         lines = [f"{what}, seed {args.seed}: {sim_table.n} poses -> {args.output}",
                  table(METRIC_HEADERS, metrics_rows({"raw": raw, "noise floor": floor}))]
         lines.append("effects: " + "; ".join(f"{name}={_fmt_params(p)}" for name, p in effects_used.items()))
+        lines.append(f"base station ({args.station_pose or 'paper'}) in the tracker's frame, as SteamVR would report "
+                     f"it: --station-pose {payload['station_pose']['tracker']}")
         if recording is not None:
             r = payload["recording"]
             lines.append(f"recording -> {args.recording}: {r['duration_s']:.0f} s, {r['joint_samples']} joint states, "
@@ -167,7 +175,19 @@ def _simulate_session(args: argparse.Namespace, effects: dict) -> Any:
     pin = {"n": args.poses, "spread": args.spread, "unremovable": None if args.unremovable is None
            else args.unremovable / 1000.0, "position_only": args.position_only,
            "robot": "" if args.robot == NO_ROBOT else args.robot, "duration": args.duration}
-    return simulate_session(args.seed, extra=effects, **{k: v for k, v in pin.items() if v is not None})
+    return simulate_session(args.seed, extra=effects, station_pose=_station_pose(args),
+                            **{k: v for k, v in pin.items() if v is not None})
+
+
+def _station_pose(args: argparse.Namespace) -> str | None:
+    """--station-pose for the simulator, which places the station in the reference frame."""
+    from ..geometry import parse_station_pose
+
+    if args.station_pose is not None and parse_station_pose(args.station_pose).in_tracker_frame:
+        raise CliError(f"--station-pose {args.station_pose}: simulate places the station in the reference frame "
+                       "(x,y,z[,qw,qx,qy,qz]); the tracker's frame is what it makes, and it prints where the station "
+                       "stands there")
+    return args.station_pose
 
 
 def _check_kind(args: argparse.Namespace) -> None:

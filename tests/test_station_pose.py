@@ -127,3 +127,35 @@ def test_simulate_places_the_station_in_the_reference_frame_only(tmp_path, capsy
     assert main(["simulate", "--session", "--poses", "12", "--station-pose", "tracker:0,0,0",
                  "-o", str(tmp_path / "s.csv")]) == 2
     assert "simulate places the station in the reference frame" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("value, words", [
+    ('{"stated": 5}', "metadata station_pose"),
+    ('"paper"', "metadata station_pose"),
+    ('{"stated": "tracker:paper"}', "metadata station_pose: --station-pose 'tracker:paper': expected paper"),
+])
+def test_a_models_bad_station_pose_ends_in_one_line_naming_it(tmp_path, capsys, value, words):
+    """The station a model states is read before any work; a value fit never writes is refused."""
+    import onnx
+
+    from posecorr.cli import main
+    from posecorr.controller import digest
+
+    data, model = tmp_path / "s.csv", tmp_path / "m.onnx"
+    write_table(simulate_session(1, n=12).table, data)
+    assert main(["fit", str(data), "--effects", "station,mount", "--method", "none", "--cv", "3",
+                 "-o", str(model)]) == 0
+    m = onnx.load(model)
+    kept = [(e.key, e.value) for e in m.metadata_props if e.key != digest.KEY]
+    del m.metadata_props[:]
+    for key, text in kept + [("station_pose", value), (digest.KEY, digest.PLACEHOLDER)]:
+        entry = m.metadata_props.add()
+        entry.key, entry.value = key, text
+    model.write_bytes(digest.sign(m.SerializeToString()))
+    capsys.readouterr()
+    for argv in (["report", str(data), "--model", str(model), "-o", str(tmp_path / "r.html"), "--no-diagnosis"],
+                 ["diagnose", str(data), "--model", str(model)]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and str(model) in err[0] and words in err[0], err
+    assert not (tmp_path / "r.html").exists()

@@ -193,9 +193,12 @@ def station_pose_of(args: argparse.Namespace, model: Path, info: Mapping[str, An
     if given(args, "station_pose"):
         return args.station_pose
     stated = info.get("station_pose")
-    text = stated.get("stated") if isinstance(stated, Mapping) else None
-    if text is None:
+    if stated is None:
         return None
+    text = stated.get("stated") if isinstance(stated, Mapping) else None
+    if not isinstance(text, str):
+        raise CliError(f"{model}: metadata station_pose {json.dumps(stated)[:80]}: expected {{\"stated\": POSE, \"reference\": "
+                       "[x, y, z, qw, qx, qy, qz]}, as fit writes it")
     try:
         return parse_station_pose(text, CliError).text
     except CliError as exc:

@@ -33,6 +33,9 @@ Run from the repository root: `python -m bench [--only NAME]`.
   recovers, how often null sessions get a proposal, whether sessions with the poses the
   diagnosis asks for show the form (and, without it, nothing), and how long `diagnose` takes
   (`bench/forms.py`).
+* `diagnose_workers.json`: `diagnose` on 100, 300 and 600 poses of Experiment II with its
+  folds fitted in one process and in two (`--workers`), alternating in one run, and whether
+  the two results are the same to the last bit (`bench/diagnose_workers.py`).
 * `fit_long.json`: `posecorr fit` on 10^6 rows (wall time, peak memory): refused past
   the rows a fit takes, and fitted on an even draw with `--subsample` (`bench/fit_long.py`).
 * `ingest.json`: seconds to ingest a 10-minute recording (300k joint states, 150k tracker
@@ -101,6 +104,12 @@ def _forms() -> dict:
     return forms.run(str(RESULTS / "forms.json"))
 
 
+def _diagnose_workers() -> dict:
+    from . import diagnose_workers
+
+    return diagnose_workers.run(str(RESULTS / "diagnose_workers.json"))
+
+
 def _fit_long() -> dict:
     from . import fit_long
 
@@ -117,7 +126,7 @@ def _ingest() -> dict:
 BENCHMARKS = {"latency": _latency, "targets": _targets, "previous": _previous,
               "floor_all": _floor_all, "fit": _fit, "fit_long": _fit_long,
               "apply": _apply, "ingest": _ingest, "train": _train, "train_small": _train_small,
-              "forms": _forms}
+              "forms": _forms, "diagnose_workers": _diagnose_workers}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1293,8 +1293,9 @@ def test_a_long_diagnosis_is_announced_with_the_way_around_it(tmp_path: Path, ca
     for threshold in (12, 13):
         monkeypatch.setattr(report_cli, "LONG_DIAGNOSIS_POSES", threshold)
         capsys.readouterr()
-        assert main(["report", str(path), "--model", str(model), "--cv", "3", "-o", str(tmp_path / "r.html")]) == 0
+        assert main(["report", str(path), "--model", str(model), "--cv", "3", "--workers", "1",
+                     "-o", str(tmp_path / "r.html")]) == 0
         said.append(capsys.readouterr().err)
-    announced = ("the diagnosis of 12 poses refits each candidate on every fold: minutes on a table this size "
-                 "(--no-diagnosis leaves it out)")
+    announced = ("the diagnosis of 12 poses refits each candidate on every fold, in 1 process (--workers): minutes "
+                 "on a table this size (--no-diagnosis leaves it out)")
     assert announced in said[0] and "the diagnosis of" not in said[1]

@@ -586,8 +586,26 @@ class PhysicsModel(PoseRegressorMixin, BaseEstimator):
             del self._std_source
         return self._std_errors_cache
 
+    def detach(self) -> dict[str, Any]:
+        """What cannot cross to another process inside the fitted model, taken out of it for
+        `attach` there: the data its standard errors are computed from when first asked for
+        (pickling would compute them, which a fold's model is never asked for), and its
+        effects by name (a form cut to its terms is a class made at run time, which pickle
+        cannot name)."""
+        detached = {"effects": [effect.name for effect in self.__dict__.pop("_chosen", [])]}
+        if "_std_source" in self.__dict__:
+            detached["std_source"] = self.__dict__.pop("_std_source")
+        return detached
+
+    def attach(self, detached: dict[str, Any]) -> "PhysicsModel":
+        """The model whole again after `detach`, its effects those registered here by name."""
+        self._chosen = [get_effect(name) for name in detached["effects"]]
+        if "std_source" in detached:
+            self._std_source = detached["std_source"]
+        return self
+
     def __getstate__(self) -> dict:
-        if hasattr(self, "params_"):
+        if "_std_source" in self.__dict__:
             self.std_errors_  # noqa: B018  (resolve before pickling: the data is not kept)
         state = dict(super().__getstate__())   # object's is the live __dict__ itself
         for kept in _FREE_FIT:

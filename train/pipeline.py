@@ -28,6 +28,7 @@ from posecorr.textui import percent
 
 from .base import (PoseRegressorMixin, Validation, as_validation, check_pair, check_poses, check_times, decode_pose,
                    keeps_last_fit, vector_size)
+from .folds import IN_PROCESS, FoldPool
 from .identify import describe_spread, rigid_variants
 from .physics import PhysicsModel, RigidModel
 from .spec import SESSION_EPOCHS, SESSION_HIDDEN, ModelSpec, spec_from_options
@@ -198,21 +199,26 @@ class CrossValidation:
 
 
 def cross_validate(make: Callable[[], Any], table: PoseTable, plan: CrossValidationPlan = KFold(5), seed: int = 0,
-                   fit_kwargs: Callable[[int], dict] | None = None) -> CrossValidation:
+                   fit_kwargs: Callable[[int], dict] | None = None, pool: FoldPool = IN_PROCESS) -> CrossValidation:
     """Fit `make()` on each training part of `plan`'s folds and predict the held-out poses.
     `make()` builds an estimator with a `with_rotation` parameter (a pipeline or physics
     stage; a bare core goes in `CorrectionPipeline(core=...)`): the table sets it, and the
-    station's pose where the estimator has one (`SessionSetup`)."""
+    station's pose where the estimator has one (`SessionSetup`). `pool`: the processes the
+    folds are fitted in (`folds.FoldPool`), with the same results as in this one."""
     measured, reference, t = table.measured, table.reference, table.time()
     predicted = np.empty_like(measured)
     fold_of = np.empty(table.n, dtype=int)
-    fold_rmse, fitted = [], []
-    for k, (train, held) in enumerate(plan.folds(table.n, seed)):
+    fold_rmse, fitted, tasks = [], [], []
+    splits = plan.folds(table.n, seed)
+    for k, (train, held) in enumerate(splits):
         model = make()
         model.set_params(**session_setup(table).params_for(model))
-        extra = fit_kwargs(k) if fit_kwargs else {}
-        model.fit(measured[train], reference[train], t=None if t is None else t[train], **extra)
-        predicted[held] = model.predict(measured[held], None if t is None else t[held])
+        tasks.append((model, measured[train], reference[train], None if t is None else t[train],
+                      fit_kwargs(k) if fit_kwargs else {}, measured[held], None if t is None else t[held]))
+    for k, ((_, held), (model, out, detached)) in enumerate(zip(splits, pool.map(_fit_fold, tasks))):
+        if detached is not None:
+            model.physics_.attach(detached)
+        predicted[held] = out
         fold_of[held] = k
         dp, dr = pose_errors(reference[held], predicted[held], table.has_orientation)
         fold_rmse.append(rmse_total(dp, dr))
@@ -220,6 +226,16 @@ def cross_validate(make: Callable[[], Any], table: PoseTable, plan: CrossValidat
     raw = pose_metrics(reference, measured, table.has_orientation)
     return CrossValidation(predicted, fold_of, np.asarray(fold_rmse), raw,
                            metric_block(raw, pose_metrics(reference, predicted, table.has_orientation)), fitted)
+
+
+def _fit_fold(task: tuple) -> tuple[Any, np.ndarray, dict | None]:
+    """One fold of `cross_validate`, in whichever process: (the fitted model, its predictions
+    of the held-out poses, what of its physics stage travels beside it, `PhysicsModel.detach`)."""
+    model, measured, reference, t, extra, held, t_held = task
+    model.fit(measured, reference, t=t, **extra)
+    predicted = model.predict(held, t_held)
+    physics = getattr(model, "physics_", None)
+    return model, predicted, None if physics is None else physics.detach()
 
 
 # --- candidates, the rigid baseline and the choice ---------------------------------------

@@ -382,7 +382,7 @@ def _planned(rows: list[dict[str, Any]], kept: Sequence[str], poses: int, thresh
 
 
 def _cross_validated(table: PoseTable, effects: Sequence[str], folds: int, seed: int,
-                     fit_kwargs: Callable[[int], dict] | None, fitted: dict[frozenset, Any] | None) -> Any:
+                     fit_kwargs: Callable[[int], dict] | None, fitted: "_Fits | None") -> Any:
     """The cross-validation of the model of `effects` (`pipeline.cross_validate`), done once
     per set of effects in `fitted`: the selection asks for the same model again and again (the
     model of all kept, given each of them in turn; a base model for each candidate), and these
@@ -391,13 +391,15 @@ def _cross_validated(table: PoseTable, effects: Sequence[str], folds: int, seed:
     determine the model they converge alike, and where two of its effects share a direction
     (a range scale within a strain) one fit of a model is as good as another, and each test
     given that model now sees the same one."""
+    from posecorr.train.folds import IN_PROCESS
     from posecorr.train.pipeline import CorrectionPipeline, cross_validate
     from posecorr.train.splits import KFold
 
     key = frozenset(effects)
     if fitted is not None and key in fitted:
         return fitted[key]
-    cv = cross_validate(lambda: CorrectionPipeline(list(effects)), table, KFold(folds), seed, fit_kwargs=fit_kwargs)
+    cv = cross_validate(lambda: CorrectionPipeline(list(effects)), table, KFold(folds), seed, fit_kwargs=fit_kwargs,
+                        pool=fitted.pool if fitted is not None else IN_PROCESS)
     if fitted is not None:
         for model in cv.fitted:     # kept for the whole diagnosis: without what only a prior's shrink reads
             model.physics_.forget_free_fit()
@@ -406,7 +408,7 @@ def _cross_validated(table: PoseTable, effects: Sequence[str], folds: int, seed:
 
 
 def _fold_state(table: PoseTable, effects: list[str], names: Sequence[str], splits: list, folds: int,
-                seed: int, warm: list[dict] | None = None, fitted: dict[frozenset, Any] | None = None) -> _FoldState:
+                seed: int, warm: list[dict] | None = None, fitted: "_Fits | None" = None) -> _FoldState:
     measured, reference, t = table.measured, table.reference, table.time()
     with_rotation = table.has_orientation
     names = [n for n in names if n not in effects]
@@ -448,7 +450,7 @@ def failed_parts(p_value: float, fold_gain_min: float, score: float, n_candidate
 
 
 def _evaluate(table: PoseTable, state: _FoldState, name: str, n_candidates: int, alpha: float, min_gain: float,
-              folds: int, seed: int, fitted: dict[frozenset, Any] | None = None) -> dict[str, Any]:
+              folds: int, seed: int, fitted: "_Fits | None" = None) -> dict[str, Any]:
     """The score and prediction tests and the held-out gain of adding `name` to the state's
     model (its cross-validation kept in `fitted`, `_cross_validated`)."""
     from scipy.stats import chi2, norm
@@ -569,6 +571,15 @@ MAX_ROWS = 5000
 INDISTINCT_GAIN = 0.1
 
 
+class _Fits(dict):
+    """Each model's cross-validation, by its set of effects (`_cross_validated`), and the
+    processes their folds are fitted in."""
+
+    def __init__(self, pool: Any) -> None:
+        super().__init__()
+        self.pool = pool
+
+
 @dataclass
 class _Search:
     """What the selection needs at every step: the data, the base model's folds and the test."""
@@ -583,8 +594,7 @@ class _Search:
     min_gain: float
     say: Callable[[str], None]
     base: "_FoldState"
-    # each model's cross-validation, by its set of effects (`_cross_validated`)
-    fitted: dict[frozenset, Any] = field(default_factory=dict)
+    fitted: "_Fits"
 
     def evaluate(self, name: str, state: "_FoldState") -> dict[str, Any]:
         """The test of `name` added to the cross-validated model `state`."""
@@ -887,7 +897,7 @@ def advised_effects(table: PoseTable, given: Sequence[str], effects: Sequence[st
 def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed: int = 0,
              alpha: float = ALPHA, min_gain: float = MIN_GAIN, candidates: Sequence[str] | None = None,
              forms: bool = True, model_corrected: np.ndarray | None = None,
-             progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+             progress: Callable[[str], None] | None = None, workers: int = 1) -> dict[str, Any]:
     """Rank the effects `effects` lacks, catalogue effects and generic forms on the same
     held-out poses; JSON-ready dict in the `diagnose` layout of docs/design.md.
 
@@ -898,8 +908,20 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     effects the advice to add them.
     model_corrected: (N, 7) poses of the table's rows as a given model (an ONNX file, say)
     corrects them; when given, the feature R^2 uses its residuals instead of the base physics
-    model's out-of-fold ones.
+    model's out-of-fold ones. workers: the processes the cross-validations' folds are fitted
+    in (`train.folds.FoldPool`): the same result, sooner on a large table.
     """
+    from posecorr.train.folds import FoldPool
+
+    with FoldPool(workers) as pool:
+        return _diagnosed(table, list(effects), folds, seed, alpha, min_gain, candidates, forms, model_corrected,
+                          progress, _Fits(pool))
+
+
+def _diagnosed(table: PoseTable, effects: list[str], folds: int, seed: int, alpha: float, min_gain: float,
+               candidates: Sequence[str] | None, forms: bool, model_corrected: np.ndarray | None,
+               progress: Callable[[str], None] | None, fitted: "_Fits") -> dict[str, Any]:
+    """`diagnose`, its cross-validations kept in `fitted`."""
     from posecorr.train.splits import KFold
 
     from .proposal import explain_absent, explain_absorbed, propose
@@ -919,7 +941,7 @@ def diagnose(table: PoseTable, effects: Sequence[str] = (), folds: int = 5, seed
     names, undetermined = split_identifiable(table, effects, names)
     splits = KFold(folds).folds(table.n, seed)
     say(f"base model ({', '.join(effects) or 'no effects'}), {folds}-fold cross-validation")
-    state = _fold_state(table, effects, names, splits, folds, seed, fitted=(fitted := {}))   # the search's too
+    state = _fold_state(table, effects, names, splits, folds, seed, fitted=fitted)   # the search's too
     search = _Search(table, effects, names, splits, folds, seed, alpha, min_gain, say, state, fitted)
     rows, kept, dropped = _select(search)
     features, unplaced = _feature_scan(table, model_corrected if model_corrected is not None else state.predicted,

@@ -153,7 +153,8 @@ def _cross_validated(search: Any, effects: list[str]) -> Any:
     from posecorr.train.pipeline import CorrectionPipeline, cross_validate
     from posecorr.train.splits import KFold
 
-    return cross_validate(lambda: CorrectionPipeline(effects), search.table, KFold(search.folds), search.seed)
+    return cross_validate(lambda: CorrectionPipeline(effects), search.table, KFold(search.folds), search.seed,
+                          pool=search.fitted.pool)
 
 
 def _gains(search: Any, cv: Any, whiten: Sequence[Any] | None = None) -> np.ndarray:

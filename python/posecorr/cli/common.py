@@ -153,8 +153,22 @@ def diagnosis_options(p: argparse.ArgumentParser) -> None:
                         "it needs folds, so fit's none and loo are not taken (report scores the model itself "
                         "on the folds its fit used)")
     p.add_argument("--folds", dest="folds", type=diagnosis_folds, action=Renamed, new="--cv", help=argparse.SUPPRESS)
+    from .options import WORKERS
+
+    p.add_argument("--workers", type=WORKERS, metavar="N",
+                   help="processes the diagnosis fits each cross-validation's folds in, side by side: the same "
+                        "result, sooner on a large table (default: the cores other processes leave idle, at most "
+                        "the folds)")
     seed_option(p)
     threads_option(p)
+
+
+def diagnosis_workers(args: argparse.Namespace) -> int:
+    """--workers, or the idle cores up to one per fold; never more than the machine's cores."""
+    from ..threads import available_cores
+    from .options import cores
+
+    return min(args.workers or min(available_cores(), args.folds), cores())
 
 
 def diagnosis_folds(text: str) -> int:

@@ -5,9 +5,9 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from .common import (EFFECT_FILE, Verb, backend_option, check_effect_files, diagnosis_options, effect_file_option,
-                     effect_names, effects_help, emit, model_effect_names, progress, read_data, station_pose_of,
-                     station_pose_option)
+from .common import (EFFECT_FILE, Verb, backend_option, check_effect_files, diagnosis_options, diagnosis_workers,
+                     effect_file_option, effect_names, effects_help, emit, model_effect_names, progress, read_data,
+                     station_pose_of, station_pose_option)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> None:
     table = read_data(args, advised=True)   # its advice is a fit with the effects it loads
     effects, corrected, mismatch = _with_model(args, table, effect_names(args.effects))
     result = diagnose(table, effects, folds=args.folds, seed=args.seed, forms=args.forms,
-                      model_corrected=corrected, progress=progress(args))
+                      model_corrected=corrected, progress=progress(args), workers=diagnosis_workers(args))
     result["notes"] += [mismatch] if mismatch else []
     proposal = result["proposal"]
     if proposal is not None and args.propose is not None:

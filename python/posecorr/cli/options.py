@@ -73,6 +73,7 @@ def cores() -> int:
 
 SEED = integer(0, 2**32 - 1)
 THREADS = integer(1, 1024)
+WORKERS = integer(1, 1024)
 # Trainers that keep P x P matrices of the P weights (the Gauss-Newton matrix of LM and BR,
 # BFGS' inverse Hessian): 5,000 weights is 200 MB per matrix, 1024,1024 would be 8 TB.
 SECOND_ORDER_TRAINERS = ("lm", "br", "bfg")

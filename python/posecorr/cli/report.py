@@ -7,9 +7,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from .common import (PAGE, CliError, Verb, backend_option, check_effect_files, diagnosis_options, effect_file_option,
-                     effect_names, given, effects_help, emit, model_effect_names, output_option, progress, read_data,
-                     station_pose_of, station_pose_option)
+from .common import (PAGE, CliError, Verb, backend_option, check_effect_files, diagnosis_options, diagnosis_workers,
+                     effect_file_option, effect_names, given, effects_help, emit, model_effect_names, output_option,
+                     progress, read_data, station_pose_of, station_pose_option)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -42,10 +42,7 @@ def run(args: argparse.Namespace) -> None:
     for sidecar in (ledger_path(args.data), segments_path(args.data)):
         check_sidecar(sidecar)  # a link or a FIFO refused before the work, not after it
     table = read_data(args)   # its --effect-file first: --effects may name that file's effects
-    if args.no_diagnosis and args.effects is not None:
-        raise CliError("--effects names the model's effects for the diagnosis, which --no-diagnosis leaves out")
-    if args.no_diagnosis and given(args, "folds"):    # the model's own held-out test keeps its fit's folds
-        raise CliError("--cv sets the diagnosis's folds, which --no-diagnosis leaves out")
+    _refuse_diagnosis_options(args)
     asked = effect_names(args.effects) if args.effects is not None else None   # its fault before the work
     require_rows(table, 3, "a report (its baseline is the best rigid fit)", outliers=check_outliers)
     info = read_info(args.model)
@@ -86,6 +83,18 @@ def run(args: argparse.Namespace) -> None:
                   + (f"\n  diagnosis: {takeaway(diagnosis, model_effects(info, diagnosis))}" if diagnosis else "")))
 
 
+def _refuse_diagnosis_options(args: argparse.Namespace) -> None:
+    """An option of the diagnosis, given with --no-diagnosis, would be ignored: refused."""
+    if not args.no_diagnosis:
+        return
+    if args.effects is not None:
+        raise CliError("--effects names the model's effects for the diagnosis, which --no-diagnosis leaves out")
+    if args.workers is not None:
+        raise CliError("--workers sets the diagnosis's processes, which --no-diagnosis leaves out")
+    if given(args, "folds"):    # the model's own held-out test keeps its fit's folds
+        raise CliError("--cv sets the diagnosis's folds, which --no-diagnosis leaves out")
+
+
 # From this many poses the diagnosis takes about half a minute or more: 300 of the paper's
 # Experiment II took 22 s, 600 took 103 s (docs/guides/loop.md), against 3 s for a 50-pose session.
 LONG_DIAGNOSIS_POSES = 300
@@ -101,10 +110,13 @@ def _diagnosis(args: argparse.Namespace, table: Any, asked: list[str], corrected
     except ValueError as error:
         return None, getattr(error, "message", str(error))
     say = progress(args)
+    workers = diagnosis_workers(args)
     if table.n >= LONG_DIAGNOSIS_POSES:
-        say(f"the diagnosis of {table.n} poses refits each candidate on every fold: minutes on a table this size "
+        say(f"the diagnosis of {table.n} poses refits each candidate on every fold, in {workers} "
+            f"{'process' if workers == 1 else 'processes'} (--workers): minutes on a table this size "
             "(--no-diagnosis leaves it out)")
-    return diagnose(table, asked, folds=args.folds, seed=args.seed, model_corrected=corrected, progress=say), None
+    return diagnose(table, asked, folds=args.folds, seed=args.seed, model_corrected=corrected, progress=say,
+                    workers=workers), None
 
 
 VERB = Verb(

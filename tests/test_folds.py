@@ -36,6 +36,19 @@ def test_a_pools_cross_validation_is_one_process_s_to_the_last_bit():
         assert [e.name for e in b.physics_._chosen] == ["mount", "sweep", "station"]
 
 
+def test_a_bare_physics_stage_crosses_whole():
+    from posecorr.train.physics import PhysicsModel
+
+    table = simulate_session(4, n=30).table
+    runs = []
+    for pool in (FoldPool(1), FoldPool(2)):
+        with pool:
+            runs.append(cross_validate(lambda: PhysicsModel(("station", "mount")), table, KFold(3), pool=pool))
+    for a, b in zip(*(run.fitted for run in runs)):
+        assert np.array_equal(a.std_errors_["mount"], b.std_errors_["mount"])
+        assert [e.name for e in b._chosen] == ["mount", "station"]
+
+
 def test_an_effect_registered_after_the_pool_forked_reaches_its_workers(tmp_path):
     table = simulate_session(3, n=30).table
     source = tmp_path / "late_effect.py"

@@ -217,7 +217,7 @@ def cross_validate(make: Callable[[], Any], table: PoseTable, plan: CrossValidat
                       fit_kwargs(k) if fit_kwargs else {}, measured[held], None if t is None else t[held]))
     for k, ((_, held), (model, out, detached)) in enumerate(zip(splits, pool.map(_fit_fold, tasks))):
         if detached is not None:
-            model.physics_.attach(detached)
+            _physics_stage(model).attach(detached)
         predicted[held] = out
         fold_of[held] = k
         dp, dr = pose_errors(reference[held], predicted[held], table.has_orientation)
@@ -234,8 +234,13 @@ def _fit_fold(task: tuple) -> tuple[Any, np.ndarray, dict | None]:
     model, measured, reference, t, extra, held, t_held = task
     model.fit(measured, reference, t=t, **extra)
     predicted = model.predict(held, t_held)
-    physics = getattr(model, "physics_", None)
+    physics = _physics_stage(model)
     return model, predicted, None if physics is None else physics.detach()
+
+
+def _physics_stage(model: Any) -> PhysicsModel | None:
+    """The physics stage of a pipeline, or the model itself where it is one."""
+    return model if isinstance(model, PhysicsModel) else getattr(model, "physics_", None)
 
 
 # --- candidates, the rigid baseline and the choice ---------------------------------------

@@ -41,7 +41,7 @@ the out-of-fold residuals (position mm, orientation mrad) on that feature alone.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
 import numpy as np

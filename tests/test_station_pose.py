@@ -104,6 +104,9 @@ def test_fit_states_the_station_and_report_rebuilds_its_held_out_figures(session
                  "--json"]) == 0
     after = json.loads(capsys.readouterr().out)["after"]
     assert after["held_out"] and after["rmse_pos"] == pytest.approx(fitted["cv"]["rmse_pos"], rel=1e-9)
+    page = (tmp_path / "r.html").read_text()
+    x, y, z = placed["reference"][:3]
+    assert f"--station-pose {where}; placed at ({x:.3f}, {y:.3f}, {z:.3f}) m in the reference frame" in page
     assert read_table(data).station_pose is None   # the table file itself is unchanged
 
 

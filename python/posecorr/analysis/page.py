@@ -158,6 +158,7 @@ def _summary_section(table: PoseTable, model_info: Mapping[str, Any] | None, tit
                   ("effects in the model", _t(effects))]
         if model_info.get("posecorr_version") not in (None, ""):
             items.append(("posecorr version", _t(model_info["posecorr_version"])))
+        items += _station_rows(model_info.get("station_pose"))
         if isinstance(model_info.get("fixed"), Mapping):
             items += _held_rows(model_info["fixed"])
         if isinstance(model_info.get("file_size"), int):
@@ -170,6 +171,17 @@ def _summary_section(table: PoseTable, model_info: Mapping[str, Any] | None, tit
     items.append(("generated", datetime.now(timezone.utc).isoformat(timespec="seconds")))
     body = '<dl class="kv">' + "".join(f"<dt>{_e(k)}</dt><dd>{v}</dd>" for k, v in items) + "</dl>"
     return _section("summary", "Summary", body)
+
+
+def _station_rows(placed: Any) -> list[tuple[str, str]]:
+    """The base station the model's effects bend about, where its fit was told
+    (`--station-pose`, metadata `station_pose`): as stated, and where the fit placed it."""
+    if not isinstance(placed, Mapping) or not isinstance(placed.get("stated"), str):
+        return []
+    where = placed.get("reference")
+    at = (f"; placed at ({', '.join(f'{v:.3f}' for v in where[:3])}) m in the reference frame"
+          if isinstance(where, list) and len(where) == 7 and all(isinstance(v, (int, float)) for v in where) else "")
+    return [("base station", _t(f"--station-pose {placed['stated']}{at}"))]
 
 
 def _held_rows(fixed: Mapping[str, Any]) -> list[tuple[str, str]]:

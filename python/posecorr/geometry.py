@@ -80,7 +80,7 @@ def homogeneous(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 NAMED_TRANSFORMS = {
     "tool": {"paper": END_T_TRACKER.copy, "none": lambda: np.eye(4)},
     "registration": {"paper": base_T_station, "none": lambda: np.eye(4)},
-    "station_pose": {"paper": base_T_station},
+    "station_pose": {},   # its "paper" is parse_station_pose's: a reference-frame pose, never "tracker:paper"
 }
 
 
@@ -153,8 +153,6 @@ def parse_station_pose(text: str | None, error: type[Exception] = ValueError) ->
     if in_tracker:
         body = body[len(TRACKER_FRAME_PREFIX):]
     try:
-        if in_tracker and body.strip().lower() == "paper":   # the paper's is a reference-frame pose
-            raise error(body)
         T = parse_transform(body, "station_pose", error)
     except error as exc:
         raise error(f"--station-pose {text!r}: expected paper, x,y,z[,qw,qx,qy,qz] (m, reference frame) or "

@@ -102,13 +102,20 @@ class SimulationResult:
         return geometry.TRACKER_FRAME_PREFIX + ",".join(f"{v:.6f}" for v in values)
 
 
-def _placed(ctx: EffectContext, station_pose: str | None, **changes: Any) -> EffectContext:
-    """`ctx` with the base station where `station_pose` puts it in the reference frame (the
-    simulator makes that frame, so a pose in the tracker's frame is not taken), and `changes`."""
+def simulated_station(station_pose: str | None) -> geometry.StationPose:
+    """The station a simulation places (`geometry.parse_station_pose`): in the reference frame
+    only, for the tracker's frame is what the simulation makes (`station_in_tracker_frame`)."""
     stated = geometry.parse_station_pose(station_pose)
     if stated.in_tracker_frame:
-        raise ValueError(f"station_pose {station_pose!r}: a simulated station is placed in the reference frame "
-                         f"(the tracker's frame is what the simulation makes: `station_in_tracker_frame`)")
+        raise ValueError(f"--station-pose {station_pose}: simulate places the station in the reference frame "
+                         "(x,y,z[,qw,qx,qy,qz]); the tracker's frame is what it makes, and it prints where the station "
+                         "stands there")
+    return stated
+
+
+def _placed(ctx: EffectContext, station_pose: str | None, **changes: Any) -> EffectContext:
+    """`ctx` with the base station where `station_pose` puts it (`simulated_station`), and `changes`."""
+    stated = simulated_station(station_pose)
     return replace(ctx, R_S=stated.R, t_S=stated.t, **changes)
 
 

@@ -180,13 +180,13 @@ def _simulate_session(args: argparse.Namespace, effects: dict) -> Any:
 
 
 def _station_pose(args: argparse.Namespace) -> str | None:
-    """--station-pose for the simulator, which places the station in the reference frame."""
-    from ..geometry import parse_station_pose
+    """--station-pose for the simulator, refused before any work where it cannot place it."""
+    from ..simulate import simulated_station
 
-    if args.station_pose is not None and parse_station_pose(args.station_pose).in_tracker_frame:
-        raise CliError(f"--station-pose {args.station_pose}: simulate places the station in the reference frame "
-                       "(x,y,z[,qw,qx,qy,qz]); the tracker's frame is what it makes, and it prints where the station "
-                       "stands there")
+    try:
+        simulated_station(args.station_pose)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
     return args.station_pose
 
 

@@ -30,7 +30,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--store", type=Path, help="results store (JSON lines), always written; an interrupted sweep resumes from it "
                         "(default: DATA.sweep.jsonl beside the data, or sweep-expN-seedS.jsonl in the working "
                         "folder for --experiment N)")
-    p.add_argument("--workers", type=options.integer(1, 1024), default=None,
+    p.add_argument("--workers", type=options.WORKERS, default=None,
                    help="local worker processes (default 2, or 1 on a one-core machine; at most the cores)")
     threads_option(p, "per worker process")
     p.add_argument("--ray", metavar="ADDRESS",

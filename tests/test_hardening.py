@@ -545,6 +545,9 @@ def test_apply_keep_going_writes_a_refused_pose_as_nan_and_counts_it(tmp_path, c
 
     every = tmp_path / "every.csv"
     every.write_text("\n".join([lines[0], lines[45], lines[49]]) + "\n")
+    with pytest.raises(TableError, match=r"row 2, column meas_y: .*\(metadata input_bounds\); --keep-going writes "
+                                         "each pose the model refuses as nan and goes on$"):
+        apply_file(model, every, tmp_path / "stopped.csv")   # the way on, said where apply stops
     with pytest.raises(TableError, match="the model refused every pose; the first: .*row 2, column meas_y"):
         apply_file(model, every, tmp_path / "none.csv", keep_going=True)
     assert not (tmp_path / "none.csv").exists()

@@ -294,6 +294,8 @@ def _check_header(reader: TableReader, corrector: Corrector, model: str | os.Pat
 
 # A zero measured quaternion refused without --keep-going: the way on (a tracker's "no pose").
 KEEP_GOING_FIX = "a tracker that lost tracking writes zeros: --keep-going writes such a pose as nan and goes on"
+# A pose the model refuses without --keep-going (outside its box): the way on.
+REFUSED_FIX = "--keep-going writes each pose the model refuses as nan and goes on"
 
 
 def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], output: str | os.PathLike[str],
@@ -332,7 +334,8 @@ def apply_file(model: str | os.PathLike[str], table: str | os.PathLike[str], out
                     corrected = corrector.correct(measured, t=times)
                 except PoseCorrError as error:
                     if not keep_going:
-                        raise _refused_row(reader.path, model, chunk, measured, times, corrector, error) from None
+                        stop = _refused_row(reader.path, model, chunk, measured, times, corrector, error)
+                        raise TableError(stop.path, f"{stop.message}; {REFUSED_FIX}", stop.row, stop.column) from None
                     corrected, errors = _pose_by_pose(reader.path, model, chunk, measured, times, corrector)
                     refused.add(errors)
                 kept = np.all(np.isfinite(corrected), axis=1)   # the refused poses out of the count and sums

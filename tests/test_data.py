@@ -83,6 +83,9 @@ def test_reference_angles_are_named_not_taken_for_a_quaternion(tmp_path, capsys)
     (HEADER.replace(",ref_z", "") + "\n" + ROW.rsplit(",", 1)[0] + "\n", 1, "ref_z", "missing column"),
     (f"{HEADER},ref_qw\n{ROW},1\n", 1, "ref_qx", "missing column"),
     (f"{HEADER}\n{ROW}\n0.1,abc,0.3,1,0,0,0,0.1,0.2,0.3\n", 3, "meas_y", "expected a number, got 'abc'"),
+    # two logs joined with cat: the second's header inside the table, named as such
+    (f"{HEADER}\n{ROW}\n{HEADER}\n{ROW}\n", 3, "meas_x", "expected a number, got 'meas_x', its column's name: a "
+     "header row again (tables joined? keep the first header only)"),
     (f"{HEADER}\n{ROW}\n0.1,0.2,nan,1,0,0,0,0.1,0.2,0.3\n", 3, "meas_z", "finite"),
     (f"{HEADER}\n{ROW}\n0.1,0.2,0.3,1,0,0,0,inf,0.2,0.3\n", 3, "ref_x", "finite"),
     (f"{HEADER}\n{ROW}\n0.1,0.2,0.3,1,0,0,0,,0.2,0.3\n", 3, "ref_x", "empty value"),

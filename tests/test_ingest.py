@@ -311,6 +311,13 @@ def test_bad_csv_cell_names_row_and_column(recording, tmp_path) -> None:
     path.write_text("\n".join(lines) + "\n")
     with pytest.raises(IngestError, match=r"row 8, column q2: expected a number, got 'abc'"):
         read_csv_log([path])
+    # two logs joined with cat: the second's header is named as such, not as a bad number
+    clean = write_recording(recording, tmp_path / "clean.csv").read_text().splitlines()
+    joined = tmp_path / "joined.csv"
+    joined.write_text("\n".join(clean[:8] + clean[:1] + clean[9:]) + "\n")
+    with pytest.raises(IngestError, match=r"row 9, column (\w+): expected a number, got '\1', its column's name: a "
+                                          r"header row again \(tables joined\? keep the first header only\)$"):
+        read_csv_log([joined])
 
 
 def test_a_paired_table_given_to_ingest_is_sent_to_fit(recording, tmp_path) -> None:

@@ -219,6 +219,13 @@ _DECIMAL_CHARS_RE = re.compile(r"[0-9eE+\-. \t\n]*")
 CHUNK_ROWS = 16384  # rows per chunk: ~25 MB of cells as Python strings
 
 
+def header_again(cell: str, column: str) -> str:
+    """The words after "expected a number, got 'meas_x'" where a cell holds its column's name:
+    two logs joined with `cat` carry the second one's header inside the table."""
+    return ", its column's name: a header row again (tables joined? keep the first header only)" \
+        if cell == column else ""
+
+
 def _parse_number(text: str, path: str, row: int, column: str) -> float:
     stripped = text.strip()
     if not stripped:
@@ -226,7 +233,8 @@ def _parse_number(text: str, path: str, row: int, column: str) -> float:
     try:
         value = float(stripped)
     except ValueError:
-        raise TableError(path, f"expected a number, got {stripped[:40]!r}", row, column) from None
+        raise TableError(path, f"expected a number, got {stripped[:40]!r}{header_again(stripped, column)}",
+                         row, column) from None
     if math.isfinite(value) and not _NUMBER_RE.fullmatch(stripped):
         raise TableError(path, f"expected a number in plain decimal notation (like -0.125 or 1.5e-3), "
                          f"got {stripped[:40]!r}", row, column)

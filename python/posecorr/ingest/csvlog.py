@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data import (CHUNK_ROWS, MEAS_POS, REF_POS, REQUIRED, TableError, csv_records, header_record,
+from ..data import (CHUNK_ROWS, MEAS_POS, REF_POS, REQUIRED, TableError, csv_records, header_record, header_again,
                     implausible_span, quaternion_faults, rows_words, separator_hint, warn_comments)
 from ..textui import counted
 from .progress import progress_bar
@@ -201,7 +201,7 @@ def _numbers(path: Path, block: np.ndarray, rows: np.ndarray, names: tuple[str, 
                     float(cell)
                 except ValueError:
                     raise IngestError(f"{path}: row {rows[i]}, column {names[j]}: expected a number, "
-                                      f"got {cell.strip()!r}") from None
+                                      f"got {cell.strip()!r}{header_again(cell.strip(), names[j])}") from None
         raise
     bad = np.argwhere(~np.isfinite(values))
     if bad.size:

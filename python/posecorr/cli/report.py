@@ -14,7 +14,9 @@ from .common import (PAGE, CliError, Verb, backend_option, check_effect_files, d
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", type=Path, help="the paired-pose table (CSV) the model is judged on")
-    p.add_argument("--model", type=Path, required=True, help="the exported model (ONNX) to judge")
+    p.add_argument("--model", type=Path, required=True,
+                   help="the exported model (ONNX) to judge (`posecorr fit DATA -o MODEL` writes one: the best "
+                        "rigid fit where nothing it tries beats that)")
     output_option(p, help="the HTML page to write")
     p.add_argument("--effects", help=effects_help("the model's effects for the diagnosis (default: from the model "
                                                   "file)"))

@@ -79,7 +79,9 @@ def broadcast_shapes(*shapes: Sequence[int]) -> tuple[int, ...]:
 
 def _caller_scope() -> str:
     """Name of the first function outside this module on the stack: labels nodes so that
-    an error about a node points at the formula that produced it."""
+    an error about a node points at the formula that produced it. A list comprehension is a
+    frame of its own, `<listcomp>`, up to Python 3.11 and part of its function from 3.12
+    (PEP 709): the names, not the graph, differ across Pythons."""
     frame = sys._getframe(1)
     here = __file__
     while frame is not None and frame.f_code.co_filename == here:

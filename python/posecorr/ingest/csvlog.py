@@ -200,8 +200,9 @@ def _numbers(path: Path, block: np.ndarray, rows: np.ndarray, names: tuple[str, 
                 try:
                     float(cell)
                 except ValueError:
+                    text = cell.strip()
                     raise IngestError(f"{path}: row {rows[i]}, column {names[j]}: expected a number, "
-                                      f"got {cell.strip()!r}{header_again(cell.strip(), names[j])}") from None
+                                      f"got {text!r}{header_again(text, names[j])}") from None
         raise
     bad = np.argwhere(~np.isfinite(values))
     if bad.size:
